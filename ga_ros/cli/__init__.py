@@ -1,0 +1,1 @@
+"""The ``ga-ros`` command line: one module per subcommand in :mod:`ga_ros.cli.commands`."""

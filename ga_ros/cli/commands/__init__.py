@@ -1,0 +1,1 @@
+"""Subcommands of ``ga-ros``; each module defines ``register(subparsers)`` (see ``main.py``)."""

@@ -1,0 +1,49 @@
+"""``ga-ros`` entry point.
+
+Each module in :mod:`ga_ros.cli.commands` defines ``register(subparsers) -> None``, which adds one
+subcommand whose parser has ``set_defaults(func=run)`` with ``run(args) -> int``. Errors derived
+from :class:`ga_ros.errors.GaError` become a one-line message and exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from ga_ros import __version__
+from ga_ros.cli import commands
+from ga_ros.errors import GaError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='ga-ros',
+        description='Global alignment of sensor trajectories from noisy motion measurements.')
+    parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        module = importlib.import_module(f'{commands.__name__}.{info.name}')
+        if hasattr(module, 'register'):
+            module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, 'func', None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except GaError as exc:
+        print(f'ga-ros {args.command}: error: {exc}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The ROS-free estimator core: connection network, constraint models, mixed-adjustment solver."""

@@ -1,0 +1,52 @@
+"""A relative-motion measurement between two nodes: the unit the live pipeline exchanges.
+
+This is the core type behind the ROS measurement encoding (``nav_msgs/Odometry``, see
+:mod:`ga_ros.ros.conversions` and the README): the visual odometry produces it, the alignment node
+and the offline replay consume it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray
+from ga_ros.geometry import se3
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Motion ``T_src_dst`` of node ``dst`` in the frame of node ``src``, with covariance.
+
+    Attributes
+    ----------
+    src_id, dst_id : node ids (non-negative integers, unique over a survey).
+    src_track, dst_track : track ids of the two nodes (a track = one double swath, increasing).
+    z : (6,) ``[t, w]``: translation (m) and rotation vector (rad) of ``T_src_dst``.
+    cov : (6, 6) covariance of the right perturbation of ``T_src_dst``, order ``[x y z rx ry rz]``.
+    stamp_ns : acquisition time of the ``dst`` frame (ns since the epoch, or bag time).
+    kind : ``'consecutive'`` (frame to frame) or ``'cross'`` (overlap between swaths / tracks).
+    """
+
+    src_id: int
+    dst_id: int
+    src_track: int
+    dst_track: int
+    z: FloatArray
+    cov: FloatArray
+    stamp_ns: int = 0
+    kind: str = field(default='consecutive')
+
+    @property
+    def T_src_dst(self) -> FloatArray:
+        """The motion as a 4x4 pose."""
+        return se3.from_translation_rotvec(np.asarray(self.z[:3]), np.asarray(self.z[3:]))
+
+    @staticmethod
+    def from_pose(src_id: int, dst_id: int, src_track: int, dst_track: int, T_src_dst: FloatArray,
+                  cov: FloatArray, stamp_ns: int = 0, kind: str = 'consecutive') -> Measurement:
+        """Build from a 4x4 motion ``T_src_dst``."""
+        return Measurement(int(src_id), int(dst_id), int(src_track), int(dst_track),
+                           se3.to_translation_rotvec(np.asarray(T_src_dst, dtype=float)),
+                           np.asarray(cov, dtype=float).reshape(6, 6), int(stamp_ns), kind)

@@ -1,0 +1,39 @@
+"""Exception hierarchy of ga_ros.
+
+Every error raised on bad input derives from :class:`GaError`, so nodes can catch one type,
+warn and drop the sample, and the CLI can map it to exit code 1 with a one-line message.
+"""
+
+from __future__ import annotations
+
+
+class GaError(Exception):
+    """Base class of all ga_ros errors."""
+
+
+class InputError(GaError, ValueError):
+    """Input data (a measurement, a covariance, a file) is malformed; nothing was changed."""
+
+
+class NetworkError(InputError):
+    """The connection network is inconsistent (unknown node, self-loop, disconnected part)."""
+
+
+class DegenerateGeometryError(GaError):
+    """The problem is singular or ill-posed (e.g. a normal matrix that cannot be factored)."""
+
+
+class SolverError(GaError):
+    """The solver failed (diverged, produced non-finite values); the previous estimate stands."""
+
+
+class FormatError(InputError):
+    """A file could not be read; the message names the file and line."""
+
+    def __init__(self, message: str, path: str | None = None, line: int | None = None) -> None:
+        where = ''
+        if path is not None:
+            where = f'{path}:{line}: ' if line is not None else f'{path}: '
+        super().__init__(where + message)
+        self.path = path
+        self.line = line

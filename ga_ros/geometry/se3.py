@@ -1,0 +1,193 @@
+"""SE(3): 4x4 homogeneous poses, exp/log, adjoint and Jacobians, quaternion conversions.
+
+Conventions used throughout ga_ros
+----------------------------------
+* A pose ``T_a_b`` (shape ``(..., 4, 4)``) maps points from frame ``b`` into frame ``a``:
+  ``p_a = T_a_b @ p_b``. Node poses are ``T_world_node``.
+* A tangent vector is ``xi = [rho, phi]`` (shape ``(..., 6)``): translation part first, then the
+  rotation vector (rad), the same order as a ROS pose covariance ``[x y z rx ry rz]``.
+* Perturbations are on the right: ``T (+) xi = T @ exp(xi)``; a pose covariance is the covariance
+  of that ``xi`` (the convention of GTSAM, g2o and of ROS ``PoseWithCovariance``).
+* ``exp(x + d) ~= exp(x) @ exp(right_jacobian(x) @ d) ~= exp(left_jacobian(x) @ d) @ exp(x)``
+  (Barfoot, *State Estimation for Robotics*, eqs. 7.85-7.95, with his ``[rho; phi]`` order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ga_ros.arrays import FloatArray
+from ga_ros.geometry import so3
+
+
+def identity(n: int | None = None) -> FloatArray:
+    """Identity pose, ``(4, 4)`` or ``(n, 4, 4)``."""
+    return np.eye(4) if n is None else np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+
+
+def from_rt(R: FloatArray, t: FloatArray) -> FloatArray:
+    """Pose from rotation ``(..., 3, 3)`` and translation ``(..., 3)``."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    out = np.zeros(np.broadcast_shapes(R.shape[:-2], t.shape[:-1]) + (4, 4))
+    out[..., :3, :3] = R
+    out[..., :3, 3] = t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def from_translation_rotvec(t: FloatArray, w: FloatArray) -> FloatArray:
+    """Pose ``(R(w), t)`` from translation ``t`` (m) and rotation vector ``w`` (rad)."""
+    return from_rt(so3.exp(w), t)
+
+
+def to_translation_rotvec(T: FloatArray) -> FloatArray:
+    """``[t, w]`` (shape ``(..., 6)``, m and rad) of a pose; inverse of
+    :func:`from_translation_rotvec`."""
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([T[..., :3, 3], so3.log(T[..., :3, :3])], axis=-1)
+
+
+def from_pos_quat(p: FloatArray, quat_xyzw: FloatArray) -> FloatArray:
+    """Pose from position ``(..., 3)`` and unit quaternion ``(..., 4)`` in ``x y z w`` order
+    (ROS and g2o order). The quaternion is normalised; a zero quaternion raises ValueError."""
+    q = np.asarray(quat_xyzw, dtype=float)
+    R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    return from_rt(R, p)
+
+
+def to_pos_quat(T: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Position ``(..., 3)`` and quaternion ``(..., 4)`` (``x y z w``, ``w >= 0``) of a pose."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3].reshape(-1, 3, 3)
+    q = Rotation.from_matrix(R).as_quat().reshape(T.shape[:-2] + (4,))
+    q = np.where(q[..., 3:4] < 0, -q, q)
+    return T[..., :3, 3].copy(), q
+
+
+def inverse(T: FloatArray) -> FloatArray:
+    """``T^-1`` using the rotation's transpose."""
+    T = np.asarray(T, dtype=float)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    return from_rt(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def relative(T_w_a: FloatArray, T_w_b: FloatArray) -> FloatArray:
+    """``T_a_b = T_w_a^-1 @ T_w_b``: the motion of ``b`` expressed in the frame of ``a``."""
+    return inverse(T_w_a) @ np.asarray(T_w_b, dtype=float)
+
+
+def Q_matrix(xi: FloatArray) -> FloatArray:
+    """Barfoot's ``Q(rho, phi)`` (eq. 7.86), the off-diagonal block of the SE(3) left Jacobian."""
+    xi = np.asarray(xi, dtype=float)
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < 1e-3
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    c1 = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (t - np.sin(t)) / t**3)
+    c2 = np.where(small, 1 / 24 - t2 / 720 + t2 * t2 / 40320,
+                  (t * t + 2 * np.cos(t) - 2) / (2 * t**4))
+    c3 = np.where(small, 1 / 120 - t2 / 2520 + t2 * t2 / 120960,
+                  (2 * t - 3 * np.sin(t) + t * np.cos(t)) / (2 * t**5))
+    P = so3.hat(phi)
+    Rh = so3.hat(rho)
+    PR = P @ Rh
+    RP = Rh @ P
+    PRP = PR @ P
+    PP = P @ P
+    e = (..., None, None)
+    return (0.5 * Rh + c1[e] * (PR + RP + PRP) + c2[e] * (PP @ Rh + RP @ P - 3 * PRP)
+            + c3[e] * (PRP @ P + P @ PRP))
+
+
+def exp(xi: FloatArray) -> FloatArray:
+    """Exponential map ``[rho, phi] -> T``; ``(..., 6) -> (..., 4, 4)`` (Barfoot eq. 7.83)."""
+    xi = np.asarray(xi, dtype=float)
+    phi = xi[..., 3:]
+    t = (so3.left_jacobian(phi) @ xi[..., :3, None])[..., 0]
+    return from_rt(so3.exp(phi), t)
+
+
+def log(T: FloatArray) -> FloatArray:
+    """Logarithm ``T -> [rho, phi]``; ``(..., 4, 4) -> (..., 6)``."""
+    T = np.asarray(T, dtype=float)
+    phi = so3.log(T[..., :3, :3])
+    rho = (so3.left_jacobian_inv(phi) @ T[..., :3, 3:4])[..., 0]
+    return np.concatenate([rho, phi], axis=-1)
+
+
+def adjoint(T: FloatArray) -> FloatArray:
+    """``Ad(T)`` with ``T exp(xi) T^-1 = exp(Ad(T) xi)``: ``[[R, [t]x R], [0, R]]``, 6x6."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., :3, 3:] = so3.hat(T[..., :3, 3]) @ R
+    return out
+
+
+def left_jacobian(xi: FloatArray) -> FloatArray:
+    """SE(3) left Jacobian ``[[J, Q], [0, J]]`` with ``J = so3.left_jacobian(phi)``."""
+    xi = np.asarray(xi, dtype=float)
+    J = so3.left_jacobian(xi[..., 3:])
+    out = np.zeros(xi.shape[:-1] + (6, 6))
+    out[..., :3, :3] = J
+    out[..., 3:, 3:] = J
+    out[..., :3, 3:] = Q_matrix(xi)
+    return out
+
+
+def left_jacobian_inv(xi: FloatArray) -> FloatArray:
+    """``[[J^-1, -J^-1 Q J^-1], [0, J^-1]]`` (Barfoot eq. 7.95)."""
+    xi = np.asarray(xi, dtype=float)
+    Ji = so3.left_jacobian_inv(xi[..., 3:])
+    out = np.zeros(xi.shape[:-1] + (6, 6))
+    out[..., :3, :3] = Ji
+    out[..., 3:, 3:] = Ji
+    out[..., :3, 3:] = -Ji @ Q_matrix(xi) @ Ji
+    return out
+
+
+def right_jacobian(xi: FloatArray) -> FloatArray:
+    """``J_r(xi) = J_l(-xi)``."""
+    return left_jacobian(-np.asarray(xi, dtype=float))
+
+
+def right_jacobian_inv(xi: FloatArray) -> FloatArray:
+    """``J_r(xi)^-1 = J_l(-xi)^-1``."""
+    return left_jacobian_inv(-np.asarray(xi, dtype=float))
+
+
+def retract(T: FloatArray, xi: FloatArray) -> FloatArray:
+    """``T @ exp(xi)``, re-orthonormalised so that repeated updates do not drift."""
+    out = np.asarray(T, dtype=float) @ exp(xi)
+    out[..., :3, :3] = so3.project(out[..., :3, :3])
+    return out
+
+
+def local(T_a: FloatArray, T_b: FloatArray) -> FloatArray:
+    """``log(T_a^-1 T_b)``: the right-tangent vector taking ``T_a`` to ``T_b``."""
+    return log(relative(T_a, T_b))
+
+
+def integrate(T_first: FloatArray, motions: FloatArray) -> FloatArray:
+    """Chain relative motions: ``T[0] = T_first``, ``T[k+1] = T[k] @ motions[k]``.
+
+    Parameters
+    ----------
+    T_first : (4, 4) pose of the first node in the world frame.
+    motions : (n, 4, 4) consecutive motions ``T_k_k+1``.
+
+    Returns
+    -------
+    (n + 1, 4, 4) poses ``T_world_k`` (the frame-to-frame, F2F, integration).
+    """
+    motions = np.asarray(motions, dtype=float)
+    out = np.empty((motions.shape[0] + 1, 4, 4))
+    out[0] = T_first
+    for k in range(motions.shape[0]):  # a sequential scan: each pose depends on the last
+        out[k + 1] = out[k] @ motions[k]
+    return out

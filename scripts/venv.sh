@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Create (or reuse) .venv/ at the repo root with the pinned dependencies and ga_ros installed.
+# Idempotent and quick when nothing changed: a stamp records the hash of the inputs.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  echo "[ga_ros] creating .venv with $($PY --version)" >&2
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.ga_ros_installed
+want=$(cat requirements.txt setup.py package.xml | sha256sum | cut -d' ' -f1)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -c 'import ga_ros' 2>/dev/null; then
+  echo "[ga_ros] installing dependencies into .venv (first run downloads ~700 MB of ROS 2 wheels)" >&2
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt 2>&1 \
+    | grep -v "is neither a file nor a directory" >&2 || true
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check -e . 2>&1 \
+    | grep -v "is neither a file nor a directory" >&2 || true
+  .venv/bin/python -c 'import rclpy, ga_ros' || { echo "[ga_ros] install failed" >&2; exit 1; }
+  echo "$want" > "$stamp"
+fi

@@ -1,0 +1,116 @@
+"""SO(3)/SE(3) helpers against numerical differentiation and identities."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.geometry import se3, so3
+
+
+def _rotvecs(rng: np.random.Generator) -> np.ndarray:
+    """Random, near-identity and near-pi rotation vectors."""
+    axes = rng.normal(size=(30, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate([rng.uniform(0, 3.0, 10), 10.0 ** rng.uniform(-9, -3, 10),
+                             np.pi - 10.0 ** rng.uniform(-7, -2, 10)])
+    return axes * angles[:, None]
+
+
+def test_so3_exp_log_roundtrip(rng):
+    w = _rotvecs(rng)
+    R = so3.exp(w)
+    assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(so3.exp(so3.log(R)), R, atol=1e-9)
+    ok = np.linalg.norm(w, axis=1) < np.pi - 1e-6
+    assert np.allclose(so3.log(R)[ok], w[ok], atol=1e-8)
+
+
+def test_so3_exp_matches_scipy(rng):
+    from scipy.spatial.transform import Rotation
+    w = _rotvecs(rng)
+    assert np.allclose(so3.exp(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+
+
+@pytest.mark.parametrize('side', ['left', 'right'])
+def test_so3_jacobians_numerical(rng, side):
+    eps = 1e-6
+    for w in _rotvecs(rng)[:20]:
+        J = so3.left_jacobian(w) if side == 'left' else so3.right_jacobian(w)
+        num = np.zeros((3, 3))
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = eps
+            if side == 'right':
+                f = lambda s: so3.log(so3.exp(w).T @ so3.exp(w + s * d))  # noqa: E731
+            else:
+                f = lambda s: so3.log(so3.exp(w + s * d) @ so3.exp(w).T)  # noqa: E731
+            num[:, k] = (f(1) - f(-1)) / (2 * eps)
+        assert np.allclose(J, num, atol=1e-7)
+        Jinv = so3.left_jacobian_inv(w) if side == 'left' else so3.right_jacobian_inv(w)
+        assert np.allclose(Jinv @ J, np.eye(3), atol=1e-9)
+
+
+def _twists(rng):
+    w = _rotvecs(rng)
+    rho = rng.normal(scale=3.0, size=w.shape)
+    return np.concatenate([rho, w], axis=1)
+
+
+def test_se3_exp_log_roundtrip(rng):
+    xi = _twists(rng)
+    T = se3.exp(xi)
+    assert np.allclose(se3.exp(se3.log(T)), T, atol=1e-8)
+    ok = np.linalg.norm(xi[:, 3:], axis=1) < np.pi - 1e-6
+    assert np.allclose(se3.log(T)[ok], xi[ok], atol=1e-7)
+
+
+def test_se3_exp_matches_matrix_exponential(rng):
+    from scipy.linalg import expm
+    for xi in _twists(rng)[:10]:
+        X = np.zeros((4, 4))
+        X[:3, :3] = so3.hat(xi[3:])
+        X[:3, 3] = xi[:3]
+        assert np.allclose(se3.exp(xi), expm(X), atol=1e-10)
+
+
+def test_se3_adjoint(rng):
+    xi = _twists(rng)[:10]
+    T = se3.exp(_twists(rng)[10:20])
+    lhs = T @ se3.exp(xi) @ se3.inverse(T)
+    rhs = se3.exp((se3.adjoint(T) @ xi[..., None])[..., 0])
+    assert np.allclose(lhs, rhs, atol=1e-9)
+
+
+@pytest.mark.parametrize('side', ['left', 'right'])
+def test_se3_jacobians_numerical(rng, side):
+    eps = 1e-6
+    for xi in _twists(rng)[:20]:
+        J = se3.left_jacobian(xi) if side == 'left' else se3.right_jacobian(xi)
+        num = np.zeros((6, 6))
+        T0 = se3.exp(xi)
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = eps
+            if side == 'right':
+                f = lambda s: se3.log(se3.inverse(T0) @ se3.exp(xi + s * d))  # noqa: E731
+            else:
+                f = lambda s: se3.log(se3.exp(xi + s * d) @ se3.inverse(T0))  # noqa: E731
+            num[:, k] = (f(1) - f(-1)) / (2 * eps)
+        assert np.allclose(J, num, atol=2e-6 * max(1.0, np.abs(xi).max()))
+        Jinv = se3.left_jacobian_inv(xi) if side == 'left' else se3.right_jacobian_inv(xi)
+        assert np.allclose(Jinv @ J, np.eye(6), atol=1e-8)
+
+
+def test_quaternion_roundtrip(rng):
+    T = se3.exp(_twists(rng))
+    p, q = se3.to_pos_quat(T)
+    assert np.all(q[:, 3] >= 0)
+    assert np.allclose(se3.from_pos_quat(p, q), T, atol=1e-10)
+
+
+def test_integrate_chains_motions(rng):
+    motions = se3.exp(_twists(rng)[:5] * 0.1)
+    T = se3.integrate(np.eye(4), motions)
+    assert np.allclose(se3.relative(T[:-1], T[1:]), motions, atol=1e-10)
