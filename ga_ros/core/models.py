@@ -1,0 +1,148 @@
+"""Constraint models ``f(l, x) = 0`` of the mixed adjustment, vectorised over connections.
+
+Each model evaluates, for ``m`` connections at the linearisation point ``(l0, x0)``,
+the misclosure ``f`` and the Jacobians ``A = df/dx`` (w.r.t. the two nodes) and ``B = df/dl``
+(METHOD.md Sec. 2, paper eqs. 6-8).
+
+* ``se3`` (product default): unknowns are full poses ``T_i`` (6 per node, right perturbation
+  ``T_i exp(d_i)``, ``d = [rho, phi]``); the observation is the motion ``T_ij`` parametrised by its
+  right perturbation ``v`` around the measured value, ``T_ij(l) = T_ij_meas exp(v)``, and
+  ``f = log(T_ij(l)^-1 T_i^-1 T_j)`` (6 equations). Since ``f = 0`` forces
+  ``v = log(T_ij_meas^-1 T_i^-1 T_j)``, the adjustment minimises exactly the g2o/GTSAM cost.
+* ``paper`` (eq. 1): unknowns are 3-D positions ``p_i``; ``l = [t, w]`` and
+  ``f = p_j - R(w) p_i - t`` (3 equations per connection, 6 observations).
+* ``linear``: unknowns are positions, ``f = p_j - p_i - t`` (the paper's model with ``R = I``):
+  linear in both ``l`` and ``x``, used where an exact closed-form answer is wanted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3, so3
+
+MODEL_NAMES = ('se3', 'paper', 'linear')
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """Per-connection misclosure and Jacobians at one linearisation point.
+
+    Attributes
+    ----------
+    f : (m, r) misclosure ``f(l0, x0)``.
+    A_src, A_dst : (m, r, d) ``df/dx`` w.r.t. the source and destination node.
+    B : (m, r, 6) ``df/dl`` w.r.t. the connection's 6 observations.
+    """
+
+    f: FloatArray
+    A_src: FloatArray
+    A_dst: FloatArray
+    B: FloatArray
+
+
+def dof(model: str) -> int:
+    """Unknowns per node: 6 for ``se3``, 3 for ``paper`` and ``linear``."""
+    check_model(model)
+    return 6 if model == 'se3' else 3
+
+
+def equations_per_connection(model: str) -> int:
+    """Constraint equations per connection: 6 for ``se3``, 3 for ``paper`` and ``linear``."""
+    return dof(model)
+
+
+def check_model(model: str) -> None:
+    if model not in MODEL_NAMES:
+        raise InputError(f'unknown constraint model {model!r}; use one of {MODEL_NAMES}')
+
+
+def linearise(model: str, T: FloatArray, src: IntArray, dst: IntArray, z_b: FloatArray,
+              v: FloatArray) -> Linearisation:
+    """Misclosure and Jacobians of all connections.
+
+    Parameters
+    ----------
+    model : 'se3' | 'paper' | 'linear'.
+    T : (n, 4, 4) current node poses ``T_world_node`` (positions only are used by paper/linear).
+    src, dst : (m,) node indices.
+    z_b : (m, 6) measured observations ``[t, w]`` (m, rad).
+    v : (m, 6) current residuals (adjusted observations ``l0 = l_b + v``).
+    """
+    if model == 'se3':
+        return _linearise_se3(T, src, dst, z_b, v)
+    if model == 'paper':
+        return _linearise_paper(T, src, dst, z_b, v)
+    if model == 'linear':
+        return _linearise_linear(T, src, dst, z_b, v)
+    check_model(model)
+    raise AssertionError('unreachable')
+
+
+def _linearise_se3(T, src, dst, z_b, v) -> Linearisation:
+    T_meas = se3.from_translation_rotvec(z_b[:, :3], z_b[:, 3:])
+    T_i, T_j = T[src], T[dst]
+    T_ij = se3.inverse(T_i) @ T_j
+    F = se3.exp(-v) @ se3.inverse(T_meas) @ T_ij
+    f = se3.log(F)
+    Jr_inv = se3.right_jacobian_inv(f)
+    A_dst = Jr_inv
+    # T_i exp(d): F -> F exp(-Ad(T_ij^-1) d)
+    A_src = -Jr_inv @ se3.adjoint(se3.inverse(T_ij))
+    # exp(-(v + d)) -> F -> exp(-Ad(exp(-v)) J_l(v) d) F = exp(-J_r(v) d) F
+    B = -se3.left_jacobian_inv(f)
+    if np.any(v):
+        B = B @ se3.right_jacobian(v)
+    return Linearisation(f, A_src, A_dst, B)
+
+
+def _linearise_paper(T, src, dst, z_b, v) -> Linearisation:
+    l0 = z_b + v
+    t, w = l0[:, :3], l0[:, 3:]
+    R = so3.exp(w)
+    p_i, p_j = T[src, :3, 3], T[dst, :3, 3]
+    f = p_j - (R @ p_i[:, :, None])[:, :, 0] - t
+    m = src.shape[0]
+    A_src = -R
+    A_dst = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    B = np.zeros((m, 3, 6))
+    B[:, :, :3] = -np.eye(3)
+    # d(R(w) p)/dw = -R [p]x J_r(w)  =>  df/dw = R [p]x J_r(w)
+    B[:, :, 3:] = R @ so3.hat(p_i) @ so3.right_jacobian(w)
+    return Linearisation(f, A_src, A_dst, B)
+
+
+def _linearise_linear(T, src, dst, z_b, v) -> Linearisation:
+    l0 = z_b + v
+    f = T[dst, :3, 3] - T[src, :3, 3] - l0[:, :3]
+    m = src.shape[0]
+    eye = np.broadcast_to(np.eye(3), (m, 3, 3))
+    B = np.zeros((m, 3, 6))
+    B[:, :, :3] = -np.eye(3)
+    return Linearisation(f, -eye.copy(), eye.copy(), B)
+
+
+def retract(model: str, T: FloatArray, idx: IntArray, d: FloatArray) -> FloatArray:
+    """Apply increments ``d`` (k, dof) to nodes ``idx``: ``T exp(d)`` (se3) or ``p + d``."""
+    out = T.copy()
+    if model == 'se3':
+        out[idx] = se3.retract(T[idx], d)
+    else:
+        out[idx, :3, 3] += d
+    return out
+
+
+def prior_residual(model: str, T: FloatArray, T_mean: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Residual ``e`` (k, d) and Jacobian ``de/dx`` (k, d, d) of a weighted parameter.
+
+    ``se3``: ``e = log(T_mean^-1 T)`` with Jacobian ``J_r(e)^-1``; positions: ``e = p - p_mean``.
+    """
+    if model == 'se3':
+        e = se3.local(T_mean, T)
+        return e, se3.right_jacobian_inv(e)
+    e = T[:, :3, 3] - T_mean[:, :3, 3]
+    return e, np.broadcast_to(np.eye(3), (e.shape[0], 3, 3)).copy()

@@ -1,0 +1,669 @@
+"""The mixed adjustment (Gauss-Helmert) solver: batch, weighted parameters, sequential update.
+
+Notation follows METHOD.md and the paper (Sec. III): observations ``l_b`` with weight
+``P = S^-1``, residuals ``v``, unknowns ``x``, constraints ``f(l, x) = 0`` linearised as
+``A d + B v + w = 0`` with ``w = f(l0, x0) + B (l_b - l0)``. Per connection
+``M = B S B'`` (block diagonal), ``N = A' M^-1 A``, ``u = A' M^-1 w``, ``d = -N^-1 u`` (eq. 15),
+``k = -M^-1 (A d + w)``, ``v = S B' k`` (eq. 16), ``sigma0^2 = v' P v / (r - u)``,
+``Q_x = N^-1`` (eq. 17).
+
+Weighted parameters (Sec. III-E) and the sequential update (Sec. III-D) are both a
+:class:`GaussianPrior`: a second observation group ``x - l_p = 0`` with covariance ``S_p`` (or
+information ``N_1``), which adds ``A_p' S_p^-1 A_p`` to ``N``. The sequential update
+(:func:`sequential_update`) uses only the previous estimate and its normal matrix, never the old
+observations.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import models
+from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
+from ga_ros.core.sparse import BlockPattern, SparseCholesky
+from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
+from ga_ros.geometry import se3
+
+ROBUST_LOSSES = ('none', 'huber', 'cauchy')
+DAMPINGS = ('none', 'lm')
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Settings of :func:`solve`.
+
+    Attributes
+    ----------
+    model : constraint model, ``'se3'`` (full poses, default), ``'paper'`` (eq. 1, positions) or
+        ``'linear'`` (positions, ``R = I``); see :mod:`ga_ros.core.models`.
+    max_iterations : cap on relinearisations.
+    tolerance : stop when the largest correction ``max |d|`` is below this (m and rad).
+    damping : ``'none'``: the paper's Gauss-Helmert iteration; ``'lm'``: Levenberg-Marquardt
+        (steps accepted only if the cost decreases), for poor initial guesses.
+    robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each connection's Mahalanobis
+        misclosure ``sqrt(w' M^-1 w)`` (iteratively reweighted).
+    robust_scale : Mahalanobis distance at which the robust loss departs from least squares.
+    reuse_factor_below : once a correction is smaller than this (m, rad), later iterations reuse
+        the last factorisation of ``N`` (chord steps: the same fixed point ``u(x) = 0``, reached
+        linearly instead of quadratically, at the cost of one solve instead of a factorisation).
+        0 refactors every iteration.
+    """
+
+    model: str = 'se3'
+    max_iterations: int = 20
+    tolerance: float = 1e-8
+    damping: str = 'none'
+    robust_loss: str = 'none'
+    robust_scale: float = 3.0
+    reuse_factor_below: float = 1e-3
+
+    def __post_init__(self) -> None:
+        models.check_model(self.model)
+        if self.damping not in DAMPINGS:
+            raise InputError(f'damping must be one of {DAMPINGS}, got {self.damping!r}')
+        if self.robust_loss not in ROBUST_LOSSES:
+            raise InputError(f'robust_loss must be one of {ROBUST_LOSSES}, '
+                             f'got {self.robust_loss!r}')
+        if not (self.max_iterations >= 1 and self.tolerance > 0 and self.robust_scale > 0):
+            raise InputError('max_iterations >= 1, tolerance > 0 and robust_scale > 0 required')
+
+
+@dataclass(frozen=True)
+class GaussianPrior:
+    """Known values of some node parameters (weighted parameters, paper Sec. III-E).
+
+    Attributes
+    ----------
+    node_ids : (k,) node ids.
+    T_world_node : (k, 4, 4) prior mean poses (for the position models only the translation
+        counts).
+    information : (d k, d k) inverse covariance (dense array or scipy.sparse), node-major, each
+        node's block in the order ``[x y z rx ry rz]`` (se3, d = 6) or ``[x y z]`` (d = 3), for
+        the right perturbation ``T_mean exp(e)``.
+    """
+
+    node_ids: IntArray
+    T_world_node: FloatArray
+    information: FloatArray | sp.spmatrix
+
+    @staticmethod
+    def from_covariances(node_ids, T_world_node, cov: FloatArray) -> GaussianPrior:
+        """Block-diagonal prior from per-node covariances ``(k, d, d)``."""
+        cov = np.asarray(cov, dtype=float)
+        info = np.linalg.inv(cov)
+        info = 0.5 * (info + np.swapaxes(info, 1, 2))
+        return GaussianPrior(np.asarray(node_ids, dtype=np.int64),
+                             np.asarray(T_world_node, dtype=float),
+                             sp.block_diag(list(info), format='csr'))
+
+
+@dataclass
+class SolveResult:
+    """Outcome of :func:`solve`.
+
+    ``T_world_node``, ``node_ids`` are in network index order; ``residuals`` (``v``) and
+    ``adjusted`` (``l = l_b + v``, as ``[t, w]``) in connection order. ``cost`` is ``v' P v`` over
+    connections (with the robust weights) plus the prior terms.
+    """
+
+    node_ids: IntArray
+    T_world_node: FloatArray
+    converged: bool
+    iterations: int
+    reason: str
+    cost: float
+    cost_history: list[float]
+    sigma0_sq: float
+    redundancy: int
+    n_equations: int
+    n_observations: int
+    n_unknowns: int
+    residuals: FloatArray
+    adjusted: FloatArray
+    seconds: float
+    model: str = 'se3'
+    weights: FloatArray | None = None
+    _system: _NormalSystem | None = field(default=None, repr=False)
+
+    def covariance(self, node_ids) -> FloatArray:
+        """Marginal covariance blocks ``(k, d, d)`` of ``Q_x = N^-1`` (eq. 17) for some nodes.
+
+        Columns of ``N^-1`` are obtained by sparse solves with the Cholesky factor; no dense
+        inverse of ``N`` is formed. A fixed node has a zero block.
+        """
+        if self._system is None:
+            raise SolverError('this result carries no normal matrix')
+        return self._system.marginal_blocks(np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
+
+    @property
+    def normal_matrix(self) -> sp.csc_matrix:
+        """The normal matrix ``N`` at the solution over the free nodes (full symmetric CSC)."""
+        if self._system is None:
+            raise SolverError('this result carries no normal matrix')
+        return self._system.full()
+
+    @property
+    def free_node_ids(self) -> IntArray:
+        """Ids of the unknown nodes, in the row/column order of :attr:`normal_matrix`."""
+        if self._system is None:
+            raise SolverError('this result carries no normal matrix')
+        return self._system.node_ids[self._system.free]
+
+    def prior(self, node_ids=None) -> GaussianPrior:
+        """The result as a Gaussian prior ``(x, N)`` for a sequential update (Sec. III-D).
+
+        Over all free nodes (default) this is the information form of the previous solution.
+        For a subset, the marginal (Schur complement) information of those nodes is returned.
+        """
+        sysm = self._system
+        if sysm is None:
+            raise SolverError('this result carries no normal matrix')
+        free_ids = sysm.node_ids[sysm.free]
+        if node_ids is None:
+            return GaussianPrior(free_ids, self.T_world_node[sysm.free], sysm.full())
+        ids = np.asarray(node_ids, dtype=np.int64)
+        cov = sysm.joint_covariance(ids)
+        info = np.linalg.inv(cov)
+        return GaussianPrior(ids, self.T_world_node[sysm.index_of(ids)], 0.5 * (info + info.T))
+
+
+class _NormalSystem:
+    """The factored normal matrix at the solution, for covariances and sequential priors."""
+
+    def __init__(self, node_ids: IntArray, free: np.ndarray, col: IntArray, d: int,
+                 pattern: BlockPattern, data: FloatArray, chol: SparseCholesky | None) -> None:
+        self.node_ids = node_ids
+        self.free = free
+        self.col = col
+        self.d = d
+        self.pattern = pattern
+        self.data = data
+        self._chol = chol
+        self._factored = False
+        self._index = {int(i): k for k, i in enumerate(node_ids)}
+
+    def index_of(self, ids: IntArray) -> IntArray:
+        try:
+            return np.array([self._index[int(i)] for i in ids], dtype=np.int64)
+        except KeyError as exc:
+            raise NetworkError(f'node {exc.args[0]} is not part of this solution') from None
+
+    @property
+    def chol(self) -> SparseCholesky:
+        """Factor of ``N`` at the solution, computed on first use (reusing the ordering)."""
+        if not self._factored:
+            if self._chol is None:
+                self._chol = SparseCholesky(self.pattern, self.data)
+            else:
+                self._chol.refactor(self.data)
+            self._factored = True
+        return self._chol
+
+    def full(self) -> sp.csc_matrix:
+        return self.pattern.full_csc(self.data)
+
+    def _columns(self, ids: IntArray) -> tuple[FloatArray, IntArray]:
+        idx = self.index_of(ids)
+        cols = self.col[idx]
+        d = self.d
+        free_sel = np.nonzero(cols >= 0)[0]
+        E = np.zeros((self.pattern.size, free_sel.size * d))
+        for k, s in enumerate(free_sel):
+            E[cols[s] * d:(cols[s] + 1) * d, k * d:(k + 1) * d] = np.eye(d)
+        X = self.chol.solve(E) if E.shape[1] else E
+        return X, cols
+
+    def marginal_blocks(self, ids: IntArray) -> FloatArray:
+        d = self.d
+        out = np.zeros((ids.size, d, d))
+        for start in range(0, ids.size, 256):  # bounded memory: n x (256 d) at a time
+            chunk = ids[start:start + 256]
+            X, cols = self._columns(chunk)
+            k = 0
+            for s, c in enumerate(cols):
+                if c >= 0:
+                    blk = X[c * d:(c + 1) * d, k * d:(k + 1) * d]
+                    out[start + s] = 0.5 * (blk + blk.T)
+                    k += 1
+        return out
+
+    def joint_covariance(self, ids: IntArray) -> FloatArray:
+        """Joint covariance ``(d k, d k)`` of the given (free) nodes."""
+        X, cols = self._columns(ids)
+        if (cols < 0).any():
+            raise InputError('a fixed node has no covariance; leave it out')
+        d = self.d
+        rows = np.concatenate([np.arange(c * d, (c + 1) * d) for c in cols])
+        C = X[rows]
+        return 0.5 * (C + C.T)
+
+
+# ----------------------------------------------------------------------------------- solve
+def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
+          fixed: Sequence[int] | None = None,
+          priors: Sequence[GaussianPrior] = ()) -> SolveResult:
+    """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
+
+    Parameters
+    ----------
+    network : the connections (validated on insertion).
+    T_init : (n, 4, 4) initial poses ``T_world_node`` in network index order (e.g.
+        :func:`initial_guess_f2f`).
+    config : solver settings.
+    fixed : node ids held fixed (the datum). Default: the first node when there are no priors,
+        none otherwise (then the priors must define the datum).
+    priors : weighted parameters / sequential priors (see :class:`GaussianPrior`).
+
+    Returns
+    -------
+    SolveResult with the estimate, residuals, adjusted observations, variance factor,
+    redundancy and access to marginal covariances.
+
+    Raises
+    ------
+    InputError, NetworkError
+        Bad shapes, unknown nodes, nodes not connected to the datum (named).
+    DegenerateGeometryError
+        Singular normal matrix.
+    """
+    t0 = time.perf_counter()
+    cfg = config or SolverConfig()
+    model = cfg.model
+    d = models.dof(model)
+    n = network.n_nodes
+    if n == 0:
+        raise InputError('the network has no nodes')
+    T0 = np.asarray(T_init, dtype=float)
+    if T0.shape != (n, 4, 4):
+        raise InputError(f'T_init must have shape ({n}, 4, 4), got {T0.shape}')
+    if not np.isfinite(T0).all():
+        raise InputError('T_init has NaN or inf entries')
+    conn = network.arrays()
+    node_ids = network.node_ids
+
+    if fixed is None:
+        fixed = [int(node_ids[0])] if not priors else []
+    fixed_idx = network.indices_of(list(fixed)) if len(fixed) else np.zeros(0, dtype=np.int64)
+    prior_data = [_PriorData.build(network, p, d) for p in priors]
+    anchors = list(fixed) + [int(i) for p in priors for i in p.node_ids]
+    if not anchors:
+        raise DegenerateGeometryError('no datum: fix a node or give priors (weighted parameters)')
+    network.check_connected(anchors)
+
+    free = np.ones(n, dtype=bool)
+    free[fixed_idx] = False
+    col = np.full(n, -1, dtype=np.int64)
+    col[free] = np.arange(int(free.sum()))
+    n_free = int(free.sum())
+    if n_free == 0:
+        raise InputError('every node is fixed: nothing to estimate')
+
+    # block pattern: connection blocks (ii, ij, ji, jj) then prior blocks
+    br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
+    bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
+    for pd in prior_data:
+        br.append(col[pd.idx[pd.blk_r]])
+        bc.append(col[pd.idx[pd.blk_c]])
+    pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, n_free)
+
+    S = conn.cov
+    P = _inv_spd(S)
+    T = T0.copy()
+    v = np.zeros_like(conn.z)
+    chol: SparseCholesky | None = None
+    lam = 1e-4
+    last_step = np.inf
+    history: list[float] = []
+    converged = False
+    reason = 'max_iterations'
+    it = 0
+    for it in range(1, cfg.max_iterations + 1):
+        lin_v = v if cfg.damping == 'none' else np.zeros_like(v)
+        sysd = _linear_system(model, T, conn, S, lin_v, prior_data, cfg, col, d)
+        if it == 1:
+            history.append(sysd.cost0)
+        data = pattern.assemble(sysd.blocks)
+        if cfg.damping == 'lm':
+            T, v, step, data_used, chol, lam, ok = _lm_step(
+                model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, chol, lam, free)
+            if not ok:
+                reason = 'lm_no_decrease'
+                converged = step < cfg.tolerance * 10
+                break
+        else:
+            if chol is None:
+                chol = SparseCholesky(pattern, data)
+            elif last_step >= cfg.reuse_factor_below:
+                chol.refactor(data)
+            dx = -chol.solve(sysd.u)
+            if not np.isfinite(dx).all():
+                raise SolverError('the correction is not finite')
+            T = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
+            v = _residual_update(sysd, dx, conn, col, d, S)
+            step = float(np.abs(dx).max()) if dx.size else 0.0
+            last_step = step
+        history.append(_adjustment_cost(v, P, sysd.weights) + _prior_cost(model, T, prior_data))
+        if not np.isfinite(T).all():
+            raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
+                              'estimate stands')
+        if step < cfg.tolerance:
+            converged = True
+            reason = 'converged'
+            break
+
+    # final linearisation at the solution: residuals, variance factor, N for covariances
+    lin_v = v if cfg.damping == 'none' else np.zeros_like(v)
+    final = _linear_system(model, T, conn, S, lin_v, prior_data, cfg, col, d)
+    v = _residual_update(final, np.zeros(n_free * d), conn, col, d, S)
+    data = pattern.assemble(final.blocks)
+    cost = _adjustment_cost(v, P, final.weights) + _prior_cost(model, T, prior_data)
+    r_eq = len(conn) * models.equations_per_connection(model) + sum(p.idx.size * d
+                                                                   for p in prior_data)
+    redundancy = r_eq - n_free * d
+    sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
+    system = _NormalSystem(node_ids, free, col, d, pattern, data, chol)
+    return SolveResult(
+        node_ids=node_ids, T_world_node=T, converged=converged, iterations=it, reason=reason,
+        cost=float(cost), cost_history=history, sigma0_sq=float(sigma0_sq),
+        redundancy=int(redundancy), n_equations=int(r_eq),
+        n_observations=int(6 * len(conn) + sum(p.idx.size * d for p in prior_data)),
+        n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
+        seconds=time.perf_counter() - t0, model=model, weights=final.weights, _system=system)
+
+
+# ------------------------------------------------------------------------------ internals
+@dataclass
+class _PriorData:
+    idx: IntArray  # (k,) node indices
+    T_mean: FloatArray
+    H_blocks: FloatArray  # (b, d, d) non-zero d x d blocks of the information
+    blk_r: IntArray  # (b,) block row (position in idx)
+    blk_c: IntArray
+
+    @staticmethod
+    def build(network: ConnectionNetwork, prior: GaussianPrior, d: int) -> _PriorData:
+        ids = np.asarray(prior.node_ids, dtype=np.int64).ravel()
+        k = ids.size
+        Tm = np.asarray(prior.T_world_node, dtype=float)
+        if Tm.shape != (k, 4, 4) or not np.isfinite(Tm).all():
+            raise InputError(f'prior mean must be finite with shape ({k}, 4, 4), got {Tm.shape}')
+        H = prior.information
+        if H.shape != (d * k, d * k):
+            raise InputError(f'prior information must be ({d * k}, {d * k}) for {k} nodes with '
+                             f'{d} parameters each, got {H.shape}')
+        Hb = sp.bsr_matrix(sp.csr_matrix(H), blocksize=(d, d))
+        Hb.sort_indices()
+        if not np.isfinite(Hb.data).all():
+            raise InputError('prior information has NaN or inf entries')
+        rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
+        return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows,
+                          Hb.indices.astype(np.int64))
+
+
+@dataclass
+class _System:
+    blocks: FloatArray  # (4 m + b, d, d) in pattern order
+    u: FloatArray  # (n_free d,)
+    w: FloatArray  # (m, r)
+    A_src: FloatArray
+    A_dst: FloatArray
+    B: FloatArray
+    Minv: FloatArray  # weighted M^-1
+    weights: FloatArray  # (m,) robust weights
+    cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
+
+
+def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d) -> _System:
+    lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
+    B = lin.B
+    w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
+    M = B @ S @ np.swapaxes(B, 1, 2)
+    Minv = _inv_spd(M)
+    maha2 = np.einsum('mi,mij,mj->m', w, Minv, w)
+    weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
+    Wm = Minv * weights[:, None, None]
+    AiT = np.swapaxes(lin.A_src, 1, 2) @ Wm
+    AjT = np.swapaxes(lin.A_dst, 1, 2) @ Wm
+    blocks = [AiT @ lin.A_src, AiT @ lin.A_dst, AjT @ lin.A_src, AjT @ lin.A_dst]
+    n_free = int((col >= 0).sum())
+    u = np.zeros((n_free, d))
+    gi = (AiT @ w[:, :, None])[:, :, 0]
+    gj = (AjT @ w[:, :, None])[:, :, 0]
+    cs, cd = col[conn.src], col[conn.dst]
+    np.add.at(u, cs[cs >= 0], gi[cs >= 0])
+    np.add.at(u, cd[cd >= 0], gj[cd >= 0])
+    cost0 = float(np.sum(_robust_rho(maha2, cfg)))
+    for pd in prior_data:
+        e, J = models.prior_residual(model, T[pd.idx], pd.T_mean)
+        JT = np.swapaxes(J, 1, 2)
+        # block (a, b) of J' H J = J_a' H_ab J_b
+        blocks.append(JT[pd.blk_r] @ pd.H_blocks @ J[pd.blk_c])
+        He = np.zeros_like(e)
+        np.add.at(He, pd.blk_r, (pd.H_blocks @ e[pd.blk_c][:, :, None])[:, :, 0])
+        g = (JT @ He[:, :, None])[:, :, 0]
+        c = col[pd.idx]
+        np.add.at(u, c[c >= 0], g[c >= 0])
+        cost0 += float(np.sum(e * He))
+    return _System(np.concatenate(blocks), u.reshape(-1), w, lin.A_src, lin.A_dst, B, Wm,
+                   weights, cost0)
+
+
+def _residual_update(sysd: _System, dx: FloatArray, conn, col, d, S) -> FloatArray:
+    """``k = -M^-1 (A d + w)``, ``v = S B' k`` (eq. 16), with the robust weights in ``M^-1``."""
+    D = np.zeros((col.size, d))
+    free = col >= 0
+    D[free] = dx.reshape(-1, d)[col[free]]
+    Ad = (sysd.A_src @ D[conn.src][:, :, None] + sysd.A_dst @ D[conn.dst][:, :, None])[:, :, 0]
+    k = -(sysd.Minv @ (Ad + sysd.w)[:, :, None])
+    return (S @ np.swapaxes(sysd.B, 1, 2) @ k)[:, :, 0]
+
+
+def _lm_step(model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, chol, lam, free):
+    """One Levenberg-Marquardt step (linearised at ``v = 0``, i.e. Gauss-Newton on the cost)."""
+    diag_pos = pattern.indptr[:-1]  # first entry of each CSC column is its diagonal
+    diag = data[diag_pos]
+    cost0 = sysd.cost0
+    for _ in range(12):
+        damped = data.copy()
+        damped[diag_pos] += lam * np.maximum(diag, 1e-9)
+        try:
+            if chol is None:
+                chol = SparseCholesky(pattern, damped)
+            else:
+                chol.refactor(damped)
+            dx = -chol.solve(sysd.u)
+        except DegenerateGeometryError:
+            lam *= 10.0
+            continue
+        T_new = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
+        new = _linear_system(model, T_new, conn, S, np.zeros_like(conn.z), prior_data, cfg, col, d)
+        if new.cost0 <= cost0:
+            v = _residual_update(new, np.zeros_like(dx), conn, col, d, S)
+            return (T_new, v, float(np.abs(dx).max()), damped, chol, max(lam / 10.0, 1e-9),
+                    True)
+        lam *= 10.0
+    v = _residual_update(sysd, np.zeros(int(free.sum()) * d), conn, col, d, S)
+    return T, v, 0.0, data, chol, lam, False
+
+
+def _robust_weights(r: FloatArray, cfg: SolverConfig) -> FloatArray:
+    c = cfg.robust_scale
+    if cfg.robust_loss == 'huber':
+        return np.where(r <= c, 1.0, c / np.maximum(r, 1e-300))
+    if cfg.robust_loss == 'cauchy':
+        return 1.0 / (1.0 + (r / c) ** 2)
+    return np.ones_like(r)
+
+
+def _robust_rho(r2: FloatArray, cfg: SolverConfig) -> FloatArray:
+    """Robust cost of squared Mahalanobis distances (equals ``r2`` for least squares)."""
+    c = cfg.robust_scale
+    if cfg.robust_loss == 'huber':
+        r = np.sqrt(np.maximum(r2, 0.0))
+        return np.where(r <= c, r2, 2.0 * c * r - c * c)
+    if cfg.robust_loss == 'cauchy':
+        return c * c * np.log1p(r2 / (c * c))
+    return r2
+
+
+def _adjustment_cost(v: FloatArray, P: FloatArray, weights: FloatArray) -> float:
+    return float(np.einsum('mi,mij,mj,m->', v, P, v, weights))
+
+
+def _prior_cost(model: str, T: FloatArray, prior_data) -> float:
+    total = 0.0
+    for pd in prior_data:
+        e, _ = models.prior_residual(model, T[pd.idx], pd.T_mean)
+        He = np.zeros_like(e)
+        np.add.at(He, pd.blk_r, (pd.H_blocks @ e[pd.blk_c][:, :, None])[:, :, 0])
+        total += float(np.sum(e * He))
+    return total
+
+
+def _inv_spd(M: FloatArray) -> FloatArray:
+    """Inverse of a stack of SPD matrices, via Cholesky (raises on a non-PD block)."""
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError("a connection has a singular B S B' block") from exc
+    Linv = np.linalg.inv(L)
+    return np.swapaxes(Linv, -1, -2) @ Linv
+
+
+# ------------------------------------------------------------------------ helpers for users
+def initial_guess_f2f(network: ConnectionNetwork,
+                      T_world_first: FloatArray | None = None) -> FloatArray:
+    """Frame-to-frame (F2F) initial poses: chain the measured motions along a spanning tree.
+
+    The tree prefers connections between nodes adjacent in insertion order (consecutive
+    frames), so on a survey it is exactly the F2F integration of the consecutive motions.
+
+    Returns
+    -------
+    (n, 4, 4) poses ``T_world_node``; the first node is at ``T_world_first`` (identity default).
+    """
+    n = network.n_nodes
+    T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    if T_world_first is not None:
+        T[0] = T_world_first
+    conn = network.arrays()
+    if n <= 1 or len(conn) == 0:
+        return T
+    network.check_connected([int(network.node_ids[0])])
+    gap = np.abs(conn.dst - conn.src).astype(float)
+    G = sp.coo_matrix((gap + 1e-9 * np.arange(len(conn)) / len(conn), (conn.src, conn.dst)),
+                      shape=(n, n)).tocsr()
+    tree = minimum_spanning_tree(G)
+    tree = tree + tree.T
+    order, pred = breadth_first_order(tree, 0, directed=False, return_predecessors=True)
+    # measured motion for each (parent -> child) tree edge
+    lookup: dict[tuple[int, int], int] = {}
+    for k in range(len(conn)):
+        lookup.setdefault((int(conn.src[k]), int(conn.dst[k])), k)
+    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    for child in order[1:]:
+        parent = int(pred[child])
+        k = lookup.get((parent, int(child)))
+        if k is not None:
+            T[child] = T[parent] @ T_meas[k]
+        else:
+            T[child] = T[parent] @ se3.inverse(T_meas[lookup[(int(child), parent)]])
+    return T
+
+
+def connection_cost(network: ConnectionNetwork, T_world_node: FloatArray) -> float:
+    """``sum e' Omega e`` over connections, ``e = log(T_meas^-1 T_i^-1 T_j)`` in
+    ``[rho, phi]`` order and ``Omega = cov^-1`` (the g2o/GTSAM between-factor cost)."""
+    conn = network.arrays()
+    T = np.asarray(T_world_node, dtype=float)
+    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    e = se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
+    return float(np.einsum('mi,mij,mj->', e, _inv_spd(conn.cov), e))
+
+
+# ------------------------------------------------------------------- sequential (Sec. III-D)
+def sequential_update(previous: SolveResult, group2: ConnectionNetwork, T_init: FloatArray,
+                      config: SolverConfig | None = None) -> SolveResult:
+    """Sequential solution (paper Sec. III-D, information form of METHOD.md Sec. 4).
+
+    Group 1 is represented only by ``previous`` (its estimate ``x1`` and normal matrix ``N1``);
+    its observations are not used again. ``group2`` holds the new observations; it must contain
+    every node of ``previous`` (same ids) and may add new nodes (new unknowns ``y``).
+
+    Parameters
+    ----------
+    previous : result of the group-1 solution (carries ``x1`` and ``N1``).
+    group2 : network of all nodes (old and new) with only the new connections.
+    T_init : (n, 4, 4) initial poses in ``group2`` index order: the previous estimate for old nodes
+        and e.g. an F2F extrapolation for new ones.
+    config : solver settings (the model must match ``previous``).
+    """
+    cfg = config or SolverConfig(model=previous.model)
+    if cfg.model != previous.model:
+        raise InputError(f"model {cfg.model!r} differs from the previous solution's "
+                         f'{previous.model!r}')
+    missing = np.setdiff1d(previous.node_ids, group2.node_ids)
+    if missing.size:
+        raise NetworkError(f'group 2 must contain every node of the previous solution; missing '
+                           f'{missing[:10].tolist()}')
+    sysm = previous._system
+    fixed = [int(i) for i in sysm.node_ids[~sysm.free]]
+    return solve(group2, T_init, cfg, fixed=fixed, priors=[previous.prior()])
+
+
+def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
+                           config: SolverConfig | None = None) -> tuple[FloatArray, FloatArray]:
+    """One sequential step in covariance form (METHOD.md Sec. 4), no new unknowns.
+
+    ``K = Q1 A2' (M2 + A2 Q1 A2')^-1``, ``x2 = x1 - K w2(x1)``, ``Q2 = Q1 - K A2 Q1``.
+
+    Dense in the number of unknowns: meant for small problems and for checking the information
+    form (:func:`sequential_update`), which is what the package uses.
+
+    Returns
+    -------
+    T_world_node : (n, 4, 4) updated poses (group-2 index order, equal to ``previous`` order).
+    Q2 : (u, u) updated cofactor matrix of the free unknowns.
+    """
+    cfg = config or SolverConfig(model=previous.model)
+    if not np.array_equal(np.sort(previous.node_ids), np.sort(group2.node_ids)) or \
+            group2.n_nodes != previous.node_ids.size:
+        raise InputError('the covariance form handles no new unknowns: group 2 must have '
+                         'exactly the nodes of the previous solution')
+    sysm = previous._system
+    d = sysm.d
+    order = group2.indices_of(previous.node_ids)
+    T1 = np.empty_like(previous.T_world_node)
+    T1[order] = previous.T_world_node
+    free = np.zeros(group2.n_nodes, dtype=bool)
+    free[order[sysm.free]] = True
+    col = np.full(group2.n_nodes, -1, dtype=np.int64)
+    col[order[sysm.free]] = np.arange(int(sysm.free.sum()))
+    N1 = previous.normal_matrix.toarray()
+    Q1 = np.linalg.inv(N1)
+    conn = group2.arrays()
+    lin = models.linearise(cfg.model, T1, conn.src, conn.dst, conn.z, np.zeros_like(conn.z))
+    m, r = lin.f.shape
+    A2 = np.zeros((m * r, Q1.shape[0]))
+    rows = np.arange(m * r).reshape(m, r)
+    for k in range(m):
+        for node, Ablk in ((conn.src[k], lin.A_src[k]), (conn.dst[k], lin.A_dst[k])):
+            if col[node] >= 0:
+                A2[rows[k][:, None], col[node] * d + np.arange(d)] += Ablk
+    M2 = np.zeros((m * r, m * r))
+    Mb = lin.B @ conn.cov @ np.swapaxes(lin.B, 1, 2)
+    for k in range(m):
+        M2[rows[k][:, None], rows[k]] = Mb[k]
+    w2 = lin.f.reshape(-1)
+    K = Q1 @ A2.T @ np.linalg.inv(M2 + A2 @ Q1 @ A2.T)
+    dx = -K @ w2
+    Q2 = Q1 - K @ A2 @ Q1
+    T2 = models.retract(cfg.model, T1, np.nonzero(free)[0], dx.reshape(-1, d)[col[free]])
+    return T2, 0.5 * (Q2 + Q2.T)
