@@ -12,6 +12,14 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get('GA_ROS_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 
 
+@pytest.fixture(scope='session', autouse=True)
+def _single_blas_thread():
+    """As the entry points do (see ga_ros.runtime): small dense blocks, shared cores."""
+    from ga_ros.runtime import limit_blas_threads
+    with limit_blas_threads():
+        yield
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20051101)

@@ -15,6 +15,7 @@ import sys
 from ga_ros import __version__
 from ga_ros.cli import commands
 from ga_ros.errors import GaError
+from ga_ros.runtime import limit_blas_threads
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    _blas = limit_blas_threads()  # noqa: F841 (kept alive for the whole command)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, 'func', None):

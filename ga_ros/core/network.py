@@ -231,6 +231,32 @@ class ConnectionNetwork:
             self._cov.append(cov[k])
         self._cache = None
 
+    @classmethod
+    def from_arrays(cls, node_ids: IntArray, track_ids: IntArray, src_idx: IntArray,
+                    dst_idx: IntArray, z: FloatArray, cov: FloatArray) -> ConnectionNetwork:
+        """Build from arrays that were validated already (e.g. a subset of another network).
+
+        No checks beyond shapes are made: use :meth:`add_connections` for outside input.
+        ``src_idx``/``dst_idx`` index into ``node_ids``. Duplicate bookkeeping is skipped, so
+        the result uses the ``'keep'`` policy.
+        """
+        net = cls()
+        ids = [int(i) for i in np.asarray(node_ids).tolist()]
+        net._ids = ids
+        net._tracks = [int(t) for t in np.asarray(track_ids).tolist()]
+        net._index = {i: k for k, i in enumerate(ids)}
+        if len(net._index) != len(ids) or len(net._tracks) != len(ids):
+            raise InputError('node ids must be unique and have one track id each')
+        m = int(np.asarray(src_idx).size)
+        net._cache = ConnectionArrays(np.asarray(src_idx, dtype=np.int64).reshape(m),
+                                      np.asarray(dst_idx, dtype=np.int64).reshape(m),
+                                      np.asarray(z, dtype=float).reshape(m, 6),
+                                      np.asarray(cov, dtype=float).reshape(m, 6, 6))
+        c = net._cache
+        net._src, net._dst = c.src.tolist(), c.dst.tolist()
+        net._z, net._cov = list(c.z), list(c.cov)
+        return net
+
     def _snapshot(self):
         return (len(self._src), {k: list(v) for k, v in self._pairs.items()},
                 list(self._src), list(self._dst), list(self._z), list(self._cov))

@@ -27,11 +27,15 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
+from ga_ros.core.selinv import banded_marginal_blocks
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
 from ga_ros.geometry import se3
 
 ROBUST_LOSSES = ('none', 'huber', 'cauchy')
+#: Above this many requested nodes, covariances come from selected inversion of the whole
+#: (banded) normal matrix instead of one sparse solve per column.
+_MANY_NODES = 24
 DAMPINGS = ('none', 'lm')
 
 
@@ -187,6 +191,7 @@ class _NormalSystem:
         self.data = data
         self._chol = chol
         self._factored = False
+        self._all_blocks: FloatArray | None = None
         self._index = {int(i): k for k, i in enumerate(node_ids)}
 
     def index_of(self, ids: IntArray) -> IntArray:
@@ -222,6 +227,14 @@ class _NormalSystem:
 
     def marginal_blocks(self, ids: IntArray) -> FloatArray:
         d = self.d
+        if ids.size > _MANY_NODES:
+            if self._all_blocks is None:
+                self._all_blocks = banded_marginal_blocks(self.full(), d)
+            if self._all_blocks is not None:
+                cols = self.col[self.index_of(ids)]
+                out = np.zeros((ids.size, d, d))
+                out[cols >= 0] = self._all_blocks[cols[cols >= 0]]
+                return out
         out = np.zeros((ids.size, d, d))
         for start in range(0, ids.size, 256):  # bounded memory: n x (256 d) at a time
             chunk = ids[start:start + 256]
@@ -667,3 +680,36 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
     Q2 = Q1 - K @ A2 @ Q1
     T2 = models.retract(cfg.model, T1, np.nonzero(free)[0], dx.reshape(-1, d)[col[free]])
     return T2, 0.5 * (Q2 + Q2.T)
+
+
+def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se3',
+                     fixed: Sequence[int] = (),
+                     priors: Sequence[GaussianPrior] = ()) -> tuple[sp.csc_matrix, IntArray]:
+    """Normal matrix ``N = A' M^-1 A`` (+ prior terms) linearised at ``T`` (with ``v = 0``).
+
+    Unlike :func:`solve`, no datum is required and nothing is factored, so ``N`` may be
+    singular; it is what marginalisation (Schur complements) works on.
+
+    Returns
+    -------
+    N : (d u, d u) symmetric CSC over the free nodes.
+    free_ids : (u,) ids of the free nodes, in the order of ``N``'s blocks.
+    """
+    d = models.dof(model)
+    n = network.n_nodes
+    conn = network.arrays()
+    free = np.ones(n, dtype=bool)
+    if len(fixed):
+        free[network.indices_of(list(fixed))] = False
+    col = np.full(n, -1, dtype=np.int64)
+    col[free] = np.arange(int(free.sum()))
+    prior_data = [_PriorData.build(network, p, d) for p in priors]
+    br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
+    bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
+    for pd in prior_data:
+        br.append(col[pd.idx[pd.blk_r]])
+        bc.append(col[pd.idx[pd.blk_c]])
+    pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+    sysd = _linear_system(model, np.asarray(T, dtype=float), conn, conn.cov,
+                          np.zeros_like(conn.z), prior_data, SolverConfig(model=model), col, d)
+    return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free]

@@ -1,0 +1,649 @@
+"""Track-by-track sliding-window alignment (paper Sec. IV and Appendix).
+
+A lawnmower survey is flown as tracks. Measurements arrive one by one; when a track ends
+(explicitly, or because a measurement introduces a node of a newer track), the mixed adjustment
+runs over the nodes of the latest ``K`` tracks only. The adjustment is warm-started from the
+previous estimate (the new track's nodes start from their frame-to-frame integration), so each
+update solves only for the increment the new track brings. Nodes of the track that leaves the
+window stop being unknowns and are *frozen*:
+
+* ``freeze_policy='weighted'`` (the paper, Sec. III-E): every frozen node that is still connected
+  to the window enters the next adjustments as a weighted parameter, with the pose and the
+  marginal covariance block that the last adjustment gave it (correlations between frozen nodes
+  are dropped).
+* ``freeze_policy='marginal'``: the leaving track is marginalised out exactly (Schur complement
+  of its terms, as fixed-lag smoothers do), which leaves a joint Gaussian prior on the window
+  nodes it was connected to; its connections are absorbed into that prior.
+
+The cost of an update depends on the window only, not on the number of tracks flown.
+
+Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
+:class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
+covariance that is not symmetric positive definite; a self-loop; ids outside ``[0, 2**63)``;
+an unknown source node (every measurement after the first must start at a known node); a new node
+of an older track than the current one (out of order); a re-delivered identical measurement; an
+endpoint on a frozen track. Gross outliers among overlap (cross) connections are detected after
+each update by a chi-square test on the Mahalanobis misclosure and excluded.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.stats import chi2
+
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.solver import (
+    GaussianPrior,
+    SolverConfig,
+    SolveResult,
+    normal_matrix_at,
+    solve,
+)
+from ga_ros.errors import GaError, InputError
+from ga_ros.geometry import se3
+
+FREEZE_POLICIES = ('weighted', 'marginal')
+_STATE_VERSION = 1
+
+
+class _Rows:
+    """Append-only table of fixed-shape numpy rows with amortised O(1) growth."""
+
+    def __init__(self, shape: tuple[int, ...], dtype=float) -> None:
+        self._a = np.zeros((64,) + shape, dtype=dtype)
+        self.n = 0
+
+    def append(self, row) -> int:
+        if self.n == self._a.shape[0]:
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self.n] = row
+        self.n += 1
+        return self.n - 1
+
+    @property
+    def a(self) -> np.ndarray:
+        """View of the filled rows (writable)."""
+        return self._a[:self.n]
+
+
+@dataclass(frozen=True)
+class AlignerConfig:
+    """Settings of :class:`TrackWindowAligner` (mirrors the alignment node's parameters).
+
+    Attributes
+    ----------
+    window_tracks : ``K``, the number of latest tracks adjusted after each track (paper: 5).
+    freeze_policy : ``'weighted'`` (paper) or ``'marginal'`` (Schur complement), see module doc.
+    model : constraint model; the live aligner supports ``'se3'`` (relative motions in the
+        sensor frame). The position-only models need world-frame observations (see
+        :mod:`ga_ros.core.models`).
+    max_iterations : relinearisation cap per update.
+    tolerance : stop threshold on the largest correction (m, rad).
+    damping : ``'none'`` (Gauss-Helmert as in the paper) or ``'lm'``.
+    robust_loss, robust_scale : optional Huber/Cauchy loss on the Mahalanobis misclosure.
+    outlier_chi2_prob : chi-square quantile of the misclosure test that excludes cross
+        connections after an update (6 degrees of freedom); 0 disables the test.
+    """
+
+    window_tracks: int = 5
+    freeze_policy: str = 'weighted'
+    model: str = 'se3'
+    max_iterations: int = 10
+    tolerance: float = 1e-6
+    damping: str = 'none'
+    robust_loss: str = 'none'
+    robust_scale: float = 3.0
+    outlier_chi2_prob: float = 0.99999
+
+    def __post_init__(self) -> None:
+        if int(self.window_tracks) < 1:
+            raise InputError(f'window_tracks must be >= 1, got {self.window_tracks}')
+        if self.freeze_policy not in FREEZE_POLICIES:
+            raise InputError(f'freeze_policy must be one of {FREEZE_POLICIES}, '
+                             f'got {self.freeze_policy!r}')
+        if self.model != 'se3':
+            raise InputError(f"the track-window aligner supports model 'se3' only, got "
+                             f'{self.model!r}: live measurements are motions in the sensor '
+                             'frame; use ga-ros solve/reproduce for the paper model')
+        if not 0.0 <= self.outlier_chi2_prob < 1.0:
+            raise InputError('outlier_chi2_prob must be in [0, 1)')
+        self.solver_config()  # validates the remaining fields
+
+    def solver_config(self) -> SolverConfig:
+        return SolverConfig(model=self.model, max_iterations=int(self.max_iterations),
+                            tolerance=float(self.tolerance), damping=self.damping,
+                            robust_loss=self.robust_loss, robust_scale=float(self.robust_scale))
+
+
+@dataclass
+class UpdateResult:
+    """Summary of one window adjustment."""
+
+    track_id: int
+    iterations: int
+    converged: bool
+    sigma0_sq: float
+    update_ms: float
+    n_window_nodes: int
+    n_window_connections: int
+    n_tracks_in_window: int
+    n_outliers: int
+    reason: str
+    n_priors: int = 0
+    n_unknowns: int = 0
+
+
+@dataclass
+class CorrectedPath:
+    """Every node seen so far, in arrival order, with its corrected pose.
+
+    ``T_world_node`` is the latest estimate: adjusted for nodes of finished tracks, the
+    frame-to-frame continuation from the last adjusted node for the open track.
+    """
+
+    node_ids: IntArray
+    track_ids: IntArray
+    stamps_ns: IntArray
+    T_world_node: FloatArray
+    frozen: BoolArray
+
+
+@dataclass
+class AlignerStats:
+    n_nodes: int
+    n_connections: int
+    n_rejected: dict[str, int]
+    tracks_in_window: list[int]
+    n_updates: int
+    n_outliers: int
+    last_update: UpdateResult | None = None
+
+
+class TrackWindowAligner:
+    """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
+
+    Parameters
+    ----------
+    config : settings (window size, freezing policy, solver tolerances).
+    T_world_first : pose of the first node (the datum), identity by default.
+    """
+
+    def __init__(self, config: AlignerConfig | None = None,
+                 T_world_first: FloatArray | None = None) -> None:
+        self.config = config or AlignerConfig()
+        self._T_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, float)
+        if self._T_first.shape != (4, 4) or not np.isfinite(self._T_first).all():
+            raise InputError('T_world_first must be a finite 4x4 pose')
+        # nodes
+        self._ids: list[int] = []
+        self._index: dict[int, int] = {}
+        self._track: list[int] = []
+        self._stamp: list[int] = []
+        self._T = np.zeros((0, 4, 4))
+        self._cov = np.zeros((0, 6, 6))
+        self._frozen = np.zeros(0, dtype=bool)
+        self._idarr = _Rows((), np.int64)
+        # connections (by node index); status 0 active, 1 absorbed into a prior, 2 outlier
+        self._src = _Rows((), np.int64)
+        self._dst = _Rows((), np.int64)
+        self._z = _Rows((6,))
+        self._ccov = _Rows((6, 6))
+        self._cross = _Rows((), bool)
+        self._status = _Rows((), np.int64)
+        self._pairs: set[tuple[int, int, int]] = set()
+        # tracks
+        self._tracks: list[int] = []  # in order of appearance
+        self._track_nodes: dict[int, list[int]] = {}
+        self._track_conns: dict[int, list[int]] = {}
+        self._open_track: int | None = None
+        self._finished: set[int] = set()
+        # marginal-policy priors: list of (node indices, mean (k,4,4), information (6k, 6k))
+        self._priors: list[tuple[IntArray, FloatArray, FloatArray]] = []
+        self._last: SolveResult | None = None
+        self._last_window: IntArray = np.zeros(0, dtype=np.int64)
+        self._rejected: dict[str, int] = {}
+        self._n_updates = 0
+        self._n_outliers = 0
+        self._last_update: UpdateResult | None = None
+
+    # ------------------------------------------------------------------------- input
+    def add_measurement(self, m: Measurement) -> list[UpdateResult]:
+        """Add one measurement; returns the updates it triggered (a track end), if any.
+
+        Raises :class:`InputError` (and counts it by reason in :attr:`stats`) on a measurement the
+        policy in the module docstring rejects; the state is then unchanged.
+        """
+        try:
+            plan = self._check(m)
+        except InputError as exc:
+            reason = getattr(exc, 'reason', 'invalid')
+            self._rejected[reason] = self._rejected.get(reason, 0) + 1
+            raise
+        updates = []
+        if plan['ends_track']:
+            up = self.finish_track()
+            if up is not None:
+                updates.append(up)
+        self._apply(m, plan)
+        return updates
+
+    def _check(self, m: Measurement) -> dict:
+        def bad(reason: str, text: str) -> InputError:
+            err = InputError(text)
+            err.reason = reason
+            return err
+
+        for name in ('src_id', 'dst_id', 'src_track', 'dst_track'):
+            v = getattr(m, name)
+            try:
+                ok = int(v) == v and 0 <= int(v) < 2**63
+            except (TypeError, ValueError, OverflowError):
+                ok = False
+            if not ok:
+                raise bad('bad_id', f'{name} must be an integer in [0, 2**63), got {v!r}')
+        src, dst = int(m.src_id), int(m.dst_id)
+        z = np.asarray(m.z, dtype=float).reshape(-1)
+        cov = np.asarray(m.cov, dtype=float)
+        if z.shape != (6,) or cov.shape != (6, 6):
+            raise bad('bad_shape', 'a measurement needs z of 6 values and a 6x6 covariance')
+        if not np.isfinite(z).all():
+            raise bad('non_finite', f'measurement {src}->{dst} has NaN or inf values')
+        try:
+            cov = check_covariances(cov[None], what=f'covariance of {src}->{dst}')[0]
+        except InputError as exc:
+            raise bad('bad_covariance', str(exc)) from None
+        if src == dst:
+            raise bad('self_loop', f'measurement from node {src} to itself')
+        if src in self._index and int(m.src_track) != self._track[self._index[src]]:
+            raise bad('track_mismatch', f'node {src} belongs to track '
+                      f'{self._track[self._index[src]]}, not {m.src_track}')
+        if dst in self._index and int(m.dst_track) != self._track[self._index[dst]]:
+            raise bad('track_mismatch', f'node {dst} belongs to track '
+                      f'{self._track[self._index[dst]]}, not {m.dst_track}')
+        first = not self._ids
+        if not first and src not in self._index:
+            raise bad('unknown_source', f'source node {src} is unknown: every measurement must '
+                      'start at a node that an earlier measurement introduced')
+        for node in (src, dst):
+            if node in self._index and self._frozen[self._index[node]]:
+                raise bad('frozen', f'node {node} belongs to a frozen track (outside the window '
+                          f'of {self.config.window_tracks} tracks)')
+        ends_track = False
+        new_nodes = [n for n in ((src,) if first else ()) + (dst,) if n not in self._index]
+        for node in new_nodes:
+            track = int(m.dst_track) if node == dst else int(m.src_track)
+            if track in self._finished:
+                raise bad('out_of_order', f'new node {node} of track {track}, which has already '
+                          'finished')
+            if self._open_track is not None and track != self._open_track:
+                if track in self._track_nodes or track < self._open_track:
+                    raise bad('out_of_order', f'new node {node} of track {track} arrives after '
+                              f'track {self._open_track} began (out of order)')
+                ends_track = True
+        key = (min(src, dst), max(src, dst), hash(z.tobytes() + cov.tobytes()))
+        if key in self._pairs:
+            raise bad('duplicate', f'measurement {src}->{dst} was already received')
+        return {'src': src, 'dst': dst, 'z': z, 'cov': cov, 'first': first,
+                'ends_track': ends_track, 'key': key}
+
+    def _apply(self, m: Measurement, plan: dict) -> None:
+        src, dst = plan['src'], plan['dst']
+        if plan['first']:
+            self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
+        if dst not in self._index:
+            T_src = self._T[self._index[src]]
+            T_meas = se3.from_translation_rotvec(plan['z'][:3], plan['z'][3:])
+            self._add_node(dst, int(m.dst_track), int(m.stamp_ns), T_src @ T_meas)
+        i, j = self._index[src], self._index[dst]
+        k = self._src.append(i)
+        self._dst.append(j)
+        self._z.append(plan['z'])
+        self._ccov.append(plan['cov'])
+        self._cross.append(m.kind != 'consecutive')
+        self._status.append(0)
+        self._pairs.add(plan['key'])
+        for t in {self._track[i], self._track[j]}:
+            self._track_conns.setdefault(t, []).append(k)
+
+    def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> None:
+        k = len(self._ids)
+        self._ids.append(node_id)
+        self._idarr.append(node_id)
+        self._index[node_id] = k
+        self._track.append(track)
+        self._stamp.append(stamp_ns)
+        if k >= self._T.shape[0]:  # amortised growth
+            cap = max(64, 2 * self._T.shape[0])
+            self._T = np.concatenate([self._T, np.zeros((cap - self._T.shape[0], 4, 4))])
+            self._cov = np.concatenate([self._cov, np.zeros((cap - self._cov.shape[0], 6, 6))])
+            self._frozen = np.concatenate([self._frozen,
+                                           np.zeros(cap - self._frozen.size, dtype=bool)])
+        self._T[k] = T
+        self._cov[k] = 0.0
+        self._frozen[k] = False
+        if track not in self._track_nodes:
+            self._tracks.append(track)
+            self._track_nodes[track] = []
+        self._track_nodes[track].append(k)
+        self._open_track = track
+
+    # ----------------------------------------------------------------------- updates
+    def finish_track(self) -> UpdateResult | None:
+        """End the open track and adjust the window (returns ``None`` if there is no open
+        track). On a solver failure the previous estimate stands and the result says why."""
+        if self._open_track is None or self._open_track in self._finished:
+            return None
+        track = self._open_track
+        self._finished.add(track)
+        t0 = time.perf_counter()
+        finished = [t for t in self._tracks if t in self._finished]
+        window = finished[-self.config.window_tracks:]
+        leaving = [t for t in finished[:-self.config.window_tracks]
+                   if not self._frozen[self._track_nodes[t][0]]]
+        for t in leaving:
+            self._freeze(t)
+        try:
+            up = self._adjust(window, track, t0)
+        except GaError as exc:
+            up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
+                              0, 0, len(window), 0, f'failed: {exc}')
+        self._n_updates += 1
+        self._last_update = up
+        return up
+
+    def _window_problem(self, window_tracks: list[int]):
+        win_nodes = np.array(sorted(i for t in window_tracks for i in self._track_nodes[t]),
+                             dtype=np.int64)
+        in_win = np.zeros(len(self._ids), dtype=bool)
+        in_win[win_nodes] = True
+        conns = np.unique(np.array([k for t in window_tracks
+                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = conns[self._status.a[conns] == 0]
+        src, dst = self._src.a[conns], self._dst.a[conns]
+        ids = self._idarr.a
+        ext = np.unique(np.concatenate([src[~in_win[src]], dst[~in_win[dst]]]))
+        # marginal-policy priors touching the window
+        priors_idx = []
+        for p, (idx, _, _) in enumerate(self._priors):
+            if in_win[idx].any():
+                priors_idx.append(p)
+                ext = np.union1d(ext, idx[~in_win[idx]])
+        nodes = np.concatenate([win_nodes, ext])
+        net = self._subnetwork(nodes, conns)
+        fixed = [self._ids[0]] if (nodes == 0).any() else []
+        priors = []
+        # frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
+        # stay unknowns of the adjustment, with their frozen pose and covariance as a prior,
+        # but are not written back. (Under the marginal policy their connections were absorbed
+        # into priors when they froze, so only the datum can appear here.)
+        weighted = ext[(ext != 0) & ~np.isin(ext, np.concatenate(
+            [self._priors[p][0] for p in priors_idx] or [np.zeros(0, np.int64)]))]
+        if weighted.size:
+            priors.append(GaussianPrior.from_covariances(ids[weighted], self._T[weighted],
+                                                         self._cov[weighted]))
+        for p in priors_idx:
+            idx, mean, info = self._priors[p]
+            priors.append(GaussianPrior(ids[idx], mean, info))
+        return net, nodes, win_nodes, conns, fixed, priors
+
+    def _subnetwork(self, nodes: IntArray, conns: IntArray) -> ConnectionNetwork:
+        """Network of some nodes (by index) and connections among them (already validated)."""
+        local = np.full(len(self._ids), -1, dtype=np.int64)
+        local[nodes] = np.arange(nodes.size)
+        return ConnectionNetwork.from_arrays(
+            self._idarr.a[nodes], np.asarray(self._track, dtype=np.int64)[nodes],
+            local[self._src.a[conns]], local[self._dst.a[conns]], self._z.a[conns],
+            self._ccov.a[conns])
+
+    def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
+        cfg = self.config
+        scfg = cfg.solver_config()
+        n_out = 0
+        while True:
+            net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
+            res = solve(net, self._T[nodes], scfg, fixed=fixed, priors=priors)
+            bad = self._outliers(res, conns)
+            if bad.size == 0 or n_out >= 50:
+                break
+            self._status.a[bad] = 2
+            n_out += int(bad.size)
+        n_win = win_nodes.size
+        self._T[win_nodes] = res.T_world_node[:n_win]
+        self._last = res
+        self._last_window = win_nodes
+        self._n_outliers += n_out
+        return UpdateResult(
+            track_id=track, iterations=res.iterations, converged=res.converged,
+            sigma0_sq=res.sigma0_sq, update_ms=1e3 * (time.perf_counter() - t0),
+            n_window_nodes=int(n_win), n_window_connections=int(conns.size),
+            n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
+            n_priors=len(priors), n_unknowns=res.n_unknowns)
+
+    def _outliers(self, res: SolveResult, conns: IntArray) -> IntArray:
+        """Cross connections whose squared Mahalanobis misclosure at the solution exceeds the
+        chi-square quantile (6 dof). For the se3 model ``v' P v = w' M^-1 w``."""
+        prob = self.config.outlier_chi2_prob
+        cross = self._cross.a[conns]
+        if prob <= 0 or not cross.any():
+            return np.zeros(0, dtype=np.int64)
+        P = np.linalg.inv(self._ccov.a[conns])
+        v = res.residuals
+        maha2 = np.einsum('mi,mij,mj->m', v, P, v)
+        return conns[cross & (maha2 > chi2.ppf(prob, 6))]
+
+    def _freeze(self, track: int) -> None:
+        """Freeze a track leaving the window, using the last adjustment's estimate."""
+        nodes = np.array(self._track_nodes[track], dtype=np.int64)
+        res = self._last
+        if res is not None:
+            lookup = {int(i): k for k, i in enumerate(self._last_window)}
+            inside = [i for i in nodes if int(i) in lookup]
+            if inside:
+                ids = np.asarray(self._ids)[inside]
+                free_ids = set(res.free_node_ids.tolist())
+                sel = [k for k, i in enumerate(ids) if int(i) in free_ids]
+                if sel:
+                    cov = res.covariance(ids[sel])
+                    self._cov[np.asarray(inside)[sel]] = cov
+        if self.config.freeze_policy == 'marginal':
+            self._marginalise(nodes)
+        self._frozen[nodes] = True
+
+    def _marginalise(self, L: IntArray) -> None:
+        """Schur-complement the terms of the leaving nodes ``L`` onto the nodes they touch."""
+        in_L = np.zeros(len(self._ids), dtype=bool)
+        in_L[L] = True
+        conns = np.unique(np.array([k for t in {self._track[i] for i in L}
+                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = conns[(self._status.a[conns] == 0)
+                      & (in_L[self._src.a[conns]] | in_L[self._dst.a[conns]])]
+        touching = [p for p, (idx, _, _) in enumerate(self._priors) if in_L[idx].any()]
+        nodes = set(L.tolist())
+        nodes.update(self._src.a[conns].tolist())
+        nodes.update(self._dst.a[conns].tolist())
+        for p in touching:
+            nodes.update(self._priors[p][0].tolist())
+        S = np.array(sorted(i for i in nodes if not in_L[i]), dtype=np.int64)
+        allnodes = np.concatenate([L, S])
+        net = self._subnetwork(allnodes, conns)
+        ids = self._idarr.a
+        priors = [GaussianPrior(ids[self._priors[p][0]], self._priors[p][1], self._priors[p][2])
+                  for p in touching]
+        fixed = [self._ids[0]] if in_L[0] or 0 in set(S.tolist()) else []
+        N, free_ids = normal_matrix_at(net, self._T[allnodes], 'se3', fixed, priors)
+        free_idx = net.indices_of(free_ids)
+        is_L = free_idx < L.size
+        colsL = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in np.nonzero(is_L)[0]])
+        colsS = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in np.nonzero(~is_L)[0]]) \
+            if (~is_L).any() else np.zeros(0, dtype=np.int64)
+        self._status.a[conns] = 1
+        self._priors = [p for q, p in enumerate(self._priors) if q not in set(touching)]
+        if colsS.size == 0:
+            return
+        N = N.tocsr()
+        NLL = N[colsL][:, colsL].toarray()
+        NLS = N[colsL][:, colsS].toarray()
+        NSS = N[colsS][:, colsS].toarray()
+        H = NSS - NLS.T @ sla.cho_solve(sla.cho_factor(NLL), NLS)
+        S_nodes = allnodes[free_idx[~is_L]]
+        self._priors.append((S_nodes, self._T[S_nodes].copy(), 0.5 * (H + H.T)))
+
+    # ------------------------------------------------------------------------ output
+    def corrected_path(self) -> CorrectedPath:
+        n = len(self._ids)
+        return CorrectedPath(np.asarray(self._ids, dtype=np.int64),
+                             np.asarray(self._track, dtype=np.int64),
+                             np.asarray(self._stamp, dtype=np.int64), self._T[:n].copy(),
+                             self._frozen[:n].copy())
+
+    def covariance(self, node_id: int) -> FloatArray:
+        """6x6 covariance ``[x y z rx ry rz]`` of a node's pose (right perturbation).
+
+        Frozen nodes: the block stored when they froze. Window nodes: from the last
+        adjustment. Nodes of the open track (not adjusted yet): the last adjusted covariance of
+        their chain's start, propagated is not attempted; ``InputError`` is raised instead.
+        """
+        try:
+            k = self._index[int(node_id)]
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f'unknown node {node_id}') from None
+        if self._frozen[k]:
+            return self._cov[k].copy()
+        if self._last is not None and k in set(self._last_window.tolist()):
+            if k == 0:
+                return np.zeros((6, 6))
+            return self._last.covariance([self._ids[k]])[0]
+        raise InputError(f'node {node_id} has not been adjusted yet (its track is still open)')
+
+    @property
+    def newest_node_id(self) -> int | None:
+        return self._ids[-1] if self._ids else None
+
+    @property
+    def open_track(self) -> int | None:
+        return None if self._open_track in self._finished else self._open_track
+
+    @property
+    def stats(self) -> AlignerStats:
+        finished = [t for t in self._tracks if t in self._finished]
+        return AlignerStats(len(self._ids), self._src.n, dict(self._rejected),
+                            finished[-self.config.window_tracks:], self._n_updates,
+                            self._n_outliers, self._last_update)
+
+    def connection_arrays(self) -> tuple[IntArray, IntArray, FloatArray, BoolArray, IntArray]:
+        """``(src_id, dst_id, z, cross, status)`` of every connection (status 0 active,
+        1 absorbed into a marginal prior, 2 excluded as an outlier)."""
+        ids = self._idarr.a
+        return (ids[self._src.a], ids[self._dst.a], self._z.a.copy(), self._cross.a.copy(),
+                self._status.a.copy())
+
+    # --------------------------------------------------------------- batch refinement
+    def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
+        """Full batch adjustment of every node with every kept connection (end of a survey).
+
+        The open track is finished first. Outliers stay excluded. Covariances of frozen nodes
+        are left as the window updates estimated them.
+        """
+        self.finish_track()
+        t0 = time.perf_counter()
+        keep = np.nonzero(self._status.a != 2)[0]
+        net = ConnectionNetwork()
+        for i, node in enumerate(self._ids):
+            net.add_node(node, self._track[i])
+        ids = self._idarr.a
+        net.add_connections(ids[self._src.a[keep]], ids[self._dst.a[keep]], self._z.a[keep],
+                            self._ccov.a[keep])
+        scfg = self.config.solver_config()
+        if max_iterations is not None:
+            scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
+        n = len(self._ids)
+        res = solve(net, self._T[:n], scfg, fixed=[self._ids[0]])
+        self._T[:n] = res.T_world_node
+        return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
+                            1e3 * (time.perf_counter() - t0), n, int(keep.size),
+                            len(self._tracks), 0, res.reason, 0, res.n_unknowns)
+
+    # ------------------------------------------------------------------- persistence
+    def save(self, path: str | Path) -> None:
+        """Write the whole state to ``path`` (a ``.npz`` file), atomically."""
+        path = Path(path)
+        n = len(self._ids)
+        meta = {
+            'version': _STATE_VERSION, 'config': asdict(self.config),
+            'tracks': self._tracks, 'finished': sorted(self._finished),
+            'open_track': self._open_track, 'rejected': self._rejected,
+            'n_updates': self._n_updates, 'n_outliers': self._n_outliers,
+            'last_window': self._last_window.tolist(),
+        }
+        arrays = dict(
+            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+            T_first=self._T_first, ids=np.asarray(self._ids, dtype=np.int64),
+            track=np.asarray(self._track, dtype=np.int64),
+            stamp=np.asarray(self._stamp, dtype=np.int64), T=self._T[:n], cov=self._cov[:n],
+            frozen=self._frozen[:n], src=self._src.a, dst=self._dst.a, z=self._z.a,
+            ccov=self._ccov.a, cross=self._cross.a, status=self._status.a,
+            n_priors=np.array(len(self._priors)))
+        for p, (idx, mean, info) in enumerate(self._priors):
+            arrays[f'prior{p}_idx'] = idx
+            arrays[f'prior{p}_mean'] = mean
+            arrays[f'prior{p}_info'] = info
+        tmp = path.with_name(path.name + '.tmp.npz')
+        np.savez_compressed(tmp, **arrays)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> TrackWindowAligner:
+        """Restore a state written by :meth:`save`; the next update re-adjusts the window."""
+        try:
+            data = np.load(Path(path), allow_pickle=False)
+            meta = json.loads(bytes(data['meta']).decode())
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f'cannot read aligner state {path}: {exc}') from None
+        if meta.get('version') != _STATE_VERSION:
+            raise InputError(f'{path}: unsupported state version {meta.get("version")}')
+        self = cls(AlignerConfig(**meta['config']), data['T_first'])
+        for k, node in enumerate(data['ids'].tolist()):
+            self._add_node(int(node), int(data['track'][k]), int(data['stamp'][k]),
+                           data['T'][k])
+        n = len(self._ids)
+        self._cov[:n] = data['cov']
+        self._frozen[:n] = data['frozen']
+        self._tracks = [int(t) for t in meta['tracks']]
+        self._finished = {int(t) for t in meta['finished']}
+        self._open_track = meta['open_track']
+        for k in range(data['src'].size):
+            i, j = int(data['src'][k]), int(data['dst'][k])
+            self._src.append(i)
+            self._dst.append(j)
+            self._z.append(data['z'][k])
+            self._ccov.append(data['ccov'][k])
+            self._cross.append(bool(data['cross'][k]))
+            self._status.append(int(data['status'][k]))
+            self._pairs.add((min(self._ids[i], self._ids[j]), max(self._ids[i], self._ids[j]),
+                             hash(data['z'][k].tobytes() + data['ccov'][k].tobytes())))
+            for t in {self._track[i], self._track[j]}:
+                self._track_conns.setdefault(t, []).append(k)
+        for p in range(int(data['n_priors'])):
+            self._priors.append((data[f'prior{p}_idx'], data[f'prior{p}_mean'],
+                                 data[f'prior{p}_info']))
+        self._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
+        self._n_updates = int(meta['n_updates'])
+        self._n_outliers = int(meta['n_outliers'])
+        last_window = np.asarray(meta['last_window'], dtype=np.int64)
+        if last_window.size:  # recompute the last adjustment so covariances are available
+            finished = [t for t in self._tracks if t in self._finished]
+            window = finished[-self.config.window_tracks:]
+            net, nodes, win_nodes, _, fixed, priors = self._window_problem(window)
+            self._last = solve(net, self._T[nodes], self.config.solver_config(), fixed=fixed,
+                               priors=priors)
+            self._last_window = win_nodes
+        return self
+
