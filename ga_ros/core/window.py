@@ -281,8 +281,8 @@ class TrackWindowAligner:
         for node in new_nodes:
             track = int(m.dst_track) if node == dst else int(m.src_track)
             if track in self._finished:
-                raise bad('out_of_order', f'new node {node} of track {track}, which has already '
-                          'finished')
+                raise bad('out_of_order', f'new node {node} of track {track} is out of order: '
+                          'that track has finished')
             if self._open_track is not None and track != self._open_track:
                 if track in self._track_nodes or track < self._open_track:
                     raise bad('out_of_order', f'new node {node} of track {track} arrives after '
@@ -367,6 +367,9 @@ class TrackWindowAligner:
         conns = np.unique(np.array([k for t in window_tracks
                                     for k in self._track_conns.get(t, [])], dtype=np.int64))
         conns = conns[self._status.a[conns] == 0]
+        # nodes of a track still open (after a reload) are not part of this adjustment
+        known = in_win | self._frozen[:len(self._ids)]
+        conns = conns[known[self._src.a[conns]] & known[self._dst.a[conns]]]
         src, dst = self._src.a[conns], self._dst.a[conns]
         ids = self._idarr.a
         ext = np.unique(np.concatenate([src[~in_win[src]], dst[~in_win[dst]]]))

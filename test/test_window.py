@@ -1,0 +1,167 @@
+"""TrackWindowAligner against the batch solution and its own invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+
+
+def _survey(n_tracks=4, per_swath=10, pct=2.0, seed=3):
+    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
+    nm = perturb(sc.true_motions(), NoiseModel(pct, sc.depth_m), np.random.default_rng(seed))
+    return sc, nm, sc.measurements(nm.z, nm.cov)
+
+
+def _run(cfg, sc, ms):
+    al = TrackWindowAligner(cfg, sc.T_world_node[0])
+    ups = []
+    for m in ms:
+        ups += al.add_measurement(m)
+    ups.append(al.finish_track())
+    return al, ups
+
+
+@pytest.mark.parametrize('policy', ['weighted', 'marginal'])
+def test_window_covering_all_tracks_equals_batch(policy):
+    sc, nm, ms = _survey()
+    al, ups = _run(AlignerConfig(window_tracks=4, freeze_policy=policy, tolerance=1e-10,
+                                 max_iterations=30), sc, ms)
+    assert len(ups) == 4 and all(u.converged for u in ups)
+    batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
+    path = al.corrected_path()
+    np.testing.assert_array_equal(path.node_ids, sc.node_ids)
+    np.testing.assert_allclose(path.T_world_node, batch.T_world_node, atol=1e-8)
+    ids = [3, 17, int(sc.node_ids[-1])]
+    np.testing.assert_allclose(np.stack([al.covariance(i) for i in ids]),
+                               batch.covariance(ids), rtol=1e-6, atol=1e-14)
+
+
+def test_frozen_prior_is_what_the_previous_update_estimated():
+    sc, nm, ms = _survey(n_tracks=4)
+    cfg = AlignerConfig(window_tracks=2, tolerance=1e-10)
+    al = TrackWindowAligner(cfg, sc.T_world_node[0])
+    snapshots = {}
+    for m in ms:
+        before = al.stats.n_updates
+        al.add_measurement(m)
+        if al.stats.n_updates != before and al._last is not None:
+            snapshots[al.stats.n_updates] = (al.corrected_path(), al._last)
+    # after update 2 (tracks 0, 1 in the window), update 3 froze track 0 using update 2's result
+    path2, res2 = snapshots[2]
+    track0 = sc.node_ids[sc.track_ids == 0]
+    frozen_cov = np.stack([al.covariance(int(i)) for i in track0[1:]])
+    np.testing.assert_allclose(frozen_cov, res2.covariance(track0[1:]), rtol=1e-10, atol=1e-16)
+    now = al.corrected_path()
+    np.testing.assert_array_equal(now.T_world_node[track0], path2.T_world_node[track0])
+    assert now.frozen[track0].all() and not now.frozen[sc.track_ids == 3].any()
+
+
+def test_weighted_window_is_close_to_batch_and_better_than_f2f():
+    sc, nm, ms = _survey(n_tracks=6, per_swath=12, pct=5.0)
+    al, _ = _run(AlignerConfig(window_tracks=2), sc, ms)
+    batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-8))
+    err = lambda T: np.linalg.norm(T[:, :3, 3] - sc.positions, axis=1).mean()  # noqa: E731
+    e_win, e_batch, e_f2f = err(al.corrected_path().T_world_node), err(batch.T_world_node), \
+        err(sc.f2f(nm.z))
+    assert e_batch <= e_win < 0.5 * e_f2f, (e_batch, e_win, e_f2f)
+
+
+def test_per_track_problem_size_does_not_grow():
+    sc, nm, ms = _survey(n_tracks=9, per_swath=8)
+    _, ups = _run(AlignerConfig(window_tracks=3), sc, ms)
+    sizes = [(u.n_window_nodes, u.n_unknowns, u.n_window_connections) for u in ups]
+    steady = sizes[3:]
+    assert len(set(steady)) == 1, sizes  # identical tracks -> identical problems
+    assert sizes[-1][0] == 3 * 16
+
+
+def test_refine_batch_reaches_the_batch_solution():
+    sc, nm, ms = _survey(n_tracks=5)
+    al, _ = _run(AlignerConfig(window_tracks=2, tolerance=1e-10, max_iterations=30), sc, ms)
+    al.refine_batch()
+    batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
+    np.testing.assert_allclose(al.corrected_path().T_world_node, batch.T_world_node, atol=1e-8)
+
+
+def test_save_and_load_resume_exactly(tmp_path):
+    sc, nm, ms = _survey(n_tracks=5)
+    cfg = AlignerConfig(window_tracks=2)
+    full, _ = _run(cfg, sc, ms)
+    al = TrackWindowAligner(cfg, sc.T_world_node[0])
+    half = len(ms) // 2
+    for m in ms[:half]:
+        al.add_measurement(m)
+    al.save(tmp_path / 'state.npz')
+    al2 = TrackWindowAligner.load(tmp_path / 'state.npz')
+    with pytest.raises(InputError, match='already received'):
+        al2.add_measurement(ms[half - 1])
+    for m in ms[half:]:
+        al2.add_measurement(m)
+    al2.finish_track()
+    np.testing.assert_allclose(al2.corrected_path().T_world_node,
+                               full.corrected_path().T_world_node, atol=1e-9)
+
+
+def test_gross_outlier_is_excluded():
+    sc, nm, ms = _survey(n_tracks=3, per_swath=10)
+    clean, _ = _run(AlignerConfig(window_tracks=3), sc, ms)
+    # a wrong cross-track match: the motion of another pair, 40 m off
+    k = next(i for i, m in enumerate(ms) if m.kind == 'cross' and m.dst_track == 1)
+    m = ms[k]
+    wrong = se3.to_translation_rotvec(m.T_src_dst @ se3.from_translation_rotvec(
+        np.array([40.0, -25.0, 0.0]), np.zeros(3)))
+    bad = ms[:k] + [Measurement(m.src_id, m.dst_id, m.src_track, m.dst_track, wrong, m.cov,
+                                m.stamp_ns, 'cross')] + ms[k + 1:]
+    al, ups = _run(AlignerConfig(window_tracks=3), sc, bad)
+    assert sum(u.n_outliers for u in ups) >= 1
+    assert al.connection_arrays()[4].tolist().count(2) >= 1
+    err = np.abs(al.corrected_path().T_world_node - clean.corrected_path().T_world_node).max()
+    assert err < 0.5
+
+
+def _m(src, dst, st=0, dt=0, z=(10, 0, 0, 0, 0, 0), cov=None, kind='consecutive'):
+    return Measurement(src, dst, st, dt, np.asarray(z, float),
+                       np.eye(6) * 0.01 if cov is None else cov, 0, kind)
+
+
+@pytest.mark.parametrize('m, reason', [
+    (_m(1, 2, z=(np.nan, 0, 0, 0, 0, 0)), 'non_finite'),
+    (_m(1, 2, cov=-np.eye(6)), 'bad_covariance'),
+    (_m(1, 1), 'self_loop'),
+    (_m(7, 8), 'unknown_source'),
+    (_m(1, 2, dt=-3), 'bad_id'),
+    (_m(0, 1), 'duplicate'),
+    (_m(1, 2, st=5), 'track_mismatch'),
+])
+def test_bad_measurements_are_rejected_and_counted(m, reason):
+    al = TrackWindowAligner(AlignerConfig(window_tracks=1))
+    al.add_measurement(_m(0, 1))
+    before = al.corrected_path()
+    with pytest.raises(InputError):
+        al.add_measurement(m)
+    assert al.stats.n_rejected == {reason: 1}
+    after = al.corrected_path()
+    np.testing.assert_array_equal(before.node_ids, after.node_ids)
+    assert al.stats.n_connections == 1
+
+
+def test_out_of_order_and_frozen_track_measurements_are_rejected():
+    al = TrackWindowAligner(AlignerConfig(window_tracks=1))
+    al.add_measurement(_m(0, 1))
+    al.add_measurement(_m(1, 2, 0, 1))  # track 1 begins: track 0 is adjusted
+    al.add_measurement(_m(2, 3, 1, 1))
+    with pytest.raises(InputError, match='out of order'):
+        al.add_measurement(_m(3, 4, 1, 0))
+    al.add_measurement(_m(3, 5, 1, 2))  # track 2 begins: track 0 leaves the window of 1 track
+    with pytest.raises(InputError, match='frozen'):
+        al.add_measurement(_m(1, 5, 0, 2, kind='cross'))
+    assert al.stats.n_rejected == {'out_of_order': 1, 'frozen': 1}
+    assert al.stats.n_updates == 2
