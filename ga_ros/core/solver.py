@@ -66,7 +66,7 @@ class SolverConfig:
     damping: str = 'none'
     robust_loss: str = 'none'
     robust_scale: float = 3.0
-    reuse_factor_below: float = 1e-3
+    reuse_factor_below: float = 0.1
 
     def __post_init__(self) -> None:
         models.check_model(self.model)

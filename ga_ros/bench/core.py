@@ -1,0 +1,120 @@
+"""Benchmarks of the estimator on the paper's aerial scenario (issues 2 and 4).
+
+* :func:`bench_batch`: one batch solve of the whole survey from the F2F initial guess.
+* :func:`bench_window`: the survey flown online, track by track, through the
+  :class:`~ga_ros.core.window.TrackWindowAligner`, with per-track update times, ATE against the
+  batch solution, and peak memory.
+
+Memory is the process's peak resident set size (``ru_maxrss``), which includes the Python
+interpreter and the imported libraries (~150 MB).
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.eval.metrics import ate
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far (MiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@dataclass
+class BatchFigures:
+    nodes: int
+    connections: int
+    equations: int
+    observations: int
+    unknowns: int
+    iterations: int
+    converged: bool
+    seconds: float
+    peak_rss_mb: float
+    f2f_ate_m: float
+    ga_ate_m: float
+
+
+def bench_batch(n_tracks: int = 25, noise_pct: float = 5.0, seed: int = 0,
+                tolerance: float = 1e-6) -> BatchFigures:
+    """Batch mixed adjustment of the aerial survey (25 double tracks x 204 positions)."""
+    sc = aerial_scenario(n_tracks=n_tracks)
+    nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
+                 np.random.default_rng(seed))
+    net = sc.network(nm.z, nm.cov)
+    T0 = sc.f2f(nm.z)
+    t0 = time.perf_counter()
+    res = solve(net, T0, SolverConfig(tolerance=tolerance))
+    seconds = time.perf_counter() - t0
+    return BatchFigures(net.n_nodes, net.n_connections, res.n_equations, res.n_observations,
+                        res.n_unknowns, res.iterations, res.converged, seconds, peak_rss_mb(),
+                        ate(T0, sc.T_world_node, 'first').rmse,
+                        ate(res.T_world_node, sc.T_world_node, 'first').rmse)
+
+
+@dataclass
+class WindowFigures:
+    tracks: int
+    nodes: int
+    connections: int
+    policy: str
+    window_tracks: int
+    total_seconds: float
+    per_track_ms_p50: float
+    per_track_ms_p95: float
+    per_track_ms_max: float
+    peak_rss_mb: float
+    ate_rigid_window_m: float
+    ate_rigid_batch_m: float
+    ate_raw_window_m: float
+    ate_raw_batch_m: float
+    gap_rigid_pct: float
+    gap_raw_pct: float
+
+
+def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
+                 noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True
+                 ) -> WindowFigures:
+    """Fly the aerial survey online and time each track's update."""
+    sc = aerial_scenario(n_tracks=n_tracks)
+    nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
+                 np.random.default_rng(seed))
+    ms = sc.measurements(nm.z, nm.cov)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=window_tracks, freeze_policy=policy),
+                            sc.T_world_node[0])
+    updates = []
+    t0 = time.perf_counter()
+    for m in ms:
+        updates += al.add_measurement(m)
+    last = al.finish_track()
+    if last is not None:
+        updates.append(last)
+    total = time.perf_counter() - t0
+    rss = peak_rss_mb()
+    T_win = al.corrected_path().T_world_node
+    if compare_batch:
+        T_batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z),
+                        SolverConfig(tolerance=1e-6)).T_world_node
+    else:
+        T_batch = T_win
+    ms_ = np.array([u.update_ms for u in updates])
+    rig_w, rig_b = (ate(T, sc.T_world_node, 'rigid').rmse for T in (T_win, T_batch))
+    raw_w, raw_b = (ate(T, sc.T_world_node, 'first').rmse for T in (T_win, T_batch))
+    return WindowFigures(
+        n_tracks, sc.n_nodes, sc.n_connections, policy, window_tracks, total,
+        float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
+        rig_w, rig_b, raw_w, raw_b, 100.0 * (rig_w - rig_b) / rig_b,
+        100.0 * (raw_w - raw_b) / raw_b)
+
+
+def as_dict(fig) -> dict:
+    return asdict(fig)

@@ -1,0 +1,62 @@
+"""``ga-ros bench``: the benchmarks, one entry point.
+
+``ga-ros bench solve`` (batch solve of the aerial survey), ``ga-ros bench window`` (online
+track-by-track alignment), and ``ga-ros bench vo|g2o|node|replay`` (forwarded to the
+``bench-vo``, ``bench-g2o``, ``bench-node`` and ``bench-replay`` commands).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+FORWARDED = ('vo', 'g2o', 'node', 'replay')
+
+
+def register(sub) -> None:
+    p = sub.add_parser('bench', help='run a benchmark and print its figures',
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('target', choices=('solve', 'window') + FORWARDED)
+    p.add_argument('--json', action='store_true', help='print one JSON object')
+    p.add_argument('--tracks', type=int, default=25, help='double tracks in the survey (25)')
+    p.add_argument('--noise', type=float, default=5.0, help='noise, %% of the true motion (5)')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--policy', choices=('weighted', 'marginal'), default='weighted')
+    p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
+    p.add_argument('rest', nargs=argparse.REMAINDER,
+                   help='arguments passed on to a forwarded benchmark')
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    if args.target in FORWARDED:
+        from ga_ros.cli.main import main
+        rest = list(args.rest) + (['--json'] if args.json else [])
+        return main([f'bench-{args.target}', *rest])
+    from ga_ros.bench import core
+    if args.target == 'solve':
+        fig = core.bench_batch(args.tracks, args.noise, args.seed)
+        lines = [f'batch solve of the aerial survey: {fig.nodes} poses, {fig.connections} '
+                 f'connections',
+                 f'  equations {fig.equations}, observations {fig.observations}, unknowns '
+                 f'{fig.unknowns}',
+                 f'  iterations {fig.iterations} (converged: {fig.converged}), '
+                 f'time {fig.seconds:.2f} s, peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'  ATE (first pose anchored): F2F {fig.f2f_ate_m:.2f} m, GA '
+                 f'{fig.ga_ate_m:.2f} m']
+    else:
+        fig = core.bench_window(args.tracks, args.policy, args.window, args.noise, args.seed)
+        lines = [f'online alignment, {fig.tracks} tracks ({fig.nodes} poses, {fig.connections} '
+                 f'connections), window {fig.window_tracks}, policy {fig.policy}',
+                 f'  whole run {fig.total_seconds:.2f} s; per-track update p50 '
+                 f'{fig.per_track_ms_p50:.0f} ms, p95 {fig.per_track_ms_p95:.0f} ms, max '
+                 f'{fig.per_track_ms_max:.0f} ms; peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'  ATE rigid-aligned: window {fig.ate_rigid_window_m:.3f} m, batch '
+                 f'{fig.ate_rigid_batch_m:.3f} m (gap {fig.gap_rigid_pct:+.1f} %)',
+                 f'  ATE raw (first pose anchored): window {fig.ate_raw_window_m:.3f} m, batch '
+                 f'{fig.ate_raw_batch_m:.3f} m (gap {fig.gap_raw_pct:+.1f} %)']
+    if args.json:
+        print(json.dumps(core.as_dict(fig)))
+    else:
+        print('\n'.join(lines))
+    return 0
