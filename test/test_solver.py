@@ -404,3 +404,17 @@ def test_bad_initial_guess_shape_and_values():
     bad[1, 0, 0] = np.nan
     with pytest.raises(InputError, match='NaN'):
         solve(net, bad)
+
+
+@pytest.mark.parametrize('damping', ['none', 'lm'])
+def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
+    """From the file's own (poor) initial guess: the residuals pass through rotations beyond pi,
+    where the adjusted observations must stay on the principal branch of the log."""
+    from ga_ros.io.g2o import graph_cost, read_g2o
+    g = read_g2o(pose_graph_dir / 'smallGrid3D.g2o')
+    res = solve(g.network, g.T_init, SolverConfig(damping=damping, max_iterations=60,
+                                                  tolerance=1e-9))
+    assert res.converged
+    cost = graph_cost(g, res.T_world_node)
+    assert abs(cost - 1035.851) / 1035.851 < 1e-4
+    assert abs(res.cost - cost) / cost < 1e-9

@@ -89,12 +89,13 @@ def _linearise_se3(T, src, dst, z_b, v) -> Linearisation:
     T_ij = se3.inverse(T_i) @ T_j
     F = se3.exp(-v) @ se3.inverse(T_meas) @ T_ij
     f = se3.log(F)
-    Jr_inv = se3.right_jacobian_inv(f)
+    Jl_inv = se3.left_jacobian_inv(f)
+    Jr_inv = Jl_inv @ se3.adjoint(F)  # J_l(f) = Ad(exp f) J_r(f) and exp(f) = F
     A_dst = Jr_inv
     # T_i exp(d): F -> F exp(-Ad(T_ij^-1) d)
     A_src = -Jr_inv @ se3.adjoint(se3.inverse(T_ij))
     # exp(-(v + d)) -> F -> exp(-Ad(exp(-v)) J_l(v) d) F = exp(-J_r(v) d) F
-    B = -se3.left_jacobian_inv(f)
+    B = -Jl_inv
     if np.any(v):
         B = B @ se3.right_jacobian(v)
     return Linearisation(f, A_src, A_dst, B)

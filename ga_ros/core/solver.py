@@ -338,10 +338,9 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     reason = 'max_iterations'
     it = 0
     for it in range(1, cfg.max_iterations + 1):
-        lin_v = v if cfg.damping == 'none' else np.zeros_like(v)
-        sysd = _linear_system(model, T, conn, S, lin_v, prior_data, cfg, col, d)
+        sysd = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d)
         if it == 1:
-            history.append(sysd.cost0)
+            history.append(_cost_at(model, T, conn, S, prior_data, cfg, col, d))
         data = pattern.assemble(sysd.blocks)
         if cfg.damping == 'lm':
             T, v, step, data_used, chol, lam, ok = _lm_step(
@@ -359,7 +358,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
             if not np.isfinite(dx).all():
                 raise SolverError('the correction is not finite')
             T = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
-            v = _residual_update(sysd, dx, conn, col, d, S)
+            v = _consistent_residuals(model, T, conn, _residual_update(sysd, dx, conn, col, d, S))
             step = float(np.abs(dx).max()) if dx.size else 0.0
             last_step = step
         history.append(_adjustment_cost(v, P, sysd.weights) + _prior_cost(model, T, prior_data))
@@ -372,8 +371,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
             break
 
     # final linearisation at the solution: residuals, variance factor, N for covariances
-    lin_v = v if cfg.damping == 'none' else np.zeros_like(v)
-    final = _linear_system(model, T, conn, S, lin_v, prior_data, cfg, col, d)
+    final = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d)
     v = _residual_update(final, np.zeros(n_free * d), conn, col, d, S)
     data = pattern.assemble(final.blocks)
     cost = _adjustment_cost(v, P, final.weights) + _prior_cost(model, T, prior_data)
@@ -479,10 +477,16 @@ def _residual_update(sysd: _System, dx: FloatArray, conn, col, d, S) -> FloatArr
 
 
 def _lm_step(model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, chol, lam, free):
-    """One Levenberg-Marquardt step (linearised at ``v = 0``, i.e. Gauss-Newton on the cost)."""
+    """One Levenberg-Marquardt step of the Gauss-Helmert system.
+
+    The system is linearised at the adjusted observations ``l0 = l_b + v`` exactly as in the
+    undamped iteration (so its fixed point is the adjustment's optimum); the damping
+    ``lam * diag(N)`` only shortens steps, and a step is accepted when the cost (the value of
+    ``sum w' M^-1 w`` at ``v = 0``, which for se3 is exactly ``sum e' P e``) does not increase.
+    """
     diag_pos = pattern.indptr[:-1]  # first entry of each CSC column is its diagonal
     diag = data[diag_pos]
-    cost0 = sysd.cost0
+    cost0 = _cost_at(model, T, conn, S, prior_data, cfg, col, d)
     for _ in range(12):
         damped = data.copy()
         damped[diag_pos] += lam * np.maximum(diag, 1e-9)
@@ -496,14 +500,43 @@ def _lm_step(model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, ch
             lam *= 10.0
             continue
         T_new = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
-        new = _linear_system(model, T_new, conn, S, np.zeros_like(conn.z), prior_data, cfg, col, d)
-        if new.cost0 <= cost0:
-            v = _residual_update(new, np.zeros_like(dx), conn, col, d, S)
+        if _cost_at(model, T_new, conn, S, prior_data, cfg, col, d) <= cost0:
+            v = _consistent_residuals(model, T_new, conn,
+                                      _residual_update(sysd, dx, conn, col, d, S))
             return (T_new, v, float(np.abs(dx).max()), damped, chol, max(lam / 10.0, 1e-9),
                     True)
         lam *= 10.0
     v = _residual_update(sysd, np.zeros(int(free.sum()) * d), conn, col, d, S)
     return T, v, 0.0, data, chol, lam, False
+
+
+def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
+                          v_linear: FloatArray) -> FloatArray:
+    """Residuals to relinearise at next (paper Sec. III-C step 5: ``l0 = l_b + v``).
+
+    For se3 the constraint ``f = 0`` has the closed-form solution
+    ``v = log(T_meas^-1 T_i^-1 T_j)`` at the new ``x``; using it (instead of the linear
+    prediction ``v = S B' k``) keeps ``v`` on the principal branch of the rotation log, and the
+    Gauss-Helmert step becomes exactly Gauss-Newton on ``sum e' P e``. The position models keep
+    the linear prediction (their constraints are not solvable for ``v`` in closed form).
+    """
+    if model != 'se3':
+        return v_linear
+    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    return se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
+
+
+def _cost_at(model, T, conn, S, prior_data, cfg, col, d) -> float:
+    """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3 (``e`` the misclosure
+    ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at ``v = 0``;
+    plus the prior terms."""
+    if model != 'se3':
+        return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
+                              d).cost0
+    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    e = se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
+    maha2 = np.einsum('mi,mij,mj->m', e, _inv_spd(S), e)
+    return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
 
 
 def _robust_weights(r: FloatArray, cfg: SolverConfig) -> FloatArray:

@@ -27,12 +27,15 @@ except ImportError:  # pragma: no cover - the pinned requirements include cvxopt
 
 
 class BlockPattern:
-    """Where each entry of ``n_blocks`` dense ``d x d`` blocks lands in a sparse lower triangle.
+    """Where each entry of many dense ``d x d`` blocks lands in a sparse lower triangle (CSC).
+
+    Only block *pairs* are sorted (not their ``d^2`` scalars): the scalar layout of a lower
+    block column follows from its sorted block rows, the diagonal block first.
 
     Parameters
     ----------
     block_rows, block_cols : (k,) block coordinates (column index of the unknown block; -1 for a
-        fixed node, whose entries are dropped).
+        fixed node, whose entries are dropped). Every block column must hold its diagonal block.
     d : block size.
     n : number of unknown blocks.
     """
@@ -42,30 +45,41 @@ class BlockPattern:
         self.size = d * n
         br = np.asarray(block_rows, dtype=np.int64)
         bc = np.asarray(block_cols, dtype=np.int64)
+        keep_blk = (br >= 0) & (bc >= 0) & (br >= bc)
+        self._keep_blk = keep_blk
+        kbr, kbc = br[keep_blk], bc[keep_blk]
+        key = kbc * max(n, 1) + kbr  # column-major: sorted by column, then row
+        ukey, inv = np.unique(key, return_inverse=True)
+        ucol, urow = ukey // max(n, 1), ukey % max(n, 1)
+        nblk_col = np.bincount(ucol, minlength=n)
+        if n and not np.array_equal(np.unique(ucol[urow == ucol]), np.arange(n)):
+            raise DegenerateGeometryError('a block column has no diagonal block')
+        first = np.concatenate([[0], np.cumsum(nblk_col)[:-1]])
+        rank = np.arange(ukey.size) - first[ucol]  # 0 for the diagonal block
         a = np.arange(d)
-        rows = (br[:, None, None] * d + a[None, :, None]).repeat(d, axis=2)
-        cols = (bc[:, None, None] * d + a[None, None, :]).repeat(d, axis=1)
-        rows = rows.reshape(-1)
-        cols = cols.reshape(-1)
-        keep = (np.repeat(br, d * d) >= 0) & (np.repeat(bc, d * d) >= 0) & (rows >= cols)
-        self._keep = keep
-        lin = rows[keep] * self.size + cols[keep]
-        uniq, self._inv = np.unique(lin, return_inverse=True)
-        self.rows = uniq // self.size
-        self.cols = uniq % self.size
-        self.nnz = uniq.size
-        # CSC ordering of the unique entries (sorted by column, then row)
-        order = np.lexsort((self.rows, self.cols))
-        self._csc_order = order
-        self.indices = self.rows[order]
-        counts = np.bincount(self.cols, minlength=self.size)
-        self.indptr = np.concatenate([[0], np.cumsum(counts)])
+        # entries per scalar column J*d + a: d * blocks - a
+        counts = (d * nblk_col[:, None] - a[None, :]).reshape(-1)
+        self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.nnz = int(self.indptr[-1])
+        # position of (unique block u, row b, col a) in the CSC data
+        ra = rank[:, None, None]
+        bb = a[None, :, None]
+        aa = a[None, None, :]
+        colstart = self.indptr[:-1].reshape(n, d)[ucol][:, None, :]  # (u, 1, a)
+        off = np.where(ra == 0, bb - aa, (d - aa) + (ra - 1) * d + bb)
+        valid = (ra > 0) | (bb >= aa)
+        pos_u = np.where(valid, colstart + off, -1)  # (u, d, d)
+        rows_u = urow[:, None, None] * d + bb + 0 * aa
+        self.indices = np.empty(self.nnz, dtype=np.int64)
+        self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
+        pos = pos_u[inv].reshape(-1)
+        self._pos_valid = pos >= 0
+        self._pos = pos[self._pos_valid]
 
     def assemble(self, blocks: FloatArray) -> FloatArray:
-        """Sum blocks ``(k, d, d)`` into the lower-triangle values, in CSC order."""
-        vals = blocks.reshape(-1)[self._keep]
-        data = np.bincount(self._inv, weights=vals, minlength=self.nnz)
-        return data[self._csc_order]
+        """Sum blocks ``(k, d, d)`` (block row, col) into the lower-triangle CSC values."""
+        vals = blocks[self._keep_blk].reshape(-1)[self._pos_valid]
+        return np.bincount(self._pos, weights=vals, minlength=self.nnz)
 
     def lower_csc(self, data: FloatArray) -> sp.csc_matrix:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
