@@ -1,0 +1,1 @@
+"""File formats: g2o, TUM, KITTI, rosbag2 (mcap / sqlite3)."""

@@ -1,0 +1,725 @@
+"""Reading rosbag2 bags (mcap or sqlite3) without ROS: topics, measurement encoding, ground truth.
+
+Everything here uses :mod:`rosbags` (pure Python CDR and storage plugins) and never imports
+``rclpy``. Messages come out as rosbags message objects (dataclasses with the ROS field names),
+converted to core types once, at this edge.
+
+Bag contents understood by the replay
+-------------------------------------
+* measurements: ``nav_msgs/msg/Odometry`` on ``/ga/measurements`` in the fixed measurement
+  encoding (see :mod:`ga_ros.ros.conversions` and the README); decoded by
+  :func:`odometry_to_measurement` with exactly the same rules as the rclpy decoder.
+* stereo images: ``sensor_msgs/msg/Image`` or ``sensor_msgs/msg/CompressedImage`` on a left and a
+  right topic, each with a ``sensor_msgs/msg/CameraInfo`` topic.
+* ground truth (optional): ``nav_msgs/msg/Path`` on ``/ga/ground_truth``; the last message on
+  the topic holds the whole trajectory, one ``PoseStamped`` per node: ``pose`` = ``T_world_node``,
+  ``header.stamp`` = the node's acquisition time and ``header.frame_id`` = the node frame
+  ``'ga/<track>/<node>'`` (or any other frame id when the node ids are unknown; matching by stamp
+  then).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.frames import parse_node_frame
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import FormatError, InputError
+from ga_ros.geometry import se3
+
+#: Message types used by the replay (ROS 2 names).
+ODOMETRY = 'nav_msgs/msg/Odometry'
+PATH = 'nav_msgs/msg/Path'
+IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+
+#: ``twist.twist.linear.x`` values of the two measurement kinds.
+KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
+_QUAT_NORM_TOL = 1e-3
+
+
+@functools.lru_cache(maxsize=1)
+def typestore() -> Any:
+    """The rosbags type store of ROS 2 Jazzy (standard messages; built once, read-only)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+# --------------------------------------------------------------------------- stamps
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time`` (rosbags object) -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Any:
+    """Integer nanoseconds (>= 0) -> ``builtin_interfaces/Time`` (rosbags object)."""
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}')
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return typestore().types['builtin_interfaces/msg/Time'](sec=int(sec), nanosec=int(nanosec))
+
+
+# --------------------------------------------------------------------------- bag inspection
+@dataclass(frozen=True)
+class BagTopic:
+    """One topic of a bag: name, ROS 2 type (``pkg/msg/Type``) and message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass(frozen=True)
+class BagInfo:
+    """Summary of a bag.
+
+    Attributes
+    ----------
+    path : the bag (a rosbag2 directory, or a single ``.mcap`` / ``.db3`` file).
+    storage : ``'mcap'`` or ``'sqlite3'``.
+    n_messages : total message count.
+    start_ns, end_ns : first and last message (log) times, ns.
+    topics : the topics, sorted by name.
+    """
+
+    path: Path
+    storage: str
+    n_messages: int
+    start_ns: int
+    end_ns: int
+    topics: tuple[BagTopic, ...]
+
+    def topic(self, name: str) -> BagTopic | None:
+        """The topic called ``name``, or None."""
+        for t in self.topics:
+            if t.name == name:
+                return t
+        return None
+
+    @property
+    def duration_s(self) -> float:
+        """Time between the first and the last message (s)."""
+        return max(0, self.end_ns - self.start_ns) * 1e-9
+
+
+def _storage_of(path: Path) -> str:
+    if path.is_dir():
+        files = sorted(path.glob('*.mcap')) + sorted(path.glob('*.db3'))
+        return 'mcap' if files and files[0].suffix == '.mcap' else 'sqlite3'
+    return 'mcap' if path.suffix == '.mcap' else 'sqlite3'
+
+
+class BagReader:
+    """A read-only rosbag2 bag that reports every failure as :class:`FormatError` naming the bag.
+
+    Use as a context manager::
+
+        with BagReader(path) as bag:
+            info = bag.info
+            for msg in bag.messages(['/ga/measurements']):
+                ...
+
+    Parameters
+    ----------
+    path : a rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` / ``.db3`` file.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._reader: Any = None
+        self.info: BagInfo | None = None
+        #: Set when the bag is an mcap file cut short: what is wrong with it (read what is there;
+        #: :meth:`messages` raises FormatError after the last complete message).
+        self.truncated: str | None = None
+
+    def __enter__(self) -> BagReader:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        """Open the bag and read its summary; FormatError if it is missing or unreadable."""
+        from rosbags.rosbag2 import Reader
+
+        if not self.path.exists():
+            raise FormatError('bag not found', str(self.path))
+        if self.path.is_dir() and not (self.path / 'metadata.yaml').exists():
+            files = sorted(self.path.glob('*.mcap')) + sorted(self.path.glob('*.db3'))
+            if len(files) != 1:
+                raise FormatError('not a rosbag2 bag (no metadata.yaml and not exactly one '
+                                  '.mcap/.db3 file)', str(self.path))
+            self.path = files[0]
+        try:
+            reader = Reader(self.path)
+            reader.open()
+        except Exception as exc:  # rosbags raises many kinds on corrupt files
+            mcap_file = _single_mcap(self.path)
+            if mcap_file is not None:
+                # A recording cut short (no summary / end magic): read what is there.
+                fallback = _McapStream(mcap_file, f'{type(exc).__name__}: {exc}')
+                if fallback.n_messages > 0:
+                    self._reader = fallback
+                    self.path = mcap_file
+                    self.truncated = fallback.problem
+                    self.info = fallback.info()
+                    return
+            raise FormatError(f'cannot open bag: {type(exc).__name__}: {exc}',
+                              str(self.path)) from exc
+        self._reader = reader
+        try:
+            topics = tuple(sorted(
+                (BagTopic(name, t.msgtype or '?', int(t.msgcount))
+                 for name, t in reader.topics.items()), key=lambda t: t.name))
+            n = int(reader.message_count)
+            start = int(reader.start_time) if n else 0
+            end = int(reader.end_time) if n else 0
+        except Exception as exc:
+            self.close()
+            raise FormatError(f'cannot read bag summary: {exc}', str(self.path)) from exc
+        self.info = BagInfo(self.path, _storage_of(self.path), n, start, end, topics)
+
+    def close(self) -> None:
+        """Close the bag (idempotent)."""
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            except Exception:  # noqa: S110 - closing a corrupt bag must not mask the first error
+                pass
+            self._reader = None
+
+    def messages(self, topics: Iterable[str] | None = None, raw: bool = False
+                 ) -> Iterator[BagMessage]:
+        """Messages of ``topics`` (all when None) in log-time order.
+
+        Parameters
+        ----------
+        topics : topic names to read.
+        raw : if True, do not deserialise (``BagMessage.msg`` is None; ``data`` holds the CDR).
+
+        Raises
+        ------
+        FormatError
+            If the bag is truncated or corrupt, or a message cannot be deserialised (unknown
+            type, bad CDR); the message names the topic and the type. Messages before the
+            failure have been yielded.
+        """
+        if self._reader is None:
+            raise FormatError('bag is not open', str(self.path))
+        wanted = None if topics is None else set(topics)
+        if isinstance(self._reader, _McapStream):
+            yield from self._reader.messages(wanted, raw, str(self.path))
+            return
+        conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
+        store = typestore()
+        if not raw:
+            self._register_types(conns)
+        it = self._reader.messages(connections=conns)
+        count = 0
+        while True:
+            try:
+                conn, log_ns, data = next(it)
+            except StopIteration:
+                return
+            except Exception as exc:
+                raise FormatError(f'bag is truncated or corrupt after {count} messages: '
+                                  f'{type(exc).__name__}: {exc}', str(self.path)) from exc
+            msg = None
+            if not raw:
+                try:
+                    msg = store.deserialize_cdr(data, conn.msgtype)
+                except Exception as exc:
+                    raise FormatError(
+                        f'cannot deserialise message {count} on {conn.topic} '
+                        f'({conn.msgtype}): {type(exc).__name__}: {exc}', str(self.path)) from exc
+            count += 1
+            yield BagMessage(conn.topic, conn.msgtype, int(log_ns), msg, bytes(data))
+
+    def _register_types(self, conns: list[Any]) -> None:
+        """Make sure every connection's type is known to the (shared, standard) type store."""
+        store = typestore()
+        for c in conns:
+            if c.msgtype not in store.types:
+                raise FormatError(f'unknown message type {c.msgtype!r} on topic {c.topic} '
+                                  '(only standard ROS 2 Jazzy types are supported)',
+                                  str(self.path))
+
+
+def _single_mcap(path: Path) -> Path | None:
+    if path.is_file() and path.suffix == '.mcap':
+        return path
+    if path.is_dir():
+        files = sorted(path.glob('*.mcap'))
+        return files[0] if len(files) == 1 else None
+    return None
+
+
+class _McapStream:
+    """Sequential reader of an mcap file without a valid summary (a recording cut short).
+
+    Uses the ``mcap`` library's stream reader; everything up to the first damaged record is
+    read, then :meth:`messages` raises :class:`FormatError` naming the problem.
+    """
+
+    def __init__(self, path: Path, open_error: str) -> None:
+        self.path = path
+        self.problem: str | None = None
+        self.counts: dict[int, int] = {}
+        self.channels: dict[int, tuple[str, str]] = {}
+        self.start_ns = 2**63 - 1
+        self.end_ns = 0
+        self.n_messages = 0
+        self.open_error = open_error
+        try:
+            for ch, log_ns, _ in self._scan(None):
+                self.counts[ch] = self.counts.get(ch, 0) + 1
+                self.start_ns = min(self.start_ns, log_ns)
+                self.end_ns = max(self.end_ns, log_ns)
+                self.n_messages += 1
+        except FormatError as exc:
+            self.problem = str(exc)
+        if self.problem is None:
+            self.problem = f'mcap file has no valid summary ({open_error})'
+
+    def _scan(self, wanted: set[str] | None) -> Iterator[tuple[int, int, bytes]]:
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        schemas: dict[int, str] = {}
+        n = 0
+        try:
+            with open(self.path, 'rb') as f:
+                for rec in StreamReader(f, validate_crcs=True).records:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec.name
+                    elif isinstance(rec, Channel):
+                        self.channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, '?'))
+                    elif isinstance(rec, Message):
+                        topic = self.channels.get(rec.channel_id, ('?', '?'))[0]
+                        n += 1
+                        if wanted is None or topic in wanted:
+                            yield rec.channel_id, int(rec.log_time), bytes(rec.data)
+        except Exception as exc:  # EndOfFile, CRC errors, bad records, zstd errors, ...
+            detail = f': {exc}' if str(exc) else ''
+            raise FormatError(f'bag is truncated or corrupt after {n} messages '
+                              f'({type(exc).__name__}{detail})', str(self.path)) from exc
+
+    def info(self) -> BagInfo:
+        topics = tuple(sorted((BagTopic(t, ty, self.counts.get(cid, 0))
+                               for cid, (t, ty) in self.channels.items()), key=lambda t: t.name))
+        return BagInfo(self.path, 'mcap', self.n_messages, self.start_ns, self.end_ns, topics)
+
+    def messages(self, wanted: set[str] | None, raw: bool, name: str) -> Iterator[BagMessage]:
+        store = typestore()
+        for cid, log_ns, data in self._scan(wanted):
+            topic, msgtype = self.channels[cid]
+            msg = None
+            if not raw:
+                if msgtype not in store.types:
+                    raise FormatError(f'unknown message type {msgtype!r} on topic {topic}', name)
+                try:
+                    msg = store.deserialize_cdr(data, msgtype)
+                except Exception as exc:
+                    raise FormatError(f'cannot deserialise a message on {topic} ({msgtype}): '
+                                      f'{type(exc).__name__}: {exc}', name) from exc
+            yield BagMessage(topic, msgtype, log_ns, msg, data)
+        raise FormatError(self.problem or 'bag is truncated', name)
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One message read from a bag: topic, type, log time (ns), rosbags object, raw CDR bytes."""
+
+    topic: str
+    msgtype: str
+    log_ns: int
+    msg: Any
+    data: bytes = field(repr=False)
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """Summary (storage, counts, topics) of the bag at ``path``; FormatError if unreadable."""
+    with BagReader(path) as bag:
+        assert bag.info is not None
+        return bag.info
+
+
+# --------------------------------------------------------------------------- topic selection
+@dataclass(frozen=True)
+class TopicConfig:
+    """Topic names the replay reads; empty strings are detected automatically.
+
+    Attributes
+    ----------
+    measurements : the measurement encoding (``nav_msgs/Odometry``).
+    left_image, right_image : stereo images (``Image`` or ``CompressedImage``); '' = detect.
+    left_info, right_info : their ``CameraInfo`` topics; '' = detect.
+    ground_truth : ground-truth ``nav_msgs/Path`` ('' = none).
+    source : ``'auto'`` (measurements if that topic is in the bag, else images),
+        ``'measurements'`` or ``'stereo'``.
+    """
+
+    measurements: str = '/ga/measurements'
+    left_image: str = ''
+    right_image: str = ''
+    left_info: str = ''
+    right_info: str = ''
+    ground_truth: str = '/ga/ground_truth'
+    source: str = 'auto'
+
+
+@dataclass(frozen=True)
+class TopicPlan:
+    """What the replay will read from a bag (the result of :func:`plan_topics`).
+
+    ``source`` is ``'measurements'`` or ``'stereo'``; unused topics are ''. ``notes`` explains
+    each choice (printed by ``ga-ros replay --info``).
+    """
+
+    source: str
+    measurements: str = ''
+    left_image: str = ''
+    right_image: str = ''
+    left_info: str = ''
+    right_info: str = ''
+    ground_truth: str = ''
+    notes: tuple[str, ...] = ()
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        """Every topic the replay reads."""
+        names = (self.measurements, self.left_image, self.right_image, self.left_info,
+                 self.right_info, self.ground_truth)
+        return tuple(n for n in names if n)
+
+
+def _side_topics(info: BagInfo, types: tuple[str, ...], side: str) -> list[str]:
+    return [t.name for t in info.topics if t.msgtype in types and side in t.name.lower()]
+
+
+def _info_for(info: BagInfo, image_topic: str) -> str:
+    """The CameraInfo topic whose namespace is the longest prefix of ``image_topic`` ('')."""
+    best, best_len, tie = '', -1, False
+    for t in info.topics:
+        if t.msgtype != CAMERA_INFO:
+            continue
+        ns = t.name.rsplit('/', 1)[0]
+        if image_topic.startswith(ns + '/'):
+            if len(ns) > best_len:
+                best, best_len, tie = t.name, len(ns), False
+            elif len(ns) == best_len:
+                tie = True
+    return '' if tie else best
+
+
+def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan:
+    """Decide which topics of a bag the replay uses.
+
+    Raises
+    ------
+    InputError
+        If a configured topic is missing or has the wrong type, the bag has neither measurements
+        nor a stereo image pair, or the images have no CameraInfo.
+    """
+    src = config.source
+    if src not in ('auto', 'measurements', 'stereo'):
+        raise InputError(f"source must be 'auto', 'measurements' or 'stereo', got {src!r}")
+    notes: list[str] = []
+    name = str(info.path)
+
+    def check(topic: str, types: tuple[str, ...], what: str) -> None:
+        t = info.topic(topic)
+        if t is None:
+            raise FormatError(f'missing topic {topic} ({what}); the bag has: '
+                              + (', '.join(x.name for x in info.topics) or 'no topics'), name)
+        if t.msgtype not in types:
+            raise FormatError(f'topic {topic} ({what}) has type {t.msgtype}, expected '
+                              + ' or '.join(types), name)
+
+    gt = ''
+    if config.ground_truth and info.topic(config.ground_truth) is not None:
+        check(config.ground_truth, (PATH,), 'ground truth')
+        gt = config.ground_truth
+        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
+    else:
+        notes.append('ground truth: none (no errors against ground truth will be reported)')
+
+    has_meas = info.topic(config.measurements) is not None
+    if src == 'measurements' or (src == 'auto' and has_meas):
+        check(config.measurements, (ODOMETRY,), 'measurements')
+        notes.append(f'source: measurements from {config.measurements} (nav_msgs/Odometry, '
+                     'the ga_ros measurement encoding); no visual odometry')
+        return TopicPlan('measurements', measurements=config.measurements, ground_truth=gt,
+                         notes=tuple(notes))
+
+    left, right = config.left_image, config.right_image
+    if not left:
+        cands = _side_topics(info, IMAGE_TYPES, 'left')
+        if len(cands) > 1:
+            comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
+            cands = comp if len(comp) == 1 else cands
+        left = cands[0] if len(cands) == 1 else ''
+    if not right:
+        cands = _side_topics(info, IMAGE_TYPES, 'right')
+        if len(cands) > 1:
+            comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
+            cands = comp if len(comp) == 1 else cands
+        right = cands[0] if len(cands) == 1 else ''
+    if not left or not right:
+        raise FormatError(
+            f'no usable input: neither a measurements topic ({config.measurements}) nor a '
+            'left/right image pair (set the topic names explicitly); the bag has: '
+            + (', '.join(f'{t.name} [{t.msgtype}]' for t in info.topics) or 'no topics'), name)
+    check(left, IMAGE_TYPES, 'left images')
+    check(right, IMAGE_TYPES, 'right images')
+    left_info = config.left_info or _info_for(info, left)
+    right_info = config.right_info or _info_for(info, right)
+    if not left_info or not right_info:
+        missing = 'left' if not left_info else 'right'
+        raise FormatError(f'no CameraInfo for the {missing} images '
+                          f'({left if missing == "left" else right}); set it explicitly', name)
+    check(left_info, (CAMERA_INFO,), 'left camera info')
+    check(right_info, (CAMERA_INFO,), 'right camera info')
+    for topic in (left_info, right_info):
+        if info.topic(topic).count == 0:
+            raise FormatError(f'CameraInfo topic {topic} has no messages', name)
+    notes.append(f'source: stereo images {left} + {right} '
+                 f'({info.topic(left).msgtype.rsplit("/", 1)[1]}), calibration {left_info} + '
+                 f'{right_info}; visual odometry runs in-process')
+    return TopicPlan('stereo', left_image=left, right_image=right, left_info=left_info,
+                     right_info=right_info, ground_truth=gt, notes=tuple(notes))
+
+
+# --------------------------------------------------------------------------- poses
+def _quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
+    """Rotation matrix of a unit quaternion ``x y z w`` (Hamilton; no scipy call per message)."""
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def pose_msg_to_matrix(pose: Any) -> FloatArray:
+    """``geometry_msgs/Pose`` (rosbags) -> 4x4; InputError on NaN or a non-unit quaternion."""
+    p = (pose.position.x, pose.position.y, pose.position.z)
+    o = pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise InputError('pose has NaN or inf entries')
+    norm = float(np.sqrt(q @ q))
+    if abs(norm - 1.0) > _QUAT_NORM_TOL:
+        raise InputError(f'quaternion is not unit length (norm {norm:.6g})')
+    T = np.eye(4)
+    T[:3, :3] = _quat_xyzw_to_matrix(q / norm)
+    T[:3, 3] = p
+    return T
+
+
+def matrix_to_pose_msg(T: FloatArray) -> Any:
+    """4x4 pose -> ``geometry_msgs/Pose`` (rosbags object)."""
+    p, q = se3.to_pos_quat(np.asarray(T, dtype=float))
+    return _pose_msg(p.tolist(), q.tolist())
+
+
+def _pose_msg(p: list[float], q: list[float]) -> Any:
+    types = typestore().types
+    return types['geometry_msgs/msg/Pose'](
+        position=types['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+        orientation=types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+def covariance_from_msg(values: Any) -> FloatArray:
+    """36 row-major values -> 6x6 covariance; InputError unless finite, symmetric and PD.
+
+    Same rules as :func:`ga_ros.ros.conversions.msg_to_covariance`.
+    """
+    cov = np.asarray(values, dtype=float).reshape(6, 6)
+    if not np.isfinite(cov).all():
+        raise InputError('covariance has NaN or inf entries')
+    scale = max(float(np.abs(cov).max()), 1e-300)
+    if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
+        raise InputError('covariance is not symmetric')
+    cov = 0.5 * (cov + cov.T)
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise InputError('covariance is not positive definite') from None
+    if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
+        raise InputError('covariance is not positive definite (numerically singular)')
+    return cov
+
+
+# --------------------------------------------------------------------------- measurements
+def odometry_to_measurement(msg: Any) -> Measurement:
+    """Decode a rosbags ``nav_msgs/Odometry`` in the measurement encoding.
+
+    The rules are those of :func:`ga_ros.ros.conversions.odometry_to_measurement` (frame ids
+    ``'ga/<track>/<node>'`` parsed by :func:`ga_ros.core.frames.parse_node_frame`).
+
+    Raises
+    ------
+    InputError
+        On malformed frame ids, a self-loop, NaN/inf, a non-unit quaternion, a covariance that is
+        not symmetric positive definite, or a kind flag other than 0 or 1.
+    """
+    src_track, src_id = parse_node_frame(msg.header.frame_id)
+    dst_track, dst_id = parse_node_frame(msg.child_frame_id)
+    if src_id == dst_id:
+        raise InputError(f'self-loop: measurement from node {src_id} to itself')
+    flag = float(msg.twist.twist.linear.x)
+    if flag == 1.0:
+        kind = 'cross'
+    elif flag == 0.0:
+        kind = 'consecutive'
+    else:
+        raise InputError(f'twist.linear.x must be 0 (consecutive) or 1 (cross), got {flag!r}')
+    T_src_dst = pose_msg_to_matrix(msg.pose.pose)
+    cov = covariance_from_msg(msg.pose.covariance)
+    return Measurement(src_id, dst_id, src_track, dst_track, se3.to_translation_rotvec(T_src_dst),
+                       cov, stamp_to_ns(msg.header.stamp), kind)
+
+
+def measurement_to_odometry(m: Measurement) -> Any:
+    """Encode a :class:`Measurement` as a rosbags ``nav_msgs/Odometry`` (the fixed encoding)."""
+    from ga_ros.core.frames import node_frame
+
+    if m.kind not in KIND_FLAG:
+        raise InputError(f"measurement kind must be 'consecutive' or 'cross', got {m.kind!r}")
+    types = typestore().types
+    cov = np.asarray(m.cov, dtype=float)
+    if cov.shape != (6, 6):
+        raise InputError(f'covariance must be 6x6, got {cov.shape}')
+    zero_cov = np.zeros(36)
+    vec = types['geometry_msgs/msg/Vector3']
+    return types[ODOMETRY](
+        header=header(node_frame(m.src_track, m.src_id), m.stamp_ns),
+        child_frame_id=node_frame(m.dst_track, m.dst_id),
+        pose=types['geometry_msgs/msg/PoseWithCovariance'](
+            pose=matrix_to_pose_msg(m.T_src_dst), covariance=cov.reshape(36).copy()),
+        twist=types['geometry_msgs/msg/TwistWithCovariance'](
+            twist=types['geometry_msgs/msg/Twist'](
+                linear=vec(x=KIND_FLAG[m.kind], y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0)),
+            covariance=zero_cov))
+
+
+def header(frame_id: str, stamp_ns: int) -> Any:
+    """``std_msgs/Header`` (rosbags object)."""
+    return typestore().types['std_msgs/msg/Header'](stamp=ns_to_stamp(stamp_ns),
+                                                    frame_id=str(frame_id))
+
+
+# --------------------------------------------------------------------------- paths, ground truth
+@dataclass(frozen=True)
+class Trajectory:
+    """Poses with their stamps and (when known) node and track ids.
+
+    Attributes
+    ----------
+    stamps_ns : (n,) acquisition times, ns.
+    T_world_node : (n, 4, 4) poses.
+    node_ids, track_ids : (n,) ids, ``-1`` where unknown.
+    frame_id : frame the poses are expressed in.
+    """
+
+    stamps_ns: IntArray
+    T_world_node: FloatArray
+    node_ids: IntArray
+    track_ids: IntArray
+    frame_id: str = 'map'
+
+    def __len__(self) -> int:
+        return int(self.stamps_ns.shape[0])
+
+
+def path_msg_to_trajectory(msg: Any) -> Trajectory:
+    """rosbags ``nav_msgs/Path`` -> :class:`Trajectory` (node ids from node frame ids, if any)."""
+    n = len(msg.poses)
+    stamps = np.empty(n, dtype=np.int64)
+    nodes = np.full(n, -1, dtype=np.int64)
+    tracks = np.full(n, -1, dtype=np.int64)
+    T = np.empty((n, 4, 4))
+    for k, ps in enumerate(msg.poses):
+        stamps[k] = stamp_to_ns(ps.header.stamp)
+        T[k] = pose_msg_to_matrix(ps.pose)
+        try:
+            tracks[k], nodes[k] = parse_node_frame(ps.header.frame_id)
+        except InputError:
+            pass
+    return Trajectory(stamps, T, nodes, tracks, msg.header.frame_id or 'map')
+
+
+def trajectory_to_path_msg(traj: Trajectory, frame_id: str | None = None,
+                           stamp_ns: int | None = None, node_frames: bool = False) -> Any:
+    """:class:`Trajectory` -> rosbags ``nav_msgs/Path``.
+
+    Parameters
+    ----------
+    frame_id : the path's frame (default: ``traj.frame_id``).
+    stamp_ns : the path header's stamp (default: the last pose's stamp).
+    node_frames : if True, each pose's ``header.frame_id`` is its node frame
+        ``'ga/<track>/<node>'`` (the ground-truth convention); else ``frame_id``.
+    """
+    from ga_ros.core.frames import node_frame
+
+    types = typestore().types
+    frame = frame_id or traj.frame_id
+    n = len(traj)
+    if stamp_ns is None:
+        stamp_ns = int(traj.stamps_ns[-1]) if n else 0
+    poses = []
+    if n:
+        p_all, q_all = se3.to_pos_quat(np.asarray(traj.T_world_node, float).reshape(-1, 4, 4))
+        p_all, q_all = p_all.tolist(), q_all.tolist()
+    PoseStamped = types['geometry_msgs/msg/PoseStamped']
+    for k in range(n):
+        f = node_frame(int(traj.track_ids[k]), int(traj.node_ids[k])) if node_frames else frame
+        poses.append(PoseStamped(header=header(f, int(traj.stamps_ns[k])),
+                                 pose=_pose_msg(p_all[k], q_all[k])))
+    return types[PATH](header=header(frame, stamp_ns), poses=poses)
+
+
+def read_ground_truth(bag: BagReader, topic: str) -> Trajectory | None:
+    """The ground truth of an open bag: the last ``nav_msgs/Path`` on ``topic`` (None if absent,
+    or cut off in a truncated bag).
+
+    Raises
+    ------
+    FormatError
+        If the topic has another type or a pose is malformed.
+    """
+    assert bag.info is not None
+    t = bag.info.topic(topic)
+    if t is None or t.count == 0:
+        return None
+    if t.msgtype != PATH:
+        raise FormatError(f'ground truth topic {topic} has type {t.msgtype}, expected {PATH}',
+                          str(bag.path))
+    last = None
+    try:
+        for m in bag.messages([topic]):
+            last = m.msg
+    except FormatError:
+        if bag.truncated is None:
+            raise
+        # a bag cut short: use what was recorded (the main stream reports the cut)
+    if last is None:
+        return None
+    try:
+        return path_msg_to_trajectory(last)
+    except InputError as exc:
+        raise FormatError(f'ground truth on {topic}: {exc}', str(bag.path)) from exc

@@ -1,0 +1,186 @@
+"""Writing rosbag2 bags (mcap storage) without ROS, and the replay's output messages.
+
+:class:`BagWriter` wraps :class:`rosbags.rosbag2.Writer`: topics are registered on first use and
+the bag is always closed into a valid file (``metadata.yaml`` + one ``.mcap``), also when the
+caller fails half-way, so partial outputs stay readable (Foxglove, ``mcap``, rosbags).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import FormatError, InputError
+from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+
+
+class BagWriter:
+    """An mcap rosbag2 bag being written.
+
+    Parameters
+    ----------
+    path : output directory (rosbag2 layout: ``path/metadata.yaml`` and ``path/<name>.mcap``).
+    overwrite : if True and ``path`` is an existing rosbag2 directory (it has a ``metadata.yaml``
+        and only bag files), it is replaced; any other existing path is an error.
+    storage : ``'mcap'`` (default) or ``'sqlite3'``.
+    compress : zstd-compress the mcap chunks (readable by rosbags, ``mcap``, Foxglove, ros2 bag).
+    """
+
+    def __init__(self, path: str | Path, overwrite: bool = False, storage: str = 'mcap',
+                 compress: bool = True) -> None:
+        self.path = Path(path)
+        self.overwrite = overwrite
+        self.storage = storage
+        self.compress = compress
+        self._writer: Any = None
+        self._conns: dict[str, Any] = {}
+        self.counts: dict[str, int] = {}
+
+    def __enter__(self) -> BagWriter:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        """Create the bag; FormatError if the path exists and may not be replaced."""
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+        if self.path.exists():
+            allowed = {'.mcap', '.db3', '.yaml'}
+            is_bag = self.path.is_dir() and (self.path / 'metadata.yaml').exists() and all(
+                p.is_file() and p.suffix in allowed for p in self.path.iterdir())
+            if not (self.overwrite and is_bag):
+                raise FormatError('output exists' + ('' if is_bag else ' and is not a bag')
+                                  + ' (will not overwrite)', str(self.path))
+            shutil.rmtree(self.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        plugin = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}.get(self.storage)
+        if plugin is None:
+            raise InputError(f"storage must be 'mcap' or 'sqlite3', got {self.storage!r}")
+        try:
+            writer = Writer(self.path, version=9, storage_plugin=plugin)
+            if self.compress and self.storage == 'mcap':
+                writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            writer.open()
+            self._writer = writer
+        except Exception as exc:
+            raise FormatError(f'cannot create bag: {exc}', str(self.path)) from exc
+
+    def write(self, topic: str, msgtype: str, msg: Any, log_ns: int) -> None:
+        """Serialise ``msg`` (a rosbags object of ``msgtype``) and append it at time ``log_ns``."""
+        data = typestore().serialize_cdr(msg, msgtype)
+        self.write_raw(topic, msgtype, data, log_ns)
+
+    def write_raw(self, topic: str, msgtype: str, data: bytes, log_ns: int) -> None:
+        """Append already serialised CDR ``data`` of ``msgtype`` at time ``log_ns``."""
+        if self._writer is None:
+            raise FormatError('bag is not open for writing', str(self.path))
+        conn = self._conns.get(topic)
+        if conn is None:
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            self._conns[topic] = conn
+            self.counts[topic] = 0
+        elif conn.msgtype != msgtype:
+            raise InputError(f'topic {topic} already has type {conn.msgtype}, not {msgtype}')
+        self._writer.write(conn, int(log_ns), data)
+        self.counts[topic] += 1
+
+    def close(self) -> None:
+        """Finish the bag (writes the summary and ``metadata.yaml``); idempotent."""
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            writer.close()
+
+
+# --------------------------------------------------------------------------- output messages
+def pose_with_covariance_msg(T_world_node: FloatArray, cov: FloatArray, frame_id: str,
+                             stamp_ns: int) -> Any:
+    """``geometry_msgs/PoseWithCovarianceStamped`` (rosbags): pose ``T_world_node`` with the 6x6
+    covariance of its right perturbation, ``[x y z rx ry rz]``."""
+    types = typestore().types
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (6, 6):
+        raise InputError(f'covariance must be 6x6, got {cov.shape}')
+    return types['geometry_msgs/msg/PoseWithCovarianceStamped'](
+        header=header(frame_id, stamp_ns),
+        pose=types['geometry_msgs/msg/PoseWithCovariance'](
+            pose=matrix_to_pose_msg(T_world_node), covariance=cov.reshape(36).copy()))
+
+
+def residual_color(normalized_residual: FloatArray, scale: float = 3.0) -> FloatArray:
+    """Mahalanobis residual norms ``(m,)`` -> RGBA ``(m, 4)``: green at 0, yellow at ``scale/2``,
+    red at ``scale`` and above, grey when non-finite (same palette as the alignment node)."""
+    r = np.asarray(normalized_residual, dtype=float).reshape(-1)
+    s = np.clip(np.nan_to_num(r, nan=0.0) / max(scale, 1e-12), 0.0, 1.0)
+    rgba = np.empty((r.size, 4))
+    rgba[:, 0] = np.clip(2.0 * s, 0.0, 1.0)
+    rgba[:, 1] = np.clip(2.0 * (1.0 - s), 0.0, 1.0)
+    rgba[:, 2] = 0.0
+    rgba[:, 3] = 1.0
+    rgba[~np.isfinite(r)] = (0.5, 0.5, 0.5, 1.0)
+    return rgba
+
+
+def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
+                    normalized_residual: FloatArray, frame_id: str, stamp_ns: int,
+                    node_scale: float = 2.0, line_width: float = 0.5,
+                    residual_scale: float = 3.0, namespace: str = 'ga') -> Any:
+    """The connection network as a rosbags ``visualization_msgs/MarkerArray``.
+
+    Same layout as the alignment node's markers: a ``DELETEALL`` marker, a ``SPHERE_LIST`` of
+    nodes (id 0) and a ``LINE_LIST`` of connections (id 1) coloured by
+    :func:`residual_color` of their Mahalanobis misclosure.
+
+    Parameters
+    ----------
+    p_world_node : (n, 3) node positions in ``frame_id`` (m).
+    src_index, dst_index : (m,) node indices of the connections' ends.
+    normalized_residual : (m,) Mahalanobis norm of each connection's misclosure (unitless).
+    node_scale, line_width : marker sizes (m).
+    """
+    types = typestore().types
+    Marker = types['visualization_msgs/msg/Marker']
+    Point = types['geometry_msgs/msg/Point']
+    Color = types['std_msgs/msg/ColorRGBA']
+    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
+    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
+    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
+    if src.shape != dst.shape:
+        raise InputError('src_index and dst_index must have the same length')
+    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= p.shape[0]):
+        raise InputError('connection index out of range')
+
+    def marker(kind: int, action: int, mid: int, ns: str, scale: float, points: list[Any],
+               color: Any, colors: list[Any]) -> Any:
+        return Marker(
+            header=header(frame_id, stamp_ns), ns=ns, id=mid, type=kind, action=action,
+            pose=matrix_to_pose_msg(np.eye(4)),
+            scale=types['geometry_msgs/msg/Vector3'](x=scale, y=scale, z=scale),
+            color=color, lifetime=types['builtin_interfaces/msg/Duration'](sec=0, nanosec=0),
+            frame_locked=False, points=points, colors=colors, texture_resource='',
+            texture=types['sensor_msgs/msg/CompressedImage'](
+                header=header('', 0), format='', data=np.zeros(0, dtype=np.uint8)),
+            uv_coordinates=[], text='', mesh_resource='',
+            mesh_file=types['visualization_msgs/msg/MeshFile'](
+                filename='', data=np.zeros(0, dtype=np.uint8)),
+            mesh_use_embedded_materials=False)
+
+    white = Color(r=1.0, g=1.0, b=1.0, a=1.0)
+    clear = marker(Marker.ARROW, Marker.DELETEALL, 0, namespace, 1.0, [], white, [])
+    nodes = marker(Marker.SPHERE_LIST, Marker.ADD, 0, namespace + '/nodes', float(node_scale),
+                   [Point(x=x, y=y, z=z) for x, y, z in p.tolist()],
+                   Color(r=0.2, g=0.4, b=1.0, a=1.0), [])
+    ends = np.empty((2 * src.size, 3))
+    ends[0::2] = p[src]
+    ends[1::2] = p[dst]
+    rgba = np.repeat(residual_color(normalized_residual, residual_scale), 2, axis=0)
+    lines = marker(Marker.LINE_LIST, Marker.ADD, 1, namespace + '/connections', float(line_width),
+                   [Point(x=x, y=y, z=z) for x, y, z in ends.tolist()], white,
+                   [Color(r=r, g=g, b=b, a=a) for r, g, b, a in rgba.tolist()])
+    return types['visualization_msgs/msg/MarkerArray'](markers=[clear, nodes, lines])

@@ -1,0 +1,202 @@
+"""Trajectory files: TUM (``timestamp x y z qx qy qz qw``) and KITTI (3x4 of ``T_world_cam``).
+
+* TUM RGB-D format: one pose per line, ``timestamp`` in seconds (written with 9 decimals, read
+  exactly into integer nanoseconds), position ``x y z`` (m) and unit quaternion ``qx qy qz qw``
+  of ``T_world_cam``; ``#`` comment lines are skipped.
+* KITTI odometry format: one pose per line, the first three rows of ``T_world_cam`` row-major
+  (``r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz``); no timestamps.
+
+Readers validate every line (field count, numbers, unit quaternion / rotation matrix) and raise
+:class:`FormatError` with ``file:line``; writers write to a temporary name and rename.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import FormatError, InputError
+from ga_ros.geometry import se3
+
+#: tolerance on |q| - 1 (TUM) and on ||R'R - I|| (KITTI) before a pose is rejected
+_ROTATION_TOL = 1e-3
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Timestamped poses.
+
+    Attributes
+    ----------
+    stamps_ns : (n,) int64 timestamps (ns).
+    T_world_cam : (n, 4, 4) poses.
+    """
+
+    stamps_ns: IntArray
+    T_world_cam: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.stamps_ns.shape[0])
+
+
+def _read_lines(path: str | os.PathLike) -> list[tuple[int, list[str]]]:
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FormatError(f'cannot read: {exc}', str(path)) from None
+    out = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        fields = raw.replace(',', ' ').split()
+        if fields and not fields[0].startswith('#'):
+            out.append((lineno, fields))
+    return out
+
+
+def _floats(fields: list[str], path: str, line: int) -> FloatArray:
+    try:
+        values = np.array([float(f) for f in fields])
+    except ValueError:
+        raise FormatError(f'non-numeric value in {" ".join(fields)!r}', path, line) from None
+    if not np.isfinite(values).all():
+        raise FormatError('NaN or infinite value', path, line)
+    return values
+
+
+def _stamp_ns(text: str, path: str, line: int) -> int:
+    """Seconds as a decimal string -> integer ns, exactly (no float rounding)."""
+    s = text.strip()
+    neg = s.startswith('-')
+    if neg or s.startswith('+'):
+        s = s[1:]
+    whole, _, frac = s.partition('.')
+    if (not whole and not frac) or not (whole or '0').isdigit() or not (frac or '0').isdigit():
+        try:  # exponent notation and the like: fall back to float
+            return int(round(float(text) * 1e9))
+        except ValueError:
+            raise FormatError(f'timestamp {text!r} is not a number', path, line) from None
+    ns = int(whole or '0') * 10**9 + int((frac + '0' * 9)[:9])
+    return -ns if neg else ns
+
+
+def _format_stamp(ns: int) -> str:
+    sign = '-' if ns < 0 else ''
+    ns = abs(int(ns))
+    return f'{sign}{ns // 10**9}.{ns % 10**9:09d}'
+
+
+def _write_atomic(path: str | os.PathLike, lines: list[str]) -> None:
+    out = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', dir=out.parent or '.')
+    except OSError as exc:
+        raise FormatError(f'cannot write: {exc}', str(path)) from None
+    try:
+        with os.fdopen(fd, 'w') as fh:
+            fh.write(''.join(line + '\n' for line in lines))
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _check_poses(T: FloatArray) -> FloatArray:
+    T = np.asarray(T, dtype=float)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise InputError(f'poses must have shape (n, 4, 4), got {T.shape}')
+    if not np.isfinite(T).all():
+        raise InputError('poses have NaN or inf entries; refusing to write them')
+    return T
+
+
+def read_tum(path: str | os.PathLike) -> Trajectory:
+    """Read a TUM trajectory (``timestamp x y z qx qy qz qw`` per line; commas also accepted).
+
+    Raises
+    ------
+    FormatError
+        ``file:line`` of a line with a wrong field count, a non-numeric value, or a quaternion
+        whose norm is not 1 (within 1e-3; otherwise it is normalised).
+    """
+    spath = str(path)
+    stamps, poses = [], []
+    for lineno, fields in _read_lines(path):
+        if len(fields) != 8:
+            raise FormatError(f'TUM line needs 8 fields (timestamp x y z qx qy qz qw), '
+                              f'got {len(fields)}', spath, lineno)
+        stamp = _stamp_ns(fields[0], spath, lineno)
+        v = _floats(fields[1:], spath, lineno)
+        norm = float(np.linalg.norm(v[3:]))
+        if abs(norm - 1.0) > _ROTATION_TOL:
+            raise FormatError(f'quaternion has norm {norm:.6g}, not 1', spath, lineno)
+        stamps.append(stamp)
+        poses.append(v)
+    if not poses:
+        return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
+    v = np.array(poses)
+    return Trajectory(np.array(stamps, dtype=np.int64), se3.from_pos_quat(v[:, :3], v[:, 3:]))
+
+
+def write_tum(path: str | os.PathLike, stamps_ns, T_world_cam: FloatArray) -> None:
+    """Write a TUM trajectory.
+
+    Parameters
+    ----------
+    path : output file.
+    stamps_ns : (n,) integer timestamps (ns), written as seconds with 9 decimals.
+    T_world_cam : (n, 4, 4) poses.
+    """
+    T = _check_poses(T_world_cam)
+    stamps = np.asarray(stamps_ns).reshape(-1)
+    if stamps.shape[0] != T.shape[0]:
+        raise InputError(f'{stamps.shape[0]} timestamps for {T.shape[0]} poses')
+    if not np.issubdtype(stamps.dtype, np.integer):
+        raise InputError('stamps_ns must be integers (nanoseconds)')
+    p, q = se3.to_pos_quat(T)
+    lines = ['# timestamp x y z qx qy qz qw']
+    for k in range(T.shape[0]):
+        vals = ' '.join(repr(float(x)) for x in np.concatenate([p[k], q[k]]))
+        lines.append(f'{_format_stamp(int(stamps[k]))} {vals}')
+    _write_atomic(path, lines)
+
+
+def read_kitti(path: str | os.PathLike) -> FloatArray:
+    """Read a KITTI pose file: ``(n, 4, 4)`` poses ``T_world_cam``.
+
+    Raises
+    ------
+    FormatError
+        ``file:line`` of a line without exactly 12 numbers or whose rotation block is not
+        orthonormal (``max |R'R - I| > 1e-3``; otherwise it is projected onto SO(3)).
+    """
+    spath = str(path)
+    rows = []
+    for lineno, fields in _read_lines(path):
+        if len(fields) != 12:
+            raise FormatError(f'KITTI line needs 12 values (3x4 row-major), got {len(fields)}',
+                              spath, lineno)
+        M = _floats(fields, spath, lineno).reshape(3, 4)
+        err = float(np.abs(M[:, :3].T @ M[:, :3] - np.eye(3)).max())
+        if err > _ROTATION_TOL or np.linalg.det(M[:, :3]) <= 0:
+            raise FormatError(f"rotation block is not a rotation (|R'R - I| = {err:.3g})",
+                              spath, lineno)
+        rows.append(M)
+    T = np.zeros((len(rows), 4, 4))
+    if rows:
+        M = np.array(rows)
+        U, _, Vt = np.linalg.svd(M[:, :, :3])
+        T[:, :3, :3] = U @ Vt
+        T[:, :3, 3] = M[:, :, 3]
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def write_kitti(path: str | os.PathLike, T_world_cam: FloatArray) -> None:
+    """Write poses ``(n, 4, 4)`` as KITTI lines (12 values, row-major ``[R | t]``)."""
+    T = _check_poses(T_world_cam)
+    lines = [' '.join(repr(float(x)) for x in T[k, :3, :].reshape(-1)) for k in range(T.shape[0])]
+    _write_atomic(path, lines)
