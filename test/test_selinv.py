@@ -29,6 +29,17 @@ def test_blocks_equal_dense_inverse(rng):
         np.testing.assert_allclose(blocks, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
 
 
+def test_wanted_subset_equals_dense_inverse(rng):
+    u, d = 60, 6
+    N = _random_graph_spd(rng, u, d, 20)
+    inv = np.linalg.inv(N)
+    wanted = np.array([0, 3, 7, 41])
+    blocks = banded_marginal_blocks(sp.csr_matrix(N), d, wanted=wanted)
+    for i in wanted:
+        np.testing.assert_allclose(blocks[i], inv[i * d:(i + 1) * d, i * d:(i + 1) * d],
+                                   rtol=1e-8, atol=1e-12)
+
+
 def test_gives_up_when_band_too_wide(rng):
     N = _random_graph_spd(rng, 30, 6, 200)
     assert banded_marginal_blocks(sp.csr_matrix(N), 6, max_band=12) is None

@@ -19,14 +19,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse.csgraph import reverse_cuthill_mckee
+from scipy.sparse.csgraph import breadth_first_order, dijkstra, reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import DegenerateGeometryError
 
 
-def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000) -> FloatArray | None:
-    """All ``d x d`` diagonal blocks of ``N^-1`` for a symmetric positive definite ``N``.
+def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
+                           wanted: np.ndarray | None = None) -> FloatArray | None:
+    """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
     Parameters
     ----------
@@ -34,6 +35,10 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000) -> Floa
     d : block size (parameters per node).
     max_band : give up (return ``None``) if the reordered half-bandwidth exceeds this many
         scalars; the caller then uses sparse solves.
+    wanted : optional (k,) node blocks that are needed. The nodes are then ordered breadth first
+        from the node farthest from them, so that they come last, and the backward recursion
+        stops once it has passed them (blocks of other nodes are left as NaN). Default: all
+        nodes, in reverse Cuthill-McKee order.
 
     Returns
     -------
@@ -44,7 +49,19 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000) -> Floa
     u = n // d
     coo = N.tocoo()
     G = sp.coo_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(u, u)).tocsr()
-    order = reverse_cuthill_mckee(G, symmetric_mode=True)
+    if wanted is None or len(wanted) == 0 or len(wanted) == u:
+        order = reverse_cuthill_mckee(G, symmetric_mode=True)
+        first_needed = 0
+    else:
+        wanted = np.asarray(wanted, dtype=np.int64)
+        dist = dijkstra(G, unweighted=True, indices=wanted, min_only=True)
+        start = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+        order = breadth_first_order(G, start, directed=False, return_predecessors=False)
+        if order.size < u:  # disconnected parts: append them (their blocks stay decoupled)
+            order = np.concatenate([order, np.setdiff1d(np.arange(u), order)])
+        pos = np.empty(u, dtype=np.int64)
+        pos[order] = np.arange(u)
+        first_needed = int(pos[wanted].min())
     perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
     inv = np.empty(n, dtype=np.int64)
     inv[perm] = np.arange(n)
@@ -80,9 +97,10 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000) -> Floa
         if k < nb - 1:
             C[k] = C[k] @ Dinv[k].T
     # backward recursion over the diagonal blocks of Sigma
-    out = np.empty((u, d, d))
+    out = np.full((u, d, d), np.nan)
     Sigma_next = None
-    for k in range(nb - 1, -1, -1):
+    stop = (first_needed * d) // b
+    for k in range(nb - 1, stop - 1, -1):
         if Sigma_next is None:
             S = Dinv[k].T @ Dinv[k]
         else:

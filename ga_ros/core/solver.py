@@ -191,7 +191,6 @@ class _NormalSystem:
         self.data = data
         self._chol = chol
         self._factored = False
-        self._all_blocks: FloatArray | None = None
         self._index = {int(i): k for k, i in enumerate(node_ids)}
 
     def index_of(self, ids: IntArray) -> IntArray:
@@ -228,12 +227,11 @@ class _NormalSystem:
     def marginal_blocks(self, ids: IntArray) -> FloatArray:
         d = self.d
         if ids.size > _MANY_NODES:
-            if self._all_blocks is None:
-                self._all_blocks = banded_marginal_blocks(self.full(), d)
-            if self._all_blocks is not None:
-                cols = self.col[self.index_of(ids)]
+            cols = self.col[self.index_of(ids)]
+            blocks = banded_marginal_blocks(self.full(), d, wanted=cols[cols >= 0])
+            if blocks is not None:
                 out = np.zeros((ids.size, d, d))
-                out[cols >= 0] = self._all_blocks[cols[cols >= 0]]
+                out[cols >= 0] = blocks[cols[cols >= 0]]
                 return out
         out = np.zeros((ids.size, d, d))
         for start in range(0, ids.size, 256):  # bounded memory: n x (256 d) at a time

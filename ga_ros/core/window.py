@@ -548,6 +548,10 @@ class TrackWindowAligner:
         return (ids[self._src.a], ids[self._dst.a], self._z.a.copy(), self._cross.a.copy(),
                 self._status.a.copy())
 
+    def connection_covariances(self) -> FloatArray:
+        """(m, 6, 6) covariance of every connection, in the order of :meth:`connection_arrays`."""
+        return self._ccov.a.copy()
+
     # --------------------------------------------------------------- batch refinement
     def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
         """Full batch adjustment of every node with every kept connection (end of a survey).
@@ -604,7 +608,19 @@ class TrackWindowAligner:
 
     @classmethod
     def load(cls, path: str | Path) -> TrackWindowAligner:
-        """Restore a state written by :meth:`save`; the next update re-adjusts the window."""
+        """Restore a state written by :meth:`save`; the next update re-adjusts the window.
+
+        Raises :class:`InputError` if the file is unreadable or inconsistent."""
+        try:
+            return cls._load(path)
+        except GaError:
+            raise
+        except (OSError, ValueError, KeyError, IndexError, TypeError,
+                np.linalg.LinAlgError) as exc:
+            raise InputError(f'cannot restore aligner state from {path}: {exc}') from None
+
+    @classmethod
+    def _load(cls, path: str | Path) -> TrackWindowAligner:
         try:
             data = np.load(Path(path), allow_pickle=False)
             meta = json.loads(bytes(data['meta']).decode())
