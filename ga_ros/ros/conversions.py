@@ -1,0 +1,380 @@
+"""All conversions between ROS 2 messages and the ROS-free core types of ga_ros.
+
+The measurement encoding (standard message types only; no custom message package is built)
+---------------------------------------------------------------------------------------------
+One ``nav_msgs/msg/Odometry`` per connection, on ``/ga/measurements``:
+
+* ``header.frame_id = 'ga/<src_track>/<src_id>'``,
+  ``child_frame_id = 'ga/<dst_track>/<dst_id>'`` (decimal
+  non-negative integers, at most :data:`MAX_ID`);
+* ``header.stamp``: acquisition time of the ``dst`` frame;
+* ``pose.pose``: the motion ``T_src_dst`` (position in m, unit quaternion ``x y z w``);
+* ``pose.covariance``: 6x6 row-major covariance of the right perturbation of ``T_src_dst``, order
+  ``[x y z rx ry rz]`` (m, rad);
+* ``twist.twist.linear.x``: ``1.0`` marks a cross-track (overlap) connection, ``0.0`` a consecutive
+  one; the rest of the twist is zero.
+
+Every function here is a pure conversion: it validates at the boundary (raising
+:class:`ga_ros.errors.InputError`) and never touches a node or a publisher.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry, Path
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import frames
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+
+#: Largest accepted node or track id (ids above it are "absurd" and rejected).
+MAX_ID = frames.MAX_ID
+#: ``twist.twist.linear.x`` values of the two measurement kinds.
+KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
+_QUAT_NORM_TOL = 1e-3
+
+
+# --------------------------------------------------------------------------- stamps, frames
+def stamp_to_ns(stamp: Time) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Integer nanoseconds (>= 0) -> ``builtin_interfaces/Time``."""
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}')
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return Time(sec=int(sec), nanosec=int(nanosec))
+
+
+def node_frame_id(track_id: int, node_id: int) -> str:
+    """Frame id ``'ga/<track_id>/<node_id>'`` that carries a node in the measurement encoding
+    (delegates to :func:`ga_ros.core.frames.node_frame`, shared with the ROS-free bag reader)."""
+    return frames.node_frame(track_id, node_id)
+
+
+def parse_node_frame_id(frame_id: str) -> tuple[int, int]:
+    """Parse ``'ga/<track_id>/<node_id>'`` into ``(track_id, node_id)``.
+
+    Raises InputError if malformed (a leading ``/`` is tolerated); see
+    :func:`ga_ros.core.frames.parse_node_frame`.
+    """
+    return frames.parse_node_frame(frame_id)
+
+
+# --------------------------------------------------------------------------- poses, covariances
+def pose_to_msg(T: FloatArray) -> Pose:
+    """4x4 pose -> ``geometry_msgs/Pose`` (position m, quaternion ``x y z w``)."""
+    p, q = se3.to_pos_quat(np.asarray(T, dtype=float))
+    msg = Pose()
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in p)
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (
+        float(v) for v in q)
+    return msg
+
+
+def msg_to_pose(msg: Pose) -> FloatArray:
+    """``geometry_msgs/Pose`` -> 4x4 pose; InputError on NaN or a non-unit quaternion."""
+    p = np.array([msg.position.x, msg.position.y, msg.position.z])
+    q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise InputError('pose has NaN or inf entries')
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > _QUAT_NORM_TOL:
+        raise InputError(f'quaternion is not unit length (norm {norm:.6g})')
+    return se3.from_pos_quat(p, q / norm)
+
+
+def _quat_to_rotvec(x: float, y: float, z: float, w: float) -> list[float]:
+    """Unit quaternion ``x y z w`` -> rotation vector (rad), angle in [0, pi]; scalar code, as
+    this runs once per received message."""
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-8:
+        # angle = 2 atan2(s, w) ~ 2 s / w: rotvec ~ 2 v / w (error O(s^3))
+        k = 2.0 / w
+    else:
+        k = 2.0 * math.atan2(s, w) / s
+    return [k * x, k * y, k * z]
+
+
+def covariance_to_msg(cov: FloatArray) -> FloatArray:
+    """6x6 covariance -> 36 row-major float64 values (``[x y z rx ry rz]`` order)."""
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (6, 6):
+        raise InputError(f'covariance must be 6x6, got {cov.shape}')
+    return np.ascontiguousarray(cov).reshape(36).copy()
+
+
+def msg_to_covariance(values: Sequence[float], check: bool = True) -> FloatArray:
+    """36 row-major values -> 6x6 covariance; with ``check``, InputError unless finite, symmetric
+    and positive definite."""
+    cov = np.asarray(values, dtype=float).reshape(6, 6)
+    if check:
+        if not np.isfinite(cov).all():
+            raise InputError('covariance has NaN or inf entries')
+        scale = max(float(np.abs(cov).max()), 1e-300)
+        if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
+            raise InputError('covariance is not symmetric')
+        cov = 0.5 * (cov + cov.T)
+        try:
+            np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            raise InputError('covariance is not positive definite') from None
+        # same rule as ga_ros.io.bag.covariance_from_msg and ConnectionNetwork
+        if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
+            raise InputError('covariance is not positive definite (numerically singular)')
+    return cov
+
+
+# --------------------------------------------------------------------------- measurements
+def measurement_to_odometry(m: Measurement) -> Odometry:
+    """Encode a :class:`Measurement` as ``nav_msgs/Odometry`` (see the module docstring)."""
+    if m.kind not in KIND_FLAG:
+        raise InputError(f"measurement kind must be 'consecutive' or 'cross', got {m.kind!r}")
+    msg = Odometry()
+    msg.header.frame_id = node_frame_id(m.src_track, m.src_id)
+    msg.child_frame_id = node_frame_id(m.dst_track, m.dst_id)
+    msg.header.stamp = ns_to_stamp(m.stamp_ns)
+    msg.pose.pose = pose_to_msg(m.T_src_dst)
+    msg.pose.covariance = covariance_to_msg(m.cov)
+    msg.twist.twist.linear.x = KIND_FLAG[m.kind]
+    return msg
+
+
+def _rejected(reason: str, text: str) -> InputError:
+    """An :class:`InputError` with a short ``reason`` key (counted by the node's diagnostics;
+    the same keys as :class:`ga_ros.core.window.TrackWindowAligner`)."""
+    err = InputError(text)
+    err.reason = reason
+    return err
+
+
+def odometry_to_measurement(msg: Odometry) -> Measurement:
+    """Decode ``nav_msgs/Odometry`` into a :class:`Measurement`.
+
+    Raises
+    ------
+    InputError
+        On malformed frame ids, a self-loop, NaN/inf in the pose, a non-unit quaternion, a
+        covariance that is not symmetric positive definite, or a kind flag other than 0 or 1.
+        Its ``reason`` attribute is one of ``'bad_id'``, ``'self_loop'``, ``'bad_kind'``,
+        ``'non_finite'``, ``'bad_quaternion'``, ``'bad_covariance'``.
+    """
+    try:
+        src_track, src_id = parse_node_frame_id(msg.header.frame_id)
+        dst_track, dst_id = parse_node_frame_id(msg.child_frame_id)
+    except InputError as exc:
+        raise _rejected('bad_id', str(exc)) from None
+    if src_id == dst_id:
+        raise _rejected('self_loop', f'self-loop: measurement from node {src_id} to itself')
+    flag = float(msg.twist.twist.linear.x)
+    if flag == 1.0:
+        kind = 'cross'
+    elif flag == 0.0:
+        kind = 'consecutive'
+    else:
+        raise _rejected('bad_kind', 'twist.linear.x must be 0 (consecutive) or 1 (cross), '
+                        f'got {flag!r}')
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    z = [p.x, p.y, p.z]
+    quat = [q.x, q.y, q.z, q.w]
+    if not all(math.isfinite(v) for v in z + quat):
+        raise _rejected('non_finite', 'pose has NaN or inf entries')
+    norm = math.sqrt(sum(v * v for v in quat))
+    if abs(norm - 1.0) > _QUAT_NORM_TOL:
+        raise _rejected('bad_quaternion', f'quaternion is not unit length (norm {norm:.6g})')
+    z += _quat_to_rotvec(*(v / norm for v in quat))
+    try:
+        cov = msg_to_covariance(msg.pose.covariance)
+    except InputError as exc:
+        raise _rejected('bad_covariance', str(exc)) from None
+    return Measurement(src_id, dst_id, src_track, dst_track, np.array(z), cov,
+                       stamp_to_ns(msg.header.stamp), kind)
+
+
+# --------------------------------------------------------------------------- outputs
+def path_to_msg(T_world_node: FloatArray, stamps_ns: Sequence[int] | IntArray, frame_id: str,
+                stamp_ns: int | None = None) -> Path:
+    """Corrected poses ``(n, 4, 4)`` in ``frame_id`` -> ``nav_msgs/Path`` (one pose per node).
+
+    ``stamps_ns`` gives each pose's stamp; the path header gets ``stamp_ns`` (default: the last
+    node's stamp, or 0 for an empty path).
+    """
+    T_world_node = np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4)
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    if stamps.shape[0] != T_world_node.shape[0]:
+        raise InputError(f'{T_world_node.shape[0]} poses but {stamps.shape[0]} stamps')
+    msg = Path()
+    msg.header.frame_id = frame_id
+    if stamp_ns is None:
+        stamp_ns = int(stamps[-1]) if stamps.size else 0
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    if T_world_node.shape[0]:
+        p, q = se3.to_pos_quat(T_world_node)
+        p, q = p.tolist(), q.tolist()
+    poses = []
+    for k in range(T_world_node.shape[0]):
+        ps = PoseStamped()
+        ps.header.frame_id = frame_id
+        ps.header.stamp = ns_to_stamp(int(stamps[k]))
+        ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = p[k]
+        o = ps.pose.orientation
+        o.x, o.y, o.z, o.w = q[k]
+        poses.append(ps)
+    msg.poses = poses
+    return msg
+
+
+def path_msg_to_poses(msg: Path) -> FloatArray:
+    """``nav_msgs/Path`` -> ``(n, 4, 4)`` poses (for tests and tools)."""
+    if not msg.poses:
+        return np.zeros((0, 4, 4))
+    p = np.array([[s.pose.position.x, s.pose.position.y, s.pose.position.z] for s in msg.poses])
+    q = np.array([[s.pose.orientation.x, s.pose.orientation.y, s.pose.orientation.z,
+                   s.pose.orientation.w] for s in msg.poses])
+    return se3.from_pos_quat(p, q)
+
+
+def pose_with_covariance_msg(T_world_node: FloatArray, cov: FloatArray, frame_id: str,
+                             stamp_ns: int) -> PoseWithCovarianceStamped:
+    """Pose ``T_world_node`` with 6x6 covariance (right perturbation, ``[x y z rx ry rz]``)."""
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.pose.pose = pose_to_msg(T_world_node)
+    msg.pose.covariance = covariance_to_msg(cov)
+    return msg
+
+
+def odometry_msg(T_world_node: FloatArray, cov: FloatArray, frame_id: str, child_frame_id: str,
+                 stamp_ns: int) -> Odometry:
+    """Corrected pose of ``child_frame_id`` in ``frame_id`` as ``nav_msgs/Odometry`` (the output
+    stream for mapping nodes; the twist is unknown and left zero with zero covariance)."""
+    msg = Odometry()
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.pose.pose = pose_to_msg(T_world_node)
+    msg.pose.covariance = covariance_to_msg(cov)
+    return msg
+
+
+def residual_color(normalized_residual: FloatArray, scale: float = 3.0) -> FloatArray:
+    """Map Mahalanobis residual norms ``(m,)`` to RGBA ``(m, 4)``: green at 0, yellow at
+    ``scale / 2``, red at ``scale`` and above; non-finite values are grey."""
+    r = np.asarray(normalized_residual, dtype=float).reshape(-1)
+    s = np.clip(np.nan_to_num(r, nan=0.0) / max(scale, 1e-12), 0.0, 1.0)
+    rgba = np.empty((r.size, 4))
+    rgba[:, 0] = np.clip(2.0 * s, 0.0, 1.0)
+    rgba[:, 1] = np.clip(2.0 * (1.0 - s), 0.0, 1.0)
+    rgba[:, 2] = 0.0
+    rgba[:, 3] = 1.0
+    rgba[~np.isfinite(r)] = (0.5, 0.5, 0.5, 1.0)
+    return rgba
+
+
+def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
+                    normalized_residual: FloatArray, frame_id: str, stamp_ns: int,
+                    node_colors: FloatArray | None = None, node_scale: float = 0.2,
+                    line_width: float = 0.05, residual_scale: float = 3.0,
+                    namespace: str = 'ga',
+                    connection_colors: FloatArray | None = None) -> MarkerArray:
+    """The connection network as a ``MarkerArray`` for RViz / Foxglove.
+
+    Parameters
+    ----------
+    p_world_node : (n, 3) node positions in ``frame_id`` (m).
+    src_index, dst_index : (m,) node indices of the connections' ends.
+    normalized_residual : (m,) Mahalanobis norm of each connection's residual (unitless); colours
+        the connection lines via :func:`residual_color`.
+    node_colors : (n, 4) RGBA per node (default: blue).
+    connection_colors : (m, 4) RGBA per connection (default: from ``normalized_residual``).
+
+    Returns
+    -------
+    MarkerArray with a ``DELETEALL`` marker first, then a ``SPHERE_LIST`` of nodes (id 0) and a
+    ``LINE_LIST`` of connections (id 1).
+    """
+    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
+    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
+    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
+    if src.shape != dst.shape:
+        raise InputError('src_index and dst_index must have the same length')
+    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= p.shape[0]):
+        raise InputError('connection index out of range')
+    stamp = ns_to_stamp(stamp_ns)
+    clear = Marker(action=Marker.DELETEALL)
+    clear.header.frame_id = frame_id
+    clear.ns = namespace
+
+    nodes = Marker(type=Marker.SPHERE_LIST, action=Marker.ADD, id=0)
+    nodes.header.frame_id = frame_id
+    nodes.header.stamp = stamp
+    nodes.ns = namespace + '/nodes'
+    nodes.pose.orientation.w = 1.0
+    nodes.scale.x = nodes.scale.y = nodes.scale.z = float(node_scale)
+    nodes.points = [Point(x=x, y=y, z=z) for x, y, z in p.tolist()]
+    if node_colors is None:
+        nodes.color = ColorRGBA(r=0.2, g=0.4, b=1.0, a=1.0)
+    else:
+        nc = np.asarray(node_colors, dtype=float).reshape(-1, 4)
+        nodes.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+        nodes.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in nc.tolist()]
+
+    lines = Marker(type=Marker.LINE_LIST, action=Marker.ADD, id=1)
+    lines.header.frame_id = frame_id
+    lines.header.stamp = stamp
+    lines.ns = namespace + '/connections'
+    lines.pose.orientation.w = 1.0
+    lines.scale.x = float(line_width)
+    lines.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+    ends = np.empty((2 * src.size, 3))
+    ends[0::2] = p[src]
+    ends[1::2] = p[dst]
+    lines.points = [Point(x=x, y=y, z=z) for x, y, z in ends.tolist()]
+    if connection_colors is None:
+        connection_colors = residual_color(normalized_residual, residual_scale)
+    rgba = np.asarray(connection_colors, dtype=float).reshape(-1, 4)
+    if rgba.shape[0] != src.size:
+        raise InputError(f'{rgba.shape[0]} connection colours for {src.size} connections')
+    rgba = np.repeat(rgba, 2, axis=0)
+    lines.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in rgba.tolist()]
+    return MarkerArray(markers=[clear, nodes, lines])
+
+
+def diagnostics_msg(name: str, hardware_id: str, values: Mapping[str, object], stamp_ns: int,
+                    level: int = 0, message: str = 'ok') -> DiagnosticArray:
+    """One ``DiagnosticStatus`` with ``values`` as key/value strings (floats with 6 significant
+    digits). ``level``: 0 OK, 1 WARN, 2 ERROR, 3 STALE."""
+    status = DiagnosticStatus(level=bytes([int(level)]), name=name, hardware_id=hardware_id,
+                              message=message)
+    kv = []
+    for key, value in values.items():
+        if isinstance(value, float | np.floating):
+            text = f'{float(value):.6g}'
+        else:
+            text = str(value)
+        kv.append(KeyValue(key=str(key), value=text))
+    status.values = kv
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    return msg
+
+
+def diagnostics_to_dict(msg: DiagnosticArray) -> dict[str, str]:
+    """Flatten the key/values of every status in a ``DiagnosticArray`` (for tests and tools)."""
+    return {kv.key: kv.value for status in msg.status for kv in status.values}

@@ -1,0 +1,184 @@
+"""Drive an alignment node running in another process (integration tests and ``bench-node``).
+
+:func:`start_node_process` launches ``python -m ga_ros.ros.alignment_node`` with its own
+``ROS_DOMAIN_ID``; :class:`NodeClient` publishes measurements to it, listens to its outputs and
+calls its services, spinning its own executor with timeouts (never forever).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import GaError
+from ga_ros.ros import conversions as conv
+from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
+
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'alignment.yaml'
+
+
+class HarnessTimeout(GaError):
+    """A condition was not met in time (the node is too slow, dead, or not discovered)."""
+
+
+def start_node_process(domain_id: int, params: dict[str, object] | None = None,
+                       params_file: str | os.PathLike | None = CONFIG,
+                       log_path: str | os.PathLike | None = None) -> subprocess.Popen:
+    """Start the alignment node as a child process on ``domain_id``; ``params`` are ``-p
+    name:=value`` overrides. Stdout/stderr go to ``log_path`` (default: discarded)."""
+    cmd = [sys.executable, '-m', 'ga_ros.ros.alignment_node', '--ros-args']
+    if params_file is not None and Path(params_file).exists():
+        cmd += ['--params-file', str(params_file)]
+    for key, value in (params or {}).items():
+        if isinstance(value, bool):
+            value = 'true' if value else 'false'
+        elif isinstance(value, str) and value == '':
+            value = "''"
+        cmd += ['-p', f'{key}:={value}']
+    env = dict(os.environ, ROS_DOMAIN_ID=str(int(domain_id)), PYTHONUNBUFFERED='1')
+    out = open(log_path, 'ab') if log_path else subprocess.DEVNULL  # noqa: SIM115
+    return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def stop_process(proc: subprocess.Popen | None, sig: int = signal.SIGINT,
+                 timeout: float = 10.0) -> None:
+    """Stop a child started by :func:`start_node_process` (``SIGINT``, then ``SIGKILL``)."""
+    if proc is None or proc.poll() is not None:
+        return
+    try:
+        proc.send_signal(sig)
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=timeout)
+
+
+class NodeClient:
+    """Test-side ROS node: publishes measurements, records the alignment node's outputs."""
+
+    def __init__(self, domain_id: int, node_name: str = 'alignment_node',
+                 measurements_topic: str = '/ga/measurements',
+                 path_topic: str = '/ga/corrected_path',
+                 diagnostics_topic: str = '/diagnostics') -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=int(domain_id))
+        self.node = Node(f'ga_harness_{os.getpid()}', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.pub = self.node.create_publisher(Odometry, measurements_topic, measurement_qos())
+        self.path_topic = path_topic
+        self.paths: list[tuple[float, PathMsg]] = []
+        self.diagnostics: dict[str, str] = {}
+        self.diag_count = 0
+        self._path_sub = self.subscribe_path()
+        self.node.create_subscription(DiagnosticArray, diagnostics_topic, self._on_diag,
+                                      stream_qos(100))
+        self.services = {name: self.node.create_client(Trigger, f'/{node_name}/{name}')
+                         for name in ('finish_track', 'reset', 'save_state', 'load_state')}
+
+    # ------------------------------------------------------------------ subscriptions
+    def subscribe_path(self, sink: list | None = None):
+        """A (new) transient-local subscription to the path; messages go to ``sink`` (default:
+        :attr:`paths`) as ``(receive time, msg)``."""
+        sink = self.paths if sink is None else sink
+        return self.node.create_subscription(
+            PathMsg, self.path_topic, lambda msg: sink.append((time.perf_counter(), msg)),
+            latched_qos())
+
+    def record(self, msg_type, topic: str, qos=None) -> list:
+        """Subscribe to ``topic`` and return the list its messages are appended to."""
+        sink: list = []
+        self.node.create_subscription(msg_type, topic, sink.append,
+                                      qos if qos is not None else stream_qos(100))
+        return sink
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        self.diagnostics = conv.diagnostics_to_dict(msg)
+        self.diag_count += 1
+
+    def diag_int(self, key: str, default: int = -1) -> int:
+        try:
+            return int(self.diagnostics[key])
+        except (KeyError, ValueError):
+            return default
+
+    # ------------------------------------------------------------------ waiting
+    def spin_until(self, predicate: Callable[[], bool], timeout: float, what: str = '',
+                   proc: subprocess.Popen | None = None) -> None:
+        """Spin until ``predicate()`` is true; :class:`HarnessTimeout` after ``timeout`` s or if
+        ``proc`` exits."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if proc is not None and proc.poll() is not None:
+                raise HarnessTimeout(f'node process exited ({proc.returncode}) while waiting '
+                                     f'for {what}')
+            if time.monotonic() > deadline:
+                raise HarnessTimeout(f'timed out after {timeout:.0f} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_for_node(self, timeout: float = 30.0, proc: subprocess.Popen | None = None) -> None:
+        """Wait until the node's measurement subscription and services are discovered."""
+        self.spin_until(lambda: self.pub.get_subscription_count() > 0
+                        and all(c.service_is_ready() for c in self.services.values()),
+                        timeout, 'the alignment node to appear', proc)
+
+    def wait_received(self, n: int, timeout: float = 30.0,
+                      proc: subprocess.Popen | None = None) -> None:
+        """Wait until the node reports ``measurements_received >= n`` in its diagnostics."""
+        self.spin_until(lambda: self.diag_int('measurements_received') >= n, timeout,
+                        f'{n} measurements to be received', proc)
+
+    # ------------------------------------------------------------------ actions
+    def publish(self, measurements: Sequence[Measurement], rate_hz: float = 0.0,
+                spin_every: int = 200) -> float:
+        """Publish measurements (paced at ``rate_hz`` if > 0); returns the seconds it took."""
+        t0 = time.perf_counter()
+        for k, m in enumerate(measurements):
+            if rate_hz > 0:
+                delay = t0 + k / rate_hz - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            self.pub.publish(conv.measurement_to_odometry(m))
+            if spin_every and k % spin_every == spin_every - 1:
+                self.executor.spin_once(timeout_sec=0.0)
+        return time.perf_counter() - t0
+
+    def publish_raw(self, msgs: Sequence[Odometry]) -> None:
+        for msg in msgs:
+            self.pub.publish(msg)
+
+    def call(self, service: str, timeout: float = 30.0) -> Trigger.Response:
+        """Call one of the node's Trigger services and return the response."""
+        client = self.services[service]
+        self.spin_until(client.service_is_ready, timeout, f'service {service}')
+        future = client.call_async(Trigger.Request())
+        self.spin_until(future.done, timeout, f'the response of {service}')
+        return future.result()
+
+    def close(self) -> None:
+        try:
+            self.executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=self.context)
+
+    def __enter__(self) -> NodeClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,447 @@
+"""The alignment node: ROS-free helpers, the node in-process, and the node as a real process.
+
+The two-process tests start ``python -m ga_ros.ros.alignment_node`` with their own
+``ROS_DOMAIN_ID``, publish a small simulated aerial survey from this process and compare the
+received path with :class:`TrackWindowAligner` run directly on the same measurements.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip('rclpy')
+
+import rclpy  # noqa: E402
+from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+from ga_ros.core.measurement import Measurement  # noqa: E402
+from ga_ros.core.network import ConnectionNetwork  # noqa: E402
+from ga_ros.core.solver import connection_cost  # noqa: E402
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner  # noqa: E402
+from ga_ros.errors import InputError  # noqa: E402
+from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
+from ga_ros.ros.harness import (  # noqa: E402
+    CONFIG,
+    NodeClient,
+    start_node_process,
+    stop_process,
+)
+from ga_ros.ros.journal import MeasurementJournal, read_journal  # noqa: E402
+from ga_ros.ros.qos import latched_qos  # noqa: E402
+from ga_ros.ros.view import connection_view, network_view, normalized_residuals  # noqa: E402
+from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
+from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
+
+
+def domain_id(offset: int = 0) -> int:
+    return 40 + (os.getpid() + offset) % 150
+
+
+def survey(rng: np.random.Generator, n_tracks: int = 3, per_swath: int = 6,
+           percent: float = 3.0) -> list[Measurement]:
+    """Measurements of a small aerial survey in arrival order, already round-tripped through the
+    message encoding (so the node and a direct aligner see bit-identical input)."""
+    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
+    noisy = perturb(sc.true_motions(), NoiseModel(percent, sc.depth_m), rng)
+    return [conv.odometry_to_measurement(conv.measurement_to_odometry(m))
+            for m in sc.measurements(noisy.z, noisy.cov)]
+
+
+def direct(measurements, config: AlignerConfig) -> TrackWindowAligner:
+    aligner = TrackWindowAligner(config)
+    for m in measurements:
+        aligner.add_measurement(m)
+    aligner.finish_track()
+    return aligner
+
+
+#: Reasons counted for the messages of :func:`bad_messages`.
+BAD_REASONS = {'non_finite': 1, 'bad_covariance': 1, 'self_loop': 1, 'bad_id': 2,
+               'duplicate': 1, 'out_of_order': 1}
+
+
+def bad_messages(ms: list[Measurement], k: int) -> list:
+    """Malformed measurement messages, each of which must be rejected without effect, to be sent
+    after ``ms[:k]`` (``ms[k - 1]`` must be of a track > 0)."""
+    good = conv.measurement_to_odometry(ms[3])
+    out = []
+
+    def variant(mutate):
+        msg = conv.measurement_to_odometry(ms[3])
+        mutate(msg)
+        out.append(msg)
+
+    variant(lambda m: setattr(m.pose.pose.position, 'x', float('nan')))
+    variant(lambda m: setattr(m.pose, 'covariance', -np.eye(6).reshape(36)))
+    variant(lambda m: setattr(m, 'child_frame_id', m.header.frame_id))          # self-loop
+    variant(lambda m: setattr(m, 'child_frame_id', 'ga/0/99999999999999999999'))  # absurd id
+    variant(lambda m: setattr(m.header, 'frame_id', 'base_link'))
+    out.append(good)                                                           # duplicate
+    last = ms[k - 1]
+    assert last.dst_track > 0
+    out.append(conv.measurement_to_odometry(Measurement(                       # out of order
+        last.dst_id, 10**9, last.dst_track, last.dst_track - 1, last.z, last.cov,
+        last.stamp_ns, 'consecutive')))
+    return out
+
+
+# ------------------------------------------------------------------ ROS-free helpers
+def test_yaml_mirrors_config_defaults():
+    params = yaml.safe_load(CONFIG.read_text())['alignment_node']['ros__parameters']
+    expected = {f.name: getattr(AlignerConfig(), f.name) for f in fields(AlignerConfig)}
+    expected.update({f.name: getattr(NodeSettings(), f.name) for f in fields(NodeSettings)})
+    assert set(params) == set(expected)
+    for key, value in expected.items():
+        assert params[key] == value, key
+
+
+def test_journal_round_trip(tmp_path, rng):
+    ms = survey(rng, n_tracks=1, per_swath=4)
+    j = MeasurementJournal(tmp_path / 's.npz.journal')
+    for m in ms:
+        j.append(m)
+    back = read_journal(tmp_path / 's.npz.journal')
+    assert len(back) == len(ms)
+    for a, b in zip(ms, back):
+        assert (a.src_id, a.dst_id, a.src_track, a.dst_track, a.stamp_ns, a.kind) == \
+            (b.src_id, b.dst_id, b.src_track, b.dst_track, b.stamp_ns, b.kind)
+        np.testing.assert_array_equal(a.z, b.z)
+        np.testing.assert_array_equal(a.cov, b.cov)
+    j.close()
+    # a record cut short by a crash is ignored, the complete ones survive
+    with open(tmp_path / 's.npz.journal', 'ab') as f:
+        f.write(b'\x01' * 100)
+    assert len(read_journal(tmp_path / 's.npz.journal')) == len(ms)
+    j.clear()
+    assert read_journal(tmp_path / 's.npz.journal') == []
+
+
+def test_view_residuals_match_connection_cost(rng):
+    """The markers' residuals, squared and summed, equal the solver's connection cost."""
+    ms = survey(rng, n_tracks=2, per_swath=5, percent=5.0)
+    aligner = direct(ms, AlignerConfig())
+    cp = aligner.corrected_path()
+    net = ConnectionNetwork()
+    for node, track in zip(cp.node_ids.tolist(), cp.track_ids.tolist()):
+        net.add_node(node, track)
+    for m in ms:
+        net.add_connection(m.src_id, m.dst_id, m.z, m.cov)
+    T = cp.T_world_node[net.indices_of(cp.node_ids)]
+    r = normalized_residuals(net, T)
+    assert r.shape == (len(ms),)
+    np.testing.assert_allclose(np.sum(r ** 2), connection_cost(net, T), rtol=1e-9)
+    view = connection_view(aligner)
+    np.testing.assert_allclose(view.p_world_node, cp.T_world_node[:, :3, 3])
+    assert view.src_index.size == len(ms)
+    np.testing.assert_allclose(np.sort(view.normalized_residual), np.sort(r), rtol=1e-9)
+    # by hand: poses that close every connection exactly give zero residuals
+    ids = np.array([5, 9])
+    T2 = se3.exp(rng.normal(size=(2, 6)))
+    z = se3.to_translation_rotvec(se3.relative(T2[0], T2[1]))[None]
+    v = network_view(ids[::-1], T2[::-1], [5], [9], z, np.eye(6)[None])
+    assert (v.src_index[0], v.dst_index[0]) == (1, 0)
+    np.testing.assert_allclose(v.normalized_residual, [0.0], atol=1e-9)
+
+
+# ------------------------------------------------------------------ node in this process
+@pytest.fixture
+def node_in_process(tmp_path):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(7))
+    node = AlignmentNode(context=ctx, parameter_overrides=[
+        Parameter('state_file', value=str(tmp_path / 'state.npz')),
+        Parameter('window_tracks', value=2),
+        Parameter('diagnostics_period_sec', value=0.0)])
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_node_in_process_matches_direct(node_in_process, rng, tmp_path):
+    node = node_in_process
+    assert node.aligner_config.window_tracks == 2
+    ms = survey(rng, n_tracks=4, per_swath=5)
+    k_bad = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 3
+    bad = bad_messages(ms, k_bad)
+    k3 = next(k for k, m in enumerate(ms) if m.dst_track == 3) + 2
+    assert ms[k3 - 1].dst_track == 3
+    for k, m in enumerate(ms):
+        if k == k_bad:
+            for msg in bad:
+                node._on_measurement(msg)
+        if k == k3:   # track 0 is frozen now (window of 2 finished tracks: 1, 2)
+            old = ms[0]
+            node._on_measurement(conv.measurement_to_odometry(Measurement(
+                old.src_id, ms[k3 - 1].dst_id, 0, 3, old.z, old.cov, 0, 'cross')))
+        node._on_measurement(conv.measurement_to_odometry(m))
+    resp = node._srv_finish_track(Trigger.Request(), Trigger.Response())
+    assert resp.success, resp.message
+    assert node.n_received == len(ms) + len(bad) + 1
+    assert node.n_accepted == len(ms)
+    assert dict(node.rejected) == {**BAD_REASONS, 'frozen': 1}
+    values = node.diagnostic_values()
+    assert values['rejected'] == len(bad) + 1
+    assert values['rejected/frozen'] == 1
+    assert values['updates'] == 4 and values['nodes'] == 40
+    assert values['tracks_in_window'] == 2
+    ref = direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
+    got = node.aligner.corrected_path()
+    np.testing.assert_array_equal(got.node_ids, ref.node_ids)
+    np.testing.assert_allclose(got.T_world_node, ref.T_world_node, atol=1e-12)
+    # save / load / reset through the services
+    assert node._srv_save(Trigger.Request(), Trigger.Response()).success
+    resp = node._srv_load(Trigger.Request(), Trigger.Response())
+    assert resp.success, resp.message
+    np.testing.assert_allclose(node.aligner.corrected_path().T_world_node, ref.T_world_node,
+                               atol=1e-9)
+    assert node._srv_reset(Trigger.Request(), Trigger.Response()).success
+    assert len(node.aligner.corrected_path().node_ids) == 0
+    assert not (tmp_path / 'state.npz').exists()          # a restart does not resurrect it
+    assert not node._srv_load(Trigger.Request(), Trigger.Response()).success
+
+
+def test_solver_failure_keeps_previous_estimate(node_in_process, rng, monkeypatch):
+    import ga_ros.core.window as window
+    from ga_ros.errors import SolverError
+
+    node = node_in_process
+    ms = survey(rng, n_tracks=3, per_swath=5)
+    k2 = next(k for k, m in enumerate(ms) if m.dst_track == 2)
+    for m in ms[:k2]:
+        node._on_measurement(conv.measurement_to_odometry(m))
+    before = node.aligner.corrected_path()
+
+    def failing_solve(*args, **kwargs):
+        raise SolverError('diverged (injected)')
+
+    monkeypatch.setattr(window, 'solve', failing_solve)
+    node._on_measurement(conv.measurement_to_odometry(ms[k2]))      # ends track 1
+    values = node.diagnostic_values()
+    assert values['solver_failures'] == 1 and values['updates'] == 2
+    assert 'diverged' in values['last_error']
+    after = node.aligner.corrected_path()
+    n = len(before.node_ids)
+    np.testing.assert_array_equal(after.T_world_node[:n], before.T_world_node)
+    monkeypatch.undo()
+    for m in ms[k2 + 1:]:                                             # and it carries on
+        node._on_measurement(conv.measurement_to_odometry(m))
+    assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+    assert node.diagnostic_values()['updates'] == 3
+
+
+def test_wrong_cross_track_match_is_excluded(node_in_process, rng):
+    node = node_in_process
+    ms = survey(rng, n_tracks=2, per_swath=6)
+    clean = direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
+    # a wrong match: a cross connection from track 0 to track 1 that is 25 m off
+    k = max(i for i, m in enumerate(ms) if m.kind == 'cross' and m.src_track == 0
+            and m.dst_track == 1)
+    wrong = ms[k]
+    z = wrong.z.copy()
+    z[:2] += 25.0
+    bad = Measurement(wrong.src_id, wrong.dst_id, 0, 1, z, wrong.cov, wrong.stamp_ns, 'cross')
+    for i, m in enumerate(ms):
+        node._on_measurement(conv.measurement_to_odometry(m))
+        if i == k:
+            node._on_measurement(conv.measurement_to_odometry(bad))
+    assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+    values = node.diagnostic_values()
+    assert values['outliers_excluded'] >= 1
+    assert values['rejected'] == 0                       # accepted, then excluded by the test
+    got = node.aligner.corrected_path()
+    err = np.linalg.norm(got.T_world_node[:, :3, 3] - clean.T_world_node[:, :3, 3], axis=1)
+    assert err.max() < 0.5                               # the 25 m error did not leak in
+
+
+def test_node_survives_internal_error(node_in_process, rng):
+    node = node_in_process
+
+    class Broken:
+        def add_measurement(self, m):
+            raise RuntimeError('boom')
+
+    real = node.aligner
+    node.aligner = Broken()
+    node._on_measurement(conv.measurement_to_odometry(survey(rng, 1, 3)[0]))
+    node.aligner = real
+    assert node.rejected['internal'] == 1
+
+
+@pytest.mark.parametrize('damage', ['none', 'corrupt_snapshot', 'no_snapshot', 'torn_record'])
+def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
+    """A node stopped mid-track (no clean shutdown) resumes the exact state from its files,
+    through the snapshot or, when that is unusable, by replaying the journal."""
+    ms = survey(rng, n_tracks=3, per_swath=5)
+    cut = next(k for k, m in enumerate(ms) if m.dst_track == 2) + 5
+    state = tmp_path / 'state.npz'
+    params = [Parameter('state_file', value=str(state)), Parameter('window_tracks', value=2),
+              Parameter('diagnostics_period_sec', value=0.0)]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(11))
+    try:
+        first = AlignmentNode(context=ctx, parameter_overrides=params)
+        for m in ms[:cut]:
+            first._on_measurement(conv.measurement_to_odometry(m))
+        assert state.exists() and first.journal.count == cut
+        first.journal.close()            # what the OS has when the process is killed
+        first.destroy_node()
+        if damage == 'corrupt_snapshot':
+            state.write_bytes(b'garbage')
+        elif damage == 'no_snapshot':
+            state.unlink()
+        elif damage == 'torn_record':
+            with open(str(state) + '.journal', 'ab') as f:
+                f.write(b'\x00' * 50)
+        second = AlignmentNode(context=ctx, parameter_overrides=params)
+        ref = TrackWindowAligner(AlignerConfig(window_tracks=2))
+        for m in ms[:cut]:
+            ref.add_measurement(m)
+        got = second.aligner.corrected_path()
+        np.testing.assert_array_equal(got.node_ids, ref.corrected_path().node_ids)
+        np.testing.assert_allclose(got.T_world_node, ref.corrected_path().T_world_node,
+                                   atol=1e-9)
+        # and it carries on exactly like an uninterrupted run
+        for m in ms[cut:]:
+            second._on_measurement(conv.measurement_to_odometry(m))
+        assert second._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+        assert second.journal.count == len(ms)
+        np.testing.assert_allclose(second.aligner.corrected_path().T_world_node,
+                                   direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
+                                   .T_world_node, atol=1e-9)
+        second.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_parameters_have_descriptors(node_in_process):
+    node = node_in_process
+    names = [f.name for f in fields(AlignerConfig)] + [f.name for f in fields(NodeSettings)]
+    for name in names:
+        d = node.describe_parameter(name)
+        assert d.description, name
+    assert node.describe_parameter('window_tracks').integer_range[0].from_value == 1
+    assert node.settings.state_file.endswith('state.npz')
+    assert node.settings.map_frame == 'map'
+
+
+def test_out_of_range_parameter_is_refused():
+    from rclpy.exceptions import ParameterException
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(9))
+    try:
+        with pytest.raises(ParameterException):
+            AlignmentNode(context=ctx, parameter_overrides=[Parameter('window_tracks', value=0)])
+        with pytest.raises(InputError, match='freeze_policy'):
+            AlignmentNode(context=ctx, parameter_overrides=[Parameter('freeze_policy',
+                                                                      value='zzz')])
+        with pytest.raises(InputError, match='robust_scale'):
+            AlignmentNode(context=ctx, parameter_overrides=[Parameter('robust_scale',
+                                                                      value='big')])
+        node = AlignmentNode(context=ctx, parameter_overrides=[     # an int for a float is fine
+            Parameter('robust_scale', value=4), Parameter('diagnostics_period_sec', value=0)])
+        assert node.aligner_config.robust_scale == 4.0
+        assert isinstance(node.aligner_config.robust_scale, float)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+# ------------------------------------------------------------------ node as a real process
+@pytest.mark.ros
+def test_bad_parameter_exits_with_one_line_error(tmp_path):
+    proc = start_node_process(domain_id(3), {'tolerance': -1.0}, log_path=tmp_path / 'log')
+    try:
+        assert proc.wait(timeout=30) == 1
+    finally:
+        stop_process(proc)
+    text = (tmp_path / 'log').read_text()
+    assert 'alignment_node: error:' in text and 'Traceback' not in text, text
+
+@pytest.mark.ros
+def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
+    """Publish a survey to a node process, kill -9 it mid-track, restart it from the state file,
+    publish the rest: the final path equals the aligner run directly (no node lost), bad
+    messages are counted, and a late subscriber gets the path at once."""
+    dom = domain_id()
+    ms = survey(rng, n_tracks=3, per_swath=6)
+    cut = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 12   # inside track 1
+    bad = bad_messages(ms, cut)
+    state = tmp_path / 'state.npz'
+    params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1}
+    log = tmp_path / 'node.log'
+    proc = start_node_process(dom, params, log_path=log)
+    client = None
+    try:
+        client = NodeClient(dom)
+        client.wait_for_node(proc=proc)
+        client.publish(ms[:cut])
+        client.publish_raw(bad)
+        client.wait_received(cut + len(bad), proc=proc)
+        assert client.diag_int('rejected') == len(bad), client.diagnostics
+        for reason, n in BAD_REASONS.items():
+            assert client.diag_int(f'rejected/{reason}') == n, client.diagnostics
+        assert client.diag_int('measurements_accepted') == cut
+        nodes_before = client.diag_int('nodes')
+        assert proc.poll() is None                         # bad input did not kill it
+
+        proc.send_signal(signal.SIGKILL)                   # no chance to save anything
+        proc.wait(timeout=10)
+        proc = start_node_process(dom, params, log_path=log)
+        client.diagnostics = {}
+        client.wait_for_node(proc=proc)
+        client.spin_until(lambda: client.diag_int('nodes') >= 0, 20, 'diagnostics', proc)
+        assert client.diag_int('nodes') == nodes_before    # resumed with no lost node
+
+        late: list = []
+        client.subscribe_path(late)                        # late joiner: latched path
+        client.spin_until(lambda: len(late) > 0, 15, 'the latched path', proc)
+
+        poses = client.record(PoseWithCovarianceStamped, '/ga/corrected_pose')
+        odoms = client.record(Odometry, '/ga/corrected_odom')
+        markers = client.record(MarkerArray, '/ga/network_markers', latched_qos())
+        client.publish(ms[cut:])
+        client.wait_received(len(ms) - cut, proc=proc)
+        resp = client.call('finish_track')
+        assert resp.success, resp.message
+        ref = direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
+        client.spin_until(lambda: len(late) > 1 and
+                          len(late[-1][1].poses) == len(ref.node_ids), 20, 'the final path',
+                          proc)
+        got = conv.path_msg_to_poses(late[-1][1])
+        np.testing.assert_allclose(got, ref.T_world_node, atol=1e-9)
+        assert late[-1][1].header.frame_id == 'map'
+        # newest adjusted node with its covariance, odometry stream, markers
+        client.spin_until(lambda: poses and odoms and markers and
+                          len(markers[-1].markers[1].points) == len(ref.node_ids), 20,
+                          'pose, odometry and markers', proc)
+        pc = poses[-1]
+        assert pc.header.frame_id == 'map'
+        np.testing.assert_allclose(conv.msg_to_pose(pc.pose.pose), ref.T_world_node[-1],
+                                   atol=1e-9)
+        cov = conv.msg_to_covariance(pc.pose.covariance)       # raises unless SPD
+        assert np.all(np.diag(cov) > 0)
+        assert (odoms[-1].header.frame_id, odoms[-1].child_frame_id) == ('map', 'sensor')
+        assert len(markers[-1].markers[2].points) == 2 * len(ms)
+        assert proc.poll() is None
+    except Exception:
+        print(log.read_text() if log.exists() else '(no log)')
+        raise
+    finally:
+        if client is not None:
+            client.close()
+        stop_process(proc)
