@@ -1,0 +1,268 @@
+"""vo_node: message conversions in-process, and a two-process test that feeds simulated stereo
+images to ``python -m ga_ros.ros.vo_node`` and receives its measurements."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip('rclpy')
+
+import rclpy  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image  # noqa: E402
+
+from ga_ros.errors import InputError  # noqa: E402
+from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
+from ga_ros.ros.vo_node import (  # noqa: E402
+    VoNodeSettings,
+    array_to_image,
+    camera_info_to_model,
+    compressed_to_array,
+    image_to_array,
+)
+from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
+from ga_ros.vo.crosstrack import CrossTrackConfig  # noqa: E402
+from ga_ros.vo.evaluate import motion_errors  # noqa: E402
+from ga_ros.vo.odometry import VoConfig  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
+
+
+def domain_id(offset: int = 0) -> int:
+    return 40 + (os.getpid() + offset) % 150
+
+
+def camera_info(rig: StereoRig, right: bool, stamp_ns: int) -> CameraInfo:
+    msg = CameraInfo()
+    msg.header.stamp = conv.ns_to_stamp(stamp_ns)
+    msg.header.frame_id = 'right' if right else 'left'
+    msg.width, msg.height = rig.width, rig.height
+    msg.distortion_model = 'plumb_bob'
+    msg.d = [0.0] * 5
+    msg.k = rig.K.ravel().tolist()
+    msg.r = np.eye(3).ravel().tolist()
+    P = np.hstack([rig.K, [[-rig.focal_px * rig.baseline_m if right else 0.0], [0.0], [0.0]]])
+    msg.p = P.ravel().tolist()
+    return msg
+
+
+def test_yaml_mirrors_config_defaults():
+    params = yaml.safe_load(CONFIG.read_text())['vo_node']['ros__parameters']
+    expected = {f.name: getattr(VoNodeSettings(), f.name) for f in fields(VoNodeSettings)}
+    expected.update({f.name: getattr(VoConfig(), f.name) for f in fields(VoConfig)})
+    expected.update({'cross_' + f.name: getattr(CrossTrackConfig(), f.name)
+                     for f in fields(CrossTrackConfig)})
+    assert set(params) == set(expected)
+    for key, value in expected.items():
+        assert params[key] == value, key
+
+
+def test_image_conversions(rng):
+    img = rng.integers(0, 256, (24, 32), dtype=np.uint8)
+    np.testing.assert_array_equal(image_to_array(array_to_image(img, 5, 'cam')), img)
+    msg = array_to_image(img, 5, 'cam')
+    msg.encoding = 'bgr8'
+    msg.step = 32 * 3
+    bgr = np.repeat(img[:, :, None], 3, axis=2)
+    msg.data = bgr.tobytes()
+    np.testing.assert_array_equal(image_to_array(msg), img)
+    msg.encoding = '32FC1'
+    with pytest.raises(InputError):
+        image_to_array(msg)
+    msg = array_to_image(img, 5, 'cam')
+    msg.data = msg.data[:100]
+    with pytest.raises(InputError):
+        image_to_array(msg)
+    ok, buf = cv2.imencode('.png', img)
+    cmsg = CompressedImage(format='png', data=buf.tobytes())
+    np.testing.assert_array_equal(compressed_to_array(cmsg), img)
+    with pytest.raises(InputError):
+        compressed_to_array(CompressedImage(format='jpeg', data=b'not an image'))
+    info = camera_info(StereoRig(), True, 0)
+    model = camera_info_to_model(info)
+    assert model.is_rectified() and model.projection()[0, 3] < 0
+    info.k = [0.0] * 9
+    with pytest.raises(InputError):
+        camera_info_to_model(info)
+
+
+@pytest.mark.ros
+def test_two_processes_images_in_measurements_out(tmp_path):
+    rig = StereoRig()
+    survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=14, seed=8))
+    scene = make_scene(survey, rig, seed=8)
+    rng = np.random.default_rng(8)
+    n = 14
+    frames = [scene.render_pair(T, rng) for T in survey.T_world_cam[:n]]
+    dom = domain_id(21)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(dom), PYTHONUNBUFFERED='1')
+    log = open(tmp_path / 'vo_node.log', 'wb')  # noqa: SIM115
+    proc = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
+                             '--params-file', str(CONFIG), '-p', 'warn_throttle_sec:=0.0'],
+                            env=env, stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=dom)
+    node = Node(f'vo_test_{os.getpid()}', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    received: list[Odometry] = []
+    odoms: list[Odometry] = []
+    node.create_subscription(Odometry, '/ga/measurements', received.append, measurement_qos())
+    node.create_subscription(Odometry, '/ga/vo/odometry', odoms.append, stream_qos(100))
+    s = VoNodeSettings()
+    pub_l = node.create_publisher(Image, s.left_image_topic, 20)
+    pub_r = node.create_publisher(Image, s.right_image_topic, 20)
+    pub_il = node.create_publisher(CameraInfo, s.left_info_topic, 20)
+    pub_ir = node.create_publisher(CameraInfo, s.right_info_topic, 20)
+
+    def spin_for(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.02)
+
+    def send(left, right, stamp, info=True):
+        if info:
+            pub_il.publish(camera_info(rig, False, stamp))
+            pub_ir.publish(camera_info(rig, True, stamp))
+        pub_l.publish(array_to_image(left, stamp, 'left'))
+        pub_r.publish(array_to_image(right, stamp, 'right'))
+
+    try:
+        deadline = time.monotonic() + 30
+        while (min(p.get_subscription_count() for p in (pub_l, pub_r, pub_il, pub_ir)) == 0
+               or node.count_publishers('/ga/measurements') == 0):
+            assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
+            assert time.monotonic() < deadline, 'vo_node not discovered'
+            spin_for(0.1)
+        # Images before any CameraInfo: dropped with a warning (no crash).
+        deadline = time.monotonic() + 10
+        while 'no CameraInfo' not in (tmp_path / 'vo_node.log').read_text():
+            assert time.monotonic() < deadline, 'images without CameraInfo not reported'
+            send(*frames[0], 1, info=False)
+            spin_for(0.3)
+        pub_il.publish(camera_info(rig, False, 2))
+        pub_ir.publish(camera_info(rig, True, 2))
+        spin_for(0.5)
+        for i in range(n):
+            stamp = int(survey.stamps_ns[i]) + 10
+            send(*frames[i], stamp)
+            spin_for(0.15)
+            if i == 5:  # bad input in the middle: mismatched sizes, unknown encoding
+                send(frames[i][0][:, :300].copy(), frames[i][1], stamp + 1, info=False)
+                bad = array_to_image(frames[i][0], stamp + 2, 'left')
+                bad.encoding = '16UC1'
+                pub_l.publish(bad)
+                pub_r.publish(array_to_image(frames[i][1], stamp + 2, 'right'))
+                spin_for(0.15)
+        deadline = time.monotonic() + 20
+        while len(odoms) < n and time.monotonic() < deadline:
+            spin_for(0.1)
+        assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+        log.close()
+    text = (tmp_path / 'vo_node.log').read_text()
+    assert 'no CameraInfo' in text and 'dropped' in text
+    assert proc.returncode in (0, -signal.SIGINT), text
+    # Every frame gave a raw odometry message; keyframes gave consecutive measurements.
+    assert len(odoms) >= n - 1
+    meas = [conv.odometry_to_measurement(m) for m in received]
+    assert len(meas) >= 4
+    frame_of_stamp = {int(survey.stamps_ns[i]) + 10: i for i in range(n)}
+    frame_of_node = {meas[0].src_id: 0}
+    for m in meas:
+        assert m.kind == 'consecutive'
+        frame_of_node[m.dst_id] = frame_of_stamp[m.stamp_ns]
+        T_true = se3.relative(survey.T_world_cam[frame_of_node[m.src_id]],
+                              survey.T_world_cam[frame_of_node[m.dst_id]])
+        dt, dr, _ = motion_errors(T_true, m)
+        assert dt < 0.02 * np.linalg.norm(T_true[:3, 3]) and dr < 0.2
+
+
+@pytest.mark.ros
+def test_bad_parameter_exits_with_one_line_error(tmp_path):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(23)))
+    proc = subprocess.run([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
+                           '--params-file', str(CONFIG), '-p', 'track_mode:=sometimes'],
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert 'track_mode' in proc.stderr and 'Traceback' not in proc.stderr
+
+
+@pytest.mark.ros
+def test_node_in_process_adapter(rng):
+    """The callbacks without spinning: pairing, measurements, debug image, corrected path."""
+    from rclpy.parameter import Parameter
+
+    from ga_ros.ros.vo_node import VoNode
+
+    rig = StereoRig()
+    survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=10, seed=9))
+    scene = make_scene(survey, rig, seed=9)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(31))
+    node = VoNode(context=ctx, parameter_overrides=[
+        Parameter('publish_debug_image', value=True), Parameter('warn_throttle_sec', value=0.0)])
+    sent = []
+    node.pub_meas.publish = sent.append
+    debug = []
+    node.pub_debug.publish = debug.append
+    try:
+        for side in ('left', 'right'):
+            node._on_info(camera_info(rig, side == 'right', 0), side)
+        assert node.odometry is not None and not node.calibration.needs_rectification
+        for i in range(10):
+            left, right = scene.render_pair(survey.T_world_cam[i], rng)
+            stamp = int(survey.stamps_ns[i])
+            # right first, then an unpaired stale left, then the left: pairing by stamp.
+            node._on_image(array_to_image(right, stamp, 'r'), 'right')
+            node._on_image(array_to_image(left, stamp, 'l'), 'left')
+        assert node.counts['pairs'] == 10 and len(debug) == 10
+        for name in ('max_features', 'cross_min_inliers', 'left_image_topic'):
+            d = node.describe_parameter(name)
+            assert d.read_only and len(d.description) > len(name) + 10
+        meas = [conv.odometry_to_measurement(m) for m in sent]
+        assert len(meas) >= 2 and all(m.kind == 'consecutive' for m in meas)
+        # A corrected path of the keyframes (by stamp) reaches the matcher.
+        ids = sorted(node._stamp_to_node.values())
+        stamps = sorted(node._stamp_to_node)
+        T = np.repeat(np.eye(4)[None], len(ids), axis=0)
+        node._on_path(conv.path_to_msg(T, stamps, 'map'))
+        np.testing.assert_allclose(node.matcher.predicted_pose(ids[-1]), np.eye(4))
+        # Inconsistent right CameraInfo (no baseline): rejected with a warning, state kept.
+        odo = node.odometry
+        node._on_info(camera_info(rig, False, 1), 'right')
+        node._on_info(camera_info(rig, True, 2), 'right')
+        assert node.odometry is odo
+        # A changed calibration re-initialises the VO but keeps the node ids increasing.
+        rig2 = StereoRig(baseline_m=12.0)
+        node._on_info(camera_info(rig2, True, 3), 'right')
+        assert node.odometry is not odo and node.calibration.baseline_m == 12.0
+        assert node.odometry.next_node_id == odo.next_node_id
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
