@@ -33,13 +33,10 @@ from dataclasses import dataclass, fields
 from pathlib import Path as FilePath
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -56,8 +53,8 @@ from ga_ros.ros.journal import (
     write_snapshot_info,
 )
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
+from ga_ros.ros.runner import run_node
 from ga_ros.ros.view import ABSORBED, OUTLIER, connection_view
-from ga_ros.runtime import limit_blas_threads
 
 NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
@@ -639,24 +636,7 @@ def _len_or_value(x) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``alignment_node`` (also ``python -m ga_ros.ros.alignment_node``)."""
-    _blas = limit_blas_threads()  # noqa: F841 (see ga_ros.runtime)
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = AlignmentNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (GaError, ParameterException) as exc:
-        # bad parameters (a config value out of range or not one of the choices)
-        print(f'{NODE_NAME}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
-        code = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(AlignmentNode, NODE_NAME, args)
 
 
 if __name__ == '__main__':

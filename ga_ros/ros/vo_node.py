@@ -34,11 +34,8 @@ from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
-import rclpy
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -47,7 +44,7 @@ from std_msgs.msg import Empty
 from ga_ros.errors import GaError, InputError
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
-from ga_ros.runtime import limit_blas_threads
+from ga_ros.ros.runner import run_node
 from ga_ros.vo.calibration import CameraModel, StereoCalibration
 from ga_ros.vo.crosstrack import CrossTrackConfig, CrossTrackMatcher
 from ga_ros.vo.odometry import StereoFrame, StereoOdometry, VoConfig, VoResult
@@ -389,23 +386,7 @@ def _same_model(a: CameraModel, b: CameraModel) -> bool:
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``vo_node`` (also ``python -m ga_ros.ros.vo_node``)."""
-    _blas = limit_blas_threads()  # noqa: F841 (see ga_ros.runtime)
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = VoNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (GaError, ParameterException) as exc:
-        print(f'{NODE_NAME}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
-        code = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(VoNode, NODE_NAME, args)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,40 @@
+"""The shared ``main`` of ga_ros's nodes: init, spin, shut down cleanly, map errors to exit 1."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from ga_ros.errors import GaError
+from ga_ros.runtime import limit_blas_threads
+
+
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+    """Create the node with ``factory()`` and spin it until shutdown.
+
+    Returns the process exit code: 0 on a normal or Ctrl-C shutdown, 1 when the node cannot
+    start (a bad parameter value, reported as one line on stderr). BLAS is pinned to one thread
+    (see :func:`ga_ros.runtime.limit_blas_threads`).
+    """
+    _blas = limit_blas_threads()  # noqa: F841 (kept alive while the node runs)
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (GaError, ParameterException) as exc:
+        print(f'{name}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
