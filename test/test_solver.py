@@ -418,3 +418,21 @@ def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
     cost = graph_cost(g, res.T_world_node)
     assert abs(cost - 1035.851) / 1035.851 < 1e-4
     assert abs(res.cost - cost) / cost < 1e-9
+
+
+def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
+    """At residuals consistent with x, the se3 shortcut (J' P J, J' P e) and the general
+    mixed-model form (A' M^-1 A, A' M^-1 w with M = B S B') are the same linear system."""
+    from ga_ros.core.solver import _consistent_residuals, _inv_spd, _linear_system
+    prob = make_problem(rng, 'se3', n=9, noise=5.0)
+    net = prob.network
+    c = net.arrays()
+    T = perturbed(rng, prob.T_true, 0.2)
+    v = _consistent_residuals('se3', T, c, np.zeros_like(c.z))
+    col = np.arange(net.n_nodes) - 1
+    cfg = SolverConfig()
+    general = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6)
+    short = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6, _inv_spd(c.cov))
+    np.testing.assert_allclose(short.blocks, general.blocks, rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)

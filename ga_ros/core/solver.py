@@ -326,8 +326,9 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
 
     S = conn.cov
     P = _inv_spd(S)
+    Pf = P if model == 'se3' else None  # enables the se3 shortcut of _linear_system
     T = T0.copy()
-    v = np.zeros_like(conn.z)
+    v = _consistent_residuals(model, T, conn, np.zeros_like(conn.z))
     chol: SparseCholesky | None = None
     lam = 1e-4
     last_step = np.inf
@@ -336,7 +337,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     reason = 'max_iterations'
     it = 0
     for it in range(1, cfg.max_iterations + 1):
-        sysd = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d)
+        sysd = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d, Pf)
         if it == 1:
             history.append(_cost_at(model, T, conn, S, prior_data, cfg, col, d))
         data = pattern.assemble(sysd.blocks)
@@ -369,7 +370,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
             break
 
     # final linearisation at the solution: residuals, variance factor, N for covariances
-    final = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d)
+    final = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d, Pf)
     v = _residual_update(final, np.zeros(n_free * d), conn, col, d, S)
     data = pattern.assemble(final.blocks)
     cost = _adjustment_cost(v, P, final.weights) + _prior_cost(model, T, prior_data)
@@ -429,12 +430,33 @@ class _System:
     cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
 
 
-def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d) -> _System:
-    lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
-    B = lin.B
-    w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
-    M = B @ S @ np.swapaxes(B, 1, 2)
-    Minv = _inv_spd(M)
+def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
+                   P: FloatArray | None = None) -> _System:
+    """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
+
+    se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
+    (see :func:`_consistent_residuals`) the misclosure ``f(l0, x0)`` is zero, ``B = -J_r(v)``,
+    ``w = v`` and ``A = [-Ad(T_ij^-1), I]``, so ``A' M^-1 A = J' P J`` and ``A' M^-1 w = J' P e``
+    with ``J = J_r(e)^-1 A`` and ``e = v = log(T_meas^-1 T_i^-1 T_j)``: the Gauss-Newton system
+    of ``sum e' P e``, which needs neither ``B`` nor a 6x6 inverse per connection (a test checks
+    it against the general form).
+    """
+    if model == 'se3' and P is not None:
+        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+        T_ij = se3.inverse(T[conn.src]) @ T[conn.dst]
+        E = se3.inverse(T_meas) @ T_ij
+        w = se3.log(E)
+        Jinv = se3.left_jacobian_inv(w) @ se3.adjoint(E)  # J_r(e)^-1 = J_l(e)^-1 Ad(exp e)
+        lin = models.Linearisation(np.zeros_like(w), -Jinv @ se3.adjoint(se3.inverse(T_ij)),
+                                   Jinv, np.broadcast_to(-np.eye(6), (len(conn), 6, 6)))
+        B = lin.B
+        Minv = P
+    else:
+        lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
+        B = lin.B
+        w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
+        M = B @ S @ np.swapaxes(B, 1, 2)
+        Minv = _inv_spd(M)
     maha2 = np.einsum('mi,mij,mj->m', w, Minv, w)
     weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
     Wm = Minv * weights[:, None, None]
@@ -693,7 +715,8 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
     N1 = previous.normal_matrix.toarray()
     Q1 = np.linalg.inv(N1)
     conn = group2.arrays()
-    lin = models.linearise(cfg.model, T1, conn.src, conn.dst, conn.z, np.zeros_like(conn.z))
+    v0 = _consistent_residuals(cfg.model, T1, conn, np.zeros_like(conn.z))
+    lin = models.linearise(cfg.model, T1, conn.src, conn.dst, conn.z, v0)
     m, r = lin.f.shape
     A2 = np.zeros((m * r, Q1.shape[0]))
     rows = np.arange(m * r).reshape(m, r)
@@ -705,7 +728,7 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
     Mb = lin.B @ conn.cov @ np.swapaxes(lin.B, 1, 2)
     for k in range(m):
         M2[rows[k][:, None], rows[k]] = Mb[k]
-    w2 = lin.f.reshape(-1)
+    w2 = (lin.f - (lin.B @ v0[:, :, None])[:, :, 0]).reshape(-1)  # w = f + B (l_b - l0)
     K = Q1 @ A2.T @ np.linalg.inv(M2 + A2 @ Q1 @ A2.T)
     dx = -K @ w2
     Q2 = Q1 - K @ A2 @ Q1
@@ -741,6 +764,9 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
         br.append(col[pd.idx[pd.blk_r]])
         bc.append(col[pd.idx[pd.blk_c]])
     pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
-    sysd = _linear_system(model, np.asarray(T, dtype=float), conn, conn.cov,
-                          np.zeros_like(conn.z), prior_data, SolverConfig(model=model), col, d)
+    T = np.asarray(T, dtype=float)
+    sysd = _linear_system(model, T, conn, conn.cov,
+                          _consistent_residuals(model, T, conn, np.zeros_like(conn.z)),
+                          prior_data, SolverConfig(model=model), col, d,
+                          _inv_spd(conn.cov) if model == 'se3' else None)
     return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free]
