@@ -1,0 +1,15 @@
+"""Trajectory error metrics: ATE (raw and rigidly aligned), per-node and per-track errors."""
+
+from ga_ros.eval.metrics import (
+    AteResult,
+    RigidAlignment,
+    align_rigid,
+    anchor_first,
+    ate,
+    improvement_pct,
+    per_track_mean,
+    position_errors,
+)
+
+__all__ = ['AteResult', 'RigidAlignment', 'align_rigid', 'anchor_first', 'ate',
+           'improvement_pct', 'per_track_mean', 'position_errors']

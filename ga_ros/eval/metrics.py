@@ -1,0 +1,134 @@
+"""Error metrics against ground truth.
+
+* Position error of each node: ``|p_est - p_true|`` (m).
+* ATE (absolute trajectory error, Sturm et al. 2012): RMSE of the position errors, either *raw*
+  (the estimate's first pose is moved onto the true first pose, i.e. "first pose anchored") or
+  *aligned* (after the least-squares rigid motion that best maps the estimated positions onto the
+  true ones: Horn 1987 / Umeyama 1991, without scale).
+* Per-track mean errors and the relative improvement of one estimate over another.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+
+
+@dataclass(frozen=True)
+class RigidAlignment:
+    """``p_true ~= R @ p_est + t`` (rotation ``R`` (3, 3), translation ``t`` (3,) in m)."""
+
+    R: FloatArray
+    t: FloatArray
+
+    def apply(self, p: FloatArray) -> FloatArray:
+        """Transform positions ``(n, 3)``."""
+        return np.asarray(p, dtype=float) @ self.R.T + self.t
+
+
+@dataclass(frozen=True)
+class AteResult:
+    """Absolute trajectory error (m): RMSE, mean, median and max of the per-node errors."""
+
+    rmse: float
+    mean: float
+    median: float
+    max: float
+    errors: FloatArray
+
+
+def _positions(x: FloatArray) -> FloatArray:
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 3 and x.shape[1:] == (4, 4):
+        return x[:, :3, 3]
+    if x.ndim == 2 and x.shape[1] == 3:
+        return x
+    raise InputError(f'expected poses (n, 4, 4) or positions (n, 3), got shape {x.shape}')
+
+
+def position_errors(est: FloatArray, true: FloatArray) -> FloatArray:
+    """Per-node position errors ``(n,)`` (m) of poses ``(n, 4, 4)`` or positions ``(n, 3)``."""
+    p, q = _positions(est), _positions(true)
+    if p.shape != q.shape:
+        raise InputError(f'estimate and ground truth differ in shape: {p.shape} vs {q.shape}')
+    return np.linalg.norm(p - q, axis=1)
+
+
+def align_rigid(p_est: FloatArray, p_true: FloatArray) -> RigidAlignment:
+    """Least-squares rigid alignment (Umeyama 1991, eqs. 34-42, scale fixed to 1).
+
+    Minimises ``sum |R p_est_k + t - p_true_k|^2`` over rotations ``R`` and translations ``t``.
+
+    Parameters
+    ----------
+    p_est, p_true : (n, 3) corresponding positions (m), ``n >= 3`` not collinear for a unique
+        rotation (a collinear set still gives a minimiser).
+    """
+    p, q = _positions(p_est), _positions(p_true)
+    if p.shape != q.shape or p.shape[0] < 2:
+        raise InputError(f'need two (n >= 2, 3) position sets of equal shape, got {p.shape}, '
+                         f'{q.shape}')
+    mp, mq = p.mean(axis=0), q.mean(axis=0)
+    C = (q - mq).T @ (p - mp) / p.shape[0]
+    U, _, Vt = np.linalg.svd(C)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    return RigidAlignment(R=R, t=mq - R @ mp)
+
+
+def anchor_first(T_est: FloatArray, T_true: FloatArray) -> FloatArray:
+    """Move the estimated trajectory rigidly so its first pose equals the true first pose:
+    ``T_true[0] @ T_est[0]^-1 @ T_est`` (``(n, 4, 4)``)."""
+    T_est = np.asarray(T_est, dtype=float)
+    T_true = np.asarray(T_true, dtype=float)
+    if T_est.shape != T_true.shape or T_est.ndim != 3 or T_est.shape[1:] != (4, 4):
+        raise InputError('anchor_first needs two pose stacks (n, 4, 4) of equal shape')
+    return T_true[0] @ se3.inverse(T_est[0]) @ T_est
+
+
+def ate(T_est: FloatArray, T_true: FloatArray, align: str = 'rigid') -> AteResult:
+    """Absolute trajectory error.
+
+    Parameters
+    ----------
+    T_est, T_true : (n, 4, 4) poses ``T_world_node`` (``align='none'`` also accepts positions).
+    align : ``'none'`` (compare as given), ``'first'`` (raw: first pose anchored, see
+        :func:`anchor_first`) or ``'rigid'`` (after :func:`align_rigid`).
+    """
+    if align == 'none':
+        e = position_errors(T_est, T_true)
+    elif align == 'first':
+        e = position_errors(anchor_first(T_est, T_true), T_true)
+    elif align == 'rigid':
+        p, q = _positions(T_est), _positions(T_true)
+        e = np.linalg.norm(align_rigid(p, q).apply(p) - q, axis=1)
+    else:
+        raise InputError(f"align must be 'none', 'first' or 'rigid', got {align!r}")
+    return AteResult(rmse=float(np.sqrt(np.mean(e * e))), mean=float(e.mean()),
+                     median=float(np.median(e)), max=float(e.max()), errors=e)
+
+
+def per_track_mean(errors: FloatArray, track_ids: IntArray) -> dict[int, float]:
+    """Mean of ``errors`` (n,) over the nodes of each track: ``{track_id: mean}``."""
+    errors = np.asarray(errors, dtype=float)
+    track_ids = np.asarray(track_ids)
+    if errors.shape != track_ids.shape:
+        raise InputError('errors and track_ids must have the same shape')
+    tracks, inv = np.unique(track_ids, return_inverse=True)
+    sums = np.bincount(inv, weights=errors)
+    counts = np.bincount(inv)
+    return {int(t): float(s / c) for t, s, c in zip(tracks, sums, counts)}
+
+
+def improvement_pct(error_before: float, error_after: float) -> float:
+    """Relative error reduction in percent: ``100 (before - after) / before``."""
+    if not error_before > 0:
+        raise InputError(f'reference error must be > 0, got {error_before}')
+    return float(100.0 * (error_before - error_after) / error_before)
