@@ -338,8 +338,9 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     it = 0
     for it in range(1, cfg.max_iterations + 1):
         sysd = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d, Pf)
-        if it == 1:
-            history.append(_cost_at(model, T, conn, S, prior_data, cfg, col, d))
+        if it == 1:  # the se3 shortcut's cost0 is the exact cost
+            history.append(sysd.cost0 if Pf is not None
+                           else _cost_at(model, T, conn, S, prior_data, cfg, col, d))
         data = pattern.assemble(sysd.blocks)
         if cfg.damping == 'lm':
             T, v, step, data_used, chol, lam, ok = _lm_step(
@@ -447,8 +448,9 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
         E = se3.inverse(T_meas) @ T_ij
         w = se3.log(E)
         Jinv = se3.left_jacobian_inv(w) @ se3.adjoint(E)  # J_r(e)^-1 = J_l(e)^-1 Ad(exp e)
-        lin = models.Linearisation(np.zeros_like(w), -Jinv @ se3.adjoint(se3.inverse(T_ij)),
-                                   Jinv, np.broadcast_to(-np.eye(6), (len(conn), 6, 6)))
+        Ad = se3.adjoint(se3.inverse(T_ij))
+        lin = models.Linearisation(np.zeros_like(w), -Jinv @ Ad, Jinv,
+                                   np.broadcast_to(-np.eye(6), (len(conn), 6, 6)))
         B = lin.B
         Minv = P
     else:
@@ -460,13 +462,24 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     maha2 = np.einsum('mi,mij,mj->m', w, Minv, w)
     weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
     Wm = Minv * weights[:, None, None]
-    AiT = np.swapaxes(lin.A_src, 1, 2) @ Wm
-    AjT = np.swapaxes(lin.A_dst, 1, 2) @ Wm
-    blocks = [AiT @ lin.A_src, AiT @ lin.A_dst, AjT @ lin.A_src, AjT @ lin.A_dst]
+    if model == 'se3' and P is not None:
+        # A_dst = J, A_src = -J Ad with J = J_r(e)^-1: share H = J' W J and g = J' W e
+        JT = np.swapaxes(lin.A_dst, 1, 2)
+        H = JT @ Wm @ lin.A_dst
+        AdT = np.swapaxes(Ad, 1, 2)
+        HAd = H @ Ad
+        blocks = [AdT @ HAd, -np.swapaxes(HAd, 1, 2), -HAd, H]
+        g = (JT @ (Wm @ w[:, :, None]))[:, :, 0]
+        gj = g
+        gi = -(AdT @ g[:, :, None])[:, :, 0]
+    else:
+        AiT = np.swapaxes(lin.A_src, 1, 2) @ Wm
+        AjT = np.swapaxes(lin.A_dst, 1, 2) @ Wm
+        blocks = [AiT @ lin.A_src, AiT @ lin.A_dst, AjT @ lin.A_src, AjT @ lin.A_dst]
+        gi = (AiT @ w[:, :, None])[:, :, 0]
+        gj = (AjT @ w[:, :, None])[:, :, 0]
     n_free = int((col >= 0).sum())
     u = np.zeros((n_free, d))
-    gi = (AiT @ w[:, :, None])[:, :, 0]
-    gj = (AjT @ w[:, :, None])[:, :, 0]
     cs, cd = col[conn.src], col[conn.dst]
     np.add.at(u, cs[cs >= 0], gi[cs >= 0])
     np.add.at(u, cd[cd >= 0], gj[cd >= 0])
