@@ -40,7 +40,8 @@ def run(args) -> int:
                  f'connections',
                  f'  equations {fig.equations}, observations {fig.observations}, unknowns '
                  f'{fig.unknowns}',
-                 f'  iterations {fig.iterations} (converged: {fig.converged}), '
+                 f'  iterations {fig.iterations} (converged: {fig.converged}, max step < '
+                 f'{fig.tolerance:g} m/rad, cost {fig.cost:.4f}), '
                  f'time {fig.seconds:.2f} s, peak memory {fig.peak_rss_mb:.0f} MiB',
                  f'  ATE (first pose anchored): F2F {fig.f2f_ate_m:.2f} m, GA '
                  f'{fig.ga_ate_m:.2f} m']
