@@ -1,0 +1,112 @@
+"""``ga-ros bench-replay``: replay throughput on the sample bags (measurements/s, stereo pairs/s).
+
+Replays ``bags/aerial_measurements`` (measurements -> alignment) and ``bags/stereo_sample``
+(images -> VO -> alignment) into a temporary folder and prints wall time and throughput. With
+``--io-only`` the aligner is replaced by dead reckoning, which measures the bag reading, decoding
+and output writing alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ga_ros.cli.commands.demo import find_bags_dir
+from ga_ros.errors import InputError
+from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.samples import MEASUREMENTS_BAG, STEREO_BAG
+
+
+class _DeadReckoning:
+    """Aligner stand-in for ``--io-only``: integrates consecutive motions, no optimisation."""
+
+    def __init__(self, T_world_first: Any = None) -> None:
+        self.poses: dict[int, Any] = {}
+        self.tracks: dict[int, int] = {}
+        self.T0 = np.eye(4) if T_world_first is None else T_world_first
+        self.track: int | None = None
+
+    def add_measurement(self, m: Any) -> list[Any]:
+        out = []
+        if self.track is not None and m.dst_track != self.track:
+            out.append(self.finish_track())
+        self.track = m.dst_track
+        if not self.poses:
+            self.poses[m.src_id], self.tracks[m.src_id] = self.T0, m.src_track
+        if m.src_id in self.poses and m.dst_id not in self.poses:
+            self.poses[m.dst_id] = self.poses[m.src_id] @ m.T_src_dst
+            self.tracks[m.dst_id] = m.dst_track
+        return out
+
+    def finish_track(self) -> Any:
+        return {'track_id': self.track}
+
+    def refine_batch(self) -> Any:
+        return None
+
+    def corrected_path(self) -> Any:
+        ids = np.array(sorted(self.poses))
+        return argparse.Namespace(node_ids=ids, track_ids=np.array([self.tracks[i] for i in ids]),
+                                  T_world_node=np.array([self.poses[i] for i in ids]))
+
+    def covariance(self, node_id: int) -> Any:
+        return np.zeros((6, 6))
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser('bench-replay', help='replay throughput on the sample bags',
+                              description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--bags', type=Path, help='folder of the sample bags (default bags/)')
+    p.add_argument('--only', choices=('stereo', 'measurements'))
+    p.add_argument('--io-only', action='store_true',
+                   help='dead reckoning instead of the aligner (I/O and decoding only)')
+    p.add_argument('--json', action='store_true', help='print one JSON object')
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    bags = args.bags or find_bags_dir()
+    if bags is None:
+        raise InputError('sample bags not found (run `ga-ros make-bags`)')
+    runs = []
+    if args.only in (None, 'measurements'):
+        runs.append(('measurements', bags / MEASUREMENTS_BAG))
+    if args.only in (None, 'stereo') and importlib.util.find_spec('ga_ros.vo.odometry'):
+        runs.append(('stereo', bags / STEREO_BAG))
+    factory = _DeadReckoning if args.io_only else None
+    figures: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix='ga_bench_replay_') as tmp:
+        for kind, bag in runs:
+            r = replay(bag, Path(tmp) / bag.name, ReplayConfig(plot=False),
+                       aligner_factory=factory)
+            unit = 'pairs' if kind == 'stereo' else 'measurements'
+            update_ms = [u.get('update_ms') for u in r.updates if 'update_ms' in u]
+            figures[bag.name] = {
+                'inputs': r.n_inputs, 'unit': unit, 'measurements': r.n_measurements,
+                'nodes': r.n_nodes, 'seconds': round(r.seconds, 3),
+                f'{unit}_per_s': round(r.rate, 1),
+                'measurements_per_s': round(r.n_measurements / r.seconds, 1),
+                'update_ms_p95': (round(float(np.percentile(update_ms, 95)), 2)
+                                  if update_ms else None),
+                'align_s': round(sum(update_ms) / 1e3, 3) if update_ms else None,
+                'aligner': 'dead-reckoning' if args.io_only else 'TrackWindowAligner'}
+    if args.json:
+        print(json.dumps(figures))
+        return 0
+    print('| bag | inputs | measurements | nodes | seconds | of which alignment | throughput |'
+          ' aligner |')
+    print('|---|---|---|---|---|---|---|---|')
+    for name, f in figures.items():
+        unit = f['unit']
+        rate = f[unit + '_per_s']
+        align = f"{f['align_s']:.2f} s" if f['align_s'] is not None else '-'
+        print(f"| {name} | {f['inputs']} {unit} | {f['measurements']} | {f['nodes']} | "
+              f"{f['seconds']:.2f} | {align} | {rate:.0f} {unit}/s | {f['aligner']} |")
+    return 0

@@ -1,0 +1,129 @@
+"""``ga-ros replay BAG``: offline replay of a rosbag2 bag through VO and the track-window aligner.
+
+Reads measurements (the ga_ros ``nav_msgs/Odometry`` encoding) or stereo images from a bag
+(mcap or sqlite3), runs the pipeline in-process as fast as the CPU allows, and writes an mcap bag
+(corrected path, poses, measurements, markers), TUM trajectories, a PNG plot and
+``summary.json``. ``--info`` lists the bag's topics and what would be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from ga_ros.errors import InputError
+from ga_ros.io.bag import TopicConfig, bag_info
+from ga_ros.replay.outputs import OutputConfig
+from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.text import info_text, plan_lines, result_text
+
+#: Aligner options of the command line -> AlignerConfig field names.
+ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
+                   'robust_loss': 'robust_loss', 'robust_scale': 'robust_scale',
+                   'max_iterations': 'max_iterations', 'outlier_chi2_prob': 'outlier_chi2_prob'}
+
+
+def add_replay_arguments(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``replay`` and ``demo``: topics, frames, aligner, outputs."""
+    g = p.add_argument_group('input topics')
+    g.add_argument('--source', choices=('auto', 'measurements', 'stereo'), default='auto',
+                   help='what to replay (auto: measurements if the topic exists, else images)')
+    g.add_argument('--measurements-topic', default='/ga/measurements')
+    g.add_argument('--left-image', default='', help="left images ('' = detect)")
+    g.add_argument('--right-image', default='', help="right images ('' = detect)")
+    g.add_argument('--left-info', default='', help="left CameraInfo ('' = detect)")
+    g.add_argument('--right-info', default='', help="right CameraInfo ('' = detect)")
+    g.add_argument('--ground-truth-topic', default='/ga/ground_truth',
+                   help="nav_msgs/Path ground truth ('' = ignore)")
+    o = p.add_argument_group('outputs')
+    o.add_argument('--map-frame', default='map', help='frame of the corrected path')
+    o.add_argument('--path-topic', default='/ga/corrected_path')
+    o.add_argument('--pose-topic', default='/ga/corrected_pose')
+    o.add_argument('--markers-topic', default='/ga/network_markers')
+    o.add_argument('--no-plot', action='store_true', help='do not write the PNG plot')
+    o.add_argument('--no-covariance', action='store_true',
+                   help='write zero covariances on the pose topic (faster on big surveys)')
+    o.add_argument('--no-progress', action='store_true', help='no progress bar')
+    a = p.add_argument_group('alignment')
+    a.add_argument('--aligner', choices=('window', 'batch'), default='window',
+                   help='window: the live track-window aligner (default); batch: re-solve the '
+                        'whole survey at every track end (reference; small surveys only)')
+    a.add_argument('--window', type=int, help='tracks in the sliding window (default 5)')
+    a.add_argument('--freeze-policy', choices=('weighted', 'marginal'))
+    a.add_argument('--robust-loss', choices=('none', 'huber', 'cauchy'))
+    a.add_argument('--robust-scale', type=float)
+    a.add_argument('--max-iterations', type=int)
+    a.add_argument('--outlier-chi2-prob', type=float,
+                   help='misclosure test quantile for cross connections (0 disables)')
+    a.add_argument('--refine', action='store_true',
+                   help='final full batch refinement after the last track')
+    a.add_argument('--no-anchor', action='store_true',
+                   help='start at the identity instead of the ground-truth first pose')
+
+
+def topic_config(args: argparse.Namespace) -> TopicConfig:
+    return TopicConfig(measurements=args.measurements_topic, left_image=args.left_image,
+                       right_image=args.right_image, left_info=args.left_info,
+                       right_info=args.right_info, ground_truth=args.ground_truth_topic,
+                       source=args.source)
+
+
+def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
+    """ReplayConfig from parsed arguments (the aligner module is imported only if needed)."""
+    overrides = {field: getattr(args, opt) for opt, field in ALIGNER_OPTIONS.items()
+                 if getattr(args, opt, None) is not None}
+    aligner: Any = None
+    if overrides and args.aligner == 'window':
+        from ga_ros.core.window import AlignerConfig
+
+        try:
+            aligner = dataclasses.replace(AlignerConfig(), **overrides)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f'bad aligner option: {exc}') from exc
+    outputs = OutputConfig(map_frame=args.map_frame, path_topic=args.path_topic,
+                           pose_topic=args.pose_topic, markers_topic=args.markers_topic)
+    return ReplayConfig(topics=topic_config(args), outputs=outputs, aligner=aligner,
+                        aligner_kind=args.aligner, refine_batch=args.refine,
+                        pose_covariance=not args.no_covariance,
+                        anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
+                        progress=progress and not args.no_progress)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        'replay', help='replay a rosbag2 bag offline through VO and the track-window aligner',
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
+    p.add_argument('--out', type=Path,
+                   help='output directory (default out/replay/<bag name>)')
+    p.add_argument('--info', action='store_true',
+                   help="list the bag's topics and what the replay would use, then exit")
+    p.add_argument('--json', action='store_true', help='print the summary as JSON')
+    add_replay_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    topics = topic_config(args)
+    if args.info:
+        text, usable = info_text(bag_info(args.bag), topics)
+        print(text)
+        return 0 if usable else 1
+    out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)
+    config = replay_config(args, progress=sys.stderr.isatty() and not args.json)
+
+    def show_plan(plan: Any) -> None:
+        if not args.json:
+            for line in plan_lines(plan):
+                print(line)
+
+    result = replay(args.bag, out, config, on_plan=show_plan)
+    if args.json:
+        print(json.dumps(result.as_dict(), default=str))
+    else:
+        print(result_text(result))
+    return 0

@@ -1,0 +1,203 @@
+"""Files the replay writes: the output mcap bag, TUM trajectories, the PNG plot, summary JSON."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import FormatError
+from ga_ros.geometry import se3
+from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
+from ga_ros.io.bag_writer import BagWriter, network_markers, pose_with_covariance_msg
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """Names of the replay's outputs.
+
+    Attributes
+    ----------
+    map_frame : frame of the corrected and F2F paths and poses (REP 105 ``map``).
+    path_topic : corrected path (``nav_msgs/Path``), written after every track update and at
+        the end.
+    f2f_topic : frame-to-frame integrated path (``nav_msgs/Path``), written at the end.
+    pose_topic : corrected pose of every node with covariance
+        (``geometry_msgs/PoseWithCovarianceStamped``), written at the end, stamped at the node.
+    measurements_topic : the measurements used (``nav_msgs/Odometry``, the ga_ros encoding).
+    markers_topic : the connection network (``visualization_msgs/MarkerArray``) after every
+        update.
+    ground_truth_topic : the ground truth copied from the input bag, if it has one.
+    bag_name : name of the output bag directory inside the output directory.
+    """
+
+    map_frame: str = 'map'
+    path_topic: str = '/ga/corrected_path'
+    f2f_topic: str = '/ga/f2f_path'
+    pose_topic: str = '/ga/corrected_pose'
+    measurements_topic: str = '/ga/measurements'
+    markers_topic: str = '/ga/network_markers'
+    ground_truth_topic: str = '/ga/ground_truth'
+    bag_name: str = 'replay_bag'
+
+
+def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatArray,
+               cov: FloatArray) -> FloatArray:
+    """Mahalanobis norm of each connection's misclosure at the given poses (unitless).
+
+    ``e = log(Z^-1 T_i^-1 T_j)`` (right perturbation, ``[x y z rx ry rz]``), ``d = sqrt(e'
+    cov^-1 e)``; ``src``/``dst`` are node indices into ``T_world_node`` (n, 4, 4), ``z`` (m, 6)
+    the measured ``[t, w]`` and ``cov`` (m, 6, 6) their covariances.
+    """
+    if len(src) == 0:
+        return np.zeros(0)
+    Z = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+    E = se3.inverse(Z) @ se3.relative(T_world_node[src], T_world_node[dst])
+    e = se3.log(E)
+    return np.sqrt(np.maximum(np.einsum('ki,ki->k', e, np.linalg.solve(cov, e[..., None])[..., 0]),
+                              0.0))
+
+
+def write_tum(path: Path, stamps_ns: IntArray, T_world_node: FloatArray) -> None:
+    """TUM trajectory file: ``timestamp x y z qx qy qz qw`` per line (s, m)."""
+    lines = ['# timestamp x y z qx qy qz qw']
+    if len(stamps_ns):
+        p, q = se3.to_pos_quat(np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4))
+        for s, pk, qk in zip(np.asarray(stamps_ns), p, q):
+            vals = ' '.join(f'{v:.9f}' for v in (*pk, *qk))
+            lines.append(f'{int(s) // 1_000_000_000}.{int(s) % 1_000_000_000:09d} {vals}')
+    path.write_text('\n'.join(lines) + '\n')
+
+
+def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
+                      gt: FloatArray | None, title: str) -> None:
+    """Top view (x-y, m) of the corrected (GA), F2F and ground-truth positions, as a PNG.
+
+    Parameters
+    ----------
+    ga, f2f, gt : (n, 3) positions (f2f and gt may be None).
+    """
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6), dpi=110)
+    try:
+        if gt is not None and len(gt):
+            ax.plot(gt[:, 0], gt[:, 1], '-', color='0.55', lw=2.5, label='ground truth')
+        if f2f is not None and len(f2f):
+            ax.plot(f2f[:, 0], f2f[:, 1], '-', color='tab:red', lw=1.0, label='F2F')
+        if len(ga):
+            ax.plot(ga[:, 0], ga[:, 1], '-', color='tab:blue', lw=1.0, label='GA (corrected)')
+        ax.set_xlabel('x (m)')
+        ax.set_ylabel('y (m)')
+        ax.set_aspect('equal', adjustable='datalim')
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc='best')
+        ax.set_title(title, fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path)
+    finally:
+        plt.close(fig)
+
+
+class ReplayOutputs:
+    """The output directory of one replay: bag (opened at once), then TUM/PNG/JSON at the end.
+
+    Parameters
+    ----------
+    out_dir : directory (created); an existing output bag in it is replaced.
+    config : topic and file names.
+    """
+
+    def __init__(self, out_dir: str | Path, config: OutputConfig = OutputConfig()) -> None:
+        self.dir = Path(out_dir)
+        self.config = config
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FormatError(f'cannot create output directory: {exc}', str(self.dir)) from exc
+        self.bag = BagWriter(self.dir / config.bag_name, overwrite=True)
+        self.bag.open()
+        self.files: dict[str, Path] = {'bag': self.bag.path}
+
+    # ---- streaming outputs
+    def measurement(self, msgtype: str, data: bytes | None, msg: Any, log_ns: int) -> None:
+        """Copy one measurement (raw CDR when available) into the output bag."""
+        if data is not None:
+            self.bag.write_raw(self.config.measurements_topic, msgtype, data, log_ns)
+        else:
+            self.bag.write(self.config.measurements_topic, msgtype, msg, log_ns)
+
+    def path(self, traj: Trajectory, log_ns: int, topic: str | None = None) -> None:
+        """A corrected (or F2F) path in the map frame."""
+        msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=log_ns)
+        self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
+
+    def markers(self, p_world_node: FloatArray, src: IntArray, dst: IntArray,
+                residual: FloatArray, log_ns: int) -> None:
+        """The connection network coloured by misclosure."""
+        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, log_ns)
+        self.bag.write(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray', msg,
+                       log_ns)
+
+    def poses(self, traj: Trajectory, covs: FloatArray) -> None:
+        """Corrected pose with covariance of every node, stamped at the node's time."""
+        for k in range(len(traj)):
+            s = int(traj.stamps_ns[k])
+            self.bag.write(self.config.pose_topic,
+                           'geometry_msgs/msg/PoseWithCovarianceStamped',
+                           pose_with_covariance_msg(traj.T_world_node[k], covs[k],
+                                                    self.config.map_frame, s), s)
+
+    def ground_truth(self, traj: Trajectory, log_ns: int) -> None:
+        """The ground truth path (node frame ids kept when known)."""
+        node_frames = bool(len(traj)) and bool((traj.node_ids >= 0).all()
+                                               and (traj.track_ids >= 0).all())
+        msg = trajectory_to_path_msg(traj, stamp_ns=log_ns, node_frames=node_frames)
+        self.bag.write(self.config.ground_truth_topic, PATH, msg, log_ns)
+
+    # ---- final files
+    def tum(self, name: str, traj: Trajectory) -> Path:
+        """Write ``name`` (TUM format) and register it."""
+        p = self.dir / name
+        write_tum(p, traj.stamps_ns, traj.T_world_node)
+        self.files[p.stem] = p
+        return p
+
+    def plot(self, name: str, ga: FloatArray, f2f: FloatArray | None, gt: FloatArray | None,
+             title: str) -> Path:
+        """Write the PNG plot and register it."""
+        p = self.dir / name
+        plot_trajectories(p, ga, f2f, gt, title)
+        self.files['plot'] = p
+        return p
+
+    def summary(self, data: Mapping[str, Any]) -> Path:
+        """Write ``summary.json``."""
+        p = self.dir / 'summary.json'
+        p.write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default) + '\n')
+        self.files['summary'] = p
+        return p
+
+    def close(self) -> None:
+        """Finish the output bag (valid mcap with summary); idempotent."""
+        self.bag.close()
+
+
+def _json_default(o: object) -> Any:
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)

@@ -1,0 +1,557 @@
+"""The offline replay: bag -> [stereo VO] -> track-window alignment -> output bag, TUM, PNG, JSON.
+
+Runs as fast as the CPU allows (no real-time pacing) and without ROS. The aligner sees exactly
+what the alignment node would see, in bag order, so a replay reproduces the live pipeline's
+numbers.
+
+Outputs (in ``out_dir``)
+------------------------
+``replay_bag/`` (mcap rosbag2: corrected path after every track update, corrected poses with
+covariance, the measurements, markers, the F2F path and the ground truth when the input has it),
+``trajectory_ga.tum``, ``trajectory_f2f.tum``, ``trajectory_gt.tum`` (when ground truth is
+present), ``trajectory.png`` and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field, is_dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import FormatError, GaError, InputError, SolverError
+from ga_ros.io.bag import (
+    ODOMETRY,
+    BagReader,
+    TopicConfig,
+    TopicPlan,
+    Trajectory,
+    measurement_to_odometry,
+    odometry_to_measurement,
+    plan_topics,
+    read_ground_truth,
+)
+from ga_ros.replay.metrics import F2FIntegrator, TrajectoryError, trajectory_error
+from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
+
+#: Largest stamp difference (ns) at which a node and a ground-truth pose are the same frame.
+STAMP_MATCH_TOL_NS = 1_000_000
+
+
+class Aligner(Protocol):
+    """What the replay needs of :class:`ga_ros.core.window.TrackWindowAligner`."""
+
+    def add_measurement(self, m: Measurement) -> list[Any]: ...
+
+    def finish_track(self) -> Any: ...
+
+    def refine_batch(self) -> Any: ...
+
+    def corrected_path(self) -> Any: ...
+
+    def covariance(self, node_id: int) -> FloatArray: ...
+
+
+AlignerFactory = Callable[[FloatArray | None], Aligner]
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Settings of one replay.
+
+    Attributes
+    ----------
+    topics : input topic names (and the source: measurements or stereo images).
+    outputs : output topic names, map frame, bag name.
+    aligner : :class:`ga_ros.core.window.AlignerConfig` (None = its defaults), or a
+        :class:`ga_ros.core.solver.SolverConfig` with ``aligner_kind='batch'``.
+    aligner_kind : ``'window'`` (the live node's track-window aligner) or ``'batch'``.
+    vo : configuration object of the stereo VO (None = its defaults); used for image bags.
+    refine_batch : run a final full batch refinement after the last track.
+    pose_covariance : write each corrected pose's marginal covariance (else zeros).
+    anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
+        first node (the datum) when the bag has ground truth; else at the identity.
+    plot : write the PNG plot.
+    progress : show a progress bar on stderr.
+    """
+
+    topics: TopicConfig = TopicConfig()
+    outputs: OutputConfig = OutputConfig()
+    aligner: Any = None
+    aligner_kind: str = 'window'
+    vo: Any = None
+    refine_batch: bool = False
+    pose_covariance: bool = True
+    anchor_to_ground_truth: bool = True
+    plot: bool = True
+    progress: bool = False
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did (also written to ``summary.json``).
+
+    ``errors`` maps ``'f2f'`` and ``'ga'`` to :class:`TrajectoryError` against ground truth
+    (empty without ground truth). ``error`` is the message of the failure that cut the replay
+    short (the outputs then hold everything up to it), else None.
+    """
+
+    bag: str
+    source: str
+    out_dir: str
+    n_inputs: int = 0
+    n_measurements: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    rejected_examples: list[str] = field(default_factory=list)
+    n_nodes: int = 0
+    n_tracks: int = 0
+    updates: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+    errors: dict[str, TrajectoryError] = field(default_factory=dict)
+    files: dict[str, str] = field(default_factory=dict)
+    output_counts: dict[str, int] = field(default_factory=dict)
+    error: str | None = None
+    source_stats: dict[str, Any] = field(default_factory=dict)
+    corrected: Trajectory | None = None
+
+    @property
+    def rate(self) -> float:
+        """Inputs (measurements or stereo pairs) processed per second."""
+        return self.n_inputs / self.seconds if self.seconds > 0 else float('nan')
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            'bag': self.bag, 'source': self.source, 'out_dir': self.out_dir,
+            'n_inputs': self.n_inputs, 'n_measurements': self.n_measurements,
+            'rejected': self.rejected, 'rejected_examples': self.rejected_examples,
+            'n_nodes': self.n_nodes, 'n_tracks': self.n_tracks, 'updates': self.updates,
+            'seconds': self.seconds, 'inputs_per_s': self.rate,
+            'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
+            'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
+            'source_stats': self.source_stats}
+
+
+@dataclass(frozen=True)
+class SourceItem:
+    """One step of a measurement source: a measurement (or a rejection) and its bag time.
+
+    ``data`` is the raw CDR of the measurement when it was read from the bag; ``node_stamps``
+    gives acquisition times of nodes the source knows (e.g. the first VO keyframe).
+    """
+
+    measurement: Measurement | None
+    log_ns: int
+    data: bytes | None = None
+    error: str | None = None
+    node_stamps: dict[int, int] | None = None
+
+
+def bag_measurements(bag: BagReader, topic: str, counter: list[int]) -> Iterator[SourceItem]:
+    """Measurements read from ``topic`` (the ga_ros Odometry encoding); bad ones as rejections.
+
+    ``counter[0]`` counts the messages read (the source's inputs).
+    """
+    for bm in bag.messages([topic]):
+        counter[0] += 1
+        try:
+            m = odometry_to_measurement(bm.msg)
+        except InputError as exc:
+            yield SourceItem(None, bm.log_ns, error=f'decode: {exc}')
+            continue
+        yield SourceItem(m, bm.log_ns, data=bm.data)
+
+
+def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
+    """A factory of the aligner used by the replay.
+
+    Parameters
+    ----------
+    config : :class:`ga_ros.core.window.AlignerConfig` (``kind='window'``) or
+        :class:`ga_ros.core.solver.SolverConfig` (``kind='batch'``); None = defaults.
+    kind : ``'window'`` (:class:`ga_ros.core.window.TrackWindowAligner`, the live node's) or
+        ``'batch'`` (:class:`ga_ros.replay.batch.BatchAligner`, full re-solve per track).
+    """
+    if kind == 'batch':
+        from ga_ros.replay.batch import BatchAligner
+
+        return lambda T_world_first: BatchAligner(config, T_world_first=T_world_first)
+    if kind != 'window':
+        raise InputError(f"aligner must be 'window' or 'batch', got {kind!r}")
+    try:
+        from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    except ImportError as exc:
+        raise InputError(f'the track-window aligner is not available ({exc}); '
+                         'use the batch aligner instead') from exc
+    cfg = config if config is not None else AlignerConfig()
+
+    def make(T_world_first: FloatArray | None) -> Aligner:
+        return TrackWindowAligner(cfg, T_world_first=T_world_first)
+
+    return make
+
+
+def _as_dict(obj: Any) -> dict[str, Any]:
+    if obj is None:
+        return {}
+    if isinstance(obj, dict):
+        d = dict(obj)
+    elif is_dataclass(obj):
+        d = asdict(obj)
+    else:
+        d = {k: v for k, v in vars(obj).items() if not k.startswith('_')}
+    return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in d.items()
+            if isinstance(v, (int, float, str, bool, np.generic, type(None), dict))}
+
+
+def match_ground_truth(gt: Trajectory, node_ids: IntArray, stamps_ns: IntArray,
+                       by: str) -> tuple[IntArray, IntArray]:
+    """Indices ``(i_est, i_gt)`` of estimated nodes and their ground-truth poses.
+
+    Parameters
+    ----------
+    by : ``'node'`` (same node id) or ``'stamp'`` (same acquisition time within
+        :data:`STAMP_MATCH_TOL_NS`).
+    """
+    if by == 'node':
+        lookup = {int(n): k for k, n in enumerate(gt.node_ids) if n >= 0}
+        pairs = [(i, lookup[int(n)]) for i, n in enumerate(node_ids) if int(n) in lookup]
+    else:
+        order = np.argsort(gt.stamps_ns, kind='stable')
+        s_sorted = gt.stamps_ns[order]
+        pairs = []
+        if len(s_sorted):
+            pos = np.clip(np.searchsorted(s_sorted, stamps_ns), 1, max(len(s_sorted) - 1, 1))
+            for i, (s, p) in enumerate(zip(stamps_ns, pos)):
+                cands = [c for c in (p - 1, p) if 0 <= c < len(s_sorted)]
+                best = min(cands, key=lambda c: abs(int(s_sorted[c]) - int(s)))
+                if abs(int(s_sorted[best]) - int(s)) <= STAMP_MATCH_TOL_NS:
+                    pairs.append((i, int(order[best])))
+    if not pairs:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    a = np.array(pairs, dtype=np.int64)
+    return a[:, 0], a[:, 1]
+
+
+class _Connections:
+    """Accepted connections in growing arrays: node ids, ``z`` (m, 6), ``cov`` (m, 6, 6)."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.src = np.zeros(1024, dtype=np.int64)
+        self.dst = np.zeros(1024, dtype=np.int64)
+        self.z = np.zeros((1024, 6))
+        self.cov = np.zeros((1024, 6, 6))
+
+    def append(self, m: Measurement) -> None:
+        if self.n == len(self.src):
+            grow = len(self.src)
+            self.src = np.concatenate([self.src, np.zeros(grow, dtype=np.int64)])
+            self.dst = np.concatenate([self.dst, np.zeros(grow, dtype=np.int64)])
+            self.z = np.concatenate([self.z, np.zeros((grow, 6))])
+            self.cov = np.concatenate([self.cov, np.zeros((grow, 6, 6))])
+        k = self.n
+        self.src[k], self.dst[k] = m.src_id, m.dst_id
+        self.z[k] = m.z
+        self.cov[k] = m.cov
+        self.n += 1
+
+    def view(self) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+        n = self.n
+        return self.src[:n], self.dst[:n], self.z[:n], self.cov[:n]
+
+
+class _Run:
+    """State of one replay (kept out of the public function for readability)."""
+
+    def __init__(self, config: ReplayConfig, factory: AlignerFactory, outputs: ReplayOutputs,
+                 result: ReplayResult, gt: Trajectory | None, match_by: str) -> None:
+        self.config = config
+        self.factory = factory
+        self.out = outputs
+        self.result = result
+        self.gt = gt
+        self.match_by = match_by
+        self.aligner: Aligner | None = None
+        self.f2f: F2FIntegrator | None = None
+        self.stamps: dict[int, int] = {}
+        self.tracks: dict[int, int] = {}
+        self.conn = _Connections()
+        self.frozen: np.ndarray | None = None
+        self.last_ns = 0
+        self.source: Any = None
+
+    def _first_pose(self, m: Measurement) -> FloatArray | None:
+        if self.gt is None or not self.config.anchor_to_ground_truth:
+            return None
+        s = self.stamps.get(m.src_id)
+        i_est, i_gt = match_ground_truth(self.gt, np.array([m.src_id]),
+                                         np.array([s if s is not None else -1]), self.match_by)
+        return self.gt.T_world_node[i_gt[0]].copy() if len(i_gt) else None
+
+    def step(self, item: SourceItem) -> None:
+        self.last_ns = max(self.last_ns, int(item.log_ns))
+        if item.node_stamps:
+            for k, v in item.node_stamps.items():
+                self.stamps.setdefault(int(k), int(v))
+        m = item.measurement
+        if m is None:
+            if item.error:
+                self._reject(item.error)
+            return
+        if self.aligner is None:
+            T0 = self._first_pose(m)
+            self.aligner = self.factory(T0)
+            self.f2f = F2FIntegrator(T0)
+        try:
+            updates = self.aligner.add_measurement(m)
+        except InputError as exc:
+            self._reject(f'aligner: {exc}')
+            return
+        except GaError as exc:  # a failed update: the aligner keeps its previous estimate
+            self._reject(f'solver: {type(exc).__name__}: {exc}')
+            return
+        assert self.f2f is not None
+        self.f2f.add(m)
+        self.result.n_measurements += 1
+        self.stamps.setdefault(m.dst_id, int(m.stamp_ns))
+        self.tracks.setdefault(m.src_id, m.src_track)
+        self.tracks.setdefault(m.dst_id, m.dst_track)
+        self.conn.append(m)
+        if item.data is not None:
+            self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
+        else:
+            self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
+        for u in updates:
+            self._update(u)
+
+    def _reject(self, reason: str) -> None:
+        key = reason.split(':', 1)[0]
+        self.result.rejected[key] = self.result.rejected.get(key, 0) + 1
+        if len(self.result.rejected_examples) < 10:
+            self.result.rejected_examples.append(reason)
+
+    def _update(self, u: Any) -> None:
+        if u is None:
+            return
+        self.result.updates.append(_as_dict(u))
+        traj = self.corrected()
+        self.out.path(traj, self.last_ns)
+        self._markers(traj)
+        feedback = getattr(self.source, 'on_corrected', None)
+        if feedback is not None:
+            feedback(traj.node_ids, traj.T_world_node)
+
+    def corrected(self) -> Trajectory:
+        assert self.aligner is not None
+        cp = self.aligner.corrected_path()
+        node_ids = np.asarray(cp.node_ids, dtype=np.int64)
+        frozen = getattr(cp, 'frozen', None)
+        self.frozen = None if frozen is None else np.asarray(frozen, dtype=bool).reshape(-1)
+        T = np.asarray(cp.T_world_node, dtype=float).reshape(-1, 4, 4)
+        tracks = np.asarray(getattr(cp, 'track_ids', [self.tracks.get(int(n), -1)
+                                                      for n in node_ids]), dtype=np.int64)
+        cp_stamps = getattr(cp, 'stamps_ns', None)
+        stamps = np.array([self.stamps.get(int(n), -1) for n in node_ids], dtype=np.int64)
+        if cp_stamps is not None:
+            cp_stamps = np.asarray(cp_stamps, dtype=np.int64)
+            stamps = np.where(stamps < 0, cp_stamps, stamps)
+        if (stamps < 0).any():  # only the very first node can be unknown: use the first stamp
+            known = stamps[stamps >= 0]
+            stamps = np.where(stamps < 0, known.min() if known.size else 0, stamps)
+        return Trajectory(stamps, T, node_ids, tracks, self.config.outputs.map_frame)
+
+    def _markers(self, traj: Trajectory, everything: bool = False) -> None:
+        """Markers of the connections that can still move (a non-frozen end; all at the end)."""
+        n = len(traj)
+        if n == 0 or self.conn.n == 0:
+            return
+        src, dst, z, cov = self.conn.view()
+        order = np.argsort(traj.node_ids)
+        ids_sorted = traj.node_ids[order]
+        pos_s = np.clip(np.searchsorted(ids_sorted, src), 0, n - 1)
+        pos_d = np.clip(np.searchsorted(ids_sorted, dst), 0, n - 1)
+        ok = (ids_sorted[pos_s] == src) & (ids_sorted[pos_d] == dst)
+        i_src, i_dst = order[pos_s], order[pos_d]
+        if not everything:
+            movable = self._movable(traj)
+            ok &= movable[i_src] | movable[i_dst]
+        if not ok.any():
+            return
+        d = misclosure(traj.T_world_node, i_src[ok], i_dst[ok], z[ok], cov[ok])
+        self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns)
+
+    def _movable(self, traj: Trajectory) -> np.ndarray:
+        """(n,) True for nodes the aligner may still move (not frozen; else the last tracks)."""
+        if self.frozen is not None and len(self.frozen) == len(traj):
+            return ~self.frozen
+        tracks = np.unique(traj.track_ids)
+        window = getattr(self.config.aligner, 'window_tracks', 5)
+        return np.isin(traj.track_ids, tracks[-window:])
+
+    def finish(self) -> None:
+        res = self.result
+        if self.aligner is None:
+            return
+        try:
+            self._update(self.aligner.finish_track())
+            if self.config.refine_batch:
+                self._update(self.aligner.refine_batch())
+        except GaError as exc:
+            res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
+        traj = self.corrected()
+        res.corrected = traj
+        self._markers(traj, everything=True)
+        res.n_nodes = len(traj)
+        res.n_tracks = int(np.unique(traj.track_ids).size)
+        covs = np.zeros((len(traj), 6, 6))
+        if self.config.pose_covariance:
+            batch = getattr(self.aligner, 'covariances', None)  # all blocks at once, if offered
+            try:
+                if batch is None:
+                    raise SolverError('no batch covariances')
+                covs[:] = np.asarray(batch(traj.node_ids), dtype=float).reshape(-1, 6, 6)
+            except GaError:
+                for k, n in enumerate(traj.node_ids):
+                    try:
+                        covs[k] = self.aligner.covariance(int(n))
+                    except GaError:  # unknown: zero, as ROS does for an unknown covariance
+                        pass
+        self.out.poses(traj, covs)
+        # F2F path over the nodes it reached, in node order of the corrected path
+        assert self.f2f is not None
+        f_ids = [int(n) for n in traj.node_ids if int(n) in self.f2f.poses]
+        f2f = Trajectory(np.array([self.stamps.get(n, traj.stamps_ns[0]) for n in f_ids],
+                                  dtype=np.int64),
+                         np.array([self.f2f.poses[n] for n in f_ids]).reshape(-1, 4, 4),
+                         np.array(f_ids, dtype=np.int64),
+                         np.array([self.f2f.tracks.get(n, -1) for n in f_ids], dtype=np.int64),
+                         self.config.outputs.map_frame)
+        self.out.path(f2f, self.last_ns, topic=self.config.outputs.f2f_topic)
+        self.out.tum('trajectory_ga.tum', traj)
+        self.out.tum('trajectory_f2f.tum', f2f)
+        gt_xyz = f2f_xyz = None
+        if self.gt is not None and len(self.gt):
+            self.out.ground_truth(self.gt, self.last_ns)
+            self.out.tum('trajectory_gt.tum', self.gt)
+            i_est, i_gt = match_ground_truth(self.gt, traj.node_ids, traj.stamps_ns,
+                                             self.match_by)
+            if len(i_est) >= 3:
+                gt_xyz = self.gt.T_world_node[i_gt, :3, 3]
+                res.errors['ga'] = trajectory_error(traj.T_world_node[i_est, :3, 3], gt_xyz)
+                f_index = {n: k for k, n in enumerate(f_ids)}
+                ok = [j for j, i in enumerate(i_est) if int(traj.node_ids[i]) in f_index]
+                if len(ok) >= 3:
+                    f_rows = [f_index[int(traj.node_ids[i_est[j]])] for j in ok]
+                    res.errors['f2f'] = trajectory_error(f2f.T_world_node[f_rows, :3, 3],
+                                                         gt_xyz[ok])
+            gt_xyz = self.gt.T_world_node[:, :3, 3]
+        f2f_xyz = f2f.T_world_node[:, :3, 3]
+        if self.config.plot:
+            title = f'{Path(res.bag).name}: {res.n_nodes} nodes, {res.n_tracks} tracks'
+            if 'ga' in res.errors and 'f2f' in res.errors:
+                title += (f'\nATE vs ground truth: F2F {res.errors["f2f"].ate_raw:.3g} m, '
+                          f'GA {res.errors["ga"].ate_raw:.3g} m')
+            self.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f_xyz, gt_xyz, title)
+
+
+def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = ReplayConfig(),
+           aligner_factory: AlignerFactory | None = None,
+           on_plan: Callable[[TopicPlan], None] | None = None) -> ReplayResult:
+    """Replay a bag through the alignment pipeline and write the outputs.
+
+    Parameters
+    ----------
+    bag_path : rosbag2 directory or ``.mcap`` / ``.db3`` file.
+    out_dir : output directory (created; files in it are replaced).
+    config : see :class:`ReplayConfig`.
+    aligner_factory : builds the aligner from the datum ``T_world_first`` (default:
+        :class:`ga_ros.core.window.TrackWindowAligner` with ``config.aligner``).
+    on_plan : called with the topic plan before processing starts (e.g. to print it).
+
+    Returns
+    -------
+    ReplayResult
+
+    Raises
+    ------
+    FormatError
+        If the bag cannot be opened, lacks the needed topics (nothing is written then), or turns
+        out truncated or corrupt half-way: then every output is still written, valid, with what
+        was read before the failure, and the error (with ``.result`` attached) is raised at the
+        end.
+    """
+    t0 = time.perf_counter()
+    bag_path = Path(bag_path)
+    with BagReader(bag_path) as bag:
+        assert bag.info is not None
+        plan = plan_topics(bag.info, config.topics)
+        factory = aligner_factory or default_aligner_factory(config.aligner,
+                                                             config.aligner_kind)
+        if on_plan is not None:
+            on_plan(plan)
+        gt = read_ground_truth(bag, plan.ground_truth) if plan.ground_truth else None
+        if plan.source == 'stereo':
+            from ga_ros.replay.stereo import stereo_measurements
+
+            counter = [0]
+            total = bag.info.topic(plan.left_image).count
+            source = stereo_measurements(bag, plan, config.vo, counter)
+            unit = 'pair'
+        else:
+            counter = [0]
+            total = bag.info.topic(plan.measurements).count
+            source = bag_measurements(bag, plan.measurements, counter)
+            unit = 'msg'
+        match_by = 'stamp'
+        if plan.source == 'measurements' and gt is not None and len(gt) and (
+                gt.node_ids >= 0).all():
+            match_by = 'node'
+        result = ReplayResult(str(bag_path), plan.source, str(out_dir))
+        outputs = ReplayOutputs(out_dir, config.outputs)
+        run = _Run(config, factory, outputs, result, gt, match_by)
+        run.source = source
+        bar = None
+        if config.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, unit=unit, file=sys.stderr, mininterval=0.5,
+                       desc=f'replay {bag_path.name}')
+        try:
+            try:
+                last = 0
+                for item in source:
+                    run.step(item)
+                    if bar is not None and counter[0] != last:
+                        bar.update(counter[0] - last)
+                        last = counter[0]
+            except FormatError as exc:
+                result.error = str(exc)
+            finally:
+                if bar is not None:
+                    bar.close()
+            result.n_inputs = counter[0]
+            stats = getattr(source, 'stats', None)
+            if stats is not None:
+                result.source_stats = _as_dict(stats)
+            if run.aligner is None and result.error is None:
+                examples = '; '.join(result.rejected_examples[:3])
+                result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
+                                f'{unit}s' + (f' ({examples})' if examples else ''))
+            run.finish()
+        finally:
+            outputs.close()
+            result.seconds = time.perf_counter() - t0
+            result.files = {k: str(v) for k, v in outputs.files.items()}
+            result.output_counts = dict(outputs.bag.counts)
+            outputs.summary(result.as_dict())
+    if result.error is not None:
+        exc = FormatError(f'{result.error} (partial outputs written to {out_dir})')
+        exc.result = result  # type: ignore[attr-defined]
+        raise exc
+    return result

@@ -1,0 +1,66 @@
+"""Human-readable text of the replay: the ``--info`` listing and the end-of-run summary."""
+
+from __future__ import annotations
+
+from ga_ros.errors import GaError
+from ga_ros.io.bag import BagInfo, TopicConfig, TopicPlan, plan_topics
+from ga_ros.replay.pipeline import ReplayResult
+
+
+def info_text(info: BagInfo, config: TopicConfig = TopicConfig()) -> tuple[str, bool]:
+    """The topics of a bag and what the replay will use; ``(text, usable)``."""
+    lines = [f'bag: {info.path} ({info.storage}, {info.n_messages} messages, '
+             f'{info.duration_s:.1f} s)']
+    width = max([len(t.name) for t in info.topics] + [5])
+    lines.append(f'  {"topic":<{width}}  {"type":<40} count')
+    for t in info.topics:
+        lines.append(f'  {t.name:<{width}}  {t.msgtype:<40} {t.count}')
+    try:
+        plan = plan_topics(info, config)
+    except GaError as exc:
+        lines.append(f'cannot replay: {exc}')
+        return '\n'.join(lines), False
+    lines.append('will use:')
+    lines.extend(f'  {n}' for n in plan_lines(plan))
+    return '\n'.join(lines), True
+
+
+def plan_lines(plan: TopicPlan) -> list[str]:
+    """One line per decision of a topic plan."""
+    return list(plan.notes)
+
+
+def result_text(r: ReplayResult) -> str:
+    """End-of-run summary: counts, throughput, errors against ground truth, output files."""
+    unit = 'stereo pairs' if r.source == 'stereo' else 'measurement messages'
+    lines = [f'replayed {r.bag}: {r.n_inputs} {unit} -> {r.n_measurements} measurements, '
+             f'{r.n_nodes} nodes, {r.n_tracks} tracks, {len(r.updates)} updates '
+             f'in {r.seconds:.2f} s ({r.rate:.0f} {unit.split()[-1]}/s)']
+    st = r.source_stats
+    if r.source == 'stereo' and st:
+        lines.append(f"VO: {st.get('pairs', 0)} pairs, {st.get('keyframes', 0)} keyframes, "
+                     f"{st.get('lost', 0)} lost, {st.get('unpaired', 0)} unpaired images; "
+                     f"cross-track: {st.get('cross_accepted', 0)} connections accepted of "
+                     f"{st.get('cross_attempts', 0)} verified candidates")
+    if r.rejected:
+        lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
+                     + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
+    if 'ga' in r.errors:
+        ga = r.errors['ga']
+        f2f = r.errors.get('f2f')
+        lines.append(f'error vs ground truth ({ga.n} nodes, position RMSE):')
+        if f2f is not None:
+            gain = 100.0 * (1.0 - ga.ate_raw / f2f.ate_raw) if f2f.ate_raw > 0 else float('nan')
+            lines.append(f'  F2F  {f2f.ate_raw:10.3f} m   (after rigid alignment '
+                         f'{f2f.ate_aligned:.3f} m)')
+            lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
+                         f'{ga.ate_aligned:.3f} m)   {gain:.1f} % lower than F2F')
+        else:
+            lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
+                         f'{ga.ate_aligned:.3f} m)')
+    else:
+        lines.append('no ground truth in the bag: no error figures')
+    lines.append('outputs:')
+    for k in sorted(r.files):
+        lines.append(f'  {k:<16} {r.files[k]}')
+    return '\n'.join(lines)

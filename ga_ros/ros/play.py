@@ -1,0 +1,323 @@
+"""Live replay of a rosbag2 bag into a running ROS 2 graph (``ga-ros play``), without ``ros2``.
+
+Publishes every message of a bag (mcap or sqlite3, read with :mod:`rosbags`) as the raw CDR it
+was recorded as (no deserialisation: ``Publisher.publish(bytes)``), plus ``/clock``
+(``rosgraph_msgs/Clock``) carrying the bag time, so nodes with ``use_sim_time:=true`` run on bag
+time. ``rate`` scales the bag's timing (2.0 = twice as fast); ``rate = 0`` publishes as fast as
+the subscribers keep up: the publishers are reliable with a deep queue and every ``ack_every``
+messages the player waits until all subscribers have acknowledged what was sent
+(``Publisher.wait_for_all_acked``). The player exits when the bag is done and every
+subscriber has acknowledged the last messages.
+
+Runnable as ``python -m ga_ros.ros.play BAG [--rate R]`` and as ``ga-ros play``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from ga_ros.errors import GaError, InputError
+from ga_ros.io.bag import BagReader
+
+
+def message_class(msgtype: str) -> type:
+    """The rclpy message class of a ROS 2 type name ``pkg/msg/Type``.
+
+    Raises
+    ------
+    InputError
+        If the name is malformed or the message package is not installed here.
+    """
+    parts = msgtype.split('/')
+    if len(parts) != 3 or not all(parts):
+        raise InputError(f'malformed message type name {msgtype!r} (expected pkg/msg/Type)')
+    pkg, kind, name = parts
+    try:
+        return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
+    except (ImportError, AttributeError):
+        raise InputError(f'unknown message type {msgtype!r}: its Python package {pkg!r} is not '
+                         'installed in this environment') from None
+
+
+@dataclass(frozen=True)
+class PlayConfig:
+    """Settings of a live replay.
+
+    Attributes
+    ----------
+    rate : playback speed factor (1.0 = real time); 0 = as fast as subscribers keep up.
+    topics : topics to publish (empty = all).
+    clock : publish ``/clock`` with the bag time.
+    clock_period_s : bag-time interval between ``/clock`` messages (s); one is also sent
+        before every message whose time moved past it.
+    delay_s : wall time to wait after creating the publishers (DDS discovery), s.
+    wait_for_subscribers_s : wait up to this long (s) until a topic of the bag has a
+        subscriber (0 = do not wait).
+    ack_every : with ``rate = 0``, wait for all subscribers' acknowledgements every this many
+        messages.
+    ack_timeout_s : longest wait for those acknowledgements (s).
+    depth : publisher queue depth.
+    """
+
+    rate: float = 1.0
+    topics: tuple[str, ...] = ()
+    clock: bool = True
+    clock_period_s: float = 0.01
+    delay_s: float = 1.0
+    wait_for_subscribers_s: float = 0.0
+    ack_every: int = 20
+    ack_timeout_s: float = 5.0
+    depth: int = 1000
+
+
+@dataclass
+class PlayStats:
+    """What a replay published: per-topic counts, ``/clock`` messages, wall time (s)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    clock_messages: int = 0
+    seconds: float = 0.0
+    bag_seconds: float = 0.0
+
+
+class BagPlayer:
+    """Publishes a bag's messages through a node (see the module docstring).
+
+    Parameters
+    ----------
+    node : the rclpy node that owns the publishers.
+    bag_path : rosbag2 directory or ``.mcap`` / ``.db3`` file.
+    config : see :class:`PlayConfig`.
+    """
+
+    def __init__(self, node: Node, bag_path: str | Path, config: PlayConfig = PlayConfig()
+                 ) -> None:
+        if config.rate < 0 or config.rate != config.rate:
+            raise InputError(f'rate must be >= 0, got {config.rate}')
+        self.node = node
+        self.config = config
+        self.bag = BagReader(bag_path)
+        self.bag.open()
+        assert self.bag.info is not None
+        info = self.bag.info
+        names = [t.name for t in info.topics]
+        missing = [t for t in config.topics if t not in names]
+        if missing:
+            self.bag.close()
+            raise InputError(f'topics not in the bag {info.path}: {", ".join(missing)}')
+        wanted = [t for t in info.topics if not config.topics or t.name in config.topics]
+        if not wanted:
+            self.bag.close()
+            raise InputError(f'nothing to play: the bag {info.path} has no messages')
+        try:
+            classes = {t.name: message_class(t.msgtype) for t in wanted}
+        except InputError as exc:
+            self.bag.close()
+            raise InputError(f'{exc} (topic filter --topics can skip it)') from None
+        qos = QoSProfile(depth=config.depth, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE,
+                         history=HistoryPolicy.KEEP_LAST)
+        self.publishers = {name: node.create_publisher(cls, name, qos)
+                           for name, cls in classes.items()}
+        self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
+        self.topics = tuple(classes)
+
+    def close(self) -> None:
+        """Close the bag (the publishers belong to the node)."""
+        self.bag.close()
+
+    def wait_for_subscribers(self, timeout_s: float, settle_s: float = 0.3) -> bool:
+        """Wait until some topic of the bag has a subscriber, then ``settle_s`` more so the
+        other subscriptions of the same nodes match too; False on timeout.
+
+        (Not every topic: a bag usually carries topics nobody listens to, e.g. ground truth.)
+        """
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if any(p.get_subscription_count() > 0 for p in self.publishers.values()):
+                time.sleep(settle_s)
+                return True
+            time.sleep(0.05)
+        return False
+
+    def _clock(self, stamp_ns: int, stats: PlayStats) -> None:
+        if self.clock_pub is None:
+            return
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        self.clock_pub.publish(msg)
+        stats.clock_messages += 1
+
+    def _wait_acked(self) -> None:
+        timeout = Duration(seconds=self.config.ack_timeout_s)
+        for p in self.publishers.values():
+            p.wait_for_all_acked(timeout)
+
+    def play(self) -> PlayStats:
+        """Publish the whole bag; returns what was published.
+
+        Raises
+        ------
+        FormatError
+            If the bag turns out truncated or corrupt (the messages before it were published).
+        """
+        c = self.config
+        stats = PlayStats(counts={t: 0 for t in self.topics})
+        if c.delay_s > 0:
+            time.sleep(c.delay_s)
+        if c.wait_for_subscribers_s > 0 and not self.wait_for_subscribers(
+                c.wait_for_subscribers_s):
+            self.node.get_logger().warn('no subscriber on any topic; playing anyway')
+        t0 = time.monotonic()
+        bag_t0: int | None = None
+        next_clock = -1
+        clock_step = max(int(c.clock_period_s * 1e9), 1)
+        since_ack = 0
+        last = 0
+        for m in self.bag.messages(self.topics, raw=True):
+            if bag_t0 is None:
+                bag_t0 = m.log_ns
+            if c.rate > 0:
+                due = t0 + (m.log_ns - bag_t0) * 1e-9 / c.rate
+                while True:
+                    now = time.monotonic()
+                    if now >= due:
+                        break
+                    # keep /clock ticking through long gaps
+                    if self.clock_pub is not None and next_clock >= 0:
+                        bag_now = bag_t0 + int((now - t0) * c.rate * 1e9)
+                        if bag_now >= next_clock:
+                            self._clock(bag_now, stats)
+                            next_clock = bag_now + clock_step
+                    time.sleep(min(due - now, 0.005))
+            if m.log_ns >= next_clock:
+                self._clock(m.log_ns, stats)
+                next_clock = m.log_ns + clock_step
+            self.publishers[m.topic].publish(m.data)
+            stats.counts[m.topic] += 1
+            last = m.log_ns
+            if c.rate == 0:
+                since_ack += 1
+                if since_ack >= c.ack_every:
+                    self._wait_acked()
+                    since_ack = 0
+        # reliable delivery of the tail before the process (and its DDS writers) goes away
+        self._wait_acked()
+        if bag_t0 is not None:
+            self._clock(last, stats)
+            stats.bag_seconds = (last - bag_t0) * 1e-9
+        stats.seconds = time.monotonic() - t0
+        return stats
+
+
+#: Fast DDS profile of the player's writers: a 5 ms heartbeat, so subscribers acknowledge within
+#: milliseconds (the default is 3 s) when acknowledgements pace the player or end it.
+FAST_HEARTBEAT_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <data_writer profile_name="ga_play_writer" is_default_profile="true">
+    <times><heartbeatPeriod><sec>0</sec><nanosec>5000000</nanosec></heartbeatPeriod></times>
+  </data_writer>
+</profiles>
+"""
+_PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
+def play_bag(bag_path: str | Path, config: PlayConfig = PlayConfig(),
+             ros_args: Sequence[str] | None = None, verbose: bool = True) -> PlayStats:
+    """Init rclpy, play ``bag_path`` with a node named ``ga_play``, shut down; returns stats.
+
+    With Fast DDS (the default RMW) and no user profile file, the player's own process gets
+    :data:`FAST_HEARTBEAT_PROFILE` (environment of this process only), so that waiting for
+    acknowledgements (``rate = 0``, and before exiting) costs milliseconds instead of Fast DDS's
+    3 s heartbeat.
+    """
+    profile = None
+    if (not any(os.environ.get(v) for v in _PROFILE_VARS)
+            and os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp') == 'rmw_fastrtps_cpp'):
+        fd, profile = tempfile.mkstemp(prefix='ga_play_', suffix='.xml')
+        with os.fdopen(fd, 'w') as f:
+            f.write(FAST_HEARTBEAT_PROFILE)
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = profile
+    try:
+        rclpy.init(args=list(ros_args) if ros_args else None)
+        node = Node('ga_play')
+    finally:
+        if profile is not None:
+            os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
+    player = None
+    try:
+        player = BagPlayer(node, bag_path, config)
+        if verbose:
+            print(f'playing {bag_path}: {", ".join(player.topics)} at '
+                  + (f'rate {config.rate:g}' if config.rate > 0 else 'full speed (acked)'),
+                  flush=True)
+        return player.play()
+    finally:
+        if player is not None:
+            player.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        if profile is not None:
+            os.unlink(profile)
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    """Arguments of ``ga-ros play`` (also ``python -m ga_ros.ros.play``)."""
+    p = parser or argparse.ArgumentParser(prog='ga-ros play', description=__doc__)
+    p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
+    p.add_argument('--rate', type=float, default=1.0,
+                   help='speed factor (1 = real time); 0 = as fast as subscribers keep up')
+    p.add_argument('--topics', nargs='+', default=[], help='only these topics')
+    p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
+    p.add_argument('--delay', type=float, default=1.0,
+                   help='seconds to wait for discovery before publishing (default 1)')
+    p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
+                   help='wait up to SEC seconds for a first subscriber')
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry of ``ga-ros play``: play the bag and print what was published."""
+    config = PlayConfig(rate=args.rate, topics=tuple(args.topics), clock=not args.no_clock,
+                        delay_s=args.delay, wait_for_subscribers_s=args.wait_for_subscribers)
+    stats = play_bag(args.bag, config)
+    total = sum(stats.counts.values())
+    print(f'published {total} messages ({stats.bag_seconds:.1f} s of bag time) in '
+          f'{stats.seconds:.2f} s, {stats.clock_messages} /clock messages')
+    for topic, n in sorted(stats.counts.items()):
+        print(f'  {topic:<40} {n}')
+    return 0
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """``python -m ga_ros.ros.play BAG [--rate R]``."""
+    argv = list(sys.argv[1:] if args is None else args)
+    if '--ros-args' in argv:
+        argv = argv[:argv.index('--ros-args')]
+    parsed = build_parser().parse_args(argv)
+    try:
+        return run(parsed)
+    except GaError as exc:
+        print(f'ga-ros play: error: {exc}', file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

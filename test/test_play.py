@@ -1,0 +1,167 @@
+"""``ga-ros play``: a bag published into a live ROS graph, received by a real subscriber."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ga_ros.replay.samples import aerial_sample, write_measurement_bag
+
+pytestmark = pytest.mark.ros
+
+DOMAIN = 40 + os.getpid() % 150
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, 'ROS_DOMAIN_ID': str(DOMAIN)}
+
+
+@pytest.fixture(scope='module')
+def sample() -> object:
+    return aerial_sample(n_tracks=2, positions_per_swath=10, seed=5)
+
+
+@pytest.fixture
+def ros():
+    """An rclpy context and node of our own (domain id of this test run)."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN)
+    node = Node('test_play_listener', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        yield node, ex
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def _play(bag: Path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play', str(bag), *args],
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _receive(ros, proc: subprocess.Popen, want: int, timeout: float = 40.0):
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    node, ex = ros
+    got, clock = [], []
+    qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(Odometry, '/ga/measurements', got.append, qos)
+    node.create_subscription(Clock, '/clock', clock.append, 100)
+    end = time.monotonic() + timeout
+    try:
+        while time.monotonic() < end and (len(got) < want or proc.poll() is None):
+            ex.spin_once(timeout_sec=0.05)
+        for _ in range(20):  # drain what is in flight
+            ex.spin_once(timeout_sec=0.01)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        out, err = proc.communicate(timeout=10)
+    return got, clock, out, err
+
+
+def test_play_as_fast_as_subscribers_keep_up(tmp_path: Path, sample: object, ros) -> None:
+    from ga_ros.ros.conversions import odometry_to_measurement
+
+    bag = write_measurement_bag(tmp_path / 'b', sample.measurements, sample.ground_truth)
+    proc = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20',
+                 '--topics', '/ga/measurements')
+    got, clock, out, err = _receive(ros, proc, len(sample.measurements))
+    assert proc.returncode == 0, err
+    assert f'published {len(sample.measurements)} messages' in out
+    assert len(got) == len(sample.measurements)
+    for msg, m in zip(got, sample.measurements):
+        d = odometry_to_measurement(msg)
+        assert (d.src_id, d.dst_id, d.kind, d.stamp_ns) == (m.src_id, m.dst_id, m.kind,
+                                                           m.stamp_ns)
+        np.testing.assert_allclose(d.z, m.z, atol=1e-12)
+    stamps = [c.clock.sec * 10**9 + c.clock.nanosec for c in clock]
+    assert stamps and stamps == sorted(stamps)
+    assert stamps[-1] == sample.measurements[-1].stamp_ns
+
+
+def test_play_at_a_rate_publishes_clock_in_bag_time(tmp_path: Path, sample: object, ros) -> None:
+    ms = sample.measurements[:30]
+    bag = write_measurement_bag(tmp_path / 'b', ms, None)
+    span_s = (ms[-1].stamp_ns - ms[0].stamp_ns) * 1e-9
+    proc = _play(bag, '--rate', str(span_s / 1.0), '--delay', '0', '--wait-for-subscribers',
+                 '20')
+    got, clock, out, err = _receive(ros, proc, len(ms))
+    assert proc.returncode == 0, err
+    assert len(got) == len(ms)
+    stamps = np.array([c.clock.sec * 10**9 + c.clock.nanosec for c in clock])
+    assert (np.diff(stamps) >= 0).all()
+    assert stamps[0] >= ms[0].stamp_ns and stamps[-1] == ms[-1].stamp_ns
+    assert len(stamps) > 5  # /clock keeps ticking between messages
+
+
+def test_play_rejects_bad_bags(tmp_path: Path) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    path = tmp_path / 'u'
+    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    w.open()
+    c = w.add_connection('/custom', 'my_pkg/msg/Thing', msgdef='int32 a',
+                         rihs01='RIHS01_' + '0' * 64)
+    w.write(c, 5, b'\x00\x01\x00\x00\x07\x00\x00\x00')
+    w.close()
+    for bag, expect in ((path, "unknown message type 'my_pkg/msg/Thing'"),
+                        (tmp_path / 'missing', 'bag not found')):
+        res = subprocess.run([sys.executable, '-m', 'ga_ros.ros.play', str(bag), '--delay', '0'],
+                             env=_env(), capture_output=True, text=True, timeout=60)
+        assert res.returncode == 1
+        assert expect in res.stderr
+
+
+def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> None:
+    """`ga-ros play` into a running alignment_node (sim time): the path the node publishes at
+    the first track end equals TrackWindowAligner fed the same measurements in-process."""
+    window = pytest.importorskip('ga_ros.core.window')
+    harness = pytest.importorskip('ga_ros.ros.harness')
+    from nav_msgs.msg import Path as PathMsg
+
+    from ga_ros.ros.qos import latched_qos
+
+    aligner = window.TrackWindowAligner(window.AlignerConfig())
+    for m in sample.measurements:
+        if aligner.add_measurement(m):
+            break
+    want = aligner.corrected_path()
+    bag = write_measurement_bag(tmp_path / 'b', sample.measurements, sample.ground_truth)
+    node, ex = ros
+    paths = []
+    node.create_subscription(PathMsg, '/ga/corrected_path', paths.append, latched_qos())
+    proc = harness.start_node_process(DOMAIN, {'use_sim_time': True, 'autosave': False},
+                                      log_path=tmp_path / 'node.log')
+    player = None
+    try:
+        player = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20')
+        end = time.monotonic() + 40
+        while time.monotonic() < end and not paths:
+            ex.spin_once(timeout_sec=0.1)
+        player.wait(timeout=30)
+        assert player.returncode == 0, player.stderr.read()
+    finally:
+        if player is not None and player.poll() is None:
+            player.kill()
+        harness.stop_process(proc)
+    assert paths, (tmp_path / 'node.log').read_text()[-2000:]
+    got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                    for p in paths[0].poses])
+    np.testing.assert_allclose(got, np.asarray(want.T_world_node)[:, :3, 3], atol=1e-6)
