@@ -165,3 +165,14 @@ def test_out_of_order_and_frozen_track_measurements_are_rejected():
         al.add_measurement(_m(1, 5, 0, 2, kind='cross'))
     assert al.stats.n_rejected == {'out_of_order': 1, 'frozen': 1}
     assert al.stats.n_updates == 2
+
+
+def test_covariances_in_one_call_equal_the_per_node_ones():
+    sc, nm, ms = _survey(n_tracks=4)
+    al, _ = _run(AlignerConfig(window_tracks=2), sc, ms)
+    ids = sc.node_ids
+    many = al.covariances(ids)
+    one = np.stack([al.covariance(int(i)) for i in ids])
+    np.testing.assert_allclose(many, one, rtol=1e-8, atol=1e-14)
+    with pytest.raises(InputError, match='unknown'):
+        al.covariances([10**6])

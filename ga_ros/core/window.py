@@ -526,6 +526,33 @@ class TrackWindowAligner:
             return self._last.covariance([self._ids[k]])[0]
         raise InputError(f'node {node_id} has not been adjusted yet (its track is still open)')
 
+    def covariances(self, node_ids) -> FloatArray:
+        """``(k, 6, 6)`` covariances of many nodes at once (see :meth:`covariance`).
+
+        Window nodes are computed together from the last adjustment (selected inversion rather
+        than one solve per node). Raises :class:`InputError` for an unknown node or one whose
+        track is still open.
+        """
+        ids = np.atleast_1d(np.asarray(node_ids, dtype=np.int64))
+        out = np.zeros((ids.size, 6, 6))
+        in_window = set(self._last_window.tolist())
+        from_window = []
+        for k, node in enumerate(ids.tolist()):
+            i = self._index.get(int(node))
+            if i is None:
+                raise InputError(f'unknown node {node}')
+            if self._frozen[i]:
+                out[k] = self._cov[i]
+            elif i in in_window:
+                if i != 0:
+                    from_window.append(k)
+            else:
+                raise InputError(f'node {node} has not been adjusted yet (its track is still '
+                                 'open)')
+        if from_window:
+            out[from_window] = self._last.covariance(ids[from_window])
+        return out
+
     @property
     def newest_node_id(self) -> int | None:
         return self._ids[-1] if self._ids else None
