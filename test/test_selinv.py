@@ -40,6 +40,24 @@ def test_wanted_subset_equals_dense_inverse(rng):
                                    rtol=1e-8, atol=1e-12)
 
 
+def test_principal_axis_ordering_gives_the_same_blocks(rng):
+    """A strip of nodes (a 3 x 30 grid): ordered along its long axis."""
+    d, rows, cols = 3, 3, 30
+    u = rows * cols
+    xy = np.array([(c, r, 0.0) for r in range(rows) for c in range(cols)])
+    N = np.eye(u * d)
+    for i in range(u):
+        for j in range(i + 1, u):
+            if np.abs(xy[i] - xy[j]).max() <= 1:
+                J = rng.normal(size=(d, 2 * d))
+                idx = np.r_[i * d:(i + 1) * d, j * d:(j + 1) * d]
+                N[np.ix_(idx, idx)] += J.T @ J
+    inv = np.linalg.inv(N)
+    blocks = banded_marginal_blocks(sp.csr_matrix(N), d, coords=xy)
+    ref = np.stack([inv[i * d:(i + 1) * d, i * d:(i + 1) * d] for i in range(u)])
+    np.testing.assert_allclose(blocks, ref, rtol=1e-8, atol=1e-12)
+
+
 def test_gives_up_when_band_too_wide(rng):
     N = _random_graph_spd(rng, 30, 6, 200)
     assert banded_marginal_blocks(sp.csr_matrix(N), 6, max_band=12) is None

@@ -19,14 +19,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, dijkstra, reverse_cuthill_mckee
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import DegenerateGeometryError
 
 
 def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
-                           wanted: np.ndarray | None = None) -> FloatArray | None:
+                           wanted: np.ndarray | None = None,
+                           coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
     Parameters
@@ -35,10 +36,11 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     d : block size (parameters per node).
     max_band : give up (return ``None``) if the reordered half-bandwidth exceeds this many
         scalars; the caller then uses sparse solves.
-    wanted : optional (k,) node blocks that are needed. The nodes are then ordered breadth first
-        from the node farthest from them, so that they come last, and the backward recursion
-        stops once it has passed them (blocks of other nodes are left as NaN). Default: all
-        nodes, in reverse Cuthill-McKee order.
+    wanted : optional (k,) node blocks that are needed; the backward recursion stops once it
+        has passed them (blocks of other nodes are left as NaN). Default: all nodes.
+    coords : optional (u, 3) node positions. Besides reverse Cuthill-McKee, the ordering along
+        their principal axis is tried (for a survey strip it gives a narrower band); the
+        ordering with the smaller band is used.
 
     Returns
     -------
@@ -49,19 +51,25 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     u = n // d
     coo = N.tocoo()
     G = sp.coo_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(u, u)).tocsr()
-    if wanted is None or len(wanted) == 0 or len(wanted) == u:
-        order = reverse_cuthill_mckee(G, symmetric_mode=True)
-        first_needed = 0
-    else:
-        wanted = np.asarray(wanted, dtype=np.int64)
-        dist = dijkstra(G, unweighted=True, indices=wanted, min_only=True)
-        start = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
-        order = breadth_first_order(G, start, directed=False, return_predecessors=False)
-        if order.size < u:  # disconnected parts: append them (their blocks stay decoupled)
-            order = np.concatenate([order, np.setdiff1d(np.arange(u), order)])
+    rows_n, cols_n = coo.row // d, coo.col // d
+    candidates = [reverse_cuthill_mckee(G, symmetric_mode=True)]
+    if coords is not None and len(coords) == u and u > 2:
+        xyz = np.asarray(coords, dtype=float) - np.mean(coords, axis=0)
+        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
+        candidates.append(np.argsort(xyz @ axis, kind='stable'))
+
+    def node_band(order: np.ndarray) -> int:
         pos = np.empty(u, dtype=np.int64)
         pos[order] = np.arange(u)
-        first_needed = int(pos[wanted].min())
+        return int(np.abs(pos[rows_n] - pos[cols_n]).max()) if coo.nnz else 0
+
+    order = min(candidates, key=node_band)
+    if wanted is None or len(wanted) == 0:
+        first_needed = 0
+    else:
+        pos = np.empty(u, dtype=np.int64)
+        pos[order] = np.arange(u)
+        first_needed = int(pos[np.asarray(wanted, dtype=np.int64)].min())
     perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
     inv = np.empty(n, dtype=np.int64)
     inv[perm] = np.arange(n)

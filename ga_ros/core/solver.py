@@ -191,6 +191,7 @@ class _NormalSystem:
         self.data = data
         self._chol = chol
         self._factored = False
+        self.coords: FloatArray | None = None  # (u, 3) positions of the free nodes, for ordering
         self._index = {int(i): k for k, i in enumerate(node_ids)}
 
     def index_of(self, ids: IntArray) -> IntArray:
@@ -228,7 +229,8 @@ class _NormalSystem:
         d = self.d
         if ids.size > _MANY_NODES:
             cols = self.col[self.index_of(ids)]
-            blocks = banded_marginal_blocks(self.full(), d, wanted=cols[cols >= 0])
+            blocks = banded_marginal_blocks(self.full(), d, wanted=cols[cols >= 0],
+                                            coords=self.coords)
             if blocks is not None:
                 out = np.zeros((ids.size, d, d))
                 out[cols >= 0] = blocks[cols[cols >= 0]]
@@ -380,6 +382,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     redundancy = r_eq - n_free * d
     sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
     system = _NormalSystem(node_ids, free, col, d, pattern, data, chol)
+    system.coords = T[free, :3, 3]
     return SolveResult(
         node_ids=node_ids, T_world_node=T, converged=converged, iterations=it, reason=reason,
         cost=float(cost), cost_history=history, sigma0_sq=float(sigma0_sq),
