@@ -1,0 +1,40 @@
+"""The ga-ros entry point: subcommand discovery, aliases, error mapping."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from ga_ros.cli.main import build_parser, main
+
+
+def test_every_documented_subcommand_is_registered():
+    sub = next(a for a in build_parser()._actions if a.dest == 'command')
+    for name in ('bench', 'solve', 'replay', 'play', 'demo', 'reproduce', 'simulate',
+                 'make-bags', 'bench-vo', 'bench-g2o', 'bench-node', 'bench-replay'):
+        assert name in sub.choices, name
+
+
+def test_bench_window_receives_its_arguments(capsys):
+    assert main(['bench', 'window', '--tracks', '2', '--window', '1', '--no-batch',
+                 '--json']) == 0
+    fig = json.loads(capsys.readouterr().out)
+    assert fig['tracks'] == 2 and fig['window_tracks'] == 1
+    assert fig['nodes'] == 2 * 204
+    assert fig['gap_rigid_pct'] == 0.0  # no batch: the window is compared with itself
+
+
+def test_bench_alias_forwards_to_the_benchmark_command(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(['bench', 'vo', '--help'])
+    assert exc.value.code == 0
+    assert 'usage: ga-ros bench-vo' in capsys.readouterr().out
+
+
+def test_input_errors_become_exit_code_1(tmp_path, capsys):
+    bad = tmp_path / 'bad.g2o'
+    bad.write_text('VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 7 1 0 0 0 0 0 1\n')
+    assert main(['solve', str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert 'bad.g2o:2' in err and err.count('\n') == 1
