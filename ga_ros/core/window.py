@@ -191,6 +191,7 @@ class TrackWindowAligner:
         self._cov = np.zeros((0, 6, 6))
         self._frozen = np.zeros(0, dtype=bool)
         self._idarr = _Rows((), np.int64)
+        self._trackarr = _Rows((), np.int64)
         # connections (by node index); status 0 active, 1 absorbed into a prior, 2 outlier
         self._src = _Rows((), np.int64)
         self._dst = _Rows((), np.int64)
@@ -317,6 +318,7 @@ class TrackWindowAligner:
         k = len(self._ids)
         self._ids.append(node_id)
         self._idarr.append(node_id)
+        self._trackarr.append(track)
         self._index[node_id] = k
         self._track.append(track)
         self._stamp.append(stamp_ns)
@@ -402,7 +404,7 @@ class TrackWindowAligner:
         local = np.full(len(self._ids), -1, dtype=np.int64)
         local[nodes] = np.arange(nodes.size)
         return ConnectionNetwork.from_arrays(
-            self._idarr.a[nodes], np.asarray(self._track, dtype=np.int64)[nodes],
+            self._idarr.a[nodes], self._trackarr.a[nodes],
             local[self._src.a[conns]], local[self._dst.a[conns]], self._z.a[conns],
             self._ccov.a[conns])
 
