@@ -754,8 +754,9 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
 
 def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se3',
                      fixed: Sequence[int] = (),
-                     priors: Sequence[GaussianPrior] = ()) -> tuple[sp.csc_matrix, IntArray]:
-    """Normal matrix ``N = A' M^-1 A`` (+ prior terms) linearised at ``T`` (with ``v = 0``).
+                     priors: Sequence[GaussianPrior] = ()
+                     ) -> tuple[sp.csc_matrix, IntArray, FloatArray]:
+    """Normal matrix ``N = A' M^-1 A`` and ``u = A' M^-1 w`` (+ prior terms) linearised at ``T``.
 
     Unlike :func:`solve`, no datum is required and nothing is factored, so ``N`` may be
     singular; it is what marginalisation (Schur complements) works on.
@@ -764,6 +765,7 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     -------
     N : (d u, d u) symmetric CSC over the free nodes.
     free_ids : (u,) ids of the free nodes, in the order of ``N``'s blocks.
+    u : (d u,) half the gradient of the cost at ``T`` (the Gauss-Newton step is ``-N^-1 u``).
     """
     d = models.dof(model)
     n = network.n_nodes
@@ -785,4 +787,4 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
                           _consistent_residuals(model, T, conn, np.zeros_like(conn.z)),
                           prior_data, SolverConfig(model=model), col, d,
                           _inv_spd(conn.cov) if model == 'se3' else None)
-    return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free]
+    return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free], sysd.u

@@ -483,7 +483,7 @@ class TrackWindowAligner:
         priors = [GaussianPrior(ids[self._priors[p][0]], self._priors[p][1], self._priors[p][2])
                   for p in touching]
         fixed = [self._ids[0]] if in_L[0] or 0 in set(S.tolist()) else []
-        N, free_ids = normal_matrix_at(net, self._T[allnodes], 'se3', fixed, priors)
+        N, free_ids, u = normal_matrix_at(net, self._T[allnodes], 'se3', fixed, priors)
         free_idx = net.indices_of(free_ids)
         is_L = free_idx < L.size
         colsL = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in np.nonzero(is_L)[0]])
@@ -497,9 +497,17 @@ class TrackWindowAligner:
         NLL = N[colsL][:, colsL].toarray()
         NLS = N[colsL][:, colsS].toarray()
         NSS = N[colsS][:, colsS].toarray()
-        H = NSS - NLS.T @ sla.cho_solve(sla.cho_factor(NLL), NLS)
+        cho = sla.cho_factor(NLL)
+        H = NSS - NLS.T @ sla.cho_solve(cho, NLS)
+        H = 0.5 * (H + H.T)
+        # The L terms alone are not at their optimum (the window's estimate is), so their
+        # marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in the
+        # tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
+        g = u[colsS] - NLS.T @ sla.cho_solve(cho, u[colsL])
+        shift = -np.linalg.lstsq(H, g, rcond=None)[0]
         S_nodes = allnodes[free_idx[~is_L]]
-        self._priors.append((S_nodes, self._T[S_nodes].copy(), 0.5 * (H + H.T)))
+        mean = self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6))
+        self._priors.append((S_nodes, mean, H))
 
     # ------------------------------------------------------------------------ output
     def corrected_path(self) -> CorrectedPath:
