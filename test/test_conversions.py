@@ -9,6 +9,7 @@ import pytest
 
 pytest.importorskip('rclpy')
 
+from ga_ros.core import encoding
 from ga_ros.core.measurement import Measurement  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
@@ -169,5 +170,5 @@ def test_quaternion_to_rotvec_matches_se3(rng, angle):
         axis /= np.linalg.norm(axis)
         T = se3.from_translation_rotvec(rng.normal(size=3), angle * axis)
         p, q = se3.to_pos_quat(T)
-        w = conv._quat_to_rotvec(*(sign * q))
+        w = encoding.quat_to_rotvec(*(sign * q))
         np.testing.assert_allclose(se3.from_translation_rotvec(p, np.array(w)), T, atol=1e-12)

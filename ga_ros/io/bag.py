@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import encoding
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, InputError
@@ -43,8 +44,7 @@ CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 
 #: ``twist.twist.linear.x`` values of the two measurement kinds.
-KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
-_QUAT_NORM_TOL = 1e-3
+KIND_FLAG = encoding.KIND_FLAG
 
 
 @functools.lru_cache(maxsize=1)
@@ -58,7 +58,7 @@ def typestore() -> Any:
 # --------------------------------------------------------------------------- stamps
 def stamp_to_ns(stamp: Any) -> int:
     """``builtin_interfaces/Time`` (rosbags object) -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return encoding.stamp_to_ns(stamp)
 
 
 def ns_to_stamp(stamp_ns: int) -> Any:
@@ -506,28 +506,10 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
 
 
 # --------------------------------------------------------------------------- poses
-def _quat_xyzw_to_matrix(q: FloatArray) -> FloatArray:
-    """Rotation matrix of a unit quaternion ``x y z w`` (Hamilton; no scipy call per message)."""
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def pose_msg_to_matrix(pose: Any) -> FloatArray:
-    """``geometry_msgs/Pose`` (rosbags) -> 4x4; InputError on NaN or a non-unit quaternion."""
-    p = (pose.position.x, pose.position.y, pose.position.z)
-    o = pose.orientation
-    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
-    if not (np.isfinite(p).all() and np.isfinite(q).all()):
-        raise InputError('pose has NaN or inf entries')
-    norm = float(np.sqrt(q @ q))
-    if abs(norm - 1.0) > _QUAT_NORM_TOL:
-        raise InputError(f'quaternion is not unit length (norm {norm:.6g})')
-    T = np.eye(4)
-    T[:3, :3] = _quat_xyzw_to_matrix(q / norm)
-    T[:3, 3] = p
-    return T
+    """``geometry_msgs/Pose`` (rosbags) -> 4x4; InputError on NaN or a non-unit quaternion
+    (:func:`ga_ros.core.encoding.pose_to_matrix`)."""
+    return encoding.pose_to_matrix(pose)
 
 
 def matrix_to_pose_msg(T: FloatArray) -> Any:
@@ -544,54 +526,16 @@ def _pose_msg(p: list[float], q: list[float]) -> Any:
 
 
 def covariance_from_msg(values: Any) -> FloatArray:
-    """36 row-major values -> 6x6 covariance; InputError unless finite, symmetric and PD.
-
-    Same rules as :func:`ga_ros.ros.conversions.msg_to_covariance`.
-    """
-    cov = np.asarray(values, dtype=float).reshape(6, 6)
-    if not np.isfinite(cov).all():
-        raise InputError('covariance has NaN or inf entries')
-    scale = max(float(np.abs(cov).max()), 1e-300)
-    if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
-        raise InputError('covariance is not symmetric')
-    cov = 0.5 * (cov + cov.T)
-    try:
-        np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        raise InputError('covariance is not positive definite') from None
-    if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
-        raise InputError('covariance is not positive definite (numerically singular)')
-    return cov
+    """36 row-major values -> 6x6 covariance; InputError unless finite, symmetric and PD
+    (:func:`ga_ros.core.encoding.covariance_from_values`, as the nodes)."""
+    return encoding.covariance_from_values(values)
 
 
 # --------------------------------------------------------------------------- measurements
 def odometry_to_measurement(msg: Any) -> Measurement:
-    """Decode a rosbags ``nav_msgs/Odometry`` in the measurement encoding.
-
-    The rules are those of :func:`ga_ros.ros.conversions.odometry_to_measurement` (frame ids
-    ``'ga/<track>/<node>'`` parsed by :func:`ga_ros.core.frames.parse_node_frame`).
-
-    Raises
-    ------
-    InputError
-        On malformed frame ids, a self-loop, NaN/inf, a non-unit quaternion, a covariance that is
-        not symmetric positive definite, or a kind flag other than 0 or 1.
-    """
-    src_track, src_id = parse_node_frame(msg.header.frame_id)
-    dst_track, dst_id = parse_node_frame(msg.child_frame_id)
-    if src_id == dst_id:
-        raise InputError(f'self-loop: measurement from node {src_id} to itself')
-    flag = float(msg.twist.twist.linear.x)
-    if flag == 1.0:
-        kind = 'cross'
-    elif flag == 0.0:
-        kind = 'consecutive'
-    else:
-        raise InputError(f'twist.linear.x must be 0 (consecutive) or 1 (cross), got {flag!r}')
-    T_src_dst = pose_msg_to_matrix(msg.pose.pose)
-    cov = covariance_from_msg(msg.pose.covariance)
-    return Measurement(src_id, dst_id, src_track, dst_track, se3.to_translation_rotvec(T_src_dst),
-                       cov, stamp_to_ns(msg.header.stamp), kind)
+    """Decode a rosbags ``nav_msgs/Odometry`` in the measurement encoding, with exactly the
+    rules of the alignment node (:func:`ga_ros.core.encoding.decode_measurement`)."""
+    return encoding.decode_measurement(msg)
 
 
 def measurement_to_odometry(m: Measurement) -> Any:

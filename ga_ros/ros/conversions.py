@@ -20,7 +20,6 @@ Every function here is a pure conversion: it validates at the boundary (raising
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -32,7 +31,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core import frames
+from ga_ros.core import encoding, frames
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
@@ -40,14 +39,13 @@ from ga_ros.geometry import se3
 #: Largest accepted node or track id (ids above it are "absurd" and rejected).
 MAX_ID = frames.MAX_ID
 #: ``twist.twist.linear.x`` values of the two measurement kinds.
-KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
-_QUAT_NORM_TOL = 1e-3
+KIND_FLAG = encoding.KIND_FLAG
 
 
 # --------------------------------------------------------------------------- stamps, frames
 def stamp_to_ns(stamp: Time) -> int:
     """``builtin_interfaces/Time`` -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return encoding.stamp_to_ns(stamp)
 
 
 def ns_to_stamp(stamp_ns: int) -> Time:
@@ -87,28 +85,7 @@ def pose_to_msg(T: FloatArray) -> Pose:
 
 def msg_to_pose(msg: Pose) -> FloatArray:
     """``geometry_msgs/Pose`` -> 4x4 pose; InputError on NaN or a non-unit quaternion."""
-    p = np.array([msg.position.x, msg.position.y, msg.position.z])
-    q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
-    if not (np.isfinite(p).all() and np.isfinite(q).all()):
-        raise InputError('pose has NaN or inf entries')
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > _QUAT_NORM_TOL:
-        raise InputError(f'quaternion is not unit length (norm {norm:.6g})')
-    return se3.from_pos_quat(p, q / norm)
-
-
-def _quat_to_rotvec(x: float, y: float, z: float, w: float) -> list[float]:
-    """Unit quaternion ``x y z w`` -> rotation vector (rad), angle in [0, pi]; scalar code, as
-    this runs once per received message."""
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-8:
-        # angle = 2 atan2(s, w) ~ 2 s / w: rotvec ~ 2 v / w (error O(s^3))
-        k = 2.0 / w
-    else:
-        k = 2.0 * math.atan2(s, w) / s
-    return [k * x, k * y, k * z]
+    return encoding.pose_to_matrix(msg)
 
 
 def covariance_to_msg(cov: FloatArray) -> FloatArray:
@@ -121,23 +98,10 @@ def covariance_to_msg(cov: FloatArray) -> FloatArray:
 
 def msg_to_covariance(values: Sequence[float], check: bool = True) -> FloatArray:
     """36 row-major values -> 6x6 covariance; with ``check``, InputError unless finite, symmetric
-    and positive definite."""
-    cov = np.asarray(values, dtype=float).reshape(6, 6)
+    and positive definite (:func:`ga_ros.core.encoding.covariance_from_values`)."""
     if check:
-        if not np.isfinite(cov).all():
-            raise InputError('covariance has NaN or inf entries')
-        scale = max(float(np.abs(cov).max()), 1e-300)
-        if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
-            raise InputError('covariance is not symmetric')
-        cov = 0.5 * (cov + cov.T)
-        try:
-            np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
-            raise InputError('covariance is not positive definite') from None
-        # same rule as ga_ros.io.bag.covariance_from_msg and ConnectionNetwork
-        if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
-            raise InputError('covariance is not positive definite (numerically singular)')
-    return cov
+        return encoding.covariance_from_values(values)
+    return np.asarray(values, dtype=float).reshape(6, 6)
 
 
 # --------------------------------------------------------------------------- measurements
@@ -155,55 +119,10 @@ def measurement_to_odometry(m: Measurement) -> Odometry:
     return msg
 
 
-def _rejected(reason: str, text: str) -> InputError:
-    """An :class:`InputError` with a short ``reason`` key (counted by the node's diagnostics;
-    the same keys as :class:`ga_ros.core.window.TrackWindowAligner`)."""
-    err = InputError(text)
-    err.reason = reason
-    return err
-
-
 def odometry_to_measurement(msg: Odometry) -> Measurement:
-    """Decode ``nav_msgs/Odometry`` into a :class:`Measurement`.
-
-    Raises
-    ------
-    InputError
-        On malformed frame ids, a self-loop, NaN/inf in the pose, a non-unit quaternion, a
-        covariance that is not symmetric positive definite, or a kind flag other than 0 or 1.
-        Its ``reason`` attribute is one of ``'bad_id'``, ``'self_loop'``, ``'bad_kind'``,
-        ``'non_finite'``, ``'bad_quaternion'``, ``'bad_covariance'``.
-    """
-    try:
-        src_track, src_id = parse_node_frame_id(msg.header.frame_id)
-        dst_track, dst_id = parse_node_frame_id(msg.child_frame_id)
-    except InputError as exc:
-        raise _rejected('bad_id', str(exc)) from None
-    if src_id == dst_id:
-        raise _rejected('self_loop', f'self-loop: measurement from node {src_id} to itself')
-    flag = float(msg.twist.twist.linear.x)
-    if flag == 1.0:
-        kind = 'cross'
-    elif flag == 0.0:
-        kind = 'consecutive'
-    else:
-        raise _rejected('bad_kind', 'twist.linear.x must be 0 (consecutive) or 1 (cross), '
-                        f'got {flag!r}')
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    z = [p.x, p.y, p.z]
-    quat = [q.x, q.y, q.z, q.w]
-    if not all(math.isfinite(v) for v in z + quat):
-        raise _rejected('non_finite', 'pose has NaN or inf entries')
-    norm = math.sqrt(sum(v * v for v in quat))
-    if abs(norm - 1.0) > _QUAT_NORM_TOL:
-        raise _rejected('bad_quaternion', f'quaternion is not unit length (norm {norm:.6g})')
-    z += _quat_to_rotvec(*(v / norm for v in quat))
-    try:
-        cov = msg_to_covariance(msg.pose.covariance)
-    except InputError as exc:
-        raise _rejected('bad_covariance', str(exc)) from None
-    return Measurement(src_id, dst_id, src_track, dst_track, np.array(z), cov,
-                       stamp_to_ns(msg.header.stamp), kind)
+    """Decode ``nav_msgs/Odometry`` into a :class:`Measurement`
+    (:func:`ga_ros.core.encoding.decode_measurement`, shared with the bag reader)."""
+    return encoding.decode_measurement(msg)
 
 
 # --------------------------------------------------------------------------- outputs

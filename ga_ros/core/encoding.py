@@ -1,0 +1,124 @@
+"""Decoding the ROS measurement encoding, for any message object with the ROS field names.
+
+The encoding (README, "The measurement encoding") is a ``nav_msgs/Odometry`` per connection.
+rclpy messages (the nodes, :mod:`ga_ros.ros.conversions`) and rosbags messages (the ROS-free
+replay, :mod:`ga_ros.io.bag`) have the same field names, so both decode here and cannot drift
+apart. Nothing here imports ROS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray
+from ga_ros.core.frames import parse_node_frame
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+
+#: ``twist.twist.linear.x`` values of the two measurement kinds.
+KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
+#: Largest accepted deviation of a quaternion's norm from 1 (it is then normalised).
+QUAT_NORM_TOL = 1e-3
+
+
+def rejected(reason: str, text: str) -> InputError:
+    """An :class:`InputError` with a short ``reason`` key (the keys counted by the node's
+    diagnostics and by :class:`ga_ros.core.window.TrackWindowAligner`)."""
+    err = InputError(text)
+    err.reason = reason
+    return err
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time`` (fields ``sec``, ``nanosec``) -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def covariance_from_values(values: Sequence[float]) -> FloatArray:
+    """36 row-major values -> 6x6 covariance; InputError unless finite, symmetric (to 1e-6
+    relative) and positive definite (smallest eigenvalue above 1e-12 of the largest entry, the
+    rule of :func:`ga_ros.core.network.check_covariances`)."""
+    cov = np.asarray(values, dtype=float).reshape(6, 6)
+    if not np.isfinite(cov).all():
+        raise InputError('covariance has NaN or inf entries')
+    scale = max(float(np.abs(cov).max()), 1e-300)
+    if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
+        raise InputError('covariance is not symmetric')
+    cov = 0.5 * (cov + cov.T)
+    if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
+        raise InputError('covariance is not positive definite')
+    return cov
+
+
+def pose_to_matrix(pose: Any) -> FloatArray:
+    """``geometry_msgs/Pose`` -> 4x4; InputError on NaN/inf or a non-unit quaternion."""
+    p = np.array([pose.position.x, pose.position.y, pose.position.z], dtype=float)
+    o = pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise InputError('pose has NaN or inf entries')
+    norm = float(np.sqrt(q @ q))
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise InputError(f'quaternion is not unit length (norm {norm:.6g})')
+    return se3.from_pos_quat(p, q / norm)
+
+
+def quat_to_rotvec(x: float, y: float, z: float, w: float) -> list[float]:
+    """Unit quaternion ``x y z w`` -> rotation vector (rad), angle in [0, pi]; scalar code, as
+    this runs once per received message."""
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-8:
+        k = 2.0 / w  # angle = 2 atan2(s, w) ~ 2 s / w: rotvec ~ 2 v / w (error O(s^3))
+    else:
+        k = 2.0 * math.atan2(s, w) / s
+    return [k * x, k * y, k * z]
+
+
+def decode_measurement(msg: Any) -> Measurement:
+    """Decode a ``nav_msgs/Odometry`` of the measurement encoding into a :class:`Measurement`.
+
+    Raises
+    ------
+    InputError
+        On malformed frame ids, a self-loop, NaN/inf in the pose, a non-unit quaternion, a
+        covariance that is not symmetric positive definite, or a kind flag other than 0 or 1.
+        Its ``reason`` attribute is one of ``'bad_id'``, ``'self_loop'``, ``'bad_kind'``,
+        ``'non_finite'``, ``'bad_quaternion'``, ``'bad_covariance'``.
+    """
+    try:
+        src_track, src_id = parse_node_frame(msg.header.frame_id)
+        dst_track, dst_id = parse_node_frame(msg.child_frame_id)
+    except InputError as exc:
+        raise rejected('bad_id', str(exc)) from None
+    if src_id == dst_id:
+        raise rejected('self_loop', f'self-loop: measurement from node {src_id} to itself')
+    flag = float(msg.twist.twist.linear.x)
+    if flag == 1.0:
+        kind = 'cross'
+    elif flag == 0.0:
+        kind = 'consecutive'
+    else:
+        raise rejected('bad_kind', 'twist.linear.x must be 0 (consecutive) or 1 (cross), '
+                       f'got {flag!r}')
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    z = [float(p.x), float(p.y), float(p.z)]
+    quat = [float(q.x), float(q.y), float(q.z), float(q.w)]
+    if not all(math.isfinite(v) for v in z + quat):
+        raise rejected('non_finite', 'pose has NaN or inf entries')
+    norm = math.sqrt(sum(v * v for v in quat))
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        raise rejected('bad_quaternion', f'quaternion is not unit length (norm {norm:.6g})')
+    z += quat_to_rotvec(*(v / norm for v in quat))
+    try:
+        cov = covariance_from_values(msg.pose.covariance)
+    except InputError as exc:
+        raise rejected('bad_covariance', str(exc)) from None
+    return Measurement(src_id, dst_id, src_track, dst_track, np.array(z), cov,
+                       stamp_to_ns(msg.header.stamp), kind)
