@@ -16,21 +16,8 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.window import UpdateResult
 from ga_ros.errors import InputError, SolverError
-
-
-@dataclass
-class BatchUpdate:
-    """Summary of one batch solve (field names as the track-window aligner's UpdateResult)."""
-
-    track_id: int
-    iterations: int
-    converged: bool
-    sigma0_sq: float
-    update_ms: float
-    n_window_nodes: int
-    n_window_connections: int
-    reason: str
 
 
 @dataclass
@@ -66,7 +53,7 @@ class BatchAligner:
         self._result = None
         self._cov: dict[int, FloatArray] | None = None
 
-    def add_measurement(self, m: Measurement) -> list[BatchUpdate]:
+    def add_measurement(self, m: Measurement) -> list[UpdateResult]:
         """Add one connection; a new ``dst_track`` first ends (solves) the current track.
 
         Raises InputError (nothing changed) for a duplicate, or a source node never seen.
@@ -95,7 +82,7 @@ class BatchAligner:
         self.pairs.add((m.src_id, m.dst_id))
         return out
 
-    def _solve(self) -> BatchUpdate | None:
+    def _solve(self) -> UpdateResult | None:
         from ga_ros.core.solver import SolverConfig, solve
 
         if self.first is None:
@@ -110,16 +97,17 @@ class BatchAligner:
             self.T[int(i)] = res.T_world_node[k]
         self._result = res
         self._cov = None
-        return BatchUpdate(int(self.track if self.track is not None else -1), res.iterations,
-                           res.converged, float(res.sigma0_sq),
-                           1e3 * (time.perf_counter() - t0), len(ids),
-                           self.network.n_connections, res.reason)
+        return UpdateResult(int(self.track if self.track is not None else -1), res.iterations,
+                            res.converged, float(res.sigma0_sq),
+                            1e3 * (time.perf_counter() - t0), len(ids),
+                            self.network.n_connections, len(set(self.tracks.values())), 0,
+                            res.reason, 0, res.n_unknowns)
 
-    def finish_track(self) -> BatchUpdate | None:
+    def finish_track(self) -> UpdateResult | None:
         """Solve the whole survey so far."""
         return self._solve()
 
-    def refine_batch(self) -> BatchUpdate | None:
+    def refine_batch(self) -> UpdateResult | None:
         """Same as :meth:`finish_track` (every update is already a full batch)."""
         return self._solve()
 

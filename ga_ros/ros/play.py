@@ -278,17 +278,10 @@ def play_bag(bag_path: str | Path, config: PlayConfig = PlayConfig(),
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     """Arguments of ``ga-ros play`` (also ``python -m ga_ros.ros.play``)."""
-    p = parser or argparse.ArgumentParser(prog='ga-ros play', description=__doc__)
-    p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
-    p.add_argument('--rate', type=float, default=1.0,
-                   help='speed factor (1 = real time); 0 = as fast as subscribers keep up')
-    p.add_argument('--topics', nargs='+', default=[], help='only these topics')
-    p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
-    p.add_argument('--delay', type=float, default=1.0,
-                   help='seconds to wait for discovery before publishing (default 1)')
-    p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
-                   help='wait up to SEC seconds for a first subscriber')
-    return p
+    from ga_ros.cli.commands.play import add_arguments
+
+    return add_arguments(parser or argparse.ArgumentParser(prog='ga-ros play',
+                                                           description=__doc__))
 
 
 def run(args: argparse.Namespace) -> int:

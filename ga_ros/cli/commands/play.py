@@ -16,6 +16,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description='Publish every message of a rosbag2 bag (mcap or sqlite3) with /clock at a '
                     'chosen rate, or as fast as the subscribers keep up (--rate 0); exits when '
                     'the bag is done. Nodes should run with use_sim_time:=true.')
+    add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Arguments of ``ga-ros play`` (shared with ``python -m ga_ros.ros.play``)."""
     p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
     p.add_argument('--rate', type=float, default=1.0,
                    help='speed factor (1 = real time); 0 = as fast as subscribers keep up')
@@ -25,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help='seconds to wait for discovery before publishing (default 1)')
     p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
                    help='wait up to SEC seconds for a first subscriber')
-    p.set_defaults(func=run)
+    return p
 
 
 def run(args: argparse.Namespace) -> int:
