@@ -164,3 +164,13 @@ def test_simulate_command_writes_readable_files(tmp_path, capsys):
         assert 0.8 < np.std(xi / sig) < 1.2
     assert main(['simulate', 'aerial', '--noise', '-3', '--out', str(tmp_path / 'x')]) == 1
     assert 'noise percent' in capsys.readouterr().err
+
+
+def test_simulate_aerial_subset(tmp_path):
+    out = tmp_path / 'aerial'
+    assert main(['simulate', 'aerial', '--tracks', '2', '--seed', '1', '--out', str(out)]) == 0
+    meta = json.loads((out / 'scenario.json').read_text())
+    sc = aerial_scenario(n_tracks=2)
+    assert (meta['nodes'], meta['connections'], meta['tracks']) == (408, sc.n_connections, 2)
+    tracks = np.loadtxt(out / 'tracks.csv', delimiter=',', skiprows=1, dtype=int)
+    np.testing.assert_array_equal(np.bincount(tracks[:, 1]), [204, 204])
