@@ -35,6 +35,7 @@ from ga_ros.core import encoding, frames
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
+from ga_ros.io.bag_writer import residual_color  # one palette for the node and the replay
 
 #: Largest accepted node or track id (ids above it are "absurd" and rejected).
 MAX_ID = frames.MAX_ID
@@ -190,20 +191,6 @@ def odometry_msg(T_world_node: FloatArray, cov: FloatArray, frame_id: str, child
     msg.pose.pose = pose_to_msg(T_world_node)
     msg.pose.covariance = covariance_to_msg(cov)
     return msg
-
-
-def residual_color(normalized_residual: FloatArray, scale: float = 3.0) -> FloatArray:
-    """Map Mahalanobis residual norms ``(m,)`` to RGBA ``(m, 4)``: green at 0, yellow at
-    ``scale / 2``, red at ``scale`` and above; non-finite values are grey."""
-    r = np.asarray(normalized_residual, dtype=float).reshape(-1)
-    s = np.clip(np.nan_to_num(r, nan=0.0) / max(scale, 1e-12), 0.0, 1.0)
-    rgba = np.empty((r.size, 4))
-    rgba[:, 0] = np.clip(2.0 * s, 0.0, 1.0)
-    rgba[:, 1] = np.clip(2.0 * (1.0 - s), 0.0, 1.0)
-    rgba[:, 2] = 0.0
-    rgba[:, 3] = 1.0
-    rgba[~np.isfinite(r)] = (0.5, 0.5, 0.5, 1.0)
-    return rgba
 
 
 def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
