@@ -7,7 +7,6 @@ import pytest
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
-from ga_ros.cli.commands.solve import GraphSolveConfig, solve_graph
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import connection_cost
 from ga_ros.errors import FormatError
@@ -21,6 +20,7 @@ from ga_ros.io.g2o import (
     se3_to_se2,
     write_g2o,
 )
+from ga_ros.pipeline.pose_graph import GraphSolveConfig, solve_graph
 
 # initial costs and GTSAM optima from shared/data/README.md
 INITIAL = {'tinyGrid3D': 286.64, 'smallGrid3D': 167788.67, 'intel': 553.996}
