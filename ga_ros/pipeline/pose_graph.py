@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.initialization import INIT_METHODS, PoseGraphEdges, initialize
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.solver import ROBUST_LOSSES, SolverConfig, solve
 from ga_ros.errors import (
@@ -338,3 +339,145 @@ def solve_tracks(graph: PoseGraph, tracks: IntArray, window: int = 5,
         objective=robust_objective(graph, T, robust_loss, robust_scale), iterations=iterations,
         seconds=time.perf_counter() - t0, converged=converged, reason=reason, stages=stages,
         per_track_ms=[float(u.update_ms) for u in updates])
+
+
+# ------------------------------------------------------------ initialisation and evidence
+@dataclass(frozen=True)
+class InitialGuess:
+    """An initial guess of a pose graph and where it came from.
+
+    Attributes
+    ----------
+    T_world_node : (n, 4, 4) poses in the graph's vertex order.
+    method : ``'file'`` or one of :data:`ga_ros.core.initialization.INIT_METHODS`.
+    cost : ``sum e' Omega e`` at the guess.
+    seconds : wall time of the initialisation (s).
+    """
+
+    T_world_node: FloatArray
+    method: str
+    cost: float
+    seconds: float
+
+
+def graph_edges(graph: PoseGraph) -> PoseGraphEdges:
+    """The graph's edges in the form :mod:`ga_ros.core.initialization` takes."""
+    return PoseGraphEdges(n=graph.n_vertices, src=graph.edge_src, dst=graph.edge_dst,
+                          T_meas=graph.T_meas, information=graph.information, dim=graph.dim)
+
+
+def datum_index(graph: PoseGraph) -> int:
+    """Index of the datum vertex: the first ``FIX`` vertex, else the first vertex."""
+    if graph.fixed:
+        return int(graph.network.index_of(graph.fixed[0]))
+    return 0
+
+
+def initial_guess(graph: PoseGraph, method: str = 'auto') -> InitialGuess:
+    """An initial guess for :func:`solve_graph`.
+
+    Parameters
+    ----------
+    graph : the graph.
+    method : ``'file'`` (the file's vertices), ``'odometry'``, ``'spanning-tree'``,
+        ``'chordal'`` (see :mod:`ga_ros.core.initialization`), or ``'auto'``: the file's
+        vertices if it has any, else chordal. The datum vertex (:func:`datum_index`) keeps its
+        file pose when the file has one (identity otherwise), so a ``FIX`` vertex stays put.
+
+    Raises
+    ------
+    InputError
+        ``'file'`` asked for an edge-only graph, or an unknown method.
+    NetworkError
+        A vertex is not connected to the datum.
+    """
+    if method == 'auto':
+        method = 'file' if graph.has_guess else 'chordal'
+    t0 = time.perf_counter()
+    if method == 'file':
+        if not graph.has_guess:
+            raise InputError(f'{graph.path or "the graph"} has no vertices, so no initial guess of'
+                             f' its own: use --init chordal, spanning-tree or odometry')
+        T = graph.T_init
+    elif method in INIT_METHODS:
+        root = datum_index(graph)
+        T = initialize(graph_edges(graph), method, root)
+        T = graph.T_init[root] @ T   # the datum keeps its pose (identity for edge-only files)
+    else:
+        raise InputError(f"init must be 'auto', 'file' or one of {INIT_METHODS}, got {method!r}")
+    return InitialGuess(T_world_node=T, method=method, cost=graph_cost(graph, T),
+                        seconds=time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class OptimumEvidence:
+    """What a solution says about itself (is it the global optimum of a consistent model?).
+
+    Attributes
+    ----------
+    cost : ``sum e' Omega e`` at the solution.
+    dof : redundancy ``r = d m - d (n - n_datum)`` (``d`` = 6 in 3-D, 3 in 2-D).
+    variance_factor : a-posteriori variance factor ``s0^2 = cost / r`` (1 when the information
+        matrices are right and the solution is the global optimum; ``nan`` if ``r <= 0``).
+    chi2_lower, chi2_upper : the two-sided 95 % interval of ``chi2(r)`` (2.5 % and 97.5 %).
+    chi2_test : ``'pass'`` (cost inside the interval), ``'cost too large'`` (a local minimum,
+        outliers, or optimistic information) or ``'cost too small'`` (pessimistic
+        information), ``'n/a'`` when ``r <= 0``.
+    """
+
+    cost: float
+    dof: int
+    variance_factor: float
+    chi2_lower: float
+    chi2_upper: float
+    chi2_test: str
+
+
+def optimum_evidence(graph: PoseGraph, T_world_node: FloatArray) -> OptimumEvidence:
+    """The a-posteriori variance factor and its chi-square test at 95 % for a solution."""
+    from scipy.stats import chi2
+
+    d = 6 if graph.dim == 3 else 3
+    n_datum = len(graph.fixed) or 1
+    dof = d * graph.n_edges - d * (graph.n_vertices - n_datum)
+    cost = graph_cost(graph, T_world_node)
+    if dof <= 0:
+        return OptimumEvidence(cost, dof, float('nan'), float('nan'), float('nan'), 'n/a')
+    lo, hi = (float(v) for v in chi2.ppf([0.025, 0.975], dof))
+    test = 'pass' if lo <= cost <= hi else ('cost too large' if cost > hi else 'cost too small')
+    return OptimumEvidence(cost=cost, dof=dof, variance_factor=cost / dof, chi2_lower=lo,
+                           chi2_upper=hi, chi2_test=test)
+
+
+@dataclass(frozen=True)
+class InitCheck:
+    """Outcome of re-solving from another initialisation (``--check-init``).
+
+    Attributes
+    ----------
+    method : the other initialisation.
+    initial_cost : its cost before solving.
+    cost : the cost it converged to.
+    lower : whether it reached a lower cost than the solution checked (by more than
+        ``rtol`` relative), i.e. the solution checked was a local minimum.
+    relative_difference : ``(cost_checked - cost) / cost_checked``.
+    """
+
+    method: str
+    initial_cost: float
+    cost: float
+    lower: bool
+    relative_difference: float
+
+
+def check_initialization(graph: PoseGraph, cost: float, used: str,
+                         config: GraphSolveConfig | None = None,
+                         rtol: float = 1e-6) -> InitCheck:
+    """Solve again from another initialisation and compare (chordal, or spanning tree when
+    the solution checked came from chordal)."""
+    method = 'spanning-tree' if used == 'chordal' else 'chordal'
+    guess = initial_guess(graph, method)
+    res = solve_graph(graph.with_initial_guess(guess.T_world_node), config)
+    rel = (cost - res.cost) / max(abs(cost), 1e-300)
+    return InitCheck(method=method, initial_cost=guess.cost, cost=res.cost,
+                     lower=bool(rel > rtol), relative_difference=float(rel))

@@ -15,18 +15,23 @@ written vertices.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
 
 import numpy as np
 
+from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
 from ga_ros.io.g2o import PoseGraph, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
     GraphSolveConfig,
     GraphSolveResult,
+    check_initialization,
+    initial_guess,
+    optimum_evidence,
     read_tracks,
     solve_graph,
     solve_tracks,
@@ -37,10 +42,24 @@ from ga_ros.pipeline.pose_graph import (
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         'solve', help='optimise a g2o pose graph (batch, or track by track)',
-        description='Optimise a g2o pose graph (VERTEX_SE3:QUAT/EDGE_SE3:QUAT or VERTEX_SE2/'
-                    'EDGE_SE2) from its own initial guess and write the result. The printed '
-                    "cost is sum e' Omega e over the edges (GTSAM's between-factor error).")
+        description='Optimise a g2o pose graph (VERTEX_SE3:QUAT/EDGE_SE3:QUAT, VERTEX_SE2/'
+                    'EDGE_SE2, PARAMS_*OFFSET, TORO VERTEX2/EDGE2) from its own initial guess '
+                    '(or, for an edge-only file, from a chordal initialisation) and write the '
+                    "result. The printed cost is sum e' Omega e over the edges (GTSAM's "
+                    'between-factor error), with the a-posteriori variance factor and its '
+                    'chi-square test at 95 %.')
     p.add_argument('input', help='g2o file')
+    p.add_argument('--init', choices=('auto', 'file', *INIT_METHODS), default='auto',
+                   help="initial guess: the file's vertices, odometry chaining, a minimum "
+                   'spanning tree of the most certain edges, or chordal rotation-first '
+                   '(Carlone et al. 2015); default auto: file if it has vertices, else chordal')
+    p.add_argument('--check-init', action='store_true',
+                   help='batch: solve again from another initialisation (chordal; spanning tree '
+                   'if chordal was used) and report whether it reaches a lower cost')
+    p.add_argument('--strict', action='store_true',
+                   help='refuse an information matrix that is not positive definite (default: '
+                   'repair it to the nearest positive-definite one by eigenvalue clipping, '
+                   'with one warning listing the lines)')
     p.add_argument('--out', '-o', help='write the optimised graph (all vertices) here')
     p.add_argument('--tum', help='also write the optimised vertices as a TUM trajectory '
                    '(timestamp = vertex id in seconds)')
@@ -72,8 +91,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     t_read = time.perf_counter()
-    graph = read_g2o(args.input)
+    graph = read_g2o(args.input, strict=args.strict)
     read_seconds = time.perf_counter() - t_read
+    guess = initial_guess(graph, args.init)
+    graph = graph.with_initial_guess(guess.T_world_node)
     if args.tracks:
         result = _run_tracks(graph, args)
     else:
@@ -83,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
                                tolerance=args.tolerance or 1e-8, robust_loss=args.robust,
                                robust_scale=args.robust_scale)
         result = solve_graph(graph, cfg)
+    evidence = optimum_evidence(graph, result.T_world_node)
+    check = None
+    if args.check_init and not args.tracks:
+        check = check_initialization(graph, result.cost, guess.method, cfg)
     if args.out:
         write_g2o(args.out, graph, result.T_world_node)
     if args.tum:
@@ -96,6 +121,11 @@ def run(args: argparse.Namespace) -> int:
         'iterations': result.iterations, 'seconds': result.seconds,
         'read_seconds': read_seconds, 'converged': result.converged, 'reason': result.reason,
         'robust': args.robust, 'stages': result.stages, 'out': args.out,
+        'init': guess.method, 'init_seconds': guess.seconds,
+        'repaired_edges': len(graph.repaired_lines), 'repaired_lines': list(graph.repaired_lines),
+        'dof': evidence.dof, 'variance_factor': evidence.variance_factor,
+        'chi2_95': [evidence.chi2_lower, evidence.chi2_upper], 'chi2_test': evidence.chi2_test,
+        'check_init': dataclasses.asdict(check) if check is not None else None,
     }
     if result.per_track_ms is not None:
         summary['per_track_ms'] = result.per_track_ms
@@ -106,8 +136,18 @@ def run(args: argparse.Namespace) -> int:
         out = sys.stdout
         print(f'{args.input}: {graph.dim}-D, {graph.n_vertices} vertices, {graph.n_edges} edges',
               file=out)
-        print(f'initial cost {result.initial_cost:.10g}', file=out)
+        print(f'initial cost {result.initial_cost:.10g} (init: {guess.method})', file=out)
         print(f'final cost   {result.cost:.10g}', file=out)
+        print(f'variance factor {evidence.variance_factor:.4g} (dof {evidence.dof}); chi-square '
+              f'95 % [{evidence.chi2_lower:.6g}, {evidence.chi2_upper:.6g}]: '
+              f'{evidence.chi2_test}', file=out)
+        if graph.repaired_lines:
+            print(f'repaired     {len(graph.repaired_lines)} information matrices (not positive '
+                  f'definite)', file=out)
+        if check is not None:
+            verdict = ('LOWER: the solution above is a local minimum' if check.lower
+                       else 'not lower')
+            print(f'check-init   {check.method}: cost {check.cost:.10g} ({verdict})', file=out)
         if args.robust != 'none':
             print(f'robust ({args.robust}) objective {result.objective:.10g}', file=out)
         print(f'iterations   {result.iterations} ({result.reason})', file=out)
