@@ -215,15 +215,21 @@ def _strip_vertices(src, dst):
     return dst
 
 
+#: GTSAM optima from the file's guess (shared/data/README.md); test_g2o checks we reach them too
+OPTIMUM = {'tinyGrid3D': 18.6278, 'smallGrid3D': 1035.851, 'intel': 45.0042}
+
+
 @pytest.mark.parametrize('name', ['tinyGrid3D', 'smallGrid3D', 'intel'])
 def test_edge_only_file_reaches_the_optimum_of_the_file_guess(tmp_path, pose_graph_dir, capsys,
                                                               name):
     full = pose_graph_dir / f'{name}.g2o'
     stripped = _strip_vertices(full, tmp_path / f'{name}-edges.g2o')
-    ref = _cli_json(capsys, full)
     got = _cli_json(capsys, stripped, '--out', tmp_path / 'out.g2o')
-    assert got['init'] == 'chordal' and ref['init'] == 'file'
-    assert got['cost'] == pytest.approx(ref['cost'], rel=1e-6)
+    assert got['init'] == 'chordal'
+    assert got['cost'] == pytest.approx(OPTIMUM[name], rel=2e-5)
+    if name != 'intel':  # the small ones: also against our own solve from the file's guess
+        ref = _cli_json(capsys, full)
+        assert ref['init'] == 'file' and got['cost'] == pytest.approx(ref['cost'], rel=1e-7)
     # same vertices (in increasing id order, as in these files) and a written guess
     assert read_g2o(tmp_path / 'out.g2o').has_guess
     assert read_g2o(stripped).vertex_ids.tolist() == read_g2o(full).vertex_ids.tolist()
