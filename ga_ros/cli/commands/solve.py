@@ -19,12 +19,13 @@ import dataclasses
 import json
 import sys
 import time
+import warnings
 
 import numpy as np
 
 from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
-from ga_ros.io.g2o import PoseGraph, read_g2o, write_g2o
+from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
     GraphSolveConfig,
@@ -91,7 +92,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     t_read = time.perf_counter()
-    graph = read_g2o(args.input, strict=args.strict)
+    with warnings.catch_warnings(record=True) as caught:  # one line each, not a traceback
+        warnings.simplefilter('always', InformationRepairWarning)
+        graph = read_g2o(args.input, strict=args.strict)
+    for w in caught:
+        print(f'ga-ros solve: warning: {w.message}', file=sys.stderr)
     read_seconds = time.perf_counter() - t_read
     guess = initial_guess(graph, args.init)
     graph = graph.with_initial_guess(guess.T_world_node)
