@@ -400,3 +400,22 @@ def test_check_init_reports_the_other_initialisation(pose_graph_dir, capsys):
     text = capsys.readouterr().out
     assert 'init: chordal' in text and 'check-init   spanning-tree' in text
     assert 'variance factor' in text
+
+
+def test_check_init_finds_the_lower_minimum_of_a_wound_ring(tmp_path, capsys):
+    """A 2-D ring of 8 poses measured exactly; the file's guess winds the headings once more
+    around the loop. From it the solver stops in the local minimum where every edge keeps a
+    45 degree rotation error (cost 8 * 100 * (pi/4)^2, written here); chordal reaches 0."""
+    n = 8
+    ang = 2 * np.pi * np.arange(n) / n
+    xyt = np.column_stack([np.cos(ang), np.sin(ang), ang + np.pi / 2])
+    guess = xyt + np.column_stack([np.zeros((n, 2)), ang])
+    lines = [f'VERTEX_SE2 {k} {_f(guess[k])}' for k in range(n)]
+    for k in range(n):
+        j = (k + 1) % n
+        z = se3_to_se2(se3.relative(se2_to_se3(xyt[k]), se2_to_se3(xyt[j])))
+        lines.append(f'EDGE_SE2 {k} {j} {_f(z)} 100 0 0 100 0 100')
+    out = _cli_json(capsys, _write(tmp_path, lines), '--check-init')
+    assert out['cost'] == pytest.approx(n * 100 * (np.pi / 4) ** 2, rel=1e-6)
+    assert out['chi2_test'] == 'cost too large'
+    assert out['check_init']['lower'] and out['check_init']['cost'] < 1e-12
