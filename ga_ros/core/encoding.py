@@ -29,9 +29,7 @@ QUAT_NORM_TOL = 1e-3
 def rejected(reason: str, text: str) -> InputError:
     """An :class:`InputError` with a short ``reason`` key (the keys counted by the node's
     diagnostics and by :class:`ga_ros.core.window.TrackWindowAligner`)."""
-    err = InputError(text)
-    err.reason = reason
-    return err
+    return InputError(text, reason=reason)
 
 
 def stamp_to_ns(stamp: Any) -> int:
