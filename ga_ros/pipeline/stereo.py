@@ -188,7 +188,7 @@ class StereoFrontEnd:
     def _process(self, left_msg: Any, right_msg: Any, stamp_ns: int) -> FrameOutput:
         if self.odometry is None:
             self._reason('no CameraInfo yet')
-            return FrameOutput(stamp_ns, error='stereo: image pair before its CameraInfo')
+            return FrameOutput(stamp_ns, error='stereo: no CameraInfo for both cameras yet')
         try:
             left = image_to_grey(left_msg)
             right = image_to_grey(right_msg)
