@@ -59,7 +59,8 @@ class StepOutput:
     accepted : the aligner took the measurement.
     updates : window updates it triggered (a track end), in order.
     reason : why it was rejected (None when accepted or when the solver failed).
-    error : message of the rejection or failure ('' when accepted).
+    error : message of the rejection (the error's text) or of the failure (``'<Type>: text'``);
+        '' when accepted.
     solver_failed : a window update raised; the previous estimate stands.
     notes : warnings about the updates (failed or unconverged updates, autosave failures).
     """
@@ -117,14 +118,17 @@ class AlignmentSession:
     config : the aligner's configuration.
     session : state file and autosave (:class:`SessionConfig`).
     warn : called with warnings (e.g. a snapshot that could not be used); default: ignored.
+    aligner : the aligner to drive (default: a new :class:`TrackWindowAligner` of ``config``);
+        the replay passes its own (e.g. anchored at the ground truth, or the batch aligner).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
-                 session: SessionConfig | None = None, warn: Warn | None = None) -> None:
+                 session: SessionConfig | None = None, warn: Warn | None = None,
+                 aligner: Any = None) -> None:
         self.config = config or AlignerConfig()
         self.session = session or SessionConfig()
         self.warn: Warn = warn or (lambda text: None)
-        self.aligner = TrackWindowAligner(self.config)
+        self.aligner = aligner if aligner is not None else TrackWindowAligner(self.config)
         self.counts = _Counters()
         self.last_update: Any = None
         self.last_error = ''
@@ -143,12 +147,11 @@ class AlignmentSession:
         self.counts.received += 1
         try:
             updates = self.aligner.add_measurement(m)
-        except SolverError as exc:
+        except InputError as exc:
+            return StepOutput(False, reason=self.reject(exc), error=str(exc))
+        except GaError as exc:  # a failed window update: the previous estimate stands
             self.solver_failed(exc)
-            return StepOutput(False, error=self.last_error, solver_failed=True)
-        except GaError as exc:
-            reason = self.reject(exc)
-            return StepOutput(False, reason=reason, error=self.last_error)
+            return StepOutput(False, error=f'{type(exc).__name__}: {exc}', solver_failed=True)
         self.counts.accepted += 1
         if self.journal is not None:
             self.journal.append(m)
