@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.core.frames import parse_node_frame
@@ -374,12 +375,12 @@ class TopicConfig:
         ``'measurements'`` or ``'stereo'``.
     """
 
-    measurements: str = '/ga/measurements'
+    measurements: str = topics.resolve(topics.MEASUREMENTS)
     left_image: str = ''
     right_image: str = ''
     left_info: str = ''
     right_info: str = ''
-    ground_truth: str = '/ga/ground_truth'
+    ground_truth: str = topics.resolve(topics.GROUND_TRUTH)
     source: str = 'auto'
 
 

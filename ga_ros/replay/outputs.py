@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
@@ -37,12 +38,12 @@ class OutputConfig:
     """
 
     map_frame: str = 'map'
-    path_topic: str = '/ga/corrected_path'
-    f2f_topic: str = '/ga/f2f_path'
-    pose_topic: str = '/ga/corrected_pose'
-    measurements_topic: str = '/ga/measurements'
-    markers_topic: str = '/ga/network_markers'
-    ground_truth_topic: str = '/ga/ground_truth'
+    path_topic: str = topics.resolve(topics.CORRECTED_PATH)
+    f2f_topic: str = topics.resolve(topics.F2F_PATH)
+    pose_topic: str = topics.resolve(topics.CORRECTED_POSE)
+    measurements_topic: str = topics.resolve(topics.MEASUREMENTS)
+    markers_topic: str = topics.resolve(topics.NETWORK_MARKERS)
+    ground_truth_topic: str = topics.resolve(topics.GROUND_TRUTH)
     bag_name: str = 'replay_bag'
 
 
@@ -57,8 +58,7 @@ def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatA
     if len(src) == 0:
         return np.zeros(0)
     Z = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
-    E = se3.inverse(Z) @ se3.relative(T_world_node[src], T_world_node[dst])
-    e = se3.log(E)
+    e = se3.misclosure(Z, T_world_node[src], T_world_node[dst])
     return np.sqrt(np.maximum(np.einsum('ki,ki->k', e, np.linalg.solve(cov, e[..., None])[..., 0]),
                               0.0))
 

@@ -24,9 +24,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
-from ga_ros.core.integration import F2FIntegrator
+from ga_ros.eval.metrics import TrajectoryError, trajectory_error
 from ga_ros.io.bag import (
     ODOMETRY,
     BagReader,
@@ -38,7 +39,6 @@ from ga_ros.io.bag import (
     read_ground_truth,
 )
 from ga_ros.pipeline.session import AlignmentSession
-from ga_ros.replay.metrics import TrajectoryError, trajectory_error
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
 from ga_ros.replay.source import SourceItem, bag_measurements
 
