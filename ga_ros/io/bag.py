@@ -29,12 +29,13 @@ from typing import Any
 import numpy as np
 
 from ga_ros import topics
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.arrays import FloatArray
 from ga_ros.core import encoding
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
+from ga_ros.io.trajectory import Trajectory
 
 #: Message types used by the replay (ROS 2 names).
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -569,28 +570,6 @@ def header(frame_id: str, stamp_ns: int) -> Any:
 
 
 # --------------------------------------------------------------------------- paths, ground truth
-@dataclass(frozen=True)
-class Trajectory:
-    """Poses with their stamps and (when known) node and track ids.
-
-    Attributes
-    ----------
-    stamps_ns : (n,) acquisition times, ns.
-    T_world_node : (n, 4, 4) poses.
-    node_ids, track_ids : (n,) ids, ``-1`` where unknown.
-    frame_id : frame the poses are expressed in.
-    """
-
-    stamps_ns: IntArray
-    T_world_node: FloatArray
-    node_ids: IntArray
-    track_ids: IntArray
-    frame_id: str = 'map'
-
-    def __len__(self) -> int:
-        return int(self.stamps_ns.shape[0])
-
-
 def path_msg_to_trajectory(msg: Any) -> Trajectory:
     """rosbags ``nav_msgs/Path`` -> :class:`Trajectory` (node ids from node frame ids, if any)."""
     n = len(msg.poses)

@@ -29,19 +29,38 @@ _ROTATION_TOL = 1e-3
 
 @dataclass(frozen=True)
 class Trajectory:
-    """Timestamped poses.
+    """The one trajectory type of ga_ros: timestamped poses of nodes, read and written by
+    :mod:`ga_ros.io` in every format (TUM, KITTI, ``nav_msgs/Path`` in bags).
 
     Attributes
     ----------
-    stamps_ns : (n,) int64 timestamps (ns).
-    T_world_cam : (n, 4, 4) poses.
+    stamps_ns : (n,) int64 acquisition times, ns.
+    T_world_node : (n, 4, 4) poses (node -> ``frame_id``).
+    node_ids, track_ids : (n,) int64 ids, ``-1`` where unknown (default: all unknown).
+    frame_id : frame the poses are expressed in.
+    covariances : (n, 6, 6) pose covariances ``[x y z rx ry rz]`` (right perturbation), or None.
     """
 
     stamps_ns: IntArray
-    T_world_cam: FloatArray
+    T_world_node: FloatArray
+    node_ids: IntArray | None = None
+    track_ids: IntArray | None = None
+    frame_id: str = 'map'
+    covariances: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        n = int(np.asarray(self.stamps_ns).shape[0])
+        for name in ('node_ids', 'track_ids'):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(n, -1, dtype=np.int64))
 
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
+
+    @property
+    def T_world_cam(self) -> FloatArray:
+        """The poses, named as for a camera trajectory (same array as ``T_world_node``)."""
+        return self.T_world_node
 
 
 def _read_lines(path: str | os.PathLike) -> list[tuple[int, list[str]]]:
@@ -81,12 +100,6 @@ def _stamp_ns(text: str, path: str, line: int) -> int:
             raise FormatError(f'timestamp {text!r} is not a number', path, line) from None
     ns = int(whole or '0') * 10**9 + int((frac + '0' * 9)[:9])
     return -ns if neg else ns
-
-
-def _format_stamp(ns: int) -> str:
-    sign = '-' if ns < 0 else ''
-    ns = abs(int(ns))
-    return f'{sign}{ns // 10**9}.{ns % 10**9:09d}'
 
 
 def _write_atomic(path: str | os.PathLike, lines: list[str]) -> None:
@@ -141,26 +154,34 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     return Trajectory(np.array(stamps, dtype=np.int64), se3.from_pos_quat(v[:, :3], v[:, 3:]))
 
 
-def write_tum(path: str | os.PathLike, stamps_ns, T_world_cam: FloatArray) -> None:
+def write_tum(path: str | os.PathLike, stamps_ns: IntArray, T_world_node: FloatArray,
+              decimals: int | None = None) -> None:
     """Write a TUM trajectory.
 
     Parameters
     ----------
     path : output file.
     stamps_ns : (n,) integer timestamps (ns), written as seconds with 9 decimals.
-    T_world_cam : (n, 4, 4) poses.
+    T_world_node : (n, 4, 4) poses.
+    decimals : digits after the point of the pose values (None: the shortest text that reads
+        back to the same float).
     """
-    T = _check_poses(T_world_cam)
+    T = _check_poses(T_world_node)
     stamps = np.asarray(stamps_ns).reshape(-1)
     if stamps.shape[0] != T.shape[0]:
         raise InputError(f'{stamps.shape[0]} timestamps for {T.shape[0]} poses')
     if not np.issubdtype(stamps.dtype, np.integer):
         raise InputError('stamps_ns must be integers (nanoseconds)')
     p, q = se3.to_pos_quat(T)
-    lines = ['# timestamp x y z qx qy qz qw']
-    for k in range(T.shape[0]):
-        vals = ' '.join(repr(float(x)) for x in np.concatenate([p[k], q[k]]))
-        lines.append(f'{_format_stamp(int(stamps[k]))} {vals}')
+    values = np.concatenate([p, q], axis=1)
+    text = (values.astype(str) if decimals is None
+            else np.char.mod(f'%.{int(decimals)}f', values))
+    neg = np.where(stamps < 0, '-', '')
+    a = np.abs(stamps.astype(np.int64))
+    stamp_text = np.char.add(np.char.add(np.char.add(neg, (a // 10**9).astype(str)), '.'),
+                             np.char.zfill((a % 10**9).astype(str), 9))
+    rows = np.column_stack([stamp_text, text]) if len(stamps) else np.zeros((0, 8), str)
+    lines = ['# timestamp x y z qx qy qz qw'] + [' '.join(r) for r in rows.tolist()]
     _write_atomic(path, lines)
 
 

@@ -16,6 +16,7 @@ from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
 from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
 from ga_ros.io.bag_writer import BagWriter, network_markers, pose_with_covariance_msg
+from ga_ros.io.trajectory import write_tum
 
 
 @dataclass(frozen=True)
@@ -61,17 +62,6 @@ def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatA
     e = se3.misclosure(Z, T_world_node[src], T_world_node[dst])
     return np.sqrt(np.maximum(np.einsum('ki,ki->k', e, np.linalg.solve(cov, e[..., None])[..., 0]),
                               0.0))
-
-
-def write_tum(path: Path, stamps_ns: IntArray, T_world_node: FloatArray) -> None:
-    """TUM trajectory file: ``timestamp x y z qx qy qz qw`` per line (s, m)."""
-    lines = ['# timestamp x y z qx qy qz qw']
-    if len(stamps_ns):
-        p, q = se3.to_pos_quat(np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4))
-        for s, pk, qk in zip(np.asarray(stamps_ns), p, q):
-            vals = ' '.join(f'{v:.9f}' for v in (*pk, *qk))
-            lines.append(f'{int(s) // 1_000_000_000}.{int(s) % 1_000_000_000:09d} {vals}')
-    path.write_text('\n'.join(lines) + '\n')
 
 
 def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
@@ -167,7 +157,7 @@ class ReplayOutputs:
     def tum(self, name: str, traj: Trajectory) -> Path:
         """Write ``name`` (TUM format) and register it."""
         p = self.dir / name
-        write_tum(p, traj.stamps_ns, traj.T_world_node)
+        write_tum(p, traj.stamps_ns, traj.T_world_node, decimals=9)
         self.files[p.stem] = p
         return p
 
