@@ -65,11 +65,8 @@ def stamp_to_ns(stamp: Any) -> int:
 
 def ns_to_stamp(stamp_ns: int) -> Any:
     """Integer nanoseconds (>= 0) -> ``builtin_interfaces/Time`` (rosbags object)."""
-    stamp_ns = int(stamp_ns)
-    if stamp_ns < 0:
-        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}')
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    return typestore().types['builtin_interfaces/msg/Time'](sec=int(sec), nanosec=int(nanosec))
+    t = encoding.split_stamp(stamp_ns)
+    return typestore().types['builtin_interfaces/msg/Time'](sec=t.sec, nanosec=t.nanosec)
 
 
 # --------------------------------------------------------------------------- bag inspection
@@ -469,19 +466,15 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
         return TopicPlan('measurements', measurements=config.measurements, ground_truth=gt,
                          notes=tuple(notes))
 
-    left, right = config.left_image, config.right_image
-    if not left:
-        cands = _side_topics(info, IMAGE_TYPES, 'left')
+    def image_topic(side: str) -> str:
+        cands = _side_topics(info, IMAGE_TYPES, side)
         if len(cands) > 1:
             comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
             cands = comp if len(comp) == 1 else cands
-        left = cands[0] if len(cands) == 1 else ''
-    if not right:
-        cands = _side_topics(info, IMAGE_TYPES, 'right')
-        if len(cands) > 1:
-            comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
-            cands = comp if len(comp) == 1 else cands
-        right = cands[0] if len(cands) == 1 else ''
+        return cands[0] if len(cands) == 1 else ''
+
+    left = config.left_image or image_topic('left')
+    right = config.right_image or image_topic('right')
     if not left or not right:
         raise FormatError(
             f'no usable input: neither a measurements topic ({config.measurements}) nor a '
