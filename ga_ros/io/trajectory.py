@@ -86,6 +86,21 @@ def _floats(fields: list[str], path: str, line: int) -> FloatArray:
     return values
 
 
+def _table(rows: list[tuple[int, list[str]]], first: int, path: str) -> FloatArray:
+    """The numeric fields ``first:`` of every row as one (n, k) array (all converted at once;
+    the first bad line is named on failure)."""
+    try:
+        values = np.array([f[first:] for _, f in rows], dtype=float)
+    except ValueError:
+        for lineno, fields in rows:
+            _floats(fields[first:], path, lineno)
+        raise
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        raise FormatError('NaN or infinite value', path, rows[int(np.argmin(finite))][0])
+    return values
+
+
 def _stamp_ns(text: str, path: str, line: int) -> int:
     """Seconds as a decimal string -> integer ns, exactly (no float rounding)."""
     s = text.strip()
@@ -136,22 +151,21 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         whose norm is not 1 (within 1e-3; otherwise it is normalised).
     """
     spath = str(path)
-    stamps, poses = [], []
-    for lineno, fields in _read_lines(path):
+    rows = _read_lines(path)
+    for lineno, fields in rows:
         if len(fields) != 8:
             raise FormatError(f'TUM line needs 8 fields (timestamp x y z qx qy qz qw), '
                               f'got {len(fields)}', spath, lineno)
-        stamp = _stamp_ns(fields[0], spath, lineno)
-        v = _floats(fields[1:], spath, lineno)
-        norm = float(np.linalg.norm(v[3:]))
-        if abs(norm - 1.0) > _ROTATION_TOL:
-            raise FormatError(f'quaternion has norm {norm:.6g}, not 1', spath, lineno)
-        stamps.append(stamp)
-        poses.append(v)
-    if not poses:
+    if not rows:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
-    v = np.array(poses)
-    return Trajectory(np.array(stamps, dtype=np.int64), se3.from_pos_quat(v[:, :3], v[:, 3:]))
+    v = _table(rows, 1, spath)
+    norms = np.linalg.norm(v[:, 3:], axis=1)
+    bad = np.nonzero(np.abs(norms - 1.0) > _ROTATION_TOL)[0]
+    if bad.size:
+        k = int(bad[0])
+        raise FormatError(f'quaternion has norm {norms[k]:.6g}, not 1', spath, rows[k][0])
+    stamps = np.array([_stamp_ns(f[0], spath, ln) for ln, f in rows], dtype=np.int64)
+    return Trajectory(stamps, se3.from_pos_quat(v[:, :3], v[:, 3:]))
 
 
 def write_tum(path: str | os.PathLike, stamps_ns: IntArray, T_world_node: FloatArray,
@@ -195,23 +209,25 @@ def read_kitti(path: str | os.PathLike) -> FloatArray:
         orthonormal (``max |R'R - I| > 1e-3``; otherwise it is projected onto SO(3)).
     """
     spath = str(path)
-    rows = []
-    for lineno, fields in _read_lines(path):
+    lines = _read_lines(path)
+    for lineno, fields in lines:
         if len(fields) != 12:
             raise FormatError(f'KITTI line needs 12 values (3x4 row-major), got {len(fields)}',
                               spath, lineno)
-        M = _floats(fields, spath, lineno).reshape(3, 4)
-        err = float(np.abs(M[:, :3].T @ M[:, :3] - np.eye(3)).max())
-        if err > _ROTATION_TOL or np.linalg.det(M[:, :3]) <= 0:
-            raise FormatError(f"rotation block is not a rotation (|R'R - I| = {err:.3g})",
-                              spath, lineno)
-        rows.append(M)
-    T = np.zeros((len(rows), 4, 4))
-    if rows:
-        M = np.array(rows)
-        U, _, Vt = np.linalg.svd(M[:, :, :3])
-        T[:, :3, :3] = U @ Vt
-        T[:, :3, 3] = M[:, :, 3]
+    if not lines:
+        return np.zeros((0, 4, 4))
+    M = _table(lines, 0, spath).reshape(-1, 3, 4)
+    R = M[:, :, :3]
+    err = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    bad = np.nonzero((err > _ROTATION_TOL) | (np.linalg.det(R) <= 0))[0]
+    if bad.size:
+        k = int(bad[0])
+        raise FormatError(f"rotation block is not a rotation (|R'R - I| = {err[k]:.3g})",
+                          spath, lines[k][0])
+    T = np.zeros((M.shape[0], 4, 4))
+    U, _, Vt = np.linalg.svd(R)
+    T[:, :3, :3] = U @ Vt
+    T[:, :3, 3] = M[:, :, 3]
     T[:, 3, 3] = 1.0
     return T
 
