@@ -8,12 +8,11 @@ T_src_dst``, the chain of :func:`ga_ros.geometry.se3.integrate`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.io.trajectory import Trajectory
 
 
 class F2FIntegrator:
@@ -57,21 +56,6 @@ class F2FIntegrator:
         return False
 
 
-@dataclass(frozen=True)
-class DeadReckoningPath:
-    """Path of :class:`DeadReckoningAligner`: nodes sorted by id.
-
-    Attributes
-    ----------
-    node_ids : (n,) node ids; ``track_ids`` : (n,) their tracks;
-    T_world_node : (n, 4, 4) F2F poses.
-    """
-
-    node_ids: IntArray
-    track_ids: IntArray
-    T_world_node: FloatArray
-
-
 class DeadReckoningAligner:
     """Aligner stand-in (no optimisation): F2F integration with the aligner's interface.
 
@@ -100,11 +84,13 @@ class DeadReckoningAligner:
         """Nothing to refine."""
         return None
 
-    def corrected_path(self) -> DeadReckoningPath:
-        """Every reached node, sorted by id."""
-        ids = np.array(sorted(self.f2f.poses), dtype=np.int64)
-        return DeadReckoningPath(ids, np.array([self.f2f.tracks[i] for i in ids], dtype=np.int64),
-                                 np.array([self.f2f.poses[i] for i in ids]).reshape(-1, 4, 4))
+    def corrected_path(self) -> Trajectory:
+        """Every reached node, sorted by id (stamp -1 for the first, whose time is unknown)."""
+        f = self.f2f
+        ids = np.array(sorted(f.poses), dtype=np.int64)
+        return Trajectory(np.array([f.stamps.get(i, -1) for i in ids], dtype=np.int64),
+                          np.array([f.poses[i] for i in ids]).reshape(-1, 4, 4), ids,
+                          np.array([f.tracks[i] for i in ids], dtype=np.int64))
 
     def covariance(self, node_id: int) -> FloatArray:
         """Unknown: zeros (6, 6)."""
