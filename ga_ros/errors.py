@@ -6,13 +6,49 @@ warn and drop the sample, and the CLI can map it to exit code 1 with a one-line 
 
 from __future__ import annotations
 
+from enum import StrEnum
+
+
+class Reason(StrEnum):
+    """Why a measurement was rejected: the key the diagnostics count (``rejected/<reason>``).
+
+    A :class:`str` enum, so the keys compare equal to (and print as) their plain strings.
+    """
+
+    SELF_LOOP = 'self_loop'
+    FROZEN = 'frozen'
+    DUPLICATE = 'duplicate'
+    OUT_OF_ORDER = 'out_of_order'
+    BAD_COVARIANCE = 'bad_covariance'
+    NON_FINITE = 'non_finite'
+    BAD_ID = 'bad_id'
+    BAD_KIND = 'bad_kind'
+    BAD_QUATERNION = 'bad_quaternion'
+    BAD_STAMP = 'bad_stamp'
+    BAD_SHAPE = 'bad_shape'
+    TRACK_MISMATCH = 'track_mismatch'
+    UNKNOWN_SOURCE = 'unknown_source'
+    INVALID = 'invalid'
+    INTERNAL = 'internal'
+
 
 class GaError(Exception):
     """Base class of all ga_ros errors."""
 
 
 class InputError(GaError, ValueError):
-    """Input data (a measurement, a covariance, a file) is malformed; nothing was changed."""
+    """Input data (a measurement, a covariance, a file) is malformed; nothing was changed.
+
+    ``reason`` (a :class:`Reason`, default ``INVALID``) says why, for counting rejections
+    without reading the message text.
+    """
+
+    reason: str = Reason.INVALID
+
+    def __init__(self, *args: object, reason: str | None = None) -> None:
+        super().__init__(*args)
+        if reason is not None:
+            self.reason = Reason(reason)
 
 
 class NetworkError(InputError):

@@ -190,9 +190,9 @@ def test_node_in_process_matches_direct(node_in_process, rng, tmp_path):
         node._on_measurement(conv.measurement_to_odometry(m))
     resp = node._srv_finish_track(Trigger.Request(), Trigger.Response())
     assert resp.success, resp.message
-    assert node.n_received == len(ms) + len(bad) + 1
-    assert node.n_accepted == len(ms)
-    assert dict(node.rejected) == {**BAD_REASONS, 'frozen': 1}
+    assert node.session.counts.received == len(ms) + len(bad) + 1
+    assert node.session.counts.accepted == len(ms)
+    assert dict(node.session.counts.rejected) == {**BAD_REASONS, 'frozen': 1}
     values = node.diagnostic_values()
     assert values['rejected'] == len(bad) + 1
     assert values['rejected/frozen'] == 1
@@ -278,7 +278,7 @@ def test_node_survives_internal_error(node_in_process, rng):
     node.aligner = Broken()
     node._on_measurement(conv.measurement_to_odometry(survey(rng, 1, 3)[0]))
     node.aligner = real
-    assert node.rejected['internal'] == 1
+    assert node.session.counts.rejected['internal'] == 1
 
 
 @pytest.mark.parametrize('damage', ['none', 'corrupt_snapshot', 'no_snapshot', 'torn_record'])
@@ -296,8 +296,8 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
         first = AlignmentNode(context=ctx, parameter_overrides=params)
         for m in ms[:cut]:
             first._on_measurement(conv.measurement_to_odometry(m))
-        assert state.exists() and first.journal.count == cut
-        first.journal.close()            # what the OS has when the process is killed
+        assert state.exists() and first.session.journal.count == cut
+        first.session.journal.close()            # what the OS has when the process is killed
         first.destroy_node()
         if damage == 'corrupt_snapshot':
             state.write_bytes(b'garbage')
@@ -318,7 +318,7 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
         for m in ms[cut:]:
             second._on_measurement(conv.measurement_to_odometry(m))
         assert second._srv_finish_track(Trigger.Request(), Trigger.Response()).success
-        assert second.journal.count == len(ms)
+        assert second.session.journal.count == len(ms)
         np.testing.assert_allclose(second.aligner.corrected_path().T_world_node,
                                    direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
                                    .T_world_node, atol=1e-9)

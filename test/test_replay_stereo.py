@@ -66,9 +66,9 @@ def direct_vo(bag: Path) -> list:
 
 def test_stereo_replay_equals_direct_vo(tmp_path: Path, stereo_bag: Path) -> None:
     from ga_ros.io.bag import odometry_to_measurement
-    from ga_ros.replay.stereo import StereoReplayConfig
+    from ga_ros.pipeline.stereo import FrontEndConfig
 
-    config = ReplayConfig(vo=StereoReplayConfig(feedback=False), plot=False)
+    config = ReplayConfig(vo=FrontEndConfig(feedback=False), plot=False)
     r = replay(stereo_bag, tmp_path / 'out', config, aligner_factory=DeadReckoning)
     assert r.source == 'stereo' and r.n_inputs == r.source_stats['pairs'] > 0
     want = direct_vo(stereo_bag)
@@ -92,14 +92,14 @@ def test_raw_images_and_missing_calibration(tmp_path: Path, stereo_bag: Path) ->
     from ga_ros.errors import FormatError
 
     with BagReader(stereo_bag) as src, BagWriter(tmp_path / 'raw') as dst:
-        from ga_ros.replay.stereo import decode_image
+        from ga_ros.vo.messages import image_to_grey
 
         first = True
         for m in src.messages():
             if m.msgtype == CAMERA_INFO and first:
                 continue  # the first frame has no calibration yet
             if m.msgtype == 'sensor_msgs/msg/CompressedImage':
-                img = decode_image(m.msg, m.msgtype)
+                img = image_to_grey(m.msg)
                 msg = typestore().types[IMAGE](
                     header=header(m.msg.header.frame_id,
                                   m.msg.header.stamp.sec * 10**9 + m.msg.header.stamp.nanosec),

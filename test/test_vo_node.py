@@ -28,16 +28,12 @@ from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
-from ga_ros.ros.vo_node import (  # noqa: E402
-    VoNodeSettings,
-    array_to_image,
-    camera_info_to_model,
-    compressed_to_array,
-    image_to_array,
-)
+from ga_ros.ros.vo_node import VoNodeSettings, array_to_image  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 from ga_ros.vo.crosstrack import CrossTrackConfig  # noqa: E402
 from ga_ros.vo.evaluate import motion_errors  # noqa: E402
+from ga_ros.vo.messages import camera_info_to_model  # noqa: E402
+from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
 from ga_ros.vo.odometry import VoConfig  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
@@ -81,6 +77,12 @@ def test_image_conversions(rng):
     bgr = np.repeat(img[:, :, None], 3, axis=2)
     msg.data = bgr.tobytes()
     np.testing.assert_array_equal(image_to_array(msg), img)
+    msg.encoding = '8UC3'  # the same bytes as bgr8 (one decoder for the node and the replay)
+    np.testing.assert_array_equal(image_to_array(msg), img)
+    msg.encoding = 'mono16'  # high byte of little-endian 16-bit grey
+    msg.step = 32 * 2
+    msg.data = (img.astype('<u2') << 8 | 7).tobytes()
+    np.testing.assert_array_equal(image_to_array(msg), img)
     msg.encoding = '32FC1'
     with pytest.raises(InputError):
         image_to_array(msg)
@@ -90,9 +92,9 @@ def test_image_conversions(rng):
         image_to_array(msg)
     ok, buf = cv2.imencode('.png', img)
     cmsg = CompressedImage(format='png', data=buf.tobytes())
-    np.testing.assert_array_equal(compressed_to_array(cmsg), img)
+    np.testing.assert_array_equal(image_to_array(cmsg), img)
     with pytest.raises(InputError):
-        compressed_to_array(CompressedImage(format='jpeg', data=b'not an image'))
+        image_to_array(CompressedImage(format='jpeg', data=b'not an image'))
     info = camera_info(StereoRig(), True, 0)
     model = camera_info_to_model(info)
     assert model.is_rectified() and model.projection()[0, 3] < 0
@@ -248,8 +250,8 @@ def test_node_in_process_adapter(rng):
         meas = [conv.odometry_to_measurement(m) for m in sent]
         assert len(meas) >= 2 and all(m.kind == 'consecutive' for m in meas)
         # A corrected path of the keyframes (by stamp) reaches the matcher.
-        ids = sorted(node._stamp_to_node.values())
-        stamps = sorted(node._stamp_to_node)
+        ids = sorted(node.front._stamp_to_node.values())
+        stamps = sorted(node.front._stamp_to_node)
         T = np.repeat(np.eye(4)[None], len(ids), axis=0)
         node._on_path(conv.path_to_msg(T, stamps, 'map'))
         np.testing.assert_allclose(node.matcher.predicted_pose(ids[-1]), np.eye(4))

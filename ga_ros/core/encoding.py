@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
@@ -29,9 +30,48 @@ QUAT_NORM_TOL = 1e-3
 def rejected(reason: str, text: str) -> InputError:
     """An :class:`InputError` with a short ``reason`` key (the keys counted by the node's
     diagnostics and by :class:`ga_ros.core.window.TrackWindowAligner`)."""
-    err = InputError(text)
-    err.reason = reason
-    return err
+    return InputError(text, reason=reason)
+
+
+@dataclass(frozen=True)
+class StampParts:
+    """A stamp split as ``builtin_interfaces/Time`` stores it: ``sec`` and ``nanosec``."""
+
+    sec: int
+    nanosec: int
+
+
+def split_stamp(stamp_ns: int) -> StampParts:
+    """Integer nanoseconds (>= 0) -> ``sec``, ``nanosec``; InputError if negative."""
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}', reason='bad_stamp')
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return StampParts(int(sec), int(nanosec))
+
+
+@dataclass(frozen=True)
+class NetworkIndex:
+    """Checked inputs of the network markers: node positions ``p`` (n, 3), m, and the
+    connections' end indices ``src``, ``dst`` (m,)."""
+
+    p: FloatArray
+    src: IntArray
+    dst: IntArray
+
+
+def network_index(p_world_node: FloatArray, src_index: IntArray,
+                  dst_index: IntArray) -> NetworkIndex:
+    """Validate the inputs of a network marker message (InputError on mismatched lengths or
+    an index out of range)."""
+    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
+    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
+    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
+    if src.shape != dst.shape:
+        raise InputError('src_index and dst_index must have the same length')
+    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= p.shape[0]):
+        raise InputError('connection index out of range')
+    return NetworkIndex(p, src, dst)
 
 
 def stamp_to_ns(stamp: Any) -> int:

@@ -3,13 +3,16 @@
 from ga_ros.eval.metrics import (
     AteResult,
     RigidAlignment,
+    TrajectoryError,
     align_rigid,
     anchor_first,
     ate,
     improvement_pct,
     per_track_mean,
     position_errors,
+    trajectory_error,
 )
 
 __all__ = ['AteResult', 'RigidAlignment', 'align_rigid', 'anchor_first', 'ate',
-           'improvement_pct', 'per_track_mean', 'position_errors']
+           'improvement_pct', 'per_track_mean', 'position_errors', 'TrajectoryError',
+           'trajectory_error']

@@ -6,6 +6,8 @@
   *aligned* (after the least-squares rigid motion that best maps the estimated positions onto the
   true ones: Horn 1987 / Umeyama 1991, without scale).
 * Per-track mean errors and the relative improvement of one estimate over another.
+* :func:`trajectory_error`: the replay's summary (raw and aligned RMSE, max) of matched
+  positions.
 """
 
 from __future__ import annotations
@@ -132,3 +134,35 @@ def improvement_pct(error_before: float, error_after: float) -> float:
     if not error_before > 0:
         raise InputError(f'reference error must be > 0, got {error_before}')
     return float(100.0 * (error_before - error_after) / error_before)
+
+
+@dataclass(frozen=True)
+class TrajectoryError:
+    """Position errors of an estimate against ground truth (m), as the replay reports them.
+
+    Attributes
+    ----------
+    ate_raw : RMSE of position errors as estimated (the first pose is the datum).
+    ate_aligned : RMSE after the best rigid alignment (:func:`align_rigid`).
+    max_raw : largest raw position error.
+    n : number of matched poses.
+    """
+
+    ate_raw: float
+    ate_aligned: float
+    max_raw: float
+    n: int
+
+    def as_dict(self) -> dict[str, float]:
+        return {'ate_raw_m': self.ate_raw, 'ate_aligned_m': self.ate_aligned,
+                'max_raw_m': self.max_raw, 'n': self.n}
+
+
+def trajectory_error(p_est: FloatArray, p_ref: FloatArray) -> TrajectoryError:
+    """Raw and rigidly aligned position RMSE of ``p_est`` (n, 3) against ``p_ref`` (n, 3), m."""
+    p_est = np.asarray(p_est, dtype=float).reshape(-1, 3)
+    p_ref = np.asarray(p_ref, dtype=float).reshape(-1, 3)
+    err = np.linalg.norm(p_est - p_ref, axis=1)
+    err_al = np.linalg.norm(align_rigid(p_est, p_ref).apply(p_est) - p_ref, axis=1)
+    return TrajectoryError(float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(err_al**2))),
+                           float(err.max()), int(err.size))

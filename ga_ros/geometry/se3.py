@@ -191,3 +191,22 @@ def integrate(T_first: FloatArray, motions: FloatArray) -> FloatArray:
     for k in range(motions.shape[0]):  # a sequential scan: each pose depends on the last
         out[k + 1] = out[k] @ motions[k]
     return out
+
+
+def misclosure(T_meas: FloatArray, T_world_i: FloatArray, T_world_j: FloatArray) -> FloatArray:
+    """Misclosure ``e = log(T_meas^-1 T_i^-1 T_j)`` of measured motions at given poses.
+
+    The between-factor error of g2o / GTSAM and the ``se3`` model's ``f`` (METHOD.md Sec. 1):
+    zero when the poses agree with the measurement, in the right-perturbation tangent of the
+    measurement, ROS order ``[x y z rx ry rz]`` (m, rad).
+
+    Parameters
+    ----------
+    T_meas : (..., 4, 4) measured motions ``T_i_j``.
+    T_world_i, T_world_j : (..., 4, 4) poses of the source and destination nodes.
+
+    Returns
+    -------
+    (..., 6) misclosures.
+    """
+    return log(inverse(T_meas) @ relative(T_world_i, T_world_j))

@@ -28,12 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros import topics
+from ga_ros.arrays import FloatArray
 from ga_ros.core import encoding
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
+from ga_ros.io.trajectory import Trajectory
 
 #: Message types used by the replay (ROS 2 names).
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -63,11 +65,8 @@ def stamp_to_ns(stamp: Any) -> int:
 
 def ns_to_stamp(stamp_ns: int) -> Any:
     """Integer nanoseconds (>= 0) -> ``builtin_interfaces/Time`` (rosbags object)."""
-    stamp_ns = int(stamp_ns)
-    if stamp_ns < 0:
-        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}')
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    return typestore().types['builtin_interfaces/msg/Time'](sec=int(sec), nanosec=int(nanosec))
+    t = encoding.split_stamp(stamp_ns)
+    return typestore().types['builtin_interfaces/msg/Time'](sec=t.sec, nanosec=t.nanosec)
 
 
 # --------------------------------------------------------------------------- bag inspection
@@ -374,12 +373,12 @@ class TopicConfig:
         ``'measurements'`` or ``'stereo'``.
     """
 
-    measurements: str = '/ga/measurements'
+    measurements: str = topics.resolve(topics.MEASUREMENTS)
     left_image: str = ''
     right_image: str = ''
     left_info: str = ''
     right_info: str = ''
-    ground_truth: str = '/ga/ground_truth'
+    ground_truth: str = topics.resolve(topics.GROUND_TRUTH)
     source: str = 'auto'
 
 
@@ -467,19 +466,15 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
         return TopicPlan('measurements', measurements=config.measurements, ground_truth=gt,
                          notes=tuple(notes))
 
-    left, right = config.left_image, config.right_image
-    if not left:
-        cands = _side_topics(info, IMAGE_TYPES, 'left')
+    def image_topic(side: str) -> str:
+        cands = _side_topics(info, IMAGE_TYPES, side)
         if len(cands) > 1:
             comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
             cands = comp if len(comp) == 1 else cands
-        left = cands[0] if len(cands) == 1 else ''
-    if not right:
-        cands = _side_topics(info, IMAGE_TYPES, 'right')
-        if len(cands) > 1:
-            comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
-            cands = comp if len(comp) == 1 else cands
-        right = cands[0] if len(cands) == 1 else ''
+        return cands[0] if len(cands) == 1 else ''
+
+    left = config.left_image or image_topic('left')
+    right = config.right_image or image_topic('right')
     if not left or not right:
         raise FormatError(
             f'no usable input: neither a measurements topic ({config.measurements}) nor a '
@@ -568,28 +563,6 @@ def header(frame_id: str, stamp_ns: int) -> Any:
 
 
 # --------------------------------------------------------------------------- paths, ground truth
-@dataclass(frozen=True)
-class Trajectory:
-    """Poses with their stamps and (when known) node and track ids.
-
-    Attributes
-    ----------
-    stamps_ns : (n,) acquisition times, ns.
-    T_world_node : (n, 4, 4) poses.
-    node_ids, track_ids : (n,) ids, ``-1`` where unknown.
-    frame_id : frame the poses are expressed in.
-    """
-
-    stamps_ns: IntArray
-    T_world_node: FloatArray
-    node_ids: IntArray
-    track_ids: IntArray
-    frame_id: str = 'map'
-
-    def __len__(self) -> int:
-        return int(self.stamps_ns.shape[0])
-
-
 def path_msg_to_trajectory(msg: Any) -> Trajectory:
     """rosbags ``nav_msgs/Path`` -> :class:`Trajectory` (node ids from node frame ids, if any)."""
     n = len(msg.poses)

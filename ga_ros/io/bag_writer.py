@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import encoding
 from ga_ros.errors import FormatError, InputError
 from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
 
@@ -148,13 +149,8 @@ def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: In
     Marker = types['visualization_msgs/msg/Marker']
     Point = types['geometry_msgs/msg/Point']
     Color = types['std_msgs/msg/ColorRGBA']
-    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
-    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
-    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
-    if src.shape != dst.shape:
-        raise InputError('src_index and dst_index must have the same length')
-    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= p.shape[0]):
-        raise InputError('connection index out of range')
+    net = encoding.network_index(p_world_node, src_index, dst_index)
+    p, src, dst = net.p, net.src, net.dst
 
     def marker(kind: int, action: int, mid: int, ns: str, scale: float, points: list[Any],
                color: Any, colors: list[Any]) -> Any:

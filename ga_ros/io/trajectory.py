@@ -29,19 +29,38 @@ _ROTATION_TOL = 1e-3
 
 @dataclass(frozen=True)
 class Trajectory:
-    """Timestamped poses.
+    """The one trajectory type of ga_ros: timestamped poses of nodes, read and written by
+    :mod:`ga_ros.io` in every format (TUM, KITTI, ``nav_msgs/Path`` in bags).
 
     Attributes
     ----------
-    stamps_ns : (n,) int64 timestamps (ns).
-    T_world_cam : (n, 4, 4) poses.
+    stamps_ns : (n,) int64 acquisition times, ns.
+    T_world_node : (n, 4, 4) poses (node -> ``frame_id``).
+    node_ids, track_ids : (n,) int64 ids, ``-1`` where unknown (default: all unknown).
+    frame_id : frame the poses are expressed in.
+    covariances : (n, 6, 6) pose covariances ``[x y z rx ry rz]`` (right perturbation), or None.
     """
 
     stamps_ns: IntArray
-    T_world_cam: FloatArray
+    T_world_node: FloatArray
+    node_ids: IntArray | None = None
+    track_ids: IntArray | None = None
+    frame_id: str = 'map'
+    covariances: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        n = int(np.asarray(self.stamps_ns).shape[0])
+        for name in ('node_ids', 'track_ids'):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(n, -1, dtype=np.int64))
 
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
+
+    @property
+    def T_world_cam(self) -> FloatArray:
+        """The poses, named as for a camera trajectory (same array as ``T_world_node``)."""
+        return self.T_world_node
 
 
 def _read_lines(path: str | os.PathLike) -> list[tuple[int, list[str]]]:
@@ -67,6 +86,21 @@ def _floats(fields: list[str], path: str, line: int) -> FloatArray:
     return values
 
 
+def _table(rows: list[tuple[int, list[str]]], first: int, path: str) -> FloatArray:
+    """The numeric fields ``first:`` of every row as one (n, k) array (all converted at once;
+    the first bad line is named on failure)."""
+    try:
+        values = np.array([f[first:] for _, f in rows], dtype=float)
+    except ValueError:
+        for lineno, fields in rows:
+            _floats(fields[first:], path, lineno)
+        raise
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        raise FormatError('NaN or infinite value', path, rows[int(np.argmin(finite))][0])
+    return values
+
+
 def _stamp_ns(text: str, path: str, line: int) -> int:
     """Seconds as a decimal string -> integer ns, exactly (no float rounding)."""
     s = text.strip()
@@ -81,12 +115,6 @@ def _stamp_ns(text: str, path: str, line: int) -> int:
             raise FormatError(f'timestamp {text!r} is not a number', path, line) from None
     ns = int(whole or '0') * 10**9 + int((frac + '0' * 9)[:9])
     return -ns if neg else ns
-
-
-def _format_stamp(ns: int) -> str:
-    sign = '-' if ns < 0 else ''
-    ns = abs(int(ns))
-    return f'{sign}{ns // 10**9}.{ns % 10**9:09d}'
 
 
 def _write_atomic(path: str | os.PathLike, lines: list[str]) -> None:
@@ -123,44 +151,51 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         whose norm is not 1 (within 1e-3; otherwise it is normalised).
     """
     spath = str(path)
-    stamps, poses = [], []
-    for lineno, fields in _read_lines(path):
+    rows = _read_lines(path)
+    for lineno, fields in rows:
         if len(fields) != 8:
             raise FormatError(f'TUM line needs 8 fields (timestamp x y z qx qy qz qw), '
                               f'got {len(fields)}', spath, lineno)
-        stamp = _stamp_ns(fields[0], spath, lineno)
-        v = _floats(fields[1:], spath, lineno)
-        norm = float(np.linalg.norm(v[3:]))
-        if abs(norm - 1.0) > _ROTATION_TOL:
-            raise FormatError(f'quaternion has norm {norm:.6g}, not 1', spath, lineno)
-        stamps.append(stamp)
-        poses.append(v)
-    if not poses:
+    if not rows:
         return Trajectory(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)))
-    v = np.array(poses)
-    return Trajectory(np.array(stamps, dtype=np.int64), se3.from_pos_quat(v[:, :3], v[:, 3:]))
+    v = _table(rows, 1, spath)
+    norms = np.linalg.norm(v[:, 3:], axis=1)
+    bad = np.nonzero(np.abs(norms - 1.0) > _ROTATION_TOL)[0]
+    if bad.size:
+        k = int(bad[0])
+        raise FormatError(f'quaternion has norm {norms[k]:.6g}, not 1', spath, rows[k][0])
+    stamps = np.array([_stamp_ns(f[0], spath, ln) for ln, f in rows], dtype=np.int64)
+    return Trajectory(stamps, se3.from_pos_quat(v[:, :3], v[:, 3:]))
 
 
-def write_tum(path: str | os.PathLike, stamps_ns, T_world_cam: FloatArray) -> None:
+def write_tum(path: str | os.PathLike, stamps_ns: IntArray, T_world_node: FloatArray,
+              decimals: int | None = None) -> None:
     """Write a TUM trajectory.
 
     Parameters
     ----------
     path : output file.
     stamps_ns : (n,) integer timestamps (ns), written as seconds with 9 decimals.
-    T_world_cam : (n, 4, 4) poses.
+    T_world_node : (n, 4, 4) poses.
+    decimals : digits after the point of the pose values (None: the shortest text that reads
+        back to the same float).
     """
-    T = _check_poses(T_world_cam)
+    T = _check_poses(T_world_node)
     stamps = np.asarray(stamps_ns).reshape(-1)
     if stamps.shape[0] != T.shape[0]:
         raise InputError(f'{stamps.shape[0]} timestamps for {T.shape[0]} poses')
     if not np.issubdtype(stamps.dtype, np.integer):
         raise InputError('stamps_ns must be integers (nanoseconds)')
     p, q = se3.to_pos_quat(T)
-    lines = ['# timestamp x y z qx qy qz qw']
-    for k in range(T.shape[0]):
-        vals = ' '.join(repr(float(x)) for x in np.concatenate([p[k], q[k]]))
-        lines.append(f'{_format_stamp(int(stamps[k]))} {vals}')
+    values = np.concatenate([p, q], axis=1)
+    text = (values.astype(str) if decimals is None
+            else np.char.mod(f'%.{int(decimals)}f', values))
+    neg = np.where(stamps < 0, '-', '')
+    a = np.abs(stamps.astype(np.int64))
+    stamp_text = np.char.add(np.char.add(np.char.add(neg, (a // 10**9).astype(str)), '.'),
+                             np.char.zfill((a % 10**9).astype(str), 9))
+    rows = np.column_stack([stamp_text, text]) if len(stamps) else np.zeros((0, 8), str)
+    lines = ['# timestamp x y z qx qy qz qw'] + [' '.join(r) for r in rows.tolist()]
     _write_atomic(path, lines)
 
 
@@ -174,23 +209,25 @@ def read_kitti(path: str | os.PathLike) -> FloatArray:
         orthonormal (``max |R'R - I| > 1e-3``; otherwise it is projected onto SO(3)).
     """
     spath = str(path)
-    rows = []
-    for lineno, fields in _read_lines(path):
+    lines = _read_lines(path)
+    for lineno, fields in lines:
         if len(fields) != 12:
             raise FormatError(f'KITTI line needs 12 values (3x4 row-major), got {len(fields)}',
                               spath, lineno)
-        M = _floats(fields, spath, lineno).reshape(3, 4)
-        err = float(np.abs(M[:, :3].T @ M[:, :3] - np.eye(3)).max())
-        if err > _ROTATION_TOL or np.linalg.det(M[:, :3]) <= 0:
-            raise FormatError(f"rotation block is not a rotation (|R'R - I| = {err:.3g})",
-                              spath, lineno)
-        rows.append(M)
-    T = np.zeros((len(rows), 4, 4))
-    if rows:
-        M = np.array(rows)
-        U, _, Vt = np.linalg.svd(M[:, :, :3])
-        T[:, :3, :3] = U @ Vt
-        T[:, :3, 3] = M[:, :, 3]
+    if not lines:
+        return np.zeros((0, 4, 4))
+    M = _table(lines, 0, spath).reshape(-1, 3, 4)
+    R = M[:, :, :3]
+    err = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    bad = np.nonzero((err > _ROTATION_TOL) | (np.linalg.det(R) <= 0))[0]
+    if bad.size:
+        k = int(bad[0])
+        raise FormatError(f"rotation block is not a rotation (|R'R - I| = {err[k]:.3g})",
+                          spath, lines[k][0])
+    T = np.zeros((M.shape[0], 4, 4))
+    U, _, Vt = np.linalg.svd(R)
+    T[:, :3, :3] = U @ Vt
+    T[:, :3, 3] = M[:, :, 3]
     T[:, 3, 3] = 1.0
     return T
 

@@ -10,11 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
 from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
 from ga_ros.io.bag_writer import BagWriter, network_markers, pose_with_covariance_msg
+from ga_ros.io.trajectory import write_tum
 
 
 @dataclass(frozen=True)
@@ -37,12 +39,12 @@ class OutputConfig:
     """
 
     map_frame: str = 'map'
-    path_topic: str = '/ga/corrected_path'
-    f2f_topic: str = '/ga/f2f_path'
-    pose_topic: str = '/ga/corrected_pose'
-    measurements_topic: str = '/ga/measurements'
-    markers_topic: str = '/ga/network_markers'
-    ground_truth_topic: str = '/ga/ground_truth'
+    path_topic: str = topics.resolve(topics.CORRECTED_PATH)
+    f2f_topic: str = topics.resolve(topics.F2F_PATH)
+    pose_topic: str = topics.resolve(topics.CORRECTED_POSE)
+    measurements_topic: str = topics.resolve(topics.MEASUREMENTS)
+    markers_topic: str = topics.resolve(topics.NETWORK_MARKERS)
+    ground_truth_topic: str = topics.resolve(topics.GROUND_TRUTH)
     bag_name: str = 'replay_bag'
 
 
@@ -57,21 +59,9 @@ def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatA
     if len(src) == 0:
         return np.zeros(0)
     Z = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
-    E = se3.inverse(Z) @ se3.relative(T_world_node[src], T_world_node[dst])
-    e = se3.log(E)
+    e = se3.misclosure(Z, T_world_node[src], T_world_node[dst])
     return np.sqrt(np.maximum(np.einsum('ki,ki->k', e, np.linalg.solve(cov, e[..., None])[..., 0]),
                               0.0))
-
-
-def write_tum(path: Path, stamps_ns: IntArray, T_world_node: FloatArray) -> None:
-    """TUM trajectory file: ``timestamp x y z qx qy qz qw`` per line (s, m)."""
-    lines = ['# timestamp x y z qx qy qz qw']
-    if len(stamps_ns):
-        p, q = se3.to_pos_quat(np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4))
-        for s, pk, qk in zip(np.asarray(stamps_ns), p, q):
-            vals = ' '.join(f'{v:.9f}' for v in (*pk, *qk))
-            lines.append(f'{int(s) // 1_000_000_000}.{int(s) % 1_000_000_000:09d} {vals}')
-    path.write_text('\n'.join(lines) + '\n')
 
 
 def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
@@ -167,7 +157,7 @@ class ReplayOutputs:
     def tum(self, name: str, traj: Trajectory) -> Path:
         """Write ``name`` (TUM format) and register it."""
         p = self.dir / name
-        write_tum(p, traj.stamps_ns, traj.T_world_node)
+        write_tum(p, traj.stamps_ns, traj.T_world_node, decimals=9)
         self.files[p.stem] = p
         return p
 

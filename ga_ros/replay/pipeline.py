@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,8 +24,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
+from ga_ros.eval.metrics import TrajectoryError, trajectory_error
 from ga_ros.io.bag import (
     ODOMETRY,
     BagReader,
@@ -33,12 +35,12 @@ from ga_ros.io.bag import (
     TopicPlan,
     Trajectory,
     measurement_to_odometry,
-    odometry_to_measurement,
     plan_topics,
     read_ground_truth,
 )
-from ga_ros.replay.metrics import F2FIntegrator, TrajectoryError, trajectory_error
+from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
+from ga_ros.replay.source import SourceItem, bag_measurements
 
 #: Largest stamp difference (ns) at which a node and a ground-truth pose are the same frame.
 STAMP_MATCH_TOL_NS = 1_000_000
@@ -135,36 +137,6 @@ class ReplayResult:
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats}
-
-
-@dataclass(frozen=True)
-class SourceItem:
-    """One step of a measurement source: a measurement (or a rejection) and its bag time.
-
-    ``data`` is the raw CDR of the measurement when it was read from the bag; ``node_stamps``
-    gives acquisition times of nodes the source knows (e.g. the first VO keyframe).
-    """
-
-    measurement: Measurement | None
-    log_ns: int
-    data: bytes | None = None
-    error: str | None = None
-    node_stamps: dict[int, int] | None = None
-
-
-def bag_measurements(bag: BagReader, topic: str, counter: list[int]) -> Iterator[SourceItem]:
-    """Measurements read from ``topic`` (the ga_ros Odometry encoding); bad ones as rejections.
-
-    ``counter[0]`` counts the messages read (the source's inputs).
-    """
-    for bm in bag.messages([topic]):
-        counter[0] += 1
-        try:
-            m = odometry_to_measurement(bm.msg)
-        except InputError as exc:
-            yield SourceItem(None, bm.log_ns, error=f'decode: {exc}')
-            continue
-        yield SourceItem(m, bm.log_ns, data=bm.data)
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -278,6 +250,7 @@ class _Run:
         self.gt = gt
         self.match_by = match_by
         self.aligner: Aligner | None = None
+        self.session: AlignmentSession | None = None
         self.f2f: F2FIntegrator | None = None
         self.stamps: dict[int, int] = {}
         self.tracks: dict[int, int] = {}
@@ -304,18 +277,19 @@ class _Run:
             if item.error:
                 self._reject(item.error)
             return
-        if self.aligner is None:
+        if self.session is None:
             T0 = self._first_pose(m)
             self.aligner = self.factory(T0)
+            self.session = AlignmentSession(aligner=self.aligner)
             self.f2f = F2FIntegrator(T0)
-        try:
-            updates = self.aligner.add_measurement(m)
-        except InputError as exc:
-            self._reject(f'aligner: {exc}')
+        out = self.session.step(m)
+        if out.solver_failed:  # a failed update: the aligner keeps its previous estimate
+            self._reject(f'solver: {out.error}')
             return
-        except GaError as exc:  # a failed update: the aligner keeps its previous estimate
-            self._reject(f'solver: {type(exc).__name__}: {exc}')
+        if not out.accepted:
+            self._reject(f'aligner: {out.error}')
             return
+        updates = out.updates
         assert self.f2f is not None
         self.f2f.add(m)
         self.result.n_measurements += 1
@@ -496,12 +470,13 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         if on_plan is not None:
             on_plan(plan)
         gt = read_ground_truth(bag, plan.ground_truth) if plan.ground_truth else None
+        source: Any
         if plan.source == 'stereo':
-            from ga_ros.replay.stereo import stereo_measurements
+            from ga_ros.replay.stereo import StereoSource
 
             counter = [0]
             total = bag.info.topic(plan.left_image).count
-            source = stereo_measurements(bag, plan, config.vo, counter)
+            source = StereoSource(bag, plan, config.vo, counter)
             unit = 'pair'
         else:
             counter = [0]

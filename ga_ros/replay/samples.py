@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ga_ros import topics
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
@@ -45,8 +46,8 @@ from ga_ros.io.bag_writer import BagWriter
 BASE_STAMP_NS = 1_700_000_000 * 1_000_000_000
 
 #: Topic names of the sample bags.
-MEASUREMENTS_TOPIC = '/ga/measurements'
-GROUND_TRUTH_TOPIC = '/ga/ground_truth'
+MEASUREMENTS_TOPIC = topics.resolve(topics.MEASUREMENTS)
+GROUND_TRUTH_TOPIC = topics.resolve(topics.GROUND_TRUTH)
 LEFT_IMAGE_TOPIC = '/stereo/left/image_raw/compressed'
 RIGHT_IMAGE_TOPIC = '/stereo/right/image_raw/compressed'
 LEFT_INFO_TOPIC = '/stereo/left/camera_info'

@@ -51,11 +51,8 @@ def stamp_to_ns(stamp: Time) -> int:
 
 def ns_to_stamp(stamp_ns: int) -> Time:
     """Integer nanoseconds (>= 0) -> ``builtin_interfaces/Time``."""
-    stamp_ns = int(stamp_ns)
-    if stamp_ns < 0:
-        raise InputError(f'stamp must be >= 0 ns, got {stamp_ns}')
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    return Time(sec=int(sec), nanosec=int(nanosec))
+    t = encoding.split_stamp(stamp_ns)
+    return Time(sec=t.sec, nanosec=t.nanosec)
 
 
 def node_frame_id(track_id: int, node_id: int) -> str:
@@ -215,13 +212,8 @@ def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: In
     MarkerArray with a ``DELETEALL`` marker first, then a ``SPHERE_LIST`` of nodes (id 0) and a
     ``LINE_LIST`` of connections (id 1).
     """
-    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
-    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
-    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
-    if src.shape != dst.shape:
-        raise InputError('src_index and dst_index must have the same length')
-    if src.size and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= p.shape[0]):
-        raise InputError('connection index out of range')
+    net = encoding.network_index(p_world_node, src_index, dst_index)
+    p, src, dst = net.p, net.src, net.dst
     stamp = ns_to_stamp(stamp_ns)
     clear = Marker(action=Marker.DELETEALL)
     clear.header.frame_id = frame_id

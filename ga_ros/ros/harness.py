@@ -23,6 +23,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
@@ -72,9 +73,9 @@ class NodeClient:
     """Test-side ROS node: publishes measurements, records the alignment node's outputs."""
 
     def __init__(self, domain_id: int, node_name: str = 'alignment_node',
-                 measurements_topic: str = '/ga/measurements',
-                 path_topic: str = '/ga/corrected_path',
-                 diagnostics_topic: str = '/diagnostics') -> None:
+                 measurements_topic: str = topics.MEASUREMENTS,
+                 path_topic: str = topics.CORRECTED_PATH,
+                 diagnostics_topic: str = topics.DIAGNOSTICS) -> None:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=int(domain_id))
         self.node = Node(f'ga_harness_{os.getpid()}', context=self.context)

@@ -33,6 +33,7 @@ from rosgraph_msgs.msg import Clock
 
 from ga_ros.errors import GaError, InputError
 from ga_ros.io.bag import BagReader
+from ga_ros.ros.play_args import add_arguments
 
 
 def message_class(msgtype: str) -> type:
@@ -278,8 +279,6 @@ def play_bag(bag_path: str | Path, config: PlayConfig = PlayConfig(),
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     """Arguments of ``ga-ros play`` (also ``python -m ga_ros.ros.play``)."""
-    from ga_ros.cli.commands.play import add_arguments
-
     return add_arguments(parser or argparse.ArgumentParser(prog='ga-ros play',
                                                            description=__doc__))
 

@@ -52,7 +52,7 @@ def misclosure_mahalanobis(T_world_src: FloatArray, T_world_dst: FloatArray, z: 
     if z.shape[0] == 0:
         return np.zeros(0)
     T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
-    e = se3.log(se3.inverse(T_meas) @ se3.inverse(T_world_src) @ T_world_dst)
+    e = se3.misclosure(T_meas, T_world_src, T_world_dst)
     sol = np.linalg.solve(np.asarray(cov, dtype=float), e[:, :, None])[:, :, 0]
     return np.sqrt(np.maximum(np.einsum('mi,mi->m', e, sol), 0.0))
 

@@ -18,45 +18,10 @@ from typing import Any
 import numpy as np
 
 from ga_ros.cli.commands.demo import find_bags_dir
+from ga_ros.core.integration import DeadReckoningAligner
 from ga_ros.errors import InputError
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.samples import MEASUREMENTS_BAG, STEREO_BAG
-
-
-class _DeadReckoning:
-    """Aligner stand-in for ``--io-only``: integrates consecutive motions, no optimisation."""
-
-    def __init__(self, T_world_first: Any = None) -> None:
-        self.poses: dict[int, Any] = {}
-        self.tracks: dict[int, int] = {}
-        self.T0 = np.eye(4) if T_world_first is None else T_world_first
-        self.track: int | None = None
-
-    def add_measurement(self, m: Any) -> list[Any]:
-        out = []
-        if self.track is not None and m.dst_track != self.track:
-            out.append(self.finish_track())
-        self.track = m.dst_track
-        if not self.poses:
-            self.poses[m.src_id], self.tracks[m.src_id] = self.T0, m.src_track
-        if m.src_id in self.poses and m.dst_id not in self.poses:
-            self.poses[m.dst_id] = self.poses[m.src_id] @ m.T_src_dst
-            self.tracks[m.dst_id] = m.dst_track
-        return out
-
-    def finish_track(self) -> Any:
-        return {'track_id': self.track}
-
-    def refine_batch(self) -> Any:
-        return None
-
-    def corrected_path(self) -> Any:
-        ids = np.array(sorted(self.poses))
-        return argparse.Namespace(node_ids=ids, track_ids=np.array([self.tracks[i] for i in ids]),
-                                  T_world_node=np.array([self.poses[i] for i in ids]))
-
-    def covariance(self, node_id: int) -> Any:
-        return np.zeros((6, 6))
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -80,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         runs.append(('measurements', bags / MEASUREMENTS_BAG))
     if args.only in (None, 'stereo') and importlib.util.find_spec('ga_ros.vo.odometry'):
         runs.append(('stereo', bags / STEREO_BAG))
-    factory = _DeadReckoning if args.io_only else None
+    factory = DeadReckoningAligner if args.io_only else None
     figures: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix='ga_bench_replay_') as tmp:
         for kind, bag in runs:

@@ -7,7 +7,8 @@ For users without ``ros2 bag play`` (the ros2 CLI is not packaged here). The ROS
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+
+from ga_ros.ros.play_args import add_arguments
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,20 +19,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'the bag is done. Nodes should run with use_sim_time:=true.')
     add_arguments(p)
     p.set_defaults(func=run)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Arguments of ``ga-ros play`` (shared with ``python -m ga_ros.ros.play``)."""
-    p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
-    p.add_argument('--rate', type=float, default=1.0,
-                   help='speed factor (1 = real time); 0 = as fast as subscribers keep up')
-    p.add_argument('--topics', nargs='+', default=[], help='only these topics')
-    p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
-    p.add_argument('--delay', type=float, default=1.0,
-                   help='seconds to wait for discovery before publishing (default 1)')
-    p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
-                   help='wait up to SEC seconds for a first subscriber')
-    return p
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ga_ros import topics
 from ga_ros.errors import InputError
 from ga_ros.io.bag import TopicConfig, bag_info
 from ga_ros.replay.outputs import OutputConfig
@@ -32,18 +33,18 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group('input topics')
     g.add_argument('--source', choices=('auto', 'measurements', 'stereo'), default='auto',
                    help='what to replay (auto: measurements if the topic exists, else images)')
-    g.add_argument('--measurements-topic', default='/ga/measurements')
+    g.add_argument('--measurements-topic', default=topics.resolve(topics.MEASUREMENTS))
     g.add_argument('--left-image', default='', help="left images ('' = detect)")
     g.add_argument('--right-image', default='', help="right images ('' = detect)")
     g.add_argument('--left-info', default='', help="left CameraInfo ('' = detect)")
     g.add_argument('--right-info', default='', help="right CameraInfo ('' = detect)")
-    g.add_argument('--ground-truth-topic', default='/ga/ground_truth',
+    g.add_argument('--ground-truth-topic', default=topics.resolve(topics.GROUND_TRUTH),
                    help="nav_msgs/Path ground truth ('' = ignore)")
     o = p.add_argument_group('outputs')
     o.add_argument('--map-frame', default='map', help='frame of the corrected path')
-    o.add_argument('--path-topic', default='/ga/corrected_path')
-    o.add_argument('--pose-topic', default='/ga/corrected_pose')
-    o.add_argument('--markers-topic', default='/ga/network_markers')
+    o.add_argument('--path-topic', default=topics.resolve(topics.CORRECTED_PATH))
+    o.add_argument('--pose-topic', default=topics.resolve(topics.CORRECTED_POSE))
+    o.add_argument('--markers-topic', default=topics.resolve(topics.NETWORK_MARKERS))
     o.add_argument('--no-plot', action='store_true', help='do not write the PNG plot')
     o.add_argument('--no-covariance', action='store_true',
                    help='write zero covariances on the pose topic (faster on big surveys)')

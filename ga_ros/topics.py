@@ -1,0 +1,56 @@
+"""Every topic name of ga_ros, defined once.
+
+The defaults are RELATIVE names (no leading ``/``): without a namespace they resolve to
+``/ga/...`` as before, and with ``--ros-args -r __ns:=/robot1`` they move with the node
+(``/robot1/ga/...``). Bags store absolute names: :func:`resolve` gives the name a node in
+``namespace`` would use, which is what the replay reads and writes.
+"""
+
+from __future__ import annotations
+
+#: Measurements (``nav_msgs/Odometry`` encoding), from ``vo_node`` to ``alignment_node``.
+MEASUREMENTS = 'ga/measurements'
+#: Corrected path (``nav_msgs/Path``, transient local), every node in the map frame.
+CORRECTED_PATH = 'ga/corrected_path'
+#: Newest adjusted node (``geometry_msgs/PoseWithCovarianceStamped``).
+CORRECTED_POSE = 'ga/corrected_pose'
+#: Newest node as ``nav_msgs/Odometry``.
+CORRECTED_ODOM = 'ga/corrected_odom'
+#: Connection network (``visualization_msgs/MarkerArray``, transient local).
+NETWORK_MARKERS = 'ga/network_markers'
+#: Frame-to-frame (dead-reckoning) path written by the replay.
+F2F_PATH = 'ga/f2f_path'
+#: Ground truth (``nav_msgs/Path``) in sample and simulated bags.
+GROUND_TRUTH = 'ga/ground_truth'
+#: Raw integrated VO pose of every frame (``nav_msgs/Odometry``).
+VO_ODOMETRY = 'ga/vo/odometry'
+#: ``std_msgs/Empty``: start a new track.
+VO_TRACK_BOUNDARY = 'ga/vo/track_boundary'
+#: Debug image of the VO.
+VO_DEBUG_IMAGE = 'ga/vo/debug_image'
+#: Stereo input of ``vo_node``.
+LEFT_IMAGE = 'stereo/left/image_rect'
+RIGHT_IMAGE = 'stereo/right/image_rect'
+LEFT_INFO = 'stereo/left/camera_info'
+RIGHT_INFO = 'stereo/right/camera_info'
+#: Diagnostics: absolute, where ``diagnostic_aggregator`` listens.
+DIAGNOSTICS = '/diagnostics'
+
+
+def resolve(name: str, namespace: str = '/') -> str:
+    """Absolute name of topic ``name`` for a node in ``namespace`` (ROS name resolution).
+
+    Parameters
+    ----------
+    name : absolute (``/a/b``, returned unchanged) or relative (``a/b``) topic name; ``''`` is
+        returned unchanged (it means "no topic" in the replay's options).
+    namespace : the node's namespace (``/`` or ``/robot1``).
+
+    Returns
+    -------
+    str
+        ``/a/b`` or ``/robot1/a/b``.
+    """
+    if not name or name.startswith('/'):
+        return name
+    return namespace.rstrip('/') + '/' + name
