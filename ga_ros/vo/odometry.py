@@ -29,6 +29,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.tracks import TrackRules, TrackSegmenter
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3, so3
 from ga_ros.vo.calibration import StereoCalibration
@@ -80,7 +81,11 @@ class VoConfig:
     swaths_per_track : swaths per track in ``'heading'`` mode (a track is a double swath).
     heading_reversal_deg : turn of the travel direction that ends a swath (deg).
     heading_min_step_m : travel between keyframes below which the direction is not updated
-        (m; a hovering platform does not start swaths).
+        (m; a hovering platform does not start swaths). The step used is the smaller of this
+        and ``heading_min_step_depth_ratio`` times the median scene depth, so that the rule
+        works from 1 m to 150 m without tuning.
+    heading_min_step_depth_ratio : the same step as a fraction of the median scene depth
+        (0.02: 2.2 m at 110 m, 6 cm at 3 m).
     first_node_id : id of the first keyframe.
     """
 
@@ -116,13 +121,18 @@ class VoConfig:
     swaths_per_track: int = 2
     heading_reversal_deg: float = 135.0
     heading_min_step_m: float = 2.0
+    heading_min_step_depth_ratio: float = 0.02
     first_node_id: int = 0
+
+    def track_rules(self) -> TrackRules:
+        """The track-boundary part of this config."""
+        return TrackRules(self.track_mode, self.keyframes_per_track, self.swaths_per_track,
+                          self.heading_reversal_deg, self.heading_min_step_m)
 
     def __post_init__(self) -> None:
         if self.track_mode not in ('none', 'frames', 'heading', 'external'):
             raise InputError(f'unknown track_mode {self.track_mode!r}')
-        if self.track_mode == 'frames' and self.keyframes_per_track < 1:
-            raise InputError('track_mode "frames" needs keyframes_per_track >= 1')
+        self.track_rules()
         if self.max_features < 8 or self.min_inliers < 6 or self.klt_window_px < 5:
             raise InputError('max_features >= 8, min_inliers >= 6, klt_window_px >= 5 required')
 
@@ -225,65 +235,6 @@ class VoResult:
     new_track: bool = False
 
 
-class TrackSegmenter:
-    """Track (and swath) ids from a frame count, a heading reversal, or external requests."""
-
-    def __init__(self, config: VoConfig) -> None:
-        self._cfg = config
-        self.track_id = 0
-        self.segment = 0
-        self._frames = 0
-        self._swath = 0
-        self._ref_dir: FloatArray | None = None
-        self._ref_xy = np.zeros(2)
-        self._start_xy: FloatArray | None = None
-        self._pending = False
-
-    def request_boundary(self) -> None:
-        """Start a new track at the next frame (``'external'`` mode; honoured in every mode)."""
-        self._pending = True
-
-    def update(self, T_world_cam: FloatArray) -> bool:
-        """Advance by one frame at pose ``T_world_cam``; True when a new track starts here."""
-        cfg = self._cfg
-        new = False
-        self._frames += 1
-        if self._pending:
-            self._pending = False
-            new = True
-        elif cfg.track_mode == 'frames' and self._frames > cfg.keyframes_per_track:
-            new = True
-        elif cfg.track_mode == 'heading':
-            xy = np.asarray(T_world_cam, float)[:2, 3]
-            if self._start_xy is None:
-                self._start_xy = xy
-            travel = xy - self._start_xy
-            dist = float(np.linalg.norm(travel))
-            if self._ref_dir is None:
-                if dist >= cfg.heading_min_step_m and self._frames >= 3:
-                    self._ref_dir = travel / dist
-                    self._ref_xy = xy
-            else:
-                step = xy - self._ref_xy
-                ds = float(np.linalg.norm(step))
-                if ds >= cfg.heading_min_step_m:
-                    cos = float(step @ self._ref_dir) / ds
-                    if cos < np.cos(np.deg2rad(cfg.heading_reversal_deg)):
-                        self._swath += 1
-                        self.segment += 1
-                        self._start_xy, self._ref_dir = xy, None
-                        if self._swath % cfg.swaths_per_track == 0:
-                            self.track_id += 1
-                            return True
-                        return False
-                    self._ref_xy = xy
-        if new:
-            self.track_id += 1
-            self.segment += 1
-            self._frames = 1
-        return new
-
-
 class StereoOdometry:
     """Stereo visual odometry with one step method, :meth:`process` (see module doc).
 
@@ -297,7 +248,7 @@ class StereoOdometry:
         self.calibration = calibration
         self.config = config
         self.state = VoState.UNINITIALISED
-        self.segmenter = TrackSegmenter(config)
+        self.segmenter = TrackSegmenter(config.track_rules())
         self._next_id = int(config.first_node_id)
         self._kf_id = -1
         self._kf_track = 0
@@ -468,7 +419,9 @@ class StereoOdometry:
         self._track_pts = pts.copy()
         self._track_idx = np.arange(len(pts))
         self._prev_img = left
-        new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev)
+        step_m = min(cfg.heading_min_step_m,
+                     cfg.heading_min_step_depth_ratio * self._median_depth)
+        new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev, stamp, step_m)
         T_world_kf = self._T_world_kf @ self._T_kf_prev
         kf_id = self._next_id
         self._next_id += 1
