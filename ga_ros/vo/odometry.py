@@ -81,11 +81,12 @@ class VoConfig:
     swaths_per_track : swaths per track in ``'heading'`` mode (a track is a double swath).
     heading_reversal_deg : turn of the travel direction that ends a swath (deg).
     heading_min_step_m : travel between keyframes below which the direction is not updated
-        (m; a hovering platform does not start swaths). The step used is the smaller of this
-        and ``heading_min_step_depth_ratio`` times the median scene depth, so that the rule
-        works from 1 m to 150 m without tuning.
-    heading_min_step_depth_ratio : the same step as a fraction of the median scene depth
-        (0.02: 2.2 m at 110 m, 6 cm at 3 m).
+        (m; a hovering platform does not start swaths); used only when
+        ``heading_min_step_depth_ratio`` is 0.
+    heading_min_step_depth_ratio : the same step as a fraction of the median scene depth at
+        the keyframe (0.02: 1.6 m at 80 m, 6 cm at 3 m), so that every keyframe and track rule
+        scales with the scene and works from 1 m to 150 m without tuning; 0: use
+        ``heading_min_step_m``.
     first_node_id : id of the first keyframe.
     """
 
@@ -419,8 +420,8 @@ class StereoOdometry:
         self._track_pts = pts.copy()
         self._track_idx = np.arange(len(pts))
         self._prev_img = left
-        step_m = min(cfg.heading_min_step_m,
-                     cfg.heading_min_step_depth_ratio * self._median_depth)
+        step_m = (cfg.heading_min_step_depth_ratio * self._median_depth
+                  if cfg.heading_min_step_depth_ratio > 0 else cfg.heading_min_step_m)
         new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev, stamp, step_m)
         T_world_kf = self._T_world_kf @ self._T_kf_prev
         kf_id = self._next_id
