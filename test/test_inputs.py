@@ -3,10 +3,12 @@ odometry whose ground truth and noise are known."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from ga_ros.core.tracks import TrackRules, TrackSegmenter
 from ga_ros.errors import InputError
@@ -301,3 +303,14 @@ def test_constraint_errors_and_node_ids() -> None:
     m = inp.constraint_from_nodes(0, 3, np.eye(4), None)
     assert m.kind == 'cross' and inp.stats.default_covariances == before + 1
     assert inp.stats.constraints == 1
+
+
+def test_yaml_mirrors_config_defaults() -> None:
+    path = Path(__file__).resolve().parents[1] / 'config' / 'inputs.yaml'
+    section = yaml.safe_load(path.read_text())['odom0']
+    expected = {f.name: getattr(OdometryInputConfig(), f.name)
+                for f in fields(OdometryInputConfig) if f.name != 'name'}
+    assert section == expected
+    assert OdometryInputConfig.from_mapping('odom0', section) == OdometryInputConfig()
+    with pytest.raises(InputError, match='unknown input settings'):
+        OdometryInputConfig.from_mapping('odom1', {'keyframe_travle_m': 2.0})

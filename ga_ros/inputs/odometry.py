@@ -59,7 +59,8 @@ External constraints
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -141,6 +142,21 @@ class OdometryInputConfig:
             raise InputError(f'{self.name}: default sigma floors must be > 0')
         self.noise_model()
         self.track_rules()
+
+    @classmethod
+    def from_mapping(cls, name: str, values: Mapping[str, object]) -> OdometryInputConfig:
+        """The config of input ``name`` from a mapping (a section of ``config/inputs.yaml``).
+
+        Raises
+        ------
+        InputError
+            An unknown key (a typo would otherwise be ignored) or an invalid value.
+        """
+        known = {f.name for f in fields(cls)} - {'name'}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise InputError(f'{name}: unknown input settings {unknown}; known: {sorted(known)}')
+        return cls(name=str(name), **dict(values))
 
     def track_rules(self) -> TrackRules:
         """The track-boundary part of this config."""
