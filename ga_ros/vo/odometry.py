@@ -57,13 +57,15 @@ class VoConfig:
     pnp_reprojection_px : RANSAC inlier threshold (px).
     pnp_iterations : RANSAC iterations.
     min_inliers : fewer PnP inliers than this = track lost.
-    sigma_track_px : prior image noise of tracked features at the current frame (px).
-    sigma_disparity_px : prior disparity noise (px).
-    covariance_scale : factor applied to the estimated covariance. The default 1.2 is an
-        empirical calibration: on simulator seeds 1-2 (``ga-ros bench-vo --seed 1``) the raw
-        ``s^2 (J^T C^-1 J)^-1`` gave a mean NEES of 7.7 at 320x240 and 6.8 at 640x480
-        instead of 6 (the per-point model ignores correlated KLT errors); 1.2 is the
-        geometric mean of the two corrections. See the README section on the VO.
+    sigma_track_px : prior image noise of tracked features at the current frame (px): a
+        lower bound of the KLT error on good texture. The motion covariance is
+        ``max(s^2, 1)`` times the prior's (:mod:`ga_ros.vo.motion`): residuals above the prior
+        scale it up, a still camera (residuals of 0.01 px) never shrinks it.
+    sigma_disparity_px : prior disparity noise (px), the same kind of lower bound.
+    covariance_scale : factor applied to the estimated covariance. With the priors 0.07 /
+        0.05 px and ``s^2`` floored at 1, simulator seeds 1-2 (320x240, ``ga-ros bench-vo``)
+        give a mean NEES of 5.5 and 5.1 with 1.0 (the former priors 0.3 / 0.2 px gave 1.2 once
+        floored: 5x too large a covariance, which the unfloored ``s^2`` had hidden).
     keyframe_min_tracked_fraction : new keyframe when fewer inliers than this fraction remain.
     keyframe_max_travel_ratio : new keyframe when travel / median depth exceeds this.
     keyframe_max_rotation_deg : new keyframe when the rotation exceeds this (deg).
@@ -74,7 +76,8 @@ class VoConfig:
     orb_subpixel : refine ORB keypoints with ``cv2.cornerSubPix``.
     keyframe_images : keep each keyframe's left image in its store record (cross-track LK
         refinement; 77 kB per keyframe at 320x240).
-    max_sigma0_sq : a motion whose variance factor exceeds this is treated as a lost track.
+    max_sigma0_sq : a motion whose variance factor exceeds this is treated as a lost track
+        (450: residuals of 1.5 px rms at ``sigma_track_px`` 0.07).
     track_mode : ``'none'`` (one track), ``'frames'`` (a fixed number of keyframes),
         ``'heading'`` (a reversal of the travel direction ends a swath) or ``'external'``.
     keyframes_per_track : keyframes per track in ``'frames'`` mode.
@@ -104,9 +107,9 @@ class VoConfig:
     pnp_reprojection_px: float = 2.0
     pnp_iterations: int = 100
     min_inliers: int = 25
-    sigma_track_px: float = 0.3
-    sigma_disparity_px: float = 0.2
-    covariance_scale: float = 1.2
+    sigma_track_px: float = 0.07
+    sigma_disparity_px: float = 0.05
+    covariance_scale: float = 1.0
     keyframe_min_tracked_fraction: float = 0.5
     keyframe_max_travel_ratio: float = 0.2
     keyframe_max_rotation_deg: float = 15.0
@@ -116,7 +119,7 @@ class VoConfig:
     orb_levels: int = 1
     orb_subpixel: bool = False
     keyframe_images: bool = True
-    max_sigma0_sq: float = 25.0
+    max_sigma0_sq: float = 450.0
     track_mode: str = 'heading'
     keyframes_per_track: int = 0
     swaths_per_track: int = 2
