@@ -19,3 +19,4 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -
   .venv/bin/python -c 'import rclpy, ga_ros' || { echo "[ga_ros] install failed" >&2; exit 1; }
   echo "$want" > "$stamp"
 fi
+bash scripts/build_tf2_msgs.sh || echo "[ga_ros] warning: tf2_msgs not built, no /tf" >&2

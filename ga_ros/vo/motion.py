@@ -11,8 +11,11 @@ and the stereo error of ``X_i`` pushed through the projection:
 The refinement is weighted Gauss-Newton on the right perturbation ``T_src_dst @ exp(xi)``,
 ``xi = [rho, phi]`` (m, rad; ROS order). With ``X_dst = T^-1 X_src``, the perturbed point is
 ``exp(-xi) X_dst ~= X_dst - rho + [X_dst]_x phi``, so ``d X_dst / d xi = [-I, [X_dst]_x]``.
-The covariance is ``s^2 (J^T C^-1 J)^-1`` with the variance factor
-``s^2 = sum_i r_i^T C_i^-1 r_i / (2 n - 6)`` estimated from the residuals.
+The covariance is ``max(s^2, 1) (J^T C^-1 J)^-1`` with the variance factor
+``s^2 = sum_i r_i^T C_i^-1 r_i / (2 n - 6)`` estimated from the residuals. ``s^2`` is floored at
+1: residuals smaller than the prior image noise (a still camera tracks its own image to 0.01 px)
+say nothing about the errors the prior model stands for (calibration, correlated KLT errors), so
+they never shrink the covariance below the prior's ``(J^T C^-1 J)^-1``.
 """
 
 from __future__ import annotations
@@ -74,7 +77,8 @@ class MotionEstimate:
     Attributes
     ----------
     T_src_dst : (4, 4) motion.
-    cov : (6, 6) covariance of the right perturbation of ``T_src_dst``, ``[x y z rx ry rz]``.
+    cov : (6, 6) covariance of the right perturbation of ``T_src_dst``, ``[x y z rx ry rz]``:
+        ``max(s^2, 1) (J^T C^-1 J)^-1``.
     inliers : (n,) mask of the points kept by the chi-square gate.
     n_inliers : number of kept points.
     sigma0_sq : a-posteriori variance factor ``s^2`` (1 when the noise model is right).
@@ -199,7 +203,7 @@ def refine_motion(X_src: FloatArray, uv_dst: FloatArray, K: FloatArray, T_src_ds
     N, _ = _normal(J[keep], W[keep], r[keep])
     s2 = float(chi2[keep].sum() / max(2 * m - 6, 1))
     try:
-        cov = s2 * np.linalg.inv(N)
+        cov = max(s2, 1.0) * np.linalg.inv(N)
     except np.linalg.LinAlgError as exc:
         raise DegenerateGeometryError('singular normal matrix in the motion') from exc
     cov = 0.5 * (cov + cov.T)

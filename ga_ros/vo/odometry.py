@@ -29,6 +29,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.tracks import TrackRules, TrackSegmenter
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3, so3
 from ga_ros.vo.calibration import StereoCalibration
@@ -56,13 +57,15 @@ class VoConfig:
     pnp_reprojection_px : RANSAC inlier threshold (px).
     pnp_iterations : RANSAC iterations.
     min_inliers : fewer PnP inliers than this = track lost.
-    sigma_track_px : prior image noise of tracked features at the current frame (px).
-    sigma_disparity_px : prior disparity noise (px).
-    covariance_scale : factor applied to the estimated covariance. The default 1.2 is an
-        empirical calibration: on simulator seeds 1-2 (``ga-ros bench-vo --seed 1``) the raw
-        ``s^2 (J^T C^-1 J)^-1`` gave a mean NEES of 7.7 at 320x240 and 6.8 at 640x480
-        instead of 6 (the per-point model ignores correlated KLT errors); 1.2 is the
-        geometric mean of the two corrections. See the README section on the VO.
+    sigma_track_px : prior image noise of tracked features at the current frame (px): a
+        lower bound of the KLT error on good texture. The motion covariance is
+        ``max(s^2, 1)`` times the prior's (:mod:`ga_ros.vo.motion`): residuals above the prior
+        scale it up, a still camera (residuals of 0.01 px) never shrinks it.
+    sigma_disparity_px : prior disparity noise (px), the same kind of lower bound.
+    covariance_scale : factor applied to the estimated covariance. With the priors 0.07 /
+        0.05 px and ``s^2`` floored at 1, simulator seeds 1-2 (320x240, ``ga-ros bench-vo``)
+        give a mean NEES of 5.5 and 5.1 with 1.0 (the former priors 0.3 / 0.2 px gave 1.2 once
+        floored: 5x too large a covariance, which the unfloored ``s^2`` had hidden).
     keyframe_min_tracked_fraction : new keyframe when fewer inliers than this fraction remain.
     keyframe_max_travel_ratio : new keyframe when travel / median depth exceeds this.
     keyframe_max_rotation_deg : new keyframe when the rotation exceeds this (deg).
@@ -73,14 +76,20 @@ class VoConfig:
     orb_subpixel : refine ORB keypoints with ``cv2.cornerSubPix``.
     keyframe_images : keep each keyframe's left image in its store record (cross-track LK
         refinement; 77 kB per keyframe at 320x240).
-    max_sigma0_sq : a motion whose variance factor exceeds this is treated as a lost track.
+    max_sigma0_sq : a motion whose variance factor exceeds this is treated as a lost track
+        (450: residuals of 1.5 px rms at ``sigma_track_px`` 0.07).
     track_mode : ``'none'`` (one track), ``'frames'`` (a fixed number of keyframes),
         ``'heading'`` (a reversal of the travel direction ends a swath) or ``'external'``.
     keyframes_per_track : keyframes per track in ``'frames'`` mode.
     swaths_per_track : swaths per track in ``'heading'`` mode (a track is a double swath).
     heading_reversal_deg : turn of the travel direction that ends a swath (deg).
     heading_min_step_m : travel between keyframes below which the direction is not updated
-        (m; a hovering platform does not start swaths).
+        (m; a hovering platform does not start swaths); used only when
+        ``heading_min_step_depth_ratio`` is 0.
+    heading_min_step_depth_ratio : the same step as a fraction of the median scene depth at
+        the keyframe (0.02: 1.6 m at 80 m, 6 cm at 3 m), so that every keyframe and track rule
+        scales with the scene and works from 1 m to 150 m without tuning; 0: use
+        ``heading_min_step_m``.
     first_node_id : id of the first keyframe.
     """
 
@@ -98,9 +107,9 @@ class VoConfig:
     pnp_reprojection_px: float = 2.0
     pnp_iterations: int = 100
     min_inliers: int = 25
-    sigma_track_px: float = 0.3
-    sigma_disparity_px: float = 0.2
-    covariance_scale: float = 1.2
+    sigma_track_px: float = 0.07
+    sigma_disparity_px: float = 0.05
+    covariance_scale: float = 1.0
     keyframe_min_tracked_fraction: float = 0.5
     keyframe_max_travel_ratio: float = 0.2
     keyframe_max_rotation_deg: float = 15.0
@@ -110,19 +119,24 @@ class VoConfig:
     orb_levels: int = 1
     orb_subpixel: bool = False
     keyframe_images: bool = True
-    max_sigma0_sq: float = 25.0
+    max_sigma0_sq: float = 450.0
     track_mode: str = 'heading'
     keyframes_per_track: int = 0
     swaths_per_track: int = 2
     heading_reversal_deg: float = 135.0
     heading_min_step_m: float = 2.0
+    heading_min_step_depth_ratio: float = 0.02
     first_node_id: int = 0
+
+    def track_rules(self) -> TrackRules:
+        """The track-boundary part of this config."""
+        return TrackRules(self.track_mode, self.keyframes_per_track, self.swaths_per_track,
+                          self.heading_reversal_deg, self.heading_min_step_m)
 
     def __post_init__(self) -> None:
         if self.track_mode not in ('none', 'frames', 'heading', 'external'):
             raise InputError(f'unknown track_mode {self.track_mode!r}')
-        if self.track_mode == 'frames' and self.keyframes_per_track < 1:
-            raise InputError('track_mode "frames" needs keyframes_per_track >= 1')
+        self.track_rules()
         if self.max_features < 8 or self.min_inliers < 6 or self.klt_window_px < 5:
             raise InputError('max_features >= 8, min_inliers >= 6, klt_window_px >= 5 required')
 
@@ -225,65 +239,6 @@ class VoResult:
     new_track: bool = False
 
 
-class TrackSegmenter:
-    """Track (and swath) ids from a frame count, a heading reversal, or external requests."""
-
-    def __init__(self, config: VoConfig) -> None:
-        self._cfg = config
-        self.track_id = 0
-        self.segment = 0
-        self._frames = 0
-        self._swath = 0
-        self._ref_dir: FloatArray | None = None
-        self._ref_xy = np.zeros(2)
-        self._start_xy: FloatArray | None = None
-        self._pending = False
-
-    def request_boundary(self) -> None:
-        """Start a new track at the next frame (``'external'`` mode; honoured in every mode)."""
-        self._pending = True
-
-    def update(self, T_world_cam: FloatArray) -> bool:
-        """Advance by one frame at pose ``T_world_cam``; True when a new track starts here."""
-        cfg = self._cfg
-        new = False
-        self._frames += 1
-        if self._pending:
-            self._pending = False
-            new = True
-        elif cfg.track_mode == 'frames' and self._frames > cfg.keyframes_per_track:
-            new = True
-        elif cfg.track_mode == 'heading':
-            xy = np.asarray(T_world_cam, float)[:2, 3]
-            if self._start_xy is None:
-                self._start_xy = xy
-            travel = xy - self._start_xy
-            dist = float(np.linalg.norm(travel))
-            if self._ref_dir is None:
-                if dist >= cfg.heading_min_step_m and self._frames >= 3:
-                    self._ref_dir = travel / dist
-                    self._ref_xy = xy
-            else:
-                step = xy - self._ref_xy
-                ds = float(np.linalg.norm(step))
-                if ds >= cfg.heading_min_step_m:
-                    cos = float(step @ self._ref_dir) / ds
-                    if cos < np.cos(np.deg2rad(cfg.heading_reversal_deg)):
-                        self._swath += 1
-                        self.segment += 1
-                        self._start_xy, self._ref_dir = xy, None
-                        if self._swath % cfg.swaths_per_track == 0:
-                            self.track_id += 1
-                            return True
-                        return False
-                    self._ref_xy = xy
-        if new:
-            self.track_id += 1
-            self.segment += 1
-            self._frames = 1
-        return new
-
-
 class StereoOdometry:
     """Stereo visual odometry with one step method, :meth:`process` (see module doc).
 
@@ -297,7 +252,7 @@ class StereoOdometry:
         self.calibration = calibration
         self.config = config
         self.state = VoState.UNINITIALISED
-        self.segmenter = TrackSegmenter(config)
+        self.segmenter = TrackSegmenter(config.track_rules())
         self._next_id = int(config.first_node_id)
         self._kf_id = -1
         self._kf_track = 0
@@ -468,7 +423,9 @@ class StereoOdometry:
         self._track_pts = pts.copy()
         self._track_idx = np.arange(len(pts))
         self._prev_img = left
-        new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev)
+        step_m = (cfg.heading_min_step_depth_ratio * self._median_depth
+                  if cfg.heading_min_step_depth_ratio > 0 else cfg.heading_min_step_m)
+        new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev, stamp, step_m)
         T_world_kf = self._T_world_kf @ self._T_kf_prev
         kf_id = self._next_id
         self._next_id += 1
