@@ -222,8 +222,8 @@ def test_data_snooping_finds_a_gross_error(rng, test, until):
     rep = quality_control(net, res)
     assert not rep.global_passed
     assert int(np.nanargmax(rep.test_ratio(test))) == bad
-    out = data_snooping(net, initial_guess_f2f(net), config=QualityConfig(snoop_test=test, alpha0=1e-4),
-                        until=until)
+    cfg = QualityConfig(snoop_test=test, alpha0=1e-4)
+    out = data_snooping(net, initial_guess_f2f(net), config=cfg, until=until)
     assert out.removed.tolist() == [bad]
     assert not out.kept[bad] and out.kept.sum() == len(c) - 1
     if until == 'global':
@@ -259,3 +259,27 @@ def test_wrong_network_is_rejected(rng):
     res = solve(other, initial_guess_f2f(other))
     with pytest.raises(InputError):
         quality_control(net, res)
+
+
+def test_banded_and_solved_inverse_blocks_agree(rng):
+    """The banded selected inversion and the sparse-solve fallback give the same blocks."""
+    import scipy.sparse as sp
+
+    from ga_ros.core.quality import _banded_pair_blocks, _inverse_blocks
+
+    net, _ = correlated_problem(rng, 'se3', n=12, gaps=(1, 3, 5))
+    res = solve(net, initial_guess_f2f(net))
+    N = sp.csr_matrix(res.normal_matrix)
+    c = net.arrays()
+    col = {int(i): k for k, i in enumerate(res.free_node_ids)}
+    cs = np.array([col.get(int(net.node_ids[s]), -1) for s in c.src])
+    cd = np.array([col.get(int(net.node_ids[s]), -1) for s in c.dst])
+    rows, cols = np.concatenate([cs, cd, cd]), np.concatenate([cd, cs, cd])
+    dense = np.linalg.inv(N.toarray())
+    band = _banded_pair_blocks(N, 6, rows, cols)
+    assert band is not None
+    solved = _inverse_blocks(N, 6, rows, cols, max_band=0)  # sparse solves
+    for k, (r, cc) in enumerate(zip(rows, cols)):
+        ref = np.zeros((6, 6)) if r < 0 or cc < 0 else dense[6 * r:6 * r + 6, 6 * cc:6 * cc + 6]
+        np.testing.assert_allclose(band[k], ref, atol=1e-12 * np.abs(dense).max())
+        np.testing.assert_allclose(solved[k], ref, atol=1e-12 * np.abs(dense).max())
