@@ -283,3 +283,27 @@ def test_banded_and_solved_inverse_blocks_agree(rng):
         ref = np.zeros((6, 6)) if r < 0 or cc < 0 else dense[6 * r:6 * r + 6, 6 * cc:6 * cc + 6]
         np.testing.assert_allclose(band[k], ref, atol=1e-12 * np.abs(dense).max())
         np.testing.assert_allclose(solved[k], ref, atol=1e-12 * np.abs(dense).max())
+
+
+def test_outlier_benchmark_injection_and_snooping():
+    """The benchmark's injected errors have the requested count and size, and data snooping
+    rejects them on a small aerial survey without touching good connections."""
+    from ga_ros.bench.outliers import inject, run_method
+    from ga_ros.geometry import se3
+    from ga_ros.sim.aerial import aerial_scenario
+    from ga_ros.sim.noise import NoiseModel, perturb
+
+    sc = aerial_scenario(n_tracks=2, positions_per_swath=12)
+    nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(3))
+    z, bad = inject(sc, nm.z, 0.1, (5.0, 15.0), (5.0, 15.0), np.random.default_rng(4))
+    n_cross = int((~sc.consecutive).sum())
+    assert bad.sum() == round(0.1 * n_cross) and not (bad & sc.consecutive).any()
+    np.testing.assert_array_equal(z[~bad], nm.z[~bad])
+    xi = se3.log(se3.inverse(se3.from_translation_rotvec(nm.z[bad, :3], nm.z[bad, 3:]))
+                 @ se3.from_translation_rotvec(z[bad, :3], z[bad, 3:]))
+    size_m = np.linalg.norm(xi[:, :3], axis=1)
+    size_deg = np.degrees(np.linalg.norm(xi[:, 3:], axis=1))
+    assert np.all(((size_m >= 5 - 1e-9) & (size_m <= 15 + 1e-9) & (size_deg < 1e-9)) |
+                  ((size_deg >= 5 - 1e-9) & (size_deg <= 15 + 1e-9) & (size_m < 1e-9)))
+    out = run_method('snoop-w', sc, z, nm.cov, bad, 1e-4, 5)
+    np.testing.assert_array_equal(out.rejected, bad)
