@@ -188,7 +188,7 @@ def test_monte_carlo_linear_model(rng):
     Lc = np.linalg.cholesky(c.cov)
     cfg = QualityConfig(alpha=0.1)
     ws, stats, dofs, rejects = [], [], [], []
-    runs = 300
+    runs = 200
     for _ in range(runs):
         z = z_true + (Lc @ rng.normal(size=(len(c), 6, 1)))[:, :, 0]
         net = ConnectionNetwork.from_arrays(base.node_ids, base.track_ids, c.src, c.dst, z,

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 import scipy.linalg as sla
@@ -116,6 +117,7 @@ class QualityConfig:
         return float(norm.isf(self.alpha0 / 2.0))
 
 
+@lru_cache(maxsize=256)
 def noncentrality(alpha: float, power: float, q: int) -> float:
     """``lambda`` such that a ``chi2(q)`` test of level ``alpha`` rejects ``chi2'(q, lambda)``
     with probability ``power`` (Baarda's ``lambda0(alpha0, beta0, q)``)."""
@@ -123,6 +125,7 @@ def noncentrality(alpha: float, power: float, q: int) -> float:
     return float(brentq(lambda lam: ncx2.sf(c, q, lam) - power, 1e-9, 1e4, xtol=1e-12))
 
 
+@lru_cache(maxsize=256)
 def b_method_alpha(lambda0: float, power: float, q: int) -> float:
     """Level ``alpha_q`` of a ``q``-dimensional test that detects ``lambda0`` with ``power``
     (the B-method: every test is as sensitive as the 1-D w-test)."""
@@ -492,8 +495,9 @@ def _banded_pair_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
             S_kk = Dinv[k].T @ Dinv[k]
             S_low = None
         else:
-            S_low = -S_next @ C[k] @ Dinv[k]  # Sigma_{k+1,k}
-            S_kk = Dinv[k].T @ Dinv[k] - Dinv[k].T @ C[k].T @ S_low
+            X = C[k] @ Dinv[k]
+            S_low = -S_next @ X  # Sigma_{k+1,k}
+            S_kk = Dinv[k].T @ Dinv[k] - X.T @ S_low
         sel = np.nonzero(valid & (step == k))[0]
         if sel.size:
             both = sel[kr[sel] == kc[sel]]
