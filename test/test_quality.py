@@ -13,7 +13,7 @@ from scipy.stats import chi2, ncx2, norm
 from solver_problems import make_problem
 
 from ga_ros.core import models
-from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.quality import (
     QualityConfig,
     b_method_alpha,
@@ -307,3 +307,44 @@ def test_outlier_benchmark_injection_and_snooping():
                   ((size_deg >= 5 - 1e-9) & (size_deg <= 15 + 1e-9) & (size_m < 1e-9)))
     out = run_method('snoop-w', sc, z, nm.cov, bad, 1e-4, 5)
     np.testing.assert_array_equal(out.rejected, bad)
+
+
+def test_outside_connection_test_equals_the_increase_of_the_cost(rng):
+    """Linear model: testing a left-out connection against the adjustment gives exactly the
+    increase of v'Pv when it is added (the sequential-adjustment identity)."""
+    net, _ = correlated_problem(rng, 'linear', n=9)
+    c = net.arrays()
+    out = np.array([2, 11, 20])
+    keep = np.ones(len(c), dtype=bool)
+    keep[out] = False
+    sub = ConnectionNetwork.from_arrays(net.node_ids, net.track_ids, c.src[keep], c.dst[keep],
+                                        c.z[keep], c.cov[keep])
+    cfg = SolverConfig(model='linear')
+    res_sub = solve(sub, initial_guess_f2f(net), cfg)
+    rep = quality_control(sub, res_sub, outside=ConnectionArrays(c.src[out], c.dst[out],
+                                                                 c.z[out], c.cov[out]))
+    for j, k in enumerate(out):
+        keep_k = keep.copy()
+        keep_k[k] = True
+        with_k = ConnectionNetwork.from_arrays(net.node_ids, net.track_ids, c.src[keep_k],
+                                               c.dst[keep_k], c.z[keep_k], c.cov[keep_k])
+        res_k = solve(with_k, initial_guess_f2f(net), cfg)
+        np.testing.assert_allclose(rep.outside_statistic[j], res_k.cost - res_sub.cost,
+                                   rtol=1e-6)
+    assert np.all(rep.outside_critical == chi2.isf(b_method_alpha(rep.lambda0, 0.8, 3), 3))
+
+
+def test_snooping_does_not_readmit_a_gross_error(rng):
+    """With re-admission on, the removed gross error fails the outside test and stays out."""
+    prob = make_problem(rng, 'se3', n=14, noise=1.0, gaps=(1, 2, 3))
+    c = prob.network.arrays()
+    z = c.z.copy()
+    z[17, :3] += np.array([0.6, -0.4, 0.3])
+    net = ConnectionNetwork.from_arrays(prob.network.node_ids, prob.network.track_ids, c.src,
+                                        c.dst, z, c.cov)
+    strict = QualityConfig(snoop_test='w', alpha0=1e-4)
+    out = data_snooping(net, initial_guess_f2f(net), config=strict, readmit=True)
+    assert out.removed.tolist() == [17]
+    chk = quality_control(out.network, out.result, config=strict, outside=ConnectionArrays(
+        c.src[[17]], c.dst[[17]], z[[17]], c.cov[[17]]))
+    assert chk.outside_statistic[0] > 10 * chk.outside_critical[0]
