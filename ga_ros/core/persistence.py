@@ -242,7 +242,6 @@ def _groups(keys: np.ndarray, values: np.ndarray) -> dict[int, list[int]]:
 
 
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
-    from ga_ros.core.solver import solve
     from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 
     cfg = config if config is not None else AlignerConfig(**meta['config'])
@@ -301,11 +300,10 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
     al._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     al._n_updates = int(meta['n_updates'])
     al._n_outliers = int(meta['n_outliers'])
-    if np.asarray(arrays['last_window']).size:  # recompute the last adjustment (covariances)
+    if np.asarray(arrays['last_window']).size:  # the last adjustment, recomputed when needed
         finished = [t for t in al._tracks if t in al._finished]
         window = finished[-al.config.window_tracks:]
-        net, nodes, win_nodes, _, fixed, priors = al._window_problem(window)
-        al._last = solve(net, al._T[nodes], al.config.solver_config(), fixed=fixed,
-                         priors=priors)
-        al._last_window = win_nodes
+        al._last_window = np.array(sorted(i for t in window for i in al._track_nodes[t]),
+                                   dtype=np.int64)
+        al._last_pending = window
     return al

@@ -736,6 +736,24 @@ class TrackWindowAligner:
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
 
     # ------------------------------------------------------------------- persistence
+    @property
+    def _last(self) -> SolveResult | None:
+        """The last window adjustment. A restored state recomputes it on first use (its
+        covariances are needed only to freeze the next leaving track or to answer
+        :meth:`covariances`), so loading a snapshot does not solve anything."""
+        pending = self.__dict__.pop('_last_pending', None)
+        if pending is not None:
+            net, nodes, _, _, fixed, priors = self._window_problem(pending)
+            self.__dict__['_last_result'] = solve(net, self._T[nodes],
+                                                  self.config.solver_config(), fixed=fixed,
+                                                  priors=priors)
+        return self.__dict__.get('_last_result')
+
+    @_last.setter
+    def _last(self, value: SolveResult | None) -> None:
+        self.__dict__.pop('_last_pending', None)
+        self.__dict__['_last_result'] = value
+
     def save(self, path: str | Path, journal_records: int | None = None) -> None:
         """Write the whole state to ``path`` atomically (see :mod:`ga_ros.core.persistence`).
 
