@@ -190,6 +190,23 @@ class AlignerStats:
     last_update: UpdateResult | None = None
 
 
+@dataclass
+class BatchResult:
+    """Outcome of :meth:`TrackWindowAligner.add_measurements`.
+
+    Attributes
+    ----------
+    updates : window updates the batch triggered (one per track end), in order.
+    n_accepted, n_rejected : measurements added / rejected (state unchanged for those).
+    rejected : rejections by reason.
+    """
+
+    updates: list[UpdateResult]
+    n_accepted: int
+    n_rejected: int
+    rejected: dict[str, int]
+
+
 class TrackWindowAligner:
     """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
 
@@ -245,8 +262,53 @@ class TrackWindowAligner:
         Raises :class:`InputError` (and counts it by reason in :attr:`stats`) on a measurement the
         policy in the module docstring rejects; the state is then unchanged.
         """
+        return self._add(m, None)
+
+    def add_measurements(self, ms) -> BatchResult:
+        """Add many measurements in order (a journal replay, a recorded survey): exactly what
+        calling :meth:`add_measurement` on each would do, rejections included, but with the
+        covariances validated together in one vectorised pass. Window updates run at track
+        ends only, as they would live. Never raises for a rejected measurement: see the result.
+        """
+        ms = list(ms)
+        sym = self._check_covariances_batch(ms)
+        updates, rejected = [], {}
+        for k, m in enumerate(ms):
+            try:
+                updates += self._add(m, None if sym is None or np.isnan(sym[k, 0, 0])
+                                     else sym[k])
+            except GaError as exc:
+                reason = getattr(exc, 'reason', 'invalid')
+                rejected[reason] = rejected.get(reason, 0) + 1
+        n_rej = sum(rejected.values())
+        return BatchResult(updates, len(ms) - n_rej, n_rej, rejected)
+
+    def _check_covariances_batch(self, ms) -> FloatArray | None:
+        """Symmetrised covariances of ``ms`` that pass every covariance check, NaN-filled rows
+        for the others (checked again one by one, for the exact reason); ``None`` if the stack
+        cannot be formed."""
+        cfg = self.config
         try:
-            plan = self._check(m)
+            cov = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
+        except (TypeError, ValueError):
+            return None
+        with np.errstate(all='ignore'):
+            amax = np.abs(cov).max(axis=(1, 2), initial=0.0)
+            ok = np.isfinite(cov).all(axis=(1, 2)) & (amax <= cfg.cov_max_eigenvalue)
+            ok &= (np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2), initial=0.0)
+                   <= 1e-6 * np.maximum(amax, 1e-300))
+            sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+            sym[~ok] = np.eye(6)
+            ev = np.linalg.eigvalsh(sym)
+            ok &= (ev[:, 0] > 1e-12 * np.maximum(amax, 1e-300))
+            ok &= (ev[:, 0] >= cfg.cov_min_eigenvalue)
+            ok &= (ev[:, -1] <= cfg.cov_max_condition * ev[:, 0])
+        sym[~ok] = np.nan
+        return sym
+
+    def _add(self, m: Measurement, checked_cov: FloatArray | None) -> list[UpdateResult]:
+        try:
+            plan = self._check(m, checked_cov)
         except GaError as exc:
             reason = getattr(exc, 'reason', 'invalid')
             self._rejected[reason] = self._rejected.get(reason, 0) + 1
@@ -264,7 +326,7 @@ class TrackWindowAligner:
         self._apply(m, plan)
         return updates
 
-    def _check(self, m: Measurement) -> dict:
+    def _check(self, m: Measurement, checked_cov: FloatArray | None = None) -> dict:
         def bad(reason: str, text: str) -> InputError:
             err = InputError(text)
             err.reason = reason
@@ -293,7 +355,10 @@ class TrackWindowAligner:
             raise bad('bad_shape', 'a measurement needs z of 6 values and a 6x6 covariance')
         if not np.isfinite(z).all():
             raise bad('non_finite', f'measurement {src}->{dst} has NaN or inf values')
-        cov = self._check_covariance(cov, f'covariance of {src}->{dst}', bad)
+        if checked_cov is None:
+            cov = self._check_covariance(cov, f'covariance of {src}->{dst}', bad)
+        else:
+            cov = checked_cov
         if src == dst:
             raise bad('self_loop', f'measurement from node {src} to itself')
         if src in self._index and int(m.src_track) != self._track[self._index[src]]:
