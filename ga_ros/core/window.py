@@ -377,7 +377,6 @@ class TrackWindowAligner:
                           f'of {self.config.window_tracks} tracks)')
         ends_track = False
         new_nodes = [n for n in ((src,) if first else ()) + (dst,) if n not in self._index]
-        self._check_jumps(m, new_nodes, bad)
         for node in new_nodes:
             track = int(m.dst_track) if node == dst else int(m.src_track)
             if track in self._finished:
@@ -388,6 +387,7 @@ class TrackWindowAligner:
                     raise bad('out_of_order', f'new node {node} of track {track} arrives after '
                               f'track {self._open_track} began (out of order)')
                 ends_track = True
+        self._check_jumps(m, new_nodes, bad)
         key = (min(src, dst), max(src, dst), hash(z.tobytes() + cov.tobytes()))
         if key in self._pairs:
             raise bad('duplicate', f'measurement {src}->{dst} was already received')

@@ -47,6 +47,7 @@ RECORD = np.dtype(_FIELDS + [('crc', '<u4')])
 _MAGIC = b'GAJOURNAL2\n'
 _MAGIC_V1 = b'GAJOURNAL1\n'
 _PAYLOAD = RECORD_V1.itemsize
+_KIND_AT = RECORD.fields['kind'][1]
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -153,9 +154,19 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         n = len(body) // RECORD.itemsize
         full = np.frombuffer(body, RECORD, count=n)
         scan.torn_tail = len(body) - n * RECORD.itemsize
-        raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(n, -1)
+        raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(
+            n, RECORD.itemsize)
         good = (_crc(raw[:, :_PAYLOAD]) == full['crc']) & (full['kind'] < len(_KINDS))
-        recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
+        if good.all():
+            recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
+        else:  # damage: walk the file, re-synchronising on the next record that verifies
+            offsets, skipped, scan.torn_tail = _resync(body)
+            recs = np.frombuffer(b''.join(body[o:o + _PAYLOAD] for o in offsets), RECORD_V1,
+                                 count=len(offsets)).copy()
+            good = np.ones(len(offsets), dtype=bool)
+            scan.n_damaged += skipped
+            scan.messages.append(f'{path}: {skipped} damaged byte range(s); '
+                                 f'{len(offsets)} intact records kept')
         if not scan.header_ok and not good.any():
             raise FormatError('not a ga_ros measurement journal (bad header, no intact record)',
                               str(path))
@@ -166,6 +177,33 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
                              f'of {n}; {int(good.sum())} intact ones kept')
     scan.records = recs[good]
     return scan
+
+
+def _record_ok(body: bytes, offset: int) -> bool:
+    end = offset + RECORD.itemsize
+    if end > len(body) or body[offset + _KIND_AT] >= len(_KINDS):
+        return False
+    return zlib.crc32(body[offset:offset + _PAYLOAD]) == int.from_bytes(
+        body[offset + _PAYLOAD:end], 'little')
+
+
+def _resync(body: bytes) -> tuple[list[int], int, int]:
+    """Offsets of the records that verify, walking from the start and, after a damaged
+    stretch, trying every byte offset until a record verifies again. Returns the offsets, the
+    number of damaged stretches skipped, and the length of a torn tail (0 if none)."""
+    offsets, skipped, pos, size = [], 0, 0, RECORD.itemsize
+    while pos + size <= len(body):
+        if _record_ok(body, pos):
+            offsets.append(pos)
+            pos += size
+            continue
+        nxt = next((p for p in range(pos + 1, len(body) - size + 1) if _record_ok(body, p)),
+                   None)
+        skipped += 1
+        if nxt is None:
+            return offsets, skipped, 0
+        pos = nxt
+    return offsets, skipped, len(body) - pos
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
@@ -361,10 +399,15 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
     out.journal_records = int(records.size)
     if aligner is not None:
         out.source, out.snapshot_records = 'snapshot', int(snap_records)
-        if snap_records > records.size:
-            out.messages.append(f'the snapshot holds {snap_records} journal records, the journal '
-                                f'only {records.size}: the snapshot is kept as it is')
-        tail = records[min(snap_records, records.size):]
+        if scan.damaged:
+            # the numbering of the records changed: replay every intact one; those already in
+            # the snapshot are rejected (duplicate, frozen) and change nothing
+            tail = records
+        else:
+            if snap_records > records.size:
+                out.messages.append(f'the snapshot holds {snap_records} journal records, the '
+                                    f'journal only {records.size}: the snapshot is kept')
+            tail = records[min(snap_records, records.size):]
     else:
         aligner = out.aligner
         tail = records
@@ -376,7 +419,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
             out.source = 'snapshot+journal'
     out.aligner = aligner
     changed = bool(tail.size or out.moved_aside or snap_records != records.size)
-    if checkpoint and changed and out.source != 'empty':
+    if (checkpoint and changed or scan.damaged) and out.source != 'empty':
         save_state(aligner, state, journal_records=out.journal_records)
     out.seconds = time.perf_counter() - t0
     return out
