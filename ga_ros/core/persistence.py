@@ -226,7 +226,7 @@ def _rows(a: np.ndarray, dtype):
     from ga_ros.core.window import _Rows
     a = np.asarray(a, dtype=dtype)
     rows = _Rows(a.shape[1:], dtype)
-    rows._a = np.zeros((max(64, 2 * a.shape[0]),) + a.shape[1:], dtype=dtype)
+    rows._a = np.zeros((a.shape[0] + max(64, a.shape[0] // 8),) + a.shape[1:], dtype=dtype)
     rows._a[:a.shape[0]] = a
     rows.n = a.shape[0]
     return rows
@@ -242,7 +242,7 @@ def _groups(keys: np.ndarray, values: np.ndarray) -> dict[int, list[int]]:
 
 
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.core.window import AlignerConfig, TrackWindowAligner, measurement_fingerprints
 
     cfg = config if config is not None else AlignerConfig(**meta['config'])
     al = TrackWindowAligner(cfg, np.array(arrays['T_first'], dtype=float))
@@ -286,8 +286,7 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
         two = ts != td
         al._track_conns = _groups(np.concatenate([ts, td[two]]), np.concatenate([k, k[two]]))
         lo, hi = np.minimum(ids[src], ids[dst]).tolist(), np.maximum(ids[src], ids[dst]).tolist()
-        rows = np.concatenate([al._z.a, al._ccov.a.reshape(m, 36)], axis=1)
-        al._pairs = {(a, b, hash(r.tobytes())) for a, b, r in zip(lo, hi, rows)}
+        al._pairs = set(zip(lo, hi, measurement_fingerprints(al._z.a, al._ccov.a)))
     sizes = np.asarray(arrays['prior_sizes'], dtype=np.int64)
     idx_cuts, info_cuts = np.cumsum(sizes)[:-1], np.cumsum((6 * sizes) ** 2)[:-1]
     al._priors = [

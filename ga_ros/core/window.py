@@ -31,6 +31,7 @@ each update by a chi-square test on the Mahalanobis misclosure and excluded.
 from __future__ import annotations
 
 import time
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -53,6 +54,16 @@ from ga_ros.geometry import se3
 
 FREEZE_POLICIES = ('weighted', 'marginal')
 _STATE_VERSION = 1
+
+
+def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
+    """CRC-32 of each measurement's values (rows of ``z`` (m, 6) and ``cov`` (m, 6, 6)), the
+    third part of the duplicate-test key ``(low id, high id, fingerprint)``; two different
+    measurements between the same two nodes share it with probability 2**-32."""
+    rows = np.ascontiguousarray(np.concatenate(
+        [np.reshape(z, (-1, 6)), np.reshape(cov, (-1, 36))], axis=1, dtype=np.float64))
+    flat = memoryview(rows.reshape(-1).view(np.uint8))
+    return [zlib.crc32(flat[k:k + 336]) for k in range(0, flat.nbytes, 336)]
 
 
 class _Rows:
@@ -388,7 +399,7 @@ class TrackWindowAligner:
                               f'track {self._open_track} began (out of order)')
                 ends_track = True
         self._check_jumps(m, new_nodes, bad)
-        key = (min(src, dst), max(src, dst), hash(z.tobytes() + cov.tobytes()))
+        key = (min(src, dst), max(src, dst), zlib.crc32(z.tobytes() + cov.tobytes()))
         if key in self._pairs:
             raise bad('duplicate', f'measurement {src}->{dst} was already received')
         return {'src': src, 'dst': dst, 'z': z, 'cov': cov, 'first': first,
