@@ -58,7 +58,7 @@ def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None
     cut = next(k for k, m in enumerate(ms) if m.dst_track == last_track)
     al = _NoSolveAligner(AlignerConfig())
     t0 = time.perf_counter()
-    batch = al.add_measurements(ms[:cut + 1])          # the last track's first node ends the one before
+    batch = al.add_measurements(ms[:cut + 1])   # the last track begins: the one before ends
     t_fill = time.perf_counter() - t0
     al.__class__ = TrackWindowAligner
     with tempfile.TemporaryDirectory() as tmp:

@@ -184,3 +184,19 @@ def test_an_old_journal_is_converted_and_a_bad_one_refused_for_appending(tmp_pat
     assert res.source == 'journal' and res.records_replayed == 5 and res.moved_aside == []
     MeasurementJournal(journal_path(state)).append(ms[5])
     assert len(read_journal(journal_path(state))) == 6
+
+
+def test_clear_state_removes_only_our_files(tmp_path, ms):
+    from ga_ros.ros.journal import clear_state, write_snapshot_info
+    state, n = tmp_path / 'state', _cut(ms)
+    _live(ms, state, n)
+    write_snapshot_info(state, n)
+    assert len(clear_state(state)) == 3
+    assert not state.exists() and read_journal(journal_path(state)) == []
+    assert recover(state, CFG).source == 'empty'
+    notes = tmp_path / 'notes'
+    notes.write_text('mine')
+    MeasurementJournal(journal_path(notes)).append(ms[0])
+    with pytest.raises(ForeignFileError):
+        clear_state(notes)
+    assert notes.read_text() == 'mine' and len(read_journal(journal_path(notes))) == 1

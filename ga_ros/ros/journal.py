@@ -91,10 +91,11 @@ def _crc(payload: np.ndarray) -> np.ndarray:
 def encode_records(ms: list[Measurement]) -> bytes:
     """The journal records of ``ms`` (with their checksums), ready to append."""
     rec = np.zeros(len(ms), RECORD)
-    for k, m in enumerate(ms):
-        rec[k] = (m.src_id, m.dst_id, m.src_track, m.dst_track, m.stamp_ns,
-                  _KINDS.index(m.kind), np.asarray(m.z, dtype=float).reshape(6),
-                  np.asarray(m.cov, dtype=float).reshape(6, 6), 0)
+    for name in ('src_id', 'dst_id', 'src_track', 'dst_track', 'stamp_ns'):
+        rec[name] = [getattr(m, name) for m in ms]
+    rec['kind'] = [_KINDS.index(m.kind) for m in ms]
+    rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
+    rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
     raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
     rec['crc'] = _crc(raw[:, :_PAYLOAD])
     return rec.tobytes()
@@ -313,6 +314,30 @@ def read_journal(path: str | os.PathLike, start: int = 0) -> list[Measurement]:
     """The intact records of a journal from record ``start`` on, in order (``[]`` if the file
     does not exist). Damaged records are skipped (see :func:`scan_journal`)."""
     return records_to_measurements(scan_journal(path).records[max(int(start), 0):])
+
+
+def clear_state(state_file: str | os.PathLike) -> list[Path]:
+    """Forget a saved state (the ``~/reset`` service): delete the snapshot and its sidecar and
+    empty the journal, but only files that are ga_ros's own; never a foreign file, never through
+    a symbolic link (:class:`ForeignFileError`, :class:`~ga_ros.errors.UnsafePathError`; then
+    nothing at all is changed). Returns the files changed."""
+    state, side, jpath = Path(state_file), snapshot_info_path(state_file), journal_path(state_file)
+    present = [p for p in (state, side, jpath) if check_regular(p)]
+    for p, ours in ((state, is_state_file), (side, _is_sidecar)):
+        if p in present and not ours(p):
+            raise ForeignFileError(f'{p} is not a ga_ros file: nothing was cleared')
+    if jpath in present and os.lstat(jpath).st_size:
+        try:
+            scan_journal(jpath)
+        except FormatError:
+            raise ForeignFileError(f'{jpath} is not a ga_ros journal: nothing was cleared') \
+                from None
+    for p in present:
+        if p == jpath:
+            atomic_write(jpath, _MAGIC)
+        else:
+            os.unlink(p)
+    return present
 
 
 # ------------------------------------------------------------------------------ recovery
