@@ -512,8 +512,10 @@ class TrackWindowAligner:
             return None
         n = len(self._ids)
         open_nodes = np.flatnonzero(~self._frozen[:n])
+        last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
+                if k in self.__dict__}      # as stored: a pending recomputation stays pending
         saved = (self._T[open_nodes].copy(), self._cov[open_nodes].copy(),
-                 self._frozen[:n].copy(), self._status.a.copy(), list(self._priors), self._last,
+                 self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
                  self._last_window, self._n_outliers, self._n_updates)
         track, t0 = self._open_track, time.perf_counter()
         try:
@@ -524,7 +526,9 @@ class TrackWindowAligner:
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
         (self._T[open_nodes], self._cov[open_nodes], self._frozen[:n], self._status.a[:],
-         self._priors, self._last, self._last_window, self._n_outliers, n_updates) = saved
+         self._priors, self._last_window, self._n_outliers, n_updates) = saved
+        self._last = None
+        self.__dict__.update(last)
         self._finished.add(track)
         self._n_updates = n_updates + 1
         up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0), 0, 0,
