@@ -200,3 +200,12 @@ def test_clear_state_removes_only_our_files(tmp_path, ms):
     with pytest.raises(ForeignFileError):
         clear_state(notes)
     assert notes.read_text() == 'mine' and len(read_journal(journal_path(notes))) == 1
+
+
+def test_journal_and_recovery_are_ros_free():
+    """recover() is what the node calls, but it needs no ROS: importable with rclpy blocked."""
+    import subprocess
+    import sys
+    code = ("import sys\nfor n in ('rclpy', 'nav_msgs', 'std_msgs', 'rosidl_runtime_py'):\n"
+            "    sys.modules[n] = None\nimport ga_ros.ros.journal, ga_ros.core.persistence\n")
+    subprocess.run([sys.executable, '-c', code], check=True, timeout=60)
