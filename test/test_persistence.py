@@ -50,6 +50,7 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
     back = load_state(tmp_path / 'state')
     assert back.journal_records == cut
     a, b = _state(al), _state(back.aligner)
+    assert back.aligner._pairs == al._pairs           # the duplicate test is restored too
     for key in a:
         if key == 'priors':
             assert len(a[key]) == len(b[key]) and (policy == 'weighted') == (not a[key])
@@ -92,6 +93,7 @@ def test_version_one_npz_snapshots_are_still_read(tmp_path):
                         n_priors=np.array(0))
     assert is_state_file(tmp_path / 'old.npz')
     back = TrackWindowAligner.load(tmp_path / 'old.npz')
+    assert back._pairs == al._pairs
     np.testing.assert_array_equal(back.corrected_path().T_world_node,
                                   al.corrected_path().T_world_node)
     save_state(back, tmp_path / 'old.npz')            # an old state of ours may be replaced

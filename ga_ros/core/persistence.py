@@ -174,6 +174,7 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         stamp=np.asarray(al._stamp, dtype=np.int64), T=al._T[:n], cov=al._cov[:n],
         frozen=al._frozen[:n], src=al._src.a, dst=al._dst.a, z=al._z.a, ccov=al._ccov.a,
         cross=al._cross.a, status=al._status.a, last_window=al._last_window.astype(np.int64),
+        fingerprint=al._fp.a,
         prior_sizes=sizes,
         prior_idx=cat([idx for idx, _, _ in al._priors], ()).astype(np.int64),
         prior_mean=cat([mean for _, mean, _ in al._priors], (4, 4)),
@@ -286,7 +287,11 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
         two = ts != td
         al._track_conns = _groups(np.concatenate([ts, td[two]]), np.concatenate([k, k[two]]))
         lo, hi = np.minimum(ids[src], ids[dst]).tolist(), np.maximum(ids[src], ids[dst]).tolist()
-        al._pairs = set(zip(lo, hi, measurement_fingerprints(al._z.a, al._ccov.a)))
+        fp = arrays.get('fingerprint')
+        fp = (np.asarray(fp, dtype=np.uint32) if fp is not None and fp.shape == (m,) else
+              np.array(measurement_fingerprints(al._z.a, al._ccov.a), dtype=np.uint32))
+        al._fp = _rows(fp, np.uint32)
+        al._pairs = set(zip(lo, hi, fp.tolist()))
     sizes = np.asarray(arrays['prior_sizes'], dtype=np.int64)
     idx_cuts, info_cuts = np.cumsum(sizes)[:-1], np.cumsum((6 * sizes) ** 2)[:-1]
     al._priors = [

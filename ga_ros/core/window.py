@@ -251,6 +251,7 @@ class TrackWindowAligner:
         self._cross = _Rows((), bool)
         self._status = _Rows((), np.int64)
         self._pairs: set[tuple[int, int, int]] = set()
+        self._fp = _Rows((), np.uint32)  # third part of each connection's duplicate key
         # tracks
         self._tracks: list[int] = []  # in order of appearance
         self._track_nodes: dict[int, list[int]] = {}
@@ -473,6 +474,7 @@ class TrackWindowAligner:
         self._cross.append(m.kind != 'consecutive')
         self._status.append(0)
         self._pairs.add(plan['key'])
+        self._fp.append(plan['key'][2])
         for t in {self._track[i], self._track[j]}:
             self._track_conns.setdefault(t, []).append(k)
 
