@@ -82,10 +82,13 @@ def read_snapshot_info(state_file: str | os.PathLike) -> int:
         return 0
 
 
-def _crc(payload: np.ndarray) -> np.ndarray:
-    """CRC-32 of each row of a ``(n, 377)`` uint8 array."""
-    return np.fromiter((zlib.crc32(row) for row in payload), dtype=np.uint32,
-                       count=payload.shape[0])
+def _crc(records: np.ndarray) -> np.ndarray:
+    """CRC-32 of the first 377 bytes (the payload) of each row of a contiguous ``(n, 381)``
+    uint8 array of records."""
+    flat = memoryview(np.ascontiguousarray(records).reshape(-1))
+    size = RECORD.itemsize
+    return np.fromiter((zlib.crc32(flat[k:k + _PAYLOAD]) for k in range(0, flat.nbytes, size)),
+                       dtype=np.uint32, count=records.shape[0])
 
 
 def encode_records(ms: list[Measurement]) -> bytes:
@@ -97,7 +100,7 @@ def encode_records(ms: list[Measurement]) -> bytes:
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
     raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
-    rec['crc'] = _crc(raw[:, :_PAYLOAD])
+    rec['crc'] = _crc(raw)
     return rec.tobytes()
 
 
@@ -157,7 +160,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         scan.torn_tail = len(body) - n * RECORD.itemsize
         raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(
             n, RECORD.itemsize)
-        good = (_crc(raw[:, :_PAYLOAD]) == full['crc']) & (full['kind'] < len(_KINDS))
+        good = (_crc(raw) == full['crc']) & (full['kind'] < len(_KINDS))
         if good.all():
             recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
         else:  # damage: walk the file, re-synchronising on the next record that verifies
@@ -464,6 +467,6 @@ def _rewrite_journal(path: Path, records: np.ndarray) -> None:
     for name in RECORD_V1.names:
         rec[name] = records[name]
     raw = rec.view(np.uint8).reshape(records.size, RECORD.itemsize)
-    rec['crc'] = _crc(raw[:, :_PAYLOAD])
+    rec['crc'] = _crc(raw)
     atomic_write(path, [_MAGIC, rec.tobytes()])
 
