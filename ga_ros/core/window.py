@@ -53,7 +53,6 @@ from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 
 FREEZE_POLICIES = ('weighted', 'marginal')
-_STATE_VERSION = 1
 
 
 def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
