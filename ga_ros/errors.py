@@ -73,3 +73,20 @@ class FormatError(InputError):
         super().__init__(where + message)
         self.path = path
         self.line = line
+
+
+class UnsafePathError(InputError):
+    """A path is a symbolic link or not a regular file: it is never opened, replaced or deleted.
+
+    Remove the link (or choose another path) if it is not meant to be there.
+    """
+
+
+class ForeignFileError(InputError):
+    """A file exists where ga_ros would write its own (a state file, a journal), but it is not one
+    of ga_ros's: it is left untouched. Choose another path or move the file away."""
+
+
+class CorruptFileError(FormatError):
+    """A ga_ros file (state snapshot, journal) fails its checksum or is cut short; whatever is
+    intact is kept and the file is moved aside, never deleted."""

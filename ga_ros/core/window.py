@@ -19,7 +19,9 @@ The cost of an update depends on the window only, not on the number of tracks fl
 
 Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
 :class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
-covariance that is not symmetric positive definite; a self-loop; ids outside ``[0, 2**63)``;
+covariance that is not symmetric positive definite or outside the configured eigenvalue range
+and condition number (``bad_covariance``); a self-loop; ids outside ``[0, 2**63)``; a new node or
+track id far above the largest seen (``id_jump``, ``track_jump``); an unknown ``kind``;
 an unknown source node (every measurement after the first must start at a known node); a new node
 of an older track than the current one (out of order); a re-delivered identical measurement; an
 endpoint on a frozen track. Gross outliers among overlap (cross) connections are detected after
@@ -28,8 +30,8 @@ each update by a chi-square test on the Mahalanobis misclosure and excluded.
 
 from __future__ import annotations
 
-import json
 import time
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -51,7 +53,16 @@ from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 
 FREEZE_POLICIES = ('weighted', 'marginal')
-_STATE_VERSION = 1
+
+
+def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
+    """CRC-32 of each measurement's values (rows of ``z`` (m, 6) and ``cov`` (m, 6, 6)), the
+    third part of the duplicate-test key ``(low id, high id, fingerprint)``; two different
+    measurements between the same two nodes share it with probability 2**-32."""
+    rows = np.ascontiguousarray(np.concatenate(
+        [np.reshape(z, (-1, 6)), np.reshape(cov, (-1, 36))], axis=1, dtype=np.float64))
+    flat = memoryview(rows.reshape(-1).view(np.uint8))
+    return [zlib.crc32(flat[k:k + 336]) for k in range(0, flat.nbytes, 336)]
 
 
 class _Rows:
@@ -91,6 +102,16 @@ class AlignerConfig:
     robust_loss, robust_scale : optional Huber/Cauchy loss on the Mahalanobis misclosure.
     outlier_chi2_prob : chi-square quantile of the misclosure test that excludes cross
         connections after an update (6 degrees of freedom); 0 disables the test.
+    cov_min_eigenvalue : smallest eigenvalue a measurement covariance may have (m^2 / rad^2);
+        default 1e-12, i.e. a standard deviation of 1 um / 1 urad. Smaller ones (e.g. 1e-20 I)
+        make the normal matrix numerically singular; they are rejected as ``bad_covariance``.
+    cov_max_eigenvalue : largest eigenvalue (m^2 / rad^2); default 1e6 (1 km / 1000 rad): larger
+        ones are placeholders for "unknown" (e.g. 1e308 I), rejected as ``bad_covariance``.
+    cov_max_condition : largest ratio of the largest to the smallest eigenvalue; default 1e12.
+    max_track_jump : largest step of a new track id above the largest track id seen (default
+        100); a far-ahead id (track 1,000,000 after track 3) would end the survey. 0 = no limit.
+    max_node_id_jump : largest step of a new node id above the largest node id seen (default
+        10**7); e.g. a node id 2**53 after 500 is rejected (``id_jump``). 0 = no limit.
     """
 
     window_tracks: int = 5
@@ -102,6 +123,11 @@ class AlignerConfig:
     robust_loss: str = 'none'
     robust_scale: float = 3.0
     outlier_chi2_prob: float = 0.99999
+    cov_min_eigenvalue: float = 1e-12
+    cov_max_eigenvalue: float = 1e6
+    cov_max_condition: float = 1e12
+    max_track_jump: int = 100
+    max_node_id_jump: int = 10_000_000
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -115,6 +141,13 @@ class AlignerConfig:
                              'frame; use ga-ros solve/reproduce for the paper model')
         if not 0.0 <= self.outlier_chi2_prob < 1.0:
             raise InputError('outlier_chi2_prob must be in [0, 1)')
+        if not 0.0 < self.cov_min_eigenvalue < self.cov_max_eigenvalue < np.inf:
+            raise InputError('need 0 < cov_min_eigenvalue < cov_max_eigenvalue < inf, got '
+                             f'{self.cov_min_eigenvalue}, {self.cov_max_eigenvalue}')
+        if not 1.0 <= self.cov_max_condition < np.inf:
+            raise InputError(f'cov_max_condition must be >= 1, got {self.cov_max_condition}')
+        if int(self.max_track_jump) < 0 or int(self.max_node_id_jump) < 0:
+            raise InputError('max_track_jump and max_node_id_jump must be >= 0 (0 = no limit)')
         self.solver_config()  # validates the remaining fields
 
     def solver_config(self) -> SolverConfig:
@@ -167,6 +200,23 @@ class AlignerStats:
     last_update: UpdateResult | None = None
 
 
+@dataclass
+class BatchResult:
+    """Outcome of :meth:`TrackWindowAligner.add_measurements`.
+
+    Attributes
+    ----------
+    updates : window updates the batch triggered (one per track end), in order.
+    n_accepted, n_rejected : measurements added / rejected (state unchanged for those).
+    rejected : rejections by reason.
+    """
+
+    updates: list[UpdateResult]
+    n_accepted: int
+    n_rejected: int
+    rejected: dict[str, int]
+
+
 class TrackWindowAligner:
     """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
 
@@ -200,6 +250,7 @@ class TrackWindowAligner:
         self._cross = _Rows((), bool)
         self._status = _Rows((), np.int64)
         self._pairs: set[tuple[int, int, int]] = set()
+        self._fp = _Rows((), np.uint32)  # third part of each connection's duplicate key
         # tracks
         self._tracks: list[int] = []  # in order of appearance
         self._track_nodes: dict[int, list[int]] = {}
@@ -222,12 +273,62 @@ class TrackWindowAligner:
         Raises :class:`InputError` (and counts it by reason in :attr:`stats`) on a measurement the
         policy in the module docstring rejects; the state is then unchanged.
         """
+        return self._add(m, None)
+
+    def add_measurements(self, ms) -> BatchResult:
+        """Add many measurements in order (a journal replay, a recorded survey): exactly what
+        calling :meth:`add_measurement` on each would do, rejections included, but with the
+        covariances validated together in one vectorised pass. Window updates run at track
+        ends only, as they would live. Never raises for a rejected measurement: see the result.
+        """
+        ms = list(ms)
+        sym = self._check_covariances_batch(ms)
+        updates, rejected = [], {}
+        for k, m in enumerate(ms):
+            try:
+                updates += self._add(m, None if sym is None or np.isnan(sym[k, 0, 0])
+                                     else sym[k])
+            except GaError as exc:
+                reason = getattr(exc, 'reason', 'invalid')
+                rejected[reason] = rejected.get(reason, 0) + 1
+        n_rej = sum(rejected.values())
+        return BatchResult(updates, len(ms) - n_rej, n_rej, rejected)
+
+    def _check_covariances_batch(self, ms) -> FloatArray | None:
+        """Symmetrised covariances of ``ms`` that pass every covariance check, NaN-filled rows
+        for the others (checked again one by one, for the exact reason); ``None`` if the stack
+        cannot be formed."""
+        cfg = self.config
         try:
-            plan = self._check(m)
-        except InputError as exc:
+            cov = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
+        except (TypeError, ValueError):
+            return None
+        with np.errstate(all='ignore'):
+            amax = np.abs(cov).max(axis=(1, 2), initial=0.0)
+            ok = np.isfinite(cov).all(axis=(1, 2)) & (amax <= cfg.cov_max_eigenvalue)
+            ok &= (np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2), initial=0.0)
+                   <= 1e-6 * np.maximum(amax, 1e-300))
+            sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+            sym[~ok] = np.eye(6)
+            ev = np.linalg.eigvalsh(sym)
+            ok &= (ev[:, 0] > 1e-12 * np.maximum(amax, 1e-300))
+            ok &= (ev[:, 0] >= cfg.cov_min_eigenvalue)
+            ok &= (ev[:, -1] <= cfg.cov_max_condition * ev[:, 0])
+        sym[~ok] = np.nan
+        return sym
+
+    def _add(self, m: Measurement, checked_cov: FloatArray | None) -> list[UpdateResult]:
+        try:
+            plan = self._check(m, checked_cov)
+        except GaError as exc:
             reason = getattr(exc, 'reason', 'invalid')
             self._rejected[reason] = self._rejected.get(reason, 0) + 1
             raise
+        except Exception as exc:  # noqa: BLE001 - whatever the input, only GaError escapes
+            self._rejected['invalid'] = self._rejected.get('invalid', 0) + 1
+            err = InputError(f'invalid measurement ({type(exc).__name__}: {exc})')
+            err.reason = 'invalid'
+            raise err from None
         updates = []
         if plan['ends_track']:
             up = self.finish_track()
@@ -236,7 +337,7 @@ class TrackWindowAligner:
         self._apply(m, plan)
         return updates
 
-    def _check(self, m: Measurement) -> dict:
+    def _check(self, m: Measurement, checked_cov: FloatArray | None = None) -> dict:
         def bad(reason: str, text: str) -> InputError:
             err = InputError(text)
             err.reason = reason
@@ -251,16 +352,24 @@ class TrackWindowAligner:
             if not ok:
                 raise bad('bad_id', f'{name} must be an integer in [0, 2**63), got {v!r}')
         src, dst = int(m.src_id), int(m.dst_id)
+        try:
+            ok = int(m.stamp_ns) == m.stamp_ns and -2**63 <= int(m.stamp_ns) < 2**63
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise bad('bad_stamp', f'stamp_ns must be an integer (ns), got {m.stamp_ns!r}')
+        if m.kind not in ('consecutive', 'cross'):
+            raise bad('bad_kind', f"kind must be 'consecutive' or 'cross', got {m.kind!r}")
         z = np.asarray(m.z, dtype=float).reshape(-1)
         cov = np.asarray(m.cov, dtype=float)
         if z.shape != (6,) or cov.shape != (6, 6):
             raise bad('bad_shape', 'a measurement needs z of 6 values and a 6x6 covariance')
         if not np.isfinite(z).all():
             raise bad('non_finite', f'measurement {src}->{dst} has NaN or inf values')
-        try:
-            cov = check_covariances(cov[None], what=f'covariance of {src}->{dst}')[0]
-        except InputError as exc:
-            raise bad('bad_covariance', str(exc)) from None
+        if checked_cov is None:
+            cov = self._check_covariance(cov, f'covariance of {src}->{dst}', bad)
+        else:
+            cov = checked_cov
         if src == dst:
             raise bad('self_loop', f'measurement from node {src} to itself')
         if src in self._index and int(m.src_track) != self._track[self._index[src]]:
@@ -289,11 +398,64 @@ class TrackWindowAligner:
                     raise bad('out_of_order', f'new node {node} of track {track} arrives after '
                               f'track {self._open_track} began (out of order)')
                 ends_track = True
-        key = (min(src, dst), max(src, dst), hash(z.tobytes() + cov.tobytes()))
+        self._check_jumps(m, new_nodes, bad)
+        key = (min(src, dst), max(src, dst), zlib.crc32(z.tobytes() + cov.tobytes()))
         if key in self._pairs:
             raise bad('duplicate', f'measurement {src}->{dst} was already received')
         return {'src': src, 'dst': dst, 'z': z, 'cov': cov, 'first': first,
                 'ends_track': ends_track, 'key': key}
+
+    def _check_covariance(self, cov: FloatArray, what: str, bad) -> FloatArray:
+        """Finite, symmetric, positive definite, and within the configured eigenvalue range and
+        condition number (``bad_covariance`` otherwise); returns the symmetrised matrix."""
+        cfg = self.config
+        if not np.isfinite(cov).all():
+            raise bad('bad_covariance', f'{what} has NaN or inf entries')
+        if np.abs(cov).max() > cfg.cov_max_eigenvalue:  # >= one eigenvalue that large
+            raise bad('bad_covariance', f'{what} has entries up to {np.abs(cov).max():.3g}, above '
+                      f'cov_max_eigenvalue {cfg.cov_max_eigenvalue:.3g} (a placeholder for '
+                      '"unknown"?); send a real covariance or raise the limit')
+        try:
+            cov = check_covariances(cov[None], what=what)[0]
+        except InputError as exc:
+            raise bad('bad_covariance', str(exc)) from None
+        ev = np.linalg.eigvalsh(cov)
+        if ev[0] < cfg.cov_min_eigenvalue:
+            raise bad('bad_covariance', f'{what} has an eigenvalue {ev[0]:.3g} below '
+                      f'cov_min_eigenvalue {cfg.cov_min_eigenvalue:.3g}: too small to be '
+                      'solved with; check the units or raise the limit')
+        if ev[-1] > cfg.cov_max_condition * ev[0]:
+            raise bad('bad_covariance', f'{what} has condition number {ev[-1] / ev[0]:.3g}, '
+                      f'above cov_max_condition {cfg.cov_max_condition:.3g}')
+        return cov
+
+    def _check_jumps(self, m: Measurement, new_nodes: list[int], bad) -> None:
+        """New node and track ids must be within the configured jump of the largest seen."""
+        cfg = self.config
+        max_id, max_track = self._seen_max()
+        ref_id = max(max_id, int(m.src_id))
+        for node in new_nodes:
+            if cfg.max_node_id_jump and node - ref_id > cfg.max_node_id_jump:
+                raise bad('id_jump', f'new node id {node} is {node - ref_id} above the largest '
+                          f'seen ({ref_id}); max_node_id_jump is {cfg.max_node_id_jump}')
+        ref_track = max_track if max_track >= 0 else int(m.src_track)
+        for track in {int(m.src_track), int(m.dst_track)}:
+            if cfg.max_track_jump and track - ref_track > cfg.max_track_jump:
+                raise bad('track_jump', f'track id {track} is {track - ref_track} above the '
+                          f'largest seen ({ref_track}); max_track_jump is {cfg.max_track_jump}')
+
+    def _seen_max(self) -> tuple[int, int]:
+        """Largest node id and track id seen so far (-1 before the first measurement); kept
+        up to date incrementally."""
+        n = self._idarr.n
+        done, max_id, max_track = getattr(self, '_seen_cache', (0, -1, -1))
+        if done != n:
+            if done > n:
+                done, max_id, max_track = 0, -1, -1
+            max_id = max(max_id, int(self._idarr.a[done:].max()))
+            max_track = max(max_track, int(self._trackarr.a[done:].max()))
+            self._seen_cache = (n, max_id, max_track)
+        return max_id, max_track
 
     def _apply(self, m: Measurement, plan: dict) -> None:
         src, dst = plan['src'], plan['dst']
@@ -311,6 +473,7 @@ class TrackWindowAligner:
         self._cross.append(m.kind != 'consecutive')
         self._status.append(0)
         self._pairs.add(plan['key'])
+        self._fp.append(plan['key'][2])
         for t in {self._track[i], self._track[j]}:
             self._track_conns.setdefault(t, []).append(k)
 
@@ -337,8 +500,46 @@ class TrackWindowAligner:
         self._track_nodes[track].append(k)
         self._open_track = track
 
-    # ----------------------------------------------------------------------- updates
     def finish_track(self) -> UpdateResult | None:
+        """End the open track and adjust the window (returns ``None`` if there is no open
+        track).
+
+        If the update fails for any reason (a solver failure, a numerical error while freezing),
+        every estimate (poses, covariances, frozen flags, connection status, priors) is put back
+        as it was before the call, the track stays finished (the next update retries it inside
+        its window) and the returned result's ``reason`` starts with ``'failed'``. Only
+        :class:`~ga_ros.errors.GaError` can escape."""
+        if self._open_track is None or self._open_track in self._finished:
+            return None
+        n = len(self._ids)
+        open_nodes = np.flatnonzero(~self._frozen[:n])
+        last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
+                if k in self.__dict__}      # as stored: a pending recomputation stays pending
+        saved = (self._T[open_nodes].copy(), self._cov[open_nodes].copy(),
+                 self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
+                 self._last_window, self._n_outliers, self._n_updates)
+        track, t0 = self._open_track, time.perf_counter()
+        try:
+            up = self._finish_track()
+            if not str(up.reason).startswith('failed'):
+                return up
+            error = up.reason[len('failed: '):]
+        except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
+            error = f'{type(exc).__name__}: {exc}'
+        (self._T[open_nodes], self._cov[open_nodes], self._frozen[:n], self._status.a[:],
+         self._priors, self._last_window, self._n_outliers, n_updates) = saved
+        self._last = None
+        self.__dict__.update(last)
+        self._finished.add(track)
+        self._n_updates = n_updates + 1
+        up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0), 0, 0,
+                          min(len(self._finished), self.config.window_tracks), 0,
+                          f'failed: {error}')
+        self._last_update = up
+        return up
+
+    # ----------------------------------------------------------------------- updates
+    def _finish_track(self) -> UpdateResult | None:
         """End the open track and adjust the window (returns ``None`` if there is no open
         track). On a solver failure the previous estimate stands and the result says why."""
         if self._open_track is None or self._open_track in self._finished:
@@ -616,90 +817,38 @@ class TrackWindowAligner:
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
 
     # ------------------------------------------------------------------- persistence
-    def save(self, path: str | Path) -> None:
-        """Write the whole state to ``path`` (a ``.npz`` file), atomically."""
-        path = Path(path)
-        n = len(self._ids)
-        meta = {
-            'version': _STATE_VERSION, 'config': asdict(self.config),
-            'tracks': self._tracks, 'finished': sorted(self._finished),
-            'open_track': self._open_track, 'rejected': self._rejected,
-            'n_updates': self._n_updates, 'n_outliers': self._n_outliers,
-            'last_window': self._last_window.tolist(),
-        }
-        arrays = dict(
-            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-            T_first=self._T_first, ids=np.asarray(self._ids, dtype=np.int64),
-            track=np.asarray(self._track, dtype=np.int64),
-            stamp=np.asarray(self._stamp, dtype=np.int64), T=self._T[:n], cov=self._cov[:n],
-            frozen=self._frozen[:n], src=self._src.a, dst=self._dst.a, z=self._z.a,
-            ccov=self._ccov.a, cross=self._cross.a, status=self._status.a,
-            n_priors=np.array(len(self._priors)))
-        for p, (idx, mean, info) in enumerate(self._priors):
-            arrays[f'prior{p}_idx'] = idx
-            arrays[f'prior{p}_mean'] = mean
-            arrays[f'prior{p}_info'] = info
-        tmp = path.with_name(path.name + '.tmp.npz')
-        np.savez_compressed(tmp, **arrays)
-        tmp.replace(path)
+    @property
+    def _last(self) -> SolveResult | None:
+        """The last window adjustment. A restored state recomputes it on first use (its
+        covariances are needed only to freeze the next leaving track or to answer
+        :meth:`covariances`), so loading a snapshot does not solve anything."""
+        pending = self.__dict__.pop('_last_pending', None)
+        if pending is not None:
+            net, nodes, _, _, fixed, priors = self._window_problem(pending)
+            self.__dict__['_last_result'] = solve(net, self._T[nodes],
+                                                  self.config.solver_config(), fixed=fixed,
+                                                  priors=priors)
+        return self.__dict__.get('_last_result')
+
+    @_last.setter
+    def _last(self, value: SolveResult | None) -> None:
+        self.__dict__.pop('_last_pending', None)
+        self.__dict__['_last_result'] = value
+
+    def save(self, path: str | Path, journal_records: int | None = None) -> None:
+        """Write the whole state to ``path`` atomically (see :mod:`ga_ros.core.persistence`).
+
+        An existing file at ``path`` that is not a ga_ros state is refused
+        (:class:`~ga_ros.errors.ForeignFileError`) and left untouched."""
+        from ga_ros.core.persistence import save_state
+        save_state(self, path, journal_records)
 
     @classmethod
-    def load(cls, path: str | Path) -> TrackWindowAligner:
+    def load(cls, path: str | Path, config: AlignerConfig | None = None) -> TrackWindowAligner:
         """Restore a state written by :meth:`save`; the next update re-adjusts the window.
 
-        Raises :class:`InputError` if the file is unreadable or inconsistent."""
-        try:
-            return cls._load(path)
-        except GaError:
-            raise
-        except (OSError, ValueError, KeyError, IndexError, TypeError,
-                np.linalg.LinAlgError) as exc:
-            raise InputError(f'cannot restore aligner state from {path}: {exc}') from None
-
-    @classmethod
-    def _load(cls, path: str | Path) -> TrackWindowAligner:
-        try:
-            data = np.load(Path(path), allow_pickle=False)
-            meta = json.loads(bytes(data['meta']).decode())
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(f'cannot read aligner state {path}: {exc}') from None
-        if meta.get('version') != _STATE_VERSION:
-            raise InputError(f'{path}: unsupported state version {meta.get("version")}')
-        self = cls(AlignerConfig(**meta['config']), data['T_first'])
-        for k, node in enumerate(data['ids'].tolist()):
-            self._add_node(int(node), int(data['track'][k]), int(data['stamp'][k]),
-                           data['T'][k])
-        n = len(self._ids)
-        self._cov[:n] = data['cov']
-        self._frozen[:n] = data['frozen']
-        self._tracks = [int(t) for t in meta['tracks']]
-        self._finished = {int(t) for t in meta['finished']}
-        self._open_track = meta['open_track']
-        for k in range(data['src'].size):
-            i, j = int(data['src'][k]), int(data['dst'][k])
-            self._src.append(i)
-            self._dst.append(j)
-            self._z.append(data['z'][k])
-            self._ccov.append(data['ccov'][k])
-            self._cross.append(bool(data['cross'][k]))
-            self._status.append(int(data['status'][k]))
-            self._pairs.add((min(self._ids[i], self._ids[j]), max(self._ids[i], self._ids[j]),
-                             hash(data['z'][k].tobytes() + data['ccov'][k].tobytes())))
-            for t in {self._track[i], self._track[j]}:
-                self._track_conns.setdefault(t, []).append(k)
-        for p in range(int(data['n_priors'])):
-            self._priors.append((data[f'prior{p}_idx'], data[f'prior{p}_mean'],
-                                 data[f'prior{p}_info']))
-        self._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
-        self._n_updates = int(meta['n_updates'])
-        self._n_outliers = int(meta['n_outliers'])
-        last_window = np.asarray(meta['last_window'], dtype=np.int64)
-        if last_window.size:  # recompute the last adjustment so covariances are available
-            finished = [t for t in self._tracks if t in self._finished]
-            window = finished[-self.config.window_tracks:]
-            net, nodes, win_nodes, _, fixed, priors = self._window_problem(window)
-            self._last = solve(net, self._T[nodes], self.config.solver_config(), fixed=fixed,
-                               priors=priors)
-            self._last_window = win_nodes
-        return self
-
+        Raises :class:`InputError` (:class:`~ga_ros.errors.ForeignFileError`,
+        :class:`~ga_ros.errors.CorruptFileError`) if the file is not a ga_ros state, fails its
+        checksum or is inconsistent."""
+        from ga_ros.core.persistence import load_state
+        return load_state(path, config).aligner

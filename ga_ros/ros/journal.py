@@ -1,31 +1,53 @@
-"""Append-only journal of every accepted measurement (ROS-free): the node's crash insurance.
+"""Append-only journal of every accepted measurement, and crash recovery (ROS-free).
 
 The alignment node appends each measurement it accepted to ``<state_file>.journal``, one
-fixed-size binary record each, flushed to the OS at once, so even ``kill -9`` loses nothing. It
-also saves aligner snapshots (``state_file``, ``.npz``) after window updates, together with the
-number of journal records they contain (``<state_file>.json``). On restart it loads the snapshot
-and replays the records after it; if there is no usable snapshot it replays the whole journal
-into a fresh aligner, which reproduces the state exactly (the aligner is deterministic). A
-truncated last record (a crash mid-write) is ignored and cut off before the next append.
+fixed-size binary record each, written to the OS at once, so even ``kill -9`` loses nothing. It
+also saves aligner snapshots (``state_file``, see :mod:`ga_ros.core.persistence`) after window
+updates; a snapshot stores how many journal records it contains (and the ``<state_file>.json``
+sidecar repeats it for older snapshots). :func:`recover` rebuilds the state on restart: the
+snapshot if it verifies, plus the journal records after it, replayed in one batch.
+
+Journal format: the header ``GAJOURNAL2\\n`` then records of :data:`RECORD` (little-endian,
+381 bytes), each ending with the CRC-32 of its other bytes. Version-1 journals (``GAJOURNAL1``,
+no CRC) are still read. What is done with damage:
+
+* a record cut short at the end (a crash mid-write) is ignored and cut off before the next
+  append: it was never acknowledged;
+* a record whose CRC fails, a bad header, or a snapshot that fails its checksum: whatever still
+  verifies is kept, the damaged file is moved aside to ``<name>.corrupt-<UTC time>`` (never
+  deleted) with a message, and a repaired journal holding the intact records takes its place;
+* files are never opened through symbolic links, and a state file that is not a ga_ros state is
+  refused (:class:`~ga_ros.errors.ForeignFileError`) and left untouched.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
+import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import FormatError
+from ga_ros.core.persistence import is_state_file, load_state, save_state
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
+from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 
 _KINDS = ('consecutive', 'cross')
-#: One record per measurement (little-endian, 377 bytes).
-RECORD = np.dtype([('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'),
-                   ('dst_track', '<i8'), ('stamp_ns', '<i8'), ('kind', 'u1'),
-                   ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))])
-_MAGIC = b'GAJOURNAL1\n'
+_FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
+           ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
+#: One version-1 record (no checksum, 377 bytes).
+RECORD_V1 = np.dtype(_FIELDS)
+#: One record: the measurement, then the CRC-32 of its 377 bytes (little-endian, 381 bytes).
+RECORD = np.dtype(_FIELDS + [('crc', '<u4')])
+_MAGIC = b'GAJOURNAL2\n'
+_MAGIC_V1 = b'GAJOURNAL1\n'
+_PAYLOAD = RECORD_V1.itemsize
+_KIND_AT = RECORD.fields['kind'][1]
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -38,31 +60,171 @@ def snapshot_info_path(state_file: str | os.PathLike) -> Path:
     return Path(str(state_file) + '.json')
 
 
+def _is_sidecar(path: Path) -> bool:
+    try:
+        return 'journal_records' in json.loads(read_bytes(path))
+    except (OSError, ValueError, TypeError, GaError):
+        return False
+
+
 def write_snapshot_info(state_file: str | os.PathLike, journal_records: int) -> None:
     """Record (atomically) how many journal records the snapshot ``state_file`` contains."""
-    path = snapshot_info_path(state_file)
-    tmp = path.with_name(path.name + '.tmp')
-    tmp.write_text(json.dumps({'journal_records': int(journal_records)}))
-    os.replace(tmp, path)
+    atomic_write(snapshot_info_path(state_file),
+                 json.dumps({'journal_records': int(journal_records)}).encode(),
+                 is_ours=_is_sidecar)
 
 
 def read_snapshot_info(state_file: str | os.PathLike) -> int:
     """Journal records contained in the snapshot (0 if the sidecar is missing or bad)."""
     try:
-        return int(json.loads(snapshot_info_path(state_file).read_text())['journal_records'])
-    except (OSError, ValueError, KeyError, TypeError):
+        return int(json.loads(read_bytes(snapshot_info_path(state_file)))['journal_records'])
+    except (OSError, ValueError, KeyError, TypeError, GaError):
         return 0
 
 
-def _complete_records(path: Path) -> int:
-    size = path.stat().st_size
-    if size < len(_MAGIC):
-        return 0
-    return (size - len(_MAGIC)) // RECORD.itemsize
+def _crc(records: np.ndarray) -> np.ndarray:
+    """CRC-32 of the first 377 bytes (the payload) of each row of a contiguous ``(n, 381)``
+    uint8 array of records."""
+    flat = memoryview(np.ascontiguousarray(records).reshape(-1))
+    size = RECORD.itemsize
+    return np.fromiter((zlib.crc32(flat[k:k + _PAYLOAD]) for k in range(0, flat.nbytes, size)),
+                       dtype=np.uint32, count=records.shape[0])
+
+
+def encode_records(ms: list[Measurement]) -> bytes:
+    """The journal records of ``ms`` (with their checksums), ready to append."""
+    rec = np.zeros(len(ms), RECORD)
+    for name in ('src_id', 'dst_id', 'src_track', 'dst_track', 'stamp_ns'):
+        rec[name] = [getattr(m, name) for m in ms]
+    rec['kind'] = [_KINDS.index(m.kind) for m in ms]
+    rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
+    rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
+    raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
+    rec['crc'] = _crc(raw)
+    return rec.tobytes()
+
+
+@dataclass
+class JournalScan:
+    """What :func:`scan_journal` found in a journal file.
+
+    Attributes
+    ----------
+    records : structured array (:data:`RECORD_V1` fields) of the intact records, in order.
+    n_damaged : records whose checksum (or kind) failed, plus a bad header counted as one.
+    torn_tail : bytes of a record cut short at the end (a crash mid-write; not damage).
+    header_ok : the header is one of the known magic strings.
+    messages : what was wrong, for the log.
+    """
+
+    records: np.ndarray
+    n_damaged: int = 0
+    torn_tail: int = 0
+    header_ok: bool = True
+    messages: list[str] = field(default_factory=list)
+
+    @property
+    def damaged(self) -> bool:
+        return self.n_damaged > 0
+
+
+def scan_journal(path: str | os.PathLike) -> JournalScan:
+    """Read a journal and sort its records into intact and damaged ones (see module doc).
+
+    A missing or empty file gives no records. Raises :class:`UnsafePathError` for a symbolic
+    link, :class:`FormatError` for a file that holds no ga_ros journal record at all.
+    """
+    path = Path(path)
+    empty = np.zeros(0, RECORD_V1)
+    if not check_regular(path):
+        return JournalScan(empty)
+    data = read_bytes(path)
+    if not data:
+        return JournalScan(empty)
+    head = data[:len(_MAGIC)]
+    scan = JournalScan(empty)
+    if head == _MAGIC_V1:
+        body = data[len(_MAGIC):]
+        n = len(body) // _PAYLOAD
+        recs = np.frombuffer(body, RECORD_V1, count=n).copy()
+        scan.torn_tail = len(body) - n * _PAYLOAD
+        good = recs['kind'] < len(_KINDS)
+    else:
+        if head != _MAGIC:
+            scan.header_ok = False
+            scan.n_damaged += 1
+            scan.messages.append(f'{path}: bad journal header {head!r}')
+        body = data[len(_MAGIC):]
+        n = len(body) // RECORD.itemsize
+        full = np.frombuffer(body, RECORD, count=n)
+        scan.torn_tail = len(body) - n * RECORD.itemsize
+        raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(
+            n, RECORD.itemsize)
+        good = (_crc(raw) == full['crc']) & (full['kind'] < len(_KINDS))
+        if good.all():
+            recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
+        else:  # damage: walk the file, re-synchronising on the next record that verifies
+            offsets, skipped, scan.torn_tail = _resync(body)
+            recs = np.frombuffer(b''.join(body[o:o + _PAYLOAD] for o in offsets), RECORD_V1,
+                                 count=len(offsets)).copy()
+            good = np.ones(len(offsets), dtype=bool)
+            scan.n_damaged += skipped
+            scan.messages.append(f'{path}: {skipped} damaged byte range(s); '
+                                 f'{len(offsets)} intact records kept')
+        if not scan.header_ok and not good.any():
+            raise FormatError('not a ga_ros measurement journal (bad header, no intact record)',
+                              str(path))
+    bad = np.flatnonzero(~good)
+    if bad.size:
+        scan.n_damaged += int(bad.size)
+        scan.messages.append(f'{path}: {bad.size} damaged record(s) (first #{int(bad[0])}) '
+                             f'of {n}; {int(good.sum())} intact ones kept')
+    scan.records = recs[good]
+    return scan
+
+
+def _record_ok(body: bytes, offset: int) -> bool:
+    end = offset + RECORD.itemsize
+    if end > len(body) or body[offset + _KIND_AT] >= len(_KINDS):
+        return False
+    return zlib.crc32(body[offset:offset + _PAYLOAD]) == int.from_bytes(
+        body[offset + _PAYLOAD:end], 'little')
+
+
+def _resync(body: bytes) -> tuple[list[int], int, int]:
+    """Offsets of the records that verify, walking from the start and, after a damaged
+    stretch, trying every byte offset until a record verifies again. Returns the offsets, the
+    number of damaged stretches skipped, and the length of a torn tail (0 if none)."""
+    offsets, skipped, pos, size = [], 0, 0, RECORD.itemsize
+    while pos + size <= len(body):
+        if _record_ok(body, pos):
+            offsets.append(pos)
+            pos += size
+            continue
+        nxt = next((p for p in range(pos + 1, len(body) - size + 1) if _record_ok(body, p)),
+                   None)
+        skipped += 1
+        if nxt is None:
+            return offsets, skipped, 0
+        pos = nxt
+    return offsets, skipped, len(body) - pos
+
+
+def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
+    """Journal records (structured array) as :class:`Measurement` objects, in order."""
+    cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
+                                       'stamp_ns', 'kind')]
+    z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
+    return [Measurement(a, b, c, d, z[k], cov[k], e, _KINDS[f])
+            for k, (a, b, c, d, e, f) in enumerate(zip(*cols))]
 
 
 class MeasurementJournal:
     """Appends measurements to ``path`` (created with a magic header if missing).
+
+    The file is never opened through a symbolic link (:class:`UnsafePathError`). A file with a
+    bad header or damaged records is refused (:class:`CorruptFileError`): run :func:`recover`
+    first, which repairs it without losing the intact records.
 
     Attributes
     ----------
@@ -71,83 +233,240 @@ class MeasurementJournal:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
-        self._file = None
-        self.count = _complete_records(self.path) if self.path.exists() else 0
+        self._fd: int | None = None
+        self.count = self._complete_records()
+
+    def _complete_records(self) -> int:
+        if not check_regular(self.path):
+            return 0
+        size = os.lstat(self.path).st_size
+        return max(size - len(_MAGIC), 0) // RECORD.itemsize
 
     def _open(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        exists = self.path.exists() and self.path.stat().st_size >= len(_MAGIC)
-        self._file = open(self.path, 'r+b' if exists else 'wb')  # noqa: SIM115 - kept open
-        if exists:
-            if self._file.read(len(_MAGIC)) != _MAGIC:
-                self._file.close()
-                self._file = None
-                raise FormatError('not a ga_ros measurement journal', str(self.path))
-            self.count = _complete_records(self.path)
-            end = len(_MAGIC) + self.count * RECORD.itemsize
-            self._file.truncate(end)          # drop a record cut short by a crash
-            self._file.seek(end)
-        else:
-            self._file.write(_MAGIC)
-            self.count = 0
+        fd = open_nofollow(self.path, os.O_RDWR | os.O_CREAT)
+        try:
+            size = os.fstat(fd).st_size
+            if size == 0:
+                os.write(fd, _MAGIC)
+                self.count = 0
+            else:
+                head = os.pread(fd, len(_MAGIC), 0)
+                if head != _MAGIC:
+                    raise CorruptFileError(
+                        'not a version-2 ga_ros journal (bad header or an old version); run '
+                        'ga_ros.ros.journal.recover() on the state file to repair or convert '
+                        'it', str(self.path))
+                self.count = (size - len(_MAGIC)) // RECORD.itemsize
+                end = len(_MAGIC) + self.count * RECORD.itemsize
+                os.ftruncate(fd, end)     # drop a record cut short by a crash
+                os.lseek(fd, end, os.SEEK_SET)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
 
     def append(self, m: Measurement) -> None:
-        """Write one record and flush it to the OS (survives a killed process)."""
-        if self._file is None:
+        """Write one record to the OS at once (survives a killed process)."""
+        self.append_many([m])
+
+    def append_many(self, ms: list[Measurement]) -> None:
+        """Write several records in one system call."""
+        if not ms:
+            return
+        if self._fd is None:
             self._open()
-        rec = np.zeros(1, RECORD)
-        rec['src_id'], rec['dst_id'] = m.src_id, m.dst_id
-        rec['src_track'], rec['dst_track'] = m.src_track, m.dst_track
-        rec['stamp_ns'], rec['kind'] = m.stamp_ns, _KINDS.index(m.kind)
-        rec['z'][0] = m.z
-        rec['cov'][0] = m.cov
-        self._file.write(rec.tobytes())
-        self._file.flush()
-        self.count += 1
+        data = encode_records(ms)
+        written = os.write(self._fd, data)
+        while written < len(data):
+            written += os.write(self._fd, data[written:])
+        self.count += len(ms)
+
+    def sync(self) -> None:
+        """``fsync`` the journal (durability across a power cut, not only a killed process)."""
+        if self._fd is not None:
+            os.fsync(self._fd)
 
     def truncate(self, n: int) -> None:
         """Keep the first ``n`` records only (the state was restored to a snapshot holding
         them)."""
         n = max(0, min(int(n), self.count))
         self.close()
-        if self.path.exists():
-            with open(self.path, 'r+b') as f:
-                f.truncate(len(_MAGIC) + n * RECORD.itemsize)
+        if check_regular(self.path):
+            fd = open_nofollow(self.path, os.O_RDWR)
+            try:
+                os.ftruncate(fd, len(_MAGIC) + n * RECORD.itemsize)
+            finally:
+                os.close(fd)
         self.count = n
 
     def clear(self) -> None:
-        """Drop every record."""
+        """Drop every record (the file keeps only its header)."""
         self.close()
-        self.path.unlink(missing_ok=True)
+        if check_regular(self.path):
+            atomic_write(self.path, _MAGIC)
         self.count = 0
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def read_journal(path: str | os.PathLike, start: int = 0) -> list[Measurement]:
-    """The complete records of a journal from record ``start`` on, in order (``[]`` if the file
-    does not exist)."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    data = path.read_bytes()
-    if not data:
-        return []
-    if not data.startswith(_MAGIC):
-        raise FormatError('not a ga_ros measurement journal', str(path))
-    body = data[len(_MAGIC):]
-    n = len(body) // RECORD.itemsize
-    recs = np.frombuffer(body[:n * RECORD.itemsize], dtype=RECORD)[max(int(start), 0):]
-    out = []
-    for r in recs:
-        kind = int(r['kind'])
-        if kind >= len(_KINDS):
-            raise FormatError(f'bad kind {kind} in a journal record', str(path))
-        out.append(Measurement(int(r['src_id']), int(r['dst_id']), int(r['src_track']),
-                               int(r['dst_track']), np.array(r['z'], dtype=float),
-                               np.array(r['cov'], dtype=float), int(r['stamp_ns']),
-                               _KINDS[kind]))
+    """The intact records of a journal from record ``start`` on, in order (``[]`` if the file
+    does not exist). Damaged records are skipped (see :func:`scan_journal`)."""
+    return records_to_measurements(scan_journal(path).records[max(int(start), 0):])
+
+
+def clear_state(state_file: str | os.PathLike) -> list[Path]:
+    """Forget a saved state (the ``~/reset`` service): delete the snapshot and its sidecar and
+    empty the journal, but only files that are ga_ros's own; never a foreign file, never through
+    a symbolic link (:class:`ForeignFileError`, :class:`~ga_ros.errors.UnsafePathError`; then
+    nothing at all is changed). Returns the files changed."""
+    state, side, jpath = Path(state_file), snapshot_info_path(state_file), journal_path(state_file)
+    present = [p for p in (state, side, jpath) if check_regular(p)]
+    for p, ours in ((state, is_state_file), (side, _is_sidecar)):
+        if p in present and not ours(p):
+            raise ForeignFileError(f'{p} is not a ga_ros file: nothing was cleared')
+    if jpath in present and os.lstat(jpath).st_size:
+        try:
+            scan_journal(jpath)
+        except FormatError:
+            raise ForeignFileError(f'{jpath} is not a ga_ros journal: nothing was cleared') \
+                from None
+    for p in present:
+        if p == jpath:
+            atomic_write(jpath, _MAGIC)
+        else:
+            os.unlink(p)
+    return present
+
+
+# ------------------------------------------------------------------------------ recovery
+@dataclass
+class RecoveryResult:
+    """What :func:`recover` restored.
+
+    Attributes
+    ----------
+    aligner : the restored aligner (empty if there was nothing to restore).
+    source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
+    snapshot_records : journal records the snapshot contained (0 without a snapshot).
+    records_replayed : journal records replayed after the snapshot and accepted.
+    records_rejected : replayed records the aligner rejected (e.g. already in the snapshot).
+    journal_records : records in the journal now (the count the next snapshot must store).
+    moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
+    messages : one line per event, for the log (warnings when anything was damaged).
+    seconds : wall time of the recovery.
+    """
+
+    aligner: TrackWindowAligner
+    source: str
+    snapshot_records: int = 0
+    records_replayed: int = 0
+    records_rejected: int = 0
+    journal_records: int = 0
+    moved_aside: list[Path] = field(default_factory=list)
+    messages: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
+            checkpoint: bool = True) -> RecoveryResult:
+    """Rebuild the aligner from ``state_file`` and its journal, keeping every intact record.
+
+    Parameters
+    ----------
+    state_file : the snapshot path (its journal is ``<state_file>.journal``).
+    config : aligner settings for a state rebuilt from the journal alone, and for the snapshot
+        (default: the snapshot's own, else :class:`AlignerConfig` defaults).
+    checkpoint : after replaying records or repairing a file, write a fresh snapshot holding
+        the journal's record count, so snapshot and journal agree again.
+
+    Raises
+    ------
+    ForeignFileError : ``state_file`` exists and is not a ga_ros state (left untouched).
+    UnsafePathError : ``state_file`` or the journal is a symbolic link or not a regular file.
+
+    Damaged files are moved aside (never deleted) and reported in ``messages``; a damaged
+    journal never discards an intact snapshot, nor a damaged snapshot an intact journal.
+    """
+    t0 = time.perf_counter()
+    state, jpath = Path(state_file), journal_path(state_file)
+    out = RecoveryResult(TrackWindowAligner(config or AlignerConfig()), 'empty')
+    check_regular(jpath)
+    aligner, snap_records = None, 0
+    if check_regular(state):
+        if not is_state_file(state):
+            raise ForeignFileError(f'state_file {state} exists and is not a ga_ros state; it is '
+                                   'left untouched: choose another state_file')
+        try:
+            saved = load_state(state, config)
+            aligner = saved.aligner
+            snap_records = (saved.journal_records if saved.journal_records is not None
+                            else read_snapshot_info(state))
+        except InputError as exc:
+            out.moved_aside.append(move_aside(state))
+            out.messages.append(f'snapshot {state} is damaged ({exc}); moved aside to '
+                                f'{out.moved_aside[-1].name}, rebuilding from the journal')
+    try:
+        scan = scan_journal(jpath)
+    except FormatError as exc:
+        scan = JournalScan(np.zeros(0, RECORD_V1), n_damaged=1, header_ok=False,
+                           messages=[str(exc)])
+    out.messages += scan.messages
+    if scan.damaged or (check_regular(jpath) and os.lstat(jpath).st_size
+                        and not _has_v2_header(jpath)):
+        if scan.damaged:
+            out.moved_aside.append(move_aside(jpath))
+            out.messages.append(f'journal {jpath} moved aside to {out.moved_aside[-1].name}; '
+                                f'{scan.records.size} intact records kept')
+        _rewrite_journal(jpath, scan.records)
+    records = scan.records
+    out.journal_records = int(records.size)
+    if aligner is not None:
+        out.source, out.snapshot_records = 'snapshot', int(snap_records)
+        if scan.damaged:
+            # the numbering of the records changed: replay every intact one; those already in
+            # the snapshot are rejected (duplicate, frozen) and change nothing
+            tail = records
+        else:
+            if snap_records > records.size:
+                out.messages.append(f'the snapshot holds {snap_records} journal records, the '
+                                    f'journal only {records.size}: the snapshot is kept')
+            tail = records[min(snap_records, records.size):]
+    else:
+        aligner = out.aligner
+        tail = records
+        out.source = 'journal' if records.size else 'empty'
+    if tail.size:
+        batch = aligner.add_measurements(records_to_measurements(tail))
+        out.records_replayed, out.records_rejected = batch.n_accepted, batch.n_rejected
+        if out.source == 'snapshot':
+            out.source = 'snapshot+journal'
+    out.aligner = aligner
+    changed = bool(tail.size or out.moved_aside or snap_records != records.size)
+    if (checkpoint and changed or scan.damaged) and out.source != 'empty':
+        save_state(aligner, state, journal_records=out.journal_records)
+    out.seconds = time.perf_counter() - t0
     return out
+
+
+def _has_v2_header(path: Path) -> bool:
+    fd = open_nofollow(path, os.O_RDONLY)
+    try:
+        return os.pread(fd, len(_MAGIC), 0) == _MAGIC
+    finally:
+        os.close(fd)
+
+
+def _rewrite_journal(path: Path, records: np.ndarray) -> None:
+    """Write a version-2 journal holding ``records`` (atomically, never through a link)."""
+    rec = np.zeros(records.size, RECORD)
+    for name in RECORD_V1.names:
+        rec[name] = records[name]
+    raw = rec.view(np.uint8).reshape(records.size, RECORD.itemsize)
+    rec['crc'] = _crc(raw)
+    atomic_write(path, [_MAGIC, rec.tobytes()])
+

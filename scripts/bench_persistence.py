@@ -1,0 +1,108 @@
+"""Benchmark: aligner snapshot save/load and crash recovery at survey scale.
+
+Prints, for the paper's aerial survey (5,100 nodes, 29,896 connections) and a scaled one
+(~100k nodes), the time to save and to load a snapshot, its size, and the time of
+``ga_ros.ros.journal.recover`` for a snapshot plus the whole measurement journal (the node's
+restart after ``kill -9``), and the rate of the batched journal replay.
+
+The states are filled by a stand-in for the window updates (tracks marked finished, leaving
+tracks frozen with a fixed covariance, no solve), so the figures measure persistence and
+replay only; ``--full-replay`` also times recovery from the journal alone with real window
+updates (one per track, as live). Run: ``python scripts/bench_persistence.py [--full-replay]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.core.persistence import load_state, save_state
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.ros.journal import MeasurementJournal, journal_path, recover
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+
+
+class _NoSolveAligner(TrackWindowAligner):
+    """Fills a state of the right size and shape quickly: track ends freeze without solving."""
+
+    def finish_track(self):
+        if self._open_track is None or self._open_track in self._finished:
+            return None
+        self._finished.add(self._open_track)
+        finished = [t for t in self._tracks if t in self._finished]
+        for t in finished[:-self.config.window_tracks]:
+            nodes = self._track_nodes[t]
+            if not self._frozen[nodes[0]]:
+                self._cov[nodes] = 1e-4 * np.eye(6)
+                self._frozen[nodes] = True
+        self._n_updates += 1
+        return None
+
+
+def _measurements(n_tracks: int, per_swath: int):
+    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
+    nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(0))
+    return sc.measurements(nm.z, nm.cov)
+
+
+def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None:
+    t0 = time.perf_counter()
+    ms = _measurements(n_tracks, per_swath)
+    t_sim = time.perf_counter() - t0
+    last_track = max(m.dst_track for m in ms)
+    cut = next(k for k, m in enumerate(ms) if m.dst_track == last_track)
+    al = _NoSolveAligner(AlignerConfig())
+    t0 = time.perf_counter()
+    batch = al.add_measurements(ms[:cut + 1])   # the last track begins: the one before ends
+    t_fill = time.perf_counter() - t0
+    al.__class__ = TrackWindowAligner
+    with tempfile.TemporaryDirectory() as tmp:
+        state = Path(tmp) / 'state'
+        t0 = time.perf_counter()
+        save_state(al, state, journal_records=cut + 1)
+        t_save = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        back = load_state(state).aligner
+        t_load = time.perf_counter() - t0
+        assert back.stats.n_connections == al.stats.n_connections
+        journal = MeasurementJournal(journal_path(state))
+        t0 = time.perf_counter()
+        for k in range(0, len(ms), 4096):
+            journal.append_many(ms[k:k + 4096])
+        journal.close()
+        t_journal = time.perf_counter() - t0
+        res = recover(state, AlignerConfig(), checkpoint=False)
+        print(f'{label}: {al.stats.n_nodes:,} nodes, {al.stats.n_connections:,} connections in '
+              f'the snapshot, {len(ms):,} journal records (simulated in {t_sim:.1f} s; state '
+              f'filled at {batch.n_accepted / t_fill:,.0f} measurements/s)')
+        print(f'  snapshot: save {t_save * 1e3:7.1f} ms, load {t_load * 1e3:7.1f} ms, '
+              f'save+load {(t_save + t_load) * 1e3:7.1f} ms, '
+              f'{state.stat().st_size / 2**20:.1f} MiB')
+        print(f'  journal write (batched): {t_journal * 1e3:.1f} ms')
+        print(f'  recover (snapshot + {res.records_replayed:,} journal records replayed, '
+              f'{res.records_rejected} rejected): {res.seconds:.2f} s  [{res.source}]')
+        if full_replay:
+            state.unlink()
+            res = recover(state, AlignerConfig(), checkpoint=False)
+            print(f'  recover from the journal alone ({res.records_replayed:,} records, '
+                  f'{len(res.aligner._finished)} window updates): {res.seconds:.1f} s')
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--full-replay', action='store_true',
+                    help='also recover the aerial survey from its journal alone (real updates)')
+    ap.add_argument('--no-large', action='store_true', help='skip the ~100k-node survey')
+    args = ap.parse_args()
+    _bench('aerial survey', 25, 102, args.full_replay)
+    if not args.no_large:
+        _bench('scaled survey', 100, 500, False)
+
+
+if __name__ == '__main__':
+    main()
