@@ -17,17 +17,20 @@ from ga_ros.tools import multihost as mh
 NS = '{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}'
 
 
-def test_fastdds_profiles_are_udp_only_with_the_peers_listed() -> None:
-    for discovery, peers in (('multicast', []), ('peers', ['10.214.14.1', '10.214.14.3'])):
-        root = ET.fromstring(mh.fastdds_profile(discovery, ['10.214.14.1', '10.214.14.3']))
-        rtps = root.find(f'.//{NS}participant/{NS}rtps')
-        assert rtps.find(f'{NS}useBuiltinTransports').text == 'false'  # no shared memory
-        kinds = [t.text for t in root.iter(f'{NS}type')]
-        assert kinds == ['UDPv4']
-        got = [a.text for a in rtps.iter(f'{NS}address')]
-        assert got == peers
+def test_fastdds_profile_is_udp_only() -> None:
+    root = ET.fromstring(mh.fastdds_profile())
+    rtps = root.find(f'.//{NS}participant/{NS}rtps')
+    assert rtps.find(f'{NS}useBuiltinTransports').text == 'false'  # no shared memory
+    assert [t.text for t in root.iter(f'{NS}type')] == ['UDPv4']
+
+
+def test_discovery_environment() -> None:
+    env = mh.discovery_env('peers', ['10.214.14.1', '10.214.14.3'])
+    assert env == {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+                   'ROS_STATIC_PEERS': '10.214.14.1;10.214.14.3'}
+    assert mh.discovery_env('multicast', ['x'])['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
     with pytest.raises(mh.GaError):
-        mh.fastdds_profile('broadcast', [])
+        mh.discovery_env('broadcast', [])
 
 
 def test_track_latencies_from_recorded_times() -> None:
@@ -74,7 +77,7 @@ def test_three_hosts_path_equals_the_replay(tmp_path: Path, namespaces_ok) -> No
 @pytest.mark.skipif(os.environ.get('GA_ROS_MULTIHOST_PEERS') != '1',
                     reason='a second ~60 s run; set GA_ROS_MULTIHOST_PEERS=1 to run it')
 def test_three_hosts_with_a_peers_list_and_no_multicast(tmp_path: Path, namespaces_ok) -> None:
-    """Unicast discovery from the profile's initial peers list; the switch drops multicast."""
+    """Unicast discovery from ROS_STATIC_PEERS; the switch drops every multicast frame."""
     res = mh.run_demo(tmp_path, 'peers', rate=5.0, stereo_replay=False, timeout_s=90)
     print(mh.format_result(res))
     assert res.ok, res.errors

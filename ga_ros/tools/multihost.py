@@ -14,9 +14,10 @@ packet ever appears in the machine's own network stack, and deleting the namespa
 Fast DDS runs with UDPv4 only (an XML profile with the built-in transports off: no
 shared-memory shortcut between processes of one machine), so every byte between the hosts
 crosses the bridge (the interface counters are reported). Discovery is either multicast (SPDP
-on 239.255.0.1, the default of DDS) or an explicit peers list (``discovery='peers'``: the
-profile's ``initialPeersList`` holds the other hosts' addresses, and the switch floods no
-multicast frame to its ports, as on networks that drop multicast).
+on 239.255.0.1, the default of DDS) or an explicit peers list (``discovery='peers'``:
+``ROS_STATIC_PEERS`` holds the other hosts' addresses, ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is
+``LOCALHOST``, and the switch floods no multicast frame to its ports, as on networks that drop
+multicast; with multicast discovery the hosts then do not find each other, checked by hand).
 
 After the run, the path received on host 3 is compared with ``ga-ros replay`` of the
 measurements host 3 received (same input: must be identical) and with ``ga-ros replay`` of the
@@ -63,7 +64,7 @@ PROFILE_TEMPLATE = """<?xml version="1.0" encoding="UTF-8" ?>
     <participant profile_name="ga_multihost" is_default_profile="true">
       <rtps>
         <userTransports><transport_id>ga_udp</transport_id></userTransports>
-        <useBuiltinTransports>false</useBuiltinTransports>{builtin}
+        <useBuiltinTransports>false</useBuiltinTransports>
       </rtps>
     </participant>
     <data_writer profile_name="ga_multihost_writer" is_default_profile="true">
@@ -72,28 +73,29 @@ PROFILE_TEMPLATE = """<?xml version="1.0" encoding="UTF-8" ?>
   </profiles>
 </dds>
 """
-PEERS_TEMPLATE = """
-        <builtin>
-          <initialPeersList>{locators}
-          </initialPeersList>
-        </builtin>"""
-LOCATOR = """
-            <locator><udpv4><address>{address}</address></udpv4></locator>"""
-
-
 class MultihostUnavailable(GaError):
     """Network namespaces cannot be created here (not root, no iproute2, no CAP_NET_ADMIN)."""
 
 
-def fastdds_profile(discovery: str, peers: list[str]) -> str:
-    """The Fast DDS XML profile of a host: UDPv4 only; with ``discovery='peers'`` an initial
-    peers list of the other hosts' addresses (unicast discovery, no multicast needed)."""
+def fastdds_profile() -> str:
+    """The Fast DDS XML profile of every host: UDPv4 only (no shared memory between processes
+    of one machine, so all traffic between hosts crosses the bridge) and a 20 ms heartbeat."""
+    return PROFILE_TEMPLATE
+
+
+def discovery_env(discovery: str, peers: list[str]) -> dict[str, str]:
+    """Environment of a host's ROS processes for a discovery mode.
+
+    ``'multicast'``: DDS's default SPDP multicast on the subnet. ``'peers'``: Jazzy's
+    ``ROS_STATIC_PEERS`` (``;``-separated addresses of the other hosts) with
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: unicast discovery of the listed hosts only,
+    for networks without multicast.
+    """
     if discovery == 'multicast':
-        return PROFILE_TEMPLATE.format(builtin='')
-    if discovery != 'peers':
-        raise GaError(f"discovery must be 'multicast' or 'peers', got {discovery!r}")
-    locs = ''.join(LOCATOR.format(address=a) for a in peers)
-    return PROFILE_TEMPLATE.format(builtin=PEERS_TEMPLATE.format(locators=locs))
+        return {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET', 'ROS_STATIC_PEERS': ''}
+    if discovery == 'peers':
+        return {'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST', 'ROS_STATIC_PEERS': ';'.join(peers)}
+    raise GaError(f"discovery must be 'multicast' or 'peers', got {discovery!r}")
 
 
 def unavailable_reason() -> str | None:
@@ -329,7 +331,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
     Parameters
     ----------
     out_dir : logs, the mapping node's outputs, replays and ``summary.json``.
-    discovery : ``'multicast'`` or ``'peers'`` (explicit initial peers, no multicast route).
+    discovery : ``'multicast'`` or ``'peers'`` (``ROS_STATIC_PEERS``; the switch drops multicast).
     impair : also try ``tc netem`` 5 % loss + 20 ms delay (reported in ``netem``).
     rate : ``ga-ros play --rate`` (the stereo sample has 2 pairs/s of bag time).
     stereo_replay : also replay the stereo bag in-process and compare (adds ~10-20 s).
@@ -346,15 +348,13 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
         res.netem = net.netem if impair else 'not requested'
         log('hosts: ' + ', '.join(f'{h} {net.ns[h]} {net.address[h]}' for h in HOSTS)
             + f'; switch {net.switch}; discovery {discovery}; netem {res.netem}')
+        prof = out / 'fastdds_udp.xml'
+        prof.write_text(fastdds_profile())
         env_base = {'ROS_DOMAIN_ID': str(17 + os.getpid() % 80), 'PYTHONUNBUFFERED': '1',
-                    'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp', 'ROS_LOCALHOST_ONLY': '0',
-                    'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
-        envs = {}
-        for h in HOSTS:
-            prof = out / f'fastdds_{h}.xml'
-            prof.write_text(fastdds_profile(discovery, [net.address[o] for o in HOSTS
-                                                        if o != h]))
-            envs[h] = {**env_base, 'FASTDDS_DEFAULT_PROFILES_FILE': str(prof)}
+                    'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
+                    'FASTDDS_DEFAULT_PROFILES_FILE': str(prof)}
+        envs = {h: {**env_base, **discovery_env(discovery, [net.address[o] for o in HOSTS
+                                                            if o != h])} for h in HOSTS}
         py = _python()
         try:
             procs['mapping'] = _spawn(net, 'h3', [
