@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import sys
 import tempfile
 import time
@@ -39,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.core import peak_rss_mb
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
 from ga_ros.runtime import limit_blas_threads
@@ -53,11 +53,6 @@ def rss_mib() -> float:
     """Current resident set size of this process (MiB), from ``/proc/self/statm``."""
     with open('/proc/self/statm') as f:
         return int(f.read().split()[1]) * PAGE / 2**20
-
-
-def peak_rss_mib() -> float:
-    """Peak resident set size of this process so far (MiB, ``ru_maxrss``)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 @dataclass
@@ -208,7 +203,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         up = al.refine_batch()
         fig.batch_seconds = up.update_ms / 1e3
         fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
-        fig.peak_rss_after_batch_mib = peak_rss_mib()
+        fig.peak_rss_after_batch_mib = peak_rss_mb()
     return fig
 
 
