@@ -50,6 +50,7 @@ def test_tiny_run_reports_every_figure() -> None:
     assert fig['missing_checkpoints'] == [9]
     cp = fig['checkpoints'][1]
     assert cp['update_ms_max'] == max(fig['update_ms'][1:])  # the span of 2 tracks
+    assert len(fig['update_cpu_ms']) == 3 and min(fig['update_cpu_ms']) > 0
     assert fig['load_note'] == 'ok' and fig['load_seconds'] > 0 and fig['state_mib'] > 0
     assert fig['batch_converged'] is True
     assert fig['peak_rss_after_batch_mib'] >= fig['rss_before_batch_mib'] > 50

@@ -5,7 +5,10 @@ bridge, Fast DDS over UDP only. Skipped with the reason where namespaces cannot 
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -100,3 +103,49 @@ def test_three_hosts_with_loss_and_delay(tmp_path: Path, namespaces_ok) -> None:
     assert res.ok, res.errors
     assert res.netem.startswith('on')
     assert res.max_diff_vs_replay_m <= 1e-6
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_mapping_node_on_one_host(tmp_path: Path) -> None:
+    """No namespaces: the mapping node beside an alignment node on loopback records what it
+    received, ends the survey after the idle time, and its path equals TrackWindowAligner fed
+    the same measurements in-process and finished."""
+    harness = pytest.importorskip('ga_ros.ros.harness')
+    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.replay.samples import aerial_sample
+
+    domain = 40 + (os.getpid() + 77) % 150
+    ms = aerial_sample(n_tracks=2, positions_per_swath=10, seed=3).measurements
+    want = TrackWindowAligner(AlignerConfig())
+    for m in ms:
+        want.add_measurement(m)
+    want.finish_track()
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), 'PYTHONUNBUFFERED': '1'}
+    node = harness.start_node_process(domain, {'autosave': False},
+                                      log_path=tmp_path / 'node.log')
+    mapper = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.mapping_node', '--out',
+                               str(tmp_path / 'out'), '--finish-after-idle', '1.5',
+                               '--timeout', '60'], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    try:
+        with harness.NodeClient(domain) as client:
+            client.wait_for_node(timeout=30, proc=node)
+            client.spin_until(lambda: client.pub.get_subscription_count() >= 2, 30,
+                              'the mapping node to subscribe', mapper)
+            client.publish(ms)
+            client.spin_until(lambda: mapper.poll() is not None, 60, 'the mapping node')
+    finally:
+        if mapper.poll() is None:
+            mapper.kill()
+        harness.stop_process(node)
+    out = mapper.communicate(timeout=10)[0]
+    assert mapper.returncode == 0, out
+    got = np.load(tmp_path / 'out' / 'path.npz')
+    cp = want.corrected_path()
+    np.testing.assert_array_equal(got['stamps_ns'], cp.stamps_ns)
+    np.testing.assert_allclose(got['T_world_node'], cp.T_world_node, atol=1e-9)
+    summary = json.loads((tmp_path / 'out' / 'mapping.json').read_text())
+    assert summary['measurements'] == len(ms) and summary['status'] == 'finished'
+    assert [x['track_id'] for x in summary['track_latencies']] == [0]
+    assert (tmp_path / 'out' / 'measurements').is_dir()

@@ -232,7 +232,8 @@ def run(settings: MappingSettings, ros_args: list[str] | None = None) -> int:
                 if node.finish_reply is None:
                     res = future.result()
                     node.finish_reply = f'{res.success}: {res.message}'
-                if len(rx.path_sizes) > n_paths_at_finish:
+                if (len(rx.path_sizes) > n_paths_at_finish
+                        or node.finish_reply.endswith('no open track')):
                     status = 'finished'
                     break
     except (KeyboardInterrupt, ExternalShutdownException):
