@@ -60,7 +60,7 @@ def namespaces_ok() -> None:
 def test_three_hosts_path_equals_the_replay(tmp_path: Path, namespaces_ok) -> None:
     """Multicast discovery; the path on host 3 equals ``ga-ros replay`` of the measurements
     host 3 received, bit for bit up to the text formats; traffic crossed the bridge."""
-    res = mh.run_demo(tmp_path, 'multicast', rate=5.0, stereo_replay=False, timeout_s=90)
+    res = mh.run_demo(tmp_path, 'multicast', rate=5.0, stereo_replay=False, timeout_s=300)
     print(mh.format_result(res))
     assert res.ok, res.errors
     assert res.measurements_received > 100
@@ -81,7 +81,7 @@ def test_three_hosts_path_equals_the_replay(tmp_path: Path, namespaces_ok) -> No
                     reason='a second ~60 s run; set GA_ROS_MULTIHOST_PEERS=1 to run it')
 def test_three_hosts_with_a_peers_list_and_no_multicast(tmp_path: Path, namespaces_ok) -> None:
     """Unicast discovery from ROS_STATIC_PEERS; the switch drops every multicast frame."""
-    res = mh.run_demo(tmp_path, 'peers', rate=5.0, stereo_replay=False, timeout_s=90)
+    res = mh.run_demo(tmp_path, 'peers', rate=5.0, stereo_replay=False, timeout_s=300)
     print(mh.format_result(res))
     assert res.ok, res.errors
     assert res.max_diff_vs_replay_m <= 1e-6
@@ -98,7 +98,7 @@ def test_three_hosts_with_loss_and_delay(tmp_path: Path, namespaces_ok) -> None:
     if reason:
         pytest.skip(f'tc netem unavailable: {reason}')
     res = mh.run_demo(tmp_path, 'multicast', impair=True, rate=5.0, stereo_replay=False,
-                      timeout_s=120)
+                      timeout_s=300)
     print(mh.format_result(res))
     assert res.ok, res.errors
     assert res.netem.startswith('on')
