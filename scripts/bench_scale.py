@@ -1,0 +1,287 @@
+#!/usr/bin/env python3
+"""Scaling benchmark (issue 14 item 3): the aerial survey scaled towards 100,000 poses.
+
+The aerial simulator (:func:`ga_ros.sim.aerial.aerial_scenario`) flies ``--tracks`` double tracks
+of ``2 x --positions-per-swath`` poses (default 100 x 1,000 = 100,000 poses) with 5 % noise; the
+measurements are fed in acquisition order to :class:`ga_ros.core.window.TrackWindowAligner`
+(``K = --window``, ``--policy`` weighted), exactly as the alignment node does. The script prints
+
+* per-track window update time (p50 / p95 / max over the ``--span`` tracks ending at each
+  checkpoint of ``--checkpoints``) and the process's current resident set size there, with the
+  RSS growth per pose between checkpoints;
+* the state save / restore time and file size at the end (``TrackWindowAligner.save/load``);
+* the time and peak RSS (``ru_maxrss``) of the batch refinement of all poses
+  (``refine_batch``), unless ``--no-batch``.
+
+Stop early with ``--max-seconds`` (the online run stops after the track that passes it; the
+table then says which checkpoints were not reached). Measurements are generated lazily (one
+:class:`Measurement` at a time) so that they do not count in the aligner's memory.
+
+Examples::
+
+    .venv/bin/python scripts/bench_scale.py --tracks 100 --positions-per-swath 500
+    .venv/bin/python scripts/bench_scale.py --tracks 30 --positions-per-swath 100 \\
+        --checkpoints 10,20,30 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.bench.core import peak_rss_mb
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
+from ga_ros.runtime import limit_blas_threads
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+from ga_ros.sim.scenario import Scenario
+
+PAGE = os.sysconf('SC_PAGE_SIZE')
+
+
+def rss_mib() -> float:
+    """Current resident set size of this process (MiB), from ``/proc/self/statm``."""
+    with open('/proc/self/statm') as f:
+        return int(f.read().split()[1]) * PAGE / 2**20
+
+
+@dataclass
+class Checkpoint:
+    """Figures after the update of track ``tracks - 1`` (``tracks`` finished tracks)."""
+
+    tracks: int
+    poses: int
+    update_ms_p50: float
+    update_ms_p95: float
+    update_ms_max: float
+    cpu_ms_p50: float
+    cpu_ms_p95: float
+    window_nodes: int
+    rss_mib: float
+    kib_per_pose_since_first: float | None
+
+
+@dataclass
+class ScaleFigures:
+    """Everything the benchmark measured (JSON with ``--json``)."""
+
+    tracks_requested: int
+    poses_per_track: int
+    window_tracks: int
+    policy: str
+    scenario_seconds: float
+    tracks_done: int
+    poses_done: int
+    connections_done: int
+    online_seconds: float
+    update_ms: list[float] = field(default_factory=list)
+    update_cpu_ms: list[float] = field(default_factory=list)
+    update_rss_mib: list[float] = field(default_factory=list)
+    checkpoints: list[Checkpoint] = field(default_factory=list)
+    missing_checkpoints: list[int] = field(default_factory=list)
+    save_seconds: float | None = None
+    load_seconds: float | None = None
+    load_note: str = ''
+    state_mib: float | None = None
+    batch_seconds: float | None = None
+    batch_iterations: int | None = None
+    batch_converged: bool | None = None
+    rss_before_batch_mib: float | None = None
+    peak_rss_after_batch_mib: float | None = None
+
+
+def lazy_measurements(sc: Scenario, z: np.ndarray, cov: np.ndarray) -> Iterator[Measurement]:
+    """The scenario's connections in acquisition order (as ``Scenario.measurements``), one at a
+    time, so that 600,000 measurement objects never exist at once."""
+    order = np.lexsort((sc.src, sc.dst))
+    tr, st, cons = sc.track_ids, sc.stamps_ns, sc.consecutive
+    for k in order.tolist():
+        i, j = int(sc.src[k]), int(sc.dst[k])
+        yield Measurement(i, j, int(tr[i]), int(tr[j]), z[k], cov[k], int(st[j]),
+                          'consecutive' if cons[k] else 'cross')
+
+
+RESTORE = """
+import sys, time
+from ga_ros.core.window import TrackWindowAligner
+t = time.perf_counter()
+al = TrackWindowAligner.load(sys.argv[1])
+print(time.perf_counter() - t, al.stats.n_nodes)
+"""
+
+
+def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | None, str]:
+    """Seconds of ``TrackWindowAligner.load(path)`` in a child process (so that a slow restore
+    can be cut at ``timeout_s``), and a note."""
+    import subprocess
+
+    try:
+        res = subprocess.run([sys.executable, '-c', RESTORE, str(path)], capture_output=True,
+                             text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return None, f'not finished after {timeout_s:.0f} s'
+    if res.returncode != 0:
+        return None, f'failed: {res.stderr.strip()[-300:]}'
+    seconds, n = res.stdout.split()
+    if int(n) != n_nodes:
+        return None, f'restored {n} nodes instead of {n_nodes}'
+    return float(seconds), 'ok'
+
+
+def run(args: argparse.Namespace) -> ScaleFigures:
+    t0 = time.perf_counter()
+    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions_per_swath)
+    noisy = perturb(sc.true_motions('se3'), NoiseModel(args.noise, sc.depth_m),
+                    np.random.default_rng(args.seed))
+    fig = ScaleFigures(args.tracks, 2 * args.positions_per_swath, args.window, args.policy,
+                       time.perf_counter() - t0, 0, 0, 0, 0.0)
+    checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
+    al = TrackWindowAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
+                            sc.T_world_node[0])
+    window_nodes: list[int] = []
+    first_cp: Checkpoint | None = None
+
+    def record(up: UpdateResult, cpu_ms: float) -> None:
+        nonlocal first_cp
+        fig.update_ms.append(up.update_ms)
+        fig.update_cpu_ms.append(cpu_ms)
+        fig.update_rss_mib.append(rss_mib())
+        window_nodes.append(up.n_window_nodes)
+        done = len(fig.update_ms)
+        if args.verbose:
+            print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU), '
+                  f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB',
+                  file=sys.stderr, flush=True)
+        if done in checkpoints:
+            ms = np.array(fig.update_ms[max(0, done - args.span):])
+            cpu = np.array(fig.update_cpu_ms[max(0, done - args.span):])
+            poses = done * fig.poses_per_track
+            cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
+                            float(np.percentile(ms, 95)), float(ms.max()),
+                            float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),
+                            up.n_window_nodes, fig.update_rss_mib[-1], None)
+            if first_cp is None:
+                first_cp = cp
+            elif poses > first_cp.poses:
+                cp.kib_per_pose_since_first = (1024.0 * (cp.rss_mib - first_cp.rss_mib)
+                                               / (poses - first_cp.poses))
+            fig.checkpoints.append(cp)
+
+    t_start = time.perf_counter()
+    stopped = False
+    for m in lazy_measurements(sc, noisy.z, noisy.cov):
+        cpu0 = time.process_time()
+        ups = al.add_measurement(m)
+        for up in ups:  # at most one: the CPU time of the call is the update's
+            record(up, 1e3 * (time.process_time() - cpu0))
+        if ups and args.max_seconds and time.perf_counter() - t_start > args.max_seconds:
+            stopped = True
+            break
+    if not stopped:
+        cpu0 = time.process_time()
+        last = al.finish_track()
+        if last is not None:
+            record(last, 1e3 * (time.process_time() - cpu0))
+    fig.online_seconds = time.perf_counter() - t_start
+    st = al.stats
+    fig.tracks_done = len(fig.update_ms)
+    fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
+    fig.missing_checkpoints = [c for c in checkpoints if c > fig.tracks_done]
+    if not args.no_save:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / 'state.npz'
+            t = time.perf_counter()
+            al.save(path)
+            fig.save_seconds = time.perf_counter() - t
+            fig.state_mib = path.stat().st_size / 2**20
+            fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,
+                                                            args.restore_timeout)
+    if not args.no_batch:
+        fig.rss_before_batch_mib = rss_mib()
+        up = al.refine_batch()
+        fig.batch_seconds = up.update_ms / 1e3
+        fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
+        fig.peak_rss_after_batch_mib = peak_rss_mb()
+    return fig
+
+
+def _fmt(x: float | None, spec: str = '.2f') -> str:
+    return '-' if x is None else format(x, spec)
+
+
+def print_table(fig: ScaleFigures) -> None:
+    print(f'aerial survey: {fig.tracks_requested} double tracks x {fig.poses_per_track} poses '
+          f'requested; window K = {fig.window_tracks}, {fig.policy}; scenario built in '
+          f'{fig.scenario_seconds:.1f} s')
+    print(f'online: {fig.tracks_done} tracks, {fig.poses_done:,} poses, '
+          f'{fig.connections_done:,} connections in {fig.online_seconds:.0f} s')
+    print()
+    print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | window nodes | '
+          'RSS MiB | KiB/pose since first |')
+    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    for c in fig.checkpoints:
+        print(f'| {c.tracks} | {c.poses:,} | {c.update_ms_p50:.0f} | {c.update_ms_p95:.0f} | '
+              f'{c.update_ms_max:.0f} | {c.cpu_ms_p50:.0f} | {c.cpu_ms_p95:.0f} | '
+              f'{c.window_nodes:,} | {c.rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} |')
+    for c in fig.missing_checkpoints:
+        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | |')
+    if len(fig.checkpoints) >= 2:
+        a, b = fig.checkpoints[0], fig.checkpoints[-1]
+        print(f'\np95 ratio, {b.tracks} vs {a.tracks} tracks: wall '
+              f'{b.update_ms_p95 / a.update_ms_p95:.2f}, CPU {b.cpu_ms_p95 / a.cpu_ms_p95:.2f}')
+    print()
+    if fig.save_seconds is not None:
+        restore = (f'{fig.load_seconds:.2f} s' if fig.load_seconds is not None
+                   else fig.load_note)
+        print(f'state save {fig.save_seconds:.2f} s, restore {restore}, '
+              f'file {fig.state_mib:.1f} MiB ({fig.poses_done:,} poses)')
+    if fig.batch_seconds is not None:
+        print(f'batch refinement of {fig.poses_done:,} poses: {fig.batch_seconds:.1f} s, '
+              f'{fig.batch_iterations} iterations, converged {fig.batch_converged}; RSS before '
+              f'{fig.rss_before_batch_mib:.0f} MiB, peak RSS after '
+              f'{fig.peak_rss_after_batch_mib:.0f} MiB')
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--tracks', type=int, default=100, help='double tracks (default 100)')
+    p.add_argument('--positions-per-swath', type=int, default=500,
+                   help='poses per swath; a double track has twice as many (default 500)')
+    p.add_argument('--window', type=int, default=5, help='window tracks K (default 5)')
+    p.add_argument('--policy', default='weighted', choices=('weighted', 'marginal'))
+    p.add_argument('--noise', type=float, default=5.0, help='noise level in percent')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--checkpoints', default='25,100,500',
+                   help='comma-separated track counts where figures are taken')
+    p.add_argument('--span', type=int, default=10,
+                   help='tracks before each checkpoint over which update times are summarised')
+    p.add_argument('--max-seconds', type=float, default=0.0,
+                   help='stop the online run after this many seconds (0 = no limit)')
+    p.add_argument('--no-batch', action='store_true', help='skip the batch refinement')
+    p.add_argument('--no-save', action='store_true', help='skip the state save/restore')
+    p.add_argument('--restore-timeout', type=float, default=300.0,
+                   help='give up the (child-process) state restore after this many seconds')
+    p.add_argument('--json', action='store_true', help='print the figures as JSON')
+    p.add_argument('-v', '--verbose', action='store_true', help='one line per track on stderr')
+    args = p.parse_args(argv)
+    with limit_blas_threads():
+        fig = run(args)
+    if args.json:
+        print(json.dumps(asdict(fig), indent=1))
+    else:
+        print_table(fig)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""scripts/bench_scale.py (issue 14 item 3) on a tiny survey: what it prints is what it ran."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'bench_scale.py'
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location('bench_scale', SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault('bench_scale', mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_lazy_measurements_equal_the_scenario_list() -> None:
+    from ga_ros.sim.aerial import aerial_scenario
+
+    sc = aerial_scenario(n_tracks=2, positions_per_swath=6)
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=(sc.n_connections, 6))
+    cov = np.broadcast_to(np.eye(6), (sc.n_connections, 6, 6)).copy()
+    lazy = list(_module().lazy_measurements(sc, z, cov))
+    ref = sc.measurements(z, cov)
+    assert len(lazy) == len(ref)
+    for a, b in zip(lazy, ref):
+        assert (a.src_id, a.dst_id, a.src_track, a.dst_track, a.stamp_ns, a.kind) == \
+            (b.src_id, b.dst_id, b.src_track, b.dst_track, b.stamp_ns, b.kind)
+        np.testing.assert_array_equal(a.z, b.z)
+
+
+def test_tiny_run_reports_every_figure() -> None:
+    res = subprocess.run([sys.executable, str(SCRIPT), '--tracks', '3',
+                          '--positions-per-swath', '8', '--checkpoints', '1,3,9', '--span', '2',
+                          '--json', '--restore-timeout', '120'],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    fig = json.loads(res.stdout)
+    assert fig['tracks_done'] == 3 and fig['poses_done'] == 3 * 16
+    assert len(fig['update_ms']) == 3
+    assert [c['tracks'] for c in fig['checkpoints']] == [1, 3]
+    assert fig['missing_checkpoints'] == [9]
+    cp = fig['checkpoints'][1]
+    assert cp['update_ms_max'] == max(fig['update_ms'][1:])  # the span of 2 tracks
+    assert len(fig['update_cpu_ms']) == 3 and min(fig['update_cpu_ms']) > 0
+    assert fig['load_note'] == 'ok' and fig['load_seconds'] > 0 and fig['state_mib'] > 0
+    assert fig['batch_converged'] is True
+    assert fig['peak_rss_after_batch_mib'] >= fig['rss_before_batch_mib'] > 50
