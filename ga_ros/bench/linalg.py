@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-GRAPHS = Path(os.environ.get('GA_ROS_SHARED_DATA',
-                             Path(__file__).resolve().parents[3] / 'shared' / 'data')) / 'pose-graphs'
+_SHARED = Path(__file__).resolve().parents[3] / 'shared' / 'data'
+GRAPHS = Path(os.environ.get('GA_ROS_SHARED_DATA', _SHARED)) / 'pose-graphs'
 GRAPH_FILES = ('input_M3500_g2o.g2o', 'intel.g2o', 'parking-garage.g2o', 'sphere2500.g2o',
                'torus3D.g2o')
 VARIANTS = ('cvxopt-bundled', 'cvxopt', 'cvxopt-metis', 'sksparse', 'sksparse-metis')
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(rows))
         return 0
-    print(f'| matrix | n | variant | kernel | symbolic s | numeric s | GFlop | GFlop/s |')
+    print('| matrix | n | variant | kernel | symbolic s | numeric s | GFlop | GFlop/s |')
     print('|---|---:|---|---|---:|---:|---:|---:|')
     for r in sorted(rows, key=lambda r: (r['matrix'], VARIANTS.index(r['variant']))):
         print(f"| {r['matrix']} | {r['n']} | {r['variant']} | {r['kernel']} | "
