@@ -7,12 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from ga_ros.cli.commands.solve import (
-    GraphSolveConfig,
-    read_tracks,
-    replay_measurements,
-    solve_graph,
-)
 from ga_ros.cli.main import main
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import connection_cost
@@ -20,6 +14,12 @@ from ga_ros.errors import FormatError, NetworkError
 from ga_ros.geometry import se3
 from ga_ros.io.g2o import graph_cost, read_g2o
 from ga_ros.io.trajectory import read_kitti, read_tum
+from ga_ros.pipeline.pose_graph import (
+    GraphSolveConfig,
+    read_tracks,
+    replay_measurements,
+    solve_graph,
+)
 
 TINY_OPTIMUM = 18.6278  # shared/data/README.md (GTSAM LM)
 INFO3 = ' '.join(['1 0 0 0 0 0', '1 0 0 0 0', '1 0 0 0', '1 0 0', '1 0', '1'])

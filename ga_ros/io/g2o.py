@@ -2,11 +2,15 @@
 
 Supported lines (one record per line, fields separated by white space)::
 
-    VERTEX_SE3:QUAT id x y z qx qy qz qw
-    EDGE_SE3:QUAT   i j x y z qx qy qz qw  I11 I12 .. I16 I22 .. I66   (21 upper-triangle values)
-    VERTEX_SE2      id x y theta
-    EDGE_SE2        i j x y theta  I11 I12 I13 I22 I23 I33              (6 upper-triangle values)
-    FIX             id [id ...]
+    VERTEX_SE3:QUAT  id x y z qx qy qz qw
+    EDGE_SE3:QUAT    i j [p] x y z qx qy qz qw  I11 I12 .. I16 I22 .. I66  (21 upper values)
+    PARAMS_SE3OFFSET p x y z qx qy qz qw         (sensor offset T_robot_sensor, id p)
+    VERTEX_SE2       id x y theta
+    EDGE_SE2         i j [p] x y theta  I11 I12 I13 I22 I23 I33            (6 upper values)
+    PARAMS_SE2OFFSET p x y theta
+    VERTEX2          id x y theta                (TORO 2-D)
+    EDGE2            i j x y theta  Iff Ifs Iss Irr Ifr Isr                (TORO order)
+    FIX              id [id ...]
 
 Blank lines and lines starting with ``#`` are skipped. An edge is the motion ``T_i_j`` of vertex
 ``j`` in the frame of vertex ``i`` with an information matrix ``Omega`` (inverse covariance); for
@@ -15,6 +19,19 @@ GTSAM's g2o reader (and as the benchmark's reference optima assume, see
 ``shared/data/README.md``), the rotation block is taken as the information of the rotation vector
 (rad), not of the quaternion's vector part (which would weigh rotations by 4).
 
+Sensor offsets (what RTAB-Map and g2o itself write first): an identity ``PARAMS_*OFFSET`` is
+accepted and written back. An edge that names a parameter id ``p`` measures the motion between
+sensor frames, ``Z = S^-1 T_i^-1 T_j S`` with ``S = T_robot_sensor``; it is read as the robot-frame
+motion ``T_meas = S Z S^-1`` with information ``Ad(S^-1)' Omega Ad(S^-1)`` (exactly the same cost,
+since ``Log(S^-1 X S) = Ad(S^-1) Log(X)``), and written back in the sensor frame. A non-identity
+offset that no edge names is refused: it is ambiguous whether the file's edges include it.
+
+Files without any ``VERTEX`` line (edge-only benchmark files) are read with vertices in
+increasing id order and ``has_guess = False``: see :mod:`ga_ros.core.initialization` for the
+initial guess. Information matrices that are not positive definite are repaired by eigenvalue
+clipping (:func:`ga_ros.core.covariance.nearest_positive_definite`) with one
+:class:`InformationRepairWarning` per file listing the lines, or refused with ``strict=True``.
+
 Cost convention (:func:`graph_cost`): ``sum_k e_k' Omega_k e_k`` with
 ``e_k = Log(T_meas^-1 T_i^-1 T_j)``, the full Lie-group logarithm (GTSAM's ``Pose3`` / ``Pose2``
 local coordinates), ordered translation first (``[rho, phi]`` in 3-D, ``[rho_x, rho_y, theta]`` in
@@ -22,38 +39,62 @@ local coordinates), ordered translation first (``[rho, phi]`` in 3-D, ``[rho_x, 
 components ``z, rx, ry`` get unit information. The SE(3) logarithm of a planar motion is the SE(2)
 logarithm padded with zeros, so the embedded problem has exactly the 2-D cost and optimum.
 
-Reading is all-or-nothing: every line is parsed and validated first (field count, numbers, tags,
-positive-definite information, known vertices), and a :class:`FormatError` names the file and
-line of the first problem; the network is built only from a completely valid file.
+Reading is all-or-nothing and vectorised (the lines of each record type are parsed as one numpy
+array): every line is validated first (field count, numbers, tags, quaternion norms, information,
+known vertices), and a :class:`FormatError` names the file and line of the first problem of the
+first failing check; the network is built only from a completely valid file.
 """
 
 from __future__ import annotations
 
+import operator
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.covariance import nearest_positive_definite, not_positive_definite
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 
 TAG_VERTEX_SE3 = 'VERTEX_SE3:QUAT'
 TAG_EDGE_SE3 = 'EDGE_SE3:QUAT'
+TAG_PARAMS_SE3 = 'PARAMS_SE3OFFSET'
 TAG_VERTEX_SE2 = 'VERTEX_SE2'
 TAG_EDGE_SE2 = 'EDGE_SE2'
+TAG_PARAMS_SE2 = 'PARAMS_SE2OFFSET'
+TAG_VERTEX_TORO = 'VERTEX2'
+TAG_EDGE_TORO = 'EDGE2'
 TAG_FIX = 'FIX'
 
-#: number of fields (including the tag) of each record type
-_FIELDS = {TAG_VERTEX_SE3: 9, TAG_EDGE_SE3: 31, TAG_VERTEX_SE2: 5, TAG_EDGE_SE2: 12}
+#: tag -> (dimension, kind, allowed field counts including the tag)
+_SPEC: dict[str, tuple[int, str, tuple[int, ...]]] = {
+    TAG_VERTEX_SE3: (3, 'vertex', (9,)), TAG_EDGE_SE3: (3, 'edge', (31, 32)),
+    TAG_PARAMS_SE3: (3, 'param', (9,)),
+    TAG_VERTEX_SE2: (2, 'vertex', (5,)), TAG_EDGE_SE2: (2, 'edge', (12, 13)),
+    TAG_PARAMS_SE2: (2, 'param', (5,)),
+    TAG_VERTEX_TORO: (2, 'vertex', (5,)), TAG_EDGE_TORO: (2, 'edge', (12,)),
+}
 #: index of the 2-D components [x y theta] inside our 6-vector [x y z rx ry rz]
 _SE2_AXES = np.array([0, 1, 5])
+#: TORO's EDGE2 information order (ff fs ss rr fr sr) as positions of the g2o upper triangle
+#: (11 12 13 22 23 33): g2o value k is TORO value _TORO_FROM_G2O[k]
+_TORO_FROM_G2O = np.array([0, 1, 4, 2, 5, 3])
 #: a quaternion whose norm is further than this from 1 is rejected rather than normalised
 _QUAT_NORM_TOL = 1e-2
+#: an offset this close to the identity (max |entry| of S - I) is treated as the identity
+_IDENTITY_TOL = 1e-12
+
+
+class InformationRepairWarning(UserWarning):
+    """Some information matrices of a file were not positive definite and were repaired."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,15 +105,22 @@ class PoseGraph:
     ----------
     network : the connection network; node ids are the g2o vertex ids (track 0), connection ``k``
         is edge ``k`` of the file, its covariance the inverse of the edge's information.
-    T_init : (n, 4, 4) initial guess ``T_world_node`` of every vertex, in network index order.
-    vertex_ids : (n,) vertex ids, in network index order (the file's order).
-    dim : 2 (``VERTEX_SE2`` / ``EDGE_SE2``) or 3 (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``).
+    T_init : (n, 4, 4) initial guess ``T_world_node`` of every vertex, in network index order
+        (identity for every vertex if ``has_guess`` is false).
+    vertex_ids : (n,) vertex ids, in network index order (the file's order; increasing for an
+        edge-only file).
+    dim : 2 (``VERTEX_SE2`` / ``EDGE_SE2`` / TORO) or 3 (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``).
     fixed : ids of the vertices named on ``FIX`` lines (held fixed as the datum).
     edge_src, edge_dst : (m,) vertex *indices* of each edge's two ends.
-    T_meas : (m, 4, 4) measured motions ``T_i_j``.
+    T_meas : (m, 4, 4) measured motions ``T_i_j`` of the robot frames (offsets applied).
     information : (m, d, d) information of each edge in its native order, ``d = 6``
-        (``[x y z rx ry rz]``) or ``d = 3`` (``[x y theta]``).
+        (``[x y z rx ry rz]``) or ``d = 3`` (``[x y theta]``), robot frame, repaired if needed.
     path : file the graph was read from, if any.
+    has_guess : whether the file gave vertex poses (false for an edge-only file).
+    offsets : parameter id -> (4, 4) sensor offset ``T_robot_sensor`` of ``PARAMS_*OFFSET``.
+    edge_param : (m,) parameter id each edge names, -1 for none (``None``: no edge names one).
+    repaired_lines : file lines of the edges whose information was repaired.
+    flavour : ``'g2o'`` or ``'toro'`` (``VERTEX2`` / ``EDGE2``), kept for writing back.
     """
 
     network: ConnectionNetwork
@@ -85,6 +133,11 @@ class PoseGraph:
     T_meas: FloatArray
     information: FloatArray
     path: str | None = field(default=None, compare=False)
+    has_guess: bool = True
+    offsets: dict[int, FloatArray] = field(default_factory=dict)
+    edge_param: IntArray | None = None
+    repaired_lines: tuple[int, ...] = ()
+    flavour: str = 'g2o'
 
     @property
     def n_vertices(self) -> int:
@@ -118,19 +171,23 @@ class PoseGraph:
                          T_meas=se3.from_translation_rotvec(c.z[:, :3], c.z[:, 3:]),
                          information=info)
 
+    def with_initial_guess(self, T_world_node: FloatArray) -> PoseGraph:
+        """The same graph with another initial guess (``has_guess`` becomes true).
+
+        Parameters
+        ----------
+        T_world_node : (n, 4, 4) vertex poses in the graph's vertex order.
+        """
+        T = np.asarray(T_world_node, dtype=float)
+        if T.shape != (self.n_vertices, 4, 4) or not np.isfinite(T).all():
+            raise InputError(f'initial guess must be finite with shape ({self.n_vertices}, 4, 4),'
+                             f' got {T.shape}')
+        fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        fields.update(T_init=T.copy(), has_guess=True)
+        return PoseGraph(**fields)
+
 
 # ---------------------------------------------------------------------------------- reading
-def _numbers(fields: list[str], path: str, line: int) -> FloatArray:
-    try:
-        values = np.array([float(f) for f in fields])
-    except ValueError:
-        bad = next(f for f in fields if not _is_float(f))
-        raise FormatError(f'non-numeric value {bad!r}', path, line) from None
-    if not np.isfinite(values).all():
-        raise FormatError('NaN or infinite value', path, line)
-    return values
-
-
 def _is_float(text: str) -> bool:
     try:
         float(text)
@@ -139,15 +196,36 @@ def _is_float(text: str) -> bool:
     return True
 
 
-def _vertex_id(text: str, path: str, line: int) -> int:
+def _floats(F: np.ndarray, lines: IntArray, path: str) -> FloatArray:
+    """``(k, c)`` numbers of a ``(k, c)`` array of strings, or the first bad line's error."""
     try:
-        v = int(text)
+        values = np.fromiter(map(float, F.ravel()), dtype=float, count=F.size).reshape(F.shape)
     except ValueError:
-        raise FormatError(f'vertex id must be a non-negative integer, got {text!r}',
-                          path, line) from None
-    if v < 0 or v >= 2**63:
-        raise FormatError(f'vertex id must be a non-negative integer, got {text!r}', path, line)
-    return v
+        for row, line in zip(F.tolist(), lines.tolist()):  # error path only
+            bad = [f for f in row if not _is_float(f)]
+            if bad:
+                raise FormatError(f'non-numeric value {bad[0]!r}', path, line) from None
+        raise
+    finite = np.isfinite(values).reshape(len(values), -1).all(axis=1)
+    if not finite.all():
+        raise FormatError('NaN or infinite value', path, int(lines[np.argmin(finite)]))
+    return values
+
+
+def _ids(F: np.ndarray, lines: IntArray, path: str, what: str = 'vertex id') -> IntArray:
+    """``(k,)`` non-negative integer ids of a ``(k,)`` array of strings, or the first bad line's
+    error."""
+    try:
+        values = np.fromiter(map(int, F), dtype=np.int64, count=F.size)
+        ok = values >= 0
+    except (ValueError, OverflowError):
+        ok = np.array([f.isdigit() and int(f) < 2**63 for f in F.tolist()])  # error path only
+        values = None
+    if not ok.all():
+        k = int(np.argmin(ok))
+        raise FormatError(f'{what} must be a non-negative integer, got {F[k]!r}', path,
+                          int(lines[k]))
+    return values
 
 
 def _upper_to_full(upper: FloatArray, d: int) -> FloatArray:
@@ -159,31 +237,97 @@ def _upper_to_full(upper: FloatArray, d: int) -> FloatArray:
     return out
 
 
-def _unit_quaternion(q: FloatArray, path: str, line: int) -> FloatArray:
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > _QUAT_NORM_TOL:
-        raise FormatError(f'quaternion [qx qy qz qw] has norm {norm:.6g}, not 1', path, line)
-    return q / norm
+def _unit_quaternions(q: FloatArray, lines: IntArray, path: str) -> FloatArray:
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.abs(norm - 1.0) > _QUAT_NORM_TOL
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise FormatError(f'quaternion [qx qy qz qw] has norm {norm[k]:.6g}, not 1', path,
+                          int(lines[k]))
+    return q / norm[:, None]
 
 
-def read_g2o(path: str | os.PathLike) -> PoseGraph:
-    """Read a g2o pose graph (3-D ``SE3:QUAT`` or 2-D ``SE2``; not both in one file).
+def _first_duplicate(ids: IntArray, lines: IntArray) -> tuple[int, int, int] | None:
+    """``(id, earlier line, later line)`` of the earliest repeated id (ids in line order)."""
+    order = np.argsort(ids, kind='stable')
+    s = ids[order]
+    dup = np.flatnonzero(s[1:] == s[:-1])
+    if dup.size == 0:
+        return None
+    later = lines[order[dup + 1]]
+    k = int(np.argmin(later))
+    return int(s[dup[k]]), int(lines[order[dup[k]]]), int(later[k])
+
+
+@dataclass(frozen=True)
+class _Group:
+    """The lines of one tag with one field count, as a ``(k, c)`` object array of strings."""
+
+    tag: str
+    lines: IntArray
+    F: np.ndarray
+
+
+def _poses(values: FloatArray, dim: int, lines: IntArray, path: str) -> FloatArray:
+    """``(k, 4, 4)`` poses of ``[x y z qx qy qz qw]`` or ``[x y theta]`` rows."""
+    if dim == 3:
+        return se3.from_pos_quat(values[:, :3], _unit_quaternions(values[:, 3:7], lines, path))
+    return se2_to_se3(values)
+
+
+def _split_lines(text: str, path: str) -> tuple[list[_Group], list[tuple[int, list[str]]]]:
+    """Group the records by (tag, field count); ``FIX`` lines apart. Checks tags and counts."""
+    rows = [ln.split() for ln in text.splitlines()]
+    tags = np.array([r[0] if r else '#' for r in rows])
+    counts = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
+    lines = np.arange(1, len(rows) + 1)
+    used = ~np.char.startswith(tags, '#')
+    known = np.isin(tags, [*_SPEC, TAG_FIX])
+    if (used & ~known).any():
+        k = int(np.argmax(used & ~known))
+        raise FormatError(f'unknown tag {tags[k]!r} (supported: {", ".join(_SPEC)}, FIX)',
+                          path, int(lines[k]))
+    fix = [(int(lines[k]), rows[k][1:]) for k in np.flatnonzero(tags == TAG_FIX)]
+    groups: list[_Group] = []
+    for tag, (_, _, allowed) in _SPEC.items():
+        mine = tags == tag
+        wrong = mine & ~np.isin(counts, allowed)
+        if wrong.any():
+            k = int(np.argmax(wrong))
+            need = ' or '.join(map(str, allowed))
+            raise FormatError(f'{tag} needs {need} fields, got {counts[k]}', path, int(lines[k]))
+        for c in allowed:
+            idx = np.flatnonzero(mine & (counts == c))
+            if idx.size:
+                F = np.array(list(chain.from_iterable(operator.itemgetter(*idx)(rows)))
+                             if idx.size > 1 else rows[idx[0]], dtype=object)
+                groups.append(_Group(tag, lines[idx], F.reshape(idx.size, c)))
+    return groups, fix
+
+
+def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
+    """Read a g2o (or TORO 2-D) pose graph: 3-D ``SE3:QUAT`` or 2-D ``SE2``, not both.
 
     Parameters
     ----------
     path : g2o file.
+    strict : refuse an information matrix that is not positive definite (default: repair it by
+        eigenvalue clipping, with one :class:`InformationRepairWarning` listing the lines).
 
     Returns
     -------
-    The :class:`PoseGraph`; vertices in file order, edges in file order.
+    The :class:`PoseGraph`; vertices in file order (increasing ids for an edge-only file,
+    ``has_guess`` false), edges in file order.
 
     Raises
     ------
     FormatError
         Naming ``file:line`` for: an unknown tag, a wrong field count, a non-numeric / NaN value,
-        a negative or duplicate vertex id, a quaternion far from unit norm, an information matrix
-        that is not symmetric positive definite, a self-loop, an edge or ``FIX`` naming a vertex
-        the file does not define, a mix of 2-D and 3-D records, or a file with no vertices.
+        a negative or duplicate vertex or parameter id, a quaternion far from unit norm, an
+        information matrix that is not symmetric positive definite (``strict`` only), a
+        self-loop, an edge naming a vertex the file does not define (when it defines some) or
+        a parameter it does not define, a non-identity offset no edge names, a ``FIX`` naming an
+        unknown vertex, a mix of 2-D and 3-D records, or a file with no vertices and no edges.
         Nothing is built unless the whole file is valid.
     """
     spath = str(path)
@@ -191,125 +335,223 @@ def read_g2o(path: str | os.PathLike) -> PoseGraph:
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise FormatError(f'cannot read: {exc}', spath) from None
+    groups, fix = _split_lines(text, spath)
 
-    vertex_ids: list[int] = []
-    vertex_line: dict[int, int] = {}
-    vertex_pose: list[FloatArray] = []   # (7,) [x y z qx qy qz qw] or (3,) [x y theta]
-    edges: list[tuple[int, int, int, FloatArray, FloatArray]] = []  # line, i, j, meas, info
-    fix: list[tuple[int, int]] = []      # line, id
-    dim: int | None = None
-    dim_line = 0
+    first = {d: min((int(g.lines[0]) for g in groups if _SPEC[g.tag][0] == d), default=0)
+             for d in (2, 3)}
+    if first[2] and first[3]:
+        later, earlier = max(first[2], first[3]), min(first[2], first[3])
+        d_late = 2 if first[2] == later else 3
+        raise FormatError(f'this is a {d_late}-D record but line {earlier} made this a '
+                          f'{5 - d_late}-D graph; mixed files are not supported', spath, later)
+    if not groups:
+        raise FormatError('no vertices and no edges (VERTEX_SE3:QUAT / EDGE_SE3:QUAT or '
+                          'VERTEX_SE2 / EDGE_SE2 lines) found', spath)
+    dim = 3 if first[3] else 2
+    d = 6 if dim == 3 else 3
+    n_meas = 7 if dim == 3 else 3
 
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        fields = raw.split()
-        if not fields or fields[0].startswith('#'):
-            continue
-        tag = fields[0]
-        if tag == TAG_FIX:
-            if len(fields) < 2:
-                raise FormatError('FIX needs at least one vertex id', spath, lineno)
-            fix.extend((lineno, _vertex_id(f, spath, lineno)) for f in fields[1:])
-            continue
-        if tag not in _FIELDS:
-            raise FormatError(f'unknown tag {tag!r} (supported: {", ".join(_FIELDS)}, FIX)',
-                              spath, lineno)
-        if len(fields) != _FIELDS[tag]:
-            raise FormatError(f'{tag} needs {_FIELDS[tag]} fields, got {len(fields)}',
-                              spath, lineno)
-        this_dim = 2 if tag.endswith('SE2') else 3
-        if dim is None:
-            dim, dim_line = this_dim, lineno
-        elif this_dim != dim:
-            raise FormatError(f'{tag} is a {this_dim}-D record but line {dim_line} made this a '
-                              f'{dim}-D graph; mixed files are not supported', spath, lineno)
-        if tag.startswith('VERTEX'):
-            vid = _vertex_id(fields[1], spath, lineno)
-            if vid in vertex_line:
-                raise FormatError(f'vertex {vid} is already defined on line {vertex_line[vid]}',
-                                  spath, lineno)
-            values = _numbers(fields[2:], spath, lineno)
-            if dim == 3:
-                values[3:] = _unit_quaternion(values[3:], spath, lineno)
-            vertex_line[vid] = lineno
-            vertex_ids.append(vid)
-            vertex_pose.append(values)
-        else:
-            i = _vertex_id(fields[1], spath, lineno)
-            j = _vertex_id(fields[2], spath, lineno)
-            if i == j:
-                raise FormatError(f'edge from vertex {i} to itself', spath, lineno)
-            values = _numbers(fields[3:], spath, lineno)
-            d = 6 if dim == 3 else 3
-            n_meas = 7 if dim == 3 else 3
-            meas = values[:n_meas]
-            if dim == 3:
-                meas[3:] = _unit_quaternion(meas[3:], spath, lineno)
-            info = _upper_to_full(values[n_meas:], d)
-            eig = np.linalg.eigvalsh(info)
-            if eig[0] <= 1e-12 * max(float(np.abs(info).max()), 1e-300):
-                raise FormatError(f'information matrix is not positive definite (eigenvalues '
-                                  f'{np.array2string(eig, precision=3)})', spath, lineno)
-            edges.append((lineno, i, j, meas, info))
+    def kind(name: str) -> list[_Group]:
+        return [g for g in groups if _SPEC[g.tag][1] == name]
 
-    if not vertex_ids:
+    # ------------------------------------------------ parameters (sensor offsets)
+    offsets: dict[int, FloatArray] = {}
+    p_groups = kind('param')
+    if p_groups:
+        p_lines = np.concatenate([g.lines for g in p_groups])
+        p_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath, 'parameter id')
+                                for g in p_groups])
+        S = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines, spath)
+                            for g in p_groups])
+        dup = _first_duplicate(p_ids, p_lines)
+        if dup is not None:
+            raise FormatError(f'parameter {dup[0]} is already defined on line {dup[1]}',
+                              spath, dup[2])
+        offsets = {int(p): S[k] for k, p in enumerate(p_ids.tolist())}
+
+    # ------------------------------------------------ vertices
+    v_groups = sorted(kind('vertex'), key=lambda g: int(g.lines[0]))
+    has_guess = bool(v_groups)
+    if has_guess:
+        v_lines = np.concatenate([g.lines for g in v_groups])
+        v_order = np.argsort(v_lines, kind='stable')
+        v_lines = v_lines[v_order]
+        v_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath) for g in v_groups])[v_order]
+        T_init = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines,
+                                        spath) for g in v_groups])[v_order]
+        dup = _first_duplicate(v_ids, v_lines)
+        if dup is not None:
+            raise FormatError(f'vertex {dup[0]} is already defined on line {dup[1]}',
+                              spath, dup[2])
+
+    # ------------------------------------------------ edges
+    e_groups = kind('edge')
+    parts = []
+    for g in e_groups:
+        with_param = g.F.shape[1] in (13, 32)
+        c = 4 if with_param else 3
+        i = _ids(g.F[:, 1], g.lines, spath)
+        j = _ids(g.F[:, 2], g.lines, spath)
+        p = (_ids(g.F[:, 3], g.lines, spath, 'parameter id') if with_param
+             else np.full(len(i), -1, dtype=np.int64))
+        values = _floats(g.F[:, c:], g.lines, spath)
+        meas = values[:, :n_meas]
+        upper = values[:, n_meas:]
+        if g.tag == TAG_EDGE_TORO:
+            upper = upper[:, _TORO_FROM_G2O]
+        parts.append((g.lines, i, j, p, _poses(meas, dim, g.lines, spath), upper))
+    m = sum(len(q[0]) for q in parts)
+    if m:
+        e_lines, ei, ej, ep, Z, upper = (np.concatenate(x) for x in zip(*parts))
+        order = np.argsort(e_lines, kind='stable')
+        e_lines, ei, ej, ep, Z, upper = (x[order] for x in (e_lines, ei, ej, ep, Z, upper))
+    else:
+        e_lines = ei = ej = ep = np.zeros(0, dtype=np.int64)
+        Z, upper = np.zeros((0, 4, 4)), np.zeros((0, d * (d + 1) // 2))
+    loop = ei == ej
+    if loop.any():
+        k = int(np.argmax(loop))
+        raise FormatError(f'edge from vertex {ei[k]} to itself', spath, int(e_lines[k]))
+
+    # ------------------------------------------------ references
+    if has_guess:
+        ids = v_ids
+    elif m:
+        ids = np.unique(np.concatenate([ei, ej]))
+        T_init = np.broadcast_to(np.eye(4), (ids.size, 4, 4)).copy()
+    else:
         raise FormatError('no vertices (VERTEX_SE3:QUAT or VERTEX_SE2 lines) found', spath)
-    for lineno, i, j, _, _ in edges:
-        for v in (i, j):
-            if v not in vertex_line:
-                raise FormatError(f'edge refers to vertex {v}, which the file does not define',
-                                  spath, lineno)
-    for lineno, v in fix:
-        if v not in vertex_line:
-            raise FormatError(f'FIX refers to vertex {v}, which the file does not define',
-                              spath, lineno)
+    sorter = np.argsort(ids)
+    for what, ends in (('edge', ei), ('edge', ej)):
+        known = np.isin(ends, ids)
+        if not known.all():
+            k = int(np.argmin(known))
+            raise FormatError(f'{what} refers to vertex {ends[k]}, which the file does not '
+                              f'define', spath, int(e_lines[k]))
+    for line, fields in fix:
+        if not fields:
+            raise FormatError('FIX needs at least one vertex id', spath, line)
+        for v in _ids(np.array(fields, dtype=object), np.full(len(fields), line),
+                      spath).tolist():
+            if v not in set(ids.tolist()):
+                raise FormatError(f'FIX refers to vertex {v}, which the file does not define',
+                                  spath, line)
+    named = ep >= 0
+    known = np.isin(ep, list(offsets)) | ~named
+    if not known.all():
+        k = int(np.argmin(known))
+        tag = TAG_PARAMS_SE3 if dim == 3 else TAG_PARAMS_SE2
+        raise FormatError(f'edge names parameter {ep[k]}, which no {tag} line defines', spath,
+                          int(e_lines[k]))
+    for pid, S in offsets.items():
+        if not (ep == pid).any() and np.abs(S - np.eye(4)).max() > _IDENTITY_TOL:
+            line = int(p_lines[np.flatnonzero(p_ids == pid)[0]])
+            raise FormatError(f'sensor offset {pid} is not the identity but no edge names it, '
+                              'so it is unclear whether the edges include it: name it on the '
+                              'edges (EDGE_... i j {pid} ...) or make it the identity', spath,
+                              line)
+
+    # ------------------------------------------------ information: check, repair or refuse
+    info = _upper_to_full(upper, d)
+    bad = not_positive_definite(info)
+    repaired: tuple[int, ...] = ()
+    if bad.any():
+        k = int(np.argmax(bad))
+        if strict:
+            eig = np.linalg.eigvalsh(info[k])
+            raise FormatError(f'information matrix is not positive definite (eigenvalues '
+                              f'{np.array2string(eig, precision=3)}); drop strict to repair it '
+                              f'to the nearest positive-definite matrix', spath,
+                              int(e_lines[k]))
+        info[bad] = nearest_positive_definite(info[bad])
+        repaired = tuple(int(v) for v in e_lines[bad].tolist())
+        shown = ', '.join(map(str, repaired[:20])) + (', ...' if len(repaired) > 20 else '')
+        warnings.warn(f'{spath}: {len(repaired)} information matrices were not positive '
+                      f'definite and were repaired by eigenvalue clipping (lines {shown}); '
+                      f'read strictly to refuse them instead', InformationRepairWarning,
+                      stacklevel=2)
+
+    # ------------------------------------------------ sensor offsets into the robot frame
+    T_meas, info = _apply_offsets(Z, info, ep, offsets, dim, inverse=False)
 
     # ------------------------------------------------ everything is valid: build the graph
-    assert dim is not None
-    poses = np.array(vertex_pose)
-    m = len(edges)
-    d = 6 if dim == 3 else 3
-    meas = np.array([e[3] for e in edges]).reshape(m, 7 if dim == 3 else 3)
-    info = np.array([e[4] for e in edges]).reshape(m, d, d)
+    src = sorter[np.searchsorted(ids, ei, sorter=sorter)]
+    dst = sorter[np.searchsorted(ids, ej, sorter=sorter)]
     if dim == 3:
-        T_init = se3.from_pos_quat(poses[:, :3], poses[:, 3:])
-        T_meas = se3.from_pos_quat(meas[:, :3], meas[:, 3:])
         info6 = info
     else:
-        T_init = se2_to_se3(poses)
-        T_meas = se2_to_se3(meas)
         info6 = np.broadcast_to(np.eye(6), (m, 6, 6)).copy()
         info6[:, _SE2_AXES[:, None], _SE2_AXES[None, :]] = info
     cov = np.linalg.inv(info6)
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
-    index = {v: k for k, v in enumerate(vertex_ids)}
-    src = np.array([index[e[1]] for e in edges], dtype=np.int64)
-    dst = np.array([index[e[2]] for e in edges], dtype=np.int64)
-    ids = np.asarray(vertex_ids, dtype=np.int64)
-
     network = ConnectionNetwork(duplicates='keep')
-    for v in vertex_ids:
+    for v in ids.tolist():
         network.add_node(v, 0)
     z = se3.to_translation_rotvec(T_meas)
     try:
         network.add_connections(ids[src], ids[dst], z, cov)
     except InputError as exc:  # e.g. a bit-identical repeated edge: name its line
         raise FormatError(f'the network rejected the edges: {exc}', spath) from None
-    fixed = tuple(dict.fromkeys(v for _, v in fix))
-    return PoseGraph(network=network, T_init=T_init, vertex_ids=ids, dim=dim, fixed=fixed,
-                     edge_src=src, edge_dst=dst, T_meas=T_meas, information=info, path=spath)
+    fixed = tuple(dict.fromkeys(int(v) for _, fields in fix for v in fields))
+    toro = any(g.tag in (TAG_VERTEX_TORO, TAG_EDGE_TORO) for g in groups)
+    g2o2 = any(g.tag in (TAG_VERTEX_SE2, TAG_EDGE_SE2) for g in groups)
+    return PoseGraph(network=network, T_init=T_init, vertex_ids=ids.astype(np.int64), dim=dim,
+                     fixed=fixed, edge_src=src.astype(np.int64), edge_dst=dst.astype(np.int64),
+                     T_meas=T_meas, information=info, path=spath, has_guess=has_guess,
+                     offsets=offsets, edge_param=ep if named.any() else None,
+                     repaired_lines=repaired, flavour='toro' if toro and not g2o2 else 'g2o')
+
+
+def _apply_offsets(T: FloatArray, info: FloatArray, param: IntArray,
+                   offsets: dict[int, FloatArray], dim: int,
+                   inverse: bool) -> tuple[FloatArray, FloatArray]:
+    """Sensor-frame edges ``(Z, Omega)`` to robot-frame ``(S Z S^-1, Ad(S^-1)' Omega Ad(S^-1))``
+    for the edges that name an offset ``S`` (``inverse``: the other way)."""
+    named = np.flatnonzero(param >= 0)
+    if named.size == 0:
+        return T, info
+    keys = np.array(sorted(offsets), dtype=np.int64)
+    S = np.stack([offsets[k] for k in keys.tolist()])[np.searchsorted(keys, param[named])]
+    Sinv = se3.inverse(S)
+    T, info = T.copy(), info.copy()
+    A = se3.adjoint(S if inverse else Sinv)   # Omega_new = A' Omega A
+    if dim == 2:
+        A = A[:, _SE2_AXES[:, None], _SE2_AXES[None, :]]
+    if inverse:
+        T[named] = Sinv @ T[named] @ S
+    else:
+        T[named] = S @ T[named] @ Sinv
+    info[named] = np.swapaxes(A, 1, 2) @ info[named] @ A
+    info[named] = 0.5 * (info[named] + np.swapaxes(info[named], 1, 2))
+    return T, info
 
 
 # ---------------------------------------------------------------------------------- writing
-def _fmt(values) -> str:
-    return ' '.join(repr(float(v)) for v in values)  # shortest exact repr
+def _text_rows(prefix: list[str], values: FloatArray) -> str:
+    """Lines ``prefix[r] v0 v1 ...`` of a ``(k, c)`` float table, without a Python loop per row.
+
+    Floats are written as their shortest exact ``repr``, so reading them back gives the same
+    bits.
+    """
+    k, c = values.shape
+    if k == 0:
+        return ''
+    tokens = list(map(repr, values.ravel().tolist()))
+    seps = [' '] * (k * c)
+    seps[::c] = map('\n{} '.format, prefix)
+    seps[0] = seps[0][1:]
+    return ''.join(chain.from_iterable(zip(seps, tokens))) + '\n'
 
 
 def write_g2o(path: str | os.PathLike, graph: PoseGraph,
               T_world_node: FloatArray | None = None) -> None:
-    """Write a pose graph (all vertices, all edges, ``FIX``) in g2o format.
+    """Write a pose graph (offsets, vertices, edges, ``FIX``) in the format it was read in.
 
-    The file is written to a temporary name and renamed, so a failure leaves no half file.
+    What was read is written back: ``PARAMS_*OFFSET`` lines, edges that named a parameter (in
+    the sensor frame, with their parameter id), TORO ``VERTEX2``/``EDGE2`` for a TORO file. An
+    edge-only graph is written without vertices unless ``T_world_node`` is given. The file is
+    written to a temporary name and renamed, so a failure leaves no half file.
 
     Parameters
     ----------
@@ -324,28 +566,42 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
                          f'got {T.shape}')
     if not np.isfinite(T).all():
         raise InputError('T_world_node has NaN or inf entries; refusing to write them')
-    lines: list[str] = []
     ids = graph.vertex_ids
+    m = graph.n_edges
+    param = graph.edge_param if graph.edge_param is not None else np.full(m, -1, np.int64)
+    Z, info = _apply_offsets(graph.T_meas, graph.information, param, graph.offsets, graph.dim,
+                             inverse=True)
+    d = 6 if graph.dim == 3 else 3
+    upper = info[:, np.triu_indices(d)[0], np.triu_indices(d)[1]]
+    toro = graph.flavour == 'toro' and graph.dim == 2
     if graph.dim == 3:
-        p, q = se3.to_pos_quat(T)
-        for k in range(graph.n_vertices):
-            lines.append(f'{TAG_VERTEX_SE3} {ids[k]} {_fmt(p[k])} {_fmt(q[k])}')
-        pm, qm = se3.to_pos_quat(graph.T_meas)
-        iu = np.triu_indices(6)
-        for k in range(graph.n_edges):
-            lines.append(f'{TAG_EDGE_SE3} {ids[graph.edge_src[k]]} {ids[graph.edge_dst[k]]} '
-                         f'{_fmt(pm[k])} {_fmt(qm[k])} {_fmt(graph.information[k][iu])}')
+        tags = (TAG_PARAMS_SE3, TAG_VERTEX_SE3, TAG_EDGE_SE3)
+
+        def values(X: FloatArray) -> FloatArray:
+            p, q = se3.to_pos_quat(X)
+            return np.concatenate([p.reshape(-1, 3), q.reshape(-1, 4)], axis=1)
     else:
-        v = se3_to_se2(T)
-        for k in range(graph.n_vertices):
-            lines.append(f'{TAG_VERTEX_SE2} {ids[k]} {_fmt(v[k])}')
-        vm = se3_to_se2(graph.T_meas)
-        iu = np.triu_indices(3)
-        for k in range(graph.n_edges):
-            lines.append(f'{TAG_EDGE_SE2} {ids[graph.edge_src[k]]} {ids[graph.edge_dst[k]]} '
-                         f'{_fmt(vm[k])} {_fmt(graph.information[k][iu])}')
+        tags = (TAG_PARAMS_SE2, TAG_VERTEX_TORO if toro else TAG_VERTEX_SE2,
+                TAG_EDGE_TORO if toro else TAG_EDGE_SE2)
+        values = se3_to_se2
+        if toro:
+            upper = upper[:, np.argsort(_TORO_FROM_G2O)]
+    blocks = []
+    if graph.offsets:
+        keys = np.array(sorted(graph.offsets), dtype=np.int64)
+        S = np.stack([graph.offsets[k] for k in keys.tolist()])
+        blocks.append(_text_rows(list(map(f'{tags[0]} {{}}'.format, keys.tolist())),
+                                 values(S)))
+    if graph.has_guess or T_world_node is not None:
+        blocks.append(_text_rows(list(map(f'{tags[1]} {{}}'.format, ids.tolist())),
+                                 values(T)))
+    if m:
+        pid = np.where(param >= 0, np.char.add(' ', param.astype(str)), '').tolist()
+        head = list(map(f'{tags[2]} {{}} {{}}{{}}'.format, ids[graph.edge_src].tolist(),
+                        ids[graph.edge_dst].tolist(), pid))
+        blocks.append(_text_rows(head, np.concatenate([values(Z), upper], axis=1)))
     if graph.fixed:
-        lines.append(f'{TAG_FIX} ' + ' '.join(str(int(v)) for v in graph.fixed))
+        blocks.append(f'{TAG_FIX} ' + ' '.join(str(int(v)) for v in graph.fixed) + '\n')
     out = Path(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', dir=out.parent or '.')
@@ -353,7 +609,7 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
         raise FormatError(f'cannot write: {exc}', str(path)) from None
     try:
         with os.fdopen(fd, 'w') as fh:
-            fh.write('\n'.join(lines) + '\n')
+            fh.write(''.join(blocks))
         os.replace(tmp, out)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

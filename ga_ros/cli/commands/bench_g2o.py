@@ -15,9 +15,9 @@ import sys
 import time
 from pathlib import Path
 
-from ga_ros.cli.commands.solve import GraphSolveConfig, solve_graph
 from ga_ros.errors import GaError, InputError
 from ga_ros.io.g2o import read_g2o
+from ga_ros.pipeline.pose_graph import GraphSolveConfig, solve_graph
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / 'shared' / 'data' / 'pose-graphs'
 

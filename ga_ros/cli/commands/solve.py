@@ -1,5 +1,6 @@
 """``ga-ros solve FILE.g2o --out OUT.g2o [--json]``: optimise a g2o pose graph.
 
+The algorithms live in :mod:`ga_ros.pipeline.pose_graph`; this module parses and prints.
 Batch mode (default) solves the whole graph with the mixed adjustment (``se3`` model, which
 minimises the g2o/GTSAM cost ``sum e' Omega e``): Levenberg-Marquardt from the file's initial
 guess, then undamped Gauss-Newton (Gauss-Helmert) iterations from the LM result, kept only if
@@ -14,267 +15,22 @@ written vertices.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.measurement import Measurement
-from ga_ros.core.solver import ROBUST_LOSSES, SolverConfig, solve
-from ga_ros.errors import (
-    DegenerateGeometryError,
-    FormatError,
-    InputError,
-    NetworkError,
-    SolverError,
-)
-from ga_ros.geometry import se3
-from ga_ros.io.g2o import PoseGraph, edge_errors, graph_cost, read_g2o, write_g2o
+from ga_ros.core.solver import ROBUST_LOSSES
+from ga_ros.io.g2o import PoseGraph, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
-
-
-@dataclass(frozen=True)
-class GraphSolveConfig:
-    """Settings of :func:`solve_graph`.
-
-    Attributes
-    ----------
-    damping : ``'lm'`` (Levenberg-Marquardt first stage, for poor initial guesses) or
-        ``'none'`` (Gauss-Newton / Gauss-Helmert only).
-    max_iterations : cap on first-stage iterations.
-    polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
-    tolerance : stop when the largest correction is below this (m, rad).
-    robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each edge's Mahalanobis misclosure.
-    robust_scale : Mahalanobis distance where the robust loss departs from least squares.
-    """
-
-    damping: str = 'lm'
-    max_iterations: int = 100
-    polish_iterations: int = 30
-    tolerance: float = 1e-8
-    robust_loss: str = 'none'
-    robust_scale: float = 3.0
-
-    def __post_init__(self) -> None:
-        if self.damping not in ('lm', 'none'):
-            raise InputError(f"damping must be 'lm' or 'none', got {self.damping!r}")
-        if self.robust_loss not in ROBUST_LOSSES:
-            raise InputError(f'robust_loss must be one of {ROBUST_LOSSES}, '
-                             f'got {self.robust_loss!r}')
-        if self.max_iterations < 1 or self.polish_iterations < 0:
-            raise InputError('max_iterations >= 1 and polish_iterations >= 0 required')
-        if not (self.tolerance > 0 and self.robust_scale > 0):
-            raise InputError('tolerance and robust_scale must be positive')
-
-
-@dataclass
-class GraphSolveResult:
-    """Outcome of :func:`solve_graph`.
-
-    Attributes
-    ----------
-    T_world_node : (n, 4, 4) optimised vertex poses, graph vertex order.
-    cost : ``sum e' Omega e`` at the solution (:func:`graph_cost`).
-    initial_cost : the same at the initial guess.
-    objective : the minimised objective (``cost``, or the robust cost with a robust loss).
-    iterations : solver iterations over all stages.
-    seconds : wall time of the solver stages (s), file I/O excluded.
-    converged : whether the last accepted stage met the tolerance.
-    reason : termination reason of the last accepted stage.
-    stages : per-stage summary (name, iterations, seconds, objective, accepted, reason).
-    per_track_ms : track mode only: update time of each track (ms).
-    """
-
-    T_world_node: FloatArray
-    cost: float
-    initial_cost: float
-    objective: float
-    iterations: int
-    seconds: float
-    converged: bool
-    reason: str
-    stages: list[dict] = field(default_factory=list)
-    per_track_ms: list[float] | None = None
-
-
-def robust_objective(graph: PoseGraph, T_world_node: FloatArray, loss: str = 'none',
-                     scale: float = 3.0) -> float:
-    """``sum rho(e' Omega e)`` with the solver's robust losses (``rho(r2) = r2`` for ``'none'``;
-    Huber ``2 c r - c^2`` beyond ``r = c``; Cauchy ``c^2 log(1 + r2 / c^2)``)."""
-    e = edge_errors(graph, T_world_node)
-    r2 = np.einsum('ki,kij,kj->k', e, graph.information, e)
-    if loss == 'huber':
-        r = np.sqrt(r2)
-        return float(np.sum(np.where(r <= scale, r2, 2 * scale * r - scale * scale)))
-    if loss == 'cauchy':
-        return float(np.sum(scale * scale * np.log1p(r2 / (scale * scale))))
-    return float(np.sum(r2))
-
-
-def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> GraphSolveResult:
-    """Batch-optimise a pose graph from its own initial guess (``graph.T_init``).
-
-    The datum is the ``FIX`` vertices of the file, or else its first vertex.
-
-    Raises
-    ------
-    NetworkError
-        Vertices not connected to the datum.
-    SolverError, DegenerateGeometryError
-        The first stage failed (a failing polish stage is discarded instead).
-    """
-    cfg = config or GraphSolveConfig()
-    fixed = list(graph.fixed) or None
-    t0 = time.perf_counter()
-    initial_cost = graph_cost(graph, graph.T_init)
-    stages: list[dict] = []
-
-    def objective(T: FloatArray) -> float:
-        return robust_objective(graph, T, cfg.robust_loss, cfg.robust_scale)
-
-    first = SolverConfig(model='se3', max_iterations=cfg.max_iterations, tolerance=cfg.tolerance,
-                         damping=cfg.damping, robust_loss=cfg.robust_loss,
-                         robust_scale=cfg.robust_scale)
-    t = time.perf_counter()
-    res = solve(graph.network, graph.T_init, first, fixed=fixed)
-    T, best = res.T_world_node, objective(res.T_world_node)
-    iterations, converged, reason = res.iterations, res.converged, res.reason
-    stages.append(dict(name=cfg.damping, iterations=res.iterations, reason=res.reason,
-                       seconds=time.perf_counter() - t, objective=best, accepted=True))
-    if cfg.damping == 'lm' and cfg.polish_iterations > 0:
-        polish = SolverConfig(model='se3', max_iterations=cfg.polish_iterations,
-                              tolerance=cfg.tolerance, damping='none',
-                              robust_loss=cfg.robust_loss, robust_scale=cfg.robust_scale)
-        t = time.perf_counter()
-        try:
-            res2 = solve(graph.network, T, polish, fixed=fixed)
-            value = objective(res2.T_world_node)
-            ok = bool(np.isfinite(value) and value <= best * (1 + 1e-12) + 1e-300)
-            why = res2.reason
-        except (SolverError, DegenerateGeometryError) as exc:  # GN failed: LM result stands
-            res2, value, ok, why = None, float('nan'), False, f'failed: {exc}'
-        stages.append(dict(name='gauss-newton', iterations=res2.iterations if res2 else 0,
-                           reason=why, seconds=time.perf_counter() - t, objective=value,
-                           accepted=ok))
-        if res2 is not None:
-            iterations += res2.iterations
-        if ok and res2 is not None:
-            T, best, converged, reason = res2.T_world_node, value, res2.converged, res2.reason
-    seconds = time.perf_counter() - t0
-    return GraphSolveResult(T_world_node=T, cost=graph_cost(graph, T), initial_cost=initial_cost,
-                            objective=best, iterations=iterations, seconds=seconds,
-                            converged=converged, reason=reason, stages=stages)
-
-
-# ------------------------------------------------------------------------------ track mode
-def read_tracks(path: str | Path, vertex_ids: IntArray) -> IntArray:
-    """Track id of every vertex from a CSV file (a header line, then ``node_id,track_id``).
-
-    Returns
-    -------
-    (n,) track ids in the order of ``vertex_ids``.
-
-    Raises
-    ------
-    FormatError
-        ``file:line`` of a malformed line, a duplicate or unknown node, a negative track id;
-        or a vertex without a track.
-    """
-    spath = str(path)
-    try:
-        lines = Path(path).read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(f'cannot read: {exc}', spath) from None
-    index = {int(v): k for k, v in enumerate(vertex_ids)}
-    tracks = np.full(len(vertex_ids), -1, dtype=np.int64)
-    seen: dict[int, int] = {}
-    for lineno, row in enumerate(csv.reader(lines), start=1):
-        if lineno == 1 or not row or not ''.join(row).strip() or row[0].startswith('#'):
-            continue
-        if len(row) != 2:
-            raise FormatError(f'expected node_id,track_id, got {len(row)} fields', spath, lineno)
-        try:
-            node, track = int(row[0]), int(row[1])
-        except ValueError:
-            raise FormatError(f'node_id and track_id must be integers, got {row!r}',
-                              spath, lineno) from None
-        if track < 0:
-            raise FormatError(f'track id must be non-negative, got {track}', spath, lineno)
-        if node not in index:
-            raise FormatError(f'node {node} is not a vertex of the graph', spath, lineno)
-        if node in seen:
-            raise FormatError(f'node {node} already has a track (line {seen[node]})',
-                              spath, lineno)
-        seen[node] = lineno
-        tracks[index[node]] = track
-    if (tracks < 0).any():
-        missing = np.asarray(vertex_ids)[tracks < 0][:10].tolist()
-        raise FormatError(f'{int((tracks < 0).sum())} vertices have no track, e.g. {missing}',
-                          spath)
-    return tracks
-
-
-def replay_order(graph: PoseGraph, tracks: IntArray) -> IntArray:
-    """Vertex indices in the order a live run reveals them: by track id, then file order."""
-    tracks = np.asarray(tracks, dtype=np.int64)
-    return np.lexsort((np.arange(graph.n_vertices), tracks))
-
-
-def replay_measurements(graph: PoseGraph, tracks: IntArray,
-                        stamp_step_ns: int = 100_000_000) -> list[Measurement]:
-    """The graph's edges as the measurement stream of a live run.
-
-    Vertices appear in :func:`replay_order`; an edge is revealed when its later end appears, and
-    is oriented so that ``dst`` is that new vertex (an edge given the other way is inverted:
-    ``T_dst_src = T_src_dst^-1``, covariance ``Ad(T) S Ad(T)'``, which leaves ``e' Omega e``
-    unchanged since ``e_ji = -Ad(T_ij) e_ij`` exactly). ``kind`` is ``'consecutive'`` for an edge
-    to the vertex revealed just before in the same track, ``'cross'`` otherwise; of the edges a
-    vertex reveals, the consecutive one comes first (it places the vertex, as visual odometry
-    would), the others keep their file order. ``stamp_ns`` is the rank of ``dst`` times
-    ``stamp_step_ns``.
-
-    Raises
-    ------
-    NetworkError
-        A vertex (other than the first) has no edge to any earlier vertex, so a live run could
-        not place it.
-    """
-    tracks = np.asarray(tracks, dtype=np.int64)
-    order = replay_order(graph, tracks)
-    rank = np.empty(graph.n_vertices, dtype=np.int64)
-    rank[order] = np.arange(graph.n_vertices)
-    src, dst = graph.edge_src, graph.edge_dst
-    later_is_src = rank[src] > rank[dst]
-    a = np.where(later_is_src, dst, src)       # earlier end
-    b = np.where(later_is_src, src, dst)       # later end (the new vertex)
-    reach = np.zeros(graph.n_vertices, dtype=bool)
-    reach[b] = True
-    reach[order[0]] = True
-    if not reach.all():
-        k = int(order[np.argmin(reach[order])])
-        raise NetworkError(f'vertex {int(graph.vertex_ids[k])} has no edge to an earlier vertex '
-                           f'in track order, so a live run could not place it')
-    cov = graph.network.arrays().cov
-    ids = graph.vertex_ids
-    out: list[Measurement] = []
-    consecutive = (tracks[a] == tracks[b]) & (rank[b] == rank[a] + 1)
-    for k in np.lexsort((np.arange(graph.n_edges), ~consecutive, rank[b])):
-        T, S = graph.T_meas[k], cov[k]
-        if later_is_src[k]:
-            Ad = se3.adjoint(T)
-            T, S = se3.inverse(T), Ad @ S @ Ad.T
-            S = 0.5 * (S + S.T)
-        i, j = int(a[k]), int(b[k])
-        kind = 'consecutive' if consecutive[k] else 'cross'
-        out.append(Measurement.from_pose(int(ids[i]), int(ids[j]), int(tracks[i]),
-                                         int(tracks[j]), T, S, int(rank[j]) * stamp_step_ns,
-                                         kind))
-    return out
+from ga_ros.pipeline.pose_graph import (
+    GraphSolveConfig,
+    GraphSolveResult,
+    read_tracks,
+    solve_graph,
+    solve_tracks,
+)
 
 
 # --------------------------------------------------------------------------------------- CLI
@@ -366,76 +122,6 @@ def run(args: argparse.Namespace) -> int:
         if args.out:
             print(f'wrote {args.out}', file=out)
     return 0
-
-
-def solve_tracks(graph: PoseGraph, tracks: IntArray, window: int = 5,
-                 damping: str = 'none', robust_loss: str = 'none', robust_scale: float = 3.0,
-                 outlier_chi2_prob: float = 0.999, refine: bool = True,
-                 max_iterations: int = 10, tolerance: float = 1e-6) -> GraphSolveResult:
-    """Solve a pose graph track by track as the live alignment node would.
-
-    The edges are fed to :class:`ga_ros.core.window.TrackWindowAligner` in the order of
-    :func:`replay_measurements` (a track ends when a vertex of the next one appears); the first
-    vertex in track order is the datum, at its initial pose. With ``refine`` the aligner's final
-    batch refinement follows. The per-track update times go to ``per_track_ms``.
-    """
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-
-    t0 = time.perf_counter()
-    initial_cost = graph_cost(graph, graph.T_init)
-    measurements = replay_measurements(graph, tracks)
-    first = int(replay_order(graph, tracks)[0])
-    cfg = AlignerConfig(window_tracks=window, damping=damping, robust_loss=robust_loss,
-                        robust_scale=robust_scale, outlier_chi2_prob=outlier_chi2_prob,
-                        max_iterations=max_iterations, tolerance=tolerance)
-    aligner = TrackWindowAligner(cfg, T_world_first=graph.T_init[first])
-    updates = []
-    for m in measurements:
-        try:
-            updates.extend(aligner.add_measurement(m))
-        except InputError:  # a live node drops it (e.g. an edge to a frozen track); counted
-            pass
-    last = aligner.finish_track()
-    if last is not None:
-        updates.append(last)
-    stages = [dict(name='tracks', iterations=sum(u.iterations for u in updates),
-                   seconds=time.perf_counter() - t0, tracks=len(updates),
-                   outliers=sum(u.n_outliers for u in updates),
-                   failed=[u.track_id for u in updates if u.reason.startswith('failed')],
-                   rejected=dict(aligner.stats.n_rejected),
-                   objective=None, accepted=True, reason=updates[-1].reason if updates else '')]
-
-    def poses() -> FloatArray:
-        path = aligner.corrected_path()
-        if path.node_ids.size != graph.n_vertices:
-            missing = np.setdiff1d(graph.vertex_ids, path.node_ids)
-            raise NetworkError(f'track mode could not place {missing.size} vertices (e.g. '
-                               f'{missing[:5].tolist()}): every edge to them was rejected '
-                               f'({aligner.stats.n_rejected})')
-        T = np.empty_like(graph.T_init)
-        T[graph.network.indices_of(path.node_ids)] = path.T_world_node
-        return T
-
-    T = poses()
-    stages[0]['objective'] = robust_objective(graph, T, robust_loss, robust_scale)
-    stages[0]['cost'] = graph_cost(graph, T)
-    iterations = stages[0]['iterations']
-    converged = all(u.converged for u in updates)
-    reason = stages[0]['reason']
-    if refine:
-        t = time.perf_counter()
-        up = aligner.refine_batch()
-        T = poses()
-        iterations += up.iterations
-        converged, reason = up.converged, up.reason
-        stages.append(dict(name='refine_batch', iterations=up.iterations, reason=up.reason,
-                           seconds=time.perf_counter() - t, accepted=True,
-                           objective=robust_objective(graph, T, robust_loss, robust_scale)))
-    return GraphSolveResult(
-        T_world_node=T, cost=graph_cost(graph, T), initial_cost=initial_cost,
-        objective=robust_objective(graph, T, robust_loss, robust_scale), iterations=iterations,
-        seconds=time.perf_counter() - t0, converged=converged, reason=reason, stages=stages,
-        per_track_ms=[float(u.update_ms) for u in updates])
 
 
 def _run_tracks(graph: PoseGraph, args: argparse.Namespace) -> GraphSolveResult:

@@ -1,0 +1,1 @@
+"""ROS-free pipeline: what the nodes and the replay both drive."""
