@@ -138,7 +138,8 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
     res = solve(graph.network, graph.T_init, first, fixed=fixed)
     T, best = res.T_world_node, objective(res.T_world_node)
     iterations, converged, reason = res.iterations, res.converged, res.reason
-    stages.append(dict(name=cfg.damping, iterations=res.iterations, reason=res.reason,
+    stages.append(dict(name=cfg.damping, iterations=res.iterations,
+                       factorisations=res.factorisations, reason=res.reason,
                        seconds=time.perf_counter() - t, objective=best, accepted=True))
     if cfg.damping == 'lm' and cfg.polish_iterations > 0:
         polish = cfg.solver_config('none', cfg.polish_iterations)
@@ -151,6 +152,7 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
         except (SolverError, DegenerateGeometryError) as exc:  # GN failed: LM result stands
             res2, value, ok, why = None, float('nan'), False, f'failed: {exc}'
         stages.append(dict(name='gauss-newton', iterations=res2.iterations if res2 else 0,
+                           factorisations=res2.factorisations if res2 else 0,
                            reason=why, seconds=time.perf_counter() - t, objective=value,
                            accepted=ok))
         if res2 is not None:
