@@ -149,7 +149,9 @@ class SolveResult:
         """
         if self._system is None:
             raise SolverError('this result carries no normal matrix')
-        return self._system.marginal_blocks(np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
+        with blas_threads():
+            return self._system.marginal_blocks(
+                np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
 
     @property
     def normal_matrix(self) -> sp.csc_matrix:
@@ -178,7 +180,8 @@ class SolveResult:
         if node_ids is None:
             return GaussianPrior(free_ids, self.T_world_node[sysm.free], sysm.full())
         ids = np.asarray(node_ids, dtype=np.int64)
-        cov = sysm.joint_covariance(ids)
+        with blas_threads():
+            cov = sysm.joint_covariance(ids)
         info = np.linalg.inv(cov)
         return GaussianPrior(ids, self.T_world_node[sysm.index_of(ids)], 0.5 * (info + info.T))
 

@@ -49,6 +49,7 @@ from ga_ros.core.solver import (
 )
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
+from ga_ros.runtime import blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
 _STATE_VERSION = 1
@@ -343,6 +344,10 @@ class TrackWindowAligner:
         track). On a solver failure the previous estimate stands and the result says why."""
         if self._open_track is None or self._open_track in self._finished:
             return None
+        with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
+            return self._finish_track()
+
+    def _finish_track(self) -> UpdateResult:
         track = self._open_track
         self._finished.add(track)
         t0 = time.perf_counter()
@@ -560,7 +565,7 @@ class TrackWindowAligner:
                 raise InputError(f'node {node} has not been adjusted yet (its track is still '
                                  'open)')
         if from_window:
-            out[from_window] = self._last.covariance(ids[from_window])
+            out[from_window] = self._last.covariance(ids[from_window])  # in blas_threads()
         return out
 
     @property
