@@ -457,3 +457,17 @@ def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     np.testing.assert_allclose(short.blocks, general.blocks, rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)
+
+
+def test_cost_tolerance_stops_earlier_at_the_same_optimum(pose_graph_dir):
+    """GTSAM-style stop on the relative cost decrease of a Gauss-Newton step: fewer iterations,
+    the cost within that fraction of the step-size-converged one."""
+    from ga_ros.io.g2o import read_g2o
+    g = read_g2o(pose_graph_dir / 'smallGrid3D.g2o')
+    strict = solve(g.network, g.T_init, SolverConfig(damping='dogleg', max_iterations=60,
+                                                     tolerance=1e-10))
+    early = solve(g.network, g.T_init, SolverConfig(damping='dogleg', max_iterations=60,
+                                                    tolerance=1e-10, cost_tolerance=1e-6))
+    assert early.converged and early.reason == 'cost_converged'
+    assert early.iterations < strict.iterations
+    assert abs(early.cost - strict.cost) <= 1e-6 * strict.cost

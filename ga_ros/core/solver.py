@@ -61,6 +61,9 @@ class SolverConfig:
         the last factorisation of ``N`` (chord steps: the same fixed point ``u(x) = 0``, reached
         linearly instead of quadratically, at the cost of one solve instead of a factorisation).
         0 refactors every iteration.
+    cost_tolerance : also stop (converged) when a full Gauss-Newton step lowers the cost by less
+        than this fraction of it (GTSAM's ``relativeErrorTol``); 0 (default) stops on the
+        correction size only.
     """
 
     model: str = 'se3'
@@ -70,6 +73,7 @@ class SolverConfig:
     robust_loss: str = 'none'
     robust_scale: float = 3.0
     reuse_factor_below: float = 0.1
+    cost_tolerance: float = 0.0
 
     def __post_init__(self) -> None:
         models.check_model(self.model)
@@ -78,8 +82,10 @@ class SolverConfig:
         if self.robust_loss not in ROBUST_LOSSES:
             raise InputError(f'robust_loss must be one of {ROBUST_LOSSES}, '
                              f'got {self.robust_loss!r}')
-        if not (self.max_iterations >= 1 and self.tolerance > 0 and self.robust_scale > 0):
-            raise InputError('max_iterations >= 1, tolerance > 0 and robust_scale > 0 required')
+        if not (self.max_iterations >= 1 and self.tolerance > 0 and self.robust_scale > 0
+                and 0.0 <= self.cost_tolerance < 1.0):
+            raise InputError('max_iterations >= 1, tolerance > 0, robust_scale > 0 and '
+                             '0 <= cost_tolerance < 1 required')
 
 
 @dataclass(frozen=True)
@@ -350,6 +356,7 @@ class _Step:
     step: float  # max |dx| (m, rad); 0 when refused
     accepted: bool
     cost: float = np.nan  # cost at T (damped strategies only)
+    gauss_newton: bool = True  # the full Gauss-Newton step was taken
 
 
 @dataclass
@@ -414,6 +421,11 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
         if step.step < cfg.tolerance:
             converged = True
             reason = 'converged'
+            break
+        if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * \
+                history[-1]:
+            converged = True
+            reason = 'cost_converged'
             break
     return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations)
 
@@ -650,7 +662,7 @@ def _lm_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
         if cost <= state.cost:
             state.lam = max(state.lam / 10.0, 1e-9)
             return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, dx)),
-                         float(np.abs(dx).max()), True, cost)
+                         float(np.abs(dx).max()), True, cost, False)
         state.lam *= 10.0
     return _Step(T, prob.residual_update(sysd, np.zeros_like(sysd.u)), 0.0, False, state.cost)
 
@@ -699,7 +711,7 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
                 radius = 0.5 * norm_h
             state.radius = radius
             return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, h)),
-                         float(np.abs(h).max()) if h.size else 0.0, True, cost)
+                         float(np.abs(h).max()) if h.size else 0.0, True, cost, b == 1.0)
         radius = 0.25 * norm_h
         if radius < 1e-12:
             break

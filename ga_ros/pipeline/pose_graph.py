@@ -45,6 +45,8 @@ class GraphSolveConfig:
     tolerance : stop when the largest correction is below this (m, rad).
     robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each edge's Mahalanobis misclosure.
     robust_scale : Mahalanobis distance where the robust loss departs from least squares.
+    cost_tolerance : also stop when a Gauss-Newton step lowers the cost by less than this
+        fraction (GTSAM's ``relativeErrorTol`` is 1e-5).
     """
 
     damping: str = 'dogleg'
@@ -53,6 +55,7 @@ class GraphSolveConfig:
     tolerance: float = 1e-8
     robust_loss: str = 'none'
     robust_scale: float = 3.0
+    cost_tolerance: float = 1e-6
 
     def __post_init__(self) -> None:
         if self.polish_iterations < 0:
@@ -65,7 +68,7 @@ class GraphSolveConfig:
         return SolverConfig(model='se3', damping=damping or self.damping,
                             max_iterations=max_iterations or self.max_iterations,
                             tolerance=self.tolerance, robust_loss=self.robust_loss,
-                            robust_scale=self.robust_scale)
+                            robust_scale=self.robust_scale, cost_tolerance=self.cost_tolerance)
 
 
 @dataclass
