@@ -117,6 +117,8 @@ _DESCRIPTIONS: dict[str, tuple[str, str, tuple[float, float] | None]] = {
     'keep_all_connections': ('keep every measurement for a final batch refinement (memory '
                              'grows ~340 bytes per measurement)', '', None),
     'tolerance': ('convergence: max |correction| (m / rad)', '', (0.0, 1e3)),
+    'cost_tolerance': ('convergence: relative cost decrease of a Gauss-Newton step', '',
+                       (0.0, 1.0)),
     'robust_loss': ("robust loss on each connection's Mahalanobis misclosure",
                     "'none' | 'huber' | 'cauchy'", None),
     'robust_scale': ('Mahalanobis distance where the robust loss departs from least squares',
