@@ -941,23 +941,13 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     u : (d u,) half the gradient of the cost at ``T`` (the Gauss-Newton step is ``-N^-1 u``).
     """
     d = models.dof(model)
-    n = network.n_nodes
     conn = network.arrays()
-    free = np.ones(n, dtype=bool)
+    free = np.ones(network.n_nodes, dtype=bool)
     if len(fixed):
         free[network.indices_of(list(fixed))] = False
-    col = np.full(n, -1, dtype=np.int64)
-    col[free] = np.arange(int(free.sum()))
     prior_data = [_PriorData.build(network, p, d) for p in priors]
-    br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
-    bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
-    for pd in prior_data:
-        br.append(col[pd.idx[pd.blk_r]])
-        bc.append(col[pd.idx[pd.blk_c]])
-    pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+    prob = _Problem.build(model, conn, prior_data, SolverConfig(model=model), free)
     T = np.asarray(T, dtype=float)
-    sysd = _linear_system(model, T, conn, conn.cov,
-                          _consistent_residuals(model, T, conn, np.zeros_like(conn.z)),
-                          prior_data, SolverConfig(model=model), col, d,
-                          _inv_spd(conn.cov) if model == 'se3' else None)
+    sysd = prob.linear_system(T, prob.consistent(T, np.zeros_like(conn.z)))
+    pattern = prob.pattern
     return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free], sysd.u
