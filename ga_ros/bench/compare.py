@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -44,19 +43,37 @@ class Run:
     out: dict
 
 
+def _hwm_mib(pid: int) -> float:
+    """Peak resident set (``VmHWM``) of a live process, MiB; 0 once it has exited.
+
+    ``ru_maxrss`` from ``wait4`` is not used: Linux carries the forking parent's peak into the
+    child across ``exec``, so every child would report at least this benchmark's own size.
+    """
+    try:
+        with open(f'/proc/{pid}/status', encoding='ascii') as f:
+            for line in f:
+                if line.startswith('VmHWM:'):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
 def run_process(args: list[str]) -> Run:
-    """Run a Python module in a fresh interpreter; its own peak RSS from ``wait4``."""
+    """Run a Python module in a fresh interpreter, sampling its peak RSS every 20 ms."""
     with tempfile.TemporaryFile('w+') as out, tempfile.TemporaryFile('w+') as err:
         t = time.perf_counter()
         proc = subprocess.Popen([sys.executable, '-m', *args], stdout=out, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)
+        rss = 0.0
+        while proc.poll() is None:
+            rss = max(rss, _hwm_mib(proc.pid))
+            time.sleep(0.02)
         wall = time.perf_counter() - t
-        proc.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
         if proc.returncode != 0:
             raise RuntimeError(f'{" ".join(args)} failed: {err.read().strip().splitlines()[-1:]}')
-        return Run(wall, usage.ru_maxrss / 1024.0, json.loads(out.read().strip().splitlines()[-1]))
+        return Run(wall, rss, json.loads(out.read().strip().splitlines()[-1]))
 
 
 def aerial(noise_pct: float = 10.0, seed: int = 0):
