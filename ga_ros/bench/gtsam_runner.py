@@ -7,7 +7,8 @@ object (solver seconds, iterations, poses written to OUT for the cost comparison
 ``tracks PROBLEM.npz K``: the track-by-track survey in ``PROBLEM.npz`` (written by
 :func:`ga_ros.bench.compare.dump_tracks`) through ``IncrementalFixedLagSmoother`` with a lag
 of ``K`` tracks (keys are stamped with their track index); one ``update()`` per track with
-that track's factors and new poses; prints the per-update milliseconds and the final poses.
+that track's factors and new poses (iSAM2 relinearises once per update; an optional third
+argument adds empty updates); prints the per-update milliseconds and the final poses.
 
 GTSAM is an optional benchmark extra (``pip install -r requirements-bench.txt``), never a
 dependency of ga_ros.
@@ -56,7 +57,7 @@ def batch(path_in: str, path_out: str) -> dict:
             'error': 2.0 * graph.error(result)}
 
 
-def tracks(path: str, lag_tracks: int) -> dict:
+def tracks(path: str, lag_tracks: int, extra_updates: int = 0) -> dict:
     import gtsam
 
     d = np.load(path)
@@ -96,6 +97,8 @@ def tracks(path: str, lag_tracks: int) -> dict:
             ts.insert((key, stamp))
         t = time.perf_counter()
         smoother.update(factors, values, ts)
+        for _ in range(extra_updates):  # more iSAM2 relinearisation/solve rounds, no new data
+            smoother.update()
         ms.append(1e3 * (time.perf_counter() - t))
         result = smoother.calculateEstimate()
         for key in result.keys():
@@ -108,7 +111,7 @@ def main(argv: list[str]) -> int:
     if argv[0] == 'batch':
         print(json.dumps(batch(argv[1], argv[2])))
     else:
-        print(json.dumps(tracks(argv[1], int(argv[2]))))
+        print(json.dumps(tracks(argv[1], int(argv[2]), int(argv[3]) if len(argv) > 3 else 0)))
     return 0
 
 
