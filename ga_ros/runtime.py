@@ -1,27 +1,109 @@
-"""Process-level settings that entry points (CLI, nodes, benchmarks) apply once at start-up."""
+"""Process-level settings of the BLAS libraries, applied by the library itself.
+
+* :func:`blas_threads`: the solver wraps its dense and sparse factorisations in this context, so a
+  user importing :mod:`ga_ros.core` gets the benchmark's speed without pinning threads.
+* :func:`openblas_coretype`: the OpenBLAS bundled in the cvxopt wheel (0.3.15) does not recognise
+  recent CPUs (AMD Zen 3/4, Intel Sapphire Rapids...) and falls back to its oldest x86-64 kernel
+  (``Prescott``); CHOLMOD's dense supernodal updates then run 1.5-3x slower. The kernel is chosen
+  from the CPU flags while cvxopt loads, without leaking the setting to other libraries or child
+  processes.
+* :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import platform
+from collections.abc import Iterator
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController, threadpool_limits
+
+_controller: ThreadpoolController | None = None
+
+
+def default_blas_threads() -> int:
+    """``$GA_ROS_BLAS_THREADS`` or 1 (the solver's many small dense blocks lose with threads on
+    shared cores; a 234 x 234 Cholesky was measured 100x slower with a busy second core)."""
+    try:
+        return max(1, int(os.environ.get('GA_ROS_BLAS_THREADS', '1')))
+    except ValueError:
+        return 1
+
+
+def _load_blas() -> None:
+    import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
+    import scipy.linalg  # noqa: F401
+
+    with contextlib.suppress(ImportError):
+        import ga_ros.core.sparse  # noqa: F401  (loads cvxopt with the right kernel)
 
 
 def limit_blas_threads(n: int | None = None) -> threadpool_limits:
     """Limit the BLAS/LAPACK thread pools (NumPy's and CHOLMOD's OpenBLAS) to ``n`` threads.
 
-    The solver works on many small dense blocks; with OpenBLAS's default one thread per core,
-    a machine whose cores are shared with other processes (a robot's computer, CI) spends most
-    of the time in spinning threads: a 234 x 234 Cholesky was measured 100x slower. The default
-    ``n`` is ``$GA_ROS_BLAS_THREADS`` or 1. Keep the returned object alive for the limit to hold.
+    The default ``n`` is :func:`default_blas_threads`. Keep the returned object alive for the
+    limit to hold.
     """
-    import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
-    import scipy.linalg  # noqa: F401
+    _load_blas()
+    return threadpool_limits(limits=default_blas_threads() if n is None else max(1, int(n)),
+                             user_api='blas')
 
+
+@contextlib.contextmanager
+def blas_threads(n: int | None = None) -> Iterator[None]:
+    """Context in which the BLAS pools use ``n`` threads (default :func:`default_blas_threads`).
+
+    The libraries are inspected once per process (the controller is cached), so entering the
+    context costs microseconds and can wrap every solve.
+    """
+    global _controller
+    if _controller is None:
+        _load_blas()
+        _controller = ThreadpoolController()
+    with _controller.limit(limits=default_blas_threads() if n is None else max(1, int(n)),
+                           user_api='blas'):
+        yield
+
+
+def _cpu_flags() -> set[str]:
     try:
-        import cvxopt  # noqa: F401
-    except ImportError:  # pragma: no cover
+        with open('/proc/cpuinfo', encoding='ascii', errors='replace') as f:
+            for line in f:
+                if line.startswith('flags'):
+                    return set(line.split(':', 1)[1].split())
+    except OSError:
         pass
-    if n is None:
-        n = int(os.environ.get('GA_ROS_BLAS_THREADS', '1'))
-    return threadpool_limits(limits=max(1, int(n)), user_api='blas')
+    return set()
+
+
+def best_openblas_coretype() -> str | None:
+    """OpenBLAS kernel name for this x86-64 CPU (``SkylakeX`` with AVX-512, ``Haswell`` with
+    AVX2 + FMA), or ``None`` elsewhere (ARM64 and older CPUs: OpenBLAS's own detection)."""
+    if platform.machine().lower() not in ('x86_64', 'amd64'):
+        return None
+    flags = _cpu_flags()
+    if {'avx512f', 'avx512bw', 'avx512vl', 'avx512dq'} <= flags:
+        return 'SkylakeX'
+    if {'avx2', 'fma'} <= flags:
+        return 'Haswell'
+    return None
+
+
+@contextlib.contextmanager
+def openblas_coretype() -> Iterator[None]:
+    """Set ``OPENBLAS_CORETYPE`` (unless the user did) while a bundled OpenBLAS loads; the
+    variable is restored afterwards, so it reaches neither NumPy's OpenBLAS (already loaded and
+    detecting correctly) nor child processes."""
+    if 'OPENBLAS_CORETYPE' in os.environ:
+        yield
+        return
+    core = best_openblas_coretype()
+    if core is None:
+        yield
+        return
+    os.environ['OPENBLAS_CORETYPE'] = core
+    try:
+        yield
+    finally:
+        os.environ.pop('OPENBLAS_CORETYPE', None)

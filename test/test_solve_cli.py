@@ -96,9 +96,10 @@ def test_solve_tiny_grid_json_and_output_file(tmp_path, capsys, pose_graph_dir):
     assert written.n_vertices == 9 and written.n_edges == 11
     # the printed cost is that of the written vertices under the independent evaluator
     assert graph_cost(written, written.T_init) == pytest.approx(summary['cost'], rel=1e-9)
-    # re-solving the optimum changes nothing
+    # re-solving the optimum changes nothing beyond the stop on the relative cost decrease
+    # (GraphSolveConfig.cost_tolerance = 1e-6: the next Gauss-Newton step gains far less)
     code, stdout, _ = _run(capsys, ['solve', str(out), '--json'])
-    assert json.loads(stdout)['cost'] == pytest.approx(summary['cost'], rel=1e-9)
+    assert json.loads(stdout)['cost'] == pytest.approx(summary['cost'], rel=1e-7)
 
 
 def test_solve_text_output(capsys, pose_graph_dir):

@@ -303,14 +303,33 @@ def test_robust_loss_downweights_a_wrong_connection(rng):
         assert robust.weights[-1] < 0.2
 
 
+@pytest.mark.parametrize('damping', ['lm', 'dogleg'])
 @pytest.mark.parametrize('seed', [0, 1, 2])
-def test_lm_damping_converges_from_a_poor_initial_guess(seed):
+def test_damping_converges_from_a_poor_initial_guess(seed, damping):
     rng = np.random.default_rng(seed)
     prob = make_problem(rng, 'se3', n=12)
     T0 = perturbed(rng, prob.T_true, 0.6)
-    res = solve(prob.network, T0, SolverConfig(damping='lm', tolerance=1e-12, max_iterations=100))
+    res = solve(prob.network, T0, SolverConfig(damping=damping, tolerance=1e-12,
+                                               max_iterations=100))
     np.testing.assert_allclose(res.T_world_node, prob.T_true, atol=1e-8)
     assert all(b <= a * (1 + 1e-12) for a, b in zip(res.cost_history[1:], res.cost_history[2:]))
+    if damping == 'dogleg':  # refused steps move along the same dogleg path: no refactoring
+        assert res.factorisations <= res.iterations
+
+
+def test_dogleg_from_a_far_start_reaches_the_undamped_optimum():
+    """One factorisation per iteration, and the optimum equals the undamped iteration's from
+    the true poses."""
+    rng = np.random.default_rng(7)
+    prob = make_problem(rng, 'se3', n=10, noise=2.0)
+    T0 = perturbed(rng, prob.T_true, 0.6)
+    res = solve(prob.network, T0, SolverConfig(damping='dogleg', tolerance=1e-10,
+                                               max_iterations=200))
+    ref = solve(prob.network, prob.T_true, SolverConfig(tolerance=1e-12))
+    assert res.converged
+    assert res.factorisations <= res.iterations
+    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-9)
+    np.testing.assert_allclose(res.T_world_node, ref.T_world_node, atol=1e-6)
 
 
 # ------------------------------------------------------------------------------ bad input
@@ -406,7 +425,7 @@ def test_bad_initial_guess_shape_and_values():
         solve(net, bad)
 
 
-@pytest.mark.parametrize('damping', ['none', 'lm'])
+@pytest.mark.parametrize('damping', ['none', 'lm', 'dogleg'])
 def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
     """From the file's own (poor) initial guess: the residuals pass through rotations beyond pi,
     where the adjusted observations must stay on the principal branch of the log."""
@@ -415,6 +434,8 @@ def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
     res = solve(g.network, g.T_init, SolverConfig(damping=damping, max_iterations=60,
                                                   tolerance=1e-9))
     assert res.converged
+    if damping == 'dogleg':  # one factorisation per iteration, refused steps included
+        assert res.factorisations == res.iterations
     cost = graph_cost(g, res.T_world_node)
     assert abs(cost - 1035.851) / 1035.851 < 1e-4
     assert abs(res.cost - cost) / cost < 1e-9
@@ -436,3 +457,17 @@ def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     np.testing.assert_allclose(short.blocks, general.blocks, rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)
+
+
+def test_cost_tolerance_stops_earlier_at_the_same_optimum(pose_graph_dir):
+    """GTSAM-style stop on the relative cost decrease of a Gauss-Newton step: fewer iterations,
+    the cost within that fraction of the step-size-converged one."""
+    from ga_ros.io.g2o import read_g2o
+    g = read_g2o(pose_graph_dir / 'smallGrid3D.g2o')
+    strict = solve(g.network, g.T_init, SolverConfig(damping='dogleg', max_iterations=60,
+                                                     tolerance=1e-10))
+    early = solve(g.network, g.T_init, SolverConfig(damping='dogleg', max_iterations=60,
+                                                    tolerance=1e-10, cost_tolerance=1e-6))
+    assert early.converged and early.reason == 'cost_converged'
+    assert early.iterations < strict.iterations
+    assert abs(early.cost - strict.cost) <= 1e-6 * strict.cost

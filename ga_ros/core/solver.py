@@ -31,12 +31,13 @@ from ga_ros.core.selinv import banded_marginal_blocks
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
 from ga_ros.geometry import se3
+from ga_ros.runtime import blas_threads
 
 ROBUST_LOSSES = ('none', 'huber', 'cauchy')
 #: Above this many requested nodes, covariances come from selected inversion of the whole
 #: (banded) normal matrix instead of one sparse solve per column.
 _MANY_NODES = 24
-DAMPINGS = ('none', 'lm')
+DAMPINGS = ('none', 'lm', 'dogleg')
 
 
 @dataclass(frozen=True)
@@ -49,8 +50,10 @@ class SolverConfig:
         ``'linear'`` (positions, ``R = I``); see :mod:`ga_ros.core.models`.
     max_iterations : cap on relinearisations.
     tolerance : stop when the largest correction ``max |d|`` is below this (m and rad).
-    damping : ``'none'``: the paper's Gauss-Helmert iteration; ``'lm'``: Levenberg-Marquardt
-        (steps accepted only if the cost decreases), for poor initial guesses.
+    damping : ``'none'``: the paper's Gauss-Helmert iteration; ``'dogleg'``: Powell's dogleg
+        trust region (Gauss-Newton steps while they decrease the cost, one factorisation per
+        iteration even when a step is refused), for poor initial guesses; ``'lm'``:
+        Levenberg-Marquardt (each refused step costs one more factorisation).
     robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each connection's Mahalanobis
         misclosure ``sqrt(w' M^-1 w)`` (iteratively reweighted).
     robust_scale : Mahalanobis distance at which the robust loss departs from least squares.
@@ -58,6 +61,9 @@ class SolverConfig:
         the last factorisation of ``N`` (chord steps: the same fixed point ``u(x) = 0``, reached
         linearly instead of quadratically, at the cost of one solve instead of a factorisation).
         0 refactors every iteration.
+    cost_tolerance : also stop (converged) when a full Gauss-Newton step lowers the cost by less
+        than this fraction of it (GTSAM's ``relativeErrorTol``); 0 (default) stops on the
+        correction size only.
     """
 
     model: str = 'se3'
@@ -67,6 +73,7 @@ class SolverConfig:
     robust_loss: str = 'none'
     robust_scale: float = 3.0
     reuse_factor_below: float = 0.1
+    cost_tolerance: float = 0.0
 
     def __post_init__(self) -> None:
         models.check_model(self.model)
@@ -75,8 +82,10 @@ class SolverConfig:
         if self.robust_loss not in ROBUST_LOSSES:
             raise InputError(f'robust_loss must be one of {ROBUST_LOSSES}, '
                              f'got {self.robust_loss!r}')
-        if not (self.max_iterations >= 1 and self.tolerance > 0 and self.robust_scale > 0):
-            raise InputError('max_iterations >= 1, tolerance > 0 and robust_scale > 0 required')
+        if not (self.max_iterations >= 1 and self.tolerance > 0 and self.robust_scale > 0
+                and 0.0 <= self.cost_tolerance < 1.0):
+            raise InputError('max_iterations >= 1, tolerance > 0, robust_scale > 0 and '
+                             '0 <= cost_tolerance < 1 required')
 
 
 @dataclass(frozen=True)
@@ -114,7 +123,8 @@ class SolveResult:
 
     ``T_world_node``, ``node_ids`` are in network index order; ``residuals`` (``v``) and
     ``adjusted`` (``l = l_b + v``, as ``[t, w]``) in connection order. ``cost`` is ``v' P v`` over
-    connections (with the robust weights) plus the prior terms.
+    connections (with the robust weights) plus the prior terms. ``factorisations`` counts the
+    numeric Cholesky factorisations of ``N`` during the iterations.
     """
 
     node_ids: IntArray
@@ -134,6 +144,7 @@ class SolveResult:
     seconds: float
     model: str = 'se3'
     weights: FloatArray | None = None
+    factorisations: int = 0
     _system: _NormalSystem | None = field(default=None, repr=False)
 
     def covariance(self, node_ids) -> FloatArray:
@@ -144,7 +155,9 @@ class SolveResult:
         """
         if self._system is None:
             raise SolverError('this result carries no normal matrix')
-        return self._system.marginal_blocks(np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
+        with blas_threads():
+            return self._system.marginal_blocks(
+                np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
 
     @property
     def normal_matrix(self) -> sp.csc_matrix:
@@ -173,7 +186,8 @@ class SolveResult:
         if node_ids is None:
             return GaussianPrior(free_ids, self.T_world_node[sysm.free], sysm.full())
         ids = np.asarray(node_ids, dtype=np.int64)
-        cov = sysm.joint_covariance(ids)
+        with blas_threads():
+            cov = sysm.joint_covariance(ids)
         info = np.linalg.inv(cov)
         return GaussianPrior(ids, self.T_world_node[sysm.index_of(ids)], 0.5 * (info + info.T))
 
@@ -309,87 +323,137 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     if not anchors:
         raise DegenerateGeometryError('no datum: fix a node or give priors (weighted parameters)')
     network.check_connected(anchors)
-
     free = np.ones(n, dtype=bool)
     free[fixed_idx] = False
-    col = np.full(n, -1, dtype=np.int64)
-    col[free] = np.arange(int(free.sum()))
-    n_free = int(free.sum())
-    if n_free == 0:
+    if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
+    prob = _Problem.build(model, conn, prior_data, cfg, free)
+    with blas_threads():
+        out = _iterate(prob, T0.copy())
+    return _finish(prob, node_ids, out, t0)
 
-    # block pattern: connection blocks (ii, ij, ji, jj) then prior blocks
-    br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
-    bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
-    for pd in prior_data:
-        br.append(col[pd.idx[pd.blk_r]])
-        bc.append(col[pd.idx[pd.blk_c]])
-    pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, n_free)
 
-    S = conn.cov
-    P = _inv_spd(S)
-    Pf = P if model == 'se3' else None  # enables the se3 shortcut of _linear_system
-    T = T0.copy()
-    v = _consistent_residuals(model, T, conn, np.zeros_like(conn.z))
+@dataclass
+class _Iterations:
+    """Outcome of the iteration loop of :func:`solve` (before the final linearisation)."""
+
+    T: FloatArray
+    v: FloatArray
+    converged: bool
+    iterations: int
+    reason: str
+    history: list[float]
+    chol: SparseCholesky | None
+    factorisations: int
+
+
+@dataclass
+class _Step:
+    """One accepted (or refused) correction of :func:`_iterate`."""
+
+    T: FloatArray
+    v: FloatArray
+    step: float  # max |dx| (m, rad); 0 when refused
+    accepted: bool
+    cost: float = np.nan  # cost at T (damped strategies only)
+    gauss_newton: bool = True  # the full Gauss-Newton step was taken
+
+
+@dataclass
+class _Trust:
+    """State carried between iterations by the damped strategies."""
+
     chol: SparseCholesky | None = None
-    lam = 1e-4
+    factorisations: int = 0
+    lam: float = 1e-4  # Levenberg-Marquardt damping
+    radius: float = 0.0  # dogleg trust radius (0: not set yet, the first step tries full GN)
+    cost: float = np.inf  # cost at the current estimate
+
+    def factor(self, pattern: BlockPattern, data: FloatArray) -> SparseCholesky:
+        if self.chol is None:
+            self.chol = SparseCholesky(pattern, data)
+        else:
+            self.chol.refactor(data)
+        self.factorisations += 1
+        return self.chol
+
+
+def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
+    """Relinearise and correct until the largest correction is below the tolerance."""
+    cfg = prob.cfg
+    v = prob.consistent(T, np.zeros_like(prob.conn.z))
+    state = _Trust()
     last_step = np.inf
     history: list[float] = []
     converged = False
     reason = 'max_iterations'
     it = 0
     for it in range(1, cfg.max_iterations + 1):
-        sysd = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d, Pf)
+        sysd = prob.linear_system(T, v)
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
-            history.append(sysd.cost0 if Pf is not None
-                           else _cost_at(model, T, conn, S, prior_data, cfg, col, d))
-        data = pattern.assemble(sysd.blocks)
-        if cfg.damping == 'lm':
-            T, v, step, data_used, chol, lam, ok = _lm_step(
-                model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, chol, lam, free)
-            if not ok:
-                reason = 'lm_no_decrease'
-                converged = step < cfg.tolerance * 10
-                break
-        else:
-            if chol is None:
-                chol = SparseCholesky(pattern, data)
-            elif last_step >= cfg.reuse_factor_below:
-                chol.refactor(data)
-            dx = -chol.solve(sysd.u)
+            state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
+            history.append(state.cost)
+        data = prob.pattern.assemble(sysd.blocks)
+        if cfg.damping == 'none':
+            if state.chol is None or last_step >= cfg.reuse_factor_below:
+                state.factor(prob.pattern, data)
+            dx = -state.chol.solve(sysd.u)
             if not np.isfinite(dx).all():
                 raise SolverError('the correction is not finite')
-            T = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
-            v = _consistent_residuals(model, T, conn, _residual_update(sysd, dx, conn, col, d, S))
-            step = float(np.abs(dx).max()) if dx.size else 0.0
-            last_step = step
-        history.append(_adjustment_cost(v, P, sysd.weights) + _prior_cost(model, T, prior_data))
+            T = prob.retract(T, dx)
+            v = prob.consistent(T, prob.residual_update(sysd, dx))
+            step = _Step(T, v, float(np.abs(dx).max()) if dx.size else 0.0, True)
+        else:
+            damped = _dogleg_step if cfg.damping == 'dogleg' else _lm_step
+            step = damped(prob, T, sysd, data, state)
+            if not step.accepted:
+                reason = 'no_decrease'
+                converged = step.step < cfg.tolerance * 10
+                break
+            T, v = step.T, step.v
+        last_step = step.step
+        history.append(_adjustment_cost(v, prob.P, sysd.weights)
+                       + _prior_cost(prob.model, T, prob.prior_data))
+        state.cost = step.cost
         if not np.isfinite(T).all():
             raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
                               'estimate stands')
-        if step < cfg.tolerance:
+        if step.step < cfg.tolerance:
             converged = True
             reason = 'converged'
             break
+        if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * \
+                history[-1]:
+            converged = True
+            reason = 'cost_converged'
+            break
+    return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations)
 
-    # final linearisation at the solution: residuals, variance factor, N for covariances
-    final = _linear_system(model, T, conn, S, v, prior_data, cfg, col, d, Pf)
-    v = _residual_update(final, np.zeros(n_free * d), conn, col, d, S)
-    data = pattern.assemble(final.blocks)
-    cost = _adjustment_cost(v, P, final.weights) + _prior_cost(model, T, prior_data)
-    r_eq = len(conn) * models.equations_per_connection(model) + sum(p.idx.size * d
-                                                                   for p in prior_data)
+
+def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> SolveResult:
+    """Final linearisation at the solution: residuals, variance factor, ``N`` (eq. 17)."""
+    T = out.T
+    d, conn = prob.d, prob.conn
+    n_free = int(prob.free.sum())
+    final = prob.linear_system(T, out.v)
+    v = prob.residual_update(final, np.zeros(n_free * d))
+    data = prob.pattern.assemble(final.blocks)
+    cost = _adjustment_cost(v, prob.P, final.weights) + _prior_cost(prob.model, T,
+                                                                    prob.prior_data)
+    r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
+        p.idx.size * d for p in prob.prior_data)
     redundancy = r_eq - n_free * d
     sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
-    system = _NormalSystem(node_ids, free, col, d, pattern, data, chol)
-    system.coords = T[free, :3, 3]
+    system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol)
+    system.coords = T[prob.free, :3, 3]
     return SolveResult(
-        node_ids=node_ids, T_world_node=T, converged=converged, iterations=it, reason=reason,
-        cost=float(cost), cost_history=history, sigma0_sq=float(sigma0_sq),
-        redundancy=int(redundancy), n_equations=int(r_eq),
-        n_observations=int(6 * len(conn) + sum(p.idx.size * d for p in prior_data)),
+        node_ids=node_ids, T_world_node=T, converged=out.converged, iterations=out.iterations,
+        reason=out.reason, cost=float(cost), cost_history=out.history,
+        sigma0_sq=float(sigma0_sq), redundancy=int(redundancy), n_equations=int(r_eq),
+        n_observations=int(6 * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
         n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
-        seconds=time.perf_counter() - t0, model=model, weights=final.weights, _system=system)
+        seconds=time.perf_counter() - t0, model=prob.model, weights=final.weights,
+        factorisations=out.factorisations, _system=system)
 
 
 # ------------------------------------------------------------------------------ internals
@@ -419,6 +483,66 @@ class _PriorData:
         rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
         return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows,
                           Hb.indices.astype(np.int64))
+
+
+@dataclass
+class _Problem:
+    """One adjustment's fixed parts (connections, priors, datum, pattern of ``N``), built once.
+
+    Its methods are the pieces of an iteration: the linear system at ``(T, v)``, the cost at
+    ``T``, the residual update (eq. 16) and the retraction of a correction.
+    """
+
+    model: str
+    conn: ConnectionArrays
+    P: FloatArray  # (m, 6, 6) weights S^-1 of the connections
+    prior_data: list[_PriorData]
+    cfg: SolverConfig
+    free: np.ndarray  # (n,) bool
+    col: IntArray  # (n,) block column of each node in N, -1 if fixed
+    d: int
+    pattern: BlockPattern
+
+    @staticmethod
+    def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
+              cfg: SolverConfig, free: np.ndarray) -> _Problem:
+        d = models.dof(model)
+        col = np.full(free.size, -1, dtype=np.int64)
+        col[free] = np.arange(int(free.sum()))
+        # block pattern: connection blocks (ii, ij, ji, jj) then prior blocks
+        br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
+        bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
+        for pd in prior_data:
+            br.append(col[pd.idx[pd.blk_r]])
+            bc.append(col[pd.idx[pd.blk_c]])
+        pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+        return _Problem(model, conn, _inv_spd(conn.cov), prior_data, cfg, free, col, d, pattern)
+
+    @property
+    def S(self) -> FloatArray:
+        return self.conn.cov
+
+    @property
+    def Pf(self) -> FloatArray | None:
+        """The weights when the se3 shortcut of :func:`_linear_system` applies."""
+        return self.P if self.model == 'se3' else None
+
+    def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
+        return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
+                              self.col, self.d, self.Pf)
+
+    def cost_at(self, T: FloatArray) -> float:
+        return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg, self.col,
+                        self.d, self.Pf)
+
+    def residual_update(self, sysd: _System, dx: FloatArray) -> FloatArray:
+        return _residual_update(sysd, dx, self.conn, self.col, self.d, self.S)
+
+    def consistent(self, T: FloatArray, v_linear: FloatArray) -> FloatArray:
+        return _consistent_residuals(self.model, T, self.conn, v_linear)
+
+    def retract(self, T: FloatArray, dx: FloatArray) -> FloatArray:
+        return models.retract(self.model, T, np.nonzero(self.free)[0], dx.reshape(-1, self.d))
 
 
 @dataclass
@@ -512,38 +636,87 @@ def _residual_update(sysd: _System, dx: FloatArray, conn, col, d, S) -> FloatArr
     return (S @ np.swapaxes(sysd.B, 1, 2) @ k)[:, :, 0]
 
 
-def _lm_step(model, T, conn, S, prior_data, cfg, col, d, pattern, data, sysd, chol, lam, free):
+def _lm_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
+             state: _Trust) -> _Step:
     """One Levenberg-Marquardt step of the Gauss-Helmert system.
 
     The system is linearised at the adjusted observations ``l0 = l_b + v`` exactly as in the
     undamped iteration (so its fixed point is the adjustment's optimum); the damping
     ``lam * diag(N)`` only shortens steps, and a step is accepted when the cost (the value of
     ``sum w' M^-1 w`` at ``v = 0``, which for se3 is exactly ``sum e' P e``) does not increase.
+    Each refused step costs one more factorisation (see :func:`_dogleg_step` for a strategy
+    that needs one per iteration).
     """
-    diag_pos = pattern.indptr[:-1]  # first entry of each CSC column is its diagonal
+    diag_pos = prob.pattern.indptr[:-1]  # first entry of each CSC column is its diagonal
     diag = data[diag_pos]
-    cost0 = _cost_at(model, T, conn, S, prior_data, cfg, col, d)
     for _ in range(12):
         damped = data.copy()
-        damped[diag_pos] += lam * np.maximum(diag, 1e-9)
+        damped[diag_pos] += state.lam * np.maximum(diag, 1e-9)
         try:
-            if chol is None:
-                chol = SparseCholesky(pattern, damped)
-            else:
-                chol.refactor(damped)
-            dx = -chol.solve(sysd.u)
+            dx = -state.factor(prob.pattern, damped).solve(sysd.u)
         except DegenerateGeometryError:
-            lam *= 10.0
+            state.lam *= 10.0
             continue
-        T_new = models.retract(model, T, np.nonzero(free)[0], dx.reshape(-1, d))
-        if _cost_at(model, T_new, conn, S, prior_data, cfg, col, d) <= cost0:
-            v = _consistent_residuals(model, T_new, conn,
-                                      _residual_update(sysd, dx, conn, col, d, S))
-            return (T_new, v, float(np.abs(dx).max()), damped, chol, max(lam / 10.0, 1e-9),
-                    True)
-        lam *= 10.0
-    v = _residual_update(sysd, np.zeros(int(free.sum()) * d), conn, col, d, S)
-    return T, v, 0.0, data, chol, lam, False
+        T_new = prob.retract(T, dx)
+        cost = prob.cost_at(T_new)
+        if cost <= state.cost:
+            state.lam = max(state.lam / 10.0, 1e-9)
+            return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, dx)),
+                         float(np.abs(dx).max()), True, cost, False)
+        state.lam *= 10.0
+    return _Step(T, prob.residual_update(sysd, np.zeros_like(sysd.u)), 0.0, False, state.cost)
+
+
+def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
+                 state: _Trust) -> _Step:
+    """One step of Powell's dogleg (Nocedal & Wright, Sec. 4.1): one factorisation at most.
+
+    The cost ``F = sum e' P e`` (+ priors) has the quadratic model
+    ``F + 2 u' h + h' N h`` around ``T``. The Gauss-Newton step ``h_gn = -N^-1 u`` (the only
+    factorisation) and the Cauchy point ``h_sd = -(u'u / u'N u) u`` span the dogleg path; a step
+    of length at most the trust radius on it is tried, and a refused step only shrinks the
+    radius and moves along the same path (no new factorisation). The first iteration tries the
+    full Gauss-Newton step, so on a good initial guess this is Gauss-Newton.
+    """
+    u = sysd.u
+    h_gn = -state.factor(prob.pattern, data).solve(u)
+    Nu = prob.pattern.matvec(data, u)
+    uNu = float(u @ Nu)
+    alpha = float(u @ u) / uNu if uNu > 0 else 0.0
+    h_sd = -alpha * u
+    n_gn, n_sd = float(np.linalg.norm(h_gn)), float(np.linalg.norm(h_sd))
+    radius = state.radius if state.radius > 0 else n_gn
+    for _ in range(30):
+        if n_gn <= radius:
+            a, b = 0.0, 1.0
+        elif n_sd >= radius:
+            a, b = radius / n_sd, 0.0
+        else:  # |h_sd + t (h_gn - h_sd)| = radius, t in (0, 1)
+            p = h_gn - h_sd
+            pp, sp_, ss = float(p @ p), float(h_sd @ p), n_sd * n_sd
+            t = (-sp_ + np.sqrt(sp_ * sp_ + pp * (radius * radius - ss))) / pp
+            a, b = 1.0 - t, t
+        h = a * h_sd + b * h_gn
+        Nh = -a * alpha * Nu - b * u  # N h_gn = -u, N h_sd = -alpha N u
+        predicted = -(2.0 * float(u @ h) + float(h @ Nh))
+        T_new = prob.retract(T, h)
+        cost = prob.cost_at(T_new)
+        actual = state.cost - cost
+        norm_h = float(np.linalg.norm(h))
+        rho = actual / predicted if predicted > 0 else -1.0
+        if rho > 1e-4 or (actual >= 0 and predicted <= 1e-300):
+            if rho > 0.75:
+                radius = max(radius, 3.0 * norm_h)
+            elif rho < 0.25:
+                radius = 0.5 * norm_h
+            state.radius = radius
+            return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, h)),
+                         float(np.abs(h).max()) if h.size else 0.0, True, cost, b == 1.0)
+        radius = 0.25 * norm_h
+        if radius < 1e-12:
+            break
+    state.radius = max(radius, 1e-12)
+    return _Step(T, prob.residual_update(sysd, np.zeros_like(u)), 0.0, False, state.cost)
 
 
 def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
@@ -562,7 +735,7 @@ def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
     return se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
 
 
-def _cost_at(model, T, conn, S, prior_data, cfg, col, d) -> float:
+def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None) -> float:
     """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3 (``e`` the misclosure
     ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at ``v = 0``;
     plus the prior terms."""
@@ -571,7 +744,7 @@ def _cost_at(model, T, conn, S, prior_data, cfg, col, d) -> float:
                               d).cost0
     T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
     e = se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
-    maha2 = np.einsum('mi,mij,mj->m', e, _inv_spd(S), e)
+    maha2 = np.einsum('mi,mij,mj->m', e, _inv_spd(S) if P is None else P, e)
     return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
 
 
@@ -768,23 +941,13 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     u : (d u,) half the gradient of the cost at ``T`` (the Gauss-Newton step is ``-N^-1 u``).
     """
     d = models.dof(model)
-    n = network.n_nodes
     conn = network.arrays()
-    free = np.ones(n, dtype=bool)
+    free = np.ones(network.n_nodes, dtype=bool)
     if len(fixed):
         free[network.indices_of(list(fixed))] = False
-    col = np.full(n, -1, dtype=np.int64)
-    col[free] = np.arange(int(free.sum()))
     prior_data = [_PriorData.build(network, p, d) for p in priors]
-    br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
-    bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
-    for pd in prior_data:
-        br.append(col[pd.idx[pd.blk_r]])
-        bc.append(col[pd.idx[pd.blk_c]])
-    pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+    prob = _Problem.build(model, conn, prior_data, SolverConfig(model=model), free)
     T = np.asarray(T, dtype=float)
-    sysd = _linear_system(model, T, conn, conn.cov,
-                          _consistent_residuals(model, T, conn, np.zeros_like(conn.z)),
-                          prior_data, SolverConfig(model=model), col, d,
-                          _inv_spd(conn.cov) if model == 'se3' else None)
+    sysd = prob.linear_system(T, prob.consistent(T, np.zeros_like(conn.z)))
+    pattern = prob.pattern
     return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free], sysd.u

@@ -14,10 +14,12 @@ import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
+from ga_ros.runtime import openblas_coretype
 
 try:  # CHOLMOD, bundled in the cvxopt wheel
-    import cvxopt
-    from cvxopt import cholmod as _cholmod
+    with openblas_coretype():
+        import cvxopt
+        from cvxopt import cholmod as _cholmod
 
     _cholmod.options['supernodal'] = 2
     _cholmod.options['postorder'] = True
@@ -80,6 +82,12 @@ class BlockPattern:
         """Sum blocks ``(k, d, d)`` (block row, col) into the lower-triangle CSC values."""
         vals = blocks[self._keep_blk].reshape(-1)[self._pos_valid]
         return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+
+    def matvec(self, data: FloatArray, x: FloatArray) -> FloatArray:
+        """``N x`` for the symmetric matrix whose lower triangle is ``data``."""
+        L = self.lower_csc(data)
+        diag = data[self.indptr[:-1]]  # the diagonal entry heads each column
+        return L @ x + L.T @ x - diag * x
 
     def lower_csc(self, data: FloatArray) -> sp.csc_matrix:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))

@@ -1,9 +1,9 @@
 """Pose-graph optimisation of a :class:`ga_ros.io.g2o.PoseGraph`, ROS-free.
 
 Batch mode (:func:`solve_graph`) solves the whole graph with the mixed adjustment (``se3``
-model, which minimises the g2o/GTSAM cost ``sum e' Omega e``): Levenberg-Marquardt from the
-graph's initial guess, then undamped Gauss-Newton (Gauss-Helmert) iterations from the LM
-result, kept only if they lower the cost. Track mode (:func:`solve_tracks`) replays the graph
+model, which minimises the g2o/GTSAM cost ``sum e' Omega e``) from the graph's initial guess
+with Powell's dogleg (or Levenberg-Marquardt followed by undamped Gauss-Newton iterations, kept
+only if they lower the cost). Track mode (:func:`solve_tracks`) replays the graph
 track by track through :class:`ga_ros.core.window.TrackWindowAligner`, as the live node would,
 and finishes with its batch refinement. ``ga-ros solve`` is the command line over both.
 """
@@ -20,7 +20,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.initialization import INIT_METHODS, PoseGraphEdges, initialize
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.solver import ROBUST_LOSSES, SolverConfig, solve
+from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.errors import (
     DegenerateGeometryError,
     FormatError,
@@ -34,36 +34,42 @@ from ga_ros.io.g2o import PoseGraph, edge_errors, graph_cost
 
 @dataclass(frozen=True)
 class GraphSolveConfig:
-    """Settings of :func:`solve_graph`.
+    """Settings of :func:`solve_graph` (validated by, and passed on as, :class:`SolverConfig`).
 
     Attributes
     ----------
-    damping : ``'lm'`` (Levenberg-Marquardt first stage, for poor initial guesses) or
-        ``'none'`` (Gauss-Newton / Gauss-Helmert only).
+    damping : ``'dogleg'`` (Powell's dogleg, default: Gauss-Newton steps while they lower the
+        cost, one factorisation per iteration), ``'lm'`` (Levenberg-Marquardt first stage, then
+        undamped polish) or ``'none'`` (Gauss-Newton / Gauss-Helmert only).
     max_iterations : cap on first-stage iterations.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
     tolerance : stop when the largest correction is below this (m, rad).
     robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each edge's Mahalanobis misclosure.
     robust_scale : Mahalanobis distance where the robust loss departs from least squares.
+    cost_tolerance : also stop when a Gauss-Newton step lowers the cost by less than this
+        fraction (GTSAM's ``relativeErrorTol`` is 1e-5).
     """
 
-    damping: str = 'lm'
+    damping: str = 'dogleg'
     max_iterations: int = 100
     polish_iterations: int = 30
     tolerance: float = 1e-8
     robust_loss: str = 'none'
     robust_scale: float = 3.0
+    cost_tolerance: float = 1e-6
 
     def __post_init__(self) -> None:
-        if self.damping not in ('lm', 'none'):
-            raise InputError(f"damping must be 'lm' or 'none', got {self.damping!r}")
-        if self.robust_loss not in ROBUST_LOSSES:
-            raise InputError(f'robust_loss must be one of {ROBUST_LOSSES}, '
-                             f'got {self.robust_loss!r}')
-        if self.max_iterations < 1 or self.polish_iterations < 0:
-            raise InputError('max_iterations >= 1 and polish_iterations >= 0 required')
-        if not (self.tolerance > 0 and self.robust_scale > 0):
-            raise InputError('tolerance and robust_scale must be positive')
+        if self.polish_iterations < 0:
+            raise InputError('polish_iterations >= 0 required')
+        self.solver_config()  # the shared fields follow SolverConfig's rules
+
+    def solver_config(self, damping: str | None = None,
+                      max_iterations: int | None = None) -> SolverConfig:
+        """The first stage's :class:`SolverConfig` (or a stage with another damping/cap)."""
+        return SolverConfig(model='se3', damping=damping or self.damping,
+                            max_iterations=max_iterations or self.max_iterations,
+                            tolerance=self.tolerance, robust_loss=self.robust_loss,
+                            robust_scale=self.robust_scale, cost_tolerance=self.cost_tolerance)
 
 
 @dataclass
@@ -131,19 +137,16 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
     def objective(T: FloatArray) -> float:
         return robust_objective(graph, T, cfg.robust_loss, cfg.robust_scale)
 
-    first = SolverConfig(model='se3', max_iterations=cfg.max_iterations, tolerance=cfg.tolerance,
-                         damping=cfg.damping, robust_loss=cfg.robust_loss,
-                         robust_scale=cfg.robust_scale)
+    first = cfg.solver_config()
     t = time.perf_counter()
     res = solve(graph.network, graph.T_init, first, fixed=fixed)
     T, best = res.T_world_node, objective(res.T_world_node)
     iterations, converged, reason = res.iterations, res.converged, res.reason
-    stages.append(dict(name=cfg.damping, iterations=res.iterations, reason=res.reason,
+    stages.append(dict(name=cfg.damping, iterations=res.iterations,
+                       factorisations=res.factorisations, reason=res.reason,
                        seconds=time.perf_counter() - t, objective=best, accepted=True))
     if cfg.damping == 'lm' and cfg.polish_iterations > 0:
-        polish = SolverConfig(model='se3', max_iterations=cfg.polish_iterations,
-                              tolerance=cfg.tolerance, damping='none',
-                              robust_loss=cfg.robust_loss, robust_scale=cfg.robust_scale)
+        polish = cfg.solver_config('none', cfg.polish_iterations)
         t = time.perf_counter()
         try:
             res2 = solve(graph.network, T, polish, fixed=fixed)
@@ -153,6 +156,7 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
         except (SolverError, DegenerateGeometryError) as exc:  # GN failed: LM result stands
             res2, value, ok, why = None, float('nan'), False, f'failed: {exc}'
         stages.append(dict(name='gauss-newton', iterations=res2.iterations if res2 else 0,
+                           factorisations=res2.factorisations if res2 else 0,
                            reason=why, seconds=time.perf_counter() - t, objective=value,
                            accepted=ok))
         if res2 is not None:

@@ -1,8 +1,12 @@
 """``ga-ros bench``: the benchmarks, one entry point.
 
 ``ga-ros bench solve`` (batch solve of the aerial survey), ``ga-ros bench window`` (online
-track-by-track alignment). ``ga-ros bench vo|g2o|node|replay [options]`` are aliases of the
-``bench-vo``, ``bench-g2o``, ``bench-node`` and ``bench-replay`` commands (see ``main.py``).
+track-by-track alignment), ``ga-ros bench compare`` (ga-ros against GTSAM in the same run: the
+aerial survey at 10 % noise and the shared pose graphs, batch and track by track; GTSAM from
+``pip install -r requirements-bench.txt``), ``ga-ros bench linalg`` (sparse Cholesky back ends
+and orderings on the same normal matrices: GFlop, GFlop/s).
+``ga-ros bench vo|g2o|node|replay [options]`` are aliases of the ``bench-vo``, ``bench-g2o``,
+``bench-node`` and ``bench-replay`` commands (see ``main.py``).
 """
 
 from __future__ import annotations
@@ -14,8 +18,9 @@ import json
 def register(sub) -> None:
     p = sub.add_parser('bench', help='run a benchmark and print its figures',
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('target', choices=('solve', 'window'),
-                   help='solve | window (also: vo, g2o, node, replay, see bench-*)')
+    p.add_argument('target', choices=('solve', 'window', 'compare', 'linalg'),
+                   help='solve | window | compare | linalg (also: vo, g2o, node, replay, see '
+                   'bench-*)')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--tracks', type=int, default=25, help='double tracks in the survey (25)')
     p.add_argument('--noise', type=float, default=5.0, help='noise, %% of the true motion (5)')
@@ -24,10 +29,21 @@ def register(sub) -> None:
     p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
     p.add_argument('--no-batch', action='store_true',
                    help='window: skip the batch solution (and the ATE gap) for long surveys')
+    p.add_argument('--data', type=str, default=None,
+                   help='compare: directory of pose graphs (default ../shared/data/pose-graphs)')
+    p.add_argument('--no-tracks', action='store_true', help='compare: batch rows only')
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    if args.target == 'compare':
+        from ga_ros.bench import compare
+        return compare.main(['--window', str(args.window)] + (['--json'] if args.json else [])
+                            + (['--no-tracks'] if args.no_tracks else [])
+                            + (['--data', args.data] if args.data else []))
+    if args.target == 'linalg':
+        from ga_ros.bench import linalg
+        return linalg.main(['--json'] if args.json else [])
     from ga_ros.bench import core
     if args.target == 'solve':
         fig = core.bench_batch(args.tracks, args.noise, args.seed)

@@ -74,8 +74,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help='robust loss on the Mahalanobis misclosure (default none)')
     p.add_argument('--robust-scale', type=float, default=3.0,
                    help='Mahalanobis distance where the robust loss starts (default 3)')
-    p.add_argument('--damping', choices=('lm', 'none'),
-                   help='batch default lm: Levenberg-Marquardt then Gauss-Newton; none: GN only '
+    p.add_argument('--damping', choices=('dogleg', 'lm', 'none'),
+                   help='batch default dogleg (one factorisation per iteration); lm: '
+                   'Levenberg-Marquardt then Gauss-Newton; none: GN only '
                    '(track mode default none, as the live node)')
     p.add_argument('--max-iterations', type=int,
                    help='iteration cap (default 100 in batch, 10 per window update)')
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if args.tracks:
         result = _run_tracks(graph, args)
     else:
-        cfg = GraphSolveConfig(damping=args.damping or 'lm',
+        cfg = GraphSolveConfig(damping=args.damping or 'dogleg',
                                max_iterations=args.max_iterations or 100,
                                polish_iterations=args.polish_iterations,
                                tolerance=args.tolerance or 1e-8, robust_loss=args.robust,

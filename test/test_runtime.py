@@ -1,0 +1,62 @@
+"""BLAS settings chosen by the library itself (issue 10, item 6)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_info
+
+from ga_ros import runtime
+
+
+def _blas_threads() -> set[int]:
+    return {i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'}
+
+
+def test_blas_threads_context_limits_every_pool_and_restores_it():
+    import ga_ros.core.sparse  # noqa: F401  (loads CHOLMOD's OpenBLAS too)
+
+    before = {i['filepath']: i['num_threads'] for i in threadpool_info()}
+    with runtime.blas_threads(1):
+        assert _blas_threads() == {1}
+    after = {i['filepath']: i['num_threads'] for i in threadpool_info()}
+    assert after == before
+
+
+def test_solve_runs_inside_the_thread_limit(monkeypatch):
+    """solve() enters the limit itself, so a plain `import ga_ros.core` user gets it."""
+    from ga_ros.core import solver
+    from ga_ros.core.network import ConnectionNetwork
+
+    seen = []
+    real = solver._iterate
+
+    def spy(prob, T):
+        seen.append(_blas_threads())
+        return real(prob, T)
+
+    monkeypatch.setattr(solver, '_iterate', spy)
+    net = ConnectionNetwork()
+    for i in range(3):
+        net.add_node(i)
+    net.add_connection(0, 1, [1, 0, 0, 0, 0, 0], np.eye(6))
+    net.add_connection(1, 2, [1, 0, 0, 0, 0, 0], np.eye(6))
+    solver.solve(net, solver.initial_guess_f2f(net))
+    assert seen == [{runtime.default_blas_threads()}]
+
+
+@pytest.mark.skipif(runtime.best_openblas_coretype() is None,
+                    reason='OpenBLAS detects the kernel itself on this CPU')
+def test_cholmod_openblas_runs_the_kernel_chosen_for_this_cpu():
+    """The cvxopt wheel's OpenBLAS 0.3.15 would fall back to Prescott on newer CPUs; the
+    library chooses the kernel from the CPU flags, without leaking OPENBLAS_CORETYPE."""
+    code = ('import os, ga_ros.core.sparse; from threadpoolctl import threadpool_info; '
+            "print([i['architecture'] for i in threadpool_info() if 'cvxopt' in i['filepath']]"
+            "[0], os.environ.get('OPENBLAS_CORETYPE'))")
+    env = {k: v for k, v in __import__('os').environ.items() if k != 'OPENBLAS_CORETYPE'}
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         env=env, check=True).stdout.split()
+    assert out == [runtime.best_openblas_coretype(), 'None']
