@@ -35,8 +35,8 @@ def _load_blas() -> None:
     import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
     import scipy.linalg  # noqa: F401
 
-    with contextlib.suppress(ImportError):
-        import ga_ros.core.sparse  # noqa: F401  (loads cvxopt with the right kernel)
+    with contextlib.suppress(ImportError), openblas_coretype():
+        import cvxopt  # noqa: F401  (its bundled OpenBLAS, with the kernel for this CPU)
 
 
 def limit_blas_threads(n: int | None = None) -> threadpool_limits:

@@ -40,6 +40,7 @@ import numpy as np
 
 from ga_ros.bench.core import peak_rss_mb
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
 from ga_ros.runtime import limit_blas_threads
 from ga_ros.sim.aerial import aerial_scenario
@@ -113,15 +114,15 @@ def lazy_measurements(sc: Scenario, z: np.ndarray, cov: np.ndarray) -> Iterator[
 
 RESTORE = """
 import sys, time
-from ga_ros.core.window import TrackWindowAligner
+from ga_ros.core.persistence import load_state
 t = time.perf_counter()
-al = TrackWindowAligner.load(sys.argv[1])
+al = load_state(sys.argv[1]).aligner
 print(time.perf_counter() - t, al.stats.n_nodes)
 """
 
 
 def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | None, str]:
-    """Seconds of ``TrackWindowAligner.load(path)`` in a child process (so that a slow restore
+    """Seconds of ``load_state(path).aligner`` in a child process (so that a slow restore
     can be cut at ``timeout_s``), and a note."""
     import subprocess
 
@@ -201,7 +202,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / 'state.npz'
             t = time.perf_counter()
-            al.save(path)
+            save_state(al, path)
             fig.save_seconds = time.perf_counter() - t
             fig.state_mib = path.stat().st_size / 2**20
             fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,

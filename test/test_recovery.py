@@ -140,7 +140,7 @@ def test_a_foreign_state_file_is_refused_and_untouched(tmp_path, ms):
         recover(state, CFG)
     assert state.read_text() == 'not a state\n'
     with pytest.raises(ForeignFileError):
-        TrackWindowAligner(CFG).save(state)
+        save_state(TrackWindowAligner(CFG), state)
     assert sorted(p.name for p in tmp_path.iterdir()) == ['notes.txt', 'notes.txt.journal']
 
 

@@ -26,15 +26,12 @@ import zipfile
 import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner, _Rows, measurement_fingerprints
 from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputError
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
-
-if TYPE_CHECKING:
-    from ga_ros.core.window import TrackWindowAligner
 
 MAGIC = b'GAROS-STATE\x00'
 FORMAT_VERSION = 2
@@ -224,7 +221,6 @@ def _parse_legacy(path: Path) -> tuple[dict, dict[str, np.ndarray], int]:
 
 
 def _rows(a: np.ndarray, dtype):
-    from ga_ros.core.window import _Rows
     a = np.asarray(a, dtype=dtype)
     rows = _Rows(a.shape[1:], dtype)
     rows._a = np.zeros((a.shape[0] + max(64, a.shape[0] // 8),) + a.shape[1:], dtype=dtype)
@@ -243,8 +239,6 @@ def _groups(keys: np.ndarray, values: np.ndarray) -> dict[int, list[int]]:
 
 
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner, measurement_fingerprints
-
     cfg = config if config is not None else AlignerConfig(**meta['config'])
     al = TrackWindowAligner(cfg, np.array(arrays['T_first'], dtype=float))
     ids = np.asarray(arrays['ids'], dtype=np.int64)

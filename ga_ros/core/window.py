@@ -33,7 +33,6 @@ from __future__ import annotations
 import time
 import zlib
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import scipy.linalg as sla
@@ -844,21 +843,3 @@ class TrackWindowAligner:
     def _last(self, value: SolveResult | None) -> None:
         self.__dict__.pop('_last_pending', None)
         self.__dict__['_last_result'] = value
-
-    def save(self, path: str | Path, journal_records: int | None = None) -> None:
-        """Write the whole state to ``path`` atomically (see :mod:`ga_ros.core.persistence`).
-
-        An existing file at ``path`` that is not a ga_ros state is refused
-        (:class:`~ga_ros.errors.ForeignFileError`) and left untouched."""
-        from ga_ros.core.persistence import save_state
-        save_state(self, path, journal_records)
-
-    @classmethod
-    def load(cls, path: str | Path, config: AlignerConfig | None = None) -> TrackWindowAligner:
-        """Restore a state written by :meth:`save`; the next update re-adjusts the window.
-
-        Raises :class:`InputError` (:class:`~ga_ros.errors.ForeignFileError`,
-        :class:`~ga_ros.errors.CorruptFileError`) if the file is not a ga_ros state, fails its
-        checksum or is inconsistent."""
-        from ga_ros.core.persistence import load_state
-        return load_state(path, config).aligner

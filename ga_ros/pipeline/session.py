@@ -21,6 +21,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, Reason, SolverError
 from ga_ros.ros.journal import (
@@ -247,7 +248,7 @@ class AlignmentSession:
             raise InputError('no state file (parameter state_file is empty)')
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f'.{target.stem}.tmp{os.getpid()}.npz')
-        self.aligner.save(str(tmp))
+        save_state(self.aligner, str(tmp))
         os.replace(tmp, target)
         write_snapshot_info(target, self.journal.count if self.journal is not None else 0)
 
@@ -263,7 +264,7 @@ class AlignmentSession:
         snapshot_error: Exception | None = None
         if os.path.exists(path):
             try:
-                aligner = TrackWindowAligner.load(path)
+                aligner = load_state(path).aligner
                 start = min(read_snapshot_info(path), len(records))
                 how = 'snapshot'
             except Exception as exc:  # noqa: BLE001 - any unusable snapshot: use the journal
