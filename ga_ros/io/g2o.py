@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import operator
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from itertools import chain
@@ -63,6 +62,7 @@ from ga_ros.core.covariance import nearest_positive_definite, not_positive_defin
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
+from ga_ros.io.atomic import atomic_write
 
 TAG_VERTEX_SE3 = 'VERTEX_SE3:QUAT'
 TAG_EDGE_SE3 = 'EDGE_SE3:QUAT'
@@ -602,18 +602,12 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
         blocks.append(_text_rows(head, np.concatenate([values(Z), upper], axis=1)))
     if graph.fixed:
         blocks.append(f'{TAG_FIX} ' + ' '.join(str(int(v)) for v in graph.fixed) + '\n')
-    out = Path(path)
+    if not Path(path).parent.is_dir():
+        raise FormatError(f'cannot write: no directory {Path(path).parent}', str(path))
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', dir=out.parent or '.')
+        atomic_write(path, ''.join(blocks).encode())
     except OSError as exc:
         raise FormatError(f'cannot write: {exc}', str(path)) from None
-    try:
-        with os.fdopen(fd, 'w') as fh:
-            fh.write(''.join(blocks))
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ------------------------------------------------------------------------------ SE(2) helpers

@@ -13,7 +13,6 @@ Readers validate every line (field count, numbers, unit quaternion / rotation ma
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
+from ga_ros.io.atomic import atomic_write
 
 #: tolerance on |q| - 1 (TUM) and on ||R'R - I|| (KITTI) before a pose is rejected
 _ROTATION_TOL = 1e-3
@@ -118,18 +118,12 @@ def _stamp_ns(text: str, path: str, line: int) -> int:
 
 
 def _write_atomic(path: str | os.PathLike, lines: list[str]) -> None:
-    out = Path(path)
+    if not Path(path).parent.is_dir():
+        raise FormatError(f'cannot write: no directory {Path(path).parent}', str(path))
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f'.{out.name}.', dir=out.parent or '.')
+        atomic_write(path, ''.join(line + '\n' for line in lines).encode())
     except OSError as exc:
         raise FormatError(f'cannot write: {exc}', str(path)) from None
-    try:
-        with os.fdopen(fd, 'w') as fh:
-            fh.write(''.join(line + '\n' for line in lines))
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _check_poses(T: FloatArray) -> FloatArray:
