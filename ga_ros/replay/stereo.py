@@ -18,6 +18,7 @@ from ga_ros.errors import FormatError, GaError, InputError
 from ga_ros.io.bag import CAMERA_INFO, BagReader, TopicPlan
 from ga_ros.pipeline.stereo import FrontEndConfig, StereoFrontEnd, StereoStats
 from ga_ros.replay.source import SourceItem
+from ga_ros.vo.calibration import read_stereo_calibration
 from ga_ros.vo.odometry import VoConfig
 
 
@@ -43,6 +44,9 @@ class StereoSource:
         self.plan = plan
         self.front = StereoFrontEnd(front_end_config(config))
         self.counter = counter
+        if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
+            models = read_stereo_calibration(list(plan.calibration))
+            self.front.set_camera_models(models.left, models.right)
 
     @property
     def stats(self) -> StereoStats:
