@@ -64,8 +64,8 @@ class StereoCalibration:
     width, height : image size (px).
     K : (3, 3) intrinsics of the rectified left (and right) image.
     baseline_m : baseline (m).
-    maps_left, maps_right : ``(map_x, map_y)`` float32 remap tables, or None when the input
-        is already rectified.
+    maps_left, maps_right : ``cv2.remap`` tables in fixed point (``cv2.convertMaps`` to
+        ``CV_16SC2``: 1/32 px interpolation), or None when the input is already rectified.
     """
 
     width: int
@@ -127,15 +127,18 @@ class StereoCalibration:
             else:
                 mx, my = cv2.initUndistortRectifyMap(Kc, D if D.size else None, R, P[:3, :3],
                                                      size, cv2.CV_32FC1)
-            maps.append((mx, my))
+            maps.append(cv2.convertMaps(mx, my, cv2.CV_16SC2))  # fixed point: ~2x faster remap
         return StereoCalibration(size[0], size[1], K, float(baseline), maps[0], maps[1])
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistort and rectify a raw pair (identity when already rectified)."""
-        if self.maps_left is None or self.maps_right is None:
-            return left, right
-        return (cv2.remap(left, *self.maps_left, cv2.INTER_LINEAR),
-                cv2.remap(right, *self.maps_right, cv2.INTER_LINEAR))
+        return self.rectify_one(left, 'left'), self.rectify_one(right, 'right')
+
+    def rectify_one(self, image: np.ndarray, side: str) -> np.ndarray:
+        """Undistort and rectify one raw image of ``side`` (``'left'``/``'right'``); the VO
+        rectifies the right image only at keyframes, where it matches stereo."""
+        maps = self.maps_left if side == 'left' else self.maps_right
+        return image if maps is None else cv2.remap(image, *maps, cv2.INTER_LINEAR)
 
 
 @dataclass(frozen=True)
