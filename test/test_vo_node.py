@@ -3,6 +3,7 @@ images to ``python -m ga_ros.ros.vo_node`` and receives its measurements."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -288,28 +289,38 @@ def _upscaled_pairs(n: int, seed: int) -> tuple[StereoRig, list]:
     return rig, pairs
 
 
-@pytest.mark.ros
-def test_pairs_at_20_hz_are_all_processed_or_counted_as_dropped() -> None:
-    """752x480 pairs handed to the callbacks at 20 Hz: received = processed + dropped (queue
-    full, oldest skipped), the same counts in the diagnostics, and a warning for the drops."""
+@contextlib.contextmanager
+def _vo_node(offset: int, pair_queue: int):
+    """An in-process VoNode (throttling off) with its measurements captured: (node, sent)."""
     from rclpy.parameter import Parameter
 
     from ga_ros.ros.vo_node import VoNode
 
-    rig, pairs = _upscaled_pairs(40, seed=11)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id(33))
+    rclpy.init(context=ctx, domain_id=domain_id(offset))
     node = VoNode(context=ctx, parameter_overrides=[Parameter('warn_throttle_sec', value=0.0),
-                                                    Parameter('pair_queue', value=1)])
+                                                    Parameter('pair_queue', value=pair_queue)])
     sent: list = []
     node.pub_meas.publish = sent.append
-    diags: list = []
-    node.pub_diag.publish = diags.append
-    warnings: list[str] = []
-    logger = node.get_logger()
-    original_warning = logger.warning
-    logger.warning = lambda text, **kw: warnings.append(text) or original_warning(text)
     try:
+        yield node, sent
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_pairs_at_20_hz_are_all_processed_or_counted_as_dropped() -> None:
+    """752x480 pairs handed to the callbacks at 20 Hz: received = processed + dropped (queue
+    full, oldest skipped), the same counts in the diagnostics, and a warning for the drops."""
+    rig, pairs = _upscaled_pairs(40, seed=11)
+    with _vo_node(33, pair_queue=1) as (node, sent):
+        diags: list = []
+        node.pub_diag.publish = diags.append
+        warnings: list[str] = []
+        logger = node.get_logger()
+        original_warning = logger.warning
+        logger.warning = lambda text, **kw: warnings.append(text) or original_warning(text)
         for side in ('left', 'right'):
             node._on_info(camera_info(rig, side == 'right', 0), side)
         t_next = time.monotonic()
@@ -337,27 +348,14 @@ def test_pairs_at_20_hz_are_all_processed_or_counted_as_dropped() -> None:
         assert int(d['pairs_processed']) + int(d['pairs_dropped_queue_full']) == received
         assert int(d['measurements']) == len(sent) > 0
         assert any('dropped so far' in w for w in warnings)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
 
 
 @pytest.mark.ros
 def test_nan_camera_info_first_then_valid_ones_give_measurements() -> None:
     """A CameraInfo with a NaN focal length is rejected with its reason and never stored:
     the valid ones that follow calibrate the VO and the pairs give measurements."""
-    from rclpy.parameter import Parameter
-
-    from ga_ros.ros.vo_node import VoNode
-
     rig, pairs = _upscaled_pairs(30, seed=12)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id(35))
-    node = VoNode(context=ctx, parameter_overrides=[Parameter('warn_throttle_sec', value=0.0),
-                                                    Parameter('pair_queue', value=100)])
-    sent: list = []
-    node.pub_meas.publish = sent.append
-    try:
+    with _vo_node(35, pair_queue=100) as (node, sent):
         for side in ('left', 'right'):
             bad = camera_info(rig, side == 'right', 0)
             k = list(bad.k)
@@ -375,6 +373,3 @@ def test_nan_camera_info_first_then_valid_ones_give_measurements() -> None:
         assert node.wait_idle()
         assert node.calibration is not None and node.calibration.baseline_m == 2.2
         assert len(sent) >= 2 and node.front.stats.measurements == len(sent)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
