@@ -240,3 +240,24 @@ def test_no_keyframe_is_named_not_a_missing_camera_info(tmp_path: Path,
     assert code == 1
     assert 'CameraInfo' not in err and f' {NOT_KEYFRAME}' in err, err
     assert f'{N_PAIRS} pairs: 0 measurements' in err and 'first keyframe (no motion yet)' in err
+
+
+def test_replay_skips_a_nan_camera_info_and_uses_the_next(tmp_path: Path,
+                                                         euroc_bag: tuple[Path, dict]) -> None:
+    bag, _ = euroc_bag
+    nan_first = tmp_path / 'nan_first'
+    with BagReader(bag) as src, BagWriter(nan_first, compress=False) as dst:
+        first = True
+        for m in src.messages():
+            if first and m.msgtype == CAMERA_INFO:
+                k = m.msg.k.copy()
+                k[0] = float('nan')
+                m.msg.k = k
+                first = False
+            dst.write(m.topic, m.msgtype, m.msg, m.log_ns)
+    r = replay(nan_first, tmp_path / 'out', ReplayConfig(plot=False))
+    # the NaN left CameraInfo, then the first pair (before the next left CameraInfo)
+    assert r.rejected == {'stereo': 2} and 'NaN' in r.rejected_examples[0]
+    st = r.source_stats
+    assert st['camera_info_rejected'] == 1 and st['reasons']['no CameraInfo yet'] == 1
+    assert r.n_measurements >= 5
