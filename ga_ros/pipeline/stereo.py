@@ -4,7 +4,11 @@ One object that ``vo_node`` and the replay both drive, so they pair, decode, cal
 match alike:
 
 * **pairing** of left and right images with ONE tolerance (``max_pair_dt_sec``); unpaired images
-  older than a pair are dropped, at most ``max_pending`` wait per side;
+  older than a pair are dropped, at most ``max_pending`` wait per side (:meth:`pair_image`,
+  cheap, then :meth:`process_pair`; :meth:`add_image` does both; ``vo_node`` queues the pairs
+  in between);
+* **accounting**: every pair is counted once, as a measurement or under the reason it gave
+  none (:class:`StereoStats`);
 * **decoding** of ``Image`` (mono8/16, bgr8/8UC3, rgb8, bgra8, rgba8) and ``CompressedImage``
   by :func:`ga_ros.vo.messages.image_to_grey`;
 * **calibration** from the two ``CameraInfo`` (:func:`ga_ros.vo.messages.camera_info_to_model`),
