@@ -100,7 +100,9 @@ def test_vo_node_equals_replay(tmp_path: Path, context) -> None:
                                                    plot=False))
     with BagReader(tmp_path / 'out' / 'replay_bag') as out:
         want = [odometry_to_measurement(m.msg) for m in out.messages(['/ga/measurements'])]
-    node = VoNode(context=context)
+    from rclpy.parameter import Parameter
+
+    node = VoNode(context=context, parameter_overrides=[Parameter('pair_queue', value=1000)])
     sent: list[Odometry] = []
     node.pub_meas.publish = sent.append
     try:
@@ -110,6 +112,7 @@ def test_vo_node_equals_replay(tmp_path: Path, context) -> None:
                 node._on_info(msg, side)
             else:
                 node._on_image(msg, side)
+                assert node.wait_idle()  # the worker thread, in bag order
     finally:
         node.destroy_node()
     got = [conv.odometry_to_measurement(m) for m in sent]

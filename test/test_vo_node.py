@@ -3,6 +3,7 @@ images to ``python -m ga_ros.ros.vo_node`` and receives its measurements."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -228,7 +229,8 @@ def test_node_in_process_adapter(rng):
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id(31))
     node = VoNode(context=ctx, parameter_overrides=[
-        Parameter('publish_debug_image', value=True), Parameter('warn_throttle_sec', value=0.0)])
+        Parameter('publish_debug_image', value=True), Parameter('warn_throttle_sec', value=0.0),
+        Parameter('pair_queue', value=100)])
     sent = []
     node.pub_meas.publish = sent.append
     debug = []
@@ -243,6 +245,7 @@ def test_node_in_process_adapter(rng):
             # right first, then an unpaired stale left, then the left: pairing by stamp.
             node._on_image(array_to_image(right, stamp, 'r'), 'right')
             node._on_image(array_to_image(left, stamp, 'l'), 'left')
+        assert node.wait_idle()
         assert node.counts['pairs'] == 10 and len(debug) == 10
         for name in ('max_features', 'cross_min_inliers', 'left_image_topic'):
             d = node.describe_parameter(name)
@@ -268,3 +271,105 @@ def test_node_in_process_adapter(rng):
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def _upscaled_pairs(n: int, seed: int) -> tuple[StereoRig, list]:
+    """``n`` 752x480 pairs at 20 Hz (rendered at 376x240 and upscaled) and their rig."""
+    survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=n, step_m=1.6,
+                                       turn_positions=0, frame_period_s=0.05, seed=seed))
+    small = StereoRig(376, 240, 229.0, 2.2)
+    scene = make_scene(survey, small, seed=seed)
+    rng = np.random.default_rng(seed)
+    rig = StereoRig(752, 480, 458.0, 2.2)
+    pairs = []
+    for i in range(n):
+        left, right = scene.render_pair(survey.T_world_cam[i], rng)
+        pairs.append((int(survey.stamps_ns[i]) + 1,
+                      cv2.resize(left, (752, 480)), cv2.resize(right, (752, 480))))
+    return rig, pairs
+
+
+@contextlib.contextmanager
+def _vo_node(offset: int, pair_queue: int):
+    """An in-process VoNode (throttling off) with its measurements captured: (node, sent)."""
+    from rclpy.parameter import Parameter
+
+    from ga_ros.ros.vo_node import VoNode
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(offset))
+    node = VoNode(context=ctx, parameter_overrides=[Parameter('warn_throttle_sec', value=0.0),
+                                                    Parameter('pair_queue', value=pair_queue)])
+    sent: list = []
+    node.pub_meas.publish = sent.append
+    try:
+        yield node, sent
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_pairs_at_20_hz_are_all_processed_or_counted_as_dropped() -> None:
+    """752x480 pairs handed to the callbacks at 20 Hz: received = processed + dropped (queue
+    full, oldest skipped), the same counts in the diagnostics, and a warning for the drops."""
+    rig, pairs = _upscaled_pairs(40, seed=11)
+    with _vo_node(33, pair_queue=1) as (node, sent):
+        diags: list = []
+        node.pub_diag.publish = diags.append
+        warnings: list[str] = []
+        logger = node.get_logger()
+        original_warning = logger.warning
+        logger.warning = lambda text, **kw: warnings.append(text) or original_warning(text)
+        for side in ('left', 'right'):
+            node._on_info(camera_info(rig, side == 'right', 0), side)
+        t_next = time.monotonic()
+        for k, (stamp, left, right) in enumerate(pairs):
+            node._on_image(array_to_image(left, stamp, 'l'), 'left')
+            node._on_image(array_to_image(right, stamp, 'r'), 'right')
+            if k == 20:  # a burst: three pairs at once overflow the queue of one pair
+                for j in (1, 2, 3):
+                    node._on_image(array_to_image(left, stamp + j * 1000, 'l'), 'left')
+                    node._on_image(array_to_image(right, stamp + j * 1000, 'r'), 'right')
+            t_next += 0.05
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        assert node.wait_idle()
+        node.publish_diagnostics()
+        received = len(pairs) + 3
+        c = node.counts
+        assert node.front.stats.pairs == received
+        assert c['processed'] + c['queue_dropped'] == received
+        assert c['queue_dropped'] >= 2  # at least the burst
+        st = node.front.stats
+        assert st.pairs == st.measurements + sum(st.reasons.values())
+        assert st.reasons['dropped (queue full)'] == c['queue_dropped']
+        d = conv.diagnostics_to_dict(diags[-1])
+        assert int(d['pairs_received']) == received
+        assert int(d['pairs_processed']) + int(d['pairs_dropped_queue_full']) == received
+        assert int(d['measurements']) == len(sent) > 0
+        assert any('dropped so far' in w for w in warnings)
+
+
+@pytest.mark.ros
+def test_nan_camera_info_first_then_valid_ones_give_measurements() -> None:
+    """A CameraInfo with a NaN focal length is rejected with its reason and never stored:
+    the valid ones that follow calibrate the VO and the pairs give measurements."""
+    rig, pairs = _upscaled_pairs(30, seed=12)
+    with _vo_node(35, pair_queue=100) as (node, sent):
+        for side in ('left', 'right'):
+            bad = camera_info(rig, side == 'right', 0)
+            k = list(bad.k)
+            k[0] = float('nan')
+            bad.k = k
+            node._on_info(bad, side)
+        assert node.calibration is None and node.front.stats.camera_info_rejected == 2
+        with pytest.raises(InputError, match='NaN'):
+            camera_info_to_model(bad)
+        for stamp, left, right in pairs:
+            for side in ('left', 'right'):
+                node._on_info(camera_info(rig, side == 'right', stamp), side)
+            node._on_image(array_to_image(left, stamp, 'l'), 'left')
+            node._on_image(array_to_image(right, stamp, 'r'), 'right')
+        assert node.wait_idle()
+        assert node.calibration is not None and node.calibration.baseline_m == 2.2
+        assert len(sent) >= 2 and node.front.stats.measurements == len(sent)

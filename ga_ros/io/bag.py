@@ -371,6 +371,8 @@ class TopicConfig:
     ground_truth : ground-truth ``nav_msgs/Path`` ('' = none).
     source : ``'auto'`` (measurements if that topic is in the bag, else images),
         ``'measurements'`` or ``'stereo'``.
+    calibration : calibration files used when the bag has no ``CameraInfo`` (e.g. EuRoC's two
+        ``sensor.yaml``; :func:`ga_ros.vo.calibration.read_stereo_calibration`); () = none.
     """
 
     measurements: str = topics.resolve(topics.MEASUREMENTS)
@@ -380,6 +382,7 @@ class TopicConfig:
     right_info: str = ''
     ground_truth: str = topics.resolve(topics.GROUND_TRUTH)
     source: str = 'auto'
+    calibration: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -398,6 +401,7 @@ class TopicPlan:
     right_info: str = ''
     ground_truth: str = ''
     notes: tuple[str, ...] = ()
+    calibration: tuple[str, ...] = ()
 
     @property
     def topics(self) -> tuple[str, ...]:
@@ -407,8 +411,13 @@ class TopicPlan:
         return tuple(n for n in names if n)
 
 
+#: Words that mark a left / right camera topic (ROS stereo drivers, EuRoC's cam0 / cam1).
+SIDE_WORDS = {'left': ('left', 'cam0'), 'right': ('right', 'cam1')}
+
+
 def _side_topics(info: BagInfo, types: tuple[str, ...], side: str) -> list[str]:
-    return [t.name for t in info.topics if t.msgtype in types and side in t.name.lower()]
+    return [t.name for t in info.topics if t.msgtype in types
+            and any(w in t.name.lower() for w in SIDE_WORDS[side])]
 
 
 def _info_for(info: BagInfo, image_topic: str) -> str:
@@ -471,6 +480,10 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
         if len(cands) > 1:
             comp = [c for c in cands if info.topic(c).msgtype == COMPRESSED_IMAGE]
             cands = comp if len(comp) == 1 else cands
+        for word in ('image_raw', 'image_rect'):  # CameraInfo describes the raw image
+            if len(cands) > 1:
+                some = [c for c in cands if c.endswith(word)]
+                cands = some if len(some) == 1 else cands
         return cands[0] if len(cands) == 1 else ''
 
     left = config.left_image or image_topic('left')
@@ -484,10 +497,18 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
     check(right, IMAGE_TYPES, 'right images')
     left_info = config.left_info or _info_for(info, left)
     right_info = config.right_info or _info_for(info, right)
+    if config.calibration and not (config.left_info or config.right_info):
+        notes.append(f'source: stereo images {left} + {right}, calibration from '
+                     f'{" + ".join(config.calibration)}; visual odometry runs in-process')
+        return TopicPlan('stereo', left_image=left, right_image=right, ground_truth=gt,
+                         notes=tuple(notes), calibration=tuple(config.calibration))
     if not left_info or not right_info:
         missing = 'left' if not left_info else 'right'
         raise FormatError(f'no CameraInfo for the {missing} images '
-                          f'({left if missing == "left" else right}); set it explicitly', name)
+                          f'({left if missing == "left" else right}; EuRoC-converted bags have '
+                          'none): pass the calibration (--calibration cam0/sensor.yaml '
+                          'cam1/sensor.yaml, or a YAML of the left and right CameraInfo '
+                          'fields) or set the CameraInfo topics explicitly', name)
     check(left_info, (CAMERA_INFO,), 'left camera info')
     check(right_info, (CAMERA_INFO,), 'right camera info')
     for topic in (left_info, right_info):

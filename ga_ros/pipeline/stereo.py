@@ -4,7 +4,11 @@ One object that ``vo_node`` and the replay both drive, so they pair, decode, cal
 match alike:
 
 * **pairing** of left and right images with ONE tolerance (``max_pair_dt_sec``); unpaired images
-  older than a pair are dropped, at most ``max_pending`` wait per side;
+  older than a pair are dropped, at most ``max_pending`` wait per side (:meth:`pair_image`,
+  cheap, then :meth:`process_pair`; :meth:`add_image` does both; ``vo_node`` queues the pairs
+  in between);
+* **accounting**: every pair is counted once, as a measurement or under the reason it gave
+  none (:class:`StereoStats`);
 * **decoding** of ``Image`` (mono8/16, bgr8/8UC3, rgb8, bgra8, rgba8) and ``CompressedImage``
   by :func:`ga_ros.vo.messages.image_to_grey`;
 * **calibration** from the two ``CameraInfo`` (:func:`ga_ros.vo.messages.camera_info_to_model`),
@@ -22,7 +26,8 @@ ROS-free: messages are read by field name (rclpy and rosbags messages alike).
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +35,8 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.encoding import stamp_to_ns
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, InputError
+from ga_ros.pipeline.params import config_from_params
 from ga_ros.vo.calibration import CameraModel, StereoCalibration
 from ga_ros.vo.crosstrack import CrossAttempt, CrossTrackConfig, CrossTrackMatcher
 from ga_ros.vo.messages import camera_info_to_model, image_to_grey, same_model
@@ -38,6 +44,17 @@ from ga_ros.vo.odometry import StereoFrame, StereoOdometry, VoConfig, VoResult
 
 #: Keyframe stamps remembered for :meth:`StereoFrontEnd.set_corrected_by_stamp`.
 MAX_STAMPS = 50000
+
+# Why a stereo pair gave no measurement (the keys of :attr:`StereoStats.reasons`; one per pair).
+NO_CAMERA_INFO = 'no CameraInfo yet'
+BAD_PAIR = 'bad image pair'
+TEXTURELESS = 'textureless'
+TOO_FEW_POINTS = 'too few stereo points'
+FIRST_KEYFRAME = 'first keyframe (no motion yet)'
+NOT_KEYFRAME = 'not a keyframe'
+LOST = 'lost'
+#: A pair the caller dropped before the VO saw it (``vo_node``'s queue was full).
+DROPPED = 'dropped (queue full)'
 
 
 @dataclass(frozen=True)
@@ -62,21 +79,89 @@ class FrontEndConfig:
     max_pending: int = 50
 
 
+#: Parameters of ``config/vo.yaml`` that only ``vo_node`` uses (topics, frames, queues): the replay
+#: accepts and ignores them (a test checks they are the node's other settings).
+NODE_ONLY_PARAMS = frozenset({
+    'left_image_topic', 'right_image_topic', 'left_info_topic', 'right_info_topic', 'compressed',
+    'measurements_topic', 'odometry_topic', 'path_topic', 'track_boundary_topic',
+    'debug_image_topic', 'publish_debug_image', 'odom_frame', 'camera_frame', 'image_queue',
+    'pair_queue', 'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec'})
+
+
+def front_end_config_from_params(params: Mapping[str, Any],
+                                 base: FrontEndConfig | None = None) -> FrontEndConfig:
+    """:class:`FrontEndConfig` from ``vo_node``'s parameters (``config/vo.yaml`` names: the
+    :class:`VoConfig` fields, ``cross_`` + :class:`CrossTrackConfig` fields, ``cross_track``,
+    ``max_pair_dt_sec``; :data:`NODE_ONLY_PARAMS` are ignored), over ``base``.
+
+    Raises
+    ------
+    InputError
+        An unknown parameter name or a value of the wrong type.
+    """
+    base = base or FrontEndConfig()
+    vo, used_vo = config_from_params(VoConfig, params, base=base.vo)
+    cross, used_cross = config_from_params(CrossTrackConfig, params, 'cross_', base=base.cross)
+    rest = {k: v for k, v in params.items() if k in ('cross_track', 'max_pair_dt_sec')}
+    top, used_top = config_from_params(FrontEndConfig, rest, base=replace(base, vo=vo,
+                                                                          cross=cross))
+    unknown = set(params) - used_vo - used_cross - used_top - NODE_ONLY_PARAMS
+    if unknown:
+        raise InputError(f'unknown VO parameter(s) {", ".join(sorted(unknown))}; the names are '
+                         'those of config/vo.yaml')
+    return top
+
+
 @dataclass
 class StereoStats:
-    """Counts of the front end (written to the replay summary).
+    """Counts of the front end (written to the replay summary and vo_node's diagnostics).
 
-    ``reasons`` counts why pairs gave no motion (``'no CameraInfo yet'``, ``'bad pair'``,
-    ``'lost: ...'`` with numbers replaced by ``#``).
+    Every pair is counted once: either in ``measurements`` or under one key of ``reasons``
+    (:data:`NO_CAMERA_INFO`, :data:`BAD_PAIR`, :data:`TEXTURELESS`, :data:`TOO_FEW_POINTS`,
+    :data:`FIRST_KEYFRAME`, :data:`NOT_KEYFRAME`, :data:`LOST`, :data:`DROPPED`), so that
+    ``pairs == measurements + sum(reasons.values())`` once every pair is processed.
+    ``lost_reasons`` details the lost tracks (numbers replaced by ``#``). ``unpaired`` counts
+    images (not pairs) that never found a partner within ``max_pair_dt_sec``;
+    ``camera_info_rejected`` the CameraInfo messages refused (the calibration stays).
     """
 
     pairs: int = 0
+    measurements: int = 0
     unpaired: int = 0
     keyframes: int = 0
     lost: int = 0
     cross_attempts: int = 0
     cross_accepted: int = 0
+    camera_info_rejected: int = 0
     reasons: dict[str, int] = field(default_factory=dict)
+    lost_reasons: dict[str, int] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        """One line: what the pairs gave, e.g. ``'95 pairs: 0 measurements, 94 not a keyframe,
+        1 first keyframe (no motion yet); 2 unpaired images'``."""
+        parts = [f'{self.measurements} measurements'] + [
+            f'{n} {k}' for k, n in sorted(self.reasons.items(), key=lambda kv: -kv[1])]
+        text = f'{self.pairs} pairs: ' + ', '.join(parts)
+        if self.unpaired:
+            text += f'; {self.unpaired} unpaired images'
+        if self.camera_info_rejected:
+            text += f'; {self.camera_info_rejected} CameraInfo rejected'
+        return text
+
+
+@dataclass(frozen=True)
+class ImagePair:
+    """A left and a right image message whose stamps agree within ``max_pair_dt_sec``.
+
+    Attributes
+    ----------
+    left, right : the image messages.
+    stamp_ns : the left image's stamp (ns).
+    """
+
+    left: Any
+    right: Any
+    stamp_ns: int
 
 
 @dataclass(frozen=True)
@@ -88,6 +173,8 @@ class FrameOutput:
     stamp_ns : acquisition time of the pair (the left image's stamp), ns.
     result : the VO result; None when the pair was dropped (see ``error``).
     error : why the pair was dropped (``'stereo: ...'``), else None.
+    reason : why the pair gave no measurement (a key of :attr:`StereoStats.reasons`), '' when
+        it gave one.
     node_stamps : ``{node id: stamp_ns}`` of a new keyframe (empty otherwise).
     left, right : the decoded grey images (for a debug image), None when dropped.
     """
@@ -98,6 +185,7 @@ class FrameOutput:
     node_stamps: dict[int, int] = field(default_factory=dict)
     left: np.ndarray | None = None
     right: np.ndarray | None = None
+    reason: str = ''
 
     @property
     def measurement(self) -> Measurement | None:
@@ -128,28 +216,46 @@ class StereoFrontEnd:
         """Use a ``CameraInfo`` of ``side``; returns the new calibration when it changed.
 
         The first pair of models starts the VO; a later different model re-initialises it
-        (node and track ids continue); a repeated identical one changes nothing.
+        (node and track ids continue); a repeated identical one changes nothing. A rejected
+        CameraInfo is never stored (a later valid one is used as if it came first).
 
         Raises
         ------
         InputError
-            A malformed CameraInfo or an inconsistent stereo pair; the previous calibration
-            stays.
+            A malformed CameraInfo (zero or non-finite ``K``, ``P``, ``R``, ``D``) or an
+            inconsistent stereo pair; the previous calibration stays.
         """
-        model = camera_info_to_model(msg)
-        old = self._models.get(side)
-        if old is not None and same_model(old, model) and self.calibration is not None:
-            return None
-        self._models[side] = model
-        if len(self._models) < 2:
-            return None
         try:
-            cal = StereoCalibration.from_camera_models(self._models['left'],
-                                                       self._models['right'])
+            model = camera_info_to_model(msg)
+            old = self._models.get(side)
+            if old is not None and same_model(old, model) and self.calibration is not None:
+                return None
+            models = dict(self._models)
+            models[side] = model
+            if len(models) < 2:
+                self._models = models
+                return None
+            cal = StereoCalibration.from_camera_models(models['left'], models['right'])
         except GaError:
-            if old is not None:
-                self._models[side] = old  # keep the last good calibration
+            self.stats.camera_info_rejected += 1
             raise
+        self._models = models
+        return self._use(cal)
+
+    def set_camera_models(self, left: CameraModel, right: CameraModel) -> StereoCalibration:
+        """Use a calibration read from files (a bag without ``CameraInfo``, e.g. EuRoC's
+        ``sensor.yaml``, :func:`ga_ros.vo.calibration.read_stereo_calibration`).
+
+        Raises
+        ------
+        InputError
+            An inconsistent stereo pair.
+        """
+        cal = StereoCalibration.from_camera_models(left, right)
+        self._models = {'left': left, 'right': right}
+        return self._use(cal)
+
+    def _use(self, cal: StereoCalibration) -> StereoCalibration:
         self.calibration = cal
         if self.odometry is None:
             self.odometry = StereoOdometry(cal, self.config.vo)
@@ -162,6 +268,12 @@ class StereoFrontEnd:
     def add_image(self, side: str, msg: Any) -> list[FrameOutput]:
         """Add one image message of ``side`` (``'left'``/``'right'``); process the pair it
         completes, if any (a list of at most one output)."""
+        pair = self.pair_image(side, msg)
+        return [] if pair is None else [self.process_pair(pair)]
+
+    def pair_image(self, side: str, msg: Any) -> ImagePair | None:
+        """Pair one image message of ``side`` with a waiting one of the other side (cheap: no
+        decoding). Returns the completed pair (counted in ``stats.pairs``), else None."""
         stamp = stamp_to_ns(msg.header.stamp)
         other = 'right' if side == 'left' else 'left'
         tol = int(round(self.config.max_pair_dt_sec * 1e9))
@@ -172,33 +284,54 @@ class StereoFrontEnd:
             if len(mine) > self.config.max_pending:
                 mine.pop(next(iter(mine)))
                 self.stats.unpaired += 1
-            return []
+            return None
         omsg = self._pending[other].pop(match)
         for d in self._pending.values():  # older unpaired images will never pair
             for s in [s for s in d if s < min(stamp, match)]:
                 d.pop(s)
                 self.stats.unpaired += 1
-        pair = {side: msg, other: omsg}
         self.stats.pairs += 1
-        return [self._process(pair['left'], pair['right'], stamp if side == 'left' else match)]
+        if side == 'left':
+            return ImagePair(msg, omsg, stamp)
+        return ImagePair(omsg, msg, match)
+
+    def count_dropped(self, pair: ImagePair) -> FrameOutput:
+        """Count a pair that the caller drops unprocessed (:data:`DROPPED`)."""
+        self._reason(DROPPED)
+        return FrameOutput(pair.stamp_ns, error='stereo: pair dropped (queue full)',
+                           reason=DROPPED)
 
     def _reason(self, key: str) -> None:
         self.stats.reasons[key] = self.stats.reasons.get(key, 0) + 1
 
-    def _process(self, left_msg: Any, right_msg: Any, stamp_ns: int) -> FrameOutput:
+    def process_pair(self, pair: ImagePair) -> FrameOutput:
+        """Decode a pair and run the VO on it; the output names why it gave no measurement."""
+        stamp_ns = pair.stamp_ns
         if self.odometry is None:
-            self._reason('no CameraInfo yet')
-            return FrameOutput(stamp_ns, error='stereo: no CameraInfo for both cameras yet')
+            self._reason(NO_CAMERA_INFO)
+            return FrameOutput(stamp_ns, error='stereo: no CameraInfo for both cameras yet',
+                               reason=NO_CAMERA_INFO)
         try:
-            left = image_to_grey(left_msg)
-            right = image_to_grey(right_msg)
+            left = image_to_grey(pair.left)
+            right = image_to_grey(pair.right)
             res = self.odometry.process(StereoFrame(left, right, int(stamp_ns)))
         except GaError as exc:
-            self._reason('bad pair')
-            return FrameOutput(stamp_ns, error=f'stereo: {exc}')
+            self._reason(BAD_PAIR)
+            return FrameOutput(stamp_ns, error=f'stereo: {exc}', reason=BAD_PAIR)
+        reason = ''
         if res.status == 'lost':
             self.stats.lost += 1
-            self._reason('lost: ' + re.sub(r'[0-9][0-9.]*', '#', res.reason or '?'))
+            reason = LOST
+            key = re.sub(r'[0-9][0-9.]*', '#', res.reason or '?')
+            self.stats.lost_reasons[key] = self.stats.lost_reasons.get(key, 0) + 1
+        elif res.status == 'rejected':
+            reason = TEXTURELESS if res.reason.startswith('textureless') else TOO_FEW_POINTS
+        elif res.measurement is None:
+            reason = FIRST_KEYFRAME if res.status == 'initialised' else NOT_KEYFRAME
+        if reason:
+            self._reason(reason)
+        else:
+            self.stats.measurements += 1
         stamps: dict[int, int] = {}
         if res.keyframe is not None:
             self.stats.keyframes += 1
@@ -206,7 +339,7 @@ class StereoFrontEnd:
             self._stamp_to_node[int(res.keyframe.stamp_ns)] = int(res.keyframe.node_id)
             while len(self._stamp_to_node) > MAX_STAMPS:  # bounded (oldest first)
                 self._stamp_to_node.pop(next(iter(self._stamp_to_node)))
-        return FrameOutput(stamp_ns, res, None, stamps, left, right)
+        return FrameOutput(stamp_ns, res, None, stamps, left, right, reason)
 
     def match(self, frame: FrameOutput) -> list[CrossAttempt]:
         """Cross-track matching of the frame's new keyframe (after its motion was used).

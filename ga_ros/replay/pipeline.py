@@ -516,6 +516,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                 result.source_stats = _as_dict(stats)
             if run.aligner is None and result.error is None:
                 examples = '; '.join(result.rejected_examples[:3])
+                if stats is not None and hasattr(stats, 'summary'):  # stereo: every reason
+                    examples = f'stereo: {stats.summary()}'
                 result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
                                 f'{unit}s' + (f' ({examples})' if examples else ''))
             run.finish()

@@ -14,10 +14,11 @@ from collections.abc import Iterator
 from typing import Any
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.errors import FormatError, GaError, InputError
+from ga_ros.errors import GaError, InputError
 from ga_ros.io.bag import CAMERA_INFO, BagReader, TopicPlan
 from ga_ros.pipeline.stereo import FrontEndConfig, StereoFrontEnd, StereoStats
 from ga_ros.replay.source import SourceItem
+from ga_ros.vo.calibration import read_stereo_calibration
 from ga_ros.vo.odometry import VoConfig
 
 
@@ -43,6 +44,9 @@ class StereoSource:
         self.plan = plan
         self.front = StereoFrontEnd(front_end_config(config))
         self.counter = counter
+        if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
+            models = read_stereo_calibration(list(plan.calibration))
+            self.front.set_camera_models(models.left, models.right)
 
     @property
     def stats(self) -> StereoStats:
@@ -61,8 +65,8 @@ class StereoSource:
             if bm.topic in infos and bm.msgtype == CAMERA_INFO:
                 try:
                     self.front.set_camera_info(infos[bm.topic], bm.msg)
-                except InputError as exc:
-                    raise FormatError(f'bad CameraInfo: {exc}', str(self.bag.path)) from exc
+                except InputError as exc:  # counted and skipped, as vo_node does
+                    yield SourceItem(None, bm.log_ns, error=f'stereo: CameraInfo rejected: {exc}')
                 continue
             if bm.topic not in sides:
                 continue

@@ -42,6 +42,9 @@ def result_text(r: ReplayResult) -> str:
                      f"{st.get('lost', 0)} lost, {st.get('unpaired', 0)} unpaired images; "
                      f"cross-track: {st.get('cross_accepted', 0)} connections accepted of "
                      f"{st.get('cross_attempts', 0)} verified candidates")
+        if st.get('reasons'):
+            lines.append('pairs without a measurement: ' + ', '.join(
+                f'{n} {k}' for k, n in sorted(st['reasons'].items(), key=lambda kv: -kv[1])))
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))

@@ -17,6 +17,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 
 from ga_ros.errors import InputError
+from ga_ros.pipeline.params import coerce_value
 
 C = TypeVar('C')
 
@@ -87,9 +88,7 @@ def declare_config(node: Node, cls: type[C], prefix: str = '',
         desc = descriptor(prefix + f.name, default, _text(cls, f, docs), rng)
         value = node.declare_parameter(prefix + f.name, default, desc).value
         if isinstance(default, float):
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise InputError(f'parameter {prefix + f.name} must be a number, got {value!r}')
-            value = float(value)
+            value = coerce_value(prefix + f.name, default, value)  # as the replay does
             for r in desc.floating_point_range:
                 if not r.from_value <= value <= r.to_value:
                     raise InputError(f'parameter {prefix + f.name} = {value} is outside '

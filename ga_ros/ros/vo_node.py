@@ -19,7 +19,17 @@ Publishes
 
 Subscribes also to the corrected path (``nav_msgs/Path``, transient local; poses matched to
 keyframes by stamp) to predict overlaps, and to ``track_boundary_topic`` (``std_msgs/Empty``)
-to start a new track on request. Parameters: ``config/vo.yaml``; the VO fields mirror
+to start a new track on request, and publishes ``diagnostics`` (``diagnostic_msgs/
+DiagnosticArray``, every ``diagnostics_period_sec``): pairs received / processed / dropped,
+measurements, and the count of every reason a pair gave no measurement.
+
+Frames are never dropped silently. The image callbacks only pair messages (no decoding) and put
+the pair in a bounded queue of ``pair_queue`` pairs; one worker thread runs the VO on the queue.
+Policy when the VO is slower than the camera: **skip oldest** -- a new pair arriving at a full
+queue drops the oldest waiting pair, so the VO always works on the newest images (the KLT
+tracker bridges the gap; a gap too large loses the track, counted as ``lost``). Every drop is
+counted (``dropped (queue full)``) and warned about (throttled). Parameters:
+``config/vo.yaml``; the VO fields mirror
 :class:`~ga_ros.vo.odometry.VoConfig`, the ``cross_*`` fields
 :class:`~ga_ros.vo.crosstrack.CrossTrackConfig`. Bad input (mismatched sizes or encodings,
 missing CameraInfo, textureless frames, a lost track) is warned about (throttled) and produces
@@ -29,11 +39,14 @@ no measurement; the node never dies on a message.
 from __future__ import annotations
 
 import sys
+import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -43,7 +56,7 @@ from std_msgs.msg import Empty
 from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
-from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, StereoFrontEnd
+from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, ImagePair, StereoFrontEnd
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
@@ -73,6 +86,10 @@ class VoNodeSettings:
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
     odom_frame, camera_frame : frame ids of the raw VO odometry.
     image_queue : depth of the image subscriptions (best effort, sensor-data QoS).
+    pair_queue : stereo pairs waiting for the VO; when full, a new pair drops the oldest
+        waiting one (policy: skip oldest, process the newest), counted and warned about.
+    diagnostics_topic : output ``diagnostic_msgs/DiagnosticArray`` with the counts.
+    diagnostics_period_sec : period of the diagnostics (s; 0 disables).
     warn_throttle_sec : minimum seconds between repeated warnings.
     """
 
@@ -92,6 +109,9 @@ class VoNodeSettings:
     odom_frame: str = 'vo_odom'
     camera_frame: str = 'camera'
     image_queue: int = 10
+    pair_queue: int = 2
+    diagnostics_topic: str = topics.DIAGNOSTICS
+    diagnostics_period_sec: float = 1.0
     warn_throttle_sec: float = 5.0
 
 
@@ -122,7 +142,17 @@ class VoNode(Node):
             vo=self.vo_config, cross=self.cross_config, cross_track=s.cross_track,
             max_pair_dt_sec=s.max_pair_dt_sec, max_pending=max(2, s.image_queue)))
         self._last_warn: dict[str, float] = {}
-        self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0}
+        self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
+                       'processed': 0, 'queue_dropped': 0}
+        self._queue: deque[ImagePair] = deque()
+        self._lock = threading.Lock()  # the front end: worker thread vs. other callbacks
+        self._wake = threading.Condition()
+        self._busy = False
+        self._stop = False
+        self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic,
+                                              stream_qos())
+        if s.diagnostics_period_sec > 0:
+            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics)
         self.pub_meas = self.create_publisher(Odometry, s.measurements_topic, measurement_qos())
         self.pub_odom = self.create_publisher(Odometry, s.odometry_topic, stream_qos())
         self.pub_debug = (self.create_publisher(Image, s.debug_image_topic, stream_qos(2))
@@ -142,9 +172,12 @@ class VoNode(Node):
                                  lambda m: self._on_info(m, 'right'), qos)
         self.create_subscription(Path, s.path_topic, self._on_path, latched_qos())
         self.create_subscription(Empty, s.track_boundary_topic, self._on_boundary, 10)
+        self._worker = threading.Thread(target=self._work, name='vo_worker', daemon=True)
+        self._worker.start()
         self.get_logger().info(
             f'listening to {s.left_image_topic} / {s.right_image_topic} '
-            f'({"compressed" if s.compressed else "raw"}), publishing {s.measurements_topic}')
+            f'({"compressed" if s.compressed else "raw"}), publishing {s.measurements_topic}; '
+            f'queue of {s.pair_queue} pairs (skip oldest when full)')
 
     @property
     def calibration(self) -> Any:
@@ -175,7 +208,8 @@ class VoNode(Node):
     def _on_info(self, msg: CameraInfo, side: str) -> None:
         recalibrating = self.front.odometry is not None
         try:
-            cal = self.front.set_camera_info(side, msg)
+            with self._lock:
+                cal = self.front.set_camera_info(side, msg)
         except (GaError, ValueError) as exc:
             self._warn('info', f'{side} CameraInfo rejected: {exc}')
             return
@@ -189,8 +223,83 @@ class VoNode(Node):
             f'{"rectifying" if cal.needs_rectification else "already rectified"}')
 
     def _on_image(self, msg: Image | CompressedImage, side: str) -> None:
-        for frame in self.front.add_image(side, msg):
+        pair = self.front.pair_image(side, msg)  # cheap: no decoding
+        if pair is None:
+            return
+        dropped = None
+        with self._wake:
+            if len(self._queue) >= max(1, self.settings.pair_queue):
+                dropped = self._queue.popleft()  # policy: skip oldest
+            self._queue.append(pair)
+            self._wake.notify()
+        if dropped is not None:
+            self.front.count_dropped(dropped)
+            self.counts['queue_dropped'] += 1
+            self._warn('queue', f'{self.counts["queue_dropped"]} stereo pairs dropped so far: '
+                       'the VO is slower than the camera (queue of '
+                       f'{self.settings.pair_queue} pairs full, oldest skipped)')
+
+    def _work(self) -> None:
+        """Worker thread: run the VO on queued pairs until the node is destroyed."""
+        while True:
+            with self._wake:
+                while not self._queue and not self._stop:
+                    self._wake.wait()
+                if self._stop:
+                    return
+                pair = self._queue.popleft()
+                self._busy = True
+            try:
+                self.process(pair)
+            except Exception as exc:  # noqa: BLE001 - the worker must survive any pair
+                self._warn('worker', f'stereo pair failed: {type(exc).__name__}: {exc}')
+            finally:
+                with self._wake:
+                    self._busy = False
+                    self._wake.notify_all()
+
+    def wait_idle(self, timeout_sec: float = 30.0) -> bool:
+        """Block until the queue is empty and no pair is in work (tests, shutdown)."""
+        with self._wake:
+            return self._wake.wait_for(lambda: not self._queue and not self._busy,
+                                       timeout_sec)
+
+    def process(self, pair: ImagePair) -> None:
+        """Run the front end on one pair and publish what it gives (worker thread)."""
+        with self._lock:
+            frame = self.front.process_pair(pair)
+            self.counts['processed'] += 1
             self._publish_frame(frame)
+
+    def diagnostic_values(self) -> dict[str, object]:
+        """Counts of the node: pairs received, processed, dropped, and every reason."""
+        st = self.front.stats
+        values: dict[str, object] = {
+            'pairs_received': st.pairs, 'pairs_processed': self.counts['processed'],
+            'pairs_dropped_queue_full': self.counts['queue_dropped'],
+            'queue_length': len(self._queue), 'measurements': st.measurements,
+            'cross_connections': self.counts['cross'], 'keyframes': st.keyframes,
+            'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected}
+        for key, n in st.reasons.items():
+            values['no_measurement/' + key] = n
+        return values
+
+    def publish_diagnostics(self) -> None:
+        """Publish the counts on ``diagnostics_topic``."""
+        values = self.diagnostic_values()
+        dropped = self.counts['queue_dropped']
+        self.pub_diag.publish(conv.diagnostics_msg(
+            f'{self.get_name()}: stereo VO', self.settings.camera_frame, values,
+            self.get_clock().now().nanoseconds, level=1 if dropped else 0,
+            message=f'{dropped} pairs dropped (queue full)' if dropped else 'ok'))
+
+    def destroy_node(self) -> None:
+        """Stop the worker thread, then destroy the node."""
+        with self._wake:
+            self._stop = True
+            self._wake.notify_all()
+        self._worker.join(timeout=5.0)
+        super().destroy_node()
 
     def _publish_frame(self, frame: FrameOutput) -> None:
         res = frame.result
@@ -241,12 +350,14 @@ class VoNode(Node):
             T = conv.path_msg_to_poses(msg)
             stamps = np.array([conv.stamp_to_ns(ps.header.stamp) for ps in msg.poses],
                               dtype=np.int64)
-            self.front.set_corrected_by_stamp(stamps, T)
+            with self._lock:
+                self.front.set_corrected_by_stamp(stamps, T)
         except (GaError, ValueError) as exc:
             self._warn('path', f'corrected path ignored: {exc}')
 
     def _on_boundary(self, _msg: Empty) -> None:
-        self.front.request_track_boundary()
+        with self._lock:
+            self.front.request_track_boundary()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -64,8 +64,8 @@ class StereoCalibration:
     width, height : image size (px).
     K : (3, 3) intrinsics of the rectified left (and right) image.
     baseline_m : baseline (m).
-    maps_left, maps_right : ``(map_x, map_y)`` float32 remap tables, or None when the input
-        is already rectified.
+    maps_left, maps_right : ``cv2.remap`` tables in fixed point (``cv2.convertMaps`` to
+        ``CV_16SC2``: 1/32 px interpolation), or None when the input is already rectified.
     """
 
     width: int
@@ -127,12 +127,137 @@ class StereoCalibration:
             else:
                 mx, my = cv2.initUndistortRectifyMap(Kc, D if D.size else None, R, P[:3, :3],
                                                      size, cv2.CV_32FC1)
-            maps.append((mx, my))
+            maps.append(cv2.convertMaps(mx, my, cv2.CV_16SC2))  # fixed point: ~2x faster remap
         return StereoCalibration(size[0], size[1], K, float(baseline), maps[0], maps[1])
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistort and rectify a raw pair (identity when already rectified)."""
-        if self.maps_left is None or self.maps_right is None:
-            return left, right
-        return (cv2.remap(left, *self.maps_left, cv2.INTER_LINEAR),
-                cv2.remap(right, *self.maps_right, cv2.INTER_LINEAR))
+        return self.rectify_one(left, 'left'), self.rectify_one(right, 'right')
+
+    def rectify_one(self, image: np.ndarray, side: str) -> np.ndarray:
+        """Undistort and rectify one raw image of ``side`` (``'left'``/``'right'``); the VO
+        rectifies the right image only at keyframes, where it matches stereo."""
+        maps = self.maps_left if side == 'left' else self.maps_right
+        return image if maps is None else cv2.remap(image, *maps, cv2.INTER_LINEAR)
+
+
+@dataclass(frozen=True)
+class StereoModels:
+    """The two camera models of a stereo rig (read from calibration files)."""
+
+    left: CameraModel
+    right: CameraModel
+
+
+def _matrix(value: object, rows: int, cols: int, what: str) -> FloatArray:
+    """A YAML matrix (a flat or nested list, or ``{rows, cols, data}``) -> (rows, cols)."""
+    if isinstance(value, dict):
+        value = value.get('data')
+    try:
+        out = np.asarray(value, float).reshape(rows, cols)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f'calibration: {what} is not a {rows}x{cols} matrix: {exc}') from exc
+    if not np.all(np.isfinite(out)):
+        raise InputError(f'calibration: {what} holds NaN or infinity')
+    return out
+
+
+def _camera_info_fields(d: dict, what: str) -> CameraModel:
+    """A ``sensor_msgs/CameraInfo``-like mapping (``width height k d r p distortion_model``,
+    or camera_calibration's ``image_width camera_matrix ...``) -> model."""
+    w = d.get('width', d.get('image_width'))
+    h = d.get('height', d.get('image_height'))
+    K = _matrix(d.get('k', d.get('camera_matrix')), 3, 3, f'{what} k')
+    D_value = d.get('d', d.get('distortion_coefficients')) or []
+    if isinstance(D_value, dict):
+        D_value = D_value.get('data') or []
+    D = np.asarray(D_value, float).ravel()
+    R = d.get('r', d.get('rectification_matrix'))
+    P = d.get('p', d.get('projection_matrix'))
+    if not isinstance(w, int) or not isinstance(h, int) or w <= 0 or h <= 0:
+        raise InputError(f'calibration: {what} needs a positive integer width and height')
+    return CameraModel(w, h, K, D, np.eye(3) if R is None else _matrix(R, 3, 3, f'{what} r'),
+                       None if P is None else _matrix(P, 3, 4, f'{what} p'),
+                       str(d.get('distortion_model', 'plumb_bob')))
+
+
+def _euroc_sensor(d: dict, what: str) -> tuple[dict, FloatArray]:
+    """An EuRoC ``sensor.yaml`` (pinhole, radial-tangential) -> CameraInfo-like fields and
+    ``T_body_cam`` (4, 4)."""
+    if d.get('camera_model', 'pinhole') != 'pinhole':
+        raise InputError(f'calibration: {what}: camera_model {d.get("camera_model")!r} is not '
+                         'supported (pinhole only)')
+    if d.get('distortion_model', 'radial-tangential') != 'radial-tangential':
+        raise InputError(f'calibration: {what}: unsupported distortion_model '
+                         f'{d.get("distortion_model")!r} (radial-tangential only; give the '
+                         'CameraInfo fields instead)')
+    model = 'plumb_bob'
+    fu, fv, cu, cv = (float(x) for x in d['intrinsics'])
+    w, h = (int(x) for x in d['resolution'])
+    fields_ = {'width': w, 'height': h, 'k': [fu, 0, cu, 0, fv, cv, 0, 0, 1],
+               'd': list(d.get('distortion_coefficients', [])), 'distortion_model': model}
+    return fields_, _matrix(d['T_BS'], 4, 4, f'{what} T_BS')
+
+
+def read_stereo_calibration(paths: list[str]) -> StereoModels:
+    """Stereo camera models from calibration files, for bags without ``CameraInfo``.
+
+    Accepted forms:
+
+    * two EuRoC ``sensor.yaml`` files (left then right camera: ``intrinsics``, ``resolution``,
+      ``distortion_coefficients``, ``T_BS``); the rectification (``R``, ``P`` of each camera)
+      is computed with ``cv2.stereoRectify`` from the two body-to-camera poses;
+    * one YAML with ``left`` and ``right`` mappings of ``sensor_msgs/CameraInfo`` fields
+      (``width height k d r p distortion_model``; camera_calibration's ``image_width
+      camera_matrix distortion_coefficients rectification_matrix projection_matrix`` too);
+    * two such CameraInfo-like YAML files (left then right).
+
+    Raises
+    ------
+    InputError
+        Unreadable files, missing fields, or an inconsistent rig.
+    """
+    import yaml
+
+    docs = []
+    for p in paths:
+        try:
+            with open(p) as fh:
+                text = fh.read()
+            if text.startswith('%YAML'):  # EuRoC files start with an OpenCV-style directive
+                text = text.split('\n', 1)[1]
+            docs.append(yaml.safe_load(text))
+        except (OSError, yaml.YAMLError) as exc:
+            raise InputError(f'cannot read calibration file {p}: {exc}') from exc
+    try:
+        if len(docs) == 1 and isinstance(docs[0], dict) and {'left', 'right'} <= set(docs[0]):
+            return StereoModels(_camera_info_fields(docs[0]['left'], 'left'),
+                                _camera_info_fields(docs[0]['right'], 'right'))
+        if len(docs) != 2 or not all(isinstance(d, dict) for d in docs):
+            raise InputError('calibration: expected two files (left, right camera) or one YAML '
+                             'with left and right CameraInfo fields')
+        if all('T_BS' in d for d in docs):
+            return _rectify_euroc(*docs)
+        return StereoModels(_camera_info_fields(docs[0], paths[0]),
+                            _camera_info_fields(docs[1], paths[1]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f'calibration: missing or malformed field {exc}') from exc
+
+
+def _rectify_euroc(d_left: dict, d_right: dict) -> StereoModels:
+    (fl, T_b_l), (fr, T_b_r) = _euroc_sensor(d_left, 'left'), _euroc_sensor(d_right, 'right')
+    if (fl['width'], fl['height']) != (fr['width'], fr['height']):
+        raise InputError('calibration: the two cameras have different resolutions')
+    T_r_l = np.linalg.inv(T_b_r) @ T_b_l  # x_right = T_r_l x_left
+    K_l, K_r = (np.asarray(f['k'], float).reshape(3, 3) for f in (fl, fr))
+    D_l, D_r = (np.asarray(f['d'], float) for f in (fl, fr))
+    size = (fl['width'], fl['height'])
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K_l, D_l, K_r, D_r, size,
+                                           np.ascontiguousarray(T_r_l[:3, :3]),
+                                           T_r_l[:3, 3].reshape(3, 1).copy(),
+                                           flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+    if P2[0, 3] > 0:
+        raise InputError('calibration: the second camera is left of the first; pass the left '
+                         'camera first')
+    return StereoModels(CameraModel(size[0], size[1], K_l, D_l, R1, P1, fl['distortion_model']),
+                        CameraModel(size[0], size[1], K_r, D_r, R2, P2, fr['distortion_model']))

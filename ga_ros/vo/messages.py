@@ -81,20 +81,25 @@ def camera_info_to_model(msg: Any) -> CameraModel:
     Raises
     ------
     InputError
-        If ``K`` is zero (no intrinsics), the image size is zero, or a matrix has the wrong
-        size.
+        If ``K`` is zero (no intrinsics), the image size is zero, a matrix has the wrong
+        size, or ``K``, ``D``, ``R`` or ``P`` holds NaN or infinity.
     """
     try:
         K = np.asarray(msg.k, float).reshape(3, 3)
         P = np.asarray(msg.p, float).reshape(3, 4)
         R = np.asarray(msg.r, float).reshape(3, 3)
+        D = np.asarray(msg.d, float).ravel()
     except ValueError as exc:
         raise InputError(f'malformed CameraInfo: {exc}') from exc
+    for name, arr in (('K', K), ('D', D), ('R', R), ('P', P)):
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f'CameraInfo {name} holds NaN or infinity; publish a calibrated '
+                             'CameraInfo (camera_calibration) or pass a calibration file')
     if K[0, 0] <= 0 or K[1, 1] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise InputError('CameraInfo has no intrinsics (K is zero) or no image size')
     if not np.any(R):
         R = np.eye(3)
-    return CameraModel(int(msg.width), int(msg.height), K, np.asarray(msg.d, float).ravel(), R,
+    return CameraModel(int(msg.width), int(msg.height), K, D, R,
                        P if np.any(P) else None, str(msg.distortion_model or 'plumb_bob'))
 
 

@@ -307,10 +307,12 @@ class StereoOdometry:
             Images of the wrong size, type or shape for the calibration (nothing changed).
         """
         left, right = self._validate(frame)
-        left, right = self.calibration.rectify(left, right)
+        # The right image is rectified only where it is used (keyframes: _initialise).
+        left = self.calibration.rectify_one(left, 'left')
         stamp = int(frame.stamp_ns)
-        std = float(left.std())
-        if std < self.config.min_texture_std or float(right.std()) < self.config.min_texture_std:
+        std = float(cv2.meanStdDev(left)[1][0, 0])
+        if (std < self.config.min_texture_std
+                or float(cv2.meanStdDev(right)[1][0, 0]) < self.config.min_texture_std):
             self._lose()
             return self._result('rejected', f'textureless frame (grey-level std {std:.1f})',
                                 stamp)
@@ -380,9 +382,10 @@ class StereoOdometry:
 
     def _initialise(self, left: np.ndarray, right: np.ndarray, stamp: int,
                     status: str, measurement_from: tuple | None = None) -> VoResult:
-        """Make this frame the reference keyframe."""
+        """Make this frame the reference keyframe (``left`` rectified, ``right`` raw)."""
         cfg = self.config
         cal = self.calibration
+        right = cal.rectify_one(right, 'right')
         corners = cv2.goodFeaturesToTrack(left, cfg.max_features, cfg.feature_quality,
                                           cfg.min_feature_distance_px, blockSize=7)
         corners = (np.zeros((0, 2), np.float32) if corners is None

@@ -38,6 +38,9 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument('--right-image', default='', help="right images ('' = detect)")
     g.add_argument('--left-info', default='', help="left CameraInfo ('' = detect)")
     g.add_argument('--right-info', default='', help="right CameraInfo ('' = detect)")
+    g.add_argument('--calibration', nargs='+', default=[], metavar='FILE',
+                   help='stereo calibration for bags without CameraInfo: two EuRoC sensor.yaml '
+                        '(left, right) or a YAML of the left and right CameraInfo fields')
     g.add_argument('--ground-truth-topic', default=topics.resolve(topics.GROUND_TRUTH),
                    help="nav_msgs/Path ground truth ('' = ignore)")
     o = p.add_argument_group('outputs')
@@ -64,13 +67,32 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help='final full batch refinement after the last track')
     a.add_argument('--no-anchor', action='store_true',
                    help='start at the identity instead of the ground-truth first pose')
+    v = p.add_argument_group('visual odometry (stereo bags)')
+    v.add_argument('--vo-params', type=Path, metavar='FILE',
+                   help="vo_node's parameter file (config/vo.yaml); its topic and queue "
+                        'settings are ignored')
+    v.add_argument('--vo', action='append', default=[], metavar='KEY=VALUE',
+                   help='one VO parameter of config/vo.yaml (repeatable; after --vo-params), '
+                        'e.g. --vo keyframe_max_travel_ratio=0.1')
 
 
 def topic_config(args: argparse.Namespace) -> TopicConfig:
     return TopicConfig(measurements=args.measurements_topic, left_image=args.left_image,
                        right_image=args.right_image, left_info=args.left_info,
                        right_info=args.right_info, ground_truth=args.ground_truth_topic,
-                       source=args.source)
+                       source=args.source, calibration=tuple(map(str, args.calibration)))
+
+
+def vo_config(args: argparse.Namespace) -> Any:
+    """The stereo front end settings of ``--vo-params`` and ``--vo`` (None: defaults)."""
+    if not args.vo_params and not args.vo:
+        return None
+    from ga_ros.pipeline.params import parse_override, read_params_file
+    from ga_ros.pipeline.stereo import front_end_config_from_params
+
+    params = read_params_file(args.vo_params, 'vo_node') if args.vo_params else {}
+    params.update(parse_override(text) for text in args.vo)
+    return front_end_config_from_params(params)
 
 
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
@@ -88,7 +110,8 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     outputs = OutputConfig(map_frame=args.map_frame, path_topic=args.path_topic,
                            pose_topic=args.pose_topic, markers_topic=args.markers_topic)
     return ReplayConfig(topics=topic_config(args), outputs=outputs, aligner=aligner,
-                        aligner_kind=args.aligner, refine_batch=args.refine,
+                        aligner_kind=args.aligner, vo=vo_config(args),
+                        refine_batch=args.refine,
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress)
