@@ -47,7 +47,7 @@ def test_position_nees_is_consistent_for_every_policy_batch_and_refinement():
         nees['batch'].append(_position_nees(batch.T_world_node[1:], batch.covariance(ids),
                                             truth))
     mean = {k: float(np.mean(np.concatenate(v))) for k, v in nees.items()}
-    for k, v in mean.items():
+    for v in mean.values():
         assert 2.1 <= v <= 3.9, mean
         assert abs(v / mean['batch'] - 1.0) < 0.05, mean
 
