@@ -30,7 +30,8 @@ track id far above the largest seen (``id_jump``, ``track_jump``); an unknown ``
 an unknown source node (every measurement after the first must start at a known node); a new node
 of an older track than the current one (out of order); a re-delivered identical measurement; an
 endpoint on a frozen track. Gross outliers among overlap (cross) connections are detected after
-each update by a chi-square test on the Mahalanobis misclosure and excluded.
+each update by a chi-square test on the Mahalanobis misclosure and excluded; excluded connections
+of the window are re-tested at each new estimate and re-admitted when consistent.
 """
 
 from __future__ import annotations
