@@ -53,7 +53,7 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
     assert back.aligner._pairs == al._pairs           # the duplicate test is restored too
     for key in a:
         if key == 'priors':
-            assert len(a[key]) == len(b[key]) and (policy == 'weighted') == (not a[key])
+            assert len(a[key]) == len(b[key]) and a[key]   # both policies carry joint priors
             for x, y in zip(a[key], b[key]):
                 np.testing.assert_array_equal(x, y)
         elif key == 'counts':
@@ -62,8 +62,9 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     # covariances of window nodes are recomputed on demand from the same window problem
     window_ids = al.corrected_path().node_ids[al._last_window]
-    np.testing.assert_allclose(back.aligner.covariances(window_ids[1:6]),
-                               al.covariances(window_ids[1:6]), rtol=1e-6, atol=1e-12)
+    ref = al.covariances(window_ids[1:6])
+    np.testing.assert_allclose(back.aligner.covariances(window_ids[1:6]), ref, rtol=1e-6,
+                               atol=1e-6 * np.abs(ref).max())
     for x in (al, back.aligner):
         x.add_measurements(ms[cut:])
         x.finish_track()

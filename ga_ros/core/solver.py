@@ -441,7 +441,7 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     cost = _adjustment_cost(v, prob.P, final.weights) + _prior_cost(prob.model, T,
                                                                     prob.prior_data)
     r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
-        p.idx.size * d for p in prob.prior_data)
+        p.rank for p in prob.prior_data)
     redundancy = r_eq - n_free * d
     sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
     system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol)
@@ -464,6 +464,7 @@ class _PriorData:
     H_blocks: FloatArray  # (b, d, d) non-zero d x d blocks of the information
     blk_r: IntArray  # (b,) block row (position in idx)
     blk_c: IntArray
+    rank: int  # rank of the information: the number of equations the prior adds
 
     @staticmethod
     def build(network: ConnectionNetwork, prior: GaussianPrior, d: int) -> _PriorData:
@@ -481,8 +482,30 @@ class _PriorData:
         if not np.isfinite(Hb.data).all():
             raise InputError('prior information has NaN or inf entries')
         rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
-        return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows,
-                          Hb.indices.astype(np.int64))
+        cols = Hb.indices.astype(np.int64)
+        return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows, cols,
+                          _information_rank(Hb.data, rows, cols, H))
+
+
+def _information_rank(blocks: FloatArray, rows: IntArray, cols: IntArray, H) -> int:
+    """Rank of a prior's information matrix: the number of independent equations it adds to
+    the redundancy (a zero-weight prior adds none).
+
+    Block-diagonal information (per-node priors): the ranks of its blocks. Otherwise a dense
+    Cholesky decides full rank, and only a singular matrix pays for an eigen-decomposition.
+    """
+    if blocks.size == 0 or not np.any(blocks):
+        return 0
+    if np.array_equal(rows, cols):
+        return int(np.linalg.matrix_rank(0.5 * (blocks + np.swapaxes(blocks, 1, 2)),
+                                         hermitian=True).sum())
+    Hd = H.toarray() if sp.issparse(H) else np.asarray(H, dtype=float)
+    Hd = 0.5 * (Hd + Hd.T)
+    try:
+        np.linalg.cholesky(Hd)
+        return int(Hd.shape[0])
+    except np.linalg.LinAlgError:
+        return int(np.linalg.matrix_rank(Hd, hermitian=True))
 
 
 @dataclass

@@ -8,9 +8,14 @@ update solves only for the increment the new track brings. Nodes of the track th
 window stop being unknowns and are *frozen*:
 
 * ``freeze_policy='weighted'`` (the paper, Sec. III-E): every frozen node that is still connected
-  to the window enters the next adjustments as a weighted parameter, with the pose and the
-  marginal covariance block that the last adjustment gave it (correlations between frozen nodes
-  are dropped).
+  to the window stays an unknown of the next adjustments, as a weighted parameter with one joint
+  Gaussian prior over all such nodes (their full covariance, correlations kept). The prior holds
+  the information of the connections among frozen nodes only (absorbed by a Schur complement
+  when a track freezes, the other frozen nodes eliminated); connections to the window stay in
+  the window problem and are relinearised there. No connection is counted twice, so the
+  published covariances are not overconfident (earlier versions used independent per-node
+  priors with the marginal covariances of the last adjustment, which counted shared information
+  again at every update: position NEES ~100 instead of 3).
 * ``freeze_policy='marginal'``: the leaving track is marginalised out exactly (Schur complement
   of its terms, as fixed-lag smoothers do), which leaves a joint Gaussian prior on the window
   nodes it was connected to; its connections are absorbed into that prior.
@@ -25,7 +30,8 @@ track id far above the largest seen (``id_jump``, ``track_jump``); an unknown ``
 an unknown source node (every measurement after the first must start at a known node); a new node
 of an older track than the current one (out of order); a re-delivered identical measurement; an
 endpoint on a frozen track. Gross outliers among overlap (cross) connections are detected after
-each update by a chi-square test on the Mahalanobis misclosure and excluded.
+each update by a chi-square test on the Mahalanobis misclosure and excluded; excluded connections
+of the window are re-tested at each new estimate and re-admitted when consistent.
 """
 
 from __future__ import annotations
@@ -177,6 +183,7 @@ class UpdateResult:
     reason: str
     n_priors: int = 0
     n_unknowns: int = 0
+    n_readmitted: int = 0
 
 
 @dataclass
@@ -585,22 +592,27 @@ class TrackWindowAligner:
         src, dst = self._src.a[conns], self._dst.a[conns]
         ids = self._idarr.a
         ext = np.unique(np.concatenate([src[~in_win[src]], dst[~in_win[dst]]]))
-        # marginal-policy priors touching the window
+        # joint priors (Schur complements of frozen terms) touching the window or its frozen
+        # neighbours; under the weighted policy their nodes are frozen boundary nodes
         priors_idx = []
+        touched = in_win.copy()
+        touched[ext] = True
         for p, (idx, _, _) in enumerate(self._priors):
-            if in_win[idx].any():
+            if touched[idx].any():
                 priors_idx.append(p)
                 ext = np.union1d(ext, idx[~in_win[idx]])
         nodes = np.concatenate([win_nodes, ext])
         net = self._subnetwork(nodes, conns)
         fixed = [self._ids[0]] if (nodes == 0).any() else []
         priors = []
-        # frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
-        # stay unknowns of the adjustment, with their frozen pose and covariance as a prior,
-        # but are not written back. (Under the marginal policy their connections were absorbed
-        # into priors when they froze, so only the datum can appear here.)
-        weighted = ext[(ext != 0) & ~np.isin(ext, np.concatenate(
-            [self._priors[p][0] for p in priors_idx] or [np.zeros(0, np.int64)]))]
+        # Frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
+        # stay unknowns of the adjustment, with a joint prior that carries only the information
+        # of the connections absorbed when they froze (see :meth:`_marginalise`), so nothing
+        # is counted twice; they are not written back. A frozen node outside every joint prior
+        # (a state saved by an older version) falls back to its marginal covariance.
+        covered = np.concatenate([self._priors[p][0] for p in priors_idx]
+                                 or [np.zeros(0, np.int64)])
+        weighted = ext[(ext != 0) & ~np.isin(ext, covered)]
         if weighted.size:
             priors.append(GaussianPrior.from_covariances(ids[weighted], self._T[weighted],
                                                          self._cov[weighted]))
@@ -622,11 +634,19 @@ class TrackWindowAligner:
         cfg = self.config
         scfg = cfg.solver_config()
         n_out = 0
+        readmitted: set[int] = set()
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             res = solve(net, self._T[nodes], scfg, fixed=fixed, priors=priors)
             bad = self._outliers(res, conns)
-            if bad.size == 0 or n_out >= 50:
+            if bad.size == 0:
+                back = self._readmissible(window_tracks, nodes, res, readmitted)
+                if back.size == 0:
+                    break
+                self._status.a[back] = 0  # consistent now: back into the adjustment
+                readmitted.update(back.tolist())
+                continue
+            if n_out >= 50:
                 break
             self._status.a[bad] = 2
             n_out += int(bad.size)
@@ -634,13 +654,13 @@ class TrackWindowAligner:
         self._T[win_nodes] = res.T_world_node[:n_win]
         self._last = res
         self._last_window = win_nodes
-        self._n_outliers += n_out
+        self._n_outliers += n_out - len(readmitted)
         return UpdateResult(
             track_id=track, iterations=res.iterations, converged=res.converged,
             sigma0_sq=res.sigma0_sq, update_ms=1e3 * (time.perf_counter() - t0),
             n_window_nodes=int(n_win), n_window_connections=int(conns.size),
             n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
-            n_priors=len(priors), n_unknowns=res.n_unknowns)
+            n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted))
 
     def _outliers(self, res: SolveResult, conns: IntArray) -> IntArray:
         """Cross connections whose squared Mahalanobis misclosure at the solution exceeds the
@@ -653,6 +673,52 @@ class TrackWindowAligner:
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)
         return conns[cross & (maha2 > chi2.ppf(prob, 6))]
+
+    def _readmissible(self, window_tracks: list[int], nodes: IntArray, res: SolveResult,
+                      tried: set[int]) -> IntArray:
+        """Excluded connections of the window that the new estimate agrees with.
+
+        A connection excluded by the gate (status 2) whose two ends are unknowns of this
+        adjustment is re-tested at its estimate: the misclosure ``e = log(T_meas^-1 T_i^-1
+        T_j)`` with covariance ``S + J Q_x J'`` (the connection's own plus the propagated
+        uncertainty of the two poses, ``J = [-Ad(T_ij^-1), I]``, small-misclosure Jacobian)
+        must pass the same chi-square quantile (6 dof) as the gate. Each connection is
+        re-admitted at most once per update, so the gate cannot oscillate.
+        """
+        prob = self.config.outlier_chi2_prob
+        if prob <= 0:
+            return np.zeros(0, dtype=np.int64)
+        conns = np.unique(np.array([k for t in window_tracks
+                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = conns[self._status.a[conns] == 2]
+        if tried:
+            conns = conns[~np.isin(conns, np.fromiter(tried, np.int64))]
+        local = np.full(len(self._ids), -1, dtype=np.int64)
+        local[nodes] = np.arange(nodes.size)
+        conns = conns[(local[self._src.a[conns]] >= 0) & (local[self._dst.a[conns]] >= 0)]
+        if conns.size == 0:
+            return conns
+        i, j = local[self._src.a[conns]], local[self._dst.a[conns]]
+        T = res.T_world_node
+        T_ij = se3.inverse(T[i]) @ T[j]
+        z = self._z.a[conns]
+        e = se3.log(se3.inverse(se3.from_translation_rotvec(z[:, :3], z[:, 3:])) @ T_ij)
+        free = set(res.free_node_ids.tolist())
+        ids = res.node_ids
+        out = []
+        for k in range(conns.size):
+            pair = [int(ids[i[k]]), int(ids[j[k]])]
+            J = np.concatenate([-se3.adjoint(se3.inverse(T_ij[k])), np.eye(6)], axis=1)
+            Q = np.zeros((12, 12))
+            sel = [a for a, node in enumerate(pair) if node in free]
+            if sel:
+                cols = np.concatenate([np.arange(6 * a, 6 * a + 6) for a in sel])
+                Q[np.ix_(cols, cols)] = res._system.joint_covariance(
+                    np.array([pair[a] for a in sel], dtype=np.int64))
+            C = self._ccov.a[conns[k]] + J @ Q @ J.T
+            if float(e[k] @ np.linalg.solve(C, e[k])) <= chi2.ppf(prob, 6):
+                out.append(int(conns[k]))
+        return np.array(out, dtype=np.int64)
 
     def _freeze(self, track: int) -> None:
         """Freeze a track leaving the window, using the last adjustment's estimate."""
@@ -668,54 +734,81 @@ class TrackWindowAligner:
                 if sel:
                     cov = res.covariance(ids[sel])
                     self._cov[np.asarray(inside)[sel]] = cov
-        if self.config.freeze_policy == 'marginal':
-            self._marginalise(nodes)
+        self._marginalise(nodes)
         self._frozen[nodes] = True
 
     def _marginalise(self, L: IntArray) -> None:
-        """Schur-complement the terms of the leaving nodes ``L`` onto the nodes they touch."""
-        in_L = np.zeros(len(self._ids), dtype=bool)
+        """Absorb the terms of the leaving nodes ``L`` into one joint Gaussian prior.
+
+        ``'marginal'``: every active connection of ``L`` is absorbed and ``L`` is eliminated
+        (Schur complement) onto the window nodes it touched. ``'weighted'``: only connections
+        whose two ends are frozen (after this freeze) are absorbed; frozen nodes that keep an
+        active connection to the window stay in the prior (the paper's weighted parameters, with
+        their joint covariance), every other frozen node of the absorbed terms is eliminated.
+        In both cases each connection enters either the window problem or one prior, never
+        both, so the prior is the exact marginal in the linear limit and covariances are not
+        overconfident. Priors that share nodes with the absorbed terms are merged in.
+        """
+        n = len(self._ids)
+        in_L = np.zeros(n, dtype=bool)
         in_L[L] = True
+        frozen_after = self._frozen[:n] | in_L
         conns = np.unique(np.array([k for t in {self._track[i] for i in L}
                                     for k in self._track_conns.get(t, [])], dtype=np.int64))
         conns = conns[(self._status.a[conns] == 0)
                       & (in_L[self._src.a[conns]] | in_L[self._dst.a[conns]])]
-        touching = [p for p, (idx, _, _) in enumerate(self._priors) if in_L[idx].any()]
-        nodes = set(L.tolist())
-        nodes.update(self._src.a[conns].tolist())
-        nodes.update(self._dst.a[conns].tolist())
+        if self.config.freeze_policy == 'weighted':
+            conns = conns[frozen_after[self._src.a[conns]] & frozen_after[self._dst.a[conns]]]
+        involved = in_L.copy()
+        involved[self._src.a[conns]] = True
+        involved[self._dst.a[conns]] = True
+        touching = [p for p, (idx, _, _) in enumerate(self._priors) if involved[idx].any()]
         for p in touching:
-            nodes.update(self._priors[p][0].tolist())
-        S = np.array(sorted(i for i in nodes if not in_L[i]), dtype=np.int64)
-        allnodes = np.concatenate([L, S])
-        net = self._subnetwork(allnodes, conns)
+            involved[self._priors[p][0]] = True
+        involved[0] = False  # the datum is fixed, never a prior node
+        allnodes = np.nonzero(involved)[0]
+        # nodes that keep an active connection (other than the absorbed ones) to a node that is
+        # not frozen stay in the prior; the others are eliminated
+        status = self._status.a.copy()
+        status[conns] = 1
+        act = np.nonzero(status == 0)[0]
+        s_, d_ = self._src.a[act], self._dst.a[act]
+        keep = ~frozen_after.copy()
+        keep[s_[~frozen_after[d_]]] = True
+        keep[d_[~frozen_after[s_]]] = True
+        self._status.a[conns] = 1
         ids = self._idarr.a
         priors = [GaussianPrior(ids[self._priors[p][0]], self._priors[p][1], self._priors[p][2])
                   for p in touching]
-        fixed = [self._ids[0]] if in_L[0] or 0 in set(S.tolist()) else []
-        N, free_ids, u = normal_matrix_at(net, self._T[allnodes], 'se3', fixed, priors)
-        free_idx = net.indices_of(free_ids)
-        is_L = free_idx < L.size
-        colsL = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in np.nonzero(is_L)[0]])
-        colsS = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in np.nonzero(~is_L)[0]]) \
-            if (~is_L).any() else np.zeros(0, dtype=np.int64)
-        self._status.a[conns] = 1
         self._priors = [p for q, p in enumerate(self._priors) if q not in set(touching)]
+        datum = bool(((self._src.a[conns] == 0) | (self._dst.a[conns] == 0)).any())
+        net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
+        net = self._subnetwork(net_nodes, conns)
+        fixed = [self._ids[0]] if datum else []
+        N, free_ids, u = normal_matrix_at(net, self._T[net_nodes], 'se3', fixed, priors)
+        free_idx = np.array([self._index[int(i)] for i in free_ids], dtype=np.int64)
+        elim = ~keep[free_idx]
+        colsL = (6 * np.nonzero(elim)[0][:, None] + np.arange(6)).ravel()
+        colsS = (6 * np.nonzero(~elim)[0][:, None] + np.arange(6)).ravel()
         if colsS.size == 0:
             return
         N = N.tocsr()
-        NLL = N[colsL][:, colsL].toarray()
-        NLS = N[colsL][:, colsS].toarray()
         NSS = N[colsS][:, colsS].toarray()
-        cho = sla.cho_factor(NLL)
-        H = NSS - NLS.T @ sla.cho_solve(cho, NLS)
+        g = u[colsS]
+        if colsL.size:
+            NLL = N[colsL][:, colsL].toarray()
+            NLS = N[colsL][:, colsS].toarray()
+            cho = sla.cho_factor(NLL)
+            H = NSS - NLS.T @ sla.cho_solve(cho, NLS)
+            g = g - NLS.T @ sla.cho_solve(cho, u[colsL])
+        else:
+            H = NSS
         H = 0.5 * (H + H.T)
-        # The L terms alone are not at their optimum (the window's estimate is), so their
-        # marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in the
-        # tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
-        g = u[colsS] - NLS.T @ sla.cho_solve(cho, u[colsL])
+        # The absorbed terms alone are not at their optimum (the window's estimate is), so
+        # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
+        # the tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
         shift = -np.linalg.lstsq(H, g, rcond=None)[0]
-        S_nodes = allnodes[free_idx[~is_L]]
+        S_nodes = free_idx[~elim]
         mean = self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6))
         self._priors.append((S_nodes, mean, H))
 
@@ -803,8 +896,9 @@ class TrackWindowAligner:
     def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
         """Full batch adjustment of every node with every kept connection (end of a survey).
 
-        The open track is finished first. Outliers stay excluded. Covariances of frozen nodes
-        are left as the window updates estimated them.
+        The open track is finished first. Outliers stay excluded. The covariances published
+        afterwards come from this adjustment: frozen nodes get their marginal blocks from it
+        (selected inversion), window nodes are answered from it like after a window update.
         """
         self.finish_track()
         t0 = time.perf_counter()
@@ -821,6 +915,11 @@ class TrackWindowAligner:
         n = len(self._ids)
         res = solve(net, self._T[:n], scfg, fixed=[self._ids[0]])
         self._T[:n] = res.T_world_node
+        frozen = np.nonzero(self._frozen[:n] & (np.arange(n) != 0))[0]
+        if frozen.size:
+            self._cov[frozen] = res.covariance(self._idarr.a[frozen])
+        self._last = res
+        self._last_window = np.nonzero(~self._frozen[:n])[0]
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
