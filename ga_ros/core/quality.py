@@ -364,7 +364,9 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
         info = p.information
         ev = e.reshape(-1)
         cost += float(ev @ (info @ ev))
-        n_eq += idx.size * d
+        dense = info.toarray() if hasattr(info, 'toarray') else np.asarray(info)
+        # a prior adds as many equations as the rank of its information (as in solve)
+        n_eq += int(np.linalg.matrix_rank(0.5 * (dense + dense.T), hermitian=True))
     redundancy = n_eq - free_ids.size * d
     out_stat = np.zeros(0)
     out_crit = np.zeros(0)
