@@ -143,9 +143,10 @@ def test_replay_outputs(tmp_path: Path, sample: object, storage: str) -> None:
     assert r.n_measurements == len(sample.measurements) and r.n_nodes == n_nodes
     assert r.n_tracks == 3 and len(r.updates) == 3
     counts = mcap_counts(tmp_path / 'out' / 'replay_bag')
+    assert 0 < counts.pop('/tf') <= len(sample.measurements)  # map -> odom after each update
     assert counts == {'/ga/measurements': len(sample.measurements), '/ga/corrected_path': 3,
                       '/ga/network_markers': 4, '/ga/corrected_pose': n_nodes, '/ga/f2f_path': 1,
-                      '/ga/ground_truth': 1}
+                      '/ga/ground_truth': 1, '/ga/corrected_odom': n_nodes}
     # dead reckoning along consecutive motions == F2F: same errors, same final path
     assert r.errors['ga'].ate_raw == pytest.approx(r.errors['f2f'].ate_raw, rel=1e-12)
     assert r.errors['ga'].n == n_nodes
