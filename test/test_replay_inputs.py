@@ -265,3 +265,17 @@ def test_euroc_and_tum_ground_truth_files(tmp_path: Path) -> None:
 
 def test_stamp_helpers_round_trip() -> None:
     assert ns_to_stamp(T0_NS + 5).nanosec == 5
+
+
+def test_first_node_stamp_without_ground_truth(tmp_path: Path) -> None:
+    """Measurement encoding without ground truth: node 0's stamp is one node interval before
+    node 1's (not node 1's, which made evo pair it with the wrong pose)."""
+    from ga_ros.replay.samples import aerial_sample, write_measurement_bag
+
+    s = aerial_sample(n_tracks=2)
+    write_measurement_bag(tmp_path / 'm', s.measurements, None)
+    res = replay(tmp_path / 'm', tmp_path / 'out', ReplayConfig(plot=False))
+    tum = read_tum(res.files['trajectory_ga'])
+    gt = s.ground_truth.stamps_ns
+    assert np.all(np.diff(tum.stamps_ns) > 0)
+    assert tum.stamps_ns[0] == gt[1] - np.median(np.diff(gt[1:]))

@@ -376,6 +376,9 @@ class _Run:
                                                       for n in node_ids]), dtype=np.int64)
         cp_stamps = getattr(cp, 'stamps_ns', None)
         stamps = np.array([self.stamps.get(int(n), -1) for n in node_ids], dtype=np.int64)
+        first = node_ids == self.first_id
+        if first.any() and stamps[first][0] < 0:  # the aligner gives it node 1's stamp
+            stamps[first] = self.first_stamp(stamps, node_ids)
         if cp_stamps is not None:
             cp_stamps = np.asarray(cp_stamps, dtype=np.int64)
             stamps = np.where(stamps < 0, cp_stamps, stamps)
