@@ -173,6 +173,8 @@ class InputFrontEnd:
         self.primary = names[0]
         self.throttle = Throttle(warn_throttle_s, clock)
         self.constraints_rejected = 0
+        #: stamp (ns) of the first input's newest sample (0 before any)
+        self.latest_stamp_ns = 0
 
     def by_topic(self, topic: str) -> InputSpec | None:
         """The input reading ``topic`` (None if none)."""
@@ -196,6 +198,8 @@ class InputFrontEnd:
             up = inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov, s.twist_cov)
         except InputError as exc:
             return InputStep(error=f'{name}: {exc}')
+        if name == self.primary:
+            self.latest_stamp_ns = s.stamp_ns
         stamps = {up.keyframe_id: up.stamp_ns} if up.new_keyframe else {}
         meas = (up.measurement,) if up.measurement is not None else ()
         warning = ''
