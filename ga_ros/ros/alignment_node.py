@@ -570,7 +570,7 @@ class AlignmentNode(Node):
             level, message = DiagnosticStatus.WARN, health.message
         level_int = level[0] if isinstance(level, bytes) else int(level)
         self.pub_diag.publish(conv.diagnostics_msg(
-            f'{self.get_name()}: global alignment', 'ga_ros', values,
+            f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
 
 
