@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -204,3 +205,54 @@ def test_two_namespaced_nodes_do_not_hear_each_other(tmp_path):
             c.close()
         for p in procs:
             stop_process(p)
+
+
+@pytest.mark.ros
+def test_play_publishes_tf_and_latched_tf_static(tmp_path):
+    """``ga-ros play`` on a replay output bag (map -> odom on /tf, the input's /tf_static)."""
+    import subprocess
+    import sys
+    import time
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from test_replay_inputs import write_odom_bag
+
+    from ga_ros.pipeline.inputs import InputSpec
+    from ga_ros.replay.inputs import InputTopics
+    from ga_ros.replay.pipeline import ReplayConfig, replay
+
+    write_odom_bag(tmp_path / 'in')
+    cfg = ReplayConfig(inputs=InputTopics((InputSpec('/odom'),)), plot=False)
+    out = pathlib.Path(replay(tmp_path / 'in', tmp_path / 'out', cfg).files['bag'])
+    dom = domain_id(24)
+    c = rclpy.Context()
+    rclpy.init(context=c, domain_id=dom)
+    node = Node('tf_listener_free', context=c)
+    ex = SingleThreadedExecutor(context=c)
+    ex.add_node(node)
+    tf, static = [], []
+    node.create_subscription(TFMessage, '/tf', tf.append, 1000)
+    node.create_subscription(TFMessage, '/tf_static', static.append, latched_qos())
+    proc = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play', str(out), '--rate', '0',
+                             '--delay', '0', '--wait-for-subscribers', '20',
+                             '--topics', '/tf', '/tf_static'],
+                            env={**os.environ, 'ROS_DOMAIN_ID': str(dom)},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        end = time.monotonic() + 40
+        while time.monotonic() < end and (proc.poll() is None or not static):
+            ex.spin_once(timeout_sec=0.05)
+        for _ in range(20):
+            ex.spin_once(timeout_sec=0.01)
+        _, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        pairs = {(t.header.frame_id, t.child_frame_id) for m in tf for t in m.transforms}
+        assert {('map', 'odom'), ('odom', 'base_link')} <= pairs
+        assert static and static[0].transforms[0].child_frame_id == 'laser'
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=c)

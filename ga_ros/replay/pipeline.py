@@ -334,6 +334,8 @@ class _Run:
         self.out.path(traj, self.last_ns)
         self._markers(traj)
         self.T_map_odom = self._map_to_odom(traj)
+        if self.config.tf and self.T_map_odom is not None:
+            self.out.map_to_odom(self.T_map_odom, int(traj.stamps_ns[-1]), self.last_ns)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
