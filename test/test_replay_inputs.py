@@ -279,3 +279,17 @@ def test_first_node_stamp_without_ground_truth(tmp_path: Path) -> None:
     gt = s.ground_truth.stamps_ns
     assert np.all(np.diff(tum.stamps_ns) > 0)
     assert tum.stamps_ns[0] == gt[1] - np.median(np.diff(gt[1:]))
+
+
+def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
+    from ga_ros.cli.main import main
+
+    write_odom_bag(tmp_path / 'in')
+    (tmp_path / 'inputs.yaml').write_text('odom0:\n  keyframe_travel_m: 2.0\n'
+                                          '  track_mode: distance\n  track_length_m: 20.0\n')
+    rc = main(['replay', str(tmp_path / 'in'), '--odom-topic', '/odom', '--input-config',
+               str(tmp_path / 'inputs.yaml'), '--out', str(tmp_path / 'out'), '--no-plot'])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert 'odom0: 1200 samples, 60 keyframes' in text and 'DEFAULT covariance' in text
+    assert len(read_tum(tmp_path / 'out' / 'trajectory_ga.tum')) == 60

@@ -32,7 +32,8 @@ def plan_lines(plan: TopicPlan) -> list[str]:
 
 def result_text(r: ReplayResult) -> str:
     """End-of-run summary: counts, throughput, errors against ground truth, output files."""
-    unit = 'stereo pairs' if r.source == 'stereo' else 'measurement messages'
+    unit = {'stereo': 'stereo pairs', 'inputs': 'input messages'}.get(r.source,
+                                                                      'measurement messages')
     lines = [f'replayed {r.bag}: {r.n_inputs} {unit} -> {r.n_measurements} measurements, '
              f'{r.n_nodes} nodes, {r.n_tracks} tracks, {len(r.updates)} updates '
              f'in {r.seconds:.2f} s ({r.rate:.0f} {unit.split()[-1]}/s)']
@@ -42,6 +43,15 @@ def result_text(r: ReplayResult) -> str:
                      f"{st.get('lost', 0)} lost, {st.get('unpaired', 0)} unpaired images; "
                      f"cross-track: {st.get('cross_accepted', 0)} connections accepted of "
                      f"{st.get('cross_attempts', 0)} verified candidates")
+    if r.source == 'inputs' and st:
+        for name, v in st.items():
+            if isinstance(v, dict) and 'keyframes' in v:
+                lines.append(f"{name}: {v['samples']} samples, {v['keyframes']} keyframes, "
+                             f"{v['constraints']} external constraints, "
+                             f"{v['default_covariances']} default covariances")
+        warn = st.get('warnings', {})
+        if isinstance(warn, dict) and warn.get('first'):
+            lines.append(f"warning: {warn['first']}")
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
