@@ -232,7 +232,7 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
     ex = SingleThreadedExecutor(context=c)
     ex.add_node(node)
     tf, static = [], []
-    node.create_subscription(TFMessage, '/tf', tf.append, 1000)
+    node.create_subscription(TFMessage, '/tf', tf.append, 5000)
     node.create_subscription(TFMessage, '/tf_static', static.append, latched_qos())
     proc = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play', str(out), '--rate', '0',
                              '--delay', '0', '--wait-for-subscribers', '20',
@@ -240,15 +240,16 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
                             env={**os.environ, 'ROS_DOMAIN_ID': str(dom)},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        end = time.monotonic() + 40
-        while time.monotonic() < end and (proc.poll() is None or not static):
+        def pairs() -> set:
+            return {(t.header.frame_id, t.child_frame_id) for m in tf for t in m.transforms}
+
+        end = time.monotonic() + 60
+        while time.monotonic() < end and (proc.poll() is None or not static
+                                          or ('map', 'odom') not in pairs()):
             ex.spin_once(timeout_sec=0.05)
-        for _ in range(20):
-            ex.spin_once(timeout_sec=0.01)
         _, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
-        pairs = {(t.header.frame_id, t.child_frame_id) for m in tf for t in m.transforms}
-        assert {('map', 'odom'), ('odom', 'base_link')} <= pairs
+        assert {('map', 'odom'), ('odom', 'base_link')} <= pairs()
         assert static and static[0].transforms[0].child_frame_id == 'laser'
     finally:
         if proc.poll() is None:

@@ -222,8 +222,7 @@ class AlignmentNode(Node):
         self._subscribe_inputs(s)
         if s.transform_publish_period_sec > 0:
             self.create_timer(s.transform_publish_period_sec, self._publish_tf)
-        if s.full_path_min_period_sec > 0:
-            self.create_timer(min(1.0, s.full_path_min_period_sec), self._full_path_timer)
+        self.create_timer(1.0, self._full_path_timer)  # the period may change at run time
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f'listening on {self.sub.topic_name}; window {self.aligner_config.window_tracks} '
