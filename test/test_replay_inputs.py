@@ -232,6 +232,12 @@ def test_ros1_bag(tmp_path: Path) -> None:
     assert res.n_nodes == res.source_stats['odom0']['keyframes'] >= 29
 
 
+def test_odometry_bag_without_options_names_the_option(tmp_path: Path) -> None:
+    write_odom_bag(tmp_path / 'in')
+    with pytest.raises(FormatError, match='replay them with --odom-topic /odom'):
+        replay(tmp_path / 'in', tmp_path / 'out', ReplayConfig(plot=False))
+
+
 def test_unsupported_storage_says_what_to_give(tmp_path: Path) -> None:
     p = tmp_path / 'data.txt'
     p.write_text('x')
@@ -293,3 +299,7 @@ def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
     assert rc == 0, text
     assert 'odom0: 1200 samples, 60 keyframes' in text and 'DEFAULT covariance' in text
     assert len(read_tum(tmp_path / 'out' / 'trajectory_ga.tum')) == 60
+    assert main(['replay', str(tmp_path / 'in'), '--odom-topic', '/odom', '--info']) == 0
+    assert 'source: odom0 /odom (nav_msgs/msg/Odometry)' in capsys.readouterr().out
+    assert main(['replay', str(tmp_path / 'in'), '--info']) == 1  # no input named: says so
+    assert 'no usable input' in capsys.readouterr().out

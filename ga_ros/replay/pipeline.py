@@ -29,6 +29,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
 from ga_ros.geometry import se3
+from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import (
     ODOMETRY,
     BagReader,
@@ -483,6 +484,19 @@ class _Run:
             self.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f_xyz, gt_xyz, title)
 
 
+def _plan_or_hint(info: Any, topics: Any) -> TopicPlan:
+    """:func:`plan_topics`; when the bag has no usable input but odometry or pose streams, the
+    error names them and the option that reads them."""
+    try:
+        return plan_topics(info, topics)
+    except FormatError as exc:
+        streams = [t.name for t in info.topics if t.msgtype in INPUT_TYPES]
+        if 'no usable input' not in str(exc) or not streams:
+            raise
+        raise FormatError(f'{exc}; odometry / pose streams found: {", ".join(streams)}: '
+                          f'replay them with --odom-topic {streams[0]}') from None
+
+
 def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = ReplayConfig(),
            aligner_factory: AlignerFactory | None = None,
            on_plan: Callable[[TopicPlan], None] | None = None) -> ReplayResult:
@@ -517,7 +531,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         if config.inputs.inputs:
             plan, specs = plan_inputs(bag.info, config.inputs, config.topics.ground_truth)
         else:
-            plan = plan_topics(bag.info, config.topics)
+            plan = _plan_or_hint(bag.info, config.topics)
         factory = aligner_factory or default_aligner_factory(config.aligner,
                                                              config.aligner_kind)
         if on_plan is not None:

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from ga_ros.errors import GaError
 from ga_ros.io.bag import BagInfo, TopicConfig, TopicPlan, plan_topics
+from ga_ros.replay.inputs import InputTopics, plan_inputs
 from ga_ros.replay.pipeline import ReplayResult
 
 
-def info_text(info: BagInfo, config: TopicConfig = TopicConfig()) -> tuple[str, bool]:
-    """The topics of a bag and what the replay will use; ``(text, usable)``."""
+def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),
+              inputs: InputTopics = InputTopics()) -> tuple[str, bool]:
+    """The topics of a bag and what the replay will use; ``(text, usable)`` (``inputs``: the
+    standard inputs, when given they are the source)."""
     lines = [f'bag: {info.path} ({info.storage}, {info.n_messages} messages, '
              f'{info.duration_s:.1f} s)']
     width = max([len(t.name) for t in info.topics] + [5])
@@ -16,7 +19,10 @@ def info_text(info: BagInfo, config: TopicConfig = TopicConfig()) -> tuple[str, 
     for t in info.topics:
         lines.append(f'  {t.name:<{width}}  {t.msgtype:<40} {t.count}')
     try:
-        plan = plan_topics(info, config)
+        if inputs.inputs:
+            plan = plan_inputs(info, inputs, config.ground_truth)[0]
+        else:
+            plan = plan_topics(info, config)
     except GaError as exc:
         lines.append(f'cannot replay: {exc}')
         return '\n'.join(lines), False

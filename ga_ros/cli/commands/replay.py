@@ -153,7 +153,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics = topic_config(args)
     if args.info:
-        text, usable = info_text(bag_info(args.bag), topics)
+        text, usable = info_text(bag_info(args.bag), topics, input_topics(args))
         print(text)
         return 0 if usable else 1
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)
