@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ga_ros.errors import FormatError
+from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import constraint_frames
 from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, ns_to_stamp, typestore
@@ -303,3 +303,35 @@ def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
     assert 'source: odom0 /odom (nav_msgs/msg/Odometry)' in capsys.readouterr().out
     assert main(['replay', str(tmp_path / 'in'), '--info']) == 1  # no input named: says so
     assert 'no usable input' in capsys.readouterr().out
+
+
+def test_covariance_policy_reject_or_repair(tmp_path: Path) -> None:
+    """One measurement with an indefinite covariance: rejected by default, repaired on request
+    (eigenvalue clipping: same eigenvectors, the negative eigenvalue raised to the floor)."""
+    from ga_ros.core.measurement import Measurement
+    from ga_ros.io.bag import measurement_to_odometry
+    from ga_ros.pipeline.inputs import decode_measurement
+    from ga_ros.replay.samples import aerial_sample, write_measurement_bag
+
+    s = aerial_sample(n_tracks=2)
+    ms = list(s.measurements)
+    k = 5
+    bad = ms[k].cov.copy()
+    w, V = np.linalg.eigh(bad)
+    w[0] = -w[0]                                   # one negative eigenvalue
+    bad = V @ np.diag(w) @ V.T
+    m = ms[k]
+    ms[k] = Measurement(m.src_id, m.dst_id, m.src_track, m.dst_track, m.z, bad, m.stamp_ns,
+                        m.kind)
+    msg = measurement_to_odometry(ms[k])
+    with pytest.raises(InputError, match='positive definite'):
+        decode_measurement(msg, 'reject')
+    fixed = decode_measurement(msg, 'repair').cov
+    w2, V2 = np.linalg.eigh(fixed)
+    assert w2.min() > 0 and np.allclose(np.sort(w2)[1:], np.sort(w)[1:], rtol=1e-9)
+    write_measurement_bag(tmp_path / 'm', ms, s.ground_truth)
+    res = replay(tmp_path / 'm', tmp_path / 'a', ReplayConfig(plot=False))
+    assert res.rejected == {'decode': 1}
+    res = replay(tmp_path / 'm', tmp_path / 'b', ReplayConfig(plot=False,
+                                                             covariance_policy='repair'))
+    assert res.rejected == {} and res.n_measurements == len(ms)

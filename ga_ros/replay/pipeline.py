@@ -90,6 +90,8 @@ class ReplayConfig:
     ground_truth_file : EuRoC CSV or TUM ground truth (:mod:`ga_ros.io.groundtruth`), matched
         by stamp; replaces the bag's ground truth.
     tf : write ``map -> odom`` on ``/tf`` (and copy the input bag's ``/tf``, ``/tf_static``).
+    covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
+        (as the live node by default) or ``'repair'`` (eigenvalue clipping).
     """
 
     topics: TopicConfig = TopicConfig()
@@ -105,6 +107,7 @@ class ReplayConfig:
     inputs: InputTopics = InputTopics()
     ground_truth_file: str = ''
     tf: bool = True
+    covariance_policy: str = 'reject'
 
 
 @dataclass
@@ -557,7 +560,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         else:
             counter = [0]
             total = bag.info.topic(plan.measurements).count
-            source = bag_measurements(bag, plan.measurements, counter)
+            source = bag_measurements(bag, plan.measurements, counter,
+                                      config.covariance_policy)
             unit = 'msg'
         match_by = 'stamp'
         if plan.source == 'measurements' and gt is not None and len(gt) and (

@@ -58,6 +58,9 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument('--constraints-topic', default='',
                    help='external constraints (nav_msgs/Odometry, stamp/<ns> or node/<id> ends)')
     s.add_argument('--track-boundary-topic', default='', help='std_msgs/Empty: new track')
+    s.add_argument('--covariance-policy', choices=('reject', 'repair'), default='reject',
+                   help='measurement covariances that are not positive definite: reject them '
+                        '(as the live node) or repair them by eigenvalue clipping')
     o = p.add_argument_group('outputs')
     o.add_argument('--map-frame', default='map', help='frame of the corrected path')
     o.add_argument('--odom-frame', default='odom', help='REP 105 odom frame (map -> odom on /tf)')
@@ -133,7 +136,8 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=input_topics(args),
-                        ground_truth_file=str(args.ground_truth or ''), tf=not args.no_tf)
+                        ground_truth_file=str(args.ground_truth or ''), tf=not args.no_tf,
+                        covariance_policy=args.covariance_policy)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
