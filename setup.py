@@ -26,6 +26,7 @@ setup(
         'console_scripts': [
             'ga-ros = ga_ros.cli.main:main',
             'alignment_node = ga_ros.ros.alignment_node:main',
+            'lifecycle_alignment_node = ga_ros.ros.lifecycle_alignment_node:main',
             'vo_node = ga_ros.ros.vo_node:main',
         ],
     },

@@ -16,6 +16,13 @@ CORRECTED_PATH = 'ga/corrected_path'
 CORRECTED_POSE = 'ga/corrected_pose'
 #: Newest node as ``nav_msgs/Odometry``.
 CORRECTED_ODOM = 'ga/corrected_odom'
+#: Poses of the nodes the window can still move (``nav_msgs/Path``), after every update: the
+#: light output for big surveys (the full path may then be sent at a low rate).
+WINDOW_PATH = 'ga/window_path'
+#: External constraints (``nav_msgs/Odometry``, ``stamp/<ns>`` or ``node/<id>`` ends).
+CONSTRAINTS = 'ga/constraints'
+#: ``std_msgs/Empty``: start a new track of the standard inputs.
+TRACK_BOUNDARY = 'ga/track_boundary'
 #: Connection network (``visualization_msgs/MarkerArray``, transient local).
 NETWORK_MARKERS = 'ga/network_markers'
 #: Frame-to-frame (dead-reckoning) path written by the replay.

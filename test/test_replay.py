@@ -143,9 +143,10 @@ def test_replay_outputs(tmp_path: Path, sample: object, storage: str) -> None:
     assert r.n_measurements == len(sample.measurements) and r.n_nodes == n_nodes
     assert r.n_tracks == 3 and len(r.updates) == 3
     counts = mcap_counts(tmp_path / 'out' / 'replay_bag')
+    assert 0 < counts.pop('/tf') <= len(sample.measurements)  # map -> odom after each update
     assert counts == {'/ga/measurements': len(sample.measurements), '/ga/corrected_path': 3,
                       '/ga/network_markers': 4, '/ga/corrected_pose': n_nodes, '/ga/f2f_path': 1,
-                      '/ga/ground_truth': 1}
+                      '/ga/ground_truth': 1, '/ga/corrected_odom': n_nodes}
     # dead reckoning along consecutive motions == F2F: same errors, same final path
     assert r.errors['ga'].ate_raw == pytest.approx(r.errors['f2f'].ate_raw, rel=1e-12)
     assert r.errors['ga'].n == n_nodes
@@ -157,8 +158,9 @@ def test_replay_outputs(tmp_path: Path, sample: object, storage: str) -> None:
     tum = np.loadtxt(tmp_path / 'out' / 'trajectory_ga.tum')
     assert tum.shape == (n_nodes, 8)
     np.testing.assert_allclose(tum[:, 1:4], f2f[:, :3, 3], atol=1e-6)
-    np.testing.assert_allclose(tum[1:, 0], (sample.ground_truth.stamps_ns[1:]) * 1e-9,
-                               rtol=0, atol=1e-6)
+    # every node's stamp, node 0's too (no measurement carries it: from the ground truth)
+    np.testing.assert_allclose(tum[:, 0], sample.ground_truth.stamps_ns * 1e-9, rtol=0,
+                               atol=1e-6)
     summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
     assert summary['n_measurements'] == len(sample.measurements) and summary['error'] is None
     assert (tmp_path / 'out' / 'trajectory.png').stat().st_size > 10_000

@@ -401,6 +401,10 @@ class OdometryInput:
                                      self._kf_tracks[ib], T, 0.5 * (C + C.T),
                                      self._kf_stamps[ib], 'cross')
 
+    def latest_pose(self) -> FloatArray | None:
+        """(4, 4) ``T_odom_base`` of the newest sample (None before any)."""
+        return self._poses[-1].copy() if self._poses else None
+
     def keyframe_pose(self, node_id: int) -> FloatArray:
         """(4, 4) ``T_odom_kf`` of a keyframe."""
         return self._kf_poses[self._kf_index(node_id)].copy()

@@ -131,7 +131,8 @@ class BagReader:
 
     Parameters
     ----------
-    path : a rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` / ``.db3`` file.
+    path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file or
+        a ROS 1 ``.bag`` file.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -155,6 +156,14 @@ class BagReader:
 
         if not self.path.exists():
             raise FormatError('bag not found', str(self.path))
+        if self.path.is_file() and self.path.suffix == '.bag':
+            self._reader = _Ros1Bag(self.path)
+            self.info = self._reader.info()
+            return
+        if self.path.is_file() and self.path.suffix not in ('.mcap', '.db3'):
+            raise FormatError(f'unsupported bag storage {self.path.suffix!r}: give a rosbag2 '
+                              'directory, a .mcap or .db3 file, or a ROS 1 .bag file',
+                              str(self.path))
         if self.path.is_dir() and not (self.path / 'metadata.yaml').exists():
             files = sorted(self.path.glob('*.mcap')) + sorted(self.path.glob('*.db3'))
             if len(files) != 1:
@@ -218,7 +227,7 @@ class BagReader:
         if self._reader is None:
             raise FormatError('bag is not open', str(self.path))
         wanted = None if topics is None else set(topics)
-        if isinstance(self._reader, _McapStream):
+        if isinstance(self._reader, (_McapStream, _Ros1Bag)):
             yield from self._reader.messages(wanted, raw, str(self.path))
             return
         conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
@@ -340,15 +349,64 @@ class _McapStream:
         pass
 
 
+class _Ros1Bag:
+    """A ROS 1 ``.bag`` file read with rosbags (``AnyReader``: the bag's own message
+    definitions). Messages keep the ROS 1 field names (``header.seq`` besides the ROS 2 ones);
+    ``BagMessage.data`` is None (no CDR: copies are re-encoded), and raw reading is refused."""
+
+    def __init__(self, path: Path) -> None:
+        from rosbags.highlevel import AnyReader
+
+        self.path = path
+        try:
+            self.reader = AnyReader([path])
+            self.reader.open()
+        except Exception as exc:  # rosbags raises many kinds on corrupt files
+            raise FormatError(f'cannot open ROS 1 bag: {type(exc).__name__}: {exc}',
+                              str(path)) from exc
+
+    def info(self) -> BagInfo:
+        counts: dict[str, int] = {}
+        types: dict[str, str] = {}
+        for c in self.reader.connections:
+            counts[c.topic] = counts.get(c.topic, 0) + int(c.msgcount)
+            types[c.topic] = c.msgtype
+        n = int(self.reader.message_count)
+        topics = tuple(BagTopic(t, types[t], counts[t]) for t in sorted(types))
+        return BagInfo(self.path, 'rosbag1', n, int(self.reader.start_time) if n else 0,
+                       int(self.reader.end_time) if n else 0, topics)
+
+    def messages(self, wanted: set[str] | None, raw: bool, name: str) -> Iterator[BagMessage]:
+        if raw:
+            raise FormatError('a ROS 1 bag cannot be played raw; convert it first with '
+                              '`rosbags-convert --src BAG --dst DIR`', name)
+        conns = [c for c in self.reader.connections if wanted is None or c.topic in wanted]
+        count = 0
+        try:
+            for conn, log_ns, data in self.reader.messages(connections=conns):
+                msg = self.reader.deserialize(data, conn.msgtype)
+                count += 1
+                yield BagMessage(conn.topic, conn.msgtype, int(log_ns), msg, None)
+        except FormatError:
+            raise
+        except Exception as exc:
+            raise FormatError(f'ROS 1 bag is truncated or corrupt after {count} messages: '
+                              f'{type(exc).__name__}: {exc}', name) from exc
+
+    def close(self) -> None:
+        self.reader.close()
+
+
 @dataclass(frozen=True)
 class BagMessage:
-    """One message read from a bag: topic, type, log time (ns), rosbags object, raw CDR bytes."""
+    """One message read from a bag: topic, type, log time (ns), rosbags object, raw CDR bytes
+    (None for a ROS 1 bag)."""
 
     topic: str
     msgtype: str
     log_ns: int
     msg: Any
-    data: bytes = field(repr=False)
+    data: bytes | None = field(repr=False)
 
 
 def bag_info(path: str | Path) -> BagInfo:

@@ -16,6 +16,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.errors import FormatError, InputError
+from ga_ros.geometry import se3
 from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
 
 
@@ -180,3 +181,36 @@ def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: In
                    [Point(x=x, y=y, z=z) for x, y, z in ends.tolist()], white,
                    [Color(r=r, g=g, b=b, a=a) for r, g, b, a in rgba.tolist()])
     return types['visualization_msgs/msg/MarkerArray'](markers=[clear, nodes, lines])
+
+
+def transform_msg(parent: str, child: str, T_parent_child: FloatArray, stamp_ns: int) -> Any:
+    """``geometry_msgs/TransformStamped`` (rosbags): the pose of ``child`` in ``parent``."""
+    types = typestore().types
+    p, q = se3.to_pos_quat(np.asarray(T_parent_child, dtype=float))
+    return types['geometry_msgs/msg/TransformStamped'](
+        header=header(parent, stamp_ns), child_frame_id=child,
+        transform=types['geometry_msgs/msg/Transform'](
+            translation=types['geometry_msgs/msg/Vector3'](x=p[0], y=p[1], z=p[2]),
+            rotation=types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+
+def tf_message(transforms: list[Any]) -> Any:
+    """``tf2_msgs/TFMessage`` (rosbags) holding ``transforms`` (TransformStamped)."""
+    return typestore().types['tf2_msgs/msg/TFMessage'](transforms=list(transforms))
+
+
+def odometry_msg(T_world_node: FloatArray, cov: FloatArray, frame_id: str, child_frame_id: str,
+                 stamp_ns: int) -> Any:
+    """``nav_msgs/Odometry`` (rosbags) of a corrected pose (twist zero, its covariance -1:
+    unknown), the stream evo and mapping nodes read."""
+    types = typestore().types
+    pwc = pose_with_covariance_msg(T_world_node, cov, frame_id, stamp_ns)
+    vec = types['geometry_msgs/msg/Vector3']
+    twist_cov = np.zeros(36)
+    twist_cov[0] = -1.0
+    return types['nav_msgs/msg/Odometry'](
+        header=pwc.header, child_frame_id=child_frame_id, pose=pwc.pose,
+        twist=types['geometry_msgs/msg/TwistWithCovariance'](
+            twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
+                                                   angular=vec(x=0.0, y=0.0, z=0.0)),
+            covariance=twist_cov))

@@ -15,7 +15,14 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
 from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
-from ga_ros.io.bag_writer import BagWriter, network_markers, pose_with_covariance_msg
+from ga_ros.io.bag_writer import (
+    BagWriter,
+    network_markers,
+    odometry_msg,
+    pose_with_covariance_msg,
+    tf_message,
+    transform_msg,
+)
 from ga_ros.io.trajectory import write_tum
 
 
@@ -36,6 +43,11 @@ class OutputConfig:
         update.
     ground_truth_topic : the ground truth copied from the input bag, if it has one.
     bag_name : name of the output bag directory inside the output directory.
+    odom_topic : corrected pose of every node as ``nav_msgs/Odometry`` (``map_frame`` ->
+        ``sensor_frame``), written at the end, stamped at the node (evo reads it).
+    sensor_frame : ``child_frame_id`` of the corrected odometry (the robot's base frame).
+    odom_frame : REP 105 odometry frame: ``map_frame -> odom_frame`` goes on ``tf_topic``.
+    tf_topic, tf_static_topic : TF topics of the output bag (the input bag's are copied there).
     """
 
     map_frame: str = 'map'
@@ -46,6 +58,11 @@ class OutputConfig:
     markers_topic: str = topics.resolve(topics.NETWORK_MARKERS)
     ground_truth_topic: str = topics.resolve(topics.GROUND_TRUTH)
     bag_name: str = 'replay_bag'
+    odom_topic: str = topics.resolve(topics.CORRECTED_ODOM)
+    sensor_frame: str = 'base_link'
+    odom_frame: str = 'odom'
+    tf_topic: str = '/tf'
+    tf_static_topic: str = '/tf_static'
 
 
 def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatArray,
@@ -145,6 +162,28 @@ class ReplayOutputs:
                            'geometry_msgs/msg/PoseWithCovarianceStamped',
                            pose_with_covariance_msg(traj.T_world_node[k], covs[k],
                                                     self.config.map_frame, s), s)
+
+    def odometry(self, traj: Trajectory, covs: FloatArray) -> None:
+        """Corrected pose of every node as ``nav_msgs/Odometry``, stamped at the node."""
+        c = self.config
+        for k in range(len(traj)):
+            s = int(traj.stamps_ns[k])
+            self.bag.write(c.odom_topic, 'nav_msgs/msg/Odometry',
+                           odometry_msg(traj.T_world_node[k], covs[k], c.map_frame,
+                                        c.sensor_frame, s), s)
+
+    def map_to_odom(self, T_map_odom: FloatArray, stamp_ns: int, log_ns: int) -> None:
+        """The REP 105 correction ``map_frame -> odom_frame`` on ``tf_topic``."""
+        c = self.config
+        msg = tf_message([transform_msg(c.map_frame, c.odom_frame, T_map_odom, stamp_ns)])
+        self.bag.write(c.tf_topic, 'tf2_msgs/msg/TFMessage', msg, log_ns)
+
+    def copy(self, topic: str, msgtype: str, data: bytes | None, msg: Any, log_ns: int) -> None:
+        """Copy a message of the input bag (raw CDR when available)."""
+        if data is not None:
+            self.bag.write_raw(topic, msgtype, data, log_ns)
+        else:
+            self.bag.write(topic, msgtype, msg, log_ns)
 
     def ground_truth(self, traj: Trajectory, log_ns: int) -> None:
         """The ground truth path (node frame ids kept when known)."""

@@ -28,6 +28,8 @@ from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
+from ga_ros.geometry import se3
+from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import (
     ODOMETRY,
     BagReader,
@@ -38,7 +40,9 @@ from ga_ros.io.bag import (
     plan_topics,
     read_ground_truth,
 )
+from ga_ros.io.groundtruth import read_ground_truth_file
 from ga_ros.pipeline.session import AlignmentSession
+from ga_ros.replay.inputs import InputSource, InputTopics, plan_inputs
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
 from ga_ros.replay.source import SourceItem, bag_measurements
 
@@ -81,6 +85,13 @@ class ReplayConfig:
         first node (the datum) when the bag has ground truth; else at the identity.
     plot : write the PNG plot.
     progress : show a progress bar on stderr.
+    inputs : standard inputs (odometry / pose topics, constraints, track boundaries); when it
+        has inputs they are the source (:mod:`ga_ros.replay.inputs`).
+    ground_truth_file : EuRoC CSV or TUM ground truth (:mod:`ga_ros.io.groundtruth`), matched
+        by stamp; replaces the bag's ground truth.
+    tf : write ``map -> odom`` on ``/tf`` (and copy the input bag's ``/tf``, ``/tf_static``).
+    covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
+        (as the live node by default) or ``'repair'`` (eigenvalue clipping).
     """
 
     topics: TopicConfig = TopicConfig()
@@ -93,6 +104,10 @@ class ReplayConfig:
     anchor_to_ground_truth: bool = True
     plot: bool = True
     progress: bool = False
+    inputs: InputTopics = InputTopics()
+    ground_truth_file: str = ''
+    tf: bool = True
+    covariance_policy: str = 'reject'
 
 
 @dataclass
@@ -258,6 +273,8 @@ class _Run:
         self.frozen: np.ndarray | None = None
         self.last_ns = 0
         self.source: Any = None
+        self.first_id: int | None = None
+        self.T_map_odom: FloatArray | None = None
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -277,6 +294,7 @@ class _Run:
             if item.error:
                 self._reject(item.error)
             return
+        self.first_id = m.src_id if self.first_id is None else self.first_id
         if self.session is None:
             T0 = self._first_pose(m)
             self.aligner = self.factory(T0)
@@ -303,6 +321,8 @@ class _Run:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
         for u in updates:
             self._update(u)
+        if self.config.tf and self.T_map_odom is not None:
+            self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), item.log_ns)
 
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
@@ -317,9 +337,39 @@ class _Run:
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
         self._markers(traj)
+        self.T_map_odom = self._map_to_odom(traj)
+        if self.config.tf and self.T_map_odom is not None:
+            self.out.map_to_odom(self.T_map_odom, int(traj.stamps_ns[-1]), self.last_ns)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
+
+    def _map_to_odom(self, traj: Trajectory) -> FloatArray | None:
+        """REP 105 ``T_map_odom``: from the source's odometry poses when it has them (standard
+        inputs), else from the frame-to-frame integration (the dead-reckoned frame)."""
+        own = getattr(self.source, 'map_to_odom', None)
+        if own is not None:
+            return own(traj.node_ids, traj.T_world_node)
+        if self.f2f is None:
+            return None
+        for k in range(len(traj) - 1, -1, -1):
+            T_odom_k = self.f2f.poses.get(int(traj.node_ids[k]))
+            if T_odom_k is not None:
+                return traj.T_world_node[k] @ se3.inverse(T_odom_k)
+        return None
+
+    def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
+        """Acquisition time of the first node when no message carried it (the measurement
+        encoding stamps a connection at its destination): the ground truth's stamp of that node
+        id when known, else one median node interval before the second node."""
+        if self.gt is not None and self.first_id is not None and self.match_by == 'node':
+            hit = np.flatnonzero(self.gt.node_ids == self.first_id)
+            if hit.size:
+                return int(self.gt.stamps_ns[hit[0]])
+        known = np.sort(stamps[stamps >= 0])
+        if known.size >= 2:
+            return int(known[0] - np.median(np.diff(known)))
+        return int(known[0]) if known.size else 0
 
     def corrected(self) -> Trajectory:
         assert self.aligner is not None
@@ -332,12 +382,14 @@ class _Run:
                                                       for n in node_ids]), dtype=np.int64)
         cp_stamps = getattr(cp, 'stamps_ns', None)
         stamps = np.array([self.stamps.get(int(n), -1) for n in node_ids], dtype=np.int64)
+        first = node_ids == self.first_id
+        if first.any() and stamps[first][0] < 0:  # the aligner gives it node 1's stamp
+            stamps[first] = self.first_stamp(stamps, node_ids)
         if cp_stamps is not None:
             cp_stamps = np.asarray(cp_stamps, dtype=np.int64)
             stamps = np.where(stamps < 0, cp_stamps, stamps)
-        if (stamps < 0).any():  # only the very first node can be unknown: use the first stamp
-            known = stamps[stamps >= 0]
-            stamps = np.where(stamps < 0, known.min() if known.size else 0, stamps)
+        if (stamps < 0).any():  # only the very first node can be unknown
+            stamps = np.where(stamps < 0, self.first_stamp(stamps, node_ids), stamps)
         return Trajectory(stamps, T, node_ids, tracks, self.config.outputs.map_frame)
 
     def _markers(self, traj: Trajectory, everything: bool = False) -> None:
@@ -397,6 +449,7 @@ class _Run:
                     except GaError:  # unknown: zero, as ROS does for an unknown covariance
                         pass
         self.out.poses(traj, covs)
+        self.out.odometry(traj, covs)
         # F2F path over the nodes it reached, in node order of the corrected path
         assert self.f2f is not None
         f_ids = [int(n) for n in traj.node_ids if int(n) in self.f2f.poses]
@@ -434,6 +487,19 @@ class _Run:
             self.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f_xyz, gt_xyz, title)
 
 
+def _plan_or_hint(info: Any, topics: Any) -> TopicPlan:
+    """:func:`plan_topics`; when the bag has no usable input but odometry or pose streams, the
+    error names them and the option that reads them."""
+    try:
+        return plan_topics(info, topics)
+    except FormatError as exc:
+        streams = [t.name for t in info.topics if t.msgtype in INPUT_TYPES]
+        if 'no usable input' not in str(exc) or not streams:
+            raise
+        raise FormatError(f'{exc}; odometry / pose streams found: {", ".join(streams)}: '
+                          f'replay them with --odom-topic {streams[0]}') from None
+
+
 def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = ReplayConfig(),
            aligner_factory: AlignerFactory | None = None,
            on_plan: Callable[[TopicPlan], None] | None = None) -> ReplayResult:
@@ -464,14 +530,27 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
     bag_path = Path(bag_path)
     with BagReader(bag_path) as bag:
         assert bag.info is not None
-        plan = plan_topics(bag.info, config.topics)
+        specs: tuple[Any, ...] = ()
+        if config.inputs.inputs:
+            plan, specs = plan_inputs(bag.info, config.inputs, config.topics.ground_truth)
+        else:
+            plan = _plan_or_hint(bag.info, config.topics)
         factory = aligner_factory or default_aligner_factory(config.aligner,
                                                              config.aligner_kind)
         if on_plan is not None:
             on_plan(plan)
         gt = read_ground_truth(bag, plan.ground_truth) if plan.ground_truth else None
+        if config.ground_truth_file:
+            gt = read_ground_truth_file(config.ground_truth_file)
         source: Any
-        if plan.source == 'stereo':
+        if specs:
+            counter = [0]
+            total = sum(bag.info.topic(t).count for t in (
+                [s.topic for s in specs] + [config.inputs.constraints,
+                                            config.inputs.track_boundary]) if t)
+            source = InputSource(bag, specs, config.inputs, counter)
+            unit = 'msg'
+        elif plan.source == 'stereo':
             from ga_ros.replay.stereo import StereoSource
 
             counter = [0]
@@ -481,7 +560,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         else:
             counter = [0]
             total = bag.info.topic(plan.measurements).count
-            source = bag_measurements(bag, plan.measurements, counter)
+            source = bag_measurements(bag, plan.measurements, counter,
+                                      config.covariance_policy)
             unit = 'msg'
         match_by = 'stamp'
         if plan.source == 'measurements' and gt is not None and len(gt) and (
@@ -491,6 +571,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         outputs = ReplayOutputs(out_dir, config.outputs)
         run = _Run(config, factory, outputs, result, gt, match_by)
         run.source = source
+        if specs and config.tf:
+            source.passthrough = outputs.copy
         bar = None
         if config.progress:
             from tqdm import tqdm

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
-from ga_ros.io.bag import BagReader, odometry_to_measurement
+from ga_ros.io.bag import BagReader
+from ga_ros.pipeline.inputs import decode_measurement
 
 
 @dataclass(frozen=True)
@@ -25,15 +26,18 @@ class SourceItem:
     node_stamps: dict[int, int] | None = None
 
 
-def bag_measurements(bag: BagReader, topic: str, counter: list[int]) -> Iterator[SourceItem]:
+def bag_measurements(bag: BagReader, topic: str, counter: list[int],
+                     covariance_policy: str = 'reject') -> Iterator[SourceItem]:
     """Measurements read from ``topic`` (the ga_ros Odometry encoding); bad ones as rejections.
 
-    ``counter[0]`` counts the messages read (the source's inputs).
+    ``counter[0]`` counts the messages read (the source's inputs); ``covariance_policy``:
+    ``'reject'`` or ``'repair'`` a covariance that is not positive definite
+    (:func:`ga_ros.pipeline.inputs.decode_measurement`).
     """
     for bm in bag.messages([topic]):
         counter[0] += 1
         try:
-            m = odometry_to_measurement(bm.msg)
+            m = decode_measurement(bm.msg, covariance_policy)
         except InputError as exc:
             yield SourceItem(None, bm.log_ns, error=f'decode: {exc}')
             continue

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from ga_ros.errors import GaError
 from ga_ros.io.bag import BagInfo, TopicConfig, TopicPlan, plan_topics
+from ga_ros.replay.inputs import InputTopics, plan_inputs
 from ga_ros.replay.pipeline import ReplayResult
 
 
-def info_text(info: BagInfo, config: TopicConfig = TopicConfig()) -> tuple[str, bool]:
-    """The topics of a bag and what the replay will use; ``(text, usable)``."""
+def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),
+              inputs: InputTopics = InputTopics()) -> tuple[str, bool]:
+    """The topics of a bag and what the replay will use; ``(text, usable)`` (``inputs``: the
+    standard inputs, when given they are the source)."""
     lines = [f'bag: {info.path} ({info.storage}, {info.n_messages} messages, '
              f'{info.duration_s:.1f} s)']
     width = max([len(t.name) for t in info.topics] + [5])
@@ -16,7 +19,10 @@ def info_text(info: BagInfo, config: TopicConfig = TopicConfig()) -> tuple[str, 
     for t in info.topics:
         lines.append(f'  {t.name:<{width}}  {t.msgtype:<40} {t.count}')
     try:
-        plan = plan_topics(info, config)
+        if inputs.inputs:
+            plan = plan_inputs(info, inputs, config.ground_truth)[0]
+        else:
+            plan = plan_topics(info, config)
     except GaError as exc:
         lines.append(f'cannot replay: {exc}')
         return '\n'.join(lines), False
@@ -32,7 +38,8 @@ def plan_lines(plan: TopicPlan) -> list[str]:
 
 def result_text(r: ReplayResult) -> str:
     """End-of-run summary: counts, throughput, errors against ground truth, output files."""
-    unit = 'stereo pairs' if r.source == 'stereo' else 'measurement messages'
+    unit = {'stereo': 'stereo pairs', 'inputs': 'input messages'}.get(r.source,
+                                                                      'measurement messages')
     lines = [f'replayed {r.bag}: {r.n_inputs} {unit} -> {r.n_measurements} measurements, '
              f'{r.n_nodes} nodes, {r.n_tracks} tracks, {len(r.updates)} updates '
              f'in {r.seconds:.2f} s ({r.rate:.0f} {unit.split()[-1]}/s)']
@@ -45,6 +52,15 @@ def result_text(r: ReplayResult) -> str:
         if st.get('reasons'):
             lines.append('pairs without a measurement: ' + ', '.join(
                 f'{n} {k}' for k, n in sorted(st['reasons'].items(), key=lambda kv: -kv[1])))
+    if r.source == 'inputs' and st:
+        for name, v in st.items():
+            if isinstance(v, dict) and 'keyframes' in v:
+                lines.append(f"{name}: {v['samples']} samples, {v['keyframes']} keyframes, "
+                             f"{v['constraints']} external constraints, "
+                             f"{v['default_covariances']} default covariances")
+        warn = st.get('warnings', {})
+        if isinstance(warn, dict) and warn.get('first'):
+            lines.append(f"warning: {warn['first']}")
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))

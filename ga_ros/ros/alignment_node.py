@@ -28,23 +28,39 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.errors import GaError, SolverError
+from ga_ros.errors import GaError, InputError, SolverError
+from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY, POSE, POSE_COV
+from ga_ros.inputs.odometry import OdometryInputConfig
+from ga_ros.pipeline.inputs import (
+    COVARIANCE_POLICIES,
+    InputFrontEnd,
+    InputSpec,
+    InputStep,
+    decode_measurement,
+)
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.ros import conversions as conv
-from ga_ros.ros.params import declare_config
+from ga_ros.ros.params import declare_config, updated_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.ros.runner import run_node
 from ga_ros.ros.view import ABSORBED, OUTLIER, connection_view
@@ -91,6 +107,25 @@ class NodeSettings:
     odom_max_rate_hz : between updates, publish the newest node's pose (its frame-to-frame
         continuation from the last adjusted node, covariance unknown) on ``odom_topic`` at most
         this often, Hz (0: only after updates).
+    inputs : comma-separated names of standard inputs (``odom0,pose0``); each has parameters
+        ``<name>.topic``, ``<name>.type`` and the OdometryInputConfig fields ``<name>.<field>``
+        (config/inputs.yaml).
+    constraints_topic : input: external constraints (nav_msgs/Odometry, ``stamp/<ns>`` or
+        ``node/<id>`` ends) on the first standard input's keyframes.
+    track_boundary_topic : input: std_msgs/Empty, a new track of the standard inputs.
+    covariance_policy : measurement covariance that is not positive definite: ``reject`` or
+        ``repair`` (eigenvalue clipping).
+    input_warn_throttle_sec : minimum interval between two default-covariance warnings, s.
+    odom_frame : REP 105 odometry frame of the first standard input (``map -> odom`` on TF).
+    base_frame : the robot's base frame (child of ``map`` when ``publish_map_to_base``).
+    publish_tf : publish ``map_frame -> odom_frame`` on ``tf_topic`` (standard inputs only).
+    publish_map_to_base : also publish ``map_frame -> base_frame`` (only when nothing else
+        publishes ``odom -> base``: a frame has one parent).
+    tf_topic : TF topic (``/tf``; remap it to ``tf`` for namespaced robots).
+    transform_publish_period_sec : period of the TF timer, s (0: after updates only).
+    window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
+    full_path_min_period_sec : publish the full path at most this often, s (0: after every
+        update; big surveys: e.g. 10, the window path carries the updates).
     """
 
     map_frame: str = 'map'
@@ -109,6 +144,29 @@ class NodeSettings:
     residual_color_scale: float = field_(3.0, 1e-6, 1e6)
     diagnostics_period_sec: float = field_(1.0, 0.0, 3600.0)
     odom_max_rate_hz: float = field_(10.0, 0.0, 1000.0)
+    inputs: str = ''
+    constraints_topic: str = topics.CONSTRAINTS
+    track_boundary_topic: str = topics.TRACK_BOUNDARY
+    covariance_policy: str = 'reject'
+    input_warn_throttle_sec: float = field_(10.0, 0.0, 3600.0)
+    odom_frame: str = 'odom'
+    base_frame: str = 'base_link'
+    publish_tf: bool = True
+    publish_map_to_base: bool = False
+    tf_topic: str = '/tf'
+    transform_publish_period_sec: float = field_(0.05, 0.0, 3600.0)
+    window_path_topic: str = topics.WINDOW_PATH
+    full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
+
+
+#: NodeSettings fields that may change at run time (read at use).
+DYNAMIC_SETTINGS = frozenset({
+    'map_frame', 'sensor_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'warn_throttle_sec', 'publish_markers', 'residual_color_scale', 'odom_max_rate_hz',
+    'covariance_policy', 'input_warn_throttle_sec', 'full_path_min_period_sec'})
+#: AlignerConfig fields that may change at run time (the aligner reads them at each update).
+DYNAMIC_ALIGNER = frozenset({'outlier_chi2_prob', 'max_iterations', 'tolerance', 'robust_loss',
+                             'robust_scale'})
 
 
 class AlignmentNode(Node):
@@ -116,10 +174,16 @@ class AlignmentNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self.aligner_config: AlignerConfig = declare_config(self, AlignerConfig,
-                                                            ranges=ALIGNER_RANGES)
-        self.settings: NodeSettings = declare_config(self, NodeSettings)
+        self.aligner_config: AlignerConfig = declare_config(
+            self, AlignerConfig, ranges=ALIGNER_RANGES, dynamic=DYNAMIC_ALIGNER,
+            read_only_reason='it shapes the window state; restart the node to change it')
+        self.settings: NodeSettings = declare_config(
+            self, NodeSettings, dynamic=DYNAMIC_SETTINGS,
+            read_only_reason='topics, queues, timers and state files are set up at start')
         s = self.settings
+        if s.covariance_policy not in COVARIANCE_POLICIES:
+            raise InputError(f'covariance_policy must be one of {COVARIANCE_POLICIES}')
+        self.front = self._declare_inputs(s)
         self.session = AlignmentSession(
             self.aligner_config, SessionConfig(s.state_file, s.autosave),
             warn=lambda text: self.get_logger().warning(text))
@@ -133,6 +197,11 @@ class AlignmentNode(Node):
         self.pub_odom = self.create_publisher(Odometry, s.odom_topic, stream_qos())
         self.pub_markers = self.create_publisher(MarkerArray, s.markers_topic, latched_qos())
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
+        self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
+        self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
+        self._T_map_odom: np.ndarray | None = None
+        self._next_full_path = 0.0  # perf_counter time before which the full path waits
+        self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.create_service(Trigger, '~/save_state', self._srv_save)
@@ -150,6 +219,11 @@ class AlignmentNode(Node):
             self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
         if s.publish_markers:
             self.create_timer(1.0, self._markers_timer)
+        self._subscribe_inputs(s)
+        if s.transform_publish_period_sec > 0:
+            self.create_timer(s.transform_publish_period_sec, self._publish_tf)
+        self.create_timer(1.0, self._full_path_timer)  # the period may change at run time
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f'listening on {self.sub.topic_name}; window {self.aligner_config.window_tracks} '
             f'tracks, model {self.aligner_config.model!r}, path in {s.map_frame!r}')
@@ -184,19 +258,27 @@ class AlignmentNode(Node):
 
     def _on_measurement(self, msg: Odometry) -> None:
         """One measurement: decode, one session step, publish if a window update ran."""
-        t0 = time.perf_counter()
-        throttle = self.settings.warn_throttle_sec
         try:
-            m = conv.odometry_to_measurement(msg)
+            if self.settings.covariance_policy == 'reject':
+                m = conv.odometry_to_measurement(msg)
+            else:
+                m = decode_measurement(msg, self.settings.covariance_policy)
         except GaError as exc:
             self._warn_rejected(self.session.undecodable(exc), exc, msg)
             return
+        self._process(m, msg)
+
+    def _process(self, m: Measurement, msg: Any) -> None:
+        """One session step of a measurement (``msg``: its message, named in warnings)."""
+        t0 = time.perf_counter()
+        throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
-                                    f'{msg.header.frame_id!r}->{msg.child_frame_id!r}: '
+                                    f'{msg.header.frame_id!r}->'
+                                    f'{getattr(msg, "child_frame_id", "")!r}: '
                                     f'{self.session.last_error}', throttle_duration_sec=1.0)
             return
         if out.solver_failed:
@@ -217,9 +299,10 @@ class AlignmentNode(Node):
             self.session.last_error = f'after update: {type(exc).__name__}: {exc}'
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
 
-    def _warn_rejected(self, reason: object, exc: object, msg: Odometry) -> None:
+    def _warn_rejected(self, reason: object, exc: object, msg: Any) -> None:
         self.get_logger().warning(
-            f'rejected measurement {msg.header.frame_id!r}->{msg.child_frame_id!r} ({reason}): '
+            f'rejected measurement {msg.header.frame_id!r}->'
+            f'{getattr(msg, "child_frame_id", "")!r} ({reason}): '
             f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]',
             throttle_duration_sec=self.settings.warn_throttle_sec)
 
@@ -228,6 +311,94 @@ class AlignmentNode(Node):
         for note in notes:
             self.get_logger().error(note, throttle_duration_sec=self.settings.warn_throttle_sec)
         self._publish_all()
+
+    # ------------------------------------------------------------------ standard inputs
+    def _declare_inputs(self, s: NodeSettings) -> InputFrontEnd | None:
+        """Parameters ``<name>.topic``, ``<name>.type``, ``<name>.<field>`` of each input named
+        in ``inputs``; the front end (None without inputs)."""
+        names = [n.strip() for n in s.inputs.split(',') if n.strip()]
+        if not names:
+            return None
+        specs = []
+        for k, name in enumerate(names):
+            why = 'the input is set up at start'
+            topic = self.declare_parameter(f'{name}.topic', '', ParameterDescriptor(
+                description=f'{name}: input topic (read-only: {why})', read_only=True)).value
+            msgtype = self.declare_parameter(f'{name}.type', ODOMETRY, ParameterDescriptor(
+                description=f'{name}: {" | ".join(INPUT_TYPES)} (read-only: {why})',
+                read_only=True)).value
+            cfg = declare_config(self, OdometryInputConfig, prefix=f'{name}.',
+                                 read_only_reason=why,
+                                 defaults=OdometryInputConfig(name, first_node_id=k * 10**9))
+            if not topic:
+                raise InputError(f'input {name}: set the parameter {name}.topic')
+            specs.append(InputSpec(str(topic), str(msgtype), replace(cfg, name=name)))
+        return InputFrontEnd(specs, s.input_warn_throttle_sec)
+
+    def _subscribe_inputs(self, s: NodeSettings) -> None:
+        if self.front is None:
+            return
+        kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
+        # best effort matches reliable and best-effort publishers (odometry drivers use both)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        for spec in self.front.specs.values():
+            self.create_subscription(kinds[spec.msgtype], spec.topic,
+                                     partial(self._on_input, spec.name), qos)
+        self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
+                                 measurement_qos(1000))
+        self.create_subscription(Empty, s.track_boundary_topic,
+                                 lambda _msg: self.front.track_boundary(), 10)
+        self.get_logger().info('standard inputs: ' + ', '.join(
+            f'{sp.name} {sp.topic} [{sp.msgtype}]' for sp in self.front.specs.values()))
+
+    def _on_input(self, name: str, msg: Any) -> None:
+        assert self.front is not None
+        self._after_input(self.front.sample(name, msg), msg)
+
+    def _on_constraint(self, msg: Odometry) -> None:
+        assert self.front is not None
+        self._after_input(self.front.constraint(msg), msg)
+
+    def _after_input(self, step: InputStep, msg: Any) -> None:
+        """Warn (throttled) and step the session with the input's measurements."""
+        if step.warning:
+            self.get_logger().warning(step.warning)
+        if step.error:
+            exc = InputError(step.error)
+            self._warn_rejected(self.session.undecodable(exc), exc, msg)
+        for m in step.measurements:
+            self._process(m, msg)
+
+    def _publish_tf(self) -> None:
+        """``map -> odom`` (and optionally ``map -> base``) of the newest correction."""
+        s = self.settings
+        if not s.publish_tf or self._T_map_odom is None or self.front is None:
+            return
+        stamp = self.front.latest_stamp_ns
+        tfs = [conv.transform_msg(s.map_frame, s.odom_frame, self._T_map_odom, stamp)]
+        latest = self.front.latest_pose()
+        if s.publish_map_to_base and latest is not None:
+            tfs.append(conv.transform_msg(s.map_frame, s.base_frame,
+                                          self._T_map_odom @ latest, stamp))
+        self.pub_tf.publish(TFMessage(transforms=tfs))
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """Apply run-time changes (read-only parameters are refused by rclpy itself)."""
+        changes = {p.name: p.value for p in params}
+        try:
+            settings = updated_config(self, self.settings, changes)
+            aligner = updated_config(self, self.aligner_config, changes)
+            if settings.covariance_policy not in COVARIANCE_POLICIES:
+                raise InputError(f'covariance_policy must be one of {COVARIANCE_POLICIES}')
+        except InputError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.settings = settings
+        if aligner != self.aligner_config:
+            self.aligner_config = self.session.config = aligner
+            self.aligner.config = aligner
+        if self.front is not None:
+            self.front.throttle.period_s = settings.input_warn_throttle_sec
+        return SetParametersResult(successful=True)
 
     def destroy_node(self) -> None:
         self.session.close()
@@ -309,8 +480,15 @@ class AlignmentNode(Node):
             stamp_ns = int(cp.stamps_ns[-1])
         else:
             stamp_ns = self.get_clock().now().nanoseconds
-        self.pub_path.publish(conv.path_to_msg(cp.T_world_node, cp.stamps_ns, s.map_frame,
-                                               stamp_ns))
+        self._path_dirty = True
+        if time.perf_counter() >= self._next_full_path:
+            self._publish_full_path(cp, stamp_ns)
+        movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
+        self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
+                                                 cp.stamps_ns[movable], s.map_frame, stamp_ns))
+        if self.front is not None:
+            self._T_map_odom = self.front.map_to_odom(cp.node_ids, cp.T_world_node)
+            self._publish_tf()
         k = self.session.newest_adjusted(cp)
         if k is not None:
             cov = self.session.covariance_or_unknown(int(cp.node_ids[k]))
@@ -349,6 +527,18 @@ class AlignmentNode(Node):
             self.get_logger().warning(f'markers not published: {exc}',
                                       throttle_duration_sec=10.0)
 
+    def _publish_full_path(self, cp: Any, stamp_ns: int) -> None:
+        self._next_full_path = time.perf_counter() + self.settings.full_path_min_period_sec
+        self._path_dirty = False
+        self.pub_path.publish(conv.path_to_msg(cp.T_world_node, cp.stamps_ns,
+                                               self.settings.map_frame, stamp_ns))
+
+    def _full_path_timer(self) -> None:
+        if self._path_dirty and time.perf_counter() >= self._next_full_path:
+            cp = self.aligner.corrected_path()
+            if len(cp.node_ids):
+                self._publish_full_path(cp, int(cp.stamps_ns[-1]))
+
     def _markers_timer(self) -> None:
         if self._markers_dirty and self.pub_markers.get_subscription_count() > 0:
             self._publish_markers()
@@ -379,7 +569,7 @@ class AlignmentNode(Node):
             level, message = DiagnosticStatus.WARN, health.message
         level_int = level[0] if isinstance(level, bytes) else int(level)
         self.pub_diag.publish(conv.diagnostics_msg(
-            f'{self.get_name()}: global alignment', 'ga_ros', values,
+            f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
 
 

@@ -25,7 +25,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import (
+    Point,
+    Pose,
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    TransformStamped,
+)
 from nav_msgs.msg import Odometry, Path
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
@@ -276,3 +282,17 @@ def diagnostics_msg(name: str, hardware_id: str, values: Mapping[str, object], s
 def diagnostics_to_dict(msg: DiagnosticArray) -> dict[str, str]:
     """Flatten the key/values of every status in a ``DiagnosticArray`` (for tests and tools)."""
     return {kv.key: kv.value for status in msg.status for kv in status.values}
+
+
+def transform_msg(parent: str, child: str, T_parent_child: FloatArray,
+                  stamp_ns: int) -> TransformStamped:
+    """``geometry_msgs/TransformStamped``: the pose of ``child`` in ``parent`` (a TF edge)."""
+    msg = TransformStamped()
+    msg.header.frame_id = parent
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.child_frame_id = child
+    p, q = se3.to_pos_quat(np.asarray(T_parent_child, dtype=float))
+    tr = msg.transform
+    tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in p)
+    tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)
+    return msg

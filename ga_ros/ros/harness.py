@@ -38,10 +38,13 @@ class HarnessTimeout(GaError):
 
 def start_node_process(domain_id: int, params: dict[str, object] | None = None,
                        params_file: str | os.PathLike | None = CONFIG,
-                       log_path: str | os.PathLike | None = None) -> subprocess.Popen:
+                       log_path: str | os.PathLike | None = None,
+                       ros_args: Sequence[str] = (),
+                       module: str = 'ga_ros.ros.alignment_node') -> subprocess.Popen:
     """Start the alignment node as a child process on ``domain_id``; ``params`` are ``-p
-    name:=value`` overrides. Stdout/stderr go to ``log_path`` (default: discarded)."""
-    cmd = [sys.executable, '-m', 'ga_ros.ros.alignment_node', '--ros-args']
+    name:=value`` overrides, ``ros_args`` more ROS arguments (e.g. ``['-r', '__ns:=/robot1']``).
+    Stdout/stderr go to ``log_path`` (default: discarded)."""
+    cmd = [sys.executable, '-m', module, '--ros-args', *ros_args]
     if params_file is not None and Path(params_file).exists():
         cmd += ['--params-file', str(params_file)]
     for key, value in (params or {}).items():

@@ -1,15 +1,18 @@
 """One dataclass -> ROS parameters helper for both nodes.
 
-Every field of a frozen config dataclass becomes one read-only parameter (name = prefix +
-field). The description comes from the field's ``metadata['help']``, else from the numpydoc
-``Attributes`` section of the class; the numeric range from ``metadata['range']``, else from the
-``ranges`` argument. Float parameters accept integers (``-p tolerance:=1``) and are range-checked.
+Every field of a frozen config dataclass becomes one parameter (name = prefix + field),
+read-only unless named in ``dynamic`` (then :func:`updated_config` applies changes at run time,
+from an ``add_on_set_parameters_callback``); a read-only parameter's description ends with the
+reason it is read-only. The description comes from the field's ``metadata['help']``, else from
+the numpydoc ``Attributes`` section of the class; the numeric range from ``metadata['range']``,
+else from the ``ranges`` argument. Float parameters accept integers (``-p tolerance:=1``) and are
+range-checked.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import Field, fields
+from dataclasses import Field, fields, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -41,9 +44,10 @@ def field_docs(cls: type) -> dict[str, str]:
 
 
 def descriptor(name: str, default: object, text: str,
-               rng: tuple[float, float] | None = None) -> ParameterDescriptor:
-    """Read-only descriptor of one parameter, with its integer or float range."""
-    d = ParameterDescriptor(name=name, description=text, read_only=True)
+               rng: tuple[float, float] | None = None,
+               read_only: bool = True) -> ParameterDescriptor:
+    """Descriptor of one parameter (read-only by default), with its integer or float range."""
+    d = ParameterDescriptor(name=name, description=text, read_only=read_only)
     if rng is not None and isinstance(default, bool):
         rng = None
     if rng is not None and isinstance(default, int):
@@ -62,7 +66,10 @@ def _text(cls: type, f: Field, docs: dict[str, str]) -> str:
 
 
 def declare_config(node: Node, cls: type[C], prefix: str = '',
-                   ranges: dict[str, tuple[float, float]] | None = None) -> C:
+                   ranges: dict[str, tuple[float, float]] | None = None,
+                   dynamic: frozenset[str] = frozenset(),
+                   read_only_reason: str = 'fixed at start; restart the node to change it',
+                   defaults: C | None = None) -> C:
     """Declare one parameter per field of ``cls`` and build the config from their values.
 
     Parameters
@@ -71,13 +78,17 @@ def declare_config(node: Node, cls: type[C], prefix: str = '',
     cls : frozen dataclass with defaults for every field.
     prefix : prepended to each parameter name (e.g. ``'cross_'``).
     ranges : numeric ranges of fields without ``metadata['range']``.
+    dynamic : fields that may change at run time (not read-only; apply them with
+        :func:`updated_config`).
+    read_only_reason : appended to the description of the other (read-only) parameters.
+    defaults : default values (default: ``cls()``).
 
     Raises
     ------
     InputError
         A float parameter that is not a number or lies outside its range.
     """
-    defaults = cls()
+    defaults = cls() if defaults is None else defaults
     docs = field_docs(cls)
     values: dict[str, Any] = {}
     for f in fields(cls):  # type: ignore[arg-type]
@@ -85,13 +96,58 @@ def declare_config(node: Node, cls: type[C], prefix: str = '',
         if isinstance(default, np.generic):
             default = default.item()
         rng = f.metadata.get('range') or (ranges or {}).get(f.name)
-        desc = descriptor(prefix + f.name, default, _text(cls, f, docs), rng)
+        live = f.name in dynamic
+        text = _text(cls, f, docs) + (' (can be changed at run time)' if live
+                                      else f' (read-only: {read_only_reason})')
+        desc = descriptor(prefix + f.name, default, text, rng, read_only=not live)
         value = node.declare_parameter(prefix + f.name, default, desc).value
-        if isinstance(default, float):
-            value = coerce_value(prefix + f.name, default, value)  # as the replay does
-            for r in desc.floating_point_range:
-                if not r.from_value <= value <= r.to_value:
-                    raise InputError(f'parameter {prefix + f.name} = {value} is outside '
-                                     f'[{r.from_value}, {r.to_value}]')
-        values[f.name] = value
+        values[f.name] = _checked(prefix + f.name, default, value, desc)
     return cls(**values)
+
+
+def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor) -> Any:
+    """``value`` in the type of ``default`` (as the replay reads it) and, for a float, within its
+    range (InputError otherwise)."""
+    value = coerce_value(name, default, value)
+    if isinstance(default, float):
+        for r in desc.floating_point_range:
+            if not r.from_value <= value <= r.to_value:
+                raise InputError(f'parameter {name} = {value} is outside '
+                                 f'[{r.from_value}, {r.to_value}]')
+    return value
+
+
+def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str = '') -> C:
+    """``config`` with the changed parameters of its fields applied (others are ignored).
+
+    Parameters
+    ----------
+    node : the node (its parameter descriptors give the ranges).
+    config : the current frozen config.
+    changes : ``{parameter name: new value}`` (from ``add_on_set_parameters_callback``).
+    prefix : the prefix the fields were declared with.
+
+    Raises
+    ------
+    InputError
+        A value of the wrong type, out of range or rejected by the config's own checks.
+    """
+    own = {f.name: getattr(config, f.name) for f in fields(config)}  # type: ignore[arg-type]
+    new: dict[str, Any] = {}
+    for pname, value in changes.items():
+        key = pname[len(prefix):] if pname.startswith(prefix) else None
+        if key not in own:
+            continue
+        default = own[key]
+        if isinstance(default, np.generic):
+            default = default.item()
+        desc = node.describe_parameter(pname)
+        new[key] = _checked(pname, default, value, desc)
+        if isinstance(default, bool | str) and type(new[key]) is not type(default):
+            raise InputError(f'parameter {pname} must be a {type(default).__name__}')
+    if not new:
+        return config
+    try:
+        return replace(config, **new)  # type: ignore[type-var]
+    except (TypeError, ValueError) as exc:
+        raise InputError(f'rejected: {exc}') from exc

@@ -133,8 +133,13 @@ class BagPlayer:
         qos = QoSProfile(depth=config.depth, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE,
                          history=HistoryPolicy.KEEP_LAST)
-        self.publishers = {name: node.create_publisher(cls, name, qos)
-                           for name, cls in classes.items()}
+        static = QoSProfile(depth=config.depth, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                            history=HistoryPolicy.KEEP_LAST)
+        # /tf_static is latched by convention (tf2 listeners ask for transient local)
+        self.publishers = {name: node.create_publisher(
+            cls, name, static if name.rsplit('/', 1)[-1] == 'tf_static' else qos)
+            for name, cls in classes.items()}
         self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
         self.topics = tuple(classes)
 

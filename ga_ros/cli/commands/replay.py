@@ -15,9 +15,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from ga_ros import topics
 from ga_ros.errors import InputError
 from ga_ros.io.bag import TopicConfig, bag_info
+from ga_ros.pipeline.inputs import specs_from_mapping
+from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.text import info_text, plan_lines, result_text
@@ -43,8 +47,29 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                         '(left, right) or a YAML of the left and right CameraInfo fields')
     g.add_argument('--ground-truth-topic', default=topics.resolve(topics.GROUND_TRUTH),
                    help="nav_msgs/Path ground truth ('' = ignore)")
+    g.add_argument('--ground-truth', type=Path, metavar='FILE',
+                   help='ground truth file (EuRoC CSV or TUM), matched by stamp')
+    s = p.add_argument_group('standard inputs (odometry / pose streams of any robot)')
+    s.add_argument('--odom-topic', '--input-topic', dest='input_topics', action='append',
+                   default=[], metavar='TOPIC',
+                   help='odometry / pose input: nav_msgs/Odometry, geometry_msgs/'
+                        'PoseWithCovarianceStamped or PoseStamped (type from the bag); '
+                        'repeatable: inputs odom0, odom1, ...')
+    s.add_argument('--input-config', type=Path, metavar='YAML',
+                   help='input settings by name (config/inputs.yaml: keyframes, covariance '
+                        'policy, track rule; a section with a topic adds that input)')
+    s.add_argument('--constraints-topic', default='',
+                   help='external constraints (nav_msgs/Odometry, stamp/<ns> or node/<id> ends)')
+    s.add_argument('--track-boundary-topic', default='', help='std_msgs/Empty: new track')
+    s.add_argument('--covariance-policy', choices=('reject', 'repair'), default='reject',
+                   help='measurement covariances that are not positive definite: reject them '
+                        '(as the live node) or repair them by eigenvalue clipping')
     o = p.add_argument_group('outputs')
     o.add_argument('--map-frame', default='map', help='frame of the corrected path')
+    o.add_argument('--odom-frame', default='odom', help='REP 105 odom frame (map -> odom on /tf)')
+    o.add_argument('--base-frame', default='base_link',
+                   help='child frame of the corrected odometry stream')
+    o.add_argument('--no-tf', action='store_true', help='no /tf in the output bag')
     o.add_argument('--path-topic', default=topics.resolve(topics.CORRECTED_PATH))
     o.add_argument('--pose-topic', default=topics.resolve(topics.CORRECTED_POSE))
     o.add_argument('--markers-topic', default=topics.resolve(topics.NETWORK_MARKERS))
@@ -95,6 +120,24 @@ def vo_config(args: argparse.Namespace) -> Any:
     return front_end_config_from_params(params)
 
 
+def input_topics(args: argparse.Namespace) -> InputTopics:
+    """The standard inputs of the command line (``--odom-topic``, ``--input-config``, ...)."""
+    sections: dict[str, Any] = {}
+    if args.input_config is not None:
+        try:
+            sections = yaml.safe_load(args.input_config.read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise InputError(f'cannot read --input-config {args.input_config}: {exc}') from exc
+        if not isinstance(sections, dict):
+            raise InputError(f'{args.input_config}: expected sections named like odom0, pose0')
+    named = {f'odom{k}': t for k, t in enumerate(args.input_topics)}
+    firsts = {n: {'first_node_id': 1_000_000_000 * k} for k, n in enumerate(named) if k}
+    for n, extra in firsts.items():
+        sections[n] = {**extra, **(sections.get(n) or {})}
+    return InputTopics(specs_from_mapping(sections, named), args.constraints_topic,
+                       args.track_boundary_topic)
+
+
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     """ReplayConfig from parsed arguments (the aligner module is imported only if needed)."""
     overrides = {field: getattr(args, opt) for opt, field in ALIGNER_OPTIONS.items()
@@ -108,13 +151,16 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
         except (TypeError, ValueError) as exc:
             raise InputError(f'bad aligner option: {exc}') from exc
     outputs = OutputConfig(map_frame=args.map_frame, path_topic=args.path_topic,
-                           pose_topic=args.pose_topic, markers_topic=args.markers_topic)
+                           pose_topic=args.pose_topic, markers_topic=args.markers_topic,
+                           odom_frame=args.odom_frame, sensor_frame=args.base_frame)
     return ReplayConfig(topics=topic_config(args), outputs=outputs, aligner=aligner,
                         aligner_kind=args.aligner, vo=vo_config(args),
                         refine_batch=args.refine,
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
-                        progress=progress and not args.no_progress)
+                        progress=progress and not args.no_progress, inputs=input_topics(args),
+                        ground_truth_file=str(args.ground_truth or ''), tf=not args.no_tf,
+                        covariance_policy=args.covariance_policy)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -134,7 +180,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics = topic_config(args)
     if args.info:
-        text, usable = info_text(bag_info(args.bag), topics)
+        text, usable = info_text(bag_info(args.bag), topics, input_topics(args))
         print(text)
         return 0 if usable else 1
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)

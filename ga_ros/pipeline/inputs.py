@@ -1,0 +1,303 @@
+"""Standard inputs front end: odometry / pose messages and external constraints -> measurements.
+
+One ROS-free object (:class:`InputFrontEnd`) that the alignment node and the replay both drive,
+message by message, so that live and offline runs make the same measurements:
+
+* :meth:`InputFrontEnd.sample` ``(name, msg, msgtype)``: one ``nav_msgs/Odometry``,
+  ``PoseWithCovarianceStamped`` or ``PoseStamped`` of input ``name``
+  (:class:`ga_ros.inputs.odometry.OdometryInput`: keyframes, covariance policy, track rule);
+* :meth:`InputFrontEnd.constraint` ``(msg)``: an external constraint (encoding in
+  :mod:`ga_ros.inputs.messages`) on the first input's keyframes;
+* :meth:`InputFrontEnd.track_boundary`: a new track at the next keyframe (a topic);
+* :meth:`InputFrontEnd.map_to_odom`: the REP 105 ``map -> odom`` correction from the corrected
+  path and the odometry poses of the same keyframes.
+
+Every call returns an :class:`InputStep` (measurements, node stamps, a warning to show); a
+throttled warning says when the default covariance replaced a missing one (zeros, ``-1``).
+
+Measurement encoding with a covariance policy
+    :func:`decode_measurement` decodes the ga_ros measurement encoding with a policy for
+    covariances that are not positive definite: ``'reject'`` (the live default) or
+    ``'repair'`` (eigenvalue clipping, :func:`ga_ros.core.covariance.nearest_positive_definite`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import encoding
+from ga_ros.core.covariance import nearest_positive_definite
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+from ga_ros.inputs.messages import decode_constraint, decode_sample, input_type
+from ga_ros.inputs.odometry import OdometryInput, OdometryInputConfig
+
+#: Policies for a measurement covariance that is not positive definite.
+COVARIANCE_POLICIES = ('reject', 'repair')
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """One standard input: where it comes from and how it becomes measurements.
+
+    Attributes
+    ----------
+    topic : topic name (relative for a node, absolute in a bag).
+    msgtype : ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseWithCovarianceStamped`` or
+        ``geometry_msgs/msg/PoseStamped`` (or an alias,
+        :data:`ga_ros.inputs.messages.TYPE_ALIASES`).
+    config : keyframe, covariance and track settings (its ``name`` names the input).
+    """
+
+    topic: str
+    msgtype: str = 'nav_msgs/msg/Odometry'
+    config: OdometryInputConfig = field(default_factory=OdometryInputConfig)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'msgtype', input_type(self.msgtype))
+
+    @property
+    def name(self) -> str:
+        """The input's name (``odom0``, ...)."""
+        return self.config.name
+
+
+@dataclass(frozen=True)
+class InputStep:
+    """What one input message did.
+
+    Attributes
+    ----------
+    measurements : measurements to give the alignment session, in order.
+    node_stamps : acquisition time (ns) of keyframes made by this message, by node id.
+    warning : a (throttled) warning to show, else ''.
+    error : why the message was rejected ('' when it was used).
+    """
+
+    measurements: tuple[Measurement, ...] = ()
+    node_stamps: dict[int, int] = field(default_factory=dict)
+    warning: str = ''
+    error: str = ''
+
+
+class Throttle:
+    """At most one event per ``period_s`` seconds (``period_s <= 0``: every event).
+
+    Parameters
+    ----------
+    period_s : the smallest interval between two passed events (s); may be changed at run time.
+    clock : monotonic clock in seconds (injectable for tests).
+    """
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = float(period_s)
+        self._clock = clock
+        self._next = -np.inf
+
+    def ready(self) -> bool:
+        """True if an event may pass now (and then starts a new period)."""
+        now = self._clock()
+        if now < self._next:
+            return False
+        self._next = now + self.period_s
+        return True
+
+
+def decode_measurement(msg: Any, policy: str = 'reject') -> Measurement:
+    """Decode the ga_ros measurement encoding with a covariance policy (module doc).
+
+    Raises
+    ------
+    InputError
+        As :func:`ga_ros.core.encoding.decode_measurement`; with ``'repair'`` a finite,
+        symmetric covariance that is not positive definite is repaired instead.
+    """
+    if policy not in COVARIANCE_POLICIES:
+        raise InputError(f'covariance policy must be one of {COVARIANCE_POLICIES}, '
+                         f'got {policy!r}')
+    try:
+        return encoding.decode_measurement(msg)
+    except InputError as exc:
+        if policy != 'repair' or getattr(exc, 'reason', None) != 'bad_covariance':
+            raise
+        cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
+        if not np.isfinite(cov).all() or not np.allclose(cov, cov.T, rtol=0.0,
+                                                         atol=1e-6 * np.abs(cov).max()):
+            raise
+        fixed = nearest_positive_definite(0.5 * (cov + cov.T)[None])[0]
+        proxy = SimpleNamespace(header=msg.header, child_frame_id=msg.child_frame_id,
+                                twist=msg.twist,
+                                pose=SimpleNamespace(pose=msg.pose.pose,
+                                                     covariance=fixed.reshape(36)))
+        return encoding.decode_measurement(proxy)
+
+
+class InputFrontEnd:
+    """Odometry / pose inputs + external constraints + track boundaries (module doc).
+
+    Parameters
+    ----------
+    inputs : the inputs; their names must differ, and so must their node id ranges
+        (``first_node_id``), since all inputs share one network.
+    warn_throttle_s : smallest interval between two default-covariance warnings (s).
+    clock : monotonic clock in seconds for the throttle.
+
+    Raises
+    ------
+    InputError
+        Duplicate names or first node ids, or no input.
+    """
+
+    def __init__(self, inputs: Sequence[InputSpec], warn_throttle_s: float = 10.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not inputs:
+            raise InputError('no standard input configured: give at least one odometry or '
+                             'pose topic')
+        names = [s.name for s in inputs]
+        firsts = [s.config.first_node_id for s in inputs]
+        if len(set(names)) != len(names):
+            raise InputError(f'input names must differ, got {names}')
+        if len(set(firsts)) != len(firsts):
+            raise InputError(f'inputs {names} share first_node_id values {firsts}: give each '
+                             'input its own node id range (e.g. 0 and 1000000000)')
+        self.specs = {s.name: s for s in inputs}
+        self.inputs = {s.name: OdometryInput(s.config) for s in inputs}
+        self.primary = names[0]
+        self.throttle = Throttle(warn_throttle_s, clock)
+        self.constraints_rejected = 0
+        #: stamp (ns) of the first input's newest sample (0 before any)
+        self.latest_stamp_ns = 0
+
+    def by_topic(self, topic: str) -> InputSpec | None:
+        """The input reading ``topic`` (None if none)."""
+        return next((s for s in self.specs.values() if s.topic == topic), None)
+
+    # ----------------------------------------------------------------- messages
+    def sample(self, name: str, msg: Any, msgtype: str | None = None) -> InputStep:
+        """One odometry / pose message of input ``name`` (type: the input's by default).
+
+        Malformed messages and stamps that go back in time come back as ``error`` (nothing
+        changed); this never raises on a message.
+        """
+        spec = self.specs[name]
+        inp = self.inputs[name]
+        try:
+            s = decode_sample(msg, msgtype or spec.msgtype)
+            if spec.config.frame_id and s.frame_id.lstrip('/') != spec.config.frame_id.lstrip(
+                    '/'):
+                raise InputError(f'{name}: frame {s.frame_id!r}, expected '
+                                 f'{spec.config.frame_id!r}')
+            up = inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov, s.twist_cov)
+        except InputError as exc:
+            return InputStep(error=f'{name}: {exc}')
+        if name == self.primary:
+            self.latest_stamp_ns = s.stamp_ns
+        stamps = {up.keyframe_id: up.stamp_ns} if up.new_keyframe else {}
+        meas = (up.measurement,) if up.measurement is not None else ()
+        warning = ''
+        if up.default_covariance:
+            warning = self._default_warning(name)
+        return InputStep(meas, stamps, warning)
+
+    def constraint(self, msg: Any) -> InputStep:
+        """An external constraint (``nav_msgs/Odometry``, :mod:`ga_ros.inputs.messages`) on the
+        keyframes of the first input. Rejections come back as ``error``; never raises."""
+        inp = self.inputs[self.primary]
+        before = inp.stats.default_covariances
+        try:
+            c = decode_constraint(msg)
+            if c.by == 'stamp':
+                m = inp.constraint_from_stamps(c.a, c.b, c.T_a_b, c.cov)
+            else:
+                m = inp.constraint_from_nodes(c.a, c.b, c.T_a_b, c.cov)
+        except InputError as exc:
+            self.constraints_rejected += 1
+            return InputStep(error=f'constraint: {exc}')
+        warning = ''
+        if inp.stats.default_covariances > before:
+            warning = self._default_warning(self.primary)
+        return InputStep((m,), warning=warning)
+
+    def track_boundary(self) -> None:
+        """Start a new track at the next keyframe of every input."""
+        for inp in self.inputs.values():
+            inp.request_track_boundary()
+
+    # ------------------------------------------------------------------ TF
+    def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
+        """REP 105 ``T_map_odom`` of the first input: ``T_map_k T_odom_k^-1`` at the newest
+        node ``k`` of the corrected path that is a keyframe of that input (None if none).
+
+        Parameters
+        ----------
+        node_ids : (n,) node ids of the corrected path.
+        T_map_node : (n, 4, 4) their corrected poses in the map frame.
+        """
+        inp = self.inputs[self.primary]
+        for k in range(len(node_ids) - 1, -1, -1):
+            try:
+                T_odom_k = inp.keyframe_pose(int(node_ids[k]))
+            except InputError:
+                continue
+            return np.asarray(T_map_node[k], float) @ se3.inverse(T_odom_k)
+        return None
+
+    def latest_pose(self) -> FloatArray | None:
+        """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
+        return self.inputs[self.primary].latest_pose()
+
+    def stats(self) -> dict[str, object]:
+        """Counters per input (for diagnostics and the replay summary)."""
+        out: dict[str, object] = {n: asdict(i.stats) for n, i in self.inputs.items()}
+        out['constraints_rejected'] = self.constraints_rejected
+        return out
+
+    def _default_warning(self, name: str) -> str:
+        if not self.throttle.ready():
+            return ''
+        st = self.inputs[name].stats
+        return (f'{name}: {st.default_covariances} of {st.measurements + st.constraints} '
+                'measurements used the DEFAULT covariance (the stream has none: zeros, -1 or '
+                f'missing): {self.specs[name].config.default_noise_percent:g} % of the motion; '
+                f'set {name}.default_noise_percent or covariance_source to change it')
+
+
+def specs_from_mapping(sections: Mapping[str, Any], topics: Mapping[str, str] | None = None
+                       ) -> tuple[InputSpec, ...]:
+    """Inputs from a mapping of named sections (a params file such as ``config/inputs.yaml``).
+
+    Parameters
+    ----------
+    sections : ``{name: {topic: ..., type: ..., <OdometryInputConfig fields>}}``; ``type`` is
+        optional (default ``nav_msgs/msg/Odometry``); a section without ``topic`` is used only
+        when ``topics`` names it.
+    topics : ``{name: topic}`` given elsewhere (e.g. ``--odom-topic``), overriding the
+        sections' topics; a name without a section gets the default settings.
+
+    Raises
+    ------
+    InputError
+        An unknown setting, an invalid value or a section that is not a mapping.
+    """
+    topics = dict(topics or {})
+    specs = []
+    for name in list(sections) + [n for n in topics if n not in sections]:
+        sec = sections.get(name, {})
+        if not isinstance(sec, Mapping):
+            raise InputError(f'input {name!r}: expected a mapping of settings, got {sec!r}')
+        values = dict(sec)
+        topic = str(topics.get(name, values.pop('topic', '')))
+        values.pop('topic', None)
+        msgtype = str(values.pop('type', 'nav_msgs/msg/Odometry'))
+        if not topic:
+            continue
+        specs.append(InputSpec(topic, msgtype, OdometryInputConfig.from_mapping(name, values)))
+    return tuple(specs)

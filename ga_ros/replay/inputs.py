@@ -1,0 +1,141 @@
+"""Replay source for standard inputs: odometry / pose topics (+ constraints, track boundaries).
+
+A loop over the bag's messages in log order calling the same
+:class:`ga_ros.pipeline.inputs.InputFrontEnd` as the live alignment node; each measurement it
+makes becomes one :class:`~ga_ros.replay.source.SourceItem`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from typing import Any
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import FormatError
+from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
+from ga_ros.io.bag import PATH, BagInfo, BagReader, TopicPlan
+from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
+from ga_ros.replay.source import SourceItem
+
+#: Type of the track-boundary topic.
+EMPTY = 'std_msgs/msg/Empty'
+#: TF topics copied from the input bag into the output bag.
+TF_TOPICS = ('/tf', '/tf_static')
+
+
+@dataclass(frozen=True)
+class InputTopics:
+    """The standard-input topics of a replay.
+
+    Attributes
+    ----------
+    inputs : odometry / pose inputs (their ``msgtype`` is taken from the bag).
+    constraints : external constraints topic (``nav_msgs/Odometry``; '' = none).
+    track_boundary : ``std_msgs/Empty`` topic that starts a new track ('' = none).
+    warn_throttle_s : smallest interval between two default-covariance warnings (s).
+    """
+
+    inputs: tuple[InputSpec, ...] = ()
+    constraints: str = ''
+    track_boundary: str = ''
+    warn_throttle_s: float = 10.0
+
+
+def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
+        TopicPlan, tuple[InputSpec, ...]]:
+    """Check the input topics against the bag; the plan and the inputs with the bag's types.
+
+    Raises
+    ------
+    FormatError
+        A missing topic or one of the wrong type (the message lists the bag's topics).
+    """
+    name = str(info.path)
+    listing = ', '.join(f'{t.name} [{t.msgtype}]' for t in info.topics) or 'no topics'
+
+    def check(topic: str, types: tuple[str, ...], what: str) -> str:
+        t = info.topic(topic)
+        if t is None:
+            raise FormatError(f'missing topic {topic} ({what}); the bag has: {listing}', name)
+        if t.msgtype not in types:
+            raise FormatError(f'topic {topic} ({what}) has type {t.msgtype}, expected '
+                              + ' or '.join(types), name)
+        return t.msgtype
+
+    specs = tuple(replace(s, msgtype=check(s.topic, INPUT_TYPES, f'input {s.name}'))
+                  for s in config.inputs)
+    notes = [f'source: {s.name} {s.topic} ({s.msgtype}), keyframes every '
+             f'{s.config.keyframe_travel_m:g} m / {s.config.keyframe_rotation_deg:g} deg'
+             for s in specs]
+    if config.constraints:
+        check(config.constraints, (ODOMETRY,), 'external constraints')
+        notes.append(f'external constraints: {config.constraints}')
+    if config.track_boundary:
+        check(config.track_boundary, (EMPTY,), 'track boundaries')
+        notes.append(f'track boundaries: {config.track_boundary}')
+    gt = ''
+    if ground_truth and info.topic(ground_truth) is not None:
+        check(ground_truth, (PATH,), 'ground truth')
+        gt = ground_truth
+        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
+    return TopicPlan('inputs', ground_truth=gt, notes=tuple(notes)), specs
+
+
+class InputSource:
+    """Iterable of :class:`SourceItem` from the standard inputs of a bag (module doc).
+
+    ``counter[0]`` counts the messages read; :attr:`warnings` keeps the throttled warnings.
+    """
+
+    def __init__(self, bag: BagReader, specs: tuple[InputSpec, ...], config: InputTopics,
+                 counter: list[int]) -> None:
+        self.bag = bag
+        self.config = config
+        self.front = InputFrontEnd(specs, config.warn_throttle_s)
+        self.counter = counter
+        self.warnings: list[str] = []
+        #: called with each ``/tf`` and ``/tf_static`` message of the bag (topic, type, CDR,
+        #: message, log time), e.g. to copy them into the output bag; None: not read.
+        self.passthrough: Callable[[str, str, bytes | None, Any, int], None] | None = None
+
+    @property
+    def stats(self) -> dict[str, object]:
+        """Per-input counters and the warnings (in the replay summary)."""
+        out = self.front.stats()
+        out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1])}
+        return out
+
+    def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
+        """REP 105 ``T_map_odom`` (:meth:`InputFrontEnd.map_to_odom`)."""
+        return self.front.map_to_odom(node_ids, T_map_node)
+
+    def __iter__(self) -> Iterator[SourceItem]:
+        topics = [s.topic for s in self.front.specs.values()]
+        topics += [t for t in (self.config.constraints, self.config.track_boundary) if t]
+        assert self.bag.info is not None
+        tf = [t for t in TF_TOPICS if self.passthrough is not None and self.bag.info.topic(t)]
+        for bm in self.bag.messages(topics + tf):
+            if bm.topic in tf:
+                if self.passthrough is not None and bm.data is not None:  # not from ROS 1
+                    self.passthrough(bm.topic, bm.msgtype, bm.data, bm.msg, bm.log_ns)
+                continue
+            self.counter[0] += 1
+            if bm.topic == self.config.track_boundary:
+                self.front.track_boundary()
+                continue
+            if bm.topic == self.config.constraints:
+                step = self.front.constraint(bm.msg)
+            else:
+                spec = self.front.by_topic(bm.topic)
+                assert spec is not None
+                step = self.front.sample(spec.name, bm.msg, bm.msgtype)
+            if step.warning:
+                self.warnings.append(step.warning)
+            if step.error:
+                yield SourceItem(None, bm.log_ns, error=f'input: {step.error}')
+            elif not step.measurements:
+                if step.node_stamps:
+                    yield SourceItem(None, bm.log_ns, node_stamps=step.node_stamps)
+            for k, m in enumerate(step.measurements):
+                yield SourceItem(m, bm.log_ns, node_stamps=step.node_stamps if k == 0 else None)

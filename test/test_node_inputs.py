@@ -1,0 +1,259 @@
+"""The alignment node on a robot: standard inputs, run-time parameters, lifecycle (in-process),
+``/tf`` received by a plain subscriber and two namespaced nodes on one domain (processes)."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+pytest.importorskip('tf2_msgs.msg')
+
+import rclpy  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry, Path  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
+
+from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
+from ga_ros.ros.lifecycle_alignment_node import LifecycleAlignmentNode  # noqa: E402
+from ga_ros.ros.qos import latched_qos  # noqa: E402
+from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
+from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
+
+INPUT_PARAMS = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.track_mode': 'distance',
+                'odom0.track_length_m': 5.0, 'publish_markers': False}
+
+
+def domain_id(offset: int) -> int:
+    return 40 + (os.getpid() + offset) % 150
+
+
+def odom_msgs(n: int = 200, step_m: float = 0.1) -> list[Odometry]:
+    """A robot driving a 5 m square at ``step_m`` per message, all-zero covariance (Nav2)."""
+    out = []
+    T = np.eye(4)
+    turn = se3.from_translation_rotvec(np.zeros(3), np.array([0, 0, np.pi / 2]))
+    for k in range(n):
+        msg = conv.odometry_msg(T, np.zeros((6, 6)), 'odom', 'base_link', 10**9 + k * 10**8)
+        out.append(msg)
+        T = T @ se3.from_translation_rotvec(np.array([step_m, 0, 0]), np.zeros(3))
+        if k % 50 == 49:
+            T = T @ turn
+    return out
+
+
+@pytest.fixture
+def ctx():
+    c = rclpy.Context()
+    rclpy.init(context=c, domain_id=domain_id(21))
+    yield c
+    rclpy.try_shutdown(context=c)
+
+
+def _node(cls, ctx, **extra):
+    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0,
+              'transform_publish_period_sec': 0.0, **extra}
+    return cls(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                 for k, v in params.items()])
+
+
+def test_odometry_input_in_process_map_to_odom(ctx):
+    node = _node(AlignmentNode, ctx)
+    try:
+        for msg in odom_msgs():
+            node._on_input('odom0', msg)
+        st = node.front.inputs['odom0'].stats
+        assert st.keyframes == 20 and st.default_covariances == st.measurements == 19
+        assert node.session.counts.accepted == 19
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        cp = node.aligner.corrected_path()
+        assert len(cp.node_ids) == 20
+        # map -> odom composes with the odometry pose of the newest node to its corrected pose
+        T_odom_k = node.front.inputs['odom0'].keyframe_pose(int(cp.node_ids[-1]))
+        np.testing.assert_allclose(node._T_map_odom @ T_odom_k, cp.T_world_node[-1],
+                                   atol=1e-9)
+    finally:
+        node.destroy_node()
+
+
+def test_runtime_parameters_take_effect_and_read_only_ones_say_why(ctx):
+    node = _node(AlignmentNode, ctx)
+    try:
+        ok = node.set_parameters([Parameter('outlier_chi2_prob', value=0.5),
+                                  Parameter('map_frame', value='world'),
+                                  Parameter('warn_throttle_sec', value=7)])
+        assert all(r.successful for r in ok)
+        assert node.aligner.config.outlier_chi2_prob == 0.5
+        assert node.session.config.outlier_chi2_prob == 0.5
+        assert node.settings.map_frame == 'world' and node.settings.warn_throttle_sec == 7.0
+        assert not node.set_parameters([Parameter('window_tracks', value=3)])[0].successful
+        assert not node.set_parameters([Parameter('outlier_chi2_prob', value=1.5)])[0].successful
+        assert not node.set_parameters([Parameter('covariance_policy', value='x')])[0].successful
+        assert node.aligner.config.outlier_chi2_prob == 0.5
+        assert 'read-only: ' in node.describe_parameter('window_tracks').description
+        assert 'read-only: ' in node.describe_parameter('odom0.keyframe_travel_m').description
+        assert not node.describe_parameter('map_frame').read_only
+        # the new frame is used by the next output
+        for msg in odom_msgs(60):
+            node._on_input('odom0', msg)
+        paths: list = []
+        node.pub_window.publish = paths.append
+        node._publish_outputs()
+        assert paths and paths[-1].header.frame_id == 'world'
+    finally:
+        node.destroy_node()
+
+
+def test_lifecycle_node_processes_only_when_active(ctx):
+    node = _node(LifecycleAlignmentNode, ctx)
+    try:
+        msgs = odom_msgs(60)
+        for msg in msgs[:20]:
+            node._on_input('odom0', msg)
+        assert node.dropped_inactive == 20 and node.session.counts.received == 0
+        node.trigger_configure()
+        node.trigger_activate()
+        for msg in msgs[20:]:
+            node._on_input('odom0', msg)
+        assert node.session.counts.accepted == 3  # keyframes at 21, 31, 41, 51 (1 m apart)
+        node.trigger_deactivate()
+        node.trigger_cleanup()
+        assert node.session.n_nodes() == 0
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.ros
+def test_tf_reaches_a_plain_subscriber(tmp_path):
+    """Two processes: the node gets /odom and publishes map -> odom on /tf; this process reads
+    /tf with a plain subscription (no tf2 listener)."""
+    dom = domain_id(22)
+    proc = start_node_process(dom, {**INPUT_PARAMS, 'diagnostics_period_sec': 0.2},
+                              log_path=tmp_path / 'node.log')
+    try:
+        with NodeClient(dom) as client:
+            pub = client.node.create_publisher(Odometry, '/odom', 100)
+            tf = client.record(TFMessage, '/tf')
+            client.spin_until(lambda: pub.get_subscription_count() > 0, 30, 'the node', proc)
+            for msg in odom_msgs():
+                pub.publish(msg)
+                client.executor.spin_once(timeout_sec=0.001)
+            client.spin_until(lambda: any(t.child_frame_id == 'odom' for m in tf
+                                          for t in m.transforms), 30, 'map -> odom on /tf',
+                              proc)
+            t = next(t for m in tf for t in m.transforms if t.child_frame_id == 'odom')
+            assert t.header.frame_id == 'map' and t.header.stamp.sec >= 1
+    finally:
+        stop_process(proc)
+
+
+@pytest.mark.ros
+def test_two_namespaced_nodes_do_not_hear_each_other(tmp_path):
+    dom = domain_id(23)
+    rng = np.random.default_rng(3)
+    surveys = {}
+    for ns, n_tracks in (('robot1', 3), ('robot2', 2)):
+        sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=5)
+        noisy = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), rng)
+        surveys[ns] = list(sc.measurements(noisy.z, noisy.cov))
+    procs = [start_node_process(dom, {'diagnostics_period_sec': 0.2, 'publish_markers': False},
+                                log_path=tmp_path / f'{ns}.log', ros_args=['-r', f'__ns:=/{ns}'])
+             for ns in surveys]
+    clients = []
+    try:
+        for ns in surveys:
+            c = NodeClient(dom, node_name=f'{ns}/alignment_node',
+                           measurements_topic=f'/{ns}/ga/measurements',
+                           path_topic=f'/{ns}/ga/corrected_path')
+            clients.append(c)
+            c.wait_for_node(proc=procs[len(clients) - 1])
+        diags = clients[0].record(DiagnosticArray, '/diagnostics')
+
+        def received(ns: str) -> int:  # from the node's own status (full name in /diagnostics)
+            values = [kv.value for d in diags for st in d.status
+                      if st.name.startswith(f'/{ns}/alignment_node') for kv in st.values
+                      if kv.key == 'measurements_received']
+            return int(values[-1]) if values else -1
+
+        for c, (ns, ms) in zip(clients, surveys.items()):
+            c.publish(ms)
+            clients[0].spin_until(lambda ns=ns, n=len(ms): received(ns) == n, 30,
+                                  f'{ns} to receive its measurements')
+        assert received('robot1') == len(surveys['robot1'])  # nothing of robot2's
+        for c, (ns, ms) in zip(clients, surveys.items()):
+            assert c.call('finish_track').success
+            n_nodes = len({m.dst_id for m in ms} | {m.src_id for m in ms})
+            c.spin_until(lambda c=c, n=n_nodes: bool(c.paths) and len(c.paths[-1][1].poses) == n,
+                         30, f'{ns} path of {n_nodes} nodes')
+        # each path holds only its own robot's nodes (a leak would add the other's)
+        lengths = [len(c.paths[-1][1].poses) for c in clients]
+        assert lengths[0] != lengths[1]
+        other = clients[0].node.create_subscription(Path, '/ga/corrected_path',
+                                                    lambda m: None, latched_qos())
+        assert clients[0].node.count_publishers('/ga/corrected_path') == 0
+        clients[0].node.destroy_subscription(other)
+    finally:
+        for c in clients:
+            c.close()
+        for p in procs:
+            stop_process(p)
+
+
+@pytest.mark.ros
+def test_play_publishes_tf_and_latched_tf_static(tmp_path):
+    """``ga-ros play`` on a replay output bag (map -> odom on /tf, the input's /tf_static)."""
+    import subprocess
+    import sys
+    import time
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from test_replay_inputs import write_odom_bag
+
+    from ga_ros.pipeline.inputs import InputSpec
+    from ga_ros.replay.inputs import InputTopics
+    from ga_ros.replay.pipeline import ReplayConfig, replay
+
+    write_odom_bag(tmp_path / 'in')
+    cfg = ReplayConfig(inputs=InputTopics((InputSpec('/odom'),)), plot=False)
+    out = pathlib.Path(replay(tmp_path / 'in', tmp_path / 'out', cfg).files['bag'])
+    dom = domain_id(24)
+    c = rclpy.Context()
+    rclpy.init(context=c, domain_id=dom)
+    node = Node('tf_listener_free', context=c)
+    ex = SingleThreadedExecutor(context=c)
+    ex.add_node(node)
+    tf, static = [], []
+    node.create_subscription(TFMessage, '/tf', tf.append, 5000)
+    node.create_subscription(TFMessage, '/tf_static', static.append, latched_qos())
+    proc = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play', str(out), '--rate', '0',
+                             '--delay', '0', '--wait-for-subscribers', '20',
+                             '--topics', '/tf', '/tf_static'],
+                            env={**os.environ, 'ROS_DOMAIN_ID': str(dom)},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        def pairs() -> set:
+            return {(t.header.frame_id, t.child_frame_id) for m in tf for t in m.transforms}
+
+        end = time.monotonic() + 60
+        while time.monotonic() < end and (proc.poll() is None or not static
+                                          or ('map', 'odom') not in pairs()):
+            ex.spin_once(timeout_sec=0.05)
+        _, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        assert {('map', 'odom'), ('odom', 'base_link')} <= pairs()
+        assert static and static[0].transforms[0].child_frame_id == 'laser'
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=c)
