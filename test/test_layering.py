@@ -17,7 +17,7 @@ RANK = {'arrays': 0, 'errors': 0, 'runtime': 0, 'topics': 0, 'geometry': 1,
         'core': 2, 'io': 2, 'sim': 2, 'vo': 2, 'eval': 2,
         'pipeline': 3, 'replay': 4, 'report': 4, 'bench': 4, 'ros': 5, 'cli': 6}
 #: Known exceptions (importer, imported): ROS-free modules that still live in a higher folder.
-ALLOWED = {('ga_ros.pipeline.session', 'ga_ros.ros.journal')}
+ALLOWED: set[tuple[str, str]] = set()
 
 
 def module_name(path: Path) -> str:

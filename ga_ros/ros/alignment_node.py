@@ -35,13 +35,15 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.errors import GaError, SolverError
+from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config
@@ -91,6 +93,24 @@ class NodeSettings:
     odom_max_rate_hz : between updates, publish the newest node's pose (its frame-to-frame
         continuation from the last adjusted node, covariance unknown) on ``odom_topic`` at most
         this often, Hz (0: only after updates).
+    measurement_durability : ``volatile`` (any publisher) or ``transient_local`` (the
+        publisher's history is delivered again after a restart: nothing published while the
+        node was down or still queued when it was killed is lost; the publisher must be
+        transient local too, as ``ga-ros play`` is; re-delivered measurements are counted as
+        ``rejected/duplicate``).
+    fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
+        loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
+        most every this many seconds.
+    track_idle_timeout_sec : end the open track when no measurement has arrived for this long,
+        wall-clock s (0: never; a track end then comes from the next track's first measurement,
+        the end-of-input message or ``~/finish_track``). Measurements of a track that arrive
+        after its end are rejected (``out_of_order``): keep it well above any pause of the VO.
+    path_period_sec : publish the path, when nodes were added since the last one, at most this
+        often, s; the open track's nodes are then in it at their dead-reckoned poses
+        (diagnostics ``dead_reckoned_nodes``: how many at the end of the path) (0: only after
+        updates).
+    allow_reset : whether ``~/reset`` may clear the state (and empty the state files); off by
+        default, since any peer on the ROS graph can call it.
     """
 
     map_frame: str = 'map'
@@ -109,6 +129,11 @@ class NodeSettings:
     residual_color_scale: float = field_(3.0, 1e-6, 1e6)
     diagnostics_period_sec: float = field_(1.0, 0.0, 3600.0)
     odom_max_rate_hz: float = field_(10.0, 0.0, 1000.0)
+    measurement_durability: str = 'volatile'
+    fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
+    track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
+    path_period_sec: float = field_(1.0, 0.0, 3600.0)
+    allow_reset: bool = False
 
 
 class AlignmentNode(Node):
@@ -120,12 +145,23 @@ class AlignmentNode(Node):
                                                             ranges=ALIGNER_RANGES)
         self.settings: NodeSettings = declare_config(self, NodeSettings)
         s = self.settings
+        if s.measurement_durability not in ('volatile', 'transient_local'):
+            raise InputError(f'parameter measurement_durability must be volatile or '
+                             f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
-            self.aligner_config, SessionConfig(s.state_file, s.autosave),
+            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec),
             warn=lambda text: self.get_logger().warning(text))
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
         self._markers_dirty = False
+        self._last_input = time.monotonic()
+        self._path_nodes = 0           # nodes in the last published path
+        self._rejections = RejectionLog()
+        # subscribe first: what arrives while the state is restored waits in the queue
+        self.sub = self.create_subscription(
+            Odometry, s.measurements_topic, self._on_measurements,
+            measurement_qos(s.measurement_queue_depth,
+                            transient_local=s.measurement_durability == 'transient_local'))
 
         self.pub_path = self.create_publisher(Path, s.path_topic, latched_qos())
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, s.pose_topic,
@@ -144,10 +180,15 @@ class AlignmentNode(Node):
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
 
-        self.sub = self.create_subscription(Odometry, s.measurements_topic, self._on_measurements,
-                                            measurement_qos(s.measurement_queue_depth))
         if s.diagnostics_period_sec > 0:
             self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
+        wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
+        if s.warn_throttle_sec > 0:
+            self.create_timer(s.warn_throttle_sec, self._log_rejections, clock=wall)
+        if s.track_idle_timeout_sec > 0:
+            self.create_timer(min(1.0, s.track_idle_timeout_sec / 4), self._idle_check, clock=wall)
+        if s.path_period_sec > 0:
+            self.create_timer(s.path_period_sec, self._path_timer, clock=wall)
         if s.publish_markers:
             self.create_timer(1.0, self._markers_timer)
         self.get_logger().info(
@@ -169,23 +210,36 @@ class AlignmentNode(Node):
         it straight from the subscription (up to ``DRAIN_MAX`` or ``DRAIN_SECONDS``), which
         saves the executor's per-message wait-set round trip on bursts."""
         self._on_measurement(msg)
-        t_end = time.perf_counter() + DRAIN_SECONDS
-        for _ in range(DRAIN_MAX):
+        self._drain(DRAIN_MAX, DRAIN_SECONDS)
+
+    def _drain(self, max_messages: int | None = None, max_seconds: float | None = None) -> int:
+        """Handle the measurements already queued in the subscription (all of them by default:
+        a track end, a service call or a timer acts only after everything received before
+        it). Returns how many were handled."""
+        t_end = time.perf_counter() + max_seconds if max_seconds is not None else None
+        n = 0
+        while max_messages is None or n < max_messages:
             try:
                 with self.sub.handle:
                     taken = self.sub.handle.take_message(Odometry, False)
             except Exception:  # noqa: BLE001 - e.g. the subscription was destroyed
-                return
+                return n
             if taken is None:
-                return
+                return n
             self._on_measurement(taken[0])
-            if time.perf_counter() > t_end:
-                return
+            n += 1
+            if t_end is not None and time.perf_counter() > t_end:
+                return n
+        return n
 
     def _on_measurement(self, msg: Odometry) -> None:
         """One measurement: decode, one session step, publish if a window update ran."""
         t0 = time.perf_counter()
+        self._last_input = time.monotonic()
         throttle = self.settings.warn_throttle_sec
+        if msg.child_frame_id == topics.TRACK_END_FRAME:   # in-band: after all before it
+            self._finish_track()
+            return
         try:
             m = conv.odometry_to_measurement(msg)
         except GaError as exc:
@@ -218,10 +272,51 @@ class AlignmentNode(Node):
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
 
     def _warn_rejected(self, reason: object, exc: object, msg: Odometry) -> None:
+        """Note a rejection (counted by the session); logged by a timer, not per message."""
+        log = self._rejections
+        log.pending += 1
+        log.last = (msg.header.frame_id, msg.child_frame_id, reason, exc)
+        if self.settings.warn_throttle_sec == 0:
+            self._log_rejections()
+
+    def _log_rejections(self) -> None:
+        """One warning for the rejections since the last one (timer of ``warn_throttle_sec``)."""
+        log = self._rejections
+        if not log.pending:
+            return
+        src, dst, reason, exc = log.last
         self.get_logger().warning(
-            f'rejected measurement {msg.header.frame_id!r}->{msg.child_frame_id!r} ({reason}): '
-            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]',
-            throttle_duration_sec=self.settings.warn_throttle_sec)
+            f'{log.pending} measurement(s) rejected; the last {src!r}->{dst!r} ({reason}): '
+            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]')
+        log.pending = 0
+
+    def _idle_check(self) -> None:
+        """End the open track after ``track_idle_timeout_sec`` without input."""
+        self._drain()
+        idle = time.monotonic() - self._last_input
+        if idle >= self.settings.track_idle_timeout_sec and self.aligner.open_track is not None:
+            self.get_logger().info(f'no measurement for {idle:.1f} s: ending track '
+                                   f'{self.aligner.open_track}')
+            self._finish_track()
+
+    def _path_timer(self) -> None:
+        """Publish the path when nodes were added since the last one (the open track's at their
+        dead-reckoned poses)."""
+        if self.session.n_nodes() != self._path_nodes:
+            self._publish_all()
+
+    def _finish_track(self) -> Any:
+        """End the open track (after the queued measurements) and publish; returns the update
+        (None: no open track). Raises SolverError (counted) if the update failed."""
+        self._drain()
+        try:
+            update = self.session.finish_track()
+        except SolverError:
+            self._publish_diagnostics()
+            raise
+        if update is not None:
+            self._publish_all()
+        return update
 
     def _after_updates(self, notes: tuple[str, ...]) -> None:
         """Log what the session noted about the updates, then publish everything."""
@@ -236,9 +331,8 @@ class AlignmentNode(Node):
     def _srv_finish_track(self, request: Trigger.Request,
                           response: Trigger.Response) -> Trigger.Response:
         try:
-            update = self.session.finish_track()
+            update = self._finish_track()
         except SolverError as exc:
-            self._publish_diagnostics()
             response.success, response.message = False, f'solver failed: {exc}'
             return response
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -247,14 +341,22 @@ class AlignmentNode(Node):
         if update is None:
             response.success, response.message = True, 'no open track'
             return response
-        self._publish_all()
         response.success = True
         response.message = (f'track {update.track_id}: {update.iterations} iterations, '
                             f'sigma0^2 {update.sigma0_sq:.4g}, {update.update_ms:.1f} ms')
         return response
 
     def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        self.session.reset()
+        if not self.settings.allow_reset:
+            response.success = False
+            response.message = 'reset is disabled (parameter allow_reset: false)'
+            return response
+        self._drain()
+        try:
+            self.session.reset()
+        except Exception as exc:  # noqa: BLE001 - a service must answer
+            response.success, response.message = False, f'reset refused: {exc}'
+            return response
         self._publish_all()
         response.success, response.message = True, 'state cleared'
         return response
@@ -264,6 +366,7 @@ class AlignmentNode(Node):
         if not path:
             response.success, response.message = False, 'parameter state_file is empty'
             return response
+        self._drain()
         try:
             self.session.save(path)
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -273,6 +376,7 @@ class AlignmentNode(Node):
         return response
 
     def _srv_load(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._drain()
         try:
             how = self.session.load()
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -305,6 +409,7 @@ class AlignmentNode(Node):
     def _publish_outputs(self) -> None:
         s = self.settings
         cp = self.aligner.corrected_path()
+        self._path_nodes = len(cp.node_ids)
         if len(cp.node_ids):
             stamp_ns = int(cp.stamps_ns[-1])
         else:
@@ -381,6 +486,15 @@ class AlignmentNode(Node):
         self.pub_diag.publish(conv.diagnostics_msg(
             f'{self.get_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
+
+
+@dataclass
+class RejectionLog:
+    """Rejections not logged yet: how many, and the last one (source and target frame, reason,
+    error)."""
+
+    pending: int = 0
+    last: tuple[Any, ...] = ()
 
 
 def main(args: list[str] | None = None) -> int:

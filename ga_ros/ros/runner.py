@@ -33,6 +33,11 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     except (GaError, ParameterException) as exc:
         print(f'{name}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
         code = 1
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGTERM / SIGINT during start-up: rclpy shut the context down under the constructor
+        print(f'{name}: stopped during start-up', file=sys.stderr)
     finally:
         if node is not None:
             node.destroy_node()
