@@ -69,12 +69,18 @@ class Live:
         self.client = NodeClient(dom)
         self.pub = self.client.node.create_publisher(
             Odometry, '/' + topics.MEASUREMENTS, measurement_qos(transient_local=True))
-        self.client.wait_for_node(proc=self.proc)
+        self._wait()
+
+    def _wait(self) -> None:
+        c = self.client
+        c.spin_until(lambda: self.pub.get_subscription_count() > 0
+                     and all(s.service_is_ready() for s in c.services.values()), 30,
+                     'the node', self.proc)
 
     def restart(self) -> None:
         self.proc = start_node_process(self.dom, self.params, log_path=self.log)
         self.client.diagnostics = {}
-        self.client.wait_for_node(proc=self.proc)
+        self._wait()
 
     def send(self, msgs: list[Odometry], wait: bool = True) -> None:
         for msg in msgs:
@@ -94,7 +100,8 @@ class Live:
         c = self.client
         try:
             c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
-                         and c.diag_int('dead_reckoned_nodes') == 0, timeout, 'final path')
+                         and c.diag_int('dead_reckoned_nodes') == 0
+                         and c.diag_int('nodes') >= n, timeout, 'final path')
         except HarnessTimeout:
             pass
         c.spin_until(lambda: False or True, 1, '')
@@ -311,7 +318,8 @@ def case_play_early(work: Path, dom: int, ref: np.ndarray) -> Row:
         c = client
         try:
             c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= len(ref)
-                         and c.diag_int('dead_reckoned_nodes') == 0, 20, 'path')
+                         and c.diag_int('dead_reckoned_nodes') == 0
+                         and c.diag_int('nodes') >= len(ref), 20, 'path')
         except HarnessTimeout:
             pass
         got = conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))

@@ -217,6 +217,24 @@ class BagPlayer:
         for p in self.publishers.values():
             p.wait_for_all_acked(timeout)
 
+    def _wait_delivered(self, patience_s: float) -> bool:
+        """Before exiting: wait until some subscriber is matched and every matched one has
+        acknowledged everything (a subscriber killed meanwhile stays matched until DDS notices
+        it is gone; its restart then gets the measurement topics' history), up to
+        ``patience_s``. False (with a warning) on timeout."""
+        end = time.monotonic() + patience_s
+        step = Duration(seconds=0.5)
+        while True:
+            acked = all([p.wait_for_all_acked(step) for p in self.publishers.values()])
+            if acked and any(p.get_subscription_count() for p in self.publishers.values()):
+                return True
+            if time.monotonic() > end:
+                self.node.get_logger().warning(
+                    f'after {patience_s:g} s, not every message was acknowledged by a '
+                    'subscriber; exiting anyway')
+                return False
+            time.sleep(0.05)
+
     def play(self) -> PlayStats:
         """Publish the whole bag; returns what was published.
 
@@ -274,12 +292,7 @@ class BagPlayer:
             end.child_frame_id = TRACK_END_FRAME
             self.publishers[topic].publish(end)
             stats.end_signals += 1
-        self._wait_acked()
-        if c.wait_for_subscribers_s > 0 and not any(
-                p.get_subscription_count() for p in self.publishers.values()):
-            # the subscriber went away (a crash?): keep the history for its restart
-            if self.wait_for_subscribers(c.wait_for_subscribers_s, settle_s=0.0):
-                self._wait_acked()
+        self._wait_delivered(max(c.wait_for_subscribers_s, c.ack_timeout_s))
         if bag_t0 is not None:
             self._clock(last, stats)
             stats.bag_seconds = (last - bag_t0) * 1e-9
