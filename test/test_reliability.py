@@ -287,7 +287,6 @@ def test_kill_9_during_play_loses_nothing(tmp_path):
     path equals an uninterrupted run (journal + snapshot, and the player's transient-local
     history re-delivers what the dead node had queued or missed)."""
     sample = aerial_sample(n_tracks=5, positions_per_swath=10, seed=4)
-    n = len(sample.measurements)
     bag = write_measurement_bag(tmp_path / 'b', sample.measurements, None)
     dom = domain_id(33)
     state = tmp_path / 'state.npz'
