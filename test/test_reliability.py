@@ -323,3 +323,20 @@ def test_kill_9_during_play_loses_nothing(tmp_path):
             player.kill()
         client.close()
         stop_process(proc)
+
+
+def test_play_imports_only_ros_interface_packages(tmp_path, monkeypatch):
+    """A bag naming a Python module as a message package cannot make the player import it."""
+    from ga_ros.errors import InputError
+    from ga_ros.ros.play import message_class
+
+    (tmp_path / 'evil_pkg' / 'msg').mkdir(parents=True)
+    (tmp_path / 'evil_pkg' / '__init__.py').write_text('')
+    (tmp_path / 'evil_pkg' / 'msg' / '__init__.py').write_text(
+        'import pathlib\npathlib.Path(__file__).with_name("ran").touch()\nclass Thing: pass\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ('evil_pkg/msg/Thing', 'os/msg/Thing', 'nav_msgs/msg/../os', 'nav_msgs/srv/X'):
+        with pytest.raises(InputError, match='message type'):
+            message_class(name)
+    assert not (tmp_path / 'evil_pkg' / 'msg' / 'ran').exists()
+    assert message_class('nav_msgs/msg/Odometry') is Odometry
