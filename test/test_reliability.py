@@ -172,6 +172,26 @@ def test_far_ahead_track_id_is_rejected_and_the_survey_goes_on(ros_pair, rng):
     assert_same_path(node.aligner, direct(ms, CONFIG2))
 
 
+@pytest.mark.parametrize('scale', [1e-20, 1e308, 1e9])
+def test_tiny_huge_and_placeholder_covariances_are_rejected(ros_pair, rng, scale):
+    """Point 3: counted as bad_covariance at the boundary; every later update still works."""
+    node = ros_pair([]).node()
+    ms = survey(rng, n_tracks=3, per_swath=4)
+    k = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 3
+    last = ms[k - 1]
+    for m in ms[:k]:
+        node._on_measurement(conv.measurement_to_odometry(m))
+    node._on_measurement(conv.measurement_to_odometry(Measurement(
+        last.src_id, last.dst_id + 1, last.src_track, last.dst_track, last.z,
+        scale * np.eye(6), last.stamp_ns, 'consecutive')))
+    for m in ms[k:]:
+        node._on_measurement(conv.measurement_to_odometry(m))
+    node._on_measurement(end_message())
+    assert dict(node.session.counts.rejected) == {'bad_covariance': 1}
+    assert node.session.counts.solver_failures == 0
+    assert_same_path(node.aligner, direct(ms, CONFIG2))
+
+
 # ------------------------------------------------------------------ files (point 5)
 def _run_first(pair: InProcess, ms: list) -> None:
     first = pair.node()

@@ -245,6 +245,11 @@ class AlignmentNode(Node):
         except GaError as exc:
             self._warn_rejected(self.session.undecodable(exc), exc, msg)
             return
+        except Exception as exc:  # noqa: BLE001 - the node must never die on a message
+            self.session.counts.received += 1
+            self.session.internal_error(exc)
+            self._warn_rejected('internal', exc, msg)
+            return
         try:
             out = self.session.step(m)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
