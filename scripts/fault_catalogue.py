@@ -189,13 +189,13 @@ def case_finish_race(work: Path, dom: int, ref: np.ndarray) -> Row:
     live = Live(work, dom, {})
     try:
         k = next(k for k, m in enumerate(MS) if m.dst_track == 2) + 3
-        live.send_ms(MS[:k], wait=False)
-        resp = live.client.call('finish_track')   # overtakes the queued rest of track 2?
+        live.send_ms(MS[:k])                        # delivered (acknowledged), still queued
+        resp = live.client.call('finish_track')   # must not overtake the queue
         live.send_ms(MS[k:])
         live.end()
         got = live.final_path(len(ref))
         # the service ends track 2 early (as asked): later nodes of track 2 are refused
-        return Row('finish_track while measurements queued', _alive(live),
+        return Row('finish_track while measurements are queued', _alive(live),
                    f'{live.rejected()} rejected', nodes_lost(ref[:_nodes_until(k)],
                                                              got[:_nodes_until(k)]),
                    f'service: {resp.message[:30]}')
