@@ -98,6 +98,26 @@ def ros_pair(request):
         p.close()
 
 
+def feed(node: AlignmentNode, ms: list[Measurement]) -> None:
+    """Hand measurements to the node's callback, in order."""
+    for m in ms:
+        node._on_measurement(conv.measurement_to_odometry(m))
+
+
+def feed_with_bad(node: AlignmentNode, ms: list[Measurement], bad: list[Measurement]) -> None:
+    """The survey with ``bad`` inserted inside track 1, then the end-of-input message."""
+    k = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 3
+    feed(node, ms[:k])
+    feed(node, bad)
+    feed(node, ms[k:])
+    node._on_measurement(end_message())
+
+
+def last_of_track_1(ms: list[Measurement]) -> Measurement:
+    """The measurement after which :func:`feed_with_bad` inserts its bad ones."""
+    return ms[next(k for k, m in enumerate(ms) if m.dst_track == 1) + 2]
+
+
 def assert_same_path(got: TrackWindowAligner, ref: TrackWindowAligner, atol: float = 1e-9):
     a, b = got.corrected_path(), ref.corrected_path()
     np.testing.assert_array_equal(a.node_ids, b.node_ids)
@@ -126,8 +146,7 @@ def test_end_of_input_message_ends_the_last_track(ros_pair, rng):
     pair = ros_pair([Parameter('path_period_sec', value=0.0)])
     node = pair.node()
     ms = survey(rng, n_tracks=2, per_swath=5)
-    for m in ms:
-        node._on_measurement(conv.measurement_to_odometry(m))
+    feed(node, ms)
     assert node.aligner.open_track == 1
     assert node.diagnostic_values()['dead_reckoned_nodes'] == 10    # open track: flagged
     node._on_measurement(end_message())
@@ -141,8 +160,7 @@ def test_idle_timeout_ends_the_open_track(ros_pair, rng):
     pair = ros_pair([Parameter('track_idle_timeout_sec', value=0.05)])
     node = pair.node()
     ms = survey(rng, n_tracks=2, per_swath=4)
-    for m in ms:
-        node._on_measurement(conv.measurement_to_odometry(m))
+    feed(node, ms)
     node._idle_check()                                 # not idle yet
     assert node.aligner.open_track == 1
     time.sleep(0.06)
@@ -155,20 +173,13 @@ def test_idle_timeout_ends_the_open_track(ros_pair, rng):
 def test_far_ahead_track_id_is_rejected_and_the_survey_goes_on(ros_pair, rng):
     node = ros_pair([]).node()
     ms = survey(rng, n_tracks=3, per_swath=4)
-    k = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 3
-    last = ms[k - 1]
-    for m in ms[:k]:
-        node._on_measurement(conv.measurement_to_odometry(m))
-    for bad in (Measurement(last.dst_id, last.dst_id + 1, last.dst_track, 1_000_000, last.z,
-                            last.cov, last.stamp_ns, 'consecutive'),
-                Measurement(last.dst_id, 2**53, last.dst_track, last.dst_track, last.z,
-                            last.cov, last.stamp_ns, 'consecutive')):
-        node._on_measurement(conv.measurement_to_odometry(bad))
-    for m in ms[k:]:
-        node._on_measurement(conv.measurement_to_odometry(m))
-    node._on_measurement(end_message())
-    rejected = dict(node.session.counts.rejected)
-    assert rejected == {'track_jump': 1, 'id_jump': 1}
+    last = last_of_track_1(ms)
+    feed_with_bad(node, ms, [
+        Measurement(last.dst_id, last.dst_id + 1, last.dst_track, 1_000_000, last.z, last.cov,
+                    last.stamp_ns, 'consecutive'),
+        Measurement(last.dst_id, 2**53, last.dst_track, last.dst_track, last.z, last.cov,
+                    last.stamp_ns, 'consecutive')])
+    assert dict(node.session.counts.rejected) == {'track_jump': 1, 'id_jump': 1}
     assert_same_path(node.aligner, direct(ms, CONFIG2))
 
 
@@ -177,16 +188,10 @@ def test_tiny_huge_and_placeholder_covariances_are_rejected(ros_pair, rng, scale
     """Point 3: counted as bad_covariance at the boundary; every later update still works."""
     node = ros_pair([]).node()
     ms = survey(rng, n_tracks=3, per_swath=4)
-    k = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 3
-    last = ms[k - 1]
-    for m in ms[:k]:
-        node._on_measurement(conv.measurement_to_odometry(m))
-    node._on_measurement(conv.measurement_to_odometry(Measurement(
-        last.src_id, last.dst_id + 1, last.src_track, last.dst_track, last.z,
-        scale * np.eye(6), last.stamp_ns, 'consecutive')))
-    for m in ms[k:]:
-        node._on_measurement(conv.measurement_to_odometry(m))
-    node._on_measurement(end_message())
+    last = last_of_track_1(ms)
+    feed_with_bad(node, ms, [Measurement(last.src_id, last.dst_id + 1, last.src_track,
+                                         last.dst_track, last.z, scale * np.eye(6),
+                                         last.stamp_ns, 'consecutive')])
     assert dict(node.session.counts.rejected) == {'bad_covariance': 1}
     assert node.session.counts.solver_failures == 0
     assert_same_path(node.aligner, direct(ms, CONFIG2))
@@ -195,8 +200,7 @@ def test_tiny_huge_and_placeholder_covariances_are_rejected(ros_pair, rng, scale
 # ------------------------------------------------------------------ files (point 5)
 def _run_first(pair: InProcess, ms: list) -> None:
     first = pair.node()
-    for m in ms:
-        first._on_measurement(conv.measurement_to_odometry(m))
+    feed(first, ms)
     first.session.journal.close()          # what the OS holds when the process is killed
     pair.nodes.remove(first)
     first.destroy_node()
@@ -225,8 +229,7 @@ def test_damaged_files_keep_every_intact_node(ros_pair, rng, tmp_path, damage):
     assert_same_path(second.aligner, ref)
     moved = [p for p in tmp_path.iterdir() if '.corrupt-' in p.name]
     assert moved, 'the damaged file is kept aside'
-    for m in ms[cut:]:
-        second._on_measurement(conv.measurement_to_odometry(m))
+    feed(second, ms[cut:])
     second._on_measurement(end_message())
     assert_same_path(second.aligner, direct(ms, CONFIG2))
 
@@ -242,8 +245,7 @@ def test_foreign_or_linked_state_file_is_never_written(ros_pair, rng, tmp_path, 
                      Parameter('allow_reset', value=True)], offset=25)
     node = pair.node()
     ms = survey(rng, n_tracks=2, per_swath=4)
-    for m in ms:
-        node._on_measurement(conv.measurement_to_odometry(m))
+    feed(node, ms)
     node._on_measurement(end_message())
     assert not node._srv_save(Trigger.Request(), Trigger.Response()).success
     node._srv_reset(Trigger.Request(), Trigger.Response())
