@@ -220,12 +220,14 @@ def case_kill(work: Path, dom: int, ref: np.ndarray) -> Row:
         live.send_ms(MS[k + 20:], wait=False)          # the publisher keeps going
         t0 = time.monotonic()
         live.restart()
-        restart_s = time.monotonic() - t0
+        c = live.client
+        c.spin_until(lambda: bool(c.diagnostics), 60, 'the restarted node', live.proc)
+        restart_s = time.monotonic() - t0          # process start + recovery
         live.end()
         got = live.final_path(len(ref))
         return Row('kill -9 mid-track, publisher continues', _alive(live),
                    f'{live.rejected()} re-deliveries rejected', nodes_lost(ref, got),
-                   f'restart {restart_s:.1f} s')
+                   f'back in {restart_s:.1f} s')
     finally:
         live.close()
 
