@@ -156,6 +156,27 @@ def test_end_of_input_message_ends_the_last_track(ros_pair, rng):
     assert_same_path(node.aligner, direct(ms, CONFIG2))
 
 
+def test_end_of_input_message_is_ordered_in_the_queue(ros_pair, rng):
+    """The in-band end message ends the track exactly where it stands in the stream: a
+    measurement queued behind it is handled after the track end (here: refused, its track has
+    ended), not before."""
+    pair = ros_pair([])
+    node = pair.node()
+    ms = survey(rng, n_tracks=2, per_swath=5)
+    first = next(k for k, m in enumerate(ms) if m.dst_track == 1)
+    k = next(k for k, m in enumerate(ms) if k > first + 2 and m.dst_track == 1
+             and m.dst_id not in {n.dst_id for n in ms[:k]} | {ms[0].src_id})   # a new node
+    feed(node, ms[:k])
+    pair.publish_and_wait_acked(node, [end_message(), conv.measurement_to_odometry(ms[k])])
+    assert node._drain() == 2
+    assert dict(node.session.counts.rejected) == {'out_of_order': 1}
+    ref = TrackWindowAligner(CONFIG2)
+    for m in ms[:k]:
+        ref.add_measurement(m)
+    ref.finish_track()
+    assert_same_path(node.aligner, ref)
+
+
 def test_idle_timeout_ends_the_open_track(ros_pair, rng):
     pair = ros_pair([Parameter('track_idle_timeout_sec', value=0.05)])
     node = pair.node()

@@ -238,7 +238,10 @@ class AlignmentNode(Node):
         self._last_input = time.monotonic()
         throttle = self.settings.warn_throttle_sec
         if msg.child_frame_id == topics.TRACK_END_FRAME:   # in-band: after all before it
-            self._finish_track()
+            try:
+                self._finish_track(drain=False)  # (draining would take what came after it)
+            except SolverError:
+                pass                             # counted and logged by the session
             return
         try:
             m = conv.odometry_to_measurement(msg)
@@ -302,7 +305,10 @@ class AlignmentNode(Node):
         if idle >= self.settings.track_idle_timeout_sec and self.aligner.open_track is not None:
             self.get_logger().info(f'no measurement for {idle:.1f} s: ending track '
                                    f'{self.aligner.open_track}')
-            self._finish_track()
+            try:
+                self._finish_track(drain=False)   # just drained
+            except SolverError:
+                pass                              # counted and logged by the session
 
     def _path_timer(self) -> None:
         """Publish the path when nodes were added since the last one (the open track's at their
@@ -310,10 +316,11 @@ class AlignmentNode(Node):
         if self.session.n_nodes() != self._path_nodes:
             self._publish_all()
 
-    def _finish_track(self) -> Any:
-        """End the open track (after the queued measurements) and publish; returns the update
-        (None: no open track). Raises SolverError (counted) if the update failed."""
-        self._drain()
+    def _finish_track(self, drain: bool = True) -> Any:
+        """End the open track (after the queued measurements if ``drain``) and publish; returns
+        the update (None: no open track). Raises SolverError (counted) if the update failed."""
+        if drain:
+            self._drain()
         try:
             update = self.session.finish_track()
         except SolverError:
