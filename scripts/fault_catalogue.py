@@ -199,7 +199,7 @@ def case_finish_race(work: Path, dom: int, ref: np.ndarray) -> Row:
         want = finish_after(k)
         got = live.final_path(len(want))
         return Row('finish_track while measurements are queued', _alive(live),
-                   f'{live.rejected()} rejected (rest of the ended track)',
+                   f'{live.rejected()} rejected',
                    nodes_lost(want, got), f'service: {resp.message[:30]}')
     finally:
         live.close()
