@@ -20,6 +20,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, Reason, SolverError
 from ga_ros.pipeline.journal import (
@@ -269,7 +270,7 @@ class AlignmentSession:
         if self.journal is not None:
             self.journal.sync()
         records = self.journal.count if self.journal is not None else None
-        self.aligner.save(target, journal_records=records)
+        save_state(self.aligner, target, journal_records=records)
 
     def _recover(self) -> RecoveryResult:
         """:func:`recover` the state file, with the journal closed meanwhile and reopened
