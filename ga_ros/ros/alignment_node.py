@@ -279,11 +279,11 @@ class AlignmentNode(Node):
             self.session.last_error = f'after update: {type(exc).__name__}: {exc}'
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
 
-    def _warn_rejected(self, reason: object, exc: object, msg: Odometry) -> None:
+    def _warn_rejected(self, reason: object, exc: object, msg: Any) -> None:
         """Note a rejection (counted by the session); logged by a timer, not per message."""
         log = self._rejections
         log.pending += 1
-        log.last = (msg.header.frame_id, msg.child_frame_id, reason, exc)
+        log.last = (msg.header.frame_id, getattr(msg, 'child_frame_id', ''), reason, exc)
         if self.settings.warn_throttle_sec == 0:
             self._log_rejections()
 
