@@ -27,6 +27,8 @@ class Reason(StrEnum):
     BAD_STAMP = 'bad_stamp'
     BAD_SHAPE = 'bad_shape'
     TRACK_MISMATCH = 'track_mismatch'
+    ID_JUMP = 'id_jump'
+    TRACK_JUMP = 'track_jump'
     UNKNOWN_SOURCE = 'unknown_source'
     INVALID = 'invalid'
     INTERNAL = 'internal'

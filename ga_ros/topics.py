@@ -10,6 +10,10 @@ from __future__ import annotations
 
 #: Measurements (``nav_msgs/Odometry`` encoding), from ``vo_node`` to ``alignment_node``.
 MEASUREMENTS = 'ga/measurements'
+#: ``child_frame_id`` of the end-of-input / track-end message on the measurements topic: a
+#: ``nav_msgs/Odometry`` with this child frame (other fields ignored) ends the open track after
+#: every measurement published before it (``ga-ros play`` sends one at the end of a bag).
+TRACK_END_FRAME = 'ga/track_end'
 #: Corrected path (``nav_msgs/Path``, transient local), every node in the map frame.
 CORRECTED_PATH = 'ga/corrected_path'
 #: Newest adjusted node (``geometry_msgs/PoseWithCovarianceStamped``).

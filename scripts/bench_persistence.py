@@ -2,7 +2,7 @@
 
 Prints, for the paper's aerial survey (5,100 nodes, 29,896 connections) and a scaled one
 (~100k nodes), the time to save and to load a snapshot, its size, and the time of
-``ga_ros.ros.journal.recover`` for a snapshot plus the whole measurement journal (the node's
+``ga_ros.pipeline.journal.recover`` for a snapshot plus the whole measurement journal (the node's
 restart after ``kill -9``), and the rate of the batched journal replay.
 
 The states are filled by a stand-in for the window updates (tracks marked finished, leaving
@@ -22,7 +22,7 @@ import numpy as np
 
 from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.ros.journal import MeasurementJournal, journal_path, recover
+from ga_ros.pipeline.journal import MeasurementJournal, journal_path, recover
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 

@@ -30,6 +30,7 @@ from ga_ros.core.solver import connection_cost  # noqa: E402
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.pipeline.journal import MeasurementJournal, read_journal  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
@@ -38,7 +39,6 @@ from ga_ros.ros.harness import (  # noqa: E402
     start_node_process,
     stop_process,
 )
-from ga_ros.ros.journal import MeasurementJournal, read_journal  # noqa: E402
 from ga_ros.ros.qos import latched_qos  # noqa: E402
 from ga_ros.ros.view import connection_view, network_view, normalized_residuals  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
@@ -162,7 +162,7 @@ def node_in_process(tmp_path):
     rclpy.init(context=ctx, domain_id=domain_id(7))
     node = AlignmentNode(context=ctx, parameter_overrides=[
         Parameter('state_file', value=str(tmp_path / 'state.npz')),
-        Parameter('window_tracks', value=2),
+        Parameter('window_tracks', value=2), Parameter('allow_reset', value=True),
         Parameter('diagnostics_period_sec', value=0.0)])
     try:
         yield node
@@ -300,7 +300,9 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
         first.session.journal.close()            # what the OS has when the process is killed
         first.destroy_node()
         if damage == 'corrupt_snapshot':
-            state.write_bytes(b'garbage')
+            data = bytearray(state.read_bytes())   # a ga_ros header, a bad CRC
+            data[len(data) // 2] ^= 0xFF
+            state.write_bytes(bytes(data))
         elif damage == 'no_snapshot':
             state.unlink()
         elif damage == 'torn_record':

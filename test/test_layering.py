@@ -18,7 +18,7 @@ RANK = {'arrays': 0, 'errors': 0, 'runtime': 0, 'topics': 0, 'geometry': 1,
         'pipeline': 3, 'inputs': 3,
         'replay': 4, 'tools': 4, 'report': 4, 'bench': 4, 'ros': 5, 'cli': 6}
 #: Known exceptions (importer, imported): ROS-free modules that still live in a higher folder.
-ALLOWED = {('ga_ros.pipeline.session', 'ga_ros.ros.journal')}
+ALLOWED: set[tuple[str, str]] = set()
 
 
 def module_name(path: Path) -> str:

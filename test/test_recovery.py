@@ -1,4 +1,4 @@
-"""Crash recovery from a snapshot and its journal (ros/journal.py, ROS-free): every intact
+"""Crash recovery from a snapshot and its journal (pipeline/journal.py, ROS-free): every intact
 measurement is recovered, damaged files are moved aside and never deleted, foreign files and
 planted links are never touched."""
 
@@ -12,7 +12,7 @@ import pytest
 from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import CorruptFileError, ForeignFileError, UnsafePathError
-from ga_ros.ros.journal import (
+from ga_ros.pipeline.journal import (
     RECORD,
     MeasurementJournal,
     journal_path,
@@ -171,7 +171,7 @@ def test_a_torn_last_record_is_not_damage(tmp_path, ms):
 
 
 def test_an_old_journal_is_converted_and_a_bad_one_refused_for_appending(tmp_path, ms):
-    from ga_ros.ros.journal import RECORD_V1, encode_records
+    from ga_ros.pipeline.journal import RECORD_V1, encode_records
     state = tmp_path / 'state'
     v2 = np.frombuffer(encode_records(ms[:5]), RECORD)
     v1 = np.zeros(5, RECORD_V1)
@@ -187,7 +187,7 @@ def test_an_old_journal_is_converted_and_a_bad_one_refused_for_appending(tmp_pat
 
 
 def test_clear_state_removes_only_our_files(tmp_path, ms):
-    from ga_ros.ros.journal import clear_state, write_snapshot_info
+    from ga_ros.pipeline.journal import clear_state, write_snapshot_info
     state, n = tmp_path / 'state', _cut(ms)
     _live(ms, state, n)
     write_snapshot_info(state, n)
@@ -207,5 +207,5 @@ def test_journal_and_recovery_are_ros_free():
     import subprocess
     import sys
     code = ("import sys\nfor n in ('rclpy', 'nav_msgs', 'std_msgs', 'rosidl_runtime_py'):\n"
-            "    sys.modules[n] = None\nimport ga_ros.ros.journal, ga_ros.core.persistence\n")
+            "    sys.modules[n] = None\nimport ga_ros.pipeline.journal, ga_ros.core.persistence\n")
     subprocess.run([sys.executable, '-c', code], check=True, timeout=60)

@@ -129,6 +129,19 @@ def test_disconnected_graph_is_an_error(tmp_path, capsys):
     assert code == 1 and 'not connected' in stderr
 
 
+def test_non_finite_cost_is_an_error(tmp_path, capsys):
+    """A vertex at 1e308 (cost inf) exits 1 with a message and writes nothing."""
+    src = _write(tmp_path / 'inf.g2o', ['VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1',
+                                       'VERTEX_SE3:QUAT 1 1e308 0 0 0 0 0 1',
+                                       'VERTEX_SE3:QUAT 2 2 0 0 0 0 0 1',
+                                       f'EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO3}',
+                                       f'EDGE_SE3:QUAT 1 2 1 0 0 0 0 0 1 {INFO3}'])
+    out = tmp_path / 'out.g2o'
+    code, _, stderr = _run(capsys, ['solve', str(src), '--out', str(out), '--init', 'file'])
+    assert code == 1 and 'final cost' in stderr and '1e308' in stderr
+    assert not out.exists()
+
+
 # ---------------------------------------------------------------------------------- robust
 @pytest.mark.parametrize('loss', ['huber', 'cauchy'])
 def test_robust_loss_resists_wrong_connections(tmp_path, rng, loss):

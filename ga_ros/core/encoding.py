@@ -87,10 +87,14 @@ def covariance_from_values(values: Sequence[float]) -> FloatArray:
     if not np.isfinite(cov).all():
         raise InputError('covariance has NaN or inf entries')
     scale = max(float(np.abs(cov).max()), 1e-300)
-    if float(np.abs(cov - cov.T).max()) > 1e-6 * scale:
+    if float(np.abs(0.5 * cov - 0.5 * cov.T).max()) > 0.5e-6 * scale:  # no overflow at 1e308
         raise InputError('covariance is not symmetric')
-    cov = 0.5 * (cov + cov.T)
-    if float(np.linalg.eigvalsh(cov)[0]) <= 1e-12 * scale:
+    cov = 0.5 * cov + 0.5 * cov.T
+    try:
+        smallest = float(np.linalg.eigvalsh(cov / scale)[0])
+    except np.linalg.LinAlgError:
+        smallest = -1.0
+    if not smallest > 1e-12:
         raise InputError('covariance is not positive definite')
     return cov
 

@@ -2,7 +2,7 @@
 
 It owns the :class:`~ga_ros.core.window.TrackWindowAligner`, the rejection counters (keyed by
 the typed :class:`~ga_ros.errors.Reason` of each rejection), the crash insurance (measurement
-journal + snapshots, :mod:`ga_ros.ros.journal`) and the diagnostic values. One call per
+journal + snapshots, :mod:`ga_ros.pipeline.journal`) and the diagnostic values. One call per
 measurement: :meth:`AlignmentSession.step` ``(measurement) -> StepOutput``. The node turns
 messages into measurements and :class:`StepOutput` into messages; nothing else.
 """
@@ -14,23 +14,21 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import load_state, save_state
+from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, Reason, SolverError
-from ga_ros.ros.journal import (
+from ga_ros.pipeline.journal import (
     MeasurementJournal,
+    RecoveryResult,
+    clear_state,
     journal_path,
-    read_journal,
-    read_snapshot_info,
-    snapshot_info_path,
-    write_snapshot_info,
+    recover,
 )
 
 #: Called with warnings the session wants shown (the node logs them, throttled).
@@ -45,10 +43,14 @@ class SessionConfig:
     ----------
     state_file : ``.npz`` snapshot for save/load and resume on start (``''``: none).
     autosave : journal every accepted measurement and save a snapshot after every update.
+    fsync_period_sec : durability of the journal. Every record is written to the OS at once
+        (a killed process loses nothing); it is also ``fsync``-ed to disk (a power cut loses
+        nothing) after every measurement if 0, else at most every this many seconds.
     """
 
     state_file: str = ''
     autosave: bool = True
+    fsync_period_sec: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -72,15 +74,6 @@ class StepOutput:
     error: str = ''
     solver_failed: bool = False
     notes: tuple[str, ...] = ()
-
-
-@dataclass(frozen=True)
-class Restored:
-    """Result of a restore: the new aligner and how it was rebuilt (``'snapshot + n journal
-    records'`` or ``'replay of n journal records'``)."""
-
-    aligner: TrackWindowAligner
-    how: str
 
 
 @dataclass(frozen=True)
@@ -133,9 +126,9 @@ class AlignmentSession:
         self.counts = _Counters()
         self.last_update: Any = None
         self.last_error = ''
-        s = self.session
-        self.journal = (MeasurementJournal(journal_path(s.state_file))
-                        if s.state_file and s.autosave else None)
+        self._next_sync = 0.0
+        #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
+        self.journal: MeasurementJournal | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -156,6 +149,7 @@ class AlignmentSession:
         self.counts.accepted += 1
         if self.journal is not None:
             self.journal.append(m)
+            self.sync()
         done = tuple(u for u in updates if u is not None)
         if done:
             return StepOutput(True, done, notes=tuple(self.after_updates(done)))
@@ -225,104 +219,110 @@ class AlignmentSession:
         return update
 
     def reset(self) -> None:
-        """Forget everything: a fresh aligner, zero counters, and (autosave) empty state files."""
-        self.aligner = TrackWindowAligner(self.config)
+        """Forget everything: a fresh aligner, zero counters, and (autosave) emptied state files.
+
+        Raises
+        ------
+        ForeignFileError, UnsafePathError
+            A state path is not ga_ros's own file or is a link: nothing was changed.
+        """
         if self.journal is not None:  # autosave: the files mirror the live state
-            self.journal.clear()
-            for f in (self.session.state_file, snapshot_info_path(self.session.state_file)):
-                Path(f).unlink(missing_ok=True)
+            self.journal.close()
+            clear_state(self.session.state_file)
+            self.journal = MeasurementJournal(journal_path(self.session.state_file))
+        self.aligner = TrackWindowAligner(self.config)
         self.counts = _Counters()
         self.last_update, self.last_error = None, ''
 
     def close(self) -> None:
-        """Close the journal."""
+        """Close the journal (after an ``fsync``)."""
         if self.journal is not None:
+            try:
+                self.journal.sync()
+            except OSError:
+                pass
             self.journal.close()
+
+    def sync(self, now: float | None = None) -> None:
+        """``fsync`` the journal if ``SessionConfig.fsync_period_sec`` has passed since the
+        last one (0: every call). Called after each accepted measurement."""
+        if self.journal is None:
+            return
+        now = time.monotonic() if now is None else now
+        if now >= self._next_sync:
+            self.journal.sync()
+            self._next_sync = now + self.session.fsync_period_sec
 
     # ------------------------------------------------------------------ state files
     def save(self, path: str | None = None) -> None:
-        """Write the aligner snapshot atomically (temporary file, then rename), and how many
-        journal records it holds."""
-        target = Path(path or self.session.state_file)
-        if not str(target) or str(target) == '.':
-            raise InputError('no state file (parameter state_file is empty)')
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(f'.{target.stem}.tmp{os.getpid()}.npz')
-        save_state(self.aligner, str(tmp))
-        os.replace(tmp, target)
-        write_snapshot_info(target, self.journal.count if self.journal is not None else 0)
-
-    def restore(self, path: str, n_records: int | None = None) -> Restored:
-        """A new aligner holding the snapshot ``path`` plus the journal records after it (up to
-        ``n_records`` in all; default: every record). Falls back to replaying the journal into
-        a fresh aligner if the snapshot cannot be loaded. Raises if neither works; the session
-        is not changed."""
-        records = read_journal(journal_path(path)) if self.journal is not None else []
-        if n_records is not None:
-            records = records[:n_records]
-        aligner, start, how = None, 0, 'journal replay'
-        snapshot_error: Exception | None = None
-        if os.path.exists(path):
-            try:
-                aligner = load_state(path).aligner
-                start = min(read_snapshot_info(path), len(records))
-                how = 'snapshot'
-            except Exception as exc:  # noqa: BLE001 - any unusable snapshot: use the journal
-                snapshot_error = exc
-        if aligner is None:
-            if not records:
-                raise snapshot_error or InputError(f'no state in {path}')
-            why = f'not usable ({snapshot_error})' if snapshot_error else 'missing'
-            self.warn(f'snapshot {path} {why}; replaying {len(records)} journal records')
-            aligner = TrackWindowAligner(self.config)
-        n = 0
-        for m in records[start:]:
-            try:
-                aligner.add_measurement(m)
-                n += 1
-            except GaError:
-                pass  # already in the snapshot (a crash between snapshot and sidecar)
-        how = (f'snapshot + {n} journal records' if how == 'snapshot'
-               else f'replay of {n} journal records')
-        return Restored(aligner, how)
-
-    def load(self) -> str:
-        """Replace the state by the state file's (``~/load_state``); returns how.
+        """Write the aligner snapshot atomically, with how many journal records it holds.
 
         Raises
         ------
         InputError
-            No state file; other errors if it cannot be read (the state is then unchanged).
+            No state file; :class:`~ga_ros.errors.ForeignFileError` if ``path`` exists and is
+            not a ga_ros state (left untouched), :class:`~ga_ros.errors.UnsafePathError` for a
+            link.
+        """
+        target = path or self.session.state_file
+        if not target:
+            raise InputError('no state file (parameter state_file is empty)')
+        if self.journal is not None:
+            self.journal.sync()
+        records = self.journal.count if self.journal is not None else None
+        save_state(self.aligner, target, journal_records=records)
+
+    def _recover(self) -> RecoveryResult:
+        """:func:`recover` the state file, with the journal closed meanwhile and reopened
+        after (recovery may repair it)."""
+        path = self.session.state_file
+        if self.journal is not None:
+            self.journal.close()
+        result = recover(path, self.config)
+        for text in result.messages:
+            self.warn(text)
+        if self.session.autosave:
+            self.journal = MeasurementJournal(journal_path(path))
+        return result
+
+    def load(self) -> str:
+        """Replace the state by the state file's and its journal's (``~/load_state``); returns
+        how.
+
+        Raises
+        ------
+        InputError
+            No state file, a foreign file or a link (the state is then unchanged).
         """
         path = self.session.state_file
-        if not path or not os.path.exists(path):
+        if not path or not (os.path.lexists(path) or os.path.lexists(journal_path(path))):
             raise InputError(f'no state file {path!r}')
-        n_records = read_snapshot_info(path) if self.journal is not None else 0
-        restored = self.restore(path, n_records)
-        self.aligner = restored.aligner
-        if self.journal is not None:
-            self.journal.truncate(n_records)  # the journal mirrors the restored state
-        return restored.how
+        result = self._recover()
+        if result.source == 'empty':
+            raise InputError(f'no state in {path!r}')
+        self.aligner = result.aligner
+        return _how(result)
 
     def resume(self) -> str | None:
         """On start: restore from the state file and its journal if they exist.
 
-        Returns how (None if there was nothing to resume). A bad file is reported through
-        ``warn`` and the session starts empty (returns ``'failed: ...'``).
+        Returns how (None if there was nothing to resume). Damaged files are moved aside and
+        reported through ``warn`` (never deleted). A state path that is a foreign file or a link
+        is never written: persistence is switched off (``'failed: ...'``) and the session
+        starts empty.
         """
         path = self.session.state_file
-        if not path or (not os.path.exists(path) and not journal_path(path).exists()):
+        if not path:
             return None
         try:
-            restored = self.restore(path)
-        except Exception as exc:  # noqa: BLE001 - a bad state file must not stop the node
-            self.warn(f'could not resume from {path}: {exc}; starting empty')
-            self.aligner = TrackWindowAligner(self.config)
-            if self.journal is not None:
-                self.journal.clear()
+            result = self._recover()
+        except InputError as exc:  # ForeignFileError, UnsafePathError: never touch that path
+            self.warn(f'state file {path}: {exc}; running WITHOUT persistence')
+            self.journal = None
+            self.session = SessionConfig('', False)
             return f'failed: {exc}'
-        self.aligner = restored.aligner
-        return restored.how
+        self.aligner = result.aligner
+        return None if result.source == 'empty' else _how(result)
 
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
@@ -343,6 +343,14 @@ class AlignmentSession:
             cov[0, 0] = -1.0
             return cov
 
+    def dead_reckoned_nodes(self) -> int:
+        """Nodes of the open track (at the end of the path, at their dead-reckoned poses: no
+        window update has adjusted them yet)."""
+        open_track = getattr(self.aligner, 'open_track', None)
+        if open_track is None:
+            return 0
+        return int(np.count_nonzero(self.aligner.corrected_path().track_ids == open_track))
+
     def n_nodes(self) -> int:
         """Nodes held by the aligner."""
         return int(getattr(self.aligner.stats, 'n_nodes', 0))
@@ -362,6 +370,7 @@ class AlignmentSession:
             'update_ms': float(u.update_ms) if u is not None else float('nan'),
             'converged': bool(u.converged) if u is not None else True,
             'last_track': int(u.track_id) if u is not None else -1,
+            'dead_reckoned_nodes': self.dead_reckoned_nodes(),
             'outliers_excluded': int(getattr(st, 'n_outliers', 0)),
             'last_update_outliers': int(getattr(u, 'n_outliers', 0)) if u is not None else 0,
             'updates': c.updates,
@@ -385,3 +394,12 @@ class AlignmentSession:
         if self.counts.rejected:
             return Health(False, 'rejected measurements')
         return Health(True, 'ok')
+
+
+def _how(result: RecoveryResult) -> str:
+    """One line on a recovery: source, records replayed, files moved aside, seconds."""
+    text = (f'{result.source}: snapshot of {result.snapshot_records} journal records + '
+            f'{result.records_replayed} replayed in {result.seconds:.2f} s')
+    if result.moved_aside:
+        text += '; moved aside: ' + ', '.join(str(p) for p in result.moved_aside)
+    return text

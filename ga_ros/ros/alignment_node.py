@@ -37,6 +37,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -126,6 +128,24 @@ class NodeSettings:
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
     full_path_min_period_sec : publish the full path at most this often, s (0: after every
         update; big surveys: e.g. 10, the window path carries the updates).
+    measurement_durability : ``volatile`` (any publisher) or ``transient_local`` (the
+        publisher's history is delivered again after a restart: nothing published while the
+        node was down or still queued when it was killed is lost; the publisher must be
+        transient local too, as ``ga-ros play`` is; re-delivered measurements are counted as
+        ``rejected/duplicate``).
+    fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
+        loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
+        most every this many seconds.
+    track_idle_timeout_sec : end the open track when no measurement has arrived for this long,
+        wall-clock s (0: never; a track end then comes from the next track's first measurement,
+        the end-of-input message or ``~/finish_track``). Measurements of a track that arrive
+        after its end are rejected (``out_of_order``): keep it well above any pause of the VO.
+    path_period_sec : publish the path, when nodes were added since the last one, at most this
+        often, s; the open track's nodes are then in it at their dead-reckoned poses
+        (diagnostics ``dead_reckoned_nodes``: how many at the end of the path) (0: only after
+        updates).
+    allow_reset : whether ``~/reset`` may clear the state (and empty the state files); off by
+        default, since any peer on the ROS graph can call it.
     """
 
     map_frame: str = 'map'
@@ -158,6 +178,12 @@ class NodeSettings:
     window_path_topic: str = topics.WINDOW_PATH
     full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
 
+    measurement_durability: str = 'volatile'
+    fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
+    track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
+    path_period_sec: float = field_(1.0, 0.0, 3600.0)
+    allow_reset: bool = False
+
 
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
@@ -184,12 +210,23 @@ class AlignmentNode(Node):
         if s.covariance_policy not in COVARIANCE_POLICIES:
             raise InputError(f'covariance_policy must be one of {COVARIANCE_POLICIES}')
         self.front = self._declare_inputs(s)
+        if s.measurement_durability not in ('volatile', 'transient_local'):
+            raise InputError(f'parameter measurement_durability must be volatile or '
+                             f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
-            self.aligner_config, SessionConfig(s.state_file, s.autosave),
+            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec),
             warn=lambda text: self.get_logger().warning(text))
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
         self._markers_dirty = False
+        self._last_input = time.monotonic()
+        self._path_nodes = 0           # nodes in the last published path
+        self._rejections = RejectionLog()
+        # subscribe first: what arrives while the state is restored waits in the queue
+        self.sub = self.create_subscription(
+            Odometry, s.measurements_topic, self._on_measurements,
+            measurement_qos(s.measurement_queue_depth,
+                            transient_local=s.measurement_durability == 'transient_local'))
 
         self.pub_path = self.create_publisher(Path, s.path_topic, latched_qos())
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, s.pose_topic,
@@ -213,10 +250,15 @@ class AlignmentNode(Node):
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
 
-        self.sub = self.create_subscription(Odometry, s.measurements_topic, self._on_measurements,
-                                            measurement_qos(s.measurement_queue_depth))
         if s.diagnostics_period_sec > 0:
             self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
+        wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
+        if s.warn_throttle_sec > 0:
+            self.create_timer(s.warn_throttle_sec, self._log_rejections, clock=wall)
+        if s.track_idle_timeout_sec > 0:
+            self.create_timer(min(1.0, s.track_idle_timeout_sec / 4), self._idle_check, clock=wall)
+        if s.path_period_sec > 0:
+            self.create_timer(s.path_period_sec, self._path_timer, clock=wall)
         if s.publish_markers:
             self.create_timer(1.0, self._markers_timer)
         self._subscribe_inputs(s)
@@ -243,21 +285,37 @@ class AlignmentNode(Node):
         it straight from the subscription (up to ``DRAIN_MAX`` or ``DRAIN_SECONDS``), which
         saves the executor's per-message wait-set round trip on bursts."""
         self._on_measurement(msg)
-        t_end = time.perf_counter() + DRAIN_SECONDS
-        for _ in range(DRAIN_MAX):
+        self._drain(DRAIN_MAX, DRAIN_SECONDS)
+
+    def _drain(self, max_messages: int | None = None, max_seconds: float | None = None) -> int:
+        """Handle the measurements already queued in the subscription (all of them by default:
+        a track end, a service call or a timer acts only after everything received before
+        it). Returns how many were handled."""
+        t_end = time.perf_counter() + max_seconds if max_seconds is not None else None
+        n = 0
+        while max_messages is None or n < max_messages:
             try:
                 with self.sub.handle:
                     taken = self.sub.handle.take_message(Odometry, False)
             except Exception:  # noqa: BLE001 - e.g. the subscription was destroyed
-                return
+                return n
             if taken is None:
-                return
+                return n
             self._on_measurement(taken[0])
-            if time.perf_counter() > t_end:
-                return
+            n += 1
+            if t_end is not None and time.perf_counter() > t_end:
+                return n
+        return n
 
     def _on_measurement(self, msg: Odometry) -> None:
         """One measurement: decode, one session step, publish if a window update ran."""
+        self._last_input = time.monotonic()
+        if msg.child_frame_id == topics.TRACK_END_FRAME:   # in-band: after all before it
+            try:
+                self._finish_track(drain=False)  # (draining would take what came after it)
+            except SolverError:
+                pass                             # counted and logged by the session
+            return
         try:
             if self.settings.covariance_policy == 'reject':
                 m = conv.odometry_to_measurement(msg)
@@ -266,11 +324,17 @@ class AlignmentNode(Node):
         except GaError as exc:
             self._warn_rejected(self.session.undecodable(exc), exc, msg)
             return
+        except Exception as exc:  # noqa: BLE001 - the node must never die on a message
+            self.session.counts.received += 1
+            self.session.internal_error(exc)
+            self._warn_rejected('internal', exc, msg)
+            return
         self._process(m, msg)
 
     def _process(self, m: Measurement, msg: Any) -> None:
         """One session step of a measurement (``msg``: its message, named in warnings)."""
         t0 = time.perf_counter()
+        self._last_input = time.monotonic()
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
@@ -300,11 +364,55 @@ class AlignmentNode(Node):
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
 
     def _warn_rejected(self, reason: object, exc: object, msg: Any) -> None:
+        """Note a rejection (counted by the session); logged by a timer, not per message."""
+        log = self._rejections
+        log.pending += 1
+        log.last = (msg.header.frame_id, getattr(msg, 'child_frame_id', ''), reason, exc)
+        if self.settings.warn_throttle_sec == 0:
+            self._log_rejections()
+
+    def _log_rejections(self) -> None:
+        """One warning for the rejections since the last one (timer of ``warn_throttle_sec``)."""
+        log = self._rejections
+        if not log.pending:
+            return
+        src, dst, reason, exc = log.last
         self.get_logger().warning(
-            f'rejected measurement {msg.header.frame_id!r}->'
-            f'{getattr(msg, "child_frame_id", "")!r} ({reason}): '
-            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]',
-            throttle_duration_sec=self.settings.warn_throttle_sec)
+            f'{log.pending} measurement(s) rejected; the last {src!r}->{dst!r} ({reason}): '
+            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]')
+        log.pending = 0
+
+    def _idle_check(self) -> None:
+        """End the open track after ``track_idle_timeout_sec`` without input."""
+        self._drain()
+        idle = time.monotonic() - self._last_input
+        if idle >= self.settings.track_idle_timeout_sec and self.aligner.open_track is not None:
+            self.get_logger().info(f'no measurement for {idle:.1f} s: ending track '
+                                   f'{self.aligner.open_track}')
+            try:
+                self._finish_track(drain=False)   # just drained
+            except SolverError:
+                pass                              # counted and logged by the session
+
+    def _path_timer(self) -> None:
+        """Publish the path when nodes were added since the last one (the open track's at their
+        dead-reckoned poses)."""
+        if self.session.n_nodes() != self._path_nodes:
+            self._publish_all()
+
+    def _finish_track(self, drain: bool = True) -> Any:
+        """End the open track (after the queued measurements if ``drain``) and publish; returns
+        the update (None: no open track). Raises SolverError (counted) if the update failed."""
+        if drain:
+            self._drain()
+        try:
+            update = self.session.finish_track()
+        except SolverError:
+            self._publish_diagnostics()
+            raise
+        if update is not None:
+            self._publish_all()
+        return update
 
     def _after_updates(self, notes: tuple[str, ...]) -> None:
         """Log what the session noted about the updates, then publish everything."""
@@ -407,9 +515,8 @@ class AlignmentNode(Node):
     def _srv_finish_track(self, request: Trigger.Request,
                           response: Trigger.Response) -> Trigger.Response:
         try:
-            update = self.session.finish_track()
+            update = self._finish_track()
         except SolverError as exc:
-            self._publish_diagnostics()
             response.success, response.message = False, f'solver failed: {exc}'
             return response
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -418,14 +525,22 @@ class AlignmentNode(Node):
         if update is None:
             response.success, response.message = True, 'no open track'
             return response
-        self._publish_all()
         response.success = True
         response.message = (f'track {update.track_id}: {update.iterations} iterations, '
                             f'sigma0^2 {update.sigma0_sq:.4g}, {update.update_ms:.1f} ms')
         return response
 
     def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        self.session.reset()
+        if not self.settings.allow_reset:
+            response.success = False
+            response.message = 'reset is disabled (parameter allow_reset: false)'
+            return response
+        self._drain()
+        try:
+            self.session.reset()
+        except Exception as exc:  # noqa: BLE001 - a service must answer
+            response.success, response.message = False, f'reset refused: {exc}'
+            return response
         self._publish_all()
         response.success, response.message = True, 'state cleared'
         return response
@@ -435,6 +550,7 @@ class AlignmentNode(Node):
         if not path:
             response.success, response.message = False, 'parameter state_file is empty'
             return response
+        self._drain()
         try:
             self.session.save(path)
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -444,6 +560,7 @@ class AlignmentNode(Node):
         return response
 
     def _srv_load(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._drain()
         try:
             how = self.session.load()
         except Exception as exc:  # noqa: BLE001 - a service must answer
@@ -476,6 +593,7 @@ class AlignmentNode(Node):
     def _publish_outputs(self) -> None:
         s = self.settings
         cp = self.aligner.corrected_path()
+        self._path_nodes = len(cp.node_ids)
         if len(cp.node_ids):
             stamp_ns = int(cp.stamps_ns[-1])
         else:
@@ -571,6 +689,15 @@ class AlignmentNode(Node):
         self.pub_diag.publish(conv.diagnostics_msg(
             f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
+
+
+@dataclass
+class RejectionLog:
+    """Rejections not logged yet: how many, and the last one (source and target frame, reason,
+    error)."""
+
+    pending: int = 0
+    last: tuple[Any, ...] = ()
 
 
 def main(args: list[str] | None = None) -> int:

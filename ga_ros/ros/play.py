@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import re
 import sys
 import tempfile
 import time
@@ -25,34 +26,60 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import rclpy
+from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
+from ga_ros import topics
 from ga_ros.errors import GaError, InputError
-from ga_ros.io.bag import BagReader
+from ga_ros.io.bag import BagReader, BagTopic
 from ga_ros.ros.play_args import add_arguments
+from ga_ros.topics import TRACK_END_FRAME
+
+_MSGTYPE = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
+
+
+def interface_index(package: str) -> set[str] | None:
+    """The interfaces a ROS package declares in the ament resource index (``msg/Type.msg``,
+    ...), or None if no prefix (``AMENT_PREFIX_PATH``, then this Python's prefix) lists the
+    package as providing ROS interfaces."""
+    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    for prefix in prefixes + [sys.prefix]:
+        entry = Path(prefix, 'share', 'ament_index', 'resource_index', 'rosidl_interfaces',
+                     package)
+        if entry.is_file():
+            return {line.strip() for line in entry.read_text().splitlines() if line.strip()}
+    return None
 
 
 def message_class(msgtype: str) -> type:
     """The rclpy message class of a ROS 2 type name ``pkg/msg/Type``.
 
+    Only names of that form whose package the ament resource index lists as providing that
+    message are imported (ROS's own message lookup; a bag cannot make the player import an
+    arbitrary Python module).
+
     Raises
     ------
     InputError
-        If the name is malformed or the message package is not installed here.
+        If the name is malformed or no installed ROS interface package provides the message.
     """
-    parts = msgtype.split('/')
-    if len(parts) != 3 or not all(parts):
+    match = _MSGTYPE.match(msgtype)
+    if match is None:
         raise InputError(f'malformed message type name {msgtype!r} (expected pkg/msg/Type)')
-    pkg, kind, name = parts
+    pkg, name = match.groups()
+    declared = interface_index(pkg)
+    if declared is None or not {f'msg/{name}.msg', f'msg/{name}.idl'} & declared:
+        raise InputError(f'unknown message type {msgtype!r}: no ROS interface package here '
+                         f'provides it (source the workspace that builds {pkg!r})')
     try:
-        return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
+        return getattr(importlib.import_module(f'{pkg}.msg'), name)
     except (ImportError, AttributeError):
-        raise InputError(f'unknown message type {msgtype!r}: its Python package {pkg!r} is not '
-                         'installed in this environment') from None
+        raise InputError(f'unknown message type {msgtype!r}: the Python module of {pkg!r} is '
+                         'not installed in this environment') from None
 
 
 @dataclass(frozen=True)
@@ -66,9 +93,14 @@ class PlayConfig:
     clock : publish ``/clock`` with the bag time.
     clock_period_s : bag-time interval between ``/clock`` messages (s); one is also sent
         before every message whose time moved past it.
-    delay_s : wall time to wait after creating the publishers (DDS discovery), s.
-    wait_for_subscribers_s : wait up to this long (s) until a topic of the bag has a
-        subscriber (0 = do not wait).
+    delay_s : wall time to wait after creating the publishers, s (on top of the wait for
+        subscribers).
+    wait_for_subscribers_s : wait up to this long (s) until a topic of the bag has a matched
+        subscriber, before the first message and, if none is left, before exiting (a warning
+        if none came; 0 = do not wait).
+    end_signal : after the bag, send the end-of-input message (``child_frame_id``
+        :data:`ga_ros.topics.TRACK_END_FRAME`) on every measurements topic
+        (``.../ga/measurements``, ``nav_msgs/msg/Odometry``), so the last track is processed.
     ack_every : with ``rate = 0``, wait for all subscribers' acknowledgements every this many
         messages.
     ack_timeout_s : longest wait for those acknowledgements (s).
@@ -79,8 +111,9 @@ class PlayConfig:
     topics: tuple[str, ...] = ()
     clock: bool = True
     clock_period_s: float = 0.01
-    delay_s: float = 1.0
-    wait_for_subscribers_s: float = 0.0
+    delay_s: float = 0.0
+    wait_for_subscribers_s: float = 10.0
+    end_signal: bool = True
     ack_every: int = 20
     ack_timeout_s: float = 5.0
     depth: int = 1000
@@ -88,10 +121,12 @@ class PlayConfig:
 
 @dataclass
 class PlayStats:
-    """What a replay published: per-topic counts, ``/clock`` messages, wall time (s)."""
+    """What a replay published: per-topic counts of the bag's messages, ``/clock`` messages,
+    end-of-input messages, wall time (s)."""
 
     counts: dict[str, int] = field(default_factory=dict)
     clock_messages: int = 0
+    end_signals: int = 0
     seconds: float = 0.0
     bag_seconds: float = 0.0
 
@@ -130,18 +165,28 @@ class BagPlayer:
         except InputError as exc:
             self.bag.close()
             raise InputError(f'{exc} (topic filter --topics can skip it)') from None
-        qos = QoSProfile(depth=config.depth, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE,
-                         history=HistoryPolicy.KEEP_LAST)
-        static = QoSProfile(depth=config.depth, reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                            history=HistoryPolicy.KEEP_LAST)
-        # /tf_static is latched by convention (tf2 listeners ask for transient local)
-        self.publishers = {name: node.create_publisher(
-            cls, name, static if name.rsplit('/', 1)[-1] == 'tf_static' else qos)
-            for name, cls in classes.items()}
+        self.publishers = {t.name: node.create_publisher(classes[t.name], t.name,
+                                                         self._qos(t))
+                           for t in wanted}
+        self.end_topics = tuple(t.name for t in wanted if config.end_signal
+                                and t.msgtype == 'nav_msgs/msg/Odometry'
+                                and t.name.endswith('/' + topics.MEASUREMENTS))
         self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
         self.topics = tuple(classes)
+
+    def _qos(self, topic: BagTopic) -> QoSProfile:
+        """Reliable; measurement topics (``nav_msgs/msg/Odometry``) transient local with a
+        history of the whole topic (a subscriber restarted after a crash gets everything
+        again), ``/tf_static`` transient local (latched, as tf2 listeners expect), others
+        volatile with ``depth``."""
+        keep_all = topic.msgtype == 'nav_msgs/msg/Odometry'
+        latched = keep_all or topic.name.rsplit('/', 1)[-1] == 'tf_static'
+        depth = max(self.config.depth, min(topic.count + 1, 1_000_000)) if keep_all \
+            else self.config.depth
+        return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                      else DurabilityPolicy.VOLATILE),
+                          history=HistoryPolicy.KEEP_LAST)
 
     def close(self) -> None:
         """Close the bag (the publishers belong to the node)."""
@@ -174,6 +219,24 @@ class BagPlayer:
         for p in self.publishers.values():
             p.wait_for_all_acked(timeout)
 
+    def _wait_delivered(self, patience_s: float) -> bool:
+        """Before exiting: wait until some subscriber is matched and every matched one has
+        acknowledged everything (a subscriber killed meanwhile stays matched until DDS notices
+        it is gone; its restart then gets the measurement topics' history), up to
+        ``patience_s``. False (with a warning) on timeout."""
+        end = time.monotonic() + patience_s
+        step = Duration(seconds=0.5)
+        while True:
+            acked = all([p.wait_for_all_acked(step) for p in self.publishers.values()])
+            if acked and any(p.get_subscription_count() for p in self.publishers.values()):
+                return True
+            if time.monotonic() > end:
+                self.node.get_logger().warning(
+                    f'after {patience_s:g} s, not every message was acknowledged by a '
+                    'subscriber; exiting anyway')
+                return False
+            time.sleep(0.05)
+
     def play(self) -> PlayStats:
         """Publish the whole bag; returns what was published.
 
@@ -184,11 +247,13 @@ class BagPlayer:
         """
         c = self.config
         stats = PlayStats(counts={t: 0 for t in self.topics})
-        if c.delay_s > 0:
-            time.sleep(c.delay_s)
         if c.wait_for_subscribers_s > 0 and not self.wait_for_subscribers(
                 c.wait_for_subscribers_s):
-            self.node.get_logger().warn('no subscriber on any topic; playing anyway')
+            self.node.get_logger().warning(
+                f'no subscriber on any topic after {c.wait_for_subscribers_s:g} s; playing '
+                'anyway (measurement topics keep their history for a late subscriber)')
+        if c.delay_s > 0:
+            time.sleep(c.delay_s)
         t0 = time.monotonic()
         bag_t0: int | None = None
         next_clock = -1
@@ -224,6 +289,12 @@ class BagPlayer:
                     since_ack = 0
         # reliable delivery of the tail before the process (and its DDS writers) goes away
         self._wait_acked()
+        for topic in self.end_topics:
+            end = Odometry()
+            end.child_frame_id = TRACK_END_FRAME
+            self.publishers[topic].publish(end)
+            stats.end_signals += 1
+        self._wait_delivered(max(c.wait_for_subscribers_s, c.ack_timeout_s))
         if bag_t0 is not None:
             self._clock(last, stats)
             stats.bag_seconds = (last - bag_t0) * 1e-9
@@ -291,11 +362,13 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 def run(args: argparse.Namespace) -> int:
     """Entry of ``ga-ros play``: play the bag and print what was published."""
     config = PlayConfig(rate=args.rate, topics=tuple(args.topics), clock=not args.no_clock,
-                        delay_s=args.delay, wait_for_subscribers_s=args.wait_for_subscribers)
+                        delay_s=args.delay, wait_for_subscribers_s=args.wait_for_subscribers,
+                        end_signal=not args.no_end_signal)
     stats = play_bag(args.bag, config)
     total = sum(stats.counts.values())
     print(f'published {total} messages ({stats.bag_seconds:.1f} s of bag time) in '
-          f'{stats.seconds:.2f} s, {stats.clock_messages} /clock messages')
+          f'{stats.seconds:.2f} s, {stats.clock_messages} /clock messages, '
+          f'{stats.end_signals} end-of-input messages')
     for topic, n in sorted(stats.counts.items()):
         print(f'  {topic:<40} {n}')
     return 0

@@ -14,8 +14,13 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help='speed factor (1 = real time); 0 = as fast as subscribers keep up')
     p.add_argument('--topics', nargs='+', default=[], help='only these topics')
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
-    p.add_argument('--delay', type=float, default=1.0,
-                   help='seconds to wait for discovery before publishing (default 1)')
-    p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SEC',
-                   help='wait up to SEC seconds for a first subscriber')
+    p.add_argument('--delay', type=float, default=0.0,
+                   help='extra seconds to wait before publishing (default 0)')
+    p.add_argument('--wait-for-subscribers', type=float, default=10.0, metavar='SEC',
+                   help='wait up to SEC seconds (default 10; 0: no wait) for a matched '
+                        'subscriber before playing, and before exiting if none is left; a '
+                        'warning if none came')
+    p.add_argument('--no-end-signal', action='store_true',
+                   help='do not send the end-of-input message on the measurements topic '
+                        '(child_frame_id ga/track_end: the alignment node ends the last track)')
     return p

@@ -13,11 +13,13 @@ def latched_qos(depth: int = 1) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE)
 
 
-def measurement_qos(depth: int = 100000) -> QoSProfile:
-    """Reliable, volatile, deep queue: bursts of measurements during a window update are queued
-    rather than dropped (publishers should use the same profile)."""
-    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
-                      durability=DurabilityPolicy.VOLATILE,
+def measurement_qos(depth: int = 100000, transient_local: bool = False) -> QoSProfile:
+    """Reliable, deep queue: bursts of measurements during a window update are queued rather
+    than dropped (publishers should use the same profile). Volatile by default;
+    ``transient_local``: a restarted subscriber gets the publisher's history again."""
+    durability = (DurabilityPolicy.TRANSIENT_LOCAL if transient_local
+                  else DurabilityPolicy.VOLATILE)
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, durability=durability,
                       reliability=ReliabilityPolicy.RELIABLE)
 
 

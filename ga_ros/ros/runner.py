@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from ga_ros.errors import GaError
@@ -27,14 +27,40 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     code = 0
     try:
         node = factory()
-        rclpy.spin(node)
+        _spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (GaError, ParameterException) as exc:
         print(f'{name}: error: {type(exc).__name__}: {exc}', file=sys.stderr)
         code = 1
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGTERM / SIGINT during start-up: rclpy shut the context down under the constructor
+        print(f'{name}: stopped during start-up', file=sys.stderr)
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _spin(node: Node) -> None:
+    """Spin until shutdown; an exception escaping a callback is logged, not fatal (a node must
+    not die on one bad message or timer tick)."""
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        while rclpy.ok():
+            try:
+                executor.spin_once()
+            except (KeyboardInterrupt, ExternalShutdownException):
+                raise
+            except Exception as exc:  # noqa: BLE001 - logged, the node goes on
+                if not rclpy.ok():
+                    raise
+                node.get_logger().error(f'callback failed (the node goes on): '
+                                        f'{type(exc).__name__}: {exc}',
+                                        throttle_duration_sec=5.0)
+    finally:
+        executor.remove_node(node)

@@ -25,6 +25,7 @@ import numpy as np
 
 from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
+from ga_ros.errors import InputError
 from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
@@ -110,6 +111,10 @@ def run(args: argparse.Namespace) -> int:
                                tolerance=args.tolerance or 1e-8, robust_loss=args.robust,
                                robust_scale=args.robust_scale)
         result = solve_graph(graph, cfg)
+    if not np.isfinite(result.cost):
+        raise InputError(f'{args.input}: the final cost is {result.cost} (initial '
+                         f'{result.initial_cost}): a vertex or edge holds an absurd value (e.g. '
+                         '1e308); fix the file. Nothing was written')
     evidence = optimum_evidence(graph, result.T_world_node)
     check = None
     if args.check_init and not args.tracks:

@@ -255,7 +255,7 @@ class MeasurementJournal:
                 if head != _MAGIC:
                     raise CorruptFileError(
                         'not a version-2 ga_ros journal (bad header or an old version); run '
-                        'ga_ros.ros.journal.recover() on the state file to repair or convert '
+                        'ga_ros.pipeline.journal.recover() on the state file to repair or convert '
                         'it', str(self.path))
                 self.count = (size - len(_MAGIC)) // RECORD.itemsize
                 end = len(_MAGIC) + self.count * RECORD.itemsize
