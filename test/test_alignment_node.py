@@ -447,3 +447,29 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
         if client is not None:
             client.close()
         stop_process(proc)
+
+
+def test_map_to_odom_from_measurements_without_standard_inputs(node_in_process, rng):
+    """With VO / measurement-encoding input, ``map -> odom`` is the correction of the newest
+    node relative to the frame-to-frame chain of the consecutive motions (REP 105)."""
+    node = node_in_process
+    sent = []
+    node.pub_tf.publish = sent.append                       # capture what goes to /tf
+    ms = survey(rng, n_tracks=3, per_swath=5)
+    for m in ms:
+        node._on_measurement(conv.measurement_to_odometry(m))
+    assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+    # the odometry frame, chained independently: T_odom_dst = T_odom_src @ T_src_dst
+    T_odom = {ms[0].src_id: np.eye(4)}
+    for m in ms:
+        if m.kind == 'consecutive' and m.src_id in T_odom and m.dst_id not in T_odom:
+            T_odom[m.dst_id] = T_odom[m.src_id] @ m.T_src_dst
+    cp = node.aligner.corrected_path()
+    newest = int(cp.node_ids[-1])
+    want = cp.T_world_node[-1] @ np.linalg.inv(T_odom[newest])
+    assert sent, 'no TF published after the updates'
+    tf = sent[-1].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ('map', 'odom')
+    got_t = [tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z]
+    np.testing.assert_allclose(got_t, want[:3, 3], atol=1e-9)
+    assert np.linalg.norm(want[:3, 3]) > 1e-6   # a real correction, not the identity

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.geometry import se3
 from ga_ros.io.trajectory import Trajectory
 
 
@@ -54,6 +55,29 @@ class F2FIntegrator:
             self.tracks[m.dst_id] = m.dst_track
             return True
         return False
+
+    def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
+        """REP 105 ``T_map_odom`` with this integration as the odometry frame: the correction
+        ``T_map_node @ inv(T_odom_node)`` of the newest node (last in ``node_ids``) that the
+        integration reached; None if it reached none.
+
+        Parameters
+        ----------
+        node_ids : (n,) node ids of a corrected path, in path order.
+        T_map_node : (n, 4, 4) their corrected poses in the map frame.
+        """
+        for k in range(len(node_ids) - 1, -1, -1):
+            T_odom_node = self.poses.get(int(node_ids[k]))
+            if T_odom_node is not None:
+                return np.asarray(T_map_node[k]) @ se3.inverse(T_odom_node)
+        return None
+
+    def newest(self) -> tuple[FloatArray, int] | None:
+        """``(T_odom_node, stamp_ns)`` of the node reached last (None before any)."""
+        if not self.stamps:
+            return None
+        node = next(reversed(self.stamps))
+        return self.poses[node], self.stamps[node]
 
 
 class DeadReckoningAligner:

@@ -28,7 +28,6 @@ from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
-from ga_ros.geometry import se3
 from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import (
     ODOMETRY,
@@ -352,11 +351,7 @@ class _Run:
             return own(traj.node_ids, traj.T_world_node)
         if self.f2f is None:
             return None
-        for k in range(len(traj) - 1, -1, -1):
-            T_odom_k = self.f2f.poses.get(int(traj.node_ids[k]))
-            if T_odom_k is not None:
-                return traj.T_world_node[k] @ se3.inverse(T_odom_k)
-        return None
+        return self.f2f.map_to_odom(traj.node_ids, traj.T_world_node)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement

@@ -48,6 +48,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -120,7 +121,9 @@ class NodeSettings:
     input_warn_throttle_sec : minimum interval between two default-covariance warnings, s.
     odom_frame : REP 105 odometry frame of the first standard input (``map -> odom`` on TF).
     base_frame : the robot's base frame (child of ``map`` when ``publish_map_to_base``).
-    publish_tf : publish ``map_frame -> odom_frame`` on ``tf_topic`` (standard inputs only).
+    publish_tf : publish ``map_frame -> odom_frame`` on ``tf_topic`` (odom: the first standard
+        input's frame, or without standard inputs the frame-to-frame integration of the
+        consecutive measurements).
     publish_map_to_base : also publish ``map_frame -> base_frame`` (only when nothing else
         publishes ``odom -> base``: a frame has one parent).
     tf_topic : TF topic (``/tf``; remap it to ``tf`` for namespaced robots).
@@ -237,6 +240,9 @@ class AlignmentNode(Node):
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
         self._T_map_odom: np.ndarray | None = None
+        # without standard inputs the odometry frame is the frame-to-frame integration of the
+        # consecutive measurements (as in the replay)
+        self._f2f = F2FIntegrator() if self.front is None else None
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
@@ -338,6 +344,8 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
+            if out.accepted and self._f2f is not None:
+                self._f2f.add(m)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
@@ -480,11 +488,16 @@ class AlignmentNode(Node):
     def _publish_tf(self) -> None:
         """``map -> odom`` (and optionally ``map -> base``) of the newest correction."""
         s = self.settings
-        if not s.publish_tf or self._T_map_odom is None or self.front is None:
+        if not s.publish_tf or self._T_map_odom is None:
             return
-        stamp = self.front.latest_stamp_ns
+        if self.front is not None:
+            stamp, latest = self.front.latest_stamp_ns, self.front.latest_pose()
+        else:
+            newest = self._f2f.newest() if self._f2f is not None else None
+            if newest is None:
+                return
+            latest, stamp = newest
         tfs = [conv.transform_msg(s.map_frame, s.odom_frame, self._T_map_odom, stamp)]
-        latest = self.front.latest_pose()
         if s.publish_map_to_base and latest is not None:
             tfs.append(conv.transform_msg(s.map_frame, s.base_frame,
                                           self._T_map_odom @ latest, stamp))
@@ -606,7 +619,9 @@ class AlignmentNode(Node):
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
         if self.front is not None:
             self._T_map_odom = self.front.map_to_odom(cp.node_ids, cp.T_world_node)
-            self._publish_tf()
+        elif self._f2f is not None:
+            self._T_map_odom = self._f2f.map_to_odom(cp.node_ids, cp.T_world_node)
+        self._publish_tf()
         k = self.session.newest_adjusted(cp)
         if k is not None:
             cov = self.session.covariance_or_unknown(int(cp.node_ids[k]))
