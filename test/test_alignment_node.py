@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import os
 import signal
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
-import yaml
 
 pytest.importorskip('rclpy')
 
@@ -26,11 +25,16 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 
 from ga_ros.core.measurement import Measurement  # noqa: E402
 from ga_ros.core.network import ConnectionNetwork  # noqa: E402
-from ga_ros.core.solver import connection_cost  # noqa: E402
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner  # noqa: E402
+from ga_ros.core.solver import SolverConfig, connection_cost  # noqa: E402
+from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.pipeline.journal import MeasurementJournal, read_journal  # noqa: E402
+from ga_ros.pipeline.params import (  # noqa: E402
+    config_from_params,
+    parse_override,
+    read_params_file,
+)
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
@@ -99,12 +103,35 @@ def bad_messages(ms: list[Measurement], k: int) -> list:
 
 # ------------------------------------------------------------------ ROS-free helpers
 def test_yaml_mirrors_config_defaults():
-    params = yaml.safe_load(CONFIG.read_text())['alignment_node']['ros__parameters']
-    expected = {f.name: getattr(AlignerConfig(), f.name) for f in fields(AlignerConfig)}
+    params = read_params_file(CONFIG, 'alignment_node')  # the solver: mapping -> solver.<name>
+    expected = {f.name: getattr(AlignerConfig(), f.name) for f in fields(AlignerConfig)
+                if f.name != 'solver'}
+    expected.update({f'solver.{f.name}': getattr(ALIGNER_SOLVER, f.name)
+                     for f in fields(SolverConfig)})
     expected.update({f.name: getattr(NodeSettings(), f.name) for f in fields(NodeSettings)})
+    assert config_from_params(AlignerConfig, params)[0] == AlignerConfig()
     assert set(params) == set(expected)
     for key, value in expected.items():
         assert params[key] == value, key
+
+
+def test_dotted_solver_parameters_from_files_and_overrides(tmp_path):
+    """The replay's parameter reading (ROS-free) nests the solver settings as the node does."""
+    f = tmp_path / 'a.yaml'
+    f.write_text('alignment_node:\n  ros__parameters:\n    window_tracks: 3\n'
+                 '    solver:\n      max_iterations: 7\n      damping: lm\n')
+    params = read_params_file(f)
+    assert params == {'window_tracks': 3, 'solver.max_iterations': 7, 'solver.damping': 'lm'}
+    params.update(parse_override(t) for t in ('solver.tolerance=1e-7', 'solver.robust_scale=2'))
+    cfg, used = config_from_params(AlignerConfig, params)
+    assert cfg == AlignerConfig(window_tracks=3, solver=replace(
+        ALIGNER_SOLVER, max_iterations=7, damping='lm', tolerance=1e-7, robust_scale=2.0))
+    assert used == set(params)
+    assert config_from_params(AlignerConfig, {'x.tolerance': 1.0})[0] == AlignerConfig()
+    with pytest.raises(InputError, match='solver.max_iterations'):
+        config_from_params(AlignerConfig, {'solver.max_iterations': 'many'})
+    with pytest.raises(InputError, match='se3'):
+        config_from_params(AlignerConfig, {'solver.model': 'paper'})
 
 
 def test_journal_round_trip(tmp_path, rng):
@@ -331,11 +358,15 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
 
 def test_parameters_have_descriptors(node_in_process):
     node = node_in_process
-    names = [f.name for f in fields(AlignerConfig)] + [f.name for f in fields(NodeSettings)]
+    names = [f.name for f in fields(AlignerConfig) if f.name != 'solver']
+    names += [f'solver.{f.name}' for f in fields(SolverConfig)]
+    names += [f.name for f in fields(NodeSettings)]
     for name in names:
         d = node.describe_parameter(name)
         assert d.description, name
     assert node.describe_parameter('window_tracks').integer_range[0].from_value == 1
+    assert node.describe_parameter('solver.max_iterations').integer_range[0].from_value == 1
+    assert node.aligner_config == AlignerConfig()
     assert node.settings.state_file.endswith('state.npz')
     assert node.settings.map_frame == 'map'
 
@@ -352,12 +383,13 @@ def test_out_of_range_parameter_is_refused():
             AlignmentNode(context=ctx, parameter_overrides=[Parameter('freeze_policy',
                                                                       value='zzz')])
         with pytest.raises(InputError, match='robust_scale'):
-            AlignmentNode(context=ctx, parameter_overrides=[Parameter('robust_scale',
+            AlignmentNode(context=ctx, parameter_overrides=[Parameter('solver.robust_scale',
                                                                       value='big')])
         node = AlignmentNode(context=ctx, parameter_overrides=[     # an int for a float is fine
-            Parameter('robust_scale', value=4), Parameter('diagnostics_period_sec', value=0)])
-        assert node.aligner_config.robust_scale == 4.0
-        assert isinstance(node.aligner_config.robust_scale, float)
+            Parameter('solver.robust_scale', value=4),
+            Parameter('diagnostics_period_sec', value=0)])
+        assert node.aligner_config.solver.robust_scale == 4.0
+        assert isinstance(node.aligner_config.solver.robust_scale, float)
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
@@ -366,7 +398,7 @@ def test_out_of_range_parameter_is_refused():
 # ------------------------------------------------------------------ node as a real process
 @pytest.mark.ros
 def test_bad_parameter_exits_with_one_line_error(tmp_path):
-    proc = start_node_process(domain_id(3), {'tolerance': -1.0}, log_path=tmp_path / 'log')
+    proc = start_node_process(domain_id(3), {'solver.tolerance': -1.0}, log_path=tmp_path / 'log')
     try:
         assert proc.wait(timeout=30) == 1
     finally:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.solver import GaussianPrior, SolverConfig, solve
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -55,8 +57,8 @@ def test_position_nees_is_consistent_for_every_policy_batch_and_refinement():
 def test_refine_batch_publishes_the_batch_covariances():
     sc = aerial_scenario(n_tracks=5, positions_per_swath=5)
     nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(1))
-    al = TrackWindowAligner(AlignerConfig(window_tracks=2, tolerance=1e-10,
-                                          max_iterations=30), sc.T_world_node[0])
+    solver = replace(ALIGNER_SOLVER, tolerance=1e-10, max_iterations=30)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2, solver=solver), sc.T_world_node[0])
     al.add_measurements(sc.measurements(nm.z, nm.cov))
     al.refine_batch()
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))

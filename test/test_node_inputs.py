@@ -99,6 +99,20 @@ def test_runtime_parameters_take_effect_and_read_only_ones_say_why(ctx):
         assert not node.set_parameters([Parameter('covariance_policy', value='x')])[0].successful
         assert node.aligner.config.outlier_chi2_prob == 0.5
         assert 'read-only: ' in node.describe_parameter('window_tracks').description
+        # nested solver settings: dotted names, run-time ones applied, read-only ones refused
+        ok = node.set_parameters([Parameter('solver.tolerance', value=1e-5),
+                                  Parameter('solver.robust_loss', value='huber')])
+        assert all(r.successful for r in ok)
+        assert node.aligner.config.solver.tolerance == 1e-5
+        assert node.session.config.solver.robust_loss == 'huber'
+        assert node.aligner.config.solver.max_iterations == 10  # the others are kept
+        assert not node.set_parameters([Parameter('solver.damping', value='lm')])[0].successful
+        assert not node.set_parameters([Parameter('solver.max_iterations',
+                                                  value=0)])[0].successful
+        assert not node.set_parameters([Parameter('solver.robust_loss',
+                                                  value='zzz')])[0].successful
+        assert node.aligner.config.solver.robust_loss == 'huber'
+        assert 'SolverConfig.damping' in node.describe_parameter('solver.damping').description
         assert 'read-only: ' in node.describe_parameter('odom0.keyframe_travel_m').description
         assert not node.describe_parameter('map_frame').read_only
         # the new frame is used by the next output

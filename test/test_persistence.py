@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import os
+import zlib
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
 
-from ga_ros.core.persistence import MAGIC, is_state_file, load_state, save_state
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.errors import CorruptFileError, ForeignFileError, UnsafePathError
+from ga_ros.core.persistence import _PREFIX, MAGIC, is_state_file, load_state, save_state
+from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.errors import CorruptFileError, ForeignFileError, InputError, UnsafePathError
 from ga_ros.io.atomic import atomic_write, move_aside
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -72,19 +74,52 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
                                al.corrected_path().T_world_node, atol=1e-9)
 
 
+#: The flat config a version-1 snapshot header holds (solver fields beside the aligner's).
+OLD_FLAT_CONFIG = {'window_tracks': 2, 'freeze_policy': 'weighted', 'model': 'se3',
+                   'max_iterations': 10, 'tolerance': 1e-7, 'damping': 'none',
+                   'robust_loss': 'none', 'robust_scale': 3.0, 'outlier_chi2_prob': 0.99999}
+
+
+def test_the_config_round_trips_nested_and_old_flat_headers_still_load(tmp_path):
+    sc, ms = _survey(n_tracks=3)
+    cfg = AlignerConfig(window_tracks=2, outlier_chi2_prob=0.999,
+                        solver=replace(ALIGNER_SOLVER, tolerance=1e-7, robust_loss='huber'))
+    al = TrackWindowAligner(cfg)
+    al.add_measurements(ms)
+    path = save_state(al, tmp_path / 'state')
+    assert load_state(path).aligner.config == cfg                 # nested header
+    # the same file as written before the solver settings were nested: a flat header
+    buf = bytearray(path.read_bytes())
+    _, version, hlen, _ = _PREFIX.unpack_from(buf)
+    head = json.loads(bytes(buf[_PREFIX.size:_PREFIX.size + hlen]))
+    nested = head['meta']['config']
+    solver = nested.pop('solver')
+    del solver['reuse_factor_below']                               # not saved before
+    head['meta']['config'] = {**nested, **solver}
+    header = json.dumps(head).encode()
+    header += b' ' * (hlen - len(header))                          # arrays stay where they are
+    assert len(header) == hlen
+    buf[:_PREFIX.size] = _PREFIX.pack(MAGIC, version, hlen, zlib.crc32(header))
+    buf[_PREFIX.size:_PREFIX.size + hlen] = header
+    path.write_bytes(bytes(buf))
+    back = load_state(path).aligner
+    assert back.config == cfg
+    np.testing.assert_array_equal(back.corrected_path().T_world_node,
+                                  al.corrected_path().T_world_node)
+    assert AlignerConfig.from_dict(asdict(cfg)) == cfg
+    with pytest.raises(InputError, match='unknown aligner config fields'):
+        AlignerConfig.from_dict({'window_tracks': 2, 'tolerence': 1e-7})
+
+
 def test_version_one_npz_snapshots_are_still_read(tmp_path):
     """A snapshot in the old .npz layout (written here as the previous save() did) loads."""
     sc, ms = _survey(n_tracks=3)
     al = _aligner(ms)
     n = len(al._ids)
-    meta = {'version': 1, 'config': AlignerConfig(window_tracks=2).__dict__,
+    meta = {'version': 1, 'config': OLD_FLAT_CONFIG,
             'tracks': al._tracks, 'finished': sorted(al._finished), 'open_track': al._open_track,
             'rejected': al._rejected, 'n_updates': al._n_updates,
             'n_outliers': al._n_outliers, 'last_window': al._last_window.tolist()}
-    meta['config'] = {k: v for k, v in meta['config'].items()
-                      if k in ('window_tracks', 'freeze_policy', 'model', 'max_iterations',
-                               'tolerance', 'damping', 'robust_loss', 'robust_scale',
-                               'outlier_chi2_prob')}
     np.savez_compressed(tmp_path / 'old.npz',
                         meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
                         T_first=al._T_first, ids=np.asarray(al._ids), track=np.asarray(al._track),
@@ -95,6 +130,8 @@ def test_version_one_npz_snapshots_are_still_read(tmp_path):
     assert is_state_file(tmp_path / 'old.npz')
     back = load_state(tmp_path / 'old.npz').aligner
     assert back._pairs == al._pairs
+    assert back.config == AlignerConfig(window_tracks=2,
+                                        solver=replace(ALIGNER_SOLVER, tolerance=1e-7))
     np.testing.assert_array_equal(back.corrected_path().T_world_node,
                                   al.corrected_path().T_world_node)
     save_state(back, tmp_path / 'old.npz')            # an old state of ours may be replaced

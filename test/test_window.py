@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
@@ -33,8 +35,9 @@ def _run(cfg, sc, ms):
 @pytest.mark.parametrize('policy', ['weighted', 'marginal'])
 def test_window_covering_all_tracks_equals_batch(policy):
     sc, nm, ms = _survey()
-    al, ups = _run(AlignerConfig(window_tracks=4, freeze_policy=policy, tolerance=1e-10,
-                                 max_iterations=30), sc, ms)
+    al, ups = _run(AlignerConfig(window_tracks=4, freeze_policy=policy,
+                                 solver=replace(ALIGNER_SOLVER, tolerance=1e-10,
+                                                max_iterations=30)), sc, ms)
     assert len(ups) == 4 and all(u.converged for u in ups)
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
     path = al.corrected_path()
@@ -47,7 +50,7 @@ def test_window_covering_all_tracks_equals_batch(policy):
 
 def test_frozen_prior_is_what_the_previous_update_estimated():
     sc, nm, ms = _survey(n_tracks=4)
-    cfg = AlignerConfig(window_tracks=2, tolerance=1e-10)
+    cfg = AlignerConfig(window_tracks=2, solver=replace(ALIGNER_SOLVER, tolerance=1e-10))
     al = TrackWindowAligner(cfg, sc.T_world_node[0])
     snapshots = {}
     for m in ms:
@@ -86,7 +89,9 @@ def test_per_track_problem_size_does_not_grow():
 
 def test_refine_batch_reaches_the_batch_solution():
     sc, nm, ms = _survey(n_tracks=5)
-    al, _ = _run(AlignerConfig(window_tracks=2, tolerance=1e-10, max_iterations=30), sc, ms)
+    al, _ = _run(AlignerConfig(window_tracks=2,
+                               solver=replace(ALIGNER_SOLVER, tolerance=1e-10,
+                                              max_iterations=30)), sc, ms)
     al.refine_batch()
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
     np.testing.assert_allclose(al.corrected_path().T_world_node, batch.T_world_node, atol=1e-8)
@@ -189,8 +194,9 @@ def test_both_policies_are_exact_in_the_linear_limit(policy):
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-12))
     last = np.nonzero(sc.track_ids >= 3)[0]
     sd = np.sqrt(np.diagonal(batch.covariance(last), axis1=1, axis2=2))[:, :3]
-    al, _ = _run(AlignerConfig(window_tracks=2, freeze_policy=policy, tolerance=1e-12,
-                               max_iterations=30), sc, ms)
+    al, _ = _run(AlignerConfig(window_tracks=2, freeze_policy=policy,
+                               solver=replace(ALIGNER_SOLVER, tolerance=1e-12,
+                                              max_iterations=30)), sc, ms)
     T = al.corrected_path().T_world_node
     gap = (np.abs(T[last, :3, 3] - batch.T_world_node[last, :3, 3]) / sd).max()
     assert gap < 1e-3, gap

@@ -239,7 +239,7 @@ def _groups(keys: np.ndarray, values: np.ndarray) -> dict[int, list[int]]:
 
 
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
-    cfg = config if config is not None else AlignerConfig(**meta['config'])
+    cfg = config if config is not None else AlignerConfig.from_dict(meta['config'])
     al = TrackWindowAligner(cfg, np.array(arrays['T_first'], dtype=float))
     ids = np.asarray(arrays['ids'], dtype=np.int64)
     track = np.asarray(arrays['track'], dtype=np.int64)

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import time
 import zlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -91,6 +91,13 @@ class _Rows:
         return self._a[:self.n]
 
 
+#: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
+#: SolverConfig's): a window update is warm-started, so 10 iterations, a 1 um / 1 urad
+#: correction and a relative cost decrease of 1e-6 suffice (a warm-started update then takes ~3
+#: iterations instead of ~5; the estimate moves by far less than its standard deviation).
+ALIGNER_SOLVER = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=1e-6)
+
+
 @dataclass(frozen=True)
 class AlignerConfig:
     """Settings of :class:`TrackWindowAligner` (mirrors the alignment node's parameters).
@@ -99,16 +106,10 @@ class AlignerConfig:
     ----------
     window_tracks : ``K``, the number of latest tracks adjusted after each track (paper: 5).
     freeze_policy : ``'weighted'`` (paper) or ``'marginal'`` (Schur complement), see module doc.
-    model : constraint model; the live aligner supports ``'se3'`` (relative motions in the
-        sensor frame). The position-only models need world-frame observations (see
-        :mod:`ga_ros.core.models`).
-    max_iterations : relinearisation cap per update.
-    tolerance : stop threshold on the largest correction (m, rad).
-    cost_tolerance : also stop when a Gauss-Newton step lowers the cost by less than this
-        fraction (a warm-started update then takes ~3 iterations instead of ~5; the estimate
-        moves by far less than its standard deviation).
-    damping : ``'none'`` (Gauss-Helmert as in the paper) or ``'lm'``.
-    robust_loss, robust_scale : optional Huber/Cauchy loss on the Mahalanobis misclosure.
+    solver : settings of each window update (parameters ``solver.<field>``), documented in
+        :class:`~ga_ros.core.solver.SolverConfig`; default :data:`ALIGNER_SOLVER`. The live
+        aligner supports model ``'se3'`` only (relative motions in the sensor frame; the
+        position-only models need world-frame observations, see :mod:`ga_ros.core.models`).
     outlier_chi2_prob : chi-square quantile of the misclosure test that excludes cross
         connections after an update (6 degrees of freedom); 0 disables the test.
     cov_min_eigenvalue : smallest eigenvalue a measurement covariance may have (m^2 / rad^2);
@@ -125,13 +126,7 @@ class AlignerConfig:
 
     window_tracks: int = 5
     freeze_policy: str = 'weighted'
-    model: str = 'se3'
-    max_iterations: int = 10
-    tolerance: float = 1e-6
-    cost_tolerance: float = 1e-6
-    damping: str = 'none'
-    robust_loss: str = 'none'
-    robust_scale: float = 3.0
+    solver: SolverConfig = ALIGNER_SOLVER
     outlier_chi2_prob: float = 0.99999
     cov_min_eigenvalue: float = 1e-12
     cov_max_eigenvalue: float = 1e6
@@ -145,10 +140,13 @@ class AlignerConfig:
         if self.freeze_policy not in FREEZE_POLICIES:
             raise InputError(f'freeze_policy must be one of {FREEZE_POLICIES}, '
                              f'got {self.freeze_policy!r}')
-        if self.model != 'se3':
+        if not isinstance(self.solver, SolverConfig):
+            raise InputError(f'solver must be a SolverConfig, got {type(self.solver).__name__} '
+                             '(use AlignerConfig.from_dict for a saved mapping)')
+        if self.solver.model != 'se3':
             raise InputError(f"the track-window aligner supports model 'se3' only, got "
-                             f'{self.model!r}: live measurements are motions in the sensor '
-                             'frame; use ga-ros solve/reproduce for the paper model')
+                             f'{self.solver.model!r}: live measurements are motions in the '
+                             'sensor frame; use ga-ros solve/reproduce for the paper model')
         if not 0.0 <= self.outlier_chi2_prob < 1.0:
             raise InputError('outlier_chi2_prob must be in [0, 1)')
         if not 0.0 < self.cov_min_eigenvalue < self.cov_max_eigenvalue < np.inf:
@@ -158,13 +156,37 @@ class AlignerConfig:
             raise InputError(f'cov_max_condition must be >= 1, got {self.cov_max_condition}')
         if int(self.max_track_jump) < 0 or int(self.max_node_id_jump) < 0:
             raise InputError('max_track_jump and max_node_id_jump must be >= 0 (0 = no limit)')
-        self.solver_config()  # validates the remaining fields
 
     def solver_config(self) -> SolverConfig:
-        return SolverConfig(model=self.model, max_iterations=int(self.max_iterations),
-                            tolerance=float(self.tolerance),
-                            cost_tolerance=float(self.cost_tolerance), damping=self.damping,
-                            robust_loss=self.robust_loss, robust_scale=float(self.robust_scale))
+        """The settings of each window update (:attr:`solver`)."""
+        return self.solver
+
+    @classmethod
+    def from_dict(cls, values: dict) -> AlignerConfig:
+        """The config of a mapping written by ``dataclasses.asdict`` (a snapshot header).
+
+        Reads the nested layout (``{'solver': {...}, ...}``) and the flat one of files written
+        before the solver settings were nested (``max_iterations``, ``tolerance``, ... beside
+        ``window_tracks``); solver fields missing from either take :data:`ALIGNER_SOLVER`'s.
+
+        Raises
+        ------
+        InputError
+            An unknown field or a value the config rejects.
+        """
+        own = {f.name for f in fields(cls)} - {'solver'}
+        solver_names = {f.name for f in fields(SolverConfig)}
+        nested = values.get('solver') or {}
+        flat = {k: v for k, v in values.items() if k in solver_names}
+        unknown = set(values) - own - solver_names - {'solver'}
+        if unknown or not isinstance(nested, dict):
+            raise InputError(f'unknown aligner config fields {sorted(unknown)}; expected '
+                             f'{sorted(own | {"solver"})}')
+        try:
+            solver = replace(ALIGNER_SOLVER, **{**flat, **nested})
+            return cls(solver=solver, **{k: v for k, v in values.items() if k in own})
+        except TypeError as exc:
+            raise InputError(f'bad aligner config: {exc}') from exc
 
 
 @dataclass

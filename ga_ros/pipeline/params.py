@@ -2,15 +2,18 @@
 dataclasses, ROS-free.
 
 One field = one parameter named ``prefix + field``, as :func:`ga_ros.ros.params.declare_config`
-declares them for the nodes: the replay reads ``config/vo.yaml`` (or single overrides) through
+declares them for the nodes; a field holding a config dataclass (``AlignerConfig.solver``) gives
+one dotted parameter per nested field (``solver.tolerance``), as ROS names a nested YAML mapping
+(:func:`flat_params`). The replay reads ``config/vo.yaml`` (or single overrides) through
 :func:`config_from_params` into the same dataclasses with the same coercion
 (:func:`coerce_value`: a float field accepts an integer, nothing else changes type).
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
-from dataclasses import fields, replace
+from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -19,6 +22,8 @@ import numpy as np
 from ga_ros.errors import InputError
 
 C = TypeVar('C')
+
+_EXPONENT_FLOAT = re.compile(r'[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+')
 
 
 def coerce_value(name: str, default: Any, value: Any) -> Any:
@@ -49,7 +54,8 @@ def coerce_value(name: str, default: Any, value: Any) -> Any:
 
 def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = '',
                        base: C | None = None) -> tuple[C, set[str]]:
-    """Build ``cls`` from the parameters named ``prefix + field`` (others are left alone).
+    """Build ``cls`` from the parameters named ``prefix + field`` (others are left alone); a
+    nested config dataclass field from ``prefix + field + '.' + nested field``.
 
     Parameters
     ----------
@@ -71,7 +77,11 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
     values, used = {}, set()
     for f in fields(cls):  # type: ignore[arg-type]
         name = prefix + f.name
-        if name in params:
+        nested = getattr(base, f.name)
+        if is_dataclass(nested):
+            values[f.name], inner = config_from_params(type(nested), params, name + '.', nested)
+            used |= inner
+        elif name in params:
             values[f.name] = coerce_value(name, getattr(base, f.name), params[name])
             used.add(name)
     try:
@@ -82,7 +92,8 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
 
 def read_params_file(path: str | Path, node: str = '') -> dict[str, Any]:
     """The parameters of a ROS ``--params-file`` YAML (``node: {ros__parameters: {...}}``;
-    ``node`` '' = the only node in the file, or ``/**``) or of a flat ``{name: value}`` YAML.
+    ``node`` '' = the only node in the file, or ``/**``) or of a flat ``{name: value}`` YAML,
+    nested mappings as dotted names (:func:`flat_params`).
 
     Raises
     ------
@@ -100,18 +111,31 @@ def read_params_file(path: str | Path, node: str = '') -> dict[str, Any]:
     nodes = {k: v['ros__parameters'] for k, v in data.items()
              if isinstance(v, dict) and isinstance(v.get('ros__parameters'), dict)}
     if not nodes:
-        return dict(data)
+        return flat_params(data)
     key = node if node in nodes else ('/**' if '/**' in nodes else '')
     if not key and len(nodes) == 1:
         key = next(iter(nodes))
     if not key:
         raise InputError(f'parameter file {path} has parameters of {sorted(nodes)}; '
                          f'expected one node or {node!r}')
-    return dict(nodes[key])
+    return flat_params(nodes[key])
+
+
+def flat_params(params: Mapping[str, Any], prefix: str = '') -> dict[str, Any]:
+    """``{'solver': {'tolerance': 1e-6}}`` -> ``{'solver.tolerance': 1e-6}``: nested mappings of a
+    parameter file as the dotted parameter names ROS gives them."""
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        if isinstance(value, Mapping):
+            out.update(flat_params(value, f'{prefix}{key}.'))
+        else:
+            out[f'{prefix}{key}'] = value
+    return out
 
 
 def parse_override(text: str) -> tuple[str, Any]:
-    """``'KEY=VALUE'`` -> ``(key, value)``, the value read as YAML (``0.5``, ``true``, ``abc``).
+    """``'KEY=VALUE'`` -> ``(key, value)``, the value read as YAML (``0.5``, ``true``, ``abc``;
+    ``1e-6`` as a float, as ROS reads it); ``KEY`` may be dotted (``solver.tolerance``).
 
     Raises
     ------
@@ -127,4 +151,6 @@ def parse_override(text: str) -> tuple[str, Any]:
         value = yaml.safe_load(raw) if raw.strip() else ''
     except yaml.YAMLError:
         value = raw
+    if isinstance(value, str) and _EXPONENT_FLOAT.fullmatch(value.strip()):
+        value = float(value)  # YAML 1.1 reads 1e-6 as a string; ROS (-p x:=1e-6) as a double
     return key.strip(), value

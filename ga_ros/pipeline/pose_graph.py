@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -286,15 +286,16 @@ def solve_tracks(graph: PoseGraph, tracks: IntArray, window: int = 5,
     vertex in track order is the datum, at its initial pose. With ``refine`` the aligner's final
     batch refinement follows. The per-track update times go to ``per_track_ms``.
     """
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 
     t0 = time.perf_counter()
     initial_cost = graph_cost(graph, graph.T_init)
     measurements = replay_measurements(graph, tracks)
     first = int(replay_order(graph, tracks)[0])
-    cfg = AlignerConfig(window_tracks=window, damping=damping, robust_loss=robust_loss,
-                        robust_scale=robust_scale, outlier_chi2_prob=outlier_chi2_prob,
-                        max_iterations=max_iterations, tolerance=tolerance)
+    solver = replace(ALIGNER_SOLVER, damping=damping, robust_loss=robust_loss,
+                     robust_scale=robust_scale, max_iterations=max_iterations, tolerance=tolerance)
+    cfg = AlignerConfig(window_tracks=window, solver=solver,
+                        outlier_chi2_prob=outlier_chi2_prob)
     aligner = TrackWindowAligner(cfg, T_world_first=graph.T_init[first])
     updates = []
     for m in measurements:

@@ -73,8 +73,8 @@ NODE_NAME = 'alignment_node'
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
 #: Numeric ranges of the AlignerConfig parameters.
-ALIGNER_RANGES = {'window_tracks': (1, 1000), 'max_iterations': (1, 10000),
-                  'tolerance': (0.0, 1e3), 'robust_scale': (0.0, 1e6),
+ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
+                  'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
                   'outlier_chi2_prob': (0.0, 1.0)}
 
 
@@ -194,8 +194,8 @@ DYNAMIC_SETTINGS = frozenset({
     'warn_throttle_sec', 'publish_markers', 'residual_color_scale', 'odom_max_rate_hz',
     'covariance_policy', 'input_warn_throttle_sec', 'full_path_min_period_sec'})
 #: AlignerConfig fields that may change at run time (the aligner reads them at each update).
-DYNAMIC_ALIGNER = frozenset({'outlier_chi2_prob', 'max_iterations', 'tolerance', 'robust_loss',
-                             'robust_scale'})
+DYNAMIC_ALIGNER = frozenset({'outlier_chi2_prob', 'solver.max_iterations', 'solver.tolerance',
+                             'solver.robust_loss', 'solver.robust_scale'})
 
 
 class AlignmentNode(Node):
@@ -274,7 +274,7 @@ class AlignmentNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.get_logger().info(
             f'listening on {self.sub.topic_name}; window {self.aligner_config.window_tracks} '
-            f'tracks, model {self.aligner_config.model!r}, path in {s.map_frame!r}')
+            f'tracks, model {self.aligner_config.solver.model!r}, path in {s.map_frame!r}')
 
     @property
     def aligner(self) -> TrackWindowAligner:

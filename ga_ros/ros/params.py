@@ -6,13 +6,15 @@ from an ``add_on_set_parameters_callback``); a read-only parameter's description
 reason it is read-only. The description comes from the field's ``metadata['help']``, else from
 the numpydoc ``Attributes`` section of the class; the numeric range from ``metadata['range']``,
 else from the ``ranges`` argument. Float parameters accept integers (``-p tolerance:=1``) and are
-range-checked.
+range-checked. A field holding a config dataclass (``AlignerConfig.solver``) gives one dotted
+parameter per nested field (``solver.max_iterations``, a ``solver:`` mapping in a parameter file),
+described from the nested class; ``ranges`` and ``dynamic`` name them the same way.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import Field, fields, replace
+from dataclasses import Field, fields, is_dataclass, replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -77,9 +79,9 @@ def declare_config(node: Node, cls: type[C], prefix: str = '',
     node : the node declaring the parameters.
     cls : frozen dataclass with defaults for every field.
     prefix : prepended to each parameter name (e.g. ``'cross_'``).
-    ranges : numeric ranges of fields without ``metadata['range']``.
+    ranges : numeric ranges of fields without ``metadata['range']`` (nested: dotted names).
     dynamic : fields that may change at run time (not read-only; apply them with
-        :func:`updated_config`).
+        :func:`updated_config`); nested fields by dotted name (``'solver.tolerance'``).
     read_only_reason : appended to the description of the other (read-only) parameters.
     defaults : default values (default: ``cls()``).
 
@@ -89,19 +91,32 @@ def declare_config(node: Node, cls: type[C], prefix: str = '',
         A float parameter that is not a number or lies outside its range.
     """
     defaults = cls() if defaults is None else defaults
+    return _declare(node, cls, defaults, prefix, '', ranges or {}, dynamic, read_only_reason)
+
+
+def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
+             ranges: dict[str, tuple[float, float]], dynamic: frozenset[str],
+             read_only_reason: str) -> C:
+    """:func:`declare_config` of the fields of ``cls`` named ``path + field`` (``path`` = the
+    dotted names of the enclosing fields, '' at the top)."""
     docs = field_docs(cls)
     values: dict[str, Any] = {}
     for f in fields(cls):  # type: ignore[arg-type]
         default = getattr(defaults, f.name)
+        key = path + f.name
+        if is_dataclass(default):
+            values[f.name] = _declare(node, type(default), default, prefix, key + '.', ranges,
+                                      dynamic, read_only_reason)
+            continue
         if isinstance(default, np.generic):
             default = default.item()
-        rng = f.metadata.get('range') or (ranges or {}).get(f.name)
-        live = f.name in dynamic
+        rng = f.metadata.get('range') or ranges.get(key)
+        live = key in dynamic
         text = _text(cls, f, docs) + (' (can be changed at run time)' if live
                                       else f' (read-only: {read_only_reason})')
-        desc = descriptor(prefix + f.name, default, text, rng, read_only=not live)
-        value = node.declare_parameter(prefix + f.name, default, desc).value
-        values[f.name] = _checked(prefix + f.name, default, value, desc)
+        desc = descriptor(prefix + key, default, text, rng, read_only=not live)
+        value = node.declare_parameter(prefix + key, default, desc).value
+        values[f.name] = _checked(prefix + key, default, value, desc)
     return cls(**values)
 
 
@@ -118,7 +133,8 @@ def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor) 
 
 
 def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str = '') -> C:
-    """``config`` with the changed parameters of its fields applied (others are ignored).
+    """``config`` with the changed parameters of its fields applied (others are ignored), nested
+    config dataclass fields included (dotted names, as :func:`declare_config` declares them).
 
     Parameters
     ----------
@@ -134,9 +150,14 @@ def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str =
     """
     own = {f.name: getattr(config, f.name) for f in fields(config)}  # type: ignore[arg-type]
     new: dict[str, Any] = {}
+    for key, inner in own.items():
+        if is_dataclass(inner):
+            changed = updated_config(node, inner, changes, f'{prefix}{key}.')
+            if changed is not inner:
+                new[key] = changed
     for pname, value in changes.items():
         key = pname[len(prefix):] if pname.startswith(prefix) else None
-        if key not in own:
+        if key not in own or is_dataclass(own[key]):
             continue
         default = own[key]
         if isinstance(default, np.generic):

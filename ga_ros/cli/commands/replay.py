@@ -9,7 +9,6 @@ Reads measurements (the ga_ros ``nav_msgs/Odometry`` encoding) or stereo images 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -26,10 +25,11 @@ from ga_ros.replay.outputs import OutputConfig
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.text import info_text, plan_lines, result_text
 
-#: Aligner options of the command line -> AlignerConfig field names.
+#: Aligner options of the command line -> AlignerConfig parameter names (as the node's).
 ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
-                   'robust_loss': 'robust_loss', 'robust_scale': 'robust_scale',
-                   'max_iterations': 'max_iterations', 'outlier_chi2_prob': 'outlier_chi2_prob'}
+                   'robust_loss': 'solver.robust_loss', 'robust_scale': 'solver.robust_scale',
+                   'max_iterations': 'solver.max_iterations',
+                   'outlier_chi2_prob': 'outlier_chi2_prob'}
 
 
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
@@ -145,11 +145,9 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     aligner: Any = None
     if overrides and args.aligner == 'window':
         from ga_ros.core.window import AlignerConfig
+        from ga_ros.pipeline.params import config_from_params
 
-        try:
-            aligner = dataclasses.replace(AlignerConfig(), **overrides)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f'bad aligner option: {exc}') from exc
+        aligner, _ = config_from_params(AlignerConfig, overrides)
     outputs = OutputConfig(map_frame=args.map_frame, path_topic=args.path_topic,
                            pose_topic=args.pose_topic, markers_topic=args.markers_topic,
                            odom_frame=args.odom_frame, sensor_frame=args.base_frame)
