@@ -366,7 +366,7 @@ def test_parameters_have_descriptors(node_in_process):
         assert d.description, name
     assert node.describe_parameter('window_tracks').integer_range[0].from_value == 1
     assert node.describe_parameter('solver.max_iterations').integer_range[0].from_value == 1
-    assert node.aligner_config == AlignerConfig()
+    assert node.aligner_config == AlignerConfig(window_tracks=2)  # solver: the defaults
     assert node.settings.state_file.endswith('state.npz')
     assert node.settings.map_frame == 'map'
 
