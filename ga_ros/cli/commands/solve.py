@@ -26,7 +26,7 @@ import numpy as np
 from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
 from ga_ros.errors import InputError
-from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
+from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, graph_cost, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
     GraphSolveConfig,
@@ -102,6 +102,11 @@ def run(args: argparse.Namespace) -> int:
     read_seconds = time.perf_counter() - t_read
     guess = initial_guess(graph, args.init)
     graph = graph.with_initial_guess(guess.T_world_node)
+    initial = graph_cost(graph, guess.T_world_node)
+    if not np.isfinite(initial):
+        raise InputError(f'{args.input}: no final cost can be reached, the initial cost is '
+                         f'{initial}: a vertex or edge holds an absurd value (e.g. 1e308); '
+                         'fix the file. Nothing was written')
     if args.tracks:
         result = _run_tracks(graph, args)
     else:
