@@ -150,7 +150,8 @@ def test_robust_loss_resists_wrong_connections(tmp_path, rng, loss):
     g = read_g2o(_write(tmp_path / 'dirty.g2o', lines))
     ref = _pos_rmse(solve_graph(clean).T_world_node, T_true)  # no outliers: noise level
     plain = _pos_rmse(solve_graph(g).T_world_node, T_true)
-    robust = _pos_rmse(solve_graph(g, GraphSolveConfig(robust_loss=loss)).T_world_node, T_true)
+    robust_cfg = GraphSolveConfig.with_solver(robust_loss=loss)
+    robust = _pos_rmse(solve_graph(g, robust_cfg).T_world_node, T_true)
     assert ref < 0.2
     assert plain > 5 * ref          # the wrong connections bend the plain solution
     assert robust < plain / 3       # the robust loss mostly ignores them

@@ -34,42 +34,44 @@ from ga_ros.io.g2o import PoseGraph, edge_errors, graph_cost
 
 @dataclass(frozen=True)
 class GraphSolveConfig:
-    """Settings of :func:`solve_graph` (validated by, and passed on as, :class:`SolverConfig`).
+    """Settings of :func:`solve_graph`: a :class:`SolverConfig` (one set of solver rules) and
+    what only a pose-graph solve has.
 
     Attributes
     ----------
-    damping : ``'dogleg'`` (Powell's dogleg, default: Gauss-Newton steps while they lower the
-        cost, one factorisation per iteration), ``'lm'`` (Levenberg-Marquardt first stage, then
-        undamped polish) or ``'none'`` (Gauss-Newton / Gauss-Helmert only).
-    max_iterations : cap on first-stage iterations.
+    solver : the solver settings; the defaults of a batch pose-graph solve are
+        :data:`GRAPH_SOLVER` (``se3``, Powell's dogleg -- Gauss-Newton steps while they lower the
+        cost, one factorisation per iteration --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
+        ``cost_tolerance`` 1e-6 as GTSAM's ``relativeErrorTol``). ``damping='lm'`` runs a
+        Levenberg-Marquardt first stage, then the undamped polish below.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
-    tolerance : stop when the largest correction is below this (m, rad).
-    robust_loss : ``'none'``, ``'huber'`` or ``'cauchy'`` on each edge's Mahalanobis misclosure.
-    robust_scale : Mahalanobis distance where the robust loss departs from least squares.
-    cost_tolerance : also stop when a Gauss-Newton step lowers the cost by less than this
-        fraction (GTSAM's ``relativeErrorTol`` is 1e-5).
     """
 
-    damping: str = 'dogleg'
-    max_iterations: int = 100
+    solver: SolverConfig = field(default_factory=lambda: GRAPH_SOLVER)
     polish_iterations: int = 30
-    tolerance: float = 1e-8
-    robust_loss: str = 'none'
-    robust_scale: float = 3.0
-    cost_tolerance: float = 1e-6
 
     def __post_init__(self) -> None:
         if self.polish_iterations < 0:
             raise InputError('polish_iterations >= 0 required')
-        self.solver_config()  # the shared fields follow SolverConfig's rules
+        if self.solver.model != 'se3':
+            raise InputError('a pose graph is solved with the se3 model')
+
+    @classmethod
+    def with_solver(cls, polish_iterations: int = 30, **solver: object) -> GraphSolveConfig:
+        """A config whose solver is :data:`GRAPH_SOLVER` with the given fields replaced, e.g.
+        ``GraphSolveConfig.with_solver(robust_loss='cauchy')``."""
+        return cls(replace(GRAPH_SOLVER, **solver), polish_iterations)
 
     def solver_config(self, damping: str | None = None,
                       max_iterations: int | None = None) -> SolverConfig:
         """The first stage's :class:`SolverConfig` (or a stage with another damping/cap)."""
-        return SolverConfig(model='se3', damping=damping or self.damping,
-                            max_iterations=max_iterations or self.max_iterations,
-                            tolerance=self.tolerance, robust_loss=self.robust_loss,
-                            robust_scale=self.robust_scale, cost_tolerance=self.cost_tolerance)
+        return replace(self.solver, damping=damping or self.solver.damping,
+                       max_iterations=max_iterations or self.solver.max_iterations)
+
+
+#: Solver settings of a batch pose-graph solve (see :class:`GraphSolveConfig`).
+GRAPH_SOLVER = SolverConfig(model='se3', damping='dogleg', max_iterations=100, tolerance=1e-8,
+                            cost_tolerance=1e-6)
 
 
 @dataclass
@@ -135,17 +137,17 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
     stages: list[dict] = []
 
     def objective(T: FloatArray) -> float:
-        return robust_objective(graph, T, cfg.robust_loss, cfg.robust_scale)
+        return robust_objective(graph, T, cfg.solver.robust_loss, cfg.solver.robust_scale)
 
     first = cfg.solver_config()
     t = time.perf_counter()
     res = solve(graph.network, graph.T_init, first, fixed=fixed)
     T, best = res.T_world_node, objective(res.T_world_node)
     iterations, converged, reason = res.iterations, res.converged, res.reason
-    stages.append(dict(name=cfg.damping, iterations=res.iterations,
+    stages.append(dict(name=cfg.solver.damping, iterations=res.iterations,
                        factorisations=res.factorisations, reason=res.reason,
                        seconds=time.perf_counter() - t, objective=best, accepted=True))
-    if cfg.damping == 'lm' and cfg.polish_iterations > 0:
+    if cfg.solver.damping == 'lm' and cfg.polish_iterations > 0:
         polish = cfg.solver_config('none', cfg.polish_iterations)
         t = time.perf_counter()
         try:

@@ -79,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
     if not files:
         raise InputError(f'no matching *.g2o files in {data}')
     reference = read_reference(data)
-    cfg = GraphSolveConfig(max_iterations=args.max_iterations,
-                           polish_iterations=args.polish_iterations)
+    cfg = GraphSolveConfig.with_solver(polish_iterations=args.polish_iterations,
+                                       max_iterations=args.max_iterations)
     print('| dataset | dim | nodes | edges | initial cost | our cost | reference | gap % '
           '| iterations | seconds | GTSAM s |')
     print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')

@@ -110,11 +110,11 @@ def run(args: argparse.Namespace) -> int:
     if args.tracks:
         result = _run_tracks(graph, args)
     else:
-        cfg = GraphSolveConfig(damping=args.damping or 'dogleg',
-                               max_iterations=args.max_iterations or 100,
-                               polish_iterations=args.polish_iterations,
-                               tolerance=args.tolerance or 1e-8, robust_loss=args.robust,
-                               robust_scale=args.robust_scale)
+        overrides = dict(damping=args.damping, max_iterations=args.max_iterations,
+                         tolerance=args.tolerance)
+        cfg = GraphSolveConfig.with_solver(
+            polish_iterations=args.polish_iterations, robust_loss=args.robust,
+            robust_scale=args.robust_scale, **{k: v for k, v in overrides.items() if v})
         result = solve_graph(graph, cfg)
     if not np.isfinite(result.cost):
         raise InputError(f'{args.input}: the final cost is {result.cost} (initial '
