@@ -32,13 +32,12 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
 
     Nodes of high degree (e.g. those of a dense joint prior) would widen the band of every other
     node; they can be ordered last as a dense border ``P`` (an arrowhead matrix), the others
-    ``Q`` keep their narrow band. The border rows of the factor ``L_Pk`` and the border blocks
-    ``Sigma_Pk`` of the inverse are carried along both recursions::
+    ``Q`` keep their narrow band. The border rows of the factor and the Schur complement::
 
-        L_Pk = (N_Pk - L_P,k-1 C_k-1') D_k^-T,    D_P D_P' = N_PP - sum_k L_Pk L_Pk'
-        Sigma_kk = D_k^-T (I + M_k' Sigma_next M_k) D_k^-1,   M_k = [C_k; L_Pk]
-        Sigma_Pk = -(Sigma_P,k+1 C_k + Sigma_PP L_Pk) D_k^-1
+        L_Pk = (N_Pk - L_P,k-1 C_k-1') D_k^-T,    S = D_P D_P' = N_PP - sum_k L_Pk L_Pk'
 
+    give ``Sigma_QQ = N_QQ^-1 + Z S^-1 Z'`` with ``Z = N_QQ^-1 N_QP = L_QQ^-T L_P'`` (block
+    back substitution), evaluated only for the wanted rows; ``Sigma_PP = S^-1``.
     The plan (border or not, ordering of ``Q``) with the smaller operation count is used.
 
     Parameters
@@ -125,30 +124,42 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
         Ecat = np.concatenate(list(E), axis=1)
         App -= Ecat @ Ecat.T
     out = np.full((u, d, d), np.nan)
-    Spp = np.zeros((0, 0))
+    Dp = np.zeros((0, 0))
     if p:
         Dp = _inverse_factor(App, np.eye(p))
         Spp = Dp.T @ Dp
         for q in range(border.size):
             out[border[q]] = Spp[q * d:(q + 1) * d, q * d:(q + 1) * d]
-    # backward recursion over the diagonal blocks of Sigma
+    want = np.ones(order_q.size, dtype=bool)
+    if wanted is not None and len(wanted):
+        want[:] = False
+        wpos = pos[np.asarray(wanted, dtype=np.int64)]
+        want[wpos[wpos < order_q.size]] = True
+    # backward recursion over the diagonal blocks of N_QQ^-1, plus the border's share
+    # Z S^-1 Z' with Z = N_QQ^-1 N_QP = L_QQ^-T L_P' (back substitution) for wanted rows only
     Sigma_next = None
-    Sigma_pnext = None
+    Z = np.zeros((b, p))
     stop = (first_needed * d) // b
     for k in range(nb - 1, min(stop, nb) - 1, -1):
-        Y = Spp @ E[k]
         if Sigma_next is None:
-            X = E[k].T @ Y
+            S = Dinv[k].T @ Dinv[k]
+            Z = Dinv[k].T @ E[k].T
         else:
-            Y += Sigma_pnext @ C[k]
-            X = C[k].T @ (Sigma_next @ C[k] + Sigma_pnext.T @ E[k]) + E[k].T @ Y
-        S = Dinv[k].T @ (eye + X) @ Dinv[k]
-        Sigma_pnext = -Y @ Dinv[k]
+            S = Dinv[k].T @ (eye + C[k].T @ Sigma_next @ C[k]) @ Dinv[k]
+            Z = Dinv[k].T @ (E[k].T - C[k].T @ Z)
         Sigma_next = S
         lo, hi = k * b, min((k + 1) * b, nq)
-        for q in range(lo // d, hi // d):
-            s = q * d - lo
-            out[order[q]] = S[s:s + d, s:s + d]
+        qs = np.arange(lo // d, hi // d)
+        qs = qs[want[qs]]
+        if qs.size == 0:
+            continue
+        rows = ((qs - lo // d)[:, None] * d + np.arange(d)).ravel()
+        blocks = S[rows[:, None], rows[None, :]].reshape(qs.size, d, qs.size, d)
+        blocks = blocks[np.arange(qs.size), :, np.arange(qs.size), :]
+        if p:
+            W = (Z[rows] @ Dp.T).reshape(qs.size, d, p)
+            blocks = blocks + W @ np.swapaxes(W, 1, 2)
+        out[order[qs]] = blocks
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
