@@ -61,3 +61,28 @@ def test_principal_axis_ordering_gives_the_same_blocks(rng):
 def test_gives_up_when_band_too_wide(rng):
     N = _random_graph_spd(rng, 30, 6, 200)
     assert banded_marginal_blocks(sp.csr_matrix(N), 6, max_band=12) is None
+
+
+def test_dense_border_nodes_give_the_same_blocks(rng):
+    """A chain whose last nodes share a dense joint prior (a frozen track's Schur complement):
+    they are ordered last as a dense border; every block still equals the dense inverse."""
+    d, u, k = 6, 80, 20
+    N = _random_graph_spd(rng, u, d, 0)
+    # nodes 0..k-1 are also linked to the chain every other node, the prior over them is dense
+    prior_nodes = np.arange(k)
+    J = rng.normal(size=(k * d, k * d))
+    idx = (prior_nodes[:, None] * d + np.arange(d)).ravel()
+    N[np.ix_(idx, idx)] += J.T @ J / k
+    for i in prior_nodes:
+        j = k + 3 * i
+        Jc = rng.normal(size=(d, 2 * d))
+        ij = np.r_[i * d:(i + 1) * d, j * d:(j + 1) * d]
+        N[np.ix_(ij, ij)] += Jc.T @ Jc
+    inv = np.linalg.inv(N)
+    ref = np.stack([inv[i * d:(i + 1) * d, i * d:(i + 1) * d] for i in range(u)])
+    blocks = banded_marginal_blocks(sp.csr_matrix(N), d)
+    np.testing.assert_allclose(blocks, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+    wanted = np.array([25, 50, 79, 3])
+    blocks = banded_marginal_blocks(sp.csr_matrix(N), d, wanted=wanted)
+    np.testing.assert_allclose(blocks[wanted], ref[wanted], rtol=1e-8,
+                               atol=1e-10 * np.abs(ref).max())

@@ -30,12 +30,22 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
                            coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
+    Nodes of high degree (e.g. those of a dense joint prior) would widen the band of every other
+    node; they can be ordered last as a dense border ``P`` (an arrowhead matrix), the others
+    ``Q`` keep their narrow band. The border rows of the factor and the Schur complement::
+
+        L_Pk = (N_Pk - L_P,k-1 C_k-1') D_k^-T,    S = D_P D_P' = N_PP - sum_k L_Pk L_Pk'
+
+    give ``Sigma_QQ = N_QQ^-1 + Z S^-1 Z'`` with ``Z = N_QQ^-1 N_QP = L_QQ^-T L_P'`` (block
+    back substitution), evaluated only for the wanted rows; ``Sigma_PP = S^-1``.
+    The plan (border or not, ordering of ``Q``) with the smaller operation count is used.
+
     Parameters
     ----------
     N : (d u, d u) sparse symmetric matrix, ``u`` node blocks of size ``d``.
     d : block size (parameters per node).
-    max_band : give up (return ``None``) if the reordered half-bandwidth exceeds this many
-        scalars; the caller then uses sparse solves.
+    max_band : give up (return ``None``) if the reordered half-bandwidth or the border exceeds
+        this many scalars; the caller then uses sparse solves.
     wanted : optional (k,) node blocks that are needed; the backward recursion stops once it
         has passed them (blocks of other nodes are left as NaN). Default: all nodes.
     coords : optional (u, 3) node positions. Besides reverse Cuthill-McKee, the ordering along
@@ -50,72 +60,144 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     n = N.shape[0]
     u = n // d
     coo = N.tocoo()
-    G = sp.coo_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(u, u)).tocsr()
     rows_n, cols_n = coo.row // d, coo.col // d
-    candidates = [reverse_cuthill_mckee(G, symmetric_mode=True)]
-    if coords is not None and len(coords) == u and u > 2:
-        xyz = np.asarray(coords, dtype=float) - np.mean(coords, axis=0)
-        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
-        candidates.append(np.argsort(xyz @ axis, kind='stable'))
-
-    def node_band(order: np.ndarray) -> int:
-        pos = np.empty(u, dtype=np.int64)
-        pos[order] = np.arange(u)
-        return int(np.abs(pos[rows_n] - pos[cols_n]).max()) if coo.nnz else 0
-
-    order = min(candidates, key=node_band)
+    G = sp.coo_matrix((np.ones(coo.nnz), (rows_n, cols_n)), shape=(u, u)).tocsr()
+    plans = [_plan(G, rows_n, cols_n, coords, np.zeros(u, dtype=bool), d)]
+    degree = np.diff(G.indptr)
+    if u > 2:
+        dense = degree > max(16.0, 4.0 * float(np.median(degree)))
+        if 0 < dense.sum() < u // 2:
+            plans.append(_plan(G, rows_n, cols_n, coords, dense, d))
+    order_q, border, b, _ = min(plans, key=lambda plan: plan[3])
+    p = border.size * d
+    if b > max_band or p > max_band:
+        return None
+    order = np.concatenate([order_q, border])
+    nq = order_q.size * d
+    pos = np.empty(u, dtype=np.int64)
+    pos[order] = np.arange(u)
     if wanted is None or len(wanted) == 0:
         first_needed = 0
     else:
-        pos = np.empty(u, dtype=np.int64)
-        pos[order] = np.arange(u)
-        first_needed = int(pos[np.asarray(wanted, dtype=np.int64)].min())
+        wpos = pos[np.asarray(wanted, dtype=np.int64)]
+        wpos = wpos[wpos < order_q.size]
+        first_needed = int(wpos.min()) if wpos.size else order_q.size
     perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
     inv = np.empty(n, dtype=np.int64)
     inv[perm] = np.arange(n)
     r, c = inv[coo.row], inv[coo.col]
-    band = int(np.abs(r - c).max()) if coo.nnz else 0
-    b = max(d, -(-(band + 1) // d) * d)
-    if b > max_band:
-        return None
-    nb = -(-n // b)
+    nb = max(-(-nq // b), 1)
     size = nb * b
-    # dense diagonal and sub-diagonal blocks of the permuted matrix (padded with identity)
-    br, bc = r // b, c // b
+    # dense diagonal and sub-diagonal blocks of the banded part (padded with identity), the
+    # border rows E (p, b) per block and the border's own block
+    inq = (r < nq) & (c < nq)
+    rq, cq, vq = r[inq], c[inq], coo.data[inq]
+    br, bc = rq // b, cq // b
     diag = br == bc
-    lin = (br[diag] * b + r[diag] % b) * b + c[diag] % b
-    A = np.bincount(lin, weights=coo.data[diag], minlength=nb * b * b).reshape(nb, b, b)
+    lin = (br[diag] * b + rq[diag] % b) * b + cq[diag] % b
+    A = np.bincount(lin, weights=vq[diag], minlength=nb * b * b).reshape(nb, b, b)
     low = br == bc + 1
-    lin = (bc[low] * b + r[low] % b) * b + c[low] % b
-    C = np.bincount(lin, weights=coo.data[low],
+    lin = (bc[low] * b + rq[low] % b) * b + cq[low] % b
+    C = np.bincount(lin, weights=vq[low],
                     minlength=max(nb - 1, 0) * b * b).reshape(max(nb - 1, 0), b, b)
-    pad = np.arange(n, size)
+    bord = (r >= nq) & (c < nq)
+    lin = ((c[bord] // b) * p + (r[bord] - nq)) * b + c[bord] % b
+    E = np.bincount(lin, weights=coo.data[bord],
+                    minlength=nb * p * b).reshape(nb, p, b).astype(float)
+    pp = (r >= nq) & (c >= nq)
+    App = np.bincount((r[pp] - nq) * p + (c[pp] - nq), weights=coo.data[pp],
+                      minlength=p * p).reshape(p, p).astype(float)
+    pad = np.arange(nq, size)
     A[pad // b, pad % b, pad % b] = 1.0
-    # block Cholesky: D_k D_k' = A_k - C_{k-1} C_{k-1}'; C_k <- C_k D_k^-T
+    # block Cholesky: D_k D_k' = A_k - C_{k-1} C_{k-1}'; C_k <- C_k D_k^-T; border rows likewise
     Dinv = np.empty_like(A)
     eye = np.eye(b)
     for k in range(nb):
         if k:
             A[k] -= C[k - 1] @ C[k - 1].T
-        try:
-            D = np.linalg.cholesky(A[k])
-        except np.linalg.LinAlgError as exc:
-            raise DegenerateGeometryError('normal matrix is not positive definite') from exc
-        Dinv[k] = sla.solve_triangular(D, eye, lower=True)
+            E[k] -= E[k - 1] @ C[k - 1].T
+        Dinv[k] = _inverse_factor(A[k], eye)
         if k < nb - 1:
             C[k] = C[k] @ Dinv[k].T
-    # backward recursion over the diagonal blocks of Sigma
+        E[k] = E[k] @ Dinv[k].T
+    if p:
+        Ecat = np.concatenate(list(E), axis=1)
+        App -= Ecat @ Ecat.T
     out = np.full((u, d, d), np.nan)
+    Dp = np.zeros((0, 0))
+    if p:
+        Dp = _inverse_factor(App, np.eye(p))
+        Spp = Dp.T @ Dp
+        for q in range(border.size):
+            out[border[q]] = Spp[q * d:(q + 1) * d, q * d:(q + 1) * d]
+    want = np.ones(order_q.size, dtype=bool)
+    if wanted is not None and len(wanted):
+        want[:] = False
+        wpos = pos[np.asarray(wanted, dtype=np.int64)]
+        want[wpos[wpos < order_q.size]] = True
+    # backward recursion over the diagonal blocks of N_QQ^-1, plus the border's share
+    # Z S^-1 Z' with Z = N_QQ^-1 N_QP = L_QQ^-T L_P' (back substitution) for wanted rows only
     Sigma_next = None
+    Z = np.zeros((b, p))
     stop = (first_needed * d) // b
-    for k in range(nb - 1, stop - 1, -1):
+    for k in range(nb - 1, min(stop, nb) - 1, -1):
         if Sigma_next is None:
             S = Dinv[k].T @ Dinv[k]
+            Z = Dinv[k].T @ E[k].T
         else:
             S = Dinv[k].T @ (eye + C[k].T @ Sigma_next @ C[k]) @ Dinv[k]
+            Z = Dinv[k].T @ (E[k].T - C[k].T @ Z)
         Sigma_next = S
-        lo, hi = k * b, min((k + 1) * b, n)
-        for q in range(lo // d, hi // d):
-            s = q * d - lo
-            out[order[q]] = S[s:s + d, s:s + d]
+        lo, hi = k * b, min((k + 1) * b, nq)
+        qs = np.arange(lo // d, hi // d)
+        qs = qs[want[qs]]
+        if qs.size == 0:
+            continue
+        rows = ((qs - lo // d)[:, None] * d + np.arange(d)).ravel()
+        blocks = S[rows[:, None], rows[None, :]].reshape(qs.size, d, qs.size, d)
+        blocks = blocks[np.arange(qs.size), :, np.arange(qs.size), :]
+        if p:
+            W = (Z[rows] @ Dp.T).reshape(qs.size, d, p)
+            blocks = blocks + W @ np.swapaxes(W, 1, 2)
+        out[order[qs]] = blocks
     return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def _inverse_factor(A: FloatArray, eye: FloatArray) -> FloatArray:
+    """``D^-1`` of the lower Cholesky factor ``D D' = A``."""
+    try:
+        D = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError('normal matrix is not positive definite') from exc
+    return sla.solve_triangular(D, eye, lower=True)
+
+
+def _plan(G: sp.csr_matrix, rows_n: np.ndarray, cols_n: np.ndarray,
+          coords: np.ndarray | None, border: np.ndarray,
+          d: int) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """Ordering of the non-border nodes, the border nodes, the block size ``b`` (scalars) and
+    an operation count of the selected inversion with that plan."""
+    u = G.shape[0]
+    q_nodes = np.nonzero(~border)[0]
+    p_nodes = np.nonzero(border)[0]
+    Gq = G[q_nodes][:, q_nodes]
+    candidates = [q_nodes[reverse_cuthill_mckee(Gq, symmetric_mode=True)]]
+    if coords is not None and len(coords) == u and q_nodes.size > 2:
+        xyz = np.asarray(coords, dtype=float)[q_nodes]
+        xyz = xyz - np.mean(xyz, axis=0)
+        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
+        candidates.append(q_nodes[np.argsort(xyz @ axis, kind='stable')])
+    both = ~border[rows_n] & ~border[cols_n]
+    rq, cq = rows_n[both], cols_n[both]
+
+    def node_band(order: np.ndarray) -> int:
+        pos = np.empty(u, dtype=np.int64)
+        pos[order] = np.arange(order.size)
+        return int(np.abs(pos[rq] - pos[cq]).max()) if rq.size else 0
+
+    bands = [node_band(o) for o in candidates]
+    best = int(np.argmin(bands))
+    b = (bands[best] + 1) * d
+    nq, p = q_nodes.size * d, p_nodes.size * d
+    cost = nq * (4.0 * b * b + 4.0 * p * b + 2.0 * p * p) + p ** 3
+    return candidates[best], p_nodes, b, cost

@@ -829,7 +829,10 @@ class TrackWindowAligner:
         # The absorbed terms alone are not at their optimum (the window's estimate is), so
         # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
         # the tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
-        shift = -np.linalg.lstsq(H, g, rcond=None)[0]
+        try:  # H is positive definite unless the absorbed terms leave a direction free
+            shift = -sla.cho_solve(sla.cho_factor(H), g)
+        except np.linalg.LinAlgError:
+            shift = -np.linalg.lstsq(H, g, rcond=None)[0]
         S_nodes = free_idx[~elim]
         mean = self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6))
         self._priors.append((S_nodes, mean, H))
