@@ -153,7 +153,10 @@ class VoNode(Node):
                                               stream_qos())
         if s.diagnostics_period_sec > 0:
             self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics)
-        self.pub_meas = self.create_publisher(Odometry, s.measurements_topic, measurement_qos())
+        # transient local: an alignment node that matches late (discovery across hosts, a
+        # restart) still gets every measurement; volatile subscribers match it as well
+        self.pub_meas = self.create_publisher(Odometry, s.measurements_topic,
+                                              measurement_qos(transient_local=True))
         self.pub_odom = self.create_publisher(Odometry, s.odometry_topic, stream_qos())
         self.pub_debug = (self.create_publisher(Image, s.debug_image_topic, stream_qos(2))
                           if s.publish_debug_image else None)
