@@ -323,10 +323,7 @@ class AlignmentNode(Node):
                 pass                             # counted and logged by the session
             return
         try:
-            if self.settings.covariance_policy == 'reject':
-                m = conv.odometry_to_measurement(msg)
-            else:
-                m = decode_measurement(msg, self.settings.covariance_policy)
+            m = decode_measurement(msg, self.settings.covariance_policy)
         except GaError as exc:
             self._warn_rejected(self.session.undecodable(exc), exc, msg)
             return
