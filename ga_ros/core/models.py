@@ -9,6 +9,11 @@ the misclosure ``f`` and the Jacobians ``A = df/dx`` (w.r.t. the two nodes) and 
   right perturbation ``v`` around the measured value, ``T_ij(l) = T_ij_meas exp(v)``, and
   ``f = log(T_ij(l)^-1 T_i^-1 T_j)`` (6 equations). Since ``f = 0`` forces
   ``v = log(T_ij_meas^-1 T_i^-1 T_j)``, the adjustment minimises exactly the g2o/GTSAM cost.
+* ``se2``: the ``se3`` model of planar poses (2-D graphs): unknowns are ``[x, y, theta]`` per
+  node (right perturbation), the observation is the planar part ``[x y rz]`` of the motion's
+  perturbation ``v``, ``f = log(T_ij(l)^-1 T_i^-1 T_j)`` in SE(2) (3 equations). On planar poses
+  this is the ``se3`` model restricted to the plane (se(2) is a subalgebra of se(3)), with half
+  the unknowns; the connection covariance used is the ``[x y rz]`` block of the 6x6 one.
 * ``paper`` (eq. 1): unknowns are 3-D positions ``p_i``; ``l = [t, w]`` and
   ``f = p_j - R(w) p_i - t`` (3 equations per connection, 6 observations).
 * ``linear``: unknowns are positions, ``f = p_j - p_i - t`` (the paper's model with ``R = I``):
@@ -23,9 +28,11 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import InputError
-from ga_ros.geometry import se3, so3
+from ga_ros.geometry import se2, se3, so3
 
-MODEL_NAMES = ('se3', 'paper', 'linear')
+MODEL_NAMES = ('se3', 'se2', 'paper', 'linear')
+#: Models whose observation is the right perturbation of a measured motion (g2o/GTSAM cost).
+MOTION_MODELS = ('se3', 'se2')
 
 
 @dataclass(frozen=True)
@@ -46,14 +53,69 @@ class Linearisation:
 
 
 def dof(model: str) -> int:
-    """Unknowns per node: 6 for ``se3``, 3 for ``paper`` and ``linear``."""
+    """Unknowns per node: 6 for ``se3``, 3 for ``se2``, ``paper`` and ``linear``."""
     check_model(model)
     return 6 if model == 'se3' else 3
 
 
 def equations_per_connection(model: str) -> int:
-    """Constraint equations per connection: 6 for ``se3``, 3 for ``paper`` and ``linear``."""
+    """Constraint equations per connection: 6 for ``se3``, 3 for the others."""
     return dof(model)
+
+
+def observations_per_connection(model: str) -> int:
+    """Observations per connection: 3 for ``se2`` (``[x y rz]``), 6 for the others."""
+    check_model(model)
+    return 3 if model == 'se2' else 6
+
+
+def observation_covariance(model: str, cov: FloatArray) -> FloatArray:
+    """The covariance of a connection's observations: the ``[x y rz]`` block of the 6x6
+    ``cov`` (m, rad) for ``se2``, ``cov`` itself for the other models."""
+    return np.ascontiguousarray(cov[:, se2.AXES[:, None], se2.AXES]) if model == 'se2' else cov
+
+
+@dataclass(frozen=True)
+class Between:
+    """Misclosure of measured motions and its Jacobians (``se3`` / ``se2``).
+
+    ``e = log(T_meas^-1 T_i^-1 T_j)``; for the right perturbations ``T_i exp(d_i)``,
+    ``T_j exp(d_j)``: ``de/dd_j = Jr_inv`` and ``de/dd_i = -Jr_inv @ Ad_ji``.
+
+    Attributes
+    ----------
+    e : (m, d) misclosure.
+    Jr_inv : (m, d, d) ``J_r(e)^-1``.
+    Ad_ji : (m, d, d) ``Ad(T_ij^-1)``.
+    """
+
+    e: FloatArray
+    Jr_inv: FloatArray
+    Ad_ji: FloatArray
+
+
+def motion_misclosure(model: str, T: FloatArray, src: IntArray, dst: IntArray,
+                      T_meas: FloatArray) -> FloatArray:
+    """``e = log(T_meas^-1 T_i^-1 T_j)`` ``(m, d)`` of the motion models (se3: 6, se2: 3)."""
+    if model == 'se2':
+        P = se2.Planar.from_matrix
+        return P(T_meas).inverse().compose(P(T[src]).inverse().compose(P(T[dst]))).log()
+    return se3.log(se3.inverse(T_meas) @ se3.inverse(T[src]) @ T[dst])
+
+
+def between(model: str, T: FloatArray, src: IntArray, dst: IntArray,
+            T_meas: FloatArray) -> Between:
+    """Misclosure and Jacobians of measured motions (see :class:`Between`) for se3 / se2."""
+    if model == 'se2':
+        P = se2.Planar.from_matrix
+        T_ij = P(T[src]).inverse().compose(P(T[dst]))
+        e = P(T_meas).inverse().compose(T_ij).log()
+        return Between(e, se2.right_jacobian_inv(e), se2.adjoint(T_ij.inverse()))
+    T_ij = se3.inverse(T[src]) @ T[dst]
+    E = se3.inverse(T_meas) @ T_ij
+    e = se3.log(E)
+    # J_r(e)^-1 = J_l(e)^-1 Ad(exp e)
+    return Between(e, se3.left_jacobian_inv(e) @ se3.adjoint(E), se3.adjoint(se3.inverse(T_ij)))
 
 
 def check_model(model: str) -> None:
@@ -67,14 +129,17 @@ def linearise(model: str, T: FloatArray, src: IntArray, dst: IntArray, z_b: Floa
 
     Parameters
     ----------
-    model : 'se3' | 'paper' | 'linear'.
+    model : 'se3' | 'se2' | 'paper' | 'linear'.
     T : (n, 4, 4) current node poses ``T_world_node`` (positions only are used by paper/linear).
     src, dst : (m,) node indices.
     z_b : (m, 6) measured observations ``[t, w]`` (m, rad).
-    v : (m, 6) current residuals (adjusted observations ``l0 = l_b + v``).
+    v : (m, o) current residuals (adjusted observations ``l0 = l_b + v``), ``o`` =
+        :func:`observations_per_connection` (se2: the ``[x y rz]`` perturbation).
     """
     if model == 'se3':
         return _linearise_se3(T, src, dst, z_b, v)
+    if model == 'se2':
+        return _linearise_se2(T, src, dst, z_b, v)
     if model == 'paper':
         return _linearise_paper(T, src, dst, z_b, v)
     if model == 'linear':
@@ -99,6 +164,20 @@ def _linearise_se3(T, src, dst, z_b, v) -> Linearisation:
     if np.any(v):
         B = B @ se3.right_jacobian(v)
     return Linearisation(f, A_src, A_dst, B)
+
+
+def _linearise_se2(T, src, dst, z_b, v) -> Linearisation:
+    P = se2.Planar.from_matrix
+    T_meas = P(se3.from_translation_rotvec(z_b[:, :3], z_b[:, 3:]))
+    T_ij = P(T[src]).inverse().compose(P(T[dst]))
+    F = P(se2.exp(-v)).compose(T_meas.inverse()).compose(T_ij)
+    f = F.log()
+    Jr_inv = se2.right_jacobian_inv(f)
+    A_src = -Jr_inv @ se2.adjoint(T_ij.inverse())
+    # exp(-(v + d)) F = exp(-J_r(v) d) exp(-v) F, and exp(g) F = F exp(Ad(F^-1) g):
+    # df/dv = -J_r(f)^-1 Ad(F^-1) J_r(v) = -J_l(f)^-1 J_r(v)
+    B = -Jr_inv @ se2.adjoint(F.inverse()) @ np.linalg.inv(se2.right_jacobian_inv(v))
+    return Linearisation(f, A_src, Jr_inv, B)
 
 
 def _linearise_paper(T, src, dst, z_b, v) -> Linearisation:
@@ -128,10 +207,12 @@ def _linearise_linear(T, src, dst, z_b, v) -> Linearisation:
 
 
 def retract(model: str, T: FloatArray, idx: IntArray, d: FloatArray) -> FloatArray:
-    """Apply increments ``d`` (k, dof) to nodes ``idx``: ``T exp(d)`` (se3) or ``p + d``."""
+    """Apply increments ``d`` (k, dof) to nodes ``idx``: ``T exp(d)`` (se3, se2) or ``p + d``."""
     out = T.copy()
     if model == 'se3':
         out[idx] = se3.retract(T[idx], d)
+    elif model == 'se2':
+        out[idx] = se2.retract(T[idx], d)
     else:
         out[idx, :3, 3] += d
     return out
@@ -140,10 +221,14 @@ def retract(model: str, T: FloatArray, idx: IntArray, d: FloatArray) -> FloatArr
 def prior_residual(model: str, T: FloatArray, T_mean: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Residual ``e`` (k, d) and Jacobian ``de/dx`` (k, d, d) of a weighted parameter.
 
-    ``se3``: ``e = log(T_mean^-1 T)`` with Jacobian ``J_r(e)^-1``; positions: ``e = p - p_mean``.
+    ``se3``, ``se2``: ``e = log(T_mean^-1 T)`` with Jacobian ``J_r(e)^-1``; positions:
+    ``e = p - p_mean``.
     """
     if model == 'se3':
         e = se3.local(T_mean, T)
         return e, se3.right_jacobian_inv(e)
+    if model == 'se2':
+        e = se2.local(T_mean, T)
+        return e, se2.right_jacobian_inv(e)
     e = T[:, :3, 3] - T_mean[:, :3, 3]
     return e, np.broadcast_to(np.eye(3), (e.shape[0], 3, 3)).copy()

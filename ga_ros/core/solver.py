@@ -30,7 +30,7 @@ from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.selinv import banded_marginal_blocks
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
-from ga_ros.geometry import se3
+from ga_ros.geometry import se2, se3
 from ga_ros.runtime import blas_threads
 
 ROBUST_LOSSES = ('none', 'huber', 'cauchy')
@@ -46,8 +46,9 @@ class SolverConfig:
 
     Attributes
     ----------
-    model : constraint model, ``'se3'`` (full poses, default), ``'paper'`` (eq. 1, positions) or
-        ``'linear'`` (positions, ``R = I``); see :mod:`ga_ros.core.models`.
+    model : constraint model, ``'se3'`` (full poses, default), ``'se2'`` (planar poses: 3 unknowns
+        per node, for 2-D graphs), ``'paper'`` (eq. 1, positions) or ``'linear'`` (positions,
+        ``R = I``); see :mod:`ga_ros.core.models`.
     max_iterations : cap on relinearisations.
     tolerance : stop when the largest correction ``max |d|`` is below this (m and rad).
     damping : ``'none'``: the paper's Gauss-Helmert iteration; ``'dogleg'``: Powell's dogleg
@@ -98,8 +99,8 @@ class GaussianPrior:
     T_world_node : (k, 4, 4) prior mean poses (for the position models only the translation
         counts).
     information : (d k, d k) inverse covariance (dense array or scipy.sparse), node-major, each
-        node's block in the order ``[x y z rx ry rz]`` (se3, d = 6) or ``[x y z]`` (d = 3), for
-        the right perturbation ``T_mean exp(e)``.
+        node's block in the order ``[x y z rx ry rz]`` (se3, d = 6), ``[x y rz]`` (se2, d = 3)
+        or ``[x y z]`` (positions, d = 3), for the right perturbation ``T_mean exp(e)``.
     """
 
     node_ids: IntArray
@@ -121,8 +122,9 @@ class GaussianPrior:
 class SolveResult:
     """Outcome of :func:`solve`.
 
-    ``T_world_node``, ``node_ids`` are in network index order; ``residuals`` (``v``) and
-    ``adjusted`` (``l = l_b + v``, as ``[t, w]``) in connection order. ``cost`` is ``v' P v`` over
+    ``T_world_node``, ``node_ids`` are in network index order; ``residuals`` (``v``, (m, 6); for
+    se2 the ``[x y rz]`` components, the others zero) and ``adjusted`` (``l = l_b + v``, as
+    ``[t, w]``) in connection order. ``cost`` is ``v' P v`` over
     connections (with the robust weights) plus the prior terms. ``factorisations`` counts the
     numeric Cholesky factorisations of ``N`` during the iterations.
     """
@@ -381,7 +383,7 @@ class _Trust:
 def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
     """Relinearise and correct until the largest correction is below the tolerance."""
     cfg = prob.cfg
-    v = prob.consistent(T, np.zeros_like(prob.conn.z))
+    v = prob.consistent(T, prob.zero_residuals())
     state = _Trust()
     last_step = np.inf
     history: list[float] = []
@@ -444,13 +446,18 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
         p.rank for p in prob.prior_data)
     redundancy = r_eq - n_free * d
     sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
+    o = models.observations_per_connection(prob.model)
+    if o != conn.z.shape[1]:  # se2: the planar components of the 6-vector
+        v6 = np.zeros_like(conn.z)
+        v6[:, se2.AXES] = v
+        v = v6
     system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol)
     system.coords = T[prob.free, :3, 3]
     return SolveResult(
         node_ids=node_ids, T_world_node=T, converged=out.converged, iterations=out.iterations,
         reason=out.reason, cost=float(cost), cost_history=out.history,
         sigma0_sq=float(sigma0_sq), redundancy=int(redundancy), n_equations=int(r_eq),
-        n_observations=int(6 * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
+        n_observations=int(o * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
         n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
         seconds=time.perf_counter() - t0, model=prob.model, weights=final.weights,
         factorisations=out.factorisations, _system=system)
@@ -525,6 +532,8 @@ class _Problem:
     col: IntArray  # (n,) block column of each node in N, -1 if fixed
     d: int
     pattern: BlockPattern
+    S: FloatArray  # (m, o, o) covariance of the connections' observations
+    T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models only)
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -539,30 +548,34 @@ class _Problem:
             br.append(col[pd.idx[pd.blk_r]])
             bc.append(col[pd.idx[pd.blk_c]])
         pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
-        return _Problem(model, conn, _inv_spd(conn.cov), prior_data, cfg, free, col, d, pattern)
-
-    @property
-    def S(self) -> FloatArray:
-        return self.conn.cov
+        S = models.observation_covariance(model, conn.cov)
+        T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+                  if model in models.MOTION_MODELS else None)
+        return _Problem(model, conn, _inv_spd(S), prior_data, cfg, free, col, d, pattern, S,
+                        T_meas)
 
     @property
     def Pf(self) -> FloatArray | None:
-        """The weights when the se3 shortcut of :func:`_linear_system` applies."""
-        return self.P if self.model == 'se3' else None
+        """The weights when the shortcut of :func:`_linear_system` applies (se3, se2)."""
+        return self.P if self.model in models.MOTION_MODELS else None
+
+    def zero_residuals(self) -> FloatArray:
+        """``v = 0``: (m, o) with ``o`` the observations per connection."""
+        return np.zeros((len(self.conn), models.observations_per_connection(self.model)))
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
-                              self.col, self.d, self.Pf)
+                              self.col, self.d, self.Pf, self.T_meas)
 
     def cost_at(self, T: FloatArray) -> float:
         return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg, self.col,
-                        self.d, self.Pf)
+                        self.d, self.Pf, self.T_meas)
 
     def residual_update(self, sysd: _System, dx: FloatArray) -> FloatArray:
         return _residual_update(sysd, dx, self.conn, self.col, self.d, self.S)
 
     def consistent(self, T: FloatArray, v_linear: FloatArray) -> FloatArray:
-        return _consistent_residuals(self.model, T, self.conn, v_linear)
+        return _consistent_residuals(self.model, T, self.conn, v_linear, self.T_meas)
 
     def retract(self, T: FloatArray, dx: FloatArray) -> FloatArray:
         return models.retract(self.model, T, np.nonzero(self.free)[0], dx.reshape(-1, self.d))
@@ -582,7 +595,7 @@ class _System:
 
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
-                   P: FloatArray | None = None) -> _System:
+                   P: FloatArray | None = None, T_meas: FloatArray | None = None) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -590,17 +603,17 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     ``w = v`` and ``A = [-Ad(T_ij^-1), I]``, so ``A' M^-1 A = J' P J`` and ``A' M^-1 w = J' P e``
     with ``J = J_r(e)^-1 A`` and ``e = v = log(T_meas^-1 T_i^-1 T_j)``: the Gauss-Newton system
     of ``sum e' P e``, which needs neither ``B`` nor a 6x6 inverse per connection (a test checks
-    it against the general form).
+    it against the general form). se2 takes the same shortcut in its 3 planar components.
     """
-    if model == 'se3' and P is not None:
-        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-        T_ij = se3.inverse(T[conn.src]) @ T[conn.dst]
-        E = se3.inverse(T_meas) @ T_ij
-        w = se3.log(E)
-        Jinv = se3.left_jacobian_inv(w) @ se3.adjoint(E)  # J_r(e)^-1 = J_l(e)^-1 Ad(exp e)
-        Ad = se3.adjoint(se3.inverse(T_ij))
+    shortcut = model in models.MOTION_MODELS and P is not None
+    if shortcut:
+        if T_meas is None:
+            T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+        bt = models.between(model, T, conn.src, conn.dst, T_meas)
+        w, Jinv, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
+        r = w.shape[1]
         lin = models.Linearisation(np.zeros_like(w), -Jinv @ Ad, Jinv,
-                                   np.broadcast_to(-np.eye(6), (len(conn), 6, 6)))
+                                   np.broadcast_to(-np.eye(r), (len(conn), r, r)))
         B = lin.B
         Minv = P
     else:
@@ -612,7 +625,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     maha2 = np.einsum('mi,mij,mj->m', w, Minv, w)
     weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
     Wm = Minv * weights[:, None, None]
-    if model == 'se3' and P is not None:
+    if shortcut:
         # A_dst = J, A_src = -J Ad with J = J_r(e)^-1: share H = J' W J and g = J' W e
         JT = np.swapaxes(lin.A_dst, 1, 2)
         H = JT @ Wm @ lin.A_dst
@@ -743,30 +756,33 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
 
 
 def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
-                          v_linear: FloatArray) -> FloatArray:
+                          v_linear: FloatArray, T_meas: FloatArray | None = None) -> FloatArray:
     """Residuals to relinearise at next (paper Sec. III-C step 5: ``l0 = l_b + v``).
 
     For se3 the constraint ``f = 0`` has the closed-form solution
     ``v = log(T_meas^-1 T_i^-1 T_j)`` at the new ``x``; using it (instead of the linear
     prediction ``v = S B' k``) keeps ``v`` on the principal branch of the rotation log, and the
     Gauss-Helmert step becomes exactly Gauss-Newton on ``sum e' P e``. The position models keep
-    the linear prediction (their constraints are not solvable for ``v`` in closed form).
+    the linear prediction (their constraints are not solvable for ``v`` in closed form). se2 as
+    se3, in its planar components.
     """
-    if model != 'se3':
+    if model not in models.MOTION_MODELS:
         return v_linear
-    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    return se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
+    if T_meas is None:
+        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
 
 
-def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None) -> float:
-    """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3 (``e`` the misclosure
-    ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at ``v = 0``;
-    plus the prior terms."""
-    if model != 'se3':
+def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) -> float:
+    """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3/se2 (``e`` the
+    misclosure ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at
+    ``v = 0``; plus the prior terms."""
+    if model not in models.MOTION_MODELS:
         return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
                               d).cost0
-    T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    e = se3.log(se3.inverse(T_meas) @ se3.inverse(T[conn.src]) @ T[conn.dst])
+    if T_meas is None:
+        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    e = models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
     maha2 = np.einsum('mi,mij,mj->m', e, _inv_spd(S) if P is None else P, e)
     return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
 
@@ -927,7 +943,8 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
     N1 = previous.normal_matrix.toarray()
     Q1 = np.linalg.inv(N1)
     conn = group2.arrays()
-    v0 = _consistent_residuals(cfg.model, T1, conn, np.zeros_like(conn.z))
+    o = models.observations_per_connection(cfg.model)
+    v0 = _consistent_residuals(cfg.model, T1, conn, np.zeros((len(conn), o)))
     lin = models.linearise(cfg.model, T1, conn.src, conn.dst, conn.z, v0)
     m, r = lin.f.shape
     A2 = np.zeros((m * r, Q1.shape[0]))
@@ -937,7 +954,7 @@ def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
             if col[node] >= 0:
                 A2[rows[k][:, None], col[node] * d + np.arange(d)] += Ablk
     M2 = np.zeros((m * r, m * r))
-    Mb = lin.B @ conn.cov @ np.swapaxes(lin.B, 1, 2)
+    Mb = lin.B @ models.observation_covariance(cfg.model, conn.cov) @ np.swapaxes(lin.B, 1, 2)
     for k in range(m):
         M2[rows[k][:, None], rows[k]] = Mb[k]
     w2 = (lin.f - (lin.B @ v0[:, :, None])[:, :, 0]).reshape(-1)  # w = f + B (l_b - l0)
@@ -971,6 +988,6 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     prior_data = [_PriorData.build(network, p, d) for p in priors]
     prob = _Problem.build(model, conn, prior_data, SolverConfig(model=model), free)
     T = np.asarray(T, dtype=float)
-    sysd = prob.linear_system(T, prob.consistent(T, np.zeros_like(conn.z)))
+    sysd = prob.linear_system(T, prob.consistent(T, prob.zero_residuals()))
     pattern = prob.pattern
     return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free], sysd.u
