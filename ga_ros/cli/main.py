@@ -1,8 +1,10 @@
 """``ga-ros`` entry point.
 
 Each module in :mod:`ga_ros.cli.commands` defines ``register(subparsers) -> None``, which adds one
-subcommand whose parser has ``set_defaults(func=run)`` with ``run(args) -> int``. Errors derived
-from :class:`ga_ros.errors.GaError` become a one-line message and exit code 1.
+subcommand whose parser has ``set_defaults(func=run)`` with ``run(args) -> int``; the command
+``foo-bar`` lives in module ``foo_bar``, so a command line that names one imports only that module
+(start-up of ``ga-ros solve`` is not paid for the ROS replay stack). Errors derived from
+:class:`ga_ros.errors.GaError` become a one-line message and exit code 1.
 """
 
 from __future__ import annotations
@@ -18,14 +20,23 @@ from ga_ros.errors import GaError
 from ga_ros.runtime import limit_blas_threads
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_modules() -> list[str]:
+    """Names of the modules of :mod:`ga_ros.cli.commands` (one subcommand each)."""
+    return sorted(m.name for m in pkgutil.iter_modules(commands.__path__))
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``ga-ros`` parser with every subcommand, or only ``command`` when it names one."""
     parser = argparse.ArgumentParser(
         prog='ga-ros',
         description='Global alignment of sensor trajectories from noisy motion measurements.')
     parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        module = importlib.import_module(f'{commands.__name__}.{info.name}')
+    names = command_modules()
+    if command is not None and command.replace('-', '_') in names:
+        names = [command.replace('-', '_')]
+    for name in names:
+        module = importlib.import_module(f'{commands.__name__}.{name}')
         if hasattr(module, 'register'):
             module.register(sub)
     return parser
@@ -40,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) >= 2 and (argv[0], argv[1]) in ALIASES:
         argv = [ALIASES[(argv[0], argv[1])], *argv[2:]]
-    parser = build_parser()
+    parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     if not getattr(args, 'func', None):
         parser.print_help()
