@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
-from scipy.sparse.linalg import splu
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError
@@ -159,6 +158,8 @@ def _project_rotations(M: FloatArray) -> FloatArray:
 
 def _solve_free(N: sp.spmatrix, b: FloatArray, what: str) -> FloatArray:
     try:
+        from scipy.sparse.linalg import splu  # lazy: chordal initialisation only
+
         x = splu(sp.csc_matrix(N)).solve(b)
     except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
         raise DegenerateGeometryError(f'chordal initialisation: the {what} system is '

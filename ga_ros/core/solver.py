@@ -27,7 +27,6 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
-from ga_ros.core.selinv import banded_marginal_blocks
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
 from ga_ros.geometry import se2, se3
@@ -244,6 +243,8 @@ class _NormalSystem:
     def marginal_blocks(self, ids: IntArray) -> FloatArray:
         d = self.d
         if ids.size > _MANY_NODES:
+            from ga_ros.core.selinv import banded_marginal_blocks  # lazy: scipy.linalg
+
             cols = self.col[self.index_of(ids)]
             blocks = banded_marginal_blocks(self.full(), d, wanted=cols[cols >= 0],
                                             coords=self.coords)

@@ -15,7 +15,6 @@ Conventions used throughout ga_ros
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ga_ros.arrays import FloatArray
 from ga_ros.geometry import so3
@@ -53,6 +52,8 @@ def from_pos_quat(p: FloatArray, quat_xyzw: FloatArray) -> FloatArray:
     """Pose from position ``(..., 3)`` and unit quaternion ``(..., 4)`` in ``x y z w`` order
     (ROS and g2o order). The quaternion is normalised; a zero quaternion raises ValueError."""
     q = np.asarray(quat_xyzw, dtype=float)
+    from scipy.spatial.transform import Rotation  # lazy: ~0.3 s of start-up, 3-D only
+
     R = Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
     return from_rt(R, p)
 
@@ -61,6 +62,8 @@ def to_pos_quat(T: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Position ``(..., 3)`` and quaternion ``(..., 4)`` (``x y z w``, ``w >= 0``) of a pose."""
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3].reshape(-1, 3, 3)
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(R).as_quat().reshape(T.shape[:-2] + (4,))
     q = np.where(q[..., 3:4] < 0, -q, q)
     return T[..., :3, 3].copy(), q

@@ -55,7 +55,6 @@ from itertools import chain
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.covariance import nearest_positive_definite, not_positive_definite
@@ -636,6 +635,8 @@ def _se3_log(T: FloatArray) -> FloatArray:
     :mod:`ga_ros.geometry`: ``phi`` from scipy's rotation vector, ``rho = V(phi)^-1 t`` with
     ``V^-1 = I - W/2 + (1/theta^2 - cot(theta/2) / (2 theta)) W^2`` (``W = [phi]x``), whose last
     coefficient is evaluated by its series ``1/12 + theta^2/720 + theta^4/30240`` near 0."""
+    from scipy.spatial.transform import Rotation  # lazy: ~0.3 s of start-up, 3-D only
+
     phi = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
     theta = np.linalg.norm(phi, axis=1)
     small = theta < 1e-2
