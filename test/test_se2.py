@@ -129,10 +129,10 @@ def test_se2_solution_equals_the_se3_embedding(rng, damping):
     r2 = solve(net, T0, SolverConfig(model='se2', damping=damping, tolerance=1e-10))
     r3 = solve(net, T0, SolverConfig(model='se3', damping=damping, tolerance=1e-10))
     assert r2.converged and r3.converged
-    np.testing.assert_allclose(r2.T_world_node, r3.T_world_node, atol=1e-8)
+    np.testing.assert_allclose(r2.T_world_node, r3.T_world_node, atol=1e-6)
     assert r2.cost == pytest.approx(r3.cost, rel=1e-9)
     assert r2.redundancy == r3.redundancy // 2
-    np.testing.assert_allclose(r2.residuals, r3.residuals, atol=1e-8)
+    np.testing.assert_allclose(r2.residuals, r3.residuals, atol=1e-6)
     ids = net.node_ids[1:]
     np.testing.assert_allclose(r2.covariance(ids), r3.covariance(ids)[:, AX[:, None], AX],
                                rtol=1e-6, atol=1e-12)

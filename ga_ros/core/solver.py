@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core import models
+from ga_ros.core import kernels, models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
@@ -404,7 +404,7 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
             if not np.isfinite(dx).all():
                 raise SolverError('the correction is not finite')
             T = prob.retract(T, dx)
-            v = prob.consistent(T, prob.residual_update(sysd, dx))
+            v = prob.next_residuals(T, sysd, dx)
             step = _Step(T, v, float(np.abs(dx).max()) if dx.size else 0.0, True)
         else:
             damped = _dogleg_step if cfg.damping == 'dogleg' else _lm_step
@@ -535,6 +535,8 @@ class _Problem:
     pattern: BlockPattern
     S: FloatArray  # (m, o, o) covariance of the connections' observations
     T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models only)
+    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models only)
+    _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -552,8 +554,9 @@ class _Problem:
         S = models.observation_covariance(model, conn.cov)
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
                   if model in models.MOTION_MODELS else None)
+        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
         return _Problem(model, conn, _inv_spd(S), prior_data, cfg, free, col, d, pattern, S,
-                        T_meas)
+                        T_meas, Tm_inv)
 
     @property
     def Pf(self) -> FloatArray | None:
@@ -566,17 +569,37 @@ class _Problem:
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
-                              self.col, self.d, self.Pf, self.T_meas)
+                              self.col, self.d, self.Pf, self.T_meas, self.Tm_inv)
 
     def cost_at(self, T: FloatArray) -> float:
-        return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg, self.col,
-                        self.d, self.Pf, self.T_meas)
+        if self.model not in models.MOTION_MODELS:
+            return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
+                            self.col, self.d)
+        e = _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv)
+        self._last = (T, e)
+        return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
 
     def residual_update(self, sysd: _System, dx: FloatArray) -> FloatArray:
+        """Residuals after the correction ``dx`` (eq. 16). For the motion models only
+        ``dx = 0`` is asked (their residuals after a step come from :meth:`next_residuals`):
+        ``v = S B' k = weights * w``."""
+        if self.model in models.MOTION_MODELS:
+            return sysd.w * sysd.weights[:, None]
         return _residual_update(sysd, dx, self.conn, self.col, self.d, self.S)
 
     def consistent(self, T: FloatArray, v_linear: FloatArray) -> FloatArray:
-        return _consistent_residuals(self.model, T, self.conn, v_linear, self.T_meas)
+        if self.model in models.MOTION_MODELS:
+            last_T, e = self._last
+            self._last = (None, None)
+            return e if last_T is T else _misclosure(self.model, T, self.conn, self.T_meas,
+                                                      self.Tm_inv)
+        return _consistent_residuals(self.model, T, self.conn, v_linear)
+
+    def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
+        """Residuals to relinearise at after the step ``dx`` took the estimate to ``T``."""
+        if self.model in models.MOTION_MODELS:
+            return self.consistent(T, sysd.w)
+        return self.consistent(T, self.residual_update(sysd, dx))
 
     def retract(self, T: FloatArray, dx: FloatArray) -> FloatArray:
         return models.retract(self.model, T, np.nonzero(self.free)[0], dx.reshape(-1, self.d))
@@ -587,16 +610,17 @@ class _System:
     blocks: FloatArray  # (4 m + b, d, d) in pattern order
     u: FloatArray  # (n_free d,)
     w: FloatArray  # (m, r)
-    A_src: FloatArray
-    A_dst: FloatArray
-    B: FloatArray
-    Minv: FloatArray  # weighted M^-1
+    A_src: FloatArray | None  # None: the compiled se3 kernel (motion models need no A, B, M)
+    A_dst: FloatArray | None
+    B: FloatArray | None
+    Minv: FloatArray | None  # weighted M^-1
     weights: FloatArray  # (m,) robust weights
     cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
 
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
-                   P: FloatArray | None = None, T_meas: FloatArray | None = None) -> _System:
+                   P: FloatArray | None = None, T_meas: FloatArray | None = None,
+                   Tm_inv: FloatArray | None = None) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -604,9 +628,12 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     ``w = v`` and ``A = [-Ad(T_ij^-1), I]``, so ``A' M^-1 A = J' P J`` and ``A' M^-1 w = J' P e``
     with ``J = J_r(e)^-1 A`` and ``e = v = log(T_meas^-1 T_i^-1 T_j)``: the Gauss-Newton system
     of ``sum e' P e``, which needs neither ``B`` nor a 6x6 inverse per connection (a test checks
-    it against the general form). se2 takes the same shortcut in its 3 planar components.
+    it against the general form). se2 takes the same shortcut in its 3 planar components; se3
+    runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when numba is there.
     """
     shortcut = model in models.MOTION_MODELS and P is not None
+    if shortcut and model == 'se3' and kernels.AVAILABLE:
+        return _se3_kernel_system(T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv)
     if shortcut:
         if T_meas is None:
             T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
@@ -644,10 +671,48 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
         gj = (AjT @ w[:, :, None])[:, :, 0]
     n_free = int((col >= 0).sum())
     u = np.zeros((n_free, d))
-    cs, cd = col[conn.src], col[conn.dst]
-    np.add.at(u, cs[cs >= 0], gi[cs >= 0])
-    np.add.at(u, cd[cd >= 0], gj[cd >= 0])
+    _scatter_gradient(u, col[conn.src], gi)
+    _scatter_gradient(u, col[conn.dst], gj)
     cost0 = float(np.sum(_robust_rho(maha2, cfg)))
+    cost0 += _add_priors(model, T, prior_data, col, u, blocks)
+    return _System(np.concatenate(blocks), u.reshape(-1), w, lin.A_src, lin.A_dst, B, Wm,
+                   weights, cost0)
+
+
+def _se3_kernel_system(T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
+                       Tm_inv) -> _System:
+    """The se3 shortcut of :func:`_linear_system` through the compiled kernel."""
+    if Tm_inv is None:
+        if T_meas is None:
+            T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+    w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P)
+    weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
+    if cfg.robust_loss != 'none':
+        blocks *= np.tile(weights, 4)[:, None, None]
+        gi *= weights[:, None]
+        gj *= weights[:, None]
+    u = np.zeros((int((col >= 0).sum()), d))
+    _scatter_gradient(u, col[conn.src], gi)
+    _scatter_gradient(u, col[conn.dst], gj)
+    cost0 = float(np.sum(_robust_rho(maha2, cfg)))
+    blocks_list = [blocks]
+    cost0 += _add_priors(model='se3', T=T, prior_data=prior_data, col=col, u=u,
+                         blocks=blocks_list)
+    return _System(np.concatenate(blocks_list) if len(blocks_list) > 1 else blocks,
+                   u.reshape(-1), w, None, None, None, None, weights, cost0)
+
+
+def _scatter_gradient(u: FloatArray, c: IntArray, g: FloatArray) -> None:
+    """``u[c] += g`` over the free nodes (``c >= 0``), repeated indices summed."""
+    keep = c >= 0
+    for k in range(u.shape[1]):
+        u[:, k] += np.bincount(c[keep], weights=g[keep, k], minlength=u.shape[0])
+
+
+def _add_priors(model, T, prior_data, col, u, blocks: list) -> float:
+    """Add the prior terms to ``u`` and ``blocks`` (in place); return their cost."""
+    cost = 0.0
     for pd in prior_data:
         e, J = models.prior_residual(model, T[pd.idx], pd.T_mean)
         JT = np.swapaxes(J, 1, 2)
@@ -658,9 +723,25 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
         g = (JT @ He[:, :, None])[:, :, 0]
         c = col[pd.idx]
         np.add.at(u, c[c >= 0], g[c >= 0])
-        cost0 += float(np.sum(e * He))
-    return _System(np.concatenate(blocks), u.reshape(-1), w, lin.A_src, lin.A_dst, B, Wm,
-                   weights, cost0)
+        cost += float(np.sum(e * He))
+    return cost
+
+
+def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: FloatArray | None,
+                Tm_inv: FloatArray | None = None) -> FloatArray:
+    """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (compiled for se3)."""
+    if T_meas is None:
+        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    if model == 'se3' and kernels.AVAILABLE:
+        if Tm_inv is None:
+            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+        return kernels.se3_misclosure(T, conn.src, conn.dst, Tm_inv)
+    return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
+
+
+def _cost_of_misclosure(model, T, e, P, prior_data, cfg) -> float:
+    maha2 = np.einsum('mi,mij,mj->m', e, P, e)
+    return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
 
 
 def _residual_update(sysd: _System, dx: FloatArray, conn, col, d, S) -> FloatArray:
@@ -698,7 +779,7 @@ def _lm_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
         cost = prob.cost_at(T_new)
         if cost <= state.cost:
             state.lam = max(state.lam / 10.0, 1e-9)
-            return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, dx)),
+            return _Step(T_new, prob.next_residuals(T_new, sysd, dx),
                          float(np.abs(dx).max()), True, cost, False)
         state.lam *= 10.0
     return _Step(T, prob.residual_update(sysd, np.zeros_like(sysd.u)), 0.0, False, state.cost)
@@ -747,7 +828,7 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
             elif rho < 0.25:
                 radius = 0.5 * norm_h
             state.radius = radius
-            return _Step(T_new, prob.consistent(T_new, prob.residual_update(sysd, h)),
+            return _Step(T_new, prob.next_residuals(T_new, sysd, h),
                          float(np.abs(h).max()) if h.size else 0.0, True, cost, b == 1.0)
         radius = 0.25 * norm_h
         if radius < 1e-12:
@@ -769,9 +850,7 @@ def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
     """
     if model not in models.MOTION_MODELS:
         return v_linear
-    if T_meas is None:
-        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
+    return _misclosure(model, T, conn, T_meas)
 
 
 def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) -> float:
@@ -781,11 +860,8 @@ def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) ->
     if model not in models.MOTION_MODELS:
         return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
                               d).cost0
-    if T_meas is None:
-        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    e = models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
-    maha2 = np.einsum('mi,mij,mj->m', e, _inv_spd(S) if P is None else P, e)
-    return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
+    e = _misclosure(model, T, conn, T_meas)
+    return _cost_of_misclosure(model, T, e, _inv_spd(S) if P is None else P, prior_data, cfg)
 
 
 def _robust_weights(r: FloatArray, cfg: SolverConfig) -> FloatArray:

@@ -1,0 +1,59 @@
+"""The compiled se3 kernels against the NumPy reference (geometry.se3 / models.between)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.core import kernels, models
+from ga_ros.geometry import se3, so3
+
+pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason='numba is not installed')
+
+
+def _case(rng, m=60, n=20):
+    """Poses and measurements whose misclosures are random, near identity and near pi."""
+    T = se3.exp(rng.normal(scale=[3, 3, 3, 1, 1, 1], size=(n, 6)))
+    src = rng.integers(0, n, size=m)
+    dst = (src + rng.integers(1, n, size=m)) % n
+    E = rng.normal(scale=[1, 1, 1, 0.5, 0.5, 0.5], size=(m, 6))
+    E[: m // 4, 3:] *= 1e-7                       # near identity
+    axis = rng.normal(size=(m // 4, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    E[m // 4: m // 2, 3:] = axis * (np.pi - rng.uniform(0, 5e-3, size=(m // 4, 1)))
+    T_meas = se3.inverse(se3.exp(E)) @ se3.inverse(T[src]) @ T[dst]  # so that log(...) = E
+    L = rng.normal(scale=0.3, size=(m, 6, 6)) + 2 * np.eye(6)
+    P = L @ np.swapaxes(L, 1, 2)
+    return T, src, dst, T_meas, P
+
+
+def test_se3_kernels_equal_the_numpy_reference(rng):
+    T, src, dst, T_meas, P = _case(rng)
+    Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+    e, blocks, gi, gj, maha = kernels.se3_system(T, src, dst, Tm_inv, P)
+    ref = models.between('se3', T, src, dst, T_meas)
+    np.testing.assert_allclose(e, ref.e, atol=1e-9)
+    np.testing.assert_allclose(kernels.se3_misclosure(T, src, dst, Tm_inv), ref.e, atol=1e-9)
+    # independent products: J_i = -J Ad, J_j = J
+    J_i, J_j = -ref.Jr_inv @ ref.Ad_ji, ref.Jr_inv
+    tr = np.swapaxes
+    m = src.size
+    for k, (Ja, Jb) in enumerate(((J_i, J_i), (J_i, J_j), (J_j, J_i), (J_j, J_j))):
+        np.testing.assert_allclose(blocks[k * m:(k + 1) * m], tr(Ja, 1, 2) @ P @ Jb,
+                                   rtol=1e-8, atol=1e-8)
+    Pe = (P @ ref.e[:, :, None])
+    np.testing.assert_allclose(gi, (tr(J_i, 1, 2) @ Pe)[:, :, 0], rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(gj, (tr(J_j, 1, 2) @ Pe)[:, :, 0], rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(maha, np.einsum('mi,mi->m', ref.e, Pe[:, :, 0]), rtol=1e-10)
+
+
+def test_se3_kernel_log_near_pi_round_trips(rng):
+    axis = rng.normal(size=(50, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    w = axis * (np.pi - rng.uniform(0, 1e-2, size=(50, 1)))
+    T = se3.from_rt(so3.exp(w), rng.normal(size=(50, 3)))
+    eye = np.broadcast_to(np.eye(4), (50, 4, 4)).copy()
+    idx = np.arange(50)
+    e = kernels.se3_misclosure(np.concatenate([eye[:1], T]), np.zeros(50, dtype=np.int64),
+                               idx + 1, eye)
+    np.testing.assert_allclose(se3.exp(e), T, atol=1e-9)
