@@ -27,6 +27,11 @@ def _case(rng, m=60, n=20):
     return T, src, dst, T_meas, P
 
 
+@pytest.fixture(autouse=True)
+def _always_compiled(monkeypatch):
+    monkeypatch.setattr(kernels, 'MIN_CONNECTIONS', 0)
+
+
 def test_se3_kernels_equal_the_numpy_reference(rng):
     T, src, dst, T_meas, P = _case(rng)
     Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
@@ -57,3 +62,23 @@ def test_se3_kernel_log_near_pi_round_trips(rng):
     e = kernels.se3_misclosure(np.concatenate([eye[:1], T]), np.zeros(50, dtype=np.int64),
                                idx + 1, eye)
     np.testing.assert_allclose(se3.exp(e), T, atol=1e-9)
+
+
+@pytest.mark.parametrize('robust_loss', ['none', 'cauchy'])
+def test_solve_with_the_kernels_equals_solve_without(rng, monkeypatch, robust_loss):
+    from solver_problems import make_problem, perturbed
+
+    from ga_ros.core.solver import SolverConfig, solve
+    prob = make_problem(rng, 'se3', n=12, noise=5.0)
+    T0 = perturbed(rng, prob.T_true, 0.1)
+    cfg = SolverConfig(damping='dogleg', robust_loss=robust_loss, tolerance=1e-10)
+    fast = solve(prob.network, T0, cfg)
+    monkeypatch.setattr(kernels, 'AVAILABLE', False)
+    ref = solve(prob.network, T0, cfg)
+    k = min(len(fast.cost_history), len(ref.cost_history))  # the last step is below 1e-10
+    assert abs(fast.iterations - ref.iterations) <= 1
+    np.testing.assert_allclose(fast.cost_history[:k], ref.cost_history[:k], rtol=1e-9)
+    np.testing.assert_allclose(fast.T_world_node, ref.T_world_node, atol=1e-9)
+    np.testing.assert_allclose(fast.residuals, ref.residuals, atol=1e-9)
+    np.testing.assert_allclose(fast.covariance(prob.network.node_ids[1:4]),
+                               ref.covariance(prob.network.node_ids[1:4]), rtol=1e-7, atol=1e-12)

@@ -7,7 +7,9 @@ pass over ``(m, 6, 6)`` temporaries (~20 us per connection); here one loop does 
 registers (~1 us per connection) and writes only the results. The NumPy implementation in
 :mod:`ga_ros.geometry.se3` / :func:`ga_ros.core.models.between` stays the reference: a test
 checks these kernels against it (random, near-identity and near-pi rotations), and it is used
-when numba is not installed.
+when numba is not installed, when ``GA_ROS_JIT=0`` is set, and for problems below
+:data:`MIN_CONNECTIONS` connections: importing numba and loading the cached machine code costs
+~0.5-1 s per process, more than the kernel saves on a small graph.
 
 Formulas: Barfoot, *State Estimation for Robotics* (2017), eqs. 7.78 (``J_l^-1`` of SO(3)),
 7.86 (``Q``), 7.95 (``J_l^-1`` of SE(3)); the SO(3) log as :func:`ga_ros.geometry.so3.log`.
@@ -15,28 +17,44 @@ Formulas: Barfoot, *State Estimation for Robotics* (2017), eqs. 7.78 (``J_l^-1``
 
 from __future__ import annotations
 
-import numpy as np
+import importlib.util
+import os
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is pinned in requirements.txt
-    numba = None
+import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 
-#: The compiled kernels are available (numba importable).
-AVAILABLE = numba is not None
+#: The compiled kernels can be used: numba is installed and ``GA_ROS_JIT`` is not ``0``.
+AVAILABLE = (importlib.util.find_spec('numba') is not None
+             and os.environ.get('GA_ROS_JIT', '1') != '0')
+#: Smallest number of connections for which the solver uses the kernels (see above).
+MIN_CONNECTIONS = 8000
 
 _SMALL = 1e-4  # so3.SMALL_ANGLE
 _SMALL_Q = 1e-3  # se3.Q_matrix's Taylor threshold
 _NEAR_PI = np.pi - 1e-2
 
 
-def _jit(fn):
-    return numba.njit(cache=True, fastmath=False, nogil=True)(fn) if AVAILABLE else fn
+_JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_se3_system',
+           '_se3_misclosure')  # callees first: a compiled function calls compiled globals
 
 
-@_jit
+def _compile() -> None:
+    """Replace the kernels of this module by their numba versions (once; cached on disk)."""
+    if hasattr(_se3_system, 'py_func'):
+        return
+    import numba
+
+    g = globals()
+    for name in _JITTED:
+        g[name] = numba.njit(cache=True, nogil=True)(g[name])
+
+
+def use_for(n_connections: int) -> bool:
+    """Whether the solver should use the kernels for a problem of this size."""
+    return AVAILABLE and n_connections >= MIN_CONNECTIONS
+
+
 def _so3_log(R, w):  # pragma: no cover - compiled
     cos_t = (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) * 0.5
     v0 = 0.5 * (R[2, 1] - R[1, 2])
@@ -73,7 +91,6 @@ def _so3_log(R, w):  # pragma: no cover - compiled
         w[2] = u2 * f
 
 
-@_jit
 def _so3_jl_inv(w, out):  # pragma: no cover - compiled
     """``J_l(w)^-1 = I - [w]x / 2 + e [w]x^2`` into ``out`` (3x3)."""
     t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -97,7 +114,6 @@ def _so3_jl_inv(w, out):  # pragma: no cover - compiled
     out[2, 1] -= 0.5 * w[0]
 
 
-@_jit
 def _hat(w, out):  # pragma: no cover - compiled
     out[0, 0] = 0.0
     out[0, 1] = -w[2]
@@ -110,14 +126,12 @@ def _hat(w, out):  # pragma: no cover - compiled
     out[2, 2] = 0.0
 
 
-@_jit
 def _mm3(A, B, out):  # pragma: no cover - compiled
     for r in range(3):
         for c in range(3):
             out[r, c] = A[r, 0] * B[0, c] + A[r, 1] * B[1, c] + A[r, 2] * B[2, c]
 
 
-@_jit
 def _q_matrix(rho, phi, Q, P, Rh, PR, RP, PRP, PP, T1, T2):  # pragma: no cover - compiled
     """Barfoot's ``Q(rho, phi)`` (eq. 7.86) into ``Q``; the rest are 3x3 scratch arrays."""
     t2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
@@ -150,7 +164,6 @@ def _q_matrix(rho, phi, Q, P, Rh, PR, RP, PRP, PP, T1, T2):  # pragma: no cover 
             Q[r, c] += c3 * (T1[r, c] + T2[r, c])
 
 
-@_jit
 def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma: no cover
     m = src.shape[0]
     Rij = np.empty((3, 3))
@@ -268,7 +281,6 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
                 blocks[3 * m + k, r, c] = H[r, c]
 
 
-@_jit
 def _se3_misclosure(T, src, dst, Tm_inv, e_out):  # pragma: no cover - compiled
     m = src.shape[0]
     Rij = np.empty((3, 3))
@@ -309,6 +321,7 @@ def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArr
     src, dst : (m,) node indices.
     Tm_inv : (m, 4, 4) inverses of the measured motions ``T_meas``.
     """
+    _compile()
     e = np.empty((src.shape[0], 6))
     _se3_misclosure(np.ascontiguousarray(T), src, dst, Tm_inv, e)
     return e
@@ -326,6 +339,7 @@ def se3_system(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
     gi, gj : (m, 6) gradient halves ``J_i' P e``, ``J_j' P e``.
     maha : (m,) ``e' P e``.
     """
+    _compile()
     m = src.shape[0]
     e = np.empty((m, 6))
     blocks = np.empty((4 * m, 6, 6))

@@ -632,7 +632,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when numba is there.
     """
     shortcut = model in models.MOTION_MODELS and P is not None
-    if shortcut and model == 'se3' and kernels.AVAILABLE:
+    if shortcut and model == 'se3' and kernels.use_for(len(conn)):
         return _se3_kernel_system(T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv)
     if shortcut:
         if T_meas is None:
@@ -732,7 +732,7 @@ def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: Float
     """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (compiled for se3)."""
     if T_meas is None:
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    if model == 'se3' and kernels.AVAILABLE:
+    if model == 'se3' and kernels.use_for(len(conn)):
         if Tm_inv is None:
             Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
         return kernels.se3_misclosure(T, conn.src, conn.dst, Tm_inv)
@@ -798,13 +798,17 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
     """
     u = sysd.u
     h_gn = -state.factor(prob.pattern, data).solve(u)
-    Nu = prob.pattern.matvec(data, u)
-    uNu = float(u @ Nu)
-    alpha = float(u @ u) / uNu if uNu > 0 else 0.0
-    h_sd = -alpha * u
-    n_gn, n_sd = float(np.linalg.norm(h_gn)), float(np.linalg.norm(h_sd))
+    n_gn = float(np.linalg.norm(h_gn))
     radius = state.radius if state.radius > 0 else n_gn
+    Nu = h_sd = None  # the Cauchy point, computed only when the radius cuts the GN step
+    alpha = n_sd = 0.0
     for _ in range(30):
+        if n_gn > radius and h_sd is None:
+            Nu = prob.pattern.matvec(data, u)
+            uNu = float(u @ Nu)
+            alpha = float(u @ u) / uNu if uNu > 0 else 0.0
+            h_sd = -alpha * u
+            n_sd = float(np.linalg.norm(h_sd))
         if n_gn <= radius:
             a, b = 0.0, 1.0
         elif n_sd >= radius:
@@ -814,8 +818,8 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
             pp, sp_, ss = float(p @ p), float(h_sd @ p), n_sd * n_sd
             t = (-sp_ + np.sqrt(sp_ * sp_ + pp * (radius * radius - ss))) / pp
             a, b = 1.0 - t, t
-        h = a * h_sd + b * h_gn
-        Nh = -a * alpha * Nu - b * u  # N h_gn = -u, N h_sd = -alpha N u
+        h = b * h_gn if a == 0.0 else a * h_sd + b * h_gn
+        Nh = -b * u if a == 0.0 else -a * alpha * Nu - b * u  # N h_gn = -u, N h_sd = -alpha Nu
         predicted = -(2.0 * float(u @ h) + float(h @ Nh))
         T_new = prob.retract(T, h)
         cost = prob.cost_at(T_new)

@@ -93,7 +93,7 @@ class GraphSolveResult:
     initial_cost : the same at the initial guess.
     objective : the minimised objective (``cost``, or the robust cost with a robust loss).
     iterations : solver iterations over all stages.
-    seconds : wall time of the solver stages (s), file I/O excluded.
+    seconds : wall time of the solver stages (s), file I/O and the initial cost excluded.
     converged : whether the last accepted stage met the tolerance.
     reason : termination reason of the last accepted stage.
     stages : per-stage summary (name, iterations, seconds, objective, accepted, reason).
@@ -140,12 +140,16 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
     """
     cfg = config or GraphSolveConfig()
     fixed = list(graph.fixed) or None
-    t0 = time.perf_counter()
     initial_cost = graph_cost(graph, graph.T_init)
+    t0 = time.perf_counter()
     stages: list[dict] = []
+    last: list = [None, 0.0]  # the poses whose graph_cost was evaluated last, and that cost
 
     def objective(T: FloatArray) -> float:
-        return robust_objective(graph, T, cfg.solver.robust_loss, cfg.solver.robust_scale)
+        if cfg.solver.robust_loss != 'none':
+            return robust_objective(graph, T, cfg.solver.robust_loss, cfg.solver.robust_scale)
+        last[:] = [T, graph_cost(graph, T)]  # without a robust loss the objective is the cost
+        return last[1]
 
     first = cfg.solver_config(dim=graph.dim)
     t = time.perf_counter()
@@ -174,7 +178,8 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
         if ok and res2 is not None:
             T, best, converged, reason = res2.T_world_node, value, res2.converged, res2.reason
     seconds = time.perf_counter() - t0
-    return GraphSolveResult(T_world_node=T, cost=graph_cost(graph, T), initial_cost=initial_cost,
+    cost = last[1] if last[0] is T else graph_cost(graph, T)
+    return GraphSolveResult(T_world_node=T, cost=cost, initial_cost=initial_cost,
                             objective=best, iterations=iterations, seconds=seconds,
                             converged=converged, reason=reason, stages=stages)
 
