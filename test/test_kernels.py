@@ -30,6 +30,7 @@ def _case(rng, m=60, n=20):
 @pytest.fixture(autouse=True)
 def _always_compiled(monkeypatch):
     monkeypatch.setattr(kernels, 'MIN_CONNECTIONS', 0)
+    monkeypatch.setattr(kernels, 'AFTER_ITERATIONS', 0)
 
 
 def test_se3_kernels_equal_the_numpy_reference(rng):

@@ -7,9 +7,11 @@ pass over ``(m, 6, 6)`` temporaries (~20 us per connection); here one loop does 
 registers (~1 us per connection) and writes only the results. The NumPy implementation in
 :mod:`ga_ros.geometry.se3` / :func:`ga_ros.core.models.between` stays the reference: a test
 checks these kernels against it (random, near-identity and near-pi rotations), and it is used
-when numba is not installed, when ``GA_ROS_JIT=0`` is set, and for problems below
-:data:`MIN_CONNECTIONS` connections: importing numba and loading the cached machine code costs
-~0.5-1 s per process, more than the kernel saves on a small graph.
+when numba is not installed, when ``GA_ROS_JIT=0`` is set, for problems below
+:data:`MIN_CONNECTIONS` connections and for the first :data:`AFTER_ITERATIONS` linearisations of
+a solve: importing numba and loading the cached machine code costs ~0.5-1.5 s and ~100 MiB of
+resident memory per process, more than the kernel saves on a small graph or a short solve
+(aerial survey, 25,000 connections: ~0.1 s saved per iteration, 5 iterations).
 
 Formulas: Barfoot, *State Estimation for Robotics* (2017), eqs. 7.78 (``J_l^-1`` of SO(3)),
 7.86 (``Q``), 7.95 (``J_l^-1`` of SE(3)); the SO(3) log as :func:`ga_ros.geometry.so3.log`.
@@ -28,7 +30,9 @@ from ga_ros.arrays import FloatArray, IntArray
 AVAILABLE = (importlib.util.find_spec('numba') is not None
              and os.environ.get('GA_ROS_JIT', '1') != '0')
 #: Smallest number of connections for which the solver uses the kernels (see above).
-MIN_CONNECTIONS = 8000
+MIN_CONNECTIONS = 2000
+#: The solver switches to the kernels after this many linearisations of one solve.
+AFTER_ITERATIONS = 8
 
 _SMALL = 1e-4  # so3.SMALL_ANGLE
 _SMALL_Q = 1e-3  # se3.Q_matrix's Taylor threshold
@@ -328,21 +332,25 @@ def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArr
 
 
 def se3_system(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
-               P: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+               P: FloatArray, extra_blocks: int = 0
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Per-connection Gauss-Newton blocks of ``sum e' P e`` (unweighted by robust weights).
+
+    ``extra_blocks`` rows are left uninitialised at the end of ``blocks`` for the caller.
 
     Returns
     -------
     e : (m, 6) misclosures.
-    blocks : (4 m, 6, 6) normal-matrix blocks ``(ii, ij, ji, jj)`` stacked block-type major,
-        ``J_a' P J_b`` with ``J_i = -J_r(e)^-1 Ad(T_ij^-1)``, ``J_j = J_r(e)^-1``.
+    blocks : (4 m + extra_blocks, 6, 6) normal-matrix blocks ``(ii, ij, ji, jj)`` stacked
+        block-type major, ``J_a' P J_b`` with ``J_i = -J_r(e)^-1 Ad(T_ij^-1)``,
+        ``J_j = J_r(e)^-1``.
     gi, gj : (m, 6) gradient halves ``J_i' P e``, ``J_j' P e``.
     maha : (m,) ``e' P e``.
     """
     _compile()
     m = src.shape[0]
     e = np.empty((m, 6))
-    blocks = np.empty((4 * m, 6, 6))
+    blocks = np.empty((4 * m + extra_blocks, 6, 6))
     gi = np.empty((m, 6))
     gj = np.empty((m, 6))
     maha = np.empty(m)

@@ -397,6 +397,7 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
             history.append(state.cost)
         data = prob.pattern.assemble(sysd.blocks)
+        sysd.blocks = None  # (4 m, d, d): not needed past the assembly, freed before factoring
         if cfg.damping == 'none':
             if state.chol is None or last_step >= cfg.reuse_factor_below:
                 state.factor(prob.pattern, data)
@@ -441,6 +442,7 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     final = prob.linear_system(T, out.v)
     v = prob.residual_update(final, np.zeros(n_free * d))
     data = prob.pattern.assemble(final.blocks)
+    final.blocks = None
     cost = _adjustment_cost(v, prob.P, final.weights) + _prior_cost(prob.model, T,
                                                                     prob.prior_data)
     r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
@@ -537,6 +539,7 @@ class _Problem:
     T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models only)
     Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models only)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
+    linearisations: int = 0  # calls of linear_system so far
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -568,14 +571,24 @@ class _Problem:
         return np.zeros((len(self.conn), models.observations_per_connection(self.model)))
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
+        self.linearisations += 1
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
-                              self.col, self.d, self.Pf, self.T_meas, self.Tm_inv)
+                              self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
+                              self.compiled)
+
+    @property
+    def compiled(self) -> bool:
+        """Use the compiled se3 kernels: only once a solve has run more than
+        :data:`ga_ros.core.kernels.AFTER_ITERATIONS` linearisations (loading numba costs ~1 s
+        and ~100 MiB, which a short solve never earns back) on a large enough problem."""
+        return (self.model == 'se3' and self.linearisations > kernels.AFTER_ITERATIONS
+                and kernels.use_for(len(self.conn)))
 
     def cost_at(self, T: FloatArray) -> float:
         if self.model not in models.MOTION_MODELS:
             return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
                             self.col, self.d)
-        e = _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv)
+        e = _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, self.compiled)
         self._last = (T, e)
         return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
 
@@ -592,7 +605,7 @@ class _Problem:
             last_T, e = self._last
             self._last = (None, None)
             return e if last_T is T else _misclosure(self.model, T, self.conn, self.T_meas,
-                                                      self.Tm_inv)
+                                                      self.Tm_inv, self.compiled)
         return _consistent_residuals(self.model, T, self.conn, v_linear)
 
     def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
@@ -620,7 +633,7 @@ class _System:
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
                    P: FloatArray | None = None, T_meas: FloatArray | None = None,
-                   Tm_inv: FloatArray | None = None) -> _System:
+                   Tm_inv: FloatArray | None = None, compiled: bool = False) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -629,46 +642,25 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     with ``J = J_r(e)^-1 A`` and ``e = v = log(T_meas^-1 T_i^-1 T_j)``: the Gauss-Newton system
     of ``sum e' P e``, which needs neither ``B`` nor a 6x6 inverse per connection (a test checks
     it against the general form). se2 takes the same shortcut in its 3 planar components; se3
-    runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when numba is there.
+    runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when ``compiled``.
     """
     shortcut = model in models.MOTION_MODELS and P is not None
-    if shortcut and model == 'se3' and kernels.use_for(len(conn)):
-        return _se3_kernel_system(T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv)
     if shortcut:
-        if T_meas is None:
-            T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-        bt = models.between(model, T, conn.src, conn.dst, T_meas)
-        w, Jinv, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
-        r = w.shape[1]
-        lin = models.Linearisation(np.zeros_like(w), -Jinv @ Ad, Jinv,
-                                   np.broadcast_to(-np.eye(r), (len(conn), r, r)))
-        B = lin.B
-        Minv = P
-    else:
-        lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
-        B = lin.B
-        w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
-        M = B @ S @ np.swapaxes(B, 1, 2)
-        Minv = _inv_spd(M)
+        return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
+                              compiled)
+    lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
+    B = lin.B
+    w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
+    M = B @ S @ np.swapaxes(B, 1, 2)
+    Minv = _inv_spd(M)
     maha2 = np.einsum('mi,mij,mj->m', w, Minv, w)
     weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
     Wm = Minv * weights[:, None, None]
-    if shortcut:
-        # A_dst = J, A_src = -J Ad with J = J_r(e)^-1: share H = J' W J and g = J' W e
-        JT = np.swapaxes(lin.A_dst, 1, 2)
-        H = JT @ Wm @ lin.A_dst
-        AdT = np.swapaxes(Ad, 1, 2)
-        HAd = H @ Ad
-        blocks = [AdT @ HAd, -np.swapaxes(HAd, 1, 2), -HAd, H]
-        g = (JT @ (Wm @ w[:, :, None]))[:, :, 0]
-        gj = g
-        gi = -(AdT @ g[:, :, None])[:, :, 0]
-    else:
-        AiT = np.swapaxes(lin.A_src, 1, 2) @ Wm
-        AjT = np.swapaxes(lin.A_dst, 1, 2) @ Wm
-        blocks = [AiT @ lin.A_src, AiT @ lin.A_dst, AjT @ lin.A_src, AjT @ lin.A_dst]
-        gi = (AiT @ w[:, :, None])[:, :, 0]
-        gj = (AjT @ w[:, :, None])[:, :, 0]
+    AiT = np.swapaxes(lin.A_src, 1, 2) @ Wm
+    AjT = np.swapaxes(lin.A_dst, 1, 2) @ Wm
+    blocks = [AiT @ lin.A_src, AiT @ lin.A_dst, AjT @ lin.A_src, AjT @ lin.A_dst]
+    gi = (AiT @ w[:, :, None])[:, :, 0]
+    gj = (AjT @ w[:, :, None])[:, :, 0]
     n_free = int((col >= 0).sum())
     u = np.zeros((n_free, d))
     _scatter_gradient(u, col[conn.src], gi)
@@ -679,28 +671,57 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
                    weights, cost0)
 
 
-def _se3_kernel_system(T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
-                       Tm_inv) -> _System:
-    """The se3 shortcut of :func:`_linear_system` through the compiled kernel."""
-    if Tm_inv is None:
-        if T_meas is None:
-            T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
-    w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P)
-    weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-    if cfg.robust_loss != 'none':
-        blocks *= np.tile(weights, 4)[:, None, None]
-        gi *= weights[:, None]
-        gj *= weights[:, None]
+def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
+                   Tm_inv, compiled: bool) -> _System:
+    """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
+    ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
+
+    The blocks are written into one preallocated ``(4 m + b, d, d)`` array (connection blocks
+    ``ii, ij, ji, jj``, then the ``b`` prior blocks), without a concatenated copy.
+    """
+    m = len(conn)
     u = np.zeros((int((col >= 0).sum()), d))
+    prior_blocks: list[FloatArray] = []
+    prior_cost = _add_priors(model, T, prior_data, col, u, prior_blocks)
+    extra = sum(len(b) for b in prior_blocks)
+    if T_meas is None:
+        T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    if model == 'se3' and compiled:
+        if Tm_inv is None:
+            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+        w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P, extra)
+        weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
+        if cfg.robust_loss != 'none':
+            blocks[:4 * m] *= np.tile(weights, 4)[:, None, None]
+            gi *= weights[:, None]
+            gj *= weights[:, None]
+    else:
+        bt = models.between(model, T, conn.src, conn.dst, T_meas)
+        w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
+        del bt
+        maha2 = np.einsum('mi,mij,mj->m', w, P, w)
+        weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
+        Wm = P if cfg.robust_loss == 'none' else P * weights[:, None, None]
+        JT = np.swapaxes(J, 1, 2)
+        blocks = np.empty((4 * m + extra, d, d))
+        H = np.matmul(JT, Wm @ J, out=blocks[3 * m:4 * m])
+        gj = (JT @ (Wm @ w[:, :, None]))[:, :, 0]
+        del J, JT
+        AdT = np.swapaxes(Ad, 1, 2)
+        HAd = np.matmul(H, Ad, out=blocks[2 * m:3 * m])
+        np.matmul(AdT, HAd, out=blocks[:m])
+        np.negative(np.swapaxes(HAd, 1, 2), out=blocks[m:2 * m])
+        np.negative(HAd, out=HAd)
+        gi = -(AdT @ gj[:, :, None])[:, :, 0]
     _scatter_gradient(u, col[conn.src], gi)
     _scatter_gradient(u, col[conn.dst], gj)
-    cost0 = float(np.sum(_robust_rho(maha2, cfg)))
-    blocks_list = [blocks]
-    cost0 += _add_priors(model='se3', T=T, prior_data=prior_data, col=col, u=u,
-                         blocks=blocks_list)
-    return _System(np.concatenate(blocks_list) if len(blocks_list) > 1 else blocks,
-                   u.reshape(-1), w, None, None, None, None, weights, cost0)
+    k = 4 * m
+    for b in prior_blocks:
+        blocks[k:k + len(b)] = b
+        k += len(b)
+    cost0 = float(np.sum(_robust_rho(maha2, cfg))) + prior_cost
+    # the motion models' residual update needs only w and the weights (no A, B, M)
+    return _System(blocks, u.reshape(-1), w, None, None, None, None, weights, cost0)
 
 
 def _scatter_gradient(u: FloatArray, c: IntArray, g: FloatArray) -> None:
@@ -728,11 +749,11 @@ def _add_priors(model, T, prior_data, col, u, blocks: list) -> float:
 
 
 def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: FloatArray | None,
-                Tm_inv: FloatArray | None = None) -> FloatArray:
-    """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (compiled for se3)."""
+                Tm_inv: FloatArray | None = None, compiled: bool = False) -> FloatArray:
+    """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (se3: compiled if asked)."""
     if T_meas is None:
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    if model == 'se3' and kernels.use_for(len(conn)):
+    if model == 'se3' and compiled:
         if Tm_inv is None:
             Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
         return kernels.se3_misclosure(T, conn.src, conn.dst, Tm_inv)
