@@ -42,7 +42,7 @@ class GraphSolveConfig:
     solver : the solver settings; the defaults of a batch pose-graph solve are
         :data:`GRAPH_SOLVER` (``se3``, Powell's dogleg -- Gauss-Newton steps while they lower the
         cost, one factorisation per iteration --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
-        ``cost_tolerance`` 1e-6 as GTSAM's ``relativeErrorTol``). ``damping='lm'`` runs a
+        ``cost_tolerance`` 1e-5, the default of GTSAM's ``relativeErrorTol``). ``damping='lm'`` runs a
         Levenberg-Marquardt first stage, then the undamped polish below.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
     planar : solve 2-D graphs with the ``se2`` model (3 unknowns per vertex, the same cost and
@@ -79,7 +79,7 @@ class GraphSolveConfig:
 
 #: Solver settings of a batch pose-graph solve (see :class:`GraphSolveConfig`).
 GRAPH_SOLVER = SolverConfig(model='se3', damping='dogleg', max_iterations=100, tolerance=1e-8,
-                            cost_tolerance=1e-6)
+                            cost_tolerance=1e-5)
 
 
 @dataclass
