@@ -39,8 +39,9 @@ _SMALL_Q = 1e-3  # se3.Q_matrix's Taylor threshold
 _NEAR_PI = np.pi - 1e-2
 
 
-_JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_se3_system',
-           '_se3_misclosure')  # callees first: a compiled function calls compiled globals
+# callees first: a compiled function calls compiled globals
+_JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_scratch',
+           '_misclosure_one', '_se3_system', '_se3_misclosure')
 
 
 def _compile() -> None:
@@ -168,15 +169,37 @@ def _q_matrix(rho, phi, Q, P, Rh, PR, RP, PRP, PP, T1, T2):  # pragma: no cover 
             Q[r, c] += c3 * (T1[r, c] + T2[r, c])
 
 
+def _scratch():  # pragma: no cover - compiled
+    """Work arrays of :func:`_misclosure_one`: Rij, tij, RE, tE, phi, Ji, e."""
+    return (np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty(3),
+            np.empty((3, 3)), np.empty(6))
+
+
+def _misclosure_one(T, i, j, Tm_k, Rij, tij, RE, tE, phi, Ji, e):  # pragma: no cover
+    """``e = log(T_meas^-1 T_i^-1 T_j)`` of one connection; leaves ``T_ij`` in ``Rij, tij``
+    and ``J_l(phi)^-1`` in ``Ji`` (the rest are 3-vector / 3x3 scratch)."""
+    for r in range(3):
+        for c in range(3):
+            Rij[r, c] = T[i, 0, r] * T[j, 0, c] + T[i, 1, r] * T[j, 1, c] \
+                + T[i, 2, r] * T[j, 2, c]
+        tij[r] = T[i, 0, r] * (T[j, 0, 3] - T[i, 0, 3]) + T[i, 1, r] * (T[j, 1, 3]
+                                                                       - T[i, 1, 3]) \
+            + T[i, 2, r] * (T[j, 2, 3] - T[i, 2, 3])
+    for r in range(3):
+        for c in range(3):
+            RE[r, c] = Tm_k[r, 0] * Rij[0, c] + Tm_k[r, 1] * Rij[1, c] + Tm_k[r, 2] * Rij[2, c]
+        tE[r] = Tm_k[r, 0] * tij[0] + Tm_k[r, 1] * tij[1] + Tm_k[r, 2] * tij[2] + Tm_k[r, 3]
+    _so3_log(RE, phi)
+    _so3_jl_inv(phi, Ji)
+    for r in range(3):
+        e[r] = Ji[r, 0] * tE[0] + Ji[r, 1] * tE[1] + Ji[r, 2] * tE[2]
+        e[3 + r] = phi[r]
+
+
 def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma: no cover
     m = src.shape[0]
-    Rij = np.empty((3, 3))
-    tij = np.empty(3)
-    RE = np.empty((3, 3))
-    tE = np.empty(3)
-    phi = np.empty(3)
+    Rij, tij, RE, tE, phi, Ji, e = _scratch()
     rho = np.empty(3)
-    Ji = np.empty((3, 3))
     Q = np.empty((3, 3))
     S = np.empty((8, 3, 3))
     J = np.zeros((6, 6))
@@ -185,35 +208,15 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
     H = np.empty((6, 6))
     HA = np.empty((6, 6))
     Pe = np.empty(6)
-    e = np.empty(6)
     JiQJi = np.empty((3, 3))
     for k in range(m):
         i = src[k]
         j = dst[k]
-        # T_ij = T_i^-1 T_j
+        _misclosure_one(T, i, j, Tm_inv[k], Rij, tij, RE, tE, phi, Ji, e)
+        for r in range(6):
+            e_out[k, r] = e[r]
         for r in range(3):
-            for c in range(3):
-                Rij[r, c] = T[i, 0, r] * T[j, 0, c] + T[i, 1, r] * T[j, 1, c] \
-                    + T[i, 2, r] * T[j, 2, c]
-            tij[r] = T[i, 0, r] * (T[j, 0, 3] - T[i, 0, 3]) + T[i, 1, r] * (T[j, 1, 3]
-                                                                           - T[i, 1, 3]) \
-                + T[i, 2, r] * (T[j, 2, 3] - T[i, 2, 3])
-        # E = T_meas^-1 T_ij
-        for r in range(3):
-            for c in range(3):
-                RE[r, c] = Tm_inv[k, r, 0] * Rij[0, c] + Tm_inv[k, r, 1] * Rij[1, c] \
-                    + Tm_inv[k, r, 2] * Rij[2, c]
-            tE[r] = Tm_inv[k, r, 0] * tij[0] + Tm_inv[k, r, 1] * tij[1] \
-                + Tm_inv[k, r, 2] * tij[2] + Tm_inv[k, r, 3]
-        # e = log(E) = [J_l(phi)^-1 t, phi]
-        _so3_log(RE, phi)
-        _so3_jl_inv(phi, Ji)
-        for r in range(3):
-            rho[r] = Ji[r, 0] * tE[0] + Ji[r, 1] * tE[1] + Ji[r, 2] * tE[2]
-            e[r] = rho[r]
-            e[3 + r] = phi[r]
-            e_out[k, r] = rho[r]
-            e_out[k, 3 + r] = phi[r]
+            rho[r] = e[r]
         # J = J_r(e)^-1 = J_l(-e)^-1 = [[Ji, -Ji Q Ji], [0, Ji]] at -e (Barfoot eq. 7.95)
         for r in range(3):
             rho[r] = -rho[r]
@@ -287,33 +290,11 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
 
 def _se3_misclosure(T, src, dst, Tm_inv, e_out):  # pragma: no cover - compiled
     m = src.shape[0]
-    Rij = np.empty((3, 3))
-    tij = np.empty(3)
-    RE = np.empty((3, 3))
-    tE = np.empty(3)
-    phi = np.empty(3)
-    Ji = np.empty((3, 3))
+    Rij, tij, RE, tE, phi, Ji, e = _scratch()
     for k in range(m):
-        i = src[k]
-        j = dst[k]
-        for r in range(3):
-            for c in range(3):
-                Rij[r, c] = T[i, 0, r] * T[j, 0, c] + T[i, 1, r] * T[j, 1, c] \
-                    + T[i, 2, r] * T[j, 2, c]
-            tij[r] = T[i, 0, r] * (T[j, 0, 3] - T[i, 0, 3]) + T[i, 1, r] * (T[j, 1, 3]
-                                                                           - T[i, 1, 3]) \
-                + T[i, 2, r] * (T[j, 2, 3] - T[i, 2, 3])
-        for r in range(3):
-            for c in range(3):
-                RE[r, c] = Tm_inv[k, r, 0] * Rij[0, c] + Tm_inv[k, r, 1] * Rij[1, c] \
-                    + Tm_inv[k, r, 2] * Rij[2, c]
-            tE[r] = Tm_inv[k, r, 0] * tij[0] + Tm_inv[k, r, 1] * tij[1] \
-                + Tm_inv[k, r, 2] * tij[2] + Tm_inv[k, r, 3]
-        _so3_log(RE, phi)
-        _so3_jl_inv(phi, Ji)
-        for r in range(3):
-            e_out[k, r] = Ji[r, 0] * tE[0] + Ji[r, 1] * tE[1] + Ji[r, 2] * tE[2]
-            e_out[k, 3 + r] = phi[r]
+        _misclosure_one(T, src[k], dst[k], Tm_inv[k], Rij, tij, RE, tE, phi, Ji, e)
+        for r in range(6):
+            e_out[k, r] = e[r]
 
 
 def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray) -> FloatArray:

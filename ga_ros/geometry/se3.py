@@ -82,27 +82,38 @@ def relative(T_w_a: FloatArray, T_w_b: FloatArray) -> FloatArray:
 
 
 def Q_matrix(xi: FloatArray) -> FloatArray:
-    """Barfoot's ``Q(rho, phi)`` (eq. 7.86), the off-diagonal block of the SE(3) left Jacobian."""
+    """Barfoot's ``Q(rho, phi)`` (eq. 7.86), the off-diagonal block of the SE(3) left Jacobian.
+
+    ``Q = rho^/2 + c1 (p^r^ + r^p^ + p^r^p^) + c2 (p^p^r^ + r^p^p^ - 3 p^r^p^)
+    + c3 (p^r^p^p^ + p^p^r^p^)`` with the products of skew matrices in closed form
+    (``a^b^ = b a' - (a.b) I``, hence ``p^r^p^ = -(p.r) p^``, ``p^p^r^ = p (p x r)' - t^2 r^``,
+    ``r^p^p^ = (r x p) p' - t^2 r^``, and both quartic terms ``-(p.r) (p p' - t^2 I)``):
+    outer products of 3-vectors instead of stacked 3x3 matrix products.
+    """
     xi = np.asarray(xi, dtype=float)
     rho, phi = xi[..., :3], xi[..., 3:]
-    theta = np.linalg.norm(phi, axis=-1)
+    t2 = np.sum(phi * phi, axis=-1)
+    theta = np.sqrt(t2)
     small = theta < 1e-3
     t = np.where(small, 1.0, theta)
-    t2 = theta * theta
     c1 = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (t - np.sin(t)) / t**3)
     c2 = np.where(small, 1 / 24 - t2 / 720 + t2 * t2 / 40320,
                   (t * t + 2 * np.cos(t) - 2) / (2 * t**4))
     c3 = np.where(small, 1 / 120 - t2 / 2520 + t2 * t2 / 120960,
                   (2 * t - 3 * np.sin(t) + t * np.cos(t)) / (2 * t**5))
+    e = (..., None, None)
+    pr = np.sum(phi * rho, axis=-1)[e]
+    pxr = np.cross(phi, rho)
     P = so3.hat(phi)
     Rh = so3.hat(rho)
-    PR = P @ Rh
-    RP = Rh @ P
-    PRP = PR @ P
-    PP = P @ P
-    e = (..., None, None)
-    return (0.5 * Rh + c1[e] * (PR + RP + PRP) + c2[e] * (PP @ Rh + RP @ P - 3 * PRP)
-            + c3[e] * (PRP @ P + P @ PRP))
+    eye = np.eye(3)
+    outer = np.einsum('...i,...j->...ij', rho, phi)      # r p'
+    out = (0.5 - 2.0 * c2[e] * t2[e]) * Rh
+    out += c1[e] * (outer + np.swapaxes(outer, -1, -2) - 2.0 * pr * eye - pr * P)
+    out += c2[e] * (np.einsum('...i,...j->...ij', phi, pxr)
+                    - np.einsum('...i,...j->...ij', pxr, phi) + 3.0 * pr * P)
+    out -= (2.0 * c3[e] * pr) * (np.einsum('...i,...j->...ij', phi, phi) - t2[e] * eye)
+    return out
 
 
 def exp(xi: FloatArray) -> FloatArray:
