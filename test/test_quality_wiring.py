@@ -219,3 +219,24 @@ def test_aligner_config_checks_the_new_fields():
     cfg = AlignerConfig(gate='w-test', quality=True, quality_alpha0=1e-3)
     assert cfg.quality_config().w_critical == pytest.approx(3.2905, abs=1e-3)
     assert AlignerConfig.from_dict({'gate': 'w-test', 'quality': True}).gate == 'w-test'
+
+
+def test_solve_cli_quality_json(pose_graph_dir: Path, capsys):
+    """``ga-ros solve --quality --json``: the QC block beside the variance factor, equal to
+    quality_control of a solve of the written graph."""
+    from ga_ros.cli.main import main as cli_main
+    from ga_ros.io.g2o import read_g2o
+
+    path = pose_graph_dir / 'smallGrid3D.g2o'
+    assert cli_main(['solve', str(path), '--quality', '--json']) == 0
+    out = json.loads(capsys.readouterr().out)
+    q = out['quality']
+    assert 'sigma0_sq' not in q and out['variance_factor'] > 0  # not repeated
+    graph = read_g2o(path)
+    res = solve(graph.network, graph.T_init, SolverConfig(damping='dogleg', max_iterations=100,
+                                                          tolerance=1e-10))
+    rep = quality_control(graph.network, res, config=QualityConfig(alpha0=1e-3))
+    w = rep.w_max
+    assert q['w_max'] == pytest.approx(w.max(), rel=1e-3)
+    assert q['n_w_rejected'] == int((w > rep.w_critical).sum())
+    assert q['n_tested'] == graph.n_edges

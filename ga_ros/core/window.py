@@ -68,9 +68,6 @@ from ga_ros.runtime import blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
 GATES = ('chi2', 'w-test')
-#: Connections the ``'w-test'`` gate may exclude per re-adjustment (the worst first, at most one
-#: per node; Baarda's procedure is 1, more trades exactness for fewer re-adjustments).
-GATE_PER_ITERATION = 10
 
 
 def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
@@ -138,8 +135,9 @@ class AlignerConfig:
         (the Mahalanobis misclosure against ``chi2_6(outlier_chi2_prob)``, every failing one
         excluded at once) or ``'w-test'`` (Baarda's data snooping over the window's cross
         connections: the w-test of :mod:`ga_ros.core.quality` at level ``quality_alpha0``;
-        the worst rejected connections, at most :data:`GATE_PER_ITERATION` and no two on one
-        node, are excluded and the window re-adjusted until no w-test rejects).
+        the rejected connections are excluded worst first, skipping any that shares a node with
+        a worse one (a gross error inflates its neighbours' w), and the window is re-adjusted
+        until no w-test rejects).
         ``outlier_chi2_prob = 0`` disables either gate (it is also the re-admission level).
     quality : compute the quality control of every window update (``UpdateResult.quality``:
         global test, ``sigma0^2``, largest ``|w|``, w-test rejections, smallest redundancy
@@ -772,8 +770,8 @@ class TrackWindowAligner:
         if self.config.gate == 'w-test':
             rep, _ = self._quality_report(net, res, priors)
             ratio = np.where(cross, np.nan_to_num(rep.test_ratio('w'), nan=0.0), 0.0)
-            return conns[np.asarray(worst_apart(ratio, net.arrays(), GATE_PER_ITERATION),
-                                    dtype=np.int64)]
+            chosen = worst_apart(ratio, net.arrays(), int((ratio > 1.0).sum()))
+            return conns[np.asarray(chosen, dtype=np.int64)]
         P = np.linalg.inv(self._ccov.a[conns])
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)
