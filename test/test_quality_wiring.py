@@ -240,3 +240,52 @@ def test_solve_cli_quality_json(pose_graph_dir: Path, capsys):
     assert q['w_max'] == pytest.approx(w.max(), rel=1e-3)
     assert q['n_w_rejected'] == int((w > rep.w_critical).sum())
     assert q['n_tested'] == graph.n_edges
+
+
+def test_quality_every_second_update(sample):
+    ms = sample.measurements
+    T0 = sample.ground_truth.T_world_node[0]
+    _, ups = run(ms, AlignerConfig(window_tracks=2, quality=True, quality_every=2), T0)
+    assert [u.quality is not None for u in ups] == [False, True, False]
+    _, ups = run(ms, AlignerConfig(window_tracks=2, quality=True, quality_every=2,
+                                   gate='w-test'), T0)
+    assert all(u.quality is not None for u in ups)  # the gate computed it anyway
+
+
+def test_node_diagnostics_and_markers_carry_the_quality(sample):
+    """The alignment node with ``quality`` and the w-test gate: /diagnostics key/values hold the
+    last update's QC figures, the markers' view the per-connection |w|."""
+    pytest.importorskip('rclpy')
+    import os
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from ga_ros.ros import conversions as conv
+    from ga_ros.ros.alignment_node import AlignmentNode
+    from ga_ros.ros.view import connection_view
+
+    ms = corrupt(sample.measurements, 5)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=100 + os.getpid() % 100)
+    node = AlignmentNode(context=ctx, parameter_overrides=[
+        Parameter('window_tracks', value=2), Parameter('quality', value=True),
+        Parameter('gate', value='w-test'), Parameter('diagnostics_period_sec', value=0.0)])
+    try:
+        for m in ms:
+            node._on_measurement(conv.measurement_to_odometry(m))
+        node._finish_track()
+        values = node.diagnostic_values()
+        q = node.session.last_update.quality
+        assert values['quality/global_test'] == ('pass' if q.global_passed else 'fail')
+        assert values['quality/w_max'] == pytest.approx(q.w_max)
+        assert values['quality/n_w_rejected'] == q.n_w_rejected
+        assert values['outliers_excluded'] >= 1
+        view = connection_view(node.aligner)
+        assert view.w is not None and np.isfinite(view.w).sum() > 0.5 * view.w.size
+        rgba = conv.connection_rgba(view.normalized_residual, view.status, 3.0, view.w)
+        assert (rgba[view.status == 2] == conv.OUTLIER_RGBA).all()
+        node._publish_markers(force=True)  # builds the message without error
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

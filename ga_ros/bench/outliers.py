@@ -20,7 +20,8 @@ defence is run on the clean and on the contaminated survey:
 Printed per fraction and method: recall (wrong connections rejected), precision, share of good
 connections rejected, ATE after rigid alignment and its change against the clean run of the
 same family (batch LS clean for the batch methods, the same gated window on clean data for
-``gate`` and ``gate-w``), and for the online methods the per-track update time (p50 / p95 ms).
+``gate`` and ``gate-w``), and for the online methods the per-track update time and the time of
+its quality control (``AlignerConfig.quality``; included in the update time), p50 / p95 ms.
 
 Run ``python -m ga_ros.bench.outliers`` (``--help`` for the options).
 """
@@ -60,6 +61,7 @@ class Outcome:
     ate_m: float
     seconds: float
     update_ms: FloatArray | None = None
+    quality_ms: FloatArray | None = None
 
 
 def inject(sc: Scenario, z: FloatArray, fraction: float, gross_m: tuple[float, float],
@@ -105,7 +107,7 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
     net = sc.network(z, cov)
     T0 = sc.f2f(z)
     rejected = np.zeros(len(z), dtype=bool)
-    update_ms = None
+    update_ms = quality_ms = None
     if method == 'ls':
         T = solve(net, T0).T_world_node
     elif method == 'oracle':
@@ -117,16 +119,17 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
         rejected = bad.copy()
     elif method in ONLINE:
         cfg = AlignerConfig(gate='w-test' if method == 'gate-w' else 'chi2',
-                            quality_alpha0=snoop_alpha0)
+                            quality_alpha0=snoop_alpha0, quality=True)
         aligner = TrackWindowAligner(cfg, T_world_first=sc.T_world_node[0])
         meas = sc.measurements(z, cov)
         track_of_dst = np.array([m.dst_track for m in meas])
-        ms = []
+        ups = []
         for k, m in enumerate(meas):
             aligner.add_measurement(m)
             if k + 1 == len(meas) or track_of_dst[k + 1] != track_of_dst[k]:
-                ms.append(aligner.finish_track().update_ms)
-        update_ms = np.asarray(ms)
+                ups.append(aligner.finish_track())
+        update_ms = np.array([u.update_ms for u in ups])
+        quality_ms = np.array([1e3 * u.quality.seconds for u in ups if u.quality is not None])
         T = aligner.corrected_path().T_world_node
         src_id, dst_id, _, _, status = aligner.connection_arrays()
         index = {(int(s), int(d)): k for k, (s, d) in enumerate(zip(sc.src, sc.dst))}
@@ -145,7 +148,7 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
     else:
         raise ValueError(f'unknown method {method!r}')
     return Outcome(method, rejected, ate(T, sc.T_world_node).rmse, time.perf_counter() - t0,
-                   update_ms)
+                   update_ms, quality_ms)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -207,7 +210,9 @@ def main(argv: list[str] | None = None) -> int:
                   f'{good_rej:12.2f} {out.ate_m:8.3f} {100 * (out.ate_m / ref - 1):+8.1f} '
                   f'{out.seconds:7.1f}' + ('' if out.update_ms is None else
                                            f'  update ms p50 {np.median(out.update_ms):.0f} '
-                                           f'p95 {np.percentile(out.update_ms, 95):.0f}'),
+                                           f'p95 {np.percentile(out.update_ms, 95):.0f}, '
+                                           f'QC p50 {np.median(out.quality_ms):.0f} '
+                                           f'p95 {np.percentile(out.quality_ms, 95):.0f}'),
                   flush=True)
     print('\ndATE: against the clean run of the same family (batch LS on clean data; the same '
           'gated window on clean data for gate and gate-w)')

@@ -142,6 +142,9 @@ class AlignerConfig:
     quality : compute the quality control of every window update (``UpdateResult.quality``:
         global test, ``sigma0^2``, largest ``|w|``, w-test rejections, smallest redundancy
         number, median MDB, over the window's connections; :mod:`ga_ros.core.quality`).
+    quality_every : compute it at every N-th update only (1: every update). It costs about as
+        much as the update itself (the blocks of ``Q_x`` on every connected pair); the
+        ``'w-test'`` gate needs it at every update anyway and then it is always reported.
     quality_alpha : significance level of the global test of the variance factor.
     quality_alpha0 : level of the 1-D w-test (critical value ``z_{1-alpha0/2}``: 3.89 at 1e-4,
         3.29 at 1e-3), for the quality figures and the ``'w-test'`` gate.
@@ -158,6 +161,7 @@ class AlignerConfig:
     max_node_id_jump: int = 10_000_000
     gate: str = 'chi2'
     quality: bool = False
+    quality_every: int = 1
     quality_alpha: float = 0.05
     quality_alpha0: float = 1e-4
 
@@ -185,6 +189,8 @@ class AlignerConfig:
             raise InputError('max_track_jump and max_node_id_jump must be >= 0 (0 = no limit)')
         if self.gate not in GATES:
             raise InputError(f'gate must be one of {GATES}, got {self.gate!r}')
+        if int(self.quality_every) < 1:
+            raise InputError(f'quality_every must be >= 1, got {self.quality_every}')
         self.quality_config()  # range checks of the levels
 
     def quality_config(self) -> QualityConfig:
@@ -737,7 +743,9 @@ class TrackWindowAligner:
     def _quality_summary(self, net: ConnectionNetwork, res: SolveResult,
                          priors: list[GaussianPrior], conns: IntArray) -> QualitySummary | None:
         """The QC summary of the final window adjustment (``None`` when ``quality`` is off)."""
-        if not self.config.quality:
+        cached = self.__dict__.get('_qc')
+        due = (self._n_updates + 1) % int(self.config.quality_every) == 0
+        if not self.config.quality or not (due or (cached is not None and cached[0] is res)):
             return None
         rep, seconds = self._quality_report(net, res, priors)
         w = np.where(rep.redundancy_numbers >= rep.config.min_redundancy, rep.w_max, np.nan)
