@@ -732,7 +732,7 @@ def data_snooping(network: ConnectionNetwork, T_init: FloatArray,
                                                          rep.global_passed):
                 break
             kept_idx = np.nonzero(kept)[0]
-            chosen = worst_apart(ratio, net.arrays(), budget)
+            chosen = _worst_apart(ratio, net.arrays(), budget)
             removed.extend(int(kept_idx[k]) for k in chosen)
             ratios.extend(float(ratio[k]) for k in chosen)
             kept[kept_idx[chosen]] = False
@@ -754,7 +754,7 @@ def data_snooping(network: ConnectionNetwork, T_init: FloatArray,
                           removed_ratio=np.asarray(ratios, dtype=float), iterations=it)
 
 
-def worst_apart(ratio: FloatArray, conn: ConnectionArrays, budget: int) -> list[int]:
+def _worst_apart(ratio: FloatArray, conn: ConnectionArrays, budget: int) -> list[int]:
     """Up to ``budget`` rejected connections (``ratio > 1``), worst first, no two sharing a
     node."""
     used: set[int] = set()
