@@ -21,7 +21,9 @@ Printed per fraction and method: recall (wrong connections rejected), precision,
 connections rejected, ATE after rigid alignment and its change against the clean run of the
 same family (batch LS clean for the batch methods, the same gated window on clean data for
 ``gate`` and ``gate-w``), and for the online methods the per-track update time and the time of
-its quality control (``AlignerConfig.quality``; included in the update time), p50 / p95 ms.
+the quality control of its final adjustment (``AlignerConfig.quality``), p50 / p95 ms. The update
+time does not include that final quality control; for ``gate-w`` it includes the ones the gate
+runs after each re-adjustment.
 
 Run ``python -m ga_ros.bench.outliers`` (``--help`` for the options).
 """

@@ -232,7 +232,8 @@ class AlignerConfig:
 
 @dataclass
 class UpdateResult:
-    """Summary of one window adjustment."""
+    """Summary of one window adjustment (``quality``: its quality control,
+    :class:`~ga_ros.core.quality.QualitySummary`, when ``AlignerConfig.quality`` is on)."""
 
     track_id: int
     iterations: int
