@@ -10,6 +10,8 @@ defence is run on the clean and on the contaminated survey:
 * ``oracle``: batch least squares without the wrong connections (the best any defence can do);
 * ``gate``: the track-window aligner's chi-square gate on the Mahalanobis misclosure of cross
   connections (``AlignerConfig.outlier_chi2_prob``), online, window of 5 tracks;
+* ``gate-w``: the same aligner with ``gate='w-test'``: data snooping with Baarda's w-test over
+  the window's cross connections after each update (level ``--alpha0``);
 * ``snoop-w`` / ``snoop-conn``: batch iterative data snooping
   (:func:`ga_ros.core.quality.data_snooping`) with the 1-D w-test or the 6-D connection test;
 * ``huber`` / ``cauchy``: batch robust losses (``SolverConfig.robust_loss``); a connection
@@ -17,7 +19,11 @@ defence is run on the clean and on the contaminated survey:
 
 Printed per fraction and method: recall (wrong connections rejected), precision, share of good
 connections rejected, ATE after rigid alignment and its change against the clean run of the
-same family (batch LS clean for the batch methods, the gated window on clean data for ``gate``).
+same family (batch LS clean for the batch methods, the same gated window on clean data for
+``gate`` and ``gate-w``), and for the online methods the per-track update time and the time of
+the quality control of its final adjustment (``AlignerConfig.quality``), p50 / p95 ms. The update
+time does not include that final quality control; for ``gate-w`` it includes the ones the gate
+runs after each re-adjustment.
 
 Run ``python -m ga_ros.bench.outliers`` (``--help`` for the options).
 """
@@ -43,7 +49,8 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 from ga_ros.sim.scenario import Scenario
 
-METHODS = ('ls', 'oracle', 'gate', 'snoop-w', 'snoop-conn', 'huber', 'cauchy')
+METHODS = ('ls', 'oracle', 'gate', 'gate-w', 'snoop-w', 'snoop-conn', 'huber', 'cauchy')
+ONLINE = ('gate', 'gate-w')
 GATE_PROB = AlignerConfig().outlier_chi2_prob
 
 
@@ -55,6 +62,8 @@ class Outcome:
     rejected: BoolArray
     ate_m: float
     seconds: float
+    update_ms: FloatArray | None = None
+    quality_ms: FloatArray | None = None
 
 
 def inject(sc: Scenario, z: FloatArray, fraction: float, gross_m: tuple[float, float],
@@ -100,6 +109,7 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
     net = sc.network(z, cov)
     T0 = sc.f2f(z)
     rejected = np.zeros(len(z), dtype=bool)
+    update_ms = quality_ms = None
     if method == 'ls':
         T = solve(net, T0).T_world_node
     elif method == 'oracle':
@@ -109,14 +119,19 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
                                             c.dst[keep], c.z[keep], c.cov[keep])
         T = solve(sub, T0).T_world_node
         rejected = bad.copy()
-    elif method == 'gate':
-        aligner = TrackWindowAligner(AlignerConfig(), T_world_first=sc.T_world_node[0])
+    elif method in ONLINE:
+        cfg = AlignerConfig(gate='w-test' if method == 'gate-w' else 'chi2',
+                            quality_alpha0=snoop_alpha0, quality=True)
+        aligner = TrackWindowAligner(cfg, T_world_first=sc.T_world_node[0])
         meas = sc.measurements(z, cov)
         track_of_dst = np.array([m.dst_track for m in meas])
+        ups = []
         for k, m in enumerate(meas):
             aligner.add_measurement(m)
             if k + 1 == len(meas) or track_of_dst[k + 1] != track_of_dst[k]:
-                aligner.finish_track()
+                ups.append(aligner.finish_track())
+        update_ms = np.array([u.update_ms for u in ups])
+        quality_ms = np.array([1e3 * u.quality.seconds for u in ups if u.quality is not None])
         T = aligner.corrected_path().T_world_node
         src_id, dst_id, _, _, status = aligner.connection_arrays()
         index = {(int(s), int(d)): k for k, (s, d) in enumerate(zip(sc.src, sc.dst))}
@@ -134,7 +149,8 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
         rejected = misclosure_rejected(net, T, GATE_PROB)
     else:
         raise ValueError(f'unknown method {method!r}')
-    return Outcome(method, rejected, ate(T, sc.T_world_node).rmse, time.perf_counter() - t0)
+    return Outcome(method, rejected, ate(T, sc.T_world_node).rmse, time.perf_counter() - t0,
+                   update_ms, quality_ms)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='range of translation errors (m)')
     p.add_argument('--gross-deg', type=float, nargs=2, default=[5.0, 15.0],
                    help='range of rotation errors (deg)')
-    p.add_argument('--alpha0', type=float, default=1e-4, help='w-test level of data snooping')
+    p.add_argument('--alpha0', type=float, default=1e-4,
+                   help='w-test level of data snooping (batch and the gate-w window)')
     p.add_argument('--per-iteration', type=int, default=20,
                    help='connections data snooping may remove per adjustment (default 20)')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=METHODS)
@@ -182,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
                         np.random.default_rng(args.seed + 1))
         for method in args.methods:
             out = run_method(method, sc, z, nm.cov, bad, args.alpha0, args.per_iteration)
-            family = 'gate' if method == 'gate' else 'ls'
+            family = method if method in ONLINE else 'ls'
             if fraction == 0.0:
                 clean.setdefault(method, out.ate_m)
             ref = clean.get(family, out.ate_m)
@@ -193,9 +210,14 @@ def main(argv: list[str] | None = None) -> int:
             good_rej = 100.0 * (out.rejected & ~bad).sum() / (~bad).sum()
             print(f'{100 * fraction:5.0f}% {method:<11} {recall:9.1f} {precision:12.1f} '
                   f'{good_rej:12.2f} {out.ate_m:8.3f} {100 * (out.ate_m / ref - 1):+8.1f} '
-                  f'{out.seconds:7.1f}', flush=True)
-    print('\ndATE: against the clean run of the same family (batch LS on clean data; the gated '
-          'window on clean data for gate)')
+                  f'{out.seconds:7.1f}' + ('' if out.update_ms is None else
+                                           f'  update ms p50 {np.median(out.update_ms):.0f} '
+                                           f'p95 {np.percentile(out.update_ms, 95):.0f}, '
+                                           f'QC p50 {np.median(out.quality_ms):.0f} '
+                                           f'p95 {np.percentile(out.quality_ms, 95):.0f}'),
+                  flush=True)
+    print('\ndATE: against the clean run of the same family (batch LS on clean data; the same '
+          'gated window on clean data for gate and gate-w)')
     return 0
 
 

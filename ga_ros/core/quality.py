@@ -44,7 +44,7 @@ loss is re-assessed with unit weights.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -233,6 +233,97 @@ class QualityReport:
             'mdb_translation_median_m': float(np.median(t_mdb)) if t_mdb.size else float('inf'),
             'mdb_max_finite': float(finite_mdb.max()) if finite_mdb.size else float('inf'),
         }
+
+
+@dataclass(frozen=True)
+class QualitySummary:
+    """The quality figures of one adjustment that a user reads live (diagnostics, the replay's
+    ``summary.json``, :class:`ga_ros.core.window.UpdateResult`).
+
+    Attributes
+    ----------
+    global_passed : the global test of the variance factor passes (``T <= chi2_{1-alpha}``).
+    sigma0_sq : a-posteriori variance factor ``T / (r - u)`` (1 when the covariances are honest).
+    redundancy : ``r - u``.
+    w_max : largest ``|w|`` over every component of every tested connection (0: none tested).
+    w_max_src_id, w_max_dst_id : node ids of the connection with ``w_max`` (-1: none).
+    n_w_rejected : tested connections with ``max |w| > w_critical`` (Baarda's w-test).
+    w_critical : ``z_{1-alpha0/2}`` (3.29 for ``alpha0 = 0.001``).
+    redundancy_number_min : smallest redundancy number ``r_i`` of the tested connections
+        (0: a connection no other one checks).
+    mdb_median_m, mdb_median_rad : median minimal detectable bias of the tested connections'
+        translation (m) and rotation (rad) components (finite ones; inf when none).
+    n_tested : connections the figures cover.
+    seconds : wall time of the quality control (s).
+    """
+
+    global_passed: bool
+    sigma0_sq: float
+    redundancy: int
+    w_max: float
+    w_max_src_id: int
+    w_max_dst_id: int
+    n_w_rejected: int
+    w_critical: float
+    redundancy_number_min: float
+    mdb_median_m: float
+    mdb_median_rad: float
+    n_tested: int
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        """Plain JSON-ready numbers (``summary.json``, ``ga-ros solve --json``)."""
+        return {k: (bool(v) if isinstance(v, (bool, np.bool_)) else
+                    int(v) if isinstance(v, (int, np.integer)) else float(v))
+                for k, v in asdict(self).items()}
+
+
+def summarise(report: QualityReport, network: ConnectionNetwork,
+              tested: BoolArray | None = None, seconds: float = 0.0) -> QualitySummary:
+    """The :class:`QualitySummary` of a report, over the connections in ``tested`` (mask in
+    network connection order; default every connection).
+
+    The global test and ``sigma0^2`` always belong to the whole adjustment; the per-connection
+    figures (``w``, ``r_i``, MDB) are taken over ``tested`` only, e.g. a window's cross-track
+    connections. Untestable connections (``r_i < min_redundancy``) count for ``r_i`` but not for
+    the w-test.
+    """
+    m = report.redundancy_numbers.size
+    sel = np.ones(m, dtype=bool) if tested is None else np.asarray(tested, dtype=bool)
+    if sel.shape != (m,):
+        raise InputError(f'tested must be a mask of the {m} connections, got shape {sel.shape}')
+    rn = report.redundancy_numbers
+    testable = sel & (rn >= report.config.min_redundancy)
+    w_max = np.where(testable, report.w_max, 0.0) if m else np.zeros(0)
+    src_id = dst_id = -1
+    if testable.any():
+        k = int(np.argmax(w_max))
+        conn = network.arrays()
+        src_id, dst_id = int(network.node_ids[conn.src[k]]), int(network.node_ids[conn.dst[k]])
+    t_mdb = report.mdb[sel][:, :3]
+    r_mdb = report.mdb[sel][:, 3:]
+    t_mdb, r_mdb = t_mdb[np.isfinite(t_mdb)], r_mdb[np.isfinite(r_mdb)]
+    return QualitySummary(
+        global_passed=bool(report.global_passed), sigma0_sq=float(report.sigma0_sq),
+        redundancy=int(report.redundancy), w_max=float(w_max.max()) if testable.any() else 0.0,
+        w_max_src_id=src_id, w_max_dst_id=dst_id,
+        n_w_rejected=int((w_max > report.w_critical).sum()), w_critical=float(report.w_critical),
+        redundancy_number_min=float(rn[sel].min()) if sel.any() else float('nan'),
+        mdb_median_m=float(np.median(t_mdb)) if t_mdb.size else float('inf'),
+        mdb_median_rad=float(np.median(r_mdb)) if r_mdb.size else float('inf'),
+        n_tested=int(sel.sum()), seconds=float(seconds))
+
+
+def checked_solve(network: ConnectionNetwork, T_init: FloatArray,
+                  solver_config: SolverConfig | None = None,
+                  fixed: Sequence[int] | None = None,
+                  priors: Sequence[GaussianPrior] = (),
+                  config: QualityConfig | None = None) -> SolveResult:
+    """:func:`ga_ros.core.solver.solve` followed by :func:`quality_control`: the returned result
+    carries the :class:`QualityReport` in ``result.quality`` (parameters as for ``solve``;
+    ``config``: the test settings)."""
+    res = solve(network, T_init, solver_config, fixed=fixed, priors=priors)
+    return replace(res, quality=quality_control(network, res, priors, config))
 
 
 def quality_control(network: ConnectionNetwork, result: SolveResult,

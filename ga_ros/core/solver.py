@@ -125,7 +125,9 @@ class SolveResult:
     se2 the ``[x y rz]`` components, the others zero) and ``adjusted`` (``l = l_b + v``, as
     ``[t, w]``) in connection order. ``cost`` is ``v' P v`` over
     connections (with the robust weights) plus the prior terms. ``factorisations`` counts the
-    numeric Cholesky factorisations of ``N`` during the iterations.
+    numeric Cholesky factorisations of ``N`` during the iterations. ``quality`` is ``None``
+    unless quality control was requested (:func:`ga_ros.core.quality.checked_solve` fills in its
+    :class:`~ga_ros.core.quality.QualityReport`: global test, redundancy numbers, w-tests, MDBs).
     """
 
     node_ids: IntArray
@@ -146,6 +148,7 @@ class SolveResult:
     model: str = 'se3'
     weights: FloatArray | None = None
     factorisations: int = 0
+    quality: object | None = None
     _system: _NormalSystem | None = field(default=None, repr=False)
 
     def covariance(self, node_ids) -> FloatArray:

@@ -47,6 +47,13 @@ from scipy.stats import chi2
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.quality import (
+    QualityConfig,
+    QualityReport,
+    QualitySummary,
+    quality_control,
+    summarise,
+)
 from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
@@ -59,6 +66,7 @@ from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
+GATES = ('chi2', 'w-test')
 
 
 def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
@@ -122,6 +130,24 @@ class AlignerConfig:
         100); a far-ahead id (track 1,000,000 after track 3) would end the survey. 0 = no limit.
     max_node_id_jump : largest step of a new node id above the largest node id seen (default
         10**7); e.g. a node id 2**53 after 500 is rejected (``id_jump``). 0 = no limit.
+    gate : how gross errors among cross connections are found after each update: ``'chi2'``
+        (the Mahalanobis misclosure against ``chi2_6(outlier_chi2_prob)``, every failing one
+        excluded at once) or ``'w-test'`` (Baarda's data snooping over the window's cross
+        connections: every cross connection whose w-test of :mod:`ga_ros.core.quality` rejects
+        at level ``quality_alpha0`` is excluded, the window re-adjusted, and so on until none
+        rejects; as with ``'chi2'``, a good connection excluded next to a gross error comes back
+        by re-admission. Baarda's one-at-a-time removal needs too many re-adjustments per
+        update at 20 % wrong connections: see the README).
+        ``outlier_chi2_prob = 0`` disables either gate (it is also the re-admission level).
+    quality : compute the quality control of every window update (``UpdateResult.quality``:
+        global test, ``sigma0^2``, largest ``|w|``, w-test rejections, smallest redundancy
+        number, median MDB, over the window's connections; :mod:`ga_ros.core.quality`).
+    quality_every : compute it at every N-th update only (1: every update). It costs about as
+        much as the update itself (the blocks of ``Q_x`` on every connected pair); the
+        ``'w-test'`` gate needs it at every update anyway and then it is always reported.
+    quality_alpha : significance level of the global test of the variance factor.
+    quality_alpha0 : level of the 1-D w-test (critical value ``z_{1-alpha0/2}``: 3.89 at 1e-4,
+        3.29 at 1e-3), for the quality figures and the ``'w-test'`` gate.
     """
 
     window_tracks: int = 5
@@ -133,6 +159,11 @@ class AlignerConfig:
     cov_max_condition: float = 1e12
     max_track_jump: int = 100
     max_node_id_jump: int = 10_000_000
+    gate: str = 'chi2'
+    quality: bool = False
+    quality_every: int = 1
+    quality_alpha: float = 0.05
+    quality_alpha0: float = 1e-4
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -156,6 +187,16 @@ class AlignerConfig:
             raise InputError(f'cov_max_condition must be >= 1, got {self.cov_max_condition}')
         if int(self.max_track_jump) < 0 or int(self.max_node_id_jump) < 0:
             raise InputError('max_track_jump and max_node_id_jump must be >= 0 (0 = no limit)')
+        if self.gate not in GATES:
+            raise InputError(f'gate must be one of {GATES}, got {self.gate!r}')
+        if int(self.quality_every) < 1:
+            raise InputError(f'quality_every must be >= 1, got {self.quality_every}')
+        self.quality_config()  # range checks of the levels
+
+    def quality_config(self) -> QualityConfig:
+        """The test settings of the quality control and of the ``'w-test'`` gate."""
+        return QualityConfig(alpha=self.quality_alpha, alpha0=self.quality_alpha0,
+                             snoop_test='w')
 
     def solver_config(self) -> SolverConfig:
         """The settings of each window update (:attr:`solver`)."""
@@ -191,7 +232,8 @@ class AlignerConfig:
 
 @dataclass
 class UpdateResult:
-    """Summary of one window adjustment."""
+    """Summary of one window adjustment (``quality``: its quality control,
+    :class:`~ga_ros.core.quality.QualitySummary`, when ``AlignerConfig.quality`` is on)."""
 
     track_id: int
     iterations: int
@@ -206,6 +248,7 @@ class UpdateResult:
     n_priors: int = 0
     n_unknowns: int = 0
     n_readmitted: int = 0
+    quality: QualitySummary | None = None
 
 
 @dataclass
@@ -660,7 +703,7 @@ class TrackWindowAligner:
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             res = solve(net, self._T[nodes], scfg, fixed=fixed, priors=priors)
-            bad = self._outliers(res, conns)
+            bad = self._outliers(res, conns, net, priors)
             if bad.size == 0:
                 back = self._readmissible(window_tracks, nodes, res, readmitted)
                 if back.size == 0:
@@ -682,15 +725,61 @@ class TrackWindowAligner:
             sigma0_sq=res.sigma0_sq, update_ms=1e3 * (time.perf_counter() - t0),
             n_window_nodes=int(n_win), n_window_connections=int(conns.size),
             n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
-            n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted))
+            n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
+            quality=self._quality_summary(net, res, priors, conns))
 
-    def _outliers(self, res: SolveResult, conns: IntArray) -> IntArray:
-        """Cross connections whose squared Mahalanobis misclosure at the solution exceeds the
-        chi-square quantile (6 dof). For the se3 model ``v' P v = w' M^-1 w``."""
+    def _quality_report(self, net: ConnectionNetwork, res: SolveResult,
+                        priors: list[GaussianPrior]) -> tuple[QualityReport, float]:
+        """Quality control of a window adjustment (computed once per solution) and its time (s).
+        The per-connection ``max |w|`` is kept for :meth:`connection_w`."""
+        cached = self.__dict__.get('_qc')
+        if cached is not None and cached[0] is res:
+            return cached[1], cached[2]
+        t0 = time.perf_counter()
+        rep = quality_control(net, res, priors, self.config.quality_config())
+        seconds = time.perf_counter() - t0
+        self.__dict__['_qc'] = (res, rep, seconds)
+        return rep, seconds
+
+    def _quality_summary(self, net: ConnectionNetwork, res: SolveResult,
+                         priors: list[GaussianPrior], conns: IntArray) -> QualitySummary | None:
+        """The QC summary of the final window adjustment (``None`` when ``quality`` is off)."""
+        cached = self.__dict__.get('_qc')
+        due = (self._n_updates + 1) % int(self.config.quality_every) == 0
+        if not self.config.quality or not (due or (cached is not None and cached[0] is res)):
+            return None
+        rep, seconds = self._quality_report(net, res, priors)
+        w = np.where(rep.redundancy_numbers >= rep.config.min_redundancy, rep.w_max, np.nan)
+        self.__dict__.setdefault('_conn_w', {}).update(zip(conns.tolist(), w.tolist()))
+        return summarise(rep, net, seconds=seconds)
+
+    def connection_w(self) -> FloatArray:
+        """(m,) largest ``|w|`` (Baarda's w-test statistic) of every connection at the last
+        window adjustment that contained it, in the order of :meth:`connection_arrays`; NaN
+        when never tested (``quality`` off, untestable, or not adjusted since a reload)."""
+        w = self.__dict__.get('_conn_w', {})
+        out = np.full(self._src.n, np.nan)
+        if w:
+            k = np.fromiter(w.keys(), np.int64, len(w))
+            out[k[k < out.size]] = np.fromiter(w.values(), float, len(w))[k < out.size]
+        return out
+
+    def _outliers(self, res: SolveResult, conns: IntArray, net: ConnectionNetwork,
+                  priors: list[GaussianPrior]) -> IntArray:
+        """Cross connections the gate excludes after an adjustment.
+
+        ``'chi2'``: every one whose squared Mahalanobis misclosure at the solution exceeds the
+        chi-square quantile (6 dof); for the se3 model ``v' P v = w' M^-1 w``. ``'w-test'``:
+        the worst cross connections whose w-test rejects (data snooping, see
+        :class:`AlignerConfig`)."""
         prob = self.config.outlier_chi2_prob
         cross = self._cross.a[conns]
         if prob <= 0 or not cross.any():
             return np.zeros(0, dtype=np.int64)
+        if self.config.gate == 'w-test':
+            rep, _ = self._quality_report(net, res, priors)
+            ratio = np.where(cross, np.nan_to_num(rep.test_ratio('w'), nan=0.0), 0.0)
+            return conns[ratio > 1.0]
         P = np.linalg.inv(self._ccov.a[conns])
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)

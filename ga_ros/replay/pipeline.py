@@ -115,7 +115,9 @@ class ReplayResult:
 
     ``errors`` maps ``'f2f'`` and ``'ga'`` to :class:`TrajectoryError` against ground truth
     (empty without ground truth). ``error`` is the message of the failure that cut the replay
-    short (the outputs then hold everything up to it), else None.
+    short (the outputs then hold everything up to it), else None. ``quality`` (aligner
+    ``quality`` on): ``per_track``, the :class:`ga_ros.core.quality.QualitySummary` of every
+    update with its ``track_id``, and ``final``, that of the last adjustment.
     """
 
     bag: str
@@ -135,6 +137,7 @@ class ReplayResult:
     error: str | None = None
     source_stats: dict[str, Any] = field(default_factory=dict)
     corrected: Trajectory | None = None
+    quality: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -150,7 +153,7 @@ class ReplayResult:
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
-            'source_stats': self.source_stats}
+            'source_stats': self.source_stats, 'quality': self.quality}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -333,6 +336,11 @@ class _Run:
         if u is None:
             return
         self.result.updates.append(_as_dict(u))
+        qc = getattr(u, 'quality', None)
+        if qc is not None:
+            entry = {'track_id': int(u.track_id), **qc.as_dict()}
+            self.result.quality.setdefault('per_track', []).append(entry)
+            self.result.quality['final'] = entry
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
         self._markers(traj)
@@ -405,7 +413,19 @@ class _Run:
         if not ok.any():
             return
         d = misclosure(traj.T_world_node, i_src[ok], i_dst[ok], z[ok], cov[ok])
+        w = self._connection_w(src, dst)
+        if w is not None:  # quality control on: colour by |w| (ga_ros.ros.conversions)
+            d = w[ok]
         self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns)
+
+    def _connection_w(self, src: IntArray, dst: IntArray) -> FloatArray | None:
+        """(m,) ``|w|`` of the connections ``src -> dst`` (node ids) at their last adjustment
+        (NaN: not tested), or None when the aligner has no quality control."""
+        if not getattr(getattr(self.aligner, 'config', None), 'quality', False):
+            return None
+        a_src, a_dst, _, _, _ = self.aligner.connection_arrays()
+        w_of = dict(zip(zip(a_src.tolist(), a_dst.tolist()), self.aligner.connection_w().tolist()))
+        return np.array([w_of.get(pair, np.nan) for pair in zip(src.tolist(), dst.tolist())])
 
     def _movable(self, traj: Trajectory) -> np.ndarray:
         """(n,) True for nodes the aligner may still move (not frozen; else the last tracks)."""

@@ -64,6 +64,14 @@ def result_text(r: ReplayResult) -> str:
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
+    q = r.quality.get('final')
+    if q:
+        verdict = 'pass' if q['global_passed'] else 'FAIL'
+        lines.append(f'quality (last update): global test {verdict}'
+                     f", sigma0^2 {q['sigma0_sq']:.3f}, max |w| {q['w_max']:.2f} on "
+                     f"{q['w_max_src_id']}->{q['w_max_dst_id']} (critical {q['w_critical']:.2f}),"
+                     f" {q['n_w_rejected']} rejected by the w-test, median MDB "
+                     f"{q['mdb_median_m']:.3g} m")
     if 'ga' in r.errors:
         ga = r.errors['ga']
         f2f = r.errors.get('f2f')

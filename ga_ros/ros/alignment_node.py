@@ -66,7 +66,7 @@ from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config, updated_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.ros.runner import run_node
-from ga_ros.ros.view import ABSORBED, OUTLIER, connection_view
+from ga_ros.ros.view import connection_view
 
 NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
@@ -104,7 +104,8 @@ class NodeSettings:
         window update.
     warn_throttle_sec : minimum interval between two warnings about rejected input, s.
     publish_markers : publish the connection network as a MarkerArray.
-    residual_color_scale : Mahalanobis residual drawn fully red (unitless).
+    residual_color_scale : Mahalanobis residual drawn fully red (unitless); with the aligner's
+        ``quality`` on, the ``|w|`` drawn fully red (e.g. the w-test's critical value).
     diagnostics_period_sec : period of the diagnostics timer, s (0 disables; diagnostics are
         also published after every update).
     odom_max_rate_hz : between updates, publish the newest node's pose (its frame-to-frame
@@ -587,8 +588,10 @@ class AlignmentNode(Node):
 
     # ------------------------------------------------------------------ publishing
     def diagnostic_values(self) -> dict[str, object]:
-        """The session's diagnostics key/values."""
-        return self.session.diagnostic_values()
+        """The session's diagnostics key/values, with the last update's quality figures."""
+        values = self.session.diagnostic_values()
+        values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
+        return values
 
     def _publish_all(self) -> None:
         """Publish path, newest pose, odometry, markers and diagnostics; never raises."""
@@ -643,9 +646,8 @@ class AlignmentNode(Node):
             view = connection_view(self.aligner)
             colors = np.where(np.asarray(cp.frozen, dtype=bool)[:, None],
                               [[0.5, 0.5, 0.5, 1.0]], [[0.2, 0.4, 1.0, 1.0]])
-            conn_rgba = conv.residual_color(view.normalized_residual, s.residual_color_scale)
-            conn_rgba[view.status == OUTLIER] = (1.0, 0.0, 1.0, 1.0)    # magenta
-            conn_rgba[view.status == ABSORBED, 3] = 0.3                # faded
+            conn_rgba = conv.connection_rgba(view.normalized_residual, view.status,
+                                             s.residual_color_scale, view.w)
             stamp_ns = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0
             self.pub_markers.publish(conv.network_markers(
                 view.p_world_node, view.src_index, view.dst_index,
@@ -689,7 +691,7 @@ class AlignmentNode(Node):
 
     def _publish_diagnostics(self) -> None:
         try:
-            values = self.session.diagnostic_values()
+            values = self.diagnostic_values()
             health = self.session.health()
         except Exception as exc:  # noqa: BLE001 - diagnostics must not stop the node
             values = {'error': str(exc)}

@@ -42,6 +42,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.io.bag_writer import residual_color  # one palette for the node and the replay
+from ga_ros.ros.view import ABSORBED, OUTLIER
 
 #: Largest accepted node or track id (ids above it are "absurd" and rejected).
 MAX_ID = frames.MAX_ID
@@ -258,6 +259,58 @@ def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: In
     rgba = np.repeat(rgba, 2, axis=0)
     lines.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in rgba.tolist()]
     return MarkerArray(markers=[clear, nodes, lines])
+
+
+#: RGBA of a connection excluded by the gate (magenta) and alpha of an absorbed one (faded).
+OUTLIER_RGBA = (1.0, 0.0, 1.0, 1.0)
+ABSORBED_ALPHA = 0.3
+
+
+def connection_rgba(normalized_residual: FloatArray, status: IntArray, scale: float,
+                    w: FloatArray | None = None) -> FloatArray:
+    """Colour of each connection line, ``(m, 4)`` RGBA.
+
+    The palette is :func:`residual_color` (green at 0, yellow at ``scale / 2``, red at ``scale``
+    and above, grey when unknown) of the connection's Mahalanobis misclosure, or, when ``w`` is
+    given (quality control on), of its largest ``|w|`` (Baarda's w-statistic at its last
+    adjustment): with ``scale`` = the w-test's critical value (3.29 at ``alpha0 = 1e-3``, 3.89 at
+    1e-4) red means *rejected by the w-test*. Connections excluded by the gate (``status`` 2) are
+    magenta, those absorbed into a prior (``status`` 1) faded.
+    """
+    value = np.abs(np.asarray(w, dtype=float)) if w is not None else normalized_residual
+    rgba = residual_color(value, scale)
+    status = np.asarray(status).reshape(-1)
+    rgba[status == OUTLIER] = OUTLIER_RGBA
+    rgba[status == ABSORBED, 3] = ABSORBED_ALPHA
+    return rgba
+
+
+def quality_values(summary: object | None) -> dict[str, object]:
+    """Diagnostics key/values of a :class:`ga_ros.core.quality.QualitySummary` (the last window
+    update's; empty when quality control is off).
+
+    Keys: ``quality/global_test`` (``pass``/``fail``: the variance factor's chi-square test),
+    ``quality/sigma0_sq``, ``quality/w_max`` (largest ``|w|``) and ``quality/w_max_connection``
+    (``src->dst`` node ids), ``quality/w_critical``, ``quality/n_w_rejected`` (connections whose
+    w-test rejects), ``quality/redundancy_min`` (smallest redundancy number),
+    ``quality/mdb_median_m`` and ``quality/mdb_median_deg`` (median minimal detectable bias),
+    ``quality/ms`` (its cost).
+    """
+    if summary is None:
+        return {}
+    s = summary
+    return {
+        'quality/global_test': 'pass' if s.global_passed else 'fail',
+        'quality/sigma0_sq': float(s.sigma0_sq),
+        'quality/w_max': float(s.w_max),
+        'quality/w_max_connection': f'{s.w_max_src_id}->{s.w_max_dst_id}',
+        'quality/w_critical': float(s.w_critical),
+        'quality/n_w_rejected': int(s.n_w_rejected),
+        'quality/redundancy_min': float(s.redundancy_number_min),
+        'quality/mdb_median_m': float(s.mdb_median_m),
+        'quality/mdb_median_deg': float(np.degrees(s.mdb_median_rad)),
+        'quality/ms': 1e3 * float(s.seconds),
+    }
 
 
 def diagnostics_msg(name: str, hardware_id: str, values: Mapping[str, object], stamp_ns: int,

@@ -29,6 +29,8 @@ class ConnectionView:
         ``e = log(T_meas^-1 T_world_src^-1 T_world_dst)`` (unitless; NaN when the connection's
         covariance is not available).
     status : (m,) 0 active, 1 absorbed into a marginal prior, 2 excluded as an outlier.
+    w : (m,) largest ``|w|`` (Baarda's w-test) of each connection at its last adjustment (NaN:
+        not tested), or ``None`` when quality control is off.
     """
 
     p_world_node: FloatArray
@@ -36,6 +38,7 @@ class ConnectionView:
     dst_index: IntArray
     normalized_residual: FloatArray
     status: IntArray
+    w: FloatArray | None = None
 
 
 def misclosure_mahalanobis(T_world_src: FloatArray, T_world_dst: FloatArray, z: FloatArray,
@@ -67,11 +70,12 @@ def normalized_residuals(network: ConnectionNetwork, T_world_node: FloatArray) -
 
 def network_view(node_ids: IntArray, T_world_node: FloatArray, src_id: IntArray,
                  dst_id: IntArray, z: FloatArray, cov: FloatArray | None,
-                 status: IntArray | None = None) -> ConnectionView:
+                 status: IntArray | None = None,
+                 w: FloatArray | None = None) -> ConnectionView:
     """Build the view from corrected poses of ``node_ids`` and connections given by node ids.
 
     Connections to nodes missing from ``node_ids`` are dropped; with ``cov=None`` the residuals
-    are NaN (drawn grey).
+    are NaN (drawn grey). ``w``: optional (m,) ``|w|`` per connection (quality control).
     """
     node_ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
     T = np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4)
@@ -96,13 +100,15 @@ def network_view(node_ids: IntArray, T_world_node: FloatArray, src_id: IntArray,
     else:
         cov = np.asarray(cov, dtype=float).reshape(-1, 6, 6)[keep]
         resid = misclosure_mahalanobis(T[src], T[dst], np.asarray(z, float)[keep], cov)
-    return ConnectionView(T[:, :3, 3].copy(), src, dst, resid, status[keep])
+    w_keep = None if w is None else np.asarray(w, dtype=float).reshape(-1)[keep]
+    return ConnectionView(T[:, :3, 3].copy(), src, dst, resid, status[keep], w_keep)
 
 
 def connection_view(aligner) -> ConnectionView:
     """View of a :class:`ga_ros.core.window.TrackWindowAligner`: every node at its corrected
-    pose and every connection it holds."""
+    pose and every connection it holds (with ``|w|`` when its quality control is on)."""
     cp = aligner.corrected_path()
     src_id, dst_id, z, _cross, status = aligner.connection_arrays()
     cov = aligner.connection_covariances()
-    return network_view(cp.node_ids, cp.T_world_node, src_id, dst_id, z, cov, status)
+    w = aligner.connection_w() if getattr(aligner.config, 'quality', False) else None
+    return network_view(cp.node_ids, cp.T_world_node, src_id, dst_id, z, cov, status, w)

@@ -29,7 +29,8 @@ from ga_ros.replay.text import info_text, plan_lines, result_text
 ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
                    'robust_loss': 'solver.robust_loss', 'robust_scale': 'solver.robust_scale',
                    'max_iterations': 'solver.max_iterations',
-                   'outlier_chi2_prob': 'outlier_chi2_prob'}
+                   'outlier_chi2_prob': 'outlier_chi2_prob', 'gate': 'gate',
+                   'quality': 'quality'}
 
 
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
@@ -88,6 +89,12 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     a.add_argument('--max-iterations', type=int)
     a.add_argument('--outlier-chi2-prob', type=float,
                    help='misclosure test quantile for cross connections (0 disables)')
+    a.add_argument('--gate', choices=('chi2', 'w-test'),
+                   help='gross-error gate on cross connections: chi-square misclosure test '
+                        "(default) or Baarda's w-test data snooping")
+    a.add_argument('--quality', action='store_true', default=None,
+                   help='quality control of every update (summary.json "quality" block, '
+                        'markers coloured by |w|)')
     a.add_argument('--refine', action='store_true',
                    help='final full batch refinement after the last track')
     a.add_argument('--no-anchor', action='store_true',

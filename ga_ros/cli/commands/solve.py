@@ -68,6 +68,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument('--kitti', help='also write the optimised vertices as KITTI poses')
     p.add_argument('--json', action='store_true',
                    help='print one JSON object (cost, iterations, seconds, ...)')
+    p.add_argument('--quality', action='store_true',
+                   help="batch: Baarda's quality control of the solution (largest w-test "
+                   'statistic and its edge, edges the w-test rejects, smallest redundancy '
+                   'number, median minimal detectable bias); in the JSON under "quality"')
+    p.add_argument('--alpha0', type=float, default=1e-3,
+                   help='level of the w-test of --quality (default 0.001: |w| > 3.29)')
     p.add_argument('--tracks', help='CSV "node_id,track_id" (after a header): run track by track')
     p.add_argument('--window', type=int, default=5, help='tracks in the sliding window (track '
                    'mode; default 5)')
@@ -143,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
         'chi2_95': [evidence.chi2_lower, evidence.chi2_upper], 'chi2_test': evidence.chi2_test,
         'check_init': dataclasses.asdict(check) if check is not None else None,
     }
+    if args.quality and not args.tracks:
+        summary['quality'] = _quality(graph, result.T_world_node, args.alpha0)
     if result.per_track_ms is not None:
         summary['per_track_ms'] = result.per_track_ms
         summary['rejected'] = result.stages[0].get('rejected', {})
@@ -157,6 +165,13 @@ def run(args: argparse.Namespace) -> int:
         print(f'variance factor {evidence.variance_factor:.4g} (dof {evidence.dof}); chi-square '
               f'95 % [{evidence.chi2_lower:.6g}, {evidence.chi2_upper:.6g}]: '
               f'{evidence.chi2_test}', file=out)
+        q = summary.get('quality')
+        if q is not None:
+            print(f"quality      max |w| {q['w_max']:.3g} on edge {q['w_max_src_id']}->"
+                  f"{q['w_max_dst_id']} (critical {q['w_critical']:.3g}); "
+                  f"{q['n_w_rejected']} edges rejected by the w-test; min redundancy number "
+                  f"{q['redundancy_number_min']:.3g}; median MDB {q['mdb_median_m']:.3g} m / "
+                  f"{np.degrees(q['mdb_median_rad']):.3g} deg ({q['seconds']:.2f} s)", file=out)
         if graph.repaired_lines:
             print(f'repaired     {len(graph.repaired_lines)} information matrices (not positive '
                   f'definite)', file=out)
@@ -178,6 +193,23 @@ def run(args: argparse.Namespace) -> int:
         if args.out:
             print(f'wrote {args.out}', file=out)
     return 0
+
+
+def _quality(graph: PoseGraph, T_world_node: np.ndarray, alpha0: float) -> dict:
+    """Quality figures of the solution (:mod:`ga_ros.core.quality`), without those the summary
+    already has (the variance factor and its chi-square test: ``variance_factor``, ``dof``)."""
+    from ga_ros.core.quality import QualityConfig, checked_solve, summarise
+    from ga_ros.pipeline.pose_graph import GRAPH_SOLVER
+
+    t0 = time.perf_counter()
+    # one Gauss-Newton step at the solution gives the residuals and N the tests need
+    res = checked_solve(graph.network, T_world_node,
+                        dataclasses.replace(GRAPH_SOLVER, damping='none', max_iterations=1),
+                        fixed=list(graph.fixed) or None, config=QualityConfig(alpha0=alpha0))
+    out = summarise(res.quality, graph.network, seconds=time.perf_counter() - t0).as_dict()
+    for duplicate in ('sigma0_sq', 'redundancy', 'global_passed'):
+        out.pop(duplicate)
+    return out
 
 
 def _run_tracks(graph: PoseGraph, args: argparse.Namespace) -> GraphSolveResult:
