@@ -15,16 +15,21 @@ from __future__ import annotations
 
 import time
 import tracemalloc
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.quality import QualityReport, quality_control
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.errors import GaError
 from ga_ros.eval.metrics import ate, improvement_pct, per_track_mean, position_errors
-from ga_ros.geometry import se3
+from ga_ros.geometry import se3, so3
 from ga_ros.report.config import ReproduceConfig
+from ga_ros.report.stereo_survey import (
+    CACHE_NAME, Registration, StereoSurveyConfig, VoSurvey, ground_homography, register_pair,
+    render_vo_survey)
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 from ga_ros.sim.scenario import Scenario
@@ -35,6 +40,7 @@ FAMILIES = ('lawnmower', 'looping')
 
 #: Experiment keys of :func:`run_rng`.
 EXP_TABLE1, EXP_PAPER_MODEL, EXP_FUTURE, EXP_AERIAL, EXP_MEMORY = 1, 2, 3, 4, 5
+EXP_OUTLIERS = 6
 
 
 def run_rng(seed: int, experiment: int, *keys: int) -> np.random.Generator:
@@ -257,6 +263,10 @@ class AerialResult:
     errors: dict[str, FloatArray]
     fig8: dict[int, dict[str, FloatArray]]
     track_ids: IntArray
+    paths: dict[str, FloatArray] = field(default_factory=dict)
+    T_true: FloatArray | None = None
+    quality: QualityReport | None = None
+    consecutive: BoolArray | None = None
 
 
 def window_available() -> bool:
@@ -328,15 +338,27 @@ def _before_update(aligner, sc: Scenario, k: int, f2f: FloatArray) -> FloatArray
 
 
 def aerial_window(cfg: ReproduceConfig) -> AerialResult:
-    """The aerial survey: F2F, batch GA, the online window (each policy) and its final batch
-    refinement; ATE raw (first pose anchored) and rigidly aligned; per-track update times."""
+    """The aerial survey with synthetic noise: :func:`survey_window` at ``aerial_noise``."""
     sc = aerial_scenario(cfg.aerial_tracks, cfg.aerial_positions_per_swath)
     nm = perturb(sc.true_motions(), NoiseModel(cfg.aerial_noise, sc.depth_m),
                  run_rng(cfg.seed, EXP_AERIAL, 0))
+    res = survey_window(cfg, sc, nm.z, nm.cov)
+    res.summary['noise_pct'] = cfg.aerial_noise
+    return res
+
+
+def survey_window(cfg: ReproduceConfig, sc: Scenario, z: FloatArray, cov: FloatArray,
+                  quality: bool = True) -> AerialResult:
+    """A survey's measured motions ``z`` (m, 6) with covariances ``cov`` (m, 6, 6): F2F, batch
+    GA (with its quality control when ``quality``), the online window (each policy of
+    ``cfg.policies``) and its final batch refinement; ATE raw (first pose anchored) and
+    rigidly aligned; per-track update times. The poses of every estimate are kept in
+    ``AerialResult.paths`` (Fig. 9: altitude and heading errors)."""
     T_true = sc.T_world_node
-    f2f = sc.f2f(nm.z)
+    f2f = sc.f2f(z)
+    net = sc.network(z, cov)
     t0 = time.perf_counter()
-    batch = solve(sc.network(nm.z, nm.cov), f2f, SolverConfig(tolerance=1e-7))
+    batch = solve(net, f2f, SolverConfig(tolerance=1e-7))
     batch_s = time.perf_counter() - t0
 
     def ates(T):
@@ -347,25 +369,32 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
     summary: dict = {
         'nodes': sc.n_nodes, 'connections': sc.n_connections,
         'cross_connections': int((~sc.consecutive).sum()), 'tracks': sc.n_tracks,
-        'noise_pct': cfg.aerial_noise,
         'se3': {'equations': batch.n_equations, 'observations': batch.n_observations,
                 'unknowns': batch.n_unknowns},
         'paper_model_counts': {'equations': 3 * sc.n_connections,
                                'observations': 6 * sc.n_connections,
                                'unknowns': 3 * (sc.n_nodes - 1)},
         'f2f': ates(f2f), 'batch': {**ates(batch.T_world_node), 'seconds': batch_s,
-                                    'iterations': batch.iterations},
+                                    'iterations': batch.iterations,
+                                    'sigma0_sq': float(batch.sigma0_sq)},
         'window_available': window_available(), 'policies': {},
     }
     summary['improvement_pct'] = {'batch': improvement_pct(summary['f2f']['mean_error_m'],
                                                            summary['batch']['mean_error_m'])}
     errors = {'f2f': position_errors(f2f, T_true), 'batch': position_errors(batch.T_world_node,
                                                                           T_true)}
+    paths = {'f2f': f2f, 'batch': batch.T_world_node}
+    qrep = None
+    if quality:
+        t0 = time.perf_counter()
+        qrep = quality_control(net, batch)
+        summary['quality'] = quality_summary(qrep, sc.consecutive)
+        summary['quality']['seconds'] = time.perf_counter() - t0
     fig8: dict[int, dict[str, FloatArray]] = {}
     if summary['window_available']:
         wanted = {t - 1 for t in cfg.fig8_tracks if 1 <= t <= sc.n_tracks}
         for policy in cfg.policies:
-            out = _run_aligner(sc, nm.z, nm.cov, policy, cfg.window_tracks,
+            out = _run_aligner(sc, z, cov, policy, cfg.window_tracks,
                                wanted if policy == cfg.policies[0] else set(), f2f)
             ms = np.array([u.update_ms for u in out['updates']])
             w, b = ates(out['path']), summary['batch']
@@ -383,6 +412,7 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
                 'rejected_measurements': out['rejected'],
             }
             errors[f'window_{policy}'] = position_errors(out['path'], T_true)
+            paths[f'window_{policy}'] = out['path']
             errors[f'refined_{policy}'] = position_errors(out['refined'], T_true)
             if out['snapshots']:
                 for k, snap in out['snapshots'].items():
@@ -399,7 +429,31 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
                 summary['policies'][policy]['window']['mean_error_m'])
         first = f'window_{cfg.policies[0]}'
         summary['per_track_window_mean_m'] = per_track_mean(errors[first], sc.track_ids)
-    return AerialResult(summary, errors, fig8, sc.track_ids)
+    return AerialResult(summary, errors, fig8, sc.track_ids, paths, T_true, qrep,
+                        sc.consecutive)
+
+
+def quality_summary(q: QualityReport, consecutive: BoolArray) -> dict:
+    """JSON-ready figures of a batch adjustment's quality control (Baarda): the global test,
+    redundancy numbers, w-test and MDB, the last two also per kind of connection."""
+    out = q.summary()
+    w_crit = float(q.w_critical)
+    for name, sel in (('consecutive', consecutive), ('cross', ~consecutive)):
+        if not sel.any():
+            continue
+        mdb = q.mdb[sel]
+        out[name] = {
+            'connections': int(sel.sum()),
+            'redundancy_number_median': float(np.median(q.redundancy_numbers[sel])),
+            'w_abs_max': float(np.nanmax(np.abs(q.w[sel]))),
+            'w_rejected_components': int((np.abs(q.w[sel]) > w_crit).sum()),
+            'mdb_translation_median_m': float(np.nanmedian(mdb[:, :3])),
+            'mdb_rotation_median_deg': float(np.degrees(np.nanmedian(mdb[:, 3:]))),
+        }
+    w = q.w[np.isfinite(q.w)]
+    out['w_mean'] = float(w.mean()) if w.size else float('nan')
+    out['w_std'] = float(w.std()) if w.size else float('nan')
+    return out
 
 
 def memory_profile(cfg: ReproduceConfig) -> dict:
@@ -446,3 +500,94 @@ def memory_profile(cfg: ReproduceConfig) -> dict:
             'update_peak_mib_max': float(max(peaks)) / 2**20,
             'retained_mib': float(retained) / 2**20}
     return out
+
+
+def pose_error_profiles(T_est: FloatArray, T_true: FloatArray) -> dict[str, FloatArray]:
+    """Errors along the trajectory (the paper's Fig. 9): ``position`` ``|p_est - p_true|`` (m),
+    ``altitude`` ``z_est - z_true`` (m, world ``z`` up) and ``heading`` (rad), the world-``z``
+    component of ``log(R_est R_true')`` (the rotation error about the vertical)."""
+    R_err = T_est[:, :3, :3] @ np.swapaxes(T_true[:, :3, :3], 1, 2)
+    return {'position': position_errors(T_est, T_true),
+            'altitude': T_est[:, 2, 3] - T_true[:, 2, 3],
+            'heading': so3.log(R_err)[:, 2]}
+
+
+@dataclass
+class StereoExperiment:
+    """Experiment 2 from rendered stereo: the VO survey, its window / batch results and the
+    Fig. 12 registrations."""
+
+    survey: VoSurvey
+    result: AerialResult
+    summary: dict
+    registrations: list[dict[str, Registration]]
+
+
+def stereo_experiment(cfg: ReproduceConfig, out_dir: Path | None = None,
+                      log=None) -> StereoExperiment:
+    """The paper's experiment 2 as the paper ran it: motions (consecutive and cross-track) from
+    rendered 320x240 stereo by our VO with its own covariances (:func:`render_vo_survey`,
+    cached in ``out_dir``), then F2F, the track window (every policy of ``cfg.policies``) and
+    batch GA (:func:`survey_window`), the VO's covariance consistency (NEES of the motions),
+    and Fig. 12: images of neighbouring swaths registered with the relative motion of F2F, of
+    the VO's own cross-track measurement, of the window, of the batch and of the truth."""
+    scfg = StereoSurveyConfig(n_tracks=cfg.stereo_tracks,
+                              positions_per_swath=cfg.stereo_positions_per_swath)
+    cache = None if out_dir is None else Path(out_dir) / CACHE_NAME
+    t0 = time.perf_counter()
+    vs = render_vo_survey(scfg, cache, log)
+    vo_s = time.perf_counter() - t0
+    sc = vs.scenario()
+    sub = replace(cfg, fig8_tracks=cfg.stereo_fig8_tracks)
+    res = survey_window(sub, sc, vs.z, vs.cov)
+    nees = vs.nees()
+    summary = {
+        'survey': {'tracks': scfg.n_tracks, 'positions_per_swath': scfg.positions_per_swath,
+                   'step_m': scfg.step_m, 'image_size': f'{scfg.width}x{scfg.height}',
+                   'median_depth_m': vs.depth_m, **vs.stats},
+        'seconds_this_run': vo_s, 'cached': bool(cache is not None and vo_s < 0.5 * vs.stats[
+            'seconds']['total']),
+        'nees': nees, **res.summary}
+    regs: list[dict[str, Registration]] = []
+    f = vs.fig12
+    first = f'window_{cfg.policies[0]}' if cfg.policies else 'batch'
+    est = {'f2f': res.paths['f2f'], 'window': res.paths.get(first, res.paths['batch']),
+           'batch': res.paths['batch'], 'truth': vs.T_true}
+    rows = []
+    for j, (a, b) in enumerate(zip(f.get('a', []), f.get('b', []))):
+        a, b = int(a), int(b)
+        h = float(f['plane_height_m'][j])
+        reg: dict[str, Registration] = {}
+        for name, T in est.items():
+            H = ground_homography(vs.K, T[a], T[b], h)
+            reg[name] = register_pair(f['img_a'][j], f['img_b'][j], H)
+        k = int(np.nonzero((vs.src == a) & (vs.dst == b))[0][0])
+        T_a = est['window'][a]
+        T_b = T_a @ se3.from_translation_rotvec(vs.z[k, :3], vs.z[k, 3:])
+        reg['measured'] = register_pair(f['img_a'][j], f['img_b'][j],
+                                        ground_homography(vs.K, T_a, T_b, h))
+        regs.append(reg)
+        rows.append({'node_a': a, 'node_b': b, 'swath_a': int(vs.swath[a]),
+                     'swath_b': int(vs.swath[b]), 'plane_height_m': h,
+                     **{f'{n}_{m}': getattr(r, m) for n, r in reg.items()
+                        for m in ('overlap', 'mean_abs_diff', 'ncc')}})
+    summary['fig12'] = rows
+    return StereoExperiment(vs, res, summary, regs)
+
+
+def wrong_connections(cfg: ReproduceConfig) -> dict:
+    """The wrong-connection table (issue 15 item 5) on a reduced aerial survey:
+    :func:`ga_ros.bench.outliers.score_methods` at ``outlier_noise``, each fraction of
+    ``outlier_fractions`` (after the clean run) and each of ``outlier_methods``."""
+    from ga_ros.bench.outliers import score_methods
+
+    sc = aerial_scenario(cfg.outlier_tracks, cfg.outlier_positions_per_swath)
+    nm = perturb(sc.true_motions(), NoiseModel(cfg.outlier_noise, sc.depth_m),
+                 run_rng(cfg.seed, EXP_OUTLIERS, 0))
+    gross = (5.0, 15.0)
+    rows = list(score_methods(sc, nm.z, nm.cov, [0.0, *cfg.outlier_fractions],
+                              list(cfg.outlier_methods), gross, gross, 1e-4, 20, cfg.seed))
+    return {'tracks': cfg.outlier_tracks, 'nodes': sc.n_nodes,
+            'connections': sc.n_connections, 'cross_connections': int((~sc.consecutive).sum()),
+            'noise_pct': cfg.outlier_noise, 'gross_m': list(gross), 'gross_deg': list(gross),
+            'alpha0': 1e-4, 'rows': rows}
