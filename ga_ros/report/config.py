@@ -115,8 +115,8 @@ def preset(name: str) -> ReproduceConfig:
         return replace(full, runs=2, noise_levels=(1.0, 10.0), paper_model_runs=1,
                        fig3_tracks=4, fig3_runs=10, fig3_noise_levels=(10.0,),
                        aerial_tracks=6, aerial_positions_per_swath=20, memory_tracks=(3, 6),
-                       fig8_tracks=(1, 2, 6), stereo_tracks=2, stereo_positions_per_swath=12,
-                       stereo_fig8_tracks=(1, 2), outlier_tracks=2,
+                       fig8_tracks=(1, 2, 6), stereo_tracks=1, stereo_positions_per_swath=10,
+                       stereo_fig8_tracks=(1,), outlier_tracks=2,
                        outlier_positions_per_swath=12, outlier_fractions=(0.05,),
                        outlier_methods=('ls', 'snoop-w'), preset='tiny')
     raise InputError(f"unknown preset {name!r}; use 'full', 'quick' or 'tiny'")
