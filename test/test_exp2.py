@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 
 from ga_ros.geometry import se3
-from ga_ros.report import preset
 from ga_ros.report import experiments as ex
+from ga_ros.report import preset
 from ga_ros.report.stereo_survey import (
-    StereoSurveyConfig, ground_homography, load_survey, register_pair, render_vo_survey)
+    StereoSurveyConfig,
+    ground_homography,
+    load_survey,
+    register_pair,
+    render_vo_survey,
+)
 from ga_ros.sim.stereo import StereoRig, StereoScene, Terrain, TerrainConfig, nadir_rotation
 
 TINY = StereoSurveyConfig(n_tracks=1, positions_per_swath=10, fig12_pairs=1)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,35 +137,6 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
     return Outcome(method, rejected, ate(T, sc.T_world_node).rmse, time.perf_counter() - t0)
 
 
-def score_methods(sc: Scenario, z_clean: FloatArray, cov: FloatArray,
-                  fractions: list[float], methods: list[str], gross_m: tuple[float, float],
-                  gross_deg: tuple[float, float], alpha0: float, per_iteration: int,
-                  seed: int) -> Iterator[dict]:
-    """Run every method on the survey contaminated at each fraction (0.0 first gives the clean
-    references) and yield one row per (fraction, method): recall, precision, share of good
-    connections rejected (%), rigidly aligned ATE (m), its change against the clean run of the
-    same family (%) and the time (s). NaN where a ratio has no denominator."""
-    clean: dict[str, float] = {}
-    for fraction in fractions:
-        z, bad = inject(sc, z_clean, fraction, gross_m, gross_deg,
-                        np.random.default_rng(seed + 1))
-        for method in methods:
-            out = run_method(method, sc, z, cov, bad, alpha0, per_iteration)
-            family = 'gate' if method == 'gate' else 'ls'
-            if fraction == 0.0:
-                clean.setdefault(method, out.ate_m)
-            ref = clean.get(family, out.ate_m)
-            tp = int((out.rejected & bad).sum())
-            n_rej = int(out.rejected.sum())
-            yield {'wrong_pct': 100.0 * fraction, 'method': method,
-                   'wrong': int(bad.sum()),
-                   'recall_pct': 100.0 * tp / bad.sum() if bad.any() else float('nan'),
-                   'precision_pct': 100.0 * tp / n_rej if n_rej else float('nan'),
-                   'good_rejected_pct': 100.0 * (out.rejected & ~bad).sum() / (~bad).sum(),
-                   'ate_m': out.ate_m, 'd_ate_pct': 100.0 * (out.ate_m / ref - 1.0),
-                   'seconds': out.seconds}
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--tracks', type=int, default=6, help='double tracks (default 6)')
@@ -206,12 +176,24 @@ def main(argv: list[str] | None = None) -> int:
               f'{"good rej. %":>12} {"ATE m":>8} {"dATE %":>8} {"time s":>7}')
     print(header)
     print('-' * len(header))
-    for row in score_methods(sc, nm.z, nm.cov, [0.0] + list(args.fractions), args.methods,
-                             tuple(args.gross_m), tuple(args.gross_deg), args.alpha0,
-                             args.per_iteration, args.seed):
-        print(f'{row["wrong_pct"]:5.0f}% {row["method"]:<11} {row["recall_pct"]:9.1f} '
-              f'{row["precision_pct"]:12.1f} {row["good_rejected_pct"]:12.2f} '
-              f'{row["ate_m"]:8.3f} {row["d_ate_pct"]:+8.1f} {row["seconds"]:7.1f}', flush=True)
+    clean: dict[str, float] = {}
+    for fraction in [0.0] + list(args.fractions):
+        z, bad = inject(sc, nm.z, fraction, tuple(args.gross_m), tuple(args.gross_deg),
+                        np.random.default_rng(args.seed + 1))
+        for method in args.methods:
+            out = run_method(method, sc, z, nm.cov, bad, args.alpha0, args.per_iteration)
+            family = 'gate' if method == 'gate' else 'ls'
+            if fraction == 0.0:
+                clean.setdefault(method, out.ate_m)
+            ref = clean.get(family, out.ate_m)
+            tp = int((out.rejected & bad).sum())
+            n_rej = int(out.rejected.sum())
+            recall = 100.0 * tp / bad.sum() if bad.any() else float('nan')
+            precision = 100.0 * tp / n_rej if n_rej else float('nan')
+            good_rej = 100.0 * (out.rejected & ~bad).sum() / (~bad).sum()
+            print(f'{100 * fraction:5.0f}% {method:<11} {recall:9.1f} {precision:12.1f} '
+                  f'{good_rej:12.2f} {out.ate_m:8.3f} {100 * (out.ate_m / ref - 1):+8.1f} '
+                  f'{out.seconds:7.1f}', flush=True)
     print('\ndATE: against the clean run of the same family (batch LS on clean data; the gated '
           'window on clean data for gate)')
     return 0

@@ -459,7 +459,7 @@ def _exp2_markdown(r: dict) -> str:
          f'{sv["frames"]} stereo pairs (median scene depth {sv["median_depth_m"]:.0f} m). The '
          'motions come from the images: the stereo front end of `vo_node` and the replay '
          '(`ga_ros.pipeline.stereo.StereoFrontEnd`: VO, then cross-track matching with the '
-         'online window\'s corrected path fed back), each with the VO\'s own covariance. '
+         "online window's corrected path fed back), each with the VO's own covariance. "
          f'{sv["keyframes"]} keyframes (nodes), {sv["consecutive"]} consecutive and '
          f'{sv["cross"]} cross-track motions ({sv["cross_attempts"]} matcher attempts). '
          f'Front end: {sv["front_end"]}.\n',
@@ -474,7 +474,7 @@ def _exp2_markdown(r: dict) -> str:
     L += _ate_rows(e, cfg['window_tracks'])
     n = e['nees']
     L += ['', '### Covariance consistency of the VO motions\n',
-          'NEES `e\' C^-1 e` with `e = log(T_true^-1 T_meas)`: 6 on average when the VO\'s '
+          "NEES `e' C^-1 e` with `e = log(T_true^-1 T_meas)`: 6 on average when the VO's "
           'covariance is honest (smaller: conservative, larger: over-confident).\n',
           '| motions | count | NEES mean | median | p90 | translation error, median (m) '
           '| rotation error, median (deg) |', '|---|---|---|---|---|---|---|']
@@ -494,17 +494,17 @@ def _exp2_markdown(r: dict) -> str:
               f'({r["aerial"].get("noise_pct", 0):g} % noise).\n']
     if 'fig8_exp2_tracks.png' in imgs:
         L += ['![Fig. 8, experiment 2](fig8_exp2_tracks.png)\n',
-              'Fig. 8 (VO motions): errors of the window\'s tracks before (thin) and after '
+              "Fig. 8 (VO motions): errors of the window's tracks before (thin) and after "
               '(thick) the GA at the end of each shown track.\n']
     rows = e.get('fig12') or []
     if rows:
         L += ['### Fig. 12: registration of neighbouring swaths before and after GA\n',
               'An image of the neighbouring swath (b) is warped into the first view (a) by the '
               'homography of the ground plane that a relative motion implies, '
-              '`H = K (R + t n\' / d) K^-1` (`cv2.warpPerspective`; plane at the median '
+              "`H = K (R + t n' / d) K^-1` (`cv2.warpPerspective`; plane at the median "
               'terrain height under a, `d` from the estimated altitude). Registration error in '
               'the overlap: mean absolute grey-level difference (MAD) and normalised cross-'
-              'correlation (NCC, 1 = perfect). Motions: F2F chain (before GA), the VO\'s own '
+              "correlation (NCC, 1 = perfect). Motions: F2F chain (before GA), the VO's own "
               'cross-track measurement, GA online window, batch GA, and the truth (what the '
               'relief leaves: the plane model ignores parallax).\n',
               '| pair (nodes) | F2F MAD / NCC | measured | GA window | GA batch | truth |',
