@@ -290,13 +290,25 @@ def window_available() -> bool:
     return True
 
 
+def aligner_config(policy: str, window: int):
+    """The :class:`~ga_ros.core.window.AlignerConfig` of a policy name of
+    ``ReproduceConfig.policies``: ``'<freeze policy>'`` or ``'<freeze policy>+<executor>'``, the
+    latter with the background refinement run by that executor (``refine_executor``; the other
+    refinement settings at their defaults). Every policy of the list gets its rows in the gap
+    tables and its curve in Figs. 7 and 9."""
+    from ga_ros.core.window import AlignerConfig
+
+    base, _, executor = policy.partition('+')
+    extra = {'refine_executor': executor} if executor else {}
+    return AlignerConfig(window_tracks=window, freeze_policy=base, **extra)
+
+
 def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, window: int,
                  snapshot_tracks: set[int], f2f: FloatArray) -> dict:
     """Feed a survey's measurements track by track into a TrackWindowAligner."""
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.core.window import TrackWindowAligner
 
-    aligner = TrackWindowAligner(AlignerConfig(window_tracks=window, freeze_policy=policy),
-                                 T_world_first=sc.T_world_node[0])
+    aligner = TrackWindowAligner(aligner_config(policy, window), T_world_first=sc.T_world_node[0])
     meas = sc.measurements(z, cov)
     dst_track = np.array([m.dst_track for m in meas])
     bounds = np.searchsorted(dst_track, np.unique(sc.track_ids), side='right')
