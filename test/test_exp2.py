@@ -53,6 +53,8 @@ def test_cache_returns_the_same_survey_only_for_the_same_config(tiny):
     assert again is not None
     np.testing.assert_array_equal(again.z, vs.z)
     np.testing.assert_array_equal(again.fig12['img_b'], vs.fig12['img_b'])
+    np.testing.assert_array_equal(again.fig12['plane'], vs.fig12['plane'])
+    assert vs.fig12['plane'].shape == (len(vs.fig12['a']), 4)
     assert load_survey(replace(TINY, seed=1), cache) is None
 
 
@@ -87,6 +89,13 @@ def test_ground_homography_maps_plane_points_as_the_cameras_project_them():
 
     ua, ub = project(T_a, X), project(T_b, X)
     H = ground_homography(K, T_a, T_b, h)
+    m = np.column_stack([ua, np.ones(50)]) @ H.T
+    np.testing.assert_allclose(m[:, :2] / m[:, 2:], ub, atol=1e-8)
+    # a tilted plane n . X = c (10 deg slope)
+    n = np.array([np.sin(np.radians(10.0)), 0.0, np.cos(np.radians(10.0))])
+    X[:, 2] = (h - n[0] * X[:, 0]) / n[2]
+    ua, ub = project(T_a, X), project(T_b, X)
+    H = ground_homography(K, T_a, T_b, np.r_[n, h])
     m = np.column_stack([ua, np.ones(50)]) @ H.T
     np.testing.assert_allclose(m[:, :2] / m[:, 2:], ub, atol=1e-8)
 

@@ -580,7 +580,7 @@ def stereo_experiment(cfg: ReproduceConfig, out_dir: Path | None = None,
     rows = []
     for j, (a, b) in enumerate(zip(f.get('a', []), f.get('b', []))):
         a, b = int(a), int(b)
-        h = float(f['plane_height_m'][j])
+        h = f['plane'][j]
         reg: dict[str, Registration] = {}
         for name, T in est.items():
             H = ground_homography(vs.K, T[a], T[b], h)
@@ -592,7 +592,9 @@ def stereo_experiment(cfg: ReproduceConfig, out_dir: Path | None = None,
                                         ground_homography(vs.K, T_a, T_b, h))
         regs.append(reg)
         rows.append({'node_a': a, 'node_b': b, 'swath_a': int(vs.swath[a]),
-                     'swath_b': int(vs.swath[b]), 'plane_height_m': h,
+                     'swath_b': int(vs.swath[b]),
+                     'plane_height_m': float(f['plane_height_m'][j]),
+                     'plane_slope_deg': float(np.degrees(np.arccos(np.clip(h[2], -1, 1)))),
                      **{f'{n}_{m}': getattr(r, m) for n, r in reg.items()
                         for m in ('overlap', 'mean_abs_diff', 'ncc')}})
     summary['fig12'] = rows

@@ -42,7 +42,7 @@ from ga_ros.vo.odometry import VoConfig
 #: Cache file of :func:`render_vo_survey` in the report directory.
 CACHE_NAME = 'exp2_vo_survey.npz'
 #: Bump when the cached content or the pipeline that produced it changes meaning.
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -99,7 +99,9 @@ class VoSurvey:
     depth_m : median scene depth (m) of the survey (altitude minus median terrain height).
     stats : front-end counts and timings (JSON-ready).
     fig12 : image pairs for Fig. 12: ``{'a': (k,), 'b': (k,), 'img_a': (k, h, w) uint8,
-        'img_b': ..., 'plane_height_m': (k,)}`` (node indices, left images, ground height).
+        'img_b': ..., 'plane_height_m': (k,), 'plane': (k, 4)}`` (node indices, left
+        images, median ground height under ``a``, and the ground plane ``n . X = c`` fitted to
+        the terrain ``a`` sees, as ``[n_x, n_y, n_z, c]`` with ``n`` the upward unit normal).
     K : (3, 3) intrinsics of the left camera.
     """
 
@@ -178,7 +180,8 @@ def save_survey(vs: VoSurvey, cfg: StereoSurveyConfig, path: Path) -> None:
         fig12_a=f.get('a', np.zeros(0, int)), fig12_b=f.get('b', np.zeros(0, int)),
         fig12_img_a=f.get('img_a', np.zeros((0, 1, 1), np.uint8)),
         fig12_img_b=f.get('img_b', np.zeros((0, 1, 1), np.uint8)),
-        fig12_h=f.get('plane_height_m', np.zeros(0)))
+        fig12_h=f.get('plane_height_m', np.zeros(0)), fig12_plane=f.get('plane',
+                                                                        np.zeros((0, 4))))
 
 
 def load_survey(cfg: StereoSurveyConfig, path: Path) -> VoSurvey | None:
@@ -189,8 +192,11 @@ def load_survey(cfg: StereoSurveyConfig, path: Path) -> VoSurvey | None:
         d = np.load(path, allow_pickle=False)
         if str(d['key']) != _cache_key(cfg):
             return None
+        h = d['fig12_h']
+        plane = d['fig12_plane'] if 'fig12_plane' in d else np.column_stack(
+            [np.zeros((h.size, 2)), np.ones(h.size), h])  # files without the fitted plane
         fig12 = {'a': d['fig12_a'], 'b': d['fig12_b'], 'img_a': d['fig12_img_a'],
-                 'img_b': d['fig12_img_b'], 'plane_height_m': d['fig12_h']}
+                 'img_b': d['fig12_img_b'], 'plane_height_m': h, 'plane': plane}
         return VoSurvey(d['T_true'], d['track_ids'], d['swath'], d['frame'], d['src'],
                         d['dst'], d['z'], d['cov'], d['cross'], float(d['depth_m']), d['K'],
                         json.loads(str(d['stats'])), fig12)
@@ -319,25 +325,35 @@ def render_vo_survey(cfg: StereoSurveyConfig, cache: Path | None = None,
 
 
 def _fig12_pairs(vs: VoSurvey, scene, k: int) -> dict:
-    """``k`` cross-track connections of neighbouring swaths, spread over the survey (at
-    ``(j + 1) / (k + 1)`` of the nodes, the nearest one), with their noise-free left images."""
+    """``k`` cross-track connections of neighbouring swaths, one in each ``k``-th of the
+    survey: the one whose keyframe chain between the two views is the longest there (the F2F
+    motion between them then has the most drift to remove), with their noise-free left images
+    and the ground plane fitted (least squares) to the terrain ``a`` sees."""
     idx = np.nonzero(vs.cross & (np.abs(vs.swath[vs.src] - vs.swath[vs.dst]) == 1))[0]
     empty = {'a': np.zeros(0, int), 'b': np.zeros(0, int)}
     if idx.size == 0 or k < 1:
         return empty
     picks = []
+    edges = np.linspace(0, vs.n_nodes, k + 1)
     for j in range(k):
-        target = (j + 1) * vs.n_nodes / (k + 1)
-        c = int(idx[np.argmin(np.abs(vs.dst[idx] - target))])
-        if c not in picks:
-            picks.append(c)
+        sel = idx[(vs.dst[idx] >= edges[j]) & (vs.dst[idx] < edges[j + 1])]
+        if sel.size:
+            picks.append(int(sel[np.argmax(vs.dst[sel] - vs.src[sel])]))
     a, b = vs.src[picks], vs.dst[picks]
     T = vs.T_true
     img_a = np.stack([scene.render(T[i]) for i in a])
     img_b = np.stack([scene.render(T[i]) for i in b])
-    # ground height under view a: median of the terrain it sees (the plane of the homography)
-    h = np.array([float(np.median(scene.ground_points(T[i])[:, 2])) for i in a])
-    return {'a': a, 'b': b, 'img_a': img_a, 'img_b': img_b, 'plane_height_m': h}
+    heights, planes = [], []
+    for i in a:
+        g = scene.ground_points(T[i], step_px=10)
+        heights.append(float(np.median(g[:, 2])))
+        # z = p x + q y + r  ->  n = (-p, -q, 1) / |.|, c = r / |.|
+        (p, q, r), *_ = np.linalg.lstsq(np.column_stack([g[:, :2], np.ones(len(g))]), g[:, 2],
+                                        rcond=None)
+        norm = float(np.sqrt(p * p + q * q + 1.0))
+        planes.append([-p / norm, -q / norm, 1.0 / norm, r / norm])
+    return {'a': a, 'b': b, 'img_a': img_a, 'img_b': img_b,
+            'plane_height_m': np.array(heights), 'plane': np.array(planes)}
 
 
 @dataclass(frozen=True)
@@ -361,18 +377,27 @@ class Registration:
 
 
 def ground_homography(K: FloatArray, T_world_a: FloatArray, T_world_b: FloatArray,
-                      plane_height_m: float) -> FloatArray:
-    """Homography of the ground plane ``z_world = plane_height_m`` from pixels of ``a`` to
-    pixels of ``b``: ``H = K (R_ba + t_ba n_a' / d_a) K^-1``.
+                      plane: float | FloatArray) -> FloatArray:
+    """Homography of a ground plane from pixels of ``a`` to pixels of ``b``:
+    ``H = K (R_ba + t_ba n_a' / d_a) K^-1``.
 
-    ``n_a`` is the plane's downward normal in camera ``a`` and ``d_a`` the height of ``a``
-    above the plane, both from ``T_world_a``; ``(R_ba, t_ba)`` is ``T_world_b^-1 T_world_a``.
-    Only the relative motion and the altitude of ``a`` matter, so an estimate of the poses
-    gives the registration that estimate implies.
+    Parameters
+    ----------
+    K : (3, 3) intrinsics of both views.
+    T_world_a, T_world_b : (4, 4) camera poses (OpenCV camera axes).
+    plane : a height ``h`` (m) for the horizontal plane ``z_world = h``, or ``[n_x, n_y, n_z,
+        c]``: the plane ``n . X = c`` in the world frame, ``n`` the upward unit normal.
+
+    ``n_a`` is the plane's normal pointing away from camera ``a``, in ``a``'s frame, and
+    ``d_a`` the distance of ``a`` from the plane, both from ``T_world_a``; ``(R_ba, t_ba)`` is
+    ``T_world_b^-1 T_world_a``. Only the relative motion and the pose of ``a`` relative to the
+    plane matter, so an estimate of the poses gives the registration that estimate implies.
     """
+    pl = np.atleast_1d(np.asarray(plane, float))
+    n_w, c = (np.array([0.0, 0.0, 1.0]), float(pl[0])) if pl.size == 1 else (pl[:3], pl[3])
     T_ba = se3.inverse(np.asarray(T_world_b, float)) @ np.asarray(T_world_a, float)
-    n_a = np.asarray(T_world_a)[:3, :3].T @ np.array([0.0, 0.0, -1.0])
-    d_a = float(T_world_a[2, 3] - plane_height_m)
+    n_a = np.asarray(T_world_a)[:3, :3].T @ -n_w
+    d_a = float(n_w @ np.asarray(T_world_a)[:3, 3] - c)
     if d_a <= 0:
         raise InputError(f'camera a is {d_a:.1f} m above the ground plane; it must be above it')
     H = K @ (T_ba[:3, :3] + np.outer(T_ba[:3, 3], n_a) / d_a) @ np.linalg.inv(K)

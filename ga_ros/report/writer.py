@@ -501,8 +501,10 @@ def _exp2_markdown(r: dict) -> str:
         L += ['### Fig. 12: registration of neighbouring swaths before and after GA\n',
               'An image of the neighbouring swath (b) is warped into the first view (a) by the '
               'homography of the ground plane that a relative motion implies, '
-              "`H = K (R + t n' / d) K^-1` (`cv2.warpPerspective`; plane at the median "
-              'terrain height under a, `d` from the estimated altitude). Registration error in '
+              "`H = K (R + t n' / d) K^-1` (`cv2.warpPerspective`; the plane fitted to the "
+              'terrain under a, `n` and `d` from the estimated pose of a). In each part of the '
+              'survey the pair whose keyframe chain is the longest is shown (the most F2F drift '
+              'between the two views). Registration error in '
               'the overlap: mean absolute grey-level difference (MAD) and normalised cross-'
               "correlation (NCC, 1 = perfect). Motions: F2F chain (before GA), the VO's own "
               'cross-track measurement, GA online window, batch GA, and the truth (what the '
