@@ -167,6 +167,19 @@ def _targets(r: dict) -> str:
         first = next(iter(a['policies'].values()))
         rows.append((f'whole online run ({a["tracks"]} tracks) < 5 s',
                      f'{first["run_s"]:.2f} s', first['run_s'] < 5.0))
+    e2 = r.get('experiment2')
+    if e2:
+        f, b = e2['f2f']['raw_rmse_m'], e2['batch']['raw_rmse_m']
+        rows.append(('experiment 2 (VO motions): batch GA ATE below F2F', f'{b:.3f} m vs '
+                     f'{f:.3f} m', b < f))
+        for p, v in e2['policies'].items():
+            rows.append((f'experiment 2: window K vs batch, aligned-ATE gap < 20 % ({p})',
+                         f'{v["gap_aligned_pct"]:.1f} %', v['gap_aligned_pct'] < 20.0))
+        regs = [x for x in e2.get('fig12', []) if np.isfinite(x['window_ncc'] or np.nan)]
+        if regs:
+            better = sum((x['window_ncc'] or 0) >= (x['f2f_ncc'] or 0) for x in regs)
+            rows.append(('Fig. 12: NCC after GA >= before (F2F)', f'{better}/{len(regs)} pairs',
+                         better == len(regs)))
     mem = r['memory']
     if mem.get('available'):
         sizes = list(mem['sizes'].items())
