@@ -99,15 +99,16 @@ class ReproduceConfig:
 def preset(name: str) -> ReproduceConfig:
     """``'full'`` (the paper's 100 runs and full-size experiment 2), ``'quick'`` (same
     experiments with 3 runs per Table I cell, the aerial survey cut to 8 tracks, 6 vs 10 tracks
-    for memory, experiment 2 on 4 tracks x 80 positions, one wrong-connection fraction) or
+    for memory, experiment 2 on 6 tracks x 60 positions (more than
+    the 5-track window), one wrong-connection fraction) or
     ``'tiny'`` (smoke tests: small surveys)."""
     full = ReproduceConfig()
     if name == 'full':
         return full
     if name == 'quick':
         return replace(full, runs=3, paper_model_runs=1, fig3_runs=50, aerial_tracks=8,
-                       memory_tracks=(6, 10), fig8_tracks=(1, 2, 3, 4, 5, 8), stereo_tracks=4,
-                       stereo_positions_per_swath=40, stereo_fig8_tracks=(1, 2, 3, 4),
+                       memory_tracks=(6, 10), fig8_tracks=(1, 2, 3, 4, 5, 8), stereo_tracks=6,
+                       stereo_positions_per_swath=30, stereo_fig8_tracks=(1, 2, 3, 4, 5, 6),
                        outlier_tracks=4, outlier_positions_per_swath=30,
                        outlier_fractions=(0.05,), outlier_methods=('ls', 'gate', 'snoop-w'),
                        preset='quick')
