@@ -62,6 +62,18 @@ def test_report_files_and_keys(tiny_report):
     md = (out / 'report.md').read_text()
     row = next(r for r in data['table1'] if r['trajectory'] == 'looping_closed')
     assert f'{row["ga_mean_m"]:.3f}' in md and f'{row["improvement_pct"]:.1f}' in md
+    # issue 15: experiment 2 from rendered stereo, quality control, wrong connections
+    e2 = data['experiment2']
+    assert {'survey', 'nees', 'f2f', 'batch', 'policies', 'fig12', 'quality'} <= set(e2)
+    assert e2['batch']['raw_rmse_m'] < e2['f2f']['raw_rmse_m']
+    assert {'fig7_9_exp2.png', 'fig12_registration.png', 'fig_quality.png'} <= set(
+        data['images'])
+    q = data['quality_control']
+    assert q['redundancy_numbers_sum'] == pytest.approx(q['redundancy'], rel=1e-6)
+    assert data['policies'] == list(cfg.policies)
+    rows = data['wrong_connections']['rows']
+    assert {r['method'] for r in rows} == set(cfg.outlier_methods)
+    assert 'Experiment 2 from rendered stereo' in md and 'Wrong cross-track' in md
 
 
 def test_table1_numbers_recomputed_independently(tiny_report):

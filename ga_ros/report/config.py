@@ -39,6 +39,13 @@ class ReproduceConfig:
     policies : freeze policies compared against the batch solution.
     memory_tracks : two survey sizes (tracks) whose per-update memory is compared.
     fig8_tracks : 1-based track numbers whose before/after errors are plotted (Fig. 8).
+    stereo_tracks, stereo_positions_per_swath : experiment 2 from rendered stereo (320x240,
+        10 m steps, the paper: 25 tracks x 102 positions per swath); 0 tracks skips it.
+    stereo_fig8_tracks : 1-based tracks of experiment 2's Fig. 8.
+    outlier_tracks, outlier_positions_per_swath, outlier_noise : the reduced aerial survey of
+        the wrong-connection table (:mod:`ga_ros.bench.outliers`); 0 tracks skips it.
+    outlier_fractions : fractions of the cross-track connections replaced by gross errors.
+    outlier_methods : defences compared (names of :data:`ga_ros.bench.outliers.METHODS`).
     """
 
     seed: int = 20051101
@@ -57,6 +64,14 @@ class ReproduceConfig:
     policies: tuple[str, ...] = ('weighted', 'marginal')
     memory_tracks: tuple[int, int] = (25, 100)
     fig8_tracks: tuple[int, ...] = PAPER_FIG8_TRACKS
+    stereo_tracks: int = 25
+    stereo_positions_per_swath: int = 102
+    stereo_fig8_tracks: tuple[int, ...] = PAPER_FIG8_TRACKS
+    outlier_tracks: int = 6
+    outlier_positions_per_swath: int = 40
+    outlier_noise: float = 2.0
+    outlier_fractions: tuple[float, ...] = (0.01, 0.05, 0.2)
+    outlier_methods: tuple[str, ...] = ('ls', 'oracle', 'gate', 'snoop-w', 'huber', 'cauchy')
     preset: str = 'full'
 
     def __post_init__(self) -> None:
@@ -75,21 +90,34 @@ class ReproduceConfig:
             raise InputError('aerial_positions_per_swath must be >= 4')
         if len(self.memory_tracks) != 2 or min(self.memory_tracks) < 1:
             raise InputError('memory_tracks must be two track counts >= 1')
+        if self.stereo_tracks < 0 or (self.stereo_tracks and self.stereo_positions_per_swath < 4):
+            raise InputError('stereo_tracks must be >= 0, stereo_positions_per_swath >= 4')
+        if self.outlier_tracks < 0 or not all(0 < f < 1 for f in self.outlier_fractions):
+            raise InputError('outlier_tracks must be >= 0 and outlier fractions in (0, 1)')
 
 
 def preset(name: str) -> ReproduceConfig:
-    """``'full'`` (the paper's 100 runs), ``'quick'`` (same experiments with 3 runs per Table I
-    cell, the aerial survey cut to 8 tracks and 6 vs 10 tracks for memory) or ``'tiny'`` (smoke
-    tests: small aerial survey)."""
+    """``'full'`` (the paper's 100 runs and full-size experiment 2), ``'quick'`` (same
+    experiments with 3 runs per Table I cell, the aerial survey cut to 8 tracks, 6 vs 10 tracks
+    for memory, experiment 2 on 6 tracks x 60 positions (more than
+    the 5-track window), one wrong-connection fraction) or
+    ``'tiny'`` (smoke tests: small surveys)."""
     full = ReproduceConfig()
     if name == 'full':
         return full
     if name == 'quick':
         return replace(full, runs=3, paper_model_runs=1, fig3_runs=50, aerial_tracks=8,
-                       memory_tracks=(6, 10), fig8_tracks=(1, 2, 3, 4, 5, 8), preset='quick')
+                       memory_tracks=(6, 10), fig8_tracks=(1, 2, 3, 4, 5, 8), stereo_tracks=6,
+                       stereo_positions_per_swath=30, stereo_fig8_tracks=(1, 2, 3, 4, 5, 6),
+                       outlier_tracks=4, outlier_positions_per_swath=30,
+                       outlier_fractions=(0.05,), outlier_methods=('ls', 'gate', 'snoop-w'),
+                       preset='quick')
     if name == 'tiny':
         return replace(full, runs=2, noise_levels=(1.0, 10.0), paper_model_runs=1,
                        fig3_tracks=4, fig3_runs=10, fig3_noise_levels=(10.0,),
                        aerial_tracks=6, aerial_positions_per_swath=20, memory_tracks=(3, 6),
-                       fig8_tracks=(1, 2, 6), preset='tiny')
+                       fig8_tracks=(1, 2, 6), stereo_tracks=1, stereo_positions_per_swath=10,
+                       stereo_fig8_tracks=(1,), outlier_tracks=2,
+                       outlier_positions_per_swath=12, outlier_fractions=(0.05,),
+                       outlier_methods=('ls', 'snoop-w'), preset='tiny')
     raise InputError(f"unknown preset {name!r}; use 'full', 'quick' or 'tiny'")

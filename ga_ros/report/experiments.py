@@ -7,6 +7,12 @@
   survey aligned online track by track with :class:`~ga_ros.core.window.TrackWindowAligner`,
   against the full batch solution and F2F, with per-track update times.
 * :func:`memory_profile`: peak memory of one track update for two survey sizes.
+* :func:`survey_window`: F2F / window (every policy) / batch on any survey's measured motions,
+  with the batch adjustment's quality control (:func:`quality_summary`); the aerial survey with
+  synthetic noise and experiment 2 both go through it.
+* :func:`stereo_experiment`: experiment 2 (Sec. V-B) from rendered stereo and our VO, with the
+  VO's NEES and Fig. 12's registration of neighbouring swaths.
+* :func:`wrong_connections`: the wrong-connection table (:mod:`ga_ros.bench.outliers`).
 
 Every random draw comes from :func:`run_rng` so any single number can be recomputed alone.
 """
@@ -15,16 +21,27 @@ from __future__ import annotations
 
 import time
 import tracemalloc
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.quality import QualityReport, quality_control
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.errors import GaError
 from ga_ros.eval.metrics import ate, improvement_pct, per_track_mean, position_errors
-from ga_ros.geometry import se3
+from ga_ros.geometry import se3, so3
 from ga_ros.report.config import ReproduceConfig
+from ga_ros.report.stereo_survey import (
+    CACHE_NAME,
+    Registration,
+    StereoSurveyConfig,
+    VoSurvey,
+    ground_homography,
+    register_pair,
+    render_vo_survey,
+)
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 from ga_ros.sim.scenario import Scenario
@@ -35,6 +52,7 @@ FAMILIES = ('lawnmower', 'looping')
 
 #: Experiment keys of :func:`run_rng`.
 EXP_TABLE1, EXP_PAPER_MODEL, EXP_FUTURE, EXP_AERIAL, EXP_MEMORY = 1, 2, 3, 4, 5
+EXP_OUTLIERS = 6
 
 
 def run_rng(seed: int, experiment: int, *keys: int) -> np.random.Generator:
@@ -257,6 +275,10 @@ class AerialResult:
     errors: dict[str, FloatArray]
     fig8: dict[int, dict[str, FloatArray]]
     track_ids: IntArray
+    paths: dict[str, FloatArray] = field(default_factory=dict)
+    T_true: FloatArray | None = None
+    quality: QualityReport | None = None
+    consecutive: BoolArray | None = None
 
 
 def window_available() -> bool:
@@ -268,13 +290,25 @@ def window_available() -> bool:
     return True
 
 
+def aligner_config(policy: str, window: int):
+    """The :class:`~ga_ros.core.window.AlignerConfig` of a policy name of
+    ``ReproduceConfig.policies``: ``'<freeze policy>'`` or ``'<freeze policy>+<executor>'``, the
+    latter with the background refinement run by that executor (``refine_executor``; the other
+    refinement settings at their defaults). Every policy of the list gets its rows in the gap
+    tables and its curve in Figs. 7 and 9."""
+    from ga_ros.core.window import AlignerConfig
+
+    base, _, executor = policy.partition('+')
+    extra = {'refine_executor': executor} if executor else {}
+    return AlignerConfig(window_tracks=window, freeze_policy=base, **extra)
+
+
 def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, window: int,
                  snapshot_tracks: set[int], f2f: FloatArray) -> dict:
     """Feed a survey's measurements track by track into a TrackWindowAligner."""
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.core.window import TrackWindowAligner
 
-    aligner = TrackWindowAligner(AlignerConfig(window_tracks=window, freeze_policy=policy),
-                                 T_world_first=sc.T_world_node[0])
+    aligner = TrackWindowAligner(aligner_config(policy, window), T_world_first=sc.T_world_node[0])
     meas = sc.measurements(z, cov)
     dst_track = np.array([m.dst_track for m in meas])
     bounds = np.searchsorted(dst_track, np.unique(sc.track_ids), side='right')
@@ -328,15 +362,27 @@ def _before_update(aligner, sc: Scenario, k: int, f2f: FloatArray) -> FloatArray
 
 
 def aerial_window(cfg: ReproduceConfig) -> AerialResult:
-    """The aerial survey: F2F, batch GA, the online window (each policy) and its final batch
-    refinement; ATE raw (first pose anchored) and rigidly aligned; per-track update times."""
+    """The aerial survey with synthetic noise: :func:`survey_window` at ``aerial_noise``."""
     sc = aerial_scenario(cfg.aerial_tracks, cfg.aerial_positions_per_swath)
     nm = perturb(sc.true_motions(), NoiseModel(cfg.aerial_noise, sc.depth_m),
                  run_rng(cfg.seed, EXP_AERIAL, 0))
+    res = survey_window(cfg, sc, nm.z, nm.cov)
+    res.summary['noise_pct'] = cfg.aerial_noise
+    return res
+
+
+def survey_window(cfg: ReproduceConfig, sc: Scenario, z: FloatArray, cov: FloatArray,
+                  quality: bool = True) -> AerialResult:
+    """A survey's measured motions ``z`` (m, 6) with covariances ``cov`` (m, 6, 6): F2F, batch
+    GA (with its quality control when ``quality``), the online window (each policy of
+    ``cfg.policies``) and its final batch refinement; ATE raw (first pose anchored) and
+    rigidly aligned; per-track update times. The poses of every estimate are kept in
+    ``AerialResult.paths`` (Fig. 9: altitude and heading errors)."""
     T_true = sc.T_world_node
-    f2f = sc.f2f(nm.z)
+    f2f = sc.f2f(z)
+    net = sc.network(z, cov)
     t0 = time.perf_counter()
-    batch = solve(sc.network(nm.z, nm.cov), f2f, SolverConfig(tolerance=1e-7))
+    batch = solve(net, f2f, SolverConfig(tolerance=1e-7))
     batch_s = time.perf_counter() - t0
 
     def ates(T):
@@ -347,25 +393,32 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
     summary: dict = {
         'nodes': sc.n_nodes, 'connections': sc.n_connections,
         'cross_connections': int((~sc.consecutive).sum()), 'tracks': sc.n_tracks,
-        'noise_pct': cfg.aerial_noise,
         'se3': {'equations': batch.n_equations, 'observations': batch.n_observations,
                 'unknowns': batch.n_unknowns},
         'paper_model_counts': {'equations': 3 * sc.n_connections,
                                'observations': 6 * sc.n_connections,
                                'unknowns': 3 * (sc.n_nodes - 1)},
         'f2f': ates(f2f), 'batch': {**ates(batch.T_world_node), 'seconds': batch_s,
-                                    'iterations': batch.iterations},
+                                    'iterations': batch.iterations,
+                                    'sigma0_sq': float(batch.sigma0_sq)},
         'window_available': window_available(), 'policies': {},
     }
     summary['improvement_pct'] = {'batch': improvement_pct(summary['f2f']['mean_error_m'],
                                                            summary['batch']['mean_error_m'])}
     errors = {'f2f': position_errors(f2f, T_true), 'batch': position_errors(batch.T_world_node,
                                                                           T_true)}
+    paths = {'f2f': f2f, 'batch': batch.T_world_node}
+    qrep = None
+    if quality:
+        t0 = time.perf_counter()
+        qrep = quality_control(net, batch)
+        summary['quality'] = quality_summary(qrep, sc.consecutive)
+        summary['quality']['seconds'] = time.perf_counter() - t0
     fig8: dict[int, dict[str, FloatArray]] = {}
     if summary['window_available']:
         wanted = {t - 1 for t in cfg.fig8_tracks if 1 <= t <= sc.n_tracks}
         for policy in cfg.policies:
-            out = _run_aligner(sc, nm.z, nm.cov, policy, cfg.window_tracks,
+            out = _run_aligner(sc, z, cov, policy, cfg.window_tracks,
                                wanted if policy == cfg.policies[0] else set(), f2f)
             ms = np.array([u.update_ms for u in out['updates']])
             w, b = ates(out['path']), summary['batch']
@@ -383,6 +436,7 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
                 'rejected_measurements': out['rejected'],
             }
             errors[f'window_{policy}'] = position_errors(out['path'], T_true)
+            paths[f'window_{policy}'] = out['path']
             errors[f'refined_{policy}'] = position_errors(out['refined'], T_true)
             if out['snapshots']:
                 for k, snap in out['snapshots'].items():
@@ -399,7 +453,31 @@ def aerial_window(cfg: ReproduceConfig) -> AerialResult:
                 summary['policies'][policy]['window']['mean_error_m'])
         first = f'window_{cfg.policies[0]}'
         summary['per_track_window_mean_m'] = per_track_mean(errors[first], sc.track_ids)
-    return AerialResult(summary, errors, fig8, sc.track_ids)
+    return AerialResult(summary, errors, fig8, sc.track_ids, paths, T_true, qrep,
+                        sc.consecutive)
+
+
+def quality_summary(q: QualityReport, consecutive: BoolArray) -> dict:
+    """JSON-ready figures of a batch adjustment's quality control (Baarda): the global test,
+    redundancy numbers, w-test and MDB, the last two also per kind of connection."""
+    out = q.summary()
+    w_crit = float(q.w_critical)
+    for name, sel in (('consecutive', consecutive), ('cross', ~consecutive)):
+        if not sel.any():
+            continue
+        mdb = q.mdb[sel]
+        out[name] = {
+            'connections': int(sel.sum()),
+            'redundancy_number_median': float(np.median(q.redundancy_numbers[sel])),
+            'w_abs_max': float(np.nanmax(np.abs(q.w[sel]))),
+            'w_rejected_components': int((np.abs(q.w[sel]) > w_crit).sum()),
+            'mdb_translation_median_m': float(np.nanmedian(mdb[:, :3])),
+            'mdb_rotation_median_deg': float(np.degrees(np.nanmedian(mdb[:, 3:]))),
+        }
+    w = q.w[np.isfinite(q.w)]
+    out['w_mean'] = float(w.mean()) if w.size else float('nan')
+    out['w_std'] = float(w.std()) if w.size else float('nan')
+    return out
 
 
 def memory_profile(cfg: ReproduceConfig) -> dict:
@@ -446,3 +524,114 @@ def memory_profile(cfg: ReproduceConfig) -> dict:
             'update_peak_mib_max': float(max(peaks)) / 2**20,
             'retained_mib': float(retained) / 2**20}
     return out
+
+
+def pose_error_profiles(T_est: FloatArray, T_true: FloatArray) -> dict[str, FloatArray]:
+    """Errors along the trajectory (the paper's Fig. 9): ``position`` ``|p_est - p_true|`` (m),
+    ``altitude`` ``z_est - z_true`` (m, world ``z`` up) and ``heading`` (rad), the world-``z``
+    component of ``log(R_est R_true')`` (the rotation error about the vertical)."""
+    R_err = T_est[:, :3, :3] @ np.swapaxes(T_true[:, :3, :3], 1, 2)
+    return {'position': position_errors(T_est, T_true),
+            'altitude': T_est[:, 2, 3] - T_true[:, 2, 3],
+            'heading': so3.log(R_err)[:, 2]}
+
+
+@dataclass
+class StereoExperiment:
+    """Experiment 2 from rendered stereo: the VO survey, its window / batch results and the
+    Fig. 12 registrations."""
+
+    survey: VoSurvey
+    result: AerialResult
+    summary: dict
+    registrations: list[dict[str, Registration]]
+
+
+def stereo_experiment(cfg: ReproduceConfig, out_dir: Path | None = None,
+                      log=None) -> StereoExperiment:
+    """The paper's experiment 2 as the paper ran it: motions (consecutive and cross-track) from
+    rendered 320x240 stereo by our VO with its own covariances (:func:`render_vo_survey`,
+    cached in ``out_dir``), then F2F, the track window (every policy of ``cfg.policies``) and
+    batch GA (:func:`survey_window`), the VO's covariance consistency (NEES of the motions),
+    and Fig. 12: images of neighbouring swaths registered with the relative motion of F2F, of
+    the VO's own cross-track measurement, of the window, of the batch and of the truth."""
+    scfg = StereoSurveyConfig(n_tracks=cfg.stereo_tracks,
+                              positions_per_swath=cfg.stereo_positions_per_swath)
+    cache = None if out_dir is None else Path(out_dir) / CACHE_NAME
+    t0 = time.perf_counter()
+    vs = render_vo_survey(scfg, cache, log)
+    vo_s = time.perf_counter() - t0
+    sc = vs.scenario()
+    sub = replace(cfg, fig8_tracks=cfg.stereo_fig8_tracks)
+    res = survey_window(sub, sc, vs.z, vs.cov)
+    nees = vs.nees()
+    summary = {
+        'survey': {'tracks': scfg.n_tracks, 'positions_per_swath': scfg.positions_per_swath,
+                   'step_m': scfg.step_m, 'image_size': f'{scfg.width}x{scfg.height}',
+                   'median_depth_m': vs.depth_m, **vs.stats},
+        'seconds_this_run': vo_s, 'cached': bool(cache is not None and vo_s < 0.5 * vs.stats[
+            'seconds']['total']),
+        'nees': nees, **res.summary}
+    regs: list[dict[str, Registration]] = []
+    f = vs.fig12
+    first = f'window_{cfg.policies[0]}' if cfg.policies else 'batch'
+    est = {'f2f': res.paths['f2f'], 'window': res.paths.get(first, res.paths['batch']),
+           'batch': res.paths['batch'], 'truth': vs.T_true}
+    rows = []
+    for j, (a, b) in enumerate(zip(f.get('a', []), f.get('b', []))):
+        a, b = int(a), int(b)
+        h = f['plane'][j]
+        reg: dict[str, Registration] = {}
+        for name, T in est.items():
+            H = ground_homography(vs.K, T[a], T[b], h)
+            reg[name] = register_pair(f['img_a'][j], f['img_b'][j], H)
+        k = int(np.nonzero((vs.src == a) & (vs.dst == b))[0][0])
+        T_a = est['window'][a]
+        T_b = T_a @ se3.from_translation_rotvec(vs.z[k, :3], vs.z[k, 3:])
+        reg['measured'] = register_pair(f['img_a'][j], f['img_b'][j],
+                                        ground_homography(vs.K, T_a, T_b, h))
+        regs.append(reg)
+        rows.append({'node_a': a, 'node_b': b, 'swath_a': int(vs.swath[a]),
+                     'swath_b': int(vs.swath[b]),
+                     'plane_height_m': float(f['plane_height_m'][j]),
+                     'plane_slope_deg': float(np.degrees(np.arccos(np.clip(h[2], -1, 1)))),
+                     **{f'{n}_{m}': getattr(r, m) for n, r in reg.items()
+                        for m in ('overlap', 'mean_abs_diff', 'ncc')}})
+    summary['fig12'] = rows
+    return StereoExperiment(vs, res, summary, regs)
+
+
+def wrong_connections(cfg: ReproduceConfig) -> dict:
+    """The wrong-connection table (issue 15 item 5) on a reduced aerial survey: the clean run,
+    then each fraction of ``outlier_fractions`` of the cross-track connections replaced by
+    gross errors (:func:`ga_ros.bench.outliers.inject`), each defence of ``outlier_methods``
+    run by :func:`ga_ros.bench.outliers.run_method`. Per row: recall and precision of the
+    rejection, share of good connections rejected (%), rigidly aligned ATE (m) and its change
+    against the clean run of the same family (the online gates against themselves, the batch
+    methods against batch LS)."""
+    from ga_ros.bench.outliers import inject, run_method
+
+    sc = aerial_scenario(cfg.outlier_tracks, cfg.outlier_positions_per_swath)
+    nm = perturb(sc.true_motions(), NoiseModel(cfg.outlier_noise, sc.depth_m),
+                 run_rng(cfg.seed, EXP_OUTLIERS, 0))
+    gross, alpha0 = (5.0, 15.0), 1e-4
+    rows, clean = [], {}
+    for i, fraction in enumerate((0.0, *cfg.outlier_fractions)):
+        z, bad = inject(sc, nm.z, fraction, gross, gross, run_rng(cfg.seed, EXP_OUTLIERS, 1, i))
+        for method in cfg.outlier_methods:
+            out = run_method(method, sc, z, nm.cov, bad, alpha0, 20)
+            if fraction == 0.0:
+                clean[method] = out.ate_m
+            ref = clean.get(method if method.startswith('gate') else 'ls', out.ate_m)
+            hit, n_rej = int((out.rejected & bad).sum()), int(out.rejected.sum())
+            rows.append({
+                'wrong_pct': 100.0 * fraction, 'method': method, 'wrong': int(bad.sum()),
+                'recall_pct': 100.0 * hit / bad.sum() if bad.any() else float('nan'),
+                'precision_pct': 100.0 * hit / n_rej if n_rej else float('nan'),
+                'good_rejected_pct': 100.0 * (out.rejected & ~bad).sum() / (~bad).sum(),
+                'ate_m': out.ate_m, 'd_ate_pct': 100.0 * (out.ate_m / ref - 1.0),
+                'seconds': out.seconds})
+    return {'tracks': cfg.outlier_tracks, 'nodes': sc.n_nodes,
+            'connections': sc.n_connections, 'cross_connections': int((~sc.consecutive).sum()),
+            'noise_pct': cfg.outlier_noise, 'gross_m': list(gross), 'gross_deg': list(gross),
+            'alpha0': alpha0, 'rows': rows}

@@ -67,11 +67,34 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
     mem = ex.memory_profile(cfg)
     timings['memory_s'] = time.perf_counter() - t0
 
+    exp2 = None
+    if cfg.stereo_tracks:
+        t0 = time.perf_counter()
+        say(f'experiment 2: rendered stereo, {cfg.stereo_tracks} tracks x '
+            f'{2 * cfg.stereo_positions_per_swath} positions, VO + cross-track matching '
+            f'(cached in {out / ex.CACHE_NAME}), window + batch')
+        exp2 = ex.stereo_experiment(cfg, out, say)
+        timings['stereo_s'] = time.perf_counter() - t0
+
+    outliers = None
+    if cfg.outlier_tracks:
+        t0 = time.perf_counter()
+        say(f'wrong connections: {cfg.outlier_tracks} tracks, fractions '
+            f'{list(cfg.outlier_fractions)}, methods {list(cfg.outlier_methods)}')
+        outliers = ex.wrong_connections(cfg)
+        timings['wrong_connections_s'] = time.perf_counter() - t0
+
     images = [plots.plot_fig5(t1, cfg.noise_levels, out), plots.plot_fig3(ft, ft_lin, out),
               plots.plot_fig7(ae, out)]
-    fig8 = plots.plot_fig8(ae, out)
-    if fig8:
-        images.append(fig8)
+    extra = [plots.plot_fig8(ae, out), plots.plot_quality(ae, out)]
+    if exp2 is not None:
+        f = exp2.survey.fig12
+        extra += [plots.plot_fig7_9(exp2.result, ae, out),
+                  plots.plot_fig8(exp2.result, out, 'fig8_exp2_tracks.png'),
+                  plots.plot_fig12(exp2.registrations, exp2.summary['fig12'],
+                                   f.get('img_a', []), f.get('img_b', []), out),
+                  plots.plot_quality(exp2.result, out, 'fig_quality_exp2.png')]
+    images += [x for x in extra if x]
     timings['total_s'] = time.perf_counter() - t_start
 
     pol = ae.summary['policies']
@@ -88,6 +111,10 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
         'future_tracks': asdict(ft),
         'future_tracks_positions_only': asdict(ft_lin),
         'aerial': ae.summary,
+        'policies': list(cfg.policies),
+        'quality_control': ae.summary.get('quality'),
+        'experiment2': None if exp2 is None else exp2.summary,
+        'wrong_connections': outliers,
         'memory': mem,
         'timings_s': timings,
         'config': asdict(cfg),
@@ -115,7 +142,7 @@ def _jsonable(x):
 
 
 def _f(x, nd: int = 1) -> str:
-    return '-' if x is None else f'{x:.{nd}f}'
+    return '-' if x is None or not np.isfinite(x) else f'{x:.{nd}f}'
 
 
 def _targets(r: dict) -> str:
@@ -140,6 +167,19 @@ def _targets(r: dict) -> str:
         first = next(iter(a['policies'].values()))
         rows.append((f'whole online run ({a["tracks"]} tracks) < 5 s',
                      f'{first["run_s"]:.2f} s', first['run_s'] < 5.0))
+    e2 = r.get('experiment2')
+    if e2:
+        f, b = e2['f2f']['raw_rmse_m'], e2['batch']['raw_rmse_m']
+        rows.append(('experiment 2 (VO motions): batch GA ATE below F2F', f'{b:.3f} m vs '
+                     f'{f:.3f} m', b < f))
+        for p, v in e2['policies'].items():
+            rows.append((f'experiment 2: window K vs batch, aligned-ATE gap < 20 % ({p})',
+                         f'{v["gap_aligned_pct"]:.1f} %', v['gap_aligned_pct'] < 20.0))
+        regs = [x for x in e2.get('fig12', []) if np.isfinite(x['window_ncc'] or np.nan)]
+        if regs:
+            better = sum((x['window_ncc'] or 0) >= (x['f2f_ncc'] or 0) for x in regs)
+            rows.append(('Fig. 12: NCC after GA >= before (F2F)', f'{better}/{len(regs)} pairs',
+                         better == len(regs)))
     mem = r['memory']
     if mem.get('available'):
         sizes = list(mem['sizes'].items())
@@ -353,6 +393,172 @@ def render_markdown(r: dict) -> str:
             'window only. The retained memory includes the whole corrected path and '
             'all connections (kept for the final batch refinement and the published path), '
             'which grows linearly with the survey.\n')
+    add(_quality_markdown(r.get('quality_control'), 'the synthetic aerial survey above',
+                          'fig_quality.png', r['images']))
+    add(_exp2_markdown(r))
+    add(_outliers_markdown(r.get('wrong_connections')))
     add('## Timings\n')
     add(' | '.join(f'{k}: {v:.1f}' for k, v in r['timings_s'].items()) + '\n')
+    return '\n'.join(L) + '\n'
+
+
+def _ate_rows(a: dict, window_tracks: int) -> list[str]:
+    """ATE table rows: F2F, batch, and window / refined per policy with the gap to batch."""
+    b = a['batch']
+    out = ['| estimate | ATE raw (m) | ATE aligned (m) | mean error (m) | gap aligned % '
+           '| gap raw % |', '|---|---|---|---|---|---|',
+           f'| F2F | {a["f2f"]["raw_rmse_m"]:.3f} | {a["f2f"]["aligned_rmse_m"]:.3f} | '
+           f'{a["f2f"]["mean_error_m"]:.3f} | | |',
+           f'| batch GA | {b["raw_rmse_m"]:.3f} | {b["aligned_rmse_m"]:.3f} | '
+           f'{b["mean_error_m"]:.3f} | 0 | 0 |']
+    for p, v in a['policies'].items():
+        w = v['window']
+        out.append(f'| window K={window_tracks}, {p} | {w["raw_rmse_m"]:.3f} | '
+                   f'{w["aligned_rmse_m"]:.3f} | {w["mean_error_m"]:.3f} | '
+                   f'{v["gap_aligned_pct"]:.1f} | {v["gap_raw_pct"]:.1f} |')
+    return out
+
+
+def _quality_markdown(q: dict | None, what: str, image: str, images: list[str]) -> str:
+    """Section: quality control (Baarda) of a batch adjustment."""
+    if not q:
+        return ''
+    L = [f'### Quality control of the batch adjustment of {what}\n',
+         '`ga_ros.core.quality.quality_control` on the batch solution (formulas in the README, '
+         '"Quality control of an adjustment").\n',
+         '| figure | value |', '|---|---|',
+         f'| global test `v\'Pv` / critical (alpha {q["global_alpha"]:g}) | {q["cost"]:.1f} / '
+         f'{q["global_critical"]:.1f}: {"passed" if q["global_passed"] else "**failed**"} |',
+         f'| variance factor sigma0^2 (redundancy {q["redundancy"]}) | {q["sigma0_sq"]:.3f} |',
+         f'| sum of redundancy numbers (= r - u) | {q["redundancy_numbers_sum"]:.1f} |',
+         f'| untestable connections (r_i ~ 0) | {q["untestable_connections"]} |',
+         f'| w-test critical value (alpha0 {q["alpha0"]:g}) / largest |w| | '
+         f'{q["w_critical"]:.2f} / {q["w_max"]:.2f} |',
+         f'| w statistics: mean / std (N(0, 1) when the covariances are honest) | '
+         f'{q["w_mean"]:.3f} / {q["w_std"]:.3f} |',
+         f'| connections rejected by the test | {q["rejected_connections"]} |']
+    for kind in ('consecutive', 'cross'):
+        k = q.get(kind)
+        if k:
+            L.append(f'| {kind} ({k["connections"]}): median r_i, median MDB | '
+                     f'{k["redundancy_number_median"]:.2f} of 6, '
+                     f'{k["mdb_translation_median_m"]:.2f} m / '
+                     f'{k["mdb_rotation_median_deg"]:.2f} deg |')
+    L.append(f'\nComputed in {q["seconds"]:.1f} s.\n')
+    if image in images:
+        L.append(f'![quality control]({image})\n')
+        L.append('Left: redundancy numbers (how much each connection is checked by the others: '
+                 'a consecutive motion across a turn has few checks, a cross-track one in the '
+                 'middle of the grid many). Middle: w-statistics against N(0, 1) and the '
+                 'critical values (red); a wider histogram means over-confident covariances. '
+                 'Right: the smallest error per component that the test finds with 80 % '
+                 'power.\n')
+    return '\n'.join(L) + '\n'
+
+
+def _exp2_markdown(r: dict) -> str:
+    """Section: experiment 2 from rendered stereo (Figs. 7-9, NEES, Fig. 12)."""
+    e = r.get('experiment2')
+    if not e:
+        return ''
+    cfg = r['config']
+    sv = e['survey']
+    sec = sv['seconds']
+    L = ['## Experiment 2 from rendered stereo (Sec. V-B, Figs. 7-9 and 12)\n',
+         f'The aerial survey rendered as {sv["image_size"]} stereo video '
+         f'(`ga_ros.sim.stereo`: 110 m altitude, terrain 5-65 m, {sv["baseline_m"]:g} m '
+         f'baseline): {sv["tracks"]} tracks x {2 * sv["positions_per_swath"]} positions, '
+         f'{sv["step_m"]:g} m between frames, 20 m between swaths, semicircular turns; '
+         f'{sv["frames"]} stereo pairs (median scene depth {sv["median_depth_m"]:.0f} m). The '
+         'motions come from the images: the stereo front end of `vo_node` and the replay '
+         '(`ga_ros.pipeline.stereo.StereoFrontEnd`: VO, then cross-track matching with the '
+         "online window's corrected path fed back), each with the VO's own covariance. "
+         f'{sv["keyframes"]} keyframes (nodes), {sv["consecutive"]} consecutive and '
+         f'{sv["cross"]} cross-track motions ({sv["cross_attempts"]} matcher attempts). '
+         f'Front end: {sv["front_end"]}.\n',
+         f'Rendering {sec["render"]:.0f} s, VO {sec["vo"]:.0f} s, cross-track matching '
+         f'{sec["cross_track"]:.0f} s, online window (feedback) {sec["online_window"]:.0f} s '
+         f'({sec["total"]:.0f} s in all' + (', read from the cache of an earlier run in '
+                                             f'{e["seconds_this_run"]:.1f} s'
+                                             if e['cached'] else '') + ').\n',
+         '### ATE and the window-versus-batch gap (VO motions)\n',
+         f'{e["nodes"]} nodes, {e["connections"]} connections; batch sigma0^2 = '
+         f'{e["batch"]["sigma0_sq"]:.3f} (1 when the covariances are honest).\n']
+    L += _ate_rows(e, cfg['window_tracks'])
+    n = e['nees']
+    L += ['', '### Covariance consistency of the VO motions\n',
+          "NEES `e' C^-1 e` with `e = log(T_true^-1 T_meas)`: 6 on average when the VO's "
+          'covariance is honest (smaller: conservative, larger: over-confident).\n',
+          '| motions | count | NEES mean | median | p90 | translation error, median (m) '
+          '| rotation error, median (deg) |', '|---|---|---|---|---|---|---|']
+    for kind, v in n.items():
+        if v.get('n'):
+            L.append(f'| {kind} | {v["n"]} | {v["nees_mean"]:.2f} | {v["nees_median"]:.2f} | '
+                     f'{v["nees_p90"]:.2f} | {v["translation_error_median_m"]:.3f} | '
+                     f'{v["rotation_error_median_deg"]:.3f} |')
+    L.append('')
+    imgs = r['images']
+    if 'fig7_9_exp2.png' in imgs:
+        L += ['![Figs. 7 and 9, experiment 2](fig7_9_exp2.png)\n',
+              'Figs. 7 and 9: errors along the trajectory of position (m, log scale), altitude '
+              '(m) and heading (rad, rotation error about the vertical); F2F dashed, GA online '
+              '(each policy) solid, batch GA dotted. Left: motions from rendered stereo by the '
+              'VO; right: the synthetic-noise survey of the previous section '
+              f'({r["aerial"].get("noise_pct", 0):g} % noise).\n']
+    if 'fig8_exp2_tracks.png' in imgs:
+        L += ['![Fig. 8, experiment 2](fig8_exp2_tracks.png)\n',
+              "Fig. 8 (VO motions): errors of the window's tracks before (thin) and after "
+              '(thick) the GA at the end of each shown track.\n']
+    rows = e.get('fig12') or []
+    if rows:
+        L += ['### Fig. 12: registration of neighbouring swaths before and after GA\n',
+              'An image of the neighbouring swath (b) is warped into the first view (a) by the '
+              'homography of the ground plane that a relative motion implies, '
+              "`H = K (R + t n' / d) K^-1` (`cv2.warpPerspective`; the plane fitted to the "
+              'terrain under a, `n` and `d` from the estimated pose of a). In each part of the '
+              'survey the pair whose keyframe chain is the longest is shown (the most F2F drift '
+              'between the two views). Registration error in '
+              'the overlap: mean absolute grey-level difference (MAD) and normalised cross-'
+              "correlation (NCC, 1 = perfect). Motions: F2F chain (before GA), the VO's own "
+              'cross-track measurement, GA online window, batch GA, and the truth (what the '
+              'relief leaves: the plane model ignores parallax).\n',
+              '| pair (nodes) | F2F MAD / NCC | measured | GA window | GA batch | truth |',
+              '|---|---|---|---|---|---|']
+        for x in rows:
+            cells = []
+            for k in ('f2f', 'measured', 'window', 'batch', 'truth'):
+                cells.append(f'{_f(x[f"{k}_mean_abs_diff"])} / {_f(x[f"{k}_ncc"], 2)}')
+            L.append(f'| {x["node_a"]} - {x["node_b"]} | ' + ' | '.join(cells) + ' |')
+        L.append('')
+        if 'fig12_registration.png' in imgs:
+            L += ['![Fig. 12](fig12_registration.png)\n',
+                  'Fig. 12: per row, image a, image b, b warped into a with the F2F motion and '
+                  'with the GA (online window) motion, and the absolute differences in the '
+                  'overlap (black outside it).\n']
+    q = e.get('quality')
+    if q:
+        L.append(_quality_markdown(q, 'experiment 2 (VO motions)', 'fig_quality_exp2.png',
+                                   imgs))
+    return '\n'.join(L) + '\n'
+
+
+def _outliers_markdown(w: dict | None) -> str:
+    """Section: the wrong-connection table (:mod:`ga_ros.bench.outliers`)."""
+    if not w:
+        return ''
+    L = ['## Wrong cross-track connections (reduced run)\n',
+         f'`ga_ros.bench.outliers` on the aerial survey cut to {w["tracks"]} tracks '
+         f'({w["nodes"]} nodes, {w["connections"]} connections, {w["cross_connections"]} '
+         f'cross-track) at {w["noise_pct"]:g} % noise; a fraction of the cross-track '
+         f'connections replaced by gross errors ({w["gross_m"][0]:g}-{w["gross_m"][1]:g} m or '
+         f'{w["gross_deg"][0]:g}-{w["gross_deg"][1]:g} deg). Recall: wrong connections '
+         'rejected; good rej.: good connections rejected; dATE: change of the aligned ATE '
+         'against the clean run of the same family (batch LS; the gated window for `gate`). '
+         '`python -m ga_ros.bench.outliers` runs the larger table of the README.\n',
+         '| wrong % | method | recall % | precision % | good rej. % | ATE (m) | dATE % '
+         '| time (s) |', '|---|---|---|---|---|---|---|---|']
+    for x in w['rows']:
+        L.append(f'| {x["wrong_pct"]:g} | {x["method"]} | {_f(x["recall_pct"])} | '
+                 f'{_f(x["precision_pct"])} | {x["good_rejected_pct"]:.2f} | '
+                 f'{x["ate_m"]:.3f} | {x["d_ate_pct"]:+.1f} | {x["seconds"]:.1f} |')
     return '\n'.join(L) + '\n'

@@ -11,16 +11,20 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         'reproduce', help="run the paper's experiments and write a report",
         description="Run the paper's experiments (Table I, Fig. 2/3, 5, 7, 8, window vs batch, "
-                    'timings, memory) and write DIR/report.md, DIR/report.json and PNG plots.')
+                    'quality control, experiment 2 from rendered stereo with Figs. 7-9 and 12, '
+                    'wrong connections, timings, memory) and write DIR/report.md, '
+                    'DIR/report.json and PNG plots.')
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--quick', action='store_true',
-                   help='reduced run (fewer runs, same experiments; under a minute)')
+                   help='reduced run (fewer runs, smaller surveys, same experiments)')
     p.add_argument('--preset', choices=('full', 'quick', 'tiny'), default=None,
                    help='full (default; 100 runs), quick (= --quick) or tiny (smoke test)')
     p.add_argument('--runs', type=int, default=None, help='Monte-Carlo runs per Table I cell')
     p.add_argument('--seed', type=int, default=None, help='master seed')
     p.add_argument('--aerial-tracks', type=int, default=None,
                    help='double tracks of the aerial survey (default 25)')
+    p.add_argument('--stereo-tracks', type=int, default=None,
+                   help='tracks of experiment 2 from rendered stereo (full: 25; 0 skips it)')
     p.set_defaults(func=run)
 
 
@@ -38,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
         changes['seed'] = args.seed
     if args.aerial_tracks is not None:
         changes['aerial_tracks'] = args.aerial_tracks
+    if args.stereo_tracks is not None:
+        changes['stereo_tracks'] = args.stereo_tracks
     if changes:
         cfg = replace(cfg, **changes)
     report = run_reproduction(cfg, args.out, log=lambda s: print(s, file=sys.stderr))
