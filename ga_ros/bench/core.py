@@ -11,9 +11,12 @@ interpreter and the imported libraries (~150 MB).
 
 from __future__ import annotations
 
+import importlib.util
 import resource
+import tempfile
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -85,12 +88,21 @@ class WindowFigures:
     ate_raw_batch_m: float
     gap_rigid_pct: float
     gap_raw_pct: float
+    per_track_ms_mean: float = float('nan')
+    gtsam_ms_p50: float = float('nan')  # GTSAM IncrementalFixedLagSmoother, same survey and run
+    gtsam_ms_p95: float = float('nan')
+    gtsam_ate_rigid_m: float = float('nan')
 
 
 def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
-                 noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True
-                 ) -> WindowFigures:
-    """Fly the aerial survey online and time each track's update."""
+                 noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True,
+                 with_gtsam: bool = False) -> WindowFigures:
+    """Fly the aerial survey online and time each track's update.
+
+    With ``with_gtsam`` (and ``gtsam`` importable), the same survey also runs through GTSAM's
+    ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
+    of the same run (:mod:`ga_ros.bench.gtsam_runner`), for the ratio of update times.
+    """
     sc = aerial_scenario(n_tracks=n_tracks)
     nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
                  np.random.default_rng(seed))
@@ -115,11 +127,31 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     ms_ = np.array([u.update_ms for u in updates])
     rig_w, rig_b = (ate(T, sc.T_world_node, 'rigid').rmse for T in (T_win, T_batch))
     raw_w, raw_b = (ate(T, sc.T_world_node, 'first').rmse for T in (T_win, T_batch))
-    return WindowFigures(
+    fig = WindowFigures(
         n_tracks, sc.n_nodes, sc.n_connections, policy, window_tracks, total,
         float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
         rig_w, rig_b, raw_w, raw_b, 100.0 * (rig_w - rig_b) / rig_b,
-        100.0 * (raw_w - raw_b) / raw_b)
+        100.0 * (raw_w - raw_b) / raw_b, float(ms_.mean()))
+    if with_gtsam and importlib.util.find_spec('gtsam') is not None:
+        fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m = _gtsam_window(
+            sc, nm, window_tracks)
+    return fig
+
+
+def _gtsam_window(sc, nm, window_tracks: int) -> tuple[float, float, float]:
+    """p50 / p95 update ms and rigid-aligned ATE of GTSAM's IncrementalFixedLagSmoother on the
+    survey (lag of ``window_tracks`` tracks)."""
+    from ga_ros.bench.compare import dump_tracks, run_process
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / 'tracks.npz'
+        dump_tracks(path, sc, nm)
+        out = run_process(['ga_ros.bench.gtsam_runner', 'tracks', str(path),
+                           str(window_tracks)]).out
+    ms = np.asarray(out['update_ms'])
+    T = np.asarray(out['T_world_node'])
+    return (float(np.percentile(ms, 50)), float(np.percentile(ms, 95)),
+            ate(T, sc.T_world_node, 'rigid').rmse)
 
 
 def as_dict(fig) -> dict:
