@@ -247,37 +247,31 @@ class SparseCholesky:
         return x
 
 
+def _kept(cache: OrderedDict, limit: int, key: bytes, build):
+    """``cache[key]``, built by ``build()`` on a miss; the ``limit`` most recent are kept."""
+    value = cache.get(key)
+    if value is None:
+        value = cache[key] = build()
+        while len(cache) > limit:
+            cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
+    return value
+
+
 def _cvxopt_pattern(pattern: BlockPattern):
     """CHOLMOD's input matrix for a pattern (values are set before each factorisation). Building
     it sorts every entry again (~0.1 s for a window), so it is kept per pattern too."""
-    key = pattern.key
-    A = _MATRICES.get(key)
-    if A is None:
-        A = cvxopt.spmatrix(cvxopt.matrix(np.zeros(pattern.nnz)),
-                            cvxopt.matrix(pattern.indices.astype(np.int64)),
-                            cvxopt.matrix(_expand_cols(pattern.indptr)),
-                            (pattern.size, pattern.size))
-        _MATRICES[key] = A
-        while len(_MATRICES) > _MAX_MATRICES:
-            _MATRICES.popitem(last=False)
-    else:
-        _MATRICES.move_to_end(key)
-    return A
+    return _kept(_MATRICES, _MAX_MATRICES, pattern.key, lambda: cvxopt.spmatrix(
+        cvxopt.matrix(np.zeros(pattern.nnz)), cvxopt.matrix(pattern.indices.astype(np.int64)),
+        cvxopt.matrix(_expand_cols(pattern.indptr)), (pattern.size, pattern.size)))
 
 
 def block_ordering(pattern: BlockPattern) -> IntArray:
     """Fill-reducing scalar permutation of a block pattern: AMD of its block graph, each block's
     ``d`` unknowns kept together. Kept per pattern (:data:`_ORDERINGS`)."""
-    key = pattern.key
-    perm = _ORDERINGS.get(key)
-    if perm is None:
-        perm = _expand(_block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool)), pattern.d)
-        _ORDERINGS[key] = perm
-        while len(_ORDERINGS) > _MAX_ORDERINGS:
-            _ORDERINGS.popitem(last=False)
-    else:
-        _ORDERINGS.move_to_end(key)
-    return perm
+    return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: _expand(
+        _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool)), pattern.d))
 
 
 def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:
