@@ -65,7 +65,8 @@ def run(args) -> int:
                  f'connections), window {fig.window_tracks}, policy {fig.policy}',
                  f'  whole run {fig.total_seconds:.2f} s; per-track update p50 '
                  f'{fig.per_track_ms_p50:.0f} ms, p95 {fig.per_track_ms_p95:.0f} ms, max '
-                 f'{fig.per_track_ms_max:.0f} ms; peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'{fig.per_track_ms_max:.0f} ms (CPU p50 {fig.per_track_cpu_ms_p50:.0f} ms, p95 '
+                 f'{fig.per_track_cpu_ms_p95:.0f} ms); peak memory {fig.peak_rss_mb:.0f} MiB',
                  f'  ATE rigid-aligned: window {fig.ate_rigid_window_m:.3f} m, batch '
                  f'{fig.ate_rigid_batch_m:.3f} m (gap {fig.gap_rigid_pct:+.1f} %)',
                  f'  ATE raw (first pose anchored): window {fig.ate_raw_window_m:.3f} m, batch '
