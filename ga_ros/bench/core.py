@@ -94,6 +94,8 @@ class WindowFigures:
     gtsam_ms_p50: float = float('nan')  # GTSAM IncrementalFixedLagSmoother, same survey and run
     gtsam_ms_p95: float = float('nan')
     gtsam_ate_rigid_m: float = float('nan')
+    gtsam_cpu_ms_p50: float = float('nan')
+    gtsam_cpu_ms_p95: float = float('nan')
 
 
 def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
@@ -142,14 +144,14 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         100.0 * (raw_w - raw_b) / raw_b, float(ms_.mean()),
         float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)))
     if with_gtsam and importlib.util.find_spec('gtsam') is not None:
-        fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m = _gtsam_window(
-            sc, nm, window_tracks)
+        (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,
+         fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, nm, window_tracks)
     return fig
 
 
-def _gtsam_window(sc, nm, window_tracks: int) -> tuple[float, float, float]:
-    """p50 / p95 update ms and rigid-aligned ATE of GTSAM's IncrementalFixedLagSmoother on the
-    survey (lag of ``window_tracks`` tracks)."""
+def _gtsam_window(sc, nm, window_tracks: int) -> tuple[float, float, float, float, float]:
+    """p50 / p95 update ms (wall), rigid-aligned ATE, p50 / p95 update CPU ms of GTSAM's
+    IncrementalFixedLagSmoother on the survey (lag of ``window_tracks`` tracks)."""
     from ga_ros.bench.compare import dump_tracks, run_process
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -157,10 +159,11 @@ def _gtsam_window(sc, nm, window_tracks: int) -> tuple[float, float, float]:
         dump_tracks(path, sc, nm)
         out = run_process(['ga_ros.bench.gtsam_runner', 'tracks', str(path),
                            str(window_tracks)]).out
-    ms = np.asarray(out['update_ms'])
+    ms, cpu = np.asarray(out['update_ms']), np.asarray(out['update_cpu_ms'])
     T = np.asarray(out['T_world_node'])
     return (float(np.percentile(ms, 50)), float(np.percentile(ms, 95)),
-            ate(T, sc.T_world_node, 'rigid').rmse)
+            ate(T, sc.T_world_node, 'rigid').rmse, float(np.percentile(cpu, 50)),
+            float(np.percentile(cpu, 95)))
 
 
 def as_dict(fig) -> dict:
