@@ -12,7 +12,10 @@ interpreter and the imported libraries (~150 MB).
 from __future__ import annotations
 
 import importlib.util
+import json
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -145,25 +148,29 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)))
     if with_gtsam and importlib.util.find_spec('gtsam') is not None:
         (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,
-         fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, nm, window_tracks)
+         fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, ms, window_tracks)
     return fig
 
 
-def _gtsam_window(sc, nm, window_tracks: int) -> tuple[float, float, float, float, float]:
+def _gtsam_window(sc, ms, window_tracks: int) -> tuple[float, float, float, float, float]:
     """p50 / p95 update ms (wall), rigid-aligned ATE, p50 / p95 update CPU ms of GTSAM's
-    IncrementalFixedLagSmoother on the survey (lag of ``window_tracks`` tracks)."""
-    from ga_ros.bench.compare import dump_tracks, run_process
-
+    IncrementalFixedLagSmoother on the survey's measurements ``ms`` (lag of ``window_tracks``
+    tracks), run by :mod:`ga_ros.bench.gtsam_runner` in a child process."""
+    index = {int(v): k for k, v in enumerate(sc.node_ids)}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / 'tracks.npz'
-        dump_tracks(path, sc, nm)
-        out = run_process(['ga_ros.bench.gtsam_runner', 'tracks', str(path),
-                           str(window_tracks)]).out
-    ms, cpu = np.asarray(out['update_ms']), np.asarray(out['update_cpu_ms'])
-    T = np.asarray(out['T_world_node'])
-    return (float(np.percentile(ms, 50)), float(np.percentile(ms, 95)),
-            ate(T, sc.T_world_node, 'rigid').rmse, float(np.percentile(cpu, 50)),
-            float(np.percentile(cpu, 95)))
+        np.savez(path, src=np.array([index[m.src_id] for m in ms]),
+                 dst=np.array([index[m.dst_id] for m in ms]), z=np.stack([m.z for m in ms]),
+                 cov=np.stack([m.cov for m in ms]), node_track=np.asarray(sc.track_ids),
+                 T_first=sc.T_world_node[0])
+        run = subprocess.run([sys.executable, '-m', 'ga_ros.bench.gtsam_runner', 'tracks',
+                              str(path), str(window_tracks)], capture_output=True, text=True,
+                             check=True)
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    ms_, cpu = np.asarray(out['update_ms']), np.asarray(out['update_cpu_ms'])
+    return (float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)),
+            ate(np.asarray(out['T_world_node']), sc.T_world_node, 'rigid').rmse,
+            float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)))
 
 
 def as_dict(fig) -> dict:
