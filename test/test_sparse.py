@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ga_ros.core.sparse import BlockPattern, SparseCholesky
+from ga_ros.core.sparse import BlockPattern, SparseCholesky, block_ordering, trailing_factor
 
 
 def test_block_pattern_assembles_like_coo(rng):
@@ -43,3 +43,54 @@ def test_cholesky_solves_like_dense(rng):
     chol.refactor(2 * data)
     np.testing.assert_allclose(chol.solve(b[:, 0]), np.linalg.solve(2 * N, b[:, 0]), rtol=1e-9)
     assert sp.issparse(pat.lower_csc(data))
+
+
+def _random_block_spd(rng, n, d, density=0.3):
+    """A sparse symmetric positive definite matrix of ``n`` blocks of ``d`` and its pattern."""
+    links = {(i + 1, i) for i in range(n - 1)}
+    links |= {(int(a), int(b)) for a, b in rng.integers(0, n, (int(density * n * n), 2)) if a > b}
+    pairs = [(i, i) for i in range(n)] + sorted(links)
+    N = np.eye(n * d)
+    for i, j in links:  # each link a Gram matrix over its two blocks
+        J = rng.normal(size=(d, 2 * d))
+        rows = np.r_[i * d:(i + 1) * d, j * d:(j + 1) * d]
+        N[np.ix_(rows, rows)] += J.T @ J
+    blocks = np.array([N[i * d:(i + 1) * d, j * d:(j + 1) * d] for i, j in pairs])
+    pat = BlockPattern(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]), d, n)
+    return N, pat, pat.assemble(blocks)
+
+
+def test_trailing_factor_is_the_schur_complement_of_the_dense_matrix(rng):
+    n, d = 30, 6
+    N, pat, data = _random_block_spd(rng, n, d)
+    np.testing.assert_allclose(pat.full_csc(data).toarray(), N, atol=1e-12)
+    blocks = np.array([17, 3, 25, 4])  # any order: rows of L follow it
+    rows = (blocks[:, None] * d + np.arange(d)).ravel()
+    rest = np.setdiff1d(np.arange(n * d), rows)
+    schur = N[np.ix_(rows, rows)] - N[np.ix_(rows, rest)] @ np.linalg.solve(
+        N[np.ix_(rest, rest)], N[np.ix_(rest, rows)])
+    b = rng.normal(size=n * d)
+    tf = trailing_factor(pat, data, blocks, b)
+    np.testing.assert_allclose(tf.information(), schur, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.tril(tf.L), tf.L)                 # lower triangular
+    np.testing.assert_allclose(tf.solution, np.linalg.solve(N, b), rtol=1e-9, atol=1e-12)
+    Sigma = np.linalg.inv(N)
+    want = np.array([Sigma[k * d:(k + 1) * d, k * d:(k + 1) * d] for k in blocks])
+    np.testing.assert_allclose(tf.marginal_blocks(), want, rtol=1e-9, atol=1e-12)
+
+
+def test_block_ordering_is_kept_per_pattern_and_a_read_out_factor_still_solves(rng):
+    n, d = 20, 3
+    N, pat, data = _random_block_spd(rng, n, d)
+    perm = block_ordering(pat)
+    assert sorted(perm.tolist()) == list(range(n * d))
+    assert np.array_equal(perm.reshape(n, d) % d, np.tile(np.arange(d), (n, 1)))  # whole blocks
+    twin = BlockPattern(*pat.block_lower, d, n)                    # same pattern, new object
+    assert twin.key == pat.key and block_ordering(twin) is perm
+    chol = SparseCholesky(pat, data, trailing=np.array([5, 0]))
+    L, who = chol.trailing_lower(2 * d)
+    assert np.array_equal(who, np.r_[15:18, 0:3])
+    b = rng.normal(size=n * d)
+    np.testing.assert_allclose(chol.solve(b), np.linalg.solve(N, b), rtol=1e-9)  # factored again
+    again, _ = BlockPattern.from_matrix(sp.csc_matrix(N), d)
+    assert again.key == pat.key

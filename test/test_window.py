@@ -202,3 +202,61 @@ def test_both_policies_are_exact_in_the_linear_limit(policy):
     assert gap < 1e-3, gap
     cov, ref = al.covariances(sc.node_ids[last]), batch.covariance(last)
     np.testing.assert_allclose(cov, ref, rtol=1e-3, atol=1e-6 * np.abs(ref).max())
+
+
+def test_each_update_equals_the_batch_re_solve_of_its_window():
+    """The warm-started per-track update (few iterations from the previous estimate) reaches
+    the optimum of its window problem (same connections, same joint priors): a batch solve of
+    that problem from the frame-to-frame poses, to a much tighter tolerance, agrees."""
+    sc, nm, ms = _survey(n_tracks=6, per_swath=8, pct=3.0, seed=5)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2), sc.T_world_node[0])
+    T_f2f = sc.f2f(nm.z)
+    tight = SolverConfig(max_iterations=50, tolerance=1e-9)
+    checked = 0
+    for m in ms + [None]:
+        ups = al.add_measurement(m) if m is not None else [al.finish_track()]
+        if not ups:
+            continue
+        window = al.stats.tracks_in_window
+        net, nodes, win_nodes, _, fixed, priors = al._window_problem(window)
+        T0 = T_f2f[nodes].copy()
+        if priors:  # frozen neighbours start at their prior means
+            frozen = al._frozen[nodes]
+            T0[frozen] = al._T[nodes[frozen]]
+        ref = solve(net, T0, tight, fixed=fixed, priors=priors)
+        assert ref.converged
+        got = al.corrected_path().T_world_node[win_nodes]
+        np.testing.assert_allclose(got[:, :3, 3], ref.T_world_node[:win_nodes.size, :3, 3],
+                                   atol=1e-6)
+        np.testing.assert_allclose(got[:, :3, :3], ref.T_world_node[:win_nodes.size, :3, :3],
+                                   atol=1e-7)
+        checked += 1 if priors else 0
+    assert checked >= 3  # several updates with joint priors over frozen nodes
+
+
+@pytest.mark.parametrize('policy', ['weighted', 'marginal'])
+def test_partial_factorisation_freeze_equals_the_dense_one(policy, monkeypatch):
+    """Freezing by a partial sparse factorisation (leaving nodes or kept nodes ordered last)
+    gives the covariances and joint priors of the dense Schur complement / selected
+    inversion."""
+    import ga_ros.core.window as window
+
+    sc, nm, ms = _survey(n_tracks=5, per_swath=10, pct=3.0, seed=2)
+    cfg = AlignerConfig(window_tracks=2, freeze_policy=policy)
+    runs = []
+    for dense_max, trailing_min in ((10**9, 10**9), (0, 0)):
+        monkeypatch.setattr(window, '_DENSE_SCHUR_MAX', dense_max)
+        monkeypatch.setattr(window, '_TRAILING_MIN_NODES', trailing_min)
+        runs.append(_run(cfg, sc, ms)[0])
+    dense, sparse = runs
+    n = len(dense._ids)
+    assert dense._frozen[:n].sum() > 20
+    np.testing.assert_allclose(sparse._cov[:n], dense._cov[:n], rtol=1e-7,
+                               atol=1e-9 * np.abs(dense._cov[:n]).max())
+    np.testing.assert_allclose(sparse.corrected_path().T_world_node,
+                               dense.corrected_path().T_world_node, atol=1e-9)
+    assert len(sparse._priors) == len(dense._priors) > 0
+    for (i1, m1, h1), (i2, m2, h2) in zip(sparse._priors, dense._priors):
+        assert np.array_equal(i1, i2)
+        np.testing.assert_allclose(m1, m2, atol=1e-9)
+        np.testing.assert_allclose(h1, h2, rtol=1e-7, atol=1e-9 * np.abs(h2).max())

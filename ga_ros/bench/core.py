@@ -11,9 +11,15 @@ interpreter and the imported libraries (~150 MB).
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import resource
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -85,24 +91,43 @@ class WindowFigures:
     ate_raw_batch_m: float
     gap_rigid_pct: float
     gap_raw_pct: float
+    per_track_ms_mean: float = float('nan')
+    per_track_cpu_ms_p50: float = float('nan')  # CPU time of the process (a loaded machine's
+    per_track_cpu_ms_p95: float = float('nan')  # wall clock counts other processes too)
+    gtsam_ms_p50: float = float('nan')  # GTSAM IncrementalFixedLagSmoother, same survey and run
+    gtsam_ms_p95: float = float('nan')
+    gtsam_ate_rigid_m: float = float('nan')
+    gtsam_cpu_ms_p50: float = float('nan')
+    gtsam_cpu_ms_p95: float = float('nan')
 
 
 def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
-                 noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True
-                 ) -> WindowFigures:
-    """Fly the aerial survey online and time each track's update."""
+                 noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True,
+                 with_gtsam: bool = False) -> WindowFigures:
+    """Fly the aerial survey online and time each track's update.
+
+    With ``with_gtsam`` (and ``gtsam`` importable), the same survey also runs through GTSAM's
+    ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
+    of the same run (:mod:`ga_ros.bench.gtsam_runner`), for the ratio of update times.
+    """
     sc = aerial_scenario(n_tracks=n_tracks)
     nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
                  np.random.default_rng(seed))
     ms = sc.measurements(nm.z, nm.cov)
     al = TrackWindowAligner(AlignerConfig(window_tracks=window_tracks, freeze_policy=policy),
                             sc.T_world_node[0])
-    updates = []
+    updates, cpu_ms = [], []
     t0 = time.perf_counter()
     for m in ms:
-        updates += al.add_measurement(m)
+        c0 = time.process_time()
+        new = al.add_measurement(m)
+        if new:  # CPU time of the call that ended a track: its update (+ one measurement)
+            cpu_ms.append(1e3 * (time.process_time() - c0))
+        updates += new
+    c0 = time.process_time()
     last = al.finish_track()
     if last is not None:
+        cpu_ms.append(1e3 * (time.process_time() - c0))
         updates.append(last)
     total = time.perf_counter() - t0
     rss = peak_rss_mb()
@@ -115,11 +140,37 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     ms_ = np.array([u.update_ms for u in updates])
     rig_w, rig_b = (ate(T, sc.T_world_node, 'rigid').rmse for T in (T_win, T_batch))
     raw_w, raw_b = (ate(T, sc.T_world_node, 'first').rmse for T in (T_win, T_batch))
-    return WindowFigures(
+    fig = WindowFigures(
         n_tracks, sc.n_nodes, sc.n_connections, policy, window_tracks, total,
         float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
         rig_w, rig_b, raw_w, raw_b, 100.0 * (rig_w - rig_b) / rig_b,
-        100.0 * (raw_w - raw_b) / raw_b)
+        100.0 * (raw_w - raw_b) / raw_b, float(ms_.mean()),
+        float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)))
+    if with_gtsam and importlib.util.find_spec('gtsam') is not None:
+        (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,
+         fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, ms, window_tracks)
+    return fig
+
+
+def _gtsam_window(sc, ms, window_tracks: int) -> tuple[float, float, float, float, float]:
+    """p50 / p95 update ms (wall), rigid-aligned ATE, p50 / p95 update CPU ms of GTSAM's
+    IncrementalFixedLagSmoother on the survey's measurements ``ms`` (lag of ``window_tracks``
+    tracks), run by :mod:`ga_ros.bench.gtsam_runner` in a child process."""
+    index = {int(v): k for k, v in enumerate(sc.node_ids)}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / 'tracks.npz'
+        np.savez(path, src=np.array([index[m.src_id] for m in ms]),
+                 dst=np.array([index[m.dst_id] for m in ms]), z=np.stack([m.z for m in ms]),
+                 cov=np.stack([m.cov for m in ms]), node_track=np.asarray(sc.track_ids),
+                 T_first=sc.T_world_node[0])
+        run = subprocess.run([sys.executable, '-m', 'ga_ros.bench.gtsam_runner', 'tracks',
+                              str(path), str(window_tracks)], capture_output=True, text=True,
+                             check=True)
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    ms_, cpu = np.asarray(out['update_ms']), np.asarray(out['update_cpu_ms'])
+    return (float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)),
+            ate(np.asarray(out['T_world_node']), sc.T_world_node, 'rigid').rmse,
+            float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)))
 
 
 def as_dict(fig) -> dict:

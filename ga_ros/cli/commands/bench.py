@@ -29,6 +29,8 @@ def register(sub) -> None:
     p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
     p.add_argument('--no-batch', action='store_true',
                    help='window: skip the batch solution (and the ATE gap) for long surveys')
+    p.add_argument('--no-gtsam', action='store_true',
+                   help='window: skip the GTSAM IncrementalFixedLagSmoother comparison')
     p.add_argument('--data', type=str, default=None,
                    help='compare: directory of pose graphs (default ../shared/data/pose-graphs)')
     p.add_argument('--no-tracks', action='store_true', help='compare: batch rows only')
@@ -58,16 +60,29 @@ def run(args) -> int:
                  f'{fig.ga_ate_m:.2f} m']
     else:
         fig = core.bench_window(args.tracks, args.policy, args.window, args.noise, args.seed,
-                                compare_batch=not args.no_batch)
+                                compare_batch=not args.no_batch, with_gtsam=not args.no_gtsam)
         lines = [f'online alignment, {fig.tracks} tracks ({fig.nodes} poses, {fig.connections} '
                  f'connections), window {fig.window_tracks}, policy {fig.policy}',
                  f'  whole run {fig.total_seconds:.2f} s; per-track update p50 '
                  f'{fig.per_track_ms_p50:.0f} ms, p95 {fig.per_track_ms_p95:.0f} ms, max '
-                 f'{fig.per_track_ms_max:.0f} ms; peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'{fig.per_track_ms_max:.0f} ms (CPU p50 {fig.per_track_cpu_ms_p50:.0f} ms, p95 '
+                 f'{fig.per_track_cpu_ms_p95:.0f} ms); peak memory {fig.peak_rss_mb:.0f} MiB',
                  f'  ATE rigid-aligned: window {fig.ate_rigid_window_m:.3f} m, batch '
                  f'{fig.ate_rigid_batch_m:.3f} m (gap {fig.gap_rigid_pct:+.1f} %)',
                  f'  ATE raw (first pose anchored): window {fig.ate_raw_window_m:.3f} m, batch '
                  f'{fig.ate_raw_batch_m:.3f} m (gap {fig.gap_raw_pct:+.1f} %)']
+        if fig.gtsam_ms_p50 == fig.gtsam_ms_p50:  # not NaN: GTSAM ran
+            lines += [f'  GTSAM IncrementalFixedLagSmoother (same survey, lag '
+                      f'{fig.window_tracks} tracks): update p50 {fig.gtsam_ms_p50:.0f} ms, p95 '
+                      f'{fig.gtsam_ms_p95:.0f} ms (CPU p50 {fig.gtsam_cpu_ms_p50:.0f} ms, p95 '
+                      f'{fig.gtsam_cpu_ms_p95:.0f} ms), ATE rigid-aligned '
+                      f'{fig.gtsam_ate_rigid_m:.3f} m',
+                      f'  ga-ros / GTSAM update p50: wall '
+                      f'{fig.per_track_ms_p50 / fig.gtsam_ms_p50:.2f}, CPU '
+                      f'{fig.per_track_cpu_ms_p50 / fig.gtsam_cpu_ms_p50:.2f}']
+        elif not args.no_gtsam:
+            lines.append('  (GTSAM not installed: pip install -r requirements-bench.txt for the '
+                         'IncrementalFixedLagSmoother comparison)')
     if args.json:
         print(json.dumps(core.as_dict(fig)))
     else:
