@@ -47,6 +47,14 @@ from scipy.stats import chi2
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.refinement import (
+    REFINE_EXECUTORS,
+    RefinementResult,
+    RefinementSnapshot,
+    RefinementWorker,
+    absorbed_priors,
+    tangent_prior,
+)
 from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
@@ -122,6 +130,16 @@ class AlignerConfig:
         100); a far-ahead id (track 1,000,000 after track 3) would end the survey. 0 = no limit.
     max_node_id_jump : largest step of a new node id above the largest node id seen (default
         10**7); e.g. a node id 2**53 after 500 is rejected (``id_jump``). 0 = no limit.
+    refine_every_tracks : background refinement (:mod:`ga_ros.core.refinement`): after every
+        this many tracks (counted when at least one track is frozen) the whole survey is solved
+        in batch off the update path and handed back as the new frozen estimate (poses,
+        published covariances, relinearised priors). 0 disables it.
+    refine_lag_tracks : a refinement started after track ``k`` is installed at the start of the
+        update of track ``k + refine_lag_tracks`` (waiting for it there if it is not ready), so
+        the result does not depend on timing: a replay and a live node give the same path.
+    refine_executor : where the refinement runs: ``'process'`` (a separate process, 'spawn'
+        start method; truly parallel), ``'thread'`` or ``'inline'`` (solved at the hand-off;
+        same result, for tests and single-core machines).
     """
 
     window_tracks: int = 5
@@ -133,6 +151,9 @@ class AlignerConfig:
     cov_max_condition: float = 1e12
     max_track_jump: int = 100
     max_node_id_jump: int = 10_000_000
+    refine_every_tracks: int = 0
+    refine_lag_tracks: int = 1
+    refine_executor: str = 'process'
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -156,6 +177,12 @@ class AlignerConfig:
             raise InputError(f'cov_max_condition must be >= 1, got {self.cov_max_condition}')
         if int(self.max_track_jump) < 0 or int(self.max_node_id_jump) < 0:
             raise InputError('max_track_jump and max_node_id_jump must be >= 0 (0 = no limit)')
+        if int(self.refine_every_tracks) < 0 or int(self.refine_lag_tracks) < 1:
+            raise InputError('refine_every_tracks must be >= 0 (0 = off) and refine_lag_tracks '
+                             f'>= 1, got {self.refine_every_tracks}, {self.refine_lag_tracks}')
+        if self.refine_executor not in REFINE_EXECUTORS:
+            raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
+                             f'got {self.refine_executor!r}')
 
     def solver_config(self) -> SolverConfig:
         """The settings of each window update (:attr:`solver`)."""
@@ -206,6 +233,9 @@ class UpdateResult:
     n_priors: int = 0
     n_unknowns: int = 0
     n_readmitted: int = 0
+    refined_after_tracks: int = -1
+    refine_reason: str = ''
+    refine_wait_ms: float = 0.0
 
 
 @dataclass
@@ -299,6 +329,10 @@ class TrackWindowAligner:
         self._n_updates = 0
         self._n_outliers = 0
         self._last_update: UpdateResult | None = None
+        # background refinement (core.refinement): the worker, the snapshot it is solving
+        self._refiner = RefinementWorker(self.config.refine_executor)
+        self._refine_snap: RefinementSnapshot | None = None
+        self._n_refinements = 0
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -545,6 +579,7 @@ class TrackWindowAligner:
         :class:`~ga_ros.errors.GaError` can escape."""
         if self._open_track is None or self._open_track in self._finished:
             return None
+        refined = self._install_due()
         n = len(self._ids)
         open_nodes = np.flatnonzero(~self._frozen[:n])
         last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
@@ -556,6 +591,9 @@ class TrackWindowAligner:
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
+                if refined is not None:
+                    (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
+                self._start_refinement()
                 return up
             error = up.reason[len('failed: '):]
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
@@ -571,6 +609,102 @@ class TrackWindowAligner:
                           f'failed: {error}')
         self._last_update = up
         return up
+
+    # ------------------------------------------------------------ background refinement
+    def _start_refinement(self) -> None:
+        """Hand a snapshot to the refinement worker after every ``refine_every_tracks``-th
+        track (once a track is frozen, one refinement in flight at most); it is installed at the
+        start of the update of the track ``refine_lag_tracks`` later (:meth:`_install_due`)."""
+        cfg = self.config
+        n_done = len(self._finished)
+        n = len(self._ids)
+        if (cfg.refine_every_tracks <= 0 or n_done % cfg.refine_every_tracks
+                or self._refiner.pending_due is not None or not self._frozen[:n].any()
+                or self._open_track not in self._finished):
+            return
+        self._refine_snap = self._snapshot()
+        self._refiner.submit(self._refine_snap, n_done + cfg.refine_lag_tracks)
+
+    def _snapshot(self) -> RefinementSnapshot:
+        """Copy of the data a refinement needs (every node, connection and status)."""
+        n = len(self._ids)
+        scfg = self.config.solver_config()
+        return RefinementSnapshot(
+            after_tracks=len(self._finished), node_ids=self._idarr.a.copy(),
+            track_ids=self._trackarr.a.copy(), T_world_node=self._T[:n].copy(),
+            frozen=self._frozen[:n].copy(),
+            track_order=tuple(int(t) for t in self._tracks if t in self._finished),
+            src=self._src.a.copy(), dst=self._dst.a.copy(), z=self._z.a.copy(),
+            cov=self._ccov.a.copy(), status=self._status.a.copy(),
+            freeze_policy=self.config.freeze_policy,
+            solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)))
+
+    def _install_due(self) -> tuple[int, str, float] | None:
+        """Install the refinement due at this update (waiting for it); returns ``(after_tracks,
+        reason, wait + install ms)`` or ``None`` if none was due. A failed refinement, or one
+        that cannot be installed, leaves the state as it was."""
+        t0 = time.perf_counter()
+        res = self._refiner.take(len(self._finished) + 1)
+        if res is None:
+            return None
+        snap, self._refine_snap = self._refine_snap, None
+        reason = res.reason
+        if res.ok and snap is not None:
+            try:
+                with blas_threads():
+                    self._install(snap, res)
+                self._n_refinements += 1
+            except (GaError, np.linalg.LinAlgError, ValueError) as exc:
+                reason = f'not installed: {type(exc).__name__}: {exc}'
+        elif not reason.startswith('failed'):
+            reason = f'failed: {reason}'
+        return res.after_tracks, reason, 1e3 * (time.perf_counter() - t0)
+
+    def _install(self, snap: RefinementSnapshot, res: RefinementResult) -> None:
+        """The refined estimate becomes the frozen one.
+
+        Nodes frozen at the snapshot take the refined poses and covariances, the joint priors
+        are the rebuilt ones (relinearised at the refined estimate, each absorbed connection in
+        exactly one). If no update ran since the snapshot (``refine_lag_tracks = 1``) the window
+        nodes also start the next update from the refined poses; otherwise they keep their newer
+        estimate, and the tracks frozen since the snapshot are absorbed again, in order, at the
+        refined estimate (as :meth:`_freeze` did). All or nothing: on an error the state is put
+        back.
+        """
+        n_s, m_s = snap.node_ids.size, snap.src.size
+        n = len(self._ids)
+        saved = (self._T[:n].copy(), self._cov[:n].copy(), self._frozen[:n].copy(),
+                 self._status.a.copy(), list(self._priors))
+        try:
+            frozen_s = np.nonzero(snap.frozen)[0]
+            later = np.nonzero(self._frozen[:n_s] & ~snap.frozen)[0]
+            if later.size == 0 and n == n_s:
+                self._T[:n_s] = res.T_world_node
+            else:
+                self._T[frozen_s] = res.T_world_node[frozen_s]
+            self._cov[frozen_s] = res.frozen_cov
+            self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+            status = self._status.a
+            again = np.nonzero(status[:m_s] == 1)[0]
+            again = np.concatenate([again[snap.status[again] != 1],
+                                    m_s + np.nonzero(status[m_s:] == 1)[0]])
+            status[again] = 0
+            tracks = [t for t in snap.track_order if self._frozen[self._track_nodes[t][0]]
+                      and not snap.frozen[self._track_nodes[t][0]]]
+            self._frozen[later] = False
+            for t in tracks:
+                nodes = np.array(self._track_nodes[t], dtype=np.int64)
+                self._marginalise(nodes)
+                self._frozen[nodes] = True
+        except Exception:
+            (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
+             self._priors) = saved
+            raise
+
+    def close(self) -> None:
+        """Stop the background refinement (a pending result is dropped); the aligner stays
+        usable (a later refinement starts a new worker)."""
+        self._refiner.close()
 
     # ----------------------------------------------------------------------- updates
     def _finish_track(self) -> UpdateResult | None:
@@ -829,12 +963,8 @@ class TrackWindowAligner:
         # The absorbed terms alone are not at their optimum (the window's estimate is), so
         # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
         # the tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
-        try:  # H is positive definite unless the absorbed terms leave a direction free
-            shift = -sla.cho_solve(sla.cho_factor(H), g)
-        except np.linalg.LinAlgError:
-            shift = -np.linalg.lstsq(H, g, rcond=None)[0]
         S_nodes = free_idx[~elim]
-        mean = self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6))
+        mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T (refinement.py)
         self._priors.append((S_nodes, mean, H))
 
     # ------------------------------------------------------------------------ output
@@ -924,6 +1054,9 @@ class TrackWindowAligner:
         The open track is finished first. Outliers stay excluded. The covariances published
         afterwards come from this adjustment: frozen nodes get their marginal blocks from it
         (selected inversion), window nodes are answered from it like after a window update.
+        The joint priors of the absorbed connections are rebuilt at the refined estimate
+        (:func:`~ga_ros.core.refinement.absorbed_priors`), so the next window update continues
+        from it consistently; a pending background refinement is dropped.
         """
         self.finish_track()
         t0 = time.perf_counter()
@@ -943,6 +1076,13 @@ class TrackWindowAligner:
         frozen = np.nonzero(self._frozen[:n] & (np.arange(n) != 0))[0]
         if frozen.size:
             self._cov[frozen] = res.covariance(self._idarr.a[frozen])
+        # the joint priors of the absorbed connections, relinearised at the refined estimate
+        # (their old means would pull the next window update back to the online estimate)
+        self._refiner.drop()
+        self._refine_snap = None
+        with blas_threads():
+            self._priors = [(p.nodes, p.T_world_node, p.information)
+                            for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
