@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument('--window', type=int, default=5)
     ap.add_argument('--seed', type=int, default=20051101)
     ap.add_argument('--policies', nargs='+', default=['weighted', 'marginal'],
-                    help="freeze policies; 'weighted+process' (or +thread, +inline) adds the background refinement")
+                    help="freeze policies; 'weighted+process' (+thread, +inline): with refinement")
     ap.add_argument('--every', type=int, default=1, help='refine_every_tracks')
     ap.add_argument('--lag', type=int, default=1, help='refine_lag_tracks')
     ap.add_argument('--no-per-track', action='store_true',
