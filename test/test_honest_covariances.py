@@ -26,9 +26,9 @@ def test_position_nees_is_consistent_for_every_policy_batch_and_refinement():
     """Monte-Carlo (6 tracks x 8 nodes, 10 runs, 3 % noise, window of 2 tracks): the mean
     position NEES over all nodes and runs must be 3 +- 30 % and, each connection being counted
     once, equal to the batch one; also with the background refinement installed after every
-    track (its relinearised priors count each connection once too). The per-node priors of earlier versions gave 8.1 (weighted)
-    and 8.3 (weighted, then refined) on this very survey: shared information was counted again
-    at every update."""
+    track (its relinearised priors count each connection once too). The per-node priors of
+    earlier versions gave 8.1 (weighted) and 8.3 (weighted, then refined) on this very survey:
+    shared information was counted again at every update."""
     sc = aerial_scenario(n_tracks=6, positions_per_swath=4)
     rng = np.random.default_rng(7)
     ids, truth = sc.node_ids[1:], sc.T_world_node[1:]

@@ -27,7 +27,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -61,6 +61,8 @@ class RefinementSnapshot:
     status : (m,) 0 active, 1 absorbed into a prior, 2 excluded as an outlier.
     freeze_policy : ``'weighted'`` or ``'marginal'`` (which nodes the rebuilt priors keep).
     solver : settings of the batch solve.
+    leaving : tracks that will have frozen by the hand-off (they leave the window before the
+        update that installs the result); the priors are rebuilt for that state.
     """
 
     after_tracks: int
@@ -76,6 +78,22 @@ class RefinementSnapshot:
     status: IntArray
     freeze_policy: str
     solver: SolverConfig
+    leaving: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class SmoothingStep:
+    """One elimination of :func:`absorbed_priors`, kept for back substitution.
+
+    Given the tangent corrections ``d_R`` of the nodes ``R`` still present after the step (at
+    the linearisation point), the eliminated nodes ``L`` move by ``d_L = offset + gain d_R``
+    (their conditional mean under the absorbed terms).
+    """
+
+    eliminated: IntArray
+    remaining: IntArray
+    gain: FloatArray
+    offset: FloatArray
 
 
 @dataclass(frozen=True)
@@ -108,6 +126,9 @@ class RefinementResult:
     frozen_cov : (f, 6, 6) marginal covariances ``[x y z rx ry rz]`` of the snapshot's frozen
         nodes (in index order; the datum's block is zero).
     priors : joint priors of the absorbed connections, relinearised at the refined frozen poses.
+    frozen : (n,) frozen flags at the hand-off (the snapshot's plus the ``leaving`` tracks).
+    absorbed : (a,) connections absorbed into priors at the hand-off (predicted).
+    smoothing : back-substitution steps from the priors' nodes to every other frozen node.
     iterations : Gauss-Newton iterations of the batch solve.
     seconds : wall time of the whole refinement (solve, covariances, priors).
     """
@@ -118,6 +139,9 @@ class RefinementResult:
     T_world_node: FloatArray
     frozen_cov: FloatArray
     priors: tuple[AbsorbedPrior, ...]
+    frozen: BoolArray
+    absorbed: IntArray
+    smoothing: tuple[SmoothingStep, ...]
     iterations: int
     seconds: float
 
@@ -127,16 +151,18 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
 
     The batch solve uses every connection that is not excluded (status != 2), warm-started at
     the online estimate, the first node fixed. The priors are rebuilt by :func:`absorbed_priors`
-    at the refined poses of the frozen nodes and the online poses of the others (under
-    ``'marginal'`` the priors are over window nodes, whose next update starts there).
+    at the refined poses, for the state after the ``leaving`` tracks froze
+    (:func:`predict_freezes`).
     Never raises for a numerical failure: ``ok`` is then ``False``.
     """
     t0 = time.perf_counter()
     n = snap.node_ids.size
     empty = RefinementResult(snap.after_tracks, False, '', snap.T_world_node,
-                             np.zeros((0, 6, 6)), (), 0, 0.0)
+                             np.zeros((0, 6, 6)), (), snap.frozen, np.zeros(0, np.int64), (),
+                             0, 0.0)
     try:
         with blas_threads():
+            snap = predict_freezes(snap)
             keep = np.nonzero(snap.status != 2)[0]
             net = ConnectionNetwork.from_arrays(snap.node_ids, snap.track_ids, snap.src[keep],
                                                 snap.dst[keep], snap.z[keep], snap.cov[keep])
@@ -148,19 +174,40 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             free = frozen[frozen != 0]
             if free.size:
                 cov[frozen != 0] = res.covariance(snap.node_ids[free])
-            T_lin = snap.T_world_node.copy()
-            T_lin[frozen] = res.T_world_node[frozen]
-            priors = absorbed_priors(snap, T_lin)
+            priors, steps = _eliminate_absorbed(snap, res.T_world_node)
     except (GaError, np.linalg.LinAlgError, ValueError) as exc:
         return _failed(empty, f'{type(exc).__name__}: {exc}', t0)
     assert res.T_world_node.shape == (n, 4, 4)
     return RefinementResult(snap.after_tracks, True, res.reason, res.T_world_node, cov,
-                            priors, res.iterations, time.perf_counter() - t0)
+                            priors, snap.frozen, np.nonzero(snap.status == 1)[0], steps,
+                            res.iterations, time.perf_counter() - t0)
 
 
 def _failed(empty: RefinementResult, reason: str, t0: float) -> RefinementResult:
-    return RefinementResult(empty.after_tracks, False, reason, empty.T_world_node,
-                            empty.frozen_cov, (), 0, time.perf_counter() - t0)
+    return replace(empty, reason=reason, seconds=time.perf_counter() - t0)
+
+
+def predict_freezes(snap: RefinementSnapshot) -> RefinementSnapshot:
+    """The snapshot as it will be once its ``leaving`` tracks have frozen.
+
+    Each leaving track, in order, absorbs what the aligner's freezing absorbs: under
+    ``'weighted'`` its active connections whose two ends are then frozen, under ``'marginal'``
+    all its active connections. Connections that arrive later always touch a newer track, which
+    is still in the window, so they are never absorbed by these freezes; the aligner checks the
+    prediction at the hand-off anyway and installs nothing if it does not hold.
+    """
+    if not snap.leaving:
+        return snap
+    frozen = snap.frozen.copy()
+    status = snap.status.copy()
+    for t in snap.leaving:
+        in_t = snap.track_ids == t
+        frozen |= in_t
+        mine = (status == 0) & (in_t[snap.src] | in_t[snap.dst])
+        if snap.freeze_policy == 'weighted':
+            mine &= frozen[snap.src] & frozen[snap.dst]
+        status[mine] = 1
+    return replace(snap, frozen=frozen, status=status, leaving=())
 
 
 def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArray,
@@ -190,6 +237,12 @@ def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArra
 
 
 def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[AbsorbedPrior, ...]:
+    """Joint Gaussian priors of every absorbed connection (see :func:`_eliminate_absorbed`)."""
+    return _eliminate_absorbed(snap, T_lin)[0]
+
+
+def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
+                        ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SmoothingStep, ...]]:
     """Joint Gaussian priors of every absorbed connection (status 1), linearised at ``T_lin``.
 
     The absorbed connections are summed in the order their tracks froze and every node that no
@@ -201,7 +254,8 @@ def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[Absorb
     elimination). As in the aligner's freezing, the absorbed terms are not at their optimum, so
     their marginal keeps a linear term ``g``: the prior mean is ``T_lin`` moved by ``-H^-1 g``.
 
-    Returns one prior per connected group of prior nodes (at most one in a lawnmower survey).
+    Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
+    and the elimination steps for back substitution (:class:`SmoothingStep`).
 
     Raises
     ------
@@ -210,7 +264,7 @@ def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[Absorb
     """
     absorbed = np.nonzero(snap.status == 1)[0]
     if absorbed.size == 0:
-        return ()
+        return (), ()
     n = snap.node_ids.size
     keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy)
     order = {t: k for k, t in enumerate(snap.track_order)}
@@ -226,6 +280,7 @@ def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[Absorb
     cols: dict[int, int] = {}   # node index -> block position in (H, g)
     H = np.zeros((0, 0))
     g = np.zeros(0)
+    steps: list[SmoothingStep] = []
     for s in np.unique(step):
         conns = absorbed[step == s]
         nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]))
@@ -249,25 +304,55 @@ def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[Absorb
         g[at] += u
         gone = [i for i in cols if last[i] <= s and not keep[i]]
         if gone:
-            H, g, cols = _eliminate(H, g, cols, gone)
+            H, g, cols, back = _eliminate(H, g, cols, gone)
+            steps.append(back)
     if not cols:
-        return ()
+        return (), tuple(steps)
     S = np.array(list(cols), dtype=np.int64)
-    return tuple(_prior_of(H, g, cols, group, T_lin) for group in _groups(H, S, cols))
+    priors = tuple(_prior_of(H, g, cols, group, T_lin) for group in _groups(H, S, cols))
+    return priors, tuple(steps)
 
 
-def _eliminate(H: FloatArray, g: FloatArray, cols: dict[int, int],
-               gone: list[int]) -> tuple[FloatArray, FloatArray, dict[int, int]]:
-    """Schur complement of the nodes ``gone`` out of ``(H, g)``."""
+def _eliminate(H: FloatArray, g: FloatArray, cols: dict[int, int], gone: list[int]
+               ) -> tuple[FloatArray, FloatArray, dict[int, int], SmoothingStep]:
+    """Schur complement of the nodes ``gone`` out of ``(H, g)``, and its back substitution
+    ``d_L = -H_LL^-1 (g_L + H_LS d_S)``."""
     gone_set = set(gone)
     stay = [i for i in cols if i not in gone_set]
     cL = (6 * np.array([cols[i] for i in gone])[:, None] + np.arange(6)).ravel()
     cS = (6 * np.array([cols[i] for i in stay], dtype=np.int64)[:, None] + np.arange(6)).ravel()
     cho = sla.cho_factor(H[np.ix_(cL, cL)])
     HLS = H[np.ix_(cL, cS)]
-    Hn = H[np.ix_(cS, cS)] - HLS.T @ sla.cho_solve(cho, HLS)
-    gn = g[cS] - HLS.T @ sla.cho_solve(cho, g[cL])
-    return 0.5 * (Hn + Hn.T), gn, {i: k for k, i in enumerate(stay)}
+    gain = -sla.cho_solve(cho, HLS)
+    offset = -sla.cho_solve(cho, g[cL])
+    Hn = H[np.ix_(cS, cS)] + HLS.T @ gain
+    gn = g[cS] + HLS.T @ offset
+    back = SmoothingStep(np.array(gone, dtype=np.int64), np.array(stay, dtype=np.int64), gain,
+                         offset)
+    return 0.5 * (Hn + Hn.T), gn, {i: k for k, i in enumerate(stay)}, back
+
+
+def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
+           ) -> dict[int, FloatArray]:
+    """Back substitution through elimination steps, newest first (Rauch-Tung-Striebel style).
+
+    Parameters
+    ----------
+    steps : from :func:`_eliminate_absorbed`, in elimination order.
+    d_known : tangent corrections (6,) of the prior nodes, by node index.
+
+    Returns
+    -------
+    Corrections of every node (prior nodes and eliminated ones), by node index.
+    """
+    d = dict(d_known)
+    for st in reversed(steps):
+        dR = np.concatenate([d.get(int(i), np.zeros(6)) for i in st.remaining]
+                            or [np.zeros(0)])
+        dL = st.offset + (st.gain @ dR if dR.size else 0.0)
+        for k, i in enumerate(st.eliminated.tolist()):
+            d[i] = dL[6 * k:6 * k + 6]
+    return d
 
 
 def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
@@ -378,7 +463,8 @@ class RefinementWorker:
             return job.result()
         except Exception as exc:  # noqa: BLE001 - a crashed worker must not end the survey
             return RefinementResult(-1, False, f'worker failed: {type(exc).__name__}: {exc}',
-                                    np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), (), 0, 0.0)
+                                    np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), (),
+                                    np.zeros(0, bool), np.zeros(0, np.int64), (), 0, 0.0)
 
     def drop(self) -> None:
         """Forget the pending refinement (a reset, a restored state)."""

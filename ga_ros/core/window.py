@@ -53,6 +53,8 @@ from ga_ros.core.refinement import (
     RefinementSnapshot,
     RefinementWorker,
     absorbed_priors,
+    prior_nodes,
+    smooth,
     tangent_prior,
 )
 from ga_ros.core.solver import (
@@ -579,26 +581,22 @@ class TrackWindowAligner:
         :class:`~ga_ros.errors.GaError` can escape."""
         if self._open_track is None or self._open_track in self._finished:
             return None
-        refined = self._install_due()
         n = len(self._ids)
-        open_nodes = np.flatnonzero(~self._frozen[:n])
         last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
-        saved = (self._T[open_nodes].copy(), self._cov[open_nodes].copy(),
+        saved = (self._T[:n].copy(), self._cov[:n].copy(),
                  self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
                  self._last_window, self._n_outliers, self._n_updates)
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
-                if refined is not None:
-                    (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
                 self._start_refinement()
                 return up
             error = up.reason[len('failed: '):]
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
-        (self._T[open_nodes], self._cov[open_nodes], self._frozen[:n], self._status.a[:],
+        (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
          self._priors, self._last_window, self._n_outliers, n_updates) = saved
         self._last = None
         self.__dict__.update(last)
@@ -613,17 +611,25 @@ class TrackWindowAligner:
     # ------------------------------------------------------------ background refinement
     def _start_refinement(self) -> None:
         """Hand a snapshot to the refinement worker after every ``refine_every_tracks``-th
-        track (once a track is frozen, one refinement in flight at most); it is installed at the
-        start of the update of the track ``refine_lag_tracks`` later (:meth:`_install_due`)."""
+        track (once a track will be frozen at the hand-off; one refinement in flight at most);
+        it is installed in the update of the track ``refine_lag_tracks`` later, after that
+        update's freezes (:meth:`_install_due`)."""
         cfg = self.config
         n_done = len(self._finished)
         n = len(self._ids)
         if (cfg.refine_every_tracks <= 0 or n_done % cfg.refine_every_tracks
-                or self._refiner.pending_due is not None or not self._frozen[:n].any()
+                or self._refiner.pending_due is not None
                 or self._open_track not in self._finished):
             return
-        self._refine_snap = self._snapshot()
-        self._refiner.submit(self._refine_snap, n_done + cfg.refine_lag_tracks)
+        due = n_done + cfg.refine_lag_tracks
+        order = [t for t in self._tracks if t in self._finished]
+        leaving = tuple(int(t) for t in order[:max(0, due - cfg.window_tracks)]
+                        if not self._frozen[self._track_nodes[t][0]])
+        if not leaving and not self._frozen[:n].any():
+            return  # nothing will be frozen at the hand-off: the window is the batch solution
+        self._refine_snap = replace(self._snapshot(), leaving=leaving)
+        self._refine_updates = self._n_updates
+        self._refiner.submit(self._refine_snap, due)
 
     def _snapshot(self) -> RefinementSnapshot:
         """Copy of the data a refinement needs (every node, connection and status)."""
@@ -644,7 +650,7 @@ class TrackWindowAligner:
         reason, wait + install ms)`` or ``None`` if none was due. A failed refinement, or one
         that cannot be installed, leaves the state as it was."""
         t0 = time.perf_counter()
-        res = self._refiner.take(len(self._finished) + 1)
+        res = self._refiner.take(len(self._finished))
         if res is None:
             return None
         snap, self._refine_snap = self._refine_snap, None
@@ -661,45 +667,69 @@ class TrackWindowAligner:
         return res.after_tracks, reason, 1e3 * (time.perf_counter() - t0)
 
     def _install(self, snap: RefinementSnapshot, res: RefinementResult) -> None:
-        """The refined estimate becomes the frozen one.
+        """The refined estimate becomes the frozen one (after this update's freezes, before its
+        window adjustment).
 
-        Nodes frozen at the snapshot take the refined poses and covariances, the joint priors
-        are the rebuilt ones (relinearised at the refined estimate, each absorbed connection in
-        exactly one). If no update ran since the snapshot (``refine_lag_tracks = 1``) the window
-        nodes also start the next update from the refined poses; otherwise they keep their newer
-        estimate, and the tracks frozen since the snapshot are absorbed again, in order, at the
-        refined estimate (as :meth:`_freeze` did). All or nothing: on an error the state is put
-        back.
+        The result was computed for the state predicted at this point
+        (:func:`~ga_ros.core.refinement.predict_freezes`); if the frozen nodes or the absorbed
+        connections differ, nothing is installed. Otherwise the frozen nodes take the refined
+        poses and covariances and the joint priors are the rebuilt ones (relinearised at the
+        refined estimate, each absorbed connection in exactly one). If no update ran since the
+        snapshot (``refine_lag_tracks = 1``) the window nodes also start from the refined poses.
+        After the adjustment :meth:`_smooth` carries the window's correction of the prior nodes
+        back to every frozen node.
         """
         n_s, m_s = snap.node_ids.size, snap.src.size
         n = len(self._ids)
-        saved = (self._T[:n].copy(), self._cov[:n].copy(), self._frozen[:n].copy(),
-                 self._status.a.copy(), list(self._priors))
-        try:
-            frozen_s = np.nonzero(snap.frozen)[0]
-            later = np.nonzero(self._frozen[:n_s] & ~snap.frozen)[0]
-            if later.size == 0 and n == n_s:
-                self._T[:n_s] = res.T_world_node
-            else:
-                self._T[frozen_s] = res.T_world_node[frozen_s]
-            self._cov[frozen_s] = res.frozen_cov
-            self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
-            status = self._status.a
-            again = np.nonzero(status[:m_s] == 1)[0]
-            again = np.concatenate([again[snap.status[again] != 1],
-                                    m_s + np.nonzero(status[m_s:] == 1)[0]])
-            status[again] = 0
-            tracks = [t for t in snap.track_order if self._frozen[self._track_nodes[t][0]]
-                      and not snap.frozen[self._track_nodes[t][0]]]
-            self._frozen[later] = False
-            for t in tracks:
-                nodes = np.array(self._track_nodes[t], dtype=np.int64)
-                self._marginalise(nodes)
-                self._frozen[nodes] = True
-        except Exception:
-            (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
-             self._priors) = saved
-            raise
+        status = self._status.a
+        predicted = np.zeros(m_s, dtype=bool)
+        predicted[res.absorbed] = True
+        if (not np.array_equal(self._frozen[:n_s], res.frozen) or self._frozen[n_s:n].any()
+                or not np.array_equal(status[:m_s] == 1, predicted) or (status[m_s:] == 1).any()):
+            raise InputError('the frozen nodes or absorbed connections changed since the '
+                             'snapshot')
+        need = prior_nodes(self._frozen[:n], self._src.a, self._dst.a, status,
+                           self.config.freeze_policy)
+        have = np.zeros(n, dtype=bool)
+        for p in res.priors:
+            have[p.nodes] = True
+        if (need & ~have).any():
+            raise InputError('a node eliminated by the refinement has a connection to the window '
+                             'that arrived after the snapshot (refine_lag_tracks too large for '
+                             'this survey)')
+        frozen = np.nonzero(res.frozen)[0]
+        if self._n_updates == getattr(self, '_refine_updates', -1):
+            self._T[:n_s] = res.T_world_node
+        else:
+            self._T[frozen] = res.T_world_node[frozen]
+        self._cov[frozen] = res.frozen_cov
+        self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+        self._smoothing = (res.smoothing, res.T_world_node)
+
+    def _smooth(self) -> None:
+        """Carry the window's correction of the prior nodes back to every frozen node.
+
+        The installed refinement kept the back substitution of its eliminations
+        (:class:`~ga_ros.core.refinement.SmoothingStep`); the window adjustment just moved the
+        prior nodes from the refined estimate ``T_r`` by ``d_S = log(T_r^-1 T)``; each frozen node
+        then moves to its conditional mean ``T_r exp(d)`` under the absorbed connections (the
+        batch solution of all data received, in the linear limit).
+        """
+        steps, T_lin = self.__dict__.pop('_smoothing', ((), None))
+        res = self._last
+        if T_lin is None or res is None:
+            return
+        where = {int(i): k for k, i in enumerate(res.node_ids.tolist())}
+        d_known = {}
+        for idx, _, _ in self._priors:
+            for i in idx.tolist():
+                k = where.get(int(self._ids[i]))
+                if k is not None:
+                    d_known[i] = se3.local(T_lin[i][None], res.T_world_node[k][None])[0]
+        d = smooth(steps, d_known)
+        nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
+        if nodes.size:
+            self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
 
     def close(self) -> None:
         """Stop the background refinement (a pending result is dropped); the aligner stays
@@ -725,8 +755,12 @@ class TrackWindowAligner:
                    if not self._frozen[self._track_nodes[t][0]]]
         for t in leaving:
             self._freeze(t)
+        refined = self._install_due()  # background refinement due now (replaces the priors)
         try:
             up = self._adjust(window, track, t0)
+            if refined is not None and not str(up.reason).startswith('failed'):
+                self._smooth()
+                (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
         except GaError as exc:
             up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
                               0, 0, len(window), 0, f'failed: {exc}')
