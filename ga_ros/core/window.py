@@ -153,7 +153,7 @@ class AlignerConfig:
     cov_max_condition: float = 1e12
     max_track_jump: int = 100
     max_node_id_jump: int = 10_000_000
-    refine_every_tracks: int = 0
+    refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
 
@@ -730,6 +730,37 @@ class TrackWindowAligner:
         nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
         if nodes.size:
             self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
+
+    def refinement_state(self) -> dict | None:
+        """What a snapshot file needs to restart the pending refinement exactly: its hand-off
+        track count, and the number of nodes and connections its snapshot held (the state is
+        that of the last update plus the measurements received since). ``None`` if there is
+        none, or if an update ran since its snapshot (``refine_lag_tracks > 1``: a restored
+        aligner then starts the next refinement at its next trigger)."""
+        snap, due = self._refine_snap, self._refiner.pending_due
+        if snap is None or due is None or self._n_updates != getattr(self, '_refine_updates', -1):
+            return None
+        return {'due': int(due), 'nodes': int(snap.node_ids.size),
+                'connections': int(snap.src.size), 'leaving': [int(t) for t in snap.leaving]}
+
+    def resume_refinement(self, state: dict | None) -> None:
+        """Restart the refinement described by :meth:`refinement_state` (a restored aligner),
+        from the same data, so the path continues as without the interruption."""
+        if not state or self.config.refine_every_tracks <= 0:
+            return
+        n, m = int(state['nodes']), int(state['connections'])
+        full = self._snapshot()
+        track_order = tuple(t for t in full.track_order
+                            if t in set(full.track_ids[:n].tolist()))
+        self._refine_snap = replace(
+            full, node_ids=full.node_ids[:n], track_ids=full.track_ids[:n],
+            T_world_node=full.T_world_node[:n], frozen=full.frozen[:n], track_order=track_order,
+            src=full.src[:m], dst=full.dst[:m], z=full.z[:m], cov=full.cov[:m],
+            status=full.status[:m], after_tracks=len(track_order),
+            leaving=tuple(int(t) for t in state['leaving']))
+        self._refine_updates = self._n_updates
+        self._refiner.drop()
+        self._refiner.submit(self._refine_snap, int(state['due']))
 
     def close(self) -> None:
         """Stop the background refinement (a pending result is dropped); the aligner stays

@@ -273,7 +273,9 @@ def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, wind
     """Feed a survey's measurements track by track into a TrackWindowAligner."""
     from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 
-    aligner = TrackWindowAligner(AlignerConfig(window_tracks=window, freeze_policy=policy),
+    base, _, refine = policy.partition('+')  # 'weighted', 'marginal', 'weighted+refine'
+    aligner = TrackWindowAligner(AlignerConfig(window_tracks=window, freeze_policy=base,
+                                               refine_every_tracks=1 if refine else 0),
                                  T_world_first=sc.T_world_node[0])
     meas = sc.measurements(z, cov)
     dst_track = np.array([m.dst_track for m in meas])
@@ -302,6 +304,7 @@ def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, wind
             snapshots[k] = {'before': before, 'after': after.copy()}
         start = stop
     run_s = time.perf_counter() - t_run
+    aligner.close()
     path = aligner.corrected_path().T_world_node.copy()
     t0 = time.perf_counter()
     aligner.refine_batch()
