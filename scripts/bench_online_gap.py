@@ -27,7 +27,7 @@ from ga_ros.sim.noise import NoiseModel, perturb
 
 def _policy_config(name: str, window: int, every: int, lag: int) -> AlignerConfig:
     base, _, refine = name.partition('+')
-    extra = {}
+    extra = {'refine_every_tracks': 0}
     if refine:
         extra = {'refine_every_tracks': every, 'refine_lag_tracks': lag,
                  'refine_executor': refine}

@@ -421,7 +421,10 @@ def memory_profile(cfg: ReproduceConfig) -> dict:
         tracemalloc.start()
         try:
             base = tracemalloc.get_traced_memory()[0]
-            aligner = TrackWindowAligner(AlignerConfig(window_tracks=cfg.window_tracks),
+            # the window update's own memory: without the background refinement (a batch of
+            # the whole survey, whose memory grows with it by design)
+            aligner = TrackWindowAligner(AlignerConfig(window_tracks=cfg.window_tracks,
+                                                       refine_every_tracks=0),
                                          T_world_first=sc.T_world_node[0])
             peaks = []
             dst_track = np.array([m.dst_track for m in meas])
