@@ -304,7 +304,8 @@ def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, wind
             snapshots[k] = {'before': before, 'after': after.copy()}
         start = stop
     run_s = time.perf_counter() - t_run
-    aligner.close()
+    if hasattr(aligner, 'close'):  # stop the background refinement's worker
+        aligner.close()
     path = aligner.corrected_path().T_world_node.copy()
     t0 = time.perf_counter()
     aligner.refine_batch()
