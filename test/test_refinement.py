@@ -186,7 +186,7 @@ def test_refinement_closes_most_of_the_gap_to_batch():
     sc, nm, ms = _survey(n_tracks=6, per_swath=10, pct=5.0)
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
     gaps = []
-    for cfg in (AlignerConfig(window_tracks=2), _refining()):
+    for cfg in (AlignerConfig(window_tracks=2, refine_every_tracks=0), _refining()):
         al, _ = _run(cfg, sc, ms)
         path = al.corrected_path()
         d = path.T_world_node[:, :3, 3] - batch.T_world_node[:, :3, 3]
@@ -196,7 +196,9 @@ def test_refinement_closes_most_of_the_gap_to_batch():
 
 def test_replay_gives_the_identical_path_whatever_the_executor():
     """The hand-off is at a fixed track, so two runs with the background process, and a run
-    with the inline refinement, give bit-identical paths and covariances."""
+    with the inline refinement, give bit-identical paths and covariances. A worker thread
+    shares the process's BLAS thread setting (the worker narrows it while it solves), so its
+    run may differ in the last bits only."""
     sc, _, ms = _survey(n_tracks=4, per_swath=6)
     paths, covs = [], []
     for executor in ('process', 'process', 'inline', 'thread'):
@@ -205,6 +207,8 @@ def test_replay_gives_the_identical_path_whatever_the_executor():
         assert any(u.refined_after_tracks >= 0 for u in ups)
         paths.append(al.corrected_path().T_world_node)
         covs.append(al.covariances(sc.node_ids[1:]))
-    for p, c in zip(paths[1:], covs[1:]):
+    for p, c in zip(paths[1:3], covs[1:3]):
         np.testing.assert_array_equal(p, paths[0])
         np.testing.assert_array_equal(c, covs[0])
+    np.testing.assert_allclose(paths[3], paths[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(covs[3], covs[0], rtol=1e-9, atol=0)
