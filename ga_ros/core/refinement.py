@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.sparse.csgraph import connected_components
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
@@ -361,8 +362,6 @@ def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
 
 def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
     """Prior nodes grouped by the connected components of ``H``'s block pattern."""
-    from scipy.sparse.csgraph import connected_components
-
     k = S.size
     blocks = np.abs(H).reshape(k, 6, k, 6).max(axis=(1, 3)) > 0
     _, label = connected_components(blocks, directed=False)

@@ -699,6 +699,10 @@ class TrackWindowAligner:
                              'this survey)')
         frozen = np.nonzero(res.frozen)[0]
         if self._n_updates == getattr(self, '_refine_updates', -1):
+            # the newer nodes (the track being finished) follow the last snapshot node rigidly:
+            # their frame-to-frame chain starts there
+            move = res.T_world_node[n_s - 1] @ se3.inverse(self._T[n_s - 1])
+            self._T[n_s:n] = move @ self._T[n_s:n]
             self._T[:n_s] = res.T_world_node
         else:
             self._T[frozen] = res.T_world_node[frozen]
