@@ -22,6 +22,11 @@ window stop being unknowns and are *frozen*:
 
 The cost of an update depends on the window only, not on the number of tracks flown.
 
+A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.refinement`) re-solves the
+whole survey off the update path and hands the result back at a fixed later track: frozen poses
+and covariances refined, priors rebuilt at the refined estimate, and the window's corrections
+carried back to every frozen node, so the online path follows the batch solution.
+
 Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
 :class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
 covariance that is not symmetric positive definite or outside the configured eigenvalue range
@@ -220,7 +225,13 @@ class AlignerConfig:
 
 @dataclass
 class UpdateResult:
-    """Summary of one window adjustment."""
+    """Summary of one window adjustment.
+
+    ``refined_after_tracks`` is the track count of the background refinement installed in this
+    update (-1: none), ``refine_reason`` its outcome (the batch solve's reason, or why it was
+    not installed), ``refine_wait_ms`` the time spent waiting for it and installing it (part
+    of ``update_ms``).
+    """
 
     track_id: int
     iterations: int
