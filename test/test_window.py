@@ -50,7 +50,8 @@ def test_window_covering_all_tracks_equals_batch(policy):
 
 def test_frozen_prior_is_what_the_previous_update_estimated():
     sc, nm, ms = _survey(n_tracks=4)
-    cfg = AlignerConfig(window_tracks=2, solver=replace(ALIGNER_SOLVER, tolerance=1e-10))
+    cfg = AlignerConfig(window_tracks=2, solver=replace(ALIGNER_SOLVER, tolerance=1e-10),
+                        refine_every_tracks=0)  # the plain window (no background refinement)
     al = TrackWindowAligner(cfg, sc.T_world_node[0])
     snapshots = {}
     for m in ms:

@@ -163,6 +163,7 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         'open_track': None if al._open_track is None else int(al._open_track),
         'rejected': {str(k): int(v) for k, v in al._rejected.items()},
         'n_updates': int(al._n_updates), 'n_outliers': int(al._n_outliers),
+        'refine_pending': al.refinement_state(),
     }
     sizes = np.array([idx.size for idx, _, _ in al._priors], dtype=np.int64)
     cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros((0,) + shape))  # noqa: E731
@@ -304,4 +305,5 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
         al._last_window = np.array(sorted(i for t in window for i in al._track_nodes[t]),
                                    dtype=np.int64)
         al._last_pending = window
+    al.resume_refinement(meta.get('refine_pending'))  # the pending background refinement
     return al

@@ -22,6 +22,11 @@ window stop being unknowns and are *frozen*:
 
 The cost of an update depends on the window only, not on the number of tracks flown.
 
+A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.refinement`) re-solves the
+whole survey off the update path and hands the result back at a fixed later track: frozen poses
+and covariances refined, priors rebuilt at the refined estimate, and the window's corrections
+carried back to every frozen node, so the online path follows the batch solution.
+
 Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
 :class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
 covariance that is not symmetric positive definite or outside the configured eigenvalue range
@@ -47,12 +52,15 @@ from scipy.stats import chi2
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
-from ga_ros.core.quality import (
-    QualityConfig,
-    QualityReport,
-    QualitySummary,
-    quality_control,
-    summarise,
+from ga_ros.core.refinement import (
+    REFINE_EXECUTORS,
+    RefinementResult,
+    RefinementSnapshot,
+    RefinementWorker,
+    absorbed_priors,
+    prior_nodes,
+    smooth,
+    tangent_prior,
 )
 from ga_ros.core.solver import (
     GaussianPrior,
@@ -153,6 +161,16 @@ class AlignerConfig:
     quality_alpha : significance level of the global test of the variance factor.
     quality_alpha0 : level of the 1-D w-test (critical value ``z_{1-alpha0/2}``: 3.89 at 1e-4,
         3.29 at 1e-3), for the quality figures and the ``'w-test'`` gate.
+    refine_every_tracks : background refinement (:mod:`ga_ros.core.refinement`): after every
+        this many tracks (counted when at least one track is frozen) the whole survey is solved
+        in batch off the update path and handed back as the new frozen estimate (poses,
+        published covariances, relinearised priors). 0 disables it.
+    refine_lag_tracks : a refinement started after track ``k`` is installed at the start of the
+        update of track ``k + refine_lag_tracks`` (waiting for it there if it is not ready), so
+        the result does not depend on timing: a replay and a live node give the same path.
+    refine_executor : where the refinement runs: ``'process'`` (a separate process, 'spawn'
+        start method; truly parallel), ``'thread'`` or ``'inline'`` (solved at the hand-off;
+        same result, for tests and single-core machines).
     """
 
     window_tracks: int = 5
@@ -169,6 +187,9 @@ class AlignerConfig:
     quality_every: int = 1
     quality_alpha: float = 0.05
     quality_alpha0: float = 1e-4
+    refine_every_tracks: int = 1
+    refine_lag_tracks: int = 1
+    refine_executor: str = 'process'
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -197,6 +218,13 @@ class AlignerConfig:
         if int(self.quality_every) < 1:
             raise InputError(f'quality_every must be >= 1, got {self.quality_every}')
         self.quality_config()  # range checks of the levels
+
+        if int(self.refine_every_tracks) < 0 or int(self.refine_lag_tracks) < 1:
+            raise InputError('refine_every_tracks must be >= 0 (0 = off) and refine_lag_tracks '
+                             f'>= 1, got {self.refine_every_tracks}, {self.refine_lag_tracks}')
+        if self.refine_executor not in REFINE_EXECUTORS:
+            raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
+                             f'got {self.refine_executor!r}')
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
@@ -237,8 +265,14 @@ class AlignerConfig:
 
 @dataclass
 class UpdateResult:
-    """Summary of one window adjustment (``quality``: its quality control,
-    :class:`~ga_ros.core.quality.QualitySummary`, when ``AlignerConfig.quality`` is on)."""
+    """Summary of one window adjustment.
+
+    ``quality``: its quality control, :class:`~ga_ros.core.quality.QualitySummary`, when
+    ``AlignerConfig.quality`` is on. ``refined_after_tracks`` is the track count of the
+    background refinement installed in this update (-1: none), ``refine_reason`` its
+    outcome (the batch solve's reason, or why it was not installed), ``refine_wait_ms`` the
+    time spent waiting for it and installing it (part of ``update_ms``).
+    """
 
     track_id: int
     iterations: int
@@ -254,6 +288,9 @@ class UpdateResult:
     n_unknowns: int = 0
     n_readmitted: int = 0
     quality: QualitySummary | None = None
+    refined_after_tracks: int = -1
+    refine_reason: str = ''
+    refine_wait_ms: float = 0.0
 
 
 @dataclass
@@ -389,6 +426,10 @@ class TrackWindowAligner:
         self._n_updates = 0
         self._n_outliers = 0
         self._last_update: UpdateResult | None = None
+        # background refinement (core.refinement): the worker, the snapshot it is solving
+        self._refiner = RefinementWorker(self.config.refine_executor)
+        self._refine_snap: RefinementSnapshot | None = None
+        self._n_refinements = 0
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -636,21 +677,21 @@ class TrackWindowAligner:
         if self._open_track is None or self._open_track in self._finished:
             return None
         n = len(self._ids)
-        open_nodes = np.flatnonzero(~self._frozen[:n])
         last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
-        saved = (self._T[open_nodes].copy(), self._cov[open_nodes].copy(),
+        saved = (self._T[:n].copy(), self._cov[:n].copy(),
                  self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
                  self._last_window, self._n_outliers, self._n_updates)
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
+                self._start_refinement()
                 return up
             error = up.reason[len('failed: '):]
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
-        (self._T[open_nodes], self._cov[open_nodes], self._frozen[:n], self._status.a[:],
+        (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
          self._priors, self._last_window, self._n_outliers, n_updates) = saved
         self._last = None
         self.__dict__.update(last)
@@ -661,6 +702,169 @@ class TrackWindowAligner:
                           f'failed: {error}')
         self._last_update = up
         return up
+
+    # ------------------------------------------------------------ background refinement
+    def _start_refinement(self) -> None:
+        """Hand a snapshot to the refinement worker after every ``refine_every_tracks``-th
+        track (once a track will be frozen at the hand-off; one refinement in flight at most);
+        it is installed in the update of the track ``refine_lag_tracks`` later, after that
+        update's freezes (:meth:`_install_due`)."""
+        cfg = self.config
+        n_done = len(self._finished)
+        n = len(self._ids)
+        if (cfg.refine_every_tracks <= 0 or n_done % cfg.refine_every_tracks
+                or self._refiner.pending_due is not None
+                or self._open_track not in self._finished):
+            return
+        due = n_done + cfg.refine_lag_tracks
+        order = [t for t in self._tracks if t in self._finished]
+        leaving = tuple(int(t) for t in order[:max(0, due - cfg.window_tracks)]
+                        if not self._frozen[self._track_nodes[t][0]])
+        if not leaving and not self._frozen[:n].any():
+            return  # nothing will be frozen at the hand-off: the window is the batch solution
+        self._refine_snap = replace(self._snapshot(), leaving=leaving)
+        self._refine_updates = self._n_updates
+        self._refiner.submit(self._refine_snap, due)
+
+    def _snapshot(self) -> RefinementSnapshot:
+        """Copy of the data a refinement needs (every node, connection and status)."""
+        n = len(self._ids)
+        scfg = self.config.solver_config()
+        return RefinementSnapshot(
+            after_tracks=len(self._finished), node_ids=self._idarr.a.copy(),
+            track_ids=self._trackarr.a.copy(), T_world_node=self._T[:n].copy(),
+            frozen=self._frozen[:n].copy(),
+            track_order=tuple(int(t) for t in self._tracks if t in self._finished),
+            src=self._src.a.copy(), dst=self._dst.a.copy(), z=self._z.a.copy(),
+            cov=self._ccov.a.copy(), status=self._status.a.copy(),
+            freeze_policy=self.config.freeze_policy,
+            solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)))
+
+    def _install_due(self) -> tuple[int, str, float] | None:
+        """Install the refinement due at this update (waiting for it); returns ``(after_tracks,
+        reason, wait + install ms)`` or ``None`` if none was due. A failed refinement, or one
+        that cannot be installed, leaves the state as it was."""
+        t0 = time.perf_counter()
+        res = self._refiner.take(len(self._finished))
+        if res is None:
+            return None
+        snap, self._refine_snap = self._refine_snap, None
+        reason = res.reason
+        if res.ok and snap is not None:
+            try:
+                with blas_threads():
+                    self._install(snap, res)
+                self._n_refinements += 1
+            except (GaError, np.linalg.LinAlgError, ValueError) as exc:
+                reason = f'not installed: {type(exc).__name__}: {exc}'
+        elif not reason.startswith('failed'):
+            reason = f'failed: {reason}'
+        return res.after_tracks, reason, 1e3 * (time.perf_counter() - t0)
+
+    def _install(self, snap: RefinementSnapshot, res: RefinementResult) -> None:
+        """The refined estimate becomes the frozen one (after this update's freezes, before its
+        window adjustment).
+
+        The result was computed for the state predicted at this point
+        (:func:`~ga_ros.core.refinement.predict_freezes`); if the frozen nodes or the absorbed
+        connections differ, nothing is installed. Otherwise the frozen nodes take the refined
+        poses and covariances and the joint priors are the rebuilt ones (relinearised at the
+        refined estimate, each absorbed connection in exactly one). If no update ran since the
+        snapshot (``refine_lag_tracks = 1``) the window nodes also start from the refined poses.
+        After the adjustment :meth:`_smooth` carries the window's correction of the prior nodes
+        back to every frozen node.
+        """
+        n_s, m_s = snap.node_ids.size, snap.src.size
+        n = len(self._ids)
+        status = self._status.a
+        predicted = np.zeros(m_s, dtype=bool)
+        predicted[res.absorbed] = True
+        if (not np.array_equal(self._frozen[:n_s], res.frozen) or self._frozen[n_s:n].any()
+                or not np.array_equal(status[:m_s] == 1, predicted) or (status[m_s:] == 1).any()):
+            raise InputError('the frozen nodes or absorbed connections changed since the '
+                             'snapshot')
+        need = prior_nodes(self._frozen[:n], self._src.a, self._dst.a, status,
+                           self.config.freeze_policy)
+        have = np.zeros(n, dtype=bool)
+        for p in res.priors:
+            have[p.nodes] = True
+        if (need & ~have).any():
+            raise InputError('a node eliminated by the refinement has a connection to the window '
+                             'that arrived after the snapshot (refine_lag_tracks too large for '
+                             'this survey)')
+        frozen = np.nonzero(res.frozen)[0]
+        if self._n_updates == getattr(self, '_refine_updates', -1):
+            # the newer nodes (the track being finished) follow the last snapshot node rigidly:
+            # their frame-to-frame chain starts there
+            move = res.T_world_node[n_s - 1] @ se3.inverse(self._T[n_s - 1])
+            self._T[n_s:n] = move @ self._T[n_s:n]
+            self._T[:n_s] = res.T_world_node
+        else:
+            self._T[frozen] = res.T_world_node[frozen]
+        self._cov[frozen] = res.frozen_cov
+        self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+        self._smoothing = (res.smoothing, res.T_world_node)
+
+    def _smooth(self) -> None:
+        """Carry the window's correction of the prior nodes back to every frozen node.
+
+        The installed refinement kept the back substitution of its eliminations
+        (:class:`~ga_ros.core.refinement.SmoothingStep`); the window adjustment just moved the
+        prior nodes from the refined estimate ``T_r`` by ``d_S = log(T_r^-1 T)``; each frozen node
+        then moves to its conditional mean ``T_r exp(d)`` under the absorbed connections (the
+        batch solution of all data received, in the linear limit).
+        """
+        steps, T_lin = self.__dict__.pop('_smoothing', ((), None))
+        res = self._last
+        if T_lin is None or res is None:
+            return
+        where = {int(i): k for k, i in enumerate(res.node_ids.tolist())}
+        d_known = {}
+        for idx, _, _ in self._priors:
+            for i in idx.tolist():
+                k = where.get(int(self._ids[i]))
+                if k is not None:
+                    d_known[i] = se3.local(T_lin[i][None], res.T_world_node[k][None])[0]
+        d = smooth(steps, d_known)
+        nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
+        if nodes.size:
+            self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
+
+    def refinement_state(self) -> dict | None:
+        """What a snapshot file needs to restart the pending refinement exactly: its hand-off
+        track count, and the number of nodes and connections its snapshot held (the state is
+        that of the last update plus the measurements received since). ``None`` if there is
+        none, or if an update ran since its snapshot (``refine_lag_tracks > 1``: a restored
+        aligner then starts the next refinement at its next trigger)."""
+        snap, due = self._refine_snap, self._refiner.pending_due
+        if snap is None or due is None or self._n_updates != getattr(self, '_refine_updates', -1):
+            return None
+        return {'due': int(due), 'nodes': int(snap.node_ids.size),
+                'connections': int(snap.src.size), 'leaving': [int(t) for t in snap.leaving]}
+
+    def resume_refinement(self, state: dict | None) -> None:
+        """Restart the refinement described by :meth:`refinement_state` (a restored aligner),
+        from the same data, so the path continues as without the interruption."""
+        if not state or self.config.refine_every_tracks <= 0:
+            return
+        n, m = int(state['nodes']), int(state['connections'])
+        full = self._snapshot()
+        track_order = tuple(t for t in full.track_order
+                            if t in set(full.track_ids[:n].tolist()))
+        self._refine_snap = replace(
+            full, node_ids=full.node_ids[:n], track_ids=full.track_ids[:n],
+            T_world_node=full.T_world_node[:n], frozen=full.frozen[:n], track_order=track_order,
+            src=full.src[:m], dst=full.dst[:m], z=full.z[:m], cov=full.cov[:m],
+            status=full.status[:m], after_tracks=len(track_order),
+            leaving=tuple(int(t) for t in state['leaving']))
+        self._refine_updates = self._n_updates
+        self._refiner.drop()
+        self._refiner.submit(self._refine_snap, int(state['due']))
+
+    def close(self) -> None:
+        """Stop the background refinement (a pending result is dropped); the aligner stays
+        usable (a later refinement starts a new worker)."""
+        self._refiner.close()
 
     # ----------------------------------------------------------------------- updates
     def _finish_track(self) -> UpdateResult | None:
@@ -681,8 +885,12 @@ class TrackWindowAligner:
                    if not self._frozen[self._track_nodes[t][0]]]
         for t in leaving:
             self._freeze(t)
+        refined = self._install_due()  # background refinement due now (replaces the priors)
         try:
             up = self._adjust(window, track, t0)
+            if refined is not None and not str(up.reason).startswith('failed'):
+                self._smooth()
+                (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
         except GaError as exc:
             up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
                               0, 0, len(window), 0, f'failed: {exc}')
@@ -963,9 +1171,9 @@ class TrackWindowAligner:
                 pattern, data = BlockPattern.from_matrix(N, 6)
                 tf = trailing_factor(pattern, data, np.nonzero(~elim)[0], u)
                 H = tf.information()
-                shift = -tf.solution.reshape(-1, 6)[~elim].ravel()
-                self._priors.append((S_nodes, self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6)),
-                                     H))
+                g = H @ tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
+                mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T
+                self._priors.append((S_nodes, mean, H))
                 return
             except DegenerateGeometryError:  # N_LL or H singular: the dense path below
                 pass
@@ -983,12 +1191,8 @@ class TrackWindowAligner:
         H = 0.5 * (H + H.T)
         # The absorbed terms alone are not at their optimum (the window's estimate is), so
         # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
-        # the tangent d of S; the prior's mean is the current estimate moved by -H^-1 g.
-        try:  # H is positive definite unless the absorbed terms leave a direction free
-            shift = -sla.cho_solve(sla.cho_factor(H), g)
-        except np.linalg.LinAlgError:
-            shift = -np.linalg.lstsq(H, g, rcond=None)[0]
-        mean = self._T[S_nodes] @ se3.exp(shift.reshape(-1, 6))
+        # the tangent d of S (the prior's mean and information: refinement.tangent_prior).
+        mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T (refinement.py)
         self._priors.append((S_nodes, mean, H))
 
     # ------------------------------------------------------------------------ output
@@ -1078,6 +1282,9 @@ class TrackWindowAligner:
         The open track is finished first. Outliers stay excluded. The covariances published
         afterwards come from this adjustment: frozen nodes get their marginal blocks from it
         (selected inversion), window nodes are answered from it like after a window update.
+        The joint priors of the absorbed connections are rebuilt at the refined estimate
+        (:func:`~ga_ros.core.refinement.absorbed_priors`), so the next window update continues
+        from it consistently; a pending background refinement is dropped.
         """
         self.finish_track()
         t0 = time.perf_counter()
@@ -1097,6 +1304,13 @@ class TrackWindowAligner:
         frozen = np.nonzero(self._frozen[:n] & (np.arange(n) != 0))[0]
         if frozen.size:
             self._cov[frozen] = res.covariance(self._idarr.a[frozen])
+        # the joint priors of the absorbed connections, relinearised at the refined estimate
+        # (their old means would pull the next window update back to the online estimate)
+        self._refiner.drop()
+        self._refine_snap = None
+        with blas_threads():
+            self._priors = [(p.nodes, p.T_world_node, p.information)
+                            for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,

@@ -194,6 +194,10 @@ class AlignmentSession:
             elif not getattr(u, 'converged', True):
                 self.counts.not_converged += 1
                 notes.append(f'window update of track {u.track_id} did not converge ({reason})')
+            refine = str(getattr(u, 'refine_reason', ''))
+            if refine.startswith(('failed', 'not installed')):
+                notes.append(f'background refinement after track {u.refined_after_tracks} '
+                             f'{refine}; the online estimate stands')
         if self.session.autosave and self.session.state_file:
             try:
                 self.save()
@@ -230,12 +234,20 @@ class AlignmentSession:
             self.journal.close()
             clear_state(self.session.state_file)
             self.journal = MeasurementJournal(journal_path(self.session.state_file))
+        self._close_aligner()
         self.aligner = TrackWindowAligner(self.config)
         self.counts = _Counters()
         self.last_update, self.last_error = None, ''
 
+    def _close_aligner(self) -> None:
+        """Stop the aligner's background refinement (worker process or thread), if any."""
+        close = getattr(self.aligner, 'close', None)
+        if close is not None:
+            close()
+
     def close(self) -> None:
-        """Close the journal (after an ``fsync``)."""
+        """Close the journal (after an ``fsync``) and stop the background refinement."""
+        self._close_aligner()
         if self.journal is not None:
             try:
                 self.journal.sync()

@@ -36,7 +36,8 @@ class ReproduceConfig:
     aerial_positions_per_swath : nodes per swath (the paper: 102).
     aerial_noise : noise level (percent) of the aerial experiments.
     window_tracks : sliding-window size K (the paper: 5).
-    policies : freeze policies compared against the batch solution.
+    policies : freeze policies compared against the batch solution (``'<policy>+refine'``: with
+        the background refinement after every track, :mod:`ga_ros.core.refinement`).
     memory_tracks : two survey sizes (tracks) whose per-update memory is compared.
     fig8_tracks : 1-based track numbers whose before/after errors are plotted (Fig. 8).
     stereo_tracks, stereo_positions_per_swath : experiment 2 from rendered stereo (320x240,
@@ -61,7 +62,7 @@ class ReproduceConfig:
     aerial_positions_per_swath: int = 102
     aerial_noise: float = 10.0
     window_tracks: int = 5
-    policies: tuple[str, ...] = ('weighted', 'marginal')
+    policies: tuple[str, ...] = ('weighted', 'marginal', 'weighted+refine')
     memory_tracks: tuple[int, int] = (25, 100)
     fig8_tracks: tuple[int, ...] = PAPER_FIG8_TRACKS
     stereo_tracks: int = 25

@@ -292,14 +292,19 @@ def window_available() -> bool:
 
 def aligner_config(policy: str, window: int):
     """The :class:`~ga_ros.core.window.AlignerConfig` of a policy name of
-    ``ReproduceConfig.policies``: ``'<freeze policy>'`` or ``'<freeze policy>+<executor>'``, the
-    latter with the background refinement run by that executor (``refine_executor``; the other
-    refinement settings at their defaults). Every policy of the list gets its rows in the gap
+    ``ReproduceConfig.policies``: ``'<freeze policy>'`` (the plain window, no background
+    refinement), ``'<freeze policy>+refine'`` (with the background refinement at its default
+    settings) or ``'<freeze policy>+<executor>'`` (with it run by that ``refine_executor``). Every policy of the list gets its rows in the gap
     tables and its curve in Figs. 7 and 9."""
     from ga_ros.core.window import AlignerConfig
 
     base, _, executor = policy.partition('+')
-    extra = {'refine_executor': executor} if executor else {}
+    if not executor:  # the plain window: no background refinement
+        extra = {'refine_every_tracks': 0}
+    elif executor == 'refine':  # the refinement with its default settings
+        extra = {}
+    else:
+        extra = {'refine_executor': executor}
     return AlignerConfig(window_tracks=window, freeze_policy=base, **extra)
 
 
@@ -336,6 +341,8 @@ def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, wind
             snapshots[k] = {'before': before, 'after': after.copy()}
         start = stop
     run_s = time.perf_counter() - t_run
+    if hasattr(aligner, 'close'):  # stop the background refinement's worker
+        aligner.close()
     path = aligner.corrected_path().T_world_node.copy()
     t0 = time.perf_counter()
     aligner.refine_batch()
@@ -496,7 +503,10 @@ def memory_profile(cfg: ReproduceConfig) -> dict:
         tracemalloc.start()
         try:
             base = tracemalloc.get_traced_memory()[0]
-            aligner = TrackWindowAligner(AlignerConfig(window_tracks=cfg.window_tracks),
+            # the window update's own memory: without the background refinement (a batch of
+            # the whole survey, whose memory grows with it by design)
+            aligner = TrackWindowAligner(AlignerConfig(window_tracks=cfg.window_tracks,
+                                                       refine_every_tracks=0),
                                          T_world_first=sc.T_world_node[0])
             peaks = []
             dst_track = np.array([m.dst_track for m in meas])

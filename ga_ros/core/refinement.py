@@ -1,0 +1,501 @@
+"""Background batch refinement of the track window's frozen estimate (ROS-free).
+
+The track window (:mod:`ga_ros.core.window`) filters: a track that leaves the window is frozen
+at the estimate of that moment and never re-estimated with later data, and its connections are
+absorbed into joint Gaussian priors linearised where the tracks froze. The batch solution of the
+same data smooths. A *refinement* closes the gap without blocking the per-track update:
+
+1. after every ``refine_every_tracks``-th track the aligner takes a :class:`RefinementSnapshot`
+   (node poses, connections and their status, which nodes are frozen) and hands it to a worker
+   (a separate process by default, truly parallel on a multi-core machine; a thread; or inline);
+2. the worker solves the snapshot in full (:func:`refine_snapshot`: batch Gauss-Newton,
+   warm-started at the online estimate), computes the marginal covariances of the frozen nodes
+   (selected inversion) and rebuilds the joint priors of the absorbed connections at the refined
+   estimate (:func:`absorbed_priors`);
+3. at the start of the update of track ``k + refine_lag_tracks`` (``k`` the snapshot's track),
+   the aligner installs the result, waiting for it if it is not ready: the frozen poses and their
+   published covariances are replaced, and the priors are the rebuilt ones (plus the tracks frozen
+   since the snapshot, absorbed again at the refined estimate). The hand-off point depends on the
+   track count only, so a replay and a live node give the same path whatever the timing.
+
+Every absorbed connection still enters exactly one prior, so the published covariances stay
+honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+import time
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.sparse.csgraph import connected_components
+
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver import SolverConfig, normal_matrix_at, solve
+from ga_ros.errors import GaError, InputError
+from ga_ros.geometry import se3
+from ga_ros.runtime import blas_threads
+
+#: Where a refinement runs: a separate process ('spawn' start method: safe beside the DDS threads
+#: of a live node), a thread of this process, or inline at the hand-off (same result, blocking).
+REFINE_EXECUTORS = ('process', 'thread', 'inline')
+
+
+@dataclass(frozen=True)
+class RefinementSnapshot:
+    """What a refinement solves: a copy of the aligner's data after one track's update.
+
+    Attributes
+    ----------
+    after_tracks : number of finished tracks when the snapshot was taken.
+    node_ids, track_ids : (n,) ids of the nodes of finished tracks, in the aligner's order; node 0
+        (index 0) is the datum, held fixed.
+    T_world_node : (n, 4, 4) online estimate (warm start).
+    frozen : (n,) frozen flags at the snapshot.
+    track_order : finished track ids in order of appearance (the order in which they freeze).
+    src, dst : (m,) connection end points as node indices.
+    z : (m, 6) measured motions ``[t, rotvec]`` of ``T_src_dst``; cov : (m, 6, 6) covariances.
+    status : (m,) 0 active, 1 absorbed into a prior, 2 excluded as an outlier.
+    freeze_policy : ``'weighted'`` or ``'marginal'`` (which nodes the rebuilt priors keep).
+    solver : settings of the batch solve.
+    leaving : tracks that will have frozen by the hand-off (they leave the window before the
+        update that installs the result); the priors are rebuilt for that state.
+    """
+
+    after_tracks: int
+    node_ids: IntArray
+    track_ids: IntArray
+    T_world_node: FloatArray
+    frozen: BoolArray
+    track_order: tuple[int, ...]
+    src: IntArray
+    dst: IntArray
+    z: FloatArray
+    cov: FloatArray
+    status: IntArray
+    freeze_policy: str
+    solver: SolverConfig
+    leaving: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class SmoothingStep:
+    """One elimination of :func:`absorbed_priors`, kept for back substitution.
+
+    Given the tangent corrections ``d_R`` of the nodes ``R`` still present after the step (at
+    the linearisation point), the eliminated nodes ``L`` move by ``d_L = offset + gain d_R``
+    (their conditional mean under the absorbed terms).
+    """
+
+    eliminated: IntArray
+    remaining: IntArray
+    gain: FloatArray
+    offset: FloatArray
+
+
+@dataclass(frozen=True)
+class AbsorbedPrior:
+    """One joint Gaussian prior of absorbed connections (the aligner's prior layout).
+
+    Attributes
+    ----------
+    nodes : (k,) node indices the prior is over.
+    T_world_node : (k, 4, 4) prior mean (right perturbation ``T_mean exp(e)``).
+    information : (6k, 6k) information, node-major, ``[x y z rx ry rz]`` per node.
+    """
+
+    nodes: IntArray
+    T_world_node: FloatArray
+    information: FloatArray
+
+
+@dataclass(frozen=True)
+class RefinementResult:
+    """Outcome of :func:`refine_snapshot`.
+
+    Attributes
+    ----------
+    after_tracks : the snapshot's ``after_tracks``.
+    ok : the batch solve converged and the priors could be rebuilt; otherwise nothing is
+        installed and ``reason`` says why.
+    reason : the solver's termination reason, or the error.
+    T_world_node : (n, 4, 4) refined poses of the snapshot's nodes (snapshot order).
+    frozen_cov : (f, 6, 6) marginal covariances ``[x y z rx ry rz]`` of the snapshot's frozen
+        nodes (in index order; the datum's block is zero).
+    priors : joint priors of the absorbed connections, relinearised at the refined frozen poses.
+    frozen : (n,) frozen flags at the hand-off (the snapshot's plus the ``leaving`` tracks).
+    absorbed : (a,) connections absorbed into priors at the hand-off (predicted).
+    smoothing : back-substitution steps from the priors' nodes to every other frozen node.
+    iterations : Gauss-Newton iterations of the batch solve.
+    seconds : wall time of the whole refinement (solve, covariances, priors).
+    """
+
+    after_tracks: int
+    ok: bool
+    reason: str
+    T_world_node: FloatArray
+    frozen_cov: FloatArray
+    priors: tuple[AbsorbedPrior, ...]
+    frozen: BoolArray
+    absorbed: IntArray
+    smoothing: tuple[SmoothingStep, ...]
+    iterations: int
+    seconds: float
+
+
+def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
+    """Batch solve of a snapshot, frozen covariances and rebuilt priors (runs in a worker).
+
+    The batch solve uses every connection that is not excluded (status != 2), warm-started at
+    the online estimate, the first node fixed. The priors are rebuilt by :func:`absorbed_priors`
+    at the refined poses, for the state after the ``leaving`` tracks froze
+    (:func:`predict_freezes`).
+    Never raises for a numerical failure: ``ok`` is then ``False``.
+    """
+    t0 = time.perf_counter()
+    n = snap.node_ids.size
+    empty = RefinementResult(snap.after_tracks, False, '', snap.T_world_node,
+                             np.zeros((0, 6, 6)), (), snap.frozen, np.zeros(0, np.int64), (),
+                             0, 0.0)
+    try:
+        with blas_threads():
+            snap = predict_freezes(snap)
+            keep = np.nonzero(snap.status != 2)[0]
+            net = ConnectionNetwork.from_arrays(snap.node_ids, snap.track_ids, snap.src[keep],
+                                                snap.dst[keep], snap.z[keep], snap.cov[keep])
+            res = solve(net, snap.T_world_node, snap.solver, fixed=[int(snap.node_ids[0])])
+            if not res.converged:
+                return _failed(empty, f'batch solve did not converge: {res.reason}', t0)
+            frozen = np.nonzero(snap.frozen)[0]
+            cov = np.zeros((frozen.size, 6, 6))
+            free = frozen[frozen != 0]
+            if free.size:
+                cov[frozen != 0] = res.covariance(snap.node_ids[free])
+            priors, steps = _eliminate_absorbed(snap, res.T_world_node)
+    except (GaError, np.linalg.LinAlgError, ValueError) as exc:
+        return _failed(empty, f'{type(exc).__name__}: {exc}', t0)
+    assert res.T_world_node.shape == (n, 4, 4)
+    return RefinementResult(snap.after_tracks, True, res.reason, res.T_world_node, cov,
+                            priors, snap.frozen, np.nonzero(snap.status == 1)[0], steps,
+                            res.iterations, time.perf_counter() - t0)
+
+
+def _failed(empty: RefinementResult, reason: str, t0: float) -> RefinementResult:
+    return replace(empty, reason=reason, seconds=time.perf_counter() - t0)
+
+
+def predict_freezes(snap: RefinementSnapshot) -> RefinementSnapshot:
+    """The snapshot as it will be once its ``leaving`` tracks have frozen.
+
+    Each leaving track, in order, absorbs what the aligner's freezing absorbs: under
+    ``'weighted'`` its active connections whose two ends are then frozen, under ``'marginal'``
+    all its active connections. Connections that arrive later always touch a newer track, which
+    is still in the window, so they are never absorbed by these freezes; the aligner checks the
+    prediction at the hand-off anyway and installs nothing if it does not hold.
+    """
+    if not snap.leaving:
+        return snap
+    frozen = snap.frozen.copy()
+    status = snap.status.copy()
+    for t in snap.leaving:
+        in_t = snap.track_ids == t
+        frozen |= in_t
+        mine = (status == 0) & (in_t[snap.src] | in_t[snap.dst])
+        if snap.freeze_policy == 'weighted':
+            mine &= frozen[snap.src] & frozen[snap.dst]
+        status[mine] = 1
+    return replace(snap, frozen=frozen, status=status, leaving=())
+
+
+def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArray,
+                freeze_policy: str) -> BoolArray:
+    """Which nodes the priors of the absorbed connections are over (``(n,)`` mask).
+
+    ``'weighted'``: frozen nodes that keep an active connection to a node that is not frozen
+    (the paper's weighted parameters). ``'marginal'``: nodes that are not frozen. In both cases
+    only nodes touched by an absorbed connection count, and never the datum (index 0).
+    """
+    n = frozen.size
+    act = status == 0
+    if freeze_policy == 'weighted':
+        keep = np.zeros(n, dtype=bool)
+        s_, d_ = src[act], dst[act]
+        keep[s_[~frozen[d_]]] = True
+        keep[d_[~frozen[s_]]] = True
+        keep &= frozen
+    else:
+        keep = ~frozen
+    touched = np.zeros(n, dtype=bool)
+    touched[src[status == 1]] = True
+    touched[dst[status == 1]] = True
+    keep &= touched
+    keep[0] = False
+    return keep
+
+
+def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[AbsorbedPrior, ...]:
+    """Joint Gaussian priors of every absorbed connection (see :func:`_eliminate_absorbed`)."""
+    return _eliminate_absorbed(snap, T_lin)[0]
+
+
+def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
+                        ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SmoothingStep, ...]]:
+    """Joint Gaussian priors of every absorbed connection (status 1), linearised at ``T_lin``.
+
+    The absorbed connections are summed in the order their tracks froze and every node that no
+    later absorbed connection touches, and that is not a prior node (:func:`prior_nodes`), is
+    eliminated as soon as its last connection is in (Schur complement): the working matrix spans
+    about two tracks whatever the survey's length, and the result is the exact marginal of the
+    absorbed terms on the prior nodes in the linear limit (the order of elimination does not
+    change a Schur complement; ``test/test_refinement.py`` checks it against one dense
+    elimination). As in the aligner's freezing, the absorbed terms are not at their optimum, so
+    their marginal keeps a linear term ``g``: the prior mean is ``T_lin`` moved by ``-H^-1 g``.
+
+    Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
+    and the elimination steps for back substitution (:class:`SmoothingStep`).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        An eliminated group is not determined by the absorbed terms (no datum, no prior node).
+    """
+    absorbed = np.nonzero(snap.status == 1)[0]
+    if absorbed.size == 0:
+        return (), ()
+    n = snap.node_ids.size
+    keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy)
+    order = {t: k for k, t in enumerate(snap.track_order)}
+    rank = np.array([order.get(int(t), len(order)) for t in snap.track_ids], dtype=np.int64)
+    # a connection is added at the freeze of its later frozen end (the earlier end may be the
+    # window's, under 'marginal'); a node is eliminated after its last absorbed connection
+    rs, rd = rank[snap.src[absorbed]], rank[snap.dst[absorbed]]
+    fs, fd = snap.frozen[snap.src[absorbed]], snap.frozen[snap.dst[absorbed]]
+    step = np.maximum(np.where(fs, rs, -1), np.where(fd, rd, -1))
+    last = np.full(n, -1, dtype=np.int64)
+    np.maximum.at(last, snap.src[absorbed], step)
+    np.maximum.at(last, snap.dst[absorbed], step)
+    cols: dict[int, int] = {}   # node index -> block position in (H, g)
+    H = np.zeros((0, 0))
+    g = np.zeros(0)
+    steps: list[SmoothingStep] = []
+    for s in np.unique(step):
+        conns = absorbed[step == s]
+        nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]))
+        local = np.full(n, -1, dtype=np.int64)
+        local[nodes] = np.arange(nodes.size)
+        net = ConnectionNetwork.from_arrays(
+            snap.node_ids[nodes], snap.track_ids[nodes], local[snap.src[conns]],
+            local[snap.dst[conns]], snap.z[conns], snap.cov[conns])
+        fixed = [int(snap.node_ids[0])] if (nodes == 0).any() else []
+        N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed)
+        free = nodes[nodes != 0] if fixed else nodes
+        assert free.size == free_ids.size
+        for i in free.tolist():
+            if i not in cols:
+                cols[i] = len(cols)
+        size = 6 * len(cols)
+        H = np.pad(H, ((0, size - H.shape[0]), (0, size - H.shape[1])))
+        g = np.pad(g, (0, size - g.size))
+        at = (6 * np.array([cols[i] for i in free.tolist()])[:, None] + np.arange(6)).ravel()
+        H[np.ix_(at, at)] += N.toarray()
+        g[at] += u
+        gone = [i for i in cols if last[i] <= s and not keep[i]]
+        if gone:
+            H, g, cols, back = _eliminate(H, g, cols, gone)
+            steps.append(back)
+    if not cols:
+        return (), tuple(steps)
+    S = np.array(list(cols), dtype=np.int64)
+    priors = tuple(_prior_of(H, g, cols, group, T_lin) for group in _groups(H, S, cols))
+    return priors, tuple(steps)
+
+
+def _eliminate(H: FloatArray, g: FloatArray, cols: dict[int, int], gone: list[int]
+               ) -> tuple[FloatArray, FloatArray, dict[int, int], SmoothingStep]:
+    """Schur complement of the nodes ``gone`` out of ``(H, g)``, and its back substitution
+    ``d_L = -H_LL^-1 (g_L + H_LS d_S)``."""
+    gone_set = set(gone)
+    stay = [i for i in cols if i not in gone_set]
+    cL = (6 * np.array([cols[i] for i in gone])[:, None] + np.arange(6)).ravel()
+    cS = (6 * np.array([cols[i] for i in stay], dtype=np.int64)[:, None] + np.arange(6)).ravel()
+    cho = sla.cho_factor(H[np.ix_(cL, cL)])
+    HLS = H[np.ix_(cL, cS)]
+    gain = -sla.cho_solve(cho, HLS)
+    offset = -sla.cho_solve(cho, g[cL])
+    Hn = H[np.ix_(cS, cS)] + HLS.T @ gain
+    gn = g[cS] + HLS.T @ offset
+    # kept in single precision (half the memory and transfer; a correction of 1 m is then
+    # carried to 0.1 um)
+    back = SmoothingStep(np.array(gone, dtype=np.int64), np.array(stay, dtype=np.int64),
+                         gain.astype(np.float32), offset)
+    return 0.5 * (Hn + Hn.T), gn, {i: k for k, i in enumerate(stay)}, back
+
+
+def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
+           ) -> dict[int, FloatArray]:
+    """Back substitution through elimination steps, newest first (Rauch-Tung-Striebel style).
+
+    Parameters
+    ----------
+    steps : from :func:`_eliminate_absorbed`, in elimination order.
+    d_known : tangent corrections (6,) of the prior nodes, by node index.
+
+    Returns
+    -------
+    Corrections of every node (prior nodes and eliminated ones), by node index.
+    """
+    d = dict(d_known)
+    for st in reversed(steps):
+        dR = np.concatenate([d.get(int(i), np.zeros(6)) for i in st.remaining]
+                            or [np.zeros(0)])
+        dL = st.offset + (st.gain.astype(np.float64) @ dR if dR.size else 0.0)
+        for k, i in enumerate(st.eliminated.tolist()):
+            d[i] = dL[6 * k:6 * k + 6]
+    return d
+
+
+def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
+    """Prior nodes grouped by the connected components of ``H``'s block pattern."""
+    k = S.size
+    blocks = np.abs(H).reshape(k, 6, k, 6).max(axis=(1, 3)) > 0
+    _, label = connected_components(blocks, directed=False)
+    return [S[label == c] for c in np.unique(label)]
+
+
+def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArray,
+              T_lin: FloatArray) -> AbsorbedPrior:
+    at = (6 * np.array([cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
+    mean, info = tangent_prior(T_lin[group], H[np.ix_(at, at)], g[at])
+    return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info)
+
+
+def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray,
+                  iterations: int = 4) -> tuple[FloatArray, FloatArray]:
+    """Mean and information of a Gaussian prior whose cost matches ``(d + H^-1 g)' H (d + H^-1
+    g)`` to second order at ``T_lin`` (``d`` the right-perturbation tangent of the ``k`` poses).
+
+    The solver's prior residual is ``e = log(T_mean^-1 T)`` with Jacobian ``J = J_r(e)^-1`` per
+    node, so its gradient at ``T_lin`` is ``J' H' e`` and its Gauss-Newton matrix ``J' H' J``.
+    Taking ``T_mean = T_lin exp(-H^-1 g)`` and ``H' = H`` (the plain shift) is right only when
+    the shift is small: the gradient is off by ``O(|H^-1 g| |g|)``, and ``g`` is large where
+    the window's connections pull the boundary away from the absorbed terms' own optimum (at 1 %
+    noise a batch optimum moved by 2 cm in the next window update). Here ``H' = J^-T H J^-1``
+    and ``e = J H^-1 g`` (a fixed point in ``e``, a few iterations), so that gradient and
+    Gauss-Newton matrix at ``T_lin`` are exactly ``g`` and ``H``.
+
+    Parameters
+    ----------
+    T_lin : (k, 4, 4) linearisation point ``T_world_node``.
+    H : (6k, 6k) information, node-major ``[x y z rx ry rz]``; g : (6k,) half gradient.
+
+    Returns
+    -------
+    T_mean : (k, 4, 4); information : (6k, 6k).
+    """
+    k = T_lin.shape[0]
+    try:  # least squares only if the absorbed terms leave a direction free
+        e0 = sla.cho_solve(sla.cho_factor(H), g)
+    except np.linalg.LinAlgError:
+        e0 = np.linalg.lstsq(H, g, rcond=None)[0]
+    e0 = e0.reshape(k, 6)
+    e = e0
+    for _ in range(iterations):
+        e = (se3.right_jacobian_inv(e) @ e0[:, :, None])[:, :, 0]
+    Jinv = np.linalg.inv(se3.right_jacobian_inv(e))       # (k, 6, 6) blocks of J^-1
+    info = H.reshape(k, 6, k, 6)
+    info = np.einsum('aij,aibk,bkl->ajbl', Jinv, info, Jinv).reshape(6 * k, 6 * k)
+    return T_lin @ se3.exp(-e), 0.5 * (info + info.T)
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """In the worker process: exit when the aligner's process is gone (killed with SIGKILL,
+    say), instead of living on as an orphan."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name='ga_refine_parent', daemon=True).start()
+
+
+class RefinementWorker:
+    """Runs :func:`refine_snapshot` off the update path and hands results back in order.
+
+    At most one refinement is in flight. The executor (a one-worker process pool with the
+    'spawn' start method, a one-worker thread pool, or none for ``'inline'``) is created on the
+    first submission and shut down by :meth:`close` (also when the worker is garbage collected).
+
+    Parameters
+    ----------
+    executor : one of :data:`REFINE_EXECUTORS`.
+    """
+
+    def __init__(self, executor: str = 'process') -> None:
+        if executor not in REFINE_EXECUTORS:
+            raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
+                             f'got {executor!r}')
+        self.kind = executor
+        self._pool: Executor | None = None
+        self._pending: tuple[int, Future | RefinementSnapshot] | None = None
+
+    @property
+    def pending_due(self) -> int | None:
+        """Track count at whose update the pending refinement is installed (``None``: none)."""
+        return None if self._pending is None else self._pending[0]
+
+    def submit(self, snap: RefinementSnapshot, due: int) -> None:
+        """Start refining ``snap``; its result is due at the update of the ``due``-th track."""
+        if self._pending is not None:
+            raise InputError('a refinement is already in flight')
+        if self.kind == 'inline':
+            self._pending = (due, snap)
+            return
+        if self._pool is None:
+            if self.kind == 'process':
+                self._pool = ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context('spawn'),
+                    initializer=_exit_with_parent, initargs=(os.getpid(),))
+            else:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ga_refine')
+        self._pending = (due, self._pool.submit(refine_snapshot, snap))
+
+    def take(self, n_tracks: int) -> RefinementResult | None:
+        """The pending result if it is due at the update of the ``n_tracks``-th track (waits
+        for it), else ``None``. A worker that died yields a failed result."""
+        if self._pending is None or self._pending[0] > n_tracks:
+            return None
+        _, job = self._pending
+        self._pending = None
+        if isinstance(job, RefinementSnapshot):
+            return refine_snapshot(job)
+        try:
+            return job.result()
+        except Exception as exc:  # noqa: BLE001 - a crashed worker must not end the survey
+            return RefinementResult(-1, False, f'worker failed: {type(exc).__name__}: {exc}',
+                                    np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), (),
+                                    np.zeros(0, bool), np.zeros(0, np.int64), (), 0, 0.0)
+
+    def drop(self) -> None:
+        """Forget the pending refinement (a reset, a restored state)."""
+        if self._pending is not None and isinstance(self._pending[1], Future):
+            self._pending[1].cancel()
+        self._pending = None
+
+    def close(self) -> None:
+        """Drop the pending refinement and shut the executor down (without waiting)."""
+        self.drop()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001, S110 - interpreter shutdown
+            pass

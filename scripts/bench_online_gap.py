@@ -1,0 +1,119 @@
+"""Per-track gap between the online (track-window) estimate and the batch one.
+
+For each freeze policy (and the background refinement), the aerial survey of the report is fed
+track by track; after every track the corrected path is compared with a batch solve of the data
+received so far (same connections, warm-started from the online path): ATE raw (first pose
+anchored) and rigidly aligned, both against ground truth, as gap percentages
+``100 (online / batch - 1)``. Prints one table row per track and a summary per policy.
+
+    .venv/bin/python scripts/bench_online_gap.py --tracks 8 --policies weighted marginal
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.eval.metrics import ate
+from ga_ros.report.experiments import EXP_AERIAL, run_rng
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+
+
+def _policy_config(name: str, window: int, every: int, lag: int) -> AlignerConfig:
+    base, _, refine = name.partition('+')
+    extra = {'refine_every_tracks': 0}
+    if refine:
+        extra = {'refine_every_tracks': every, 'refine_lag_tracks': lag,
+                 'refine_executor': refine}
+    return AlignerConfig(window_tracks=window, freeze_policy=base, **extra)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--tracks', type=int, default=8, help='double tracks of the survey')
+    ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
+    ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
+    ap.add_argument('--window', type=int, default=5)
+    ap.add_argument('--seed', type=int, default=20051101)
+    ap.add_argument('--policies', nargs='+', default=['weighted', 'marginal'],
+                    help="freeze policies; 'weighted+process' (+thread, +inline): with refinement")
+    ap.add_argument('--every', type=int, default=1, help='refine_every_tracks')
+    ap.add_argument('--lag', type=int, default=1, help='refine_lag_tracks')
+    ap.add_argument('--no-per-track', action='store_true',
+                    help='compare with batch at the end only (no batch solve per track)')
+    args = ap.parse_args()
+    sc = aerial_scenario(args.tracks, args.positions)
+    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
+                 run_rng(args.seed, EXP_AERIAL, 0))
+    T_true = sc.T_world_node
+    meas = sc.measurements(nm.z, nm.cov)
+    dst_track = np.array([m.dst_track for m in meas])
+    bounds = np.searchsorted(dst_track, np.unique(sc.track_ids), side='right')
+    bcfg = SolverConfig(tolerance=1e-7)
+    batch_cache: dict[int, np.ndarray] = {}
+
+    def batch_upto(al: TrackWindowAligner, n: int) -> np.ndarray:
+        if n not in batch_cache:
+            src, dst, z, _, status = al.connection_arrays()
+            cov = al.connection_covariances()
+            keep = (status != 2) & (src < n) & (dst < n)
+            net = ConnectionNetwork()
+            for i in range(n):
+                net.add_node(int(sc.node_ids[i]), int(sc.track_ids[i]))
+            net.add_connections(src[keep], dst[keep], z[keep], cov[keep])
+            T0 = al.corrected_path().T_world_node[:n]
+            batch_cache[n] = solve(net, T0, bcfg, fixed=[int(sc.node_ids[0])]).T_world_node
+        return batch_cache[n]
+
+    def gaps(T, Tb, n):
+        wr, wa = ate(T, T_true[:n], 'first').rmse, ate(T, T_true[:n], 'rigid').rmse
+        br, ba = ate(Tb, T_true[:n], 'first').rmse, ate(Tb, T_true[:n], 'rigid').rmse
+        return 100 * (wr / br - 1), 100 * (wa / ba - 1), br, ba
+
+    for name in args.policies:
+        al = TrackWindowAligner(_policy_config(name, args.window, args.every, args.lag),
+                                T_world_first=T_true[0])
+        start, ms, rows, own, wait = 0, [], [], [], []
+        t_run = time.perf_counter()
+        for k, stop in enumerate(bounds):
+            for m in meas[start:stop]:
+                al.add_measurement(m)
+            t0 = time.perf_counter()
+            up = al.finish_track()
+            ms.append(1e3 * (time.perf_counter() - t0))
+            own.append(up.update_ms - up.refine_wait_ms)
+            wait.append(up.refine_wait_ms)
+            start = stop
+            n = len(al.corrected_path().node_ids)
+            if not args.no_per_track or k == len(bounds) - 1:
+                path = al.corrected_path()
+                Tb = batch_upto(al, n)
+                d = np.linalg.norm(path.T_world_node[:, :3, 3] - Tb[:, :3, 3], axis=1)
+                fz = path.frozen
+                dif = (np.sqrt(np.mean(d[fz] ** 2)) if fz.any() else 0.0,
+                       np.sqrt(np.mean(d[~fz] ** 2)))
+                rows.append((k, *gaps(path.T_world_node, Tb, n), *dif))
+        run_s = time.perf_counter() - t_run
+        print(f'== {name}: window {args.window}, {args.tracks} double tracks, '
+              f'{args.noise:g} % noise; finish_track ms p50 {np.percentile(ms, 50):.0f} '
+              f'p95 {np.percentile(ms, 95):.0f} max {max(ms):.0f} (update without the hand-off '
+              f'p50 {np.percentile(own, 50):.0f} p95 {np.percentile(own, 95):.0f}; hand-off wait '
+              f'+ install p50 {np.percentile(wait, 50):.0f} max {max(wait):.0f}); '
+              f'run {run_s:.1f} s')
+        print(' track  gap_raw%  gap_aligned%  batch_raw_m  batch_aligned_m  to_batch_frozen_m'
+              '  to_batch_window_m')
+        for k, gr, ga, br, ba, df, dw in rows:
+            print(f'{k:6d} {gr:9.1f} {ga:13.1f} {br:12.3f} {ba:16.3f} {df:18.3f} {dw:18.3f}')
+        g = np.array([r[1:3] for r in rows])
+        print(f'   end raw {g[-1, 0]:+.1f} % aligned {g[-1, 1]:+.1f} %; mean over tracks raw '
+              f'{g[:, 0].mean():+.1f} % aligned {g[:, 1].mean():+.1f} %')
+
+
+if __name__ == '__main__':
+    main()
