@@ -873,9 +873,9 @@ class TrackWindowAligner:
         if self._open_track is None or self._open_track in self._finished:
             return None
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
-            return self._finish_track()
+            return self._update()
 
-    def _finish_track(self) -> UpdateResult:
+    def _update(self) -> UpdateResult:
         track = self._open_track
         self._finished.add(track)
         t0 = time.perf_counter()
