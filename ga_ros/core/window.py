@@ -52,6 +52,13 @@ from scipy.stats import chi2
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.quality import (
+    QualityConfig,
+    QualityReport,
+    QualitySummary,
+    quality_control,
+    summarise,
+)
 from ga_ros.core.refinement import (
     REFINE_EXECUTORS,
     RefinementResult,
