@@ -294,8 +294,8 @@ def aligner_config(policy: str, window: int):
     """The :class:`~ga_ros.core.window.AlignerConfig` of a policy name of
     ``ReproduceConfig.policies``: ``'<freeze policy>'`` (the plain window, no background
     refinement), ``'<freeze policy>+refine'`` (with the background refinement at its default
-    settings) or ``'<freeze policy>+<executor>'`` (with it run by that ``refine_executor``). Every policy of the list gets its rows in the gap
-    tables and its curve in Figs. 7 and 9."""
+    settings) or ``'<freeze policy>+<executor>'`` (with it run by that ``refine_executor``).
+    Every policy of the list gets its rows in the gap tables and its curve in Figs. 7 and 9."""
     from ga_ros.core.window import AlignerConfig
 
     base, _, executor = policy.partition('+')
