@@ -37,6 +37,7 @@ from ga_ros.core.storage import (
     TrackLists,
     TrackRanges,
     pack_sym6,
+    zeros,
 )
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, measurement_fingerprints
 from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputError
@@ -263,11 +264,11 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
     al._idarr, al._trackarr = Rows.of(ids, np.int64), Rows.of(track, np.int64)
     al._stamparr = Rows.of(arrays['stamp'], np.int64)
     cap = max(64, 2 * n)
-    al._T = np.zeros((cap, 4, 4))
+    al._T = zeros((cap, 4, 4))
     al._T[:n] = arrays['T']
     al._cov = SymArray(cap)
     al._cov.packed[:n] = arrays['cov21']
-    al._frozen = np.zeros(cap, dtype=bool)
+    al._frozen = zeros((cap,), bool)
     al._frozen[:n] = arrays['frozen']
     al._track_nodes = TrackRanges.of(track)
     al._tracks = [int(t) for t in meta['tracks']]

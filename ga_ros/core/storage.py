@@ -10,6 +10,7 @@ touched, so it takes address space but no resident memory.
 
 from __future__ import annotations
 
+import mmap
 from collections.abc import Iterable
 
 import numpy as np
@@ -20,10 +21,32 @@ from ga_ros.arrays import FloatArray, IntArray
 IU6 = np.triu_indices(6)
 
 
+#: Arrays of at least this many bytes live in their own anonymous memory map (see :func:`zeros`).
+MMAP_MIN_BYTES = 1 << 20
+
+
+def zeros(shape: tuple[int, ...], dtype=float) -> np.ndarray:
+    """A zeroed array whose untouched pages take no resident memory.
+
+    ``np.zeros`` gets its memory from ``calloc``; once a process has freed large blocks (a
+    solver does, all the time), glibc serves allocations up to 32 MiB from its heap and must
+    clear recycled memory, which makes every byte of a growable table's spare capacity
+    resident. An array of at least :data:`MMAP_MIN_BYTES` is therefore placed in its own
+    anonymous ``mmap``: the kernel hands out zero pages as they are first written, and the
+    whole map is returned to the system when the array is freed.
+    """
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if nbytes < MMAP_MIN_BYTES:
+        return np.zeros(shape, dtype=dtype)
+    return np.frombuffer(mmap.mmap(-1, nbytes), dtype=dtype).reshape(shape)
+
+
 def grow_rows(a: np.ndarray, need: int) -> np.ndarray:
-    """``a`` copied into a zeroed array of at least ``need`` rows (1.5x steps, >= 64)."""
+    """``a`` copied into a zeroed array (:func:`zeros`) of at least ``need`` rows (1.5x
+    steps, >= 64)."""
     cap = max(64, need, a.shape[0] + a.shape[0] // 2)
-    out = np.zeros((cap,) + a.shape[1:], dtype=a.dtype)
+    out = zeros((cap,) + a.shape[1:], a.dtype)
     out[:a.shape[0]] = a
     return out
 
@@ -136,7 +159,7 @@ class SymArray:
     back mirrored from its upper triangle)."""
 
     def __init__(self, capacity: int = 0) -> None:
-        self.packed = np.zeros((capacity, 21))
+        self.packed = zeros((capacity, 21))
 
     @property
     def shape(self) -> tuple[int, int, int]:
