@@ -34,7 +34,7 @@ def test_every_robot_process_lives_in_its_namespace(tmp_path: Path) -> None:
 def test_two_robots_each_path_from_its_own_measurements(tmp_path: Path) -> None:
     second = fleet.make_second_bag(tmp_path / 'robot2_bag', OFFSET_S)
     res = fleet.run_fleet(tmp_path / 'run', {'robot1': fleet.REPO / 'bags' / 'stereo_sample',
-                                             'robot2': second}, rate=5.0, timeout_s=200)
+                                             'robot2': second}, rate=10.0, timeout_s=200)
     print(fleet.format_result(res))
     assert res.ok, res.errors
     r1, r2 = res.robots

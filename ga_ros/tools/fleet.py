@@ -12,8 +12,8 @@ Each robot ``/robotN`` runs, as separate processes on one DDS domain:
   corrected path of that robot and calls its ``alignment_node/finish_track`` once the
   measurements stop.
 
-Afterwards each robot's last path is compared with ``ga-ros replay`` of the measurements its
-own mapping node recorded (same input, same deterministic aligner: identical). The robots'
+Afterwards each robot's last path is compared with the aligner fed, in-process, the measurements
+its own mapping node recorded (same input, same deterministic aligner: identical). The robots'
 bags carry disjoint stamp ranges, so a measurement or pose that crossed from one robot to the
 other would be seen by its stamp.
 
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
-from ga_ros.tools.multihost import REPO, _replay, _stop_all, _wait_line, compare_paths
+from ga_ros.tools.multihost import REPO, _stop_all, _wait_line, compare_paths
 
 #: The stereo topics of the sample bags (``ga_ros.replay.samples``), remapped per robot.
 STEREO_TOPICS = ('/stereo/left/image_raw/compressed', '/stereo/right/image_raw/compressed',
@@ -132,8 +132,6 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
     timeout_s : longest wait for all robots to finish.
     domain_id : ``ROS_DOMAIN_ID`` (default: derived from the process id).
     """
-    from ga_ros.io.trajectory import read_tum
-
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     dom = int(domain_id if domain_id is not None else 60 + os.getpid() % 100)
@@ -170,14 +168,32 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
     finally:
         _stop_all(list(procs.values()))
     for r, bag in bags.items():
-        res.robots.append(_check_robot(r, Path(bag), out / r, read_tum, res.errors))
+        res.robots.append(_check_robot(r, Path(bag), out / r, res.errors))
     res.seconds = time.monotonic() - t0
     res.ok = not res.errors
     (out / 'summary.json').write_text(json.dumps(asdict(res), indent=1))
     return res
 
 
-def _check_robot(name: str, bag: Path, out: Path, read_tum, errors: list[str]) -> RobotResult:
+def replay_recorded(bag: Path):
+    """The corrected path of :class:`~ga_ros.core.window.TrackWindowAligner` (the node's
+    defaults, ``config/alignment.yaml``) fed the measurements of a mapping node's bag in order,
+    the last track finished: what the alignment node computes from the same input."""
+    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    from ga_ros.io.bag import BagReader
+    from ga_ros.replay.samples import MEASUREMENTS_TOPIC
+    from ga_ros.replay.source import bag_measurements
+
+    with BagReader(bag) as reader:
+        ms = [it.measurement for it in bag_measurements(reader, MEASUREMENTS_TOPIC, [0])
+              if it.measurement is not None]
+    al = TrackWindowAligner(AlignerConfig())
+    al.add_measurements(ms)
+    al.finish_track()
+    return al.corrected_path(), len(ms)
+
+
+def _check_robot(name: str, bag: Path, out: Path, errors: list[str]) -> RobotResult:
     rr = RobotResult(name, str(bag))
     summary = out / 'mapping' / 'mapping.json'
     if not summary.exists() or not (out / 'mapping' / 'path.npz').exists():
@@ -190,22 +206,19 @@ def _check_robot(name: str, bag: Path, out: Path, read_tum, errors: list[str]) -
     got = np.load(out / 'mapping' / 'path.npz')
     T_live, stamps = got['T_world_node'], got['stamps_ns']
     rr.path_poses = len(T_live)
-    if len(stamps):
-        rr.path_stamp_range_ns = [int(stamps[1:].min()), int(stamps.max())] if len(stamps) > 1 \
-            else [int(stamps[0])] * 2
-    if not rr.measurements:
-        errors.append(f'{name}: no measurement recorded')
+    if not rr.measurements or not rr.path_poses:
+        errors.append(f'{name}: no measurement or no path recorded')
         return rr
-    ref = read_tum(_replay(out / 'mapping' / 'measurements', out / 'replay'))
-    rr.replay_poses = len(ref.T_world_cam)
-    stamps_m = ref.stamps_ns[1:]  # node 0's stamp is estimated by the replay (see multihost)
-    rr.stamp_range_ns = [int(stamps_m.min()), int(stamps_m.max())] if stamps_m.size else []
-    if rr.replay_poses != rr.path_poses or not np.array_equal(ref.stamps_ns[1:], stamps[1:]):
-        errors.append(f'{name}: path of {rr.path_poses} poses, the replay of its measurements '
-                      f'{rr.replay_poses} (or other stamps)')
+    rr.path_stamp_range_ns = [int(stamps.min()), int(stamps.max())]
+    ref, n = replay_recorded(out / 'mapping' / 'measurements')
+    rr.replay_poses = len(ref.T_world_node)
+    rr.stamp_range_ns = [int(ref.stamps_ns.min()), int(ref.stamps_ns.max())]
+    if n != rr.measurements or not np.array_equal(ref.stamps_ns, stamps):
+        errors.append(f'{name}: path of {rr.path_poses} poses, the replay of its {n} recorded '
+                      f'measurements {rr.replay_poses} (or other stamps)')
         return rr
     rr.max_diff_vs_replay_m, rr.max_rot_diff_vs_replay_rad = compare_paths(T_live,
-                                                                           ref.T_world_cam)
+                                                                           ref.T_world_node)
     if rr.max_diff_vs_replay_m > 1e-6 or rr.max_rot_diff_vs_replay_rad > 1e-8:
         errors.append(f'{name}: path differs from the replay of its measurements by '
                       f'{rr.max_diff_vs_replay_m:.3g} m')
@@ -225,15 +238,16 @@ def format_result(res: FleetResult) -> str:
 
 
 def make_second_bag(path: str | Path, stamp_offset_s: float = 10_000.0) -> Path:
-    """A second stereo survey, different from the sample (2 double tracks of 16 frames, other
-    terrain seed), with stamps ``stamp_offset_s`` after the sample's; returns its path."""
+    """A second stereo survey, different from the sample (2 double tracks of 12 frames a swath,
+    shorter turns, other terrain), with stamps ``stamp_offset_s`` after the sample's; returns
+    its path."""
     from ga_ros.replay import samples
 
     base = samples.BASE_STAMP_NS
     samples.BASE_STAMP_NS = base + int(stamp_offset_s * 1e9)
     try:
         return samples.make_stereo_bag(path, samples.StereoSampleConfig(
-            n_tracks=2, positions_per_swath=16, seed=5), overwrite=True)
+            n_tracks=2, positions_per_swath=12, turn_positions=8, seed=5), overwrite=True)
     finally:
         samples.BASE_STAMP_NS = base
 
