@@ -12,8 +12,9 @@ import pytest
 pytest.importorskip('rclpy')
 
 import rclpy  # noqa: E402
+from nav_msgs.msg import Path  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
@@ -42,7 +43,7 @@ def test_window_path_every_update_full_path_at_most_every_period(ctx) -> None:
                                                            for k, v in params.items()])
     full, window = [], []
     try:
-        node.pub_path.publish = full.append
+        node.pub_path.publish = lambda data: full.append(deserialize_message(data, Path))
         node.pub_window.publish = window.append
         sc = aerial_scenario(n_tracks=4, positions_per_swath=6)
         nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(2))
@@ -74,3 +75,22 @@ def test_window_path_every_update_full_path_at_most_every_period(ctx) -> None:
         assert per_pose <= 80   # 'map' frame: ~8 MB for 100,000 poses
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize('frame_id', ['', 'm', 'map', 'odom', 'robot1/map', 'a_long/frame_x'])
+@pytest.mark.parametrize('n', [0, 1, 2, 7])
+def test_path_bytes_decode_to_the_rclpy_message(frame_id: str, n: int) -> None:
+    """``path_cdr`` writes what ``serialize_message(path_to_msg(...))`` does (same length; rclpy
+    decodes it to an equal message; padding bytes may differ), for frame ids of every padding
+    phase and stamps with nanoseconds."""
+    from ga_ros.geometry import se3
+    from ga_ros.io.cdr import path_cdr
+
+    rng = np.random.default_rng(n + len(frame_id))
+    T = se3.exp(rng.normal(size=(n, 6)) * [5, 5, 5, 2, 2, 2])
+    stamps = rng.integers(0, 2**31 * 10**9, size=n)
+    for stamp in (1_700_000_000_123_456_789, None):
+        want = conv.path_to_msg(T, stamps, frame_id, stamp)
+        got = path_cdr(T, stamps, frame_id, stamp)
+        assert len(got) == len(serialize_message(want))
+        assert deserialize_message(got, Path) == want
