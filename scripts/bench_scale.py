@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.bench.core import peak_rss_mb
+from ga_ros.bench.core import NoSolveAligner, peak_rss_mb
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
@@ -117,32 +117,23 @@ def state_nbytes(al: TrackWindowAligner) -> int:
     return total
 
 
-class _NoSolveAligner(TrackWindowAligner):
-    """Fills the state of a survey quickly (``--batch-only``): a track end freezes the
-    leaving tracks without adjusting anything."""
 
-    def finish_track(self) -> None:
-        if self._open_track is None or self._open_track in self._finished:
-            return None
-        self._finished.add(self._open_track)
-        finished = [t for t in self._tracks if t in self._finished]
-        for t in finished[:-self.config.window_tracks]:
-            nodes = self._track_nodes[t]
-            if not self._frozen[nodes[0]]:
-                self._frozen[nodes] = True
-        return None
-
-
-def batch_only(args: argparse.Namespace) -> ScaleFigures:
-    """``--batch-only``: the whole survey's state without window updates, poses at the
-    simulator's truth (as if the online alignment had converged there), then ``refine_batch``."""
+def scenario(args: argparse.Namespace):
+    """The scaled aerial survey, its noisy measurements and the figures to fill."""
     t0 = time.perf_counter()
     sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions_per_swath)
     noisy = perturb(sc.true_motions('se3'), NoiseModel(args.noise, sc.depth_m),
                     np.random.default_rng(args.seed))
     fig = ScaleFigures(args.tracks, 2 * args.positions_per_swath, args.window, args.policy,
                        time.perf_counter() - t0, 0, 0, 0, 0.0)
-    al = _NoSolveAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
+    return sc, noisy, fig
+
+
+def batch_only(args: argparse.Namespace) -> ScaleFigures:
+    """``--batch-only``: the whole survey's state without window updates, poses at the
+    simulator's truth (as if the online alignment had converged there), then ``refine_batch``."""
+    sc, noisy, fig = scenario(args)
+    al = NoSolveAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
                          sc.T_world_node[0])
     t_start = time.perf_counter()
     chunk: list[Measurement] = []
@@ -207,12 +198,7 @@ def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | N
 
 
 def run(args: argparse.Namespace) -> ScaleFigures:
-    t0 = time.perf_counter()
-    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions_per_swath)
-    noisy = perturb(sc.true_motions('se3'), NoiseModel(args.noise, sc.depth_m),
-                    np.random.default_rng(args.seed))
-    fig = ScaleFigures(args.tracks, 2 * args.positions_per_swath, args.window, args.policy,
-                       time.perf_counter() - t0, 0, 0, 0, 0.0)
+    sc, noisy, fig = scenario(args)
     checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
     al = TrackWindowAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
                             sc.T_world_node[0])
