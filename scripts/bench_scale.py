@@ -151,12 +151,18 @@ def batch_only(args: argparse.Namespace) -> ScaleFigures:
     fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
     fig.tracks_done = len(al._tracks)
     del sc, noisy
+    refine(al, fig)
+    return fig
+
+
+def refine(al: TrackWindowAligner, fig: ScaleFigures) -> None:
+    """``al.refine_batch()`` with its time, iterations and the process's RSS before and peak
+    RSS after, into ``fig``."""
     fig.rss_before_batch_mib = rss_mib()
     up = al.refine_batch()
     fig.batch_seconds = up.update_ms / 1e3
     fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
     fig.peak_rss_after_batch_mib = peak_rss_mb()
-    return fig
 
 
 def lazy_measurements(sc: Scenario, z: np.ndarray, cov: np.ndarray) -> Iterator[Measurement]:
@@ -262,11 +268,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,
                                                             args.restore_timeout)
     if not args.no_batch:
-        fig.rss_before_batch_mib = rss_mib()
-        up = al.refine_batch()
-        fig.batch_seconds = up.update_ms / 1e3
-        fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
-        fig.peak_rss_after_batch_mib = peak_rss_mb()
+        refine(al, fig)
     return fig
 
 
