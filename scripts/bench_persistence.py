@@ -20,28 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.core import NoSolveAligner
 from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.pipeline.journal import MeasurementJournal, journal_path, recover
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
-
-
-class _NoSolveAligner(TrackWindowAligner):
-    """Fills a state of the right size and shape quickly: track ends freeze without solving."""
-
-    def finish_track(self):
-        if self._open_track is None or self._open_track in self._finished:
-            return None
-        self._finished.add(self._open_track)
-        finished = [t for t in self._tracks if t in self._finished]
-        for t in finished[:-self.config.window_tracks]:
-            nodes = self._track_nodes[t]
-            if not self._frozen[nodes[0]]:
-                self._cov[nodes] = 1e-4 * np.eye(6)
-                self._frozen[nodes] = True
-        self._n_updates += 1
-        return None
 
 
 def _measurements(n_tracks: int, per_swath: int):
@@ -56,7 +40,7 @@ def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None
     t_sim = time.perf_counter() - t0
     last_track = max(m.dst_track for m in ms)
     cut = next(k for k, m in enumerate(ms) if m.dst_track == last_track)
-    al = _NoSolveAligner(AlignerConfig())
+    al = NoSolveAligner(AlignerConfig())
     t0 = time.perf_counter()
     batch = al.add_measurements(ms[:cut + 1])   # the last track begins: the one before ends
     t_fill = time.perf_counter() - t0

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.bench.core import peak_rss_mb
+from ga_ros.bench.core import NoSolveAligner, peak_rss_mb
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
@@ -70,6 +70,7 @@ class Checkpoint:
     window_nodes: int
     rss_mib: float
     kib_per_pose_since_first: float | None
+    state_bytes_per_pose: float = 0.0
 
 
 @dataclass
@@ -99,6 +100,69 @@ class ScaleFigures:
     batch_converged: bool | None = None
     rss_before_batch_mib: float | None = None
     peak_rss_after_batch_mib: float | None = None
+
+
+def state_nbytes(al: TrackWindowAligner) -> int:
+    """Bytes the aligner's state holds (filled rows of its tables, the id index, the
+    duplicate keys, the joint priors), without the spare capacity and the last adjustment."""
+    n = al._idarr.n
+    arrays = [al._idarr.a, al._trackarr.a, al._stamparr.a, al._T[:n], al._cov.packed[:n],
+              al._frozen[:n], al._src.a, al._dst.a, al._z.a, al._ccov.packed, al._cross.a,
+              al._status.a, al._fp.a, al._index._keys, al._index._vals]
+    arrays += [al._track_conns[t] for t in al._tracks if t in al._track_conns]
+    arrays += [a for p in al._priors for a in p]
+    total = sum(a.nbytes for a in arrays)
+    total += sys.getsizeof(al._index._recent) + 64 * len(al._index._recent)
+    total += sys.getsizeof(al._pairs) + 160 * len(al._pairs)  # 3-tuples of ints
+    return total
+
+
+
+def scenario(args: argparse.Namespace):
+    """The scaled aerial survey, its noisy measurements and the figures to fill."""
+    t0 = time.perf_counter()
+    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions_per_swath)
+    noisy = perturb(sc.true_motions('se3'), NoiseModel(args.noise, sc.depth_m),
+                    np.random.default_rng(args.seed))
+    fig = ScaleFigures(args.tracks, 2 * args.positions_per_swath, args.window, args.policy,
+                       time.perf_counter() - t0, 0, 0, 0, 0.0)
+    return sc, noisy, fig
+
+
+def batch_only(args: argparse.Namespace) -> ScaleFigures:
+    """``--batch-only``: the whole survey's state without window updates, poses at the
+    simulator's truth (as if the online alignment had converged there), then ``refine_batch``."""
+    sc, noisy, fig = scenario(args)
+    al = NoSolveAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
+                         sc.T_world_node[0])
+    t_start = time.perf_counter()
+    chunk: list[Measurement] = []
+    for m in lazy_measurements(sc, noisy.z, noisy.cov):
+        chunk.append(m)
+        if len(chunk) == 10_000:  # covariances checked together (same result, faster)
+            al.add_measurements(chunk)
+            chunk = []
+    al.add_measurements(chunk)
+    al.finish_track()
+    fig.online_seconds = time.perf_counter() - t_start
+    n = al._idarr.n
+    al._T[:n] = sc.T_world_node[al._idarr.a]
+    st = al.stats
+    fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
+    fig.tracks_done = len(al._tracks)
+    del sc, noisy
+    refine(al, fig)
+    return fig
+
+
+def refine(al: TrackWindowAligner, fig: ScaleFigures) -> None:
+    """``al.refine_batch()`` with its time, iterations and the process's RSS before and peak
+    RSS after, into ``fig``."""
+    fig.rss_before_batch_mib = rss_mib()
+    up = al.refine_batch()
+    fig.batch_seconds = up.update_ms / 1e3
+    fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
+    fig.peak_rss_after_batch_mib = peak_rss_mb()
 
 
 def lazy_measurements(sc: Scenario, z: np.ndarray, cov: np.ndarray) -> Iterator[Measurement]:
@@ -140,12 +204,7 @@ def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | N
 
 
 def run(args: argparse.Namespace) -> ScaleFigures:
-    t0 = time.perf_counter()
-    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions_per_swath)
-    noisy = perturb(sc.true_motions('se3'), NoiseModel(args.noise, sc.depth_m),
-                    np.random.default_rng(args.seed))
-    fig = ScaleFigures(args.tracks, 2 * args.positions_per_swath, args.window, args.policy,
-                       time.perf_counter() - t0, 0, 0, 0, 0.0)
+    sc, noisy, fig = scenario(args)
     checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
     al = TrackWindowAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
                             sc.T_world_node[0])
@@ -170,7 +229,8 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
                             float(np.percentile(ms, 95)), float(ms.max()),
                             float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),
-                            up.n_window_nodes, fig.update_rss_mib[-1], None)
+                            up.n_window_nodes, fig.update_rss_mib[-1], None,
+                            state_nbytes(al) / max(1, al.stats.n_nodes))
             if first_cp is None:
                 first_cp = cp
             elif poses > first_cp.poses:
@@ -208,11 +268,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,
                                                             args.restore_timeout)
     if not args.no_batch:
-        fig.rss_before_batch_mib = rss_mib()
-        up = al.refine_batch()
-        fig.batch_seconds = up.update_ms / 1e3
-        fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
-        fig.peak_rss_after_batch_mib = peak_rss_mb()
+        refine(al, fig)
     return fig
 
 
@@ -228,14 +284,15 @@ def print_table(fig: ScaleFigures) -> None:
           f'{fig.connections_done:,} connections in {fig.online_seconds:.0f} s')
     print()
     print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | window nodes | '
-          'RSS MiB | KiB/pose since first |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+          'RSS MiB | KiB/pose since first | state B/pose |')
+    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
     for c in fig.checkpoints:
         print(f'| {c.tracks} | {c.poses:,} | {c.update_ms_p50:.0f} | {c.update_ms_p95:.0f} | '
               f'{c.update_ms_max:.0f} | {c.cpu_ms_p50:.0f} | {c.cpu_ms_p95:.0f} | '
-              f'{c.window_nodes:,} | {c.rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} |')
+              f'{c.window_nodes:,} | {c.rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} | '
+              f'{c.state_bytes_per_pose:.0f} |')
     for c in fig.missing_checkpoints:
-        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | |')
+        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | |')
     if len(fig.checkpoints) >= 2:
         a, b = fig.checkpoints[0], fig.checkpoints[-1]
         print(f'\np95 ratio, {b.tracks} vs {a.tracks} tracks: wall '
@@ -270,13 +327,16 @@ def main(argv: list[str] | None = None) -> int:
                    help='stop the online run after this many seconds (0 = no limit)')
     p.add_argument('--no-batch', action='store_true', help='skip the batch refinement')
     p.add_argument('--no-save', action='store_true', help='skip the state save/restore')
+    p.add_argument('--batch-only', action='store_true',
+                   help='only the batch refinement: the state is filled without window updates '
+                        'and the poses set to the truth (peak RSS and time of refine_batch)')
     p.add_argument('--restore-timeout', type=float, default=300.0,
                    help='give up the (child-process) state restore after this many seconds')
     p.add_argument('--json', action='store_true', help='print the figures as JSON')
     p.add_argument('-v', '--verbose', action='store_true', help='one line per track on stderr')
     args = p.parse_args(argv)
     with limit_blas_threads():
-        fig = run(args)
+        fig = batch_only(args) if args.batch_only else run(args)
     if args.json:
         print(json.dumps(asdict(fig), indent=1))
     else:

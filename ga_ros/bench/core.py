@@ -35,6 +35,26 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+
+class NoSolveAligner(TrackWindowAligner):
+    """Fills an aligner's state of a survey's size and shape quickly, for benchmarks of what
+    does not depend on the estimates (persistence, the batch refinement's memory): a track end
+    marks the track finished and freezes the tracks leaving the window with a fixed
+    covariance (1e-4 I), without solving anything."""
+
+    def finish_track(self) -> None:
+        if self._open_track is None or self._open_track in self._finished:
+            return None
+        self._finished.add(self._open_track)
+        finished = [t for t in self._tracks if t in self._finished]
+        for t in finished[:-self.config.window_tracks]:
+            nodes = self._track_nodes[t]
+            if not self._frozen[nodes[0]]:
+                self._cov[nodes] = 1e-4 * np.eye(6)
+                self._frozen[nodes] = True
+        self._n_updates += 1
+        return None
+
 @dataclass
 class BatchFigures:
     nodes: int

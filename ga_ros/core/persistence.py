@@ -29,12 +29,25 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner, _Rows, measurement_fingerprints
+from ga_ros.core.storage import (
+    IdIndex,
+    Rows,
+    SymArray,
+    SymRows,
+    TrackLists,
+    TrackRanges,
+    pack_sym6,
+    zeros,
+)
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner, measurement_fingerprints
 from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputError
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
 
 MAGIC = b'GAROS-STATE\x00'
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Versions :func:`load_state` reads: 2 stored the covariances as full 6x6 matrices, 3 (since
+#: the aligner keeps them compactly, ga_ros.core.storage) as their 21 upper-triangle values.
+READ_VERSIONS = (2, 3)
 _PREFIX = struct.Struct('<12sIQI')
 _ALIGN = 64
 _LEGACY_VERSION = 1  # the .npz snapshots written before this module
@@ -168,10 +181,10 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
     sizes = np.array([idx.size for idx, _, _ in al._priors], dtype=np.int64)
     cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros((0,) + shape))  # noqa: E731
     arrays = dict(
-        T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a,
-        stamp=np.asarray(al._stamp, dtype=np.int64), T=al._T[:n], cov=al._cov[:n],
-        frozen=al._frozen[:n], src=al._src.a, dst=al._dst.a, z=al._z.a, ccov=al._ccov.a,
-        cross=al._cross.a, status=al._status.a, last_window=al._last_window.astype(np.int64),
+        T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a, stamp=al._stamparr.a,
+        T=al._T[:n], cov21=al._cov.packed[:n], frozen=al._frozen[:n], src=al._src.a,
+        dst=al._dst.a, z=al._z.a, ccov21=al._ccov.packed, cross=al._cross.a,
+        status=al._status.a.astype(np.int64), last_window=al._last_window.astype(np.int64),
         fingerprint=al._fp.a,
         prior_sizes=sizes,
         prior_idx=cat([idx for idx, _, _ in al._priors], ()).astype(np.int64),
@@ -184,9 +197,10 @@ def _parse(buf: bytearray, path: Path) -> tuple[dict, dict[str, np.ndarray], int
     if len(buf) < _PREFIX.size:
         raise CorruptFileError('state file cut short', str(path))
     _, version, hlen, hcrc = _PREFIX.unpack_from(buf)
-    if version != FORMAT_VERSION:
-        raise InputError(f'{path}: state format version {version}, this ga_ros reads '
-                         f'{FORMAT_VERSION}; use the ga_ros version that wrote it')
+    if version not in READ_VERSIONS:
+        raise InputError(f'{path}: state format version {version}, this ga_ros reads versions '
+                         f'{", ".join(map(str, READ_VERSIONS))} (and 1, .npz); use the ga_ros '
+                         'version that wrote it, or delete the file to start a new survey')
     header = bytes(buf[_PREFIX.size:_PREFIX.size + hlen])
     if len(header) != hlen or zlib.crc32(header) != hcrc:
         raise CorruptFileError('state header fails its checksum', str(path))
@@ -221,24 +235,6 @@ def _parse_legacy(path: Path) -> tuple[dict, dict[str, np.ndarray], int]:
     return meta, arrays, _LEGACY_VERSION
 
 
-def _rows(a: np.ndarray, dtype):
-    a = np.asarray(a, dtype=dtype)
-    rows = _Rows(a.shape[1:], dtype)
-    rows._a = np.zeros((a.shape[0] + max(64, a.shape[0] // 8),) + a.shape[1:], dtype=dtype)
-    rows._a[:a.shape[0]] = a
-    rows.n = a.shape[0]
-    return rows
-
-
-def _groups(keys: np.ndarray, values: np.ndarray) -> dict[int, list[int]]:
-    """``{key: [values in their order]}`` without a Python loop over the values."""
-    order = np.lexsort((values, keys))
-    k, v = keys[order], values[order]
-    cuts = np.flatnonzero(np.diff(k)) + 1
-    return {int(g[0]): vals.tolist() for g, vals in zip(np.split(k, cuts), np.split(v, cuts))
-            if g.size}
-
-
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
     cfg = config if config is not None else AlignerConfig.from_dict(meta['config'])
     al = TrackWindowAligner(cfg, np.array(arrays['T_first'], dtype=float))
@@ -247,46 +243,53 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
     n = ids.size
     src, dst = (np.asarray(arrays[k], dtype=np.int64) for k in ('src', 'dst'))
     m = src.size
-    shapes = {'T': (n, 4, 4), 'cov': (n, 6, 6), 'frozen': (n,), 'stamp': (n,), 'dst': (m,),
-              'z': (m, 6), 'ccov': (m, 6, 6), 'cross': (m,), 'status': (m,)}
+    # version 3 stores covariances as 21 upper-triangle values, versions 1-2 as 6x6 matrices
+    # (symmetric: the aligner symmetrises what it stores)
+    for name in ('cov', 'ccov'):
+        if name + '21' not in arrays:
+            full = np.asarray(arrays[name], dtype=float)
+            if full.shape[1:] != (6, 6):
+                raise ValueError(f'array {name!r} has shape {full.shape}, expected (k, 6, 6)')
+            arrays[name + '21'] = pack_sym6(full)
+    shapes = {'T': (n, 4, 4), 'cov21': (n, 21), 'frozen': (n,), 'stamp': (n,), 'dst': (m,),
+              'z': (m, 6), 'ccov21': (m, 21), 'cross': (m,), 'status': (m,)}
     for name, shape in shapes.items():
         if arrays[name].shape != shape:
             raise ValueError(f'array {name!r} has shape {arrays[name].shape}, expected {shape}')
     if m and (min(src.min(), dst.min()) < 0 or max(src.max(), dst.max()) >= n):
         raise ValueError('a connection refers to a node index out of range')
-    al._ids = ids.tolist()
-    al._index = dict(zip(al._ids, range(n)))
-    if len(al._index) != n:
-        raise ValueError('node ids are not unique')
-    al._track = track.tolist()
-    al._stamp = np.asarray(arrays['stamp'], dtype=np.int64).tolist()
+    status = np.asarray(arrays['status'])
+    if m and (status.min() < 0 or status.max() > 2):
+        raise ValueError('a connection status is not 0, 1 or 2')
+    al._index = IdIndex.of(ids)
+    al._idarr, al._trackarr = Rows.of(ids, np.int64), Rows.of(track, np.int64)
+    al._stamparr = Rows.of(arrays['stamp'], np.int64)
     cap = max(64, 2 * n)
-    al._T = np.zeros((cap, 4, 4))
+    al._T = zeros((cap, 4, 4))
     al._T[:n] = arrays['T']
-    al._cov = np.zeros((cap, 6, 6))
-    al._cov[:n] = arrays['cov']
-    al._frozen = np.zeros(cap, dtype=bool)
+    al._cov = SymArray(cap)
+    al._cov.packed[:n] = arrays['cov21']
+    al._frozen = zeros((cap,), bool)
     al._frozen[:n] = arrays['frozen']
-    al._idarr, al._trackarr = _rows(ids, np.int64), _rows(track, np.int64)
-    al._track_nodes = _groups(track, np.arange(n))
+    al._track_nodes = TrackRanges.of(track)
     al._tracks = [int(t) for t in meta['tracks']]
     al._finished = {int(t) for t in meta['finished']}
     al._open_track = None if meta['open_track'] is None else int(meta['open_track'])
-    al._src, al._dst = _rows(src, np.int64), _rows(dst, np.int64)
-    al._z, al._ccov = _rows(arrays['z'], float), _rows(arrays['ccov'], float)
-    al._cross = _rows(arrays['cross'], bool)
-    al._status = _rows(arrays['status'], np.int64)
+    al._src, al._dst = Rows.of(src, np.int64), Rows.of(dst, np.int64)
+    al._z, al._ccov = Rows.of(arrays['z'], float), SymRows.of_packed(arrays['ccov21'])
+    al._cross = Rows.of(arrays['cross'], bool)
+    al._status = Rows.of(status, np.int8)
     if m:
         ts, td = track[src], track[dst]
         k = np.arange(m)
         two = ts != td
-        al._track_conns = _groups(np.concatenate([ts, td[two]]), np.concatenate([k, k[two]]))
-        lo, hi = np.minimum(ids[src], ids[dst]).tolist(), np.maximum(ids[src], ids[dst]).tolist()
+        al._track_conns = TrackLists.of(np.concatenate([ts, td[two]]),
+                                        np.concatenate([k, k[two]]))
         fp = arrays.get('fingerprint')
         fp = (np.asarray(fp, dtype=np.uint32) if fp is not None and fp.shape == (m,) else
-              np.array(measurement_fingerprints(al._z.a, al._ccov.a), dtype=np.uint32))
-        al._fp = _rows(fp, np.uint32)
-        al._pairs = set(zip(lo, hi, fp.tolist()))
+              np.array(measurement_fingerprints(al._z.a, al._ccov.a[:]), dtype=np.uint32))
+        al._fp = Rows.of(fp, np.uint32)
+        al._prune_pairs()
     sizes = np.asarray(arrays['prior_sizes'], dtype=np.int64)
     idx_cuts, info_cuts = np.cumsum(sizes)[:-1], np.cumsum((6 * sizes) ** 2)[:-1]
     al._priors = [

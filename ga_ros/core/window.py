@@ -77,6 +77,8 @@ from ga_ros.core.solver import (
     solve,
 )
 from ga_ros.core.sparse import BlockPattern, trailing_factor
+from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
+from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads
@@ -93,26 +95,6 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
         [np.reshape(z, (-1, 6)), np.reshape(cov, (-1, 36))], axis=1, dtype=np.float64))
     flat = memoryview(rows.reshape(-1).view(np.uint8))
     return [zlib.crc32(flat[k:k + 336]) for k in range(0, flat.nbytes, 336)]
-
-
-class _Rows:
-    """Append-only table of fixed-shape numpy rows with amortised O(1) growth."""
-
-    def __init__(self, shape: tuple[int, ...], dtype=float) -> None:
-        self._a = np.zeros((64,) + shape, dtype=dtype)
-        self.n = 0
-
-    def append(self, row) -> int:
-        if self.n == self._a.shape[0]:
-            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
-        self._a[self.n] = row
-        self.n += 1
-        return self.n - 1
-
-    @property
-    def a(self) -> np.ndarray:
-        """View of the filled rows (writable)."""
-        return self._a[:self.n]
 
 
 #: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
@@ -394,35 +376,41 @@ class TrackWindowAligner:
     T_world_first : pose of the first node (the datum), identity by default.
     """
 
+    #: Size of the duplicate-key set below which it is never pruned (see :meth:`_prune_pairs`).
+    _PAIRS_MIN = 4096
+
     def __init__(self, config: AlignerConfig | None = None,
                  T_world_first: FloatArray | None = None) -> None:
         self.config = config or AlignerConfig()
         self._T_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, float)
         if self._T_first.shape != (4, 4) or not np.isfinite(self._T_first).all():
             raise InputError('T_world_first must be a finite 4x4 pose')
-        # nodes
-        self._ids: list[int] = []
-        self._index: dict[int, int] = {}
-        self._track: list[int] = []
-        self._stamp: list[int] = []
-        self._T = np.zeros((0, 4, 4))
-        self._cov = np.zeros((0, 6, 6))
-        self._frozen = np.zeros(0, dtype=bool)
+        # storage (ga_ros.core.storage: numpy tables, no Python object per node or connection)
+        # nodes, by row index in arrival order; T, cov and frozen have spare capacity
+        self._index = IdIndex()  # node id -> row
         self._idarr = _Rows((), np.int64)
         self._trackarr = _Rows((), np.int64)
+        self._stamparr = _Rows((), np.int64)
+        self._T = np.zeros((0, 4, 4))
+        self._cov = SymArray()  # frozen nodes' marginal covariances, 21 values each
+        self._frozen = np.zeros(0, dtype=bool)
         # connections (by node index); status 0 active, 1 absorbed into a prior, 2 outlier
         self._src = _Rows((), np.int64)
         self._dst = _Rows((), np.int64)
         self._z = _Rows((6,))
-        self._ccov = _Rows((6, 6))
+        self._ccov = SymRows()  # 21 values each; self._ccov.a[k] unpacks to 6x6
         self._cross = _Rows((), bool)
-        self._status = _Rows((), np.int64)
-        self._pairs: set[tuple[int, int, int]] = set()
+        self._status = _Rows((), np.int8)
         self._fp = _Rows((), np.uint32)  # third part of each connection's duplicate key
+        # duplicate keys (low id, high id, fingerprint) of the connections between two nodes
+        # that are not frozen (a measurement touching a frozen node is refused as such
+        # first); rebuilt without the others as it grows (see _prune_pairs)
+        self._pairs: set[tuple[int, int, int]] = set()
+        self._pairs_kept = 0
         # tracks
         self._tracks: list[int] = []  # in order of appearance
-        self._track_nodes: dict[int, list[int]] = {}
-        self._track_conns: dict[int, list[int]] = {}
+        self._track_nodes = TrackRanges()  # track -> its rows (contiguous)
+        self._track_conns = TrackLists()  # track -> rows of the connections touching it
         self._open_track: int | None = None
         self._finished: set[int] = set()
         # marginal-policy priors: list of (node indices, mean (k,4,4), information (6k, 6k))
@@ -550,7 +538,7 @@ class TrackWindowAligner:
         if dst in self._index and int(m.dst_track) != self._track[self._index[dst]]:
             raise bad('track_mismatch', f'node {dst} belongs to track '
                       f'{self._track[self._index[dst]]}, not {m.dst_track}')
-        first = not self._ids
+        first = self._idarr.n == 0
         if not first and src not in self._index:
             raise bad('unknown_source', f'source node {src} is unknown: every measurement must '
                       'start at a node that an earlier measurement introduced')
@@ -644,33 +632,55 @@ class TrackWindowAligner:
         self._ccov.append(plan['cov'])
         self._cross.append(m.kind != 'consecutive')
         self._status.append(0)
-        self._pairs.add(plan['key'])
         self._fp.append(plan['key'][2])
-        for t in {self._track[i], self._track[j]}:
-            self._track_conns.setdefault(t, []).append(k)
+        self._track_conns.add({int(self._track[i]), int(self._track[j])}, k)
+        self._pairs.add(plan['key'])
+        if len(self._pairs) > max(self._PAIRS_MIN, 2 * self._pairs_kept):
+            self._prune_pairs()
+
+    def _prune_pairs(self) -> None:
+        """Keep only the duplicate keys of connections whose two nodes are not frozen (a
+        measurement that touches a frozen node is refused before the duplicate test)."""
+        n = self._idarr.n
+        src, dst = self._src.a, self._dst.a
+        live = ~self._frozen[:n][src] & ~self._frozen[:n][dst]
+        ids = self._idarr.a
+        a, b = ids[src[live]], ids[dst[live]]
+        self._pairs = set(zip(np.minimum(a, b).tolist(), np.maximum(a, b).tolist(),
+                              self._fp.a[live].tolist()))
+        self._pairs_kept = len(self._pairs)
 
     def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> None:
-        k = len(self._ids)
-        self._ids.append(node_id)
-        self._idarr.append(node_id)
+        k = self._idarr.append(node_id)
         self._trackarr.append(track)
-        self._index[node_id] = k
-        self._track.append(track)
-        self._stamp.append(stamp_ns)
-        if k >= self._T.shape[0]:  # amortised growth
-            cap = max(64, 2 * self._T.shape[0])
-            self._T = np.concatenate([self._T, np.zeros((cap - self._T.shape[0], 4, 4))])
-            self._cov = np.concatenate([self._cov, np.zeros((cap - self._cov.shape[0], 6, 6))])
-            self._frozen = np.concatenate([self._frozen,
-                                           np.zeros(cap - self._frozen.size, dtype=bool)])
+        self._stamparr.append(stamp_ns)
+        self._index.add(node_id, k)
+        if k >= self._T.shape[0]:  # amortised growth; the spare rows stay untouched
+            self._T = grow_rows(self._T, k + 1)
+            self._cov.grow(self._T.shape[0])
+            self._frozen = grow_rows(self._frozen, self._T.shape[0])
         self._T[k] = T
         self._cov[k] = 0.0
         self._frozen[k] = False
         if track not in self._track_nodes:
             self._tracks.append(track)
-            self._track_nodes[track] = []
-        self._track_nodes[track].append(k)
+        self._track_nodes.add(track, k)
         self._open_track = track
+
+    @property
+    def _ids(self) -> IntArray:
+        """Node ids by row (a view of the storage)."""
+        return self._idarr.a
+
+    @property
+    def _track(self) -> IntArray:
+        """Track id of each node row (a view of the storage)."""
+        return self._trackarr.a
+
+    @property
+    def _stamp(self) -> IntArray:
+        """Stamp (ns) of each node row (a view of the storage)."""
+        return self._stamparr.a
 
     def finish_track(self) -> UpdateResult | None:
         """End the open track and adjust the window (returns ``None`` if there is no open
@@ -1205,9 +1215,8 @@ class TrackWindowAligner:
     # ------------------------------------------------------------------------ output
     def corrected_path(self) -> CorrectedPath:
         n = len(self._ids)
-        return CorrectedPath(np.asarray(self._ids, dtype=np.int64),
-                             np.asarray(self._track, dtype=np.int64),
-                             np.asarray(self._stamp, dtype=np.int64), self._T[:n].copy(),
+        return CorrectedPath(self._idarr.a.copy(), self._trackarr.a.copy(),
+                             self._stamparr.a.copy(), self._T[:n].copy(),
                              self._frozen[:n].copy())
 
     def covariance(self, node_id: int) -> FloatArray:
@@ -1258,7 +1267,7 @@ class TrackWindowAligner:
 
     @property
     def newest_node_id(self) -> int | None:
-        return self._ids[-1] if self._ids else None
+        return int(self._idarr.a[-1]) if self._idarr.n else None
 
     @property
     def open_track(self) -> int | None:
@@ -1276,11 +1285,11 @@ class TrackWindowAligner:
         1 absorbed into a marginal prior, 2 excluded as an outlier)."""
         ids = self._idarr.a
         return (ids[self._src.a], ids[self._dst.a], self._z.a.copy(), self._cross.a.copy(),
-                self._status.a.copy())
+                self._status.a.astype(np.int64))
 
     def connection_covariances(self) -> FloatArray:
         """(m, 6, 6) covariance of every connection, in the order of :meth:`connection_arrays`."""
-        return self._ccov.a.copy()
+        return self._ccov.full()
 
     # --------------------------------------------------------------- batch refinement
     def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
