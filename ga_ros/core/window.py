@@ -753,7 +753,7 @@ class TrackWindowAligner:
             frozen=self._frozen[:n].copy(),
             track_order=tuple(int(t) for t in self._tracks if t in self._finished),
             src=self._src.a.copy(), dst=self._dst.a.copy(), z=self._z.a.copy(),
-            cov=self._ccov.a.copy(), status=self._status.a.copy(),
+            cov=self._ccov.full(), status=self._status.a.copy(),
             freeze_policy=self.config.freeze_policy,
             solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)))
 
