@@ -8,6 +8,8 @@ import numpy as np
 
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.geometry import se3, so3
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
 
 SIGMA = np.array([0.05, 0.05, 0.05, 0.01, 0.01, 0.01])
 
@@ -57,3 +59,11 @@ def perturbed(rng: np.random.Generator, T: np.ndarray, scale: float = 0.05) -> n
     out = T @ se3.exp(rng.normal(scale=scale, size=(T.shape[0], 6)))
     out[0] = T[0]
     return out
+
+
+def noisy_aerial_survey(n_tracks: int, per_swath: int, pct: float, seed: int):
+    """A small simulated aerial survey with ``pct`` % motion noise: ``(scenario, noisy motions,
+    measurements in acquisition order)``."""
+    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
+    nm = perturb(sc.true_motions(), NoiseModel(pct, sc.depth_m), np.random.default_rng(seed))
+    return sc, nm, sc.measurements(nm.z, nm.cov)

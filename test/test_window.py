@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from solver_problems import noisy_aerial_survey
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import load_state, save_state
@@ -13,14 +14,10 @@ from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 
 def _survey(n_tracks=4, per_swath=10, pct=2.0, seed=3):
-    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
-    nm = perturb(sc.true_motions(), NoiseModel(pct, sc.depth_m), np.random.default_rng(seed))
-    return sc, nm, sc.measurements(nm.z, nm.cov)
+    return noisy_aerial_survey(n_tracks, per_swath, pct, seed)
 
 
 def _run(cfg, sc, ms):
