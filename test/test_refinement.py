@@ -17,6 +17,7 @@ from ga_ros.core.refinement import (
     tangent_prior,
 )
 from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
+from ga_ros.core.storage import unpack_sym6
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
@@ -101,7 +102,7 @@ def test_rebuilt_priors_equal_one_dense_schur_complement(policy):
     local[nodes] = np.arange(nodes.size)
     net = ConnectionNetwork.from_arrays(snap.node_ids[nodes], snap.track_ids[nodes],
                                         local[snap.src[absorbed]], local[snap.dst[absorbed]],
-                                        snap.z[absorbed], snap.cov[absorbed])
+                                        snap.z[absorbed], unpack_sym6(snap.cov21[absorbed]))
     N, free_ids, u = normal_matrix_at(net, T[nodes], 'se3', [int(snap.node_ids[0])])
     N = N.toarray()
     pos = {int(i): k for k, i in enumerate(free_ids)}

@@ -38,6 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, normal_matrix_at, solve
+from ga_ros.core.storage import unpack_sym6
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads
@@ -60,7 +61,8 @@ class RefinementSnapshot:
     frozen : (n,) frozen flags at the snapshot.
     track_order : finished track ids in order of appearance (the order in which they freeze).
     src, dst : (m,) connection end points as node indices.
-    z : (m, 6) measured motions ``[t, rotvec]`` of ``T_src_dst``; cov : (m, 6, 6) covariances.
+    z : (m, 6) measured motions ``[t, rotvec]`` of ``T_src_dst``; cov21 : (m, 21) their covariances
+        as the aligner stores them (upper triangles, :func:`~ga_ros.core.storage.pack_sym6`).
     status : (m,) 0 active, 1 absorbed into a prior, 2 excluded as an outlier.
     freeze_policy : ``'weighted'`` or ``'marginal'`` (which nodes the rebuilt priors keep).
     solver : settings of the batch solve.
@@ -77,7 +79,7 @@ class RefinementSnapshot:
     src: IntArray
     dst: IntArray
     z: FloatArray
-    cov: FloatArray
+    cov21: FloatArray
     status: IntArray
     freeze_policy: str
     solver: SolverConfig
@@ -168,7 +170,8 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             snap = predict_freezes(snap)
             keep = np.nonzero(snap.status != 2)[0]
             net = ConnectionNetwork.from_arrays(snap.node_ids, snap.track_ids, snap.src[keep],
-                                                snap.dst[keep], snap.z[keep], snap.cov[keep])
+                                                snap.dst[keep], snap.z[keep],
+                                                unpack_sym6(snap.cov21[keep]))
             res = solve(net, snap.T_world_node, snap.solver, fixed=[int(snap.node_ids[0])])
             if not res.converged:
                 return _failed(empty, f'batch solve did not converge: {res.reason}', t0)
@@ -291,7 +294,7 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
         local[nodes] = np.arange(nodes.size)
         net = ConnectionNetwork.from_arrays(
             snap.node_ids[nodes], snap.track_ids[nodes], local[snap.src[conns]],
-            local[snap.dst[conns]], snap.z[conns], snap.cov[conns])
+            local[snap.dst[conns]], snap.z[conns], unpack_sym6(snap.cov21[conns]))
         fixed = [int(snap.node_ids[0])] if (nodes == 0).any() else []
         N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed)
         free = nodes[nodes != 0] if fixed else nodes

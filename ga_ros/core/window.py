@@ -753,7 +753,7 @@ class TrackWindowAligner:
             frozen=self._frozen[:n].copy(),
             track_order=tuple(int(t) for t in self._tracks if t in self._finished),
             src=self._src.a.copy(), dst=self._dst.a.copy(), z=self._z.a.copy(),
-            cov=self._ccov.full(), status=self._status.a.copy(),
+            cov21=self._ccov.packed.copy(), status=self._status.a.copy(),
             freeze_policy=self.config.freeze_policy,
             solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)))
 
@@ -871,7 +871,7 @@ class TrackWindowAligner:
         self._refine_snap = replace(
             full, node_ids=full.node_ids[:n], track_ids=full.track_ids[:n],
             T_world_node=full.T_world_node[:n], frozen=full.frozen[:n], track_order=track_order,
-            src=full.src[:m], dst=full.dst[:m], z=full.z[:m], cov=full.cov[:m],
+            src=full.src[:m], dst=full.dst[:m], z=full.z[:m], cov21=full.cov21[:m],
             status=full.status[:m], after_tracks=len(track_order),
             leaving=tuple(int(t) for t in state['leaving']))
         self._refine_updates = self._n_updates
