@@ -378,8 +378,9 @@ def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArra
     return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info)
 
 
-def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray,
-                  iterations: int = 4) -> tuple[FloatArray, FloatArray]:
+def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
+                  iterations: int = 4, step: FloatArray | None = None
+                  ) -> tuple[FloatArray, FloatArray]:
     """Mean and information of a Gaussian prior whose cost matches ``(d + H^-1 g)' H (d + H^-1
     g)`` to second order at ``T_lin`` (``d`` the right-perturbation tangent of the ``k`` poses).
 
@@ -396,16 +397,21 @@ def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray,
     ----------
     T_lin : (k, 4, 4) linearisation point ``T_world_node``.
     H : (6k, 6k) information, node-major ``[x y z rx ry rz]``; g : (6k,) half gradient.
+    step : (6k,) ``H^-1 g`` where the caller already has it (from a factorisation of its own);
+        ``g`` is then not used.
 
     Returns
     -------
     T_mean : (k, 4, 4); information : (6k, 6k).
     """
     k = T_lin.shape[0]
-    try:  # least squares only if the absorbed terms leave a direction free
-        e0 = sla.cho_solve(sla.cho_factor(H), g)
-    except np.linalg.LinAlgError:
-        e0 = np.linalg.lstsq(H, g, rcond=None)[0]
+    if step is not None:
+        e0 = np.asarray(step, dtype=float)
+    else:
+        try:  # least squares only if the absorbed terms leave a direction free
+            e0 = sla.cho_solve(sla.cho_factor(H), g)
+        except np.linalg.LinAlgError:
+            e0 = np.linalg.lstsq(H, g, rcond=None)[0]
     e0 = e0.reshape(k, 6)
     e = e0
     for _ in range(iterations):

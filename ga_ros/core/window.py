@@ -1188,8 +1188,8 @@ class TrackWindowAligner:
                 pattern, data = BlockPattern.from_matrix(N, 6)
                 tf = trailing_factor(pattern, data, np.nonzero(~elim)[0], u)
                 H = tf.information()
-                g = H @ tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
-                mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T
+                step = tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
+                mean, H = tangent_prior(self._T[S_nodes], H, None, step=step)  # exact gradient
                 self._priors.append((S_nodes, mean, H))
                 return
             except DegenerateGeometryError:  # N_LL or H singular: the dense path below
