@@ -8,6 +8,8 @@
   from the CPU flags while cvxopt loads, without leaking the setting to other libraries or child
   processes.
 * :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
+* :func:`import_scipy`: SciPy's first import without the NumPy submodules it never uses
+  (start-up of the command line).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import os
 import platform
+import sys
 from collections.abc import Iterator
 
 from threadpoolctl import ThreadpoolController, threadpool_limits
@@ -31,8 +34,45 @@ def default_blas_threads() -> int:
         return 1
 
 
+#: NumPy submodules that NumPy imports lazily and SciPy's solve path never uses.
+_UNUSED_NUMPY_SUBMODULES = ('testing', 'f2py', 'ma', 'polynomial', 'ctypeslib', 'char', 'rec',
+                            'strings', 'matlib')
+
+
+def import_scipy() -> None:
+    """Import SciPy's array-API layer without importing NumPy submodules it does not use.
+
+    SciPy 1.17's first import of any submodule builds a copy of the ``numpy`` namespace
+    (``scipy._lib.array_api_compat.numpy``) with ``from numpy import *`` and ``getattr`` over
+    ``dir(numpy)``, which imports every lazily loaded NumPy submodule: ``numpy.testing``
+    (``unittest``), ``numpy.f2py`` (a Fortran parser compiling ~100 regular expressions),
+    ``numpy.ma``, ... -- 0.15-0.4 s of every process's start-up (``python -X importtime``). Here
+    the copy is built while those submodules are hidden from ``numpy.__all__`` and ``dir(numpy)``,
+    and a module ``__getattr__`` (PEP 562) on the copy forwards any later access to ``numpy``,
+    so attribute access behaves as before (the submodule is imported on first use). Nothing is
+    changed when SciPy's layer is already imported.
+    """
+    if 'scipy._lib._array_api' in sys.modules:
+        return
+    import numpy
+
+    hidden = {n for n in _UNUSED_NUMPY_SUBMODULES if f'numpy.{n}' not in sys.modules}
+    all_names, dir_fn = numpy.__all__, numpy.__dir__
+    numpy.__all__ = [n for n in all_names if n not in hidden]
+    numpy.__dir__ = lambda: [n for n in dir_fn() if n not in hidden]
+    try:
+        import scipy._lib._array_api  # noqa: F401
+    finally:
+        numpy.__all__, numpy.__dir__ = all_names, dir_fn
+    compat = sys.modules.get('scipy._lib.array_api_compat.numpy')
+    if compat is not None and not hasattr(compat, '__getattr__'):
+        compat.__getattr__ = lambda name: getattr(numpy, name)
+
+
 def _load_blas() -> None:
     import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
+
+    import_scipy()
     import scipy.linalg  # noqa: F401
 
     with contextlib.suppress(ImportError), openblas_coretype():
