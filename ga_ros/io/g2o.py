@@ -632,12 +632,18 @@ def se3_to_se2(T: FloatArray) -> FloatArray:
 # ---------------------------------------------------------------------------- cost evaluation
 def _se3_log(T: FloatArray) -> FloatArray:
     """SE(3) logarithm ``[rho, phi]`` ``(m, 6)`` of ``(m, 4, 4)`` poses, written independently of
-    :mod:`ga_ros.geometry`: ``phi`` from scipy's rotation vector, ``rho = V(phi)^-1 t`` with
+    the solver's :func:`ga_ros.geometry.so3.log` (trace and skew part): ``phi`` from the unit
+    quaternion ``(v, w)`` of the rotation (:func:`ga_ros.geometry.se3.quat_from_matrix`,
+    ``w >= 0``) as ``2 atan2(|v|, w) v / |v|``, ``rho = V(phi)^-1 t`` with
     ``V^-1 = I - W/2 + (1/theta^2 - cot(theta/2) / (2 theta)) W^2`` (``W = [phi]x``), whose last
     coefficient is evaluated by its series ``1/12 + theta^2/720 + theta^4/30240`` near 0."""
-    from scipy.spatial.transform import Rotation  # lazy: ~0.3 s of start-up, 3-D only
-
-    phi = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    q = se3.quat_from_matrix(T[:, :3, :3])
+    v, w = q[:, :3], q[:, 3]
+    s = np.linalg.norm(v, axis=1)
+    tiny = s < 1e-8  # atan2(s, w) / s = (1 - s^2 / (3 w^2)) / w to rounding
+    scale = np.where(tiny, 2.0 / w * (1.0 - s * s / (3.0 * w * w)),
+                     2.0 * np.arctan2(s, w) / np.where(tiny, 1.0, s))
+    phi = v * scale[:, None]
     theta = np.linalg.norm(phi, axis=1)
     small = theta < 1e-2
     th = np.where(small, 1.0, theta)
