@@ -104,18 +104,21 @@ def motion_misclosure(model: str, T: FloatArray, src: IntArray, dst: IntArray,
 
 
 def between(model: str, T: FloatArray, src: IntArray, dst: IntArray,
-            T_meas: FloatArray) -> Between:
-    """Misclosure and Jacobians of measured motions (see :class:`Between`) for se3 / se2."""
+            T_meas: FloatArray, Tm_inv: FloatArray | None = None) -> Between:
+    """Misclosure and Jacobians of measured motions (see :class:`Between`) for se3 / se2.
+
+    ``Tm_inv`` (se3): the inverses of ``T_meas`` when the caller keeps them (a solver
+    linearising many times), else they are computed here.
+    """
     if model == 'se2':
         P = se2.Planar.from_matrix
         T_ij = P(T[src]).inverse().compose(P(T[dst]))
         e = P(T_meas).inverse().compose(T_ij).log()
         return Between(e, se2.right_jacobian_inv(e), se2.adjoint(T_ij.inverse()))
     T_ij = se3.inverse(T[src]) @ T[dst]
-    E = se3.inverse(T_meas) @ T_ij
-    e = se3.log(E)
-    # J_r(e)^-1 = J_l(e)^-1 Ad(exp e)
-    return Between(e, se3.left_jacobian_inv(e) @ se3.adjoint(E), se3.adjoint(se3.inverse(T_ij)))
+    e = se3.log((se3.inverse(T_meas) if Tm_inv is None else Tm_inv) @ T_ij)
+    # J_r(e)^-1 = J_l(-e)^-1 (no Ad(exp e) product); Ad(T_ij^-1) without forming T_ij^-1
+    return Between(e, se3.right_jacobian_inv(e), se3.adjoint_inverse(T_ij))
 
 
 def check_model(model: str) -> None:

@@ -699,7 +699,7 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
             gi *= weights[:, None]
             gj *= weights[:, None]
     else:
-        bt = models.between(model, T, conn.src, conn.dst, T_meas)
+        bt = models.between(model, T, conn.src, conn.dst, T_meas, Tm_inv)
         w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
         del bt
         maha2 = np.einsum('mi,mij,mj->m', w, P, w)
