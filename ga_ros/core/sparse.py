@@ -268,10 +268,14 @@ def _cvxopt_pattern(pattern: BlockPattern):
 
 
 def block_ordering(pattern: BlockPattern) -> IntArray:
-    """Fill-reducing scalar permutation of a block pattern: AMD of its block graph, each block's
-    ``d`` unknowns kept together. Kept per pattern (:data:`_ORDERINGS`)."""
+    """Fill-reducing scalar permutation of a block pattern: AMD (or, on large graphs, nested
+    dissection: :mod:`ga_ros.core.ordering`) of its block graph, each block's ``d`` unknowns kept
+    together. Kept per pattern (:data:`_ORDERINGS`)."""
+    from ga_ros.core.ordering import best_block_order
+
+    amd = lambda: _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool))  # noqa: E731
     return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: _expand(
-        _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool)), pattern.d))
+        best_block_order(pattern.n_blocks, *pattern.block_lower, amd()), pattern.d))
 
 
 def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:

@@ -1,0 +1,80 @@
+"""Fill-reducing orderings of the block graph (ga_ros.core.ordering)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.core import ordering
+
+pytestmark = pytest.mark.skipif(not ordering.HAVE_METIS, reason='pymetis is not installed')
+
+
+def _grid(k: int, dim: int = 2) -> tuple[int, np.ndarray, np.ndarray]:
+    """A k x k (x k) grid graph, each vertex linked to its axis neighbours, edges once each."""
+    idx = np.arange(k ** dim).reshape((k,) * dim)
+    rows, cols = [], []
+    for ax in range(dim):
+        rows.append(np.delete(idx, 0, axis=ax).ravel())
+        cols.append(np.delete(idx, k - 1, axis=ax).ravel())
+    return k ** dim, np.concatenate(rows), np.concatenate(cols)
+
+
+def test_factor_flops_equal_a_dense_cholesky(rng):
+    n, rows, cols = _grid(7)
+    order = rng.permutation(n)
+    A = np.eye(n)
+    A[rows, cols] = A[cols, rows] = -1.0
+    A += np.diag(-A.sum(axis=1) + 1.0)  # Laplacian + I
+    L = np.linalg.cholesky(A[np.ix_(order, order)])
+    counts = (np.abs(L) > 1e-12).sum(axis=0).astype(float)
+    assert ordering.factor_flops(n, rows, cols, order) == pytest.approx(np.sum(counts ** 2))
+
+
+@pytest.mark.parametrize('dim', [2, 3])
+def test_the_order_with_fewer_flops_is_kept_on_large_graphs(dim):
+    from ga_ros.core.sparse import BlockPattern, _block_amd
+
+    n, rows, cols = _grid(64 if dim == 2 else 16, dim)  # 4096 >= METIS_MIN_BLOCKS: both tried
+    assert n >= ordering.METIS_MIN_BLOCKS
+    nd = ordering.nested_dissection(n, rows, cols)
+    np.testing.assert_array_equal(np.sort(nd), np.arange(n))
+    diag = np.arange(n)
+    pattern = BlockPattern(np.concatenate([rows, diag]), np.concatenate([cols, diag]), 1, n)
+    amd = _block_amd(pattern, np.ones(n, dtype=bool))
+    best = ordering.best_block_order(n, rows, cols, amd)
+    flops = {k: ordering.factor_flops(n, rows, cols, o) for k, o in (('nd', nd), ('amd', amd))}
+    np.testing.assert_array_equal(best, nd if flops['nd'] < flops['amd'] else amd)
+    if dim == 3:  # a 3-D mesh is nested dissection's textbook case (here about half the work)
+        assert flops['nd'] < 0.8 * flops['amd']
+
+
+def test_small_graphs_keep_amd():
+    n, rows, cols = _grid(10)
+    amd = np.arange(n)[::-1].copy()
+    assert ordering.best_block_order(n, rows, cols, amd) is amd
+
+
+def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
+    from solver_problems import make_problem, perturbed
+
+    from ga_ros.core import sparse
+    from ga_ros.core.solver import SolverConfig, solve
+    prob = make_problem(rng, 'se3', n=40, noise=5.0)
+    T0 = perturbed(rng, prob.T_true, 0.05)
+    cfg = SolverConfig(damping='dogleg', tolerance=1e-10)
+    sparse._ORDERINGS.clear()
+    ref = solve(prob.network, T0, cfg)
+    used = []
+
+    def nested(n, rows, cols, amd):
+        used.append((amd, ordering.nested_dissection(n, rows, cols)))
+        return used[-1][1]
+
+    monkeypatch.setattr(ordering, 'best_block_order', nested)
+    sparse._ORDERINGS.clear()
+    nd = solve(prob.network, T0, cfg)
+    sparse._ORDERINGS.clear()
+    assert used and not np.array_equal(*used[0])  # another ordering was used
+    np.testing.assert_allclose(nd.T_world_node, ref.T_world_node, atol=1e-9)
+    assert nd.cost == pytest.approx(ref.cost, rel=1e-9)
