@@ -206,11 +206,18 @@ class _NormalSystem:
         self.col = col
         self.d = d
         self.pattern = pattern
-        self.data = data
+        self._data = data  # the lower triangle of N, or a function assembling it on first use
         self._chol = chol
         self._factored = False
         self.coords: FloatArray | None = None  # (u, 3) positions of the free nodes, for ordering
         self._index = {int(i): k for k, i in enumerate(node_ids)}
+
+    @property
+    def data(self) -> FloatArray:
+        """Lower-triangle CSC values of ``N`` at the solution (assembled on first use)."""
+        if callable(self._data):
+            self._data = self._data()
+        return self._data
 
     def index_of(self, ids: IntArray) -> IntArray:
         try:
@@ -442,12 +449,21 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     T = out.T
     d, conn = prob.d, prob.conn
     n_free = int(prob.free.sum())
-    final = prob.linear_system(T, out.v)
-    v = prob.residual_update(final, np.zeros(n_free * d))
-    data = prob.pattern.assemble(final.blocks)
-    final.blocks = None
-    cost = _adjustment_cost(v, prob.P, final.weights) + _prior_cost(prob.model, T,
-                                                                    prob.prior_data)
+    if prob.Pf is not None:
+        # motion models: out.v is the misclosure at T, so the residuals (v = weights * w) need
+        # no linearisation; N is assembled only if a covariance or prior asks for it
+        weights = _robust_weights(np.sqrt(np.maximum(_maha2(out.v, prob.P), 0.0)), prob.cfg)
+        v = out.v * weights[:, None]
+
+        def data() -> FloatArray:
+            return prob.pattern.assemble(prob.linear_system(T, out.v).blocks)
+    else:
+        final = prob.linear_system(T, out.v)
+        v = prob.residual_update(final, np.zeros(n_free * d))
+        data = prob.pattern.assemble(final.blocks)
+        weights = final.weights
+        final.blocks = None
+    cost = _adjustment_cost(v, prob.P, weights) + _prior_cost(prob.model, T, prob.prior_data)
     r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
         p.rank for p in prob.prior_data)
     redundancy = r_eq - n_free * d
@@ -465,7 +481,7 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
         sigma0_sq=float(sigma0_sq), redundancy=int(redundancy), n_equations=int(r_eq),
         n_observations=int(o * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
         n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
-        seconds=time.perf_counter() - t0, model=prob.model, weights=final.weights,
+        seconds=time.perf_counter() - t0, model=prob.model, weights=weights,
         factorisations=out.factorisations, _system=system)
 
 
@@ -702,7 +718,7 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
         bt = models.between(model, T, conn.src, conn.dst, T_meas, Tm_inv)
         w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
         del bt
-        maha2 = np.einsum('mi,mij,mj->m', w, P, w)
+        maha2 = _maha2(w, P)
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         Wm = P if cfg.robust_loss == 'none' else P * weights[:, None, None]
         JT = np.swapaxes(J, 1, 2)
@@ -763,8 +779,13 @@ def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: Float
     return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
 
 
+def _maha2(e: FloatArray, P: FloatArray) -> FloatArray:
+    """Squared Mahalanobis norms ``e_k' P_k e_k`` ``(m,)``."""
+    return np.einsum('mi,mij,mj->m', e, P, e)
+
+
 def _cost_of_misclosure(model, T, e, P, prior_data, cfg) -> float:
-    maha2 = np.einsum('mi,mij,mj->m', e, P, e)
+    maha2 = _maha2(e, P)
     return float(np.sum(_robust_rho(maha2, cfg))) + _prior_cost(model, T, prior_data)
 
 
