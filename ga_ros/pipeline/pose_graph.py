@@ -126,10 +126,12 @@ def robust_objective(graph: PoseGraph, T_world_node: FloatArray, loss: str = 'no
     return float(np.sum(r2))
 
 
-def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> GraphSolveResult:
+def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,
+                initial_cost: float | None = None) -> GraphSolveResult:
     """Batch-optimise a pose graph from its own initial guess (``graph.T_init``).
 
-    The datum is the ``FIX`` vertices of the file, or else its first vertex.
+    The datum is the ``FIX`` vertices of the file, or else its first vertex. ``initial_cost``:
+    :func:`graph_cost` at ``graph.T_init`` when the caller has it (else it is evaluated here).
 
     Raises
     ------
@@ -140,7 +142,8 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None) -> Gra
     """
     cfg = config or GraphSolveConfig()
     fixed = list(graph.fixed) or None
-    initial_cost = graph_cost(graph, graph.T_init)
+    if initial_cost is None:
+        initial_cost = graph_cost(graph, graph.T_init)
     t0 = time.perf_counter()
     stages: list[dict] = []
     last: list = [None, 0.0]  # the poses whose graph_cost was evaluated last, and that cost
@@ -453,14 +456,17 @@ class OptimumEvidence:
     chi2_test: str
 
 
-def optimum_evidence(graph: PoseGraph, T_world_node: FloatArray) -> OptimumEvidence:
-    """The a-posteriori variance factor and its chi-square test at 95 % for a solution."""
+def optimum_evidence(graph: PoseGraph, T_world_node: FloatArray,
+                     cost: float | None = None) -> OptimumEvidence:
+    """The a-posteriori variance factor and its chi-square test at 95 % for a solution
+    (``cost``: :func:`graph_cost` at ``T_world_node`` when the caller has it)."""
     from scipy.special import chdtri  # chi2 quantiles without importing scipy.stats (~1 s)
 
     d = 6 if graph.dim == 3 else 3
     n_datum = len(graph.fixed) or 1
     dof = d * graph.n_edges - d * (graph.n_vertices - n_datum)
-    cost = graph_cost(graph, T_world_node)
+    if cost is None:
+        cost = graph_cost(graph, T_world_node)
     if dof <= 0:
         return OptimumEvidence(cost, dof, float('nan'), float('nan'), float('nan'), 'n/a')
     lo, hi = (float(v) for v in chdtri(dof, [0.975, 0.025]))  # chi2.ppf([0.025, 0.975])

@@ -26,7 +26,7 @@ import numpy as np
 from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
 from ga_ros.errors import InputError
-from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, graph_cost, read_g2o, write_g2o
+from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
 from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
     GraphSolveConfig,
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     read_seconds = time.perf_counter() - t_read
     guess = initial_guess(graph, args.init)
     graph = graph.with_initial_guess(guess.T_world_node)
-    initial = graph_cost(graph, guess.T_world_node)
+    initial = guess.cost  # graph_cost at the guess
     if not np.isfinite(initial):
         raise InputError(f'{args.input}: no final cost can be reached, the initial cost is '
                          f'{initial}: a vertex or edge holds an absurd value (e.g. 1e308); '
@@ -121,12 +121,12 @@ def run(args: argparse.Namespace) -> int:
         cfg = GraphSolveConfig.with_solver(
             polish_iterations=args.polish_iterations, robust_loss=args.robust,
             robust_scale=args.robust_scale, **{k: v for k, v in overrides.items() if v})
-        result = solve_graph(graph, cfg)
+        result = solve_graph(graph, cfg, initial_cost=initial)
     if not np.isfinite(result.cost):
         raise InputError(f'{args.input}: the final cost is {result.cost} (initial '
                          f'{result.initial_cost}): a vertex or edge holds an absurd value (e.g. '
                          '1e308); fix the file. Nothing was written')
-    evidence = optimum_evidence(graph, result.T_world_node)
+    evidence = optimum_evidence(graph, result.T_world_node, result.cost)
     check = None
     if args.check_init and not args.tracks:
         check = check_initialization(graph, result.cost, guess.method, cfg)
