@@ -80,7 +80,7 @@ class BlockPattern:
                                    + np.int64(n).tobytes() + np.int64(d).tobytes(),
                                    digest_size=16).digest()
         nblk_col = np.bincount(ucol, minlength=n)
-        if n and not np.array_equal(np.unique(ucol[urow == ucol]), np.arange(n)):
+        if n and not np.array_equal(np.sort(ucol[urow == ucol]), np.arange(n)):
             raise DegenerateGeometryError('a block column has no diagonal block')
         first = np.concatenate([[0], np.cumsum(nblk_col)[:-1]])
         rank = np.arange(ukey.size) - first[ucol]  # 0 for the diagonal block
