@@ -62,6 +62,8 @@ def import_scipy() -> None:
     numpy.__dir__ = lambda: [n for n in dir_fn() if n not in hidden]
     try:
         import scipy._lib._array_api  # noqa: F401
+    except ImportError:  # another SciPy layout: nothing to speed up
+        pass
     finally:
         numpy.__all__, numpy.__dir__ = all_names, dir_fn
     compat = sys.modules.get('scipy._lib.array_api_compat.numpy')

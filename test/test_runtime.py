@@ -60,3 +60,21 @@ def test_cholmod_openblas_runs_the_kernel_chosen_for_this_cpu():
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          env=env, check=True).stdout.split()
     assert out == [runtime.best_openblas_coretype(), 'None']
+
+
+def test_import_scipy_leaves_unused_numpy_submodules_unloaded_but_reachable():
+    """The start-up shortcut of runtime.import_scipy: SciPy's copy of the numpy namespace is
+    built without importing numpy.testing / f2py / ma, and still reaches them on access."""
+    code = ('import sys\n'
+            'from ga_ros.runtime import import_scipy\n'
+            'import_scipy()\n'
+            'import scipy.sparse.csgraph, scipy.linalg\n'
+            "print(sorted(m for m in ('numpy.testing', 'numpy.f2py', 'numpy.ma') "
+            'if m in sys.modules))\n'
+            'import numpy\n'
+            'import scipy._lib.array_api_compat.numpy as compat\n'
+            'print(compat.testing is numpy.testing, compat.ma.masked is numpy.ma.masked)\n'
+            "print('testing' in numpy.__all__, 'testing' in dir(numpy))\n")
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert out == ['[]', 'True True', 'True True']
