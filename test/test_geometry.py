@@ -114,3 +114,23 @@ def test_integrate_chains_motions(rng):
     motions = se3.exp(_twists(rng)[:5] * 0.1)
     T = se3.integrate(np.eye(4), motions)
     assert np.allclose(se3.relative(T[:-1], T[1:]), motions, atol=1e-10)
+
+
+def test_quaternions_equal_scipy_near_identity_near_pi_and_at_random(rng):
+    from scipy.spatial.transform import Rotation
+
+    axis = rng.normal(size=(300, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.concatenate([rng.uniform(0, 1e-9, 100), np.pi - rng.uniform(0, 1e-7, 100),
+                            rng.uniform(0, np.pi, 100)])
+    R = Rotation.from_rotvec(axis * angle[:, None])
+    q_ref = R.as_quat()
+    q_ref = np.where(q_ref[:, 3:] < 0, -q_ref, q_ref)
+    q = se3.quat_from_matrix(R.as_matrix())
+    sign = np.where(np.sum(q * q_ref, axis=1) < 0, -1.0, 1.0)  # w = 0 exactly: either sign
+    np.testing.assert_allclose(q * sign[:, None], q_ref, atol=1e-12)
+    T = se3.from_pos_quat(np.zeros((300, 3)), rng.normal(size=(300, 4)) * 3.0)
+    np.testing.assert_allclose(T[:, :3, :3], Rotation.from_quat(
+        se3.quat_from_matrix(T[:, :3, :3])).as_matrix(), atol=1e-12)
+    with pytest.raises(ValueError):
+        se3.from_pos_quat(np.zeros(3), np.zeros(4))
