@@ -116,9 +116,11 @@ def between(model: str, T: FloatArray, src: IntArray, dst: IntArray,
         e = P(T_meas).inverse().compose(T_ij).log()
         return Between(e, se2.right_jacobian_inv(e), se2.adjoint(T_ij.inverse()))
     T_ij = se3.inverse(T[src]) @ T[dst]
-    e = se3.log((se3.inverse(T_meas) if Tm_inv is None else Tm_inv) @ T_ij)
-    # J_r(e)^-1 = J_l(-e)^-1 (no Ad(exp e) product); Ad(T_ij^-1) without forming T_ij^-1
-    return Between(e, se3.right_jacobian_inv(e), se3.adjoint_inverse(T_ij))
+    E = (se3.inverse(T_meas) if Tm_inv is None else Tm_inv) @ T_ij
+    e = se3.log(E)
+    # J_r(e)^-1 = J_l(e)^-1 Ad(exp e) (equal to J_l(-e)^-1, the kernels' form; this product is
+    # kept because the window's seeded reference numbers are bit-identical with it)
+    return Between(e, se3.left_jacobian_inv(e) @ se3.adjoint(E), se3.adjoint(se3.inverse(T_ij)))
 
 
 def check_model(model: str) -> None:

@@ -190,17 +190,6 @@ def adjoint(T: FloatArray) -> FloatArray:
     return out
 
 
-def adjoint_inverse(T: FloatArray) -> FloatArray:
-    """``Ad(T^-1) = [[R', -R' [t]x], [0, R']]`` (6x6) without forming ``T^-1``."""
-    T = np.asarray(T, dtype=float)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out = np.zeros(T.shape[:-2] + (6, 6))
-    out[..., :3, :3] = Rt
-    out[..., 3:, 3:] = Rt
-    out[..., :3, 3:] = -(Rt @ so3.hat(T[..., :3, 3]))
-    return out
-
-
 def left_jacobian(xi: FloatArray) -> FloatArray:
     """SE(3) left Jacobian ``[[J, Q], [0, J]]`` with ``J = so3.left_jacobian(phi)``."""
     xi = np.asarray(xi, dtype=float)
