@@ -281,7 +281,7 @@ class _NormalSystem:
 # ----------------------------------------------------------------------------------- solve
 def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
           fixed: Sequence[int] | None = None,
-          priors: Sequence[GaussianPrior] = ()) -> SolveResult:
+          priors: Sequence[GaussianPrior] = (), jit: bool = False) -> SolveResult:
     """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
 
     Parameters
@@ -293,6 +293,10 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     fixed : node ids held fixed (the datum). Default: the first node when there are no priors,
         none otherwise (then the priors must define the datum).
     priors : weighted parameters / sequential priors (see :class:`GaussianPrior`).
+    jit : use the compiled se3 kernels (:mod:`ga_ros.core.kernels`) from the first
+        linearisation on, for a caller that solves many problems in one process (the window
+        aligner): the one-off cost of loading them is paid once. Default: only once a solve
+        has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
 
     Returns
     -------
@@ -334,6 +338,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
     prob = _Problem.build(model, conn, prior_data, cfg, free)
+    prob.jit = bool(jit)
     with blas_threads():
         out = _iterate(prob, T0.copy())
     return _finish(prob, node_ids, out, t0)
@@ -543,6 +548,7 @@ class _Problem:
     Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models only)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
+    jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -584,7 +590,8 @@ class _Problem:
         """Use the compiled se3 kernels: only once a solve has run more than
         :data:`ga_ros.core.kernels.AFTER_ITERATIONS` linearisations (loading numba costs ~1 s
         and ~100 MiB, which a short solve never earns back) on a large enough problem."""
-        return (self.model == 'se3' and self.linearisations > kernels.AFTER_ITERATIONS
+        return (self.model == 'se3'
+                and (self.jit or self.linearisations > kernels.AFTER_ITERATIONS)
                 and kernels.use_for(len(self.conn)))
 
     def cost_at(self, T: FloatArray) -> float:

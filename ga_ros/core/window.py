@@ -84,6 +84,8 @@ from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
+_EYE6 = np.eye(6)
+_potrf = sla.get_lapack_funcs('potrf', (_EYE6,))
 GATES = ('chi2', 'w-test')
 
 
@@ -568,6 +570,9 @@ class TrackWindowAligner:
     def _check_covariance(self, cov: FloatArray, what: str, bad) -> FloatArray:
         """Finite, symmetric, positive definite, and within the configured eigenvalue range and
         condition number (``bad_covariance`` otherwise); returns the symmetrised matrix."""
+        sym = self._covariance_within_limits(cov)
+        if sym is not None:
+            return sym
         cfg = self.config
         if not np.isfinite(cov).all():
             raise bad('bad_covariance', f'{what} has NaN or inf entries')
@@ -588,6 +593,30 @@ class TrackWindowAligner:
             raise bad('bad_covariance', f'{what} has condition number {ev[-1] / ev[0]:.3g}, '
                       f'above cov_max_condition {cfg.cov_max_condition:.3g}')
         return cov
+
+    def _covariance_within_limits(self, cov: FloatArray) -> FloatArray | None:
+        """The symmetrised 6x6 covariance if it passes every check of
+        :meth:`_check_covariance` with a margin, decided by one Cholesky attempt (a few
+        microseconds, against two eigen-decompositions); ``None`` when undecided (the exact
+        checks then run and name the reason).
+
+        ``sym - c I`` positive definite means ``eig_min(sym) > c``; with ``c`` the largest of
+        the three lower bounds on ``eig_min`` (``1e-12`` of the largest entry,
+        ``cov_min_eigenvalue``, and ``6 max|entry| / cov_max_condition``, since ``eig_max`` is
+        at most 6 times the largest entry), slightly raised against round-off, every test
+        passes.
+        """
+        cfg = self.config
+        amax = abs(cov).max()
+        if not amax <= cfg.cov_max_eigenvalue:  # also NaN or inf
+            return None
+        if not abs(cov - cov.T).max() <= 1e-6 * max(amax, 1e-300):
+            return None
+        sym = 0.5 * (cov + cov.T)
+        # eig_max <= 6 max |entry| bounds the condition number as the trace would
+        shift = max(1e-12 * amax, cfg.cov_min_eigenvalue, 6.0 * amax / cfg.cov_max_condition)
+        _, info = _potrf(sym - (shift * (1.0 + 1e-9) + 1e-13 * amax) * _EYE6)
+        return sym if info == 0 else None
 
     def _check_jumps(self, m: Measurement, new_nodes: list[int], bad) -> None:
         """New node and track ids must be within the configured jump of the largest seen."""
@@ -978,7 +1007,7 @@ class TrackWindowAligner:
             T_init = self._T[nodes]
             if res is not None:  # the gate changed the problem: start from the current estimate
                 T_init = _carry_over(T_init, nodes, prev_nodes, res.T_world_node)
-            res = solve(net, T_init, scfg, fixed=fixed, priors=priors)
+            res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True)
             prev_nodes = nodes
             bad = self._outliers(res, conns, net, priors)
             if bad.size == 0:
@@ -1091,22 +1120,29 @@ class TrackWindowAligner:
         T_ij = se3.inverse(T[i]) @ T[j]
         z = self._z.a[conns]
         e = se3.log(se3.inverse(se3.from_translation_rotvec(z[:, :3], z[:, 3:])) @ T_ij)
-        free = set(res.free_node_ids.tolist())
+        J = np.zeros((conns.size, 6, 12))
+        J[:, :, :6] = -se3.adjoint(se3.inverse(T_ij))
+        J[:, :, 6:] = np.eye(6)
+        Q = np.zeros((conns.size, 12, 12))
         ids = res.node_ids
-        out = []
-        for k in range(conns.size):
-            pair = [int(ids[i[k]]), int(ids[j[k]])]
-            J = np.concatenate([-se3.adjoint(se3.inverse(T_ij[k])), np.eye(6)], axis=1)
-            Q = np.zeros((12, 12))
-            sel = [a for a, node in enumerate(pair) if node in free]
-            if sel:
-                cols = np.concatenate([np.arange(6 * a, 6 * a + 6) for a in sel])
-                Q[np.ix_(cols, cols)] = res._system.joint_covariance(
-                    np.array([pair[a] for a in sel], dtype=np.int64))
-            C = self._ccov.a[conns[k]] + J @ Q @ J.T
-            if float(e[k] @ np.linalg.solve(C, e[k])) <= chi2.ppf(prob, 6):
-                out.append(int(conns[k]))
-        return np.array(out, dtype=np.int64)
+        free = np.isin(ids, res.free_node_ids)
+        ends = np.stack([i, j], axis=1)
+        for start in range(0, conns.size, 64):  # the joint covariance of <= 128 nodes at once
+            part = ends[start:start + 64]
+            nodes_free = np.unique(part[free[part]])
+            if nodes_free.size == 0:
+                continue
+            cov = res._system.joint_covariance(ids[nodes_free])
+            cov = cov.reshape(nodes_free.size, 6, nodes_free.size, 6).transpose(0, 2, 1, 3)
+            pos = np.searchsorted(nodes_free, part)
+            for a in range(2):
+                for b in range(2):
+                    both = free[part[:, a]] & free[part[:, b]]
+                    Q[start:start + 64][both, 6 * a:6 * a + 6, 6 * b:6 * b + 6] = \
+                        cov[pos[both, a], pos[both, b]]
+        C = self._ccov.a[conns] + J @ Q @ np.swapaxes(J, 1, 2)
+        maha2 = np.einsum('mi,mi->m', e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+        return conns[maha2 <= chi2.ppf(prob, 6)].astype(np.int64)
 
     def _freeze(self, track: int) -> None:
         """Freeze a track leaving the window, using the last adjustment's estimate."""
@@ -1344,7 +1380,7 @@ class TrackWindowAligner:
             net, nodes, _, _, fixed, priors = self._window_problem(pending)
             self.__dict__['_last_result'] = solve(net, self._T[nodes],
                                                   self.config.solver_config(), fixed=fixed,
-                                                  priors=priors)
+                                                  priors=priors, jit=True)
         return self.__dict__.get('_last_result')
 
     @_last.setter
