@@ -73,6 +73,7 @@ from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
     SolveResult,
+    _inv_spd,
     normal_matrix_at,
     solve,
 )
@@ -360,12 +361,13 @@ def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
                 T_prev: FloatArray) -> FloatArray:
     """``T_init`` (poses of ``nodes``) with the poses of the nodes that were also in the previous
     problem (``prev_nodes``, estimate ``T_prev``) taken from that estimate."""
-    pos = {int(i): k for k, i in enumerate(prev_nodes)}
     out = T_init.copy()
-    for k, i in enumerate(nodes.tolist()):
-        j = pos.get(i)
-        if j is not None:
-            out[k] = T_prev[j]
+    if prev_nodes.size == 0 or nodes.size == 0:
+        return out
+    pos = np.full(int(max(nodes.max(), prev_nodes.max())) + 1, -1, dtype=np.int64)
+    pos[prev_nodes] = np.arange(prev_nodes.size)
+    k = pos[nodes]
+    out[k >= 0] = T_prev[k[k >= 0]]
     return out
 
 
@@ -419,6 +421,15 @@ class TrackWindowAligner:
         self._priors: list[tuple[IntArray, FloatArray, FloatArray]] = []
         self._last: SolveResult | None = None
         self._last_window: IntArray = np.zeros(0, dtype=np.int64)
+        # the last adjustment's estimate of the frozen nodes it adjusted as weighted parameters
+        # (node rows, (k, 4, 4)): where the next update starts them (their published pose,
+        # self._T, stays the frozen one)
+        self._T_weighted: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
+                                                         np.zeros((0, 4, 4)))
+        # weights S^-1 of the last window's connections (rows, (m, 6, 6)): an update inverts
+        # only the covariances of the connections that entered the window since
+        self._weights_kept: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
+                                                           np.zeros((0, 6, 6)))
         self._rejected: dict[str, int] = {}
         self._n_updates = 0
         self._n_outliers = 0
@@ -727,7 +738,7 @@ class TrackWindowAligner:
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
         saved = (self._T[:n].copy(), self._cov[:n].copy(),
                  self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
-                 self._last_window, self._n_outliers, self._n_updates)
+                 self._last_window, self._n_outliers, self._n_updates, self._T_weighted)
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
@@ -738,7 +749,8 @@ class TrackWindowAligner:
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
         (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
-         self._priors, self._last_window, self._n_outliers, n_updates) = saved
+         self._priors, self._last_window, self._n_outliers, n_updates,
+         self._T_weighted) = saved
         self._last = None
         self.__dict__.update(last)
         self._finished.add(track)
@@ -849,6 +861,7 @@ class TrackWindowAligner:
             self._T[frozen] = res.T_world_node[frozen]
         self._cov[frozen] = res.frozen_cov
         self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node)
 
     def _smooth(self) -> None:
@@ -1001,14 +1014,17 @@ class TrackWindowAligner:
         scfg = cfg.solver_config()
         n_out = 0
         readmitted: set[int] = set()
-        res, prev_nodes = None, np.zeros(0, dtype=np.int64)
+        # the sequential update (paper Sec. III-D): start from the previous estimate, at its
+        # optimum for the old connections (window nodes and the frozen nodes it adjusted as
+        # weighted parameters), the new track from its chained consecutive motions
+        res, (prev_nodes, T_prev) = None, self._T_weighted
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
-            T_init = self._T[nodes]
-            if res is not None:  # the gate changed the problem: start from the current estimate
-                T_init = _carry_over(T_init, nodes, prev_nodes, res.T_world_node)
-            res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True)
-            prev_nodes = nodes
+            # (after the gate changed the problem: from the current estimate)
+            T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
+            res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
+                        weights=self._weights(conns))
+            prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
             if bad.size == 0:
                 back = self._readmissible(window_tracks, nodes, res, readmitted)
@@ -1023,6 +1039,7 @@ class TrackWindowAligner:
             n_out += int(bad.size)
         n_win = win_nodes.size
         self._T[win_nodes] = res.T_world_node[:n_win]
+        self._T_weighted = (nodes[n_win:].copy(), res.T_world_node[n_win:].copy())
         self._last = res
         self._last_window = win_nodes
         self._n_outliers += n_out - len(readmitted)
@@ -1033,6 +1050,20 @@ class TrackWindowAligner:
             n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self._quality_summary(net, res, priors, conns))
+
+    def _weights(self, conns: IntArray) -> FloatArray:
+        """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows), those of the last call
+        reused (a window keeps most of its connections from one update to the next)."""
+        kept, P_kept = self._weights_kept
+        pos = np.searchsorted(kept, conns)
+        hit = pos < kept.size
+        hit[hit] = kept[pos[hit]] == conns[hit]
+        P = np.empty((conns.size, 6, 6))
+        P[hit] = P_kept[pos[hit]]
+        if not hit.all():
+            P[~hit] = _inv_spd(self._ccov.a[conns[~hit]])
+        self._weights_kept = (conns, P)
+        return P
 
     def _quality_report(self, net: ConnectionNetwork, res: SolveResult,
                         priors: list[GaussianPrior]) -> tuple[QualityReport, float]:
@@ -1086,7 +1117,7 @@ class TrackWindowAligner:
             rep, _ = self._quality_report(net, res, priors)
             ratio = np.where(cross, np.nan_to_num(rep.test_ratio('w'), nan=0.0), 0.0)
             return conns[ratio > 1.0]
-        P = np.linalg.inv(self._ccov.a[conns])
+        P = self._weights(conns)
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)
         return conns[cross & (maha2 > chi2.ppf(prob, 6))]
@@ -1365,6 +1396,7 @@ class TrackWindowAligner:
                             for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
+        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
