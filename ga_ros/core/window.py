@@ -545,22 +545,24 @@ class TrackWindowAligner:
             cov = checked_cov
         if src == dst:
             raise bad('self_loop', f'measurement from node {src} to itself')
-        if src in self._index and int(m.src_track) != self._track[self._index[src]]:
+        index, tracks = self._index, self._trackarr.a
+        i_src, i_dst = index.get(src), index.get(dst)
+        if i_src is not None and int(m.src_track) != tracks[i_src]:
             raise bad('track_mismatch', f'node {src} belongs to track '
-                      f'{self._track[self._index[src]]}, not {m.src_track}')
-        if dst in self._index and int(m.dst_track) != self._track[self._index[dst]]:
+                      f'{tracks[i_src]}, not {m.src_track}')
+        if i_dst is not None and int(m.dst_track) != tracks[i_dst]:
             raise bad('track_mismatch', f'node {dst} belongs to track '
-                      f'{self._track[self._index[dst]]}, not {m.dst_track}')
+                      f'{tracks[i_dst]}, not {m.dst_track}')
         first = self._idarr.n == 0
-        if not first and src not in self._index:
+        if not first and i_src is None:
             raise bad('unknown_source', f'source node {src} is unknown: every measurement must '
                       'start at a node that an earlier measurement introduced')
-        for node in (src, dst):
-            if node in self._index and self._frozen[self._index[node]]:
+        for node, k in ((src, i_src), (dst, i_dst)):
+            if k is not None and self._frozen[k]:
                 raise bad('frozen', f'node {node} belongs to a frozen track (outside the window '
                           f'of {self.config.window_tracks} tracks)')
         ends_track = False
-        new_nodes = [n for n in ((src,) if first else ()) + (dst,) if n not in self._index]
+        new_nodes = ([src] if first and i_src is None else []) + ([dst] if i_dst is None else [])
         for node in new_nodes:
             track = int(m.dst_track) if node == dst else int(m.src_track)
             if track in self._finished:
@@ -576,7 +578,7 @@ class TrackWindowAligner:
         if key in self._pairs:
             raise bad('duplicate', f'measurement {src}->{dst} was already received')
         return {'src': src, 'dst': dst, 'z': z, 'cov': cov, 'first': first,
-                'ends_track': ends_track, 'key': key}
+                'ends_track': ends_track, 'key': key, 'rows': (i_src, i_dst)}
 
     def _check_covariance(self, cov: FloatArray, what: str, bad) -> FloatArray:
         """Finite, symmetric, positive definite, and within the configured eigenvalue range and
@@ -659,13 +661,13 @@ class TrackWindowAligner:
 
     def _apply(self, m: Measurement, plan: dict) -> None:
         src, dst = plan['src'], plan['dst']
+        i, j = plan['rows']  # None: a new node (finish_track, run between, adds none)
         if plan['first']:
-            self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
-        if dst not in self._index:
-            T_src = self._T[self._index[src]]
+            i = self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
+        if j is None:
+            T_src = self._T[i]
             T_meas = se3.from_translation_rotvec(plan['z'][:3], plan['z'][3:])
-            self._add_node(dst, int(m.dst_track), int(m.stamp_ns), T_src @ T_meas)
-        i, j = self._index[src], self._index[dst]
+            j = self._add_node(dst, int(m.dst_track), int(m.stamp_ns), T_src @ T_meas)
         k = self._src.append(i)
         self._dst.append(j)
         self._z.append(plan['z'])
@@ -690,7 +692,8 @@ class TrackWindowAligner:
                               self._fp.a[live].tolist()))
         self._pairs_kept = len(self._pairs)
 
-    def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> None:
+    def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> int:
+        """Store a new node; returns its row."""
         k = self._idarr.append(node_id)
         self._trackarr.append(track)
         self._stamparr.append(stamp_ns)
@@ -706,6 +709,7 @@ class TrackWindowAligner:
             self._tracks.append(track)
         self._track_nodes.add(track, k)
         self._open_track = track
+        return k
 
     @property
     def _ids(self) -> IntArray:
