@@ -205,3 +205,24 @@ def test_restored_aligner_starts_its_next_update_where_the_saved_one_would(tmp_p
     back.finish_track()
     np.testing.assert_allclose(back.corrected_path().T_world_node,
                                ref.corrected_path().T_world_node, rtol=0, atol=1e-12)
+
+
+def test_a_handed_over_factor_gives_the_same_solution_and_the_donor_stays_usable():
+    """``solve(factor=previous.release_factor())`` (the window's reuse of the last symbolic
+    analysis) changes nothing in the result, and the donor still answers its own covariances
+    (factored anew) after the factor was refactored for the next problem."""
+    from ga_ros.core.solver import solve
+
+    sc, nm, _ = noisy_aerial_survey(3, 10, 3.0, 1)
+    net, T0 = sc.network(nm.z, nm.cov), sc.f2f(nm.z)
+    cfg = SolverConfig(tolerance=1e-10)
+    first = solve(net, T0, cfg)
+    cov_first = first.covariance([5, 17])
+    T1 = T0 @ se3.exp(np.full((T0.shape[0], 6), 1e-3))  # another start, same pattern
+    reused = solve(net, T1, cfg, factor=first.release_factor())
+    fresh = solve(net, T1, cfg)
+    np.testing.assert_allclose(reused.T_world_node, fresh.T_world_node, rtol=0, atol=1e-12)
+    assert reused.factorisations == fresh.factorisations
+    np.testing.assert_allclose(reused.covariance([5, 17]), fresh.covariance([5, 17]),
+                               rtol=1e-10, atol=0)
+    np.testing.assert_allclose(first.covariance([5, 17]), cov_first, rtol=1e-10, atol=0)

@@ -165,6 +165,16 @@ class SolveResult:
             return self._system.marginal_blocks(
                 np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
 
+    def release_factor(self) -> SparseCholesky | None:
+        """Hand this result's sparse factor over to a next :func:`solve` (its ``factor``), which
+        then skips the symbolic analysis if its pattern is the same. This result keeps working:
+        it factors its normal matrix anew if its covariances are asked for later."""
+        sysm = self._system
+        if sysm is None:
+            return None
+        chol, sysm._chol, sysm._factored = sysm._chol, None, False
+        return chol
+
     @property
     def normal_matrix(self) -> sp.csc_matrix:
         """The normal matrix ``N`` at the solution over the free nodes (full symmetric CSC)."""
@@ -284,7 +294,8 @@ class _NormalSystem:
 def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
           fixed: Sequence[int] | None = None,
           priors: Sequence[GaussianPrior] = (), jit: bool = False,
-          weights: FloatArray | None = None) -> SolveResult:
+          weights: FloatArray | None = None,
+          factor: SparseCholesky | None = None) -> SolveResult:
     """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
 
     Parameters
@@ -302,6 +313,9 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
     weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
         (se3 only; e.g. kept from the previous window update): not inverted again.
+    factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
+        if its pattern is this problem's, its symbolic analysis is reused (a window update
+        solves the same pattern every track).
 
     Returns
     -------
@@ -346,6 +360,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         raise InputError(f'weights must be (m, 6, 6) for the se3 model, got {np.shape(weights)}')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights)
     prob.jit = bool(jit)
+    if factor is not None and factor.pattern.key == prob.pattern.key:
+        prob.factor = factor
     with blas_threads():
         out = _iterate(prob, T0.copy())
     return _finish(prob, node_ids, out, t0)
@@ -400,7 +416,7 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
     """Relinearise and correct until the largest correction is below the tolerance."""
     cfg = prob.cfg
     v = prob.consistent(T, prob.zero_residuals())
-    state = _Trust()
+    state = _Trust(chol=prob.factor)
     last_step = np.inf
     history: list[float] = []
     converged = False
@@ -578,6 +594,7 @@ class _Problem:
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
+    factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],

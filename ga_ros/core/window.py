@@ -1026,8 +1026,11 @@ class TrackWindowAligner:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
             T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
+            # the factor of the last solve (its symbolic analysis): same pattern as a rule
+            donor = res if res is not None else self.__dict__.get('_last_result')
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
-                        weights=self._weights(conns))
+                        weights=self._weights(conns),
+                        factor=donor.release_factor() if donor is not None else None)
             prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
             if bad.size == 0:
