@@ -135,6 +135,8 @@ UPDATE_PARTS = {
     'factor': ((_sparse.SparseCholesky, '__init__'), (_sparse.SparseCholesky, 'refactor')),
     'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
     'freeze': ((TrackWindowAligner, '_freeze'),),
+    'refinement': ((TrackWindowAligner, '_install_due'), (TrackWindowAligner, '_smooth'),
+                   (TrackWindowAligner, '_start_refinement')),
 }
 
 
