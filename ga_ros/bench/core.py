@@ -18,11 +18,14 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ga_ros.core import solver as _solver
+from ga_ros.core import sparse as _sparse
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
@@ -119,12 +122,65 @@ class WindowFigures:
     gtsam_ate_rigid_m: float = float('nan')
     gtsam_cpu_ms_p50: float = float('nan')
     gtsam_cpu_ms_p95: float = float('nan')
+    refine_every_tracks: int = 1
+    # CPU ms p50 over the track-end calls of each part of the update (see UPDATE_PARTS)
+    breakdown_cpu_ms_p50: dict | None = None
+    measurement_cpu_us: float = float('nan')  # mean CPU of a call that ends no track
+
+
+#: The parts of a window update timed by :func:`bench_window` (CPU ms, exclusive: a part
+#: called inside another counts in the outer one), and the functions that do them.
+UPDATE_PARTS = {
+    'linearise': ((_solver._Problem, 'linear_system'), (_sparse.BlockPattern, 'assemble')),
+    'factor': ((_sparse.SparseCholesky, '__init__'), (_sparse.SparseCholesky, 'refactor')),
+    'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
+    'freeze': ((TrackWindowAligner, '_freeze'),),
+    'refinement': ((TrackWindowAligner, '_install_due'), (TrackWindowAligner, '_smooth'),
+                   (TrackWindowAligner, '_start_refinement')),
+}
+
+
+@contextmanager
+def _timed_parts(totals: dict[str, float]):
+    """Add the CPU ms spent in each part of :data:`UPDATE_PARTS` to ``totals`` while active
+    (the functions are wrapped for the duration, then put back)."""
+    depth = [0]
+
+    def wrap(part, fn):
+        def timed(*args, **kwargs):
+            if depth[0]:
+                return fn(*args, **kwargs)
+            depth[0] += 1
+            c0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                totals[part] = totals.get(part, 0.0) + 1e3 * (time.process_time() - c0)
+                depth[0] -= 1
+        return timed
+
+    saved = [(owner, name, owner.__dict__[name]) for targets in UPDATE_PARTS.values()
+             for owner, name in targets]
+    try:
+        for part, targets in UPDATE_PARTS.items():
+            for owner, name in targets:
+                setattr(owner, name, wrap(part, owner.__dict__[name]))
+        yield totals
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
 
 
 def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
                  noise_pct: float = 5.0, seed: int = 0, compare_batch: bool = True,
-                 with_gtsam: bool = False) -> WindowFigures:
+                 with_gtsam: bool = False,
+                 refine_every_tracks: int | None = None) -> WindowFigures:
     """Fly the aerial survey online and time each track's update.
+
+    ``refine_every_tracks``: the aligner's background refinement (default: the aligner's
+    default; 0 is the plain window). The CPU time of each call that ends a track is split into
+    the parts of :data:`UPDATE_PARTS` (``other``: the rest); their medians are
+    ``breakdown_cpu_ms_p50``.
 
     With ``with_gtsam`` (and ``gtsam`` importable), the same survey also runs through GTSAM's
     ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
@@ -134,21 +190,26 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
                  np.random.default_rng(seed))
     ms = sc.measurements(nm.z, nm.cov)
-    al = TrackWindowAligner(AlignerConfig(window_tracks=window_tracks, freeze_policy=policy),
-                            sc.T_world_node[0])
-    updates, cpu_ms = [], []
+    cfg = AlignerConfig(window_tracks=window_tracks, freeze_policy=policy)
+    if refine_every_tracks is not None:
+        cfg = AlignerConfig(window_tracks=window_tracks, freeze_policy=policy,
+                            refine_every_tracks=int(refine_every_tracks))
+    al = TrackWindowAligner(cfg, sc.T_world_node[0])
+    updates, cpu_ms, parts, other_us = [], [], [], []
     t0 = time.perf_counter()
-    for m in ms:
-        c0 = time.process_time()
-        new = al.add_measurement(m)
-        if new:  # CPU time of the call that ended a track: its update (+ one measurement)
-            cpu_ms.append(1e3 * (time.process_time() - c0))
-        updates += new
-    c0 = time.process_time()
-    last = al.finish_track()
-    if last is not None:
-        cpu_ms.append(1e3 * (time.process_time() - c0))
-        updates.append(last)
+    with _timed_parts({}) as totals:
+        for m in list(ms) + [None]:
+            totals.clear()
+            c0 = time.process_time()
+            new = al.add_measurement(m) if m is not None else [al.finish_track()]
+            cpu = 1e3 * (time.process_time() - c0)
+            new = [u for u in new if u is not None]
+            if new:  # CPU time of the call that ended a track: its update (+ one measurement)
+                cpu_ms.append(cpu)
+                parts.append({**totals, 'other': cpu - sum(totals.values())})
+            else:
+                other_us.append(1e3 * cpu)
+            updates += new
     total = time.perf_counter() - t0
     rss = peak_rss_mb()
     T_win = al.corrected_path().T_world_node
@@ -165,7 +226,12 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
         rig_w, rig_b, raw_w, raw_b, 100.0 * (rig_w - rig_b) / rig_b,
         100.0 * (raw_w - raw_b) / raw_b, float(ms_.mean()),
-        float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)))
+        float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)),
+        refine_every_tracks=al.config.refine_every_tracks,
+        breakdown_cpu_ms_p50={k: float(np.median([p.get(k, 0.0) for p in parts]))
+                              for k in (*UPDATE_PARTS, 'other')},
+        measurement_cpu_us=float(np.mean(other_us)) if other_us else float('nan'))
+    al.close()
     if with_gtsam and importlib.util.find_spec('gtsam') is not None:
         (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,
          fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, ms, window_tracks)

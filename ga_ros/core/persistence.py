@@ -186,6 +186,7 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         dst=al._dst.a, z=al._z.a, ccov21=al._ccov.packed, cross=al._cross.a,
         status=al._status.a.astype(np.int64), last_window=al._last_window.astype(np.int64),
         fingerprint=al._fp.a,
+        weighted_idx=al._T_weighted[0].astype(np.int64), weighted_T=al._T_weighted[1],
         prior_sizes=sizes,
         prior_idx=cat([idx for idx, _, _ in al._priors], ()).astype(np.int64),
         prior_mean=cat([mean for _, mean, _ in al._priors], (4, 4)),
@@ -308,5 +309,8 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
         al._last_window = np.array(sorted(i for t in window for i in al._track_nodes[t]),
                                    dtype=np.int64)
         al._last_pending = window
+    if 'weighted_idx' in arrays:  # where the next update starts the weighted parameters
+        al._T_weighted = (np.array(arrays['weighted_idx'], dtype=np.int64),
+                          np.array(arrays['weighted_T'], dtype=float).reshape(-1, 4, 4))
     al.resume_refinement(meta.get('refine_pending'))  # the pending background refinement
     return al

@@ -16,7 +16,9 @@ observations.
 
 from __future__ import annotations
 
+import hashlib
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -163,6 +165,16 @@ class SolveResult:
             return self._system.marginal_blocks(
                 np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
 
+    def release_factor(self) -> SparseCholesky | None:
+        """Hand this result's sparse factor over to a next :func:`solve` (its ``factor``), which
+        then skips the symbolic analysis if its pattern is the same. This result keeps working:
+        it factors its normal matrix anew if its covariances are asked for later."""
+        sysm = self._system
+        if sysm is None:
+            return None
+        chol, sysm._chol, sysm._factored = sysm._chol, None, False
+        return chol
+
     @property
     def normal_matrix(self) -> sp.csc_matrix:
         """The normal matrix ``N`` at the solution over the free nodes (full symmetric CSC)."""
@@ -288,7 +300,9 @@ class _NormalSystem:
 # ----------------------------------------------------------------------------------- solve
 def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
           fixed: Sequence[int] | None = None,
-          priors: Sequence[GaussianPrior] = ()) -> SolveResult:
+          priors: Sequence[GaussianPrior] = (), jit: bool = False,
+          weights: FloatArray | None = None,
+          factor: SparseCholesky | None = None) -> SolveResult:
     """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
 
     Parameters
@@ -300,6 +314,15 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     fixed : node ids held fixed (the datum). Default: the first node when there are no priors,
         none otherwise (then the priors must define the datum).
     priors : weighted parameters / sequential priors (see :class:`GaussianPrior`).
+    jit : use the compiled se3 kernels (:mod:`ga_ros.core.kernels`) from the first
+        linearisation on, for a caller that solves many problems in one process (the window
+        aligner): the one-off cost of loading them is paid once. Default: only once a solve
+        has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
+    weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
+        (se3 only; e.g. kept from the previous window update): not inverted again.
+    factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
+        if its pattern is this problem's, its symbolic analysis is reused (a window update
+        solves the same pattern every track).
 
     Returns
     -------
@@ -340,7 +363,12 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     free[fixed_idx] = False
     if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
-    prob = _Problem.build(model, conn, prior_data, cfg, free)
+    if weights is not None and (model != 'se3' or np.shape(weights) != conn.cov.shape):
+        raise InputError(f'weights must be (m, 6, 6) for the se3 model, got {np.shape(weights)}')
+    prob = _Problem.build(model, conn, prior_data, cfg, free, weights)
+    prob.jit = bool(jit)
+    if factor is not None and factor.pattern.key == prob.pattern.key:
+        prob.factor = factor
     with blas_threads():
         out = _iterate(prob, T0.copy())
     return _finish(prob, node_ids, out, t0)
@@ -395,7 +423,7 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
     """Relinearise and correct until the largest correction is below the tolerance."""
     cfg = prob.cfg
     v = prob.consistent(T, prob.zero_residuals())
-    state = _Trust()
+    state = _Trust(chol=prob.factor)
     last_step = np.inf
     history: list[float] = []
     converged = False
@@ -406,10 +434,13 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
             history.append(state.cost)
-        data = prob.pattern.assemble(sysd.blocks)
+        chord = (cfg.damping == 'none' and state.chol is not None
+                 and last_step < cfg.reuse_factor_below)
+        # a chord step reuses the last factor: N's values are not needed
+        data = None if chord else prob.pattern.assemble(sysd.blocks)
         sysd.blocks = None  # (4 m, d, d): not needed past the assembly, freed before factoring
         if cfg.damping == 'none':
-            if state.chol is None or last_step >= cfg.reuse_factor_below:
+            if not chord:
                 state.factor(prob.pattern, data)
             dx = -state.chol.solve(sysd.u)
             if not np.isfinite(dx).all():
@@ -537,6 +568,25 @@ def _information_rank(blocks: FloatArray, rows: IntArray, cols: IntArray, H) -> 
         return int(np.linalg.matrix_rank(Hd, hermitian=True))
 
 
+_PATTERNS: OrderedDict[bytes, BlockPattern] = OrderedDict()
+_MAX_PATTERNS = 4
+
+
+def _block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: int) -> BlockPattern:
+    """:class:`BlockPattern` of these block coordinates, kept for the few latest (a window
+    update solves problems of one repeating pattern: building it sorts every block again)."""
+    key = hashlib.blake2b(block_rows.tobytes() + block_cols.tobytes()
+                          + np.array([d, n], dtype=np.int64).tobytes(), digest_size=16).digest()
+    pattern = _PATTERNS.get(key)
+    if pattern is None:
+        pattern = _PATTERNS[key] = BlockPattern(block_rows, block_cols, d, n)
+        while len(_PATTERNS) > _MAX_PATTERNS:
+            _PATTERNS.popitem(last=False)
+    else:
+        _PATTERNS.move_to_end(key)
+    return pattern
+
+
 @dataclass
 class _Problem:
     """One adjustment's fixed parts (connections, priors, datum, pattern of ``N``), built once.
@@ -559,10 +609,12 @@ class _Problem:
     Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models only)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
+    jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
+    factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
-              cfg: SolverConfig, free: np.ndarray) -> _Problem:
+              cfg: SolverConfig, free: np.ndarray, P: FloatArray | None = None) -> _Problem:
         d = models.dof(model)
         col = np.full(free.size, -1, dtype=np.int64)
         col[free] = np.arange(int(free.sum()))
@@ -572,13 +624,13 @@ class _Problem:
         for pd in prior_data:
             br.append(col[pd.idx[pd.blk_r]])
             bc.append(col[pd.idx[pd.blk_c]])
-        pattern = BlockPattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+        pattern = _block_pattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
         S = models.observation_covariance(model, conn.cov)
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
                   if model in models.MOTION_MODELS else None)
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
-        return _Problem(model, conn, _inv_spd(S), prior_data, cfg, free, col, d, pattern, S,
-                        T_meas, Tm_inv)
+        return _Problem(model, conn, _inv_spd(S) if P is None else P, prior_data, cfg, free,
+                        col, d, pattern, S, T_meas, Tm_inv)
 
     @property
     def Pf(self) -> FloatArray | None:
@@ -597,10 +649,12 @@ class _Problem:
 
     @property
     def compiled(self) -> bool:
-        """Use the compiled se3 kernels: only once a solve has run more than
-        :data:`ga_ros.core.kernels.AFTER_ITERATIONS` linearisations (loading numba costs ~1 s
-        and ~100 MiB, which a short solve never earns back) on a large enough problem."""
-        return (self.model == 'se3' and self.linearisations > kernels.AFTER_ITERATIONS
+        """Use the compiled se3 kernels: from the first linearisation with ``jit``, else only
+        once a solve has run more than :data:`ga_ros.core.kernels.AFTER_ITERATIONS`
+        linearisations (loading numba costs ~1 s and ~100 MiB, which a short solve never earns
+        back); on a large enough problem only."""
+        return (self.model == 'se3'
+                and (self.jit or self.linearisations > kernels.AFTER_ITERATIONS)
                 and kernels.use_for(len(self.conn)))
 
     def cost_at(self, T: FloatArray) -> float:

@@ -73,6 +73,7 @@ from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
     SolveResult,
+    _inv_spd,
     normal_matrix_at,
     solve,
 )
@@ -84,6 +85,8 @@ from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
+_EYE6 = np.eye(6)
+_potrf = sla.get_lapack_funcs('potrf', (_EYE6,))
 GATES = ('chi2', 'w-test')
 
 
@@ -358,12 +361,13 @@ def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
                 T_prev: FloatArray) -> FloatArray:
     """``T_init`` (poses of ``nodes``) with the poses of the nodes that were also in the previous
     problem (``prev_nodes``, estimate ``T_prev``) taken from that estimate."""
-    pos = {int(i): k for k, i in enumerate(prev_nodes)}
     out = T_init.copy()
-    for k, i in enumerate(nodes.tolist()):
-        j = pos.get(i)
-        if j is not None:
-            out[k] = T_prev[j]
+    if prev_nodes.size == 0 or nodes.size == 0:
+        return out
+    pos = np.full(int(max(nodes.max(), prev_nodes.max())) + 1, -1, dtype=np.int64)
+    pos[prev_nodes] = np.arange(prev_nodes.size)
+    k = pos[nodes]
+    out[k >= 0] = T_prev[k[k >= 0]]
     return out
 
 
@@ -417,6 +421,15 @@ class TrackWindowAligner:
         self._priors: list[tuple[IntArray, FloatArray, FloatArray]] = []
         self._last: SolveResult | None = None
         self._last_window: IntArray = np.zeros(0, dtype=np.int64)
+        # the last adjustment's estimate of the frozen nodes it adjusted as weighted parameters
+        # (node rows, (k, 4, 4)): where the next update starts them (their published pose,
+        # self._T, stays the frozen one)
+        self._T_weighted: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
+                                                         np.zeros((0, 4, 4)))
+        # weights S^-1 of the last window's connections (rows, (m, 6, 6)): an update inverts
+        # only the covariances of the connections that entered the window since
+        self._weights_kept: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
+                                                           np.zeros((0, 6, 6)))
         self._rejected: dict[str, int] = {}
         self._n_updates = 0
         self._n_outliers = 0
@@ -532,22 +545,24 @@ class TrackWindowAligner:
             cov = checked_cov
         if src == dst:
             raise bad('self_loop', f'measurement from node {src} to itself')
-        if src in self._index and int(m.src_track) != self._track[self._index[src]]:
+        index, tracks = self._index, self._trackarr.a
+        i_src, i_dst = index.get(src), index.get(dst)
+        if i_src is not None and int(m.src_track) != tracks[i_src]:
             raise bad('track_mismatch', f'node {src} belongs to track '
-                      f'{self._track[self._index[src]]}, not {m.src_track}')
-        if dst in self._index and int(m.dst_track) != self._track[self._index[dst]]:
+                      f'{tracks[i_src]}, not {m.src_track}')
+        if i_dst is not None and int(m.dst_track) != tracks[i_dst]:
             raise bad('track_mismatch', f'node {dst} belongs to track '
-                      f'{self._track[self._index[dst]]}, not {m.dst_track}')
+                      f'{tracks[i_dst]}, not {m.dst_track}')
         first = self._idarr.n == 0
-        if not first and src not in self._index:
+        if not first and i_src is None:
             raise bad('unknown_source', f'source node {src} is unknown: every measurement must '
                       'start at a node that an earlier measurement introduced')
-        for node in (src, dst):
-            if node in self._index and self._frozen[self._index[node]]:
+        for node, k in ((src, i_src), (dst, i_dst)):
+            if k is not None and self._frozen[k]:
                 raise bad('frozen', f'node {node} belongs to a frozen track (outside the window '
                           f'of {self.config.window_tracks} tracks)')
         ends_track = False
-        new_nodes = [n for n in ((src,) if first else ()) + (dst,) if n not in self._index]
+        new_nodes = ([src] if first and i_src is None else []) + ([dst] if i_dst is None else [])
         for node in new_nodes:
             track = int(m.dst_track) if node == dst else int(m.src_track)
             if track in self._finished:
@@ -563,11 +578,14 @@ class TrackWindowAligner:
         if key in self._pairs:
             raise bad('duplicate', f'measurement {src}->{dst} was already received')
         return {'src': src, 'dst': dst, 'z': z, 'cov': cov, 'first': first,
-                'ends_track': ends_track, 'key': key}
+                'ends_track': ends_track, 'key': key, 'rows': (i_src, i_dst)}
 
     def _check_covariance(self, cov: FloatArray, what: str, bad) -> FloatArray:
         """Finite, symmetric, positive definite, and within the configured eigenvalue range and
         condition number (``bad_covariance`` otherwise); returns the symmetrised matrix."""
+        sym = self._covariance_within_limits(cov)
+        if sym is not None:
+            return sym
         cfg = self.config
         if not np.isfinite(cov).all():
             raise bad('bad_covariance', f'{what} has NaN or inf entries')
@@ -588,6 +606,30 @@ class TrackWindowAligner:
             raise bad('bad_covariance', f'{what} has condition number {ev[-1] / ev[0]:.3g}, '
                       f'above cov_max_condition {cfg.cov_max_condition:.3g}')
         return cov
+
+    def _covariance_within_limits(self, cov: FloatArray) -> FloatArray | None:
+        """The symmetrised 6x6 covariance if it passes every check of
+        :meth:`_check_covariance` with a margin, decided by one Cholesky attempt (a few
+        microseconds, against two eigen-decompositions); ``None`` when undecided (the exact
+        checks then run and name the reason).
+
+        ``sym - c I`` positive definite means ``eig_min(sym) > c``; with ``c`` the largest of
+        the three lower bounds on ``eig_min`` (``1e-12`` of the largest entry,
+        ``cov_min_eigenvalue``, and ``6 max|entry| / cov_max_condition``, since ``eig_max`` is
+        at most 6 times the largest entry), slightly raised against round-off, every test
+        passes.
+        """
+        cfg = self.config
+        amax = abs(cov).max()
+        if not amax <= cfg.cov_max_eigenvalue:  # also NaN or inf
+            return None
+        if not abs(cov - cov.T).max() <= 1e-6 * max(amax, 1e-300):
+            return None
+        sym = 0.5 * (cov + cov.T)
+        # eig_max <= 6 max |entry| bounds the condition number as the trace would
+        shift = max(1e-12 * amax, cfg.cov_min_eigenvalue, 6.0 * amax / cfg.cov_max_condition)
+        _, info = _potrf(sym - (shift * (1.0 + 1e-9) + 1e-13 * amax) * _EYE6)
+        return sym if info == 0 else None
 
     def _check_jumps(self, m: Measurement, new_nodes: list[int], bad) -> None:
         """New node and track ids must be within the configured jump of the largest seen."""
@@ -619,13 +661,13 @@ class TrackWindowAligner:
 
     def _apply(self, m: Measurement, plan: dict) -> None:
         src, dst = plan['src'], plan['dst']
+        i, j = plan['rows']  # None: a new node (finish_track, run between, adds none)
         if plan['first']:
-            self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
-        if dst not in self._index:
-            T_src = self._T[self._index[src]]
+            i = self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
+        if j is None:
+            T_src = self._T[i]
             T_meas = se3.from_translation_rotvec(plan['z'][:3], plan['z'][3:])
-            self._add_node(dst, int(m.dst_track), int(m.stamp_ns), T_src @ T_meas)
-        i, j = self._index[src], self._index[dst]
+            j = self._add_node(dst, int(m.dst_track), int(m.stamp_ns), T_src @ T_meas)
         k = self._src.append(i)
         self._dst.append(j)
         self._z.append(plan['z'])
@@ -650,7 +692,8 @@ class TrackWindowAligner:
                               self._fp.a[live].tolist()))
         self._pairs_kept = len(self._pairs)
 
-    def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> None:
+    def _add_node(self, node_id: int, track: int, stamp_ns: int, T: FloatArray) -> int:
+        """Store a new node; returns its row."""
         k = self._idarr.append(node_id)
         self._trackarr.append(track)
         self._stamparr.append(stamp_ns)
@@ -666,6 +709,7 @@ class TrackWindowAligner:
             self._tracks.append(track)
         self._track_nodes.add(track, k)
         self._open_track = track
+        return k
 
     @property
     def _ids(self) -> IntArray:
@@ -698,7 +742,7 @@ class TrackWindowAligner:
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
         saved = (self._T[:n].copy(), self._cov[:n].copy(),
                  self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
-                 self._last_window, self._n_outliers, self._n_updates)
+                 self._last_window, self._n_outliers, self._n_updates, self._T_weighted)
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
@@ -709,7 +753,8 @@ class TrackWindowAligner:
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
         (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
-         self._priors, self._last_window, self._n_outliers, n_updates) = saved
+         self._priors, self._last_window, self._n_outliers, n_updates,
+         self._T_weighted) = saved
         self._last = None
         self.__dict__.update(last)
         self._finished.add(track)
@@ -820,6 +865,7 @@ class TrackWindowAligner:
             self._T[frozen] = res.T_world_node[frozen]
         self._cov[frozen] = res.frozen_cov
         self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node)
 
     def _smooth(self) -> None:
@@ -972,14 +1018,20 @@ class TrackWindowAligner:
         scfg = cfg.solver_config()
         n_out = 0
         readmitted: set[int] = set()
-        res, prev_nodes = None, np.zeros(0, dtype=np.int64)
+        # the sequential update (paper Sec. III-D): start from the previous estimate, at its
+        # optimum for the old connections (window nodes and the frozen nodes it adjusted as
+        # weighted parameters), the new track from its chained consecutive motions
+        res, (prev_nodes, T_prev) = None, self._T_weighted
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
-            T_init = self._T[nodes]
-            if res is not None:  # the gate changed the problem: start from the current estimate
-                T_init = _carry_over(T_init, nodes, prev_nodes, res.T_world_node)
-            res = solve(net, T_init, scfg, fixed=fixed, priors=priors)
-            prev_nodes = nodes
+            # (after the gate changed the problem: from the current estimate)
+            T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
+            # the factor of the last solve (its symbolic analysis): same pattern as a rule
+            donor = res if res is not None else self.__dict__.get('_last_result')
+            res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
+                        weights=self._weights(conns),
+                        factor=donor.release_factor() if donor is not None else None)
+            prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
             if bad.size == 0:
                 back = self._readmissible(window_tracks, nodes, res, readmitted)
@@ -994,6 +1046,7 @@ class TrackWindowAligner:
             n_out += int(bad.size)
         n_win = win_nodes.size
         self._T[win_nodes] = res.T_world_node[:n_win]
+        self._T_weighted = (nodes[n_win:].copy(), res.T_world_node[n_win:].copy())
         self._last = res
         self._last_window = win_nodes
         self._n_outliers += n_out - len(readmitted)
@@ -1004,6 +1057,20 @@ class TrackWindowAligner:
             n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self._quality_summary(net, res, priors, conns))
+
+    def _weights(self, conns: IntArray) -> FloatArray:
+        """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows), those of the last call
+        reused (a window keeps most of its connections from one update to the next)."""
+        kept, P_kept = self._weights_kept
+        pos = np.searchsorted(kept, conns)
+        hit = pos < kept.size
+        hit[hit] = kept[pos[hit]] == conns[hit]
+        P = np.empty((conns.size, 6, 6))
+        P[hit] = P_kept[pos[hit]]
+        if not hit.all():
+            P[~hit] = _inv_spd(self._ccov.a[conns[~hit]])
+        self._weights_kept = (conns, P)
+        return P
 
     def _quality_report(self, net: ConnectionNetwork, res: SolveResult,
                         priors: list[GaussianPrior]) -> tuple[QualityReport, float]:
@@ -1057,7 +1124,7 @@ class TrackWindowAligner:
             rep, _ = self._quality_report(net, res, priors)
             ratio = np.where(cross, np.nan_to_num(rep.test_ratio('w'), nan=0.0), 0.0)
             return conns[ratio > 1.0]
-        P = np.linalg.inv(self._ccov.a[conns])
+        P = self._weights(conns)
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)
         return conns[cross & (maha2 > chi2.ppf(prob, 6))]
@@ -1091,22 +1158,29 @@ class TrackWindowAligner:
         T_ij = se3.inverse(T[i]) @ T[j]
         z = self._z.a[conns]
         e = se3.log(se3.inverse(se3.from_translation_rotvec(z[:, :3], z[:, 3:])) @ T_ij)
-        free = set(res.free_node_ids.tolist())
+        J = np.zeros((conns.size, 6, 12))
+        J[:, :, :6] = -se3.adjoint(se3.inverse(T_ij))
+        J[:, :, 6:] = np.eye(6)
+        Q = np.zeros((conns.size, 12, 12))
         ids = res.node_ids
-        out = []
-        for k in range(conns.size):
-            pair = [int(ids[i[k]]), int(ids[j[k]])]
-            J = np.concatenate([-se3.adjoint(se3.inverse(T_ij[k])), np.eye(6)], axis=1)
-            Q = np.zeros((12, 12))
-            sel = [a for a, node in enumerate(pair) if node in free]
-            if sel:
-                cols = np.concatenate([np.arange(6 * a, 6 * a + 6) for a in sel])
-                Q[np.ix_(cols, cols)] = res._system.joint_covariance(
-                    np.array([pair[a] for a in sel], dtype=np.int64))
-            C = self._ccov.a[conns[k]] + J @ Q @ J.T
-            if float(e[k] @ np.linalg.solve(C, e[k])) <= chi2.ppf(prob, 6):
-                out.append(int(conns[k]))
-        return np.array(out, dtype=np.int64)
+        free = np.isin(ids, res.free_node_ids)
+        ends = np.stack([i, j], axis=1)
+        for start in range(0, conns.size, 64):  # the joint covariance of <= 128 nodes at once
+            part = ends[start:start + 64]
+            nodes_free = np.unique(part[free[part]])
+            if nodes_free.size == 0:
+                continue
+            cov = res._system.joint_covariance(ids[nodes_free])
+            cov = cov.reshape(nodes_free.size, 6, nodes_free.size, 6).transpose(0, 2, 1, 3)
+            pos = np.searchsorted(nodes_free, part)
+            for a in range(2):
+                for b in range(2):
+                    both = free[part[:, a]] & free[part[:, b]]
+                    Q[start:start + 64][both, 6 * a:6 * a + 6, 6 * b:6 * b + 6] = \
+                        cov[pos[both, a], pos[both, b]]
+        C = self._ccov.a[conns] + J @ Q @ np.swapaxes(J, 1, 2)
+        maha2 = np.einsum('mi,mi->m', e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+        return conns[maha2 <= chi2.ppf(prob, 6)].astype(np.int64)
 
     def _freeze(self, track: int) -> None:
         """Freeze a track leaving the window, using the last adjustment's estimate."""
@@ -1329,6 +1403,7 @@ class TrackWindowAligner:
                             for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
+        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
@@ -1344,7 +1419,7 @@ class TrackWindowAligner:
             net, nodes, _, _, fixed, priors = self._window_problem(pending)
             self.__dict__['_last_result'] = solve(net, self._T[nodes],
                                                   self.config.solver_config(), fixed=fixed,
-                                                  priors=priors)
+                                                  priors=priors, jit=True)
         return self.__dict__.get('_last_result')
 
     @_last.setter

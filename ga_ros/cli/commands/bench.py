@@ -29,6 +29,9 @@ def register(sub) -> None:
     p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
     p.add_argument('--no-batch', action='store_true',
                    help='window: skip the batch solution (and the ATE gap) for long surveys')
+    p.add_argument('--refine-every', type=int, default=None,
+                   help='window: background refinement every N tracks (0: the plain window; '
+                   'default: the aligner default)')
     p.add_argument('--no-gtsam', action='store_true',
                    help='window: skip the GTSAM IncrementalFixedLagSmoother comparison')
     p.add_argument('--data', type=str, default=None,
@@ -60,7 +63,8 @@ def run(args) -> int:
                  f'{fig.ga_ate_m:.2f} m']
     else:
         fig = core.bench_window(args.tracks, args.policy, args.window, args.noise, args.seed,
-                                compare_batch=not args.no_batch, with_gtsam=not args.no_gtsam)
+                                compare_batch=not args.no_batch, with_gtsam=not args.no_gtsam,
+                                refine_every_tracks=args.refine_every)
         lines = [f'online alignment, {fig.tracks} tracks ({fig.nodes} poses, {fig.connections} '
                  f'connections), window {fig.window_tracks}, policy {fig.policy}',
                  f'  whole run {fig.total_seconds:.2f} s; per-track update p50 '
@@ -70,7 +74,11 @@ def run(args) -> int:
                  f'  ATE rigid-aligned: window {fig.ate_rigid_window_m:.3f} m, batch '
                  f'{fig.ate_rigid_batch_m:.3f} m (gap {fig.gap_rigid_pct:+.1f} %)',
                  f'  ATE raw (first pose anchored): window {fig.ate_raw_window_m:.3f} m, batch '
-                 f'{fig.ate_raw_batch_m:.3f} m (gap {fig.gap_raw_pct:+.1f} %)']
+                 f'{fig.ate_raw_batch_m:.3f} m (gap {fig.gap_raw_pct:+.1f} %)',
+                 f'  refinement every {fig.refine_every_tracks} tracks (0: off); update CPU '
+                 'ms p50 by part: ' + ', '.join(f'{k} {v:.0f}' for k, v in
+                                                (fig.breakdown_cpu_ms_p50 or {}).items())
+                 + f'; a measurement that ends no track: {fig.measurement_cpu_us:.0f} us CPU']
         if fig.gtsam_ms_p50 == fig.gtsam_ms_p50:  # not NaN: GTSAM ran
             lines += [f'  GTSAM IncrementalFixedLagSmoother (same survey, lag '
                       f'{fig.window_tracks} tracks): update p50 {fig.gtsam_ms_p50:.0f} ms, p95 '
