@@ -21,7 +21,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
 
 
@@ -201,3 +201,224 @@ def _plan(G: sp.csr_matrix, rows_n: np.ndarray, cols_n: np.ndarray,
     nq, p = q_nodes.size * d, p_nodes.size * d
     cost = nq * (4.0 * b * b + 4.0 * p * b + 2.0 * p * p) + p ** 3
     return candidates[best], p_nodes, b, cost
+
+
+# ------------------------------------------------------------ selected inversion on a factor
+def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
+    """First column of each (fundamental) supernode of a lower-triangular CSC factor, plus ``n``.
+
+    Column ``j + 1`` continues the supernode of column ``j`` when it is ``j``'s parent in the
+    elimination tree (the first sub-diagonal row of column ``j`` is ``j + 1``) and has one entry
+    fewer: then both columns have the same rows below the supernode (the pattern of a Cholesky
+    factor is closed: ``struct(j) \\ {j}`` lies in ``struct(parent(j))``). CHOLMOD's supernodes,
+    relaxed or not, are unions of these.
+    """
+    colptr = np.asarray(colptr, dtype=np.int64)
+    n = colptr.size - 1
+    if n == 0:
+        return np.zeros(1, dtype=np.int64)
+    count = np.diff(colptr)
+    j = np.arange(n - 1)
+    second = np.where(count[:-1] > 1, colptr[:-2] + 1, 0)
+    cont = (count[:-1] > 1) & (np.asarray(rowind)[second] == j + 1) & (count[1:] == count[:-1] - 1)
+    starts = np.concatenate([[0], np.nonzero(~cont)[0] + 1, [n]])
+    return starts.astype(np.int64)
+
+
+def _takahashi_py(colptr, rowind, values, starts, where):  # pragma: no cover - compiled
+    """In place: the values of ``L`` (lower CSC, sorted rows, ``P N P' = L L'``) become those of
+    ``Sigma = N^-1`` (permuted) on the pattern of ``L``.
+
+    Takahashi's equations per supernode ``J`` (columns, dense ``L_JJ``) with the rows ``B`` below
+    it (``L_BJ``), from the last supernode back (``Sigma L = L^-T``, upper triangular)::
+
+        U = L_BJ L_JJ^-1,   Sigma_BJ = -Sigma_BB U,   Sigma_JJ = L_JJ^-T L_JJ^-1 - Sigma_BJ' U
+
+    ``Sigma_BB`` lies on the pattern of later supernodes (closure of the factor's pattern), all
+    already overwritten; it is gathered through ``where`` (row -> position in an ancestor's row
+    list, -1 elsewhere). Returns 0, or 1 if a needed entry is not on the pattern.
+    """
+    for s in range(starts.size - 2, -1, -1):
+        f = starts[s]
+        k = starts[s + 1] - f
+        p0 = colptr[f]
+        r = colptr[f + 1] - p0 - k
+        Ljj = np.zeros((k, k))
+        Lbj = np.empty((r, k))
+        for i in range(k):
+            q = colptr[f + i]
+            for a in range(k - i):
+                Ljj[i + a, i] = values[q + a]
+            for a in range(r):
+                Lbj[a, i] = values[q + k - i + a]
+        Linv = np.linalg.inv(Ljj)
+        for i in range(k):  # exactly lower triangular
+            for a in range(i):
+                Linv[a, i] = 0.0
+        Sjj = Linv.T @ Linv
+        Sbj = np.empty((r, k))
+        if r:
+            U = Lbj @ Linv
+            B = rowind[p0 + k:p0 + k + r]
+            Sbb = np.empty((r, r))
+            a = 0
+            while a < r:  # the rows of B that are columns of one ancestor supernode t
+                c = B[a]
+                lo, hi = 0, starts.size - 1
+                while hi - lo > 1:  # supernode of column c (binary search)
+                    mid = (lo + hi) // 2
+                    if starts[mid] <= c:
+                        lo = mid
+                    else:
+                        hi = mid
+                ft, lt = starts[lo], starts[lo + 1]
+                q0 = colptr[ft]
+                nt = colptr[ft + 1] - q0
+                for z in range(nt):
+                    where[rowind[q0 + z]] = z
+                b = a
+                while b < r and B[b] < lt:
+                    b += 1
+                for m in range(a, b):
+                    base = colptr[B[m]] - (B[m] - ft)
+                    for l2 in range(m, r):
+                        z = where[B[l2]]
+                        if z < 0:
+                            return 1
+                        v = values[base + z]
+                        Sbb[l2, m] = v
+                        Sbb[m, l2] = v
+                for z in range(nt):
+                    where[rowind[q0 + z]] = -1
+                a = b
+            Sbj = -(Sbb @ U)
+            Sjj -= Sbj.T @ U
+        for i in range(k):
+            q = colptr[f + i]
+            for a in range(k - i):
+                values[q + a] = Sjj[i + a, i]
+            for a in range(r):
+                values[q + k - i + a] = Sbj[a, i]
+    return 0
+
+
+def _entries_py(colptr, rowind, values, rows, cols, out):  # pragma: no cover - compiled
+    """``out[e] = values`` at (``rows[e]``, ``cols[e]``), ``rows >= cols``, by binary search in the
+    column's sorted rows; returns the number of entries not on the pattern (left NaN)."""
+    missing = 0
+    for e in range(rows.size):
+        c, r = cols[e], rows[e]
+        lo, hi = colptr[c], colptr[c + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if rowind[mid] < r:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < colptr[c + 1] and rowind[lo] == r:
+            out[e] = values[lo]
+        else:
+            out[e] = np.nan
+            missing += 1
+    return missing
+
+
+def _lower_factor(chol) -> tuple[IntArray, IntArray, FloatArray]:
+    """CHOLMOD's factor ``L`` of ``P N P' = L L'`` as CSC arrays (column pointers, row indices
+    sorted in each column, values), read out with ``cholmod.getfactor`` (which turns the
+    supernodal factor into a simplicial one and hands its arrays over: the factor object is left
+    symbolic, so ``chol`` must not be used for solves afterwards)."""
+    from ga_ros.core.sparse import _cholmod
+
+    if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
+        raise DegenerateGeometryError('selected inversion needs CHOLMOD (cvxopt)')
+    F = _cholmod.getfactor(chol._F)
+    chol._F = chol._symbolic = None
+    colptr, rowind, values = F.CCS  # views of cvxopt's buffers (writable), which they keep
+    return (np.asarray(colptr, dtype=np.int64).ravel(), np.asarray(rowind, dtype=np.int64).ravel(),
+            np.asarray(values, dtype=float).ravel())
+
+
+_KERNELS: dict = {}
+
+
+def _kernel(name: str):
+    """The numba-compiled kernel (cached on disk), or the Python one without numba."""
+    fn = _KERNELS.get(name)
+    if fn is None:
+        py = globals()[name + '_py']
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is pinned
+            fn = py
+        else:
+            fn = numba.njit(cache=True, nogil=True)(py)
+        _KERNELS[name] = fn
+    return fn
+
+
+class SelectedInverse:
+    """``Sigma = N^-1`` on the pattern of the Cholesky factor of ``N`` (selected inversion).
+
+    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.sparse.SparseCholesky`, ordered by the
+    project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is read
+    out (:func:`_lower_factor`) and overwritten in place by Takahashi's equations
+    (:func:`_takahashi_py`, compiled with numba). Memory is that of the
+    factor: ``nnz(L)`` values and row indices, no band and no dense column. Every entry of
+    ``Sigma`` on the pattern of ``N`` is on the pattern of ``L`` (``P N P'`` is below ``L + L'``),
+    so the diagonal blocks of all nodes and the cross blocks of all connected node pairs can be
+    read (:meth:`blocks`).
+
+    Parameters
+    ----------
+    chol : the factored ``N`` (``d x d`` node blocks). Its factor is taken over: ``chol`` is left
+        symbolic and factors again on its next solve.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        No CHOLMOD, or the factor's pattern is not that of a Cholesky factor.
+    """
+
+    def __init__(self, chol) -> None:
+        self.d = chol.pattern.d
+        self._perm = chol.permutation()
+        self._colptr, self._rowind, self._values = _lower_factor(chol)
+        self._pos = np.empty_like(self._perm)
+        self._pos[self._perm] = np.arange(self._perm.size)
+        starts = supernodes(self._colptr, self._rowind)
+        where = np.full(self._perm.size, -1, dtype=np.int64)
+        if _kernel('_takahashi')(self._colptr, self._rowind, self._values, starts, where):
+            raise DegenerateGeometryError('the factor pattern is not closed (not a Cholesky '
+                                          'factor): report this with the graph')
+
+    @property
+    def nnz(self) -> int:
+        """Entries of ``L`` (and of the stored part of ``Sigma``)."""
+        return int(self._values.size)
+
+    def blocks(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> FloatArray:
+        """Blocks ``(rows[k], cols[k])`` of ``Sigma`` (``d x d`` node blocks, columns of ``N``),
+        ``(k, d, d)``. Each pair should be a diagonal block or a connected pair of ``N``; a pair
+        off the factor's pattern raises :class:`DegenerateGeometryError` (``off_pattern=
+        'raise'``) or comes back as NaN (``'nan'``)."""
+        d = self.d
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        a = np.arange(d)
+        sr = self._pos[(rows[:, None, None] * d + a[None, :, None])]  # (k, d, 1)
+        sc = self._pos[(cols[:, None, None] * d + a[None, None, :])]  # (k, 1, d)
+        sr, sc = np.broadcast_arrays(sr, sc)
+        lo, hi = np.minimum(sr, sc).ravel(), np.maximum(sr, sc).ravel()
+        out = np.empty(lo.size)
+        missing = _kernel('_entries')(self._colptr, self._rowind, self._values, hi, lo, out)
+        if missing and off_pattern == 'raise':
+            raise DegenerateGeometryError('a requested block is not on the pattern of the '
+                                          'normal matrix: only node and connected-pair blocks')
+        return out.reshape(rows.size, d, d)
+
+    def diagonal_blocks(self, nodes: IntArray) -> FloatArray:
+        """Marginal covariance blocks ``(k, d, d)`` of the given node columns (symmetrised)."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        out = self.blocks(nodes, nodes)
+        return 0.5 * (out + np.swapaxes(out, 1, 2))
