@@ -102,19 +102,21 @@ class StageProbe:
 
     def _sample(self) -> None:
         while not self._stop:
-            self._peak = max(self._peak, rss_mib())
+            with self._lock:
+                self._peak = max(self._peak, rss_mib())
             time.sleep(0.005)
 
     def _wrap(self, name: str, fn):
         def wrapped(*args, **kwargs):
-            start = rss_mib()
-            self._peak = start
+            with self._lock:
+                start = self._peak = rss_mib()
             t = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.stages.append(Stage(name, time.perf_counter() - t, start,
-                                         max(self._peak, rss_mib())))
+                with self._lock:
+                    peak = max(self._peak, rss_mib())
+                self.stages.append(Stage(name, time.perf_counter() - t, start, peak))
         return wrapped
 
     def __enter__(self) -> StageProbe:
@@ -122,6 +124,7 @@ class StageProbe:
 
         for (obj, attr), fn in zip(self._targets, self._saved):
             setattr(obj, attr, self._wrap(attr, fn))
+        self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._sample, daemon=True)
         self._thread.start()
         return self

@@ -89,9 +89,11 @@ def test_dense_border_nodes_give_the_same_blocks(rng):
                                atol=1e-10 * np.abs(ref).max())
 
 
-def _selected(N: np.ndarray, d: int) -> SelectedInverse:
+def _selected(N: np.ndarray, d: int, copy: bool = False) -> SelectedInverse:
     pattern, data = BlockPattern.from_matrix(sp.csr_matrix(N), d)
-    return SelectedInverse(SparseCholesky(pattern, data))
+    si = SelectedInverse(SparseCholesky(pattern, data), copy=copy)
+    assert si.in_place != copy  # CHOLMOD's supernodal factor is recognised
+    return si
 
 
 def _block_pairs(N: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
@@ -103,12 +105,13 @@ def _block_pairs(N: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
 
 def test_sparse_factor_blocks_equal_dense_inverse(rng):
     """Diagonal blocks and the blocks of every connected pair (both orders), on random graphs
-    (block sizes 6 and 3, a single node, a chain, many extra edges) and on the dense-border
-    case, equal the dense inverse."""
-    for u, d, extra in ((40, 6, 30), (25, 3, 10), (1, 6, 0), (60, 6, 0), (30, 6, 200)):
+    (block sizes 6 and 3, a single node, a chain, many extra edges), equal the dense inverse:
+    in CHOLMOD's supernodal factor in place and on the ``getfactor`` copy."""
+    cases = ((40, 6, 30), (25, 3, 10), (1, 6, 0), (60, 6, 0), (30, 6, 200))
+    for (u, d, extra), copy in zip(cases + cases, [False] * 5 + [True] * 5):
         N = _random_graph_spd(rng, u, d, extra) + 0.1 * np.eye(u * d)  # a chain is ill-posed
         inv = np.linalg.inv(N)
-        si = _selected(N, d)
+        si = _selected(N, d, copy)
         rows, cols = _block_pairs(N, d)
         ref = np.stack([inv[i * d:(i + 1) * d, j * d:(j + 1) * d] for i, j in zip(rows, cols)])
         np.testing.assert_allclose(si.blocks(rows, cols), ref, rtol=1e-8,

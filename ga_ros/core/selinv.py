@@ -16,6 +16,9 @@ milliseconds, versus seconds for 1,200 sparse solves.
 
 from __future__ import annotations
 
+import ctypes
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -210,8 +213,7 @@ def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
     Column ``j + 1`` continues the supernode of column ``j`` when it is ``j``'s parent in the
     elimination tree (the first sub-diagonal row of column ``j`` is ``j + 1``) and has one entry
     fewer: then both columns have the same rows below the supernode (the pattern of a Cholesky
-    factor is closed: ``struct(j) \\ {j}`` lies in ``struct(parent(j))``). CHOLMOD's supernodes,
-    relaxed or not, are unions of these.
+    factor is closed: ``struct(j)`` without ``j`` lies in ``struct(parent(j))``).
     """
     colptr = np.asarray(colptr, dtype=np.int64)
     n = colptr.size - 1
@@ -225,118 +227,116 @@ def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
     return starts.astype(np.int64)
 
 
-def _takahashi_py(colptr, rowind, values, starts, where):  # pragma: no cover - compiled
-    """In place: the values of ``L`` (lower CSC, sorted rows, ``P N P' = L L'``) become those of
-    ``Sigma = N^-1`` (permuted) on the pattern of ``L``.
+def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no cover - compiled
+    """In place: the values of ``L`` (``P N P' = L L'``) become those of ``Sigma = N^-1``
+    (permuted) on the pattern of ``L``.
 
-    Takahashi's equations per supernode ``J`` (columns, dense ``L_JJ``) with the rows ``B`` below
-    it (``L_BJ``), from the last supernode back (``Sigma L = L^-T``, upper triangular)::
+    Supernode ``k`` has the columns ``starts[k] .. starts[k+1]-1`` and the sorted rows
+    ``srows[pi[k] : pi[k] + nrows[k]]`` (its own columns first); the value at its ``z``-th row in
+    column ``c`` is ``x[colbase[c] + z]`` (CHOLMOD's supernodal layout and a CSC factor both fit).
+    Takahashi's equations per supernode (columns ``J``, rows ``B`` below them), from the last
+    back (``Sigma L = L^-T``, upper triangular)::
 
         U = L_BJ L_JJ^-1,   Sigma_BJ = -Sigma_BB U,   Sigma_JJ = L_JJ^-T L_JJ^-1 - Sigma_BJ' U
 
     ``Sigma_BB`` lies on the pattern of later supernodes (closure of the factor's pattern), all
     already overwritten; it is gathered through ``where`` (row -> position in an ancestor's row
-    list, -1 elsewhere). Returns 0, or 1 if a needed entry is not on the pattern.
+    list, -1 elsewhere). Returns 0; 1 if a needed entry is not on the pattern, 2 if rows are not
+    sorted (nothing was changed then).
     """
-    for s in range(starts.size - 2, -1, -1):
-        f = starts[s]
-        k = starts[s + 1] - f
-        p0 = colptr[f]
-        r = colptr[f + 1] - p0 - k
-        Ljj = np.zeros((k, k))
-        Lbj = np.empty((r, k))
-        for i in range(k):
-            q = colptr[f + i]
-            for a in range(k - i):
-                Ljj[i + a, i] = values[q + a]
+    ns = starts.size - 1
+    for k in range(ns):
+        for z in range(pi[k] + 1, pi[k] + nrows[k]):
+            if srows[z] <= srows[z - 1]:
+                return 2
+    for t in range(ns - 1, -1, -1):
+        f = starts[t]
+        m = starts[t + 1] - f
+        r = nrows[t] - m
+        Ljj = np.zeros((m, m))
+        Lbj = np.empty((r, m))
+        for i in range(m):
+            q = colbase[f + i]
+            for a in range(i, m):
+                Ljj[a, i] = x[q + a]
             for a in range(r):
-                Lbj[a, i] = values[q + k - i + a]
+                Lbj[a, i] = x[q + m + a]
         Linv = np.linalg.inv(Ljj)
-        for i in range(k):  # exactly lower triangular
+        for i in range(m):  # exactly lower triangular
             for a in range(i):
                 Linv[a, i] = 0.0
         Sjj = Linv.T @ Linv
-        Sbj = np.empty((r, k))
+        Sbj = np.empty((r, m))
         if r:
             U = Lbj @ Linv
-            B = rowind[p0 + k:p0 + k + r]
+            B = srows[pi[t] + m:pi[t] + nrows[t]]
             Sbb = np.empty((r, r))
             a = 0
-            while a < r:  # the rows of B that are columns of one ancestor supernode t
+            while a < r:  # the rows of B that are columns of one ancestor supernode
                 c = B[a]
-                lo, hi = 0, starts.size - 1
+                lo, hi = 0, ns
                 while hi - lo > 1:  # supernode of column c (binary search)
                     mid = (lo + hi) // 2
                     if starts[mid] <= c:
                         lo = mid
                     else:
                         hi = mid
-                ft, lt = starts[lo], starts[lo + 1]
-                q0 = colptr[ft]
-                nt = colptr[ft + 1] - q0
+                q0, nt, lt = pi[lo], nrows[lo], starts[lo + 1]
                 for z in range(nt):
-                    where[rowind[q0 + z]] = z
+                    where[srows[q0 + z]] = z
                 b = a
                 while b < r and B[b] < lt:
                     b += 1
-                for m in range(a, b):
-                    base = colptr[B[m]] - (B[m] - ft)
-                    for l2 in range(m, r):
+                for mm in range(a, b):
+                    base = colbase[B[mm]]
+                    for l2 in range(mm, r):
                         z = where[B[l2]]
                         if z < 0:
                             return 1
-                        v = values[base + z]
-                        Sbb[l2, m] = v
-                        Sbb[m, l2] = v
+                        v = x[base + z]
+                        Sbb[l2, mm] = v
+                        Sbb[mm, l2] = v
                 for z in range(nt):
-                    where[rowind[q0 + z]] = -1
+                    where[srows[q0 + z]] = -1
                 a = b
             Sbj = -(Sbb @ U)
             Sjj -= Sbj.T @ U
-        for i in range(k):
-            q = colptr[f + i]
-            for a in range(k - i):
-                values[q + a] = Sjj[i + a, i]
+        for i in range(m):
+            q = colbase[f + i]
+            for a in range(i, m):
+                x[q + a] = Sjj[a, i]
             for a in range(r):
-                values[q + k - i + a] = Sbj[a, i]
+                x[q + m + a] = Sbj[a, i]
     return 0
 
 
-def _entries_py(colptr, rowind, values, rows, cols, out):  # pragma: no cover - compiled
-    """``out[e] = values`` at (``rows[e]``, ``cols[e]``), ``rows >= cols``, by binary search in the
-    column's sorted rows; returns the number of entries not on the pattern (left NaN)."""
+def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragma: no cover
+    """``out[e]`` = the value at (``rows[e] >= cols[e]``) of the layout of :func:`_takahashi_py`
+    (binary searches); returns the number of entries not on the pattern (left NaN)."""
     missing = 0
+    ns = starts.size - 1
     for e in range(rows.size):
         c, r = cols[e], rows[e]
-        lo, hi = colptr[c], colptr[c + 1]
-        while lo < hi:
+        lo, hi = 0, ns
+        while hi - lo > 1:
             mid = (lo + hi) // 2
-            if rowind[mid] < r:
-                lo = mid + 1
+            if starts[mid] <= c:
+                lo = mid
             else:
                 hi = mid
-        if lo < colptr[c + 1] and rowind[lo] == r:
-            out[e] = values[lo]
+        a, b = pi[lo] + (c - starts[lo]), pi[lo] + nrows[lo]
+        while a < b:
+            mid = (a + b) // 2
+            if srows[mid] < r:
+                a = mid + 1
+            else:
+                b = mid
+        if a < pi[lo] + nrows[lo] and srows[a] == r:
+            out[e] = x[colbase[c] + a - pi[lo]]
         else:
             out[e] = np.nan
             missing += 1
     return missing
-
-
-def _lower_factor(chol) -> tuple[IntArray, IntArray, FloatArray]:
-    """CHOLMOD's factor ``L`` of ``P N P' = L L'`` as CSC arrays (column pointers, row indices
-    sorted in each column, values), read out with ``cholmod.getfactor`` (which turns the
-    supernodal factor into a simplicial one and hands its arrays over: the factor object is left
-    symbolic, so ``chol`` must not be used for solves afterwards)."""
-    from ga_ros.core.sparse import _cholmod
-
-    if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
-        raise DegenerateGeometryError('selected inversion needs CHOLMOD (cvxopt)')
-    F = _cholmod.getfactor(chol._F)
-    chol._F = chol._symbolic = None
-    colptr, rowind, values = F.CCS  # views of cvxopt's buffers (writable), which they keep
-    return (np.asarray(colptr, dtype=np.int64).ravel(), np.asarray(rowind, dtype=np.int64).ravel(),
-            np.asarray(values, dtype=float).ravel())
 
 
 _KERNELS: dict = {}
@@ -357,22 +357,117 @@ def _kernel(name: str):
     return fn
 
 
+@dataclass
+class _Layout:
+    """A factor's values and pattern as :func:`_takahashi_py` reads them; ``keep`` holds the
+    objects that own the memory."""
+
+    starts: IntArray
+    pi: IntArray
+    nrows: IntArray
+    srows: IntArray
+    colbase: IntArray
+    x: FloatArray
+    perm: IntArray
+    keep: tuple
+
+
+class _CholmodFactor(ctypes.Structure):
+    """``cholmod_factor`` of CHOLMOD 3 (SuiteSparse 5, bundled in the cvxopt wheel)."""
+
+    _fields_ = ([(f, ctypes.c_size_t) for f in ('n', 'minor')]
+                + [(f, ctypes.c_void_p) for f in ('Perm', 'ColCount', 'IPerm')]
+                + [('nzmax', ctypes.c_size_t)]
+                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'x', 'z', 'nz', 'next', 'prev')]
+                + [(f, ctypes.c_size_t) for f in ('nsuper', 'ssize', 'xsize', 'maxcsize',
+                                                  'maxesize')]
+                + [(f, ctypes.c_void_p) for f in ('super', 'pi', 'px', 's')]
+                + [(f, ctypes.c_int) for f in ('ordering', 'is_ll', 'is_super', 'is_monotonic',
+                                               'itype', 'xtype', 'dtype', 'useGPU')])
+
+
+def _supernodal_layout(capsule, n: int) -> _Layout | None:
+    """CHOLMOD's supernodal factor in place (no copy): its arrays viewed through ``ctypes``.
+    ``None`` if the factor does not look as expected (another CHOLMOD build): the caller then
+    reads it out with ``getfactor``."""
+    api = ctypes.pythonapi
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    try:
+        name = api.PyCapsule_GetName(capsule)
+        if name != b'CHOLMOD FACTOR D L':
+            return None
+        L = _CholmodFactor.from_address(api.PyCapsule_GetPointer(capsule, name))
+    except (TypeError, ValueError):  # pragma: no cover - not a capsule
+        return None
+    ns = int(L.nsuper)
+    if not (L.n == n and L.minor == n and L.is_super == 1 and L.is_ll == 1 and L.xtype == 1
+            and L.dtype == 0 and L.itype == 2 and 0 < ns <= n and L.ssize > 0 and L.xsize > 0
+            and all((L.super, L.pi, L.px, L.s, L.x, L.Perm))):
+        return None
+
+    def view(ptr, count, ctype):
+        return np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctype)), shape=(count,))
+
+    sup = view(L.super, ns + 1, ctypes.c_int64).astype(np.int64)
+    pi = view(L.pi, ns + 1, ctypes.c_int64).astype(np.int64)
+    px = view(L.px, ns + 1, ctypes.c_int64).astype(np.int64)
+    perm = view(L.Perm, n, ctypes.c_int64).astype(np.int64)
+    width, nrows = np.diff(sup), np.diff(pi)
+    if (sup[0] != 0 or sup[-1] != n or pi[0] != 0 or pi[-1] > L.ssize or px[0] != 0
+            or px[-1] > L.xsize or (width <= 0).any() or (nrows < width).any()
+            or (np.diff(px) < nrows * width).any()
+            or not np.array_equal(np.sort(perm), np.arange(n))):
+        return None
+    x = view(L.x, int(L.xsize), ctypes.c_double)
+    srows = view(L.s, int(L.ssize), ctypes.c_int64)
+    step = np.diff(srows[:pi[-1]]) > 0
+    step[pi[1:-1] - 1] = True  # a new supernode may start lower
+    if not step.all():  # rows not sorted within a supernode
+        return None
+    k = np.repeat(np.arange(ns), width)
+    colbase = px[k] + (np.arange(n) - sup[k]) * nrows[k]  # column-major nrows x width blocks
+    return _Layout(sup, pi[:-1], nrows, srows, colbase, x, perm, (capsule,))
+
+
+def _csc_layout(chol) -> _Layout:
+    """The factor read out with ``cholmod.getfactor`` (a simplicial copy: ~2x the factor's
+    memory at the peak), its supernodes found from the pattern (:func:`supernodes`)."""
+    from ga_ros.core.sparse import _cholmod
+
+    perm = chol.permutation()
+    F = _cholmod.getfactor(chol._F)
+    colptr, rowind, values = F.CCS  # views of cvxopt's buffers (writable), which they keep
+    colptr = np.asarray(colptr, dtype=np.int64).ravel()
+    rowind = np.asarray(rowind, dtype=np.int64).ravel()
+    starts = supernodes(colptr, rowind)
+    pi = colptr[starts[:-1]]
+    k = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    colbase = colptr[:-1] - (np.arange(colptr.size - 1) - starts[k])
+    return _Layout(starts, pi, np.diff(colptr)[starts[:-1]], rowind, colbase,
+                   np.asarray(values, dtype=float).ravel(), perm, (F,))
+
+
 class SelectedInverse:
     """``Sigma = N^-1`` on the pattern of the Cholesky factor of ``N`` (selected inversion).
 
     The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.sparse.SparseCholesky`, ordered by the
-    project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is read
-    out (:func:`_lower_factor`) and overwritten in place by Takahashi's equations
-    (:func:`_takahashi_py`, compiled with numba). Memory is that of the
-    factor: ``nnz(L)`` values and row indices, no band and no dense column. Every entry of
-    ``Sigma`` on the pattern of ``N`` is on the pattern of ``L`` (``P N P'`` is below ``L + L'``),
-    so the diagonal blocks of all nodes and the cross blocks of all connected node pairs can be
-    read (:meth:`blocks`).
+    project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is
+    overwritten in place by Takahashi's equations (:func:`_takahashi_py`, compiled with numba),
+    supernode by supernode with dense products, in CHOLMOD's own supernodal storage (viewed
+    through ``ctypes``, no copy; if that layout is not recognised, a ``getfactor`` copy is used).
+    The extra memory is one dense ``rows x rows`` block of the widest supernode: no band, no
+    dense column, no second factor. Every entry of ``Sigma`` on the pattern of ``N`` is on the
+    pattern of ``L`` (``P N P'`` lies within ``L + L'``), so the diagonal blocks of all nodes and
+    the cross blocks of all connected node pairs can be read (:meth:`blocks`).
 
     Parameters
     ----------
     chol : the factored ``N`` (``d x d`` node blocks). Its factor is taken over: ``chol`` is left
-        symbolic and factors again on its next solve.
+        without one and factors again (with a new analysis) on its next solve.
+    copy : read the factor out with ``getfactor`` even when the in-place layout is available.
 
     Raises
     ------
@@ -380,22 +475,31 @@ class SelectedInverse:
         No CHOLMOD, or the factor's pattern is not that of a Cholesky factor.
     """
 
-    def __init__(self, chol) -> None:
+    def __init__(self, chol, copy: bool = False) -> None:
+        from ga_ros.core.sparse import _cholmod
+
+        if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
+            raise DegenerateGeometryError('selected inversion needs a CHOLMOD factor (cvxopt)')
         self.d = chol.pattern.d
-        self._perm = chol.permutation()
-        self._colptr, self._rowind, self._values = _lower_factor(chol)
-        self._pos = np.empty_like(self._perm)
-        self._pos[self._perm] = np.arange(self._perm.size)
-        starts = supernodes(self._colptr, self._rowind)
-        where = np.full(self._perm.size, -1, dtype=np.int64)
-        if _kernel('_takahashi')(self._colptr, self._rowind, self._values, starts, where):
-            raise DegenerateGeometryError('the factor pattern is not closed (not a Cholesky '
-                                          'factor): report this with the graph')
+        lay = None if copy else _supernodal_layout(chol._F, chol.n)
+        self.in_place = lay is not None
+        if lay is None:
+            lay = _csc_layout(chol)
+        chol._F = chol._symbolic = None  # the values become Sigma's
+        self._lay = lay
+        self._pos = np.empty_like(lay.perm)
+        self._pos[lay.perm] = np.arange(lay.perm.size)
+        where = np.full(lay.perm.size, -1, dtype=np.int64)
+        status = _kernel('_takahashi')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                       lay.x, where)
+        if status:
+            raise DegenerateGeometryError('the factor pattern is not that of a Cholesky factor '
+                                          f'(code {status}): report this with the graph')
 
     @property
     def nnz(self) -> int:
-        """Entries of ``L`` (and of the stored part of ``Sigma``)."""
-        return int(self._values.size)
+        """Stored entries of ``L`` (and of ``Sigma``; supernodal storage counts whole blocks)."""
+        return int(self._lay.x.size)
 
     def blocks(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> FloatArray:
         """Blocks ``(rows[k], cols[k])`` of ``Sigma`` (``d x d`` node blocks, columns of ``N``),
@@ -411,7 +515,9 @@ class SelectedInverse:
         sr, sc = np.broadcast_arrays(sr, sc)
         lo, hi = np.minimum(sr, sc).ravel(), np.maximum(sr, sc).ravel()
         out = np.empty(lo.size)
-        missing = _kernel('_entries')(self._colptr, self._rowind, self._values, hi, lo, out)
+        lay = self._lay
+        missing = _kernel('_entries')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                      lay.x, hi, lo, out)
         if missing and off_pattern == 'raise':
             raise DegenerateGeometryError('a requested block is not on the pattern of the '
                                           'normal matrix: only node and connected-pair blocks')
