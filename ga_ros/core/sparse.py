@@ -104,7 +104,8 @@ class BlockPattern:
         self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
         pos = pos_u[inv].reshape(-1)
         self._pos_valid = pos >= 0
-        self._pos = pos[self._pos_valid]
+        # int32 when it fits: half the pattern's largest array (~300 MB at 100,000 poses)
+        self._pos = pos[self._pos_valid].astype(np.int32 if self.nnz < 2**31 else np.int64)
 
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
