@@ -159,26 +159,3 @@ def test_supernodes_of_a_factor_pattern():
     arrow[n - 1, :] = 1.0
     A = sp.csc_matrix(arrow)
     np.testing.assert_array_equal(supernodes(A.indptr, A.indices), [0, 1, 2, 3, n])
-
-
-def test_chunked_assembly_equals_one_pass(rng, monkeypatch):
-    """``BlockPattern.assemble`` in chunks (large problems) sums the same values as in one
-    pass, with fixed (-1) and upper (dropped) blocks among them."""
-    import ga_ros.core.sparse as sparse
-
-    u, d, k = 30, 6, 400
-    rows = rng.integers(-1, u, size=k)
-    cols = rng.integers(-1, u, size=k)
-    rows = np.concatenate([rows, np.arange(u)])
-    cols = np.concatenate([cols, np.arange(u)])
-    pattern = BlockPattern(rows, cols, d, u)
-    blocks = rng.normal(size=(rows.size, d, d))
-    one = pattern.assemble(blocks)
-    monkeypatch.setattr(sparse, '_ASSEMBLY_CHUNK', 7)
-    np.testing.assert_allclose(pattern.assemble(blocks), one, rtol=1e-13, atol=1e-13)
-    dense = np.zeros((u * d, u * d))
-    for r, c, b in zip(rows, cols, blocks):
-        if r >= c >= 0:
-            dense[r * d:(r + 1) * d, c * d:(c + 1) * d] += b
-    np.testing.assert_allclose(np.tril(pattern.lower_csc(one).toarray()), np.tril(dense),
-                               atol=1e-12)

@@ -44,6 +44,9 @@ DAMPINGS = ('none', 'lm', 'dogleg')
 #: Below it (windows) the banded path needs no compiled kernel (loading numba costs ~0.5 s and
 #: ~90 MiB per process).
 _SPARSE_SELINV_UNKNOWNS = 12_000
+#: Problems with more connections (motion models) are linearised and assembled this many
+#: connections at a time (:func:`_motion_system_in_parts`).
+_CONNECTIONS_PER_PART = 65_536
 
 
 @dataclass(frozen=True)
@@ -420,8 +423,7 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
             history.append(state.cost)
-        data = prob.pattern.assemble(sysd.blocks)
-        sysd.blocks = None  # (4 m, d, d): not needed past the assembly, freed before factoring
+        data = sysd.normal_values(prob.pattern)  # frees the (4 m, d, d) blocks before factoring
         if cfg.damping == 'none':
             if state.chol is None or last_step >= cfg.reuse_factor_below:
                 state.factor(prob.pattern, data)
@@ -465,8 +467,7 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     n_free = int(prob.free.sum())
     final = prob.linear_system(T, out.v)
     v = prob.residual_update(final, np.zeros(n_free * d))
-    data = prob.pattern.assemble(final.blocks)
-    final.blocks = None
+    data = final.normal_values(prob.pattern)
     cost = _adjustment_cost(v, prob.P, final.weights) + _prior_cost(prob.model, T,
                                                                     prob.prior_data)
     r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
@@ -596,6 +597,8 @@ class _Problem:
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
         self.linearisations += 1
+        if self.Pf is not None and len(self.conn) > _CONNECTIONS_PER_PART:
+            return _motion_system_in_parts(self, T)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
                               self.compiled)
@@ -653,6 +656,14 @@ class _System:
     Minv: FloatArray | None  # weighted M^-1
     weights: FloatArray  # (m,) robust weights
     cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
+    data: FloatArray | None = None  # N's lower-triangle values, when assembled in parts
+
+    def normal_values(self, pattern: BlockPattern) -> FloatArray:
+        """``N``'s lower-triangle values on ``pattern`` (the blocks are freed)."""
+        if self.data is None:
+            self.data = pattern.assemble(self.blocks)
+        self.blocks = None
+        return self.data
 
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
@@ -746,6 +757,36 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     cost0 = float(np.sum(_robust_rho(maha2, cfg))) + prior_cost
     # the motion models' residual update needs only w and the weights (no A, B, M)
     return _System(blocks, u.reshape(-1), w, None, None, None, None, weights, cost0)
+
+
+def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
+    """:func:`_motion_system` over :data:`_CONNECTIONS_PER_PART` connections at a time, each
+    part's blocks added into ``N`` at once (:meth:`BlockPattern.assemble_at`): the ``4 m``
+    blocks of a large problem never exist together (~700 MB for 100,000 poses). The system has
+    ``data`` set and no blocks."""
+    conn, m, d = prob.conn, len(prob.conn), prob.d
+    data = np.zeros(prob.pattern.nnz)
+    u = np.zeros((int(prob.free.sum()), d))
+    w, weights, cost0 = [], [], 0.0
+    for a in range(0, m, _CONNECTIONS_PER_PART):
+        b = min(a + _CONNECTIONS_PER_PART, m)
+        part = ConnectionArrays(conn.src[a:b], conn.dst[a:b], conn.z[a:b], conn.cov[a:b])
+        sysp = _motion_system(prob.model, T, part, prob.P[a:b], [], prob.cfg, prob.col, d,
+                              prob.T_meas[a:b], prob.Tm_inv[a:b], prob.compiled)
+        k = np.arange(a, b)
+        prob.pattern.assemble_at(sysp.blocks, np.concatenate([k, k + m, k + 2 * m, k + 3 * m]),
+                                 data)
+        u += sysp.u.reshape(-1, d)
+        w.append(sysp.w)
+        weights.append(sysp.weights)
+        cost0 += sysp.cost0
+    prior_blocks: list[FloatArray] = []
+    cost0 += _add_priors(prob.model, T, prob.prior_data, prob.col, u, prior_blocks)
+    if prior_blocks:
+        extra = np.concatenate(prior_blocks)
+        prob.pattern.assemble_at(extra, 4 * m + np.arange(len(extra)), data)
+    return _System(None, u.reshape(-1), np.concatenate(w), None, None, None, None,
+                   np.concatenate(weights), cost0, data)
 
 
 def _scatter_gradient(u: FloatArray, c: IntArray, g: FloatArray) -> None:
@@ -1116,4 +1157,4 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     T = np.asarray(T, dtype=float)
     sysd = prob.linear_system(T, prob.consistent(T, prob.zero_residuals()))
     pattern = prob.pattern
-    return pattern.full_csc(pattern.assemble(sysd.blocks)), network.node_ids[free], sysd.u
+    return pattern.full_csc(sysd.normal_values(pattern)), network.node_ids[free], sysd.u

@@ -106,6 +106,7 @@ class BlockPattern:
         self._pos_valid = pos >= 0
         # int32 when it fits: half the pattern's largest array (~300 MB at 100,000 poses)
         self._pos = pos[self._pos_valid].astype(np.int32 if self.nnz < 2**31 else np.int64)
+        self._valid_before: IntArray | None = None  # built by assemble_at on first use
 
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
@@ -138,6 +139,26 @@ class BlockPattern:
                                minlength=self.nnz)
             done += vals.size
         return out
+
+    def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
+        """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
+        this pattern was built from into ``out`` (lower-triangle CSC values, in place): the
+        assembly of a large system a part at a time (``assemble`` of the whole list equals the
+        sum over disjoint parts)."""
+        d2 = self.d * self.d
+        if self._valid_before is None:
+            per = self._pos_valid.reshape(-1, d2).sum(axis=1)
+            self._valid_before = np.concatenate([[0], np.cumsum(per)])
+            self._kept_rank = np.cumsum(self._keep_blk) - 1  # position among the kept blocks
+        index = np.asarray(index, dtype=np.int64)
+        keep = self._keep_blk[index]
+        rank = self._kept_rank[index[keep]]
+        valid = self._pos_valid.reshape(-1, d2)[rank]
+        count = valid.sum(axis=1)
+        first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
+        where = self._pos[first + np.arange(first.size)]
+        out += np.bincount(where, weights=blocks[keep].reshape(-1, d2)[valid],
+                           minlength=self.nnz)
 
     def matvec(self, data: FloatArray, x: FloatArray) -> FloatArray:
         """``N x`` for the symmetric matrix whose lower triangle is ``data``."""
