@@ -75,13 +75,16 @@ class Checkpoint:
 
 @dataclass
 class Stage:
-    """One stage of ``refine_batch`` (``--stages``): wall time, RSS when it started and the
-    highest RSS sampled while it ran (MiB)."""
+    """One stage of ``refine_batch`` (``--stages``): wall time, RSS when it started, the highest
+    RSS sampled while it ran (a C call that holds the GIL, e.g. a CHOLMOD factorisation, is not
+    sampled) and the process's peak RSS (``ru_maxrss``) when it ended (MiB): a stage that raised
+    the process's peak shows it there."""
 
     name: str
     seconds: float
     rss_start_mib: float
     rss_peak_mib: float
+    maxrss_after_mib: float = 0.0
 
 
 class StageProbe:
@@ -116,7 +119,8 @@ class StageProbe:
             finally:
                 with self._lock:
                     peak = max(self._peak, rss_mib())
-                self.stages.append(Stage(name, time.perf_counter() - t, start, peak))
+                self.stages.append(Stage(name, time.perf_counter() - t, start, peak,
+                                         peak_rss_mb()))
         return wrapped
 
     def __enter__(self) -> StageProbe:
@@ -162,6 +166,7 @@ class ScaleFigures:
     batch_iterations: int | None = None
     batch_converged: bool | None = None
     rss_before_batch_mib: float | None = None
+    peak_rss_before_batch_mib: float | None = None
     peak_rss_after_batch_mib: float | None = None
     batch_stages: list[Stage] = field(default_factory=list)
 
@@ -223,6 +228,7 @@ def refine(al: TrackWindowAligner, fig: ScaleFigures, stages: bool = False) -> N
     """``al.refine_batch()`` with its time, iterations and the process's RSS before and peak
     RSS after, into ``fig`` (with ``stages``: per stage too, see :class:`StageProbe`)."""
     fig.rss_before_batch_mib = rss_mib()
+    fig.peak_rss_before_batch_mib = peak_rss_mb()
     if stages:
         with StageProbe() as probe:
             up = al.refine_batch()
@@ -375,14 +381,16 @@ def print_table(fig: ScaleFigures) -> None:
     if fig.batch_seconds is not None:
         print(f'batch refinement of {fig.poses_done:,} poses: {fig.batch_seconds:.1f} s, '
               f'{fig.batch_iterations} iterations, converged {fig.batch_converged}; RSS before '
-              f'{fig.rss_before_batch_mib:.0f} MiB, peak RSS after '
+              f'{fig.rss_before_batch_mib:.0f} MiB (process peak so far '
+              f'{fig.peak_rss_before_batch_mib:.0f}), peak RSS after '
               f'{fig.peak_rss_after_batch_mib:.0f} MiB')
     if fig.batch_stages:
-        print('\n| stage of refine_batch | s | RSS at start MiB | peak RSS MiB |')
-        print('|---|---:|---:|---:|')
+        print('\n| stage of refine_batch | s | RSS at start MiB | sampled peak MiB | '
+              'process peak after MiB |')
+        print('|---|---:|---:|---:|---:|')
         for st in fig.batch_stages:
             print(f'| {st.name} | {st.seconds:.1f} | {st.rss_start_mib:.0f} | '
-                  f'{st.rss_peak_mib:.0f} |')
+                  f'{st.rss_peak_mib:.0f} | {st.maxrss_after_mib:.0f} |')
 
 
 def main(argv: list[str] | None = None) -> int:
