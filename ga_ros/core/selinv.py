@@ -1,17 +1,24 @@
-"""Marginal covariance blocks of many nodes: selected inversion of a banded normal matrix.
+"""Marginal covariance blocks of many nodes: selected inversion of a normal matrix.
 
-With a bandwidth-reducing node ordering (reverse Cuthill-McKee), a survey's normal matrix is
-banded with half-bandwidth ``b``; cut into ``b x b`` blocks it is block tridiagonal. Its block
-Cholesky factor ``N = L L'`` (diagonal blocks ``D_k``, sub-diagonal blocks ``C_k``) and the
-backward recursion of Takahashi's equations (``L' Sigma = L^-1``, upper part zero) give every
-diagonal block of ``Sigma = N^-1``::
+Two implementations of Takahashi's equations (``Sigma = N^-1`` on a sparsity pattern, from the
+last column back, without any column of ``N^-1``):
+
+* :class:`SelectedInverse`, on CHOLMOD's sparse Cholesky factor of ``N``, in place: ``Sigma``
+  on the pattern of ``L`` (every node block and every connected pair), time about that of the
+  factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
+  surveys; quality control).
+* :func:`banded_marginal_blocks`, on the banded ``N``: with a bandwidth-reducing node ordering
+  (reverse Cuthill-McKee) a survey's normal matrix is banded with half-bandwidth ``b``; cut into
+  ``b x b`` blocks it is block tridiagonal. Its block Cholesky factor ``N = L L'`` (diagonal
+  blocks ``D_k``, sub-diagonal blocks ``C_k``) and the backward recursion::
 
     Sigma_KK = D_K^-T D_K^-1
     Sigma_kk = D_k^-T (I + C_k' Sigma_{k+1,k+1} C_k) D_k^-1
 
-in ``O(n b^2)`` operations, without forming any column of ``N^-1`` (the RTS smoother in
-information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few tens of
-milliseconds, versus seconds for 1,200 sparse solves.
+  give every diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother
+  in information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few
+  tens of milliseconds and needs no compiled kernel; for a whole survey the memory
+  (unknowns x band) is prohibitive.
 """
 
 from __future__ import annotations
