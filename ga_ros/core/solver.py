@@ -34,7 +34,7 @@ from ga_ros.runtime import blas_threads
 
 ROBUST_LOSSES = ('none', 'huber', 'cauchy')
 #: Above this many requested nodes, covariances come from selected inversion of the whole
-#: (banded) normal matrix instead of one sparse solve per column.
+#: normal matrix instead of one sparse solve per column.
 _MANY_NODES = 24
 DAMPINGS = ('none', 'lm', 'dogleg')
 #: From this many unknowns on, those covariances come from selected inversion on the sparse
