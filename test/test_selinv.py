@@ -159,3 +159,19 @@ def test_supernodes_of_a_factor_pattern():
     arrow[n - 1, :] = 1.0
     A = sp.csc_matrix(arrow)
     np.testing.assert_array_equal(supernodes(A.indptr, A.indices), [0, 1, 2, 3, n])
+
+
+def test_python_kernels_give_the_compiled_blocks(rng, monkeypatch):
+    """Without numba (or with ``GA_ROS_JIT=0``) the same kernels run as Python: same blocks."""
+    import ga_ros.core.selinv as selinv
+
+    N = _random_graph_spd(rng, 12, 6, 8) + 0.1 * np.eye(72)
+    inv = np.linalg.inv(N)
+    monkeypatch.setattr(selinv, '_KERNELS', {'_takahashi': selinv._takahashi_py,
+                                             '_entries': selinv._entries_py})
+    for copy in (False, True):
+        si = _selected(N, 6, copy)
+        rows, cols = _block_pairs(N, 6)
+        ref = np.stack([inv[i * 6:i * 6 + 6, j * 6:j * 6 + 6] for i, j in zip(rows, cols)])
+        np.testing.assert_allclose(si.blocks(rows, cols), ref, rtol=1e-8,
+                                   atol=1e-10 * np.abs(inv).max())

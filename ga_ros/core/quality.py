@@ -506,15 +506,20 @@ def _assemble(blocks: list[FloatArray], rows: list[IntArray], cols: list[IntArra
 
 
 def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
-                   selected: bool = True) -> FloatArray:
+                   selected: bool | None = None) -> FloatArray:
     """Blocks ``(rows[k], cols[k])`` of ``N^-1`` (``d x d`` node blocks; -1 gives a zero block).
 
     Pairs on the block pattern of ``N`` (a diagonal block, a connected node pair) come from
     selected inversion on the sparse Cholesky factor
     (:class:`~ga_ros.core.selinv.SelectedInverse`); any other pair (e.g. the ends of an excluded
-    connection), or every pair with ``selected=False``, from the node columns of ``N^-1`` solved
-    for in chunks with the factor. No dense inverse is formed.
+    connection), or every pair with ``selected=False`` (the default without compiled kernels),
+    from the node columns of ``N^-1`` solved for in chunks with the factor. No dense inverse is
+    formed.
     """
+    from ga_ros.core import selinv  # lazy: numba
+
+    if selected is None:
+        selected = selinv.COMPILED
     bsr = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
     bsr.sort_indices()
     n = bsr.shape[0] // d
@@ -524,9 +529,7 @@ def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
     out = np.zeros((rows.size, d, d))
     todo = np.nonzero((rows >= 0) & (cols >= 0))[0]
     if selected and todo.size:
-        from ga_ros.core.selinv import SelectedInverse  # lazy: numba
-
-        got = SelectedInverse(chol).blocks(rows[todo], cols[todo], off_pattern='nan')
+        got = selinv.SelectedInverse(chol).blocks(rows[todo], cols[todo], off_pattern='nan')
         ok = np.isfinite(got).all(axis=(1, 2))
         out[todo[ok]] = got[ok]
         todo = todo[~ok]  # off the pattern: solved for below (the factor is computed again)

@@ -32,6 +32,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.kernels import AVAILABLE
 from ga_ros.errors import DegenerateGeometryError
 
 
@@ -347,19 +348,20 @@ def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragm
 
 
 _KERNELS: dict = {}
+#: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
+#: plain Python (correct, but only for small systems: callers choose another path then).
+COMPILED = AVAILABLE
 
 
 def _kernel(name: str):
-    """The numba-compiled kernel (cached on disk), or the Python one without numba."""
+    """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
     fn = _KERNELS.get(name)
     if fn is None:
-        py = globals()[name + '_py']
-        try:
+        fn = globals()[name + '_py']
+        if COMPILED:
             import numba
-        except ImportError:  # pragma: no cover - numba is pinned
-            fn = py
-        else:
-            fn = numba.njit(cache=True, nogil=True)(py)
+
+            fn = numba.njit(cache=True, nogil=True)(fn)
         _KERNELS[name] = fn
     return fn
 

@@ -282,7 +282,7 @@ class _NormalSystem:
         compiled code to load; ``None`` when the band is too wide)."""
         from ga_ros.core import selinv  # lazy: scipy.linalg, numba
 
-        if self.pattern.size >= _SPARSE_SELINV_UNKNOWNS:
+        if self.pattern.size >= _SPARSE_SELINV_UNKNOWNS and selinv.COMPILED:
             chol = self.chol
             self._chol = None  # its factor is read out and overwritten
             self._factored = False
