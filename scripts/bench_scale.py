@@ -74,6 +74,73 @@ class Checkpoint:
 
 
 @dataclass
+class Stage:
+    """One stage of ``refine_batch`` (``--stages``): wall time, RSS when it started, the highest
+    RSS sampled while it ran (a C call that holds the GIL, e.g. a CHOLMOD factorisation, is not
+    sampled) and the process's peak RSS (``ru_maxrss``) when it ended (MiB): a stage that raised
+    the process's peak shows it there."""
+
+    name: str
+    seconds: float
+    rss_start_mib: float
+    rss_peak_mib: float
+    maxrss_after_mib: float = 0.0
+
+
+class StageProbe:
+    """Times the stages of ``refine_batch`` (the batch ``solve``, the covariances of the frozen
+    nodes, the rebuilt joint priors) by wrapping the functions it calls, and samples the RSS
+    every 5 ms in a thread for each stage's peak. Benchmark only: the wrappers are removed on
+    exit."""
+
+    def __init__(self) -> None:
+        import ga_ros.core.window as window
+
+        self.stages: list[Stage] = []
+        self._peak = 0.0
+        self._stop = False
+        self._targets = [(window, 'solve'), (window, 'absorbed_priors'),
+                         (window.SolveResult, 'covariance')]
+        self._saved = [getattr(o, a) for o, a in self._targets]
+
+    def _sample(self) -> None:
+        while not self._stop:
+            with self._lock:
+                self._peak = max(self._peak, rss_mib())
+            time.sleep(0.005)
+
+    def _wrap(self, name: str, fn):
+        def wrapped(*args, **kwargs):
+            with self._lock:
+                start = self._peak = rss_mib()
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                with self._lock:
+                    peak = max(self._peak, rss_mib())
+                self.stages.append(Stage(name, time.perf_counter() - t, start, peak,
+                                         peak_rss_mb()))
+        return wrapped
+
+    def __enter__(self) -> StageProbe:
+        import threading
+
+        for (obj, attr), fn in zip(self._targets, self._saved):
+            setattr(obj, attr, self._wrap(attr, fn))
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop = True
+        self._thread.join()
+        for (obj, attr), fn in zip(self._targets, self._saved):
+            setattr(obj, attr, fn)
+
+
+@dataclass
 class ScaleFigures:
     """Everything the benchmark measured (JSON with ``--json``)."""
 
@@ -99,7 +166,9 @@ class ScaleFigures:
     batch_iterations: int | None = None
     batch_converged: bool | None = None
     rss_before_batch_mib: float | None = None
+    peak_rss_before_batch_mib: float | None = None
     peak_rss_after_batch_mib: float | None = None
+    batch_stages: list[Stage] = field(default_factory=list)
 
 
 def state_nbytes(al: TrackWindowAligner) -> int:
@@ -151,15 +220,21 @@ def batch_only(args: argparse.Namespace) -> ScaleFigures:
     fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
     fig.tracks_done = len(al._tracks)
     del sc, noisy
-    refine(al, fig)
+    refine(al, fig, args.stages)
     return fig
 
 
-def refine(al: TrackWindowAligner, fig: ScaleFigures) -> None:
+def refine(al: TrackWindowAligner, fig: ScaleFigures, stages: bool = False) -> None:
     """``al.refine_batch()`` with its time, iterations and the process's RSS before and peak
-    RSS after, into ``fig``."""
+    RSS after, into ``fig`` (with ``stages``: per stage too, see :class:`StageProbe`)."""
     fig.rss_before_batch_mib = rss_mib()
-    up = al.refine_batch()
+    fig.peak_rss_before_batch_mib = peak_rss_mb()
+    if stages:
+        with StageProbe() as probe:
+            up = al.refine_batch()
+        fig.batch_stages = probe.stages
+    else:
+        up = al.refine_batch()
     fig.batch_seconds = up.update_ms / 1e3
     fig.batch_iterations, fig.batch_converged = up.iterations, up.converged
     fig.peak_rss_after_batch_mib = peak_rss_mb()
@@ -268,7 +343,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,
                                                             args.restore_timeout)
     if not args.no_batch:
-        refine(al, fig)
+        refine(al, fig, args.stages)
     return fig
 
 
@@ -306,8 +381,16 @@ def print_table(fig: ScaleFigures) -> None:
     if fig.batch_seconds is not None:
         print(f'batch refinement of {fig.poses_done:,} poses: {fig.batch_seconds:.1f} s, '
               f'{fig.batch_iterations} iterations, converged {fig.batch_converged}; RSS before '
-              f'{fig.rss_before_batch_mib:.0f} MiB, peak RSS after '
+              f'{fig.rss_before_batch_mib:.0f} MiB (process peak so far '
+              f'{fig.peak_rss_before_batch_mib:.0f}), peak RSS after '
               f'{fig.peak_rss_after_batch_mib:.0f} MiB')
+    if fig.batch_stages:
+        print('\n| stage of refine_batch | s | RSS at start MiB | sampled peak MiB | '
+              'process peak after MiB |')
+        print('|---|---:|---:|---:|---:|')
+        for st in fig.batch_stages:
+            print(f'| {st.name} | {st.seconds:.1f} | {st.rss_start_mib:.0f} | '
+                  f'{st.rss_peak_mib:.0f} | {st.maxrss_after_mib:.0f} |')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -330,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--batch-only', action='store_true',
                    help='only the batch refinement: the state is filled without window updates '
                         'and the poses set to the truth (peak RSS and time of refine_batch)')
+    p.add_argument('--stages', action='store_true',
+                   help='time and peak RSS of each stage of the batch refinement')
     p.add_argument('--restore-timeout', type=float, default=300.0,
                    help='give up the (child-process) state restore after this many seconds')
     p.add_argument('--json', action='store_true', help='print the figures as JSON')

@@ -74,6 +74,34 @@ def test_refine_batch_publishes_the_batch_covariances():
                                atol=1e-8 * np.abs(ref).max())
 
 
+def test_refine_batch_covariances_by_sparse_selected_inversion_equal_dense(monkeypatch):
+    """With the selected inversion on the sparse factor forced (it serves surveys of 2,000
+    poses and more), the covariances published after ``refine_batch`` are the diagonal blocks
+    of the dense inverse of the batch normal matrix; the adjustment's factor, taken over by the
+    selected inversion, still serves a joint covariance afterwards."""
+    import ga_ros.core.solver as solver_module
+
+    monkeypatch.setattr(solver_module, '_SPARSE_SELINV_UNKNOWNS', 0)
+    sc = aerial_scenario(n_tracks=5, positions_per_swath=5)
+    nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(1))
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2), sc.T_world_node[0])
+    al.add_measurements(sc.measurements(nm.z, nm.cov))
+    al.refine_batch()
+    res = al._last
+    dense = np.linalg.inv(res.normal_matrix.toarray())
+    col = {int(i): k for k, i in enumerate(res.free_node_ids)}
+    ids = sc.node_ids[1:]
+    ref = np.stack([dense[6 * col[int(i)]:6 * col[int(i)] + 6, 6 * col[int(i)]:6 * col[int(i)] + 6]
+                    for i in ids])
+    assert al.corrected_path().frozen.sum() >= 20
+    np.testing.assert_allclose(al.covariances(ids), ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    a, b = col[int(ids[3])], col[int(ids[17])]
+    idx = np.r_[6 * a:6 * a + 6, 6 * b:6 * b + 6]
+    np.testing.assert_allclose(res._system.joint_covariance(ids[[3, 17]]),
+                               dense[np.ix_(idx, idx)], rtol=1e-9,
+                               atol=1e-12 * np.abs(ref).max())
+
+
 def test_a_zero_weight_prior_adds_no_redundancy():
     """Redundancy = equations - unknowns, a prior's equations being the rank of its
     information: checked against the dense count ``trace(I - H)`` of the whitened hat matrix

@@ -261,11 +261,13 @@ def test_wrong_network_is_rejected(rng):
         quality_control(net, res)
 
 
-def test_banded_and_solved_inverse_blocks_agree(rng):
-    """The banded selected inversion and the sparse-solve fallback give the same blocks."""
+def test_selected_and_solved_inverse_blocks_agree(rng):
+    """Selected inversion on the factor and the sparse-solve path give the dense inverse's blocks
+    for every connected pair, a fixed end giving zero blocks; a pair off the pattern of ``N``
+    (unconnected nodes) is solved for."""
     import scipy.sparse as sp
 
-    from ga_ros.core.quality import _banded_pair_blocks, _inverse_blocks
+    from ga_ros.core.quality import _inverse_blocks
 
     net, _ = correlated_problem(rng, 'se3', n=12, gaps=(1, 3, 5))
     res = solve(net, initial_guess_f2f(net))
@@ -274,14 +276,15 @@ def test_banded_and_solved_inverse_blocks_agree(rng):
     col = {int(i): k for k, i in enumerate(res.free_node_ids)}
     cs = np.array([col.get(int(net.node_ids[s]), -1) for s in c.src])
     cd = np.array([col.get(int(net.node_ids[s]), -1) for s in c.dst])
-    rows, cols = np.concatenate([cs, cd, cd]), np.concatenate([cd, cs, cd])
+    far = len(col) - 1
+    rows, cols = np.concatenate([cs, cd, cd, [0]]), np.concatenate([cd, cs, cd, [far]])
+    assert N[6 * 0:6, 6 * far:6 * far + 6].nnz == 0  # off the pattern
     dense = np.linalg.inv(N.toarray())
-    band = _banded_pair_blocks(N, 6, rows, cols)
-    assert band is not None
-    solved = _inverse_blocks(N, 6, rows, cols, max_band=0)  # sparse solves
+    selected = _inverse_blocks(N, 6, rows, cols)
+    solved = _inverse_blocks(N, 6, rows, cols, selected=False)  # sparse solves
     for k, (r, cc) in enumerate(zip(rows, cols)):
         ref = np.zeros((6, 6)) if r < 0 or cc < 0 else dense[6 * r:6 * r + 6, 6 * cc:6 * cc + 6]
-        np.testing.assert_allclose(band[k], ref, atol=1e-12 * np.abs(dense).max())
+        np.testing.assert_allclose(selected[k], ref, atol=1e-12 * np.abs(dense).max())
         np.testing.assert_allclose(solved[k], ref, atol=1e-12 * np.abs(dense).max())
 
 

@@ -48,10 +48,8 @@ from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.optimize import brentq
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 from scipy.stats import chi2, ncx2, norm
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
@@ -59,14 +57,12 @@ from ga_ros.core import models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, normal_matrix_at, solve
 from ga_ros.core.sparse import BlockPattern, SparseCholesky
-from ga_ros.errors import DegenerateGeometryError, InputError, SolverError
+from ga_ros.errors import InputError, SolverError
 
 #: Eigenvalues of the whitened ``Q_kk`` block below this count as zero redundancy.
 _RANK_TOL = 1e-6
 #: Node columns of ``N^-1`` solved for at a time (bounds the memory to ``n x (chunk d)``).
 _CHUNK = 128
-#: Largest band (scalars) for the banded selected inversion; wider bands use sparse solves.
-_MAX_BAND = 3000
 SNOOP_TESTS = ('connection', 'w')
 
 
@@ -411,8 +407,7 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
         prow = np.repeat(np.arange(bsr.shape[0] // d), np.diff(bsr.indptr))
         pr.append(prow)
         pc.append(bsr.indices.astype(np.int64))
-    Sigma = _inverse_blocks(N_all, d, np.concatenate(pr), np.concatenate(pc),
-                            coords=T[network.indices_of(free_ids), :3, 3])
+    Sigma = _inverse_blocks(N_all, d, np.concatenate(pr), np.concatenate(pc))
     G = _propagate(lin.A_src, lin.A_dst, cs, cd, Sigma[:3 * m])
 
     # whitened Q_kk: Qw = L' Q_kk L = I - L^-1 G L^-T, eigenvalues in [0, 1]
@@ -511,17 +506,20 @@ def _assemble(blocks: list[FloatArray], rows: list[IntArray], cols: list[IntArra
 
 
 def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
-                   coords: FloatArray | None = None, max_band: int = _MAX_BAND) -> FloatArray:
+                   selected: bool | None = None) -> FloatArray:
     """Blocks ``(rows[k], cols[k])`` of ``N^-1`` (``d x d`` node blocks; -1 gives a zero block).
 
-    Every requested pair must lie on the block pattern of ``N`` (a connected node pair or a
-    diagonal block). Selected inversion of the banded matrix (:func:`_banded_pair_blocks`) is
-    used when the bandwidth allows; otherwise the needed node columns are solved for in chunks
-    with the CHOLMOD factor of ``N``. No dense inverse is formed.
+    Pairs on the block pattern of ``N`` (a diagonal block, a connected node pair) come from
+    selected inversion on the sparse Cholesky factor
+    (:class:`~ga_ros.core.selinv.SelectedInverse`); any other pair (e.g. the ends of an excluded
+    connection), or every pair with ``selected=False`` (the default without compiled kernels),
+    from the node columns of ``N^-1`` solved for in chunks with the factor. No dense inverse is
+    formed.
     """
-    out = _banded_pair_blocks(N, d, rows, cols, coords, max_band)
-    if out is not None:
-        return out
+    from ga_ros.core import selinv  # lazy: numba
+
+    if selected is None:
+        selected = selinv.COMPILED
     bsr = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
     bsr.sort_indices()
     n = bsr.shape[0] // d
@@ -529,8 +527,13 @@ def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
     pattern = BlockPattern(brow, bsr.indices.astype(np.int64), d, n)
     chol = SparseCholesky(pattern, pattern.assemble(bsr.data))
     out = np.zeros((rows.size, d, d))
-    valid = (rows >= 0) & (cols >= 0)
-    needed = np.unique(cols[valid])
+    todo = np.nonzero((rows >= 0) & (cols >= 0))[0]
+    if selected and todo.size:
+        got = selinv.SelectedInverse(chol).blocks(rows[todo], cols[todo], off_pattern='nan')
+        ok = np.isfinite(got).all(axis=(1, 2))
+        out[todo[ok]] = got[ok]
+        todo = todo[~ok]  # off the pattern: solved for below (the factor is computed again)
+    needed = np.unique(cols[todo])
     for start in range(0, needed.size, _CHUNK):
         chunk = needed[start:start + _CHUNK]
         E = np.zeros((n * d, chunk.size * d))
@@ -539,109 +542,8 @@ def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
         X = chol.solve(E).reshape(n, d, chunk.size, d)
         pos = np.full(n, -1, dtype=np.int64)
         pos[chunk] = np.arange(chunk.size)
-        sel = np.nonzero(valid & (pos[np.maximum(cols, 0)] >= 0))[0]
+        sel = todo[pos[cols[todo]] >= 0]
         out[sel] = X[rows[sel], :, pos[cols[sel]], :]
-    return out
-
-
-def _banded_pair_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
-                        coords: FloatArray | None = None,
-                        max_band: int = _MAX_BAND) -> FloatArray | None:
-    """Selected inversion (Takahashi) of a banded SPD matrix, for node-block pairs on its pattern.
-
-    Nodes are reordered to a narrow band (reverse Cuthill-McKee, or the principal axis of
-    ``coords`` when narrower); cut into ``b x b`` blocks (``b`` >= the half-bandwidth) the
-    matrix is block tridiagonal with block Cholesky factor ``D_k`` (diagonal), ``C_k``
-    (sub-diagonal). The backward recursion of Takahashi's equations (``Sigma L = L^-T``)::
-
-        Sigma_{k+1,k} = -Sigma_{k+1,k+1} C_k D_k^-1
-        Sigma_kk      = D_k^-T D_k^-1 - D_k^-T C_k' Sigma_{k+1,k}
-
-    yields every entry of ``Sigma = N^-1`` inside the band, hence every block on the pattern of
-    ``N``, in ``O(n b^2)``. Returns ``None`` when the band exceeds ``max_band`` scalars.
-    """
-    N = sp.csr_matrix(N)
-    n = N.shape[0]
-    u = n // d
-    coo = N.tocoo()
-    G = sp.coo_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(u, u)).tocsr()
-    candidates = [reverse_cuthill_mckee(G, symmetric_mode=True)]
-    if coords is not None and len(coords) == u and u > 2:
-        xyz = np.asarray(coords, dtype=float) - np.mean(coords, axis=0)
-        candidates.append(np.argsort(xyz @ np.linalg.svd(xyz, full_matrices=False)[2][0],
-                                     kind='stable'))
-    best = None
-    for order in candidates:
-        pos = np.empty(u, dtype=np.int64)
-        pos[order] = np.arange(u)
-        band = int(np.abs(pos[coo.row // d] - pos[coo.col // d]).max()) if coo.nnz else 0
-        if best is None or band < best[0]:
-            best = (band, order, pos)
-    band_nodes, order, pos = best
-    b = d * (band_nodes + 1)
-    if b > max_band:
-        return None
-    # requested pairs: scalar offsets in the permuted order
-    valid = (rows >= 0) & (cols >= 0)
-    pr = np.where(valid, pos[np.maximum(rows, 0)] * d, 0)
-    pc = np.where(valid, pos[np.maximum(cols, 0)] * d, 0)
-    kr, kc = pr // b, pc // b
-    if np.any(np.abs(kr - kc) > 1):
-        return None  # a requested block lies outside the band: the caller solves for it
-    step = np.minimum(kr, kc)
-    perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
-    Np = N[perm][:, perm].tocsr()
-    nb = -(-n // b)
-
-    def block(i: int, j: int) -> FloatArray:
-        out = np.zeros((b, b))
-        sub = Np[i * b:min((i + 1) * b, n), j * b:min((j + 1) * b, n)].toarray()
-        out[:sub.shape[0], :sub.shape[1]] = sub
-        return out
-
-    eye = np.eye(b)
-    Dinv, C = [], []
-    prev = None
-    for k in range(nb):
-        A = block(k, k)
-        if k == nb - 1:
-            pad = np.arange(n - k * b, b)
-            A[pad, pad] = 1.0
-        if prev is not None:
-            A -= prev @ prev.T
-        try:
-            D = np.linalg.cholesky(A)
-        except np.linalg.LinAlgError as exc:
-            raise DegenerateGeometryError('normal matrix is not positive definite') from exc
-        Dinv.append(sla.solve_triangular(D, eye, lower=True))
-        prev = block(k + 1, k) @ Dinv[k].T if k < nb - 1 else None
-        C.append(prev)
-    out = np.zeros((rows.size, d, d))
-    a = np.arange(d)
-    S_next = None
-    for k in range(nb - 1, -1, -1):
-        if S_next is None:
-            S_kk = Dinv[k].T @ Dinv[k]
-            S_low = None
-        else:
-            X = C[k] @ Dinv[k]
-            S_low = -S_next @ X  # Sigma_{k+1,k}
-            S_kk = Dinv[k].T @ Dinv[k] - X.T @ S_low
-        sel = np.nonzero(valid & (step == k))[0]
-        if sel.size:
-            both = sel[kr[sel] == kc[sel]]
-            rr = pr[both][:, None, None] - k * b + a[None, :, None]
-            cc = pc[both][:, None, None] - k * b + a[None, None, :]
-            out[both] = S_kk[rr, cc]
-            lo = sel[kr[sel] > kc[sel]]  # row in block k+1, column in block k
-            rr = pr[lo][:, None, None] - (k + 1) * b + a[None, :, None]
-            cc = pc[lo][:, None, None] - k * b + a[None, None, :]
-            out[lo] = S_low[rr, cc] if lo.size else out[lo]
-            hi = sel[kr[sel] < kc[sel]]  # row in block k, column in block k+1
-            rr = pc[hi][:, None, None] - (k + 1) * b + a[None, :, None]
-            cc = pr[hi][:, None, None] - k * b + a[None, None, :]
-            out[hi] = np.swapaxes(S_low[rr, cc], 1, 2) if hi.size else out[hi]
-        S_next = S_kk
     return out
 
 

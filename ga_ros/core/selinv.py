@@ -1,27 +1,38 @@
-"""Marginal covariance blocks of many nodes: selected inversion of a banded normal matrix.
+"""Marginal covariance blocks of many nodes: selected inversion of a normal matrix.
 
-With a bandwidth-reducing node ordering (reverse Cuthill-McKee), a survey's normal matrix is
-banded with half-bandwidth ``b``; cut into ``b x b`` blocks it is block tridiagonal. Its block
-Cholesky factor ``N = L L'`` (diagonal blocks ``D_k``, sub-diagonal blocks ``C_k``) and the
-backward recursion of Takahashi's equations (``L' Sigma = L^-1``, upper part zero) give every
-diagonal block of ``Sigma = N^-1``::
+Two implementations of Takahashi's equations (``Sigma = N^-1`` on a sparsity pattern, from the
+last column back, without any column of ``N^-1``):
+
+* :class:`SelectedInverse`, on CHOLMOD's sparse Cholesky factor of ``N``, in place: ``Sigma``
+  on the pattern of ``L`` (every node block and every connected pair), time about that of the
+  factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
+  surveys; quality control).
+* :func:`banded_marginal_blocks`, on the banded ``N``: with a bandwidth-reducing node ordering
+  (reverse Cuthill-McKee) a survey's normal matrix is banded with half-bandwidth ``b``; cut into
+  ``b x b`` blocks it is block tridiagonal. Its block Cholesky factor ``N = L L'`` (diagonal
+  blocks ``D_k``, sub-diagonal blocks ``C_k``) and the backward recursion::
 
     Sigma_KK = D_K^-T D_K^-1
     Sigma_kk = D_k^-T (I + C_k' Sigma_{k+1,k+1} C_k) D_k^-1
 
-in ``O(n b^2)`` operations, without forming any column of ``N^-1`` (the RTS smoother in
-information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few tens of
-milliseconds, versus seconds for 1,200 sparse solves.
+  give every diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother
+  in information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few
+  tens of milliseconds and needs no compiled kernel; for a whole survey the memory
+  (unknowns x band) is prohibitive.
 """
 
 from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.kernels import AVAILABLE
 from ga_ros.errors import DegenerateGeometryError
 
 
@@ -201,3 +212,328 @@ def _plan(G: sp.csr_matrix, rows_n: np.ndarray, cols_n: np.ndarray,
     nq, p = q_nodes.size * d, p_nodes.size * d
     cost = nq * (4.0 * b * b + 4.0 * p * b + 2.0 * p * p) + p ** 3
     return candidates[best], p_nodes, b, cost
+
+
+# ------------------------------------------------------------ selected inversion on a factor
+def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
+    """First column of each (fundamental) supernode of a lower-triangular CSC factor, plus ``n``.
+
+    Column ``j + 1`` continues the supernode of column ``j`` when it is ``j``'s parent in the
+    elimination tree (the first sub-diagonal row of column ``j`` is ``j + 1``) and has one entry
+    fewer: then both columns have the same rows below the supernode (the pattern of a Cholesky
+    factor is closed: ``struct(j)`` without ``j`` lies in ``struct(parent(j))``).
+    """
+    colptr = np.asarray(colptr, dtype=np.int64)
+    n = colptr.size - 1
+    if n == 0:
+        return np.zeros(1, dtype=np.int64)
+    count = np.diff(colptr)
+    j = np.arange(n - 1)
+    second = np.where(count[:-1] > 1, colptr[:-2] + 1, 0)
+    cont = (count[:-1] > 1) & (np.asarray(rowind)[second] == j + 1) & (count[1:] == count[:-1] - 1)
+    starts = np.concatenate([[0], np.nonzero(~cont)[0] + 1, [n]])
+    return starts.astype(np.int64)
+
+
+def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no cover - compiled
+    """In place: the values of ``L`` (``P N P' = L L'``) become those of ``Sigma = N^-1``
+    (permuted) on the pattern of ``L``.
+
+    Supernode ``k`` has the columns ``starts[k] .. starts[k+1]-1`` and the sorted rows
+    ``srows[pi[k] : pi[k] + nrows[k]]`` (its own columns first); the value at its ``z``-th row in
+    column ``c`` is ``x[colbase[c] + z]`` (CHOLMOD's supernodal layout and a CSC factor both fit).
+    Takahashi's equations per supernode (columns ``J``, rows ``B`` below them), from the last
+    back (``Sigma L = L^-T``, upper triangular)::
+
+        U = L_BJ L_JJ^-1,   Sigma_BJ = -Sigma_BB U,   Sigma_JJ = L_JJ^-T L_JJ^-1 - Sigma_BJ' U
+
+    ``Sigma_BB`` lies on the pattern of later supernodes (closure of the factor's pattern), all
+    already overwritten; it is gathered through ``where`` (row -> position in an ancestor's row
+    list, -1 elsewhere). Returns 0; 1 if a needed entry is not on the pattern, 2 if rows are not
+    sorted (nothing was changed then).
+    """
+    ns = starts.size - 1
+    for k in range(ns):
+        for z in range(pi[k] + 1, pi[k] + nrows[k]):
+            if srows[z] <= srows[z - 1]:
+                return 2
+    for t in range(ns - 1, -1, -1):
+        f = starts[t]
+        m = starts[t + 1] - f
+        r = nrows[t] - m
+        Ljj = np.zeros((m, m))
+        Lbj = np.empty((r, m))
+        for i in range(m):
+            q = colbase[f + i]
+            for a in range(i, m):
+                Ljj[a, i] = x[q + a]
+            for a in range(r):
+                Lbj[a, i] = x[q + m + a]
+        Linv = np.linalg.inv(Ljj)
+        for i in range(m):  # exactly lower triangular
+            for a in range(i):
+                Linv[a, i] = 0.0
+        Sjj = Linv.T @ Linv
+        Sbj = np.empty((r, m))
+        if r:
+            U = Lbj @ Linv
+            B = srows[pi[t] + m:pi[t] + nrows[t]]
+            Sbb = np.empty((r, r))
+            a = 0
+            while a < r:  # the rows of B that are columns of one ancestor supernode
+                c = B[a]
+                lo, hi = 0, ns
+                while hi - lo > 1:  # supernode of column c (binary search)
+                    mid = (lo + hi) // 2
+                    if starts[mid] <= c:
+                        lo = mid
+                    else:
+                        hi = mid
+                q0, nt, lt = pi[lo], nrows[lo], starts[lo + 1]
+                for z in range(nt):
+                    where[srows[q0 + z]] = z
+                b = a
+                while b < r and B[b] < lt:
+                    b += 1
+                for mm in range(a, b):
+                    base = colbase[B[mm]]
+                    for l2 in range(mm, r):
+                        z = where[B[l2]]
+                        if z < 0:
+                            return 1
+                        v = x[base + z]
+                        Sbb[l2, mm] = v
+                        Sbb[mm, l2] = v
+                for z in range(nt):
+                    where[srows[q0 + z]] = -1
+                a = b
+            Sbj = -(Sbb @ U)
+            Sjj -= Sbj.T @ U
+        for i in range(m):
+            q = colbase[f + i]
+            for a in range(i, m):
+                x[q + a] = Sjj[a, i]
+            for a in range(r):
+                x[q + m + a] = Sbj[a, i]
+    return 0
+
+
+def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragma: no cover
+    """``out[e]`` = the value at (``rows[e] >= cols[e]``) of the layout of :func:`_takahashi_py`
+    (binary searches); returns the number of entries not on the pattern (left NaN)."""
+    missing = 0
+    ns = starts.size - 1
+    for e in range(rows.size):
+        c, r = cols[e], rows[e]
+        lo, hi = 0, ns
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if starts[mid] <= c:
+                lo = mid
+            else:
+                hi = mid
+        a, b = pi[lo] + (c - starts[lo]), pi[lo] + nrows[lo]
+        while a < b:
+            mid = (a + b) // 2
+            if srows[mid] < r:
+                a = mid + 1
+            else:
+                b = mid
+        if a < pi[lo] + nrows[lo] and srows[a] == r:
+            out[e] = x[colbase[c] + a - pi[lo]]
+        else:
+            out[e] = np.nan
+            missing += 1
+    return missing
+
+
+_KERNELS: dict = {}
+#: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
+#: plain Python (correct, but only for small systems: callers choose another path then).
+COMPILED = AVAILABLE
+
+
+def _kernel(name: str):
+    """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
+    fn = _KERNELS.get(name)
+    if fn is None:
+        fn = globals()[name + '_py']
+        if COMPILED:
+            import numba
+
+            fn = numba.njit(cache=True, nogil=True)(fn)
+        _KERNELS[name] = fn
+    return fn
+
+
+@dataclass
+class _Layout:
+    """A factor's values and pattern as :func:`_takahashi_py` reads them; ``keep`` holds the
+    objects that own the memory."""
+
+    starts: IntArray
+    pi: IntArray
+    nrows: IntArray
+    srows: IntArray
+    colbase: IntArray
+    x: FloatArray
+    perm: IntArray
+    keep: tuple
+
+
+class _CholmodFactor(ctypes.Structure):
+    """``cholmod_factor`` of CHOLMOD 3 (SuiteSparse 5, bundled in the cvxopt wheel)."""
+
+    _fields_ = ([(f, ctypes.c_size_t) for f in ('n', 'minor')]
+                + [(f, ctypes.c_void_p) for f in ('Perm', 'ColCount', 'IPerm')]
+                + [('nzmax', ctypes.c_size_t)]
+                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'x', 'z', 'nz', 'next', 'prev')]
+                + [(f, ctypes.c_size_t) for f in ('nsuper', 'ssize', 'xsize', 'maxcsize',
+                                                  'maxesize')]
+                + [(f, ctypes.c_void_p) for f in ('super', 'pi', 'px', 's')]
+                + [(f, ctypes.c_int) for f in ('ordering', 'is_ll', 'is_super', 'is_monotonic',
+                                               'itype', 'xtype', 'dtype', 'useGPU')])
+
+
+def _supernodal_layout(capsule, n: int) -> _Layout | None:
+    """CHOLMOD's supernodal factor in place (no copy): its arrays viewed through ``ctypes``.
+    ``None`` if the factor does not look as expected (another CHOLMOD build): the caller then
+    reads it out with ``getfactor``."""
+    api = ctypes.pythonapi
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    try:
+        name = api.PyCapsule_GetName(capsule)
+        if name != b'CHOLMOD FACTOR D L':
+            return None
+        L = _CholmodFactor.from_address(api.PyCapsule_GetPointer(capsule, name))
+    except (TypeError, ValueError):  # pragma: no cover - not a capsule
+        return None
+    ns = int(L.nsuper)
+    if not (L.n == n and L.minor == n and L.is_super == 1 and L.is_ll == 1 and L.xtype == 1
+            and L.dtype == 0 and L.itype == 2 and 0 < ns <= n and L.ssize > 0 and L.xsize > 0
+            and all((L.super, L.pi, L.px, L.s, L.x, L.Perm))):
+        return None
+
+    def view(ptr, count, ctype):
+        return np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctype)), shape=(count,))
+
+    sup = view(L.super, ns + 1, ctypes.c_int64).astype(np.int64)
+    pi = view(L.pi, ns + 1, ctypes.c_int64).astype(np.int64)
+    px = view(L.px, ns + 1, ctypes.c_int64).astype(np.int64)
+    perm = view(L.Perm, n, ctypes.c_int64).astype(np.int64)
+    width, nrows = np.diff(sup), np.diff(pi)
+    if (sup[0] != 0 or sup[-1] != n or pi[0] != 0 or pi[-1] > L.ssize or px[0] != 0
+            or px[-1] > L.xsize or (width <= 0).any() or (nrows < width).any()
+            or (np.diff(px) < nrows * width).any()
+            or not np.array_equal(np.sort(perm), np.arange(n))):
+        return None
+    x = view(L.x, int(L.xsize), ctypes.c_double)
+    srows = view(L.s, int(L.ssize), ctypes.c_int64)
+    step = np.diff(srows[:pi[-1]]) > 0
+    step[pi[1:-1] - 1] = True  # a new supernode may start lower
+    if not step.all():  # rows not sorted within a supernode
+        return None
+    k = np.repeat(np.arange(ns), width)
+    colbase = px[k] + (np.arange(n) - sup[k]) * nrows[k]  # column-major nrows x width blocks
+    return _Layout(sup, pi[:-1], nrows, srows, colbase, x, perm, (capsule,))
+
+
+def _csc_layout(chol) -> _Layout:
+    """The factor read out with ``cholmod.getfactor`` (a simplicial copy: ~2x the factor's
+    memory at the peak), its supernodes found from the pattern (:func:`supernodes`)."""
+    from ga_ros.core.sparse import _cholmod
+
+    perm = chol.permutation()
+    F = _cholmod.getfactor(chol._F)
+    colptr, rowind, values = F.CCS  # views of cvxopt's buffers (writable), which they keep
+    colptr = np.asarray(colptr, dtype=np.int64).ravel()
+    rowind = np.asarray(rowind, dtype=np.int64).ravel()
+    starts = supernodes(colptr, rowind)
+    pi = colptr[starts[:-1]]
+    k = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    colbase = colptr[:-1] - (np.arange(colptr.size - 1) - starts[k])
+    return _Layout(starts, pi, np.diff(colptr)[starts[:-1]], rowind, colbase,
+                   np.asarray(values, dtype=float).ravel(), perm, (F,))
+
+
+class SelectedInverse:
+    """``Sigma = N^-1`` on the pattern of the Cholesky factor of ``N`` (selected inversion).
+
+    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.sparse.SparseCholesky`, ordered by the
+    project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is
+    overwritten in place by Takahashi's equations (:func:`_takahashi_py`, compiled with numba),
+    supernode by supernode with dense products, in CHOLMOD's own supernodal storage (viewed
+    through ``ctypes``, no copy; if that layout is not recognised, a ``getfactor`` copy is used).
+    The extra memory is one dense ``rows x rows`` block of the widest supernode: no band, no
+    dense column, no second factor. Every entry of ``Sigma`` on the pattern of ``N`` is on the
+    pattern of ``L`` (``P N P'`` lies within ``L + L'``), so the diagonal blocks of all nodes and
+    the cross blocks of all connected node pairs can be read (:meth:`blocks`).
+
+    Parameters
+    ----------
+    chol : the factored ``N`` (``d x d`` node blocks). Its factor is taken over: ``chol`` is left
+        without one and factors again (with a new analysis) on its next solve.
+    copy : read the factor out with ``getfactor`` even when the in-place layout is available.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        No CHOLMOD, or the factor's pattern is not that of a Cholesky factor.
+    """
+
+    def __init__(self, chol, copy: bool = False) -> None:
+        from ga_ros.core.sparse import _cholmod
+
+        if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
+            raise DegenerateGeometryError('selected inversion needs a CHOLMOD factor (cvxopt)')
+        self.d = chol.pattern.d
+        lay = None if copy else _supernodal_layout(chol._F, chol.n)
+        self.in_place = lay is not None
+        if lay is None:
+            lay = _csc_layout(chol)
+        chol._F = chol._symbolic = None  # the values become Sigma's
+        self._lay = lay
+        self._pos = np.empty_like(lay.perm)
+        self._pos[lay.perm] = np.arange(lay.perm.size)
+        where = np.full(lay.perm.size, -1, dtype=np.int64)
+        status = _kernel('_takahashi')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                       lay.x, where)
+        if status:
+            raise DegenerateGeometryError('the factor pattern is not that of a Cholesky factor '
+                                          f'(code {status}): report this with the graph')
+
+    @property
+    def nnz(self) -> int:
+        """Stored entries of ``L`` (and of ``Sigma``; supernodal storage counts whole blocks)."""
+        return int(self._lay.x.size)
+
+    def blocks(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> FloatArray:
+        """Blocks ``(rows[k], cols[k])`` of ``Sigma`` (``d x d`` node blocks, columns of ``N``),
+        ``(k, d, d)``. Each pair should be a diagonal block or a connected pair of ``N``; a pair
+        off the factor's pattern raises :class:`DegenerateGeometryError` (``off_pattern=
+        'raise'``) or comes back as NaN (``'nan'``)."""
+        d = self.d
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        a = np.arange(d)
+        sr = self._pos[(rows[:, None, None] * d + a[None, :, None])]  # (k, d, 1)
+        sc = self._pos[(cols[:, None, None] * d + a[None, None, :])]  # (k, 1, d)
+        sr, sc = np.broadcast_arrays(sr, sc)
+        lo, hi = np.minimum(sr, sc).ravel(), np.maximum(sr, sc).ravel()
+        out = np.empty(lo.size)
+        lay = self._lay
+        missing = _kernel('_entries')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                      lay.x, hi, lo, out)
+        if missing and off_pattern == 'raise':
+            raise DegenerateGeometryError('a requested block is not on the pattern of the '
+                                          'normal matrix: only node and connected-pair blocks')
+        return out.reshape(rows.size, d, d)
+
+    def diagonal_blocks(self, nodes: IntArray) -> FloatArray:
+        """Marginal covariance blocks ``(k, d, d)`` of the given node columns (symmetrised)."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        out = self.blocks(nodes, nodes)
+        return 0.5 * (out + np.swapaxes(out, 1, 2))

@@ -47,6 +47,8 @@ _MAX_ORDERINGS = 16
 #: CHOLMOD input matrices kept per pattern (the few latest: a window's, its freeze's).
 _MATRICES: OrderedDict[bytes, object] = OrderedDict()
 _MAX_MATRICES = 4
+#: Blocks assembled per pass by :meth:`BlockPattern.assemble` (bounds its temporaries).
+_ASSEMBLY_CHUNK = 1 << 18
 
 
 class BlockPattern:
@@ -102,7 +104,9 @@ class BlockPattern:
         self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
         pos = pos_u[inv].reshape(-1)
         self._pos_valid = pos >= 0
-        self._pos = pos[self._pos_valid]
+        # int32 when it fits: half the pattern's largest array (~300 MB at 100,000 poses)
+        self._pos = pos[self._pos_valid].astype(np.int32 if self.nnz < 2**31 else np.int64)
+        self._valid_before: IntArray | None = None  # built by assemble_at on first use
 
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
@@ -119,9 +123,42 @@ class BlockPattern:
         return pattern, pattern.assemble(blocks)
 
     def assemble(self, blocks: FloatArray) -> FloatArray:
-        """Sum blocks ``(k, d, d)`` (block row, col) into the lower-triangle CSC values."""
-        vals = blocks[self._keep_blk].reshape(-1)[self._pos_valid]
-        return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+        """Sum blocks ``(k, d, d)`` (block row, col) into the lower-triangle CSC values.
+
+        More than :data:`_ASSEMBLY_CHUNK` blocks go in chunks: the temporaries (two copies of
+        the blocks in one pass, ~1.4 GB for a survey of 100,000 poses) stay ~150 MB."""
+        if blocks.shape[0] <= _ASSEMBLY_CHUNK:
+            vals = blocks[self._keep_blk].reshape(-1)[self._pos_valid]
+            return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+        keep, d2, done = np.nonzero(self._keep_blk)[0], self.d * self.d, 0
+        out = np.zeros(self.nnz)
+        for a in range(0, keep.size, _ASSEMBLY_CHUNK):
+            valid = self._pos_valid[a * d2:(a + _ASSEMBLY_CHUNK) * d2]
+            vals = blocks[keep[a:a + _ASSEMBLY_CHUNK]].reshape(-1)[valid]
+            out += np.bincount(self._pos[done:done + vals.size], weights=vals,
+                               minlength=self.nnz)
+            done += vals.size
+        return out
+
+    def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
+        """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
+        this pattern was built from into ``out`` (lower-triangle CSC values, in place): the
+        assembly of a large system a part at a time (``assemble`` of the whole list equals the
+        sum over disjoint parts)."""
+        d2 = self.d * self.d
+        if self._valid_before is None:
+            per = self._pos_valid.reshape(-1, d2).sum(axis=1)
+            self._valid_before = np.concatenate([[0], np.cumsum(per)])
+            self._kept_rank = np.cumsum(self._keep_blk) - 1  # position among the kept blocks
+        index = np.asarray(index, dtype=np.int64)
+        keep = self._keep_blk[index]
+        rank = self._kept_rank[index[keep]]
+        valid = self._pos_valid.reshape(-1, d2)[rank]
+        count = valid.sum(axis=1)
+        first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
+        where = self._pos[first + np.arange(first.size)]
+        out += np.bincount(where, weights=blocks[keep].reshape(-1, d2)[valid],
+                           minlength=self.nnz)
 
     def matvec(self, data: FloatArray, x: FloatArray) -> FloatArray:
         """``N x`` for the symmetric matrix whose lower triangle is ``data``."""

@@ -1,0 +1,76 @@
+"""The large-problem paths of the batch solve: assembly and linearisation in parts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from solver_problems import make_problem, perturbed
+
+import ga_ros.core.solver as solver
+import ga_ros.core.sparse as sparse
+from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
+from ga_ros.core.sparse import BlockPattern
+
+
+def test_chunked_assembly_equals_one_pass(rng, monkeypatch):
+    """``BlockPattern.assemble`` in chunks (large problems) sums the same values as in one
+    pass, with fixed (-1) and upper (dropped) blocks among them."""
+
+    u, d, k = 30, 6, 400
+    rows = rng.integers(-1, u, size=k)
+    cols = rng.integers(-1, u, size=k)
+    rows = np.concatenate([rows, np.arange(u)])
+    cols = np.concatenate([cols, np.arange(u)])
+    pattern = BlockPattern(rows, cols, d, u)
+    blocks = rng.normal(size=(rows.size, d, d))
+    one = pattern.assemble(blocks)
+    monkeypatch.setattr(sparse, '_ASSEMBLY_CHUNK', 7)
+    np.testing.assert_allclose(pattern.assemble(blocks), one, rtol=1e-13, atol=1e-13)
+    dense = np.zeros((u * d, u * d))
+    for r, c, b in zip(rows, cols, blocks):
+        if r >= c >= 0:
+            dense[r * d:(r + 1) * d, c * d:(c + 1) * d] += b
+    np.testing.assert_allclose(np.tril(pattern.lower_csc(one).toarray()), np.tril(dense),
+                               atol=1e-12)
+
+
+def test_assemble_at_in_disjoint_parts_equals_assemble(rng):
+    """Blocks added a part at a time (any disjoint parts, any order) sum to ``assemble``."""
+    u, d, k = 20, 3, 300
+    rows = np.concatenate([rng.integers(-1, u, size=k), np.arange(u)])
+    cols = np.concatenate([rng.integers(-1, u, size=k), np.arange(u)])
+    pattern = BlockPattern(rows, cols, d, u)
+    blocks = rng.normal(size=(rows.size, d, d))
+    out = np.zeros(pattern.nnz)
+    for part in np.array_split(rng.permutation(rows.size), 6):
+        pattern.assemble_at(blocks[part], part, out)
+    np.testing.assert_allclose(out, pattern.assemble(blocks), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize('model, loss, damping', [('se3', 'none', 'none'),
+                                                  ('se3', 'cauchy', 'lm'),
+                                                  ('se2', 'huber', 'dogleg')])
+def test_solve_linearised_in_parts_equals_one_pass(rng, monkeypatch, model, loss, damping):
+    """The connections linearised and assembled a few at a time (large problems) give the same
+    adjustment as in one pass: estimate, cost, variance factor, weights, covariances, with a
+    prior and robust losses; ``normal_matrix_at`` too."""
+    prob = make_problem(rng, model, n=14, noise=1.0, gaps=(1, 2, 5))
+    net = prob.network
+    T0 = perturbed(rng, prob.T_true, 0.02)
+    ids = net.node_ids
+    prior = GaussianPrior.from_covariances(ids[3:5], prob.T_true[3:5],
+                                           np.stack([np.eye(solver.models.dof(model))] * 2))
+    cfg = SolverConfig(model=model, robust_loss=loss, damping=damping, tolerance=1e-10)
+    ref = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
+    N_ref = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
+    monkeypatch.setattr(solver, '_CONNECTIONS_PER_PART', 5)
+    res = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
+    np.testing.assert_allclose(res.T_world_node, ref.T_world_node, rtol=0, atol=1e-10)
+    assert res.iterations == ref.iterations
+    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-9)
+    np.testing.assert_allclose(res.sigma0_sq, ref.sigma0_sq, rtol=1e-9)
+    np.testing.assert_allclose(res.weights, ref.weights, rtol=1e-9)
+    np.testing.assert_allclose(res.covariance(ids[1:]), ref.covariance(ids[1:]), rtol=1e-8,
+                               atol=1e-14)
+    N = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
+    np.testing.assert_allclose(N.toarray(), N_ref.toarray(), rtol=1e-12, atol=1e-9)
