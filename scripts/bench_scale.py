@@ -110,7 +110,9 @@ def state_nbytes(al: TrackWindowAligner) -> int:
               al._frozen[:n], al._src.a, al._dst.a, al._z.a, al._ccov.packed, al._cross.a,
               al._status.a, al._fp.a, al._index._keys, al._index._vals]
     arrays += [al._track_conns[t] for t in al._tracks if t in al._track_conns]
-    arrays += [a for p in al._priors for a in p]
+    for idx, mean, info in al._priors:  # a block-banded information: its BSR arrays
+        arrays += [idx, mean] + ([info.data, info.indices, info.indptr]
+                                 if hasattr(info, 'indptr') else [info])
     total = sum(a.nbytes for a in arrays)
     total += sys.getsizeof(al._index._recent) + 64 * len(al._index._recent)
     total += sys.getsizeof(al._pairs) + 160 * len(al._pairs)  # 3-tuples of ints
