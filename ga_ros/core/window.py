@@ -192,7 +192,7 @@ class AlignerConfig:
     refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
-    prior_band: int = 4
+    prior_band: int = 8
     prior_hubs: int = 8
 
     def __post_init__(self) -> None:
