@@ -192,8 +192,8 @@ class AlignerConfig:
     refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
-    prior_band: int = 8
-    prior_hubs: int = 8
+    prior_band: int = 16
+    prior_hubs: int = 16
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
