@@ -252,3 +252,31 @@ def test_sparse_priors_survive_a_save_and_restore(tmp_path):
 def test_prior_band_must_be_minus_one_or_more():
     with pytest.raises(InputError, match='prior_band'):
         AlignerConfig(prior_band=-2)
+
+
+def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
+    """Format 3 stored each prior's information as one dense matrix (``prior_info``)."""
+    import ga_ros.core.persistence as persistence
+
+    sc, _, ms = _survey(n_tracks=5, per_swath=12)
+    al = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0, prior_band=-1), sc, ms)
+    assert al._priors and not any(sp.issparse(info) for _, _, info in al._priors)
+    new_state = persistence._state_of
+
+    def version_3(aligner):
+        meta, arrays = new_state(aligner)
+        for name in ('prior_nblocks', 'prior_brow', 'prior_bcol', 'prior_blocks'):
+            del arrays[name]
+        arrays['prior_info'] = np.concatenate([info.ravel() for _, _, info in aligner._priors])
+        return meta, arrays
+
+    monkeypatch.setattr(persistence, '_state_of', version_3)
+    monkeypatch.setattr(persistence, 'FORMAT_VERSION', 3)
+    save_state(al, tmp_path / 'v3.bin')
+    monkeypatch.undo()
+    saved = load_state(tmp_path / 'v3.bin')
+    assert saved.version == 3
+    for (i1, m1, h1), (i2, m2, h2) in zip(al._priors, saved.aligner._priors, strict=True):
+        assert np.array_equal(i1, i2)
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(h1, h2)
