@@ -20,6 +20,11 @@ window stop being unknowns and are *frozen*:
   of its terms, as fixed-lag smoothers do), which leaves a joint Gaussian prior on the window
   nodes it was connected to; its connections are absorbed into that prior.
 
+The exact joint prior is dense over the boundary nodes (a whole swath); it is stored sparse
+(``prior_band``, ``prior_hubs``; :func:`~ga_ros.core.refinement.band_prior`): the exact mean and
+the exact covariance on a skeleton (a band along the trajectory plus hub nodes), maximum entropy
+beyond it, so a freeze and every window factorisation cost linear in the swath length.
+
 The cost of an update depends on the window only, not on the number of tracks flown.
 
 A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.refinement`) re-solves the
@@ -165,7 +170,8 @@ class AlignerConfig:
     prior_band : half-bandwidth ``w`` (nodes, along the trajectory) of the joint priors'
         information (:func:`~ga_ros.core.refinement.band_prior`): the exact marginal
         covariance of the prior nodes on that band (every node's covariance and its
-        correlations with ``w`` nodes on either side), maximum entropy beyond it, so the
+        correlations with ``w`` nodes on either side) and with the hubs, maximum entropy
+        beyond it, so the
         information is block-banded and a freeze and each window factorisation cost linear in
         the swath length. -1: the exact dense Schur complement (a dense block of up to a whole
         swath in every factorisation).
