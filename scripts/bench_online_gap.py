@@ -25,13 +25,14 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
 
-def _policy_config(name: str, window: int, every: int, lag: int) -> AlignerConfig:
+def _policy_config(name: str, window: int, every: int, lag: int,
+                   prior: dict | None = None) -> AlignerConfig:
     base, _, refine = name.partition('+')
     extra = {'refine_every_tracks': 0}
     if refine:
         extra = {'refine_every_tracks': every, 'refine_lag_tracks': lag,
                  'refine_executor': refine}
-    return AlignerConfig(window_tracks=window, freeze_policy=base, **extra)
+    return AlignerConfig(window_tracks=window, freeze_policy=base, **extra, **(prior or {}))
 
 
 def main() -> None:
@@ -45,6 +46,9 @@ def main() -> None:
                     help="freeze policies; 'weighted+process' (+thread, +inline): with refinement")
     ap.add_argument('--every', type=int, default=1, help='refine_every_tracks')
     ap.add_argument('--lag', type=int, default=1, help='refine_lag_tracks')
+    ap.add_argument('--prior-band', type=int, default=None,
+                    help='AlignerConfig.prior_band (default: the aligner default; -1 dense)')
+    ap.add_argument('--prior-hubs', type=int, default=None, help='AlignerConfig.prior_hubs')
     ap.add_argument('--no-per-track', action='store_true',
                     help='compare with batch at the end only (no batch solve per track)')
     args = ap.parse_args()
@@ -77,16 +81,19 @@ def main() -> None:
         return 100 * (wr / br - 1), 100 * (wa / ba - 1), br, ba
 
     for name in args.policies:
-        al = TrackWindowAligner(_policy_config(name, args.window, args.every, args.lag),
+        prior = {k: v for k, v in (('prior_band', args.prior_band),
+                                   ('prior_hubs', args.prior_hubs)) if v is not None}
+        al = TrackWindowAligner(_policy_config(name, args.window, args.every, args.lag, prior),
                                 T_world_first=T_true[0])
-        start, ms, rows, own, wait = 0, [], [], [], []
+        start, ms, rows, own, wait, cpu = 0, [], [], [], [], []
         t_run = time.perf_counter()
         for k, stop in enumerate(bounds):
             for m in meas[start:stop]:
                 al.add_measurement(m)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             up = al.finish_track()
             ms.append(1e3 * (time.perf_counter() - t0))
+            cpu.append(1e3 * (time.process_time() - c0))
             own.append(up.update_ms - up.refine_wait_ms)
             wait.append(up.refine_wait_ms)
             start = stop
@@ -105,7 +112,9 @@ def main() -> None:
               f'p95 {np.percentile(ms, 95):.0f} max {max(ms):.0f} (update without the hand-off '
               f'p50 {np.percentile(own, 50):.0f} p95 {np.percentile(own, 95):.0f}; hand-off wait '
               f'+ install p50 {np.percentile(wait, 50):.0f} max {max(wait):.0f}); '
-              f'run {run_s:.1f} s')
+              f'CPU of this process p50 {np.percentile(cpu, 50):.0f} p95 '
+              f'{np.percentile(cpu, 95):.0f}; run {run_s:.1f} s; {al.config.prior_band=}, '
+              f'{al.config.prior_hubs=}')
         print(' track  gap_raw%  gap_aligned%  batch_raw_m  batch_aligned_m  to_batch_frozen_m'
               '  to_batch_window_m')
         for k, gr, ga, br, ba, df, dw in rows:

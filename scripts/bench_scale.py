@@ -179,7 +179,9 @@ def state_nbytes(al: TrackWindowAligner) -> int:
               al._frozen[:n], al._src.a, al._dst.a, al._z.a, al._ccov.packed, al._cross.a,
               al._status.a, al._fp.a, al._index._keys, al._index._vals]
     arrays += [al._track_conns[t] for t in al._tracks if t in al._track_conns]
-    arrays += [a for p in al._priors for a in p]
+    for idx, mean, info in al._priors:  # a block-banded information: its BSR arrays
+        arrays += [idx, mean] + ([info.data, info.indices, info.indptr]
+                                 if hasattr(info, 'indptr') else [info])
     total = sum(a.nbytes for a in arrays)
     total += sys.getsizeof(al._index._recent) + 64 * len(al._index._recent)
     total += sys.getsizeof(al._pairs) + 160 * len(al._pairs)  # 3-tuples of ints
@@ -202,7 +204,7 @@ def batch_only(args: argparse.Namespace) -> ScaleFigures:
     """``--batch-only``: the whole survey's state without window updates, poses at the
     simulator's truth (as if the online alignment had converged there), then ``refine_batch``."""
     sc, noisy, fig = scenario(args)
-    al = NoSolveAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
+    al = NoSolveAligner(aligner_config(args),
                          sc.T_world_node[0])
     t_start = time.perf_counter()
     chunk: list[Measurement] = []
@@ -278,11 +280,18 @@ def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | N
     return float(seconds), 'ok'
 
 
+def aligner_config(args: argparse.Namespace) -> AlignerConfig:
+    """The aligner's settings from the command line (the rest: AlignerConfig's defaults)."""
+    extra = {k: int(v) for k, v in (('refine_every_tracks', args.refine_every),
+                                    ('prior_band', args.prior_band),
+                                    ('prior_hubs', args.prior_hubs)) if v is not None}
+    return AlignerConfig(window_tracks=args.window, freeze_policy=args.policy, **extra)
+
+
 def run(args: argparse.Namespace) -> ScaleFigures:
     sc, noisy, fig = scenario(args)
     checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
-    al = TrackWindowAligner(AlignerConfig(window_tracks=args.window, freeze_policy=args.policy),
-                            sc.T_world_node[0])
+    al = TrackWindowAligner(aligner_config(args), sc.T_world_node[0])
     window_nodes: list[int] = []
     first_cp: Checkpoint | None = None
 
@@ -401,6 +410,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--window', type=int, default=5, help='window tracks K (default 5)')
     p.add_argument('--policy', default='weighted', choices=('weighted', 'marginal'))
     p.add_argument('--noise', type=float, default=5.0, help='noise level in percent')
+    p.add_argument('--refine-every', type=int, default=None,
+                   help='refine_every_tracks (default: the aligner default; 0 = off)')
+    p.add_argument('--prior-band', type=int, default=None,
+                   help='prior_band (default: the aligner default; -1 = dense priors)')
+    p.add_argument('--prior-hubs', type=int, default=None,
+                   help='prior_hubs (default: the aligner default)')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--checkpoints', default='25,100,500',
                    help='comma-separated track counts where figures are taken')

@@ -38,7 +38,8 @@ def _state(al):
     return dict(ids=p.node_ids, tracks=p.track_ids, stamps=p.stamps_ns, T=p.T_world_node,
                 frozen=p.frozen, src=src, dst=dst, z=z, cross=cross, status=status,
                 ccov=al.connection_covariances(), cov=al._cov[:len(al._ids)],
-                priors=[np.concatenate([a.ravel().astype(float) for a in p]) for p in al._priors],
+                priors=[np.concatenate([np.ravel(a.toarray() if hasattr(a, 'toarray') else a)
+                                        .astype(float) for a in p]) for p in al._priors],
                 counts=(st.n_nodes, st.n_connections, st.n_rejected, st.tracks_in_window,
                         st.n_updates, st.n_outliers, al.open_track))
 

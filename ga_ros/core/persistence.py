@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from ga_ros.core.storage import (
     IdIndex,
@@ -44,10 +45,12 @@ from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputErro
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
 
 MAGIC = b'GAROS-STATE\x00'
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: Versions :func:`load_state` reads: 2 stored the covariances as full 6x6 matrices, 3 (since
-#: the aligner keeps them compactly, ga_ros.core.storage) as their 21 upper-triangle values.
-READ_VERSIONS = (2, 3)
+#: the aligner keeps them compactly, ga_ros.core.storage) as their 21 upper-triangle values,
+#: 4 the joint priors' information as its non-zero 6x6 blocks (block-banded priors) instead of
+#: one dense matrix each.
+READ_VERSIONS = (2, 3, 4)
 _PREFIX = struct.Struct('<12sIQI')
 _ALIGN = 64
 _LEGACY_VERSION = 1  # the .npz snapshots written before this module
@@ -180,6 +183,7 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
     }
     sizes = np.array([idx.size for idx, _, _ in al._priors], dtype=np.int64)
     cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros((0,) + shape))  # noqa: E731
+    blocks = [_info_blocks(info) for _, _, info in al._priors]
     arrays = dict(
         T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a, stamp=al._stamparr.a,
         T=al._T[:n], cov21=al._cov.packed[:n], frozen=al._frozen[:n], src=al._src.a,
@@ -190,8 +194,37 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         prior_sizes=sizes,
         prior_idx=cat([idx for idx, _, _ in al._priors], ()).astype(np.int64),
         prior_mean=cat([mean for _, mean, _ in al._priors], (4, 4)),
-        prior_info=cat([info.ravel() for _, _, info in al._priors], ()))
+        prior_nblocks=np.array([b[0].size for b in blocks], dtype=np.int64),
+        prior_brow=cat([b[0] for b in blocks], ()).astype(np.int64),
+        prior_bcol=cat([b[1] for b in blocks], ()).astype(np.int64),
+        prior_blocks=cat([b[2] for b in blocks], (6, 6)))
     return meta, arrays
+
+
+def _info_blocks(info) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A prior's information as its non-zero 6x6 blocks: block rows, block columns and the
+    blocks ``(b, 6, 6)`` (a dense matrix: every block)."""
+    if sp.issparse(info):
+        bsr = sp.bsr_matrix(info, blocksize=(6, 6))
+        bsr.sort_indices()
+        rows = np.repeat(np.arange(bsr.shape[0] // 6), np.diff(bsr.indptr))
+        return rows, bsr.indices.astype(np.int64), np.asarray(bsr.data, dtype=float)
+    k = info.shape[0] // 6
+    rows, cols = np.divmod(np.arange(k * k), k)
+    return rows, cols, np.asarray(info, dtype=float).reshape(k, 6, k, 6).transpose(0, 2, 1, 3
+                                                                                ).reshape(-1, 6, 6)
+
+
+def _info_of_blocks(k: int, rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray):
+    """Inverse of :func:`_info_blocks`: every block present gives the dense matrix back, a
+    block-sparse information a BSR matrix."""
+    if rows.size == k * k:
+        dense = np.zeros((k, k, 6, 6))
+        dense[rows, cols] = blocks
+        return dense.transpose(0, 2, 1, 3).reshape(6 * k, 6 * k)
+    order = np.lexsort((cols, rows))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=k))])
+    return sp.bsr_matrix((np.array(blocks[order]), cols[order], indptr), shape=(6 * k, 6 * k))
 
 
 def _parse(buf: bytearray, path: Path) -> tuple[dict, dict[str, np.ndarray], int]:
@@ -292,13 +325,21 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
         al._fp = Rows.of(fp, np.uint32)
         al._prune_pairs()
     sizes = np.asarray(arrays['prior_sizes'], dtype=np.int64)
-    idx_cuts, info_cuts = np.cumsum(sizes)[:-1], np.cumsum((6 * sizes) ** 2)[:-1]
+    idx_cuts = np.cumsum(sizes)[:-1]
+    if 'prior_blocks' in arrays:  # version 4: non-zero 6x6 blocks of each information
+        cuts = np.cumsum(np.asarray(arrays['prior_nblocks'], dtype=np.int64))[:-1]
+        infos = [_info_of_blocks(k, np.asarray(r, dtype=np.int64), np.asarray(c, dtype=np.int64),
+                                 np.asarray(b, dtype=float))
+                 for k, r, c, b in zip(sizes.tolist(), np.split(arrays['prior_brow'], cuts),
+                                       np.split(arrays['prior_bcol'], cuts),
+                                       np.split(arrays['prior_blocks'], cuts))]
+    else:  # versions 1-3: one dense information per prior
+        infos = [np.array(info).reshape(6 * k, 6 * k) for k, info in zip(
+            sizes.tolist(), np.split(arrays['prior_info'], np.cumsum((6 * sizes) ** 2)[:-1]))]
     al._priors = [
-        (np.array(idx, dtype=np.int64), np.array(mean), np.array(info).reshape(6 * k, 6 * k))
-        for k, idx, mean, info in zip(sizes.tolist(),
-                                      np.split(arrays['prior_idx'], idx_cuts),
-                                      np.split(arrays['prior_mean'], idx_cuts),
-                                      np.split(arrays['prior_info'], info_cuts))] \
+        (np.array(idx, dtype=np.int64), np.array(mean), info)
+        for idx, mean, info in zip(np.split(arrays['prior_idx'], idx_cuts),
+                                   np.split(arrays['prior_mean'], idx_cuts), infos)] \
         if sizes.size else []
     al._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     al._n_updates = int(meta['n_updates'])

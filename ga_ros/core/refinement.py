@@ -33,11 +33,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, normal_matrix_at, solve
+from ga_ros.core.sparse import CovarianceSkeleton
 from ga_ros.core.storage import unpack_sym6
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
@@ -68,6 +70,9 @@ class RefinementSnapshot:
     solver : settings of the batch solve.
     leaving : tracks that will have frozen by the hand-off (they leave the window before the
         update that installs the result); the priors are rebuilt for that state.
+    prior_band, prior_hubs : half-bandwidth (nodes) and hub nodes of the rebuilt priors'
+        sparse information (:func:`band_prior`); ``prior_band = -1``: dense (the exact Schur
+        complement).
     """
 
     after_tracks: int
@@ -84,6 +89,8 @@ class RefinementSnapshot:
     freeze_policy: str
     solver: SolverConfig
     leaving: tuple[int, ...] = ()
+    prior_band: int = -1
+    prior_hubs: int = 0
 
 
 @dataclass(frozen=True)
@@ -109,12 +116,13 @@ class AbsorbedPrior:
     ----------
     nodes : (k,) node indices the prior is over.
     T_world_node : (k, 4, 4) prior mean (right perturbation ``T_mean exp(e)``).
-    information : (6k, 6k) information, node-major, ``[x y z rx ry rz]`` per node.
+    information : (6k, 6k) information, node-major, ``[x y z rx ry rz]`` per node: dense, or
+        block-banded (``scipy.sparse`` BSR, 6x6 blocks) for a :func:`band_prior`.
     """
 
     nodes: IntArray
     T_world_node: FloatArray
-    information: FloatArray
+    information: FloatArray | sp.spmatrix
 
 
 @dataclass(frozen=True)
@@ -315,7 +323,8 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     if not cols:
         return (), tuple(steps)
     S = np.array(list(cols), dtype=np.int64)
-    priors = tuple(_prior_of(H, g, cols, group, T_lin) for group in _groups(H, S, cols))
+    priors = tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band,
+                             snap.prior_hubs) for group in _groups(H, S, cols))
     return priors, tuple(steps)
 
 
@@ -372,10 +381,56 @@ def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
 
 
 def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArray,
-              T_lin: FloatArray) -> AbsorbedPrior:
+              T_lin: FloatArray, band: int = -1, hubs: int = 0) -> AbsorbedPrior:
+    """The prior of one group of prior nodes (in index order) from the dense marginal
+    ``(H, g)``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
     at = (6 * np.array([cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
-    mean, info = tangent_prior(T_lin[group], H[np.ix_(at, at)], g[at])
+    Hg, gg = H[np.ix_(at, at)], g[at]
+    if sparse_prior_applies(group.size, band, hubs):
+        cho = sla.cho_factor(Hg)
+        Sigma = sla.cho_solve(cho, np.eye(Hg.shape[0]))
+        mean, info = band_prior(T_lin[group], CovarianceSkeleton.of_dense(Sigma, 6, band, hubs),
+                                sla.cho_solve(cho, gg))
+    else:
+        mean, info = tangent_prior(T_lin[group], Hg, gg)
     return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info)
+
+
+def sparse_prior_applies(m: int, band: int, hubs: int) -> bool:
+    """Whether a prior over ``m`` nodes is built sparse (:func:`band_prior`): ``band >= 0``
+    and more nodes than the skeleton keeps densely anyway (else the exact dense prior)."""
+    return 0 <= band and m > band + 1 + max(hubs, 0)
+
+
+def band_prior(T_lin: FloatArray, skeleton: CovarianceSkeleton, step: FloatArray
+               ) -> tuple[FloatArray, sp.bsr_matrix]:
+    """The sparse joint prior of absorbed terms over nodes ordered along the trajectory.
+
+    The exact marginal of the absorbed terms on the prior nodes ``S`` (Schur complement) has a
+    dense information that couples the whole swath. This prior keeps its mean (the absorbed
+    terms' own optimum on ``S``, ``T_lin`` moved by the step ``H^-1 g``) and replaces its
+    covariance ``Sigma_S`` by the maximum-entropy Gaussian that agrees with it on a skeleton
+    (:class:`~ga_ros.core.sparse.CovarianceSkeleton`): a band of ``w`` nodes along the
+    trajectory plus a few hub nodes spread along it. Every node's marginal covariance, its
+    correlations with the ``w`` nodes before and after it and with every hub are exact; the
+    hubs keep the long-range correlations (a band alone made the boundary's common drift look
+    several times better known than it is: overconfident window covariances). The information
+    is block-banded plus ``h`` dense block rows (sparse window factorisations, linear in the
+    swath length). The aligner's freeze and the background refinement both build their priors
+    here.
+
+    Parameters
+    ----------
+    T_lin : (m, 4, 4) linearisation point of the prior nodes, in band order.
+    skeleton : the kept entries of ``Sigma_S`` (blocks ``[x y z rx ry rz]``).
+    step : (6m,) ``H^-1 g``, the absorbed terms' optimum on ``S`` as a tangent step from
+        ``T_lin`` (``-step``).
+
+    Returns
+    -------
+    T_mean : (m, 4, 4); information : (6m, 6m) sparse BSR (see :func:`tangent_prior`).
+    """
+    return tangent_prior(T_lin, skeleton.information(), None, step=step)
 
 
 def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
@@ -396,17 +451,22 @@ def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
     Parameters
     ----------
     T_lin : (k, 4, 4) linearisation point ``T_world_node``.
-    H : (6k, 6k) information, node-major ``[x y z rx ry rz]``; g : (6k,) half gradient.
+    H : (6k, 6k) information, node-major ``[x y z rx ry rz]``, dense or ``scipy.sparse`` (its
+        block pattern is kept); g : (6k,) half gradient.
     step : (6k,) ``H^-1 g`` where the caller already has it (from a factorisation of its own);
         ``g`` is then not used.
 
     Returns
     -------
-    T_mean : (k, 4, 4); information : (6k, 6k).
+    T_mean : (k, 4, 4); information : (6k, 6k), sparse (BSR) if ``H`` is.
     """
     k = T_lin.shape[0]
     if step is not None:
         e0 = np.asarray(step, dtype=float)
+    elif sp.issparse(H):
+        from scipy.sparse.linalg import spsolve  # lazy: rarely needed
+
+        e0 = spsolve(sp.csc_matrix(H), g)
     else:
         try:  # least squares only if the absorbed terms leave a direction free
             e0 = sla.cho_solve(sla.cho_factor(H), g)
@@ -417,6 +477,13 @@ def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
     for _ in range(iterations):
         e = (se3.right_jacobian_inv(e) @ e0[:, :, None])[:, :, 0]
     Jinv = np.linalg.inv(se3.right_jacobian_inv(e))       # (k, 6, 6) blocks of J^-1
+    if sp.issparse(H):  # block (a, b) becomes J_a^-T H_ab J_b^-1, on the same pattern
+        Hb = sp.bsr_matrix(H, blocksize=(6, 6))
+        Hb.sort_indices()
+        rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
+        data = np.swapaxes(Jinv[rows], 1, 2) @ Hb.data @ Jinv[Hb.indices]
+        return T_lin @ se3.exp(-e), sp.bsr_matrix((data, Hb.indices.copy(), Hb.indptr.copy()),
+                                                  shape=Hb.shape)
     info = H.reshape(k, 6, k, 6)
     info = np.einsum('aij,aibk,bkl->ajbl', Jinv, info, Jinv).reshape(6 * k, 6 * k)
     return T_lin @ se3.exp(-e), 0.5 * (info + info.T)

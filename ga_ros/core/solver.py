@@ -575,14 +575,22 @@ def _information_rank(blocks: FloatArray, rows: IntArray, cols: IntArray, H) -> 
     """Rank of a prior's information matrix: the number of independent equations it adds to
     the redundancy (a zero-weight prior adds none).
 
-    Block-diagonal information (per-node priors): the ranks of its blocks. Otherwise a dense
-    Cholesky decides full rank, and only a singular matrix pays for an eigen-decomposition.
+    Block-diagonal information (per-node priors): the ranks of its blocks. Otherwise a
+    Cholesky decides full rank (sparse for a sparse, e.g. block-banded, information), and only
+    a singular matrix pays for an eigen-decomposition.
     """
     if blocks.size == 0 or not np.any(blocks):
         return 0
     if np.array_equal(rows, cols):
         return int(np.linalg.matrix_rank(0.5 * (blocks + np.swapaxes(blocks, 1, 2)),
                                          hermitian=True).sum())
+    if sp.issparse(H):  # a sparse Cholesky on the block pattern
+        try:
+            pattern = BlockPattern(rows, cols, blocks.shape[1], H.shape[0] // blocks.shape[1])
+            SparseCholesky(pattern, pattern.assemble(blocks))
+            return int(H.shape[0])
+        except DegenerateGeometryError:  # singular: the eigen-decomposition below
+            pass
     Hd = H.toarray() if sp.issparse(H) else np.asarray(H, dtype=float)
     Hd = 0.5 * (Hd + Hd.T)
     try:

@@ -419,3 +419,448 @@ def _expand_cols(indptr: IntArray) -> IntArray:
 def block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
     """Sparse block-diagonal matrix from ``(k, d, d)`` blocks."""
     return sp.block_diag(list(blocks), format='csr') if len(blocks) else sp.csr_matrix((0, 0))
+
+
+# ------------------------------------------------------------- sparse (banded) joint priors
+@dataclass(frozen=True)
+class BandSelection:
+    """Band of the joint covariance of chosen nodes, from :func:`banded_selection`.
+
+    Attributes
+    ----------
+    band : (m, w + 1, d, d) blocks ``band[i, j] = Sigma_{t_i, t_{i+j}}`` of ``Sigma = N^-1``
+        for the targets ``t`` in the given order (zero where ``i + j >= m``).
+    solution : ``N^-1 rhs`` when a right-hand side was given.
+    block_nodes : node blocks per diagonal block of the block-tridiagonal factorisation (its
+        cost is ``O(u b^2 d^3)`` for ``u`` nodes, ``b`` this number).
+    """
+
+    band: FloatArray
+    solution: FloatArray | None
+    block_nodes: int
+
+
+def banded_selection(N: sp.spmatrix, d: int, targets: IntArray, w: int,
+                     coords: FloatArray | None = None,
+                     rhs: FloatArray | None = None) -> BandSelection:
+    """Blocks ``Sigma_{t_i, t_j}``, ``|i - j| <= w``, of ``Sigma = N^-1`` (selected inversion).
+
+    The nodes are ordered along a narrow band (reverse Cuthill-McKee of the block graph, or
+    their positions along the principal axis of ``coords``: the narrower of the two), cut into
+    diagonal blocks of ``b`` nodes with ``b`` larger than both the half-bandwidth of ``N`` and
+    the distance between any two targets whose pair is wanted, so ``N`` is block tridiagonal
+    and every wanted pair lies in one diagonal or sub-diagonal block. The block Cholesky factor
+    (diagonal ``D_k``, sub-diagonal ``L_k``) and Takahashi's backward recursion give those
+    blocks of ``Sigma`` without any other part of it::
+
+        Sigma_{k+1,k} = -Sigma_{k+1,k+1} L_k D_k^-1,
+        Sigma_{k,k} = D_k^-T (D_k^-1 - L_k' Sigma_{k+1,k})
+
+    Linear in the number of nodes for a strip (``O(u b^2 d^3)``), never a dense inverse.
+    Nodes of high degree (the hubs of an earlier sparse prior, coupled to a whole swath) would
+    widen the band to everything; they are ordered last as a border ``P`` instead: with
+    ``Z = N_QQ^-1 N_QP`` (solves with the banded factor) and ``S = N_PP - N_PQ Z``,
+    ``Sigma_QQ = N_QQ^-1 + Z S^-1 Z'``, ``Sigma_QP = -Z S^-1``, ``Sigma_PP = S^-1``.
+
+    Parameters
+    ----------
+    N : (d u, d u) sparse symmetric positive definite matrix of ``u`` node blocks.
+    d : block size.
+    targets : (m,) node blocks whose band is wanted, in band order.
+    w : half-bandwidth of the band in targets (>= 0).
+    coords : optional (u, 3) node positions (their principal axis is tried as an ordering).
+    rhs : optional (d u,) or (d u, k) right-hand side, solved with the same factor.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        ``N`` is not positive definite.
+    """
+    N = sp.csr_matrix(N)
+    u = N.shape[0] // d
+    t = np.asarray(targets, dtype=np.int64)
+    m = t.size
+    pair_i = np.repeat(np.arange(m), w + 1)
+    pair_j = pair_i + np.tile(np.arange(w + 1), m)
+    ok = pair_j < m
+    pair_i, pair_j = pair_i[ok], pair_j[ok]
+    pa, pc = t[pair_i], t[pair_j]
+    coo = N.tocoo()
+    G = sp.csr_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(u, u))
+    degree = np.diff(G.indptr)
+    border = degree > max(16.0, 4.0 * float(np.median(degree))) if u > 2 else \
+        np.zeros(u, dtype=bool)
+    if not 0 < border.sum() < u // 2:
+        blocks, x, bn = _banded_pairs(N, d, pa, pc, coords, rhs)
+    else:
+        blocks, x, bn = _bordered_pairs(N, d, border, pa, pc, coords, rhs)
+    band = np.zeros((m, w + 1, d, d))
+    band[pair_i, pair_j - pair_i] = blocks
+    return BandSelection(band, x, bn)
+
+
+def _bordered_pairs(N: sp.csr_matrix, d: int, border: np.ndarray, pa: IntArray, pc: IntArray,
+                    coords: FloatArray | None, rhs: FloatArray | None
+                    ) -> tuple[FloatArray, FloatArray | None, int]:
+    """:func:`_banded_pairs` with the ``border`` nodes eliminated last (see
+    :func:`banded_selection`)."""
+    u = N.shape[0] // d
+    q_nodes, p_nodes = np.nonzero(~border)[0], np.nonzero(border)[0]
+    qs = (q_nodes[:, None] * d + np.arange(d)).ravel()
+    ps = (p_nodes[:, None] * d + np.arange(d)).ravel()
+    local = np.full(u, -1, dtype=np.int64)
+    local[q_nodes] = np.arange(q_nodes.size)
+    local[p_nodes] = np.arange(p_nodes.size)
+    NQP = N[qs][:, ps].toarray()
+    r = None if rhs is None else np.reshape(np.asarray(rhs, dtype=float), (N.shape[0], -1))
+    b = NQP if r is None else np.column_stack([NQP, r[qs]])
+    both_q = ~border[pa] & ~border[pc]
+    blk_q, y, bn = _banded_pairs(N[qs][:, qs], d, local[pa[both_q]], local[pc[both_q]],
+                                 None if coords is None else np.asarray(coords)[q_nodes], b)
+    p = ps.size
+    Z = y[:, :p]
+    S = N[ps][:, ps].toarray() - NQP.T @ Z
+    try:
+        Sinv = sla.cho_solve(sla.cho_factor(0.5 * (S + S.T)), np.eye(p))
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError('the matrix is not positive definite') from exc
+    ZS = Z @ Sinv
+    nq, npn = q_nodes.size, p_nodes.size
+    ZS4 = ZS.reshape(nq, d, npn, d)
+    blocks = np.zeros((pa.size, d, d))
+    la, lc = local[pa], local[pc]
+    # Sigma_QQ = N_QQ^-1 + Z S^-1 Z', Sigma_QP = -Z S^-1, Sigma_PP = S^-1
+    ZSq = ZS.reshape(nq, d, p)
+    Zq = Z.reshape(nq, d, p)
+    blocks[both_q] = blk_q + ZSq[la[both_q]] @ np.swapaxes(Zq[lc[both_q]], 1, 2)
+    qp = ~border[pa] & border[pc]
+    blocks[qp] = -ZS4[la[qp], :, lc[qp], :]
+    pq = border[pa] & ~border[pc]
+    blocks[pq] = -np.swapaxes(ZS4[lc[pq], :, la[pq], :], 1, 2)
+    pp = border[pa] & border[pc]
+    blocks[pp] = Sinv.reshape(npn, d, npn, d)[la[pp], :, lc[pp], :]
+    x = None
+    if r is not None:
+        yQ = y[:, p:]
+        xP = Sinv @ (r[ps] - NQP.T @ yQ)
+        xfull = np.empty_like(r)
+        xfull[qs] = yQ - Z @ xP
+        xfull[ps] = xP
+        x = xfull.reshape(np.shape(rhs))
+    return blocks, x, bn
+
+
+def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
+                  coords: FloatArray | None, rhs: FloatArray | None
+                  ) -> tuple[FloatArray, FloatArray | None, int]:
+    """Blocks ``Sigma_{pa_k, pc_k}`` of ``N^-1`` and ``N^-1 rhs`` by the block-tridiagonal
+    selected inversion of :func:`banded_selection` (no border), and the block size (nodes)."""
+    N = sp.coo_matrix(N)
+    u = N.shape[0] // d
+    rn, cn = N.row // d, N.col // d
+    G = sp.csr_matrix((np.ones(rn.size), (rn, cn)), shape=(u, u))
+    best = None
+    for order in _band_orderings(G, coords):
+        pos = np.empty(u, dtype=np.int64)
+        pos[order] = np.arange(u)
+        reach = max(int(np.abs(pos[rn] - pos[cn]).max(initial=0)),
+                    int(np.abs(pos[pa] - pos[pc]).max(initial=0)))
+        if best is None or reach < best[0]:
+            best = (reach, order, pos)
+    reach, order, pos = best
+    bn = min(reach + 1, max(u, 1))
+    b = bn * d
+    nb = -(-u // bn)
+    # scalar position of each entry of N; diagonal and sub-diagonal blocks, identity padding
+    pr = pos[rn] * d + N.row % d
+    pcs = pos[cn] * d + N.col % d
+    kr, kc = pr // b, pcs // b
+    same, low = kr == kc, kr == kc + 1
+    A = np.bincount((kr[same] * b + pr[same] % b) * b + pcs[same] % b, weights=N.data[same],
+                    minlength=nb * b * b).reshape(nb, b, b)
+    Lsub = np.bincount((kc[low] * b + pr[low] % b) * b + pcs[low] % b, weights=N.data[low],
+                       minlength=max(nb - 1, 0) * b * b).reshape(max(nb - 1, 0), b, b)
+    pad = np.arange(u * d, nb * b)
+    A[pad // b, pad % b, pad % b] = 1.0
+    Dinv = np.empty_like(A)
+    for k in range(nb):
+        if k:
+            A[k] -= Lsub[k - 1] @ Lsub[k - 1].T
+        try:
+            D = np.linalg.cholesky(A[k])
+        except np.linalg.LinAlgError as exc:
+            raise DegenerateGeometryError('the matrix is not positive definite (the absorbed '
+                                          'terms leave a direction undetermined)') from exc
+        Dinv[k] = sla.solve_triangular(D, np.eye(b), lower=True)
+        if k < nb - 1:
+            Lsub[k] = Lsub[k] @ Dinv[k].T
+    x = None
+    if rhs is not None:
+        r = np.asarray(rhs, dtype=float)
+        perm = (order[:, None] * d + np.arange(d)).ravel()
+        y = np.zeros((nb * b,) + r.shape[1:])
+        y[:u * d] = r[perm]
+        y = y.reshape((nb, b) + r.shape[1:])
+        for k in range(nb):
+            if k:
+                y[k] -= Lsub[k - 1] @ y[k - 1]
+            y[k] = Dinv[k] @ y[k]
+        for k in range(nb - 1, -1, -1):
+            if k < nb - 1:
+                y[k] -= Lsub[k].T @ y[k + 1]
+            y[k] = Dinv[k].T @ y[k]
+        x = np.empty_like(r)
+        x[perm] = y.reshape((nb * b,) + r.shape[1:])[:u * d]
+    Sdiag = np.empty_like(A)
+    Ssub = np.empty_like(Lsub)
+    for k in range(nb - 1, -1, -1):
+        if k == nb - 1:
+            Sdiag[k] = Dinv[k].T @ Dinv[k]
+        else:
+            Ssub[k] = -Sdiag[k + 1] @ Lsub[k] @ Dinv[k]
+            Sdiag[k] = Dinv[k].T @ (Dinv[k] - Lsub[k].T @ Ssub[k])
+    blk = np.zeros((pa.size, d, d))
+    if pa.size:
+        # Sigma_{a c}: in one diagonal block, or c's block just after a's (or before)
+        a_s = pos[pa][:, None, None] * d + np.arange(d)[None, :, None]
+        c_s = pos[pc][:, None, None] * d + np.arange(d)[None, None, :]
+        ka, kc2 = a_s // b, c_s // b
+        blk = np.where(ka == kc2, Sdiag[ka, a_s % b, c_s % b], 0.0)
+        after = kc2 == ka + 1
+        if after.any():
+            blk = np.where(after, Ssub[np.minimum(ka, nb - 2), c_s % b, a_s % b], blk)
+        before = ka == kc2 + 1
+        if before.any():
+            blk = np.where(before, Ssub[np.minimum(kc2, nb - 2), a_s % b, c_s % b], blk)
+    return blk, x, bn
+
+
+def _band_orderings(G: sp.csr_matrix, coords: FloatArray | None) -> list[IntArray]:
+    """Candidate narrow-band node orderings: reverse Cuthill-McKee, principal axis."""
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    u = G.shape[0]
+    out = [np.asarray(reverse_cuthill_mckee(G, symmetric_mode=True), dtype=np.int64)]
+    if coords is not None and len(coords) == u and u > 2:
+        xyz = np.asarray(coords, dtype=float) - np.mean(coords, axis=0)
+        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
+        out.append(np.argsort(xyz @ axis, kind='stable').astype(np.int64))
+    return out
+
+
+def skeleton_layout(m: int, w: int, n_hubs: int) -> tuple[IntArray, IntArray]:
+    """Positions (``0..m-1``, band order) of the ``h`` hub nodes of a
+    :class:`CovarianceSkeleton` (evenly spread, ends included) and of the other nodes."""
+    h = min(max(int(n_hubs), 0), m)
+    hubs = np.unique(np.rint(np.linspace(0, m - 1, h)).astype(np.int64)) if h else \
+        np.zeros(0, dtype=np.int64)
+    rest = np.setdiff1d(np.arange(m, dtype=np.int64), hubs)
+    return rest, hubs
+
+
+@dataclass(frozen=True)
+class CovarianceSkeleton:
+    """The entries of a covariance ``Sigma`` over ``m`` nodes that its sparse completion keeps.
+
+    The nodes are split (:func:`skeleton_layout`) into ``h`` hub nodes spread along the band
+    order and the others; kept are the band of half-bandwidth ``w`` among the others, every
+    covariance between a hub and any node, and the hubs' joint covariance. That pattern is
+    chordal (a band plus a clique of hubs joined to everything), so its maximum-entropy
+    completion has a closed form (:meth:`information`). The hubs carry the long-range
+    (low-frequency) correlations that a band alone would lose: a band keeps each node's
+    marginal but makes the mean of many nodes look better known than it is.
+
+    Attributes
+    ----------
+    rest, hubs : positions (band order) of the other nodes and of the hubs.
+    band : (m - h, w + 1, d, d) ``band[i, j] = Sigma_{r_i, r_{i+j}}`` over the others.
+    cross : (h, m - h, d, d) ``Sigma_{hub a, r_i}``.
+    hub_cov : (h d, h d) the hubs' joint covariance.
+    """
+
+    rest: IntArray
+    hubs: IntArray
+    band: FloatArray
+    cross: FloatArray
+    hub_cov: FloatArray
+
+    @staticmethod
+    def of_dense(Sigma: FloatArray, d: int, w: int, n_hubs: int) -> CovarianceSkeleton:
+        """The skeleton of a dense ``(d m, d m)`` covariance."""
+        m = Sigma.shape[0] // d
+        rest, hubs = skeleton_layout(m, w, n_hubs)
+        S4 = Sigma.reshape(m, d, m, d)
+        rs = (rest[:, None] * d + np.arange(d)).ravel()
+        band = dense_band(Sigma[np.ix_(rs, rs)], d, w)
+        cross = S4[hubs[:, None], :, rest[None, :], :]  # (h, r, d, d)
+        hs = (hubs[:, None] * d + np.arange(d)).ravel()
+        return CovarianceSkeleton(rest, hubs, band, cross, Sigma[np.ix_(hs, hs)])
+
+    def information(self) -> sp.bsr_matrix:
+        """Information ``K`` of the maximum-entropy Gaussian with this skeleton (Dempster's
+        covariance selection), in the original node order (``d x d`` blocks, both triangles).
+
+        For the chordal pattern with cliques ``C_k = hubs + {r_k, ..., r_{k+w}}`` and
+        separators ``C_k`` minus ``r_k``::
+
+            K = sum_k pad(Sigma_{C_k C_k}^-1) - sum_k pad(Sigma_{sep_k sep_k}^-1)
+
+        ``K`` is zero outside the pattern, positive definite when every clique's covariance is,
+        and ``K^-1`` equals ``Sigma`` on the pattern (every node's marginal among it); with
+        ``w >= m - h - 1`` it is the exact ``Sigma^-1``.
+
+        Raises
+        ------
+        DegenerateGeometryError
+            A clique's covariance is not positive definite.
+        """
+        return _completion(self.band, self.cross, self.hub_cov, self.rest, self.hubs)
+
+
+def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
+                    coords: FloatArray | None = None, rhs: FloatArray | None = None
+                    ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
+    (in band order) from a sparse ``N``, and ``N^-1 rhs``: the band by
+    :func:`banded_selection`, the hubs' columns by solves with the same factor
+    (``h d`` right-hand sides). Linear in the number of nodes for a strip.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        ``N`` is not positive definite.
+    """
+    t = np.asarray(targets, dtype=np.int64)
+    rest, hubs = skeleton_layout(t.size, w, n_hubs)
+    n = N.shape[0]
+    E = np.zeros((n, hubs.size * d))
+    for a, node in enumerate(t[hubs].tolist()):
+        E[node * d:(node + 1) * d, a * d:(a + 1) * d] = np.eye(d)
+    b = E if rhs is None else np.column_stack([np.reshape(rhs, (n, -1)), E])
+    sel = banded_selection(N, d, t[rest], w, coords=coords, rhs=b)
+    X = sel.solution[:, b.shape[1] - E.shape[1]:]  # Sigma_{., hubs}
+    h = hubs.size
+    u = n // d
+    cross = X.reshape(u, d, h, d)[t[rest]].transpose(2, 0, 3, 1)  # (h, r, d, d): Sigma_{a, r}
+    hub_cov = X.reshape(u, d, h * d)[t[hubs]].reshape(h * d, h * d)
+    x = None
+    if rhs is not None:
+        x = sel.solution[:, :b.shape[1] - E.shape[1]].reshape(np.shape(rhs))
+    return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
+
+
+def band_information(band: FloatArray) -> sp.bsr_matrix:
+    """:meth:`CovarianceSkeleton.information` of a band alone (no hubs): ``band`` (m, w + 1,
+    d, d), ``band[i, j] = Sigma_{i, i+j}``."""
+    m, _, d, _ = band.shape
+    return _completion(band, np.zeros((0, m, d, d)), np.zeros((0, 0)),
+                       np.arange(m, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: IntArray,
+                hubs: IntArray) -> sp.bsr_matrix:
+    """Maximum-entropy completion with hubs, as the hubs' Gaussian and the others given them:
+    with ``A = Sigma_HH``, ``X = Sigma_RH``, ``B = X A^-1`` and ``C`` the conditional covariance
+    ``Sigma_RR - B X'`` (needed on the band only), ``K_RR`` is the band completion of ``C``,
+    ``K_RH = -K_RR B`` and ``K_HH = A^-1 + B' K_RR B`` (equal to the clique formula of
+    :meth:`CovarianceSkeleton.information`; tested against it)."""
+    r, w1, d, _ = band.shape
+    h = hubs.size
+    if h:
+        X = cross.transpose(1, 3, 0, 2).reshape(r * d, h * d)  # Sigma_{rest, hubs}
+        Ainv = _spd_inverse(hub_cov[None])[0]
+        B = X @ Ainv
+        i = np.repeat(np.arange(r), w1)
+        j = i + np.tile(np.arange(w1), r)
+        ok = j < r
+        B3, X3 = B.reshape(r, d, h * d), X.reshape(r, d, h * d)
+        cond = band.copy()
+        cond[i[ok], (j - i)[ok]] -= B3[i[ok]] @ np.swapaxes(X3[j[ok]], 1, 2)
+    else:
+        cond = band
+    Kband = _band_completion(cond) if r else np.zeros((0, w1, d, d))
+    w = Kband.shape[1] - 1
+    i = np.repeat(np.arange(r), w + 1)
+    j = i + np.tile(np.arange(w + 1), r)
+    keep = j < r
+    i, j = i[keep], j[keep]
+    bblk = Kband.reshape(r * (w + 1), d, d)[keep]
+    off = i != j
+    rows = [rest[i], rest[j[off]]]
+    cols = [rest[j], rest[i[off]]]
+    data = [bblk, np.swapaxes(bblk[off], 1, 2)]
+    if h:
+        Krr = _bsr(np.concatenate([i, j[off]]), np.concatenate([j, i[off]]),
+                   np.concatenate(data), r, d)
+        Krh = -(Krr @ B)  # (r d, h d)
+        Khh = Ainv - B.T @ Krh
+        Khh = 0.5 * (Khh + Khh.T)
+        rh = Krh.reshape(r, d, h, d).transpose(0, 2, 1, 3)  # (r, h, d, d): block (rest, hub)
+        ri, ha = np.repeat(np.arange(r), h), np.tile(np.arange(h), r)
+        rows += [rest[ri], hubs[ha], np.repeat(hubs, h)]
+        cols += [hubs[ha], rest[ri], np.tile(hubs, h)]
+        rhb = rh.reshape(r * h, d, d)
+        data += [rhb, np.swapaxes(rhb, 1, 2),
+                 Khh.reshape(h, d, h, d).transpose(0, 2, 1, 3).reshape(h * h, d, d)]
+    return _bsr(np.concatenate(rows), np.concatenate(cols), np.concatenate(data), r + h, d)
+
+
+def _bsr(rows: IntArray, cols: IntArray, blocks: FloatArray, m: int, d: int) -> sp.bsr_matrix:
+    """``(m d, m d)`` BSR matrix of ``d x d`` blocks at block coordinates (each given once)."""
+    order = np.lexsort((cols, rows))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=m))])
+    return sp.bsr_matrix((blocks[order], cols[order], indptr), shape=(m * d, m * d))
+
+
+def _spd_inverse(S: FloatArray) -> FloatArray:
+    """Inverses of a stack of SPD matrices (Cholesky)."""
+    try:
+        Li = np.linalg.inv(np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2))))
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
+                                      'definite') from exc
+    return np.swapaxes(Li, 1, 2) @ Li
+
+
+def _band_completion(band: FloatArray) -> FloatArray:
+    """``K`` on the band (``(r, w + 1, d, d)``, ``K[i, j] = K_{i, i+j}``) of the maximum-entropy
+    completion of a covariance band: cliques ``C_k = {k..k+w}``, separators ``{k+1..k+w}``."""
+    r, w1, d, _ = band.shape
+    w = min(w1 - 1, r - 1)
+    pos_a, pos_b = np.meshgrid(np.arange(w + 1), np.arange(w + 1), indexing='ij')
+
+    def clique_cov(first: IntArray, size: int) -> FloatArray:
+        a, b = pos_a[:size, :size], pos_b[:size, :size]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        blk = band[first[:, None, None] + lo[None], (hi - lo)[None]]  # (q, size, size, d, d)
+        blk = np.where((a > b)[None, :, :, None, None], np.swapaxes(blk, -1, -2), blk)
+        return blk.transpose(0, 1, 3, 2, 4).reshape(first.size, size * d, size * d)
+
+    Kband = np.zeros((r, w + 1, d, d))
+
+    def scatter(first: IntArray, Kq: FloatArray, size: int, sign: float) -> None:
+        Kq = Kq.reshape(first.size, size, d, size, d).transpose(0, 1, 3, 2, 4)
+        up = pos_a[:size, :size] <= pos_b[:size, :size]
+        aa, bb = pos_a[:size, :size][up], pos_b[:size, :size][up]
+        rows = (first[:, None] + aa[None]).ravel()
+        offs = np.broadcast_to(bb - aa, (first.size, aa.size)).ravel()
+        np.add.at(Kband, (rows, offs), sign * Kq[:, aa, bb].reshape(-1, d, d))
+
+    starts = np.arange(r - w)
+    scatter(starts, _spd_inverse(clique_cov(starts, w + 1)), w + 1, 1.0)
+    if w > 0 and starts.size > 1:
+        scatter(starts[1:], _spd_inverse(clique_cov(starts[1:], w)), w, -1.0)
+    return Kband
+
+
+def dense_band(Sigma: FloatArray, d: int, w: int) -> FloatArray:
+    """The band ``(m, w + 1, d, d)``, ``band[i, j] = Sigma_{i, i+j}``, of a dense
+    ``(d m, d m)`` covariance (zero where ``i + j >= m``), as :class:`BandSelection` holds it."""
+    m = Sigma.shape[0] // d
+    S4 = Sigma.reshape(m, d, m, d)
+    i = np.repeat(np.arange(m), w + 1)
+    j = i + np.tile(np.arange(w + 1), m)
+    ok = j < m
+    band = np.zeros((m, w + 1, d, d))
+    band[i[ok], (j - i)[ok]] = S4[i[ok], :, j[ok], :]
+    return band
