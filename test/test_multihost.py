@@ -125,7 +125,7 @@ def test_mapping_node_on_one_host(tmp_path: Path) -> None:
     node = harness.start_node_process(domain, {'autosave': False},
                                       log_path=tmp_path / 'node.log')
     mapper = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.mapping_node', '--out',
-                               str(tmp_path / 'out'), '--finish-after-idle', '1.5',
+                               str(tmp_path / 'out'), '--finish-after-idle', '5',
                                '--timeout', '60'], env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     try:

@@ -51,6 +51,10 @@ REPO = Path(__file__).resolve().parents[2]
 STEREO_BAG = REPO / 'bags' / 'stereo_sample'
 SUBNET = '10.214.14'  # hosts .1 .2 .3 /24: exists only inside the namespaces
 HOSTS = ('h1', 'h2', 'h3')
+# the mapping node ends the survey after this many seconds without a message: long enough for
+# a loaded 2-core machine (the last update, with the background refinement's hand-off, or a
+# stalled replay can stay silent for several seconds)
+IDLE_FINISH_S = 10.0
 
 PROFILE_TEMPLATE = """<?xml version="1.0" encoding="UTF-8" ?>
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
@@ -359,7 +363,8 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
         try:
             procs['mapping'] = _spawn(net, 'h3', [
                 py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
-                '--finish-after-idle', '4', '--timeout', str(timeout_s)], envs['h3'],
+                '--finish-after-idle', str(IDLE_FINISH_S), '--timeout', str(timeout_s)],
+                envs['h3'],
                 out / 'mapping.log')
             procs['alignment'] = _spawn(net, 'h2', [
                 py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', '--params-file',
