@@ -16,9 +16,7 @@ observations.
 
 from __future__ import annotations
 
-import hashlib
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -29,7 +27,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import kernels, models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
-from ga_ros.core.sparse import BlockPattern, SparseCholesky
+from ga_ros.core.sparse import BlockPattern, SparseCholesky, kept_block_pattern, spd_inverse
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
 from ga_ros.geometry import se2, se3
 from ga_ros.runtime import blas_threads
@@ -179,11 +177,7 @@ class SolveResult:
         """Hand this result's sparse factor over to a next :func:`solve` (its ``factor``), which
         then skips the symbolic analysis if its pattern is the same. This result keeps working:
         it factors its normal matrix anew if its covariances are asked for later."""
-        sysm = self._system
-        if sysm is None:
-            return None
-        chol, sysm._chol, sysm._factored = sysm._chol, None, False
-        return chol
+        return None if self._system is None else self._system.take_factor()
 
     @property
     def normal_matrix(self) -> sp.csc_matrix:
@@ -302,13 +296,18 @@ class _NormalSystem:
         from ga_ros.core import selinv  # lazy: scipy.linalg, numba
 
         if self.pattern.size >= _SPARSE_SELINV_UNKNOWNS and selinv.COMPILED:
-            chol = self.chol
-            self._chol = None  # its factor is read out and overwritten
-            self._factored = False
+            chol = self.chol  # factored at the solution
+            self.take_factor()  # read out and overwritten: factored anew if needed later
             return selinv.SelectedInverse(chol).diagonal_blocks(cols)
         blocks = selinv.banded_marginal_blocks(self.full(), self.d, wanted=cols,
                                                coords=self.coords)
         return None if blocks is None else blocks[cols]
+
+    def take_factor(self) -> SparseCholesky | None:
+        """Hand this system's sparse factor over (its symbolic analysis, and its numeric factor
+        if computed); the system factors ``N`` anew if it needs it later."""
+        chol, self._chol, self._factored = self._chol, None, False
+        return chol
 
     def joint_covariance(self, ids: IntArray) -> FloatArray:
         """Joint covariance ``(d k, d k)`` of the given (free) nodes."""
@@ -600,25 +599,6 @@ def _information_rank(blocks: FloatArray, rows: IntArray, cols: IntArray, H) -> 
         return int(np.linalg.matrix_rank(Hd, hermitian=True))
 
 
-_PATTERNS: OrderedDict[bytes, BlockPattern] = OrderedDict()
-_MAX_PATTERNS = 4
-
-
-def _block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: int) -> BlockPattern:
-    """:class:`BlockPattern` of these block coordinates, kept for the few latest (a window
-    update solves problems of one repeating pattern: building it sorts every block again)."""
-    key = hashlib.blake2b(block_rows.tobytes() + block_cols.tobytes()
-                          + np.array([d, n], dtype=np.int64).tobytes(), digest_size=16).digest()
-    pattern = _PATTERNS.get(key)
-    if pattern is None:
-        pattern = _PATTERNS[key] = BlockPattern(block_rows, block_cols, d, n)
-        while len(_PATTERNS) > _MAX_PATTERNS:
-            _PATTERNS.popitem(last=False)
-    else:
-        _PATTERNS.move_to_end(key)
-    return pattern
-
-
 @dataclass
 class _Problem:
     """One adjustment's fixed parts (connections, priors, datum, pattern of ``N``), built once.
@@ -656,7 +636,7 @@ class _Problem:
         for pd in prior_data:
             br.append(col[pd.idx[pd.blk_r]])
             bc.append(col[pd.idx[pd.blk_c]])
-        pattern = _block_pattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+        pattern = kept_block_pattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
         S = models.observation_covariance(model, conn.cov)
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
                   if model in models.MOTION_MODELS else None)
@@ -1075,12 +1055,7 @@ def _prior_cost(model: str, T: FloatArray, prior_data) -> float:
 
 def _inv_spd(M: FloatArray) -> FloatArray:
     """Inverse of a stack of SPD matrices, via Cholesky (raises on a non-PD block)."""
-    try:
-        L = np.linalg.cholesky(M)
-    except np.linalg.LinAlgError as exc:
-        raise DegenerateGeometryError("a connection has a singular B S B' block") from exc
-    Linv = np.linalg.inv(L)
-    return np.swapaxes(Linv, -1, -2) @ Linv
+    return spd_inverse(M, "a connection has a singular B S B' block")
 
 
 # ------------------------------------------------------------------------ helpers for users

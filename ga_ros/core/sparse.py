@@ -296,6 +296,21 @@ def _kept(cache: OrderedDict, limit: int, key: bytes, build):
     return value
 
 
+#: Block patterns kept by the block coordinates they were built from (the few latest).
+_PATTERNS: OrderedDict[bytes, BlockPattern] = OrderedDict()
+_MAX_PATTERNS = 4
+
+
+def kept_block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: int
+                       ) -> BlockPattern:
+    """:class:`BlockPattern` of these block coordinates, kept for the few latest (a window
+    update solves problems of one repeating pattern: building it sorts every block again)."""
+    key = hashlib.blake2b(block_rows.tobytes() + block_cols.tobytes()
+                          + np.array([d, n], dtype=np.int64).tobytes(), digest_size=16).digest()
+    return _kept(_PATTERNS, _MAX_PATTERNS, key,
+                 lambda: BlockPattern(block_rows, block_cols, d, n))
+
+
 def _cvxopt_pattern(pattern: BlockPattern):
     """CHOLMOD's input matrix for a pattern (values are set before each factorisation). Building
     it sorts every entry again (~0.1 s for a window), so it is kept per pattern too."""
@@ -813,13 +828,21 @@ def _bsr(rows: IntArray, cols: IntArray, blocks: FloatArray, m: int, d: int) -> 
 
 
 def _spd_inverse(S: FloatArray) -> FloatArray:
-    """Inverses of a stack of SPD matrices (Cholesky)."""
+    """Inverses of a stack of (symmetrised) SPD clique covariances (:func:`spd_inverse`)."""
+    return spd_inverse(0.5 * (S + np.swapaxes(S, 1, 2)),
+                       'a clique of the covariance skeleton is not positive definite')
+
+
+def spd_inverse(M: FloatArray, error: str) -> FloatArray:
+    """Inverses of a stack ``(..., k, k)`` of symmetric positive definite matrices by Cholesky
+    (the lower triangles are read); raises :class:`DegenerateGeometryError` with ``error`` if
+    one is not positive definite."""
     try:
-        Li = np.linalg.inv(np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2))))
+        L = np.linalg.cholesky(M)
     except np.linalg.LinAlgError as exc:
-        raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
-                                      'definite') from exc
-    return np.swapaxes(Li, 1, 2) @ Li
+        raise DegenerateGeometryError(error) from exc
+    Linv = np.linalg.inv(L)
+    return np.swapaxes(Linv, -1, -2) @ Linv
 
 
 def _band_completion(band: FloatArray) -> FloatArray:
