@@ -149,7 +149,9 @@ def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> 
     bag = write_measurement_bag(tmp_path / 'b', sample.measurements, sample.ground_truth)
     node, ex = ros
     paths = []
-    node.create_subscription(PathMsg, '/ga/corrected_path', paths.append, latched_qos())
+    # a deep reader queue: the first update's path must not be replaced by a later one (the
+    # node keeps publishing the open track's path) before this process has taken it
+    node.create_subscription(PathMsg, '/ga/corrected_path', paths.append, latched_qos(100))
     proc = harness.start_node_process(DOMAIN, {'use_sim_time': True, 'autosave': False},
                                       log_path=tmp_path / 'node.log')
     player = None

@@ -102,7 +102,7 @@ class NodeClient:
         sink = self.paths if sink is None else sink
         return self.node.create_subscription(
             PathMsg, self.path_topic, lambda msg: sink.append((time.perf_counter(), msg)),
-            latched_qos())
+            latched_qos(100))  # a deep reader queue: every path, not only the newest
 
     def record(self, msg_type, topic: str, qos=None) -> list:
         """Subscribe to ``topic`` and return the list its messages are appended to."""
