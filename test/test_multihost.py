@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -124,16 +125,20 @@ def test_mapping_node_on_one_host(tmp_path: Path) -> None:
     env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), 'PYTHONUNBUFFERED': '1'}
     node = harness.start_node_process(domain, {'autosave': False},
                                       log_path=tmp_path / 'node.log')
+    armed = tmp_path / 'player_done'
     mapper = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.mapping_node', '--out',
-                               str(tmp_path / 'out'), '--finish-after-idle', '5',
-                               '--timeout', '60'], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+                               str(tmp_path / 'out'), '--finish-after-idle', '3',
+                               '--finish-armed-by', str(armed), '--timeout', '60'], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         with harness.NodeClient(domain) as client:
             client.wait_for_node(timeout=30, proc=node)
             client.spin_until(lambda: client.pub.get_subscription_count() >= 2, 30,
                               'the mapping node to subscribe', mapper)
             client.publish(ms)
+            time.sleep(5.0)  # longer than the idle time: not armed yet, so still running
+            assert mapper.poll() is None, mapper.communicate(timeout=10)[0]
+            armed.touch()
             client.spin_until(lambda: mapper.poll() is not None, 60, 'the mapping node')
     finally:
         if mapper.poll() is None:

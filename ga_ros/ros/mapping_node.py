@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -62,6 +63,9 @@ class MappingSettings:
     finish_service : the alignment node's ``finish_track`` service (``std_srvs/Trigger``).
     finish_after_idle_s : call ``finish_service`` once no measurement came for this long (s),
         then exit after the next path; 0 = never (run until ``timeout_s`` or SIGINT).
+    finish_armed_by : a file's path: the idle time counts only once this file exists (the
+        orchestrator creates it when the player has exited, so a stall of the VO or of a loaded
+        machine mid-survey does not end the survey); '' = counts from the start.
     timeout_s : give up after this long (s) in all; the outputs are written anyway (exit 1).
     ready_publishers : print :data:`READY_LINE` once this many publishers of the measurements
         and one of the path have been discovered.
@@ -72,6 +76,7 @@ class MappingSettings:
     measurements_topic: str = 'ga/measurements'
     finish_service: str = 'alignment_node/finish_track'
     finish_after_idle_s: float = 0.0
+    finish_armed_by: str = ''
     timeout_s: float = 600.0
     ready_publishers: int = 1
 
@@ -216,14 +221,17 @@ def run(settings: MappingSettings, ros_args: list[str] | None = None) -> int:
     t_end = time.monotonic() + settings.timeout_s
     future = None
     n_paths_at_finish = 0
+    armed_ns = None if settings.finish_armed_by else 0
     try:
         while time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.05)
             node.check_ready()
             idle = settings.finish_after_idle_s
             rx = node.rx
-            if future is None and idle > 0 and rx.measurements:
-                if (time.time_ns() - rx.m_receive_ns[-1]) * 1e-9 > idle:
+            if armed_ns is None and os.path.exists(settings.finish_armed_by):
+                armed_ns = time.time_ns()
+            if future is None and idle > 0 and rx.measurements and armed_ns is not None:
+                if (time.time_ns() - max(rx.m_receive_ns[-1], armed_ns)) * 1e-9 > idle:
                     if node.finish_client.service_is_ready():
                         n_paths_at_finish = len(rx.path_sizes)
                         node.finish_called_ns = time.time_ns()
@@ -261,11 +269,14 @@ def main(args: list[str] | None = None) -> int:
     p.add_argument('--finish-service', default=MappingSettings.finish_service)
     p.add_argument('--finish-after-idle', type=float, default=0.0,
                    help='call finish_track once measurements stopped this long (s), then exit')
+    p.add_argument('--finish-armed-by', default='', metavar='FILE',
+                   help='count the idle time only once FILE exists (e.g. created when the '
+                        'player has exited)')
     p.add_argument('--timeout', type=float, default=MappingSettings.timeout_s,
                    help='give up after this many seconds')
     a = p.parse_args(argv)
     settings = MappingSettings(a.out, a.path_topic, a.measurements_topic, a.finish_service,
-                               a.finish_after_idle, a.timeout)
+                               a.finish_after_idle, a.finish_armed_by, a.timeout)
     return run(settings, ['mapping_node', *ros_args] if ros_args else None)
 
 

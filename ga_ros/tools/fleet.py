@@ -80,7 +80,8 @@ class FleetResult:
 def robot_commands(name: str, bag: Path, out: Path, rate: float,
                    idle_s: float, timeout_s: float) -> dict[str, list[str]]:
     """The command lines of one robot's processes (``play``, ``vo``, ``alignment``,
-    ``mapping``), all in namespace ``/name``."""
+    ``mapping``), all in namespace ``/name``. The mapping node's idle finish is armed by the
+    file ``out / 'player_done'`` (created once the robot's player has exited)."""
     py, ns = sys.executable, f'/{name}'
     common = ['-r', f'__ns:={ns}', '-r', f'/clock:={ns}/clock']
     remap = [a for t in STEREO_TOPICS for a in ('-r', f'{t}:={ns}{t}')]
@@ -90,6 +91,7 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
     return {
         'mapping': [py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
                     '--finish-after-idle', str(idle_s), '--timeout', str(timeout_s),
+                    '--finish-armed-by', str(out / 'player_done'),
                     '--ros-args', '-r', f'__ns:={ns}'],
         'alignment': [py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', *common,
                       '--params-file', str(REPO / 'config' / 'alignment.yaml'),
@@ -157,6 +159,9 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
         end = time.monotonic() + timeout_s
         mappers = [procs[r, 'mapping'] for r in bags]
         while any(p.poll() is None for p in mappers) and time.monotonic() < end:
+            for r in bags:  # a robot's player has exited: arm its mapping node's idle finish
+                if procs[r, 'play'].poll() is not None:
+                    (out / r / 'player_done').touch()
             time.sleep(0.2)
         log(f'robots through after {time.monotonic() - t0:.1f} s')
         for r in bags:

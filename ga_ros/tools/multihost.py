@@ -363,7 +363,8 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
         try:
             procs['mapping'] = _spawn(net, 'h3', [
                 py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
-                '--finish-after-idle', str(IDLE_FINISH_S), '--timeout', str(timeout_s)],
+                '--finish-after-idle', str(IDLE_FINISH_S), '--finish-armed-by',
+                str(out / 'player_done'), '--timeout', str(timeout_s)],
                 envs['h3'],
                 out / 'mapping.log')
             procs['alignment'] = _spawn(net, 'h2', [
@@ -374,7 +375,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
             procs['vo'] = _spawn(net, 'h1', [
                 py, '-m', 'ga_ros.ros.vo_node', '--ros-args', '--params-file',
                 str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',
-                '-p', 'compressed:=true', '-p', 'image_queue:=200',
+                '-p', 'compressed:=true', '-p', 'image_queue:=200', '-p', 'pair_queue:=1000',
                 '-p', 'left_image_topic:=/stereo/left/image_raw/compressed',
                 '-p', 'right_image_topic:=/stereo/right/image_raw/compressed'], envs['h1'],
                 out / 'vo.log')
@@ -391,6 +392,8 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
                 '--wait-for-subscribers', '30'], envs['h1'], out / 'play.log')
             end = time.monotonic() + timeout_s
             while procs['mapping'].poll() is None and time.monotonic() < end:
+                if procs['play'].poll() is not None:
+                    (out / 'player_done').touch()  # arms the mapping node's idle finish
                 time.sleep(0.2)
             log(f'survey through after {time.monotonic() - t0:.1f} s')
             if procs['mapping'].poll() is None:
