@@ -242,17 +242,19 @@ def format_result(res: FleetResult) -> str:
     return '\n'.join(lines)
 
 
-def make_second_bag(path: str | Path, stamp_offset_s: float = 10_000.0) -> Path:
-    """A second stereo survey, different from the sample (2 double tracks of 12 frames a swath,
-    shorter turns, other terrain), with stamps ``stamp_offset_s`` after the sample's; returns
-    its path."""
+def make_second_bag(path: str | Path, stamp_offset_s: float = 10_000.0,
+                    positions_per_swath: int = 12, seed: int = 5) -> Path:
+    """A second stereo survey, different from the sample (2 double tracks of
+    ``positions_per_swath`` frames a swath, shorter turns, terrain of ``seed``), with stamps
+    ``stamp_offset_s`` after the sample's; returns its path."""
     from ga_ros.replay import samples
 
     base = samples.BASE_STAMP_NS
     samples.BASE_STAMP_NS = base + int(stamp_offset_s * 1e9)
     try:
         return samples.make_stereo_bag(path, samples.StereoSampleConfig(
-            n_tracks=2, positions_per_swath=12, turn_positions=8, seed=5), overwrite=True)
+            n_tracks=2, positions_per_swath=positions_per_swath, turn_positions=8, seed=seed),
+            overwrite=True)
     finally:
         samples.BASE_STAMP_NS = base
 
