@@ -119,3 +119,30 @@ def test_a_prior_linearised_at_the_batch_solution_gives_the_batch_solution(surve
             assert diff < 0.01 and abs(ratio - 1.0) < 0.01, (diff, ratio)
         else:
             assert diff > 4.0 and ratio < 0.8, (diff, ratio)
+
+
+def test_bench_nees_prints_what_it_measured(capsys):
+    """``scripts/bench_nees.py`` on a tiny survey: its JSON line carries the same NEES as a
+    direct batch solve of the same seeded noise, and the window reproduces it (3 tracks fit
+    in the window: no freeze)."""
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / 'scripts' / 'bench_nees.py'
+    spec = importlib.util.spec_from_file_location('bench_nees', script)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault('bench_nees', mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    assert mod.main(['--tracks', '2', '--per-swath', '6', '--noise', '3', '--runs', '1',
+                     '--window', '3', '--policies', 'weighted', '--json', '--seed', '5']) == 0
+    row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    sc = aerial_scenario(n_tracks=2, positions_per_swath=6)
+    nm = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), np.random.default_rng(5))
+    b = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-8))
+    ids = sc.node_ids[1:]
+    want = position_nees(b.T_world_node[1:], b.covariance(ids), sc.T_world_node[1:]).mean()
+    assert row['batch']['nees'] == pytest.approx(want, rel=1e-6)
+    assert row['weighted']['nees'] == pytest.approx(want, rel=1e-3)
+    assert row['weighted']['diff'] < 1e-3
