@@ -8,7 +8,7 @@ the exact second-order model of the absorbed connections at the estimate the tra
 at, and the next track moves the boundary so far (100 m, 3 deg on a 4 km swath) that the model
 no longer holds; the window then moves the boundary along a direction the quadratic prior finds
 cheap and the real absorbed terms do not. The same survey made small enough for a unit test:
-2 double tracks of 200 poses at 20 % noise, window 1 track.
+2 double tracks, 200 poses per swath, 20 % noise, window 1 track.
 """
 
 from __future__ import annotations
