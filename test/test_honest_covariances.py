@@ -11,15 +11,10 @@ import scipy.sparse as sp
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.solver import GaussianPrior, SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.eval import position_nees
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
-
-
-def _position_nees(T_est, cov, T_true):
-    """``e' C^-1 e`` of the position part of the right-perturbation error ``log(T_est^-1 T)``."""
-    e = se3.log(se3.inverse(T_est) @ T_true)[:, :3]
-    return np.einsum('ni,ni->n', e, np.linalg.solve(cov[:, :3, :3], e[:, :, None])[:, :, 0])
 
 
 def _monte_carlo(per_swath: int, runs: int, seed: int, **prior) -> tuple[dict, int]:
@@ -43,13 +38,13 @@ def _monte_carlo(per_swath: int, runs: int, seed: int, **prior) -> tuple[dict, i
             al.add_measurements(ms)
             al.finish_track()
             n_sparse += sum(sp.issparse(info) for _, _, info in al._priors)
-            nees[policy].append(_position_nees(al.corrected_path().T_world_node[1:],
+            nees[policy].append(position_nees(al.corrected_path().T_world_node[1:],
                                                al.covariances(ids), truth))
         al.refine_batch()
-        nees['refined'].append(_position_nees(al.corrected_path().T_world_node[1:],
+        nees['refined'].append(position_nees(al.corrected_path().T_world_node[1:],
                                               al.covariances(ids), truth))
         batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-8))
-        nees['batch'].append(_position_nees(batch.T_world_node[1:], batch.covariance(ids),
+        nees['batch'].append(position_nees(batch.T_world_node[1:], batch.covariance(ids),
                                             truth))
     return {k: float(np.mean(np.concatenate(v))) for k, v in nees.items()}, n_sparse
 

@@ -10,9 +10,10 @@ from ga_ros.eval.metrics import (
     improvement_pct,
     per_track_mean,
     position_errors,
+    position_nees,
     trajectory_error,
 )
 
 __all__ = ['AteResult', 'RigidAlignment', 'align_rigid', 'anchor_first', 'ate',
-           'improvement_pct', 'per_track_mean', 'position_errors', 'TrajectoryError',
-           'trajectory_error']
+           'improvement_pct', 'per_track_mean', 'position_errors', 'position_nees',
+           'TrajectoryError', 'trajectory_error']

@@ -166,3 +166,27 @@ def trajectory_error(p_est: FloatArray, p_ref: FloatArray) -> TrajectoryError:
     err_al = np.linalg.norm(align_rigid(p_est, p_ref).apply(p_est) - p_ref, axis=1)
     return TrajectoryError(float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(err_al**2))),
                            float(err.max()), int(err.size))
+
+
+def position_nees(T_est: FloatArray, cov: FloatArray, T_ref: FloatArray) -> FloatArray:
+    """Position NEES ``e' C_pp^-1 e`` of each node ``(n,)`` (mean 3 when ``cov`` is honest).
+
+    ``e`` is the translation part of the right-perturbation error ``log(T_est^-1 T_ref)`` (the
+    solver's convention ``T = T_est exp(d)``, ``d = [x y z rx ry rz]`` in the node's frame), so
+    ``cov`` is the published ``(n, 6, 6)`` covariance of ``d`` and ``C_pp`` its position block.
+    The datum is the first node (held fixed by the solver): no alignment is applied.
+
+    Parameters
+    ----------
+    T_est, T_ref : (n, 4, 4) estimated and true poses ``T_world_node``.
+    cov : (n, 6, 6) covariances in the order ``[x y z rx ry rz]`` (m^2, rad^2).
+    """
+    T_est = np.asarray(T_est, dtype=float)
+    T_ref = np.asarray(T_ref, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    n = T_est.shape[0]
+    if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or cov.shape != (n, 6, 6):
+        raise InputError(f'expected (n, 4, 4) poses and (n, 6, 6) covariances, got '
+                         f'{T_est.shape}, {T_ref.shape} and {cov.shape}')
+    e = se3.log(se3.inverse(T_est) @ T_ref)[:, :3]
+    return np.einsum('ni,ni->n', e, np.linalg.solve(cov[:, :3, :3], e[:, :, None])[:, :, 0])
