@@ -121,12 +121,17 @@ def _distance_to_batch(al, sc, batch) -> tuple[float, float]:
     return float(diff), float(ratio)
 
 
-def test_frozen_at_its_first_estimate_the_window_is_off_and_overconfident(survey,
-                                                                           first_estimate):
-    """The documented limit: several batch standard deviations off, covariances too small."""
+@pytest.mark.xfail(strict=True, reason='known limit (README, "Honest covariances on long '
+                   'swaths"): the frozen prior stays linearised at the freeze estimate; the '
+                   'window ends several batch sd off with covariances ~0.6-0.7 of the batch')
+def test_frozen_at_its_first_estimate_the_window_agrees_with_the_batch(survey, first_estimate):
+    """What the window should do on its own run (track 0 frozen at its first estimate): its
+    second track within one batch standard deviation of the batch estimate (mean squared, in
+    batch sd^2) and covariances within 20 % of the batch ones. Strict xfail: it fails (XPASS)
+    once the limit is fixed, and then becomes a plain test."""
     sc, _, batch = survey
     diff, ratio = _distance_to_batch(first_estimate, sc, batch)
-    assert diff > 4.0 and ratio < 0.8, (diff, ratio)
+    assert diff < 1.0 and abs(ratio - 1.0) < 0.2, (diff, ratio)
 
 
 def test_a_prior_linearised_at_the_batch_solution_gives_the_batch_solution(survey):
