@@ -7,18 +7,14 @@ last column back, without any column of ``N^-1``):
   on the pattern of ``L`` (every node block and every connected pair), time about that of the
   factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
   surveys; quality control).
-* :func:`banded_marginal_blocks`, on the banded ``N``: with a bandwidth-reducing node ordering
-  (reverse Cuthill-McKee) a survey's normal matrix is banded with half-bandwidth ``b``; cut into
-  ``b x b`` blocks it is block tridiagonal. Its block Cholesky factor ``N = L L'`` (diagonal
-  blocks ``D_k``, sub-diagonal blocks ``C_k``) and the backward recursion::
-
-    Sigma_KK = D_K^-T D_K^-1
-    Sigma_kk = D_k^-T (I + C_k' Sigma_{k+1,k+1} C_k) D_k^-1
-
-  give every diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother
-  in information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few
-  tens of milliseconds and needs no compiled kernel; for a whole survey the memory
-  (unknowns x band) is prohibitive.
+* :func:`banded_marginal_blocks`, on the banded ``N`` (the block-tridiagonal selected inversion
+  of :func:`ga_ros.core.sparse.banded_selection`, which also serves the sparse joint priors):
+  with a bandwidth-reducing node ordering (reverse Cuthill-McKee, or the principal axis) a
+  survey's normal matrix is banded; cut into blocks of the band's width it is block
+  tridiagonal, and its block Cholesky factor and Takahashi's backward recursion give every
+  diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother in
+  information form). For a window of five lawnmower tracks (6,000 unknowns) this needs no
+  compiled kernel; for a whole survey the memory (unknowns x band) is prohibitive.
 """
 
 from __future__ import annotations
@@ -27,9 +23,7 @@ import ctypes
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
@@ -41,15 +35,9 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
                            coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
-    Nodes of high degree (e.g. those of a dense joint prior) would widen the band of every other
-    node; they can be ordered last as a dense border ``P`` (an arrowhead matrix), the others
-    ``Q`` keep their narrow band. The border rows of the factor and the Schur complement::
-
-        L_Pk = (N_Pk - L_P,k-1 C_k-1') D_k^-T,    S = D_P D_P' = N_PP - sum_k L_Pk L_Pk'
-
-    give ``Sigma_QQ = N_QQ^-1 + Z S^-1 Z'`` with ``Z = N_QQ^-1 N_QP = L_QQ^-T L_P'`` (block
-    back substitution), evaluated only for the wanted rows; ``Sigma_PP = S^-1``.
-    The plan (border or not, ordering of ``Q``) with the smaller operation count is used.
+    The block-tridiagonal selected inversion of :func:`~ga_ros.core.sparse.banded_selection`
+    with a band of width 0 (nodes of high degree, e.g. those of a dense joint prior, ordered
+    last as a dense border).
 
     Parameters
     ----------
@@ -57,8 +45,8 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     d : block size (parameters per node).
     max_band : give up (return ``None``) if the reordered half-bandwidth or the border exceeds
         this many scalars; the caller then uses sparse solves.
-    wanted : optional (k,) node blocks that are needed; the backward recursion stops once it
-        has passed them (blocks of other nodes are left as NaN). Default: all nodes.
+    wanted : optional (k,) node blocks that are needed (blocks of other nodes are left as NaN).
+        Default: all nodes.
     coords : optional (u, 3) node positions. Besides reverse Cuthill-McKee, the ordering along
         their principal axis is tried (for a survey strip it gives a narrower band); the
         ordering with the smaller band is used.
@@ -67,151 +55,17 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     -------
     (u, d, d) covariance blocks in the original node order, or ``None`` (band too wide).
     """
-    N = sp.csr_matrix(N)
-    n = N.shape[0]
-    u = n // d
-    coo = N.tocoo()
-    rows_n, cols_n = coo.row // d, coo.col // d
-    G = sp.coo_matrix((np.ones(coo.nnz), (rows_n, cols_n)), shape=(u, u)).tocsr()
-    plans = [_plan(G, rows_n, cols_n, coords, np.zeros(u, dtype=bool), d)]
-    degree = np.diff(G.indptr)
-    if u > 2:
-        dense = degree > max(16.0, 4.0 * float(np.median(degree)))
-        if 0 < dense.sum() < u // 2:
-            plans.append(_plan(G, rows_n, cols_n, coords, dense, d))
-    order_q, border, b, _ = min(plans, key=lambda plan: plan[3])
-    p = border.size * d
-    if b > max_band or p > max_band:
+    from ga_ros.core.sparse import banded_selection  # lazy: sparse imports this module lazily
+
+    u = N.shape[0] // d
+    nodes = np.arange(u, dtype=np.int64) if wanted is None or len(wanted) == 0 else \
+        np.unique(np.asarray(wanted, dtype=np.int64))
+    sel = banded_selection(N, d, nodes, 0, coords=coords, max_band=max_band)
+    if sel is None:
         return None
-    order = np.concatenate([order_q, border])
-    nq = order_q.size * d
-    pos = np.empty(u, dtype=np.int64)
-    pos[order] = np.arange(u)
-    if wanted is None or len(wanted) == 0:
-        first_needed = 0
-    else:
-        wpos = pos[np.asarray(wanted, dtype=np.int64)]
-        wpos = wpos[wpos < order_q.size]
-        first_needed = int(wpos.min()) if wpos.size else order_q.size
-    perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
-    inv = np.empty(n, dtype=np.int64)
-    inv[perm] = np.arange(n)
-    r, c = inv[coo.row], inv[coo.col]
-    nb = max(-(-nq // b), 1)
-    size = nb * b
-    # dense diagonal and sub-diagonal blocks of the banded part (padded with identity), the
-    # border rows E (p, b) per block and the border's own block
-    inq = (r < nq) & (c < nq)
-    rq, cq, vq = r[inq], c[inq], coo.data[inq]
-    br, bc = rq // b, cq // b
-    diag = br == bc
-    lin = (br[diag] * b + rq[diag] % b) * b + cq[diag] % b
-    A = np.bincount(lin, weights=vq[diag], minlength=nb * b * b).reshape(nb, b, b)
-    low = br == bc + 1
-    lin = (bc[low] * b + rq[low] % b) * b + cq[low] % b
-    C = np.bincount(lin, weights=vq[low],
-                    minlength=max(nb - 1, 0) * b * b).reshape(max(nb - 1, 0), b, b)
-    bord = (r >= nq) & (c < nq)
-    lin = ((c[bord] // b) * p + (r[bord] - nq)) * b + c[bord] % b
-    E = np.bincount(lin, weights=coo.data[bord],
-                    minlength=nb * p * b).reshape(nb, p, b).astype(float)
-    pp = (r >= nq) & (c >= nq)
-    App = np.bincount((r[pp] - nq) * p + (c[pp] - nq), weights=coo.data[pp],
-                      minlength=p * p).reshape(p, p).astype(float)
-    pad = np.arange(nq, size)
-    A[pad // b, pad % b, pad % b] = 1.0
-    # block Cholesky: D_k D_k' = A_k - C_{k-1} C_{k-1}'; C_k <- C_k D_k^-T; border rows likewise
-    Dinv = np.empty_like(A)
-    eye = np.eye(b)
-    for k in range(nb):
-        if k:
-            A[k] -= C[k - 1] @ C[k - 1].T
-            E[k] -= E[k - 1] @ C[k - 1].T
-        Dinv[k] = _inverse_factor(A[k], eye)
-        if k < nb - 1:
-            C[k] = C[k] @ Dinv[k].T
-        E[k] = E[k] @ Dinv[k].T
-    if p:
-        Ecat = np.concatenate(list(E), axis=1)
-        App -= Ecat @ Ecat.T
     out = np.full((u, d, d), np.nan)
-    Dp = np.zeros((0, 0))
-    if p:
-        Dp = _inverse_factor(App, np.eye(p))
-        Spp = Dp.T @ Dp
-        for q in range(border.size):
-            out[border[q]] = Spp[q * d:(q + 1) * d, q * d:(q + 1) * d]
-    want = np.ones(order_q.size, dtype=bool)
-    if wanted is not None and len(wanted):
-        want[:] = False
-        wpos = pos[np.asarray(wanted, dtype=np.int64)]
-        want[wpos[wpos < order_q.size]] = True
-    # backward recursion over the diagonal blocks of N_QQ^-1, plus the border's share
-    # Z S^-1 Z' with Z = N_QQ^-1 N_QP = L_QQ^-T L_P' (back substitution) for wanted rows only
-    Sigma_next = None
-    Z = np.zeros((b, p))
-    stop = (first_needed * d) // b
-    for k in range(nb - 1, min(stop, nb) - 1, -1):
-        if Sigma_next is None:
-            S = Dinv[k].T @ Dinv[k]
-            Z = Dinv[k].T @ E[k].T
-        else:
-            S = Dinv[k].T @ (eye + C[k].T @ Sigma_next @ C[k]) @ Dinv[k]
-            Z = Dinv[k].T @ (E[k].T - C[k].T @ Z)
-        Sigma_next = S
-        lo, hi = k * b, min((k + 1) * b, nq)
-        qs = np.arange(lo // d, hi // d)
-        qs = qs[want[qs]]
-        if qs.size == 0:
-            continue
-        rows = ((qs - lo // d)[:, None] * d + np.arange(d)).ravel()
-        blocks = S[rows[:, None], rows[None, :]].reshape(qs.size, d, qs.size, d)
-        blocks = blocks[np.arange(qs.size), :, np.arange(qs.size), :]
-        if p:
-            W = (Z[rows] @ Dp.T).reshape(qs.size, d, p)
-            blocks = blocks + W @ np.swapaxes(W, 1, 2)
-        out[order[qs]] = blocks
+    out[nodes] = sel.band[:, 0]
     return 0.5 * (out + np.swapaxes(out, 1, 2))
-
-
-def _inverse_factor(A: FloatArray, eye: FloatArray) -> FloatArray:
-    """``D^-1`` of the lower Cholesky factor ``D D' = A``."""
-    try:
-        D = np.linalg.cholesky(A)
-    except np.linalg.LinAlgError as exc:
-        raise DegenerateGeometryError('normal matrix is not positive definite') from exc
-    return sla.solve_triangular(D, eye, lower=True)
-
-
-def _plan(G: sp.csr_matrix, rows_n: np.ndarray, cols_n: np.ndarray,
-          coords: np.ndarray | None, border: np.ndarray,
-          d: int) -> tuple[np.ndarray, np.ndarray, int, float]:
-    """Ordering of the non-border nodes, the border nodes, the block size ``b`` (scalars) and
-    an operation count of the selected inversion with that plan."""
-    u = G.shape[0]
-    q_nodes = np.nonzero(~border)[0]
-    p_nodes = np.nonzero(border)[0]
-    Gq = G[q_nodes][:, q_nodes]
-    candidates = [q_nodes[reverse_cuthill_mckee(Gq, symmetric_mode=True)]]
-    if coords is not None and len(coords) == u and q_nodes.size > 2:
-        xyz = np.asarray(coords, dtype=float)[q_nodes]
-        xyz = xyz - np.mean(xyz, axis=0)
-        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
-        candidates.append(q_nodes[np.argsort(xyz @ axis, kind='stable')])
-    both = ~border[rows_n] & ~border[cols_n]
-    rq, cq = rows_n[both], cols_n[both]
-
-    def node_band(order: np.ndarray) -> int:
-        pos = np.empty(u, dtype=np.int64)
-        pos[order] = np.arange(order.size)
-        return int(np.abs(pos[rq] - pos[cq]).max()) if rq.size else 0
-
-    bands = [node_band(o) for o in candidates]
-    best = int(np.argmin(bands))
-    b = (bands[best] + 1) * d
-    nq, p = q_nodes.size * d, p_nodes.size * d
-    cost = nq * (4.0 * b * b + 4.0 * p * b + 2.0 * p * p) + p ** 3
-    return candidates[best], p_nodes, b, cost
 
 
 # ------------------------------------------------------------ selected inversion on a factor

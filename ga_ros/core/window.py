@@ -55,6 +55,7 @@ import scipy.linalg as sla
 from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core import selinv
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.core.quality import (
@@ -369,26 +370,46 @@ def _marginal_covariances(res: SolveResult, node_ids: IntArray, banded: bool = F
                           ) -> FloatArray:
     """``(k, 6, 6)`` marginal covariances of free nodes of an adjustment (eq. 17).
 
-    ``banded`` (the window's priors are block-banded, ``prior_band >= 0``): the window's normal
-    matrix is a strip with a narrow band, and the diagonal blocks of its inverse come from the
-    block-tridiagonal selected inversion (:func:`~ga_ros.core.selinv.banded_marginal_blocks`,
-    ``O(n b^2)``, linear in the swath length) through :meth:`SolveResult.covariance`.
-    Otherwise, many nodes (a track leaving the window): the window's normal matrix is factored
-    once more with those nodes ordered last; the trailing dense block of the factor is the
-    Cholesky factor of their joint marginal information ``S = L L'`` (Schur complement of the
-    rest), and the diagonal blocks of ``S^-1 = L^-T L^-1`` are read from ``L^-1``. Both exact.
-    Few nodes: sparse solves.
+    Many nodes (a track leaving the window), with the compiled kernels: selected inversion
+    (:class:`~ga_ros.core.selinv.SelectedInverse`, Takahashi's equations in place) on the
+    adjustment's own sparse factor, refactored at the solution with its symbolic analysis (the
+    analysis is handed back, so the next window solve does not repeat it): every node block of
+    ``N^-1`` in about the time of one factorisation. Without the kernels: ``banded`` (the
+    window's priors are block-banded, ``prior_band >= 0``) the block-tridiagonal selected
+    inversion of :meth:`SolveResult.covariance`, otherwise the window's normal matrix factored
+    once more with those nodes ordered last (the trailing dense block of the factor is the
+    Cholesky factor of their joint marginal information ``S = L L'``; the diagonal blocks of
+    ``S^-1 = L^-T L^-1`` are read from ``L^-1``). All exact. Few nodes: sparse solves.
     """
     ids = np.asarray(node_ids, dtype=np.int64)
     sysm = res._system
-    if ids.size > _TRAILING_MIN_NODES and sysm is not None and not banded:
+    if ids.size > _TRAILING_MIN_NODES and sysm is not None:
         cols = sysm.col[sysm.index_of(ids)]
         if (cols >= 0).all():
-            try:
-                return trailing_factor(sysm.pattern, sysm.data, cols).marginal_blocks()
-            except DegenerateGeometryError:  # not positive definite there: the general path
-                pass
+            if selinv.COMPILED:
+                return _selected_marginals(sysm, cols)
+            if not banded:
+                try:
+                    return trailing_factor(sysm.pattern, sysm.data, cols).marginal_blocks()
+                except DegenerateGeometryError:  # not positive definite there: the general path
+                    pass
     return res.covariance(ids)
+
+
+def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
+    """Diagonal blocks of ``N^-1`` for the block columns ``cols`` of a solve's normal system by
+    selected inversion on its factor (numeric factorisation at the solution, symbolic analysis
+    reused and kept: after the in-place inversion the factor object is a valid symbolic one
+    again, factored anew by the next solve that is handed it)."""
+    chol = sysm.chol  # factored at the solution (the solve's analysis reused)
+    sysm.take_factor()
+    analysis = chol._symbolic
+    inv = selinv.SelectedInverse(chol)
+    blocks = inv.diagonal_blocks(cols)
+    if inv.in_place:  # CHOLMOD refactors a supernodal factor of the same pattern in place
+        chol._symbolic = analysis
+        sysm._chol = chol
+    return blocks
 
 
 def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
