@@ -81,11 +81,10 @@ from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
     SolveResult,
-    _inv_spd,
     normal_matrix_at,
     solve,
 )
-from ga_ros.core.sparse import BlockPattern, sparse_skeleton, trailing_factor
+from ga_ros.core.sparse import BlockPattern, sparse_skeleton, spd_inverse, trailing_factor
 from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
@@ -412,6 +411,12 @@ def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
     return blocks
 
 
+def _no_weighted() -> tuple[IntArray, FloatArray]:
+    """No frozen node adjusted as a weighted parameter: ``(node rows (0,), poses (0, 4, 4))``
+    (``TrackWindowAligner._T_weighted`` before any update and after a refinement)."""
+    return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+
+
 def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
                 T_prev: FloatArray) -> FloatArray:
     """``T_init`` (poses of ``nodes``) with the poses of the nodes that were also in the previous
@@ -479,8 +484,7 @@ class TrackWindowAligner:
         # the last adjustment's estimate of the frozen nodes it adjusted as weighted parameters
         # (node rows, (k, 4, 4)): where the next update starts them (their published pose,
         # self._T, stays the frozen one)
-        self._T_weighted: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
-                                                         np.zeros((0, 4, 4)))
+        self._T_weighted: tuple[IntArray, FloatArray] = _no_weighted()
         # weights S^-1 of the last window's connections (rows, (m, 6, 6)): an update inverts
         # only the covariances of the connections that entered the window since
         self._weights_kept: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
@@ -921,7 +925,7 @@ class TrackWindowAligner:
             self._T[frozen] = res.T_world_node[frozen]
         self._cov[frozen] = res.frozen_cov
         self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
-        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # refined instead
+        self._T_weighted = _no_weighted()  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node)
 
     def _smooth(self) -> None:
@@ -1124,7 +1128,8 @@ class TrackWindowAligner:
         P = np.empty((conns.size, 6, 6))
         P[hit] = P_kept[pos[hit]]
         if not hit.all():
-            P[~hit] = _inv_spd(self._ccov.a[conns[~hit]])
+            P[~hit] = spd_inverse(self._ccov.a[conns[~hit]],
+                                  "a connection's covariance is not positive definite")
         self._weights_kept = (conns, P)
         return P
 
@@ -1472,7 +1477,7 @@ class TrackWindowAligner:
                             for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
-        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        self._T_weighted = _no_weighted()
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
