@@ -942,13 +942,12 @@ class TrackWindowAligner:
         if T_lin is None or res is None:
             return
         where = {int(i): k for k, i in enumerate(res.node_ids.tolist())}
-        d_known = {}
-        for idx, _, _ in self._priors:
-            for i in idx.tolist():
-                k = where.get(int(self._ids[i]))
-                if k is not None:
-                    d_known[i] = se3.local(T_lin[i][None], res.T_world_node[k][None])[0]
-        d = smooth(steps, d_known)
+        idx = np.unique(np.concatenate([p[0] for p in self._priors]
+                                       or [np.zeros(0, np.int64)]))
+        k = np.array([where.get(int(i), -1) for i in self._ids[idx].tolist()], dtype=np.int64)
+        idx, k = idx[k >= 0], k[k >= 0]
+        d_idx = se3.local(T_lin[idx], res.T_world_node[k])  # one batched call
+        d = smooth(steps, dict(zip(idx.tolist(), d_idx)))
         nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
         if nodes.size:
             self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
