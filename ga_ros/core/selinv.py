@@ -109,7 +109,8 @@ def _lapack_symbol(name: str, nargs: int) -> bool:
         api.PyCapsule_GetPointer.restype = ctypes.c_void_p
         api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
         cap = cython_lapack.__pyx_capi__[name]
-        llvm.add_symbol(f'ga_ros_{name}', api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap)))
+        address = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
+        llvm.add_symbol(f'ga_ros_{name}', address)
     except (ImportError, KeyError, ValueError, TypeError):  # pragma: no cover
         return False
     return True
