@@ -925,24 +925,19 @@ def _band_completion(band: FloatArray) -> FloatArray:
     w = min(w1 - 1, r - 1)
     if w <= 0:  # single-node cliques
         return _spd_inverse(band[:, 0])[:, None]
-    ext = np.zeros((r + w, w + 1, d, d))  # the band and w padding nodes after the end
+    # the band and w padding nodes after the end (identity covariance, uncorrelated)
+    ext = np.zeros((r + w, w + 1, d, d))
     ext[:r] = band[:, :w + 1]
-    i = np.arange(r)
-    valid = (i[:, None] + np.arange(w + 1)[None]) < r  # (r, w + 1): node i + k is real
-    # separators Sigma_FF (w d x w d) and Sigma_Fi (w d x d) of every node
-    a, b = np.meshgrid(np.arange(1, w + 1), np.arange(1, w + 1), indexing='ij')
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    blk = ext[i[:, None, None] + lo[None], (hi - lo)[None]]  # (r, w, w, d, d): Sigma_{lo, hi}
-    blk = np.where((a > b)[None, :, :, None, None], np.swapaxes(blk, -1, -2), blk)
-    # a padding node beyond the end correlates with nothing
-    pad = ~valid[:, 1:]
-    blk = np.where((pad[:, :, None] | pad[:, None, :])[..., None, None]
-                   & (a != b)[None, :, :, None, None], 0.0, blk)
-    blk = np.where((pad[:, :, None] & (a == b)[None])[..., None, None],
-                   np.eye(d)[None, None, None], blk)
-    sep = blk.transpose(0, 1, 3, 2, 4).reshape(r, w * d, w * d)
-    cross = np.where(pad[..., None, None], 0.0, np.swapaxes(ext[i, 1:], -1, -2))  # Sigma_{F, i}
-    cross = cross.reshape(r, w * d, d)
+    for j in range(1, w + 1):
+        ext[r - j:r, j] = 0.0  # beyond the last node
+    ext[r:, 0] = np.eye(d)
+    # separators Sigma_FF (w d x w d) and Sigma_Fi (w d x d) of every node, by slices
+    sep = np.empty((r, w, d, w, d))
+    for a in range(w):  # row a of F_i is node i + 1 + a
+        sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
+        sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
+    sep = sep.reshape(r, w * d, w * d)
+    cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
     try:
         np.linalg.cholesky(sep)  # positive definite separators (and D_i below: the cliques)
         Bt = np.linalg.solve(sep, cross)  # (r, w d, d): B_i'
