@@ -386,8 +386,11 @@ def _marginal_covariances(res: SolveResult, node_ids: IntArray, banded: bool = F
         cols = sysm.col[sysm.index_of(ids)]
         if (cols >= 0).all():
             if selinv.COMPILED:
-                return _selected_marginals(sysm, cols)
-            if not banded:
+                try:
+                    return _selected_marginals(sysm, cols)
+                except DegenerateGeometryError:  # not positive definite: the general path
+                    pass
+            elif not banded:
                 try:
                     return trailing_factor(sysm.pattern, sysm.data, cols).marginal_blocks()
                 except DegenerateGeometryError:  # not positive definite there: the general path
