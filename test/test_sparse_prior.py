@@ -73,7 +73,6 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     pairs added to its pattern; the banded selection with hub columns by solves) against the
     dense inverse, the step ``N^-1 rhs`` against a dense solve."""
     from ga_ros.core import selinv
-    from ga_ros.core.sparse import sparse_skeleton
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -82,7 +81,7 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     M = _strip_matrix(rng, 40, reach=2)
     targets = rng.permutation(40)[:25]
     rhs = rng.normal(size=40 * D)
-    skel, x = sparse_skeleton(sp.csr_matrix(M), D, targets, w, hubs, rhs=rhs)
+    skel, x = selinv.sparse_skeleton(sp.csr_matrix(M), D, targets, w, hubs, rhs=rhs)
     Sigma = np.linalg.inv(M)
     ref = CovarianceSkeleton.of_dense(Sigma[np.ix_(_scalar(targets), _scalar(targets))], D, w,
                                       hubs)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -28,6 +29,9 @@ import scipy.sparse as sp
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
 from ga_ros.errors import DegenerateGeometryError
+
+if TYPE_CHECKING:
+    from ga_ros.core.sparse import CovarianceSkeleton
 
 
 def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
@@ -55,7 +59,7 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     -------
     (u, d, d) covariance blocks in the original node order, or ``None`` (band too wide).
     """
-    from ga_ros.core.sparse import banded_selection  # lazy: sparse imports this module lazily
+    from ga_ros.core.sparse import banded_selection  # lazy: cvxopt
 
     u = N.shape[0] // d
     nodes = np.arange(u, dtype=np.int64) if wanted is None or len(wanted) == 0 else \
@@ -443,3 +447,89 @@ class SelectedInverse:
         nodes = np.asarray(nodes, dtype=np.int64)
         out = self.blocks(nodes, nodes)
         return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+# ------------------------------------------------ the covariance skeleton of a sparse prior
+def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
+                    coords: FloatArray | None = None, rhs: FloatArray | None = None
+                    ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
+    (in band order) from a sparse ``N``, and ``N^-1 rhs``.
+
+    With the compiled kernels: the skeleton's block pairs are added to the pattern of ``N`` (as
+    explicit zeros), so that they lie on the pattern of its sparse Cholesky factor, and
+    Takahashi's selected inversion on that factor
+    (:class:`~ga_ros.core.selinv.SelectedInverse`) gives all of them at once; the fill of a
+    band of ``w`` nodes and ``h`` hub rows is linear in the number of targets. Without: the
+    band by :func:`banded_selection`, the hubs' columns by solves with the same factor
+    (``h d`` right-hand sides). Both exact and linear in the number of nodes for a strip.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        ``N`` is not positive definite.
+    """
+    from ga_ros.core.sparse import (
+        CovarianceSkeleton,
+        _cholmod,
+        banded_selection,
+        skeleton_layout,
+    )
+
+    t = np.asarray(targets, dtype=np.int64)
+    rest, hubs = skeleton_layout(t.size, w, n_hubs)
+    if COMPILED and _cholmod is not None:
+        return _selected_skeleton(N, d, t, rest, hubs, w, rhs)
+    n = N.shape[0]
+    E = np.zeros((n, hubs.size * d))
+    for a, node in enumerate(t[hubs].tolist()):
+        E[node * d:(node + 1) * d, a * d:(a + 1) * d] = np.eye(d)
+    b = E if rhs is None else np.column_stack([np.reshape(rhs, (n, -1)), E])
+    sel = banded_selection(N, d, t[rest], w, coords=coords, rhs=b)
+    X = sel.solution[:, b.shape[1] - E.shape[1]:]  # Sigma_{., hubs}
+    h = hubs.size
+    u = n // d
+    cross = X.reshape(u, d, h, d)[t[rest]].transpose(2, 0, 3, 1)  # (h, r, d, d): Sigma_{a, r}
+    hub_cov = X.reshape(u, d, h * d)[t[hubs]].reshape(h * d, h * d)
+    x = None
+    if rhs is not None:
+        x = sel.solution[:, :b.shape[1] - E.shape[1]].reshape(np.shape(rhs))
+    return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
+
+
+def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                       w: int, rhs: FloatArray | None
+                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
+    skeleton's pairs added to its pattern."""
+    from ga_ros.core.sparse import BlockPattern, CovarianceSkeleton, SparseCholesky
+
+    u = N.shape[0] // d
+    Nb = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
+    Nb.sort_indices()
+    rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
+    cols_n = Nb.indices.astype(np.int64)
+    tr, th = t[rest], t[hubs]
+    r, h = tr.size, th.size
+    # the skeleton's pairs: the band among the others, every hub with every target
+    bi = np.repeat(np.arange(r), w + 1)
+    bj = bi + np.tile(np.arange(w + 1), r)
+    ok = bj < r
+    bi, bj = bi[ok], bj[ok]
+    hub_a = np.repeat(np.arange(h), r)
+    rest_i = np.tile(np.arange(r), h)
+    pa = np.concatenate([tr[bi], th[hub_a], np.repeat(th, h)])
+    pc = np.concatenate([tr[bj], tr[rest_i], np.tile(th, h)])
+    diag = np.arange(u, dtype=np.int64)
+    pattern = BlockPattern(np.concatenate([rows_n, diag, np.maximum(pa, pc)]),
+                           np.concatenate([cols_n, diag, np.minimum(pa, pc)]), d, u)
+    blocks = np.zeros((rows_n.size + u + pa.size, d, d))
+    blocks[:rows_n.size] = Nb.data
+    chol = SparseCholesky(pattern, pattern.assemble(blocks))
+    x = None if rhs is None else chol.solve(rhs)
+    S = SelectedInverse(chol).blocks(pa, pc)  # Sigma_{pa, pc}
+    band = np.zeros((r, w + 1, d, d))
+    band[bi, bj - bi] = S[:bi.size]
+    cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)
+    hub_cov = S[bi.size + h * r:].reshape(h, h, d, d).transpose(0, 2, 1, 3).reshape(h * d, h * d)
+    return CovarianceSkeleton(rest, hubs, band, cross, 0.5 * (hub_cov + hub_cov.T)), x

@@ -84,7 +84,7 @@ from ga_ros.core.solver import (
     normal_matrix_at,
     solve,
 )
-from ga_ros.core.sparse import BlockPattern, sparse_skeleton, spd_inverse, trailing_factor
+from ga_ros.core.sparse import BlockPattern, spd_inverse, trailing_factor
 from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
@@ -1325,7 +1325,7 @@ class TrackWindowAligner:
             # selected inversion of N along the strip, its maximum-entropy completion, and the
             # exact step H^-1 g (the kept part of N^-1 u); refinement.band_prior
             try:
-                skel, x = sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
+                skel, x = selinv.sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
                                           coords=self._T[free_idx, :3, 3], rhs=u)
                 step = x.reshape(-1, 6)[~elim].ravel()
                 mean, K = band_prior(self._T[S_nodes], skel, step)
