@@ -65,6 +65,34 @@ def test_banded_selection_equals_the_dense_inverse_on_the_band(w):
     np.testing.assert_allclose(sel.solution, np.linalg.solve(M, rhs), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize('compiled', [True, False])
+@pytest.mark.parametrize(('w', 'hubs'), [(0, 0), (2, 3), (5, 4)])
+def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compiled,
+                                                                  monkeypatch):
+    """Both ways to the skeleton (selected inversion on the sparse factor with the skeleton's
+    pairs added to its pattern; the banded selection with hub columns by solves) against the
+    dense inverse, the step ``N^-1 rhs`` against a dense solve."""
+    from ga_ros.core import selinv
+
+    if compiled and not selinv.COMPILED:
+        pytest.skip('numba is not installed')
+    monkeypatch.setattr(selinv, 'COMPILED', compiled)
+    rng = np.random.default_rng(12)
+    M = _strip_matrix(rng, 40, reach=2)
+    targets = rng.permutation(40)[:25]
+    rhs = rng.normal(size=40 * D)
+    skel, x = selinv.sparse_skeleton(sp.csr_matrix(M), D, targets, w, hubs, rhs=rhs)
+    Sigma = np.linalg.inv(M)
+    ref = CovarianceSkeleton.of_dense(Sigma[np.ix_(_scalar(targets), _scalar(targets))], D, w,
+                                      hubs)
+    atol = 1e-12 * np.abs(Sigma).max()
+    np.testing.assert_array_equal(skel.rest, ref.rest)
+    np.testing.assert_array_equal(skel.hubs, ref.hubs)
+    for name in ('band', 'cross', 'hub_cov'):
+        np.testing.assert_allclose(getattr(skel, name), getattr(ref, name), rtol=0, atol=atol)
+    np.testing.assert_allclose(x, np.linalg.solve(M, rhs), rtol=1e-10, atol=1e-12)
+
+
 def test_banded_selection_refuses_a_singular_matrix():
     from ga_ros.errors import DegenerateGeometryError
 

@@ -232,13 +232,19 @@ def test_each_update_equals_the_batch_re_solve_of_its_window():
     assert checked >= 3  # several updates with joint priors over frozen nodes
 
 
+@pytest.mark.parametrize('compiled', [True, False])
 @pytest.mark.parametrize('policy', ['weighted', 'marginal'])
-def test_partial_factorisation_freeze_equals_the_dense_one(policy, monkeypatch):
-    """Freezing by a partial sparse factorisation (leaving nodes or kept nodes ordered last)
-    gives the covariances and joint priors of the dense Schur complement / selected
-    inversion."""
+def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, monkeypatch):
+    """Freezing by a partial sparse factorisation (leaving nodes or kept nodes ordered last;
+    with the compiled kernels, the leaving nodes' covariances by selected inversion on the last
+    solve's factor) gives the covariances and joint priors of the dense Schur complement /
+    sparse solves."""
     import ga_ros.core.window as window
+    from ga_ros.core import selinv
 
+    if compiled and not selinv.COMPILED:
+        pytest.skip('numba is not installed')
+    monkeypatch.setattr(selinv, 'COMPILED', compiled)
     sc, nm, ms = _survey(n_tracks=5, per_swath=10, pct=3.0, seed=2)
     cfg = AlignerConfig(window_tracks=2, freeze_policy=policy)
     runs = []

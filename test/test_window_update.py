@@ -226,3 +226,30 @@ def test_a_handed_over_factor_gives_the_same_solution_and_the_donor_stays_usable
     np.testing.assert_allclose(reused.covariance([5, 17]), fresh.covariance([5, 17]),
                                rtol=1e-10, atol=0)
     np.testing.assert_allclose(first.covariance([5, 17]), cov_first, rtol=1e-10, atol=0)
+
+
+def test_freeze_covariances_by_selected_inversion_keep_the_analysis_for_the_next_solve():
+    """The leaving nodes' covariances by selected inversion on the last solve's own factor
+    equal the dense inverse of its normal matrix; the factor handed on afterwards keeps its
+    symbolic analysis, and a solve with it equals a fresh one."""
+    from ga_ros.core import selinv
+    from ga_ros.core.solver import solve
+    from ga_ros.core.window import _marginal_covariances
+
+    if not selinv.COMPILED:
+        pytest.skip('numba is not installed')
+    sc, nm, _ = noisy_aerial_survey(3, 10, 3.0, 1)
+    net, T0 = sc.network(nm.z, nm.cov), sc.f2f(nm.z)
+    cfg = SolverConfig(tolerance=1e-10)
+    res = solve(net, T0, cfg)
+    ids = res.free_node_ids[:40]
+    Sigma = np.linalg.inv(res.normal_matrix.toarray())
+    ref = np.stack([Sigma[6 * k:6 * k + 6, 6 * k:6 * k + 6] for k in range(40)])
+    got = _marginal_covariances(res, ids)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    factor = res.release_factor()
+    assert factor is not None and factor._symbolic is not None  # the analysis survives
+    T1 = T0 @ se3.exp(np.full((T0.shape[0], 6), 1e-3))
+    reused = solve(net, T1, cfg, factor=factor)
+    fresh = solve(net, T1, cfg)
+    np.testing.assert_allclose(reused.T_world_node, fresh.T_world_node, rtol=0, atol=1e-12)

@@ -7,33 +7,31 @@ last column back, without any column of ``N^-1``):
   on the pattern of ``L`` (every node block and every connected pair), time about that of the
   factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
   surveys; quality control).
-* :func:`banded_marginal_blocks`, on the banded ``N``: with a bandwidth-reducing node ordering
-  (reverse Cuthill-McKee) a survey's normal matrix is banded with half-bandwidth ``b``; cut into
-  ``b x b`` blocks it is block tridiagonal. Its block Cholesky factor ``N = L L'`` (diagonal
-  blocks ``D_k``, sub-diagonal blocks ``C_k``) and the backward recursion::
-
-    Sigma_KK = D_K^-T D_K^-1
-    Sigma_kk = D_k^-T (I + C_k' Sigma_{k+1,k+1} C_k) D_k^-1
-
-  give every diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother
-  in information form). For a window of five lawnmower tracks (6,000 unknowns) this is a few
-  tens of milliseconds and needs no compiled kernel; for a whole survey the memory
-  (unknowns x band) is prohibitive.
+* :func:`banded_marginal_blocks`, on the banded ``N`` (the block-tridiagonal selected inversion
+  of :func:`ga_ros.core.sparse.banded_selection`, which also serves the sparse joint priors):
+  with a bandwidth-reducing node ordering (reverse Cuthill-McKee, or the principal axis) a
+  survey's normal matrix is banded; cut into blocks of the band's width it is block
+  tridiagonal, and its block Cholesky factor and Takahashi's backward recursion give every
+  diagonal block in ``O(n b^2)`` operations and ``O(n b)`` memory (the RTS smoother in
+  information form). For a window of five lawnmower tracks (6,000 unknowns) this needs no
+  compiled kernel; for a whole survey the memory (unknowns x band) is prohibitive.
 """
 
 from __future__ import annotations
 
 import ctypes
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
 from ga_ros.errors import DegenerateGeometryError
+
+if TYPE_CHECKING:
+    from ga_ros.core.sparse import CovarianceSkeleton
 
 
 def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
@@ -41,15 +39,9 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
                            coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
-    Nodes of high degree (e.g. those of a dense joint prior) would widen the band of every other
-    node; they can be ordered last as a dense border ``P`` (an arrowhead matrix), the others
-    ``Q`` keep their narrow band. The border rows of the factor and the Schur complement::
-
-        L_Pk = (N_Pk - L_P,k-1 C_k-1') D_k^-T,    S = D_P D_P' = N_PP - sum_k L_Pk L_Pk'
-
-    give ``Sigma_QQ = N_QQ^-1 + Z S^-1 Z'`` with ``Z = N_QQ^-1 N_QP = L_QQ^-T L_P'`` (block
-    back substitution), evaluated only for the wanted rows; ``Sigma_PP = S^-1``.
-    The plan (border or not, ordering of ``Q``) with the smaller operation count is used.
+    The block-tridiagonal selected inversion of :func:`~ga_ros.core.sparse.banded_selection`
+    with a band of width 0 (nodes of high degree, e.g. those of a dense joint prior, ordered
+    last as a dense border).
 
     Parameters
     ----------
@@ -57,8 +49,8 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     d : block size (parameters per node).
     max_band : give up (return ``None``) if the reordered half-bandwidth or the border exceeds
         this many scalars; the caller then uses sparse solves.
-    wanted : optional (k,) node blocks that are needed; the backward recursion stops once it
-        has passed them (blocks of other nodes are left as NaN). Default: all nodes.
+    wanted : optional (k,) node blocks that are needed (blocks of other nodes are left as NaN).
+        Default: all nodes.
     coords : optional (u, 3) node positions. Besides reverse Cuthill-McKee, the ordering along
         their principal axis is tried (for a survey strip it gives a narrower band); the
         ordering with the smaller band is used.
@@ -67,151 +59,17 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     -------
     (u, d, d) covariance blocks in the original node order, or ``None`` (band too wide).
     """
-    N = sp.csr_matrix(N)
-    n = N.shape[0]
-    u = n // d
-    coo = N.tocoo()
-    rows_n, cols_n = coo.row // d, coo.col // d
-    G = sp.coo_matrix((np.ones(coo.nnz), (rows_n, cols_n)), shape=(u, u)).tocsr()
-    plans = [_plan(G, rows_n, cols_n, coords, np.zeros(u, dtype=bool), d)]
-    degree = np.diff(G.indptr)
-    if u > 2:
-        dense = degree > max(16.0, 4.0 * float(np.median(degree)))
-        if 0 < dense.sum() < u // 2:
-            plans.append(_plan(G, rows_n, cols_n, coords, dense, d))
-    order_q, border, b, _ = min(plans, key=lambda plan: plan[3])
-    p = border.size * d
-    if b > max_band or p > max_band:
+    from ga_ros.core.sparse import banded_selection  # lazy: cvxopt
+
+    u = N.shape[0] // d
+    nodes = np.arange(u, dtype=np.int64) if wanted is None or len(wanted) == 0 else \
+        np.unique(np.asarray(wanted, dtype=np.int64))
+    sel = banded_selection(N, d, nodes, 0, coords=coords, max_band=max_band)
+    if sel is None:
         return None
-    order = np.concatenate([order_q, border])
-    nq = order_q.size * d
-    pos = np.empty(u, dtype=np.int64)
-    pos[order] = np.arange(u)
-    if wanted is None or len(wanted) == 0:
-        first_needed = 0
-    else:
-        wpos = pos[np.asarray(wanted, dtype=np.int64)]
-        wpos = wpos[wpos < order_q.size]
-        first_needed = int(wpos.min()) if wpos.size else order_q.size
-    perm = (order[:, None] * d + np.arange(d)[None, :]).ravel()
-    inv = np.empty(n, dtype=np.int64)
-    inv[perm] = np.arange(n)
-    r, c = inv[coo.row], inv[coo.col]
-    nb = max(-(-nq // b), 1)
-    size = nb * b
-    # dense diagonal and sub-diagonal blocks of the banded part (padded with identity), the
-    # border rows E (p, b) per block and the border's own block
-    inq = (r < nq) & (c < nq)
-    rq, cq, vq = r[inq], c[inq], coo.data[inq]
-    br, bc = rq // b, cq // b
-    diag = br == bc
-    lin = (br[diag] * b + rq[diag] % b) * b + cq[diag] % b
-    A = np.bincount(lin, weights=vq[diag], minlength=nb * b * b).reshape(nb, b, b)
-    low = br == bc + 1
-    lin = (bc[low] * b + rq[low] % b) * b + cq[low] % b
-    C = np.bincount(lin, weights=vq[low],
-                    minlength=max(nb - 1, 0) * b * b).reshape(max(nb - 1, 0), b, b)
-    bord = (r >= nq) & (c < nq)
-    lin = ((c[bord] // b) * p + (r[bord] - nq)) * b + c[bord] % b
-    E = np.bincount(lin, weights=coo.data[bord],
-                    minlength=nb * p * b).reshape(nb, p, b).astype(float)
-    pp = (r >= nq) & (c >= nq)
-    App = np.bincount((r[pp] - nq) * p + (c[pp] - nq), weights=coo.data[pp],
-                      minlength=p * p).reshape(p, p).astype(float)
-    pad = np.arange(nq, size)
-    A[pad // b, pad % b, pad % b] = 1.0
-    # block Cholesky: D_k D_k' = A_k - C_{k-1} C_{k-1}'; C_k <- C_k D_k^-T; border rows likewise
-    Dinv = np.empty_like(A)
-    eye = np.eye(b)
-    for k in range(nb):
-        if k:
-            A[k] -= C[k - 1] @ C[k - 1].T
-            E[k] -= E[k - 1] @ C[k - 1].T
-        Dinv[k] = _inverse_factor(A[k], eye)
-        if k < nb - 1:
-            C[k] = C[k] @ Dinv[k].T
-        E[k] = E[k] @ Dinv[k].T
-    if p:
-        Ecat = np.concatenate(list(E), axis=1)
-        App -= Ecat @ Ecat.T
     out = np.full((u, d, d), np.nan)
-    Dp = np.zeros((0, 0))
-    if p:
-        Dp = _inverse_factor(App, np.eye(p))
-        Spp = Dp.T @ Dp
-        for q in range(border.size):
-            out[border[q]] = Spp[q * d:(q + 1) * d, q * d:(q + 1) * d]
-    want = np.ones(order_q.size, dtype=bool)
-    if wanted is not None and len(wanted):
-        want[:] = False
-        wpos = pos[np.asarray(wanted, dtype=np.int64)]
-        want[wpos[wpos < order_q.size]] = True
-    # backward recursion over the diagonal blocks of N_QQ^-1, plus the border's share
-    # Z S^-1 Z' with Z = N_QQ^-1 N_QP = L_QQ^-T L_P' (back substitution) for wanted rows only
-    Sigma_next = None
-    Z = np.zeros((b, p))
-    stop = (first_needed * d) // b
-    for k in range(nb - 1, min(stop, nb) - 1, -1):
-        if Sigma_next is None:
-            S = Dinv[k].T @ Dinv[k]
-            Z = Dinv[k].T @ E[k].T
-        else:
-            S = Dinv[k].T @ (eye + C[k].T @ Sigma_next @ C[k]) @ Dinv[k]
-            Z = Dinv[k].T @ (E[k].T - C[k].T @ Z)
-        Sigma_next = S
-        lo, hi = k * b, min((k + 1) * b, nq)
-        qs = np.arange(lo // d, hi // d)
-        qs = qs[want[qs]]
-        if qs.size == 0:
-            continue
-        rows = ((qs - lo // d)[:, None] * d + np.arange(d)).ravel()
-        blocks = S[rows[:, None], rows[None, :]].reshape(qs.size, d, qs.size, d)
-        blocks = blocks[np.arange(qs.size), :, np.arange(qs.size), :]
-        if p:
-            W = (Z[rows] @ Dp.T).reshape(qs.size, d, p)
-            blocks = blocks + W @ np.swapaxes(W, 1, 2)
-        out[order[qs]] = blocks
+    out[nodes] = sel.band[:, 0]
     return 0.5 * (out + np.swapaxes(out, 1, 2))
-
-
-def _inverse_factor(A: FloatArray, eye: FloatArray) -> FloatArray:
-    """``D^-1`` of the lower Cholesky factor ``D D' = A``."""
-    try:
-        D = np.linalg.cholesky(A)
-    except np.linalg.LinAlgError as exc:
-        raise DegenerateGeometryError('normal matrix is not positive definite') from exc
-    return sla.solve_triangular(D, eye, lower=True)
-
-
-def _plan(G: sp.csr_matrix, rows_n: np.ndarray, cols_n: np.ndarray,
-          coords: np.ndarray | None, border: np.ndarray,
-          d: int) -> tuple[np.ndarray, np.ndarray, int, float]:
-    """Ordering of the non-border nodes, the border nodes, the block size ``b`` (scalars) and
-    an operation count of the selected inversion with that plan."""
-    u = G.shape[0]
-    q_nodes = np.nonzero(~border)[0]
-    p_nodes = np.nonzero(border)[0]
-    Gq = G[q_nodes][:, q_nodes]
-    candidates = [q_nodes[reverse_cuthill_mckee(Gq, symmetric_mode=True)]]
-    if coords is not None and len(coords) == u and q_nodes.size > 2:
-        xyz = np.asarray(coords, dtype=float)[q_nodes]
-        xyz = xyz - np.mean(xyz, axis=0)
-        axis = np.linalg.svd(xyz, full_matrices=False)[2][0]
-        candidates.append(q_nodes[np.argsort(xyz @ axis, kind='stable')])
-    both = ~border[rows_n] & ~border[cols_n]
-    rq, cq = rows_n[both], cols_n[both]
-
-    def node_band(order: np.ndarray) -> int:
-        pos = np.empty(u, dtype=np.int64)
-        pos[order] = np.arange(order.size)
-        return int(np.abs(pos[rq] - pos[cq]).max()) if rq.size else 0
-
-    bands = [node_band(o) for o in candidates]
-    best = int(np.argmin(bands))
-    b = (bands[best] + 1) * d
-    nq, p = q_nodes.size * d, p_nodes.size * d
-    cost = nq * (4.0 * b * b + 4.0 * p * b + 2.0 * p * p) + p ** 3
-    return candidates[best], p_nodes, b, cost
 
 
 # ------------------------------------------------------------ selected inversion on a factor
@@ -233,6 +91,52 @@ def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
     cont = (count[:-1] > 1) & (np.asarray(rowind)[second] == j + 1) & (count[1:] == count[:-1] - 1)
     starts = np.concatenate([[0], np.nonzero(~cont)[0] + 1, [n]])
     return starts.astype(np.int64)
+
+
+def _lower_inverse_py(Ljj):  # pragma: no cover - without numba only
+    """``(L^-1, L^-T L^-1)`` of a lower-triangular ``L`` (general inverse and product)."""
+    Linv = np.tril(np.linalg.inv(Ljj))
+    return Linv, Linv.T @ Linv
+
+
+def _lapack_symbol(name: str, nargs: int) -> bool:
+    """Register SciPy's LAPACK routine ``name`` (``scipy.linalg.cython_lapack``) with LLVM as
+    ``ga_ros_<name>``, for the compiled kernels (a named symbol keeps them cacheable on disk,
+    which a ctypes pointer would not). ``False`` if it cannot be found."""
+    try:
+        import llvmlite.binding as llvm
+        from scipy.linalg import cython_lapack
+
+        api = ctypes.pythonapi
+        api.PyCapsule_GetName.restype = ctypes.c_char_p
+        api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+        api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+        api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+        cap = cython_lapack.__pyx_capi__[name]
+        address = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
+        llvm.add_symbol(f'ga_ros_{name}', address)
+    except (ImportError, KeyError, ValueError, TypeError):  # pragma: no cover
+        return False
+    return True
+
+
+def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
+    """:func:`_lower_inverse_py` by LAPACK's ``dtrtri`` and ``dlauum`` (``m^3 / 3`` flops each,
+    against ``~4 m^3`` for a general inverse and product); only the lower triangle of the
+    second matrix is set. A C-ordered lower triangle is LAPACK's column-major upper one."""
+    m = Ljj.shape[0]
+    Linv = Ljj.copy()
+    ints = np.array([m, 0], dtype=np.int32)  # n = lda, info
+    chars = np.array([85, 78], dtype=np.int8)  # 'U', 'N'
+    _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, Linv.ctypes.data,
+            ints.ctypes.data, ints.ctypes.data + 4)
+    Sjj = Linv.copy()
+    _dlauum(chars.ctypes.data, ints.ctypes.data, Sjj.ctypes.data, ints.ctypes.data,
+            ints.ctypes.data + 4)
+    return Linv, Sjj
+
+
+_lower_inverse = _lower_inverse_py
 
 
 def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no cover - compiled
@@ -269,11 +173,7 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no co
                 Ljj[a, i] = x[q + a]
             for a in range(r):
                 Lbj[a, i] = x[q + m + a]
-        Linv = np.linalg.inv(Ljj)
-        for i in range(m):  # exactly lower triangular
-            for a in range(i):
-                Linv[a, i] = 0.0
-        Sjj = Linv.T @ Linv
+        Linv, Sjj = _lower_inverse(Ljj)  # Sjj: lower triangle of L_JJ^-T L_JJ^-1
         Sbj = np.empty((r, m))
         if r:
             U = Lbj @ Linv
@@ -348,6 +248,7 @@ def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragm
 
 
 _KERNELS: dict = {}
+_dtrtri = _dlauum = None  # LAPACK routines of the compiled kernels (see _kernel)
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
 COMPILED = AVAILABLE
@@ -355,12 +256,21 @@ COMPILED = AVAILABLE
 
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
+    global _lower_inverse, _dtrtri, _dlauum
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
         if COMPILED:
             import numba
 
+            if _lower_inverse is _lower_inverse_py and _lapack_symbol('dtrtri', 6) \
+                    and _lapack_symbol('dlauum', 5):
+                p = numba.types.intp
+                _dtrtri = numba.types.ExternalFunction('ga_ros_dtrtri', numba.types.void(
+                    p, p, p, p, p, p))
+                _dlauum = numba.types.ExternalFunction('ga_ros_dlauum', numba.types.void(
+                    p, p, p, p, p))
+                _lower_inverse = numba.njit(cache=True, nogil=True)(_lower_inverse_lapack)
             fn = numba.njit(cache=True, nogil=True)(fn)
         _KERNELS[name] = fn
     return fn
@@ -537,3 +447,89 @@ class SelectedInverse:
         nodes = np.asarray(nodes, dtype=np.int64)
         out = self.blocks(nodes, nodes)
         return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+# ------------------------------------------------ the covariance skeleton of a sparse prior
+def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
+                    coords: FloatArray | None = None, rhs: FloatArray | None = None
+                    ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
+    (in band order) from a sparse ``N``, and ``N^-1 rhs``.
+
+    With the compiled kernels: the skeleton's block pairs are added to the pattern of ``N`` (as
+    explicit zeros), so that they lie on the pattern of its sparse Cholesky factor, and
+    Takahashi's selected inversion on that factor
+    (:class:`~ga_ros.core.selinv.SelectedInverse`) gives all of them at once; the fill of a
+    band of ``w`` nodes and ``h`` hub rows is linear in the number of targets. Without: the
+    band by :func:`banded_selection`, the hubs' columns by solves with the same factor
+    (``h d`` right-hand sides). Both exact and linear in the number of nodes for a strip.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        ``N`` is not positive definite.
+    """
+    from ga_ros.core.sparse import (
+        CovarianceSkeleton,
+        _cholmod,
+        banded_selection,
+        skeleton_layout,
+    )
+
+    t = np.asarray(targets, dtype=np.int64)
+    rest, hubs = skeleton_layout(t.size, w, n_hubs)
+    if COMPILED and _cholmod is not None:
+        return _selected_skeleton(N, d, t, rest, hubs, w, rhs)
+    n = N.shape[0]
+    E = np.zeros((n, hubs.size * d))
+    for a, node in enumerate(t[hubs].tolist()):
+        E[node * d:(node + 1) * d, a * d:(a + 1) * d] = np.eye(d)
+    b = E if rhs is None else np.column_stack([np.reshape(rhs, (n, -1)), E])
+    sel = banded_selection(N, d, t[rest], w, coords=coords, rhs=b)
+    X = sel.solution[:, b.shape[1] - E.shape[1]:]  # Sigma_{., hubs}
+    h = hubs.size
+    u = n // d
+    cross = X.reshape(u, d, h, d)[t[rest]].transpose(2, 0, 3, 1)  # (h, r, d, d): Sigma_{a, r}
+    hub_cov = X.reshape(u, d, h * d)[t[hubs]].reshape(h * d, h * d)
+    x = None
+    if rhs is not None:
+        x = sel.solution[:, :b.shape[1] - E.shape[1]].reshape(np.shape(rhs))
+    return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
+
+
+def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                       w: int, rhs: FloatArray | None
+                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
+    skeleton's pairs added to its pattern."""
+    from ga_ros.core.sparse import BlockPattern, CovarianceSkeleton, SparseCholesky
+
+    u = N.shape[0] // d
+    Nb = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
+    Nb.sort_indices()
+    rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
+    cols_n = Nb.indices.astype(np.int64)
+    tr, th = t[rest], t[hubs]
+    r, h = tr.size, th.size
+    # the skeleton's pairs: the band among the others, every hub with every target
+    bi = np.repeat(np.arange(r), w + 1)
+    bj = bi + np.tile(np.arange(w + 1), r)
+    ok = bj < r
+    bi, bj = bi[ok], bj[ok]
+    hub_a = np.repeat(np.arange(h), r)
+    rest_i = np.tile(np.arange(r), h)
+    pa = np.concatenate([tr[bi], th[hub_a], np.repeat(th, h)])
+    pc = np.concatenate([tr[bj], tr[rest_i], np.tile(th, h)])
+    diag = np.arange(u, dtype=np.int64)
+    pattern = BlockPattern(np.concatenate([rows_n, diag, np.maximum(pa, pc)]),
+                           np.concatenate([cols_n, diag, np.minimum(pa, pc)]), d, u)
+    blocks = np.zeros((rows_n.size + u + pa.size, d, d))
+    blocks[:rows_n.size] = Nb.data
+    chol = SparseCholesky(pattern, pattern.assemble(blocks))
+    x = None if rhs is None else chol.solve(rhs)
+    S = SelectedInverse(chol).blocks(pa, pc)  # Sigma_{pa, pc}
+    band = np.zeros((r, w + 1, d, d))
+    band[bi, bj - bi] = S[:bi.size]
+    cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)
+    hub_cov = S[bi.size + h * r:].reshape(h, h, d, d).transpose(0, 2, 1, 3).reshape(h * d, h * d)
+    return CovarianceSkeleton(rest, hubs, band, cross, 0.5 * (hub_cov + hub_cov.T)), x

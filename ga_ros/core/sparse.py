@@ -457,7 +457,8 @@ class BandSelection:
 
 def banded_selection(N: sp.spmatrix, d: int, targets: IntArray, w: int,
                      coords: FloatArray | None = None,
-                     rhs: FloatArray | None = None) -> BandSelection:
+                     rhs: FloatArray | None = None,
+                     max_band: int | None = None) -> BandSelection | None:
     """Blocks ``Sigma_{t_i, t_j}``, ``|i - j| <= w``, of ``Sigma = N^-1`` (selected inversion).
 
     The nodes are ordered along a narrow band (reverse Cuthill-McKee of the block graph, or
@@ -485,6 +486,8 @@ def banded_selection(N: sp.spmatrix, d: int, targets: IntArray, w: int,
     w : half-bandwidth of the band in targets (>= 0).
     coords : optional (u, 3) node positions (their principal axis is tried as an ordering).
     rhs : optional (d u,) or (d u, k) right-hand side, solved with the same factor.
+    max_band : give up (return ``None``) if a diagonal block of the factorisation or the border
+        would exceed this many scalars (the caller then takes another way). Default: no limit.
 
     Raises
     ------
@@ -506,17 +509,23 @@ def banded_selection(N: sp.spmatrix, d: int, targets: IntArray, w: int,
     border = degree > max(16.0, 4.0 * float(np.median(degree))) if u > 2 else \
         np.zeros(u, dtype=bool)
     if not 0 < border.sum() < u // 2:
-        blocks, x, bn = _banded_pairs(N, d, pa, pc, coords, rhs)
+        out = _banded_pairs(N, d, pa, pc, coords, rhs, max_band)
+    elif max_band is not None and int(border.sum()) * d > max_band:
+        out = None
     else:
-        blocks, x, bn = _bordered_pairs(N, d, border, pa, pc, coords, rhs)
+        out = _bordered_pairs(N, d, border, pa, pc, coords, rhs, max_band)
+    if out is None:
+        return None
+    blocks, x, bn = out
     band = np.zeros((m, w + 1, d, d))
     band[pair_i, pair_j - pair_i] = blocks
     return BandSelection(band, x, bn)
 
 
 def _bordered_pairs(N: sp.csr_matrix, d: int, border: np.ndarray, pa: IntArray, pc: IntArray,
-                    coords: FloatArray | None, rhs: FloatArray | None
-                    ) -> tuple[FloatArray, FloatArray | None, int]:
+                    coords: FloatArray | None, rhs: FloatArray | None,
+                    max_band: int | None = None
+                    ) -> tuple[FloatArray, FloatArray | None, int] | None:
     """:func:`_banded_pairs` with the ``border`` nodes eliminated last (see
     :func:`banded_selection`)."""
     u = N.shape[0] // d
@@ -530,8 +539,11 @@ def _bordered_pairs(N: sp.csr_matrix, d: int, border: np.ndarray, pa: IntArray, 
     r = None if rhs is None else np.reshape(np.asarray(rhs, dtype=float), (N.shape[0], -1))
     b = NQP if r is None else np.column_stack([NQP, r[qs]])
     both_q = ~border[pa] & ~border[pc]
-    blk_q, y, bn = _banded_pairs(N[qs][:, qs], d, local[pa[both_q]], local[pc[both_q]],
-                                 None if coords is None else np.asarray(coords)[q_nodes], b)
+    inner = _banded_pairs(N[qs][:, qs], d, local[pa[both_q]], local[pc[both_q]],
+                          None if coords is None else np.asarray(coords)[q_nodes], b, max_band)
+    if inner is None:
+        return None
+    blk_q, y, bn = inner
     p = ps.size
     Z = y[:, :p]
     S = N[ps][:, ps].toarray() - NQP.T @ Z
@@ -566,10 +578,12 @@ def _bordered_pairs(N: sp.csr_matrix, d: int, border: np.ndarray, pa: IntArray, 
 
 
 def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
-                  coords: FloatArray | None, rhs: FloatArray | None
-                  ) -> tuple[FloatArray, FloatArray | None, int]:
+                  coords: FloatArray | None, rhs: FloatArray | None,
+                  max_band: int | None = None
+                  ) -> tuple[FloatArray, FloatArray | None, int] | None:
     """Blocks ``Sigma_{pa_k, pc_k}`` of ``N^-1`` and ``N^-1 rhs`` by the block-tridiagonal
-    selected inversion of :func:`banded_selection` (no border), and the block size (nodes)."""
+    selected inversion of :func:`banded_selection` (no border), and the block size (nodes);
+    ``None`` if a block would exceed ``max_band`` scalars."""
     N = sp.coo_matrix(N)
     u = N.shape[0] // d
     rn, cn = N.row // d, N.col // d
@@ -585,6 +599,8 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
     reach, order, pos = best
     bn = min(reach + 1, max(u, 1))
     b = bn * d
+    if max_band is not None and b > max_band:
+        return None
     nb = -(-u // bn)
     # scalar position of each entry of N; diagonal and sub-diagonal blocks, identity padding
     pr = pos[rn] * d + N.row % d
@@ -732,38 +748,6 @@ class CovarianceSkeleton:
         return _completion(self.band, self.cross, self.hub_cov, self.rest, self.hubs)
 
 
-def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
-                    coords: FloatArray | None = None, rhs: FloatArray | None = None
-                    ) -> tuple[CovarianceSkeleton, FloatArray | None]:
-    """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
-    (in band order) from a sparse ``N``, and ``N^-1 rhs``: the band by
-    :func:`banded_selection`, the hubs' columns by solves with the same factor
-    (``h d`` right-hand sides). Linear in the number of nodes for a strip.
-
-    Raises
-    ------
-    DegenerateGeometryError
-        ``N`` is not positive definite.
-    """
-    t = np.asarray(targets, dtype=np.int64)
-    rest, hubs = skeleton_layout(t.size, w, n_hubs)
-    n = N.shape[0]
-    E = np.zeros((n, hubs.size * d))
-    for a, node in enumerate(t[hubs].tolist()):
-        E[node * d:(node + 1) * d, a * d:(a + 1) * d] = np.eye(d)
-    b = E if rhs is None else np.column_stack([np.reshape(rhs, (n, -1)), E])
-    sel = banded_selection(N, d, t[rest], w, coords=coords, rhs=b)
-    X = sel.solution[:, b.shape[1] - E.shape[1]:]  # Sigma_{., hubs}
-    h = hubs.size
-    u = n // d
-    cross = X.reshape(u, d, h, d)[t[rest]].transpose(2, 0, 3, 1)  # (h, r, d, d): Sigma_{a, r}
-    hub_cov = X.reshape(u, d, h * d)[t[hubs]].reshape(h * d, h * d)
-    x = None
-    if rhs is not None:
-        x = sel.solution[:, :b.shape[1] - E.shape[1]].reshape(np.shape(rhs))
-    return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
-
-
 def band_information(band: FloatArray) -> sp.bsr_matrix:
     """:meth:`CovarianceSkeleton.information` of a band alone (no hubs): ``band`` (m, w + 1,
     d, d), ``band[i, j] = Sigma_{i, i+j}``."""
@@ -847,33 +831,50 @@ def spd_inverse(M: FloatArray, error: str) -> FloatArray:
 
 def _band_completion(band: FloatArray) -> FloatArray:
     """``K`` on the band (``(r, w + 1, d, d)``, ``K[i, j] = K_{i, i+j}``) of the maximum-entropy
-    completion of a covariance band: cliques ``C_k = {k..k+w}``, separators ``{k+1..k+w}``."""
+    completion of a covariance band (cliques ``C_k = {k..k+w}``, separators ``{k+1..k+w}``).
+
+    The completion of a band is a Markov chain of order ``w`` along the nodes: node ``i`` given
+    the ``w`` nodes after it (``F_i``) is ``x_i = B_i x_F + e_i``, ``B_i = Sigma_iF Sigma_FF^-1``,
+    ``D_i = Sigma_ii - B_i Sigma_Fi``, so ``K = sum_i G_i' D_i^-1 G_i`` with ``G_i = [I, -B_i]``
+    over ``{i} + F_i``. Equal to the clique formula of
+    :meth:`CovarianceSkeleton.information` (one solve with each separator instead of the
+    inverses of every clique and separator; batched over the nodes, the last ones padded with
+    identity blocks beyond the end).
+    """
     r, w1, d, _ = band.shape
     w = min(w1 - 1, r - 1)
-    pos_a, pos_b = np.meshgrid(np.arange(w + 1), np.arange(w + 1), indexing='ij')
-
-    def clique_cov(first: IntArray, size: int) -> FloatArray:
-        a, b = pos_a[:size, :size], pos_b[:size, :size]
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        blk = band[first[:, None, None] + lo[None], (hi - lo)[None]]  # (q, size, size, d, d)
-        blk = np.where((a > b)[None, :, :, None, None], np.swapaxes(blk, -1, -2), blk)
-        return blk.transpose(0, 1, 3, 2, 4).reshape(first.size, size * d, size * d)
-
-    Kband = np.zeros((r, w + 1, d, d))
-
-    def scatter(first: IntArray, Kq: FloatArray, size: int, sign: float) -> None:
-        Kq = Kq.reshape(first.size, size, d, size, d).transpose(0, 1, 3, 2, 4)
-        up = pos_a[:size, :size] <= pos_b[:size, :size]
-        aa, bb = pos_a[:size, :size][up], pos_b[:size, :size][up]
-        rows = (first[:, None] + aa[None]).ravel()
-        offs = np.broadcast_to(bb - aa, (first.size, aa.size)).ravel()
-        np.add.at(Kband, (rows, offs), sign * Kq[:, aa, bb].reshape(-1, d, d))
-
-    starts = np.arange(r - w)
-    scatter(starts, _spd_inverse(clique_cov(starts, w + 1)), w + 1, 1.0)
-    if w > 0 and starts.size > 1:
-        scatter(starts[1:], _spd_inverse(clique_cov(starts[1:], w)), w, -1.0)
-    return Kband
+    if w <= 0:  # single-node cliques
+        return _spd_inverse(band[:, 0])[:, None]
+    # the band and w padding nodes after the end (identity covariance, uncorrelated)
+    ext = np.zeros((r + w, w + 1, d, d))
+    ext[:r] = band[:, :w + 1]
+    for j in range(1, w + 1):
+        ext[r - j:r, j] = 0.0  # beyond the last node
+    ext[r:, 0] = np.eye(d)
+    # separators Sigma_FF (w d x w d) and Sigma_Fi (w d x d) of every node, by slices
+    sep = np.empty((r, w, d, w, d))
+    for a in range(w):  # row a of F_i is node i + 1 + a
+        sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
+        sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
+    sep = sep.reshape(r, w * d, w * d)
+    cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
+    try:
+        np.linalg.cholesky(sep)  # positive definite separators (and D_i below: the cliques)
+        Bt = np.linalg.solve(sep, cross)  # (r, w d, d): B_i'
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
+                                      'definite') from exc
+    Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
+    Dinv = _spd_inverse(Dm)  # (r, d, d)
+    G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
+                        -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)
+    Ki = np.swapaxes(G, 1, 2) @ Dinv @ G  # (r, (w + 1) d, (w + 1) d)
+    Ki = Ki.reshape(r, w + 1, d, w + 1, d)
+    Kband = np.zeros((r + w, w + 1, d, d))
+    for p in range(w + 1):
+        for q in range(p, w + 1):
+            Kband[p:p + r, q - p] += Ki[:, p, :, q, :]
+    return Kband[:r]
 
 
 def dense_band(Sigma: FloatArray, d: int, w: int) -> FloatArray:

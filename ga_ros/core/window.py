@@ -55,6 +55,7 @@ import scipy.linalg as sla
 from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core import selinv
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.core.quality import (
@@ -80,11 +81,10 @@ from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
     SolveResult,
-    _inv_spd,
     normal_matrix_at,
     solve,
 )
-from ga_ros.core.sparse import BlockPattern, sparse_skeleton, trailing_factor
+from ga_ros.core.sparse import BlockPattern, spd_inverse, trailing_factor
 from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
@@ -369,26 +369,55 @@ def _marginal_covariances(res: SolveResult, node_ids: IntArray, banded: bool = F
                           ) -> FloatArray:
     """``(k, 6, 6)`` marginal covariances of free nodes of an adjustment (eq. 17).
 
-    ``banded`` (the window's priors are block-banded, ``prior_band >= 0``): the window's normal
-    matrix is a strip with a narrow band, and the diagonal blocks of its inverse come from the
-    block-tridiagonal selected inversion (:func:`~ga_ros.core.selinv.banded_marginal_blocks`,
-    ``O(n b^2)``, linear in the swath length) through :meth:`SolveResult.covariance`.
-    Otherwise, many nodes (a track leaving the window): the window's normal matrix is factored
-    once more with those nodes ordered last; the trailing dense block of the factor is the
-    Cholesky factor of their joint marginal information ``S = L L'`` (Schur complement of the
-    rest), and the diagonal blocks of ``S^-1 = L^-T L^-1`` are read from ``L^-1``. Both exact.
-    Few nodes: sparse solves.
+    Many nodes (a track leaving the window), with the compiled kernels: selected inversion
+    (:class:`~ga_ros.core.selinv.SelectedInverse`, Takahashi's equations in place) on the
+    adjustment's own sparse factor, refactored at the solution with its symbolic analysis (the
+    analysis is handed back, so the next window solve does not repeat it): every node block of
+    ``N^-1`` in about the time of one factorisation. Without the kernels: ``banded`` (the
+    window's priors are block-banded, ``prior_band >= 0``) the block-tridiagonal selected
+    inversion of :meth:`SolveResult.covariance`, otherwise the window's normal matrix factored
+    once more with those nodes ordered last (the trailing dense block of the factor is the
+    Cholesky factor of their joint marginal information ``S = L L'``; the diagonal blocks of
+    ``S^-1 = L^-T L^-1`` are read from ``L^-1``). All exact. Few nodes: sparse solves.
     """
     ids = np.asarray(node_ids, dtype=np.int64)
     sysm = res._system
-    if ids.size > _TRAILING_MIN_NODES and sysm is not None and not banded:
+    if ids.size > _TRAILING_MIN_NODES and sysm is not None:
         cols = sysm.col[sysm.index_of(ids)]
         if (cols >= 0).all():
-            try:
-                return trailing_factor(sysm.pattern, sysm.data, cols).marginal_blocks()
-            except DegenerateGeometryError:  # not positive definite there: the general path
-                pass
+            if selinv.COMPILED:
+                try:
+                    return _selected_marginals(sysm, cols)
+                except DegenerateGeometryError:  # not positive definite: the general path
+                    pass
+            elif not banded:
+                try:
+                    return trailing_factor(sysm.pattern, sysm.data, cols).marginal_blocks()
+                except DegenerateGeometryError:  # not positive definite there: the general path
+                    pass
     return res.covariance(ids)
+
+
+def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
+    """Diagonal blocks of ``N^-1`` for the block columns ``cols`` of a solve's normal system by
+    selected inversion on its factor (numeric factorisation at the solution, symbolic analysis
+    reused and kept: after the in-place inversion the factor object is a valid symbolic one
+    again, factored anew by the next solve that is handed it)."""
+    chol = sysm.chol  # factored at the solution (the solve's analysis reused)
+    sysm.take_factor()
+    analysis = chol._symbolic
+    inv = selinv.SelectedInverse(chol)
+    blocks = inv.diagonal_blocks(cols)
+    if inv.in_place:  # CHOLMOD refactors a supernodal factor of the same pattern in place
+        chol._symbolic = analysis
+        sysm._chol = chol
+    return blocks
+
+
+def _no_weighted() -> tuple[IntArray, FloatArray]:
+    """No frozen node adjusted as a weighted parameter: ``(node rows (0,), poses (0, 4, 4))``
+    (``TrackWindowAligner._T_weighted`` before any update and after a refinement)."""
+    return np.zeros(0, np.int64), np.zeros((0, 4, 4))
 
 
 def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
@@ -458,8 +487,7 @@ class TrackWindowAligner:
         # the last adjustment's estimate of the frozen nodes it adjusted as weighted parameters
         # (node rows, (k, 4, 4)): where the next update starts them (their published pose,
         # self._T, stays the frozen one)
-        self._T_weighted: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
-                                                         np.zeros((0, 4, 4)))
+        self._T_weighted: tuple[IntArray, FloatArray] = _no_weighted()
         # weights S^-1 of the last window's connections (rows, (m, 6, 6)): an update inverts
         # only the covariances of the connections that entered the window since
         self._weights_kept: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
@@ -900,7 +928,7 @@ class TrackWindowAligner:
             self._T[frozen] = res.T_world_node[frozen]
         self._cov[frozen] = res.frozen_cov
         self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
-        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))  # refined instead
+        self._T_weighted = _no_weighted()  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node)
 
     def _smooth(self) -> None:
@@ -917,13 +945,12 @@ class TrackWindowAligner:
         if T_lin is None or res is None:
             return
         where = {int(i): k for k, i in enumerate(res.node_ids.tolist())}
-        d_known = {}
-        for idx, _, _ in self._priors:
-            for i in idx.tolist():
-                k = where.get(int(self._ids[i]))
-                if k is not None:
-                    d_known[i] = se3.local(T_lin[i][None], res.T_world_node[k][None])[0]
-        d = smooth(steps, d_known)
+        idx = np.unique(np.concatenate([p[0] for p in self._priors]
+                                       or [np.zeros(0, np.int64)]))
+        k = np.array([where.get(int(i), -1) for i in self._ids[idx].tolist()], dtype=np.int64)
+        idx, k = idx[k >= 0], k[k >= 0]
+        d_idx = se3.local(T_lin[idx], res.T_world_node[k])  # one batched call
+        d = smooth(steps, dict(zip(idx.tolist(), d_idx)))
         nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
         if nodes.size:
             self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
@@ -1103,7 +1130,8 @@ class TrackWindowAligner:
         P = np.empty((conns.size, 6, 6))
         P[hit] = P_kept[pos[hit]]
         if not hit.all():
-            P[~hit] = _inv_spd(self._ccov.a[conns[~hit]])
+            P[~hit] = spd_inverse(self._ccov.a[conns[~hit]],
+                                  "a connection's covariance is not positive definite")
         self._weights_kept = (conns, P)
         return P
 
@@ -1297,7 +1325,7 @@ class TrackWindowAligner:
             # selected inversion of N along the strip, its maximum-entropy completion, and the
             # exact step H^-1 g (the kept part of N^-1 u); refinement.band_prior
             try:
-                skel, x = sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
+                skel, x = selinv.sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
                                           coords=self._T[free_idx, :3, 3], rhs=u)
                 step = x.reshape(-1, 6)[~elim].ravel()
                 mean, K = band_prior(self._T[S_nodes], skel, step)
@@ -1451,7 +1479,7 @@ class TrackWindowAligner:
                             for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
-        self._T_weighted = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        self._T_weighted = _no_weighted()
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(self._tracks), 0, res.reason, 0, res.n_unknowns)
