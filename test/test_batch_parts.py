@@ -63,6 +63,7 @@ def test_solve_linearised_in_parts_equals_one_pass(rng, monkeypatch, model, loss
     cfg = SolverConfig(model=model, robust_loss=loss, damping=damping, tolerance=1e-10)
     ref = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     N_ref = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
+    monkeypatch.setattr(solver, '_PARTS_ABOVE', 5)
     monkeypatch.setattr(solver, '_CONNECTIONS_PER_PART', 5)
     res = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     np.testing.assert_allclose(res.T_world_node, ref.T_world_node, rtol=0, atol=1e-10)

@@ -33,6 +33,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
+from ga_ros.core.sparse import _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
 
 
@@ -379,20 +380,6 @@ class _Layout:
     x: FloatArray
     perm: IntArray
     keep: tuple
-
-
-class _CholmodFactor(ctypes.Structure):
-    """``cholmod_factor`` of CHOLMOD 3 (SuiteSparse 5, bundled in the cvxopt wheel)."""
-
-    _fields_ = ([(f, ctypes.c_size_t) for f in ('n', 'minor')]
-                + [(f, ctypes.c_void_p) for f in ('Perm', 'ColCount', 'IPerm')]
-                + [('nzmax', ctypes.c_size_t)]
-                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'x', 'z', 'nz', 'next', 'prev')]
-                + [(f, ctypes.c_size_t) for f in ('nsuper', 'ssize', 'xsize', 'maxcsize',
-                                                  'maxesize')]
-                + [(f, ctypes.c_void_p) for f in ('super', 'pi', 'px', 's')]
-                + [(f, ctypes.c_int) for f in ('ordering', 'is_ll', 'is_super', 'is_monotonic',
-                                               'itype', 'xtype', 'dtype', 'useGPU')])
 
 
 def _supernodal_layout(capsule, n: int) -> _Layout | None:
