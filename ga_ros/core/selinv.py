@@ -481,7 +481,7 @@ class SelectedInverse:
         self.in_place = lay is not None
         if lay is None:
             lay = _csc_layout(chol)
-        chol._F = chol._symbolic = None  # the values become Sigma's
+        chol._F = chol._symbolic = chol._permuted = None  # the values become Sigma's
         self._lay = lay
         self._pos = np.empty_like(lay.perm)
         self._pos[lay.perm] = np.arange(lay.perm.size)
