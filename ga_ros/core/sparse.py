@@ -53,6 +53,10 @@ _MATRICES: OrderedDict[bytes, object] = OrderedDict()
 _MAX_MATRICES = 4
 #: Blocks assembled per pass by :meth:`BlockPattern.assemble` (bounds its temporaries).
 _ASSEMBLY_CHUNK = 1 << 18
+#: Patterns with fewer stored entries keep the position of every block entry (a gather per
+#: assembly); larger ones compute them from each block's column and rank when assembling
+#: (~180 MB less at 100,000 poses).
+_POSITIONS_KEPT_BELOW = 1 << 22
 
 
 class BlockPattern:
@@ -106,14 +110,22 @@ class BlockPattern:
         rows_u = urow[:, None, None] * d + bb + 0 * aa
         self.indices = np.empty(self.nnz, dtype=np.int64)
         self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
-        pos = pos_u[inv].reshape(-1)
+        del pos_u, rows_u, off, valid, colstart
         # which entries of each kept block land in the lower triangle: all of an off-diagonal
         # block, the lower triangle of a diagonal one (one flag per block, not per entry)
         self._kept_diag = (rank == 0)[inv]
         self._tril = (a[:, None] >= a[None, :]).reshape(-1)  # (d^2,) row-major: row >= col
-        # int32 when it fits: half the pattern's largest array (~300 MB at 100,000 poses)
-        self._pos = pos[pos >= 0].astype(np.int32 if self.nnz < 2**31 else np.int64)
+        # each kept block's unique block, that block's column and rank in it: positions of
+        # the entries of any kept blocks (:meth:`_positions`)
+        self._kept_u = inv.astype(np.int32 if ukey.size < 2**31 else np.int64)
+        self._ucol, self._urank = ucol, rank
+        self._pos: IntArray | None = None
+        if self.nnz < _POSITIONS_KEPT_BELOW:  # kept: a gather instead of the arithmetic
+            # int32 when it fits: half the size
+            self._pos = self._positions(slice(None)).astype(
+                np.int32 if self.nnz < 2**31 else np.int64)
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
+        self._kept_rank: IntArray | None = None
 
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
@@ -137,13 +149,16 @@ class BlockPattern:
         ~150 MB."""
         if blocks.shape[0] <= _ASSEMBLY_CHUNK:
             vals = blocks[self._keep_blk].reshape(-1)[self._valid(slice(None)).reshape(-1)]
-            return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+            pos = self._pos if self._pos is not None else self._positions(slice(None))
+            return np.bincount(pos, weights=vals, minlength=self.nnz)
         keep, done = np.nonzero(self._keep_blk)[0], 0
         out = np.zeros(self.nnz)
         for a in range(0, keep.size, _ASSEMBLY_CHUNK):
-            valid = self._valid(slice(a, a + _ASSEMBLY_CHUNK)).reshape(-1)
-            vals = blocks[keep[a:a + _ASSEMBLY_CHUNK]].reshape(-1)[valid]
-            np.add.at(out, self._pos[done:done + vals.size], vals)  # no nnz-long temporary
+            part = slice(a, a + _ASSEMBLY_CHUNK)
+            vals = blocks[keep[part]].reshape(-1)[self._valid(part).reshape(-1)]
+            pos = (self._pos[done:done + vals.size] if self._pos is not None
+                   else self._positions(part))
+            np.add.at(out, pos, vals)  # no nnz-long temporary
             done += vals.size
         return out
 
@@ -154,21 +169,39 @@ class BlockPattern:
         sum over disjoint parts)."""
         d = self.d
         d2 = d * d
-        if self._valid_before is None:
+        if self._kept_rank is None:  # position among the kept blocks
+            self._kept_rank = (np.cumsum(self._keep_blk) - 1).astype(np.int32)
+        if self._valid_before is None and self._pos is not None:
             per = np.where(self._kept_diag, d * (d + 1) // 2, d2)
             self._valid_before = np.concatenate([[0], np.cumsum(per)])
-            # position among the kept blocks
-            self._kept_rank = (np.cumsum(self._keep_blk) - 1).astype(np.int32)
         index = np.asarray(index, dtype=np.int64)
         keep = self._keep_blk[index]
         rank = self._kept_rank[index[keep]]
         valid = self._valid(rank)
-        count = valid.sum(axis=1)
-        first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
-        where = self._pos[first + np.arange(first.size)]
+        if self._pos is None:
+            where = self._positions(rank)
+        else:
+            count = valid.sum(axis=1)
+            first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
+            where = self._pos[first + np.arange(first.size)]
         # in place: a bincount would allocate an nnz-long array per part (~190 MB at 100,000
         # poses) and np.add.at is faster for a part's few million entries
         np.add.at(out, where, blocks[keep].reshape(-1, d2)[valid])
+
+    def _positions(self, kept) -> IntArray:
+        """Positions in the lower-triangle CSC values of the entries of the kept blocks
+        ``kept`` (an index or a slice of the kept blocks) that land there, block by block, each
+        block's entries row-major (the order of ``_pos``)."""
+        d = self.d
+        a = np.arange(d)
+        u = self._kept_u[kept]
+        colstart = self.indptr[:-1].reshape(-1, d)[self._ucol[u]][:, None, :]  # (k, 1, a)
+        r = self._urank[u][:, None, None]
+        # row b, column a of block u: after the a-th column's d - a entries of the diagonal
+        # block and r - 1 earlier blocks of d rows (the diagonal block itself: b - a)
+        off = np.where(r == 0, a[:, None] - a[None, :], (d - a)[None, :] + (r - 1) * d
+                       + a[:, None])
+        return (colstart + off).reshape(-1, d * d)[self._valid(kept)]
 
     def _valid(self, kept) -> np.ndarray:
         """``(k, d^2)`` flags of the entries of the kept blocks ``kept`` (an index or a slice
