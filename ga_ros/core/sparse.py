@@ -99,26 +99,17 @@ class BlockPattern:
         counts = (d * nblk_col[:, None] - a[None, :]).reshape(-1)
         self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         self.nnz = int(self.indptr[-1])
-        # position of (unique block u, row b, col a) in the CSC data
-        ra = rank[:, None, None]
-        bb = a[None, :, None]
-        aa = a[None, None, :]
-        colstart = self.indptr[:-1].reshape(n, d)[ucol][:, None, :]  # (u, 1, a)
-        off = np.where(ra == 0, bb - aa, (d - aa) + (ra - 1) * d + bb)
-        valid = (ra > 0) | (bb >= aa)
-        pos_u = np.where(valid, colstart + off, -1)  # (u, d, d)
-        rows_u = urow[:, None, None] * d + bb + 0 * aa
-        self.indices = np.empty(self.nnz, dtype=np.int64)
-        self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
-        del pos_u, rows_u, off, valid, colstart
+        self._ucol, self._urank = ucol, rank
+        self._tril = (a[:, None] >= a[None, :]).reshape(-1)  # (d^2,) row-major: row >= col
+        # the row of every stored entry: kept for small patterns, computed when asked for large
+        # ones (~180 MB at 100,000 poses; only the analysis and CSC views read it)
+        self._indices = self._row_indices() if self.nnz < _POSITIONS_KEPT_BELOW else None
         # which entries of each kept block land in the lower triangle: all of an off-diagonal
         # block, the lower triangle of a diagonal one (one flag per block, not per entry)
         self._kept_diag = (rank == 0)[inv]
-        self._tril = (a[:, None] >= a[None, :]).reshape(-1)  # (d^2,) row-major: row >= col
         # each kept block's unique block, that block's column and rank in it: positions of
         # the entries of any kept blocks (:meth:`_positions`)
         self._kept_u = inv.astype(np.int32 if ukey.size < 2**31 else np.int64)
-        self._ucol, self._urank = ucol, rank
         self._pos: IntArray | None = None
         if self.nnz < _POSITIONS_KEPT_BELOW:  # kept: a gather instead of the arithmetic
             # int32 when it fits: half the size
@@ -188,20 +179,38 @@ class BlockPattern:
         # poses) and np.add.at is faster for a part's few million entries
         np.add.at(out, where, blocks[keep].reshape(-1, d2)[valid])
 
-    def _positions(self, kept) -> IntArray:
-        """Positions in the lower-triangle CSC values of the entries of the kept blocks
-        ``kept`` (an index or a slice of the kept blocks) that land there, block by block, each
-        block's entries row-major (the order of ``_pos``)."""
+    @property
+    def indices(self) -> IntArray:
+        """(nnz,) int64 row of each stored entry of the lower-triangle CSC values."""
+        return self._indices if self._indices is not None else self._row_indices()
+
+    def _row_indices(self) -> IntArray:
+        u = np.arange(self._ucol.size)
+        d = self.d
+        valid = np.where((self._urank == 0)[:, None], self._tril[None, :], True)
+        rows = self.block_lower[0][:, None] * d + np.repeat(np.arange(d), d)[None, :]
+        out = np.empty(self.nnz, dtype=np.int64)
+        out[self._block_positions(u)[valid]] = rows[valid]
+        return out
+
+    def _block_positions(self, u: IntArray) -> IntArray:
+        """``(k, d^2)`` positions in the lower-triangle CSC values of the entries (row-major)
+        of the unique blocks ``u`` (meaningless for the upper entries of a diagonal block)."""
         d = self.d
         a = np.arange(d)
-        u = self._kept_u[kept]
         colstart = self.indptr[:-1].reshape(-1, d)[self._ucol[u]][:, None, :]  # (k, 1, a)
         r = self._urank[u][:, None, None]
         # row b, column a of block u: after the a-th column's d - a entries of the diagonal
         # block and r - 1 earlier blocks of d rows (the diagonal block itself: b - a)
         off = np.where(r == 0, a[:, None] - a[None, :], (d - a)[None, :] + (r - 1) * d
                        + a[:, None])
-        return (colstart + off).reshape(-1, d * d)[self._valid(kept)]
+        return (colstart + off).reshape(-1, d * d)
+
+    def _positions(self, kept) -> IntArray:
+        """Positions in the lower-triangle CSC values of the entries of the kept blocks
+        ``kept`` (an index or a slice of the kept blocks) that land there, block by block, each
+        block's entries row-major (the order of ``_pos``)."""
+        return self._block_positions(self._kept_u[kept])[self._valid(kept)]
 
     def _valid(self, kept) -> np.ndarray:
         """``(k, d^2)`` flags of the entries of the kept blocks ``kept`` (an index or a slice
