@@ -749,11 +749,11 @@ class _System:
     data: FloatArray | None = None  # N's lower-triangle values, when assembled in parts
 
     def normal_values(self, pattern: BlockPattern) -> FloatArray:
-        """``N``'s lower-triangle values on ``pattern`` (the blocks are freed)."""
-        if self.data is None:
-            self.data = pattern.assemble(self.blocks)
-        self.blocks = None
-        return self.data
+        """``N``'s lower-triangle values on ``pattern``, handed over once: the system keeps
+        neither them nor its blocks (the next iteration's are assembled without them)."""
+        data = self.data if self.data is not None else pattern.assemble(self.blocks)
+        self.data = self.blocks = None
+        return data
 
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
