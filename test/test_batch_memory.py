@@ -36,18 +36,22 @@ def _factor_values(chol: SparseCholesky) -> np.ndarray:
     return lay.x.copy()
 
 
-@pytest.mark.parametrize('permute_from', [0, 1 << 40])
-def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from):
+@pytest.mark.parametrize('permute_from, in_place', [(0, True), (0, False), (1 << 40, False)])
+def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_place):
     """The factor computed by ``cholmod_l_factorize`` on the pattern's own arrays (or, for large
     patterns, on ``P N P'`` gathered by the project under the natural ordering) is bit for bit
     cvxopt's (``cholmod.numeric`` on its packed copy), first and refactored with new values; the
     solves agree with a dense solve."""
     monkeypatch.setattr(sparse, '_PERMUTE_FROM_NNZ', permute_from)
+    if not in_place:
+        monkeypatch.setattr(sparse, '_PERMUTE', [None])  # P N P' gathered into a copy
     pattern, data = _random_normal_matrix(rng)
+    kept = data.copy()
     data2 = data.copy()
     data2[pattern.indptr[:-1]] += rng.random(pattern.size)  # the diagonal: still SPD
     direct = SparseCholesky(pattern, data)
     assert (direct._permuted is not None) == (permute_from == 0)
+    np.testing.assert_array_equal(data, kept)  # permuted in place and back
     x_direct = _factor_values(direct)
     direct.refactor(data2)
     x2_direct = _factor_values(direct)
@@ -59,6 +63,24 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from):
     b = rng.standard_normal(pattern.size)
     N = pattern.full_csc(data2).toarray()
     np.testing.assert_allclose(direct.solve(b), np.linalg.solve(N, b), rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize('inverse', [False, True])
+def test_permutation_in_place_equals_gather(rng, inverse):
+    """The in-place permutation (cycle by cycle) is the gather ``x[where]``, or its inverse."""
+    kernel = sparse._permutation_kernel()
+    if kernel is None:
+        pytest.skip('numba is not installed: the values are gathered into a copy')
+    where = np.concatenate([np.arange(10), 10 + rng.permutation(990)])  # fixed points too
+    x = rng.standard_normal(1000)
+    y = x.copy()
+    kernel(y, where, inverse, np.zeros(x.size, dtype=np.bool_))
+    if inverse:
+        expected = np.empty_like(x)
+        expected[where] = x
+    else:
+        expected = x[where]
+    np.testing.assert_array_equal(y, expected)
 
 
 @pytest.mark.parametrize('permute_from', [0, 1 << 40])

@@ -531,12 +531,21 @@ class _DirectCholmod:
         (two copies of ``N``, values and row indices: ~0.7 GB for a survey of 100,000 poses;
         the gathered values are one copy of the values alone, half of that)."""
         n = pattern.size
+        in_place = False
         if permuted is None:
             x = np.ascontiguousarray(data, dtype=np.float64)
             indptr = np.ascontiguousarray(pattern.indptr, dtype=np.int64)
             indices = np.ascontiguousarray(pattern.indices, dtype=np.int64)
         else:
-            x = np.asarray(data, dtype=np.float64)[permuted.where]
+            x = np.asarray(data, dtype=np.float64)
+            permute = _permutation_kernel()
+            # permuted where they lie (and back afterwards) when the compiled kernel and a
+            # writable array allow it, else gathered into a copy
+            in_place = permute is not None and x.flags.writeable and x.flags.c_contiguous
+            if in_place:
+                permute(x, permuted.where, False, np.zeros(x.size, dtype=np.bool_))
+            else:
+                x = x[permuted.where]
             indptr, indices = permuted.indptr, permuted.indices
         A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
                            None, x.ctypes.data, None, -1, 2, 1, 0, 1, 1)  # lower, long, real
@@ -550,10 +559,55 @@ class _DirectCholmod:
         finally:
             L.ordering = ordering
             self._free_work(common)
+            if in_place:  # the caller's values back in their order
+                permute(x, permuted.where, True, np.zeros(x.size, dtype=np.bool_))
         if not ok:
             raise MemoryError('CHOLMOD could not factor the normal matrix (out of memory?)')
         if L.minor < n:
             raise ArithmeticError('not positive definite')
+
+
+def _permute_py(x, where, inverse, seen):  # pragma: no cover - compiled
+    """In place, cycle by cycle: ``x[k] <- x[where[k]]`` for every ``k`` (a gather without a
+    copy), or with ``inverse`` its inverse, ``x[where[k]] <- x[k]``. ``seen``: (x.size,) False."""
+    for s in range(x.size):
+        if seen[s]:
+            continue
+        tmp = x[s]
+        j = s
+        while True:
+            seen[j] = True
+            k = where[j]
+            if inverse:
+                nxt = x[k]
+                x[k] = tmp
+                tmp = nxt
+                if k == s:
+                    break
+            elif k == s:
+                x[j] = tmp
+                break
+            else:
+                x[j] = x[k]
+            j = k
+
+
+_PERMUTE: list = []  # [the compiled _permute_py or None], compiled on first use
+
+
+def _permutation_kernel():
+    """:func:`_permute_py` compiled with numba (cached on disk), or ``None`` without numba
+    (the values are gathered into a copy then)."""
+    if not _PERMUTE:
+        from ga_ros.core.kernels import AVAILABLE
+
+        fn = None
+        if AVAILABLE:
+            import numba
+
+            fn = numba.njit(cache=True, nogil=True)(_permute_py)
+        _PERMUTE.append(fn)
+    return _PERMUTE[0]
 
 
 @dataclass(frozen=True)
