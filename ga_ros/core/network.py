@@ -201,7 +201,11 @@ class ConnectionNetwork:
         return len(self._src) - 1
 
     def add_connections(self, src_ids, dst_ids, z: FloatArray, cov: FloatArray) -> None:
-        """Add many connections; all are validated first, so a bad one adds none of them."""
+        """Add many connections; all are validated first, so a bad one adds none of them.
+
+        The first insertion into a network with the ``'keep'`` policy is stored as arrays (no
+        Python object per connection); later ones go through :meth:`add_connection`'s checks
+        (duplicates against the earlier connections)."""
         src_ids = np.asarray(src_ids, dtype=np.int64).ravel()
         dst_ids = np.asarray(dst_ids, dtype=np.int64).ravel()
         z = np.asarray(z, dtype=float).reshape(-1, 6)
