@@ -63,6 +63,7 @@ def test_solve_linearised_in_parts_equals_one_pass(rng, monkeypatch, model, loss
     cfg = SolverConfig(model=model, robust_loss=loss, damping=damping, tolerance=1e-10)
     ref = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     N_ref = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
+    monkeypatch.setattr(solver, '_PARTS_ABOVE', 5)
     monkeypatch.setattr(solver, '_CONNECTIONS_PER_PART', 5)
     res = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     np.testing.assert_allclose(res.T_world_node, ref.T_world_node, rtol=0, atol=1e-10)
@@ -74,3 +75,26 @@ def test_solve_linearised_in_parts_equals_one_pass(rng, monkeypatch, model, loss
                                atol=1e-14)
     N = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
     np.testing.assert_allclose(N.toarray(), N_ref.toarray(), rtol=1e-12, atol=1e-9)
+
+
+def test_positions_computed_equal_kept_positions(rng, monkeypatch):
+    """Large patterns compute their entries' positions when assembling instead of keeping
+    them: ``assemble`` (one pass, in chunks) and ``assemble_at`` give the same values."""
+    u, d, k = 25, 6, 500
+    rows = np.concatenate([rng.integers(-1, u, size=k), np.arange(u)])
+    cols = np.concatenate([rng.integers(-1, u, size=k), np.arange(u)])
+    blocks = rng.normal(size=(rows.size, d, d))
+    kept = BlockPattern(rows, cols, d, u)
+    monkeypatch.setattr(sparse, '_POSITIONS_KEPT_BELOW', 0)
+    computed = BlockPattern(rows, cols, d, u)
+    assert kept._pos is not None and computed._pos is None
+    np.testing.assert_array_equal(computed.indices, kept.indices)
+    one = kept.assemble(blocks)
+    np.testing.assert_array_equal(computed.assemble(blocks), one)
+    parts = [np.zeros(kept.nnz), np.zeros(kept.nnz)]
+    for idx in np.array_split(rng.permutation(rows.size), 5):
+        kept.assemble_at(blocks[idx], idx, parts[0])
+        computed.assemble_at(blocks[idx], idx, parts[1])
+    np.testing.assert_array_equal(parts[1], parts[0])
+    monkeypatch.setattr(sparse, '_ASSEMBLY_CHUNK', 7)
+    np.testing.assert_array_equal(computed.assemble(blocks), kept.assemble(blocks))

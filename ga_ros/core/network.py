@@ -87,11 +87,14 @@ class ConnectionNetwork:
         self._ids: list[int] = []
         self._tracks: list[int] = []
         self._index: dict[int, int] = {}
-        self._src: list[int] = []
-        self._dst: list[int] = []
-        self._z: list[FloatArray] = []
-        self._cov: list[FloatArray] = []
-        self._pairs: dict[tuple[int, int], list[int]] = {}
+        # the connections: arrays (``_cache``) after a bulk insertion, per-connection lists
+        # after single ones; each built from the other only when needed (``None`` until then)
+        self._src: list[int] | None = []
+        self._dst: list[int] | None = []
+        self._z: list[FloatArray] | None = []
+        self._cov: list[FloatArray] | None = []
+        # node-index pair -> connections; ``None``: to be built from the arrays when needed
+        self._pairs: dict[tuple[int, int], list[int]] | None = {}
         self._cache: ConnectionArrays | None = None
 
     # ------------------------------------------------------------------ nodes
@@ -101,7 +104,7 @@ class ConnectionNetwork:
 
     @property
     def n_connections(self) -> int:
-        return len(self._src)
+        return len(self._cache) if self._src is None else len(self._src)
 
     @property
     def node_ids(self) -> IntArray:
@@ -173,6 +176,7 @@ class ConnectionNetwork:
         s, d = self.index_of(src_id), self.index_of(dst_id)
         if s == d:
             raise NetworkError(f'connection from node {src_id} to itself is meaningless')
+        self._lists()
         key = (min(s, d), max(s, d))
         earlier = self._pairs.get(key, [])
         for c in earlier:
@@ -197,7 +201,11 @@ class ConnectionNetwork:
         return len(self._src) - 1
 
     def add_connections(self, src_ids, dst_ids, z: FloatArray, cov: FloatArray) -> None:
-        """Add many connections; all are validated first, so a bad one adds none of them."""
+        """Add many connections; all are validated first, so a bad one adds none of them.
+
+        The first insertion into a network with the ``'keep'`` policy is stored as arrays (no
+        Python object per connection); later ones go through :meth:`add_connection`'s checks
+        (duplicates against the earlier connections)."""
         src_ids = np.asarray(src_ids, dtype=np.int64).ravel()
         dst_ids = np.asarray(dst_ids, dtype=np.int64).ravel()
         z = np.asarray(z, dtype=float).reshape(-1, 6)
@@ -213,7 +221,7 @@ class ConnectionNetwork:
         if (s == d).any():
             k = int(np.argmax(s == d))
             raise NetworkError(f'connection #{k} from node {src_ids[k]} to itself is meaningless')
-        if self.duplicates != 'keep' or self._pairs:
+        if self.duplicates != 'keep' or self.n_connections:
             snapshot = self._snapshot()
             try:
                 for k in range(m):
@@ -222,14 +230,27 @@ class ConnectionNetwork:
                 self._restore(snapshot)
                 raise
             return
-        for k in range(m):
-            key = (min(s[k], d[k]), max(s[k], d[k]))
-            self._pairs.setdefault(key, []).append(len(self._src))
-            self._src.append(int(s[k]))
-            self._dst.append(int(d[k]))
-            self._z.append(z[k])
-            self._cov.append(cov[k])
-        self._cache = None
+        # a first bulk insertion with the 'keep' policy: stored as arrays, no per-connection
+        # Python objects (the duplicate bookkeeping is built if a single one follows)
+        self._set_arrays(ConnectionArrays(s, d, z.copy(), cov), pairs=None)
+
+    def _set_arrays(self, arrays: ConnectionArrays, pairs) -> None:
+        """The connections become ``arrays`` (the lists are built from them if needed)."""
+        self._cache = arrays
+        self._src = self._dst = self._z = self._cov = None
+        self._pairs = pairs
+
+    def _lists(self) -> None:
+        """The per-connection lists and the duplicate bookkeeping, from the arrays if the
+        connections were stored as arrays (before a single connection is added)."""
+        if self._src is None:
+            c = self._cache
+            self._src, self._dst = c.src.tolist(), c.dst.tolist()
+            self._z, self._cov = list(c.z), list(c.cov)
+        if self._pairs is None:
+            self._pairs = {}
+            for k, (a, b) in enumerate(zip(self._src, self._dst)):
+                self._pairs.setdefault((min(a, b), max(a, b)), []).append(k)
 
     @classmethod
     def from_arrays(cls, node_ids: IntArray, track_ids: IntArray, src_idx: IntArray,
@@ -252,12 +273,12 @@ class ConnectionNetwork:
                                       np.asarray(dst_idx, dtype=np.int64).reshape(m),
                                       np.asarray(z, dtype=float).reshape(m, 6),
                                       np.asarray(cov, dtype=float).reshape(m, 6, 6))
-        c = net._cache
-        net._src, net._dst = c.src.tolist(), c.dst.tolist()
-        net._z, net._cov = list(c.z), list(c.cov)
+        # arrays only: per-connection lists (~0.3 KiB a connection) if one is added later
+        net._set_arrays(net._cache, pairs={})
         return net
 
     def _snapshot(self):
+        self._lists()
         return (len(self._src), {k: list(v) for k, v in self._pairs.items()},
                 list(self._src), list(self._dst), list(self._z), list(self._cov))
 

@@ -28,6 +28,7 @@ import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
+from ga_ros.core.sparse import _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
@@ -291,20 +292,6 @@ class _Layout:
     keep: tuple
 
 
-class _CholmodFactor(ctypes.Structure):
-    """``cholmod_factor`` of CHOLMOD 3 (SuiteSparse 5, bundled in the cvxopt wheel)."""
-
-    _fields_ = ([(f, ctypes.c_size_t) for f in ('n', 'minor')]
-                + [(f, ctypes.c_void_p) for f in ('Perm', 'ColCount', 'IPerm')]
-                + [('nzmax', ctypes.c_size_t)]
-                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'x', 'z', 'nz', 'next', 'prev')]
-                + [(f, ctypes.c_size_t) for f in ('nsuper', 'ssize', 'xsize', 'maxcsize',
-                                                  'maxesize')]
-                + [(f, ctypes.c_void_p) for f in ('super', 'pi', 'px', 's')]
-                + [(f, ctypes.c_int) for f in ('ordering', 'is_ll', 'is_super', 'is_monotonic',
-                                               'itype', 'xtype', 'dtype', 'useGPU')])
-
-
 def _supernodal_layout(capsule, n: int) -> _Layout | None:
     """CHOLMOD's supernodal factor in place (no copy): its arrays viewed through ``ctypes``.
     ``None`` if the factor does not look as expected (another CHOLMOD build): the caller then
@@ -404,7 +391,7 @@ class SelectedInverse:
         self.in_place = lay is not None
         if lay is None:
             lay = _csc_layout(chol)
-        chol._F = chol._symbolic = None  # the values become Sigma's
+        chol._F = chol._symbolic = chol._permuted = None  # the values become Sigma's
         self._lay = lay
         self._pos = np.empty_like(lay.perm)
         self._pos[lay.perm] = np.arange(lay.perm.size)

@@ -44,9 +44,11 @@ DAMPINGS = ('none', 'lm', 'dogleg')
 #: Below it (windows) the banded path needs no compiled kernel (loading numba costs ~0.5 s and
 #: ~90 MiB per process).
 _SPARSE_SELINV_UNKNOWNS = 12_000
-#: Problems with more connections (motion models) are linearised and assembled this many
-#: connections at a time (:func:`_motion_system_in_parts`).
-_CONNECTIONS_PER_PART = 65_536
+#: Problems with more connections (motion models) are linearised and assembled in parts
+#: (:func:`_motion_system_in_parts`) ...
+_PARTS_ABOVE = 65_536
+#: ... of this many connections (the temporaries of a part: ~60 MB).
+_CONNECTIONS_PER_PART = 16_384
 
 
 @dataclass(frozen=True)
@@ -223,6 +225,8 @@ class _NormalSystem:
         self.d = d
         self.pattern = pattern
         self._data = data  # the lower triangle of N, or a function assembling it on first use
+        if chol is not None:  # factored anew from this system's values when first needed
+            chol.release_values()
         self._chol = chol
         self._factored = False
         self.coords: FloatArray | None = None  # (u, 3) positions of the free nodes, for ordering
@@ -453,6 +457,10 @@ def _iterate(prob: _Problem, T: FloatArray) -> _Iterations:
     reason = 'max_iterations'
     it = 0
     for it in range(1, cfg.max_iterations + 1):
+        # the last values of N go before the next are assembled (~190 MB at 100,000 poses)
+        data = None
+        if state.chol is not None:
+            state.chol.release_values()
         sysd = prob.linear_system(T, v)
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
@@ -609,7 +617,7 @@ class _Problem:
 
     model: str
     conn: ConnectionArrays
-    P: FloatArray  # (m, 6, 6) weights S^-1 of the connections
+    P: FloatArray | _PartWeights  # (m, o, o) weights S^-1 of the connections
     prior_data: list[_PriorData]
     cfg: SolverConfig
     free: np.ndarray  # (n,) bool
@@ -617,8 +625,8 @@ class _Problem:
     d: int
     pattern: BlockPattern
     S: FloatArray  # (m, o, o) covariance of the connections' observations
-    T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models only)
-    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models only)
+    T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models, not in parts)
+    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models, not in parts)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
@@ -638,11 +646,18 @@ class _Problem:
             bc.append(col[pd.idx[pd.blk_c]])
         pattern = kept_block_pattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
         S = models.observation_covariance(model, conn.cov)
+        # the measured motions and their inverses are kept, except by problems linearised in
+        # parts, which compute them a part at a time (the same values: ~150 MB less at 100,000
+        # poses for a few tenths of a second per linearisation)
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-                  if model in models.MOTION_MODELS else None)
+                  if model in models.MOTION_MODELS and len(conn) <= _PARTS_ABOVE
+                  else None)
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
-        return _Problem(model, conn, _inv_spd(S) if P is None else P, prior_data, cfg, free,
-                        col, d, pattern, S, T_meas, Tm_inv)
+        if P is None:  # the weights; a part at a time for problems linearised in parts
+            in_parts = model in models.MOTION_MODELS and len(conn) > _PARTS_ABOVE
+            P = _PartWeights(S) if in_parts else _inv_spd(S)
+        return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
+                        Tm_inv)
 
     @property
     def Pf(self) -> FloatArray | None:
@@ -655,7 +670,7 @@ class _Problem:
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
         self.linearisations += 1
-        if self.Pf is not None and len(self.conn) > _CONNECTIONS_PER_PART:
+        if self.Pf is not None and len(self.conn) > _PARTS_ABOVE:
             return _motion_system_in_parts(self, T)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
@@ -675,7 +690,7 @@ class _Problem:
         if self.model not in models.MOTION_MODELS:
             return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
                             self.col, self.d)
-        e = _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, self.compiled)
+        e = self.misclosure(T)
         self._last = (T, e)
         return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
 
@@ -691,9 +706,24 @@ class _Problem:
         if self.model in models.MOTION_MODELS:
             last_T, e = self._last
             self._last = (None, None)
-            return e if last_T is T else _misclosure(self.model, T, self.conn, self.T_meas,
-                                                      self.Tm_inv, self.compiled)
+            return e if last_T is T else self.misclosure(T)
         return _consistent_residuals(self.model, T, self.conn, v_linear)
+
+    def misclosure(self, T: FloatArray) -> FloatArray:
+        """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models at ``T`` (in parts if the
+        problem does not keep the measured motions)."""
+        if self.T_meas is not None:
+            return _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, self.compiled)
+        return np.concatenate([_misclosure(self.model, T, part, None, None, self.compiled)
+                               for _, part in self.parts()])
+
+    def parts(self):
+        """``(a, connections a..b-1)`` for consecutive parts of :data:`_CONNECTIONS_PER_PART`
+        connections."""
+        conn, m = self.conn, len(self.conn)
+        for a in range(0, m, _CONNECTIONS_PER_PART):
+            b = min(a + _CONNECTIONS_PER_PART, m)
+            yield a, ConnectionArrays(conn.src[a:b], conn.dst[a:b], conn.z[a:b], conn.cov[a:b])
 
     def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
         """Residuals to relinearise at after the step ``dx`` took the estimate to ``T``."""
@@ -719,11 +749,11 @@ class _System:
     data: FloatArray | None = None  # N's lower-triangle values, when assembled in parts
 
     def normal_values(self, pattern: BlockPattern) -> FloatArray:
-        """``N``'s lower-triangle values on ``pattern`` (the blocks are freed)."""
-        if self.data is None:
-            self.data = pattern.assemble(self.blocks)
-        self.blocks = None
-        return self.data
+        """``N``'s lower-triangle values on ``pattern``, handed over once: the system keeps
+        neither them nor its blocks (the next iteration's are assembled without them)."""
+        data = self.data if self.data is not None else pattern.assemble(self.blocks)
+        self.data = self.blocks = None
+        return data
 
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
@@ -824,15 +854,14 @@ def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
     part's blocks added into ``N`` at once (:meth:`BlockPattern.assemble_at`): the ``4 m``
     blocks of a large problem never exist together (~700 MB for 100,000 poses). The system has
     ``data`` set and no blocks."""
-    conn, m, d = prob.conn, len(prob.conn), prob.d
+    m, d = len(prob.conn), prob.d
     data = np.zeros(prob.pattern.nnz)
     u = np.zeros((int(prob.free.sum()), d))
     w, weights, cost0 = [], [], 0.0
-    for a in range(0, m, _CONNECTIONS_PER_PART):
-        b = min(a + _CONNECTIONS_PER_PART, m)
-        part = ConnectionArrays(conn.src[a:b], conn.dst[a:b], conn.z[a:b], conn.cov[a:b])
+    for a, part in prob.parts():
+        b = a + len(part)
         sysp = _motion_system(prob.model, T, part, prob.P[a:b], [], prob.cfg, prob.col, d,
-                              prob.T_meas[a:b], prob.Tm_inv[a:b], prob.compiled)
+                              None, None, prob.compiled)  # T_meas, its inverse: of the part
         k = np.arange(a, b)
         prob.pattern.assemble_at(sysp.blocks, np.concatenate([k, k + m, k + 2 * m, k + 3 * m]),
                                  data)
@@ -885,8 +914,30 @@ def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: Float
     return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
 
 
-def _maha2(e: FloatArray, P: FloatArray) -> FloatArray:
+class _PartWeights:
+    """The weights ``P = S^-1`` of a problem linearised in parts, computed a part at a time
+    from the covariances ``S`` (the same values as one inversion of all: ~160 MB not kept at
+    100,000 poses, for ~20 ms per 16,384 connections each time they are read). Slicing
+    ``P[a:b]`` gives an array; :func:`_maha2` and :func:`_adjustment_cost` take it whole."""
+
+    def __init__(self, S: FloatArray) -> None:
+        self.S = S
+        self.shape = S.shape
+
+    def __getitem__(self, part: slice) -> FloatArray:
+        return _inv_spd(self.S[part])
+
+    def parts(self):
+        """Consecutive slices of :data:`_CONNECTIONS_PER_PART` connections."""
+        m = self.shape[0]
+        return [slice(a, min(a + _CONNECTIONS_PER_PART, m))
+                for a in range(0, m, _CONNECTIONS_PER_PART)]
+
+
+def _maha2(e: FloatArray, P: FloatArray | _PartWeights) -> FloatArray:
     """Squared Mahalanobis norms ``e_k' P_k e_k`` ``(m,)``."""
+    if isinstance(P, _PartWeights):
+        return np.concatenate([_maha2(e[s], P[s]) for s in P.parts()])
     return np.einsum('mi,mij,mj->m', e, P, e)
 
 
@@ -1039,7 +1090,9 @@ def _robust_rho(r2: FloatArray, cfg: SolverConfig) -> FloatArray:
     return r2
 
 
-def _adjustment_cost(v: FloatArray, P: FloatArray, weights: FloatArray) -> float:
+def _adjustment_cost(v: FloatArray, P: FloatArray | _PartWeights, weights: FloatArray) -> float:
+    if isinstance(P, _PartWeights):
+        return float(sum(_adjustment_cost(v[s], P[s], weights[s]) for s in P.parts()))
     return float(np.einsum('mi,mij,mj,m->', v, P, v, weights))
 
 

@@ -16,7 +16,11 @@ covariances and marginal information of a few nodes without inverting anything e
 
 from __future__ import annotations
 
+import ctypes
+import glob
 import hashlib
+import os
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -49,6 +53,10 @@ _MATRICES: OrderedDict[bytes, object] = OrderedDict()
 _MAX_MATRICES = 4
 #: Blocks assembled per pass by :meth:`BlockPattern.assemble` (bounds its temporaries).
 _ASSEMBLY_CHUNK = 1 << 18
+#: Patterns with fewer stored entries keep the position of every block entry (a gather per
+#: assembly); larger ones compute them from each block's column and rank when assembling
+#: (~180 MB less at 100,000 poses).
+_POSITIONS_KEPT_BELOW = 1 << 22
 
 
 class BlockPattern:
@@ -91,22 +99,24 @@ class BlockPattern:
         counts = (d * nblk_col[:, None] - a[None, :]).reshape(-1)
         self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         self.nnz = int(self.indptr[-1])
-        # position of (unique block u, row b, col a) in the CSC data
-        ra = rank[:, None, None]
-        bb = a[None, :, None]
-        aa = a[None, None, :]
-        colstart = self.indptr[:-1].reshape(n, d)[ucol][:, None, :]  # (u, 1, a)
-        off = np.where(ra == 0, bb - aa, (d - aa) + (ra - 1) * d + bb)
-        valid = (ra > 0) | (bb >= aa)
-        pos_u = np.where(valid, colstart + off, -1)  # (u, d, d)
-        rows_u = urow[:, None, None] * d + bb + 0 * aa
-        self.indices = np.empty(self.nnz, dtype=np.int64)
-        self.indices[pos_u[valid]] = np.broadcast_to(rows_u, pos_u.shape)[valid]
-        pos = pos_u[inv].reshape(-1)
-        self._pos_valid = pos >= 0
-        # int32 when it fits: half the pattern's largest array (~300 MB at 100,000 poses)
-        self._pos = pos[self._pos_valid].astype(np.int32 if self.nnz < 2**31 else np.int64)
+        self._ucol, self._urank = ucol, rank
+        self._tril = (a[:, None] >= a[None, :]).reshape(-1)  # (d^2,) row-major: row >= col
+        # the row of every stored entry: kept for small patterns, computed when asked for large
+        # ones (~180 MB at 100,000 poses; only the analysis and CSC views read it)
+        self._indices = self._row_indices() if self.nnz < _POSITIONS_KEPT_BELOW else None
+        # which entries of each kept block land in the lower triangle: all of an off-diagonal
+        # block, the lower triangle of a diagonal one (one flag per block, not per entry)
+        self._kept_diag = (rank == 0)[inv]
+        # each kept block's unique block, that block's column and rank in it: positions of
+        # the entries of any kept blocks (:meth:`_positions`)
+        self._kept_u = inv.astype(np.int32 if ukey.size < 2**31 else np.int64)
+        self._pos: IntArray | None = None
+        if self.nnz < _POSITIONS_KEPT_BELOW:  # kept: a gather instead of the arithmetic
+            # int32 when it fits: half the size
+            self._pos = self._positions(slice(None)).astype(
+                np.int32 if self.nnz < 2**31 else np.int64)
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
+        self._kept_rank: IntArray | None = None
 
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
@@ -125,18 +135,21 @@ class BlockPattern:
     def assemble(self, blocks: FloatArray) -> FloatArray:
         """Sum blocks ``(k, d, d)`` (block row, col) into the lower-triangle CSC values.
 
-        More than :data:`_ASSEMBLY_CHUNK` blocks go in chunks: the temporaries (two copies of
-        the blocks in one pass, ~1.4 GB for a survey of 100,000 poses) stay ~150 MB."""
+        More than :data:`_ASSEMBLY_CHUNK` blocks go in chunks, added in place: the temporaries
+        (two copies of the blocks in one pass, ~1.4 GB for a survey of 100,000 poses) stay
+        ~150 MB."""
         if blocks.shape[0] <= _ASSEMBLY_CHUNK:
-            vals = blocks[self._keep_blk].reshape(-1)[self._pos_valid]
-            return np.bincount(self._pos, weights=vals, minlength=self.nnz)
-        keep, d2, done = np.nonzero(self._keep_blk)[0], self.d * self.d, 0
+            vals = blocks[self._keep_blk].reshape(-1)[self._valid(slice(None)).reshape(-1)]
+            pos = self._pos if self._pos is not None else self._positions(slice(None))
+            return np.bincount(pos, weights=vals, minlength=self.nnz)
+        keep, done = np.nonzero(self._keep_blk)[0], 0
         out = np.zeros(self.nnz)
         for a in range(0, keep.size, _ASSEMBLY_CHUNK):
-            valid = self._pos_valid[a * d2:(a + _ASSEMBLY_CHUNK) * d2]
-            vals = blocks[keep[a:a + _ASSEMBLY_CHUNK]].reshape(-1)[valid]
-            out += np.bincount(self._pos[done:done + vals.size], weights=vals,
-                               minlength=self.nnz)
+            part = slice(a, a + _ASSEMBLY_CHUNK)
+            vals = blocks[keep[part]].reshape(-1)[self._valid(part).reshape(-1)]
+            pos = (self._pos[done:done + vals.size] if self._pos is not None
+                   else self._positions(part))
+            np.add.at(out, pos, vals)  # no nnz-long temporary
             done += vals.size
         return out
 
@@ -145,20 +158,64 @@ class BlockPattern:
         this pattern was built from into ``out`` (lower-triangle CSC values, in place): the
         assembly of a large system a part at a time (``assemble`` of the whole list equals the
         sum over disjoint parts)."""
-        d2 = self.d * self.d
-        if self._valid_before is None:
-            per = self._pos_valid.reshape(-1, d2).sum(axis=1)
+        d = self.d
+        d2 = d * d
+        if self._kept_rank is None:  # position among the kept blocks
+            self._kept_rank = (np.cumsum(self._keep_blk) - 1).astype(np.int32)
+        if self._valid_before is None and self._pos is not None:
+            per = np.where(self._kept_diag, d * (d + 1) // 2, d2)
             self._valid_before = np.concatenate([[0], np.cumsum(per)])
-            self._kept_rank = np.cumsum(self._keep_blk) - 1  # position among the kept blocks
         index = np.asarray(index, dtype=np.int64)
         keep = self._keep_blk[index]
         rank = self._kept_rank[index[keep]]
-        valid = self._pos_valid.reshape(-1, d2)[rank]
-        count = valid.sum(axis=1)
-        first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
-        where = self._pos[first + np.arange(first.size)]
-        out += np.bincount(where, weights=blocks[keep].reshape(-1, d2)[valid],
-                           minlength=self.nnz)
+        valid = self._valid(rank)
+        if self._pos is None:
+            where = self._positions(rank)
+        else:
+            count = valid.sum(axis=1)
+            first = np.repeat(self._valid_before[rank] - np.cumsum(count) + count, count)
+            where = self._pos[first + np.arange(first.size)]
+        # in place: a bincount would allocate an nnz-long array per part (~190 MB at 100,000
+        # poses) and np.add.at is faster for a part's few million entries
+        np.add.at(out, where, blocks[keep].reshape(-1, d2)[valid])
+
+    @property
+    def indices(self) -> IntArray:
+        """(nnz,) int64 row of each stored entry of the lower-triangle CSC values."""
+        return self._indices if self._indices is not None else self._row_indices()
+
+    def _row_indices(self) -> IntArray:
+        u = np.arange(self._ucol.size)
+        d = self.d
+        valid = np.where((self._urank == 0)[:, None], self._tril[None, :], True)
+        rows = self.block_lower[0][:, None] * d + np.repeat(np.arange(d), d)[None, :]
+        out = np.empty(self.nnz, dtype=np.int64)
+        out[self._block_positions(u)[valid]] = rows[valid]
+        return out
+
+    def _block_positions(self, u: IntArray) -> IntArray:
+        """``(k, d^2)`` positions in the lower-triangle CSC values of the entries (row-major)
+        of the unique blocks ``u`` (meaningless for the upper entries of a diagonal block)."""
+        d = self.d
+        a = np.arange(d)
+        colstart = self.indptr[:-1].reshape(-1, d)[self._ucol[u]][:, None, :]  # (k, 1, a)
+        r = self._urank[u][:, None, None]
+        # row b, column a of block u: after the a-th column's d - a entries of the diagonal
+        # block and r - 1 earlier blocks of d rows (the diagonal block itself: b - a)
+        off = np.where(r == 0, a[:, None] - a[None, :], (d - a)[None, :] + (r - 1) * d
+                       + a[:, None])
+        return (colstart + off).reshape(-1, d * d)
+
+    def _positions(self, kept) -> IntArray:
+        """Positions in the lower-triangle CSC values of the entries of the kept blocks
+        ``kept`` (an index or a slice of the kept blocks) that land there, block by block, each
+        block's entries row-major (the order of ``_pos``)."""
+        return self._block_positions(self._kept_u[kept])[self._valid(kept)]
+
+    def _valid(self, kept) -> np.ndarray:
+        """``(k, d^2)`` flags of the entries of the kept blocks ``kept`` (an index or a slice
+        of the kept blocks) that land in the lower triangle."""
+        return np.where(self._kept_diag[kept][:, None], self._tril[None, :], True)
 
     def matvec(self, data: FloatArray, x: FloatArray) -> FloatArray:
         """``N x`` for the symmetric matrix whose lower triangle is ``data``."""
@@ -189,26 +246,40 @@ class SparseCholesky:
         self.n = pattern.size
         self._trailing = None if trailing is None else np.asarray(trailing, dtype=np.int64)
         self._symbolic = None
+        self._permuted: _Permuted | None = None  # P N P' for the direct factorisation
         self._A = None
         self._F = None
         self._lu = None
         self.refactor(data)
 
     def refactor(self, data: FloatArray) -> None:
-        """Numeric factorisation of new values on the same pattern (ordering reused)."""
+        """Numeric factorisation of new values on the same pattern (ordering reused).
+
+        With the bundled CHOLMOD reachable through ``ctypes`` (:func:`_direct_cholmod`), the
+        values are handed to ``cholmod_l_factorize`` where they lie: no copy of ``N``'s values
+        and row indices into cvxopt, none into CHOLMOD's packed input (~0.75 GB for a survey of
+        100,000 poses); the factor is the same (same library, same input)."""
         if not np.isfinite(data).all():
             raise DegenerateGeometryError('normal matrix has NaN or inf entries')
         p = self.pattern
         self._data = data
         if _cholmod is not None:
-            values = cvxopt.matrix(np.ascontiguousarray(data, dtype=float))
-            if self._A is None:
-                self._A = _cvxopt_pattern(p)
-            self._A.V = values  # the matrix may be shared with factors of the same pattern
+            direct = _direct_cholmod()
             if self._symbolic is None:
+                if self._A is None:
+                    self._A = _cvxopt_pattern(p, keep=direct is None)
                 self._symbolic = self._analyse()
+                self._permuted = None
+                if direct is not None:
+                    self._A = None  # only the analysis needs cvxopt's copy of the pattern
             try:
-                _cholmod.numeric(self._A, self._symbolic)
+                if direct is not None:
+                    if self._permuted is None and p.nnz >= _PERMUTE_FROM_NNZ:
+                        self._permuted = direct.permuted(p, self._symbolic)
+                    direct.factorize(p, data, self._symbolic, self._permuted)
+                else:
+                    self._A.V = cvxopt.matrix(np.ascontiguousarray(data, dtype=float))
+                    _cholmod.numeric(self._A, self._symbolic)
             except ArithmeticError as exc:
                 self._symbolic = None
                 raise DegenerateGeometryError(
@@ -223,6 +294,12 @@ class SparseCholesky:
                 self._lu = splu(N, permc_spec='MMD_AT_PLUS_A')
             except RuntimeError as exc:
                 raise DegenerateGeometryError('the normal matrix is singular') from exc
+
+    def release_values(self) -> None:
+        """Let go of the values last factored (the caller assembles new ones): a factor read
+        out later (:meth:`trailing_lower`, selected inversion) cannot be recomputed for a
+        solve then, until :meth:`refactor` is given values again."""
+        self._data = None
 
     def _analyse(self):
         """CHOLMOD's symbolic analysis with the block ordering (trailing blocks last, kept in
@@ -255,7 +332,7 @@ class SparseCholesky:
         who = self.permutation()[self.n - m:]
         F = _cholmod.getfactor(self._F)  # this turns CHOLMOD's factor back into a symbolic one
         self._F = None
-        self._symbolic = None  # analysed again if the factor is used again
+        self._symbolic = self._permuted = None  # analysed again if the factor is used again
         s0 = self.n - m
         colptr, rowind, values = F.CCS  # cvxopt matrices: read through the buffer protocol
         J = np.asarray(colptr).ravel()
@@ -271,6 +348,9 @@ class SparseCholesky:
         """Solve ``N x = b`` for ``b`` of shape ``(n,)`` or ``(n, k)``."""
         b = np.asarray(b, dtype=float)
         if self._F is None and _cholmod is not None:  # the factor was read out: factor again
+            if self._data is None:
+                raise DegenerateGeometryError('this factor was read out and its values released:'
+                                              ' refactor() it before solving')
             self.refactor(self._data)
         if self._F is not None:
             B = cvxopt.matrix(np.asfortranarray(b.reshape(self.n, -1)))
@@ -311,12 +391,257 @@ def kept_block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: in
                  lambda: BlockPattern(block_rows, block_cols, d, n))
 
 
-def _cvxopt_pattern(pattern: BlockPattern):
+def _cvxopt_pattern(pattern: BlockPattern, keep: bool = True):
     """CHOLMOD's input matrix for a pattern (values are set before each factorisation). Building
-    it sorts every entry again (~0.1 s for a window), so it is kept per pattern too."""
-    return _kept(_MATRICES, _MAX_MATRICES, pattern.key, lambda: cvxopt.spmatrix(
-        cvxopt.matrix(np.zeros(pattern.nnz)), cvxopt.matrix(pattern.indices.astype(np.int64)),
-        cvxopt.matrix(_expand_cols(pattern.indptr)), (pattern.size, pattern.size)))
+    it sorts every entry again (~0.1 s for a window), so it is kept per pattern too (``keep``;
+    not when only the symbolic analysis needs it: :func:`_direct_cholmod`)."""
+    def build():
+        return cvxopt.spmatrix(
+            cvxopt.matrix(np.zeros(pattern.nnz)), cvxopt.matrix(pattern.indices.astype(np.int64)),
+            cvxopt.matrix(_expand_cols(pattern.indptr)), (pattern.size, pattern.size))
+
+    return _kept(_MATRICES, _MAX_MATRICES, pattern.key, build) if keep else build()
+
+
+class _CholmodFactor(ctypes.Structure):
+    """``cholmod_factor`` of CHOLMOD 3 (SuiteSparse 5, bundled in the cvxopt wheel)."""
+
+    _fields_ = ([(f, ctypes.c_size_t) for f in ('n', 'minor')]
+                + [(f, ctypes.c_void_p) for f in ('Perm', 'ColCount', 'IPerm')]
+                + [('nzmax', ctypes.c_size_t)]
+                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'x', 'z', 'nz', 'next', 'prev')]
+                + [(f, ctypes.c_size_t) for f in ('nsuper', 'ssize', 'xsize', 'maxcsize',
+                                                  'maxesize')]
+                + [(f, ctypes.c_void_p) for f in ('super', 'pi', 'px', 's')]
+                + [(f, ctypes.c_int) for f in ('ordering', 'is_ll', 'is_super', 'is_monotonic',
+                                               'itype', 'xtype', 'dtype', 'useGPU')])
+
+
+class _CholmodSparse(ctypes.Structure):
+    """``cholmod_sparse`` (CHOLMOD 3, SuiteSparse 5: the library bundled in the cvxopt wheel)."""
+
+    _fields_ = ([(f, ctypes.c_size_t) for f in ('nrow', 'ncol', 'nzmax')]
+                + [(f, ctypes.c_void_p) for f in ('p', 'i', 'nz', 'x', 'z')]
+                + [(f, ctypes.c_int) for f in ('stype', 'itype', 'xtype', 'dtype', 'sorted',
+                                               'packed')])
+
+
+class _CommonHead(ctypes.Structure):
+    """The first fields of ``cholmod_common`` (CHOLMOD 3), up to ``print``: read to check the
+    layout (their defaults) before ``print`` is set to 0."""
+
+    _fields_ = ([('dbound', ctypes.c_double), ('grow0', ctypes.c_double),
+                 ('grow1', ctypes.c_double), ('grow2', ctypes.c_size_t),
+                 ('maxrank', ctypes.c_size_t), ('supernodal_switch', ctypes.c_double)]
+                + [(f, ctypes.c_int) for f in ('supernodal', 'final_asis', 'final_super',
+                                               'final_ll', 'final_pack', 'final_monotonic',
+                                               'final_resymbol')]
+                + [('zrelax', ctypes.c_double * 3), ('nrelax', ctypes.c_size_t * 3)]
+                + [(f, ctypes.c_int) for f in ('prefer_zomplex', 'prefer_upper',
+                                               'quick_return_if_not_posdef', 'prefer_binary',
+                                               'print')])
+
+
+class _DirectCholmod:
+    """``cholmod_l_factorize`` of the CHOLMOD library that cvxopt loaded, called through
+    ``ctypes`` on a ``cholmod_sparse`` header over the pattern's and the values' own arrays.
+
+    cvxopt's ``cholmod.numeric`` copies the lower triangle (values and int64 row indices) into a
+    new matrix on every call, and the caller had copied the values into a cvxopt matrix before;
+    here CHOLMOD reads NumPy's arrays. Each thread has its own ``cholmod_common`` (the call
+    releases the GIL: a background refinement may factor at the same time). The factor object
+    stays cvxopt's (its analysis, solves and ``getfactor`` are cvxopt's)."""
+
+    _COMMON_BYTES = 1 << 16  # larger than cholmod_common (a few KiB)
+
+    def __init__(self, path: str) -> None:
+        lib = ctypes.CDLL(path)
+        self._factorize = lib.cholmod_l_factorize
+        self._factorize.restype = ctypes.c_int
+        self._factorize.argtypes = [ctypes.c_void_p] * 3
+        self._start = lib.cholmod_l_start
+        self._start.argtypes = [ctypes.c_void_p]
+        self._free_work = lib.cholmod_l_free_work
+        self._free_work.argtypes = [ctypes.c_void_p]
+        self._local = threading.local()
+        self._capsule_pointer = ctypes.pythonapi.PyCapsule_GetPointer
+        self._capsule_pointer.restype = ctypes.c_void_p
+        self._capsule_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+        if self._common() is None:
+            raise OSError('unexpected cholmod_common layout')
+
+    def _common(self):
+        """This thread's ``cholmod_common`` (started, ``print = 0``), or ``None`` if its
+        defaults are not those of CHOLMOD 3 (another build: the caller uses cvxopt then)."""
+        common = getattr(self._local, 'common', None)
+        if common is None:
+            buf = ctypes.create_string_buffer(self._COMMON_BYTES)
+            if not self._start(buf):
+                return None
+            head = _CommonHead.from_buffer(buf)
+            expected = (head.dbound == 0.0 and head.grow0 == 1.2 and head.grow2 == 5
+                        and head.maxrank == 8 and head.supernodal_switch == 40.0
+                        and head.final_asis == 1 and list(head.zrelax) == [0.8, 0.1, 0.05]
+                        and list(head.nrelax) == [4, 16, 48] and head.prefer_upper == 1
+                        and head.print == 3)
+            if not expected:
+                return None
+            head.print = 0  # not-positive-definite is reported by an exception, not printed
+            common = self._local.common = buf
+        return common
+
+    def _factor(self, capsule) -> tuple[int, _CholmodFactor]:
+        address = self._capsule_pointer(capsule, b'CHOLMOD FACTOR D L')
+        return address, _CholmodFactor.from_address(address)
+
+    def permuted(self, pattern: BlockPattern, capsule) -> _Permuted:
+        """The lower triangle of ``P N P'`` for the analysed factor ``capsule`` (``P`` its final
+        permutation, postordering included): its CSC pattern and where each of its entries is
+        in ``N``'s values (the same layout as CHOLMOD's own permuted copy)."""
+        _, L = self._factor(capsule)
+        n = pattern.size
+        perm = np.ctypeslib.as_array(ctypes.cast(L.Perm, ctypes.POINTER(ctypes.c_int64)),
+                                     shape=(n,))
+        pinv = np.empty(n, dtype=np.int64)
+        pinv[perm] = np.arange(n)
+        lo = pinv[_expand_cols(pattern.indptr)]
+        hi = pinv[pattern.indices]
+        swap = hi < lo  # (row, col) of P N P': the lower one of the pair
+        lo[swap], hi[swap] = hi[swap], lo[swap]
+        del swap
+        key = lo * n
+        key += hi
+        order = np.argsort(key, kind='stable')
+        del key
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(lo, minlength=n))]).astype(np.int64)
+        del lo
+        indices = hi[order]
+        return _Permuted(order.astype(np.int32 if pattern.nnz < 2**31 else np.int64), indptr,
+                         indices)
+
+    def factorize(self, pattern: BlockPattern, data: FloatArray, capsule,
+                  permuted: _Permuted | None = None) -> None:
+        """Numeric factorisation of the lower triangle ``data`` on ``pattern`` into the
+        analysed factor ``capsule`` (cvxopt's). Raises ``ArithmeticError`` if the matrix is not
+        positive definite, ``MemoryError`` if CHOLMOD fails otherwise.
+
+        Given the ``permuted`` pattern (:meth:`permuted`), ``P N P'`` is gathered into it and
+        the factor told, for this call, that its ordering is the natural one: CHOLMOD then
+        factors the matrix as it is, instead of building ``triu(P N P')`` and its transpose
+        (two copies of ``N``, values and row indices: ~0.7 GB for a survey of 100,000 poses;
+        the gathered values are one copy of the values alone, half of that)."""
+        n = pattern.size
+        in_place = False
+        if permuted is None:
+            x = np.ascontiguousarray(data, dtype=np.float64)
+            indptr = np.ascontiguousarray(pattern.indptr, dtype=np.int64)
+            indices = np.ascontiguousarray(pattern.indices, dtype=np.int64)
+        else:
+            x = np.asarray(data, dtype=np.float64)
+            permute = _permutation_kernel()
+            # permuted where they lie (and back afterwards) when the compiled kernel and a
+            # writable array allow it, else gathered into a copy
+            in_place = permute is not None and x.flags.writeable and x.flags.c_contiguous
+            if in_place:
+                permute(x, permuted.where, False, np.zeros(x.size, dtype=np.bool_))
+            else:
+                x = x[permuted.where]
+            indptr, indices = permuted.indptr, permuted.indices
+        A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
+                           None, x.ctypes.data, None, -1, 2, 1, 0, 1, 1)  # lower, long, real
+        address, L = self._factor(capsule)
+        ordering = L.ordering
+        if permuted is not None:
+            L.ordering = 0  # CHOLMOD_NATURAL: A is P N P' (the permutation stays for solves)
+        common = self._common()
+        try:
+            ok = self._factorize(ctypes.addressof(A), address, common)
+        finally:
+            L.ordering = ordering
+            self._free_work(common)
+            if in_place:  # the caller's values back in their order
+                permute(x, permuted.where, True, np.zeros(x.size, dtype=np.bool_))
+        if not ok:
+            raise MemoryError('CHOLMOD could not factor the normal matrix (out of memory?)')
+        if L.minor < n:
+            raise ArithmeticError('not positive definite')
+
+
+def _permute_py(x, where, inverse, seen):  # pragma: no cover - compiled
+    """In place, cycle by cycle: ``x[k] <- x[where[k]]`` for every ``k`` (a gather without a
+    copy), or with ``inverse`` its inverse, ``x[where[k]] <- x[k]``. ``seen``: (x.size,) False."""
+    for s in range(x.size):
+        if seen[s]:
+            continue
+        tmp = x[s]
+        j = s
+        while True:
+            seen[j] = True
+            k = where[j]
+            if inverse:
+                nxt = x[k]
+                x[k] = tmp
+                tmp = nxt
+                if k == s:
+                    break
+            elif k == s:
+                x[j] = tmp
+                break
+            else:
+                x[j] = x[k]
+            j = k
+
+
+_PERMUTE: list = []  # [the compiled _permute_py or None], compiled on first use
+
+
+def _permutation_kernel():
+    """:func:`_permute_py` compiled with numba (cached on disk), or ``None`` without numba
+    (the values are gathered into a copy then)."""
+    if not _PERMUTE:
+        from ga_ros.core.kernels import AVAILABLE
+
+        fn = None
+        if AVAILABLE:
+            import numba
+
+            fn = numba.njit(cache=True, nogil=True)(_permute_py)
+        _PERMUTE.append(fn)
+    return _PERMUTE[0]
+
+
+@dataclass(frozen=True)
+class _Permuted:
+    """The lower triangle of ``P N P'`` in CSC: ``where`` (its entries' positions in ``N``'s
+    values), ``indptr``, ``indices`` (int64, as CHOLMOD's long interface reads them)."""
+
+    where: IntArray
+    indptr: IntArray
+    indices: IntArray
+
+
+_DIRECT: list = []  # [the _DirectCholmod or None], found on first use
+#: From this many stored entries of ``N`` on, the direct factorisation hands CHOLMOD ``N``
+#: already permuted (:meth:`_DirectCholmod.permuted`: an argsort of the entries once per
+#: analysis, ~0.1 s per million; a window's few hundred thousand entries are factored as given).
+_PERMUTE_FROM_NNZ = 1 << 22
+
+
+def _direct_cholmod() -> _DirectCholmod | None:
+    """The direct CHOLMOD call (:class:`_DirectCholmod`), or ``None`` when the library cvxopt
+    bundles is not found or not the expected version (then cvxopt's ``numeric`` is used);
+    ``GA_ROS_DIRECT_CHOLMOD=0`` turns it off."""
+    if not _DIRECT:
+        found = None
+        if cvxopt is not None and os.environ.get('GA_ROS_DIRECT_CHOLMOD', '1') != '0':
+            libs = glob.glob(os.path.join(os.path.dirname(os.path.dirname(cvxopt.__file__)),
+                                          'cvxopt.libs', 'libcholmod*.so.3.*'))
+            try:
+                found = _DirectCholmod(libs[0]) if len(libs) == 1 else None
+            except (OSError, AttributeError):
+                found = None
+        _DIRECT.append(found)
+    return _DIRECT[0]
 
 
 def block_ordering(pattern: BlockPattern) -> IntArray:
