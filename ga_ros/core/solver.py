@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import kernels, models
@@ -1070,6 +1069,8 @@ def initial_guess_f2f(network: ConnectionNetwork,
     -------
     (n, 4, 4) poses ``T_world_node``; the first node is at ``T_world_first`` (identity default).
     """
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree  # lazy: start-up
+
     n = network.n_nodes
     T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     if T_world_first is not None:
