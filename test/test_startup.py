@@ -1,5 +1,6 @@
-"""Start-up of ``ga-ros solve`` (issue 10: whole process <= GTSAM's): what a batch solve
-imports, and the NumPy connected components that replace ``scipy.sparse.csgraph`` on its path."""
+"""Whole process of ``ga-ros solve`` (issue 10: <= GTSAM's): what a batch solve imports, the
+NumPy connected components that replace ``scipy.sparse.csgraph`` on its path, and the g2o
+reader's network built from its validated arrays."""
 
 from __future__ import annotations
 
@@ -67,3 +68,35 @@ def test_batch_solve_imports_no_unused_scipy_module(tmp_path):
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True).stdout.splitlines()
     assert out[-2:] == ['[]', f'[{runtime.default_blas_threads()}]']
+
+
+def test_g2o_network_equals_the_one_built_connection_by_connection(tmp_path):
+    """read_g2o builds its network from the validated arrays at once; the same file through
+    add_node / add_connections (each connection checked by the network) gives the same
+    network, a repeated edge kept twice."""
+    from ga_ros.core.network import ConnectionNetwork
+    from ga_ros.io.g2o import read_g2o
+
+    rng = np.random.default_rng(0)
+    lines = [f'VERTEX_SE3:QUAT {k * 3} {k}.0 0 0 0 0 0 1' for k in range(6)]
+    info = '100 0 0 0 0 0 100 0 0 0 0 100 0 0 0 400 0 0 400 0 400'
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 5), (0, 5), (2, 0)]:
+        x, y, z = rng.normal(size=3)
+        lines.append(f'EDGE_SE3:QUAT {i * 3} {j * 3} {x} {y} {z} 0.1 0 0 0.99498743710662 '
+                     + info)
+    (tmp_path / 'g.g2o').write_text('\n'.join(lines) + '\n')
+    g = read_g2o(tmp_path / 'g.g2o')
+    ref = ConnectionNetwork(duplicates='keep')
+    for v in g.vertex_ids.tolist():
+        ref.add_node(v, 0)
+    a = g.network.arrays()
+    ref.add_connections(g.vertex_ids[a.src], g.vertex_ids[a.dst], a.z, a.cov)
+    b = ref.arrays()
+    assert g.network.n_connections == ref.n_connections == 8
+    np.testing.assert_array_equal(g.network.node_ids, ref.node_ids)
+    for name in ('src', 'dst', 'z', 'cov'):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    np.testing.assert_allclose(np.linalg.inv(a.cov), g.information, rtol=1e-12)
+    # the network keeps working like one built edge by edge
+    g.network.add_connection(0, 15, np.zeros(6), np.eye(6))
+    assert g.network.n_connections == 9 and g.network.unreachable_from([0]).size == 0
