@@ -28,11 +28,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError
 from ga_ros.geometry import se3
+from ga_ros.runtime import lazy_import
+
+sp = lazy_import('scipy.sparse')  # only some functions need it (start-up)
 
 INIT_METHODS = ('odometry', 'spanning-tree', 'chordal')
 

@@ -21,7 +21,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import kernels, models
@@ -29,7 +28,9 @@ from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.sparse import BlockPattern, SparseCholesky, kept_block_pattern, spd_inverse
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
 from ga_ros.geometry import se2, se3
-from ga_ros.runtime import blas_threads
+from ga_ros.runtime import blas_threads, lazy_import
+
+sp = lazy_import('scipy.sparse')  # only some functions need it (start-up)
 
 ROBUST_LOSSES = ('none', 'huber', 'cauchy')
 #: Above this many requested nodes, covariances come from selected inversion of the whole
