@@ -102,20 +102,3 @@ def test_g2o_network_equals_the_one_built_connection_by_connection(tmp_path):
     g.network.add_connection(0, 15, np.zeros(6), np.eye(6))
     assert g.network.n_connections == 9 and g.network.unreachable_from([0]).size == 0
 
-
-def test_lazy_import_imports_on_first_use_and_entry_points_import_scipy_cheaply():
-    """runtime.lazy_import defers the import to the first attribute access; after an entry
-    point's limit_blas_threads(), the first SciPy submodule import goes through import_scipy
-    (SciPy's copy of the numpy namespace without numpy.testing / f2py / ma)."""
-    code = ('import sys\n'
-            'from ga_ros.runtime import lazy_import, limit_blas_threads\n'
-            "fr = lazy_import('fractions')\n"
-            "print('fractions' in sys.modules, fr.Fraction(2, 6) == fr.Fraction(1, 3),\n"
-            "      'fractions' in sys.modules)\n"
-            'keep = limit_blas_threads()\n'
-            'import scipy.sparse.csgraph\n'
-            "print(sorted(m for m in ('numpy.testing', 'numpy.f2py', 'numpy.ma') "
-            'if m in sys.modules))\n')
-    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                         check=True).stdout.splitlines()
-    assert out == ['False True True', '[]']
