@@ -42,7 +42,8 @@ class GraphSolveConfig:
     ----------
     solver : the solver settings; the defaults of a batch pose-graph solve are
         :data:`GRAPH_SOLVER` (``se3``, Powell's dogleg -- Gauss-Newton steps while they lower the
-        cost, one factorisation per iteration --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
+        cost, at most one factorisation per iteration, none for a chord step near the optimum
+        (``chord_decrease``) --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
         ``cost_tolerance`` 1e-5, the default of GTSAM's ``relativeErrorTol``). ``damping='lm'``
         runs a Levenberg-Marquardt first stage, then the undamped polish below.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
