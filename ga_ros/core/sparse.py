@@ -26,7 +26,8 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
 
-sp = lazy_import('scipy.sparse')  # only some functions need it (start-up)
+sla = lazy_import('scipy.linalg')  # only some functions need them (start-up)
+sp = lazy_import('scipy.sparse')
 
 try:  # CHOLMOD, bundled in the cvxopt wheel
     with openblas_coretype():
@@ -384,8 +385,6 @@ class TrailingFactor:
     def marginal_blocks(self) -> FloatArray:
         """Diagonal ``d x d`` blocks of ``S^-1`` (the trailing nodes' marginal covariances),
         ``(k, d, d)``, from ``S^-1 = L^-T L^-1`` without forming ``S^-1``."""
-        import scipy.linalg as sla  # lazy: not on the batch solve's path (start-up)
-
         d = self.d
         Li = sla.lapack.dtrtri(self.L, lower=1)[0]
         if not np.isfinite(Li).all():
@@ -524,8 +523,6 @@ def _bordered_pairs(N: sp.csr_matrix, d: int, border: np.ndarray, pa: IntArray, 
                     ) -> tuple[FloatArray, FloatArray | None, int]:
     """:func:`_banded_pairs` with the ``border`` nodes eliminated last (see
     :func:`banded_selection`)."""
-    import scipy.linalg as sla  # lazy: not on the batch solve's path (start-up)
-
     u = N.shape[0] // d
     q_nodes, p_nodes = np.nonzero(~border)[0], np.nonzero(border)[0]
     qs = (q_nodes[:, None] * d + np.arange(d)).ravel()
@@ -577,8 +574,6 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
                   ) -> tuple[FloatArray, FloatArray | None, int]:
     """Blocks ``Sigma_{pa_k, pc_k}`` of ``N^-1`` and ``N^-1 rhs`` by the block-tridiagonal
     selected inversion of :func:`banded_selection` (no border), and the block size (nodes)."""
-    import scipy.linalg as sla  # lazy: not on the batch solve's path (start-up)
-
     N = sp.coo_matrix(N)
     u = N.shape[0] // d
     rn, cn = N.row // d, N.col // d
