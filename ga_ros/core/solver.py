@@ -442,7 +442,6 @@ class _Trust:
     radius: float = 0.0  # dogleg trust radius (0: not set yet, the first step tries full GN)
     cost: float = np.inf  # cost at the current estimate
     chord: bool = False  # dogleg: try the last factorisation first (see _chord_step)
-    chords: int = 0  # chord steps kept
 
     def factor(self, pattern: BlockPattern, data: FloatArray) -> SparseCholesky:
         if self.chol is None:
@@ -1035,7 +1034,6 @@ def _chord_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
     actual = state.cost - cost
     if not (actual >= 0 and actual >= 0.25 * predicted):
         return None
-    state.chords += 1
     return _Step(T_new, prob.next_residuals(T_new, sysd, h),
                  float(np.abs(h).max()) if h.size else 0.0, True, cost, True)
 
