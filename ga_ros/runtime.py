@@ -9,16 +9,20 @@
   processes.
 * :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
 * :func:`import_scipy`: SciPy's first import without the NumPy submodules it never uses
-  (start-up of the command line).
+  (start-up of the command line; the entry points run it before the first SciPy submodule is
+  imported), :func:`lazy_import`: a module imported on first use.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import importlib.util
 import os
 import platform
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 from threadpoolctl import ThreadpoolController, threadpool_limits
 
@@ -71,14 +75,71 @@ def import_scipy() -> None:
         compat.__getattr__ = lambda name: getattr(numpy, name)
 
 
+class _LazyModule:
+    """Stands for a module until its first attribute access, which imports it."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+
+    def __getattr__(self, attr: str):
+        return getattr(importlib.import_module(self._name), attr)
+
+    def __repr__(self) -> str:
+        return f'<lazy module {self._name!r}>'
+
+
+def lazy_import(name: str):
+    """Module ``name``, imported on its first attribute access.
+
+    For modules that a module needs in some functions only: ``sp = lazy_import('scipy.sparse')``
+    at the top keeps ``sp.csr_matrix(...)`` as written, while a process that never touches
+    ``sp`` (a batch solve of a g2o file) never pays for importing it (~0.15 s of start-up for
+    ``scipy.sparse``). Nothing is looked up until then (an ``import`` elsewhere imports the
+    module as usual); an attribute access costs one ``sys.modules`` look-up more.
+    """
+    return sys.modules.get(name) or _LazyModule(name)
+
+
+class _ScipyFirst:
+    """``sys.meta_path`` hook: before the first import of a SciPy submodule, run
+    :func:`import_scipy` (once; the hook then removes itself)."""
+
+    @classmethod
+    def find_spec(cls, name: str, path=None, target=None):
+        if name.startswith('scipy.'):
+            with contextlib.suppress(ValueError):
+                sys.meta_path.remove(cls)
+            import_scipy()
+        return None
+
+
 def _load_blas() -> None:
     import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
+    import scipy  # noqa: F401  (its submodules load lazily)
 
-    import_scipy()
-    import scipy.linalg  # noqa: F401
-
+    if 'scipy._lib._array_api' not in sys.modules and _ScipyFirst not in sys.meta_path:
+        sys.meta_path.insert(0, _ScipyFirst)  # import_scipy() when a submodule is first needed
+    _preload_scipy_blas()
     with contextlib.suppress(ImportError), openblas_coretype():
         import cvxopt  # noqa: F401  (its bundled OpenBLAS, with the kernel for this CPU)
+
+
+def _preload_scipy_blas() -> None:
+    """Load the OpenBLAS bundled in the SciPy wheel (``scipy.libs/libscipy_openblas*.so``)
+    without importing ``scipy.linalg``, so that a thread limit set now covers it.
+
+    Importing ``scipy.linalg`` costs ~0.15 s of start-up (it parses its docstrings), and a batch
+    solve never uses it. When ``scipy.linalg`` is imported later, the dynamic loader finds the
+    library already loaded (same soname) and the limit holds. A SciPy without a bundled
+    OpenBLAS (a system build) is left alone: its BLAS is limited once it is loaded.
+    """
+    scipy = sys.modules.get('scipy')
+    if scipy is None or getattr(scipy, '__file__', None) is None:
+        return
+    libs = Path(scipy.__file__).resolve().parent.parent / 'scipy.libs'
+    for lib in sorted(libs.glob('libscipy_openblas*.so*')):
+        with contextlib.suppress(OSError):
+            ctypes.CDLL(str(lib))
 
 
 def limit_blas_threads(n: int | None = None) -> threadpool_limits:

@@ -12,6 +12,12 @@ from threadpoolctl import threadpool_info
 from ga_ros import runtime
 
 
+def _python_lines(code: str) -> list[str]:
+    """What a fresh interpreter running ``code`` prints, line by line."""
+    return subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          check=True).stdout.splitlines()
+
+
 def _blas_threads() -> set[int]:
     return {i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'}
 
@@ -75,6 +81,20 @@ def test_import_scipy_leaves_unused_numpy_submodules_unloaded_but_reachable():
             'import scipy._lib.array_api_compat.numpy as compat\n'
             'print(compat.testing is numpy.testing, compat.ma.masked is numpy.ma.masked)\n'
             "print('testing' in numpy.__all__, 'testing' in dir(numpy))\n")
-    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                         check=True).stdout.splitlines()
-    assert out == ['[]', 'True True', 'True True']
+    assert _python_lines(code) == ['[]', 'True True', 'True True']
+
+
+def test_lazy_import_imports_on_first_use_and_entry_points_import_scipy_cheaply():
+    """runtime.lazy_import defers the import to the first attribute access; after an entry
+    point's limit_blas_threads(), the first SciPy submodule import goes through import_scipy
+    (SciPy's copy of the numpy namespace without numpy.testing / f2py / ma)."""
+    code = ('import sys\n'
+            'from ga_ros.runtime import lazy_import, limit_blas_threads\n'
+            "fr = lazy_import('fractions')\n"
+            "print('fractions' in sys.modules, fr.Fraction(2, 6) == fr.Fraction(1, 3),\n"
+            "      'fractions' in sys.modules)\n"
+            'keep = limit_blas_threads()\n'
+            'import scipy.sparse.csgraph\n'
+            "print(sorted(m for m in ('numpy.testing', 'numpy.f2py', 'numpy.ma') "
+            'if m in sys.modules))\n')
+    assert _python_lines(code) == ['False True True', '[]']

@@ -28,12 +28,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError
 from ga_ros.geometry import se3
+from ga_ros.runtime import lazy_import
+
+sp = lazy_import('scipy.sparse')  # only some functions need it (start-up)
 
 INIT_METHODS = ('odometry', 'spanning-tree', 'chordal')
 
@@ -88,6 +89,8 @@ class PoseGraphEdges:
 
 def _compose_tree(edges: PoseGraphEdges, weight: FloatArray, root: int) -> FloatArray:
     """Poses composed from ``root`` (identity) along the minimum spanning tree of ``weight``."""
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree  # lazy: start-up
+
     n, src, dst = edges.n, np.asarray(edges.src), np.asarray(edges.dst)
     lo, hi = np.minimum(src, dst), np.maximum(src, dst)
     order = np.argsort(weight, kind='stable')
@@ -189,6 +192,8 @@ def chordal_initialization(edges: PoseGraphEdges, root: int = 0) -> FloatArray:
     DegenerateGeometryError
         The sparse systems cannot be solved.
     """
+    from scipy.sparse.csgraph import breadth_first_order  # lazy: start-up
+
     n, d = edges.n, edges.dim
     src, dst = np.asarray(edges.src), np.asarray(edges.dst)
     m = src.size

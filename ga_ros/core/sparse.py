@@ -25,12 +25,13 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
-from ga_ros.runtime import openblas_coretype
+from ga_ros.runtime import lazy_import, openblas_coretype
+
+sla = lazy_import('scipy.linalg')  # only some functions need them (start-up)
+sp = lazy_import('scipy.sparse')
 
 try:  # CHOLMOD, bundled in the cvxopt wheel
     with openblas_coretype():
@@ -218,10 +219,13 @@ class BlockPattern:
         return np.where(self._kept_diag[kept][:, None], self._tril[None, :], True)
 
     def matvec(self, data: FloatArray, x: FloatArray) -> FloatArray:
-        """``N x`` for the symmetric matrix whose lower triangle is ``data``."""
-        L = self.lower_csc(data)
-        diag = data[self.indptr[:-1]]  # the diagonal entry heads each column
-        return L @ x + L.T @ x - diag * x
+        """``N x`` for the symmetric matrix whose lower triangle is ``data`` (NumPy only: the
+        dogleg's products need no ``scipy.sparse``)."""
+        cols = np.repeat(np.arange(self.size), np.diff(self.indptr))
+        x = np.asarray(x, dtype=float)
+        y = np.bincount(self.indices, weights=data * x[cols], minlength=self.size)  # L x
+        y += np.bincount(cols, weights=data * x[self.indices], minlength=self.size)  # L' x
+        return y - data[self.indptr[:-1]] * x  # the diagonal entry heads each column
 
     def lower_csc(self, data: FloatArray) -> sp.csc_matrix:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))

@@ -58,7 +58,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.covariance import nearest_positive_definite, not_positive_definite
-from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.atomic import atomic_write
@@ -484,14 +484,15 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     cov = np.linalg.inv(info6)
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
-    network = ConnectionNetwork(duplicates='keep')
-    for v in ids.tolist():
-        network.add_node(v, 0)
     z = se3.to_translation_rotvec(T_meas)
-    try:
-        network.add_connections(ids[src], ids[dst], z, cov)
-    except InputError as exc:  # e.g. a bit-identical repeated edge: name its line
+    try:  # the network's own check of the covariances (finite, symmetric, positive definite)
+        cov = check_covariances(cov)
+    except InputError as exc:
         raise FormatError(f'the network rejected the edges: {exc}', spath) from None
+    # everything else was validated above (ids, ends, no self-loops, finite values): no
+    # per-edge Python loop of ConnectionNetwork.add_connections; repeated edges are kept
+    network = ConnectionNetwork.from_arrays(ids, np.zeros(ids.size, dtype=np.int64), src, dst,
+                                            z, cov)
     fixed = tuple(dict.fromkeys(int(v) for _, fields in fix for v in fields))
     toro = any(g.tag in (TAG_VERTEX_TORO, TAG_EDGE_TORO) for g in groups)
     g2o2 = any(g.tag in (TAG_VERTEX_SE2, TAG_EDGE_SE2) for g in groups)

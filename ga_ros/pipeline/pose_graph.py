@@ -42,7 +42,8 @@ class GraphSolveConfig:
     ----------
     solver : the solver settings; the defaults of a batch pose-graph solve are
         :data:`GRAPH_SOLVER` (``se3``, Powell's dogleg -- Gauss-Newton steps while they lower the
-        cost, one factorisation per iteration --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
+        cost, at most one factorisation per iteration, none for a chord step near the optimum
+        (``chord_decrease``) --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
         ``cost_tolerance`` 1e-5, the default of GTSAM's ``relativeErrorTol``). ``damping='lm'``
         runs a Levenberg-Marquardt first stage, then the undamped polish below.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
@@ -156,8 +157,10 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,
         return last[1]
 
     first = cfg.solver_config(dim=graph.dim)
+    # the file's information is the weight matrix: not inverted back from the covariances
+    weights = graph.information if first.model == 'se3' and graph.dim == 3 else None
     t = time.perf_counter()
-    res = solve(graph.network, graph.T_init, first, fixed=fixed)
+    res = solve(graph.network, graph.T_init, first, fixed=fixed, weights=weights)
     T, best = res.T_world_node, objective(res.T_world_node)
     iterations, converged, reason = res.iterations, res.converged, res.reason
     stages.append(dict(name=cfg.solver.damping, iterations=res.iterations,
@@ -167,7 +170,7 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,
         polish = cfg.solver_config('none', cfg.polish_iterations, dim=graph.dim)
         t = time.perf_counter()
         try:
-            res2 = solve(graph.network, T, polish, fixed=fixed)
+            res2 = solve(graph.network, T, polish, fixed=fixed, weights=weights)
             value = objective(res2.T_world_node)
             ok = bool(np.isfinite(value) and value <= best * (1 + 1e-12) + 1e-300)
             why = res2.reason

@@ -82,7 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument('--robust-scale', type=float, default=3.0,
                    help='Mahalanobis distance where the robust loss starts (default 3)')
     p.add_argument('--damping', choices=('dogleg', 'lm', 'none'),
-                   help='batch default dogleg (one factorisation per iteration); lm: '
+                   help='batch default dogleg (at most one factorisation per iteration); lm: '
                    'Levenberg-Marquardt then Gauss-Newton; none: GN only '
                    '(track mode default none, as the live node)')
     p.add_argument('--max-iterations', type=int,

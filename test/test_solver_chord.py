@@ -1,0 +1,79 @@
+"""Dogleg chord steps (issue 10: fewer factorisations): near the optimum an iteration first tries
+the last factorisation, and keeps the step only when the new linearisation confirms it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from solver_problems import make_problem, perturbed
+
+from ga_ros.core import solver
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.sparse import SparseCholesky
+
+DOGLEG = SolverConfig(damping='dogleg', max_iterations=100, tolerance=1e-8, cost_tolerance=1e-5)
+
+
+def _problem(seed: int):
+    rng = np.random.default_rng(seed)
+    prob = make_problem(rng, 'se3', n=40, noise=3.0, gaps=(1, 2, 5, 11))
+    return prob, perturbed(rng, prob.T_true, 0.3)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_chord_steps_save_factorisations_at_the_same_optimum(seed):
+    prob, T0 = _problem(seed)
+    chord = solve(prob.network, T0, DOGLEG)
+    plain = solve(prob.network, T0, replace(DOGLEG, chord_decrease=0.0))
+    # the optimum by the undamped iteration from the truth, to the last digit
+    ref = solve(prob.network, prob.T_true, SolverConfig(tolerance=1e-12, max_iterations=50))
+    assert chord.converged and plain.converged
+    assert plain.factorisations == plain.iterations
+    assert chord.factorisations < chord.iterations  # at least one chord step was kept
+    assert chord.factorisations < plain.factorisations
+    for res in (chord, plain):  # both stop within the cost tolerance of the optimum
+        assert ref.cost <= res.cost * (1 + 1e-12) and res.cost - ref.cost <= 1e-5 * ref.cost
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(chord.cost_history[1:],
+                                                    chord.cost_history[2:]))
+
+
+def test_chord_steps_need_a_cost_tolerance_stop():
+    """Stopping on the correction size alone, every iteration factors (chord steps converge
+    linearly: they would need more iterations to reach a tight step tolerance)."""
+    prob, T0 = _problem(3)
+    res = solve(prob.network, T0, replace(DOGLEG, cost_tolerance=0.0, tolerance=1e-10))
+    assert res.converged and res.factorisations == res.iterations
+
+
+def _state_at(prob, T, chol_scale: float):
+    """A dogleg state at T whose last factor is of ``chol_scale * N(T)``, and the system."""
+    cfg = DOGLEG
+    free = np.ones(prob.network.n_nodes, dtype=bool)
+    free[0] = False
+    p = solver._Problem.build('se3', prob.network.arrays(), [], cfg, free)
+    sysd = p.linear_system(T, p.consistent(T, p.zero_residuals()))
+    data = sysd.normal_values(p.pattern)
+    state = solver._Trust(chol=SparseCholesky(p.pattern, chol_scale * data), cost=p.cost_at(T))
+    return p, sysd, data, state
+
+
+def test_chord_with_the_current_factor_is_the_gauss_newton_step():
+    prob, T0 = _problem(4)
+    p, sysd, data, state = _state_at(prob, T0, 1.0)
+    step = solver._chord_step(p, T0, sysd, data, state)
+    assert step is not None and step.accepted and step.gauss_newton
+    # the Gauss-Newton step by a dense solve of N, retracted: the same poses
+    h = -np.linalg.solve(p.pattern.full_csc(data).toarray(), sysd.u)
+    np.testing.assert_allclose(step.T, p.retract(T0, h), atol=1e-9)
+    assert step.cost < state.cost
+
+
+@pytest.mark.parametrize('scale', [10.0, 0.1])
+def test_chord_with_a_stale_factor_is_refused(scale):
+    """A factor of 10 N (steps ten times too short) or N / 10 (ten times too long) disagrees
+    with the new linearisation: the caller factors instead."""
+    prob, T0 = _problem(5)
+    p, sysd, data, state = _state_at(prob, T0, scale)
+    assert solver._chord_step(p, T0, sysd, data, state) is None
