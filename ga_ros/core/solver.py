@@ -322,6 +322,12 @@ class _NormalSystem:
         chol, self._chol, self._factored = self._chol, None, False
         return chol
 
+    def give_factor(self, chol: SparseCholesky) -> None:
+        """Hand a factor of this system's pattern back (e.g. its symbolic analysis after a
+        selected inversion, :meth:`take_factor`'s counterpart): ``N`` is factored anew on it
+        when needed."""
+        self._chol, self._factored = chol, False
+
     def joint_covariance(self, ids: IntArray) -> FloatArray:
         """Joint covariance ``(d k, d k)`` of the given (free) nodes."""
         X, cols = self._columns(ids)

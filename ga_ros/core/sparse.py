@@ -256,6 +256,18 @@ class SparseCholesky:
         self._lu = None
         self.refactor(data)
 
+    @property
+    def analysis(self):
+        """The symbolic analysis (ordering, supernodes) the next :meth:`refactor` reuses, or
+        ``None`` before the first factorisation."""
+        return self._symbolic
+
+    def keep_analysis(self, analysis) -> None:
+        """Keep only ``analysis`` (a symbolic factor of this pattern, e.g. after a selected
+        inversion overwrote the numeric factor in place): the next :meth:`refactor` factors
+        anew on it."""
+        self._symbolic = analysis
+
     def refactor(self, data: FloatArray) -> None:
         """Numeric factorisation of new values on the same pattern (ordering reused).
 

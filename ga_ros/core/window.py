@@ -405,12 +405,12 @@ def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
     again, factored anew by the next solve that is handed it)."""
     chol = sysm.chol  # factored at the solution (the solve's analysis reused)
     sysm.take_factor()
-    analysis = chol._symbolic
+    analysis = chol.analysis
     inv = selinv.SelectedInverse(chol)
     blocks = inv.diagonal_blocks(cols)
     if inv.in_place:  # CHOLMOD refactors a supernodal factor of the same pattern in place
-        chol._symbolic = analysis
-        sysm._chol = chol
+        chol.keep_analysis(analysis)
+        sysm.give_factor(chol)
     return blocks
 
 
