@@ -668,12 +668,11 @@ class _Problem:
         # the measured motions and their inverses are kept, except by problems linearised in
         # parts, which compute them a part at a time (the same values: ~150 MB less at 100,000
         # poses for a few tenths of a second per linearisation)
+        in_parts = _linearised_in_parts(model, len(conn))
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-                  if model in models.MOTION_MODELS and len(conn) <= _PARTS_ABOVE
-                  else None)
+                  if model in models.MOTION_MODELS and not in_parts else None)
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
         if P is None:  # the weights; a part at a time for problems linearised in parts
-            in_parts = model in models.MOTION_MODELS and len(conn) > _PARTS_ABOVE
             P = _PartWeights(S) if in_parts else _inv_spd(S)
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
                         Tm_inv)
@@ -689,7 +688,7 @@ class _Problem:
 
     def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
         self.linearisations += 1
-        if self.Pf is not None and len(self.conn) > _PARTS_ABOVE:
+        if _linearised_in_parts(self.model, len(self.conn)):
             return _motion_system_in_parts(self, T)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
@@ -739,10 +738,9 @@ class _Problem:
     def parts(self):
         """``(a, connections a..b-1)`` for consecutive parts of :data:`_CONNECTIONS_PER_PART`
         connections."""
-        conn, m = self.conn, len(self.conn)
-        for a in range(0, m, _CONNECTIONS_PER_PART):
-            b = min(a + _CONNECTIONS_PER_PART, m)
-            yield a, ConnectionArrays(conn.src[a:b], conn.dst[a:b], conn.z[a:b], conn.cov[a:b])
+        conn = self.conn
+        for s in _part_slices(len(conn)):
+            yield s.start, ConnectionArrays(conn.src[s], conn.dst[s], conn.z[s], conn.cov[s])
 
     def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
         """Residuals to relinearise at after the step ``dx`` took the estimate to ``T``."""
@@ -946,11 +944,21 @@ class _PartWeights:
     def __getitem__(self, part: slice) -> FloatArray:
         return _inv_spd(self.S[part])
 
-    def parts(self):
-        """Consecutive slices of :data:`_CONNECTIONS_PER_PART` connections."""
-        m = self.shape[0]
-        return [slice(a, min(a + _CONNECTIONS_PER_PART, m))
-                for a in range(0, m, _CONNECTIONS_PER_PART)]
+    def parts(self) -> list[slice]:
+        """The parts' slices (:func:`_part_slices`)."""
+        return _part_slices(self.shape[0])
+
+
+def _linearised_in_parts(model: str, m: int) -> bool:
+    """Whether a problem of ``m`` connections is linearised and assembled in parts (motion
+    models above :data:`_PARTS_ABOVE` connections; :func:`_motion_system_in_parts`)."""
+    return model in models.MOTION_MODELS and m > _PARTS_ABOVE
+
+
+def _part_slices(m: int) -> list[slice]:
+    """Consecutive slices of :data:`_CONNECTIONS_PER_PART` of ``m`` connections."""
+    return [slice(a, min(a + _CONNECTIONS_PER_PART, m))
+            for a in range(0, m, _CONNECTIONS_PER_PART)]
 
 
 def _maha2(e: FloatArray, P: FloatArray | _PartWeights) -> FloatArray:

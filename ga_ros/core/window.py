@@ -1326,7 +1326,7 @@ class TrackWindowAligner:
             # exact step H^-1 g (the kept part of N^-1 u); refinement.band_prior
             try:
                 skel, x = selinv.sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
-                                          coords=self._T[free_idx, :3, 3], rhs=u)
+                                                 coords=self._T[free_idx, :3, 3], rhs=u)
                 step = x.reshape(-1, 6)[~elim].ravel()
                 mean, K = band_prior(self._T[S_nodes], skel, step)
                 self._priors.append((S_nodes, mean, K))
