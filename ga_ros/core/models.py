@@ -226,12 +226,19 @@ def retract(model: str, T: FloatArray, idx: IntArray, d: FloatArray) -> FloatArr
 def prior_residual(model: str, T: FloatArray, T_mean: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Residual ``e`` (k, d) and Jacobian ``de/dx`` (k, d, d) of a weighted parameter.
 
-    ``se3``, ``se2``: ``e = log(T_mean^-1 T)`` with Jacobian ``J_r(e)^-1``; positions:
-    ``e = p - p_mean``.
+    ``se3``: position and rotation apart, ``e = [R_mean' (p - p_mean), log(R_mean' R)]``, with
+    Jacobian ``diag(R_mean' R, J_r(phi)^-1)`` for the right perturbation ``T exp(d)`` (equal to
+    the tangent ``log(T_mean^-1 T)`` to first order; see ``refinement.tangent_prior`` for why);
+    ``se2``: ``e = log(T_mean^-1 T)`` with Jacobian ``J_r(e)^-1``; positions: ``e = p - p_mean``.
     """
     if model == 'se3':
-        e = se3.local(T_mean, T)
-        return e, se3.right_jacobian_inv(e)
+        R_rel = np.swapaxes(T_mean[:, :3, :3], 1, 2) @ T[:, :3, :3]
+        phi = so3.log(R_rel)
+        J = np.zeros((phi.shape[0], 6, 6))
+        J[:, :3, :3] = R_rel
+        J[:, 3:, 3:] = so3.right_jacobian_inv(phi)
+        dp = T[:, :3, 3] - T_mean[:, :3, 3]
+        return np.hstack([np.einsum('kji,kj->ki', T_mean[:, :3, :3], dp), phi]), J
     if model == 'se2':
         e = se2.local(T_mean, T)
         return e, se2.right_jacobian_inv(e)

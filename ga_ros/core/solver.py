@@ -120,7 +120,9 @@ class GaussianPrior:
         counts).
     information : (d k, d k) inverse covariance (dense array or scipy.sparse), node-major, each
         node's block in the order ``[x y z rx ry rz]`` (se3, d = 6), ``[x y rz]`` (se2, d = 3)
-        or ``[x y z]`` (positions, d = 3), for the right perturbation ``T_mean exp(e)``.
+        or ``[x y z]`` (positions, d = 3), of the residual of
+        :func:`~ga_ros.core.models.prior_residual` (se3: ``[R_mean' (p - p_mean),
+        log(R_mean' R)]``, the right perturbation ``T_mean exp(e)`` to first order).
     """
 
     node_ids: IntArray
