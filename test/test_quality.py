@@ -144,9 +144,12 @@ def test_priors_share_the_redundancy(rng):
     Q = np.linalg.inv(res.normal_matrix.toarray())
     cols = [int(np.nonzero(res.free_node_ids == i)[0][0]) for i in ids]
     Hp = prior.information.toarray()
-    from ga_ros.geometry import se3
-    e = se3.local(T_true[[0, 4]], res.T_world_node[[0, 4]])
-    J = se3.right_jacobian_inv(e)
+    from ga_ros.geometry import so3
+    # the prior residual [R_mean' (p - p_mean), log(R_mean' R)]: Jacobian diag(R_mean' R, J_r^-1)
+    R_rel = np.swapaxes(T_true[[0, 4], :3, :3], 1, 2) @ res.T_world_node[[0, 4], :3, :3]
+    J = np.zeros((2, 6, 6))
+    J[:, :3, :3] = R_rel
+    J[:, 3:, 3:] = so3.right_jacobian_inv(so3.log(R_rel))
     trace = 0.0
     for a in range(2):
         for b in range(2):
