@@ -61,9 +61,9 @@ def test_refinement_equals_a_batch_solve_of_the_snapshot():
 
 
 def test_tangent_prior_has_the_requested_gradient_and_normal_matrix():
-    """The solver's own linearisation of the prior (``e = log(T_mean^-1 T)``, ``J_r(e)^-1``)
-    at ``T_lin`` must give back ``u = g`` and ``N = H``, also for shifts of 0.2 rad, where the
-    plain shift mean ``T_lin exp(-H^-1 g)`` is off by ~10 %."""
+    """The solver's own linearisation of the prior (``models.prior_residual``: position and
+    rotation apart) at ``T_lin`` must give back ``u = g`` and ``N = H``, also for shifts of
+    0.2 rad, where the plain shift mean ``T_lin exp(-H^-1 g)`` is off by ~10 %."""
     rng = np.random.default_rng(5)
     k = 3
     T_lin = se3.exp(rng.normal(0.0, 1.0, (k, 6)))
