@@ -203,28 +203,81 @@ def _q_matrix(r: FloatArray, p: FloatArray) -> FloatArray:
     return out
 
 
-def _blocks6(X: FloatArray, Y: FloatArray, sign: float, out: FloatArray) -> FloatArray:
-    """``sign * [[X, Y], [0, X]]`` of ``(3, 3, m)`` columns into ``out`` ``(m, 6, 6)``."""
-    Xm = X.transpose(2, 0, 1)
-    out[:, :3, :3] = Xm
-    out[:, 3:, 3:] = Xm
-    out[:, :3, 3:] = Y.transpose(2, 0, 1)
-    out[:, 3:, :3] = 0.0
-    if sign < 0:
-        np.negative(out, out=out)
-    return out
+def _mtm3(A: FloatArray, B: FloatArray) -> FloatArray:
+    """Column-wise ``A' @ B`` of C-contiguous ``(3, 3, m)`` stacks (rows of ``A`` and ``B`` are
+    contiguous ``(3, m)`` slices: no transposed copy)."""
+    return (A[0][:, None] * B[0][None] + A[1][:, None] * B[1][None]
+            + A[2][:, None] * B[2][None])
+
+
+def _mtv3(A: FloatArray, x: FloatArray) -> FloatArray:
+    """Column-wise ``A' @ x``: ``(3, 3, m) x (3, m) -> (3, m)``."""
+    return A[0] * x[0] + A[1] * x[1] + A[2] * x[2]
+
+
+@dataclass(frozen=True)
+class SqrtWeights:
+    """Upper-triangular square roots ``U`` of the weights, ``P = U' U``, as ``3 x 3`` blocks
+    ``U = [[U11, U12], [0, U22]]`` of columns ``(3, 3, m)`` (computed once per problem)."""
+
+    U11: FloatArray
+    U12: FloatArray
+    U22: FloatArray
+
+    @staticmethod
+    def of(P: FloatArray) -> SqrtWeights:
+        """From ``(m, 6, 6)`` symmetric positive-definite weights (Cholesky ``P = L L'``,
+        ``U = L'``)."""
+        U = np.linalg.cholesky(P).transpose(2, 1, 0)  # (6, 6, m): U[r, c] = L[c, r]
+        return SqrtWeights(*(np.ascontiguousarray(U[r:r + 3, c:c + 3])
+                             for r, c in ((0, 0), (0, 3), (3, 3))))
+
+
+class _Whitened:
+    """``V = U J`` of a Jacobian ``J = s [[X, Y], [0, X]]`` (``s = +-1``), whose lower-left
+    block stays zero: ``V = s [[U11 X, U11 Y + U12 X], [0, U22 X]]``."""
+
+    def __init__(self, W: SqrtWeights, X: FloatArray, Y: FloatArray, sign: float) -> None:
+        self.V11 = _mm3(W.U11, X)
+        self.V12 = _mm3(W.U11, Y) + _mm3(W.U12, X)
+        self.V22 = _mm3(W.U22, X)
+        if sign < 0:
+            for V in (self.V11, self.V12, self.V22):
+                np.negative(V, out=V)
+
+    def scale(self, s: FloatArray) -> None:
+        for V in (self.V11, self.V12, self.V22):
+            V *= s
+
+    def gradient(self, r1: FloatArray, r2: FloatArray) -> FloatArray:
+        """``V' r`` ``(m, 6)`` for the whitened residual ``r = [r1; r2]`` (columns)."""
+        g = np.empty((r1.shape[1], 6))
+        g[:, :3] = _mtv3(self.V11, r1).T
+        g[:, 3:] = (_mtv3(self.V12, r1) + _mtv3(self.V22, r2)).T
+        return g
+
+    def product(self, other: _Whitened, out: FloatArray) -> None:
+        """``V_self' V_other`` into ``out`` ``(m, 6, 6)``."""
+        out[:, :3, :3] = _mtm3(self.V11, other.V11).transpose(2, 0, 1)
+        out[:, :3, 3:] = _mtm3(self.V11, other.V12).transpose(2, 0, 1)
+        out[:, 3:, :3] = _mtm3(self.V12, other.V11).transpose(2, 0, 1)
+        out[:, 3:, 3:] = (_mtm3(self.V12, other.V12)
+                          + _mtm3(self.V22, other.V22)).transpose(2, 0, 1)
 
 
 def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
-                  P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
+                  W: SqrtWeights, robust=None, extra_blocks: int = 0) -> NormalBlocks:
     """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring).
+
+    With ``P = U' U`` the blocks are ``V_a' V_b`` of the whitened Jacobians ``V = U J``
+    (block upper triangular like ``J``), all in columns.
 
     Parameters
     ----------
     T : (n, 4, 4) node poses ``T_world_node``.
     src, dst : (m,) node indices.
     meas : inverses of the measured motions.
-    P : (m, 6, 6) weights (inverse covariances, ``[x y z rx ry rz]`` order).
+    W : square roots of the weights (inverse covariances, ``[x y z rx ry rz]`` order).
     robust : ``maha2 -> (m,) weights`` (IRLS weights of a robust loss), or None.
     extra_blocks : rows left uninitialised at the end of ``blocks`` for the caller.
     """
@@ -242,23 +295,19 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
     S = np.ascontiguousarray(mis.R_ij.transpose(1, 0, 2))  # R_ij'
     X = _mm3(A, S)
     Y = _mm3(B, S) - _mm3(X, _hat(mis.t_ij))
-    Jj = _blocks6(A, B, 1.0, np.empty((m, 6, 6)))
-    Ji = _blocks6(X, Y, -1.0, np.empty((m, 6, 6)))
-    Pe = (P @ e[:, :, None])[:, :, 0]
-    maha2 = (e * Pe).sum(axis=1)
+    Vj = _Whitened(W, A, B, 1.0)
+    Vi = _Whitened(W, X, Y, -1.0)
+    r1 = _mv3(W.U11, mis.rho) + _mv3(W.U12, mis.phi)  # r = U e
+    r2 = _mv3(W.U22, mis.phi)
+    maha2 = (r1 * r1).sum(axis=0) + (r2 * r2).sum(axis=0)
     if robust is not None:
-        wgt = robust(maha2)
-        W = P * wgt[:, None, None]
-        Pe *= wgt[:, None]
-    else:
-        W = P
+        sw = np.sqrt(robust(maha2))
+        Vi.scale(sw)
+        Vj.scale(sw)
+        r1, r2 = r1 * sw, r2 * sw
     blocks = np.empty((4 * m + extra_blocks, 6, 6))
-    JiT, JjT = Ji.transpose(0, 2, 1), Jj.transpose(0, 2, 1)
-    WJi = W @ Ji
-    np.matmul(JiT, WJi, out=blocks[:m])
-    np.matmul(JjT, WJi, out=blocks[2 * m:3 * m])
+    Vi.product(Vi, blocks[:m])
+    Vj.product(Vi, blocks[2 * m:3 * m])
     blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
-    np.matmul(JjT, W @ Jj, out=blocks[3 * m:4 * m])
-    g_src = (JiT @ Pe[:, :, None])[:, :, 0]
-    g_dst = (JjT @ Pe[:, :, None])[:, :, 0]
-    return NormalBlocks(e, blocks, g_src, g_dst, maha2)
+    Vj.product(Vj, blocks[3 * m:4 * m])
+    return NormalBlocks(e, blocks, Vi.gradient(r1, r2), Vj.gradient(r1, r2), maha2)

@@ -651,6 +651,7 @@ class _Problem:
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
     factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
     meas: columns.MeasuredInverse | None = None  # Tm_inv as columns (se3, not in parts)
+    sqrt_w: columns.SqrtWeights | None = None  # P = U'U as columns (se3, not in parts)
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -675,9 +676,10 @@ class _Problem:
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
-        meas = columns.MeasuredInverse.of(Tm_inv) if model == 'se3' and not in_parts else None
+        cols = model == 'se3' and not in_parts  # the se3 linearisation in columns
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
-                        Tm_inv, meas=meas)
+                        Tm_inv, meas=columns.MeasuredInverse.of(Tm_inv) if cols else None,
+                        sqrt_w=columns.SqrtWeights.of(P) if cols else None)
 
     @property
     def Pf(self) -> FloatArray | None:
@@ -694,7 +696,7 @@ class _Problem:
             return _motion_system_in_parts(self, T)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
-                              self.compiled, self.meas)
+                              self.compiled, self.meas, self.sqrt_w)
 
     @property
     def compiled(self) -> bool:
@@ -779,7 +781,8 @@ class _System:
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
                    P: FloatArray | None = None, T_meas: FloatArray | None = None,
                    Tm_inv: FloatArray | None = None, compiled: bool = False,
-                   meas: columns.MeasuredInverse | None = None) -> _System:
+                   meas: columns.MeasuredInverse | None = None,
+                   sqrt_w: columns.SqrtWeights | None = None) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -793,7 +796,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     shortcut = model in models.MOTION_MODELS and P is not None
     if shortcut:
         return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
-                              compiled, meas)
+                              compiled, meas, sqrt_w)
     lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
     B = lin.B
     w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
@@ -818,8 +821,8 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
 
 
 def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
-                   Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None
-                   ) -> _System:
+                   Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None,
+                   sqrt_w: columns.SqrtWeights | None = None) -> _System:
     """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
 
@@ -845,9 +848,10 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     elif model == 'se3':  # structure of arrays (NumPy): columns.normal_blocks
         robust = None if cfg.robust_loss == 'none' else (
             lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
-        nb = columns.normal_blocks(T, conn.src, conn.dst,
-                                   meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
-                                   P, robust, extra)
+        nb = columns.normal_blocks(
+            T, conn.src, conn.dst,
+            meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
+            sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, extra)
         w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         del nb
