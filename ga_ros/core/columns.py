@@ -265,8 +265,16 @@ class _Whitened:
                           + _mtm3(self.V22, other.V22)).transpose(2, 0, 1)
 
 
+def maha2(mis: Misclosure, W: SqrtWeights) -> FloatArray:
+    """``e' P e`` ``(m,)`` of misclosures, as ``|U e|^2``."""
+    r1 = _mv3(W.U11, mis.rho) + _mv3(W.U12, mis.phi)
+    r2 = _mv3(W.U22, mis.phi)
+    return (r1 * r1).sum(axis=0) + (r2 * r2).sum(axis=0)
+
+
 def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
-                  W: SqrtWeights, robust=None, extra_blocks: int = 0) -> NormalBlocks:
+                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
+                  mis: Misclosure | None = None) -> NormalBlocks:
     """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring).
 
     With ``P = U' U`` the blocks are ``V_a' V_b`` of the whitened Jacobians ``V = U J``
@@ -280,8 +288,10 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
     W : square roots of the weights (inverse covariances, ``[x y z rx ry rz]`` order).
     robust : ``maha2 -> (m,) weights`` (IRLS weights of a robust loss), or None.
     extra_blocks : rows left uninitialised at the end of ``blocks`` for the caller.
+    mis : :func:`misclosure` at ``T``, if the caller has it.
     """
-    mis = misclosure(T, src, dst, meas)
+    if mis is None:
+        mis = misclosure(T, src, dst, meas)
     e = mis.e
     m = e.shape[0]
     rho, phi = -mis.rho, -mis.phi  # J_r(e)^-1 = J_l(-e)^-1

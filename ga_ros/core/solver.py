@@ -652,6 +652,7 @@ class _Problem:
     factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
     meas: columns.MeasuredInverse | None = None  # Tm_inv as columns (se3, not in parts)
     sqrt_w: columns.SqrtWeights | None = None  # P = U'U as columns (se3, not in parts)
+    _mis: tuple = (None, None)  # (T, columns.Misclosure) of the last cost_at, reused once
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -694,9 +695,12 @@ class _Problem:
         self.linearisations += 1
         if _linearised_in_parts(self.model, len(self.conn)):
             return _motion_system_in_parts(self, T)
+        last_T, mis = self._mis
+        self._mis = (None, None)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
-                              self.compiled, self.meas, self.sqrt_w)
+                              self.compiled, self.meas, self.sqrt_w,
+                              mis if last_T is T else None)
 
     @property
     def compiled(self) -> bool:
@@ -712,6 +716,11 @@ class _Problem:
         if self.model not in models.MOTION_MODELS:
             return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
                             self.col, self.d)
+        if self.meas is not None and not self.compiled:  # in columns, kept for linear_system
+            mis = columns.misclosure(T, self.conn.src, self.conn.dst, self.meas)
+            self._last, self._mis = (T, mis.e), (T, mis)
+            return (float(np.sum(_robust_rho(columns.maha2(mis, self.sqrt_w), self.cfg)))
+                    + _prior_cost(self.model, T, self.prior_data))
         e = self.misclosure(T)
         self._last = (T, e)
         return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
@@ -782,7 +791,8 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
                    P: FloatArray | None = None, T_meas: FloatArray | None = None,
                    Tm_inv: FloatArray | None = None, compiled: bool = False,
                    meas: columns.MeasuredInverse | None = None,
-                   sqrt_w: columns.SqrtWeights | None = None) -> _System:
+                   sqrt_w: columns.SqrtWeights | None = None,
+                   mis: columns.Misclosure | None = None) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -796,7 +806,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     shortcut = model in models.MOTION_MODELS and P is not None
     if shortcut:
         return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
-                              compiled, meas, sqrt_w)
+                              compiled, meas, sqrt_w, mis)
     lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
     B = lin.B
     w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
@@ -822,7 +832,8 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
 
 def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
                    Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None,
-                   sqrt_w: columns.SqrtWeights | None = None) -> _System:
+                   sqrt_w: columns.SqrtWeights | None = None,
+                   mis: columns.Misclosure | None = None) -> _System:
     """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
 
@@ -851,7 +862,7 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
         nb = columns.normal_blocks(
             T, conn.src, conn.dst,
             meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
-            sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, extra)
+            sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, extra, mis)
         w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         del nb
