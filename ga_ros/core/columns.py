@@ -112,6 +112,12 @@ def _hat(w: FloatArray) -> FloatArray:
                      np.stack([-w[1], w[0], z])])
 
 
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a x b`` of columns ``(3, m)``."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
 def _outer(a: FloatArray, b: FloatArray) -> FloatArray:
     """``a b'`` of columns ``(3, m)``: ``(3, 3, m)``."""
     return a[:, None, :] * b[None, :, :]
@@ -167,9 +173,7 @@ def misclosure(T: FloatArray, src: IntArray, dst: IntArray,
     # rho = J_l(phi)^-1 t_E = t_E - phi x t_E / 2 + c (phi (phi.t_E) - |phi|^2 t_E)
     t2 = (phi * phi).sum(axis=0)
     c = _jl_inv_coeff(t2)
-    cross = np.stack([phi[1] * t_E[2] - phi[2] * t_E[1], phi[2] * t_E[0] - phi[0] * t_E[2],
-                      phi[0] * t_E[1] - phi[1] * t_E[0]])
-    rho = t_E - 0.5 * cross + c * (phi * (phi * t_E).sum(axis=0) - t2 * t_E)
+    rho = t_E - 0.5 * _cross(phi, t_E) + c * (phi * (phi * t_E).sum(axis=0) - t2 * t_E)
     e = np.empty((src.shape[0], 6))
     e[:, :3] = rho.T
     e[:, 3:] = phi.T
@@ -189,8 +193,7 @@ def _q_matrix(r: FloatArray, p: FloatArray) -> FloatArray:
     c3 = np.where(small, 1 / 120 - t2 / 2520 + t2 * t2 / 120960,
                   (2 * t - 3 * s + t * co) / (2 * t**5))
     pr = (p * r).sum(axis=0)
-    pxr = np.stack([p[1] * r[2] - p[2] * r[1], p[2] * r[0] - p[0] * r[2],
-                    p[0] * r[1] - p[1] * r[0]])
+    pxr = _cross(p, r)
     P = _hat(p)
     rp = _outer(r, p)
     out = (0.5 - 2.0 * c2 * t2) * _hat(r)
