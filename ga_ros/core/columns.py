@@ -6,8 +6,9 @@ per-connection quantity is a *column* over the ``m`` connections (a rotation is 
 a vector ``(3, m)``), so each formula is a handful of elementwise operations on contiguous
 ``m``-long rows instead of passes over stacked ``(m, 3, 3)`` / ``(m, 6, 6)`` temporaries, and
 the SO(3) logarithm and the Jacobian inverses are closed forms in the components
-(``[w]x^2 x = w (w.x) - |w|^2 x``). Only the 6x6 products of the normal blocks stay stacked
-matrix products (``np.matmul`` on ``(m, 6, 6)``, which is fast).
+(``[w]x^2 x = w (w.x) - |w|^2 x``). The normal blocks are products of the whitened Jacobians
+``V = U J`` (``P = U' U``, :class:`SqrtWeights`, once per problem), block upper triangular like
+``J``: 3x3 column products, written once into the solver's stacked ``(m, 6, 6)`` layout.
 
 For ``e = log(T_meas^-1 T_i^-1 T_j)`` with right perturbations ``T_i exp(d_i)``,
 ``T_j exp(d_j)`` (Barfoot, *State Estimation for Robotics*, 2017, eqs. 7.78, 7.86, 7.95)::
