@@ -77,7 +77,9 @@ def test_solve_with_the_kernels_equals_solve_without(rng, monkeypatch, robust_lo
     monkeypatch.setattr(kernels, 'AVAILABLE', False)
     ref = solve(prob.network, T0, cfg)
     k = min(len(fast.cost_history), len(ref.cost_history))  # the last step is below 1e-10
-    assert abs(fast.iterations - ref.iterations) <= 1
+    # once the cost is flat to rounding (1e-15 relative), when a step is refused depends on
+    # the order of the floating-point operations (NumPy columns against the compiled loop)
+    assert abs(fast.iterations - ref.iterations) <= 2
     np.testing.assert_allclose(fast.cost_history[:k], ref.cost_history[:k], rtol=1e-9)
     np.testing.assert_allclose(fast.T_world_node, ref.T_world_node, atol=1e-9)
     np.testing.assert_allclose(fast.residuals, ref.residuals, atol=1e-9)

@@ -76,8 +76,9 @@ def test_seeded_run_gives_the_reference_numbers(policy: str) -> None:
     np.testing.assert_array_equal(got['ccov'], want['ccov'])
     # bit-identical on the machine that wrote the reference (one BLAS thread, as here); the
     # tolerances leave room for another BLAS (the window covariances of a multi-threaded
-    # OpenBLAS differ by up to 1e-6 relative)
-    np.testing.assert_allclose(got['T_world_node'], want['T_world_node'], rtol=0, atol=1e-10)
+    # OpenBLAS differ by up to 1e-6 relative) and for another order of the linearisation's
+    # floating-point operations (poses within 3e-10 m over the run)
+    np.testing.assert_allclose(got['T_world_node'], want['T_world_node'], rtol=0, atol=1e-9)
     np.testing.assert_allclose(got['cov'], want['cov'], rtol=1e-5, atol=1e-14)
 
 

@@ -2,16 +2,16 @@
 
 The Gauss-Newton system of ``sum e' P e`` with ``e = log(T_meas^-1 T_i^-1 T_j)`` needs, per
 connection, an SE(3) logarithm, ``J = J_r(e)^-1``, ``Ad(T_ij^-1)`` and a few 6x6 products
-(:func:`ga_ros.core.solver._linear_system` documents the algebra). In NumPy each of those is a
-pass over ``(m, 6, 6)`` temporaries (~20 us per connection); here one loop does it all in
-registers (~1 us per connection) and writes only the results. The NumPy implementation in
-:mod:`ga_ros.geometry.se3` / :func:`ga_ros.core.models.between` stays the reference: a test
-checks these kernels against it (random, near-identity and near-pi rotations), and it is used
-when numba is not installed, when ``GA_ROS_JIT=0`` is set, for problems below
+(:func:`ga_ros.core.solver._linear_system` documents the algebra). Here one loop does it all in
+registers (~1 us per connection) and writes only the results; the NumPy implementation in
+columns (:mod:`ga_ros.core.columns`, ~2 us per connection) is used instead when numba is not
+installed, when ``GA_ROS_JIT=0`` is set, for problems below
 :data:`MIN_CONNECTIONS` connections and for the first :data:`AFTER_ITERATIONS` linearisations of
 a solve: importing numba and loading the cached machine code costs ~0.5-1.5 s and ~100 MiB of
 resident memory per process, more than the kernel saves on a small graph or a short solve
-(aerial survey, 25,000 connections: ~0.1 s saved per iteration, 5 iterations).
+(aerial survey, 25,000 connections: ~0.1 s saved per iteration, 5 iterations). Both are
+checked against the stacked reference :func:`ga_ros.core.models.between` (random, near-identity
+and near-pi rotations).
 
 Formulas: Barfoot, *State Estimation for Robotics* (2017), eqs. 7.78 (``J_l^-1`` of SO(3)),
 7.86 (``Q``), 7.95 (``J_l^-1`` of SE(3)); the SO(3) log as :func:`ga_ros.geometry.so3.log`.

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core import kernels, models
+from ga_ros.core import columns, kernels, models
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.sparse import BlockPattern, SparseCholesky, kept_block_pattern, spd_inverse
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError, SolverError
@@ -652,6 +652,9 @@ class _Problem:
     linearisations: int = 0  # calls of linear_system so far
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
     factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
+    meas: columns.MeasuredInverse | None = None  # Tm_inv as columns (se3, not in parts)
+    sqrt_w: columns.SqrtWeights | None = None  # P = U'U as columns (se3, not in parts)
+    _mis: tuple = (None, None)  # (T, columns.Misclosure) of the last cost_at, reused once
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
@@ -676,8 +679,10 @@ class _Problem:
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
+        cols = model == 'se3' and not in_parts  # the se3 linearisation in columns
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
-                        Tm_inv)
+                        Tm_inv, meas=columns.MeasuredInverse.of(Tm_inv) if cols else None,
+                        sqrt_w=columns.SqrtWeights.of(P) if cols else None)
 
     @property
     def Pf(self) -> FloatArray | None:
@@ -692,9 +697,12 @@ class _Problem:
         self.linearisations += 1
         if _linearised_in_parts(self.model, len(self.conn)):
             return _motion_system_in_parts(self, T)
+        last_T, mis = self._mis
+        self._mis = (None, None)
         return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
                               self.col, self.d, self.Pf, self.T_meas, self.Tm_inv,
-                              self.compiled)
+                              self.compiled, self.meas, self.sqrt_w,
+                              mis if last_T is T else None)
 
     @property
     def compiled(self) -> bool:
@@ -710,6 +718,11 @@ class _Problem:
         if self.model not in models.MOTION_MODELS:
             return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
                             self.col, self.d)
+        if self.meas is not None and not self.compiled:  # in columns, kept for linear_system
+            mis = columns.misclosure(T, self.conn.src, self.conn.dst, self.meas)
+            self._last, self._mis = (T, mis.e), (T, mis)
+            return (float(np.sum(_robust_rho(columns.maha2(mis, self.sqrt_w), self.cfg)))
+                    + _prior_cost(self.model, T, self.prior_data))
         e = self.misclosure(T)
         self._last = (T, e)
         return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
@@ -733,7 +746,8 @@ class _Problem:
         """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models at ``T`` (in parts if the
         problem does not keep the measured motions)."""
         if self.T_meas is not None:
-            return _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, self.compiled)
+            return _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, self.compiled,
+                               self.meas)
         return np.concatenate([_misclosure(self.model, T, part, None, None, self.compiled)
                                for _, part in self.parts()])
 
@@ -777,7 +791,10 @@ class _System:
 
 def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
                    P: FloatArray | None = None, T_meas: FloatArray | None = None,
-                   Tm_inv: FloatArray | None = None, compiled: bool = False) -> _System:
+                   Tm_inv: FloatArray | None = None, compiled: bool = False,
+                   meas: columns.MeasuredInverse | None = None,
+                   sqrt_w: columns.SqrtWeights | None = None,
+                   mis: columns.Misclosure | None = None) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -791,7 +808,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     shortcut = model in models.MOTION_MODELS and P is not None
     if shortcut:
         return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
-                              compiled)
+                              compiled, meas, sqrt_w, mis)
     lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
     B = lin.B
     w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
@@ -816,7 +833,9 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
 
 
 def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
-                   Tm_inv, compiled: bool) -> _System:
+                   Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None,
+                   sqrt_w: columns.SqrtWeights | None = None,
+                   mis: columns.Misclosure | None = None) -> _System:
     """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
 
@@ -828,17 +847,27 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     prior_blocks: list[FloatArray] = []
     prior_cost = _add_priors(model, T, prior_data, col, u, prior_blocks)
     extra = sum(len(b) for b in prior_blocks)
-    if T_meas is None:
+    if T_meas is None and (model != 'se3' or (Tm_inv is None and meas is None)):
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+    if model == 'se3' and Tm_inv is None and (compiled or meas is None):
+        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
     if model == 'se3' and compiled:
-        if Tm_inv is None:
-            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
         w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P, extra)
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         if cfg.robust_loss != 'none':
             blocks[:4 * m] *= np.tile(weights, 4)[:, None, None]
             gi *= weights[:, None]
             gj *= weights[:, None]
+    elif model == 'se3':  # structure of arrays (NumPy): columns.normal_blocks
+        robust = None if cfg.robust_loss == 'none' else (
+            lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
+        nb = columns.normal_blocks(
+            T, conn.src, conn.dst,
+            meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
+            sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, extra, mis)
+        w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
+        weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
+        del nb
     else:
         bt = models.between(model, T, conn.src, conn.dst, T_meas, Tm_inv)
         w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
@@ -922,15 +951,21 @@ def _add_priors(model, T, prior_data, col, u, blocks: list) -> float:
 
 
 def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: FloatArray | None,
-                Tm_inv: FloatArray | None = None, compiled: bool = False) -> FloatArray:
-    """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (se3: compiled if asked)."""
+                Tm_inv: FloatArray | None = None, compiled: bool = False,
+                meas: columns.MeasuredInverse | None = None) -> FloatArray:
+    """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (se3: compiled if asked, else
+    in columns, :func:`ga_ros.core.columns.misclosure`)."""
+    if model == 'se3' and meas is not None and not compiled:
+        return columns.misclosure(T, conn.src, conn.dst, meas).e
     if T_meas is None:
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    if model == 'se3' and compiled:
-        if Tm_inv is None:
-            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+    if model != 'se3':
+        return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
+    if Tm_inv is None:
+        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
+    if compiled:
         return kernels.se3_misclosure(T, conn.src, conn.dst, Tm_inv)
-    return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
+    return columns.misclosure(T, conn.src, conn.dst, columns.MeasuredInverse.of(Tm_inv)).e
 
 
 class _PartWeights:

@@ -104,7 +104,10 @@ class BlockPattern:
         self._tril = (a[:, None] >= a[None, :]).reshape(-1)  # (d^2,) row-major: row >= col
         # the row of every stored entry: kept for small patterns, computed when asked for large
         # ones (~180 MB at 100,000 poses; only the analysis and CSC views read it)
-        self._indices = self._row_indices() if self.nnz < _POSITIONS_KEPT_BELOW else None
+        small = self.nnz < _POSITIONS_KEPT_BELOW
+        # positions of the unique blocks' entries: computed once for both uses below
+        upos = self._block_positions(np.arange(ukey.size)) if small else None
+        self._indices = self._row_indices(upos) if small else None
         # which entries of each kept block land in the lower triangle: all of an off-diagonal
         # block, the lower triangle of a diagonal one (one flag per block, not per entry)
         self._kept_diag = (rank == 0)[inv]
@@ -112,10 +115,8 @@ class BlockPattern:
         # the entries of any kept blocks (:meth:`_positions`)
         self._kept_u = inv.astype(np.int32 if ukey.size < 2**31 else np.int64)
         self._pos: IntArray | None = None
-        if self.nnz < _POSITIONS_KEPT_BELOW:  # kept: a gather instead of the arithmetic
-            # int32 when it fits: half the size
-            self._pos = self._positions(slice(None)).astype(
-                np.int32 if self.nnz < 2**31 else np.int64)
+        if small:  # kept: a gather instead of the arithmetic (int32: it fits)
+            self._pos = upos[self._kept_u][self._valid(slice(None))]
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
         self._kept_rank: IntArray | None = None
 
@@ -185,27 +186,35 @@ class BlockPattern:
         """(nnz,) int64 row of each stored entry of the lower-triangle CSC values."""
         return self._indices if self._indices is not None else self._row_indices()
 
-    def _row_indices(self) -> IntArray:
-        u = np.arange(self._ucol.size)
+    def _row_indices(self, upos: IntArray | None = None) -> IntArray:
+        """(nnz,) row of each stored entry; ``upos``: the unique blocks' positions
+        (:meth:`_block_positions` of all of them) if the caller has them."""
         d = self.d
+        if upos is None:
+            upos = self._block_positions(np.arange(self._ucol.size))
         valid = np.where((self._urank == 0)[:, None], self._tril[None, :], True)
         rows = self.block_lower[0][:, None] * d + np.repeat(np.arange(d), d)[None, :]
         out = np.empty(self.nnz, dtype=np.int64)
-        out[self._block_positions(u)[valid]] = rows[valid]
+        out[upos[valid]] = rows[valid]
         return out
 
     def _block_positions(self, u: IntArray) -> IntArray:
         """``(k, d^2)`` positions in the lower-triangle CSC values of the entries (row-major)
-        of the unique blocks ``u`` (meaningless for the upper entries of a diagonal block)."""
+        of the unique blocks ``u`` (meaningless for the upper entries of a diagonal block);
+        int32 when the values fit.
+
+        Row ``b``, column ``a`` of a block of rank ``r`` in its block column lies
+        ``r d + b - a`` entries after the start of scalar column ``a`` of that block column:
+        after the ``d - a`` entries of the diagonal block's column ``a`` and ``r - 1`` earlier
+        blocks of ``d`` rows (the diagonal block itself, ``r = 0``: ``b - a``)."""
         d = self.d
         a = np.arange(d)
-        colstart = self.indptr[:-1].reshape(-1, d)[self._ucol[u]][:, None, :]  # (k, 1, a)
-        r = self._urank[u][:, None, None]
-        # row b, column a of block u: after the a-th column's d - a entries of the diagonal
-        # block and r - 1 earlier blocks of d rows (the diagonal block itself: b - a)
-        off = np.where(r == 0, a[:, None] - a[None, :], (d - a)[None, :] + (r - 1) * d
-                       + a[:, None])
-        return (colstart + off).reshape(-1, d * d)
+        it = np.int32 if self.nnz < 2**31 else np.int64
+        colstart = self.indptr[:-1].reshape(-1, d).astype(it)  # (block columns, a)
+        start = colstart[self._ucol[u]] - a.astype(it)  # (k, a)
+        start += (self._urank[u] * d).astype(it)[:, None]
+        out = start[:, None, :] + a.astype(it)[None, :, None]  # (k, b, a)
+        return out.reshape(-1, d * d)
 
     def _positions(self, kept) -> IntArray:
         """Positions in the lower-triangle CSC values of the entries of the kept blocks
@@ -409,8 +418,11 @@ def kept_block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: in
 
 def _cvxopt_pattern(pattern: BlockPattern, keep: bool = True):
     """CHOLMOD's input matrix for a pattern (values are set before each factorisation). Building
-    it sorts every entry again (~0.1 s for a window), so it is kept per pattern too (``keep``;
-    not when only the symbolic analysis needs it: :func:`_direct_cholmod`)."""
+    it sorts every entry again (~15 ms for 260,000 entries), so it is kept per pattern too
+    (``keep``, or a pattern small enough to keep its entry positions; a large one not when only
+    the symbolic analysis needs it: :func:`_direct_cholmod`)."""
+    keep = keep or pattern.nnz < _POSITIONS_KEPT_BELOW
+
     def build():
         return cvxopt.spmatrix(
             cvxopt.matrix(np.zeros(pattern.nnz)), cvxopt.matrix(pattern.indices.astype(np.int64)),
