@@ -316,7 +316,7 @@ class _NormalSystem:
         if self.pattern.size >= _SPARSE_SELINV_UNKNOWNS and selinv.COMPILED:
             chol = self.chol  # factored at the solution
             self.take_factor()  # read out and overwritten: factored anew if needed later
-            return selinv.SelectedInverse(chol).diagonal_blocks(cols)
+            return selinv.SelectedInverse(chol, columns=cols).diagonal_blocks(cols)
         blocks = selinv.banded_marginal_blocks(self.full(), self.d, wanted=cols,
                                                coords=self.coords)
         return None if blocks is None else blocks[cols]

@@ -407,7 +407,7 @@ def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
     chol = sysm.chol  # factored at the solution (the solve's analysis reused)
     sysm.take_factor()
     analysis = chol.analysis
-    inv = selinv.SelectedInverse(chol)
+    inv = selinv.SelectedInverse(chol, columns=cols)  # their supernodes and ancestors
     blocks = inv.diagonal_blocks(cols)
     if inv.in_place:  # CHOLMOD refactors a supernodal factor of the same pattern in place
         chol.keep_analysis(analysis)
