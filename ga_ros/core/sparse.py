@@ -1302,12 +1302,14 @@ def _band_completion(band: FloatArray) -> FloatArray:
     sep = sep.reshape(r, w * d, w * d)
     cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
     try:
-        np.linalg.cholesky(sep)  # positive definite separators (and D_i below: the cliques)
         Bt = np.linalg.solve(sep, cross)  # (r, w d, d): B_i'
     except np.linalg.LinAlgError as exc:
         raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
                                       'definite') from exc
     Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
+    # every clique C_i = {i} + F_i is positive definite iff every D_i is (one Cholesky each
+    # below, no separate one of the separators): C_i is iff F_i and D_i are, and F_i is a
+    # principal block of C_{i+1} (the last ones: identity padding), so from the end back
     Dinv = _spd_inverse(Dm)  # (r, d, d)
     G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
                         -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)
