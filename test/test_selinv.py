@@ -175,3 +175,34 @@ def test_python_kernels_give_the_compiled_blocks(rng, monkeypatch):
         ref = np.stack([inv[i * 6:i * 6 + 6, j * 6:j * 6 + 6] for i, j in zip(rows, cols)])
         np.testing.assert_allclose(si.blocks(rows, cols), ref, rtol=1e-8,
                                    atol=1e-10 * np.abs(inv).max())
+
+
+def test_selected_columns_invert_only_their_ancestors(rng):
+    """``columns``: only the supernodes of those nodes and their ancestors are inverted; every
+    block among those nodes (diagonal and connected pairs) equals the dense inverse, on the
+    in-place factor and the copy, and a block outside them is refused."""
+    import pytest
+
+    from ga_ros.errors import DegenerateGeometryError
+
+    u, d = 90, 6
+    N = _random_graph_spd(rng, u, d, 0) + 0.1 * np.eye(u * d)
+    for i in range(u - 3):  # a strip: most supernodes are not ancestors of a few nodes
+        J = rng.normal(size=(d, 2 * d))
+        idx = np.r_[i * d:(i + 1) * d, (i + 3) * d:(i + 4) * d]
+        N[np.ix_(idx, idx)] += J.T @ J
+    inv = np.linalg.inv(N)
+    cols = np.arange(20, 35)
+    pattern, data = BlockPattern.from_matrix(sp.csr_matrix(N), d)
+    for copy in (False, True):
+        si = SelectedInverse(SparseCholesky(pattern, data), copy=copy, columns=cols)
+        assert 0.0 < si.inverted < 1.0
+        rows, cl = _block_pairs(N, d)
+        keep = np.isin(rows, cols) & np.isin(cl, cols)
+        ref = np.stack([inv[i * d:(i + 1) * d, j * d:(j + 1) * d]
+                        for i, j in zip(rows[keep], cl[keep])])
+        np.testing.assert_allclose(si.blocks(rows[keep], cl[keep]), ref, rtol=1e-8,
+                                   atol=1e-10 * np.abs(inv).max())
+        outside = np.setdiff1d(np.arange(u), cols)
+        with pytest.raises(DegenerateGeometryError, match='selected columns'):
+            si.diagonal_blocks(outside)

@@ -94,3 +94,36 @@ def test_block_ordering_is_kept_per_pattern_and_a_read_out_factor_still_solves(r
     np.testing.assert_allclose(chol.solve(b), np.linalg.solve(N, b), rtol=1e-9)  # factored again
     again, _ = BlockPattern.from_matrix(sp.csc_matrix(N), d)
     assert again.key == pat.key
+
+
+def test_direct_analysis_gives_cvxopts_factor(rng, monkeypatch):
+    """The symbolic analysis through ``cholmod_l_analyze_p`` directly (no cvxopt copy of the
+    pattern) gives the factor of cvxopt's ``cholmod.symbolic``: the same permutation, the same
+    supernodes and the same values after the numeric factorisation, for the block ordering and
+    with trailing blocks; both solve like the dense matrix."""
+    import pytest
+
+    import ga_ros.core.sparse as sparse
+    from ga_ros.core.selinv import _supernodal_layout
+
+    direct = sparse._direct_cholmod()
+    if direct is None or direct._capsule is None:
+        pytest.skip('the direct CHOLMOD calls are not available here')
+    N, pat, data = _random_block_spd(rng, 40, 6, density=0.08)
+    b = rng.normal(size=N.shape[0])
+    for trailing in (None, np.array([3, 17, 8])):
+        fast = SparseCholesky(pat, data, trailing=trailing)
+        with monkeypatch.context() as m:
+            m.setattr(direct, '_capsule', None)  # cvxopt's symbolic analysis
+            ref = SparseCholesky(pat, data, trailing=trailing)
+        assert ref._A is None and fast._A is None
+        np.testing.assert_array_equal(fast.permutation(), ref.permutation())
+        a, r = _supernodal_layout(fast._F, fast.n), _supernodal_layout(ref._F, ref.n)
+        assert a is not None and r is not None
+        np.testing.assert_array_equal(a.starts, r.starts)
+        np.testing.assert_array_equal(a.srows[:a.pi[-1] + a.nrows[-1]],
+                                      r.srows[:r.pi[-1] + r.nrows[-1]])
+        np.testing.assert_array_equal(a.x, r.x)
+        np.testing.assert_allclose(fast.solve(b), np.linalg.solve(N, b), rtol=1e-9)
+        fast.refactor(2 * data)  # the analysis is reused
+        np.testing.assert_allclose(fast.solve(b), np.linalg.solve(2 * N, b), rtol=1e-9)

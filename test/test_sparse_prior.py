@@ -308,3 +308,36 @@ def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
         assert np.array_equal(i1, i2)
         np.testing.assert_array_equal(m1, m2)
         np.testing.assert_array_equal(h1, h2)
+
+
+def test_band_completion_refuses_a_skeleton_with_a_clique_not_positive_definite(rng):
+    """The completion is positive definite by construction (the freeze gives its prior full
+    rank): a band whose cliques are all positive definite gives a positive definite ``K``; one
+    node's block made indefinite, in the middle (the separators holding it indefinite too, but
+    not singular) or at the end, and the completion refuses it, as a dense check of the
+    cliques does."""
+    from ga_ros.errors import DegenerateGeometryError
+
+    m, d, w = 9, 3, 2
+    A = rng.normal(size=(m * d, m * d))
+    Sigma = A @ A.T + m * d * np.eye(m * d)
+    band = dense_band(Sigma, d, w)
+    K = band_information(band).toarray()
+    assert np.linalg.eigvalsh(0.5 * (K + K.T)).min() > 0
+    for node in (4, m - 1):
+        bad = band.copy()
+        bad[node, 0] = -np.eye(d)  # C_{node - w .. node} indefinite
+        cliques = [_dense_clique(bad, k, w, d) for k in range(m - w)]
+        assert min(np.linalg.eigvalsh(C).min() for C in cliques) < 0
+        with pytest.raises(DegenerateGeometryError, match='clique'):
+            band_information(bad)
+
+
+def _dense_clique(band, k, w, d):
+    """The dense covariance of the clique ``{k .. k + w}`` from a band."""
+    C = np.zeros(((w + 1) * d, (w + 1) * d))
+    for a in range(w + 1):
+        for b in range(a, w + 1):
+            C[a * d:(a + 1) * d, b * d:(b + 1) * d] = band[k + a, b - a]
+            C[b * d:(b + 1) * d, a * d:(a + 1) * d] = band[k + a, b - a].T
+    return C

@@ -253,3 +253,37 @@ def test_freeze_covariances_by_selected_inversion_keep_the_analysis_for_the_next
     reused = solve(net, T1, cfg, factor=factor)
     fresh = solve(net, T1, cfg)
     np.testing.assert_allclose(reused.T_world_node, fresh.T_world_node, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize('refine', [0, 1])
+def test_window_priors_carry_their_rank_and_no_solve_recounts_it(monkeypatch, refine):
+    """The joint priors built by a freeze (and by the refinement) carry the rank of their
+    information: equal to the rank the solver determines by itself (full: positive definite
+    by construction), so no window update factors a prior's information only to count its
+    equations; a linearisation alone (``normal_matrix_at``) never asks for it."""
+    import ga_ros.core.solver as solver
+
+    sc, nm, ms = noisy_aerial_survey(6, 10, 3.0, 3)
+    counted = []
+    real = solver._information_rank
+
+    def rank(*args):
+        counted.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(solver, '_information_rank', rank)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2, prior_band=3, prior_hubs=2,
+                                          refine_every_tracks=refine, refine_executor='inline'),
+                            sc.T_world_node[0])
+    n_priors = 0
+    for ups in _updates(al, ms):
+        assert all(not str(u.reason).startswith('failed') for u in ups)
+        for prior in al._priors:
+            assert prior.rank is not None
+            dense = prior[2].toarray() if hasattr(prior[2], 'toarray') else prior[2]
+            assert prior.rank == np.linalg.matrix_rank(dense, hermitian=True) == dense.shape[0]
+        n_priors += len(al._priors)
+    al.close()
+    assert n_priors > 0
+    assert counted == []
+

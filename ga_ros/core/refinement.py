@@ -118,11 +118,13 @@ class AbsorbedPrior:
     T_world_node : (k, 4, 4) prior mean (residual: :func:`tangent_prior`).
     information : (6k, 6k) information, node-major, ``[x y z rx ry rz]`` per node: dense, or
         block-banded (``scipy.sparse`` BSR, 6x6 blocks) for a :func:`band_prior`.
+    rank : rank of ``information`` when known (positive definite by construction: ``6k``).
     """
 
     nodes: IntArray
     T_world_node: FloatArray
     information: FloatArray | sp.spmatrix
+    rank: int | None = None
 
 
 @dataclass(frozen=True)
@@ -391,8 +393,9 @@ def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArra
         Sigma = sla.cho_solve(cho, np.eye(Hg.shape[0]))
         mean, info = band_prior(T_lin[group], CovarianceSkeleton.of_dense(Sigma, 6, band, hubs),
                                 sla.cho_solve(cho, gg))
-    else:
-        mean, info = tangent_prior(T_lin[group], Hg, gg)
+        # Hg positive definite (cho_factor), so is the completion of its covariance
+        return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info, info.shape[0])
+    mean, info = tangent_prior(T_lin[group], Hg, gg)
     return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info)
 
 

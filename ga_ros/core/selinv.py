@@ -140,7 +140,8 @@ def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
 _lower_inverse = _lower_inverse_py
 
 
-def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no cover - compiled
+def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
+                  need):  # pragma: no cover - compiled
     """In place: the values of ``L`` (``P N P' = L L'``) become those of ``Sigma = N^-1``
     (permuted) on the pattern of ``L``.
 
@@ -154,8 +155,9 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no co
 
     ``Sigma_BB`` lies on the pattern of later supernodes (closure of the factor's pattern), all
     already overwritten; it is gathered through ``where`` (row -> position in an ancestor's row
-    list, -1 elsewhere). Returns 0; 1 if a needed entry is not on the pattern, 2 if rows are not
-    sorted (nothing was changed then).
+    list, -1 elsewhere). Only the supernodes with ``need[k]`` are inverted (the others keep
+    ``L``): a set closed under ancestors (every ``Sigma_BB`` lies on ancestors). Returns 0; 1
+    if a needed entry is not on the pattern, 2 if rows are not sorted (nothing was changed then).
     """
     ns = starts.size - 1
     for k in range(ns):
@@ -163,6 +165,8 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where):  # pragma: no co
             if srows[z] <= srows[z - 1]:
                 return 2
     for t in range(ns - 1, -1, -1):
+        if not need[t]:
+            continue
         f = starts[t]
         m = starts[t + 1] - f
         r = nrows[t] - m
@@ -374,6 +378,10 @@ class SelectedInverse:
     chol : the factored ``N`` (``d x d`` node blocks). Its factor is taken over: ``chol`` is left
         without one and factors again (with a new analysis) on its next solve.
     copy : read the factor out with ``getfactor`` even when the in-place layout is available.
+    columns : the block columns (nodes of ``N``) whose entries will be read, if only some: then
+        only their supernodes and those supernodes' ancestors in the elimination tree are
+        inverted (every entry of ``Sigma`` that Takahashi's equations need for them lies there),
+        and only blocks whose two nodes are among ``columns`` can be read. Default: all.
 
     Raises
     ------
@@ -381,7 +389,7 @@ class SelectedInverse:
         No CHOLMOD, or the factor's pattern is not that of a Cholesky factor.
     """
 
-    def __init__(self, chol, copy: bool = False) -> None:
+    def __init__(self, chol, copy: bool = False, columns: IntArray | None = None) -> None:
         from ga_ros.core.sparse import _cholmod
 
         if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
@@ -396,8 +404,12 @@ class SelectedInverse:
         self._pos = np.empty_like(lay.perm)
         self._pos[lay.perm] = np.arange(lay.perm.size)
         where = np.full(lay.perm.size, -1, dtype=np.int64)
+        ns = lay.starts.size - 1
+        self._need = np.ones(ns, dtype=bool)
+        if columns is not None:
+            self._need = self._ancestors(np.asarray(columns, dtype=np.int64))
         status = _kernel('_takahashi')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
-                                       lay.x, where)
+                                       lay.x, where, self._need)
         if status:
             raise DegenerateGeometryError('the factor pattern is not that of a Cholesky factor '
                                           f'(code {status}): report this with the graph')
@@ -406,6 +418,33 @@ class SelectedInverse:
     def nnz(self) -> int:
         """Stored entries of ``L`` (and of ``Sigma``; supernodal storage counts whole blocks)."""
         return int(self._lay.x.size)
+
+    @property
+    def inverted(self) -> float:
+        """Fraction of the supernodes inverted (1 unless ``columns`` selected some)."""
+        return float(self._need.mean()) if self._need.size else 1.0
+
+    def _supernode_of(self, scalar_cols: IntArray) -> IntArray:
+        """Supernode of each column of the permuted factor."""
+        return np.searchsorted(self._lay.starts, scalar_cols, side='right') - 1
+
+    def _ancestors(self, columns: IntArray) -> np.ndarray:
+        """Supernodes holding the scalar columns of the node columns ``columns``, and all their
+        ancestors (a supernode's parent holds the first row below its own columns; parents
+        come after their children in the factor)."""
+        lay, d = self._lay, self.d
+        starts = lay.starts
+        ns = starts.size - 1
+        width = np.diff(starts)
+        below = lay.nrows > width
+        parent = np.full(ns, -1, dtype=np.int64)
+        parent[below] = self._supernode_of(lay.srows[lay.pi[below] + width[below]])
+        need = np.zeros(ns, dtype=bool)
+        need[self._supernode_of(self._pos[(columns[:, None] * d + np.arange(d)).ravel()])] = True
+        for k in np.nonzero(parent >= 0)[0].tolist():  # ascending: children before parents
+            if need[k]:
+                need[parent[k]] = True
+        return need
 
     def blocks(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> FloatArray:
         """Blocks ``(rows[k], cols[k])`` of ``Sigma`` (``d x d`` node blocks, columns of ``N``),
@@ -420,6 +459,9 @@ class SelectedInverse:
         sc = self._pos[(cols[:, None, None] * d + a[None, None, :])]  # (k, 1, d)
         sr, sc = np.broadcast_arrays(sr, sc)
         lo, hi = np.minimum(sr, sc).ravel(), np.maximum(sr, sc).ravel()
+        if not self._need.all() and not self._need[self._supernode_of(lo)].all():
+            raise DegenerateGeometryError('a requested block is outside the selected columns '
+                                          'of this SelectedInverse (its columns argument)')
         out = np.empty(lo.size)
         lay = self._lay
         missing = _kernel('_entries')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
@@ -514,7 +556,7 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
     blocks[:rows_n.size] = Nb.data
     chol = SparseCholesky(pattern, pattern.assemble(blocks))
     x = None if rhs is None else chol.solve(rhs)
-    S = SelectedInverse(chol).blocks(pa, pc)  # Sigma_{pa, pc}
+    S = SelectedInverse(chol, columns=t).blocks(pa, pc)  # Sigma_{pa, pc}: targets only
     band = np.zeros((r, w + 1, d, d))
     band[bi, bj - bi] = S[:bi.size]
     cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)

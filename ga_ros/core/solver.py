@@ -123,11 +123,16 @@ class GaussianPrior:
         or ``[x y z]`` (positions, d = 3), of the residual of
         :func:`~ga_ros.core.models.prior_residual` (se3: ``[R_mean' (p - p_mean),
         log(R_mean' R)]``, the right perturbation ``T_mean exp(e)`` to first order).
+    rank : the rank of ``information`` (the number of equations the prior adds to the
+        redundancy), when the caller knows it (e.g. positive definite by construction: ``d k``);
+        ``None`` (default): the solver determines it (a Cholesky, or an eigen-decomposition of a
+        singular information), and only when it needs it (the variance factor).
     """
 
     node_ids: IntArray
     T_world_node: FloatArray
     information: FloatArray | sp.spmatrix
+    rank: int | None = None
 
     @staticmethod
     def from_covariances(node_ids, T_world_node, cov: FloatArray) -> GaussianPrior:
@@ -313,7 +318,7 @@ class _NormalSystem:
         if self.pattern.size >= _SPARSE_SELINV_UNKNOWNS and selinv.COMPILED:
             chol = self.chol  # factored at the solution
             self.take_factor()  # read out and overwritten: factored anew if needed later
-            return selinv.SelectedInverse(chol).diagonal_blocks(cols)
+            return selinv.SelectedInverse(chol, columns=cols).diagonal_blocks(cols)
         blocks = selinv.banded_marginal_blocks(self.full(), self.d, wanted=cols,
                                                coords=self.coords)
         return None if blocks is None else blocks[cols]
@@ -576,7 +581,18 @@ class _PriorData:
     H_blocks: FloatArray  # (b, d, d) non-zero d x d blocks of the information
     blk_r: IntArray  # (b,) block row (position in idx)
     blk_c: IntArray
-    rank: int  # rank of the information: the number of equations the prior adds
+    information: FloatArray | sp.spmatrix  # as given (for the rank, when it is asked for)
+    known_rank: int | None = None  # the prior's own rank, or computed on first use
+
+    @property
+    def rank(self) -> int:
+        """Rank of the information: the number of equations the prior adds. Given with the
+        prior (:attr:`GaussianPrior.rank`) or computed once, when the variance factor needs it
+        (not for a linearisation alone, e.g. :func:`normal_matrix_at`)."""
+        if self.known_rank is None:
+            self.known_rank = _information_rank(self.H_blocks, self.blk_r, self.blk_c,
+                                                self.information)
+        return self.known_rank
 
     @staticmethod
     def build(network: ConnectionNetwork, prior: GaussianPrior, d: int) -> _PriorData:
@@ -595,8 +611,20 @@ class _PriorData:
             raise InputError('prior information has NaN or inf entries')
         rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
         cols = Hb.indices.astype(np.int64)
-        return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows, cols,
-                          _information_rank(Hb.data, rows, cols, H))
+        rank = prior.rank
+        if rank is not None and not 0 <= int(rank) <= d * k:
+            raise InputError(f'prior rank must be in [0, {d * k}] for {k} nodes, got {rank}')
+        return _PriorData(network.indices_of(ids), Tm, Hb.data.copy(), rows, cols, H,
+                          None if rank is None else int(rank))
+
+
+def information_rank(information: FloatArray | sp.spmatrix, d: int = 6) -> int:
+    """Rank of a prior's information ``(d k, d k)`` (dense or sparse, ``d x d`` blocks): the
+    number of equations it adds to the redundancy (see :attr:`GaussianPrior.rank`)."""
+    Hb = sp.bsr_matrix(sp.csr_matrix(information), blocksize=(d, d))
+    Hb.sort_indices()
+    rows = np.repeat(np.arange(Hb.shape[0] // d), np.diff(Hb.indptr))
+    return _information_rank(Hb.data, rows, Hb.indices.astype(np.int64), information)
 
 
 def _information_rank(blocks: FloatArray, rows: IntArray, cols: IntArray, H) -> int:

@@ -291,10 +291,13 @@ class SparseCholesky:
         if _cholmod is not None:
             direct = _direct_cholmod()
             if self._symbolic is None:
-                if self._A is None:
-                    self._A = _cvxopt_pattern(p, keep=direct is None)
-                self._symbolic = self._analyse()
                 self._permuted = None
+                if direct is not None:  # no cvxopt copy of the pattern (~40 ms for a window)
+                    self._symbolic = direct.analyse(p, self._ordering(), self._trailing is None)
+                if self._symbolic is None:
+                    if self._A is None:
+                        self._A = _cvxopt_pattern(p, keep=direct is None)
+                    self._symbolic = self._analyse()
                 if direct is not None:
                     self._A = None  # only the analysis needs cvxopt's copy of the pattern
             try:
@@ -326,15 +329,16 @@ class SparseCholesky:
         solve then, until :meth:`refactor` is given values again."""
         self._data = None
 
+    def _ordering(self) -> IntArray:
+        """The scalar fill-reducing ordering: the block ordering, or the trailing blocks last."""
+        if self._trailing is None:
+            return block_ordering(self.pattern)
+        return _trailing_ordering(self.pattern, self._trailing)
+
     def _analyse(self):
         """CHOLMOD's symbolic analysis with the block ordering (trailing blocks last, kept in
-        place: no postordering then)."""
-        p = self.pattern
-        if self._trailing is None:
-            perm = block_ordering(p)
-        else:
-            perm = _trailing_ordering(p, self._trailing)
-        pvec = cvxopt.matrix(np.ascontiguousarray(perm, dtype=np.int64), tc='i')
+        place: no postordering then), through cvxopt."""
+        pvec = cvxopt.matrix(np.ascontiguousarray(self._ordering(), dtype=np.int64), tc='i')
         # only the ordering given (no second analysis with AMD); trailing blocks stay last
         saved = dict(_cholmod.options)
         _cholmod.options['nmethods'] = 1
@@ -470,6 +474,46 @@ class _CommonHead(ctypes.Structure):
                                                'print')])
 
 
+class _CholmodMethod(ctypes.Structure):
+    """``cholmod_common.method[i]`` (CHOLMOD 3)."""
+
+    _fields_ = ([(f, ctypes.c_double) for f in ('lnz', 'fl', 'prune_dense', 'prune_dense2',
+                                                'nd_oksep')]
+                + [('other_1', ctypes.c_double * 4), ('nd_small', ctypes.c_size_t),
+                   ('other_2', ctypes.c_size_t * 4)]
+                + [(f, ctypes.c_int) for f in ('aggressive', 'order_for_lu', 'nd_compress',
+                                               'nd_camd', 'nd_components', 'ordering')]
+                + [('other_3', ctypes.c_size_t * 4)])
+
+
+class _CommonOrdering(ctypes.Structure):
+    """``cholmod_common`` of CHOLMOD 3 up to ``postorder``: the fields of the symbolic
+    analysis that cvxopt's ``cholmod.symbolic`` sets from ``cholmod.options``."""
+
+    _fields_ = (_CommonHead._fields_
+                + [('precise', ctypes.c_int), ('try_catch', ctypes.c_int),
+                   ('error_handler', ctypes.c_void_p), ('nmethods', ctypes.c_int),
+                   ('current', ctypes.c_int), ('selected', ctypes.c_int),
+                   ('method', _CholmodMethod * 10), ('postorder', ctypes.c_int),
+                   ('default_nesdis', ctypes.c_int)])
+
+
+#: CHOLMOD's ordering codes (cholmod_core.h).
+_CHOLMOD_GIVEN, _CHOLMOD_AMD = 1, 2
+
+
+def _defaults_of_cholmod3(c: _CommonOrdering) -> bool:
+    """Whether a freshly started ``cholmod_common`` has CHOLMOD 3's documented defaults at the
+    offsets of :class:`_CommonOrdering` (else the layout is another version's)."""
+    m = c.method
+    return (c.nmethods == 0 and c.postorder == 1 and c.default_nesdis == 0
+            and [x.ordering for x in m] == [_CHOLMOD_GIVEN, _CHOLMOD_AMD, 3, 4, 0, 4, 4, 4, 5, 2]
+            and [x.nd_small for x in m] == [200] * 5 + [20000, 4] + [200] * 3
+            and [x.prune_dense for x in m] == [10.0] * 7 + [-1.0] + [10.0] * 2
+            and all(x.prune_dense2 == -1.0 and x.nd_oksep == 1.0 and x.aggressive == 1
+                    and x.order_for_lu == 0 and x.nd_compress == 1 for x in m))
+
+
 class _DirectCholmod:
     """``cholmod_l_factorize`` of the CHOLMOD library that cvxopt loaded, called through
     ``ctypes`` on a ``cholmod_sparse`` header over the pattern's and the values' own arrays.
@@ -497,6 +541,64 @@ class _DirectCholmod:
         self._capsule_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
         if self._common() is None:
             raise OSError('unexpected cholmod_common layout')
+        self._analyze = lib.cholmod_l_analyze_p
+        self._analyze.restype = ctypes.c_void_p
+        self._analyze.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                                  ctypes.c_size_t, ctypes.c_void_p]
+        self._free_factor = lib.cholmod_l_free_factor
+        self._free_factor.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        self._capsule = self._capsule_maker()
+
+    def _capsule_maker(self):
+        """A function wrapping a ``cholmod_factor *`` into a capsule exactly as cvxopt's
+        ``cholmod.symbolic`` does (its name string and its destructor, read from a factor of
+        cvxopt's own), or ``None`` if the ordering fields of ``cholmod_common`` are not where
+        CHOLMOD 3 has them (then the analysis stays cvxopt's)."""
+        if not _defaults_of_cholmod3(_CommonOrdering.from_buffer(self._common())):
+            return None
+        api = ctypes.pythonapi
+        get_name, get_destructor, new = (api.PyCapsule_GetName, api.PyCapsule_GetDestructor,
+                                         api.PyCapsule_New)
+        get_name.restype = get_destructor.restype = ctypes.c_void_p
+        get_name.argtypes = get_destructor.argtypes = [ctypes.py_object]
+        new.restype = ctypes.py_object
+        new.argtypes = [ctypes.c_void_p] * 3
+        self._model = _cholmod.symbolic(cvxopt.spmatrix([1.0], [0], [0]))  # kept: its name
+        name, destructor = get_name(self._model), get_destructor(self._model)
+        if ctypes.string_at(name) != b'CHOLMOD FACTOR D L' or not destructor:
+            return None
+        return lambda factor: new(factor, name, destructor)
+
+    def analyse(self, pattern: BlockPattern, perm: IntArray, postorder: bool):
+        """``cholmod_l_analyze_p`` of the lower-triangle pattern with the ordering ``perm``
+        alone (cvxopt's ``symbolic`` with ``nmethods = 1``, supernodal), on a
+        ``cholmod_sparse`` header over the pattern's own arrays: the same factor object as
+        cvxopt's, without first copying the pattern into a cvxopt matrix. ``None`` when not
+        available (the caller uses cvxopt)."""
+        if self._capsule is None:
+            return None
+        n = pattern.size
+        indptr = np.ascontiguousarray(pattern.indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(pattern.indices, dtype=np.int64)
+        pvec = np.ascontiguousarray(perm, dtype=np.int64)
+        A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
+                           None, None, None, -1, 2, 0, 0, 1, 1)  # lower, long, pattern only
+        common = self._common()
+        c = _CommonOrdering.from_buffer(common)
+        saved = (c.supernodal, c.nmethods, c.postorder)
+        c.supernodal, c.nmethods, c.postorder = 2, 1, int(bool(postorder))
+        try:
+            factor = self._analyze(ctypes.addressof(A), pvec.ctypes.data, None, 0, common)
+        finally:
+            c.supernodal, c.nmethods, c.postorder = saved
+            self._free_work(common)
+        if not factor:
+            return None
+        try:
+            return self._capsule(factor)
+        except Exception:  # pragma: no cover - the capsule could not be made
+            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
+            return None
 
     def _common(self):
         """This thread's ``cholmod_common`` (started, ``print = 0``), or ``None`` if its
@@ -1212,12 +1314,14 @@ def _band_completion(band: FloatArray) -> FloatArray:
     sep = sep.reshape(r, w * d, w * d)
     cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
     try:
-        np.linalg.cholesky(sep)  # positive definite separators (and D_i below: the cliques)
         Bt = np.linalg.solve(sep, cross)  # (r, w d, d): B_i'
     except np.linalg.LinAlgError as exc:
         raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
                                       'definite') from exc
     Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
+    # every clique C_i = {i} + F_i is positive definite iff every D_i is (one Cholesky each
+    # below, no separate one of the separators): C_i is iff F_i and D_i are, and F_i is a
+    # principal block of C_{i+1} (the last ones: identity padding), so from the end back
     Dinv = _spd_inverse(Dm)  # (r, d, d)
     G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
                         -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)

@@ -81,6 +81,7 @@ from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
     SolveResult,
+    information_rank,
     normal_matrix_at,
     solve,
 )
@@ -406,12 +407,30 @@ def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
     chol = sysm.chol  # factored at the solution (the solve's analysis reused)
     sysm.take_factor()
     analysis = chol.analysis
-    inv = selinv.SelectedInverse(chol)
+    inv = selinv.SelectedInverse(chol, columns=cols)  # their supernodes and ancestors
     blocks = inv.diagonal_blocks(cols)
     if inv.in_place:  # CHOLMOD refactors a supernodal factor of the same pattern in place
         chol.keep_analysis(analysis)
         sysm.give_factor(chol)
     return blocks
+
+
+class JointPrior(tuple):
+    """One joint prior as the aligner keeps it: ``(node rows (k,), T_mean (k, 4, 4),
+    information (6k, 6k))``, unpacked as that 3-tuple (state files, the refinement's snapshot),
+    with the rank of the information in ``rank`` when known (a prior positive definite by
+    construction: ``6k``), so that no window solve factors the information again only to count
+    its equations (``None``: determined once, on first use, :meth:`TrackWindowAligner._ranked`).
+    """
+
+    def __new__(cls, idx: IntArray, mean: FloatArray, info, rank: int | None = None
+                ) -> JointPrior:
+        out = super().__new__(cls, (idx, mean, info))
+        out.rank = rank
+        return out
+
+    def __reduce__(self):
+        return (JointPrior, (*self, self.rank))
 
 
 def _no_weighted() -> tuple[IntArray, FloatArray]:
@@ -481,7 +500,7 @@ class TrackWindowAligner:
         self._open_track: int | None = None
         self._finished: set[int] = set()
         # marginal-policy priors: list of (node indices, mean (k,4,4), information (6k, 6k))
-        self._priors: list[tuple[IntArray, FloatArray, FloatArray]] = []
+        self._priors: list[JointPrior | tuple[IntArray, FloatArray, FloatArray]] = []
         self._last: SolveResult | None = None
         self._last_window: IntArray = np.zeros(0, dtype=np.int64)
         # the last adjustment's estimate of the frozen nodes it adjusted as weighted parameters
@@ -927,7 +946,8 @@ class TrackWindowAligner:
         else:
             self._T[frozen] = res.T_world_node[frozen]
         self._cov[frozen] = res.frozen_cov
-        self._priors = [(p.nodes, p.T_world_node, p.information) for p in res.priors]
+        self._priors = [JointPrior(p.nodes, p.T_world_node, p.information, p.rank)
+                        for p in res.priors]
         self._T_weighted = _no_weighted()  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node)
 
@@ -1062,9 +1082,17 @@ class TrackWindowAligner:
             priors.append(GaussianPrior.from_covariances(ids[weighted], self._T[weighted],
                                                          self._cov[weighted]))
         for p in priors_idx:
-            idx, mean, info = self._priors[p]
-            priors.append(GaussianPrior(ids[idx], mean, info))
+            idx, mean, info = prior = self._ranked(p)
+            priors.append(GaussianPrior(ids[idx], mean, info, rank=prior.rank))
         return net, nodes, win_nodes, conns, fixed, priors
+
+    def _ranked(self, p: int) -> JointPrior:
+        """Prior ``p`` with its rank (determined here once if it came without one: a state
+        file, a dense prior)."""
+        prior = self._priors[p]
+        if getattr(prior, 'rank', None) is None:
+            prior = self._priors[p] = JointPrior(*prior, rank=information_rank(prior[2], 6))
+        return prior
 
     def _subnetwork(self, nodes: IntArray, conns: IntArray) -> ConnectionNetwork:
         """Network of some nodes (by index) and connections among them (already validated)."""
@@ -1329,7 +1357,9 @@ class TrackWindowAligner:
                                                  coords=self._T[free_idx, :3, 3], rhs=u)
                 step = x.reshape(-1, 6)[~elim].ravel()
                 mean, K = band_prior(self._T[S_nodes], skel, step)
-                self._priors.append((S_nodes, mean, K))
+                # positive definite by construction (a completion of positive definite clique
+                # covariances, or DegenerateGeometryError): full rank
+                self._priors.append(JointPrior(S_nodes, mean, K, rank=K.shape[0]))
                 return
             except DegenerateGeometryError:  # N not positive definite: the exact paths below
                 pass
@@ -1342,7 +1372,8 @@ class TrackWindowAligner:
                 H = tf.information()
                 step = tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
                 mean, H = tangent_prior(self._T[S_nodes], H, None, step=step)  # exact gradient
-                self._priors.append((S_nodes, mean, H))
+                # H: the trailing block of a positive definite factor, so full rank
+                self._priors.append(JointPrior(S_nodes, mean, H, rank=H.shape[0]))
                 return
             except DegenerateGeometryError:  # N_LL or H singular: the dense path below
                 pass
@@ -1362,7 +1393,7 @@ class TrackWindowAligner:
         # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
         # the tangent d of S (the prior's mean and information: refinement.tangent_prior).
         mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T (refinement.py)
-        self._priors.append((S_nodes, mean, H))
+        self._priors.append(JointPrior(S_nodes, mean, H))  # rank: on first use
 
     # ------------------------------------------------------------------------ output
     def corrected_path(self) -> CorrectedPath:
@@ -1475,7 +1506,7 @@ class TrackWindowAligner:
         self._refiner.drop()
         self._refine_snap = None
         with blas_threads():
-            self._priors = [(p.nodes, p.T_world_node, p.information)
+            self._priors = [JointPrior(p.nodes, p.T_world_node, p.information, p.rank)
                             for p in absorbed_priors(self._snapshot(), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
