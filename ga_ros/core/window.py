@@ -209,7 +209,7 @@ class AlignerConfig:
     refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
-    refine_horizon_tracks: int = 12
+    refine_horizon_tracks: int = 10
     prior_band: int = 16
     prior_hubs: int = 16
 
