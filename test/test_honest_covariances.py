@@ -21,8 +21,9 @@ def _monte_carlo(per_swath: int, runs: int, seed: int, **prior) -> tuple[dict, i
     """Mean position NEES per policy over ``runs`` noisy aerial surveys (6 tracks, 3 % noise,
     window 2): ``weighted``, ``marginal``, ``weighted+refine`` (background refinement after
     every track, inline: the same hand-off), ``weighted+horizon`` (the same with a refinement
-    horizon of 3 tracks: the older tracks retire into the past prior), ``refined`` (the weighted aligner, then
-    ``refine_batch``) and ``batch``; and how many sparse priors the aligners ended with."""
+    horizon of 3 tracks: the older tracks retire into the past prior), ``refined`` (the weighted
+    aligner, then ``refine_batch``) and ``batch``; and how many sparse priors the aligners ended
+    with."""
     sc = aerial_scenario(n_tracks=6, positions_per_swath=per_swath)
     rng = np.random.default_rng(seed)
     ids, truth = sc.node_ids[1:], sc.T_world_node[1:]

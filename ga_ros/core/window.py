@@ -28,9 +28,10 @@ beyond it, so a freeze and every window factorisation cost linear in the swath l
 The cost of an update depends on the window only, not on the number of tracks flown.
 
 A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.refinement`) re-solves the
-survey (its last ``refine_horizon_tracks`` tracks, the older ones as one prior) off the update path and hands the result back at a fixed later track: frozen poses
-and covariances refined, priors rebuilt at the refined estimate, and the window's corrections
-carried back to every frozen node, so the online path follows the batch solution.
+survey (its last ``refine_horizon_tracks`` tracks, the older ones as one prior) off the update
+path and hands the result back at a fixed later track: frozen poses and covariances refined,
+priors rebuilt at the refined estimate, and the window's corrections carried back to the frozen
+nodes of that horizon, so the online path follows the batch solution.
 
 Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
 :class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
