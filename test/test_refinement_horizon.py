@@ -114,6 +114,10 @@ def test_bounded_snapshots_do_not_grow_with_the_survey():
     res = refine_snapshot(snap)
     assert res.ok and snap.past and snap.first_node > 0
     assert res.past and res.T_world_node.shape[0] == snap.node_ids.size
+    # refine_batch re-solves everything: the next refinement covers the whole survey again
+    al.refine_batch()
+    assert al._retired == 0 and not al._past
+    assert al._snapshot().node_ids.size == sc.node_ids.size
 
 
 def test_save_restore_mid_survey_continues_the_same_path(tmp_path):
