@@ -163,9 +163,10 @@ class AlignerConfig:
     quality_alpha0 : level of the 1-D w-test (critical value ``z_{1-alpha0/2}``: 3.89 at 1e-4,
         3.29 at 1e-3), for the quality figures and the ``'w-test'`` gate.
     refine_every_tracks : background refinement (:mod:`ga_ros.core.refinement`): after every
-        this many tracks (counted when at least one track is frozen) the whole survey is solved
-        in batch off the update path and handed back as the new frozen estimate (poses,
-        published covariances, relinearised priors). 0 disables it.
+        this many tracks (counted when at least one track is frozen) the survey (its last
+        ``refine_horizon_tracks`` tracks) is solved in batch off the update path and handed back
+        as the new frozen estimate (poses, published covariances, relinearised priors). 0
+        disables it.
     refine_lag_tracks : a refinement started after track ``k`` is installed at the start of the
         update of track ``k + refine_lag_tracks`` (waiting for it there if it is not ready), so
         the result does not depend on timing: a replay and a live node give the same path.
