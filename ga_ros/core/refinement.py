@@ -210,7 +210,8 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
     priors are rebuilt by :func:`absorbed_priors` at the refined poses, for the state after the
     ``leaving`` tracks froze (:func:`predict_freezes`); then the retirable oldest tracks are
     retired (:func:`retire_tracks`).
-    Never raises for a numerical failure: ``ok`` is then ``False``.
+    A solve stopped at ``max_iterations`` is installed (``reason`` says so), as the window's
+    updates are. Never raises for a numerical failure: ``ok`` is then ``False``.
     """
     t0 = time.perf_counter()
     n = snap.node_ids.size
@@ -227,7 +228,10 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             res = solve(net, snap.T_world_node, snap.solver,
                         fixed=[int(snap.node_ids[0])] if snap.datum else [],
                         priors=_gaussian(snap, snap.past))
-            if not res.converged:
+            # like the window's own updates, a solve that used up its iterations (the cost
+            # still creeping down) is kept: refusing it stalled the retirement, so the horizon
+            # and the refinement's cost grew with the survey
+            if not res.converged and res.reason != 'max_iterations':
                 return _failed(empty, f'batch solve did not converge: {res.reason}', t0)
             frozen = np.nonzero(snap.frozen)[0]
             cov = np.zeros((frozen.size, 6, 6))
