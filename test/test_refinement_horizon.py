@@ -151,3 +151,14 @@ def test_bounded_replay_is_identical_whatever_the_executor():
                                   runs[1].corrected_path().T_world_node)
     np.testing.assert_array_equal(runs[0].covariances(sc.node_ids[1:]),
                                   runs[1].covariances(sc.node_ids[1:]))
+
+
+def test_a_refinement_stopped_at_max_iterations_is_installed_and_retires():
+    """A batch solve that uses up its iterations (tolerances ~0 here) is installed as the
+    window's own updates are kept; refusing it stalled the retirement, and the horizon grew
+    with the survey (300 tracks of 20 poses: 26 tracks at track 200 instead of 11)."""
+    sc, _, ms = noisy_aerial_survey(7, 4, 5.0, 3)
+    al, ups = _run(_config(3, tolerance=1e-300, cost_tolerance=0.0), sc, ms)
+    reasons = [u.refine_reason for u in ups if u.refined_after_tracks >= 0]
+    assert reasons and all(r == 'max_iterations' for r in reasons), reasons
+    assert al._retired == 7 - 3 - 1 and al._n_refinements == len(reasons)
