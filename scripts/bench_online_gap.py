@@ -49,6 +49,8 @@ def main() -> None:
     ap.add_argument('--prior-band', type=int, default=None,
                     help='AlignerConfig.prior_band (default: the aligner default; -1 dense)')
     ap.add_argument('--prior-hubs', type=int, default=None, help='AlignerConfig.prior_hubs')
+    ap.add_argument('--horizon', type=int, default=None,
+                    help='AlignerConfig.refine_horizon_tracks (default: the aligner default)')
     ap.add_argument('--no-per-track', action='store_true',
                     help='compare with batch at the end only (no batch solve per track)')
     args = ap.parse_args()
@@ -82,7 +84,8 @@ def main() -> None:
 
     for name in args.policies:
         prior = {k: v for k, v in (('prior_band', args.prior_band),
-                                   ('prior_hubs', args.prior_hubs)) if v is not None}
+                                   ('prior_hubs', args.prior_hubs),
+                                   ('refine_horizon_tracks', args.horizon)) if v is not None}
         al = TrackWindowAligner(_policy_config(name, args.window, args.every, args.lag, prior),
                                 T_world_first=T_true[0])
         start, ms, rows, own, wait, cpu = 0, [], [], [], [], []

@@ -7,8 +7,10 @@ measurements are fed in acquisition order to :class:`ga_ros.core.window.TrackWin
 (``K = --window``, ``--policy`` weighted), exactly as the alignment node does. The script prints
 
 * per-track window update time (p50 / p95 / max over the ``--span`` tracks ending at each
-  checkpoint of ``--checkpoints``) and the process's current resident set size there, with the
-  RSS growth per pose between checkpoints;
+  checkpoint of ``--checkpoints``; wall time includes the wait for the background refinement
+  at its hand-off, also shown alone) and the process's current resident set size there, with
+  the RSS growth per pose between checkpoints, the refinement worker's RSS, the nodes of the
+  refinement in flight and the online path's ATE against the simulator's truth (rigid);
 * the state save / restore time and file size at the end (``TrackWindowAligner.save/load``);
 * the time and peak RSS (``ru_maxrss``) of the batch refinement of all poses
   (``refine_batch``), unless ``--no-batch``.
@@ -42,6 +44,7 @@ from ga_ros.bench.core import NoSolveAligner, peak_rss_mb
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
+from ga_ros.eval.metrics import ate
 from ga_ros.runtime import limit_blas_threads
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -50,10 +53,23 @@ from ga_ros.sim.scenario import Scenario
 PAGE = os.sysconf('SC_PAGE_SIZE')
 
 
-def rss_mib() -> float:
-    """Current resident set size of this process (MiB), from ``/proc/self/statm``."""
-    with open('/proc/self/statm') as f:
+def rss_mib(pid: int | str = 'self') -> float:
+    """Current resident set size of a process (MiB, this one by default), from
+    ``/proc/PID/statm``."""
+    with open(f'/proc/{pid}/statm') as f:
         return int(f.read().split()[1]) * PAGE / 2**20
+
+
+def children_rss_mib() -> float:
+    """Resident set size of this process's children (the refinement worker; MiB)."""
+    total = 0.0
+    for task in Path('/proc/self/task').iterdir():
+        try:
+            pids = (task / 'children').read_text().split()
+            total += sum(rss_mib(p) for p in pids)
+        except OSError:
+            continue
+    return total
 
 
 @dataclass
@@ -71,6 +87,11 @@ class Checkpoint:
     rss_mib: float
     kib_per_pose_since_first: float | None
     state_bytes_per_pose: float = 0.0
+    refine_wait_ms_p50: float = 0.0
+    refine_wait_ms_p95: float = 0.0
+    worker_rss_mib: float = 0.0
+    horizon_nodes: int = 0
+    ate_rigid_m: float = 0.0
 
 
 @dataclass
@@ -283,6 +304,7 @@ def timed_restore(path: Path, n_nodes: int, timeout_s: float) -> tuple[float | N
 def aligner_config(args: argparse.Namespace) -> AlignerConfig:
     """The aligner's settings from the command line (the rest: AlignerConfig's defaults)."""
     extra = {k: int(v) for k, v in (('refine_every_tracks', args.refine_every),
+                                    ('refine_horizon_tracks', args.refine_horizon),
                                     ('prior_band', args.prior_band),
                                     ('prior_hubs', args.prior_hubs)) if v is not None}
     return AlignerConfig(window_tracks=args.window, freeze_policy=args.policy, **extra)
@@ -293,6 +315,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
     checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
     al = TrackWindowAligner(aligner_config(args), sc.T_world_node[0])
     window_nodes: list[int] = []
+    waits: list[float] = []
     first_cp: Checkpoint | None = None
 
     def record(up: UpdateResult, cpu_ms: float) -> None:
@@ -301,20 +324,28 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         fig.update_cpu_ms.append(cpu_ms)
         fig.update_rss_mib.append(rss_mib())
         window_nodes.append(up.n_window_nodes)
+        waits.append(up.refine_wait_ms)
         done = len(fig.update_ms)
         if args.verbose:
             print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU), '
-                  f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB',
+                  f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB, '
+                  f'refinement wait + install {up.refine_wait_ms:.0f} ms',
                   file=sys.stderr, flush=True)
         if done in checkpoints:
             ms = np.array(fig.update_ms[max(0, done - args.span):])
             cpu = np.array(fig.update_cpu_ms[max(0, done - args.span):])
+            wait = np.array(waits[max(0, done - args.span):])
             poses = done * fig.poses_per_track
+            path = al.corrected_path()
+            snap = al._refine_snap
             cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
                             float(np.percentile(ms, 95)), float(ms.max()),
                             float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),
                             up.n_window_nodes, fig.update_rss_mib[-1], None,
-                            state_nbytes(al) / max(1, al.stats.n_nodes))
+                            state_nbytes(al) / max(1, al.stats.n_nodes),
+                            float(np.percentile(wait, 50)), float(np.percentile(wait, 95)),
+                            children_rss_mib(), 0 if snap is None else snap.node_ids.size,
+                            ate(path.T_world_node, sc.T_world_node[path.node_ids]).rmse)
             if first_cp is None:
                 first_cp = cp
             elif poses > first_cp.poses:
@@ -367,16 +398,19 @@ def print_table(fig: ScaleFigures) -> None:
     print(f'online: {fig.tracks_done} tracks, {fig.poses_done:,} poses, '
           f'{fig.connections_done:,} connections in {fig.online_seconds:.0f} s')
     print()
-    print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | window nodes | '
-          'RSS MiB | KiB/pose since first | state B/pose |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | refinement '
+          'wait ms p50 / p95 | window nodes | refinement nodes | RSS MiB | worker RSS MiB | '
+          'KiB/pose since first | state B/pose | ATE rigid m |')
+    print('|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|')
     for c in fig.checkpoints:
         print(f'| {c.tracks} | {c.poses:,} | {c.update_ms_p50:.0f} | {c.update_ms_p95:.0f} | '
               f'{c.update_ms_max:.0f} | {c.cpu_ms_p50:.0f} | {c.cpu_ms_p95:.0f} | '
-              f'{c.window_nodes:,} | {c.rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} | '
-              f'{c.state_bytes_per_pose:.0f} |')
+              f'{c.refine_wait_ms_p50:.0f} / {c.refine_wait_ms_p95:.0f} | '
+              f'{c.window_nodes:,} | {c.horizon_nodes:,} | {c.rss_mib:.0f} | '
+              f'{c.worker_rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} | '
+              f'{c.state_bytes_per_pose:.0f} | {c.ate_rigid_m:.3f} |')
     for c in fig.missing_checkpoints:
-        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | |')
+        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | | | | | |')
     if len(fig.checkpoints) >= 2:
         a, b = fig.checkpoints[0], fig.checkpoints[-1]
         print(f'\np95 ratio, {b.tracks} vs {a.tracks} tracks: wall '
@@ -412,6 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--noise', type=float, default=5.0, help='noise level in percent')
     p.add_argument('--refine-every', type=int, default=None,
                    help='refine_every_tracks (default: the aligner default; 0 = off)')
+    p.add_argument('--refine-horizon', type=int, default=None,
+                   help='refine_horizon_tracks (default: the aligner default; 0 = the whole '
+                        'survey)')
     p.add_argument('--prior-band', type=int, default=None,
                    help='prior_band (default: the aligner default; -1 = dense priors)')
     p.add_argument('--prior-hubs', type=int, default=None,

@@ -180,10 +180,8 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         'rejected': {str(k): int(v) for k, v in al._rejected.items()},
         'n_updates': int(al._n_updates), 'n_outliers': int(al._n_outliers),
         'refine_pending': al.refinement_state(),
+        'refine_retired': int(al._retired),
     }
-    sizes = np.array([idx.size for idx, _, _ in al._priors], dtype=np.int64)
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros((0,) + shape))  # noqa: E731
-    blocks = [_info_blocks(info) for _, _, info in al._priors]
     arrays = dict(
         T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a, stamp=al._stamparr.a,
         T=al._T[:n], cov21=al._cov.packed[:n], frozen=al._frozen[:n], src=al._src.a,
@@ -191,14 +189,43 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         status=al._status.a.astype(np.int64), last_window=al._last_window.astype(np.int64),
         fingerprint=al._fp.a,
         weighted_idx=al._T_weighted[0].astype(np.int64), weighted_T=al._T_weighted[1],
-        prior_sizes=sizes,
-        prior_idx=cat([idx for idx, _, _ in al._priors], ()).astype(np.int64),
-        prior_mean=cat([mean for _, mean, _ in al._priors], (4, 4)),
-        prior_nblocks=np.array([b[0].size for b in blocks], dtype=np.int64),
-        prior_brow=cat([b[0] for b in blocks], ()).astype(np.int64),
-        prior_bcol=cat([b[1] for b in blocks], ()).astype(np.int64),
-        prior_blocks=cat([b[2] for b in blocks], (6, 6)))
+        **_prior_arrays('prior', al._priors), **_prior_arrays('past', al._past))
     return meta, arrays
+
+
+def _prior_arrays(name: str, priors: list) -> dict[str, np.ndarray]:
+    """Joint priors ``(node rows, mean, information)`` as arrays ``{name}_sizes``,
+    ``{name}_idx``, ``{name}_mean`` and their information's non-zero 6x6 blocks."""
+    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros((0,) + shape))  # noqa: E731
+    blocks = [_info_blocks(info) for _, _, info in priors]
+    return {f'{name}_sizes': np.array([idx.size for idx, _, _ in priors], dtype=np.int64),
+            f'{name}_idx': cat([idx for idx, _, _ in priors], ()).astype(np.int64),
+            f'{name}_mean': cat([mean for _, mean, _ in priors], (4, 4)),
+            f'{name}_nblocks': np.array([b[0].size for b in blocks], dtype=np.int64),
+            f'{name}_brow': cat([b[0] for b in blocks], ()).astype(np.int64),
+            f'{name}_bcol': cat([b[1] for b in blocks], ()).astype(np.int64),
+            f'{name}_blocks': cat([b[2] for b in blocks], (6, 6))}
+
+
+def _priors_of(name: str, arrays: dict[str, np.ndarray]) -> list:
+    """Inverse of :func:`_prior_arrays` (also the dense layout of versions 1-3)."""
+    sizes = np.asarray(arrays[f'{name}_sizes'], dtype=np.int64)
+    if not sizes.size:
+        return []
+    idx_cuts = np.cumsum(sizes)[:-1]
+    if f'{name}_blocks' in arrays:  # version 4: non-zero 6x6 blocks of each information
+        cuts = np.cumsum(np.asarray(arrays[f'{name}_nblocks'], dtype=np.int64))[:-1]
+        infos = [_info_of_blocks(k, np.asarray(r, dtype=np.int64), np.asarray(c, dtype=np.int64),
+                                 np.asarray(b, dtype=float))
+                 for k, r, c, b in zip(sizes.tolist(), np.split(arrays[f'{name}_brow'], cuts),
+                                       np.split(arrays[f'{name}_bcol'], cuts),
+                                       np.split(arrays[f'{name}_blocks'], cuts))]
+    else:  # versions 1-3: one dense information per prior
+        infos = [np.array(info).reshape(6 * k, 6 * k) for k, info in zip(
+            sizes.tolist(), np.split(arrays[f'{name}_info'], np.cumsum((6 * sizes) ** 2)[:-1]))]
+    return [(np.array(idx, dtype=np.int64), np.array(mean), info)
+            for idx, mean, info in zip(np.split(arrays[f'{name}_idx'], idx_cuts),
+                                       np.split(arrays[f'{name}_mean'], idx_cuts), infos)]
 
 
 def _info_blocks(info) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -324,23 +351,10 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
               np.array(measurement_fingerprints(al._z.a, al._ccov.a[:]), dtype=np.uint32))
         al._fp = Rows.of(fp, np.uint32)
         al._prune_pairs()
-    sizes = np.asarray(arrays['prior_sizes'], dtype=np.int64)
-    idx_cuts = np.cumsum(sizes)[:-1]
-    if 'prior_blocks' in arrays:  # version 4: non-zero 6x6 blocks of each information
-        cuts = np.cumsum(np.asarray(arrays['prior_nblocks'], dtype=np.int64))[:-1]
-        infos = [_info_of_blocks(k, np.asarray(r, dtype=np.int64), np.asarray(c, dtype=np.int64),
-                                 np.asarray(b, dtype=float))
-                 for k, r, c, b in zip(sizes.tolist(), np.split(arrays['prior_brow'], cuts),
-                                       np.split(arrays['prior_bcol'], cuts),
-                                       np.split(arrays['prior_blocks'], cuts))]
-    else:  # versions 1-3: one dense information per prior
-        infos = [np.array(info).reshape(6 * k, 6 * k) for k, info in zip(
-            sizes.tolist(), np.split(arrays['prior_info'], np.cumsum((6 * sizes) ** 2)[:-1]))]
-    al._priors = [
-        (np.array(idx, dtype=np.int64), np.array(mean), info)
-        for idx, mean, info in zip(np.split(arrays['prior_idx'], idx_cuts),
-                                   np.split(arrays['prior_mean'], idx_cuts), infos)] \
-        if sizes.size else []
+    al._priors = _priors_of('prior', arrays)
+    if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
+        al._past = _priors_of('past', arrays)
+        al._retired = int(meta.get('refine_retired', 0))
     al._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     al._n_updates = int(meta['n_updates'])
     al._n_outliers = int(meta['n_outliers'])

@@ -18,6 +18,25 @@ same data smooths. A *refinement* closes the gap without blocking the per-track 
    since the snapshot, absorbed again at the refined estimate). The hand-off point depends on the
    track count only, so a replay and a live node give the same path whatever the timing.
 
+**Bounded refinement** (``refine_horizon_tracks`` ``H > 0``, a fixed-lag smoother behind the
+window). A refinement covers only the *horizon*: the finished tracks that have not been retired,
+at least the newest ``H``. Its snapshot holds the horizon's nodes (a contiguous range of the
+aligner's rows, from ``first_node``), the connections between them, and the *past prior*
+(:attr:`RefinementSnapshot.past`): one joint Gaussian prior over the horizon's oldest nodes that
+carries every connection touching a retired track, each exactly once. The batch solve uses it
+as a prior (it also fixes the datum once the first track has retired), the rebuilt window priors
+start from it, and the smoothing reaches the horizon's frozen nodes only. Each refinement then
+retires the oldest horizon tracks beyond ``H`` (``retire_max``) that nothing can change any more
+(frozen at the hand-off, every connection absorbed or excluded with both ends frozen:
+:func:`retirable_tracks`): it eliminates them, with the past prior and every absorbed
+connection touching them, onto the nodes they leave behind (:func:`retire_tracks`), at its
+refined estimate, and hands that prior back with the result; the aligner keeps it for the next
+refinement. Retired tracks stay where the last refinement (and its smoothing) that covered them
+left them. Snapshot, worker and result are then of the horizon's size whatever the survey's
+length (about ``H + refine_every_tracks`` tracks); while the survey is no longer than the
+horizon nothing is retired and the result is the whole-survey one, bit for bit. ``H = 0``
+refines the whole survey every time.
+
 Every absorbed connection still enters exactly one prior, so the published covariances stay
 honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
 """
@@ -38,7 +57,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import SolverConfig, normal_matrix_at, solve
+from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
 from ga_ros.core.sparse import CovarianceSkeleton
 from ga_ros.core.storage import unpack_sym6
 from ga_ros.errors import GaError, InputError
@@ -73,6 +92,15 @@ class RefinementSnapshot:
     prior_band, prior_hubs : half-bandwidth (nodes) and hub nodes of the rebuilt priors'
         sparse information (:func:`band_prior`); ``prior_band = -1``: dense (the exact Schur
         complement).
+    first_node : the aligner's row of the snapshot's node 0 (the horizon's first node). 0: the
+        horizon starts at the survey's datum, which is held fixed; otherwise the gauge comes
+        from the ``past`` prior.
+    past : the past prior (bounded refinement, see the module doc), node indices of the
+        snapshot.
+    retire_max : at most this many of the oldest tracks of ``track_order`` retire after this
+        refinement (:func:`retirable_tracks`); 0: none (whole-survey refinement).
+    conn_rows : (m,) the aligner's rows of the snapshot's connections (``None``: rows ``0..m-1``).
+    connections_total : number of connections the aligner held at the snapshot.
     """
 
     after_tracks: int
@@ -91,6 +119,16 @@ class RefinementSnapshot:
     leaving: tuple[int, ...] = ()
     prior_band: int = -1
     prior_hubs: int = 0
+    first_node: int = 0
+    past: tuple[AbsorbedPrior, ...] = ()
+    retire_max: int = 0
+    conn_rows: IntArray | None = None
+    connections_total: int = -1
+
+    @property
+    def datum(self) -> bool:
+        """Whether node 0 of the snapshot is the survey's datum (held fixed)."""
+        return self.first_node == 0
 
 
 @dataclass(frozen=True)
@@ -146,6 +184,9 @@ class RefinementResult:
     smoothing : back-substitution steps from the priors' nodes to every other frozen node.
     iterations : Gauss-Newton iterations of the batch solve.
     seconds : wall time of the whole refinement (solve, covariances, priors).
+    retired : number of the snapshot's oldest tracks retired (:func:`retire_tracks`).
+    past : the past prior for the next refinement (snapshot node indices; the snapshot's own
+        if nothing retired).
     """
 
     after_tracks: int
@@ -159,16 +200,20 @@ class RefinementResult:
     smoothing: tuple[SmoothingStep, ...]
     iterations: int
     seconds: float
+    retired: int = 0
+    past: tuple[AbsorbedPrior, ...] = ()
 
 
 def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
     """Batch solve of a snapshot, frozen covariances and rebuilt priors (runs in a worker).
 
-    The batch solve uses every connection that is not excluded (status != 2), warm-started at
-    the online estimate, the first node fixed. The priors are rebuilt by :func:`absorbed_priors`
-    at the refined poses, for the state after the ``leaving`` tracks froze
-    (:func:`predict_freezes`).
-    Never raises for a numerical failure: ``ok`` is then ``False``.
+    The batch solve uses every connection that is not excluded (status != 2) and the past
+    prior, warm-started at the online estimate, the datum (if the snapshot holds it) fixed. The
+    priors are rebuilt by :func:`absorbed_priors` at the refined poses, for the state after the
+    ``leaving`` tracks froze (:func:`predict_freezes`); then the retirable oldest tracks are
+    retired (:func:`retire_tracks`).
+    A solve stopped at ``max_iterations`` is installed (``reason`` says so), as the window's
+    updates are. Never raises for a numerical failure: ``ok`` is then ``False``.
     """
     t0 = time.perf_counter()
     n = snap.node_ids.size
@@ -182,21 +227,107 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             net = ConnectionNetwork.from_arrays(snap.node_ids, snap.track_ids, snap.src[keep],
                                                 snap.dst[keep], snap.z[keep],
                                                 unpack_sym6(snap.cov21[keep]))
-            res = solve(net, snap.T_world_node, snap.solver, fixed=[int(snap.node_ids[0])])
-            if not res.converged:
+            res = solve(net, snap.T_world_node, snap.solver,
+                        fixed=[int(snap.node_ids[0])] if snap.datum else [],
+                        priors=_gaussian(snap, snap.past))
+            # like the window's own updates, a solve that used up its iterations (the cost
+            # still creeping down) is kept: refusing it stalled the retirement, so the horizon
+            # and the refinement's cost grew with the survey
+            if not res.converged and res.reason != 'max_iterations':
                 return _failed(empty, f'batch solve did not converge: {res.reason}', t0)
             frozen = np.nonzero(snap.frozen)[0]
             cov = np.zeros((frozen.size, 6, 6))
-            free = frozen[frozen != 0]
-            if free.size:
-                cov[frozen != 0] = res.covariance(snap.node_ids[free])
+            free = frozen != 0 if snap.datum else np.ones(frozen.size, dtype=bool)
+            if free.any():
+                cov[free] = res.covariance(snap.node_ids[frozen[free]])
             priors, steps = _eliminate_absorbed(snap, res.T_world_node)
+            retired = retirable_tracks(snap)
+            past = retire_tracks(snap, res.T_world_node, retired) if retired else snap.past
     except (GaError, np.linalg.LinAlgError, ValueError) as exc:
         return _failed(empty, f'{type(exc).__name__}: {exc}', t0)
     assert res.T_world_node.shape == (n, 4, 4)
     return RefinementResult(snap.after_tracks, True, res.reason, res.T_world_node, cov,
                             priors, snap.frozen, np.nonzero(snap.status == 1)[0], steps,
-                            res.iterations, time.perf_counter() - t0)
+                            res.iterations, time.perf_counter() - t0, retired, past)
+
+
+def _gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]
+              ) -> list[GaussianPrior]:
+    """The solver's form of priors over snapshot nodes."""
+    return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+            for p in priors]
+
+
+def _track_rank(snap: RefinementSnapshot) -> IntArray:
+    """(n,) position of each node's track in ``track_order`` (unfinished tracks last)."""
+    order = {t: k for k, t in enumerate(snap.track_order)}
+    tracks, inverse = np.unique(snap.track_ids, return_inverse=True)
+    rank = np.array([order.get(int(t), len(order)) for t in tracks.tolist()], dtype=np.int64)
+    return rank[inverse]
+
+
+def retirable_tracks(snap: RefinementSnapshot) -> int:
+    """How many of the oldest tracks of ``track_order`` (at most ``retire_max``) retire.
+
+    A track can retire when nothing can change its terms any more: its nodes and those of every
+    older track are frozen, and every connection touching them is absorbed or excluded with both
+    ends frozen (a frozen node takes no new connection, and the gate re-tests only connections
+    touching the window). ``snap`` is the state at the hand-off (:func:`predict_freezes`).
+    """
+    if snap.retire_max <= 0:
+        return 0
+    rank = _track_rank(snap)
+    limit = snap.retire_max
+    if not snap.frozen.all():
+        limit = min(limit, int(rank[~snap.frozen].min()))
+    open_ = (snap.status == 0) | ~snap.frozen[snap.src] | ~snap.frozen[snap.dst]
+    if open_.any():
+        limit = min(limit, int(np.minimum(rank[snap.src[open_]], rank[snap.dst[open_]]).min()))
+    return max(0, limit)
+
+
+def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
+                  ) -> tuple[AbsorbedPrior, ...]:
+    """The past prior after the ``k`` oldest tracks of the snapshot retire, linearised at
+    ``T_lin`` (snapshot node indices).
+
+    The current past prior and every absorbed connection touching a retiring node are summed
+    and the retiring nodes eliminated (Schur complement) onto the nodes they leave behind: the
+    exact marginal of those terms in the linear limit, one prior per connected group (dense, or
+    sparse as :func:`band_prior` like the window's). The retiring tracks are the snapshot's
+    first nodes (its rows follow ``track_order``).
+    """
+    e = int((_track_rank(snap) < k).sum())
+    conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
+    free, N, u = _normal_terms(snap, conns, T_lin, snap.past)
+    cols = {int(i): c for c, i in enumerate(free.tolist())}
+    gone = [i for i in cols if i < e]
+    if len(gone) == len(cols):
+        return ()
+    H, g, cols = (N, u, cols) if not gone else _eliminate(N, u, cols, gone)[:3]
+    S = np.array(list(cols), dtype=np.int64)
+    return tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                 for group in _groups(H, S, cols))
+
+
+def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
+                  priors: tuple[AbsorbedPrior, ...] = ()
+                  ) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Dense normal matrix ``N`` and half gradient ``u`` of some connections and priors at
+    ``T_lin``, over their free nodes (snapshot indices, the datum excluded), in that order."""
+    nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]
+                                     + [p.nodes for p in priors]))
+    local = np.full(snap.node_ids.size, -1, dtype=np.int64)
+    local[nodes] = np.arange(nodes.size)
+    net = ConnectionNetwork.from_arrays(
+        snap.node_ids[nodes], snap.track_ids[nodes], local[snap.src[conns]],
+        local[snap.dst[conns]], snap.z[conns], unpack_sym6(snap.cov21[conns]))
+    datum = snap.datum and bool((nodes == 0).any())
+    fixed = [int(snap.node_ids[0])] if datum else []
+    N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, _gaussian(snap, priors))
+    free = nodes[nodes != 0] if datum else nodes
+    assert free.size == free_ids.size
+    return free, N.toarray(), u
 
 
 def _failed(empty: RefinementResult, reason: str, t0: float) -> RefinementResult:
@@ -227,12 +358,14 @@ def predict_freezes(snap: RefinementSnapshot) -> RefinementSnapshot:
 
 
 def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArray,
-                freeze_policy: str) -> BoolArray:
+                freeze_policy: str, touched_by: IntArray | None = None,
+                datum: bool = True) -> BoolArray:
     """Which nodes the priors of the absorbed connections are over (``(n,)`` mask).
 
     ``'weighted'``: frozen nodes that keep an active connection to a node that is not frozen
     (the paper's weighted parameters). ``'marginal'``: nodes that are not frozen. In both cases
-    only nodes touched by an absorbed connection count, and never the datum (index 0).
+    only nodes touched by an absorbed connection (or listed in ``touched_by``: the past prior's
+    nodes) count, and never the datum (index 0, if ``datum``).
     """
     n = frozen.size
     act = status == 0
@@ -247,8 +380,11 @@ def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArra
     touched = np.zeros(n, dtype=bool)
     touched[src[status == 1]] = True
     touched[dst[status == 1]] = True
+    if touched_by is not None:
+        touched[touched_by] = True
     keep &= touched
-    keep[0] = False
+    if datum and n:
+        keep[0] = False
     return keep
 
 
@@ -269,6 +405,7 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     change a Schur complement; ``test/test_refinement.py`` checks it against one dense
     elimination). As in the aligner's freezing, the absorbed terms are not at their optimum, so
     their marginal keeps a linear term ``g``: the prior mean is ``T_lin`` moved by ``-H^-1 g``.
+    A bounded refinement's past prior (the terms of the retired tracks) enters first.
 
     Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
     and the elimination steps for back substitution (:class:`SmoothingStep`).
@@ -279,36 +416,30 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
         An eliminated group is not determined by the absorbed terms (no datum, no prior node).
     """
     absorbed = np.nonzero(snap.status == 1)[0]
-    if absorbed.size == 0:
+    if absorbed.size == 0 and not snap.past:
         return (), ()
     n = snap.node_ids.size
-    keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy)
-    order = {t: k for k, t in enumerate(snap.track_order)}
-    rank = np.array([order.get(int(t), len(order)) for t in snap.track_ids], dtype=np.int64)
+    past_nodes = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
+    keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy,
+                       past_nodes, snap.datum)
+    rank = _track_rank(snap)
     # a connection is added at the freeze of its later frozen end (the earlier end may be the
-    # window's, under 'marginal'); a node is eliminated after its last absorbed connection
+    # window's, under 'marginal'); a node is eliminated after its last absorbed connection.
+    # The past prior (bounded refinement) comes first, at step -1.
     rs, rd = rank[snap.src[absorbed]], rank[snap.dst[absorbed]]
     fs, fd = snap.frozen[snap.src[absorbed]], snap.frozen[snap.dst[absorbed]]
     step = np.maximum(np.where(fs, rs, -1), np.where(fd, rd, -1))
     last = np.full(n, -1, dtype=np.int64)
     np.maximum.at(last, snap.src[absorbed], step)
     np.maximum.at(last, snap.dst[absorbed], step)
+    stages = [(-1, absorbed[:0], snap.past)] if snap.past else []
+    stages += [(int(s), absorbed[step == s], ()) for s in np.unique(step)]
     cols: dict[int, int] = {}   # node index -> block position in (H, g)
     H = np.zeros((0, 0))
     g = np.zeros(0)
     steps: list[SmoothingStep] = []
-    for s in np.unique(step):
-        conns = absorbed[step == s]
-        nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]))
-        local = np.full(n, -1, dtype=np.int64)
-        local[nodes] = np.arange(nodes.size)
-        net = ConnectionNetwork.from_arrays(
-            snap.node_ids[nodes], snap.track_ids[nodes], local[snap.src[conns]],
-            local[snap.dst[conns]], snap.z[conns], unpack_sym6(snap.cov21[conns]))
-        fixed = [int(snap.node_ids[0])] if (nodes == 0).any() else []
-        N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed)
-        free = nodes[nodes != 0] if fixed else nodes
-        assert free.size == free_ids.size
+    for s, conns, priors in stages:
+        free, N, u = _normal_terms(snap, conns, T_lin, priors)
         for i in free.tolist():
             if i not in cols:
                 cols[i] = len(cols)
@@ -316,7 +447,7 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
         H = np.pad(H, ((0, size - H.shape[0]), (0, size - H.shape[1])))
         g = np.pad(g, (0, size - g.size))
         at = (6 * np.array([cols[i] for i in free.tolist()])[:, None] + np.arange(6)).ravel()
-        H[np.ix_(at, at)] += N.toarray()
+        H[np.ix_(at, at)] += N
         g[at] += u
         gone = [i for i in cols if last[i] <= s and not keep[i]]
         if gone:

@@ -28,9 +28,10 @@ beyond it, so a freeze and every window factorisation cost linear in the swath l
 The cost of an update depends on the window only, not on the number of tracks flown.
 
 A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.refinement`) re-solves the
-whole survey off the update path and hands the result back at a fixed later track: frozen poses
-and covariances refined, priors rebuilt at the refined estimate, and the window's corrections
-carried back to every frozen node, so the online path follows the batch solution.
+survey (its last ``refine_horizon_tracks`` tracks, the older ones as one prior) off the update
+path and hands the result back at a fixed later track: frozen poses and covariances refined,
+priors rebuilt at the refined estimate, and the window's corrections carried back to the frozen
+nodes of that horizon, so the online path follows the batch solution.
 
 Measurement policy (what :meth:`TrackWindowAligner.add_measurement` rejects with
 :class:`~ga_ros.errors.InputError`, leaving the state unchanged): non-finite values or a
@@ -67,6 +68,7 @@ from ga_ros.core.quality import (
 )
 from ga_ros.core.refinement import (
     REFINE_EXECUTORS,
+    AbsorbedPrior,
     RefinementResult,
     RefinementSnapshot,
     RefinementWorker,
@@ -162,15 +164,23 @@ class AlignerConfig:
     quality_alpha0 : level of the 1-D w-test (critical value ``z_{1-alpha0/2}``: 3.89 at 1e-4,
         3.29 at 1e-3), for the quality figures and the ``'w-test'`` gate.
     refine_every_tracks : background refinement (:mod:`ga_ros.core.refinement`): after every
-        this many tracks (counted when at least one track is frozen) the whole survey is solved
-        in batch off the update path and handed back as the new frozen estimate (poses,
-        published covariances, relinearised priors). 0 disables it.
+        this many tracks (counted when at least one track is frozen) the survey (its last
+        ``refine_horizon_tracks`` tracks) is solved in batch off the update path and handed back
+        as the new frozen estimate (poses, published covariances, relinearised priors). 0
+        disables it.
     refine_lag_tracks : a refinement started after track ``k`` is installed at the start of the
         update of track ``k + refine_lag_tracks`` (waiting for it there if it is not ready), so
         the result does not depend on timing: a replay and a live node give the same path.
     refine_executor : where the refinement runs: ``'process'`` (a separate process, 'spawn'
         start method; truly parallel), ``'thread'`` or ``'inline'`` (solved at the hand-off;
         same result, for tests and single-core machines).
+    refine_horizon_tracks : ``H``, tracks a refinement re-solves (:mod:`ga_ros.core.refinement`,
+        bounded refinement): the newest ``H`` finished tracks (and older ones not retired yet);
+        the terms of older tracks enter as one joint prior over the horizon's oldest nodes, and
+        those tracks stay where the last refinement that covered them left them. Per-track cost
+        and memory of the refinement are then flat in the survey length. 0: the whole survey
+        every time (its cost grows with the survey). While the survey has at most ``H``
+        tracks both are the same.
     prior_band : half-bandwidth ``w`` (nodes, along the trajectory) of the joint priors'
         information (:func:`~ga_ros.core.refinement.band_prior`): the exact marginal
         covariance of the prior nodes on that band (every node's covariance and its
@@ -202,6 +212,7 @@ class AlignerConfig:
     refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
+    refine_horizon_tracks: int = 10
     prior_band: int = 16
     prior_hubs: int = 16
 
@@ -239,6 +250,9 @@ class AlignerConfig:
         if self.refine_executor not in REFINE_EXECUTORS:
             raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
                              f'got {self.refine_executor!r}')
+        if int(self.refine_horizon_tracks) < 0:
+            raise InputError('refine_horizon_tracks must be >= 0 (0 = the whole survey), got '
+                             f'{self.refine_horizon_tracks}')
         if int(self.prior_band) < -1 or int(self.prior_hubs) < 0:
             raise InputError(f'prior_band must be >= 0 (nodes) or -1 (dense) and prior_hubs '
                              f'>= 0, got {self.prior_band}, {self.prior_hubs}')
@@ -519,6 +533,10 @@ class TrackWindowAligner:
         self._refiner = RefinementWorker(self.config.refine_executor)
         self._refine_snap: RefinementSnapshot | None = None
         self._n_refinements = 0
+        # bounded refinement: the first _retired finished tracks have left its horizon; _past
+        # is the joint prior of their terms (node rows, mean, information) it starts from
+        self._retired = 0
+        self._past: list[tuple[IntArray, FloatArray, FloatArray]] = []
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -869,20 +887,44 @@ class TrackWindowAligner:
         self._refine_updates = self._n_updates
         self._refiner.submit(self._refine_snap, due)
 
-    def _snapshot(self) -> RefinementSnapshot:
-        """Copy of the data a refinement needs (every node, connection and status)."""
-        n = len(self._ids)
-        scfg = self.config.solver_config()
+    def _snapshot(self, n_nodes: int | None = None, n_conns: int | None = None,
+                  whole: bool = False) -> RefinementSnapshot:
+        """Copy of the data a refinement needs: the horizon's nodes (every one whose track has
+        not been retired, or all of them if ``whole``), the connections between them and the
+        past prior; only the first ``n_nodes`` nodes and ``n_conns`` connections (default all:
+        a restored aligner's pending refinement saw fewer)."""
+        n = len(self._ids) if n_nodes is None else int(n_nodes)
+        m = len(self._src) if n_conns is None else int(n_conns)
+        cfg = self.config
+        scfg = cfg.solver_config()
+        order = [t for t in self._tracks if t in self._finished
+                 and self._track_nodes[t][0] < n]
+        retired = 0 if whole else min(self._retired, len(order))
+        f, rows, past = 0, None, ()
+        if retired:
+            f = int(self._track_nodes[order[retired]][0])
+            rows = self._horizon_rows(f, order[retired:])
+            rows = rows[rows < m]
+            past = tuple(AbsorbedPrior(idx - f, mean, info) for idx, mean, info in self._past)
+        sel = slice(0, m) if rows is None else rows
+        horizon = int(cfg.refine_horizon_tracks)
         return RefinementSnapshot(
-            after_tracks=len(self._finished), node_ids=self._idarr.a.copy(),
-            track_ids=self._trackarr.a.copy(), T_world_node=self._T[:n].copy(),
-            frozen=self._frozen[:n].copy(),
-            track_order=tuple(int(t) for t in self._tracks if t in self._finished),
-            src=self._src.a.copy(), dst=self._dst.a.copy(), z=self._z.a.copy(),
-            cov21=self._ccov.packed.copy(), status=self._status.a.copy(),
-            freeze_policy=self.config.freeze_policy,
+            after_tracks=len(order), node_ids=self._idarr.a[f:n].copy(),
+            track_ids=self._trackarr.a[f:n].copy(), T_world_node=self._T[f:n].copy(),
+            frozen=self._frozen[f:n].copy(), track_order=tuple(int(t) for t in order[retired:]),
+            src=self._src.a[sel] - f, dst=self._dst.a[sel] - f, z=self._z.a[sel].copy(),
+            cov21=self._ccov.packed[sel].copy(), status=self._status.a[sel].copy(),
+            freeze_policy=cfg.freeze_policy,
             solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)),
-            prior_band=int(self.config.prior_band), prior_hubs=int(self.config.prior_hubs))
+            prior_band=int(cfg.prior_band), prior_hubs=int(cfg.prior_hubs), first_node=f,
+            past=past, retire_max=max(0, len(order) - retired - horizon) if horizon else 0,
+            conn_rows=rows, connections_total=m)
+
+    def _horizon_rows(self, f: int, tracks) -> IntArray:
+        """Rows of the connections between nodes ``>= f`` that touch ``tracks`` (sorted)."""
+        rows = np.unique(np.concatenate([np.asarray(self._track_conns.get(t, []), np.int64)
+                                         for t in tracks] or [np.zeros(0, np.int64)]))
+        return rows[(self._src.a[rows] >= f) & (self._dst.a[rows] >= f)]
 
     def _install_due(self) -> tuple[int, str, float] | None:
         """Install the refinement due at this update (waiting for it); returns ``(after_tracks,
@@ -918,18 +960,24 @@ class TrackWindowAligner:
         After the adjustment :meth:`_smooth` carries the window's correction of the prior nodes
         back to every frozen node.
         """
-        n_s, m_s = snap.node_ids.size, snap.src.size
+        f, n_s = snap.first_node, snap.node_ids.size
         n = len(self._ids)
-        status = self._status.a
-        predicted = np.zeros(m_s, dtype=bool)
-        predicted[res.absorbed] = True
-        if (not np.array_equal(self._frozen[:n_s], res.frozen) or self._frozen[n_s:n].any()
-                or not np.array_equal(status[:m_s] == 1, predicted) or (status[m_s:] == 1).any()):
+        rows = (np.arange(snap.src.size) if snap.conn_rows is None else snap.conn_rows)
+        # the horizon's connections now: the snapshot's and those that arrived since
+        first = self._tracks.index(int(self._trackarr.a[f])) if n > f else len(self._tracks)
+        now = (np.arange(len(self._src)) if f == 0 else
+               self._horizon_rows(f, self._tracks[first:]))
+        status = self._status.a[now]
+        predicted = np.zeros(now.size, dtype=bool)
+        predicted[np.searchsorted(now, rows[res.absorbed])] = True
+        if (not np.array_equal(self._frozen[f:f + n_s], res.frozen)
+                or self._frozen[f + n_s:n].any() or not np.array_equal(status == 1, predicted)):
             raise InputError('the frozen nodes or absorbed connections changed since the '
                              'snapshot')
-        need = prior_nodes(self._frozen[:n], self._src.a, self._dst.a, status,
-                           self.config.freeze_policy)
-        have = np.zeros(n, dtype=bool)
+        past = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
+        need = prior_nodes(self._frozen[f:n], self._src.a[now] - f, self._dst.a[now] - f,
+                           status, self.config.freeze_policy, past, f == 0)
+        have = np.zeros(n - f, dtype=bool)
         for p in res.priors:
             have[p.nodes] = True
         if (need & ~have).any():
@@ -940,27 +988,33 @@ class TrackWindowAligner:
         if self._n_updates == getattr(self, '_refine_updates', -1):
             # the newer nodes (the track being finished) follow the last snapshot node rigidly:
             # their frame-to-frame chain starts there
-            move = res.T_world_node[n_s - 1] @ se3.inverse(self._T[n_s - 1])
-            self._T[n_s:n] = move @ self._T[n_s:n]
-            self._T[:n_s] = res.T_world_node
+            last = f + n_s - 1
+            move = res.T_world_node[n_s - 1] @ se3.inverse(self._T[last])
+            self._T[last + 1:n] = move @ self._T[last + 1:n]
+            self._T[f:f + n_s] = res.T_world_node
         else:
-            self._T[frozen] = res.T_world_node[frozen]
-        self._cov[frozen] = res.frozen_cov
-        self._priors = [JointPrior(p.nodes, p.T_world_node, p.information, p.rank)
+            self._T[f + frozen] = res.T_world_node[frozen]
+        self._cov[f + frozen] = res.frozen_cov
+        self._priors = [JointPrior(p.nodes + f, p.T_world_node, p.information, p.rank)
                         for p in res.priors]
         self._T_weighted = _no_weighted()  # refined instead
-        self._smoothing = (res.smoothing, res.T_world_node)
+        self._smoothing = (res.smoothing, res.T_world_node, f)
+        # bounded refinement: the tracks it retired leave the horizon, with their prior
+        self._retired += res.retired
+        self._past = [(p.nodes + f, p.T_world_node, p.information) for p in res.past]
 
     def _smooth(self) -> None:
-        """Carry the window's correction of the prior nodes back to every frozen node.
+        """Carry the window's correction of the prior nodes back to every frozen node of the
+        installed refinement's horizon.
 
         The installed refinement kept the back substitution of its eliminations
         (:class:`~ga_ros.core.refinement.SmoothingStep`); the window adjustment just moved the
         prior nodes from the refined estimate ``T_r`` by ``d_S = log(T_r^-1 T)``; each frozen node
         then moves to its conditional mean ``T_r exp(d)`` under the absorbed connections (the
-        batch solution of all data received, in the linear limit).
+        batch solution of all data received, in the linear limit; of the horizon's data and the
+        past prior under a bounded refinement).
         """
-        steps, T_lin = self.__dict__.pop('_smoothing', ((), None))
+        steps, T_lin, f = self.__dict__.pop('_smoothing', ((), None, 0))
         res = self._last
         if T_lin is None or res is None:
             return
@@ -969,11 +1023,11 @@ class TrackWindowAligner:
                                        or [np.zeros(0, np.int64)]))
         k = np.array([where.get(int(i), -1) for i in self._ids[idx].tolist()], dtype=np.int64)
         idx, k = idx[k >= 0], k[k >= 0]
-        d_idx = se3.local(T_lin[idx], res.T_world_node[k])  # one batched call
-        d = smooth(steps, dict(zip(idx.tolist(), d_idx)))
-        nodes = np.array([i for i in d if self._frozen[i] and i != 0], dtype=np.int64)
+        d_idx = se3.local(T_lin[idx - f], res.T_world_node[k])  # one batched call
+        d = smooth(steps, dict(zip((idx - f).tolist(), d_idx)))
+        nodes = np.array([i for i in d if self._frozen[f + i] and (f or i)], dtype=np.int64)
         if nodes.size:
-            self._T[nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
+            self._T[f + nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
 
     def refinement_state(self) -> dict | None:
         """What a snapshot file needs to restart the pending refinement exactly: its hand-off
@@ -984,24 +1038,18 @@ class TrackWindowAligner:
         snap, due = self._refine_snap, self._refiner.pending_due
         if snap is None or due is None or self._n_updates != getattr(self, '_refine_updates', -1):
             return None
-        return {'due': int(due), 'nodes': int(snap.node_ids.size),
-                'connections': int(snap.src.size), 'leaving': [int(t) for t in snap.leaving]}
+        return {'due': int(due), 'nodes': int(snap.first_node + snap.node_ids.size),
+                'connections': int(snap.connections_total),
+                'leaving': [int(t) for t in snap.leaving]}
 
     def resume_refinement(self, state: dict | None) -> None:
         """Restart the refinement described by :meth:`refinement_state` (a restored aligner),
         from the same data, so the path continues as without the interruption."""
         if not state or self.config.refine_every_tracks <= 0:
             return
-        n, m = int(state['nodes']), int(state['connections'])
-        full = self._snapshot()
-        track_order = tuple(t for t in full.track_order
-                            if t in set(full.track_ids[:n].tolist()))
-        self._refine_snap = replace(
-            full, node_ids=full.node_ids[:n], track_ids=full.track_ids[:n],
-            T_world_node=full.T_world_node[:n], frozen=full.frozen[:n], track_order=track_order,
-            src=full.src[:m], dst=full.dst[:m], z=full.z[:m], cov21=full.cov21[:m],
-            status=full.status[:m], after_tracks=len(track_order),
-            leaving=tuple(int(t) for t in state['leaving']))
+        self._refine_snap = replace(self._snapshot(int(state['nodes']),
+                                                   int(state['connections'])),
+                                    leaving=tuple(int(t) for t in state['leaving']))
         self._refine_updates = self._n_updates
         self._refiner.drop()
         self._refiner.submit(self._refine_snap, int(state['due']))
@@ -1505,9 +1553,12 @@ class TrackWindowAligner:
         # (their old means would pull the next window update back to the online estimate)
         self._refiner.drop()
         self._refine_snap = None
+        # the next refinement starts from the whole survey again (a past prior linearised at
+        # the old estimate would pull the retired tracks' boundary back)
+        self._retired, self._past = 0, []
         with blas_threads():
             self._priors = [JointPrior(p.nodes, p.T_world_node, p.information, p.rank)
-                            for p in absorbed_priors(self._snapshot(), self._T[:n])]
+                            for p in absorbed_priors(self._snapshot(whole=True), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
         self._T_weighted = _no_weighted()

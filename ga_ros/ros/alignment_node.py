@@ -77,7 +77,8 @@ DRAIN_SECONDS = 0.05
 ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
                   'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
                   'outlier_chi2_prob': (0.0, 1.0), 'refine_every_tracks': (0, 1000),
-                  'refine_lag_tracks': (1, 1000), 'prior_band': (-1, 100000),
+                  'refine_lag_tracks': (1, 1000), 'refine_horizon_tracks': (0, 100000),
+                  'prior_band': (-1, 100000),
                   'prior_hubs': (0, 1000)}
 
 
