@@ -212,7 +212,7 @@ class AlignerConfig:
     refine_every_tracks: int = 1
     refine_lag_tracks: int = 1
     refine_executor: str = 'process'
-    refine_horizon_tracks: int = 10
+    refine_horizon_tracks: int = 30
     prior_band: int = 16
     prior_hubs: int = 16
 
