@@ -446,6 +446,12 @@ class JointPrior(tuple):
     def __reduce__(self):
         return (JointPrior, (*self, self.rank))
 
+    @classmethod
+    def absorbed(cls, p: AbsorbedPrior, first_node: int = 0) -> JointPrior:
+        """The aligner's prior of a refinement's :class:`~ga_ros.core.refinement.AbsorbedPrior`
+        (node rows relative to the snapshot's ``first_node``), with its rank."""
+        return cls(p.nodes + first_node, p.T_world_node, p.information, p.rank)
+
 
 def _no_weighted() -> tuple[IntArray, FloatArray]:
     """No frozen node adjusted as a weighted parameter: ``(node rows (0,), poses (0, 4, 4))``
@@ -995,13 +1001,12 @@ class TrackWindowAligner:
         else:
             self._T[f + frozen] = res.T_world_node[frozen]
         self._cov[f + frozen] = res.frozen_cov
-        self._priors = [JointPrior(p.nodes + f, p.T_world_node, p.information, p.rank)
-                        for p in res.priors]
+        self._priors = [JointPrior.absorbed(p, f) for p in res.priors]
         self._T_weighted = _no_weighted()  # refined instead
         self._smoothing = (res.smoothing, res.T_world_node, f)
         # bounded refinement: the tracks it retired leave the horizon, with their prior
         self._retired += res.retired
-        self._past = [(p.nodes + f, p.T_world_node, p.information) for p in res.past]
+        self._past = [JointPrior.absorbed(p, f) for p in res.past]
 
     def _smooth(self) -> None:
         """Carry the window's correction of the prior nodes back to every frozen node of the
@@ -1557,8 +1562,8 @@ class TrackWindowAligner:
         # the old estimate would pull the retired tracks' boundary back)
         self._retired, self._past = 0, []
         with blas_threads():
-            self._priors = [JointPrior(p.nodes, p.T_world_node, p.information, p.rank)
-                            for p in absorbed_priors(self._snapshot(whole=True), self._T[:n])]
+            self._priors = [JointPrior.absorbed(p) for p in
+                            absorbed_priors(self._snapshot(whole=True), self._T[:n])]
         self._last = res
         self._last_window = np.nonzero(~self._frozen[:n])[0]
         self._T_weighted = _no_weighted()
