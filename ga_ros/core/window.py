@@ -47,6 +47,7 @@ of the window are re-tested at each new estimate and re-admitted when consistent
 
 from __future__ import annotations
 
+import threading
 import time
 import zlib
 from dataclasses import asdict, dataclass, fields, replace
@@ -129,6 +130,11 @@ class AlignerConfig:
     ----------
     window_tracks : ``K``, the number of latest tracks adjusted after each track (paper: 5).
     freeze_policy : ``'weighted'`` (paper) or ``'marginal'`` (Schur complement), see module doc.
+    freeze_ahead : compute the freeze of the track that will leave the window at the next
+        update right after an update, in a background thread (it needs only the state after
+        that update), so the next track end only installs it; identical results (it is
+        recomputed at the track end if a new measurement touched that track, or after
+        anything else that changes what it depends on). ``False``: at the track end.
     solver : settings of each window update (parameters ``solver.<field>``), documented in
         :class:`~ga_ros.core.solver.SolverConfig`; default :data:`ALIGNER_SOLVER`. The live
         aligner supports model ``'se3'`` only (relative motions in the sensor frame; the
@@ -197,6 +203,7 @@ class AlignerConfig:
 
     window_tracks: int = 5
     freeze_policy: str = 'weighted'
+    freeze_ahead: bool = True
     solver: SolverConfig = ALIGNER_SOLVER
     outlier_chi2_prob: float = 0.99999
     cov_min_eigenvalue: float = 1e-12
@@ -429,6 +436,62 @@ def _selected_marginals(sysm, cols: IntArray) -> FloatArray:
     return blocks
 
 
+@dataclass(frozen=True)
+class _FreezePlan:
+    """Everything freezing one leaving track changes, computed without changing the aligner
+    (:meth:`TrackWindowAligner._plan_freeze`) and installed by
+    :meth:`TrackWindowAligner._install_freeze`.
+
+    Attributes
+    ----------
+    track : the leaving track.
+    nodes : (k,) its node rows.
+    cov_rows : (c,) rows whose marginal covariance is stored, ``cov`` (c, 6, 6) those blocks.
+    absorbed : connection rows absorbed into the new prior (status 1 from now on).
+    dropped : indices (into the aligner's list of priors) of the priors merged into it.
+    prior : the new joint prior (``None``: no node kept, the absorbed terms vanish).
+    """
+
+    track: int
+    nodes: IntArray
+    cov_rows: IntArray
+    cov: FloatArray
+    absorbed: IntArray
+    dropped: tuple[int, ...]
+    prior: JointPrior | None
+
+
+class _AheadFreeze:
+    """The freeze of the next leaving track, computed in a background thread right after an
+    update from the state that update left (:meth:`TrackWindowAligner._freeze_ahead`), with
+    what it was computed from, so that the next update can check it still applies."""
+
+    def __init__(self, track: int, res: SolveResult, window: IntArray, priors: list,
+                 n_nodes: int, n_conns: int) -> None:
+        self.track, self.res, self.window, self.priors = track, res, window, priors
+        self.n_nodes, self.n_conns = n_nodes, n_conns
+        self.plan: _FreezePlan | None = None
+        self.error: BaseException | None = None
+        self.cpu_ms = 0.0  # CPU time of the worker thread
+        self.thread: threading.Thread | None = None
+
+    def run(self, compute, lock: threading.Lock) -> None:
+        """Compute the plan holding ``lock`` throughout (the BLAS thread limit is a process-wide
+        setting that a context entered in another thread would undo midway)."""
+        c0 = time.thread_time()
+        try:
+            with lock, blas_threads():
+                self.plan = compute(self.track, self.res, self.window, self.priors,
+                                    self.n_nodes, self.n_conns)
+        except BaseException as exc:  # noqa: BLE001 - recomputed (and reported) at the update
+            self.error = exc
+        self.cpu_ms = 1e3 * (time.thread_time() - c0)
+
+    def wait(self) -> None:
+        if self.thread is not None:
+            self.thread.join()
+
+
 class JointPrior(tuple):
     """One joint prior as the aligner keeps it: ``(node rows (k,), T_mean (k, 4, 4),
     information (6k, 6k))``, unpacked as that 3-tuple (state files, the refinement's snapshot),
@@ -543,6 +606,12 @@ class TrackWindowAligner:
         # is the joint prior of their terms (node rows, mean, information) it starts from
         self._retired = 0
         self._past: list[tuple[IntArray, FloatArray, FloatArray]] = []
+        # the next leaving track's freeze, computed in a background thread after an update
+        # (freeze_ahead); the lock guards the last adjustment's factor, which it shares with
+        # covariances()
+        self._ahead: _AheadFreeze | None = None
+        self._factor_lock = threading.Lock()
+        self._n_ahead = [0, 0]  # freezes installed from the background, recomputed at the end
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -853,6 +922,7 @@ class TrackWindowAligner:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
                 self._start_refinement()
+                self._freeze_ahead()
                 return up
             error = up.reason[len('failed: '):]
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
@@ -1060,9 +1130,76 @@ class TrackWindowAligner:
         self._refiner.submit(self._refine_snap, int(state['due']))
 
     def close(self) -> None:
-        """Stop the background refinement (a pending result is dropped); the aligner stays
-        usable (a later refinement starts a new worker)."""
+        """Stop the background refinement (a pending result is dropped) and wait for a freeze
+        being computed ahead (kept); the aligner stays usable (a later refinement starts a new
+        worker)."""
         self._refiner.close()
+        self.wait_background()
+
+    # ---------------------------------------------------------- freezing ahead of time
+    def wait_background(self) -> float:
+        """Wait until the freeze being computed ahead (``freeze_ahead``) is ready; returns the
+        CPU milliseconds it took (0 if none). Never needed for correctness: the next update
+        waits for it anyway. A replay calls it to model the time a live survey has between
+        track ends."""
+        job = self._ahead
+        if job is None:
+            return 0.0
+        job.wait()
+        return job.cpu_ms
+
+    def _freeze_ahead(self) -> None:
+        """After a successful update: start computing the freeze of the track that the next
+        update will freeze (the oldest of a full window), in a background thread. It reads the
+        state this update left; :meth:`_ahead_plan` checks at the next update that nothing it
+        depends on changed meanwhile."""
+        self._drop_ahead()
+        if not self.config.freeze_ahead:
+            return
+        finished = [t for t in self._tracks if t in self._finished]
+        K = self.config.window_tracks
+        res = self._last
+        if len(finished) < K or res is None:
+            return
+        track = finished[-K]
+        rows = self._track_nodes[track]
+        if self._frozen[rows[0]]:
+            return
+        job = _AheadFreeze(track, res, self._last_window, list(self._priors), len(self._ids),
+                           self._src.n)
+        job.thread = threading.Thread(target=job.run, args=(self._plan_freeze, self._factor_lock),
+                                      daemon=True,
+                                      name=f'ga_ros-freeze-track-{track}')
+        self._ahead = job
+        job.thread.start()
+
+    def _drop_ahead(self) -> None:
+        """Forget the freeze computed ahead (after waiting for its thread: it may be using the
+        last adjustment's factor)."""
+        job, self._ahead = self._ahead, None
+        if job is not None:
+            job.wait()
+
+    def _ahead_plan(self, track: int) -> _FreezePlan | None:
+        """The freeze of ``track`` computed ahead, if it was and still applies: same last
+        adjustment and priors, and no connection added since touches the track (the nodes and
+        connections added since are outside what it read). ``None``: compute it now."""
+        job, self._ahead = self._ahead, None
+        if job is None:
+            return None
+        job.wait()
+        plan = job.plan
+        valid = (plan is not None and job.track == track and job.res is self.__dict__.get(
+            '_last_result') and '_last_pending' not in self.__dict__
+                 and job.window is self._last_window and len(job.priors) == len(self._priors)
+                 and all(a[0] is b[0] for a, b in zip(job.priors, self._priors)))
+        if valid:
+            nc = job.n_conns
+            mine = np.zeros(len(self._ids), dtype=bool)
+            mine[plan.nodes] = True
+            valid = not (mine[self._src.a[nc:]] | mine[self._dst.a[nc:]]).any()
+        self._n_ahead[0 if valid else 1] += 1
+        return plan if valid else None
 
     # ----------------------------------------------------------------------- updates
     def _finish_track(self) -> UpdateResult | None:
@@ -1070,6 +1207,7 @@ class TrackWindowAligner:
         track). On a solver failure the previous estimate stands and the result says why."""
         if self._open_track is None or self._open_track in self._finished:
             return None
+        self.wait_background()  # before the BLAS limit below (a process-wide setting)
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
             return self._update()
 
@@ -1327,24 +1465,49 @@ class TrackWindowAligner:
         return conns[maha2 <= chi2.ppf(prob, 6)].astype(np.int64)
 
     def _freeze(self, track: int) -> None:
-        """Freeze a track leaving the window, using the last adjustment's estimate."""
-        nodes = np.array(self._track_nodes[track], dtype=np.int64)
-        res = self._last
-        if res is not None:
-            lookup = {int(i): k for k, i in enumerate(self._last_window)}
-            inside = [i for i in nodes if int(i) in lookup]
-            if inside:
-                ids = np.asarray(self._ids)[inside]
-                free_ids = set(res.free_node_ids.tolist())
-                sel = [k for k, i in enumerate(ids) if int(i) in free_ids]
-                if sel:
-                    banded = self.config.prior_band >= 0 and len(sel) >= _BANDED_MIN_NODES
-                    cov = _marginal_covariances(res, ids[sel], banded)
-                    self._cov[np.asarray(inside)[sel]] = cov
-        self._marginalise(nodes)
-        self._frozen[nodes] = True
+        """Freeze a track leaving the window, using the last adjustment's estimate (the plan
+        computed ahead in the background if it still applies, else computed now)."""
+        plan = self._ahead_plan(track)
+        if plan is None:
+            plan = self._plan_freeze(track, self._last, self._last_window, self._priors,
+                                     len(self._ids), self._src.n)
+        self._install_freeze(plan)
 
-    def _marginalise(self, L: IntArray) -> None:
+    def _install_freeze(self, plan: _FreezePlan) -> None:
+        """Apply a freeze (:class:`_FreezePlan`): covariances, absorbed connections, priors,
+        frozen flags."""
+        if plan.cov_rows.size:
+            self._cov[plan.cov_rows] = plan.cov
+        self._status.a[plan.absorbed] = 1
+        dropped = set(plan.dropped)
+        self._priors = [p for q, p in enumerate(self._priors) if q not in dropped]
+        if plan.prior is not None:
+            self._priors.append(plan.prior)
+        self._frozen[plan.nodes] = True
+
+    def _plan_freeze(self, track: int, res: SolveResult | None, last_window: IntArray,
+                     priors: list, n: int, nc: int) -> _FreezePlan:
+        """The freeze of ``track`` (:class:`_FreezePlan`) from the last adjustment ``res`` (of
+        the nodes ``last_window``), the joint priors ``priors``, the first ``n`` nodes and
+        ``nc`` connections; reads the aligner's tables and changes nothing in them (it may run
+        in a background thread while measurements are added: those rows come after ``n``,
+        ``nc``)."""
+        nodes = np.array(self._track_nodes[track], dtype=np.int64)
+        cov_rows, cov = np.zeros(0, np.int64), np.zeros((0, 6, 6))
+        if res is not None:
+            inside = nodes[np.isin(nodes, last_window)]
+            if inside.size:
+                ids = self._idarr.a[inside]
+                sel = np.isin(ids, res.free_node_ids)
+                if sel.any():
+                    banded = self.config.prior_band >= 0 and sel.sum() >= _BANDED_MIN_NODES
+                    cov = _marginal_covariances(res, ids[sel], banded)
+                    cov_rows = inside[sel]
+        absorbed, dropped, prior = self._marginalise(nodes, priors, n, nc)
+        return _FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior)
+
+    def _marginalise(self, L: IntArray, priors: list, n: int, nc: int
+                     ) -> tuple[IntArray, tuple[int, ...], JointPrior | None]:
         """Absorb the terms of the leaving nodes ``L`` into one joint Gaussian prior.
 
         ``'marginal'``: every active connection of ``L`` is absorbed and ``L`` is eliminated
@@ -1354,51 +1517,54 @@ class TrackWindowAligner:
         their joint covariance), every other frozen node of the absorbed terms is eliminated.
         In both cases each connection enters either the window problem or one prior, never
         both, so the prior is the exact marginal in the linear limit and covariances are not
-        overconfident. Priors that share nodes with the absorbed terms are merged in.
+        overconfident. Priors (of ``priors``) that share nodes with the absorbed terms are
+        merged in. Returns the absorbed connection rows, the indices of the merged priors and
+        the new prior (``None`` if no node is kept); changes nothing.
         """
-        n = len(self._ids)
+        src, dst, status0 = self._src.a[:nc], self._dst.a[:nc], self._status.a[:nc]
         in_L = np.zeros(n, dtype=bool)
         in_L[L] = True
         frozen_after = self._frozen[:n] | in_L
-        conns = np.unique(np.array([k for t in {self._track[i] for i in L}
+        track_of = self._trackarr.a
+        conns = np.unique(np.array([k for t in {track_of[i] for i in L}
                                     for k in self._track_conns.get(t, [])], dtype=np.int64))
-        conns = conns[(self._status.a[conns] == 0)
-                      & (in_L[self._src.a[conns]] | in_L[self._dst.a[conns]])]
+        conns = conns[conns < nc]
+        conns = conns[(status0[conns] == 0) & (in_L[src[conns]] | in_L[dst[conns]])]
         if self.config.freeze_policy == 'weighted':
-            conns = conns[frozen_after[self._src.a[conns]] & frozen_after[self._dst.a[conns]]]
+            conns = conns[frozen_after[src[conns]] & frozen_after[dst[conns]]]
         involved = in_L.copy()
-        involved[self._src.a[conns]] = True
-        involved[self._dst.a[conns]] = True
-        touching = [p for p, (idx, _, _) in enumerate(self._priors) if involved[idx].any()]
+        involved[src[conns]] = True
+        involved[dst[conns]] = True
+        touching = [p for p, (idx, _, _) in enumerate(priors) if involved[idx].any()]
         for p in touching:
-            involved[self._priors[p][0]] = True
+            involved[priors[p][0]] = True
         involved[0] = False  # the datum is fixed, never a prior node
         allnodes = np.nonzero(involved)[0]
         # nodes that keep an active connection (other than the absorbed ones) to a node that is
         # not frozen stay in the prior; the others are eliminated
-        status = self._status.a.copy()
+        status = status0.copy()
         status[conns] = 1
         act = np.nonzero(status == 0)[0]
-        s_, d_ = self._src.a[act], self._dst.a[act]
+        s_, d_ = src[act], dst[act]
         keep = ~frozen_after.copy()
         keep[s_[~frozen_after[d_]]] = True
         keep[d_[~frozen_after[s_]]] = True
-        self._status.a[conns] = 1
-        ids = self._idarr.a
-        priors = [GaussianPrior(ids[self._priors[p][0]], self._priors[p][1], self._priors[p][2])
-                  for p in touching]
-        self._priors = [p for q, p in enumerate(self._priors) if q not in set(touching)]
-        datum = bool(((self._src.a[conns] == 0) | (self._dst.a[conns] == 0)).any())
+        ids = self._idarr.a[:n]
+        merged = [GaussianPrior(ids[priors[p][0]], priors[p][1], priors[p][2]) for p in touching]
+        dropped = tuple(touching)
+        datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any())
         net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
         net = self._subnetwork(net_nodes, conns)
-        fixed = [self._ids[0]] if datum else []
-        N, free_ids, u = normal_matrix_at(net, self._T[net_nodes], 'se3', fixed, priors)
-        free_idx = np.array([self._index[int(i)] for i in free_ids], dtype=np.int64)
+        fixed = [ids[0]] if datum else []
+        T = self._T  # rows below n: not changed by adding measurements
+        N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
+        row_of = dict(zip(ids[net_nodes].tolist(), net_nodes.tolist()))
+        free_idx = np.array([row_of[int(i)] for i in free_ids], dtype=np.int64)
         elim = ~keep[free_idx]
         colsL = (6 * np.nonzero(elim)[0][:, None] + np.arange(6)).ravel()
         colsS = (6 * np.nonzero(~elim)[0][:, None] + np.arange(6)).ravel()
         if colsS.size == 0:
-            return
+            return conns, dropped, None
         S_nodes = free_idx[~elim]
         w, hubs = int(self.config.prior_band), int(self.config.prior_hubs)
         if sparse_prior_applies(S_nodes.size, w, hubs):
@@ -1407,13 +1573,12 @@ class TrackWindowAligner:
             # exact step H^-1 g (the kept part of N^-1 u); refinement.band_prior
             try:
                 skel, x = selinv.sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
-                                                 coords=self._T[free_idx, :3, 3], rhs=u)
+                                                 coords=T[free_idx, :3, 3], rhs=u)
                 step = x.reshape(-1, 6)[~elim].ravel()
-                mean, K = band_prior(self._T[S_nodes], skel, step)
+                mean, K = band_prior(T[S_nodes], skel, step)
                 # positive definite by construction (a completion of positive definite clique
                 # covariances, or DegenerateGeometryError): full rank
-                self._priors.append(JointPrior(S_nodes, mean, K, rank=K.shape[0]))
-                return
+                return conns, dropped, JointPrior(S_nodes, mean, K, rank=K.shape[0])
             except DegenerateGeometryError:  # N not positive definite: the exact paths below
                 pass
         if colsL.size > _DENSE_SCHUR_MAX:
@@ -1424,10 +1589,9 @@ class TrackWindowAligner:
                 tf = trailing_factor(pattern, data, np.nonzero(~elim)[0], u)
                 H = tf.information()
                 step = tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
-                mean, H = tangent_prior(self._T[S_nodes], H, None, step=step)  # exact gradient
+                mean, H = tangent_prior(T[S_nodes], H, None, step=step)  # exact gradient
                 # H: the trailing block of a positive definite factor, so full rank
-                self._priors.append(JointPrior(S_nodes, mean, H, rank=H.shape[0]))
-                return
+                return conns, dropped, JointPrior(S_nodes, mean, H, rank=H.shape[0])
             except DegenerateGeometryError:  # N_LL or H singular: the dense path below
                 pass
         N = N.tocsr()
@@ -1445,8 +1609,8 @@ class TrackWindowAligner:
         # The absorbed terms alone are not at their optimum (the window's estimate is), so
         # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
         # the tangent d of S (the prior's mean and information: refinement.tangent_prior).
-        mean, H = tangent_prior(self._T[S_nodes], H, g)  # exact gradient at T (refinement.py)
-        self._priors.append(JointPrior(S_nodes, mean, H))  # rank: on first use
+        mean, H = tangent_prior(T[S_nodes], H, g)  # exact gradient at T (refinement.py)
+        return conns, dropped, JointPrior(S_nodes, mean, H)  # rank: on first use
 
     # ------------------------------------------------------------------------ output
     def corrected_path(self) -> CorrectedPath:
@@ -1471,7 +1635,8 @@ class TrackWindowAligner:
         if self._last is not None and k in set(self._last_window.tolist()):
             if k == 0:
                 return np.zeros((6, 6))
-            return self._last.covariance([self._ids[k]])[0]
+            with self._factor_lock:  # after a freeze being computed ahead, which shares it
+                return self._last.covariance([self._ids[k]])[0]
         raise InputError(f'node {node_id} has not been adjusted yet (its track is still open)')
 
     def covariances(self, node_ids) -> FloatArray:
@@ -1498,7 +1663,8 @@ class TrackWindowAligner:
                 raise InputError(f'node {node} has not been adjusted yet (its track is still '
                                  'open)')
         if from_window:
-            out[from_window] = self._last.covariance(ids[from_window])  # in blas_threads()
+            with self._factor_lock:  # after a freeze being computed ahead, which shares it
+                out[from_window] = self._last.covariance(ids[from_window])  # in blas_threads()
         return out
 
     @property
@@ -1539,6 +1705,7 @@ class TrackWindowAligner:
         from it consistently; a pending background refinement is dropped.
         """
         self.finish_track()
+        self._drop_ahead()  # its inputs (estimate, priors) are replaced below
         t0 = time.perf_counter()
         keep = np.nonzero(self._status.a != 2)[0]
         n = len(self._ids)
