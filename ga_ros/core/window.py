@@ -1207,14 +1207,15 @@ class TrackWindowAligner:
         track). On a solver failure the previous estimate stands and the result says why."""
         if self._open_track is None or self._open_track in self._finished:
             return None
+        t0 = time.perf_counter()  # the update's time includes waiting for a freeze ahead
         self.wait_background()  # before the BLAS limit below (a process-wide setting)
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
-            return self._update()
+            return self._update(t0)
 
-    def _update(self) -> UpdateResult:
+    def _update(self, t0: float | None = None) -> UpdateResult:
         track = self._open_track
         self._finished.add(track)
-        t0 = time.perf_counter()
+        t0 = time.perf_counter() if t0 is None else t0
         finished = [t for t in self._tracks if t in self._finished]
         window = finished[-self.config.window_tracks:]
         leaving = [t for t in finished[:-self.config.window_tracks]
