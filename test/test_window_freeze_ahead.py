@@ -83,6 +83,27 @@ def test_a_freeze_computed_ahead_in_a_thread_equals_the_freeze_at_the_track_end(
     assert al.wait_background() > 0.0
 
 
+def test_a_freeze_that_failed_in_the_background_is_recomputed_at_the_track_end(monkeypatch):
+    """An error in the background thread (here: every freeze computed there fails) loses
+    nothing: each update recomputes its freeze and the survey equals the one without thread."""
+    sc, nm, ms = noisy_aerial_survey(4, 10, 5.0, 1)
+    plan = TrackWindowAligner._plan_freeze
+
+    def flaky(self, *args):
+        if threading.current_thread() is not threading.main_thread():
+            raise MemoryError('the background thread ran out of memory')
+        return plan(self, *args)
+
+    monkeypatch.setattr(TrackWindowAligner, '_plan_freeze', flaky)
+    ref = TrackWindowAligner(_config(False), sc.T_world_node[0])
+    al = TrackWindowAligner(_config(True), sc.T_world_node[0])
+    for x in (ref, al):
+        _feed(x, ms)
+        x.close()
+    _assert_same_state(al, ref)
+    assert al._n_ahead == [0, 4 - 2]
+
+
 def test_a_new_connection_to_the_leaving_track_makes_the_update_recompute_its_freeze():
     """A cross connection from the leaving track to the window, added after the freeze was
     computed ahead, keeps a node in the prior that the plan computed ahead eliminated: the plan
