@@ -93,9 +93,13 @@ from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRan
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
 from ga_ros.geometry import se3
-from ga_ros.runtime import blas_threads
+from ga_ros.runtime import blas_threads, limit_blas_threads
 
 FREEZE_POLICIES = ('weighted', 'marginal')
+#: The process-wide BLAS thread limit (:func:`~ga_ros.runtime.limit_blas_threads`) set by the
+#: first freeze computed ahead (``freeze_ahead``) and kept: the background thread runs under it,
+#: since the ``blas_threads()`` contexts of two threads would restore each other's limits.
+_BLAS_LIMIT = None
 _EYE6 = np.eye(6)
 _potrf = sla.get_lapack_funcs('potrf', (_EYE6,))
 GATES = ('chi2', 'w-test')
@@ -475,14 +479,13 @@ class _AheadFreeze:
         self.cpu_ms = 0.0  # CPU time of the worker thread
         self.thread: threading.Thread | None = None
 
-    def run(self, compute, lock: threading.Lock) -> None:
-        """Compute the plan holding ``lock`` throughout (the BLAS thread limit is a process-wide
-        setting that a context entered in another thread would undo midway)."""
+    def run(self, compute) -> None:
+        """Compute the plan (BLAS limited by the process-wide limit :data:`_BLAS_LIMIT`: a
+        ``blas_threads()`` context here would undo one of the caller's thread midway)."""
         c0 = time.thread_time()
         try:
-            with lock, blas_threads():
-                self.plan = compute(self.track, self.res, self.window, self.priors,
-                                    self.n_nodes, self.n_conns)
+            self.plan = compute(self.track, self.res, self.window, self.priors, self.n_nodes,
+                                self.n_conns)
         except BaseException as exc:  # noqa: BLE001 - recomputed (and reported) at the update
             self.error = exc
         self.cpu_ms = 1e3 * (time.thread_time() - c0)
@@ -607,8 +610,8 @@ class TrackWindowAligner:
         self._retired = 0
         self._past: list[tuple[IntArray, FloatArray, FloatArray]] = []
         # the next leaving track's freeze, computed in a background thread after an update
-        # (freeze_ahead); the lock guards the last adjustment's factor, which it shares with
-        # covariances()
+        # (freeze_ahead); the lock guards the last adjustment's factor, which its marginal
+        # covariances share with covariances()
         self._ahead: _AheadFreeze | None = None
         self._factor_lock = threading.Lock()
         self._n_ahead = [0, 0]  # freezes installed from the background, recomputed at the end
@@ -1167,8 +1170,10 @@ class TrackWindowAligner:
             return
         job = _AheadFreeze(track, res, self._last_window, list(self._priors), len(self._ids),
                            self._src.n)
-        job.thread = threading.Thread(target=job.run, args=(self._plan_freeze, self._factor_lock),
-                                      daemon=True,
+        global _BLAS_LIMIT
+        if _BLAS_LIMIT is None:  # from now on (set here, outside any blas_threads() context)
+            _BLAS_LIMIT = limit_blas_threads()
+        job.thread = threading.Thread(target=job.run, args=(self._plan_freeze,), daemon=True,
                                       name=f'ga_ros-freeze-track-{track}')
         self._ahead = job
         job.thread.start()
@@ -1494,6 +1499,10 @@ class TrackWindowAligner:
         in a background thread while measurements are added: those rows come after ``n``,
         ``nc``)."""
         nodes = np.array(self._track_nodes[track], dtype=np.int64)
+        # the new prior first: a covariance asked for right after an update (the node's newest
+        # pose) factors the last adjustment's system meanwhile, and the selected inversion
+        # below then reuses that factorisation
+        absorbed, dropped, prior = self._marginalise(nodes, priors, n, nc)
         cov_rows, cov = np.zeros(0, np.int64), np.zeros((0, 6, 6))
         if res is not None:
             inside = nodes[np.isin(nodes, last_window)]
@@ -1502,9 +1511,9 @@ class TrackWindowAligner:
                 sel = np.isin(ids, res.free_node_ids)
                 if sel.any():
                     banded = self.config.prior_band >= 0 and sel.sum() >= _BANDED_MIN_NODES
-                    cov = _marginal_covariances(res, ids[sel], banded)
+                    with self._factor_lock:  # res's factor, shared with covariances()
+                        cov = _marginal_covariances(res, ids[sel], banded)
                     cov_rows = inside[sel]
-        absorbed, dropped, prior = self._marginalise(nodes, priors, n, nc)
         return _FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior)
 
     def _marginalise(self, L: IntArray, priors: list, n: int, nc: int
