@@ -59,6 +59,7 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import selinv
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.prealign import prealign
 from ga_ros.core.quality import (
     QualityConfig,
     QualityReport,
@@ -118,7 +119,7 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
 #: the last factorisation (chord steps, same fixed point): a full window takes 3 linearisations
 #: and 2 factorisations per update instead of 3 (aerial survey, 5 % noise).
 ALIGNER_SOLVER = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=1e-6,
-                              reuse_factor_below=0.5)
+                              reuse_factor_below=20.0)
 
 
 @dataclass(frozen=True)
@@ -1169,10 +1170,18 @@ class TrackWindowAligner:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
             T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
+            weights = self._weights(conns)
+            if res is None:
+                # the nodes no adjustment has seen yet (the new track's dead-reckoned chain)
+                # first at their optimum given the others (prealign, paper Sec. III-D)
+                fresh = np.nonzero(~np.isin(win_nodes, self._last_window))[0]
+                if 0 < fresh.size < win_nodes.size:
+                    pre = prealign(net, T_init, fresh, weights=weights, jit=True)
+                    T_init = pre.T_world_node
             # the factor of the last solve (its symbolic analysis): same pattern as a rule
             donor = res if res is not None else self.__dict__.get('_last_result')
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
-                        weights=self._weights(conns),
+                        weights=weights, factor_at_solution=not scfg.cost_tolerance > 0,
                         factor=donor.release_factor() if donor is not None else None)
             prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
