@@ -113,11 +113,16 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
 
 #: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
 #: SolverConfig's): a window update is warm-started, so 10 iterations, a 1 um / 1 urad
-#: correction and a relative cost decrease of 1e-6 suffice (a warm-started update then takes ~3
-#: iterations instead of ~5; the estimate moves by far less than its standard deviation). Once a
-#: correction is below 0.5 m / rad (after the new track's first step), later iterations reuse
-#: the last factorisation (chord steps, same fixed point): a full window takes 3 linearisations
-#: and 2 factorisations per update instead of 3 (aerial survey, 5 % noise).
+#: correction and a relative cost decrease of 1e-6 suffice (the estimate then lies within
+#: ~1e-3 standard deviations of the window's optimum, ``test_window_fast.py``). The new track
+#: is first pre-aligned alone (:mod:`ga_ros.core.prealign`), so the window's first correction,
+#: though metres long on its weak modes, leaves the factorisation usable: later iterations
+#: reuse it as chord steps once a correction is below 20 m / rad (a chord step that does not
+#: lower the cost as predicted, or chord steps contracting slower than 1/2, make the next
+#: iteration factor anew). A full window then takes one numeric factorisation and two
+#: linearisations per update (aerial survey, 10 % noise; it took two and three, plus one
+#: factorisation at the solution for the covariances: with ``cost_tolerance > 0`` they now come
+#: from the update's one factorisation, ``solve(factor_at_solution=False)``).
 ALIGNER_SOLVER = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=1e-6,
                               reuse_factor_below=20.0)
 
@@ -134,6 +139,10 @@ class AlignerConfig:
         :class:`~ga_ros.core.solver.SolverConfig`; default :data:`ALIGNER_SOLVER`. The live
         aligner supports model ``'se3'`` only (relative motions in the sensor frame; the
         position-only models need world-frame observations, see :mod:`ga_ros.core.models`).
+        With ``cost_tolerance > 0`` (default) an update stops once a step lowers the cost by
+        less than that fraction and its covariances come from its last factorisation
+        (``solve(factor_at_solution=False)``: a fraction of a correction from the solution);
+        ``cost_tolerance = 0`` solves to ``tolerance`` and factors ``N`` at the solution.
     outlier_chi2_prob : chi-square quantile of the misclosure test that excludes cross
         connections after an update (6 degrees of freedom); 0 disables the test.
     cov_min_eigenvalue : smallest eigenvalue a measurement covariance may have (m^2 / rad^2);
@@ -1097,13 +1106,18 @@ class TrackWindowAligner:
         self._last_update = up
         return up
 
+    def _track_connections(self, tracks: list[int]) -> IntArray:
+        """Sorted rows of the connections that touch any of ``tracks``."""
+        none = np.zeros(0, dtype=np.int64)
+        return np.unique(np.concatenate([np.asarray(self._track_conns.get(t, none), np.int64)
+                                         for t in tracks] or [none]))
+
     def _window_problem(self, window_tracks: list[int]):
-        win_nodes = np.array(sorted(i for t in window_tracks for i in self._track_nodes[t]),
-                             dtype=np.int64)
+        win_nodes = np.sort(np.concatenate([self._track_nodes[t] for t in window_tracks]
+                                           or [np.zeros(0, dtype=np.int64)]))
         in_win = np.zeros(len(self._ids), dtype=bool)
         in_win[win_nodes] = True
-        conns = np.unique(np.array([k for t in window_tracks
-                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = self._track_connections(window_tracks)
         conns = conns[self._status.a[conns] == 0]
         # nodes of a track still open (after a reload) are not part of this adjustment
         known = in_win | self._frozen[:len(self._ids)]
@@ -1296,8 +1310,7 @@ class TrackWindowAligner:
         prob = self.config.outlier_chi2_prob
         if prob <= 0:
             return np.zeros(0, dtype=np.int64)
-        conns = np.unique(np.array([k for t in window_tracks
-                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = self._track_connections(window_tracks)
         conns = conns[self._status.a[conns] == 2]
         if tried:
             conns = conns[~np.isin(conns, np.fromiter(tried, np.int64))]
