@@ -607,8 +607,11 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float,
     if prob.Pf is not None:
         # motion models: out.v is the misclosure at T, so the residuals (v = weights * w) need
         # no linearisation; N is assembled only if a covariance or prior asks for it
-        weights = _robust_weights(np.sqrt(np.maximum(_maha2(out.v, prob.P), 0.0)), prob.cfg)
-        v = out.v * weights[:, None]
+        if prob.cfg.robust_loss == 'none':
+            weights, v = np.ones(len(conn)), out.v.copy()
+        else:
+            weights = _robust_weights(np.sqrt(np.maximum(_maha2(out.v, prob.P), 0.0)), prob.cfg)
+            v = out.v * weights[:, None]
 
         def data() -> FloatArray:
             return prob.linear_system(T, out.v).normal_values(prob.pattern)
@@ -617,7 +620,12 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float,
         v = prob.residual_update(final, np.zeros(n_free * d))
         weights = final.weights
         data = final.normal_values(prob.pattern)
-    cost = _adjustment_cost(v, prob.P, weights) + _prior_cost(prob.model, T, prob.prior_data)
+    if (prob.Pf is not None and prob.cfg.robust_loss == 'none' and prob.cfg.damping == 'none'
+            and len(out.history) > 1):
+        cost = out.history[-1]  # this very sum, evaluated at T after the last step (_iterate)
+    else:
+        cost = (_adjustment_cost(v, prob.P, weights)
+                + _prior_cost(prob.model, T, prob.prior_data))
     r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
         p.rank for p in prob.prior_data)
     redundancy = r_eq - n_free * d
