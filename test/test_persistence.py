@@ -64,11 +64,13 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
             assert a[key] == b[key]
         else:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-    # covariances of window nodes are recomputed on demand from the same window problem
+    # covariances of window nodes are recomputed on demand from the same window problem, at
+    # the saved estimate: the uninterrupted aligner's come from its update's last
+    # factorisation (solve(factor_at_solution=False)), a fraction of a correction away
     window_ids = al.corrected_path().node_ids[al._last_window]
     ref = al.covariances(window_ids[1:6])
-    np.testing.assert_allclose(back.aligner.covariances(window_ids[1:6]), ref, rtol=1e-6,
-                               atol=1e-6 * np.abs(ref).max())
+    np.testing.assert_allclose(back.aligner.covariances(window_ids[1:6]), ref, rtol=1e-3,
+                               atol=1e-4 * np.abs(ref).max())
     for x in (al, back.aligner):
         x.add_measurements(ms[cut:])
         x.finish_track()

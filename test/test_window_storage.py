@@ -7,7 +7,10 @@ numbers of commit b7669ba, before the storage was made compact (Python lists, di
 covariance rows); the reference was then rewritten once, deliberately, when the update itself
 changed (priors through ``refinement.tangent_prior``, chord steps below 0.5 m / rad), and again
 when the prior residual took position and rotation apart (poses moved <= 2.3 mm, covariances
-<= 2e-4 relative), so that a refactoring of the storage or of the update that is meant to
+<= 2e-4 relative), and again when the update became a pre-alignment of the new track and
+chord steps from one factorisation, with the covariances from that factorisation (poses moved
+<= 23 um, the same statuses, variances <= 1.9 % relative: test_window_fast.py bounds that
+difference), so that a refactoring of the storage or of the update that is meant to
 change nothing is caught. The
 run keeps the background refinement off (its own tests cover it).
 """

@@ -60,6 +60,7 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import selinv
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.prealign import prealign
 from ga_ros.core.quality import (
     QualityConfig,
     QualityReport,
@@ -117,13 +118,18 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
 
 #: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
 #: SolverConfig's): a window update is warm-started, so 10 iterations, a 1 um / 1 urad
-#: correction and a relative cost decrease of 1e-6 suffice (a warm-started update then takes ~3
-#: iterations instead of ~5; the estimate moves by far less than its standard deviation). Once a
-#: correction is below 0.5 m / rad (after the new track's first step), later iterations reuse
-#: the last factorisation (chord steps, same fixed point): a full window takes 3 linearisations
-#: and 2 factorisations per update instead of 3 (aerial survey, 5 % noise).
+#: correction and a relative cost decrease of 1e-6 suffice (the estimate then lies within
+#: ~1e-3 standard deviations of the window's optimum, ``test_window_fast.py``). The new track
+#: is first pre-aligned alone (:mod:`ga_ros.core.prealign`), so the window's first correction,
+#: though metres long on its weak modes, leaves the factorisation usable: later iterations
+#: reuse it as chord steps once a correction is below 20 m / rad (a chord step that does not
+#: lower the cost as predicted, or chord steps contracting slower than 1/2, make the next
+#: iteration factor anew). A full window then takes one numeric factorisation and two
+#: linearisations per update (aerial survey, 10 % noise; it took two and three, plus one
+#: factorisation at the solution for the covariances: with ``cost_tolerance > 0`` they now come
+#: from the update's one factorisation, ``solve(factor_at_solution=False)``).
 ALIGNER_SOLVER = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=1e-6,
-                              reuse_factor_below=0.5)
+                              reuse_factor_below=20.0)
 
 
 @dataclass(frozen=True)
@@ -143,6 +149,10 @@ class AlignerConfig:
         :class:`~ga_ros.core.solver.SolverConfig`; default :data:`ALIGNER_SOLVER`. The live
         aligner supports model ``'se3'`` only (relative motions in the sensor frame; the
         position-only models need world-frame observations, see :mod:`ga_ros.core.models`).
+        With ``cost_tolerance > 0`` (default) an update stops once a step lowers the cost by
+        less than that fraction and its covariances come from its last factorisation
+        (``solve(factor_at_solution=False)``: a fraction of a correction from the solution);
+        ``cost_tolerance = 0`` solves to ``tolerance`` and factors ``N`` at the solution.
     outlier_chi2_prob : chi-square quantile of the misclosure test that excludes cross
         connections after an update (6 degrees of freedom); 0 disables the test.
     cov_min_eigenvalue : smallest eigenvalue a measurement covariance may have (m^2 / rad^2);
@@ -1240,13 +1250,18 @@ class TrackWindowAligner:
         self._last_update = up
         return up
 
+    def _track_connections(self, tracks: list[int]) -> IntArray:
+        """Sorted rows of the connections that touch any of ``tracks``."""
+        none = np.zeros(0, dtype=np.int64)
+        return np.unique(np.concatenate([np.asarray(self._track_conns.get(t, none), np.int64)
+                                         for t in tracks] or [none]))
+
     def _window_problem(self, window_tracks: list[int]):
-        win_nodes = np.array(sorted(i for t in window_tracks for i in self._track_nodes[t]),
-                             dtype=np.int64)
+        win_nodes = np.sort(np.concatenate([self._track_nodes[t] for t in window_tracks]
+                                           or [np.zeros(0, dtype=np.int64)]))
         in_win = np.zeros(len(self._ids), dtype=bool)
         in_win[win_nodes] = True
-        conns = np.unique(np.array([k for t in window_tracks
-                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = self._track_connections(window_tracks)
         conns = conns[self._status.a[conns] == 0]
         # nodes of a track still open (after a reload) are not part of this adjustment
         known = in_win | self._frozen[:len(self._ids)]
@@ -1313,10 +1328,18 @@ class TrackWindowAligner:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
             T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
+            weights = self._weights(conns)
+            if res is None:
+                # the nodes no adjustment has seen yet (the new track's dead-reckoned chain)
+                # first at their optimum given the others (prealign, paper Sec. III-D)
+                fresh = np.nonzero(~np.isin(win_nodes, self._last_window))[0]
+                if 0 < fresh.size < win_nodes.size:
+                    pre = prealign(net, T_init, fresh, weights=weights, jit=True)
+                    T_init = pre.T_world_node
             # the factor of the last solve (its symbolic analysis): same pattern as a rule
             donor = res if res is not None else self.__dict__.get('_last_result')
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
-                        weights=self._weights(conns),
+                        weights=weights, factor_at_solution=not scfg.cost_tolerance > 0,
                         factor=donor.release_factor() if donor is not None else None)
             prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
@@ -1431,8 +1454,7 @@ class TrackWindowAligner:
         prob = self.config.outlier_chi2_prob
         if prob <= 0:
             return np.zeros(0, dtype=np.int64)
-        conns = np.unique(np.array([k for t in window_tracks
-                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = self._track_connections(window_tracks)
         conns = conns[self._status.a[conns] == 2]
         if tried:
             conns = conns[~np.isin(conns, np.fromiter(tried, np.int64))]
