@@ -444,7 +444,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     if factor is not None and factor.pattern.key == prob.pattern.key:
         prob.factor = factor
     with blas_threads():
-        out = _iterate(prob, T0.copy(), keep_values=not factor_at_solution)
+        out = (_iterate(prob, T0.copy()) if factor_at_solution
+               else _iterate(prob, T0.copy(), keep_values=True))
     return _finish(prob, node_ids, out, t0, factor_at_solution)
 
 
