@@ -117,6 +117,7 @@ class BlockPattern:
         self._pos: IntArray | None = None
         if small:  # kept: a gather instead of the arithmetic (int32: it fits)
             self._pos = upos[self._kept_u][self._valid(slice(None))]
+        self._gather: IntArray | None = None  # built by assemble on first use
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
         self._kept_rank: IntArray | None = None
 
@@ -140,7 +141,14 @@ class BlockPattern:
         More than :data:`_ASSEMBLY_CHUNK` blocks go in chunks, added in place: the temporaries
         (two copies of the blocks in one pass, ~1.4 GB for a survey of 100,000 poses) stay
         ~150 MB."""
-        if blocks.shape[0] <= _ASSEMBLY_CHUNK:
+        small = blocks.shape[0] <= _ASSEMBLY_CHUNK
+        if small and self._pos is not None and blocks.shape[0] == self._keep_blk.size:
+            # one gather of the kept entries (instead of two masked copies): ~2x faster
+            if self._gather is None:
+                self._gather = self._kept_entries()
+            vals = blocks.reshape(-1)[self._gather]
+            return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+        if small:
             vals = blocks[self._keep_blk].reshape(-1)[self._valid(slice(None)).reshape(-1)]
             pos = self._pos if self._pos is not None else self._positions(slice(None))
             return np.bincount(pos, weights=vals, minlength=self.nnz)
@@ -154,6 +162,13 @@ class BlockPattern:
             np.add.at(out, pos, vals)  # no nnz-long temporary
             done += vals.size
         return out
+
+    def _kept_entries(self) -> IntArray:
+        """``(len(_pos),)`` flat index, into the ``(k, d, d)`` block list this pattern was
+        built from, of each entry that lands in the lower triangle, in the order of ``_pos``."""
+        d2 = self.d * self.d
+        kept = np.flatnonzero(self._keep_blk)
+        return (kept[:, None] * d2 + np.arange(d2)[None, :])[self._valid(slice(None))]
 
     def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
         """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
