@@ -19,7 +19,6 @@ import contextlib
 import ctypes
 import importlib.util
 import os
-import platform
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -194,7 +193,13 @@ def _cpu_flags() -> set[str]:
 def best_openblas_coretype() -> str | None:
     """OpenBLAS kernel name for this x86-64 CPU (``SkylakeX`` with AVX-512, ``Haswell`` with
     AVX2 + FMA), or ``None`` elsewhere (ARM64 and older CPUs: OpenBLAS's own detection)."""
-    if platform.machine().lower() not in ('x86_64', 'amd64'):
+    if hasattr(os, 'uname'):  # POSIX: without importing `platform` (start-up)
+        machine = os.uname().machine
+    else:  # pragma: no cover
+        import platform
+
+        machine = platform.machine()
+    if machine.lower() not in ('x86_64', 'amd64'):
         return None
     flags = _cpu_flags()
     if {'avx512f', 'avx512bw', 'avx512vl', 'avx512dq'} <= flags:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import glob
-import hashlib
 import os
 import threading
 from collections import OrderedDict
@@ -29,6 +28,11 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
+
+try:  # CPython's BLAKE2 module: what hashlib.blake2b is, without loading OpenSSL (~5 ms)
+    from _blake2 import blake2b as _blake2b
+except ImportError:  # pragma: no cover - another interpreter
+    from hashlib import blake2b as _blake2b
 
 sla = lazy_import('scipy.linalg')  # only some functions need them (start-up)
 sp = lazy_import('scipy.sparse')
@@ -87,7 +91,7 @@ class BlockPattern:
         ucol, urow = ukey // max(n, 1), ukey % max(n, 1)
         self.n_blocks = n
         self.block_lower = (urow, ucol)  # unique lower block pairs (row >= col), column-major
-        self.key = hashlib.blake2b(np.ascontiguousarray(ukey).tobytes()
+        self.key = _blake2b(np.ascontiguousarray(ukey).tobytes()
                                    + np.int64(n).tobytes() + np.int64(d).tobytes(),
                                    digest_size=16).digest()
         nblk_col = np.bincount(ucol, minlength=n)
@@ -429,7 +433,7 @@ def kept_block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: in
                        ) -> BlockPattern:
     """:class:`BlockPattern` of these block coordinates, kept for the few latest (a window
     update solves problems of one repeating pattern: building it sorts every block again)."""
-    key = hashlib.blake2b(block_rows.tobytes() + block_cols.tobytes()
+    key = _blake2b(block_rows.tobytes() + block_cols.tobytes()
                           + np.array([d, n], dtype=np.int64).tobytes(), digest_size=16).digest()
     return _kept(_PATTERNS, _MAX_PATTERNS, key,
                  lambda: BlockPattern(block_rows, block_cols, d, n))

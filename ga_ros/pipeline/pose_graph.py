@@ -10,7 +10,6 @@ and finishes with its batch refinement. ``ga-ros solve`` is the command line ove
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -209,6 +208,8 @@ def read_tracks(path: str | Path, vertex_ids: IntArray) -> IntArray:
         ``file:line`` of a malformed line, a duplicate or unknown node, a negative track id;
         or a vertex without a track.
     """
+    import csv  # track mode only (start-up of a batch solve)
+
     spath = str(path)
     try:
         lines = Path(path).read_text().splitlines()
