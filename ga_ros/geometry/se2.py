@@ -41,7 +41,7 @@ class Planar:
         """From ``(..., 4, 4)`` poses (only ``R[:2, :2]`` and ``t[:2]`` are read), as contiguous
         copies: arithmetic on strided views of the 4x4 stack is several times slower."""
         T = np.asarray(T, dtype=float)
-        return Planar(*(np.ascontiguousarray(T[..., r, c])
+        return Planar(*(np.array(T[..., r, c])  # a copy, C-contiguous (and 0-d for one pose)
                         for r, c in ((0, 3), (1, 3), (0, 0), (1, 0))))
 
     def take(self, index: IntArray) -> Planar:
