@@ -126,3 +126,29 @@ def test_one_library_scan_per_process_for_the_entry_point_limit_and_every_solve(
             'info = threadpoolctl.threadpool_info()  # a scan of its own\n'
             "print(scans, sorted({i['num_threads'] for i in info if i['user_api'] == 'blas'}))\n")
     assert _python_lines(code)[-1] == '1 [1]'
+
+
+@pytest.mark.parametrize('tuned', [False, True])
+def test_keep_freed_memory_serves_large_arrays_from_the_heap(tuned):
+    """runtime.keep_freed_memory (a batch solve's process): a 4 MiB array comes from the heap
+    (glibc's mallinfo2: no new mmapped block) instead of its own mapping, as by default."""
+    code = ('import ctypes, sys\n'
+            'import numpy as np\n'
+            'from ga_ros.runtime import keep_freed_memory\n'
+            'class Info(ctypes.Structure):\n'
+            "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks',\n"
+            "                'hblks', 'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks',\n"
+            "                'keepcost')]\n"
+            'try:\n'
+            '    info = ctypes.CDLL(None).mallinfo2\n'
+            'except AttributeError:\n'
+            "    print('skip'); sys.exit()\n"
+            'info.restype = Info\n'
+            f'print(keep_freed_memory() if {tuned} else False)\n'
+            'before = info().hblks\n'
+            'a = np.ones(1 << 19)\n'
+            'print(info().hblks - before)\n')
+    out = _python_lines(code)
+    if out == ['skip']:
+        pytest.skip('not glibc >= 2.33')
+    assert out == (['True', '0'] if tuned else ['False', '1'])
