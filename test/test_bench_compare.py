@@ -31,3 +31,17 @@ def test_gtsam_fixed_lag_smoother_with_a_long_lag_equals_our_batch_solution(tmp_
     gap = np.abs(T_gtsam[:, :3, 3] - res.T_world_node[:, :3, 3]).max()
     assert drift > 10.0
     assert gap < 1e-4 * drift, (gap, drift)  # measured 2.6 mm of 82 m
+
+
+def test_repeated_batch_rows_keep_each_time_columns_minimum():
+    """bench compare --repeat N: each time / RSS column is its own minimum over the runs (not
+    the row of the fastest run), counts and costs are those of the first run."""
+    from ga_ros.bench.compare import BatchRow, best_row
+
+    a = BatchRow('g', 10, 1.0, 0.9, 0.30, 4, 3, 90.0, 1.5, 1.2, 1.1, 0.25, 6, 80.0, 1.6)
+    b = BatchRow('g', 10, 0.8, 1.0, 0.35, 4, 3, 95.0, 1.5, 1.3, 1.0, 0.20, 6, 85.0, 1.6)
+    r = best_row([a, b])
+    assert (r.ga_wall_s, r.ga_cpu_s, r.ga_solver_s, r.ga_rss_mib) == (0.8, 0.9, 0.30, 90.0)
+    assert (r.gt_wall_s, r.gt_cpu_s, r.gt_solver_s, r.gt_rss_mib) == (1.2, 1.0, 0.20, 80.0)
+    assert (r.ga_iterations, r.ga_factorisations, r.ga_cost, r.gt_cost) == (4, 3, 1.5, 1.6)
+    assert (a.ga_wall_s, b.gt_solver_s) == (1.0, 0.20)  # the runs themselves are unchanged

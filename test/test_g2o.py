@@ -183,6 +183,46 @@ def test_write_read_round_trip_3d(tmp_path, rng):
     assert graph_cost(g2, g2.T_init) == pytest.approx(graph_cost(g, T), rel=1e-10)
 
 
+def test_edges_written_as_read_equal_the_ones_formatted_from_the_arrays(tmp_path, rng):
+    """write_g2o writes a read graph's edge records back as read (PoseGraph.edge_lines): the
+    same values bit for bit, irregular spacing normalised, offsets and their parameter ids
+    kept; formatting the edges from the arrays (edge_lines None) gives the same graph."""
+    import dataclasses
+
+    lines, _ = _random_graph_3d(rng, n=6, extra=3)
+    lines = ['PARAMS_SE3OFFSET 4 0.1 0 0 0 0 0.0499791692706783 0.998750260394966',
+             *lines[:6], *[ln.replace(' ', '   ', 2) for ln in lines[6:8]],
+             *(ln.replace(' ', ' 4 ', 3).replace(' 4 ', ' ', 2) for ln in lines[8:])]
+    g = read_g2o(_write(tmp_path, lines))
+    assert g.edge_param is not None and (g.edge_param == 4).sum() == len(lines) - 9
+    written = {}
+    for how, graph in (('read', g), ('arrays', dataclasses.replace(g, edge_lines=None))):
+        write_g2o(tmp_path / f'{how}.g2o', graph)
+        written[how] = read_g2o(tmp_path / f'{how}.g2o')
+    text = (tmp_path / 'read.g2o').read_text().splitlines()
+    assert [ln for ln in text if ln.startswith('EDGE')] == [' '.join(ln.split())
+                                                         for ln in lines[7:]]
+    plain = g.edge_param < 0  # the others through the offset, which is written formatted
+    np.testing.assert_array_equal(written['read'].T_meas[plain], g.T_meas[plain])
+    np.testing.assert_array_equal(written['read'].information[plain], g.information[plain])
+    np.testing.assert_allclose(written['read'].T_meas, g.T_meas, atol=1e-14)
+    np.testing.assert_allclose(written['arrays'].T_meas, g.T_meas, atol=1e-12)
+    np.testing.assert_allclose(written['arrays'].information, g.information, rtol=1e-12)
+    np.testing.assert_array_equal(written['arrays'].edge_param, g.edge_param)
+
+
+def test_repaired_edges_are_written_from_the_arrays(tmp_path):
+    """An edge whose information was repaired is written repaired (no verbatim edge lines)."""
+    bad = '1 0 0 -1 0 1'  # indefinite
+    lines = ['VERTEX_SE2 0 0 0 0', 'VERTEX_SE2 1 1 0 0', f'EDGE_SE2 0 1 1 0 0 {bad}']
+    with pytest.warns(UserWarning):
+        g = read_g2o(_write(tmp_path, lines))
+    assert g.edge_lines is None
+    write_g2o(tmp_path / 'out.g2o', g)
+    np.testing.assert_allclose(read_g2o(tmp_path / 'out.g2o').information, g.information,
+                               rtol=1e-12)
+
+
 def test_write_read_round_trip_2d(tmp_path):
     lines = ['VERTEX_SE2 5 0 0 0', 'VERTEX_SE2 7 1 0.5 3.0', 'VERTEX_SE2 9 2 1 -3.1',
              f'EDGE_SE2 5 7 1 0.4 2.9 {INFO2}', f'EDGE_SE2 7 9 1 0.5 0.2 {INFO2}',

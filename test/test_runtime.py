@@ -98,3 +98,57 @@ def test_lazy_import_imports_on_first_use_and_entry_points_import_scipy_cheaply(
             "print(sorted(m for m in ('numpy.testing', 'numpy.f2py', 'numpy.ma') "
             'if m in sys.modules))\n')
     assert _python_lines(code) == ['False True True', '[]']
+
+
+def test_one_library_scan_per_process_for_the_entry_point_limit_and_every_solve():
+    """The entry point's limit_blas_threads() and solve()'s blas_threads() share one
+    ThreadpoolController: threadpoolctl's scan of the loaded libraries runs once per process,
+    not again inside each timed solve; the limit holds in the solve and after it."""
+    code = ('import numpy as np, threadpoolctl\n'
+            'count = [0]\n'
+            'init = threadpoolctl.ThreadpoolController.__init__\n'
+            'def counted(self, *a, **k):\n'
+            '    count[0] += 1\n'
+            '    init(self, *a, **k)\n'
+            'threadpoolctl.ThreadpoolController.__init__ = counted\n'
+            'from ga_ros.runtime import limit_blas_threads\n'
+            'keep = limit_blas_threads(1)\n'
+            'from ga_ros.core import solver\n'
+            'from ga_ros.core.network import ConnectionNetwork\n'
+            'net = ConnectionNetwork()\n'
+            'for i in range(3):\n'
+            '    net.add_node(i)\n'
+            'net.add_connection(0, 1, [1, 0, 0, 0, 0, 0], np.eye(6))\n'
+            'net.add_connection(1, 2, [1, 0, 0, 0, 0, 0], np.eye(6))\n'
+            'for _ in range(3):\n'
+            '    solver.solve(net, solver.initial_guess_f2f(net))\n'
+            'scans = count[0]\n'
+            'info = threadpoolctl.threadpool_info()  # a scan of its own\n'
+            "print(scans, sorted({i['num_threads'] for i in info if i['user_api'] == 'blas'}))\n")
+    assert _python_lines(code)[-1] == '1 [1]'
+
+
+@pytest.mark.parametrize('tuned', [False, True])
+def test_keep_freed_memory_serves_large_arrays_from_the_heap(tuned):
+    """runtime.keep_freed_memory (a batch solve's process): a 4 MiB array comes from the heap
+    (glibc's mallinfo2: no new mmapped block) instead of its own mapping, as by default."""
+    code = ('import ctypes, sys\n'
+            'import numpy as np\n'
+            'from ga_ros.runtime import keep_freed_memory\n'
+            'class Info(ctypes.Structure):\n'
+            "    _fields_ = [(n, ctypes.c_size_t) for n in ('arena', 'ordblks', 'smblks',\n"
+            "                'hblks', 'hblkhd', 'usmblks', 'fsmblks', 'uordblks', 'fordblks',\n"
+            "                'keepcost')]\n"
+            'try:\n'
+            '    info = ctypes.CDLL(None).mallinfo2\n'
+            'except AttributeError:\n'
+            "    print('skip'); sys.exit()\n"
+            'info.restype = Info\n'
+            f'print(keep_freed_memory() if {tuned} else False)\n'
+            'before = info().hblks\n'
+            'a = np.ones(1 << 19)\n'
+            'print(info().hblks - before)\n')
+    out = _python_lines(code)
+    if out == ['skip']:
+        pytest.skip('not glibc >= 2.33')
+    assert out == (['True', '0'] if tuned else ['False', '1'])

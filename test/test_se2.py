@@ -41,6 +41,9 @@ def test_se2_helpers_are_se3_restricted_to_the_plane(rng):
     T2 = se2.exp(_planar_xi(rng, 40))
     np.testing.assert_allclose(se2.local(T, T2), se3.local(T, T2)[:, AX], atol=1e-9)
     np.testing.assert_allclose(se2.retract(T, xi), se3.retract(T, _embed(xi)), atol=1e-12)
+    # one pose at a time: the shapes of one pose, the values of the stack's rows
+    assert se2.local(T[3], T2[3]).shape == (3,) and se2.retract(T[3], xi[3]).shape == (4, 4)
+    np.testing.assert_array_equal(se2.local(T[3], T2[3]), se2.local(T, T2)[3])
 
 
 def _planar_graph(rng, n=12, extra=10, planar_info=True):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import pkgutil
+import importlib.util
 import sys
 
 from ga_ros import __version__
@@ -22,6 +22,8 @@ from ga_ros.runtime import limit_blas_threads
 
 def command_modules() -> list[str]:
     """Names of the modules of :mod:`ga_ros.cli.commands` (one subcommand each)."""
+    import pkgutil  # only when listing every command (start-up of a named command)
+
     return sorted(m.name for m in pkgutil.iter_modules(commands.__path__))
 
 
@@ -32,9 +34,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description='Global alignment of sensor trajectories from noisy motion measurements.')
     parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
-    names = command_modules()
-    if command is not None and command.replace('-', '_') in names:
-        names = [command.replace('-', '_')]
+    name = '' if command is None else command.replace('-', '_')
+    if (name.isidentifier() and not name.startswith('_')
+            and importlib.util.find_spec(f'{commands.__name__}.{name}') is not None):
+        names = [name]  # the command named: no listing of the package (pkgutil)
+    else:
+        names = command_modules()
     for name in names:
         module = importlib.import_module(f'{commands.__name__}.{name}')
         if hasattr(module, 'register'):

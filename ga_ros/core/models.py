@@ -97,9 +97,10 @@ class Between:
 def motion_misclosure(model: str, T: FloatArray, src: IntArray, dst: IntArray,
                       T_meas: FloatArray) -> FloatArray:
     """``e = log(T_meas^-1 T_i^-1 T_j)`` ``(m, d)`` of the motion models (se3: 6, se2: 3)."""
-    if model == 'se2':
-        P = se2.Planar.from_matrix
-        return P(T_meas).inverse().compose(P(T[src]).inverse().compose(P(T[dst]))).log()
+    if model == 'se2':  # the nodes' components first, then gathered per connection
+        P = se2.Planar.from_matrix(T)
+        return se2.Planar.from_matrix(T_meas).inverse().compose(
+            P.take(src).inverse().compose(P.take(dst))).log()
     return se3.log(se3.inverse(T_meas) @ se3.inverse(T[src]) @ T[dst])
 
 
@@ -111,9 +112,9 @@ def between(model: str, T: FloatArray, src: IntArray, dst: IntArray,
     linearising many times), else they are computed here.
     """
     if model == 'se2':
-        P = se2.Planar.from_matrix
-        T_ij = P(T[src]).inverse().compose(P(T[dst]))
-        e = P(T_meas).inverse().compose(T_ij).log()
+        P = se2.Planar.from_matrix(T)
+        T_ij = P.take(src).inverse().compose(P.take(dst))
+        e = se2.Planar.from_matrix(T_meas).inverse().compose(T_ij).log()
         return Between(e, se2.right_jacobian_inv(e), se2.adjoint(T_ij.inverse()))
     T_ij = se3.inverse(T[src]) @ T[dst]
     E = (se3.inverse(T_meas) if Tm_inv is None else Tm_inv) @ T_ij

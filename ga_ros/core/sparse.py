@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import glob
-import hashlib
 import os
 import threading
 from collections import OrderedDict
@@ -29,6 +28,11 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
+
+try:  # CPython's BLAKE2 module: what hashlib.blake2b is, without loading OpenSSL (~5 ms)
+    from _blake2 import blake2b as _blake2b
+except ImportError:  # pragma: no cover - another interpreter
+    from hashlib import blake2b as _blake2b
 
 sla = lazy_import('scipy.linalg')  # only some functions need them (start-up)
 sp = lazy_import('scipy.sparse')
@@ -87,7 +91,7 @@ class BlockPattern:
         ucol, urow = ukey // max(n, 1), ukey % max(n, 1)
         self.n_blocks = n
         self.block_lower = (urow, ucol)  # unique lower block pairs (row >= col), column-major
-        self.key = hashlib.blake2b(np.ascontiguousarray(ukey).tobytes()
+        self.key = _blake2b(np.ascontiguousarray(ukey).tobytes()
                                    + np.int64(n).tobytes() + np.int64(d).tobytes(),
                                    digest_size=16).digest()
         nblk_col = np.bincount(ucol, minlength=n)
@@ -117,6 +121,7 @@ class BlockPattern:
         self._pos: IntArray | None = None
         if small:  # kept: a gather instead of the arithmetic (int32: it fits)
             self._pos = upos[self._kept_u][self._valid(slice(None))]
+        self._gather: IntArray | None = None  # built by assemble on first use
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
         self._kept_rank: IntArray | None = None
 
@@ -140,7 +145,14 @@ class BlockPattern:
         More than :data:`_ASSEMBLY_CHUNK` blocks go in chunks, added in place: the temporaries
         (two copies of the blocks in one pass, ~1.4 GB for a survey of 100,000 poses) stay
         ~150 MB."""
-        if blocks.shape[0] <= _ASSEMBLY_CHUNK:
+        small = blocks.shape[0] <= _ASSEMBLY_CHUNK
+        if small and self._pos is not None and blocks.shape[0] == self._keep_blk.size:
+            # one gather of the kept entries (instead of two masked copies): ~2x faster
+            if self._gather is None:
+                self._gather = self._kept_entries()
+            vals = blocks.reshape(-1)[self._gather]
+            return np.bincount(self._pos, weights=vals, minlength=self.nnz)
+        if small:
             vals = blocks[self._keep_blk].reshape(-1)[self._valid(slice(None)).reshape(-1)]
             pos = self._pos if self._pos is not None else self._positions(slice(None))
             return np.bincount(pos, weights=vals, minlength=self.nnz)
@@ -154,6 +166,13 @@ class BlockPattern:
             np.add.at(out, pos, vals)  # no nnz-long temporary
             done += vals.size
         return out
+
+    def _kept_entries(self) -> IntArray:
+        """``(len(_pos),)`` flat index, into the ``(k, d, d)`` block list this pattern was
+        built from, of each entry that lands in the lower triangle, in the order of ``_pos``."""
+        d2 = self.d * self.d
+        kept = np.flatnonzero(self._keep_blk)
+        return (kept[:, None] * d2 + np.arange(d2)[None, :])[self._valid(slice(None))]
 
     def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
         """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
@@ -414,7 +433,7 @@ def kept_block_pattern(block_rows: IntArray, block_cols: IntArray, d: int, n: in
                        ) -> BlockPattern:
     """:class:`BlockPattern` of these block coordinates, kept for the few latest (a window
     update solves problems of one repeating pattern: building it sorts every block again)."""
-    key = hashlib.blake2b(block_rows.tobytes() + block_cols.tobytes()
+    key = _blake2b(block_rows.tobytes() + block_cols.tobytes()
                           + np.array([d, n], dtype=np.int64).tobytes(), digest_size=16).digest()
     return _kept(_PATTERNS, _MAX_PATTERNS, key,
                  lambda: BlockPattern(block_rows, block_cols, d, n))

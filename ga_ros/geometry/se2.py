@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
 
 #: Components of the SE(3) tangent ``[x y z rx ry rz]`` that form the SE(2) tangent.
 AXES = np.array([0, 1, 5])
@@ -38,9 +38,15 @@ class Planar:
 
     @staticmethod
     def from_matrix(T: FloatArray) -> Planar:
-        """From ``(..., 4, 4)`` poses (only ``R[:2, :2]`` and ``t[:2]`` are read)."""
+        """From ``(..., 4, 4)`` poses (only ``R[:2, :2]`` and ``t[:2]`` are read), as contiguous
+        copies: arithmetic on strided views of the 4x4 stack is several times slower."""
         T = np.asarray(T, dtype=float)
-        return Planar(T[..., 0, 3], T[..., 1, 3], T[..., 0, 0], T[..., 1, 0])
+        return Planar(*(np.array(T[..., r, c])  # a copy, C-contiguous (and 0-d for one pose)
+                        for r, c in ((0, 3), (1, 3), (0, 0), (1, 0))))
+
+    def take(self, index: IntArray) -> Planar:
+        """The poses ``index`` (e.g. each connection's end) of a stack of poses."""
+        return Planar(self.x[index], self.y[index], self.c[index], self.s[index])
 
     @staticmethod
     def from_xytheta(x: FloatArray, y: FloatArray, theta: FloatArray) -> Planar:

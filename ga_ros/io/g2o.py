@@ -120,6 +120,11 @@ class PoseGraph:
     edge_param : (m,) parameter id each edge names, -1 for none (``None``: no edge names one).
     repaired_lines : file lines of the edges whose information was repaired.
     flavour : ``'g2o'`` or ``'toro'`` (``VERTEX2`` / ``EDGE2``), kept for writing back.
+    edge_lines : the edge records as read, one line each in file order (fields joined by one
+        space), which :func:`write_g2o` writes back as they are instead of formatting the
+        edges' ~30 numbers again (most of a write's time); ``None`` for a graph not read from
+        a file, or whose information was repaired (those edges are written from the arrays).
+        Whoever changes the edges of a graph must leave it ``None``.
     """
 
     network: ConnectionNetwork
@@ -137,6 +142,7 @@ class PoseGraph:
     edge_param: IntArray | None = None
     repaired_lines: tuple[int, ...] = ()
     flavour: str = 'g2o'
+    edge_lines: str | None = field(default=None, repr=False)
 
     @property
     def n_vertices(self) -> int:
@@ -274,8 +280,10 @@ def _poses(values: FloatArray, dim: int, lines: IntArray, path: str) -> FloatArr
     return se2_to_se3(values)
 
 
-def _split_lines(text: str, path: str) -> tuple[list[_Group], list[tuple[int, list[str]]]]:
-    """Group the records by (tag, field count); ``FIX`` lines apart. Checks tags and counts."""
+def _split_lines(text: str, path: str
+                 ) -> tuple[list[_Group], list[tuple[int, list[str]]], list[list[str]]]:
+    """Group the records by (tag, field count); ``FIX`` lines apart. Checks tags and counts.
+    Also returns every line's fields (line ``k`` at ``k - 1``)."""
     rows = [ln.split() for ln in text.splitlines()]
     tags = np.array([r[0] if r else '#' for r in rows])
     counts = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
@@ -301,7 +309,7 @@ def _split_lines(text: str, path: str) -> tuple[list[_Group], list[tuple[int, li
                 F = np.array(list(chain.from_iterable(operator.itemgetter(*idx)(rows)))
                              if idx.size > 1 else rows[idx[0]], dtype=object)
                 groups.append(_Group(tag, lines[idx], F.reshape(idx.size, c)))
-    return groups, fix
+    return groups, fix, rows
 
 
 def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
@@ -334,7 +342,7 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
         text = Path(path).read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise FormatError(f'cannot read: {exc}', spath) from None
-    groups, fix = _split_lines(text, spath)
+    groups, fix, rows = _split_lines(text, spath)
 
     first = {d: min((int(g.lines[0]) for g in groups if _SPEC[g.tag][0] == d), default=0)
              for d in (2, 3)}
@@ -494,13 +502,17 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     network = ConnectionNetwork.from_arrays(ids, np.zeros(ids.size, dtype=np.int64), src, dst,
                                             z, cov)
     fixed = tuple(dict.fromkeys(int(v) for _, fields in fix for v in fields))
+    # the edge records as read, for write_g2o (not when an information was repaired)
+    edge_lines = None if repaired else ''.join(
+        ' '.join(rows[k - 1]) + '\n' for k in e_lines.tolist())
     toro = any(g.tag in (TAG_VERTEX_TORO, TAG_EDGE_TORO) for g in groups)
     g2o2 = any(g.tag in (TAG_VERTEX_SE2, TAG_EDGE_SE2) for g in groups)
     return PoseGraph(network=network, T_init=T_init, vertex_ids=ids.astype(np.int64), dim=dim,
                      fixed=fixed, edge_src=src.astype(np.int64), edge_dst=dst.astype(np.int64),
                      T_meas=T_meas, information=info, path=spath, has_guess=has_guess,
                      offsets=offsets, edge_param=ep if named.any() else None,
-                     repaired_lines=repaired, flavour='toro' if toro and not g2o2 else 'g2o')
+                     repaired_lines=repaired, flavour='toro' if toro and not g2o2 else 'g2o',
+                     edge_lines=edge_lines)
 
 
 def _apply_offsets(T: FloatArray, info: FloatArray, param: IntArray,
@@ -556,7 +568,8 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
     Parameters
     ----------
     path : output file.
-    graph : the graph; its edges and information are written as read.
+    graph : the graph; its edges and information are written as read (its
+        :attr:`PoseGraph.edge_lines` when it has them, else formatted from its arrays).
     T_world_node : (n, 4, 4) vertex poses to write (default: ``graph.T_init``). For a 2-D graph
         they are projected to the plane (x, y, yaw about z).
     """
@@ -568,11 +581,6 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
         raise InputError('T_world_node has NaN or inf entries; refusing to write them')
     ids = graph.vertex_ids
     m = graph.n_edges
-    param = graph.edge_param if graph.edge_param is not None else np.full(m, -1, np.int64)
-    Z, info = _apply_offsets(graph.T_meas, graph.information, param, graph.offsets, graph.dim,
-                             inverse=True)
-    d = 6 if graph.dim == 3 else 3
-    upper = info[:, np.triu_indices(d)[0], np.triu_indices(d)[1]]
     toro = graph.flavour == 'toro' and graph.dim == 2
     if graph.dim == 3:
         tags = (TAG_PARAMS_SE3, TAG_VERTEX_SE3, TAG_EDGE_SE3)
@@ -584,8 +592,6 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
         tags = (TAG_PARAMS_SE2, TAG_VERTEX_TORO if toro else TAG_VERTEX_SE2,
                 TAG_EDGE_TORO if toro else TAG_EDGE_SE2)
         values = se3_to_se2
-        if toro:
-            upper = upper[:, np.argsort(_TORO_FROM_G2O)]
     blocks = []
     if graph.offsets:
         keys = np.array(sorted(graph.offsets), dtype=np.int64)
@@ -595,7 +601,16 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
     if graph.has_guess or T_world_node is not None:
         blocks.append(_text_rows(list(map(f'{tags[1]} {{}}'.format, ids.tolist())),
                                  values(T)))
-    if m:
+    if m and graph.edge_lines is not None:  # the edges as read (the same values exactly)
+        blocks.append(graph.edge_lines)
+    elif m:
+        param = graph.edge_param if graph.edge_param is not None else np.full(m, -1, np.int64)
+        Z, info = _apply_offsets(graph.T_meas, graph.information, param, graph.offsets,
+                                 graph.dim, inverse=True)
+        d = 6 if graph.dim == 3 else 3
+        upper = info[:, np.triu_indices(d)[0], np.triu_indices(d)[1]]
+        if toro:
+            upper = upper[:, np.argsort(_TORO_FROM_G2O)]
         pid = np.where(param >= 0, np.char.add(' ', param.astype(str)), '').tolist()
         head = list(map(f'{tags[2]} {{}} {{}}{{}}'.format, ids[graph.edge_src].tolist(),
                         ids[graph.edge_dst].tolist(), pid))

@@ -37,6 +37,8 @@ def register(sub) -> None:
     p.add_argument('--data', type=str, default=None,
                    help='compare: directory of pose graphs (default ../shared/data/pose-graphs)')
     p.add_argument('--no-tracks', action='store_true', help='compare: batch rows only')
+    p.add_argument('--repeat', type=int, default=1,
+                   help='compare: each graph N times, each time column its minimum (1)')
     p.set_defaults(func=run)
 
 
@@ -45,6 +47,7 @@ def run(args) -> int:
         from ga_ros.bench import compare
         return compare.main(['--window', str(args.window)] + (['--json'] if args.json else [])
                             + (['--no-tracks'] if args.no_tracks else [])
+                            + ['--repeat', str(args.repeat)]
                             + (['--data', args.data] if args.data else []))
     if args.target == 'linalg':
         from ga_ros.bench import linalg

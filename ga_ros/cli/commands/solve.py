@@ -38,6 +38,7 @@ from ga_ros.pipeline.pose_graph import (
     solve_graph,
     solve_tracks,
 )
+from ga_ros.runtime import keep_freed_memory
 
 
 # --------------------------------------------------------------------------------------- CLI
@@ -99,6 +100,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.tracks:
+        keep_freed_memory()  # a one-shot batch process: its temporaries reuse the heap
     t_read = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:  # one line each, not a traceback
         warnings.simplefilter('always', InformationRepairWarning)
