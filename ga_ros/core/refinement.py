@@ -187,6 +187,8 @@ class RefinementResult:
     retired : number of the snapshot's oldest tracks retired (:func:`retire_tracks`).
     past : the past prior for the next refinement (snapshot node indices; the snapshot's own
         if nothing retired).
+    smoothing_kept : the smoothing steps stayed in the worker process that computed them
+        (``smoothing`` is then empty): :meth:`RefinementWorker.smooth` applies them there.
     """
 
     after_tracks: int
@@ -202,6 +204,7 @@ class RefinementResult:
     seconds: float
     retired: int = 0
     past: tuple[AbsorbedPrior, ...] = ()
+    smoothing_kept: bool = False
 
 
 def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
@@ -299,21 +302,21 @@ def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
     """
     e = int((_track_rank(snap) < k).sum())
     conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
-    free, N, u = _normal_terms(snap, conns, T_lin, snap.past)
-    cols = {int(i): c for c, i in enumerate(free.tolist())}
-    gone = [i for i in cols if i < e]
-    if len(gone) == len(cols):
+    work = _Marginal()
+    work.add(*_normal_terms(snap, conns, T_lin, snap.past))
+    gone = [i for i in work.cols if i < e]
+    if len(gone) == len(work.cols):
         return ()
-    H, g, cols = (N, u, cols) if not gone else _eliminate(N, u, cols, gone)[:3]
-    S = np.array(list(cols), dtype=np.int64)
-    return tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
-                 for group in _groups(H, S, cols))
+    if gone:
+        work.eliminate(gone)
+    return tuple(_prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                 for group in work.groups())
 
 
 def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
                   priors: tuple[AbsorbedPrior, ...] = ()
                   ) -> tuple[IntArray, FloatArray, FloatArray]:
-    """Dense normal matrix ``N`` and half gradient ``u`` of some connections and priors at
+    """Normal matrix ``N`` (sparse) and half gradient ``u`` of some connections and priors at
     ``T_lin``, over their free nodes (snapshot indices, the datum excluded), in that order."""
     nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]
                                      + [p.nodes for p in priors]))
@@ -327,7 +330,7 @@ def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
     N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, _gaussian(snap, priors))
     free = nodes[nodes != 0] if datum else nodes
     assert free.size == free_ids.size
-    return free, N.toarray(), u
+    return free, N, u
 
 
 def _failed(empty: RefinementResult, reason: str, t0: float) -> RefinementResult:
@@ -434,52 +437,148 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     np.maximum.at(last, snap.dst[absorbed], step)
     stages = [(-1, absorbed[:0], snap.past)] if snap.past else []
     stages += [(int(s), absorbed[step == s], ()) for s in np.unique(step)]
-    cols: dict[int, int] = {}   # node index -> block position in (H, g)
-    H = np.zeros((0, 0))
-    g = np.zeros(0)
+    work = _Marginal()
     steps: list[SmoothingStep] = []
     for s, conns, priors in stages:
-        free, N, u = _normal_terms(snap, conns, T_lin, priors)
-        for i in free.tolist():
-            if i not in cols:
-                cols[i] = len(cols)
-        size = 6 * len(cols)
-        H = np.pad(H, ((0, size - H.shape[0]), (0, size - H.shape[1])))
-        g = np.pad(g, (0, size - g.size))
-        at = (6 * np.array([cols[i] for i in free.tolist()])[:, None] + np.arange(6)).ravel()
-        H[np.ix_(at, at)] += N
-        g[at] += u
-        gone = [i for i in cols if last[i] <= s and not keep[i]]
+        work.add(*_normal_terms(snap, conns, T_lin, priors))
+        gone = [i for i in work.cols if last[i] <= s and not keep[i]]
         if gone:
-            H, g, cols, back = _eliminate(H, g, cols, gone)
-            steps.append(back)
-    if not cols:
+            steps += work.eliminate(gone)
+    if not work.cols:
         return (), tuple(steps)
-    S = np.array(list(cols), dtype=np.int64)
-    priors = tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band,
-                             snap.prior_hubs) for group in _groups(H, S, cols))
+    priors = tuple(_prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                   for group in work.groups())
     return priors, tuple(steps)
 
 
-def _eliminate(H: FloatArray, g: FloatArray, cols: dict[int, int], gone: list[int]
-               ) -> tuple[FloatArray, FloatArray, dict[int, int], SmoothingStep]:
-    """Schur complement of the nodes ``gone`` out of ``(H, g)``, and its back substitution
-    ``d_L = -H_LL^-1 (g_L + H_LS d_S)``."""
-    gone_set = set(gone)
-    stay = [i for i in cols if i not in gone_set]
-    cL = (6 * np.array([cols[i] for i in gone])[:, None] + np.arange(6)).ravel()
-    cS = (6 * np.array([cols[i] for i in stay], dtype=np.int64)[:, None] + np.arange(6)).ravel()
-    cho = sla.cho_factor(H[np.ix_(cL, cL)])
-    HLS = H[np.ix_(cL, cS)]
-    gain = -sla.cho_solve(cho, HLS)
-    offset = -sla.cho_solve(cho, g[cL])
-    Hn = H[np.ix_(cS, cS)] + HLS.T @ gain
-    gn = g[cS] + HLS.T @ offset
-    # kept in single precision (half the memory and transfer; a correction of 1 m is then
-    # carried to 0.1 um)
-    back = SmoothingStep(np.array(gone, dtype=np.int64), np.array(stay, dtype=np.int64),
-                         gain.astype(np.float32), offset)
-    return 0.5 * (Hn + Hn.T), gn, {i: k for k, i in enumerate(stay)}, back
+class _Marginal:
+    """Dense marginal information ``(H, g)`` of absorbed terms over a changing set of nodes,
+    with its block pattern (which node blocks of ``H`` are nonzero), for the eliminations of
+    :func:`_eliminate_absorbed` and :func:`retire_tracks`.
+
+    ``cols`` maps a node index to its block position in ``H`` (positions ``0..k-1`` in the
+    dict's order).
+    """
+
+    def __init__(self) -> None:
+        self.H = np.zeros((0, 0))
+        self.g = np.zeros(0)
+        self.nz = np.zeros((0, 0), dtype=bool)
+        self.cols: dict[int, int] = {}
+
+    def add(self, free: IntArray, N: sp.spmatrix, u: FloatArray) -> None:
+        """Add terms ``(N, u)`` over the nodes ``free`` (new ones appended)."""
+        for i in free.tolist():
+            if i not in self.cols:
+                self.cols[i] = len(self.cols)
+        k = len(self.cols)
+        if k > self.nz.shape[0]:
+            grow = k - self.nz.shape[0]
+            self.H = np.pad(self.H, ((0, 6 * grow), (0, 6 * grow)))
+            self.g = np.pad(self.g, (0, 6 * grow))
+            self.nz = np.pad(self.nz, ((0, grow), (0, grow)))
+        pos = np.array([self.cols[i] for i in free.tolist()], dtype=np.int64)
+        at = (6 * pos[:, None] + np.arange(6)).ravel()
+        C = sp.coo_matrix(N)
+        C.sum_duplicates()  # each entry once: a plain fancy-index add is exact
+        self.H[at[C.row], at[C.col]] += C.data
+        self.g[at] += u
+        self.nz[pos[C.row // 6], pos[C.col // 6]] = True
+
+    def eliminate(self, gone: list[int]) -> list[SmoothingStep]:
+        """Schur complement of the nodes ``gone`` out of ``(H, g)``; returns the back
+        substitutions ``d_L = -H_LL^-1 (g_L + H_LC d_C)`` (``C``: remaining nodes coupled to
+        ``L``).
+
+        The block pattern is used twice (the result is the same Schur complement): the nodes of
+        ``gone`` coupled to no remaining node (the interior, e.g. the older of two frozen
+        swaths) go first, then the others; and each elimination touches only the remaining
+        nodes coupled to it (its gain has their columns only, its update their block of
+        ``H``): less dense work per track, and no zero columns in the gains the hand-off
+        receives.
+        """
+        k = len(self.cols)
+        H, g, nz = self.H, self.g, self.nz
+        is_gone = np.zeros(k, dtype=bool)
+        is_gone[[self.cols[i] for i in gone]] = True
+        interior = np.zeros(k, dtype=bool)
+        interior[is_gone] = ~nz[np.ix_(is_gone, ~is_gone)].any(axis=1)
+        parts = [interior, is_gone & ~interior] if interior.any() else [is_gone]
+        node = np.array(list(self.cols), dtype=np.int64)
+        steps = []
+        left = np.ones(k, dtype=bool)
+        for part in parts:
+            if not part.any():
+                continue
+            left &= ~part
+            Lp = np.nonzero(part)[0]
+            Cp = np.nonzero(left & nz[Lp].any(axis=0))[0]
+            cL = (6 * Lp[:, None] + np.arange(6)).ravel()
+            cC = (6 * Cp[:, None] + np.arange(6)).ravel()
+            cho = sla.cho_factor(H[np.ix_(cL, cL)])
+            HLC = H[np.ix_(cL, cC)]
+            gain = -sla.cho_solve(cho, HLC)
+            offset = -sla.cho_solve(cho, g[cL])
+            if Cp.size:
+                upd = HLC.T @ gain
+                H[np.ix_(cC, cC)] += 0.5 * (upd + upd.T)
+                g[cC] += HLC.T @ offset
+                nz[np.ix_(Cp, Cp)] = True  # fill: the eliminated nodes coupled them
+            # kept in single precision (half the memory and transfer; a correction of 1 m is
+            # then carried to 0.1 um)
+            steps.append(SmoothingStep(node[Lp], node[Cp], gain.astype(np.float32), offset))
+        stay = np.nonzero(left)[0]
+        cS = (6 * stay[:, None] + np.arange(6)).ravel()
+        self.H, self.g, self.nz = H[np.ix_(cS, cS)], g[cS], nz[np.ix_(stay, stay)]
+        self.cols = {int(node[p]): q for q, p in enumerate(stay.tolist())}
+        return steps
+
+    def groups(self) -> list[IntArray]:
+        """The nodes, grouped by the connected components of the block pattern."""
+        S = np.array(list(self.cols), dtype=np.int64)
+        _, label = connected_components(self.nz, directed=False)
+        return [S[label == c] for c in np.unique(label)]
+
+
+#: In a worker process: the smoothing steps of its last refinement, by its ``after_tracks``
+#: (:func:`_refine_in_worker`, :func:`_smooth_in_worker`).
+_KEPT_STEPS: dict[int, tuple[SmoothingStep, ...]] = {}
+
+
+def _refine_in_worker(snap: RefinementSnapshot) -> RefinementResult:
+    """:func:`refine_snapshot` in the worker process, keeping the smoothing steps there.
+
+    The steps hold a dense gain per eliminated group (~0.7 M values per 200-pose track, 60-80 MB
+    for a horizon of 25-30 such tracks); shipping them to the aligner's process cost it ~30 ms
+    of CPU at every hand-off (pickles through the pipe), and their transient copies let its
+    heap grow. The aligner sends the prior nodes' corrections instead
+    (:meth:`RefinementWorker.smooth`) and receives the corrections of the frozen nodes.
+    """
+    res = refine_snapshot(snap)
+    _KEPT_STEPS.clear()
+    if not res.ok:
+        return res
+    _KEPT_STEPS[res.after_tracks] = res.smoothing
+    return replace(res, smoothing=(), smoothing_kept=True)
+
+
+def _smooth_in_worker(after_tracks: int, nodes: IntArray, d_nodes: FloatArray
+                      ) -> tuple[IntArray, FloatArray]:
+    """:func:`smoothed` with the steps kept by :func:`_refine_in_worker` (in the worker)."""
+    steps = _KEPT_STEPS.pop(after_tracks, None)
+    if steps is None:
+        raise InputError(f'the worker no longer holds the smoothing of refinement '
+                         f'{after_tracks}')
+    return smoothed(steps, nodes, d_nodes)
+
+
+def smoothed(steps: tuple[SmoothingStep, ...], nodes: IntArray, d_nodes: FloatArray
+             ) -> tuple[IntArray, FloatArray]:
+    """:func:`smooth` with arrays: corrections ``d_nodes`` (k, 6) of the prior nodes ``nodes``
+    in, every node's correction out (``(m,)`` node indices in increasing order, ``(m, 6)``)."""
+    d = smooth(steps, dict(zip(np.asarray(nodes).tolist(), np.asarray(d_nodes))))
+    idx = np.array(sorted(d), dtype=np.int64)
+    return idx, (np.stack([d[int(i)] for i in idx]) if idx.size else np.zeros((0, 6)))
 
 
 def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
@@ -505,20 +604,12 @@ def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
     return d
 
 
-def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
-    """Prior nodes grouped by the connected components of ``H``'s block pattern."""
-    k = S.size
-    blocks = np.abs(H).reshape(k, 6, k, 6).max(axis=(1, 3)) > 0
-    _, label = connected_components(blocks, directed=False)
-    return [S[label == c] for c in np.unique(label)]
-
-
-def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArray,
-              T_lin: FloatArray, band: int = -1, hubs: int = 0) -> AbsorbedPrior:
+def _prior_of(work: _Marginal, group: IntArray, T_lin: FloatArray, band: int = -1,
+              hubs: int = 0) -> AbsorbedPrior:
     """The prior of one group of prior nodes (in index order) from the dense marginal
-    ``(H, g)``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
-    at = (6 * np.array([cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
-    Hg, gg = H[np.ix_(at, at)], g[at]
+    ``work``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
+    at = (6 * np.array([work.cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
+    Hg, gg = work.H[np.ix_(at, at)], work.g[at]
     if sparse_prior_applies(group.size, band, hubs):
         cho = sla.cho_factor(Hg)
         Sigma = sla.cho_solve(cho, np.eye(Hg.shape[0]))
@@ -689,7 +780,27 @@ class RefinementWorker:
                     initializer=_exit_with_parent, initargs=(os.getpid(),))
             else:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ga_refine')
-        self._pending = (due, self._pool.submit(refine_snapshot, snap))
+        job = _refine_in_worker if self.kind == 'process' else refine_snapshot
+        self._pending = (due, self._pool.submit(job, snap))
+
+    def smooth(self, res: RefinementResult, nodes: IntArray, d_nodes: FloatArray
+               ) -> tuple[IntArray, FloatArray]:
+        """Back substitution of an installed result (:func:`smoothed`): in this process from
+        ``res.smoothing``, or in the worker process that kept the steps
+        (``res.smoothing_kept``; it is idle at this point of the hand-off, the next snapshot is
+        submitted after the update). Raises :class:`InputError` if the worker is gone."""
+        if not res.smoothing_kept:
+            return smoothed(res.smoothing, nodes, d_nodes)
+        if self._pool is None:
+            raise InputError('the refinement worker that kept the smoothing is gone')
+        try:
+            return self._pool.submit(_smooth_in_worker, res.after_tracks, nodes,
+                                     d_nodes).result()
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a crashed worker must not end the survey
+            raise InputError(f'smoothing in the worker failed: {type(exc).__name__}: '
+                             f'{exc}') from exc
 
     def take(self, n_tracks: int) -> RefinementResult | None:
         """The pending result if it is due at the update of the ``n_tracks``-th track (waits
