@@ -47,7 +47,13 @@ import multiprocessing
 import os
 import threading
 import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import (
+    BrokenExecutor,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+)
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -773,6 +779,17 @@ class RefinementWorker:
         if self.kind == 'inline':
             self._pending = (due, snap)
             return
+        job = _refine_in_worker if self.kind == 'process' else refine_snapshot
+        try:
+            future = self._executor().submit(job, snap)
+        except BrokenExecutor:  # the worker process died (its result said so): a new one
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            future = self._executor().submit(job, snap)
+        self._pending = (due, future)
+
+    def _executor(self) -> Executor:
+        """The executor, created on first use."""
         if self._pool is None:
             if self.kind == 'process':
                 self._pool = ProcessPoolExecutor(
@@ -780,8 +797,7 @@ class RefinementWorker:
                     initializer=_exit_with_parent, initargs=(os.getpid(),))
             else:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ga_refine')
-        job = _refine_in_worker if self.kind == 'process' else refine_snapshot
-        self._pending = (due, self._pool.submit(job, snap))
+        return self._pool
 
     def smooth(self, res: RefinementResult, nodes: IntArray, d_nodes: FloatArray
                ) -> tuple[IntArray, FloatArray]:
