@@ -286,3 +286,37 @@ def test_a_worker_lost_before_smoothing_leaves_the_refined_poses_unsmoothed(monk
     # the next refinement runs in a new worker process, installed and smoothed
     assert all(not u.reason.startswith('failed') for u in ups)
     assert len(hit) >= 2 and 'not smoothed' not in hit[1].refine_reason
+
+
+@pytest.mark.parametrize('band', [-1, 2])
+def test_sparse_elimination_of_long_tracks_equals_the_dense_one(monkeypatch, band):
+    """Long tracks (:data:`~ga_ros.core.refinement.SPARSE_FROM_TRACK_NODES`) take one sparse
+    elimination: its priors (dense, or banded with hubs) and its smoothing against the
+    track-by-track dense elimination of the same snapshot (a short survey, the threshold
+    lowered), and so does the retirement's past prior."""
+    import ga_ros.core.refinement as refinement
+
+    sc, nm, ms = _survey(n_tracks=6, per_swath=6)
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0), sc, ms)
+    snap = replace(al._snapshot(), prior_band=band, prior_hubs=1 if band >= 0 else 0)
+    T = snap.T_world_node
+    out = {}
+    for name, limit in (('dense', 10**9), ('sparse', 0)):
+        monkeypatch.setattr(refinement, 'SPARSE_FROM_TRACK_NODES', limit)
+        priors, steps = refinement._eliminate_absorbed(snap, T)
+        retired = refinement.retire_tracks(snap, T, 2)
+        out[name] = priors, steps, retired
+    assert isinstance(out['sparse'][1][0], refinement.SparseSmoothing)
+    for a, b in [(out['dense'][0], out['sparse'][0]), (out['dense'][2], out['sparse'][2])]:
+        assert len(a) == len(b) == 1
+        np.testing.assert_array_equal(a[0].nodes, b[0].nodes)
+        Ia, Ib = (np.asarray(p.information.todense() if hasattr(p.information, 'todense')
+                             else p.information) for p in (a[0], b[0]))
+        np.testing.assert_allclose(Ib, Ia, rtol=1e-6, atol=1e-9 * np.abs(Ia).max())
+        np.testing.assert_allclose(b[0].T_world_node, a[0].T_world_node, atol=1e-9)
+    S = out['dense'][0][0].nodes
+    dS = 1e-3 * np.random.default_rng(3).normal(size=(S.size, 6))
+    nd, d_dense = refinement.smoothed(out['dense'][1], S, dS)
+    ns, d_sparse = refinement.smoothed(out['sparse'][1], S, dS)
+    np.testing.assert_array_equal(nd, ns)
+    np.testing.assert_allclose(d_sparse, d_dense, rtol=1e-5, atol=1e-6 * np.abs(d_dense).max())

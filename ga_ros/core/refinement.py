@@ -151,6 +151,35 @@ class SmoothingStep:
     gain: FloatArray
     offset: FloatArray
 
+    def back(self, dR: FloatArray) -> FloatArray:
+        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
+        return self.offset + (self.gain.astype(np.float64) @ dR if dR.size else 0.0)
+
+
+class SparseSmoothing:
+    """The back substitution of a sparse elimination (:func:`_sparse_eliminate`): ``d_L =
+    -N_LL^-1 (u_L + N_LR d_R)`` with a sparse Cholesky factor of ``N_LL`` (not picklable: it
+    stays in the process that made it, :func:`_refine_in_worker`).
+
+    Attributes
+    ----------
+    eliminated, remaining : node indices of ``L`` and ``R`` (the prior nodes).
+    """
+
+    def __init__(self, eliminated: IntArray, remaining: IntArray, N_LL: sp.spmatrix,
+                 N_LR: sp.spmatrix, u_L: FloatArray) -> None:
+        from ga_ros.core.sparse import BlockPattern, SparseCholesky
+
+        self.eliminated, self.remaining = eliminated, remaining
+        self._chol = SparseCholesky(*BlockPattern.from_matrix(N_LL, 6))
+        self._N_LR = sp.csr_matrix(N_LR)
+        self._u_L = u_L
+
+    def back(self, dR: FloatArray) -> FloatArray:
+        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
+        rhs = self._u_L + (self._N_LR @ dR if dR.size else 0.0)
+        return -self._chol.solve(rhs)
+
 
 @dataclass(frozen=True)
 class AbsorbedPrior:
@@ -205,7 +234,7 @@ class RefinementResult:
     priors: tuple[AbsorbedPrior, ...]
     frozen: BoolArray
     absorbed: IntArray
-    smoothing: tuple[SmoothingStep, ...]
+    smoothing: tuple[SmoothingStep | SparseSmoothing, ...]
     iterations: int
     seconds: float
     retired: int = 0
@@ -308,6 +337,9 @@ def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
     """
     e = int((_track_rank(snap) < k).sum())
     conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
+    if _long_tracks(snap):
+        free, N, u = _normal_terms(snap, conns, T_lin, snap.past)
+        return _sparse_priors(free, N, u, free >= e, T_lin, snap.prior_band, snap.prior_hubs)
     work = _Marginal()
     work.add(*_normal_terms(snap, conns, T_lin, snap.past))
     gone = [i for i in work.cols if i < e]
@@ -317,6 +349,81 @@ def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
         work.eliminate(gone)
     return tuple(_prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
                  for group in work.groups())
+
+
+#: Tracks of more nodes than this make the eliminations of :func:`_eliminate_absorbed` and
+#: :func:`retire_tracks` sparse (:func:`_sparse_eliminate`): the dense ones work on about two
+#: swaths at a time, cubic in the swath's length (minutes and GBs per refinement for 1,000-pose
+#: tracks); for shorter tracks they are the faster of the two.
+SPARSE_FROM_TRACK_NODES = 400
+
+
+def _long_tracks(snap: RefinementSnapshot) -> bool:
+    """Whether the snapshot has a track of more than :data:`SPARSE_FROM_TRACK_NODES` nodes."""
+    _, counts = np.unique(snap.track_ids, return_counts=True)
+    return bool(counts.size) and int(counts.max()) > SPARSE_FROM_TRACK_NODES
+
+
+def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
+                   T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
+    """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
+    (the others eliminated), one per connected group, without a dense matrix of more than the
+    group's targets: the sparse prior's skeleton from a selected inversion
+    (:func:`~ga_ros.core.selinv.sparse_skeleton`, as the aligner's freeze), or the dense
+    Schur complement from a partial factorisation
+    (:func:`~ga_ros.core.sparse.trailing_factor`). Equal to :func:`_prior_of` of the dense
+    elimination (``test/test_refinement.py``)."""
+    from ga_ros.core import selinv
+    from ga_ros.core.sparse import BlockPattern, trailing_factor
+
+    Nc = sp.csr_matrix(N)
+    coo = Nc.tocoo()
+    k = free.size
+    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
+    _, label = connected_components(blocks, directed=False)
+    priors = []
+    for c in np.unique(label):
+        mine = np.nonzero(label == c)[0]
+        tgt = np.nonzero(target[mine])[0]  # positions among the group's nodes
+        if tgt.size == 0:
+            continue
+        at = (6 * mine[:, None] + np.arange(6)).ravel()
+        Nm, um, S = Nc[at][:, at], u[at], free[mine[tgt]]
+        if sparse_prior_applies(S.size, band, hubs):
+            skel, x = selinv.sparse_skeleton(Nm, 6, tgt, band, hubs,
+                                             coords=T_lin[free[mine], :3, 3], rhs=um)
+            mean, info = band_prior(T_lin[S], skel, x.reshape(-1, 6)[tgt].ravel())
+            priors.append(AbsorbedPrior(S, mean, info, info.shape[0]))
+            continue
+        if tgt.size == mine.size:
+            mean, info = tangent_prior(T_lin[S], Nm.toarray(), um)
+        else:
+            tf = trailing_factor(*BlockPattern.from_matrix(Nm, 6), tgt, um)
+            mean, info = tangent_prior(T_lin[S], tf.information(), None,
+                                       step=tf.solution.reshape(-1, 6)[tgt].ravel())
+        priors.append(AbsorbedPrior(S, mean, info))
+    return tuple(priors)
+
+
+def _sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArray,
+                      smoothing: bool = True
+                      ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SparseSmoothing, ...]]:
+    """:func:`_eliminate_absorbed` for long tracks: every absorbed term and the past prior in
+    one sparse normal matrix, the priors from it (:func:`_sparse_priors`) and (if
+    ``smoothing``) one back substitution with a sparse factor of the eliminated nodes' block
+    (:class:`SparseSmoothing`)."""
+    absorbed = np.nonzero(snap.status == 1)[0]
+    free, N, u = _normal_terms(snap, absorbed, T_lin, snap.past)
+    kf = keep[free]
+    priors = _sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
+    L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
+    if L.size == 0 or not smoothing:
+        return priors, ()
+    cL = (6 * L[:, None] + np.arange(6)).ravel()
+    cR = (6 * R[:, None] + np.arange(6)).ravel()
+    Nc = sp.csr_matrix(N)
+    NL = Nc[cL]
+    return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
 
 
 def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
@@ -399,11 +506,12 @@ def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArra
 
 def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[AbsorbedPrior, ...]:
     """Joint Gaussian priors of every absorbed connection (see :func:`_eliminate_absorbed`)."""
-    return _eliminate_absorbed(snap, T_lin)[0]
+    return _eliminate_absorbed(snap, T_lin, smoothing=False)[0]
 
 
-def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
-                        ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SmoothingStep, ...]]:
+def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True
+                        ) -> tuple[tuple[AbsorbedPrior, ...],
+                                   tuple[SmoothingStep | SparseSmoothing, ...]]:
     """Joint Gaussian priors of every absorbed connection (status 1), linearised at ``T_lin``.
 
     The absorbed connections are summed in the order their tracks froze and every node that no
@@ -419,9 +527,12 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
     and the elimination steps for back substitution (:class:`SmoothingStep`).
 
+    Tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes: one sparse elimination
+    instead (:func:`_sparse_eliminate`, the same priors, one :class:`SparseSmoothing`).
+
     Raises
     ------
-    numpy.linalg.LinAlgError
+    numpy.linalg.LinAlgError, ga_ros.errors.DegenerateGeometryError
         An eliminated group is not determined by the absorbed terms (no datum, no prior node).
     """
     absorbed = np.nonzero(snap.status == 1)[0]
@@ -431,6 +542,8 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     past_nodes = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
     keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy,
                        past_nodes, snap.datum)
+    if _long_tracks(snap):
+        return _sparse_eliminate(snap, T_lin, keep, smoothing)
     rank = _track_rank(snap)
     # a connection is added at the freeze of its later frozen end (the earlier end may be the
     # window's, under 'marginal'); a node is eliminated after its last absorbed connection.
@@ -587,7 +700,8 @@ def smoothed(steps: tuple[SmoothingStep, ...], nodes: IntArray, d_nodes: FloatAr
     return idx, (np.stack([d[int(i)] for i in idx]) if idx.size else np.zeros((0, 6)))
 
 
-def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
+def smooth(steps: tuple[SmoothingStep | SparseSmoothing, ...],
+           d_known: dict[int, FloatArray]
            ) -> dict[int, FloatArray]:
     """Back substitution through elimination steps, newest first (Rauch-Tung-Striebel style).
 
@@ -604,7 +718,7 @@ def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
     for st in reversed(steps):
         dR = np.concatenate([d.get(int(i), np.zeros(6)) for i in st.remaining]
                             or [np.zeros(0)])
-        dL = st.offset + (st.gain.astype(np.float64) @ dR if dR.size else 0.0)
+        dL = st.back(dR)
         for k, i in enumerate(st.eliminated.tolist()):
             d[i] = dL[6 * k:6 * k + 6]
     return d
