@@ -39,6 +39,15 @@ refines the whole survey every time.
 
 Every absorbed connection still enters exactly one prior, so the published covariances stay
 honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
+
+**Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
+matrices of about two swaths (:class:`_Marginal`: interior nodes first, each gain over the
+nodes it is coupled to); tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes take one
+sparse elimination instead (:func:`_sparse_eliminate`), whose cost does not grow with the cube
+of a swath. The back substitution (smoothing) needs the eliminations' gains, ~0.7 M values per
+200-pose track: a worker process keeps them and applies them when the aligner sends the prior
+nodes' corrections (:meth:`RefinementWorker.smooth`), so the hand-off receives poses,
+covariances and priors only.
 """
 
 from __future__ import annotations
