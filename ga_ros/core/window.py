@@ -1016,7 +1016,9 @@ class TrackWindowAligner:
         prior nodes from the refined estimate ``T_r`` by ``d_S = log(T_r^-1 T)``; each frozen node
         then moves to its conditional mean ``T_r exp(d)`` under the absorbed connections (the
         batch solution of all data received, in the linear limit; of the horizon's data and the
-        past prior under a bounded refinement).
+        past prior under a bounded refinement). A process worker applies the steps it kept
+        (:meth:`~ga_ros.core.refinement.RefinementWorker.smooth`); returns why the smoothing
+        could not be done (that worker died), else ``None``.
         """
         refined, f = self.__dict__.pop('_smoothing', (None, 0))
         res = self._last
