@@ -329,7 +329,9 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         if args.verbose:
             print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU), '
                   f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB, '
-                  f'refinement wait + install {up.refine_wait_ms:.0f} ms',
+                  f'refinement wait + install {up.refine_wait_ms:.0f} ms'
+                  + (f' (refinement after {up.refined_after_tracks} tracks: '
+                     f'{up.refine_reason})' if up.refined_after_tracks >= 0 else ''),
                   file=sys.stderr, flush=True)
         if done in checkpoints:
             ms = np.array(fig.update_ms[max(0, done - args.span):])

@@ -210,3 +210,113 @@ def test_replay_gives_the_identical_path_whatever_the_executor():
         np.testing.assert_array_equal(c, covs[0])
     np.testing.assert_allclose(paths[3], paths[0], rtol=0, atol=1e-9)
     np.testing.assert_allclose(covs[3], covs[0], rtol=1e-9, atol=0)
+
+
+def test_pattern_eliminations_equal_one_dense_conditional():
+    """:class:`~ga_ros.core.refinement._Marginal` eliminates in parts (interior nodes first,
+    each gain over the coupled nodes only): its Schur complement and its back substitution
+    (:func:`~ga_ros.core.refinement.smoothed`) against the dense ones of a chain of nodes with
+    a dense block over its first ones (a carried prior), written out here."""
+    from ga_ros.core.refinement import _Marginal, smoothed
+
+    rng = np.random.default_rng(7)
+    k = 12
+    H = np.zeros((6 * k, 6 * k))
+    for a, b in [(i, i + 1) for i in range(k - 1)] + [(0, 5), (2, 9)]:
+        J = np.hstack([rng.normal(size=(6, 6)), rng.normal(size=(6, 6))])
+        at = np.r_[6 * a:6 * a + 6, 6 * b:6 * b + 6]
+        H[np.ix_(at, at)] += J.T @ J
+    A = rng.normal(size=(18, 18))
+    H[:18, :18] += A @ A.T  # dense over nodes 0-2
+    H += 1e-3 * np.eye(6 * k)
+    g = rng.normal(size=6 * k)
+    work = _Marginal()
+    order = rng.permutation(k)  # block positions need not follow node indices
+    perm = (6 * order[:, None] + np.arange(6)).ravel()
+    import scipy.sparse as sp
+
+    work.add(order, sp.csc_matrix(H[np.ix_(perm, perm)]), g[perm])
+    gone = [0, 1, 2, 3, 4, 6, 7]  # 1 and 3 coupled to no kept node: eliminated first
+    steps = work.eliminate(gone)
+    assert len(steps) == 2
+    np.testing.assert_array_equal(np.sort(steps[0].eliminated), [1, 3])
+    keep = [i for i in range(k) if i not in gone]
+    cS = (6 * np.array(keep)[:, None] + np.arange(6)).ravel()
+    cL = (6 * np.array(gone)[:, None] + np.arange(6)).ravel()
+    HLS = H[np.ix_(cL, cS)]
+    Hs = H[np.ix_(cS, cS)] - HLS.T @ np.linalg.solve(H[np.ix_(cL, cL)], HLS)
+    gs = g[cS] - HLS.T @ np.linalg.solve(H[np.ix_(cL, cL)], g[cL])
+    at = (6 * np.array([work.cols[i] for i in keep])[:, None] + np.arange(6)).ravel()
+    np.testing.assert_allclose(work.H[np.ix_(at, at)], Hs, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(work.g[at], gs, rtol=1e-9, atol=1e-9)
+    dS = 1e-2 * rng.normal(size=(len(keep), 6))
+    nodes, d = smoothed(steps, np.array(keep), dS)
+    dL = -np.linalg.solve(H[np.ix_(cL, cL)], g[cL] + HLS @ dS.ravel())
+    np.testing.assert_array_equal(nodes, np.arange(k))
+    np.testing.assert_allclose(d[gone].ravel(), dL, rtol=1e-5, atol=1e-6 * np.abs(dL).max())
+    np.testing.assert_array_equal(d[keep], dS)
+
+
+def test_a_worker_lost_before_smoothing_leaves_the_refined_poses_unsmoothed(monkeypatch):
+    """The process worker keeps the smoothing steps; if it dies between the hand-off and the
+    smoothing, the update still succeeds and says so (the refined poses stand), and the next
+    refinement runs in a new worker (before, a dead worker failed every later update)."""
+    import os
+    import signal
+
+    sc, _, ms = _survey(n_tracks=4, per_swath=6)
+    installed = []
+    install = TrackWindowAligner._install
+
+    def install_then_kill(self, snap, res):
+        install(self, snap, res)
+        assert res.smoothing_kept and res.smoothing == ()
+        if not installed:
+            for pid in list(self._refiner._pool._processes):
+                os.kill(pid, signal.SIGKILL)
+        installed.append(res.after_tracks)
+
+    monkeypatch.setattr(TrackWindowAligner, '_install', install_then_kill)
+    al, ups = _run(_refining(executor='process'), sc, ms)
+    al.close()
+    hit = [u for u in ups if u.refined_after_tracks >= 0]
+    assert installed and hit, [(u.reason, u.refine_reason) for u in ups]
+    assert not hit[0].reason.startswith('failed')
+    assert 'not smoothed' in hit[0].refine_reason, hit[0].refine_reason
+    # the next refinement runs in a new worker process, installed and smoothed
+    assert all(not u.reason.startswith('failed') for u in ups)
+    assert len(hit) >= 2 and 'not smoothed' not in hit[1].refine_reason
+
+
+@pytest.mark.parametrize('band', [-1, 2])
+def test_sparse_elimination_of_long_tracks_equals_the_dense_one(monkeypatch, band):
+    """Long tracks (:data:`~ga_ros.core.refinement.SPARSE_FROM_TRACK_NODES`) take one sparse
+    elimination: its priors (dense, or banded with hubs) and its smoothing against the
+    track-by-track dense elimination of the same snapshot (a short survey, the threshold
+    lowered), and so does the retirement's past prior."""
+    import ga_ros.core.refinement as refinement
+
+    sc, nm, ms = _survey(n_tracks=6, per_swath=6)
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0), sc, ms)
+    snap = replace(al._snapshot(), prior_band=band, prior_hubs=1 if band >= 0 else 0)
+    T = snap.T_world_node
+    out = {}
+    for name, limit in (('dense', 10**9), ('sparse', 0)):
+        monkeypatch.setattr(refinement, 'SPARSE_FROM_TRACK_NODES', limit)
+        priors, steps = refinement._eliminate_absorbed(snap, T)
+        retired = refinement.retire_tracks(snap, T, 2)
+        out[name] = priors, steps, retired
+    assert isinstance(out['sparse'][1][0], refinement.SparseSmoothing)
+    for a, b in [(out['dense'][0], out['sparse'][0]), (out['dense'][2], out['sparse'][2])]:
+        assert len(a) == len(b) == 1
+        np.testing.assert_array_equal(a[0].nodes, b[0].nodes)
+        Ia, Ib = (np.asarray(p.information.todense() if hasattr(p.information, 'todense')
+                             else p.information) for p in (a[0], b[0]))
+        np.testing.assert_allclose(Ib, Ia, rtol=1e-6, atol=1e-9 * np.abs(Ia).max())
+        np.testing.assert_allclose(b[0].T_world_node, a[0].T_world_node, atol=1e-9)
+    S = out['dense'][0][0].nodes
+    dS = 1e-3 * np.random.default_rng(3).normal(size=(S.size, 6))
+    nd, d_dense = refinement.smoothed(out['dense'][1], S, dS)
+    ns, d_sparse = refinement.smoothed(out['sparse'][1], S, dS)
+    np.testing.assert_array_equal(nd, ns)
+    np.testing.assert_allclose(d_sparse, d_dense, rtol=1e-5, atol=1e-6 * np.abs(d_dense).max())

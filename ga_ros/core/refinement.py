@@ -39,6 +39,15 @@ refines the whole survey every time.
 
 Every absorbed connection still enters exactly one prior, so the published covariances stay
 honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
+
+**Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
+matrices of about two swaths (:class:`_Marginal`: interior nodes first, each gain over the
+nodes it is coupled to); tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes take one
+sparse elimination instead (:func:`_sparse_eliminate`), whose cost does not grow with the cube
+of a swath. The back substitution (smoothing) needs the eliminations' gains, ~0.7 M values per
+200-pose track: a worker process keeps them and applies them when the aligner sends the prior
+nodes' corrections (:meth:`RefinementWorker.smooth`), so the hand-off receives poses,
+covariances and priors only.
 """
 
 from __future__ import annotations
@@ -47,7 +56,13 @@ import multiprocessing
 import os
 import threading
 import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import (
+    BrokenExecutor,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+)
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -145,6 +160,35 @@ class SmoothingStep:
     gain: FloatArray
     offset: FloatArray
 
+    def back(self, dR: FloatArray) -> FloatArray:
+        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
+        return self.offset + (self.gain.astype(np.float64) @ dR if dR.size else 0.0)
+
+
+class SparseSmoothing:
+    """The back substitution of a sparse elimination (:func:`_sparse_eliminate`): ``d_L =
+    -N_LL^-1 (u_L + N_LR d_R)`` with a sparse Cholesky factor of ``N_LL`` (not picklable: it
+    stays in the process that made it, :func:`_refine_in_worker`).
+
+    Attributes
+    ----------
+    eliminated, remaining : node indices of ``L`` and ``R`` (the prior nodes).
+    """
+
+    def __init__(self, eliminated: IntArray, remaining: IntArray, N_LL: sp.spmatrix,
+                 N_LR: sp.spmatrix, u_L: FloatArray) -> None:
+        from ga_ros.core.sparse import BlockPattern, SparseCholesky
+
+        self.eliminated, self.remaining = eliminated, remaining
+        self._chol = SparseCholesky(*BlockPattern.from_matrix(N_LL, 6))
+        self._N_LR = sp.csr_matrix(N_LR)
+        self._u_L = u_L
+
+    def back(self, dR: FloatArray) -> FloatArray:
+        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
+        rhs = self._u_L + (self._N_LR @ dR if dR.size else 0.0)
+        return -self._chol.solve(rhs)
+
 
 @dataclass(frozen=True)
 class AbsorbedPrior:
@@ -187,6 +231,8 @@ class RefinementResult:
     retired : number of the snapshot's oldest tracks retired (:func:`retire_tracks`).
     past : the past prior for the next refinement (snapshot node indices; the snapshot's own
         if nothing retired).
+    smoothing_kept : the smoothing steps stayed in the worker process that computed them
+        (``smoothing`` is then empty): :meth:`RefinementWorker.smooth` applies them there.
     """
 
     after_tracks: int
@@ -197,11 +243,12 @@ class RefinementResult:
     priors: tuple[AbsorbedPrior, ...]
     frozen: BoolArray
     absorbed: IntArray
-    smoothing: tuple[SmoothingStep, ...]
+    smoothing: tuple[SmoothingStep | SparseSmoothing, ...]
     iterations: int
     seconds: float
     retired: int = 0
     past: tuple[AbsorbedPrior, ...] = ()
+    smoothing_kept: bool = False
 
 
 def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
@@ -299,21 +346,99 @@ def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
     """
     e = int((_track_rank(snap) < k).sum())
     conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
-    free, N, u = _normal_terms(snap, conns, T_lin, snap.past)
-    cols = {int(i): c for c, i in enumerate(free.tolist())}
-    gone = [i for i in cols if i < e]
-    if len(gone) == len(cols):
+    if _long_tracks(snap):
+        free, N, u = _normal_terms(snap, conns, T_lin, snap.past)
+        return _sparse_priors(free, N, u, free >= e, T_lin, snap.prior_band, snap.prior_hubs)
+    work = _Marginal()
+    work.add(*_normal_terms(snap, conns, T_lin, snap.past))
+    gone = [i for i in work.cols if i < e]
+    if len(gone) == len(work.cols):
         return ()
-    H, g, cols = (N, u, cols) if not gone else _eliminate(N, u, cols, gone)[:3]
-    S = np.array(list(cols), dtype=np.int64)
-    return tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
-                 for group in _groups(H, S, cols))
+    if gone:
+        work.eliminate(gone)
+    return tuple(_prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                 for group in work.groups())
+
+
+#: Tracks of more nodes than this make the eliminations of :func:`_eliminate_absorbed` and
+#: :func:`retire_tracks` sparse (:func:`_sparse_eliminate`): the dense ones work on about two
+#: swaths at a time, cubic in the swath's length (minutes and GBs per refinement for 1,000-pose
+#: tracks); for shorter tracks they are the faster of the two.
+SPARSE_FROM_TRACK_NODES = 400
+
+
+def _long_tracks(snap: RefinementSnapshot) -> bool:
+    """Whether the snapshot has a track of more than :data:`SPARSE_FROM_TRACK_NODES` nodes."""
+    _, counts = np.unique(snap.track_ids, return_counts=True)
+    return bool(counts.size) and int(counts.max()) > SPARSE_FROM_TRACK_NODES
+
+
+def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
+                   T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
+    """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
+    (the others eliminated), one per connected group, without a dense matrix of more than the
+    group's targets: the sparse prior's skeleton from a selected inversion
+    (:func:`~ga_ros.core.selinv.sparse_skeleton`, as the aligner's freeze), or the dense
+    Schur complement from a partial factorisation
+    (:func:`~ga_ros.core.sparse.trailing_factor`). Equal to :func:`_prior_of` of the dense
+    elimination (``test/test_refinement.py``)."""
+    from ga_ros.core import selinv
+    from ga_ros.core.sparse import BlockPattern, trailing_factor
+
+    Nc = sp.csr_matrix(N)
+    coo = Nc.tocoo()
+    k = free.size
+    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
+    _, label = connected_components(blocks, directed=False)
+    priors = []
+    for c in np.unique(label):
+        mine = np.nonzero(label == c)[0]
+        tgt = np.nonzero(target[mine])[0]  # positions among the group's nodes
+        if tgt.size == 0:
+            continue
+        at = (6 * mine[:, None] + np.arange(6)).ravel()
+        Nm, um, S = Nc[at][:, at], u[at], free[mine[tgt]]
+        if sparse_prior_applies(S.size, band, hubs):
+            skel, x = selinv.sparse_skeleton(Nm, 6, tgt, band, hubs,
+                                             coords=T_lin[free[mine], :3, 3], rhs=um)
+            mean, info = band_prior(T_lin[S], skel, x.reshape(-1, 6)[tgt].ravel())
+            priors.append(AbsorbedPrior(S, mean, info, info.shape[0]))
+            continue
+        if tgt.size == mine.size:
+            mean, info = tangent_prior(T_lin[S], Nm.toarray(), um)
+        else:
+            tf = trailing_factor(*BlockPattern.from_matrix(Nm, 6), tgt, um)
+            mean, info = tangent_prior(T_lin[S], tf.information(), None,
+                                       step=tf.solution.reshape(-1, 6)[tgt].ravel())
+        priors.append(AbsorbedPrior(S, mean, info))
+    return tuple(priors)
+
+
+def _sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArray,
+                      smoothing: bool = True
+                      ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SparseSmoothing, ...]]:
+    """:func:`_eliminate_absorbed` for long tracks: every absorbed term and the past prior in
+    one sparse normal matrix, the priors from it (:func:`_sparse_priors`) and (if
+    ``smoothing``) one back substitution with a sparse factor of the eliminated nodes' block
+    (:class:`SparseSmoothing`)."""
+    absorbed = np.nonzero(snap.status == 1)[0]
+    free, N, u = _normal_terms(snap, absorbed, T_lin, snap.past)
+    kf = keep[free]
+    priors = _sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
+    L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
+    if L.size == 0 or not smoothing:
+        return priors, ()
+    cL = (6 * L[:, None] + np.arange(6)).ravel()
+    cR = (6 * R[:, None] + np.arange(6)).ravel()
+    Nc = sp.csr_matrix(N)
+    NL = Nc[cL]
+    return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
 
 
 def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
                   priors: tuple[AbsorbedPrior, ...] = ()
                   ) -> tuple[IntArray, FloatArray, FloatArray]:
-    """Dense normal matrix ``N`` and half gradient ``u`` of some connections and priors at
+    """Normal matrix ``N`` (sparse) and half gradient ``u`` of some connections and priors at
     ``T_lin``, over their free nodes (snapshot indices, the datum excluded), in that order."""
     nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]
                                      + [p.nodes for p in priors]))
@@ -327,7 +452,7 @@ def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
     N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, _gaussian(snap, priors))
     free = nodes[nodes != 0] if datum else nodes
     assert free.size == free_ids.size
-    return free, N.toarray(), u
+    return free, N, u
 
 
 def _failed(empty: RefinementResult, reason: str, t0: float) -> RefinementResult:
@@ -390,11 +515,12 @@ def prior_nodes(frozen: BoolArray, src: IntArray, dst: IntArray, status: IntArra
 
 def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[AbsorbedPrior, ...]:
     """Joint Gaussian priors of every absorbed connection (see :func:`_eliminate_absorbed`)."""
-    return _eliminate_absorbed(snap, T_lin)[0]
+    return _eliminate_absorbed(snap, T_lin, smoothing=False)[0]
 
 
-def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
-                        ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SmoothingStep, ...]]:
+def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True
+                        ) -> tuple[tuple[AbsorbedPrior, ...],
+                                   tuple[SmoothingStep | SparseSmoothing, ...]]:
     """Joint Gaussian priors of every absorbed connection (status 1), linearised at ``T_lin``.
 
     The absorbed connections are summed in the order their tracks froze and every node that no
@@ -410,9 +536,12 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
     and the elimination steps for back substitution (:class:`SmoothingStep`).
 
+    Tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes: one sparse elimination
+    instead (:func:`_sparse_eliminate`, the same priors, one :class:`SparseSmoothing`).
+
     Raises
     ------
-    numpy.linalg.LinAlgError
+    numpy.linalg.LinAlgError, ga_ros.errors.DegenerateGeometryError
         An eliminated group is not determined by the absorbed terms (no datum, no prior node).
     """
     absorbed = np.nonzero(snap.status == 1)[0]
@@ -422,6 +551,8 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     past_nodes = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
     keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy,
                        past_nodes, snap.datum)
+    if _long_tracks(snap):
+        return _sparse_eliminate(snap, T_lin, keep, smoothing)
     rank = _track_rank(snap)
     # a connection is added at the freeze of its later frozen end (the earlier end may be the
     # window's, under 'marginal'); a node is eliminated after its last absorbed connection.
@@ -434,55 +565,152 @@ def _eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray
     np.maximum.at(last, snap.dst[absorbed], step)
     stages = [(-1, absorbed[:0], snap.past)] if snap.past else []
     stages += [(int(s), absorbed[step == s], ()) for s in np.unique(step)]
-    cols: dict[int, int] = {}   # node index -> block position in (H, g)
-    H = np.zeros((0, 0))
-    g = np.zeros(0)
+    work = _Marginal()
     steps: list[SmoothingStep] = []
     for s, conns, priors in stages:
-        free, N, u = _normal_terms(snap, conns, T_lin, priors)
-        for i in free.tolist():
-            if i not in cols:
-                cols[i] = len(cols)
-        size = 6 * len(cols)
-        H = np.pad(H, ((0, size - H.shape[0]), (0, size - H.shape[1])))
-        g = np.pad(g, (0, size - g.size))
-        at = (6 * np.array([cols[i] for i in free.tolist()])[:, None] + np.arange(6)).ravel()
-        H[np.ix_(at, at)] += N
-        g[at] += u
-        gone = [i for i in cols if last[i] <= s and not keep[i]]
+        work.add(*_normal_terms(snap, conns, T_lin, priors))
+        gone = [i for i in work.cols if last[i] <= s and not keep[i]]
         if gone:
-            H, g, cols, back = _eliminate(H, g, cols, gone)
-            steps.append(back)
-    if not cols:
+            steps += work.eliminate(gone)
+    if not work.cols:
         return (), tuple(steps)
-    S = np.array(list(cols), dtype=np.int64)
-    priors = tuple(_prior_of(H, g, cols, np.sort(group), T_lin, snap.prior_band,
-                             snap.prior_hubs) for group in _groups(H, S, cols))
+    priors = tuple(_prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                   for group in work.groups())
     return priors, tuple(steps)
 
 
-def _eliminate(H: FloatArray, g: FloatArray, cols: dict[int, int], gone: list[int]
-               ) -> tuple[FloatArray, FloatArray, dict[int, int], SmoothingStep]:
-    """Schur complement of the nodes ``gone`` out of ``(H, g)``, and its back substitution
-    ``d_L = -H_LL^-1 (g_L + H_LS d_S)``."""
-    gone_set = set(gone)
-    stay = [i for i in cols if i not in gone_set]
-    cL = (6 * np.array([cols[i] for i in gone])[:, None] + np.arange(6)).ravel()
-    cS = (6 * np.array([cols[i] for i in stay], dtype=np.int64)[:, None] + np.arange(6)).ravel()
-    cho = sla.cho_factor(H[np.ix_(cL, cL)])
-    HLS = H[np.ix_(cL, cS)]
-    gain = -sla.cho_solve(cho, HLS)
-    offset = -sla.cho_solve(cho, g[cL])
-    Hn = H[np.ix_(cS, cS)] + HLS.T @ gain
-    gn = g[cS] + HLS.T @ offset
-    # kept in single precision (half the memory and transfer; a correction of 1 m is then
-    # carried to 0.1 um)
-    back = SmoothingStep(np.array(gone, dtype=np.int64), np.array(stay, dtype=np.int64),
-                         gain.astype(np.float32), offset)
-    return 0.5 * (Hn + Hn.T), gn, {i: k for k, i in enumerate(stay)}, back
+class _Marginal:
+    """Dense marginal information ``(H, g)`` of absorbed terms over a changing set of nodes,
+    with its block pattern (which node blocks of ``H`` are nonzero), for the eliminations of
+    :func:`_eliminate_absorbed` and :func:`retire_tracks`.
+
+    ``cols`` maps a node index to its block position in ``H`` (positions ``0..k-1`` in the
+    dict's order).
+    """
+
+    def __init__(self) -> None:
+        self.H = np.zeros((0, 0))
+        self.g = np.zeros(0)
+        self.nz = np.zeros((0, 0), dtype=bool)
+        self.cols: dict[int, int] = {}
+
+    def add(self, free: IntArray, N: sp.spmatrix, u: FloatArray) -> None:
+        """Add terms ``(N, u)`` over the nodes ``free`` (new ones appended)."""
+        for i in free.tolist():
+            if i not in self.cols:
+                self.cols[i] = len(self.cols)
+        k = len(self.cols)
+        if k > self.nz.shape[0]:
+            grow = k - self.nz.shape[0]
+            self.H = np.pad(self.H, ((0, 6 * grow), (0, 6 * grow)))
+            self.g = np.pad(self.g, (0, 6 * grow))
+            self.nz = np.pad(self.nz, ((0, grow), (0, grow)))
+        pos = np.array([self.cols[i] for i in free.tolist()], dtype=np.int64)
+        at = (6 * pos[:, None] + np.arange(6)).ravel()
+        C = sp.coo_matrix(N)
+        C.sum_duplicates()  # each entry once: a plain fancy-index add is exact
+        self.H[at[C.row], at[C.col]] += C.data
+        self.g[at] += u
+        self.nz[pos[C.row // 6], pos[C.col // 6]] = True
+
+    def eliminate(self, gone: list[int]) -> list[SmoothingStep]:
+        """Schur complement of the nodes ``gone`` out of ``(H, g)``; returns the back
+        substitutions ``d_L = -H_LL^-1 (g_L + H_LC d_C)`` (``C``: remaining nodes coupled to
+        ``L``).
+
+        The block pattern is used twice (the result is the same Schur complement): the nodes of
+        ``gone`` coupled to no remaining node (the interior, e.g. the older of two frozen
+        swaths) go first, then the others; and each elimination touches only the remaining
+        nodes coupled to it (its gain has their columns only, its update their block of
+        ``H``): less dense work per track, and no zero columns in the gains the hand-off
+        receives.
+        """
+        k = len(self.cols)
+        H, g, nz = self.H, self.g, self.nz
+        is_gone = np.zeros(k, dtype=bool)
+        is_gone[[self.cols[i] for i in gone]] = True
+        interior = np.zeros(k, dtype=bool)
+        interior[is_gone] = ~nz[np.ix_(is_gone, ~is_gone)].any(axis=1)
+        parts = [interior, is_gone & ~interior] if interior.any() else [is_gone]
+        node = np.array(list(self.cols), dtype=np.int64)
+        steps = []
+        left = np.ones(k, dtype=bool)
+        for part in parts:
+            if not part.any():
+                continue
+            left &= ~part
+            Lp = np.nonzero(part)[0]
+            Cp = np.nonzero(left & nz[Lp].any(axis=0))[0]
+            cL = (6 * Lp[:, None] + np.arange(6)).ravel()
+            cC = (6 * Cp[:, None] + np.arange(6)).ravel()
+            cho = sla.cho_factor(H[np.ix_(cL, cL)])
+            HLC = H[np.ix_(cL, cC)]
+            gain = -sla.cho_solve(cho, HLC)
+            offset = -sla.cho_solve(cho, g[cL])
+            if Cp.size:
+                upd = HLC.T @ gain
+                H[np.ix_(cC, cC)] += 0.5 * (upd + upd.T)
+                g[cC] += HLC.T @ offset
+                nz[np.ix_(Cp, Cp)] = True  # fill: the eliminated nodes coupled them
+            # kept in single precision (half the memory and transfer; a correction of 1 m is
+            # then carried to 0.1 um)
+            steps.append(SmoothingStep(node[Lp], node[Cp], gain.astype(np.float32), offset))
+        stay = np.nonzero(left)[0]
+        cS = (6 * stay[:, None] + np.arange(6)).ravel()
+        self.H, self.g, self.nz = H[np.ix_(cS, cS)], g[cS], nz[np.ix_(stay, stay)]
+        self.cols = {int(node[p]): q for q, p in enumerate(stay.tolist())}
+        return steps
+
+    def groups(self) -> list[IntArray]:
+        """The nodes, grouped by the connected components of the block pattern."""
+        S = np.array(list(self.cols), dtype=np.int64)
+        _, label = connected_components(self.nz, directed=False)
+        return [S[label == c] for c in np.unique(label)]
 
 
-def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
+#: In a worker process: the smoothing steps of its last refinement, by its ``after_tracks``
+#: (:func:`_refine_in_worker`, :func:`_smooth_in_worker`).
+_KEPT_STEPS: dict[int, tuple[SmoothingStep, ...]] = {}
+
+
+def _refine_in_worker(snap: RefinementSnapshot) -> RefinementResult:
+    """:func:`refine_snapshot` in the worker process, keeping the smoothing steps there.
+
+    The steps hold a dense gain per eliminated group (~0.7 M values per 200-pose track, 60-80 MB
+    for a horizon of 25-30 such tracks); shipping them to the aligner's process cost it ~30 ms
+    of CPU at every hand-off (pickles through the pipe), and their transient copies let its
+    heap grow. The aligner sends the prior nodes' corrections instead
+    (:meth:`RefinementWorker.smooth`) and receives the corrections of the frozen nodes.
+    """
+    res = refine_snapshot(snap)
+    _KEPT_STEPS.clear()
+    if not res.ok:
+        return res
+    _KEPT_STEPS[res.after_tracks] = res.smoothing
+    return replace(res, smoothing=(), smoothing_kept=True)
+
+
+def _smooth_in_worker(after_tracks: int, nodes: IntArray, d_nodes: FloatArray
+                      ) -> tuple[IntArray, FloatArray]:
+    """:func:`smoothed` with the steps kept by :func:`_refine_in_worker` (in the worker)."""
+    steps = _KEPT_STEPS.pop(after_tracks, None)
+    if steps is None:
+        raise InputError(f'the worker no longer holds the smoothing of refinement '
+                         f'{after_tracks}')
+    return smoothed(steps, nodes, d_nodes)
+
+
+def smoothed(steps: tuple[SmoothingStep, ...], nodes: IntArray, d_nodes: FloatArray
+             ) -> tuple[IntArray, FloatArray]:
+    """:func:`smooth` with arrays: corrections ``d_nodes`` (k, 6) of the prior nodes ``nodes``
+    in, every node's correction out (``(m,)`` node indices in increasing order, ``(m, 6)``)."""
+    d = smooth(steps, dict(zip(np.asarray(nodes).tolist(), np.asarray(d_nodes))))
+    idx = np.array(sorted(d), dtype=np.int64)
+    return idx, (np.stack([d[int(i)] for i in idx]) if idx.size else np.zeros((0, 6)))
+
+
+def smooth(steps: tuple[SmoothingStep | SparseSmoothing, ...],
+           d_known: dict[int, FloatArray]
            ) -> dict[int, FloatArray]:
     """Back substitution through elimination steps, newest first (Rauch-Tung-Striebel style).
 
@@ -499,26 +727,18 @@ def smooth(steps: tuple[SmoothingStep, ...], d_known: dict[int, FloatArray]
     for st in reversed(steps):
         dR = np.concatenate([d.get(int(i), np.zeros(6)) for i in st.remaining]
                             or [np.zeros(0)])
-        dL = st.offset + (st.gain.astype(np.float64) @ dR if dR.size else 0.0)
+        dL = st.back(dR)
         for k, i in enumerate(st.eliminated.tolist()):
             d[i] = dL[6 * k:6 * k + 6]
     return d
 
 
-def _groups(H: FloatArray, S: IntArray, cols: dict[int, int]) -> list[IntArray]:
-    """Prior nodes grouped by the connected components of ``H``'s block pattern."""
-    k = S.size
-    blocks = np.abs(H).reshape(k, 6, k, 6).max(axis=(1, 3)) > 0
-    _, label = connected_components(blocks, directed=False)
-    return [S[label == c] for c in np.unique(label)]
-
-
-def _prior_of(H: FloatArray, g: FloatArray, cols: dict[int, int], group: IntArray,
-              T_lin: FloatArray, band: int = -1, hubs: int = 0) -> AbsorbedPrior:
+def _prior_of(work: _Marginal, group: IntArray, T_lin: FloatArray, band: int = -1,
+              hubs: int = 0) -> AbsorbedPrior:
     """The prior of one group of prior nodes (in index order) from the dense marginal
-    ``(H, g)``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
-    at = (6 * np.array([cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
-    Hg, gg = H[np.ix_(at, at)], g[at]
+    ``work``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
+    at = (6 * np.array([work.cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
+    Hg, gg = work.H[np.ix_(at, at)], work.g[at]
     if sparse_prior_applies(group.size, band, hubs):
         cho = sla.cho_factor(Hg)
         Sigma = sla.cho_solve(cho, np.eye(Hg.shape[0]))
@@ -682,6 +902,17 @@ class RefinementWorker:
         if self.kind == 'inline':
             self._pending = (due, snap)
             return
+        job = _refine_in_worker if self.kind == 'process' else refine_snapshot
+        try:
+            future = self._executor().submit(job, snap)
+        except BrokenExecutor:  # the worker process died (its result said so): a new one
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            future = self._executor().submit(job, snap)
+        self._pending = (due, future)
+
+    def _executor(self) -> Executor:
+        """The executor, created on first use."""
         if self._pool is None:
             if self.kind == 'process':
                 self._pool = ProcessPoolExecutor(
@@ -689,7 +920,26 @@ class RefinementWorker:
                     initializer=_exit_with_parent, initargs=(os.getpid(),))
             else:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ga_refine')
-        self._pending = (due, self._pool.submit(refine_snapshot, snap))
+        return self._pool
+
+    def smooth(self, res: RefinementResult, nodes: IntArray, d_nodes: FloatArray
+               ) -> tuple[IntArray, FloatArray]:
+        """Back substitution of an installed result (:func:`smoothed`): in this process from
+        ``res.smoothing``, or in the worker process that kept the steps
+        (``res.smoothing_kept``; it is idle at this point of the hand-off, the next snapshot is
+        submitted after the update). Raises :class:`InputError` if the worker is gone."""
+        if not res.smoothing_kept:
+            return smoothed(res.smoothing, nodes, d_nodes)
+        if self._pool is None:
+            raise InputError('the refinement worker that kept the smoothing is gone')
+        try:
+            return self._pool.submit(_smooth_in_worker, res.after_tracks, nodes,
+                                     d_nodes).result()
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a crashed worker must not end the survey
+            raise InputError(f'smoothing in the worker failed: {type(exc).__name__}: '
+                             f'{exc}') from exc
 
     def take(self, n_tracks: int) -> RefinementResult | None:
         """The pending result if it is due at the update of the ``n_tracks``-th track (waits

@@ -77,7 +77,6 @@ from ga_ros.core.refinement import (
     absorbed_priors,
     band_prior,
     prior_nodes,
-    smooth,
     sparse_prior_applies,
     tangent_prior,
 )
@@ -1086,12 +1085,12 @@ class TrackWindowAligner:
         self._cov[f + frozen] = res.frozen_cov
         self._priors = [JointPrior.absorbed(p, f) for p in res.priors]
         self._T_weighted = _no_weighted()  # refined instead
-        self._smoothing = (res.smoothing, res.T_world_node, f)
+        self._smoothing = (res, f)
         # bounded refinement: the tracks it retired leave the horizon, with their prior
         self._retired += res.retired
         self._past = [JointPrior.absorbed(p, f) for p in res.past]
 
-    def _smooth(self) -> None:
+    def _smooth(self) -> str | None:
         """Carry the window's correction of the prior nodes back to every frozen node of the
         installed refinement's horizon.
 
@@ -1100,22 +1099,30 @@ class TrackWindowAligner:
         prior nodes from the refined estimate ``T_r`` by ``d_S = log(T_r^-1 T)``; each frozen node
         then moves to its conditional mean ``T_r exp(d)`` under the absorbed connections (the
         batch solution of all data received, in the linear limit; of the horizon's data and the
-        past prior under a bounded refinement).
+        past prior under a bounded refinement). A process worker applies the steps it kept
+        (:meth:`~ga_ros.core.refinement.RefinementWorker.smooth`); returns why the smoothing
+        could not be done (that worker died), else ``None``.
         """
-        steps, T_lin, f = self.__dict__.pop('_smoothing', ((), None, 0))
+        refined, f = self.__dict__.pop('_smoothing', (None, 0))
         res = self._last
-        if T_lin is None or res is None:
-            return
+        if refined is None or res is None:
+            return None
+        T_lin = refined.T_world_node
         where = {int(i): k for k, i in enumerate(res.node_ids.tolist())}
         idx = np.unique(np.concatenate([p[0] for p in self._priors]
                                        or [np.zeros(0, np.int64)]))
         k = np.array([where.get(int(i), -1) for i in self._ids[idx].tolist()], dtype=np.int64)
         idx, k = idx[k >= 0], k[k >= 0]
         d_idx = se3.local(T_lin[idx - f], res.T_world_node[k])  # one batched call
-        d = smooth(steps, dict(zip((idx - f).tolist(), d_idx)))
-        nodes = np.array([i for i in d if self._frozen[f + i] and (f or i)], dtype=np.int64)
+        try:
+            nodes, d = self._refiner.smooth(refined, idx - f, d_idx)
+        except InputError as exc:  # the worker died: the refined poses stand, unsmoothed
+            return str(exc)
+        sel = self._frozen[f + nodes] & ((nodes > 0) | (f > 0))  # the datum stays
+        nodes, d = nodes[sel], d[sel]
         if nodes.size:
-            self._T[f + nodes] = T_lin[nodes] @ se3.exp(np.stack([d[int(i)] for i in nodes]))
+            self._T[f + nodes] = T_lin[nodes] @ se3.exp(d)
+        return None
 
     def refinement_state(self) -> dict | None:
         """What a snapshot file needs to restart the pending refinement exactly: its hand-off
@@ -1241,8 +1248,10 @@ class TrackWindowAligner:
         try:
             up = self._adjust(window, track, t0)
             if refined is not None and not str(up.reason).startswith('failed'):
-                self._smooth()
+                error = self._smooth()
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
+                if error:
+                    up.refine_reason += f'; not smoothed: {error}'
         except GaError as exc:
             up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
                               0, 0, len(window), 0, f'failed: {exc}')
