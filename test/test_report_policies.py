@@ -132,4 +132,13 @@ def test_config_rejects_policy_seeds_below_one_or_not_an_integer(value):
 
 def test_presets_compare_the_policies_on_several_draws():
     assert ReproduceConfig(policy_seeds=np.int64(2)).policy_seeds == 2
-    assert [preset(p).policy_seeds for p in ('full', 'quick', 'tiny')] == [10, 5, 3]
+    assert [preset(p).policy_seeds for p in ('full', 'quick', 'tiny')] == [10, 5, 2]
+
+
+def test_reproduce_command_rejects_policy_seeds_below_one(tmp_path, capsys):
+    from ga_ros.cli.main import main
+
+    assert main(['reproduce', '--preset', 'tiny', '--policy-seeds', '0',
+                 '--out', str(tmp_path)]) == 1
+    assert 'policy_seeds must be an integer >= 1' in capsys.readouterr().err
+    assert not (tmp_path / 'report.md').exists()

@@ -490,12 +490,17 @@ def policy_gaps(cfg: ReproduceConfig, sc: Scenario, z: FloatArray,
     noise draw: the measured motions ``z`` (m, 6) with covariances ``cov`` (m, 6, 6) fed track by
     track into the window (no snapshots, no final refinement), against the batch GA of the same
     motions. The same numbers as :func:`survey_window`'s ``gap_raw_pct`` / ``gap_aligned_pct``,
-    without the rest of its figures. Keys per policy: ``raw``, ``aligned`` (%)."""
+    without the rest of its figures. A policy with the background refinement runs it inline
+    (``'<policy>+inline'``): the same path bit for bit as the other executors (the hand-off
+    depends on track counts only), without a worker process started per draw. Keys per
+    policy: ``raw``, ``aligned`` (%)."""
     f2f = sc.f2f(z)
     b = _ates(_batch_solve(sc.network(z, cov), f2f).T_world_node, sc.T_world_node)
     out = {}
     for policy in cfg.policies:
-        path = _run_aligner(sc, z, cov, policy, cfg.window_tracks, set(), f2f,
+        base, _, executor = policy.partition('+')
+        run_as = f'{base}+inline' if executor else base
+        path = _run_aligner(sc, z, cov, run_as, cfg.window_tracks, set(), f2f,
                             final_refine=False)['path']
         g = _gaps_pct(_ates(path, sc.T_world_node), b)
         out[policy] = {'raw': g['gap_raw_pct'], 'aligned': g['gap_aligned_pct']}
