@@ -5,8 +5,13 @@ track by track; after every track the corrected path is compared with a batch so
 received so far (same connections, warm-started from the online path): ATE raw (first pose
 anchored) and rigidly aligned, both against ground truth, as gap percentages
 ``100 (online / batch - 1)``. Prints one table row per track and a summary per policy.
+With ``--seeds N`` the same on N noise draws, then per policy the mean and sd of the end gaps
+and the paired difference with ``weighted`` (same draw) with its 95 % t interval: the
+statistics of the report's multi-draw table (``ReproduceConfig.policy_seeds``).
 
     .venv/bin/python scripts/bench_online_gap.py --tracks 8 --policies weighted marginal
+    .venv/bin/python scripts/bench_online_gap.py --tracks 8 --policies weighted marginal \
+        --no-per-track --seeds 5
 """
 
 from __future__ import annotations
@@ -20,7 +25,8 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
-from ga_ros.report.experiments import EXP_AERIAL, run_rng
+from ga_ros.report.experiments import EXP_AERIAL, policy_statistics, run_rng
+from ga_ros.report.writer import policy_seeds_table, policy_target_row
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
@@ -41,7 +47,11 @@ def main() -> None:
     ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
     ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
     ap.add_argument('--window', type=int, default=5)
-    ap.add_argument('--seed', type=int, default=20051101)
+    ap.add_argument('--seed', type=int, default=20051101, help='master seed')
+    ap.add_argument('--seeds', type=int, default=1,
+                    help='noise draws r = 0..N-1 (run_rng(seed, 4, r), the draws of the report); '
+                         "N > 1 prints the mean and sd of each policy's end gap and its paired "
+                         'difference with weighted (95 %% t interval), as the report does')
     ap.add_argument('--policies', nargs='+', default=['weighted', 'marginal'],
                     help="freeze policies; 'weighted+process' (+thread, +inline): with refinement")
     ap.add_argument('--every', type=int, default=1, help='refine_every_tracks')
@@ -54,9 +64,32 @@ def main() -> None:
     ap.add_argument('--no-per-track', action='store_true',
                     help='compare with batch at the end only (no batch solve per track)')
     args = ap.parse_args()
+    if args.seeds < 1:
+        ap.error('--seeds must be >= 1')
     sc = aerial_scenario(args.tracks, args.positions)
-    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
-                 run_rng(args.seed, EXP_AERIAL, 0))
+    gaps: dict[str, dict[str, list[float]]] = {p: {'raw': [], 'aligned': []}
+                                               for p in args.policies}
+    for r in range(args.seeds):
+        if args.seeds > 1:
+            print(f'#### noise draw r = {r} (run_rng({args.seed}, {EXP_AERIAL}, {r}))')
+        end = run_draw(args, sc, run_rng(args.seed, EXP_AERIAL, r))
+        for name, (raw, aligned) in end.items():
+            gaps[name]['raw'].append(raw)
+            gaps[name]['aligned'].append(aligned)
+    if args.seeds > 1:
+        ref = 'weighted' if 'weighted' in args.policies else args.policies[0]
+        stats = policy_statistics(gaps, ref)
+        print(f'\n#### {args.seeds} noise draws, gap to batch at the end of the survey')
+        print('\n'.join(policy_seeds_table({**stats, 'draws': list(range(args.seeds))})))
+        row = policy_target_row(stats)
+        print(f'\n{row[0]}: {"met" if row[2] else "NOT met"}; {row[1]}')
+
+
+def run_draw(args: argparse.Namespace, sc, rng: np.random.Generator) -> dict:
+    """One noise draw: every policy of ``args.policies`` fed track by track, its gaps to batch
+    printed (per track, or at the end with ``--no-per-track``). Returns per policy the end
+    gaps ``(raw %, aligned %)``."""
+    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m), rng)
     T_true = sc.T_world_node
     meas = sc.measurements(nm.z, nm.cov)
     dst_track = np.array([m.dst_track for m in meas])
@@ -82,6 +115,7 @@ def main() -> None:
         br, ba = ate(Tb, T_true[:n], 'first').rmse, ate(Tb, T_true[:n], 'rigid').rmse
         return 100 * (wr / br - 1), 100 * (wa / ba - 1), br, ba
 
+    end = {}
     for name in args.policies:
         prior = {k: v for k, v in (('prior_band', args.prior_band),
                                    ('prior_hubs', args.prior_hubs),
@@ -110,6 +144,7 @@ def main() -> None:
                        np.sqrt(np.mean(d[~fz] ** 2)))
                 rows.append((k, *gaps(path.T_world_node, Tb, n), *dif))
         run_s = time.perf_counter() - t_run
+        al.close()
         print(f'== {name}: window {args.window}, {args.tracks} double tracks, '
               f'{args.noise:g} % noise; finish_track ms p50 {np.percentile(ms, 50):.0f} '
               f'p95 {np.percentile(ms, 95):.0f} max {max(ms):.0f} (update without the hand-off '
@@ -125,6 +160,8 @@ def main() -> None:
         g = np.array([r[1:3] for r in rows])
         print(f'   end raw {g[-1, 0]:+.1f} % aligned {g[-1, 1]:+.1f} %; mean over tracks raw '
               f'{g[:, 0].mean():+.1f} % aligned {g[:, 1].mean():+.1f} %')
+        end[name] = (float(g[-1, 0]), float(g[-1, 1]))
+    return end
 
 
 if __name__ == '__main__':

@@ -76,6 +76,34 @@ def test_report_files_and_keys(tiny_report):
     assert 'Experiment 2 from rendered stereo' in md and 'Wrong cross-track' in md
 
 
+def test_report_prints_the_policies_on_several_noise_draws(tiny_report):
+    """The multi-draw table below the single-draw one: draw 0 is the single-draw run, every
+    figure of report.json's ``policy_seeds`` is in the Markdown, and the target row reads the
+    paired intervals."""
+    cfg, out, rep = tiny_report
+    ps = rep['policy_seeds']
+    if not rep['aerial']['window_available']:
+        pytest.skip('no track-window aligner')
+    assert ps['n'] == cfg.policy_seeds == len(ps['draws']) and ps['reference'] == 'weighted'
+    for p, v in rep['aerial']['policies'].items():
+        assert ps['policies'][p]['raw']['values'][0] == v['gap_raw_pct']
+        assert ps['policies'][p]['aligned']['values'][0] == v['gap_aligned_pct']
+        assert len(set(ps['policies'][p]['raw']['values'])) == cfg.policy_seeds  # new draws
+    md = (out / 'report.md').read_text()
+    single = md.index('| window K=')
+    multi = md.index(f'### The policies on {cfg.policy_seeds} noise draws')
+    assert single < multi
+    m = ps['policies']['marginal']
+    d = m['vs_reference']['aligned']
+    assert (f'| marginal | {m["raw"]["mean"]:+.1f} +- {m["raw"]["sd"]:.1f} | '
+            f'{m["aligned"]["mean"]:+.1f} +- {m["aligned"]["sd"]:.1f} |') in md
+    assert f'{d["mean"]:+.1f} [{d["ci_low"]:+.1f}, {d["ci_high"]:+.1f}]' in md
+    assert 'How to read it' in md
+    met = 'yes' if not ps['worse'] else '**no**'
+    assert any(x.startswith('| no policy worse than weighted') and x.endswith(f'| {met} |')
+               for x in md.splitlines())
+
+
 def test_table1_numbers_recomputed_independently(tiny_report):
     cfg, _, rep = tiny_report
     name = 'lawnmower_open'
@@ -201,6 +229,52 @@ def test_aerial_window_plumbing_with_a_batch_stand_in(monkeypatch):
     np.testing.assert_allclose(d['before'][:n2], e12, rtol=1e-6, atol=1e-6)
     mem = ex.memory_profile(replace(cfg, memory_tracks=(2, 3)))
     assert set(mem['sizes']) == {'2', '3'}
+
+
+class _ScaledAligner(_BatchAligner):
+    """The batch stand-in, except that the policy ``'worse'`` publishes its path stretched by
+    3 % about the first pose: a policy made worse on purpose, on every noise draw."""
+
+    def __init__(self, config=None, T_world_first=None):
+        super().__init__(config, T_world_first)
+        self.scale = 1.03 if config['freeze_policy'] == 'worse' else 1.0
+
+    def corrected_path(self):
+        path = super().corrected_path()
+        p = path.T_world_node[:, :3, 3]
+        path.T_world_node[:, :3, 3] = p[0] + self.scale * (p - p[0])
+        return path
+
+
+def test_policy_draws_flag_a_policy_made_worse_on_purpose(monkeypatch):
+    """Through the report's own plumbing (noise draws, batch reference, pairing): a copy of
+    the reference policy differs from it by exactly 0 on every draw, a stretched one is
+    significantly worse and fails the target row."""
+    import sys
+    import types
+    from dataclasses import replace
+
+    from ga_ros.report import experiments as ex
+    from ga_ros.report.writer import policy_target_row
+
+    fake = types.ModuleType('ga_ros.core.window')
+    fake.AlignerConfig = lambda **kw: kw
+    fake.TrackWindowAligner = _ScaledAligner
+    monkeypatch.setitem(sys.modules, 'ga_ros.core.window', fake)
+    # the gap is relative to the batch ATE, which changes from draw to draw: 8 draws
+    cfg = replace(preset('tiny'), aerial_tracks=2, policies=('weighted', 'same', 'worse'),
+                  policy_seeds=8)
+    ps = ex.policy_seeds(cfg)
+    assert ps['available'] and ps['draws'] == list(range(8)) and ps['worse'] == ['worse']
+    same = ps['policies']['same']['vs_reference']
+    for metric in ('raw', 'aligned'):
+        assert same[metric]['mean'] == 0.0 and same[metric]['sd'] == 0.0
+        w = ps['policies']['weighted'][metric]['values']
+        assert all(abs(g) < 1e-3 for g in w)  # the stand-in is the batch solution
+    assert ps['policies']['worse']['vs_reference']['aligned']['ci_low'] > 0
+    assert policy_target_row(ps)[2] is False
+    # different noise draws: the stretched path's gap changes from draw to draw
+    assert len(set(ps['policies']['worse']['aligned']['values'])) == 8
 
 
 @pytest.mark.parametrize('family', ['lawnmower', 'looping'])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from numbers import Integral
 
 from ga_ros.errors import InputError
 from ga_ros.sim.trajectories import SYNTHETIC_TRAJECTORIES
@@ -38,6 +39,11 @@ class ReproduceConfig:
     window_tracks : sliding-window size K (the paper: 5).
     policies : freeze policies compared against the batch solution (``'<policy>+refine'``: with
         the background refinement after every track, :mod:`ga_ros.core.refinement`).
+    policy_seeds : independent noise draws of the aerial survey on which the policies are
+        compared (draw ``r`` from ``run_rng(seed, 4, r)``; draw 0 is the single-draw table):
+        per policy the mean and sd of its gap to batch, and its paired difference with
+        ``weighted`` on the same draws with a 95 % t interval (:func:`ga_ros.report.experiments.
+        policy_seeds`); 1 reports the single draw only (no interval).
     memory_tracks : two survey sizes (tracks) whose per-update memory is compared.
     fig8_tracks : 1-based track numbers whose before/after errors are plotted (Fig. 8).
     stereo_tracks, stereo_positions_per_swath : experiment 2 from rendered stereo (320x240,
@@ -63,6 +69,7 @@ class ReproduceConfig:
     aerial_noise: float = 10.0
     window_tracks: int = 5
     policies: tuple[str, ...] = ('weighted', 'marginal', 'weighted+refine')
+    policy_seeds: int = 10
     memory_tracks: tuple[int, int] = (25, 100)
     fig8_tracks: tuple[int, ...] = PAPER_FIG8_TRACKS
     stereo_tracks: int = 25
@@ -89,6 +96,10 @@ class ReproduceConfig:
             raise InputError('need fig3_tracks >= 2, aerial_tracks >= 1, window_tracks >= 1')
         if self.aerial_positions_per_swath < 4:
             raise InputError('aerial_positions_per_swath must be >= 4')
+        if isinstance(self.policy_seeds, bool) or not isinstance(self.policy_seeds, Integral) \
+                or self.policy_seeds < 1:
+            raise InputError(f'policy_seeds must be an integer >= 1 (noise draws on which the '
+                             f'policies are compared), got {self.policy_seeds!r}')
         if len(self.memory_tracks) != 2 or min(self.memory_tracks) < 1:
             raise InputError('memory_tracks must be two track counts >= 1')
         if self.stereo_tracks < 0 or (self.stereo_tracks and self.stereo_positions_per_swath < 4):
@@ -101,7 +112,8 @@ def preset(name: str) -> ReproduceConfig:
     """``'full'`` (the paper's 100 runs and full-size experiment 2), ``'quick'`` (same
     experiments with 3 runs per Table I cell, the aerial survey cut to 8 tracks, 6 vs 10 tracks
     for memory, experiment 2 on 6 tracks x 60 positions (more than
-    the 5-track window), one wrong-connection fraction) or
+    the 5-track window), one wrong-connection fraction, the policies on 5 noise draws instead
+    of 10) or
     ``'tiny'`` (smoke tests: small surveys)."""
     full = ReproduceConfig()
     if name == 'full':
@@ -112,7 +124,7 @@ def preset(name: str) -> ReproduceConfig:
                        stereo_positions_per_swath=30, stereo_fig8_tracks=(1, 2, 3, 4, 5, 6),
                        outlier_tracks=4, outlier_positions_per_swath=30,
                        outlier_fractions=(0.05,), outlier_methods=('ls', 'gate', 'snoop-w'),
-                       preset='quick')
+                       policy_seeds=5, preset='quick')
     if name == 'tiny':
         return replace(full, runs=2, noise_levels=(1.0, 10.0), paper_model_runs=1,
                        fig3_tracks=4, fig3_runs=10, fig3_noise_levels=(10.0,),
@@ -120,5 +132,5 @@ def preset(name: str) -> ReproduceConfig:
                        fig8_tracks=(1, 2, 6), stereo_tracks=1, stereo_positions_per_swath=10,
                        stereo_fig8_tracks=(1,), outlier_tracks=2,
                        outlier_positions_per_swath=12, outlier_fractions=(0.05,),
-                       outlier_methods=('ls', 'snoop-w'), preset='tiny')
+                       outlier_methods=('ls', 'snoop-w'), policy_seeds=2, preset='tiny')
     raise InputError(f"unknown preset {name!r}; use 'full', 'quick' or 'tiny'")

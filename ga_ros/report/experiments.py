@@ -13,6 +13,8 @@
 * :func:`stereo_experiment`: experiment 2 (Sec. V-B) from rendered stereo and our VO, with the
   VO's NEES and Fig. 12's registration of neighbouring swaths.
 * :func:`wrong_connections`: the wrong-connection table (:mod:`ga_ros.bench.outliers`).
+* :func:`policy_seeds`: the freeze policies on several noise draws of the aerial survey, with
+  the paired difference of each policy's gap to batch against weighted (mean, sd, t interval).
 
 Every random draw comes from :func:`run_rng` so any single number can be recomputed alone.
 """
@@ -21,7 +23,7 @@ from __future__ import annotations
 
 import time
 import tracemalloc
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +31,7 @@ import numpy as np
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.quality import QualityReport, quality_control
 from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, InputError
 from ga_ros.eval.metrics import ate, improvement_pct, per_track_mean, position_errors
 from ga_ros.geometry import se3, so3
 from ga_ros.report.config import ReproduceConfig
@@ -309,8 +311,9 @@ def aligner_config(policy: str, window: int):
 
 
 def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, window: int,
-                 snapshot_tracks: set[int], f2f: FloatArray) -> dict:
-    """Feed a survey's measurements track by track into a TrackWindowAligner."""
+                 snapshot_tracks: set[int], f2f: FloatArray, final_refine: bool = True) -> dict:
+    """Feed a survey's measurements track by track into a TrackWindowAligner; then, when
+    ``final_refine``, its final batch refinement (``refined``; else ``refined`` is the path)."""
     from ga_ros.core.window import TrackWindowAligner
 
     aligner = TrackWindowAligner(aligner_config(policy, window), T_world_first=sc.T_world_node[0])
@@ -344,10 +347,12 @@ def _run_aligner(sc: Scenario, z: FloatArray, cov: FloatArray, policy: str, wind
     if hasattr(aligner, 'close'):  # stop the background refinement's worker
         aligner.close()
     path = aligner.corrected_path().T_world_node.copy()
-    t0 = time.perf_counter()
-    aligner.refine_batch()
-    refine_s = time.perf_counter() - t0
-    refined = aligner.corrected_path().T_world_node.copy()
+    refined, refine_s = path, 0.0
+    if final_refine:
+        t0 = time.perf_counter()
+        aligner.refine_batch()
+        refine_s = time.perf_counter() - t0
+        refined = aligner.corrected_path().T_world_node.copy()
     return {'updates': updates, 'wall_ms': wall_ms, 'run_s': run_s, 'path': path,
             'refined': refined, 'refine_s': refine_s, 'snapshots': snapshots,
             'rejected': rejected}
@@ -389,13 +394,11 @@ def survey_window(cfg: ReproduceConfig, sc: Scenario, z: FloatArray, cov: FloatA
     f2f = sc.f2f(z)
     net = sc.network(z, cov)
     t0 = time.perf_counter()
-    batch = solve(net, f2f, SolverConfig(tolerance=1e-7))
+    batch = _batch_solve(net, f2f)
     batch_s = time.perf_counter() - t0
 
     def ates(T):
-        return {'raw_rmse_m': ate(T, T_true, 'first').rmse,
-                'aligned_rmse_m': ate(T, T_true, 'rigid').rmse,
-                'mean_error_m': float(position_errors(T, T_true).mean())}
+        return _ates(T, T_true)
 
     summary: dict = {
         'nodes': sc.n_nodes, 'connections': sc.n_connections,
@@ -428,11 +431,9 @@ def survey_window(cfg: ReproduceConfig, sc: Scenario, z: FloatArray, cov: FloatA
             out = _run_aligner(sc, z, cov, policy, cfg.window_tracks,
                                wanted if policy == cfg.policies[0] else set(), f2f)
             ms = np.array([u.update_ms for u in out['updates']])
-            w, b = ates(out['path']), summary['batch']
+            w = ates(out['path'])
             summary['policies'][policy] = {
-                'window': w, 'refined': ates(out['refined']),
-                'gap_aligned_pct': 100.0 * (w['aligned_rmse_m'] / b['aligned_rmse_m'] - 1.0),
-                'gap_raw_pct': 100.0 * (w['raw_rmse_m'] / b['raw_rmse_m'] - 1.0),
+                'window': w, 'refined': ates(out['refined']), **_gaps_pct(w, summary['batch']),
                 'update_ms': {'p50': float(np.percentile(ms, 50)),
                               'p95': float(np.percentile(ms, 95)), 'max': float(ms.max())},
                 'finish_track_wall_ms_max': float(max(out['wall_ms'])),
@@ -462,6 +463,196 @@ def survey_window(cfg: ReproduceConfig, sc: Scenario, z: FloatArray, cov: FloatA
         summary['per_track_window_mean_m'] = per_track_mean(errors[first], sc.track_ids)
     return AerialResult(summary, errors, fig8, sc.track_ids, paths, T_true, qrep,
                         sc.consecutive)
+
+
+def _batch_solve(net, f2f: FloatArray):
+    """The batch GA of a survey's network from its F2F path (the reference of every gap)."""
+    return solve(net, f2f, SolverConfig(tolerance=1e-7))
+
+
+def _ates(T: FloatArray, T_true: FloatArray) -> dict[str, float]:
+    """ATE (m) raw (first pose anchored), rigidly aligned, and the mean position error."""
+    return {'raw_rmse_m': ate(T, T_true, 'first').rmse,
+            'aligned_rmse_m': ate(T, T_true, 'rigid').rmse,
+            'mean_error_m': float(position_errors(T, T_true).mean())}
+
+
+def _gaps_pct(window: dict[str, float], batch: dict[str, float]) -> dict[str, float]:
+    """Gap to batch (%) of an estimate's ATEs (from :func:`_ates`): ``100 (window / batch - 1)``,
+    raw and rigidly aligned."""
+    return {'gap_aligned_pct': 100.0 * (window['aligned_rmse_m'] / batch['aligned_rmse_m'] - 1),
+            'gap_raw_pct': 100.0 * (window['raw_rmse_m'] / batch['raw_rmse_m'] - 1.0)}
+
+
+def policy_gaps(cfg: ReproduceConfig, sc: Scenario, z: FloatArray,
+                cov: FloatArray) -> dict[str, dict[str, float]]:
+    """Gap to batch (%) at the end of the survey of every policy of ``cfg.policies`` on one
+    noise draw: the measured motions ``z`` (m, 6) with covariances ``cov`` (m, 6, 6) fed track by
+    track into the window (no snapshots, no final refinement), against the batch GA of the same
+    motions. The same numbers as :func:`survey_window`'s ``gap_raw_pct`` / ``gap_aligned_pct``,
+    without the rest of its figures. A policy with the background refinement runs it inline
+    (``'<policy>+inline'``): the same path bit for bit as the other executors (the hand-off
+    depends on track counts only), without a worker process started per draw. Keys per
+    policy: ``raw``, ``aligned`` (%)."""
+    f2f = sc.f2f(z)
+    b = _ates(_batch_solve(sc.network(z, cov), f2f).T_world_node, sc.T_world_node)
+    out = {}
+    for policy in cfg.policies:
+        base, _, executor = policy.partition('+')
+        run_as = f'{base}+inline' if executor else base
+        path = _run_aligner(sc, z, cov, run_as, cfg.window_tracks, set(), f2f,
+                            final_refine=False)['path']
+        g = _gaps_pct(_ates(path, sc.T_world_node), b)
+        out[policy] = {'raw': g['gap_raw_pct'], 'aligned': g['gap_aligned_pct']}
+    return out
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """Paired difference ``d_r = x_r - ref_r`` of two methods on the same ``n`` draws.
+
+    Attributes
+    ----------
+    n : number of draws.
+    mean, sd : mean and sample standard deviation (``ddof=1``; NaN for ``n = 1``) of ``d``,
+        in the unit of ``x`` (here percentage points of gap to batch).
+    ci_low, ci_high : two-sided Student-t confidence interval of the mean difference,
+        ``mean -+ t(1/2 + confidence/2, n - 1) sd / sqrt(n)`` (NaN for ``n = 1``).
+    confidence : level of the interval (0.95: 95 %).
+    """
+
+    n: int
+    mean: float
+    sd: float
+    ci_low: float
+    ci_high: float
+    confidence: float
+
+    @property
+    def worse(self) -> bool:
+        """``x`` is significantly larger than ``ref`` (the whole interval above 0)."""
+        return bool(self.ci_low > 0.0)
+
+    @property
+    def better(self) -> bool:
+        """``x`` is significantly smaller than ``ref`` (the whole interval below 0)."""
+        return bool(self.ci_high < 0.0)
+
+
+def paired_difference(x: FloatArray, ref: FloatArray,
+                      confidence: float = 0.95) -> PairedDifference:
+    """Mean, sd and t confidence interval of ``x - ref`` over paired draws (same noise draw in
+    ``x[r]`` and ``ref[r]``): the draw's own difficulty, shared by both, cancels.
+
+    Parameters
+    ----------
+    x, ref : (n,) finite values of the two methods, draw by draw.
+    confidence : two-sided level of the interval, in (0, 1).
+
+    Raises
+    ------
+    InputError : shapes differ, no draw, a non-finite value, or ``confidence`` outside (0, 1).
+    """
+    from scipy.stats import t as student_t
+
+    x, ref = np.asarray(x, dtype=float), np.asarray(ref, dtype=float)
+    if x.shape != ref.shape or x.ndim != 1 or x.size == 0:
+        raise InputError(f'paired values must be two (n,) arrays, n >= 1; got {x.shape} and '
+                         f'{ref.shape}')
+    if not (np.isfinite(x).all() and np.isfinite(ref).all()):
+        raise InputError('paired values must be finite; drop the failed draws first')
+    if not 0.0 < confidence < 1.0:
+        raise InputError(f'confidence must be in (0, 1), got {confidence}')
+    d = x - ref
+    n = d.size
+    if n < 2:
+        nan = float('nan')
+        return PairedDifference(1, float(d[0]), nan, nan, nan, confidence)
+    sd = float(d.std(ddof=1))
+    half = float(student_t.ppf(0.5 + confidence / 2, n - 1)) * sd / np.sqrt(n)
+    mean = float(d.mean())
+    return PairedDifference(n, mean, sd, mean - half, mean + half, confidence)
+
+
+def policy_statistics(gaps: dict[str, dict[str, list[float]]], reference: str,
+                      confidence: float = 0.95) -> dict:
+    """Multi-draw comparison of freeze policies (issue 15: "no policy worse than weighted").
+
+    Parameters
+    ----------
+    gaps : per policy, ``{'raw': [...], 'aligned': [...]}``: the gap to batch (%) on each noise
+        draw, the draws in the same order for every policy.
+    reference : the policy the others are compared with (a key of ``gaps``).
+    confidence : level of the paired intervals.
+
+    Returns
+    -------
+    JSON-ready dict: ``reference``, ``confidence``, ``n`` (draws), ``policies`` (per policy:
+    ``raw`` / ``aligned`` with the per-draw ``values``, their ``mean`` and ``sd``; and for every
+    policy but the reference ``vs_reference``: per metric the :class:`PairedDifference` fields,
+    ``worse`` and ``better``; ``worse``: either metric significantly worse) and ``worse`` (the
+    policies significantly worse than the reference on either metric).
+    """
+    if reference not in gaps:
+        raise InputError(f'reference policy {reference!r} is not among {sorted(gaps)}')
+    ref = gaps[reference]
+    out: dict = {'reference': reference, 'confidence': confidence,
+                 'n': len(ref['raw']), 'policies': {}, 'worse': []}
+    for policy, g in gaps.items():
+        row: dict = {}
+        for metric in ('raw', 'aligned'):
+            v = np.asarray(g[metric], dtype=float)
+            row[metric] = {'values': v.tolist(), 'mean': float(v.mean()),
+                           'sd': float(v.std(ddof=1)) if v.size > 1 else float('nan')}
+        if policy != reference:
+            vs = {}
+            for metric in ('raw', 'aligned'):
+                d = paired_difference(g[metric], ref[metric], confidence)
+                vs[metric] = {**asdict(d), 'worse': d.worse, 'better': d.better}
+            vs['worse'] = vs['raw']['worse'] or vs['aligned']['worse']
+            row['vs_reference'] = vs
+            if vs['worse']:
+                out['worse'].append(policy)
+        out['policies'][policy] = row
+    return out
+
+
+def policy_seeds(cfg: ReproduceConfig, first: AerialResult | None = None, log=None) -> dict:
+    """The freeze policies on ``cfg.policy_seeds`` independent noise draws of the aerial survey
+    (draw ``r`` from ``run_rng(cfg.seed, EXP_AERIAL, r)``; draw 0 is the one of
+    :func:`aerial_window`, whose gaps are taken from ``first`` when given), with
+    :func:`policy_statistics` against ``'weighted'`` (else the first policy).
+
+    Returns
+    -------
+    JSON-ready dict: ``available`` (False without the window aligner or policies), ``draws``
+    (the ``r`` keys), ``tracks``, ``noise_pct``, ``seconds`` and the keys of
+    :func:`policy_statistics`.
+    """
+    if not window_available() or not cfg.policies:
+        return {'available': False}
+    say = log or (lambda s: None)
+    t0 = time.perf_counter()
+    sc = aerial_scenario(cfg.aerial_tracks, cfg.aerial_positions_per_swath)
+    gaps: dict[str, dict[str, list[float]]] = {p: {'raw': [], 'aligned': []}
+                                               for p in cfg.policies}
+    for r in range(cfg.policy_seeds):
+        if r == 0 and first is not None:
+            pol = {p: {'raw': v['gap_raw_pct'], 'aligned': v['gap_aligned_pct']}
+                   for p, v in first.summary['policies'].items()}
+        else:
+            say(f'  policy comparison: noise draw {r + 1}/{cfg.policy_seeds}')
+            nm = perturb(sc.true_motions(), NoiseModel(cfg.aerial_noise, sc.depth_m),
+                         run_rng(cfg.seed, EXP_AERIAL, r))
+            pol = policy_gaps(cfg, sc, nm.z, nm.cov)
+        for p in cfg.policies:
+            gaps[p]['raw'].append(pol[p]['raw'])
+            gaps[p]['aligned'].append(pol[p]['aligned'])
+    reference = 'weighted' if 'weighted' in cfg.policies else cfg.policies[0]
+    stats = policy_statistics(gaps, reference)
+    return {'available': True, 'draws': list(range(cfg.policy_seeds)),
+            'tracks': cfg.aerial_tracks, 'noise_pct': cfg.aerial_noise,
+            'seconds': time.perf_counter() - t0, **stats}
 
 
 def quality_summary(q: QualityReport, consecutive: BoolArray) -> dict:

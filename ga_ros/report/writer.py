@@ -63,6 +63,11 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
     timings['aerial_s'] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    say(f'policies on {cfg.policy_seeds} noise draws of the aerial survey (draw 0 above)')
+    ps = ex.policy_seeds(cfg, ae, say)
+    timings['policy_seeds_s'] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
     say(f'memory: {cfg.memory_tracks[0]} vs {cfg.memory_tracks[1]} tracks (tracemalloc)')
     mem = ex.memory_profile(cfg)
     timings['memory_s'] = time.perf_counter() - t0
@@ -112,6 +117,7 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
         'future_tracks_positions_only': asdict(ft_lin),
         'aerial': ae.summary,
         'policies': list(cfg.policies),
+        'policy_seeds': ps,
         'quality_control': ae.summary.get('quality'),
         'experiment2': None if exp2 is None else exp2.summary,
         'wrong_connections': outliers,
@@ -161,6 +167,9 @@ def _targets(r: dict) -> str:
     for p, v in a['policies'].items():
         rows.append((f'window K vs batch, aligned-ATE gap < 20 % ({p})',
                      f'{v["gap_aligned_pct"]:.1f} %', v['gap_aligned_pct'] < 20.0))
+    ps = r.get('policy_seeds') or {}
+    if ps.get('available') and len(ps['policies']) > 1:
+        rows.append(policy_target_row(ps))
     u = r['per_track_update_ms']
     if u:
         rows.append(('per-track update p95 < 150 ms', f'{u["p95"]:.1f} ms', u['p95'] < 150.0))
@@ -191,8 +200,102 @@ def _targets(r: dict) -> str:
     if not rows:
         return ''
     out = ['## Targets checked in this run\n', '| target | measured | met |', '|---|---|---|']
-    out += [f'| {t} | {m} | {"yes" if ok else "**no**"} |' for t, m, ok in rows]
+    out += [f'| {t} | {m} | {"n/a" if ok is None else "yes" if ok else "**no**"} |'
+            for t, m, ok in rows]
     return '\n'.join(out) + '\n'
+
+
+def _pm(x: float | None, nd: int = 1) -> str:
+    """A signed figure (``+1.2``), ``-`` when missing or not finite."""
+    return '-' if x is None or not np.isfinite(x) else f'{x:+.{nd}f}'
+
+
+def _interval(d: dict) -> str:
+    """``mean [low, high]`` of a paired difference (``policy_statistics``), one draw: mean."""
+    if d['n'] < 2:
+        return f'{_pm(d["mean"])} (one draw)'
+    return f'{_pm(d["mean"])} [{_pm(d["ci_low"])}, {_pm(d["ci_high"])}]'
+
+
+def policy_target_row(ps: dict) -> tuple[str, str, bool | None]:
+    """The target "no policy worse than weighted" from :func:`ga_ros.report.experiments.
+    policy_seeds`: met when no policy's paired difference of gap to batch (raw or aligned) has
+    its confidence interval entirely above 0; ``None`` (not testable) with a single draw. The
+    measured column gives every policy's mean difference and interval either way."""
+    ref, n = ps['reference'], ps['n']
+    level = f'{100 * ps["confidence"]:g} %'
+    parts = [f'{p}: raw {_interval(v["vs_reference"]["raw"])}, aligned '
+             f'{_interval(v["vs_reference"]["aligned"])} pp'
+             for p, v in ps['policies'].items() if p != ref]
+    label = (f'no policy worse than {ref} (gap difference to {ref} on the same draw, '
+             f'{n} noise draws, mean [{level} CI])')
+    if n < 2:
+        return label, '; '.join(parts), None
+    return label, '; '.join(parts), not ps['worse']
+
+
+def policy_seeds_table(ps: dict) -> list[str]:
+    """Markdown lines: the policies over several noise draws (mean +- sd of the gap to batch,
+    paired difference with the reference and its interval, verdict), the per-draw gaps and how
+    to read them. ``ps`` is :func:`ga_ros.report.experiments.policy_seeds`'s dict (or any dict
+    with the keys of :func:`~ga_ros.report.experiments.policy_statistics` plus ``draws``)."""
+    ref, n = ps['reference'], ps['n']
+    level = f'{100 * ps["confidence"]:g} %'
+    L = [f'| policy | gap raw %, mean +- sd | gap aligned %, mean +- sd | raw - {ref} (pp), '
+         f'mean [{level} CI] | aligned - {ref} (pp), mean [{level} CI] | against {ref} |',
+         '|---|---|---|---|---|---|']
+    for p, v in ps['policies'].items():
+        cells = [f'{_pm(v[m]["mean"])} +- {_f(v[m]["sd"])}' for m in ('raw', 'aligned')]
+        vs = v.get('vs_reference')
+        if vs is None:
+            cells += ['(reference)', '(reference)', '']
+        else:
+            cells += [_interval(vs['raw']), _interval(vs['aligned'])]
+            worse = [m for m in ('raw', 'aligned') if vs[m]['worse']]
+            better = [m for m in ('raw', 'aligned') if vs[m]['better']]
+            if n < 2:
+                verdict = 'one draw: not testable'
+            elif worse:
+                verdict = f'**worse** ({", ".join(worse)})'
+            elif better:
+                verdict = f'better ({", ".join(better)})'
+            else:
+                verdict = 'no significant difference'
+            cells.append(verdict)
+        L.append(f'| {p} | ' + ' | '.join(cells) + ' |')
+    q = f'{50 + 50 * ps["confidence"]:g} %'
+    L += ['', 'How to read it: the sd columns are the spread of a gap from one noise draw to the '
+          'next. Within a draw every policy gets the same measurements, so the difference of a '
+          f"policy's gap and {ref}'s on that draw (pp: percentage points) is free of what makes "
+          f'a draw easy or hard for all of them; its {level} interval is mean -+ t sd / sqrt(n) '
+          f"over the n = {n} draws, t the {q} quantile of Student's t with n - 1 degrees of "
+          f'freedom. A policy is worse than {ref} when its interval lies entirely above 0, '
+          'better when entirely below 0; an interval that contains 0 means that these '
+          f'{n} draws cannot tell the two apart (more draws narrow it as 1 / sqrt(n)).', '',
+          '| draw r | ' + ' | '.join(f'{p} raw / aligned %' for p in ps['policies']) + ' |',
+          '|---|' + '---|' * len(ps['policies'])]
+    for i, r in enumerate(ps['draws']):
+        L.append(f'| {r} | ' + ' | '.join(
+            f'{_pm(v["raw"]["values"][i])} / {_pm(v["aligned"]["values"][i])}'
+            for v in ps['policies'].values()) + ' |')
+    return L
+
+
+def _policy_seeds_markdown(r: dict) -> str:
+    """Section: the freeze policies on several noise draws (below the single-draw ATE table)."""
+    ps = r.get('policy_seeds') or {}
+    if not ps.get('available'):
+        return ''
+    L = [f'### The policies on {ps["n"]} noise draws\n',
+         f'The same survey ({ps["tracks"]} double tracks, {ps["noise_pct"]:g} % noise) on '
+         f'{ps["n"]} independent noise draws (draw r from `run_rng(seed, 4, r)`; r = 0 is the '
+         'table above), each policy run online on every draw and compared with the batch GA of '
+         f'the same draw at the end of the survey ({ps["seconds"]:.0f} s; report.json '
+         '`policy_seeds`). The target "no policy worse than '
+         f'{ps["reference"]}" is met when no interval of the third and fourth columns lies '
+         'entirely above 0.\n']
+    L += policy_seeds_table(ps)
+    return '\n'.join(L) + '\n'
 
 
 def render_markdown(r: dict) -> str:
@@ -356,6 +459,7 @@ def render_markdown(r: dict) -> str:
             f'{100 * (rf["aligned_rmse_m"] / a["batch"]["aligned_rmse_m"] - 1):.1f} | '
             f'{100 * (rf["raw_rmse_m"] / a["batch"]["raw_rmse_m"] - 1):.1f} |')
     add('')
+    add(_policy_seeds_markdown(r))
     if not a['window_available']:
         add('**The track-window aligner (`ga_ros.core.window`) was not available when this report '
             'was generated: the window rows, Fig. 8, the update timings and the memory '

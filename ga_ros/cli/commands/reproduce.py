@@ -25,6 +25,8 @@ def register(subparsers) -> None:
                    help='double tracks of the aerial survey (default 25)')
     p.add_argument('--stereo-tracks', type=int, default=None,
                    help='tracks of experiment 2 from rendered stereo (full: 25; 0 skips it)')
+    p.add_argument('--policy-seeds', type=int, default=None,
+                   help='noise draws on which the freeze policies are compared (full 10, quick 5)')
     p.set_defaults(func=run)
 
 
@@ -44,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
         changes['aerial_tracks'] = args.aerial_tracks
     if args.stereo_tracks is not None:
         changes['stereo_tracks'] = args.stereo_tracks
+    if args.policy_seeds is not None:
+        changes['policy_seeds'] = args.policy_seeds
     if changes:
         cfg = replace(cfg, **changes)
     report = run_reproduction(cfg, args.out, log=lambda s: print(s, file=sys.stderr))
