@@ -484,7 +484,6 @@ class _AheadFreeze:
         self.track, self.res, self.window, self.priors = track, res, window, priors
         self.n_nodes, self.n_conns = n_nodes, n_conns
         self.plan: _FreezePlan | None = None
-        self.error: BaseException | None = None
         self.cpu_ms = 0.0  # CPU time of the worker thread
         self.thread: threading.Thread | None = None
 
@@ -495,8 +494,9 @@ class _AheadFreeze:
         try:
             self.plan = compute(self.track, self.res, self.window, self.priors, self.n_nodes,
                                 self.n_conns)
-        except BaseException as exc:  # noqa: BLE001 - recomputed (and reported) at the update
-            self.error = exc
+        except BaseException:  # noqa: BLE001
+            # no plan: the update computes the freeze itself (and reports an error that recurs)
+            pass
         self.cpu_ms = 1e3 * (time.thread_time() - c0)
 
     def wait(self) -> None:
@@ -1010,8 +1010,7 @@ class TrackWindowAligner:
 
     def _horizon_rows(self, f: int, tracks) -> IntArray:
         """Rows of the connections between nodes ``>= f`` that touch ``tracks`` (sorted)."""
-        rows = np.unique(np.concatenate([np.asarray(self._track_conns.get(t, []), np.int64)
-                                         for t in tracks] or [np.zeros(0, np.int64)]))
+        rows = self._track_connections(tracks)
         return rows[(self._src.a[rows] >= f) & (self._dst.a[rows] >= f)]
 
     def _install_due(self) -> tuple[int, str, float] | None:
@@ -1566,9 +1565,7 @@ class TrackWindowAligner:
         in_L = np.zeros(n, dtype=bool)
         in_L[L] = True
         frozen_after = self._frozen[:n] | in_L
-        track_of = self._trackarr.a
-        conns = np.unique(np.array([k for t in {track_of[i] for i in L}
-                                    for k in self._track_conns.get(t, [])], dtype=np.int64))
+        conns = self._track_connections(np.unique(self._trackarr.a[L]).tolist())
         conns = conns[conns < nc]
         conns = conns[(status0[conns] == 0) & (in_L[src[conns]] | in_L[dst[conns]])]
         if self.config.freeze_policy == 'weighted':
