@@ -40,9 +40,9 @@ def test_solve_runs_inside_the_thread_limit(monkeypatch):
     seen = []
     real = solver._iterate
 
-    def spy(prob, T):
+    def spy(prob, T, **kwargs):
         seen.append(_blas_threads())
-        return real(prob, T)
+        return real(prob, T, **kwargs)
 
     monkeypatch.setattr(solver, '_iterate', spy)
     net = ConnectionNetwork()

@@ -444,9 +444,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     if factor is not None and factor.pattern.key == prob.pattern.key:
         prob.factor = factor
     with blas_threads():
-        out = (_iterate(prob, T0.copy()) if factor_at_solution
-               else _iterate(prob, T0.copy(), keep_values=True))
-    return _finish(prob, node_ids, out, t0, factor_at_solution)
+        out = _iterate(prob, T0.copy(), keep_values=not factor_at_solution)
+    return _finish(prob, node_ids, out, t0)
 
 
 @dataclass
@@ -597,11 +596,10 @@ def _chord_kept(predicted: float, cost_before: float, cost: float) -> bool:
     return cost_before - cost >= 0.25 * predicted - 1e-9 * abs(cost_before)
 
 
-def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float,
-            factor_at_solution: bool = True) -> SolveResult:
+def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> SolveResult:
     """Final linearisation at the solution: residuals, variance factor, ``N`` (eq. 17); the
-    covariances from the iteration's last factor when ``factor_at_solution`` is off
-    (:func:`solve`)."""
+    covariances from the iteration's last factor when it kept that factor's values
+    (:func:`solve`'s ``factor_at_solution=False``)."""
     T = out.T
     d, conn = prob.d, prob.conn
     n_free = int(prob.free.sum())
@@ -636,8 +634,8 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float,
         v6 = np.zeros_like(conn.z)
         v6[:, se2.AXES] = v
         v = v6
-    last = (not factor_at_solution and out.chol is not None and out.factorisations > 0
-            and np.isfinite(out.since_factor) and out.factored is not None)
+    # kept only by undamped iterations asked to (keep_values), at their last factorisation
+    last = out.factored is not None
     if last:  # N as factored: covariances, normal matrix and priors of one matrix
         data = out.factored
     system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol,
