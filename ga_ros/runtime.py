@@ -175,8 +175,7 @@ def blas_threads(n: int | None = None) -> Iterator[None]:
     The libraries are inspected once per process (:func:`_blas_controller`), so entering the
     context costs microseconds and can wrap every solve.
     """
-    with _blas_controller().limit(limits=default_blas_threads() if n is None else max(1, int(n)),
-                                  user_api='blas'):
+    with limit_blas_threads(n):
         yield
 
 
