@@ -211,6 +211,43 @@ def test_edges_written_as_read_equal_the_ones_formatted_from_the_arrays(tmp_path
     np.testing.assert_array_equal(written['arrays'].edge_param, g.edge_param)
 
 
+def test_changed_edges_are_written_from_the_arrays(tmp_path, rng):
+    """The edge records read are written back only for the very arrays read with them: a graph
+    with another information (dataclasses.replace) or one edited in place is written from its
+    arrays, and the read ids, ends and motions cannot be edited in place."""
+    import dataclasses
+
+    lines, _ = _random_graph_3d(rng, n=6, extra=3)
+    g = read_g2o(_write(tmp_path, lines))
+    assert g.edges_as_read() and g.with_initial_guess(g.T_init).edges_as_read()
+    for a in (g.vertex_ids, g.edge_src, g.edge_dst, g.T_meas):
+        with pytest.raises(ValueError):
+            a[0] = a[1]
+    doubled = dataclasses.replace(g, information=2 * g.information)
+    edited = read_g2o(tmp_path / 'g.g2o')
+    edited.information[2] *= 3.0
+    for name, graph, want in (('doubled', doubled, 2 * g.information),
+                              ('edited', edited, edited.information)):
+        assert not graph.edges_as_read()
+        write_g2o(tmp_path / f'{name}.g2o', graph)
+        np.testing.assert_allclose(read_g2o(tmp_path / f'{name}.g2o').information, want,
+                                   rtol=1e-12)
+
+
+def test_ill_conditioned_information_is_refused_with_its_line(tmp_path):
+    """An information matrix so ill-conditioned that its covariance is not positive definite
+    (the network's rule) is refused naming its file and line, strict or not."""
+    # ones(6, 6) + 3e-12 I: positive definite by the information's own rule (smallest
+    # eigenvalue 3e-12 above 1e-12 of the largest entry), but its inverse's smallest eigenvalue
+    # 1 / 6 is below 1e-12 of the inverse's largest entry (~1 / 3e-12)
+    info = ' '.join(' '.join(['1.000000000003'] + ['1'] * (5 - r)) for r in range(6))
+    lines = ['VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1', 'VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1',
+             f'EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO3}', f'EDGE_SE3:QUAT 1 0 -1 0 0 0 0 0 1 {info}']
+    for strict in (False, True):
+        with pytest.raises(FormatError, match=r'g\.g2o:4.*ill-conditioned'):
+            read_g2o(_write(tmp_path, lines), strict=strict)
+
+
 def test_repaired_edges_are_written_from_the_arrays(tmp_path):
     """An edge whose information was repaired is written repaired (no verbatim edge lines)."""
     bad = '1 0 0 -1 0 1'  # indefinite

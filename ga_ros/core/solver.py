@@ -253,7 +253,7 @@ class _NormalSystem:
         self._chol = chol
         self._factored = factored and chol is not None  # chol's numeric factor is N's
         self.coords: FloatArray | None = None  # (u, 3) positions of the free nodes, for ordering
-        self._index = {int(i): k for k, i in enumerate(node_ids)}
+        self._index: dict[int, int] | None = None  # node id -> index, built on first use
 
     @property
     def data(self) -> FloatArray:
@@ -263,6 +263,8 @@ class _NormalSystem:
         return self._data
 
     def index_of(self, ids: IntArray) -> IntArray:
+        if self._index is None:  # not for a solve whose covariances nobody asks for (~1 ms)
+            self._index = {int(i): k for k, i in enumerate(self.node_ids)}
         try:
             return np.array([self._index[int(i)] for i in ids], dtype=np.int64)
         except KeyError as exc:
@@ -975,24 +977,13 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
         w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         del nb
-    else:
-        bt = models.between(model, T, conn.src, conn.dst, T_meas, Tm_inv)
-        w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
-        del bt
-        maha2 = _maha2(w, P)
+    else:  # se2, in columns: columns.planar_normal_blocks
+        robust = None if cfg.robust_loss == 'none' else (
+            lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
+        nb = columns.planar_normal_blocks(T, conn.src, conn.dst, T_meas, P, robust, extra)
+        w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-        Wm = P if cfg.robust_loss == 'none' else P * weights[:, None, None]
-        JT = np.swapaxes(J, 1, 2)
-        blocks = np.empty((4 * m + extra, d, d))
-        H = np.matmul(JT, Wm @ J, out=blocks[3 * m:4 * m])
-        gj = (JT @ (Wm @ w[:, :, None]))[:, :, 0]
-        del J, JT
-        AdT = np.swapaxes(Ad, 1, 2)
-        HAd = np.matmul(H, Ad, out=blocks[2 * m:3 * m])
-        np.matmul(AdT, HAd, out=blocks[:m])
-        np.negative(np.swapaxes(HAd, 1, 2), out=blocks[m:2 * m])
-        np.negative(HAd, out=HAd)
-        gi = -(AdT @ gj[:, :, None])[:, :, 0]
+        del nb
     _scatter_gradient(u, col[conn.src], gi)
     _scatter_gradient(u, col[conn.dst], gj)
     k = 4 * m
