@@ -378,7 +378,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         aligner): the one-off cost of loading them is paid once. Default: only once a solve
         has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
     weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
-        (se3 only; e.g. kept from the previous window update): not inverted again.
+        (se3; e.g. kept from the previous window update), or (m, 3, 3) those of their
+        ``[x y rz]`` blocks (se2; a 2-D g2o file's information): not inverted again.
     factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
         if its pattern is this problem's, its symbolic analysis is reused (a window update
         solves the same pattern every track).
@@ -439,8 +440,10 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     free[fixed_idx] = False
     if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
-    if weights is not None and (model != 'se3' or np.shape(weights) != conn.cov.shape):
-        raise InputError(f'weights must be (m, 6, 6) for the se3 model, got {np.shape(weights)}')
+    want = {'se3': (len(conn), 6, 6), 'se2': (len(conn), 3, 3)}.get(model)
+    if weights is not None and np.shape(weights) != want:
+        raise InputError(f'weights must be {want} for the {model} model, got '
+                         f'{np.shape(weights)}' if want else 'weights only for se3 and se2')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights)
     prob.jit = bool(jit)
     if factor is not None and factor.pattern.key == prob.pattern.key:
@@ -562,9 +565,10 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 break
             T, v = step.T, step.v
         last_step = step.step
-        history.append(step.cost if cfg.damping == 'none' else
-                       _adjustment_cost(v, prob.P, sysd.weights)
-                       + _prior_cost(prob.model, T, prob.prior_data))
+        # without a robust loss a damped step's cost (the motion models': at T) is this sum
+        history.append(step.cost if cfg.damping == 'none' or (
+            prob.Pf is not None and cfg.robust_loss == 'none') else
+            _adjustment_cost(v, prob.P, sysd.weights) + _prior_cost(prob.model, T, prob.prior_data))
         state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
                        and state.cost > 0
                        and state.cost - step.cost < cfg.chord_decrease * state.cost)

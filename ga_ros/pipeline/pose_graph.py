@@ -158,7 +158,8 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,
 
     first = cfg.solver_config(dim=graph.dim)
     # the file's information is the weight matrix: not inverted back from the covariances
-    weights = graph.information if first.model == 'se3' and graph.dim == 3 else None
+    weights = (graph.information if (first.model, graph.dim) in (('se3', 3), ('se2', 2))
+               else None)
     t = time.perf_counter()
     res = solve(graph.network, graph.T_init, first, fixed=fixed, weights=weights)
     seconds = time.perf_counter() - t
