@@ -242,7 +242,8 @@ def test_ill_conditioned_information_is_refused_with_its_line(tmp_path):
     # 1 / 6 is below 1e-12 of the inverse's largest entry (~1 / 3e-12)
     info = ' '.join(' '.join(['1.000000000003'] + ['1'] * (5 - r)) for r in range(6))
     lines = ['VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1', 'VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1',
-             f'EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO3}', f'EDGE_SE3:QUAT 1 0 -1 0 0 0 0 0 1 {info}']
+             f'EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO3}',
+             f'EDGE_SE3:QUAT 1 0 -1 0 0 0 0 0 1 {info}']
     for strict in (False, True):
         with pytest.raises(FormatError, match=r'g\.g2o:4.*ill-conditioned'):
             read_g2o(_write(tmp_path, lines), strict=strict)

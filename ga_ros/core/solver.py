@@ -566,9 +566,9 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
             T, v = step.T, step.v
         last_step = step.step
         # without a robust loss a damped step's cost (the motion models': at T) is this sum
-        history.append(step.cost if cfg.damping == 'none' or (
-            prob.Pf is not None and cfg.robust_loss == 'none') else
-            _adjustment_cost(v, prob.P, sysd.weights) + _prior_cost(prob.model, T, prob.prior_data))
+        plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
+        history.append(step.cost if plain else _adjustment_cost(v, prob.P, sysd.weights)
+                       + _prior_cost(prob.model, T, prob.prior_data))
         state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
                        and state.cost > 0
                        and state.cost - step.cost < cfg.chord_decrease * state.cost)
