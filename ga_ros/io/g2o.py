@@ -551,10 +551,11 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
 
 
 def _checksum(information: FloatArray) -> tuple[float, float]:
-    """Sum and position-weighted sum of the entries (~0.2 ms for 6,000 edges): an edit in
-    place of a read graph's information changes them (:meth:`PoseGraph.edges_as_read`)."""
+    """Sum of squares and lag-one sum of products of the entries (two BLAS dot products, ~0.1
+    ms for 6,000 edges): an edit in place of a read graph's information (a changed value, two
+    values swapped) changes them (:meth:`PoseGraph.edges_as_read`)."""
     flat = information.reshape(-1)
-    return float(flat.sum()), float(flat @ np.arange(flat.size, dtype=float))
+    return float(flat @ flat), float(flat[1:] @ flat[:-1])
 
 
 def _apply_offsets(T: FloatArray, info: FloatArray, param: IntArray,
