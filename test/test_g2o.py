@@ -346,3 +346,25 @@ def test_fix_lines_set_the_datum(tmp_path, pose_graph_dir):
     np.testing.assert_allclose(res.T_world_node[4], g.T_init[4], atol=1e-12)
     assert np.abs(res.T_world_node[0] - g.T_init[0]).max() > 1e-3
     assert res.cost == pytest.approx(OPTIMUM['tinyGrid3D'], rel=1e-3)  # gauge-free optimum
+
+
+def test_2d_solve_with_the_files_information_as_weights(tmp_path, rng):
+    """A 2-D graph solved with its file's 3x3 information as the weights (what solve_graph
+    passes) reaches the solve that inverts the covariances back; a wrong shape is refused."""
+    from ga_ros.core.solver import solve
+    from ga_ros.errors import InputError
+
+    n = 30
+    lines = [f'VERTEX_SE2 {k} {np.cos(k / 5) * 5 + rng.normal(0, 0.1):.6f} '
+             f'{np.sin(k / 5) * 5 + rng.normal(0, 0.1):.6f} {k / 5 + 1.6:.6f}' for k in range(n)]
+    lines += [f'EDGE_SE2 {k} {(k + 1) % n} {2 * 5 * np.sin(0.1):.6f} 0 0.2 100 10 0 200 0 900'
+              for k in range(n)]
+    g = read_g2o(_write(tmp_path, lines))
+    cfg = GraphSolveConfig().solver_config(dim=2)
+    given = solve(g.network, g.T_init, cfg, weights=g.information)
+    inverted = solve(g.network, g.T_init, cfg)
+    assert given.iterations == inverted.iterations
+    np.testing.assert_allclose(given.T_world_node, inverted.T_world_node, rtol=0, atol=1e-9)
+    assert given.cost == pytest.approx(inverted.cost, rel=1e-9)
+    with pytest.raises(InputError, match=r'\(30, 3, 3\) for the se2 model'):
+        solve(g.network, g.T_init, cfg, weights=np.broadcast_to(np.eye(6), (n, 6, 6)))
