@@ -211,6 +211,44 @@ def test_edges_written_as_read_equal_the_ones_formatted_from_the_arrays(tmp_path
     np.testing.assert_array_equal(written['arrays'].edge_param, g.edge_param)
 
 
+def test_changed_edges_are_written_from_the_arrays(tmp_path, rng):
+    """The edge records read are written back only for the very arrays read with them: a graph
+    with another information (dataclasses.replace) or one edited in place is written from its
+    arrays, and the read ids, ends and motions cannot be edited in place."""
+    import dataclasses
+
+    lines, _ = _random_graph_3d(rng, n=6, extra=3)
+    g = read_g2o(_write(tmp_path, lines))
+    assert g.edges_as_read() and g.with_initial_guess(g.T_init).edges_as_read()
+    for a in (g.vertex_ids, g.edge_src, g.edge_dst, g.T_meas):
+        with pytest.raises(ValueError):
+            a[0] = a[1]
+    doubled = dataclasses.replace(g, information=2 * g.information)
+    edited = read_g2o(tmp_path / 'g.g2o')
+    edited.information[2] *= 3.0
+    for name, graph, want in (('doubled', doubled, 2 * g.information),
+                              ('edited', edited, edited.information)):
+        assert not graph.edges_as_read()
+        write_g2o(tmp_path / f'{name}.g2o', graph)
+        np.testing.assert_allclose(read_g2o(tmp_path / f'{name}.g2o').information, want,
+                                   rtol=1e-12)
+
+
+def test_ill_conditioned_information_is_refused_with_its_line(tmp_path):
+    """An information matrix so ill-conditioned that its covariance is not positive definite
+    (the network's rule) is refused naming its file and line, strict or not."""
+    # ones(6, 6) + 3e-12 I: positive definite by the information's own rule (smallest
+    # eigenvalue 3e-12 above 1e-12 of the largest entry), but its inverse's smallest eigenvalue
+    # 1 / 6 is below 1e-12 of the inverse's largest entry (~1 / 3e-12)
+    info = ' '.join(' '.join(['1.000000000003'] + ['1'] * (5 - r)) for r in range(6))
+    lines = ['VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1', 'VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1',
+             f'EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {INFO3}',
+             f'EDGE_SE3:QUAT 1 0 -1 0 0 0 0 0 1 {info}']
+    for strict in (False, True):
+        with pytest.raises(FormatError, match=r'g\.g2o:4.*ill-conditioned'):
+            read_g2o(_write(tmp_path, lines), strict=strict)
+
+
 def test_repaired_edges_are_written_from_the_arrays(tmp_path):
     """An edge whose information was repaired is written repaired (no verbatim edge lines)."""
     bad = '1 0 0 -1 0 1'  # indefinite
@@ -308,3 +346,25 @@ def test_fix_lines_set_the_datum(tmp_path, pose_graph_dir):
     np.testing.assert_allclose(res.T_world_node[4], g.T_init[4], atol=1e-12)
     assert np.abs(res.T_world_node[0] - g.T_init[0]).max() > 1e-3
     assert res.cost == pytest.approx(OPTIMUM['tinyGrid3D'], rel=1e-3)  # gauge-free optimum
+
+
+def test_2d_solve_with_the_files_information_as_weights(tmp_path, rng):
+    """A 2-D graph solved with its file's 3x3 information as the weights (what solve_graph
+    passes) reaches the solve that inverts the covariances back; a wrong shape is refused."""
+    from ga_ros.core.solver import solve
+    from ga_ros.errors import InputError
+
+    n = 30
+    lines = [f'VERTEX_SE2 {k} {np.cos(k / 5) * 5 + rng.normal(0, 0.1):.6f} '
+             f'{np.sin(k / 5) * 5 + rng.normal(0, 0.1):.6f} {k / 5 + 1.6:.6f}' for k in range(n)]
+    lines += [f'EDGE_SE2 {k} {(k + 1) % n} {2 * 5 * np.sin(0.1):.6f} 0 0.2 100 10 0 200 0 900'
+              for k in range(n)]
+    g = read_g2o(_write(tmp_path, lines))
+    cfg = GraphSolveConfig().solver_config(dim=2)
+    given = solve(g.network, g.T_init, cfg, weights=g.information)
+    inverted = solve(g.network, g.T_init, cfg)
+    assert given.iterations == inverted.iterations
+    np.testing.assert_allclose(given.T_world_node, inverted.T_world_node, rtol=0, atol=1e-9)
+    assert given.cost == pytest.approx(inverted.cost, rel=1e-9)
+    with pytest.raises(InputError, match=r'\(30, 3, 3\) for the se2 model'):
+        solve(g.network, g.T_init, cfg, weights=np.broadcast_to(np.eye(6), (n, 6, 6)))

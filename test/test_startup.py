@@ -15,10 +15,12 @@ from scipy.sparse.csgraph import connected_components
 from ga_ros import runtime
 from ga_ros.core.network import component_labels
 
-#: SciPy modules a batch solve of a g2o file does not need (~0.3 s of start-up together).
+#: Modules a batch solve of a g2o file does not need (the SciPy ones ~0.3 s of start-up).
 UNUSED = ('scipy.linalg', 'scipy.sparse.linalg', 'scipy.sparse.csgraph', 'scipy.spatial',
           'scipy.special', 'scipy.stats', 'scipy.sparse._base', 'numba', 'numpy.testing',
-          'numpy.f2py')
+          'numpy.f2py',
+          # nor these modules of its own path's other options (a few ms each)
+          'numpy.char', 'ga_ros.io.trajectory', 'ga_ros.core.measurement')
 
 
 def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:

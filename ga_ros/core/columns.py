@@ -325,3 +325,113 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
     blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
     Vj.product(Vj, blocks[3 * m:4 * m])
     return NormalBlocks(e, blocks, Vi.gradient(r1, r2), Vj.gradient(r1, r2), maha2)
+
+
+# ------------------------------------------------------------------------------------- se2
+def _planar_sqrt_weights(P: FloatArray) -> FloatArray:
+    """Upper-triangular ``U`` with ``P = U' U`` of ``(m, 3, 3)`` symmetric positive-definite
+    weights, as columns ``(3, 3, m)`` (the closed-form 3x3 Cholesky: a few ``m``-long rows)."""
+    p = np.ascontiguousarray(P.reshape(-1, 9).T)  # row k: entry (k // 3, k % 3) of every P
+    U = np.zeros((3, 3, P.shape[0]))
+    U[0, 0] = np.sqrt(p[0])
+    U[0, 1] = p[1] / U[0, 0]
+    U[0, 2] = p[2] / U[0, 0]
+    U[1, 1] = np.sqrt(p[4] - U[0, 1] * U[0, 1])
+    U[1, 2] = (p[5] - U[0, 1] * U[0, 2]) / U[1, 1]
+    U[2, 2] = np.sqrt(p[8] - U[0, 2] * U[0, 2] - U[1, 2] * U[1, 2])
+    return U
+
+
+def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
+                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
+    """The ``se2`` counterpart of :func:`normal_blocks`: Gauss-Newton blocks of
+    ``sum_k rho(e_k' P_k e_k)``, ``e = log(T_meas^-1 T_i^-1 T_j)`` ``[rho_x, rho_y, theta]``.
+
+    The same algebra as :func:`ga_ros.core.models.between` for ``se2`` (a test compares the
+    two): ``de/dd_j = J = J_r(e)^-1``, ``de/dd_i = -J Ad(T_ij^-1)``, every ``3 x 3`` matrix a
+    column stack ``(3, 3, m)`` and the blocks products of the whitened Jacobians ``V = U J``
+    (``P = U' U``).
+
+    Parameters
+    ----------
+    T : (n, 4, 4) planar node poses ``T_world_node``.
+    src, dst : (m,) node indices.
+    T_meas : (m, 4, 4) planar measured motions ``T_i_j``.
+    P : (m, 3, 3) weights (inverse covariances, ``[x y rz]`` order).
+    robust, extra_blocks : as :func:`normal_blocks`.
+
+    Returns
+    -------
+    :class:`NormalBlocks` with ``(4 m + extra_blocks, 3, 3)`` blocks and ``(m, 3)`` gradients.
+    """
+    from ga_ros.geometry import se2  # lazy: se3 problems never need it
+
+    nodes = se2.Planar.from_matrix(T)
+    T_ij = nodes.take(src).inverse().compose(nodes.take(dst))
+    e = se2.Planar.from_matrix(T_meas).inverse().compose(T_ij).log()
+    m = e.shape[0]
+    ec = np.ascontiguousarray(e.T)  # (3, m)
+    J = se2.right_jacobian_inv_columns(e)  # (3, 3, m)
+    inv = T_ij.inverse()
+    Ad = np.zeros((3, 3, m))  # Ad(T_ij^-1) = [[R, [y, -x]'], [0, 1]] of T_ij^-1 (se2.adjoint)
+    Ad[0, 0], Ad[0, 1], Ad[0, 2] = inv.c, -inv.s, inv.y
+    Ad[1, 0], Ad[1, 1], Ad[1, 2] = inv.s, inv.c, -inv.x
+    Ad[2, 2] = 1.0
+    U = _planar_sqrt_weights(P)
+    Vj = _mm3(U, J)
+    Vi = _mm3(Vj, Ad)
+    np.negative(Vi, out=Vi)
+    r = _mv3(U, ec)  # U e
+    maha2 = (r * r).sum(axis=0)
+    if robust is not None:
+        sw = np.sqrt(robust(maha2))
+        Vi *= sw
+        Vj *= sw
+        r = r * sw
+    blocks = np.empty((4 * m + extra_blocks, 3, 3))
+    blocks[:m] = _mtm3(Vi, Vi).transpose(2, 0, 1)
+    blocks[2 * m:3 * m] = _mtm3(Vj, Vi).transpose(2, 0, 1)
+    blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
+    blocks[3 * m:4 * m] = _mtm3(Vj, Vj).transpose(2, 0, 1)
+    return NormalBlocks(e, blocks, np.ascontiguousarray(_mtv3(Vi, r).T),
+                        np.ascontiguousarray(_mtv3(Vj, r).T), maha2)
+
+
+# ------------------------------------------------------------------------------ retraction
+def retract(T: FloatArray, xi: FloatArray) -> FloatArray:
+    """``T @ exp(xi)`` of ``(k, 4, 4)`` poses and ``(k, 6)`` increments ``[rho, phi]``: the
+    same result as :func:`ga_ros.geometry.se3.retract` (a test compares them), in columns.
+
+    ``exp(xi) = (R_d, t_d)`` with ``R_d = I + a W + b W^2``, ``t_d = (I + b W + c W^2) rho``
+    (``W = [phi]x``, ``W^2 v = phi (phi.v) - |phi|^2 v``; :func:`ga_ros.geometry.so3._coeffs`),
+    then ``R = R_T R_d``, ``t = R_T t_d + t_T`` and one Bjorck step ``R (3 I - R'R) / 2`` (with
+    the SVD projection of :func:`~ga_ros.geometry.se3.retract` where it is needed).
+    """
+    T = np.asarray(T, dtype=float)
+    xi = np.asarray(xi, dtype=float)
+    k = T.shape[0]
+    _, a, b, c = so3._coeffs(xi[:, 3:])
+    w = np.ascontiguousarray(xi[:, 3:].T)
+    r = np.ascontiguousarray(xi[:, :3].T)
+    t2 = (w * w).sum(axis=0)
+    Rd = a * _hat(w) + b * _outer(w, w)
+    for i in range(3):
+        Rd[i, i] += 1.0 - b * t2
+    td = r + b * _cross(w, r) + c * (w * (w * r).sum(axis=0) - t2 * r)
+    RT = np.ascontiguousarray(T[:, :3, :3].transpose(1, 2, 0))
+    R = _mm3(RT, Rd)
+    out = np.empty_like(T)
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    out[:, :3, 3] = (_mv3(RT, td) + T[:, :3, 3].T).T
+    RtR = _mtm3(R, R)
+    for i in range(3):
+        RtR[i, i] -= 1.0
+    before = np.abs(RtR).reshape(9, k).max(axis=0)
+    R -= 0.5 * _mm3(R, RtR)  # R (3 I - R'R) / 2 = R - R (R'R - I) / 2
+    Rk = R.transpose(2, 0, 1)
+    if np.any(before > 1e-6):
+        dev = np.abs(np.swapaxes(Rk, -1, -2) @ Rk - np.eye(3)).max(axis=(-2, -1))
+        if np.any(dev > 1e-10):
+            Rk = so3.project(Rk)
+    out[:, :3, :3] = Rk
+    return out

@@ -28,13 +28,16 @@ PD_TOLERANCE = 1e-12
 CLIP_FLOOR = 1e-6
 
 
-def not_positive_definite(matrices: FloatArray, tol: float = PD_TOLERANCE) -> BoolArray:
+def not_positive_definite(matrices: FloatArray, tol: float = PD_TOLERANCE,
+                          eigenvalues: FloatArray | None = None) -> BoolArray:
     """Which symmetric matrices of a stack are not (numerically) positive definite.
 
     Parameters
     ----------
     matrices : (k, d, d) symmetric matrices (only the lower triangle is read, as by ``eigvalsh``).
     tol : a matrix is flagged when its smallest eigenvalue is ``<= tol * max|entry|``.
+    eigenvalues : (k, d) their eigenvalues in ascending order (``np.linalg.eigvalsh``), when the
+        caller has them for another check too (finite matrices only); computed here otherwise.
 
     Returns
     -------
@@ -43,6 +46,8 @@ def not_positive_definite(matrices: FloatArray, tol: float = PD_TOLERANCE) -> Bo
     A = np.asarray(matrices, dtype=float)
     if A.ndim != 3 or A.shape[1] != A.shape[2]:
         raise InputError(f'expected a (k, d, d) stack of square matrices, got shape {A.shape}')
+    if eigenvalues is not None:
+        return eigenvalues[:, 0] <= tol * np.maximum(np.abs(A).max(axis=(1, 2)), 1e-300)
     bad = ~np.isfinite(A).all(axis=(1, 2))
     out = bad.copy()
     ok = ~bad

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import columns
 from ga_ros.errors import InputError
 from ga_ros.geometry import se2, se3, so3
 
@@ -216,7 +217,7 @@ def retract(model: str, T: FloatArray, idx: IntArray, d: FloatArray) -> FloatArr
     """Apply increments ``d`` (k, dof) to nodes ``idx``: ``T exp(d)`` (se3, se2) or ``p + d``."""
     out = T.copy()
     if model == 'se3':
-        out[idx] = se3.retract(T[idx], d)
+        out[idx] = columns.retract(T[idx], d)  # se3.retract, in columns (~4x faster)
     elif model == 'se2':
         out[idx] = se2.retract(T[idx], d)
     else:

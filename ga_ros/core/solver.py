@@ -253,7 +253,7 @@ class _NormalSystem:
         self._chol = chol
         self._factored = factored and chol is not None  # chol's numeric factor is N's
         self.coords: FloatArray | None = None  # (u, 3) positions of the free nodes, for ordering
-        self._index = {int(i): k for k, i in enumerate(node_ids)}
+        self._index: dict[int, int] | None = None  # node id -> index, built on first use
 
     @property
     def data(self) -> FloatArray:
@@ -263,6 +263,8 @@ class _NormalSystem:
         return self._data
 
     def index_of(self, ids: IntArray) -> IntArray:
+        if self._index is None:  # not for a solve whose covariances nobody asks for (~1 ms)
+            self._index = {int(i): k for k, i in enumerate(self.node_ids)}
         try:
             return np.array([self._index[int(i)] for i in ids], dtype=np.int64)
         except KeyError as exc:
@@ -376,7 +378,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         aligner): the one-off cost of loading them is paid once. Default: only once a solve
         has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
     weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
-        (se3 only; e.g. kept from the previous window update): not inverted again.
+        (se3; e.g. kept from the previous window update), or (m, 3, 3) those of their
+        ``[x y rz]`` blocks (se2; a 2-D g2o file's information): not inverted again.
     factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
         if its pattern is this problem's, its symbolic analysis is reused (a window update
         solves the same pattern every track).
@@ -437,8 +440,10 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     free[fixed_idx] = False
     if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
-    if weights is not None and (model != 'se3' or np.shape(weights) != conn.cov.shape):
-        raise InputError(f'weights must be (m, 6, 6) for the se3 model, got {np.shape(weights)}')
+    want = {'se3': (len(conn), 6, 6), 'se2': (len(conn), 3, 3)}.get(model)
+    if weights is not None and np.shape(weights) != want:
+        raise InputError(f'weights must be {want} for the {model} model, got '
+                         f'{np.shape(weights)}' if want else 'weights only for se3 and se2')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights)
     prob.jit = bool(jit)
     if factor is not None and factor.pattern.key == prob.pattern.key:
@@ -560,8 +565,9 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 break
             T, v = step.T, step.v
         last_step = step.step
-        history.append(step.cost if cfg.damping == 'none' else
-                       _adjustment_cost(v, prob.P, sysd.weights)
+        # without a robust loss a damped step's cost (the motion models': at T) is this sum
+        plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
+        history.append(step.cost if plain else _adjustment_cost(v, prob.P, sysd.weights)
                        + _prior_cost(prob.model, T, prob.prior_data))
         state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
                        and state.cost > 0
@@ -975,24 +981,13 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
         w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         del nb
-    else:
-        bt = models.between(model, T, conn.src, conn.dst, T_meas, Tm_inv)
-        w, J, Ad = bt.e, bt.Jr_inv, bt.Ad_ji
-        del bt
-        maha2 = _maha2(w, P)
+    else:  # se2, in columns: columns.planar_normal_blocks
+        robust = None if cfg.robust_loss == 'none' else (
+            lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
+        nb = columns.planar_normal_blocks(T, conn.src, conn.dst, T_meas, P, robust, extra)
+        w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-        Wm = P if cfg.robust_loss == 'none' else P * weights[:, None, None]
-        JT = np.swapaxes(J, 1, 2)
-        blocks = np.empty((4 * m + extra, d, d))
-        H = np.matmul(JT, Wm @ J, out=blocks[3 * m:4 * m])
-        gj = (JT @ (Wm @ w[:, :, None]))[:, :, 0]
-        del J, JT
-        AdT = np.swapaxes(Ad, 1, 2)
-        HAd = np.matmul(H, Ad, out=blocks[2 * m:3 * m])
-        np.matmul(AdT, HAd, out=blocks[:m])
-        np.negative(np.swapaxes(HAd, 1, 2), out=blocks[m:2 * m])
-        np.negative(HAd, out=HAd)
-        gi = -(AdT @ gj[:, :, None])[:, :, 0]
+        del nb
     _scatter_gradient(u, col[conn.src], gi)
     _scatter_gradient(u, col[conn.dst], gj)
     k = 4 * m

@@ -87,23 +87,28 @@ def _v_inverse_coefficients(theta: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 def exp(xi: FloatArray) -> FloatArray:
     """``[rho_x, rho_y, theta] -> (..., 4, 4)`` planar pose (Sola eq. 156)."""
+    P = _exp_planar(xi)
+    out = np.zeros(np.shape(P.x) + (4, 4))
+    out[..., 0, 0] = P.c
+    out[..., 0, 1] = -P.s
+    out[..., 1, 0] = P.s
+    out[..., 1, 1] = P.c
+    out[..., 2, 2] = 1.0
+    out[..., 3, 3] = 1.0
+    out[..., 0, 3] = P.x
+    out[..., 1, 3] = P.y
+    return out
+
+
+def _exp_planar(xi: FloatArray) -> Planar:
+    """:func:`exp` as components."""
     xi = np.asarray(xi, dtype=float)
     rx, ry, t = xi[..., 0], xi[..., 1], xi[..., 2]
     small = np.abs(t) < _SMALL
     ts = np.where(small, 1.0, t)
     sa = np.where(small, 1.0 - t * t / 6.0, np.sin(ts) / ts)      # sin t / t
     cb = np.where(small, 0.5 * t - t ** 3 / 24.0, (1.0 - np.cos(ts)) / ts)  # (1 - cos t) / t
-    out = np.zeros(xi.shape[:-1] + (4, 4))
-    c, s = np.cos(t), np.sin(t)
-    out[..., 0, 0] = c
-    out[..., 0, 1] = -s
-    out[..., 1, 0] = s
-    out[..., 1, 1] = c
-    out[..., 2, 2] = 1.0
-    out[..., 3, 3] = 1.0
-    out[..., 0, 3] = sa * rx - cb * ry
-    out[..., 1, 3] = cb * rx + sa * ry
-    return out
+    return Planar(sa * rx - cb * ry, cb * rx + sa * ry, np.cos(t), np.sin(t))
 
 
 def adjoint(P: Planar) -> FloatArray:
@@ -130,7 +135,24 @@ def right_jacobian_inv(xi: FloatArray) -> FloatArray:
     ``(1 - cos t)/t^2``.
     """
     xi = np.asarray(xi, dtype=float)
-    rx, ry, t = xi[..., 0], xi[..., 1], xi[..., 2]
+    out = np.zeros(xi.shape[:-1] + (3, 3))
+    _fill_right_jacobian_inv(out, xi[..., 0], xi[..., 1], xi[..., 2], -2, -1)
+    return out
+
+
+def right_jacobian_inv_columns(xi: FloatArray) -> FloatArray:
+    """:func:`right_jacobian_inv` of ``(m, 3)`` tangents as columns ``(3, 3, m)`` (entry
+    ``[r, c]`` a contiguous ``m``-long row, for column-wise products)."""
+    xi = np.asarray(xi, dtype=float)
+    out = np.zeros((3, 3) + xi.shape[:-1])
+    _fill_right_jacobian_inv(out, xi[..., 0], xi[..., 1], xi[..., 2], 0, 1)
+    return out
+
+
+def _fill_right_jacobian_inv(out: FloatArray, rx: FloatArray, ry: FloatArray, t: FloatArray,
+                             row_axis: int, col_axis: int) -> None:
+    """Write the non-zero entries of ``J_r^-1`` (:func:`right_jacobian_inv`) into ``out``,
+    whose axes ``row_axis``, ``col_axis`` index the matrix (its zeros stay as they are)."""
     small = np.abs(t) < _SMALL
     ts = np.where(small, 1.0, t)
     t2 = t * t
@@ -139,15 +161,14 @@ def right_jacobian_inv(xi: FloatArray) -> FloatArray:
     b0 = p * rx - q * ry
     b1 = q * rx + p * ry
     a, h = _v_inverse_coefficients(t)
-    out = np.zeros(xi.shape[:-1] + (3, 3))
-    out[..., 0, 0] = a
-    out[..., 0, 1] = -h
-    out[..., 1, 0] = h
-    out[..., 1, 1] = a
-    out[..., 0, 2] = -(a * b0 - h * b1)
-    out[..., 1, 2] = -(h * b0 + a * b1)
-    out[..., 2, 2] = 1.0
-    return out
+    view = np.moveaxis(out, (row_axis, col_axis), (0, 1))
+    view[0, 0] = a
+    view[0, 1] = -h
+    view[1, 0] = h
+    view[1, 1] = a
+    view[0, 2] = -(a * b0 - h * b1)
+    view[1, 2] = -(h * b0 + a * b1)
+    view[2, 2] = 1.0
 
 
 def local(T_a: FloatArray, T_b: FloatArray) -> FloatArray:
@@ -157,7 +178,7 @@ def local(T_a: FloatArray, T_b: FloatArray) -> FloatArray:
 
 def retract(T: FloatArray, xi: FloatArray) -> FloatArray:
     """``T @ exp(xi)`` of planar 4x4 poses, the rotation rebuilt from its angle (no drift)."""
-    P = Planar.from_matrix(T).compose(Planar.from_matrix(exp(xi)))
+    P = Planar.from_matrix(T).compose(_exp_planar(xi))
     theta = np.arctan2(P.s, P.c)
     out = np.array(T, dtype=float, copy=True)
     c, s = np.cos(theta), np.sin(theta)

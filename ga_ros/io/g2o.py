@@ -58,7 +58,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.covariance import nearest_positive_definite, not_positive_definite
-from ga_ros.core.network import ConnectionNetwork, check_covariances
+from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.atomic import atomic_write
@@ -124,7 +124,11 @@ class PoseGraph:
         space), which :func:`write_g2o` writes back as they are instead of formatting the
         edges' ~30 numbers again (most of a write's time); ``None`` for a graph not read from
         a file, or whose information was repaired (those edges are written from the arrays).
-        Whoever changes the edges of a graph must leave it ``None``.
+        They are written only while the graph's vertex ids and edge arrays are the very arrays
+        they were read with (:meth:`edges_as_read`): a graph made with other ones (e.g.
+        ``dataclasses.replace(graph, information=...)``) is written from its arrays. The id
+        and edge arrays of a read graph are read-only; an edit of its ``information`` in place
+        is caught by a checksum.
     """
 
     network: ConnectionNetwork
@@ -143,6 +147,9 @@ class PoseGraph:
     repaired_lines: tuple[int, ...] = ()
     flavour: str = 'g2o'
     edge_lines: str | None = field(default=None, repr=False)
+    #: what edge_lines was read with: (vertex_ids, edge_src, edge_dst, T_meas, edge_param,
+    #: information, offsets) and the checksum of the information (_checksum)
+    _read_with: tuple = field(default=(), repr=False)
 
     @property
     def n_vertices(self) -> int:
@@ -151,6 +158,17 @@ class PoseGraph:
     @property
     def n_edges(self) -> int:
         return int(self.edge_src.shape[0])
+
+    def edges_as_read(self) -> bool:
+        """Whether :attr:`edge_lines` still describes this graph's edges: they were kept at
+        reading and the graph holds the very arrays (and offsets) read with them, its
+        information unchanged."""
+        if self.edge_lines is None or not self._read_with:
+            return False
+        *arrays, checksum = self._read_with
+        now = (self.vertex_ids, self.edge_src, self.edge_dst, self.T_meas, self.edge_param,
+               self.information, self.offsets)
+        return all(a is b for a, b in zip(arrays, now)) and _checksum(self.information) == checksum
 
     @staticmethod
     def from_network(network: ConnectionNetwork, T_world_node: FloatArray,
@@ -285,10 +303,12 @@ def _split_lines(text: str, path: str
     """Group the records by (tag, field count); ``FIX`` lines apart. Checks tags and counts.
     Also returns every line's fields (line ``k`` at ``k - 1``)."""
     rows = [ln.split() for ln in text.splitlines()]
-    tags = np.array([r[0] if r else '#' for r in rows])
+    tag_list = [r[0] if r else '#' for r in rows]
+    tags = np.array(tag_list)
     counts = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
     lines = np.arange(1, len(rows) + 1)
-    used = ~np.char.startswith(tags, '#')
+    # not np.char.startswith: importing numpy.char costs a few ms of every command's start-up
+    used = ~np.fromiter((t.startswith('#') for t in tag_list), dtype=bool, count=len(rows))
     known = np.isin(tags, [*_SPEC, TAG_FIX])
     if (used & ~known).any():
         k = int(np.argmax(used & ~known))
@@ -460,17 +480,18 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
 
     # ------------------------------------------------ information: check, repair or refuse
     info = _upper_to_full(upper, d)
-    bad = not_positive_definite(info)
+    eig = np.linalg.eigvalsh(info)  # once, for both checks (here and the covariance's below)
+    bad = not_positive_definite(info, eigenvalues=eig)
     repaired: tuple[int, ...] = ()
     if bad.any():
         k = int(np.argmax(bad))
         if strict:
-            eig = np.linalg.eigvalsh(info[k])
             raise FormatError(f'information matrix is not positive definite (eigenvalues '
-                              f'{np.array2string(eig, precision=3)}); drop strict to repair it '
-                              f'to the nearest positive-definite matrix', spath,
+                              f'{np.array2string(eig[k], precision=3)}); drop strict to repair '
+                              f'it to the nearest positive-definite matrix', spath,
                               int(e_lines[k]))
         info[bad] = nearest_positive_definite(info[bad])
+        eig[bad] = np.linalg.eigvalsh(info[bad])
         repaired = tuple(int(v) for v in e_lines[bad].tolist())
         shown = ', '.join(map(str, repaired[:20])) + (', ...' if len(repaired) > 20 else '')
         warnings.warn(f'{spath}: {len(repaired)} information matrices were not positive '
@@ -480,6 +501,8 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
 
     # ------------------------------------------------ sensor offsets into the robot frame
     T_meas, info = _apply_offsets(Z, info, ep, offsets, dim, inverse=False)
+    if named.any():  # A' Omega A has other eigenvalues
+        eig[named] = np.linalg.eigvalsh(info[named])
 
     # ------------------------------------------------ everything is valid: build the graph
     src = sorter[np.searchsorted(ids, ei, sorter=sorter)]
@@ -491,14 +514,20 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
         info6[:, _SE2_AXES[:, None], _SE2_AXES[None, :]] = info
     cov = np.linalg.inv(info6)
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    # the network's rule for a covariance (ga_ros.core.network.check_covariances: smallest
+    # eigenvalue above 1e-12 of its largest |entry|), from the information's eigenvalues
+    # (those of the covariance are their inverses; a 2-D edge's padding adds eigenvalue 1)
+    cov_min = 1.0 / eig[:, -1] if dim == 3 else np.minimum(1.0 / eig[:, -1], 1.0)
+    singular = ~(cov_min > 1e-12 * np.abs(cov).max(axis=(1, 2)))
+    if singular.any():
+        k = int(np.argmax(singular))
+        raise FormatError(f'information matrix is too ill-conditioned to invert (eigenvalues '
+                          f'{np.array2string(eig[k], precision=3)}): its covariance would not '
+                          'be positive definite; fix the matrix', spath, int(e_lines[k]))
 
     z = se3.to_translation_rotvec(T_meas)
-    try:  # the network's own check of the covariances (finite, symmetric, positive definite)
-        cov = check_covariances(cov)
-    except InputError as exc:
-        raise FormatError(f'the network rejected the edges: {exc}', spath) from None
-    # everything else was validated above (ids, ends, no self-loops, finite values): no
-    # per-edge Python loop of ConnectionNetwork.add_connections; repeated edges are kept
+    # everything was validated above (ids, ends, no self-loops, finite values, covariances):
+    # no per-edge Python loop of ConnectionNetwork.add_connections; repeated edges are kept
     network = ConnectionNetwork.from_arrays(ids, np.zeros(ids.size, dtype=np.int64), src, dst,
                                             z, cov)
     fixed = tuple(dict.fromkeys(int(v) for _, fields in fix for v in fields))
@@ -507,12 +536,26 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
         ' '.join(rows[k - 1]) + '\n' for k in e_lines.tolist())
     toro = any(g.tag in (TAG_VERTEX_TORO, TAG_EDGE_TORO) for g in groups)
     g2o2 = any(g.tag in (TAG_VERTEX_SE2, TAG_EDGE_SE2) for g in groups)
-    return PoseGraph(network=network, T_init=T_init, vertex_ids=ids.astype(np.int64), dim=dim,
-                     fixed=fixed, edge_src=src.astype(np.int64), edge_dst=dst.astype(np.int64),
-                     T_meas=T_meas, information=info, path=spath, has_guess=has_guess,
-                     offsets=offsets, edge_param=ep if named.any() else None,
-                     repaired_lines=repaired, flavour='toro' if toro and not g2o2 else 'g2o',
-                     edge_lines=edge_lines)
+    arrays = (ids.astype(np.int64), src.astype(np.int64), dst.astype(np.int64), T_meas,
+              ep if named.any() else None)
+    for a in arrays:  # the edge records stand for them: no edits in place
+        if a is not None:
+            a.flags.writeable = False
+    read_with = (*arrays, info, offsets, _checksum(info)) if edge_lines is not None else ()
+    return PoseGraph(network=network, T_init=T_init, vertex_ids=arrays[0], dim=dim,
+                     fixed=fixed, edge_src=arrays[1], edge_dst=arrays[2], T_meas=T_meas,
+                     information=info, path=spath, has_guess=has_guess, offsets=offsets,
+                     edge_param=arrays[4], repaired_lines=repaired,
+                     flavour='toro' if toro and not g2o2 else 'g2o', edge_lines=edge_lines,
+                     _read_with=read_with)
+
+
+def _checksum(information: FloatArray) -> tuple[float, float]:
+    """Sum of squares and lag-one sum of products of the entries (two BLAS dot products, ~0.1
+    ms for 6,000 edges): an edit in place of a read graph's information (a changed value, two
+    values swapped) changes them (:meth:`PoseGraph.edges_as_read`)."""
+    flat = information.reshape(-1)
+    return float(flat @ flat), float(flat[1:] @ flat[:-1])
 
 
 def _apply_offsets(T: FloatArray, info: FloatArray, param: IntArray,
@@ -601,7 +644,7 @@ def write_g2o(path: str | os.PathLike, graph: PoseGraph,
     if graph.has_guess or T_world_node is not None:
         blocks.append(_text_rows(list(map(f'{tags[1]} {{}}'.format, ids.tolist())),
                                  values(T)))
-    if m and graph.edge_lines is not None:  # the edges as read (the same values exactly)
+    if m and graph.edges_as_read():  # the edges as read (the same values exactly)
         blocks.append(graph.edge_lines)
     elif m:
         param = graph.edge_param if graph.edge_param is not None else np.full(m, -1, np.int64)

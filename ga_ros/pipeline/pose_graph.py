@@ -13,13 +13,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.chi2 import chi2_quantile
 from ga_ros.core.initialization import INIT_METHODS, PoseGraphEdges, initialize
-from ga_ros.core.measurement import Measurement
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.errors import (
     DegenerateGeometryError,
@@ -30,6 +30,9 @@ from ga_ros.errors import (
 )
 from ga_ros.geometry import se3
 from ga_ros.io.g2o import PoseGraph, edge_errors, graph_cost
+
+if TYPE_CHECKING:  # track mode only: imported where it is used (start-up of a batch solve)
+    from ga_ros.core.measurement import Measurement
 
 
 @dataclass(frozen=True)
@@ -158,7 +161,8 @@ def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,
 
     first = cfg.solver_config(dim=graph.dim)
     # the file's information is the weight matrix: not inverted back from the covariances
-    weights = graph.information if first.model == 'se3' and graph.dim == 3 else None
+    weights = (graph.information if (first.model, graph.dim) in (('se3', 3), ('se2', 2))
+               else None)
     t = time.perf_counter()
     res = solve(graph.network, graph.T_init, first, fixed=fixed, weights=weights)
     seconds = time.perf_counter() - t
@@ -286,6 +290,8 @@ def replay_measurements(graph: PoseGraph, tracks: IntArray,
                            f'in track order, so a live run could not place it')
     cov = graph.network.arrays().cov
     ids = graph.vertex_ids
+    from ga_ros.core.measurement import Measurement
+
     out: list[Measurement] = []
     consecutive = (tracks[a] == tracks[b]) & (rank[b] == rank[a] + 1)
     for k in np.lexsort((np.arange(graph.n_edges), ~consecutive, rank[b])):

@@ -27,7 +27,6 @@ from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
-from ga_ros.io.trajectory import write_kitti, write_tum
 from ga_ros.pipeline.pose_graph import (
     GraphSolveConfig,
     GraphSolveResult,
@@ -135,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
         check = check_initialization(graph, result.cost, guess.method, cfg)
     if args.out:
         write_g2o(args.out, graph, result.T_world_node)
+    if args.tum or args.kitti:  # imported here: start-up of a plain solve
+        from ga_ros.io.trajectory import write_kitti, write_tum
     if args.tum:
         write_tum(args.tum, graph.vertex_ids * 1_000_000_000, result.T_world_node)
     if args.kitti:
