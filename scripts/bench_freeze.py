@@ -32,7 +32,7 @@ STAGES = (
     (window.TrackWindowAligner, '_marginalise'),
     (window, 'normal_matrix_at'),
     (selinv, 'sparse_skeleton'),
-    (window, 'band_prior'),
+    (window, 'marginal_prior') if hasattr(window, 'marginal_prior') else (window, 'band_prior'),
     (sparse, '_completion'),
     (selinv.SelectedInverse, '__init__'),
     (sparse.SparseCholesky, 'refactor'),
