@@ -391,7 +391,8 @@ def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolAr
             continue
         at = (6 * mine[:, None] + np.arange(6)).ravel()
         priors.append(marginal_prior(free[mine], Nc[at][:, at], u[at], target[mine],
-                                     T_lin[free[mine]], band, hubs))
+                                     T_lin[free[mine][target[mine]]], band, hubs,
+                                     coords=T_lin[free[mine], :3, 3]))
     return tuple(priors)
 
 
