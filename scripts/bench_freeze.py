@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from ga_ros.core import selinv, solver, sparse, window
+from ga_ros.core import refinement, selinv, solver, sparse, window
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
@@ -32,7 +32,9 @@ STAGES = (
     (window.TrackWindowAligner, '_marginalise'),
     (window, 'normal_matrix_at'),
     (selinv, 'sparse_skeleton'),
+    (window, 'marginal_prior'),
     (window, 'band_prior'),
+    (refinement, 'band_prior'),
     (sparse, '_completion'),
     (selinv.SelectedInverse, '__init__'),
     (sparse.SparseCholesky, 'refactor'),

@@ -245,7 +245,7 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     solve's factor) gives the covariances and joint priors of the dense Schur complement /
     sparse solves."""
     import ga_ros.core.window as window
-    from ga_ros.core import selinv
+    from ga_ros.core import refinement, selinv
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -254,7 +254,7 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     cfg = AlignerConfig(window_tracks=2, freeze_policy=policy)
     runs = []
     for dense_max, trailing_min in ((10**9, 10**9), (0, 0)):
-        monkeypatch.setattr(window, '_DENSE_SCHUR_MAX', dense_max)
+        monkeypatch.setattr(refinement, 'DENSE_SCHUR_MAX', dense_max)
         monkeypatch.setattr(window, '_TRAILING_MIN_NODES', trailing_min)
         runs.append(_run(cfg, sc, ms)[0])
     dense, sparse = runs

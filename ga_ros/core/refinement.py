@@ -75,7 +75,7 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
 from ga_ros.core.sparse import CovarianceSkeleton
 from ga_ros.core.storage import unpack_sym6
-from ga_ros.errors import GaError, InputError
+from ga_ros.errors import DegenerateGeometryError, GaError, InputError
 from ga_ros.geometry import so3
 from ga_ros.runtime import blas_threads
 
@@ -376,15 +376,9 @@ def _long_tracks(snap: RefinementSnapshot) -> bool:
 def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
                    T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
     """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
-    (the others eliminated), one per connected group, without a dense matrix of more than the
-    group's targets: the sparse prior's skeleton from a selected inversion
-    (:func:`~ga_ros.core.selinv.sparse_skeleton`, as the aligner's freeze), or the dense
-    Schur complement from a partial factorisation
-    (:func:`~ga_ros.core.sparse.trailing_factor`). Equal to :func:`_prior_of` of the dense
-    elimination (``test/test_refinement.py``)."""
-    from ga_ros.core import selinv
-    from ga_ros.core.sparse import BlockPattern, trailing_factor
-
+    (the others eliminated), one per connected group (:func:`marginal_prior` of each, so
+    without a dense matrix of more than the group's targets). Equal to :func:`_prior_of` of the
+    dense elimination (``test/test_refinement.py``)."""
     Nc = sp.csr_matrix(N)
     coo = Nc.tocoo()
     k = free.size
@@ -393,24 +387,12 @@ def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolAr
     priors = []
     for c in np.unique(label):
         mine = np.nonzero(label == c)[0]
-        tgt = np.nonzero(target[mine])[0]  # positions among the group's nodes
-        if tgt.size == 0:
+        if not target[mine].any():
             continue
         at = (6 * mine[:, None] + np.arange(6)).ravel()
-        Nm, um, S = Nc[at][:, at], u[at], free[mine[tgt]]
-        if sparse_prior_applies(S.size, band, hubs):
-            skel, x = selinv.sparse_skeleton(Nm, 6, tgt, band, hubs,
-                                             coords=T_lin[free[mine], :3, 3], rhs=um)
-            mean, info = band_prior(T_lin[S], skel, x.reshape(-1, 6)[tgt].ravel())
-            priors.append(AbsorbedPrior(S, mean, info, info.shape[0]))
-            continue
-        if tgt.size == mine.size:
-            mean, info = tangent_prior(T_lin[S], Nm.toarray(), um)
-        else:
-            tf = trailing_factor(*BlockPattern.from_matrix(Nm, 6), tgt, um)
-            mean, info = tangent_prior(T_lin[S], tf.information(), None,
-                                       step=tf.solution.reshape(-1, 6)[tgt].ravel())
-        priors.append(AbsorbedPrior(S, mean, info))
+        priors.append(marginal_prior(free[mine], Nc[at][:, at], u[at], target[mine],
+                                     T_lin[free[mine][target[mine]]], band, hubs,
+                                     coords=T_lin[free[mine], :3, 3]))
     return tuple(priors)
 
 
@@ -423,6 +405,7 @@ def _sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArr
     (:class:`SparseSmoothing`)."""
     absorbed = np.nonzero(snap.status == 1)[0]
     free, N, u = _normal_terms(snap, absorbed, T_lin, snap.past)
+    N = sp.csr_matrix(N)  # once, for both
     kf = keep[free]
     priors = _sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
     L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
@@ -430,9 +413,118 @@ def _sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArr
         return priors, ()
     cL = (6 * L[:, None] + np.arange(6)).ravel()
     cR = (6 * R[:, None] + np.arange(6)).ravel()
-    Nc = sp.csr_matrix(N)
-    NL = Nc[cL]
+    NL = N[cL]
     return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
+
+
+#: :func:`marginal_prior`: above this many eliminated unknowns, the exact Schur complement of a
+#: sparse ``N`` comes from a partial sparse factorisation
+#: (:func:`~ga_ros.core.sparse.trailing_factor`), below it from dense blocks.
+DENSE_SCHUR_MAX = 300
+
+
+def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
+                   keep: BoolArray, T_keep: FloatArray, band: int, hubs: int,
+                   coords: FloatArray | None = None) -> AbsorbedPrior:
+    """The joint Gaussian prior that absorbed terms leave on some of their nodes: the one rule
+    of the aligner's freeze (:meth:`~ga_ros.core.window.TrackWindowAligner._marginalise`) and
+    of the refinement's rebuilt priors (:func:`_sparse_priors`, :func:`_prior_of`).
+
+    The terms' normal matrix ``N`` and half gradient ``u`` (linearised at the nodes' poses) are
+    marginalised onto the nodes ``keep`` (Schur complement ``H``, ``g``; the others
+    eliminated). The prior's mean is the terms' own optimum on them (``T_keep`` moved by the
+    step ``H^-1 g``, :func:`tangent_prior`); its information is:
+
+    * **sparse** (:func:`sparse_prior_applies`: ``band >= 0`` and more kept nodes than the
+      skeleton keeps densely anyway): :func:`band_prior` of the exact covariance skeleton of
+      ``Sigma = H^-1 = (N^-1)_kept`` (band of ``band`` nodes along the node order plus ``hubs``
+      hub nodes), from the selected inversion of a sparse ``N``
+      (:func:`~ga_ros.core.selinv.sparse_skeleton`, linear in the number of nodes for a
+      strip) or a Cholesky factor of a dense one; positive definite, rank ``6k``;
+    * otherwise, or if ``N`` is not positive definite (:class:`DegenerateGeometryError` from the
+      sparse path), the **exact** ``H`` (:func:`tangent_prior`): from a partial sparse
+      factorisation (:func:`~ga_ros.core.sparse.trailing_factor`, rank ``6k``) when more than
+      :data:`DENSE_SCHUR_MAX` unknowns are eliminated from a sparse ``N``, else from dense
+      blocks (rank unknown: ``None``; a singular ``H`` is allowed, its step is the least-squares
+      one).
+
+    Parameters
+    ----------
+    nodes : (n,) node indices of ``N``'s blocks (6 unknowns each, ``[x y z rx ry rz]``).
+    N : (6n, 6n) normal matrix, ``scipy.sparse`` or dense; u : (6n,) half gradient.
+    keep : (n,) the nodes the prior is over (in node order, which is the band order).
+    T_keep : (k, 4, 4) their poses ``T_world_node`` (the linearisation point).
+    band, hubs : ``prior_band`` (-1: the exact dense prior always) and ``prior_hubs``.
+    coords : optional (n, 3) node positions (band ordering of the non-compiled selection).
+
+    Returns
+    -------
+    The prior over ``nodes[keep]``.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        The eliminated nodes are not determined by the terms (their block is singular).
+    """
+    from ga_ros.core import selinv
+    from ga_ros.core.sparse import BlockPattern, trailing_factor
+
+    keep = np.asarray(keep, dtype=bool)
+    S, Lx = np.nonzero(keep)[0], np.nonzero(~keep)[0]
+    kept = np.asarray(nodes, dtype=np.int64)[S]
+    colsS = (6 * S[:, None] + np.arange(6)).ravel()
+    colsL = (6 * Lx[:, None] + np.arange(6)).ravel()
+    sparse_in = sp.issparse(N)
+    if sparse_prior_applies(S.size, band, hubs):
+        try:
+            if sparse_in:
+                skel, x = selinv.sparse_skeleton(N, 6, S, band, hubs, coords=coords, rhs=u)
+                step = x.reshape(-1, 6)[S].ravel()
+            else:  # dense: Sigma_SS and the step from one Cholesky factor of N
+                cho = _cho_factor(N)
+                Sigma = sla.cho_solve(cho, np.eye(N.shape[0])[:, colsS])[colsS]
+                skel = CovarianceSkeleton.of_dense(Sigma, 6, band, hubs)
+                step = sla.cho_solve(cho, u)[colsS]
+            mean, info = band_prior(T_keep, skel, step)
+            # a completion of positive definite clique covariances: full rank
+            return AbsorbedPrior(kept, mean, info, info.shape[0])
+        except DegenerateGeometryError:  # N not positive definite: the exact paths below
+            pass
+    if sparse_in and colsL.size > DENSE_SCHUR_MAX:
+        try:
+            tf = trailing_factor(*BlockPattern.from_matrix(N, 6), S, u)
+            step = tf.solution.reshape(-1, 6)[S].ravel()  # H^-1 g: the kept part of N^-1 u
+            mean, info = tangent_prior(T_keep, tf.information(), None, step=step)
+            # the trailing block of a positive definite factor: full rank
+            return AbsorbedPrior(kept, mean, info, info.shape[0])
+        except DegenerateGeometryError:  # N_LL or H singular: dense blocks below
+            pass
+    Nd = sp.csr_matrix(N) if sparse_in else np.asarray(N)
+
+    def part(rows: IntArray, cols: IntArray) -> FloatArray:
+        return Nd[rows][:, cols].toarray() if sparse_in else Nd[np.ix_(rows, cols)]
+
+    H, g = part(colsS, colsS), u[colsS]
+    if colsL.size:
+        NLS = part(colsL, colsS)
+        cho = _cho_factor(part(colsL, colsL))
+        H = H - NLS.T @ sla.cho_solve(cho, NLS)
+        g = g - NLS.T @ sla.cho_solve(cho, u[colsL])
+    # The absorbed terms alone are not at their optimum (the window's estimate is), so their
+    # marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in the
+    # tangent d of the kept nodes (their mean and information: tangent_prior)
+    mean, info = tangent_prior(T_keep, 0.5 * (H + H.T), g)
+    return AbsorbedPrior(kept, mean, info)
+
+
+def _cho_factor(M: FloatArray) -> tuple[FloatArray, bool]:
+    """``scipy.linalg.cho_factor`` of a block that must be positive definite."""
+    try:
+        return sla.cho_factor(M)
+    except np.linalg.LinAlgError as exc:
+        raise DegenerateGeometryError('absorbed terms leave some eliminated nodes undetermined '
+                                      '(their normal block is singular): the network needs a '
+                                      'datum or a prior on them') from exc
 
 
 def _normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
@@ -736,18 +828,11 @@ def smooth(steps: tuple[SmoothingStep | SparseSmoothing, ...],
 def _prior_of(work: _Marginal, group: IntArray, T_lin: FloatArray, band: int = -1,
               hubs: int = 0) -> AbsorbedPrior:
     """The prior of one group of prior nodes (in index order) from the dense marginal
-    ``work``: dense (``band < 0``) or sparse like the aligner's freeze (:func:`band_prior`)."""
+    ``work`` (:func:`marginal_prior` with nothing left to eliminate)."""
     at = (6 * np.array([work.cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
-    Hg, gg = work.H[np.ix_(at, at)], work.g[at]
-    if sparse_prior_applies(group.size, band, hubs):
-        cho = sla.cho_factor(Hg)
-        Sigma = sla.cho_solve(cho, np.eye(Hg.shape[0]))
-        mean, info = band_prior(T_lin[group], CovarianceSkeleton.of_dense(Sigma, 6, band, hubs),
-                                sla.cho_solve(cho, gg))
-        # Hg positive definite (cho_factor), so is the completion of its covariance
-        return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info, info.shape[0])
-    mean, info = tangent_prior(T_lin[group], Hg, gg)
-    return AbsorbedPrior(np.asarray(group, dtype=np.int64), mean, info)
+    group = np.asarray(group, dtype=np.int64)
+    return marginal_prior(group, work.H[np.ix_(at, at)], work.g[at],
+                          np.ones(group.size, dtype=bool), T_lin[group], band, hubs)
 
 
 def sparse_prior_applies(m: int, band: int, hubs: int) -> bool:

@@ -483,7 +483,7 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
                     coords: FloatArray | None = None, rhs: FloatArray | None = None
                     ) -> tuple[CovarianceSkeleton, FloatArray | None]:
     """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
-    (in band order) from a sparse ``N``, and ``N^-1 rhs``.
+    (in band order) from a sparse symmetric ``N`` (both triangles), and ``N^-1 rhs``.
 
     With the compiled kernels: the skeleton's block pairs are added to the pattern of ``N`` (as
     explicit zeros), so that they lie on the pattern of its sparse Cholesky factor, and
@@ -534,7 +534,10 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
     from ga_ros.core.sparse import BlockPattern, CovarianceSkeleton, SparseCholesky
 
     u = N.shape[0] // d
-    Nb = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
+    # a symmetric CSC matrix is its own CSR transpose: no conversion
+    Nr = sp.csr_matrix((N.data, N.indices, N.indptr), shape=N.shape) if N.format == 'csc' \
+        else sp.csr_matrix(N)
+    Nb = sp.bsr_matrix(Nr, blocksize=(d, d))
     Nb.sort_indices()
     rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
     cols_n = Nb.indices.astype(np.int64)

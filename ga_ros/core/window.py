@@ -75,10 +75,8 @@ from ga_ros.core.refinement import (
     RefinementSnapshot,
     RefinementWorker,
     absorbed_priors,
-    band_prior,
+    marginal_prior,
     prior_nodes,
-    sparse_prior_applies,
-    tangent_prior,
 )
 from ga_ros.core.solver import (
     GaussianPrior,
@@ -88,7 +86,7 @@ from ga_ros.core.solver import (
     normal_matrix_at,
     solve,
 )
-from ga_ros.core.sparse import BlockPattern, spd_inverse, trailing_factor
+from ga_ros.core.sparse import spd_inverse, trailing_factor
 from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
@@ -387,9 +385,6 @@ class BatchResult:
     rejected: dict[str, int]
 
 
-#: Freezing: above this many eliminated unknowns, the Schur complement onto the kept nodes is a
-#: partial sparse factorisation (:func:`~ga_ros.core.sparse.trailing_factor`), below it dense.
-_DENSE_SCHUR_MAX = 300
 #: Freezing: above this many leaving nodes, their marginal covariances come from one partial
 #: factorisation of the window with them ordered last, below it from sparse solves.
 _TRAILING_MIN_NODES = 24
@@ -1598,57 +1593,12 @@ class TrackWindowAligner:
         N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
         row_of = dict(zip(ids[net_nodes].tolist(), net_nodes.tolist()))
         free_idx = np.array([row_of[int(i)] for i in free_ids], dtype=np.int64)
-        elim = ~keep[free_idx]
-        colsL = (6 * np.nonzero(elim)[0][:, None] + np.arange(6)).ravel()
-        colsS = (6 * np.nonzero(~elim)[0][:, None] + np.arange(6)).ravel()
-        if colsS.size == 0:
+        kept = keep[free_idx]
+        if not kept.any():
             return conns, dropped, None
-        S_nodes = free_idx[~elim]
-        w, hubs = int(self.config.prior_band), int(self.config.prior_hubs)
-        if sparse_prior_applies(S_nodes.size, w, hubs):
-            # sparse prior: the skeleton (band + hubs) of the exact Sigma_S = (N^-1)_SS by
-            # selected inversion of N along the strip, its maximum-entropy completion, and the
-            # exact step H^-1 g (the kept part of N^-1 u); refinement.band_prior
-            try:
-                skel, x = selinv.sparse_skeleton(N, 6, np.nonzero(~elim)[0], w, hubs,
-                                                 coords=T[free_idx, :3, 3], rhs=u)
-                step = x.reshape(-1, 6)[~elim].ravel()
-                mean, K = band_prior(T[S_nodes], skel, step)
-                # positive definite by construction (a completion of positive definite clique
-                # covariances, or DegenerateGeometryError): full rank
-                return conns, dropped, JointPrior(S_nodes, mean, K, rank=K.shape[0])
-            except DegenerateGeometryError:  # N not positive definite: the exact paths below
-                pass
-        if colsL.size > _DENSE_SCHUR_MAX:
-            # partial factorisation: the eliminated nodes by the sparse factor, the kept ones
-            # last; H is their Schur complement, and the kept part of N^-1 u is H^-1 g
-            try:
-                pattern, data = BlockPattern.from_matrix(N, 6)
-                tf = trailing_factor(pattern, data, np.nonzero(~elim)[0], u)
-                H = tf.information()
-                step = tf.solution.reshape(-1, 6)[~elim].ravel()  # H^-1 g: N^-1 u's kept part
-                mean, H = tangent_prior(T[S_nodes], H, None, step=step)  # exact gradient
-                # H: the trailing block of a positive definite factor, so full rank
-                return conns, dropped, JointPrior(S_nodes, mean, H, rank=H.shape[0])
-            except DegenerateGeometryError:  # N_LL or H singular: the dense path below
-                pass
-        N = N.tocsr()
-        NSS = N[colsS][:, colsS].toarray()
-        g = u[colsS]
-        if colsL.size:
-            NLL = N[colsL][:, colsL].toarray()
-            NLS = N[colsL][:, colsS].toarray()
-            cho = sla.cho_factor(NLL)
-            H = NSS - NLS.T @ sla.cho_solve(cho, NLS)
-            g = g - NLS.T @ sla.cho_solve(cho, u[colsL])
-        else:
-            H = NSS
-        H = 0.5 * (H + H.T)
-        # The absorbed terms alone are not at their optimum (the window's estimate is), so
-        # their marginal keeps a linear term g: cost = (d + H^-1 g)' H (d + H^-1 g) + const in
-        # the tangent d of S (the prior's mean and information: refinement.tangent_prior).
-        mean, H = tangent_prior(T[S_nodes], H, g)  # exact gradient at T (refinement.py)
-        return conns, dropped, JointPrior(S_nodes, mean, H)  # rank: on first use
+        p = marginal_prior(free_idx, N, u, kept, T[free_idx[kept]], int(self.config.prior_band),
+                           int(self.config.prior_hubs), coords=T[free_idx, :3, 3])
+        return conns, dropped, JointPrior.absorbed(p)
 
     # ------------------------------------------------------------------------ output
     def corrected_path(self) -> CorrectedPath:
