@@ -117,8 +117,9 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
 
 #: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
 #: SolverConfig's): a window update is warm-started, so 10 iterations, a 1 um / 1 urad
-#: correction and a relative cost decrease of 1e-6 suffice (the estimate then lies within
-#: ~1e-3 standard deviations of the window's optimum, ``test_window_fast.py``). The new track
+#: correction and a relative cost decrease of 1e-6 suffice (a step that gains less, or a chord
+#: step that predicts less, ends the update; the estimate then lies within ~1e-3 standard
+#: deviations of the window's optimum, ``test_window_fast.py``). The new track
 #: is first pre-aligned alone (:mod:`ga_ros.core.prealign`), so the window's first correction,
 #: though metres long on its weak modes, leaves the factorisation usable: later iterations
 #: reuse it as chord steps once a correction is below 20 m / rad (a chord step that does not
