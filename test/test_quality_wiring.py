@@ -130,13 +130,15 @@ def test_update_quality_equals_the_dense_computation(sample):
 
 def test_update_quality_with_frozen_tracks_equals_quality_control(sample):
     """Window of 1 track (frozen neighbours enter as weighted parameters): the update's QC is
-    quality_control of that window problem, priors included."""
+    quality_control of that window problem, priors included, at the update's own result (its
+    covariances come from its last factorisation, ``solve(factor_at_solution=False)``)."""
     cfg = AlignerConfig(window_tracks=1, quality=True, outlier_chi2_prob=0.0)
     al, ups = run(sample.measurements, cfg, sample.ground_truth.T_world_node[0])
     q = ups[-1].quality
     net, nodes, _, conns, fixed, priors = al._window_problem(al.stats.tracks_in_window)
     assert priors, 'the window must hold a prior for this test'
-    res = solve(net, al._T[nodes], cfg.solver, fixed=fixed, priors=priors)
+    res = al._last
+    assert res.n_unknowns == ups[-1].n_unknowns
     rep = quality_control(net, res, priors, cfg.quality_config())
     ref = summarise(rep, net)
     for name in ('global_passed', 'redundancy', 'n_w_rejected', 'w_max_src_id', 'w_max_dst_id'):

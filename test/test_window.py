@@ -74,7 +74,10 @@ def test_weighted_window_is_close_to_batch_and_better_than_f2f():
     err = lambda T: np.linalg.norm(T[:, :3, 3] - sc.positions, axis=1).mean()  # noqa: E731
     e_win, e_batch, e_f2f = err(al.corrected_path().T_world_node), err(batch.T_world_node), \
         err(sc.f2f(nm.z))
-    assert e_batch <= e_win < 0.5 * e_f2f, (e_batch, e_win, e_f2f)
+    # batch is the least-squares optimum, not the nearest to the truth: the window may land a
+    # hair closer (measured 5e-5 relative); within 1 % of batch and far better than F2F
+    assert abs(e_win - e_batch) < 0.01 * e_batch and e_win < 0.5 * e_f2f, (e_batch, e_win,
+                                                                             e_f2f)
 
 
 def test_per_track_problem_size_does_not_grow():
@@ -89,7 +92,7 @@ def test_per_track_problem_size_does_not_grow():
 def test_refine_batch_reaches_the_batch_solution():
     sc, nm, ms = _survey(n_tracks=5)
     al, _ = _run(AlignerConfig(window_tracks=2,
-                               solver=replace(ALIGNER_SOLVER, tolerance=1e-10,
+                               solver=replace(ALIGNER_SOLVER, tolerance=1e-10, cost_tolerance=0,
                                               max_iterations=30)), sc, ms)
     al.refine_batch()
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))

@@ -198,6 +198,7 @@ def _misclosure_one(T, i, j, Tm_k, Rij, tij, RE, tE, phi, Ji, e):  # pragma: no 
 
 def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma: no cover
     m = src.shape[0]
+    want = blocks.shape[0] > 0  # an empty blocks array: the gradient only (se3_gradient)
     Rij, tij, RE, tE, phi, Ji, e = _scratch()
     rho = np.empty(3)
     Q = np.empty((3, 3))
@@ -247,10 +248,11 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
             s = 0.0
             for c in range(6):
                 s += P[k, r, c] * e[c]
-                acc = 0.0
-                for q in range(6):
-                    acc += P[k, r, q] * J[q, c]
-                PJ[r, c] = acc
+                if want:
+                    acc = 0.0
+                    for q in range(6):
+                        acc += P[k, r, q] * J[q, c]
+                    PJ[r, c] = acc
             Pe[r] = s
         mh = 0.0
         for r in range(6):
@@ -259,7 +261,7 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
             for q in range(6):
                 g += J[q, r] * Pe[q]
             gj[k, r] = g
-            for c in range(r, 6):
+            for c in range(r, 6 if want else 0):
                 acc = 0.0
                 for q in range(6):
                     acc += J[q, r] * PJ[q, c]
@@ -272,12 +274,12 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
             for q in range(6):
                 g += Ad[q, r] * gj[k, q]
             gi[k, r] = -g
-            for c in range(6):
+            for c in range(6 if want else 0):
                 acc = 0.0
                 for q in range(6):
                     acc += H[r, q] * Ad[q, c]
                 HA[r, c] = acc
-        for r in range(6):
+        for r in range(6 if want else 0):
             for c in range(6):
                 acc = 0.0
                 for q in range(6):
@@ -312,8 +314,15 @@ def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArr
     return e
 
 
+def se3_gradient(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
+                 P: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`se3_system` without the normal-matrix blocks: ``(e, gi, gj, maha)``."""
+    e, _, gi, gj, maha = se3_system(T, src, dst, Tm_inv, P, blocks=False)
+    return e, gi, gj, maha
+
+
 def se3_system(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
-               P: FloatArray, extra_blocks: int = 0
+               P: FloatArray, extra_blocks: int = 0, blocks: bool = True
                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Per-connection Gauss-Newton blocks of ``sum e' P e`` (unweighted by robust weights).
 
@@ -324,16 +333,16 @@ def se3_system(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
     e : (m, 6) misclosures.
     blocks : (4 m + extra_blocks, 6, 6) normal-matrix blocks ``(ii, ij, ji, jj)`` stacked
         block-type major, ``J_a' P J_b`` with ``J_i = -J_r(e)^-1 Ad(T_ij^-1)``,
-        ``J_j = J_r(e)^-1``.
+        ``J_j = J_r(e)^-1``; empty with ``blocks=False`` (the gradient only: ~3x faster).
     gi, gj : (m, 6) gradient halves ``J_i' P e``, ``J_j' P e``.
     maha : (m,) ``e' P e``.
     """
     _compile()
     m = src.shape[0]
     e = np.empty((m, 6))
-    blocks = np.empty((4 * m + extra_blocks, 6, 6))
+    out = np.empty((4 * m + extra_blocks if blocks else 0, 6, 6))
     gi = np.empty((m, 6))
     gj = np.empty((m, 6))
     maha = np.empty(m)
-    _se3_system(np.ascontiguousarray(T), src, dst, Tm_inv, P, e, blocks, gi, gj, maha)
-    return e, blocks, gi, gj, maha
+    _se3_system(np.ascontiguousarray(T), src, dst, Tm_inv, P, e, out, gi, gj, maha)
+    return e, out, gi, gj, maha

@@ -33,6 +33,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.sparse import SparseCholesky
 from ga_ros.errors import GaError
 
 #: Settings of the pre-alignment solve: one Gauss-Newton step (measured: one step moves the
@@ -58,6 +59,9 @@ class Prealignment:
         the problem itself).
     n_free : free nodes (the new track's).
     n_connections : connections of the pre-alignment problem.
+    factor : the solve's sparse factor (:meth:`~ga_ros.core.solver.SolveResult.release_factor`),
+        for the next pre-alignment's ``factor`` (the pattern repeats track to track: its
+        symbolic analysis is reused), or ``None``.
     """
 
     T_world_node: FloatArray
@@ -65,11 +69,12 @@ class Prealignment:
     reason: str
     n_free: int
     n_connections: int
+    factor: SparseCholesky | None = None
 
 
 def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
              config: SolverConfig = PREALIGN_SOLVER, weights: FloatArray | None = None,
-             jit: bool = False) -> Prealignment:
+             jit: bool = False, factor: SparseCholesky | None = None) -> Prealignment:
     """Solve the nodes ``free_idx`` of ``network`` alone, every other node held at ``T_init``.
 
     Parameters
@@ -83,6 +88,8 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
         has them (the window aligner's), else computed.
     jit : the compiled se3 kernels from the first linearisation (:func:`~ga_ros.core.solver.
         solve`'s ``jit``).
+    factor : the previous pre-alignment's :attr:`Prealignment.factor` (``solve``'s
+        ``factor``: its symbolic analysis is reused if the pattern is the same).
 
     Returns
     -------
@@ -113,9 +120,10 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
                                         conn.z[sel], conn.cov[sel])
     try:
         res = solve(sub, T[nodes], config, fixed=ids[nodes[free_idx.size:]].tolist(),
-                    jit=jit, weights=None if weights is None else weights[sel])
+                    jit=jit, weights=None if weights is None else weights[sel], factor=factor)
     except GaError as exc:
         return Prealignment(T, 0, f'failed: {exc}', int(free_idx.size), int(sel.size))
     out = T.copy()
     out[free_idx] = res.T_world_node[:free_idx.size]
-    return Prealignment(out, res.iterations, res.reason, int(free_idx.size), int(sel.size))
+    return Prealignment(out, res.iterations, res.reason, int(free_idx.size), int(sel.size),
+                        res.release_factor())

@@ -115,8 +115,9 @@ def measurement_fingerprints(z: FloatArray, cov: FloatArray) -> list[int]:
 
 #: The aligner's solver defaults where they differ from :class:`SolverConfig`'s (the rest are
 #: SolverConfig's): a window update is warm-started, so 10 iterations, a 1 um / 1 urad
-#: correction and a relative cost decrease of 1e-6 suffice (the estimate then lies within
-#: ~1e-3 standard deviations of the window's optimum, ``test_window_fast.py``). The new track
+#: correction and a relative cost decrease of 1e-6 suffice (a step that gains less, or a chord
+#: step that predicts less, ends the update; the estimate then lies within ~1e-3 standard
+#: deviations of the window's optimum, ``test_window_fast.py``). The new track
 #: is first pre-aligned alone (:mod:`ga_ros.core.prealign`), so the window's first correction,
 #: though metres long on its weak modes, leaves the factorisation usable: later iterations
 #: reuse it as chord steps once a correction is below 20 m / rad (a chord step that does not
@@ -1337,8 +1338,10 @@ class TrackWindowAligner:
                 # first at their optimum given the others (prealign, paper Sec. III-D)
                 fresh = np.nonzero(~np.isin(win_nodes, self._last_window))[0]
                 if 0 < fresh.size < win_nodes.size:
-                    pre = prealign(net, T_init, fresh, weights=weights, jit=True)
+                    pre = prealign(net, T_init, fresh, weights=weights, jit=True,
+                                   factor=self.__dict__.pop('_prealign_factor', None))
                     T_init = pre.T_world_node
+                    self.__dict__['_prealign_factor'] = pre.factor  # the next track's
             # the factor of the last solve (its symbolic analysis): same pattern as a rule
             donor = res if res is not None else self.__dict__.get('_last_result')
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
@@ -1375,6 +1378,8 @@ class TrackWindowAligner:
         """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows), those of the last call
         reused (a window keeps most of its connections from one update to the next)."""
         kept, P_kept = self._weights_kept
+        if conns is kept:  # the same rows again (the gate after the adjustment)
+            return P_kept
         pos = np.searchsorted(kept, conns)
         hit = pos < kept.size
         hit[hit] = kept[pos[hit]] == conns[hit]
