@@ -8,7 +8,10 @@ measurements are fed in acquisition order to :class:`ga_ros.core.window.TrackWin
 
 * per-track window update time (p50 / p95 / max over the ``--span`` tracks ending at each
   checkpoint of ``--checkpoints``; wall time includes the wait for the background refinement
-  at its hand-off, also shown alone) and the process's current resident set size there, with
+  at its hand-off, also shown alone; CPU time of the process during the update, and of the
+  update's own thread: the process's also counts what the background freeze of the previous
+  track had left to do when the update started, which varies with the machine's load) and
+  the process's current resident set size there, with
   the RSS growth per pose between checkpoints, the refinement worker's RSS, the nodes of the
   refinement in flight and the online path's ATE against the simulator's truth (rigid);
 * the state save / restore time and file size at the end (``TrackWindowAligner.save/load``);
@@ -92,6 +95,8 @@ class Checkpoint:
     worker_rss_mib: float = 0.0
     horizon_nodes: int = 0
     ate_rigid_m: float = 0.0
+    thread_cpu_ms_p50: float = 0.0
+    thread_cpu_ms_p95: float = 0.0
 
 
 @dataclass
@@ -176,6 +181,7 @@ class ScaleFigures:
     online_seconds: float
     update_ms: list[float] = field(default_factory=list)
     update_cpu_ms: list[float] = field(default_factory=list)
+    update_thread_cpu_ms: list[float] = field(default_factory=list)
     update_rss_mib: list[float] = field(default_factory=list)
     checkpoints: list[Checkpoint] = field(default_factory=list)
     missing_checkpoints: list[int] = field(default_factory=list)
@@ -318,16 +324,18 @@ def run(args: argparse.Namespace) -> ScaleFigures:
     waits: list[float] = []
     first_cp: Checkpoint | None = None
 
-    def record(up: UpdateResult, cpu_ms: float) -> None:
+    def record(up: UpdateResult, cpu_ms: float, thread_ms: float) -> None:
         nonlocal first_cp
         fig.update_ms.append(up.update_ms)
         fig.update_cpu_ms.append(cpu_ms)
+        fig.update_thread_cpu_ms.append(thread_ms)
         fig.update_rss_mib.append(rss_mib())
         window_nodes.append(up.n_window_nodes)
         waits.append(up.refine_wait_ms)
         done = len(fig.update_ms)
         if args.verbose:
-            print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU), '
+            print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU, '
+                  f'{thread_ms:.1f} in its thread), '
                   f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB, '
                   f'refinement wait + install {up.refine_wait_ms:.0f} ms'
                   + (f' (refinement after {up.refined_after_tracks} tracks: '
@@ -336,6 +344,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         if done in checkpoints:
             ms = np.array(fig.update_ms[max(0, done - args.span):])
             cpu = np.array(fig.update_cpu_ms[max(0, done - args.span):])
+            own = np.array(fig.update_thread_cpu_ms[max(0, done - args.span):])
             wait = np.array(waits[max(0, done - args.span):])
             poses = done * fig.poses_per_track
             path = al.corrected_path()
@@ -347,7 +356,8 @@ def run(args: argparse.Namespace) -> ScaleFigures:
                             state_nbytes(al) / max(1, al.stats.n_nodes),
                             float(np.percentile(wait, 50)), float(np.percentile(wait, 95)),
                             children_rss_mib(), 0 if snap is None else snap.node_ids.size,
-                            ate(path.T_world_node, sc.T_world_node[path.node_ids]).rmse)
+                            ate(path.T_world_node, sc.T_world_node[path.node_ids]).rmse,
+                            float(np.percentile(own, 50)), float(np.percentile(own, 95)))
             if first_cp is None:
                 first_cp = cp
             elif poses > first_cp.poses:
@@ -358,18 +368,18 @@ def run(args: argparse.Namespace) -> ScaleFigures:
     t_start = time.perf_counter()
     stopped = False
     for m in lazy_measurements(sc, noisy.z, noisy.cov):
-        cpu0 = time.process_time()
+        cpu0, own0 = time.process_time(), time.thread_time()
         ups = al.add_measurement(m)
         for up in ups:  # at most one: the CPU time of the call is the update's
-            record(up, 1e3 * (time.process_time() - cpu0))
+            record(up, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0))
         if ups and args.max_seconds and time.perf_counter() - t_start > args.max_seconds:
             stopped = True
             break
     if not stopped:
-        cpu0 = time.process_time()
+        cpu0, own0 = time.process_time(), time.thread_time()
         last = al.finish_track()
         if last is not None:
-            record(last, 1e3 * (time.process_time() - cpu0))
+            record(last, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0))
     fig.online_seconds = time.perf_counter() - t_start
     st = al.stats
     fig.tracks_done = len(fig.update_ms)
@@ -400,23 +410,26 @@ def print_table(fig: ScaleFigures) -> None:
     print(f'online: {fig.tracks_done} tracks, {fig.poses_done:,} poses, '
           f'{fig.connections_done:,} connections in {fig.online_seconds:.0f} s')
     print()
-    print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | refinement '
-          'wait ms p50 / p95 | window nodes | refinement nodes | RSS MiB | worker RSS MiB | '
+    print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | thread CPU ms '
+          'p50 / p95 | refinement wait ms p50 / p95 | window nodes | refinement nodes | '
+          'RSS MiB | worker RSS MiB | '
           'KiB/pose since first | state B/pose | ATE rigid m |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|')
+    print('|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|')
     for c in fig.checkpoints:
         print(f'| {c.tracks} | {c.poses:,} | {c.update_ms_p50:.0f} | {c.update_ms_p95:.0f} | '
               f'{c.update_ms_max:.0f} | {c.cpu_ms_p50:.0f} | {c.cpu_ms_p95:.0f} | '
+              f'{c.thread_cpu_ms_p50:.0f} / {c.thread_cpu_ms_p95:.0f} | '
               f'{c.refine_wait_ms_p50:.0f} / {c.refine_wait_ms_p95:.0f} | '
               f'{c.window_nodes:,} | {c.horizon_nodes:,} | {c.rss_mib:.0f} | '
               f'{c.worker_rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} | '
               f'{c.state_bytes_per_pose:.0f} | {c.ate_rigid_m:.3f} |')
     for c in fig.missing_checkpoints:
-        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | | | | | |')
+        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | | | | | | |')
     if len(fig.checkpoints) >= 2:
         a, b = fig.checkpoints[0], fig.checkpoints[-1]
         print(f'\np95 ratio, {b.tracks} vs {a.tracks} tracks: wall '
-              f'{b.update_ms_p95 / a.update_ms_p95:.2f}, CPU {b.cpu_ms_p95 / a.cpu_ms_p95:.2f}')
+              f'{b.update_ms_p95 / a.update_ms_p95:.2f}, CPU {b.cpu_ms_p95 / a.cpu_ms_p95:.2f}, '
+              f'thread CPU {b.thread_cpu_ms_p95 / a.thread_cpu_ms_p95:.2f}')
     print()
     if fig.save_seconds is not None:
         restore = (f'{fig.load_seconds:.2f} s' if fig.load_seconds is not None

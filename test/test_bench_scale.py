@@ -51,6 +51,10 @@ def test_tiny_run_reports_every_figure() -> None:
     cp = fig['checkpoints'][1]
     assert cp['update_ms_max'] == max(fig['update_ms'][1:])  # the span of 2 tracks
     assert len(fig['update_cpu_ms']) == 3 and min(fig['update_cpu_ms']) > 0
+    # the update's own thread: part of the process's CPU in the same call
+    own = fig['update_thread_cpu_ms']
+    assert len(own) == 3 and all(0 < t <= c + 1.0 for t, c in zip(own, fig['update_cpu_ms']))
+    assert 0 < cp['thread_cpu_ms_p50'] <= cp['thread_cpu_ms_p95']
     assert fig['load_note'] == 'ok' and fig['load_seconds'] > 0 and fig['state_mib'] > 0
     assert fig['batch_converged'] is True
     assert fig['peak_rss_after_batch_mib'] >= fig['rss_before_batch_mib'] > 50

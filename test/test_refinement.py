@@ -288,6 +288,42 @@ def test_a_worker_lost_before_smoothing_leaves_the_refined_poses_unsmoothed(monk
     assert len(hit) >= 2 and 'not smoothed' not in hit[1].refine_reason
 
 
+UNGUARDED_SCRIPT = """
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.sim.aerial import aerial_scenario
+from ga_ros.sim.noise import NoiseModel, perturb
+import numpy as np
+
+print('script body ran', flush=True)
+sc = aerial_scenario(n_tracks=4, positions_per_swath=6)
+nm = perturb(sc.true_motions(), NoiseModel(5.0, sc.depth_m), np.random.default_rng(4))
+al = TrackWindowAligner(AlignerConfig(window_tracks=2, refine_every_tracks=1,
+                                      refine_executor='process'), sc.T_world_node[0])
+ups = al.add_measurements(sc.measurements(nm.z, nm.cov)).updates + [al.finish_track()]
+print('installed', sum(u.refined_after_tracks >= 0 and not u.refine_reason.startswith(
+      ('failed', 'not installed')) and 'not smoothed' not in u.refine_reason for u in ups),
+      flush=True)
+al.close()
+"""
+
+
+def test_the_worker_process_does_not_run_an_unguarded_script_again(tmp_path):
+    """A script without an ``if __name__ == '__main__':`` guard that runs the aligner with the
+    process worker: the spawned worker does not import the script again (its output would be
+    duplicated, and the worker would start a second survey), and the refinements install."""
+    import subprocess
+    import sys
+
+    script = tmp_path / 'survey.py'
+    script.write_text(UNGUARDED_SCRIPT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=120, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.splitlines()
+    assert lines.count('script body ran') == 1, out.stdout
+    assert lines[-1].startswith('installed ') and int(lines[-1].split()[1]) >= 1, out.stdout
+
+
 @pytest.mark.parametrize('band', [-1, 2])
 def test_sparse_elimination_of_long_tracks_equals_the_dense_one(monkeypatch, band):
     """Long tracks (:data:`~ga_ros.core.refinement.SPARSE_FROM_TRACK_NODES`) take one sparse

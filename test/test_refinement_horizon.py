@@ -162,3 +162,25 @@ def test_a_refinement_stopped_at_max_iterations_is_installed_and_retires():
     reasons = [u.refine_reason for u in ups if u.refined_after_tracks >= 0]
     assert reasons and all(r == 'max_iterations' for r in reasons), reasons
     assert al._retired == 7 - 3 - 1 and al._n_refinements == len(reasons)
+
+
+def test_horizon_rows_are_every_connection_between_the_horizons_nodes(tmp_path):
+    """The horizon's connections (scanned only from the first connection of the horizon's
+    first track) are exactly those whose two nodes are at or after its first node, by brute
+    force over every connection, for every track start and connection count, also after a
+    save / restore (the tables rebuilt from the file)."""
+    sc, _, ms = noisy_aerial_survey(6, 6, 5.0, 3)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2, refine_every_tracks=0),
+                            sc.T_world_node[0])
+    al.add_measurements(ms[:-5])  # the last track still open
+    save_state(al, tmp_path / 'state.npz')
+    for aligner in (al, load_state(tmp_path / 'state.npz').aligner):
+        src, dst = aligner._src.a, aligner._dst.a
+        starts = [int(aligner._track_nodes[t][0]) for t in aligner._tracks]
+        assert len(starts) == 6 and src.size > 100
+        for f in starts[1:]:
+            for m in (src.size, src.size - 7, src.size // 2):
+                want = np.flatnonzero((src[:m] >= f) & (dst[:m] >= f))
+                got = aligner._horizon_rows(f, m)
+                assert got.dtype == np.int64
+                np.testing.assert_array_equal(got, want)

@@ -955,11 +955,55 @@ def _exit_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name='ga_refine_parent', daemon=True).start()
 
 
+_SPAWN_LOCK = threading.Lock()
+
+
+def _preparation_without_main(prepare):
+    """``multiprocessing.spawn.get_preparation_data`` without the parent's main module."""
+    def without_main(name: str) -> dict:
+        data = prepare(name)
+        data.pop('init_main_from_path', None)
+        data.pop('init_main_from_name', None)
+        return data
+    return without_main
+
+
+class _WorkerProcess(multiprocessing.context.SpawnProcess):
+    """A spawned process that does not run the parent's main module again.
+
+    A spawned child normally re-imports the script that started the parent (as
+    ``__mp_main__``): a script without an ``if __name__ == '__main__':`` guard would run again
+    in the refinement worker (its output twice, a second survey, a second worker refused in
+    bootstrap). The worker needs nothing from it (its job and data come from ``ga_ros``), so
+    the start-up data it receives leave the main module out (the rest -- ``sys.path``, working
+    directory, authentication key -- is unchanged).
+    """
+
+    @staticmethod
+    def _Popen(process_obj):  # noqa: N802 - multiprocessing's name
+        from multiprocessing import spawn
+
+        with _SPAWN_LOCK:
+            prepare = spawn.get_preparation_data
+            spawn.get_preparation_data = _preparation_without_main(prepare)
+            try:
+                return multiprocessing.context.SpawnProcess._Popen(process_obj)
+            finally:
+                spawn.get_preparation_data = prepare
+
+
+class _WorkerContext(multiprocessing.context.SpawnContext):
+    """The 'spawn' start method with :class:`_WorkerProcess`."""
+
+    Process = _WorkerProcess
+
+
 class RefinementWorker:
     """Runs :func:`refine_snapshot` off the update path and hands results back in order.
 
     At most one refinement is in flight. The executor (a one-worker process pool with the
-    'spawn' start method, a one-worker thread pool, or none for ``'inline'``) is created on the
+    'spawn' start method that does not re-run the parent's main module, :class:`_WorkerProcess`;
+    a one-worker thread pool; or none for ``'inline'``) is created on the
     first submission and shut down by :meth:`close` (also when the worker is garbage collected).
 
     Parameters
@@ -1001,7 +1045,7 @@ class RefinementWorker:
         if self._pool is None:
             if self.kind == 'process':
                 self._pool = ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context('spawn'),
+                    max_workers=1, mp_context=_WorkerContext(),
                     initializer=_exit_with_parent, initargs=(os.getpid(),))
             else:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix='ga_refine')
