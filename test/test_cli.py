@@ -29,6 +29,23 @@ def test_bench_window_receives_its_arguments(capsys):
     assert parts['linearise'] > 0 and parts['factor'] > 0 and parts['freeze (background)'] > 0
 
 
+@pytest.mark.parametrize('target,module,argv,expected', [
+    ('linalg', 'linalg', ['--repeat', '3'], ['--repeat', '3']),
+    ('linalg', 'linalg', [], []),  # the benchmark's own default (5)
+    ('compare', 'compare', ['--repeat', '2'], ['--repeat', '2']),
+    ('compare', 'compare', [], ['--repeat', '1']),
+])
+def test_bench_passes_repeat_to_its_benchmark(monkeypatch, target, module, argv, expected):
+    import importlib
+    bench = importlib.import_module(f'ga_ros.bench.{module}')
+    seen: list[list[str]] = []
+    monkeypatch.setattr(bench, 'main', lambda a: seen.append(a) or 0)
+    assert main(['bench', target] + argv) == 0
+    got = seen[0]
+    tail = got[got.index('--repeat'):got.index('--repeat') + 2] if '--repeat' in got else []
+    assert tail == expected
+
+
 def test_bench_alias_forwards_to_the_benchmark_command(capsys):
     with pytest.raises(SystemExit) as exc:
         main(['bench', 'vo', '--help'])

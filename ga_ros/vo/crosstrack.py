@@ -61,7 +61,8 @@ class CrossTrackConfig:
     sigma_lk_px : image noise of a refined correspondence (px).
     covariance_scale : factor applied to the estimated covariance; the default 1.8 is an
         empirical calibration (raw mean NEES 11.1 at 320x240 and 10.2 at 640x480 on simulator
-        seeds 1-2; geometric mean of the two corrections; see the README).
+        seeds 1-2; geometric mean of the two corrections; see docs/design.md, "Covariance
+        honesty").
     """
 
     window_tracks: int = 5

@@ -37,8 +37,9 @@ def register(sub) -> None:
     p.add_argument('--data', type=str, default=None,
                    help='compare: directory of pose graphs (default ../shared/data/pose-graphs)')
     p.add_argument('--no-tracks', action='store_true', help='compare: batch rows only')
-    p.add_argument('--repeat', type=int, default=1,
-                   help='compare: each graph N times, each time column its minimum (1)')
+    p.add_argument('--repeat', type=int, default=None,
+                   help='compare: each graph N times, each time column its minimum (1); '
+                   'linalg: factorisations per matrix and back end (5)')
     p.set_defaults(func=run)
 
 
@@ -47,11 +48,12 @@ def run(args) -> int:
         from ga_ros.bench import compare
         return compare.main(['--window', str(args.window)] + (['--json'] if args.json else [])
                             + (['--no-tracks'] if args.no_tracks else [])
-                            + ['--repeat', str(args.repeat)]
+                            + ['--repeat', str(args.repeat or 1)]
                             + (['--data', args.data] if args.data else []))
     if args.target == 'linalg':
         from ga_ros.bench import linalg
-        return linalg.main(['--json'] if args.json else [])
+        return linalg.main((['--json'] if args.json else [])
+                           + (['--repeat', str(args.repeat)] if args.repeat else []))
     from ga_ros.bench import core
     if args.target == 'solve':
         fig = core.bench_batch(args.tracks, args.noise, args.seed)
