@@ -198,7 +198,7 @@ def _misclosure_one(T, i, j, Tm_k, Rij, tij, RE, tE, phi, Ji, e):  # pragma: no 
 
 def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma: no cover
     m = src.shape[0]
-    want = blocks.shape[0] > 0  # an empty blocks array: the gradient only (se3_gradient)
+    want = blocks.shape[0] > 0  # an empty blocks array: the gradient only (blocks=False)
     Rij, tij, RE, tE, phi, Ji, e = _scratch()
     rho = np.empty(3)
     Q = np.empty((3, 3))
@@ -312,13 +312,6 @@ def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArr
     e = np.empty((src.shape[0], 6))
     _se3_misclosure(np.ascontiguousarray(T), src, dst, Tm_inv, e)
     return e
-
-
-def se3_gradient(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,
-                 P: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`se3_system` without the normal-matrix blocks: ``(e, gi, gj, maha)``."""
-    e, _, gi, gj, maha = se3_system(T, src, dst, Tm_inv, P, blocks=False)
-    return e, gi, gj, maha
 
 
 def se3_system(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray,

@@ -872,18 +872,9 @@ class _Problem:
             return sysd
         self.linearisations += 1
         self._mis = (None, None)
-        conn, cfg = self.conn, self.cfg
-        w, gi, gj, maha2 = kernels.se3_gradient(T, conn.src, conn.dst, self.Tm_inv, self.P)
-        weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-        if cfg.robust_loss != 'none':
-            gi *= weights[:, None]
-            gj *= weights[:, None]
-        u = np.zeros((int(self.free.sum()), self.d))
-        _scatter_gradient(u, self.col[conn.src], gi)
-        _scatter_gradient(u, self.col[conn.dst], gj)
-        cost0 = float(np.sum(_robust_rho(maha2, cfg)))
-        cost0 += _add_priors(self.model, T, self.prior_data, self.col, u, None)
-        return _System(None, u.reshape(-1), w, None, None, None, None, weights, cost0)
+        return _motion_system(self.model, T, self.conn, self.P, self.prior_data, self.cfg,
+                              self.col, self.d, self.T_meas, self.Tm_inv, True,
+                              gradient_only=True)
 
     @property
     def compiled(self) -> bool:
@@ -1021,27 +1012,33 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
 def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
                    Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None,
                    sqrt_w: columns.SqrtWeights | None = None,
-                   mis: columns.Misclosure | None = None) -> _System:
+                   mis: columns.Misclosure | None = None,
+                   gradient_only: bool = False) -> _System:
     """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
 
     The blocks are written into one preallocated ``(4 m + b, d, d)`` array (connection blocks
     ``ii, ij, ji, jj``, then the ``b`` prior blocks), without a concatenated copy.
+    ``gradient_only`` (compiled se3 only: :meth:`_Problem.gradient`): no blocks are computed
+    (``blocks`` ``None``), the rest is the same.
     """
     m = len(conn)
     u = np.zeros((int((col >= 0).sum()), d))
     prior_blocks: list[FloatArray] = []
-    prior_cost = _add_priors(model, T, prior_data, col, u, prior_blocks)
+    prior_cost = _add_priors(model, T, prior_data, col, u,
+                             None if gradient_only else prior_blocks)
     extra = sum(len(b) for b in prior_blocks)
     if T_meas is None and (model != 'se3' or (Tm_inv is None and meas is None)):
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
     if model == 'se3' and Tm_inv is None and (compiled or meas is None):
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
     if model == 'se3' and compiled:
-        w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P, extra)
+        w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P, extra,
+                                                       blocks=not gradient_only)
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
         if cfg.robust_loss != 'none':
-            blocks[:4 * m] *= np.tile(weights, 4)[:, None, None]
+            if not gradient_only:
+                blocks[:4 * m] *= np.tile(weights, 4)[:, None, None]
             gi *= weights[:, None]
             gj *= weights[:, None]
     elif model == 'se3':  # structure of arrays (NumPy): columns.normal_blocks
@@ -1069,7 +1066,8 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
         k += len(b)
     cost0 = float(np.sum(_robust_rho(maha2, cfg))) + prior_cost
     # the motion models' residual update needs only w and the weights (no A, B, M)
-    return _System(blocks, u.reshape(-1), w, None, None, None, None, weights, cost0)
+    return _System(None if gradient_only else blocks, u.reshape(-1), w, None, None, None, None,
+                   weights, cost0)
 
 
 def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
