@@ -372,11 +372,7 @@ def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: Fl
     m = e.shape[0]
     ec = np.ascontiguousarray(e.T)  # (3, m)
     J = se2.right_jacobian_inv_columns(e)  # (3, 3, m)
-    inv = T_ij.inverse()
-    Ad = np.zeros((3, 3, m))  # Ad(T_ij^-1) = [[R, [y, -x]'], [0, 1]] of T_ij^-1 (se2.adjoint)
-    Ad[0, 0], Ad[0, 1], Ad[0, 2] = inv.c, -inv.s, inv.y
-    Ad[1, 0], Ad[1, 1], Ad[1, 2] = inv.s, inv.c, -inv.x
-    Ad[2, 2] = 1.0
+    Ad = se2.adjoint_columns(T_ij.inverse())  # Ad(T_ij^-1)
     U = _planar_sqrt_weights(P)
     Vj = _mm3(U, J)
     Vi = _mm3(Vj, Ad)

@@ -115,14 +115,29 @@ def adjoint(P: Planar) -> FloatArray:
     """``Ad(T)`` ``(..., 3, 3)`` with ``T exp(xi) T^-1 = exp(Ad(T) xi)``:
     ``[[R, [y, -x]'], [0, 1]]`` (Sola eq. 159)."""
     out = np.zeros(np.shape(P.x) + (3, 3))
-    out[..., 0, 0] = P.c
-    out[..., 0, 1] = -P.s
-    out[..., 1, 0] = P.s
-    out[..., 1, 1] = P.c
-    out[..., 0, 2] = P.y
-    out[..., 1, 2] = -P.x
-    out[..., 2, 2] = 1.0
+    _fill_adjoint(out, P, -2, -1)
     return out
+
+
+def adjoint_columns(P: Planar) -> FloatArray:
+    """:func:`adjoint` of ``m`` poses as columns ``(3, 3, m)`` (entry ``[r, c]`` a contiguous
+    ``m``-long row, for column-wise products)."""
+    out = np.zeros((3, 3) + np.shape(P.x))
+    _fill_adjoint(out, P, 0, 1)
+    return out
+
+
+def _fill_adjoint(out: FloatArray, P: Planar, row_axis: int, col_axis: int) -> None:
+    """Write the non-zero entries of ``Ad(T)`` (:func:`adjoint`) into ``out``, whose axes
+    ``row_axis``, ``col_axis`` index the matrix (its zeros stay as they are)."""
+    view = np.moveaxis(out, (row_axis, col_axis), (0, 1))
+    view[0, 0] = P.c
+    view[0, 1] = -P.s
+    view[1, 0] = P.s
+    view[1, 1] = P.c
+    view[0, 2] = P.y
+    view[1, 2] = -P.x
+    view[2, 2] = 1.0
 
 
 def right_jacobian_inv(xi: FloatArray) -> FloatArray:
