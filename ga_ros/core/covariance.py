@@ -46,13 +46,11 @@ def not_positive_definite(matrices: FloatArray, tol: float = PD_TOLERANCE,
     A = np.asarray(matrices, dtype=float)
     if A.ndim != 3 or A.shape[1] != A.shape[2]:
         raise InputError(f'expected a (k, d, d) stack of square matrices, got shape {A.shape}')
-    if eigenvalues is not None:
-        return eigenvalues[:, 0] <= tol * np.maximum(np.abs(A).max(axis=(1, 2)), 1e-300)
     bad = ~np.isfinite(A).all(axis=(1, 2))
     out = bad.copy()
     ok = ~bad
     if ok.any():
-        w = np.linalg.eigvalsh(A[ok])
+        w = np.linalg.eigvalsh(A[ok]) if eigenvalues is None else eigenvalues[ok]
         scale = np.maximum(np.abs(A[ok]).max(axis=(1, 2)), 1e-300)
         out[ok] = w[:, 0] <= tol * scale
     return out

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.covariance import PD_TOLERANCE
 from ga_ros.errors import InputError, NetworkError
 
 DUPLICATE_POLICIES = ('keep', 'reject', 'replace')
@@ -43,7 +44,7 @@ def check_covariances(cov: FloatArray, what: str = 'covariance', rtol: float = 1
                          'if the asymmetry is round-off')
     sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
     eig_min = np.linalg.eigvalsh(sym)[:, 0]
-    notpd = eig_min <= 1e-12 * scale
+    notpd = eig_min <= PD_TOLERANCE * scale
     if notpd.any():
         k = int(np.argmax(notpd))
         raise InputError(f'{what} #{k} is not positive definite (smallest eigenvalue '

@@ -57,7 +57,11 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.covariance import nearest_positive_definite, not_positive_definite
+from ga_ros.core.covariance import (
+    PD_TOLERANCE,
+    nearest_positive_definite,
+    not_positive_definite,
+)
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
@@ -515,10 +519,10 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     cov = np.linalg.inv(info6)
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
     # the network's rule for a covariance (ga_ros.core.network.check_covariances: smallest
-    # eigenvalue above 1e-12 of its largest |entry|), from the information's eigenvalues
+    # eigenvalue above PD_TOLERANCE of its largest |entry|), from the information's eigenvalues
     # (those of the covariance are their inverses; a 2-D edge's padding adds eigenvalue 1)
     cov_min = 1.0 / eig[:, -1] if dim == 3 else np.minimum(1.0 / eig[:, -1], 1.0)
-    singular = ~(cov_min > 1e-12 * np.abs(cov).max(axis=(1, 2)))
+    singular = ~(cov_min > PD_TOLERANCE * np.abs(cov).max(axis=(1, 2)))
     if singular.any():
         k = int(np.argmax(singular))
         raise FormatError(f'information matrix is too ill-conditioned to invert (eigenvalues '
