@@ -387,12 +387,12 @@ def _sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolAr
     priors = []
     for c in np.unique(label):
         mine = np.nonzero(label == c)[0]
-        if not target[mine].any():
+        nodes, keep = free[mine], target[mine]
+        if not keep.any():
             continue
         at = (6 * mine[:, None] + np.arange(6)).ravel()
-        priors.append(marginal_prior(free[mine], Nc[at][:, at], u[at], target[mine],
-                                     T_lin[free[mine][target[mine]]], band, hubs,
-                                     coords=T_lin[free[mine], :3, 3]))
+        priors.append(marginal_prior(nodes, Nc[at][:, at], u[at], keep, T_lin[nodes[keep]],
+                                     band, hubs, coords=T_lin[nodes, :3, 3]))
     return tuple(priors)
 
 
