@@ -77,3 +77,80 @@ def test_chord_with_a_stale_factor_is_refused(scale):
     prob, T0 = _problem(5)
     p, sysd, data, state = _state_at(prob, T0, scale)
     assert solver._chord_step(p, T0, sysd, data, state) is None
+
+
+#: The window aligner's undamped iteration (window.ALIGNER_SOLVER): chord steps below 20 m.
+UNDAMPED = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=1e-6,
+                        reuse_factor_below=20.0)
+
+
+def test_the_gradient_ahead_is_the_linearisation_at_its_point():
+    """After a step, the fused kernel's gradient system at the new point (what the next chord
+    step and the step's cost use) equals the full linearisation there (the blocks' path), and
+    the next gradient at that very point is it, at another point a new one."""
+    from ga_ros.core import kernels
+    if not kernels.AVAILABLE:
+        pytest.skip('numba not installed')
+    prob, T0 = _problem(6)
+    free = np.ones(prob.network.n_nodes, dtype=bool)
+    free[0] = False
+    p = solver._Problem.build('se3', prob.network.arrays(), [], UNDAMPED, free)
+    p.jit = True
+    T1 = prob.T_true.copy()
+    ahead = p.gradient_ahead(T1, 0.5)
+    assert ahead is not None and ahead.blocks is None
+    full = p.linear_system(T1, None)  # independent: the system with N's blocks
+    np.testing.assert_allclose(ahead.u, full.u, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(ahead.w, p.misclosure(T1), rtol=0, atol=0)
+    assert ahead.cost0 == pytest.approx(p.cost_at(T1), rel=1e-12)
+    assert p.gradient(T1, None) is ahead  # handed to the next chord step once
+    assert p.gradient(T1, None) is not ahead
+    p.gradient_ahead(T1, 0.5)
+    assert p.gradient(T1.copy(), None) is not ahead  # another point: computed anew
+    # a step above reuse_factor_below (the next iteration factors) or a robust loss: none
+    assert p.gradient_ahead(T1, 25.0) is None
+    robust = solver._Problem.build('se3', prob.network.arrays(), [],
+                                   replace(UNDAMPED, robust_loss='huber'), free)
+    robust.jit = True
+    assert robust.gradient_ahead(T1, 0.5) is None
+
+
+def test_undamped_chord_steps_fused_equal_the_numpy_iteration(monkeypatch):
+    """The undamped iteration with chord steps (the window's), its residuals and costs from
+    the fused kernel (no separate misclosure pass), takes the same steps to the same estimate
+    as the NumPy path, which computes the misclosure and the cost apart."""
+    from ga_ros.core import kernels
+    if not kernels.AVAILABLE:
+        pytest.skip('numba not installed')
+    prob, T0 = _problem(7)
+    calls = []
+    misclosure = solver._Problem.misclosure
+    monkeypatch.setattr(solver._Problem, 'misclosure',
+                        lambda self, T: calls.append(1) or misclosure(self, T))
+    fused = solve(prob.network, T0, UNDAMPED, jit=True)
+    fused_calls = len(calls)  # only after a step of 20 m or more (the next one factors)
+    assert fused.factorisations < fused.iterations  # chord steps were taken
+    monkeypatch.setattr(kernels, 'AVAILABLE', False)
+    ref = solve(prob.network, T0, UNDAMPED, jit=True)
+    assert fused_calls < len(calls) - fused_calls  # the NumPy path computes them apart
+    assert (fused.iterations, fused.factorisations, fused.reason) == (
+        ref.iterations, ref.factorisations, ref.reason)
+    np.testing.assert_allclose(fused.cost_history, ref.cost_history, rtol=1e-10)
+    np.testing.assert_allclose(fused.T_world_node, ref.T_world_node, atol=1e-9)
+    np.testing.assert_allclose(fused.residuals, ref.residuals, atol=1e-9)
+
+
+def test_measured_motions_given_equal_measured_motions_computed():
+    """``solve(measured=...)`` (the window's kept ``T_meas`` and inverses) gives the solve
+    that computes them from ``z``, bit for bit; wrong shapes are refused."""
+    from ga_ros.errors import InputError
+    from ga_ros.geometry import se3
+    prob, T0 = _problem(8)
+    z = prob.network.arrays().z
+    T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+    given = solve(prob.network, T0, UNDAMPED, measured=(T_meas, se3.inverse(T_meas)))
+    ref = solve(prob.network, T0, UNDAMPED)
+    np.testing.assert_array_equal(given.T_world_node, ref.T_world_node)
+    assert given.cost == ref.cost
+    with pytest.raises(InputError, match='measured'):
+        solve(prob.network, T0, UNDAMPED, measured=(T_meas[1:], T_meas[1:]))

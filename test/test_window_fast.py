@@ -123,3 +123,26 @@ def test_a_chord_step_that_raises_the_cost_is_undone():
     assert ref.converged and got.converged
     np.testing.assert_allclose(got.T_world_node, ref.T_world_node, rtol=0, atol=1e-8)
     assert got.factorisations < got.iterations  # chord steps were kept where they worked
+
+
+def test_the_kept_connection_terms_are_those_of_each_window():
+    """The weights and measured motions kept from one update to the next (only the
+    connections new to the window computed) are, at every update, those of the window's
+    connections computed from their covariances and measurements: the inverse by a dense
+    solve, the motions by ``se3.from_translation_rotvec`` of each ``z`` (bit for bit)."""
+    sc, nm, ms = noisy_aerial_survey(6, 20, 10.0, 4)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2, refine_every_tracks=0),
+                            sc.T_world_node[0])
+    checked = 0
+    for _ in _fly(al, ms):
+        terms = al._conn_terms
+        assert terms.rows.size and np.array_equal(terms.rows, np.unique(terms.rows))
+        z, cov = al._z.a[terms.rows], al._ccov.a[terms.rows]
+        T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+        np.testing.assert_array_equal(terms.T_meas, T_meas)
+        np.testing.assert_array_equal(terms.T_meas_inv, se3.inverse(T_meas))
+        eye = np.broadcast_to(np.eye(6), cov.shape)
+        np.testing.assert_allclose(terms.weights, np.linalg.solve(cov, eye), rtol=1e-9,
+                                   atol=1e-9 * np.abs(terms.weights).max())
+        checked += 1
+    assert checked == 6

@@ -74,7 +74,8 @@ class Prealignment:
 
 def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
              config: SolverConfig = PREALIGN_SOLVER, weights: FloatArray | None = None,
-             jit: bool = False, factor: SparseCholesky | None = None) -> Prealignment:
+             jit: bool = False, factor: SparseCholesky | None = None,
+             measured: tuple[FloatArray, FloatArray] | None = None) -> Prealignment:
     """Solve the nodes ``free_idx`` of ``network`` alone, every other node held at ``T_init``.
 
     Parameters
@@ -90,6 +91,8 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
         solve`'s ``jit``).
     factor : the previous pre-alignment's :attr:`Prealignment.factor` (``solve``'s
         ``factor``: its symbolic analysis is reused if the pattern is the same).
+    measured : ``(T_meas, T_meas^-1)``, (m, 4, 4) each, of every connection of ``network``
+        when the caller has them (:func:`~ga_ros.core.solver.solve`'s ``measured``).
 
     Returns
     -------
@@ -120,7 +123,8 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
                                         conn.z[sel], conn.cov[sel])
     try:
         res = solve(sub, T[nodes], config, fixed=ids[nodes[free_idx.size:]].tolist(),
-                    jit=jit, weights=None if weights is None else weights[sel], factor=factor)
+                    jit=jit, weights=None if weights is None else weights[sel], factor=factor,
+                    measured=None if measured is None else (measured[0][sel], measured[1][sel]))
     except GaError as exc:
         return Prealignment(T, 0, f'failed: {exc}', int(free_idx.size), int(sel.size))
     out = T.copy()

@@ -365,7 +365,8 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
           priors: Sequence[GaussianPrior] = (), jit: bool = False,
           weights: FloatArray | None = None,
           factor: SparseCholesky | None = None,
-          factor_at_solution: bool = True) -> SolveResult:
+          factor_at_solution: bool = True,
+          measured: tuple[FloatArray, FloatArray] | None = None) -> SolveResult:
     """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
 
     Parameters
@@ -404,6 +405,11 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         to 10 % for the newest two tracks, whose weak modes the last correction moved by metres.
         :attr:`SolveResult.factor_offset` bounds the distance. The normal matrix of the result
         (:attr:`SolveResult.normal_matrix`, a sequential prior) is then the factored one too.
+    measured : se3 only: ``(T_meas, T_meas^-1)``, the (m, 4, 4) measured motions of the
+        connections (``T_src_dst`` of each ``z``,
+        :func:`ga_ros.geometry.se3.from_translation_rotvec`) and their inverses, if the caller
+        has them (e.g. kept from the previous window update, as ``weights``): not computed
+        again.
 
     Returns
     -------
@@ -448,7 +454,10 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     if weights is not None and np.shape(weights) != want:
         raise InputError(f'weights must be {want} for the {model} model, got '
                          f'{np.shape(weights)}' if want else 'weights only for se3 and se2')
-    prob = _Problem.build(model, conn, prior_data, cfg, free, weights)
+    if measured is not None and (model != 'se3' or any(
+            np.shape(a) != (len(conn), 4, 4) for a in measured)):
+        raise InputError(f'measured must be two ({len(conn)}, 4, 4) arrays, for the se3 model')
+    prob = _Problem.build(model, conn, prior_data, cfg, free, weights, measured)
     prob.jit = bool(jit)
     if factor is not None and factor.pattern.key == prob.pattern.key:
         prob.factor = factor
@@ -527,7 +536,8 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     :func:`solve`'s ``factor_at_solution=False``).
     """
     cfg = prob.cfg
-    v = prob.consistent(T, prob.zero_residuals())
+    # the fused kernel's first system gives the motion model's residuals (the misclosure at T)
+    v = None if prob.fused_gradient else prob.consistent(T, prob.zero_residuals())
     state = _Trust(chol=prob.factor)
     last_step = since_factor = np.inf
     slow = False  # the last chord step contracted too slowly: factor anew
@@ -545,12 +555,14 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                  and last_step < cfg.reuse_factor_below and not slow)
         # a chord step needs the gradient only (it reuses the last factor of N)
         sysd = prob.gradient(T, v) if chord else prob.linear_system(T, v)
+        if v is None:
+            v = sysd.w
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
             history.append(state.cost)
         # a chord step reuses the last factor: N's values are not needed
         # the (4 m, d, d) blocks are freed before factoring
-        data = None if chord else sysd.normal_values(prob.pattern)
+        data = None if chord else sysd.normal_values(prob.pattern, prob.compiled)
         sysd.blocks = None
         if cfg.damping == 'none':
             if not chord:
@@ -565,9 +577,13 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 converged, reason = True, 'cost_converged'
                 break
             T_new = prob.retract(T, dx)
-            v_new = prob.next_residuals(T_new, sysd, dx)
-            cost = (_adjustment_cost(v_new, prob.P, sysd.weights)
-                    + _prior_cost(prob.model, T_new, prob.prior_data))
+            ahead = prob.gradient_ahead(T_new, float(np.abs(dx).max()) if dx.size else 0.0)
+            if ahead is not None:  # the next chord step's gradient, residuals and cost at once
+                v_new, cost = ahead.w, ahead.cost0
+            else:
+                v_new = prob.next_residuals(T_new, sysd, dx)
+                cost = (_adjustment_cost(v_new, prob.P, sysd.weights)
+                        + _prior_cost(prob.model, T_new, prob.prior_data))
             if chord and not _chord_kept(-float(sysd.u @ dx), history[-1], cost):
                 last_step = np.inf  # undone: this point again, with a factorisation
                 continue
@@ -798,10 +814,12 @@ class _Problem:
     _meas: columns.MeasuredInverse | None = None  # meas, once computed
     _sqrt_w: columns.SqrtWeights | None = None  # sqrt_w, once computed
     _mis: tuple = (None, None)  # (T, columns.Misclosure) of the last cost_at, reused once
+    _ahead: tuple = (None, None)  # (T, _System) of gradient_ahead, for the next gradient
 
     @staticmethod
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
-              cfg: SolverConfig, free: np.ndarray, P: FloatArray | None = None) -> _Problem:
+              cfg: SolverConfig, free: np.ndarray, P: FloatArray | None = None,
+              measured: tuple[FloatArray, FloatArray] | None = None) -> _Problem:
         d = models.dof(model)
         col = np.full(free.size, -1, dtype=np.int64)
         col[free] = np.arange(int(free.sum()))
@@ -817,9 +835,12 @@ class _Problem:
         # parts, which compute them a part at a time (the same values: ~150 MB less at 100,000
         # poses for a few tenths of a second per linearisation)
         in_parts = _linearised_in_parts(model, len(conn))
-        T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-                  if model in models.MOTION_MODELS and not in_parts else None)
-        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
+        if measured is not None and not in_parts:  # solve's measured (se3): the caller's
+            T_meas, Tm_inv = measured[0], np.ascontiguousarray(measured[1])
+        else:
+            T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+                      if model in models.MOTION_MODELS and not in_parts else None)
+            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
@@ -866,7 +887,11 @@ class _Problem:
         the cost at ``T`` (``blocks`` ``None``), what a chord step needs (it reuses the last
         factorisation of ``N``). The compiled se3 kernel skips the blocks' products (~3x
         faster); the other paths compute them and drop them."""
-        if not (self.compiled and self.T_meas is not None):
+        ahead_T, ahead = self._ahead
+        self._ahead = (None, None)
+        if ahead_T is T:  # computed by gradient_ahead after the step that led to T
+            return ahead
+        if not self.fused_gradient:
             sysd = self.linear_system(T, v)
             sysd.blocks = None
             return sysd
@@ -875,6 +900,29 @@ class _Problem:
         return _motion_system(self.model, T, self.conn, self.P, self.prior_data, self.cfg,
                               self.col, self.d, self.T_meas, self.Tm_inv, True,
                               gradient_only=True)
+
+    @property
+    def fused_gradient(self) -> bool:
+        """The gradient comes from the compiled se3 kernel without the blocks of ``N``
+        (:meth:`gradient`), whose misclosure is :meth:`misclosure`'s (the same compiled
+        function) and, without a robust loss, whose ``cost0`` is the cost at ``T``."""
+        return self.compiled and self.T_meas is not None
+
+    def gradient_ahead(self, T: FloatArray, step: float) -> _System | None:
+        """After an undamped step of size ``step`` (max ``|dx|``) to ``T``: the gradient system
+        at ``T``, when the next iteration will be a chord step (``step`` below
+        ``reuse_factor_below``) and the fused kernel gives the residuals and the cost at ``T``
+        with it (:attr:`fused_gradient`, no robust loss). Its misclosure ``w`` and ``cost0``
+        then stand for :meth:`next_residuals` and the cost of the step, and the next
+        :meth:`gradient` at this very ``T`` returns it: one kernel pass instead of a misclosure,
+        a cost and, in the next iteration, the gradient's own pass. ``None`` otherwise."""
+        cfg = self.cfg
+        if not (cfg.damping == 'none' and cfg.robust_loss == 'none' and self.fused_gradient
+                and step < cfg.reuse_factor_below):
+            return None
+        sysd = self.gradient(T, None)
+        self._ahead = (T, sysd)
+        return sysd
 
     @property
     def compiled(self) -> bool:
@@ -958,10 +1006,12 @@ class _System:
     cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
     data: FloatArray | None = None  # N's lower-triangle values, when assembled in parts
 
-    def normal_values(self, pattern: BlockPattern) -> FloatArray:
+    def normal_values(self, pattern: BlockPattern, compiled: bool = False) -> FloatArray:
         """``N``'s lower-triangle values on ``pattern``, handed over once: the system keeps
-        neither them nor its blocks (the next iteration's are assembled without them)."""
-        data = self.data if self.data is not None else pattern.assemble(self.blocks)
+        neither them nor its blocks (the next iteration's are assembled without them).
+        ``compiled``: assembled by the compiled loop (:meth:`BlockPattern.assemble`)."""
+        data = (self.data if self.data is not None
+                else pattern.assemble(self.blocks, compiled))
         self.data = self.blocks = None
         return data
 

@@ -504,6 +504,17 @@ class _AheadFreeze:
             self.thread.join()
 
 
+@dataclass(frozen=True)
+class _ConnectionTerms:
+    """Per-connection terms of a window's connections that depend on the measurement only,
+    kept from one update to the next (:meth:`TrackWindowAligner._connection_terms`)."""
+
+    rows: IntArray  # (m,) sorted connection rows
+    weights: FloatArray  # (m, 6, 6) S^-1
+    T_meas: FloatArray  # (m, 4, 4) the measured motions T_src_dst
+    T_meas_inv: FloatArray  # (m, 4, 4) their inverses
+
+
 class JointPrior(tuple):
     """One joint prior as the aligner keeps it: ``(node rows (k,), T_mean (k, 4, 4),
     information (6k, 6k))``, unpacked as that 3-tuple (state files, the refinement's snapshot),
@@ -602,10 +613,10 @@ class TrackWindowAligner:
         # (node rows, (k, 4, 4)): where the next update starts them (their published pose,
         # self._T, stays the frozen one)
         self._T_weighted: tuple[IntArray, FloatArray] = _no_weighted()
-        # weights S^-1 of the last window's connections (rows, (m, 6, 6)): an update inverts
-        # only the covariances of the connections that entered the window since
-        self._weights_kept: tuple[IntArray, FloatArray] = (np.zeros(0, np.int64),
-                                                           np.zeros((0, 6, 6)))
+        # weights S^-1 and measured motions of the last window's connections: an update
+        # computes them only for the connections that entered the window since
+        self._conn_terms = _ConnectionTerms(np.zeros(0, np.int64), np.zeros((0, 6, 6)),
+                                            np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
         self._rejected: dict[str, int] = {}
         self._n_updates = 0
         self._n_outliers = 0
@@ -1347,20 +1358,23 @@ class TrackWindowAligner:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
             T_init = _carry_over(self._T[nodes], nodes, prev_nodes, T_prev)
-            weights = self._weights(conns)
+            terms = self._connection_terms(conns)
+            weights, measured = terms.weights, (terms.T_meas, terms.T_meas_inv)
             if res is None:
                 # the nodes no adjustment has seen yet (the new track's dead-reckoned chain)
                 # first at their optimum given the others (prealign, paper Sec. III-D)
                 fresh = np.nonzero(~np.isin(win_nodes, self._last_window))[0]
                 if 0 < fresh.size < win_nodes.size:
                     pre = prealign(net, T_init, fresh, weights=weights, jit=True,
-                                   factor=self.__dict__.pop('_prealign_factor', None))
+                                   factor=self.__dict__.pop('_prealign_factor', None),
+                                   measured=measured)
                     T_init = pre.T_world_node
                     self.__dict__['_prealign_factor'] = pre.factor  # the next track's
             # the factor of the last solve (its symbolic analysis): same pattern as a rule
             donor = res if res is not None else self.__dict__.get('_last_result')
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
-                        weights=weights, factor_at_solution=not scfg.cost_tolerance > 0,
+                        weights=weights, measured=measured,
+                        factor_at_solution=not scfg.cost_tolerance > 0,
                         factor=donor.release_factor() if donor is not None else None)
             prev_nodes, T_prev = nodes, res.T_world_node
             bad = self._outliers(res, conns, net, priors)
@@ -1390,21 +1404,33 @@ class TrackWindowAligner:
             quality=self._quality_summary(net, res, priors, conns))
 
     def _weights(self, conns: IntArray) -> FloatArray:
-        """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows), those of the last call
-        reused (a window keeps most of its connections from one update to the next)."""
-        kept, P_kept = self._weights_kept
-        if conns is kept:  # the same rows again (the gate after the adjustment)
-            return P_kept
-        pos = np.searchsorted(kept, conns)
-        hit = pos < kept.size
-        hit[hit] = kept[pos[hit]] == conns[hit]
-        P = np.empty((conns.size, 6, 6))
-        P[hit] = P_kept[pos[hit]]
+        """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows)
+        (:meth:`_connection_terms`)."""
+        return self._connection_terms(conns).weights
+
+    def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
+        """The weights and measured motions of connections (sorted rows), those of the last
+        call reused (a window keeps most of its connections from one update to the next)."""
+        kept = self._conn_terms
+        if conns is kept.rows:  # the same rows again (the gate after the adjustment)
+            return kept
+        pos = np.searchsorted(kept.rows, conns)
+        hit = pos < kept.rows.size
+        hit[hit] = kept.rows[pos[hit]] == conns[hit]
+        at = pos[hit]
+        out = _ConnectionTerms(conns, np.empty((conns.size, 6, 6)),
+                               np.empty((conns.size, 4, 4)), np.empty((conns.size, 4, 4)))
+        out.weights[hit], out.T_meas[hit], out.T_meas_inv[hit] = (
+            kept.weights[at], kept.T_meas[at], kept.T_meas_inv[at])
         if not hit.all():
-            P[~hit] = spd_inverse(self._ccov.a[conns[~hit]],
-                                  "a connection's covariance is not positive definite")
-        self._weights_kept = (conns, P)
-        return P
+            new = conns[~hit]
+            out.weights[~hit] = spd_inverse(self._ccov.a[new],
+                                            "a connection's covariance is not positive definite")
+            z = self._z.a[new]
+            T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+            out.T_meas[~hit], out.T_meas_inv[~hit] = T_meas, se3.inverse(T_meas)
+        self._conn_terms = out
+        return out
 
     def _quality_report(self, net: ConnectionNetwork, res: SolveResult,
                         priors: list[GaussianPrior]) -> tuple[QualityReport, float]:
