@@ -126,10 +126,10 @@ def test_a_chord_step_that_raises_the_cost_is_undone():
 
 
 def test_the_kept_connection_terms_are_those_of_each_window():
-    """The weights and measured motions kept from one update to the next (only the
-    connections new to the window computed) are, at every update, those of the window's
-    connections computed from their covariances and measurements: the inverse by a dense
-    solve, the motions by ``se3.from_translation_rotvec`` of each ``z`` (bit for bit)."""
+    """The covariances, weights and measured motions kept from one update to the next (only
+    the connections new to the window computed) are, at every update, those of the window's
+    connections computed from the connection table: the inverse by a dense solve, the motions
+    by ``se3.from_translation_rotvec`` of each ``z`` (bit for bit)."""
     sc, nm, ms = noisy_aerial_survey(6, 20, 10.0, 4)
     al = TrackWindowAligner(AlignerConfig(window_tracks=2, refine_every_tracks=0),
                             sc.T_world_node[0])
@@ -141,6 +141,7 @@ def test_the_kept_connection_terms_are_those_of_each_window():
         T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
         np.testing.assert_array_equal(terms.T_meas, T_meas)
         np.testing.assert_array_equal(terms.T_meas_inv, se3.inverse(T_meas))
+        np.testing.assert_array_equal(terms.cov, cov)
         eye = np.broadcast_to(np.eye(6), cov.shape)
         np.testing.assert_allclose(terms.weights, np.linalg.solve(cov, eye), rtol=1e-9,
                                    atol=1e-9 * np.abs(terms.weights).max())

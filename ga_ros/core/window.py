@@ -510,6 +510,7 @@ class _ConnectionTerms:
     kept from one update to the next (:meth:`TrackWindowAligner._connection_terms`)."""
 
     rows: IntArray  # (m,) sorted connection rows
+    cov: FloatArray  # (m, 6, 6) S, unpacked from the connection table
     weights: FloatArray  # (m, 6, 6) S^-1
     T_meas: FloatArray  # (m, 4, 4) the measured motions T_src_dst
     T_meas_inv: FloatArray  # (m, 4, 4) their inverses
@@ -616,7 +617,8 @@ class TrackWindowAligner:
         # weights S^-1 and measured motions of the last window's connections: an update
         # computes them only for the connections that entered the window since
         self._conn_terms = _ConnectionTerms(np.zeros(0, np.int64), np.zeros((0, 6, 6)),
-                                            np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
+                                            np.zeros((0, 6, 6)), np.zeros((0, 4, 4)),
+                                            np.zeros((0, 4, 4)))
         self._rejected: dict[str, int] = {}
         self._n_updates = 0
         self._n_outliers = 0
@@ -1309,7 +1311,7 @@ class TrackWindowAligner:
                 priors_idx.append(p)
                 ext = np.union1d(ext, idx[~in_win[idx]])
         nodes = np.concatenate([win_nodes, ext])
-        net = self._subnetwork(nodes, conns)
+        net = self._subnetwork(nodes, conns, self._connection_terms(conns).cov)
         fixed = [self._ids[0]] if (nodes == 0).any() else []
         priors = []
         # Frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
@@ -1336,14 +1338,16 @@ class TrackWindowAligner:
             prior = self._priors[p] = JointPrior(*prior, rank=information_rank(prior[2], 6))
         return prior
 
-    def _subnetwork(self, nodes: IntArray, conns: IntArray) -> ConnectionNetwork:
-        """Network of some nodes (by index) and connections among them (already validated)."""
+    def _subnetwork(self, nodes: IntArray, conns: IntArray,
+                    cov: FloatArray | None = None) -> ConnectionNetwork:
+        """Network of some nodes (by index) and connections among them (already validated);
+        ``cov``: the connections' (m, 6, 6) covariances if the caller has them unpacked."""
         local = np.full(len(self._ids), -1, dtype=np.int64)
         local[nodes] = np.arange(nodes.size)
         return ConnectionNetwork.from_arrays(
             self._idarr.a[nodes], self._trackarr.a[nodes],
             local[self._src.a[conns]], local[self._dst.a[conns]], self._z.a[conns],
-            self._ccov.a[conns])
+            self._ccov.a[conns] if cov is None else cov)
 
     def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
         cfg = self.config
@@ -1409,8 +1413,9 @@ class TrackWindowAligner:
         return self._connection_terms(conns).weights
 
     def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
-        """The weights and measured motions of connections (sorted rows), those of the last
-        call reused (a window keeps most of its connections from one update to the next)."""
+        """The covariances, weights and measured motions of connections (sorted rows), those
+        of the last call reused (a window keeps most of its connections from one update to the
+        next)."""
         kept = self._conn_terms
         if conns is kept.rows:  # the same rows again (the gate after the adjustment)
             return kept
@@ -1418,13 +1423,14 @@ class TrackWindowAligner:
         hit = pos < kept.rows.size
         hit[hit] = kept.rows[pos[hit]] == conns[hit]
         at = pos[hit]
-        out = _ConnectionTerms(conns, np.empty((conns.size, 6, 6)),
+        out = _ConnectionTerms(conns, np.empty((conns.size, 6, 6)), np.empty((conns.size, 6, 6)),
                                np.empty((conns.size, 4, 4)), np.empty((conns.size, 4, 4)))
-        out.weights[hit], out.T_meas[hit], out.T_meas_inv[hit] = (
-            kept.weights[at], kept.T_meas[at], kept.T_meas_inv[at])
+        out.cov[hit], out.weights[hit], out.T_meas[hit], out.T_meas_inv[hit] = (
+            kept.cov[at], kept.weights[at], kept.T_meas[at], kept.T_meas_inv[at])
         if not hit.all():
             new = conns[~hit]
-            out.weights[~hit] = spd_inverse(self._ccov.a[new],
+            out.cov[~hit] = cov = self._ccov.a[new]
+            out.weights[~hit] = spd_inverse(cov,
                                             "a connection's covariance is not positive definite")
             z = self._z.a[new]
             T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
