@@ -24,7 +24,8 @@ def test_bench_window_receives_its_arguments(capsys):
     assert fig['nodes'] == 2 * 204
     assert fig['gap_rigid_pct'] == 0.0  # no batch: the window is compared with itself
     parts = fig['breakdown_cpu_ms_p50']  # the update's CPU split by part, 'other' the rest
-    assert set(parts) == {'linearise', 'factor', 'gate', 'freeze', 'refinement', 'other',
+    assert set(parts) == {'linearise', 'factor', 'solve', 'gradient', 'problem', 'gate',
+                          'freeze', 'refinement', 'other',
                           'freeze (background)'}  # the next freeze, computed ahead
     assert parts['linearise'] > 0 and parts['factor'] > 0 and parts['freeze (background)'] > 0
 

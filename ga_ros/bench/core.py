@@ -130,9 +130,16 @@ class WindowFigures:
 
 #: The parts of a window update timed by :func:`bench_window` (CPU ms, exclusive: a part
 #: called inside another counts in the outer one), and the functions that do them.
+#: ``solve``: the factor's solves (the steps); ``gradient``: the gradient after each step (its
+#: residuals, cost and the next chord step's gradient, :meth:`~ga_ros.core.solver._Problem.
+#: gradient_ahead`); ``problem``: the window problem's node and connection sets and the
+#: connections' kept terms.
 UPDATE_PARTS = {
     'linearise': ((_solver._Problem, 'linear_system'), (_sparse.BlockPattern, 'assemble')),
     'factor': ((_sparse.SparseCholesky, '__init__'), (_sparse.SparseCholesky, 'refactor')),
+    'solve': ((_sparse.SparseCholesky, 'solve'),),
+    'gradient': ((_solver._Problem, 'gradient'), (_solver._Problem, 'gradient_ahead')),
+    'problem': ((TrackWindowAligner, '_window_problem'),),
     'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
     'freeze': ((TrackWindowAligner, '_freeze'),),
     'refinement': ((TrackWindowAligner, '_install_due'), (TrackWindowAligner, '_smooth'),

@@ -776,34 +776,31 @@ def _scatter_add_py(flat, kept, diag, tril, pos, out):  # pragma: no cover - com
 _SCATTER: list = []  # [the compiled _scatter_add_py or None], compiled on first use
 
 
-def _scatter_kernel():
-    """:func:`_scatter_add_py` compiled with numba (cached on disk), or ``None`` without
-    numba (:meth:`BlockPattern.assemble` gathers and counts with NumPy then)."""
-    if not _SCATTER:
+def _compiled(slot: list, fn):
+    """``fn`` compiled with numba (cached on disk) on first use and kept in ``slot`` (a
+    one-element list), or ``None`` without numba."""
+    if not slot:
         from ga_ros.core.kernels import AVAILABLE
 
-        fn = None
+        compiled = None
         if AVAILABLE:
             import numba
 
-            fn = numba.njit(cache=True, nogil=True)(_scatter_add_py)
-        _SCATTER.append(fn)
-    return _SCATTER[0]
+            compiled = numba.njit(cache=True, nogil=True)(fn)
+        slot.append(compiled)
+    return slot[0]
+
+
+def _scatter_kernel():
+    """:func:`_scatter_add_py` compiled, or ``None`` without numba
+    (:meth:`BlockPattern.assemble` gathers and counts with NumPy then)."""
+    return _compiled(_SCATTER, _scatter_add_py)
 
 
 def _permutation_kernel():
-    """:func:`_permute_py` compiled with numba (cached on disk), or ``None`` without numba
-    (the values are gathered into a copy then)."""
-    if not _PERMUTE:
-        from ga_ros.core.kernels import AVAILABLE
-
-        fn = None
-        if AVAILABLE:
-            import numba
-
-            fn = numba.njit(cache=True, nogil=True)(_permute_py)
-        _PERMUTE.append(fn)
-    return _PERMUTE[0]
+    """:func:`_permute_py` compiled, or ``None`` without numba (the values are gathered into
+    a copy then)."""
+    return _compiled(_PERMUTE, _permute_py)
 
 
 @dataclass(frozen=True)
