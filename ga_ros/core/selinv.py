@@ -20,6 +20,8 @@ last column back, without any column of ``N^-1``):
 from __future__ import annotations
 
 import ctypes
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,7 +30,7 @@ import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
-from ga_ros.core.sparse import _CholmodFactor
+from ga_ros.core.sparse import _blake2b, _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
@@ -223,9 +225,10 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
     return 0
 
 
-def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragma: no cover
-    """``out[e]`` = the value at (``rows[e] >= cols[e]``) of the layout of :func:`_takahashi_py`
-    (binary searches); returns the number of entries not on the pattern (left NaN)."""
+def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: no cover
+    """``out[e]`` = the position in the values of the layout of :func:`_takahashi_py` of the
+    entry (``rows[e] >= cols[e]``), by binary searches (-1 if it is not on the pattern);
+    returns the number of entries not on the pattern."""
     missing = 0
     ns = starts.size - 1
     for e in range(rows.size):
@@ -245,9 +248,9 @@ def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragm
             else:
                 b = mid
         if a < pi[lo] + nrows[lo] and srows[a] == r:
-            out[e] = x[colbase[c] + a - pi[lo]]
+            out[e] = colbase[c] + a - pi[lo]
         else:
-            out[e] = np.nan
+            out[e] = -1
             missing += 1
     return missing
 
@@ -451,6 +454,13 @@ class SelectedInverse:
         ``(k, d, d)``. Each pair should be a diagonal block or a connected pair of ``N``; a pair
         off the factor's pattern raises :class:`DegenerateGeometryError` (``off_pattern=
         'raise'``) or comes back as NaN (``'nan'``)."""
+        return self.at(self.offsets(rows, cols, off_pattern))
+
+    def offsets(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> IntArray:
+        """Where the blocks ``(rows[k], cols[k])`` of :meth:`blocks` lie in the factor's values,
+        ``(k, d, d)`` (-1: off the pattern, with ``off_pattern='nan'``). They depend on the
+        symbolic analysis only: the same for every factor of one analysis, so a caller that
+        reads the same blocks of many factors computes them once (:meth:`at`)."""
         d = self.d
         rows = np.asarray(rows, dtype=np.int64)
         cols = np.asarray(cols, dtype=np.int64)
@@ -462,14 +472,22 @@ class SelectedInverse:
         if not self._need.all() and not self._need[self._supernode_of(lo)].all():
             raise DegenerateGeometryError('a requested block is outside the selected columns '
                                           'of this SelectedInverse (its columns argument)')
-        out = np.empty(lo.size)
+        out = np.empty(lo.size, dtype=np.int64)
         lay = self._lay
-        missing = _kernel('_entries')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
-                                      lay.x, hi, lo, out)
+        missing = _kernel('_offsets')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                      hi, lo, out)
         if missing and off_pattern == 'raise':
             raise DegenerateGeometryError('a requested block is not on the pattern of the '
                                           'normal matrix: only node and connected-pair blocks')
         return out.reshape(rows.size, d, d)
+
+    def at(self, offsets: IntArray) -> FloatArray:
+        """The values of ``Sigma`` at positions from :meth:`offsets` (NaN where -1)."""
+        offsets = np.asarray(offsets, dtype=np.int64)
+        out = self._lay.x[offsets]
+        if (offsets < 0).any():
+            out[offsets < 0] = np.nan
+        return out
 
     def diagonal_blocks(self, nodes: IntArray) -> FloatArray:
         """Marginal covariance blocks ``(k, d, d)`` of the given node columns (symmetrised)."""
@@ -526,17 +544,65 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
     return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
 
 
-def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
-                       w: int, rhs: FloatArray | None
-                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
-    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
-    skeleton's pairs added to its pattern."""
-    from ga_ros.core.sparse import BlockPattern, CovarianceSkeleton, SparseCholesky
+@dataclass
+class _SkeletonPlan:
+    """What :func:`_selected_skeleton` computes from the pattern of ``N`` and the targets alone
+    (the absorbed terms of a freeze repeat their pattern every track): the factor's block
+    pattern with the skeleton's pairs, where its values come from in ``N``'s, the symbolic
+    analysis, and where the skeleton's entries lie in the factor's values.
+
+    Attributes
+    ----------
+    indptr, indices : the pattern of ``N`` (compressed rows or columns) it was made for.
+    pattern : block pattern of ``N`` plus the skeleton's pairs (explicit zeros).
+    source : (nnz,) position in ``N.data`` of each of its lower-triangle values (-1: a zero).
+    pa, pc : block pairs of the skeleton (band among the others, hubs with every target, hubs
+        with hubs); bi, bj : positions (among the others) of the band pairs.
+    kept : a symbolic factor of ``pattern`` and the positions of the blocks ``(pa, pc)`` in
+        the values of its selected inverse (``None`` before the first use, and while a thread
+        uses them).
+    """
+
+    indptr: IntArray
+    indices: IntArray
+    pattern: object
+    source: IntArray
+    pa: IntArray
+    pc: IntArray
+    bi: IntArray
+    bj: IntArray
+    kept: tuple | None = None
+
+
+#: Plans of :func:`_selected_skeleton` by the shape of ``N`` and the skeleton, for the pattern of
+#: ``N`` they hold (the latest few;
+#: a lock around taking and returning a plan's analysis: freezes and refinements may run in
+#: threads at once).
+_PLANS: OrderedDict[bytes, _SkeletonPlan] = OrderedDict()
+_MAX_PLANS = 4
+_PLANS_LOCK = threading.Lock()
+
+
+def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                   w: int) -> _SkeletonPlan:
+    """The :class:`_SkeletonPlan` of ``N`` (CSR or CSC, both triangles) and a skeleton."""
+    key = _blake2b(b''.join([N.format.encode(), np.array([*N.shape, N.nnz, d, w], dtype=np.int64)
+                             .tobytes(), t.tobytes(), hubs.tobytes()]), digest_size=16).digest()
+    with _PLANS_LOCK:
+        plan = _PLANS.get(key)
+        if plan is not None and np.array_equal(plan.indptr, N.indptr) \
+                and np.array_equal(plan.indices, N.indices):
+            _PLANS.move_to_end(key)
+            return plan
+    from ga_ros.core.sparse import BlockPattern
 
     u = N.shape[0] // d
+    # the positions of N's values travel through the conversions instead of the values
+    # (1-based: an explicit zero of the new pattern comes out as 0)
+    where = type(N)((np.arange(1, N.nnz + 1, dtype=float), N.indices, N.indptr), shape=N.shape)
     # a symmetric CSC matrix is its own CSR transpose: no conversion
-    Nr = sp.csr_matrix((N.data, N.indices, N.indptr), shape=N.shape) if N.format == 'csc' \
-        else sp.csr_matrix(N)
+    Nr = sp.csr_matrix((where.data, where.indices, where.indptr), shape=N.shape) \
+        if N.format == 'csc' else where
     Nb = sp.bsr_matrix(Nr, blocksize=(d, d))
     Nb.sort_indices()
     rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
@@ -557,9 +623,43 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
                            np.concatenate([cols_n, diag, np.minimum(pa, pc)]), d, u)
     blocks = np.zeros((rows_n.size + u + pa.size, d, d))
     blocks[:rows_n.size] = Nb.data
-    chol = SparseCholesky(pattern, pattern.assemble(blocks))
+    source = np.rint(pattern.assemble(blocks)).astype(np.int64) - 1
+    plan = _SkeletonPlan(N.indptr.copy(), N.indices.copy(), pattern, source, pa, pc, bi, bj)
+    with _PLANS_LOCK:
+        _PLANS[key] = plan
+        while len(_PLANS) > _MAX_PLANS:
+            _PLANS.popitem(last=False)
+    return plan
+
+
+def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                       w: int, rhs: FloatArray | None
+                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
+    skeleton's pairs added to its pattern (pattern, analysis and the entries' positions kept
+    per pattern: :class:`_SkeletonPlan`)."""
+    from ga_ros.core.sparse import CovarianceSkeleton, SparseCholesky
+
+    if N.format not in ('csr', 'csc') or not N.has_canonical_format:
+        N = sp.csr_matrix(N)
+        N.sum_duplicates()  # one value per position: the plan maps positions
+    plan = _skeleton_plan(N, d, t, rest, hubs, w)
+    data = np.where(plan.source >= 0, N.data[plan.source], 0.0)
+    with _PLANS_LOCK:  # the plan's analysis, unless another thread is using it
+        kept, plan.kept = plan.kept, None
+    analysis, offsets = kept if kept is not None else (None, None)
+    chol = SparseCholesky(plan.pattern, data, analysis=analysis)
+    analysis = chol.analysis
     x = None if rhs is None else chol.solve(rhs)
-    S = SelectedInverse(chol, columns=t).blocks(pa, pc)  # Sigma_{pa, pc}: targets only
+    inv = SelectedInverse(chol, columns=t)  # their supernodes and ancestors
+    if offsets is None:  # they depend on the analysis only
+        offsets = inv.offsets(plan.pa, plan.pc)
+    S = inv.at(offsets)  # Sigma_{pa, pc}: targets only
+    if inv.in_place:  # the factor is a symbolic one again: kept for the next
+        with _PLANS_LOCK:
+            plan.kept = (analysis, offsets)
+    bi, bj = plan.bi, plan.bj
+    r, h = rest.size, hubs.size
     band = np.zeros((r, w + 1, d, d))
     band[bi, bj - bi] = S[:bi.size]
     cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)

@@ -273,11 +273,11 @@ class SparseCholesky:
     """
 
     def __init__(self, pattern: BlockPattern, data: FloatArray,
-                 trailing: IntArray | None = None) -> None:
+                 trailing: IntArray | None = None, analysis=None) -> None:
         self.pattern = pattern
         self.n = pattern.size
         self._trailing = None if trailing is None else np.asarray(trailing, dtype=np.int64)
-        self._symbolic = None
+        self._symbolic = analysis  # a kept symbolic factor of this pattern (keep_analysis)
         self._permuted: _Permuted | None = None  # P N P' for the direct factorisation
         self._A = None
         self._F = None
