@@ -1243,12 +1243,10 @@ def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: 
         X = cross.transpose(1, 3, 0, 2).reshape(r * d, h * d)  # Sigma_{rest, hubs}
         Ainv = _spd_inverse(hub_cov[None])[0]
         B = X @ Ainv
-        i = np.repeat(np.arange(r), w1)
-        j = i + np.tile(np.arange(w1), r)
-        ok = j < r
         B3, X3 = B.reshape(r, d, h * d), X.reshape(r, d, h * d)
         cond = band.copy()
-        cond[i[ok], (j - i)[ok]] -= B3[i[ok]] @ np.swapaxes(X3[j[ok]], 1, 2)
+        for o in range(min(w1, r)):  # band offset o: (B X')_{a, a+o}, by views (no gathers)
+            cond[:r - o, o] -= B3[:r - o] @ np.swapaxes(X3[o:], 1, 2)
     else:
         cond = band
     Kband = _band_completion(cond) if r else np.zeros((0, w1, d, d))
@@ -1352,11 +1350,11 @@ def _band_completion(band: FloatArray) -> FloatArray:
     Dinv = _spd_inverse(Dm)  # (r, d, d)
     G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
                         -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)
-    Ki = np.swapaxes(G, 1, 2) @ (Dinv @ G)  # (r, (w + 1) d, (w + 1) d)
-    Ki = Ki.reshape(r, w + 1, d, w + 1, d).transpose(0, 1, 3, 2, 4)  # [i, p, q]: d x d block
+    DG = Dinv @ G
     Kband = np.zeros((r + w, w + 1, d, d))
-    for p in range(w + 1):  # clique i adds its block (p, q >= p) to K_{i+p, i+q}
-        Kband[p:p + r, :w + 1 - p] += Ki[:, p, p:]
+    for p in range(w + 1):  # clique i adds its block (p, q >= p), G_p' D_i^-1 G_q, to K_{i+p, i+q}
+        Kp = np.swapaxes(G[:, :, p * d:(p + 1) * d], 1, 2) @ DG[:, :, p * d:]  # (r, d, (w+1-p) d)
+        Kband[p:p + r, :w + 1 - p] += Kp.reshape(r, d, w + 1 - p, d).transpose(0, 2, 1, 3)
     return Kband[:r]
 
 
