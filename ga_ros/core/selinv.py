@@ -127,18 +127,17 @@ def _lapack_symbol(name: str, nargs: int) -> bool:
 
 def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
     """:func:`_lower_inverse_py` by LAPACK's ``dtrtri`` and ``dlauum`` (``m^3 / 3`` flops each,
-    against ``~4 m^3`` for a general inverse and product); only the lower triangle of the
-    second matrix is set. A C-ordered lower triangle is LAPACK's column-major upper one."""
+    against ``~4 m^3`` for a general inverse and product) on a column-major (Fortran-ordered)
+    ``Ljj``, inverted in place; only the lower triangle of the second matrix is set."""
     m = Ljj.shape[0]
-    Linv = Ljj.copy()
     ints = np.array([m, 0], dtype=np.int32)  # n = lda, info
-    chars = np.array([85, 78], dtype=np.int8)  # 'U', 'N'
-    _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, Linv.ctypes.data,
+    chars = np.array([76, 78], dtype=np.int8)  # 'L', 'N'
+    _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, Ljj.ctypes.data,
             ints.ctypes.data, ints.ctypes.data + 4)
-    Sjj = Linv.copy()
+    Sjj = Ljj.T.copy().T  # column-major too
     _dlauum(chars.ctypes.data, ints.ctypes.data, Sjj.ctypes.data, ints.ctypes.data,
             ints.ctypes.data + 4)
-    return Linv, Sjj
+    return Ljj, Sjj
 
 
 _lower_inverse = _lower_inverse_py
@@ -151,16 +150,34 @@ def _times_lower_py(B, Linv):  # pragma: no cover - without numba only
 
 def _times_lower_blas(B, Linv):  # pragma: no cover - compiled
     """:func:`_times_lower_py` by BLAS's ``dtrmm`` (``r m^2`` flops instead of ``2 r m^2``), in
-    place in ``B`` (returned). A C-ordered ``r x m`` matrix is BLAS's column-major ``m x r``
-    transpose: ``(B Linv)' = Linv' B'``, with ``Linv'`` column-major upper triangular."""
+    place in ``B`` (returned); both column-major."""
     r, m = B.shape
-    ints = np.array([m, r], dtype=np.int32)  # M = lda = ldb, N
+    ints = np.array([r, m], dtype=np.int32)  # M = ldb, N = lda
     one = np.ones(1)
-    chars = np.array([76, 85, 78, 78], dtype=np.int8)  # side 'L', uplo 'U', 'N', diag 'N'
+    chars = np.array([82, 76, 78, 78], dtype=np.int8)  # side 'R', uplo 'L', 'N', diag 'N'
     _dtrmm(chars.ctypes.data, chars.ctypes.data + 1, chars.ctypes.data + 2,
            chars.ctypes.data + 3, ints.ctypes.data, ints.ctypes.data + 4, one.ctypes.data,
-           Linv.ctypes.data, ints.ctypes.data, B.ctypes.data, ints.ctypes.data)
+           Linv.ctypes.data, ints.ctypes.data + 4, B.ctypes.data, ints.ctypes.data)
     return B
+
+
+def _minus_product_py(S, U):  # pragma: no cover - without numba only
+    """``-S U``."""
+    return -(S @ U)
+
+
+def _minus_product_blas(S, U):  # pragma: no cover - compiled
+    """:func:`_minus_product_py` by BLAS's ``dgemm`` for a symmetric ``S`` (its layout does
+    not matter), column-major ``U``; the product column-major too."""
+    r, m = U.shape
+    out = np.empty((m, r)).T
+    ints = np.array([r, m], dtype=np.int32)  # M = K = lda = ldb = ldc, N
+    coef = np.array([-1.0, 0.0])
+    chars = np.array([78, 78], dtype=np.int8)  # 'N', 'N'
+    _dgemm(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, ints.ctypes.data + 4,
+           ints.ctypes.data, coef.ctypes.data, S.ctypes.data, ints.ctypes.data, U.ctypes.data,
+           ints.ctypes.data, coef.ctypes.data + 8, out.ctypes.data, ints.ctypes.data)
+    return out
 
 
 def _lower_update_py(Sjj, Sbj, U):  # pragma: no cover - without numba only
@@ -175,23 +192,23 @@ _PANEL = 64
 
 def _lower_update_blas(Sjj, Sbj, U):  # pragma: no cover - compiled
     """:func:`_lower_update_py` on the lower triangle of ``Sjj`` only, panel by panel (BLAS's
-    ``dgemm`` on column-major views: C-ordered ``Sjj``'s lower triangle is the column-major
-    upper one, ``M[i, a] -= sum_k U[k, i] Sbj[k, a]`` for ``i <= a``)."""
+    ``dgemm``; all column-major): ``Sjj[c0:, c0:c1] -= Sbj[:, c0:]' U[:, c0:c1]``."""
     r, m = U.shape
-    ints = np.array([m, 0, 0, r], dtype=np.int32)  # ld, rows, cols, k
+    ints = np.array([m, 0, 0, r], dtype=np.int32)  # ldc, rows, cols, k = lda = ldb
     coef = np.array([-1.0, 1.0])
-    chars = np.array([78, 84], dtype=np.int8)  # 'N', 'T'
+    chars = np.array([84, 78], dtype=np.int8)  # 'T', 'N'
     for c0 in range(0, m, _PANEL):
         c1 = min(m, c0 + _PANEL)
-        ints[1], ints[2] = c1, c1 - c0
-        # M[0:c1, c0:c1] -= X[0:c1, :] Y[c0:c1, :]'  (X = U', Y = Sbj', column-major m x r)
+        ints[1], ints[2] = m - c0, c1 - c0
         _dgemm(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data + 4,
-               ints.ctypes.data + 8, ints.ctypes.data + 12, coef.ctypes.data, U.ctypes.data,
-               ints.ctypes.data, Sbj.ctypes.data + 8 * c0, ints.ctypes.data, coef.ctypes.data + 8,
-               Sjj.ctypes.data + 8 * c0 * m, ints.ctypes.data)
+               ints.ctypes.data + 8, ints.ctypes.data + 12, coef.ctypes.data,
+               Sbj.ctypes.data + 8 * c0 * r, ints.ctypes.data + 12, U.ctypes.data + 8 * c0 * r,
+               ints.ctypes.data + 12, coef.ctypes.data + 8, Sjj.ctypes.data + 8 * c0 * (m + 1),
+               ints.ctypes.data)
 
 
 _times_lower = _times_lower_py
+_minus_product = _minus_product_py
 _lower_update = _lower_update_py
 
 
@@ -225,8 +242,8 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
         f = starts[t]
         m = starts[t + 1] - f
         r = nrows[t] - m
-        Ljj = np.zeros((m, m))
-        Lbj = np.empty((r, m))
+        Ljj = np.zeros((m, m)).T  # column-major: the factor's columns copy contiguously
+        Lbj = np.empty((m, r)).T
         for i in range(m):
             q = colbase[f + i]
             for a in range(i, m):
@@ -234,7 +251,7 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
             for a in range(r):
                 Lbj[a, i] = x[q + m + a]
         Linv, Sjj = _lower_inverse(Ljj)  # Sjj: lower triangle of L_JJ^-T L_JJ^-1
-        Sbj = np.empty((r, m))
+        Sbj = np.empty((m, r)).T
         if r:
             U = _times_lower(Lbj, Linv)  # L_BJ L_JJ^-1 (in place of Lbj)
             B = srows[pi[t] + m:pi[t] + nrows[t]]
@@ -270,7 +287,7 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
                 for z in range(nt):
                     where[srows[q0 + z]] = -1
                 a = b
-            Sbj = -(Sbb @ U)
+            Sbj = _minus_product(Sbb, U)  # -Sigma_BB U
             _lower_update(Sjj, Sbj, U)  # Sjj -= Sbj' U, its lower triangle
         for i in range(m):
             q = colbase[f + i]
@@ -320,7 +337,8 @@ COMPILED = AVAILABLE
 
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
-    global _lower_inverse, _dtrtri, _dlauum, _times_lower, _lower_update, _dtrmm, _dgemm
+    global _lower_inverse, _dtrtri, _dlauum, _times_lower, _minus_product, _lower_update
+    global _dtrmm, _dgemm
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
@@ -343,6 +361,7 @@ def _kernel(name: str):
                 _dgemm = numba.types.ExternalFunction('ga_ros_dgemm', numba.types.void(
                     *([p] * 13)))
                 _times_lower = numba.njit(cache=True, nogil=True)(_times_lower_blas)
+                _minus_product = numba.njit(cache=True, nogil=True)(_minus_product_blas)
                 _lower_update = numba.njit(cache=True, nogil=True)(_lower_update_blas)
             fn = numba.njit(cache=True, nogil=True)(fn)
         _KERNELS[name] = fn
