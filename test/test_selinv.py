@@ -179,6 +179,25 @@ def test_python_kernels_give_the_compiled_blocks(rng, monkeypatch):
                                    atol=1e-10 * np.abs(inv).max())
 
 
+def test_wide_supernodes_equal_the_dense_inverse(rng):
+    """A dense coupling of 70 nodes is one supernode of 420 columns: its triangle is inverted by
+    halves (wider than ``_TRTRI_LEAF``), and its blocks and those of a chain hanging below it
+    still equal the dense inverse."""
+    import ga_ros.core.selinv as selinv
+
+    u, d = 100, 6
+    N = _random_graph_spd(rng, u, d, 0) + 0.1 * np.eye(u * d)
+    J = rng.normal(size=(70 * d, 70 * d))
+    N[-70 * d:, -70 * d:] += J @ J.T / (70 * d)  # the last 70 nodes, all coupled
+    si = _selected(N, d)
+    assert np.diff(si._lay.starts).max() > 2 * selinv._TRTRI_LEAF
+    inv = np.linalg.inv(N)
+    rows, cols = _block_pairs(N, d)
+    ref = np.stack([inv[i * d:(i + 1) * d, j * d:(j + 1) * d] for i, j in zip(rows, cols)])
+    np.testing.assert_allclose(si.blocks(rows, cols), ref, rtol=1e-8,
+                               atol=1e-10 * np.abs(inv).max())
+
+
 def test_selected_columns_invert_only_their_ancestors(rng):
     """``columns``: only the supernodes of those nodes and their ancestors are inverted; every
     block among those nodes (diagonal and connected pairs) equals the dense inverse, on the
