@@ -142,8 +142,20 @@ def test_banded_selection_refuses_a_singular_matrix():
         banded_selection(sp.csr_matrix(M), D, np.arange(3), 1)
 
 
+@pytest.fixture(params=[True, False], ids=['compiled', 'python'])
+def separators(request, monkeypatch):
+    """The band completion's separator solves compiled (LAPACK called from the kernel) and
+    without the kernels (SciPy's LAPACK in a loop)."""
+    from ga_ros.core import selinv
+
+    if request.param and not selinv.COMPILED:
+        pytest.skip('numba is not installed')
+    monkeypatch.setattr(selinv, 'COMPILED', request.param)
+    return request.param
+
+
 @pytest.mark.parametrize(('w', 'hubs'), [(0, 0), (1, 0), (2, 0), (4, 0), (1, 3), (0, 4)])
-def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs):
+def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs, separators):
     """Dempster's maximum-entropy completion: ``K`` is zero off the skeleton (band + hub rows),
     positive definite, and ``K^-1`` equals ``Sigma`` on the skeleton (not off it)."""
     rng = np.random.default_rng(3)
@@ -170,7 +182,7 @@ def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs):
     assert np.linalg.slogdet(Ki)[1] > np.linalg.slogdet(Sigma)[1]
 
 
-def test_band_completion_with_the_full_width_is_the_exact_information():
+def test_band_completion_with_the_full_width_is_the_exact_information(separators):
     rng = np.random.default_rng(4)
     m = 9
     Sigma = np.linalg.inv(_strip_matrix(rng, m, reach=m))
@@ -346,7 +358,8 @@ def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
         np.testing.assert_array_equal(h1, h2)
 
 
-def test_band_completion_refuses_a_skeleton_with_a_clique_not_positive_definite(rng):
+def test_band_completion_refuses_a_skeleton_with_a_clique_not_positive_definite(rng,
+                                                                                separators):
     """The completion is positive definite by construction (the freeze gives its prior full
     rank): a band whose cliques are all positive definite gives a positive definite ``K``; one
     node's block made indefinite, in the middle (the separators holding it indefinite too, but

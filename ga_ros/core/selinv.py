@@ -367,10 +367,45 @@ def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: 
     return missing
 
 
+def _separator_solves_py(ext, r, w, d, Bt):  # pragma: no cover - compiled only
+    """``Bt[k] = Sigma_FF^-1 Sigma_Fk`` for the separators ``F = {k+1 .. k+w}`` of a covariance
+    band ``ext`` (``(r + w, w + 1, d, d)``, ``ext[i, j] = Sigma_{i, i+j}``, padded after the end)
+    by one Cholesky factorisation (``dpotrf``) and solve (``dpotrs``) each, the separator read
+    from the band into column-major storage (the non-compiled path of
+    :func:`ga_ros.core.sparse._band_completion` does the same with SciPy's LAPACK). Returns 0,
+    or ``k + 1`` if separator ``k`` is not positive definite."""
+    n = w * d
+    S = np.empty((n, n)).T  # column-major
+    Bk = np.empty((d, n)).T
+    ints = np.array([n, d, 0], dtype=np.int32)  # n = lda = ldb, nrhs, info
+    lower = np.array([76], dtype=np.int8)  # 'L'
+    for k in range(r):
+        for b in range(w):  # lower triangle: block (a, b), a >= b, is ext[k+1+b, a-b]'
+            for a in range(b, w):
+                blk = ext[k + 1 + b, a - b]
+                for y in range(d):
+                    for x in range(d):
+                        S[a * d + x, b * d + y] = blk[y, x]
+        for a in range(w):
+            blk = ext[k, 1 + a]
+            for y in range(d):
+                for x in range(d):
+                    Bk[a * d + x, y] = blk[y, x]
+        _dpotrf(lower.ctypes.data, ints.ctypes.data, S.ctypes.data, ints.ctypes.data,
+                ints.ctypes.data + 8)
+        if ints[2]:
+            return k + 1
+        _dpotrs(lower.ctypes.data, ints.ctypes.data, ints.ctypes.data + 4, S.ctypes.data,
+                ints.ctypes.data, Bk.ctypes.data, ints.ctypes.data, ints.ctypes.data + 8)
+        Bt[k] = Bk
+    return 0
+
+
 _KERNELS: dict = {}
-_dtrtri = _dlauum = _dtrmm = _dgemm = None  # LAPACK/BLAS routines of the compiled kernels
-#: Those routines (name, number of arguments, all pointers), in that order.
-_ROUTINES = (('dtrtri', 6), ('dlauum', 5), ('dtrmm', 11), ('dgemm', 13))
+_dtrtri = _dlauum = _dtrmm = _dgemm = _dpotrf = _dpotrs = None  # of the compiled kernels
+#: Those LAPACK/BLAS routines (name, number of arguments, all pointers), in that order.
+_ROUTINES = (('dtrtri', 6), ('dlauum', 5), ('dtrmm', 11), ('dgemm', 13), ('dpotrf', 5),
+             ('dpotrs', 8))
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
 COMPILED = AVAILABLE
@@ -379,7 +414,7 @@ COMPILED = AVAILABLE
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
     global _lower_inverse, _dtrtri, _dlauum, _times_lower, _minus_product, _lower_update
-    global _dtrmm, _dgemm
+    global _dtrmm, _dgemm, _dpotrf, _dpotrs
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
@@ -389,7 +424,7 @@ def _kernel(name: str):
             if _lower_inverse is _lower_inverse_py and all(
                     _lapack_symbol(name, nargs) for name, nargs in _ROUTINES):
                 p = numba.types.intp
-                _dtrtri, _dlauum, _dtrmm, _dgemm = (
+                _dtrtri, _dlauum, _dtrmm, _dgemm, _dpotrf, _dpotrs = (
                     numba.types.ExternalFunction(f'ga_ros_{name}', numba.types.void(*[p] * nargs))
                     for name, nargs in _ROUTINES)
                 jit = numba.njit(cache=True, nogil=True)

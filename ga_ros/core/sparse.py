@@ -1328,21 +1328,29 @@ def _band_completion(band: FloatArray) -> FloatArray:
     for j in range(1, w + 1):
         ext[r - j:r, j] = 0.0  # beyond the last node
     ext[r:, 0] = np.eye(d)
-    # separators Sigma_FF (w d x w d) and Sigma_Fi (w d x d) of every node, by slices
-    sep = np.empty((r, w, d, w, d))
-    for a in range(w):  # row a of F_i is node i + 1 + a
-        sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
-        sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
-    sep = sep.reshape(r, w * d, w * d)
+    # Sigma_Fi (w d x d) of every node; B_i' = Sigma_FF^-1 Sigma_Fi, one Cholesky factorisation
+    # of each separator Sigma_FF (w d x w d) (faster than a batch LU)
     cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
-    Bt = np.empty_like(cross)  # (r, w d, d): B_i' (one Cholesky each: faster than a batch LU)
-    potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
-    for k in range(r):
-        c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: the F-ordered view is sep[k]
-        if info:
+    Bt = np.empty_like(cross)  # (r, w d, d)
+    from ga_ros.core import selinv  # lazy: it imports this module
+
+    if selinv.COMPILED:  # compiled: the separators read from the band, LAPACK called directly
+        if selinv._kernel('_separator_solves')(ext, r, w, d, Bt):
             raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
                                           'definite')
-        Bt[k] = potrs(c, cross[k], lower=1)[0]
+    else:
+        sep = np.empty((r, w, d, w, d))
+        for a in range(w):  # row a of F_i is node i + 1 + a
+            sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
+            sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
+        sep = sep.reshape(r, w * d, w * d)
+        potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
+        for k in range(r):
+            c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: F-ordered view of sep[k]
+            if info:
+                raise DegenerateGeometryError('a clique of the covariance skeleton is not '
+                                              'positive definite')
+            Bt[k] = potrs(c, cross[k], lower=1)[0]
     Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
     # every clique C_i = {i} + F_i is positive definite iff every D_i is (one Cholesky each
     # below, no separate one of the separators): C_i is iff F_i and D_i are, and F_i is a
@@ -1351,11 +1359,13 @@ def _band_completion(band: FloatArray) -> FloatArray:
     G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
                         -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)
     DG = Dinv @ G
-    Kband = np.zeros((r + w, w + 1, d, d))
-    for p in range(w + 1):  # clique i adds its block (p, q >= p), G_p' D_i^-1 G_q, to K_{i+p, i+q}
-        Kp = np.swapaxes(G[:, :, p * d:(p + 1) * d], 1, 2) @ DG[:, :, p * d:]  # (r, d, (w+1-p) d)
-        Kband[p:p + r, :w + 1 - p] += Kp.reshape(r, d, w + 1 - p, d).transpose(0, 2, 1, 3)
-    return Kband[:r]
+    # clique i adds its block (p, q >= p), G_p' D_i^-1 G_q, to K_{i+p, i+q}; accumulated
+    # transposed (K_{i+q, i+p} = (D_i^-1 G_q)' G_p: the products' blocks stack as stored)
+    KbandT = np.zeros((r + w, w + 1, d, d))
+    for p in range(w + 1):
+        Kp = np.swapaxes(DG[:, :, p * d:], 1, 2) @ G[:, :, p * d:(p + 1) * d]  # (r, (w+1-p) d, d)
+        KbandT[p:p + r, :w + 1 - p] += Kp.reshape(r, w + 1 - p, d, d)
+    return np.swapaxes(KbandT[:r], 2, 3)
 
 
 def dense_band(Sigma: FloatArray, d: int, w: int) -> FloatArray:
