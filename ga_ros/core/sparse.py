@@ -122,6 +122,7 @@ class BlockPattern:
         if small:  # kept: a gather instead of the arithmetic (int32: it fits)
             self._pos = upos[self._kept_u][self._valid(slice(None))]
         self._gather: IntArray | None = None  # built by assemble on first use
+        self._full: tuple | None = None  # built by full_csc on first use
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
         self._kept_rank: IntArray | None = None
 
@@ -259,7 +260,19 @@ class BlockPattern:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
     def full_csc(self, data: FloatArray) -> sp.csc_matrix:
-        """The symmetric matrix (both triangles)."""
+        """The symmetric matrix (both triangles), canonical, without explicit zeros (those of the
+        sum ``L + L'`` of SciPy). A small pattern keeps where each entry comes from in
+        ``data`` (a window's freeze builds one matrix of a repeating pattern per track)."""
+        if self._full is None and self.nnz < _POSITIONS_KEPT_BELOW:
+            L = self.lower_csc(np.arange(1.0, self.nnz + 1.0))  # positions, never zero
+            F = (L + sp.tril(L, -1).T).tocsc()
+            self._full = (F.indptr, F.indices, np.rint(F.data).astype(np.int64) - 1)
+        if self._full is not None:
+            indptr, indices, source = self._full
+            vals = data[source]
+            if vals.all():  # else: explicit zeros, dropped below as the sum drops them
+                return sp.csc_matrix((vals, indices.copy(), indptr.copy()),
+                                     shape=(self.size, self.size))
         L = self.lower_csc(data)
         return (L + sp.tril(L, -1).T).tocsc()
 
