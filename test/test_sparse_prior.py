@@ -146,11 +146,11 @@ def test_banded_selection_refuses_a_singular_matrix():
 def separators(request, monkeypatch):
     """The band completion's separator solves compiled (LAPACK called from the kernel) and
     without the kernels (SciPy's LAPACK in a loop)."""
-    from ga_ros.core import selinv
+    from ga_ros.core import lapack
 
-    if request.param and not selinv.COMPILED:
+    if request.param and not lapack.COMPILED:
         pytest.skip('numba is not installed')
-    monkeypatch.setattr(selinv, 'COMPILED', request.param)
+    monkeypatch.setattr(lapack, 'COMPILED', request.param)
     return request.param
 
 

@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import lapack
 from ga_ros.core.kernels import AVAILABLE
 from ga_ros.core.sparse import _blake2b, _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
@@ -100,29 +101,6 @@ def _lower_inverse_py(Ljj):  # pragma: no cover - without numba only
     """``(L^-1, L^-T L^-1)`` of a lower-triangular ``L`` (general inverse and product)."""
     Linv = np.tril(np.linalg.inv(Ljj))
     return Linv, Linv.T @ Linv
-
-
-def _lapack_symbol(name: str, nargs: int) -> bool:
-    """Register SciPy's LAPACK (or BLAS) routine ``name`` (``scipy.linalg.cython_lapack``,
-    ``cython_blas``) with LLVM as ``ga_ros_<name>``, for the compiled kernels (a named symbol
-    keeps them cacheable on disk, which a ctypes pointer would not). ``False`` if it cannot be
-    found."""
-    try:
-        import llvmlite.binding as llvm
-        from scipy.linalg import cython_blas, cython_lapack
-
-        api = ctypes.pythonapi
-        api.PyCapsule_GetName.restype = ctypes.c_char_p
-        api.PyCapsule_GetName.argtypes = [ctypes.py_object]
-        api.PyCapsule_GetPointer.restype = ctypes.c_void_p
-        api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-        table = cython_lapack.__pyx_capi__
-        cap = table[name] if name in table else cython_blas.__pyx_capi__[name]
-        address = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
-        llvm.add_symbol(f'ga_ros_{name}', address)
-    except (ImportError, KeyError, ValueError, TypeError):  # pragma: no cover
-        return False
-    return True
 
 
 #: :func:`_lower_inverse_lapack` inverts triangles of up to this many columns with ``dtrtri``,
@@ -367,45 +345,8 @@ def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: 
     return missing
 
 
-def _separator_solves_py(ext, r, w, d, Bt):  # pragma: no cover - compiled only
-    """``Bt[k] = Sigma_FF^-1 Sigma_Fk`` for the separators ``F = {k+1 .. k+w}`` of a covariance
-    band ``ext`` (``(r + w, w + 1, d, d)``, ``ext[i, j] = Sigma_{i, i+j}``, padded after the end)
-    by one Cholesky factorisation (``dpotrf``) and solve (``dpotrs``) each, the separator read
-    from the band into column-major storage (the non-compiled path of
-    :func:`ga_ros.core.sparse._band_completion` does the same with SciPy's LAPACK). Returns 0,
-    or ``k + 1`` if separator ``k`` is not positive definite."""
-    n = w * d
-    S = np.empty((n, n)).T  # column-major
-    Bk = np.empty((d, n)).T
-    ints = np.array([n, d, 0], dtype=np.int32)  # n = lda = ldb, nrhs, info
-    lower = np.array([76], dtype=np.int8)  # 'L'
-    for k in range(r):
-        for b in range(w):  # lower triangle: block (a, b), a >= b, is ext[k+1+b, a-b]'
-            for a in range(b, w):
-                blk = ext[k + 1 + b, a - b]
-                for y in range(d):
-                    for x in range(d):
-                        S[a * d + x, b * d + y] = blk[y, x]
-        for a in range(w):
-            blk = ext[k, 1 + a]
-            for y in range(d):
-                for x in range(d):
-                    Bk[a * d + x, y] = blk[y, x]
-        _dpotrf(lower.ctypes.data, ints.ctypes.data, S.ctypes.data, ints.ctypes.data,
-                ints.ctypes.data + 8)
-        if ints[2]:
-            return k + 1
-        _dpotrs(lower.ctypes.data, ints.ctypes.data, ints.ctypes.data + 4, S.ctypes.data,
-                ints.ctypes.data, Bk.ctypes.data, ints.ctypes.data, ints.ctypes.data + 8)
-        Bt[k] = Bk
-    return 0
-
-
 _KERNELS: dict = {}
-_dtrtri = _dlauum = _dtrmm = _dgemm = _dpotrf = _dpotrs = None  # of the compiled kernels
-#: Those LAPACK/BLAS routines (name, number of arguments, all pointers), in that order.
-_ROUTINES = (('dtrtri', 6), ('dlauum', 5), ('dtrmm', 11), ('dgemm', 13), ('dpotrf', 5),
-             ('dpotrs', 8))
+_dtrtri = _dlauum = _dtrmm = _dgemm = None  # LAPACK/BLAS routines of the compiled kernels
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
 COMPILED = AVAILABLE
@@ -414,19 +355,16 @@ COMPILED = AVAILABLE
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
     global _lower_inverse, _dtrtri, _dlauum, _times_lower, _minus_product, _lower_update
-    global _dtrmm, _dgemm, _dpotrf, _dpotrs
+    global _dtrmm, _dgemm
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
         if COMPILED:
             import numba
 
-            if _lower_inverse is _lower_inverse_py and all(
-                    _lapack_symbol(name, nargs) for name, nargs in _ROUTINES):
-                p = numba.types.intp
-                _dtrtri, _dlauum, _dtrmm, _dgemm, _dpotrf, _dpotrs = (
-                    numba.types.ExternalFunction(f'ga_ros_{name}', numba.types.void(*[p] * nargs))
-                    for name, nargs in _ROUTINES)
+            routines = lapack.routines('dtrtri', 'dlauum', 'dtrmm', 'dgemm')
+            if _lower_inverse is _lower_inverse_py and routines is not None:
+                _dtrtri, _dlauum, _dtrmm, _dgemm = routines
                 jit = numba.njit(cache=True, nogil=True)
                 _lower_inverse = jit(_lower_inverse_lapack)
                 _times_lower = jit(_times_lower_blas)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import lapack
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
 
@@ -1264,15 +1265,9 @@ def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: 
         cond = band
     Kband = _band_completion(cond) if r else np.zeros((0, w1, d, d))
     w = Kband.shape[1] - 1
-    i = np.repeat(np.arange(r), w + 1)
-    j = i + np.tile(np.arange(w + 1), r)
-    keep = j < r
-    i, j = i[keep], j[keep]
-    bblk = Kband.reshape(r * (w + 1), d, d)[keep]
-    off = i != j
-    rows = [rest[i], rest[j[off]]]
-    cols = [rest[j], rest[i[off]]]
-    data = [bblk, np.swapaxes(bblk[off], 1, 2)]
+    lay = _completion_layout(rest, hubs, w)
+    bblk = Kband.reshape(r * (w + 1), d, d)[lay.keep]
+    data = [bblk, np.swapaxes(bblk[lay.off], 1, 2)]
     if h:
         # K_RH = -K_RR B, band by band: (K_RR B)_a = sum_b K_ab B_b over |a - b| <= w
         Krh3 = np.zeros((r, d, h * d))
@@ -1285,20 +1280,65 @@ def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: 
         Khh = Ainv - B.T @ Krh
         Khh = 0.5 * (Khh + Khh.T)
         rh = Krh.reshape(r, d, h, d).transpose(0, 2, 1, 3)  # (r, h, d, d): block (rest, hub)
-        ri, ha = np.repeat(np.arange(r), h), np.tile(np.arange(h), r)
-        rows += [rest[ri], hubs[ha], np.repeat(hubs, h)]
-        cols += [hubs[ha], rest[ri], np.tile(hubs, h)]
         rhb = rh.reshape(r * h, d, d)
         data += [rhb, np.swapaxes(rhb, 1, 2),
                  Khh.reshape(h, d, h, d).transpose(0, 2, 1, 3).reshape(h * h, d, d)]
-    return _bsr(np.concatenate(rows), np.concatenate(cols), np.concatenate(data), r + h, d)
+    m = r + h
+    return sp.bsr_matrix((np.concatenate(data)[lay.order], lay.indices.copy(),
+                          lay.indptr.copy()), shape=(m * d, m * d))
 
 
-def _bsr(rows: IntArray, cols: IntArray, blocks: FloatArray, m: int, d: int) -> sp.bsr_matrix:
-    """``(m d, m d)`` BSR matrix of ``d x d`` blocks at block coordinates (each given once)."""
+@dataclass(frozen=True)
+class _CompletionLayout:
+    """Where the blocks of :func:`_completion`'s information go, by the skeleton alone: ``keep``
+    (of the ``r (w + 1)`` band slots those inside the band), ``off`` (of those, the
+    off-diagonal ones, stored twice), and the BSR layout of the blocks in the order they are
+    listed (band, its transposes, rest-hub, hub-rest, hub-hub): ``order``, ``indices``,
+    ``indptr``."""
+
+    keep: np.ndarray
+    off: np.ndarray
+    order: IntArray
+    indices: IntArray
+    indptr: IntArray
+
+
+#: Layouts of :func:`_completion` by the skeleton (one per prior shape; the latest few).
+_COMPLETION_LAYOUTS: OrderedDict[bytes, _CompletionLayout] = OrderedDict()
+_COMPLETION_LOCK = threading.Lock()
+
+
+def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLayout:
+    """The :class:`_CompletionLayout` of a skeleton (kept: a freeze builds one prior of the
+    same shape per track)."""
+    key = _blake2b(np.int64(w).tobytes() + np.int64(rest.size).tobytes() + rest.tobytes()
+                   + hubs.tobytes(), digest_size=16).digest()
+    with _COMPLETION_LOCK:
+        lay = _COMPLETION_LAYOUTS.get(key)
+        if lay is not None:
+            _COMPLETION_LAYOUTS.move_to_end(key)
+            return lay
+    r, h = rest.size, hubs.size
+    i = np.repeat(np.arange(r), w + 1)
+    j = i + np.tile(np.arange(w + 1), r)
+    keep = j < r
+    i, j = i[keep], j[keep]
+    off = i != j
+    rows = [rest[i], rest[j[off]]]
+    cols = [rest[j], rest[i[off]]]
+    if h:
+        ri, ha = np.repeat(np.arange(r), h), np.tile(np.arange(h), r)
+        rows += [rest[ri], hubs[ha], np.repeat(hubs, h)]
+        cols += [hubs[ha], rest[ri], np.tile(hubs, h)]
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
     order = np.lexsort((cols, rows))
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=m))])
-    return sp.bsr_matrix((blocks[order], cols[order], indptr), shape=(m * d, m * d))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=r + h))])
+    lay = _CompletionLayout(keep, off, order, cols[order], indptr)
+    with _COMPLETION_LOCK:
+        _COMPLETION_LAYOUTS[key] = lay
+        while len(_COMPLETION_LAYOUTS) > _MAX_PATTERNS:
+            _COMPLETION_LAYOUTS.popitem(last=False)
+    return lay
 
 
 def _spd_inverse(S: FloatArray) -> FloatArray:
@@ -1345,13 +1385,12 @@ def _band_completion(band: FloatArray) -> FloatArray:
     # of each separator Sigma_FF (w d x w d) (faster than a batch LU)
     cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
     Bt = np.empty_like(cross)  # (r, w d, d)
-    from ga_ros.core import selinv  # lazy: it imports this module
-
-    if selinv.COMPILED:  # compiled: the separators read from the band, LAPACK called directly
-        if selinv._kernel('_separator_solves')(ext, r, w, d, Bt):
-            raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
-                                          'definite')
-    else:
+    # compiled: the separators read from the band, LAPACK called directly
+    status = lapack.separator_solves(ext, r, w, d, Bt)
+    if status:
+        raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
+                                      'definite')
+    if status is None:
         sep = np.empty((r, w, d, w, d))
         for a in range(w):  # row a of F_i is node i + 1 + a
             sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
