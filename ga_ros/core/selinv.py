@@ -666,11 +666,11 @@ class _SkeletonPlan:
 
 
 #: Plans of :func:`_selected_skeleton` by the shape of ``N`` and the skeleton, for the pattern of
-#: ``N`` they hold (the latest few;
-#: a lock around taking and returning a plan's analysis: freezes and refinements may run in
-#: threads at once).
+#: ``N`` they hold: the latest two (a plan holds a symbolic factor, ~10 MB for the aerial
+#: survey's 102-pose swaths; a survey's freezes repeat one or two patterns). A lock around
+#: taking and returning a plan's analysis: freezes and refinements may run in threads at once.
 _PLANS: OrderedDict[bytes, _SkeletonPlan] = OrderedDict()
-_MAX_PLANS = 4
+_MAX_PLANS = 2
 _PLANS_LOCK = threading.Lock()
 
 
