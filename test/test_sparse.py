@@ -27,6 +27,29 @@ def test_block_pattern_assembles_like_coo(rng):
     np.testing.assert_allclose(sym, np.tril(dense) + np.tril(dense, -1).T, atol=1e-12)
 
 
+def test_full_matrix_of_a_kept_layout_equals_the_sum_of_its_triangles(rng):
+    """``full_csc`` keeps where each entry of the symmetric matrix comes from (a freeze builds
+    one per track on a repeating pattern): for new values on the same pattern it equals
+    ``L + L'`` (SciPy's sum) array for array, and with an explicit zero it drops it as the
+    sum does."""
+    n, d = 8, 3
+    pairs = [(i, i) for i in range(n)] + [(i + 1, i) for i in range(n - 1)] + [(7, 2), (5, 0)]
+    pat = BlockPattern(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]), d, n)
+
+    def by_sum(data):
+        L = pat.lower_csc(data)
+        return (L + sp.tril(L, -1).T).tocsc()
+
+    for k in range(3):  # the first call builds the layout, the next ones reuse it
+        data = pat.assemble(rng.normal(size=(len(pairs), d, d)))
+        if k == 2:
+            data[5] = 0.0  # an explicit zero: not stored, as in the sum
+        got, ref = pat.full_csc(data), by_sum(data)
+        for name in ('indptr', 'indices', 'data'):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+    assert pat._full is not None
+
+
 def test_cholesky_solves_like_dense(rng):
     n, d = 6, 6
     N = np.eye(n * d)

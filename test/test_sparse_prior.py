@@ -97,6 +97,42 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     np.testing.assert_allclose(x, np.linalg.solve(M, rhs), rtol=1e-10, atol=1e-12)
 
 
+def test_sparse_skeleton_of_a_repeated_pattern_reuses_its_plan(monkeypatch):
+    """A freeze's absorbed terms repeat their pattern every track: the second skeleton of the
+    same pattern (other values) reuses the kept pattern, symbolic analysis and entry positions
+    (:class:`selinv._SkeletonPlan`) and still equals the dense inverse, bit for bit the skeleton
+    computed without the kept plan, from CSR and from CSC input."""
+    from ga_ros.core import selinv
+
+    if not selinv.COMPILED:
+        pytest.skip('numba is not installed')
+    rng = np.random.default_rng(13)
+    M1 = sp.csr_matrix(_strip_matrix(rng, 40, reach=2))
+    scale = sp.diags(rng.uniform(0.5, 2.0, size=40 * D))
+    M2 = sp.csr_matrix(scale @ M1 @ scale)  # other values (positive definite), same pattern
+    targets = np.sort(rng.permutation(40)[:25])
+    rhs = rng.normal(size=40 * D)
+    assert np.array_equal(M1.indptr, M2.indptr) and np.array_equal(M1.indices, M2.indices)
+    monkeypatch.setattr(selinv, '_PLANS', type(selinv._PLANS)())
+    for fmt in ('csr', 'csc'):
+        for M in (M1, M2, M2):
+            N = M.asformat(fmt)
+            kept = selinv.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
+            selinv._PLANS.clear()  # a fresh plan: pattern, analysis, positions built anew
+            fresh = selinv.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
+            for name in ('band', 'cross', 'hub_cov'):
+                np.testing.assert_array_equal(getattr(kept[0], name), getattr(fresh[0], name))
+            np.testing.assert_array_equal(kept[1], fresh[1])
+            Sigma = np.linalg.inv(M.toarray())
+            ref = CovarianceSkeleton.of_dense(Sigma[np.ix_(_scalar(targets), _scalar(targets))],
+                                              D, 3, 4)
+            for name in ('band', 'cross', 'hub_cov'):
+                np.testing.assert_allclose(getattr(kept[0], name), getattr(ref, name), rtol=0,
+                                           atol=1e-12 * np.abs(Sigma).max())
+        plan, = selinv._PLANS.values()
+        assert plan.kept is not None  # the analysis and positions were kept for the next
+
+
 def test_banded_selection_refuses_a_singular_matrix():
     from ga_ros.errors import DegenerateGeometryError
 
@@ -106,8 +142,20 @@ def test_banded_selection_refuses_a_singular_matrix():
         banded_selection(sp.csr_matrix(M), D, np.arange(3), 1)
 
 
+@pytest.fixture(params=[True, False], ids=['compiled', 'python'])
+def separators(request, monkeypatch):
+    """The band completion's separator solves compiled (LAPACK called from the kernel) and
+    without the kernels (SciPy's LAPACK in a loop)."""
+    from ga_ros.core import lapack
+
+    if request.param and not lapack.COMPILED:
+        pytest.skip('numba is not installed')
+    monkeypatch.setattr(lapack, 'COMPILED', request.param)
+    return request.param
+
+
 @pytest.mark.parametrize(('w', 'hubs'), [(0, 0), (1, 0), (2, 0), (4, 0), (1, 3), (0, 4)])
-def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs):
+def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs, separators):
     """Dempster's maximum-entropy completion: ``K`` is zero off the skeleton (band + hub rows),
     positive definite, and ``K^-1`` equals ``Sigma`` on the skeleton (not off it)."""
     rng = np.random.default_rng(3)
@@ -134,7 +182,7 @@ def test_completion_keeps_the_skeleton_of_the_covariance(w, hubs):
     assert np.linalg.slogdet(Ki)[1] > np.linalg.slogdet(Sigma)[1]
 
 
-def test_band_completion_with_the_full_width_is_the_exact_information():
+def test_band_completion_with_the_full_width_is_the_exact_information(separators):
     rng = np.random.default_rng(4)
     m = 9
     Sigma = np.linalg.inv(_strip_matrix(rng, m, reach=m))
@@ -310,7 +358,8 @@ def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
         np.testing.assert_array_equal(h1, h2)
 
 
-def test_band_completion_refuses_a_skeleton_with_a_clique_not_positive_definite(rng):
+def test_band_completion_refuses_a_skeleton_with_a_clique_not_positive_definite(rng,
+                                                                                separators):
     """The completion is positive definite by construction (the freeze gives its prior full
     rank): a band whose cliques are all positive definite gives a positive definite ``K``; one
     node's block made indefinite, in the middle (the separators holding it indefinite too, but

@@ -20,6 +20,8 @@ last column back, without any column of ``N^-1``):
 from __future__ import annotations
 
 import ctypes
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -27,8 +29,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import lapack
 from ga_ros.core.kernels import AVAILABLE
-from ga_ros.core.sparse import _CholmodFactor
+from ga_ros.core.sparse import _blake2b, _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
@@ -100,44 +103,130 @@ def _lower_inverse_py(Ljj):  # pragma: no cover - without numba only
     return Linv, Linv.T @ Linv
 
 
-def _lapack_symbol(name: str, nargs: int) -> bool:
-    """Register SciPy's LAPACK routine ``name`` (``scipy.linalg.cython_lapack``) with LLVM as
-    ``ga_ros_<name>``, for the compiled kernels (a named symbol keeps them cacheable on disk,
-    which a ctypes pointer would not). ``False`` if it cannot be found."""
-    try:
-        import llvmlite.binding as llvm
-        from scipy.linalg import cython_lapack
-
-        api = ctypes.pythonapi
-        api.PyCapsule_GetName.restype = ctypes.c_char_p
-        api.PyCapsule_GetName.argtypes = [ctypes.py_object]
-        api.PyCapsule_GetPointer.restype = ctypes.c_void_p
-        api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-        cap = cython_lapack.__pyx_capi__[name]
-        address = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
-        llvm.add_symbol(f'ga_ros_{name}', address)
-    except (ImportError, KeyError, ValueError, TypeError):  # pragma: no cover
-        return False
-    return True
+#: :func:`_lower_inverse_lapack` inverts triangles of up to this many columns with ``dtrtri``,
+#: larger ones by halves (OpenBLAS's ``dtrtri`` runs at ~15 GFlop/s on one core where its
+#: ``dtrmm`` runs at ~40: a 642-column supernode in 3.3 instead of 6 ms).
+_TRTRI_LEAF = 128
 
 
 def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
     """:func:`_lower_inverse_py` by LAPACK's ``dtrtri`` and ``dlauum`` (``m^3 / 3`` flops each,
-    against ``~4 m^3`` for a general inverse and product); only the lower triangle of the
-    second matrix is set. A C-ordered lower triangle is LAPACK's column-major upper one."""
+    against ``~4 m^3`` for a general inverse and product) on a column-major (Fortran-ordered)
+    ``Ljj``, inverted in place; only the lower triangle of the second matrix is set.
+
+    A wide triangle is inverted by halves, in place, children before parents::
+
+        [A 0; B C]^-1 = [A^-1 0; -C^-1 B A^-1  C^-1]    (two dtrmm on B)
+    """
     m = Ljj.shape[0]
-    Linv = Ljj.copy()
-    ints = np.array([m, 0], dtype=np.int32)  # n = lda, info
-    chars = np.array([85, 78], dtype=np.int8)  # 'U', 'N'
-    _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, Linv.ctypes.data,
-            ints.ctypes.data, ints.ctypes.data + 4)
-    Sjj = Linv.copy()
+    # the halving tree in breadth-first order (first column, width); reversed: children first
+    first, width = np.zeros(2 * m, dtype=np.int64), np.zeros(2 * m, dtype=np.int64)
+    width[0], n_nodes, k = m, 1, 0
+    while k < n_nodes:
+        if width[k] > _TRTRI_LEAF:
+            h = width[k] // 2
+            first[n_nodes], width[n_nodes] = first[k], h
+            first[n_nodes + 1], width[n_nodes + 1] = first[k] + h, width[k] - h
+            n_nodes += 2
+        k += 1
+    ints = np.array([m, 0, 0, 0], dtype=np.int32)  # lda, info, rows, cols
+    one = np.array([1.0, -1.0])
+    chars = np.array([76, 78, 82], dtype=np.int8)  # 'L', 'N', 'R'
+    base = Ljj.ctypes.data
+    for k in range(n_nodes - 1, -1, -1):
+        o, w = first[k], width[k]
+        if w <= _TRTRI_LEAF:  # a leaf: dtrtri
+            ints[2] = w
+            _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data + 8,
+                    base + 8 * o * (m + 1), ints.ctypes.data, ints.ctypes.data + 4)
+            continue
+        h = w // 2
+        ints[2], ints[3] = w - h, h
+        a_ptr, c_ptr = base + 8 * o * (m + 1), base + 8 * (o + h) * (m + 1)
+        b_ptr = base + 8 * (o + h + o * m)
+        # B := B A^-1 (right), then B := -C^-1 B (left); A, C already inverted in place
+        _dtrmm(chars.ctypes.data + 2, chars.ctypes.data, chars.ctypes.data + 1,
+               chars.ctypes.data + 1, ints.ctypes.data + 8, ints.ctypes.data + 12,
+               one.ctypes.data, a_ptr, ints.ctypes.data, b_ptr, ints.ctypes.data)
+        _dtrmm(chars.ctypes.data, chars.ctypes.data, chars.ctypes.data + 1,
+               chars.ctypes.data + 1, ints.ctypes.data + 8, ints.ctypes.data + 12,
+               one.ctypes.data + 8, c_ptr, ints.ctypes.data, b_ptr, ints.ctypes.data)
+    Sjj = Ljj.T.copy().T  # column-major too
     _dlauum(chars.ctypes.data, ints.ctypes.data, Sjj.ctypes.data, ints.ctypes.data,
             ints.ctypes.data + 4)
-    return Linv, Sjj
+    return Ljj, Sjj
 
 
 _lower_inverse = _lower_inverse_py
+
+
+def _times_lower_py(B, Linv):  # pragma: no cover - without numba only
+    """``B Linv`` for a lower-triangular ``Linv`` (a general product)."""
+    return B @ Linv
+
+
+def _times_lower_blas(B, Linv):  # pragma: no cover - compiled
+    """:func:`_times_lower_py` by BLAS's ``dtrmm`` (``r m^2`` flops instead of ``2 r m^2``), in
+    place in ``B`` (returned); both column-major."""
+    r, m = B.shape
+    ints = np.array([r, m], dtype=np.int32)  # M = ldb, N = lda
+    one = np.ones(1)
+    chars = np.array([82, 76, 78, 78], dtype=np.int8)  # side 'R', uplo 'L', 'N', diag 'N'
+    _dtrmm(chars.ctypes.data, chars.ctypes.data + 1, chars.ctypes.data + 2,
+           chars.ctypes.data + 3, ints.ctypes.data, ints.ctypes.data + 4, one.ctypes.data,
+           Linv.ctypes.data, ints.ctypes.data + 4, B.ctypes.data, ints.ctypes.data)
+    return B
+
+
+def _minus_product_py(S, U):  # pragma: no cover - without numba only
+    """``-S U``."""
+    return -(S @ U)
+
+
+def _minus_product_blas(S, U):  # pragma: no cover - compiled
+    """:func:`_minus_product_py` by BLAS's ``dgemm`` for a symmetric ``S`` (its layout does
+    not matter), column-major ``U``; the product column-major too."""
+    r, m = U.shape
+    out = np.empty((m, r)).T
+    ints = np.array([r, m], dtype=np.int32)  # M = K = lda = ldb = ldc, N
+    coef = np.array([-1.0, 0.0])
+    chars = np.array([78, 78], dtype=np.int8)  # 'N', 'N'
+    _dgemm(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data, ints.ctypes.data + 4,
+           ints.ctypes.data, coef.ctypes.data, S.ctypes.data, ints.ctypes.data, U.ctypes.data,
+           ints.ctypes.data, coef.ctypes.data + 8, out.ctypes.data, ints.ctypes.data)
+    return out
+
+
+def _lower_update_py(Sjj, Sbj, U):  # pragma: no cover - without numba only
+    """``Sjj -= Sbj' U`` (symmetric; only the lower triangle of ``Sjj`` is read after)."""
+    Sjj -= Sbj.T @ U
+
+
+#: Column panel of :func:`_lower_update_blas` (a panel's product covers the rows from its
+#: first column down: ~half the flops of the full product for a wide supernode).
+_PANEL = 64
+
+
+def _lower_update_blas(Sjj, Sbj, U):  # pragma: no cover - compiled
+    """:func:`_lower_update_py` on the lower triangle of ``Sjj`` only, panel by panel (BLAS's
+    ``dgemm``; all column-major): ``Sjj[c0:, c0:c1] -= Sbj[:, c0:]' U[:, c0:c1]``."""
+    r, m = U.shape
+    ints = np.array([m, 0, 0, r], dtype=np.int32)  # ldc, rows, cols, k = lda = ldb
+    coef = np.array([-1.0, 1.0])
+    chars = np.array([84, 78], dtype=np.int8)  # 'T', 'N'
+    for c0 in range(0, m, _PANEL):
+        c1 = min(m, c0 + _PANEL)
+        ints[1], ints[2] = m - c0, c1 - c0
+        _dgemm(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data + 4,
+               ints.ctypes.data + 8, ints.ctypes.data + 12, coef.ctypes.data,
+               Sbj.ctypes.data + 8 * c0 * r, ints.ctypes.data + 12, U.ctypes.data + 8 * c0 * r,
+               ints.ctypes.data + 12, coef.ctypes.data + 8, Sjj.ctypes.data + 8 * c0 * (m + 1),
+               ints.ctypes.data)
+
+
+_times_lower = _times_lower_py
+_minus_product = _minus_product_py
+_lower_update = _lower_update_py
 
 
 def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
@@ -170,8 +259,8 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
         f = starts[t]
         m = starts[t + 1] - f
         r = nrows[t] - m
-        Ljj = np.zeros((m, m))
-        Lbj = np.empty((r, m))
+        Ljj = np.zeros((m, m)).T  # column-major: the factor's columns copy contiguously
+        Lbj = np.empty((m, r)).T
         for i in range(m):
             q = colbase[f + i]
             for a in range(i, m):
@@ -179,11 +268,12 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
             for a in range(r):
                 Lbj[a, i] = x[q + m + a]
         Linv, Sjj = _lower_inverse(Ljj)  # Sjj: lower triangle of L_JJ^-T L_JJ^-1
-        Sbj = np.empty((r, m))
+        Sbj = np.empty((m, r)).T
         if r:
-            U = Lbj @ Linv
+            U = _times_lower(Lbj, Linv)  # L_BJ L_JJ^-1 (in place of Lbj)
             B = srows[pi[t] + m:pi[t] + nrows[t]]
             Sbb = np.empty((r, r))
+            zs = np.empty(r, dtype=np.int64)
             a = 0
             while a < r:  # the rows of B that are columns of one ancestor supernode
                 c = B[a]
@@ -200,20 +290,22 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
                 b = a
                 while b < r and B[b] < lt:
                     b += 1
+                for l2 in range(a, r):  # the rows' positions in this ancestor, once
+                    z = where[B[l2]]
+                    if z < 0:
+                        return 1
+                    zs[l2] = z
                 for mm in range(a, b):
                     base = colbase[B[mm]]
                     for l2 in range(mm, r):
-                        z = where[B[l2]]
-                        if z < 0:
-                            return 1
-                        v = x[base + z]
+                        v = x[base + zs[l2]]
                         Sbb[l2, mm] = v
                         Sbb[mm, l2] = v
                 for z in range(nt):
                     where[srows[q0 + z]] = -1
                 a = b
-            Sbj = -(Sbb @ U)
-            Sjj -= Sbj.T @ U
+            Sbj = _minus_product(Sbb, U)  # -Sigma_BB U
+            _lower_update(Sjj, Sbj, U)  # Sjj -= Sbj' U, its lower triangle
         for i in range(m):
             q = colbase[f + i]
             for a in range(i, m):
@@ -223,9 +315,10 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
     return 0
 
 
-def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragma: no cover
-    """``out[e]`` = the value at (``rows[e] >= cols[e]``) of the layout of :func:`_takahashi_py`
-    (binary searches); returns the number of entries not on the pattern (left NaN)."""
+def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: no cover
+    """``out[e]`` = the position in the values of the layout of :func:`_takahashi_py` of the
+    entry (``rows[e] >= cols[e]``), by binary searches (-1 if it is not on the pattern);
+    returns the number of entries not on the pattern."""
     missing = 0
     ns = starts.size - 1
     for e in range(rows.size):
@@ -245,15 +338,15 @@ def _entries_py(starts, pi, nrows, srows, colbase, x, rows, cols, out):  # pragm
             else:
                 b = mid
         if a < pi[lo] + nrows[lo] and srows[a] == r:
-            out[e] = x[colbase[c] + a - pi[lo]]
+            out[e] = colbase[c] + a - pi[lo]
         else:
-            out[e] = np.nan
+            out[e] = -1
             missing += 1
     return missing
 
 
 _KERNELS: dict = {}
-_dtrtri = _dlauum = None  # LAPACK routines of the compiled kernels (see _kernel)
+_dtrtri = _dlauum = _dtrmm = _dgemm = None  # LAPACK/BLAS routines of the compiled kernels
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
 COMPILED = AVAILABLE
@@ -261,21 +354,22 @@ COMPILED = AVAILABLE
 
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
-    global _lower_inverse, _dtrtri, _dlauum
+    global _lower_inverse, _dtrtri, _dlauum, _times_lower, _minus_product, _lower_update
+    global _dtrmm, _dgemm
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
         if COMPILED:
             import numba
 
-            if _lower_inverse is _lower_inverse_py and _lapack_symbol('dtrtri', 6) \
-                    and _lapack_symbol('dlauum', 5):
-                p = numba.types.intp
-                _dtrtri = numba.types.ExternalFunction('ga_ros_dtrtri', numba.types.void(
-                    p, p, p, p, p, p))
-                _dlauum = numba.types.ExternalFunction('ga_ros_dlauum', numba.types.void(
-                    p, p, p, p, p))
-                _lower_inverse = numba.njit(cache=True, nogil=True)(_lower_inverse_lapack)
+            routines = lapack.routines('dtrtri', 'dlauum', 'dtrmm', 'dgemm')
+            if _lower_inverse is _lower_inverse_py and routines is not None:
+                _dtrtri, _dlauum, _dtrmm, _dgemm = routines
+                jit = numba.njit(cache=True, nogil=True)
+                _lower_inverse = jit(_lower_inverse_lapack)
+                _times_lower = jit(_times_lower_blas)
+                _minus_product = jit(_minus_product_blas)
+                _lower_update = jit(_lower_update_blas)
             fn = numba.njit(cache=True, nogil=True)(fn)
         _KERNELS[name] = fn
     return fn
@@ -451,6 +545,13 @@ class SelectedInverse:
         ``(k, d, d)``. Each pair should be a diagonal block or a connected pair of ``N``; a pair
         off the factor's pattern raises :class:`DegenerateGeometryError` (``off_pattern=
         'raise'``) or comes back as NaN (``'nan'``)."""
+        return self.at(self.offsets(rows, cols, off_pattern))
+
+    def offsets(self, rows: IntArray, cols: IntArray, off_pattern: str = 'raise') -> IntArray:
+        """Where the blocks ``(rows[k], cols[k])`` of :meth:`blocks` lie in the factor's values,
+        ``(k, d, d)`` (-1: off the pattern, with ``off_pattern='nan'``). They depend on the
+        symbolic analysis only: the same for every factor of one analysis, so a caller that
+        reads the same blocks of many factors computes them once (:meth:`at`)."""
         d = self.d
         rows = np.asarray(rows, dtype=np.int64)
         cols = np.asarray(cols, dtype=np.int64)
@@ -462,14 +563,22 @@ class SelectedInverse:
         if not self._need.all() and not self._need[self._supernode_of(lo)].all():
             raise DegenerateGeometryError('a requested block is outside the selected columns '
                                           'of this SelectedInverse (its columns argument)')
-        out = np.empty(lo.size)
+        out = np.empty(lo.size, dtype=np.int64)
         lay = self._lay
-        missing = _kernel('_entries')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
-                                      lay.x, hi, lo, out)
+        missing = _kernel('_offsets')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
+                                      hi, lo, out)
         if missing and off_pattern == 'raise':
             raise DegenerateGeometryError('a requested block is not on the pattern of the '
                                           'normal matrix: only node and connected-pair blocks')
         return out.reshape(rows.size, d, d)
+
+    def at(self, offsets: IntArray) -> FloatArray:
+        """The values of ``Sigma`` at positions from :meth:`offsets` (NaN where -1)."""
+        offsets = np.asarray(offsets, dtype=np.int64)
+        out = self._lay.x[offsets]
+        if (offsets < 0).any():
+            out[offsets < 0] = np.nan
+        return out
 
     def diagonal_blocks(self, nodes: IntArray) -> FloatArray:
         """Marginal covariance blocks ``(k, d, d)`` of the given node columns (symmetrised)."""
@@ -526,17 +635,65 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
     return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
 
 
-def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
-                       w: int, rhs: FloatArray | None
-                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
-    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
-    skeleton's pairs added to its pattern."""
-    from ga_ros.core.sparse import BlockPattern, CovarianceSkeleton, SparseCholesky
+@dataclass
+class _SkeletonPlan:
+    """What :func:`_selected_skeleton` computes from the pattern of ``N`` and the targets alone
+    (the absorbed terms of a freeze repeat their pattern every track): the factor's block
+    pattern with the skeleton's pairs, where its values come from in ``N``'s, the symbolic
+    analysis, and where the skeleton's entries lie in the factor's values.
+
+    Attributes
+    ----------
+    indptr, indices : the pattern of ``N`` (compressed rows or columns) it was made for.
+    pattern : block pattern of ``N`` plus the skeleton's pairs (explicit zeros).
+    source : (nnz,) position in ``N.data`` of each of its lower-triangle values (-1: a zero).
+    pa, pc : block pairs of the skeleton (band among the others, hubs with every target, hubs
+        with hubs); bi, bj : positions (among the others) of the band pairs.
+    kept : a symbolic factor of ``pattern`` and the positions of the blocks ``(pa, pc)`` in
+        the values of its selected inverse (``None`` before the first use, and while a thread
+        uses them).
+    """
+
+    indptr: IntArray
+    indices: IntArray
+    pattern: object
+    source: IntArray
+    pa: IntArray
+    pc: IntArray
+    bi: IntArray
+    bj: IntArray
+    kept: tuple | None = None
+
+
+#: Plans of :func:`_selected_skeleton` by the shape of ``N`` and the skeleton, for the pattern of
+#: ``N`` they hold: the latest two (a plan holds a symbolic factor, ~10 MB for the aerial
+#: survey's 102-pose swaths; a survey's freezes repeat one or two patterns). A lock around
+#: taking and returning a plan's analysis: freezes and refinements may run in threads at once.
+_PLANS: OrderedDict[bytes, _SkeletonPlan] = OrderedDict()
+_MAX_PLANS = 2
+_PLANS_LOCK = threading.Lock()
+
+
+def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                   w: int) -> _SkeletonPlan:
+    """The :class:`_SkeletonPlan` of ``N`` (CSR or CSC, both triangles) and a skeleton."""
+    key = _blake2b(b''.join([N.format.encode(), np.array([*N.shape, N.nnz, d, w], dtype=np.int64)
+                             .tobytes(), t.tobytes(), hubs.tobytes()]), digest_size=16).digest()
+    with _PLANS_LOCK:
+        plan = _PLANS.get(key)
+        if plan is not None and np.array_equal(plan.indptr, N.indptr) \
+                and np.array_equal(plan.indices, N.indices):
+            _PLANS.move_to_end(key)
+            return plan
+    from ga_ros.core.sparse import BlockPattern
 
     u = N.shape[0] // d
+    # the positions of N's values travel through the conversions instead of the values
+    # (1-based: an explicit zero of the new pattern comes out as 0)
+    where = type(N)((np.arange(1, N.nnz + 1, dtype=float), N.indices, N.indptr), shape=N.shape)
     # a symmetric CSC matrix is its own CSR transpose: no conversion
-    Nr = sp.csr_matrix((N.data, N.indices, N.indptr), shape=N.shape) if N.format == 'csc' \
-        else sp.csr_matrix(N)
+    Nr = sp.csr_matrix((where.data, where.indices, where.indptr), shape=N.shape) \
+        if N.format == 'csc' else where
     Nb = sp.bsr_matrix(Nr, blocksize=(d, d))
     Nb.sort_indices()
     rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
@@ -557,9 +714,43 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
                            np.concatenate([cols_n, diag, np.minimum(pa, pc)]), d, u)
     blocks = np.zeros((rows_n.size + u + pa.size, d, d))
     blocks[:rows_n.size] = Nb.data
-    chol = SparseCholesky(pattern, pattern.assemble(blocks))
+    source = np.rint(pattern.assemble(blocks)).astype(np.int64) - 1
+    plan = _SkeletonPlan(N.indptr.copy(), N.indices.copy(), pattern, source, pa, pc, bi, bj)
+    with _PLANS_LOCK:
+        _PLANS[key] = plan
+        while len(_PLANS) > _MAX_PLANS:
+            _PLANS.popitem(last=False)
+    return plan
+
+
+def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
+                       w: int, rhs: FloatArray | None
+                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
+    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
+    skeleton's pairs added to its pattern (pattern, analysis and the entries' positions kept
+    per pattern: :class:`_SkeletonPlan`)."""
+    from ga_ros.core.sparse import CovarianceSkeleton, SparseCholesky
+
+    if N.format not in ('csr', 'csc') or not N.has_canonical_format:
+        N = sp.csr_matrix(N)
+        N.sum_duplicates()  # one value per position: the plan maps positions
+    plan = _skeleton_plan(N, d, t, rest, hubs, w)
+    data = np.where(plan.source >= 0, N.data[plan.source], 0.0)
+    with _PLANS_LOCK:  # the plan's analysis, unless another thread is using it
+        kept, plan.kept = plan.kept, None
+    analysis, offsets = kept if kept is not None else (None, None)
+    chol = SparseCholesky(plan.pattern, data, analysis=analysis)
+    analysis = chol.analysis
     x = None if rhs is None else chol.solve(rhs)
-    S = SelectedInverse(chol, columns=t).blocks(pa, pc)  # Sigma_{pa, pc}: targets only
+    inv = SelectedInverse(chol, columns=t)  # their supernodes and ancestors
+    if offsets is None:  # they depend on the analysis only
+        offsets = inv.offsets(plan.pa, plan.pc)
+    S = inv.at(offsets)  # Sigma_{pa, pc}: targets only
+    if inv.in_place:  # the factor is a symbolic one again: kept for the next
+        with _PLANS_LOCK:
+            plan.kept = (analysis, offsets)
+    bi, bj = plan.bi, plan.bj
+    r, h = rest.size, hubs.size
     band = np.zeros((r, w + 1, d, d))
     band[bi, bj - bi] = S[:bi.size]
     cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import lapack
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
 
@@ -123,6 +124,7 @@ class BlockPattern:
             self._pos = upos[self._kept_u][self._valid(slice(None))]
         self._gather: IntArray | None = None  # built by assemble on first use
         self._kept_idx: IntArray | None = None  # the kept blocks (compiled assemble)
+        self._full: tuple | None = None  # built by full_csc on first use
         self._valid_before: IntArray | None = None  # built by assemble_at on first use
         self._kept_rank: IntArray | None = None
 
@@ -270,7 +272,19 @@ class BlockPattern:
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
 
     def full_csc(self, data: FloatArray) -> sp.csc_matrix:
-        """The symmetric matrix (both triangles)."""
+        """The symmetric matrix (both triangles), canonical, without explicit zeros (those of the
+        sum ``L + L'`` of SciPy). A small pattern keeps where each entry comes from in
+        ``data`` (a window's freeze builds one matrix of a repeating pattern per track)."""
+        if self._full is None and self.nnz < _POSITIONS_KEPT_BELOW:
+            L = self.lower_csc(np.arange(1.0, self.nnz + 1.0))  # positions, never zero
+            F = (L + sp.tril(L, -1).T).tocsc()
+            self._full = (F.indptr, F.indices, np.rint(F.data).astype(np.int64) - 1)
+        if self._full is not None:
+            indptr, indices, source = self._full
+            vals = data[source]
+            if vals.all():  # else: explicit zeros, dropped below as the sum drops them
+                return sp.csc_matrix((vals, indices.copy(), indptr.copy()),
+                                     shape=(self.size, self.size))
         L = self.lower_csc(data)
         return (L + sp.tril(L, -1).T).tocsc()
 
@@ -284,11 +298,11 @@ class SparseCholesky:
     """
 
     def __init__(self, pattern: BlockPattern, data: FloatArray,
-                 trailing: IntArray | None = None) -> None:
+                 trailing: IntArray | None = None, analysis=None) -> None:
         self.pattern = pattern
         self.n = pattern.size
         self._trailing = None if trailing is None else np.asarray(trailing, dtype=np.int64)
-        self._symbolic = None
+        self._symbolic = analysis  # a kept symbolic factor of this pattern (keep_analysis)
         self._permuted: _Permuted | None = None  # P N P' for the direct factorisation
         self._A = None
         self._F = None
@@ -1287,25 +1301,17 @@ def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: 
         X = cross.transpose(1, 3, 0, 2).reshape(r * d, h * d)  # Sigma_{rest, hubs}
         Ainv = _spd_inverse(hub_cov[None])[0]
         B = X @ Ainv
-        i = np.repeat(np.arange(r), w1)
-        j = i + np.tile(np.arange(w1), r)
-        ok = j < r
         B3, X3 = B.reshape(r, d, h * d), X.reshape(r, d, h * d)
         cond = band.copy()
-        cond[i[ok], (j - i)[ok]] -= B3[i[ok]] @ np.swapaxes(X3[j[ok]], 1, 2)
+        for o in range(min(w1, r)):  # band offset o: (B X')_{a, a+o}, by views (no gathers)
+            cond[:r - o, o] -= B3[:r - o] @ np.swapaxes(X3[o:], 1, 2)
     else:
         cond = band
     Kband = _band_completion(cond) if r else np.zeros((0, w1, d, d))
     w = Kband.shape[1] - 1
-    i = np.repeat(np.arange(r), w + 1)
-    j = i + np.tile(np.arange(w + 1), r)
-    keep = j < r
-    i, j = i[keep], j[keep]
-    bblk = Kband.reshape(r * (w + 1), d, d)[keep]
-    off = i != j
-    rows = [rest[i], rest[j[off]]]
-    cols = [rest[j], rest[i[off]]]
-    data = [bblk, np.swapaxes(bblk[off], 1, 2)]
+    lay = _completion_layout(rest, hubs, w)
+    bblk = Kband.reshape(r * (w + 1), d, d)[lay.keep]
+    data = [bblk, np.swapaxes(bblk[lay.off], 1, 2)]
     if h:
         # K_RH = -K_RR B, band by band: (K_RR B)_a = sum_b K_ab B_b over |a - b| <= w
         Krh3 = np.zeros((r, d, h * d))
@@ -1318,20 +1324,65 @@ def _completion(band: FloatArray, cross: FloatArray, hub_cov: FloatArray, rest: 
         Khh = Ainv - B.T @ Krh
         Khh = 0.5 * (Khh + Khh.T)
         rh = Krh.reshape(r, d, h, d).transpose(0, 2, 1, 3)  # (r, h, d, d): block (rest, hub)
-        ri, ha = np.repeat(np.arange(r), h), np.tile(np.arange(h), r)
-        rows += [rest[ri], hubs[ha], np.repeat(hubs, h)]
-        cols += [hubs[ha], rest[ri], np.tile(hubs, h)]
         rhb = rh.reshape(r * h, d, d)
         data += [rhb, np.swapaxes(rhb, 1, 2),
                  Khh.reshape(h, d, h, d).transpose(0, 2, 1, 3).reshape(h * h, d, d)]
-    return _bsr(np.concatenate(rows), np.concatenate(cols), np.concatenate(data), r + h, d)
+    m = r + h
+    return sp.bsr_matrix((np.concatenate(data)[lay.order], lay.indices.copy(),
+                          lay.indptr.copy()), shape=(m * d, m * d))
 
 
-def _bsr(rows: IntArray, cols: IntArray, blocks: FloatArray, m: int, d: int) -> sp.bsr_matrix:
-    """``(m d, m d)`` BSR matrix of ``d x d`` blocks at block coordinates (each given once)."""
+@dataclass(frozen=True)
+class _CompletionLayout:
+    """Where the blocks of :func:`_completion`'s information go, by the skeleton alone: ``keep``
+    (of the ``r (w + 1)`` band slots those inside the band), ``off`` (of those, the
+    off-diagonal ones, stored twice), and the BSR layout of the blocks in the order they are
+    listed (band, its transposes, rest-hub, hub-rest, hub-hub): ``order``, ``indices``,
+    ``indptr``."""
+
+    keep: np.ndarray
+    off: np.ndarray
+    order: IntArray
+    indices: IntArray
+    indptr: IntArray
+
+
+#: Layouts of :func:`_completion` by the skeleton (one per prior shape; the latest few).
+_COMPLETION_LAYOUTS: OrderedDict[bytes, _CompletionLayout] = OrderedDict()
+_COMPLETION_LOCK = threading.Lock()
+
+
+def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLayout:
+    """The :class:`_CompletionLayout` of a skeleton (kept: a freeze builds one prior of the
+    same shape per track)."""
+    key = _blake2b(np.int64(w).tobytes() + np.int64(rest.size).tobytes() + rest.tobytes()
+                   + hubs.tobytes(), digest_size=16).digest()
+    with _COMPLETION_LOCK:
+        lay = _COMPLETION_LAYOUTS.get(key)
+        if lay is not None:
+            _COMPLETION_LAYOUTS.move_to_end(key)
+            return lay
+    r, h = rest.size, hubs.size
+    i = np.repeat(np.arange(r), w + 1)
+    j = i + np.tile(np.arange(w + 1), r)
+    keep = j < r
+    i, j = i[keep], j[keep]
+    off = i != j
+    rows = [rest[i], rest[j[off]]]
+    cols = [rest[j], rest[i[off]]]
+    if h:
+        ri, ha = np.repeat(np.arange(r), h), np.tile(np.arange(h), r)
+        rows += [rest[ri], hubs[ha], np.repeat(hubs, h)]
+        cols += [hubs[ha], rest[ri], np.tile(hubs, h)]
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
     order = np.lexsort((cols, rows))
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=m))])
-    return sp.bsr_matrix((blocks[order], cols[order], indptr), shape=(m * d, m * d))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=r + h))])
+    lay = _CompletionLayout(keep, off, order, cols[order], indptr)
+    with _COMPLETION_LOCK:
+        _COMPLETION_LAYOUTS[key] = lay
+        while len(_COMPLETION_LAYOUTS) > _MAX_PATTERNS:
+            _COMPLETION_LAYOUTS.popitem(last=False)
+    return lay
 
 
 def _spd_inverse(S: FloatArray) -> FloatArray:
@@ -1374,21 +1425,28 @@ def _band_completion(band: FloatArray) -> FloatArray:
     for j in range(1, w + 1):
         ext[r - j:r, j] = 0.0  # beyond the last node
     ext[r:, 0] = np.eye(d)
-    # separators Sigma_FF (w d x w d) and Sigma_Fi (w d x d) of every node, by slices
-    sep = np.empty((r, w, d, w, d))
-    for a in range(w):  # row a of F_i is node i + 1 + a
-        sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
-        sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
-    sep = sep.reshape(r, w * d, w * d)
+    # Sigma_Fi (w d x d) of every node; B_i' = Sigma_FF^-1 Sigma_Fi, one Cholesky factorisation
+    # of each separator Sigma_FF (w d x w d) (faster than a batch LU)
     cross = np.ascontiguousarray(np.swapaxes(ext[:r, 1:], -1, -2)).reshape(r, w * d, d)
-    Bt = np.empty_like(cross)  # (r, w d, d): B_i' (one Cholesky each: faster than a batch LU)
-    potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
-    for k in range(r):
-        c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: the F-ordered view is sep[k]
-        if info:
-            raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
-                                          'definite')
-        Bt[k] = potrs(c, cross[k], lower=1)[0]
+    Bt = np.empty_like(cross)  # (r, w d, d)
+    # compiled: the separators read from the band, LAPACK called directly
+    status = lapack.separator_solves(ext, r, w, d, Bt)
+    if status:
+        raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
+                                      'definite')
+    if status is None:
+        sep = np.empty((r, w, d, w, d))
+        for a in range(w):  # row a of F_i is node i + 1 + a
+            sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
+            sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
+        sep = sep.reshape(r, w * d, w * d)
+        potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
+        for k in range(r):
+            c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: F-ordered view of sep[k]
+            if info:
+                raise DegenerateGeometryError('a clique of the covariance skeleton is not '
+                                              'positive definite')
+            Bt[k] = potrs(c, cross[k], lower=1)[0]
     Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
     # every clique C_i = {i} + F_i is positive definite iff every D_i is (one Cholesky each
     # below, no separate one of the separators): C_i is iff F_i and D_i are, and F_i is a
@@ -1396,12 +1454,14 @@ def _band_completion(band: FloatArray) -> FloatArray:
     Dinv = _spd_inverse(Dm)  # (r, d, d)
     G = np.concatenate([np.broadcast_to(np.eye(d), (r, d, d)),
                         -np.swapaxes(Bt, 1, 2)], axis=2)  # (r, d, (w + 1) d)
-    Ki = np.swapaxes(G, 1, 2) @ (Dinv @ G)  # (r, (w + 1) d, (w + 1) d)
-    Ki = Ki.reshape(r, w + 1, d, w + 1, d).transpose(0, 1, 3, 2, 4)  # [i, p, q]: d x d block
-    Kband = np.zeros((r + w, w + 1, d, d))
-    for p in range(w + 1):  # clique i adds its block (p, q >= p) to K_{i+p, i+q}
-        Kband[p:p + r, :w + 1 - p] += Ki[:, p, p:]
-    return Kband[:r]
+    DG = Dinv @ G
+    # clique i adds its block (p, q >= p), G_p' D_i^-1 G_q, to K_{i+p, i+q}; accumulated
+    # transposed (K_{i+q, i+p} = (D_i^-1 G_q)' G_p: the products' blocks stack as stored)
+    KbandT = np.zeros((r + w, w + 1, d, d))
+    for p in range(w + 1):
+        Kp = np.swapaxes(DG[:, :, p * d:], 1, 2) @ G[:, :, p * d:(p + 1) * d]  # (r, (w+1-p) d, d)
+        KbandT[p:p + r, :w + 1 - p] += Kp.reshape(r, w + 1 - p, d, d)
+    return np.swapaxes(KbandT[:r], 2, 3)
 
 
 def dense_band(Sigma: FloatArray, d: int, w: int) -> FloatArray:
