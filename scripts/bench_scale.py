@@ -12,10 +12,10 @@ measurements are fed in acquisition order to :class:`ga_ros.core.window.TrackWin
   update's own thread: the process's also counts what the background freeze of the previous
   track had left to do when the update started, which varies with the machine's load) and
   the process's current resident set size there, with
-  the RSS growth per pose between checkpoints (from the first checkpoint's RSS; and the slope
-  of a least-squares line through the RSS between tracks -- read when the measurement that ends
-  each track arrives, after the previous update's background work -- since the first
-  checkpoint), the refinement worker's RSS, the nodes of the
+  the RSS growth per pose between checkpoints (from the first checkpoint's RSS; and ``KiB/pose
+  fit``, the slope of a least-squares line through the lowest RSS between tracks -- read when
+  the measurement that ends each track arrives -- of every ``--span / 2`` tracks since the first
+  checkpoint, see :func:`rss_slope`), the refinement worker's RSS, the nodes of the
   refinement in flight and the online path's ATE against the simulator's truth (rigid);
 * the state save / restore time and file size at the end (``TrackWindowAligner.save/load``);
 * the time and peak RSS (``ru_maxrss``) of the batch refinement of all poses
@@ -222,12 +222,20 @@ def state_nbytes(al: TrackWindowAligner) -> int:
 
 
 
-def rss_slope(poses: list[int], rss: list[float]) -> float:
-    """KiB per pose of the least-squares line through RSS samples (MiB) against the poses:
-    the growth, less sensitive than two samples to what happens to be allocated at one of them
-    (the freeze computed ahead right after an update holds tens of MiB of the window's factor
-    while it runs)."""
-    return 1024.0 * float(np.polyfit(np.asarray(poses, float), np.asarray(rss, float), 1)[0])
+def rss_slope(poses: list[int], rss: list[float], block: int) -> float:
+    """KiB per pose of the least-squares line through the lowest RSS sample (MiB) of each run of
+    ``block`` consecutive samples, against the poses there: the growth of the memory the process
+    returns to between tracks. Single samples also catch window-sized transients that come and
+    go from one track to the next (~27 MiB at 200-pose tracks: the window's factor and selected
+    inverse, in the heap or given back to the kernel depending on where glibc placed them), which
+    a two-point difference or a plain fit turns into a growth per pose; a leak raises the
+    minima too."""
+    x, y = np.asarray(poses, float), np.asarray(rss, float)
+    cut = range(0, x.size, max(1, int(block)))
+    low = [k + int(np.argmin(y[k:k + block])) for k in cut]
+    if len(low) < 2:
+        return float('nan')
+    return 1024.0 * float(np.polyfit(x[low], y[low], 1)[0])
 
 
 def scenario(args: argparse.Namespace):
@@ -380,7 +388,8 @@ def run(args: argparse.Namespace) -> ScaleFigures:
                 cp.kib_per_pose_since_first = (1024.0 * (cp.rss_mib - first_cp.rss_mib)
                                                / (poses - first_cp.poses))
                 cp.kib_per_pose_fit = rss_slope(fig.update_poses[first_cp.tracks - 1:],
-                                                fig.update_rss_before_mib[first_cp.tracks - 1:])
+                                                fig.update_rss_before_mib[first_cp.tracks - 1:],
+                                                max(1, args.span // 2))
             fig.checkpoints.append(cp)
 
     t_start = time.perf_counter()
