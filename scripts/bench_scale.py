@@ -224,17 +224,21 @@ def state_nbytes(al: TrackWindowAligner) -> int:
 
 def rss_slope(poses: list[int], rss: list[float], block: int) -> float:
     """KiB per pose of the least-squares line through the lowest RSS sample (MiB) of each run of
-    ``block`` consecutive samples, against the poses there: the growth of the memory the process
+    ``block`` consecutive samples (the first run also takes the samples left over), against the
+    poses there: the growth of the memory the process
     returns to between tracks. Single samples also catch window-sized transients that come and
     go from one track to the next (~27 MiB at 200-pose tracks: the window's factor and selected
     inverse, in the heap or given back to the kernel depending on where glibc placed them), which
     a two-point difference or a plain fit turns into a growth per pose; a leak raises the
     minima too."""
     x, y = np.asarray(poses, float), np.asarray(rss, float)
-    cut = range(0, x.size, max(1, int(block)))
-    low = [k + int(np.argmin(y[k:k + block])) for k in cut]
-    if len(low) < 2:
+    block = max(1, int(block))
+    k = x.size // block
+    if k < 2:
         return float('nan')
+    # k runs of `block` samples ending at the last one; the first also takes the remainder
+    bounds = [0] + [x.size - (k - i) * block for i in range(1, k)] + [x.size]
+    low = [a + int(np.argmin(y[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
     return 1024.0 * float(np.polyfit(x[low], y[low], 1)[0])
 
 
