@@ -12,7 +12,10 @@ measurements are fed in acquisition order to :class:`ga_ros.core.window.TrackWin
   update's own thread: the process's also counts what the background freeze of the previous
   track had left to do when the update started, which varies with the machine's load) and
   the process's current resident set size there, with
-  the RSS growth per pose between checkpoints, the refinement worker's RSS, the nodes of the
+  the RSS growth per pose between checkpoints (from the first checkpoint's RSS; and ``KiB/pose
+  fit``, the slope of a least-squares line through the lowest RSS between tracks -- read when
+  the measurement that ends each track arrives -- of every ``--span / 2`` tracks since the first
+  checkpoint, see :func:`rss_slope`), the refinement worker's RSS, the nodes of the
   refinement in flight and the online path's ATE against the simulator's truth (rigid);
 * the state save / restore time and file size at the end (``TrackWindowAligner.save/load``);
 * the time and peak RSS (``ru_maxrss``) of the batch refinement of all poses
@@ -97,6 +100,7 @@ class Checkpoint:
     ate_rigid_m: float = 0.0
     thread_cpu_ms_p50: float = 0.0
     thread_cpu_ms_p95: float = 0.0
+    kib_per_pose_fit: float | None = None
 
 
 @dataclass
@@ -183,6 +187,8 @@ class ScaleFigures:
     update_cpu_ms: list[float] = field(default_factory=list)
     update_thread_cpu_ms: list[float] = field(default_factory=list)
     update_rss_mib: list[float] = field(default_factory=list)
+    update_rss_before_mib: list[float] = field(default_factory=list)
+    update_poses: list[int] = field(default_factory=list)
     checkpoints: list[Checkpoint] = field(default_factory=list)
     missing_checkpoints: list[int] = field(default_factory=list)
     save_seconds: float | None = None
@@ -214,6 +220,26 @@ def state_nbytes(al: TrackWindowAligner) -> int:
     total += sys.getsizeof(al._pairs) + 160 * len(al._pairs)  # 3-tuples of ints
     return total
 
+
+
+def rss_slope(poses: list[int], rss: list[float], block: int) -> float:
+    """KiB per pose of the least-squares line through the lowest RSS sample (MiB) of each run of
+    ``block`` consecutive samples (the first run also takes the samples left over), against the
+    poses there: the growth of the memory the process
+    returns to between tracks. Single samples also catch window-sized transients that come and
+    go from one track to the next (~27 MiB at 200-pose tracks: the window's factor and selected
+    inverse, in the heap or given back to the kernel depending on where glibc placed them), which
+    a two-point difference or a plain fit turns into a growth per pose; a leak raises the
+    minima too."""
+    x, y = np.asarray(poses, float), np.asarray(rss, float)
+    block = max(1, int(block))
+    k = x.size // block
+    if k < 2:
+        return float('nan')
+    # k runs of `block` samples ending at the last one; the first also takes the remainder
+    bounds = [0] + [x.size - (k - i) * block for i in range(1, k)] + [x.size]
+    low = [a + int(np.argmin(y[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
+    return 1024.0 * float(np.polyfit(x[low], y[low], 1)[0])
 
 
 def scenario(args: argparse.Namespace):
@@ -324,12 +350,14 @@ def run(args: argparse.Namespace) -> ScaleFigures:
     waits: list[float] = []
     first_cp: Checkpoint | None = None
 
-    def record(up: UpdateResult, cpu_ms: float, thread_ms: float) -> None:
+    def record(up: UpdateResult, cpu_ms: float, thread_ms: float, rss_before: float) -> None:
         nonlocal first_cp
         fig.update_ms.append(up.update_ms)
         fig.update_cpu_ms.append(cpu_ms)
         fig.update_thread_cpu_ms.append(thread_ms)
         fig.update_rss_mib.append(rss_mib())
+        fig.update_rss_before_mib.append(rss_before)
+        fig.update_poses.append(al.stats.n_nodes)
         window_nodes.append(up.n_window_nodes)
         waits.append(up.refine_wait_ms)
         done = len(fig.update_ms)
@@ -363,23 +391,32 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             elif poses > first_cp.poses:
                 cp.kib_per_pose_since_first = (1024.0 * (cp.rss_mib - first_cp.rss_mib)
                                                / (poses - first_cp.poses))
+                cp.kib_per_pose_fit = rss_slope(fig.update_poses[first_cp.tracks - 1:],
+                                                fig.update_rss_before_mib[first_cp.tracks - 1:],
+                                                max(1, args.span // 2))
             fig.checkpoints.append(cp)
 
     t_start = time.perf_counter()
     stopped = False
+    rss_before = rss_mib()
     for m in lazy_measurements(sc, noisy.z, noisy.cov):
+        if al.open_track is not None and int(m.dst_track) != al.open_track:
+            rss_before = rss_mib()  # this measurement ends the track: the RSS between tracks
         cpu0, own0 = time.process_time(), time.thread_time()
         ups = al.add_measurement(m)
         for up in ups:  # at most one: the CPU time of the call is the update's
-            record(up, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0))
+            record(up, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0),
+                   rss_before)
         if ups and args.max_seconds and time.perf_counter() - t_start > args.max_seconds:
             stopped = True
             break
     if not stopped:
+        rss_before = rss_mib()
         cpu0, own0 = time.process_time(), time.thread_time()
         last = al.finish_track()
         if last is not None:
-            record(last, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0))
+            record(last, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0),
+                   rss_before)
     fig.online_seconds = time.perf_counter() - t_start
     st = al.stats
     fig.tracks_done = len(fig.update_ms)
@@ -413,8 +450,8 @@ def print_table(fig: ScaleFigures) -> None:
     print('| tracks | poses | update ms p50 | p95 | max | CPU ms p50 | CPU p95 | thread CPU ms '
           'p50 / p95 | refinement wait ms p50 / p95 | window nodes | refinement nodes | '
           'RSS MiB | worker RSS MiB | '
-          'KiB/pose since first | state B/pose | ATE rigid m |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|')
+          'KiB/pose since first | KiB/pose fit | state B/pose | ATE rigid m |')
+    print('|---:|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|')
     for c in fig.checkpoints:
         print(f'| {c.tracks} | {c.poses:,} | {c.update_ms_p50:.0f} | {c.update_ms_p95:.0f} | '
               f'{c.update_ms_max:.0f} | {c.cpu_ms_p50:.0f} | {c.cpu_ms_p95:.0f} | '
@@ -422,9 +459,10 @@ def print_table(fig: ScaleFigures) -> None:
               f'{c.refine_wait_ms_p50:.0f} / {c.refine_wait_ms_p95:.0f} | '
               f'{c.window_nodes:,} | {c.horizon_nodes:,} | {c.rss_mib:.0f} | '
               f'{c.worker_rss_mib:.0f} | {_fmt(c.kib_per_pose_since_first)} | '
+              f'{_fmt(c.kib_per_pose_fit)} | '
               f'{c.state_bytes_per_pose:.0f} | {c.ate_rigid_m:.3f} |')
     for c in fig.missing_checkpoints:
-        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | | | | | | |')
+        print(f'| {c} | {c * fig.poses_per_track:,} | not reached | | | | | | | | | | | | | | |')
     if len(fig.checkpoints) >= 2:
         a, b = fig.checkpoints[0], fig.checkpoints[-1]
         print(f'\np95 ratio, {b.tracks} vs {a.tracks} tracks: wall '

@@ -560,6 +560,52 @@ def _carry_over(T_init: FloatArray, nodes: IntArray, prev_nodes: IntArray,
     return out
 
 
+@dataclass
+class _Rollback:
+    """What :meth:`TrackWindowAligner.finish_track` puts back if an update fails: the rows an
+    update can change (:meth:`TrackWindowAligner._mutable_rows`: of the window and the
+    refinement horizon, not of the whole survey, so that the copy costs the same at every
+    track) and the small bookkeeping around them."""
+
+    node_row: int
+    conn_row: int
+    T: FloatArray
+    cov21: FloatArray
+    frozen: BoolArray
+    status: IntArray
+    bookkeeping: dict
+
+    #: Attributes saved and restored as they are (replaced, never changed in place, by an update).
+    KEPT = ('_priors', '_last_window', '_n_outliers', '_n_updates', '_T_weighted', '_retired',
+            '_past')
+
+    @classmethod
+    def of(cls, al: TrackWindowAligner) -> _Rollback:
+        """The aligner's mutable rows and bookkeeping, copied."""
+        lo, r0 = al._mutable_rows()
+        n = al._idarr.n
+        book = {k: getattr(al, k) for k in cls.KEPT}
+        book['_priors'] = list(al._priors)
+        return cls(lo, r0, al._T[lo:n].copy(), al._cov.packed[lo:n].copy(),
+                   al._frozen[lo:n].copy(), al._status.a[r0:].copy(), book)
+
+    def restore(self, al: TrackWindowAligner) -> None:
+        """Put the copied rows and bookkeeping back (rows added since are not touched)."""
+        lo, r0 = self.node_row, self.conn_row
+        hi = lo + self.frozen.size
+        al._T[lo:hi] = self.T
+        al._cov.packed[lo:hi] = self.cov21
+        al._frozen[lo:hi] = self.frozen
+        al._status.a[r0:r0 + self.status.size] = self.status
+        for k, v in self.bookkeeping.items():
+            setattr(al, k, v)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the copied rows."""
+        return self.T.nbytes + self.cov21.nbytes + self.frozen.nbytes + self.status.nbytes
+
+
 class TrackWindowAligner:
     """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
 
@@ -881,12 +927,15 @@ class TrackWindowAligner:
 
     def _prune_pairs(self) -> None:
         """Keep only the duplicate keys of connections whose two nodes are not frozen (a
-        measurement that touches a frozen node is refused before the duplicate test)."""
-        n = self._idarr.n
-        src, dst = self._src.a, self._dst.a
-        live = ~self._frozen[:n][src] & ~self._frozen[:n][dst]
+        measurement that touches a frozen node is refused before the duplicate test). Such
+        connections come after the first connection that can touch the first unfrozen node
+        (:meth:`_rows_from`): only those rows are scanned."""
+        _, r0 = self._rows_from(self._first_unfrozen())
+        frozen = self._frozen[:self._idarr.n]
+        src, dst = self._src.a[r0:], self._dst.a[r0:]
+        live = r0 + np.flatnonzero(~frozen[src] & ~frozen[dst])
         ids = self._idarr.a
-        a, b = ids[src[live]], ids[dst[live]]
+        a, b = ids[self._src.a[live]], ids[self._dst.a[live]]
         self._pairs = set(zip(np.minimum(a, b).tolist(), np.maximum(a, b).tolist(),
                               self._fp.a[live].tolist()))
         self._pairs_kept = len(self._pairs)
@@ -936,12 +985,9 @@ class TrackWindowAligner:
         :class:`~ga_ros.errors.GaError` can escape."""
         if self._open_track is None or self._open_track in self._finished:
             return None
-        n = len(self._ids)
         last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
-        saved = (self._T[:n].copy(), self._cov[:n].copy(),
-                 self._frozen[:n].copy(), self._status.a.copy(), list(self._priors),
-                 self._last_window, self._n_outliers, self._n_updates, self._T_weighted)
+        saved = _Rollback.of(self)
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
@@ -952,18 +998,49 @@ class TrackWindowAligner:
             error = up.reason[len('failed: '):]
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
-        (self._T[:n], self._cov[:n], self._frozen[:n], self._status.a[:],
-         self._priors, self._last_window, self._n_outliers, n_updates,
-         self._T_weighted) = saved
+        saved.restore(self)
         self._last = None
         self.__dict__.update(last)
+        self.__dict__.pop('_smoothing', None)  # of a refinement installed by the failed update
         self._finished.add(track)
-        self._n_updates = n_updates + 1
+        self._n_updates += 1
         up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0), 0, 0,
                           min(len(self._finished), self.config.window_tracks), 0,
                           f'failed: {error}')
         self._last_update = up
         return up
+
+    def _mutable_rows(self) -> tuple[int, int]:
+        """``(node row, connection row)`` from which a window update can change the tables.
+
+        An update changes the poses, covariances and frozen flags of the unfrozen tracks
+        (window and leaving tracks: the adjustment, the freezes) and of the horizon of the
+        refinement it may install (:meth:`_install`, :meth:`_smooth`: rows from the snapshot's
+        ``first_node``), and the status of connections touching those nodes (gate,
+        re-admission, absorption): the rows from the first unfrozen node, or from the
+        snapshot's first node if lower (:meth:`_rows_from`). Everything before stays as it is
+        (retired and long-frozen tracks), whatever the survey's length (tested in
+        ``test/test_window_scale.py``)."""
+        lo, snap = self._first_unfrozen(), self._refine_snap
+        return self._rows_from(lo if snap is None else min(lo, int(snap.first_node)))
+
+    def _first_unfrozen(self) -> int:
+        """Row of the first node that is not frozen (the node count if every one is)."""
+        n = self._idarr.n
+        frozen = self._frozen[:n]
+        lo = int(np.argmin(frozen)) if n else 0  # the first False (a scan, no copy)
+        return n if n and frozen[lo] else lo
+
+    def _rows_from(self, lo: int) -> tuple[int, int]:
+        """``(lo, r0)``: node row ``lo`` (clipped to the node count) and the first connection
+        row that can touch a node ``>= lo``. Node rows follow creation order and a track's rows
+        are contiguous; a connection is stored after both its nodes, so every connection
+        touching a node ``>= lo`` comes at or after the first connection of ``lo``'s track."""
+        n = self._idarr.n
+        if lo >= n:
+            return n, self._src.n
+        first = self._track_conns.get(int(self._trackarr.a[lo]))
+        return lo, (int(first[0]) if first is not None and len(first) else 0)
 
     # ------------------------------------------------------------ background refinement
     def _start_refinement(self) -> None:
@@ -1034,8 +1111,7 @@ class TrackWindowAligner:
         m = self._src.n if m is None else int(m)
         if f >= self._idarr.n:
             return np.zeros(0, dtype=np.int64)
-        first = self._track_conns.get(int(self._trackarr.a[f]))
-        r0 = min(int(first[0]), m) if first is not None and len(first) else 0
+        r0 = min(self._rows_from(f)[1], m)
         ends = (self._src.a[r0:m] >= f) & (self._dst.a[r0:m] >= f)
         return r0 + np.flatnonzero(ends)
 
@@ -1340,13 +1416,19 @@ class TrackWindowAligner:
 
     def _subnetwork(self, nodes: IntArray, conns: IntArray,
                     cov: FloatArray | None = None) -> ConnectionNetwork:
-        """Network of some nodes (by index) and connections among them (already validated);
-        ``cov``: the connections' (m, 6, 6) covariances if the caller has them unpacked."""
-        local = np.full(len(self._ids), -1, dtype=np.int64)
-        local[nodes] = np.arange(nodes.size)
+        """Network of some nodes (by index, distinct) and connections among them (already
+        validated); ``cov``: the connections' (m, 6, 6) covariances if the caller has them
+        unpacked. The connections' ends are located by a binary search among ``nodes`` (no
+        index array over all the survey's nodes)."""
+        order = np.argsort(nodes, kind='stable')
+        srt = nodes[order]
+
+        def local(rows: IntArray) -> IntArray:
+            return order[np.searchsorted(srt, rows)]
+
         return ConnectionNetwork.from_arrays(
             self._idarr.a[nodes], self._trackarr.a[nodes],
-            local[self._src.a[conns]], local[self._dst.a[conns]], self._z.a[conns],
+            local(self._src.a[conns]), local(self._dst.a[conns]), self._z.a[conns],
             self._ccov.a[conns] if cov is None else cov)
 
     def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
