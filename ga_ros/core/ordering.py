@@ -28,6 +28,18 @@ METIS_MIN_BLOCKS = 4000
 HAVE_METIS = importlib.util.find_spec('pymetis') is not None
 
 
+def _adjacency(n: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArray]:
+    """CSR adjacency ``(xadj, adjncy)`` of the graph of ``n`` vertices with the edges
+    ``rows[k] -- cols[k]`` (both directions, each neighbour once, self-loops dropped), in NumPy
+    (no ``scipy.sparse``: its first import costs a batch solve ~40 ms)."""
+    off = rows != cols
+    a = np.concatenate([rows[off], cols[off]]).astype(np.int64)
+    b = np.concatenate([cols[off], rows[off]]).astype(np.int64)
+    key = np.unique(a * n + b)  # sorted by vertex, then neighbour; duplicates once
+    xadj = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
+    return xadj.astype(np.int64), key % n
+
+
 def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
     """METIS nested-dissection order of a graph of ``n`` vertices (``pymetis``).
 
@@ -41,29 +53,42 @@ def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
     (n,) vertex order: position ``k`` holds the vertex eliminated ``k``-th.
     """
     import pymetis
-    import scipy.sparse as sp
 
-    off = rows != cols
-    r, c = rows[off], cols[off]
-    G = sp.csr_matrix((np.ones(2 * r.size), (np.concatenate([r, c]), np.concatenate([c, r]))),
-                      shape=(n, n))
-    G.sum_duplicates()
-    perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))
+    xadj, adjncy = _adjacency(n, rows, cols)
+    perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(xadj, adjncy))
     return np.asarray(perm, dtype=np.int64)
 
 
 def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray) -> float:
-    """``sum_j c_j^2`` over the columns of the Cholesky factor of a graph's matrix under
-    ``order`` (``c_j`` the column's non-zeros): the work of one factorisation, up to a constant.
+    """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
+    count of CHOLMOD's symbolic analysis (no numeric factorisation), or, where that is not
+    reachable (:func:`ga_ros.core.sparse._direct_cholmod`), ``sum_j c_j^2`` over the columns of
+    the factor (``c_j`` its non-zeros) from a numeric factorisation; either compares orderings.
 
     The matrix factored is the graph Laplacian plus the identity (positive definite, the
-    pattern of the graph); CHOLMOD's symbolic and numeric phases give the factor's columns.
+    pattern of the graph).
     """
-    import cvxopt
-    from cvxopt import cholmod
+    from ga_ros.core.sparse import _direct_cholmod
 
     off = rows != cols
     r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
+    direct = _direct_cholmod()
+    if direct is not None:
+        diag = np.arange(n, dtype=np.int64)
+        key = np.unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, then row
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
+        flops = direct.analysis_flops(indptr, key % n, order)
+        if flops is not None:
+            return flops
+    return _numeric_factor_flops(n, r, c, order)
+
+
+def _numeric_factor_flops(n: int, r: IntArray, c: IntArray, order: IntArray) -> float:
+    """``sum_j c_j^2`` of the factor of ``L + I`` (``L`` the Laplacian of the edges
+    ``r[k] > c[k]``) under ``order``, from CHOLMOD's symbolic and numeric phases (cvxopt)."""
+    import cvxopt
+    from cvxopt import cholmod
+
     deg = np.bincount(np.concatenate([r, c]), minlength=n).astype(float)
     diag = np.arange(n, dtype=np.int64)
     A = cvxopt.spmatrix(cvxopt.matrix(np.concatenate([deg + 1.0, -np.ones(r.size)])),

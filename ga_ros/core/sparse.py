@@ -619,6 +619,34 @@ class _DirectCholmod:
             self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
             return None
 
+    def analysis_flops(self, indptr: IntArray, indices: IntArray, perm: IntArray
+                       ) -> float | None:
+        """The flop count CHOLMOD's symbolic analysis (simplicial, ``cholmod_l_analyze_p``
+        with the ordering ``perm`` alone) predicts for factoring a matrix of the given lower
+        triangle pattern (CSC, int64; the diagonal included), without a numeric factorisation;
+        ``None`` when not available (:meth:`analyse`'s conditions)."""
+        if self._capsule is None:
+            return None
+        n = indptr.size - 1
+        indptr = np.ascontiguousarray(indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(indices, dtype=np.int64)
+        pvec = np.ascontiguousarray(perm, dtype=np.int64)
+        A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
+                           None, None, None, -1, 2, 0, 0, 1, 1)  # lower, long, pattern only
+        common = self._common()
+        c = _CommonOrdering.from_buffer(common)
+        saved = (c.supernodal, c.nmethods, c.postorder)
+        c.supernodal, c.nmethods, c.postorder = 0, 1, 0
+        try:
+            factor = self._analyze(ctypes.addressof(A), pvec.ctypes.data, None, 0, common)
+            flops = float(c.method[c.selected].fl) if factor else None
+        finally:
+            c.supernodal, c.nmethods, c.postorder = saved
+            if factor:
+                self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
+            self._free_work(common)
+        return flops if flops is not None and flops > 0 else None
+
     def _common(self):
         """This thread's ``cholmod_common`` (started, ``print = 0``), or ``None`` if its
         defaults are not those of CHOLMOD 3 (another build: the caller uses cvxopt then)."""
