@@ -276,10 +276,36 @@ def maha2(mis: Misclosure, W: SqrtWeights) -> FloatArray:
     return (r1 * r1).sum(axis=0) + (r2 * r2).sum(axis=0)
 
 
-def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
-                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
-                  mis: Misclosure | None = None) -> NormalBlocks:
-    """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring).
+class Linearised:
+    """One linearisation of ``sum_k rho(e_k' P_k e_k)`` in two stages: the misclosures, robust
+    weights and gradient at once, the normal blocks on demand (:meth:`normal_blocks`).
+
+    A caller that needs the gradient only (a chord step, which reuses the last factorisation
+    of ``N``, or a stop on the decrease it predicts) never pays for the blocks' products.
+
+    Attributes
+    ----------
+    e : (m, r) misclosures (``r`` = 6 se3, 3 se2).
+    g_src, g_dst : (m, r) gradient halves ``J_i' W e``, ``J_j' W e``.
+    maha2 : (m,) ``e' P e`` (unweighted by the robust loss).
+    """
+
+    def __init__(self, e: FloatArray, g_src: FloatArray, g_dst: FloatArray, maha2: FloatArray,
+                 products) -> None:
+        self.e, self.g_src, self.g_dst, self.maha2 = e, g_src, g_dst, maha2
+        self._products = products  # (extra) -> (4 m + extra, r, r) blocks
+
+    def normal_blocks(self, extra_blocks: int = 0) -> NormalBlocks:
+        """The blocks ``J_a' W J_b`` (``(4 m + extra_blocks, r, r)``, see :class:`NormalBlocks`),
+        with ``extra_blocks`` rows left uninitialised for the caller."""
+        return NormalBlocks(self.e, self._products(extra_blocks), self.g_src, self.g_dst,
+                            self.maha2)
+
+
+def linearise(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
+              W: SqrtWeights, robust=None, mis: Misclosure | None = None) -> Linearised:
+    """Gauss-Newton system of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring):
+    misclosures and gradient now, blocks on demand (:meth:`Linearised.normal_blocks`).
 
     With ``P = U' U`` the blocks are ``V_a' V_b`` of the whitened Jacobians ``V = U J``
     (block upper triangular like ``J``), all in columns.
@@ -291,13 +317,11 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
     meas : inverses of the measured motions.
     W : square roots of the weights (inverse covariances, ``[x y z rx ry rz]`` order).
     robust : ``maha2 -> (m,) weights`` (IRLS weights of a robust loss), or None.
-    extra_blocks : rows left uninitialised at the end of ``blocks`` for the caller.
     mis : :func:`misclosure` at ``T``, if the caller has it.
     """
     if mis is None:
         mis = misclosure(T, src, dst, meas)
     e = mis.e
-    m = e.shape[0]
     rho, phi = -mis.rho, -mis.phi  # J_r(e)^-1 = J_l(-e)^-1
     t2 = (phi * phi).sum(axis=0)
     # A = J_l(phi)^-1 = (1 - c t^2) I - [phi]x / 2 + c phi phi' at phi = -phi(e)
@@ -319,12 +343,26 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
         Vi.scale(sw)
         Vj.scale(sw)
         r1, r2 = r1 * sw, r2 * sw
-    blocks = np.empty((4 * m + extra_blocks, 6, 6))
-    Vi.product(Vi, blocks[:m])
-    Vj.product(Vi, blocks[2 * m:3 * m])
-    blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
-    Vj.product(Vj, blocks[3 * m:4 * m])
-    return NormalBlocks(e, blocks, Vi.gradient(r1, r2), Vj.gradient(r1, r2), maha2)
+
+    def products(extra: int) -> FloatArray:
+        m = e.shape[0]
+        blocks = np.empty((4 * m + extra, 6, 6))
+        Vi.product(Vi, blocks[:m])
+        Vj.product(Vi, blocks[2 * m:3 * m])
+        blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
+        Vj.product(Vj, blocks[3 * m:4 * m])
+        return blocks
+
+    return Linearised(e, Vi.gradient(r1, r2), Vj.gradient(r1, r2), maha2, products)
+
+
+def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
+                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
+                  mis: Misclosure | None = None) -> NormalBlocks:
+    """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T``: :func:`linearise` and its
+    blocks at once (parameters as there; ``extra_blocks`` rows left uninitialised at the end of
+    ``blocks`` for the caller)."""
+    return linearise(T, src, dst, meas, W, robust, mis).normal_blocks(extra_blocks)
 
 
 # ------------------------------------------------------------------------------------- se2
@@ -342,10 +380,11 @@ def _planar_sqrt_weights(P: FloatArray) -> FloatArray:
     return U
 
 
-def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
-                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
-    """The ``se2`` counterpart of :func:`normal_blocks`: Gauss-Newton blocks of
-    ``sum_k rho(e_k' P_k e_k)``, ``e = log(T_meas^-1 T_i^-1 T_j)`` ``[rho_x, rho_y, theta]``.
+def planar_linearise(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
+                     P: FloatArray, robust=None) -> Linearised:
+    """The ``se2`` counterpart of :func:`linearise`: Gauss-Newton system of
+    ``sum_k rho(e_k' P_k e_k)``, ``e = log(T_meas^-1 T_i^-1 T_j)`` ``[rho_x, rho_y, theta]``,
+    blocks on demand.
 
     The same algebra as :func:`ga_ros.core.models.between` for ``se2`` (a test compares the
     two): ``de/dd_j = J = J_r(e)^-1``, ``de/dd_i = -J Ad(T_ij^-1)``, every ``3 x 3`` matrix a
@@ -358,18 +397,17 @@ def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: Fl
     src, dst : (m,) node indices.
     T_meas : (m, 4, 4) planar measured motions ``T_i_j``.
     P : (m, 3, 3) weights (inverse covariances, ``[x y rz]`` order).
-    robust, extra_blocks : as :func:`normal_blocks`.
+    robust : as :func:`linearise`.
 
     Returns
     -------
-    :class:`NormalBlocks` with ``(4 m + extra_blocks, 3, 3)`` blocks and ``(m, 3)`` gradients.
+    :class:`Linearised` with ``(m, 3)`` gradients and ``(4 m + extra, 3, 3)`` blocks.
     """
     from ga_ros.geometry import se2  # lazy: se3 problems never need it
 
     nodes = se2.Planar.from_matrix(T)
     T_ij = nodes.take(src).inverse().compose(nodes.take(dst))
     e = se2.Planar.from_matrix(T_meas).inverse().compose(T_ij).log()
-    m = e.shape[0]
     ec = np.ascontiguousarray(e.T)  # (3, m)
     J = se2.right_jacobian_inv_columns(e)  # (3, 3, m)
     Ad = se2.adjoint_columns(T_ij.inverse())  # Ad(T_ij^-1)
@@ -384,13 +422,25 @@ def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: Fl
         Vi *= sw
         Vj *= sw
         r = r * sw
-    blocks = np.empty((4 * m + extra_blocks, 3, 3))
-    blocks[:m] = _mtm3(Vi, Vi).transpose(2, 0, 1)
-    blocks[2 * m:3 * m] = _mtm3(Vj, Vi).transpose(2, 0, 1)
-    blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
-    blocks[3 * m:4 * m] = _mtm3(Vj, Vj).transpose(2, 0, 1)
-    return NormalBlocks(e, blocks, np.ascontiguousarray(_mtv3(Vi, r).T),
-                        np.ascontiguousarray(_mtv3(Vj, r).T), maha2)
+
+    def products(extra: int) -> FloatArray:
+        m = e.shape[0]
+        blocks = np.empty((4 * m + extra, 3, 3))
+        blocks[:m] = _mtm3(Vi, Vi).transpose(2, 0, 1)
+        blocks[2 * m:3 * m] = _mtm3(Vj, Vi).transpose(2, 0, 1)
+        blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
+        blocks[3 * m:4 * m] = _mtm3(Vj, Vj).transpose(2, 0, 1)
+        return blocks
+
+    return Linearised(e, np.ascontiguousarray(_mtv3(Vi, r).T),
+                      np.ascontiguousarray(_mtv3(Vj, r).T), maha2, products)
+
+
+def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
+                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
+    """:func:`planar_linearise` and its blocks at once (``(4 m + extra_blocks, 3, 3)``; the
+    parameters as there and as :func:`normal_blocks`)."""
+    return planar_linearise(T, src, dst, T_meas, P, robust).normal_blocks(extra_blocks)
 
 
 # ------------------------------------------------------------------------------ retraction
