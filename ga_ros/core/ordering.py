@@ -28,6 +28,14 @@ METIS_MIN_BLOCKS = 4000
 HAVE_METIS = importlib.util.find_spec('pymetis') is not None
 
 
+def _sorted_unique(x: IntArray) -> IntArray:
+    """``np.unique(x)`` of an integer array by a sort: NumPy 2.4's ``np.unique`` without
+    ``return_inverse`` hashes, ~10 ms for the 70,000 keys of an aerial survey's block graph
+    against ~0.5 ms for this."""
+    x = np.sort(x)
+    return x[np.concatenate([[True], x[1:] != x[:-1]])] if x.size else x
+
+
 def _adjacency(n: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArray]:
     """CSR adjacency ``(xadj, adjncy)`` of the graph of ``n`` vertices with the edges
     ``rows[k] -- cols[k]`` (both directions, each neighbour once, self-loops dropped), in NumPy
@@ -35,7 +43,7 @@ def _adjacency(n: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArr
     off = rows != cols
     a = np.concatenate([rows[off], cols[off]]).astype(np.int64)
     b = np.concatenate([cols[off], rows[off]]).astype(np.int64)
-    key = np.unique(a * n + b)  # sorted by vertex, then neighbour; duplicates once
+    key = _sorted_unique(a * n + b)  # sorted by vertex, then neighbour; duplicates once
     xadj = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
     return xadj.astype(np.int64), key % n
 
@@ -75,7 +83,7 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray) -> flo
     direct = _direct_cholmod()
     if direct is not None:
         diag = np.arange(n, dtype=np.int64)
-        key = np.unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, then row
+        key = _sorted_unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, row
         indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
         flops = direct.analysis_flops(indptr, key % n, order)
         if flops is not None:
