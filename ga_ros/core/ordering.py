@@ -9,9 +9,10 @@ aerial survey 6.75 -> 5.21 GFlop per factorisation, torus3D 1.38 -> 1.02 (``ga-r
 linalg``). Neither wins everywhere, so on graphs of at least :data:`METIS_MIN_BLOCKS` nodes
 both are computed and the one whose factor of the block graph costs fewer flops is kept
 (CHOLMOD's own rule is alike: it tries METIS when AMD's fill is high). The block graph is
-``d^2`` times smaller than the matrix, so the comparison costs a few milliseconds; importing
-``pymetis`` costs ~0.05-0.1 s once per process, which is why small graphs (one factorisation of
-a few tens of milliseconds) keep AMD without trying.
+``d^2`` times smaller than the matrix, and the flops come from CHOLMOD's symbolic analysis, so
+the comparison costs a few milliseconds (aerial survey: METIS ~18 ms, both flop counts ~4 ms);
+importing ``pymetis`` costs ~20-25 ms once per process, which is why small graphs (one
+factorisation of a few tens of milliseconds) keep AMD without trying.
 """
 
 from __future__ import annotations

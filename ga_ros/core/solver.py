@@ -529,6 +529,9 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     Gauss-Newton step's estimate, 0.01-0.17 m RMS from the window's optimum; the chord step
     the earlier rule took (stopping after it on its realised decrease) moved the estimate
     0.1-0.35 m away from the optimum along the weak modes for a decrease of 0.01.
+    The dogleg's chord step (:attr:`SolverConfig.chord_decrease`) is solved before ``N`` is
+    assembled: when it shows less than ``cost_tolerance`` left to gain (:func:`_left_to_gain`)
+    it is the last step, taken if it lowers the cost as predicted (:func:`_chord_kept`).
     ``keep_values``: the values of ``N`` last factored are kept in the result (for
     :func:`solve`'s ``factor_at_solution=False``).
     """
@@ -834,7 +837,7 @@ class _Problem:
     pattern: BlockPattern
     S: FloatArray  # (m, o, o) covariance of the connections' observations
     T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models, not in parts)
-    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models, not in parts)
+    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (se3, not in parts)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
@@ -864,7 +867,9 @@ class _Problem:
         in_parts = _linearised_in_parts(model, len(conn))
         T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
                   if model in models.MOTION_MODELS and not in_parts else None)
-        Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
+        # their inverses: se3 only (se2 composes the planar motions themselves)
+        Tm_inv = (np.ascontiguousarray(se3.inverse(T_meas))
+                  if T_meas is not None and model == 'se3' else None)
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,

@@ -171,8 +171,10 @@ class BlockPattern:
         """``(len(_pos),)`` flat index, into the ``(k, d, d)`` block list this pattern was
         built from, of each entry that lands in the lower triangle, in the order of ``_pos``."""
         d2 = self.d * self.d
-        kept = np.flatnonzero(self._keep_blk)
-        return (kept[:, None] * d2 + np.arange(d2)[None, :])[self._valid(slice(None))]
+        it = np.int32 if self._keep_blk.size * d2 < 2**31 else np.int64  # half the traffic
+        kept = np.flatnonzero(self._keep_blk).astype(it)
+        return (kept[:, None] * it(d2) + np.arange(d2, dtype=it)[None, :])[
+            self._valid(slice(None))]
 
     def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
         """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
