@@ -598,27 +598,13 @@ class _DirectCholmod:
         available (the caller uses cvxopt)."""
         if self._capsule is None:
             return None
-        n = pattern.size
-        indptr = np.ascontiguousarray(pattern.indptr, dtype=np.int64)
-        indices = np.ascontiguousarray(pattern.indices, dtype=np.int64)
-        pvec = np.ascontiguousarray(perm, dtype=np.int64)
-        A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
-                           None, None, None, -1, 2, 0, 0, 1, 1)  # lower, long, pattern only
-        common = self._common()
-        c = _CommonOrdering.from_buffer(common)
-        saved = (c.supernodal, c.nmethods, c.postorder)
-        c.supernodal, c.nmethods, c.postorder = 2, 1, int(bool(postorder))
-        try:
-            factor = self._analyze(ctypes.addressof(A), pvec.ctypes.data, None, 0, common)
-        finally:
-            c.supernodal, c.nmethods, c.postorder = saved
-            self._free_work(common)
+        factor, _ = self._analysed(pattern.indptr, pattern.indices, perm, 2, postorder)
         if not factor:
             return None
         try:
             return self._capsule(factor)
         except Exception:  # pragma: no cover - the capsule could not be made
-            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
+            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), self._common())
             return None
 
     def analysis_flops(self, indptr: IntArray, indices: IntArray, perm: IntArray
@@ -629,6 +615,17 @@ class _DirectCholmod:
         ``None`` when not available (:meth:`analyse`'s conditions)."""
         if self._capsule is None:
             return None
+        factor, flops = self._analysed(indptr, indices, perm, 0, False)
+        if factor:
+            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), self._common())
+        return flops if factor and flops > 0 else None
+
+    def _analysed(self, indptr: IntArray, indices: IntArray, perm: IntArray, supernodal: int,
+                  postorder: bool) -> tuple[int, float]:
+        """``cholmod_l_analyze_p`` of a lower-triangle pattern (CSC) with the ordering ``perm``
+        alone (``nmethods = 1``; ``supernodal`` 0 simplicial, 2 supernodal), on a
+        ``cholmod_sparse`` header over the arrays themselves: the ``cholmod_factor *`` (0 on
+        failure; the caller owns it) and the flops of its factorisation."""
         n = indptr.size - 1
         indptr = np.ascontiguousarray(indptr, dtype=np.int64)
         indices = np.ascontiguousarray(indices, dtype=np.int64)
@@ -638,16 +635,14 @@ class _DirectCholmod:
         common = self._common()
         c = _CommonOrdering.from_buffer(common)
         saved = (c.supernodal, c.nmethods, c.postorder)
-        c.supernodal, c.nmethods, c.postorder = 0, 1, 0
+        c.supernodal, c.nmethods, c.postorder = supernodal, 1, int(bool(postorder))
         try:
             factor = self._analyze(ctypes.addressof(A), pvec.ctypes.data, None, 0, common)
-            flops = float(c.method[c.selected].fl) if factor else None
+            flops = float(c.method[c.selected].fl) if factor else 0.0
         finally:
             c.supernodal, c.nmethods, c.postorder = saved
-            if factor:
-                self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
             self._free_work(common)
-        return flops if flops is not None and flops > 0 else None
+        return factor or 0, flops
 
     def _common(self):
         """This thread's ``cholmod_common`` (started, ``print = 0``), or ``None`` if its
