@@ -214,7 +214,9 @@ class BlockPattern:
         if upos is None:
             upos = self._block_positions(np.arange(self._ucol.size))
         valid = np.where((self._urank == 0)[:, None], self._tril[None, :], True)
-        rows = self.block_lower[0][:, None] * d + np.repeat(np.arange(d), d)[None, :]
+        it = np.int32 if self.size < 2**31 else np.int64  # the temporaries: half the traffic
+        rows = (self.block_lower[0].astype(it)[:, None] * it(d)
+                + np.repeat(np.arange(d, dtype=it), d)[None, :])
         out = np.empty(self.nnz, dtype=np.int64)
         out[upos[valid]] = rows[valid]
         return out
