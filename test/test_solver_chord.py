@@ -108,3 +108,16 @@ def test_the_converged_chord_iteration_assembles_no_normal_matrix(seed, monkeypa
     assert len(assembled) == res.iterations - 1
     ref = solve(prob.network, prob.T_true, SolverConfig(tolerance=1e-12, max_iterations=50))
     assert ref.cost <= res.cost * (1 + 1e-12) and res.cost - ref.cost <= 1e-5 * ref.cost
+
+
+def test_auto_factor_reaches_the_supernodal_solution(rng):
+    """``factor='auto'`` (a simplicial factor where CHOLMOD finds it cheaper) changes only the
+    factorisation: the same iterations and estimate as the supernodal default."""
+    prob, T0 = _problem(6)
+    sup = solve(prob.network, T0, DOGLEG)
+    auto = solve(prob.network, T0, replace(DOGLEG, factor='auto'))
+    assert auto.iterations == sup.iterations and auto.factorisations == sup.factorisations
+    np.testing.assert_allclose(auto.T_world_node, sup.T_world_node, atol=1e-9)
+    assert auto.cost == pytest.approx(sup.cost, rel=1e-12)
+    with pytest.raises(Exception, match='factor must be one of'):
+        replace(DOGLEG, factor='dense')

@@ -273,13 +273,16 @@ class SparseCholesky:
 
     Reuse one instance across matrices with the same pattern: :meth:`refactor` keeps the ordering.
     Raises :class:`DegenerateGeometryError` when the matrix is not positive definite (e.g. a datum
-    is missing or part of the network is unconstrained).
+    is missing or part of the network is unconstrained). ``auto``: a small, very sparse matrix
+    may get a simplicial factor (:meth:`_DirectCholmod.analyse`), which selected inversion
+    reads through a copy; the default is supernodal (read in place).
     """
 
     def __init__(self, pattern: BlockPattern, data: FloatArray,
-                 trailing: IntArray | None = None) -> None:
+                 trailing: IntArray | None = None, auto: bool = False) -> None:
         self.pattern = pattern
         self.n = pattern.size
+        self._auto = auto
         self._trailing = None if trailing is None else np.asarray(trailing, dtype=np.int64)
         self._symbolic = None
         self._permuted: _Permuted | None = None  # P N P' for the direct factorisation
@@ -316,7 +319,8 @@ class SparseCholesky:
             if self._symbolic is None:
                 self._permuted = None
                 if direct is not None:  # no cvxopt copy of the pattern (~40 ms for a window)
-                    self._symbolic = direct.analyse(p, self._ordering(), self._trailing is None)
+                    self._symbolic = direct.analyse(p, self._ordering(), self._trailing is None,
+                                                    self._auto)
                 if self._symbolic is None:
                     if self._A is None:
                         self._A = _cvxopt_pattern(p, keep=direct is None)
@@ -592,15 +596,26 @@ class _DirectCholmod:
             return None
         return lambda factor: new(factor, name, destructor)
 
-    def analyse(self, pattern: BlockPattern, perm: IntArray, postorder: bool):
+    def analyse(self, pattern: BlockPattern, perm: IntArray, postorder: bool,
+                auto: bool = False):
         """``cholmod_l_analyze_p`` of the lower-triangle pattern with the ordering ``perm``
         alone (cvxopt's ``symbolic`` with ``nmethods = 1``, supernodal), on a
         ``cholmod_sparse`` header over the pattern's own arrays: the same factor object as
         cvxopt's, without first copying the pattern into a cvxopt matrix. ``None`` when not
-        available (the caller uses cvxopt)."""
+        available (the caller uses cvxopt).
+
+        ``auto`` (below :data:`_AUTO_SUPERNODAL_BELOW` unknowns, not for a trailing factor,
+        ``postorder`` False): CHOLMOD chooses, simplicial when its flops per factor entry are
+        few (its ``supernodal_switch`` rule), where a supernodal factorisation is mostly the
+        overhead of thousands of tiny BLAS calls (intel, 5,181 unknowns: analysis 0.9 -> 0.5
+        ms, factorisation 1.7 -> 1.0 ms, solve 0.19 -> 0.08 ms). :meth:`factorize` makes a
+        simplicial factor ``L L'`` too, so a matrix that is not positive definite is refused
+        alike."""
         if self._capsule is None:
             return None
-        factor, _ = self._analysed(pattern.indptr, pattern.indices, perm, 2, postorder)
+        auto = auto and postorder and pattern.size < _AUTO_SUPERNODAL_BELOW
+        factor, _ = self._analysed(pattern.indptr, pattern.indices, perm, 1 if auto else 2,
+                                   postorder)
         if not factor:
             return None
         try:
@@ -730,10 +745,13 @@ class _DirectCholmod:
         if permuted is not None:
             L.ordering = 0  # CHOLMOD_NATURAL: A is P N P' (the permutation stays for solves)
         common = self._common()
+        head = _CommonHead.from_buffer(common)
+        final_ll, head.final_ll = head.final_ll, 1  # simplicial too: L L', not L D L'
         try:
             ok = self._factorize(ctypes.addressof(A), address, common)
         finally:
             L.ordering = ordering
+            head.final_ll = final_ll
             self._free_work(common)
             if in_place:  # the caller's values back in their order
                 permute(x, permuted.where, True, np.zeros(x.size, dtype=np.bool_))
@@ -801,6 +819,9 @@ _DIRECT: list = []  # [the _DirectCholmod or None], found on first use
 #: already permuted (:meth:`_DirectCholmod.permuted`: an argsort of the entries once per
 #: analysis, ~0.1 s per million; a window's few hundred thousand entries are factored as given).
 _PERMUTE_FROM_NNZ = 1 << 22
+#: Below this many unknowns a factor asked for ``auto`` is simplicial or supernodal as CHOLMOD
+#: chooses (:meth:`_DirectCholmod.analyse`); from it on it is supernodal.
+_AUTO_SUPERNODAL_BELOW = 6000
 
 
 def _direct_cholmod() -> _DirectCholmod | None:
