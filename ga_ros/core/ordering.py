@@ -18,6 +18,7 @@ factorisation of a few tens of milliseconds) keep AMD without trying.
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Callable
 
 import numpy as np
 
@@ -68,25 +69,26 @@ def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
     return np.asarray(perm, dtype=np.int64)
 
 
-def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray) -> float:
+def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
+                 analysis: Callable[[IntArray, IntArray, IntArray], float | None] | None = None
+                 ) -> float:
     """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
-    count of CHOLMOD's symbolic analysis (no numeric factorisation), or, where that is not
-    reachable (:func:`ga_ros.core.sparse._direct_cholmod`), ``sum_j c_j^2`` over the columns of
-    the factor (``c_j`` its non-zeros) from a numeric factorisation; either compares orderings.
+    count of a symbolic analysis, ``analysis(indptr, indices, order)`` of the matrix's lower
+    triangle (CSC, diagonal included; e.g. CHOLMOD's,
+    :meth:`ga_ros.core.sparse._DirectCholmod.analysis_flops`: no numeric factorisation), or,
+    without one (or when it returns ``None``), ``sum_j c_j^2`` over the columns of the factor
+    (``c_j`` its non-zeros) from a numeric factorisation; the two are equal.
 
     The matrix factored is the graph Laplacian plus the identity (positive definite, the
     pattern of the graph).
     """
-    from ga_ros.core.sparse import _direct_cholmod
-
     off = rows != cols
     r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
-    direct = _direct_cholmod()
-    if direct is not None:
+    if analysis is not None:
         diag = np.arange(n, dtype=np.int64)
         key = _sorted_unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, row
         indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
-        flops = direct.analysis_flops(indptr, key % n, order)
+        flops = analysis(indptr, key % n, order)
         if flops is not None:
             return flops
     return _numeric_factor_flops(n, r, c, order)
@@ -118,13 +120,15 @@ def _numeric_factor_flops(n: int, r: IntArray, c: IntArray, order: IntArray) -> 
     return float(np.sum(counts * counts))
 
 
-def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray) -> IntArray:
+def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray,
+                     analysis: Callable[[IntArray, IntArray, IntArray], float | None] | None
+                     = None) -> IntArray:
     """The AMD order ``amd`` of a block graph, or its nested-dissection order when the graph
     has at least :data:`METIS_MIN_BLOCKS` vertices and the factor costs fewer flops with it
-    (:func:`factor_flops`)."""
+    (:func:`factor_flops`, with ``analysis`` if given)."""
     if n < METIS_MIN_BLOCKS or not HAVE_METIS:
         return amd
     nd = nested_dissection(n, rows, cols)
-    if factor_flops(n, rows, cols, nd) < factor_flops(n, rows, cols, amd):
+    if factor_flops(n, rows, cols, nd, analysis) < factor_flops(n, rows, cols, amd, analysis):
         return nd
     return amd

@@ -848,8 +848,10 @@ def block_ordering(pattern: BlockPattern) -> IntArray:
     from ga_ros.core.ordering import best_block_order
 
     amd = lambda: _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool))  # noqa: E731
+    direct = _direct_cholmod()  # the orderings' flops from CHOLMOD's symbolic analysis
+    flops = None if direct is None else direct.analysis_flops
     return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: _expand(
-        best_block_order(pattern.n_blocks, *pattern.block_lower, amd()), pattern.d))
+        best_block_order(pattern.n_blocks, *pattern.block_lower, amd(), flops), pattern.d))
 
 
 def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:
