@@ -67,7 +67,7 @@ def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
     ref = solve(prob.network, T0, cfg)
     used = []
 
-    def nested(n, rows, cols, amd):
+    def nested(n, rows, cols, amd, analysis=None):
         used.append((amd, ordering.nested_dissection(n, rows, cols)))
         return used[-1][1]
 
@@ -78,3 +78,31 @@ def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
     assert used and not np.array_equal(*used[0])  # another ordering was used
     np.testing.assert_allclose(nd.T_world_node, ref.T_world_node, atol=1e-9)
     assert nd.cost == pytest.approx(ref.cost, rel=1e-9)
+
+
+def test_analysis_flops_equal_the_numeric_factor_and_adjacency_scipys(rng):
+    """The flops of CHOLMOD's symbolic analysis equal ``sum c_j^2`` of the numeric factor's
+    columns (the fallback) for random orders; the NumPy adjacency given to METIS equals
+    ``scipy.sparse``'s (duplicates and self-loops dropped, both directions)."""
+    import scipy.sparse as sp
+
+    from ga_ros.core.sparse import _direct_cholmod
+
+    if _direct_cholmod() is None:
+        pytest.skip('the direct CHOLMOD call is not available')
+    n, rows, cols = _grid(9)
+    rows = np.concatenate([rows, rows[:5], [3]])  # a duplicate edge and a self-loop
+    cols = np.concatenate([cols, cols[:5], [3]])
+    off = rows != cols
+    r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
+    for _ in range(3):
+        order = rng.permutation(n)
+        assert ordering.factor_flops(n, rows, cols, order, _direct_cholmod().analysis_flops) \
+            == pytest.approx(ordering._numeric_factor_flops(n, r, c, order), rel=1e-12)
+    xadj, adjncy = ordering._adjacency(n, rows, cols)
+    G = sp.csr_matrix((np.ones(2 * r.size), (np.concatenate([r, c]), np.concatenate([c, r]))),
+                      shape=(n, n))
+    G.sum_duplicates()
+    G.sort_indices()
+    np.testing.assert_array_equal(xadj, G.indptr)
+    np.testing.assert_array_equal(adjncy, G.indices)

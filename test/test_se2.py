@@ -118,7 +118,7 @@ def test_se2_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     cfg = SolverConfig(model='se2')
     general = _linear_system('se2', T, c, S, v, [], cfg, col, 3)
     short = _linear_system('se2', T, c, S, v, [], cfg, col, 3, _inv_spd(S))
-    np.testing.assert_allclose(short.blocks, general.blocks, rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(short.all_blocks(), general.all_blocks(), rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)
 

@@ -454,7 +454,7 @@ def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     cfg = SolverConfig()
     general = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6)
     short = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6, _inv_spd(c.cov))
-    np.testing.assert_allclose(short.blocks, general.blocks, rtol=1e-7, atol=1e-6)
+    np.testing.assert_allclose(short.all_blocks(), general.all_blocks(), rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)
 

@@ -62,7 +62,7 @@ def _state_at(prob, T, chol_scale: float):
 def test_chord_with_the_current_factor_is_the_gauss_newton_step():
     prob, T0 = _problem(4)
     p, sysd, data, state = _state_at(prob, T0, 1.0)
-    step = solver._chord_step(p, T0, sysd, data, state)
+    step = solver._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state)
     assert step is not None and step.accepted and step.gauss_newton
     # the Gauss-Newton step by a dense solve of N, retracted: the same poses
     h = -np.linalg.solve(p.pattern.full_csc(data).toarray(), sysd.u)
@@ -76,7 +76,7 @@ def test_chord_with_a_stale_factor_is_refused(scale):
     with the new linearisation: the caller factors instead."""
     prob, T0 = _problem(5)
     p, sysd, data, state = _state_at(prob, T0, scale)
-    assert solver._chord_step(p, T0, sysd, data, state) is None
+    assert solver._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state) is None
 
 
 #: The window aligner's undamped iteration (window.ALIGNER_SOLVER): chord steps below 20 m.
@@ -154,3 +154,47 @@ def test_measured_motions_given_equal_measured_motions_computed():
     assert given.cost == ref.cost
     with pytest.raises(InputError, match='measured'):
         solve(prob.network, T0, UNDAMPED, measured=(T_meas[1:], T_meas[1:]))
+
+
+def test_left_to_gain_is_the_geometric_series_of_the_decreases():
+    """What is left after a chord step predicting ``p``: the sum ``p + p r + p r^2 + ...``
+    (summed term by term here) with ``r`` the larger contraction of the two decreases known."""
+    history = [10.0, 9.0, 8.5]  # the last step achieved 0.5
+    for p, previous in ((0.05, 0.6), (0.4, 0.45), (1e-6, 0.5)):
+        r = max(p / previous, p / 0.5)
+        series = sum(p * r ** k for k in range(2000))
+        assert solver._left_to_gain(p, previous, history) == pytest.approx(series, rel=1e-9)
+    assert solver._left_to_gain(0.6, 0.5, history) == np.inf  # not contracting
+    assert solver._left_to_gain(0.1, np.nan, history) == np.inf  # no earlier prediction
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_the_converged_chord_iteration_assembles_no_normal_matrix(seed, monkeypatch):
+    """The iteration whose chord step shows that less than ``cost_tolerance`` is left stops
+    on the gradient alone: ``N`` is assembled in the other iterations only, and the cost is
+    within the tolerance of the optimum (the undamped iteration from the truth)."""
+    from ga_ros.core.sparse import BlockPattern
+
+    prob, T0 = _problem(seed)
+    assembled = []
+    assemble = BlockPattern.assemble
+    monkeypatch.setattr(BlockPattern, 'assemble',
+                        lambda self, blocks, *a: assembled.append(1) or assemble(self, blocks, *a))
+    res = solve(prob.network, T0, DOGLEG)
+    assert res.converged and res.reason == 'cost_converged'
+    assert len(assembled) == res.iterations - 1
+    ref = solve(prob.network, prob.T_true, SolverConfig(tolerance=1e-12, max_iterations=50))
+    assert ref.cost <= res.cost * (1 + 1e-12) and res.cost - ref.cost <= 1e-5 * ref.cost
+
+
+def test_auto_factor_reaches_the_supernodal_solution(rng):
+    """``factor='auto'`` (a simplicial factor where CHOLMOD finds it cheaper) changes only the
+    factorisation: the same iterations and estimate as the supernodal default."""
+    prob, T0 = _problem(6)
+    sup = solve(prob.network, T0, DOGLEG)
+    auto = solve(prob.network, T0, replace(DOGLEG, factor='auto'))
+    assert auto.iterations == sup.iterations and auto.factorisations == sup.factorisations
+    np.testing.assert_allclose(auto.T_world_node, sup.T_world_node, atol=1e-9)
+    assert auto.cost == pytest.approx(sup.cost, rel=1e-12)
+    with pytest.raises(Exception, match='factor must be one of'):
+        replace(DOGLEG, factor='dense')

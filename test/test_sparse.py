@@ -172,3 +172,39 @@ def test_compiled_assembly_equals_the_numpy_one_bit_for_bit(rng):
             dense[i * d:(i + 1) * d, j * d:(j + 1) * d] += B
     np.testing.assert_allclose(pat.lower_csc(pat.assemble(blocks, compiled=True)).toarray(),
                                np.tril(dense), atol=1e-12)
+
+
+def test_auto_factor_of_a_sparse_chain_is_simplicial_and_refuses_an_indefinite_matrix(rng):
+    """``auto`` lets CHOLMOD factor a small chain simplicially (few flops per entry): it solves
+    like the dense matrix, and like a supernodal factor refuses a matrix with a negative
+    eigenvalue (a simplicial factor is L L' here, not L D L', which would accept it)."""
+    import pytest
+
+    from ga_ros.core.sparse import _direct_cholmod
+    from ga_ros.errors import DegenerateGeometryError
+
+    direct = _direct_cholmod()
+    if direct is None:
+        pytest.skip('the direct CHOLMOD call is not available')
+    n, d = 60, 3
+    N = np.eye(n * d)
+    for i in range(n - 1):
+        J = rng.normal(size=(d, 2 * d))
+        N[i * d:(i + 2) * d, i * d:(i + 2) * d] += J.T @ J
+    pairs = [(i, i) for i in range(n)] + [(i + 1, i) for i in range(n - 1)]
+    pat = BlockPattern(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]), d, n)
+
+    def values(M):
+        return pat.assemble(np.array([M[i * d:(i + 1) * d, j * d:(j + 1) * d] for i, j in pairs]))
+
+    b = rng.normal(size=n * d)
+    for auto, simplicial in ((True, True), (False, False)):
+        chol = SparseCholesky(pat, values(N), auto=auto)
+        assert (direct._factor(chol._F)[1].is_super == 0) == simplicial
+        np.testing.assert_allclose(chol.solve(b), np.linalg.solve(N, b), rtol=1e-9)
+    bad = N.copy()
+    bad[7, 7] = -50.0  # indefinite: the dense eigenvalues say so
+    assert np.linalg.eigvalsh(bad).min() < 0
+    for auto in (True, False):
+        with pytest.raises(DegenerateGeometryError):
+            SparseCholesky(pat, values(bad), auto=auto)

@@ -6,9 +6,12 @@ per-connection quantity is a *column* over the ``m`` connections (a rotation is 
 a vector ``(3, m)``), so each formula is a handful of elementwise operations on contiguous
 ``m``-long rows instead of passes over stacked ``(m, 3, 3)`` / ``(m, 6, 6)`` temporaries, and
 the SO(3) logarithm and the Jacobian inverses are closed forms in the components
-(``[w]x^2 x = w (w.x) - |w|^2 x``). The normal blocks are products of the whitened Jacobians
-``V = U J`` (``P = U' U``, :class:`SqrtWeights`, once per problem), block upper triangular like
-``J``: 3x3 column products, written once into the solver's stacked ``(m, 6, 6)`` layout.
+(``[w]x^2 x = w (w.x) - |w|^2 x``). The normal blocks are 3x3 column products, written once
+into the solver's stacked ``(m, 6, 6)`` layout: ``H_jj = V' V`` of the whitened Jacobian
+``V = U J`` (``P = U' U``, :class:`SqrtWeights`, once per problem; block upper triangular like
+``J``), and, since ``J_i = -J Ad(T_ij^-1)``, ``H_ji = -H_jj Ad(T_ij^-1)`` and
+``H_ii = -Ad(T_ij^-1)' H_ji`` (``Ad`` block upper triangular too: fewer products than
+whitening ``J_i`` as well).
 
 For ``e = log(T_meas^-1 T_i^-1 T_j)`` with right perturbations ``T_i exp(d_i)``,
 ``T_j exp(d_j)`` (Barfoot, *State Estimation for Robotics*, 2017, eqs. 7.78, 7.86, 7.95)::
@@ -260,13 +263,19 @@ class _Whitened:
         g[:, 3:] = (_mtv3(self.V12, r1) + _mtv3(self.V22, r2)).T
         return g
 
-    def product(self, other: _Whitened, out: FloatArray) -> None:
-        """``V_self' V_other`` into ``out`` ``(m, 6, 6)``."""
-        out[:, :3, :3] = _mtm3(self.V11, other.V11).transpose(2, 0, 1)
-        out[:, :3, 3:] = _mtm3(self.V11, other.V12).transpose(2, 0, 1)
-        out[:, 3:, :3] = _mtm3(self.V12, other.V11).transpose(2, 0, 1)
-        out[:, 3:, 3:] = (_mtm3(self.V12, other.V12)
-                          + _mtm3(self.V22, other.V22)).transpose(2, 0, 1)
+    def normal(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``V' V = [[h11, h12], [h12', h22]]``: ``(h11, h12, h22)`` as columns."""
+        return (_mtm3(self.V11, self.V11), _mtm3(self.V11, self.V12),
+                _mtm3(self.V12, self.V12) + _mtm3(self.V22, self.V22))
+
+
+def _put(out: FloatArray, b11: FloatArray, b12: FloatArray, b21: FloatArray,
+         b22: FloatArray) -> None:
+    """The ``3 x 3`` column blocks of ``[[b11, b12], [b21, b22]]`` into ``out`` ``(m, 6, 6)``."""
+    out[:, :3, :3] = b11.transpose(2, 0, 1)
+    out[:, :3, 3:] = b12.transpose(2, 0, 1)
+    out[:, 3:, :3] = b21.transpose(2, 0, 1)
+    out[:, 3:, 3:] = b22.transpose(2, 0, 1)
 
 
 def maha2(mis: Misclosure, W: SqrtWeights) -> FloatArray:
@@ -276,13 +285,41 @@ def maha2(mis: Misclosure, W: SqrtWeights) -> FloatArray:
     return (r1 * r1).sum(axis=0) + (r2 * r2).sum(axis=0)
 
 
-def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
-                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
-                  mis: Misclosure | None = None) -> NormalBlocks:
-    """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring).
+class Linearised:
+    """One linearisation of ``sum_k rho(e_k' P_k e_k)`` in two stages: the misclosures, robust
+    weights and gradient at once, the normal blocks on demand (:meth:`normal_blocks`).
 
-    With ``P = U' U`` the blocks are ``V_a' V_b`` of the whitened Jacobians ``V = U J``
-    (block upper triangular like ``J``), all in columns.
+    A caller that needs the gradient only (a chord step, which reuses the last factorisation
+    of ``N``, or a stop on the decrease it predicts) never pays for the blocks' products.
+
+    Attributes
+    ----------
+    e : (m, r) misclosures (``r`` = 6 se3, 3 se2).
+    g_src, g_dst : (m, r) gradient halves ``J_i' W e``, ``J_j' W e``.
+    maha2 : (m,) ``e' P e`` (unweighted by the robust loss).
+    """
+
+    def __init__(self, e: FloatArray, g_src: FloatArray, g_dst: FloatArray, maha2: FloatArray,
+                 products) -> None:
+        self.e, self.g_src, self.g_dst, self.maha2 = e, g_src, g_dst, maha2
+        self._products = products  # (extra) -> (4 m + extra, r, r) blocks
+
+    def normal_blocks(self, extra_blocks: int = 0) -> NormalBlocks:
+        """The blocks ``J_a' W J_b`` (``(4 m + extra_blocks, r, r)``, see :class:`NormalBlocks`),
+        with ``extra_blocks`` rows left uninitialised for the caller."""
+        return NormalBlocks(self.e, self._products(extra_blocks), self.g_src, self.g_dst,
+                            self.maha2)
+
+
+def linearise(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
+              W: SqrtWeights, robust=None, mis: Misclosure | None = None) -> Linearised:
+    """Gauss-Newton system of ``sum_k rho(e_k' P_k e_k)`` at ``T`` (see the module docstring):
+    misclosures and gradient now, blocks on demand (:meth:`Linearised.normal_blocks`).
+
+    With ``P = U' U`` and ``V = U J`` (block upper triangular like ``J``), ``H_jj = V' V``,
+    and with ``Ad(T_ij^-1) = [[S, -K], [0, S]]`` (``S = R_ij'``, ``K = S [t_ij]x``) and
+    ``J_i = -J Ad(T_ij^-1)``: ``H_ji = -H_jj Ad(T_ij^-1)``, ``H_ii = -Ad(T_ij^-1)' H_ji``
+    and ``g_i = -Ad(T_ij^-1)' g_j``, all in columns.
 
     Parameters
     ----------
@@ -291,13 +328,11 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
     meas : inverses of the measured motions.
     W : square roots of the weights (inverse covariances, ``[x y z rx ry rz]`` order).
     robust : ``maha2 -> (m,) weights`` (IRLS weights of a robust loss), or None.
-    extra_blocks : rows left uninitialised at the end of ``blocks`` for the caller.
     mis : :func:`misclosure` at ``T``, if the caller has it.
     """
     if mis is None:
         mis = misclosure(T, src, dst, meas)
     e = mis.e
-    m = e.shape[0]
     rho, phi = -mis.rho, -mis.phi  # J_r(e)^-1 = J_l(-e)^-1
     t2 = (phi * phi).sum(axis=0)
     # A = J_l(phi)^-1 = (1 - c t^2) I - [phi]x / 2 + c phi phi' at phi = -phi(e)
@@ -307,24 +342,50 @@ def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInv
         A[k, k] += 1.0 - c * t2
     B = -_mm3(_mm3(A, _q_matrix(rho, phi)), A)
     S = np.ascontiguousarray(mis.R_ij.transpose(1, 0, 2))  # R_ij'
-    X = _mm3(A, S)
-    Y = _mm3(B, S) - _mm3(X, _hat(mis.t_ij))
+    K = _mm3(S, _hat(mis.t_ij))  # Ad(T_ij^-1) = [[S, -K], [0, S]]
     Vj = _Whitened(W, A, B, 1.0)
-    Vi = _Whitened(W, X, Y, -1.0)
     r1 = _mv3(W.U11, mis.rho) + _mv3(W.U12, mis.phi)  # r = U e
     r2 = _mv3(W.U22, mis.phi)
     maha2 = (r1 * r1).sum(axis=0) + (r2 * r2).sum(axis=0)
     if robust is not None:
         sw = np.sqrt(robust(maha2))
-        Vi.scale(sw)
         Vj.scale(sw)
         r1, r2 = r1 * sw, r2 * sw
-    blocks = np.empty((4 * m + extra_blocks, 6, 6))
-    Vi.product(Vi, blocks[:m])
-    Vj.product(Vi, blocks[2 * m:3 * m])
-    blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
-    Vj.product(Vj, blocks[3 * m:4 * m])
-    return NormalBlocks(e, blocks, Vi.gradient(r1, r2), Vj.gradient(r1, r2), maha2)
+    g_dst = Vj.gradient(r1, r2)
+    g1, g2 = np.ascontiguousarray(g_dst[:, :3].T), np.ascontiguousarray(g_dst[:, 3:].T)
+    g_src = np.empty_like(g_dst)  # -Ad(T_ij^-1)' g_j = [-S' g1; K' g1 - S' g2]
+    g_src[:, :3] = -_mtv3(S, g1).T
+    g_src[:, 3:] = (_mtv3(K, g1) - _mtv3(S, g2)).T
+
+    def products(extra: int) -> FloatArray:
+        m = e.shape[0]
+        h11, h12, h22 = Vj.normal()
+        h21 = np.ascontiguousarray(h12.transpose(1, 0, 2))
+        # H_ji = -H_jj Ad(T_ij^-1)
+        x11, x21 = -_mm3(h11, S), -_mm3(h21, S)
+        x12 = _mm3(h11, K) - _mm3(h12, S)
+        x22 = _mm3(h21, K) - _mm3(h22, S)
+        # H_ii = -Ad(T_ij^-1)' H_ji (symmetric: y12 = y21')
+        y11 = -_mtm3(S, x11)
+        y21 = _mtm3(K, x11) - _mtm3(S, x21)
+        y22 = _mtm3(K, x12) - _mtm3(S, x22)
+        blocks = np.empty((4 * m + extra, 6, 6))
+        _put(blocks[:m], y11, y21.transpose(1, 0, 2), y21, y22)
+        _put(blocks[2 * m:3 * m], x11, x12, x21, x22)
+        blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
+        _put(blocks[3 * m:4 * m], h11, h12, h21, h22)
+        return blocks
+
+    return Linearised(e, g_src, g_dst, maha2, products)
+
+
+def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
+                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
+                  mis: Misclosure | None = None) -> NormalBlocks:
+    """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T``: :func:`linearise` and its
+    blocks at once (parameters as there; ``extra_blocks`` rows left uninitialised at the end of
+    ``blocks`` for the caller)."""
+    return linearise(T, src, dst, meas, W, robust, mis).normal_blocks(extra_blocks)
 
 
 # ------------------------------------------------------------------------------------- se2
@@ -342,10 +403,11 @@ def _planar_sqrt_weights(P: FloatArray) -> FloatArray:
     return U
 
 
-def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
-                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
-    """The ``se2`` counterpart of :func:`normal_blocks`: Gauss-Newton blocks of
-    ``sum_k rho(e_k' P_k e_k)``, ``e = log(T_meas^-1 T_i^-1 T_j)`` ``[rho_x, rho_y, theta]``.
+def planar_linearise(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
+                     P: FloatArray, robust=None) -> Linearised:
+    """The ``se2`` counterpart of :func:`linearise`: Gauss-Newton system of
+    ``sum_k rho(e_k' P_k e_k)``, ``e = log(T_meas^-1 T_i^-1 T_j)`` ``[rho_x, rho_y, theta]``,
+    blocks on demand.
 
     The same algebra as :func:`ga_ros.core.models.between` for ``se2`` (a test compares the
     two): ``de/dd_j = J = J_r(e)^-1``, ``de/dd_i = -J Ad(T_ij^-1)``, every ``3 x 3`` matrix a
@@ -358,18 +420,17 @@ def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: Fl
     src, dst : (m,) node indices.
     T_meas : (m, 4, 4) planar measured motions ``T_i_j``.
     P : (m, 3, 3) weights (inverse covariances, ``[x y rz]`` order).
-    robust, extra_blocks : as :func:`normal_blocks`.
+    robust : as :func:`linearise`.
 
     Returns
     -------
-    :class:`NormalBlocks` with ``(4 m + extra_blocks, 3, 3)`` blocks and ``(m, 3)`` gradients.
+    :class:`Linearised` with ``(m, 3)`` gradients and ``(4 m + extra, 3, 3)`` blocks.
     """
     from ga_ros.geometry import se2  # lazy: se3 problems never need it
 
     nodes = se2.Planar.from_matrix(T)
     T_ij = nodes.take(src).inverse().compose(nodes.take(dst))
     e = se2.Planar.from_matrix(T_meas).inverse().compose(T_ij).log()
-    m = e.shape[0]
     ec = np.ascontiguousarray(e.T)  # (3, m)
     J = se2.right_jacobian_inv_columns(e)  # (3, 3, m)
     Ad = se2.adjoint_columns(T_ij.inverse())  # Ad(T_ij^-1)
@@ -384,13 +445,25 @@ def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: Fl
         Vi *= sw
         Vj *= sw
         r = r * sw
-    blocks = np.empty((4 * m + extra_blocks, 3, 3))
-    blocks[:m] = _mtm3(Vi, Vi).transpose(2, 0, 1)
-    blocks[2 * m:3 * m] = _mtm3(Vj, Vi).transpose(2, 0, 1)
-    blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
-    blocks[3 * m:4 * m] = _mtm3(Vj, Vj).transpose(2, 0, 1)
-    return NormalBlocks(e, blocks, np.ascontiguousarray(_mtv3(Vi, r).T),
-                        np.ascontiguousarray(_mtv3(Vj, r).T), maha2)
+
+    def products(extra: int) -> FloatArray:
+        m = e.shape[0]
+        blocks = np.empty((4 * m + extra, 3, 3))
+        blocks[:m] = _mtm3(Vi, Vi).transpose(2, 0, 1)
+        blocks[2 * m:3 * m] = _mtm3(Vj, Vi).transpose(2, 0, 1)
+        blocks[m:2 * m] = blocks[2 * m:3 * m].transpose(0, 2, 1)
+        blocks[3 * m:4 * m] = _mtm3(Vj, Vj).transpose(2, 0, 1)
+        return blocks
+
+    return Linearised(e, np.ascontiguousarray(_mtv3(Vi, r).T),
+                      np.ascontiguousarray(_mtv3(Vj, r).T), maha2, products)
+
+
+def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
+                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
+    """:func:`planar_linearise` and its blocks at once (``(4 m + extra_blocks, 3, 3)``; the
+    parameters as there and as :func:`normal_blocks`)."""
+    return planar_linearise(T, src, dst, T_meas, P, robust).normal_blocks(extra_blocks)
 
 
 # ------------------------------------------------------------------------------ retraction

@@ -9,14 +9,16 @@ aerial survey 6.75 -> 5.21 GFlop per factorisation, torus3D 1.38 -> 1.02 (``ga-r
 linalg``). Neither wins everywhere, so on graphs of at least :data:`METIS_MIN_BLOCKS` nodes
 both are computed and the one whose factor of the block graph costs fewer flops is kept
 (CHOLMOD's own rule is alike: it tries METIS when AMD's fill is high). The block graph is
-``d^2`` times smaller than the matrix, so the comparison costs a few milliseconds; importing
-``pymetis`` costs ~0.05-0.1 s once per process, which is why small graphs (one factorisation of
-a few tens of milliseconds) keep AMD without trying.
+``d^2`` times smaller than the matrix, and the flops come from CHOLMOD's symbolic analysis, so
+the comparison costs a few milliseconds (aerial survey: METIS ~18 ms, both flop counts ~4 ms);
+importing ``pymetis`` costs ~20-25 ms once per process, which is why small graphs (one
+factorisation of a few tens of milliseconds) keep AMD without trying.
 """
 
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Callable
 
 import numpy as np
 
@@ -26,6 +28,26 @@ from ga_ros.arrays import IntArray
 METIS_MIN_BLOCKS = 4000
 #: ``pymetis`` is installed (pinned in requirements.txt; without it AMD is used everywhere).
 HAVE_METIS = importlib.util.find_spec('pymetis') is not None
+
+
+def _sorted_unique(x: IntArray) -> IntArray:
+    """``np.unique(x)`` of an integer array by a sort: NumPy 2.4's ``np.unique`` without
+    ``return_inverse`` hashes, ~10 ms for the 70,000 keys of an aerial survey's block graph
+    against ~0.5 ms for this."""
+    x = np.sort(x)
+    return x[np.concatenate([[True], x[1:] != x[:-1]])] if x.size else x
+
+
+def _adjacency(n: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArray]:
+    """CSR adjacency ``(xadj, adjncy)`` of the graph of ``n`` vertices with the edges
+    ``rows[k] -- cols[k]`` (both directions, each neighbour once, self-loops dropped), in NumPy
+    (no ``scipy.sparse``: its first import costs a batch solve ~40 ms)."""
+    off = rows != cols
+    a = np.concatenate([rows[off], cols[off]]).astype(np.int64)
+    b = np.concatenate([cols[off], rows[off]]).astype(np.int64)
+    key = _sorted_unique(a * n + b)  # sorted by vertex, then neighbour; duplicates once
+    xadj = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
+    return xadj.astype(np.int64), key % n
 
 
 def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
@@ -41,29 +63,43 @@ def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
     (n,) vertex order: position ``k`` holds the vertex eliminated ``k``-th.
     """
     import pymetis
-    import scipy.sparse as sp
 
-    off = rows != cols
-    r, c = rows[off], cols[off]
-    G = sp.csr_matrix((np.ones(2 * r.size), (np.concatenate([r, c]), np.concatenate([c, r]))),
-                      shape=(n, n))
-    G.sum_duplicates()
-    perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices))
+    xadj, adjncy = _adjacency(n, rows, cols)
+    perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(xadj, adjncy))
     return np.asarray(perm, dtype=np.int64)
 
 
-def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray) -> float:
-    """``sum_j c_j^2`` over the columns of the Cholesky factor of a graph's matrix under
-    ``order`` (``c_j`` the column's non-zeros): the work of one factorisation, up to a constant.
+def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
+                 analysis: Callable[[IntArray, IntArray, IntArray], float | None] | None = None
+                 ) -> float:
+    """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
+    count of a symbolic analysis, ``analysis(indptr, indices, order)`` of the matrix's lower
+    triangle (CSC, diagonal included; e.g. CHOLMOD's,
+    :meth:`ga_ros.core.sparse._DirectCholmod.analysis_flops`: no numeric factorisation), or,
+    without one (or when it returns ``None``), ``sum_j c_j^2`` over the columns of the factor
+    (``c_j`` its non-zeros) from a numeric factorisation; the two are equal.
 
     The matrix factored is the graph Laplacian plus the identity (positive definite, the
-    pattern of the graph); CHOLMOD's symbolic and numeric phases give the factor's columns.
+    pattern of the graph).
     """
+    off = rows != cols
+    r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
+    if analysis is not None:
+        diag = np.arange(n, dtype=np.int64)
+        key = _sorted_unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, row
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
+        flops = analysis(indptr, key % n, order)
+        if flops is not None:
+            return flops
+    return _numeric_factor_flops(n, r, c, order)
+
+
+def _numeric_factor_flops(n: int, r: IntArray, c: IntArray, order: IntArray) -> float:
+    """``sum_j c_j^2`` of the factor of ``L + I`` (``L`` the Laplacian of the edges
+    ``r[k] > c[k]``) under ``order``, from CHOLMOD's symbolic and numeric phases (cvxopt)."""
     import cvxopt
     from cvxopt import cholmod
 
-    off = rows != cols
-    r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
     deg = np.bincount(np.concatenate([r, c]), minlength=n).astype(float)
     diag = np.arange(n, dtype=np.int64)
     A = cvxopt.spmatrix(cvxopt.matrix(np.concatenate([deg + 1.0, -np.ones(r.size)])),
@@ -84,13 +120,15 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray) -> flo
     return float(np.sum(counts * counts))
 
 
-def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray) -> IntArray:
+def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray,
+                     analysis: Callable[[IntArray, IntArray, IntArray], float | None] | None
+                     = None) -> IntArray:
     """The AMD order ``amd`` of a block graph, or its nested-dissection order when the graph
     has at least :data:`METIS_MIN_BLOCKS` vertices and the factor costs fewer flops with it
-    (:func:`factor_flops`)."""
+    (:func:`factor_flops`, with ``analysis`` if given)."""
     if n < METIS_MIN_BLOCKS or not HAVE_METIS:
         return amd
     nd = nested_dissection(n, rows, cols)
-    if factor_flops(n, rows, cols, nd) < factor_flops(n, rows, cols, amd):
+    if factor_flops(n, rows, cols, nd, analysis) < factor_flops(n, rows, cols, amd, analysis):
         return nd
     return amd

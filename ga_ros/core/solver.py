@@ -17,7 +17,7 @@ observations.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,6 +37,7 @@ ROBUST_LOSSES = ('none', 'huber', 'cauchy')
 #: normal matrix instead of one sparse solve per column.
 _MANY_NODES = 24
 DAMPINGS = ('none', 'lm', 'dogleg')
+FACTORS = ('supernodal', 'auto')
 #: From this many unknowns on, those covariances come from selected inversion on the sparse
 #: Cholesky factor (:class:`ga_ros.core.selinv.SelectedInverse`: time ~ the factorisation's,
 #: memory ~ ``nnz(L)``) instead of the banded matrix (memory ~ unknowns x band): at 12,000
@@ -80,12 +81,20 @@ class SolverConfig:
         observed modes a factor from a few metres away overshoots, so a small decrease of the
         step just taken says little about the distance left); 0 (default) stops on the
         correction size only.
+    factor : ``'supernodal'`` (default) or ``'auto'``: below ~6,000 unknowns CHOLMOD may choose
+        a simplicial factor of ``N`` when it has few flops per entry (a pose graph of ~1,700
+        planar poses: ~2 ms less per solve). Selected inversion reads a simplicial factor
+        through a copy, so the window, which inverts its factor in place, keeps the default.
     chord_decrease : dogleg only: after a Gauss-Newton step that lowered the cost by less than
         this fraction of it, the next iteration first tries the chord step ``-N_old^-1 u`` with
         the last factorisation (one solve instead of a factorisation) and keeps it when the new
-        linearisation confirms it (see :func:`_chord_step`); near the optimum this saves the
-        factorisation of the iteration that only confirms convergence, and on slowly
-        converging graphs most factorisations (torus3D: 17 instead of 72 for 72 iterations).
+        linearisation confirms it (see :func:`_chord_step`); when the decrease that step
+        predicts, ``-u' h = h' N_old h``, shows that less than ``cost_tolerance`` of the cost
+        is left to gain (:func:`_left_to_gain`), the iteration takes that step if it lowers the
+        cost as predicted, and stops (converged) without assembling ``N``. Near the optimum
+        this saves the iteration that only confirms convergence (all but its gradient and one
+        cost evaluation), and on slowly converging graphs most factorisations (torus3D: 17
+        instead of 72 for 72 iterations).
         Only with a ``cost_tolerance`` stop (chord steps converge linearly, so a stop on the
         correction size alone would need more iterations). 0 disables.
     """
@@ -99,9 +108,12 @@ class SolverConfig:
     reuse_factor_below: float = 0.1
     cost_tolerance: float = 0.0
     chord_decrease: float = 0.05
+    factor: str = 'supernodal'
 
     def __post_init__(self) -> None:
         models.check_model(self.model)
+        if self.factor not in FACTORS:
+            raise InputError(f'factor must be one of {FACTORS}, got {self.factor!r}')
         if self.damping not in DAMPINGS:
             raise InputError(f'damping must be one of {DAMPINGS}, got {self.damping!r}')
         if self.robust_loss not in ROBUST_LOSSES:
@@ -492,6 +504,7 @@ class _Step:
     accepted: bool
     cost: float = np.nan  # cost at T (damped strategies only)
     gauss_newton: bool = True  # the full Gauss-Newton step was taken
+    predicted: float = np.nan  # the decrease its quadratic model predicted (dogleg)
 
 
 @dataclass
@@ -502,12 +515,14 @@ class _Trust:
     factorisations: int = 0
     lam: float = 1e-4  # Levenberg-Marquardt damping
     radius: float = 0.0  # dogleg trust radius (0: not set yet, the first step tries full GN)
+    auto: bool = False  # a new factor may be simplicial (SolverConfig.factor 'auto')
     cost: float = np.inf  # cost at the current estimate
     chord: bool = False  # dogleg: try the last factorisation first (see _chord_step)
+    predicted: float = np.nan  # dogleg: the decrease the last step's model predicted
 
     def factor(self, pattern: BlockPattern, data: FloatArray) -> SparseCholesky:
         if self.chol is None:
-            self.chol = SparseCholesky(pattern, data)
+            self.chol = SparseCholesky(pattern, data, auto=self.auto)
         else:
             self.chol.refactor(data)
         self.factorisations += 1
@@ -532,13 +547,16 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     Gauss-Newton step's estimate, 0.01-0.17 m RMS from the window's optimum; the chord step
     the earlier rule took (stopping after it on its realised decrease) moved the estimate
     0.1-0.35 m away from the optimum along the weak modes for a decrease of 0.01.
+    The dogleg's chord step (:attr:`SolverConfig.chord_decrease`) is solved before ``N`` is
+    assembled: when it shows less than ``cost_tolerance`` left to gain (:func:`_left_to_gain`)
+    it is the last step, taken if it lowers the cost as predicted (:func:`_chord_kept`).
     ``keep_values``: the values of ``N`` last factored are kept in the result (for
     :func:`solve`'s ``factor_at_solution=False``).
     """
     cfg = prob.cfg
     # the fused kernel's first system gives the motion model's residuals (the misclosure at T)
     v = None if prob.fused_gradient else prob.consistent(T, prob.zero_residuals())
-    state = _Trust(chol=prob.factor)
+    state = _Trust(chol=prob.factor, auto=cfg.factor == 'auto')
     last_step = since_factor = np.inf
     slow = False  # the last chord step contracted too slowly: factor anew
     factored = None  # the values of N last factored (keep_values)
@@ -546,6 +564,14 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     converged = False
     reason = 'max_iterations'
     it = 0
+    # without a robust loss a damped step's cost (the motion models': at T) is this sum
+    plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
+
+    def objective(cost: float, v: FloatArray, T: FloatArray, sysd: _System) -> float:
+        """The cost history's entry at ``T`` after a step whose cost was ``cost``."""
+        return cost if plain else (_adjustment_cost(v, prob.P, sysd.weights)
+                                   + _prior_cost(prob.model, T, prob.prior_data))
+
     for it in range(1, cfg.max_iterations + 1):
         # the last values of N go before the next are assembled (~190 MB at 100,000 poses)
         data = None
@@ -560,10 +586,24 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
         if it == 1:  # the se3 shortcut's cost0 is the exact cost
             state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
             history.append(state.cost)
+        chord_h = None  # dogleg: the chord step from the last factor, tried first
+        if cfg.damping == 'dogleg' and state.chord and state.chol is not None:
+            chord_h = -state.chol.solve(sysd.u)
+            predicted = -float(sysd.u @ chord_h)
+            if (_left_to_gain(predicted, state.predicted, history)
+                    < cfg.cost_tolerance * history[-1]):
+                # the last step, N never assembled: kept if it lowers the cost as predicted
+                T_new = prob.retract(T, chord_h)
+                cost = prob.cost_at(T_new)
+                if state.cost - cost >= 0 and _chord_kept(predicted, state.cost, cost):
+                    T, v = T_new, prob.next_residuals(T_new, sysd, chord_h)
+                    history.append(objective(cost, v, T, sysd))
+                converged, reason = True, 'cost_converged'
+                break
         # a chord step reuses the last factor: N's values are not needed
         # the (4 m, d, d) blocks are freed before factoring
         data = None if chord else sysd.normal_values(prob.pattern, prob.compiled)
-        sysd.blocks = None
+        sysd.drop_blocks()
         if cfg.damping == 'none':
             if not chord:
                 state.factor(prob.pattern, data)
@@ -592,22 +632,19 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                          not chord)
             since_factor += step.step
         else:
-            damped = _dogleg_step if cfg.damping == 'dogleg' else _lm_step
-            step = damped(prob, T, sysd, data, state)
+            step = (_dogleg_step(prob, T, sysd, data, state, chord_h)
+                    if cfg.damping == 'dogleg' else _lm_step(prob, T, sysd, data, state))
             if not step.accepted:
                 reason = 'no_decrease'
                 converged = step.step < cfg.tolerance * 10
                 break
             T, v = step.T, step.v
         last_step = step.step
-        # without a robust loss a damped step's cost (the motion models': at T) is this sum
-        plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
-        history.append(step.cost if plain else _adjustment_cost(v, prob.P, sysd.weights)
-                       + _prior_cost(prob.model, T, prob.prior_data))
+        history.append(objective(step.cost, v, T, sysd))
         state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
                        and state.cost > 0
                        and state.cost - step.cost < cfg.chord_decrease * state.cost)
-        state.cost = step.cost
+        state.cost, state.predicted = step.cost, step.predicted
         if not np.isfinite(T).all():
             raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
                               'estimate stands')
@@ -624,6 +661,26 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 and history[-2] - history[-1] > 0.25 * (history[-3] - history[-2]))
     return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations,
                        since_factor if cfg.damping == 'none' else np.inf, factored)
+
+
+def _left_to_gain(predicted: float, previous: float, history: list[float]) -> float:
+    """The cost still to gain before a dogleg chord step, estimated from the decrease it
+    predicts (``predicted = -u' h = h' N_old h``): with the contraction ``r`` of the decreases,
+    the geometric series ``predicted / (1 - r)`` (``inf`` when ``r >= 1``). ``r`` is the larger
+    of ``predicted`` over the decrease the last step predicted (``previous``) and over the one it
+    achieved (``history[-2] - history[-1]``).
+
+    A chord step right after a converging Gauss-Newton step predicts a decrease thousands of
+    times below the last one (parking-garage 2e-9 after 1.5e-3, sphere2500 1.5e-5 after 0.06):
+    what is left is that prediction. On a graph that converges linearly (torus3D from the
+    file's guess: each chord step predicts ~0.93 of the one before, and achieves twice what it
+    predicted) the steps left add up to many predictions, and the prediction alone would stop
+    too early (+0.013 % cost on torus3D).
+    """
+    last = history[-2] - history[-1] if len(history) > 1 else 0.0
+    r = max(predicted / previous if previous > 0 else np.inf,
+            predicted / last if last > 0 else np.inf)
+    return predicted / (1.0 - r) if r < 1.0 else np.inf
 
 
 def _chord_kept(predicted: float, cost_before: float, cost: float) -> bool:
@@ -805,7 +862,7 @@ class _Problem:
     pattern: BlockPattern
     S: FloatArray  # (m, o, o) covariance of the connections' observations
     T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models, not in parts)
-    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (motion models, not in parts)
+    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (se3, not in parts)
     _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
     linearisations: int = 0  # calls of linear_system so far
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
@@ -840,7 +897,9 @@ class _Problem:
         else:
             T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
                       if model in models.MOTION_MODELS and not in_parts else None)
-            Tm_inv = np.ascontiguousarray(se3.inverse(T_meas)) if T_meas is not None else None
+            # their inverses: se3 only (se2 composes the planar motions themselves)
+            Tm_inv = (np.ascontiguousarray(se3.inverse(T_meas))
+                      if T_meas is not None and model == 'se3' else None)
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
@@ -886,14 +945,15 @@ class _Problem:
         """:meth:`linear_system` without ``N``: ``u``, the misclosure, the robust weights and
         the cost at ``T`` (``blocks`` ``None``), what a chord step needs (it reuses the last
         factorisation of ``N``). The compiled se3 kernel skips the blocks' products (~3x
-        faster); the other paths compute them and drop them."""
+        faster); the NumPy paths leave them pending (:meth:`_System.all_blocks`) and drop
+        them."""
         ahead_T, ahead = self._ahead
         self._ahead = (None, None)
         if ahead_T is T:  # computed by gradient_ahead after the step that led to T
             return ahead
         if not self.fused_gradient:
-            sysd = self.linear_system(T, v)
-            sysd.blocks = None
+            sysd = self.linear_system(T, v)  # the NumPy paths leave the blocks pending
+            sysd.drop_blocks()
             return sysd
         self.linearisations += 1
         self._mis = (None, None)
@@ -1005,14 +1065,28 @@ class _System:
     weights: FloatArray  # (m,) robust weights
     cost0: float  # sum w' M^-1 w (robust-weighted) + prior cost at the linearisation point
     data: FloatArray | None = None  # N's lower-triangle values, when assembled in parts
+    pending: Callable[[], FloatArray] | None = None  # computes the blocks (NumPy se3, se2)
+
+    def all_blocks(self) -> FloatArray | None:
+        """The ``(4 m + b, d, d)`` blocks, computed now if they were left pending (the NumPy
+        motion systems compute them only when ``N`` is needed: a chord step, or a stop on the
+        decrease it predicts, needs the gradient alone)."""
+        if self.blocks is None and self.pending is not None:
+            self.blocks, self.pending = self.pending(), None
+        return self.blocks
+
+    def drop_blocks(self) -> None:
+        """Let go of the blocks (and of what would compute them)."""
+        self.blocks = self.pending = None
 
     def normal_values(self, pattern: BlockPattern, compiled: bool = False) -> FloatArray:
         """``N``'s lower-triangle values on ``pattern``, handed over once: the system keeps
         neither them nor its blocks (the next iteration's are assembled without them).
         ``compiled``: assembled by the compiled loop (:meth:`BlockPattern.assemble`)."""
         data = (self.data if self.data is not None
-                else pattern.assemble(self.blocks, compiled))
-        self.data = self.blocks = None
+                else pattern.assemble(self.all_blocks(), compiled))
+        self.data = None
+        self.drop_blocks()
         return data
 
 
@@ -1068,7 +1142,8 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
 
     The blocks are written into one preallocated ``(4 m + b, d, d)`` array (connection blocks
-    ``ii, ij, ji, jj``, then the ``b`` prior blocks), without a concatenated copy.
+    ``ii, ij, ji, jj``, then the ``b`` prior blocks), without a concatenated copy; the NumPy
+    paths compute them only when asked (:meth:`_System.all_blocks`).
     ``gradient_only`` (compiled se3 only: :meth:`_Problem.gradient`): no blocks are computed
     (``blocks`` ``None``), the rest is the same.
     """
@@ -1091,33 +1166,38 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
                 blocks[:4 * m] *= np.tile(weights, 4)[:, None, None]
             gi *= weights[:, None]
             gj *= weights[:, None]
-    elif model == 'se3':  # structure of arrays (NumPy): columns.normal_blocks
+    else:  # structure of arrays (NumPy), the blocks' products left pending
         robust = None if cfg.robust_loss == 'none' else (
             lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
-        nb = columns.normal_blocks(
-            T, conn.src, conn.dst,
-            meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
-            sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, extra, mis)
-        w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
+        if model == 'se3':  # columns.linearise
+            lin = columns.linearise(
+                T, conn.src, conn.dst,
+                meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
+                sqrt_w if sqrt_w is not None else columns.SqrtWeights.of(P), robust, mis)
+        else:  # se2: columns.planar_linearise
+            lin = columns.planar_linearise(T, conn.src, conn.dst, T_meas, P, robust)
+        w, gi, gj, maha2 = lin.e, lin.g_src, lin.g_dst, lin.maha2
         weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-        del nb
-    else:  # se2, in columns: columns.planar_normal_blocks
-        robust = None if cfg.robust_loss == 'none' else (
-            lambda r2: _robust_weights(np.sqrt(np.maximum(r2, 0.0)), cfg))
-        nb = columns.planar_normal_blocks(T, conn.src, conn.dst, T_meas, P, robust, extra)
-        w, blocks, gi, gj, maha2 = nb.e, nb.blocks, nb.g_src, nb.g_dst, nb.maha2
-        weights = _robust_weights(np.sqrt(np.maximum(maha2, 0.0)), cfg)
-        del nb
+        blocks = None
     _scatter_gradient(u, col[conn.src], gi)
     _scatter_gradient(u, col[conn.dst], gj)
-    k = 4 * m
-    for b in prior_blocks:
-        blocks[k:k + len(b)] = b
-        k += len(b)
+
+    def with_priors(blocks: FloatArray) -> FloatArray:
+        k = 4 * m
+        for b in prior_blocks:
+            blocks[k:k + len(b)] = b
+            k += len(b)
+        return blocks
+
+    pending = None
+    if blocks is not None:
+        blocks = with_priors(blocks)
+    elif not gradient_only:
+        pending = lambda: with_priors(lin.normal_blocks(extra).blocks)  # noqa: E731
     cost0 = float(np.sum(_robust_rho(maha2, cfg))) + prior_cost
     # the motion models' residual update needs only w and the weights (no A, B, M)
     return _System(None if gradient_only else blocks, u.reshape(-1), w, None, None, None, None,
-                   weights, cost0)
+                   weights, cost0, pending=pending)
 
 
 def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
@@ -1134,8 +1214,8 @@ def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
         sysp = _motion_system(prob.model, T, part, prob.P[a:b], [], prob.cfg, prob.col, d,
                               None, None, prob.compiled)  # T_meas, its inverse: of the part
         k = np.arange(a, b)
-        prob.pattern.assemble_at(sysp.blocks, np.concatenate([k, k + m, k + 2 * m, k + 3 * m]),
-                                 data)
+        prob.pattern.assemble_at(sysp.all_blocks(),
+                                 np.concatenate([k, k + m, k + 2 * m, k + 3 * m]), data)
         u += sysp.u.reshape(-1, d)
         w.append(sysp.w)
         weights.append(sysp.weights)
@@ -1275,7 +1355,7 @@ def _lm_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
 
 
 def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
-                 state: _Trust) -> _Step:
+                 state: _Trust, chord_h: FloatArray | None = None) -> _Step:
     """One step of Powell's dogleg (Nocedal & Wright, Sec. 4.1): one factorisation at most.
 
     The cost ``F = sum e' P e`` (+ priors) has the quadratic model
@@ -1283,11 +1363,12 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
     factorisation) and the Cauchy point ``h_sd = -(u'u / u'N u) u`` span the dogleg path; a step
     of length at most the trust radius on it is tried, and a refused step only shrinks the
     radius and moves along the same path (no new factorisation). The first iteration tries the
-    full Gauss-Newton step, so on a good initial guess this is Gauss-Newton.
+    full Gauss-Newton step, so on a good initial guess this is Gauss-Newton. ``chord_h``: the
+    chord step ``-N_old^-1 u`` (:func:`_chord_step`), tried first when given.
     """
     u = sysd.u
-    if state.chord and state.chol is not None:
-        chord = _chord_step(prob, T, sysd, data, state)
+    if chord_h is not None:
+        chord = _chord_step(prob, T, sysd, data, chord_h, state)
         if chord is not None:
             return chord
     h_gn = -state.factor(prob.pattern, data).solve(u)
@@ -1326,7 +1407,8 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
                 radius = 0.5 * norm_h
             state.radius = radius
             return _Step(T_new, prob.next_residuals(T_new, sysd, h),
-                         float(np.abs(h).max()) if h.size else 0.0, True, cost, b == 1.0)
+                         float(np.abs(h).max()) if h.size else 0.0, True, cost, b == 1.0,
+                         predicted)
         radius = 0.25 * norm_h
         if radius < 1e-12:
             break
@@ -1335,7 +1417,7 @@ def _dogleg_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
 
 
 def _chord_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
-                state: _Trust) -> _Step | None:
+                h: FloatArray, state: _Trust) -> _Step | None:
     """The chord step ``h = -N_old^-1 u`` from the last factorisation (``N_old``, one
     iteration old), kept instead of factoring ``N`` anew when the new linearisation confirms it.
 
@@ -1348,7 +1430,6 @@ def _chord_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
     as usual (the chord cost one solve, one product with ``N`` and perhaps one cost evaluation).
     """
     u = sysd.u
-    h = -state.chol.solve(u)
     old = -float(u @ h)  # h' N_old h
     hNh = float(h @ prob.pattern.matvec(data, h))
     if not (old > 0 and 0.8 * old <= hNh <= 1.25 * old):
@@ -1360,7 +1441,7 @@ def _chord_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray,
     if not (actual >= 0 and actual >= 0.25 * predicted):
         return None
     return _Step(T_new, prob.next_residuals(T_new, sysd, h),
-                 float(np.abs(h).max()) if h.size else 0.0, True, cost, True)
+                 float(np.abs(h).max()) if h.size else 0.0, True, cost, True, predicted)
 
 
 def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,

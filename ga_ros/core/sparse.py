@@ -184,8 +184,10 @@ class BlockPattern:
         """``(len(_pos),)`` flat index, into the ``(k, d, d)`` block list this pattern was
         built from, of each entry that lands in the lower triangle, in the order of ``_pos``."""
         d2 = self.d * self.d
-        kept = np.flatnonzero(self._keep_blk)
-        return (kept[:, None] * d2 + np.arange(d2)[None, :])[self._valid(slice(None))]
+        it = np.int32 if self._keep_blk.size * d2 < 2**31 else np.int64  # half the traffic
+        kept = np.flatnonzero(self._keep_blk).astype(it)
+        return (kept[:, None] * it(d2) + np.arange(d2, dtype=it)[None, :])[
+            self._valid(slice(None))]
 
     def assemble_at(self, blocks: FloatArray, index: IntArray, out: FloatArray) -> None:
         """Add blocks ``(k, d, d)`` that stand at the positions ``index`` of the block list
@@ -225,7 +227,9 @@ class BlockPattern:
         if upos is None:
             upos = self._block_positions(np.arange(self._ucol.size))
         valid = np.where((self._urank == 0)[:, None], self._tril[None, :], True)
-        rows = self.block_lower[0][:, None] * d + np.repeat(np.arange(d), d)[None, :]
+        it = np.int32 if self.size < 2**31 else np.int64  # the temporaries: half the traffic
+        rows = (self.block_lower[0].astype(it)[:, None] * it(d)
+                + np.repeat(np.arange(d, dtype=it), d)[None, :])
         out = np.empty(self.nnz, dtype=np.int64)
         out[upos[valid]] = rows[valid]
         return out
@@ -294,13 +298,16 @@ class SparseCholesky:
 
     Reuse one instance across matrices with the same pattern: :meth:`refactor` keeps the ordering.
     Raises :class:`DegenerateGeometryError` when the matrix is not positive definite (e.g. a datum
-    is missing or part of the network is unconstrained).
+    is missing or part of the network is unconstrained). ``auto``: a small, very sparse matrix
+    may get a simplicial factor (:meth:`_DirectCholmod.analyse`), which selected inversion
+    reads through a copy; the default is supernodal (read in place).
     """
 
     def __init__(self, pattern: BlockPattern, data: FloatArray,
-                 trailing: IntArray | None = None, analysis=None) -> None:
+                 trailing: IntArray | None = None, analysis=None, auto: bool = False) -> None:
         self.pattern = pattern
         self.n = pattern.size
+        self._auto = auto
         self._trailing = None if trailing is None else np.asarray(trailing, dtype=np.int64)
         self._symbolic = analysis  # a kept symbolic factor of this pattern (keep_analysis)
         self._permuted: _Permuted | None = None  # P N P' for the direct factorisation
@@ -337,7 +344,8 @@ class SparseCholesky:
             if self._symbolic is None:
                 self._permuted = None
                 if direct is not None:  # no cvxopt copy of the pattern (~40 ms for a window)
-                    self._symbolic = direct.analyse(p, self._ordering(), self._trailing is None)
+                    self._symbolic = direct.analyse(p, self._ordering(), self._trailing is None,
+                                                    self._auto)
                 if self._symbolic is None:
                     if self._A is None:
                         self._A = _cvxopt_pattern(p, keep=direct is None)
@@ -613,36 +621,70 @@ class _DirectCholmod:
             return None
         return lambda factor: new(factor, name, destructor)
 
-    def analyse(self, pattern: BlockPattern, perm: IntArray, postorder: bool):
+    def analyse(self, pattern: BlockPattern, perm: IntArray, postorder: bool,
+                auto: bool = False):
         """``cholmod_l_analyze_p`` of the lower-triangle pattern with the ordering ``perm``
         alone (cvxopt's ``symbolic`` with ``nmethods = 1``, supernodal), on a
         ``cholmod_sparse`` header over the pattern's own arrays: the same factor object as
         cvxopt's, without first copying the pattern into a cvxopt matrix. ``None`` when not
-        available (the caller uses cvxopt)."""
+        available (the caller uses cvxopt).
+
+        ``auto`` (below :data:`_AUTO_SUPERNODAL_BELOW` unknowns, not for a trailing factor,
+        ``postorder`` False): CHOLMOD chooses, simplicial when its flops per factor entry are
+        few (its ``supernodal_switch`` rule), where a supernodal factorisation is mostly the
+        overhead of thousands of tiny BLAS calls (intel, 5,181 unknowns: analysis 0.9 -> 0.5
+        ms, factorisation 1.7 -> 1.0 ms, solve 0.19 -> 0.08 ms). :meth:`factorize` makes a
+        simplicial factor ``L L'`` too, so a matrix that is not positive definite is refused
+        alike."""
         if self._capsule is None:
             return None
-        n = pattern.size
-        indptr = np.ascontiguousarray(pattern.indptr, dtype=np.int64)
-        indices = np.ascontiguousarray(pattern.indices, dtype=np.int64)
+        auto = auto and postorder and pattern.size < _AUTO_SUPERNODAL_BELOW
+        factor, _ = self._analysed(pattern.indptr, pattern.indices, perm, 1 if auto else 2,
+                                   postorder)
+        if not factor:
+            return None
+        try:
+            return self._capsule(factor)
+        except Exception:  # pragma: no cover - the capsule could not be made
+            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), self._common())
+            return None
+
+    def analysis_flops(self, indptr: IntArray, indices: IntArray, perm: IntArray
+                       ) -> float | None:
+        """The flop count CHOLMOD's symbolic analysis (simplicial, ``cholmod_l_analyze_p``
+        with the ordering ``perm`` alone) predicts for factoring a matrix of the given lower
+        triangle pattern (CSC, int64; the diagonal included), without a numeric factorisation;
+        ``None`` when not available (:meth:`analyse`'s conditions)."""
+        if self._capsule is None:
+            return None
+        factor, flops = self._analysed(indptr, indices, perm, 0, False)
+        if factor:
+            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), self._common())
+        return flops if factor and flops > 0 else None
+
+    def _analysed(self, indptr: IntArray, indices: IntArray, perm: IntArray, supernodal: int,
+                  postorder: bool) -> tuple[int, float]:
+        """``cholmod_l_analyze_p`` of a lower-triangle pattern (CSC) with the ordering ``perm``
+        alone (``nmethods = 1``; ``supernodal`` 0 simplicial, 2 supernodal), on a
+        ``cholmod_sparse`` header over the arrays themselves: the ``cholmod_factor *`` (0 on
+        failure; the caller owns it) and the flops of its factorisation."""
+        n = indptr.size - 1
+        indptr = np.ascontiguousarray(indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(indices, dtype=np.int64)
         pvec = np.ascontiguousarray(perm, dtype=np.int64)
         A = _CholmodSparse(n, n, int(indptr[-1]), indptr.ctypes.data, indices.ctypes.data,
                            None, None, None, -1, 2, 0, 0, 1, 1)  # lower, long, pattern only
         common = self._common()
         c = _CommonOrdering.from_buffer(common)
         saved = (c.supernodal, c.nmethods, c.postorder)
-        c.supernodal, c.nmethods, c.postorder = 2, 1, int(bool(postorder))
+        c.supernodal, c.nmethods, c.postorder = supernodal, 1, int(bool(postorder))
         try:
             factor = self._analyze(ctypes.addressof(A), pvec.ctypes.data, None, 0, common)
+            flops = float(c.method[c.selected].fl) if factor else 0.0
         finally:
             c.supernodal, c.nmethods, c.postorder = saved
             self._free_work(common)
-        if not factor:
-            return None
-        try:
-            return self._capsule(factor)
-        except Exception:  # pragma: no cover - the capsule could not be made
-            self._free_factor(ctypes.byref(ctypes.c_void_p(factor)), common)
-            return None
+        return factor or 0, flops
 
     def _common(self):
         """This thread's ``cholmod_common`` (started, ``print = 0``), or ``None`` if its
@@ -728,10 +770,13 @@ class _DirectCholmod:
         if permuted is not None:
             L.ordering = 0  # CHOLMOD_NATURAL: A is P N P' (the permutation stays for solves)
         common = self._common()
+        head = _CommonHead.from_buffer(common)
+        final_ll, head.final_ll = head.final_ll, 1  # simplicial too: L L', not L D L'
         try:
             ok = self._factorize(ctypes.addressof(A), address, common)
         finally:
             L.ordering = ordering
+            head.final_ll = final_ll
             self._free_work(common)
             if in_place:  # the caller's values back in their order
                 permute(x, permuted.where, True, np.zeros(x.size, dtype=np.bool_))
@@ -832,6 +877,9 @@ _DIRECT: list = []  # [the _DirectCholmod or None], found on first use
 #: already permuted (:meth:`_DirectCholmod.permuted`: an argsort of the entries once per
 #: analysis, ~0.1 s per million; a window's few hundred thousand entries are factored as given).
 _PERMUTE_FROM_NNZ = 1 << 22
+#: Below this many unknowns a factor asked for ``auto`` is simplicial or supernodal as CHOLMOD
+#: chooses (:meth:`_DirectCholmod.analyse`); from it on it is supernodal.
+_AUTO_SUPERNODAL_BELOW = 6000
 
 
 def _direct_cholmod() -> _DirectCholmod | None:
@@ -858,8 +906,10 @@ def block_ordering(pattern: BlockPattern) -> IntArray:
     from ga_ros.core.ordering import best_block_order
 
     amd = lambda: _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool))  # noqa: E731
+    direct = _direct_cholmod()  # the orderings' flops from CHOLMOD's symbolic analysis
+    flops = None if direct is None else direct.analysis_flops
     return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: _expand(
-        best_block_order(pattern.n_blocks, *pattern.block_lower, amd()), pattern.d))
+        best_block_order(pattern.n_blocks, *pattern.block_lower, amd(), flops), pattern.d))
 
 
 def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:

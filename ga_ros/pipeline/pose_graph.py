@@ -46,7 +46,8 @@ class GraphSolveConfig:
         :data:`GRAPH_SOLVER` (``se3``, Powell's dogleg -- Gauss-Newton steps while they lower the
         cost, at most one factorisation per iteration, none for a chord step near the optimum
         (``chord_decrease``) --, at most 100 iterations, ``tolerance`` 1e-8 m/rad,
-        ``cost_tolerance`` 1e-5, the default of GTSAM's ``relativeErrorTol``). ``damping='lm'``
+        ``cost_tolerance`` 1e-5, the default of GTSAM's ``relativeErrorTol``; ``factor='auto'``:
+        a simplicial factor where CHOLMOD finds it cheaper). ``damping='lm'``
         runs a Levenberg-Marquardt first stage, then the undamped polish below.
     polish_iterations : cap on the undamped iterations run after an LM stage (0: none).
     planar : solve 2-D graphs with the ``se2`` model (3 unknowns per vertex, the same cost and
@@ -83,7 +84,7 @@ class GraphSolveConfig:
 
 #: Solver settings of a batch pose-graph solve (see :class:`GraphSolveConfig`).
 GRAPH_SOLVER = SolverConfig(model='se3', damping='dogleg', max_iterations=100, tolerance=1e-8,
-                            cost_tolerance=1e-5)
+                            cost_tolerance=1e-5, factor='auto')
 
 
 @dataclass
