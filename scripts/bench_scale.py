@@ -364,7 +364,9 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         if args.verbose:
             print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU, '
                   f'{thread_ms:.1f} in its thread), '
-                  f'window {up.n_window_nodes} nodes, RSS {fig.update_rss_mib[-1]:.0f} MiB, '
+                  f'window {up.n_window_nodes} nodes, {up.iterations} iterations, '
+                  f'{up.n_outliers} excluded / {up.n_readmitted} re-admitted by the gate, '
+                  f'RSS {fig.update_rss_mib[-1]:.0f} MiB, '
                   f'refinement wait + install {up.refine_wait_ms:.0f} ms'
                   + (f' (refinement after {up.refined_after_tracks} tracks: '
                      f'{up.refine_reason})' if up.refined_after_tracks >= 0 else ''),
