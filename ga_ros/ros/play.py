@@ -287,6 +287,9 @@ class BagPlayer:
                 if since_ack >= c.ack_every:
                     self._wait_acked()
                     since_ack = 0
+        if bag_t0 is not None:  # /clock ends at the bag's last message, sent before the
+            self._clock(last, stats)  # end signals and the wait for their delivery below
+            stats.bag_seconds = (last - bag_t0) * 1e-9
         # reliable delivery of the tail before the process (and its DDS writers) goes away
         self._wait_acked()
         for topic in self.end_topics:
@@ -295,9 +298,6 @@ class BagPlayer:
             self.publishers[topic].publish(end)
             stats.end_signals += 1
         self._wait_delivered(max(c.wait_for_subscribers_s, c.ack_timeout_s))
-        if bag_t0 is not None:
-            self._clock(last, stats)
-            stats.bag_seconds = (last - bag_t0) * 1e-9
         stats.seconds = time.monotonic() - t0
         return stats
 
