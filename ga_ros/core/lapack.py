@@ -68,8 +68,8 @@ def _separator_solves(ext, r, w, d, Bt):  # pragma: no cover - compiled
     """``Bt[k] = Sigma_FF^-1 Sigma_Fk`` for the separators ``F = {k+1 .. k+w}`` of a covariance
     band ``ext`` (``(r + w, w + 1, d, d)``, ``ext[i, j] = Sigma_{i, i+j}``, padded after the end)
     by one Cholesky factorisation (``dpotrf``) and solve (``dpotrs``) each, the separator read
-    from the band into column-major storage (the non-compiled path of
-    :func:`ga_ros.core.sparse._band_completion` does the same with SciPy's LAPACK). Returns 0,
+    from the band into column-major storage (:func:`ga_ros.core.sparse._separator_solves_scipy`
+    does the same with SciPy's LAPACK). Returns 0,
     or ``k + 1`` if separator ``k`` is not positive definite."""
     n = w * d
     S = np.empty((n, n)).T  # column-major

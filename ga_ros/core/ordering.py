@@ -45,9 +45,14 @@ def _adjacency(n: int, rows: IntArray, cols: IntArray) -> tuple[IntArray, IntArr
     off = rows != cols
     a = np.concatenate([rows[off], cols[off]]).astype(np.int64)
     b = np.concatenate([cols[off], rows[off]]).astype(np.int64)
-    key = _sorted_unique(a * n + b)  # sorted by vertex, then neighbour; duplicates once
-    xadj = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
-    return xadj.astype(np.int64), key % n
+    return _compressed(_sorted_unique(a * n + b), n)  # by vertex, then neighbour
+
+
+def _compressed(key: IntArray, n: int) -> tuple[IntArray, IntArray]:
+    """Compressed rows (or columns) ``(indptr, indices)`` of an ``n x n`` pattern from its
+    entries' sorted, distinct keys ``major * n + minor``."""
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
+    return indptr.astype(np.int64), key % n
 
 
 def nested_dissection(n: int, rows: IntArray, cols: IntArray) -> IntArray:
@@ -86,9 +91,8 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
     r, c = np.maximum(rows[off], cols[off]), np.minimum(rows[off], cols[off])
     if analysis is not None:
         diag = np.arange(n, dtype=np.int64)
-        key = _sorted_unique(np.concatenate([c * n + r, diag * n + diag]))  # by column, row
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(key // n, minlength=n))])
-        flops = analysis(indptr, key % n, order)
+        flops = analysis(*_compressed(  # the lower triangle by column, then row
+            _sorted_unique(np.concatenate([c * n + r, diag * n + diag])), n), order)
         if flops is not None:
             return flops
     return _numeric_factor_flops(n, r, c, order)

@@ -445,15 +445,25 @@ class SparseCholesky:
         return x
 
 
+#: Guards the caches of :func:`_kept` (the freeze ahead reads them from a background thread).
+_KEPT_LOCK = threading.Lock()
+
+
 def _kept(cache: OrderedDict, limit: int, key: bytes, build):
-    """``cache[key]``, built by ``build()`` on a miss; the ``limit`` most recent are kept."""
-    value = cache.get(key)
-    if value is None:
-        value = cache[key] = build()
+    """``cache[key]``, built by ``build()`` on a miss; the ``limit`` most recent are kept.
+    Thread-safe; ``build`` runs outside the lock (two threads missing at once may each build
+    it, one value is kept)."""
+    with _KEPT_LOCK:
+        value = cache.get(key)
+        if value is not None:
+            cache.move_to_end(key)
+            return value
+    value = build()
+    with _KEPT_LOCK:
+        cache[key] = value
+        cache.move_to_end(key)
         while len(cache) > limit:
             cache.popitem(last=False)
-    else:
-        cache.move_to_end(key)
     return value
 
 
@@ -1399,7 +1409,6 @@ class _CompletionLayout:
 
 #: Layouts of :func:`_completion` by the skeleton (one per prior shape; the latest few).
 _COMPLETION_LAYOUTS: OrderedDict[bytes, _CompletionLayout] = OrderedDict()
-_COMPLETION_LOCK = threading.Lock()
 
 
 def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLayout:
@@ -1407,11 +1416,12 @@ def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLay
     same shape per track)."""
     key = _blake2b(np.int64(w).tobytes() + np.int64(rest.size).tobytes() + rest.tobytes()
                    + hubs.tobytes(), digest_size=16).digest()
-    with _COMPLETION_LOCK:
-        lay = _COMPLETION_LAYOUTS.get(key)
-        if lay is not None:
-            _COMPLETION_LAYOUTS.move_to_end(key)
-            return lay
+    return _kept(_COMPLETION_LAYOUTS, _MAX_PATTERNS, key,
+                 lambda: _build_completion_layout(rest, hubs, w))
+
+
+def _build_completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLayout:
+    """:func:`_completion_layout` computed."""
     r, h = rest.size, hubs.size
     i = np.repeat(np.arange(r), w + 1)
     j = i + np.tile(np.arange(w + 1), r)
@@ -1427,12 +1437,7 @@ def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLay
     rows, cols = np.concatenate(rows), np.concatenate(cols)
     order = np.lexsort((cols, rows))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=r + h))])
-    lay = _CompletionLayout(keep, off, order, cols[order], indptr)
-    with _COMPLETION_LOCK:
-        _COMPLETION_LAYOUTS[key] = lay
-        while len(_COMPLETION_LAYOUTS) > _MAX_PATTERNS:
-            _COMPLETION_LAYOUTS.popitem(last=False)
-    return lay
+    return _CompletionLayout(keep, off, order, cols[order], indptr)
 
 
 def _spd_inverse(S: FloatArray) -> FloatArray:
@@ -1451,6 +1456,26 @@ def spd_inverse(M: FloatArray, error: str) -> FloatArray:
         raise DegenerateGeometryError(error) from exc
     Linv = np.linalg.inv(L)
     return np.swapaxes(Linv, -1, -2) @ Linv
+
+
+def _separator_solves_scipy(ext: FloatArray, cross: FloatArray, r: int, w: int, d: int,
+                            Bt: FloatArray) -> int:
+    """:func:`ga_ros.core.lapack.separator_solves` without numba: ``Bt[k] = Sigma_FF^-1
+    Sigma_Fk`` (``cross[k]`` is ``Sigma_Fk``) by SciPy's ``dpotrf``/``dpotrs``, the separators
+    gathered from the band first. Returns 0, or ``k + 1`` if separator ``k`` is not positive
+    definite."""
+    sep = np.empty((r, w, d, w, d))
+    for a in range(w):  # row a of F_i is node i + 1 + a
+        sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
+        sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
+    sep = sep.reshape(r, w * d, w * d)
+    potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
+    for k in range(r):
+        c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: F-ordered view of sep[k]
+        if info:
+            return k + 1
+        Bt[k] = potrs(c, cross[k], lower=1)[0]
+    return 0
 
 
 def _band_completion(band: FloatArray) -> FloatArray:
@@ -1481,22 +1506,11 @@ def _band_completion(band: FloatArray) -> FloatArray:
     Bt = np.empty_like(cross)  # (r, w d, d)
     # compiled: the separators read from the band, LAPACK called directly
     status = lapack.separator_solves(ext, r, w, d, Bt)
+    if status is None:  # the same with SciPy's LAPACK
+        status = _separator_solves_scipy(ext, cross, r, w, d, Bt)
     if status:
         raise DegenerateGeometryError('a clique of the covariance skeleton is not positive '
                                       'definite')
-    if status is None:
-        sep = np.empty((r, w, d, w, d))
-        for a in range(w):  # row a of F_i is node i + 1 + a
-            sep[:, a, :, a:, :] = ext[1 + a:1 + a + r, :w - a].transpose(0, 2, 1, 3)
-            sep[:, a + 1:, :, a, :] = np.swapaxes(ext[1 + a:1 + a + r, 1:w - a], -1, -2)
-        sep = sep.reshape(r, w * d, w * d)
-        potrf, potrs = sla.lapack.dpotrf, sla.lapack.dpotrs
-        for k in range(r):
-            c, info = potrf(sep[k].T, lower=1, clean=0)  # symmetric: F-ordered view of sep[k]
-            if info:
-                raise DegenerateGeometryError('a clique of the covariance skeleton is not '
-                                              'positive definite')
-            Bt[k] = potrs(c, cross[k], lower=1)[0]
     Dm = band[:, 0] - np.swapaxes(cross, 1, 2) @ Bt
     # every clique C_i = {i} + F_i is positive definite iff every D_i is (one Cholesky each
     # below, no separate one of the separators): C_i is iff F_i and D_i are, and F_i is a
