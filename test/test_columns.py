@@ -46,8 +46,9 @@ def test_normal_blocks_equal_the_stacked_reference(rng, robust):
     m = len(src)
     bt = models.between('se3', T, src, dst, T_meas)
     w = rng.uniform(0.1, 1.0, size=m)
-    nb = columns.normal_blocks(T, src, dst, columns.MeasuredInverse.of(se3.inverse(T_meas)),
-                               columns.SqrtWeights.of(P), (lambda r2: w) if robust else None)
+    nb = columns.linearise(T, src, dst, columns.MeasuredInverse.of(se3.inverse(T_meas)),
+                           columns.SqrtWeights.of(P),
+                           (lambda r2: w) if robust else None).normal_blocks()
     Pw = P * w[:, None, None] if robust else P
     Ji, Jj = -bt.Jr_inv @ bt.Ad_ji, bt.Jr_inv
     for k, ref in enumerate(_blocks(Ji, Jj, Pw)):
@@ -80,7 +81,7 @@ def test_normal_blocks_match_central_differences(rng):
             cols.append((columns.misclosure(plus, src, dst, meas).e
                          - columns.misclosure(minus, src, dst, meas).e) / (2 * h))
         J[name] = np.stack(cols, axis=2)
-    nb = columns.normal_blocks(T, src, dst, meas, columns.SqrtWeights.of(P))
+    nb = columns.linearise(T, src, dst, meas, columns.SqrtWeights.of(P)).normal_blocks()
     for k, ref in enumerate(_blocks(J['i'], J['j'], P)):
         np.testing.assert_allclose(nb.blocks[k * m:(k + 1) * m], ref, rtol=1e-5,
                                    atol=1e-5 * np.abs(ref).max())
@@ -107,8 +108,8 @@ def test_planar_normal_blocks_equal_the_stacked_reference(rng, robust):
     m = len(src)
     bt = models.between('se2', T, src, dst, T_meas)
     w = rng.uniform(0.1, 1.0, size=m)
-    nb = columns.planar_normal_blocks(T, src, dst, T_meas, P, (lambda r2: w) if robust else None,
-                                      extra_blocks=2)
+    nb = columns.planar_linearise(T, src, dst, T_meas, P,
+                                  (lambda r2: w) if robust else None).normal_blocks(2)
     assert nb.blocks.shape == (4 * m + 2, 3, 3)
     Pw = P * w[:, None, None] if robust else P
     Ji, Jj = -bt.Jr_inv @ bt.Ad_ji, bt.Jr_inv

@@ -379,15 +379,6 @@ def linearise(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse
     return Linearised(e, g_src, g_dst, maha2, products)
 
 
-def normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, meas: MeasuredInverse,
-                  W: SqrtWeights, robust=None, extra_blocks: int = 0,
-                  mis: Misclosure | None = None) -> NormalBlocks:
-    """Gauss-Newton blocks of ``sum_k rho(e_k' P_k e_k)`` at ``T``: :func:`linearise` and its
-    blocks at once (parameters as there; ``extra_blocks`` rows left uninitialised at the end of
-    ``blocks`` for the caller)."""
-    return linearise(T, src, dst, meas, W, robust, mis).normal_blocks(extra_blocks)
-
-
 # ------------------------------------------------------------------------------------- se2
 def _planar_sqrt_weights(P: FloatArray) -> FloatArray:
     """Upper-triangular ``U`` with ``P = U' U`` of ``(m, 3, 3)`` symmetric positive-definite
@@ -457,13 +448,6 @@ def planar_linearise(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatA
 
     return Linearised(e, np.ascontiguousarray(_mtv3(Vi, r).T),
                       np.ascontiguousarray(_mtv3(Vj, r).T), maha2, products)
-
-
-def planar_normal_blocks(T: FloatArray, src: IntArray, dst: IntArray, T_meas: FloatArray,
-                         P: FloatArray, robust=None, extra_blocks: int = 0) -> NormalBlocks:
-    """:func:`planar_linearise` and its blocks at once (``(4 m + extra_blocks, 3, 3)``; the
-    parameters as there and as :func:`normal_blocks`)."""
-    return planar_linearise(T, src, dst, T_meas, P, robust).normal_blocks(extra_blocks)
 
 
 # ------------------------------------------------------------------------------ retraction
