@@ -685,7 +685,7 @@ def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: In
                 and np.array_equal(plan.indices, N.indices):
             _PLANS.move_to_end(key)
             return plan
-    from ga_ros.core.sparse import BlockPattern
+    from ga_ros.core.sparse import BlockPattern, band_pairs
 
     u = N.shape[0] // d
     # the positions of N's values travel through the conversions instead of the values
@@ -701,10 +701,7 @@ def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: In
     tr, th = t[rest], t[hubs]
     r, h = tr.size, th.size
     # the skeleton's pairs: the band among the others, every hub with every target
-    bi = np.repeat(np.arange(r), w + 1)
-    bj = bi + np.tile(np.arange(w + 1), r)
-    ok = bj < r
-    bi, bj = bi[ok], bj[ok]
+    bi, bj, _ = band_pairs(r, w)
     hub_a = np.repeat(np.arange(h), r)
     rest_i = np.tile(np.arange(r), h)
     pa = np.concatenate([tr[bi], th[hub_a], np.repeat(th, h)])

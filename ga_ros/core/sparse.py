@@ -1407,6 +1407,16 @@ class _CompletionLayout:
     indptr: IntArray
 
 
+def band_pairs(r: int, w: int) -> tuple[IntArray, IntArray, np.ndarray]:
+    """The block pairs ``(i, j)``, ``i <= j <= i + w``, ``j < r``, of a band of half-width ``w``
+    over ``r`` nodes, row by row, and which of the ``r (w + 1)`` slots ``[i, j - i]`` of a
+    ``(r, w + 1, ...)`` band array they are (the slots past the last node are not)."""
+    i = np.repeat(np.arange(r), w + 1)
+    j = i + np.tile(np.arange(w + 1), r)
+    keep = j < r
+    return i[keep], j[keep], keep
+
+
 #: Layouts of :func:`_completion` by the skeleton (one per prior shape; the latest few).
 _COMPLETION_LAYOUTS: OrderedDict[bytes, _CompletionLayout] = OrderedDict()
 
@@ -1423,10 +1433,7 @@ def _completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLay
 def _build_completion_layout(rest: IntArray, hubs: IntArray, w: int) -> _CompletionLayout:
     """:func:`_completion_layout` computed."""
     r, h = rest.size, hubs.size
-    i = np.repeat(np.arange(r), w + 1)
-    j = i + np.tile(np.arange(w + 1), r)
-    keep = j < r
-    i, j = i[keep], j[keep]
+    i, j, keep = band_pairs(r, w)
     off = i != j
     rows = [rest[i], rest[j[off]]]
     cols = [rest[j], rest[i[off]]]

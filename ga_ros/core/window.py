@@ -1489,11 +1489,6 @@ class TrackWindowAligner:
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self._quality_summary(net, res, priors, conns))
 
-    def _weights(self, conns: IntArray) -> FloatArray:
-        """``(m, 6, 6)`` weights ``S^-1`` of connections (sorted rows)
-        (:meth:`_connection_terms`)."""
-        return self._connection_terms(conns).weights
-
     def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
         """The covariances, weights and measured motions of connections (sorted rows), those
         of the last call reused (a window keeps most of its connections from one update to the
@@ -1572,7 +1567,7 @@ class TrackWindowAligner:
             rep, _ = self._quality_report(net, res, priors)
             ratio = np.where(cross, np.nan_to_num(rep.test_ratio('w'), nan=0.0), 0.0)
             return conns[ratio > 1.0]
-        P = self._weights(conns)
+        P = self._connection_terms(conns).weights
         v = res.residuals
         maha2 = np.einsum('mi,mij,mj->m', v, P, v)
         return conns[cross & (maha2 > chi2.ppf(prob, 6))]
