@@ -64,16 +64,26 @@ class Extrinsic:
                 f"set T_base_camera ('x y z roll pitch yaw') or set "
                 f'assume_identity_extrinsic: true')
 
+    @property
+    def is_identity(self) -> bool:
+        """True when the camera frame is the base frame (the conversions change nothing)."""
+        return bool(np.array_equal(self.T_base_cam, np.eye(4)))
+
     def motion(self, m: Measurement) -> Measurement:
-        """A camera motion measurement as the base's (:func:`motion_to_base`)."""
-        return motion_to_base(m, self.T_base_cam)
+        """A camera motion measurement as the base's (:func:`motion_to_base`; ``m`` itself
+        for the identity)."""
+        return m if self.is_identity else motion_to_base(m, self.T_base_cam)
 
     def pose(self, T_world_cam: FloatArray) -> FloatArray:
         """``T_odom_base`` of an integrated camera pose (:func:`pose_to_base`)."""
+        if self.is_identity:
+            return np.asarray(T_world_cam, float)
         return pose_to_base(T_world_cam, self.T_base_cam)
 
     def camera_pose(self, T_map_base: FloatArray) -> FloatArray:
         """The inverse of :meth:`pose`: ``T_world_cam`` of base poses (..., 4, 4)."""
+        if self.is_identity:
+            return np.asarray(T_map_base, float)
         return se3.inverse(self.T_base_cam) @ np.asarray(T_map_base, float) @ self.T_base_cam
 
 

@@ -91,8 +91,9 @@ class FrontEndConfig:
 NODE_ONLY_PARAMS = frozenset({
     'left_image_topic', 'right_image_topic', 'left_info_topic', 'right_info_topic', 'compressed',
     'measurements_topic', 'odometry_topic', 'path_topic', 'track_boundary_topic',
-    'debug_image_topic', 'publish_debug_image', 'odom_frame', 'camera_frame', 'image_queue',
-    'pair_queue', 'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec'})
+    'debug_image_topic', 'publish_debug_image', 'odom_frame', 'image_queue', 'pair_queue',
+    'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec', 'publish_odom_tf',
+    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction'})
 
 
 def front_end_config_from_params(params: Mapping[str, Any],
