@@ -78,7 +78,7 @@ def test_odometry_input_in_process_map_to_odom(ctx):
         assert len(cp.node_ids) == 20
         # map -> odom composes with the odometry pose of the newest node to its corrected pose
         T_odom_k = node.front.inputs['odom0'].keyframe_pose(int(cp.node_ids[-1]))
-        np.testing.assert_allclose(node._T_map_odom @ T_odom_k, cp.T_world_node[-1],
+        np.testing.assert_allclose(node.odom.T_map_odom @ T_odom_k, cp.T_world_node[-1],
                                    atol=1e-9)
     finally:
         node.destroy_node()
