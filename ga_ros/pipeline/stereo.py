@@ -93,7 +93,7 @@ NODE_ONLY_PARAMS = frozenset({
     'measurements_topic', 'odometry_topic', 'path_topic', 'track_boundary_topic',
     'debug_image_topic', 'publish_debug_image', 'odom_frame', 'image_queue', 'pair_queue',
     'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec', 'publish_odom_tf',
-    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction'})
+    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction', 'idle_end_track_s'})
 
 
 def front_end_config_from_params(params: Mapping[str, Any],

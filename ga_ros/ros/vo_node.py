@@ -34,6 +34,13 @@ fraction exceeds ``loss_warn_fraction``. The image and camera-info subscriptions
 ``qos_reliability`` of the parameters (default best effort, which connects to best-effort and
 reliable publishers) with ``image_queue`` messages of depth.
 
+Live end of input: when no image has arrived for ``idle_end_track_s`` (wall clock) after the
+last measurement, the node publishes the end-of-input message on the measurements topic
+(``nav_msgs/Odometry`` with ``child_frame_id`` :data:`ga_ros.topics.TRACK_END_FRAME`, as
+``ga-ros play`` does at the end of a bag): the alignment node ends and adjusts the open track at
+once; the VO's next keyframe starts a new track. A robot standing still keeps its track (its
+camera still streams images).
+
 Subscribes also to the corrected path (``nav_msgs/Path``, transient local; poses matched to
 keyframes by stamp) to predict overlaps, and to ``track_boundary_topic`` (``std_msgs/Empty``)
 to start a new track on request, and publishes ``diagnostics`` (``diagnostic_msgs/
@@ -57,6 +64,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -65,6 +73,8 @@ import cv2
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Empty
@@ -118,6 +128,8 @@ class VoNodeSettings:
     diagnostics_topic : output ``diagnostic_msgs/DiagnosticArray`` with the counts.
     diagnostics_period_sec : period of the diagnostics (s; 0 disables).
     warn_throttle_sec : minimum seconds between repeated warnings.
+    idle_end_track_s : end the open track (end-of-input message on ``measurements_topic``)
+        when no image has arrived for this long, wall-clock s (0: never).
     """
 
     left_image_topic: str = topics.LEFT_IMAGE
@@ -144,6 +156,7 @@ class VoNodeSettings:
     diagnostics_topic: str = topics.DIAGNOSTICS
     diagnostics_period_sec: float = 1.0
     warn_throttle_sec: float = 5.0
+    idle_end_track_s: float = 2.0
 
 
 def array_to_image(img: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
@@ -180,7 +193,9 @@ class VoNode(Node):
                         'pairs': StreamMonitor()}
         self._last_warn: dict[str, float] = {}
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
-                       'processed': 0, 'queue_dropped': 0}
+                       'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0}
+        self._last_image = time.monotonic()
+        self._measured_since_end = False
         self._queue: deque[ImagePair] = deque()
         self._lock = threading.Lock()  # the front end: worker thread vs. other callbacks
         self._wake = threading.Condition()
@@ -213,6 +228,9 @@ class VoNode(Node):
         self.create_subscription(CameraInfo, s.right_info_topic,
                                  lambda m: self._on_info(m, 'right'), qos)
         self.create_subscription(Path, s.path_topic, self._on_path, latched_qos())
+        if s.idle_end_track_s > 0:
+            self.create_timer(min(0.5, s.idle_end_track_s / 4), self._idle_check,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self.create_subscription(Empty, s.track_boundary_topic, self._on_boundary, 10)
         self._worker = threading.Thread(target=self._work, name='vo_worker', daemon=True)
         self._worker.start()
@@ -245,6 +263,28 @@ class VoNode(Node):
 
     def _publish_measurement(self, m: Measurement) -> None:
         self.pub_meas.publish(conv.measurement_to_odometry(m))
+        self._measured_since_end = True
+
+    def _idle_check(self) -> None:
+        """End the open track when the images stopped ``idle_end_track_s`` ago (timer)."""
+        if not self._measured_since_end:
+            return
+        idle = time.monotonic() - self._last_image
+        if idle < self.settings.idle_end_track_s:
+            return
+        with self._wake:
+            if self._queue or self._busy:
+                return
+        with self._lock:
+            end = Odometry()
+            end.child_frame_id = topics.TRACK_END_FRAME
+            self.pub_meas.publish(end)
+            self.front.request_track_boundary()
+            self._measured_since_end = False
+            self.counts['idle_track_ends'] += 1
+        self.get_logger().info(f'no image for {idle:.1f} s: track ended (end-of-input message '
+                               f'on {self.settings.measurements_topic}); the next keyframe '
+                               'starts a new track')
 
     # ------------------------------------------------------------------ callbacks
     def _on_info(self, msg: CameraInfo, side: str) -> None:
@@ -280,6 +320,7 @@ class VoNode(Node):
             self.get_logger().info(f'camera {camera!r} in {cfg.base_frame!r} from {ext.source}')
 
     def _on_image(self, msg: Image | CompressedImage, side: str) -> None:
+        self._last_image = time.monotonic()
         self.streams[f'{side}_image'].add(conv.stamp_to_ns(msg.header.stamp))
         pair = self.front.pair_image(side, msg)  # cheap: no decoding
         if pair is None:
@@ -340,7 +381,8 @@ class VoNode(Node):
             'pairs_dropped_queue_full': self.counts['queue_dropped'],
             'queue_length': len(self._queue), 'measurements': st.measurements,
             'cross_connections': self.counts['cross'], 'keyframes': st.keyframes,
-            'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected}
+            'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected,
+            'tracks_ended_idle': self.counts['idle_track_ends']}
         for key, n in st.reasons.items():
             values['no_measurement/' + key] = n
         for name, mon in self.streams.items():
