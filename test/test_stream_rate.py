@@ -57,3 +57,46 @@ def test_bad_settings_are_refused():
         StreamMonitor(gap_factor=1.0)
     with pytest.raises(InputError):
         StreamMonitor(window=0)
+
+
+def test_frames_lost_on_one_side_or_both_are_counted_once():
+    from ga_ros.pipeline.stream_rate import FrameMonitor
+
+    rng = np.random.default_rng(4)
+    period, n = 50_000_000, 300
+    mon = FrameMonitor(tolerance_ns=5_000_000)
+    truth_complete = 0
+    for k in range(n):
+        s = 10**18 + k * period
+        left, right = rng.random() > 0.2, rng.random() > 0.1
+        if 100 <= k < 104:
+            left = right = False                     # a run of frames of which nothing came
+        if k in (0, n - 1):
+            left = right = True                      # the ends are seen
+        if left:
+            mon.announce(s + 1000)                   # the right camera 1 us later
+        if right:
+            mon.announce(s + 2000)
+        if left and right:
+            mon.completed(s + 1000)
+            truth_complete += 1
+    mon.flush()
+    r = mon.report()
+    assert r.received == truth_complete
+    assert r.received + r.lost == n
+    assert r.rate_hz == pytest.approx(20.0)
+
+
+def test_a_frame_completed_after_it_was_settled_is_received_not_lost():
+    from ga_ros.pipeline.stream_rate import FrameMonitor
+
+    mon = FrameMonitor(tolerance_ns=10, settle_ns=100)
+    mon.announce(0)
+    for k in range(1, 6):
+        mon.announce(k * 50)
+        mon.completed(k * 50)
+    assert mon.report().lost == 1 and mon.report().received == 2
+    mon.completed(0)                                  # the late partner of frame 0
+    mon.flush()
+    r = mon.report()
+    assert (r.received, r.lost) == (6, 0)

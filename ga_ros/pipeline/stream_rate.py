@@ -119,3 +119,85 @@ class StreamMonitor:
         rate = 1e9 / period if np.isfinite(period) and period > 0 else float('nan')
         return StreamReport(self.received, self.lost, self.received + self.lost, rate,
                             self.gaps, self.not_advancing)
+
+
+class FrameMonitor:
+    """Frames of a multi-stream sensor (a stereo camera: left and right images at the same
+    stamps) announced by any stream, against the frames that arrived complete (a pair).
+
+    A frame is *announced* when any of its messages arrives (stamps within ``tolerance_ns`` are
+    one frame) and *complete* when the caller pairs it. Frames are settled in stamp order once
+    the newest announced stamp is ``settle_ns`` past them (or on :meth:`flush`): an incomplete
+    one is lost (one of its messages was), and frames of which no message arrived at all are
+    counted from the gaps of the settled stamps (:class:`StreamMonitor`). A frame completed
+    after it was settled as lost (a very late message) is moved back to the received ones.
+
+    Parameters
+    ----------
+    tolerance_ns : largest stamp difference of two messages of one frame (the pairing
+        tolerance), ns.
+    settle_ns : stamp time after which an incomplete frame is lost, ns.
+    gap_factor : as :class:`StreamMonitor`.
+    """
+
+    def __init__(self, tolerance_ns: int, settle_ns: int = 1_000_000_000,
+                 gap_factor: float = 1.5) -> None:
+        self.tolerance_ns = int(tolerance_ns)
+        self.settle_ns = int(settle_ns)
+        self._open: dict[int, bool] = {}            # frame stamp -> complete
+        self._lost_recent: deque[int] = deque(maxlen=1000)
+        self._gaps = StreamMonitor(gap_factor)
+        self._newest: int | None = None
+        self.complete = 0
+        self.incomplete = 0
+
+    def _frame(self, stamp_ns: int) -> int | None:
+        return next((s for s in self._open if abs(s - stamp_ns) <= self.tolerance_ns), None)
+
+    def announce(self, stamp_ns: int) -> None:
+        """A message of the frame stamped ``stamp_ns`` arrived."""
+        stamp_ns = int(stamp_ns)
+        if self._frame(stamp_ns) is None:
+            if any(abs(s - stamp_ns) <= self.tolerance_ns for s in self._lost_recent):
+                return                              # of a frame already settled as lost
+            self._open[stamp_ns] = False
+        self._newest = stamp_ns if self._newest is None else max(self._newest, stamp_ns)
+        self._settle(self._newest - self.settle_ns)
+
+    def completed(self, stamp_ns: int) -> None:
+        """The frame stamped ``stamp_ns`` arrived complete."""
+        stamp_ns = int(stamp_ns)
+        late = next((s for s in self._lost_recent if abs(s - stamp_ns) <= self.tolerance_ns),
+                    None)
+        if late is not None:                         # settled as lost, then completed
+            self._lost_recent.remove(late)
+            self.incomplete -= 1
+            self.complete += 1
+            return
+        frame = self._frame(stamp_ns)
+        if frame is None:
+            self.announce(stamp_ns)
+            frame = self._frame(stamp_ns)
+        if frame is not None and not self._open[frame]:
+            self._open[frame] = True
+
+    def flush(self) -> None:
+        """Settle every open frame (e.g. when the input has been idle)."""
+        if self._open:
+            self._settle(max(self._open) + 1)
+
+    def _settle(self, before_ns: int) -> None:
+        for stamp in sorted(s for s in self._open if s < before_ns):
+            if self._open.pop(stamp):
+                self.complete += 1
+            else:
+                self.incomplete += 1
+                self._lost_recent.append(stamp)
+            self._gaps.add(stamp)
+
+    def report(self) -> StreamReport:
+        """Settled frames: ``received`` complete, ``lost`` incomplete or never announced."""
+        g = self._gaps.report()
+        lost = self.incomplete + g.lost
+        return StreamReport(self.complete, lost, self.complete + lost, g.rate_hz, g.gaps,
+                            g.not_advancing)

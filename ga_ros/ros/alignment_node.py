@@ -276,9 +276,9 @@ class AlignmentNode(Node):
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
 
-        if s.diagnostics_period_sec > 0:
-            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
         wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics, clock=wall)
         if s.warn_throttle_sec > 0:
             self.create_timer(s.warn_throttle_sec, self._log_rejections, clock=wall)
         if s.track_idle_timeout_sec > 0:

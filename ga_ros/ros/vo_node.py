@@ -27,9 +27,11 @@ pose leaves as the robot's ``base_frame``, converted with the camera's extrinsic
 ``T_base_camera``, else the identity (said so by ``assume_identity_extrinsic``, or warned
 about).
 
-Loss detection: each image stream and the stream of pairs has a
-:class:`ga_ros.pipeline.stream_rate.StreamMonitor` (rate from the stamps, gaps counted as lost
-messages); the diagnostics report received / expected / lost and turn WARN when the lost
+Loss detection: each image stream has a :class:`ga_ros.pipeline.stream_rate.StreamMonitor`
+(rate from the stamps, gaps counted as lost messages) and the pairs a
+:class:`ga_ros.pipeline.stream_rate.FrameMonitor` (a frame of which one image arrived and the
+other not is a lost pair; frames of which nothing arrived are counted from the stamp gaps); the
+diagnostics report received / expected / lost and turn WARN when the lost
 fraction exceeds ``loss_warn_fraction``. The image and camera-info subscriptions use the
 ``qos_reliability`` of the parameters (default best effort, which connects to best-effort and
 reliable publishers) with ``image_queue`` messages of depth.
@@ -87,7 +89,7 @@ from ga_ros.errors import GaError
 from ga_ros.geometry import se3
 from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, ImagePair, StereoFrontEnd
-from ga_ros.pipeline.stream_rate import StreamMonitor
+from ga_ros.pipeline.stream_rate import FrameMonitor, StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, sensor_qos, stream_qos, tf_static_qos
@@ -189,8 +191,9 @@ class VoNode(Node):
             extrinsic=self.extrinsic_config))
         self.extrinsic_config.from_parameters()  # a malformed T_base_camera fails at start
         self.tf_static = TransformTree()
-        self.streams = {'left_image': StreamMonitor(), 'right_image': StreamMonitor(),
-                        'pairs': StreamMonitor()}
+        self.streams: dict[str, StreamMonitor | FrameMonitor] = {
+            'left_image': StreamMonitor(), 'right_image': StreamMonitor(),
+            'pairs': FrameMonitor(int(round(s.max_pair_dt_sec * 1e9)))}
         self._last_warn: dict[str, float] = {}
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
                        'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0}
@@ -203,8 +206,9 @@ class VoNode(Node):
         self._stop = False
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic,
                                               stream_qos())
-        if s.diagnostics_period_sec > 0:
-            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics)
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
         # transient local: an alignment node that matches late (discovery across hosts, a
         # restart) still gets every measurement; volatile subscribers match it as well
         self.pub_meas = self.create_publisher(Odometry, s.measurements_topic,
@@ -321,11 +325,13 @@ class VoNode(Node):
 
     def _on_image(self, msg: Image | CompressedImage, side: str) -> None:
         self._last_image = time.monotonic()
-        self.streams[f'{side}_image'].add(conv.stamp_to_ns(msg.header.stamp))
+        stamp = conv.stamp_to_ns(msg.header.stamp)
+        self.streams[f'{side}_image'].add(stamp)
+        self.streams['pairs'].announce(stamp)
         pair = self.front.pair_image(side, msg)  # cheap: no decoding
         if pair is None:
             return
-        self.streams['pairs'].add(pair.stamp_ns)
+        self.streams['pairs'].completed(pair.stamp_ns)
         dropped = None
         with self._wake:
             if len(self._queue) >= max(1, self.settings.pair_queue):
@@ -385,6 +391,8 @@ class VoNode(Node):
             'tracks_ended_idle': self.counts['idle_track_ends']}
         for key, n in st.reasons.items():
             values['no_measurement/' + key] = n
+        if time.monotonic() - self._last_image > 1.0:   # input idle: settle every frame
+            self.streams['pairs'].flush()
         for name, mon in self.streams.items():
             values.update(mon.report().values(f'{name}/'))
         ext = self.front.extrinsic
