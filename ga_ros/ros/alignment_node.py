@@ -209,6 +209,7 @@ class NodeSettings:
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
     'map_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'publish_tf_when_contested', 'loss_warn_fraction',
     'warn_throttle_sec', 'publish_markers', 'residual_color_scale', 'odom_max_rate_hz',
     'covariance_policy', 'input_warn_throttle_sec', 'full_path_min_period_sec'})
 #: AlignerConfig fields that may change at run time (the aligner reads them at each update).
