@@ -36,6 +36,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                       'published covariances against actual errors (position NEES)'),
     'online-gap': Benchmark('ga_ros.bench.online_gap:main',
                             'online estimate against batch, per track and policy'),
+    'outliers': Benchmark('ga_ros.bench.outliers:main',
+                          'wrong cross-track connections: how well each defence rejects them'),
     'freeze': Benchmark('ga_ros.bench.freeze:main', 'CPU of each stage of a track freeze'),
     'prior': Benchmark('ga_ros.bench.prior:main',
                        'sparse joint priors against dense ones (covariances, CPU)'),
