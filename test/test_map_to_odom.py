@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -128,7 +129,7 @@ def test_alignment_node_stops_publishing_when_another_node_owns_odom():
     from tf2_msgs.msg import TFMessage
 
     from ga_ros.ros import conversions as conv
-    from ga_ros.ros.alignment_node import AlignmentNode
+    from ga_ros.ros.alignment_node import TF_CONTEST_HOLD_SEC, AlignmentNode
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 67) % 150)
@@ -161,6 +162,12 @@ def test_alignment_node_stops_publishing_when_another_node_owns_odom():
         node.settings = replace(node.settings, publish_tf_when_contested=True)
         node._publish_tf()
         assert len(sent) == n + 1
+        # without: ours again once the other has been silent for TF_CONTEST_HOLD_SEC
+        node.settings = replace(node.settings, publish_tf_when_contested=False)
+        node._foreign_tf = ('map', time.monotonic() - TF_CONTEST_HOLD_SEC - 0.1)
+        assert node.tf_contested_by == ''
+        node._publish_tf()
+        assert len(sent) == n + 2
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

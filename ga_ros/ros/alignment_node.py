@@ -80,6 +80,8 @@ NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
+#: Another node's ``-> odom`` transform keeps ours off the air this long after it was heard, s.
+TF_CONTEST_HOLD_SEC = 5.0
 #: Numeric ranges of the AlignerConfig parameters.
 ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
                   'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
@@ -142,7 +144,8 @@ class NodeSettings:
     transform_publish_period_sec : period of the TF timer, s (0: after updates only).
     publish_tf_when_contested : keep publishing ``map_frame -> odom_frame`` when another node
         publishes a transform to ``odom_frame`` on ``tf_topic`` (a frame has one parent: TF
-        consumers would jump between the two).
+        consumers would jump between the two); off: ours stops until the other has been
+        silent for :data:`TF_CONTEST_HOLD_SEC`.
     loss_warn_fraction : diagnostics WARN when a standard input's lost / expected messages
         exceed this.
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
@@ -262,8 +265,10 @@ class AlignmentNode(Node):
         # without standard inputs the frame-to-frame integration of the measurements
         self.odom = MapToOdom(self.front)
         self._own_tf: dict[int, np.ndarray] = {}   # stamp -> T_map_odom of what we sent
-        self.tf_contested_by: str = ''               # parent frame of another map -> odom
-        self.create_subscription(TFMessage, s.tf_topic, self._on_tf, stream_qos(100))
+        self._foreign_tf: tuple[str, float] = ('', -np.inf)   # its parent, monotonic time
+        # best effort hears reliable and best-effort TF publishers alike
+        self.create_subscription(TFMessage, s.tf_topic, self._on_tf, sensor_qos('best_effort',
+                                                                                100))
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
@@ -544,6 +549,13 @@ class AlignmentNode(Node):
             self._own_tf.pop(next(iter(self._own_tf)))
         self.pub_tf.publish(TFMessage(transforms=tfs))
 
+    @property
+    def tf_contested_by(self) -> str:
+        """Parent frame of another node's transform to ``odom_frame`` heard within the last
+        :data:`TF_CONTEST_HOLD_SEC` ('' when none: ours is published again)."""
+        parent, at = self._foreign_tf
+        return parent if time.monotonic() - at < TF_CONTEST_HOLD_SEC else ''
+
     def _on_tf(self, msg: TFMessage) -> None:
         """Another publisher of a transform to ``odom_frame``: warn (throttled), report it in
         the diagnostics and stop publishing ours (unless ``publish_tf_when_contested``)."""
@@ -552,7 +564,7 @@ class AlignmentNode(Node):
         if not parents:
             return
         first = not self.tf_contested_by
-        self.tf_contested_by = parents[0]
+        self._foreign_tf = (parents[0], time.monotonic())
         what = ('publishing ours anyway (publish_tf_when_contested)'
                 if s.publish_tf_when_contested else 'not publishing ours')
         self.get_logger().warning(
