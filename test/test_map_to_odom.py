@@ -171,3 +171,53 @@ def test_alignment_node_stops_publishing_when_another_node_owns_odom():
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_live_node_beside_a_played_nav2_bag_does_not_fight_amcl(tmp_path: Path):
+    """``alignment_node`` on ``/odom`` while ``ga-ros play`` plays a Nav2-like bag whose ``/tf``
+    carries AMCL's ``map -> odom``: the node warns in /diagnostics and stops sending its own."""
+    pytest.importorskip('rclpy')
+    pytest.importorskip('tf2_msgs.msg')
+    import subprocess
+    import sys
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from tf2_msgs.msg import TFMessage
+
+    from ga_ros.ros.harness import NodeClient, start_node_process, stop_process
+    from ga_ros.ros.qos import stream_qos
+
+    _nav2_bag(tmp_path / 'nav2')
+    domain = 40 + (os.getpid() + 79) % 150
+    node = start_node_process(domain, {
+        'inputs': 'odom0', 'odom0.topic': '/odom', 'odom0.track_mode': 'distance',
+        'odom0.track_length_m': 5.0, 'publish_markers': False, 'autosave': False,
+        'diagnostics_period_sec': 0.2}, log_path=tmp_path / 'node.log')
+    play = None
+    try:
+        with NodeClient(domain) as client:
+            tf = client.record(TFMessage, '/tf', stream_qos(1000))
+            diags = client.record(DiagnosticArray, '/diagnostics', stream_qos(1000))
+            client.spin_until(lambda: bool(diags), 60.0, 'the node up')
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+            play = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play',
+                                     str(tmp_path / 'nav2'), '--rate', '2', '--no-clock'],
+                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    text=True)
+            client.spin_until(lambda: play.poll() is not None, 120.0, 'the bag played')
+            warned = [st for m in diags for st in m.status
+                      if any(kv.key == 'tf_contested_by' for kv in st.values)]
+            assert warned, (tmp_path / 'node.log').read_text()[-2000:]
+            assert warned[-1].level in (b'\x01', 1) and 'map -> odom' in warned[-1].message
+            to_odom = [t for m in tf for t in m.transforms if t.child_frame_id == 'odom']
+            amcl = [t for t in to_odom if abs(t.transform.translation.x - 7.4) < 1e-9]
+            ours = [t for t in to_odom if abs(t.transform.translation.x - 7.4) >= 1e-9]
+            assert amcl
+            # 15 s of bag at 20 Hz would be 300 of ours; at most those before AMCL was heard
+            assert len(ours) < 40, len(ours)
+    finally:
+        if play is not None and play.poll() is None:
+            play.kill()
+        stop_process(node)
