@@ -4,8 +4,11 @@ One ROS-free object (:class:`InputFrontEnd`) that the alignment node and the rep
 message by message, so that live and offline runs make the same measurements:
 
 * :meth:`InputFrontEnd.sample` ``(name, msg, msgtype)``: one ``nav_msgs/Odometry``,
-  ``PoseWithCovarianceStamped`` or ``PoseStamped`` of input ``name``
-  (:class:`ga_ros.inputs.odometry.OdometryInput`: keyframes, covariance policy, track rule);
+  ``PoseWithCovarianceStamped`` or ``PoseStamped`` of input ``name``. The first (primary)
+  input defines the keyframes (:class:`ga_ros.inputs.odometry.OdometryInput`: keyframes,
+  covariance policy, track rule); every further input measures the motion between those
+  keyframes from its own poses (:class:`ga_ros.inputs.secondary.SecondaryInput`), so several
+  relative sources make connections on one keyframe graph;
 * :meth:`InputFrontEnd.constraint` ``(msg)``: an external constraint (encoding in
   :mod:`ga_ros.inputs.messages`) on the first input's keyframes;
 * :meth:`InputFrontEnd.track_boundary`: a new track at the next keyframe (a topic);
@@ -39,6 +42,7 @@ from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import decode_constraint, decode_sample, input_type
 from ga_ros.inputs.odometry import OdometryInput, OdometryInputConfig
+from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
 
 #: Policies for a measurement covariance that is not positive definite.
 COVARIANCE_POLICIES = ('reject', 'repair')
@@ -145,15 +149,15 @@ class InputFrontEnd:
 
     Parameters
     ----------
-    inputs : the inputs; their names must differ, and so must their node id ranges
-        (``first_node_id``), since all inputs share one network.
+    inputs : the inputs; their names must differ. The first one defines the keyframes (its
+        ``first_node_id`` numbers them); the others measure the motion between them.
     warn_throttle_s : smallest interval between two default-covariance warnings (s).
     clock : monotonic clock in seconds for the throttle.
 
     Raises
     ------
     InputError
-        Duplicate names or first node ids, or no input.
+        Duplicate names or no input.
     """
 
     def __init__(self, inputs: Sequence[InputSpec], warn_throttle_s: float = 10.0,
@@ -162,15 +166,15 @@ class InputFrontEnd:
             raise InputError('no standard input configured: give at least one odometry or '
                              'pose topic')
         names = [s.name for s in inputs]
-        firsts = [s.config.first_node_id for s in inputs]
         if len(set(names)) != len(names):
             raise InputError(f'input names must differ, got {names}')
-        if len(set(firsts)) != len(firsts):
-            raise InputError(f'inputs {names} share first_node_id values {firsts}: give each '
-                             'input its own node id range (e.g. 0 and 1000000000)')
         self.specs = {s.name: s for s in inputs}
-        self.inputs = {s.name: OdometryInput(s.config) for s in inputs}
         self.primary = names[0]
+        #: the keyframe input and the further ones measured on its keyframes
+        self.inputs: dict[str, OdometryInput | SecondaryInput] = {
+            s.name: OdometryInput(s.config) if s.name == self.primary
+            else SecondaryInput(s.config) for s in inputs}
+        self._kf_stamp_ns: int | None = None
         self.throttle = Throttle(warn_throttle_s, clock)
         self.constraints_rejected = 0
         #: stamp (ns) of the first input's newest sample (0 before any)
@@ -189,28 +193,47 @@ class InputFrontEnd:
         """
         spec = self.specs[name]
         inp = self.inputs[name]
+        defaults = inp.stats.default_covariances
         try:
             s = decode_sample(msg, msgtype or spec.msgtype)
             if spec.config.frame_id and s.frame_id.lstrip('/') != spec.config.frame_id.lstrip(
                     '/'):
                 raise InputError(f'{name}: frame {s.frame_id!r}, expected '
                                  f'{spec.config.frame_id!r}')
+            if isinstance(inp, SecondaryInput):
+                meas = tuple(inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov,
+                                            s.twist_cov))
+                warn = inp.stats.default_covariances > defaults
+                return InputStep(meas, warning=self._default_warning(name) if warn else '')
             up = inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov, s.twist_cov)
         except InputError as exc:
             return InputStep(error=f'{name}: {exc}')
-        if name == self.primary:
-            self.latest_stamp_ns = s.stamp_ns
+        self.latest_stamp_ns = s.stamp_ns
         stamps = {up.keyframe_id: up.stamp_ns} if up.new_keyframe else {}
         meas = (up.measurement,) if up.measurement is not None else ()
-        warning = ''
-        if up.default_covariance:
-            warning = self._default_warning(name)
+        warning = self._default_warning(name) if up.default_covariance else ''
+        if up.new_keyframe:
+            meas += self._measure_interval(up.measurement, up.stamp_ns)
+            self._kf_stamp_ns = up.stamp_ns
         return InputStep(meas, stamps, warning)
+
+    def _measure_interval(self, m: Measurement | None, stamp_ns: int) -> tuple[Measurement, ...]:
+        """The further inputs' measurements of the primary's new keyframe interval ``m``
+        (those that already cover it; the others measure it when their samples do)."""
+        if m is None or self._kf_stamp_ns is None:
+            return ()
+        iv = KeyframeInterval(m.src_id, m.dst_id, m.src_track, m.dst_track, self._kf_stamp_ns,
+                              int(stamp_ns))
+        out: list[Measurement] = []
+        for inp in self.inputs.values():
+            if isinstance(inp, SecondaryInput):
+                out += inp.add_interval(iv)
+        return tuple(out)
 
     def constraint(self, msg: Any) -> InputStep:
         """An external constraint (``nav_msgs/Odometry``, :mod:`ga_ros.inputs.messages`) on the
         keyframes of the first input. Rejections come back as ``error``; never raises."""
-        inp = self.inputs[self.primary]
+        inp = self._primary()
         before = inp.stats.default_covariances
         try:
             c = decode_constraint(msg)
@@ -228,8 +251,7 @@ class InputFrontEnd:
 
     def track_boundary(self) -> None:
         """Start a new track at the next keyframe of every input."""
-        for inp in self.inputs.values():
-            inp.request_track_boundary()
+        self._primary().request_track_boundary()
 
     # ------------------------------------------------------------------ TF
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
@@ -241,7 +263,7 @@ class InputFrontEnd:
         node_ids : (n,) node ids of the corrected path.
         T_map_node : (n, 4, 4) their corrected poses in the map frame.
         """
-        inp = self.inputs[self.primary]
+        inp = self._primary()
         for k in range(len(node_ids) - 1, -1, -1):
             try:
                 T_odom_k = inp.keyframe_pose(int(node_ids[k]))
@@ -252,7 +274,12 @@ class InputFrontEnd:
 
     def latest_pose(self) -> FloatArray | None:
         """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
-        return self.inputs[self.primary].latest_pose()
+        return self._primary().latest_pose()
+
+    def _primary(self) -> OdometryInput:
+        inp = self.inputs[self.primary]
+        assert isinstance(inp, OdometryInput)
+        return inp
 
     def stats(self) -> dict[str, object]:
         """Counters per input (for diagnostics and the replay summary)."""

@@ -55,7 +55,8 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    default=[], metavar='TOPIC',
                    help='odometry / pose input: nav_msgs/Odometry, geometry_msgs/'
                         'PoseWithCovarianceStamped or PoseStamped (type from the bag); '
-                        'repeatable: inputs odom0, odom1, ...')
+                        'repeatable: inputs odom0, odom1, ...; the first defines the keyframes, '
+                        'the others measure the motion between them')
     s.add_argument('--input-config', type=Path, metavar='YAML',
                    help='input settings by name (config/inputs.yaml: keyframes, covariance '
                         'policy, track rule; a section with a topic adds that input)')
@@ -138,9 +139,6 @@ def input_topics(args: argparse.Namespace) -> InputTopics:
         if not isinstance(sections, dict):
             raise InputError(f'{args.input_config}: expected sections named like odom0, pose0')
     named = {f'odom{k}': t for k, t in enumerate(args.input_topics)}
-    firsts = {n: {'first_node_id': 1_000_000_000 * k} for k, n in enumerate(named) if k}
-    for n, extra in firsts.items():
-        sections[n] = {**extra, **(sections.get(n) or {})}
     return InputTopics(specs_from_mapping(sections, named), args.constraints_topic,
                        args.track_boundary_topic)
 
