@@ -2,7 +2,9 @@
 
 A ground robot drives a gently weaving path at 1 m/s. Its wheel odometry (50 Hz) measures the
 travel well and the heading poorly; a visual odometry (10 Hz, its own odom frame) measures the
-heading well and the travel poorly, starts 20 s late and drops out for 10 s. Both publish
+heading well and the travel poorly, starts 20 s late and drops out for 10 s. The wheel
+odometry also drifts in heading (a yaw-rate bias) in the bag of the accuracy test; the
+Monte-Carlo of the covariances has white noise only. Both publish
 ``nav_msgs/Odometry`` with the twist covariance of the noise they were made with; the bags are
 written here with rosbags, as a robot records them.
 """
@@ -31,8 +33,8 @@ from ga_ros.replay.pipeline import ReplayConfig, replay
 T0_NS = 1_700_000_000_000_000_000
 WHEEL_HZ, VISUAL_HZ = 50, 10
 #: per-sample velocity noise (twist covariance sigmas [vx vy vz wx wy wz], m/s and rad/s)
-WHEEL_SIGMA = np.array([0.05, 0.05, 0.02, 0.01, 0.01, 0.06])
-VISUAL_SIGMA = np.array([0.6, 0.6, 0.3, 0.005, 0.005, 0.005])
+WHEEL_SIGMA = np.array([0.05, 0.05, 0.02, 0.01, 0.01, 0.04])
+VISUAL_SIGMA = np.array([2.0, 2.0, 1.0, 0.005, 0.005, 0.005])
 
 
 @dataclass
@@ -47,8 +49,9 @@ class Streams:
 
 
 def simulate(rng: np.random.Generator, duration_s: float = 120.0, start_s: float = 20.0,
-             dropout_s: tuple[float, float] = (60.0, 70.0)) -> Streams:
-    """The two streams of one run (module doc)."""
+             dropout_s: tuple[float, float] = (60.0, 70.0), yaw_bias: float = 0.0) -> Streams:
+    """The two streams of one run (module doc); ``yaw_bias`` (rad/s) is a heading drift of
+    the wheel odometry on top of its white noise (not in its covariance)."""
     dt = 1.0 / WHEEL_HZ
     n = int(duration_s * WHEEL_HZ) + 1
     t = np.arange(n) * dt
@@ -59,9 +62,10 @@ def simulate(rng: np.random.Generator, duration_s: float = 120.0, start_s: float
     wheel = np.empty((n, 4, 4))
     gt[0] = se3.from_translation_rotvec(np.array([5.0, -3.0, 0.0]), np.array([0, 0, 0.4]))
     wheel[0] = np.eye(4)
+    bias = np.array([0, 0, 0, 0, 0, yaw_bias])
     for k in range(n - 1):
         gt[k + 1] = gt[k] @ se3.exp(dt * xi[k])
-        wheel[k + 1] = wheel[k] @ se3.exp(dt * (xi[k] + rng.normal(0.0, WHEEL_SIGMA)))
+        wheel[k + 1] = wheel[k] @ se3.exp(dt * (xi[k] + bias + rng.normal(0.0, WHEEL_SIGMA)))
     step = WHEEL_HZ // VISUAL_HZ
     idx = np.arange(int(start_s * WHEEL_HZ), n, step)
     visual = [se3.from_translation_rotvec(np.array([-1.0, 2.0, 0.5]), np.array([0, 0, -1.0]))]
@@ -116,7 +120,7 @@ def replay_config(topics: list[str], gt_file: Path) -> ReplayConfig:
 @pytest.fixture(scope='module')
 def two_stream_bag(tmp_path_factory) -> tuple[Path, Path, Streams]:
     tmp = tmp_path_factory.mktemp('two_streams')
-    s = simulate(np.random.default_rng(7))
+    s = simulate(np.random.default_rng(7), yaw_bias=0.002)
     write_bag(tmp / 'in', s)
     write_tum(tmp / 'gt.tum', s.stamps, s.gt)
     return tmp / 'in', tmp / 'gt.tum', s
@@ -140,7 +144,9 @@ def test_two_odometry_streams_fuse_without_rejection(two_stream_bag, tmp_path: P
     visual = replay(bag, tmp_path / 'vo', replay_config(['/vo/odom'], gt_file))
     rmse = {k: r.errors['ga'].ate_raw for k, r in
             (('both', both), ('wheel', wheel), ('visual', visual))}
-    assert rmse['both'] < 0.7 * min(rmse['wheel'], rmse['visual']), rmse
+    # (measured 3.2 m fused, 5.6 m wheel, 6.2 m visual: the first 20 s and the dropout are
+    # the wheel's alone)
+    assert rmse['both'] < 0.8 * min(rmse['wheel'], rmse['visual']), rmse
 
 
 def test_ros1_bag_with_two_slam_outputs_rejects_nothing(tmp_path: Path) -> None:
@@ -180,9 +186,12 @@ def test_ros1_bag_with_two_slam_outputs_rejects_nothing(tmp_path: Path) -> None:
     res = replay(path, tmp_path / 'out', ReplayConfig(inputs=InputTopics(specs), plot=False))
     assert res.rejected == {}, res.rejected_examples
     b = res.source_stats['odom1']
-    assert b['measurements'] == res.source_stats['odom0']['keyframes'] - 1 > 30
-    assert b['not_covered'] == 0
-    assert res.n_measurements == 2 * b['measurements']
+    # every keyframe interval measured but the first (slam_b starts 20 ms after it) and at
+    # most one after slam_b's last pose (still waiting)
+    assert (b['measurements'] + b['not_covered'] + b['pending']
+            == res.source_stats['odom0']['keyframes'] - 1)
+    assert b['measurements'] > 30 and b['pending'] <= 1 and b['not_covered'] == 1
+    assert res.n_measurements == res.source_stats['odom0']['measurements'] + b['measurements']
 
 
 def _fused_run(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
@@ -250,12 +259,12 @@ def test_secondary_interval_motion_and_coverage() -> None:
     for t in (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2):
         got += sec.add_sample(int(t * ns), pose(t))
     assert sec.add_interval(iv0) == [] and sec.stats.not_covered == 1
-    assert sec.add_interval(iv1) == [] and sec.pending == 1  # waits for a sample >= 1.33 s
+    assert sec.add_interval(iv1) == [] and sec.stats.pending == 1  # waits for a sample >= 1.33 s
     for t in (1.3, 1.4, 2.0, 2.2, 2.8, 2.9, 3.0):
         got += sec.add_sample(int(t * ns), pose(t))
     got += sec.add_interval(iv2)
     got += sec.add_interval(iv3)
-    assert sec.pending == 1  # iv3 waits
+    assert sec.stats.pending == 1  # iv3 waits
     got += sec.add_sample(int(3.1 * ns), pose(3.1))
     assert [(m.src_id, m.dst_id) for m in got] == [(1, 2), (3, 4)]
     assert got[1].dst_track == 1 and got[1].kind == 'consecutive'

@@ -75,6 +75,8 @@ class SecondaryStats:
     measurements : keyframe intervals measured.
     not_covered : keyframe intervals the stream could not bracket (late start, dropout).
     default_covariances : measurements whose covariance was the default.
+    pending : keyframe intervals still waiting for a sample at or after their end (at the end
+        of a recording: those after the stream's last sample).
     constraints : always 0 (external constraints use the primary input).
     """
 
@@ -82,6 +84,7 @@ class SecondaryStats:
     measurements: int
     not_covered: int
     default_covariances: int
+    pending: int = 0
     constraints: int = 0
 
 
@@ -106,12 +109,7 @@ class SecondaryInput:
     @property
     def stats(self) -> SecondaryStats:
         """Counters so far."""
-        return SecondaryStats(**self._n)
-
-    @property
-    def pending(self) -> int:
-        """Keyframe intervals waiting for a sample at or after their end."""
-        return len(self._pending)
+        return SecondaryStats(**self._n, pending=len(self._pending))
 
     def add_sample(self, stamp_ns: int, T_odom_base: FloatArray,
                    pose_cov: FloatArray | None = None,

@@ -62,6 +62,7 @@ def result_text(r: ReplayResult) -> str:
             elif isinstance(v, dict) and 'not_covered' in v:
                 lines.append(f"{name}: {v['samples']} samples, {v['measurements']} keyframe "
                              f"intervals measured, {v['not_covered']} not covered, "
+                             f"{v['pending']} after its last sample, "
                              f"{v['default_covariances']} default covariances")
         warn = st.get('warnings', {})
         if isinstance(warn, dict) and warn.get('first'):
