@@ -10,7 +10,12 @@ message by message, so that live and offline runs make the same measurements:
   keyframes from its own poses (:class:`ga_ros.inputs.secondary.SecondaryInput`), so several
   relative sources make connections on one keyframe graph;
 * :meth:`InputFrontEnd.constraint` ``(msg)``: an external constraint (encoding in
-  :mod:`ga_ros.inputs.messages`) on the first input's keyframes;
+  :mod:`ga_ros.inputs.messages`) on the first input's keyframes, its stamps tied to them by the
+  odometry in between;
+* :meth:`InputFrontEnd.image` / :meth:`InputFrontEnd.camera_info` ``(side, msg)``: a stereo
+  camera beside the odometry (:class:`ga_ros.pipeline.keyframe_camera.KeyframeCamera`): images
+  matched to the first input's keyframes, cross-track connections tied to them as external
+  constraints are; :meth:`InputFrontEnd.set_corrected` gives it the corrected path;
 * :meth:`InputFrontEnd.track_boundary`: a new track at the next keyframe (a topic);
 * :meth:`InputFrontEnd.map_to_odom`: the REP 105 ``map -> odom`` correction from the corrected
   path and the odometry poses of the same keyframes.
@@ -38,11 +43,12 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.core.covariance import nearest_positive_definite
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import InputError
+from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import decode_constraint, decode_sample, input_type
 from ga_ros.inputs.odometry import OdometryInput, OdometryInputConfig
 from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
+from ga_ros.pipeline.keyframe_camera import CameraConnection, KeyframeCamera
 
 #: Policies for a measurement covariance that is not positive definite.
 COVARIANCE_POLICIES = ('reject', 'repair')
@@ -153,6 +159,7 @@ class InputFrontEnd:
         ``first_node_id`` numbers them); the others measure the motion between them.
     warn_throttle_s : smallest interval between two default-covariance warnings (s).
     clock : monotonic clock in seconds for the throttle.
+    camera : a stereo camera beside the odometry (None: none).
 
     Raises
     ------
@@ -161,7 +168,8 @@ class InputFrontEnd:
     """
 
     def __init__(self, inputs: Sequence[InputSpec], warn_throttle_s: float = 10.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 camera: KeyframeCamera | None = None) -> None:
         if not inputs:
             raise InputError('no standard input configured: give at least one odometry or '
                              'pose topic')
@@ -175,6 +183,10 @@ class InputFrontEnd:
             s.name: OdometryInput(s.config) if s.name == self.primary
             else SecondaryInput(s.config) for s in inputs}
         self._kf_stamp_ns: int | None = None
+        self.camera = camera
+        #: camera connections whose image stamps the odometry does not cover yet
+        self._camera_waiting: list[CameraConnection] = []
+        self.camera_rejected = 0
         self.throttle = Throttle(warn_throttle_s, clock)
         self.constraints_rejected = 0
         #: stamp (ns) of the first input's newest sample (0 before any)
@@ -215,7 +227,59 @@ class InputFrontEnd:
         if up.new_keyframe:
             meas += self._measure_interval(up.measurement, up.stamp_ns)
             self._kf_stamp_ns = up.stamp_ns
+            if self.camera is not None:
+                self._camera_waiting += self.camera.add_keyframe(
+                    up.keyframe_id, up.track_id, inp.segmenter.segment, up.stamp_ns,
+                    s.T_odom_base)
+        meas += self._camera_measurements()
         return InputStep(meas, stamps, warning)
+
+    # ------------------------------------------------------------------ camera
+    def camera_info(self, side: str, msg: Any) -> InputStep:
+        """A ``CameraInfo`` of the camera beside the odometry; a rejection comes back as
+        ``error`` (the previous calibration stays)."""
+        if self.camera is None:
+            return InputStep(error='camera: no camera configured')
+        try:
+            self.camera.set_camera_info(side, msg)
+        except InputError as exc:
+            return InputStep(error=f'camera: CameraInfo rejected: {exc}')
+        return InputStep()
+
+    def image(self, side: str, msg: Any) -> InputStep:
+        """An image of the camera beside the odometry (``side``: ``'left'`` / ``'right'``);
+        the cross-track connections of the keyframes it completes."""
+        if self.camera is None:
+            return InputStep(error='camera: no camera configured')
+        try:
+            self._camera_waiting += self.camera.add_image(side, msg)
+        except GaError as exc:
+            return InputStep(error=f'camera: {exc}')
+        return InputStep(self._camera_measurements())
+
+    def set_corrected(self, node_ids: IntArray, T_map_node: FloatArray) -> None:
+        """The corrected path (node ids, ``(n, 4, 4)`` base poses) for the camera's overlap
+        prediction."""
+        if self.camera is not None and len(node_ids):
+            self.camera.set_corrected(node_ids, T_map_node)
+
+    def _camera_measurements(self) -> tuple[Measurement, ...]:
+        """Camera connections tied to the keyframes by the odometry between each image and
+        its keyframe (:meth:`OdometryInput.constraint_from_stamps`); those whose later image
+        is newer than the odometry wait for it."""
+        out, waiting = [], []
+        inp = self._primary()
+        for c in self._camera_waiting:
+            if c.dst_stamp_ns > self.latest_stamp_ns:
+                waiting.append(c)
+                continue
+            try:
+                out.append(inp.constraint_from_stamps(c.src_stamp_ns, c.dst_stamp_ns,
+                                                      c.T_src_dst, c.cov))
+            except InputError:
+                self.camera_rejected += 1
+        self._camera_waiting = waiting
+        return tuple(out)
 
     def _measure_interval(self, m: Measurement | None, stamp_ns: int) -> tuple[Measurement, ...]:
         """The further inputs' measurements of the primary's new keyframe interval ``m``
@@ -285,6 +349,9 @@ class InputFrontEnd:
         """Counters per input (for diagnostics and the replay summary)."""
         out: dict[str, object] = {n: asdict(i.stats) for n, i in self.inputs.items()}
         out['constraints_rejected'] = self.constraints_rejected
+        if self.camera is not None:
+            out['camera'] = {**asdict(self.camera.stats), 'rejected': self.camera_rejected,
+                             'pairing': self.camera.front.stats.summary()}
         return out
 
     def _default_warning(self, name: str) -> str:

@@ -594,9 +594,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         source: Any
         if specs:
             counter = [0]
-            total = sum(bag.info.topic(t).count for t in (
-                [s.topic for s in specs] + [config.inputs.constraints,
-                                            config.inputs.track_boundary]) if t)
+            total = sum(bag.info.topic(t).count for t in config.inputs.topics)
             source = InputSource(bag, specs, config.inputs, counter)
             unit = 'msg'
         elif plan.source == 'stereo':
