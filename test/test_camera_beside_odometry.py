@@ -119,6 +119,7 @@ def test_camera_beside_odometry_makes_cross_track_connections(robot_bag, tmp_pat
     cam = res['source_stats']['camera']
     assert cam['keyframes_with_image'] >= 0.8 * res['source_stats']['odom0']['keyframes']
     assert cam['cross_accepted'] > 5 and cam['rejected'] == 0, cam
+    assert res['rejected'] == {}, res['rejected_examples']
     err = res['errors_vs_ground_truth']
     assert err['ga']['ate_raw_m'] < 0.5 * err['f2f']['ate_raw_m'], (err, cam)
 

@@ -400,11 +400,13 @@ class OdometryInput:
                                      C, self._kf_stamps[j], 'cross')
 
     def constraint_from_stamps(self, stamp_a_ns: int, stamp_b_ns: int, T_a_b: FloatArray,
-                               cov: FloatArray | None) -> Measurement:
+                               cov: FloatArray | None,
+                               nodes: tuple[int, int] | None = None) -> Measurement:
         """A ``'cross'`` Measurement from a relative pose between the base at two stamps.
 
-        Each stamp is mapped to its nearest keyframe ``k`` (within ``constraint_tolerance_s``)
-        and the odometry ``T_k_a`` from the keyframe to the stamp, interpolated between the
+        Each stamp is mapped to its nearest keyframe ``k`` (within ``constraint_tolerance_s``;
+        or to the keyframes ``nodes`` (node ids) when given, e.g. those an image was taken
+        for) and the odometry ``T_k_a`` from the keyframe to the stamp, interpolated between the
         neighbouring samples. The result is ``T_ka_kb = T_ka_a T_a_b T_kb_b^-1`` with covariance
         ``Ad(T_kb_b) C Ad(T_kb_b)^T`` plus the noise model's covariance of the two offsets
         (``default_noise_percent`` of each offset, no floor: zero at a keyframe's own stamp)
@@ -418,8 +420,9 @@ class OdometryInput:
             keyframe, or a malformed pose.
         """
         T_ab = check_pose(T_a_b, f'{self.config.name}: constraint T_a_b')
-        ia, T_ka_a = self._anchor(int(stamp_a_ns))
-        ib, T_kb_b = self._anchor(int(stamp_b_ns))
+        ka, kb = nodes if nodes is not None else (None, None)
+        ia, T_ka_a = self._anchor(int(stamp_a_ns), ka)
+        ib, T_kb_b = self._anchor(int(stamp_b_ns), kb)
         if ia == ib:
             raise InputError(f'{self.config.name}: both constraint stamps map to keyframe '
                              f'{self._kf_ids[ia]}; the constraint adds nothing')
@@ -511,14 +514,15 @@ class OdometryInput:
                              f'{self.config.first_node_id}..{self._next_id - 1})')
         return i
 
-    def _anchor(self, stamp: int) -> tuple[int, FloatArray]:
-        """Index of the keyframe nearest to ``stamp`` and the odometry ``T_kf_stamp``."""
+    def _anchor(self, stamp: int, node: int | None = None) -> tuple[int, FloatArray]:
+        """Index of the keyframe nearest to ``stamp`` (or of keyframe ``node``) and the
+        odometry ``T_kf_stamp``."""
         name = self.config.name
         if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
             raise InputError(f'{name}: constraint stamp {stamp} ns is outside the odometry '
                              'received so far; send constraints after the odometry covering them')
         ks = np.asarray(self._kf_stamps)
-        i = int(np.argmin(np.abs(ks - stamp)))
+        i = int(np.argmin(np.abs(ks - stamp))) if node is None else self._kf_index(node)
         if abs(int(ks[i]) - stamp) * 1e-9 > self.config.constraint_tolerance_s:
             raise InputError(f'{name}: no keyframe within {self.config.constraint_tolerance_s}'
                              f' s of constraint stamp {stamp} ns; raise constraint_tolerance_s'

@@ -264,9 +264,9 @@ class InputFrontEnd:
             self.camera.set_corrected(node_ids, T_map_node)
 
     def _camera_measurements(self) -> tuple[Measurement, ...]:
-        """Camera connections tied to the keyframes by the odometry between each image and
-        its keyframe (:meth:`OdometryInput.constraint_from_stamps`); those whose later image
-        is newer than the odometry wait for it."""
+        """Camera connections tied to their keyframes by the odometry between each image and
+        the keyframe it was taken for (:meth:`OdometryInput.constraint_from_stamps`); those
+        whose later image is newer than the odometry wait for it."""
         out, waiting = [], []
         inp = self._primary()
         for c in self._camera_waiting:
@@ -275,7 +275,8 @@ class InputFrontEnd:
                 continue
             try:
                 out.append(inp.constraint_from_stamps(c.src_stamp_ns, c.dst_stamp_ns,
-                                                      c.T_src_dst, c.cov))
+                                                      c.T_src_dst, c.cov,
+                                                      nodes=(c.src_id, c.dst_id)))
             except InputError:
                 self.camera_rejected += 1
         self._camera_waiting = waiting

@@ -7,8 +7,9 @@ cross-track connections of the stereo pipeline on the keyframes its odometry inp
 * **images to keyframes**: left/right images are paired as by the stereo front end (one
   tolerance, :class:`ga_ros.pipeline.stereo.StereoFrontEnd`); each odometry keyframe takes the
   pair nearest to its stamp within ``max_image_offset_s`` (decided once a pair at or after the
-  keyframe's stamp arrived, or when no nearer one can come); a keyframe without one is counted
-  and gets no cross-track connection;
+  keyframe's stamp arrived); a keyframe without one, or whose nearest pair an earlier keyframe
+  took (two keyframes within one image period, e.g. in a turn), is counted and gets no
+  cross-track connection;
 * **keyframe records**: the pair's ORB features and stereo points, extracted by the stereo VO's
   own keyframe initialisation (:class:`ga_ros.vo.odometry.StereoOdometry`, re-initialised on
   the pair), posed at the odometry's ``T_odom_base T_base_cam`` and named by the odometry's
@@ -107,7 +108,8 @@ class KeyframeCameraStats:
     ----------
     pairs : image pairs made.
     keyframes_with_image : keyframes that got an image pair (and a store record).
-    keyframes_without_image : keyframes with no pair within ``max_image_offset_s``.
+    keyframes_without_image : keyframes with no pair within ``max_image_offset_s``, or whose
+        nearest pair an earlier keyframe took.
     keyframes_without_features : keyframes whose pair gave too few stereo features.
     cross_attempts, cross_accepted : verified candidates, accepted connections.
     """
@@ -145,6 +147,7 @@ class KeyframeCamera:
         self._pairs: deque[ImagePair] = deque(maxlen=self.config.max_waiting_pairs)
         self._waiting: list[_Keyframe] = []
         self._image_stamp: dict[int, int] = {}
+        self._last_used_ns = -1
 
     # ------------------------------------------------------------------ calibration
     def set_camera_info(self, side: str, msg: Any) -> None:
@@ -197,7 +200,7 @@ class KeyframeCamera:
                 break  # a nearer pair may still come
             self._waiting.pop(0)
             best = min(self._pairs, key=lambda p: abs(p.stamp_ns - kf.stamp_ns))
-            if abs(best.stamp_ns - kf.stamp_ns) > tol:
+            if abs(best.stamp_ns - kf.stamp_ns) > tol or best.stamp_ns <= self._last_used_ns:
                 self.stats.keyframes_without_image += 1
                 continue
             out += self._match(kf, best)
@@ -222,6 +225,7 @@ class KeyframeCamera:
                          segment=kf.segment, stamp_ns=int(pair.stamp_ns),
                          T_world_kf=kf.T_odom_base @ self.T_base_cam)
         self._image_stamp[kf.node_id] = int(pair.stamp_ns)
+        self._last_used_ns = int(pair.stamp_ns)
         attempts = front.matcher.add(record)
         self.stats.cross_attempts += len(attempts)
         out = []

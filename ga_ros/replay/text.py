@@ -64,6 +64,12 @@ def result_text(r: ReplayResult) -> str:
                              f"intervals measured, {v['not_covered']} not covered, "
                              f"{v['pending']} after its last sample, "
                              f"{v['default_covariances']} default covariances")
+        cam = st.get('camera')
+        if isinstance(cam, dict):
+            lines.append(f"camera: {cam['pairs']} pairs, {cam['keyframes_with_image']} keyframes "
+                         f"with an image ({cam['keyframes_without_image']} without), "
+                         f"{cam['cross_accepted']} cross-track connections accepted of "
+                         f"{cam['cross_attempts']} verified candidates")
         warn = st.get('warnings', {})
         if isinstance(warn, dict) and warn.get('first'):
             lines.append(f"warning: {warn['first']}")
