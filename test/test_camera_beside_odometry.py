@@ -137,3 +137,50 @@ def test_change_frame_against_composition() -> None:
     samples = T_BASE_CAM @ (T_ca_cb @ se3.exp(d)) @ se3.inverse(T_BASE_CAM)
     e = se3.log(se3.inverse(T_b) @ samples)
     np.testing.assert_allclose(np.cov(e.T), C_b, atol=3e-5 + 0.05 * np.abs(C_b).max())
+
+
+def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
+    """The node with ``inputs: odom0`` and ``camera.*`` topics, fed the bag's messages by its
+    callbacks (in-process): cross-track connections are made and accepted."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.parameter import Parameter
+
+    from ga_ros.io.bag import BagReader
+    from ga_ros.ros.alignment_node import AlignmentNode
+
+    bag, _ = robot_bag
+    p, q = se3.to_pos_quat(T_BASE_CAM)
+    params = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.keyframe_travel_m': 11.0,
+              'odom0.track_mode': 'heading', 'odom0.default_noise_percent': 1.0,
+              'odom0.default_depth_m': 110.0,
+              'camera.left_image_topic': 'cam/left/image/compressed',
+              'camera.right_image_topic': 'cam/right/image/compressed',
+              'camera.left_info_topic': 'cam/left/camera_info',
+              'camera.right_info_topic': 'cam/right/camera_info', 'camera.compressed': True,
+              'camera.base_to_camera': [float(v) for v in (*p, *q)],
+              'publish_markers': False, 'diagnostics_period_sec': 0.0,
+              'transform_publish_period_sec': 0.0}
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
+    node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                           for k, v in params.items()])
+    try:
+        subs = {s.topic_name for s in node.subscriptions}
+        assert {'/cam/left/image/compressed', '/cam/right/camera_info'} <= subs
+        with BagReader(bag) as reader:
+            for bm in reader.messages(None):
+                side = 'left' if '/left/' in bm.topic else 'right'
+                if bm.topic == '/odom':
+                    node._on_input('odom0', bm.msg)
+                elif bm.topic.endswith('camera_info'):
+                    node._on_camera_info(side, bm.msg)
+                else:
+                    node._on_camera_image(side, bm.msg)
+        cam = node.front.stats()['camera']
+        assert cam['cross_accepted'] > 5 and cam['rejected'] == 0, cam
+        assert sum(node.session.counts.rejected.values()) == 0
+        assert node.session.counts.accepted == (node.front.inputs['odom0'].stats.measurements
+                                                + cam['cross_accepted'])
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

@@ -303,3 +303,33 @@ def test_secondary_twist_covariance_matches_the_primary_integration() -> None:
     for a, b in zip(kf, got):
         np.testing.assert_allclose(b.z, a.z, atol=1e-12)
         np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9, atol=1e-15)
+
+
+def test_alignment_node_takes_two_odometry_inputs(tmp_path: Path) -> None:
+    """The node with ``inputs: odom0,odom1`` (in-process callbacks): the second stream's
+    measurements are accepted on the first one's keyframes."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.parameter import Parameter
+
+    from ga_ros.ros.alignment_node import AlignmentNode
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
+    params = {'inputs': 'odom0,odom1', 'odom0.topic': 'wheel/odom', 'odom1.topic': 'vo/odom',
+              'odom0.track_mode': 'time', 'odom0.track_duration_s': 10.0,
+              'publish_markers': False, 'diagnostics_period_sec': 0.0,
+              'transform_publish_period_sec': 0.0}
+    node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                           for k, v in params.items()])
+    try:
+        s = simulate(np.random.default_rng(2), duration_s=30.0, start_s=5.0,
+                     dropout_s=(15.0, 18.0))
+        for _, topic, msg in messages(s):
+            node._on_input('odom0' if topic == '/wheel/odom' else 'odom1', msg)
+        wheel, vo = node.front.inputs['odom0'].stats, node.front.inputs['odom1'].stats
+        assert vo.measurements > 10 and vo.not_covered > 0
+        assert sum(node.session.counts.rejected.values()) == 0
+        assert node.session.counts.accepted == wheel.measurements + vo.measurements
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
