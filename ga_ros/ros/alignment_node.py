@@ -440,7 +440,7 @@ class AlignmentNode(Node):
         if not names:
             return None
         specs = []
-        for k, name in enumerate(names):
+        for name in names:
             why = 'the input is set up at start'
             topic = self.declare_parameter(f'{name}.topic', '', ParameterDescriptor(
                 description=f'{name}: input topic (read-only: {why})', read_only=True)).value
@@ -449,7 +449,7 @@ class AlignmentNode(Node):
                 read_only=True)).value
             cfg = declare_config(self, OdometryInputConfig, prefix=f'{name}.',
                                  read_only_reason=why,
-                                 defaults=OdometryInputConfig(name, first_node_id=k * 10**9))
+                                 defaults=OdometryInputConfig(name))
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
             specs.append(InputSpec(str(topic), str(msgtype), replace(cfg, name=name)))
