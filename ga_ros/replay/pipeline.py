@@ -645,6 +645,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                 result.source_stats = _as_dict(stats)
             if run.aligner is None and result.error is None and run.stamps:
                 run.finish_stationary()  # keyframes but no motion: the robot stood still
+                if stats is not None and hasattr(stats, 'summary'):  # stereo: every reason
+                    result.notes.append(f'stereo: {stats.summary()}; if the camera did move, '
+                                        'lower the VO keyframe thresholds')
             elif run.aligner is None and result.error is None:
                 examples = '; '.join(result.rejected_examples[:3])
                 if stats is not None and hasattr(stats, 'summary'):  # stereo: every reason
