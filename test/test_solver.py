@@ -444,7 +444,7 @@ def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
 def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     """At residuals consistent with x, the se3 shortcut (J' P J, J' P e) and the general
     mixed-model form (A' M^-1 A, A' M^-1 w with M = B S B') are the same linear system."""
-    from ga_ros.core.solver import _consistent_residuals, _inv_spd, _linear_system
+    from ga_ros.core.solver.linearise import _consistent_residuals, _inv_spd, _linear_system
     prob = make_problem(rng, 'se3', n=9, noise=5.0)
     net = prob.network
     c = net.arrays()

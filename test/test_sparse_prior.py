@@ -16,16 +16,16 @@ import pytest
 import scipy.sparse as sp
 
 from ga_ros.core import refinement
-from ga_ros.core.persistence import load_state, save_state
-from ga_ros.core.refinement import absorbed_priors, band_prior, marginal_prior, tangent_prior
-from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.sparse import (
+from ga_ros.core.linalg.banded import (
     CovarianceSkeleton,
     band_information,
     banded_selection,
     dense_band,
     skeleton_layout,
 )
+from ga_ros.core.persistence import load_state, save_state
+from ga_ros.core.refinement import absorbed_priors, band_prior, marginal_prior, tangent_prior
+from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3
@@ -76,7 +76,7 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     """Both ways to the skeleton (selected inversion on the sparse factor with the skeleton's
     pairs added to its pattern; the banded selection with hub columns by solves) against the
     dense inverse, the step ``N^-1 rhs`` against a dense solve."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -102,7 +102,7 @@ def test_sparse_skeleton_of_a_repeated_pattern_reuses_its_plan(monkeypatch):
     same pattern (other values) reuses the kept pattern, symbolic analysis and entry positions
     (:class:`selinv._SkeletonPlan`) and still equals the dense inverse, bit for bit the skeleton
     computed without the kept plan, from CSR and from CSC input."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv
 
     if not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -146,7 +146,7 @@ def test_banded_selection_refuses_a_singular_matrix():
 def separators(request, monkeypatch):
     """The band completion's separator solves compiled (LAPACK called from the kernel) and
     without the kernels (SciPy's LAPACK in a loop)."""
-    from ga_ros.core import lapack
+    from ga_ros.core.linalg import lapack
 
     if request.param and not lapack.COMPILED:
         pytest.skip('numba is not installed')

@@ -2,7 +2,7 @@
 
 The normal matrix has one ``d x d`` block per node and the sparsity of the connection graph, so
 its fill-reducing ordering is computed on that *block* graph (one vertex per node) and expanded
-to scalars (:func:`ga_ros.core.sparse.block_ordering`). AMD is cheap and best on small or
+to scalars (:func:`ga_ros.core.linalg.ordering.block_ordering`). AMD is cheap and best on small or
 chain-like graphs; on large graphs with many loops (a survey of overlapping tracks, a torus or
 a sphere lattice) nested dissection (METIS, through ``pymetis``) leaves less fill: the paper's
 aerial survey 6.75 -> 5.21 GFlop per factorisation, torus3D 1.38 -> 1.02 (``ga-ros bench
@@ -80,7 +80,8 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
     """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
     count of a symbolic analysis, ``analysis(indptr, indices, order)`` of the matrix's lower
     triangle (CSC, diagonal included; e.g. CHOLMOD's,
-    :meth:`ga_ros.core.sparse._DirectCholmod.analysis_flops`: no numeric factorisation), or,
+    :meth:`ga_ros.core.linalg.cholmod._DirectCholmod.analysis_flops`: no numeric factorisation),
+    or,
     without one (or when it returns ``None``), ``sum_j c_j^2`` over the columns of the factor
     (``c_j`` its non-zeros) from a numeric factorisation; the two are equal.
 
@@ -136,3 +137,7 @@ def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray,
     if factor_flops(n, rows, cols, nd, analysis) < factor_flops(n, rows, cols, amd, analysis):
         return nd
     return amd
+
+
+def _expand(block_perm: IntArray, d: int) -> IntArray:
+    return (np.asarray(block_perm, dtype=np.int64)[:, None] * d + np.arange(d)).ravel()

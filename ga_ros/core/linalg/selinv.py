@@ -8,7 +8,8 @@ last column back, without any column of ``N^-1``):
   factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
   surveys; quality control).
 * :func:`banded_marginal_blocks`, on the banded ``N`` (the block-tridiagonal selected inversion
-  of :func:`ga_ros.core.sparse.banded_selection`, which also serves the sparse joint priors):
+  of :func:`ga_ros.core.linalg.banded.banded_selection`, which also serves the sparse joint
+  priors):
   with a bandwidth-reducing node ordering (reverse Cuthill-McKee, or the principal axis) a
   survey's normal matrix is banded; cut into blocks of the band's width it is block
   tridiagonal, and its block Cholesky factor and Takahashi's backward recursion give every
@@ -29,13 +30,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core import lapack
 from ga_ros.core.kernels import AVAILABLE
-from ga_ros.core.sparse import _blake2b, _CholmodFactor
+from ga_ros.core.linalg import lapack
+from ga_ros.core.linalg.blocks import _blake2b
+from ga_ros.core.linalg.cholmod import _CholmodFactor
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
-    from ga_ros.core.sparse import CovarianceSkeleton
+    from ga_ros.core.linalg.banded import CovarianceSkeleton
 
 
 def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
@@ -43,7 +45,7 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
                            coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
-    The block-tridiagonal selected inversion of :func:`~ga_ros.core.sparse.banded_selection`
+    The block-tridiagonal selected inversion of :func:`~ga_ros.core.linalg.banded.banded_selection`
     with a band of width 0 (nodes of high degree, e.g. those of a dense joint prior, ordered
     last as a dense border).
 
@@ -63,7 +65,7 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     -------
     (u, d, d) covariance blocks in the original node order, or ``None`` (band too wide).
     """
-    from ga_ros.core.sparse import banded_selection  # lazy: cvxopt
+    from ga_ros.core.linalg.banded import banded_selection  # lazy: cvxopt
 
     u = N.shape[0] // d
     nodes = np.arange(u, dtype=np.int64) if wanted is None or len(wanted) == 0 else \
@@ -439,7 +441,7 @@ def _supernodal_layout(capsule, n: int) -> _Layout | None:
 def _csc_layout(chol) -> _Layout:
     """The factor read out with ``cholmod.getfactor`` (a simplicial copy: ~2x the factor's
     memory at the peak), its supernodes found from the pattern (:func:`supernodes`)."""
-    from ga_ros.core.sparse import _cholmod
+    from ga_ros.core.linalg.cholmod import _cholmod
 
     perm = chol.permutation()
     F = _cholmod.getfactor(chol._F)
@@ -457,7 +459,8 @@ def _csc_layout(chol) -> _Layout:
 class SelectedInverse:
     """``Sigma = N^-1`` on the pattern of the Cholesky factor of ``N`` (selected inversion).
 
-    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.sparse.SparseCholesky`, ordered by the
+    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.linalg.cholesky.SparseCholesky`, ordered
+    by the
     project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is
     overwritten in place by Takahashi's equations (:func:`_takahashi_py`, compiled with numba),
     supernode by supernode with dense products, in CHOLMOD's own supernodal storage (viewed
@@ -484,7 +487,7 @@ class SelectedInverse:
     """
 
     def __init__(self, chol, copy: bool = False, columns: IntArray | None = None) -> None:
-        from ga_ros.core.sparse import _cholmod
+        from ga_ros.core.linalg.cholmod import _cholmod
 
         if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
             raise DegenerateGeometryError('selected inversion needs a CHOLMOD factor (cvxopt)')
@@ -597,7 +600,7 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
     With the compiled kernels: the skeleton's block pairs are added to the pattern of ``N`` (as
     explicit zeros), so that they lie on the pattern of its sparse Cholesky factor, and
     Takahashi's selected inversion on that factor
-    (:class:`~ga_ros.core.selinv.SelectedInverse`) gives all of them at once; the fill of a
+    (:class:`~ga_ros.core.linalg.selinv.SelectedInverse`) gives all of them at once; the fill of a
     band of ``w`` nodes and ``h`` hub rows is linear in the number of targets. Without: the
     band by :func:`banded_selection`, the hubs' columns by solves with the same factor
     (``h d`` right-hand sides). Both exact and linear in the number of nodes for a strip.
@@ -607,12 +610,8 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
     DegenerateGeometryError
         ``N`` is not positive definite.
     """
-    from ga_ros.core.sparse import (
-        CovarianceSkeleton,
-        _cholmod,
-        banded_selection,
-        skeleton_layout,
-    )
+    from ga_ros.core.linalg.banded import CovarianceSkeleton, banded_selection, skeleton_layout
+    from ga_ros.core.linalg.cholmod import _cholmod
 
     t = np.asarray(targets, dtype=np.int64)
     rest, hubs = skeleton_layout(t.size, w, n_hubs)
@@ -685,7 +684,8 @@ def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: In
                 and np.array_equal(plan.indices, N.indices):
             _PLANS.move_to_end(key)
             return plan
-    from ga_ros.core.sparse import BlockPattern, band_pairs
+    from ga_ros.core.linalg.banded import band_pairs
+    from ga_ros.core.linalg.blocks import BlockPattern
 
     u = N.shape[0] // d
     # the positions of N's values travel through the conversions instead of the values
@@ -726,7 +726,8 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
     """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
     skeleton's pairs added to its pattern (pattern, analysis and the entries' positions kept
     per pattern: :class:`_SkeletonPlan`)."""
-    from ga_ros.core.sparse import CovarianceSkeleton, SparseCholesky
+    from ga_ros.core.linalg.banded import CovarianceSkeleton
+    from ga_ros.core.linalg.cholesky import SparseCholesky
 
     if N.format not in ('csr', 'csc') or not N.has_canonical_format:
         N = sp.csr_matrix(N)

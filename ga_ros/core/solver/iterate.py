@@ -1,0 +1,338 @@
+"""The batch solve: validation, the iteration loop (paper Sec. III-C, steps 1-6) and the final
+linearisation at the solution."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import models
+from ga_ros.core.linalg.cholesky import SparseCholesky
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver.config import SolverConfig
+from ga_ros.core.solver.linearise import _System
+from ga_ros.core.solver.priors import GaussianPrior, _prior_cost, _PriorData
+from ga_ros.core.solver.problem import _adjustment_cost, _maha2, _Problem
+from ga_ros.core.solver.result import SolveResult, _NormalSystem
+from ga_ros.core.solver.steps import _dogleg_step, _lm_step, _Step, _Trust
+from ga_ros.core.solver.termination import _chord_kept, _left_to_gain
+from ga_ros.errors import DegenerateGeometryError, InputError, SolverError
+from ga_ros.geometry import se2
+from ga_ros.runtime import blas_threads
+
+
+# ----------------------------------------------------------------------------------- solve
+def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
+          fixed: Sequence[int] | None = None,
+          priors: Sequence[GaussianPrior] = (), jit: bool = False,
+          weights: FloatArray | None = None,
+          factor: SparseCholesky | None = None,
+          factor_at_solution: bool = True,
+          measured: tuple[FloatArray, FloatArray] | None = None) -> SolveResult:
+    """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
+
+    Parameters
+    ----------
+    network : the connections (validated on insertion).
+    T_init : (n, 4, 4) initial poses ``T_world_node`` in network index order (e.g.
+        :func:`initial_guess_f2f`).
+    config : solver settings.
+    fixed : node ids held fixed (the datum). Default: the first node when there are no priors,
+        none otherwise (then the priors must define the datum).
+    priors : weighted parameters / sequential priors (see :class:`GaussianPrior`).
+    jit : use the compiled se3 kernels (:mod:`ga_ros.core.kernels`) from the first
+        linearisation on, for a caller that solves many problems in one process (the window
+        aligner): the one-off cost of loading them is paid once. Default: only once a solve
+        has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
+    weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
+        (se3; e.g. kept from the previous window update), or (m, 3, 3) those of their
+        ``[x y rz]`` blocks (se2; a 2-D g2o file's information): not inverted again.
+    factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
+        if its pattern is this problem's, its symbolic analysis is reused (a window update
+        solves the same pattern every track).
+    factor_at_solution : ``True`` (default): the result's covariances ``Q_x = N^-1`` (eq. 17)
+        come from ``N`` factored at the solution (on first use). ``False`` (undamped
+        iterations only): from the iteration's last numeric factorisation, at the start of its
+        last full Gauss-Newton step (the chord steps after it reuse that factor), so a solve
+        that converges with one factorisation needs no second one for its covariances.
+        ``N = J' P J`` depends on the estimate only through the connections' relative poses
+        ``T_i^-1 T_j`` (the Jacobians ``[-Ad(T_ij^-1), I]``) and the priors' residuals, so the
+        two differ by the change of those over the last correction (first order in it; a
+        rigid motion of the whole network changes nothing). ``Q_x`` is itself the first-order
+        covariance of an estimate that lies about one standard deviation from the truth, so a
+        linearisation point a fraction of a correction away is within its own approximation.
+        Measured: a small survey at 10 % noise, variances within 1.1 % of the dense inverse
+        at the solution (``test_window_fast.py`` bounds them at 5 %); the aerial survey's
+        window (6,732 unknowns, 10 % noise) 0.4-2.3 % for the track that leaves it next and up
+        to 10 % for the newest two tracks, whose weak modes the last correction moved by metres.
+        :attr:`SolveResult.factor_offset` bounds the distance. The normal matrix of the result
+        (:attr:`SolveResult.normal_matrix`, a sequential prior) is then the factored one too.
+    measured : se3 only: ``(T_meas, T_meas^-1)``, the (m, 4, 4) measured motions of the
+        connections (``T_src_dst`` of each ``z``,
+        :func:`ga_ros.geometry.se3.from_translation_rotvec`) and their inverses, if the caller
+        has them (e.g. kept from the previous window update, as ``weights``): not computed
+        again.
+
+    Returns
+    -------
+    SolveResult with the estimate, residuals, adjusted observations, variance factor,
+    redundancy and access to marginal covariances.
+
+    Raises
+    ------
+    InputError, NetworkError
+        Bad shapes, unknown nodes, nodes not connected to the datum (named).
+    DegenerateGeometryError
+        Singular normal matrix.
+    """
+    t0 = time.perf_counter()
+    cfg = config or SolverConfig()
+    model = cfg.model
+    d = models.dof(model)
+    n = network.n_nodes
+    if n == 0:
+        raise InputError('the network has no nodes')
+    T0 = np.asarray(T_init, dtype=float)
+    if T0.shape != (n, 4, 4):
+        raise InputError(f'T_init must have shape ({n}, 4, 4), got {T0.shape}')
+    if not np.isfinite(T0).all():
+        raise InputError('T_init has NaN or inf entries')
+    conn = network.arrays()
+    node_ids = network.node_ids
+
+    if fixed is None:
+        fixed = [int(node_ids[0])] if not priors else []
+    fixed_idx = network.indices_of(list(fixed)) if len(fixed) else np.zeros(0, dtype=np.int64)
+    prior_data = [_PriorData.build(network, p, d) for p in priors]
+    anchors = list(fixed) + [int(i) for p in priors for i in p.node_ids]
+    if not anchors:
+        raise DegenerateGeometryError('no datum: fix a node or give priors (weighted parameters)')
+    network.check_connected(anchors)
+    free = np.ones(n, dtype=bool)
+    free[fixed_idx] = False
+    if not free.any():
+        raise InputError('every node is fixed: nothing to estimate')
+    want = {'se3': (len(conn), 6, 6), 'se2': (len(conn), 3, 3)}.get(model)
+    if weights is not None and np.shape(weights) != want:
+        raise InputError(f'weights must be {want} for the {model} model, got '
+                         f'{np.shape(weights)}' if want else 'weights only for se3 and se2')
+    if measured is not None and (model != 'se3' or any(
+            np.shape(a) != (len(conn), 4, 4) for a in measured)):
+        raise InputError(f'measured must be two ({len(conn)}, 4, 4) arrays, for the se3 model')
+    prob = _Problem.build(model, conn, prior_data, cfg, free, weights, measured)
+    prob.jit = bool(jit)
+    if factor is not None and factor.pattern.key == prob.pattern.key:
+        prob.factor = factor
+    with blas_threads():
+        out = _iterate(prob, T0.copy(), keep_values=not factor_at_solution)
+    return _finish(prob, node_ids, out, t0)
+
+
+@dataclass
+class _Iterations:
+    """Outcome of the iteration loop of :func:`solve` (before the final linearisation)."""
+
+    T: FloatArray
+    v: FloatArray
+    converged: bool
+    iterations: int
+    reason: str
+    history: list[float]
+    chol: SparseCholesky | None
+    factorisations: int
+    since_factor: float = np.inf  # sum of max |dx| since the last factorisation of N (undamped)
+    factored: FloatArray | None = None  # the values of N last factored (keep_values)
+
+
+def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Iterations:
+    """Relinearise and correct until the largest correction is below the tolerance (or a
+    Gauss-Newton step lowers the cost by less than ``cost_tolerance``).
+
+    Undamped chord steps (the last factorisation reused once a correction is below
+    ``reuse_factor_below``) need the gradient only (:meth:`_Problem.gradient`). With a
+    ``cost_tolerance`` the iteration stops before a chord step whose predicted decrease
+    ``-u' h = h' N_old h`` is below that fraction of the cost (the Newton decrement in the
+    metric of the last factor: the cost left to gain, up to the factor's error). A chord step
+    that is taken is kept only if it lowers the cost as predicted (:func:`_chord_kept`), and
+    only while chord steps converge fast: one whose decrease is more than a quarter of the
+    previous step's (a contraction slower than 1/2 per step, e.g. a factor from far away on a
+    weak mode of the network) makes the next iteration factor ``N`` anew. Measured on the
+    aerial window (10 % noise, after the pre-alignment): the chord step after the first
+    Gauss-Newton step predicted 0.005-0.02 (cost ~30,000), so the update stops at the
+    Gauss-Newton step's estimate, 0.01-0.17 m RMS from the window's optimum; the chord step
+    the earlier rule took (stopping after it on its realised decrease) moved the estimate
+    0.1-0.35 m away from the optimum along the weak modes for a decrease of 0.01.
+    The dogleg's chord step (:attr:`SolverConfig.chord_decrease`) is solved before ``N`` is
+    assembled: when it shows less than ``cost_tolerance`` left to gain (:func:`_left_to_gain`)
+    it is the last step, taken if it lowers the cost as predicted (:func:`_chord_kept`).
+    ``keep_values``: the values of ``N`` last factored are kept in the result (for
+    :func:`solve`'s ``factor_at_solution=False``).
+    """
+    cfg = prob.cfg
+    # the fused kernel's first system gives the motion model's residuals (the misclosure at T)
+    v = None if prob.fused_gradient else prob.consistent(T, prob.zero_residuals())
+    state = _Trust(chol=prob.factor, auto=cfg.factor == 'auto')
+    last_step = since_factor = np.inf
+    slow = False  # the last chord step contracted too slowly: factor anew
+    factored = None  # the values of N last factored (keep_values)
+    history: list[float] = []
+    converged = False
+    reason = 'max_iterations'
+    it = 0
+    # without a robust loss a damped step's cost (the motion models': at T) is this sum
+    plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
+
+    def objective(cost: float, v: FloatArray, T: FloatArray, sysd: _System) -> float:
+        """The cost history's entry at ``T`` after a step whose cost was ``cost``."""
+        return cost if plain else (_adjustment_cost(v, prob.P, sysd.weights)
+                                   + _prior_cost(prob.model, T, prob.prior_data))
+
+    for it in range(1, cfg.max_iterations + 1):
+        # the last values of N go before the next are assembled (~190 MB at 100,000 poses)
+        data = None
+        if state.chol is not None:
+            state.chol.release_values()
+        chord = (cfg.damping == 'none' and state.chol is not None
+                 and last_step < cfg.reuse_factor_below and not slow)
+        # a chord step needs the gradient only (it reuses the last factor of N)
+        sysd = prob.gradient(T, v) if chord else prob.linear_system(T, v)
+        if v is None:
+            v = sysd.w
+        if it == 1:  # the se3 shortcut's cost0 is the exact cost
+            state.cost = sysd.cost0 if prob.Pf is not None else prob.cost_at(T)
+            history.append(state.cost)
+        chord_h = None  # dogleg: the chord step from the last factor, tried first
+        if cfg.damping == 'dogleg' and state.chord and state.chol is not None:
+            chord_h = -state.chol.solve(sysd.u)
+            predicted = -float(sysd.u @ chord_h)
+            if (_left_to_gain(predicted, state.predicted, history)
+                    < cfg.cost_tolerance * history[-1]):
+                # the last step, N never assembled: kept if it lowers the cost as predicted
+                T_new = prob.retract(T, chord_h)
+                cost = prob.cost_at(T_new)
+                if state.cost - cost >= 0 and _chord_kept(predicted, state.cost, cost):
+                    T, v = T_new, prob.next_residuals(T_new, sysd, chord_h)
+                    history.append(objective(cost, v, T, sysd))
+                converged, reason = True, 'cost_converged'
+                break
+        # a chord step reuses the last factor: N's values are not needed
+        # the (4 m, d, d) blocks are freed before factoring
+        data = None if chord else sysd.normal_values(prob.pattern, prob.compiled)
+        sysd.drop_blocks()
+        if cfg.damping == 'none':
+            if not chord:
+                state.factor(prob.pattern, data)
+                since_factor = 0.0
+                factored = data if keep_values else None
+            dx = -state.chol.solve(sysd.u)
+            if not np.isfinite(dx).all():
+                raise SolverError('the correction is not finite')
+            if (chord and cfg.cost_tolerance > 0
+                    and -float(sysd.u @ dx) < cfg.cost_tolerance * history[-1]):
+                converged, reason = True, 'cost_converged'
+                break
+            T_new = prob.retract(T, dx)
+            ahead = prob.gradient_ahead(T_new, float(np.abs(dx).max()) if dx.size else 0.0)
+            if ahead is not None:  # the next chord step's gradient, residuals and cost at once
+                v_new, cost = ahead.w, ahead.cost0
+            else:
+                v_new = prob.next_residuals(T_new, sysd, dx)
+                cost = (_adjustment_cost(v_new, prob.P, sysd.weights)
+                        + _prior_cost(prob.model, T_new, prob.prior_data))
+            if chord and not _chord_kept(-float(sysd.u @ dx), history[-1], cost):
+                last_step = np.inf  # undone: this point again, with a factorisation
+                continue
+            T, v = T_new, v_new
+            step = _Step(T, v, float(np.abs(dx).max()) if dx.size else 0.0, True, cost,
+                         not chord)
+            since_factor += step.step
+        else:
+            step = (_dogleg_step(prob, T, sysd, data, state, chord_h)
+                    if cfg.damping == 'dogleg' else _lm_step(prob, T, sysd, data, state))
+            if not step.accepted:
+                reason = 'no_decrease'
+                converged = step.step < cfg.tolerance * 10
+                break
+            T, v = step.T, step.v
+        last_step = step.step
+        history.append(objective(step.cost, v, T, sysd))
+        state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
+                       and state.cost > 0
+                       and state.cost - step.cost < cfg.chord_decrease * state.cost)
+        state.cost, state.predicted = step.cost, step.predicted
+        if not np.isfinite(T).all():
+            raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
+                              'estimate stands')
+        if step.step < cfg.tolerance:
+            converged = True
+            reason = 'converged'
+            break
+        if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * \
+                history[-1]:
+            converged = True
+            reason = 'cost_converged'
+            break
+        slow = (chord and len(history) > 2
+                and history[-2] - history[-1] > 0.25 * (history[-3] - history[-2]))
+    return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations,
+                       since_factor if cfg.damping == 'none' else np.inf, factored)
+
+
+def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> SolveResult:
+    """Final linearisation at the solution: residuals, variance factor, ``N`` (eq. 17); the
+    covariances from the iteration's last factor when it kept that factor's values
+    (:func:`solve`'s ``factor_at_solution=False``)."""
+    T = out.T
+    d, conn = prob.d, prob.conn
+    n_free = int(prob.free.sum())
+    if prob.Pf is not None:
+        # motion models: out.v is the misclosure at T, so the residuals (v = weights * w) need
+        # no linearisation; N is assembled only if a covariance or prior asks for it
+        if prob.cfg.robust_loss == 'none':
+            weights, v = np.ones(len(conn)), out.v.copy()
+        else:
+            weights = prob.cfg.loss.weight(np.sqrt(np.maximum(_maha2(out.v, prob.P), 0.0)))
+            v = out.v * weights[:, None]
+
+        def data() -> FloatArray:
+            return prob.linear_system(T, out.v).normal_values(prob.pattern)
+    else:
+        final = prob.linear_system(T, out.v)
+        v = prob.residual_update(final, np.zeros(n_free * d))
+        weights = final.weights
+        data = final.normal_values(prob.pattern)
+    if (prob.Pf is not None and prob.cfg.robust_loss == 'none' and prob.cfg.damping == 'none'
+            and len(out.history) > 1):
+        cost = out.history[-1]  # this very sum, evaluated at T after the last step (_iterate)
+    else:
+        cost = (_adjustment_cost(v, prob.P, weights)
+                + _prior_cost(prob.model, T, prob.prior_data))
+    r_eq = len(conn) * models.equations_per_connection(prob.model) + sum(
+        p.rank for p in prob.prior_data)
+    redundancy = r_eq - n_free * d
+    sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
+    o = models.observations_per_connection(prob.model)
+    if o != conn.z.shape[1]:  # se2: the planar components of the 6-vector
+        v6 = np.zeros_like(conn.z)
+        v6[:, se2.AXES] = v
+        v = v6
+    # kept only by undamped iterations asked to (keep_values), at their last factorisation
+    last = out.factored is not None
+    if last:  # N as factored: covariances, normal matrix and priors of one matrix
+        data = out.factored
+    system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol,
+                           factored=last)
+    system.coords = T[prob.free, :3, 3]
+    return SolveResult(
+        node_ids=node_ids, T_world_node=T, converged=out.converged, iterations=out.iterations,
+        reason=out.reason, cost=float(cost), cost_history=out.history,
+        sigma0_sq=float(sigma0_sq), redundancy=int(redundancy), n_equations=int(r_eq),
+        n_observations=int(o * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
+        n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
+        seconds=time.perf_counter() - t0, model=prob.model, weights=weights,
+        factorisations=out.factorisations, factor_offset=out.since_factor if last else 0.0,
+        _system=system)

@@ -1,0 +1,331 @@
+"""One adjustment's fixed parts, built once (:class:`_Problem`), and the costs evaluated on it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core import columns, kernels, models
+from ga_ros.core.linalg.blocks import BlockPattern, kept_block_pattern
+from ga_ros.core.linalg.cholesky import SparseCholesky
+from ga_ros.core.network import ConnectionArrays
+from ga_ros.core.solver.config import SolverConfig
+from ga_ros.core.solver.linearise import (
+    _consistent_residuals,
+    _inv_spd,
+    _linear_system,
+    _misclosure,
+    _motion_system,
+    _residual_update,
+    _System,
+)
+from ga_ros.core.solver.priors import _add_priors, _prior_cost, _PriorData
+from ga_ros.geometry import se3
+
+#: Problems with more connections (motion models) are linearised and assembled in parts
+#: (:func:`_motion_system_in_parts`) ...
+_PARTS_ABOVE = 65_536
+
+
+#: ... of this many connections (the temporaries of a part: ~60 MB).
+_CONNECTIONS_PER_PART = 16_384
+
+
+@dataclass
+class _Problem:
+    """One adjustment's fixed parts (connections, priors, datum, pattern of ``N``), built once.
+
+    Its methods are the pieces of an iteration: the linear system at ``(T, v)``, the cost at
+    ``T``, the residual update (eq. 16) and the retraction of a correction.
+    """
+
+    model: str
+    conn: ConnectionArrays
+    P: FloatArray | _PartWeights  # (m, o, o) weights S^-1 of the connections
+    prior_data: list[_PriorData]
+    cfg: SolverConfig
+    free: np.ndarray  # (n,) bool
+    col: IntArray  # (n,) block column of each node in N, -1 if fixed
+    d: int
+    pattern: BlockPattern
+    S: FloatArray  # (m, o, o) covariance of the connections' observations
+    T_meas: FloatArray | None  # (m, 4, 4) measured motions (motion models, not in parts)
+    Tm_inv: FloatArray | None  # (m, 4, 4) their inverses (se3, not in parts)
+    _last: tuple = (None, None)  # (T, e): the last misclosure computed, reused once
+    linearisations: int = 0  # calls of linear_system so far
+    jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
+    factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
+    in_columns: bool = False  # se3 not in parts: linearised in columns unless compiled
+    _meas: columns.MeasuredInverse | None = None  # meas, once computed
+    _sqrt_w: columns.SqrtWeights | None = None  # sqrt_w, once computed
+    _mis: tuple = (None, None)  # (T, columns.Misclosure) of the last cost_at, reused once
+    _ahead: tuple = (None, None)  # (T, _System) of gradient_ahead, for the next gradient
+
+    @staticmethod
+    def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
+              cfg: SolverConfig, free: np.ndarray, P: FloatArray | None = None,
+              measured: tuple[FloatArray, FloatArray] | None = None) -> _Problem:
+        d = models.dof(model)
+        col = np.full(free.size, -1, dtype=np.int64)
+        col[free] = np.arange(int(free.sum()))
+        # block pattern: connection blocks (ii, ij, ji, jj) then prior blocks
+        br = [col[conn.src], col[conn.src], col[conn.dst], col[conn.dst]]
+        bc = [col[conn.src], col[conn.dst], col[conn.src], col[conn.dst]]
+        for pd in prior_data:
+            br.append(col[pd.idx[pd.blk_r]])
+            bc.append(col[pd.idx[pd.blk_c]])
+        pattern = kept_block_pattern(np.concatenate(br), np.concatenate(bc), d, int(free.sum()))
+        S = models.observation_covariance(model, conn.cov)
+        # the measured motions and their inverses are kept, except by problems linearised in
+        # parts, which compute them a part at a time (the same values: ~150 MB less at 100,000
+        # poses for a few tenths of a second per linearisation)
+        in_parts = _linearised_in_parts(model, len(conn))
+        if measured is not None and not in_parts:  # solve's measured (se3): the caller's
+            T_meas, Tm_inv = measured[0], np.ascontiguousarray(measured[1])
+        else:
+            T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
+                      if model in models.MOTION_MODELS and not in_parts else None)
+            # their inverses: se3 only (se2 composes the planar motions themselves)
+            Tm_inv = (np.ascontiguousarray(se3.inverse(T_meas))
+                      if T_meas is not None and model == 'se3' else None)
+        if P is None:  # the weights; a part at a time for problems linearised in parts
+            P = _PartWeights(S) if in_parts else _inv_spd(S)
+        return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
+                        Tm_inv, in_columns=model == 'se3' and not in_parts)
+
+    @property
+    def meas(self) -> columns.MeasuredInverse | None:
+        """``Tm_inv`` as columns (se3 in columns; computed on first use: a problem
+        linearised by the compiled kernel never needs it)."""
+        if self._meas is None and self.in_columns:
+            self._meas = columns.MeasuredInverse.of(self.Tm_inv)
+        return self._meas
+
+    @property
+    def sqrt_w(self) -> columns.SqrtWeights | None:
+        """``P = U'U`` as columns (se3 in columns; computed on first use)."""
+        if self._sqrt_w is None and self.in_columns:
+            self._sqrt_w = columns.SqrtWeights.of(self.P)
+        return self._sqrt_w
+
+    @property
+    def Pf(self) -> FloatArray | None:
+        """The weights when the shortcut of :func:`_linear_system` applies (se3, se2)."""
+        return self.P if self.model in models.MOTION_MODELS else None
+
+    def zero_residuals(self) -> FloatArray:
+        """``v = 0``: (m, o) with ``o`` the observations per connection."""
+        return np.zeros((len(self.conn), models.observations_per_connection(self.model)))
+
+    def linear_system(self, T: FloatArray, v: FloatArray) -> _System:
+        self.linearisations += 1
+        if _linearised_in_parts(self.model, len(self.conn)):
+            return _motion_system_in_parts(self, T)
+        last_T, mis = self._mis
+        self._mis = (None, None)
+        compiled = self.compiled
+        return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
+                              self.col, self.d, self.Pf, self.T_meas, self.Tm_inv, compiled,
+                              None if compiled else self.meas,
+                              None if compiled else self.sqrt_w, mis if last_T is T else None)
+
+    def gradient(self, T: FloatArray, v: FloatArray) -> _System:
+        """:meth:`linear_system` without ``N``: ``u``, the misclosure, the robust weights and
+        the cost at ``T`` (``blocks`` ``None``), what a chord step needs (it reuses the last
+        factorisation of ``N``). The compiled se3 kernel skips the blocks' products (~3x
+        faster); the NumPy paths leave them pending (:meth:`_System.all_blocks`) and drop
+        them."""
+        ahead_T, ahead = self._ahead
+        self._ahead = (None, None)
+        if ahead_T is T:  # computed by gradient_ahead after the step that led to T
+            return ahead
+        if not self.fused_gradient:
+            sysd = self.linear_system(T, v)  # the NumPy paths leave the blocks pending
+            sysd.drop_blocks()
+            return sysd
+        self.linearisations += 1
+        self._mis = (None, None)
+        return _motion_system(self.model, T, self.conn, self.P, self.prior_data, self.cfg,
+                              self.col, self.d, self.T_meas, self.Tm_inv, True,
+                              gradient_only=True)
+
+    @property
+    def fused_gradient(self) -> bool:
+        """The gradient comes from the compiled se3 kernel without the blocks of ``N``
+        (:meth:`gradient`), whose misclosure is :meth:`misclosure`'s (the same compiled
+        function) and, without a robust loss, whose ``cost0`` is the cost at ``T``."""
+        return self.compiled and self.T_meas is not None
+
+    def gradient_ahead(self, T: FloatArray, step: float) -> _System | None:
+        """After an undamped step of size ``step`` (max ``|dx|``) to ``T``: the gradient system
+        at ``T``, when the next iteration will be a chord step (``step`` below
+        ``reuse_factor_below``) and the fused kernel gives the residuals and the cost at ``T``
+        with it (:attr:`fused_gradient`, no robust loss). Its misclosure ``w`` and ``cost0``
+        then stand for :meth:`next_residuals` and the cost of the step, and the next
+        :meth:`gradient` at this very ``T`` returns it: one kernel pass instead of a misclosure,
+        a cost and, in the next iteration, the gradient's own pass. ``None`` otherwise."""
+        cfg = self.cfg
+        if not (cfg.damping == 'none' and cfg.robust_loss == 'none' and self.fused_gradient
+                and step < cfg.reuse_factor_below):
+            return None
+        sysd = self.gradient(T, None)
+        self._ahead = (T, sysd)
+        return sysd
+
+    @property
+    def compiled(self) -> bool:
+        """Use the compiled se3 kernels: from the first linearisation with ``jit`` (the caller
+        has loaded them: whatever the size, e.g. the window aligner's pre-alignment of ~1,200
+        connections), else only once a solve has run more than
+        :data:`ga_ros.core.kernels.AFTER_ITERATIONS` linearisations, on a large enough problem
+        (loading numba costs ~1 s and ~100 MiB, which a short solve never earns back)."""
+        if self.model != 'se3':
+            return False
+        if self.jit:
+            return kernels.AVAILABLE
+        return (self.linearisations > kernels.AFTER_ITERATIONS
+                and kernels.use_for(len(self.conn)))
+
+    def cost_at(self, T: FloatArray) -> float:
+        if self.model not in models.MOTION_MODELS:
+            return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
+                            self.col, self.d)
+        if not self.compiled and self.meas is not None:  # in columns, kept for linear_system
+            mis = columns.misclosure(T, self.conn.src, self.conn.dst, self.meas)
+            self._last, self._mis = (T, mis.e), (T, mis)
+            return (float(np.sum(self.cfg.loss.rho(columns.maha2(mis, self.sqrt_w))))
+                    + _prior_cost(self.model, T, self.prior_data))
+        e = self.misclosure(T)
+        self._last = (T, e)
+        return _cost_of_misclosure(self.model, T, e, self.P, self.prior_data, self.cfg)
+
+    def residual_update(self, sysd: _System, dx: FloatArray) -> FloatArray:
+        """Residuals after the correction ``dx`` (eq. 16). For the motion models only
+        ``dx = 0`` is asked (their residuals after a step come from :meth:`next_residuals`):
+        ``v = S B' k = weights * w``."""
+        if self.model in models.MOTION_MODELS:
+            return sysd.w * sysd.weights[:, None]
+        return _residual_update(sysd, dx, self.conn, self.col, self.d, self.S)
+
+    def consistent(self, T: FloatArray, v_linear: FloatArray) -> FloatArray:
+        if self.model in models.MOTION_MODELS:
+            last_T, e = self._last
+            self._last = (None, None)
+            return e if last_T is T else self.misclosure(T)
+        return _consistent_residuals(self.model, T, self.conn, v_linear)
+
+    def misclosure(self, T: FloatArray) -> FloatArray:
+        """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models at ``T`` (in parts if the
+        problem does not keep the measured motions)."""
+        if self.T_meas is not None:
+            compiled = self.compiled
+            return _misclosure(self.model, T, self.conn, self.T_meas, self.Tm_inv, compiled,
+                               None if compiled else self.meas)
+        return np.concatenate([_misclosure(self.model, T, part, None, None, self.compiled)
+                               for _, part in self.parts()])
+
+    def parts(self):
+        """``(a, connections a..b-1)`` for consecutive parts of :data:`_CONNECTIONS_PER_PART`
+        connections."""
+        conn = self.conn
+        for s in _part_slices(len(conn)):
+            yield s.start, ConnectionArrays(conn.src[s], conn.dst[s], conn.z[s], conn.cov[s])
+
+    def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
+        """Residuals to relinearise at after the step ``dx`` took the estimate to ``T``."""
+        if self.model in models.MOTION_MODELS:
+            return self.consistent(T, sysd.w)
+        return self.consistent(T, self.residual_update(sysd, dx))
+
+    def retract(self, T: FloatArray, dx: FloatArray) -> FloatArray:
+        return models.retract(self.model, T, np.nonzero(self.free)[0], dx.reshape(-1, self.d))
+
+
+class _PartWeights:
+    """The weights ``P = S^-1`` of a problem linearised in parts, computed a part at a time
+    from the covariances ``S`` (the same values as one inversion of all: ~160 MB not kept at
+    100,000 poses, for ~20 ms per 16,384 connections each time they are read). Slicing
+    ``P[a:b]`` gives an array; :func:`_maha2` and :func:`_adjustment_cost` take it whole."""
+
+    def __init__(self, S: FloatArray) -> None:
+        self.S = S
+        self.shape = S.shape
+
+    def __getitem__(self, part: slice) -> FloatArray:
+        return _inv_spd(self.S[part])
+
+    def parts(self) -> list[slice]:
+        """The parts' slices (:func:`_part_slices`)."""
+        return _part_slices(self.shape[0])
+
+
+def _linearised_in_parts(model: str, m: int) -> bool:
+    """Whether a problem of ``m`` connections is linearised and assembled in parts (motion
+    models above :data:`_PARTS_ABOVE` connections; :func:`_motion_system_in_parts`)."""
+    return model in models.MOTION_MODELS and m > _PARTS_ABOVE
+
+
+def _part_slices(m: int) -> list[slice]:
+    """Consecutive slices of :data:`_CONNECTIONS_PER_PART` of ``m`` connections."""
+    return [slice(a, min(a + _CONNECTIONS_PER_PART, m))
+            for a in range(0, m, _CONNECTIONS_PER_PART)]
+
+
+def _maha2(e: FloatArray, P: FloatArray | _PartWeights) -> FloatArray:
+    """Squared Mahalanobis norms ``e_k' P_k e_k`` ``(m,)``."""
+    if isinstance(P, _PartWeights):
+        return np.concatenate([_maha2(e[s], P[s]) for s in P.parts()])
+    return np.einsum('mi,mij,mj->m', e, P, e)
+
+
+def _cost_of_misclosure(model, T, e, P, prior_data, cfg) -> float:
+    maha2 = _maha2(e, P)
+    return float(np.sum(cfg.loss.rho(maha2))) + _prior_cost(model, T, prior_data)
+
+
+def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) -> float:
+    """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3/se2 (``e`` the
+    misclosure ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at
+    ``v = 0``; plus the prior terms."""
+    if model not in models.MOTION_MODELS:
+        return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
+                              d).cost0
+    e = _misclosure(model, T, conn, T_meas)
+    return _cost_of_misclosure(model, T, e, _inv_spd(S) if P is None else P, prior_data, cfg)
+
+
+def _adjustment_cost(v: FloatArray, P: FloatArray | _PartWeights, weights: FloatArray) -> float:
+    if isinstance(P, _PartWeights):
+        return float(sum(_adjustment_cost(v[s], P[s], weights[s]) for s in P.parts()))
+    return float(_maha2(v, P) @ weights)  # ~2x faster than one four-operand einsum
+
+
+def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
+    """:func:`_motion_system` over :data:`_CONNECTIONS_PER_PART` connections at a time, each
+    part's blocks added into ``N`` at once (:meth:`BlockPattern.assemble_at`): the ``4 m``
+    blocks of a large problem never exist together (~700 MB for 100,000 poses). The system has
+    ``data`` set and no blocks."""
+    m, d = len(prob.conn), prob.d
+    data = np.zeros(prob.pattern.nnz)
+    u = np.zeros((int(prob.free.sum()), d))
+    w, weights, cost0 = [], [], 0.0
+    for a, part in prob.parts():
+        b = a + len(part)
+        sysp = _motion_system(prob.model, T, part, prob.P[a:b], [], prob.cfg, prob.col, d,
+                              None, None, prob.compiled)  # T_meas, its inverse: of the part
+        k = np.arange(a, b)
+        prob.pattern.assemble_at(sysp.all_blocks(),
+                                 np.concatenate([k, k + m, k + 2 * m, k + 3 * m]), data)
+        u += sysp.u.reshape(-1, d)
+        w.append(sysp.w)
+        weights.append(sysp.weights)
+        cost0 += sysp.cost0
+    prior_blocks: list[FloatArray] = []
+    cost0 += _add_priors(prob.model, T, prob.prior_data, prob.col, u, prior_blocks)
+    if prior_blocks:
+        extra = np.concatenate(prior_blocks)
+        prob.pattern.assemble_at(extra, 4 * m + np.arange(len(extra)), data)
+    return _System(None, u.reshape(-1), np.concatenate(w), None, None, None, None,
+                   np.concatenate(weights), cost0, data)
