@@ -8,7 +8,8 @@ import pytest
 
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import SolverConfig, _consistent_residuals, _inv_spd, _linear_system, solve
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver.linearise import _consistent_residuals, _inv_spd, _linear_system
 from ga_ros.geometry import se2, se3
 
 AX = se2.AXES
