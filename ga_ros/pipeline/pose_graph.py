@@ -20,7 +20,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.chi2 import chi2_quantile
 from ga_ros.core.initialization import INIT_METHODS, PoseGraphEdges, initialize
-from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver import SolverConfig, losses, solve
 from ga_ros.errors import (
     DegenerateGeometryError,
     FormatError,
@@ -121,16 +121,11 @@ class GraphSolveResult:
 
 def robust_objective(graph: PoseGraph, T_world_node: FloatArray, loss: str = 'none',
                      scale: float = 3.0) -> float:
-    """``sum rho(e' Omega e)`` with the solver's robust losses (``rho(r2) = r2`` for ``'none'``;
-    Huber ``2 c r - c^2`` beyond ``r = c``; Cauchy ``c^2 log(1 + r2 / c^2)``)."""
+    """``sum rho(e' Omega e)`` with the solver's robust loss ``loss`` of scale ``scale``
+    (:func:`ga_ros.core.solver.losses.robust_loss`; ``rho(r2) = r2`` for ``'none'``)."""
     e = edge_errors(graph, T_world_node)
     r2 = np.einsum('ki,kij,kj->k', e, graph.information, e)
-    if loss == 'huber':
-        r = np.sqrt(r2)
-        return float(np.sum(np.where(r <= scale, r2, 2 * scale * r - scale * scale)))
-    if loss == 'cauchy':
-        return float(np.sum(scale * scale * np.log1p(r2 / (scale * scale))))
-    return float(np.sum(r2))
+    return float(np.sum(losses.robust_loss(loss, scale).rho(r2)))
 
 
 def solve_graph(graph: PoseGraph, config: GraphSolveConfig | None = None,

@@ -24,7 +24,7 @@ import warnings
 import numpy as np
 
 from ga_ros.core.initialization import INIT_METHODS
-from ga_ros.core.solver import ROBUST_LOSSES
+from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
 from ga_ros.pipeline.pose_graph import (
