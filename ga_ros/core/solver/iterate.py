@@ -116,11 +116,13 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     free[fixed_idx] = False
     if not free.any():
         raise InputError('every node is fixed: nothing to estimate')
-    want = {'se3': (len(conn), 6, 6), 'se2': (len(conn), 3, 3)}.get(model)
+    kind = models.model_of(model)
+    o = kind.observations
+    want = (len(conn), o, o) if kind.motion else None
     if weights is not None and np.shape(weights) != want:
         raise InputError(f'weights must be {want} for the {model} model, got '
                          f'{np.shape(weights)}' if want else 'weights only for se3 and se2')
-    if measured is not None and (model != 'se3' or any(
+    if measured is not None and (not kind.compiled or any(
             np.shape(a) != (len(conn), 4, 4) for a in measured)):
         raise InputError(f'measured must be two ({len(conn)}, 4, 4) arrays, for the se3 model')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights, measured)

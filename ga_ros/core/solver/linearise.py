@@ -70,7 +70,7 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     it against the general form). se2 takes the same shortcut in its 3 planar components; se3
     runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when ``compiled``.
     """
-    shortcut = model in models.MOTION_MODELS and P is not None
+    shortcut = models.model_of(model).motion and P is not None
     if shortcut:
         return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
                               compiled, meas, sqrt_w, mis)
@@ -117,11 +117,12 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     prior_cost = _add_priors(model, T, prior_data, col, u,
                              None if gradient_only else prior_blocks)
     extra = sum(len(b) for b in prior_blocks)
-    if T_meas is None and (model != 'se3' or (Tm_inv is None and meas is None)):
+    kind = models.model_of(model)  # se3: compiled kernels and columns, se2: NumPy
+    if T_meas is None and (not kind.compiled or (Tm_inv is None and meas is None)):
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    if model == 'se3' and Tm_inv is None and (compiled or meas is None):
+    if kind.compiled and Tm_inv is None and (compiled or meas is None):
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
-    if model == 'se3' and compiled:
+    if kind.compiled and compiled:
         w, blocks, gi, gj, maha2 = kernels.se3_system(T, conn.src, conn.dst, Tm_inv, P, extra,
                                                        blocks=not gradient_only)
         weights = cfg.loss.weight(np.sqrt(np.maximum(maha2, 0.0)))
@@ -133,7 +134,7 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     else:  # structure of arrays (NumPy), the blocks' products left pending
         robust = None if cfg.robust_loss == 'none' else (
             lambda r2: cfg.loss.weight(np.sqrt(np.maximum(r2, 0.0))))
-        if model == 'se3':  # columns.linearise
+        if kind.compiled:  # columns.linearise
             lin = columns.linearise(
                 T, conn.src, conn.dst,
                 meas if meas is not None else columns.MeasuredInverse.of(Tm_inv),
@@ -176,12 +177,13 @@ def _misclosure(model: str, T: FloatArray, conn: ConnectionArrays, T_meas: Float
                 meas: columns.MeasuredInverse | None = None) -> FloatArray:
     """``e = log(T_meas^-1 T_i^-1 T_j)`` of the motion models (se3: compiled if asked, else
     in columns, :func:`ga_ros.core.columns.misclosure`)."""
-    if model == 'se3' and meas is not None and not compiled:
+    kind = models.model_of(model)
+    if kind.compiled and meas is not None and not compiled:
         return columns.misclosure(T, conn.src, conn.dst, meas).e
     if T_meas is None:
         T_meas = se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-    if model != 'se3':
-        return models.motion_misclosure(model, T, conn.src, conn.dst, T_meas)
+    if not kind.compiled:
+        return kind.motion_misclosure(T, conn.src, conn.dst, T_meas)
     if Tm_inv is None:
         Tm_inv = np.ascontiguousarray(se3.inverse(T_meas))
     if compiled:
@@ -210,7 +212,7 @@ def _consistent_residuals(model: str, T: FloatArray, conn: ConnectionArrays,
     the linear prediction (their constraints are not solvable for ``v`` in closed form). se2 as
     se3, in its planar components.
     """
-    if model not in models.MOTION_MODELS:
+    if not models.model_of(model).motion:
         return v_linear
     return _misclosure(model, T, conn, T_meas)
 

@@ -67,7 +67,8 @@ class _Problem:
     def build(model: str, conn: ConnectionArrays, prior_data: list[_PriorData],
               cfg: SolverConfig, free: np.ndarray, P: FloatArray | None = None,
               measured: tuple[FloatArray, FloatArray] | None = None) -> _Problem:
-        d = models.dof(model)
+        kind = models.model_of(model)
+        d = kind.dof
         col = np.full(free.size, -1, dtype=np.int64)
         col[free] = np.arange(int(free.sum()))
         # block pattern: connection blocks (ii, ij, ji, jj) then prior blocks
@@ -86,14 +87,19 @@ class _Problem:
             T_meas, Tm_inv = measured[0], np.ascontiguousarray(measured[1])
         else:
             T_meas = (se3.from_translation_rotvec(conn.z[:, :3], conn.z[:, 3:])
-                      if model in models.MOTION_MODELS and not in_parts else None)
+                      if kind.motion and not in_parts else None)
             # their inverses: se3 only (se2 composes the planar motions themselves)
             Tm_inv = (np.ascontiguousarray(se3.inverse(T_meas))
-                      if T_meas is not None and model == 'se3' else None)
+                      if T_meas is not None and kind.compiled else None)
         if P is None:  # the weights; a part at a time for problems linearised in parts
             P = _PartWeights(S) if in_parts else _inv_spd(S)
         return _Problem(model, conn, P, prior_data, cfg, free, col, d, pattern, S, T_meas,
-                        Tm_inv, in_columns=model == 'se3' and not in_parts)
+                        Tm_inv, in_columns=kind.compiled and not in_parts)
+
+    @property
+    def kind(self) -> models.ConstraintModel:
+        """The constraint model (:data:`ga_ros.core.models.MODELS`) of :attr:`model`."""
+        return models.MODELS[self.model]
 
     @property
     def meas(self) -> columns.MeasuredInverse | None:
@@ -113,7 +119,7 @@ class _Problem:
     @property
     def Pf(self) -> FloatArray | None:
         """The weights when the shortcut of :func:`_linear_system` applies (se3, se2)."""
-        return self.P if self.model in models.MOTION_MODELS else None
+        return self.P if self.kind.motion else None
 
     def zero_residuals(self) -> FloatArray:
         """``v = 0``: (m, o) with ``o`` the observations per connection."""
@@ -181,7 +187,7 @@ class _Problem:
         connections), else only once a solve has run more than
         :data:`ga_ros.core.kernels.AFTER_ITERATIONS` linearisations, on a large enough problem
         (loading numba costs ~1 s and ~100 MiB, which a short solve never earns back)."""
-        if self.model != 'se3':
+        if not self.kind.compiled:
             return False
         if self.jit:
             return kernels.AVAILABLE
@@ -189,7 +195,7 @@ class _Problem:
                 and kernels.use_for(len(self.conn)))
 
     def cost_at(self, T: FloatArray) -> float:
-        if self.model not in models.MOTION_MODELS:
+        if not self.kind.motion:
             return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
                             self.col, self.d)
         if not self.compiled and self.meas is not None:  # in columns, kept for linear_system
@@ -205,12 +211,12 @@ class _Problem:
         """Residuals after the correction ``dx`` (eq. 16). For the motion models only
         ``dx = 0`` is asked (their residuals after a step come from :meth:`next_residuals`):
         ``v = S B' k = weights * w``."""
-        if self.model in models.MOTION_MODELS:
+        if self.kind.motion:
             return sysd.w * sysd.weights[:, None]
         return _residual_update(sysd, dx, self.conn, self.col, self.d, self.S)
 
     def consistent(self, T: FloatArray, v_linear: FloatArray) -> FloatArray:
-        if self.model in models.MOTION_MODELS:
+        if self.kind.motion:
             last_T, e = self._last
             self._last = (None, None)
             return e if last_T is T else self.misclosure(T)
@@ -235,7 +241,7 @@ class _Problem:
 
     def next_residuals(self, T: FloatArray, sysd: _System, dx: FloatArray) -> FloatArray:
         """Residuals to relinearise at after the step ``dx`` took the estimate to ``T``."""
-        if self.model in models.MOTION_MODELS:
+        if self.kind.motion:
             return self.consistent(T, sysd.w)
         return self.consistent(T, self.residual_update(sysd, dx))
 
@@ -264,7 +270,7 @@ class _PartWeights:
 def _linearised_in_parts(model: str, m: int) -> bool:
     """Whether a problem of ``m`` connections is linearised and assembled in parts (motion
     models above :data:`_PARTS_ABOVE` connections; :func:`_motion_system_in_parts`)."""
-    return model in models.MOTION_MODELS and m > _PARTS_ABOVE
+    return models.model_of(model).motion and m > _PARTS_ABOVE
 
 
 def _part_slices(m: int) -> list[slice]:
@@ -289,7 +295,7 @@ def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) ->
     """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3/se2 (``e`` the
     misclosure ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at
     ``v = 0``; plus the prior terms."""
-    if model not in models.MOTION_MODELS:
+    if not models.model_of(model).motion:
         return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
                               d).cost0
     e = _misclosure(model, T, conn, T_meas)
