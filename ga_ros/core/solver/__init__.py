@@ -33,12 +33,13 @@ from ga_ros.core.solver.losses import (
     robust_loss,
 )
 from ga_ros.core.solver.priors import GaussianPrior, information_rank
+from ga_ros.core.solver.problem import WarmStart
 from ga_ros.core.solver.result import SolveResult
 from ga_ros.core.solver.sequential import covariance_form_update, sequential_update
 
 __all__ = [
     'DAMPINGS', 'FACTORS', 'LOSSES', 'ROBUST_LOSSES', 'CauchyLoss', 'GaussianPrior', 'HuberLoss',
-    'RobustLoss', 'SolveResult', 'SolverConfig', 'TrivialLoss', 'connection_cost',
+    'RobustLoss', 'SolveResult', 'SolverConfig', 'TrivialLoss', 'WarmStart', 'connection_cost',
     'covariance_form_update', 'information_rank', 'initial_guess_f2f', 'normal_matrix_at',
     'robust_loss', 'sequential_update', 'solve',
 ]

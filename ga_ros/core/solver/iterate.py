@@ -16,7 +16,7 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver.config import SolverConfig
 from ga_ros.core.solver.linearise import _System
 from ga_ros.core.solver.priors import GaussianPrior, _prior_cost, _PriorData
-from ga_ros.core.solver.problem import _adjustment_cost, _maha2, _Problem
+from ga_ros.core.solver.problem import WarmStart, _adjustment_cost, _maha2, _Problem
 from ga_ros.core.solver.result import SolveResult, _NormalSystem
 from ga_ros.core.solver.steps import _dogleg_step, _lm_step, _Step, _Trust
 from ga_ros.core.solver.termination import _chord_kept, _left_to_gain
@@ -28,11 +28,8 @@ from ga_ros.runtime import blas_threads
 # ----------------------------------------------------------------------------------- solve
 def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig | None = None,
           fixed: Sequence[int] | None = None,
-          priors: Sequence[GaussianPrior] = (), jit: bool = False,
-          weights: FloatArray | None = None,
-          factor: SparseCholesky | None = None,
-          factor_at_solution: bool = True,
-          measured: tuple[FloatArray, FloatArray] | None = None) -> SolveResult:
+          priors: Sequence[GaussianPrior] = (), warm: WarmStart | None = None,
+          **hooks: object) -> SolveResult:
     """Batch mixed-adjustment solution with relinearisation (paper Sec. III-C, steps 1-6).
 
     Parameters
@@ -44,38 +41,12 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     fixed : node ids held fixed (the datum). Default: the first node when there are no priors,
         none otherwise (then the priors must define the datum).
     priors : weighted parameters / sequential priors (see :class:`GaussianPrior`).
-    jit : use the compiled se3 kernels (:mod:`ga_ros.core.kernels`) from the first
-        linearisation on, for a caller that solves many problems in one process (the window
-        aligner): the one-off cost of loading them is paid once. Default: only once a solve
-        has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
-    weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
-        (se3; e.g. kept from the previous window update), or (m, 3, 3) those of their
-        ``[x y rz]`` blocks (se2; a 2-D g2o file's information): not inverted again.
-    factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
-        if its pattern is this problem's, its symbolic analysis is reused (a window update
-        solves the same pattern every track).
-    factor_at_solution : ``True`` (default): the result's covariances ``Q_x = N^-1`` (eq. 17)
-        come from ``N`` factored at the solution (on first use). ``False`` (undamped
-        iterations only): from the iteration's last numeric factorisation, at the start of its
-        last full Gauss-Newton step (the chord steps after it reuse that factor), so a solve
-        that converges with one factorisation needs no second one for its covariances.
-        ``N = J' P J`` depends on the estimate only through the connections' relative poses
-        ``T_i^-1 T_j`` (the Jacobians ``[-Ad(T_ij^-1), I]``) and the priors' residuals, so the
-        two differ by the change of those over the last correction (first order in it; a
-        rigid motion of the whole network changes nothing). ``Q_x`` is itself the first-order
-        covariance of an estimate that lies about one standard deviation from the truth, so a
-        linearisation point a fraction of a correction away is within its own approximation.
-        Measured: a small survey at 10 % noise, variances within 1.1 % of the dense inverse
-        at the solution (``test_window_fast.py`` bounds them at 5 %); the aerial survey's
-        window (6,732 unknowns, 10 % noise) 0.4-2.3 % for the track that leaves it next and up
-        to 10 % for the newest two tracks, whose weak modes the last correction moved by metres.
-        :attr:`SolveResult.factor_offset` bounds the distance. The normal matrix of the result
-        (:attr:`SolveResult.normal_matrix`, a sequential prior) is then the factored one too.
-    measured : se3 only: ``(T_meas, T_meas^-1)``, the (m, 4, 4) measured motions of the
-        connections (``T_src_dst`` of each ``z``,
-        :func:`ga_ros.geometry.se3.from_translation_rotvec`) and their inverses, if the caller
-        has them (e.g. kept from the previous window update, as ``weights``): not computed
-        again.
+    warm : what a caller solving one problem after another hands over (weights, measured
+        motions, a factor to reuse, compiled kernels, where the covariances come from): see
+        :class:`~ga_ros.core.solver.problem.WarmStart`. Default: nothing.
+    **hooks : the fields of :class:`~ga_ros.core.solver.problem.WarmStart` as keywords
+        (``jit``, ``weights``, ``factor``, ``factor_at_solution``, ``measured``), instead of
+        ``warm``.
 
     Returns
     -------
@@ -85,11 +56,14 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
     Raises
     ------
     InputError, NetworkError
-        Bad shapes, unknown nodes, nodes not connected to the datum (named).
+        Bad shapes, unknown nodes, nodes not connected to the datum (named), ``warm`` and
+        keywords together, an unknown keyword.
     DegenerateGeometryError
         Singular normal matrix.
     """
     t0 = time.perf_counter()
+    warm = WarmStart.of(warm, hooks)
+    weights, measured, factor = warm.weights, warm.measured, warm.factor
     cfg = config or SolverConfig()
     model = cfg.model
     d = models.dof(model)
@@ -126,11 +100,11 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
             np.shape(a) != (len(conn), 4, 4) for a in measured)):
         raise InputError(f'measured must be two ({len(conn)}, 4, 4) arrays, for the se3 model')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights, measured)
-    prob.jit = bool(jit)
+    prob.jit = bool(warm.jit)
     if factor is not None and factor.pattern.key == prob.pattern.key:
         prob.factor = factor
     with blas_threads():
-        out = _iterate(prob, T0.copy(), keep_values=not factor_at_solution)
+        out = _iterate(prob, T0.copy(), keep_values=not warm.factor_at_solution)
     return _finish(prob, node_ids, out, t0)
 
 

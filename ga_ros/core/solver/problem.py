@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -22,6 +22,7 @@ from ga_ros.core.solver.linearise import (
     _System,
 )
 from ga_ros.core.solver.priors import _add_priors, _prior_cost, _PriorData
+from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
 #: Problems with more connections (motion models) are linearised and assembled in parts
@@ -31,6 +32,72 @@ _PARTS_ABOVE = 65_536
 
 #: ... of this many connections (the temporaries of a part: ~60 MB).
 _CONNECTIONS_PER_PART = 16_384
+
+
+@dataclass
+class WarmStart:
+    """What a caller that solves one problem after another hands the next :func:`solve` (the
+    window aligner: the same pattern every track, the weights and measured motions kept from
+    the previous update). ``WarmStart()`` is a cold start.
+
+    Attributes
+    ----------
+    jit : use the compiled se3 kernels (:mod:`ga_ros.core.kernels`) from the first
+        linearisation on, for a caller that solves many problems in one process (the window
+        aligner): the one-off cost of loading them is paid once. Default: only once a solve
+        has run :data:`~ga_ros.core.kernels.AFTER_ITERATIONS` linearisations.
+    weights : (m, 6, 6) the inverses of the connections' covariances, if the caller has them
+        (se3; e.g. kept from the previous window update), or (m, 3, 3) those of their
+        ``[x y rz]`` blocks (se2; a 2-D g2o file's information): not inverted again.
+    factor : a factor handed over by :meth:`SolveResult.release_factor` of an earlier solve;
+        if its pattern is this problem's, its symbolic analysis is reused (a window update
+        solves the same pattern every track).
+    factor_at_solution : ``True`` (default): the result's covariances ``Q_x = N^-1`` (eq. 17)
+        come from ``N`` factored at the solution (on first use). ``False`` (undamped
+        iterations only): from the iteration's last numeric factorisation, at the start of its
+        last full Gauss-Newton step (the chord steps after it reuse that factor), so a solve
+        that converges with one factorisation needs no second one for its covariances.
+        ``N = J' P J`` depends on the estimate only through the connections' relative poses
+        ``T_i^-1 T_j`` (the Jacobians ``[-Ad(T_ij^-1), I]``) and the priors' residuals, so the
+        two differ by the change of those over the last correction (first order in it; a
+        rigid motion of the whole network changes nothing). ``Q_x`` is itself the first-order
+        covariance of an estimate that lies about one standard deviation from the truth, so a
+        linearisation point a fraction of a correction away is within its own approximation.
+        Measured: a small survey at 10 % noise, variances within 1.1 % of the dense inverse
+        at the solution (``test_window_fast.py`` bounds them at 5 %); the aerial survey's
+        window (6,732 unknowns, 10 % noise) 0.4-2.3 % for the track that leaves it next and up
+        to 10 % for the newest two tracks, whose weak modes the last correction moved by metres.
+        :attr:`SolveResult.factor_offset` bounds the distance. The normal matrix of the result
+        (:attr:`SolveResult.normal_matrix`, a sequential prior) is then the factored one too.
+    measured : se3 only: ``(T_meas, T_meas^-1)``, the (m, 4, 4) measured motions of the
+        connections (``T_src_dst`` of each ``z``,
+        :func:`ga_ros.geometry.se3.from_translation_rotvec`) and their inverses, if the caller
+        has them (e.g. kept from the previous window update, as ``weights``): not computed
+        again.
+    """
+
+    jit: bool = False
+    weights: FloatArray | None = None
+    factor: SparseCholesky | None = None
+    factor_at_solution: bool = True
+    measured: tuple[FloatArray, FloatArray] | None = None
+
+    @staticmethod
+    def of(warm: WarmStart | None, hooks: dict) -> WarmStart:
+        """``warm``, or one built from :func:`solve`'s keywords (its fields by name).
+
+        Raises
+        ------
+        InputError
+            Both given, or a keyword that is not a field.
+        """
+        unknown = set(hooks) - {f.name for f in fields(WarmStart)}
+        if unknown:
+            raise InputError(f'solve() got unknown keywords {sorted(unknown)}; the warm-start '
+                             f'fields are {[f.name for f in fields(WarmStart)]}')
+        if warm is not None and hooks:
+            raise InputError('give either warm=WarmStart(...) or its fields as keywords')
+        return warm if warm is not None else WarmStart(**hooks)
 
 
 @dataclass
