@@ -19,7 +19,7 @@ from ga_ros.core.solver.priors import GaussianPrior, _prior_cost, _PriorData
 from ga_ros.core.solver.problem import WarmStart, _adjustment_cost, _maha2, _Problem
 from ga_ros.core.solver.result import SolveResult, _NormalSystem
 from ga_ros.core.solver.steps import _dogleg_step, _lm_step, _Step, _Trust
-from ga_ros.core.solver.termination import _chord_kept, _left_to_gain
+from ga_ros.core.solver.termination import _chord_kept, _left_to_gain, _stop_reason
 from ga_ros.errors import DegenerateGeometryError, InputError, SolverError
 from ga_ros.geometry import se2
 from ga_ros.runtime import blas_threads
@@ -152,24 +152,14 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     # the fused kernel's first system gives the motion model's residuals (the misclosure at T)
     v = None if prob.fused_gradient else prob.consistent(T, prob.zero_residuals())
     state = _Trust(chol=prob.factor, auto=cfg.factor == 'auto')
-    last_step = since_factor = np.inf
+    last_step = np.inf
     slow = False  # the last chord step contracted too slowly: factor anew
-    factored = None  # the values of N last factored (keep_values)
     history: list[float] = []
-    converged = False
-    reason = 'max_iterations'
-    it = 0
+    converged, reason, it = False, 'max_iterations', 0
     # without a robust loss a damped step's cost (the motion models': at T) is this sum
     plain = cfg.damping == 'none' or (prob.Pf is not None and cfg.robust_loss == 'none')
-
-    def objective(cost: float, v: FloatArray, T: FloatArray, sysd: _System) -> float:
-        """The cost history's entry at ``T`` after a step whose cost was ``cost``."""
-        return cost if plain else (_adjustment_cost(v, prob.P, sysd.weights)
-                                   + _prior_cost(prob.model, T, prob.prior_data))
-
     for it in range(1, cfg.max_iterations + 1):
         # the last values of N go before the next are assembled (~190 MB at 100,000 poses)
-        data = None
         if state.chol is not None:
             state.chol.release_values()
         chord = (cfg.damping == 'none' and state.chol is not None
@@ -184,15 +174,9 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
         chord_h = None  # dogleg: the chord step from the last factor, tried first
         if cfg.damping == 'dogleg' and state.chord and state.chol is not None:
             chord_h = -state.chol.solve(sysd.u)
-            predicted = -float(sysd.u @ chord_h)
-            if (_left_to_gain(predicted, state.predicted, history)
-                    < cfg.cost_tolerance * history[-1]):
-                # the last step, N never assembled: kept if it lowers the cost as predicted
-                T_new = prob.retract(T, chord_h)
-                cost = prob.cost_at(T_new)
-                if state.cost - cost >= 0 and _chord_kept(predicted, state.cost, cost):
-                    T, v = T_new, prob.next_residuals(T_new, sysd, chord_h)
-                    history.append(objective(cost, v, T, sysd))
+            last = _last_chord_step(prob, T, v, sysd, chord_h, state, history, plain)
+            if last is not None:  # N never assembled
+                T, v = last
                 converged, reason = True, 'cost_converged'
                 break
         # a chord step reuses the last factor: N's values are not needed
@@ -200,32 +184,13 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
         data = None if chord else sysd.normal_values(prob.pattern, prob.compiled)
         sysd.drop_blocks()
         if cfg.damping == 'none':
-            if not chord:
-                state.factor(prob.pattern, data)
-                since_factor = 0.0
-                factored = data if keep_values else None
-            dx = -state.chol.solve(sysd.u)
-            if not np.isfinite(dx).all():
-                raise SolverError('the correction is not finite')
-            if (chord and cfg.cost_tolerance > 0
-                    and -float(sysd.u @ dx) < cfg.cost_tolerance * history[-1]):
-                converged, reason = True, 'cost_converged'
-                break
-            T_new = prob.retract(T, dx)
-            ahead = prob.gradient_ahead(T_new, float(np.abs(dx).max()) if dx.size else 0.0)
-            if ahead is not None:  # the next chord step's gradient, residuals and cost at once
-                v_new, cost = ahead.w, ahead.cost0
-            else:
-                v_new = prob.next_residuals(T_new, sysd, dx)
-                cost = (_adjustment_cost(v_new, prob.P, sysd.weights)
-                        + _prior_cost(prob.model, T_new, prob.prior_data))
-            if chord and not _chord_kept(-float(sysd.u @ dx), history[-1], cost):
-                last_step = np.inf  # undone: this point again, with a factorisation
+            step = _undamped_step(prob, T, sysd, data, state, chord, keep_values, history)
+            if step is None:  # a chord step undone: this point again, with a factorisation
+                last_step = np.inf
                 continue
-            T, v = T_new, v_new
-            step = _Step(T, v, float(np.abs(dx).max()) if dx.size else 0.0, True, cost,
-                         not chord)
-            since_factor += step.step
+            if step == 'cost_converged':  # less than cost_tolerance left to gain
+                converged, reason = True, step
+                break
         else:
             step = (_dogleg_step(prob, T, sysd, data, state, chord_h)
                     if cfg.damping == 'dogleg' else _lm_step(prob, T, sysd, data, state))
@@ -233,9 +198,9 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 reason = 'no_decrease'
                 converged = step.step < cfg.tolerance * 10
                 break
-            T, v = step.T, step.v
+        T, v = step.T, step.v
         last_step = step.step
-        history.append(objective(step.cost, v, T, sysd))
+        history.append(_objective(prob, plain, step.cost, v, T, sysd))
         state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
                        and state.cost > 0
                        and state.cost - step.cost < cfg.chord_decrease * state.cost)
@@ -243,19 +208,74 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
         if not np.isfinite(T).all():
             raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
                               'estimate stands')
-        if step.step < cfg.tolerance:
-            converged = True
-            reason = 'converged'
-            break
-        if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * \
-                history[-1]:
-            converged = True
-            reason = 'cost_converged'
+        stop = _stop_reason(step, history, cfg)
+        if stop is not None:
+            converged, reason = True, stop
             break
         slow = (chord and len(history) > 2
                 and history[-2] - history[-1] > 0.25 * (history[-3] - history[-2]))
     return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations,
-                       since_factor if cfg.damping == 'none' else np.inf, factored)
+                       state.since_factor if cfg.damping == 'none' else np.inf, state.factored)
+
+
+def _objective(prob: _Problem, plain: bool, cost: float, v: FloatArray, T: FloatArray,
+               sysd: _System) -> float:
+    """The cost history's entry at ``T`` after a step whose cost was ``cost`` (``plain``: that
+    cost is the objective, no robust reweighting to evaluate again)."""
+    return cost if plain else (_adjustment_cost(v, prob.P, sysd.weights)
+                               + _prior_cost(prob.model, T, prob.prior_data))
+
+
+def _last_chord_step(prob: _Problem, T: FloatArray, v: FloatArray, sysd: _System,
+                     chord_h: FloatArray, state: _Trust, history: list[float],
+                     plain: bool) -> tuple[FloatArray, FloatArray] | None:
+    """The dogleg's chord step ``chord_h`` from the last factor as the last step, when the
+    decrease it predicts shows less than ``cost_tolerance`` of the cost left to gain
+    (:func:`_left_to_gain`): ``(T, v)`` after it, or unchanged if it does not lower the cost
+    as predicted (:func:`_chord_kept`); ``None`` when more is left to gain."""
+    predicted = -float(sysd.u @ chord_h)
+    if not (_left_to_gain(predicted, state.predicted, history)
+            < prob.cfg.cost_tolerance * history[-1]):
+        return None
+    T_new = prob.retract(T, chord_h)
+    cost = prob.cost_at(T_new)
+    if state.cost - cost >= 0 and _chord_kept(predicted, state.cost, cost):
+        T, v = T_new, prob.next_residuals(T_new, sysd, chord_h)
+        history.append(_objective(prob, plain, cost, v, T, sysd))
+    return T, v
+
+
+def _undamped_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArray | None,
+                   state: _Trust, chord: bool, keep_values: bool,
+                   history: list[float]) -> _Step | str | None:
+    """One Gauss-Helmert correction ``dx = -N^-1 u`` (eq. 15): ``N`` factored from ``data``,
+    or, for a chord step, the last factor reused. Returns the step, ``'cost_converged'`` when
+    a chord step would gain less than ``cost_tolerance`` of the cost (not taken), or ``None``
+    when a chord step taken did not lower the cost as predicted (:func:`_chord_kept`: undone).
+    """
+    cfg = prob.cfg
+    if not chord:
+        state.factor(prob.pattern, data)
+        state.since_factor = 0.0
+        state.factored = data if keep_values else None
+    dx = -state.chol.solve(sysd.u)
+    if not np.isfinite(dx).all():
+        raise SolverError('the correction is not finite')
+    if chord and cfg.cost_tolerance > 0 and -float(sysd.u @ dx) < cfg.cost_tolerance * history[-1]:
+        return 'cost_converged'
+    T_new = prob.retract(T, dx)
+    size = float(np.abs(dx).max()) if dx.size else 0.0
+    ahead = prob.gradient_ahead(T_new, size)
+    if ahead is not None:  # the next chord step's gradient, residuals and cost at once
+        v_new, cost = ahead.w, ahead.cost0
+    else:
+        v_new = prob.next_residuals(T_new, sysd, dx)
+        cost = (_adjustment_cost(v_new, prob.P, sysd.weights)
+                + _prior_cost(prob.model, T_new, prob.prior_data))
+    if chord and not _chord_kept(-float(sysd.u @ dx), history[-1], cost):
+        return None
+    state.since_factor += size
+    return _Step(T_new, v_new, size, True, cost, not chord)
 
 
 def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> SolveResult:

@@ -39,6 +39,8 @@ class _Trust:
     cost: float = np.inf  # cost at the current estimate
     chord: bool = False  # dogleg: try the last factorisation first (see _chord_step)
     predicted: float = np.nan  # dogleg: the decrease the last step's model predicted
+    since_factor: float = np.inf  # undamped: sum of max |dx| since the last factorisation
+    factored: FloatArray | None = None  # undamped: the values of N last factored (kept)
 
     def factor(self, pattern: BlockPattern, data: FloatArray) -> SparseCholesky:
         if self.chol is None:

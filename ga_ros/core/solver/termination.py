@@ -1,9 +1,12 @@
-"""When an iteration stops: the cost left to gain before a chord step, and whether a chord
-step is kept."""
+"""When an iteration stops (:func:`_stop_reason`: converged on the correction or on the cost),
+the cost left to gain before a chord step, and whether a chord step is kept."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from ga_ros.core.solver.config import SolverConfig
+from ga_ros.core.solver.steps import _Step
 
 
 def _left_to_gain(predicted: float, previous: float, history: list[float]) -> float:
@@ -35,3 +38,14 @@ def _chord_kept(predicted: float, cost_before: float, cost: float) -> bool:
     rotations) fails it: the step is undone and the iteration factors ``N`` at the same point.
     """
     return cost_before - cost >= 0.25 * predicted - 1e-9 * abs(cost_before)
+
+
+def _stop_reason(step: _Step, history: list[float], cfg: SolverConfig) -> str | None:
+    """Why the iteration stops after ``step`` (its cost appended to ``history``):
+    ``'converged'`` (the largest correction below ``tolerance``), ``'cost_converged'`` (a full
+    Gauss-Newton step lowered the cost by less than ``cost_tolerance`` of it), else ``None``."""
+    if step.step < cfg.tolerance:
+        return 'converged'
+    if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * history[-1]:
+        return 'cost_converged'
+    return None
