@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from ga_ros.core import refinement, window
-from ga_ros.core.linalg import banded, selinv
+from ga_ros.core.linalg import banded, selinv, skeleton
 from ga_ros.core.linalg.cholmod import SparseCholesky
 from ga_ros.core.solver.problem import _Problem
 from ga_ros.sim.aerial import aerial_scenario
@@ -34,7 +34,7 @@ STAGES = (
     (window, '_marginal_covariances'),
     (window.TrackWindowAligner, '_marginalise'),
     (window, 'normal_matrix_at'),
-    (selinv, 'sparse_skeleton'),
+    (skeleton, 'sparse_skeleton'),
     (window, 'marginal_prior'),
     (window, 'band_prior'),
     (refinement, 'band_prior'),

@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import ga_ros.core.linalg.blocks as assembly
 import ga_ros.core.linalg.cholmod as cholmod
 from ga_ros.core.linalg.blocks import BlockPattern
 from ga_ros.core.linalg.cholesky import SparseCholesky
-from ga_ros.core.linalg.selinv import _supernodal_layout
+from ga_ros.core.linalg.cholmod import _supernodal_layout
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import DegenerateGeometryError, NetworkError
 
@@ -45,7 +46,7 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
     solves agree with a dense solve."""
     monkeypatch.setattr(cholmod, '_PERMUTE_FROM_NNZ', permute_from)
     if not in_place:
-        monkeypatch.setattr(cholmod, '_PERMUTE', [None])  # P N P' gathered into a copy
+        monkeypatch.setattr(assembly, '_PERMUTE', [None])  # P N P' gathered into a copy
     pattern, data = _random_normal_matrix(rng)
     kept = data.copy()
     data2 = data.copy()
@@ -69,7 +70,7 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
 @pytest.mark.parametrize('inverse', [False, True])
 def test_permutation_in_place_equals_gather(rng, inverse):
     """The in-place permutation (cycle by cycle) is the gather ``x[where]``, or its inverse."""
-    kernel = cholmod._permutation_kernel()
+    kernel = assembly._permutation_kernel()
     if kernel is None:
         pytest.skip('numba is not installed: the values are gathered into a copy')
     where = np.concatenate([np.arange(10), 10 + rng.permutation(990)])  # fixed points too

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ga_ros.core.linalg import cholmod, ordering
+from ga_ros.core.linalg import ordering
 
 pytestmark = pytest.mark.skipif(not ordering.HAVE_METIS, reason='pymetis is not installed')
 
@@ -34,7 +34,7 @@ def test_factor_flops_equal_a_dense_cholesky(rng):
 @pytest.mark.parametrize('dim', [2, 3])
 def test_the_order_with_fewer_flops_is_kept_on_large_graphs(dim):
     from ga_ros.core.linalg.blocks import BlockPattern
-    from ga_ros.core.linalg.cholmod import _block_amd
+    from ga_ros.core.linalg.ordering import _block_amd
 
     n, rows, cols = _grid(64 if dim == 2 else 16, dim)  # 4096 >= METIS_MIN_BLOCKS: both tried
     assert n >= ordering.METIS_MIN_BLOCKS
@@ -63,7 +63,7 @@ def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
     prob = make_problem(rng, 'se3', n=40, noise=5.0)
     T0 = perturbed(rng, prob.T_true, 0.05)
     cfg = SolverConfig(damping='dogleg', tolerance=1e-10)
-    cholmod._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     ref = solve(prob.network, T0, cfg)
     used = []
 
@@ -72,9 +72,9 @@ def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
         return used[-1][1]
 
     monkeypatch.setattr(ordering, 'best_block_order', nested)
-    cholmod._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     nd = solve(prob.network, T0, cfg)
-    cholmod._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     assert used and not np.array_equal(*used[0])  # another ordering was used
     np.testing.assert_allclose(nd.T_world_node, ref.T_world_node, atol=1e-9)
     assert nd.cost == pytest.approx(ref.cost, rel=1e-9)

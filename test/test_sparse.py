@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 from ga_ros.core.linalg.blocks import BlockPattern
 from ga_ros.core.linalg.cholesky import SparseCholesky, trailing_factor
-from ga_ros.core.linalg.cholmod import block_ordering
+from ga_ros.core.linalg.ordering import block_ordering
 
 
 def test_block_pattern_assembles_like_coo(rng):
@@ -130,7 +130,7 @@ def test_direct_analysis_gives_cvxopts_factor(rng, monkeypatch):
     import pytest
 
     import ga_ros.core.linalg.cholmod as cholmod
-    from ga_ros.core.linalg.selinv import _supernodal_layout
+    from ga_ros.core.linalg.cholmod import _supernodal_layout
 
     direct = cholmod._direct_cholmod()
     if direct is None or direct._capsule is None:

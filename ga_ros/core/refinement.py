@@ -440,7 +440,7 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
       skeleton keeps densely anyway): :func:`band_prior` of the exact covariance skeleton of
       ``Sigma = H^-1 = (N^-1)_kept`` (band of ``band`` nodes along the node order plus ``hubs``
       hub nodes), from the selected inversion of a sparse ``N``
-      (:func:`~ga_ros.core.linalg.selinv.sparse_skeleton`, linear in the number of nodes for a
+      (:func:`~ga_ros.core.linalg.skeleton.sparse_skeleton`, linear in the number of nodes for a
       strip) or a Cholesky factor of a dense one; positive definite, rank ``6k``;
     * otherwise, or if ``N`` is not positive definite (:class:`DegenerateGeometryError` from the
       sparse path), the **exact** ``H`` (:func:`tangent_prior`): from a partial sparse
@@ -468,7 +468,7 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
     DegenerateGeometryError
         The eliminated nodes are not determined by the terms (their block is singular).
     """
-    from ga_ros.core.linalg import selinv
+    from ga_ros.core.linalg import skeleton
     from ga_ros.core.linalg.blocks import BlockPattern
     from ga_ros.core.linalg.cholesky import trailing_factor
 
@@ -481,7 +481,7 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
     if sparse_prior_applies(S.size, band, hubs):
         try:
             if sparse_in:
-                skel, x = selinv.sparse_skeleton(N, 6, S, band, hubs, coords=coords, rhs=u)
+                skel, x = skeleton.sparse_skeleton(N, 6, S, band, hubs, coords=coords, rhs=u)
                 step = x.reshape(-1, 6)[S].ravel()
             else:  # dense: Sigma_SS and the step from one Cholesky factor of N
                 cho = _cho_factor(N)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -346,3 +347,47 @@ def _scatter_kernel():
 
 def _expand_cols(indptr: IntArray) -> IntArray:
     return np.repeat(np.arange(indptr.size - 1, dtype=np.int64), np.diff(indptr))
+
+
+def _permute_py(x, where, inverse, seen):  # pragma: no cover - compiled
+    """In place, cycle by cycle: ``x[k] <- x[where[k]]`` for every ``k`` (a gather without a
+    copy), or with ``inverse`` its inverse, ``x[where[k]] <- x[k]``. ``seen``: (x.size,) False."""
+    for s in range(x.size):
+        if seen[s]:
+            continue
+        tmp = x[s]
+        j = s
+        while True:
+            seen[j] = True
+            k = where[j]
+            if inverse:
+                nxt = x[k]
+                x[k] = tmp
+                tmp = nxt
+                if k == s:
+                    break
+            elif k == s:
+                x[j] = tmp
+                break
+            else:
+                x[j] = x[k]
+            j = k
+
+
+_PERMUTE: list = []  # [the compiled _permute_py or None], compiled on first use
+
+
+def _permutation_kernel():
+    """:func:`_permute_py` compiled, or ``None`` without numba (the values are gathered into
+    a copy then)."""
+    return _compiled(_PERMUTE, _permute_py)
+
+
+@dataclass(frozen=True)
+class _Permuted:
+    """The lower triangle of ``P N P'`` in CSC: ``where`` (its entries' positions in ``N``'s
+    values), ``indptr``, ``indices`` (int64, as CHOLMOD's long interface reads them)."""
+
+    where: IntArray
+    indptr: IntArray
+    indices: IntArray

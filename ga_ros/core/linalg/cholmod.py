@@ -19,13 +19,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.linalg import blocks, ordering
+from ga_ros.core.linalg import blocks
 from ga_ros.core.linalg.blocks import (
     BlockPattern,
-    _compiled,
     _expand_cols,
     _kept,
+    _permutation_kernel,
+    _Permuted,
 )
+from ga_ros.core.linalg.ordering import _trailing_ordering, block_ordering
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import, openblas_coretype
 
@@ -147,7 +149,8 @@ class SparseCholesky:
     def _ordering(self) -> IntArray:
         """The scalar fill-reducing ordering: the block ordering, or the trailing blocks last."""
         if self._trailing is None:
-            return block_ordering(self.pattern)
+            direct = _direct_cholmod()  # the orderings' flops from its symbolic analysis
+            return block_ordering(self.pattern, None if direct is None else direct.analysis_flops)
         return _trailing_ordering(self.pattern, self._trailing)
 
     def _analyse(self):
@@ -518,50 +521,6 @@ class _DirectCholmod:
             raise ArithmeticError('not positive definite')
 
 
-def _permute_py(x, where, inverse, seen):  # pragma: no cover - compiled
-    """In place, cycle by cycle: ``x[k] <- x[where[k]]`` for every ``k`` (a gather without a
-    copy), or with ``inverse`` its inverse, ``x[where[k]] <- x[k]``. ``seen``: (x.size,) False."""
-    for s in range(x.size):
-        if seen[s]:
-            continue
-        tmp = x[s]
-        j = s
-        while True:
-            seen[j] = True
-            k = where[j]
-            if inverse:
-                nxt = x[k]
-                x[k] = tmp
-                tmp = nxt
-                if k == s:
-                    break
-            elif k == s:
-                x[j] = tmp
-                break
-            else:
-                x[j] = x[k]
-            j = k
-
-
-_PERMUTE: list = []  # [the compiled _permute_py or None], compiled on first use
-
-
-def _permutation_kernel():
-    """:func:`_permute_py` compiled, or ``None`` without numba (the values are gathered into
-    a copy then)."""
-    return _compiled(_PERMUTE, _permute_py)
-
-
-@dataclass(frozen=True)
-class _Permuted:
-    """The lower triangle of ``P N P'`` in CSC: ``where`` (its entries' positions in ``N``'s
-    values), ``indptr``, ``indices`` (int64, as CHOLMOD's long interface reads them)."""
-
-    where: IntArray
-    indptr: IntArray
-    indices: IntArray
-
-
 _DIRECT: list = []  # [the _DirectCholmod or None], found on first use
 
 
@@ -593,43 +552,62 @@ def _direct_cholmod() -> _DirectCholmod | None:
     return _DIRECT[0]
 
 
-def _block_amd(pattern: BlockPattern, keep: np.ndarray) -> IntArray:
-    """AMD order (block indices) of the blocks ``keep`` of the block graph."""
-    idx = np.nonzero(keep)[0]
-    if idx.size <= 1 or _amd is None:
-        return idx
-    local = np.full(keep.size, -1, dtype=np.int64)
-    local[idx] = np.arange(idx.size)
-    r, c = local[pattern.block_lower[0]], local[pattern.block_lower[1]]
-    ok = (r >= 0) & (c >= 0)
-    r, c = r[ok], c[ok]
-    G = cvxopt.spmatrix(cvxopt.matrix(np.ones(r.size)), cvxopt.matrix(r), cvxopt.matrix(c),
-                        (idx.size, idx.size))
-    return idx[np.array(_amd.order(G, uplo='L')).ravel().astype(np.int64)]
+@dataclass
+class _Layout:
+    """A factor's values and pattern as :func:`_takahashi_py` reads them; ``keep`` holds the
+    objects that own the memory."""
+
+    starts: IntArray
+    pi: IntArray
+    nrows: IntArray
+    srows: IntArray
+    colbase: IntArray
+    x: FloatArray
+    perm: IntArray
+    keep: tuple
 
 
-#: Block orderings kept per pattern (a window's pattern repeats every track once it is full).
-_ORDERINGS: OrderedDict[bytes, IntArray] = OrderedDict()
+def _supernodal_layout(capsule, n: int) -> _Layout | None:
+    """CHOLMOD's supernodal factor in place (no copy): its arrays viewed through ``ctypes``.
+    ``None`` if the factor does not look as expected (another CHOLMOD build): the caller then
+    reads it out with ``getfactor``."""
+    api = ctypes.pythonapi
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    api.PyCapsule_GetName.restype = ctypes.c_char_p
+    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+    try:
+        name = api.PyCapsule_GetName(capsule)
+        if name != b'CHOLMOD FACTOR D L':
+            return None
+        L = _CholmodFactor.from_address(api.PyCapsule_GetPointer(capsule, name))
+    except (TypeError, ValueError):  # pragma: no cover - not a capsule
+        return None
+    ns = int(L.nsuper)
+    if not (L.n == n and L.minor == n and L.is_super == 1 and L.is_ll == 1 and L.xtype == 1
+            and L.dtype == 0 and L.itype == 2 and 0 < ns <= n and L.ssize > 0 and L.xsize > 0
+            and all((L.super, L.pi, L.px, L.s, L.x, L.Perm))):
+        return None
 
+    def view(ptr, count, ctype):
+        return np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctype)), shape=(count,))
 
-_MAX_ORDERINGS = 16
-
-
-def block_ordering(pattern: BlockPattern) -> IntArray:
-    """Fill-reducing scalar permutation of a block pattern: AMD (or, on large graphs, nested
-    dissection: :mod:`ga_ros.core.linalg.ordering`) of its block graph, each block's ``d``
-    unknowns kept
-    together. Kept per pattern (:data:`_ORDERINGS`)."""
-    amd = lambda: _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool))  # noqa: E731
-    direct = _direct_cholmod()  # the orderings' flops from CHOLMOD's symbolic analysis
-    flops = None if direct is None else direct.analysis_flops
-    return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: ordering._expand(
-        ordering.best_block_order(pattern.n_blocks, *pattern.block_lower, amd(), flops),
-        pattern.d))
-
-
-def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:
-    """AMD of the blocks not in ``trailing``, then ``trailing`` in the given order."""
-    rest = np.ones(pattern.n_blocks, dtype=bool)
-    rest[trailing] = False
-    return ordering._expand(np.concatenate([_block_amd(pattern, rest), trailing]), pattern.d)
+    sup = view(L.super, ns + 1, ctypes.c_int64).astype(np.int64)
+    pi = view(L.pi, ns + 1, ctypes.c_int64).astype(np.int64)
+    px = view(L.px, ns + 1, ctypes.c_int64).astype(np.int64)
+    perm = view(L.Perm, n, ctypes.c_int64).astype(np.int64)
+    width, nrows = np.diff(sup), np.diff(pi)
+    if (sup[0] != 0 or sup[-1] != n or pi[0] != 0 or pi[-1] > L.ssize or px[0] != 0
+            or px[-1] > L.xsize or (width <= 0).any() or (nrows < width).any()
+            or (np.diff(px) < nrows * width).any()
+            or not np.array_equal(np.sort(perm), np.arange(n))):
+        return None
+    x = view(L.x, int(L.xsize), ctypes.c_double)
+    srows = view(L.s, int(L.ssize), ctypes.c_int64)
+    step = np.diff(srows[:pi[-1]]) > 0
+    step[pi[1:-1] - 1] = True  # a new supernode may start lower
+    if not step.all():  # rows not sorted within a supernode
+        return None
+    k = np.repeat(np.arange(ns), width)
+    colbase = px[k] + (np.arange(n) - sup[k]) * nrows[k]  # column-major nrows x width blocks
+    return _Layout(sup, pi[:-1], nrows, srows, colbase, x, perm, (capsule,))
