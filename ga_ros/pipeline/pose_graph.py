@@ -424,8 +424,8 @@ def initial_guess(graph: PoseGraph, method: str = 'auto') -> InitialGuess:
         to a local minimum near its start; a file's guess that chains noisy odometry is a poor
         one on large-noise graphs (torus3D: 59,907 from the file's guess, 24,235 from chordal),
         and where the file's guess is already good (an earlier solution) it keeps it. Comparing
-        starts costs one chordal initialisation (~0.2 s for 2,000 poses) and one cost
-        evaluation, not a second solve. The datum vertex (:func:`datum_index`) keeps its file
+        starts costs one chordal initialisation and one cost evaluation, not a second
+        solve. The datum vertex (:func:`datum_index`) keeps its file
         pose when the file has one (identity otherwise), so a ``FIX`` vertex stays put.
 
     Raises
