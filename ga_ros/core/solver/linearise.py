@@ -13,6 +13,7 @@ from ga_ros.core import columns, kernels, models
 from ga_ros.core.linalg.banded import spd_inverse
 from ga_ros.core.linalg.blocks import BlockPattern
 from ga_ros.core.network import ConnectionArrays
+from ga_ros.core.solver.config import SolverConfig
 from ga_ros.core.solver.priors import _add_priors
 from ga_ros.geometry import se3
 
@@ -54,12 +55,51 @@ class _System:
         return data
 
 
-def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col, d,
-                   P: FloatArray | None = None, T_meas: FloatArray | None = None,
-                   Tm_inv: FloatArray | None = None, compiled: bool = False,
-                   meas: columns.MeasuredInverse | None = None,
-                   sqrt_w: columns.SqrtWeights | None = None,
-                   mis: columns.Misclosure | None = None) -> _System:
+@dataclass(frozen=True)
+class _Terms:
+    """What a linearisation sums over: the connections, their observations' covariance and
+    weights, the priors and the block columns of the unknowns.
+
+    Attributes
+    ----------
+    model : the constraint model's name (:data:`ga_ros.core.models.MODELS`).
+    conn : the connections.
+    S : (m, o, o) covariance of the connections' observations.
+    prior_data : the priors (:class:`~ga_ros.core.solver.priors._PriorData`).
+    cfg : the solver settings (robust loss).
+    col : (n,) block column of each node in ``N``, -1 if fixed.
+    d : unknowns per node.
+    P : (m, o, o) the weights ``S^-1`` (motion models: the Gauss-Newton shortcut), or ``None``
+        (the general Gauss-Helmert form).
+    T_meas, Tm_inv : (m, 4, 4) the measured motions and their inverses (se3), when kept.
+    """
+
+    model: str
+    conn: ConnectionArrays
+    S: FloatArray
+    prior_data: list
+    cfg: SolverConfig
+    col: IntArray
+    d: int
+    P: FloatArray | None = None
+    T_meas: FloatArray | None = None
+    Tm_inv: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """How an se3 linearisation runs and what it reuses: ``compiled`` (the numba kernel), else
+    the column forms of the measured inverses (``meas``) and weights (``sqrt_w``) and the
+    misclosure ``mis`` already computed at this estimate (:mod:`ga_ros.core.columns`)."""
+
+    compiled: bool = False
+    meas: columns.MeasuredInverse | None = None
+    sqrt_w: columns.SqrtWeights | None = None
+    mis: columns.Misclosure | None = None
+
+
+def _linear_system(terms: _Terms, T: FloatArray, v: FloatArray,
+                   kept: _Kept = _Kept()) -> _System:
     """``N`` blocks and ``u`` of the linearised adjustment at ``(l0 = l_b + v, x0 = T)``.
 
     se3 with the weights ``P = S^-1`` given takes a shortcut: with ``v`` consistent with ``x0``
@@ -70,10 +110,9 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     it against the general form). se2 takes the same shortcut in its 3 planar components; se3
     runs it in the compiled kernel :func:`ga_ros.core.kernels.se3_system` when ``compiled``.
     """
-    shortcut = models.model_of(model).motion and P is not None
-    if shortcut:
-        return _motion_system(model, T, conn, P, prior_data, cfg, col, d, T_meas, Tm_inv,
-                              compiled, meas, sqrt_w, mis)
+    if models.model_of(terms.model).motion and terms.P is not None:  # the shortcut
+        return _motion_system(terms, T, kept)
+    model, conn, S, cfg, col, d = terms.model, terms.conn, terms.S, terms.cfg, terms.col, terms.d
     lin = models.linearise(model, T, conn.src, conn.dst, conn.z, v)
     B = lin.B
     w = lin.f - (B @ v[:, :, None])[:, :, 0]  # w = f(l0, x0) + B (l_b - l0)
@@ -92,15 +131,12 @@ def _linear_system(model, T, conn: ConnectionArrays, S, v, prior_data, cfg, col,
     _scatter_gradient(u, col[conn.src], gi)
     _scatter_gradient(u, col[conn.dst], gj)
     cost0 = float(np.sum(cfg.loss.rho(maha2)))
-    cost0 += _add_priors(model, T, prior_data, col, u, blocks)
+    cost0 += _add_priors(model, T, terms.prior_data, col, u, blocks)
     return _System(np.concatenate(blocks), u.reshape(-1), w, lin.A_src, lin.A_dst, B, Wm,
                    weights, cost0)
 
 
-def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d, T_meas,
-                   Tm_inv, compiled: bool, meas: columns.MeasuredInverse | None = None,
-                   sqrt_w: columns.SqrtWeights | None = None,
-                   mis: columns.Misclosure | None = None,
+def _motion_system(terms: _Terms, T: FloatArray, kept: _Kept,
                    gradient_only: bool = False) -> _System:
     """The shortcut of :func:`_linear_system` (se3, se2): ``H = J' W J``, ``g = J' W e`` with
     ``J = J_r(e)^-1`` shared by both ends (``A_dst = J``, ``A_src = -J Ad(T_ij^-1)``).
@@ -111,10 +147,13 @@ def _motion_system(model, T, conn: ConnectionArrays, P, prior_data, cfg, col, d,
     ``gradient_only`` (compiled se3 only: :meth:`_Problem.gradient`): no blocks are computed
     (``blocks`` ``None``), the rest is the same.
     """
+    model, conn, P, cfg, col, d = terms.model, terms.conn, terms.P, terms.cfg, terms.col, terms.d
+    T_meas, Tm_inv = terms.T_meas, terms.Tm_inv
+    compiled, meas, sqrt_w, mis = kept.compiled, kept.meas, kept.sqrt_w, kept.mis
     m = len(conn)
     u = np.zeros((int((col >= 0).sum()), d))
     prior_blocks: list[FloatArray] = []
-    prior_cost = _add_priors(model, T, prior_data, col, u,
+    prior_cost = _add_priors(model, T, terms.prior_data, col, u,
                              None if gradient_only else prior_blocks)
     extra = sum(len(b) for b in prior_blocks)
     kind = models.model_of(model)  # se3: compiled kernels and columns, se2: NumPy

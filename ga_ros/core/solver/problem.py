@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -15,11 +15,13 @@ from ga_ros.core.solver.config import SolverConfig
 from ga_ros.core.solver.linearise import (
     _consistent_residuals,
     _inv_spd,
+    _Kept,
     _linear_system,
     _misclosure,
     _motion_system,
     _residual_update,
     _System,
+    _Terms,
 )
 from ga_ros.core.solver.priors import _add_priors, _prior_cost, _PriorData
 from ga_ros.errors import InputError
@@ -199,10 +201,15 @@ class _Problem:
         last_T, mis = self._mis
         self._mis = (None, None)
         compiled = self.compiled
-        return _linear_system(self.model, T, self.conn, self.S, v, self.prior_data, self.cfg,
-                              self.col, self.d, self.Pf, self.T_meas, self.Tm_inv, compiled,
-                              None if compiled else self.meas,
-                              None if compiled else self.sqrt_w, mis if last_T is T else None)
+        kept = (_Kept(True) if compiled
+                else _Kept(False, self.meas, self.sqrt_w, mis if last_T is T else None))
+        return _linear_system(self.terms(self.Pf), T, v, kept)
+
+    def terms(self, P: FloatArray | None = None) -> _Terms:
+        """What its linearisations sum over, with the weights ``P`` (the motion models'
+        shortcut) or without (``None``: the general form)."""
+        return _Terms(self.model, self.conn, self.S, self.prior_data, self.cfg, self.col,
+                      self.d, P, self.T_meas, self.Tm_inv)
 
     def gradient(self, T: FloatArray, v: FloatArray) -> _System:
         """:meth:`linear_system` without ``N``: ``u``, the misclosure, the robust weights and
@@ -220,9 +227,7 @@ class _Problem:
             return sysd
         self.linearisations += 1
         self._mis = (None, None)
-        return _motion_system(self.model, T, self.conn, self.P, self.prior_data, self.cfg,
-                              self.col, self.d, self.T_meas, self.Tm_inv, True,
-                              gradient_only=True)
+        return _motion_system(self.terms(self.P), T, _Kept(True), gradient_only=True)
 
     @property
     def fused_gradient(self) -> bool:
@@ -263,8 +268,7 @@ class _Problem:
 
     def cost_at(self, T: FloatArray) -> float:
         if not self.kind.motion:
-            return _cost_at(self.model, T, self.conn, self.S, self.prior_data, self.cfg,
-                            self.col, self.d)
+            return _cost_at(self.terms(), T)
         if not self.compiled and self.meas is not None:  # in columns, kept for linear_system
             mis = columns.misclosure(T, self.conn.src, self.conn.dst, self.meas)
             self._last, self._mis = (T, mis.e), (T, mis)
@@ -358,15 +362,15 @@ def _cost_of_misclosure(model, T, e, P, prior_data, cfg) -> float:
     return float(np.sum(cfg.loss.rho(maha2))) + _prior_cost(model, T, prior_data)
 
 
-def _cost_at(model, T, conn, S, prior_data, cfg, col, d, P=None, T_meas=None) -> float:
+def _cost_at(terms: _Terms, T: FloatArray) -> float:
     """Cost of the adjustment at ``x = T``: ``sum rho(e' P e)`` for se3/se2 (``e`` the
     misclosure ``log(T_meas^-1 T_i^-1 T_j)``), else the value of ``sum w' M^-1 w`` linearised at
     ``v = 0``; plus the prior terms."""
-    if not models.model_of(model).motion:
-        return _linear_system(model, T, conn, S, np.zeros_like(conn.z), prior_data, cfg, col,
-                              d).cost0
-    e = _misclosure(model, T, conn, T_meas)
-    return _cost_of_misclosure(model, T, e, _inv_spd(S) if P is None else P, prior_data, cfg)
+    if not models.model_of(terms.model).motion:
+        return _linear_system(replace(terms, P=None), T, np.zeros_like(terms.conn.z)).cost0
+    e = _misclosure(terms.model, T, terms.conn, terms.T_meas)
+    P = _inv_spd(terms.S) if terms.P is None else terms.P
+    return _cost_of_misclosure(terms.model, T, e, P, terms.prior_data, terms.cfg)
 
 
 def _adjustment_cost(v: FloatArray, P: FloatArray | _PartWeights, weights: FloatArray) -> float:
@@ -386,8 +390,9 @@ def _motion_system_in_parts(prob: _Problem, T: FloatArray) -> _System:
     w, weights, cost0 = [], [], 0.0
     for a, part in prob.parts():
         b = a + len(part)
-        sysp = _motion_system(prob.model, T, part, prob.P[a:b], [], prob.cfg, prob.col, d,
-                              None, None, prob.compiled)  # T_meas, its inverse: of the part
+        # the part's own measured motions and their inverses (not kept), no priors
+        terms = _Terms(prob.model, part, prob.S[a:b], [], prob.cfg, prob.col, d, prob.P[a:b])
+        sysp = _motion_system(terms, T, _Kept(prob.compiled))
         k = np.arange(a, b)
         prob.pattern.assemble_at(sysp.all_blocks(),
                                  np.concatenate([k, k + m, k + 2 * m, k + 3 * m]), data)
