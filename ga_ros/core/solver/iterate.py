@@ -129,19 +129,11 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
     Gauss-Newton step lowers the cost by less than ``cost_tolerance``).
 
     Undamped chord steps (the last factorisation reused once a correction is below
-    ``reuse_factor_below``) need the gradient only (:meth:`_Problem.gradient`). With a
-    ``cost_tolerance`` the iteration stops before a chord step whose predicted decrease
-    ``-u' h = h' N_old h`` is below that fraction of the cost (the Newton decrement in the
-    metric of the last factor: the cost left to gain, up to the factor's error). A chord step
-    that is taken is kept only if it lowers the cost as predicted (:func:`_chord_kept`), and
-    only while chord steps converge fast: one whose decrease is more than a quarter of the
-    previous step's (a contraction slower than 1/2 per step, e.g. a factor from far away on a
-    weak mode of the network) makes the next iteration factor ``N`` anew. Measured on the
-    aerial window (10 % noise, after the pre-alignment): the chord step after the first
-    Gauss-Newton step predicted 0.005-0.02 (cost ~30,000), so the update stops at the
-    Gauss-Newton step's estimate, 0.01-0.17 m RMS from the window's optimum; the chord step
-    the earlier rule took (stopping after it on its realised decrease) moved the estimate
-    0.1-0.35 m away from the optimum along the weak modes for a decrease of 0.01.
+    ``reuse_factor_below``) need the gradient only (:meth:`_Problem.gradient`); their rules
+    are :func:`_undamped_step`'s. Only while chord steps converge fast: one whose decrease is
+    more than a quarter of the previous step's (a contraction slower than 1/2 per step, e.g. a
+    factor from far away on a weak mode of the network) makes the next iteration factor ``N``
+    anew.
     The dogleg's chord step (:attr:`SolverConfig.chord_decrease`) is solved before ``N`` is
     assembled: when it shows less than ``cost_tolerance`` left to gain (:func:`_left_to_gain`)
     it is the last step, taken if it lowers the cost as predicted (:func:`_chord_kept`).
@@ -252,6 +244,15 @@ def _undamped_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArra
     or, for a chord step, the last factor reused. Returns the step, ``'cost_converged'`` when
     a chord step would gain less than ``cost_tolerance`` of the cost (not taken), or ``None``
     when a chord step taken did not lower the cost as predicted (:func:`_chord_kept`: undone).
+
+    With a ``cost_tolerance`` the iteration stops before a chord step whose predicted
+    decrease ``-u' h = h' N_old h`` is below that fraction of the cost (the Newton decrement in
+    the metric of the last factor: the cost left to gain, up to the factor's error). Measured
+    on the aerial window (10 % noise, after the pre-alignment): the chord step after the first
+    Gauss-Newton step predicted 0.005-0.02 (cost ~30,000), so the update stops at the
+    Gauss-Newton step's estimate, 0.01-0.17 m RMS from the window's optimum; taking that
+    chord step and stopping on its realised decrease moved the estimate 0.1-0.35 m away from
+    the optimum along the weak modes for a decrease of 0.01.
     """
     cfg = prob.cfg
     if not chord:
