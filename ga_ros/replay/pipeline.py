@@ -498,7 +498,9 @@ class _Run:
         self.out.path(traj, self.last_ns, topic=self.config.outputs.f2f_topic)
         self.out.tum('trajectory_ga.tum', traj)
         self.out.tum('trajectory_f2f.tum', traj)
-        T_map_odom = self._map_to_odom(traj)
+        front = getattr(self.source, 'front', None)
+        odom = MapToOdom(front if isinstance(front, InputFrontEnd) else None)
+        T_map_odom = odom.update(traj.node_ids, traj.T_world_node)
         if self.config.tf and T_map_odom is not None:
             self.out.map_to_odom(T_map_odom, stamp, self.last_ns)
         if self.gt is not None and len(self.gt):
