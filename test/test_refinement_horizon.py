@@ -53,8 +53,8 @@ def test_bounded_refinement_equals_the_whole_survey_one_while_the_survey_fits():
                                       runs[0].corrected_path().T_world_node)
         np.testing.assert_array_equal(al.covariances(sc.node_ids[1:]),
                                       runs[0].covariances(sc.node_ids[1:]))
-        assert len(al.state.priors) == len(runs[0]._priors)
-        for (i, m, h), (i0, m0, h0) in zip(al.state.priors, runs[0]._priors):
+        assert len(al.state.priors) == len(runs[0].state.priors)
+        for (i, m, h), (i0, m0, h0) in zip(al.state.priors, runs[0].state.priors):
             np.testing.assert_array_equal(i, i0)
             np.testing.assert_array_equal(m, m0)
             np.testing.assert_array_equal(h.toarray() if hasattr(h, 'toarray') else h,
@@ -146,7 +146,7 @@ def test_bounded_replay_is_identical_whatever_the_executor():
     and the inline refinement give bit-identical paths and covariances."""
     sc, _, ms = noisy_aerial_survey(7, 4, 5.0, 9)
     runs = [_run(_config(3, executor=e, band=16), sc, ms)[0] for e in ('process', 'inline')]
-    assert runs[0]._retired == runs[1]._retired >= 2
+    assert runs[0].state.retired == runs[1].state.retired >= 2
     np.testing.assert_array_equal(runs[0].corrected_path().T_world_node,
                                   runs[1].corrected_path().T_world_node)
     np.testing.assert_array_equal(runs[0].covariances(sc.node_ids[1:]),

@@ -268,7 +268,7 @@ def test_sparse_prior_window_is_close_to_the_dense_one():
     cfg = AlignerConfig(window_tracks=2, refine_every_tracks=0)
     dense = _run(replace(cfg, prior_band=-1), sc, ms)
     sparse = _run(replace(cfg, prior_band=2, prior_hubs=3), sc, ms)
-    assert any(sp.issparse(info) for _, _, info in sparse._priors)
+    assert any(sp.issparse(info) for _, _, info in sparse.state.priors)
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
     ids = sc.node_ids[1:]
     sd = np.sqrt(np.diagonal(batch.covariance(ids), axis1=1, axis2=2))[:, :3]

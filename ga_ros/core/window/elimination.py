@@ -14,9 +14,6 @@ the eliminations' gains, ~0.7 M values per 200-pose track: a worker process keep
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -26,54 +23,8 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, normal_matrix_at
 from ga_ros.core.window.freeze import AbsorbedPrior, marginal_prior, prior_nodes
+from ga_ros.core.window.snapshot import RefinementSnapshot, SmoothingStep, SparseSmoothing
 from ga_ros.core.window.storage import unpack_sym6
-
-if TYPE_CHECKING:
-    from ga_ros.core.window.refinement import RefinementSnapshot
-
-
-@dataclass(frozen=True)
-class SmoothingStep:
-    """One elimination of :func:`absorbed_priors`, kept for back substitution.
-
-    Given the tangent corrections ``d_R`` of the nodes ``R`` still present after the step (at
-    the linearisation point), the eliminated nodes ``L`` move by ``d_L = offset + gain d_R``
-    (their conditional mean under the absorbed terms).
-    """
-
-    eliminated: IntArray
-    remaining: IntArray
-    gain: FloatArray
-    offset: FloatArray
-
-    def back(self, dR: FloatArray) -> FloatArray:
-        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
-        return self.offset + (self.gain.astype(np.float64) @ dR if dR.size else 0.0)
-
-
-class SparseSmoothing:
-    """The back substitution of a sparse elimination (:func:`sparse_eliminate`): ``d_L =
-    -N_LL^-1 (u_L + N_LR d_R)`` with a sparse Cholesky factor of ``N_LL`` (not picklable: it
-    stays in the process that made it, :func:`_refine_in_worker`).
-
-    Attributes
-    ----------
-    eliminated, remaining : node indices of ``L`` and ``R`` (the prior nodes).
-    """
-
-    def __init__(self, eliminated: IntArray, remaining: IntArray, N_LL: sp.spmatrix,
-                 N_LR: sp.spmatrix, u_L: FloatArray) -> None:
-        from ga_ros.core.sparse import BlockPattern, SparseCholesky
-
-        self.eliminated, self.remaining = eliminated, remaining
-        self._chol = SparseCholesky(*BlockPattern.from_matrix(N_LL, 6))
-        self._N_LR = sp.csr_matrix(N_LR)
-        self._u_L = u_L
-
-    def back(self, dR: FloatArray) -> FloatArray:
-        """``d_L`` (6 per eliminated node) from ``d_R`` (6 per remaining node)."""
-        rhs = self._u_L + (self._N_LR @ dR if dR.size else 0.0)
-        return -self._chol.solve(rhs)
 
 
 def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True

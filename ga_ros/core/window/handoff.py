@@ -20,7 +20,7 @@ import numpy as np
 from ga_ros.core.solver import SolveResult
 from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.freeze import AbsorbedPrior, JointPrior, prior_nodes
-from ga_ros.core.window.refinement import RefinementResult, RefinementSnapshot
+from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot
 from ga_ros.core.window.state import WindowState, no_weighted
 from ga_ros.core.window.worker import RefinementWorker
 from ga_ros.errors import GaError, InputError

@@ -57,134 +57,24 @@ covariances and priors only.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.arrays import FloatArray
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver import solve
 from ga_ros.core.window.elimination import (
-    SmoothingStep,
-    SparseSmoothing,
     eliminate_absorbed,
     gaussian,
     retirable_tracks,
     retire_tracks,
 )
 from ga_ros.core.window.freeze import AbsorbedPrior, freeze_policy
+from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot
 from ga_ros.core.window.storage import unpack_sym6
 from ga_ros.errors import GaError
 from ga_ros.runtime import blas_threads
-
-
-@dataclass(frozen=True)
-class RefinementSnapshot:
-    """What a refinement solves: a copy of the aligner's data after one track's update.
-
-    Attributes
-    ----------
-    after_tracks : number of finished tracks when the snapshot was taken.
-    node_ids, track_ids : (n,) ids of the nodes of finished tracks, in the aligner's order; node 0
-        (index 0) is the datum, held fixed.
-    T_world_node : (n, 4, 4) online estimate (warm start).
-    frozen : (n,) frozen flags at the snapshot.
-    track_order : finished track ids in order of appearance (the order in which they freeze).
-    src, dst : (m,) connection end points as node indices.
-    z : (m, 6) measured motions ``[t, rotvec]`` of ``T_src_dst``; cov21 : (m, 21) their covariances
-        as the aligner stores them (upper triangles,
-        :func:`~ga_ros.core.window.storage.pack_sym6`).
-    status : (m,) 0 active, 1 absorbed into a prior, 2 excluded as an outlier.
-    freeze_policy : ``'weighted'`` or ``'marginal'`` (which nodes the rebuilt priors keep).
-    solver : settings of the batch solve.
-    leaving : tracks that will have frozen by the hand-off (they leave the window before the
-        update that installs the result); the priors are rebuilt for that state.
-    prior_band, prior_hubs : half-bandwidth (nodes) and hub nodes of the rebuilt priors'
-        sparse information (:func:`~ga_ros.core.window.freeze.band_prior`);
-        ``prior_band = -1``: dense (the exact Schur
-        complement).
-    first_node : the aligner's row of the snapshot's node 0 (the horizon's first node). 0: the
-        horizon starts at the survey's datum, which is held fixed; otherwise the gauge comes
-        from the ``past`` prior.
-    past : the past prior (bounded refinement, see the module doc), node indices of the
-        snapshot.
-    retire_max : at most this many of the oldest tracks of ``track_order`` retire after this
-        refinement (:func:`~ga_ros.core.window.elimination.retirable_tracks`); 0: none
-        (whole-survey refinement).
-    conn_rows : (m,) the aligner's rows of the snapshot's connections (``None``: rows ``0..m-1``).
-    connections_total : number of connections the aligner held at the snapshot.
-    """
-
-    after_tracks: int
-    node_ids: IntArray
-    track_ids: IntArray
-    T_world_node: FloatArray
-    frozen: BoolArray
-    track_order: tuple[int, ...]
-    src: IntArray
-    dst: IntArray
-    z: FloatArray
-    cov21: FloatArray
-    status: IntArray
-    freeze_policy: str
-    solver: SolverConfig
-    leaving: tuple[int, ...] = ()
-    prior_band: int = -1
-    prior_hubs: int = 0
-    first_node: int = 0
-    past: tuple[AbsorbedPrior, ...] = ()
-    retire_max: int = 0
-    conn_rows: IntArray | None = None
-    connections_total: int = -1
-
-    @property
-    def datum(self) -> bool:
-        """Whether node 0 of the snapshot is the survey's datum (held fixed)."""
-        return self.first_node == 0
-
-
-@dataclass(frozen=True)
-class RefinementResult:
-    """Outcome of :func:`refine_snapshot`.
-
-    Attributes
-    ----------
-    after_tracks : the snapshot's ``after_tracks``.
-    ok : the batch solve converged and the priors could be rebuilt; otherwise nothing is
-        installed and ``reason`` says why.
-    reason : the solver's termination reason, or the error.
-    T_world_node : (n, 4, 4) refined poses of the snapshot's nodes (snapshot order).
-    frozen_cov : (f, 6, 6) marginal covariances ``[x y z rx ry rz]`` of the snapshot's frozen
-        nodes (in index order; the datum's block is zero).
-    priors : joint priors of the absorbed connections, relinearised at the refined frozen poses.
-    frozen : (n,) frozen flags at the hand-off (the snapshot's plus the ``leaving`` tracks).
-    absorbed : (a,) connections absorbed into priors at the hand-off (predicted).
-    smoothing : back-substitution steps from the priors' nodes to every other frozen node.
-    iterations : Gauss-Newton iterations of the batch solve.
-    seconds : wall time of the whole refinement (solve, covariances, priors).
-    retired : number of the snapshot's oldest tracks retired
-        (:func:`~ga_ros.core.window.elimination.retire_tracks`).
-    past : the past prior for the next refinement (snapshot node indices; the snapshot's own
-        if nothing retired).
-    smoothing_kept : the smoothing steps stayed in the worker process that computed them
-        (``smoothing`` is then empty):
-        :meth:`~ga_ros.core.window.worker.RefinementWorker.smooth` applies them there.
-    """
-
-    after_tracks: int
-    ok: bool
-    reason: str
-    T_world_node: FloatArray
-    frozen_cov: FloatArray
-    priors: tuple[AbsorbedPrior, ...]
-    frozen: BoolArray
-    absorbed: IntArray
-    smoothing: tuple[SmoothingStep | SparseSmoothing, ...]
-    iterations: int
-    seconds: float
-    retired: int = 0
-    past: tuple[AbsorbedPrior, ...] = ()
-    smoothing_kept: bool = False
 
 
 def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:

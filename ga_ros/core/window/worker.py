@@ -26,8 +26,9 @@ from dataclasses import replace
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.window.elimination import SmoothingStep, smoothed
-from ga_ros.core.window.refinement import RefinementResult, RefinementSnapshot, refine_snapshot
+from ga_ros.core.window.elimination import smoothed
+from ga_ros.core.window.refinement import refine_snapshot
+from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot, SmoothingStep
 from ga_ros.errors import InputError
 
 #: Where a refinement runs: a separate process ('spawn' start method: safe beside the DDS threads
