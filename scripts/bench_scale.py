@@ -124,7 +124,7 @@ class StageProbe:
     exit."""
 
     def __init__(self) -> None:
-        import ga_ros.core.window as window
+        import ga_ros.core.window.aligner as window
 
         self.stages: list[Stage] = []
         self._peak = 0.0

@@ -443,6 +443,14 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
             return AbsorbedPrior(kept, mean, info, info.shape[0])
         except DegenerateGeometryError:  # N_LL or H singular: dense blocks below
             pass
+    return _dense_marginal(kept, N, u, colsS, colsL, T_keep)
+
+
+def _dense_marginal(kept: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
+                    colsS: IntArray, colsL: IntArray, T_keep: FloatArray) -> AbsorbedPrior:
+    """:func:`marginal_prior`'s exact prior from dense blocks: the Schur complement ``H, g`` of
+    the unknowns ``colsL`` out of ``(N, u)`` onto ``colsS`` (rank unknown)."""
+    sparse_in = sp.issparse(N)
     Nd = sp.csr_matrix(N) if sparse_in else np.asarray(N)
 
     def part(rows: IntArray, cols: IntArray) -> FloatArray:
