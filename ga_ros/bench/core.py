@@ -28,6 +28,8 @@ from ga_ros.core import solver as _solver
 from ga_ros.core import sparse as _sparse
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import update as _update
+from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.eval.metrics import ate
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -139,11 +141,11 @@ UPDATE_PARTS = {
     'factor': ((_sparse.SparseCholesky, '__init__'), (_sparse.SparseCholesky, 'refactor')),
     'solve': ((_sparse.SparseCholesky, 'solve'),),
     'gradient': ((_solver._Problem, 'gradient'), (_solver._Problem, 'gradient_ahead')),
-    'problem': ((TrackWindowAligner, '_window_problem'),),
-    'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
+    'problem': ((_update.WindowUpdate, 'window_problem'),),
+    'gate': ((_update, 'outliers'), (_update, 'readmissible')),
     'freeze': ((TrackWindowAligner, '_freeze'),),
-    'refinement': ((TrackWindowAligner, '_install_due'), (TrackWindowAligner, '_smooth'),
-                   (TrackWindowAligner, '_start_refinement')),
+    'refinement': ((RefinementHandoff, 'install_due'), (RefinementHandoff, 'smooth'),
+                   (RefinementHandoff, 'start')),
 }
 
 
