@@ -56,7 +56,9 @@ class TrackWindowAligner:
     ----------
     config : the settings.
     state : everything kept between calls (:class:`~ga_ros.core.window.state.WindowState`;
-        a snapshot file saves and restores it, :func:`from_state`).
+        a snapshot file saves and restores it, :meth:`from_state`).
+    policy : the freeze policy of ``config.freeze_policy``
+        (:class:`~ga_ros.core.window.freeze.FreezePolicy`).
     updater : the window update (:class:`~ga_ros.core.window.update.WindowUpdate`).
     handoff : the background refinement
         (:class:`~ga_ros.core.window.handoff.RefinementHandoff`).

@@ -147,7 +147,7 @@ class FreezePolicy:
         ``nc`` connections; reads the tables of ``state`` and changes nothing in them (it may run
         in a background thread while measurements are added: those rows come after ``n``,
         ``nc``). ``band``, ``hubs``: ``prior_band``, ``prior_hubs``; ``factor_lock`` guards
-    ``res``'s factor (shared with the covariance queries)."""
+        ``res``'s factor (shared with the covariance queries)."""
         nodes = np.array(state.track_nodes[track], dtype=np.int64)
         # the new prior first: a covariance asked for right after an update (the node's newest
         # pose) factors the last adjustment's system meanwhile, and the selected inversion
