@@ -247,7 +247,7 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     with the compiled kernels, the leaving nodes' covariances by selected inversion on the last
     solve's factor) gives the covariances and joint priors of the dense Schur complement /
     sparse solves."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv
     from ga_ros.core.window import freeze
 
     if compiled and not selinv.COMPILED:

@@ -20,7 +20,9 @@ import time
 
 import numpy as np
 
-from ga_ros.core import selinv, solver, sparse
+from ga_ros.core.linalg import banded, selinv, skeleton
+from ga_ros.core.linalg.cholmod import SparseCholesky
+from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import aligner, freeze, handoff, update
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -32,16 +34,16 @@ STAGES = (
     (freeze, 'marginal_covariances'),
     (freeze.FreezePolicy, 'marginalise'),
     (freeze, 'normal_matrix_at'),
-    (selinv, 'sparse_skeleton'),
+    (skeleton, 'sparse_skeleton'),
     (freeze, 'marginal_prior'),
     (freeze, 'band_prior'),
-    (sparse, '_completion'),
+    (banded, '_completion'),
     (selinv.SelectedInverse, '__init__'),
-    (sparse.SparseCholesky, 'refactor'),
-    (sparse.SparseCholesky, '_analyse'),
+    (SparseCholesky, 'refactor'),
+    (SparseCholesky, '_analyse'),
     (aligner.TrackWindowAligner, '_adjust'),
     (update, 'solve'),
-    (solver._Problem, 'linear_system'),
+    (_Problem, 'linear_system'),
     (handoff.RefinementHandoff, 'install_due'),
     (handoff.RefinementHandoff, 'smooth'),
     (handoff.RefinementHandoff, 'start'),

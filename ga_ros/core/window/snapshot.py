@@ -113,7 +113,8 @@ class SparseSmoothing:
 
     def __init__(self, eliminated: IntArray, remaining: IntArray, N_LL: sp.spmatrix,
                  N_LR: sp.spmatrix, u_L: FloatArray) -> None:
-        from ga_ros.core.sparse import BlockPattern, SparseCholesky
+        from ga_ros.core.linalg.blocks import BlockPattern
+        from ga_ros.core.linalg.cholesky import SparseCholesky
 
         self.eliminated, self.remaining = eliminated, remaining
         self._chol = SparseCholesky(*BlockPattern.from_matrix(N_LL, 6))

@@ -19,10 +19,10 @@ from typing import NamedTuple
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.linalg.banded import spd_inverse
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.prealign import prealign
 from ga_ros.core.solver import GaussianPrior, SolveResult, information_rank, solve
-from ga_ros.core.sparse import spd_inverse
 from ga_ros.core.window.config import AlignerConfig, UpdateResult
 from ga_ros.core.window.freeze import JointPrior
 from ga_ros.core.window.gate import QualityCache, outliers, readmissible
