@@ -5,8 +5,8 @@ digit, underscore, hyphen or space dropped, spaces turned into hyphens, and ``-1
 appended to repeated anchors. Links inside code (fenced blocks and inline spans) are not links.
 """
 
-from pathlib import Path
 import re
+from pathlib import Path
 
 import pytest
 
