@@ -19,8 +19,9 @@ EXTERNAL = re.compile(r'^[a-zA-Z][a-zA-Z0-9+.-]*:')
 
 
 def doc_files() -> list[Path]:
-    """Return the README and every page of docs/ (not the generated report)."""
-    return [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]
+    """Return the README, every page of docs/ and the committed report."""
+    docs = ROOT / 'docs'
+    return [ROOT / 'README.md', *sorted(docs.glob('*.md')), *sorted(docs.glob('report/*.md'))]
 
 
 def without_fences(text: str) -> str:
