@@ -58,6 +58,15 @@ from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import selinv
+from ga_ros.core.fixes import (
+    DATUMS,
+    AbsoluteFix,
+    FixBook,
+    FixTerm,
+    gauge_information,
+    identity_offset,
+    offset_information,
+)
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.core.prealign import prealign
@@ -215,6 +224,20 @@ class AlignerConfig:
         their covariances with every prior node are kept exactly too, which keeps the
         long-range correlations (the common drift of a frozen swath) that a band alone loses.
         Each adds one dense block row to the window's normal matrix.
+    datum : ``'first_node'`` (the first node held fixed at ``T_world_first``) or ``'fixes'``
+        (absolute fixes define the map frame, :mod:`ga_ros.core.fixes`: nothing is held fixed,
+        the first node gets a weak gauge prior at ``T_world_first`` with the ``gauge_*``
+        sigmas, so the normal matrix stays regular until the fixes constrain every degree of
+        freedom). With ``'fixes'`` the background refinement and the freeze computed ahead are
+        off (their snapshots do not carry fixes): frozen nodes keep their fixes in the joint
+        priors absorbed at the freeze.
+    fix_gate_prob : chi-square probability of the fixes' gate (:meth:`FixBook.gate
+        <ga_ros.core.fixes.FixBook.gate>`); 0 disables it.
+    gauge_sigma_m : position sigma (m, per axis) of the gauge prior of ``datum='fixes'``.
+    gauge_sigma_tilt_rad : roll and pitch sigma (rad) of the gauge prior (an odometry frame is
+        level, REP 105, so the default is tight-ish: 0.05 rad).
+    gauge_sigma_yaw_rad : yaw sigma (rad) of the gauge prior (the odometry's heading in the map
+        frame is unknown: 3 rad).
     """
 
     window_tracks: int = 5
@@ -238,6 +261,11 @@ class AlignerConfig:
     refine_horizon_tracks: int = 20
     prior_band: int = 16
     prior_hubs: int = 16
+    datum: str = 'first_node'
+    fix_gate_prob: float = 0.9999
+    gauge_sigma_m: float = 1000.0
+    gauge_sigma_tilt_rad: float = 0.05
+    gauge_sigma_yaw_rad: float = 3.0
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -279,6 +307,12 @@ class AlignerConfig:
         if int(self.prior_band) < -1 or int(self.prior_hubs) < 0:
             raise InputError(f'prior_band must be >= 0 (nodes) or -1 (dense) and prior_hubs '
                              f'>= 0, got {self.prior_band}, {self.prior_hubs}')
+        if self.datum not in DATUMS:
+            raise InputError(f'datum must be one of {DATUMS}, got {self.datum!r}')
+        if not 0.0 <= self.fix_gate_prob < 1.0:
+            raise InputError(f'fix_gate_prob must be in [0, 1), got {self.fix_gate_prob}')
+        gauge_information(self.gauge_sigma_m, self.gauge_sigma_tilt_rad,
+                          self.gauge_sigma_yaw_rad)  # range checks
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
@@ -683,6 +717,9 @@ class TrackWindowAligner:
         self._ahead: _AheadFreeze | None = None
         self._factor_lock = threading.Lock()
         self._n_ahead = [0, 0]  # freezes installed from the background, recomputed at the end
+        # absolute fixes as weighted parameters (ga_ros.core.fixes), with the gauge prior of
+        # datum='fixes' on the first node
+        self._fixes = FixBook(self.config.fix_gate_prob)
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -692,6 +729,57 @@ class TrackWindowAligner:
         policy in the module docstring rejects; the state is then unchanged.
         """
         return self._add(m, None)
+
+    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
+        """Add an absolute fix tied to a node by the odometry (:class:`~ga_ros.core.fixes.FixTerm`);
+        it enters the next adjustment of that node as a weighted parameter.
+
+        Parameters
+        ----------
+        term : the fix, its node and the offset from the node to the sensor.
+        C_offset : (6, 6) covariance of that offset (odometry between the node and the fix's
+            stamp, right perturbation in the node frame), added to the fix's covariance in its
+            known dimensions; ``None``: an exact offset.
+
+        Raises
+        ------
+        InputError
+            An unknown node (counted ``fix_no_keyframe``) or a frozen one (``fix_frozen_node``:
+            its estimate and prior are final; send fixes before the node's track leaves the
+            window), nothing changed.
+        """
+        k = self._index.get(int(term.node_id))
+        if k is None:
+            self._fixes.reject('fix_no_keyframe')
+            raise InputError(f'{term.fix.source}: fix on unknown node {term.node_id}',
+                             reason='unknown_source')
+        if self._frozen[k]:
+            self._fixes.reject('fix_frozen_node')
+            raise InputError(f'{term.fix.source}: fix on node {term.node_id}, whose track is '
+                             'frozen already', reason='frozen')
+        info = term.fix.information
+        if C_offset is not None:
+            info = offset_information(term.fix, self._T[k], C_offset)
+        self._fixes.add(k, term, info)
+
+    @property
+    def fix_stats(self):
+        """Counters of the absolute fixes (:class:`~ga_ros.core.fixes.FixStats`)."""
+        return self._fixes.stats
+
+    @property
+    def _uses_fixes(self) -> bool:
+        """Whether fixes (or the gauge prior of ``datum='fixes'``) take part."""
+        return self.config.datum == 'fixes' or len(self._fixes) > 0
+
+    def _fix_prior(self, rows: IntArray) -> list[GaussianPrior]:
+        """The weighted parameters of the fixes of node ``rows`` (none or one prior)."""
+        if not len(self._fixes):
+            return []
+        keys, means, infos = self._fixes.prior_terms(rows, self._T)
+        if keys.size == 0:
+            return []
+        return [GaussianPrior(self._idarr.a[keys], means, sla.block_diag(*infos))]
 
     def add_measurements(self, ms) -> BatchResult:
         """Add many measurements in order (a journal replay, a recorded survey): exactly what
@@ -909,6 +997,13 @@ class TrackWindowAligner:
         i, j = plan['rows']  # None: a new node (finish_track, run between, adds none)
         if plan['first']:
             i = self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
+            if self.config.datum == 'fixes':
+                cfg = self.config
+                gauge = AbsoluteFix(int(m.stamp_ns), self._T_first, gauge_information(
+                    cfg.gauge_sigma_m, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad),
+                    'gauge')
+                self._fixes.add(i, FixTerm(int(src), identity_offset(), gauge),
+                                gauge.information, gated=False)
         if j is None:
             T_src = self._T[i]
             T_meas = se3.from_translation_rotvec(plan['z'][:3], plan['z'][3:])
@@ -988,6 +1083,7 @@ class TrackWindowAligner:
         last = {k: self.__dict__[k] for k in ('_last_result', '_last_pending')
                 if k in self.__dict__}      # as stored: a pending recomputation stays pending
         saved = _Rollback.of(self)
+        fix_state = self._fixes.state()
         track, t0 = self._open_track, time.perf_counter()
         try:
             up = self._finish_track()
@@ -999,6 +1095,7 @@ class TrackWindowAligner:
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
         saved.restore(self)
+        self._fixes.restore(fix_state)
         self._last = None
         self.__dict__.update(last)
         self.__dict__.pop('_smoothing', None)  # of a refinement installed by the failed update
@@ -1051,7 +1148,7 @@ class TrackWindowAligner:
         cfg = self.config
         n_done = len(self._finished)
         n = len(self._ids)
-        if (cfg.refine_every_tracks <= 0 or n_done % cfg.refine_every_tracks
+        if (cfg.refine_every_tracks <= 0 or n_done % cfg.refine_every_tracks or self._uses_fixes
                 or self._refiner.pending_due is not None
                 or self._open_track not in self._finished):
             return
@@ -1273,7 +1370,7 @@ class TrackWindowAligner:
         state this update left; :meth:`_ahead_plan` checks at the next update that nothing it
         depends on changed meanwhile."""
         self._drop_ahead()
-        if not self.config.freeze_ahead:
+        if not self.config.freeze_ahead or self._uses_fixes:
             return
         finished = [t for t in self._tracks if t in self._finished]
         K = self.config.window_tracks
@@ -1306,7 +1403,7 @@ class TrackWindowAligner:
         adjustment and priors, and no connection added since touches the track (the nodes and
         connections added since are outside what it read). ``None``: compute it now."""
         job, self._ahead = self._ahead, None
-        if job is None:
+        if job is None or self._uses_fixes:  # a fix added since may touch the track
             return None
         job.wait()
         plan = job.plan
@@ -1388,7 +1485,8 @@ class TrackWindowAligner:
                 ext = np.union1d(ext, idx[~in_win[idx]])
         nodes = np.concatenate([win_nodes, ext])
         net = self._subnetwork(nodes, conns, self._connection_terms(conns).cov)
-        fixed = [self._ids[0]] if (nodes == 0).any() else []
+        free_datum = self.config.datum == 'fixes'
+        fixed = [self._ids[0]] if (nodes == 0).any() and not free_datum else []
         priors = []
         # Frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
         # stay unknowns of the adjustment, with a joint prior that carries only the information
@@ -1397,13 +1495,15 @@ class TrackWindowAligner:
         # (a state saved by an older version) falls back to its marginal covariance.
         covered = np.concatenate([self._priors[p][0] for p in priors_idx]
                                  or [np.zeros(0, np.int64)])
-        weighted = ext[(ext != 0) & ~np.isin(ext, covered)]
+        weighted = ext[((ext != 0) | free_datum) & ~np.isin(ext, covered)]
         if weighted.size:
             priors.append(GaussianPrior.from_covariances(ids[weighted], self._T[weighted],
                                                          self._cov[weighted]))
         for p in priors_idx:
             idx, mean, info = prior = self._ranked(p)
             priors.append(GaussianPrior(ids[idx], mean, info, rank=prior.rank))
+        # fixes of the nodes that are not frozen (a frozen node's are in its joint prior)
+        priors += self._fix_prior(nodes[~self._frozen[nodes]])
         return net, nodes, win_nodes, conns, fixed, priors
 
     def _ranked(self, p: int) -> JointPrior:
@@ -1440,6 +1540,7 @@ class TrackWindowAligner:
         # optimum for the old connections (window nodes and the frozen nodes it adjusted as
         # weighted parameters), the new track from its chained consecutive motions
         res, (prev_nodes, T_prev) = None, self._T_weighted
+        fix_rounds, fixes_out = 0, set()
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self._window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
@@ -1467,6 +1568,9 @@ class TrackWindowAligner:
             if bad.size == 0:
                 back = self._readmissible(window_tracks, nodes, res, readmitted)
                 if back.size == 0:
+                    if fix_rounds < 50 and self._gate_fixes(nodes, res, fixes_out):
+                        fix_rounds += 1
+                        continue
                     break
                 self._status.a[back] = 0  # consistent now: back into the adjustment
                 readmitted.update(back.tolist())
@@ -1488,6 +1592,20 @@ class TrackWindowAligner:
             n_tracks_in_window=len(window_tracks), n_outliers=n_out, reason=res.reason,
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self._quality_summary(net, res, priors, conns))
+
+    def _gate_fixes(self, nodes: IntArray, res: SolveResult, excluded_now: set[int]) -> bool:
+        """The fixes' gate after an adjustment of ``nodes`` (rows, in the order of ``res``):
+        whether a fix was excluded or re-admitted (then the window is adjusted again)."""
+        if not len(self._fixes) or self._fixes.gate_prob <= 0:
+            return False
+        rows = np.asarray(self._fixes.rows, np.int64)
+        free = np.isin(self._idarr.a[nodes], res.free_node_ids) & ~self._frozen[nodes]
+        sel = np.nonzero(free & np.isin(nodes, rows))[0]
+        if sel.size == 0:
+            return False
+        with self._factor_lock:
+            Q = res.covariance(self._idarr.a[nodes[sel]])
+        return self._fixes.gate(nodes[sel], res.T_world_node[sel], Q, excluded_now)
 
     def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
         """The covariances, weights and measured motions of connections (sorted rows), those
@@ -1700,7 +1818,9 @@ class TrackWindowAligner:
         touching = [p for p, (idx, _, _) in enumerate(priors) if involved[idx].any()]
         for p in touching:
             involved[priors[p][0]] = True
-        involved[0] = False  # the datum is fixed, never a prior node
+        free_datum = self.config.datum == 'fixes'
+        if not free_datum:
+            involved[0] = False  # the datum is fixed, never a prior node
         allnodes = np.nonzero(involved)[0]
         # nodes that keep an active connection (other than the absorbed ones) to a node that is
         # not frozen stay in the prior; the others are eliminated
@@ -1713,8 +1833,9 @@ class TrackWindowAligner:
         keep[d_[~frozen_after[s_]]] = True
         ids = self._idarr.a[:n]
         merged = [GaussianPrior(ids[priors[p][0]], priors[p][1], priors[p][2]) for p in touching]
+        merged += self._fix_prior(L)  # the leaving nodes' fixes stay in their prior
         dropped = tuple(touching)
-        datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any())
+        datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any()) and not free_datum
         net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
         net = self._subnetwork(net_nodes, conns)
         fixed = [ids[0]] if datum else []
@@ -1750,7 +1871,7 @@ class TrackWindowAligner:
         if self._frozen[k]:
             return self._cov[k].copy()
         if self._last is not None and k in set(self._last_window.tolist()):
-            if k == 0:
+            if k == 0 and self.config.datum != 'fixes':
                 return np.zeros((6, 6))
             with self._factor_lock:  # after a freeze being computed ahead, which shares it
                 return self._last.covariance([self._ids[k]])[0]
@@ -1774,7 +1895,7 @@ class TrackWindowAligner:
             if self._frozen[i]:
                 out[k] = self._cov[i]
             elif i in in_window:
-                if i != 0:
+                if i != 0 or self.config.datum == 'fixes':
                     from_window.append(k)
             else:
                 raise InputError(f'node {node} has not been adjusted yet (its track is still '
@@ -1832,10 +1953,12 @@ class TrackWindowAligner:
         scfg = self.config.solver_config()
         if max_iterations is not None:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
-        res = solve(net, self._T[:n], scfg, fixed=[self._ids[0]])
+        free_datum = self.config.datum == 'fixes'
+        res = solve(net, self._T[:n], scfg, fixed=[] if free_datum else [self._ids[0]],
+                    priors=self._fix_prior(np.arange(n)))
         del net
         self._T[:n] = res.T_world_node
-        frozen = np.nonzero(self._frozen[:n] & (np.arange(n) != 0))[0]
+        frozen = np.nonzero(self._frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]
         if frozen.size:
             self._cov[frozen] = res.covariance(self._idarr.a[frozen])
         # the joint priors of the absorbed connections, relinearised at the refined estimate
