@@ -28,7 +28,9 @@ Gating (:meth:`FixBook.gate`): after each window adjustment, every fix of an adj
 tested by the chi-square test of its Mahalanobis misclosure (degrees of freedom: its known
 dimensions) at the configured probability: a fix in the adjustment against its residual
 covariance ``C - J Q J'``, an excluded one against the predicted ``C + J Q J'`` (``Q`` the
-node's marginal covariance, ``J`` the Jacobian of the sensor pose). Failing fixes are excluded
+node's marginal covariance, ``J`` the Jacobian of the sensor pose), both scaled by the
+adjustment's variance factor when it exceeds 1 (Pope's tau test: the odometry's drift is
+often larger than its covariance says, and then sparse fixes would all fail the test). Failing fixes are excluded
 (``fix_outlier``) and re-tested at every later adjustment of their node, like the window's
 connections, so a good fix excluded next to a gross one comes back. One fix is excluded per
 adjustment round (the worst), since a gross fix drags the residuals of its neighbours too.
@@ -310,19 +312,23 @@ class FixBook:
                                             [self.info[f] for f in fs])
         return np.asarray(keys, np.int64), means, infos
 
-    def gate(self, rows: IntArray, T: FloatArray, Q: FloatArray, excluded_now: set[int]
-             ) -> bool:
+    def gate(self, rows: IntArray, T: FloatArray, Q: FloatArray, excluded_now: set[int],
+             variance_factor: float = 1.0) -> bool:
         """Test the fixes of the adjusted node rows ``rows`` (poses ``T``, marginal covariances
         ``Q`` (k, 6, 6), both in the order of ``rows``) and exclude / re-admit them (module
         doc): the worst failing fix in the adjustment is excluded (one per call: a gross fix
         drags its neighbours' residuals too), fixes excluded earlier that pass are re-admitted;
         a fix excluded since the update began (``excluded_now``, updated here) is not re-tested
-        in it, so the gate cannot oscillate. Returns whether any status changed."""
+        in it, so the gate cannot oscillate. ``variance_factor``: the adjustment's a-posteriori
+        ``sigma0^2``; when above 1 the covariances are scaled by it (Pope's tau test), so a
+        model whose odometry covariance is too small (a drift it does not describe) does not
+        reject every sparse fix. Returns whether any status changed."""
         if self.gate_prob <= 0 or not self.terms:
             return False
         pos = {int(r): a for a, r in enumerate(np.asarray(rows).tolist())}
         status = self.status.copy()
         worst, worst_ratio = -1, 1.0
+        scale = max(1.0, float(variance_factor)) if np.isfinite(variance_factor) else 1.0
         for f, r in enumerate(self.rows):
             a = pos.get(r)
             if a is None or not self.gated[f] or f in excluded_now:
@@ -338,8 +344,8 @@ class FixBook:
             # exact arithmetic; floor it at 1 % of the fix's own against round-off
             w, V = np.linalg.eigh(0.5 * (S + S.T))
             w = np.maximum(w, 1e-2 * np.linalg.eigvalsh(C).min())
-            ratio = float(e @ (V @ ((V.T @ e) / w))) / chi2.ppf(self.gate_prob,
-                                                                  int(known.sum()))
+            ratio = float(e @ (V @ ((V.T @ e) / w))) / (
+                scale * chi2.ppf(self.gate_prob, int(known.sum())))
             if self.status[f] == 2 and ratio <= 1.0:
                 status[f] = 0
             elif self.status[f] == 0 and ratio > worst_ratio:

@@ -1605,7 +1605,8 @@ class TrackWindowAligner:
             return False
         with self._factor_lock:
             Q = res.covariance(self._idarr.a[nodes[sel]])
-        return self._fixes.gate(nodes[sel], res.T_world_node[sel], Q, excluded_now)
+        return self._fixes.gate(nodes[sel], res.T_world_node[sel], Q, excluded_now,
+                                res.sigma0_sq)
 
     def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
         """The covariances, weights and measured motions of connections (sorted rows), those
