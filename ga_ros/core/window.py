@@ -731,8 +731,8 @@ class TrackWindowAligner:
         return self._add(m, None)
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
-        """Add an absolute fix tied to a node by the odometry (:class:`~ga_ros.core.fixes.FixTerm`);
-        it enters the next adjustment of that node as a weighted parameter.
+        """Add an absolute fix tied to a node by the odometry
+        (:class:`~ga_ros.core.fixes.FixTerm`); it enters the next adjustment of that node as a weighted parameter.
 
         Parameters
         ----------

@@ -277,6 +277,7 @@ class _Run:
         self.source: Any = None
         self.first_id: int | None = None
         self.T_map_odom: FloatArray | None = None
+        self.fixes: list = []  # absolute fixes waiting for their node (ResolvedFix)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -292,6 +293,9 @@ class _Run:
             for k, v in item.node_stamps.items():
                 self.stamps.setdefault(int(k), int(v))
         m = item.measurement
+        if item.fixes:
+            self.fixes.extend(item.fixes)
+            self._add_fixes()
         if m is None:
             if item.error:
                 self._reject(item.error)
@@ -321,10 +325,30 @@ class _Run:
             self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
         else:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
+        if self.fixes:
+            self._add_fixes()
         for u in updates:
             self._update(u)
         if self.config.tf and self.T_map_odom is not None:
             self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), item.log_ns)
+
+    def _add_fixes(self) -> None:
+        """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
+        measurement brings waits for it); refused ones are counted as rejections."""
+        add = getattr(self.aligner, 'add_fix', None)
+        if add is None:
+            return
+        newest = self.aligner.newest_node_id
+        wait = []
+        for f in self.fixes:
+            if newest is None or f.term.node_id > newest:
+                wait.append(f)
+                continue
+            try:
+                add(f.term, f.C_offset)
+            except InputError as exc:
+                self._reject(f'absolute: {exc}')
+        self.fixes = wait
 
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
@@ -618,6 +642,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                 result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
                                 f'{unit}s' + (f' ({examples})' if examples else ''))
             run.finish()
+            fix_stats = getattr(run.aligner, 'fix_stats', None)
+            if fix_stats is not None and 'absolute' in result.source_stats:
+                result.source_stats['absolute']['aligner'] = _as_dict(fix_stats)
         finally:
             outputs.close()
             result.seconds = time.perf_counter() - t0
