@@ -732,7 +732,8 @@ class TrackWindowAligner:
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
         """Add an absolute fix tied to a node by the odometry
-        (:class:`~ga_ros.core.fixes.FixTerm`); it enters the next adjustment of that node as a weighted parameter.
+        (:class:`~ga_ros.core.fixes.FixTerm`); it enters the next adjustment of that node as a
+        weighted parameter.
 
         Parameters
         ----------
