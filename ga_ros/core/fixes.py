@@ -32,8 +32,9 @@ node's marginal covariance, ``J`` the Jacobian of the sensor pose), both scaled 
 adjustment's variance factor when it exceeds 1 (Pope's tau test: the odometry's drift is
 often larger than its covariance says, and then sparse fixes would all fail the test).
 Failing fixes are excluded (``fix_outlier``) and re-tested at every later adjustment of their
-node, like the window's connections, so a good fix excluded next to a gross one comes back. One fix is excluded per
-adjustment round (the worst), since a gross fix drags the residuals of its neighbours too.
+node, like the window's connections, so a good fix excluded next to a gross one comes back.
+One fix is excluded per adjustment round (the worst), since a gross fix drags the residuals of
+its neighbours too.
 """
 
 from __future__ import annotations
