@@ -267,3 +267,53 @@ def test_fix_rotation_is_a_left_perturbation_in_the_map_frame(rng) -> None:
     np.testing.assert_allclose(e[3:], [0.0, 0.0, 0.3 - yaw], atol=1e-12)
     np.testing.assert_allclose(so3.exp(e[3:]) @ fix.T_map_sensor[:3, :3], T[:3, :3],
                                atol=1e-12)
+
+
+def test_published_covariances_with_fixes_are_honest() -> None:
+    """Monte-Carlo NEES: odometry drawn from its covariance, position fixes from theirs; the
+    window aligner's published position covariances (newest node after the last update, and
+    every node) against the actual errors: mean NEES within the chi-square band."""
+    rng = np.random.default_rng(3)
+    n_tracks, per, runs = 4, 30, 30
+    n = n_tracks * per
+    # a lawnmower: 30 m swaths, 1 m steps, turning at the swath ends
+    T_true = [se3.identity()]
+    steps = []
+    for i in range(n - 1):
+        turn = np.pi / 2 if (i % per) in (per - 2, per - 1) else 0.0
+        steps.append(se3.from_translation_rotvec(np.array([1.0, 0.0, 0.0]),
+                                                 np.array([0.0, 0.0, turn])))
+        T_true.append(T_true[-1] @ steps[-1])
+    T_true = np.array(T_true)
+    C = np.diag([0.02 ** 2] * 3 + [0.003 ** 2] * 3)
+    L = np.linalg.cholesky(C)
+    sig_fix = 0.5
+    nees_last, nees_all = [], []
+    for _ in range(runs):
+        al = TrackWindowAligner(AlignerConfig(window_tracks=2, datum='fixes',
+                                              refine_every_tracks=0, fix_gate_prob=0.0),
+                                T_world_first=T_true[0])
+        for i in range(n - 1):
+            T_m = steps[i] @ se3.exp(L @ rng.normal(size=6))
+            al.add_measurement(Measurement.from_pose(i, i + 1, i // per, (i + 1) // per, T_m,
+                                                     C, (i + 1) * 10 ** 9))
+            k = i + 1
+            if k % 10 == 5:
+                p = T_true[k, :3, 3] + rng.normal(0, sig_fix, 3)
+                al.add_fix(FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
+                    k * 10 ** 9, se3.from_translation_rotvec(p, np.zeros(3)),
+                    np.diag([sig_fix ** 2] * 3 + [-1.0] * 3))))
+        al.finish_track()
+        T = al.corrected_path().T_world_node
+        cov = al.covariances(np.arange(n))
+        # position error in the node frame (the covariance's right perturbation)
+        e = np.einsum('kji,kj->ki', T[:, :3, :3], T_true[:, :3, 3] - T[:, :3, 3])
+        nees = np.einsum('ki,ki->k', e, np.linalg.solve(cov[:, :3, :3], e[:, :, None])[:, :, 0])
+        nees_last.append(nees[-1])
+        nees_all.append(nees[1:].mean())
+    from scipy.stats import chi2
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * runs) / runs
+    assert lo < np.mean(nees_last) < hi, np.mean(nees_last)
+    # over every node (frozen ones with the covariance they froze with): correlated along a
+    # run, so a looser band
+    assert 2.0 < np.mean(nees_all) < 4.5, np.mean(nees_all)
