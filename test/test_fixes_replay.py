@@ -210,7 +210,7 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
     # the ENU origin: given, or the first fix (then the map frame is offset by its error,
     # which the comparison below removes)
     gnss = AbsoluteSpec('/fix', 'navsatfix', AbsoluteInputConfig(
-        'fix0', datum=DATUM if datum_given else ()))
+        'fix0', use_datum=datum_given, datum=DATUM))
     cfg = ReplayConfig(inputs=InputTopics((spec,), absolutes=(gnss,)), plot=False,
                        aligner=AlignerConfig(datum='fixes', refine_executor='inline'))
     res = replay(tmp_path / 'in', tmp_path / 'out', cfg)

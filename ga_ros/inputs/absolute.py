@@ -7,8 +7,9 @@ Message types (:data:`ABSOLUTE_TYPES`)
     ``header.frame_id`` (the map frame) with a covariance ``[x y z rx ry rz]`` about the map's
     axes. ``sensor_msgs/msg/NavSatFix``: latitude, longitude, altitude (WGS84), converted to a
     local East-North-Up frame (:func:`geodetic_to_enu`, exact WGS84 formulas through ECEF) whose
-    origin is the ``datum`` parameter ``[lat_deg, lon_deg, alt_m]`` or, if empty, the first
-    fix used (:attr:`AbsoluteDecoder.datum`, written to the replay's summary; the map frame is
+    origin is the ``datum`` parameter ``[lat_deg, lon_deg, alt_m]`` when ``use_datum`` (as
+    navsat_transform's ``wait_for_datum`` / ``datum``), else the first fix used
+    (:attr:`AbsoluteDecoder.datum`, written to the replay's summary; the map frame is
     then that ENU frame). A NavSatFix with ``status.status < 0`` (``STATUS_NO_FIX``) is dropped
     and counted (``fix_no_fix``); ``position_covariance_type`` is honoured (``UNKNOWN``: the
     default; ``APPROXIMATED`` and ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix,
@@ -117,8 +118,8 @@ class AbsoluteInputConfig:
     unknown_variance : variances at or above this (m^2, rad^2) mark an unknown dimension.
     zero_is_unknown : a zero variance beside known ones marks an unknown dimension (AMCL).
     position_only : ignore the orientation of pose types.
-    datum : ``[lat_deg, lon_deg, alt_m]`` of the ENU origin of a NavSatFix input; empty: the
-        first fix.
+    use_datum : the ENU origin of a NavSatFix input is ``datum``; ``False``: the first fix.
+    datum : ``[lat_deg, lon_deg, alt_m]`` of that origin.
     lever_arm_m : ``[x, y, z]`` of the sensor in the base frame (m).
     ends_track : a used fix ends the current track at the next keyframe, so the window update
         that uses it runs then (the online estimate follows the fixes).
@@ -133,7 +134,8 @@ class AbsoluteInputConfig:
     unknown_variance: float = UNKNOWN_VARIANCE
     zero_is_unknown: bool = True
     position_only: bool = False
-    datum: tuple[float, ...] = ()
+    use_datum: bool = False
+    datum: tuple[float, ...] = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, ...] = (0.0, 0.0, 0.0)
     ends_track: bool = True
     track_min_interval_s: float = 10.0
@@ -142,9 +144,9 @@ class AbsoluteInputConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, 'datum', tuple(float(v) for v in self.datum))
         object.__setattr__(self, 'lever_arm_m', tuple(float(v) for v in self.lever_arm_m))
-        if len(self.datum) not in (0, 3):
-            raise InputError(f'{self.name}.datum must be [lat_deg, lon_deg, alt_m] or empty, '
-                             f'got {list(self.datum)}')
+        if len(self.datum) != 3 or not np.isfinite(self.datum).all():
+            raise InputError(f'{self.name}.datum must be [lat_deg, lon_deg, alt_m], got '
+                             f'{list(self.datum)}')
         if len(self.lever_arm_m) != 3 or not np.isfinite(self.lever_arm_m).all():
             raise InputError(f'{self.name}.lever_arm_m must be [x, y, z], got '
                              f'{list(self.lever_arm_m)}')
@@ -200,7 +202,7 @@ class AbsoluteDecoder:
         self.config = config
         self.msgtype = absolute_type(msgtype)
         self.datum: tuple[float, float, float] | None = (
-            tuple(config.datum) if config.datum else None)  # type: ignore[assignment]
+            tuple(config.datum) if config.use_datum else None)  # type: ignore[assignment]
         self.stats = AbsoluteStats()
 
     def drop(self, reason: str) -> None:

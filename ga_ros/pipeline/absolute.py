@@ -176,6 +176,37 @@ class AbsoluteFrontEnd:
         return out
 
 
+class FixFeeder:
+    """Resolved fixes -> the aligner, each once its node exists (a fix on the first keyframe
+    arrives before the first measurement brings that node). The node and the replay share it."""
+
+    def __init__(self) -> None:
+        self.waiting: list[ResolvedFix] = []
+
+    def add(self, fixes: Sequence[ResolvedFix]) -> None:
+        """Queue fixes for :meth:`flush`."""
+        self.waiting.extend(fixes)
+
+    def flush(self, aligner: Any) -> list[str]:
+        """Give ``aligner`` (``add_fix``, ``newest_node_id``) the queued fixes whose node it
+        has; returns the messages of the ones it refused (counted there by reason)."""
+        add = getattr(aligner, 'add_fix', None)
+        if add is None or not self.waiting:
+            return []
+        newest = aligner.newest_node_id
+        wait, errors = [], []
+        for f in self.waiting:
+            if newest is None or f.term.node_id > newest:
+                wait.append(f)
+                continue
+            try:
+                add(f.term, f.C_offset)
+            except InputError as exc:
+                errors.append(str(exc))
+        self.waiting = wait
+        return errors
+
+
 def absolute_specs_from_mapping(sections: Mapping[str, Any],
                                 topics: Mapping[str, str] | None = None
                                 ) -> tuple[AbsoluteSpec, ...]:

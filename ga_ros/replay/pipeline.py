@@ -40,6 +40,7 @@ from ga_ros.io.bag import (
     read_ground_truth,
 )
 from ga_ros.io.groundtruth import read_ground_truth_file
+from ga_ros.pipeline.absolute import FixFeeder
 from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.inputs import InputSource, InputTopics, plan_inputs
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
@@ -277,7 +278,7 @@ class _Run:
         self.source: Any = None
         self.first_id: int | None = None
         self.T_map_odom: FloatArray | None = None
-        self.fixes: list = []  # absolute fixes waiting for their node (ResolvedFix)
+        self.fixes = FixFeeder()  # absolute fixes waiting for their node
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -294,7 +295,7 @@ class _Run:
                 self.stamps.setdefault(int(k), int(v))
         m = item.measurement
         if item.fixes:
-            self.fixes.extend(item.fixes)
+            self.fixes.add(item.fixes)
             self._add_fixes()
         if m is None:
             if item.error:
@@ -325,7 +326,7 @@ class _Run:
             self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
         else:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
-        if self.fixes:
+        if self.fixes.waiting:
             self._add_fixes()
         for u in updates:
             self._update(u)
@@ -335,20 +336,8 @@ class _Run:
     def _add_fixes(self) -> None:
         """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
         measurement brings waits for it); refused ones are counted as rejections."""
-        add = getattr(self.aligner, 'add_fix', None)
-        if add is None:
-            return
-        newest = self.aligner.newest_node_id
-        wait = []
-        for f in self.fixes:
-            if newest is None or f.term.node_id > newest:
-                wait.append(f)
-                continue
-            try:
-                add(f.term, f.C_offset)
-            except InputError as exc:
-                self._reject(f'absolute: {exc}')
-        self.fixes = wait
+        for error in self.fixes.flush(self.aligner):
+            self._reject(f'absolute: {error}')
 
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
