@@ -324,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--sigma-xy', type=float, default=0.02,
                     help='odometry sigma per 0.1 s step, x and y (m; default 0.02)')
     ap.add_argument('--sigma-yaw', type=float, default=0.005,
-                    help='odometry sigma per step, yaw (rad; default 0.005: the odometry\'s '
+                    help="odometry sigma per step, yaw (rad; default 0.005: the odometry's "
                     'heading drifts 5.4e-4 rad per step against the ground truth, 0.054 rad '
                     'per 10 s, one sigma of a random walk of 0.005 per step)')
     ap.add_argument('--window', type=int, default=5, help='tracks (fix intervals) in the window')
