@@ -361,6 +361,43 @@ class FixBook:
             self.stats.outliers = int((status == 2).sum())
         return changed
 
+    def arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """``(meta, arrays)`` of the book for a state file (:meth:`of_arrays` reads them)."""
+        k = len(self.terms)
+        meta = {'sources': [t.fix.source for t in self.terms],
+                'stats': {'added': self.stats.added, 'rejected': dict(self.stats.rejected),
+                          'outliers': self.stats.outliers,
+                          'readmitted': self.stats.readmitted}}
+        arrays = {
+            'fix_rows': np.asarray(self.rows, np.int64).reshape(k),
+            'fix_node_ids': np.array([t.node_id for t in self.terms], np.int64).reshape(k),
+            'fix_stamps': np.array([t.fix.stamp_ns for t in self.terms], np.int64).reshape(k),
+            'fix_offset': np.array([t.T_node_sensor for t in self.terms]).reshape(k, 4, 4),
+            'fix_T': np.array([t.fix.T_map_sensor for t in self.terms]).reshape(k, 4, 4),
+            'fix_own_info': np.array([t.fix.information for t in self.terms]).reshape(k, 6, 6),
+            'fix_info': np.array(self.info).reshape(k, 6, 6),
+            'fix_status': self.status.astype(np.int64), 'fix_gated': self.gated.copy()}
+        return meta, arrays
+
+    @classmethod
+    def of_arrays(cls, meta: dict, arrays: dict[str, np.ndarray], gate_prob: float) -> FixBook:
+        """The book written by :meth:`arrays`."""
+        book = cls(gate_prob)
+        sources = list(meta.get('sources', []))
+        for f in range(int(np.asarray(arrays['fix_rows']).size)):
+            fix = AbsoluteFix(int(arrays['fix_stamps'][f]), arrays['fix_T'][f],
+                              arrays['fix_own_info'][f], str(sources[f]))
+            book.terms.append(FixTerm(int(arrays['fix_node_ids'][f]),
+                                      np.array(arrays['fix_offset'][f], float), fix))
+            book.info.append(np.array(arrays['fix_info'][f], float))
+            book.rows.append(int(arrays['fix_rows'][f]))
+        book.status = np.asarray(arrays['fix_status'], np.int8).copy()
+        book.gated = np.asarray(arrays['fix_gated'], bool).copy()
+        st = meta.get('stats', {})
+        book.stats = FixStats(int(st.get('added', 0)), dict(st.get('rejected', {})),
+                              int(st.get('outliers', 0)), int(st.get('readmitted', 0)))
+        return book
+
     def state(self) -> tuple[np.ndarray, int, int]:
         """What a failed update puts back (:meth:`restore`)."""
         return self.status, self.stats.outliers, self.stats.readmitted

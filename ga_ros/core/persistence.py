@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from ga_ros.core.fixes import FixBook
 from ga_ros.core.storage import (
     IdIndex,
     Rows,
@@ -182,6 +183,8 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         'refine_pending': al.refinement_state(),
         'refine_retired': int(al._retired),
     }
+    fix_meta, fix_arrays = al._fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
+    meta['fixes'] = fix_meta
     arrays = dict(
         T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a, stamp=al._stamparr.a,
         T=al._T[:n], cov21=al._cov.packed[:n], frozen=al._frozen[:n], src=al._src.a,
@@ -189,7 +192,7 @@ def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
         status=al._status.a.astype(np.int64), last_window=al._last_window.astype(np.int64),
         fingerprint=al._fp.a,
         weighted_idx=al._T_weighted[0].astype(np.int64), weighted_T=al._T_weighted[1],
-        **_prior_arrays('prior', al._priors), **_prior_arrays('past', al._past))
+        **_prior_arrays('prior', al._priors), **_prior_arrays('past', al._past), **fix_arrays)
     return meta, arrays
 
 
@@ -355,6 +358,8 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
     if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
         al._past = _priors_of('past', arrays)
         al._retired = int(meta.get('refine_retired', 0))
+    if 'fix_rows' in arrays:  # absolute fixes (older files: none)
+        al._fixes = FixBook.of_arrays(meta.get('fixes', {}), arrays, cfg.fix_gate_prob)
     al._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     al._n_updates = int(meta['n_updates'])
     al._n_outliers = int(meta['n_outliers'])
