@@ -232,3 +232,15 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
                                                                     rmse_odom)
     print(f'lawnmower: corrected {rmse_ga:.3f} m, GNSS (without outliers) {rmse_fix:.3f} m, '
           f'odometry {rmse_odom:.3f} m')
+
+
+def test_inputs_yaml_mirrors_the_absolute_defaults() -> None:
+    from dataclasses import fields
+
+    import yaml
+
+    path = Path(__file__).resolve().parents[1] / 'config' / 'inputs.yaml'
+    section = yaml.safe_load(path.read_text())['absolutes']['fix0']
+    expected = {f.name: getattr(AbsoluteInputConfig(), f.name)
+                for f in fields(AbsoluteInputConfig) if f.name != 'name'}
+    assert {k: tuple(v) if isinstance(v, list) else v for k, v in section.items()} == expected

@@ -10,7 +10,8 @@ make the same fixes:
 * :meth:`AbsoluteFrontEnd.resolve` ``(odometry)``: after each odometry sample, the queued fixes
   whose stamp the odometry now covers, each tied to the keyframe at or before its stamp
   (:meth:`~ga_ros.inputs.odometry.OdometryInput.offset_at`: the offset ``T_k_base(t)`` and its
-  covariance from the odometry's noise model), the sensor's lever arm appended
+  covariance from the odometry's noise model), the sensor's lever arm appended; a fix still
+  uncovered when a fix ``tolerance_s`` newer has arrived is dropped (``fix_no_odometry``)
   (:class:`~ga_ros.core.fixes.FixTerm`); a fix older than the odometry kept, or before the first
   keyframe, is dropped (``fix_no_keyframe``). A used fix may end the track at the next keyframe
   (``ends_track``, at most every ``track_min_interval_s``), so the window update that uses it
@@ -111,6 +112,7 @@ class AbsoluteFrontEnd:
         self.throttle = Throttle(warn_throttle_s, clock)
         self._pending: list[tuple[str, Any]] = []  # (input name, AbsoluteFix) by arrival
         self._last_boundary_ns: int | None = None
+        self._newest_fix_ns = 0
 
     def by_topic(self, topic: str) -> AbsoluteSpec | None:
         """The absolute input reading ``topic`` (None if none)."""
@@ -125,6 +127,7 @@ class AbsoluteFrontEnd:
             dec.drop(getattr(exc, 'fix_reason', 'fix_bad_message'))
             return AbsoluteStep(error=f'{name}: {exc}')
         self._pending.append((name, fix))
+        self._newest_fix_ns = max(self._newest_fix_ns, fix.stamp_ns)
         if len(self._pending) > MAX_PENDING:
             old, _ = self._pending.pop(0)
             self.decoders[old].drop('fix_no_odometry')
@@ -144,7 +147,11 @@ class AbsoluteFrontEnd:
         out, keep, end, errors = [], [], False, []
         for name, fix in self._pending:
             if newest is None or fix.stamp_ns > newest:
-                keep.append((name, fix))
+                if (self._newest_fix_ns - fix.stamp_ns
+                        > self.specs[name].config.tolerance_s * 1e9):
+                    self.decoders[name].drop('fix_no_odometry')  # the odometry lags too much
+                else:
+                    keep.append((name, fix))
                 continue
             spec = self.specs[name]
             try:
