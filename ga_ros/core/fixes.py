@@ -42,9 +42,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg as sla
 from scipy.stats import chi2
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.solver import GaussianPrior, SolveResult
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3, so3
 
@@ -397,6 +399,43 @@ class FixBook:
         book.stats = FixStats(int(st.get('added', 0)), dict(st.get('rejected', {})),
                               int(st.get('outliers', 0)), int(st.get('readmitted', 0)))
         return book
+
+    def add_gauge(self, row: int, node_id: int, stamp_ns: int, T_world_first: FloatArray,
+                  information: FloatArray) -> None:
+        """The weak gauge prior of ``datum='fixes'`` on the first node (never gated)."""
+        gauge = AbsoluteFix(int(stamp_ns), T_world_first, information, 'gauge')
+        self.add(row, FixTerm(int(node_id), identity_offset(), gauge), gauge.information,
+                 gated=False)
+
+    def priors(self, rows: IntArray, T: FloatArray, ids: IntArray) -> list:
+        """The weighted parameters of the fixes of node ``rows`` (none or one
+        :class:`~ga_ros.core.solver.GaussianPrior`), at the poses ``T`` and with the node ids
+        ``ids`` (both indexed by row)."""
+        if not self.terms:
+            return []
+        keys, means, infos = self.prior_terms(rows, T)
+        if keys.size == 0:
+            return []
+        return [GaussianPrior(np.asarray(ids)[keys], means, sla.block_diag(*infos))]
+
+    def gate_adjusted(self, nodes: IntArray, res: SolveResult, ids: IntArray,
+                      frozen: np.ndarray, excluded_now: set[int], lock=None) -> bool:
+        """:meth:`gate` after an adjustment ``res`` of the node rows ``nodes`` (in its order;
+        ``ids``, ``frozen`` indexed by row): the fixes of its free, unfrozen nodes, with their
+        marginal covariances (under ``lock``, if given: the factor may be shared)."""
+        if not self.terms or self.gate_prob <= 0:
+            return False
+        with_fix = np.isin(nodes, np.asarray(self.rows, np.int64))
+        free = np.isin(np.asarray(ids)[nodes], res.free_node_ids) & ~frozen[nodes]
+        sel = np.nonzero(free & with_fix)[0]
+        if sel.size == 0:
+            return False
+        if lock is None:
+            Q = res.covariance(np.asarray(ids)[nodes[sel]])
+        else:
+            with lock:
+                Q = res.covariance(np.asarray(ids)[nodes[sel]])
+        return self.gate(nodes[sel], res.T_world_node[sel], Q, excluded_now, res.sigma0_sq)
 
     def state(self) -> tuple[np.ndarray, int, int]:
         """What a failed update puts back (:meth:`restore`)."""

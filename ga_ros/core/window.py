@@ -60,11 +60,9 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import selinv
 from ga_ros.core.fixes import (
     DATUMS,
-    AbsoluteFix,
     FixBook,
     FixTerm,
     gauge_information,
-    identity_offset,
     offset_information,
 )
 from ga_ros.core.measurement import Measurement
@@ -775,12 +773,7 @@ class TrackWindowAligner:
 
     def _fix_prior(self, rows: IntArray) -> list[GaussianPrior]:
         """The weighted parameters of the fixes of node ``rows`` (none or one prior)."""
-        if not len(self._fixes):
-            return []
-        keys, means, infos = self._fixes.prior_terms(rows, self._T)
-        if keys.size == 0:
-            return []
-        return [GaussianPrior(self._idarr.a[keys], means, sla.block_diag(*infos))]
+        return self._fixes.priors(rows, self._T, self._idarr.a)
 
     def add_measurements(self, ms) -> BatchResult:
         """Add many measurements in order (a journal replay, a recorded survey): exactly what
@@ -1000,11 +993,8 @@ class TrackWindowAligner:
             i = self._add_node(src, int(m.src_track), int(m.stamp_ns), self._T_first)
             if self.config.datum == 'fixes':
                 cfg = self.config
-                gauge = AbsoluteFix(int(m.stamp_ns), self._T_first, gauge_information(
-                    cfg.gauge_sigma_m, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad),
-                    'gauge')
-                self._fixes.add(i, FixTerm(int(src), identity_offset(), gauge),
-                                gauge.information, gated=False)
+                self._fixes.add_gauge(i, src, m.stamp_ns, self._T_first, gauge_information(
+                    cfg.gauge_sigma_m, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad))
         if j is None:
             T_src = self._T[i]
             T_meas = se3.from_translation_rotvec(plan['z'][:3], plan['z'][3:])
@@ -1597,17 +1587,8 @@ class TrackWindowAligner:
     def _gate_fixes(self, nodes: IntArray, res: SolveResult, excluded_now: set[int]) -> bool:
         """The fixes' gate after an adjustment of ``nodes`` (rows, in the order of ``res``):
         whether a fix was excluded or re-admitted (then the window is adjusted again)."""
-        if not len(self._fixes) or self._fixes.gate_prob <= 0:
-            return False
-        rows = np.asarray(self._fixes.rows, np.int64)
-        free = np.isin(self._idarr.a[nodes], res.free_node_ids) & ~self._frozen[nodes]
-        sel = np.nonzero(free & np.isin(nodes, rows))[0]
-        if sel.size == 0:
-            return False
-        with self._factor_lock:
-            Q = res.covariance(self._idarr.a[nodes[sel]])
-        return self._fixes.gate(nodes[sel], res.T_world_node[sel], Q, excluded_now,
-                                res.sigma0_sq)
+        return self._fixes.gate_adjusted(nodes, res, self._idarr.a, self._frozen, excluded_now,
+                                         self._factor_lock)
 
     def _connection_terms(self, conns: IntArray) -> _ConnectionTerms:
         """The covariances, weights and measured motions of connections (sorted rows), those
