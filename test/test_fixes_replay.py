@@ -3,7 +3,9 @@
 * Nav2-like: ``/odom`` with all-zero covariance and a heading drift, ``/amcl_pose``
   (``PoseWithCovarianceStamped`` in ``map``: x, y, yaw variances, zeros elsewhere as AMCL sends).
 * A lawnmower run with a drifting odometry and ``sensor_msgs/NavSatFix`` at 1 Hz (WGS84, ENU
-  datum given), a few fixes 30 m off (multipath).
+  datum given or the first fix), a few fixes 30 m off (multipath), the antenna 1.5 m beside and
+  0.8 m above the base (``/tf_static`` ``base_link -> gps``: ignored, the swaths would be 3 m
+  apart in alternate directions).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from ga_ros.inputs.absolute import (
 )
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
-from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import read_tum
 from ga_ros.pipeline.absolute import AbsoluteSpec
 from ga_ros.pipeline.inputs import InputSpec
@@ -181,16 +183,19 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
     sig = 1.0
     bad = set()
     fix_err = []
+    T_base_gps = se3.from_translation_rotvec(np.array([0.0, 1.5, 0.8]), np.zeros(3))
     with BagWriter(tmp_path / 'in') as bag:
+        static = transform_msg('base_link', 'gps', T_base_gps, int(stamps[0]))
+        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([static]), int(stamps[0]))
         for k, (s, T) in enumerate(zip(stamps, odom)):
             s = int(s)
             bag.write('/odom', 'nav_msgs/msg/Odometry', _odometry_msg(T, s), s)
             if k % 10 == 3:
-                p = gt[k, :3, 3] + rng.normal(0, sig, 3)
+                p = (gt[k] @ T_base_gps)[:3, 3] + rng.normal(0, sig, 3)
                 if len(fix_err) % 37 == 20:  # multipath: 30 m off
                     p = p + np.array([30.0, 0.0, 0.0])
                     bad.add(len(fix_err))
-                fix_err.append(p[:2] - gt[k, :2, 3])
+                fix_err.append(p[:2] - (gt[k] @ T_base_gps)[:2, 3])
                 lla = _enu_to_geodetic(p, DATUM)
                 msg = types['sensor_msgs/msg/NavSatFix'](
                     header=header('gps', s),
@@ -216,6 +221,7 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
     res = replay(tmp_path / 'in', tmp_path / 'out', cfg)
     st = res.source_stats['absolute']
     assert st['fix0']['dropped'] == {'fix_no_fix': 1}
+    assert st['fix0']['lever_arm_from_tf'] == st['fix0']['fixes'] == len(fix_err)
     assert st['aligner']['outliers'] == len(bad) >= 3
     ga = read_tum(res.files['trajectory_ga'])
     idx = np.searchsorted(stamps, ga.stamps_ns)

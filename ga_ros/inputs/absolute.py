@@ -30,9 +30,12 @@ Missing covariance
     each use is counted (``default_covariances``) so the front end can warn, throttled.
 
 Lever arm
-    ``lever_arm_m`` ``[x, y, z]``: the sensor's position in the base frame (``T_base_sensor``,
-    its rotation the identity), from ``/tf_static`` or this parameter; the fix is of the
-    sensor, the graph's nodes are of the base (:class:`ga_ros.core.fixes.FixTerm`).
+    The fix is of the sensor, the graph's nodes are of the base (:class:`ga_ros.core.fixes.
+    FixTerm`). The sensor's frame is a NavSatFix's ``header.frame_id`` or an Odometry's
+    ``child_frame_id`` (a PoseWithCovarianceStamped is of the base, as AMCL's); its pose in
+    ``base_frame`` comes from ``/tf_static`` when ``lever_arm_from_tf`` and the static tree links
+    them (:class:`StaticTransforms`), else from ``lever_arm_m`` ``[x, y, z]`` (rotation the
+    identity).
 """
 
 from __future__ import annotations
@@ -120,7 +123,11 @@ class AbsoluteInputConfig:
     position_only : ignore the orientation of pose types.
     use_datum : the ENU origin of a NavSatFix input is ``datum``; ``False``: the first fix.
     datum : ``[lat_deg, lon_deg, alt_m]`` of that origin.
-    lever_arm_m : ``[x, y, z]`` of the sensor in the base frame (m).
+    lever_arm_m : ``[x, y, z]`` of the sensor in the base frame (m), when ``/tf_static`` does
+        not give it.
+    lever_arm_from_tf : take ``T_base_sensor`` from ``/tf_static`` when it links
+        ``base_frame`` to the sensor's frame.
+    base_frame : the robot's base frame (REP 105 ``base_link``).
     ends_track : a used fix ends the current track at the next keyframe, so the window update
         that uses it runs then (the online estimate follows the fixes).
     track_min_interval_s : at least this long between two tracks ended by fixes (s).
@@ -137,6 +144,8 @@ class AbsoluteInputConfig:
     use_datum: bool = False
     datum: tuple[float, ...] = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, ...] = (0.0, 0.0, 0.0)
+    lever_arm_from_tf: bool = True
+    base_frame: str = 'base_link'
     ends_track: bool = True
     track_min_interval_s: float = 10.0
     tolerance_s: float = 5.0
@@ -179,6 +188,43 @@ class AbsoluteInputConfig:
         return T
 
 
+class StaticTransforms:
+    """The static transform tree (``/tf_static``), for the sensors' lever arms."""
+
+    def __init__(self) -> None:
+        self._parent: dict[str, tuple[str, FloatArray]] = {}  # child -> (parent, T_parent_child)
+
+    def add(self, msg: Any) -> None:
+        """Record the transforms of one ``tf2_msgs/TFMessage`` (rclpy or rosbags)."""
+        for t in msg.transforms:
+            tr, q = t.transform.translation, t.transform.rotation
+            T = np.eye(4)
+            T[:3, 3] = [tr.x, tr.y, tr.z]
+            x, y, z, w = q.x, q.y, q.z, q.w
+            n = np.sqrt(x * x + y * y + z * z + w * w)
+            if not np.isfinite(n) or n < 1e-9 or not np.isfinite(T).all():
+                continue
+            x, y, z, w = x / n, y / n, z / n, w / n
+            T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+            self._parent[str(t.child_frame_id).lstrip('/')] = (
+                str(t.header.frame_id).lstrip('/'), T)
+
+    def lookup(self, parent: str, child: str) -> FloatArray | None:
+        """``T_parent_child`` if ``child`` hangs below ``parent`` in the tree, else None."""
+        parent, frame = parent.lstrip('/'), child.lstrip('/')
+        T = np.eye(4)
+        for _ in range(64):  # a tree's depth; a loop in bad data ends here
+            if frame == parent:
+                return T
+            if frame not in self._parent:
+                return None
+            frame, T_up = self._parent[frame]
+            T = T_up @ T
+        return None
+
+
 @dataclass
 class AbsoluteStats:
     """Counters of one absolute input."""
@@ -186,6 +232,7 @@ class AbsoluteStats:
     messages: int = 0
     fixes: int = 0
     default_covariances: int = 0
+    lever_arm_from_tf: int = 0
     dropped: dict[str, int] = field(default_factory=dict)
 
 
@@ -208,6 +255,25 @@ class AbsoluteDecoder:
     def drop(self, reason: str) -> None:
         """Count a dropped message."""
         self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
+
+    def sensor_frame(self, msg: Any) -> str:
+        """The frame of the sensor that made a message (module doc; '' for the base)."""
+        if self.msgtype == NAVSAT:
+            return str(msg.header.frame_id).lstrip('/')
+        if self.msgtype == ODOMETRY:
+            return str(msg.child_frame_id).lstrip('/')
+        return ''
+
+    def T_base_sensor(self, sensor_frame: str, static: StaticTransforms | None) -> FloatArray:
+        """(4, 4) the sensor's pose in the base frame (module doc: ``/tf_static`` or
+        ``lever_arm_m``)."""
+        cfg = self.config
+        if cfg.lever_arm_from_tf and static is not None and sensor_frame:
+            T = static.lookup(cfg.base_frame, sensor_frame)
+            if T is not None:
+                self.stats.lever_arm_from_tf += 1
+                return T
+        return cfg.T_base_sensor
 
     def decode(self, msg: Any) -> tuple[AbsoluteFix, bool]:
         """``(fix, used the default covariance)`` of one message.

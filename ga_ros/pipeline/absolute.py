@@ -32,7 +32,12 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.errors import InputError
-from ga_ros.inputs.absolute import AbsoluteDecoder, AbsoluteInputConfig, absolute_type
+from ga_ros.inputs.absolute import (
+    AbsoluteDecoder,
+    AbsoluteInputConfig,
+    StaticTransforms,
+    absolute_type,
+)
 from ga_ros.inputs.odometry import OdometryInput
 from ga_ros.pipeline.inputs import Throttle
 
@@ -110,7 +115,9 @@ class AbsoluteFrontEnd:
         self.specs = {s.name: s for s in specs}
         self.decoders = {s.name: AbsoluteDecoder(s.config, s.msgtype) for s in specs}
         self.throttle = Throttle(warn_throttle_s, clock)
-        self._pending: list[tuple[str, Any]] = []  # (input name, AbsoluteFix) by arrival
+        self._pending: list[tuple[str, Any, str]] = []  # (input, AbsoluteFix, sensor frame)
+        #: the static transforms (``/tf_static``) for the lever arms (:meth:`static_transform`)
+        self.static = StaticTransforms()
         self._last_boundary_ns: int | None = None
         self._newest_fix_ns = 0
 
@@ -126,10 +133,10 @@ class AbsoluteFrontEnd:
         except InputError as exc:
             dec.drop(getattr(exc, 'fix_reason', 'fix_bad_message'))
             return AbsoluteStep(error=f'{name}: {exc}')
-        self._pending.append((name, fix))
+        self._pending.append((name, fix, dec.sensor_frame(msg)))
         self._newest_fix_ns = max(self._newest_fix_ns, fix.stamp_ns)
         if len(self._pending) > MAX_PENDING:
-            old, _ = self._pending.pop(0)
+            old = self._pending.pop(0)[0]
             self.decoders[old].drop('fix_no_odometry')
         warning = ''
         if default and self.throttle.ready():
@@ -145,13 +152,13 @@ class AbsoluteFrontEnd:
         if newest is None or not self._pending:
             return AbsoluteStep()
         out, keep, end, errors = [], [], False, []
-        for name, fix in self._pending:
+        for name, fix, frame in self._pending:
             if newest is None or fix.stamp_ns > newest:
                 if (self._newest_fix_ns - fix.stamp_ns
                         > self.specs[name].config.tolerance_s * 1e9):
                     self.decoders[name].drop('fix_no_odometry')  # the odometry lags too much
                 else:
-                    keep.append((name, fix))
+                    keep.append((name, fix, frame))
                 continue
             spec = self.specs[name]
             try:
@@ -160,7 +167,8 @@ class AbsoluteFrontEnd:
                 self.decoders[name].drop('fix_no_keyframe')
                 errors.append(f'{name}: {exc}')
                 continue
-            term = FixTerm(node, T_k_base @ spec.config.T_base_sensor, fix)
+            T_base_sensor = self.decoders[name].T_base_sensor(frame, self.static)
+            term = FixTerm(node, T_k_base @ T_base_sensor, fix)
             out.append(ResolvedFix(term, C))
             if self._last_boundary_ns is None:  # the first track starts with the first fix
                 self._last_boundary_ns = fix.stamp_ns
@@ -170,6 +178,10 @@ class AbsoluteFrontEnd:
                 self._last_boundary_ns = fix.stamp_ns
         self._pending = keep
         return AbsoluteStep(tuple(out), end, error='; '.join(errors))
+
+    def static_transform(self, msg: Any) -> None:
+        """A ``/tf_static`` message (``tf2_msgs/TFMessage``): the sensors' lever arms."""
+        self.static.add(msg)
 
     def datums(self) -> dict[str, list[float]]:
         """``{input: [lat_deg, lon_deg, alt_m]}``: the ENU origin of each NavSatFix input that

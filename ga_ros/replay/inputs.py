@@ -130,11 +130,14 @@ class InputSource:
         topics += [t for t in (self.config.constraints, self.config.track_boundary) if t]
         topics += [a.topic for a in self.absolute.specs.values()]
         assert self.bag.info is not None
-        tf = [t for t in TF_TOPICS if self.passthrough is not None and self.bag.info.topic(t)]
+        tf = [t for t in TF_TOPICS if self.bag.info.topic(t) and (
+            self.passthrough is not None or (t == '/tf_static' and self.absolute.specs))]
         for bm in self.bag.messages(topics + tf):
             if bm.topic in tf:
                 if self.passthrough is not None and bm.data is not None:  # not from ROS 1
                     self.passthrough(bm.topic, bm.msgtype, bm.data, bm.msg, bm.log_ns)
+                if bm.topic == '/tf_static' and self.absolute.specs:  # the lever arms
+                    self.absolute.static_transform(bm.msg)
                 continue
             self.counter[0] += 1
             if bm.topic == self.config.track_boundary:

@@ -523,6 +523,9 @@ class AlignmentNode(Node):
             for spec in self.absolute.specs.values():
                 self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
                                          partial(self._on_absolute, spec.name), qos_abs)
+            # the sensors' lever arms (latched: every static broadcaster's last message)
+            self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
+                                     latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
         # best effort matches reliable and best-effort publishers (odometry drivers use both)
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
