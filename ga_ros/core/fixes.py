@@ -400,6 +400,12 @@ class FixBook:
                               int(st.get('outliers', 0)), int(st.get('readmitted', 0)))
         return book
 
+    @property
+    def has_gauge(self) -> bool:
+        """Whether the gauge prior of ``datum='fixes'`` is in the book: then no node is held
+        fixed (the first node is a node like the others)."""
+        return bool((~self.gated).any())
+
     def add_gauge(self, row: int, node_id: int, stamp_ns: int, T_world_first: FloatArray,
                   information: FloatArray) -> None:
         """The weak gauge prior of ``datum='fixes'`` on the first node (never gated)."""
