@@ -322,7 +322,7 @@ def test_published_covariances_with_fixes_are_honest() -> None:
 def test_fixes_survive_a_snapshot(rng, tmp_path) -> None:
     """A state file keeps the fixes (and the gauge prior): the restored aligner continues as
     the original does."""
-    from ga_ros.core.persistence import load_state, save_state
+    from ga_ros.core.window.persistence import load_state, save_state
 
     ms, _, p_true, _ = _line_survey(rng, 4, 10, 0.05)
     cfg = dict(window_tracks=2, datum='fixes', refine_every_tracks=0, freeze_ahead=False)
@@ -337,7 +337,7 @@ def test_fixes_survive_a_snapshot(rng, tmp_path) -> None:
                 np.diag([0.04] * 3 + [-1.0] * 3), 'gnss')))
     save_state(a, tmp_path / 'state.ga')
     b = load_state(tmp_path / 'state.ga').aligner
-    assert len(b._fixes) == len(a._fixes) and b.fix_stats == a.fix_stats
+    assert len(b.state.fixes) == len(a.state.fixes) and b.fix_stats == a.fix_stats
     for al in (a, b):
         for m in tail:
             al.add_measurement(m)
