@@ -311,7 +311,7 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
         st = node.session.aligner.fix_stats
         assert st.added == 20 and st.outliers == 0
         assert node.absolute.stats()['amcl0']['fixes'] == 20
-        np.testing.assert_allclose(node._T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
-        np.testing.assert_allclose(node._T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
     finally:
         node.destroy_node()
