@@ -77,8 +77,9 @@ from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.params import declare_config, updated_config
-from ga_ros.ros.qos import RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
+from ga_ros.ros.qos import AUTO, RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
 from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.ros.view import connection_view
 
@@ -491,9 +492,10 @@ class AlignmentNode(Node):
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
             reliability = str(self.declare_parameter(
-                f'{name}.qos_reliability', 'best_effort', ParameterDescriptor(
+                f'{name}.qos_reliability', AUTO, ParameterDescriptor(
                     description=f'{name}: subscription QoS, {" | ".join(RELIABILITIES)} '
-                    f'(best_effort connects to both kinds of publisher; read-only: {why})',
+                    f'(auto: reliable when every publisher offers reliable, else best effort; '
+                    f'read-only: {why})',
                     read_only=True)).value)
             depth = int(self.declare_parameter(f'{name}.qos_depth', 100, ParameterDescriptor(
                 description=f'{name}: subscription queue depth, messages (read-only: {why})',
@@ -579,25 +581,27 @@ class AlignmentNode(Node):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
+        #: the sensor subscriptions by input name (their reliability, :mod:`.adaptive_qos`)
+        self.sensor_subscriptions: dict[str, AdaptiveSubscription] = {}
         if self.front is None:
             return
         if self.absolute is not None:
             kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
                          NAVSAT: NavSatFix}
-            qos_abs = sensor_qos('best_effort', 100)
             for spec in self.absolute.specs.values():
-                self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
-                                         partial(self._on_absolute, spec.name), qos_abs)
+                self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
+                    self, kinds_abs[spec.msgtype], spec.topic,
+                    partial(self._on_absolute, spec.name), AUTO, 100)
             # the sensors' lever arms (latched: every static broadcaster's last message)
             self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
                                      latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
         for spec in self.front.specs.values():
-            # best effort (default) matches reliable and best-effort publishers
+            # auto (default): reliable when every publisher offers reliable, else best effort
             reliability, depth = self._input_qos[spec.name]
-            self.create_subscription(kinds[spec.msgtype], spec.topic,
-                                     partial(self._on_input, spec.name),
-                                     sensor_qos(reliability, depth))
+            self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
+                self, kinds[spec.msgtype], spec.topic, partial(self._on_input, spec.name),
+                reliability, depth)
         self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
                                  measurement_qos(1000))
         self.create_subscription(Empty, s.track_boundary_topic,
@@ -605,12 +609,11 @@ class AlignmentNode(Node):
         if self.front.camera is not None:
             cam_topics, compressed = self._camera_topics
             img_type = CompressedImage if compressed else Image
-            qos = sensor_qos('best_effort', 100)   # as the standard inputs' default
-            for side, (image, info) in cam_topics.items():
-                self.create_subscription(img_type, image, partial(self._on_camera_image, side),
-                                         qos)
-                self.create_subscription(CameraInfo, info, partial(self._on_camera_info, side),
-                                         qos)
+            for side, (image, info) in cam_topics.items():   # as the standard inputs' default
+                self.sensor_subscriptions[f'camera_{side}_image'] = AdaptiveSubscription(
+                    self, img_type, image, partial(self._on_camera_image, side), AUTO, 100)
+                self.sensor_subscriptions[f'camera_{side}_info'] = AdaptiveSubscription(
+                    self, CameraInfo, info, partial(self._on_camera_info, side), AUTO, 100)
         self.get_logger().info('standard inputs: ' + ', '.join(
             f'{sp.name} {sp.topic} [{sp.msgtype}]' for sp in self.front.specs.values()))
 
@@ -783,6 +786,9 @@ class AlignmentNode(Node):
         """The session's diagnostics key/values, with the last update's quality figures."""
         values = self.session.diagnostic_values()
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
+        for name, sub in getattr(self, 'sensor_subscriptions', {}).items():
+            values[f'qos/{name}'] = (sub.reliability if sub.decided
+                                     else 'best_effort (auto: no publisher yet)')
         return values
 
     def _publish_all(self) -> None:
