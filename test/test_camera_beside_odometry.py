@@ -157,7 +157,7 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
               'camera.right_image_topic': 'cam/right/image/compressed',
               'camera.left_info_topic': 'cam/left/camera_info',
               'camera.right_info_topic': 'cam/right/camera_info', 'camera.compressed': True,
-              'camera.base_to_camera': [float(v) for v in (*p, *q)],
+              'camera.T_base_camera': ' '.join(str(float(v)) for v in (*p, *q)),
               'publish_markers': False, 'diagnostics_period_sec': 0.0,
               'transform_publish_period_sec': 0.0}
     ctx = rclpy.Context()

@@ -34,7 +34,7 @@ Lever arm
     FixTerm`). The sensor's frame is a NavSatFix's ``header.frame_id`` or an Odometry's
     ``child_frame_id`` (a PoseWithCovarianceStamped is of the base, as AMCL's); its pose in
     ``base_frame`` comes from ``/tf_static`` when ``lever_arm_from_tf`` and the static tree links
-    them (:class:`StaticTransforms`), else from ``lever_arm_m`` ``[x, y, z]`` (rotation the
+    them (:class:`ga_ros.core.extrinsic.TransformTree`), else from ``lever_arm_m`` ``[x, y, z]`` (rotation the
     identity).
 """
 
@@ -48,6 +48,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.encoding import pose_to_matrix, stamp_to_ns
+from ga_ros.core.extrinsic import TransformTree
 from ga_ros.core.fixes import UNKNOWN_VARIANCE, AbsoluteFix
 from ga_ros.errors import InputError
 
@@ -188,43 +189,6 @@ class AbsoluteInputConfig:
         return T
 
 
-class StaticTransforms:
-    """The static transform tree (``/tf_static``), for the sensors' lever arms."""
-
-    def __init__(self) -> None:
-        self._parent: dict[str, tuple[str, FloatArray]] = {}  # child -> (parent, T_parent_child)
-
-    def add(self, msg: Any) -> None:
-        """Record the transforms of one ``tf2_msgs/TFMessage`` (rclpy or rosbags)."""
-        for t in msg.transforms:
-            tr, q = t.transform.translation, t.transform.rotation
-            T = np.eye(4)
-            T[:3, 3] = [tr.x, tr.y, tr.z]
-            x, y, z, w = q.x, q.y, q.z, q.w
-            n = np.sqrt(x * x + y * y + z * z + w * w)
-            if not np.isfinite(n) or n < 1e-9 or not np.isfinite(T).all():
-                continue
-            x, y, z, w = x / n, y / n, z / n, w / n
-            T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-            self._parent[str(t.child_frame_id).lstrip('/')] = (
-                str(t.header.frame_id).lstrip('/'), T)
-
-    def lookup(self, parent: str, child: str) -> FloatArray | None:
-        """``T_parent_child`` if ``child`` hangs below ``parent`` in the tree, else None."""
-        parent, frame = parent.lstrip('/'), child.lstrip('/')
-        T = np.eye(4)
-        for _ in range(64):  # a tree's depth; a loop in bad data ends here
-            if frame == parent:
-                return T
-            if frame not in self._parent:
-                return None
-            frame, T_up = self._parent[frame]
-            T = T_up @ T
-        return None
-
-
 @dataclass
 class AbsoluteStats:
     """Counters of one absolute input."""
@@ -264,12 +228,15 @@ class AbsoluteDecoder:
             return str(msg.child_frame_id).lstrip('/')
         return ''
 
-    def T_base_sensor(self, sensor_frame: str, static: StaticTransforms | None) -> FloatArray:
+    def T_base_sensor(self, sensor_frame: str, static: TransformTree | None) -> FloatArray:
         """(4, 4) the sensor's pose in the base frame (module doc: ``/tf_static`` or
-        ``lever_arm_m``)."""
+        ``lever_arm_m``; a loop in the static tree counts as not linked)."""
         cfg = self.config
         if cfg.lever_arm_from_tf and static is not None and sensor_frame:
-            T = static.lookup(cfg.base_frame, sensor_frame)
+            try:
+                T = static.lookup(cfg.base_frame, sensor_frame)
+            except InputError:
+                T = None
             if T is not None:
                 self.stats.lever_arm_from_tf += 1
                 return T

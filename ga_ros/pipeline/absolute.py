@@ -30,12 +30,12 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.extrinsic import TransformTree
 from ga_ros.core.fixes import FixTerm
 from ga_ros.errors import InputError
 from ga_ros.inputs.absolute import (
     AbsoluteDecoder,
     AbsoluteInputConfig,
-    StaticTransforms,
     absolute_type,
 )
 from ga_ros.inputs.odometry import OdometryInput
@@ -117,7 +117,7 @@ class AbsoluteFrontEnd:
         self.throttle = Throttle(warn_throttle_s, clock)
         self._pending: list[tuple[str, Any, str]] = []  # (input, AbsoluteFix, sensor frame)
         #: the static transforms (``/tf_static``) for the lever arms (:meth:`static_transform`)
-        self.static = StaticTransforms()
+        self.static = TransformTree()
         self._last_boundary_ns: int | None = None
         self._newest_fix_ns = 0
 
@@ -181,7 +181,7 @@ class AbsoluteFrontEnd:
 
     def static_transform(self, msg: Any) -> None:
         """A ``/tf_static`` message (``tf2_msgs/TFMessage``): the sensors' lever arms."""
-        self.static.add(msg)
+        self.static.add_message(msg)
 
     def datums(self) -> dict[str, list[float]]:
         """``{input: [lat_deg, lon_deg, alt_m]}``: the ENU origin of each NavSatFix input that

@@ -54,8 +54,14 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.extrinsic import (
+    ExtrinsicConfig,
+    renamed_parameter_error,
+    unknown_extrinsic_error,
+)
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.geometry import se3
 from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig
 from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
@@ -521,18 +527,31 @@ class AlignmentNode(Node):
                           declare(f'{side}_info_topic', '', f'{side} CameraInfo topic'))
                    for side in ('left', 'right')}
         compressed = declare('compressed', False, 'subscribe to sensor_msgs/CompressedImage')
-        extrinsic = declare('base_to_camera', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                            'T_base_cam of the left optical frame: x y z qx qy qz qw')
+        extrinsic = declare('T_base_camera', '', "the left optical frame's pose in the base "
+                            "frame: 'x y z qx qy qz qw' (m, quaternion x y z w) or "
+                            "'x y z roll pitch yaw' (rad); '' = not given")
+        identity = declare('assume_identity_extrinsic', False, 'without camera.T_base_camera: '
+                           'the camera frame is the base frame')
+        old = self.declare_parameter('camera.base_to_camera', None, ParameterDescriptor(
+            description='renamed: camera.T_base_camera', dynamic_typing=True)).value
         offset = declare('max_image_offset_s', 0.25,
                          'largest time between a keyframe and its image pair (s)')
+        if old is not None:
+            raise renamed_parameter_error('camera.base_to_camera', 'camera.T_base_camera')
         if not topics_['left'][0]:
             return None
         if not all(t for pair in topics_.values() for t in pair):
             raise InputError('camera: set camera.left_image_topic, camera.right_image_topic, '
                              'camera.left_info_topic and camera.right_info_topic')
+        ext = ExtrinsicConfig(T_base_camera=str(extrinsic)).from_parameters()
+        if ext is None and not identity:
+            raise unknown_extrinsic_error('camera', 'camera.T_base_camera',
+                                          'camera.assume_identity_extrinsic: true',
+                                          tf_static=False)
+        p, q = se3.to_pos_quat(ext.T_base_cam if ext is not None else np.eye(4))
         self._camera_topics = (topics_, bool(compressed))
         return KeyframeCamera(KeyframeCameraConfig(
-            base_to_camera=tuple(float(v) for v in extrinsic),
+            base_to_camera=tuple(float(v) for v in (*p, *q)),
             max_image_offset_s=float(offset)))
 
     def _declare_absolutes(self, s: NodeSettings) -> AbsoluteFrontEnd | None:
