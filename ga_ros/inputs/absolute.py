@@ -34,8 +34,8 @@ Lever arm
     FixTerm`). The sensor's frame is a NavSatFix's ``header.frame_id`` or an Odometry's
     ``child_frame_id`` (a PoseWithCovarianceStamped is of the base, as AMCL's); its pose in
     ``base_frame`` comes from ``/tf_static`` when ``lever_arm_from_tf`` and the static tree links
-    them (:class:`ga_ros.core.extrinsic.TransformTree`), else from ``lever_arm_m`` ``[x, y, z]`` (rotation the
-    identity).
+    them (:class:`ga_ros.core.extrinsic.TransformTree`, the one ``/tf_static`` reader), else
+    from ``lever_arm_m`` ``[x, y, z]`` (rotation the identity).
 """
 
 from __future__ import annotations

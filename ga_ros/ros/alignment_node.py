@@ -61,8 +61,8 @@ from ga_ros.core.extrinsic import (
 )
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.geometry import se3
 from ga_ros.errors import GaError, InputError, SolverError
+from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig
 from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
@@ -85,7 +85,14 @@ from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.params import declare_config, updated_config
-from ga_ros.ros.qos import AUTO, RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
+from ga_ros.ros.qos import (
+    AUTO,
+    RELIABILITIES,
+    latched_qos,
+    measurement_qos,
+    sensor_qos,
+    stream_qos,
+)
 from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.ros.view import connection_view
 
@@ -551,7 +558,7 @@ class AlignmentNode(Node):
         p, q = se3.to_pos_quat(ext.T_base_cam if ext is not None else np.eye(4))
         self._camera_topics = (topics_, bool(compressed))
         return KeyframeCamera(KeyframeCameraConfig(
-            base_to_camera=tuple(float(v) for v in (*p, *q)),
+            T_base_camera=tuple(float(v) for v in (*p, *q)),
             max_image_offset_s=float(offset)))
 
     def _declare_absolutes(self, s: NodeSettings) -> AbsoluteFrontEnd | None:
