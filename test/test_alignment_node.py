@@ -190,6 +190,7 @@ def node_in_process(tmp_path):
     node = AlignmentNode(context=ctx, parameter_overrides=[
         Parameter('state_file', value=str(tmp_path / 'state.npz')),
         Parameter('window_tracks', value=2), Parameter('allow_reset', value=True),
+        Parameter('allow_finish_track', value=True), Parameter('allow_load_state', value=True),
         Parameter('diagnostics_period_sec', value=0.0)])
     try:
         yield node
@@ -316,6 +317,7 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 2) + 5
     state = tmp_path / 'state.npz'
     params = [Parameter('state_file', value=str(state)), Parameter('window_tracks', value=2),
+              Parameter('allow_finish_track', value=True),
               Parameter('diagnostics_period_sec', value=0.0)]
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id(11))
@@ -416,7 +418,8 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 12   # inside track 1
     bad = bad_messages(ms, cut)
     state = tmp_path / 'state.npz'
-    params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1}
+    params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1,
+              'allow_finish_track': True}
     log = tmp_path / 'node.log'
     proc = start_node_process(dom, params, log_path=log)
     client = None

@@ -82,7 +82,7 @@ def test_a_damaged_snapshot_never_discards_the_journal(tmp_path: Path, measureme
     again.close()
 
 
-_FULL_DISK = r'''
+_FULL_DISK = r"""
 import json, resource, signal, sys
 from ga_ros.core.window import AlignerConfig
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
@@ -100,7 +100,7 @@ v = s.diagnostic_values()
 print(json.dumps({'accepted': sum(o.accepted for o in outs), 'values': v,
                   'health': [s.health().ok, s.health().error], 'warnings': warnings,
                   'T': s.aligner.corrected_path().T_world_node.tolist()}, default=str))
-'''
+"""
 
 
 def test_a_full_disk_is_counted_and_the_estimate_stays_complete(tmp_path: Path,

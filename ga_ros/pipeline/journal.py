@@ -426,7 +426,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                                    'left untouched: choose another state_file')
         out.snapshot_refused = True
         out.messages.append(f'state_file {state} is not a ga_ros state (a damaged snapshot or '
-                            'another program\'s file): it is left untouched, the state is '
+                            'another program file): it is left untouched, the state is '
                             'rebuilt from the journal alone, and no snapshot is written there '
                             'until it is removed')
     elif check_regular(state):  # an empty file too: a damaged snapshot, moved aside

@@ -84,7 +84,8 @@ class NodeClient:
         self.node = Node(f'ga_harness_{os.getpid()}', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.pub = self.node.create_publisher(Odometry, measurements_topic, measurement_qos())
+        self.pub = self.node.create_publisher(Odometry, measurements_topic,
+                                              measurement_qos(transient_local=True))
         self.path_topic = path_topic
         self.paths: list[tuple[float, PathMsg]] = []
         self.diagnostics: dict[str, str] = {}
