@@ -48,7 +48,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 #: ``ga-ros bench vo ...`` is ``ga-ros bench-vo ...`` (and likewise for the other benchmarks)
-ALIASES = {('bench', name): f'bench-{name}' for name in ('vo', 'g2o', 'node', 'replay')}
+ALIASES = {('bench', name): f'bench-{name}' for name in ('vo', 'g2o', 'node', 'replay',
+                                                                'faults')}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,6 +19,8 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
   ``sensor_frame``.
 * out ``ga/network_markers`` (``visualization_msgs/MarkerArray``, transient local).
 * out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz.
+* out ``ga/measurements_done`` (``std_msgs/Empty``): an end-of-input message was processed
+  (``ga-ros play`` keeps its history until then).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -264,6 +266,8 @@ class AlignmentNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
+        self.pub_done = self.create_publisher(
+            Empty, topics.input_done_topic(s.measurements_topic), stream_qos())
         self._T_map_odom: np.ndarray | None = None
         # without standard inputs the odometry frame is the frame-to-frame integration of the
         # consecutive measurements (as in the replay)
@@ -370,6 +374,7 @@ class AlignmentNode(Node):
                 self._finish_track(drain=False)  # (draining would take what came after it)
             except SolverError:
                 pass                             # counted and logged by the session
+            self.pub_done.publish(Empty())       # the publisher may now let its history go
             return
         try:
             m = decode_measurement(msg, self.settings.covariance_policy)

@@ -31,6 +31,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import rclpy
@@ -40,6 +41,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Empty
 
 from ga_ros import topics
 from ga_ros.errors import GaError, InputError
@@ -192,6 +194,11 @@ class BagPlayer:
                                 and t.name.endswith('/' + topics.MEASUREMENTS))
         self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
         self.topics = tuple(classes)
+        #: Input-done confirmations received, per end topic (see :meth:`_wait_delivered`).
+        self.done = {t: 0 for t in self.end_topics}
+        for t in self.end_topics:
+            node.create_subscription(Empty, topics.input_done_topic(t),
+                                     partial(self._on_done, t), 10)
         #: Topics whose whole history is kept (the measurements: a restart gets them again).
         self.kept = tuple(t.name for t in wanted if self._keeps_all(t))
         for t in wanted:
@@ -249,6 +256,9 @@ class BagPlayer:
         for p in self.publishers.values():
             p.wait_for_all_acked(timeout)
 
+    def _on_done(self, topic: str, msg: Empty) -> None:
+        self.done[topic] += 1
+
     def undelivered(self, step_s: float = 0.5) -> list[str]:
         """What is not delivered now: a measurement topic without a subscriber, or a topic
         not acknowledged by every matched subscriber within ``step_s``."""
@@ -262,16 +272,28 @@ class BagPlayer:
         return missing
 
     def _wait_delivered(self, patience_s: float) -> list[str]:
-        """Before exiting: wait up to ``patience_s`` until :meth:`undelivered` is empty (a
-        subscriber killed meanwhile stays matched until DDS notices it is gone; its restart
-        then gets the measurement topics' whole history). Returns what is still undelivered
-        (with a warning naming it)."""
+        """Before exiting: wait until :meth:`undelivered` is empty and every alignment node
+        on an end topic (a publisher of its input-done topic) confirmed it processed the end
+        of input. A node killed meanwhile stays matched until DDS notices it is gone; its
+        restart gets the whole history again and confirms in turn. Gives up after
+        ``patience_s`` without any subscriber acknowledging or node processing. Returns what
+        is still undelivered (with an error line naming it)."""
         end = time.monotonic() + patience_s
+        confirming: set[str] = set()    # end topics where a confirming node was seen
         while True:
+            now = time.monotonic()
             missing = self.undelivered()
-            if not missing or time.monotonic() > end:
+            for t in self.end_topics:
+                if self.node.count_publishers(topics.input_done_topic(t)) > 0:
+                    confirming.add(t)
+                    if not self.done[t]:
+                        end = max(end, now + patience_s)   # a node is at work
+            missing += [f'{t}: the node did not confirm it processed the input (no message '
+                        f'on {topics.input_done_topic(t)})'
+                        for t in sorted(confirming) if not self.done[t]]
+            if not missing or now > end:
                 break
-            time.sleep(0.05)
+            rclpy.spin_once(self.node, timeout_sec=0.05)
         if missing:
             self.node.get_logger().error(
                 f'after {patience_s:g} s, NOT DELIVERED: ' + '; '.join(missing))
