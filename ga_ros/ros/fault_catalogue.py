@@ -159,6 +159,9 @@ class Live:
     def restart(self) -> float:
         """Start the node again; returns the seconds until it holds every node it held when
         the last diagnostics before the restart were received."""
+        end = time.monotonic() + 0.5   # take what the stopped node sent before it stopped
+        while time.monotonic() < end:
+            self.client.executor.spin_once(timeout_sec=0.05)
         before = max(self.client.diag_int('nodes'), 0)
         t0 = time.monotonic()
         self.proc = start_node_process(self.ctx.dom, self.params, log_path=self.log)
@@ -441,8 +444,9 @@ def case_damaged_snapshot(what: str) -> Case:
             live.end()
             got = live.final_path(ctx.survey.n_nodes)
             aside = [p.name for p in ctx.work.iterdir() if '.corrupt-' in p.name]
-            return Row(f'{what} {"journal header" if what == "header" else "snapshot"}, '
-                       'intact journal, restart', live.survived(),
+            label = ('damaged journal header, intact snapshot' if what == 'header'
+                     else f'{what} snapshot, intact journal')
+            return Row(f'{label}, restart', live.survived(),
                        f'{len(aside)} moved aside; persistence '
                        f'{live.client.diagnostics.get("persistence", "?")[:20]}',
                        ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,
