@@ -17,10 +17,10 @@ import time
 from pathlib import Path
 
 
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        'bench-faults', help='fault catalogue against live alignment nodes (nodes kept)',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench faults``."""
+    p = argparse.ArgumentParser(prog='ga-ros bench faults', description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--bag', type=Path, default=None,
                    help='measurements bag to run the cases on (default: a small simulated '
                         'survey of 48 nodes)')
@@ -28,7 +28,12 @@ def register(subparsers) -> None:
                    help='only these cases (names as listed by --list)')
     p.add_argument('--list', action='store_true', help='list the case names and exit')
     p.add_argument('--out', type=Path, default=None, help='also write the table to this file')
-    p.set_defaults(func=run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench faults [options]``."""
+    return run(build_parser().parse_args(argv))
 
 
 def run(args: argparse.Namespace) -> int:
