@@ -424,7 +424,7 @@ def case_damaged_snapshot(what: str) -> Case:
         state = ctx.work / 'state'
         live = Live(ctx, {'state_file': str(state)})
         try:
-            k = next(k for k, m in enumerate(ctx.ms) if m.dst_track == 2) + 4
+            k = 2 * len(ctx.ms) // 3
             live.send_ms(ctx.ms[:k])
             live.wait_accepted(k)
             live.kill()
