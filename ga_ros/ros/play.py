@@ -15,7 +15,7 @@ the player waits (``delivery_timeout_s``) until every measurement topic has a su
 every subscriber has acknowledged everything (a node killed and restarted meanwhile gets the
 whole history again), and says what was not delivered otherwise (``ga-ros play`` then exits
 with :data:`EXIT_NOT_DELIVERED`). The history costs the serialized messages in the player's
-memory (about 0.8 kB per measurement, README "Reliability").
+memory (about 1.3 kB per measurement, README "Reliability").
 
 Runnable as ``python -m ga_ros.ros.play BAG [--rate R]`` and as ``ga-ros play``.
 """
