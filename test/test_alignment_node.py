@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from dataclasses import fields, replace
 
 import numpy as np
@@ -508,3 +509,38 @@ def test_map_to_odom_from_measurements_without_standard_inputs(node_in_process, 
     got_t = [tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z]
     np.testing.assert_allclose(got_t, want[:3, 3], atol=1e-9)
     assert np.linalg.norm(want[:3, 3]) > 1e-6   # a real correction, not the identity
+
+
+def test_defaults_protect_data_and_name_a_volatile_publisher(tmp_path):
+    """Defaults: transient-local measurements, the data-destroying services refused; a volatile
+    publisher (which a transient-local subscription cannot match) is named in an error, and the
+    diagnostics say ERROR."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from ga_ros.ros.qos import measurement_qos
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(9))
+    node = AlignmentNode(context=ctx)
+    pub_node = rclpy.create_node('volatile_pub', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        assert node.settings.measurement_durability == 'transient_local'
+        for srv in (node._srv_finish_track, node._srv_load, node._srv_reset):
+            resp = srv(Trigger.Request(), Trigger.Response())
+            assert not resp.success and 'allow_' in resp.message
+        pub_node.create_publisher(Odometry, '/ga/measurements', measurement_qos())  # volatile
+        end = time.monotonic() + 20
+        while node.incompatible_publishers == 0 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        assert node.incompatible_publishers >= 1
+        diags = []
+        node.pub_diag.publish = diags.append
+        node._publish_diagnostics()
+        assert diags[-1].status[0].level in (b'\x02', 2)
+    finally:
+        ex.shutdown()
+        pub_node.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
