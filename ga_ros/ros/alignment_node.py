@@ -279,6 +279,8 @@ class AlignmentNode(Node):
         self.create_service(Trigger, '~/save_state', self._srv_save)
         self.create_service(Trigger, '~/load_state', self._srv_load)
 
+        if s.state_file:
+            self.get_logger().info(f'restoring the state from {s.state_file} ...')
         how = self.session.resume()
         if how is not None and not how.startswith('failed'):
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '

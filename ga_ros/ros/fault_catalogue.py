@@ -367,7 +367,8 @@ def _play(ctx: Ctx, *args: str) -> subprocess.Popen:
 def _killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
                         again_during_recovery: bool = False) -> Row:
     """Play the bag into the node, stop it with ``sig`` a third of the way in, restart it
-    (optionally killed once more while it recovers), let play deliver the rest."""
+    (optionally killed once more as soon as it logs that it restores the state), let play
+    deliver the rest."""
     live = Live(ctx, params)
     player = _play(ctx, '--delivery-timeout', '300')
     try:
@@ -375,9 +376,13 @@ def _killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int
         code = live.kill(sig)
         clean = 'clean exit' if sig != signal.SIGKILL and code == 0 else f'exit {code}'
         if again_during_recovery:
+            n_lines = live.log.read_text(errors='replace').count('restoring the state')
             live.proc = start_node_process(ctx.dom, live.params, log_path=live.log)
-            time.sleep(1.5)                               # imports done, recovering
-            live.kill()
+            end = time.monotonic() + 120
+            while (live.log.read_text(errors='replace').count('restoring the state') == n_lines
+                   and time.monotonic() < end):
+                time.sleep(0.01)
+            live.kill()                                   # while it restores
         recover_s = live.restart()
         out, _ = player.communicate(timeout=1800)
         got = live.final_path(ctx.survey.n_nodes)
