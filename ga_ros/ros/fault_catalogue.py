@@ -167,7 +167,7 @@ class Live:
         self.proc = start_node_process(self.ctx.dom, self.params, log_path=self.log)
         self.client.diagnostics = {}
         self.wait()
-        self.client.spin_until(lambda: self.client.diag_int("nodes") >= before, 1800,
+        self.client.spin_until(lambda: self.client.diag_int('nodes') >= before, 1800,
                                'the recovered nodes', self.proc)
         return time.monotonic() - t0
 
