@@ -453,7 +453,7 @@ def case_damaged_snapshot(what: str) -> Case:
                      else f'{what} snapshot, intact journal')
             return Row(f'{label}, restart', live.survived(),
                        f'{len(aside)} moved aside; persistence '
-                       f'{live.client.diagnostics.get("persistence", "?")[:20]}',
+                       f'{live.client.diagnostics.get("persistence", "?").split(":")[0]}',
                        ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,
                        _recovery_note(live.log))
         finally:
@@ -526,7 +526,7 @@ def case_state_path(kind: str) -> Case:
                 lines = log.count('WITHOUT persistence')
                 return Row(f'state file in a {kind}', live.survived(),
                            f'{lines} log line; persistence '
-                           f'{live.client.diagnostics.get("persistence", "?")[:12]}',
+                           f'{live.client.diagnostics.get("persistence", "?").split(":")[0]}',
                            ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got))
             finally:
                 live.close()
