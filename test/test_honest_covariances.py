@@ -42,8 +42,8 @@ def _monte_carlo(per_swath: int, runs: int, seed: int, **prior) -> tuple[dict, i
             al = TrackWindowAligner(cfg, sc.T_world_node[0])
             al.add_measurements(ms)
             al.finish_track()
-            assert (al._retired > 0) == (horizon > 0)
-            n_sparse += sum(sp.issparse(info) for _, _, info in al._priors)
+            assert (al.state.retired > 0) == (horizon > 0)
+            n_sparse += sum(sp.issparse(info) for _, _, info in al.state.priors)
             nees[policy].append(position_nees(al.corrected_path().T_world_node[1:],
                                                al.covariances(ids), truth))
         al.refine_batch()
@@ -102,15 +102,15 @@ def test_refine_batch_covariances_by_sparse_selected_inversion_equal_dense(monke
     poses and more), the covariances published after ``refine_batch`` are the diagonal blocks
     of the dense inverse of the batch normal matrix; the adjustment's factor, taken over by the
     selected inversion, still serves a joint covariance afterwards."""
-    import ga_ros.core.solver as solver_module
+    from ga_ros.core.solver import result
 
-    monkeypatch.setattr(solver_module, '_SPARSE_SELINV_UNKNOWNS', 0)
+    monkeypatch.setattr(result, '_SPARSE_SELINV_UNKNOWNS', 0)
     sc = aerial_scenario(n_tracks=5, positions_per_swath=5)
     nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(1))
     al = TrackWindowAligner(AlignerConfig(window_tracks=2), sc.T_world_node[0])
     al.add_measurements(sc.measurements(nm.z, nm.cov))
     al.refine_batch()
-    res = al._last
+    res = al.last_adjustment
     dense = np.linalg.inv(res.normal_matrix.toarray())
     col = {int(i): k for k, i in enumerate(res.free_node_ids)}
     ids = sc.node_ids[1:]
