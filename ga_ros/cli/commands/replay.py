@@ -71,12 +71,12 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument('--constraints-topic', default='',
                    help='external constraints (nav_msgs/Odometry, stamp/<ns> or node/<id> ends)')
     s.add_argument('--track-boundary-topic', default='', help='std_msgs/Empty: new track')
-    s.add_argument('--camera-extrinsic', nargs='+', metavar='X Y Z QX QY QZ QW | identity',
+    s.add_argument('--camera-extrinsic', nargs='+', metavar='VALUE',
                    help='with --odom-topic and --left-image/--right-image: a stereo camera '
-                        'beside the odometry, T_base_camera of its left optical frame (m, '
-                        'quaternion x y z w), or identity (the camera frame is the base '
-                        'frame); required; its images give cross-track connections on the '
-                        'odometry keyframes')
+                        'beside the odometry, T_base_camera of its left optical frame: '
+                        'X Y Z QX QY QZ QW (m, quaternion x y z w), or identity (the camera '
+                        'frame is the base frame); required; its images give cross-track '
+                        'connections on the odometry keyframes')
     s.add_argument('--image-offset', type=float, default=0.25, metavar='S',
                    help='largest time between an odometry keyframe and its image pair (s)')
     s.add_argument('--covariance-policy', choices=('reject', 'repair'), default='reject',
