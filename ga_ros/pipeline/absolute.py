@@ -248,7 +248,7 @@ def absolute_specs_from_mapping(sections: Mapping[str, Any],
         topic = str(topics.get(name, values.pop('topic', '')))
         values.pop('topic', None)
         msgtype = str(values.pop('type', 'geometry_msgs/msg/PoseWithCovarianceStamped'))
-        for key in ('datum', 'lever_arm_m'):
+        for key in ('datum', 'T_base_sensor'):
             if key in values:
                 values[key] = tuple(np.asarray(values[key], float).ravel().tolist())
         if topic:

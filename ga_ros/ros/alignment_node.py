@@ -632,6 +632,10 @@ class AlignmentNode(Node):
                 read_only=True)).value
             cfg = declare_config(self, AbsoluteInputConfig, prefix=f'{name}.',
                                  read_only_reason=why, defaults=AbsoluteInputConfig(name))
+            if self.declare_parameter(f'{name}.lever_arm_m', None, ParameterDescriptor(
+                    description=f'renamed: {name}.T_base_sensor',
+                    dynamic_typing=True)).value is not None:
+                raise renamed_parameter_error(f'{name}.lever_arm_m', f'{name}.T_base_sensor')
             if not topic:
                 raise InputError(f'absolute input {name}: set the parameter {name}.topic')
             specs.append(AbsoluteSpec(str(topic), str(msgtype), replace(cfg, name=name)))
