@@ -15,7 +15,7 @@ Bag contents understood by the replay
   the topic holds the whole trajectory, one ``PoseStamped`` per node: ``pose`` = ``T_world_node``,
   ``header.stamp`` = the node's acquisition time and ``header.frame_id`` = the node frame
   ``'ga/<track>/<node>'`` (or any other frame id when the node ids are unknown; matching by stamp
-  then).
+  then). Other pose topics and TF pairs: :mod:`ga_ros.io.groundtruth`.
 """
 
 from __future__ import annotations
@@ -517,13 +517,10 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
             raise FormatError(f'topic {topic} ({what}) has type {t.msgtype}, expected '
                               + ' or '.join(types), name)
 
-    gt = ''
-    if config.ground_truth and info.topic(config.ground_truth) is not None:
-        check(config.ground_truth, (PATH,), 'ground truth')
-        gt = config.ground_truth
-        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
-    else:
-        notes.append('ground truth: none (no errors against ground truth will be reported)')
+    from ga_ros.io.groundtruth import plan_topic  # it reads bags with this module
+
+    gt, note = plan_topic(info, config.ground_truth)
+    notes.append(note)
 
     has_meas = info.topic(config.measurements) is not None
     if src == 'measurements' or (src == 'auto' and has_meas):
@@ -687,35 +684,3 @@ def trajectory_to_path_msg(traj: Trajectory, frame_id: str | None = None,
         poses.append(PoseStamped(header=header(f, int(traj.stamps_ns[k])),
                                  pose=_pose_msg(p_all[k], q_all[k])))
     return types[PATH](header=header(frame, stamp_ns), poses=poses)
-
-
-def read_ground_truth(bag: BagReader, topic: str) -> Trajectory | None:
-    """The ground truth of an open bag: the last ``nav_msgs/Path`` on ``topic`` (None if absent,
-    or cut off in a truncated bag).
-
-    Raises
-    ------
-    FormatError
-        If the topic has another type or a pose is malformed.
-    """
-    assert bag.info is not None
-    t = bag.info.topic(topic)
-    if t is None or t.count == 0:
-        return None
-    if t.msgtype != PATH:
-        raise FormatError(f'ground truth topic {topic} has type {t.msgtype}, expected {PATH}',
-                          str(bag.path))
-    last = None
-    try:
-        for m in bag.messages([topic]):
-            last = m.msg
-    except FormatError:
-        if bag.truncated is None:
-            raise
-        # a bag cut short: use what was recorded (the main stream reports the cut)
-    if last is None:
-        return None
-    try:
-        return path_msg_to_trajectory(last)
-    except InputError as exc:
-        raise FormatError(f'ground truth on {topic}: {exc}', str(bag.path)) from exc

@@ -14,7 +14,8 @@ from typing import Any
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
-from ga_ros.io.bag import PATH, BagInfo, BagReader, TopicPlan
+from ga_ros.io.bag import BagInfo, BagReader, TopicPlan
+from ga_ros.io.groundtruth import plan_topic
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.replay.source import SourceItem
 
@@ -74,11 +75,9 @@ def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
     if config.track_boundary:
         check(config.track_boundary, (EMPTY,), 'track boundaries')
         notes.append(f'track boundaries: {config.track_boundary}')
-    gt = ''
-    if ground_truth and info.topic(ground_truth) is not None:
-        check(ground_truth, (PATH,), 'ground truth')
-        gt = ground_truth
-        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
+    gt, note = plan_topic(info, ground_truth)
+    if gt:
+        notes.append(note)
     return TopicPlan('inputs', ground_truth=gt, notes=tuple(notes)), specs
 
 

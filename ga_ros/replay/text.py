@@ -85,8 +85,14 @@ def result_text(r: ReplayResult) -> str:
         else:
             lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
                          f'{ga.ate_aligned:.3f} m)')
-    else:
-        lines.append('no ground truth in the bag: no error figures')
+    if r.ground_truth:
+        lines.append(r.ground_truth + ('' if 'ga' in r.errors else
+                                       ': no error figures (fewer than 3 nodes matched)'))
+    elif 'ga' not in r.errors:
+        lines.append('no ground truth (none in the bag, no --ground-truth file): '
+                     'no error figures')
+    for w in r.warnings:
+        lines.append(f'warning: {w}')
     lines.append('outputs:')
     for k in sorted(r.files):
         lines.append(f'  {k:<16} {r.files[k]}')

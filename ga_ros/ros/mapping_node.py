@@ -28,6 +28,7 @@ Run as ``python -m ga_ros.ros.mapping_node --out DIR [--ros-args ...]``.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -45,6 +46,7 @@ from std_srvs.srv import Trigger
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
+from ga_ros.io.atomic import write_bytes, write_json
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.qos import latched_qos, measurement_qos
 
@@ -186,8 +188,9 @@ def write_outputs(node: MappingNode, status: str) -> dict:
     if rx.last_path is not None:
         stamps = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
                            for p in rx.last_path.poses], dtype=np.int64)
-        np.savez(out / 'path.npz', T_world_node=conv.path_msg_to_poses(rx.last_path),
-                 stamps_ns=stamps)
+        buf = io.BytesIO()
+        np.savez(buf, T_world_node=conv.path_msg_to_poses(rx.last_path), stamps_ns=stamps)
+        write_bytes(out / 'path.npz', buf.getbuffer())
     if rx.measurements:
         write_measurement_bag(out / 'measurements', rx.measurements, None, overwrite=True)
     lat = track_latencies(rx.m_source_ns, rx.m_dst_track, rx.path_receive_ns)
@@ -207,7 +210,7 @@ def write_outputs(node: MappingNode, status: str) -> dict:
         'track_latencies': [asdict(x) for x in lat],
         'settings': asdict(s),
     }
-    (out / 'mapping.json').write_text(json.dumps(summary, indent=1))
+    write_json(out / 'mapping.json', summary, indent=1)
     return summary
 
 
