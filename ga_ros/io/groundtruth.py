@@ -235,7 +235,7 @@ def file_format(path: str | os.PathLike) -> str:
     fields = first.replace(',', ' ').split()
     if len(fields) == 12:
         return 'kitti'
-    if fields and fields[0].isdigit() and len(fields[0]) >= 13:
+    if fields and fields[0].isdigit() and 13 <= len(fields[0]) <= _MAX_STAMP_DIGITS:
         return 'euroc'
     return 'tum'
 
