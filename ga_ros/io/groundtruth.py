@@ -12,7 +12,8 @@ Files (:func:`read_ground_truth_file`)
       ``start_s`` added to every stamp (KITTI's times start at 0; a bag's stamps are absolute).
 
     ``fmt='auto'`` tells them apart by the first data line: 12 fields is KITTI, a first field
-    that is an integer of 13 or more digits (nanoseconds) is EuRoC, anything else TUM.
+    that is an integer (nanoseconds) of 13 or more digits or followed by a comma is EuRoC,
+    anything else TUM.
 
 Bag topics (:func:`read_ground_truth_topic`)
     ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``nav_msgs/Odometry`` (one
@@ -235,7 +236,8 @@ def file_format(path: str | os.PathLike) -> str:
     fields = first.replace(',', ' ').split()
     if len(fields) == 12:
         return 'kitti'
-    if fields and fields[0].isdigit() and 13 <= len(fields[0]) <= _MAX_STAMP_DIGITS:
+    integer = bool(fields) and fields[0].isdigit() and len(fields[0]) <= _MAX_STAMP_DIGITS
+    if integer and (len(fields[0]) >= 13 or ',' in first):
         return 'euroc'
     return 'tum'
 

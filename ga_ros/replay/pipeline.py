@@ -343,6 +343,12 @@ class _Run:
         if self.config.tf and self.T_map_odom is not None:
             self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), self.last_ns)
 
+    def copy(self, topic: str, msgtype: str, data: bytes | None, msg: Any, log_ns: int) -> None:
+        """Copy an input message (``/tf``, ``/tf_static``) to the output at its log time; the
+        final outputs come after it (one time base, never backwards)."""
+        self.last_ns = max(self.last_ns, int(log_ns))
+        self.out.copy(topic, msgtype, data, msg, self.last_ns)
+
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
         self.result.rejected[key] = self.result.rejected.get(key, 0) + 1
@@ -607,7 +613,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         run = _Run(config, factory, outputs, result, gt, match_by)
         run.source = source
         if specs and config.tf:
-            source.passthrough = outputs.copy
+            source.passthrough = run.copy
         bar = None
         if config.progress:
             from tqdm import tqdm
