@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
-from ga_ros.io.atomic import open_log, write_json, write_text
+from ga_ros.io.atomic import check_destinations, open_log, write_json, write_text
 
 REPO = Path(__file__).resolve().parents[2]
 STEREO_BAG = REPO / 'bags' / 'stereo_sample'
@@ -346,6 +346,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
 
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    check_destinations(out / 'summary.json', out / 'fastdds_udp.xml')
     res = MultihostResult(discovery, 'not requested', out_dir=str(out))
     t0 = time.monotonic()
     procs: dict[str, subprocess.Popen] = {}
