@@ -214,6 +214,9 @@ class InputStats:
     measurements : consecutive measurements emitted.
     constraints : cross measurements made from external constraints.
     default_covariances : measurements or constraints whose covariance was the default.
+    missing_covariances : those of them whose stream had no covariance at all (no usable twist
+        or pose covariance); the others had one that could not be used (e.g. a pose covariance
+        that does not grow from the keyframe, so their difference is not positive definite).
     """
 
     samples: int
@@ -221,6 +224,7 @@ class InputStats:
     measurements: int
     constraints: int
     default_covariances: int
+    missing_covariances: int = 0
 
 
 def usable_covariance(cov: FloatArray | None) -> bool:
@@ -283,7 +287,7 @@ class OdometryInput:
         self._twist_cov = np.zeros((6, 6))
         self._twist_ok = True
         self._n = dict(samples=0, keyframes=0, measurements=0, constraints=0,
-                       default_covariances=0)
+                       default_covariances=0, missing_covariances=0)
 
     # ------------------------------------------------------------------ public
     @property
@@ -471,12 +475,16 @@ class OdometryInput:
                 return C, 'pose_independent' if src == 'pose_independent' else (
                     'pose_difference'), False
         self._n['default_covariances'] += 1
+        twist_usable = self._twist_ok and usable_covariance(self._twist_cov)
+        if not twist_usable and C_new is None:
+            self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T_rel)), 'default', True
 
     def _constraint_cov(self, T: FloatArray, cov: FloatArray | None) -> FloatArray:
         if usable_covariance(cov):
             return np.asarray(cov, float)
         self._n['default_covariances'] += 1
+        self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T))
 
     def _kf_index(self, node_id: int) -> int:

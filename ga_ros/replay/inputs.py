@@ -102,7 +102,9 @@ class InputSource:
     def stats(self) -> dict[str, object]:
         """Per-input counters and the warnings (in the replay summary)."""
         out = self.front.stats()
-        out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1])}
+        final = [self.front.default_covariance_message(n) for n in self.front.specs]
+        out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1]),
+                           'final': [m for m in final if m]}
         return out
 
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:

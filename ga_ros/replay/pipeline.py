@@ -636,6 +636,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                                            'the damage')
             finally:
                 if bar is not None:
+                    bar.update(counter[0] - last)  # what was read after the last item
                     bar.close()
             result.n_inputs = counter[0]
             stats = getattr(source, 'stats', None)

@@ -56,11 +56,11 @@ def result_text(r: ReplayResult) -> str:
         for name, v in st.items():
             if isinstance(v, dict) and 'keyframes' in v:
                 lines.append(f"{name}: {v['samples']} samples, {v['keyframes']} keyframes, "
-                             f"{v['constraints']} external constraints, "
-                             f"{v['default_covariances']} default covariances")
+                             f"{v['measurements']} measurements, "
+                             f"{v['constraints']} external constraints")
         warn = st.get('warnings', {})
-        if isinstance(warn, dict) and warn.get('first'):
-            lines.append(f"warning: {warn['first']}")
+        if isinstance(warn, dict):  # the end-of-run counts, as the throttled warnings say them
+            lines.extend(f'warning: {m}' for m in warn.get('final', []))
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
