@@ -44,6 +44,11 @@ IMAGE = 'sensor_msgs/msg/Image'
 COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POSE_WITH_COVARIANCE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+#: Message types a ground-truth topic may have (:mod:`ga_ros.io.groundtruth` reads them).
+GROUND_TRUTH_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY, PATH)
+TF_TOPICS = ('/tf', '/tf_static')
 
 #: ``twist.twist.linear.x`` values of the two measurement kinds.
 KIND_FLAG = encoding.KIND_FLAG
@@ -566,6 +571,51 @@ def _info_for(info: BagInfo, image_topic: str) -> str:
     return '' if tie else best
 
 
+def parse_tf_pair(spec: str) -> tuple[str, str] | None:
+    """``'tf:PARENT:CHILD'`` -> ``(PARENT, CHILD)``; None for a topic name."""
+    if not spec.startswith('tf:'):
+        return None
+    parts = spec[3:].split(':')
+    if len(parts) != 2 or not all(p.strip('/') for p in parts):
+        raise InputError(f'ground truth {spec!r}: a TF pair is tf:PARENT:CHILD, e.g. '
+                         'tf:map:base_link')
+    return parts[0].strip('/'), parts[1].strip('/')
+
+
+def plan_ground_truth(info: BagInfo, spec: str) -> tuple[str, str]:
+    """What a ground-truth option names in a bag: ``(spec, note)``; ``('', note)`` when the
+    bag does not have it.
+
+    Parameters
+    ----------
+    spec : a topic name or ``tf:PARENT:CHILD``.
+
+    Raises
+    ------
+    FormatError
+        A topic of a type that is not a pose (:data:`GROUND_TRUTH_TYPES`).
+    InputError
+        A malformed TF pair.
+    """
+    none = 'ground truth: none (no errors against ground truth will be reported)'
+    if not spec:
+        return '', none
+    pair = parse_tf_pair(spec)
+    if pair is not None:
+        tf = [t for t in TF_TOPICS if info.topic(t) is not None]
+        if not tf:
+            return '', f'ground truth: none (no /tf in the bag for {spec})'
+        return spec, f'ground truth: {pair[0]} -> {pair[1]} from {" + ".join(tf)}'
+    t = info.topic(spec)
+    if t is None:
+        return '', none
+    if t.msgtype not in GROUND_TRUTH_TYPES:
+        raise FormatError(f'ground truth topic {spec} has type {t.msgtype}; expected one of '
+                          + ', '.join(GROUND_TRUTH_TYPES) + ' (or tf:PARENT:CHILD for a TF pair)',
+                          str(info.path))
+    return spec, f'ground truth: {spec} ({t.msgtype})'
+
+
 def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan:
     """Decide which topics of a bag the replay uses.
 
@@ -590,9 +640,7 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
             raise FormatError(f'topic {topic} ({what}) has type {t.msgtype}, expected '
                               + ' or '.join(types), name)
 
-    from ga_ros.io.groundtruth import plan_topic  # it reads bags with this module
-
-    gt, note = plan_topic(info, config.ground_truth)
+    gt, note = plan_ground_truth(info, config.ground_truth)
     notes.append(note)
 
     has_meas = info.topic(config.measurements) is not None

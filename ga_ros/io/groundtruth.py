@@ -20,7 +20,8 @@ Bag topics (:func:`read_ground_truth_topic`)
     pose a message, at its header stamp), ``nav_msgs/Path`` (the last message holds the whole
     trajectory, node ids from node frame ids ``ga/<track>/<node>`` when present) or a TF frame
     pair ``tf:PARENT:CHILD`` (the transforms ``PARENT -> CHILD`` on ``/tf`` and ``/tf_static``:
-    a direct edge, no chaining).
+    a direct edge, no chaining); which topic a bag offers is decided with the replay's other
+    topics (:func:`ga_ros.io.bag.plan_ground_truth`).
 
 Matching (:func:`match_stamps`)
     Each query stamp (a keyframe's acquisition time) gets the ground-truth pose at that time:
@@ -35,13 +36,23 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3, so3
+from ga_ros.io.bag import (
+    PATH,
+    POSE_STAMPED,
+    TF_TOPICS,
+    BagReader,
+    parse_tf_pair,
+    path_msg_to_trajectory,
+    plan_ground_truth,
+    pose_msg_to_matrix,
+    stamp_to_ns,
+)
 from ga_ros.io.trajectory import Trajectory, read_kitti, read_tum
 
 _QUAT_TOL = 1e-3
@@ -51,13 +62,6 @@ EXACT_NS = 1_000_000
 DEFAULT_TOLERANCE_S = 0.1
 #: File formats of :func:`read_ground_truth_file`.
 FILE_FORMATS = ('auto', 'tum', 'euroc', 'kitti')
-POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
-POSE_WITH_COVARIANCE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
-ODOMETRY = 'nav_msgs/msg/Odometry'
-PATH = 'nav_msgs/msg/Path'
-#: Message types a ground-truth topic may have.
-TOPIC_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY, PATH)
-TF_TOPICS = ('/tf', '/tf_static')
 #: Largest number of digits of an integer stamp (ns) in a file: int64 holds 18 safely.
 _MAX_STAMP_DIGITS = 19
 
@@ -275,64 +279,18 @@ def read_ground_truth_file(path: str | os.PathLike, fmt: str = 'auto',
 
 
 # --------------------------------------------------------------------------- bag topics
-def parse_tf_pair(spec: str) -> tuple[str, str] | None:
-    """``'tf:PARENT:CHILD'`` -> ``(PARENT, CHILD)``; None for a topic name."""
-    if not spec.startswith('tf:'):
-        return None
-    parts = spec[3:].split(':')
-    if len(parts) != 2 or not all(p.strip('/') for p in parts):
-        raise InputError(f'ground truth {spec!r}: a TF pair is tf:PARENT:CHILD, e.g. '
-                         'tf:map:base_link')
-    return parts[0].strip('/'), parts[1].strip('/')
-
-
-def plan_topic(info: Any, spec: str) -> tuple[str, str]:
-    """What a ground-truth option names in a bag: ``(spec, note)``; ``('', note)`` when the
-    bag does not have it.
-
-    Parameters
-    ----------
-    info : :class:`ga_ros.io.bag.BagInfo`.
-    spec : a topic name or ``tf:PARENT:CHILD``.
-
-    Raises
-    ------
-    FormatError
-        A topic of a type that is not a pose (:data:`TOPIC_TYPES`).
-    """
-    none = 'ground truth: none (no errors against ground truth will be reported)'
-    if not spec:
-        return '', none
-    pair = parse_tf_pair(spec)
-    if pair is not None:
-        tf = [t for t in TF_TOPICS if info.topic(t) is not None]
-        if not tf:
-            return '', f'ground truth: none (no /tf in the bag for {spec})'
-        return spec, f'ground truth: {pair[0]} -> {pair[1]} from {" + ".join(tf)}'
-    t = info.topic(spec)
-    if t is None:
-        return '', none
-    if t.msgtype not in TOPIC_TYPES:
-        raise FormatError(f'ground truth topic {spec} has type {t.msgtype}; expected one of '
-                          + ', '.join(TOPIC_TYPES) + ' (or tf:PARENT:CHILD for a TF pair)',
-                          str(info.path))
-    return spec, f'ground truth: {spec} ({t.msgtype})'
-
-
-def read_ground_truth_topic(bag: Any, spec: str) -> GroundTruth | None:
-    """The ground truth of an open bag (:class:`ga_ros.io.bag.BagReader`) on ``spec`` (a topic
-    of :data:`TOPIC_TYPES` or ``tf:PARENT:CHILD``); None if there is none (also when a
-    truncated bag lost it: the main stream reports the cut).
+def read_ground_truth_topic(bag: BagReader, spec: str) -> GroundTruth | None:
+    """The ground truth of an open bag on ``spec`` (a topic of
+    :data:`ga_ros.io.bag.GROUND_TRUTH_TYPES` or ``tf:PARENT:CHILD``); None if there is none (also
+    when a truncated bag lost it: the main stream reports the cut).
 
     Raises
     ------
     FormatError
         A topic of another type, or a malformed pose.
     """
-    from ga_ros.io.bag import path_msg_to_trajectory, pose_msg_to_matrix, stamp_to_ns
-
     assert bag.info is not None
-    spec, _ = plan_topic(bag.info, spec)
+    spec, _ = plan_ground_truth(bag.info, spec)
     if not spec:
         return None
     pair = parse_tf_pair(spec)

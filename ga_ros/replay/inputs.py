@@ -14,15 +14,12 @@ from typing import Any
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
-from ga_ros.io.bag import BagInfo, BagReader, TopicPlan
-from ga_ros.io.groundtruth import plan_topic
+from ga_ros.io.bag import TF_TOPICS, BagInfo, BagReader, TopicPlan, plan_ground_truth
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.replay.source import SourceItem
 
 #: Type of the track-boundary topic.
 EMPTY = 'std_msgs/msg/Empty'
-#: TF topics copied from the input bag into the output bag.
-TF_TOPICS = ('/tf', '/tf_static')
 
 
 @dataclass(frozen=True)
@@ -75,7 +72,7 @@ def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
     if config.track_boundary:
         check(config.track_boundary, (EMPTY,), 'track boundaries')
         notes.append(f'track boundaries: {config.track_boundary}')
-    gt, note = plan_topic(info, ground_truth)
+    gt, note = plan_ground_truth(info, ground_truth)
     if gt:
         notes.append(note)
     return TopicPlan('inputs', ground_truth=gt, notes=tuple(notes)), specs
