@@ -164,6 +164,25 @@ def test_output_bag_stays_on_the_recorders_clock(sim_bag, tmp_path: Path, capsys
         every = [int(m.log_time) for _, _, m in make_reader(fh).iter_messages(
             log_time_order=False)]
     assert (np.diff(every) >= 0).all(), 'log times step backwards in file order'
+    # header stamps stay on the input's header clock (simulation time)
+    types = {'/ga/corrected_path': 'nav_msgs/msg/Path', '/ga/f2f_path': 'nav_msgs/msg/Path',
+             '/ga/corrected_pose': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+             '/ga/corrected_odom': 'nav_msgs/msg/Odometry',
+             '/ga/measurements': 'nav_msgs/msg/Odometry', '/ga/ground_truth': 'nav_msgs/msg/Path',
+             '/ga/network_markers': 'visualization_msgs/msg/MarkerArray'}
+    store = typestore()
+    seen = set()
+    with open(f, 'rb') as fh:
+        for _, channel, message in make_reader(fh).iter_messages():
+            if channel.topic not in types:
+                continue
+            msg = store.deserialize_cdr(message.data, types[channel.topic])
+            for h in ([m.header for m in msg.markers[1:]] if channel.topic.endswith('markers')
+                      else [msg.header]):
+                stamp = h.stamp.sec * 10**9 + h.stamp.nanosec
+                assert SIM_T0_NS <= stamp <= SIM_T0_NS + int(DURATION_S * 1e9), channel.topic
+            seen.add(channel.topic)
+    assert seen == set(types)
 
 
 # --------------------------------------------------------------------------- matching

@@ -165,14 +165,17 @@ class ReplayOutputs:
             self.bag.write(self.config.measurements_topic, msgtype, msg, log_ns)
 
     def path(self, traj: Trajectory, log_ns: int, topic: str | None = None) -> None:
-        """A corrected (or F2F) path in the map frame."""
-        msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=log_ns)
+        """A corrected (or F2F) path in the map frame, header stamped at its newest node,
+        logged at ``log_ns``."""
+        stamp = int(traj.stamps_ns.max()) if len(traj) else None
+        msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=stamp)
         self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
 
     def markers(self, p_world_node: FloatArray, src: IntArray, dst: IntArray,
-                residual: FloatArray, log_ns: int) -> None:
-        """The connection network coloured by misclosure."""
-        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, log_ns)
+                residual: FloatArray, log_ns: int, stamp_ns: int) -> None:
+        """The connection network coloured by misclosure, header stamped at ``stamp_ns`` (the
+        input's time base), logged at ``log_ns``."""
+        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, stamp_ns)
         self.bag.write(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray', msg,
                        log_ns)
 
@@ -213,7 +216,7 @@ class ReplayOutputs:
         """The ground truth path (node frame ids kept when known)."""
         node_frames = bool(len(traj)) and bool((traj.node_ids >= 0).all()
                                                and (traj.track_ids >= 0).all())
-        msg = trajectory_to_path_msg(traj, stamp_ns=log_ns, node_frames=node_frames)
+        msg = trajectory_to_path_msg(traj, node_frames=node_frames)  # stamped at its last pose
         self.bag.write(self.config.ground_truth_topic, PATH, msg, log_ns)
 
     # ---- final files

@@ -24,7 +24,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -439,7 +439,8 @@ class _Run:
         w = self._connection_w(src, dst)
         if w is not None:  # quality control on: colour by |w| (ga_ros.ros.conversions)
             d = w[ok]
-        self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns)
+        self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns,
+                         int(traj.stamps_ns.max()))
 
     def _connection_w(self, src: IntArray, dst: IntArray) -> FloatArray | None:
         """(m,) ``|w|`` of the connections ``src -> dst`` (node ids) at their last adjustment
@@ -576,6 +577,10 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
             plan = _plan_or_hint(bag.info, config.topics)
         factory = aligner_factory or default_aligner_factory(config.aligner,
                                                              config.aligner_kind)
+        if config.ground_truth_file:  # the file replaces the topic
+            plan = replace(plan, ground_truth='', notes=tuple(
+                n for n in plan.notes if not n.startswith('ground truth:')) + (
+                f'ground truth: {config.ground_truth_file} (file)',))
         if on_plan is not None:
             on_plan(plan)
         gt = read_ground_truth_topic(bag, plan.ground_truth) if plan.ground_truth else None
