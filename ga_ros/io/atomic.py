@@ -285,8 +285,8 @@ def _check_replaceable_directory(path: Path, is_ours: Callable[[Path], bool]) ->
         raise UnsafePathError(f'{path} is a symbolic link: ga_ros never writes through links; '
                               'remove it or choose another path')
     if not stat.S_ISDIR(st.st_mode) or not is_ours(path):
-        raise ForeignFileError(f'{path} exists and is not a ga_ros output: it is left '
-                               'untouched; choose another path or move it away')
+        raise ForeignFileError(f'{path} exists and is not an output ga_ros may replace: it is '
+                               'left untouched; choose another path or move it away')
 
 
 def _remove_tree(path: Path) -> None:
