@@ -12,6 +12,7 @@ complete. A symbolic link at ``<path>`` is refused.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,9 @@ class BagWriter:
         plugin = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}.get(self.storage)
         if plugin is None:
             raise InputError(f"storage must be 'mcap' or 'sqlite3', got {self.storage!r}")
+        if not self.overwrite and os.path.lexists(self.path):
+            raise FormatError('output exists (will not overwrite: pass overwrite=True or choose '
+                              'another path)', str(self.path))
         staging = staging_directory(self.path, self._replaceable)
         self._staging = staging
         try:
