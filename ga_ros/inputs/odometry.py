@@ -152,10 +152,12 @@ class OdometryInputConfig:
         InputError
             An unknown key (a typo would otherwise be ignored) or an invalid value.
         """
-        known = {f.name for f in fields(cls)} - {'name'}
-        unknown = sorted(set(values) - known)
+        known = {f.name: f.default for f in fields(cls) if f.name != 'name'}
+        unknown = sorted(set(values) - set(known))
         if unknown:
             raise InputError(f'{name}: unknown input settings {unknown}; known: {sorted(known)}')
+        for key, value in values.items():
+            _check_setting(f'{name}.{key}', value, known[key])
         return cls(name=str(name), **dict(values))
 
     def track_rules(self) -> TrackRules:
@@ -225,6 +227,24 @@ class InputStats:
     constraints: int
     default_covariances: int
     missing_covariances: int = 0
+
+
+def _check_setting(key: str, value: object, default: object) -> None:
+    """A setting of the type of its default: a finite number (an integer within int64 where the
+    default is one), a bool or a string; :class:`InputError` naming ``key`` otherwise."""
+    shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
+    if isinstance(default, bool) or isinstance(default, str):
+        if not isinstance(value, type(default)):
+            raise InputError(f'{key} must be a {type(default).__name__}, got {shown}')
+        return
+    if isinstance(default, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer
+                                                     | np.floating):
+            raise InputError(f'{key} must be a number, got {shown}')
+        if isinstance(default, int) and not isinstance(value, int | np.integer):
+            raise InputError(f'{key} must be an integer, got {shown}')
+        if not (abs(value) < 2**63 and np.isfinite(float(value))):
+            raise InputError(f'{key} must be a finite number below 2^63 in size, got {shown}')
 
 
 def usable_covariance(cov: FloatArray | None) -> bool:

@@ -196,6 +196,9 @@ def write_tum(path: str | os.PathLike, stamps_ns: IntArray, T_world_node: FloatA
     values = np.concatenate([p, q], axis=1)
     text = (values.astype(str) if decimals is None
             else np.char.mod(f'%.{int(decimals)}f', values))
+    if not len(stamps):
+        _write_atomic(path, ['# timestamp x y z qx qy qz qw'])
+        return
     neg = np.where(stamps < 0, '-', '')
     a = np.abs(stamps.astype(np.int64))
     stamp_text = np.char.add(np.char.add(np.char.add(neg, (a // 10**9).astype(str)), '.'),
