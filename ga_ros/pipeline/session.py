@@ -20,8 +20,8 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import save_state
 from ga_ros.errors import GaError, InputError, Reason, SolverError
 from ga_ros.pipeline.journal import (
     MeasurementJournal,
