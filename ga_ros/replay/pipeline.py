@@ -467,10 +467,9 @@ class _Run:
         node, stamp = min(self.stamps.items(), key=lambda kv: kv[1])
         T0 = np.eye(4)
         if self.gt is not None and self.config.anchor_to_ground_truth:
-            _, i_gt = match_ground_truth(self.gt, np.array([node]), np.array([stamp]),
-                                         self.match_by)
-            if len(i_gt):
-                T0 = self.gt.T_world_node[i_gt[0]].copy()
+            hit = self._match(np.array([node]), np.array([stamp]))
+            if hit.n_matched:
+                T0 = hit.T_world_gt[0].copy()
         traj = Trajectory(np.array([stamp], dtype=np.int64), T0[None],
                           np.array([node], dtype=np.int64), np.zeros(1, dtype=np.int64),
                           self.config.outputs.map_frame)
@@ -481,8 +480,8 @@ class _Run:
         res.notes.append(f'the robot did not move: {n} keyframe{"s" if n > 1 else ""}, '
                          'stationary trajectory written')
         self.out.path(traj, self.last_ns)
-        self.out.poses(traj, np.zeros((1, 6, 6)))
-        self.out.odometry(traj, np.zeros((1, 6, 6)))
+        self.out.poses(traj, np.zeros((1, 6, 6)), self.last_ns)
+        self.out.odometry(traj, np.zeros((1, 6, 6)), self.last_ns)
         self.out.path(traj, self.last_ns, topic=self.config.outputs.f2f_topic)
         self.out.tum('trajectory_ga.tum', traj)
         self.out.tum('trajectory_f2f.tum', traj)
