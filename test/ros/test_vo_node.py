@@ -38,7 +38,7 @@ from ga_ros.vo.messages import camera_info_to_model  # noqa: E402
 from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
 from ga_ros.vo.odometry import VoConfig  # noqa: E402
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'vo.yaml'
 
 
 def domain_id(offset: int = 0) -> int:

@@ -27,7 +27,7 @@ from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 from ga_ros.vo.calibration import read_stereo_calibration
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'vo.yaml'
 # EuRoC MAV V1_01 cam0 / cam1 (sensor.yaml): intrinsics, distortion, T_BS.
 EUROC_CAM0 = {
     'intrinsics': [458.654, 457.296, 367.215, 248.375], 'resolution': [752, 480],

@@ -306,7 +306,7 @@ def test_constraint_errors_and_node_ids() -> None:
 
 
 def test_yaml_mirrors_config_defaults() -> None:
-    path = Path(__file__).resolve().parents[1] / 'config' / 'inputs.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'inputs.yaml'
     section = yaml.safe_load(path.read_text())['odom0']
     expected = {f.name: getattr(OdometryInputConfig(), f.name)
                 for f in fields(OdometryInputConfig) if f.name != 'name'}
