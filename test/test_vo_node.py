@@ -210,10 +210,10 @@ def test_two_processes_images_in_measurements_out(tmp_path):
 def test_bad_parameter_exits_with_one_line_error(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(23)))
     proc = subprocess.run([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
-                           '--params-file', str(CONFIG), '-p', 'track_mode:=sometimes'],
+                           '--params-file', str(CONFIG), '-p', 'track.mode:=sometimes'],
                           env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
-    assert 'track_mode' in proc.stderr and 'Traceback' not in proc.stderr
+    assert 'track.mode' in proc.stderr and 'Traceback' not in proc.stderr
 
 
 @pytest.mark.ros

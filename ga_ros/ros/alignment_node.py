@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -49,6 +49,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -75,18 +76,10 @@ NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
-#: Numeric ranges of the AlignerConfig parameters.
-ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
-                  'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
-                  'outlier_chi2_prob': (0.0, 1.0), 'refine_every_tracks': (0, 1000),
-                  'refine_lag_tracks': (1, 1000), 'refine_horizon_tracks': (0, 100000),
-                  'prior_band': (-1, 100000),
-                  'prior_hubs': (0, 1000)}
 
 
-def field_(default: Any, lo: float, hi: float) -> Any:
-    """A dataclass field with a default and its parameter range ``[lo, hi]``."""
-    return field(default=default, metadata={'range': (lo, hi)})
+#: A dataclass field with a default and its parameter range ``[lo, hi]``.
+field_ = ranged
 
 
 @dataclass(frozen=True)
@@ -194,6 +187,9 @@ class NodeSettings:
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False
 
+    def __post_init__(self) -> None:
+        check_ranges(self)
+
 
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
@@ -211,7 +207,7 @@ class AlignmentNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.aligner_config: AlignerConfig = declare_config(
-            self, AlignerConfig, ranges=ALIGNER_RANGES, dynamic=DYNAMIC_ALIGNER,
+            self, AlignerConfig, dynamic=DYNAMIC_ALIGNER,
             read_only_reason='it shapes the window state; restart the node to change it')
         self.settings: NodeSettings = declare_config(
             self, NodeSettings, dynamic=DYNAMIC_SETTINGS,
