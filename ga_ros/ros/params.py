@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 
 from ga_ros.core.config_ranges import range_message
@@ -116,9 +117,26 @@ def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
         text = _text(cls, f, docs) + (' (can be changed at run time)' if live
                                       else f' (read-only: {read_only_reason})')
         desc = descriptor(prefix + key, default, text, rng, read_only=not live)
-        value = node.declare_parameter(prefix + key, default, desc).value
+        try:
+            value = node.declare_parameter(prefix + key, default, desc).value
+        except InvalidParameterValueException as exc:  # ROS refused it against the range
+            raise InputError(_range_refusal(node, prefix + key, cls.__name__, f.name, rng)
+                             or str(exc)) from exc
         values[f.name] = _checked(prefix + key, default, value, desc, cls.__name__, f.name)
     return cls(**values)
+
+
+def _range_refusal(node: Node, name: str, owner: str, field_name: str,
+                   rng: tuple[float, float] | None) -> str | None:
+    """The refusal of the start-up value of parameter ``name`` (field ``owner.field_name``) in
+    the words of the config dataclass (:func:`ga_ros.core.config_ranges.range_message`); None
+    when it is not a range refusal. rclpy's exception keeps no value, so the value is read from
+    the node's parameter overrides."""
+    override = getattr(node, '_parameter_overrides', {}).get(name)
+    if rng is None or override is None:
+        return None
+    msg = range_message(owner, field_name, override.value, rng)
+    return f'parameter {name}: {msg}' if msg else None
 
 
 def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor,
