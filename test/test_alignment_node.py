@@ -372,7 +372,6 @@ def test_parameters_have_descriptors(node_in_process):
 
 
 def test_out_of_range_parameter_is_refused():
-
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id(9))
     try:
