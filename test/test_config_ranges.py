@@ -132,5 +132,10 @@ def test_node_parameter_refused_with_the_dataclass_message() -> None:
             declare_config(node, AlignerConfig)
         assert str(declared.value) == f'parameter outlier_chi2_prob: {expected}'
         node.destroy_node()
+        node = Node('former_names_probe', context=ctx, parameter_overrides=[
+            Parameter('odom0.track_mode', value='distance')])
+        with pytest.raises(InputError, match='odom0.track_mode was renamed to odom0.track.mode'):
+            declare_config(node, OdometryInputConfig, prefix='odom0.')
+        node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

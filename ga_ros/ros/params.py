@@ -23,6 +23,7 @@ from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 
 from ga_ros.core.config_ranges import range_message
+from ga_ros.core.tracks import TrackRules, refuse_former_names
 from ga_ros.errors import InputError
 from ga_ros.pipeline.params import coerce_value
 
@@ -107,6 +108,9 @@ def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
         default = getattr(defaults, f.name)
         key = path + f.name
         if is_dataclass(default):
+            if isinstance(default, TrackRules):  # a former flat name would be ignored silently
+                refuse_former_names(getattr(node, '_parameter_overrides', {}), prefix + path,
+                                    f.name)
             values[f.name] = _declare(node, type(default), default, prefix, key + '.', ranges,
                                       dynamic, read_only_reason)
             continue
