@@ -18,13 +18,13 @@ whether a new track starts there. The rules (:class:`TrackRules`):
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray
-from ga_ros.core.config_ranges import check_ranges
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.errors import InputError
 
 TRACK_MODES = ('none', 'frames', 'heading', 'distance', 'time', 'external')
@@ -50,12 +50,12 @@ class TrackRules:
     """
 
     mode: str = 'none'
-    keyframes: int = field(default=0, metadata={'range': (0, 1_000_000)})
-    swaths: int = field(default=2, metadata={'range': (1, 1000)})
-    heading_reversal_deg: float = field(default=135.0, metadata={'range': (0.0, 180.0)})
-    heading_min_step_m: float = field(default=0.5, metadata={'range': (0.0, 1e6)})
-    length_m: float = field(default=0.0, metadata={'range': (0.0, 1e9)})
-    duration_s: float = field(default=0.0, metadata={'range': (0.0, 1e9)})
+    keyframes: int = ranged(0, 0, 1_000_000)
+    swaths: int = ranged(2, 1, 1000)
+    heading_reversal_deg: float = ranged(135.0, 0.0, 180.0)
+    heading_min_step_m: float = ranged(0.5, 0.0, 1e6)
+    length_m: float = ranged(0.0, 0.0, 1e9)
+    duration_s: float = ranged(0.0, 0.0, 1e9)
 
     #: Former flat names of these settings in the enclosing config (``odom0.track_mode``):
     #: ``{former name: field}``; a former name is refused with the new one
