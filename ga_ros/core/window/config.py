@@ -84,7 +84,7 @@ class AlignerConfig:
         at level ``quality_alpha0`` is excluded, the window re-adjusted, and so on until none
         rejects; as with ``'chi2'``, a good connection excluded next to a gross error comes back
         by re-admission. Baarda's one-at-a-time removal needs too many re-adjustments per
-        update at 20 % wrong connections: see the README).
+        update at 20 % wrong connections: docs/benchmarks.md, "Wrong connections").
         ``outlier_chi2_prob = 0`` disables either gate (it is also the re-admission level).
     quality : compute the quality control of every window update (``UpdateResult.quality``:
         global test, ``sigma0^2``, largest ``|w|``, w-test rejections, smallest redundancy

@@ -116,8 +116,8 @@ TRAILING_MIN_NODES = 24
 
 #: Freezing with block-banded priors: from this many leaving nodes on, their covariances come
 #: from the banded selected inversion of the window (linear in the swath length) instead of the
-#: trailing dense block (cubic in it). Aerial survey, window 5, CPU of one freeze: 204 nodes
-#: 272 ms trailing vs 319 ms banded; 1,000 nodes 10.9-12.8 s vs 1.2-1.6 s.
+#: trailing dense block (cubic in it); the two cross over at a few hundred nodes (figures:
+#: docs/benchmarks.md, "Figures behind constants in the code").
 BANDED_MIN_NODES = 300
 
 

@@ -198,7 +198,7 @@ class WindowState:
         every such connection comes at or after the one that created node ``f``, hence at or
         after the first connection of ``f``'s track: only the rows from there are scanned (of
         the horizon's size, whatever the survey's length; a gather of the horizon tracks'
-        connection lists took ~20 ms per call at a horizon of 30 tracks of 200 poses)."""
+        connection lists would cost ~20 ms per call at a horizon of 30 tracks of 200 poses)."""
         m = self.src.n if m is None else int(m)
         if f >= self.idarr.n:
             return np.zeros(0, dtype=np.int64)
