@@ -14,6 +14,7 @@ import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.config_ranges import check_ranges, ranged
+from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
 from ga_ros.core.solver import SolverConfig
 from ga_ros.core.window.freeze import FREEZE_POLICIES
@@ -130,6 +131,20 @@ class AlignerConfig:
         their covariances with every prior node are kept exactly too, which keeps the
         long-range correlations (the common drift of a frozen swath) that a band alone loses.
         Each adds one dense block row to the window's normal matrix.
+    datum : ``'first_node'`` (the first node held fixed at ``T_world_first``) or ``'fixes'``
+        (absolute fixes define the map frame, :mod:`ga_ros.core.fixes`: nothing is held fixed,
+        the first node gets a weak gauge prior at ``T_world_first`` with the ``gauge_*``
+        sigmas, so the normal matrix stays regular until the fixes constrain every degree of
+        freedom). With ``'fixes'`` the background refinement and the freeze computed ahead are
+        off (their snapshots do not carry fixes): frozen nodes keep their fixes in the joint
+        priors absorbed at the freeze.
+    fix_gate_prob : chi-square probability of the fixes' gate (:meth:`FixBook.gate
+        <ga_ros.core.fixes.FixBook.gate>`); 0 disables it.
+    gauge_sigma_m : position sigma (m, per axis) of the gauge prior of ``datum='fixes'``.
+    gauge_sigma_tilt_rad : roll and pitch sigma (rad) of the gauge prior (an odometry frame is
+        level, REP 105, so the default is tight-ish: 0.05 rad).
+    gauge_sigma_yaw_rad : yaw sigma (rad) of the gauge prior (the odometry's heading in the map
+        frame is unknown: 3 rad).
     """
 
     window_tracks: int = ranged(5, 1, 1000)
@@ -153,6 +168,11 @@ class AlignerConfig:
     refine_horizon_tracks: int = ranged(20, 0, 100_000)
     prior_band: int = ranged(16, -1, 100_000)
     prior_hubs: int = ranged(16, 0, 1000)
+    datum: str = 'first_node'
+    fix_gate_prob: float = ranged(0.9999, 0.0, 1.0)
+    gauge_sigma_m: float = ranged(1000.0, 1e-9, 1e9)
+    gauge_sigma_tilt_rad: float = ranged(0.05, 1e-12, 10.0)
+    gauge_sigma_yaw_rad: float = ranged(3.0, 1e-12, 10.0)
 
     def __post_init__(self) -> None:
         check_ranges(self)
@@ -184,6 +204,12 @@ class AlignerConfig:
         if self.refine_executor not in REFINE_EXECUTORS:
             raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
                              f'got {self.refine_executor!r}')
+        if self.datum not in DATUMS:
+            raise InputError(f'datum must be one of {DATUMS}, got {self.datum!r}')
+        if not self.fix_gate_prob < 1.0:
+            raise InputError(f'fix_gate_prob must be in [0, 1), got {self.fix_gate_prob}')
+        gauge_information(self.gauge_sigma_m, self.gauge_sigma_tilt_rad,
+                          self.gauge_sigma_yaw_rad)  # range checks
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
