@@ -60,7 +60,7 @@ def ctx():
 
 
 def _node(cls, ctx, **extra):
-    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0,
+    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0, 'allow_finish_track': True,
               'transform_publish_period_sec': 0.0, **extra}
     return cls(context=ctx, parameter_overrides=[Parameter(k, value=v)
                                                  for k, v in params.items()])
@@ -79,7 +79,7 @@ def test_odometry_input_in_process_map_to_odom(ctx):
         assert len(cp.node_ids) == 20
         # map -> odom composes with the odometry pose of the newest node to its corrected pose
         T_odom_k = node.front.inputs['odom0'].keyframe_pose(int(cp.node_ids[-1]))
-        np.testing.assert_allclose(node._T_map_odom @ T_odom_k, cp.T_world_node[-1],
+        np.testing.assert_allclose(node.odom.T_map_odom @ T_odom_k, cp.T_world_node[-1],
                                    atol=1e-9)
     finally:
         node.destroy_node()
@@ -179,7 +179,8 @@ def test_two_namespaced_nodes_do_not_hear_each_other(tmp_path):
         sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=5)
         noisy = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), rng)
         surveys[ns] = list(sc.measurements(noisy.z, noisy.cov))
-    procs = [start_node_process(dom, {'diagnostics_period_sec': 0.2, 'publish_markers': False},
+    procs = [start_node_process(dom, {'diagnostics_period_sec': 0.2, 'publish_markers': False,
+                                      'allow_finish_track': True},
                                 log_path=tmp_path / f'{ns}.log', ros_args=['-r', f'__ns:=/{ns}'])
              for ns in surveys]
     clients = []
@@ -311,7 +312,7 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
         st = node.session.aligner.fix_stats
         assert st.added == 20 and st.outliers == 0
         assert node.absolute.stats()['amcl0']['fixes'] == 20
-        np.testing.assert_allclose(node._T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
-        np.testing.assert_allclose(node._T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
     finally:
         node.destroy_node()

@@ -16,9 +16,17 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``ga/corrected_path`` (``nav_msgs/Path``, transient local): every node, in ``map_frame``.
 * out ``ga/corrected_pose`` (``geometry_msgs/PoseWithCovarianceStamped``): newest node.
 * out ``ga/corrected_odom`` (``nav_msgs/Odometry``): newest node, ``map_frame`` ->
-  ``sensor_frame``.
+  ``base_frame``.
+* out ``/tf``: ``map_frame -> odom_frame`` every ``transform_publish_period_sec`` with the latest
+  correction (:mod:`ga_ros.pipeline.map_to_odom`); when another node publishes a transform to
+  ``odom_frame`` the node warns, reports it in the diagnostics (WARN) and stops publishing it
+  unless ``publish_tf_when_contested``.
 * out ``ga/network_markers`` (``visualization_msgs/MarkerArray``, transient local).
-* out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz.
+* out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
+  standard inputs, each input's received / expected / lost messages (from its stamps,
+  :mod:`ga_ros.pipeline.stream_rate`; WARN above ``loss_warn_fraction``).
+* out ``ga/measurements_done`` (``std_msgs/Empty``): an end-of-input message was processed
+  (``ga-ros play`` keeps its history until then).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -39,9 +47,9 @@ from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
@@ -50,7 +58,6 @@ from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
 from ga_ros.core.config_ranges import check_ranges, ranged
-from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -69,17 +76,22 @@ from ga_ros.pipeline.inputs import (
     decode_measurement,
 )
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
-from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.pipeline.map_to_odom import MapToOdom, foreign_odom_parents
+from ga_ros.pipeline.params import parameter_names
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
+from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config, updated_config
-from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
-from ga_ros.ros.runner import run_node
+from ga_ros.ros.qos import RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
+from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.ros.view import connection_view
 
 NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
+#: Another node's ``-> odom`` transform keeps ours off the air this long after it was heard, s.
+TF_CONTEST_HOLD_SEC = 5.0
 
 
 #: A dataclass field with a default and its parameter range ``[lo, hi]``.
@@ -93,7 +105,6 @@ class NodeSettings:
     Attributes
     ----------
     map_frame : frame of the corrected path / poses (REP 105 ``map``).
-    sensor_frame : ``child_frame_id`` of the corrected odometry stream.
     measurements_topic : input: nav_msgs/Odometry measurement encoding (README).
     path_topic : output: nav_msgs/Path of every node, transient local.
     pose_topic : output: PoseWithCovarianceStamped of the newest adjusted node.
@@ -129,7 +140,8 @@ class NodeSettings:
         ``repair`` (eigenvalue clipping).
     input_warn_throttle_sec : minimum interval between two default-covariance warnings, s.
     odom_frame : REP 105 odometry frame of the first standard input (``map -> odom`` on TF).
-    base_frame : the robot's base frame (child of ``map`` when ``publish_map_to_base``).
+    base_frame : the robot's base frame: ``child_frame_id`` of the corrected odometry (and
+        child of ``map`` when ``publish_map_to_base``).
     publish_tf : publish ``map_frame -> odom_frame`` on ``tf_topic`` (odom: the first standard
         input's frame, or without standard inputs the frame-to-frame integration of the
         consecutive measurements).
@@ -137,14 +149,21 @@ class NodeSettings:
         publishes ``odom -> base``: a frame has one parent).
     tf_topic : TF topic (``/tf``; remap it to ``tf`` for namespaced robots).
     transform_publish_period_sec : period of the TF timer, s (0: after updates only).
+    publish_tf_when_contested : keep publishing ``map_frame -> odom_frame`` when another node
+        publishes a transform to ``odom_frame`` on ``tf_topic`` (a frame has one parent: TF
+        consumers would jump between the two); off: ours stops until the other has been
+        silent for :data:`TF_CONTEST_HOLD_SEC`.
+    loss_warn_fraction : diagnostics WARN when a standard input's lost / expected messages
+        exceed this.
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
     full_path_min_period_sec : publish the full path at most this often, s (0: after every
         update; big surveys: e.g. 10, the window path carries the updates).
-    measurement_durability : ``volatile`` (any publisher) or ``transient_local`` (the
-        publisher's history is delivered again after a restart: nothing published while the
-        node was down or still queued when it was killed is lost; the publisher must be
-        transient local too, as ``ga-ros play`` is; re-delivered measurements are counted as
-        ``rejected/duplicate``).
+    measurement_durability : ``transient_local`` (default: the publisher's history is delivered
+        again after a restart, so nothing published while the node was down or still queued
+        when it was killed is lost; the publisher must be transient local too, as ``ga-ros
+        play`` and the VO node are; a volatile publisher is not matched and named in an error
+        line; re-delivered measurements are counted as ``rejected/duplicate``) or ``volatile``
+        (any publisher; what is published while the node is down is lost).
     fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
         loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
         most every this many seconds.
@@ -158,10 +177,18 @@ class NodeSettings:
         updates).
     allow_reset : whether ``~/reset`` may clear the state (and empty the state files); off by
         default, since any peer on the ROS graph can call it.
+    allow_finish_track : whether ``~/finish_track`` may end the open track; off by default:
+        a call mid-track turns the rest of the track into ``out_of_order`` rejections and the
+        later tracks into ``unknown_source`` ones (tracks end by the next track's first
+        measurement, the end-of-input message or ``track_idle_timeout_sec``).
+    allow_load_state : whether ``~/load_state`` may replace the state by the state file's;
+        off by default (with ``autosave: false`` it reverts to an older save).
+    state_required : refuse to start when ``state_file`` cannot be used (its directory is a
+        file or read-only, ...) instead of running without persistence (one error line and
+        ``persistence: off`` in the diagnostics).
     """
 
     map_frame: str = 'map'
-    sensor_frame: str = 'sensor'
     measurements_topic: str = topics.MEASUREMENTS
     path_topic: str = topics.CORRECTED_PATH
     pose_topic: str = topics.CORRECTED_POSE
@@ -188,14 +215,19 @@ class NodeSettings:
     publish_map_to_base: bool = False
     tf_topic: str = '/tf'
     transform_publish_period_sec: float = field_(0.05, 0.0, 3600.0)
+    publish_tf_when_contested: bool = False
+    loss_warn_fraction: float = field_(0.01, 0.0, 1.0)
     window_path_topic: str = topics.WINDOW_PATH
     full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
 
-    measurement_durability: str = 'volatile'
+    measurement_durability: str = 'transient_local'
     fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
     track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False
+    allow_finish_track: bool = False
+    allow_load_state: bool = False
+    state_required: bool = False
 
     def __post_init__(self) -> None:
         check_ranges(self)
@@ -203,7 +235,8 @@ class NodeSettings:
 
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
-    'map_frame', 'sensor_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'map_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'publish_tf_when_contested', 'loss_warn_fraction',
     'warn_throttle_sec', 'publish_markers', 'residual_color_scale', 'odom_max_rate_hz',
     'covariance_policy', 'input_warn_throttle_sec', 'full_path_min_period_sec'})
 #: AlignerConfig fields that may change at run time (the aligner reads them at each update).
@@ -232,19 +265,25 @@ class AlignmentNode(Node):
             raise InputError(f'parameter measurement_durability must be volatile or '
                              f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
-            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec),
-            warn=lambda text: self.get_logger().warning(text))
+            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
+                                               s.state_required),
+            warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
         self._markers_dirty = False
         self._last_input = time.monotonic()
         self._path_nodes = 0           # nodes in the last published path
+        self.incompatible_publishers = 0  # publishers not matched (incompatible QoS)
         self._rejections = RejectionLog()
+        self.queue_loss = QueueLoss()
         # subscribe first: what arrives while the state is restored waits in the queue
         self.sub = self.create_subscription(
             Odometry, s.measurements_topic, self._on_measurements,
             measurement_qos(s.measurement_queue_depth,
-                            transient_local=s.measurement_durability == 'transient_local'))
+                            transient_local=s.measurement_durability == 'transient_local'),
+            event_callbacks=SubscriptionEventCallbacks(
+                incompatible_qos=self._on_incompatible_qos,
+                message_lost=self._on_message_lost))
 
         self.pub_path = self.create_publisher(Path, s.path_topic, latched_qos())
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, s.pose_topic,
@@ -254,10 +293,16 @@ class AlignmentNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
-        self._T_map_odom: np.ndarray | None = None
-        # without standard inputs the odometry frame is the frame-to-frame integration of the
-        # consecutive measurements (as in the replay)
-        self._f2f = F2FIntegrator() if self.front is None else None
+        self.pub_done = self.create_publisher(
+            Empty, topics.input_done_topic(s.measurements_topic), stream_qos())
+        # the odometry chain and map -> odom, as in the replay: the first standard input, or
+        # without standard inputs the frame-to-frame integration of the measurements
+        self.odom = MapToOdom(self.front)
+        self._own_tf: dict[int, np.ndarray] = {}   # stamp -> T_map_odom of what we sent
+        self._foreign_tf: tuple[str, float] = ('', -np.inf)   # its parent, monotonic time
+        # best effort hears reliable and best-effort TF publishers alike
+        self.create_subscription(TFMessage, s.tf_topic, self._on_tf, sensor_qos('best_effort',
+                                                                                100))
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
@@ -265,15 +310,17 @@ class AlignmentNode(Node):
         self.create_service(Trigger, '~/save_state', self._srv_save)
         self.create_service(Trigger, '~/load_state', self._srv_load)
 
+        if s.state_file:
+            self.get_logger().info(f'restoring the state from {s.state_file} ...')
         how = self.session.resume()
         if how is not None and not how.startswith('failed'):
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
 
-        if s.diagnostics_period_sec > 0:
-            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
         wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics, clock=wall)
         if s.warn_throttle_sec > 0:
             self.create_timer(s.warn_throttle_sec, self._log_rejections, clock=wall)
         if s.track_idle_timeout_sec > 0:
@@ -301,12 +348,35 @@ class AlignmentNode(Node):
         self.session.aligner = value
 
     # ------------------------------------------------------------------ callbacks
-    def _on_measurements(self, msg: Odometry) -> None:
+    def _on_measurements(self, msg: Odometry, info: Any) -> None:
         """Subscription callback: handle ``msg``, then take the messages already queued behind
         it straight from the subscription (up to ``DRAIN_MAX`` or ``DRAIN_SECONDS``), which
         saves the executor's per-message wait-set round trip on bursts."""
+        self.queue_loss.seen(info)
         self._on_measurement(msg)
         self._drain(DRAIN_MAX, DRAIN_SECONDS)
+
+    def _warn_session(self, text: str) -> None:
+        """The session's warnings: persistence failures as errors (throttled), others once."""
+        if 'persistence' in text or 'journal' in text or 'state file' in text:
+            self.get_logger().error(text, throttle_duration_sec=self.settings.warn_throttle_sec)
+        else:
+            self.get_logger().warning(text)
+
+    def _on_incompatible_qos(self, event: Any) -> None:
+        """A publisher on the measurements topic that cannot be matched (e.g. volatile while
+        the node asks for transient local): nothing of it is received. One error line."""
+        self.incompatible_publishers = int(getattr(event, 'total_count', 0))
+        self.get_logger().error(
+            f'a publisher on {self.sub.topic_name} offers an incompatible QoS (policy '
+            f'{getattr(event, "last_policy_kind", "?")}): NOTHING of it is received. The node '
+            f'asks for {self.settings.measurement_durability} durability: publish transient '
+            'local (ga_ros.ros.qos.measurement_qos(transient_local=True)) or set the parameter '
+            'measurement_durability: volatile')
+
+    def _on_message_lost(self, event: Any) -> None:
+        """DDS reports measurements lost before they reached the subscription queue."""
+        self.queue_loss.lost_events += int(getattr(event, 'total_count_change', 0))
 
     def _drain(self, max_messages: int | None = None, max_seconds: float | None = None) -> int:
         """Handle the measurements already queued in the subscription (all of them by default:
@@ -322,6 +392,7 @@ class AlignmentNode(Node):
                 return n
             if taken is None:
                 return n
+            self.queue_loss.seen(taken[1])
             self._on_measurement(taken[0])
             n += 1
             if t_end is not None and time.perf_counter() > t_end:
@@ -336,6 +407,7 @@ class AlignmentNode(Node):
                 self._finish_track(drain=False)  # (draining would take what came after it)
             except SolverError:
                 pass                             # counted and logged by the session
+            self.pub_done.publish(Empty())       # the publisher may now let its history go
             return
         try:
             m = decode_measurement(msg, self.settings.covariance_policy)
@@ -356,8 +428,8 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
-            if out.accepted and self._f2f is not None:
-                self._f2f.add(m)
+            if out.accepted and self.front is None:
+                self.odom.add(m)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
@@ -445,6 +517,9 @@ class AlignmentNode(Node):
         """Parameters ``<name>.topic``, ``<name>.type``, ``<name>.<field>`` of each input named
         in ``inputs``; the front end (None without inputs)."""
         names = [n.strip() for n in s.inputs.split(',') if n.strip()]
+        #: per standard input: (QoS reliability, depth) and the stamp-gap loss monitor
+        self._input_qos: dict[str, tuple[str, int]] = {}
+        self.input_streams: dict[str, StreamMonitor] = {}
         if not names:
             return None
         specs = []
@@ -460,6 +535,17 @@ class AlignmentNode(Node):
                                  defaults=OdometryInputConfig(name))
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
+            reliability = str(self.declare_parameter(
+                f'{name}.qos_reliability', 'best_effort', ParameterDescriptor(
+                    description=f'{name}: subscription QoS, {" | ".join(RELIABILITIES)} '
+                    f'(best_effort connects to both kinds of publisher; read-only: {why})',
+                    read_only=True)).value)
+            depth = int(self.declare_parameter(f'{name}.qos_depth', 100, ParameterDescriptor(
+                description=f'{name}: subscription queue depth, messages (read-only: {why})',
+                read_only=True)).value)
+            sensor_qos(reliability, depth)      # refuse a bad value at start
+            self._input_qos[name] = (reliability, depth)
+            self.input_streams[name] = StreamMonitor()
             specs.append(InputSpec(str(topic), str(msgtype), replace(cfg, name=name)))
         return InputFrontEnd(specs, s.input_warn_throttle_sec, camera=self._declare_camera())
 
@@ -543,7 +629,7 @@ class AlignmentNode(Node):
         if self.absolute is not None:
             kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
                          NAVSAT: NavSatFix}
-            qos_abs = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+            qos_abs = sensor_qos('best_effort', 100)
             for spec in self.absolute.specs.values():
                 self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
                                          partial(self._on_absolute, spec.name), qos_abs)
@@ -551,11 +637,12 @@ class AlignmentNode(Node):
             self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
                                      latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
-        # best effort matches reliable and best-effort publishers (odometry drivers use both)
-        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
         for spec in self.front.specs.values():
+            # best effort (default) matches reliable and best-effort publishers
+            reliability, depth = self._input_qos[spec.name]
             self.create_subscription(kinds[spec.msgtype], spec.topic,
-                                     partial(self._on_input, spec.name), qos)
+                                     partial(self._on_input, spec.name),
+                                     sensor_qos(reliability, depth))
         self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
                                  measurement_qos(1000))
         self.create_subscription(Empty, s.track_boundary_topic,
@@ -563,6 +650,7 @@ class AlignmentNode(Node):
         if self.front.camera is not None:
             cam_topics, compressed = self._camera_topics
             img_type = CompressedImage if compressed else Image
+            qos = sensor_qos('best_effort', 100)   # as the standard inputs' default
             for side, (image, info) in cam_topics.items():
                 self.create_subscription(img_type, image, partial(self._on_camera_image, side),
                                          qos)
@@ -573,6 +661,10 @@ class AlignmentNode(Node):
 
     def _on_input(self, name: str, msg: Any) -> None:
         assert self.front is not None
+        try:
+            self.input_streams[name].add(conv.stamp_to_ns(msg.header.stamp))
+        except (AttributeError, TypeError, ValueError):
+            pass                                   # a malformed stamp is rejected below
         self._after_input(self.front.sample(name, msg), msg)
         if self.absolute is not None and name == self.front.primary:
             self._resolve_fixes()
@@ -600,22 +692,51 @@ class AlignmentNode(Node):
             self._process(m, msg)
 
     def _publish_tf(self) -> None:
-        """``map -> odom`` (and optionally ``map -> base``) of the newest correction."""
+        """``map -> odom`` (and optionally ``map -> base``) of the newest correction, stamped at
+        the newest odometry pose; not while another node publishes ``odom``'s parent (unless
+        ``publish_tf_when_contested``)."""
         s = self.settings
-        if not s.publish_tf or self._T_map_odom is None:
+        T_map_odom = self.odom.T_map_odom
+        if not s.publish_tf or T_map_odom is None:
             return
-        if self.front is not None:
-            stamp, latest = self.front.latest_stamp_ns, self.front.latest_pose()
-        else:
-            newest = self._f2f.newest() if self._f2f is not None else None
-            if newest is None:
-                return
-            latest, stamp = newest
-        tfs = [conv.transform_msg(s.map_frame, s.odom_frame, self._T_map_odom, stamp)]
-        if s.publish_map_to_base and latest is not None:
-            tfs.append(conv.transform_msg(s.map_frame, s.base_frame,
-                                          self._T_map_odom @ latest, stamp))
+        if self.tf_contested_by and not s.publish_tf_when_contested:
+            return
+        newest = self.odom.latest()
+        if newest is None:
+            return
+        latest, stamp = newest
+        tfs = [conv.transform_msg(s.map_frame, s.odom_frame, T_map_odom, stamp)]
+        if s.publish_map_to_base:
+            tfs.append(conv.transform_msg(s.map_frame, s.base_frame, T_map_odom @ latest, stamp))
+        self._own_tf[int(stamp)] = T_map_odom.copy()
+        while len(self._own_tf) > 1000:
+            self._own_tf.pop(next(iter(self._own_tf)))
         self.pub_tf.publish(TFMessage(transforms=tfs))
+
+    @property
+    def tf_contested_by(self) -> str:
+        """Parent frame of another node's transform to ``odom_frame`` heard within the last
+        :data:`TF_CONTEST_HOLD_SEC` ('' when none: ours is published again)."""
+        parent, at = self._foreign_tf
+        return parent if time.monotonic() - at < TF_CONTEST_HOLD_SEC else ''
+
+    def _on_tf(self, msg: TFMessage) -> None:
+        """Another publisher of a transform to ``odom_frame``: warn (throttled), report it in
+        the diagnostics and stop publishing ours (unless ``publish_tf_when_contested``)."""
+        s = self.settings
+        parents = foreign_odom_parents(msg, s.odom_frame, self._own_tf, s.map_frame)
+        if not parents:
+            return
+        first = not self.tf_contested_by
+        self._foreign_tf = (parents[0], time.monotonic())
+        what = ('publishing ours anyway (publish_tf_when_contested)'
+                if s.publish_tf_when_contested else 'not publishing ours')
+        self.get_logger().warning(
+            f'another node publishes {parents[0]} -> {s.odom_frame} on {s.tf_topic}: a frame has '
+            f'one parent; {what}. Stop the other localiser or remap, or set '
+            f'publish_tf_when_contested', throttle_duration_sec=max(s.warn_throttle_sec, 1.0))
+        if first:
+            self._publish_diagnostics()
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Apply run-time changes (read-only parameters are refused by rclpy itself)."""
@@ -641,6 +762,12 @@ class AlignmentNode(Node):
 
     def _srv_finish_track(self, request: Trigger.Request,
                           response: Trigger.Response) -> Trigger.Response:
+        if not self.settings.allow_finish_track:
+            response.success = False
+            response.message = ('finish_track is disabled (parameter allow_finish_track: false; '
+                                'tracks end by the next track, the end-of-input message or '
+                                'track_idle_timeout_sec)')
+            return response
         try:
             update = self._finish_track()
         except SolverError as exc:
@@ -687,6 +814,10 @@ class AlignmentNode(Node):
         return response
 
     def _srv_load(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if not self.settings.allow_load_state:
+            response.success = False
+            response.message = 'load_state is disabled (parameter allow_load_state: false)'
+            return response
         self._drain()
         try:
             how = self.session.load()
@@ -706,6 +837,7 @@ class AlignmentNode(Node):
     def diagnostic_values(self) -> dict[str, object]:
         """The session's diagnostics key/values, with the last update's quality figures."""
         values = self.session.diagnostic_values()
+        values['measurements_lost_in_queue'] = self.queue_loss.total
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
         return values
 
@@ -733,11 +865,9 @@ class AlignmentNode(Node):
         movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
         self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
+        self.odom.update(cp.node_ids, cp.T_world_node)
         if self.front is not None:
-            self._T_map_odom = self.front.map_to_odom(cp.node_ids, cp.T_world_node)
             self.front.set_corrected(cp.node_ids, cp.T_world_node)
-        elif self._f2f is not None:
-            self._T_map_odom = self._f2f.map_to_odom(cp.node_ids, cp.T_world_node)
         self._publish_tf()
         k = self.session.newest_adjusted(cp)
         if k is not None:
@@ -746,7 +876,7 @@ class AlignmentNode(Node):
             self.pub_pose.publish(conv.pose_with_covariance_msg(cp.T_world_node[k], cov,
                                                                 s.map_frame, t_k))
             self.pub_odom.publish(conv.odometry_msg(cp.T_world_node[k], cov, s.map_frame,
-                                                    s.sensor_frame, t_k))
+                                                    s.base_frame, t_k))
         if s.publish_markers:
             self._markers_dirty = True
             if self.pub_markers.get_subscription_count() > 0:
@@ -804,23 +934,81 @@ class AlignmentNode(Node):
         cov = np.zeros((6, 6))
         cov[0, 0] = -1.0
         self.pub_odom.publish(conv.odometry_msg(cp.T_world_node[-1], cov, self.settings.map_frame,
-                                                self.settings.sensor_frame,
+                                                self.settings.base_frame,
                                                 int(cp.stamps_ns[-1])))
 
     def _publish_diagnostics(self) -> None:
         try:
+            self.queue_loss.publishers = self.sub.get_publisher_count()
             values = self.diagnostic_values()
             health = self.session.health()
         except Exception as exc:  # noqa: BLE001 - diagnostics must not stop the node
-            values = {'error': str(exc)}
+            values = {'error': bounded(str(exc))}
             health = None
+        problems = [health.message] if health is not None and not health.ok else []
+        if self.tf_contested_by:
+            s = self.settings
+            values['tf_contested_by'] = self.tf_contested_by
+            problems.append(f'another node publishes {self.tf_contested_by} -> {s.odom_frame}'
+                            + ('' if s.publish_tf_when_contested else '; ours not published'))
+        for name, mon in self.input_streams.items():
+            r = mon.report()
+            values.update(r.values(f'input/{name}/'))
+            if r.loss_fraction > self.settings.loss_warn_fraction:
+                problems.append(f'{name}: {r.lost} of {r.expected} messages lost')
         level, message = DiagnosticStatus.OK, 'ok'
-        if health is not None and not health.ok:
-            level, message = DiagnosticStatus.WARN, health.message
+        error = health is not None and health.error
+        if self.queue_loss.total:
+            problems.append(f'{self.queue_loss.total} measurements lost by a full subscription '
+                            'queue')
+        if self.incompatible_publishers:
+            error = True
+            problems.append('a publisher with an incompatible QoS is not received')
+        if problems:
+            level = DiagnosticStatus.ERROR if error else DiagnosticStatus.WARN
+            message = '; '.join(problems)
         level_int = level[0] if isinstance(level, bytes) else int(level)
         self.pub_diag.publish(conv.diagnostics_msg(
             f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
+
+
+@dataclass
+class QueueLoss:
+    """Measurements lost before the node took them: DDS's message-lost events, plus gaps in
+    the publisher's sequence numbers (a full ``KEEP_LAST`` subscription queue drops the oldest
+    message silently; the numbers are per publisher, so gaps are counted only while exactly one
+    publisher is matched).
+
+    Attributes
+    ----------
+    lost_events : messages DDS reported lost.
+    gaps : messages missing between two consecutive sequence numbers taken.
+    publishers : matched publishers (refreshed by the diagnostics timer).
+    """
+
+    lost_events: int = 0
+    gaps: int = 0
+    publishers: int = 1
+    _last: int | None = None
+
+    @property
+    def total(self) -> int:
+        """Messages known to be lost."""
+        return self.lost_events + self.gaps
+
+    def seen(self, info: Any) -> None:
+        """Note the message info (``publication_sequence_number``) of a message taken."""
+        try:
+            seq = int(info['publication_sequence_number'])
+        except (KeyError, TypeError, ValueError):
+            return
+        if seq <= 0 or seq >= 2**63 or self.publishers != 1:  # unsupported, or several
+            self._last = None
+            return
+        if self._last is not None and seq > self._last + 1:
+            self.gaps += seq - self._last - 1
+        self._last = seq
 
 
 @dataclass
@@ -832,9 +1020,28 @@ class RejectionLog:
     last: tuple[Any, ...] = ()
 
 
+#: Parameters of each standard input ``<name>.``: besides the OdometryInputConfig fields.
+INPUT_PARAMETERS = ('topic', 'type', 'qos_reliability', 'qos_depth')
+
+
+def declared_parameters(inputs: tuple[str, ...] = ()) -> list[str]:
+    """Every parameter the alignment node declares (built from its config dataclasses, no
+    rclpy), with those of the standard inputs named in ``inputs``."""
+    names = parameter_names(AlignerConfig) + parameter_names(NodeSettings)
+    for name in inputs:
+        names += [f'{name}.{p}' for p in INPUT_PARAMETERS]
+        names += parameter_names(OdometryInputConfig, f'{name}.')
+    return names
+
+
+def usage() -> str:
+    """The ``--help`` text of the alignment nodes."""
+    return node_usage(NODE_NAME, __doc__, declared_parameters(('<input>',)))
+
+
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``alignment_node`` (also ``python -m ga_ros.ros.alignment_node``)."""
-    return run_node(AlignmentNode, NODE_NAME, args)
+    return run_node(AlignmentNode, NODE_NAME, args, usage=usage)
 
 
 if __name__ == '__main__':
