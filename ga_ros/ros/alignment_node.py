@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -57,6 +57,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -91,20 +92,10 @@ DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
 #: Another node's ``-> odom`` transform keeps ours off the air this long after it was heard, s.
 TF_CONTEST_HOLD_SEC = 5.0
-#: Numeric ranges of the AlignerConfig parameters.
-ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
-                  'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
-                  'outlier_chi2_prob': (0.0, 1.0), 'refine_every_tracks': (0, 1000),
-                  'refine_lag_tracks': (1, 1000), 'refine_horizon_tracks': (0, 100000),
-                  'prior_band': (-1, 100000),
-                  'prior_hubs': (0, 1000), 'fix_gate_prob': (0.0, 1.0),
-                  'gauge_sigma_m': (1e-9, 1e9), 'gauge_sigma_tilt_rad': (1e-12, 10.0),
-                  'gauge_sigma_yaw_rad': (1e-12, 10.0)}
 
 
-def field_(default: Any, lo: float, hi: float) -> Any:
-    """A dataclass field with a default and its parameter range ``[lo, hi]``."""
-    return field(default=default, metadata={'range': (lo, hi)})
+#: A dataclass field with a default and its parameter range ``[lo, hi]``.
+field_ = ranged
 
 
 @dataclass(frozen=True)
@@ -238,6 +229,9 @@ class NodeSettings:
     allow_load_state: bool = False
     state_required: bool = False
 
+    def __post_init__(self) -> None:
+        check_ranges(self)
+
 
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
@@ -256,7 +250,7 @@ class AlignmentNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.aligner_config: AlignerConfig = declare_config(
-            self, AlignerConfig, ranges=ALIGNER_RANGES, dynamic=DYNAMIC_ALIGNER,
+            self, AlignerConfig, dynamic=DYNAMIC_ALIGNER,
             read_only_reason='it shapes the window state; restart the node to change it')
         self.settings: NodeSettings = declare_config(
             self, NodeSettings, dynamic=DYNAMIC_SETTINGS,

@@ -208,7 +208,7 @@ def test_vo_params_file_and_overrides_reach_the_config() -> None:
     with pytest.raises(InputError, match='min_inliers'):
         front_end_config_from_params({'min_inliers': 'many'})
     with pytest.raises(InputError):
-        front_end_config_from_params({'track_mode': 'sometimes'})
+        front_end_config_from_params({'track.mode': 'sometimes'})
 
 
 @pytest.mark.ros
