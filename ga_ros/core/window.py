@@ -58,7 +58,7 @@ from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import selinv
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.core.prealign import prealign
 from ga_ros.core.quality import (
@@ -776,8 +776,8 @@ class TrackWindowAligner:
             ok = False
         if not ok:
             raise bad('bad_stamp', f'stamp_ns must be an integer (ns), got {m.stamp_ns!r}')
-        if m.kind not in ('consecutive', 'cross'):
-            raise bad('bad_kind', f"kind must be 'consecutive' or 'cross', got {m.kind!r}")
+        if m.kind not in KINDS:
+            raise bad('bad_kind', f'kind must be one of {KINDS}, got {m.kind!r}')
         z = np.asarray(m.z, dtype=float).reshape(-1)
         cov = np.asarray(m.cov, dtype=float)
         if z.shape != (6,) or cov.shape != (6, 6):
@@ -917,7 +917,7 @@ class TrackWindowAligner:
         self._dst.append(j)
         self._z.append(plan['z'])
         self._ccov.append(plan['cov'])
-        self._cross.append(m.kind != 'consecutive')
+        self._cross.append(m.kind == 'cross')  # a bridge is a (predicted) motion
         self._status.append(0)
         self._fp.append(plan['key'][2])
         self._track_conns.add({int(self._track[i]), int(self._track[j])}, k)

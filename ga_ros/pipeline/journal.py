@@ -31,13 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.persistence import is_state_file, load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
 from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 
-_KINDS = ('consecutive', 'cross')
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
 #: One version-1 record (no checksum, 377 bytes).
@@ -48,6 +47,9 @@ _MAGIC = b'GAJOURNAL2\n'
 _MAGIC_V1 = b'GAJOURNAL1\n'
 _PAYLOAD = RECORD_V1.itemsize
 _KIND_AT = RECORD.fields['kind'][1]
+#: Bit of the kind byte set on a measurement that was *held* (its source node was unknown, see
+#: :mod:`ga_ros.core.gaps`), not yet taken by the aligner; the low bits index :data:`KINDS`.
+HELD = 0x80
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -91,12 +93,20 @@ def _crc(records: np.ndarray) -> np.ndarray:
                        dtype=np.uint32, count=records.shape[0])
 
 
-def encode_records(ms: list[Measurement]) -> bytes:
-    """The journal records of ``ms`` (with their checksums), ready to append."""
+_KIND_MASK = 0x7F
+
+
+def _kind_ok(kind: np.ndarray | int) -> np.ndarray | bool:
+    return (kind & _KIND_MASK) < len(KINDS)
+
+
+def encode_records(ms: list[Measurement], held: bool = False) -> bytes:
+    """The journal records of ``ms`` (with their checksums), ready to append; ``held``: they
+    are held measurements (:data:`HELD`)."""
     rec = np.zeros(len(ms), RECORD)
     for name in ('src_id', 'dst_id', 'src_track', 'dst_track', 'stamp_ns'):
         rec[name] = [getattr(m, name) for m in ms]
-    rec['kind'] = [_KINDS.index(m.kind) for m in ms]
+    rec['kind'] = [KINDS.index(m.kind) | (HELD if held else 0) for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
     raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
@@ -148,7 +158,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         n = len(body) // _PAYLOAD
         recs = np.frombuffer(body, RECORD_V1, count=n).copy()
         scan.torn_tail = len(body) - n * _PAYLOAD
-        good = recs['kind'] < len(_KINDS)
+        good = _kind_ok(recs['kind'])
     else:
         if head != _MAGIC:
             scan.header_ok = False
@@ -160,7 +170,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         scan.torn_tail = len(body) - n * RECORD.itemsize
         raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(
             n, RECORD.itemsize)
-        good = (_crc(raw) == full['crc']) & (full['kind'] < len(_KINDS))
+        good = (_crc(raw) == full['crc']) & _kind_ok(full['kind'])
         if good.all():
             recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
         else:  # damage: walk the file, re-synchronising on the next record that verifies
@@ -185,7 +195,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
 
 def _record_ok(body: bytes, offset: int) -> bool:
     end = offset + RECORD.itemsize
-    if end > len(body) or body[offset + _KIND_AT] >= len(_KINDS):
+    if end > len(body) or not _kind_ok(body[offset + _KIND_AT]):
         return False
     return zlib.crc32(body[offset:offset + _PAYLOAD]) == int.from_bytes(
         body[offset + _PAYLOAD:end], 'little')
@@ -211,12 +221,34 @@ def _resync(body: bytes) -> tuple[list[int], int, int]:
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
-    """Journal records (structured array) as :class:`Measurement` objects, in order."""
+    """Journal records (structured array) as :class:`Measurement` objects, in order (held or
+    not: see :func:`held_records`)."""
     cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
                                        'stamp_ns', 'kind')]
     z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
-    return [Measurement(a, b, c, d, z[k], cov[k], e, _KINDS[f])
+    return [Measurement(a, b, c, d, z[k], cov[k], e, KINDS[f & _KIND_MASK])
             for k, (a, b, c, d, e, f) in enumerate(zip(*cols))]
+
+
+def held_records(recs: np.ndarray) -> np.ndarray:
+    """Which journal records are held measurements (bool per record)."""
+    return (np.asarray(recs['kind']) & HELD) != 0
+
+
+def still_held(recs: np.ndarray) -> list[Measurement]:
+    """The held measurements of a journal that no later record admitted (matched by nodes and
+    stamp, read either way), in order: the held queue to restore after a restart."""
+    held = held_records(recs)
+    out = []
+    later: set[tuple[int, int, int]] = set()
+    src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
+    for k in range(len(held) - 1, -1, -1):
+        if not held[k]:
+            later.add((src[k], dst[k], stamp[k]))
+            later.add((dst[k], src[k], stamp[k]))
+        elif (src[k], dst[k], stamp[k]) not in later:
+            out.append(k)
+    return records_to_measurements(recs[np.array(out[::-1], dtype=np.int64)])
 
 
 class MeasurementJournal:
@@ -266,17 +298,18 @@ class MeasurementJournal:
             raise
         self._fd = fd
 
-    def append(self, m: Measurement) -> None:
-        """Write one record to the OS at once (survives a killed process)."""
-        self.append_many([m])
+    def append(self, m: Measurement, held: bool = False) -> None:
+        """Write one record to the OS at once (survives a killed process); ``held``: a held
+        measurement (:data:`HELD`), not taken by the aligner."""
+        self.append_many([m], held)
 
-    def append_many(self, ms: list[Measurement]) -> None:
+    def append_many(self, ms: list[Measurement], held: bool = False) -> None:
         """Write several records in one system call."""
         if not ms:
             return
         if self._fd is None:
             self._open()
-        data = encode_records(ms)
+        data = encode_records(ms, held)
         written = os.write(self._fd, data)
         while written < len(data):
             written += os.write(self._fd, data[written:])
@@ -359,6 +392,9 @@ class RecoveryResult:
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
     seconds : wall time of the recovery.
+    held : held measurements of the journal that were never admitted, in order (the held queue
+        of :class:`~ga_ros.core.gaps.GapHealer` to restore).
+    bridges : ``(from_id, to_id)`` of every bridge in the journal.
     """
 
     aligner: TrackWindowAligner
@@ -370,6 +406,8 @@ class RecoveryResult:
     moved_aside: list[Path] = field(default_factory=list)
     messages: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    held: list[Measurement] = field(default_factory=list)
+    bridges: list[tuple[int, int]] = field(default_factory=list)
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -440,6 +478,11 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         aligner = out.aligner
         tail = records
         out.source = 'journal' if records.size else 'empty'
+    out.held = still_held(records)
+    bridge = records['kind'] & _KIND_MASK == KINDS.index('bridge')
+    out.bridges = list(zip(records['src_id'][bridge].tolist(),
+                           records['dst_id'][bridge].tolist()))
+    tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
         batch = aligner.add_measurements(records_to_measurements(tail))
         out.records_replayed, out.records_rejected = batch.n_accepted, batch.n_rejected
