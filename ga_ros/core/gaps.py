@@ -77,11 +77,11 @@ class GapConfig:
     enabled: bool = True
     wait_measurements: int = 300
     wait_sec: float = 30.0
-    bridge_sigma_m: float = 10.0
-    bridge_sigma_rad: float = 0.2
+    bridge_sigma_m: float = 100.0
+    bridge_sigma_rad: float = 1.0
     bridge_growth_m_per_s: float = 5.0
-    bridge_growth_rad_per_s: float = 0.05
-    bridge_max_sigma_m: float = 500.0
+    bridge_growth_rad_per_s: float = 0.1
+    bridge_max_sigma_m: float = 700.0
     bridge_max_sigma_rad: float = 1.5
 
     def __post_init__(self) -> None:
@@ -105,7 +105,8 @@ class GapConfig:
 
 
 class Held(NamedTuple):
-    """A held measurement and its arrival number (measurements seen before it)."""
+    """A held measurement and its arrival number (the measurements held or taken on arrival
+    since the start, itself included)."""
 
     m: Measurement
     seq: int
@@ -269,17 +270,21 @@ class GapHealer:
             return Route.REVERSE
         return Route.HOLD
 
-    def hold(self, m: Measurement) -> None:
-        """Keep ``m`` at the end of the held queue (call :meth:`seen` for it first)."""
-        self.held.append(Held(m, self._seq))
+    def hold(self, m: Measurement, seq: int | None = None) -> None:
+        """Keep ``m`` at the end of the held queue (an arrival; ``seq``: its arrival number
+        when restoring a queue)."""
+        self.arrived(m)
+        self.held.append(Held(m, self._seq if seq is None else int(seq)))
 
-    def seen(self, m: Measurement) -> None:
-        """Count a measurement that arrived and note its stamp (for the waits)."""
+    def arrived(self, m: Measurement) -> None:
+        """Count an arrival (a measurement held, or taken on arrival) and note its stamp (the
+        waits of :meth:`overdue`)."""
         self._seq += 1
-        try:
-            self._newest_stamp = max(self._newest_stamp, int(m.stamp_ns))
-        except (TypeError, ValueError, OverflowError):
-            pass  # the aligner rejects it (bad_stamp)
+        self._newest_stamp = max(self._newest_stamp, int(m.stamp_ns))
+
+    def restore_waits(self, arrivals: int, newest_stamp_ns: int) -> None:
+        """Set the arrival count and the newest stamp (after a restore)."""
+        self._seq, self._newest_stamp = int(arrivals), int(newest_stamp_ns)
 
     def overdue(self) -> bool:
         """The first held measurement has waited long enough (:class:`GapConfig`) to be
@@ -307,10 +312,14 @@ class GapHealer:
         if m.kind == 'bridge':
             return
         self._union(src, dst)
-        if m.kind == 'consecutive' and m.src_track == m.dst_track:
-            dt = int(m.stamp_ns) - self._stamp.get(src, int(m.stamp_ns))
-            if dt > 0:
-                self._last_motion[int(m.dst_track)] = (np.asarray(m.z, dtype=float), dt)
+        if m.kind == 'consecutive':
+            self._motion(src, dst, int(m.src_track), int(m.dst_track), m.z)
+
+    def _motion(self, src: int, dst: int, src_track: int, dst_track: int, z) -> None:
+        """Note a frame-to-frame motion (the constant velocity of :meth:`bridge_to`)."""
+        dt = self._stamp[dst] - self._stamp[src]
+        if src_track == dst_track and dt > 0:
+            self._last_motion[dst_track] = (np.asarray(z, dtype=float), dt)
 
     def bridge_to(self, m: Measurement) -> Measurement | None:
         """The bridge that lets ``m`` (whose two ends are unknown) in: from the last node of its
@@ -341,14 +350,15 @@ class GapHealer:
         self.bridges.append(Bridge(a, int(m.src_id), gap_sec, sig_m, sig_rad))
         return Measurement(a, int(m.src_id), track_a, track, z, cov, stamp_s, 'bridge')
 
-    def rebuild(self, src_ids: IntArray, dst_ids: IntArray, kinds: list[str],
+    def rebuild(self, src_ids: IntArray, dst_ids: IntArray, z: FloatArray, kinds: list[str],
                 node_ids: IntArray, track_ids: IntArray, stamps_ns: IntArray,
                 anchored: IntArray | None = None) -> None:
         """Restore the node bookkeeping from an aligner's tables (after a restore).
 
         Parameters
         ----------
-        src_ids, dst_ids, kinds : the aligner's connections, in order.
+        src_ids, dst_ids, z, kinds : the aligner's connections, in order (``kinds`` as in
+            :data:`~ga_ros.core.measurement.KINDS`).
         node_ids, track_ids, stamps_ns : its nodes in arrival order (the first is the datum).
         anchored : nodes with an absolute fix (joined whatever their connections).
         """
@@ -363,9 +373,12 @@ class GapHealer:
             self._stamp[node] = stamp
             self._last_node[track] = (node, stamp)
             self.open_track = track if self.open_track is None else max(self.open_track, track)
-        for a, b, kind in zip(np.asarray(src_ids).tolist(), np.asarray(dst_ids).tolist(), kinds):
+        track_of = dict(zip(ids, tracks))
+        for k, (a, b, kind) in enumerate(zip(np.asarray(src_ids).tolist(),
+                                             np.asarray(dst_ids).tolist(), kinds)):
             if kind != 'bridge' and a in self._parent and b in self._parent:
                 self._union(a, b)
-        self._seq = held[-1].seq if held else 0
+                if kind == 'consecutive':
+                    self._motion(a, b, track_of[a], track_of[b], z[k])
         for node in [] if anchored is None else np.asarray(anchored).tolist():
             self.anchor(node)

@@ -235,20 +235,51 @@ def held_records(recs: np.ndarray) -> np.ndarray:
     return (np.asarray(recs['kind']) & HELD) != 0
 
 
-def still_held(recs: np.ndarray) -> list[Measurement]:
-    """The held measurements of a journal that no later record admitted (matched by nodes and
-    stamp, read either way), in order: the held queue to restore after a restart."""
+@dataclass
+class HeldQueue:
+    """The held measurements of a journal that no later record admitted.
+
+    Attributes
+    ----------
+    held : ``(measurement, arrival number)`` in order.
+    arrivals : measurements held or taken on arrival (the healer's arrival count).
+    newest_stamp_ns : the newest stamp of those arrivals.
+    """
+
+    held: list[tuple[Measurement, int]] = field(default_factory=list)
+    arrivals: int = 0
+    newest_stamp_ns: int = -2**63
+
+
+def held_queue(recs: np.ndarray) -> HeldQueue:
+    """The held queue to restore after a restart: the held records that no later record
+    admitted (matched by nodes and stamp, read either way), with their arrival numbers."""
     held = held_records(recs)
-    out = []
-    later: set[tuple[int, int, int]] = set()
+    bridge = (recs['kind'] & _KIND_MASK) == KINDS.index('bridge')
     src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
-    for k in range(len(held) - 1, -1, -1):
-        if not held[k]:
-            later.add((src[k], dst[k], stamp[k]))
-            later.add((dst[k], src[k], stamp[k]))
-        elif (src[k], dst[k], stamp[k]) not in later:
-            out.append(k)
-    return records_to_measurements(recs[np.array(out[::-1], dtype=np.int64)])
+    pending: dict[tuple[int, int, int], list[int]] = {}
+    seq: dict[int, int] = {}
+    out = HeldQueue()
+    for k in range(len(held)):
+        key = (src[k], dst[k], stamp[k])
+        if bridge[k]:
+            continue
+        if held[k]:
+            pending.setdefault(key, []).append(k)
+        else:
+            rev = (dst[k], src[k], stamp[k])
+            done = pending.get(key) or pending.get(rev)
+            if done:  # a held measurement taken later: not an arrival
+                seq.pop(done.pop(0))
+                continue
+        out.arrivals += 1
+        out.newest_stamp_ns = max(out.newest_stamp_ns, stamp[k])
+        if held[k]:
+            seq[k] = out.arrivals
+    rows = sorted(seq)
+    ms = records_to_measurements(recs[np.array(rows, dtype=np.int64)])
+    out.held = [(m, seq[k]) for m, k in zip(ms, rows)]
+    return out
 
 
 class MeasurementJournal:
@@ -392,8 +423,8 @@ class RecoveryResult:
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
     seconds : wall time of the recovery.
-    held : held measurements of the journal that were never admitted, in order (the held queue
-        of :class:`~ga_ros.core.gaps.GapHealer` to restore).
+    held : the held measurements of the journal that were never admitted (the held queue of
+        :class:`~ga_ros.core.gaps.GapHealer` to restore).
     bridges : ``(from_id, to_id)`` of every bridge in the journal.
     """
 
@@ -406,7 +437,7 @@ class RecoveryResult:
     moved_aside: list[Path] = field(default_factory=list)
     messages: list[str] = field(default_factory=list)
     seconds: float = 0.0
-    held: list[Measurement] = field(default_factory=list)
+    held: HeldQueue = field(default_factory=HeldQueue)
     bridges: list[tuple[int, int]] = field(default_factory=list)
 
 
@@ -478,7 +509,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         aligner = out.aligner
         tail = records
         out.source = 'journal' if records.size else 'empty'
-    out.held = still_held(records)
+    out.held = held_queue(records)
     bridge = records['kind'] & _KIND_MASK == KINDS.index('bridge')
     out.bridges = list(zip(records['src_id'][bridge].tolist(),
                            records['dst_id'][bridge].tolist()))

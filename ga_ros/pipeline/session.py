@@ -168,7 +168,6 @@ class AlignmentSession:
         t0 = time.perf_counter()
         self.counts.received += 1
         gaps = self.gaps
-        gaps.seen(m)
         route = gaps.route(m)
         if route is Route.HOPELESS:
             exc = _unknown_source(m)
@@ -189,6 +188,7 @@ class AlignmentSession:
         except GaError as exc:  # a failed window update: the previous estimate stands
             self.solver_failed(exc)
             return StepOutput(False, error=f'{type(exc).__name__}: {exc}', solver_failed=True)
+        gaps.arrived(m)
         if gaps.held:
             self._drain(taken)
         if not taken.updates:
@@ -474,14 +474,14 @@ class AlignmentSession:
                              for a, b in result.bridges]
         if result.source != 'empty':
             cp = self.aligner.corrected_path()
-            src, dst = self.aligner.connection_arrays()[:2]
+            src, dst, z, cross = self.aligner.connection_arrays()[:4]
             pairs = set(result.bridges)
-            kinds = ['bridge' if p in pairs else 'measured'
-                     for p in zip(src.tolist(), dst.tolist())]
-            self.gaps.rebuild(src, dst, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
-        for m in result.held:
-            self.gaps.seen(m)
-            self.gaps.hold(m)
+            kinds = ['bridge' if p in pairs else ('cross' if c else 'consecutive')
+                     for p, c in zip(zip(src.tolist(), dst.tolist()), cross.tolist())]
+            self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
+        for m, seq in result.held.held:
+            self.gaps.hold(m, seq)
+        self.gaps.restore_waits(result.held.arrivals, result.held.newest_stamp_ns)
 
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
