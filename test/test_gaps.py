@@ -218,3 +218,22 @@ def test_held_measurements_and_bridges_survive_a_restart(tmp_path: Path, sample,
     np.testing.assert_array_equal(ids, ref_ids)
     np.testing.assert_allclose(T, ref_T, atol=1e-6)
     assert second.diagnostic_values()['unjoined_nodes'] == 0
+
+
+def test_replay_of_a_bag_with_a_gap_keeps_every_node(tmp_path: Path, sample) -> None:
+    """``ga-ros replay`` drives the same session: a bag missing three nodes' measurements (and
+    node 18's links to known nodes) still gives a path of every node, none rejected, and the
+    summary says how the gap was healed."""
+    import json
+
+    from ga_ros.replay.pipeline import ReplayConfig, replay
+    from ga_ros.replay.samples import write_measurement_bag
+
+    bag = write_measurement_bag(tmp_path / 'in', _unfilled(sample.measurements),
+                                sample.ground_truth)
+    r = replay(bag, tmp_path / 'out', ReplayConfig(plot=False))
+    assert r.error is None and r.rejected == {}
+    assert r.n_nodes == sample.ground_truth.node_ids.size
+    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
+    assert summary['gaps']['bridges'] + summary['gaps']['reversed_measurements'] > 0
+    assert summary['gaps']['unjoined_nodes'] == []

@@ -138,6 +138,7 @@ class ReplayResult:
     source_stats: dict[str, Any] = field(default_factory=dict)
     corrected: Trajectory | None = None
     quality: dict[str, Any] = field(default_factory=dict)
+    gaps: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -153,7 +154,7 @@ class ReplayResult:
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
-            'source_stats': self.source_stats, 'quality': self.quality}
+            'source_stats': self.source_stats, 'quality': self.quality, 'gaps': self.gaps}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -309,22 +310,30 @@ class _Run:
         if not out.accepted:
             self._reject(f'aligner: {out.error}')
             return
-        updates = out.updates
-        assert self.f2f is not None
-        self.f2f.add(m)
         self.result.n_measurements += 1
         self.stamps.setdefault(m.dst_id, int(m.stamp_ns))
         self.tracks.setdefault(m.src_id, m.src_track)
         self.tracks.setdefault(m.dst_id, m.dst_track)
-        self.conn.append(m)
+        self._admitted(out)
         if item.data is not None:
             self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
         else:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
-        for u in updates:
+        for u in out.updates:
             self._update(u)
         if self.config.tf and self.T_map_odom is not None:
             self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), item.log_ns)
+
+    def _admitted(self, out: Any) -> None:
+        """The measurements the aligner took in a session step (held ones whose gap was filled,
+        reversed ones, bridges) go into the frame-to-frame integration and the network."""
+        assert self.f2f is not None
+        for a in out.admitted:
+            self.f2f.add(a)
+            self.conn.append(a)
+        for text in out.notes:
+            if text.startswith('held measurement rejected: '):
+                self._reject('aligner: ' + text[len('held measurement rejected: '):])
 
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
@@ -440,6 +449,11 @@ class _Run:
         if self.aligner is None:
             return
         try:
+            assert self.session is not None
+            flushed = self.session.flush_gaps()  # held measurements: in, bridged if need be
+            self._admitted(flushed)
+            for u in flushed.updates:
+                self._update(u)
             self._update(self.aligner.finish_track())
             if self.config.refine_batch:
                 self._update(self.aligner.refine_batch())
@@ -447,6 +461,10 @@ class _Run:
             res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
         traj = self.corrected()
         res.corrected = traj
+        values = self.session.diagnostic_values()
+        res.gaps = {'bridges': values['bridges'],
+                    'reversed_measurements': values['reversed_measurements'],
+                    'unjoined_nodes': traj.node_ids[self.session.unjoined(traj.node_ids)].tolist()}
         self._markers(traj, everything=True)
         res.n_nodes = len(traj)
         res.n_tracks = int(np.unique(traj.track_ids).size)
