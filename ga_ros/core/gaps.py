@@ -52,7 +52,9 @@ import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
 from ga_ros.geometry import se3
+
 
 @dataclass(frozen=True)
 class GapConfig:
@@ -86,12 +88,12 @@ class GapConfig:
 
     def __post_init__(self) -> None:
         if self.wait_measurements < 1 or not self.wait_sec >= 0:
-            raise ValueError('wait_measurements must be >= 1 and wait_sec >= 0')
+            raise InputError('wait_measurements must be >= 1 and wait_sec >= 0')
         sig = (self.bridge_sigma_m, self.bridge_sigma_rad, self.bridge_max_sigma_m,
                self.bridge_max_sigma_rad)
         if not all(math.isfinite(s) and s > 0 for s in sig) or not (
                 self.bridge_growth_m_per_s >= 0 and self.bridge_growth_rad_per_s >= 0):
-            raise ValueError('bridge standard deviations must be positive and finite, growths '
+            raise InputError('bridge standard deviations must be positive and finite, growths '
                              '>= 0')
 
     def bridge_sigmas(self, gap_sec: float) -> tuple[float, float]:

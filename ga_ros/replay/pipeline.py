@@ -461,9 +461,8 @@ class _Run:
             res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
         traj = self.corrected()
         res.corrected = traj
-        values = self.session.diagnostic_values()
-        res.gaps = {'bridges': values['bridges'],
-                    'reversed_measurements': values['reversed_measurements'],
+        counts = self.session.counts
+        res.gaps = {'bridges': counts.bridges, 'reversed_measurements': counts.reversed,
                     'unjoined_nodes': traj.node_ids[self.session.unjoined(traj.node_ids)].tolist()}
         self._markers(traj, everything=True)
         res.n_nodes = len(traj)

@@ -48,6 +48,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.gaps import GapConfig
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -154,6 +155,9 @@ class NodeSettings:
         updates).
     allow_reset : whether ``~/reset`` may clear the state (and empty the state files); off by
         default, since any peer on the ROS graph can call it.
+    gaps : measurements whose source node is unknown (a gap in the stream): how long they are
+        held for the missing measurements, and the bridges that join what is still apart
+        (:class:`~ga_ros.core.gaps.GapConfig`; parameters ``gaps.<name>``).
     """
 
     map_frame: str = 'map'
@@ -191,6 +195,7 @@ class NodeSettings:
     track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False
+    gaps: GapConfig = GapConfig()
 
 
 #: NodeSettings fields that may change at run time (read at use).
@@ -222,7 +227,8 @@ class AlignmentNode(Node):
             raise InputError(f'parameter measurement_durability must be volatile or '
                              f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
-            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec),
+            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
+                                               s.gaps),
             warn=lambda text: self.get_logger().warning(text))
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
