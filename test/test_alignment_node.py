@@ -363,7 +363,8 @@ def test_parameters_have_descriptors(node_in_process):
     node = node_in_process
     names = [f.name for f in fields(AlignerConfig) if f.name != 'solver']
     names += [f'solver.{f.name}' for f in fields(SolverConfig)]
-    names += [f.name for f in fields(NodeSettings)]
+    names += [f.name for f in fields(NodeSettings) if f.name != 'gaps']
+    names += [f'gaps.{f.name}' for f in fields(GapConfig)]
     for name in names:
         d = node.describe_parameter(name)
         assert d.description, name

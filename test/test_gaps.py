@@ -237,3 +237,23 @@ def test_replay_of_a_bag_with_a_gap_keeps_every_node(tmp_path: Path, sample) -> 
     summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
     assert summary['gaps']['bridges'] + summary['gaps']['reversed_measurements'] > 0
     assert summary['gaps']['unjoined_nodes'] == []
+
+
+def test_a_piece_never_joined_stays_marked_with_the_bridge_covariance(sample) -> None:
+    """Two tracks; after the gap (nodes 15-17) nothing connects the rest of track 1 to a known
+    node but the bridge: its nodes stay marked, the session warns, and their published
+    covariances carry the bridge's uncertainty (standard deviation >= its 100 m) while the
+    joined nodes' stay below 1 m."""
+    ms = [m for m in sample.measurements if m.dst_track < 2]
+    i, j = _slice_of_nodes(ms, 15, 18)
+    stream = ms[:i] + [m for m in ms[j:] if m.src_id >= 15]
+    session = _run(stream, GapConfig(wait_measurements=3))
+    values = session.diagnostic_values()
+    assert values['bridges'] == 1 and values['rejected'] == 0
+    cp = session.aligner.corrected_path()
+    flags = session.unjoined(cp.node_ids)
+    assert flags.sum() == values['unjoined_nodes'] == np.count_nonzero(cp.node_ids >= 15)
+    assert not session.health().ok and 'bridge' in session.health().message
+    sd = np.sqrt(np.diagonal(session.aligner.covariances(cp.node_ids), axis1=1, axis2=2))
+    assert sd[flags, :3].min() >= 100.0 * 0.99
+    assert sd[~flags & (cp.node_ids > 0), :3].max() < 1.0

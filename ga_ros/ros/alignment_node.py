@@ -352,8 +352,9 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
-            if out.accepted and self._f2f is not None:
-                self._f2f.add(m)
+            if self._f2f is not None:
+                for taken in out.admitted:  # held ones whose gap was filled, bridges
+                    self._f2f.add(taken)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
