@@ -257,3 +257,28 @@ def test_a_piece_never_joined_stays_marked_with_the_bridge_covariance(sample) ->
     sd = np.sqrt(np.diagonal(session.aligner.covariances(cp.node_ids), axis1=1, axis2=2))
     assert sd[flags, :3].min() >= 100.0 * 0.99
     assert sd[~flags & (cp.node_ids > 0), :3].max() < 1.0
+
+
+def test_a_measurement_taken_reversed_is_a_duplicate_when_it_comes_again(tmp_path: Path,
+                                                                          sample) -> None:
+    """Re-delivered (e.g. a transient-local history after a restart), a measurement the session
+    took reversed is a duplicate, not a second connection; also after a restart."""
+    ms = sample.measurements
+    i, j = _slice_of_nodes(ms, 15, 18)
+    stream = ms[:i] + ms[j:j + 10]
+    state = str(tmp_path / 's.npz')
+    session = AlignmentSession(WINDOW, SessionConfig(state))
+    session.resume()
+    for m in stream:
+        session.step(m)
+    n_conn = session.diagnostic_values()['connections']
+    assert session.counts.reversed > 0
+    again = [session.step(m) for m in stream[i:]]
+    assert all(not o.accepted and o.reason is Reason.DUPLICATE for o in again)
+    assert session.diagnostic_values()['connections'] == n_conn
+    session.journal.close()
+    second = AlignmentSession(WINDOW, SessionConfig(state))
+    second.resume()
+    assert second.diagnostic_values()['connections'] == n_conn
+    again = [second.step(m) for m in stream[i:]]
+    assert all(not o.accepted and o.reason is Reason.DUPLICATE for o in again)

@@ -17,6 +17,8 @@ for each measurement, what the :class:`~ga_ros.pipeline.session.AlignmentSession
   :attr:`GapConfig.wait_measurements` and :attr:`GapConfig.wait_sec` of stamps.
 * ``HOPELESS``: its source is unknown and belongs to a track older than the open one, which can
   no longer take new nodes -> rejected (``unknown_source``).
+* ``DUPLICATE``: a re-delivery of a measurement the aligner took reversed (the aligner's own
+  duplicate test, on the measured values, does not recognise it) -> rejected (``duplicate``).
 
 After every admission the held queue is drained from its front while its first measurement has
 become admissible (a re-delivered motion filled the gap): the held measurements then reach the
@@ -44,6 +46,7 @@ from __future__ import annotations
 
 import enum
 import math
+import zlib
 from collections import deque
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -121,6 +124,7 @@ class Route(enum.Enum):
     REVERSE = 'reverse'
     HOLD = 'hold'
     HOPELESS = 'hopeless'
+    DUPLICATE = 'duplicate'
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,13 @@ class Bridge:
     gap_sec: float
     sigma_m: float
     sigma_rad: float
+
+
+def fingerprint(m: Measurement) -> tuple[int, int, int]:
+    """``(src_id, dst_id, CRC-32 of z and cov)``: what tells a re-delivery of ``m``."""
+    data = (np.asarray(m.z, dtype=float).tobytes()
+            + np.asarray(m.cov, dtype=float).tobytes())
+    return int(m.src_id), int(m.dst_id), zlib.crc32(data)
 
 
 def reversed_measurement(m: Measurement) -> Measurement:
@@ -178,6 +189,8 @@ class GapHealer:
         self._last_node: dict[int, tuple[int, int]] = {}
         self._last_motion: dict[int, tuple[FloatArray, int]] = {}
         self._stamp: dict[int, int] = {}
+        #: fingerprints of the measurements taken reversed (:func:`fingerprint`, as they came)
+        self.reversed: set[tuple[int, int, int]] = set()
 
     # ------------------------------------------------------------------ nodes
     def knows(self, node_id: int) -> bool:
@@ -260,6 +273,8 @@ class GapHealer:
         """
         if not self.config.enabled or not self._parent:
             return Route.ADMIT
+        if self.reversed and fingerprint(m) in self.reversed:
+            return Route.DUPLICATE
         src_known, dst_known = self.knows(m.src_id), self.knows(m.dst_id)
         open_track = self.open_track if self.open_track is not None else -1
         new_track = max(int(m.src_track), int(m.dst_track)) > open_track
@@ -364,9 +379,9 @@ class GapHealer:
         node_ids, track_ids, stamps_ns : its nodes in arrival order (the first is the datum).
         anchored : nodes with an absolute fix (joined whatever their connections).
         """
-        held, cfg, bridges = self.held, self.config, self.bridges
+        held, cfg, bridges, rev = self.held, self.config, self.bridges, self.reversed
         self.__init__(cfg)
-        self.held, self.bridges = held, bridges
+        self.held, self.bridges, self.reversed = held, bridges, rev
         ids = np.asarray(node_ids, dtype=np.int64).tolist()
         tracks = np.asarray(track_ids, dtype=np.int64).tolist()
         stamps = np.asarray(stamps_ns, dtype=np.int64).tolist()

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.core.gaps import reversed_measurement
 from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.persistence import is_state_file, load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -50,6 +51,9 @@ _KIND_AT = RECORD.fields['kind'][1]
 #: Bit of the kind byte set on a measurement that was *held* (its source node was unknown, see
 #: :mod:`ga_ros.core.gaps`), not yet taken by the aligner; the low bits index :data:`KINDS`.
 HELD = 0x80
+#: Bit of the kind byte set on a measurement the aligner took *reversed*
+#: (:func:`~ga_ros.core.gaps.reversed_measurement`): the record holds it as it arrived.
+REVERSED = 0x40
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -93,20 +97,20 @@ def _crc(records: np.ndarray) -> np.ndarray:
                        dtype=np.uint32, count=records.shape[0])
 
 
-_KIND_MASK = 0x7F
+_KIND_MASK = 0x3F
 
 
 def _kind_ok(kind: np.ndarray | int) -> np.ndarray | bool:
     return (kind & _KIND_MASK) < len(KINDS)
 
 
-def encode_records(ms: list[Measurement], held: bool = False) -> bytes:
-    """The journal records of ``ms`` (with their checksums), ready to append; ``held``: they
-    are held measurements (:data:`HELD`)."""
+def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
+    """The journal records of ``ms`` (with their checksums), ready to append; ``flags``:
+    :data:`HELD` and / or :data:`REVERSED`, or 0."""
     rec = np.zeros(len(ms), RECORD)
     for name in ('src_id', 'dst_id', 'src_track', 'dst_track', 'stamp_ns'):
         rec[name] = [getattr(m, name) for m in ms]
-    rec['kind'] = [KINDS.index(m.kind) | (HELD if held else 0) for m in ms]
+    rec['kind'] = [KINDS.index(m.kind) | flags for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
     raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
@@ -221,8 +225,9 @@ def _resync(body: bytes) -> tuple[list[int], int, int]:
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
-    """Journal records (structured array) as :class:`Measurement` objects, in order (held or
-    not: see :func:`held_records`)."""
+    """Journal records (structured array) as :class:`Measurement` objects, in order, as they
+    arrived (held or not: :func:`held_records`; reversed by the aligner or not:
+    :func:`as_taken`)."""
     cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
                                        'stamp_ns', 'kind')]
     z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
@@ -233,6 +238,18 @@ def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
 def held_records(recs: np.ndarray) -> np.ndarray:
     """Which journal records are held measurements (bool per record)."""
     return (np.asarray(recs['kind']) & HELD) != 0
+
+
+def as_taken(recs: np.ndarray) -> list[Measurement]:
+    """Journal records as the aligner took them (those marked :data:`REVERSED` reversed)."""
+    rev = ((np.asarray(recs['kind']) & REVERSED) != 0).tolist()
+    return [reversed_measurement(m) if r else m
+            for m, r in zip(records_to_measurements(recs), rev)]
+
+
+def reversed_records(recs: np.ndarray) -> list[Measurement]:
+    """The measurements (as they arrived) that the aligner took reversed."""
+    return records_to_measurements(recs[(np.asarray(recs['kind']) & REVERSED) != 0])
 
 
 @dataclass
@@ -253,7 +270,7 @@ class HeldQueue:
 
 def held_queue(recs: np.ndarray) -> HeldQueue:
     """The held queue to restore after a restart: the held records that no later record
-    admitted (matched by nodes and stamp, read either way), with their arrival numbers."""
+    admitted (matched by nodes and stamp), with their arrival numbers."""
     held = held_records(recs)
     bridge = (recs['kind'] & _KIND_MASK) == KINDS.index('bridge')
     src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
@@ -267,8 +284,7 @@ def held_queue(recs: np.ndarray) -> HeldQueue:
         if held[k]:
             pending.setdefault(key, []).append(k)
         else:
-            rev = (dst[k], src[k], stamp[k])
-            done = pending.get(key) or pending.get(rev)
+            done = pending.get(key)
             if done:  # a held measurement taken later: not an arrival
                 seq.pop(done.pop(0))
                 continue
@@ -329,18 +345,18 @@ class MeasurementJournal:
             raise
         self._fd = fd
 
-    def append(self, m: Measurement, held: bool = False) -> None:
-        """Write one record to the OS at once (survives a killed process); ``held``: a held
-        measurement (:data:`HELD`), not taken by the aligner."""
-        self.append_many([m], held)
+    def append(self, m: Measurement, flags: int = 0) -> None:
+        """Write one record to the OS at once (survives a killed process); ``flags``:
+        :data:`HELD` (not taken by the aligner), :data:`REVERSED` (taken reversed), or 0."""
+        self.append_many([m], flags)
 
-    def append_many(self, ms: list[Measurement], held: bool = False) -> None:
+    def append_many(self, ms: list[Measurement], flags: int = 0) -> None:
         """Write several records in one system call."""
         if not ms:
             return
         if self._fd is None:
             self._open()
-        data = encode_records(ms, held)
+        data = encode_records(ms, flags)
         written = os.write(self._fd, data)
         while written < len(data):
             written += os.write(self._fd, data[written:])
@@ -426,6 +442,7 @@ class RecoveryResult:
     held : the held measurements of the journal that were never admitted (the held queue of
         :class:`~ga_ros.core.gaps.GapHealer` to restore).
     bridges : ``(from_id, to_id)`` of every bridge in the journal.
+    reversed : the measurements (as they arrived) that the aligner took reversed.
     """
 
     aligner: TrackWindowAligner
@@ -439,6 +456,7 @@ class RecoveryResult:
     seconds: float = 0.0
     held: HeldQueue = field(default_factory=HeldQueue)
     bridges: list[tuple[int, int]] = field(default_factory=list)
+    reversed: list[Measurement] = field(default_factory=list)
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -513,9 +531,10 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
     bridge = records['kind'] & _KIND_MASK == KINDS.index('bridge')
     out.bridges = list(zip(records['src_id'][bridge].tolist(),
                            records['dst_id'][bridge].tolist()))
+    out.reversed = reversed_records(records)
     tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
-        batch = aligner.add_measurements(records_to_measurements(tail))
+        batch = aligner.add_measurements(as_taken(tail))
         out.records_replayed, out.records_rejected = batch.n_accepted, batch.n_rejected
         if out.source == 'snapshot':
             out.source = 'snapshot+journal'

@@ -22,12 +22,21 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray
-from ga_ros.core.gaps import Bridge, GapConfig, GapHealer, Route, reversed_measurement
+from ga_ros.core.gaps import (
+    Bridge,
+    GapConfig,
+    GapHealer,
+    Route,
+    fingerprint,
+    reversed_measurement,
+)
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, Reason, SolverError
 from ga_ros.pipeline.journal import (
+    HELD,
+    REVERSED,
     MeasurementJournal,
     RecoveryResult,
     clear_state,
@@ -169,20 +178,18 @@ class AlignmentSession:
         self.counts.received += 1
         gaps = self.gaps
         route = gaps.route(m)
-        if route is Route.HOPELESS:
-            exc = _unknown_source(m)
+        if route in (Route.HOPELESS, Route.DUPLICATE):
+            exc = _refused(m, route)
             return StepOutput(False, reason=self.reject(exc), error=str(exc))
         taken = _Taken()
         if route is Route.HOLD:
             gaps.hold(m)
-            self._journal(m, held=True)
+            self._journal(m, HELD)
             if gaps.overdue():
                 self._drain(taken)
             return self._output(taken, True, held=True)
-        if route is Route.REVERSE:
-            self.counts.reversed += 1
         try:
-            self._take(reversed_measurement(m) if route is Route.REVERSE else m, taken)
+            self._take(m, taken, route is Route.REVERSE)
         except InputError as exc:
             return StepOutput(False, reason=self.reject(exc), error=str(exc))
         except GaError as exc:  # a failed window update: the previous estimate stands
@@ -209,22 +216,26 @@ class AlignmentSession:
         return StepOutput(accepted, done, notes=notes, held=held,
                           admitted=tuple(taken.admitted))
 
-    def _journal(self, m: Measurement, held: bool = False) -> None:
+    def _journal(self, m: Measurement, flags: int = 0) -> None:
         if self.journal is not None:
-            self.journal.append(m, held)
+            self.journal.append(m, flags)
             self.sync()
 
-    def _take(self, m: Measurement, taken: _Taken) -> None:
-        """The aligner takes ``m`` (journaled, counted, noted by the healer); raises what the
-        aligner raises."""
-        taken.updates += self.aligner.add_measurement(m)
+    def _take(self, m: Measurement, taken: _Taken, reverse: bool = False) -> None:
+        """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
+        noted by the healer); raises what the aligner raises."""
+        m_in = reversed_measurement(m) if reverse else m
+        taken.updates += self.aligner.add_measurement(m_in)
         if m.kind == 'bridge':
             self.counts.bridges += 1
         else:
             self.counts.accepted += 1
-        self.gaps.admitted(m)
-        self._journal(m)
-        taken.admitted.append(m)
+        if reverse:
+            self.counts.reversed += 1
+            self.gaps.reversed.add(fingerprint(m))
+        self.gaps.admitted(m_in)
+        self._journal(m, REVERSED if reverse else 0)
+        taken.admitted.append(m_in)
 
     def _drain(self, taken: _Taken, flush: bool = False) -> None:
         """Admit the held measurements that became admissible, in their order, pass after pass
@@ -265,15 +276,13 @@ class AlignmentSession:
                 kept.append(item)
                 continue
             progress = True
-            if route is Route.HOPELESS:
-                exc = _unknown_source(h)
+            if route in (Route.HOPELESS, Route.DUPLICATE):
+                exc = _refused(h, route)
                 self.reject(exc)
                 taken.notes.append(f'held measurement rejected: {exc}')
                 continue
-            if route is Route.REVERSE:
-                self.counts.reversed += 1
             try:
-                self._take(reversed_measurement(h) if route is Route.REVERSE else h, taken)
+                self._take(h, taken, route is Route.REVERSE)
             except InputError as exc:
                 self.reject(exc)
                 taken.notes.append(f'held measurement rejected: {exc}')
@@ -479,6 +488,7 @@ class AlignmentSession:
             kinds = ['bridge' if p in pairs else ('cross' if c else 'consecutive')
                      for p, c in zip(zip(src.tolist(), dst.tolist()), cross.tolist())]
             self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
+        self.gaps.reversed = {fingerprint(m) for m in result.reversed}
         for m, seq in result.held.held:
             self.gaps.hold(m, seq)
         self.gaps.restore_waits(result.held.arrivals, result.held.newest_stamp_ns)
@@ -571,6 +581,13 @@ def _unknown_source(m: Measurement) -> InputError:
     return InputError(f'source node {m.src_id} of track {m.src_track} is unknown and that track '
                       'can no longer take new nodes (a later track has begun)',
                       reason=Reason.UNKNOWN_SOURCE)
+
+
+def _refused(m: Measurement, route: Route) -> InputError:
+    if route is Route.DUPLICATE:
+        return InputError(f'measurement {m.src_id}->{m.dst_id} was already received (and taken '
+                          'reversed)', reason=Reason.DUPLICATE)
+    return _unknown_source(m)
 
 
 def _how(result: RecoveryResult) -> str:
