@@ -20,14 +20,14 @@ for each measurement, what the :class:`~ga_ros.pipeline.session.AlignmentSession
 * ``DUPLICATE``: a re-delivery of a measurement the aligner took reversed (the aligner's own
   duplicate test, on the measured values, does not recognise it) -> rejected (``duplicate``).
 
-After every admission the held queue is drained from its front while its first measurement has
-become admissible (a re-delivered motion filled the gap): the held measurements then reach the
-aligner in their order of arrival, and since held measurements also hold back the end of the open
-track, the window updates see the same connections as without the gap. The result equals the
-gap-free run to the solver's tolerance.
+After every admission the held queue is passed over in order, admitting what became admissible
+(a re-delivered motion filled the gap), while a pass makes progress: the held measurements reach
+the aligner in their order of arrival, and since held measurements also hold back the end of the
+open track, the window updates see the same connections as without the gap. The result equals
+the gap-free run to the solver's tolerance.
 
-When the wait is over (:meth:`GapHealer.overdue`, or the track or the stream ends:
-:meth:`~ga_ros.pipeline.session.AlignmentSession.flush_gaps`), the queue is emptied in order and a
+When the first held measurement has waited too long (:meth:`GapHealer.overdue`), or the track or
+the stream ends (:meth:`~ga_ros.pipeline.session.AlignmentSession.flush_gaps`: every one), a
 measurement with both ends unknown gets a **bridge** first: a motion of kind ``'bridge'`` from the
 last node of its source's track (or of the open track, for a new track) to its source node,
 predicted at constant velocity from the last frame-to-frame motion of that track (zero motion
