@@ -1,24 +1,19 @@
-"""scripts/bench_scale.py (issue 14 item 3) on a tiny survey: what it prints is what it ran."""
+"""``ga-ros bench scale`` (:mod:`ga_ros.bench.scale`) on a tiny survey: what it prints is what it
+ran."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'bench_scale.py'
-
 
 def _module():
-    spec = importlib.util.spec_from_file_location('bench_scale', SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault('bench_scale', mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+    from ga_ros.bench import scale
+
+    return scale
 
 
 def test_lazy_measurements_equal_the_scenario_list() -> None:
@@ -49,8 +44,9 @@ def test_rss_slope_follows_the_minima_of_each_block() -> None:
 
 
 def test_tiny_run_reports_every_figure() -> None:
-    res = subprocess.run([sys.executable, str(SCRIPT), '--tracks', '3',
-                          '--positions-per-swath', '8', '--checkpoints', '1,3,9', '--span', '2',
+    res = subprocess.run([sys.executable, '-m', 'ga_ros.cli.main', 'bench', 'scale',
+                          '--tracks', '3', '--positions-per-swath', '8', '--checkpoints', '1,3,9',
+                          '--span', '2',
                           '--json', '--restore-timeout', '120'],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr

@@ -2,7 +2,7 @@
 moves the boundary, and a position NEES checked against an independent computation.
 
 At 10 % noise on 400-pose swaths the window's published covariances were overconfident (mean
-position NEES 50-200 in ``scripts/bench_nees.py``) while the batch solve of the same data was
+position NEES 50-200 in ``ga-ros bench nees``) while the batch solve of the same data was
 honest (NEES ~3). The cause was the residual of the frozen tracks' joint prior: the exact
 second-order model of the absorbed connections at the freeze estimate, in the SE(3) tangent
 ``log(T_mean^-1 T)``, whose translation mixes the rotation with the absolute displacement of the
@@ -199,21 +199,16 @@ def test_a_prior_linearised_at_the_batch_solution_gives_the_batch_solution(surve
 
 
 def test_bench_nees_prints_what_it_measured(capsys):
-    """``scripts/bench_nees.py`` on a tiny survey: its JSON line carries the same NEES as a
+    """``ga-ros bench nees`` on a tiny survey: its JSON line carries the same NEES as a
     direct batch solve of the same seeded noise, and the window reproduces it (3 tracks fit
     in the window: no freeze)."""
-    import importlib.util
     import json
-    import sys
-    from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / 'scripts' / 'bench_nees.py'
-    spec = importlib.util.spec_from_file_location('bench_nees', script)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault('bench_nees', mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    assert mod.main(['--tracks', '2', '--per-swath', '6', '--noise', '3', '--runs', '1',
-                     '--window', '3', '--policies', 'weighted', '--json', '--seed', '5']) == 0
+    from ga_ros.cli.main import main
+
+    assert main(['bench', 'nees', '--tracks', '2', '--per-swath', '6', '--noise', '3',
+                 '--runs', '1', '--window', '3', '--policies', 'weighted', '--json',
+                 '--seed', '5']) == 0
     row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     sc = aerial_scenario(n_tracks=2, positions_per_swath=6)
     nm = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), np.random.default_rng(5))

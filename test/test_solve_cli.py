@@ -288,7 +288,7 @@ def test_track_mode_text_output_and_bad_tracks_file(tmp_path, rng, capsys):
 
 # ------------------------------------------------------------------------------- benchmark
 def test_bench_g2o_table_on_tiny_grid(capsys, pose_graph_dir):
-    code, stdout, _ = _run(capsys, ['bench-g2o', '--data', str(pose_graph_dir),
+    code, stdout, _ = _run(capsys, ['bench', 'g2o', '--data', str(pose_graph_dir),
                                     '--only', 'tinyGrid3D'])
     assert code == 0
     rows = [r for r in stdout.splitlines() if r.startswith('| tinyGrid3D')]

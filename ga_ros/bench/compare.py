@@ -225,7 +225,8 @@ def table(batch: list[BatchRow], tracks: list[TrackRow]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench compare', description=__doc__.split('\n\n')[0])
     p.add_argument('--data', type=Path, default=GRAPHS, help=f'pose graphs (default {GRAPHS})')
     p.add_argument('--window', type=int, default=5)
     p.add_argument('--no-tracks', action='store_true', help='batch rows only')

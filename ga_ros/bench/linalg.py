@@ -159,7 +159,8 @@ def _sksparse(variant: str, name: str, N: sp.csc_matrix, perm, repeat: int) -> F
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench linalg', description=__doc__.split('\n\n')[0])
     p.add_argument('--repeat', type=int, default=5)
     p.add_argument('--json', action='store_true')
     p.add_argument('--variant', choices=VARIANTS, help='run one variant in this process')

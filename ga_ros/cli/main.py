@@ -47,15 +47,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-#: ``ga-ros bench vo ...`` is ``ga-ros bench-vo ...`` (and likewise for the other benchmarks)
-ALIASES = {('bench', name): f'bench-{name}' for name in ('vo', 'g2o', 'node', 'replay')}
-
-
 def main(argv: list[str] | None = None) -> int:
     _blas = limit_blas_threads()  # noqa: F841 (kept alive for the whole command)
     argv = list(sys.argv[1:] if argv is None else argv)
-    if len(argv) >= 2 and (argv[0], argv[1]) in ALIASES:
-        argv = [ALIASES[(argv[0], argv[1])], *argv[2:]]
     parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     if not getattr(args, 'func', None):

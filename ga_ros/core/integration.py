@@ -83,7 +83,7 @@ class F2FIntegrator:
 class DeadReckoningAligner:
     """Aligner stand-in (no optimisation): F2F integration with the aligner's interface.
 
-    Used to time bag reading, decoding and output writing alone (``ga-ros bench-replay
+    Used to time bag reading, decoding and output writing alone (``ga-ros bench replay
     --io-only``). A track ends when a measurement's destination track differs from the last one.
     """
 

@@ -1,7 +1,7 @@
 """``nav_msgs/msg/Path`` serialized directly from arrays (CDR, what DDS sends).
 
 A corrected path of 100,000 poses built as rclpy message objects (one ``PoseStamped`` each) and
-then serialized takes seconds of the node's time (``scripts/bench_path_msg.py``); the same
+then serialized takes seconds of the node's time (``ga-ros bench path-msg``); the same
 bytes written with numpy take milliseconds. ``Publisher.publish`` accepts them as they are
 (rclpy publishes ``bytes`` raw). The layout is plain CDR (XCDR1, little endian, the
 encapsulation header ``00 01 00 00``): every primitive aligned to its size from the start of

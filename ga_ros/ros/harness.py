@@ -1,4 +1,4 @@
-"""Drive an alignment node running in another process (integration tests and ``bench-node``).
+"""Drive an alignment node running in another process (integration tests, ``ga-ros bench node``).
 
 :func:`start_node_process` launches ``python -m ga_ros.ros.alignment_node`` with its own
 ``ROS_DOMAIN_ID``; :class:`NodeClient` publishes measurements to it, listens to its outputs and

@@ -63,7 +63,7 @@ class VoConfig:
         scale it up, a still camera (residuals of 0.01 px) never shrinks it.
     sigma_disparity_px : prior disparity noise (px), the same kind of lower bound.
     covariance_scale : factor applied to the estimated covariance. With the priors 0.07 /
-        0.05 px and ``s^2`` floored at 1, simulator seeds 1-2 (320x240, ``ga-ros bench-vo``)
+        0.05 px and ``s^2`` floored at 1, simulator seeds 1-2 (320x240, ``ga-ros bench vo``)
         give a mean NEES of 5.5 and 5.1 with 1.0 (the former priors 0.3 / 0.2 px gave 1.2 once
         floored: 5x too large a covariance, which the unfloored ``s^2`` had hidden).
     keyframe_min_tracked_fraction : new keyframe when fewer inliers than this fraction remain.

@@ -1,4 +1,4 @@
-"""``ga-ros bench-g2o``: solve every public pose graph and print a Markdown table.
+"""``ga-ros bench g2o``: solve every public pose graph and print a Markdown table.
 
 For each ``*.g2o`` in the data directory (default ``../shared/data/pose-graphs`` relative to the
 repository): vertices, edges, initial cost, our final cost (:func:`ga_ros.io.g2o.graph_cost` of
@@ -53,9 +53,10 @@ def read_reference(data_dir: Path) -> dict[str, tuple[float, float, float]]:
     return table
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        'bench-g2o', help='benchmark the solver on the public g2o pose graphs',
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench g2o``."""
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench g2o',
         description='Solve each g2o file from its own initial guess and print a Markdown table '
                     'comparing the final cost with the GTSAM reference optimum.')
     p.add_argument('--data', type=Path, default=DEFAULT_DATA,
@@ -67,7 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument('--json', action='store_true', help='also print one JSON line per dataset')
     p.add_argument('--init', default='file', help="initial guess: file (default), odometry, "
                    "spanning-tree or chordal (its time is added to the solver's)")
-    p.set_defaults(func=run)
+    return p
 
 
 def run(args: argparse.Namespace) -> int:
@@ -110,3 +111,8 @@ def run(args: argparse.Namespace) -> int:
                               'seconds': res.seconds, 'converged': res.converged,
                               'reason': res.reason, 'stages': res.stages}), file=sys.stderr)
     return worst
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench g2o [options]``."""
+    return run(build_parser().parse_args(argv))

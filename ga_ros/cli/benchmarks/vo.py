@@ -1,4 +1,4 @@
-"""``ga-ros bench-vo``: stereo odometry and cross-track matching on the stereo simulator.
+"""``ga-ros bench vo``: stereo odometry and cross-track matching on the stereo simulator.
 
 Prints the accuracy of the consecutive motions (translation error relative to the distance
 travelled, rotation error), the NEES of their covariance (6 when honest), the precision and
@@ -18,9 +18,10 @@ TARGETS = {'translation_error_pct': 1.0, 'rotation_error_deg': 0.1, 'precision':
            'recall': 0.8, 'fps': {'320x240': 30.0, '640x480': 15.0}, 'nees': (4.2, 7.8)}
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        'bench-vo', help='benchmark the stereo visual odometry on simulated images',
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench vo``."""
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench vo',
         description='Render a seeded lawnmower survey over a textured terrain, run the stereo '
                     'odometry and the cross-track matcher, and compare with the ground truth.')
     p.add_argument('--size', default='320x240', help='image size WxH (default 320x240)')
@@ -31,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument('--seed', type=int, default=0, help='seed of terrain, flight and noise')
     p.add_argument('--no-cross', action='store_true', help='skip cross-track matching')
     p.add_argument('--json', action='store_true', help='print the figures as JSON')
-    p.set_defaults(func=run)
+    return p
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -99,3 +100,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  matching time            {_fmt(1e3 * x['seconds_per_keyframe'], '.1f')} ms "
               'per keyframe')
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench vo [options]``."""
+    return run(build_parser().parse_args(argv))

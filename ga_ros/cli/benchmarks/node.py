@@ -1,4 +1,4 @@
-"""``ga-ros bench-node``: latency and sustained measurement rate of the alignment node.
+"""``ga-ros bench node``: latency and sustained measurement rate of the alignment node.
 
 Starts the alignment node as a separate process (own ``ROS_DOMAIN_ID``), streams the measurements
 of a simulated aerial survey to it, and prints, per track:
@@ -30,9 +30,10 @@ import statistics
 import time
 
 
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        'bench-node', help='benchmark the alignment node (latency, sustained measurement rate)',
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench node``."""
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench node',
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--tracks', type=int, default=6, help='double tracks in the survey (6)')
     p.add_argument('--per-swath', type=int, default=102,
@@ -48,7 +49,7 @@ def register(subparsers) -> None:
     p.add_argument('--log', default=None, help='file for the node process output')
     p.add_argument('--no-capacity', dest='capacity', action='store_false',
                    help='skip the in-process drain-rate measurement')
-    p.set_defaults(func=run)
+    return p
 
 
 def run(args: argparse.Namespace) -> int:
@@ -190,3 +191,8 @@ def drain_rate(measurements, domain_id: int, params: dict) -> tuple[int, float, 
         pub_node.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench node [options]``."""
+    return run(build_parser().parse_args(argv))

@@ -9,8 +9,8 @@ With ``--seeds N`` the same on N noise draws, then per policy the mean and sd of
 and the paired difference with ``weighted`` (same draw) with its 95 % t interval: the
 statistics of the report's multi-draw table (``ReproduceConfig.policy_seeds``).
 
-    .venv/bin/python scripts/bench_online_gap.py --tracks 8 --policies weighted marginal
-    .venv/bin/python scripts/bench_online_gap.py --tracks 8 --policies weighted marginal \
+    ga-ros bench online-gap --tracks 8 --policies weighted marginal
+    ga-ros bench online-gap --tracks 8 --policies weighted marginal \
         --no-per-track --seeds 5
 """
 
@@ -41,8 +41,9 @@ def _policy_config(name: str, window: int, every: int, lag: int,
     return AlignerConfig(window_tracks=window, freeze_policy=base, **extra, **(prior or {}))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog='ga-ros bench online-gap', description=__doc__.splitlines()[0])
     ap.add_argument('--tracks', type=int, default=8, help='double tracks of the survey')
     ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
     ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
@@ -63,7 +64,7 @@ def main() -> None:
                     help='AlignerConfig.refine_horizon_tracks (default: the aligner default)')
     ap.add_argument('--no-per-track', action='store_true',
                     help='compare with batch at the end only (no batch solve per track)')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.seeds < 1:
         ap.error('--seeds must be >= 1')
     sc = aerial_scenario(args.tracks, args.positions)
@@ -83,6 +84,7 @@ def main() -> None:
         print('\n'.join(policy_seeds_table({**stats, 'draws': list(range(args.seeds))})))
         row = policy_target_row(stats)
         print(f'\n{row[0]}: {"met" if row[2] else "NOT met"}; {row[1]}')
+    return 0
 
 
 def run_draw(args: argparse.Namespace, sc, rng: np.random.Generator) -> dict:
@@ -163,6 +165,3 @@ def run_draw(args: argparse.Namespace, sc, rng: np.random.Generator) -> dict:
         end[name] = (float(g[-1, 0]), float(g[-1, 1]))
     return end
 
-
-if __name__ == '__main__':
-    main()

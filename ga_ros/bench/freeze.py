@@ -10,7 +10,7 @@ and prints apart: the track end (update call: wall and CPU of this thread), the 
 freeze's CPU, and their sum, the CPU a track costs. ``--no-ahead``: freezes at the track end.
 Run it on two checkouts at the same time to compare them under the same machine load:
 
-    .venv/bin/python scripts/bench_freeze.py --tracks 12 --refine 0
+    ga-ros bench freeze --tracks 12 --refine 0
 """
 
 from __future__ import annotations
@@ -66,15 +66,16 @@ def _timed(owner, attr: str, totals: dict[str, float]) -> None:
     setattr(owner, attr, timed)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog='ga-ros bench freeze', description=__doc__.splitlines()[0])
     ap.add_argument('--tracks', type=int, default=12, help='double tracks of the survey')
     ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
     ap.add_argument('--window', type=int, default=5)
     ap.add_argument('--refine', type=int, default=0, help='refine_every_tracks (0: off)')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--no-ahead', action='store_true', help='freeze at the track end')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     totals: dict[str, float] = {}
     stages = [(o, a) for o, a in STAGES if hasattr(o, a)]  # an older checkout lacks some
     for owner, attr in stages:
@@ -112,7 +113,4 @@ def main() -> None:
     for k, (cpu, wall, background, parts) in enumerate(rows, start=1):
         print(f'track {k:3d}: update {cpu:6.0f} ms CPU {wall:6.0f} ms wall  background '
               f'{background:5.0f}  solve {parts.get(_name(window, "solve"), 0.0):6.0f}')
-
-
-if __name__ == '__main__':
-    main()
+    return 0

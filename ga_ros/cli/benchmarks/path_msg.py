@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Size and cost of the alignment node's path messages at survey scale (issue 14 item 3).
 
 Builds the ``nav_msgs/Path`` the node publishes (``conversions.path_to_msg``) for the full
@@ -7,13 +6,12 @@ path of ``--poses`` nodes and for a window of ``--window-poses`` movable nodes
 the rclpy message and serialize it, and the time of :func:`ga_ros.io.cdr.path_cdr` (the bytes
 the node publishes for the full path)::
 
-    .venv/bin/python scripts/bench_path_msg.py --poses 100000 --window-poses 5000
+    ga-ros bench path-msg --poses 100000 --window-poses 5000
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import numpy as np
@@ -41,7 +39,8 @@ def figures(n: int, frame_id: str) -> tuple[float, float, float, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench path-msg', description=__doc__.split('\n\n')[0])
     p.add_argument('--poses', type=int, default=100_000)
     p.add_argument('--window-poses', type=int, default=5_000)
     p.add_argument('--frame-id', default='map')
@@ -55,6 +54,3 @@ def main(argv: list[str] | None = None) -> int:
               f'{ser:.3f} | {raw:.3f} |')
     return 0
 
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Scaling benchmark (issue 14 item 3): the aerial survey scaled towards 100,000 poses.
 
 The aerial simulator (:func:`ga_ros.sim.aerial.aerial_scenario`) flies ``--tracks`` double tracks
@@ -27,8 +26,8 @@ table then says which checkpoints were not reached). Measurements are generated 
 
 Examples::
 
-    .venv/bin/python scripts/bench_scale.py --tracks 100 --positions-per-swath 500
-    .venv/bin/python scripts/bench_scale.py --tracks 30 --positions-per-swath 100 \\
+    ga-ros bench scale --tracks 100 --positions-per-swath 500
+    ga-ros bench scale --tracks 30 --positions-per-swath 100 \\
         --checkpoints 10,20,30 --json
 """
 
@@ -492,7 +491,8 @@ def print_table(fig: ScaleFigures) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench scale', description=__doc__.split('\n\n')[0])
     p.add_argument('--tracks', type=int, default=100, help='double tracks (default 100)')
     p.add_argument('--positions-per-swath', type=int, default=500,
                    help='poses per swath; a double track has twice as many (default 500)')
@@ -535,6 +535,3 @@ def main(argv: list[str] | None = None) -> int:
         print_table(fig)
     return 0
 
-
-if __name__ == '__main__':
-    sys.exit(main())

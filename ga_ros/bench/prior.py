@@ -6,7 +6,7 @@ the mean position NEES against ground truth, the largest and median position dif
 dense run in its standard deviations, and the worst and median ratio of the published position
 variances to the dense run's (below 1: overconfident).
 
-    .venv/bin/python scripts/bench_prior.py --tracks 10 --settings 4:0 4:8 8:8 16:16
+    ga-ros bench prior --tracks 10 --settings 4:0 4:8 8:8 16:16
 """
 
 from __future__ import annotations
@@ -22,8 +22,9 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog='ga-ros bench prior', description=__doc__.splitlines()[0])
     ap.add_argument('--tracks', type=int, default=10, help='double tracks of the survey')
     ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
     ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
@@ -32,7 +33,7 @@ def main() -> None:
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--settings', nargs='+', default=['4:0', '4:8', '8:8', '16:16'],
                     help='band:hubs pairs (prior_band, prior_hubs)')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions)
     nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
                  np.random.default_rng(args.seed))
@@ -62,7 +63,4 @@ def main() -> None:
             line += (f', to dense: position max {gap.max():.3f} sd (median {np.median(gap):.3f}),'
                      f' variance ratio worst {r.min():.3f} median {np.median(r):.3f}')
         print(line, flush=True)
-
-
-if __name__ == '__main__':
-    main()
+    return 0

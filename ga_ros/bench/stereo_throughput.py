@@ -7,7 +7,7 @@ rectification, VO, cross-track matching) over them. Prints pairs/s (wall clock: 
 machine's load) and the CPU time per pair (this process only), and the top of a profile with
 ``--profile``. Target: >= 20 pairs/s (a 20 Hz camera). Usage::
 
-    .venv/bin/python scripts/bench_stereo_throughput.py [--pairs 120] [--profile]
+    ga-ros bench stereo-throughput [--pairs 120] [--profile]
 """
 
 from __future__ import annotations
@@ -62,13 +62,13 @@ def make_pairs(n: int, seed: int = 6) -> tuple[list[ImagePair], CameraModel, Cam
     return pairs, models[0], models[1]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='ga-ros bench stereo-throughput', description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('--pairs', type=int, default=120)
     ap.add_argument('--no-cross', action='store_true', help='without cross-track matching')
     ap.add_argument('--profile', action='store_true', help='print the top of a profile')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     _limits = limit_blas_threads()  # noqa: F841 (kept alive)
     t = time.perf_counter()
     pairs, left, right = make_pairs(args.pairs)
@@ -92,7 +92,4 @@ def main() -> None:
           f'per pair (= {n / cpu:.1f} pairs/s of CPU); {front.stats.summary()}')
     if prof is not None:
         pstats.Stats(prof).sort_stats('cumulative').print_stats(18)
-
-
-if __name__ == '__main__':
-    main()
+    return 0

@@ -8,7 +8,7 @@ restart after ``kill -9``), and the rate of the batched journal replay.
 The states are filled by a stand-in for the window updates (tracks marked finished, leaving
 tracks frozen with a fixed covariance, no solve), so the figures measure persistence and
 replay only; ``--full-replay`` also times recovery from the journal alone with real window
-updates (one per track, as live). Run: ``python scripts/bench_persistence.py [--full-replay]``.
+updates (one per track, as live). Run: ``ga-ros bench persistence [--full-replay]``.
 """
 
 from __future__ import annotations
@@ -77,16 +77,14 @@ def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None
                   f'{len(res.aligner._finished)} window updates): {res.seconds:.1f} s')
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog='ga-ros bench persistence', description=__doc__.splitlines()[0])
     ap.add_argument('--full-replay', action='store_true',
                     help='also recover the aerial survey from its journal alone (real updates)')
     ap.add_argument('--no-large', action='store_true', help='skip the ~100k-node survey')
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     _bench('aerial survey', 25, 102, args.full_replay)
     if not args.no_large:
         _bench('scaled survey', 100, 500, False)
-
-
-if __name__ == '__main__':
-    main()
+    return 0

@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Monte-Carlo position NEES of the published covariances: policy x swath length x noise.
 
 Issue #15 item 2 asks the published covariances to be honest (mean position NEES 3 +- 30 %)
@@ -20,8 +19,8 @@ reproduces the batch solution, as it does in the linear limit).
 
 Examples::
 
-    .venv/bin/python scripts/bench_nees.py --per-swath 100,400 --noise 1,5,10 --runs 3
-    .venv/bin/python scripts/bench_nees.py --per-swath 400 --noise 10 --runs 2 --profile
+    ga-ros bench nees --per-swath 100,400 --noise 1,5,10 --runs 3
+    ga-ros bench nees --per-swath 400 --noise 10 --runs 2 --profile
 """
 
 from __future__ import annotations
@@ -106,7 +105,8 @@ def profile_lines(cells: dict[str, Cell], tracks: int, per_swath: int) -> list[s
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(
+        prog='ga-ros bench nees', description=__doc__.split('\n')[0])
     ap.add_argument('--tracks', type=int, default=4)
     ap.add_argument('--per-swath', default='100,200,400', help='comma list of poses per swath')
     ap.add_argument('--noise', default='1,5,10', help='comma list of noise levels (percent)')
@@ -140,6 +140,3 @@ def main(argv: list[str] | None = None) -> int:
                     for k, c in cells.items()}}), flush=True)
     return 0
 
-
-if __name__ == '__main__':
-    raise SystemExit(main())

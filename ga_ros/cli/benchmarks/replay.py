@@ -1,4 +1,4 @@
-"""``ga-ros bench-replay``: replay throughput on the sample bags (measurements/s, stereo pairs/s).
+"""``ga-ros bench replay``: replay throughput on the sample bags (measurements/s, stereo pairs/s).
 
 Replays ``bags/aerial_measurements`` (measurements -> alignment) and ``bags/stereo_sample``
 (images -> VO -> alignment) into a temporary folder and prints wall time and throughput. With
@@ -24,16 +24,18 @@ from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.samples import MEASUREMENTS_BAG, STEREO_BAG
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser('bench-replay', help='replay throughput on the sample bags',
-                              description=__doc__,
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench replay``."""
+    p = argparse.ArgumentParser(
+        prog='ga-ros bench replay',
+        description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--bags', type=Path, help='folder of the sample bags (default bags/)')
     p.add_argument('--only', choices=('stereo', 'measurements'))
     p.add_argument('--io-only', action='store_true',
                    help='dead reckoning instead of the aligner (I/O and decoding only)')
     p.add_argument('--json', action='store_true', help='print one JSON object')
-    p.set_defaults(func=run)
+    return p
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,3 +77,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"| {name} | {f['inputs']} {unit} | {f['measurements']} | {f['nodes']} | "
               f"{f['seconds']:.2f} | {align} | {rate:.0f} {unit}/s | {f['aligner']} |")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench replay [options]``."""
+    return run(build_parser().parse_args(argv))

@@ -1,0 +1,56 @@
+"""The benchmarks of ``ga-ros bench NAME``: one module (or function) each, with its own parser.
+
+:data:`BENCHMARKS` is the one list of them. Each entry names ``module:function``, a
+``main(argv) -> int`` that parses the benchmark's options (``prog='ga-ros bench NAME'``) and
+prints its figures. ROS-free benchmarks live in :mod:`ga_ros.bench`; those that start ROS nodes
+or build rclpy messages live here, above the ROS adapters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    """One ``ga-ros bench`` target: ``entry`` is ``'package.module:function'``."""
+
+    entry: str
+    summary: str
+
+
+BENCHMARKS: dict[str, Benchmark] = {
+    'solve': Benchmark('ga_ros.cli.benchmarks.estimator:main_solve',
+                       'batch solve of the aerial survey'),
+    'window': Benchmark('ga_ros.cli.benchmarks.estimator:main_window',
+                        'track-by-track alignment of the aerial survey (GTSAM IFLS beside)'),
+    'compare': Benchmark('ga_ros.bench.compare:main',
+                         'ga-ros against GTSAM in one run: aerial survey and public pose graphs'),
+    'g2o': Benchmark('ga_ros.cli.benchmarks.g2o:main',
+                     'the public g2o pose graphs against their reference optima'),
+    'linalg': Benchmark('ga_ros.bench.linalg:main',
+                        'sparse Cholesky back ends and orderings on the same normal matrices'),
+    'scale': Benchmark('ga_ros.bench.scale:main',
+                       'the aerial survey scaled towards 100,000 poses: update time, RSS'),
+    'nees': Benchmark('ga_ros.bench.nees:main',
+                      'published covariances against actual errors (position NEES)'),
+    'online-gap': Benchmark('ga_ros.bench.online_gap:main',
+                            'online estimate against batch, per track and policy'),
+    'outliers': Benchmark('ga_ros.bench.outliers:main',
+                          'wrong cross-track connections: how well each defence rejects them'),
+    'freeze': Benchmark('ga_ros.bench.freeze:main', 'CPU of each stage of a track freeze'),
+    'prior': Benchmark('ga_ros.bench.prior:main',
+                       'sparse joint priors against dense ones (covariances, CPU)'),
+    'persistence': Benchmark('ga_ros.bench.persistence:main',
+                             'snapshot save / load and crash recovery at survey scale'),
+    'vo': Benchmark('ga_ros.cli.benchmarks.vo:main',
+                    'stereo visual odometry and cross-track matching on simulated images'),
+    'stereo-throughput': Benchmark('ga_ros.bench.stereo_throughput:main',
+                                   'stereo front end at 752x480 (pairs per second)'),
+    'node': Benchmark('ga_ros.cli.benchmarks.node:main',
+                      'the alignment node as a process: latency, sustained measurement rate'),
+    'replay': Benchmark('ga_ros.cli.benchmarks.replay:main',
+                        'replay throughput on the sample bags'),
+    'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
+                          'the corrected path message at survey scale (CDR against rclpy)'),
+}

@@ -1,0 +1,94 @@
+"""``ga-ros bench solve`` and ``ga-ros bench window``: the estimator on the aerial survey.
+
+``solve``: the batch solve of the paper's aerial survey (``--tracks`` double tracks, ``--noise``
+percent of the true motion). ``window``: the same survey aligned track by track
+(:class:`~ga_ros.core.window.TrackWindowAligner`), with the batch solution for the ATE gap and
+GTSAM's IncrementalFixedLagSmoother in the same run when GTSAM is installed
+(``pip install -r requirements-bench.txt``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def build_parser(target: str) -> argparse.ArgumentParser:
+    """The parser of ``ga-ros bench solve`` / ``ga-ros bench window``."""
+    p = argparse.ArgumentParser(prog=f'ga-ros bench {target}', description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--json', action='store_true', help='print one JSON object')
+    p.add_argument('--tracks', type=int, default=25, help='double tracks in the survey (25)')
+    p.add_argument('--noise', type=float, default=5.0, help='noise, %% of the true motion (5)')
+    p.add_argument('--seed', type=int, default=0)
+    if target == 'window':
+        p.add_argument('--policy', choices=('weighted', 'marginal'), default='weighted')
+        p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
+        p.add_argument('--no-batch', action='store_true',
+                       help='skip the batch solution (and the ATE gap) for long surveys')
+        p.add_argument('--refine-every', type=int, default=None,
+                       help='background refinement every N tracks (0: the plain window; '
+                       'default: the aligner default)')
+        p.add_argument('--no-gtsam', action='store_true',
+                       help='skip the GTSAM IncrementalFixedLagSmoother comparison')
+    return p
+
+
+def main_solve(argv: list[str] | None = None) -> int:
+    """``ga-ros bench solve [options]``."""
+    return _run('solve', build_parser('solve').parse_args(argv))
+
+
+def main_window(argv: list[str] | None = None) -> int:
+    """``ga-ros bench window [options]``."""
+    return _run('window', build_parser('window').parse_args(argv))
+
+
+def _run(target: str, args: argparse.Namespace) -> int:
+    from ga_ros.bench import core
+    if target == 'solve':
+        fig = core.bench_batch(args.tracks, args.noise, args.seed)
+        lines = [f'batch solve of the aerial survey: {fig.nodes} poses, {fig.connections} '
+                 f'connections',
+                 f'  equations {fig.equations}, observations {fig.observations}, unknowns '
+                 f'{fig.unknowns}',
+                 f'  iterations {fig.iterations} (converged: {fig.converged}, max step < '
+                 f'{fig.tolerance:g} m/rad, cost {fig.cost:.4f}), '
+                 f'time {fig.seconds:.2f} s, peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'  ATE (first pose anchored): F2F {fig.f2f_ate_m:.2f} m, GA '
+                 f'{fig.ga_ate_m:.2f} m']
+    else:
+        fig = core.bench_window(args.tracks, args.policy, args.window, args.noise, args.seed,
+                                compare_batch=not args.no_batch, with_gtsam=not args.no_gtsam,
+                                refine_every_tracks=args.refine_every)
+        lines = [f'online alignment, {fig.tracks} tracks ({fig.nodes} poses, {fig.connections} '
+                 f'connections), window {fig.window_tracks}, policy {fig.policy}',
+                 f'  whole run {fig.total_seconds:.2f} s; per-track update p50 '
+                 f'{fig.per_track_ms_p50:.0f} ms, p95 {fig.per_track_ms_p95:.0f} ms, max '
+                 f'{fig.per_track_ms_max:.0f} ms (CPU p50 {fig.per_track_cpu_ms_p50:.0f} ms, p95 '
+                 f'{fig.per_track_cpu_ms_p95:.0f} ms); peak memory {fig.peak_rss_mb:.0f} MiB',
+                 f'  ATE rigid-aligned: window {fig.ate_rigid_window_m:.3f} m, batch '
+                 f'{fig.ate_rigid_batch_m:.3f} m (gap {fig.gap_rigid_pct:+.1f} %)',
+                 f'  ATE raw (first pose anchored): window {fig.ate_raw_window_m:.3f} m, batch '
+                 f'{fig.ate_raw_batch_m:.3f} m (gap {fig.gap_raw_pct:+.1f} %)',
+                 f'  refinement every {fig.refine_every_tracks} tracks (0: off); update CPU '
+                 'ms p50 by part: ' + ', '.join(f'{k} {v:.0f}' for k, v in
+                                                (fig.breakdown_cpu_ms_p50 or {}).items())
+                 + f'; a measurement that ends no track: {fig.measurement_cpu_us:.0f} us CPU']
+        if fig.gtsam_ms_p50 == fig.gtsam_ms_p50:  # not NaN: GTSAM ran
+            lines += [f'  GTSAM IncrementalFixedLagSmoother (same survey, lag '
+                      f'{fig.window_tracks} tracks): update p50 {fig.gtsam_ms_p50:.0f} ms, p95 '
+                      f'{fig.gtsam_ms_p95:.0f} ms (CPU p50 {fig.gtsam_cpu_ms_p50:.0f} ms, p95 '
+                      f'{fig.gtsam_cpu_ms_p95:.0f} ms), ATE rigid-aligned '
+                      f'{fig.gtsam_ate_rigid_m:.3f} m',
+                      f'  ga-ros / GTSAM update p50: wall '
+                      f'{fig.per_track_ms_p50 / fig.gtsam_ms_p50:.2f}, CPU '
+                      f'{fig.per_track_cpu_ms_p50 / fig.gtsam_cpu_ms_p50:.2f}']
+        elif not args.no_gtsam:
+            lines.append('  (GTSAM not installed: pip install -r requirements-bench.txt for the '
+                         'IncrementalFixedLagSmoother comparison)')
+    if args.json:
+        print(json.dumps(core.as_dict(fig)))
+    else:
+        print('\n'.join(lines))
+    return 0
