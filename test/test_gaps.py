@@ -282,3 +282,23 @@ def test_a_measurement_taken_reversed_is_a_duplicate_when_it_comes_again(tmp_pat
     assert second.diagnostic_values()['connections'] == n_conn
     again = [second.step(m) for m in stream[i:]]
     assert all(not o.accepted and o.reason is Reason.DUPLICATE for o in again)
+
+
+@pytest.mark.parametrize('bad', ['nan_id', 'nan_z', 'shape', 'stamp', 'kind'])
+def test_malformed_measurements_from_unknown_nodes_get_the_aligners_reason(sample,
+                                                                            bad: str) -> None:
+    ms = sample.measurements
+    session = AlignmentSession(WINDOW)
+    for m in ms[:10]:
+        session.step(m)
+    good = Measurement(500, 501, 0, 0, ms[3].z, ms[3].cov, ms[3].stamp_ns, 'consecutive')
+    m = {'nan_id': lambda: Measurement(float('nan'), 501, 0, 0, good.z, good.cov),
+         'nan_z': lambda: Measurement(500, 501, 0, 0, good.z * np.nan, good.cov),
+         'shape': lambda: Measurement(500, 501, 0, 0, good.z[:5], good.cov),
+         'stamp': lambda: Measurement(500, 501, 0, 0, good.z, good.cov, 1.5),
+         'kind': lambda: Measurement(500, 501, 0, 0, good.z, good.cov, 0, 'loop')}[bad]()
+    out = session.step(m)
+    assert not out.accepted and out.reason is not Reason.UNKNOWN_SOURCE
+    assert out.reason == {'nan_id': 'bad_id', 'nan_z': 'non_finite', 'shape': 'bad_shape',
+                          'stamp': 'bad_stamp', 'kind': 'bad_kind'}[bad]
+    assert session.diagnostic_values()['held_measurements'] == 0

@@ -54,7 +54,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
@@ -136,6 +136,21 @@ class Bridge:
     gap_sec: float
     sigma_m: float
     sigma_rad: float
+
+
+def _well_formed(m: Measurement) -> bool:
+    """Integer ids, tracks and stamp, a known kind, and finite ``z`` (6,) and ``cov`` (6, 6):
+    what holding, reversing and bridging rely on (the aligner checks the rest)."""
+    try:
+        for v in (m.src_id, m.dst_id, m.src_track, m.dst_track, m.stamp_ns):
+            if int(v) != v or not -2**63 <= int(v) < 2**63:
+                return False
+        z = np.asarray(m.z, dtype=float)
+        cov = np.asarray(m.cov, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        return False
+    return (m.kind in KINDS and z.shape == (6,) and cov.shape == (6, 6)
+            and bool(np.isfinite(z).all() and np.isfinite(cov).all()))
 
 
 def fingerprint(m: Measurement) -> tuple[int, int, int]:
@@ -271,8 +286,8 @@ class GapHealer:
         ``front``: ``m`` is the first of the held queue (nothing held before it, so it may start
         a new track).
         """
-        if not self.config.enabled or not self._parent:
-            return Route.ADMIT
+        if not self.config.enabled or not self._parent or not _well_formed(m):
+            return Route.ADMIT  # malformed: the aligner rejects it with the exact reason
         if self.reversed and fingerprint(m) in self.reversed:
             return Route.DUPLICATE
         src_known, dst_known = self.knows(m.src_id), self.knows(m.dst_id)
