@@ -21,7 +21,7 @@ setup(
     maintainer_email='maintainers@ga-ros.invalid',
     description='Online track-by-track global alignment of sensor trajectories.',
     license='Apache-2.0',
-    python_requires='>=3.10',
+    python_requires='>=3.11',
     entry_points={
         'console_scripts': [
             'ga-ros = ga_ros.cli.main:main',

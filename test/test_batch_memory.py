@@ -6,13 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import ga_ros.core.sparse as sparse
+import ga_ros.core.linalg.blocks as assembly
+import ga_ros.core.linalg.cholmod as cholmod
+from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.linalg.cholesky import SparseCholesky
+from ga_ros.core.linalg.cholmod import _supernodal_layout
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.selinv import _supernodal_layout
-from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import DegenerateGeometryError, NetworkError
 
-pytestmark = pytest.mark.skipif(sparse._direct_cholmod() is None,
+pytestmark = pytest.mark.skipif(cholmod._direct_cholmod() is None,
                                 reason='the CHOLMOD library bundled with cvxopt was not found')
 
 
@@ -42,9 +44,9 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
     patterns, on ``P N P'`` gathered by the project under the natural ordering) is bit for bit
     cvxopt's (``cholmod.numeric`` on its packed copy), first and refactored with new values; the
     solves agree with a dense solve."""
-    monkeypatch.setattr(sparse, '_PERMUTE_FROM_NNZ', permute_from)
+    monkeypatch.setattr(cholmod, '_PERMUTE_FROM_NNZ', permute_from)
     if not in_place:
-        monkeypatch.setattr(sparse, '_PERMUTE', [None])  # P N P' gathered into a copy
+        monkeypatch.setattr(assembly, '_PERMUTE', [None])  # P N P' gathered into a copy
     pattern, data = _random_normal_matrix(rng)
     kept = data.copy()
     data2 = data.copy()
@@ -55,7 +57,7 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
     x_direct = _factor_values(direct)
     direct.refactor(data2)
     x2_direct = _factor_values(direct)
-    monkeypatch.setattr(sparse, '_DIRECT', [None])  # cvxopt's numeric
+    monkeypatch.setattr(cholmod, '_DIRECT', [None])  # cvxopt's numeric
     via_cvxopt = SparseCholesky(pattern, data)
     np.testing.assert_array_equal(_factor_values(via_cvxopt), x_direct)
     via_cvxopt.refactor(data2)
@@ -68,7 +70,7 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
 @pytest.mark.parametrize('inverse', [False, True])
 def test_permutation_in_place_equals_gather(rng, inverse):
     """The in-place permutation (cycle by cycle) is the gather ``x[where]``, or its inverse."""
-    kernel = sparse._permutation_kernel()
+    kernel = assembly._permutation_kernel()
     if kernel is None:
         pytest.skip('numba is not installed: the values are gathered into a copy')
     where = np.concatenate([np.arange(10), 10 + rng.permutation(990)])  # fixed points too
@@ -87,7 +89,7 @@ def test_permutation_in_place_equals_gather(rng, inverse):
 def test_direct_factorisation_reports_a_singular_matrix(rng, monkeypatch, permute_from):
     """A matrix that is not positive definite raises DegenerateGeometryError (not a print from
     CHOLMOD), and the same factor object works again with good values."""
-    monkeypatch.setattr(sparse, '_PERMUTE_FROM_NNZ', permute_from)
+    monkeypatch.setattr(cholmod, '_PERMUTE_FROM_NNZ', permute_from)
     pattern, data = _random_normal_matrix(rng, ridge=0.0)  # the sum of differences: singular
     with pytest.raises(DegenerateGeometryError, match='not positive definite'):
         SparseCholesky(pattern, data)

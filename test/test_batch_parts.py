@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from solver_problems import make_problem, perturbed
 
-import ga_ros.core.solver as solver
-import ga_ros.core.sparse as sparse
-from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
-from ga_ros.core.sparse import BlockPattern
+from ga_ros.core import models
+from ga_ros.core.linalg import blocks as assembly
+from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, problem, solve
 
 
 def test_chunked_assembly_equals_one_pass(rng, monkeypatch):
@@ -24,7 +24,7 @@ def test_chunked_assembly_equals_one_pass(rng, monkeypatch):
     pattern = BlockPattern(rows, cols, d, u)
     blocks = rng.normal(size=(rows.size, d, d))
     one = pattern.assemble(blocks)
-    monkeypatch.setattr(sparse, '_ASSEMBLY_CHUNK', 7)
+    monkeypatch.setattr(assembly, '_ASSEMBLY_CHUNK', 7)
     np.testing.assert_allclose(pattern.assemble(blocks), one, rtol=1e-13, atol=1e-13)
     dense = np.zeros((u * d, u * d))
     for r, c, b in zip(rows, cols, blocks):
@@ -59,12 +59,12 @@ def test_solve_linearised_in_parts_equals_one_pass(rng, monkeypatch, model, loss
     T0 = perturbed(rng, prob.T_true, 0.02)
     ids = net.node_ids
     prior = GaussianPrior.from_covariances(ids[3:5], prob.T_true[3:5],
-                                           np.stack([np.eye(solver.models.dof(model))] * 2))
+                                           np.stack([np.eye(models.dof(model))] * 2))
     cfg = SolverConfig(model=model, robust_loss=loss, damping=damping, tolerance=1e-10)
     ref = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     N_ref = normal_matrix_at(net, ref.T_world_node, model, fixed=[int(ids[0])])[0]
-    monkeypatch.setattr(solver, '_PARTS_ABOVE', 5)
-    monkeypatch.setattr(solver, '_CONNECTIONS_PER_PART', 5)
+    monkeypatch.setattr(problem, '_PARTS_ABOVE', 5)
+    monkeypatch.setattr(problem, '_CONNECTIONS_PER_PART', 5)
     res = solve(net, T0, cfg, priors=[prior], fixed=[int(ids[0])])
     np.testing.assert_allclose(res.T_world_node, ref.T_world_node, rtol=0, atol=1e-10)
     assert res.iterations == ref.iterations
@@ -85,7 +85,7 @@ def test_positions_computed_equal_kept_positions(rng, monkeypatch):
     cols = np.concatenate([rng.integers(-1, u, size=k), np.arange(u)])
     blocks = rng.normal(size=(rows.size, d, d))
     kept = BlockPattern(rows, cols, d, u)
-    monkeypatch.setattr(sparse, '_POSITIONS_KEPT_BELOW', 0)
+    monkeypatch.setattr(assembly, '_POSITIONS_KEPT_BELOW', 0)
     computed = BlockPattern(rows, cols, d, u)
     assert kept._pos is not None and computed._pos is None
     np.testing.assert_array_equal(computed.indices, kept.indices)
@@ -96,5 +96,5 @@ def test_positions_computed_equal_kept_positions(rng, monkeypatch):
         kept.assemble_at(blocks[idx], idx, parts[0])
         computed.assemble_at(blocks[idx], idx, parts[1])
     np.testing.assert_array_equal(parts[1], parts[0])
-    monkeypatch.setattr(sparse, '_ASSEMBLY_CHUNK', 7)
+    monkeypatch.setattr(assembly, '_ASSEMBLY_CHUNK', 7)
     np.testing.assert_array_equal(computed.assemble(blocks), kept.assemble(blocks))

@@ -228,7 +228,7 @@ def test_edge_only_file_reaches_the_optimum_of_the_file_guess(tmp_path, pose_gra
     assert got['init'] == 'chordal'
     assert got['cost'] == pytest.approx(OPTIMUM[name], rel=2e-5)
     if name != 'intel':  # the small ones: also against our own solve from the file's guess
-        ref = _cli_json(capsys, full)
+        ref = _cli_json(capsys, full, '--init', 'file')
         assert ref['init'] == 'file' and got['cost'] == pytest.approx(ref['cost'], rel=1e-7)
     # same vertices (in increasing id order, as in these files) and a written guess
     assert read_g2o(tmp_path / 'out.g2o').has_guess
@@ -390,7 +390,8 @@ def test_variance_factor_and_chi_square_test(tmp_path, rng, capsys):
 
 
 def test_check_init_reports_the_other_initialisation(pose_graph_dir, capsys):
-    out = _cli_json(capsys, pose_graph_dir / 'tinyGrid3D.g2o', '--check-init')
+    out = _cli_json(capsys, pose_graph_dir / 'tinyGrid3D.g2o', '--check-init',
+                    '--init', 'file')
     chk = out['check_init']
     assert chk['method'] == 'chordal' and not chk['lower']
     assert chk['cost'] == pytest.approx(out['cost'], rel=1e-6)
@@ -415,7 +416,7 @@ def test_check_init_finds_the_lower_minimum_of_a_wound_ring(tmp_path, capsys):
         j = (k + 1) % n
         z = se3_to_se2(se3.relative(se2_to_se3(xyt[k]), se2_to_se3(xyt[j])))
         lines.append(f'EDGE_SE2 {k} {j} {_f(z)} 100 0 0 100 0 100')
-    out = _cli_json(capsys, _write(tmp_path, lines), '--check-init')
+    out = _cli_json(capsys, _write(tmp_path, lines), '--check-init', '--init', 'file')
     assert out['cost'] == pytest.approx(n * 100 * (np.pi / 4) ** 2, rel=1e-6)
     assert out['chi2_test'] == 'cost too large'
     assert out['check_init']['lower'] and out['check_init']['cost'] < 1e-12

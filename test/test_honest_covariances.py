@@ -102,9 +102,9 @@ def test_refine_batch_covariances_by_sparse_selected_inversion_equal_dense(monke
     poses and more), the covariances published after ``refine_batch`` are the diagonal blocks
     of the dense inverse of the batch normal matrix; the adjustment's factor, taken over by the
     selected inversion, still serves a joint covariance afterwards."""
-    import ga_ros.core.solver as solver_module
+    from ga_ros.core.solver import result
 
-    monkeypatch.setattr(solver_module, '_SPARSE_SELINV_UNKNOWNS', 0)
+    monkeypatch.setattr(result, '_SPARSE_SELINV_UNKNOWNS', 0)
     sc = aerial_scenario(n_tracks=5, positions_per_swath=5)
     nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(1))
     al = TrackWindowAligner(AlignerConfig(window_tracks=2), sc.T_world_node[0])

@@ -1,11 +1,11 @@
-"""Fill-reducing orderings of the block graph (ga_ros.core.ordering)."""
+"""Fill-reducing orderings of the block graph (ga_ros.core.linalg.ordering)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ga_ros.core import ordering
+from ga_ros.core.linalg import ordering
 
 pytestmark = pytest.mark.skipif(not ordering.HAVE_METIS, reason='pymetis is not installed')
 
@@ -33,7 +33,8 @@ def test_factor_flops_equal_a_dense_cholesky(rng):
 
 @pytest.mark.parametrize('dim', [2, 3])
 def test_the_order_with_fewer_flops_is_kept_on_large_graphs(dim):
-    from ga_ros.core.sparse import BlockPattern, _block_amd
+    from ga_ros.core.linalg.blocks import BlockPattern
+    from ga_ros.core.linalg.ordering import _block_amd
 
     n, rows, cols = _grid(64 if dim == 2 else 16, dim)  # 4096 >= METIS_MIN_BLOCKS: both tried
     assert n >= ordering.METIS_MIN_BLOCKS
@@ -58,12 +59,11 @@ def test_small_graphs_keep_amd():
 def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
     from solver_problems import make_problem, perturbed
 
-    from ga_ros.core import sparse
     from ga_ros.core.solver import SolverConfig, solve
     prob = make_problem(rng, 'se3', n=40, noise=5.0)
     T0 = perturbed(rng, prob.T_true, 0.05)
     cfg = SolverConfig(damping='dogleg', tolerance=1e-10)
-    sparse._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     ref = solve(prob.network, T0, cfg)
     used = []
 
@@ -72,9 +72,9 @@ def test_solve_with_nested_dissection_equals_solve_with_amd(rng, monkeypatch):
         return used[-1][1]
 
     monkeypatch.setattr(ordering, 'best_block_order', nested)
-    sparse._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     nd = solve(prob.network, T0, cfg)
-    sparse._ORDERINGS.clear()
+    ordering._ORDERINGS.clear()
     assert used and not np.array_equal(*used[0])  # another ordering was used
     np.testing.assert_allclose(nd.T_world_node, ref.T_world_node, atol=1e-9)
     assert nd.cost == pytest.approx(ref.cost, rel=1e-9)
@@ -86,7 +86,7 @@ def test_analysis_flops_equal_the_numeric_factor_and_adjacency_scipys(rng):
     ``scipy.sparse``'s (duplicates and self-loops dropped, both directions)."""
     import scipy.sparse as sp
 
-    from ga_ros.core.sparse import _direct_cholmod
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
 
     if _direct_cholmod() is None:
         pytest.skip('the direct CHOLMOD call is not available')

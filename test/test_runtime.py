@@ -23,7 +23,7 @@ def _blas_threads() -> set[int]:
 
 
 def test_blas_threads_context_limits_every_pool_and_restores_it():
-    import ga_ros.core.sparse  # noqa: F401  (loads CHOLMOD's OpenBLAS too)
+    import ga_ros.core.linalg.cholmod  # noqa: F401  (loads CHOLMOD's OpenBLAS too)
 
     before = {i['filepath']: i['num_threads'] for i in threadpool_info()}
     with runtime.blas_threads(1):
@@ -36,15 +36,16 @@ def test_solve_runs_inside_the_thread_limit(monkeypatch):
     """solve() enters the limit itself, so a plain `import ga_ros.core` user gets it."""
     from ga_ros.core import solver
     from ga_ros.core.network import ConnectionNetwork
+    from ga_ros.core.solver import iterate
 
     seen = []
-    real = solver._iterate
+    real = iterate._iterate
 
     def spy(prob, T, **kwargs):
         seen.append(_blas_threads())
         return real(prob, T, **kwargs)
 
-    monkeypatch.setattr(solver, '_iterate', spy)
+    monkeypatch.setattr(iterate, '_iterate', spy)
     net = ConnectionNetwork()
     for i in range(3):
         net.add_node(i)
@@ -59,7 +60,7 @@ def test_solve_runs_inside_the_thread_limit(monkeypatch):
 def test_cholmod_openblas_runs_the_kernel_chosen_for_this_cpu():
     """The cvxopt wheel's OpenBLAS 0.3.15 would fall back to Prescott on newer CPUs; the
     library chooses the kernel from the CPU flags, without leaking OPENBLAS_CORETYPE."""
-    code = ('import os, ga_ros.core.sparse; from threadpoolctl import threadpool_info; '
+    code = ('import os, ga_ros.core.linalg.cholmod; from threadpoolctl import threadpool_info; '
             "print([i['architecture'] for i in threadpool_info() if 'cvxopt' in i['filepath']]"
             "[0], os.environ.get('OPENBLAS_CORETYPE'))")
     env = {k: v for k, v in __import__('os').environ.items() if k != 'OPENBLAS_CORETYPE'}

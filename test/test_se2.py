@@ -3,12 +3,15 @@ against central differences, and solutions against the SE(3) embedding of the sa
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import SolverConfig, _consistent_residuals, _inv_spd, _linear_system, solve
+from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver.linearise import _consistent_residuals, _inv_spd, _linear_system, _Terms
 from ga_ros.geometry import se2, se3
 
 AX = se2.AXES
@@ -116,8 +119,9 @@ def test_se2_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     v = _consistent_residuals('se2', T, c, np.zeros((len(c), 3)))
     col = np.arange(net.n_nodes) - 1
     cfg = SolverConfig(model='se2')
-    general = _linear_system('se2', T, c, S, v, [], cfg, col, 3)
-    short = _linear_system('se2', T, c, S, v, [], cfg, col, 3, _inv_spd(S))
+    terms = _Terms('se2', c, S, [], cfg, col, 3)
+    general = _linear_system(terms, T, v)
+    short = _linear_system(replace(terms, P=_inv_spd(S)), T, v)
     np.testing.assert_allclose(short.all_blocks(), general.all_blocks(), rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ga_ros.core.selinv import SelectedInverse, banded_marginal_blocks, supernodes
-from ga_ros.core.sparse import BlockPattern, SparseCholesky
+from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.linalg.cholesky import SparseCholesky
+from ga_ros.core.linalg.selinv import SelectedInverse, banded_marginal_blocks, supernodes
 
 
 def _random_graph_spd(rng, u, d, extra):
@@ -165,7 +166,7 @@ def test_supernodes_of_a_factor_pattern():
 
 def test_python_kernels_give_the_compiled_blocks(rng, monkeypatch):
     """Without numba (or with ``GA_ROS_JIT=0``) the same kernels run as Python: same blocks."""
-    import ga_ros.core.selinv as selinv
+    import ga_ros.core.linalg.selinv as selinv
 
     N = _random_graph_spd(rng, 12, 6, 8) + 0.1 * np.eye(72)
     inv = np.linalg.inv(N)
@@ -183,7 +184,7 @@ def test_wide_supernodes_equal_the_dense_inverse(rng):
     """A dense coupling of 70 nodes is one supernode of 420 columns: its triangle is inverted by
     halves (wider than ``_TRTRI_LEAF``), and its blocks and those of a chain hanging below it
     still equal the dense inverse."""
-    import ga_ros.core.selinv as selinv
+    import ga_ros.core.linalg.selinv as selinv
 
     u, d = 100, 6
     N = _random_graph_spd(rng, u, d, 0) + 0.1 * np.eye(u * d)

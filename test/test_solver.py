@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -444,7 +446,12 @@ def test_reaches_the_reference_optimum_of_smallgrid3d(pose_graph_dir, damping):
 def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     """At residuals consistent with x, the se3 shortcut (J' P J, J' P e) and the general
     mixed-model form (A' M^-1 A, A' M^-1 w with M = B S B') are the same linear system."""
-    from ga_ros.core.solver import _consistent_residuals, _inv_spd, _linear_system
+    from ga_ros.core.solver.linearise import (
+        _consistent_residuals,
+        _inv_spd,
+        _linear_system,
+        _Terms,
+    )
     prob = make_problem(rng, 'se3', n=9, noise=5.0)
     net = prob.network
     c = net.arrays()
@@ -452,8 +459,9 @@ def test_se3_shortcut_system_equals_the_general_gauss_helmert_system(rng):
     v = _consistent_residuals('se3', T, c, np.zeros_like(c.z))
     col = np.arange(net.n_nodes) - 1
     cfg = SolverConfig()
-    general = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6)
-    short = _linear_system('se3', T, c, c.cov, v, [], cfg, col, 6, _inv_spd(c.cov))
+    terms = _Terms('se3', c, c.cov, [], cfg, col, 6)
+    general = _linear_system(terms, T, v)
+    short = _linear_system(replace(terms, P=_inv_spd(c.cov)), T, v)
     np.testing.assert_allclose(short.all_blocks(), general.all_blocks(), rtol=1e-7, atol=1e-6)
     np.testing.assert_allclose(short.u, general.u, rtol=1e-7, atol=1e-7)
     np.testing.assert_allclose(short.cost0, general.cost0, rtol=1e-9)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from solver_problems import make_problem, perturbed
 
-from ga_ros.core import solver
-from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.sparse import SparseCholesky
+from ga_ros.core.linalg.cholesky import SparseCholesky
+from ga_ros.core.solver import SolverConfig, solve, steps, termination
+from ga_ros.core.solver.problem import _Problem
 
 DOGLEG = SolverConfig(damping='dogleg', max_iterations=100, tolerance=1e-8, cost_tolerance=1e-5)
 
@@ -52,17 +52,17 @@ def _state_at(prob, T, chol_scale: float):
     cfg = DOGLEG
     free = np.ones(prob.network.n_nodes, dtype=bool)
     free[0] = False
-    p = solver._Problem.build('se3', prob.network.arrays(), [], cfg, free)
+    p = _Problem.build('se3', prob.network.arrays(), [], cfg, free)
     sysd = p.linear_system(T, p.consistent(T, p.zero_residuals()))
     data = sysd.normal_values(p.pattern)
-    state = solver._Trust(chol=SparseCholesky(p.pattern, chol_scale * data), cost=p.cost_at(T))
+    state = steps._Trust(chol=SparseCholesky(p.pattern, chol_scale * data), cost=p.cost_at(T))
     return p, sysd, data, state
 
 
 def test_chord_with_the_current_factor_is_the_gauss_newton_step():
     prob, T0 = _problem(4)
     p, sysd, data, state = _state_at(prob, T0, 1.0)
-    step = solver._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state)
+    step = steps._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state)
     assert step is not None and step.accepted and step.gauss_newton
     # the Gauss-Newton step by a dense solve of N, retracted: the same poses
     h = -np.linalg.solve(p.pattern.full_csc(data).toarray(), sysd.u)
@@ -76,7 +76,7 @@ def test_chord_with_a_stale_factor_is_refused(scale):
     with the new linearisation: the caller factors instead."""
     prob, T0 = _problem(5)
     p, sysd, data, state = _state_at(prob, T0, scale)
-    assert solver._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state) is None
+    assert steps._chord_step(p, T0, sysd, data, -state.chol.solve(sysd.u), state) is None
 
 
 #: The window aligner's undamped iteration (window.ALIGNER_SOLVER): chord steps below 20 m.
@@ -94,7 +94,7 @@ def test_the_gradient_ahead_is_the_linearisation_at_its_point():
     prob, T0 = _problem(6)
     free = np.ones(prob.network.n_nodes, dtype=bool)
     free[0] = False
-    p = solver._Problem.build('se3', prob.network.arrays(), [], UNDAMPED, free)
+    p = _Problem.build('se3', prob.network.arrays(), [], UNDAMPED, free)
     p.jit = True
     T1 = prob.T_true.copy()
     ahead = p.gradient_ahead(T1, 0.5)
@@ -109,7 +109,7 @@ def test_the_gradient_ahead_is_the_linearisation_at_its_point():
     assert p.gradient(T1.copy(), None) is not ahead  # another point: computed anew
     # a step above reuse_factor_below (the next iteration factors) or a robust loss: none
     assert p.gradient_ahead(T1, 25.0) is None
-    robust = solver._Problem.build('se3', prob.network.arrays(), [],
+    robust = _Problem.build('se3', prob.network.arrays(), [],
                                    replace(UNDAMPED, robust_loss='huber'), free)
     robust.jit = True
     assert robust.gradient_ahead(T1, 0.5) is None
@@ -124,8 +124,8 @@ def test_undamped_chord_steps_fused_equal_the_numpy_iteration(monkeypatch):
         pytest.skip('numba not installed')
     prob, T0 = _problem(7)
     calls = []
-    misclosure = solver._Problem.misclosure
-    monkeypatch.setattr(solver._Problem, 'misclosure',
+    misclosure = _Problem.misclosure
+    monkeypatch.setattr(_Problem, 'misclosure',
                         lambda self, T: calls.append(1) or misclosure(self, T))
     fused = solve(prob.network, T0, UNDAMPED, jit=True)
     fused_calls = len(calls)  # only after a step of 20 m or more (the next one factors)
@@ -163,9 +163,9 @@ def test_left_to_gain_is_the_geometric_series_of_the_decreases():
     for p, previous in ((0.05, 0.6), (0.4, 0.45), (1e-6, 0.5)):
         r = max(p / previous, p / 0.5)
         series = sum(p * r ** k for k in range(2000))
-        assert solver._left_to_gain(p, previous, history) == pytest.approx(series, rel=1e-9)
-    assert solver._left_to_gain(0.6, 0.5, history) == np.inf  # not contracting
-    assert solver._left_to_gain(0.1, np.nan, history) == np.inf  # no earlier prediction
+        assert termination._left_to_gain(p, previous, history) == pytest.approx(series, rel=1e-9)
+    assert termination._left_to_gain(0.6, 0.5, history) == np.inf  # not contracting
+    assert termination._left_to_gain(0.1, np.nan, history) == np.inf  # no earlier prediction
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
@@ -173,7 +173,7 @@ def test_the_converged_chord_iteration_assembles_no_normal_matrix(seed, monkeypa
     """The iteration whose chord step shows that less than ``cost_tolerance`` is left stops
     on the gradient alone: ``N`` is assembled in the other iterations only, and the cost is
     within the tolerance of the optimum (the undamped iteration from the truth)."""
-    from ga_ros.core.sparse import BlockPattern
+    from ga_ros.core.linalg.blocks import BlockPattern
 
     prob, T0 = _problem(seed)
     assembled = []

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from ga_ros.core.sparse import BlockPattern, SparseCholesky, block_ordering, trailing_factor
+from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.linalg.cholesky import SparseCholesky, trailing_factor
+from ga_ros.core.linalg.ordering import block_ordering
 
 
 def test_block_pattern_assembles_like_coo(rng):
@@ -127,10 +129,10 @@ def test_direct_analysis_gives_cvxopts_factor(rng, monkeypatch):
     with trailing blocks; both solve like the dense matrix."""
     import pytest
 
-    import ga_ros.core.sparse as sparse
-    from ga_ros.core.selinv import _supernodal_layout
+    import ga_ros.core.linalg.cholmod as cholmod
+    from ga_ros.core.linalg.cholmod import _supernodal_layout
 
-    direct = sparse._direct_cholmod()
+    direct = cholmod._direct_cholmod()
     if direct is None or direct._capsule is None:
         pytest.skip('the direct CHOLMOD calls are not available here')
     N, pat, data = _random_block_spd(rng, 40, 6, density=0.08)
@@ -180,7 +182,7 @@ def test_auto_factor_of_a_sparse_chain_is_simplicial_and_refuses_an_indefinite_m
     eigenvalue (a simplicial factor is L L' here, not L D L', which would accept it)."""
     import pytest
 
-    from ga_ros.core.sparse import _direct_cholmod
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
     from ga_ros.errors import DegenerateGeometryError
 
     direct = _direct_cholmod()

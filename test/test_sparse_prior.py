@@ -16,16 +16,16 @@ import pytest
 import scipy.sparse as sp
 
 from ga_ros.core import refinement
-from ga_ros.core.persistence import load_state, save_state
-from ga_ros.core.refinement import absorbed_priors, band_prior, marginal_prior, tangent_prior
-from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.sparse import (
+from ga_ros.core.linalg.banded import (
     CovarianceSkeleton,
     band_information,
     banded_selection,
     dense_band,
     skeleton_layout,
 )
+from ga_ros.core.persistence import load_state, save_state
+from ga_ros.core.refinement import absorbed_priors, band_prior, marginal_prior, tangent_prior
+from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3
@@ -76,7 +76,7 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     """Both ways to the skeleton (selected inversion on the sparse factor with the skeleton's
     pairs added to its pattern; the banded selection with hub columns by solves) against the
     dense inverse, the step ``N^-1 rhs`` against a dense solve."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv, skeleton
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -85,7 +85,7 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
     M = _strip_matrix(rng, 40, reach=2)
     targets = rng.permutation(40)[:25]
     rhs = rng.normal(size=40 * D)
-    skel, x = selinv.sparse_skeleton(sp.csr_matrix(M), D, targets, w, hubs, rhs=rhs)
+    skel, x = skeleton.sparse_skeleton(sp.csr_matrix(M), D, targets, w, hubs, rhs=rhs)
     Sigma = np.linalg.inv(M)
     ref = CovarianceSkeleton.of_dense(Sigma[np.ix_(_scalar(targets), _scalar(targets))], D, w,
                                       hubs)
@@ -100,9 +100,9 @@ def test_sparse_skeleton_equals_the_dense_inverse_on_the_skeleton(w, hubs, compi
 def test_sparse_skeleton_of_a_repeated_pattern_reuses_its_plan(monkeypatch):
     """A freeze's absorbed terms repeat their pattern every track: the second skeleton of the
     same pattern (other values) reuses the kept pattern, symbolic analysis and entry positions
-    (:class:`selinv._SkeletonPlan`) and still equals the dense inverse, bit for bit the skeleton
+    (:class:`skeleton._SkeletonPlan`) and still equals the dense inverse, bit for bit the skeleton
     computed without the kept plan, from CSR and from CSC input."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv, skeleton
 
     if not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -113,13 +113,13 @@ def test_sparse_skeleton_of_a_repeated_pattern_reuses_its_plan(monkeypatch):
     targets = np.sort(rng.permutation(40)[:25])
     rhs = rng.normal(size=40 * D)
     assert np.array_equal(M1.indptr, M2.indptr) and np.array_equal(M1.indices, M2.indices)
-    monkeypatch.setattr(selinv, '_PLANS', type(selinv._PLANS)())
+    monkeypatch.setattr(skeleton, '_PLANS', type(skeleton._PLANS)())
     for fmt in ('csr', 'csc'):
         for M in (M1, M2, M2):
             N = M.asformat(fmt)
-            kept = selinv.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
-            selinv._PLANS.clear()  # a fresh plan: pattern, analysis, positions built anew
-            fresh = selinv.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
+            kept = skeleton.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
+            skeleton._PLANS.clear()  # a fresh plan: pattern, analysis, positions built anew
+            fresh = skeleton.sparse_skeleton(N, D, targets, 3, 4, rhs=rhs)
             for name in ('band', 'cross', 'hub_cov'):
                 np.testing.assert_array_equal(getattr(kept[0], name), getattr(fresh[0], name))
             np.testing.assert_array_equal(kept[1], fresh[1])
@@ -129,7 +129,7 @@ def test_sparse_skeleton_of_a_repeated_pattern_reuses_its_plan(monkeypatch):
             for name in ('band', 'cross', 'hub_cov'):
                 np.testing.assert_allclose(getattr(kept[0], name), getattr(ref, name), rtol=0,
                                            atol=1e-12 * np.abs(Sigma).max())
-        plan, = selinv._PLANS.values()
+        plan, = skeleton._PLANS.values()
         assert plan.kept is not None  # the analysis and positions were kept for the next
 
 
@@ -146,7 +146,7 @@ def test_banded_selection_refuses_a_singular_matrix():
 def separators(request, monkeypatch):
     """The band completion's separator solves compiled (LAPACK called from the kernel) and
     without the kernels (SciPy's LAPACK in a loop)."""
-    from ga_ros.core import lapack
+    from ga_ros.core.linalg import lapack
 
     if request.param and not lapack.COMPILED:
         pytest.skip('numba is not installed')

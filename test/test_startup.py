@@ -52,9 +52,10 @@ def test_component_labels_of_a_chain_given_in_reverse_order():
 
 
 def test_batch_solve_imports_no_unused_scipy_module(tmp_path):
-    """`ga-ros solve FILE --out OUT` (parse, solve, cost, write) loads neither scipy.linalg nor
-    csgraph nor the compiled kernels; SciPy's OpenBLAS is loaded (not imported) so the thread
-    limit covers it."""
+    """`ga-ros solve FILE --init file --out OUT` (parse, solve, cost, write) loads neither
+    scipy.linalg nor csgraph nor the compiled kernels; SciPy's OpenBLAS is loaded (not imported)
+    so the thread limit covers it. (The default ``--init auto`` compares the file's guess with
+    a chordal initialisation, which needs SciPy's sparse solvers.)"""
     g2o = tmp_path / 'ring.g2o'
     lines = [f'VERTEX_SE2 {k} {np.cos(k / 3):.6f} {np.sin(k / 3):.6f} {k / 3 + 1.6:.6f}'
              for k in range(20)]
@@ -63,7 +64,8 @@ def test_batch_solve_imports_no_unused_scipy_module(tmp_path):
     g2o.write_text('\n'.join(lines) + '\n')
     code = ('import sys\n'
             'from ga_ros.cli.main import main\n'
-            f'assert main(["solve", {str(g2o)!r}, "--out", {str(tmp_path / "o.g2o")!r}]) == 0\n'
+            f'assert main(["solve", {str(g2o)!r}, "--init", "file", "--out", '
+            f'{str(tmp_path / "o.g2o")!r}]) == 0\n'
             'from threadpoolctl import threadpool_info\n'
             f'print(sorted(m for m in {UNUSED!r} if m in sys.modules))\n'
             "print(sorted({i['num_threads'] for i in threadpool_info()\n"

@@ -248,7 +248,8 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     solve's factor) gives the covariances and joint priors of the dense Schur complement /
     sparse solves."""
     import ga_ros.core.window as window
-    from ga_ros.core import refinement, selinv
+    from ga_ros.core import refinement
+    from ga_ros.core.linalg import selinv
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')

@@ -12,9 +12,12 @@ import pytest
 import scipy.sparse as sp
 from solver_problems import noisy_aerial_survey
 
-from ga_ros.core import kernels, solver
+from ga_ros.core import kernels
 from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
+from ga_ros.core.solver.priors import _PriorData
+from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import ALIGNER_SOLVER
+from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
 
@@ -51,8 +54,8 @@ def test_gradient_equals_the_full_linear_system(compiled, loss, monkeypatch, rng
     cfg = SolverConfig(robust_loss=loss, robust_scale=1.0)
     free = np.ones(net.n_nodes, dtype=bool)
     free[0] = False
-    pd = [solver._PriorData.build(net, prior, 6)]
-    prob = solver._Problem.build('se3', net.arrays(), pd, cfg, free)
+    pd = [_PriorData.build(net, prior, 6)]
+    prob = _Problem.build('se3', net.arrays(), pd, cfg, free)
     prob.jit = True
     assert prob.compiled == compiled
     v = prob.consistent(T, prob.zero_residuals())
@@ -75,7 +78,7 @@ def test_prior_blocks_and_products_equal_the_dense_information(rng):
     built = {}
     for fmt in ('dense', 'csr', 'bsr'):
         prior = _joint_prior(np.random.default_rng(7), net, ref.T_world_node, nodes, fmt)
-        built[fmt] = solver._PriorData.build(net, prior, 6)
+        built[fmt] = _PriorData.build(net, prior, 6)
     H = _joint_prior(np.random.default_rng(7), net, ref.T_world_node, nodes, 'dense').information
     e = rng.normal(size=(nodes.size, 6))
     for fmt, pd in built.items():
@@ -84,8 +87,8 @@ def test_prior_blocks_and_products_equal_the_dense_information(rng):
         np.testing.assert_allclose(pd.H_blocks, built['dense'].H_blocks, rtol=0, atol=0)
         np.testing.assert_allclose(pd.weighted(e), (H @ e.reshape(-1)).reshape(-1, 6),
                                    rtol=1e-13, atol=1e-13)
-    with pytest.raises(solver.InputError, match='more than once'):
-        solver._PriorData.build(net, GaussianPrior(net.node_ids[[3, 3]], ref.T_world_node[[3, 3]],
+    with pytest.raises(InputError, match='more than once'):
+        _PriorData.build(net, GaussianPrior(net.node_ids[[3, 3]], ref.T_world_node[[3, 3]],
                                                    np.eye(12)), 6)
 
 

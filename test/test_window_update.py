@@ -232,7 +232,7 @@ def test_freeze_covariances_by_selected_inversion_keep_the_analysis_for_the_next
     """The leaving nodes' covariances by selected inversion on the last solve's own factor
     equal the dense inverse of its normal matrix; the factor handed on afterwards keeps its
     symbolic analysis, and a solve with it equals a fresh one."""
-    from ga_ros.core import selinv
+    from ga_ros.core.linalg import selinv
     from ga_ros.core.solver import solve
     from ga_ros.core.window import _marginal_covariances
 
@@ -261,17 +261,17 @@ def test_window_priors_carry_their_rank_and_no_solve_recounts_it(monkeypatch, re
     information: equal to the rank the solver determines by itself (full: positive definite
     by construction), so no window update factors a prior's information only to count its
     equations; a linearisation alone (``normal_matrix_at``) never asks for it."""
-    import ga_ros.core.solver as solver
+    from ga_ros.core.solver import priors
 
     sc, nm, ms = noisy_aerial_survey(6, 10, 3.0, 3)
     counted = []
-    real = solver._information_rank
+    real = priors._information_rank
 
     def rank(*args):
         counted.append(1)
         return real(*args)
 
-    monkeypatch.setattr(solver, '_information_rank', rank)
+    monkeypatch.setattr(priors, '_information_rank', rank)
     al = TrackWindowAligner(AlignerConfig(window_tracks=2, prior_band=3, prior_hubs=2,
                                           refine_every_tracks=refine, refine_executor='inline'),
                             sc.T_world_node[0])

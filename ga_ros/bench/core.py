@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.core import solver as _solver
-from ga_ros.core import sparse as _sparse
+from ga_ros.core.linalg import blocks as _blocks
+from ga_ros.core.linalg import cholmod as _cholmod
 from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
 from ga_ros.sim.aerial import aerial_scenario
@@ -131,14 +132,14 @@ class WindowFigures:
 #: The parts of a window update timed by :func:`bench_window` (CPU ms, exclusive: a part
 #: called inside another counts in the outer one), and the functions that do them.
 #: ``solve``: the factor's solves (the steps); ``gradient``: the gradient after each step (its
-#: residuals, cost and the next chord step's gradient, :meth:`~ga_ros.core.solver._Problem.
+#: residuals, cost and the next chord step's gradient, :meth:`~ga_ros.core.solver.problem._Problem.
 #: gradient_ahead`); ``problem``: the window problem's node and connection sets and the
 #: connections' kept terms.
 UPDATE_PARTS = {
-    'linearise': ((_solver._Problem, 'linear_system'), (_sparse.BlockPattern, 'assemble')),
-    'factor': ((_sparse.SparseCholesky, '__init__'), (_sparse.SparseCholesky, 'refactor')),
-    'solve': ((_sparse.SparseCholesky, 'solve'),),
-    'gradient': ((_solver._Problem, 'gradient'), (_solver._Problem, 'gradient_ahead')),
+    'linearise': ((_Problem, 'linear_system'), (_blocks.BlockPattern, 'assemble')),
+    'factor': ((_cholmod.SparseCholesky, '__init__'), (_cholmod.SparseCholesky, 'refactor')),
+    'solve': ((_cholmod.SparseCholesky, 'solve'),),
+    'gradient': ((_Problem, 'gradient'), (_Problem, 'gradient_ahead')),
     'problem': ((TrackWindowAligner, '_window_problem'),),
     'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
     'freeze': ((TrackWindowAligner, '_freeze'),),

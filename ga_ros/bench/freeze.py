@@ -20,7 +20,10 @@ import time
 
 import numpy as np
 
-from ga_ros.core import refinement, selinv, solver, sparse, window
+from ga_ros.core import refinement, window
+from ga_ros.core.linalg import banded, selinv, skeleton
+from ga_ros.core.linalg.cholmod import SparseCholesky
+from ga_ros.core.solver.problem import _Problem
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
@@ -31,17 +34,17 @@ STAGES = (
     (window, '_marginal_covariances'),
     (window.TrackWindowAligner, '_marginalise'),
     (window, 'normal_matrix_at'),
-    (selinv, 'sparse_skeleton'),
+    (skeleton, 'sparse_skeleton'),
     (window, 'marginal_prior'),
     (window, 'band_prior'),
     (refinement, 'band_prior'),
-    (sparse, '_completion'),
+    (banded, '_completion'),
     (selinv.SelectedInverse, '__init__'),
-    (sparse.SparseCholesky, 'refactor'),
-    (sparse.SparseCholesky, '_analyse'),
+    (SparseCholesky, 'refactor'),
+    (SparseCholesky, '_analyse'),
     (window.TrackWindowAligner, '_adjust'),
     (window, 'solve'),
-    (solver._Problem, 'linear_system'),
+    (_Problem, 'linear_system'),
     (window.TrackWindowAligner, '_install_due'),
     (window.TrackWindowAligner, '_smooth'),
     (window.TrackWindowAligner, '_start_refinement'),

@@ -41,6 +41,7 @@ from ga_ros.arrays import BoolArray, FloatArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality import QualityConfig, data_snooping, quality_control
 from ga_ros.core.solver import SolverConfig, solve
+from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
 from ga_ros.geometry import se3
@@ -49,7 +50,9 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 from ga_ros.sim.scenario import Scenario
 
-METHODS = ('ls', 'oracle', 'gate', 'gate-w', 'snoop-w', 'snoop-conn', 'huber', 'cauchy')
+#: The robust losses of the solver's registry, each a method of its own.
+LOSS_METHODS = tuple(name for name in ROBUST_LOSSES if name != 'none')
+METHODS = ('ls', 'oracle', 'gate', 'gate-w', 'snoop-w', 'snoop-conn', *LOSS_METHODS)
 ONLINE = ('gate', 'gate-w')
 GATE_PROB = AlignerConfig().outlier_chi2_prob
 
@@ -144,7 +147,7 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
         out = data_snooping(net, T0, config=cfg, per_iteration=per_iteration)
         T = out.result.T_world_node
         rejected = ~out.kept
-    elif method in ('huber', 'cauchy'):
+    elif method in LOSS_METHODS:
         T = solve(net, T0, SolverConfig(robust_loss=method)).T_world_node
         rejected = misclosure_rejected(net, T, GATE_PROB)
     else:

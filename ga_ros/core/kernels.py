@@ -2,7 +2,8 @@
 
 The Gauss-Newton system of ``sum e' P e`` with ``e = log(T_meas^-1 T_i^-1 T_j)`` needs, per
 connection, an SE(3) logarithm, ``J = J_r(e)^-1``, ``Ad(T_ij^-1)`` and a few 6x6 products
-(:func:`ga_ros.core.solver._linear_system` documents the algebra). Here one loop does it all in
+(:func:`ga_ros.core.solver.linearise._linear_system` documents the algebra). Here one loop does it
+all in
 registers (~1 us per connection) and writes only the results; the NumPy implementation in
 columns (:mod:`ga_ros.core.columns`, ~2 us per connection) is used instead when numba is not
 installed, when ``GA_ROS_JIT=0`` is set, for problems below

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.linalg.cholesky import SparseCholesky
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.sparse import SparseCholesky
 from ga_ros.errors import GaError
 
 #: Settings of the pre-alignment solve: one Gauss-Newton step (measured: one step moves the

@@ -54,9 +54,10 @@ from scipy.stats import chi2, ncx2, norm
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core import models
+from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.linalg.cholesky import SparseCholesky
 from ga_ros.core.network import ConnectionArrays, ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, normal_matrix_at, solve
-from ga_ros.core.sparse import BlockPattern, SparseCholesky
 from ga_ros.errors import InputError, SolverError
 
 #: Eigenvalues of the whitened ``Q_kk`` block below this count as zero redundancy.
@@ -511,12 +512,13 @@ def _inverse_blocks(N: sp.spmatrix, d: int, rows: IntArray, cols: IntArray,
 
     Pairs on the block pattern of ``N`` (a diagonal block, a connected node pair) come from
     selected inversion on the sparse Cholesky factor
-    (:class:`~ga_ros.core.selinv.SelectedInverse`); any other pair (e.g. the ends of an excluded
+    (:class:`~ga_ros.core.linalg.selinv.SelectedInverse`); any other pair (e.g. the ends of an
+    excluded
     connection), or every pair with ``selected=False`` (the default without compiled kernels),
     from the node columns of ``N^-1`` solved for in chunks with the factor. No dense inverse is
     formed.
     """
-    from ga_ros.core import selinv  # lazy: numba
+    from ga_ros.core.linalg import selinv  # lazy: numba
 
     if selected is None:
         selected = selinv.COMPILED

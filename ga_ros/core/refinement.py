@@ -71,9 +71,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.linalg.banded import CovarianceSkeleton
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
-from ga_ros.core.sparse import CovarianceSkeleton
 from ga_ros.core.storage import unpack_sym6
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
 from ga_ros.geometry import so3
@@ -177,7 +177,8 @@ class SparseSmoothing:
 
     def __init__(self, eliminated: IntArray, remaining: IntArray, N_LL: sp.spmatrix,
                  N_LR: sp.spmatrix, u_L: FloatArray) -> None:
-        from ga_ros.core.sparse import BlockPattern, SparseCholesky
+        from ga_ros.core.linalg.blocks import BlockPattern
+        from ga_ros.core.linalg.cholesky import SparseCholesky
 
         self.eliminated, self.remaining = eliminated, remaining
         self._chol = SparseCholesky(*BlockPattern.from_matrix(N_LL, 6))
@@ -419,7 +420,7 @@ def _sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArr
 
 #: :func:`marginal_prior`: above this many eliminated unknowns, the exact Schur complement of a
 #: sparse ``N`` comes from a partial sparse factorisation
-#: (:func:`~ga_ros.core.sparse.trailing_factor`), below it from dense blocks.
+#: (:func:`~ga_ros.core.linalg.cholesky.trailing_factor`), below it from dense blocks.
 DENSE_SCHUR_MAX = 300
 
 
@@ -439,11 +440,12 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
       skeleton keeps densely anyway): :func:`band_prior` of the exact covariance skeleton of
       ``Sigma = H^-1 = (N^-1)_kept`` (band of ``band`` nodes along the node order plus ``hubs``
       hub nodes), from the selected inversion of a sparse ``N``
-      (:func:`~ga_ros.core.selinv.sparse_skeleton`, linear in the number of nodes for a
+      (:func:`~ga_ros.core.linalg.skeleton.sparse_skeleton`, linear in the number of nodes for a
       strip) or a Cholesky factor of a dense one; positive definite, rank ``6k``;
     * otherwise, or if ``N`` is not positive definite (:class:`DegenerateGeometryError` from the
       sparse path), the **exact** ``H`` (:func:`tangent_prior`): from a partial sparse
-      factorisation (:func:`~ga_ros.core.sparse.trailing_factor`, rank ``6k``) when more than
+      factorisation (:func:`~ga_ros.core.linalg.cholesky.trailing_factor`, rank ``6k``) when more
+      than
       :data:`DENSE_SCHUR_MAX` unknowns are eliminated from a sparse ``N``, else from dense
       blocks (rank unknown: ``None``; a singular ``H`` is allowed, its step is the least-squares
       one).
@@ -466,8 +468,9 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
     DegenerateGeometryError
         The eliminated nodes are not determined by the terms (their block is singular).
     """
-    from ga_ros.core import selinv
-    from ga_ros.core.sparse import BlockPattern, trailing_factor
+    from ga_ros.core.linalg import skeleton
+    from ga_ros.core.linalg.blocks import BlockPattern
+    from ga_ros.core.linalg.cholesky import trailing_factor
 
     keep = np.asarray(keep, dtype=bool)
     S, Lx = np.nonzero(keep)[0], np.nonzero(~keep)[0]
@@ -478,7 +481,7 @@ def marginal_prior(nodes: IntArray, N: FloatArray | sp.spmatrix, u: FloatArray,
     if sparse_prior_applies(S.size, band, hubs):
         try:
             if sparse_in:
-                skel, x = selinv.sparse_skeleton(N, 6, S, band, hubs, coords=coords, rhs=u)
+                skel, x = skeleton.sparse_skeleton(N, 6, S, band, hubs, coords=coords, rhs=u)
                 step = x.reshape(-1, 6)[S].ravel()
             else:  # dense: Sigma_SS and the step from one Cholesky factor of N
                 cho = _cho_factor(N)
@@ -849,7 +852,7 @@ def band_prior(T_lin: FloatArray, skeleton: CovarianceSkeleton, step: FloatArray
     dense information that couples the whole swath. This prior keeps its mean (the absorbed
     terms' own optimum on ``S``, ``T_lin`` moved by the step ``H^-1 g``) and replaces its
     covariance ``Sigma_S`` by the maximum-entropy Gaussian that agrees with it on a skeleton
-    (:class:`~ga_ros.core.sparse.CovarianceSkeleton`): a band of ``w`` nodes along the
+    (:class:`~ga_ros.core.linalg.banded.CovarianceSkeleton`): a band of ``w`` nodes along the
     trajectory plus a few hub nodes spread along it. Every node's marginal covariance, its
     correlations with the ``w`` nodes before and after it and with every hub are exact; the
     hubs keep the long-range correlations (a band alone made the boundary's common drift look

@@ -57,7 +57,9 @@ import scipy.linalg as sla
 from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
-from ga_ros.core import selinv
+from ga_ros.core.linalg import selinv
+from ga_ros.core.linalg.banded import spd_inverse
+from ga_ros.core.linalg.cholesky import trailing_factor
 from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.network import ConnectionNetwork, check_covariances
 from ga_ros.core.prealign import prealign
@@ -86,7 +88,6 @@ from ga_ros.core.solver import (
     normal_matrix_at,
     solve,
 )
-from ga_ros.core.sparse import spd_inverse, trailing_factor
 from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges, grow_rows
 from ga_ros.core.storage import Rows as _Rows
 from ga_ros.errors import DegenerateGeometryError, GaError, InputError
@@ -405,7 +406,7 @@ def _marginal_covariances(res: SolveResult, node_ids: IntArray, banded: bool = F
     """``(k, 6, 6)`` marginal covariances of free nodes of an adjustment (eq. 17).
 
     Many nodes (a track leaving the window), with the compiled kernels: selected inversion
-    (:class:`~ga_ros.core.selinv.SelectedInverse`, Takahashi's equations in place) on the
+    (:class:`~ga_ros.core.linalg.selinv.SelectedInverse`, Takahashi's equations in place) on the
     adjustment's own sparse factor, refactored at the solution with its symbolic analysis (the
     analysis is handed back, so the next window solve does not repeat it): every node block of
     ``N^-1`` in about the time of one factorisation. Without the kernels: ``banded`` (the

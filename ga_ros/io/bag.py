@@ -599,12 +599,6 @@ def _pose_msg(p: list[float], q: list[float]) -> Any:
         orientation=types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3]))
 
 
-def covariance_from_msg(values: Any) -> FloatArray:
-    """36 row-major values -> 6x6 covariance; InputError unless finite, symmetric and PD
-    (:func:`ga_ros.core.encoding.covariance_from_values`, as the nodes)."""
-    return encoding.covariance_from_values(values)
-
-
 # --------------------------------------------------------------------------- measurements
 def odometry_to_measurement(msg: Any) -> Measurement:
     """Decode a rosbags ``nav_msgs/Odometry`` in the measurement encoding, with exactly the

@@ -15,15 +15,16 @@ import argparse
 import time
 
 import numpy as np
-from rclpy.serialization import serialize_message
 
 from ga_ros.geometry import se3
 from ga_ros.io.cdr import path_cdr
-from ga_ros.ros import conversions as conv
 
 
 def figures(n: int, frame_id: str) -> tuple[float, float, float, int]:
     """(build s, serialize s, path_cdr s, bytes) of a Path of ``n`` poses."""
+    from rclpy.serialization import serialize_message  # ROS only when this benchmark runs
+
+    from ga_ros.ros import conversions as conv
     rng = np.random.default_rng(0)
     T = se3.exp(rng.normal(size=(n, 6)))
     stamps = 1_700_000_000 * 10**9 + 500_000_000 * np.arange(n, dtype=np.int64)

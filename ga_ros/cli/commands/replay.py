@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from ga_ros import topics
+from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.bag import TopicConfig, bag_info
 from ga_ros.pipeline.inputs import specs_from_mapping
@@ -84,7 +85,7 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                         'whole survey at every track end (reference; small surveys only)')
     a.add_argument('--window', type=int, help='tracks in the sliding window (default 5)')
     a.add_argument('--freeze-policy', choices=('weighted', 'marginal'))
-    a.add_argument('--robust-loss', choices=('none', 'huber', 'cauchy'))
+    a.add_argument('--robust-loss', choices=ROBUST_LOSSES)
     a.add_argument('--robust-scale', type=float)
     a.add_argument('--max-iterations', type=int)
     a.add_argument('--outlier-chi2-prob', type=float,

@@ -24,7 +24,7 @@ import warnings
 import numpy as np
 
 from ga_ros.core.initialization import INIT_METHODS
-from ga_ros.core.solver import ROBUST_LOSSES
+from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o, write_g2o
 from ga_ros.pipeline.pose_graph import (
@@ -54,7 +54,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument('--init', choices=('auto', 'file', *INIT_METHODS), default='auto',
                    help="initial guess: the file's vertices, odometry chaining, a minimum "
                    'spanning tree of the most certain edges, or chordal rotation-first '
-                   '(Carlone et al. 2015); default auto: file if it has vertices, else chordal')
+                   "(Carlone et al. 2015); default auto: of the file's vertices and chordal, "
+                   'the start with the lower cost (the output says which)')
     p.add_argument('--check-init', action='store_true',
                    help='batch: solve again from another initialisation (chordal; spanning tree '
                    'if chordal was used) and report whether it reaches a lower cost')
@@ -147,7 +148,9 @@ def run(args: argparse.Namespace) -> int:
         'iterations': result.iterations, 'seconds': result.seconds,
         'read_seconds': read_seconds, 'converged': result.converged, 'reason': result.reason,
         'robust': args.robust, 'stages': result.stages, 'out': args.out,
-        'init': guess.method, 'init_seconds': guess.seconds,
+        'init': guess.method, 'init_seconds': guess.seconds, 'init_compared': guess.compared,
+        'termination': result.reason,
+        'hint': _hint(result.reason, guess.method) if not args.tracks else None,
         'repaired_edges': len(graph.repaired_lines), 'repaired_lines': list(graph.repaired_lines),
         'dof': evidence.dof, 'variance_factor': evidence.variance_factor,
         'chi2_95': [evidence.chi2_lower, evidence.chi2_upper], 'chi2_test': evidence.chi2_test,
@@ -164,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
         out = sys.stdout
         print(f'{args.input}: {graph.dim}-D, {graph.n_vertices} vertices, {graph.n_edges} edges',
               file=out)
-        print(f'initial cost {result.initial_cost:.10g} (init: {guess.method})', file=out)
+        print(f'initial cost {result.initial_cost:.10g} (init: {guess.method}'
+              f'{_compared(guess.compared)})', file=out)
         print(f'final cost   {result.cost:.10g}', file=out)
         print(f'variance factor {evidence.variance_factor:.4g} (dof {evidence.dof}); chi-square '
               f'95 % [{evidence.chi2_lower:.6g}, {evidence.chi2_upper:.6g}]: '
@@ -186,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
         if args.robust != 'none':
             print(f'robust ({args.robust}) objective {result.objective:.10g}', file=out)
         print(f'iterations   {result.iterations} ({result.reason})', file=out)
+        if summary['hint']:
+            print(f"hint         {summary['hint']}", file=out)
         print(f'time         {result.seconds:.3f} s', file=out)
         if result.per_track_ms is not None:
             ms = np.asarray(result.per_track_ms)
@@ -197,6 +203,21 @@ def run(args: argparse.Namespace) -> int:
         if args.out:
             print(f'wrote {args.out}', file=out)
     return 0
+
+
+def _compared(compared: dict[str, float]) -> str:
+    """The costs at the starts ``--init auto`` compared, for the printed summary."""
+    others = [f'{m} {c:.6g}' for m, c in compared.items()]
+    return f'; auto, costs at the starts: {", ".join(others)}' if len(others) > 1 else ''
+
+
+def _hint(reason: str, init: str) -> str | None:
+    """What to try when the solve stopped at the iteration cap (``None`` otherwise)."""
+    if reason != 'max_iterations':
+        return None
+    also = '' if init == 'chordal' else ' or start elsewhere (--init chordal)'
+    return ('stopped at the iteration cap before converging: the result may be short of the '
+            f'optimum; raise --max-iterations{also}')
 
 
 def _quality(graph: PoseGraph, T_world_node: np.ndarray, alpha0: float) -> dict:

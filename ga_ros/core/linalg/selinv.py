@@ -8,7 +8,8 @@ last column back, without any column of ``N^-1``):
   factorisation, no memory beyond the factor. Used for large systems (batch adjustments of whole
   surveys; quality control).
 * :func:`banded_marginal_blocks`, on the banded ``N`` (the block-tridiagonal selected inversion
-  of :func:`ga_ros.core.sparse.banded_selection`, which also serves the sparse joint priors):
+  of :func:`ga_ros.core.linalg.banded.banded_selection`, which also serves the sparse joint
+  priors):
   with a bandwidth-reducing node ordering (reverse Cuthill-McKee, or the principal axis) a
   survey's normal matrix is banded; cut into blocks of the band's width it is block
   tridiagonal, and its block Cholesky factor and Takahashi's backward recursion give every
@@ -19,23 +20,19 @@ last column back, without any column of ``N^-1``):
 
 from __future__ import annotations
 
-import ctypes
-import threading
-from collections import OrderedDict
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core import lapack
 from ga_ros.core.kernels import AVAILABLE
-from ga_ros.core.sparse import _blake2b, _CholmodFactor
+from ga_ros.core.linalg import lapack
+from ga_ros.core.linalg.cholmod import _Layout, _supernodal_layout
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
-    from ga_ros.core.sparse import CovarianceSkeleton
+    pass
 
 
 def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
@@ -43,7 +40,7 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
                            coords: np.ndarray | None = None) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a symmetric positive definite ``N``.
 
-    The block-tridiagonal selected inversion of :func:`~ga_ros.core.sparse.banded_selection`
+    The block-tridiagonal selected inversion of :func:`~ga_ros.core.linalg.banded.banded_selection`
     with a band of width 0 (nodes of high degree, e.g. those of a dense joint prior, ordered
     last as a dense border).
 
@@ -63,7 +60,7 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
     -------
     (u, d, d) covariance blocks in the original node order, or ``None`` (band too wide).
     """
-    from ga_ros.core.sparse import banded_selection  # lazy: cvxopt
+    from ga_ros.core.linalg.banded import banded_selection  # lazy: cvxopt
 
     u = N.shape[0] // d
     nodes = np.arange(u, dtype=np.int64) if wanted is None or len(wanted) == 0 else \
@@ -375,71 +372,10 @@ def _kernel(name: str):
     return fn
 
 
-@dataclass
-class _Layout:
-    """A factor's values and pattern as :func:`_takahashi_py` reads them; ``keep`` holds the
-    objects that own the memory."""
-
-    starts: IntArray
-    pi: IntArray
-    nrows: IntArray
-    srows: IntArray
-    colbase: IntArray
-    x: FloatArray
-    perm: IntArray
-    keep: tuple
-
-
-def _supernodal_layout(capsule, n: int) -> _Layout | None:
-    """CHOLMOD's supernodal factor in place (no copy): its arrays viewed through ``ctypes``.
-    ``None`` if the factor does not look as expected (another CHOLMOD build): the caller then
-    reads it out with ``getfactor``."""
-    api = ctypes.pythonapi
-    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
-    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-    api.PyCapsule_GetName.restype = ctypes.c_char_p
-    api.PyCapsule_GetName.argtypes = [ctypes.py_object]
-    try:
-        name = api.PyCapsule_GetName(capsule)
-        if name != b'CHOLMOD FACTOR D L':
-            return None
-        L = _CholmodFactor.from_address(api.PyCapsule_GetPointer(capsule, name))
-    except (TypeError, ValueError):  # pragma: no cover - not a capsule
-        return None
-    ns = int(L.nsuper)
-    if not (L.n == n and L.minor == n and L.is_super == 1 and L.is_ll == 1 and L.xtype == 1
-            and L.dtype == 0 and L.itype == 2 and 0 < ns <= n and L.ssize > 0 and L.xsize > 0
-            and all((L.super, L.pi, L.px, L.s, L.x, L.Perm))):
-        return None
-
-    def view(ptr, count, ctype):
-        return np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctype)), shape=(count,))
-
-    sup = view(L.super, ns + 1, ctypes.c_int64).astype(np.int64)
-    pi = view(L.pi, ns + 1, ctypes.c_int64).astype(np.int64)
-    px = view(L.px, ns + 1, ctypes.c_int64).astype(np.int64)
-    perm = view(L.Perm, n, ctypes.c_int64).astype(np.int64)
-    width, nrows = np.diff(sup), np.diff(pi)
-    if (sup[0] != 0 or sup[-1] != n or pi[0] != 0 or pi[-1] > L.ssize or px[0] != 0
-            or px[-1] > L.xsize or (width <= 0).any() or (nrows < width).any()
-            or (np.diff(px) < nrows * width).any()
-            or not np.array_equal(np.sort(perm), np.arange(n))):
-        return None
-    x = view(L.x, int(L.xsize), ctypes.c_double)
-    srows = view(L.s, int(L.ssize), ctypes.c_int64)
-    step = np.diff(srows[:pi[-1]]) > 0
-    step[pi[1:-1] - 1] = True  # a new supernode may start lower
-    if not step.all():  # rows not sorted within a supernode
-        return None
-    k = np.repeat(np.arange(ns), width)
-    colbase = px[k] + (np.arange(n) - sup[k]) * nrows[k]  # column-major nrows x width blocks
-    return _Layout(sup, pi[:-1], nrows, srows, colbase, x, perm, (capsule,))
-
-
 def _csc_layout(chol) -> _Layout:
     """The factor read out with ``cholmod.getfactor`` (a simplicial copy: ~2x the factor's
     memory at the peak), its supernodes found from the pattern (:func:`supernodes`)."""
-    from ga_ros.core.sparse import _cholmod
+    from ga_ros.core.linalg.cholmod import _cholmod
 
     perm = chol.permutation()
     F = _cholmod.getfactor(chol._F)
@@ -457,7 +393,8 @@ def _csc_layout(chol) -> _Layout:
 class SelectedInverse:
     """``Sigma = N^-1`` on the pattern of the Cholesky factor of ``N`` (selected inversion).
 
-    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.sparse.SparseCholesky`, ordered by the
+    The CHOLMOD factor of ``N`` (a :class:`~ga_ros.core.linalg.cholesky.SparseCholesky`, ordered
+    by the
     project's block ordering: AMD of the node graph, each node's ``d`` unknowns together) is
     overwritten in place by Takahashi's equations (:func:`_takahashi_py`, compiled with numba),
     supernode by supernode with dense products, in CHOLMOD's own supernodal storage (viewed
@@ -484,7 +421,7 @@ class SelectedInverse:
     """
 
     def __init__(self, chol, copy: bool = False, columns: IntArray | None = None) -> None:
-        from ga_ros.core.sparse import _cholmod
+        from ga_ros.core.linalg.cholmod import _cholmod
 
         if _cholmod is None or chol._F is None:  # pragma: no cover - cvxopt is pinned
             raise DegenerateGeometryError('selected inversion needs a CHOLMOD factor (cvxopt)')
@@ -585,171 +522,3 @@ class SelectedInverse:
         nodes = np.asarray(nodes, dtype=np.int64)
         out = self.blocks(nodes, nodes)
         return 0.5 * (out + np.swapaxes(out, 1, 2))
-
-
-# ------------------------------------------------ the covariance skeleton of a sparse prior
-def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
-                    coords: FloatArray | None = None, rhs: FloatArray | None = None
-                    ) -> tuple[CovarianceSkeleton, FloatArray | None]:
-    """The :class:`CovarianceSkeleton` of ``Sigma = (N^-1)_TT`` over the target nodes ``T``
-    (in band order) from a sparse symmetric ``N`` (both triangles), and ``N^-1 rhs``.
-
-    With the compiled kernels: the skeleton's block pairs are added to the pattern of ``N`` (as
-    explicit zeros), so that they lie on the pattern of its sparse Cholesky factor, and
-    Takahashi's selected inversion on that factor
-    (:class:`~ga_ros.core.selinv.SelectedInverse`) gives all of them at once; the fill of a
-    band of ``w`` nodes and ``h`` hub rows is linear in the number of targets. Without: the
-    band by :func:`banded_selection`, the hubs' columns by solves with the same factor
-    (``h d`` right-hand sides). Both exact and linear in the number of nodes for a strip.
-
-    Raises
-    ------
-    DegenerateGeometryError
-        ``N`` is not positive definite.
-    """
-    from ga_ros.core.sparse import (
-        CovarianceSkeleton,
-        _cholmod,
-        banded_selection,
-        skeleton_layout,
-    )
-
-    t = np.asarray(targets, dtype=np.int64)
-    rest, hubs = skeleton_layout(t.size, w, n_hubs)
-    if COMPILED and _cholmod is not None:
-        return _selected_skeleton(N, d, t, rest, hubs, w, rhs)
-    n = N.shape[0]
-    E = np.zeros((n, hubs.size * d))
-    for a, node in enumerate(t[hubs].tolist()):
-        E[node * d:(node + 1) * d, a * d:(a + 1) * d] = np.eye(d)
-    b = E if rhs is None else np.column_stack([np.reshape(rhs, (n, -1)), E])
-    sel = banded_selection(N, d, t[rest], w, coords=coords, rhs=b)
-    X = sel.solution[:, b.shape[1] - E.shape[1]:]  # Sigma_{., hubs}
-    h = hubs.size
-    u = n // d
-    cross = X.reshape(u, d, h, d)[t[rest]].transpose(2, 0, 3, 1)  # (h, r, d, d): Sigma_{a, r}
-    hub_cov = X.reshape(u, d, h * d)[t[hubs]].reshape(h * d, h * d)
-    x = None
-    if rhs is not None:
-        x = sel.solution[:, :b.shape[1] - E.shape[1]].reshape(np.shape(rhs))
-    return CovarianceSkeleton(rest, hubs, sel.band, cross, 0.5 * (hub_cov + hub_cov.T)), x
-
-
-@dataclass
-class _SkeletonPlan:
-    """What :func:`_selected_skeleton` computes from the pattern of ``N`` and the targets alone
-    (the absorbed terms of a freeze repeat their pattern every track): the factor's block
-    pattern with the skeleton's pairs, where its values come from in ``N``'s, the symbolic
-    analysis, and where the skeleton's entries lie in the factor's values.
-
-    Attributes
-    ----------
-    indptr, indices : the pattern of ``N`` (compressed rows or columns) it was made for.
-    pattern : block pattern of ``N`` plus the skeleton's pairs (explicit zeros).
-    source : (nnz,) position in ``N.data`` of each of its lower-triangle values (-1: a zero).
-    pa, pc : block pairs of the skeleton (band among the others, hubs with every target, hubs
-        with hubs); bi, bj : positions (among the others) of the band pairs.
-    kept : a symbolic factor of ``pattern`` and the positions of the blocks ``(pa, pc)`` in
-        the values of its selected inverse (``None`` before the first use, and while a thread
-        uses them).
-    """
-
-    indptr: IntArray
-    indices: IntArray
-    pattern: object
-    source: IntArray
-    pa: IntArray
-    pc: IntArray
-    bi: IntArray
-    bj: IntArray
-    kept: tuple | None = None
-
-
-#: Plans of :func:`_selected_skeleton` by the shape of ``N`` and the skeleton, for the pattern of
-#: ``N`` they hold: the latest two (a plan holds a symbolic factor, ~10 MB for the aerial
-#: survey's 102-pose swaths; a survey's freezes repeat one or two patterns). A lock around
-#: taking and returning a plan's analysis: freezes and refinements may run in threads at once.
-_PLANS: OrderedDict[bytes, _SkeletonPlan] = OrderedDict()
-_MAX_PLANS = 2
-_PLANS_LOCK = threading.Lock()
-
-
-def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
-                   w: int) -> _SkeletonPlan:
-    """The :class:`_SkeletonPlan` of ``N`` (CSR or CSC, both triangles) and a skeleton."""
-    key = _blake2b(b''.join([N.format.encode(), np.array([*N.shape, N.nnz, d, w], dtype=np.int64)
-                             .tobytes(), t.tobytes(), hubs.tobytes()]), digest_size=16).digest()
-    with _PLANS_LOCK:
-        plan = _PLANS.get(key)
-        if plan is not None and np.array_equal(plan.indptr, N.indptr) \
-                and np.array_equal(plan.indices, N.indices):
-            _PLANS.move_to_end(key)
-            return plan
-    from ga_ros.core.sparse import BlockPattern, band_pairs
-
-    u = N.shape[0] // d
-    # the positions of N's values travel through the conversions instead of the values
-    # (1-based: an explicit zero of the new pattern comes out as 0)
-    where = type(N)((np.arange(1, N.nnz + 1, dtype=float), N.indices, N.indptr), shape=N.shape)
-    # a symmetric CSC matrix is its own CSR transpose: no conversion
-    Nr = sp.csr_matrix((where.data, where.indices, where.indptr), shape=N.shape) \
-        if N.format == 'csc' else where
-    Nb = sp.bsr_matrix(Nr, blocksize=(d, d))
-    Nb.sort_indices()
-    rows_n = np.repeat(np.arange(u, dtype=np.int64), np.diff(Nb.indptr))
-    cols_n = Nb.indices.astype(np.int64)
-    tr, th = t[rest], t[hubs]
-    r, h = tr.size, th.size
-    # the skeleton's pairs: the band among the others, every hub with every target
-    bi, bj, _ = band_pairs(r, w)
-    hub_a = np.repeat(np.arange(h), r)
-    rest_i = np.tile(np.arange(r), h)
-    pa = np.concatenate([tr[bi], th[hub_a], np.repeat(th, h)])
-    pc = np.concatenate([tr[bj], tr[rest_i], np.tile(th, h)])
-    diag = np.arange(u, dtype=np.int64)
-    pattern = BlockPattern(np.concatenate([rows_n, diag, np.maximum(pa, pc)]),
-                           np.concatenate([cols_n, diag, np.minimum(pa, pc)]), d, u)
-    blocks = np.zeros((rows_n.size + u + pa.size, d, d))
-    blocks[:rows_n.size] = Nb.data
-    source = np.rint(pattern.assemble(blocks)).astype(np.int64) - 1
-    plan = _SkeletonPlan(N.indptr.copy(), N.indices.copy(), pattern, source, pa, pc, bi, bj)
-    with _PLANS_LOCK:
-        _PLANS[key] = plan
-        while len(_PLANS) > _MAX_PLANS:
-            _PLANS.popitem(last=False)
-    return plan
-
-
-def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: IntArray,
-                       w: int, rhs: FloatArray | None
-                       ) -> tuple[CovarianceSkeleton, FloatArray | None]:
-    """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
-    skeleton's pairs added to its pattern (pattern, analysis and the entries' positions kept
-    per pattern: :class:`_SkeletonPlan`)."""
-    from ga_ros.core.sparse import CovarianceSkeleton, SparseCholesky
-
-    if N.format not in ('csr', 'csc') or not N.has_canonical_format:
-        N = sp.csr_matrix(N)
-        N.sum_duplicates()  # one value per position: the plan maps positions
-    plan = _skeleton_plan(N, d, t, rest, hubs, w)
-    data = np.where(plan.source >= 0, N.data[plan.source], 0.0)
-    with _PLANS_LOCK:  # the plan's analysis, unless another thread is using it
-        kept, plan.kept = plan.kept, None
-    analysis, offsets = kept if kept is not None else (None, None)
-    chol = SparseCholesky(plan.pattern, data, analysis=analysis)
-    analysis = chol.analysis
-    x = None if rhs is None else chol.solve(rhs)
-    inv = SelectedInverse(chol, columns=t)  # their supernodes and ancestors
-    if offsets is None:  # they depend on the analysis only
-        offsets = inv.offsets(plan.pa, plan.pc)
-    S = inv.at(offsets)  # Sigma_{pa, pc}: targets only
-    if inv.in_place:  # the factor is a symbolic one again: kept for the next
-        with _PLANS_LOCK:
-            plan.kept = (analysis, offsets)
-    bi, bj = plan.bi, plan.bj
-    r, h = rest.size, hubs.size
-    band = np.zeros((r, w + 1, d, d))
-    band[bi, bj - bi] = S[:bi.size]
-    cross = S[bi.size:bi.size + h * r].reshape(h, r, d, d)
-    hub_cov = S[bi.size + h * r:].reshape(h, h, d, d).transpose(0, 2, 1, 3).reshape(h * d, h * d)
-    return CovarianceSkeleton(rest, hubs, band, cross, 0.5 * (hub_cov + hub_cov.T)), x

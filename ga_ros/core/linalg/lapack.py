@@ -4,8 +4,8 @@ completion's kernel.
 SciPy's LAPACK/BLAS (``scipy.linalg.cython_lapack``, ``cython_blas``: the OpenBLAS SciPy
 bundles) is registered with LLVM under named symbols (``ga_ros_<name>``), so the kernels that
 call it stay cacheable on disk (a ctypes pointer would not). Used by the selected inversion
-(:mod:`ga_ros.core.selinv`) and the maximum-entropy band completion
-(:func:`ga_ros.core.sparse._band_completion`).
+(:mod:`ga_ros.core.linalg.selinv`) and the maximum-entropy band completion
+(:func:`ga_ros.core.linalg.banded._band_completion`).
 """
 
 from __future__ import annotations
@@ -68,7 +68,8 @@ def _separator_solves(ext, r, w, d, Bt):  # pragma: no cover - compiled
     """``Bt[k] = Sigma_FF^-1 Sigma_Fk`` for the separators ``F = {k+1 .. k+w}`` of a covariance
     band ``ext`` (``(r + w, w + 1, d, d)``, ``ext[i, j] = Sigma_{i, i+j}``, padded after the end)
     by one Cholesky factorisation (``dpotrf``) and solve (``dpotrs``) each, the separator read
-    from the band into column-major storage (:func:`ga_ros.core.sparse._separator_solves_scipy`
+    from the band into column-major storage
+    (:func:`ga_ros.core.linalg.banded._separator_solves_scipy`
     does the same with SciPy's LAPACK). Returns 0,
     or ``k + 1`` if separator ``k`` is not positive definite."""
     n = w * d

@@ -2,7 +2,7 @@
 
 The normal matrix has one ``d x d`` block per node and the sparsity of the connection graph, so
 its fill-reducing ordering is computed on that *block* graph (one vertex per node) and expanded
-to scalars (:func:`ga_ros.core.sparse.block_ordering`). AMD is cheap and best on small or
+to scalars (:func:`ga_ros.core.linalg.ordering.block_ordering`). AMD is cheap and best on small or
 chain-like graphs; on large graphs with many loops (a survey of overlapping tracks, a torus or
 a sphere lattice) nested dissection (METIS, through ``pymetis``) leaves less fill: the paper's
 aerial survey 6.75 -> 5.21 GFlop per factorisation, torus3D 1.38 -> 1.02 (``ga-ros bench
@@ -18,11 +18,22 @@ factorisation of a few tens of milliseconds) keep AMD without trying.
 from __future__ import annotations
 
 import importlib.util
+from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
 
 from ga_ros.arrays import IntArray
+from ga_ros.core.linalg.blocks import BlockPattern, _kept
+from ga_ros.runtime import openblas_coretype
+
+try:  # AMD, bundled in the cvxopt wheel (with CHOLMOD: ga_ros.core.linalg.cholmod)
+    with openblas_coretype():
+        import cvxopt
+        from cvxopt import amd as _amd
+except ImportError:  # pragma: no cover - the pinned requirements include cvxopt
+    cvxopt = None
+    _amd = None
 
 #: Block graphs of at least this many nodes also try nested dissection.
 METIS_MIN_BLOCKS = 4000
@@ -80,7 +91,8 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
     """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
     count of a symbolic analysis, ``analysis(indptr, indices, order)`` of the matrix's lower
     triangle (CSC, diagonal included; e.g. CHOLMOD's,
-    :meth:`ga_ros.core.sparse._DirectCholmod.analysis_flops`: no numeric factorisation), or,
+    :meth:`ga_ros.core.linalg.cholmod._DirectCholmod.analysis_flops`: no numeric factorisation),
+    or,
     without one (or when it returns ``None``), ``sum_j c_j^2`` over the columns of the factor
     (``c_j`` its non-zeros) from a numeric factorisation; the two are equal.
 
@@ -101,7 +113,6 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
 def _numeric_factor_flops(n: int, r: IntArray, c: IntArray, order: IntArray) -> float:
     """``sum_j c_j^2`` of the factor of ``L + I`` (``L`` the Laplacian of the edges
     ``r[k] > c[k]``) under ``order``, from CHOLMOD's symbolic and numeric phases (cvxopt)."""
-    import cvxopt
     from cvxopt import cholmod
 
     deg = np.bincount(np.concatenate([r, c]), minlength=n).astype(float)
@@ -136,3 +147,50 @@ def best_block_order(n: int, rows: IntArray, cols: IntArray, amd: IntArray,
     if factor_flops(n, rows, cols, nd, analysis) < factor_flops(n, rows, cols, amd, analysis):
         return nd
     return amd
+
+
+def _block_amd(pattern: BlockPattern, keep: np.ndarray) -> IntArray:
+    """AMD order (block indices) of the blocks ``keep`` of the block graph."""
+    idx = np.nonzero(keep)[0]
+    if idx.size <= 1 or _amd is None:
+        return idx
+    local = np.full(keep.size, -1, dtype=np.int64)
+    local[idx] = np.arange(idx.size)
+    r, c = local[pattern.block_lower[0]], local[pattern.block_lower[1]]
+    ok = (r >= 0) & (c >= 0)
+    r, c = r[ok], c[ok]
+    G = cvxopt.spmatrix(cvxopt.matrix(np.ones(r.size)), cvxopt.matrix(r), cvxopt.matrix(c),
+                        (idx.size, idx.size))
+    return idx[np.array(_amd.order(G, uplo='L')).ravel().astype(np.int64)]
+
+
+#: Block orderings kept per pattern (a window's pattern repeats every track once it is full).
+_ORDERINGS: OrderedDict[bytes, IntArray] = OrderedDict()
+
+
+_MAX_ORDERINGS = 16
+
+
+def block_ordering(pattern: BlockPattern,
+                   flops: Callable[[IntArray, IntArray, IntArray], float | None] | None = None
+                   ) -> IntArray:
+    """Fill-reducing scalar permutation of a block pattern: AMD (or, on large graphs, nested
+    dissection) of its block graph (:func:`best_block_order`), each block's ``d`` unknowns
+    kept together. ``flops``: the flop count of a symbolic analysis (CHOLMOD's, given by
+    :class:`~ga_ros.core.linalg.cholmod.SparseCholesky`), else counted from a numeric
+    factorisation. Kept per pattern (:data:`_ORDERINGS`)."""
+    amd = lambda: _block_amd(pattern, np.ones(pattern.n_blocks, dtype=bool))  # noqa: E731
+    return _kept(_ORDERINGS, _MAX_ORDERINGS, pattern.key, lambda: _expand(
+        best_block_order(pattern.n_blocks, *pattern.block_lower, amd(), flops),
+        pattern.d))
+
+
+def _trailing_ordering(pattern: BlockPattern, trailing: IntArray) -> IntArray:
+    """AMD of the blocks not in ``trailing``, then ``trailing`` in the given order."""
+    rest = np.ones(pattern.n_blocks, dtype=bool)
+    rest[trailing] = False
+    return _expand(np.concatenate([_block_amd(pattern, rest), trailing]), pattern.d)
+
+
+def _expand(block_perm: IntArray, d: int) -> IntArray:
+    return (np.asarray(block_perm, dtype=np.int64)[:, None] * d + np.arange(d)).ravel()
