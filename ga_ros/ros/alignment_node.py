@@ -657,6 +657,7 @@ class AlignmentNode(Node):
             view = connection_view(self.aligner)
             colors = np.where(np.asarray(cp.frozen, dtype=bool)[:, None],
                               [[0.5, 0.5, 0.5, 1.0]], [[0.2, 0.4, 1.0, 1.0]])
+            colors[self.session.unjoined(cp.node_ids)] = [1.0, 0.55, 0.0, 1.0]  # behind a bridge
             conn_rgba = conv.connection_rgba(view.normalized_residual, view.status,
                                              s.residual_color_scale, view.w)
             stamp_ns = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0
