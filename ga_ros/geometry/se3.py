@@ -196,6 +196,30 @@ def adjoint(T: FloatArray) -> FloatArray:
     return out
 
 
+def change_frame(T_ca_cb: FloatArray, cov: FloatArray, T_base_cam: FloatArray
+                 ) -> tuple[FloatArray, FloatArray]:
+    """The motion of a rigid body's base from the motion of a sensor mounted on it.
+
+    ``T_ba_bb = T_base_cam T_ca_cb T_base_cam^-1`` with covariance
+    ``Ad(T_base_cam) C Ad(T_base_cam)^T`` (right perturbation: ``T_ca_cb exp(d)`` moves the
+    base motion to ``T_ba_bb exp(Ad(T_base_cam) d)``).
+
+    Parameters
+    ----------
+    T_ca_cb : (4, 4) the sensor's motion between two times.
+    cov : (6, 6) its covariance ``[x y z rx ry rz]``.
+    T_base_cam : (4, 4) the extrinsic: the sensor frame in the base frame.
+
+    Returns
+    -------
+    tuple
+        ``T_ba_bb`` (4, 4) and its (6, 6) covariance.
+    """
+    A = adjoint(T_base_cam)
+    C = A @ np.asarray(cov, dtype=float) @ A.T
+    return T_base_cam @ np.asarray(T_ca_cb, dtype=float) @ inverse(T_base_cam), 0.5 * (C + C.T)
+
+
 def left_jacobian(xi: FloatArray) -> FloatArray:
     """SE(3) left Jacobian ``[[J, Q], [0, J]]`` with ``J = so3.left_jacobian(phi)``."""
     xi = np.asarray(xi, dtype=float)

@@ -103,6 +103,9 @@ class OdometryInputConfig:
     track_duration_s : time per track in ``'time'`` mode (s).
     constraint_tolerance_s : largest time between a constraint's stamp and its keyframe (s).
     history_s : odometry kept for interpolating constraint stamps (s).
+    max_gap_s : a further (secondary) input: largest interval between two of its samples
+        around or inside a keyframe interval that it still measures; a longer gap is a dropout
+        (s; :mod:`ga_ros.inputs.secondary`).
     first_node_id : node id of the first keyframe.
     """
 
@@ -126,6 +129,7 @@ class OdometryInputConfig:
     track_duration_s: float = 0.0
     constraint_tolerance_s: float = 2.0
     history_s: float = 600.0
+    max_gap_s: float = 1.0
     first_node_id: int = 0
 
     def __post_init__(self) -> None:
@@ -239,19 +243,48 @@ def usable_covariance(cov: FloatArray | None) -> bool:
     return bool(np.linalg.eigvalsh(c).min() > 1e-12 * max(float(np.abs(c).max()), 1e-300))
 
 
-def _transport(T_a_b: FloatArray, C_a: FloatArray) -> FloatArray:
+def transport_covariance(T_a_b: FloatArray, C_a: FloatArray) -> FloatArray:
     """``Ad(T_a_b^-1) C_a Ad(T_a_b^-1)^T``: a right-perturbation covariance at ``a`` seen at
     ``b`` (``T_a exp(x) T_a_b = T_a T_a_b exp(Ad(T_a_b^-1) x)``)."""
     A = se3.adjoint(se3.inverse(T_a_b))
     return A @ C_a @ A.T
 
 
-def _interpolate(T_a: FloatArray, T_b: FloatArray, alpha: float) -> FloatArray:
-    """Geodesic interpolation ``T_a exp(alpha log(T_a^-1 T_b))``."""
+def interpolate_pose(T_a: FloatArray, T_b: FloatArray, alpha: float) -> FloatArray:
+    """Geodesic interpolation ``T_a exp(alpha log(T_a^-1 T_b))`` (``alpha`` in [0, 1])."""
     return T_a @ se3.exp(alpha * se3.local(T_a, T_b))
 
 
-def _check_pose(T: FloatArray, what: str) -> FloatArray:
+def body_pose_covariance(T_odom_base: FloatArray, pose_cov: FloatArray | None,
+                         frame: str) -> FloatArray | None:
+    """A sample's pose covariance in the body frame (None when unusable, see
+    :func:`usable_covariance`).
+
+    Parameters
+    ----------
+    T_odom_base : (4, 4) the sample's pose.
+    pose_cov : (6, 6) its covariance ``[x y z rx ry rz]``, or None.
+    frame : ``'parent'`` (axes of ``header.frame_id``: ``C_body = B^T C B``,
+        ``B = blkdiag(R, R)``) or ``'body'`` (returned as is).
+    """
+    if not usable_covariance(pose_cov):
+        return None
+    C = np.asarray(pose_cov, float)
+    if frame == 'parent':
+        B = np.zeros((6, 6))
+        B[:3, :3] = B[3:, 3:] = np.asarray(T_odom_base, float)[:3, :3]
+        C = B.T @ C @ B
+    return C
+
+
+def check_pose(T: FloatArray, what: str) -> FloatArray:
+    """``T`` as a float array if it is a finite 4x4 pose with a rotation matrix.
+
+    Raises
+    ------
+    InputError
+        Another shape, non-finite values or no rotation matrix (``what`` names it).
+    """
     T = np.asarray(T, float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(f'{what} must be a finite 4x4 pose, got shape {T.shape}')
@@ -314,12 +347,12 @@ class OdometryInput:
             A malformed pose or a stamp not after the previous one (nothing changed; restart
             the input, e.g. with a new :class:`OdometryInput`, when a bag loops).
         """
-        T = _check_pose(T_odom_base, f'{self.config.name}: T_odom_base')
+        T = check_pose(T_odom_base, f'{self.config.name}: T_odom_base')
         stamp = int(stamp_ns)
         if self._stamps and stamp <= self._stamps[-1]:
             raise InputError(f'{self.config.name}: stamp {stamp} ns is not after the previous '
                              f'sample ({self._stamps[-1]} ns); restart the input on a loop')
-        C_pose = self._body_pose_cov(T, pose_cov)
+        C_pose = body_pose_covariance(T, pose_cov, self.config.pose_covariance_frame)
         if not self._stamps:
             self._append(stamp, T)
             track = self._make_keyframe(stamp, T, C_pose)
@@ -327,7 +360,8 @@ class OdometryInput:
         D = se3.relative(self._poses[-1], T)
         dt = (stamp - self._stamps[-1]) * 1e-9
         if usable_covariance(twist_cov):
-            self._twist_cov = _transport(D, self._twist_cov) + dt * dt * np.asarray(twist_cov)
+            self._twist_cov = (transport_covariance(D, self._twist_cov)
+                               + dt * dt * np.asarray(twist_cov))
         else:
             self._twist_ok = False
         self._append(stamp, T)
@@ -356,7 +390,7 @@ class OdometryInput:
         InputError
             Unknown node ids, a self-loop or a malformed pose.
         """
-        T = _check_pose(T_src_dst, f'{self.config.name}: constraint T_src_dst')
+        T = check_pose(T_src_dst, f'{self.config.name}: constraint T_src_dst')
         i, j = self._kf_index(src_id), self._kf_index(dst_id)
         if i == j:
             raise InputError(f'{self.config.name}: constraint from node {src_id} to itself')
@@ -366,11 +400,13 @@ class OdometryInput:
                                      C, self._kf_stamps[j], 'cross')
 
     def constraint_from_stamps(self, stamp_a_ns: int, stamp_b_ns: int, T_a_b: FloatArray,
-                               cov: FloatArray | None) -> Measurement:
+                               cov: FloatArray | None,
+                               nodes: tuple[int, int] | None = None) -> Measurement:
         """A ``'cross'`` Measurement from a relative pose between the base at two stamps.
 
-        Each stamp is mapped to its nearest keyframe ``k`` (within ``constraint_tolerance_s``)
-        and the odometry ``T_k_a`` from the keyframe to the stamp, interpolated between the
+        Each stamp is mapped to its nearest keyframe ``k`` (within ``constraint_tolerance_s``;
+        or to the keyframes ``nodes`` (node ids) when given, e.g. those an image was taken
+        for) and the odometry ``T_k_a`` from the keyframe to the stamp, interpolated between the
         neighbouring samples. The result is ``T_ka_kb = T_ka_a T_a_b T_kb_b^-1`` with covariance
         ``Ad(T_kb_b) C Ad(T_kb_b)^T`` plus the noise model's covariance of the two offsets
         (``default_noise_percent`` of each offset, no floor: zero at a keyframe's own stamp)
@@ -383,18 +419,20 @@ class OdometryInput:
             tolerance (send constraints after the odometry that covers them), both stamps on one
             keyframe, or a malformed pose.
         """
-        T_ab = _check_pose(T_a_b, f'{self.config.name}: constraint T_a_b')
-        ia, T_ka_a = self._anchor(int(stamp_a_ns))
-        ib, T_kb_b = self._anchor(int(stamp_b_ns))
+        T_ab = check_pose(T_a_b, f'{self.config.name}: constraint T_a_b')
+        ka, kb = nodes if nodes is not None else (None, None)
+        ia, T_ka_a = self._anchor(int(stamp_a_ns), ka)
+        ib, T_kb_b = self._anchor(int(stamp_b_ns), kb)
         if ia == ib:
             raise InputError(f'{self.config.name}: both constraint stamps map to keyframe '
                              f'{self._kf_ids[ia]}; the constraint adds nothing')
         T_b_kb = se3.inverse(T_kb_b)
         T = T_ka_a @ T_ab @ T_b_kb
         C_ab = self._constraint_cov(T_ab, cov)
-        C = _transport(T_b_kb, C_ab)
+        C = transport_covariance(T_b_kb, C_ab)
         offset = self.config.noise_model()
-        C = C + _transport(T_ab @ T_b_kb, offset.covariances(se3.to_translation_rotvec(T_ka_a))[0])
+        C = C + transport_covariance(T_ab @ T_b_kb,
+                                     offset.covariances(se3.to_translation_rotvec(T_ka_a))[0])
         C = C + offset.covariances(se3.to_translation_rotvec(T_b_kb))[0]
         self._n['constraints'] += 1
         return Measurement.from_pose(self._kf_ids[ia], self._kf_ids[ib], self._kf_tracks[ia],
@@ -420,16 +458,6 @@ class OdometryInput:
             drop += 1
         if drop:
             del self._stamps[:drop], self._poses[:drop]
-
-    def _body_pose_cov(self, T: FloatArray, pose_cov: FloatArray | None) -> FloatArray | None:
-        if not usable_covariance(pose_cov):
-            return None
-        C = np.asarray(pose_cov, float)
-        if self.config.pose_covariance_frame == 'parent':
-            B = np.zeros((6, 6))
-            B[:3, :3] = B[3:, 3:] = T[:3, :3]
-            C = B.T @ C @ B
-        return C
 
     def _is_keyframe(self, stamp: int, T: FloatArray) -> bool:
         cfg = self.config
@@ -464,7 +492,7 @@ class OdometryInput:
             return 0.5 * (self._twist_cov + self._twist_cov.T), 'twist', False
         if src in ('auto', 'pose_difference', 'pose_independent') and (
                 self._kf_cov is not None and C_new is not None):
-            prior = _transport(T_rel, self._kf_cov)
+            prior = transport_covariance(T_rel, self._kf_cov)
             C = C_new + prior if src == 'pose_independent' else C_new - prior
             C = 0.5 * (C + C.T)
             if usable_covariance(C):
@@ -486,14 +514,15 @@ class OdometryInput:
                              f'{self.config.first_node_id}..{self._next_id - 1})')
         return i
 
-    def _anchor(self, stamp: int) -> tuple[int, FloatArray]:
-        """Index of the keyframe nearest to ``stamp`` and the odometry ``T_kf_stamp``."""
+    def _anchor(self, stamp: int, node: int | None = None) -> tuple[int, FloatArray]:
+        """Index of the keyframe nearest to ``stamp`` (or of keyframe ``node``) and the
+        odometry ``T_kf_stamp``."""
         name = self.config.name
         if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
             raise InputError(f'{name}: constraint stamp {stamp} ns is outside the odometry '
                              'received so far; send constraints after the odometry covering them')
         ks = np.asarray(self._kf_stamps)
-        i = int(np.argmin(np.abs(ks - stamp)))
+        i = int(np.argmin(np.abs(ks - stamp))) if node is None else self._kf_index(node)
         if abs(int(ks[i]) - stamp) * 1e-9 > self.config.constraint_tolerance_s:
             raise InputError(f'{name}: no keyframe within {self.config.constraint_tolerance_s}'
                              f' s of constraint stamp {stamp} ns; raise constraint_tolerance_s'
@@ -504,5 +533,5 @@ class OdometryInput:
             T_odom_stamp = self._poses[j]
         else:
             alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
-            T_odom_stamp = _interpolate(self._poses[j - 1], self._poses[j], alpha)
+            T_odom_stamp = interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
         return i, se3.relative(self._kf_poses[i], T_odom_stamp)

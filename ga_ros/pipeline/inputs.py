@@ -4,10 +4,18 @@ One ROS-free object (:class:`InputFrontEnd`) that the alignment node and the rep
 message by message, so that live and offline runs make the same measurements:
 
 * :meth:`InputFrontEnd.sample` ``(name, msg, msgtype)``: one ``nav_msgs/Odometry``,
-  ``PoseWithCovarianceStamped`` or ``PoseStamped`` of input ``name``
-  (:class:`ga_ros.inputs.odometry.OdometryInput`: keyframes, covariance policy, track rule);
+  ``PoseWithCovarianceStamped`` or ``PoseStamped`` of input ``name``. The first (primary)
+  input defines the keyframes (:class:`ga_ros.inputs.odometry.OdometryInput`: keyframes,
+  covariance policy, track rule); every further input measures the motion between those
+  keyframes from its own poses (:class:`ga_ros.inputs.secondary.SecondaryInput`), so several
+  relative sources make connections on one keyframe graph;
 * :meth:`InputFrontEnd.constraint` ``(msg)``: an external constraint (encoding in
-  :mod:`ga_ros.inputs.messages`) on the first input's keyframes;
+  :mod:`ga_ros.inputs.messages`) on the first input's keyframes, its stamps tied to them by the
+  odometry in between;
+* :meth:`InputFrontEnd.image` / :meth:`InputFrontEnd.camera_info` ``(side, msg)``: a stereo
+  camera beside the odometry (:class:`ga_ros.pipeline.keyframe_camera.KeyframeCamera`): images
+  matched to the first input's keyframes, cross-track connections tied to them as external
+  constraints are; :meth:`InputFrontEnd.set_corrected` gives it the corrected path;
 * :meth:`InputFrontEnd.track_boundary`: a new track at the next keyframe (a topic);
 * :meth:`InputFrontEnd.map_to_odom`: the REP 105 ``map -> odom`` correction from the corrected
   path and the odometry poses of the same keyframes.
@@ -35,10 +43,12 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.core.covariance import nearest_positive_definite
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import InputError
+from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import decode_constraint, decode_sample, input_type
 from ga_ros.inputs.odometry import OdometryInput, OdometryInputConfig
+from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
+from ga_ros.pipeline.keyframe_camera import CameraConnection, KeyframeCamera
 
 #: Policies for a measurement covariance that is not positive definite.
 COVARIANCE_POLICIES = ('reject', 'repair')
@@ -145,32 +155,38 @@ class InputFrontEnd:
 
     Parameters
     ----------
-    inputs : the inputs; their names must differ, and so must their node id ranges
-        (``first_node_id``), since all inputs share one network.
+    inputs : the inputs; their names must differ. The first one defines the keyframes (its
+        ``first_node_id`` numbers them); the others measure the motion between them.
     warn_throttle_s : smallest interval between two default-covariance warnings (s).
     clock : monotonic clock in seconds for the throttle.
+    camera : a stereo camera beside the odometry (None: none).
 
     Raises
     ------
     InputError
-        Duplicate names or first node ids, or no input.
+        Duplicate names or no input.
     """
 
     def __init__(self, inputs: Sequence[InputSpec], warn_throttle_s: float = 10.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 camera: KeyframeCamera | None = None) -> None:
         if not inputs:
             raise InputError('no standard input configured: give at least one odometry or '
                              'pose topic')
         names = [s.name for s in inputs]
-        firsts = [s.config.first_node_id for s in inputs]
         if len(set(names)) != len(names):
             raise InputError(f'input names must differ, got {names}')
-        if len(set(firsts)) != len(firsts):
-            raise InputError(f'inputs {names} share first_node_id values {firsts}: give each '
-                             'input its own node id range (e.g. 0 and 1000000000)')
         self.specs = {s.name: s for s in inputs}
-        self.inputs = {s.name: OdometryInput(s.config) for s in inputs}
         self.primary = names[0]
+        #: the keyframe input and the further ones measured on its keyframes
+        self.inputs: dict[str, OdometryInput | SecondaryInput] = {
+            s.name: OdometryInput(s.config) if s.name == self.primary
+            else SecondaryInput(s.config) for s in inputs}
+        self._kf_stamp_ns: int | None = None
+        self.camera = camera
+        #: camera connections whose image stamps the odometry does not cover yet
+        self._camera_waiting: list[CameraConnection] = []
+        self.camera_rejected = 0
         self.throttle = Throttle(warn_throttle_s, clock)
         self.constraints_rejected = 0
         #: stamp (ns) of the first input's newest sample (0 before any)
@@ -189,28 +205,100 @@ class InputFrontEnd:
         """
         spec = self.specs[name]
         inp = self.inputs[name]
+        defaults = inp.stats.default_covariances
         try:
             s = decode_sample(msg, msgtype or spec.msgtype)
             if spec.config.frame_id and s.frame_id.lstrip('/') != spec.config.frame_id.lstrip(
                     '/'):
                 raise InputError(f'{name}: frame {s.frame_id!r}, expected '
                                  f'{spec.config.frame_id!r}')
+            if isinstance(inp, SecondaryInput):
+                meas = tuple(inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov,
+                                            s.twist_cov))
+                warn = inp.stats.default_covariances > defaults
+                return InputStep(meas, warning=self._default_warning(name) if warn else '')
             up = inp.add_sample(s.stamp_ns, s.T_odom_base, s.pose_cov, s.twist_cov)
         except InputError as exc:
             return InputStep(error=f'{name}: {exc}')
-        if name == self.primary:
-            self.latest_stamp_ns = s.stamp_ns
+        self.latest_stamp_ns = s.stamp_ns
         stamps = {up.keyframe_id: up.stamp_ns} if up.new_keyframe else {}
         meas = (up.measurement,) if up.measurement is not None else ()
-        warning = ''
-        if up.default_covariance:
-            warning = self._default_warning(name)
+        warning = self._default_warning(name) if up.default_covariance else ''
+        if up.new_keyframe:
+            meas += self._measure_interval(up.measurement, up.stamp_ns)
+            self._kf_stamp_ns = up.stamp_ns
+            if self.camera is not None:
+                self._camera_waiting += self.camera.add_keyframe(
+                    up.keyframe_id, up.track_id, inp.segmenter.segment, up.stamp_ns,
+                    s.T_odom_base)
+        meas += self._camera_measurements()
         return InputStep(meas, stamps, warning)
+
+    # ------------------------------------------------------------------ camera
+    def camera_info(self, side: str, msg: Any) -> InputStep:
+        """A ``CameraInfo`` of the camera beside the odometry; a rejection comes back as
+        ``error`` (the previous calibration stays)."""
+        if self.camera is None:
+            return InputStep(error='camera: no camera configured')
+        try:
+            self.camera.set_camera_info(side, msg)
+        except InputError as exc:
+            return InputStep(error=f'camera: CameraInfo rejected: {exc}')
+        return InputStep()
+
+    def image(self, side: str, msg: Any) -> InputStep:
+        """An image of the camera beside the odometry (``side``: ``'left'`` / ``'right'``);
+        the cross-track connections of the keyframes it completes."""
+        if self.camera is None:
+            return InputStep(error='camera: no camera configured')
+        try:
+            self._camera_waiting += self.camera.add_image(side, msg)
+        except GaError as exc:
+            return InputStep(error=f'camera: {exc}')
+        return InputStep(self._camera_measurements())
+
+    def set_corrected(self, node_ids: IntArray, T_map_node: FloatArray) -> None:
+        """The corrected path (node ids, ``(n, 4, 4)`` base poses) for the camera's overlap
+        prediction."""
+        if self.camera is not None and len(node_ids):
+            self.camera.set_corrected(node_ids, T_map_node)
+
+    def _camera_measurements(self) -> tuple[Measurement, ...]:
+        """Camera connections tied to their keyframes by the odometry between each image and
+        the keyframe it was taken for (:meth:`OdometryInput.constraint_from_stamps`); those
+        whose later image is newer than the odometry wait for it."""
+        out, waiting = [], []
+        inp = self._primary()
+        for c in self._camera_waiting:
+            if c.dst_stamp_ns > self.latest_stamp_ns:
+                waiting.append(c)
+                continue
+            try:
+                out.append(inp.constraint_from_stamps(c.src_stamp_ns, c.dst_stamp_ns,
+                                                      c.T_src_dst, c.cov,
+                                                      nodes=(c.src_id, c.dst_id)))
+            except InputError:
+                self.camera_rejected += 1
+        self._camera_waiting = waiting
+        return tuple(out)
+
+    def _measure_interval(self, m: Measurement | None, stamp_ns: int) -> tuple[Measurement, ...]:
+        """The further inputs' measurements of the primary's new keyframe interval ``m``
+        (those that already cover it; the others measure it when their samples do)."""
+        if m is None or self._kf_stamp_ns is None:
+            return ()
+        iv = KeyframeInterval(m.src_id, m.dst_id, m.src_track, m.dst_track, self._kf_stamp_ns,
+                              int(stamp_ns))
+        out: list[Measurement] = []
+        for inp in self.inputs.values():
+            if isinstance(inp, SecondaryInput):
+                out += inp.add_interval(iv)
+        return tuple(out)
 
     def constraint(self, msg: Any) -> InputStep:
         """An external constraint (``nav_msgs/Odometry``, :mod:`ga_ros.inputs.messages`) on the
         keyframes of the first input. Rejections come back as ``error``; never raises."""
-        inp = self.inputs[self.primary]
+        inp = self._primary()
         before = inp.stats.default_covariances
         try:
             c = decode_constraint(msg)
@@ -228,8 +316,7 @@ class InputFrontEnd:
 
     def track_boundary(self) -> None:
         """Start a new track at the next keyframe of every input."""
-        for inp in self.inputs.values():
-            inp.request_track_boundary()
+        self._primary().request_track_boundary()
 
     # ------------------------------------------------------------------ TF
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
@@ -241,7 +328,7 @@ class InputFrontEnd:
         node_ids : (n,) node ids of the corrected path.
         T_map_node : (n, 4, 4) their corrected poses in the map frame.
         """
-        inp = self.inputs[self.primary]
+        inp = self._primary()
         for k in range(len(node_ids) - 1, -1, -1):
             try:
                 T_odom_k = inp.keyframe_pose(int(node_ids[k]))
@@ -252,12 +339,20 @@ class InputFrontEnd:
 
     def latest_pose(self) -> FloatArray | None:
         """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
-        return self.inputs[self.primary].latest_pose()
+        return self._primary().latest_pose()
+
+    def _primary(self) -> OdometryInput:
+        inp = self.inputs[self.primary]
+        assert isinstance(inp, OdometryInput)
+        return inp
 
     def stats(self) -> dict[str, object]:
         """Counters per input (for diagnostics and the replay summary)."""
         out: dict[str, object] = {n: asdict(i.stats) for n, i in self.inputs.items()}
         out['constraints_rejected'] = self.constraints_rejected
+        if self.camera is not None:
+            out['camera'] = {**asdict(self.camera.stats), 'rejected': self.camera_rejected,
+                             'pairing': self.camera.front.stats.summary()}
         return out
 
     def _default_warning(self, name: str) -> str:

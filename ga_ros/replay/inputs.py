@@ -2,26 +2,50 @@
 
 A loop over the bag's messages in log order calling the same
 :class:`ga_ros.pipeline.inputs.InputFrontEnd` as the live alignment node; each measurement it
-makes becomes one :class:`~ga_ros.replay.source.SourceItem`.
+makes becomes one :class:`~ga_ros.replay.source.SourceItem`. A stereo camera beside the
+odometry (:class:`CameraTopics`) adds cross-track connections on the odometry's keyframes, fed
+back with the corrected path of every update (:meth:`InputSource.on_corrected`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
-from ga_ros.io.bag import PATH, BagInfo, BagReader, TopicPlan
+from ga_ros.io.bag import CAMERA_INFO, IMAGE_TYPES, PATH, BagInfo, BagReader, TopicPlan
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
+from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
 from ga_ros.replay.source import SourceItem
 
 #: Type of the track-boundary topic.
 EMPTY = 'std_msgs/msg/Empty'
 #: TF topics copied from the input bag into the output bag.
 TF_TOPICS = ('/tf', '/tf_static')
+
+
+@dataclass(frozen=True)
+class CameraTopics:
+    """A stereo camera beside the odometry (:mod:`ga_ros.pipeline.keyframe_camera`).
+
+    Attributes
+    ----------
+    left_image, right_image : ``sensor_msgs/Image`` or ``CompressedImage`` topics.
+    left_info, right_info : ``CameraInfo`` topics ('' with ``calibration`` files).
+    calibration : calibration files for a bag without ``CameraInfo``
+        (:func:`ga_ros.vo.calibration.read_stereo_calibration`).
+    config : extrinsic, image-to-keyframe tolerance, feature and matcher settings.
+    """
+
+    left_image: str
+    right_image: str
+    left_info: str = ''
+    right_info: str = ''
+    calibration: tuple[str, ...] = ()
+    config: KeyframeCameraConfig = field(default_factory=KeyframeCameraConfig)
 
 
 @dataclass(frozen=True)
@@ -34,12 +58,23 @@ class InputTopics:
     constraints : external constraints topic (``nav_msgs/Odometry``; '' = none).
     track_boundary : ``std_msgs/Empty`` topic that starts a new track ('' = none).
     warn_throttle_s : smallest interval between two default-covariance warnings (s).
+    camera : a stereo camera beside the odometry (None: none).
     """
 
     inputs: tuple[InputSpec, ...] = ()
     constraints: str = ''
     track_boundary: str = ''
     warn_throttle_s: float = 10.0
+    camera: CameraTopics | None = None
+
+    @property
+    def topics(self) -> list[str]:
+        """Every topic these inputs read (not the ground truth)."""
+        out = [s.topic for s in self.inputs] + [self.constraints, self.track_boundary]
+        if self.camera is not None:
+            c = self.camera
+            out += [c.left_image, c.right_image, c.left_info, c.right_info]
+        return [t for t in out if t]
 
 
 def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
@@ -74,6 +109,18 @@ def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
     if config.track_boundary:
         check(config.track_boundary, (EMPTY,), 'track boundaries')
         notes.append(f'track boundaries: {config.track_boundary}')
+    cam = config.camera
+    if cam is not None:
+        check(cam.left_image, IMAGE_TYPES, 'left image')
+        check(cam.right_image, IMAGE_TYPES, 'right image')
+        for t in (cam.left_info, cam.right_info):
+            if t:
+                check(t, (CAMERA_INFO,), 'camera info')
+        if not (cam.left_info and cam.right_info) and not cam.calibration:
+            raise FormatError('a camera beside the odometry needs --left-info and --right-info '
+                              'or --calibration files', name)
+        notes.append(f'camera beside the odometry: {cam.left_image}, {cam.right_image}, '
+                     f'images within {cam.config.max_image_offset_s:g} s of a keyframe')
     gt = ''
     if ground_truth and info.topic(ground_truth) is not None:
         check(ground_truth, (PATH,), 'ground truth')
@@ -92,7 +139,15 @@ class InputSource:
                  counter: list[int]) -> None:
         self.bag = bag
         self.config = config
-        self.front = InputFrontEnd(specs, config.warn_throttle_s)
+        camera = None
+        if config.camera is not None:
+            camera = KeyframeCamera(config.camera.config)
+            if config.camera.calibration:
+                from ga_ros.vo.calibration import read_stereo_calibration
+
+                models = read_stereo_calibration(list(config.camera.calibration))
+                camera.set_camera_models(models.left, models.right)
+        self.front = InputFrontEnd(specs, config.warn_throttle_s, camera=camera)
         self.counter = counter
         self.warnings: list[str] = []
         #: called with each ``/tf`` and ``/tf_static`` message of the bag (topic, type, CDR,
@@ -110,9 +165,16 @@ class InputSource:
         """REP 105 ``T_map_odom`` (:meth:`InputFrontEnd.map_to_odom`)."""
         return self.front.map_to_odom(node_ids, T_map_node)
 
+    def on_corrected(self, node_ids: IntArray, T_map_node: FloatArray) -> None:
+        """The corrected path of an update, for the camera's overlap prediction."""
+        self.front.set_corrected(node_ids, T_map_node)
+
     def __iter__(self) -> Iterator[SourceItem]:
-        topics = [s.topic for s in self.front.specs.values()]
-        topics += [t for t in (self.config.constraints, self.config.track_boundary) if t]
+        topics = self.config.topics
+        cam = self.config.camera
+        images = {cam.left_image: 'left', cam.right_image: 'right'} if cam else {}
+        infos = {cam.left_info: 'left', cam.right_info: 'right'} if cam else {}
+        infos.pop('', None)
         assert self.bag.info is not None
         tf = [t for t in TF_TOPICS if self.passthrough is not None and self.bag.info.topic(t)]
         for bm in self.bag.messages(topics + tf):
@@ -126,6 +188,10 @@ class InputSource:
                 continue
             if bm.topic == self.config.constraints:
                 step = self.front.constraint(bm.msg)
+            elif bm.topic in images:
+                step = self.front.image(images[bm.topic], bm.msg)
+            elif bm.topic in infos:
+                step = self.front.camera_info(infos[bm.topic], bm.msg)
             else:
                 spec = self.front.by_topic(bm.topic)
                 assert spec is not None

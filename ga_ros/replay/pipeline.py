@@ -117,7 +117,8 @@ class ReplayResult:
     (empty without ground truth). ``error`` is the message of the failure that cut the replay
     short (the outputs then hold everything up to it), else None. ``quality`` (aligner
     ``quality`` on): ``per_track``, the :class:`ga_ros.core.quality.QualitySummary` of every
-    update with its ``track_id``, and ``final``, that of the last adjustment.
+    update with its ``track_id``, and ``final``, that of the last adjustment. ``notes``: what
+    the user should know about an unusual but valid run (e.g. a robot that did not move).
     """
 
     bag: str
@@ -138,6 +139,7 @@ class ReplayResult:
     source_stats: dict[str, Any] = field(default_factory=dict)
     corrected: Trajectory | None = None
     quality: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
     gaps: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -154,7 +156,8 @@ class ReplayResult:
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
-            'source_stats': self.source_stats, 'quality': self.quality, 'gaps': self.gaps}
+            'source_stats': self.source_stats, 'quality': self.quality, 'notes': self.notes,
+            'gaps': self.gaps}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -444,6 +447,38 @@ class _Run:
         window = getattr(self.config.aligner, 'window_tracks', 5)
         return np.isin(traj.track_ids, tracks[-window:])
 
+    def finish_stationary(self) -> None:
+        """Outputs of a robot that did not move: its first keyframe at the datum, and a note.
+        Used when keyframes were made but no motion between two of them reached the aligner."""
+        node, stamp = min(self.stamps.items(), key=lambda kv: kv[1])
+        T0 = np.eye(4)
+        if self.gt is not None and self.config.anchor_to_ground_truth:
+            _, i_gt = match_ground_truth(self.gt, np.array([node]), np.array([stamp]),
+                                         self.match_by)
+            if len(i_gt):
+                T0 = self.gt.T_world_node[i_gt[0]].copy()
+        traj = Trajectory(np.array([stamp], dtype=np.int64), T0[None],
+                          np.array([node], dtype=np.int64), np.zeros(1, dtype=np.int64),
+                          self.config.outputs.map_frame)
+        res = self.result
+        res.corrected = traj
+        res.n_nodes, res.n_tracks = 1, 1
+        n = len(self.stamps)
+        res.notes.append(f'the robot did not move: {n} keyframe{"s" if n > 1 else ""}, '
+                         'stationary trajectory written')
+        self.out.path(traj, self.last_ns)
+        self.out.poses(traj, np.zeros((1, 6, 6)))
+        self.out.odometry(traj, np.zeros((1, 6, 6)))
+        self.out.path(traj, self.last_ns, topic=self.config.outputs.f2f_topic)
+        self.out.tum('trajectory_ga.tum', traj)
+        self.out.tum('trajectory_f2f.tum', traj)
+        T_map_odom = self._map_to_odom(traj)
+        if self.config.tf and T_map_odom is not None:
+            self.out.map_to_odom(T_map_odom, stamp, self.last_ns)
+        if self.gt is not None and len(self.gt):
+            self.out.ground_truth(self.gt, self.last_ns)
+            self.out.tum('trajectory_gt.tum', self.gt)
+
     def finish(self) -> None:
         res = self.result
         if self.aligner is None:
@@ -577,9 +612,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         source: Any
         if specs:
             counter = [0]
-            total = sum(bag.info.topic(t).count for t in (
-                [s.topic for s in specs] + [config.inputs.constraints,
-                                            config.inputs.track_boundary]) if t)
+            total = sum(bag.info.topic(t).count for t in config.inputs.topics)
             source = InputSource(bag, specs, config.inputs, counter)
             unit = 'msg'
         elif plan.source == 'stereo':
@@ -628,7 +661,12 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
             stats = getattr(source, 'stats', None)
             if stats is not None:
                 result.source_stats = _as_dict(stats)
-            if run.aligner is None and result.error is None:
+            if run.aligner is None and result.error is None and run.stamps:
+                run.finish_stationary()  # keyframes but no motion: the robot stood still
+                if stats is not None and hasattr(stats, 'summary'):  # stereo: every reason
+                    result.notes.append(f'stereo: {stats.summary()}; if the camera did move, '
+                                        'lower the VO keyframe thresholds')
+            elif run.aligner is None and result.error is None:
                 examples = '; '.join(result.rejected_examples[:3])
                 if stats is not None and hasattr(stats, 'summary'):  # stereo: every reason
                     examples = f'stereo: {stats.summary()}'

@@ -43,6 +43,7 @@ def result_text(r: ReplayResult) -> str:
     lines = [f'replayed {r.bag}: {r.n_inputs} {unit} -> {r.n_measurements} measurements, '
              f'{r.n_nodes} nodes, {r.n_tracks} tracks, {len(r.updates)} updates '
              f'in {r.seconds:.2f} s ({r.rate:.0f} {unit.split()[-1]}/s)']
+    lines += [f'note: {note}' for note in r.notes]
     st = r.source_stats
     if r.source == 'stereo' and st:
         lines.append(f"VO: {st.get('pairs', 0)} pairs, {st.get('keyframes', 0)} keyframes, "
@@ -58,6 +59,17 @@ def result_text(r: ReplayResult) -> str:
                 lines.append(f"{name}: {v['samples']} samples, {v['keyframes']} keyframes, "
                              f"{v['constraints']} external constraints, "
                              f"{v['default_covariances']} default covariances")
+            elif isinstance(v, dict) and 'not_covered' in v:
+                lines.append(f"{name}: {v['samples']} samples, {v['measurements']} keyframe "
+                             f"intervals measured, {v['not_covered']} not covered, "
+                             f"{v['pending']} after its last sample, "
+                             f"{v['default_covariances']} default covariances")
+        cam = st.get('camera')
+        if isinstance(cam, dict):
+            lines.append(f"camera: {cam['pairs']} pairs, {cam['keyframes_with_image']} keyframes "
+                         f"with an image ({cam['keyframes_without_image']} without), "
+                         f"{cam['cross_accepted']} cross-track connections accepted of "
+                         f"{cam['cross_attempts']} verified candidates")
         warn = st.get('warnings', {})
         if isinstance(warn, dict) and warn.get('first'):
             lines.append(f"warning: {warn['first']}")

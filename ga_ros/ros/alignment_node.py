@@ -42,6 +42,7 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
@@ -63,6 +64,7 @@ from ga_ros.pipeline.inputs import (
     InputStep,
     decode_measurement,
 )
+from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config, updated_config
@@ -445,7 +447,7 @@ class AlignmentNode(Node):
         if not names:
             return None
         specs = []
-        for k, name in enumerate(names):
+        for name in names:
             why = 'the input is set up at start'
             topic = self.declare_parameter(f'{name}.topic', '', ParameterDescriptor(
                 description=f'{name}: input topic (read-only: {why})', read_only=True)).value
@@ -454,11 +456,40 @@ class AlignmentNode(Node):
                 read_only=True)).value
             cfg = declare_config(self, OdometryInputConfig, prefix=f'{name}.',
                                  read_only_reason=why,
-                                 defaults=OdometryInputConfig(name, first_node_id=k * 10**9))
+                                 defaults=OdometryInputConfig(name))
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
             specs.append(InputSpec(str(topic), str(msgtype), replace(cfg, name=name)))
-        return InputFrontEnd(specs, s.input_warn_throttle_sec)
+        return InputFrontEnd(specs, s.input_warn_throttle_sec, camera=self._declare_camera())
+
+    def _declare_camera(self) -> KeyframeCamera | None:
+        """Parameters ``camera.*`` of a stereo camera beside the odometry (cross-track
+        connections on the first input's keyframes); None when ``camera.left_image_topic`` is
+        empty."""
+        why = 'the camera is set up at start'
+
+        def declare(name: str, default: Any, text: str) -> Any:
+            return self.declare_parameter(f'camera.{name}', default, ParameterDescriptor(
+                description=f'{text} (read-only: {why})', read_only=True)).value
+
+        topics_ = {side: (declare(f'{side}_image_topic', '', f'{side} image topic (empty: no '
+                                  'camera)'),
+                          declare(f'{side}_info_topic', '', f'{side} CameraInfo topic'))
+                   for side in ('left', 'right')}
+        compressed = declare('compressed', False, 'subscribe to sensor_msgs/CompressedImage')
+        extrinsic = declare('base_to_camera', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                            'T_base_cam of the left optical frame: x y z qx qy qz qw')
+        offset = declare('max_image_offset_s', 0.25,
+                         'largest time between a keyframe and its image pair (s)')
+        if not topics_['left'][0]:
+            return None
+        if not all(t for pair in topics_.values() for t in pair):
+            raise InputError('camera: set camera.left_image_topic, camera.right_image_topic, '
+                             'camera.left_info_topic and camera.right_info_topic')
+        self._camera_topics = (topics_, bool(compressed))
+        return KeyframeCamera(KeyframeCameraConfig(
+            base_to_camera=tuple(float(v) for v in extrinsic),
+            max_image_offset_s=float(offset)))
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
         if self.front is None:
@@ -473,12 +504,28 @@ class AlignmentNode(Node):
                                  measurement_qos(1000))
         self.create_subscription(Empty, s.track_boundary_topic,
                                  lambda _msg: self.front.track_boundary(), 10)
+        if self.front.camera is not None:
+            cam_topics, compressed = self._camera_topics
+            img_type = CompressedImage if compressed else Image
+            for side, (image, info) in cam_topics.items():
+                self.create_subscription(img_type, image, partial(self._on_camera_image, side),
+                                         qos)
+                self.create_subscription(CameraInfo, info, partial(self._on_camera_info, side),
+                                         qos)
         self.get_logger().info('standard inputs: ' + ', '.join(
             f'{sp.name} {sp.topic} [{sp.msgtype}]' for sp in self.front.specs.values()))
 
     def _on_input(self, name: str, msg: Any) -> None:
         assert self.front is not None
         self._after_input(self.front.sample(name, msg), msg)
+
+    def _on_camera_image(self, side: str, msg: Any) -> None:
+        assert self.front is not None
+        self._after_input(self.front.image(side, msg), msg)
+
+    def _on_camera_info(self, side: str, msg: Any) -> None:
+        assert self.front is not None
+        self._after_input(self.front.camera_info(side, msg), msg)
 
     def _on_constraint(self, msg: Odometry) -> None:
         assert self.front is not None
@@ -630,6 +677,7 @@ class AlignmentNode(Node):
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
         if self.front is not None:
             self._T_map_odom = self.front.map_to_odom(cp.node_ids, cp.T_world_node)
+            self.front.set_corrected(cp.node_ids, cp.T_world_node)
         elif self._f2f is not None:
             self._T_map_odom = self._f2f.map_to_odom(cp.node_ids, cp.T_world_node)
         self._publish_tf()

@@ -56,13 +56,22 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    default=[], metavar='TOPIC',
                    help='odometry / pose input: nav_msgs/Odometry, geometry_msgs/'
                         'PoseWithCovarianceStamped or PoseStamped (type from the bag); '
-                        'repeatable: inputs odom0, odom1, ...')
+                        'repeatable: inputs odom0, odom1, ...; the first defines the keyframes, '
+                        'the others measure the motion between them')
     s.add_argument('--input-config', type=Path, metavar='YAML',
                    help='input settings by name (config/inputs.yaml: keyframes, covariance '
                         'policy, track rule; a section with a topic adds that input)')
     s.add_argument('--constraints-topic', default='',
                    help='external constraints (nav_msgs/Odometry, stamp/<ns> or node/<id> ends)')
     s.add_argument('--track-boundary-topic', default='', help='std_msgs/Empty: new track')
+    s.add_argument('--camera-extrinsic', nargs=7, type=float, metavar=('X', 'Y', 'Z', 'QX', 'QY',
+                                                                      'QZ', 'QW'),
+                   help='with --odom-topic and --left-image/--right-image: a stereo camera '
+                        'beside the odometry, T_base_cam of its left optical frame (m, '
+                        'quaternion; default identity); its images give cross-track '
+                        'connections on the odometry keyframes')
+    s.add_argument('--image-offset', type=float, default=0.25, metavar='S',
+                   help='largest time between an odometry keyframe and its image pair (s)')
     s.add_argument('--covariance-policy', choices=('reject', 'repair'), default='reject',
                    help='measurement covariances that are not positive definite: reject them '
                         '(as the live node) or repair them by eigenvalue clipping')
@@ -139,11 +148,30 @@ def input_topics(args: argparse.Namespace) -> InputTopics:
         if not isinstance(sections, dict):
             raise InputError(f'{args.input_config}: expected sections named like odom0, pose0')
     named = {f'odom{k}': t for k, t in enumerate(args.input_topics)}
-    firsts = {n: {'first_node_id': 1_000_000_000 * k} for k, n in enumerate(named) if k}
-    for n, extra in firsts.items():
-        sections[n] = {**extra, **(sections.get(n) or {})}
-    return InputTopics(specs_from_mapping(sections, named), args.constraints_topic,
-                       args.track_boundary_topic)
+    specs = specs_from_mapping(sections, named)
+    return InputTopics(specs, args.constraints_topic, args.track_boundary_topic,
+                       camera=camera_topics(args) if specs else None)
+
+
+def camera_topics(args: argparse.Namespace) -> Any:
+    """A stereo camera beside the odometry (``--left-image`` and ``--right-image`` with
+    ``--odom-topic``), else None."""
+    if not (args.left_image or args.right_image):
+        return None
+    if not (args.left_image and args.right_image):
+        raise InputError('a camera beside the odometry needs both --left-image and '
+                         '--right-image')
+    from ga_ros.pipeline.keyframe_camera import KeyframeCameraConfig
+    from ga_ros.pipeline.stereo import FrontEndConfig
+    from ga_ros.replay.inputs import CameraTopics
+    from ga_ros.replay.stereo import front_end_config
+
+    front = front_end_config(vo_config(args))
+    extrinsic = tuple(args.camera_extrinsic or (0, 0, 0, 0, 0, 0, 1))
+    assert isinstance(front, FrontEndConfig)
+    config = KeyframeCameraConfig(front, extrinsic, args.image_offset)
+    return CameraTopics(args.left_image, args.right_image, args.left_info, args.right_info,
+                        tuple(map(str, args.calibration)), config)
 
 
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:

@@ -1,0 +1,186 @@
+"""A stereo camera beside a drifting odometry (:mod:`ga_ros.pipeline.keyframe_camera`).
+
+An aerial robot flies a lawnmower (two double swaths, :mod:`ga_ros.sim.stereo`) with its own
+odometry at 10 Hz (a heading drift and a 1 % scale error) and a nadir stereo camera at 2 Hz
+mounted off the base (a rotation and a lever arm). The bag holds ``/odom``, the compressed
+images and their ``CameraInfo``, as a robot records them; the ground truth (base poses) is a
+TUM file. The odometry defines the keyframes; the images give cross-track connections
+between swaths, which must correct the drift.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ga_ros.geometry import se3
+from ga_ros.inputs.odometry import interpolate_pose
+from ga_ros.io.bag import CAMERA_INFO, COMPRESSED_IMAGE, header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.trajectory import write_tum
+
+pytest.importorskip('cv2')
+
+#: the left camera's optical frame in the base frame (x forward, z up): looking down, image
+#: x to the base's right, 0.4 m ahead of and 0.2 m below the base origin
+R_BASE_CAM = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+T_BASE_CAM = se3.from_rt(R_BASE_CAM, np.array([0.4, 0.0, -0.2]))
+ODOM_HZ = 10
+
+
+def write_robot_bag(path: Path, gt_file: Path) -> None:
+    from ga_ros.replay.samples import camera_info_msg, compressed_image_msg
+    from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
+
+    survey = lawnmower(LawnmowerConfig(n_tracks=2, positions_per_swath=12, turn_positions=8,
+                                       seed=5))
+    rig = StereoRig.for_size(320, 240)
+    scene = make_scene(survey, rig, seed=5)
+    rng = np.random.default_rng(5)
+    t0 = 1_700_000_000_000_000_000
+    T_world_base = survey.T_world_cam @ se3.inverse(T_BASE_CAM)
+    # base poses at the odometry rate, interpolated between the frames
+    period = int(1e9 / ODOM_HZ)
+    stamps = np.arange(0, int(survey.stamps_ns[-1]) + 1, period)
+    k = np.clip(np.searchsorted(survey.stamps_ns, stamps, side='right') - 1, 0,
+                len(survey.stamps_ns) - 2)
+    alpha = (stamps - survey.stamps_ns[k]) / np.diff(survey.stamps_ns)[k]
+    gt = np.array([interpolate_pose(T_world_base[i], T_world_base[i + 1], a)
+                   for i, a in zip(k, alpha)])
+    odom = [np.eye(4)]
+    for a, b in zip(gt[:-1], gt[1:]):
+        D = se3.relative(a, b)
+        D[:3, 3] *= 1.01
+        drift = se3.exp(np.array([0, 0, 0, 0, 0, 0.004 / ODOM_HZ]))
+        odom.append(odom[-1] @ D @ drift)
+    write_tum(gt_file, stamps + t0, gt)
+    types = typestore().types
+    vec = types['geometry_msgs/msg/Vector3']
+    rows = []
+    for s, T in zip(stamps + t0, odom):
+        msg = types['nav_msgs/msg/Odometry'](
+            header=header('odom', int(s)), child_frame_id='base_link',
+            pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
+                                                               covariance=np.zeros(36)),
+            twist=types['geometry_msgs/msg/TwistWithCovariance'](
+                twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
+                                                       angular=vec(x=0.0, y=0.0, z=0.0)),
+                covariance=np.zeros(36)))
+        rows.append((int(s), '/odom', 'nav_msgs/msg/Odometry', msg))
+    for s, T in zip(survey.stamps_ns + t0, survey.T_world_cam):
+        s = int(s)
+        left, right = scene.render_pair(T, rng)
+        late = s + 30_000_000  # the images arrive after the odometry of their time
+        rows += [
+            (late, '/cam/left/camera_info', CAMERA_INFO,
+             camera_info_msg(rig.K, rig.width, rig.height, 'cam_left', s)),
+            (late, '/cam/right/camera_info', CAMERA_INFO,
+             camera_info_msg(rig.K, rig.width, rig.height, 'cam_right', s,
+                             -rig.focal_px * rig.baseline_m)),
+            (late, '/cam/left/image/compressed', COMPRESSED_IMAGE,
+             compressed_image_msg(left, 'cam_left', s)),
+            (late, '/cam/right/image/compressed', COMPRESSED_IMAGE,
+             compressed_image_msg(right, 'cam_right', s))]
+    with BagWriter(path) as bag:
+        for log_ns, topic, msgtype, msg in sorted(rows, key=lambda r: r[0]):
+            bag.write(topic, msgtype, msg, log_ns)
+
+
+@pytest.fixture(scope='module')
+def robot_bag(tmp_path_factory) -> tuple[Path, Path]:
+    tmp = tmp_path_factory.mktemp('camera_beside')
+    write_robot_bag(tmp / 'in', tmp / 'gt.tum')
+    return tmp / 'in', tmp / 'gt.tum'
+
+
+def test_camera_beside_odometry_makes_cross_track_connections(robot_bag, tmp_path: Path,
+                                                             capsys) -> None:
+    from ga_ros.cli.main import main
+
+    bag, gt_file = robot_bag
+    (tmp_path / 'inputs.yaml').write_text(
+        'odom0:\n  keyframe_travel_m: 11.0\n  track_mode: heading\n  swaths_per_track: 2\n'
+        '  default_noise_percent: 1.0\n  default_depth_m: 110.0\n')
+    p, q = se3.to_pos_quat(T_BASE_CAM)
+    rc = main(['replay', str(bag), '--odom-topic', '/odom', '--input-config',
+               str(tmp_path / 'inputs.yaml'),
+               '--left-image', '/cam/left/image/compressed',
+               '--right-image', '/cam/right/image/compressed',
+               '--left-info', '/cam/left/camera_info', '--right-info', '/cam/right/camera_info',
+               '--camera-extrinsic', *map(str, [*p, *q]), '--ground-truth', str(gt_file),
+               '--out', str(tmp_path / 'out'), '--no-plot', '--no-progress', '--json'])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    import json
+
+    res = json.loads(out)
+    cam = res['source_stats']['camera']
+    assert cam['keyframes_with_image'] >= 0.8 * res['source_stats']['odom0']['keyframes']
+    assert cam['cross_accepted'] > 5 and cam['rejected'] == 0, cam
+    assert res['rejected'] == {}, res['rejected_examples']
+    err = res['errors_vs_ground_truth']
+    assert err['ga']['ate_raw_m'] < 0.5 * err['f2f']['ate_raw_m'], (err, cam)
+
+
+def test_change_frame_against_composition() -> None:
+    """The base motion and covariance from a camera motion, against composing sampled
+    perturbations (Monte-Carlo of the right perturbation through the extrinsic)."""
+    rng = np.random.default_rng(0)
+    T_ca_cb = se3.exp(np.array([1.0, -2.0, 0.5, 0.1, -0.2, 0.3]))
+    L = rng.normal(0, 0.02, (6, 6))
+    C = L @ L.T + 1e-4 * np.eye(6)
+    T_b, C_b = se3.change_frame(T_ca_cb, C, T_BASE_CAM)
+    np.testing.assert_allclose(T_b, T_BASE_CAM @ T_ca_cb @ se3.inverse(T_BASE_CAM), atol=1e-12)
+    d = rng.multivariate_normal(np.zeros(6), C, 20000)
+    samples = T_BASE_CAM @ (T_ca_cb @ se3.exp(d)) @ se3.inverse(T_BASE_CAM)
+    e = se3.log(se3.inverse(T_b) @ samples)
+    np.testing.assert_allclose(np.cov(e.T), C_b, atol=3e-5 + 0.05 * np.abs(C_b).max())
+
+
+def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
+    """The node with ``inputs: odom0`` and ``camera.*`` topics, fed the bag's messages by its
+    callbacks (in-process): cross-track connections are made and accepted."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.parameter import Parameter
+
+    from ga_ros.io.bag import BagReader
+    from ga_ros.ros.alignment_node import AlignmentNode
+
+    bag, _ = robot_bag
+    p, q = se3.to_pos_quat(T_BASE_CAM)
+    params = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.keyframe_travel_m': 11.0,
+              'odom0.track_mode': 'heading', 'odom0.default_noise_percent': 1.0,
+              'odom0.default_depth_m': 110.0,
+              'camera.left_image_topic': 'cam/left/image/compressed',
+              'camera.right_image_topic': 'cam/right/image/compressed',
+              'camera.left_info_topic': 'cam/left/camera_info',
+              'camera.right_info_topic': 'cam/right/camera_info', 'camera.compressed': True,
+              'camera.base_to_camera': [float(v) for v in (*p, *q)],
+              'publish_markers': False, 'diagnostics_period_sec': 0.0,
+              'transform_publish_period_sec': 0.0}
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
+    node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                           for k, v in params.items()])
+    try:
+        subs = {s.topic_name for s in node.subscriptions}
+        assert {'/cam/left/image/compressed', '/cam/right/camera_info'} <= subs
+        with BagReader(bag) as reader:
+            for bm in reader.messages(None):
+                side = 'left' if '/left/' in bm.topic else 'right'
+                if bm.topic == '/odom':
+                    node._on_input('odom0', bm.msg)
+                elif bm.topic.endswith('camera_info'):
+                    node._on_camera_info(side, bm.msg)
+                else:
+                    node._on_camera_image(side, bm.msg)
+        cam = node.front.stats()['camera']
+        assert cam['cross_accepted'] > 5 and cam['rejected'] == 0, cam
+        assert sum(node.session.counts.rejected.values()) == 0
+        assert node.session.counts.accepted == (node.front.inputs['odom0'].stats.measurements
+                                                + cam['cross_accepted'])
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
