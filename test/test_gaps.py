@@ -302,3 +302,22 @@ def test_malformed_measurements_from_unknown_nodes_get_the_aligners_reason(sampl
     assert out.reason == {'nan_id': 'bad_id', 'nan_z': 'non_finite', 'shape': 'bad_shape',
                           'stamp': 'bad_stamp', 'kind': 'bad_kind'}[bad]
     assert session.diagnostic_values()['held_measurements'] == 0
+
+
+def test_the_end_of_a_track_bridges_what_is_still_held(sample) -> None:
+    """With the default waits (300 arrivals, 30 s) nothing is bridged during the stream; the
+    track end (``~/finish_track``, the end of input) admits the held measurements behind a
+    bridge, and the next measurements continue from them."""
+    ms = _unfilled(sample.measurements)
+    i, _ = _slice_of_nodes(sample.measurements, 15, 18)
+    session = AlignmentSession(WINDOW)
+    for m in ms[:i + 2]:
+        session.step(m)
+    held = session.diagnostic_values()['held_measurements']
+    assert held == 2 and session.diagnostic_values()['bridges'] == 0
+    n_nodes = session.n_nodes()
+    session.finish_track()
+    values = session.diagnostic_values()
+    assert values['held_measurements'] == 0 and values['bridges'] == 1
+    assert session.n_nodes() == n_nodes + 3  # the bridged node and the held ones' new nodes
+    assert values['unjoined_nodes'] == 3 and values['rejected'] == 0
