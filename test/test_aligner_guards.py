@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import ga_ros.core.window as window
+import ga_ros.core.window.update as window
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError
@@ -31,9 +31,10 @@ def _with(m, **kw):
 
 
 def _snapshot(al):
-    n = len(al._ids)
-    return (al._T[:n].copy(), al._cov[:n].copy(), al._frozen[:n].copy(), al._status.a.copy(),
-            len(al._priors), al.stats.n_connections)
+    n = len(al.state.ids)
+    st = al.state
+    return (st.T[:n].copy(), st.cov[:n].copy(), st.frozen[:n].copy(), st.status.a.copy(),
+            len(al.state.priors), al.stats.n_connections)
 
 
 def _assert_same(a, b):
@@ -155,8 +156,8 @@ def test_a_failed_update_restores_the_previous_state_and_is_retried(ms, monkeypa
     real_freeze = TrackWindowAligner._freeze
 
     def broken_freeze(self, track):
-        self._frozen[:3] = True
-        self._cov[:3] = np.nan
+        self.state.frozen[:3] = True
+        self.state.cov[:3] = np.nan
         raise np.linalg.LinAlgError('Matrix is not positive definite')
 
     monkeypatch.setattr(TrackWindowAligner, '_freeze', broken_freeze)

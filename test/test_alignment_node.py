@@ -245,7 +245,7 @@ def test_node_in_process_matches_direct(node_in_process, rng, tmp_path):
 
 
 def test_solver_failure_keeps_previous_estimate(node_in_process, rng, monkeypatch):
-    import ga_ros.core.window as window
+    import ga_ros.core.window.update as window
     from ga_ros.errors import SolverError
 
     node = node_in_process

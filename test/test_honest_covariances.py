@@ -42,8 +42,8 @@ def _monte_carlo(per_swath: int, runs: int, seed: int, **prior) -> tuple[dict, i
             al = TrackWindowAligner(cfg, sc.T_world_node[0])
             al.add_measurements(ms)
             al.finish_track()
-            assert (al._retired > 0) == (horizon > 0)
-            n_sparse += sum(sp.issparse(info) for _, _, info in al._priors)
+            assert (al.state.retired > 0) == (horizon > 0)
+            n_sparse += sum(sp.issparse(info) for _, _, info in al.state.priors)
             nees[policy].append(position_nees(al.corrected_path().T_world_node[1:],
                                                al.covariances(ids), truth))
         al.refine_batch()
@@ -110,7 +110,7 @@ def test_refine_batch_covariances_by_sparse_selected_inversion_equal_dense(monke
     al = TrackWindowAligner(AlignerConfig(window_tracks=2), sc.T_world_node[0])
     al.add_measurements(sc.measurements(nm.z, nm.cov))
     al.refine_batch()
-    res = al._last
+    res = al.last_adjustment
     dense = np.linalg.inv(res.normal_matrix.toarray())
     col = {int(i): k for k, i in enumerate(res.free_node_ids)}
     ids = sc.node_ids[1:]

@@ -8,7 +8,7 @@ second-order model of the absorbed connections at the freeze estimate, in the SE
 ``log(T_mean^-1 T)``, whose translation mixes the rotation with the absolute displacement of the
 boundary; the next track moves that boundary far (100-300 m, several degrees on a 2-4 km swath)
 and there the model was 70 chi-square units too cheap. The prior now takes position and
-rotation apart (:func:`ga_ros.core.models.prior_residual`, :func:`ga_ros.core.refinement.
+rotation apart (:func:`ga_ros.core.models.prior_residual`, :func:`ga_ros.core.window.freeze.
 tangent_prior`): the same quadratic at the linearisation point (a change of variables), but it
 holds where the window goes. The survey made small enough for a unit test: 2 double tracks, 200
 poses per swath, 20 % noise, window 1 track.
@@ -21,9 +21,9 @@ import pytest
 import scipy.sparse as sp
 
 from ga_ros.core import models
-from ga_ros.core.refinement import tangent_prior
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.freeze import tangent_prior
 from ga_ros.eval import position_nees
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
@@ -55,7 +55,7 @@ def _aligner(sc, nm, batch=None) -> TrackWindowAligner:
                             sc.T_world_node[0])
     al.add_measurements(sc.measurements(nm.z, nm.cov))
     if batch is not None:
-        al._T[:sc.n_nodes] = batch.T_world_node[np.asarray(al._ids)]
+        al.state.T[:sc.n_nodes] = batch.T_world_node[np.asarray(al.state.ids)]
     al.finish_track()
     return al
 
@@ -83,10 +83,10 @@ def test_the_frozen_prior_holds_where_the_window_moves_the_boundary(survey, firs
     (docs/design.md, "The frozen prior's residual: position and rotation apart")."""
     sc, nm, batch = survey
     al = first_estimate
-    (idx, mean, H), = al._priors
+    (idx, mean, H), = al.state.priors
     H = H.toarray() if sp.issparse(H) else H
-    ids = np.asarray(al._ids)[idx]
-    wn, wT = al._T_weighted
+    ids = np.asarray(al.state.ids)[idx]
+    wn, wT = al.state.T_weighted
     where = {int(i): k for k, i in enumerate(wn)}
     T_window = wT[[where[int(i)] for i in ids]]
     n0 = 2 * PER_SWATH  # the first double track; the datum is node 0
@@ -103,7 +103,7 @@ def test_the_frozen_prior_holds_where_the_window_moves_the_boundary(survey, firs
         e, _ = models.prior_residual('se3', T_S, mean)
         return float(e.ravel() @ H @ e.ravel())
 
-    T_lin = al._T[idx]  # frozen nodes are not written back: the freeze estimate
+    T_lin = al.state.T[idx]  # frozen nodes are not written back: the freeze estimate
     for T in (batch.T_world_node[ids], T_window):
         true_rise = true_cost(T) - true_cost(T_lin)
         prior_rise = prior_cost(T) - prior_cost(T_lin)

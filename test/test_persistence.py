@@ -1,4 +1,4 @@
-"""Aligner snapshots (core/persistence.py) and the safe-write helper (io/atomic.py)."""
+"""Aligner snapshots (core/window/persistence.py) and the safe-write helper (io/atomic.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from dataclasses import asdict, replace
 import numpy as np
 import pytest
 
-from ga_ros.core.persistence import _PREFIX, MAGIC, is_state_file, load_state, save_state
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import _PREFIX, MAGIC, is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, InputError, UnsafePathError
 from ga_ros.io.atomic import atomic_write, move_aside
 from ga_ros.sim.aerial import aerial_scenario
@@ -37,9 +37,9 @@ def _state(al):
     st = al.stats
     return dict(ids=p.node_ids, tracks=p.track_ids, stamps=p.stamps_ns, T=p.T_world_node,
                 frozen=p.frozen, src=src, dst=dst, z=z, cross=cross, status=status,
-                ccov=al.connection_covariances(), cov=al._cov[:len(al._ids)],
+                ccov=al.connection_covariances(), cov=al.state.cov[:len(al.state.ids)],
                 priors=[np.concatenate([np.ravel(a.toarray() if hasattr(a, 'toarray') else a)
-                                        .astype(float) for a in p]) for p in al._priors],
+                                        .astype(float) for a in p]) for p in al.state.priors],
                 counts=(st.n_nodes, st.n_connections, st.n_rejected, st.tracks_in_window,
                         st.n_updates, st.n_outliers, al.open_track))
 
@@ -53,8 +53,9 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
     back = load_state(tmp_path / 'state')
     assert back.journal_records == cut
     a, b = _state(al), _state(back.aligner)
-    al._prune_pairs()   # the duplicate keys a measurement can still hit (no frozen node)
-    assert back.aligner._pairs == al._pairs and al._pairs   # the duplicate test is restored too
+    al.state.prune_pairs()   # the duplicate keys a measurement can still hit (no frozen node)
+    # the duplicate test is restored too
+    assert back.aligner.state.pairs == al.state.pairs and al.state.pairs
     for key in a:
         if key == 'priors':
             assert len(a[key]) == len(b[key]) and a[key]   # both policies carry joint priors
@@ -67,7 +68,7 @@ def test_round_trip_is_exact_and_resumes_like_an_uninterrupted_run(tmp_path, pol
     # covariances of window nodes are recomputed on demand from the same window problem, at
     # the saved estimate: the uninterrupted aligner's come from its update's last
     # factorisation (solve(factor_at_solution=False)), a fraction of a correction away
-    window_ids = al.corrected_path().node_ids[al._last_window]
+    window_ids = al.corrected_path().node_ids[al.state.last_window]
     ref = al.covariances(window_ids[1:6])
     np.testing.assert_allclose(back.aligner.covariances(window_ids[1:6]), ref, rtol=1e-3,
                                atol=1e-4 * np.abs(ref).max())
@@ -119,23 +120,26 @@ def test_version_one_npz_snapshots_are_still_read(tmp_path):
     """A snapshot in the old .npz layout (written here as the previous save() did) loads."""
     sc, ms = _survey(n_tracks=3)
     al = _aligner(ms)
-    n = len(al._ids)
+    n = len(al.state.ids)
     meta = {'version': 1, 'config': OLD_FLAT_CONFIG,
-            'tracks': al._tracks, 'finished': sorted(al._finished), 'open_track': al._open_track,
-            'rejected': al._rejected, 'n_updates': al._n_updates,
-            'n_outliers': al._n_outliers, 'last_window': al._last_window.tolist()}
+            'tracks': al.state.tracks, 'finished': sorted(al.state.finished),
+            'open_track': al.state.open_track,
+            'rejected': al.state.rejected, 'n_updates': al.state.n_updates,
+            'n_outliers': al.state.n_outliers, 'last_window': al.state.last_window.tolist()}
     np.savez_compressed(tmp_path / 'old.npz',
                         meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-                        T_first=al._T_first, ids=np.asarray(al._ids), track=np.asarray(al._track),
-                        stamp=np.asarray(al._stamp), T=al._T[:n], cov=al._cov[:n],
-                        frozen=al._frozen[:n], src=al._src.a, dst=al._dst.a, z=al._z.a,
-                        ccov=al.connection_covariances(), cross=al._cross.a,
-                        status=al._status.a.astype(np.int64),
+                        T_first=al.state.T_first, ids=np.asarray(al.state.ids),
+                        track=np.asarray(al.state.track),
+                        stamp=np.asarray(al.state.stamp), T=al.state.T[:n], cov=al.state.cov[:n],
+                        frozen=al.state.frozen[:n], src=al.state.src.a, dst=al.state.dst.a,
+                        z=al.state.z.a,
+                        ccov=al.connection_covariances(), cross=al.state.cross.a,
+                        status=al.state.status.a.astype(np.int64),
                         n_priors=np.array(0))
     assert is_state_file(tmp_path / 'old.npz')
     back = load_state(tmp_path / 'old.npz').aligner
-    al._prune_pairs()
-    assert back._pairs == al._pairs
+    al.state.prune_pairs()
+    assert back.state.pairs == al.state.pairs
     assert back.config == AlignerConfig(window_tracks=2,
                                         solver=replace(ALIGNER_SOLVER, tolerance=1e-7))
     np.testing.assert_array_equal(back.corrected_path().T_world_node,
@@ -219,8 +223,8 @@ def test_version_two_files_load_and_unknown_versions_are_refused(tmp_path, monke
     """Version 2 stored the covariances as full 6x6 matrices (written here as that version's
     save did); they load into the compact storage exactly. A newer version is refused with
     a message that says what to do."""
-    from ga_ros.core import persistence
-    from ga_ros.core.storage import unpack_sym6
+    from ga_ros.core.window import persistence
+    from ga_ros.core.window.storage import unpack_sym6
 
     sc, ms = _survey(n_tracks=4)
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 3) + 2

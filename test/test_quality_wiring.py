@@ -135,9 +135,9 @@ def test_update_quality_with_frozen_tracks_equals_quality_control(sample):
     cfg = AlignerConfig(window_tracks=1, quality=True, outlier_chi2_prob=0.0)
     al, ups = run(sample.measurements, cfg, sample.ground_truth.T_world_node[0])
     q = ups[-1].quality
-    net, nodes, _, conns, fixed, priors = al._window_problem(al.stats.tracks_in_window)
+    net, nodes, _, conns, fixed, priors = al.updater.window_problem(al.stats.tracks_in_window)
     assert priors, 'the window must hold a prior for this test'
-    res = al._last
+    res = al.last_adjustment
     assert res.n_unknowns == ups[-1].n_unknowns
     rep = quality_control(net, res, priors, cfg.quality_config())
     ref = summarise(rep, net)

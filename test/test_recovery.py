@@ -9,8 +9,8 @@ import os
 import numpy as np
 import pytest
 
-from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, UnsafePathError
 from ga_ros.pipeline.journal import (
     RECORD,
@@ -207,5 +207,6 @@ def test_journal_and_recovery_are_ros_free():
     import subprocess
     import sys
     code = ("import sys\nfor n in ('rclpy', 'nav_msgs', 'std_msgs', 'rosidl_runtime_py'):\n"
-            "    sys.modules[n] = None\nimport ga_ros.pipeline.journal, ga_ros.core.persistence\n")
+            "    sys.modules[n] = None\n"
+            "import ga_ros.pipeline.journal, ga_ros.core.window.persistence\n")
     subprocess.run([sys.executable, '-c', code], check=True, timeout=60)

@@ -10,15 +10,12 @@ import scipy.linalg as sla
 from solver_problems import noisy_aerial_survey
 
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.refinement import (
-    absorbed_priors,
-    prior_nodes,
-    refine_snapshot,
-    tangent_prior,
-)
 from ga_ros.core.solver import GaussianPrior, SolverConfig, normal_matrix_at, solve
-from ga_ros.core.storage import unpack_sym6
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.freeze import prior_nodes, tangent_prior
+from ga_ros.core.window.handoff import RefinementHandoff
+from ga_ros.core.window.refinement import absorbed_priors, refine_snapshot
+from ga_ros.core.window.storage import unpack_sym6
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
@@ -49,7 +46,7 @@ def test_config_refuses_bad_refinement_settings():
 def test_refinement_equals_a_batch_solve_of_the_snapshot():
     sc, nm, ms = _survey()
     al, _ = _run(AlignerConfig(window_tracks=2), sc, ms)
-    snap = al._snapshot()
+    snap = al.handoff.snapshot()
     res = refine_snapshot(snap)
     assert res.ok and snap.frozen.any()
     ref = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
@@ -89,7 +86,7 @@ def test_rebuilt_priors_equal_one_dense_schur_complement(policy):
     complement of every absorbed connection onto the prior nodes."""
     sc, nm, ms = _survey(n_tracks=5, per_swath=6)
     al, _ = _run(AlignerConfig(window_tracks=2, freeze_policy=policy), sc, ms)
-    snap = al._snapshot()
+    snap = al.handoff.snapshot()
     T = snap.T_world_node
     priors = absorbed_priors(snap, T)
     assert len(priors) == 1
@@ -126,15 +123,15 @@ def test_after_refine_batch_the_next_window_adjustment_stays_at_the_batch_optimu
     sc, nm, ms = _survey(n_tracks=5, per_swath=8, pct=5.0)
     al, _ = _run(AlignerConfig(window_tracks=2,
                                solver=replace(ALIGNER_SOLVER, tolerance=1e-10)), sc, ms)
-    old_priors = list(al._priors)
+    old_priors = list(al.state.priors)
     al.refine_batch()
-    window = [t for t in al._tracks if t in al._finished][-2:]
+    window = [t for t in al.state.tracks if t in al.state.finished][-2:]
     moves = []
-    for priors in (al._priors, old_priors):
-        al._priors = priors
-        net, nodes, _, _, fixed, gp = al._window_problem(window)
-        res = solve(net, al._T[nodes], SolverConfig(tolerance=1e-10), fixed=fixed, priors=gp)
-        moves.append(np.abs(res.T_world_node[:, :3, 3] - al._T[nodes][:, :3, 3]).max())
+    for priors in (al.state.priors, old_priors):
+        al.state.priors = priors
+        net, nodes, _, _, fixed, gp = al.updater.window_problem(window)
+        res = solve(net, al.state.T[nodes], SolverConfig(tolerance=1e-10), fixed=fixed, priors=gp)
+        moves.append(np.abs(res.T_world_node[:, :3, 3] - al.state.T[nodes][:, :3, 3]).max())
     assert moves[0] < 1e-5, moves
     assert moves[1] > 100 * moves[0] and moves[1] > 1e-4, moves
 
@@ -213,11 +210,13 @@ def test_replay_gives_the_identical_path_whatever_the_executor():
 
 
 def test_pattern_eliminations_equal_one_dense_conditional():
-    """:class:`~ga_ros.core.refinement._Marginal` eliminates in parts (interior nodes first,
+    """:class:`~ga_ros.core.window.elimination.Marginal` eliminates in parts (interior nodes first,
     each gain over the coupled nodes only): its Schur complement and its back substitution
-    (:func:`~ga_ros.core.refinement.smoothed`) against the dense ones of a chain of nodes with
+    (:func:`~ga_ros.core.window.elimination.smoothed`) against the dense ones of a chain of
+    nodes with
     a dense block over its first ones (a carried prior), written out here."""
-    from ga_ros.core.refinement import _Marginal, smoothed
+    from ga_ros.core.window.elimination import Marginal as _Marginal
+    from ga_ros.core.window.elimination import smoothed
 
     rng = np.random.default_rng(7)
     k = 12
@@ -266,17 +265,17 @@ def test_a_worker_lost_before_smoothing_leaves_the_refined_poses_unsmoothed(monk
 
     sc, _, ms = _survey(n_tracks=4, per_swath=6)
     installed = []
-    install = TrackWindowAligner._install
+    install = RefinementHandoff.install
 
     def install_then_kill(self, snap, res):
         install(self, snap, res)
         assert res.smoothing_kept and res.smoothing == ()
         if not installed:
-            for pid in list(self._refiner._pool._processes):
+            for pid in list(self.refiner._pool._processes):
                 os.kill(pid, signal.SIGKILL)
         installed.append(res.after_tracks)
 
-    monkeypatch.setattr(TrackWindowAligner, '_install', install_then_kill)
+    monkeypatch.setattr(RefinementHandoff, 'install', install_then_kill)
     al, ups = _run(_refining(executor='process'), sc, ms)
     al.close()
     hit = [u for u in ups if u.refined_after_tracks >= 0]
@@ -326,20 +325,21 @@ def test_the_worker_process_does_not_run_an_unguarded_script_again(tmp_path):
 
 @pytest.mark.parametrize('band', [-1, 2])
 def test_sparse_elimination_of_long_tracks_equals_the_dense_one(monkeypatch, band):
-    """Long tracks (:data:`~ga_ros.core.refinement.SPARSE_FROM_TRACK_NODES`) take one sparse
+    """Long tracks (:data:`~ga_ros.core.window.elimination.SPARSE_FROM_TRACK_NODES`) take one
+    sparse
     elimination: its priors (dense, or banded with hubs) and its smoothing against the
     track-by-track dense elimination of the same snapshot (a short survey, the threshold
     lowered), and so does the retirement's past prior."""
-    import ga_ros.core.refinement as refinement
+    import ga_ros.core.window.elimination as refinement
 
     sc, nm, ms = _survey(n_tracks=6, per_swath=6)
     al, _ = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0), sc, ms)
-    snap = replace(al._snapshot(), prior_band=band, prior_hubs=1 if band >= 0 else 0)
+    snap = replace(al.handoff.snapshot(), prior_band=band, prior_hubs=1 if band >= 0 else 0)
     T = snap.T_world_node
     out = {}
     for name, limit in (('dense', 10**9), ('sparse', 0)):
         monkeypatch.setattr(refinement, 'SPARSE_FROM_TRACK_NODES', limit)
-        priors, steps = refinement._eliminate_absorbed(snap, T)
+        priors, steps = refinement.eliminate_absorbed(snap, T)
         retired = refinement.retire_tracks(snap, T, 2)
         out[name] = priors, steps, retired
     assert isinstance(out['sparse'][1][0], refinement.SparseSmoothing)

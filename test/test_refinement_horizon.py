@@ -10,10 +10,10 @@ import numpy as np
 from solver_problems import noisy_aerial_survey
 
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.persistence import load_state, save_state
-from ga_ros.core.refinement import refine_snapshot
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import load_state, save_state
+from ga_ros.core.window.refinement import refine_snapshot
 
 
 def _config(horizon, window=2, executor='inline', band=-1, **solver):
@@ -46,15 +46,15 @@ def test_bounded_refinement_equals_the_whole_survey_one_while_the_survey_fits():
     are bit for bit those of ``refine_horizon_tracks = 0`` (the whole survey each time)."""
     sc, _, ms = noisy_aerial_survey(5, 6, 5.0, 4)
     runs = [_run(_config(h, band=16), sc, ms)[0] for h in (0, 5, 40)]
-    assert all(al._retired == 0 and not al._past for al in runs)
-    assert all(al._n_refinements >= 2 for al in runs)
+    assert all(al.state.retired == 0 and not al.state.past for al in runs)
+    assert all(al.handoff.n_refinements >= 2 for al in runs)
     for al in runs[1:]:
         np.testing.assert_array_equal(al.corrected_path().T_world_node,
                                       runs[0].corrected_path().T_world_node)
         np.testing.assert_array_equal(al.covariances(sc.node_ids[1:]),
                                       runs[0].covariances(sc.node_ids[1:]))
-        assert len(al._priors) == len(runs[0]._priors)
-        for (i, m, h), (i0, m0, h0) in zip(al._priors, runs[0]._priors):
+        assert len(al.state.priors) == len(runs[0].state.priors)
+        for (i, m, h), (i0, m0, h0) in zip(al.state.priors, runs[0].state.priors):
             np.testing.assert_array_equal(i, i0)
             np.testing.assert_array_equal(m, m0)
             np.testing.assert_array_equal(h.toarray() if hasattr(h, 'toarray') else h,
@@ -77,12 +77,12 @@ def test_bounded_refinement_is_the_batch_solution_in_the_linear_limit():
     for m in ms + [None]:
         ups = al.add_measurement(m) if m is not None else [al.finish_track()]
         for up in ups:
-            if up.refined_after_tracks < 0 or not al._retired:
+            if up.refined_after_tracks < 0 or not al.state.retired:
                 continue
             assert 'converged' in up.refine_reason, up.refine_reason
             batch = _batch(al, sc, f2f)
             path = al.corrected_path()
-            f = al._track_nodes[[t for t in al._tracks if t in al._finished][al._retired]][0]
+            f = al.state.track_nodes[al.state.finished_order()[al.state.retired]][0]
             gap = np.abs(path.T_world_node[f:, :3, 3] - batch.T_world_node[f:, :3, 3]).max()
             assert gap < 1e-3 * sd, (up.track_id, gap)
             frozen = np.nonzero(path.frozen)[0]
@@ -90,7 +90,7 @@ def test_bounded_refinement_is_the_batch_solution_in_the_linear_limit():
             cov = al.covariances(sc.node_ids[frozen])
             ref = batch.covariance(sc.node_ids[frozen])
             np.testing.assert_allclose(cov, ref, rtol=1e-3, atol=1e-3 * np.abs(ref).max())
-            checked.append((up.track_id, al._retired))
+            checked.append((up.track_id, al.state.retired))
     assert len(checked) >= 3 and checked[-1][1] >= 3, checked
 
 
@@ -104,20 +104,20 @@ def test_bounded_snapshots_do_not_grow_with_the_survey():
     sizes = []
     for m in ms:
         for up in al.add_measurement(m):
-            snap = al._snapshot()
+            snap = al.handoff.snapshot()
             sizes.append((up.track_id, snap.node_ids.size, snap.src.size))
             assert snap.node_ids.size <= 5 * per_track, sizes
     al.finish_track()
     al.close()
-    assert al._retired >= 5 and sizes[-1][1] < sc.node_ids.size / 2, sizes
-    snap = al._snapshot()
+    assert al.state.retired >= 5 and sizes[-1][1] < sc.node_ids.size / 2, sizes
+    snap = al.handoff.snapshot()
     res = refine_snapshot(snap)
     assert res.ok and snap.past and snap.first_node > 0
     assert res.past and res.T_world_node.shape[0] == snap.node_ids.size
     # refine_batch re-solves everything: the next refinement covers the whole survey again
     al.refine_batch()
-    assert al._retired == 0 and not al._past
-    assert al._snapshot().node_ids.size == sc.node_ids.size
+    assert al.state.retired == 0 and not al.state.past
+    assert al.handoff.snapshot().node_ids.size == sc.node_ids.size
 
 
 def test_save_restore_mid_survey_continues_the_same_path(tmp_path):
@@ -128,15 +128,15 @@ def test_save_restore_mid_survey_continues_the_same_path(tmp_path):
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 6) + 2
     a = TrackWindowAligner(cfg, sc.T_world_node[0])
     a.add_measurements(ms[:cut])
-    assert a._retired and a._past and a.refinement_state() is not None
+    assert a.state.retired and a.state.past and a.refinement_state() is not None
     save_state(a, tmp_path / 'state')
     b = load_state(tmp_path / 'state').aligner
-    assert b._retired == a._retired and len(b._past) == len(a._past)
+    assert b.state.retired == a.state.retired and len(b.state.past) == len(a.state.past)
     for x in (a, b):
         x.add_measurements(ms[cut:])
         x.finish_track()
         x.close()
-    assert b._retired == a._retired
+    assert b.state.retired == a.state.retired
     np.testing.assert_array_equal(b.corrected_path().T_world_node,
                                   a.corrected_path().T_world_node)
 
@@ -146,7 +146,7 @@ def test_bounded_replay_is_identical_whatever_the_executor():
     and the inline refinement give bit-identical paths and covariances."""
     sc, _, ms = noisy_aerial_survey(7, 4, 5.0, 9)
     runs = [_run(_config(3, executor=e, band=16), sc, ms)[0] for e in ('process', 'inline')]
-    assert runs[0]._retired == runs[1]._retired >= 2
+    assert runs[0].state.retired == runs[1].state.retired >= 2
     np.testing.assert_array_equal(runs[0].corrected_path().T_world_node,
                                   runs[1].corrected_path().T_world_node)
     np.testing.assert_array_equal(runs[0].covariances(sc.node_ids[1:]),
@@ -161,7 +161,7 @@ def test_a_refinement_stopped_at_max_iterations_is_installed_and_retires():
     al, ups = _run(_config(3, tolerance=1e-300, cost_tolerance=0.0), sc, ms)
     reasons = [u.refine_reason for u in ups if u.refined_after_tracks >= 0]
     assert reasons and all(r == 'max_iterations' for r in reasons), reasons
-    assert al._retired == 7 - 3 - 1 and al._n_refinements == len(reasons)
+    assert al.state.retired == 7 - 3 - 1 and al.handoff.n_refinements == len(reasons)
 
 
 def test_horizon_rows_are_every_connection_between_the_horizons_nodes(tmp_path):
@@ -175,12 +175,12 @@ def test_horizon_rows_are_every_connection_between_the_horizons_nodes(tmp_path):
     al.add_measurements(ms[:-5])  # the last track still open
     save_state(al, tmp_path / 'state.npz')
     for aligner in (al, load_state(tmp_path / 'state.npz').aligner):
-        src, dst = aligner._src.a, aligner._dst.a
-        starts = [int(aligner._track_nodes[t][0]) for t in aligner._tracks]
+        src, dst = aligner.state.src.a, aligner.state.dst.a
+        starts = [int(aligner.state.track_nodes[t][0]) for t in aligner.state.tracks]
         assert len(starts) == 6 and src.size > 100
         for f in starts[1:]:
             for m in (src.size, src.size - 7, src.size // 2):
                 want = np.flatnonzero((src[:m] >= f) & (dst[:m] >= f))
-                got = aligner._horizon_rows(f, m)
+                got = aligner.state.horizon_rows(f, m)
                 assert got.dtype == np.int64
                 np.testing.assert_array_equal(got, want)

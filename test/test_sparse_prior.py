@@ -3,7 +3,7 @@
 Checked against dense computations: the band of ``N^-1`` by selected inversion against a dense
 inverse, the maximum-entropy completion against the dense covariance it completes, the aligner's
 sparse priors against the dense (exact Schur complement) ones, a persistence round trip, and
-``refinement.marginal_prior`` (the one rule of the freeze and the refinement) on every path
+``freeze.marginal_prior`` (the one rule of the freeze and the refinement) on every path
 against the dense Schur complement.
 """
 
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from ga_ros.core import refinement
 from ga_ros.core.linalg.banded import (
     CovarianceSkeleton,
     band_information,
@@ -23,10 +22,12 @@ from ga_ros.core.linalg.banded import (
     dense_band,
     skeleton_layout,
 )
-from ga_ros.core.persistence import load_state, save_state
-from ga_ros.core.refinement import absorbed_priors, band_prior, marginal_prior, tangent_prior
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import freeze as refinement
+from ga_ros.core.window.freeze import band_prior, marginal_prior, tangent_prior
+from ga_ros.core.window.persistence import load_state, save_state
+from ga_ros.core.window.refinement import absorbed_priors
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
@@ -225,23 +226,20 @@ def test_sparse_prior_freeze_keeps_the_exact_marginals_of_the_boundary(policy, m
     """At the first freeze the sparse prior's covariance equals the exact (dense) one on the
     band, in particular every boundary node's marginal covariance, and its mean equals the
     dense prior's mean."""
-    import ga_ros.core.window as window
+    from ga_ros.core.window.freeze import FreezePolicy
 
     sc, _, ms = _survey()
     seen = {}
-    orig = window.TrackWindowAligner._marginalise
+    orig = FreezePolicy.marginalise
 
-    def once(self, L, *args):
-        out = orig(self, L, *args)  # computes the prior, changes nothing (installed later)
+    def once(self, state, L, priors, n, nc, band, hubs):
+        out = orig(self, state, L, priors, n, nc, band, hubs)  # changes nothing
         if 'dense' not in seen:
-            cfg = self.config
-            self.config = replace(cfg, prior_band=-1)
-            seen['dense'] = orig(self, L, *args)[2]
-            self.config = cfg
+            seen['dense'] = orig(self, state, L, priors, n, nc, -1, hubs)[2]
             seen['sparse'] = out[2]
         return out
 
-    monkeypatch.setattr(window.TrackWindowAligner, '_marginalise', once)
+    monkeypatch.setattr(FreezePolicy, 'marginalise', once)
     w = 2
     _run(AlignerConfig(window_tracks=2, freeze_policy=policy, prior_band=w, prior_hubs=2,
                        refine_every_tracks=0), sc, ms)
@@ -270,7 +268,7 @@ def test_sparse_prior_window_is_close_to_the_dense_one():
     cfg = AlignerConfig(window_tracks=2, refine_every_tracks=0)
     dense = _run(replace(cfg, prior_band=-1), sc, ms)
     sparse = _run(replace(cfg, prior_band=2, prior_hubs=3), sc, ms)
-    assert any(sp.issparse(info) for _, _, info in sparse._priors)
+    assert any(sp.issparse(info) for _, _, info in sparse.state.priors)
     batch = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z), SolverConfig(tolerance=1e-10))
     ids = sc.node_ids[1:]
     sd = np.sqrt(np.diagonal(batch.covariance(ids), axis1=1, axis2=2))[:, :3]
@@ -288,11 +286,11 @@ def test_refinement_builds_its_priors_like_the_freeze():
     sc, _, ms = _survey(n_tracks=5, per_swath=12)
     al = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0, prior_band=2, prior_hubs=2),
               sc, ms)
-    snap = al._snapshot()
+    snap = al.handoff.snapshot()
     assert (snap.prior_band, snap.prior_hubs) == (2, 2)
-    n = len(al._ids)
-    banded = absorbed_priors(snap, al._T[:n])
-    dense = absorbed_priors(replace(snap, prior_band=-1), al._T[:n])
+    n = len(al.state.ids)
+    banded = absorbed_priors(snap, al.state.T[:n])
+    dense = absorbed_priors(replace(snap, prior_band=-1), al.state.T[:n])
     assert len(banded) == len(dense) > 0
     for b, d in zip(banded, dense):
         assert np.array_equal(b.nodes, d.nodes) and sp.issparse(b.information)
@@ -308,11 +306,11 @@ def test_sparse_priors_survive_a_save_and_restore(tmp_path):
                         solver=replace(ALIGNER_SOLVER, tolerance=1e-10))
     al = TrackWindowAligner(cfg, sc.T_world_node[0])
     al.add_measurements(ms[:cut])
-    assert any(sp.issparse(info) for _, _, info in al._priors)
+    assert any(sp.issparse(info) for _, _, info in al.state.priors)
     save_state(al, tmp_path / 'state.bin')
     back = load_state(tmp_path / 'state.bin').aligner
-    assert len(back._priors) == len(al._priors)
-    for (i1, m1, h1), (i2, m2, h2) in zip(al._priors, back._priors):
+    assert len(back.state.priors) == len(al.state.priors)
+    for (i1, m1, h1), (i2, m2, h2) in zip(al.state.priors, back.state.priors):
         assert np.array_equal(i1, i2) and sp.issparse(h1) == sp.issparse(h2)
         np.testing.assert_array_equal(m1, m2)
         a1 = h1.toarray() if sp.issparse(h1) else h1
@@ -332,18 +330,19 @@ def test_prior_band_must_be_minus_one_or_more():
 
 def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
     """Format 3 stored each prior's information as one dense matrix (``prior_info``)."""
-    import ga_ros.core.persistence as persistence
+    import ga_ros.core.window.persistence as persistence
 
     sc, _, ms = _survey(n_tracks=5, per_swath=12)
     al = _run(AlignerConfig(window_tracks=2, refine_every_tracks=0, prior_band=-1), sc, ms)
-    assert al._priors and not any(sp.issparse(info) for _, _, info in al._priors)
+    assert al.state.priors and not any(sp.issparse(info) for _, _, info in al.state.priors)
     new_state = persistence._state_of
 
     def version_3(aligner):
         meta, arrays = new_state(aligner)
         for name in ('prior_nblocks', 'prior_brow', 'prior_bcol', 'prior_blocks'):
             del arrays[name]
-        arrays['prior_info'] = np.concatenate([info.ravel() for _, _, info in aligner._priors])
+        arrays['prior_info'] = np.concatenate([info.ravel()
+                                               for _, _, info in aligner.state.priors])
         return meta, arrays
 
     monkeypatch.setattr(persistence, '_state_of', version_3)
@@ -352,7 +351,8 @@ def test_a_version_3_state_with_dense_priors_still_loads(tmp_path, monkeypatch):
     monkeypatch.undo()
     saved = load_state(tmp_path / 'v3.bin')
     assert saved.version == 3
-    for (i1, m1, h1), (i2, m2, h2) in zip(al._priors, saved.aligner._priors, strict=True):
+    for (i1, m1, h1), (i2, m2, h2) in zip(al.state.priors, saved.aligner.state.priors,
+                                          strict=True):
         assert np.array_equal(i1, i2)
         np.testing.assert_array_equal(m1, m2)
         np.testing.assert_array_equal(h1, h2)

@@ -9,9 +9,9 @@ import pytest
 from solver_problems import noisy_aerial_survey
 
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import load_state, save_state
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
@@ -55,8 +55,8 @@ def test_frozen_prior_is_what_the_previous_update_estimated():
     for m in ms:
         before = al.stats.n_updates
         al.add_measurement(m)
-        if al.stats.n_updates != before and al._last is not None:
-            snapshots[al.stats.n_updates] = (al.corrected_path(), al._last)
+        if al.stats.n_updates != before and al.last_adjustment is not None:
+            snapshots[al.stats.n_updates] = (al.corrected_path(), al.last_adjustment)
     # after update 2 (tracks 0, 1 in the window), update 3 froze track 0 using update 2's result
     path2, res2 = snapshots[2]
     track0 = sc.node_ids[sc.track_ids == 0]
@@ -224,11 +224,11 @@ def test_each_update_equals_the_batch_re_solve_of_its_window():
         if not ups:
             continue
         window = al.stats.tracks_in_window
-        net, nodes, win_nodes, _, fixed, priors = al._window_problem(window)
+        net, nodes, win_nodes, _, fixed, priors = al.updater.window_problem(window)
         T0 = T_f2f[nodes].copy()
         if priors:  # frozen neighbours start at their prior means
-            frozen = al._frozen[nodes]
-            T0[frozen] = al._T[nodes[frozen]]
+            frozen = al.state.frozen[nodes]
+            T0[frozen] = al.state.T[nodes[frozen]]
         ref = solve(net, T0, tight, fixed=fixed, priors=priors)
         assert ref.converged
         got = al.corrected_path().T_world_node[win_nodes]
@@ -247,9 +247,8 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     with the compiled kernels, the leaving nodes' covariances by selected inversion on the last
     solve's factor) gives the covariances and joint priors of the dense Schur complement /
     sparse solves."""
-    import ga_ros.core.window as window
-    from ga_ros.core import refinement
     from ga_ros.core.linalg import selinv
+    from ga_ros.core.window import freeze
 
     if compiled and not selinv.COMPILED:
         pytest.skip('numba is not installed')
@@ -258,18 +257,18 @@ def test_partial_factorisation_freeze_equals_the_dense_one(policy, compiled, mon
     cfg = AlignerConfig(window_tracks=2, freeze_policy=policy)
     runs = []
     for dense_max, trailing_min in ((10**9, 10**9), (0, 0)):
-        monkeypatch.setattr(refinement, 'DENSE_SCHUR_MAX', dense_max)
-        monkeypatch.setattr(window, '_TRAILING_MIN_NODES', trailing_min)
+        monkeypatch.setattr(freeze, 'DENSE_SCHUR_MAX', dense_max)
+        monkeypatch.setattr(freeze, 'TRAILING_MIN_NODES', trailing_min)
         runs.append(_run(cfg, sc, ms)[0])
     dense, sparse = runs
-    n = len(dense._ids)
-    assert dense._frozen[:n].sum() > 20
-    np.testing.assert_allclose(sparse._cov[:n], dense._cov[:n], rtol=1e-7,
-                               atol=1e-9 * np.abs(dense._cov[:n]).max())
+    n = len(dense.state.ids)
+    assert dense.state.frozen[:n].sum() > 20
+    np.testing.assert_allclose(sparse.state.cov[:n], dense.state.cov[:n], rtol=1e-7,
+                               atol=1e-9 * np.abs(dense.state.cov[:n]).max())
     np.testing.assert_allclose(sparse.corrected_path().T_world_node,
                                dense.corrected_path().T_world_node, atol=1e-9)
-    assert len(sparse._priors) == len(dense._priors) > 0
-    for (i1, m1, h1), (i2, m2, h2) in zip(sparse._priors, dense._priors):
+    assert len(sparse.state.priors) == len(dense.state.priors) > 0
+    for (i1, m1, h1), (i2, m2, h2) in zip(sparse.state.priors, dense.state.priors):
         assert np.array_equal(i1, i2)
         np.testing.assert_allclose(m1, m2, atol=1e-9)
         np.testing.assert_allclose(h1, h2, rtol=1e-7, atol=1e-9 * np.abs(h2).max())

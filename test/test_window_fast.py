@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 from solver_problems import noisy_aerial_survey
 
-import ga_ros.core.window as window
+import ga_ros.core.window.update as window
 from ga_ros.core.prealign import PREALIGN_SOLVER, prealign
 from ga_ros.core.solver import SolverConfig, connection_cost, normal_matrix_at, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -82,12 +82,13 @@ def test_a_full_window_update_takes_one_factorisation_and_stops_within_its_noise
     tight = SolverConfig(max_iterations=50, tolerance=1e-10)
     checked, worst_var, worst_sd = 0, 0.0, 0.0
     for k, _ in enumerate(_fly(al, ms)):
-        res = al._last
+        res = al.last_adjustment
         if k < 2:
             continue
         assert res.factorisations == 1 and res.reason == 'cost_converged', res.reason
         assert res.factor_offset > 0  # the covariances are not the solution's
-        net, nodes, win_nodes, _, fixed, priors = al._window_problem(al.stats.tracks_in_window)
+        tracks = al.stats.tracks_in_window
+        net, nodes, win_nodes, _, fixed, priors = al.updater.window_problem(tracks)
         ref = solve(net, res.T_world_node, tight, fixed=fixed, priors=priors)
         assert ref.converged
         free = ref.free_node_ids
@@ -135,9 +136,9 @@ def test_the_kept_connection_terms_are_those_of_each_window():
                             sc.T_world_node[0])
     checked = 0
     for _ in _fly(al, ms):
-        terms = al._conn_terms
+        terms = al.updater.terms
         assert terms.rows.size and np.array_equal(terms.rows, np.unique(terms.rows))
-        z, cov = al._z.a[terms.rows], al._ccov.a[terms.rows]
+        z, cov = al.state.z.a[terms.rows], al.state.ccov.a[terms.rows]
         T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
         np.testing.assert_array_equal(terms.T_meas, T_meas)
         np.testing.assert_array_equal(terms.T_meas_inv, se3.inverse(T_meas))

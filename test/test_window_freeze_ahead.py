@@ -11,8 +11,8 @@ import pytest
 from solver_problems import noisy_aerial_survey
 
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import load_state, save_state
 from ga_ros.geometry import se3
 
 
@@ -29,14 +29,14 @@ def _dense(info) -> np.ndarray:
 
 def _assert_same_state(a: TrackWindowAligner, b: TrackWindowAligner) -> None:
     """Bit for bit: poses, frozen flags and covariances, connection status, joint priors."""
-    n = len(a._ids)
-    assert n == len(b._ids)
-    np.testing.assert_array_equal(a._T[:n], b._T[:n])
-    np.testing.assert_array_equal(a._frozen[:n], b._frozen[:n])
-    np.testing.assert_array_equal(a._cov[:n], b._cov[:n])
-    np.testing.assert_array_equal(a._status.a, b._status.a)
-    assert len(a._priors) == len(b._priors)
-    for p, q in zip(a._priors, b._priors):
+    n = len(a.state.ids)
+    assert n == len(b.state.ids)
+    np.testing.assert_array_equal(a.state.T[:n], b.state.T[:n])
+    np.testing.assert_array_equal(a.state.frozen[:n], b.state.frozen[:n])
+    np.testing.assert_array_equal(a.state.cov[:n], b.state.cov[:n])
+    np.testing.assert_array_equal(a.state.status.a, b.state.status.a)
+    assert len(a.state.priors) == len(b.state.priors)
+    for p, q in zip(a.state.priors, b.state.priors):
         np.testing.assert_array_equal(p[0], q[0])
         np.testing.assert_array_equal(p[1], q[1])
         np.testing.assert_array_equal(_dense(p[2]), _dense(q[2]))
@@ -77,7 +77,7 @@ def test_a_freeze_computed_ahead_in_a_thread_equals_the_freeze_at_the_track_end(
     al.close()
     ref.close()
     _assert_same_state(al, ref)
-    used, recomputed = al._n_ahead
+    used, recomputed = al.ahead.n_ahead
     assert used == 6 - 2 and recomputed == 0
     assert threads.count(False) == used + 1  # the last one ahead of an update never run
     assert al.wait_background() > 0.0
@@ -101,7 +101,7 @@ def test_a_freeze_that_failed_in_the_background_is_recomputed_at_the_track_end(m
         _feed(x, ms)
         x.close()
     _assert_same_state(al, ref)
-    assert al._n_ahead == [0, 4 - 2]
+    assert al.ahead.n_ahead == [0, 4 - 2]
 
 
 def test_a_new_connection_to_the_leaving_track_makes_the_update_recompute_its_freeze():
@@ -116,22 +116,22 @@ def test_a_new_connection_to_the_leaving_track_makes_the_update_recompute_its_fr
         _feed(al, ms[:start])  # tracks 0-2 finished; track 1 leaves at the next update
         al.wait_background()
         if ahead:
-            plan = al._ahead.plan
+            plan = al.ahead.job.plan
             assert plan is not None and plan.track == 1
             a = int(plan.nodes[~np.isin(plan.nodes, plan.prior[0])][0])  # eliminated by it
-            b = int(np.nonzero(al._trackarr.a == 2)[0][-1])  # a node of the newest track
-            T_ab = se3.inverse(al._T[a]) @ al._T[b]
-            extra = Measurement(int(al._idarr.a[a]), int(al._idarr.a[b]), 1, 2,
+            b = int(np.nonzero(al.state.trackarr.a == 2)[0][-1])  # a node of the newest track
+            T_ab = se3.inverse(al.state.T[a]) @ al.state.T[b]
+            extra = Measurement(int(al.state.idarr.a[a]), int(al.state.idarr.a[b]), 1, 2,
                                 se3.to_translation_rotvec(T_ab),
                                 np.diag([0.01] * 3 + [1e-4] * 3), 0, 'cross')
         al.add_measurement(extra)
-        _feed(al, ms[start:], lambda x: kept.append([p[0].copy() for p in x._priors]))
+        _feed(al, ms[start:], lambda x: kept.append([p[0].copy() for p in x.state.priors]))
         al.close()
         results.append(al)
     al, ref = results
     _assert_same_state(al, ref)
-    assert al._n_ahead[1] == 1
-    a = al._index[extra.src_id]
+    assert al.ahead.n_ahead[1] == 1
+    a = al.state.index[extra.src_id]
     assert any(a in idx for idx in kept[len(kept) // 2])  # ref, track 1 frozen: a is kept
     assert a not in plan.prior[0]
 
@@ -148,12 +148,12 @@ def test_state_files_refinement_and_covariances_do_not_depend_on_the_thread(tmp_
     covs = []
 
     def ask(a):
-        done = np.nonzero(a._trackarr.a <= max(a._finished))[0]
-        covs.append(a.covariances(a._idarr.a[done[1:]]))
+        done = np.nonzero(a.state.trackarr.a <= max(a.state.finished))[0]
+        covs.append(a.covariances(a.state.idarr.a[done[1:]]))
 
     _feed(ref, ms[:cut], ask)
     _feed(al, ms[:cut], ask)
-    assert al._ahead is not None
+    assert al.ahead.job is not None
     save_state(al, tmp_path / 's.ga')  # while its thread may still run
     back = load_state(tmp_path / 's.ga').aligner
     for a, b in zip(covs[:len(covs) // 2], covs[len(covs) // 2:]):
@@ -164,7 +164,7 @@ def test_state_files_refinement_and_covariances_do_not_depend_on_the_thread(tmp_
                                ref.corrected_path().T_world_node, rtol=0, atol=1e-12)
     for x in (ref, al):
         x.refine_batch()
-        assert x._ahead is None
+        assert x.ahead.job is None
     _assert_same_state(al, ref)
     for x in (ref, al, back):
         x.close()

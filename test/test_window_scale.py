@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner, _Rollback
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.state import Rollback
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
@@ -38,15 +39,15 @@ def _by_track(ms):
 
 
 def _tables(al: TrackWindowAligner) -> dict[str, np.ndarray]:
-    n = al._idarr.n
-    return {'T': al._T[:n].copy(), 'cov21': al._cov.packed[:n].copy(),
-            'frozen': al._frozen[:n].copy(), 'status': al._status.a.copy()}
+    n = al.state.idarr.n
+    return {'T': al.state.T[:n].copy(), 'cov21': al.state.cov.packed[:n].copy(),
+            'frozen': al.state.frozen[:n].copy(), 'status': al.state.status.a.copy()}
 
 
 @pytest.mark.parametrize('policy', ('weighted', 'marginal'))
 def test_an_update_changes_no_row_before_its_mutable_rows(survey, policy) -> None:
     """Window adjustment, freezes, installed refinements (tracks retiring) and smoothing
-    change only rows from :meth:`_mutable_rows` on, which is what a failed update puts back;
+    change only rows from :meth:`mutable_rows` on, which is what a failed update puts back;
     and that range (the rollback copy) stays of the window's and horizon's size while the
     survey grows."""
     sc, ms = survey
@@ -55,8 +56,8 @@ def test_an_update_changes_no_row_before_its_mutable_rows(survey, policy) -> Non
     for group in _by_track(ms):
         if al.open_track is not None:
             before = _tables(al)
-            lo, r0 = al._mutable_rows()
-            copied.append(_Rollback.of(al).nbytes)
+            lo, r0 = al.mutable_rows()
+            copied.append(Rollback.of(al.state, al.mutable_rows()).nbytes)
             up = al.finish_track()
             assert not up.reason.startswith('failed')
             after = _tables(al)
@@ -66,8 +67,9 @@ def test_an_update_changes_no_row_before_its_mutable_rows(survey, policy) -> Non
             starts.append(lo)
         al.add_measurements(group)
     al.close()
-    assert al._retired >= 3 and starts[-1] > 0       # the bound moved on with the survey
-    n_full = al._idarr.n * (128 + 168 + 1) + al._src.n  # what a whole-survey copy would take
+    assert al.state.retired >= 3 and starts[-1] > 0       # the bound moved on with the survey
+    # what a whole-survey copy would take
+    n_full = al.state.idarr.n * (128 + 168 + 1) + al.state.src.n
     steady = copied[CFG['refine_horizon_tracks'] + CFG['window_tracks'] + 1:]
     assert max(steady) < 1.15 * min(steady)          # flat once the horizon is full
     assert max(steady) < 0.6 * n_full
@@ -83,12 +85,12 @@ def test_a_failed_update_after_a_refinement_puts_back_the_retired_tracks(survey,
     al = TrackWindowAligner(AlignerConfig(**CFG), sc.T_world_node[0])
     for group in groups[:8]:
         al.add_measurements(group)
-    assert al._retired >= 1
-    before, book = _tables(al), (al._retired, al._past, list(al._priors))
+    assert al.state.retired >= 1
+    before, book = _tables(al), (al.state.retired, al.state.past, list(al.state.priors))
     real = TrackWindowAligner._adjust
 
     def broken(self, *args, **kwargs):
-        assert self._retired > book[0]       # the refinement was installed: more tracks retired
+        assert self.state.retired > book[0]  # the refinement was installed: more retired
         raise np.linalg.LinAlgError('Matrix is not positive definite')
 
     monkeypatch.setattr(TrackWindowAligner, '_adjust', broken)
@@ -97,8 +99,8 @@ def test_a_failed_update_after_a_refinement_puts_back_the_retired_tracks(survey,
     after = _tables(al)
     for key in before:
         np.testing.assert_array_equal(after[key], before[key], err_msg=key)
-    assert al._retired == book[0] and al._past is book[1]
-    assert [p[0] is q[0] for p, q in zip(al._priors, book[2])] == [True] * len(book[2])
+    assert al.state.retired == book[0] and al.state.past is book[1]
+    assert [p[0] is q[0] for p, q in zip(al.state.priors, book[2])] == [True] * len(book[2])
     assert '_smoothing' not in al.__dict__
     monkeypatch.setattr(TrackWindowAligner, '_adjust', real)
     for group in groups[8:]:
@@ -115,13 +117,13 @@ def test_subnetwork_locates_ends_like_a_full_index(survey) -> None:
                             sc.T_world_node[0])
     al.add_measurements(ms)
     rng = np.random.default_rng(3)
-    nodes = rng.permutation(al._idarr.n)[:40]
-    inside = np.zeros(al._idarr.n, bool)
+    nodes = rng.permutation(al.state.idarr.n)[:40]
+    inside = np.zeros(al.state.idarr.n, bool)
     inside[nodes] = True
-    conns = np.flatnonzero(inside[al._src.a] & inside[al._dst.a])
+    conns = np.flatnonzero(inside[al.state.src.a] & inside[al.state.dst.a])
     assert conns.size > 5
-    arrays = al._subnetwork(nodes, conns).arrays()
-    full = np.full(al._idarr.n, -1)
+    arrays = al.state.subnetwork(nodes, conns).arrays()
+    full = np.full(al.state.idarr.n, -1)
     full[nodes] = np.arange(nodes.size)
-    np.testing.assert_array_equal(arrays.src, full[al._src.a[conns]])
-    np.testing.assert_array_equal(arrays.dst, full[al._dst.a[conns]])
+    np.testing.assert_array_equal(arrays.src, full[al.state.src.a[conns]])
+    np.testing.assert_array_equal(arrays.dst, full[al.state.dst.a[conns]])

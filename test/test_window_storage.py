@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.storage import IdIndex, SymArray, SymRows, TrackLists, TrackRanges
 from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -150,8 +150,8 @@ def test_pruned_duplicate_keys_refuse_exactly_what_the_full_set_did() -> None:
         al._PAIRS_MIN = pairs_min
         al.add_measurements(ms)
         if pairs_min == 8:
-            al._prune_pairs()
-            assert 0 < len(al._pairs) < len(ms) - 50   # the frozen tracks' keys are gone
+            al.state.prune_pairs()
+            assert 0 < len(al.state.pairs) < len(ms) - 50   # the frozen tracks' keys are gone
         got = al.add_measurements(ms)
         assert got.n_accepted == 0
         reasons.append(got.rejected)

@@ -29,6 +29,8 @@ from ga_ros.core.linalg import cholmod as _cholmod
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import update as _update
+from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.eval.metrics import ate
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -140,11 +142,11 @@ UPDATE_PARTS = {
     'factor': ((_cholmod.SparseCholesky, '__init__'), (_cholmod.SparseCholesky, 'refactor')),
     'solve': ((_cholmod.SparseCholesky, 'solve'),),
     'gradient': ((_Problem, 'gradient'), (_Problem, 'gradient_ahead')),
-    'problem': ((TrackWindowAligner, '_window_problem'),),
-    'gate': ((TrackWindowAligner, '_outliers'), (TrackWindowAligner, '_readmissible')),
+    'problem': ((_update.WindowUpdate, 'window_problem'),),
+    'gate': ((_update, 'outliers'), (_update, 'readmissible')),
     'freeze': ((TrackWindowAligner, '_freeze'),),
-    'refinement': ((TrackWindowAligner, '_install_due'), (TrackWindowAligner, '_smooth'),
-                   (TrackWindowAligner, '_start_refinement')),
+    'refinement': ((RefinementHandoff, 'install_due'), (RefinementHandoff, 'smooth'),
+                   (RefinementHandoff, 'start')),
 }
 
 

@@ -20,36 +20,34 @@ import time
 
 import numpy as np
 
-from ga_ros.core import refinement, window
 from ga_ros.core.linalg import banded, selinv, skeleton
 from ga_ros.core.linalg.cholmod import SparseCholesky
 from ga_ros.core.solver.problem import _Problem
+from ga_ros.core.window import aligner, freeze, handoff, update
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
 #: (owner, attribute) of each timed stage.
 STAGES = (
-    (window.TrackWindowAligner, '_freeze'),
-    (window.TrackWindowAligner, '_plan_freeze'),
-    (window, '_marginal_covariances'),
-    (window.TrackWindowAligner, '_marginalise'),
-    (window, 'normal_matrix_at'),
+    (aligner.TrackWindowAligner, '_freeze'),
+    (aligner.TrackWindowAligner, '_plan_freeze'),
+    (freeze, 'marginal_covariances'),
+    (freeze.FreezePolicy, 'marginalise'),
+    (freeze, 'normal_matrix_at'),
     (skeleton, 'sparse_skeleton'),
-    (window, 'marginal_prior'),
-    (window, 'band_prior'),
-    (refinement, 'band_prior'),
+    (freeze, 'marginal_prior'),
+    (freeze, 'band_prior'),
     (banded, '_completion'),
     (selinv.SelectedInverse, '__init__'),
     (SparseCholesky, 'refactor'),
     (SparseCholesky, '_analyse'),
-    (window.TrackWindowAligner, '_adjust'),
-    (window, 'solve'),
+    (aligner.TrackWindowAligner, '_adjust'),
+    (update, 'solve'),
     (_Problem, 'linear_system'),
-    (window.TrackWindowAligner, '_install_due'),
-    (window.TrackWindowAligner, '_smooth'),
-    (window.TrackWindowAligner, '_start_refinement'),
+    (handoff.RefinementHandoff, 'install_due'),
+    (handoff.RefinementHandoff, 'smooth'),
+    (handoff.RefinementHandoff, 'start'),
 )
-
 
 def _name(owner, attr: str) -> str:
     return f'{getattr(owner, "__name__", "").split(".")[-1]}.{attr}'
@@ -86,9 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     sc = aerial_scenario(n_tracks=args.tracks)
     nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
                  np.random.default_rng(args.seed))
-    cfg = window.AlignerConfig(window_tracks=args.window, refine_every_tracks=args.refine,
+    cfg = aligner.AlignerConfig(window_tracks=args.window, refine_every_tracks=args.refine,
                                freeze_ahead=not args.no_ahead)
-    al = window.TrackWindowAligner(cfg, sc.T_world_node[0])
+    al = aligner.TrackWindowAligner(cfg, sc.T_world_node[0])
     rows = []
     for m in list(sc.measurements(nm.z, nm.cov)) + [None]:
         totals.clear()
@@ -115,5 +113,5 @@ def main(argv: list[str] | None = None) -> int:
         print(f'  {label:38s} {np.median([r[3].get(label, 0.0) for r in full]):8.1f}')
     for k, (cpu, wall, background, parts) in enumerate(rows, start=1):
         print(f'track {k:3d}: update {cpu:6.0f} ms CPU {wall:6.0f} ms wall  background '
-              f'{background:5.0f}  solve {parts.get(_name(window, "solve"), 0.0):6.0f}')
+              f'{background:5.0f}  solve {parts.get(_name(update, "solve"), 0.0):6.0f}')
     return 0

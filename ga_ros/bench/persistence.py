@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.bench.core import NoSolveAligner
-from ga_ros.core.persistence import load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import load_state, save_state
 from ga_ros.pipeline.journal import MeasurementJournal, journal_path, recover
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
@@ -74,7 +74,7 @@ def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None
             state.unlink()
             res = recover(state, AlignerConfig(), checkpoint=False)
             print(f'  recover from the journal alone ({res.records_replayed:,} records, '
-                  f'{len(res.aligner._finished)} window updates): {res.seconds:.1f} s')
+                  f'{len(res.aligner.state.finished)} window updates): {res.seconds:.1f} s')
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,8 +47,8 @@ import numpy as np
 
 from ga_ros.bench.core import NoSolveAligner, peak_rss_mb
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
+from ga_ros.core.window.persistence import save_state
 from ga_ros.eval.metrics import ate
 from ga_ros.runtime import limit_blas_threads
 from ga_ros.sim.aerial import aerial_scenario
@@ -123,7 +123,7 @@ class StageProbe:
     exit."""
 
     def __init__(self) -> None:
-        import ga_ros.core.window as window
+        import ga_ros.core.window.aligner as window
 
         self.stages: list[Stage] = []
         self._peak = 0.0
@@ -206,17 +206,18 @@ class ScaleFigures:
 def state_nbytes(al: TrackWindowAligner) -> int:
     """Bytes the aligner's state holds (filled rows of its tables, the id index, the
     duplicate keys, the joint priors), without the spare capacity and the last adjustment."""
-    n = al._idarr.n
-    arrays = [al._idarr.a, al._trackarr.a, al._stamparr.a, al._T[:n], al._cov.packed[:n],
-              al._frozen[:n], al._src.a, al._dst.a, al._z.a, al._ccov.packed, al._cross.a,
-              al._status.a, al._fp.a, al._index._keys, al._index._vals]
-    arrays += [al._track_conns[t] for t in al._tracks if t in al._track_conns]
-    for idx, mean, info in al._priors:  # a block-banded information: its BSR arrays
+    n = al.state.idarr.n
+    st = al.state
+    arrays = [st.idarr.a, st.trackarr.a, st.stamparr.a, st.T[:n], st.cov.packed[:n],
+              st.frozen[:n], st.src.a, st.dst.a, st.z.a, st.ccov.packed, st.cross.a,
+              al.state.status.a, al.state.fp.a, al.state.index._keys, al.state.index._vals]
+    arrays += [al.state.track_conns[t] for t in al.state.tracks if t in al.state.track_conns]
+    for idx, mean, info in al.state.priors:  # a block-banded information: its BSR arrays
         arrays += [idx, mean] + ([info.data, info.indices, info.indptr]
                                  if hasattr(info, 'indptr') else [info])
     total = sum(a.nbytes for a in arrays)
-    total += sys.getsizeof(al._index._recent) + 64 * len(al._index._recent)
-    total += sys.getsizeof(al._pairs) + 160 * len(al._pairs)  # 3-tuples of ints
+    total += sys.getsizeof(al.state.index._recent) + 64 * len(al.state.index._recent)
+    total += sys.getsizeof(al.state.pairs) + 160 * len(al.state.pairs)  # 3-tuples of ints
     return total
 
 
@@ -268,11 +269,11 @@ def batch_only(args: argparse.Namespace) -> ScaleFigures:
     al.add_measurements(chunk)
     al.finish_track()
     fig.online_seconds = time.perf_counter() - t_start
-    n = al._idarr.n
-    al._T[:n] = sc.T_world_node[al._idarr.a]
+    n = al.state.idarr.n
+    al.state.T[:n] = sc.T_world_node[al.state.idarr.a]
     st = al.stats
     fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
-    fig.tracks_done = len(al._tracks)
+    fig.tracks_done = len(al.state.tracks)
     del sc, noisy
     refine(al, fig, args.stages)
     return fig
@@ -307,7 +308,7 @@ def lazy_measurements(sc: Scenario, z: np.ndarray, cov: np.ndarray) -> Iterator[
 
 RESTORE = """
 import sys, time
-from ga_ros.core.persistence import load_state
+from ga_ros.core.window.persistence import load_state
 t = time.perf_counter()
 al = load_state(sys.argv[1]).aligner
 print(time.perf_counter() - t, al.stats.n_nodes)
@@ -377,7 +378,7 @@ def run(args: argparse.Namespace) -> ScaleFigures:
             wait = np.array(waits[max(0, done - args.span):])
             poses = done * fig.poses_per_track
             path = al.corrected_path()
-            snap = al._refine_snap
+            snap = al.handoff.snap
             cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
                             float(np.percentile(ms, 95)), float(ms.max()),
                             float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),

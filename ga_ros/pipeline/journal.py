@@ -2,7 +2,8 @@
 
 The alignment node appends each measurement it accepted to ``<state_file>.journal``, one
 fixed-size binary record each, written to the OS at once, so even ``kill -9`` loses nothing. It
-also saves aligner snapshots (``state_file``, see :mod:`ga_ros.core.persistence`) after window
+also saves aligner snapshots (``state_file``, see :mod:`ga_ros.core.window.persistence`) after
+window
 updates; a snapshot stores how many journal records it contains (and the ``<state_file>.json``
 sidecar repeats it for older snapshots). :func:`recover` rebuilds the state on restart: the
 snapshot if it verifies, plus the journal records after it, replayed in one batch.
@@ -33,8 +34,8 @@ import numpy as np
 
 from ga_ros.core.gaps import reversed_measurement
 from ga_ros.core.measurement import KINDS, Measurement
-from ga_ros.core.persistence import is_state_file, load_state, save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
 from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 

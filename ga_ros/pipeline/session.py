@@ -31,8 +31,8 @@ from ga_ros.core.gaps import (
     reversed_measurement,
 )
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.persistence import save_state
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import save_state
 from ga_ros.errors import GaError, InputError, Reason, SolverError
 from ga_ros.pipeline.journal import (
     HELD,

@@ -38,7 +38,7 @@ class ReproduceConfig:
     aerial_noise : noise level (percent) of the aerial experiments.
     window_tracks : sliding-window size K (the paper: 5).
     policies : freeze policies compared against the batch solution (``'<policy>+refine'``: with
-        the background refinement after every track, :mod:`ga_ros.core.refinement`).
+        the background refinement after every track, :mod:`ga_ros.core.window.refinement`).
     policy_seeds : independent noise draws of the aerial survey on which the policies are
         compared (draw ``r`` from ``run_rng(seed, 4, r)``; draw 0 is the single-draw table):
         per policy the mean and sd of its gap to batch, and its paired difference with

@@ -1,4 +1,6 @@
-"""Saving and restoring a :class:`~ga_ros.core.window.TrackWindowAligner` (its snapshot file).
+"""Saving and restoring a :class:`~ga_ros.core.window.TrackWindowAligner` (its snapshot file):
+its :class:`~ga_ros.core.window.state.WindowState`, written and read as a whole
+(:func:`state_arrays`, :func:`state_of_arrays`), its config and its pending refinement.
 
 File layout (little-endian), written atomically by :func:`ga_ros.io.atomic.atomic_write`::
 
@@ -30,7 +32,11 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from ga_ros.core.storage import (
+from ga_ros.core.window.admission import measurement_fingerprints
+from ga_ros.core.window.aligner import TrackWindowAligner
+from ga_ros.core.window.config import AlignerConfig
+from ga_ros.core.window.state import WindowState
+from ga_ros.core.window.storage import (
     IdIndex,
     Rows,
     SymArray,
@@ -40,14 +46,13 @@ from ga_ros.core.storage import (
     pack_sym6,
     zeros,
 )
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner, measurement_fingerprints
 from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputError
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
 
 MAGIC = b'GAROS-STATE\x00'
 FORMAT_VERSION = 4
 #: Versions :func:`load_state` reads: 2 stored the covariances as full 6x6 matrices, 3 (since
-#: the aligner keeps them compactly, ga_ros.core.storage) as their 21 upper-triangle values,
+#: the aligner keeps them compactly, ga_ros.core.window.storage) as their 21 upper-triangle values,
 #: 4 the joint priors' information as its non-zero 6x6 blocks (block-banded priors) instead of
 #: one dense matrix each.
 READ_VERSIONS = (2, 3, 4)
@@ -172,24 +177,34 @@ def load_state(path: str | os.PathLike, config=None) -> SavedState:
 
 # ---------------------------------------------------------------------------- internals
 def _state_of(al: TrackWindowAligner) -> tuple[dict, dict[str, np.ndarray]]:
-    n = len(al._ids)
+    """The file's header fields and arrays of an aligner: its config, its pending refinement
+    and its :class:`WindowState` (:func:`state_arrays`)."""
+    meta, arrays = state_arrays(al.state)
+    meta = {'config': asdict(al.config), **meta, 'refine_pending': al.refinement_state()}
+    return meta, arrays
+
+
+def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
+    """A :class:`WindowState` as header fields (JSON) and named arrays (inverse:
+    :func:`state_of_arrays`); the caches (last adjustment, duplicate keys) are rebuilt on
+    reading."""
+    n = len(st.ids)
     meta = {
-        'config': asdict(al.config), 'tracks': [int(t) for t in al._tracks],
-        'finished': sorted(int(t) for t in al._finished),
-        'open_track': None if al._open_track is None else int(al._open_track),
-        'rejected': {str(k): int(v) for k, v in al._rejected.items()},
-        'n_updates': int(al._n_updates), 'n_outliers': int(al._n_outliers),
-        'refine_pending': al.refinement_state(),
-        'refine_retired': int(al._retired),
+        'tracks': [int(t) for t in st.tracks],
+        'finished': sorted(int(t) for t in st.finished),
+        'open_track': None if st.open_track is None else int(st.open_track),
+        'rejected': {str(k): int(v) for k, v in st.rejected.items()},
+        'n_updates': int(st.n_updates), 'n_outliers': int(st.n_outliers),
+        'refine_retired': int(st.retired),
     }
     arrays = dict(
-        T_first=al._T_first, ids=al._idarr.a, track=al._trackarr.a, stamp=al._stamparr.a,
-        T=al._T[:n], cov21=al._cov.packed[:n], frozen=al._frozen[:n], src=al._src.a,
-        dst=al._dst.a, z=al._z.a, ccov21=al._ccov.packed, cross=al._cross.a,
-        status=al._status.a.astype(np.int64), last_window=al._last_window.astype(np.int64),
-        fingerprint=al._fp.a,
-        weighted_idx=al._T_weighted[0].astype(np.int64), weighted_T=al._T_weighted[1],
-        **_prior_arrays('prior', al._priors), **_prior_arrays('past', al._past))
+        T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
+        T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
+        dst=st.dst.a, z=st.z.a, ccov21=st.ccov.packed, cross=st.cross.a,
+        status=st.status.a.astype(np.int64), last_window=st.last_window.astype(np.int64),
+        fingerprint=st.fp.a,
+        weighted_idx=st.T_weighted[0].astype(np.int64), weighted_T=st.T_weighted[1],
+        **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past))
     return meta, arrays
 
 
@@ -298,14 +313,75 @@ def _parse_legacy(path: Path) -> tuple[dict, dict[str, np.ndarray], int]:
 
 def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAligner:
     cfg = config if config is not None else AlignerConfig.from_dict(meta['config'])
-    al = TrackWindowAligner(cfg, np.array(arrays['T_first'], dtype=float))
+    al = TrackWindowAligner.from_state(cfg, state_of_arrays(meta, arrays, cfg.window_tracks))
+    al.resume_refinement(meta.get('refine_pending'))  # the pending background refinement
+    return al
+
+
+def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: int
+                    ) -> WindowState:
+    """The :class:`WindowState` of :func:`state_arrays`' output (also the layouts of versions
+    1-3); the last window adjustment is recomputed on first use (over the last
+    ``window_tracks`` finished tracks). Raises ``ValueError`` for inconsistent arrays."""
+    T_first = np.array(arrays['T_first'], dtype=float)
+    if T_first.shape != (4, 4) or not np.isfinite(T_first).all():
+        raise InputError('T_world_first must be a finite 4x4 pose')
     ids = np.asarray(arrays['ids'], dtype=np.int64)
     track = np.asarray(arrays['track'], dtype=np.int64)
     n = ids.size
     src, dst = (np.asarray(arrays[k], dtype=np.int64) for k in ('src', 'dst'))
     m = src.size
-    # version 3 stores covariances as 21 upper-triangle values, versions 1-2 as 6x6 matrices
-    # (symmetric: the aligner symmetrises what it stores)
+    status = _checked(arrays, n, m, src, dst)
+    cap = max(64, 2 * n)
+    st = WindowState(T_first=T_first, index=IdIndex.of(ids), idarr=Rows.of(ids, np.int64),
+                     trackarr=Rows.of(track, np.int64),
+                     stamparr=Rows.of(arrays['stamp'], np.int64), T=zeros((cap, 4, 4)),
+                     cov=SymArray(cap), frozen=zeros((cap,), bool),
+                     track_nodes=TrackRanges.of(track))
+    st.T[:n] = arrays['T']
+    st.cov.packed[:n] = arrays['cov21']
+    st.frozen[:n] = arrays['frozen']
+    st.tracks = [int(t) for t in meta['tracks']]
+    st.finished = {int(t) for t in meta['finished']}
+    st.open_track = None if meta['open_track'] is None else int(meta['open_track'])
+    st.src, st.dst = Rows.of(src, np.int64), Rows.of(dst, np.int64)
+    st.z, st.ccov = Rows.of(arrays['z'], float), SymRows.of_packed(arrays['ccov21'])
+    st.cross = Rows.of(arrays['cross'], bool)
+    st.status = Rows.of(status, np.int8)
+    if m:
+        ts, td = track[src], track[dst]
+        k = np.arange(m)
+        two = ts != td
+        st.track_conns = TrackLists.of(np.concatenate([ts, td[two]]),
+                                       np.concatenate([k, k[two]]))
+        fp = arrays.get('fingerprint')
+        fp = (np.asarray(fp, dtype=np.uint32) if fp is not None and fp.shape == (m,) else
+              np.array(measurement_fingerprints(st.z.a, st.ccov.a[:]), dtype=np.uint32))
+        st.fp = Rows.of(fp, np.uint32)
+        st.prune_pairs()
+    st.priors = _priors_of('prior', arrays)
+    if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
+        st.past = _priors_of('past', arrays)
+        st.retired = int(meta.get('refine_retired', 0))
+    st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
+    st.n_updates = int(meta['n_updates'])
+    st.n_outliers = int(meta['n_outliers'])
+    if np.asarray(arrays['last_window']).size:  # the last adjustment, recomputed when needed
+        window = st.finished_order()[-window_tracks:]
+        st.last_window = np.array(sorted(i for t in window for i in st.track_nodes[t]),
+                                  dtype=np.int64)
+        st.last_pending = window
+    if 'weighted_idx' in arrays:  # where the next update starts the weighted parameters
+        st.T_weighted = (np.array(arrays['weighted_idx'], dtype=np.int64),
+                         np.array(arrays['weighted_T'], dtype=float).reshape(-1, 4, 4))
+    return st
+
+
+def _checked(arrays: dict[str, np.ndarray], n: int, m: int, src: np.ndarray, dst: np.ndarray
+             ) -> np.ndarray:
+    """Check the arrays' shapes and ranges (``ValueError``), converting the covariances of
+    versions 1-2 (full 6x6 matrices, symmetric) to 21 upper-triangle values; returns the
+    connections' status."""
     for name in ('cov', 'ccov'):
         if name + '21' not in arrays:
             full = np.asarray(arrays[name], dtype=float)
@@ -322,50 +398,4 @@ def _restore(meta: dict, arrays: dict[str, np.ndarray], config) -> TrackWindowAl
     status = np.asarray(arrays['status'])
     if m and (status.min() < 0 or status.max() > 2):
         raise ValueError('a connection status is not 0, 1 or 2')
-    al._index = IdIndex.of(ids)
-    al._idarr, al._trackarr = Rows.of(ids, np.int64), Rows.of(track, np.int64)
-    al._stamparr = Rows.of(arrays['stamp'], np.int64)
-    cap = max(64, 2 * n)
-    al._T = zeros((cap, 4, 4))
-    al._T[:n] = arrays['T']
-    al._cov = SymArray(cap)
-    al._cov.packed[:n] = arrays['cov21']
-    al._frozen = zeros((cap,), bool)
-    al._frozen[:n] = arrays['frozen']
-    al._track_nodes = TrackRanges.of(track)
-    al._tracks = [int(t) for t in meta['tracks']]
-    al._finished = {int(t) for t in meta['finished']}
-    al._open_track = None if meta['open_track'] is None else int(meta['open_track'])
-    al._src, al._dst = Rows.of(src, np.int64), Rows.of(dst, np.int64)
-    al._z, al._ccov = Rows.of(arrays['z'], float), SymRows.of_packed(arrays['ccov21'])
-    al._cross = Rows.of(arrays['cross'], bool)
-    al._status = Rows.of(status, np.int8)
-    if m:
-        ts, td = track[src], track[dst]
-        k = np.arange(m)
-        two = ts != td
-        al._track_conns = TrackLists.of(np.concatenate([ts, td[two]]),
-                                        np.concatenate([k, k[two]]))
-        fp = arrays.get('fingerprint')
-        fp = (np.asarray(fp, dtype=np.uint32) if fp is not None and fp.shape == (m,) else
-              np.array(measurement_fingerprints(al._z.a, al._ccov.a[:]), dtype=np.uint32))
-        al._fp = Rows.of(fp, np.uint32)
-        al._prune_pairs()
-    al._priors = _priors_of('prior', arrays)
-    if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
-        al._past = _priors_of('past', arrays)
-        al._retired = int(meta.get('refine_retired', 0))
-    al._rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
-    al._n_updates = int(meta['n_updates'])
-    al._n_outliers = int(meta['n_outliers'])
-    if np.asarray(arrays['last_window']).size:  # the last adjustment, recomputed when needed
-        finished = [t for t in al._tracks if t in al._finished]
-        window = finished[-al.config.window_tracks:]
-        al._last_window = np.array(sorted(i for t in window for i in al._track_nodes[t]),
-                                   dtype=np.int64)
-        al._last_pending = window
-    if 'weighted_idx' in arrays:  # where the next update starts the weighted parameters
-        al._T_weighted = (np.array(arrays['weighted_idx'], dtype=np.int64),
-                          np.array(arrays['weighted_T'], dtype=float).reshape(-1, 4, 4))
-    al.resume_refinement(meta.get('refine_pending'))  # the pending background refinement
-    return al
+    return status

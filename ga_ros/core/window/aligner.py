@@ -1,0 +1,401 @@
+"""The track-window aligner: a thin facade over the parts of :mod:`ga_ros.core.window`.
+
+:class:`TrackWindowAligner` is fed one :class:`~ga_ros.core.measurement.Measurement` at a time
+(:mod:`~ga_ros.core.window.admission` validates and stores it in the
+:class:`~ga_ros.core.window.state.WindowState`); at each track end it freezes the tracks that
+leave the window (:mod:`~ga_ros.core.window.freeze`, computed ahead by
+:mod:`~ga_ros.core.window.freeze_ahead`), installs a background refinement that is due
+(:mod:`~ga_ros.core.window.handoff`), adjusts the window (:mod:`~ga_ros.core.window.update`,
+with the outlier gate of :mod:`~ga_ros.core.window.gate`), and puts every estimate back if that
+fails. See the package docstring for the method.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict
+
+import numpy as np
+
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.solver import SolverConfig, SolveResult, solve
+from ga_ros.core.window.admission import (
+    apply_measurement,
+    check_covariances_batch,
+    check_measurement,
+)
+from ga_ros.core.window.config import (
+    AlignerConfig,
+    AlignerStats,
+    BatchResult,
+    CorrectedPath,
+    UpdateResult,
+)
+from ga_ros.core.window.freeze import FreezePlan, JointPrior, freeze_policy, install_freeze
+from ga_ros.core.window.freeze_ahead import FreezeAhead
+from ga_ros.core.window.handoff import RefinementHandoff
+from ga_ros.core.window.queries import covariance, covariances
+from ga_ros.core.window.refinement import absorbed_priors
+from ga_ros.core.window.state import Rollback, WindowState, no_weighted
+from ga_ros.core.window.update import WindowUpdate
+from ga_ros.errors import GaError, InputError
+from ga_ros.runtime import blas_threads
+
+
+class TrackWindowAligner:
+    """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
+
+    Parameters
+    ----------
+    config : settings (window size, freezing policy, solver tolerances).
+    T_world_first : pose of the first node (the datum), identity by default.
+
+    Attributes
+    ----------
+    config : the settings.
+    state : everything kept between calls (:class:`~ga_ros.core.window.state.WindowState`;
+        a snapshot file saves and restores it, :meth:`from_state`).
+    policy : the freeze policy of ``config.freeze_policy``
+        (:class:`~ga_ros.core.window.freeze.FreezePolicy`).
+    updater : the window update (:class:`~ga_ros.core.window.update.WindowUpdate`).
+    handoff : the background refinement
+        (:class:`~ga_ros.core.window.handoff.RefinementHandoff`).
+    ahead : the freeze computed ahead (:class:`~ga_ros.core.window.freeze_ahead.FreezeAhead`).
+    """
+
+    def __init__(self, config: AlignerConfig | None = None,
+                 T_world_first: FloatArray | None = None) -> None:
+        self.config = config or AlignerConfig()
+        T_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first, float)
+        if T_first.shape != (4, 4) or not np.isfinite(T_first).all():
+            raise InputError('T_world_first must be a finite 4x4 pose')
+        self._attach(WindowState(T_first=T_first))
+
+    @classmethod
+    def from_state(cls, config: AlignerConfig, state: WindowState) -> TrackWindowAligner:
+        """An aligner continuing from ``state`` (a restored snapshot,
+        :func:`~ga_ros.core.window.persistence.load_state`)."""
+        al = cls.__new__(cls)
+        al.config = config
+        al._attach(state)
+        return al
+
+    def _attach(self, state: WindowState) -> None:
+        self.state = state
+        self.policy = freeze_policy(self.config.freeze_policy)
+        self.updater = WindowUpdate(state, self.config)
+        self.handoff = RefinementHandoff(state, self.config)
+        self.ahead = FreezeAhead(state)
+        # guards the last adjustment's factor, which a freeze computed ahead shares with the
+        # covariance queries
+        self._factor_lock = threading.Lock()
+        self._last_update: UpdateResult | None = None
+
+    # ------------------------------------------------------------------------- input
+    def add_measurement(self, m: Measurement) -> list[UpdateResult]:
+        """Add one measurement; returns the updates it triggered (a track end), if any.
+
+        Raises :class:`InputError` (and counts it by reason in :attr:`stats`) on a measurement
+        the policy of :mod:`ga_ros.core.window.admission` rejects; the state is then unchanged.
+        """
+        return self._add(m, None)
+
+    def add_measurements(self, ms) -> BatchResult:
+        """Add many measurements in order (a journal replay, a recorded survey): exactly what
+        calling :meth:`add_measurement` on each would do, rejections included, but with the
+        covariances validated together in one vectorised pass. Window updates run at track
+        ends only, as they would live. Never raises for a rejected measurement: see the result.
+        """
+        ms = list(ms)
+        sym = check_covariances_batch(self.config, ms)
+        updates, rejected = [], {}
+        for k, m in enumerate(ms):
+            try:
+                updates += self._add(m, None if sym is None or np.isnan(sym[k, 0, 0])
+                                     else sym[k])
+            except GaError as exc:
+                reason = getattr(exc, 'reason', 'invalid')
+                rejected[reason] = rejected.get(reason, 0) + 1
+        n_rej = sum(rejected.values())
+        return BatchResult(updates, len(ms) - n_rej, n_rej, rejected)
+
+    def _add(self, m: Measurement, checked_cov: FloatArray | None) -> list[UpdateResult]:
+        rejected = self.state.rejected
+        try:
+            plan = check_measurement(self.state, self.config, m, checked_cov)
+        except GaError as exc:
+            reason = getattr(exc, 'reason', 'invalid')
+            rejected[reason] = rejected.get(reason, 0) + 1
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever the input, only GaError escapes
+            rejected['invalid'] = rejected.get('invalid', 0) + 1
+            err = InputError(f'invalid measurement ({type(exc).__name__}: {exc})')
+            err.reason = 'invalid'
+            raise err from None
+        updates = []
+        if plan.ends_track:
+            up = self.finish_track()
+            if up is not None:
+                updates.append(up)
+        apply_measurement(self.state, m, plan)
+        return updates
+
+    # ----------------------------------------------------------------------- updates
+    def finish_track(self) -> UpdateResult | None:
+        """End the open track and adjust the window (returns ``None`` if there is no open
+        track).
+
+        If the update fails for any reason (a solver failure, a numerical error while freezing),
+        every estimate (poses, covariances, frozen flags, connection status, priors) is put back
+        as it was before the call, the track stays finished (the next update retries it inside
+        its window) and the returned result's ``reason`` starts with ``'failed'``. Only
+        :class:`~ga_ros.errors.GaError` can escape."""
+        st = self.state
+        if st.open_track is None or st.open_track in st.finished:
+            return None
+        # as stored: a pending recomputation of the last adjustment stays pending
+        saved = Rollback.of(st, self.mutable_rows())
+        track, t0 = st.open_track, time.perf_counter()
+        try:
+            up = self._finish_track()
+            if not str(up.reason).startswith('failed'):
+                self.handoff.start()
+                if self.config.freeze_ahead:
+                    self.ahead.start(self.config.window_tracks, self._last(), self._plan_freeze)
+                else:
+                    self.ahead.drop()
+                return up
+            error = up.reason[len('failed: '):]
+        except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
+            error = f'{type(exc).__name__}: {exc}'
+        saved.restore(st)
+        self.handoff.smoothing = None  # of a refinement installed by the failed update
+        st.finished.add(track)
+        st.n_updates += 1
+        up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0), 0, 0,
+                          min(len(st.finished), self.config.window_tracks), 0,
+                          f'failed: {error}')
+        self._last_update = up
+        return up
+
+    def mutable_rows(self) -> tuple[int, int]:
+        """``(node row, connection row)`` from which a window update can change the tables.
+
+        An update changes the poses, covariances and frozen flags of the unfrozen tracks
+        (window and leaving tracks: the adjustment, the freezes) and of the horizon of the
+        refinement it may install (rows from the snapshot's ``first_node``), and the status of
+        connections touching those nodes (gate, re-admission, absorption): the rows from the
+        first unfrozen node, or from the snapshot's first node if lower
+        (:meth:`WindowState.rows_from <ga_ros.core.window.state.WindowState.rows_from>`).
+        Everything before stays as it is (retired and long-frozen tracks), whatever the
+        survey's length (tested in ``test/test_window_scale.py``)."""
+        lo, first = self.state.first_unfrozen(), self.handoff.first_row()
+        return self.state.rows_from(lo if first is None else min(lo, first))
+
+    def _finish_track(self) -> UpdateResult | None:
+        """End the open track and adjust the window (returns ``None`` if there is no open
+        track). On a solver failure the previous estimate stands and the result says why."""
+        st = self.state
+        if st.open_track is None or st.open_track in st.finished:
+            return None
+        t0 = time.perf_counter()  # the update's time includes waiting for a freeze ahead
+        self.wait_background()  # before the BLAS limit below (a process-wide setting)
+        with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
+            return self._update(t0)
+
+    def _update(self, t0: float | None = None) -> UpdateResult:
+        st = self.state
+        track = st.open_track
+        st.finished.add(track)
+        t0 = time.perf_counter() if t0 is None else t0
+        finished = st.finished_order()
+        window = finished[-self.config.window_tracks:]
+        leaving = [t for t in finished[:-self.config.window_tracks]
+                   if not st.frozen[st.track_nodes[t][0]]]
+        for t in leaving:
+            self._freeze(t)
+        refined = self.handoff.install_due()  # refinement due now (replaces the priors)
+        try:
+            up = self._adjust(window, track, t0)
+            if refined is not None and not str(up.reason).startswith('failed'):
+                error = self.handoff.smooth(self._last())
+                (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
+                if error:
+                    up.refine_reason += f'; not smoothed: {error}'
+        except GaError as exc:
+            up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
+                              0, 0, len(window), 0, f'failed: {exc}')
+        st.n_updates += 1
+        self._last_update = up
+        return up
+
+    def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
+        """The window adjustment (:meth:`WindowUpdate.adjust
+        <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
+        return self.updater.adjust(window_tracks, track, t0)
+
+    def _last(self) -> SolveResult | None:
+        """The last window adjustment (recomputed on first use after a restore)."""
+        return self.updater.last()
+
+    @property
+    def last_adjustment(self) -> SolveResult | None:
+        """The last window adjustment (its estimate, normal system and covariances; ``None``
+        before the first update)."""
+        return self._last()
+
+    # ---------------------------------------------------------------------- freezing
+    def _freeze(self, track: int) -> None:
+        """Freeze a track leaving the window, using the last adjustment's estimate (the plan
+        computed ahead in the background if it still applies, else computed now)."""
+        plan = self.ahead.take(track)
+        if plan is None:
+            st = self.state
+            plan = self._plan_freeze(track, self._last(), st.last_window, st.priors,
+                                     len(st.ids), st.src.n)
+        install_freeze(self.state, plan)
+
+    def _plan_freeze(self, track: int, res: SolveResult | None, last_window: IntArray,
+                     priors: list, n: int, nc: int) -> FreezePlan:
+        """The freeze of ``track`` under the configured policy
+        (:meth:`FreezePolicy.plan <ga_ros.core.window.freeze.FreezePolicy.plan>`); changes
+        nothing (it may run in the background thread of :attr:`ahead`)."""
+        cfg = self.config
+        return self.policy.plan(self.state, track, res, last_window, priors, n, nc,
+                                int(cfg.prior_band), int(cfg.prior_hubs), self._factor_lock)
+
+    def wait_background(self) -> float:
+        """Wait until the freeze being computed ahead (``freeze_ahead``) is ready; returns the
+        CPU milliseconds it took (0 if none). Never needed for correctness: the next update
+        waits for it anyway. A replay calls it to model the time a live survey has between
+        track ends."""
+        return self.ahead.wait()
+
+    # ------------------------------------------------------------ background refinement
+    def refinement_state(self) -> dict | None:
+        """What a snapshot file needs to restart the pending refinement exactly (see
+        :meth:`RefinementHandoff.pending <ga_ros.core.window.handoff.RefinementHandoff.pending>`;
+        ``None`` if there is none to restart)."""
+        return self.handoff.pending()
+
+    def resume_refinement(self, state: dict | None) -> None:
+        """Restart the refinement described by :meth:`refinement_state` (a restored aligner),
+        from the same data, so the path continues as without the interruption."""
+        self.handoff.resume(state)
+
+    def close(self) -> None:
+        """Stop the background refinement (a pending result is dropped) and wait for a freeze
+        being computed ahead (kept); the aligner stays usable (a later refinement starts a new
+        worker)."""
+        self.handoff.close()
+        self.wait_background()
+
+    # ------------------------------------------------------------------------ output
+    def corrected_path(self) -> CorrectedPath:
+        """Every node at its current estimate (frozen, window, or the open track's chain)."""
+        st = self.state
+        n = len(st.ids)
+        return CorrectedPath(st.idarr.a.copy(), st.trackarr.a.copy(), st.stamparr.a.copy(),
+                             st.T[:n].copy(), st.frozen[:n].copy())
+
+    def covariance(self, node_id: int) -> FloatArray:
+        """6x6 covariance ``[x y z rx ry rz]`` of a node's pose (right perturbation).
+
+        Frozen nodes: the block stored when they froze. Window nodes: from the last
+        adjustment. Nodes of the open track (not adjusted yet): the last adjusted covariance of
+        their chain's start, propagated is not attempted; ``InputError`` is raised instead.
+        """
+        return covariance(self.state, self._last, node_id, self._factor_lock)
+
+    def covariances(self, node_ids) -> FloatArray:
+        """``(k, 6, 6)`` covariances of many nodes at once (see :meth:`covariance`).
+
+        Window nodes are computed together from the last adjustment (selected inversion rather
+        than one solve per node). Raises :class:`InputError` for an unknown node or one whose
+        track is still open.
+        """
+        return covariances(self.state, self._last, node_ids, self._factor_lock)
+
+    @property
+    def newest_node_id(self) -> int | None:
+        """Id of the newest node (``None`` before the first measurement)."""
+        return int(self.state.idarr.a[-1]) if self.state.idarr.n else None
+
+    @property
+    def open_track(self) -> int | None:
+        """The track being received (``None`` if none, or if it has finished)."""
+        st = self.state
+        return None if st.open_track in st.finished else st.open_track
+
+    @property
+    def stats(self) -> AlignerStats:
+        """Counters and the last update's result."""
+        st = self.state
+        return AlignerStats(len(st.ids), st.src.n, dict(st.rejected),
+                            st.finished_order()[-self.config.window_tracks:], st.n_updates,
+                            st.n_outliers, self._last_update)
+
+    def connection_arrays(self) -> tuple[IntArray, IntArray, FloatArray, BoolArray, IntArray]:
+        """``(src_id, dst_id, z, cross, status)`` of every connection (status 0 active,
+        1 absorbed into a marginal prior, 2 excluded as an outlier)."""
+        st = self.state
+        ids = st.idarr.a
+        return (ids[st.src.a], ids[st.dst.a], st.z.a.copy(), st.cross.a.copy(),
+                st.status.a.astype(np.int64))
+
+    def connection_covariances(self) -> FloatArray:
+        """(m, 6, 6) covariance of every connection, in the order of :meth:`connection_arrays`."""
+        return self.state.ccov.full()
+
+    def connection_w(self) -> FloatArray:
+        """(m,) largest ``|w|`` (Baarda's w-test statistic) of every connection at the last
+        window adjustment that contained it, in the order of :meth:`connection_arrays`; NaN
+        when never tested (``quality`` off, untestable, or not adjusted since a reload)."""
+        return self.updater.quality.connection_w(self.state.src.n)
+
+    # --------------------------------------------------------------- batch refinement
+    def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
+        """Full batch adjustment of every node with every kept connection (end of a survey).
+
+        The open track is finished first. Outliers stay excluded. The covariances published
+        afterwards come from this adjustment: frozen nodes get their marginal blocks from it
+        (selected inversion), window nodes are answered from it like after a window update.
+        The joint priors of the absorbed connections are rebuilt at the refined estimate
+        (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next window update
+        continues from it consistently; a pending background refinement is dropped.
+        """
+        self.finish_track()
+        self.ahead.drop()  # its inputs (estimate, priors) are replaced below
+        st = self.state
+        t0 = time.perf_counter()
+        keep = np.nonzero(st.status.a != 2)[0]
+        n = len(st.ids)
+        # from the aligner's arrays, checked at insertion (no per-connection validation and
+        # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)
+        net = st.subnetwork(np.arange(n), keep)
+        scfg = self.config.solver_config()
+        if max_iterations is not None:
+            scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
+        res = solve(net, st.T[:n], scfg, fixed=[st.ids[0]])
+        del net
+        st.T[:n] = res.T_world_node
+        frozen = np.nonzero(st.frozen[:n] & (np.arange(n) != 0))[0]
+        if frozen.size:
+            st.cov[frozen] = res.covariance(st.idarr.a[frozen])
+        # the joint priors of the absorbed connections, relinearised at the refined estimate
+        # (their old means would pull the next window update back to the online estimate)
+        self.handoff.drop()
+        # the next refinement starts from the whole survey again (a past prior linearised at
+        # the old estimate would pull the retired tracks' boundary back)
+        st.retired, st.past = 0, []
+        with blas_threads():
+            st.priors = [JointPrior.absorbed(p) for p in
+                         absorbed_priors(self.handoff.snapshot(whole=True), st.T[:n])]
+        self.updater.set_last(res)
+        st.last_window = np.nonzero(~st.frozen[:n])[0]
+        st.T_weighted = no_weighted()
+        return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
+                            1e3 * (time.perf_counter() - t0), n, int(keep.size),
+                            len(st.tracks), 0, res.reason, 0, res.n_unknowns)

@@ -1,0 +1,359 @@
+"""The eliminations of the background refinement: the joint priors of absorbed connections
+rebuilt at a refined estimate, the retirement of old tracks into the past prior, and the back
+substitution (smoothing) through those eliminations (ROS-free).
+
+The rebuilt priors come from eliminating the absorbed terms track by track on dense matrices of
+about two swaths (:class:`Marginal`: interior nodes first, each gain over the nodes it is
+coupled to); tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes take one sparse
+elimination instead (:func:`sparse_eliminate`), whose cost does not grow with the cube of a
+swath. Every prior is built by the freeze's rule,
+:func:`~ga_ros.core.window.freeze.marginal_prior`. The back substitution (:func:`smooth`) needs
+the eliminations' gains, ~0.7 M values per 200-pose track: a worker process keeps them
+(:mod:`ga_ros.core.window.worker`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver import GaussianPrior, normal_matrix_at
+from ga_ros.core.window.freeze import AbsorbedPrior, marginal_prior, prior_nodes
+from ga_ros.core.window.snapshot import RefinementSnapshot, SmoothingStep, SparseSmoothing
+from ga_ros.core.window.storage import unpack_sym6
+
+
+def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True
+                        ) -> tuple[tuple[AbsorbedPrior, ...],
+                                   tuple[SmoothingStep | SparseSmoothing, ...]]:
+    """Joint Gaussian priors of every absorbed connection (status 1), linearised at ``T_lin``.
+
+    The absorbed connections are summed in the order their tracks froze and every node that no
+    later absorbed connection touches, and that is not a prior node (:func:`prior_nodes`), is
+    eliminated as soon as its last connection is in (Schur complement): the working matrix spans
+    about two tracks whatever the survey's length, and the result is the exact marginal of the
+    absorbed terms on the prior nodes in the linear limit (the order of elimination does not
+    change a Schur complement; ``test/test_refinement.py`` checks it against one dense
+    elimination). As in the aligner's freezing, the absorbed terms are not at their optimum, so
+    their marginal keeps a linear term ``g``: the prior mean is ``T_lin`` moved by ``-H^-1 g``.
+    A bounded refinement's past prior (the terms of the retired tracks) enters first.
+
+    Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
+    and the elimination steps for back substitution (:class:`SmoothingStep`).
+
+    Tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes: one sparse elimination
+    instead (:func:`sparse_eliminate`, the same priors, one :class:`SparseSmoothing`).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError, ga_ros.errors.DegenerateGeometryError
+        An eliminated group is not determined by the absorbed terms (no datum, no prior node).
+    """
+    absorbed = np.nonzero(snap.status == 1)[0]
+    if absorbed.size == 0 and not snap.past:
+        return (), ()
+    n = snap.node_ids.size
+    past_nodes = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
+    keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy,
+                       past_nodes, snap.datum)
+    if long_tracks(snap):
+        return sparse_eliminate(snap, T_lin, keep, smoothing)
+    rank = track_rank(snap)
+    # a connection is added at the freeze of its later frozen end (the earlier end may be the
+    # window's, under 'marginal'); a node is eliminated after its last absorbed connection.
+    # The past prior (bounded refinement) comes first, at step -1.
+    rs, rd = rank[snap.src[absorbed]], rank[snap.dst[absorbed]]
+    fs, fd = snap.frozen[snap.src[absorbed]], snap.frozen[snap.dst[absorbed]]
+    step = np.maximum(np.where(fs, rs, -1), np.where(fd, rd, -1))
+    last = np.full(n, -1, dtype=np.int64)
+    np.maximum.at(last, snap.src[absorbed], step)
+    np.maximum.at(last, snap.dst[absorbed], step)
+    stages = [(-1, absorbed[:0], snap.past)] if snap.past else []
+    stages += [(int(s), absorbed[step == s], ()) for s in np.unique(step)]
+    work = Marginal()
+    steps: list[SmoothingStep] = []
+    for s, conns, priors in stages:
+        work.add(*normal_terms(snap, conns, T_lin, priors))
+        gone = [i for i in work.cols if last[i] <= s and not keep[i]]
+        if gone:
+            steps += work.eliminate(gone)
+    if not work.cols:
+        return (), tuple(steps)
+    priors = tuple(prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                   for group in work.groups())
+    return priors, tuple(steps)
+
+
+class Marginal:
+    """Dense marginal information ``(H, g)`` of absorbed terms over a changing set of nodes,
+    with its block pattern (which node blocks of ``H`` are nonzero), for the eliminations of
+    :func:`eliminate_absorbed` and :func:`retire_tracks`.
+
+    ``cols`` maps a node index to its block position in ``H`` (positions ``0..k-1`` in the
+    dict's order).
+    """
+
+    def __init__(self) -> None:
+        self.H = np.zeros((0, 0))
+        self.g = np.zeros(0)
+        self.nz = np.zeros((0, 0), dtype=bool)
+        self.cols: dict[int, int] = {}
+
+    def add(self, free: IntArray, N: sp.spmatrix, u: FloatArray) -> None:
+        """Add terms ``(N, u)`` over the nodes ``free`` (new ones appended)."""
+        for i in free.tolist():
+            if i not in self.cols:
+                self.cols[i] = len(self.cols)
+        k = len(self.cols)
+        if k > self.nz.shape[0]:
+            grow = k - self.nz.shape[0]
+            self.H = np.pad(self.H, ((0, 6 * grow), (0, 6 * grow)))
+            self.g = np.pad(self.g, (0, 6 * grow))
+            self.nz = np.pad(self.nz, ((0, grow), (0, grow)))
+        pos = np.array([self.cols[i] for i in free.tolist()], dtype=np.int64)
+        at = (6 * pos[:, None] + np.arange(6)).ravel()
+        C = sp.coo_matrix(N)
+        C.sum_duplicates()  # each entry once: a plain fancy-index add is exact
+        self.H[at[C.row], at[C.col]] += C.data
+        self.g[at] += u
+        self.nz[pos[C.row // 6], pos[C.col // 6]] = True
+
+    def eliminate(self, gone: list[int]) -> list[SmoothingStep]:
+        """Schur complement of the nodes ``gone`` out of ``(H, g)``; returns the back
+        substitutions ``d_L = -H_LL^-1 (g_L + H_LC d_C)`` (``C``: remaining nodes coupled to
+        ``L``).
+
+        The block pattern is used twice (the result is the same Schur complement): the nodes of
+        ``gone`` coupled to no remaining node (the interior, e.g. the older of two frozen
+        swaths) go first, then the others; and each elimination touches only the remaining
+        nodes coupled to it (its gain has their columns only, its update their block of
+        ``H``): less dense work per track, and no zero columns in the gains the hand-off
+        receives.
+        """
+        k = len(self.cols)
+        H, g, nz = self.H, self.g, self.nz
+        is_gone = np.zeros(k, dtype=bool)
+        is_gone[[self.cols[i] for i in gone]] = True
+        interior = np.zeros(k, dtype=bool)
+        interior[is_gone] = ~nz[np.ix_(is_gone, ~is_gone)].any(axis=1)
+        parts = [interior, is_gone & ~interior] if interior.any() else [is_gone]
+        node = np.array(list(self.cols), dtype=np.int64)
+        steps = []
+        left = np.ones(k, dtype=bool)
+        for part in parts:
+            if not part.any():
+                continue
+            left &= ~part
+            Lp = np.nonzero(part)[0]
+            Cp = np.nonzero(left & nz[Lp].any(axis=0))[0]
+            cL = (6 * Lp[:, None] + np.arange(6)).ravel()
+            cC = (6 * Cp[:, None] + np.arange(6)).ravel()
+            cho = sla.cho_factor(H[np.ix_(cL, cL)])
+            HLC = H[np.ix_(cL, cC)]
+            gain = -sla.cho_solve(cho, HLC)
+            offset = -sla.cho_solve(cho, g[cL])
+            if Cp.size:
+                upd = HLC.T @ gain
+                H[np.ix_(cC, cC)] += 0.5 * (upd + upd.T)
+                g[cC] += HLC.T @ offset
+                nz[np.ix_(Cp, Cp)] = True  # fill: the eliminated nodes coupled them
+            # kept in single precision (half the memory and transfer; a correction of 1 m is
+            # then carried to 0.1 um)
+            steps.append(SmoothingStep(node[Lp], node[Cp], gain.astype(np.float32), offset))
+        stay = np.nonzero(left)[0]
+        cS = (6 * stay[:, None] + np.arange(6)).ravel()
+        self.H, self.g, self.nz = H[np.ix_(cS, cS)], g[cS], nz[np.ix_(stay, stay)]
+        self.cols = {int(node[p]): q for q, p in enumerate(stay.tolist())}
+        return steps
+
+    def groups(self) -> list[IntArray]:
+        """The nodes, grouped by the connected components of the block pattern."""
+        S = np.array(list(self.cols), dtype=np.int64)
+        _, label = connected_components(self.nz, directed=False)
+        return [S[label == c] for c in np.unique(label)]
+
+
+def prior_of(work: Marginal, group: IntArray, T_lin: FloatArray, band: int = -1,
+              hubs: int = 0) -> AbsorbedPrior:
+    """The prior of one group of prior nodes (in index order) from the dense marginal
+    ``work`` (:func:`marginal_prior` with nothing left to eliminate)."""
+    at = (6 * np.array([work.cols[int(i)] for i in group])[:, None] + np.arange(6)).ravel()
+    group = np.asarray(group, dtype=np.int64)
+    return marginal_prior(group, work.H[np.ix_(at, at)], work.g[at],
+                          np.ones(group.size, dtype=bool), T_lin[group], band, hubs)
+
+
+#: Tracks of more nodes than this make the eliminations of :func:`eliminate_absorbed` and
+#: :func:`retire_tracks` sparse (:func:`sparse_eliminate`): the dense ones work on about two
+#: swaths at a time, cubic in the swath's length (minutes and GBs per refinement for 1,000-pose
+#: tracks); for shorter tracks they are the faster of the two.
+SPARSE_FROM_TRACK_NODES = 400
+
+
+def long_tracks(snap: RefinementSnapshot) -> bool:
+    """Whether the snapshot has a track of more than :data:`SPARSE_FROM_TRACK_NODES` nodes."""
+    _, counts = np.unique(snap.track_ids, return_counts=True)
+    return bool(counts.size) and int(counts.max()) > SPARSE_FROM_TRACK_NODES
+
+
+def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
+                   T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
+    """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
+    (the others eliminated), one per connected group (:func:`marginal_prior` of each, so
+    without a dense matrix of more than the group's targets). Equal to :func:`prior_of` of the
+    dense elimination (``test/test_refinement.py``)."""
+    Nc = sp.csr_matrix(N)
+    coo = Nc.tocoo()
+    k = free.size
+    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
+    _, label = connected_components(blocks, directed=False)
+    priors = []
+    for c in np.unique(label):
+        mine = np.nonzero(label == c)[0]
+        nodes, keep = free[mine], target[mine]
+        if not keep.any():
+            continue
+        at = (6 * mine[:, None] + np.arange(6)).ravel()
+        priors.append(marginal_prior(nodes, Nc[at][:, at], u[at], keep, T_lin[nodes[keep]],
+                                     band, hubs, coords=T_lin[nodes, :3, 3]))
+    return tuple(priors)
+
+
+def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArray,
+                      smoothing: bool = True
+                      ) -> tuple[tuple[AbsorbedPrior, ...], tuple[SparseSmoothing, ...]]:
+    """:func:`eliminate_absorbed` for long tracks: every absorbed term and the past prior in
+    one sparse normal matrix, the priors from it (:func:`sparse_priors`) and (if
+    ``smoothing``) one back substitution with a sparse factor of the eliminated nodes' block
+    (:class:`SparseSmoothing`)."""
+    absorbed = np.nonzero(snap.status == 1)[0]
+    free, N, u = normal_terms(snap, absorbed, T_lin, snap.past)
+    N = sp.csr_matrix(N)  # once, for both
+    kf = keep[free]
+    priors = sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
+    L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
+    if L.size == 0 or not smoothing:
+        return priors, ()
+    cL = (6 * L[:, None] + np.arange(6)).ravel()
+    cR = (6 * R[:, None] + np.arange(6)).ravel()
+    NL = N[cL]
+    return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
+
+
+def gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]
+              ) -> list[GaussianPrior]:
+    """The solver's form of priors over snapshot nodes."""
+    return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+            for p in priors]
+
+
+def normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
+                  priors: tuple[AbsorbedPrior, ...] = ()
+                  ) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Normal matrix ``N`` (sparse) and half gradient ``u`` of some connections and priors at
+    ``T_lin``, over their free nodes (snapshot indices, the datum excluded), in that order."""
+    nodes = np.unique(np.concatenate([snap.src[conns], snap.dst[conns]]
+                                     + [p.nodes for p in priors]))
+    local = np.full(snap.node_ids.size, -1, dtype=np.int64)
+    local[nodes] = np.arange(nodes.size)
+    net = ConnectionNetwork.from_arrays(
+        snap.node_ids[nodes], snap.track_ids[nodes], local[snap.src[conns]],
+        local[snap.dst[conns]], snap.z[conns], unpack_sym6(snap.cov21[conns]))
+    datum = snap.datum and bool((nodes == 0).any())
+    fixed = [int(snap.node_ids[0])] if datum else []
+    N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, gaussian(snap, priors))
+    free = nodes[nodes != 0] if datum else nodes
+    assert free.size == free_ids.size
+    return free, N, u
+
+
+def track_rank(snap: RefinementSnapshot) -> IntArray:
+    """(n,) position of each node's track in ``track_order`` (unfinished tracks last)."""
+    order = {t: k for k, t in enumerate(snap.track_order)}
+    tracks, inverse = np.unique(snap.track_ids, return_inverse=True)
+    rank = np.array([order.get(int(t), len(order)) for t in tracks.tolist()], dtype=np.int64)
+    return rank[inverse]
+
+
+def retirable_tracks(snap: RefinementSnapshot) -> int:
+    """How many of the oldest tracks of ``track_order`` (at most ``retire_max``) retire.
+
+    A track can retire when nothing can change its terms any more: its nodes and those of every
+    older track are frozen, and every connection touching them is absorbed or excluded with both
+    ends frozen (a frozen node takes no new connection, and the gate re-tests only connections
+    touching the window). ``snap`` is the state at the hand-off (:func:`predict_freezes`).
+    """
+    if snap.retire_max <= 0:
+        return 0
+    rank = track_rank(snap)
+    limit = snap.retire_max
+    if not snap.frozen.all():
+        limit = min(limit, int(rank[~snap.frozen].min()))
+    open_ = (snap.status == 0) | ~snap.frozen[snap.src] | ~snap.frozen[snap.dst]
+    if open_.any():
+        limit = min(limit, int(np.minimum(rank[snap.src[open_]], rank[snap.dst[open_]]).min()))
+    return max(0, limit)
+
+
+def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
+                  ) -> tuple[AbsorbedPrior, ...]:
+    """The past prior after the ``k`` oldest tracks of the snapshot retire, linearised at
+    ``T_lin`` (snapshot node indices).
+
+    The current past prior and every absorbed connection touching a retiring node are summed
+    and the retiring nodes eliminated (Schur complement) onto the nodes they leave behind: the
+    exact marginal of those terms in the linear limit, one prior per connected group (dense, or
+    sparse as :func:`band_prior` like the window's). The retiring tracks are the snapshot's
+    first nodes (its rows follow ``track_order``).
+    """
+    e = int((track_rank(snap) < k).sum())
+    conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
+    if long_tracks(snap):
+        free, N, u = normal_terms(snap, conns, T_lin, snap.past)
+        return sparse_priors(free, N, u, free >= e, T_lin, snap.prior_band, snap.prior_hubs)
+    work = Marginal()
+    work.add(*normal_terms(snap, conns, T_lin, snap.past))
+    gone = [i for i in work.cols if i < e]
+    if len(gone) == len(work.cols):
+        return ()
+    if gone:
+        work.eliminate(gone)
+    return tuple(prior_of(work, np.sort(group), T_lin, snap.prior_band, snap.prior_hubs)
+                 for group in work.groups())
+
+
+def smoothed(steps: tuple[SmoothingStep, ...], nodes: IntArray, d_nodes: FloatArray
+             ) -> tuple[IntArray, FloatArray]:
+    """:func:`smooth` with arrays: corrections ``d_nodes`` (k, 6) of the prior nodes ``nodes``
+    in, every node's correction out (``(m,)`` node indices in increasing order, ``(m, 6)``)."""
+    d = smooth(steps, dict(zip(np.asarray(nodes).tolist(), np.asarray(d_nodes))))
+    idx = np.array(sorted(d), dtype=np.int64)
+    return idx, (np.stack([d[int(i)] for i in idx]) if idx.size else np.zeros((0, 6)))
+
+
+def smooth(steps: tuple[SmoothingStep | SparseSmoothing, ...],
+           d_known: dict[int, FloatArray]
+           ) -> dict[int, FloatArray]:
+    """Back substitution through elimination steps, newest first (Rauch-Tung-Striebel style).
+
+    Parameters
+    ----------
+    steps : from :func:`eliminate_absorbed`, in elimination order.
+    d_known : tangent corrections (6,) of the prior nodes, by node index.
+
+    Returns
+    -------
+    Corrections of every node (prior nodes and eliminated ones), by node index.
+    """
+    d = dict(d_known)
+    for st in reversed(steps):
+        dR = np.concatenate([d.get(int(i), np.zeros(6)) for i in st.remaining]
+                            or [np.zeros(0)])
+        dL = st.back(dR)
+        for k, i in enumerate(st.eliminated.tolist()):
+            d[i] = dL[6 * k:6 * k + 6]
+    return d
