@@ -190,8 +190,8 @@ def keep_freed_memory(mmap_threshold_mib: int = 64, trim_threshold_mib: int = 12
 
     By default glibc maps every block above 128 KiB (raised dynamically up to 32 MiB) with
     ``mmap`` and unmaps it when freed, so the next iteration's temporaries fault their pages in
-    again; measured on the first solve of a process (CPU, min of 4, load ~10):
-    parking-garage 167 -> 145 ms, sphere2500 377 -> 339 ms. A long-running process (a node)
+    again, about a tenth of a short solve's CPU (docs/benchmarks.md, "Figures behind constants
+    in the code"). A long-running process (a node)
     keeps glibc's defaults. Returns whether the settings took (glibc's ``mallopt`` found and
     accepting them); elsewhere (another C library, another OS) nothing is changed.
     """

@@ -321,3 +321,16 @@ def test_the_end_of_a_track_bridges_what_is_still_held(sample) -> None:
     assert values['held_measurements'] == 0 and values['bridges'] == 1
     assert session.n_nodes() == n_nodes + 3  # the bridged node and the held ones' new nodes
     assert values['unjoined_nodes'] == 3 and values['rejected'] == 0
+
+
+def test_an_absolute_fix_joins_the_piece_of_its_node(sample) -> None:
+    """The hook of absolute fixes (``FixFeeder.flush(aligner, session.gaps.anchor)``): a fix on
+    any node of a bridged piece joins the whole piece; a fix on an unknown node changes
+    nothing."""
+    ms = [m for m in sample.measurements if m.dst_track < 2]
+    i, j = _slice_of_nodes(ms, 15, 18)
+    session = _run(ms[:i] + [m for m in ms[j:] if m.src_id >= 15], GapConfig(wait_measurements=3))
+    assert session.gaps.n_unjoined > 0
+    assert not session.gaps.anchor(10**6)
+    assert session.gaps.anchor(int(session.aligner.corrected_path().node_ids[-1]))
+    assert session.gaps.n_unjoined == 0 and session.health().ok

@@ -19,6 +19,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
+from ga_ros.core.encoding import pose_to_matrix  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
@@ -271,3 +272,46 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=c)
+
+
+def test_absolute_fixes_live_parameters_and_effect(ctx):
+    """``absolutes: amcl0`` with ``amcl0.*`` parameters: AMCL-like poses (x, y, yaw variances,
+    zeros elsewhere) in a map frame rotated and shifted from the odometry's put the corrected
+    path and ``map -> odom`` in that frame (the fixes' frame), through the same front end as
+    the replay."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    node = _node(AlignmentNode, ctx, absolutes='amcl0', **{
+        'amcl0.topic': 'amcl_pose', 'amcl0.type': 'pose_cov', 'amcl0.track_min_interval_s': 2.0,
+        'amcl0.lever_arm_m': [0.0, 0.0, 0.0], 'datum': 'fixes'})
+    rng = np.random.default_rng(5)
+    T_map_odom = se3.from_translation_rotvec(np.array([1.0, 2.0, 0.0]), np.array([0, 0, 0.3]))
+    try:
+        assert node.get_parameter('amcl0.default_sigma_m').value == 5.0
+        assert node.absolute.specs['amcl0'].config.lever_arm_m == (0.0, 0.0, 0.0)
+        for k, msg in enumerate(odom_msgs()):
+            node._on_input('odom0', msg)
+            if k % 10 == 5:
+                T_m = T_map_odom @ pose_to_matrix(msg.pose.pose)
+                T_m[:2, 3] += rng.normal(0, 0.05, 2)
+                q = se3.quat_from_matrix(T_m[:3, :3])
+                fix = PoseWithCovarianceStamped()
+                fix.header.frame_id = 'map'
+                fix.header.stamp = msg.header.stamp
+                p = fix.pose.pose
+                p.position.x, p.position.y, p.position.z = (float(v) for v in T_m[:3, 3])
+                p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (
+                    float(v) for v in q)
+                cov = np.zeros(36)
+                cov[0] = cov[7] = 0.05 ** 2
+                cov[35] = 0.02 ** 2
+                fix.pose.covariance = cov.tolist()
+                node._on_absolute('amcl0', fix)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        st = node.session.aligner.fix_stats
+        assert st.added == 20 and st.outliers == 0
+        assert node.absolute.stats()['amcl0']['fixes'] == 20
+        np.testing.assert_allclose(node._T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
+        np.testing.assert_allclose(node._T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
+    finally:
+        node.destroy_node()

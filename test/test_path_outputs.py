@@ -66,7 +66,7 @@ def test_window_path_every_update_full_path_at_most_every_period(ctx) -> None:
         node._full_path_timer()
         assert len(full) == 2
         np.testing.assert_array_equal(_poses(full[-1]), cp.T_world_node[:, :3, 3])
-        # message size: linear in the poses (what README "Path at 100,000 poses" quotes)
+        # message size: linear in the poses (docs/multi-robot.md, "The path at 100,000 poses")
         sizes = [len(serialize_message(conv.path_to_msg(cp.T_world_node[:k], cp.stamps_ns[:k],
                                                         'map'))) for k in (10, 20)]
         per_pose = (sizes[1] - sizes[0]) // 10

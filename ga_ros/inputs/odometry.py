@@ -535,3 +535,38 @@ class OdometryInput:
             alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
             T_odom_stamp = interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
         return i, se3.relative(self._kf_poses[i], T_odom_stamp)
+
+    def offset_at(self, stamp_ns: int) -> tuple[int, FloatArray, FloatArray]:
+        """``(node id, T_kf_stamp, covariance)``: the keyframe at or before ``stamp_ns``, the
+        odometry from it to the stamp (interpolated on SE(3) between the neighbouring samples)
+        and that offset's covariance from the noise model (``default_noise_percent`` of the
+        offset, no floor: zero at the keyframe's own stamp), right perturbation.
+
+        Raises
+        ------
+        InputError
+            A stamp outside the odometry kept so far (``history_s``) or before the first
+            keyframe.
+        """
+        stamp = int(stamp_ns)
+        if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
+            raise InputError(f'{self.config.name}: stamp {stamp} ns is outside the odometry '
+                             'kept so far')
+        i = int(np.searchsorted(np.asarray(self._kf_stamps), stamp, side='right')) - 1
+        if i < 0:
+            raise InputError(f'{self.config.name}: stamp {stamp} ns is before the first keyframe')
+        s = np.asarray(self._stamps)
+        j = int(np.searchsorted(s, stamp))
+        if s[j] == stamp:
+            T_odom_stamp = self._poses[j]
+        else:
+            alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
+            T_odom_stamp = interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
+        T = se3.relative(self._kf_poses[i], T_odom_stamp)
+        C = self.config.noise_model().covariances(se3.to_translation_rotvec(T))[0]
+        return self._kf_ids[i], T, C
+
+    @property
+    def latest_stamp_ns(self) -> int | None:
+        """Stamp (ns) of the newest sample (None before any)."""
+        return self._stamps[-1] if self._stamps else None

@@ -29,7 +29,8 @@ _EXPONENT_FLOAT = re.compile(r'[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+')
 def coerce_value(name: str, default: Any, value: Any) -> Any:
     """``value`` of parameter ``name`` in the type of its ``default``.
 
-    Floats accept integers (``-p tolerance:=1``); booleans, integers and strings must match.
+    Floats accept integers (``-p tolerance:=1``); a tuple (of floats) accepts any list of numbers;
+    booleans, integers and strings must match.
 
     Raises
     ------
@@ -45,6 +46,11 @@ def coerce_value(name: str, default: Any, value: Any) -> Any:
     elif isinstance(default, float):
         ok = isinstance(value, int | float) and not isinstance(value, bool)
         value = float(value) if ok else value
+    elif isinstance(default, tuple):  # a list of numbers (ROS double array, YAML list)
+        items = list(value) if not isinstance(value, str | bytes | dict) else None
+        ok = items is not None and all(isinstance(v, int | float | np.floating | np.integer)
+                                       and not isinstance(v, bool) for v in items)
+        value = tuple(float(v) for v in items) if ok else value
     else:
         ok = isinstance(value, type(default))
     if not ok:

@@ -15,8 +15,10 @@ from typing import Any
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
+from ga_ros.inputs.absolute import ABSOLUTE_TYPES
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
 from ga_ros.io.bag import CAMERA_INFO, IMAGE_TYPES, PATH, BagInfo, BagReader, TopicPlan
+from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
 from ga_ros.replay.source import SourceItem
@@ -59,6 +61,8 @@ class InputTopics:
     track_boundary : ``std_msgs/Empty`` topic that starts a new track ('' = none).
     warn_throttle_s : smallest interval between two default-covariance warnings (s).
     camera : a stereo camera beside the odometry (None: none).
+    absolutes : absolute inputs (fixes: GNSS, AMCL, ...; :mod:`ga_ros.pipeline.absolute`; their
+        ``msgtype`` is taken from the bag).
     """
 
     inputs: tuple[InputSpec, ...] = ()
@@ -66,6 +70,7 @@ class InputTopics:
     track_boundary: str = ''
     warn_throttle_s: float = 10.0
     camera: CameraTopics | None = None
+    absolutes: tuple[AbsoluteSpec, ...] = ()
 
     @property
     def topics(self) -> list[str]:
@@ -74,6 +79,7 @@ class InputTopics:
         if self.camera is not None:
             c = self.camera
             out += [c.left_image, c.right_image, c.left_info, c.right_info]
+        out += [a.topic for a in self.absolutes]
         return [t for t in out if t]
 
 
@@ -100,9 +106,13 @@ def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
 
     specs = tuple(replace(s, msgtype=check(s.topic, INPUT_TYPES, f'input {s.name}'))
                   for s in config.inputs)
+    for a in config.absolutes:
+        check(a.topic, ABSOLUTE_TYPES, f'absolute input {a.name}')
     notes = [f'source: {s.name} {s.topic} ({s.msgtype}), keyframes every '
              f'{s.config.keyframe_travel_m:g} m / {s.config.keyframe_rotation_deg:g} deg'
              for s in specs]
+    notes += [f'absolute: {a.name} {a.topic} ({info.topic(a.topic).msgtype})'
+              for a in config.absolutes]
     if config.constraints:
         check(config.constraints, (ODOMETRY,), 'external constraints')
         notes.append(f'external constraints: {config.constraints}')
@@ -148,6 +158,10 @@ class InputSource:
                 models = read_stereo_calibration(list(config.camera.calibration))
                 camera.set_camera_models(models.left, models.right)
         self.front = InputFrontEnd(specs, config.warn_throttle_s, camera=camera)
+        assert self.bag.info is not None
+        self.absolute = AbsoluteFrontEnd(
+            [replace(a, msgtype=self.bag.info.topic(a.topic).msgtype) for a in config.absolutes],
+            config.warn_throttle_s)
         self.counter = counter
         self.warnings: list[str] = []
         #: called with each ``/tf`` and ``/tf_static`` message of the bag (topic, type, CDR,
@@ -158,6 +172,8 @@ class InputSource:
     def stats(self) -> dict[str, object]:
         """Per-input counters and the warnings (in the replay summary)."""
         out = self.front.stats()
+        if self.absolute.specs:
+            out['absolute'] = {**self.absolute.stats(), 'datums': self.absolute.datums()}
         out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1])}
         return out
 
@@ -176,15 +192,27 @@ class InputSource:
         infos = {cam.left_info: 'left', cam.right_info: 'right'} if cam else {}
         infos.pop('', None)
         assert self.bag.info is not None
-        tf = [t for t in TF_TOPICS if self.passthrough is not None and self.bag.info.topic(t)]
+        tf = [t for t in TF_TOPICS if self.bag.info.topic(t) and (
+            self.passthrough is not None or (t == '/tf_static' and self.absolute.specs))]
         for bm in self.bag.messages(topics + tf):
             if bm.topic in tf:
                 if self.passthrough is not None and bm.data is not None:  # not from ROS 1
                     self.passthrough(bm.topic, bm.msgtype, bm.data, bm.msg, bm.log_ns)
+                if bm.topic == '/tf_static' and self.absolute.specs:  # the lever arms
+                    self.absolute.static_transform(bm.msg)
                 continue
             self.counter[0] += 1
             if bm.topic == self.config.track_boundary:
                 self.front.track_boundary()
+                continue
+            absolute = self.absolute.by_topic(bm.topic)
+            if absolute is not None:
+                ab = self.absolute.message(absolute.name, bm.msg)
+                if ab.warning:
+                    self.warnings.append(ab.warning)
+                if ab.error:
+                    yield SourceItem(None, bm.log_ns, error=f'absolute: {ab.error}')
+                yield from self._fixes(bm.log_ns)
                 continue
             if bm.topic == self.config.constraints:
                 step = self.front.constraint(bm.msg)
@@ -205,3 +233,16 @@ class InputSource:
                     yield SourceItem(None, bm.log_ns, node_stamps=step.node_stamps)
             for k, m in enumerate(step.measurements):
                 yield SourceItem(m, bm.log_ns, node_stamps=step.node_stamps if k == 0 else None)
+            if self.absolute.specs and bm.topic != self.config.constraints:
+                yield from self._fixes(bm.log_ns)
+
+    def _fixes(self, log_ns: int) -> Iterator[SourceItem]:
+        """The queued fixes the primary odometry now covers (a track boundary at the next
+        keyframe if one asks for it)."""
+        ab = self.absolute.resolve(self.front.inputs[self.front.primary])
+        if ab.end_track:
+            self.front.track_boundary()
+        if ab.error:
+            yield SourceItem(None, log_ns, error=f'absolute: {ab.error}')
+        if ab.fixes:
+            yield SourceItem(None, log_ns, fixes=ab.fixes)

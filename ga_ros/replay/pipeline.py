@@ -40,6 +40,7 @@ from ga_ros.io.bag import (
     read_ground_truth,
 )
 from ga_ros.io.groundtruth import read_ground_truth_file
+from ga_ros.pipeline.absolute import FixFeeder
 from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.inputs import InputSource, InputTopics, plan_inputs
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
@@ -281,6 +282,7 @@ class _Run:
         self.source: Any = None
         self.first_id: int | None = None
         self.T_map_odom: FloatArray | None = None
+        self.fixes = FixFeeder()  # absolute fixes waiting for their node
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -296,6 +298,9 @@ class _Run:
             for k, v in item.node_stamps.items():
                 self.stamps.setdefault(int(k), int(v))
         m = item.measurement
+        if item.fixes:
+            self.fixes.add(item.fixes)
+            self._add_fixes()
         if m is None:
             if item.error:
                 self._reject(item.error)
@@ -322,6 +327,8 @@ class _Run:
             self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
         else:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
+        if self.fixes.waiting:
+            self._add_fixes()
         for u in out.updates:
             self._update(u)
         if self.config.tf and self.T_map_odom is not None:
@@ -337,6 +344,13 @@ class _Run:
         for text in out.notes:
             if text.startswith('held measurement rejected: '):
                 self._reject('aligner: ' + text[len('held measurement rejected: '):])
+
+    def _add_fixes(self) -> None:
+        """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
+        measurement brings waits for it); refused ones are counted as rejections."""
+        for error in self.fixes.flush(
+                self.aligner, self.session.gaps.anchor if self.session is not None else None):
+            self._reject(f'absolute: {error}')
 
     def _reject(self, reason: str) -> None:
         key = reason.split(':', 1)[0]
@@ -673,6 +687,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                 result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
                                 f'{unit}s' + (f' ({examples})' if examples else ''))
             run.finish()
+            fix_stats = getattr(run.aligner, 'fix_stats', None)
+            if fix_stats is not None and 'absolute' in result.source_stats:
+                result.source_stats['absolute']['aligner'] = _as_dict(fix_stats)
         finally:
             outputs.close()
             result.seconds = time.perf_counter() - t0

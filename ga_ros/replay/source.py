@@ -24,6 +24,7 @@ class SourceItem:
     data: bytes | None = None
     error: str | None = None
     node_stamps: dict[int, int] | None = None
+    fixes: tuple = ()  # absolute fixes (ga_ros.pipeline.absolute.ResolvedFix) ready now
 
 
 def bag_measurements(bag: BagReader, topic: str, counter: list[int],

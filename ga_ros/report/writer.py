@@ -528,8 +528,8 @@ def _quality_markdown(q: dict | None, what: str, image: str, images: list[str]) 
     if not q:
         return ''
     L = [f'### Quality control of the batch adjustment of {what}\n',
-         '`ga_ros.core.quality.quality_control` on the batch solution (formulas in the README, '
-         '"Quality control of an adjustment").\n',
+         '`ga_ros.core.quality.quality_control` on the batch solution (formulas in '
+         'docs/quality.md).\n',
          '| figure | value |', '|---|---|',
          f'| global test `v\'Pv` / critical (alpha {q["global_alpha"]:g}) | {q["cost"]:.1f} / '
          f'{q["global_critical"]:.1f}: {"passed" if q["global_passed"] else "**failed**"} |',
@@ -658,7 +658,7 @@ def _outliers_markdown(w: dict | None) -> str:
          f'{w["gross_deg"][0]:g}-{w["gross_deg"][1]:g} deg). Recall: wrong connections '
          'rejected; good rej.: good connections rejected; dATE: change of the aligned ATE '
          'against the clean run of the same family (batch LS; the gated window for `gate`). '
-         '`python -m ga_ros.bench.outliers` runs the larger table of the README.\n',
+         '`ga-ros bench outliers` runs the larger table of docs/benchmarks.md.\n',
          '| wrong % | method | recall % | precision % | good rej. % | ATE (m) | dATE % '
          '| time (s) |', '|---|---|---|---|---|---|---|---|']
     for x in w['rows']:

@@ -42,7 +42,7 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
@@ -54,9 +54,13 @@ from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
+from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig
+from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
+from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY, POSE, POSE_COV
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.io.cdr import path_cdr
+from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec, FixFeeder
 from ga_ros.pipeline.inputs import (
     COVARIANCE_POLICIES,
     InputFrontEnd,
@@ -82,7 +86,9 @@ ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000
                   'outlier_chi2_prob': (0.0, 1.0), 'refine_every_tracks': (0, 1000),
                   'refine_lag_tracks': (1, 1000), 'refine_horizon_tracks': (0, 100000),
                   'prior_band': (-1, 100000),
-                  'prior_hubs': (0, 1000)}
+                  'prior_hubs': (0, 1000), 'fix_gate_prob': (0.0, 1.0),
+                  'gauge_sigma_m': (1e-9, 1e9), 'gauge_sigma_tilt_rad': (1e-12, 10.0),
+                  'gauge_sigma_yaw_rad': (1e-12, 10.0)}
 
 
 def field_(default: Any, lo: float, hi: float) -> Any:
@@ -123,6 +129,11 @@ class NodeSettings:
         (config/inputs.yaml).
     constraints_topic : input: external constraints (nav_msgs/Odometry, ``stamp/<ns>`` or
         ``node/<id>`` ends) on the first standard input's keyframes.
+    absolutes : comma-separated names of absolute inputs (``fix0,amcl0``: GNSS, AMCL, USBL,
+        motion capture; :mod:`ga_ros.pipeline.absolute`), tied to the first standard input's
+        keyframes; each has parameters ``<name>.topic``, ``<name>.type`` and the
+        AbsoluteInputConfig fields ``<name>.<field>``. With any, set ``datum: fixes`` (the map
+        frame is then the fixes' frame).
     track_boundary_topic : input: std_msgs/Empty, a new track of the standard inputs.
     covariance_policy : measurement covariance that is not positive definite: ``reject`` or
         ``repair`` (eigenvalue clipping).
@@ -179,6 +190,7 @@ class NodeSettings:
     diagnostics_period_sec: float = field_(1.0, 0.0, 3600.0)
     odom_max_rate_hz: float = field_(10.0, 0.0, 1000.0)
     inputs: str = ''
+    absolutes: str = ''
     constraints_topic: str = topics.CONSTRAINTS
     track_boundary_topic: str = topics.TRACK_BOUNDARY
     covariance_policy: str = 'reject'
@@ -225,6 +237,8 @@ class AlignmentNode(Node):
         if s.covariance_policy not in COVARIANCE_POLICIES:
             raise InputError(f'covariance_policy must be one of {COVARIANCE_POLICIES}')
         self.front = self._declare_inputs(s)
+        self.absolute = self._declare_absolutes(s)
+        self._fix_feeder = FixFeeder()
         if s.measurement_durability not in ('volatile', 'transient_local'):
             raise InputError(f'parameter measurement_durability must be volatile or '
                              f'transient_local, got {s.measurement_durability!r}')
@@ -491,9 +505,64 @@ class AlignmentNode(Node):
             base_to_camera=tuple(float(v) for v in extrinsic),
             max_image_offset_s=float(offset)))
 
+    def _declare_absolutes(self, s: NodeSettings) -> AbsoluteFrontEnd | None:
+        """Parameters ``<name>.topic``, ``<name>.type``, ``<name>.<field>`` of each absolute
+        input named in ``absolutes``; the front end (None without any)."""
+        names = [n.strip() for n in s.absolutes.split(',') if n.strip()]
+        if not names:
+            return None
+        if self.front is None:
+            raise InputError('absolutes need a standard odometry input (parameter inputs): '
+                             'fixes are tied to its keyframes')
+        specs = []
+        why = 'the input is set up at start'
+        for name in names:
+            topic = self.declare_parameter(f'{name}.topic', '', ParameterDescriptor(
+                description=f'{name}: absolute input topic (read-only: {why})',
+                read_only=True)).value
+            msgtype = self.declare_parameter(f'{name}.type', ABS_POSE_COV, ParameterDescriptor(
+                description=f'{name}: {" | ".join(ABSOLUTE_TYPES)} (read-only: {why})',
+                read_only=True)).value
+            cfg = declare_config(self, AbsoluteInputConfig, prefix=f'{name}.',
+                                 read_only_reason=why, defaults=AbsoluteInputConfig(name))
+            if not topic:
+                raise InputError(f'absolute input {name}: set the parameter {name}.topic')
+            specs.append(AbsoluteSpec(str(topic), str(msgtype), replace(cfg, name=name)))
+        return AbsoluteFrontEnd(specs, s.input_warn_throttle_sec)
+
+    def _on_absolute(self, name: str, msg: Any) -> None:
+        assert self.absolute is not None
+        step = self.absolute.message(name, msg)
+        if step.warning:
+            self.get_logger().warning(step.warning)
+        if step.error:
+            self.get_logger().warning(step.error, throttle_duration_sec=5.0)
+        self._resolve_fixes()
+
+    def _resolve_fixes(self) -> None:
+        """Fixes the odometry now covers -> the aligner (a track boundary if one asks)."""
+        if self.absolute is None or self.front is None:
+            return
+        step = self.absolute.resolve(self.front.inputs[self.front.primary])
+        if step.end_track:
+            self.front.track_boundary()
+        self._fix_feeder.add(step.fixes)
+        for error in self._fix_feeder.flush(self.session.aligner, self.session.gaps.anchor):
+            self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
+
     def _subscribe_inputs(self, s: NodeSettings) -> None:
         if self.front is None:
             return
+        if self.absolute is not None:
+            kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
+                         NAVSAT: NavSatFix}
+            qos_abs = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+            for spec in self.absolute.specs.values():
+                self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
+                                         partial(self._on_absolute, spec.name), qos_abs)
+            # the sensors' lever arms (latched: every static broadcaster's last message)
+            self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
+                                     latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
         # best effort matches reliable and best-effort publishers (odometry drivers use both)
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -518,6 +587,8 @@ class AlignmentNode(Node):
     def _on_input(self, name: str, msg: Any) -> None:
         assert self.front is not None
         self._after_input(self.front.sample(name, msg), msg)
+        if self.absolute is not None and name == self.front.primary:
+            self._resolve_fixes()
 
     def _on_camera_image(self, side: str, msg: Any) -> None:
         assert self.front is not None

@@ -53,6 +53,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                       'the alignment node as a process: latency, sustained measurement rate'),
     'replay': Benchmark('ga_ros.cli.benchmarks.replay:main',
                         'replay throughput on the sample bags'),
+    'fixes': Benchmark('ga_ros.bench.fixes:main',
+                       'real odometry + absolute fixes (Plaza): ga-ros against GTSAM LM / iSAM2'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
 }

@@ -20,6 +20,7 @@ from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.bag import TopicConfig, bag_info
+from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
@@ -58,6 +59,12 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                         'PoseWithCovarianceStamped or PoseStamped (type from the bag); '
                         'repeatable: inputs odom0, odom1, ...; the first defines the keyframes, '
                         'the others measure the motion between them')
+    s.add_argument('--absolute-topic', dest='absolute_topics', action='append', default=[],
+                   metavar='TOPIC',
+                   help='absolute fixes (weighted parameters): geometry_msgs/'
+                        'PoseWithCovarianceStamped (AMCL, USBL, motion capture), nav_msgs/'
+                        'Odometry or sensor_msgs/NavSatFix (type from the bag); repeatable: '
+                        "inputs fix0, fix1, ...; the map frame is then the fixes' frame")
     s.add_argument('--input-config', type=Path, metavar='YAML',
                    help='input settings by name (config/inputs.yaml: keyframes, covariance '
                         'policy, track rule; a section with a topic adds that input)')
@@ -147,10 +154,15 @@ def input_topics(args: argparse.Namespace) -> InputTopics:
             raise InputError(f'cannot read --input-config {args.input_config}: {exc}') from exc
         if not isinstance(sections, dict):
             raise InputError(f'{args.input_config}: expected sections named like odom0, pose0')
+    absolutes = sections.pop('absolutes', None) or {}
+    if not isinstance(absolutes, dict):
+        raise InputError(f'{args.input_config}: absolutes must map names (fix0, ...) to settings')
+    abs_specs = absolute_specs_from_mapping(
+        absolutes, {f'fix{k}': t for k, t in enumerate(getattr(args, 'absolute_topics', []))})
     named = {f'odom{k}': t for k, t in enumerate(args.input_topics)}
     specs = specs_from_mapping(sections, named)
     return InputTopics(specs, args.constraints_topic, args.track_boundary_topic,
-                       camera=camera_topics(args) if specs else None)
+                       camera=camera_topics(args) if specs else None, absolutes=abs_specs)
 
 
 def camera_topics(args: argparse.Namespace) -> Any:
@@ -179,6 +191,9 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     overrides = {field: getattr(args, opt) for opt, field in ALIGNER_OPTIONS.items()
                  if getattr(args, opt, None) is not None}
     aligner: Any = None
+    inputs = input_topics(args)
+    if inputs.absolutes:
+        overrides.setdefault('datum', 'fixes')  # the map frame is the fixes' frame
     if overrides and args.aligner == 'window':
         from ga_ros.core.window import AlignerConfig
         from ga_ros.pipeline.params import config_from_params
@@ -192,7 +207,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         refine_batch=args.refine,
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
-                        progress=progress and not args.no_progress, inputs=input_topics(args),
+                        progress=progress and not args.no_progress, inputs=inputs,
                         ground_truth_file=str(args.ground_truth or ''), tf=not args.no_tf,
                         covariance_policy=args.covariance_policy)
 

@@ -101,8 +101,8 @@ def _lower_inverse_py(Ljj):  # pragma: no cover - without numba only
 
 
 #: :func:`_lower_inverse_lapack` inverts triangles of up to this many columns with ``dtrtri``,
-#: larger ones by halves (OpenBLAS's ``dtrtri`` runs at ~15 GFlop/s on one core where its
-#: ``dtrmm`` runs at ~40: a 642-column supernode in 3.3 instead of 6 ms).
+#: larger ones by halves (OpenBLAS's ``dtrtri`` runs at about a third of the flop rate of its
+#: ``dtrmm``, so the halves' ``dtrmm`` products are cheaper than one large ``dtrtri``).
 _TRTRI_LEAF = 128
 
 

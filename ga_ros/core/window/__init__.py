@@ -13,9 +13,9 @@ window stop being unknowns and are *frozen*:
   the information of the connections among frozen nodes only (absorbed by a Schur complement
   when a track freezes, the other frozen nodes eliminated); connections to the window stay in
   the window problem and are relinearised there. No connection is counted twice, so the
-  published covariances are not overconfident (earlier versions used independent per-node
-  priors with the marginal covariances of the last adjustment, which counted shared information
-  again at every update: position NEES ~100 instead of 3).
+  published covariances are not overconfident (independent per-node priors with the marginal
+  covariances of the last adjustment would count shared information again at every update:
+  position NEES ~100 instead of 3).
 * ``freeze_policy='marginal'``: the leaving track is marginalised out exactly (Schur complement
   of its terms, as fixed-lag smoothers do), which leaves a joint Gaussian prior on the window
   nodes it was connected to; its connections are absorbed into that prior.

@@ -19,6 +19,7 @@ from dataclasses import asdict
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.fixes import FixStats, FixTerm, gauge_information, offset_information
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.solver import SolverConfig, SolveResult, solve
 from ga_ros.core.window.admission import (
@@ -84,6 +85,7 @@ class TrackWindowAligner:
 
     def _attach(self, state: WindowState) -> None:
         self.state = state
+        state.fixes.gate_prob = float(self.config.fix_gate_prob)
         self.policy = freeze_policy(self.config.freeze_policy)
         self.updater = WindowUpdate(state, self.config)
         self.handoff = RefinementHandoff(state, self.config)
@@ -101,6 +103,52 @@ class TrackWindowAligner:
         the policy of :mod:`ga_ros.core.window.admission` rejects; the state is then unchanged.
         """
         return self._add(m, None)
+
+    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
+        """Add an absolute fix tied to a node by the odometry
+        (:class:`~ga_ros.core.fixes.FixTerm`); it enters the next adjustment of that node as a
+        weighted parameter.
+
+        Parameters
+        ----------
+        term : the fix, its node and the offset from the node to the sensor.
+        C_offset : (6, 6) covariance of that offset (odometry between the node and the fix's
+            stamp, right perturbation in the node frame), added to the fix's covariance in its
+            known dimensions; ``None``: an exact offset.
+
+        Raises
+        ------
+        InputError
+            An unknown node (counted ``fix_no_keyframe``) or a frozen one (``fix_frozen_node``:
+            its estimate and prior are final; send fixes before the node's track leaves the
+            window), nothing changed.
+        """
+        st = self.state
+        k = st.index.get(int(term.node_id))
+        if k is None:
+            st.fixes.reject('fix_no_keyframe')
+            raise InputError(f'{term.fix.source}: fix on unknown node {term.node_id}',
+                             reason='unknown_source')
+        if st.frozen[k]:
+            st.fixes.reject('fix_frozen_node')
+            raise InputError(f'{term.fix.source}: fix on node {term.node_id}, whose track is '
+                             'frozen already', reason='frozen')
+        info = term.fix.information
+        if C_offset is not None:
+            info = offset_information(term.fix, st.T[k], C_offset)
+        st.fixes.add(k, term, info)
+
+    @property
+    def fix_stats(self) -> FixStats:
+        """Counters of the absolute fixes (:class:`~ga_ros.core.fixes.FixStats`)."""
+        return self.state.fixes.stats
+
+    @property
+    def uses_fixes(self) -> bool:
+        """Whether fixes (or the gauge prior of ``datum='fixes'``) take part: then the
+        background refinement and the freeze computed ahead are off (their snapshots do not
+        carry fixes)."""
+        return self.config.datum == 'fixes' or len(self.state.fixes) > 0
 
     def add_measurements(self, ms) -> BatchResult:
         """Add many measurements in order (a journal replay, a recorded survey): exactly what
@@ -140,6 +188,12 @@ class TrackWindowAligner:
             if up is not None:
                 updates.append(up)
         apply_measurement(self.state, m, plan)
+        if plan.first and self.config.datum == 'fixes':  # the weak gauge prior, row 0
+            cfg = self.config
+            self.state.fixes.add_gauge(0, plan.src, m.stamp_ns, self.state.T_first,
+                                       gauge_information(cfg.gauge_sigma_m,
+                                                         cfg.gauge_sigma_tilt_rad,
+                                                         cfg.gauge_sigma_yaw_rad))
         return updates
 
     # ----------------------------------------------------------------------- updates
@@ -157,12 +211,14 @@ class TrackWindowAligner:
             return None
         # as stored: a pending recomputation of the last adjustment stays pending
         saved = Rollback.of(st, self.mutable_rows())
+        fix_state = st.fixes.state()
         track, t0 = st.open_track, time.perf_counter()
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
-                self.handoff.start()
-                if self.config.freeze_ahead:
+                if not self.uses_fixes:
+                    self.handoff.start()
+                if self.config.freeze_ahead and not self.uses_fixes:
                     self.ahead.start(self.config.window_tracks, self._last(), self._plan_freeze)
                 else:
                     self.ahead.drop()
@@ -171,6 +227,7 @@ class TrackWindowAligner:
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
         saved.restore(st)
+        st.fixes.restore(fix_state)
         self.handoff.smoothing = None  # of a refinement installed by the failed update
         st.finished.add(track)
         st.n_updates += 1
@@ -234,7 +291,7 @@ class TrackWindowAligner:
     def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
         """The window adjustment (:meth:`WindowUpdate.adjust
         <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
-        return self.updater.adjust(window_tracks, track, t0)
+        return self.updater.adjust(window_tracks, track, t0, self._factor_lock)
 
     def _last(self) -> SolveResult | None:
         """The last window adjustment (recomputed on first use after a restore)."""
@@ -378,10 +435,12 @@ class TrackWindowAligner:
         scfg = self.config.solver_config()
         if max_iterations is not None:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
-        res = solve(net, st.T[:n], scfg, fixed=[st.ids[0]])
+        free_datum = self.config.datum == 'fixes'
+        res = solve(net, st.T[:n], scfg, fixed=[] if free_datum else [st.ids[0]],
+                    priors=st.fixes.priors(np.arange(n), st.T, st.idarr.a))
         del net
         st.T[:n] = res.T_world_node
-        frozen = np.nonzero(st.frozen[:n] & (np.arange(n) != 0))[0]
+        frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]
         if frozen.size:
             st.cov[frozen] = res.covariance(st.idarr.a[frozen])
         # the joint priors of the absorbed connections, relinearised at the refined estimate

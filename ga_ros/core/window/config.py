@@ -13,6 +13,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
 from ga_ros.core.solver import SolverConfig
 from ga_ros.core.window.freeze import FREEZE_POLICIES
@@ -80,7 +81,7 @@ class AlignerConfig:
         at level ``quality_alpha0`` is excluded, the window re-adjusted, and so on until none
         rejects; as with ``'chi2'``, a good connection excluded next to a gross error comes back
         by re-admission. Baarda's one-at-a-time removal needs too many re-adjustments per
-        update at 20 % wrong connections: see the README).
+        update at 20 % wrong connections: docs/benchmarks.md, "Wrong connections").
         ``outlier_chi2_prob = 0`` disables either gate (it is also the re-admission level).
     quality : compute the quality control of every window update (``UpdateResult.quality``:
         global test, ``sigma0^2``, largest ``|w|``, w-test rejections, smallest redundancy
@@ -126,6 +127,20 @@ class AlignerConfig:
         their covariances with every prior node are kept exactly too, which keeps the
         long-range correlations (the common drift of a frozen swath) that a band alone loses.
         Each adds one dense block row to the window's normal matrix.
+    datum : ``'first_node'`` (the first node held fixed at ``T_world_first``) or ``'fixes'``
+        (absolute fixes define the map frame, :mod:`ga_ros.core.fixes`: nothing is held fixed,
+        the first node gets a weak gauge prior at ``T_world_first`` with the ``gauge_*``
+        sigmas, so the normal matrix stays regular until the fixes constrain every degree of
+        freedom). With ``'fixes'`` the background refinement and the freeze computed ahead are
+        off (their snapshots do not carry fixes): frozen nodes keep their fixes in the joint
+        priors absorbed at the freeze.
+    fix_gate_prob : chi-square probability of the fixes' gate (:meth:`FixBook.gate
+        <ga_ros.core.fixes.FixBook.gate>`); 0 disables it.
+    gauge_sigma_m : position sigma (m, per axis) of the gauge prior of ``datum='fixes'``.
+    gauge_sigma_tilt_rad : roll and pitch sigma (rad) of the gauge prior (an odometry frame is
+        level, REP 105, so the default is tight-ish: 0.05 rad).
+    gauge_sigma_yaw_rad : yaw sigma (rad) of the gauge prior (the odometry's heading in the map
+        frame is unknown: 3 rad).
     """
 
     window_tracks: int = 5
@@ -149,6 +164,11 @@ class AlignerConfig:
     refine_horizon_tracks: int = 20
     prior_band: int = 16
     prior_hubs: int = 16
+    datum: str = 'first_node'
+    fix_gate_prob: float = 0.9999
+    gauge_sigma_m: float = 1000.0
+    gauge_sigma_tilt_rad: float = 0.05
+    gauge_sigma_yaw_rad: float = 3.0
 
     def __post_init__(self) -> None:
         if int(self.window_tracks) < 1:
@@ -190,6 +210,12 @@ class AlignerConfig:
         if int(self.prior_band) < -1 or int(self.prior_hubs) < 0:
             raise InputError(f'prior_band must be >= 0 (nodes) or -1 (dense) and prior_hubs '
                              f'>= 0, got {self.prior_band}, {self.prior_hubs}')
+        if self.datum not in DATUMS:
+            raise InputError(f'datum must be one of {DATUMS}, got {self.datum!r}')
+        if not 0.0 <= self.fix_gate_prob < 1.0:
+            raise InputError(f'fix_gate_prob must be in [0, 1), got {self.fix_gate_prob}')
+        gauge_information(self.gauge_sigma_m, self.gauge_sigma_tilt_rad,
+                          self.gauge_sigma_yaw_rad)  # range checks
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""

@@ -116,8 +116,8 @@ TRAILING_MIN_NODES = 24
 
 #: Freezing with block-banded priors: from this many leaving nodes on, their covariances come
 #: from the banded selected inversion of the window (linear in the swath length) instead of the
-#: trailing dense block (cubic in it). Aerial survey, window 5, CPU of one freeze: 204 nodes
-#: 272 ms trailing vs 319 ms banded; 1,000 nodes 10.9-12.8 s vs 1.2-1.6 s.
+#: trailing dense block (cubic in it); the two cross over at a few hundred nodes (figures:
+#: docs/benchmarks.md, "Figures behind constants in the code").
 BANDED_MIN_NODES = 300
 
 
@@ -198,7 +198,9 @@ class FreezePolicy:
         touching = [p for p, (idx, _, _) in enumerate(priors) if involved[idx].any()]
         for p in touching:
             involved[priors[p][0]] = True
-        involved[0] = False  # the datum is fixed, never a prior node
+        free_datum = state.fixes.has_gauge  # datum 'fixes': the first node is not held fixed
+        if not free_datum:
+            involved[0] = False  # the datum is fixed, never a prior node
         allnodes = np.nonzero(involved)[0]
         # nodes that keep an active connection (other than the absorbed ones) to a node that is
         # not frozen stay in the prior; the others are eliminated
@@ -211,8 +213,9 @@ class FreezePolicy:
         keep[d_[~frozen_after[s_]]] = True
         ids = state.idarr.a[:n]
         merged = [GaussianPrior(ids[priors[p][0]], priors[p][1], priors[p][2]) for p in touching]
+        merged += state.fixes.priors(L, state.T, ids)  # the leaving nodes' fixes stay in it
         dropped = tuple(touching)
-        datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any())
+        datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any()) and not free_datum
         net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
         net = state.subnetwork(net_nodes, conns)
         fixed = [ids[0]] if datum else []

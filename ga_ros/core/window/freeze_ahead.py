@@ -120,7 +120,8 @@ class FreezeAhead:
         job.wait()
         plan = job.plan
         st = self.state
-        valid = (plan is not None and job.track == track and job.res is st.last_result
+        valid = (plan is not None and not len(st.fixes)  # a fix added since may touch it
+                 and job.track == track and job.res is st.last_result
                  and st.last_pending is None and job.window is st.last_window
                  and len(job.priors) == len(st.priors)
                  and all(a[0] is b[0] for a, b in zip(job.priors, st.priors)))

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from ga_ros.core.fixes import FixBook
 from ga_ros.core.window.admission import measurement_fingerprints
 from ga_ros.core.window.aligner import TrackWindowAligner
 from ga_ros.core.window.config import AlignerConfig
@@ -197,6 +198,8 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         'n_updates': int(st.n_updates), 'n_outliers': int(st.n_outliers),
         'refine_retired': int(st.retired),
     }
+    fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
+    meta['fixes'] = fix_meta
     arrays = dict(
         T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
         T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
@@ -204,7 +207,7 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         status=st.status.a.astype(np.int64), last_window=st.last_window.astype(np.int64),
         fingerprint=st.fp.a,
         weighted_idx=st.T_weighted[0].astype(np.int64), weighted_T=st.T_weighted[1],
-        **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past))
+        **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past), **fix_arrays)
     return meta, arrays
 
 
@@ -363,6 +366,9 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
     if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
         st.past = _priors_of('past', arrays)
         st.retired = int(meta.get('refine_retired', 0))
+    if 'fix_rows' in arrays:  # absolute fixes (older files: none; the gate's level is set
+        # from the config when the aligner attaches the state)
+        st.fixes = FixBook.of_arrays(meta.get('fixes', {}), arrays, st.fixes.gate_prob)
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])

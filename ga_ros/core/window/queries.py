@@ -32,7 +32,7 @@ def covariance(state: WindowState, last: Callable[[], SolveResult | None], node_
         return state.cov[k].copy()
     res = last()
     if res is not None and k in set(state.last_window.tolist()):
-        if k == 0:
+        if k == 0 and not state.fixes.has_gauge:  # the datum, held fixed
             return np.zeros((6, 6))
         with lock:  # after a freeze being computed ahead, which shares it
             return res.covariance([state.ids[k]])[0]
@@ -55,7 +55,7 @@ def covariances(state: WindowState, last: Callable[[], SolveResult | None], node
         if state.frozen[i]:
             out[k] = state.cov[i]
         elif i in in_window:
-            if i != 0:
+            if i != 0 or state.fixes.has_gauge:
                 from_window.append(k)
         else:
             raise InputError(f'node {node} has not been adjusted yet (its track is still '

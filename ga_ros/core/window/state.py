@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.fixes import FixBook
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolveResult
 from ga_ros.core.window.storage import (
@@ -70,6 +71,8 @@ class WindowState:
     last_result : the last window adjustment (``None``: none, or ``last_pending`` set).
     last_pending : tracks of a window adjustment to recompute on first use (a restored state).
     seen_cache : ``(rows scanned, largest node id, largest track id)`` (:meth:`seen_max`).
+    fixes : the absolute fixes of the nodes, with the gauge prior of ``datum='fixes'``
+        (:class:`~ga_ros.core.fixes.FixBook`; its gate level set from the config).
     """
 
     T_first: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -105,6 +108,7 @@ class WindowState:
     last_result: SolveResult | None = None
     last_pending: list[int] | None = None
     seen_cache: tuple[int, int, int] = (0, -1, -1)
+    fixes: FixBook = field(default_factory=FixBook)
 
     def finished_order(self) -> list[int]:
         """The finished tracks in order of appearance."""
@@ -198,7 +202,7 @@ class WindowState:
         every such connection comes at or after the one that created node ``f``, hence at or
         after the first connection of ``f``'s track: only the rows from there are scanned (of
         the horizon's size, whatever the survey's length; a gather of the horizon tracks'
-        connection lists took ~20 ms per call at a horizon of 30 tracks of 200 poses)."""
+        connection lists would cost ~20 ms per call at a horizon of 30 tracks of 200 poses)."""
         m = self.src.n if m is None else int(m)
         if f >= self.idarr.n:
             return np.zeros(0, dtype=np.int64)

@@ -129,7 +129,8 @@ class WindowUpdate:
                 ext = np.union1d(ext, idx[~in_win[idx]])
         nodes = np.concatenate([win_nodes, ext])
         net = self.state.subnetwork(nodes, conns, self.connection_terms(conns).cov)
-        fixed = [self.state.ids[0]] if (nodes == 0).any() else []
+        free_datum = self.config.datum == 'fixes'
+        fixed = [self.state.ids[0]] if (nodes == 0).any() and not free_datum else []
         priors = []
         # Frozen nodes touched by window connections are weighted parameters (Sec. III-E): they
         # stay unknowns of the adjustment, with a joint prior that carries only the information
@@ -139,13 +140,16 @@ class WindowUpdate:
         # (a state saved by an older version) falls back to its marginal covariance.
         covered = np.concatenate([self.state.priors[p][0] for p in priors_idx]
                                  or [np.zeros(0, np.int64)])
-        weighted = ext[(ext != 0) & ~np.isin(ext, covered)]
+        weighted = ext[((ext != 0) | free_datum) & ~np.isin(ext, covered)]
         if weighted.size:
             priors.append(GaussianPrior.from_covariances(ids[weighted], self.state.T[weighted],
                                                          self.state.cov[weighted]))
         for p in priors_idx:
             idx, mean, info = prior = self.ranked(p)
             priors.append(GaussianPrior(ids[idx], mean, info, rank=prior.rank))
+        # absolute fixes of the nodes that are not frozen (a frozen node's are in its joint
+        # prior): weighted parameters (ga_ros.core.fixes)
+        priors += self.state.fixes.priors(nodes[~self.state.frozen[nodes]], self.state.T, ids)
         return WindowProblem(net, nodes, win_nodes, conns, fixed, priors)
 
     def ranked(self, p: int) -> JointPrior:
@@ -198,10 +202,13 @@ class WindowUpdate:
         self.state.last_pending = None
         self.state.last_result = res
 
-    def adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
+    def adjust(self, window_tracks: list[int], track: int, t0: float,
+               factor_lock=None) -> UpdateResult:
         """Adjust the window of ``window_tracks`` after ``track`` ended (``t0``: the update's
         start, ``time.perf_counter()``): solve, gate, re-admit, solve again until nothing
-        changes; the window's poses and the last adjustment are written to the state."""
+        changes (the absolute fixes' gate too, :meth:`FixBook.gate_adjusted
+        <ga_ros.core.fixes.FixBook.gate_adjusted>`, its covariances under ``factor_lock``); the
+        window's poses and the last adjustment are written to the state."""
         cfg = self.config
         scfg = cfg.solver_config()
         n_out = 0
@@ -210,6 +217,7 @@ class WindowUpdate:
         # optimum for the old connections (window nodes and the frozen nodes it adjusted as
         # weighted parameters), the new track from its chained consecutive motions
         res, (prev_nodes, T_prev) = None, self.state.T_weighted
+        fix_rounds, fixes_out = 0, set()
         while True:
             net, nodes, win_nodes, conns, fixed, priors = self.window_problem(window_tracks)
             # (after the gate changed the problem: from the current estimate)
@@ -239,6 +247,11 @@ class WindowUpdate:
                 back = readmissible(self.state, self.config, window_tracks, nodes, res,
                                     readmitted)
                 if back.size == 0:
+                    if fix_rounds < 50 and self.state.fixes.gate_adjusted(
+                            nodes, res, self.state.idarr.a, self.state.frozen, fixes_out,
+                            factor_lock):
+                        fix_rounds += 1
+                        continue
                     break
                 self.state.status.a[back] = 0  # consistent now: back into the adjustment
                 readmitted.update(back.tolist())

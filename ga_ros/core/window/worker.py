@@ -45,8 +45,8 @@ def _refine_in_worker(snap: RefinementSnapshot) -> RefinementResult:
     """:func:`refine_snapshot` in the worker process, keeping the smoothing steps there.
 
     The steps hold a dense gain per eliminated group (~0.7 M values per 200-pose track, 60-80 MB
-    for a horizon of 25-30 such tracks); shipping them to the aligner's process cost it ~30 ms
-    of CPU at every hand-off (pickles through the pipe), and their transient copies let its
+    for a horizon of 25-30 such tracks); shipping them to the aligner's process would cost it
+    ~30 ms of CPU at every hand-off (pickles through the pipe), and their transient copies let its
     heap grow. The aligner sends the prior nodes' corrections instead
     (:meth:`RefinementWorker.smooth`) and receives the corrections of the frozen nodes.
     """

@@ -1,0 +1,350 @@
+"""``ga-ros bench fixes``: real odometry plus absolute position fixes, against GTSAM (issue 25).
+
+The run: the CMU Plaza data set, run 2 (``Plaza2_.mat``, see ``data/README.md``): real wheel
+odometry steps ``DR`` (distance, heading change) at 10 Hz between the ground-truth samples ``GT``
+(x, y, theta; the travel direction is ``theta + pi``), 1,354 m. Fixes: the ground-truth position
+every ``interval_s`` seconds plus seeded Gaussian noise of ``noise_m`` per axis (x, y and z, the
+true z being 0), the first at the first sample.
+
+The same graph for every solver: one node per sample (SE(3), the plane embedded), one
+between-factor per odometry step with the covariance ``diag(sigma_xy^2, sigma_xy^2, sigma_z^2,
+sigma_tilt^2, sigma_tilt^2, sigma_yaw^2)`` (body frame, per step; ``sigma_z`` 1 mm,
+``sigma_tilt`` 0.1 mrad: the plane), one 3-D position factor per
+fix (``noise_m^2 I``), and the weak gauge prior of ``datum='fixes'`` on the first node
+(:class:`~ga_ros.core.window.AlignerConfig`: 1000 m, 0.05 rad roll/pitch, 3 rad yaw) at the
+initial pose (the first ground-truth pose; the odometry integrated from it is every solver's
+initial guess).
+
+Figures (2-D position RMSE against the ground truth, over every sample):
+
+* dead reckoning; the fixes alone (linear interpolation between fixes, held at the ends);
+* ga-ros online: the :class:`~ga_ros.core.window.TrackWindowAligner` fed sample by sample, a
+  track ending at each fix (``finish_track`` right after ``add_fix``); each pose's estimate when
+  it was first published: after the update for a fix's node, else the last estimate chained
+  with the odometry; ga-ros final: ``refine_batch`` at the end;
+* GTSAM batch: Levenberg-Marquardt on the whole graph; GTSAM iSAM2: ``update`` at each fix with
+  the factors and poses since the previous one; online = each pose's estimate when it was added
+  (after that update for a fix's node, else the last estimate chained with the odometry, as for
+  ga-ros), final = the estimate after the last update. iSAM2 with its default parameters
+  relinearises lazily (threshold 0.1, every 10th update) and takes one Gauss-Newton step per
+  update, so its online estimate is not the converged one; ``--isam2-converged`` adds a column
+  with ``relinearizeThreshold`` 1e-4, ``relinearizeSkip`` 1 and three extra ``update()`` calls
+  per fix (the filtering solution that the window aligner computes).
+
+GTSAM is optional (``pip install -r requirements-bench.txt``); without it those columns are
+skipped with a note.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray
+from ga_ros.bench.linalg import _SHARED
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.geometry import se3
+
+#: The data file: ``$GA_ROS_SHARED_DATA/real/plaza2/Plaza2_.mat`` (default: the ``shared/data``
+#: directory beside the checkout, as :mod:`ga_ros.bench.linalg` reads it).
+DEFAULT_MAT = Path(os.environ.get('GA_ROS_SHARED_DATA', _SHARED)) / 'real' / 'plaza2' / (
+    'Plaza2_.mat')
+
+
+@dataclass(frozen=True)
+class PlazaRun:
+    """The real run: ``T_true`` (n, 4, 4) ground-truth poses, ``steps`` (n-1, 4, 4) odometry
+    motions ``T_i_i+1``, ``stamps_s`` (n,)."""
+
+    T_true: FloatArray
+    steps: FloatArray
+    stamps_s: FloatArray
+
+
+def load_plaza(path: str | Path = DEFAULT_MAT) -> PlazaRun:
+    """Read ``Plaza2_.mat`` (module doc)."""
+    from scipy.io import loadmat
+
+    d = loadmat(str(path))
+    gt, dr = np.asarray(d['GT'], float), np.asarray(d['DR'], float)
+    yaw = gt[:, 3] + np.pi
+    n = gt.shape[0]
+    T = np.zeros((n, 4, 4))
+    T[:] = np.eye(4)
+    T[:, 0, 0], T[:, 0, 1] = np.cos(yaw), -np.sin(yaw)
+    T[:, 1, 0], T[:, 1, 1] = np.sin(yaw), np.cos(yaw)
+    T[:, 0, 3], T[:, 1, 3] = gt[:, 1], gt[:, 2]
+    z = np.zeros((n - 1, 6))
+    z[:, 0], z[:, 5] = dr[:, 1], dr[:, 2]
+    steps = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+    return PlazaRun(T, steps, gt[:, 0] - gt[0, 0])
+
+
+@dataclass
+class FixBenchFigures:
+    """Results of one setting (RMSE in m; NaN where GTSAM was not run)."""
+
+    interval_s: float
+    noise_m: float
+    n_poses: int
+    n_fixes: int
+    dead_reckoning_m: float
+    fixes_alone_m: float
+    ours_online_m: float
+    ours_final_m: float
+    gtsam_batch_m: float = float('nan')
+    isam2_online_m: float = float('nan')
+    isam2_final_m: float = float('nan')
+    isam2_converged_online_m: float = float('nan')
+    ours_seconds: float = float('nan')
+    gtsam_seconds: float = float('nan')
+    isam2_seconds: float = float('nan')
+    fix_outliers: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+def _rmse(T: FloatArray, T_true: FloatArray) -> float:
+    d = T[:, :2, 3] - T_true[:, :2, 3]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def _step_cov(sigma_xy: float, sigma_yaw: float, sigma_z: float, sigma_tilt: float
+              ) -> FloatArray:
+    return np.diag([sigma_xy ** 2, sigma_xy ** 2, sigma_z ** 2, sigma_tilt ** 2,
+                    sigma_tilt ** 2, sigma_yaw ** 2])
+
+
+def make_fixes(run: PlazaRun, interval_s: float, noise_m: float, seed: int
+               ) -> tuple[np.ndarray, FloatArray]:
+    """``(sample indices (f,), fixed positions (f, 3))``: the sample nearest to every multiple
+    of ``interval_s``, its true position plus seeded noise (module doc)."""
+    rng = np.random.default_rng(seed)
+    want = np.arange(0.0, run.stamps_s[-1] + 1e-9, interval_s)
+    idx = np.unique(np.abs(run.stamps_s[None, :] - want[:, None]).argmin(axis=1))
+    p = run.T_true[idx, :3, 3] + rng.normal(0.0, noise_m, (idx.size, 3))
+    return idx, p
+
+
+def _interpolated(run: PlazaRun, idx: np.ndarray, p: FloatArray) -> FloatArray:
+    T = np.repeat(np.eye(4)[None], run.T_true.shape[0], axis=0)
+    for a in range(3):
+        T[:, a, 3] = np.interp(run.stamps_s, run.stamps_s[idx], p[:, a])
+    return T
+
+
+def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
+             cfg: AlignerConfig) -> tuple[FloatArray, FloatArray, int]:
+    """ga-ros online and final poses (module doc) and the number of fixes gated out."""
+    n = run.T_true.shape[0]
+    al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
+    fix_at = dict(zip(idx.tolist(), range(idx.size)))
+    fix_cov = np.diag([noise_m ** 2] * 3 + [-1.0] * 3)
+    online = np.zeros((n, 4, 4))
+    online[0] = run.T_true[0]
+    track = prev_track = 0
+
+    def add_fix(i: int) -> None:
+        f = fix_at[i]
+        fix = AbsoluteFix.from_covariance(int(run.stamps_s[i] * 1e9),
+                                          se3.from_translation_rotvec(p[f], np.zeros(3)),
+                                          fix_cov, 'fix0')
+        al.add_fix(FixTerm(i, se3.identity(), fix))
+
+    for i in range(1, n):
+        al.add_measurement(Measurement.from_pose(i - 1, i, prev_track, track, run.steps[i - 1],
+                                                 cov, int(run.stamps_s[i] * 1e9)))
+        prev_track = track
+        if i == 1 and 0 in fix_at:
+            add_fix(0)  # enters the first track's update
+        if i in fix_at:
+            add_fix(i)
+            al.finish_track()
+            track += 1
+        online[i] = al.corrected_path().T_world_node[i]
+    al.refine_batch()
+    final = al.corrected_path().T_world_node.copy()
+    outliers = al.fix_stats.outliers
+    al.close()
+    return online, final, outliers
+
+
+def _gtsam_graph(run, idx, p, noise_m, cov, cfg):
+    import gtsam
+
+    n = run.T_true.shape[0]
+    order = [3, 4, 5, 0, 1, 2]  # ga_ros [x y z rx ry rz] -> GTSAM Pose3 [rx ry rz x y z]
+    odo = gtsam.noiseModel.Gaussian.Covariance(cov[np.ix_(order, order)])
+    gauge = gtsam.noiseModel.Diagonal.Sigmas(np.array(
+        [cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad]
+        + [cfg.gauge_sigma_m] * 3))
+    gps = gtsam.noiseModel.Isotropic.Sigma(3, noise_m)
+    between = [gtsam.BetweenFactorPose3(i - 1, i, gtsam.Pose3(run.steps[i - 1]), odo)
+               for i in range(1, n)]
+    prior = gtsam.PriorFactorPose3(0, gtsam.Pose3(run.T_true[0]), gauge)
+    fixes = {int(i): gtsam.GPSFactor(int(i), gtsam.Point3(*p[f]), gps)
+             for f, i in enumerate(idx)}
+    return between, prior, fixes
+
+
+def run_gtsam_batch(run, idx, p, noise_m, cov, cfg) -> FloatArray:
+    """GTSAM Levenberg-Marquardt on the whole graph (module doc)."""
+    import gtsam
+
+    between, prior, fixes = _gtsam_graph(run, idx, p, noise_m, cov, cfg)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(prior)
+    for f in between:
+        graph.add(f)
+    for f in fixes.values():
+        graph.add(f)
+    init = gtsam.Values()
+    T = run.T_true[0]
+    init.insert(0, gtsam.Pose3(T))
+    for i in range(1, run.T_true.shape[0]):
+        T = T @ run.steps[i - 1]
+        init.insert(i, gtsam.Pose3(T))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-10)
+    params.setMaxIterations(100)
+    res = gtsam.LevenbergMarquardtOptimizer(graph, init, params).optimize()
+    return np.array([res.atPose3(i).matrix() for i in range(run.T_true.shape[0])])
+
+
+def run_isam2(run, idx, p, noise_m, cov, cfg, converged: bool = False
+              ) -> tuple[FloatArray, FloatArray]:
+    """GTSAM iSAM2 updated at each fix: online and final poses (module doc)."""
+    import gtsam
+
+    between, prior, fixes = _gtsam_graph(run, idx, p, noise_m, cov, cfg)
+    params = gtsam.ISAM2Params()
+    if converged:
+        params.setRelinearizeThreshold(1e-4)
+        params.relinearizeSkip = 1
+    isam = gtsam.ISAM2(params)
+    n = run.T_true.shape[0]
+    online = np.zeros((n, 4, 4))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(prior)
+    last = run.T_true[0]
+    values.insert(0, gtsam.Pose3(last))
+    online[0] = last
+    for i in range(n):
+        if i > 0:
+            graph.add(between[i - 1])
+            last = last @ run.steps[i - 1]
+            values.insert(i, gtsam.Pose3(last))
+        if i in fixes or i == 0:
+            if i in fixes:
+                graph.add(fixes[i])
+            isam.update(graph, values)
+            for _ in range(3 if converged else 0):
+                isam.update()
+            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            last = isam.calculateEstimatePose3(i).matrix()
+        online[i] = last
+    if graph.size():
+        isam.update(graph, values)
+    est = isam.calculateEstimate()
+    final = np.array([est.atPose3(i).matrix() for i in range(n)])
+    return online, final
+
+
+def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Path = DEFAULT_MAT,
+                sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
+                with_gtsam: bool = True, isam2_converged: bool = False) -> FixBenchFigures:
+    """One setting of the benchmark (module doc)."""
+    run = load_plaza(path)
+    idx, p = make_fixes(run, interval_s, noise_m, seed)
+    cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
+    cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes', refine_every_tracks=0)
+    n = run.T_true.shape[0]
+    dead = np.zeros((n, 4, 4))
+    dead[0] = run.T_true[0]
+    for i in range(1, n):
+        dead[i] = dead[i - 1] @ run.steps[i - 1]
+    t0 = time.perf_counter()
+    online, final, outliers = run_ours(run, idx, p, noise_m, cov, cfg)
+    t_ours = time.perf_counter() - t0
+    fig = FixBenchFigures(interval_s, noise_m, n, int(idx.size), _rmse(dead, run.T_true),
+                          _rmse(_interpolated(run, idx, p), run.T_true),
+                          _rmse(online, run.T_true), _rmse(final, run.T_true),
+                          ours_seconds=t_ours, fix_outliers=outliers)
+    if with_gtsam and importlib.util.find_spec('gtsam') is not None:
+        t0 = time.perf_counter()
+        fig.gtsam_batch_m = _rmse(run_gtsam_batch(run, idx, p, noise_m, cov, cfg), run.T_true)
+        fig.gtsam_seconds = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        on, fin = run_isam2(run, idx, p, noise_m, cov, cfg)
+        fig.isam2_seconds = time.perf_counter() - t0
+        fig.isam2_online_m, fig.isam2_final_m = _rmse(on, run.T_true), _rmse(fin, run.T_true)
+        if isam2_converged:
+            on, _ = run_isam2(run, idx, p, noise_m, cov, cfg, converged=True)
+            fig.isam2_converged_online_m = _rmse(on, run.T_true)
+    elif with_gtsam:
+        fig.notes.append('GTSAM not installed (pip install -r requirements-bench.txt): its '
+                         'columns skipped')
+    return fig
+
+
+def table(figs: list[FixBenchFigures]) -> str:
+    """The figures as a text table (RMSE in m; ratios ours / GTSAM)."""
+    head = ('interval  noise  fixes  dead-reck  fixes-only  ours-online  ours-final  '
+            'gtsam-batch  isam2-online  isam2-final  final/batch  online/isam2  gated  '
+            'isam2-conv-online')
+    lines = [head]
+    for f in figs:
+        lines.append(
+            f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.n_fixes:6d} {f.dead_reckoning_m:10.2f} '
+            f'{f.fixes_alone_m:11.2f} {f.ours_online_m:12.2f} {f.ours_final_m:11.2f} '
+            f'{f.gtsam_batch_m:12.2f} {f.isam2_online_m:13.2f} {f.isam2_final_m:12.2f} '
+            f'{f.ours_final_m / f.gtsam_batch_m:12.3f} {f.ours_online_m / f.isam2_online_m:13.3f}'
+            f' {f.fix_outliers:6d} {f.isam2_converged_online_m:18.2f}')
+    notes = sorted({n for f in figs for n in f.notes})
+    return '\n'.join(lines + notes)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='ga-ros bench fixes', description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--data', default=str(DEFAULT_MAT), help='Plaza2_.mat')
+    ap.add_argument('--intervals', default='10,30,60', help='fix intervals (s), comma-separated')
+    ap.add_argument('--noise', default='2,5', help='fix noise (m per axis), comma-separated')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--sigma-xy', type=float, default=0.02,
+                    help='odometry sigma per 0.1 s step, x and y (m; default 0.02)')
+    ap.add_argument('--sigma-yaw', type=float, default=0.005,
+                    help="odometry sigma per step, yaw (rad; default 0.005: the odometry's "
+                    'heading drifts 5.4e-4 rad per step against the ground truth, 0.054 rad '
+                    'per 10 s, one sigma of a random walk of 0.005 per step)')
+    ap.add_argument('--window', type=int, default=5, help='tracks (fix intervals) in the window')
+    ap.add_argument('--no-gtsam', action='store_true')
+    ap.add_argument('--isam2-converged', action='store_true',
+                    help='also iSAM2 relinearised to convergence at each fix (module doc)')
+    ap.add_argument('--json', action='store_true')
+    args = ap.parse_args(argv)
+    if not Path(args.data).is_file():
+        print(f'ga-ros bench fixes: no data file {args.data} (give --data)', file=sys.stderr)
+        return 1
+    figs = [bench_fixes(float(i), float(s), args.seed, args.data, args.sigma_xy,
+                        args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged)
+            for s in args.noise.split(',') for i in args.intervals.split(',')]
+    if args.json:
+        print(json.dumps([asdict(f) for f in figs]))
+    else:
+        print(table(figs))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
