@@ -96,6 +96,7 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
                       '--params-file', str(REPO / 'config' / 'alignment.yaml'),
                       '-p', 'use_sim_time:=true', '-p', 'autosave:=false',
                       '-p', 'measurement_durability:=transient_local',
+                      '-p', 'allow_finish_track:=true',  # the mapping node ends the survey
                       *[a for f in frames for a in ('-p', f)]],
         'vo': [py, '-m', 'ga_ros.ros.vo_node', '--ros-args', *common,
                '--params-file', str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',

@@ -370,7 +370,8 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
             procs['alignment'] = _spawn(net, 'h2', [
                 py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', '--params-file',
                 str(REPO / 'config' / 'alignment.yaml'), '-p', 'use_sim_time:=true',
-                '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local'],
+                '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local',
+                '-p', 'allow_finish_track:=true'],
                 envs['h2'], out / 'alignment.log')
             procs['vo'] = _spawn(net, 'h1', [
                 py, '-m', 'ga_ros.ros.vo_node', '--ros-args', '--params-file',
