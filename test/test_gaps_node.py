@@ -34,7 +34,7 @@ def test_a_restarted_node_that_missed_measurements_keeps_every_node(tmp_path, rn
     state = tmp_path / 'state.npz'
     # volatile: nothing published while the node was down comes back (a real gap)
     params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1,
-              'measurement_durability': 'volatile'}
+              'measurement_durability': 'volatile', 'allow_finish_track': True}
     log = tmp_path / 'node.log'
     proc = start_node_process(dom, params, log_path=log)
     client = None
