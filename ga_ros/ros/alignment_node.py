@@ -58,6 +58,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
 from ga_ros.core.config_ranges import check_ranges, ranged
+from ga_ros.core.gaps import GapConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -186,6 +187,9 @@ class NodeSettings:
     state_required : refuse to start when ``state_file`` cannot be used (its directory is a
         file or read-only, ...) instead of running without persistence (one error line and
         ``persistence: off`` in the diagnostics).
+    gaps : measurements whose source node is unknown (a gap in the stream): how long they are
+        held for the missing measurements, and the bridges that join what is still apart
+        (:class:`~ga_ros.core.gaps.GapConfig`; parameters ``gaps.<name>``).
     """
 
     map_frame: str = 'map'
@@ -228,6 +232,7 @@ class NodeSettings:
     allow_finish_track: bool = False
     allow_load_state: bool = False
     state_required: bool = False
+    gaps: GapConfig = GapConfig()
 
     def __post_init__(self) -> None:
         check_ranges(self)
@@ -266,7 +271,7 @@ class AlignmentNode(Node):
                              f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
             self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
-                                               s.state_required),
+                                               state_required=s.state_required, gaps=s.gaps),
             warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
@@ -428,8 +433,9 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
-            if out.accepted and self.front is None:
-                self.odom.add(m)
+            if self.front is None:
+                for taken in out.admitted:  # held ones whose gap was filled, bridges
+                    self.odom.add(taken)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
@@ -620,7 +626,7 @@ class AlignmentNode(Node):
         if step.end_track:
             self.front.track_boundary()
         self._fix_feeder.add(step.fixes)
-        for error in self._fix_feeder.flush(self.session.aligner):
+        for error in self._fix_feeder.flush(self.session.aligner, self.session.gaps.anchor):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
@@ -893,6 +899,7 @@ class AlignmentNode(Node):
             view = connection_view(self.aligner)
             colors = np.where(np.asarray(cp.frozen, dtype=bool)[:, None],
                               [[0.5, 0.5, 0.5, 1.0]], [[0.2, 0.4, 1.0, 1.0]])
+            colors[self.session.unjoined(cp.node_ids)] = [1.0, 0.55, 0.0, 1.0]  # behind a bridge
             conn_rgba = conv.connection_rgba(view.normalized_residual, view.status,
                                              s.residual_color_scale, view.w)
             stamp_ns = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0
