@@ -66,7 +66,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.tracks import TrackRules, TrackSegmenter
+from ga_ros.core.tracks import TrackRules, TrackSegmenter, refuse_former_names
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.noise import NoiseModel
@@ -93,14 +93,8 @@ class OdometryInputConfig:
     keyframe_travel_m : new keyframe after this travel from the last one (m; 0: off).
     keyframe_rotation_deg : new keyframe after this rotation (deg; 0: off).
     keyframe_interval_s : new keyframe after this time (s; 0: off).
-    track_mode : ``'none'``, ``'frames'``, ``'heading'``, ``'distance'``, ``'time'`` or
-        ``'external'`` (:class:`ga_ros.core.tracks.TrackRules`).
-    keyframes_per_track : keyframes per track in ``'frames'`` mode.
-    swaths_per_track : swaths per track in ``'heading'`` mode.
-    heading_reversal_deg : turn of the travel direction that ends a swath (deg).
-    heading_min_step_m : travel below which the travel direction is not updated (m).
-    track_length_m : travel per track in ``'distance'`` mode (m).
-    track_duration_s : time per track in ``'time'`` mode (s).
+    track : track boundaries (parameters ``<name>.track.<field>``,
+        :class:`ga_ros.core.tracks.TrackRules`; default one track, ``mode`` ``'none'``).
     constraint_tolerance_s : largest time between a constraint's stamp and its keyframe (s).
     history_s : odometry kept for interpolating constraint stamps (s).
     max_gap_s : a further (secondary) input: largest interval between two of its samples
@@ -120,13 +114,7 @@ class OdometryInputConfig:
     keyframe_travel_m: float = 1.0
     keyframe_rotation_deg: float = 15.0
     keyframe_interval_s: float = 0.0
-    track_mode: str = 'none'
-    keyframes_per_track: int = 0
-    swaths_per_track: int = 2
-    heading_reversal_deg: float = 135.0
-    heading_min_step_m: float = 0.5
-    track_length_m: float = 0.0
-    track_duration_s: float = 0.0
+    track: TrackRules = TrackRules()
     constraint_tolerance_s: float = 2.0
     history_s: float = 600.0
     max_gap_s: float = 1.0
@@ -145,7 +133,9 @@ class OdometryInputConfig:
         if min(self.default_sigma_floor_m, self.default_sigma_floor_rad) <= 0:
             raise InputError(f'{self.name}: default sigma floors must be > 0')
         self.noise_model()
-        self.track_rules()
+        if not isinstance(self.track, TrackRules):
+            raise InputError(f'{self.name}: track must be a TrackRules, got '
+                             f'{type(self.track).__name__}')
 
     @classmethod
     def from_mapping(cls, name: str, values: Mapping[str, object]) -> OdometryInputConfig:
@@ -156,17 +146,21 @@ class OdometryInputConfig:
         InputError
             An unknown key (a typo would otherwise be ignored) or an invalid value.
         """
-        known = {f.name for f in fields(cls)} - {'name'}
-        unknown = sorted(set(values) - known)
+        known = {f.name: f.default for f in fields(cls) if f.name != 'name'}
+        refuse_former_names([f'{name}.{k}' for k in values], f'{name}.')
+        unknown = sorted(set(values) - set(known))
         if unknown:
             raise InputError(f'{name}: unknown input settings {unknown}; known: {sorted(known)}')
-        return cls(name=str(name), **dict(values))
-
-    def track_rules(self) -> TrackRules:
-        """The track-boundary part of this config."""
-        return TrackRules(self.track_mode, self.keyframes_per_track, self.swaths_per_track,
-                          self.heading_reversal_deg, self.heading_min_step_m,
-                          self.track_length_m, self.track_duration_s)
+        for key, value in values.items():
+            _check_setting(f'{name}.{key}', value, known[key])
+        values = dict(values)
+        if 'track' in values:
+            track = values['track']
+            if isinstance(track, Mapping):
+                for key, value in track.items():
+                    _check_setting(f'{name}.track.{key}', value, getattr(TrackRules(), key, None))
+            values['track'] = TrackRules.from_mapping(track, f'{name}.track')
+        return cls(name=str(name), **values)
 
     def noise_model(self) -> NoiseModel:
         """The paper's noise model behind the default covariance."""
@@ -218,6 +212,9 @@ class InputStats:
     measurements : consecutive measurements emitted.
     constraints : cross measurements made from external constraints.
     default_covariances : measurements or constraints whose covariance was the default.
+    missing_covariances : those of them whose stream had no covariance at all (no usable twist
+        or pose covariance); the others had one that could not be used (e.g. a pose covariance
+        that does not grow from the keyframe, so their difference is not positive definite).
     """
 
     samples: int
@@ -225,6 +222,25 @@ class InputStats:
     measurements: int
     constraints: int
     default_covariances: int
+    missing_covariances: int = 0
+
+
+def _check_setting(key: str, value: object, default: object) -> None:
+    """A setting of the type of its default: a finite number (an integer within int64 where the
+    default is one), a bool or a string; :class:`InputError` naming ``key`` otherwise."""
+    shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
+    if isinstance(default, bool) or isinstance(default, str):
+        if not isinstance(value, type(default)):
+            raise InputError(f'{key} must be a {type(default).__name__}, got {shown}')
+        return
+    if isinstance(default, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer
+                                                     | np.floating):
+            raise InputError(f'{key} must be a number, got {shown}')
+        if isinstance(default, int) and not isinstance(value, int | np.integer):
+            raise InputError(f'{key} must be an integer, got {shown}')
+        if not (abs(value) < 2**63 and np.isfinite(float(value))):
+            raise InputError(f'{key} must be a finite number below 2^63 in size, got {shown}')
 
 
 def usable_covariance(cov: FloatArray | None) -> bool:
@@ -304,7 +320,7 @@ class OdometryInput:
 
     def __init__(self, config: OdometryInputConfig = OdometryInputConfig()) -> None:
         self.config = config
-        self.segmenter = TrackSegmenter(config.track_rules())
+        self.segmenter = TrackSegmenter(config.track)
         self._next_id = int(config.first_node_id)
         self._stamps: list[int] = []
         self._poses: list[FloatArray] = []
@@ -316,7 +332,7 @@ class OdometryInput:
         self._twist_cov = np.zeros((6, 6))
         self._twist_ok = True
         self._n = dict(samples=0, keyframes=0, measurements=0, constraints=0,
-                       default_covariances=0)
+                       default_covariances=0, missing_covariances=0)
 
     # ------------------------------------------------------------------ public
     @property
@@ -499,12 +515,16 @@ class OdometryInput:
                 return C, 'pose_independent' if src == 'pose_independent' else (
                     'pose_difference'), False
         self._n['default_covariances'] += 1
+        twist_usable = self._twist_ok and usable_covariance(self._twist_cov)
+        if not twist_usable and C_new is None:
+            self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T_rel)), 'default', True
 
     def _constraint_cov(self, T: FloatArray, cov: FloatArray | None) -> FloatArray:
         if usable_covariance(cov):
             return np.asarray(cov, float)
         self._n['default_covariances'] += 1
+        self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T))
 
     def _kf_index(self, node_id: int) -> int:

@@ -39,7 +39,7 @@ horizon nothing is retired and the result is the whole-survey one, bit for bit. 
 refines the whole survey every time.
 
 Every absorbed connection still enters exactly one prior, so the published covariances stay
-honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
+honest (Monte-Carlo NEES in ``test/core/window/test_honest_covariances.py``).
 
 **Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
 matrices of about two swaths (:class:`~ga_ros.core.window.elimination.Marginal`: interior nodes

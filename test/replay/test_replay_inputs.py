@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ga_ros.core.tracks import TrackRules
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import constraint_frames
@@ -119,7 +120,7 @@ def _config(topic: str, constraints: str = '', track_mode: str = 'distance') -> 
     from ga_ros.inputs.odometry import OdometryInputConfig
 
     spec = InputSpec(topic, 'odometry', OdometryInputConfig(
-        'odom0', keyframe_travel_m=1.0, track_mode=track_mode, track_length_m=20.0))
+        'odom0', keyframe_travel_m=1.0, track=TrackRules(track_mode, length_m=20.0)))
     return ReplayConfig(inputs=InputTopics((spec,), constraints), plot=False)
 
 
@@ -261,7 +262,7 @@ def test_euroc_and_tum_ground_truth_files(tmp_path: Path) -> None:
     (tmp_path / 'data.csv').write_text('\n'.join(lines) + '\n')
     write_tum(tmp_path / 'gt.tum', stamps, gt)
     for name in ('data.csv', 'gt.tum'):
-        traj = read_ground_truth_file(tmp_path / name)
+        traj = read_ground_truth_file(tmp_path / name).trajectory
         assert np.array_equal(traj.stamps_ns, stamps)
         assert np.allclose(traj.T_world_node, gt, atol=1e-9)
     (tmp_path / 'bad.csv').write_text('1403636579758555392,1,2,3,2,0,0,0\n')
@@ -292,7 +293,7 @@ def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
 
     write_odom_bag(tmp_path / 'in')
     (tmp_path / 'inputs.yaml').write_text('odom0:\n  keyframe_travel_m: 2.0\n'
-                                          '  track_mode: distance\n  track_length_m: 20.0\n')
+                                          '  track:\n    mode: distance\n    length_m: 20.0\n')
     rc = main(['replay', str(tmp_path / 'in'), '--odom-topic', '/odom', '--input-config',
                str(tmp_path / 'inputs.yaml'), '--out', str(tmp_path / 'out'), '--no-plot'])
     text = capsys.readouterr().out
