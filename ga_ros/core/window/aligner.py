@@ -216,9 +216,8 @@ class TrackWindowAligner:
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
-                if not self.uses_fixes:
-                    self.handoff.start()
-                if self.config.freeze_ahead and not self.uses_fixes:
+                self.handoff.start()
+                if self.config.freeze_ahead:
                     self.ahead.start(self.config.window_tracks, self._last(), self._plan_freeze)
                 else:
                     self.ahead.drop()
