@@ -207,8 +207,10 @@ class FixFeeder:
         self.waiting.extend(fixes)
 
     def flush(self, aligner: Any) -> list[str]:
-        """Give ``aligner`` (``add_fix``, ``newest_node_id``) the queued fixes whose node it
-        has; returns the messages of the ones it refused (counted there by reason)."""
+        """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
+        :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them) the queued
+        fixes whose node it has; returns the messages of the ones it refused (counted there by
+        reason)."""
         add = getattr(aligner, 'add_fix', None)
         if add is None or not self.waiting:
             return []

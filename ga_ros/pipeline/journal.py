@@ -10,7 +10,17 @@ snapshot if it verifies, plus the journal records after it, replayed in one batc
 
 Journal format: the header ``GAJOURNAL2\\n`` then records of :data:`RECORD` (little-endian,
 381 bytes), each ending with the CRC-32 of its other bytes. Version-1 journals (``GAJOURNAL1``,
-no CRC) are still read. What is done with damage:
+no CRC) are still read.
+
+The node also appends every absolute fix the aligner accepted (:mod:`ga_ros.core.fixes`), in the
+order it gave them, as two records written together (:func:`encode_fix`): kind ``fix``
+(``src_id`` = ``dst_id`` = the node, ``stamp_ns`` the fix's stamp, ``z`` the offset
+``T_node_sensor`` as ``[t, rotvec]``, ``cov`` the information the fix entered with, the
+odometry offset's covariance included) and kind ``fix_sensor`` (same node and stamp, ``z`` the
+measured ``T_map_sensor`` as ``[t, rotvec]``, ``cov``'s bytes the source's name in UTF-8, NUL
+padded). A replay gives them to the aligner between the same measurements, so the recovered state
+is the one lost. A ``fix`` record without its ``fix_sensor`` (damage) is skipped.
+What is done with damage:
 
 * a record cut short at the end (a crash mid-write) is ignored and cut off before the next
   append: it was never acknowledged;
@@ -32,13 +42,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
+from ga_ros.geometry import se3
 from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 
-_KINDS = ('consecutive', 'cross')
+#: Record kinds: measurements (:class:`Measurement`'s ``kind``), then the two of a fix.
+_KINDS = ('consecutive', 'cross', 'fix', 'fix_sensor')
+_FIX, _FIX_SENSOR = 2, 3
+#: What the journal holds, in order: measurements and absolute fixes.
+Entry = Measurement | FixTerm
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
 #: One version-1 record (no checksum, 377 bytes).
@@ -100,9 +116,29 @@ def encode_records(ms: list[Measurement]) -> bytes:
     rec['kind'] = [_KINDS.index(m.kind) for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
-    raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
+    return _with_crc(rec)
+
+
+def _with_crc(rec: np.ndarray) -> bytes:
+    raw = rec.view(np.uint8).reshape(rec.size, RECORD.itemsize)
     rec['crc'] = _crc(raw)
     return rec.tobytes()
+
+
+def encode_fix(term: FixTerm) -> bytes:
+    """The two journal records of an absolute fix (module doc), ``term.fix.information`` the
+    information it entered the aligner with."""
+    rec = np.zeros(2, RECORD)
+    rec['src_id'] = rec['dst_id'] = int(term.node_id)
+    rec['src_track'] = rec['dst_track'] = -1
+    rec['stamp_ns'] = int(term.fix.stamp_ns)
+    rec['kind'] = [_FIX, _FIX_SENSOR]
+    rec['z'][0] = se3.to_translation_rotvec(term.T_node_sensor)
+    rec['z'][1] = se3.to_translation_rotvec(term.fix.T_map_sensor)
+    rec['cov'][0] = term.fix.information
+    name = term.fix.source.encode('utf-8')[:rec['cov'][1].nbytes]
+    rec['cov'][1] = np.frombuffer(name.ljust(rec['cov'][1].nbytes, b'\0'), '<f8').reshape(6, 6)
+    return _with_crc(rec)
 
 
 @dataclass
@@ -211,8 +247,41 @@ def _resync(body: bytes) -> tuple[list[int], int, int]:
     return offsets, skipped, len(body) - pos
 
 
+def records_to_entries(recs: np.ndarray) -> list[Entry]:
+    """Journal records (structured array) as measurements and fixes (:class:`FixTerm`), in
+    order; a ``fix`` record without its ``fix_sensor`` record (or the reverse) is skipped."""
+    kinds = recs['kind']
+    fix_at = np.flatnonzero(kinds >= _FIX)
+    if fix_at.size == 0:
+        return records_to_measurements(recs)
+    out: list[Entry] = []
+    start = 0
+    for k in fix_at.tolist():
+        if k > start:
+            out += records_to_measurements(recs[start:k])
+        start = k + 1
+        if kinds[k] != _FIX or k + 1 >= kinds.size or kinds[k + 1] != _FIX_SENSOR:
+            continue
+        a, b = recs[k], recs[k + 1]
+        if int(a['src_id']) != int(b['src_id']) or int(a['stamp_ns']) != int(b['stamp_ns']):
+            continue
+        source = np.ascontiguousarray(b['cov'], '<f8').tobytes().rstrip(b'\0')
+        try:
+            fix = AbsoluteFix(int(a['stamp_ns']), se3.from_translation_rotvec(b['z'][:3],
+                                                                            b['z'][3:]),
+                              np.array(a['cov'], float), source.decode('utf-8', 'replace'))
+        except InputError:
+            continue
+        out.append(FixTerm(int(a['src_id']),
+                           se3.from_translation_rotvec(a['z'][:3], a['z'][3:]), fix))
+    if start < kinds.size:
+        out += records_to_measurements(recs[start:])
+    return out
+
+
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
-    """Journal records (structured array) as :class:`Measurement` objects, in order."""
+    """Journal records (structured array, measurement records only) as :class:`Measurement`
+    objects, in order."""
     cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
                                        'stamp_ns', 'kind')]
     z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
@@ -283,6 +352,16 @@ class MeasurementJournal:
             written += os.write(self._fd, data[written:])
         self.count += len(ms)
 
+    def append_fix(self, term: FixTerm) -> None:
+        """Write the two records of an absolute fix (:func:`encode_fix`) in one system call."""
+        if self._fd is None:
+            self._open()
+        data = encode_fix(term)
+        written = os.write(self._fd, data)
+        while written < len(data):
+            written += os.write(self._fd, data[written:])
+        self.count += 2
+
     def sync(self) -> None:
         """``fsync`` the journal (durability across a power cut, not only a killed process)."""
         if self._fd is not None:
@@ -314,10 +393,11 @@ class MeasurementJournal:
             self._fd = None
 
 
-def read_journal(path: str | os.PathLike, start: int = 0) -> list[Measurement]:
-    """The intact records of a journal from record ``start`` on, in order (``[]`` if the file
-    does not exist). Damaged records are skipped (see :func:`scan_journal`)."""
-    return records_to_measurements(scan_journal(path).records[max(int(start), 0):])
+def read_journal(path: str | os.PathLike, start: int = 0) -> list[Entry]:
+    """The measurements and fixes of a journal's intact records from record ``start`` on, in
+    order (``[]`` if the file does not exist). Damaged records are skipped (see
+    :func:`scan_journal`)."""
+    return records_to_entries(scan_journal(path).records[max(int(start), 0):])
 
 
 def clear_state(state_file: str | os.PathLike) -> list[Path]:
@@ -354,8 +434,9 @@ class RecoveryResult:
     aligner : the restored aligner (empty if there was nothing to restore).
     source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
     snapshot_records : journal records the snapshot contained (0 without a snapshot).
-    records_replayed : journal records replayed after the snapshot and accepted.
-    records_rejected : replayed records the aligner rejected (e.g. already in the snapshot).
+    records_replayed : journal entries (measurements, fixes) replayed after the snapshot and
+        accepted.
+    records_rejected : replayed entries the aligner rejected (e.g. already in the snapshot).
     journal_records : records in the journal now (the count the next snapshot must store).
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
@@ -442,8 +523,8 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         tail = records
         out.source = 'journal' if records.size else 'empty'
     if tail.size:
-        batch = aligner.add_measurements(records_to_measurements(tail))
-        out.records_replayed, out.records_rejected = batch.n_accepted, batch.n_rejected
+        out.records_replayed, out.records_rejected = replay_entries(aligner,
+                                                                    records_to_entries(tail))
         if out.source == 'snapshot':
             out.source = 'snapshot+journal'
     out.aligner = aligner
@@ -452,6 +533,35 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         save_state(aligner, state, journal_records=out.journal_records)
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
+    """Give ``aligner`` journal entries in order: runs of measurements in one batch
+    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix between
+    them as it came (with the information it entered with). Returns ``(accepted, rejected)``
+    entries; nothing raises for a rejected one."""
+    accepted = rejected = 0
+    run: list[Measurement] = []
+
+    def flush() -> None:
+        nonlocal accepted, rejected
+        if run:
+            batch = aligner.add_measurements(run)
+            accepted, rejected = accepted + batch.n_accepted, rejected + batch.n_rejected
+            run.clear()
+
+    for e in entries:
+        if isinstance(e, Measurement):
+            run.append(e)
+            continue
+        flush()
+        try:
+            aligner.add_fix(e)
+            accepted += 1
+        except GaError:
+            rejected += 1
+    flush()
+    return accepted, rejected
 
 
 def _has_v2_header(path: Path) -> bool:

@@ -13,12 +13,13 @@ import os
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import save_state
@@ -156,6 +157,27 @@ class AlignmentSession:
         self.counts.callback_seconds += time.perf_counter() - t0
         self.counts.callback_count += 1
         return StepOutput(True)
+
+    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
+        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the journal
+        (with the information it entered with, so a recovery replays the same term between the
+        same measurements).
+
+        Raises
+        ------
+        InputError
+            The aligner refused it (unknown or frozen node; counted there by reason).
+        """
+        info = self.aligner.add_fix(term, C_offset)
+        if self.journal is not None:
+            fix = term.fix if info is None else replace(term.fix, information=info)
+            self.journal.append_fix(replace(term, fix=fix))
+            self.sync()
+
+    @property
+    def newest_node_id(self) -> int | None:
+        """The aligner's newest node (``None`` before the first measurement)."""
+        return self.aligner.newest_node_id
 
     def undecodable(self, exc: BaseException) -> Reason:
         """Count an input that could not be decoded into a measurement; returns its reason."""

@@ -540,7 +540,7 @@ class AlignmentNode(Node):
         if step.end_track:
             self.front.track_boundary()
         self._fix_feeder.add(step.fixes)
-        for error in self._fix_feeder.flush(self.session.aligner):
+        for error in self._fix_feeder.flush(self.session):  # journalled with the measurements
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
