@@ -33,6 +33,7 @@ from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.errors import InputError
 from ga_ros.inputs.absolute import (
+    NAVSAT,
     AbsoluteDecoder,
     AbsoluteInputConfig,
     StaticTransforms,
@@ -187,6 +188,15 @@ class AbsoluteFrontEnd:
         """``{input: [lat_deg, lon_deg, alt_m]}``: the ENU origin of each NavSatFix input that
         has one (the map frame of its fixes)."""
         return {n: list(d.datum) for n, d in self.decoders.items() if d.datum is not None}
+
+    def earth_datum(self) -> tuple[float, float, float] | None:
+        """The ENU origin ``[lat_deg, lon_deg, alt_m]`` of the first NavSatFix input that has
+        one (the ``datum`` parameter, or its first fix), ``None`` before (or without any):
+        ``earth -> map`` is then :func:`~ga_ros.inputs.absolute.T_earth_enu` of it."""
+        for d in self.decoders.values():
+            if d.msgtype == NAVSAT and d.datum is not None:
+                return d.datum
+        return None
 
     def stats(self) -> dict[str, object]:
         """Counters per input (for diagnostics and the replay summary)."""

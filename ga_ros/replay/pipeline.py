@@ -28,6 +28,7 @@ from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
+from ga_ros.inputs.absolute import T_earth_enu
 from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import (
     ODOMETRY,
@@ -281,6 +282,7 @@ class _Run:
         self.first_id: int | None = None
         self.T_map_odom: FloatArray | None = None
         self.fixes = FixFeeder()  # absolute fixes waiting for their node
+        self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -299,6 +301,7 @@ class _Run:
         if item.fixes:
             self.fixes.add(item.fixes)
             self._add_fixes()
+            self._earth_to_map(item)
         if m is None:
             if item.error:
                 self._reject(item.error)
@@ -334,6 +337,17 @@ class _Run:
             self._update(u)
         if self.config.tf and self.T_map_odom is not None:
             self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), item.log_ns)
+
+    def _earth_to_map(self, item: SourceItem) -> None:
+        """REP 105 ``earth -> map`` on ``/tf_static``, once the NavSatFix inputs' ENU origin is
+        known, when the map frame is the fixes' frame (``datum: fixes``)."""
+        datum = getattr(self.source, 'earth_datum', lambda: None)()
+        if (self.earth_written or datum is None or not self.config.tf
+                or getattr(self.config.aligner, 'datum', None) != 'fixes'):
+            return
+        self.earth_written = True
+        stamp = min(int(f.term.fix.stamp_ns) for f in item.fixes)
+        self.out.earth_to_map(T_earth_enu(datum), stamp, item.log_ns)
 
     def _add_fixes(self) -> None:
         """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
