@@ -114,8 +114,9 @@ class FreezeAhead:
 
     def take(self, track: int) -> FreezePlan | None:
         """The freeze of ``track`` computed ahead, if it was and still applies: same last
-        adjustment, priors and absolute fixes, and no connection added since touches the track (the nodes and
-        connections added since are outside what it read). ``None``: compute it now."""
+        adjustment, priors and absolute fixes, and no connection added since touches the
+        track (the nodes and connections added since are outside what it read). ``None``:
+        compute it now."""
         job, self.job = self.job, None
         if job is None:
             return None
