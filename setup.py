@@ -14,8 +14,14 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'cvxopt'],
+    # one entry per imported third-party package (pip names; package.xml names their rosdep
+    # keys, test/test_packaging.py checks that both agree with requirements.txt)
+    install_requires=['setuptools', 'numpy', 'scipy', 'cvxopt', 'opencv-python-headless',
+                      'matplotlib', 'PyYAML', 'tqdm', 'rosbags', 'mcap', 'mcap-ros2-support',
+                      'numba', 'threadpoolctl'],
+    extras_require={'metis': ['pymetis']},
     zip_safe=True,
     maintainer='ga_ros maintainers',
     maintainer_email='maintainers@ga-ros.invalid',

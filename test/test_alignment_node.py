@@ -469,7 +469,7 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
                                    atol=1e-9)
         cov = conv.msg_to_covariance(pc.pose.covariance)       # raises unless SPD
         assert np.all(np.diag(cov) > 0)
-        assert (odoms[-1].header.frame_id, odoms[-1].child_frame_id) == ('map', 'sensor')
+        assert (odoms[-1].header.frame_id, odoms[-1].child_frame_id) == ('map', 'base_link')
         assert len(markers[-1].markers[2].points) == 2 * len(ms)
         assert proc.poll() is None
     except Exception:

@@ -79,7 +79,7 @@ def test_odometry_input_in_process_map_to_odom(ctx):
         assert len(cp.node_ids) == 20
         # map -> odom composes with the odometry pose of the newest node to its corrected pose
         T_odom_k = node.front.inputs['odom0'].keyframe_pose(int(cp.node_ids[-1]))
-        np.testing.assert_allclose(node._T_map_odom @ T_odom_k, cp.T_world_node[-1],
+        np.testing.assert_allclose(node.odom.T_map_odom @ T_odom_k, cp.T_world_node[-1],
                                    atol=1e-9)
     finally:
         node.destroy_node()
@@ -311,7 +311,7 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
         st = node.session.aligner.fix_stats
         assert st.added == 20 and st.outliers == 0
         assert node.absolute.stats()['amcl0']['fixes'] == 20
-        np.testing.assert_allclose(node._T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
-        np.testing.assert_allclose(node._T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, 3], T_map_odom[:3, 3], atol=0.1)
+        np.testing.assert_allclose(node.odom.T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
     finally:
         node.destroy_node()

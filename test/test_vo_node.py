@@ -25,6 +25,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image  # noqa: E402
 
+from ga_ros.core.extrinsic import ExtrinsicConfig  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
@@ -62,6 +63,7 @@ def test_yaml_mirrors_config_defaults():
     params = yaml.safe_load(CONFIG.read_text())['vo_node']['ros__parameters']
     expected = {f.name: getattr(VoNodeSettings(), f.name) for f in fields(VoNodeSettings)}
     expected.update({f.name: getattr(VoConfig(), f.name) for f in fields(VoConfig)})
+    expected.update({f.name: getattr(ExtrinsicConfig(), f.name) for f in fields(ExtrinsicConfig)})
     expected.update({'cross_' + f.name: getattr(CrossTrackConfig(), f.name)
                      for f in fields(CrossTrackConfig)})
     assert set(params) == set(expected)

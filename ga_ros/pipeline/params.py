@@ -160,3 +160,31 @@ def parse_override(text: str) -> tuple[str, Any]:
     if isinstance(value, str) and _EXPONENT_FLOAT.fullmatch(value.strip()):
         value = float(value)  # YAML 1.1 reads 1e-6 as a string; ROS (-p x:=1e-6) as a double
     return key.strip(), value
+
+
+def parameter_names(cls: type, prefix: str = '') -> list[str]:
+    """Names of the parameters a node declares for config dataclass ``cls``.
+
+    One name per field (``prefix + field``), dotted names for the fields of a nested config
+    dataclass (``solver.tolerance``), exactly as :func:`ga_ros.ros.params.declare_config`
+    declares them; used to check launch and parameter files without starting a node.
+
+    Parameters
+    ----------
+    cls : frozen config dataclass with defaults for every field.
+    prefix : prepended to each name (e.g. ``'cross_'``).
+
+    Returns
+    -------
+    list[str]
+        The parameter names, in field order.
+    """
+    names: list[str] = []
+    defaults = cls()
+    for f in fields(cls):  # type: ignore[arg-type]
+        value = getattr(defaults, f.name)
+        if is_dataclass(value):
+            names += parameter_names(type(value), f'{prefix}{f.name}.')
+        else:
+            names.append(prefix + f.name)
+    return names

@@ -17,6 +17,10 @@ match alike:
   (:class:`ga_ros.vo.crosstrack.CrossTrackMatcher`), as two calls: the caller feeds the VO's
   motion to the aligner in between (:meth:`StereoFrontEnd.match` after
   :meth:`StereoFrontEnd.add_image`), so that the matcher sees the newest corrected path;
+* **frames**: the VO measures the left camera's optical frame; with the camera's extrinsic
+  (:meth:`set_extrinsic`, :class:`ga_ros.core.extrinsic.Extrinsic`: ``/tf_static``, parameters
+  or the identity) every measurement is converted to the robot's ``base_link`` motion (and
+  covariance) before it leaves, and :meth:`base_pose` gives the frame's ``T_odom_base``;
 * **feedback** of the corrected path (:meth:`set_corrected`, or :meth:`set_corrected_by_stamp`
   for a ``nav_msgs/Path`` whose poses carry the keyframe stamps).
 
@@ -34,6 +38,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.encoding import stamp_to_ns
+from ga_ros.core.extrinsic import Extrinsic, ExtrinsicConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError, InputError
 from ga_ros.pipeline.params import config_from_params
@@ -69,6 +74,7 @@ class FrontEndConfig:
     feedback : give corrected poses to the matcher (:meth:`StereoFrontEnd.set_corrected`).
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
     max_pending : unpaired images kept per side before the oldest is dropped.
+    extrinsic : where the camera's pose in ``base_link`` comes from.
     """
 
     vo: VoConfig = field(default_factory=VoConfig)
@@ -77,6 +83,7 @@ class FrontEndConfig:
     feedback: bool = True
     max_pair_dt_sec: float = 0.005
     max_pending: int = 50
+    extrinsic: ExtrinsicConfig = field(default_factory=ExtrinsicConfig)
 
 
 #: Parameters of ``config/vo.yaml`` that only ``vo_node`` uses (topics, frames, queues): the replay
@@ -84,8 +91,9 @@ class FrontEndConfig:
 NODE_ONLY_PARAMS = frozenset({
     'left_image_topic', 'right_image_topic', 'left_info_topic', 'right_info_topic', 'compressed',
     'measurements_topic', 'odometry_topic', 'path_topic', 'track_boundary_topic',
-    'debug_image_topic', 'publish_debug_image', 'odom_frame', 'camera_frame', 'image_queue',
-    'pair_queue', 'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec'})
+    'debug_image_topic', 'publish_debug_image', 'odom_frame', 'image_queue', 'pair_queue',
+    'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec', 'publish_odom_tf',
+    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction', 'idle_end_track_s'})
 
 
 def front_end_config_from_params(params: Mapping[str, Any],
@@ -102,10 +110,11 @@ def front_end_config_from_params(params: Mapping[str, Any],
     base = base or FrontEndConfig()
     vo, used_vo = config_from_params(VoConfig, params, base=base.vo)
     cross, used_cross = config_from_params(CrossTrackConfig, params, 'cross_', base=base.cross)
+    ext, used_ext = config_from_params(ExtrinsicConfig, params, base=base.extrinsic)
     rest = {k: v for k, v in params.items() if k in ('cross_track', 'max_pair_dt_sec')}
-    top, used_top = config_from_params(FrontEndConfig, rest, base=replace(base, vo=vo,
-                                                                          cross=cross))
-    unknown = set(params) - used_vo - used_cross - used_top - NODE_ONLY_PARAMS
+    top, used_top = config_from_params(FrontEndConfig, rest, base=replace(
+        base, vo=vo, cross=cross, extrinsic=ext))
+    unknown = set(params) - used_vo - used_cross - used_ext - used_top - NODE_ONLY_PARAMS
     if unknown:
         raise InputError(f'unknown VO parameter(s) {", ".join(sorted(unknown))}; the names are '
                          'those of config/vo.yaml')
@@ -210,6 +219,25 @@ class StereoFrontEnd:
         self._models: dict[str, CameraModel] = {}
         self._pending: dict[str, dict[int, Any]] = {'left': {}, 'right': {}}
         self._stamp_to_node: dict[int, int] = {}
+        #: the camera's pose in ``base_link`` (None: not resolved yet, the identity is used)
+        self.extrinsic: Extrinsic | None = None
+
+    # ------------------------------------------------------------------ frames
+    def set_extrinsic(self, extrinsic: Extrinsic) -> None:
+        """Use ``extrinsic`` for every measurement and pose from now on."""
+        self.extrinsic = extrinsic
+
+    def base_pose(self, T_world_cam: FloatArray) -> FloatArray:
+        """``T_odom_base`` of the VO's integrated camera pose (the identity extrinsic while none
+        is set)."""
+        if self.extrinsic is None:
+            return np.asarray(T_world_cam, float)
+        return self.extrinsic.pose(T_world_cam)
+
+    def _to_base(self, m: Measurement | None) -> Measurement | None:
+        if m is None or self.extrinsic is None:
+            return m
+        return self.extrinsic.motion(m)
 
     # ------------------------------------------------------------------ calibration
     def set_camera_info(self, side: str, msg: Any) -> StereoCalibration | None:
@@ -318,6 +346,7 @@ class StereoFrontEnd:
         except GaError as exc:
             self._reason(BAD_PAIR)
             return FrameOutput(stamp_ns, error=f'stereo: {exc}', reason=BAD_PAIR)
+        res.measurement = self._to_base(res.measurement)
         reason = ''
         if res.status == 'lost':
             self.stats.lost += 1
@@ -356,6 +385,8 @@ class StereoFrontEnd:
                 or not self.config.cross_track):
             return []
         attempts = self.matcher.add(res.keyframe)
+        for a in attempts:
+            a.measurement = self._to_base(a.measurement)
         self.stats.cross_attempts += len(attempts)
         self.stats.cross_accepted += sum(a.accepted and a.measurement is not None
                                          for a in attempts)
@@ -365,7 +396,10 @@ class StereoFrontEnd:
     def set_corrected(self, node_ids: IntArray, T_world_node: FloatArray) -> None:
         """Corrected poses of keyframes (node ids) for the matcher's overlap prediction."""
         if self.matcher is not None and self.config.feedback and len(node_ids):
-            self.matcher.set_corrected_poses(np.asarray(node_ids), T_world_node)
+            T = np.asarray(T_world_node, float)
+            if self.extrinsic is not None:  # base poses in the map -> the matcher's camera poses
+                T = self.extrinsic.camera_pose(T)
+            self.matcher.set_corrected_poses(np.asarray(node_ids), T)
 
     def set_corrected_by_stamp(self, stamps_ns: IntArray, T_world_node: FloatArray) -> int:
         """As :meth:`set_corrected`, with keyframes named by their stamps (a ``nav_msgs/Path``);

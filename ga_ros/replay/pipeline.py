@@ -42,6 +42,13 @@ from ga_ros.io.bag import (
 )
 from ga_ros.io.groundtruth import read_ground_truth_file
 from ga_ros.pipeline.absolute import FixFeeder
+from ga_ros.pipeline.inputs import InputFrontEnd
+from ga_ros.pipeline.map_to_odom import (
+    TRANSFORM_PERIOD_S,
+    MapToOdom,
+    PeriodicSchedule,
+    without_odom_parent,
+)
 from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.inputs import InputSource, InputTopics, plan_inputs
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
@@ -90,7 +97,12 @@ class ReplayConfig:
         has inputs they are the source (:mod:`ga_ros.replay.inputs`).
     ground_truth_file : EuRoC CSV or TUM ground truth (:mod:`ga_ros.io.groundtruth`), matched
         by stamp; replaces the bag's ground truth.
-    tf : write ``map -> odom`` on ``/tf`` (and copy the input bag's ``/tf``, ``/tf_static``).
+    tf : write ``map -> odom`` on ``/tf`` every ``transform_publish_period_sec`` of the bag's
+        log time, from the first measurement to the end, with the latest correction (and copy
+        the input bag's ``/tf``, ``/tf_static`` without the transforms that would give ``odom``
+        a second parent, counted in the summary's ``frames``).
+    transform_publish_period_sec : period of ``map -> odom`` in the output bag, s (as the
+        node's parameter of the same name).
     covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
         (as the live node by default) or ``'repair'`` (eigenvalue clipping).
     """
@@ -109,6 +121,7 @@ class ReplayConfig:
     ground_truth_file: str = ''
     tf: bool = True
     covariance_policy: str = 'reject'
+    transform_publish_period_sec: float = TRANSFORM_PERIOD_S
 
 
 @dataclass
@@ -141,6 +154,7 @@ class ReplayResult:
     source_stats: dict[str, Any] = field(default_factory=dict)
     corrected: Trajectory | None = None
     quality: dict[str, Any] = field(default_factory=dict)
+    frames: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -157,7 +171,8 @@ class ReplayResult:
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
-            'source_stats': self.source_stats, 'quality': self.quality, 'notes': self.notes}
+            'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
+            'notes': self.notes}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -280,7 +295,11 @@ class _Run:
         self.last_ns = 0
         self.source: Any = None
         self.first_id: int | None = None
-        self.T_map_odom: FloatArray | None = None
+        self.odom: MapToOdom | None = None
+        self.tf_schedule = PeriodicSchedule(config.transform_publish_period_sec)
+        #: header stamp minus log time of the newest measurement (stamps of map -> odom)
+        self.stamp_offset_ns = 0
+        self.tf_removed = 0
         self.fixes = FixFeeder()  # absolute fixes waiting for their node
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
 
@@ -293,6 +312,30 @@ class _Run:
         return self.gt.T_world_node[i_gt[0]].copy() if len(i_gt) else None
 
     def step(self, item: SourceItem) -> None:
+        self._step(item)
+        self._tf_tick(self.last_ns)
+
+    def _tf_tick(self, log_ns: int) -> None:
+        """``map -> odom`` at the due times of the fixed period, with the latest correction."""
+        if not self.config.tf or self.odom is None or self.odom.T_map_odom is None:
+            return
+        for t in self.tf_schedule.due(log_ns):
+            self.out.map_to_odom(self.odom.T_map_odom, t + self.stamp_offset_ns, t)
+
+    def copy_tf(self, topic: str, msgtype: str, data: bytes | None, msg: Any,
+                log_ns: int) -> None:
+        """Copy an input ``/tf`` or ``/tf_static`` message without the transforms that would
+        give ``odom`` a second parent (ours is the one ``map -> odom``)."""
+        if msgtype == 'tf2_msgs/msg/TFMessage' and msg is not None:
+            kept, removed = without_odom_parent(msg, self.config.outputs.odom_frame)
+            if removed:
+                self.tf_removed += removed
+                if kept.transforms:
+                    self.out.copy(topic, msgtype, None, kept, log_ns)
+                return
+        self.out.copy(topic, msgtype, data, msg, log_ns)
+
+    def _step(self, item: SourceItem) -> None:
         self.last_ns = max(self.last_ns, int(item.log_ns))
         if item.node_stamps:
             for k, v in item.node_stamps.items():
@@ -312,6 +355,8 @@ class _Run:
             self.aligner = self.factory(T0)
             self.session = AlignmentSession(aligner=self.aligner)
             self.f2f = F2FIntegrator(T0)
+            front = getattr(self.source, 'front', None)
+            self.odom = MapToOdom(front if isinstance(front, InputFrontEnd) else None, self.f2f)
         out = self.session.step(m)
         if out.solver_failed:  # a failed update: the aligner keeps its previous estimate
             self._reject(f'solver: {out.error}')
@@ -320,8 +365,9 @@ class _Run:
             self._reject(f'aligner: {out.error}')
             return
         updates = out.updates
-        assert self.f2f is not None
-        self.f2f.add(m)
+        assert self.odom is not None
+        self.odom.add(m)
+        self.stamp_offset_ns = int(m.stamp_ns) - int(item.log_ns)
         self.result.n_measurements += 1
         self.stamps.setdefault(m.dst_id, int(m.stamp_ns))
         self.tracks.setdefault(m.src_id, m.src_track)
@@ -335,8 +381,9 @@ class _Run:
             self._add_fixes()
         for u in updates:
             self._update(u)
-        if self.config.tf and self.T_map_odom is not None:
-            self.out.map_to_odom(self.T_map_odom, int(m.stamp_ns), item.log_ns)
+        if self.odom.T_map_odom is None:  # the correction before the first update
+            traj = self.corrected()
+            self.odom.update(traj.node_ids, traj.T_world_node)
 
     def _earth_to_map(self, item: SourceItem) -> None:
         """REP 105 ``earth -> map`` on ``/tf_static``, once the NavSatFix inputs' ENU origin is
@@ -373,22 +420,11 @@ class _Run:
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
         self._markers(traj)
-        self.T_map_odom = self._map_to_odom(traj)
-        if self.config.tf and self.T_map_odom is not None:
-            self.out.map_to_odom(self.T_map_odom, int(traj.stamps_ns[-1]), self.last_ns)
+        if self.odom is not None:
+            self.odom.update(traj.node_ids, traj.T_world_node)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
-
-    def _map_to_odom(self, traj: Trajectory) -> FloatArray | None:
-        """REP 105 ``T_map_odom``: from the source's odometry poses when it has them (standard
-        inputs), else from the frame-to-frame integration (the dead-reckoned frame)."""
-        own = getattr(self.source, 'map_to_odom', None)
-        if own is not None:
-            return own(traj.node_ids, traj.T_world_node)
-        if self.f2f is None:
-            return None
-        return self.f2f.map_to_odom(traj.node_ids, traj.T_world_node)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement
@@ -489,7 +525,9 @@ class _Run:
         self.out.path(traj, self.last_ns, topic=self.config.outputs.f2f_topic)
         self.out.tum('trajectory_ga.tum', traj)
         self.out.tum('trajectory_f2f.tum', traj)
-        T_map_odom = self._map_to_odom(traj)
+        front = getattr(self.source, 'front', None)
+        odom = MapToOdom(front if isinstance(front, InputFrontEnd) else None)
+        T_map_odom = odom.update(traj.node_ids, traj.T_world_node)
         if self.config.tf and T_map_odom is not None:
             self.out.map_to_odom(T_map_odom, stamp, self.last_ns)
         if self.gt is not None and len(self.gt):
@@ -508,6 +546,9 @@ class _Run:
             res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
         traj = self.corrected()
         res.corrected = traj
+        if self.config.tf and self.odom is not None and self.odom.T_map_odom is not None:
+            self.out.map_to_odom(self.odom.T_map_odom, self.last_ns + self.stamp_offset_ns,
+                                 self.last_ns)   # the final correction, at the end
         self._markers(traj, everything=True)
         res.n_nodes = len(traj)
         res.n_tracks = int(np.unique(traj.track_ids).size)
@@ -561,6 +602,27 @@ class _Run:
                 title += (f'\nATE vs ground truth: F2F {res.errors["f2f"].ate_raw:.3g} m, '
                           f'GA {res.errors["ga"].ate_raw:.3g} m')
             self.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f_xyz, gt_xyz, title)
+
+
+def _frames_summary(config: ReplayConfig, source: Any, run: _Run) -> dict[str, Any]:
+    """What the replay did about frames (``summary.json``'s ``frames``)."""
+    out: dict[str, Any] = {
+        'map_frame': config.outputs.map_frame, 'odom_frame': config.outputs.odom_frame,
+        'base_frame': config.outputs.sensor_frame,
+        'transform_publish_period_sec': config.transform_publish_period_sec,
+        'input_tf_to_odom_not_copied': run.tf_removed}
+    front = getattr(source, 'front', None)
+    ext = getattr(front, 'extrinsic', None)
+    if ext is not None:
+        out['camera_extrinsic'] = {'source': ext.source, 'camera_frame': ext.camera_frame,
+                                   'T_base_camera': np.round(ext.T_base_cam, 9).tolist()}
+    warnings = list(getattr(source, 'warnings', []) or [])
+    if run.tf_removed:
+        warnings.append(f'{run.tf_removed} input transforms to {config.outputs.odom_frame!r} '
+                        f"not copied (another localiser's; ours is the one "
+                        f'{config.outputs.map_frame} -> {config.outputs.odom_frame})')
+    out['warnings'] = [w for w in warnings if 'DEFAULT covariance' not in w]
+    return out
 
 
 def _plan_or_hint(info: Any, topics: Any) -> TopicPlan:
@@ -646,7 +708,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         run = _Run(config, factory, outputs, result, gt, match_by)
         run.source = source
         if specs and config.tf:
-            source.passthrough = outputs.copy
+            source.passthrough = run.copy_tf
         bar = None
         if config.progress:
             from tqdm import tqdm
@@ -667,6 +729,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                 if bar is not None:
                     bar.close()
             result.n_inputs = counter[0]
+            result.frames = _frames_summary(config, source, run)
             stats = getattr(source, 'stats', None)
             if stats is not None:
                 result.source_stats = _as_dict(stats)

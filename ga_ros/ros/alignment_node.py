@@ -16,9 +16,15 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``ga/corrected_path`` (``nav_msgs/Path``, transient local): every node, in ``map_frame``.
 * out ``ga/corrected_pose`` (``geometry_msgs/PoseWithCovarianceStamped``): newest node.
 * out ``ga/corrected_odom`` (``nav_msgs/Odometry``): newest node, ``map_frame`` ->
-  ``sensor_frame``.
+  ``base_frame``.
+* out ``/tf``: ``map_frame -> odom_frame`` every ``transform_publish_period_sec`` with the latest
+  correction (:mod:`ga_ros.pipeline.map_to_odom`); when another node publishes a transform to
+  ``odom_frame`` the node warns, reports it in the diagnostics (WARN) and stops publishing it
+  unless ``publish_tf_when_contested``.
 * out ``ga/network_markers`` (``visualization_msgs/MarkerArray``, transient local).
-* out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz.
+* out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
+  standard inputs, each input's received / expected / lost messages (from its stamps,
+  :mod:`ga_ros.pipeline.stream_rate`; WARN above ``loss_warn_fraction``).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -41,7 +47,6 @@ from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
@@ -49,7 +54,6 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
-from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -68,17 +72,22 @@ from ga_ros.pipeline.inputs import (
     decode_measurement,
 )
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
+from ga_ros.pipeline.map_to_odom import MapToOdom, foreign_odom_parents
+from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config, updated_config
-from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
-from ga_ros.ros.runner import run_node
+from ga_ros.ros.qos import RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
+from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.ros.view import connection_view
 
 NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
+#: Another node's ``-> odom`` transform keeps ours off the air this long after it was heard, s.
+TF_CONTEST_HOLD_SEC = 5.0
 #: Numeric ranges of the AlignerConfig parameters.
 ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
                   'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
@@ -102,7 +111,6 @@ class NodeSettings:
     Attributes
     ----------
     map_frame : frame of the corrected path / poses (REP 105 ``map``).
-    sensor_frame : ``child_frame_id`` of the corrected odometry stream.
     measurements_topic : input: nav_msgs/Odometry measurement encoding (README).
     path_topic : output: nav_msgs/Path of every node, transient local.
     pose_topic : output: PoseWithCovarianceStamped of the newest adjusted node.
@@ -138,7 +146,8 @@ class NodeSettings:
         ``repair`` (eigenvalue clipping).
     input_warn_throttle_sec : minimum interval between two default-covariance warnings, s.
     odom_frame : REP 105 odometry frame of the first standard input (``map -> odom`` on TF).
-    base_frame : the robot's base frame (child of ``map`` when ``publish_map_to_base``).
+    base_frame : the robot's base frame: ``child_frame_id`` of the corrected odometry (and
+        child of ``map`` when ``publish_map_to_base``).
     publish_tf : publish ``map_frame -> odom_frame`` on ``tf_topic`` (odom: the first standard
         input's frame, or without standard inputs the frame-to-frame integration of the
         consecutive measurements).
@@ -152,6 +161,12 @@ class NodeSettings:
         known (the ``datum`` parameter, or the first fix).
     earth_frame : REP 105 Earth-centred, Earth-fixed frame (``earth``).
     transform_publish_period_sec : period of the TF timer, s (0: after updates only).
+    publish_tf_when_contested : keep publishing ``map_frame -> odom_frame`` when another node
+        publishes a transform to ``odom_frame`` on ``tf_topic`` (a frame has one parent: TF
+        consumers would jump between the two); off: ours stops until the other has been
+        silent for :data:`TF_CONTEST_HOLD_SEC`.
+    loss_warn_fraction : diagnostics WARN when a standard input's lost / expected messages
+        exceed this.
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
     full_path_min_period_sec : publish the full path at most this often, s (0: after every
         update; big surveys: e.g. 10, the window path carries the updates).
@@ -176,7 +191,6 @@ class NodeSettings:
     """
 
     map_frame: str = 'map'
-    sensor_frame: str = 'sensor'
     measurements_topic: str = topics.MEASUREMENTS
     path_topic: str = topics.CORRECTED_PATH
     pose_topic: str = topics.CORRECTED_POSE
@@ -205,6 +219,8 @@ class NodeSettings:
     publish_earth_transform: bool = True
     earth_frame: str = 'earth'
     transform_publish_period_sec: float = field_(0.05, 0.0, 3600.0)
+    publish_tf_when_contested: bool = False
+    loss_warn_fraction: float = field_(0.01, 0.0, 1.0)
     window_path_topic: str = topics.WINDOW_PATH
     full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
 
@@ -217,7 +233,8 @@ class NodeSettings:
 
 #: NodeSettings fields that may change at run time (read at use).
 DYNAMIC_SETTINGS = frozenset({
-    'map_frame', 'sensor_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'map_frame', 'odom_frame', 'base_frame', 'publish_tf', 'publish_map_to_base',
+    'publish_tf_when_contested', 'loss_warn_fraction',
     'warn_throttle_sec', 'publish_markers', 'residual_color_scale', 'odom_max_rate_hz',
     'covariance_policy', 'input_warn_throttle_sec', 'full_path_min_period_sec'})
 #: AlignerConfig fields that may change at run time (the aligner reads them at each update).
@@ -268,11 +285,15 @@ class AlignmentNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
-        self._T_map_odom: np.ndarray | None = None
+        # the odometry chain and map -> odom, as in the replay: the first standard input, or
+        # without standard inputs the frame-to-frame integration of the measurements
+        self.odom = MapToOdom(self.front)
+        self._own_tf: dict[int, np.ndarray] = {}   # stamp -> T_map_odom of what we sent
+        self._foreign_tf: tuple[str, float] = ('', -np.inf)   # its parent, monotonic time
+        # best effort hears reliable and best-effort TF publishers alike
+        self.create_subscription(TFMessage, s.tf_topic, self._on_tf, sensor_qos('best_effort',
+                                                                                100))
         self._pub_earth: Any = None  # earth -> map, latched (created once the datum is known)
-        # without standard inputs the odometry frame is the frame-to-frame integration of the
-        # consecutive measurements (as in the replay)
-        self._f2f = F2FIntegrator() if self.front is None else None
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
@@ -286,9 +307,9 @@ class AlignmentNode(Node):
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
 
-        if s.diagnostics_period_sec > 0:
-            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics)
         wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self._publish_diagnostics, clock=wall)
         if s.warn_throttle_sec > 0:
             self.create_timer(s.warn_throttle_sec, self._log_rejections, clock=wall)
         if s.track_idle_timeout_sec > 0:
@@ -371,8 +392,8 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
-            if out.accepted and self._f2f is not None:
-                self._f2f.add(m)
+            if out.accepted and self.front is None:
+                self.odom.add(m)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
@@ -460,6 +481,9 @@ class AlignmentNode(Node):
         """Parameters ``<name>.topic``, ``<name>.type``, ``<name>.<field>`` of each input named
         in ``inputs``; the front end (None without inputs)."""
         names = [n.strip() for n in s.inputs.split(',') if n.strip()]
+        #: per standard input: (QoS reliability, depth) and the stamp-gap loss monitor
+        self._input_qos: dict[str, tuple[str, int]] = {}
+        self.input_streams: dict[str, StreamMonitor] = {}
         if not names:
             return None
         specs = []
@@ -475,6 +499,17 @@ class AlignmentNode(Node):
                                  defaults=OdometryInputConfig(name))
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
+            reliability = str(self.declare_parameter(
+                f'{name}.qos_reliability', 'best_effort', ParameterDescriptor(
+                    description=f'{name}: subscription QoS, {" | ".join(RELIABILITIES)} '
+                    f'(best_effort connects to both kinds of publisher; read-only: {why})',
+                    read_only=True)).value)
+            depth = int(self.declare_parameter(f'{name}.qos_depth', 100, ParameterDescriptor(
+                description=f'{name}: subscription queue depth, messages (read-only: {why})',
+                read_only=True)).value)
+            sensor_qos(reliability, depth)      # refuse a bad value at start
+            self._input_qos[name] = (reliability, depth)
+            self.input_streams[name] = StreamMonitor()
             specs.append(InputSpec(str(topic), str(msgtype), replace(cfg, name=name)))
         return InputFrontEnd(specs, s.input_warn_throttle_sec, camera=self._declare_camera())
 
@@ -578,7 +613,7 @@ class AlignmentNode(Node):
         if self.absolute is not None:
             kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
                          NAVSAT: NavSatFix}
-            qos_abs = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+            qos_abs = sensor_qos('best_effort', 100)
             for spec in self.absolute.specs.values():
                 self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
                                          partial(self._on_absolute, spec.name), qos_abs)
@@ -586,11 +621,12 @@ class AlignmentNode(Node):
             self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
                                      latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
-        # best effort matches reliable and best-effort publishers (odometry drivers use both)
-        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
         for spec in self.front.specs.values():
+            # best effort (default) matches reliable and best-effort publishers
+            reliability, depth = self._input_qos[spec.name]
             self.create_subscription(kinds[spec.msgtype], spec.topic,
-                                     partial(self._on_input, spec.name), qos)
+                                     partial(self._on_input, spec.name),
+                                     sensor_qos(reliability, depth))
         self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
                                  measurement_qos(1000))
         self.create_subscription(Empty, s.track_boundary_topic,
@@ -598,6 +634,7 @@ class AlignmentNode(Node):
         if self.front.camera is not None:
             cam_topics, compressed = self._camera_topics
             img_type = CompressedImage if compressed else Image
+            qos = sensor_qos('best_effort', 100)   # as the standard inputs' default
             for side, (image, info) in cam_topics.items():
                 self.create_subscription(img_type, image, partial(self._on_camera_image, side),
                                          qos)
@@ -608,6 +645,10 @@ class AlignmentNode(Node):
 
     def _on_input(self, name: str, msg: Any) -> None:
         assert self.front is not None
+        try:
+            self.input_streams[name].add(conv.stamp_to_ns(msg.header.stamp))
+        except (AttributeError, TypeError, ValueError):
+            pass                                   # a malformed stamp is rejected below
         self._after_input(self.front.sample(name, msg), msg)
         if self.absolute is not None and name == self.front.primary:
             self._resolve_fixes()
@@ -635,22 +676,51 @@ class AlignmentNode(Node):
             self._process(m, msg)
 
     def _publish_tf(self) -> None:
-        """``map -> odom`` (and optionally ``map -> base``) of the newest correction."""
+        """``map -> odom`` (and optionally ``map -> base``) of the newest correction, stamped at
+        the newest odometry pose; not while another node publishes ``odom``'s parent (unless
+        ``publish_tf_when_contested``)."""
         s = self.settings
-        if not s.publish_tf or self._T_map_odom is None:
+        T_map_odom = self.odom.T_map_odom
+        if not s.publish_tf or T_map_odom is None:
             return
-        if self.front is not None:
-            stamp, latest = self.front.latest_stamp_ns, self.front.latest_pose()
-        else:
-            newest = self._f2f.newest() if self._f2f is not None else None
-            if newest is None:
-                return
-            latest, stamp = newest
-        tfs = [conv.transform_msg(s.map_frame, s.odom_frame, self._T_map_odom, stamp)]
-        if s.publish_map_to_base and latest is not None:
-            tfs.append(conv.transform_msg(s.map_frame, s.base_frame,
-                                          self._T_map_odom @ latest, stamp))
+        if self.tf_contested_by and not s.publish_tf_when_contested:
+            return
+        newest = self.odom.latest()
+        if newest is None:
+            return
+        latest, stamp = newest
+        tfs = [conv.transform_msg(s.map_frame, s.odom_frame, T_map_odom, stamp)]
+        if s.publish_map_to_base:
+            tfs.append(conv.transform_msg(s.map_frame, s.base_frame, T_map_odom @ latest, stamp))
+        self._own_tf[int(stamp)] = T_map_odom.copy()
+        while len(self._own_tf) > 1000:
+            self._own_tf.pop(next(iter(self._own_tf)))
         self.pub_tf.publish(TFMessage(transforms=tfs))
+
+    @property
+    def tf_contested_by(self) -> str:
+        """Parent frame of another node's transform to ``odom_frame`` heard within the last
+        :data:`TF_CONTEST_HOLD_SEC` ('' when none: ours is published again)."""
+        parent, at = self._foreign_tf
+        return parent if time.monotonic() - at < TF_CONTEST_HOLD_SEC else ''
+
+    def _on_tf(self, msg: TFMessage) -> None:
+        """Another publisher of a transform to ``odom_frame``: warn (throttled), report it in
+        the diagnostics and stop publishing ours (unless ``publish_tf_when_contested``)."""
+        s = self.settings
+        parents = foreign_odom_parents(msg, s.odom_frame, self._own_tf, s.map_frame)
+        if not parents:
+            return
+        first = not self.tf_contested_by
+        self._foreign_tf = (parents[0], time.monotonic())
+        what = ('publishing ours anyway (publish_tf_when_contested)'
+                if s.publish_tf_when_contested else 'not publishing ours')
+        self.get_logger().warning(
+            f'another node publishes {parents[0]} -> {s.odom_frame} on {s.tf_topic}: a frame has '
+            f'one parent; {what}. Stop the other localiser or remap, or set '
+            f'publish_tf_when_contested', throttle_duration_sec=max(s.warn_throttle_sec, 1.0))
+        if first:
+            self._publish_diagnostics()
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Apply run-time changes (read-only parameters are refused by rclpy itself)."""
@@ -768,11 +838,9 @@ class AlignmentNode(Node):
         movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
         self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
+        self.odom.update(cp.node_ids, cp.T_world_node)
         if self.front is not None:
-            self._T_map_odom = self.front.map_to_odom(cp.node_ids, cp.T_world_node)
             self.front.set_corrected(cp.node_ids, cp.T_world_node)
-        elif self._f2f is not None:
-            self._T_map_odom = self._f2f.map_to_odom(cp.node_ids, cp.T_world_node)
         self._publish_tf()
         k = self.session.newest_adjusted(cp)
         if k is not None:
@@ -781,7 +849,7 @@ class AlignmentNode(Node):
             self.pub_pose.publish(conv.pose_with_covariance_msg(cp.T_world_node[k], cov,
                                                                 s.map_frame, t_k))
             self.pub_odom.publish(conv.odometry_msg(cp.T_world_node[k], cov, s.map_frame,
-                                                    s.sensor_frame, t_k))
+                                                    s.base_frame, t_k))
         if s.publish_markers:
             self._markers_dirty = True
             if self.pub_markers.get_subscription_count() > 0:
@@ -839,7 +907,7 @@ class AlignmentNode(Node):
         cov = np.zeros((6, 6))
         cov[0, 0] = -1.0
         self.pub_odom.publish(conv.odometry_msg(cp.T_world_node[-1], cov, self.settings.map_frame,
-                                                self.settings.sensor_frame,
+                                                self.settings.base_frame,
                                                 int(cp.stamps_ns[-1])))
 
     def _publish_diagnostics(self) -> None:
@@ -849,9 +917,20 @@ class AlignmentNode(Node):
         except Exception as exc:  # noqa: BLE001 - diagnostics must not stop the node
             values = {'error': str(exc)}
             health = None
+        problems = [health.message] if health is not None and not health.ok else []
+        if self.tf_contested_by:
+            s = self.settings
+            values['tf_contested_by'] = self.tf_contested_by
+            problems.append(f'another node publishes {self.tf_contested_by} -> {s.odom_frame}'
+                            + ('' if s.publish_tf_when_contested else '; ours not published'))
+        for name, mon in self.input_streams.items():
+            r = mon.report()
+            values.update(r.values(f'input/{name}/'))
+            if r.loss_fraction > self.settings.loss_warn_fraction:
+                problems.append(f'{name}: {r.lost} of {r.expected} messages lost')
         level, message = DiagnosticStatus.OK, 'ok'
-        if health is not None and not health.ok:
-            level, message = DiagnosticStatus.WARN, health.message
+        if problems:
+            level, message = DiagnosticStatus.WARN, '; '.join(problems)
         level_int = level[0] if isinstance(level, bytes) else int(level)
         self.pub_diag.publish(conv.diagnostics_msg(
             f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
@@ -867,9 +946,28 @@ class RejectionLog:
     last: tuple[Any, ...] = ()
 
 
+#: Parameters of each standard input ``<name>.``: besides the OdometryInputConfig fields.
+INPUT_PARAMETERS = ('topic', 'type', 'qos_reliability', 'qos_depth')
+
+
+def declared_parameters(inputs: tuple[str, ...] = ()) -> list[str]:
+    """Every parameter the alignment node declares (built from its config dataclasses, no
+    rclpy), with those of the standard inputs named in ``inputs``."""
+    names = parameter_names(AlignerConfig) + parameter_names(NodeSettings)
+    for name in inputs:
+        names += [f'{name}.{p}' for p in INPUT_PARAMETERS]
+        names += parameter_names(OdometryInputConfig, f'{name}.')
+    return names
+
+
+def usage() -> str:
+    """The ``--help`` text of the alignment nodes."""
+    return node_usage(NODE_NAME, __doc__, declared_parameters(('<input>',)))
+
+
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``alignment_node`` (also ``python -m ga_ros.ros.alignment_node``)."""
-    return run_node(AlignmentNode, NODE_NAME, args)
+    return run_node(AlignmentNode, NODE_NAME, args, usage=usage)
 
 
 if __name__ == '__main__':

@@ -27,7 +27,9 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.pipeline.inputs import InputFrontEnd
-from ga_ros.ros.alignment_node import NODE_NAME, AlignmentNode
+from ga_ros.pipeline.map_to_odom import MapToOdom
+from ga_ros.pipeline.stream_rate import StreamMonitor
+from ga_ros.ros.alignment_node import NODE_NAME, AlignmentNode, usage
 from ga_ros.ros.runner import run_node
 
 
@@ -81,7 +83,9 @@ class LifecycleAlignmentNode(AlignmentNode, LifecycleNode):
         if self.front is not None:
             self.front = InputFrontEnd(list(self.front.specs.values()),
                                        self.settings.input_warn_throttle_sec)
-        self._T_map_odom = None
+        self.odom = MapToOdom(self.front)   # a new odometry chain, no correction yet
+        for name in self.input_streams:
+            self.input_streams[name] = StreamMonitor()
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
@@ -91,7 +95,7 @@ class LifecycleAlignmentNode(AlignmentNode, LifecycleNode):
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``lifecycle_alignment_node``."""
-    return run_node(LifecycleAlignmentNode, NODE_NAME, args)
+    return run_node(LifecycleAlignmentNode, NODE_NAME, args, usage=usage)
 
 
 if __name__ == '__main__':

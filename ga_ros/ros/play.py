@@ -105,6 +105,8 @@ class PlayConfig:
         messages.
     ack_timeout_s : longest wait for those acknowledgements (s).
     depth : publisher queue depth.
+    sensor_reliability : QoS reliability of the image and camera-info publishers:
+        ``'reliable'`` or ``'best_effort'`` (as most camera drivers publish).
     """
 
     rate: float = 1.0
@@ -117,6 +119,7 @@ class PlayConfig:
     ack_every: int = 20
     ack_timeout_s: float = 5.0
     depth: int = 1000
+    sensor_reliability: str = 'reliable'
 
 
 @dataclass
@@ -178,12 +181,17 @@ class BagPlayer:
         """Reliable; measurement topics (``nav_msgs/msg/Odometry``) transient local with a
         history of the whole topic (a subscriber restarted after a crash gets everything
         again), ``/tf_static`` transient local (latched, as tf2 listeners expect), others
-        volatile with ``depth``."""
+        volatile with ``depth``; images and camera info with ``sensor_reliability``."""
         keep_all = topic.msgtype == 'nav_msgs/msg/Odometry'
         latched = keep_all or topic.name.rsplit('/', 1)[-1] == 'tf_static'
         depth = max(self.config.depth, min(topic.count + 1, 1_000_000)) if keep_all \
             else self.config.depth
-        return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+        sensor = topic.msgtype in ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage',
+                                   'sensor_msgs/msg/CameraInfo')
+        reliability = (ReliabilityPolicy.BEST_EFFORT
+                       if sensor and self.config.sensor_reliability == 'best_effort'
+                       else ReliabilityPolicy.RELIABLE)
+        return QoSProfile(depth=depth, reliability=reliability,
                           durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
                                       else DurabilityPolicy.VOLATILE),
                           history=HistoryPolicy.KEEP_LAST)
@@ -363,7 +371,8 @@ def run(args: argparse.Namespace) -> int:
     """Entry of ``ga-ros play``: play the bag and print what was published."""
     config = PlayConfig(rate=args.rate, topics=tuple(args.topics), clock=not args.no_clock,
                         delay_s=args.delay, wait_for_subscribers_s=args.wait_for_subscribers,
-                        end_signal=not args.no_end_signal)
+                        end_signal=not args.no_end_signal,
+                        sensor_reliability=args.sensor_qos)
     stats = play_bag(args.bag, config)
     total = sum(stats.counts.values())
     print(f'published {total} messages ({stats.bag_seconds:.1f} s of bag time) in '

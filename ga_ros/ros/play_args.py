@@ -23,4 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument('--no-end-signal', action='store_true',
                    help='do not send the end-of-input message on the measurements topic '
                         '(child_frame_id ga/track_end: the alignment node ends the last track)')
+    p.add_argument('--sensor-qos', choices=('reliable', 'best_effort'), default='reliable',
+                   help='QoS reliability of the image and camera-info publishers (default '
+                        'reliable; best_effort as most camera drivers)')
     return p

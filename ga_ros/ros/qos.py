@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ga_ros.errors import InputError
+
 
 def latched_qos(depth: int = 1) -> QoSProfile:
     """Reliable, transient-local: a late subscriber gets the last ``depth`` messages at once
@@ -28,3 +30,33 @@ def stream_qos(depth: int = 10) -> QoSProfile:
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                       durability=DurabilityPolicy.VOLATILE,
                       reliability=ReliabilityPolicy.RELIABLE)
+
+
+#: Accepted values of the ``qos_reliability`` parameters.
+RELIABILITIES = ('best_effort', 'reliable')
+
+
+def sensor_qos(reliability: str = 'best_effort', depth: int = 10) -> QoSProfile:
+    """Subscription QoS of a sensor input (images, camera info, odometry): keep last ``depth``,
+    volatile; ``best_effort`` (the ROS sensor-data convention) connects to best-effort and
+    reliable publishers alike, ``reliable`` only to reliable ones (then nothing is lost in
+    transport while the queue keeps up).
+
+    Raises
+    ------
+    InputError
+        ``reliability`` is not one of :data:`RELIABILITIES` or ``depth`` < 1.
+    """
+    if reliability not in RELIABILITIES:
+        raise InputError(f'qos_reliability must be one of {RELIABILITIES}, got {reliability!r}')
+    if depth < 1:
+        raise InputError(f'QoS depth must be at least 1, got {depth}')
+    return QoSProfile(depth=int(depth), history=HistoryPolicy.KEEP_LAST,
+                      durability=DurabilityPolicy.VOLATILE,
+                      reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == 'best_effort'
+                                   else ReliabilityPolicy.RELIABLE))
+
+
+def tf_static_qos() -> QoSProfile:
+    """``/tf_static``'s QoS (reliable, transient local, depth 1 as tf2's static listener)."""
+    return latched_qos(1)

@@ -14,13 +14,46 @@ from ga_ros.errors import GaError
 from ga_ros.runtime import limit_blas_threads
 
 
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+def wants_help(args: list[str] | None) -> bool:
+    """True when the command line (``sys.argv[1:]`` if ``args`` is None) asks for ``-h`` /
+    ``--help`` before any ``--ros-args``."""
+    argv = list(sys.argv[1:] if args is None else args)
+    if '--ros-args' in argv:
+        argv = argv[:argv.index('--ros-args')]
+    return '-h' in argv or '--help' in argv
+
+
+def node_usage(name: str, doc: str, parameters: list[str]) -> str:
+    """The ``--help`` text of a node: how to run it, its summary and its parameter names.
+
+    Parameters
+    ----------
+    name : the executable (``alignment_node``).
+    doc : the node module's docstring (its first paragraph is shown).
+    parameters : the parameter names the node declares.
+    """
+    summary = (doc or '').strip().split('\n\n')[0]
+    lines = [f'usage: {name} [-h] [--ros-args [--params-file FILE] [-p NAME:=VALUE] '
+             '[-r FROM:=TO] ...]', '', summary, '',
+             f'ros2 run ga_ros {name} --ros-args --params-file '
+             '$(ros2 pkg prefix ga_ros)/share/ga_ros/config/<file>.yaml', '',
+             f'parameters ({len(parameters)}):']
+    lines += [f'  {p}' for p in parameters]
+    return '\n'.join(lines)
+
+
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
+             usage: Callable[[], str] | None = None) -> int:
     """Create the node with ``factory()`` and spin it until shutdown.
 
     Returns the process exit code: 0 on a normal or Ctrl-C shutdown, 1 when the node cannot
     start (a bad parameter value, reported as one line on stderr). BLAS is pinned to one thread
-    (see :func:`ga_ros.runtime.limit_blas_threads`).
+    (see :func:`ga_ros.runtime.limit_blas_threads`). With ``-h`` / ``--help`` (before any
+    ``--ros-args``) ``usage()`` is printed and 0 returned without starting rclpy.
     """
+    if usage is not None and wants_help(args):
+        print(usage())
+        return 0
     _blas = limit_blas_threads()  # noqa: F841 (kept alive while the node runs)
     rclpy.init(args=args)
     node = None

@@ -12,10 +12,36 @@ Publishes
 * ``ga/measurements`` (``nav_msgs/Odometry``, the measurement encoding of
   :mod:`ga_ros.ros.conversions`): one message per keyframe-to-keyframe motion and per accepted
   cross-track connection;
-* ``ga/vo/odometry`` (``nav_msgs/Odometry``): the raw integrated VO pose of every frame
-  (``odom_frame`` = first camera frame), with the covariance of the motion from its keyframe;
+* ``ga/vo/odometry`` (``nav_msgs/Odometry``): the raw integrated VO pose of every frame,
+  ``odom_frame -> base_frame`` (``odom`` = the robot's first base frame), with the covariance of
+  the motion from its keyframe; and, when ``publish_odom_tf``, the same pose as the TF
+  ``odom_frame -> base_frame`` (as an odometry source does: turn it off when another node
+  publishes ``odom -> base_link``);
 * ``ga/vo/debug_image`` (``sensor_msgs/Image``, when ``publish_debug_image``): the rectified
   left image with the state written on it.
+
+Frames (REP 103/105): the VO measures the left camera's optical frame; every measurement and
+pose leaves as the robot's ``base_frame``, converted with the camera's extrinsic
+(:mod:`ga_ros.core.extrinsic`), resolved at the first stereo pair from ``/tf_static``
+(``base_frame -> camera_frame``, the left image's frame by default), else the parameter
+``T_base_camera``, else the identity (said so by ``assume_identity_extrinsic``, or warned
+about).
+
+Loss detection: each image stream has a :class:`ga_ros.pipeline.stream_rate.StreamMonitor`
+(rate from the stamps, gaps counted as lost messages) and the pairs a
+:class:`ga_ros.pipeline.stream_rate.FrameMonitor` (a frame of which one image arrived and the
+other not is a lost pair; frames of which nothing arrived are counted from the stamp gaps); the
+diagnostics report received / expected / lost and turn WARN when the lost
+fraction exceeds ``loss_warn_fraction``. The image and camera-info subscriptions use the
+``qos_reliability`` of the parameters (default best effort, which connects to best-effort and
+reliable publishers) with ``image_queue`` messages of depth.
+
+Live end of input: when no image has arrived for ``idle_end_track_s`` (wall clock) after the
+last measurement, the node publishes the end-of-input message on the measurements topic
+(``nav_msgs/Odometry`` with ``child_frame_id`` :data:`ga_ros.topics.TRACK_END_FRAME`, as
+``ga-ros play`` does at the end of a bag): the alignment node ends and adjusts the open track at
+once; the VO's next keyframe starts a new track. A robot standing still keeps its track (its
+camera still streams images).
 
 Subscribes also to the corrected path (``nav_msgs/Path``, transient local; poses matched to
 keyframes by stamp) to predict overlaps, and to ``track_boundary_topic`` (``std_msgs/Empty``)
@@ -40,6 +66,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -48,19 +75,25 @@ import cv2
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry, Path
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Empty
+from tf2_msgs.msg import TFMessage
 
 from ga_ros import topics
+from ga_ros.core.extrinsic import ExtrinsicConfig, TransformTree
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
+from ga_ros.geometry import se3
+from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, ImagePair, StereoFrontEnd
+from ga_ros.pipeline.stream_rate import FrameMonitor, StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config
-from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
-from ga_ros.ros.runner import run_node
+from ga_ros.ros.qos import latched_qos, measurement_qos, sensor_qos, stream_qos, tf_static_qos
+from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.vo.crosstrack import CrossTrackConfig
 from ga_ros.vo.odometry import VoConfig
 
@@ -84,13 +117,21 @@ class VoNodeSettings:
     publish_debug_image : publish the debug image.
     cross_track : run the cross-track matcher.
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
-    odom_frame, camera_frame : frame ids of the raw VO odometry.
-    image_queue : depth of the image subscriptions (best effort, sensor-data QoS).
+    odom_frame : REP 105 odometry frame of the VO odometry (parent of ``base_frame``).
+    publish_odom_tf : publish ``odom_frame -> base_frame`` on ``tf_topic`` for every frame.
+    tf_topic : TF topic (``/tf``).
+    tf_static_topic : static TF topic read for the camera's extrinsic (``/tf_static``).
+    qos_reliability : ``best_effort`` (connects to best-effort and reliable publishers) or
+        ``reliable``: the image and camera-info subscriptions.
+    image_queue : depth of the image and camera-info subscriptions (messages).
+    loss_warn_fraction : diagnostics WARN when a stream's lost / expected exceeds this.
     pair_queue : stereo pairs waiting for the VO; when full, a new pair drops the oldest
         waiting one (policy: skip oldest, process the newest), counted and warned about.
     diagnostics_topic : output ``diagnostic_msgs/DiagnosticArray`` with the counts.
     diagnostics_period_sec : period of the diagnostics (s; 0 disables).
     warn_throttle_sec : minimum seconds between repeated warnings.
+    idle_end_track_s : end the open track (end-of-input message on ``measurements_topic``)
+        when no image has arrived for this long, wall-clock s (0: never).
     """
 
     left_image_topic: str = topics.LEFT_IMAGE
@@ -106,13 +147,18 @@ class VoNodeSettings:
     publish_debug_image: bool = False
     cross_track: bool = True
     max_pair_dt_sec: float = 0.005
-    odom_frame: str = 'vo_odom'
-    camera_frame: str = 'camera'
+    odom_frame: str = 'odom'
+    publish_odom_tf: bool = True
+    tf_topic: str = '/tf'
+    tf_static_topic: str = '/tf_static'
+    qos_reliability: str = 'best_effort'
     image_queue: int = 10
+    loss_warn_fraction: float = 0.01
     pair_queue: int = 2
     diagnostics_topic: str = topics.DIAGNOSTICS
     diagnostics_period_sec: float = 1.0
     warn_throttle_sec: float = 5.0
+    idle_end_track_s: float = 2.0
 
 
 def array_to_image(img: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
@@ -137,13 +183,22 @@ class VoNode(Node):
         self.settings: VoNodeSettings = declare_config(self, VoNodeSettings)
         self.vo_config: VoConfig = declare_config(self, VoConfig)
         self.cross_config: CrossTrackConfig = declare_config(self, CrossTrackConfig, 'cross_')
+        self.extrinsic_config: ExtrinsicConfig = declare_config(self, ExtrinsicConfig)
         s = self.settings
         self.front = StereoFrontEnd(FrontEndConfig(
             vo=self.vo_config, cross=self.cross_config, cross_track=s.cross_track,
-            max_pair_dt_sec=s.max_pair_dt_sec, max_pending=max(2, s.image_queue)))
+            max_pair_dt_sec=s.max_pair_dt_sec, max_pending=max(2, s.image_queue),
+            extrinsic=self.extrinsic_config))
+        self.extrinsic_config.from_parameters()  # a malformed T_base_camera fails at start
+        self.tf_static = TransformTree()
+        self.streams: dict[str, StreamMonitor | FrameMonitor] = {
+            'left_image': StreamMonitor(), 'right_image': StreamMonitor(),
+            'pairs': FrameMonitor(int(round(s.max_pair_dt_sec * 1e9)))}
         self._last_warn: dict[str, float] = {}
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
-                       'processed': 0, 'queue_dropped': 0}
+                       'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0}
+        self._last_image = time.monotonic()
+        self._measured_since_end = False
         self._queue: deque[ImagePair] = deque()
         self._lock = threading.Lock()  # the front end: worker thread vs. other callbacks
         self._wake = threading.Condition()
@@ -151,20 +206,23 @@ class VoNode(Node):
         self._stop = False
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic,
                                               stream_qos())
-        if s.diagnostics_period_sec > 0:
-            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics)
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
         # transient local: an alignment node that matches late (discovery across hosts, a
         # restart) still gets every measurement; volatile subscribers match it as well
         self.pub_meas = self.create_publisher(Odometry, s.measurements_topic,
                                               measurement_qos(transient_local=True))
         self.pub_odom = self.create_publisher(Odometry, s.odometry_topic, stream_qos())
+        self.pub_tf = (self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
+                       if s.publish_odom_tf else None)
+        self.create_subscription(TFMessage, s.tf_static_topic, self._on_tf_static,
+                                 tf_static_qos())
         self.pub_debug = (self.create_publisher(Image, s.debug_image_topic, stream_qos(2))
                           if s.publish_debug_image else None)
         img_type = CompressedImage if s.compressed else Image
-        # Best effort (sensor-data QoS) matches both best-effort and reliable publishers.
-        qos = QoSProfile(depth=max(1, s.image_queue), history=HistoryPolicy.KEEP_LAST,
-                         reliability=ReliabilityPolicy.BEST_EFFORT,
-                         durability=DurabilityPolicy.VOLATILE)
+        # best effort (sensor-data QoS) matches both best-effort and reliable publishers
+        qos = sensor_qos(s.qos_reliability, max(1, s.image_queue))
         self.create_subscription(img_type, s.left_image_topic,
                                  lambda m: self._on_image(m, 'left'), qos)
         self.create_subscription(img_type, s.right_image_topic,
@@ -174,6 +232,9 @@ class VoNode(Node):
         self.create_subscription(CameraInfo, s.right_info_topic,
                                  lambda m: self._on_info(m, 'right'), qos)
         self.create_subscription(Path, s.path_topic, self._on_path, latched_qos())
+        if s.idle_end_track_s > 0:
+            self.create_timer(min(0.5, s.idle_end_track_s / 4), self._idle_check,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self.create_subscription(Empty, s.track_boundary_topic, self._on_boundary, 10)
         self._worker = threading.Thread(target=self._work, name='vo_worker', daemon=True)
         self._worker.start()
@@ -206,6 +267,28 @@ class VoNode(Node):
 
     def _publish_measurement(self, m: Measurement) -> None:
         self.pub_meas.publish(conv.measurement_to_odometry(m))
+        self._measured_since_end = True
+
+    def _idle_check(self) -> None:
+        """End the open track when the images stopped ``idle_end_track_s`` ago (timer)."""
+        if not self._measured_since_end:
+            return
+        idle = time.monotonic() - self._last_image
+        if idle < self.settings.idle_end_track_s:
+            return
+        with self._wake:
+            if self._queue or self._busy:
+                return
+        with self._lock:
+            end = Odometry()
+            end.child_frame_id = topics.TRACK_END_FRAME
+            self.pub_meas.publish(end)
+            self.front.request_track_boundary()
+            self._measured_since_end = False
+            self.counts['idle_track_ends'] += 1
+        self.get_logger().info(f'no image for {idle:.1f} s: track ended (end-of-input message '
+                               f'on {self.settings.measurements_topic}); the next keyframe '
+                               'starts a new track')
 
     # ------------------------------------------------------------------ callbacks
     def _on_info(self, msg: CameraInfo, side: str) -> None:
@@ -225,10 +308,30 @@ class VoNode(Node):
             f'baseline {cal.baseline_m:.3f} m, '
             f'{"rectifying" if cal.needs_rectification else "already rectified"}')
 
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        with self._lock:
+            self.tf_static.add_message(msg)
+
+    def _resolve_extrinsic(self, pair: ImagePair) -> None:
+        """The camera's extrinsic at the first pair (``/tf_static``, parameters, identity)."""
+        cfg = self.extrinsic_config
+        camera = cfg.camera_frame or str(pair.left.header.frame_id)
+        ext = cfg.resolve(self.tf_static.lookup(cfg.base_frame, camera), camera)
+        self.front.set_extrinsic(ext)
+        if ext.warning:
+            self.get_logger().warning(ext.warning)
+        else:
+            self.get_logger().info(f'camera {camera!r} in {cfg.base_frame!r} from {ext.source}')
+
     def _on_image(self, msg: Image | CompressedImage, side: str) -> None:
+        self._last_image = time.monotonic()
+        stamp = conv.stamp_to_ns(msg.header.stamp)
+        self.streams[f'{side}_image'].add(stamp)
+        self.streams['pairs'].announce(stamp)
         pair = self.front.pair_image(side, msg)  # cheap: no decoding
         if pair is None:
             return
+        self.streams['pairs'].completed(pair.stamp_ns)
         dropped = None
         with self._wake:
             if len(self._queue) >= max(1, self.settings.pair_queue):
@@ -270,6 +373,8 @@ class VoNode(Node):
     def process(self, pair: ImagePair) -> None:
         """Run the front end on one pair and publish what it gives (worker thread)."""
         with self._lock:
+            if self.front.extrinsic is None:
+                self._resolve_extrinsic(pair)
             frame = self.front.process_pair(pair)
             self.counts['processed'] += 1
             self._publish_frame(frame)
@@ -282,19 +387,42 @@ class VoNode(Node):
             'pairs_dropped_queue_full': self.counts['queue_dropped'],
             'queue_length': len(self._queue), 'measurements': st.measurements,
             'cross_connections': self.counts['cross'], 'keyframes': st.keyframes,
-            'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected}
+            'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected,
+            'tracks_ended_idle': self.counts['idle_track_ends']}
         for key, n in st.reasons.items():
             values['no_measurement/' + key] = n
+        if time.monotonic() - self._last_image > 1.0:   # input idle: settle every frame
+            self.streams['pairs'].flush()
+        for name, mon in self.streams.items():
+            values.update(mon.report().values(f'{name}/'))
+        ext = self.front.extrinsic
+        values['camera_extrinsic'] = ext.source if ext is not None else 'not resolved yet'
         return values
+
+    def health(self) -> tuple[int, str]:
+        """Diagnostic level (0 OK, 1 WARN) and message: queue drops, streams losing more than
+        ``loss_warn_fraction``, an unknown camera extrinsic."""
+        problems = []
+        dropped = self.counts['queue_dropped']
+        if dropped:
+            problems.append(f'{dropped} pairs dropped (queue full)')
+        for name, mon in self.streams.items():
+            r = mon.report()
+            if r.loss_fraction > self.settings.loss_warn_fraction:
+                problems.append(f'{name}: {r.lost} of {r.expected} lost '
+                                f'({100 * r.loss_fraction:.1f} %)')
+        ext = self.front.extrinsic
+        if ext is not None and ext.warning:
+            problems.append('camera extrinsic unknown (identity used)')
+        return (1, '; '.join(problems)) if problems else (0, 'ok')
 
     def publish_diagnostics(self) -> None:
         """Publish the counts on ``diagnostics_topic``."""
         values = self.diagnostic_values()
-        dropped = self.counts['queue_dropped']
+        level, message = self.health()
         self.pub_diag.publish(conv.diagnostics_msg(
-            f'{self.get_name()}: stereo VO', self.settings.camera_frame, values,
-            self.get_clock().now().nanoseconds, level=1 if dropped else 0,
-            message=f'{dropped} pairs dropped (queue full)' if dropped else 'ok'))
+            f'{self.get_name()}: stereo VO', self.extrinsic_config.base_frame, values,
+            self.get_clock().now().nanoseconds, level=level, message=message))
 
     def destroy_node(self) -> None:
         """Stop the worker thread, then destroy the node."""
@@ -331,8 +459,17 @@ class VoNode(Node):
                 f'spread {a.spread:.2f}, s2 {a.sigma0_sq:.2f}: '
                 f'{"accepted" if a.accepted else "rejected: " + a.reason}')
         cov = res.cov if res.cov is not None else np.eye(6) * 1e-9
-        self.pub_odom.publish(conv.odometry_msg(res.T_world_cam, cov, self.settings.odom_frame,
-                                                self.settings.camera_frame, frame.stamp_ns))
+        ext = self.front.extrinsic
+        if ext is not None and not ext.is_identity:
+            Ad = se3.adjoint(ext.T_base_cam)
+            cov = Ad @ cov @ Ad.T
+        T_odom_base = self.front.base_pose(res.T_world_cam)
+        s, base = self.settings, self.extrinsic_config.base_frame
+        self.pub_odom.publish(conv.odometry_msg(T_odom_base, cov, s.odom_frame, base,
+                                                frame.stamp_ns))
+        if self.pub_tf is not None:
+            self.pub_tf.publish(TFMessage(transforms=[
+                conv.transform_msg(s.odom_frame, base, T_odom_base, frame.stamp_ns)]))
         if self.pub_debug is not None and frame.left is not None:
             self._publish_debug(frame)
 
@@ -344,7 +481,9 @@ class VoNode(Node):
         img = rect.copy()
         cv2.putText(img, f'{res.status} kf {res.keyframe_id} trk {res.track_id} '
                     f'inl {res.n_inliers}', (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 255, 1)
-        self.pub_debug.publish(array_to_image(img, res.stamp_ns, self.settings.camera_frame))
+        ext = self.front.extrinsic
+        camera = ext.camera_frame if ext is not None and ext.camera_frame else 'camera'
+        self.pub_debug.publish(array_to_image(img, res.stamp_ns, camera))
 
     def _on_path(self, msg: Path) -> None:
         if self.front.matcher is None or not msg.poses:
@@ -363,9 +502,16 @@ class VoNode(Node):
             self.front.request_track_boundary()
 
 
+def declared_parameters() -> list[str]:
+    """Every parameter ``vo_node`` declares (built from its config dataclasses, no rclpy)."""
+    return (parameter_names(VoNodeSettings) + parameter_names(VoConfig)
+            + parameter_names(CrossTrackConfig, 'cross_') + parameter_names(ExtrinsicConfig))
+
+
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``vo_node`` (also ``python -m ga_ros.ros.vo_node``)."""
-    return run_node(VoNode, NODE_NAME, args)
+    return run_node(VoNode, NODE_NAME, args,
+                    usage=lambda: node_usage(NODE_NAME, __doc__, declared_parameters()))
 
 
 if __name__ == '__main__':

@@ -86,8 +86,7 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
     common = ['-r', f'__ns:={ns}', '-r', f'/clock:={ns}/clock']
     remap = [a for t in STEREO_TOPICS for a in ('-r', f'{t}:={ns}{t}')]
     frames = [f'{k}:={name}/{v}' for k, v in (('map_frame', 'map'), ('odom_frame', 'odom'),
-                                                ('base_frame', 'base_link'),
-                                                ('sensor_frame', 'sensor'))]
+                                                ('base_frame', 'base_link'))]
     return {
         'mapping': [py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
                     '--finish-after-idle', str(idle_s), '--timeout', str(timeout_s),

@@ -1,0 +1,163 @@
+"""The REP 105 ``map -> odom`` correction, its odometry chain and its fixed-period schedule.
+
+One definition for ``alignment_node`` and the replay (ROS-free):
+
+* **odometry chain**: the ``odom`` frame is the first standard input's odometry
+  (:meth:`ga_ros.pipeline.inputs.InputFrontEnd.map_to_odom`) or, without standard inputs, the
+  frame-to-frame integration of the consecutive measurements
+  (:class:`ga_ros.core.integration.F2FIntegrator`, ``odom`` = the first node's frame);
+* **correction**: ``T_map_odom = T_map_k inv(T_odom_k)`` at the newest node ``k`` of the
+  corrected path that the chain reached (:meth:`MapToOdom.update`, after every window update);
+* **schedule**: the transform is sent at a fixed period with the latest correction, as
+  slam_toolbox and robot_localization do (``transform_publish_period_sec``, default 0.05 s):
+  the node with a timer, the replay at the same period of the bag's time
+  (:class:`PeriodicSchedule`);
+* **one parent**: transforms of other publishers that would give ``odom`` a second parent
+  (:func:`foreign_odom_parents`) are detected (the node stops fighting unless told) and not
+  copied into a replay's output bag (:func:`without_odom_parent`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.integration import F2FIntegrator
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+from ga_ros.pipeline.inputs import InputFrontEnd
+
+#: Default period of the ``map -> odom`` transform (s), slam_toolbox's.
+TRANSFORM_PERIOD_S = 0.05
+
+
+class MapToOdom:
+    """The odometry chain and the latest ``T_map_odom`` (module docstring).
+
+    Parameters
+    ----------
+    front : the standard inputs (their first input is ``odom``); None: the measurements'
+        frame-to-frame integration is.
+    f2f : the integrator to use without standard inputs (default: a new one at the identity;
+        the replay passes the one of its F2F path).
+    """
+
+    def __init__(self, front: InputFrontEnd | None = None,
+                 f2f: F2FIntegrator | None = None) -> None:
+        self.front = front
+        self.f2f = f2f if f2f is not None else (F2FIntegrator() if front is None else None)
+        #: (4, 4) the latest correction (None before the first :meth:`update` that found one)
+        self.T_map_odom: FloatArray | None = None
+
+    def add(self, m: Measurement) -> None:
+        """An accepted measurement: extends the frame-to-frame chain (without standard inputs,
+        or when an integrator was given)."""
+        if self.f2f is not None:
+            self.f2f.add(m)
+
+    def update(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
+        """Recompute ``T_map_odom`` from a corrected path; returns it (the previous one if the
+        chain reached none of the nodes, None before any).
+
+        Parameters
+        ----------
+        node_ids : (n,) node ids of the corrected path, in path order (newest last).
+        T_map_node : (n, 4, 4) their corrected poses in ``map``.
+        """
+        if self.front is not None:
+            T = self.front.map_to_odom(node_ids, T_map_node)
+        elif self.f2f is not None:
+            T = self.f2f.map_to_odom(node_ids, T_map_node)
+        else:
+            T = None
+        if T is not None:
+            self.T_map_odom = np.asarray(T, float)
+        return self.T_map_odom
+
+    def latest(self) -> tuple[FloatArray, int] | None:
+        """``(T_odom_base, stamp_ns)`` of the newest odometry pose (None before any)."""
+        if self.front is not None:
+            T = self.front.latest_pose()
+            return None if T is None else (T, int(self.front.latest_stamp_ns))
+        return self.f2f.newest() if self.f2f is not None else None
+
+
+class PeriodicSchedule:
+    """Times at which a transform is due, every ``period_s`` of a clock (ns).
+
+    Parameters
+    ----------
+    period_s : the period (s, > 0).
+    max_burst : at most this many times from one :meth:`due` call (a jump of the clock sends
+        only the newest ones).
+    """
+
+    def __init__(self, period_s: float = TRANSFORM_PERIOD_S, max_burst: int = 10000) -> None:
+        if not period_s > 0:
+            raise InputError(f'transform period must be > 0 s, got {period_s}')
+        self.period_ns = int(round(period_s * 1e9))
+        self.max_burst = int(max_burst)
+        self._next: int | None = None
+
+    def due(self, now_ns: int) -> list[int]:
+        """The due times up to ``now_ns`` since the last call (the first call: ``now_ns``)."""
+        now_ns = int(now_ns)
+        if self._next is None:
+            self._next = now_ns
+        if now_ns < self._next:
+            return []
+        n = (now_ns - self._next) // self.period_ns + 1
+        first = self._next + max(0, n - self.max_burst) * self.period_ns
+        times = list(range(first, now_ns + 1, self.period_ns))
+        self._next = times[-1] + self.period_ns
+        return times
+
+
+def foreign_odom_parents(msg: Any, odom_frame: str, own: dict[int, FloatArray],
+                         map_frame: str = '', atol: float = 1e-6) -> list[str]:
+    """Parents given to ``odom_frame`` by transforms of a ``tf2_msgs/TFMessage`` that are not
+    ours (rclpy or rosbags message, read by field name).
+
+    Parameters
+    ----------
+    msg : the TF message heard.
+    odom_frame : our child frame (``odom``).
+    own : ``{stamp_ns: T_map_odom}`` of the transforms we sent recently; a transform from
+        ``map_frame`` with one of these stamps and the same value is ours.
+    map_frame : our parent frame.
+    atol : tolerance of the comparison with ours (m, and rotation-matrix entries).
+
+    Returns
+    -------
+    list[str]
+        The parent frame of every foreign transform to ``odom_frame`` (empty: none).
+    """
+    out = []
+    for t in getattr(msg, 'transforms', ()):
+        if t.child_frame_id.lstrip('/') != odom_frame.lstrip('/'):
+            continue
+        parent = t.header.frame_id.lstrip('/')
+        stamp = int(t.header.stamp.sec) * 10**9 + int(t.header.stamp.nanosec)
+        mine = own.get(stamp)
+        if mine is not None and parent == map_frame.lstrip('/'):
+            tr, q = t.transform.translation, t.transform.rotation
+            T = se3.from_pos_quat(np.array([tr.x, tr.y, tr.z], float),
+                                  np.array([q.x, q.y, q.z, q.w], float))
+            if np.allclose(T, mine, atol=atol):
+                continue
+        out.append(parent)
+    return out
+
+
+def without_odom_parent(msg: Any, odom_frame: str) -> tuple[Any, int]:
+    """A ``tf2_msgs/TFMessage`` (a dataclass message, e.g. rosbags') without the transforms
+    whose child is ``odom_frame``; returns ``(message, how many were removed)`` (the same
+    message when none was)."""
+    keep = [t for t in msg.transforms
+            if t.child_frame_id.lstrip('/') != odom_frame.lstrip('/')]
+    removed = len(msg.transforms) - len(keep)
+    return (msg, 0) if removed == 0 else (replace(msg, transforms=keep), removed)
