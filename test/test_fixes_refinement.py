@@ -191,3 +191,35 @@ def test_fixes_added_to_a_leaving_track_after_the_snapshot_are_not_lost(rng) -> 
     # the window's newest track is the batch solution only if no frozen fix was dropped
     p_hat = al.corrected_path().T_world_node[:, :3, 3]
     assert np.abs(p_hat[-per:] - p_ref[-per:]).max() < 2e-3
+
+
+def test_freeze_computed_ahead_with_fixes_is_used_and_exact(rng) -> None:
+    """The freeze computed ahead in the background stays valid when a fix arrives on another
+    track (each fix here ends the track that gets it), and gives the freeze computed at the
+    track end exactly; a fix on the leaving track itself invalidates it."""
+    n_tracks, per = 8, 6
+    ms, _, p_true = _line_survey(rng, n_tracks, per)
+    fixes = _fixes(rng, p_true, range(2, n_tracks * per, 4))
+    paths, used = [], []
+    for ahead in (True, False):
+        al = _aligner(1, freeze_ahead=ahead)
+        _run(al, ms, fixes)
+        paths.append(al.corrected_path().T_world_node)
+        used.append(al.ahead.n_ahead[0])
+        al.close()
+    assert used[0] >= n_tracks - 3 and used[1] == 0
+    np.testing.assert_allclose(paths[0], paths[1], atol=1e-9)
+    # a fix added to the leaving track after the plan started: the plan is not used
+    al = _aligner(0, freeze_ahead=True)
+    for m in ms[:3 * per - 1]:
+        al.add_measurement(m)
+    al.finish_track()  # tracks 0-2 finished, window of 2: track 1 leaves at the next update
+    node = per + 1  # a node of track 1
+    T = se3.from_translation_rotvec(p_true[node], np.zeros(3))
+    al.add_fix(FixTerm(node, se3.identity(), AbsoluteFix.from_covariance(
+        ms[node - 1].stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+    before = list(al.ahead.n_ahead)
+    for m in ms[3 * per - 1:4 * per - 1]:
+        al.add_measurement(m)
+    al.finish_track()
+    assert al.ahead.n_ahead[1] == before[1] + 1

@@ -39,7 +39,7 @@ class AheadFreeze:
                  n_nodes: int, n_conns: int) -> None:
         self.track, self.res, self.window, self.priors = track, res, window, priors
         self.n_nodes, self.n_conns = n_nodes, n_conns
-        self.fixes: tuple[int, np.ndarray] = (0, np.zeros(0, np.int8))  # the fix book's state
+        self.fixes = np.zeros(0, np.int64)  # the used fixes of the track's nodes
         self.plan: FreezePlan | None = None
         self.cpu_ms = 0.0  # CPU time of the worker thread
         self.thread: threading.Thread | None = None
@@ -87,7 +87,7 @@ class FreezeAhead:
         if st.frozen[rows[0]]:
             return
         job = AheadFreeze(track, res, st.last_window, list(st.priors), len(st.ids), st.src.n)
-        job.fixes = (len(st.fixes), st.fixes.status.copy())
+        job.fixes = st.fixes.used(np.asarray(rows, np.int64))
         global _BLAS_LIMIT
         if _BLAS_LIMIT is None:  # from now on (set here, outside any blas_threads() context)
             _BLAS_LIMIT = limit_blas_threads()
@@ -123,12 +123,12 @@ class FreezeAhead:
         job.wait()
         plan = job.plan
         st = self.state
-        valid = (plan is not None and len(st.fixes) == job.fixes[0]  # no fix added since
-                 and np.array_equal(st.fixes.status, job.fixes[1])  # nor excluded/re-admitted
-                 and job.track == track and job.res is st.last_result
+        valid = (plan is not None and job.track == track and job.res is st.last_result
                  and st.last_pending is None and job.window is st.last_window
                  and len(job.priors) == len(st.priors)
                  and all(a[0] is b[0] for a, b in zip(job.priors, st.priors)))
+        if valid:  # the track's fixes as the plan read them (none added, excluded, re-admitted)
+            valid = np.array_equal(st.fixes.used(plan.nodes), job.fixes)
         if valid:
             nc = job.n_conns
             mine = np.zeros(len(st.ids), dtype=bool)
