@@ -92,3 +92,9 @@ class ForeignFileError(InputError):
 class CorruptFileError(FormatError):
     """A ga_ros file (state snapshot, journal) fails its checksum or is cut short; whatever is
     intact is kept and the file is moved aside, never deleted."""
+
+
+class PersistenceError(GaError):
+    """The state file or its journal cannot be used or written (a full disk, a read-only
+    directory, a path under a regular file). The node then runs without persistence, unless
+    told to refuse to start (parameter ``state_required``): fix the path or free space."""

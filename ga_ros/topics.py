@@ -14,6 +14,18 @@ MEASUREMENTS = 'ga/measurements'
 #: ``nav_msgs/Odometry`` with this child frame (other fields ignored) ends the open track after
 #: every measurement published before it (``ga-ros play`` sends one at the end of a bag).
 TRACK_END_FRAME = 'ga/track_end'
+#: Suffix of the input-done topic of a measurements topic (``std_msgs/Empty``, volatile): the
+#: alignment node publishes one after it has processed an end-of-input message, so that a
+#: publisher (``ga-ros play``) keeps its history until the input was processed, not only
+#: received (a node killed with measurements still queued gets them again after a restart).
+INPUT_DONE_SUFFIX = '_done'
+
+
+def input_done_topic(measurements_topic: str) -> str:
+    """The input-done topic of a measurements topic (``ga/measurements_done``)."""
+    return measurements_topic + INPUT_DONE_SUFFIX
+
+
 #: Corrected path (``nav_msgs/Path``, transient local), every node in the map frame.
 CORRECTED_PATH = 'ga/corrected_path'
 #: Newest adjusted node (``geometry_msgs/PoseWithCovarianceStamped``).

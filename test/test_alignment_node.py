@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from dataclasses import fields, replace
 
 import numpy as np
@@ -190,6 +191,7 @@ def node_in_process(tmp_path):
     node = AlignmentNode(context=ctx, parameter_overrides=[
         Parameter('state_file', value=str(tmp_path / 'state.npz')),
         Parameter('window_tracks', value=2), Parameter('allow_reset', value=True),
+        Parameter('allow_finish_track', value=True), Parameter('allow_load_state', value=True),
         Parameter('diagnostics_period_sec', value=0.0)])
     try:
         yield node
@@ -316,6 +318,7 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 2) + 5
     state = tmp_path / 'state.npz'
     params = [Parameter('state_file', value=str(state)), Parameter('window_tracks', value=2),
+              Parameter('allow_finish_track', value=True),
               Parameter('diagnostics_period_sec', value=0.0)]
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id(11))
@@ -416,7 +419,8 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
     cut = next(k for k, m in enumerate(ms) if m.dst_track == 1) + 12   # inside track 1
     bad = bad_messages(ms, cut)
     state = tmp_path / 'state.npz'
-    params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1}
+    params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1,
+              'allow_finish_track': True}
     log = tmp_path / 'node.log'
     proc = start_node_process(dom, params, log_path=log)
     client = None
@@ -505,3 +509,38 @@ def test_map_to_odom_from_measurements_without_standard_inputs(node_in_process, 
     got_t = [tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z]
     np.testing.assert_allclose(got_t, want[:3, 3], atol=1e-9)
     assert np.linalg.norm(want[:3, 3]) > 1e-6   # a real correction, not the identity
+
+
+def test_defaults_protect_data_and_name_a_volatile_publisher(tmp_path):
+    """Defaults: transient-local measurements, the data-destroying services refused; a volatile
+    publisher (which a transient-local subscription cannot match) is named in an error, and the
+    diagnostics say ERROR."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from ga_ros.ros.qos import measurement_qos
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(9))
+    node = AlignmentNode(context=ctx)
+    pub_node = rclpy.create_node('volatile_pub', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        assert node.settings.measurement_durability == 'transient_local'
+        for srv in (node._srv_finish_track, node._srv_load, node._srv_reset):
+            resp = srv(Trigger.Request(), Trigger.Response())
+            assert not resp.success and 'allow_' in resp.message
+        pub_node.create_publisher(Odometry, '/ga/measurements', measurement_qos())  # volatile
+        end = time.monotonic() + 20
+        while node.incompatible_publishers == 0 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        assert node.incompatible_publishers >= 1
+        diags = []
+        node.pub_diag.publish = diags.append
+        node._publish_diagnostics()
+        assert diags[-1].status[0].level in (b'\x02', 2)
+    finally:
+        ex.shutdown()
+        pub_node.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

@@ -11,7 +11,7 @@ import pytest
 
 from ga_ros.core.frames import node_frame, parse_node_frame
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import FormatError, InputError
+from ga_ros.errors import ForeignFileError, FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.bag import (
     CAMERA_INFO,
@@ -25,11 +25,11 @@ from ga_ros.io.bag import (
     measurement_to_odometry,
     odometry_to_measurement,
     plan_topics,
-    read_ground_truth,
     trajectory_to_path_msg,
     typestore,
 )
 from ga_ros.io.bag_writer import BagWriter, network_markers
+from ga_ros.io.groundtruth import read_ground_truth_topic
 
 STORAGES = ['mcap', 'sqlite3']
 
@@ -153,8 +153,8 @@ def test_ground_truth_round_trip(tmp_path: Path, rng: np.random.Generator) -> No
                     np.arange(n, dtype=np.int64) // 4)
     write_bag(tmp_path / 'b', random_measurements(rng, 3), gt=gt)
     with BagReader(tmp_path / 'b') as bag:
-        got = read_ground_truth(bag, '/ga/ground_truth')
-        assert read_ground_truth(bag, '/nothing') is None
+        got = read_ground_truth_topic(bag, '/ga/ground_truth').trajectory
+        assert read_ground_truth_topic(bag, '/nothing') is None
     np.testing.assert_array_equal(got.node_ids, gt.node_ids)
     np.testing.assert_array_equal(got.track_ids, gt.track_ids)
     np.testing.assert_array_equal(got.stamps_ns, gt.stamps_ns)
@@ -194,7 +194,7 @@ def test_output_bag_reads_with_mcap_library(tmp_path: Path, rng: np.random.Gener
 def test_writer_refuses_to_overwrite_non_bag(tmp_path: Path) -> None:
     (tmp_path / 'x').mkdir()
     (tmp_path / 'x' / 'notes.txt').write_text('keep me')
-    with pytest.raises(FormatError, match='will not overwrite'):
+    with pytest.raises(ForeignFileError, match='left untouched'):
         BagWriter(tmp_path / 'x', overwrite=True).open()
     assert (tmp_path / 'x' / 'notes.txt').read_text() == 'keep me'
 
@@ -233,9 +233,10 @@ def test_plan_errors_name_the_problem(tmp_path: Path, rng: np.random.Generator) 
         plan_topics(info, TopicConfig(measurements='/nope', source='measurements'))
     with pytest.raises(FormatError, match='neither a measurements topic'):
         plan_topics(info, TopicConfig(measurements='/nope'))
-    with pytest.raises(FormatError, match='has type nav_msgs/msg/Odometry'):
-        plan_topics(info, TopicConfig(ground_truth='/ga/measurements'))
     info = bag_info(_stereo_topics_bag(tmp_path / 's', with_info=False))
+    with pytest.raises(FormatError, match='has type sensor_msgs/msg/CompressedImage; expected '
+                       'one of geometry_msgs/msg/PoseStamped'):
+        plan_topics(info, TopicConfig(ground_truth='/cam/left/image_raw/compressed'))
     with pytest.raises(FormatError, match='no CameraInfo'):
         plan_topics(info)
 

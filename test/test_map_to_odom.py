@@ -133,7 +133,8 @@ def test_alignment_node_stops_publishing_when_another_node_owns_odom():
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 67) % 150)
-    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0, 'transform_publish_period_sec': 0.0}
+    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0, 'transform_publish_period_sec': 0.0,
+              'allow_finish_track': True}  # the test ends the track by the service
     node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
                                                            for k, v in params.items()])
     sent, diags = [], []

@@ -128,7 +128,7 @@ def test_mapping_node_on_one_host(tmp_path: Path) -> None:
         want.add_measurement(m)
     want.finish_track()
     env = {**os.environ, 'ROS_DOMAIN_ID': str(domain), 'PYTHONUNBUFFERED': '1'}
-    node = harness.start_node_process(domain, {'autosave': False},
+    node = harness.start_node_process(domain, {'autosave': False, 'allow_finish_track': True},
                                       log_path=tmp_path / 'node.log')
     armed = tmp_path / 'player_done'
     mapper = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.mapping_node', '--out',

@@ -60,7 +60,7 @@ def ctx():
 
 
 def _node(cls, ctx, **extra):
-    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0,
+    params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0, 'allow_finish_track': True,
               'transform_publish_period_sec': 0.0, **extra}
     return cls(context=ctx, parameter_overrides=[Parameter(k, value=v)
                                                  for k, v in params.items()])
@@ -179,7 +179,8 @@ def test_two_namespaced_nodes_do_not_hear_each_other(tmp_path):
         sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=5)
         noisy = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), rng)
         surveys[ns] = list(sc.measurements(noisy.z, noisy.cov))
-    procs = [start_node_process(dom, {'diagnostics_period_sec': 0.2, 'publish_markers': False},
+    procs = [start_node_process(dom, {'diagnostics_period_sec': 0.2, 'publish_markers': False,
+                                      'allow_finish_track': True},
                                 log_path=tmp_path / f'{ns}.log', ros_args=['-r', f'__ns:=/{ns}'])
              for ns in surveys]
     clients = []

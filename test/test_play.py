@@ -173,3 +173,19 @@ def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> 
     got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
                     for p in first_update().poses])
     np.testing.assert_allclose(got, np.asarray(want.T_world_node)[:, :3, 3], atol=1e-6)
+
+
+def test_play_says_what_was_not_delivered(tmp_path: Path, sample: object) -> None:
+    """Nobody subscribes: the history is kept for the delivery timeout, then play exits with
+    code 3 naming the measurement topic (a node that never got the data is not a success)."""
+    from ga_ros.ros.play import EXIT_NOT_DELIVERED
+
+    bag = write_measurement_bag(tmp_path / 'b', sample.measurements[:10], None)
+    t0 = time.monotonic()
+    res = subprocess.run([sys.executable, '-m', 'ga_ros.ros.play', str(bag), '--rate', '0',
+                          '--wait-for-subscribers', '0', '--delivery-timeout', '2'],
+                         env={**_env(), 'ROS_DOMAIN_ID': str((DOMAIN + 77) % 190 + 40)},
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == EXIT_NOT_DELIVERED, res.stderr
+    assert 'not delivered' in res.stderr and '/ga/measurements: no subscriber' in res.stderr
+    assert time.monotonic() - t0 >= 2.0

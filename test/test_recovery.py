@@ -135,9 +135,13 @@ def test_corrupt_snapshot_is_moved_aside_and_the_journal_replayed(tmp_path, ms):
 def test_a_foreign_state_file_is_refused_and_untouched(tmp_path, ms):
     state = tmp_path / 'notes.txt'
     state.write_text('not a state\n')
-    MeasurementJournal(journal_path(state)).append(ms[0])
     with pytest.raises(ForeignFileError):
         recover(state, CFG)
+    assert state.read_text() == 'not a state\n'
+    # beside a journal with intact records: rebuilt from the journal, the file left untouched
+    MeasurementJournal(journal_path(state)).append(ms[0])
+    res = recover(state, CFG)
+    assert res.snapshot_refused and res.source == 'journal' and res.records_replayed == 1
     assert state.read_text() == 'not a state\n'
     with pytest.raises(ForeignFileError):
         save_state(TrackWindowAligner(CFG), state)

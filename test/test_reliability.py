@@ -59,10 +59,11 @@ class InProcess:
         rclpy.init(context=self.ctx, domain_id=domain_id(offset))
         self.nodes: list = []
         self.params = [Parameter('window_tracks', value=2),
+                       Parameter('allow_finish_track', value=True),
                        Parameter('diagnostics_period_sec', value=0.0), *params]
         self.client = rclpy.create_node('reliab_pub', context=self.ctx)
         self.pub = self.client.create_publisher(Odometry, '/' + topics.MEASUREMENTS,
-                                                measurement_qos())
+                                                measurement_qos(transient_local=True))
 
     def node(self) -> AlignmentNode:
         node = AlignmentNode(context=self.ctx, parameter_overrides=self.params)

@@ -205,20 +205,37 @@ def test_corrupt_bag_mid_stream_flushes_partial_outputs(tmp_path: Path, sample: 
     assert (tmp_path / 'out' / 'trajectory_ga.tum').exists()
 
 
-def test_truncated_bag_replays_what_is_there(tmp_path: Path) -> None:
+def _raw(bag: Path, topic: str) -> list[bytes]:
+    with BagReader(bag) as b:
+        return [m.data for m in b.messages([topic], raw=True)]
+
+
+@pytest.mark.parametrize('keep_metadata', [False, True])
+def test_truncated_bag_replays_what_is_there(tmp_path: Path, capsys, keep_metadata: bool) -> None:
+    """A bag cut at 60 % of its bytes (with or without its metadata.yaml): the replay uses the
+    messages before the cut (also those of the chunk the cut goes through), warns, exits 0."""
     s = aerial_sample(n_tracks=4, positions_per_swath=40, seed=2)
     bag = write_measurement_bag(tmp_path / 'in', s.measurements, s.ground_truth)
     data = (bag / 'in.mcap').read_bytes()
-    (tmp_path / 'cut').mkdir()
-    (tmp_path / 'cut' / 'cut.mcap').write_bytes(data[:len(data) * 2 // 3])
-    with pytest.raises(FormatError, match='truncated or corrupt after'):
-        replay(tmp_path / 'cut', tmp_path / 'out', ReplayConfig(plot=False),
-               aligner_factory=DeadReckoning)
-    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
-    assert 'truncated' in summary['error']
-    assert 0 < summary['n_measurements'] < len(s.measurements)
-    counts = mcap_counts(tmp_path / 'out' / 'replay_bag')
-    assert counts['/ga/measurements'] == summary['n_measurements']
+    cut = tmp_path / 'cut'
+    cut.mkdir()
+    name = 'in.mcap' if keep_metadata else 'cut.mcap'
+    (cut / name).write_bytes(data[:len(data) * 6 // 10])
+    if keep_metadata:
+        (cut / 'metadata.yaml').write_bytes((bag / 'metadata.yaml').read_bytes())
+    out = tmp_path / 'out'
+    assert cli_main(['replay', str(cut), '--out', str(out), '--no-plot', '--aligner',
+                     'batch']) == 0
+    err = capsys.readouterr().err
+    assert 'warning:' in err and 'truncated' in err and 'Traceback' not in err
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['error'] is None and 'truncated' in summary['warnings'][0]
+    original = _raw(bag, '/ga/measurements')
+    used = _raw(out / 'replay_bag', '/ga/measurements')
+    # every message up to the cut (most of the first 60 % of the bytes), in order, unchanged
+    assert summary['n_inputs'] == summary['n_measurements'] == len(used)
+    assert 0.5 * len(original) < len(used) < len(original)
+    assert used == original[:len(used)]
 
 
 def test_bad_inputs_change_nothing(tmp_path: Path, measurement_bag: Path, capsys) -> None:
@@ -305,9 +322,12 @@ def test_cli_replay_demo_and_exit_codes(tmp_path: Path, sample: object, capsys) 
     assert json.loads(capsys.readouterr().out)['n_measurements'] == len(sample.measurements)
     data = (bags / MEASUREMENTS_BAG / f'{MEASUREMENTS_BAG}.mcap').read_bytes()
     (tmp_path / 'cut.mcap').write_bytes(data[:len(data) - 200])
-    assert cli_main(['replay', str(tmp_path / 'cut.mcap'), '--out', str(tmp_path / 'c')]) == 1
-    assert 'truncated' in capsys.readouterr().err
-    assert json.loads((tmp_path / 'c' / 'summary.json').read_text())['n_measurements'] > 0
+    # cut in its summary section: every message is there; a warning says the file is damaged
+    assert cli_main(['replay', str(tmp_path / 'cut.mcap'), '--out', str(tmp_path / 'c')]) == 0
+    assert 'warning:' in capsys.readouterr().err
+    summary = json.loads((tmp_path / 'c' / 'summary.json').read_text())
+    assert 'truncated' in summary['warnings'][0]
+    assert summary['n_measurements'] == len(sample.measurements)
 
 
 def test_batch_aligner_equals_one_batch_solve(tmp_path: Path, sample: object) -> None:

@@ -261,7 +261,7 @@ def test_euroc_and_tum_ground_truth_files(tmp_path: Path) -> None:
     (tmp_path / 'data.csv').write_text('\n'.join(lines) + '\n')
     write_tum(tmp_path / 'gt.tum', stamps, gt)
     for name in ('data.csv', 'gt.tum'):
-        traj = read_ground_truth_file(tmp_path / name)
+        traj = read_ground_truth_file(tmp_path / name).trajectory
         assert np.array_equal(traj.stamps_ns, stamps)
         assert np.allclose(traj.T_world_node, gt, atol=1e-9)
     (tmp_path / 'bad.csv').write_text('1403636579758555392,1,2,3,2,0,0,0\n')

@@ -70,7 +70,8 @@ def test_alignment_node_equals_replay(tmp_path: Path, context) -> None:
     r = replay(tmp_path / 'in', tmp_path / 'out',
                ReplayConfig(anchor_to_ground_truth=False, plot=False))
     node = AlignmentNode(context=context, parameter_overrides=[
-        Parameter('diagnostics_period_sec', value=0.0)])
+        Parameter('diagnostics_period_sec', value=0.0),
+        Parameter('allow_finish_track', value=True)])
     try:
         for _, msg in live_messages(tmp_path / 'in'):
             node._on_measurement(msg)

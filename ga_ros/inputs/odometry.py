@@ -156,10 +156,12 @@ class OdometryInputConfig:
         InputError
             An unknown key (a typo would otherwise be ignored) or an invalid value.
         """
-        known = {f.name for f in fields(cls)} - {'name'}
-        unknown = sorted(set(values) - known)
+        known = {f.name: f.default for f in fields(cls) if f.name != 'name'}
+        unknown = sorted(set(values) - set(known))
         if unknown:
             raise InputError(f'{name}: unknown input settings {unknown}; known: {sorted(known)}')
+        for key, value in values.items():
+            _check_setting(f'{name}.{key}', value, known[key])
         return cls(name=str(name), **dict(values))
 
     def track_rules(self) -> TrackRules:
@@ -218,6 +220,9 @@ class InputStats:
     measurements : consecutive measurements emitted.
     constraints : cross measurements made from external constraints.
     default_covariances : measurements or constraints whose covariance was the default.
+    missing_covariances : those of them whose stream had no covariance at all (no usable twist
+        or pose covariance); the others had one that could not be used (e.g. a pose covariance
+        that does not grow from the keyframe, so their difference is not positive definite).
     """
 
     samples: int
@@ -225,6 +230,25 @@ class InputStats:
     measurements: int
     constraints: int
     default_covariances: int
+    missing_covariances: int = 0
+
+
+def _check_setting(key: str, value: object, default: object) -> None:
+    """A setting of the type of its default: a finite number (an integer within int64 where the
+    default is one), a bool or a string; :class:`InputError` naming ``key`` otherwise."""
+    shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:40] + '...'
+    if isinstance(default, bool) or isinstance(default, str):
+        if not isinstance(value, type(default)):
+            raise InputError(f'{key} must be a {type(default).__name__}, got {shown}')
+        return
+    if isinstance(default, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer
+                                                     | np.floating):
+            raise InputError(f'{key} must be a number, got {shown}')
+        if isinstance(default, int) and not isinstance(value, int | np.integer):
+            raise InputError(f'{key} must be an integer, got {shown}')
+        if not (abs(value) < 2**63 and np.isfinite(float(value))):
+            raise InputError(f'{key} must be a finite number below 2^63 in size, got {shown}')
 
 
 def usable_covariance(cov: FloatArray | None) -> bool:
@@ -316,7 +340,7 @@ class OdometryInput:
         self._twist_cov = np.zeros((6, 6))
         self._twist_ok = True
         self._n = dict(samples=0, keyframes=0, measurements=0, constraints=0,
-                       default_covariances=0)
+                       default_covariances=0, missing_covariances=0)
 
     # ------------------------------------------------------------------ public
     @property
@@ -499,12 +523,16 @@ class OdometryInput:
                 return C, 'pose_independent' if src == 'pose_independent' else (
                     'pose_difference'), False
         self._n['default_covariances'] += 1
+        twist_usable = self._twist_ok and usable_covariance(self._twist_cov)
+        if not twist_usable and C_new is None:
+            self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T_rel)), 'default', True
 
     def _constraint_cov(self, T: FloatArray, cov: FloatArray | None) -> FloatArray:
         if usable_covariance(cov):
             return np.asarray(cov, float)
         self._n['default_covariances'] += 1
+        self._n['missing_covariances'] += 1
         return self.config.default_covariance(se3.to_translation_rotvec(T))
 
     def _kf_index(self, node_id: int) -> int:

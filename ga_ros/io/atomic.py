@@ -1,7 +1,10 @@
 """Safe file writing for the whole package: atomic replacement, no symlinks, no foreign files.
 
-Every file ga_ros writes (aligner snapshots, their sidecar, the measurement journal) goes through
-this module:
+Every file ga_ros writes goes through this module: aligner snapshots, their sidecar and the
+measurement journal, and every output of the commands and tools (JSON with
+:func:`write_json`, text, CSV and TUM with :func:`write_text`, PNG plots with
+:func:`save_figure`, bags with :func:`staging_directory` and :func:`commit_directory`, the logs
+of child processes with :func:`open_log`):
 
 * a new file is written to a temporary file created in the target's own directory as
   :func:`tempfile.mkstemp` does (``O_CREAT | O_EXCL | O_NOFOLLOW``, a random name, mode ``0600``
@@ -14,18 +17,26 @@ this module:
   says so) is refused too (:class:`~ga_ros.errors.ForeignFileError`): never overwritten, never
   deleted;
 * files kept open for appending are opened with ``O_NOFOLLOW``;
-* a damaged file is moved aside (``<name>.corrupt-<UTC timestamp>``), never deleted.
+* a damaged file is moved aside (``<name>.corrupt-<UTC timestamp>``), never deleted;
+* a directory output (a rosbag2 bag) is written under ``<name>.partial/`` and renamed to
+  ``<name>`` when complete, so a killed run leaves ``<name>.partial`` (replaced by the next
+  run), never a file that looks complete.
+
+The ``write_*`` helpers and :func:`save_figure` turn an ``OSError`` into a
+:class:`~ga_ros.errors.FormatError` naming the file, so a command exits with one line.
 """
 
 from __future__ import annotations
 
+import io
 import os
 import stat
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import IO, Any
 
-from ga_ros.errors import ForeignFileError, UnsafePathError
+from ga_ros.errors import ForeignFileError, FormatError, UnsafePathError
 
 Chunk = bytes | bytearray | memoryview
 _NOFOLLOW = getattr(os, 'O_NOFOLLOW', 0)
@@ -169,3 +180,124 @@ def move_aside(path: str | os.PathLike, tag: str = 'corrupt') -> Path:
         sync_directory(path.parent)
         return new
     raise FileExistsError(f'cannot find a free name to move {path} aside')
+
+
+# --------------------------------------------------------------------------- command outputs
+def check_destinations(*paths: str | os.PathLike) -> None:
+    """Refuse, before any work, output files that are symbolic links or not regular files.
+
+    Raises :class:`UnsafePathError` naming the first such path; missing paths are fine.
+    """
+    for p in paths:
+        check_regular(p)
+
+
+def write_bytes(path: str | os.PathLike, data: Chunk | Iterable[Chunk], mode: int = 0o644
+                ) -> Path:
+    """:func:`atomic_write` of an output file; an ``OSError`` becomes a :class:`FormatError`
+    naming ``path`` (a link or a non-regular file: :class:`UnsafePathError`)."""
+    try:
+        return atomic_write(path, data, mode=mode)
+    except OSError as exc:
+        raise FormatError(f'cannot write: {exc.strerror or exc}', str(path)) from None
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`write_bytes`)."""
+    return write_bytes(path, text.encode())
+
+
+def write_json(path: str | os.PathLike, data: Any, **dumps: Any) -> Path:
+    """Write ``json.dumps(data, **dumps)`` and a newline to ``path`` atomically."""
+    import json  # lazy, as tempfile above: start-up of the commands that never write JSON
+
+    return write_text(path, json.dumps(data, **dumps) + '\n')
+
+
+def save_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
+    """Render a matplotlib figure into memory (format from the suffix) and write it
+    atomically; the figure is not closed."""
+    path = Path(path)
+    check_regular(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=savefig.pop('format', path.suffix.lstrip('.') or 'png'), **savefig)
+    return write_bytes(path, buf.getbuffer())
+
+
+def open_log(path: str | os.PathLike, append: bool = False) -> IO[bytes]:
+    """A binary file for a child process's output (written as it runs, so not atomic):
+    created or truncated (``append``: appended to), never through a symbolic link."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
+    try:
+        return os.fdopen(open_nofollow(path, flags), 'ab' if append else 'wb')
+    except OSError as exc:
+        raise FormatError(f'cannot write: {exc.strerror or exc}', str(path)) from None
+
+
+# --------------------------------------------------------------------------- directory outputs
+PARTIAL_SUFFIX = '.partial'
+
+
+def staging_directory(final: str | os.PathLike, is_ours: Callable[[Path], bool]) -> Path:
+    """An empty directory ``<final>.partial`` to build the directory output ``final`` in.
+
+    ``final`` is checked first: a symbolic link is refused (:class:`UnsafePathError`), an
+    existing path that ``is_ours`` does not accept is refused (:class:`ForeignFileError`); both
+    are left untouched. A ``<final>.partial`` left by a killed run is removed (a link there is
+    refused). Call :func:`commit_directory` when the output is complete.
+    """
+    final = Path(final)
+    _check_replaceable_directory(final, is_ours)
+    staging = final.with_name(final.name + PARTIAL_SUFFIX)
+    _remove_tree(staging)
+    try:
+        staging.mkdir(parents=True)
+    except OSError as exc:
+        raise FormatError(f'cannot create: {exc.strerror or exc}', str(staging)) from None
+    return staging
+
+
+def commit_directory(staging: str | os.PathLike, final: str | os.PathLike,
+                     is_ours: Callable[[Path], bool]) -> Path:
+    """Rename the complete directory ``staging`` to ``final`` (replacing an older output that
+    ``is_ours`` accepts), and sync the parent directory. Returns ``final``."""
+    staging, final = Path(staging), Path(final)
+    _check_replaceable_directory(final, is_ours)
+    old = None
+    if os.path.lexists(final):
+        old = final.with_name(f'.{final.name}.old-{os.urandom(4).hex()}')
+        os.rename(final, old)
+    os.rename(staging, final)
+    sync_directory(final.parent)
+    if old is not None:
+        import shutil
+
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _check_replaceable_directory(path: Path, is_ours: Callable[[Path], bool]) -> None:
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if stat.S_ISLNK(st.st_mode):
+        raise UnsafePathError(f'{path} is a symbolic link: ga_ros never writes through links; '
+                              'remove it or choose another path')
+    if not stat.S_ISDIR(st.st_mode) or not is_ours(path):
+        raise ForeignFileError(f'{path} exists and is not an output ga_ros may replace: it is '
+                               'left untouched; choose another path or move it away')
+
+
+def _remove_tree(path: Path) -> None:
+    """Remove a leftover directory (never through a symbolic link)."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise UnsafePathError(f'{path} is in the way and is not a leftover directory of '
+                              'ga_ros; remove it or choose another path')
+    import shutil
+
+    shutil.rmtree(path)

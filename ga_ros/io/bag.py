@@ -15,7 +15,7 @@ Bag contents understood by the replay
   the topic holds the whole trajectory, one ``PoseStamped`` per node: ``pose`` = ``T_world_node``,
   ``header.stamp`` = the node's acquisition time and ``header.frame_id`` = the node frame
   ``'ga/<track>/<node>'`` (or any other frame id when the node ids are unknown; matching by stamp
-  then).
+  then). Other pose topics and TF pairs: :mod:`ga_ros.io.groundtruth`.
 """
 
 from __future__ import annotations
@@ -44,6 +44,11 @@ IMAGE = 'sensor_msgs/msg/Image'
 COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
 CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POSE_WITH_COVARIANCE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+#: Message types a ground-truth topic may have (:mod:`ga_ros.io.groundtruth` reads them).
+GROUND_TRUTH_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE, ODOMETRY, PATH)
+TF_TOPICS = ('/tf', '/tf_static')
 
 #: ``twist.twist.linear.x`` values of the two measurement kinds.
 KIND_FLAG = encoding.KIND_FLAG
@@ -307,22 +312,29 @@ class _McapStream:
 
         schemas: dict[int, str] = {}
         n = 0
+
+        def take(records: Iterable[Any]) -> Iterator[tuple[int, int, bytes]]:
+            nonlocal n
+            for rec in records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec.name
+                elif isinstance(rec, Channel):
+                    self.channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, '?'))
+                elif isinstance(rec, Message):
+                    topic = self.channels.get(rec.channel_id, ('?', '?'))[0]
+                    n += 1
+                    if wanted is None or topic in wanted:
+                        yield rec.channel_id, int(rec.log_time), bytes(rec.data)
+
         try:
             with open(self.path, 'rb') as f:
-                for rec in StreamReader(f, validate_crcs=True).records:
-                    if isinstance(rec, Schema):
-                        schemas[rec.id] = rec.name
-                    elif isinstance(rec, Channel):
-                        self.channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, '?'))
-                    elif isinstance(rec, Message):
-                        topic = self.channels.get(rec.channel_id, ('?', '?'))[0]
-                        n += 1
-                        if wanted is None or topic in wanted:
-                            yield rec.channel_id, int(rec.log_time), bytes(rec.data)
+                yield from take(StreamReader(f, validate_crcs=True).records)
         except Exception as exc:  # EndOfFile, CRC errors, bad records, zstd errors, ...
-            detail = f': {exc}' if str(exc) else ''
-            raise FormatError(f'bag is truncated or corrupt after {n} messages '
-                              f'({type(exc).__name__}{detail})', str(self.path)) from exc
+            detail = f'{type(exc).__name__}: {exc}' if str(exc) else type(exc).__name__
+            # the records of a chunk cut short, up to the cut (a chunk is read whole otherwise)
+            yield from take(_partial_chunk_records(self.path))
+            raise FormatError(f'bag is truncated or corrupt after {n} messages ({detail})',
+                              str(self.path)) from exc
 
     def info(self) -> BagInfo:
         topics = tuple(sorted((BagTopic(t, ty, self.counts.get(cid, 0))
@@ -347,6 +359,72 @@ class _McapStream:
 
     def close(self) -> None:
         pass
+
+
+#: mcap opcode of a Chunk record.
+_MCAP_CHUNK = 0x06
+
+
+def _partial_chunk_records(path: Path) -> Iterator[Any]:
+    """The complete records inside the chunk that an mcap file's end cuts (none if the file is
+    not cut inside a chunk, or its compression cannot be read in part).
+
+    Walks the top-level records (``opcode u8, length u64``) after the magic to the first one
+    that runs past the end of the file; if it is a Chunk (``start u64, end u64,
+    uncompressed_size u64, crc u32, compression string, records u64 + bytes``), its records
+    are decompressed as far as they go (zstd and lz4 frames decode a prefix; uncompressed is
+    the prefix) and parsed up to the last complete one.
+    """
+    import io
+    import struct
+
+    from mcap.stream_reader import StreamReader
+
+    size = path.stat().st_size
+    with open(path, 'rb') as f:
+        pos = 8  # magic
+        while True:
+            f.seek(pos)
+            head = f.read(9)
+            if len(head) < 9:
+                return
+            opcode, length = struct.unpack('<BQ', head)
+            if pos + 9 + length <= size:
+                pos += 9 + length
+                continue
+            if opcode != _MCAP_CHUNK:
+                return
+            body = f.read()
+            break
+    fixed = struct.calcsize('<QQQI')
+    if len(body) < fixed + 4:
+        return
+    (name_len,) = struct.unpack_from('<I', body, fixed)
+    at = fixed + 4 + name_len + 8
+    if len(body) < at:
+        return
+    compression = body[fixed + 4:fixed + 4 + name_len].decode('utf-8', 'replace')
+    part = body[at:]
+    try:
+        if compression == 'zstd':
+            import zstandard
+
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(part)
+        elif compression == 'lz4':
+            import lz4.frame
+
+            data = lz4.frame.LZ4FrameDecompressor().decompress(part)
+        elif compression == '':
+            data = part
+        else:
+            return
+    except Exception:  # noqa: BLE001 - a frame damaged at its start: nothing to recover
+        return
+    reader = StreamReader(io.BytesIO(data), skip_magic=True)
+    try:
+        yield from reader.records
+    except Exception:  # noqa: S110 - the cut ends the chunk's records
+        return
 
 
 class _Ros1Bag:
@@ -493,6 +571,51 @@ def _info_for(info: BagInfo, image_topic: str) -> str:
     return '' if tie else best
 
 
+def parse_tf_pair(spec: str) -> tuple[str, str] | None:
+    """``'tf:PARENT:CHILD'`` -> ``(PARENT, CHILD)``; None for a topic name."""
+    if not spec.startswith('tf:'):
+        return None
+    parts = spec[3:].split(':')
+    if len(parts) != 2 or not all(p.strip('/') for p in parts):
+        raise InputError(f'ground truth {spec!r}: a TF pair is tf:PARENT:CHILD, e.g. '
+                         'tf:map:base_link')
+    return parts[0].strip('/'), parts[1].strip('/')
+
+
+def plan_ground_truth(info: BagInfo, spec: str) -> tuple[str, str]:
+    """What a ground-truth option names in a bag: ``(spec, note)``; ``('', note)`` when the
+    bag does not have it.
+
+    Parameters
+    ----------
+    spec : a topic name or ``tf:PARENT:CHILD``.
+
+    Raises
+    ------
+    FormatError
+        A topic of a type that is not a pose (:data:`GROUND_TRUTH_TYPES`).
+    InputError
+        A malformed TF pair.
+    """
+    none = 'ground truth: none (no errors against ground truth will be reported)'
+    if not spec:
+        return '', none
+    pair = parse_tf_pair(spec)
+    if pair is not None:
+        tf = [t for t in TF_TOPICS if info.topic(t) is not None]
+        if not tf:
+            return '', f'ground truth: none (no /tf in the bag for {spec})'
+        return spec, f'ground truth: {pair[0]} -> {pair[1]} from {" + ".join(tf)}'
+    t = info.topic(spec)
+    if t is None:
+        return '', none
+    if t.msgtype not in GROUND_TRUTH_TYPES:
+        raise FormatError(f'ground truth topic {spec} has type {t.msgtype}; expected one of '
+                          + ', '.join(GROUND_TRUTH_TYPES) + ' (or tf:PARENT:CHILD for a TF pair)',
+                          str(info.path))
+    return spec, f'ground truth: {spec} ({t.msgtype})'
+
+
 def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan:
     """Decide which topics of a bag the replay uses.
 
@@ -517,13 +640,8 @@ def plan_topics(info: BagInfo, config: TopicConfig = TopicConfig()) -> TopicPlan
             raise FormatError(f'topic {topic} ({what}) has type {t.msgtype}, expected '
                               + ' or '.join(types), name)
 
-    gt = ''
-    if config.ground_truth and info.topic(config.ground_truth) is not None:
-        check(config.ground_truth, (PATH,), 'ground truth')
-        gt = config.ground_truth
-        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
-    else:
-        notes.append('ground truth: none (no errors against ground truth will be reported)')
+    gt, note = plan_ground_truth(info, config.ground_truth)
+    notes.append(note)
 
     has_meas = info.topic(config.measurements) is not None
     if src == 'measurements' or (src == 'auto' and has_meas):
@@ -681,35 +799,3 @@ def trajectory_to_path_msg(traj: Trajectory, frame_id: str | None = None,
         poses.append(PoseStamped(header=header(f, int(traj.stamps_ns[k])),
                                  pose=_pose_msg(p_all[k], q_all[k])))
     return types[PATH](header=header(frame, stamp_ns), poses=poses)
-
-
-def read_ground_truth(bag: BagReader, topic: str) -> Trajectory | None:
-    """The ground truth of an open bag: the last ``nav_msgs/Path`` on ``topic`` (None if absent,
-    or cut off in a truncated bag).
-
-    Raises
-    ------
-    FormatError
-        If the topic has another type or a pose is malformed.
-    """
-    assert bag.info is not None
-    t = bag.info.topic(topic)
-    if t is None or t.count == 0:
-        return None
-    if t.msgtype != PATH:
-        raise FormatError(f'ground truth topic {topic} has type {t.msgtype}, expected {PATH}',
-                          str(bag.path))
-    last = None
-    try:
-        for m in bag.messages([topic]):
-            last = m.msg
-    except FormatError:
-        if bag.truncated is None:
-            raise
-        # a bag cut short: use what was recorded (the main stream reports the cut)
-    if last is None:
-        return None
-    try:
-        return path_msg_to_trajectory(last)
-    except InputError as exc:
-        raise FormatError(f'ground truth on {topic}: {exc}', str(bag.path)) from exc

@@ -3,11 +3,16 @@
 :class:`BagWriter` wraps :class:`rosbags.rosbag2.Writer`: topics are registered on first use and
 the bag is always closed into a valid file (``metadata.yaml`` + one ``.mcap``), also when the
 caller fails half-way, so partial outputs stay readable (Foxglove, ``mcap``, rosbags).
+
+The bag is written as ``<path>.partial/<name>`` and renamed to ``<path>`` when closed
+(:func:`ga_ros.io.atomic.staging_directory`): a process killed half-way leaves
+``<path>.partial``, which the next run into the same place removes, never a bag that looks
+complete. A symbolic link at ``<path>`` is refused.
 """
 
 from __future__ import annotations
 
-import shutil
+import os
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +22,7 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
+from ga_ros.io.atomic import commit_directory, staging_directory
 from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
 
 
@@ -26,8 +32,9 @@ class BagWriter:
     Parameters
     ----------
     path : output directory (rosbag2 layout: ``path/metadata.yaml`` and ``path/<name>.mcap``).
-    overwrite : if True and ``path`` is an existing rosbag2 directory (it has a ``metadata.yaml``
-        and only bag files), it is replaced; any other existing path is an error.
+    overwrite : if True and ``path`` is an existing rosbag2 directory (only bag files: ``.mcap``,
+        ``.db3``, ``metadata.yaml``; also the leftovers of a killed older run), it is replaced
+        when the new bag is closed; any other existing path is an error (left untouched).
     storage : ``'mcap'`` (default) or ``'sqlite3'``.
     compress : zstd-compress the mcap chunks (readable by rosbags, ``mcap``, Foxglove, ros2 bag).
     """
@@ -39,6 +46,7 @@ class BagWriter:
         self.storage = storage
         self.compress = compress
         self._writer: Any = None
+        self._staging: Path | None = None
         self._conns: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
 
@@ -53,20 +61,16 @@ class BagWriter:
         """Create the bag; FormatError if the path exists and may not be replaced."""
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
-        if self.path.exists():
-            allowed = {'.mcap', '.db3', '.yaml'}
-            is_bag = self.path.is_dir() and (self.path / 'metadata.yaml').exists() and all(
-                p.is_file() and p.suffix in allowed for p in self.path.iterdir())
-            if not (self.overwrite and is_bag):
-                raise FormatError('output exists' + ('' if is_bag else ' and is not a bag')
-                                  + ' (will not overwrite)', str(self.path))
-            shutil.rmtree(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         plugin = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}.get(self.storage)
         if plugin is None:
             raise InputError(f"storage must be 'mcap' or 'sqlite3', got {self.storage!r}")
+        if not self.overwrite and os.path.lexists(self.path):
+            raise FormatError('output exists (will not overwrite: pass overwrite=True or choose '
+                              'another path)', str(self.path))
+        staging = staging_directory(self.path, self._replaceable)
+        self._staging = staging
         try:
-            writer = Writer(self.path, version=9, storage_plugin=plugin)
+            writer = Writer(staging / self.path.name, version=9, storage_plugin=plugin)
             if self.compress and self.storage == 'mcap':
                 writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             writer.open()
@@ -94,10 +98,28 @@ class BagWriter:
         self.counts[topic] += 1
 
     def close(self) -> None:
-        """Finish the bag (writes the summary and ``metadata.yaml``); idempotent."""
+        """Finish the bag (writes the summary and ``metadata.yaml``) and move it to ``path``;
+        idempotent."""
         if self._writer is not None:
             writer, self._writer = self._writer, None
             writer.close()
+        if self._staging is not None:
+            staging, self._staging = self._staging, None
+            try:
+                commit_directory(staging / self.path.name, self.path, self._replaceable)
+                staging.rmdir()
+            except OSError as exc:
+                raise FormatError(f'cannot move the finished bag into place: {exc}',
+                                  str(self.path)) from None
+
+    def _replaceable(self, path: Path) -> bool:
+        """``path`` (an existing directory) may be replaced: ``overwrite`` is set and it holds
+        only rosbag2 files (``metadata.yaml``, ``.mcap``, ``.db3``)."""
+        allowed = {'.mcap', '.db3', '.yaml', '.db3-wal', '.db3-shm'}
+        names = list(path.iterdir())
+        return self.overwrite and all(p.is_file() and not p.is_symlink()
+                                      and (p.suffix in allowed or p.name.endswith(tuple(allowed)))
+                                      for p in names)
 
 
 # --------------------------------------------------------------------------- output messages

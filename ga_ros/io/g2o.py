@@ -246,11 +246,14 @@ def _ids(F: np.ndarray, lines: IntArray, path: str, what: str = 'vertex id') -> 
         values = np.fromiter(map(int, F), dtype=np.int64, count=F.size)
         ok = values >= 0
     except (ValueError, OverflowError):
-        ok = np.array([f.isdigit() and int(f) < 2**63 for f in F.tolist()])  # error path only
+        # error path only; 19 digits bound int() (Python refuses > 4300 digits with an error)
+        ok = np.array([f.isdigit() and len(f) <= 19 and int(f) < 2**63 for f in F.tolist()])
         values = None
     if not ok.all():
         k = int(np.argmin(ok))
-        raise FormatError(f'{what} must be a non-negative integer, got {F[k]!r}', path,
+        text = str(F[k])
+        shown = repr(text) if len(text) <= 40 else f'{text[:20]!r}... ({len(text)} characters)'
+        raise FormatError(f'{what} must be a non-negative integer below 2^63, got {shown}', path,
                           int(lines[k]))
     return values
 

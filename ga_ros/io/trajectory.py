@@ -101,6 +101,10 @@ def _table(rows: list[tuple[int, list[str]]], first: int, path: str) -> FloatArr
     return values
 
 
+#: Largest |stamp| (s) of a trajectory file: int64 nanoseconds reach 9.22e9 s (year 2262).
+_MAX_STAMP_S = 9.2e9
+
+
 def _stamp_ns(text: str, path: str, line: int) -> int:
     """Seconds as a decimal string -> integer ns, exactly (no float rounding)."""
     s = text.strip()
@@ -108,11 +112,19 @@ def _stamp_ns(text: str, path: str, line: int) -> int:
     if neg or s.startswith('+'):
         s = s[1:]
     whole, _, frac = s.partition('.')
+    shown = repr(text) if len(text) <= 40 else f'{text[:20]!r}... ({len(text)} characters)'
     if (not whole and not frac) or not (whole or '0').isdigit() or not (frac or '0').isdigit():
         try:  # exponent notation and the like: fall back to float
-            return int(round(float(text) * 1e9))
+            seconds = float(text)
         except ValueError:
-            raise FormatError(f'timestamp {text!r} is not a number', path, line) from None
+            raise FormatError(f'timestamp {shown} is not a number', path, line) from None
+        if not abs(seconds) < _MAX_STAMP_S:
+            raise FormatError(f'timestamp {shown} is not a time within +-{_MAX_STAMP_S:.3g} s',
+                              path, line)
+        return int(round(seconds * 1e9))
+    if len(whole.lstrip('0')) > 10 or int(whole or '0') >= _MAX_STAMP_S:
+        raise FormatError(f'timestamp {shown} is not a time within +-{_MAX_STAMP_S:.3g} s',
+                          path, line)
     ns = int(whole or '0') * 10**9 + int((frac + '0' * 9)[:9])
     return -ns if neg else ns
 
@@ -184,6 +196,9 @@ def write_tum(path: str | os.PathLike, stamps_ns: IntArray, T_world_node: FloatA
     values = np.concatenate([p, q], axis=1)
     text = (values.astype(str) if decimals is None
             else np.char.mod(f'%.{int(decimals)}f', values))
+    if not len(stamps):
+        _write_atomic(path, ['# timestamp x y z qx qy qz qw'])
+        return
     neg = np.where(stamps < 0, '-', '')
     a = np.abs(stamps.astype(np.int64))
     stamp_text = np.char.add(np.char.add(np.char.add(neg, (a // 10**9).astype(str)), '.'),

@@ -358,10 +358,28 @@ class InputFrontEnd:
     def _default_warning(self, name: str) -> str:
         if not self.throttle.ready():
             return ''
+        return self.default_covariance_message(name)
+
+    def default_covariance_message(self, name: str) -> str:
+        """How many of input ``name``'s measurements so far used the default covariance, and
+        why ('' if none): the throttled warning and the replay summary say the same."""
         st = self.inputs[name].stats
-        return (f'{name}: {st.default_covariances} of {st.measurements + st.constraints} '
-                'measurements used the DEFAULT covariance (the stream has none: zeros, -1 or '
-                f'missing): {self.specs[name].config.default_noise_percent:g} % of the motion; '
+        if not st.default_covariances:
+            return ''
+        missing, total = getattr(st, 'missing_covariances', None), st.default_covariances
+        if missing is None:  # an input that does not tell the two apart
+            why = 'no usable covariance from the stream'
+        elif missing == total:
+            why = 'the stream has none: zeros, -1 or missing'
+        elif missing == 0:
+            why = ("the stream's covariances are not usable: the pose covariance does not grow "
+                   'from one keyframe to the next, or a covariance is not positive definite')
+        else:
+            why = (f'{missing} without a covariance in the stream, {total - missing} with one '
+                   'that is not usable')
+        return (f'{name}: {total} of {st.measurements + st.constraints} measurements used the '
+                f'DEFAULT covariance ({why}): '
+                f'{self.specs[name].config.default_noise_percent:g} % of the motion; '
                 f'set {name}.default_noise_percent or covariance_source to change it')
 
 

@@ -336,31 +336,42 @@ class MeasurementJournal:
             raise
         self._fd = fd
 
+    def open(self) -> None:
+        """Open (or create) the file for appending now rather than at the first record, so that
+        a path that cannot be written shows at start. Raises ``OSError`` or
+        :class:`CorruptFileError` as the first append would."""
+        if self._fd is None:
+            self._open()
+
     def append(self, m: Measurement) -> None:
         """Write one record to the OS at once (survives a killed process)."""
         self.append_many([m])
 
     def append_many(self, ms: list[Measurement]) -> None:
         """Write several records in one system call."""
-        if not ms:
-            return
-        if self._fd is None:
-            self._open()
-        data = encode_records(ms)
-        written = os.write(self._fd, data)
-        while written < len(data):
-            written += os.write(self._fd, data[written:])
-        self.count += len(ms)
+        if ms:
+            self._write(encode_records(ms), len(ms))
 
     def append_fix(self, term: FixTerm) -> None:
         """Write the two records of an absolute fix (:func:`encode_fix`) in one system call."""
+        self._write(encode_fix(term), 2)
+
+    def _write(self, data: bytes, n_records: int) -> None:
         if self._fd is None:
             self._open()
-        data = encode_fix(term)
-        written = os.write(self._fd, data)
-        while written < len(data):
-            written += os.write(self._fd, data[written:])
-        self.count += 2
+        try:
+            written = os.write(self._fd, data)
+            while written < len(data):
+                written += os.write(self._fd, data[written:])
+        except OSError:  # e.g. a full disk: cut a partly written record off, so the next
+            end = len(_MAGIC) + self.count * RECORD.itemsize  # append starts aligned
+            try:
+                os.ftruncate(self._fd, end)
+                os.lseek(self._fd, end, os.SEEK_SET)
+            except OSError:
+                pass
+            raise
+        self.count += n_records
 
     def sync(self) -> None:
         """``fsync`` the journal (durability across a power cut, not only a killed process)."""
@@ -441,6 +452,9 @@ class RecoveryResult:
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
     seconds : wall time of the recovery.
+    snapshot_refused : the state file is not a ga_ros state but a journal with intact records
+        is beside it: the state was rebuilt from the journal, the file left untouched, and no
+        snapshot may be written there.
     """
 
     aligner: TrackWindowAligner
@@ -452,6 +466,7 @@ class RecoveryResult:
     moved_aside: list[Path] = field(default_factory=list)
     messages: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    snapshot_refused: bool = False
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -468,7 +483,9 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
 
     Raises
     ------
-    ForeignFileError : ``state_file`` exists and is not a ga_ros state (left untouched).
+    ForeignFileError : ``state_file`` exists, is not a ga_ros state (left untouched) and no
+        journal with intact records is beside it (with one, the state is rebuilt from the
+        journal alone: ``snapshot_refused``).
     UnsafePathError : ``state_file`` or the journal is a symbolic link or not a regular file.
 
     Damaged files are moved aside (never deleted) and reported in ``messages``; a damaged
@@ -479,10 +496,17 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
     out = RecoveryResult(TrackWindowAligner(config or AlignerConfig()), 'empty')
     check_regular(jpath)
     aligner, snap_records = None, 0
-    if check_regular(state):
-        if not is_state_file(state):
+    foreign = check_regular(state) and os.lstat(state).st_size > 0 and not is_state_file(state)
+    if foreign:
+        if not _journal_has_records(jpath):
             raise ForeignFileError(f'state_file {state} exists and is not a ga_ros state; it is '
                                    'left untouched: choose another state_file')
+        out.snapshot_refused = True
+        out.messages.append(f'state_file {state} is not a ga_ros state (a damaged snapshot or '
+                            'another program file): it is left untouched, the state is '
+                            'rebuilt from the journal alone, and no snapshot is written there '
+                            'until it is removed')
+    elif check_regular(state):  # an empty file too: a damaged snapshot, moved aside
         try:
             saved = load_state(state, config)
             aligner = saved.aligner
@@ -529,8 +553,12 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
             out.source = 'snapshot+journal'
     out.aligner = aligner
     changed = bool(tail.size or out.moved_aside or snap_records != records.size)
-    if (checkpoint and changed or scan.damaged) and out.source != 'empty':
-        save_state(aligner, state, journal_records=out.journal_records)
+    if (checkpoint and changed or scan.damaged) and out.source != 'empty' and not foreign:
+        try:
+            save_state(aligner, state, journal_records=out.journal_records)
+        except OSError as exc:  # e.g. a full disk: the journal still holds every record
+            out.messages.append(f'recovery snapshot {state} not written ({exc}); the journal '
+                                'still holds every record')
     out.seconds = time.perf_counter() - t0
     return out
 
@@ -562,6 +590,15 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
             rejected += 1
     flush()
     return accepted, rejected
+
+
+def _journal_has_records(jpath: Path) -> bool:
+    """The journal has a valid header and at least one intact record."""
+    try:
+        scan = scan_journal(jpath)
+    except (FormatError, OSError):
+        return False
+    return scan.header_ok and scan.records.size > 0
 
 
 def _has_v2_header(path: Path) -> bool:

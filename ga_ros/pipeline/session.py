@@ -23,7 +23,7 @@ from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import save_state
-from ga_ros.errors import GaError, InputError, Reason, SolverError
+from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverError
 from ga_ros.pipeline.journal import (
     MeasurementJournal,
     RecoveryResult,
@@ -34,6 +34,14 @@ from ga_ros.pipeline.journal import (
 
 #: Called with warnings the session wants shown (the node logs them, throttled).
 Warn = Callable[[str], None]
+#: Longest error text kept in ``last_error`` (and so in every ``/diagnostics`` message), chars.
+MAX_ERROR_CHARS = 200
+
+
+def bounded(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    """``text`` cut to at most ``limit`` characters (the cut marked with ``'...'``): an input
+    may carry a megabyte-long frame id, and its error text is republished at 1 Hz."""
+    return text if len(text) <= limit else text[:max(limit - 3, 0)] + '...'
 
 
 @dataclass(frozen=True)
@@ -47,11 +55,15 @@ class SessionConfig:
     fsync_period_sec : durability of the journal. Every record is written to the OS at once
         (a killed process loses nothing); it is also ``fsync``-ed to disk (a power cut loses
         nothing) after every measurement if 0, else at most every this many seconds.
+    state_required : a state file that cannot be used at start (its directory is a file, is
+        read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
+        running without persistence.
     """
 
     state_file: str = ''
     autosave: bool = True
     fsync_period_sec: float = 1.0
+    state_required: bool = False
 
 
 @dataclass(frozen=True)
@@ -79,10 +91,12 @@ class StepOutput:
 
 @dataclass(frozen=True)
 class Health:
-    """Diagnostics level: ``ok`` False means WARN, with ``message`` saying why."""
+    """Diagnostics level: ``ok`` False means WARN (ERROR if ``error``: data is not being
+    saved), with ``message`` saying why."""
 
     ok: bool
     message: str
+    error: bool = False
 
 
 def rejection_reason(exc: BaseException) -> Reason:
@@ -101,6 +115,7 @@ class _Counters:
     updates: int = 0
     solver_failures: int = 0
     not_converged: int = 0
+    persistence_errors: int = 0
     callback_seconds: float = 0.0
     callback_count: int = 0
 
@@ -127,6 +142,12 @@ class AlignmentSession:
         self.counts = _Counters()
         self.last_update: Any = None
         self.last_error = ''
+        self.last_persistence_error = ''
+        #: Why persistence was switched off at start ('' if it was not).
+        self.persistence_off = ''
+        #: Why no snapshot is written (the state path holds a file that is not ga_ros's; the
+        #: journal goes on, recovery replays it all) ('' if snapshots are written).
+        self.snapshots_off = ''
         self._next_sync = 0.0
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
@@ -149,8 +170,7 @@ class AlignmentSession:
             return StepOutput(False, error=f'{type(exc).__name__}: {exc}', solver_failed=True)
         self.counts.accepted += 1
         if self.journal is not None:
-            self.journal.append(m)
-            self.sync()
+            self._journal(m)
         done = tuple(u for u in updates if u is not None)
         if done:
             return StepOutput(True, done, notes=tuple(self.after_updates(done)))
@@ -169,15 +189,38 @@ class AlignmentSession:
             The aligner refused it (unknown or frozen node; counted there by reason).
         """
         info = self.aligner.add_fix(term, C_offset)
-        if self.journal is not None:
-            fix = term.fix if info is None else replace(term.fix, information=info)
+        if self.journal is None:
+            return
+        fix = term.fix if info is None else replace(term.fix, information=info)
+        try:
             self.journal.append_fix(replace(term, fix=fix))
             self.sync()
+        except OSError as exc:  # as for a measurement (_journal): counted, warned, applied
+            self.persistence_failed(f'journal {self.journal.path}: fix applied but NOT '
+                                    f'journaled ({exc})')
 
     @property
     def newest_node_id(self) -> int | None:
         """The aligner's newest node (``None`` before the first measurement)."""
         return self.aligner.newest_node_id
+
+    def _journal(self, m: Measurement) -> None:
+        """Append an accepted measurement to the journal. A write failure (full disk, read-only
+        file system, I/O error) is counted and warned about; the measurement stays accepted and
+        applied (the estimate is complete, only the crash insurance misses it)."""
+        try:
+            self.journal.append(m)
+            self.sync()
+        except OSError as exc:
+            self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
+                                    f'journaled ({exc})')
+
+    def persistence_failed(self, text: str) -> None:
+        """Count a failed journal or snapshot write and warn; the node goes on."""
+        self.counts.persistence_errors += 1
+        self.last_persistence_error = bounded(text)
+        self.last_error = self.last_persistence_error
+        self.warn(self.last_persistence_error)
 
     def undecodable(self, exc: BaseException) -> Reason:
         """Count an input that could not be decoded into a measurement; returns its reason."""
@@ -188,18 +231,18 @@ class AlignmentSession:
         """Count a rejected input; returns its reason."""
         reason = rejection_reason(exc)
         self.counts.rejected[reason] += 1
-        self.last_error = f'{reason}: {exc}'
+        self.last_error = bounded(f'{reason}: {exc}')
         return reason
 
     def internal_error(self, exc: BaseException) -> None:
         """Count an unexpected exception on an input (the node must never die on one)."""
         self.counts.rejected[Reason.INTERNAL] += 1
-        self.last_error = f'{type(exc).__name__}: {exc}'
+        self.last_error = bounded(f'{type(exc).__name__}: {exc}')
 
     def solver_failed(self, exc: BaseException) -> None:
         """Count a failed window update (the previous estimate stands)."""
         self.counts.solver_failures += 1
-        self.last_error = f'solver: {exc}'
+        self.last_error = bounded(f'solver: {exc}')
 
     def after_updates(self, updates: tuple[Any, ...]) -> list[str]:
         """Count window updates; returns a warning per failed or unconverged one."""
@@ -210,7 +253,7 @@ class AlignmentSession:
             reason = str(getattr(u, 'reason', ''))
             if reason.startswith('failed'):
                 self.counts.solver_failures += 1
-                self.last_error = f'solver: {reason}'
+                self.last_error = bounded(f'solver: {reason}')
                 notes.append(f'window update of track {u.track_id} failed, previous estimate '
                              f'kept: {reason}')
             elif not getattr(u, 'converged', True):
@@ -220,11 +263,14 @@ class AlignmentSession:
             if refine.startswith(('failed', 'not installed')):
                 notes.append(f'background refinement after track {u.refined_after_tracks} '
                              f'{refine}; the online estimate stands')
-        if self.session.autosave and self.session.state_file:
+        if self.session.autosave and self.session.state_file and not self.snapshots_off:
             try:
                 self.save()
             except (OSError, GaError) as exc:
-                notes.append(f'autosave to {self.session.state_file} failed: {exc}')
+                text = f'autosave to {self.session.state_file} failed: {exc}'
+                self.counts.persistence_errors += 1
+                self.last_persistence_error = self.last_error = bounded(text)
+                notes.append(text)
         return notes
 
     def finish_track(self) -> Any:
@@ -315,6 +361,8 @@ class AlignmentSession:
         result = recover(path, self.config)
         for text in result.messages:
             self.warn(text)
+        self.snapshots_off = (f'{path} is not a ga_ros state (left untouched)'
+                              if result.snapshot_refused else '')
         if self.session.autosave:
             self.journal = MeasurementJournal(journal_path(path))
         return result
@@ -350,13 +398,31 @@ class AlignmentSession:
             return None
         try:
             result = self._recover()
-        except InputError as exc:  # ForeignFileError, UnsafePathError: never touch that path
-            self.warn(f'state file {path}: {exc}; running WITHOUT persistence')
-            self.journal = None
-            self.session = SessionConfig('', False)
-            return f'failed: {exc}'
+        except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
+            return self._without_persistence(exc)
         self.aligner = result.aligner
+        try:
+            if self.journal is not None:
+                self.journal.open()  # the journal can be written (not at the first measurement)
+        except (GaError, OSError) as exc:
+            return self._without_persistence(exc)
         return None if result.source == 'empty' else _how(result)
+
+    def _without_persistence(self, exc: BaseException) -> str:
+        """Switch persistence off after a state path failed at start, with one warning line
+        (or raise :class:`PersistenceError` if ``state_required``); returns ``'failed: ...'``."""
+        text = bounded(f'state file {self.session.state_file} cannot be used '
+                       f'({type(exc).__name__}: {exc})', 2 * MAX_ERROR_CHARS)
+        if self.session.state_required:
+            raise PersistenceError(f'{text}; parameter state_required is true: not starting '
+                                   '(fix the path, or set state_file to another one)') from None
+        if self.journal is not None:
+            self.journal.close()
+        self.journal = None
+        self.session = replace(self.session, state_file='', autosave=False)
+        self.persistence_off = bounded(text)
+        self.warn(f'{text}; running WITHOUT persistence (a crash loses the state)')
+        return f'failed: {exc}'
 
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
@@ -414,15 +480,30 @@ class AlignmentSession:
             'measurements_accepted': c.accepted,
             'measurement_callback_us': (1e6 * c.callback_seconds / c.callback_count
                                         if c.callback_count else float('nan')),
+            'persistence': ('off: ' + self.persistence_off if self.persistence_off
+                            else 'journal only: ' + self.snapshots_off if self.snapshots_off
+                            else 'on' if self.journal is not None else 'none'),
+            'persistence_errors': c.persistence_errors,
         }
         values['rejected'] = sum(c.rejected.values())
         for key in sorted(c.rejected):
             values[f'rejected/{key}'] = c.rejected[key]
-        values['last_error'] = self.last_error
+        values['last_error'] = bounded(self.last_error)
+        if self.last_persistence_error:
+            values['last_persistence_error'] = self.last_persistence_error
         return values
 
     def health(self) -> Health:
         """Overall state for the diagnostics level."""
+        if self.counts.persistence_errors:
+            return Health(False, f'{self.counts.persistence_errors} state/journal write(s) '
+                                 'failed: measurements are not saved', error=True)
+        if self.persistence_off:
+            return Health(False, 'running without persistence: the state file cannot be used',
+                          error=True)
+        if self.snapshots_off:
+            return Health(False, 'no snapshots (the state path holds a foreign file): a restart '
+                                 'replays the whole journal')
         if self.counts.solver_failures:
             return Health(False, 'solver failures (previous estimate kept)')
         if self.counts.rejected:

@@ -17,7 +17,15 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
-from ga_ros.io.bag import CAMERA_INFO, IMAGE_TYPES, PATH, BagInfo, BagReader, TopicPlan
+from ga_ros.io.bag import (
+    CAMERA_INFO,
+    IMAGE_TYPES,
+    TF_TOPICS,
+    BagInfo,
+    BagReader,
+    TopicPlan,
+    plan_ground_truth,
+)
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
@@ -25,8 +33,6 @@ from ga_ros.replay.source import SourceItem
 
 #: Type of the track-boundary topic.
 EMPTY = 'std_msgs/msg/Empty'
-#: TF topics copied from the input bag into the output bag.
-TF_TOPICS = ('/tf', '/tf_static')
 
 
 @dataclass(frozen=True)
@@ -131,11 +137,9 @@ def plan_inputs(info: BagInfo, config: InputTopics, ground_truth: str) -> tuple[
                               'or --calibration files', name)
         notes.append(f'camera beside the odometry: {cam.left_image}, {cam.right_image}, '
                      f'images within {cam.config.max_image_offset_s:g} s of a keyframe')
-    gt = ''
-    if ground_truth and info.topic(ground_truth) is not None:
-        check(ground_truth, (PATH,), 'ground truth')
-        gt = ground_truth
-        notes.append(f'ground truth: {gt} (nav_msgs/Path)')
+    gt, note = plan_ground_truth(info, ground_truth)
+    if gt:
+        notes.append(note)
     return TopicPlan('inputs', ground_truth=gt, notes=tuple(notes)), specs
 
 
@@ -174,7 +178,9 @@ class InputSource:
         out = self.front.stats()
         if self.absolute.specs:
             out['absolute'] = {**self.absolute.stats(), 'datums': self.absolute.datums()}
-        out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1])}
+        final = [self.front.default_covariance_message(n) for n in self.front.specs]
+        out['warnings'] = {'count': len(self.warnings), 'first': ''.join(self.warnings[:1]),
+                           'final': [m for m in final if m]}
         return out
 
     def earth_datum(self) -> tuple[float, float, float] | None:

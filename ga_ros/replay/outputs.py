@@ -1,8 +1,17 @@
-"""Files the replay writes: the output mcap bag, TUM trajectories, the PNG plot, summary JSON."""
+"""Files the replay writes: the output mcap bag, TUM trajectories, the PNG plot, summary JSON.
+
+Every file goes through :mod:`ga_ros.io.atomic` (temporary file, fsync, rename; symbolic links
+refused) and the destinations are checked before the replay starts, so a link in the output
+directory stops the run at once, with its target untouched.
+
+Time base: every message of the output bag is logged at the log time of the input message that
+caused it (the final poses, odometry and paths at the last input log time), so the output bag
+stays on the recorder's clock, in order, whatever its header stamps say (a bag recorded in
+simulation time keeps wall-clock log times).
+"""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +23,7 @@ from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
+from ga_ros.io.atomic import check_destinations, save_figure, write_json
 from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
 from ga_ros.io.bag_writer import (
     BagWriter,
@@ -37,14 +47,15 @@ class OutputConfig:
         the end.
     f2f_topic : frame-to-frame integrated path (``nav_msgs/Path``), written at the end.
     pose_topic : corrected pose of every node with covariance
-        (``geometry_msgs/PoseWithCovarianceStamped``), written at the end, stamped at the node.
+        (``geometry_msgs/PoseWithCovarianceStamped``), written at the end (header stamp: the
+        node's time; log time: the last input log time).
     measurements_topic : the measurements used (``nav_msgs/Odometry``, the ga_ros encoding).
     markers_topic : the connection network (``visualization_msgs/MarkerArray``) after every
         update.
     ground_truth_topic : the ground truth copied from the input bag, if it has one.
     bag_name : name of the output bag directory inside the output directory.
     odom_topic : corrected pose of every node as ``nav_msgs/Odometry`` (``map_frame`` ->
-        ``sensor_frame``), written at the end, stamped at the node (evo reads it).
+        ``sensor_frame``), written at the end, header stamped at the node (evo reads it).
     sensor_frame : ``child_frame_id`` of the corrected odometry (the robot's base frame).
     odom_frame : REP 105 odometry frame: ``map_frame -> odom_frame`` goes on ``tf_topic``.
     tf_topic, tf_static_topic : TF topics of the output bag (the input bag's are copied there).
@@ -109,7 +120,7 @@ def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
         ax.legend(loc='best')
         ax.set_title(title, fontsize=9)
         fig.tight_layout()
-        fig.savefig(path)
+        save_figure(fig, path)
     finally:
         plt.close(fig)
 
@@ -121,7 +132,17 @@ class ReplayOutputs:
     ----------
     out_dir : directory (created); an existing output bag in it is replaced.
     config : topic and file names.
+
+    Raises
+    ------
+    UnsafePathError
+        An output file or the bag's path is a symbolic link or not a regular file (nothing is
+        written).
     """
+
+    #: the files written at the end (besides the bag)
+    FILES = ('trajectory_ga.tum', 'trajectory_f2f.tum', 'trajectory_gt.tum', 'trajectory.png',
+             'summary.json')
 
     def __init__(self, out_dir: str | Path, config: OutputConfig = OutputConfig()) -> None:
         self.dir = Path(out_dir)
@@ -130,6 +151,7 @@ class ReplayOutputs:
             self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise FormatError(f'cannot create output directory: {exc}', str(self.dir)) from exc
+        check_destinations(*(self.dir / name for name in self.FILES))
         self.bag = BagWriter(self.dir / config.bag_name, overwrite=True)
         self.bag.open()
         self.files: dict[str, Path] = {'bag': self.bag.path}
@@ -143,34 +165,39 @@ class ReplayOutputs:
             self.bag.write(self.config.measurements_topic, msgtype, msg, log_ns)
 
     def path(self, traj: Trajectory, log_ns: int, topic: str | None = None) -> None:
-        """A corrected (or F2F) path in the map frame."""
-        msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=log_ns)
+        """A corrected (or F2F) path in the map frame, header stamped at its newest node,
+        logged at ``log_ns``."""
+        stamp = int(traj.stamps_ns.max()) if len(traj) else None
+        msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=stamp)
         self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
 
     def markers(self, p_world_node: FloatArray, src: IntArray, dst: IntArray,
-                residual: FloatArray, log_ns: int) -> None:
-        """The connection network coloured by misclosure."""
-        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, log_ns)
+                residual: FloatArray, log_ns: int, stamp_ns: int) -> None:
+        """The connection network coloured by misclosure, header stamped at ``stamp_ns`` (the
+        input's time base), logged at ``log_ns``."""
+        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, stamp_ns)
         self.bag.write(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray', msg,
                        log_ns)
 
-    def poses(self, traj: Trajectory, covs: FloatArray) -> None:
-        """Corrected pose with covariance of every node, stamped at the node's time."""
+    def poses(self, traj: Trajectory, covs: FloatArray, log_ns: int) -> None:
+        """Corrected pose with covariance of every node, header stamped at the node's time,
+        logged at ``log_ns`` (the last input log time)."""
         for k in range(len(traj)):
             s = int(traj.stamps_ns[k])
             self.bag.write(self.config.pose_topic,
                            'geometry_msgs/msg/PoseWithCovarianceStamped',
                            pose_with_covariance_msg(traj.T_world_node[k], covs[k],
-                                                    self.config.map_frame, s), s)
+                                                    self.config.map_frame, s), log_ns)
 
-    def odometry(self, traj: Trajectory, covs: FloatArray) -> None:
-        """Corrected pose of every node as ``nav_msgs/Odometry``, stamped at the node."""
+    def odometry(self, traj: Trajectory, covs: FloatArray, log_ns: int) -> None:
+        """Corrected pose of every node as ``nav_msgs/Odometry``, header stamped at the node,
+        logged at ``log_ns`` (the last input log time)."""
         c = self.config
         for k in range(len(traj)):
             s = int(traj.stamps_ns[k])
             self.bag.write(c.odom_topic, 'nav_msgs/msg/Odometry',
                            odometry_msg(traj.T_world_node[k], covs[k], c.map_frame,
-                                        c.sensor_frame, s), s)
+                                        c.sensor_frame, s), log_ns)
 
     def map_to_odom(self, T_map_odom: FloatArray, stamp_ns: int, log_ns: int) -> None:
         """The REP 105 correction ``map_frame -> odom_frame`` on ``tf_topic``."""
@@ -196,7 +223,7 @@ class ReplayOutputs:
         """The ground truth path (node frame ids kept when known)."""
         node_frames = bool(len(traj)) and bool((traj.node_ids >= 0).all()
                                                and (traj.track_ids >= 0).all())
-        msg = trajectory_to_path_msg(traj, stamp_ns=log_ns, node_frames=node_frames)
+        msg = trajectory_to_path_msg(traj, node_frames=node_frames)  # stamped at its last pose
         self.bag.write(self.config.ground_truth_topic, PATH, msg, log_ns)
 
     # ---- final files
@@ -218,7 +245,7 @@ class ReplayOutputs:
     def summary(self, data: Mapping[str, Any]) -> Path:
         """Write ``summary.json``."""
         p = self.dir / 'summary.json'
-        p.write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default) + '\n')
+        write_json(p, data, indent=2, sort_keys=True, default=_json_default)
         self.files['summary'] = p
         return p
 

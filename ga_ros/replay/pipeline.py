@@ -9,7 +9,14 @@ Outputs (in ``out_dir``)
 ``replay_bag/`` (mcap rosbag2: corrected path after every track update, corrected poses with
 covariance, the measurements, markers, the F2F path and the ground truth when the input has it),
 ``trajectory_ga.tum``, ``trajectory_f2f.tum``, ``trajectory_gt.tum`` (when ground truth is
-present), ``trajectory.png`` and ``summary.json``.
+present), ``trajectory.png`` and ``summary.json``. Log times of the output bag follow the input's
+(:mod:`ga_ros.replay.outputs`).
+
+Ground truth comes from a file or a topic (:mod:`ga_ros.io.groundtruth`), matched to the
+keyframes by node id when both have them, else by stamp with interpolation.
+
+A bag cut short (a truncated mcap) is replayed up to the damage: the result then carries a
+warning, not an error.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -38,9 +45,16 @@ from ga_ros.io.bag import (
     Trajectory,
     measurement_to_odometry,
     plan_topics,
-    read_ground_truth,
 )
-from ga_ros.io.groundtruth import read_ground_truth_file
+from ga_ros.io.groundtruth import (
+    DEFAULT_TOLERANCE_S,
+    GroundTruth,
+    GroundTruthMatch,
+    match_nodes,
+    match_stamps,
+    read_ground_truth_file,
+    read_ground_truth_topic,
+)
 from ga_ros.pipeline.absolute import FixFeeder
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import (
@@ -53,9 +67,6 @@ from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.inputs import InputSource, InputTopics, plan_inputs
 from ga_ros.replay.outputs import OutputConfig, ReplayOutputs, misclosure
 from ga_ros.replay.source import SourceItem, bag_measurements
-
-#: Largest stamp difference (ns) at which a node and a ground-truth pose are the same frame.
-STAMP_MATCH_TOL_NS = 1_000_000
 
 
 class Aligner(Protocol):
@@ -95,8 +106,13 @@ class ReplayConfig:
     progress : show a progress bar on stderr.
     inputs : standard inputs (odometry / pose topics, constraints, track boundaries); when it
         has inputs they are the source (:mod:`ga_ros.replay.inputs`).
-    ground_truth_file : EuRoC CSV or TUM ground truth (:mod:`ga_ros.io.groundtruth`), matched
-        by stamp; replaces the bag's ground truth.
+    ground_truth_file : TUM, EuRoC or KITTI ground truth (:mod:`ga_ros.io.groundtruth`),
+        matched by stamp; replaces the bag's ground truth.
+    ground_truth_format : ``'auto'``, ``'tum'``, ``'euroc'`` or ``'kitti'``.
+    ground_truth_times, ground_truth_rate_hz, ground_truth_start_s : stamps of a KITTI file
+        (its ``times.txt``, or a rate in Hz; plus a start time in s).
+    ground_truth_tolerance_s : largest gap between ground-truth samples to interpolate across,
+        and largest distance to hold the first / last sample (s).
     tf : write ``map -> odom`` on ``/tf`` every ``transform_publish_period_sec`` of the bag's
         log time, from the first measurement to the end, with the latest correction (and copy
         the input bag's ``/tf``, ``/tf_static`` without the transforms that would give ``odom``
@@ -119,6 +135,11 @@ class ReplayConfig:
     progress: bool = False
     inputs: InputTopics = InputTopics()
     ground_truth_file: str = ''
+    ground_truth_format: str = 'auto'
+    ground_truth_times: str = ''
+    ground_truth_rate_hz: float = 0.0
+    ground_truth_start_s: float = 0.0
+    ground_truth_tolerance_s: float = DEFAULT_TOLERANCE_S
     tf: bool = True
     covariance_policy: str = 'reject'
     transform_publish_period_sec: float = TRANSFORM_PERIOD_S
@@ -134,6 +155,8 @@ class ReplayResult:
     ``quality`` on): ``per_track``, the :class:`ga_ros.core.quality.QualitySummary` of every
     update with its ``track_id``, and ``final``, that of the last adjustment. ``notes``: what
     the user should know about an unusual but valid run (e.g. a robot that did not move).
+    ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
+    what the replay went on despite (e.g. a bag cut short).
     """
 
     bag: str
@@ -156,6 +179,8 @@ class ReplayResult:
     quality: dict[str, Any] = field(default_factory=dict)
     frames: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    ground_truth: str = ''
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def rate(self) -> float:
@@ -172,7 +197,7 @@ class ReplayResult:
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
-            'notes': self.notes}
+            'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -217,33 +242,19 @@ def _as_dict(obj: Any) -> dict[str, Any]:
             if isinstance(v, (int, float, str, bool, np.generic, type(None), dict))}
 
 
-def match_ground_truth(gt: Trajectory, node_ids: IntArray, stamps_ns: IntArray,
-                       by: str) -> tuple[IntArray, IntArray]:
-    """Indices ``(i_est, i_gt)`` of estimated nodes and their ground-truth poses.
+def match_ground_truth(gt: Trajectory, node_ids: IntArray, stamps_ns: IntArray, by: str,
+                       tolerance_s: float = DEFAULT_TOLERANCE_S) -> GroundTruthMatch:
+    """Ground-truth poses of the estimated nodes.
 
     Parameters
     ----------
-    by : ``'node'`` (same node id) or ``'stamp'`` (same acquisition time within
-        :data:`STAMP_MATCH_TOL_NS`).
+    by : ``'node'`` (same node id, :func:`ga_ros.io.groundtruth.match_nodes`) or ``'stamp'``
+        (:func:`ga_ros.io.groundtruth.match_stamps`: at the sample, interpolated, or held).
+    tolerance_s : see :func:`ga_ros.io.groundtruth.match_stamps`.
     """
     if by == 'node':
-        lookup = {int(n): k for k, n in enumerate(gt.node_ids) if n >= 0}
-        pairs = [(i, lookup[int(n)]) for i, n in enumerate(node_ids) if int(n) in lookup]
-    else:
-        order = np.argsort(gt.stamps_ns, kind='stable')
-        s_sorted = gt.stamps_ns[order]
-        pairs = []
-        if len(s_sorted):
-            pos = np.clip(np.searchsorted(s_sorted, stamps_ns), 1, max(len(s_sorted) - 1, 1))
-            for i, (s, p) in enumerate(zip(stamps_ns, pos)):
-                cands = [c for c in (p - 1, p) if 0 <= c < len(s_sorted)]
-                best = min(cands, key=lambda c: abs(int(s_sorted[c]) - int(s)))
-                if abs(int(s_sorted[best]) - int(s)) <= STAMP_MATCH_TOL_NS:
-                    pairs.append((i, int(order[best])))
-    if not pairs:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    a = np.array(pairs, dtype=np.int64)
-    return a[:, 0], a[:, 1]
+        return match_nodes(gt, node_ids)
+    return match_stamps(gt, stamps_ns, tolerance_s)
 
 
 class _Connections:
@@ -278,12 +289,13 @@ class _Run:
     """State of one replay (kept out of the public function for readability)."""
 
     def __init__(self, config: ReplayConfig, factory: AlignerFactory, outputs: ReplayOutputs,
-                 result: ReplayResult, gt: Trajectory | None, match_by: str) -> None:
+                 result: ReplayResult, gt: GroundTruth | None, match_by: str) -> None:
         self.config = config
         self.factory = factory
         self.out = outputs
         self.result = result
-        self.gt = gt
+        self.gt = None if gt is None else gt.trajectory
+        self.gt_source = '' if gt is None else gt.describe()
         self.match_by = match_by
         self.aligner: Aligner | None = None
         self.session: AlignmentSession | None = None
@@ -307,12 +319,23 @@ class _Run:
         if self.gt is None or not self.config.anchor_to_ground_truth:
             return None
         s = self.stamps.get(m.src_id)
-        i_est, i_gt = match_ground_truth(self.gt, np.array([m.src_id]),
-                                         np.array([s if s is not None else -1]), self.match_by)
-        return self.gt.T_world_node[i_gt[0]].copy() if len(i_gt) else None
+        hit = self._match(np.array([m.src_id]), np.array([s if s is not None else -1]))
+        return hit.T_world_gt[0].copy() if hit.n_matched else None
+
+    def _match(self, node_ids: IntArray, stamps_ns: IntArray) -> GroundTruthMatch:
+        assert self.gt is not None
+        return match_ground_truth(self.gt, node_ids, stamps_ns, self.match_by,
+                                  self.config.ground_truth_tolerance_s)
 
     def step(self, item: SourceItem) -> None:
+        self._advance(item.log_ns)
         self._step(item)
+
+    def _advance(self, log_ns: int) -> None:
+        """Move the output clock to ``log_ns`` (never back) and write the periodic
+        ``map -> odom`` due until then, before anything logged at the new time: one time base,
+        log times non-decreasing in file order."""
+        self.last_ns = max(self.last_ns, int(log_ns))
         self._tf_tick(self.last_ns)
 
     def _tf_tick(self, log_ns: int) -> None:
@@ -325,7 +348,10 @@ class _Run:
     def copy_tf(self, topic: str, msgtype: str, data: bytes | None, msg: Any,
                 log_ns: int) -> None:
         """Copy an input ``/tf`` or ``/tf_static`` message without the transforms that would
-        give ``odom`` a second parent (ours is the one ``map -> odom``)."""
+        give ``odom`` a second parent (ours is the one ``map -> odom``), at its log time on the
+        output clock (the final outputs come after it)."""
+        self._advance(log_ns)
+        log_ns = self.last_ns
         if msgtype == 'tf2_msgs/msg/TFMessage' and msg is not None:
             kept, removed = without_odom_parent(msg, self.config.outputs.odom_frame)
             if removed:
@@ -374,9 +400,9 @@ class _Run:
         self.tracks.setdefault(m.dst_id, m.dst_track)
         self.conn.append(m)
         if item.data is not None:
-            self.out.measurement(ODOMETRY, item.data, None, item.log_ns)
+            self.out.measurement(ODOMETRY, item.data, None, self.last_ns)
         else:
-            self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), item.log_ns)
+            self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), self.last_ns)
         if self.fixes.waiting:
             self._add_fixes()
         for u in updates:
@@ -481,7 +507,8 @@ class _Run:
         w = self._connection_w(src, dst)
         if w is not None:  # quality control on: colour by |w| (ga_ros.ros.conversions)
             d = w[ok]
-        self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns)
+        self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns,
+                         int(traj.stamps_ns.max()))
 
     def _connection_w(self, src: IntArray, dst: IntArray) -> FloatArray | None:
         """(m,) ``|w|`` of the connections ``src -> dst`` (node ids) at their last adjustment
@@ -506,10 +533,9 @@ class _Run:
         node, stamp = min(self.stamps.items(), key=lambda kv: kv[1])
         T0 = np.eye(4)
         if self.gt is not None and self.config.anchor_to_ground_truth:
-            _, i_gt = match_ground_truth(self.gt, np.array([node]), np.array([stamp]),
-                                         self.match_by)
-            if len(i_gt):
-                T0 = self.gt.T_world_node[i_gt[0]].copy()
+            hit = self._match(np.array([node]), np.array([stamp]))
+            if hit.n_matched:
+                T0 = hit.T_world_gt[0].copy()
         traj = Trajectory(np.array([stamp], dtype=np.int64), T0[None],
                           np.array([node], dtype=np.int64), np.zeros(1, dtype=np.int64),
                           self.config.outputs.map_frame)
@@ -520,8 +546,8 @@ class _Run:
         res.notes.append(f'the robot did not move: {n} keyframe{"s" if n > 1 else ""}, '
                          'stationary trajectory written')
         self.out.path(traj, self.last_ns)
-        self.out.poses(traj, np.zeros((1, 6, 6)))
-        self.out.odometry(traj, np.zeros((1, 6, 6)))
+        self.out.poses(traj, np.zeros((1, 6, 6)), self.last_ns)
+        self.out.odometry(traj, np.zeros((1, 6, 6)), self.last_ns)
         self.out.path(traj, self.last_ns, topic=self.config.outputs.f2f_topic)
         self.out.tum('trajectory_ga.tum', traj)
         self.out.tum('trajectory_f2f.tum', traj)
@@ -565,8 +591,8 @@ class _Run:
                         covs[k] = self.aligner.covariance(int(n))
                     except GaError:  # unknown: zero, as ROS does for an unknown covariance
                         pass
-        self.out.poses(traj, covs)
-        self.out.odometry(traj, covs)
+        self.out.poses(traj, covs, self.last_ns)
+        self.out.odometry(traj, covs, self.last_ns)
         # F2F path over the nodes it reached, in node order of the corrected path
         assert self.f2f is not None
         f_ids = [int(n) for n in traj.node_ids if int(n) in self.f2f.poses]
@@ -583,10 +609,11 @@ class _Run:
         if self.gt is not None and len(self.gt):
             self.out.ground_truth(self.gt, self.last_ns)
             self.out.tum('trajectory_gt.tum', self.gt)
-            i_est, i_gt = match_ground_truth(self.gt, traj.node_ids, traj.stamps_ns,
-                                             self.match_by)
+            hit = self._match(traj.node_ids, traj.stamps_ns)
+            res.ground_truth = hit.describe(self.gt_source, 'nodes', self.match_by == 'node')
+            i_est = hit.i_est
             if len(i_est) >= 3:
-                gt_xyz = self.gt.T_world_node[i_gt, :3, 3]
+                gt_xyz = hit.T_world_gt[:, :3, 3]
                 res.errors['ga'] = trajectory_error(traj.T_world_node[i_est, :3, 3], gt_xyz)
                 f_index = {n: k for k, n in enumerate(f_ids)}
                 ok = [j for j, i in enumerate(i_est) if int(traj.node_ids[i]) in f_index]
@@ -675,11 +702,17 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
             plan = _plan_or_hint(bag.info, config.topics)
         factory = aligner_factory or default_aligner_factory(config.aligner,
                                                              config.aligner_kind)
+        if config.ground_truth_file:  # the file replaces the topic
+            plan = replace(plan, ground_truth='', notes=tuple(
+                n for n in plan.notes if not n.startswith('ground truth:')) + (
+                f'ground truth: {config.ground_truth_file} (file)',))
         if on_plan is not None:
             on_plan(plan)
-        gt = read_ground_truth(bag, plan.ground_truth) if plan.ground_truth else None
+        gt = read_ground_truth_topic(bag, plan.ground_truth) if plan.ground_truth else None
         if config.ground_truth_file:
-            gt = read_ground_truth_file(config.ground_truth_file)
+            gt = read_ground_truth_file(config.ground_truth_file, config.ground_truth_format,
+                                        config.ground_truth_times, config.ground_truth_rate_hz,
+                                        config.ground_truth_start_s)
         source: Any
         if specs:
             counter = [0]
@@ -700,8 +733,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                                       config.covariance_policy)
             unit = 'msg'
         match_by = 'stamp'
-        if plan.source == 'measurements' and gt is not None and len(gt) and (
-                gt.node_ids >= 0).all():
+        if plan.source == 'measurements' and gt is not None and len(gt.trajectory) and (
+                gt.trajectory.node_ids >= 0).all():
             match_by = 'node'
         result = ReplayResult(str(bag_path), plan.source, str(out_dir))
         outputs = ReplayOutputs(out_dir, config.outputs)
@@ -724,9 +757,14 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
                         bar.update(counter[0] - last)
                         last = counter[0]
             except FormatError as exc:
-                result.error = str(exc)
+                if bag.truncated is None and 'truncated' not in str(exc):
+                    result.error = str(exc)
+                else:  # a bag cut short: everything before the damage is used
+                    result.warnings.append(f'{exc}; replayed the {counter[0]} {unit}s before '
+                                           'the damage')
             finally:
                 if bar is not None:
+                    bar.update(counter[0] - last)  # what was read after the last item
                     bar.close()
             result.n_inputs = counter[0]
             result.frames = _frames_summary(config, source, run)

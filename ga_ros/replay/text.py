@@ -57,6 +57,7 @@ def result_text(r: ReplayResult) -> str:
         for name, v in st.items():
             if isinstance(v, dict) and 'keyframes' in v:
                 lines.append(f"{name}: {v['samples']} samples, {v['keyframes']} keyframes, "
+                             f"{v['measurements']} measurements, "
                              f"{v['constraints']} external constraints, "
                              f"{v['default_covariances']} default covariances")
             elif isinstance(v, dict) and 'not_covered' in v:
@@ -71,8 +72,8 @@ def result_text(r: ReplayResult) -> str:
                          f"{cam['cross_accepted']} cross-track connections accepted of "
                          f"{cam['cross_attempts']} verified candidates")
         warn = st.get('warnings', {})
-        if isinstance(warn, dict) and warn.get('first'):
-            lines.append(f"warning: {warn['first']}")
+        if isinstance(warn, dict):  # the end-of-run counts, as the throttled warnings say them
+            lines.extend(f'warning: {m}' for m in warn.get('final', []))
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
@@ -97,8 +98,14 @@ def result_text(r: ReplayResult) -> str:
         else:
             lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
                          f'{ga.ate_aligned:.3f} m)')
-    else:
-        lines.append('no ground truth in the bag: no error figures')
+    if r.ground_truth:
+        lines.append(r.ground_truth + ('' if 'ga' in r.errors else
+                                       ': no error figures (fewer than 3 nodes matched)'))
+    elif 'ga' not in r.errors:
+        lines.append('no ground truth (none in the bag, no --ground-truth file): '
+                     'no error figures')
+    for w in r.warnings:
+        lines.append(f'warning: {w}')
     lines.append('outputs:')
     for k in sorted(r.files):
         lines.append(f'  {k:<16} {r.files[k]}')

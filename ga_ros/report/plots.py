@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.io.atomic import save_figure
 from ga_ros.report.experiments import AerialResult, FutureTracksResult, Table1Result
 
 
@@ -41,7 +42,7 @@ def plot_fig5(t1: Table1Result, noise_levels, out: Path) -> str:
         ax_m.set_ylabel('MSE (m$^2$)')
         ax_m.set_yscale('log')
         ax_m.legend(fontsize=8)
-    fig.savefig(out / 'fig5_synthetic.png')
+    save_figure(fig, out / 'fig5_synthetic.png')
     return 'fig5_synthetic.png'
 
 
@@ -61,7 +62,7 @@ def plot_fig3(ft: FutureTracksResult, ft_lin: FutureTracksResult, out: Path) -> 
     for ax in (ax_a, ax_n):
         ax.set_xlabel('track added (tracks 1..k)')
         ax.legend(fontsize=8)
-    fig.savefig(out / 'fig3_future_tracks.png')
+    save_figure(fig, out / 'fig3_future_tracks.png')
     return 'fig3_future_tracks.png'
 
 
@@ -79,7 +80,7 @@ def plot_fig7(ae: AerialResult, out: Path) -> str:
     ax.set_ylabel('position error (m)')
     ax.set_title('Fig. 7: aerial survey, F2F vs GA')
     ax.legend(fontsize=8)
-    fig.savefig(out / 'fig7_aerial_error.png')
+    save_figure(fig, out / 'fig7_aerial_error.png')
     return 'fig7_aerial_error.png'
 
 
@@ -102,7 +103,7 @@ def plot_fig8(ae: AerialResult, out: Path, name: str = 'fig8_tracks.png') -> str
     for ax in axes[len(keys):]:
         ax.set_visible(False)
     axes[0].legend(fontsize=8)
-    fig.savefig(out / name)
+    save_figure(fig, out / name)
     return name
 
 
@@ -131,7 +132,7 @@ def plot_fig7_9(vo: AerialResult, syn: AerialResult, out: Path) -> str:
         axes[2, col].set_title('heading error (rad)', fontsize=10)
         axes[2, col].set_xlabel('frame number (node)')
         axes[0, col].legend(fontsize=8)
-    fig.savefig(out / 'fig7_9_exp2.png')
+    save_figure(fig, out / 'fig7_9_exp2.png')
     return 'fig7_9_exp2.png'
 
 
@@ -158,7 +159,7 @@ def plot_fig12(registrations, rows: list[dict], images_a, images_b, out: Path) -
             ax.imshow(img, cmap='gray', vmin=0, vmax=255 if img.dtype == np.uint8 else 80)
             ax.set_title(title, fontsize=8)
             ax.set_axis_off()
-    fig.savefig(out / 'fig12_registration.png')
+    save_figure(fig, out / 'fig12_registration.png')
     return 'fig12_registration.png'
 
 
@@ -191,5 +192,5 @@ def plot_quality(ae: AerialResult, out: Path, name: str = 'fig_quality.png') -> 
     ax_m.set_xlabel('m')
     for ax in (ax_r, ax_w, ax_m):
         ax.legend(fontsize=8)
-    fig.savefig(out / name)
+    save_figure(fig, out / name)
     return name

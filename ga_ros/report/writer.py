@@ -6,7 +6,6 @@ the paper's own figures, quoted for comparison.
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 from dataclasses import asdict
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import InputError
+from ga_ros.io.atomic import check_destinations, write_json, write_text
 from ga_ros.report import experiments as ex
 from ga_ros.report import plots
 from ga_ros.report.config import ReproduceConfig
@@ -40,6 +40,7 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
     if out.exists() and not out.is_dir():
         raise InputError(f'{out} exists and is not a directory')
     out.mkdir(parents=True, exist_ok=True)
+    check_destinations(out / 'report.json', out / 'report.md')
     say = log or (lambda s: None)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -127,9 +128,8 @@ def run_reproduction(cfg: ReproduceConfig, out_dir: str | Path, log=None) -> dic
         'machine': {'python': platform.python_version(), 'platform': platform.platform()},
         'images': images,
     }
-    (out / 'report.json').write_text(json.dumps(_jsonable(report), indent=1, allow_nan=False)
-                                     + '\n')
-    (out / 'report.md').write_text(render_markdown(report))
+    write_json(out / 'report.json', _jsonable(report), indent=1, allow_nan=False)
+    write_text(out / 'report.md', render_markdown(report))
     return report
 
 

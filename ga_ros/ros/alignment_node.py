@@ -25,6 +25,8 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
   standard inputs, each input's received / expected / lost messages (from its stamps,
   :mod:`ga_ros.pipeline.stream_rate`; WARN above ``loss_warn_fraction``).
+* out ``ga/measurements_done`` (``std_msgs/Empty``): an end-of-input message was processed
+  (``ga-ros play`` keeps its history until then).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -45,6 +47,7 @@ from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
@@ -74,7 +77,7 @@ from ga_ros.pipeline.inputs import (
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
 from ga_ros.pipeline.map_to_odom import MapToOdom, foreign_odom_parents
 from ga_ros.pipeline.params import parameter_names
-from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.params import declare_config, updated_config
@@ -170,11 +173,12 @@ class NodeSettings:
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
     full_path_min_period_sec : publish the full path at most this often, s (0: after every
         update; big surveys: e.g. 10, the window path carries the updates).
-    measurement_durability : ``volatile`` (any publisher) or ``transient_local`` (the
-        publisher's history is delivered again after a restart: nothing published while the
-        node was down or still queued when it was killed is lost; the publisher must be
-        transient local too, as ``ga-ros play`` is; re-delivered measurements are counted as
-        ``rejected/duplicate``).
+    measurement_durability : ``transient_local`` (default: the publisher's history is delivered
+        again after a restart, so nothing published while the node was down or still queued
+        when it was killed is lost; the publisher must be transient local too, as ``ga-ros
+        play`` and the VO node are; a volatile publisher is not matched and named in an error
+        line; re-delivered measurements are counted as ``rejected/duplicate``) or ``volatile``
+        (any publisher; what is published while the node is down is lost).
     fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
         loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
         most every this many seconds.
@@ -188,6 +192,15 @@ class NodeSettings:
         updates).
     allow_reset : whether ``~/reset`` may clear the state (and empty the state files); off by
         default, since any peer on the ROS graph can call it.
+    allow_finish_track : whether ``~/finish_track`` may end the open track; off by default:
+        a call mid-track turns the rest of the track into ``out_of_order`` rejections and the
+        later tracks into ``unknown_source`` ones (tracks end by the next track's first
+        measurement, the end-of-input message or ``track_idle_timeout_sec``).
+    allow_load_state : whether ``~/load_state`` may replace the state by the state file's;
+        off by default (with ``autosave: false`` it reverts to an older save).
+    state_required : refuse to start when ``state_file`` cannot be used (its directory is a
+        file or read-only, ...) instead of running without persistence (one error line and
+        ``persistence: off`` in the diagnostics).
     """
 
     map_frame: str = 'map'
@@ -224,11 +237,14 @@ class NodeSettings:
     window_path_topic: str = topics.WINDOW_PATH
     full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
 
-    measurement_durability: str = 'volatile'
+    measurement_durability: str = 'transient_local'
     fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
     track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False
+    allow_finish_track: bool = False
+    allow_load_state: bool = False
+    state_required: bool = False
 
 
 #: NodeSettings fields that may change at run time (read at use).
@@ -263,19 +279,25 @@ class AlignmentNode(Node):
             raise InputError(f'parameter measurement_durability must be volatile or '
                              f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
-            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec),
-            warn=lambda text: self.get_logger().warning(text))
+            self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
+                                               s.state_required),
+            warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
         self._markers_dirty = False
         self._last_input = time.monotonic()
         self._path_nodes = 0           # nodes in the last published path
+        self.incompatible_publishers = 0  # publishers not matched (incompatible QoS)
         self._rejections = RejectionLog()
+        self.queue_loss = QueueLoss()
         # subscribe first: what arrives while the state is restored waits in the queue
         self.sub = self.create_subscription(
             Odometry, s.measurements_topic, self._on_measurements,
             measurement_qos(s.measurement_queue_depth,
-                            transient_local=s.measurement_durability == 'transient_local'))
+                            transient_local=s.measurement_durability == 'transient_local'),
+            event_callbacks=SubscriptionEventCallbacks(
+                incompatible_qos=self._on_incompatible_qos,
+                message_lost=self._on_message_lost))
 
         self.pub_path = self.create_publisher(Path, s.path_topic, latched_qos())
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, s.pose_topic,
@@ -285,6 +307,8 @@ class AlignmentNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
+        self.pub_done = self.create_publisher(
+            Empty, topics.input_done_topic(s.measurements_topic), stream_qos())
         # the odometry chain and map -> odom, as in the replay: the first standard input, or
         # without standard inputs the frame-to-frame integration of the measurements
         self.odom = MapToOdom(self.front)
@@ -301,6 +325,8 @@ class AlignmentNode(Node):
         self.create_service(Trigger, '~/save_state', self._srv_save)
         self.create_service(Trigger, '~/load_state', self._srv_load)
 
+        if s.state_file:
+            self.get_logger().info(f'restoring the state from {s.state_file} ...')
         how = self.session.resume()
         if how is not None and not how.startswith('failed'):
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
@@ -337,12 +363,35 @@ class AlignmentNode(Node):
         self.session.aligner = value
 
     # ------------------------------------------------------------------ callbacks
-    def _on_measurements(self, msg: Odometry) -> None:
+    def _on_measurements(self, msg: Odometry, info: Any) -> None:
         """Subscription callback: handle ``msg``, then take the messages already queued behind
         it straight from the subscription (up to ``DRAIN_MAX`` or ``DRAIN_SECONDS``), which
         saves the executor's per-message wait-set round trip on bursts."""
+        self.queue_loss.seen(info)
         self._on_measurement(msg)
         self._drain(DRAIN_MAX, DRAIN_SECONDS)
+
+    def _warn_session(self, text: str) -> None:
+        """The session's warnings: persistence failures as errors (throttled), others once."""
+        if 'persistence' in text or 'journal' in text or 'state file' in text:
+            self.get_logger().error(text, throttle_duration_sec=self.settings.warn_throttle_sec)
+        else:
+            self.get_logger().warning(text)
+
+    def _on_incompatible_qos(self, event: Any) -> None:
+        """A publisher on the measurements topic that cannot be matched (e.g. volatile while
+        the node asks for transient local): nothing of it is received. One error line."""
+        self.incompatible_publishers = int(getattr(event, 'total_count', 0))
+        self.get_logger().error(
+            f'a publisher on {self.sub.topic_name} offers an incompatible QoS (policy '
+            f'{getattr(event, "last_policy_kind", "?")}): NOTHING of it is received. The node '
+            f'asks for {self.settings.measurement_durability} durability: publish transient '
+            'local (ga_ros.ros.qos.measurement_qos(transient_local=True)) or set the parameter '
+            'measurement_durability: volatile')
+
+    def _on_message_lost(self, event: Any) -> None:
+        """DDS reports measurements lost before they reached the subscription queue."""
+        self.queue_loss.lost_events += int(getattr(event, 'total_count_change', 0))
 
     def _drain(self, max_messages: int | None = None, max_seconds: float | None = None) -> int:
         """Handle the measurements already queued in the subscription (all of them by default:
@@ -358,6 +407,7 @@ class AlignmentNode(Node):
                 return n
             if taken is None:
                 return n
+            self.queue_loss.seen(taken[1])
             self._on_measurement(taken[0])
             n += 1
             if t_end is not None and time.perf_counter() > t_end:
@@ -372,6 +422,7 @@ class AlignmentNode(Node):
                 self._finish_track(drain=False)  # (draining would take what came after it)
             except SolverError:
                 pass                             # counted and logged by the session
+            self.pub_done.publish(Empty())       # the publisher may now let its history go
             return
         try:
             m = decode_measurement(msg, self.settings.covariance_policy)
@@ -746,6 +797,12 @@ class AlignmentNode(Node):
 
     def _srv_finish_track(self, request: Trigger.Request,
                           response: Trigger.Response) -> Trigger.Response:
+        if not self.settings.allow_finish_track:
+            response.success = False
+            response.message = ('finish_track is disabled (parameter allow_finish_track: false; '
+                                'tracks end by the next track, the end-of-input message or '
+                                'track_idle_timeout_sec)')
+            return response
         try:
             update = self._finish_track()
         except SolverError as exc:
@@ -792,6 +849,10 @@ class AlignmentNode(Node):
         return response
 
     def _srv_load(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if not self.settings.allow_load_state:
+            response.success = False
+            response.message = 'load_state is disabled (parameter allow_load_state: false)'
+            return response
         self._drain()
         try:
             how = self.session.load()
@@ -811,6 +872,7 @@ class AlignmentNode(Node):
     def diagnostic_values(self) -> dict[str, object]:
         """The session's diagnostics key/values, with the last update's quality figures."""
         values = self.session.diagnostic_values()
+        values['measurements_lost_in_queue'] = self.queue_loss.total
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
         return values
 
@@ -912,10 +974,11 @@ class AlignmentNode(Node):
 
     def _publish_diagnostics(self) -> None:
         try:
+            self.queue_loss.publishers = self.sub.get_publisher_count()
             values = self.diagnostic_values()
             health = self.session.health()
         except Exception as exc:  # noqa: BLE001 - diagnostics must not stop the node
-            values = {'error': str(exc)}
+            values = {'error': bounded(str(exc))}
             health = None
         problems = [health.message] if health is not None and not health.ok else []
         if self.tf_contested_by:
@@ -929,12 +992,58 @@ class AlignmentNode(Node):
             if r.loss_fraction > self.settings.loss_warn_fraction:
                 problems.append(f'{name}: {r.lost} of {r.expected} messages lost')
         level, message = DiagnosticStatus.OK, 'ok'
+        error = health is not None and health.error
+        if self.queue_loss.total:
+            problems.append(f'{self.queue_loss.total} measurements lost by a full subscription '
+                            'queue')
+        if self.incompatible_publishers:
+            error = True
+            problems.append('a publisher with an incompatible QoS is not received')
         if problems:
-            level, message = DiagnosticStatus.WARN, '; '.join(problems)
+            level = DiagnosticStatus.ERROR if error else DiagnosticStatus.WARN
+            message = '; '.join(problems)
         level_int = level[0] if isinstance(level, bytes) else int(level)
         self.pub_diag.publish(conv.diagnostics_msg(
             f'{self.get_fully_qualified_name()}: global alignment', 'ga_ros', values,
             self.get_clock().now().nanoseconds, level=level_int, message=message))
+
+
+@dataclass
+class QueueLoss:
+    """Measurements lost before the node took them: DDS's message-lost events, plus gaps in
+    the publisher's sequence numbers (a full ``KEEP_LAST`` subscription queue drops the oldest
+    message silently; the numbers are per publisher, so gaps are counted only while exactly one
+    publisher is matched).
+
+    Attributes
+    ----------
+    lost_events : messages DDS reported lost.
+    gaps : messages missing between two consecutive sequence numbers taken.
+    publishers : matched publishers (refreshed by the diagnostics timer).
+    """
+
+    lost_events: int = 0
+    gaps: int = 0
+    publishers: int = 1
+    _last: int | None = None
+
+    @property
+    def total(self) -> int:
+        """Messages known to be lost."""
+        return self.lost_events + self.gaps
+
+    def seen(self, info: Any) -> None:
+        """Note the message info (``publication_sequence_number``) of a message taken."""
+        try:
+            seq = int(info['publication_sequence_number'])
+        except (KeyError, TypeError, ValueError):
+            return
+        if seq <= 0 or seq >= 2**63 or self.publishers != 1:  # unsupported, or several
+            self._last = None
+            return
+        if self._last is not None and seq > self._last + 1:
+            self.gaps += seq - self._last - 1
+        self._last = seq
 
 
 @dataclass

@@ -84,11 +84,14 @@ class NodeClient:
         self.node = Node(f'ga_harness_{os.getpid()}', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.pub = self.node.create_publisher(Odometry, measurements_topic, measurement_qos())
+        self.pub = self.node.create_publisher(Odometry, measurements_topic,
+                                              measurement_qos(transient_local=True))
         self.path_topic = path_topic
         self.paths: list[tuple[float, PathMsg]] = []
         self.diagnostics: dict[str, str] = {}
         self.diag_count = 0
+        #: Level of the last diagnostics (0 OK, 1 WARN, 2 ERROR; -1 none yet).
+        self.diag_level = -1
         self._path_sub = self.subscribe_path()
         self.node.create_subscription(DiagnosticArray, diagnostics_topic, self._on_diag,
                                       stream_qos(100))
@@ -113,6 +116,9 @@ class NodeClient:
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         self.diagnostics = conv.diagnostics_to_dict(msg)
+        if msg.status:
+            level = msg.status[0].level
+            self.diag_level = level[0] if isinstance(level, bytes) else int(level)
         self.diag_count += 1
 
     def diag_int(self, key: str, default: int = -1) -> int:

@@ -28,6 +28,7 @@ Run as ``python -m ga_ros.ros.mapping_node --out DIR [--ros-args ...]``.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -45,6 +46,7 @@ from std_srvs.srv import Trigger
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
+from ga_ros.io.atomic import check_destinations, write_bytes, write_json
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.qos import latched_qos, measurement_qos
 
@@ -176,8 +178,19 @@ class MappingNode(Node):
         return self.ready
 
 
+#: The files the node writes in its output directory (besides the ``measurements/`` bag).
+OUTPUT_FILES = ('path.npz', 'mapping.json')
+
+
+def check_outputs(out_dir: str | os.PathLike) -> None:
+    """Refuse (:class:`ga_ros.errors.UnsafePathError`) output files that are symbolic links or
+    not regular files, before the node starts (the outputs are written when it ends)."""
+    check_destinations(*(Path(out_dir) / name for name in OUTPUT_FILES))
+
+
 def write_outputs(node: MappingNode, status: str) -> dict:
-    """Write ``path.npz``, ``measurements/`` and ``mapping.json`` to the output directory."""
+    """Write ``path.npz``, ``measurements/`` and ``mapping.json`` to the output directory
+    (atomically, never through a symbolic link: :mod:`ga_ros.io.atomic`)."""
     from ga_ros.replay.samples import write_measurement_bag
 
     s, rx = node.settings, node.rx
@@ -186,8 +199,9 @@ def write_outputs(node: MappingNode, status: str) -> dict:
     if rx.last_path is not None:
         stamps = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
                            for p in rx.last_path.poses], dtype=np.int64)
-        np.savez(out / 'path.npz', T_world_node=conv.path_msg_to_poses(rx.last_path),
-                 stamps_ns=stamps)
+        buf = io.BytesIO()
+        np.savez(buf, T_world_node=conv.path_msg_to_poses(rx.last_path), stamps_ns=stamps)
+        write_bytes(out / 'path.npz', buf.getbuffer())
     if rx.measurements:
         write_measurement_bag(out / 'measurements', rx.measurements, None, overwrite=True)
     lat = track_latencies(rx.m_source_ns, rx.m_dst_track, rx.path_receive_ns)
@@ -207,12 +221,17 @@ def write_outputs(node: MappingNode, status: str) -> dict:
         'track_latencies': [asdict(x) for x in lat],
         'settings': asdict(s),
     }
-    (out / 'mapping.json').write_text(json.dumps(summary, indent=1))
+    write_json(out / 'mapping.json', summary, indent=1)
     return summary
 
 
 def run(settings: MappingSettings, ros_args: list[str] | None = None) -> int:
     """Spin the node until the survey is finished (or ``timeout_s``); write the outputs."""
+    try:
+        check_outputs(settings.out_dir)
+    except GaError as exc:
+        print(f'mapping_node: error: {exc}', file=sys.stderr)
+        return 1
     rclpy.init(args=ros_args)
     node = MappingNode(settings)
     ex = SingleThreadedExecutor()

@@ -9,6 +9,14 @@ messages the player waits until all subscribers have acknowledged what was sent
 (``Publisher.wait_for_all_acked``). The player exits when the bag is done and every
 subscriber has acknowledged the last messages.
 
+Nothing is lost to a restarted node: the measurement topics (``nav_msgs/msg/Odometry``) are
+transient local with a history of the whole topic, kept until the player exits; after the bag,
+the player waits (``delivery_timeout_s``) until every measurement topic has a subscriber and
+every subscriber has acknowledged everything (a node killed and restarted meanwhile gets the
+whole history again), and says what was not delivered otherwise (``ga-ros play`` then exits
+with :data:`EXIT_NOT_DELIVERED`). The history costs the serialized messages in the player's
+memory (about 1.3 kB per measurement, README "Reliability").
+
 Runnable as ``python -m ga_ros.ros.play BAG [--rate R]`` and as ``ga-ros play``.
 """
 
@@ -23,6 +31,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import rclpy
@@ -32,6 +41,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Empty
 
 from ga_ros import topics
 from ga_ros.errors import GaError, InputError
@@ -40,6 +50,10 @@ from ga_ros.ros.play_args import add_arguments
 from ga_ros.topics import TRACK_END_FRAME
 
 _MSGTYPE = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
+#: Longest history kept per measurement topic, messages.
+MAX_HISTORY = 1_000_000
+#: Exit code of ``ga-ros play`` when some message was not delivered to every subscriber.
+EXIT_NOT_DELIVERED = 3
 
 
 def interface_index(package: str) -> set[str] | None:
@@ -105,6 +119,10 @@ class PlayConfig:
         messages.
     ack_timeout_s : longest wait for those acknowledgements (s).
     depth : publisher queue depth.
+    delivery_timeout_s : after the bag, wait up to this long (s) until every measurement
+        topic has a subscriber and every subscriber has acknowledged everything (a node
+        restarted meanwhile gets the whole history); :attr:`PlayStats.undelivered` says what
+        was not delivered after it.
     sensor_reliability : QoS reliability of the image and camera-info publishers:
         ``'reliable'`` or ``'best_effort'`` (as most camera drivers publish).
     """
@@ -119,19 +137,22 @@ class PlayConfig:
     ack_every: int = 20
     ack_timeout_s: float = 5.0
     depth: int = 1000
+    delivery_timeout_s: float = 60.0
     sensor_reliability: str = 'reliable'
 
 
 @dataclass
 class PlayStats:
     """What a replay published: per-topic counts of the bag's messages, ``/clock`` messages,
-    end-of-input messages, wall time (s)."""
+    end-of-input messages, wall time (s), and what was not delivered (one text per topic not
+    acknowledged by every subscriber, or without any subscriber; empty: everything arrived)."""
 
     counts: dict[str, int] = field(default_factory=dict)
     clock_messages: int = 0
     end_signals: int = 0
     seconds: float = 0.0
     bag_seconds: float = 0.0
+    undelivered: list[str] = field(default_factory=list)
 
 
 class BagPlayer:
@@ -176,15 +197,31 @@ class BagPlayer:
                                 and t.name.endswith('/' + topics.MEASUREMENTS))
         self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
         self.topics = tuple(classes)
+        #: Input-done confirmations received, per end topic (see :meth:`_wait_delivered`).
+        self.done = {t: 0 for t in self.end_topics}
+        for t in self.end_topics:
+            node.create_subscription(Empty, topics.input_done_topic(t),
+                                     partial(self._on_done, t), 10)
+        #: Topics whose whole history is kept (the measurements: a restart gets them again).
+        self.kept = tuple(t.name for t in wanted if self._keeps_all(t))
+        for t in wanted:
+            if self._keeps_all(t) and t.count + 1 > MAX_HISTORY:
+                node.get_logger().warning(
+                    f'{t.name}: {t.count} messages, the history keeps the last {MAX_HISTORY}: '
+                    'a node restarted late may miss the first ones')
+
+    @staticmethod
+    def _keeps_all(topic: BagTopic) -> bool:
+        return topic.msgtype == 'nav_msgs/msg/Odometry'
 
     def _qos(self, topic: BagTopic) -> QoSProfile:
         """Reliable; measurement topics (``nav_msgs/msg/Odometry``) transient local with a
         history of the whole topic (a subscriber restarted after a crash gets everything
         again), ``/tf_static`` transient local (latched, as tf2 listeners expect), others
         volatile with ``depth``; images and camera info with ``sensor_reliability``."""
-        keep_all = topic.msgtype == 'nav_msgs/msg/Odometry'
+        keep_all = self._keeps_all(topic)
         latched = keep_all or topic.name.rsplit('/', 1)[-1] == 'tf_static'
-        depth = max(self.config.depth, min(topic.count + 1, 1_000_000)) if keep_all \
+        depth = max(self.config.depth, min(topic.count + 1, MAX_HISTORY)) if keep_all \
             else self.config.depth
         sensor = topic.msgtype in ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage',
                                    'sensor_msgs/msg/CameraInfo')
@@ -227,23 +264,48 @@ class BagPlayer:
         for p in self.publishers.values():
             p.wait_for_all_acked(timeout)
 
-    def _wait_delivered(self, patience_s: float) -> bool:
-        """Before exiting: wait until some subscriber is matched and every matched one has
-        acknowledged everything (a subscriber killed meanwhile stays matched until DDS notices
-        it is gone; its restart then gets the measurement topics' history), up to
-        ``patience_s``. False (with a warning) on timeout."""
+    def _on_done(self, topic: str, msg: Empty) -> None:
+        self.done[topic] += 1
+
+    def undelivered(self, step_s: float = 0.5) -> list[str]:
+        """What is not delivered now: a measurement topic without a subscriber, or a topic
+        not acknowledged by every matched subscriber within ``step_s``."""
+        step = Duration(seconds=step_s)
+        missing = []
+        for name, p in self.publishers.items():
+            if name in self.kept and p.get_subscription_count() == 0:
+                missing.append(f'{name}: no subscriber')
+            elif not p.wait_for_all_acked(step):
+                missing.append(f'{name}: not acknowledged by every subscriber')
+        return missing
+
+    def _wait_delivered(self, patience_s: float) -> list[str]:
+        """Before exiting: wait until :meth:`undelivered` is empty and every alignment node
+        on an end topic (a publisher of its input-done topic) confirmed it processed the end
+        of input. A node killed meanwhile stays matched until DDS notices it is gone; its
+        restart gets the whole history again and confirms in turn. Gives up after
+        ``patience_s`` without any subscriber acknowledging or node processing. Returns what
+        is still undelivered (with an error line naming it)."""
         end = time.monotonic() + patience_s
-        step = Duration(seconds=0.5)
+        confirming: set[str] = set()    # end topics where a confirming node was seen
         while True:
-            acked = all([p.wait_for_all_acked(step) for p in self.publishers.values()])
-            if acked and any(p.get_subscription_count() for p in self.publishers.values()):
-                return True
-            if time.monotonic() > end:
-                self.node.get_logger().warning(
-                    f'after {patience_s:g} s, not every message was acknowledged by a '
-                    'subscriber; exiting anyway')
-                return False
-            time.sleep(0.05)
+            now = time.monotonic()
+            missing = self.undelivered()
+            for t in self.end_topics:
+                if self.node.count_publishers(topics.input_done_topic(t)) > 0:
+                    confirming.add(t)
+                    if not self.done[t]:
+                        end = max(end, now + patience_s)   # a node is at work
+            missing += [f'{t}: the node did not confirm it processed the input (no message '
+                        f'on {topics.input_done_topic(t)})'
+                        for t in sorted(confirming) if not self.done[t]]
+            if not missing or now > end:
+                break
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+        if missing:
+            self.node.get_logger().error(
+                f'after {patience_s:g} s, NOT DELIVERED: ' + '; '.join(missing))
+        return missing
 
     def play(self) -> PlayStats:
         """Publish the whole bag; returns what was published.
@@ -305,7 +367,7 @@ class BagPlayer:
             end.child_frame_id = TRACK_END_FRAME
             self.publishers[topic].publish(end)
             stats.end_signals += 1
-        self._wait_delivered(max(c.wait_for_subscribers_s, c.ack_timeout_s))
+        stats.undelivered = self._wait_delivered(c.delivery_timeout_s)
         stats.seconds = time.monotonic() - t0
         return stats
 
@@ -372,6 +434,7 @@ def run(args: argparse.Namespace) -> int:
     config = PlayConfig(rate=args.rate, topics=tuple(args.topics), clock=not args.no_clock,
                         delay_s=args.delay, wait_for_subscribers_s=args.wait_for_subscribers,
                         end_signal=not args.no_end_signal,
+                        delivery_timeout_s=args.delivery_timeout,
                         sensor_reliability=args.sensor_qos)
     stats = play_bag(args.bag, config)
     total = sum(stats.counts.values())
@@ -380,6 +443,10 @@ def run(args: argparse.Namespace) -> int:
           f'{stats.end_signals} end-of-input messages')
     for topic, n in sorted(stats.counts.items()):
         print(f'  {topic:<40} {n}')
+    if stats.undelivered:
+        print(f'ga-ros play: error: not delivered after {args.delivery_timeout:g} s: '
+              + '; '.join(stats.undelivered), file=sys.stderr)
+        return EXIT_NOT_DELIVERED
     return 0
 
 

@@ -20,6 +20,11 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help='wait up to SEC seconds (default 10; 0: no wait) for a matched '
                         'subscriber before playing, and before exiting if none is left; a '
                         'warning if none came')
+    p.add_argument('--delivery-timeout', type=float, default=60.0, metavar='SEC',
+                   help='after the bag, wait up to SEC seconds (default 60) until every '
+                        'measurement topic has a subscriber and every subscriber acknowledged '
+                        'everything (a node restarted meanwhile gets the whole history again); '
+                        'exit code 3, naming the topics, if not')
     p.add_argument('--no-end-signal', action='store_true',
                    help='do not send the end-of-input message on the measurements topic '
                         '(child_frame_id ga/track_end: the alignment node ends the last track)')

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
+from ga_ros.io.atomic import check_destinations, open_log, write_json
 from ga_ros.tools.multihost import REPO, _stop_all, _wait_line, compare_paths
 
 #: The stereo topics of the sample bags (``ga_ros.replay.samples``), remapped per robot.
@@ -96,6 +97,7 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
                       '--params-file', str(REPO / 'config' / 'alignment.yaml'),
                       '-p', 'use_sim_time:=true', '-p', 'autosave:=false',
                       '-p', 'measurement_durability:=transient_local',
+                      '-p', 'allow_finish_track:=true',  # the mapping node ends the survey
                       *[a for f in frames for a in ('-p', f)]],
         'vo': [py, '-m', 'ga_ros.ros.vo_node', '--ros-args', *common,
                '--params-file', str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',
@@ -113,7 +115,7 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
 def _spawn(argv: list[str], env: dict[str, str], log: Path):
     import subprocess
 
-    out = open(log, 'wb')  # noqa: SIM115 - closed with the process
+    out = open_log(log)  # closed with the process
     return subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT,
                             start_new_session=True)
 
@@ -135,6 +137,7 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
     """
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    check_destinations(out / 'summary.json')
     dom = int(domain_id if domain_id is not None else 60 + os.getpid() % 100)
     res = FleetResult(domain_id=dom)
     env = {**os.environ, 'ROS_DOMAIN_ID': str(dom), 'PYTHONUNBUFFERED': '1'}
@@ -175,7 +178,7 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
         res.robots.append(_check_robot(r, Path(bag), out / r, res.errors))
     res.seconds = time.monotonic() - t0
     res.ok = not res.errors
-    (out / 'summary.json').write_text(json.dumps(asdict(res), indent=1))
+    write_json(out / 'summary.json', asdict(res), indent=1)
     return res
 
 
@@ -270,9 +273,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--timeout', type=float, default=240.0)
     a = p.parse_args(argv)
     out = Path(a.out)
-    second = make_second_bag(out / 'robot2_bag')
-    res = run_fleet(out, {'robot1': REPO / 'bags' / 'stereo_sample', 'robot2': second},
-                    a.rate, a.timeout)
+    try:
+        second = make_second_bag(out / 'robot2_bag')
+        res = run_fleet(out, {'robot1': REPO / 'bags' / 'stereo_sample', 'robot2': second},
+                        a.rate, a.timeout)
+    except GaError as exc:
+        print(f'fleet: {exc}', file=sys.stderr)
+        return 1
     print(format_result(res))
     return 0 if res.ok else 1
 

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
+from ga_ros.io.atomic import check_destinations, open_log, write_json, write_text
 
 REPO = Path(__file__).resolve().parents[2]
 STEREO_BAG = REPO / 'bags' / 'stereo_sample'
@@ -270,7 +271,7 @@ def _python() -> str:
 
 def _spawn(net: Network, host: str, argv: list[str], env: dict[str, str],
            log: Path) -> subprocess.Popen:
-    out = open(log, 'wb')  # noqa: SIM115 - closed with the process by the caller
+    out = open_log(log)  # closed with the process by the caller
     return subprocess.Popen([*net.exec_prefix(host), 'env', *[f'{k}={v}' for k, v in env.items()],
                              *argv], stdout=out, stderr=subprocess.STDOUT,
                             start_new_session=True)
@@ -345,6 +346,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
 
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    check_destinations(out / 'summary.json', out / 'fastdds_udp.xml')
     res = MultihostResult(discovery, 'not requested', out_dir=str(out))
     t0 = time.monotonic()
     procs: dict[str, subprocess.Popen] = {}
@@ -353,7 +355,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
         log('hosts: ' + ', '.join(f'{h} {net.ns[h]} {net.address[h]}' for h in HOSTS)
             + f'; switch {net.switch}; discovery {discovery}; netem {res.netem}')
         prof = out / 'fastdds_udp.xml'
-        prof.write_text(fastdds_profile())
+        write_text(prof, fastdds_profile())
         env_base = {'ROS_DOMAIN_ID': str(17 + os.getpid() % 80), 'PYTHONUNBUFFERED': '1',
                     'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
                     'FASTDDS_DEFAULT_PROFILES_FILE': str(prof)}
@@ -370,7 +372,8 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
             procs['alignment'] = _spawn(net, 'h2', [
                 py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', '--params-file',
                 str(REPO / 'config' / 'alignment.yaml'), '-p', 'use_sim_time:=true',
-                '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local'],
+                '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local',
+                '-p', 'allow_finish_track:=true'],
                 envs['h2'], out / 'alignment.log')
             procs['vo'] = _spawn(net, 'h1', [
                 py, '-m', 'ga_ros.ros.vo_node', '--ros-args', '--params-file',
@@ -404,7 +407,7 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
     res.seconds = time.monotonic() - t0
     _collect(res, out, read_tum, stereo_replay, bag, log)
     res.ok = not res.errors
-    (out / 'summary.json').write_text(json.dumps(asdict(res), indent=1))
+    write_json(out / 'summary.json', asdict(res), indent=1)
     return res
 
 

@@ -49,6 +49,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                                    'stereo front end at 752x480 (pairs per second)'),
     'node': Benchmark('ga_ros.cli.benchmarks.node:main',
                       'the alignment node as a process: latency, sustained measurement rate'),
+    'faults': Benchmark('ga_ros.cli.benchmarks.faults:main',
+                        'fault catalogue against live alignment nodes: nodes kept, recovery'),
     'replay': Benchmark('ga_ros.cli.benchmarks.replay:main',
                         'replay throughput on the sample bags'),
     'fixes': Benchmark('ga_ros.bench.fixes:main',

@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
           f'{sc.n_nodes} nodes, {len(ms)} measurements; window {args.window} tracks; '
           f'ROS_DOMAIN_ID {dom}')
     params = {'window_tracks': args.window, 'state_file': '', 'autosave': False,
-              'diagnostics_period_sec': 0.02, 'publish_markers': bool(args.markers)}
+              'diagnostics_period_sec': 0.02, 'publish_markers': bool(args.markers),
+              'allow_finish_track': True}
     if args.capacity:
         n, drain_s, n_got = drain_rate(by_track[min(by_track)], dom, params)
         print(f'drain rate (in-process node, {n} queued measurements of track 0): '
@@ -172,7 +173,8 @@ def drain_rate(measurements, domain_id: int, params: dict) -> tuple[int, float, 
     executor.add_node(node)
     try:
         pub = pub_node.create_publisher(Odometry, node.settings.measurements_topic,
-                                        measurement_qos(max(len(measurements), 10)))
+                                        measurement_qos(max(len(measurements), 10),
+                                                        transient_local=True))
         deadline = time.monotonic() + 30.0
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)

@@ -20,6 +20,7 @@ from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
 from ga_ros.io.bag import TopicConfig, bag_info
+from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
 from ga_ros.replay.inputs import InputTopics
@@ -49,9 +50,24 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help='stereo calibration for bags without CameraInfo: two EuRoC sensor.yaml '
                         '(left, right) or a YAML of the left and right CameraInfo fields')
     g.add_argument('--ground-truth-topic', default=topics.resolve(topics.GROUND_TRUTH),
-                   help="nav_msgs/Path ground truth ('' = ignore)")
+                   metavar='TOPIC',
+                   help='ground truth in the bag: a PoseStamped, PoseWithCovarianceStamped, '
+                        "Odometry or Path topic, or a TF pair tf:PARENT:CHILD ('' = ignore)")
     g.add_argument('--ground-truth', type=Path, metavar='FILE',
-                   help='ground truth file (EuRoC CSV or TUM), matched by stamp')
+                   help='ground truth file (TUM, EuRoC data.csv or KITTI poses), matched to '
+                        'the keyframes by stamp with interpolation; replaces the topic')
+    g.add_argument('--ground-truth-format', choices=FILE_FORMATS, default='auto',
+                   help='format of --ground-truth (auto: from its first line)')
+    g.add_argument('--ground-truth-times', type=Path, metavar='FILE',
+                   help='stamps of a KITTI file: its times.txt (seconds, one a line)')
+    g.add_argument('--ground-truth-rate', type=float, default=0.0, metavar='HZ',
+                   help='stamps of a KITTI file without times.txt: pose k at k / HZ s')
+    g.add_argument('--ground-truth-start', type=float, default=0.0, metavar='SEC',
+                   help="added to a KITTI file's stamps (KITTI's time 0 in the bag's clock)")
+    g.add_argument('--ground-truth-tolerance', type=float, default=DEFAULT_TOLERANCE_S,
+                   metavar='SEC',
+                   help='largest gap between ground-truth samples to interpolate across, and '
+                        'largest distance to hold the first / last one (default %(default)s)')
     s = p.add_argument_group('standard inputs (odometry / pose streams of any robot)')
     s.add_argument('--odom-topic', '--input-topic', dest='input_topics', action='append',
                    default=[], metavar='TOPIC',
@@ -188,6 +204,8 @@ def camera_topics(args: argparse.Namespace) -> Any:
 
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     """ReplayConfig from parsed arguments (the aligner module is imported only if needed)."""
+    if not args.ground_truth_tolerance >= 0:
+        raise InputError('--ground-truth-tolerance must be >= 0 s')
     overrides = {field: getattr(args, opt) for opt, field in ALIGNER_OPTIONS.items()
                  if getattr(args, opt, None) is not None}
     aligner: Any = None
@@ -208,7 +226,12 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=inputs,
-                        ground_truth_file=str(args.ground_truth or ''), tf=not args.no_tf,
+                        ground_truth_file=str(args.ground_truth or ''),
+                        ground_truth_format=args.ground_truth_format,
+                        ground_truth_times=str(args.ground_truth_times or ''),
+                        ground_truth_rate_hz=args.ground_truth_rate,
+                        ground_truth_start_s=args.ground_truth_start,
+                        ground_truth_tolerance_s=args.ground_truth_tolerance, tf=not args.no_tf,
                         covariance_policy=args.covariance_policy)
 
 
@@ -245,4 +268,6 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result.as_dict(), default=str))
     else:
         print(result_text(result))
+    for w in result.warnings:
+        print(f'ga-ros replay: warning: {w}', file=sys.stderr)
     return 0

@@ -13,7 +13,7 @@ Output in DIR:
 from __future__ import annotations
 
 import argparse
-import json
+import io
 from pathlib import Path
 
 SCENARIOS = ('aerial', 'lawnmower_open', 'lawnmower_closed', 'looping_open', 'looping_closed')
@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ga_ros.errors import InputError
+    from ga_ros.io.atomic import check_destinations, write_bytes, write_json, write_text
     from ga_ros.sim.aerial import aerial_scenario
     from ga_ros.sim.noise import NoiseModel, perturb
     from ga_ros.sim.trajectories import synthetic_scenario
@@ -46,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f'{out} exists and is not a directory')
+    check_destinations(*(out / name for name in ('measurements.g2o', 'measurements.npz',
+                                                  'ground_truth.tum', 'tracks.csv',
+                                                  'scenario.json')))
     if args.scenario == 'aerial':
         sc = aerial_scenario(n_tracks=args.tracks)
     else:
@@ -59,13 +63,15 @@ def run(args: argparse.Namespace) -> int:
         from ga_ros.io.g2o import PoseGraph, write_g2o
     except ImportError:
         meas_file = 'measurements.npz'
-        np.savez(out / meas_file, src=sc.src, dst=sc.dst, z=nm.z, cov=nm.cov)
+        buf = io.BytesIO()
+        np.savez(buf, src=sc.src, dst=sc.dst, z=nm.z, cov=nm.cov)
+        write_bytes(out / meas_file, buf.getbuffer())
     else:
         meas_file = 'measurements.g2o'
         write_g2o(out / meas_file, PoseGraph.from_network(net, f2f, fixed=(0,)))
     _write_tum(out / 'ground_truth.tum', sc.stamps_ns, sc.T_world_node)
     lines = ['node_id,track_id'] + [f'{i},{t}' for i, t in zip(sc.node_ids, sc.track_ids)]
-    (out / 'tracks.csv').write_text('\n'.join(lines) + '\n')
+    write_text(out / 'tracks.csv', '\n'.join(lines) + '\n')
     meta = {'scenario': args.scenario, 'seed': args.seed, 'noise_pct': args.noise,
             'noise_depth_m': sc.depth_m, 'footprint_m': sc.footprint_m,
             'nodes': sc.n_nodes, 'connections': sc.n_connections,
@@ -73,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             'measurements': meas_file,
             'noise_model': 'per axis: sigma_t = pct |t|, sigma_w = pct max(|w|, |t| / depth); '
                            'right perturbation T_true exp(xi); covariance = diag(sigma^2)'}
-    (out / 'scenario.json').write_text(json.dumps(meta, indent=1) + '\n')
+    write_json(out / 'scenario.json', meta, indent=1)
     print(f'{args.scenario}: {sc.n_nodes} nodes, {sc.n_connections} connections -> {out}/'
           f'{{{meas_file}, ground_truth.tum, tracks.csv, scenario.json}}')
     return 0
@@ -88,6 +94,8 @@ def _write_tum(path: Path, stamps_ns, T) -> None:
         p, q = se3.to_pos_quat(T)
         rows = [f'{s / 1e9:.9f} ' + ' '.join(repr(float(v)) for v in (*p[k], *q[k]))
                 for k, s in enumerate(stamps_ns)]
-        path.write_text('# timestamp x y z qx qy qz qw\n' + '\n'.join(rows) + '\n')
+        from ga_ros.io.atomic import write_text
+
+        write_text(path, '# timestamp x y z qx qy qz qw\n' + '\n'.join(rows) + '\n')
     else:
         write_tum(path, stamps_ns, T)

@@ -100,6 +100,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ga_ros.io.atomic import check_destinations
+
+    check_destinations(*(p for p in (args.out, args.tum, args.kitti) if p))  # before the work
     if not args.tracks:
         keep_freed_memory()  # a one-shot batch process: its temporaries reuse the heap
     t_read = time.perf_counter()

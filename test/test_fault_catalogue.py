@@ -1,0 +1,43 @@
+"""The fault catalogue (ga_ros/ros/fault_catalogue.py, ``ga-ros bench faults``) in CI: the cases
+that fit the time budget, on the small simulated survey, against live node processes started
+with their default settings. Every case must keep every node of the reference path (the aligner
+fed the clean measurements); the full-size runs are the benchmark's (README "Reliability")."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+pytest.importorskip('rclpy')
+
+from ga_ros.ros import fault_catalogue as fc  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+CASES = ['kill-defaults', 'kill-recovery', 'sigterm-update', 'snapshot-random',
+         'snapshot-empty', 'disk-full', 'bogus-path', 'hostile-services', 'flood-frame-ids',
+         'flood-queue']
+
+
+@pytest.mark.parametrize('name', CASES)
+def test_no_node_lost(name: str) -> None:
+    dom = 190 + (os.getpid() + CASES.index(name)) % 40   # the range of test_reliability
+    row = fc.run_case(name, fc.catalogue()[name], None, dom)
+    if row.survived == 'skipped':
+        pytest.skip(row.counted)
+    assert row.survived.startswith('yes'), row
+    assert row.expected > 0 and row.lost == 0, row
+    if name.startswith(('kill', 'sigterm')):
+        assert row.counted == 'play exit 0', row                 # everything delivered
+    if name == 'disk-full':
+        assert 'write errors ERROR' in row.counted and not row.counted.startswith('0 '), row
+    if name == 'bogus-path':
+        assert row.counted.startswith('1 log line; persistence off'), row
+    if name == 'hostile-services':
+        assert row.counted == '2/2 refused', row
+    if name == 'flood-frame-ids':
+        assert row.counted == '50/50 rejected, last_error 200 chars', row
+    if name == 'flood-queue':
+        received, lost, sent = (int(w) for w in row.counted.split() if w.isdigit())
+        assert received + lost == sent and lost > 0, row
