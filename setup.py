@@ -17,10 +17,10 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     # one entry per imported third-party package (pip names; package.xml names their rosdep
-    # keys, test/test_packaging.py checks that both agree with requirements.txt)
+    # keys, test/package/test_packaging.py checks that both agree with requirements.txt)
     install_requires=['setuptools', 'numpy', 'scipy', 'cvxopt', 'opencv-python-headless',
                       'matplotlib', 'PyYAML', 'tqdm', 'rosbags', 'mcap', 'mcap-ros2-support',
-                      'numba', 'threadpoolctl'],
+                      'numba', 'threadpoolctl', 'lz4', 'zstandard'],
     extras_require={'metis': ['pymetis']},
     zip_safe=True,
     maintainer='ga_ros maintainers',

@@ -27,6 +27,8 @@ from pathlib import Path
 from threadpoolctl import ThreadpoolController
 
 _controller: ThreadpoolController | None = None
+#: ``len(sys.modules)`` when :data:`_controller` scanned the loaded libraries.
+_controller_modules = -1
 
 
 def default_blas_threads() -> int:
@@ -146,13 +148,17 @@ def _preload_scipy_blas() -> None:
 
 
 def _blas_controller() -> ThreadpoolController:
-    """The process's thread-pool controller, made once: loading the BLAS libraries and
-    threadpoolctl's scan of the loaded libraries (~10 ms) are paid once per process, by the
-    entry point's :func:`limit_blas_threads` or else by the first :func:`blas_threads`."""
-    global _controller
-    if _controller is None:
-        _load_blas()
+    """The process's thread-pool controller: loading the BLAS libraries and threadpoolctl's scan
+    of the loaded libraries are paid by the entry point's :func:`limit_blas_threads` or else by
+    the first :func:`blas_threads`, and again only when modules were imported since the last
+    scan (an extension module such as OpenCV's or rclpy's may bring a BLAS pool of its own,
+    which a controller made before it would not limit)."""
+    global _controller, _controller_modules
+    if _controller is None or len(sys.modules) != _controller_modules:
+        if _controller is None:
+            _load_blas()
         _controller = ThreadpoolController()
+        _controller_modules = len(sys.modules)
     return _controller
 
 

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+TEST = Path(__file__).resolve().parent
+
+# The tests mirror the package's folders (test/core/window/ tests ga_ros/core/window/, ...).
+# Shared helpers (solver_problems.py here, fixtures builders of one test module used by
+# another) are imported by module name: every test folder is on sys.path, whichever test
+# runs first or alone.
+for _d in sorted({p.parent for p in TEST.rglob('test_*.py')} | {TEST}):
+    if str(_d) not in sys.path:
+        sys.path.insert(0, str(_d))
 SHARED_DATA = Path(os.environ.get('GA_ROS_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 
 

@@ -14,6 +14,11 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.geometry import se3
 
+#: Kinds of measurement: a frame-to-frame motion, an overlap between swaths or tracks, and a
+#: motion predicted over a gap in the stream (made by :class:`ga_ros.core.gaps.GapHealer`, with a
+#: large covariance: it gives the nodes after the gap a datum until a real connection joins them).
+KINDS = ('consecutive', 'cross', 'bridge')
+
 
 @dataclass(frozen=True)
 class Measurement:
@@ -26,7 +31,8 @@ class Measurement:
     z : (6,) ``[t, w]``: translation (m) and rotation vector (rad) of ``T_src_dst``.
     cov : (6, 6) covariance of the right perturbation of ``T_src_dst``, order ``[x y z rx ry rz]``.
     stamp_ns : acquisition time of the ``dst`` frame (ns since the epoch, or bag time).
-    kind : ``'consecutive'`` (frame to frame) or ``'cross'`` (overlap between swaths / tracks).
+    kind : ``'consecutive'`` (frame to frame), ``'cross'`` (overlap between swaths / tracks) or
+        ``'bridge'`` (predicted over a gap, see :data:`KINDS`).
     """
 
     src_id: int

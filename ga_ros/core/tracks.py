@@ -6,22 +6,25 @@ the keyframes -- the stereo VO (:mod:`ga_ros.vo.odometry`) or a standard odometr
 whether a new track starts there. The rules (:class:`TrackRules`):
 
 * ``'none'``: one track;
-* ``'frames'``: a fixed number of keyframes per track;
+* ``'frames'``: a fixed number (``keyframes``) of keyframes per track;
 * ``'heading'``: a reversal of the horizontal travel direction ends a swath, and every
-  ``swaths_per_track`` swaths a track;
-* ``'distance'`` / ``'time'``: a track ends after ``track_length_m`` of travel or
-  ``track_duration_s`` of time;
+  ``swaths`` swaths a track;
+* ``'distance'`` / ``'time'``: a track ends after ``length_m`` of travel or ``duration_s`` of
+  time;
 * ``'external'``: only on request (:meth:`TrackSegmenter.request_boundary`, honoured in every
   mode).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.errors import InputError
 
 TRACK_MODES = ('none', 'frames', 'heading', 'distance', 'time', 'external')
@@ -29,40 +32,83 @@ TRACK_MODES = ('none', 'frames', 'heading', 'distance', 'time', 'external')
 
 @dataclass(frozen=True)
 class TrackRules:
-    """When a new track starts.
+    """When a new track starts: the ``track`` settings of every keyframe source (parameters
+    ``track.<field>`` of the VO, ``<input>.track.<field>`` of an odometry input).
 
     Attributes
     ----------
-    track_mode : one of ``'none'``, ``'frames'``, ``'heading'``, ``'distance'``, ``'time'``,
+    mode : ``'none'`` (one track), ``'frames'``, ``'heading'``, ``'distance'``, ``'time'`` or
         ``'external'`` (see the module doc).
-    keyframes_per_track : keyframes per track in ``'frames'`` mode.
-    swaths_per_track : swaths per track in ``'heading'`` mode.
+    keyframes : keyframes per track in ``'frames'`` mode.
+    swaths : swaths per track in ``'heading'`` mode (a track is a double swath with 2).
     heading_reversal_deg : turn of the travel direction that ends a swath (deg).
-    heading_min_step_m : travel between keyframes below which the direction is not updated (m;
-        a hovering platform does not start swaths).
-    track_length_m : travel (m, along the keyframe positions) per track in ``'distance'`` mode.
-    track_duration_s : time (s) per track in ``'time'`` mode.
+    heading_min_step_m : travel between keyframes below which the travel direction is not
+        updated (m; a hovering platform does not start swaths). The VO replaces it by a
+        fraction of the scene depth (``VoConfig.heading_min_step_depth_ratio``) unless that is 0.
+    length_m : travel (m, along the keyframe positions) per track in ``'distance'`` mode.
+    duration_s : time (s) per track in ``'time'`` mode.
     """
 
-    track_mode: str = 'heading'
-    keyframes_per_track: int = 0
-    swaths_per_track: int = 2
-    heading_reversal_deg: float = 135.0
-    heading_min_step_m: float = 2.0
-    track_length_m: float = 0.0
-    track_duration_s: float = 0.0
+    mode: str = 'none'
+    keyframes: int = ranged(0, 0, 1_000_000)
+    swaths: int = ranged(2, 1, 1000)
+    heading_reversal_deg: float = ranged(135.0, 0.0, 180.0)
+    heading_min_step_m: float = ranged(0.5, 0.0, 1e6)
+    length_m: float = ranged(0.0, 0.0, 1e9)
+    duration_s: float = ranged(0.0, 0.0, 1e9)
+
+    #: Former flat names of these settings in the enclosing config (``odom0.track_mode``):
+    #: ``{former name: field}``; a former name is refused with the new one
+    #: (:func:`refuse_former_names`).
+    FORMER_NAMES: ClassVar[dict[str, str]] = {
+        'track_mode': 'mode', 'keyframes_per_track': 'keyframes',
+        'swaths_per_track': 'swaths', 'heading_reversal_deg': 'heading_reversal_deg',
+        'heading_min_step_m': 'heading_min_step_m', 'track_length_m': 'length_m',
+        'track_duration_s': 'duration_s'}
 
     def __post_init__(self) -> None:
-        if self.track_mode not in TRACK_MODES:
-            raise InputError(f'unknown track_mode {self.track_mode!r}; use one of {TRACK_MODES}')
-        if self.track_mode == 'frames' and self.keyframes_per_track < 1:
-            raise InputError('track_mode "frames" needs keyframes_per_track >= 1')
-        if self.track_mode == 'distance' and not self.track_length_m > 0:
-            raise InputError('track_mode "distance" needs track_length_m > 0')
-        if self.track_mode == 'time' and not self.track_duration_s > 0:
-            raise InputError('track_mode "time" needs track_duration_s > 0')
-        if self.swaths_per_track < 1:
-            raise InputError('swaths_per_track must be >= 1')
+        if self.mode not in TRACK_MODES:
+            raise InputError(f'unknown track.mode {self.mode!r}; use one of {TRACK_MODES}')
+        check_ranges(self)
+        if self.mode == 'frames' and self.keyframes < 1:
+            raise InputError('track.mode "frames" needs track.keyframes >= 1')
+        if self.mode == 'distance' and not self.length_m > 0:
+            raise InputError('track.mode "distance" needs track.length_m > 0')
+        if self.mode == 'time' and not self.duration_s > 0:
+            raise InputError('track.mode "time" needs track.duration_s > 0')
+
+    @classmethod
+    def from_mapping(cls, values: object, where: str = 'track') -> TrackRules:
+        """The rules of a ``track:`` mapping of a settings file (``where`` names it in errors).
+
+        Raises
+        ------
+        InputError
+            Not a mapping, an unknown key or an invalid value.
+        """
+        if not isinstance(values, Mapping):
+            raise InputError(f'{where}: expected a mapping of track settings, got {values!r}')
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise InputError(f'{where}: unknown track settings {unknown}; known: {sorted(known)}')
+        return cls(**dict(values))
+
+
+def refuse_former_names(names: Iterable[str], prefix: str = '', field_name: str = 'track') -> None:
+    """Refuse a former flat track setting among parameter ``names`` (``prefix`` + former name,
+    e.g. ``odom0.track_mode``), naming its new place (``odom0.track.mode``).
+
+    Raises
+    ------
+    InputError
+        A former name is present.
+    """
+    for name in names:
+        old = name[len(prefix):] if name.startswith(prefix) else None
+        if old in TrackRules.FORMER_NAMES:
+            raise InputError(f'parameter {name} was renamed to '
+                             f'{prefix}{field_name}.{TrackRules.FORMER_NAMES[old]}')
 
 
 class TrackSegmenter:
@@ -116,20 +162,20 @@ class TrackSegmenter:
         if self._pending:
             self._pending = False
             new = True
-        elif rules.track_mode == 'frames' and self._frames > rules.keyframes_per_track:
+        elif rules.mode == 'frames' and self._frames > rules.keyframes:
             new = True
-        elif rules.track_mode == 'distance' and self._length_m > rules.track_length_m:
+        elif rules.mode == 'distance' and self._length_m > rules.length_m:
             new = True
-        elif (rules.track_mode == 'time'
-              and (int(stamp_ns) - self._start_ns) * 1e-9 > rules.track_duration_s):
+        elif (rules.mode == 'time'
+              and (int(stamp_ns) - self._start_ns) * 1e-9 > rules.duration_s):
             new = True
-        elif rules.track_mode == 'heading':
+        elif rules.mode == 'heading':
             step_m = rules.heading_min_step_m if min_step_m is None else float(min_step_m)
             if self._heading_reversed(xyz[:2], step_m):
                 self._swath += 1
                 self.segment += 1
                 self._start_xy, self._ref_dir = xyz[:2], None
-                if self._swath % rules.swaths_per_track == 0:
+                if self._swath % rules.swaths == 0:
                     self.track_id += 1
                     return True
                 return False

@@ -66,7 +66,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.tracks import TrackRules, TrackSegmenter
+from ga_ros.core.tracks import TrackRules, TrackSegmenter, refuse_former_names
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.noise import NoiseModel
@@ -93,14 +93,8 @@ class OdometryInputConfig:
     keyframe_travel_m : new keyframe after this travel from the last one (m; 0: off).
     keyframe_rotation_deg : new keyframe after this rotation (deg; 0: off).
     keyframe_interval_s : new keyframe after this time (s; 0: off).
-    track_mode : ``'none'``, ``'frames'``, ``'heading'``, ``'distance'``, ``'time'`` or
-        ``'external'`` (:class:`ga_ros.core.tracks.TrackRules`).
-    keyframes_per_track : keyframes per track in ``'frames'`` mode.
-    swaths_per_track : swaths per track in ``'heading'`` mode.
-    heading_reversal_deg : turn of the travel direction that ends a swath (deg).
-    heading_min_step_m : travel below which the travel direction is not updated (m).
-    track_length_m : travel per track in ``'distance'`` mode (m).
-    track_duration_s : time per track in ``'time'`` mode (s).
+    track : track boundaries (parameters ``<name>.track.<field>``,
+        :class:`ga_ros.core.tracks.TrackRules`; default one track, ``mode`` ``'none'``).
     constraint_tolerance_s : largest time between a constraint's stamp and its keyframe (s).
     history_s : odometry kept for interpolating constraint stamps (s).
     max_gap_s : a further (secondary) input: largest interval between two of its samples
@@ -120,13 +114,7 @@ class OdometryInputConfig:
     keyframe_travel_m: float = 1.0
     keyframe_rotation_deg: float = 15.0
     keyframe_interval_s: float = 0.0
-    track_mode: str = 'none'
-    keyframes_per_track: int = 0
-    swaths_per_track: int = 2
-    heading_reversal_deg: float = 135.0
-    heading_min_step_m: float = 0.5
-    track_length_m: float = 0.0
-    track_duration_s: float = 0.0
+    track: TrackRules = TrackRules()
     constraint_tolerance_s: float = 2.0
     history_s: float = 600.0
     max_gap_s: float = 1.0
@@ -145,7 +133,9 @@ class OdometryInputConfig:
         if min(self.default_sigma_floor_m, self.default_sigma_floor_rad) <= 0:
             raise InputError(f'{self.name}: default sigma floors must be > 0')
         self.noise_model()
-        self.track_rules()
+        if not isinstance(self.track, TrackRules):
+            raise InputError(f'{self.name}: track must be a TrackRules, got '
+                             f'{type(self.track).__name__}')
 
     @classmethod
     def from_mapping(cls, name: str, values: Mapping[str, object]) -> OdometryInputConfig:
@@ -157,18 +147,20 @@ class OdometryInputConfig:
             An unknown key (a typo would otherwise be ignored) or an invalid value.
         """
         known = {f.name: f.default for f in fields(cls) if f.name != 'name'}
+        refuse_former_names([f'{name}.{k}' for k in values], f'{name}.')
         unknown = sorted(set(values) - set(known))
         if unknown:
             raise InputError(f'{name}: unknown input settings {unknown}; known: {sorted(known)}')
         for key, value in values.items():
             _check_setting(f'{name}.{key}', value, known[key])
-        return cls(name=str(name), **dict(values))
-
-    def track_rules(self) -> TrackRules:
-        """The track-boundary part of this config."""
-        return TrackRules(self.track_mode, self.keyframes_per_track, self.swaths_per_track,
-                          self.heading_reversal_deg, self.heading_min_step_m,
-                          self.track_length_m, self.track_duration_s)
+        values = dict(values)
+        if 'track' in values:
+            track = values['track']
+            if isinstance(track, Mapping):
+                for key, value in track.items():
+                    _check_setting(f'{name}.track.{key}', value, getattr(TrackRules(), key, None))
+            values['track'] = TrackRules.from_mapping(track, f'{name}.track')
+        return cls(name=str(name), **values)
 
     def noise_model(self) -> NoiseModel:
         """The paper's noise model behind the default covariance."""
@@ -328,7 +320,7 @@ class OdometryInput:
 
     def __init__(self, config: OdometryInputConfig = OdometryInputConfig()) -> None:
         self.config = config
-        self.segmenter = TrackSegmenter(config.track_rules())
+        self.segmenter = TrackSegmenter(config.track)
         self._next_id = int(config.first_node_id)
         self._stamps: list[int] = []
         self._poses: list[FloatArray] = []

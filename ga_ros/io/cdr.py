@@ -6,7 +6,7 @@ bytes written with numpy take milliseconds. ``Publisher.publish`` accepts them a
 (rclpy publishes ``bytes`` raw). The layout is plain CDR (XCDR1, little endian, the
 encapsulation header ``00 01 00 00``): every primitive aligned to its size from the start of
 the payload; checked byte for byte against ``rclpy.serialization.serialize_message`` in
-``test/test_path_outputs.py``.
+``test/ros/test_path_outputs.py``.
 
 ROS-free (no rclpy import).
 """

@@ -216,11 +216,12 @@ class FixFeeder:
         """Queue fixes for :meth:`flush`."""
         self.waiting.extend(fixes)
 
-    def flush(self, aligner: Any) -> list[str]:
+    def flush(self, aligner: Any, anchored: Callable[[int], Any] | None = None) -> list[str]:
         """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
         :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them) the queued
         fixes whose node it has; returns the messages of the ones it refused (counted there by
-        reason)."""
+        reason). ``anchored`` is called with the node id of each fix taken (the session's
+        :meth:`~ga_ros.core.gaps.GapHealer.anchor`: a fix joins the piece of its node)."""
         add = getattr(aligner, 'add_fix', None)
         if add is None or not self.waiting:
             return []
@@ -234,6 +235,9 @@ class FixFeeder:
                 add(f.term, f.C_offset)
             except InputError as exc:
                 errors.append(str(exc))
+                continue
+            if anchored is not None:
+                anchored(int(f.term.node_id))
         self.waiting = wait
         return errors
 

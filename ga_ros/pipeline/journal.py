@@ -43,16 +43,16 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.gaps import reversed_measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 
-#: Record kinds: measurements (:class:`Measurement`'s ``kind``), then the two of a fix.
-_KINDS = ('consecutive', 'cross', 'fix', 'fix_sensor')
-_FIX, _FIX_SENSOR = 2, 3
+#: Record kinds of an absolute fix (module doc): beyond the measurement kinds, no flag bits.
+_FIX, _FIX_SENSOR = 0x3E, 0x3F
 #: What the journal holds, in order: measurements and absolute fixes.
 Entry = Measurement | FixTerm
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
@@ -65,6 +65,12 @@ _MAGIC = b'GAJOURNAL2\n'
 _MAGIC_V1 = b'GAJOURNAL1\n'
 _PAYLOAD = RECORD_V1.itemsize
 _KIND_AT = RECORD.fields['kind'][1]
+#: Bit of the kind byte set on a measurement that was *held* (its source node was unknown, see
+#: :mod:`ga_ros.core.gaps`), not yet taken by the aligner; the low bits index :data:`KINDS`.
+HELD = 0x80
+#: Bit of the kind byte set on a measurement the aligner took *reversed*
+#: (:func:`~ga_ros.core.gaps.reversed_measurement`): the record holds it as it arrived.
+REVERSED = 0x40
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -108,12 +114,25 @@ def _crc(records: np.ndarray) -> np.ndarray:
                        dtype=np.uint32, count=records.shape[0])
 
 
-def encode_records(ms: list[Measurement]) -> bytes:
-    """The journal records of ``ms`` (with their checksums), ready to append."""
+_KIND_MASK = 0x3F
+
+
+def _kind_ok(kind: np.ndarray | int) -> np.ndarray | bool:
+    return ((kind & _KIND_MASK) < len(KINDS)) | (kind == _FIX) | (kind == _FIX_SENSOR)
+
+
+def _is_fix(kind: np.ndarray) -> np.ndarray:
+    """Which records are the two of an absolute fix (bool per record)."""
+    return np.isin(np.asarray(kind), (_FIX, _FIX_SENSOR))
+
+
+def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
+    """The journal records of ``ms`` (with their checksums), ready to append; ``flags``:
+    :data:`HELD` and / or :data:`REVERSED`, or 0."""
     rec = np.zeros(len(ms), RECORD)
     for name in ('src_id', 'dst_id', 'src_track', 'dst_track', 'stamp_ns'):
         rec[name] = [getattr(m, name) for m in ms]
-    rec['kind'] = [_KINDS.index(m.kind) for m in ms]
+    rec['kind'] = [KINDS.index(m.kind) | flags for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
     return _with_crc(rec)
@@ -185,7 +204,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         n = len(body) // _PAYLOAD
         recs = np.frombuffer(body, RECORD_V1, count=n).copy()
         scan.torn_tail = len(body) - n * _PAYLOAD
-        good = recs['kind'] < len(_KINDS)
+        good = _kind_ok(recs['kind'])
     else:
         if head != _MAGIC:
             scan.header_ok = False
@@ -197,7 +216,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         scan.torn_tail = len(body) - n * RECORD.itemsize
         raw = np.frombuffer(body, np.uint8, count=n * RECORD.itemsize).reshape(
             n, RECORD.itemsize)
-        good = (_crc(raw) == full['crc']) & (full['kind'] < len(_KINDS))
+        good = (_crc(raw) == full['crc']) & _kind_ok(full['kind'])
         if good.all():
             recs = np.frombuffer(raw[:, :_PAYLOAD].tobytes(), RECORD_V1, count=n).copy()
         else:  # damage: walk the file, re-synchronising on the next record that verifies
@@ -222,7 +241,7 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
 
 def _record_ok(body: bytes, offset: int) -> bool:
     end = offset + RECORD.itemsize
-    if end > len(body) or body[offset + _KIND_AT] >= len(_KINDS):
+    if end > len(body) or not _kind_ok(body[offset + _KIND_AT]):
         return False
     return zlib.crc32(body[offset:offset + _PAYLOAD]) == int.from_bytes(
         body[offset + _PAYLOAD:end], 'little')
@@ -247,18 +266,21 @@ def _resync(body: bytes) -> tuple[list[int], int, int]:
     return offsets, skipped, len(body) - pos
 
 
-def records_to_entries(recs: np.ndarray) -> list[Entry]:
+def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
     """Journal records (structured array) as measurements and fixes (:class:`FixTerm`), in
-    order; a ``fix`` record without its ``fix_sensor`` record (or the reverse) is skipped."""
+    order; a ``fix`` record without its ``fix_sensor`` record (or the reverse) is skipped. The
+    measurements as they arrived, or as the aligner took them if ``taken`` (:func:`as_taken`).
+    """
     kinds = recs['kind']
-    fix_at = np.flatnonzero(kinds >= _FIX)
+    fix_at = np.flatnonzero(_is_fix(kinds))
+    convert = as_taken if taken else records_to_measurements
     if fix_at.size == 0:
-        return records_to_measurements(recs)
+        return convert(recs)
     out: list[Entry] = []
     start = 0
     for k in fix_at.tolist():
         if k > start:
-            out += records_to_measurements(recs[start:k])
+            out += convert(recs[start:k])
         start = k + 1
         if kinds[k] != _FIX or k + 1 >= kinds.size or kinds[k + 1] != _FIX_SENSOR:
             continue
@@ -275,18 +297,82 @@ def records_to_entries(recs: np.ndarray) -> list[Entry]:
         out.append(FixTerm(int(a['src_id']),
                            se3.from_translation_rotvec(a['z'][:3], a['z'][3:]), fix))
     if start < kinds.size:
-        out += records_to_measurements(recs[start:])
+        out += convert(recs[start:])
     return out
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
-    """Journal records (structured array, measurement records only) as :class:`Measurement`
-    objects, in order."""
+    """Journal records (structured array) as :class:`Measurement` objects, in order, as they
+    arrived (held or not: :func:`held_records`; reversed by the aligner or not:
+    :func:`as_taken`)."""
     cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
                                        'stamp_ns', 'kind')]
     z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
-    return [Measurement(a, b, c, d, z[k], cov[k], e, _KINDS[f])
+    return [Measurement(a, b, c, d, z[k], cov[k], e, KINDS[f & _KIND_MASK])
             for k, (a, b, c, d, e, f) in enumerate(zip(*cols))]
+
+
+def held_records(recs: np.ndarray) -> np.ndarray:
+    """Which journal records are held measurements (bool per record)."""
+    return (np.asarray(recs['kind']) & HELD) != 0
+
+
+def as_taken(recs: np.ndarray) -> list[Measurement]:
+    """Journal records as the aligner took them (those marked :data:`REVERSED` reversed)."""
+    rev = ((np.asarray(recs['kind']) & REVERSED) != 0).tolist()
+    return [reversed_measurement(m) if r else m
+            for m, r in zip(records_to_measurements(recs), rev)]
+
+
+def reversed_records(recs: np.ndarray) -> list[Measurement]:
+    """The measurements (as they arrived) that the aligner took reversed."""
+    return records_to_measurements(recs[(np.asarray(recs['kind']) & REVERSED) != 0])
+
+
+@dataclass
+class HeldQueue:
+    """The held measurements of a journal that no later record admitted.
+
+    Attributes
+    ----------
+    held : ``(measurement, arrival number)`` in order.
+    arrivals : measurements held or taken on arrival (the healer's arrival count).
+    newest_stamp_ns : the newest stamp of those arrivals.
+    """
+
+    held: list[tuple[Measurement, int]] = field(default_factory=list)
+    arrivals: int = 0
+    newest_stamp_ns: int = -2**63
+
+
+def held_queue(recs: np.ndarray) -> HeldQueue:
+    """The held queue to restore after a restart: the held records that no later record
+    admitted (matched by nodes and stamp), with their arrival numbers."""
+    held = held_records(recs)
+    bridge = (recs['kind'] & _KIND_MASK) == KINDS.index('bridge')
+    src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
+    pending: dict[tuple[int, int, int], list[int]] = {}
+    seq: dict[int, int] = {}
+    out = HeldQueue()
+    for k in range(len(held)):
+        key = (src[k], dst[k], stamp[k])
+        if bridge[k]:
+            continue
+        if held[k]:
+            pending.setdefault(key, []).append(k)
+        else:
+            done = pending.get(key)
+            if done:  # a held measurement taken later: not an arrival
+                seq.pop(done.pop(0))
+                continue
+        out.arrivals += 1
+        out.newest_stamp_ns = max(out.newest_stamp_ns, stamp[k])
+        if held[k]:
+            seq[k] = out.arrivals
+    rows = sorted(seq)
+    ms = records_to_measurements(recs[np.array(rows, dtype=np.int64)])
+    out.held = [(m, seq[k]) for m, k in zip(ms, rows)]
+    return out
 
 
 class MeasurementJournal:
@@ -343,14 +429,15 @@ class MeasurementJournal:
         if self._fd is None:
             self._open()
 
-    def append(self, m: Measurement) -> None:
-        """Write one record to the OS at once (survives a killed process)."""
-        self.append_many([m])
+    def append(self, m: Measurement, flags: int = 0) -> None:
+        """Write one record to the OS at once (survives a killed process); ``flags``:
+        :data:`HELD` (not taken by the aligner), :data:`REVERSED` (taken reversed), or 0."""
+        self.append_many([m], flags)
 
-    def append_many(self, ms: list[Measurement]) -> None:
+    def append_many(self, ms: list[Measurement], flags: int = 0) -> None:
         """Write several records in one system call."""
         if ms:
-            self._write(encode_records(ms), len(ms))
+            self._write(encode_records(ms, flags), len(ms))
 
     def append_fix(self, term: FixTerm) -> None:
         """Write the two records of an absolute fix (:func:`encode_fix`) in one system call."""
@@ -452,6 +539,10 @@ class RecoveryResult:
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
     seconds : wall time of the recovery.
+    held : the held measurements of the journal that were never admitted (the held queue of
+        :class:`~ga_ros.core.gaps.GapHealer` to restore).
+    bridges : ``(from_id, to_id)`` of every bridge in the journal.
+    reversed : the measurements (as they arrived) that the aligner took reversed.
     snapshot_refused : the state file is not a ga_ros state but a journal with intact records
         is beside it: the state was rebuilt from the journal, the file left untouched, and no
         snapshot may be written there.
@@ -466,6 +557,9 @@ class RecoveryResult:
     moved_aside: list[Path] = field(default_factory=list)
     messages: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    held: HeldQueue = field(default_factory=HeldQueue)
+    bridges: list[tuple[int, int]] = field(default_factory=list)
+    reversed: list[Measurement] = field(default_factory=list)
     snapshot_refused: bool = False
 
 
@@ -546,9 +640,15 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         aligner = out.aligner
         tail = records
         out.source = 'journal' if records.size else 'empty'
+    out.held = held_queue(records[~_is_fix(records['kind'])])  # measurements only
+    bridge = records['kind'] & _KIND_MASK == KINDS.index('bridge')
+    out.bridges = list(zip(records['src_id'][bridge].tolist(),
+                           records['dst_id'][bridge].tolist()))
+    out.reversed = reversed_records(records)
+    tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
-        out.records_replayed, out.records_rejected = replay_entries(aligner,
-                                                                    records_to_entries(tail))
+        out.records_replayed, out.records_rejected = replay_entries(
+            aligner, records_to_entries(tail, taken=True))
         if out.source == 'snapshot':
             out.source = 'snapshot+journal'
     out.aligner = aligner

@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from ga_ros.core.tracks import TrackRules, refuse_former_names
 from ga_ros.errors import InputError
 
 C = TypeVar('C')
@@ -77,7 +78,9 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
     Raises
     ------
     InputError
-        A value of the wrong type, or one the dataclass rejects.
+        A value of the wrong type, one the dataclass rejects (a value outside a field's
+        ``metadata['range']``: :func:`ga_ros.core.config_ranges.range_message`), or a former
+        flat track setting (``odom0.track_mode``, now ``odom0.track.mode``).
     """
     base = cls() if base is None else base
     values, used = {}, set()
@@ -85,6 +88,8 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
         name = prefix + f.name
         nested = getattr(base, f.name)
         if is_dataclass(nested):
+            if isinstance(nested, TrackRules):
+                refuse_former_names(params, prefix, f.name)
             values[f.name], inner = config_from_params(type(nested), params, name + '.', nested)
             used |= inner
         elif name in params:
@@ -92,6 +97,8 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
             used.add(name)
     try:
         return replace(base, **values), used  # type: ignore[type-var]
+    except InputError:
+        raise  # the dataclass's own words (a range: the same as the node's)
     except (TypeError, ValueError) as exc:
         raise InputError(f'bad {cls.__name__} parameters: {exc}') from exc
 

@@ -1,10 +1,13 @@
 """The alignment session: one ROS-free object that the alignment node and the replay both drive.
 
-It owns the :class:`~ga_ros.core.window.TrackWindowAligner`, the rejection counters (keyed by
-the typed :class:`~ga_ros.errors.Reason` of each rejection), the crash insurance (measurement
-journal + snapshots, :mod:`ga_ros.pipeline.journal`) and the diagnostic values. One call per
-measurement: :meth:`AlignmentSession.step` ``(measurement) -> StepOutput``. The node turns
-messages into measurements and :class:`StepOutput` into messages; nothing else.
+It owns the :class:`~ga_ros.core.window.TrackWindowAligner`, the gap healer
+(:class:`~ga_ros.core.gaps.GapHealer`: measurements whose source node is unknown are held, read
+backwards or bridged instead of rejected), the rejection counters (keyed by the typed
+:class:`~ga_ros.errors.Reason` of each rejection), the crash insurance (measurement journal +
+snapshots, :mod:`ga_ros.pipeline.journal`; held measurements and bridges are journaled too) and
+the diagnostic values. One call per measurement: :meth:`AlignmentSession.step`
+``(measurement) -> StepOutput``. The node turns messages into measurements and
+:class:`StepOutput` into messages; nothing else.
 """
 
 from __future__ import annotations
@@ -20,11 +23,21 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
+from ga_ros.core.gaps import (
+    Bridge,
+    GapConfig,
+    GapHealer,
+    Route,
+    fingerprint,
+    reversed_measurement,
+)
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import save_state
 from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverError
 from ga_ros.pipeline.journal import (
+    HELD,
+    REVERSED,
     MeasurementJournal,
     RecoveryResult,
     clear_state,
@@ -55,6 +68,8 @@ class SessionConfig:
     fsync_period_sec : durability of the journal. Every record is written to the OS at once
         (a killed process loses nothing); it is also ``fsync``-ed to disk (a power cut loses
         nothing) after every measurement if 0, else at most every this many seconds.
+    gaps : how measurements whose source node is unknown wait and are bridged
+        (:class:`~ga_ros.core.gaps.GapConfig`).
     state_required : a state file that cannot be used at start (its directory is a file, is
         read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
         running without persistence.
@@ -63,6 +78,7 @@ class SessionConfig:
     state_file: str = ''
     autosave: bool = True
     fsync_period_sec: float = 1.0
+    gaps: GapConfig = GapConfig()
     state_required: bool = False
 
 
@@ -72,13 +88,19 @@ class StepOutput:
 
     Attributes
     ----------
-    accepted : the aligner took the measurement.
+    accepted : the aligner took the measurement, or it is held until its source node is known
+        (``held``); False: rejected.
     updates : window updates it triggered (a track end), in order.
     reason : why it was rejected (None when accepted or when the solver failed).
     error : message of the rejection (the error's text) or of the failure (``'<Type>: text'``);
         '' when accepted.
     solver_failed : a window update raised; the previous estimate stands.
-    notes : warnings about the updates (failed or unconverged updates, autosave failures).
+    notes : warnings about the updates (failed or unconverged updates, autosave failures) and
+        about held measurements rejected when they were finally tried.
+    held : the measurement waits in the held queue (its source node is not known yet).
+    admitted : every measurement the aligner took during this step, in order: this one (read
+        backwards if its source was unknown and its destination known), held ones whose gap was
+        filled, and bridges (kind ``'bridge'``).
     """
 
     accepted: bool
@@ -87,6 +109,8 @@ class StepOutput:
     error: str = ''
     solver_failed: bool = False
     notes: tuple[str, ...] = ()
+    held: bool = False
+    admitted: tuple[Measurement, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -118,6 +142,17 @@ class _Counters:
     persistence_errors: int = 0
     callback_seconds: float = 0.0
     callback_count: int = 0
+    bridges: int = 0
+    reversed: int = 0
+
+
+@dataclass
+class _Taken:
+    """What the aligner did during one step (several measurements with held ones)."""
+
+    updates: list = field(default_factory=list)
+    admitted: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
 
 class AlignmentSession:
@@ -139,6 +174,7 @@ class AlignmentSession:
         self.session = session or SessionConfig()
         self.warn: Warn = warn or (lambda text: None)
         self.aligner = aligner if aligner is not None else TrackWindowAligner(self.config)
+        self.gaps = GapHealer(self.session.gaps)
         self.counts = _Counters()
         self.last_update: Any = None
         self.last_error = ''
@@ -154,29 +190,40 @@ class AlignmentSession:
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
-        """Add one measurement to the aligner (and the journal).
+        """Add one measurement to the aligner (and the journal), or hold it until its source
+        node is known (:mod:`ga_ros.core.gaps`).
 
         Never raises on bad input: a rejection is counted by reason and returned; a failing
         window update is counted and returned (the aligner keeps its previous estimate).
         """
         t0 = time.perf_counter()
         self.counts.received += 1
+        gaps = self.gaps
+        route = gaps.route(m)
+        if route in (Route.HOPELESS, Route.DUPLICATE):
+            exc = _refused(m, route)
+            return StepOutput(False, reason=self.reject(exc), error=str(exc))
+        taken = _Taken()
+        if route is Route.HOLD:
+            gaps.hold(m)
+            self._journal(m, HELD)
+            if gaps.overdue():
+                self._drain(taken)
+            return self._output(taken, True, held=True)
         try:
-            updates = self.aligner.add_measurement(m)
+            self._take(m, taken, route is Route.REVERSE)
         except InputError as exc:
             return StepOutput(False, reason=self.reject(exc), error=str(exc))
         except GaError as exc:  # a failed window update: the previous estimate stands
             self.solver_failed(exc)
             return StepOutput(False, error=f'{type(exc).__name__}: {exc}', solver_failed=True)
-        self.counts.accepted += 1
-        if self.journal is not None:
-            self._journal(m)
-        done = tuple(u for u in updates if u is not None)
-        if done:
-            return StepOutput(True, done, notes=tuple(self.after_updates(done)))
-        self.counts.callback_seconds += time.perf_counter() - t0
-        self.counts.callback_count += 1
-        return StepOutput(True)
+        gaps.arrived(m)
+        if gaps.held:
+            self._drain(taken)
+        if not taken.updates:
+            self.counts.callback_seconds += time.perf_counter() - t0
+            self.counts.callback_count += 1
+        return self._output(taken, True)
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
         """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the journal
@@ -204,16 +251,103 @@ class AlignmentSession:
         """The aligner's newest node (``None`` before the first measurement)."""
         return self.aligner.newest_node_id
 
-    def _journal(self, m: Measurement) -> None:
-        """Append an accepted measurement to the journal. A write failure (full disk, read-only
-        file system, I/O error) is counted and warned about; the measurement stays accepted and
-        applied (the estimate is complete, only the crash insurance misses it)."""
+    def flush_gaps(self) -> StepOutput:
+        """Admit every held measurement now, bridging the gaps that are still open (the track
+        or the stream ends; :meth:`finish_track` calls it first)."""
+        taken = _Taken()
+        self._drain(taken, flush=True)
+        return self._output(taken, True)
+
+    def _output(self, taken: _Taken, accepted: bool, held: bool = False) -> StepOutput:
+        done = tuple(u for u in taken.updates if u is not None)
+        notes = tuple(taken.notes) + (tuple(self.after_updates(done)) if done else ())
+        return StepOutput(accepted, done, notes=notes, held=held,
+                          admitted=tuple(taken.admitted))
+
+    def _journal(self, m: Measurement, flags: int = 0) -> None:
+        """Append a measurement to the journal (``flags``: :data:`HELD`, :data:`REVERSED`). A
+        write failure (full disk, read-only file system, I/O error) is counted and warned about;
+        the measurement stays accepted and applied (the estimate is complete, only the crash
+        insurance misses it)."""
+        if self.journal is None:
+            return
         try:
-            self.journal.append(m)
+            self.journal.append(m, flags)
             self.sync()
         except OSError as exc:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
+
+    def _take(self, m: Measurement, taken: _Taken, reverse: bool = False) -> None:
+        """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
+        noted by the healer); raises what the aligner raises."""
+        m_in = reversed_measurement(m) if reverse else m
+        taken.updates += self.aligner.add_measurement(m_in)
+        if m.kind == 'bridge':
+            self.counts.bridges += 1
+        else:
+            self.counts.accepted += 1
+        if reverse:
+            self.counts.reversed += 1
+            self.gaps.reversed.add(fingerprint(m))
+        self.gaps.admitted(m_in)
+        self._journal(m, REVERSED if reverse else 0)
+        taken.admitted.append(m_in)
+
+    def _drain(self, taken: _Taken, flush: bool = False) -> None:
+        """Admit the held measurements that became admissible, in their order, pass after pass
+        while one does; then, while the first one still stuck has waited too long
+        (:meth:`~ga_ros.core.gaps.GapHealer.overdue`; ``flush``: whatever its wait), bridge it
+        and go on."""
+        gaps = self.gaps
+        while gaps.held:
+            if self._pass(taken):
+                continue
+            if not (flush or gaps.overdue()):
+                return
+            h = gaps.held[0].m
+            bridge = gaps.bridge_to(h) if gaps.route(h, front=True) is Route.HOLD else None
+            if bridge is not None:
+                try:
+                    self._take(bridge, taken)
+                except GaError as exc:
+                    taken.notes.append(f'bridge to node {h.src_id} refused: {exc}')
+                else:
+                    continue
+            gaps.held.popleft()
+            exc = _unknown_source(h)
+            self.reject(exc)
+            taken.notes.append(f'held measurement rejected: {exc}')
+
+    def _pass(self, taken: _Taken) -> bool:
+        """One pass over the held queue: admits (or rejects) every measurement whose route is no
+        longer ``HOLD``, in order; returns whether any left the queue."""
+        gaps = self.gaps
+        kept = []
+        progress = False
+        while gaps.held:
+            item = gaps.held.popleft()
+            h = item.m
+            route = gaps.route(h, front=not kept)
+            if route is Route.HOLD:
+                kept.append(item)
+                continue
+            progress = True
+            if route in (Route.HOPELESS, Route.DUPLICATE):
+                exc = _refused(h, route)
+                self.reject(exc)
+                taken.notes.append(f'held measurement rejected: {exc}')
+                continue
+            try:
+                self._take(h, taken, route is Route.REVERSE)
+            except InputError as exc:
+                self.reject(exc)
+                taken.notes.append(f'held measurement rejected: {exc}')
+            except GaError as exc:
+                self.solver_failed(exc)
+                taken.notes.append(f'held measurement: {type(exc).__name__}: {exc}')
+        gaps.held.extend(kept)
+        return progress
 
     def persistence_failed(self, text: str) -> None:
         """Count a failed journal or snapshot write and warn; the node goes on."""
@@ -281,6 +415,7 @@ class AlignmentSession:
         SolverError
             The update failed (counted; the previous estimate stands).
         """
+        flushed = self.flush_gaps()
         try:
             update = self.aligner.finish_track()
         except SolverError as exc:
@@ -288,7 +423,7 @@ class AlignmentSession:
             raise
         if update is not None:
             self.after_updates((update,))
-        return update
+        return update if update is not None or not flushed.updates else flushed.updates[-1]
 
     def reset(self) -> None:
         """Forget everything: a fresh aligner, zero counters, and (autosave) emptied state files.
@@ -304,6 +439,7 @@ class AlignmentSession:
             self.journal = MeasurementJournal(journal_path(self.session.state_file))
         self._close_aligner()
         self.aligner = TrackWindowAligner(self.config)
+        self.gaps = GapHealer(self.session.gaps)
         self.counts = _Counters()
         self.last_update, self.last_error = None, ''
 
@@ -383,6 +519,7 @@ class AlignmentSession:
         if result.source == 'empty':
             raise InputError(f'no state in {path!r}')
         self.aligner = result.aligner
+        self._rebuild_gaps(result)
         return _how(result)
 
     def resume(self) -> str | None:
@@ -401,6 +538,7 @@ class AlignmentSession:
         except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
             return self._without_persistence(exc)
         self.aligner = result.aligner
+        self._rebuild_gaps(result)
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
@@ -423,6 +561,24 @@ class AlignmentSession:
         self.persistence_off = bounded(text)
         self.warn(f'{text}; running WITHOUT persistence (a crash loses the state)')
         return f'failed: {exc}'
+
+    def _rebuild_gaps(self, result: RecoveryResult) -> None:
+        """The healer of a restored aligner: its nodes and real connections (the journal's
+        bridges excepted), and the held measurements the journal still holds."""
+        self.gaps = GapHealer(self.session.gaps)
+        self.gaps.bridges = [Bridge(a, b, float('nan'), float('nan'), float('nan'))
+                             for a, b in result.bridges]
+        if result.source != 'empty':
+            cp = self.aligner.corrected_path()
+            src, dst, z, cross = self.aligner.connection_arrays()[:4]
+            pairs = set(result.bridges)
+            kinds = ['bridge' if p in pairs else ('cross' if c else 'consecutive')
+                     for p, c in zip(zip(src.tolist(), dst.tolist()), cross.tolist())]
+            self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
+        self.gaps.reversed = {fingerprint(m) for m in result.reversed}
+        for m, seq in result.held.held:
+            self.gaps.hold(m, seq)
+        self.gaps.restore_waits(result.held.arrivals, result.held.newest_stamp_ns)
 
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
@@ -450,6 +606,11 @@ class AlignmentSession:
         if open_track is None:
             return 0
         return int(np.count_nonzero(self.aligner.corrected_path().track_ids == open_track))
+
+    def unjoined(self, node_ids: Any) -> Any:
+        """Per node id: True if the node hangs off a bridge, not yet joined to the datum or to
+        an absolute fix by a real connection (:meth:`~ga_ros.core.gaps.GapHealer.unjoined`)."""
+        return self.gaps.unjoined(np.asarray(node_ids, dtype=np.int64))
 
     def n_nodes(self) -> int:
         """Nodes held by the aligner."""
@@ -480,6 +641,10 @@ class AlignmentSession:
             'measurements_accepted': c.accepted,
             'measurement_callback_us': (1e6 * c.callback_seconds / c.callback_count
                                         if c.callback_count else float('nan')),
+            'held_measurements': len(self.gaps.held),
+            'bridges': c.bridges,
+            'reversed_measurements': c.reversed,
+            'unjoined_nodes': self.gaps.n_unjoined,
             'persistence': ('off: ' + self.persistence_off if self.persistence_off
                             else 'journal only: ' + self.snapshots_off if self.snapshots_off
                             else 'on' if self.journal is not None else 'none'),
@@ -508,7 +673,23 @@ class AlignmentSession:
             return Health(False, 'solver failures (previous estimate kept)')
         if self.counts.rejected:
             return Health(False, 'rejected measurements')
+        if self.gaps.n_unjoined:
+            return Health(False, f'{self.gaps.n_unjoined} nodes hang off a bridge over a gap '
+                                 '(not yet joined by a real connection)')
         return Health(True, 'ok')
+
+
+def _unknown_source(m: Measurement) -> InputError:
+    return InputError(f'source node {m.src_id} of track {m.src_track} is unknown and that track '
+                      'can no longer take new nodes (a later track has begun)',
+                      reason=Reason.UNKNOWN_SOURCE)
+
+
+def _refused(m: Measurement, route: Route) -> InputError:
+    if route is Route.DUPLICATE:
+        return InputError(f'measurement {m.src_id}->{m.dst_id} was already received (and taken '
+                          'reversed)', reason=Reason.DUPLICATE)
+    return _unknown_source(m)
 
 
 def _how(result: RecoveryResult) -> str:

@@ -415,7 +415,7 @@ class StereoFrontEnd:
         return len(ids)
 
     def request_track_boundary(self) -> None:
-        """Start a new track at the next keyframe (``track_mode: external``)."""
+        """Start a new track at the next keyframe (``track.mode: external``)."""
         if self.odometry is not None:
             self.odometry.request_track_boundary()
 

@@ -181,6 +181,7 @@ class ReplayResult:
     notes: list[str] = field(default_factory=list)
     ground_truth: str = ''
     warnings: list[str] = field(default_factory=list)
+    gaps: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -197,7 +198,8 @@ class ReplayResult:
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
-            'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings}
+            'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
+            'gaps': self.gaps}
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
@@ -390,22 +392,20 @@ class _Run:
         if not out.accepted:
             self._reject(f'aligner: {out.error}')
             return
-        updates = out.updates
         assert self.odom is not None
-        self.odom.add(m)
         self.stamp_offset_ns = int(m.stamp_ns) - int(item.log_ns)
         self.result.n_measurements += 1
         self.stamps.setdefault(m.dst_id, int(m.stamp_ns))
         self.tracks.setdefault(m.src_id, m.src_track)
         self.tracks.setdefault(m.dst_id, m.dst_track)
-        self.conn.append(m)
+        self._admitted(out)
         if item.data is not None:
             self.out.measurement(ODOMETRY, item.data, None, self.last_ns)
         else:
             self.out.measurement(ODOMETRY, None, measurement_to_odometry(m), self.last_ns)
         if self.fixes.waiting:
             self._add_fixes()
-        for u in updates:
+        for u in out.updates:
             self._update(u)
         if self.odom.T_map_odom is None:  # the correction before the first update
             traj = self.corrected()
@@ -422,10 +422,22 @@ class _Run:
         stamp = min(int(f.term.fix.stamp_ns) for f in item.fixes)
         self.out.earth_to_map(T_earth_enu(datum), stamp, item.log_ns)
 
+    def _admitted(self, out: Any) -> None:
+        """The measurements the aligner took in a session step (held ones whose gap was filled,
+        reversed ones, bridges) go into the frame-to-frame integration and the network."""
+        assert self.odom is not None
+        for a in out.admitted:
+            self.odom.add(a)  # its F2F integration (without standard inputs)
+            self.conn.append(a)
+        for text in out.notes:
+            if text.startswith('held measurement rejected: '):
+                self._reject('aligner: ' + text[len('held measurement rejected: '):])
+
     def _add_fixes(self) -> None:
         """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
         measurement brings waits for it); refused ones are counted as rejections."""
-        for error in self.fixes.flush(self.aligner):
+        for error in self.fixes.flush(
+                self.aligner, self.session.gaps.anchor if self.session is not None else None):
             self._reject(f'absolute: {error}')
 
     def _reject(self, reason: str) -> None:
@@ -565,6 +577,11 @@ class _Run:
         if self.aligner is None:
             return
         try:
+            assert self.session is not None
+            flushed = self.session.flush_gaps()  # held measurements: in, bridged if need be
+            self._admitted(flushed)
+            for u in flushed.updates:
+                self._update(u)
             self._update(self.aligner.finish_track())
             if self.config.refine_batch:
                 self._update(self.aligner.refine_batch())
@@ -572,6 +589,9 @@ class _Run:
             res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
         traj = self.corrected()
         res.corrected = traj
+        counts = self.session.counts
+        res.gaps = {'bridges': counts.bridges, 'reversed_measurements': counts.reversed,
+                    'unjoined_nodes': traj.node_ids[self.session.unjoined(traj.node_ids)].tolist()}
         if self.config.tf and self.odom is not None and self.odom.T_map_odom is not None:
             self.out.map_to_odom(self.odom.T_map_odom, self.last_ns + self.stamp_offset_ns,
                                  self.last_ns)   # the final correction, at the end

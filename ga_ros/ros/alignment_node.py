@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -57,6 +57,8 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
+from ga_ros.core.config_ranges import check_ranges, ranged
+from ga_ros.core.gaps import GapConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
@@ -91,20 +93,10 @@ DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
 #: Another node's ``-> odom`` transform keeps ours off the air this long after it was heard, s.
 TF_CONTEST_HOLD_SEC = 5.0
-#: Numeric ranges of the AlignerConfig parameters.
-ALIGNER_RANGES = {'window_tracks': (1, 1000), 'solver.max_iterations': (1, 10000),
-                  'solver.tolerance': (0.0, 1e3), 'solver.robust_scale': (0.0, 1e6),
-                  'outlier_chi2_prob': (0.0, 1.0), 'refine_every_tracks': (0, 1000),
-                  'refine_lag_tracks': (1, 1000), 'refine_horizon_tracks': (0, 100000),
-                  'prior_band': (-1, 100000),
-                  'prior_hubs': (0, 1000), 'fix_gate_prob': (0.0, 1.0),
-                  'gauge_sigma_m': (1e-9, 1e9), 'gauge_sigma_tilt_rad': (1e-12, 10.0),
-                  'gauge_sigma_yaw_rad': (1e-12, 10.0)}
 
 
-def field_(default: Any, lo: float, hi: float) -> Any:
-    """A dataclass field with a default and its parameter range ``[lo, hi]``."""
-    return field(default=default, metadata={'range': (lo, hi)})
+#: A dataclass field with a default and its parameter range ``[lo, hi]``.
+field_ = ranged
 
 
 @dataclass(frozen=True)
@@ -201,6 +193,9 @@ class NodeSettings:
     state_required : refuse to start when ``state_file`` cannot be used (its directory is a
         file or read-only, ...) instead of running without persistence (one error line and
         ``persistence: off`` in the diagnostics).
+    gaps : measurements whose source node is unknown (a gap in the stream): how long they are
+        held for the missing measurements, and the bridges that join what is still apart
+        (:class:`~ga_ros.core.gaps.GapConfig`; parameters ``gaps.<name>``).
     """
 
     map_frame: str = 'map'
@@ -245,6 +240,10 @@ class NodeSettings:
     allow_finish_track: bool = False
     allow_load_state: bool = False
     state_required: bool = False
+    gaps: GapConfig = GapConfig()
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 #: NodeSettings fields that may change at run time (read at use).
@@ -264,7 +263,7 @@ class AlignmentNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.aligner_config: AlignerConfig = declare_config(
-            self, AlignerConfig, ranges=ALIGNER_RANGES, dynamic=DYNAMIC_ALIGNER,
+            self, AlignerConfig, dynamic=DYNAMIC_ALIGNER,
             read_only_reason='it shapes the window state; restart the node to change it')
         self.settings: NodeSettings = declare_config(
             self, NodeSettings, dynamic=DYNAMIC_SETTINGS,
@@ -280,7 +279,7 @@ class AlignmentNode(Node):
                              f'transient_local, got {s.measurement_durability!r}')
         self.session = AlignmentSession(
             self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
-                                               s.state_required),
+                                               state_required=s.state_required, gaps=s.gaps),
             warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
@@ -443,8 +442,9 @@ class AlignmentNode(Node):
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
-            if out.accepted and self.front is None:
-                self.odom.add(m)
+            if self.front is None:
+                for taken in out.admitted:  # held ones whose gap was filled, bridges
+                    self.odom.add(taken)
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.internal_error(exc)
             self.get_logger().error(f'internal error on measurement '
@@ -655,7 +655,8 @@ class AlignmentNode(Node):
         if step.end_track:
             self.front.track_boundary()
         self._fix_feeder.add(step.fixes)
-        for error in self._fix_feeder.flush(self.session):  # journalled with the measurements
+        # the session journals the fixes with the measurements
+        for error in self._fix_feeder.flush(self.session, self.session.gaps.anchor):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
@@ -928,6 +929,7 @@ class AlignmentNode(Node):
             view = connection_view(self.aligner)
             colors = np.where(np.asarray(cp.frozen, dtype=bool)[:, None],
                               [[0.5, 0.5, 0.5, 1.0]], [[0.2, 0.4, 1.0, 1.0]])
+            colors[self.session.unjoined(cp.node_ids)] = [1.0, 0.55, 0.0, 1.0]  # behind a bridge
             conn_rgba = conv.connection_rgba(view.normalized_residual, view.status,
                                              s.residual_color_scale, view.w)
             stamp_ns = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0

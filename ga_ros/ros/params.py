@@ -19,8 +19,11 @@ from typing import Any, TypeVar
 
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 
+from ga_ros.core.config_ranges import range_message
+from ga_ros.core.tracks import TrackRules, refuse_former_names
 from ga_ros.errors import InputError
 from ga_ros.pipeline.params import coerce_value
 
@@ -105,6 +108,9 @@ def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
         default = getattr(defaults, f.name)
         key = path + f.name
         if is_dataclass(default):
+            if isinstance(default, TrackRules):  # a former flat name would be ignored silently
+                refuse_former_names(getattr(node, '_parameter_overrides', {}), prefix + path,
+                                    f.name)
             values[f.name] = _declare(node, type(default), default, prefix, key + '.', ranges,
                                       dynamic, read_only_reason)
             continue
@@ -115,20 +121,39 @@ def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
         text = _text(cls, f, docs) + (' (can be changed at run time)' if live
                                       else f' (read-only: {read_only_reason})')
         desc = descriptor(prefix + key, default, text, rng, read_only=not live)
-        value = node.declare_parameter(prefix + key, default, desc).value
-        values[f.name] = _checked(prefix + key, default, value, desc)
+        try:
+            value = node.declare_parameter(prefix + key, default, desc).value
+        except InvalidParameterValueException as exc:  # ROS refused it against the range
+            raise InputError(_range_refusal(node, prefix + key, cls.__name__, f.name, rng)
+                             or str(exc)) from exc
+        values[f.name] = _checked(prefix + key, default, value, desc, cls.__name__, f.name)
     return cls(**values)
 
 
-def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor) -> Any:
-    """``value`` in the type of ``default`` (as the replay reads it) and, for a float, within its
-    range (InputError otherwise)."""
+def _range_refusal(node: Node, name: str, owner: str, field_name: str,
+                   rng: tuple[float, float] | None) -> str | None:
+    """The refusal of the start-up value of parameter ``name`` (field ``owner.field_name``) in
+    the words of the config dataclass (:func:`ga_ros.core.config_ranges.range_message`); None
+    when it is not a range refusal. rclpy's exception keeps no value, so the value is read from
+    the node's parameter overrides."""
+    override = getattr(node, '_parameter_overrides', {}).get(name)
+    if rng is None or override is None:
+        return None
+    msg = range_message(owner, field_name, override.value, rng)
+    return f'parameter {name}: {msg}' if msg else None
+
+
+def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor,
+             owner: str, field_name: str) -> Any:
+    """``value`` of parameter ``name`` (field ``owner.field_name``) in the type of ``default``
+    (as the replay reads it) and, for a float, within its range (InputError otherwise, with the
+    message the config dataclass gives: :func:`ga_ros.core.config_ranges.range_message`)."""
     value = coerce_value(name, default, value)
     if isinstance(default, float):
         for r in desc.floating_point_range:
-            if not r.from_value <= value <= r.to_value:
-                raise InputError(f'parameter {name} = {value} is outside '
-                                 f'[{r.from_value}, {r.to_value}]')
+            msg = range_message(owner, field_name, value, (r.from_value, r.to_value))
+            if msg:
+                raise InputError(f'parameter {name}: {msg}')
     return value
 
 
@@ -163,7 +188,7 @@ def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str =
         if isinstance(default, np.generic):
             default = default.item()
         desc = node.describe_parameter(pname)
-        new[key] = _checked(pname, default, value, desc)
+        new[key] = _checked(pname, default, value, desc, type(config).__name__, key)
         if isinstance(default, bool | str) and type(new[key]) is not type(default):
             raise InputError(f'parameter {pname} must be a {type(default).__name__}')
     if not new:

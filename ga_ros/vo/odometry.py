@@ -78,18 +78,13 @@ class VoConfig:
         refinement; 77 kB per keyframe at 320x240).
     max_sigma0_sq : a motion whose variance factor exceeds this is treated as a lost track
         (450: residuals of 1.5 px rms at ``sigma_track_px`` 0.07).
-    track_mode : ``'none'`` (one track), ``'frames'`` (a fixed number of keyframes),
-        ``'heading'`` (a reversal of the travel direction ends a swath) or ``'external'``.
-    keyframes_per_track : keyframes per track in ``'frames'`` mode.
-    swaths_per_track : swaths per track in ``'heading'`` mode (a track is a double swath).
-    heading_reversal_deg : turn of the travel direction that ends a swath (deg).
-    heading_min_step_m : travel between keyframes below which the direction is not updated
-        (m; a hovering platform does not start swaths); used only when
-        ``heading_min_step_depth_ratio`` is 0.
-    heading_min_step_depth_ratio : the same step as a fraction of the median scene depth at
-        the keyframe (0.02: 1.6 m at 80 m, 6 cm at 3 m), so that every keyframe and track rule
-        scales with the scene and works from 1 m to 150 m without tuning; 0: use
-        ``heading_min_step_m``.
+    track : track boundaries (parameters ``track.<field>``,
+        :class:`ga_ros.core.tracks.TrackRules`); default ``mode`` ``'heading'`` (a reversal of
+        the travel direction ends a swath, two swaths a track: the survey's double swath).
+    heading_min_step_depth_ratio : ``track.heading_min_step_m`` as a fraction of the median
+        scene depth at the keyframe (0.02: 1.6 m at 80 m, 6 cm at 3 m), so that every keyframe
+        and track rule scales with the scene and works from 1 m to 150 m without tuning; 0: use
+        ``track.heading_min_step_m``.
     first_node_id : id of the first keyframe.
     """
 
@@ -120,23 +115,13 @@ class VoConfig:
     orb_subpixel: bool = False
     keyframe_images: bool = True
     max_sigma0_sq: float = 450.0
-    track_mode: str = 'heading'
-    keyframes_per_track: int = 0
-    swaths_per_track: int = 2
-    heading_reversal_deg: float = 135.0
-    heading_min_step_m: float = 2.0
+    track: TrackRules = TrackRules(mode='heading')
     heading_min_step_depth_ratio: float = 0.02
     first_node_id: int = 0
 
-    def track_rules(self) -> TrackRules:
-        """The track-boundary part of this config."""
-        return TrackRules(self.track_mode, self.keyframes_per_track, self.swaths_per_track,
-                          self.heading_reversal_deg, self.heading_min_step_m)
-
     def __post_init__(self) -> None:
-        if self.track_mode not in ('none', 'frames', 'heading', 'external'):
-            raise InputError(f'unknown track_mode {self.track_mode!r}')
-        self.track_rules()
+        if not isinstance(self.track, TrackRules):
+            raise InputError(f'track must be a TrackRules, got {type(self.track).__name__}')
         if self.max_features < 8 or self.min_inliers < 6 or self.klt_window_px < 5:
             raise InputError('max_features >= 8, min_inliers >= 6, klt_window_px >= 5 required')
 
@@ -252,7 +237,7 @@ class StereoOdometry:
         self.calibration = calibration
         self.config = config
         self.state = VoState.UNINITIALISED
-        self.segmenter = TrackSegmenter(config.track_rules())
+        self.segmenter = TrackSegmenter(config.track)
         self._next_id = int(config.first_node_id)
         self._kf_id = -1
         self._kf_track = 0
@@ -427,7 +412,7 @@ class StereoOdometry:
         self._track_idx = np.arange(len(pts))
         self._prev_img = left
         step_m = (cfg.heading_min_step_depth_ratio * self._median_depth
-                  if cfg.heading_min_step_depth_ratio > 0 else cfg.heading_min_step_m)
+                  if cfg.heading_min_step_depth_ratio > 0 else cfg.track.heading_min_step_m)
         new_track = self.segmenter.update(self._T_world_kf @ self._T_kf_prev, stamp, step_m)
         T_world_kf = self._T_world_kf @ self._T_kf_prev
         kf_id = self._next_id

@@ -43,6 +43,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                        'sparse joint priors against dense ones (covariances, CPU)'),
     'persistence': Benchmark('ga_ros.bench.persistence:main',
                              'snapshot save / load and crash recovery at survey scale'),
+    'gaps': Benchmark('ga_ros.bench.gaps:main',
+                      'measurements lost from the stream: nodes kept with and without healing'),
     'vo': Benchmark('ga_ros.cli.benchmarks.vo:main',
                     'stereo visual odometry and cross-track matching on simulated images'),
     'stereo-throughput': Benchmark('ga_ros.bench.stereo_throughput:main',

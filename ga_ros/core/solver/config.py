@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from ga_ros.core import models
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.solver.losses import ROBUST_LOSSES, RobustLoss, robust_loss
 from ga_ros.errors import InputError
 
@@ -64,11 +65,11 @@ class SolverConfig:
     """
 
     model: str = 'se3'
-    max_iterations: int = 20
-    tolerance: float = 1e-8
+    max_iterations: int = ranged(20, 1, 1_000_000)
+    tolerance: float = ranged(1e-8, 0.0, 1e3)
     damping: str = 'none'
     robust_loss: str = 'none'
-    robust_scale: float = 3.0
+    robust_scale: float = ranged(3.0, 0.0, 1e6)
     reuse_factor_below: float = 0.1
     cost_tolerance: float = 0.0
     chord_decrease: float = 0.05
@@ -76,6 +77,7 @@ class SolverConfig:
 
     def __post_init__(self) -> None:
         models.check_model(self.model)
+        check_ranges(self)
         if self.factor not in FACTORS:
             raise InputError(f'factor must be one of {FACTORS}, got {self.factor!r}')
         if self.damping not in DAMPINGS:

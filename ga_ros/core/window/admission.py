@@ -21,7 +21,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ga_ros.arrays import FloatArray
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.network import check_covariances
 from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.state import WindowState
@@ -97,8 +97,8 @@ def check_measurement(state: WindowState, config: AlignerConfig, m: Measurement,
         ok = False
     if not ok:
         raise bad('bad_stamp', f'stamp_ns must be an integer (ns), got {m.stamp_ns!r}')
-    if m.kind not in ('consecutive', 'cross'):
-        raise bad('bad_kind', f"kind must be 'consecutive' or 'cross', got {m.kind!r}")
+    if m.kind not in KINDS:
+        raise bad('bad_kind', f'kind must be one of {KINDS}, got {m.kind!r}')
     z = np.asarray(m.z, dtype=float).reshape(-1)
     cov = np.asarray(m.cov, dtype=float)
     if z.shape != (6,) or cov.shape != (6, 6):
@@ -256,7 +256,7 @@ def apply_measurement(state: WindowState, m: Measurement, plan: Admitted) -> Non
     state.dst.append(j)
     state.z.append(plan.z)
     state.ccov.append(plan.cov)
-    state.cross.append(m.kind != 'consecutive')
+    state.cross.append(m.kind == 'cross')  # a bridge is a (predicted) motion
     state.status.append(0)
     state.fp.append(plan.key[2])
     state.track_conns.add({int(state.track[i]), int(state.track[j])}, k)

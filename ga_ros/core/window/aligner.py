@@ -251,7 +251,7 @@ class TrackWindowAligner:
         first unfrozen node, or from the snapshot's first node if lower
         (:meth:`WindowState.rows_from <ga_ros.core.window.state.WindowState.rows_from>`).
         Everything before stays as it is (retired and long-frozen tracks), whatever the
-        survey's length (tested in ``test/test_window_scale.py``)."""
+        survey's length (tested in ``test/core/window/test_window_scale.py``)."""
         lo, first = self.state.first_unfrozen(), self.handoff.first_row()
         return self.state.rows_from(lo if first is None else min(lo, first))
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
 from ga_ros.core.solver import SolverConfig
@@ -44,6 +45,9 @@ ALIGNER_SOLVER = SolverConfig(max_iterations=10, tolerance=1e-6, cost_tolerance=
 @dataclass(frozen=True)
 class AlignerConfig:
     """Settings of :class:`TrackWindowAligner` (mirrors the alignment node's parameters).
+
+    Numeric fields carry their allowed interval (``metadata['range']``,
+    :mod:`ga_ros.core.config_ranges`), which the node's parameters and the replay share.
 
     Attributes
     ----------
@@ -143,11 +147,11 @@ class AlignerConfig:
         frame is unknown: 3 rad).
     """
 
-    window_tracks: int = 5
+    window_tracks: int = ranged(5, 1, 1000)
     freeze_policy: str = 'weighted'
     freeze_ahead: bool = True
     solver: SolverConfig = ALIGNER_SOLVER
-    outlier_chi2_prob: float = 0.99999
+    outlier_chi2_prob: float = ranged(0.99999, 0.0, 1.0)
     cov_min_eigenvalue: float = 1e-12
     cov_max_eigenvalue: float = 1e6
     cov_max_condition: float = 1e12
@@ -158,21 +162,20 @@ class AlignerConfig:
     quality_every: int = 1
     quality_alpha: float = 0.05
     quality_alpha0: float = 1e-4
-    refine_every_tracks: int = 1
-    refine_lag_tracks: int = 1
+    refine_every_tracks: int = ranged(1, 0, 1000)
+    refine_lag_tracks: int = ranged(1, 1, 1000)
     refine_executor: str = 'process'
-    refine_horizon_tracks: int = 20
-    prior_band: int = 16
-    prior_hubs: int = 16
+    refine_horizon_tracks: int = ranged(20, 0, 100_000)
+    prior_band: int = ranged(16, -1, 100_000)
+    prior_hubs: int = ranged(16, 0, 1000)
     datum: str = 'first_node'
-    fix_gate_prob: float = 0.9999
-    gauge_sigma_m: float = 1000.0
-    gauge_sigma_tilt_rad: float = 0.05
-    gauge_sigma_yaw_rad: float = 3.0
+    fix_gate_prob: float = ranged(0.9999, 0.0, 1.0)
+    gauge_sigma_m: float = ranged(1000.0, 1e-9, 1e9)
+    gauge_sigma_tilt_rad: float = ranged(0.05, 1e-12, 10.0)
+    gauge_sigma_yaw_rad: float = ranged(3.0, 1e-12, 10.0)
 
     def __post_init__(self) -> None:
-        if int(self.window_tracks) < 1:
-            raise InputError(f'window_tracks must be >= 1, got {self.window_tracks}')
+        check_ranges(self)
         if self.freeze_policy not in FREEZE_POLICIES:
             raise InputError(f'freeze_policy must be one of {tuple(FREEZE_POLICIES)}, '
                              f'got {self.freeze_policy!r}')
@@ -198,21 +201,12 @@ class AlignerConfig:
             raise InputError(f'quality_every must be >= 1, got {self.quality_every}')
         self.quality_config()  # range checks of the levels
 
-        if int(self.refine_every_tracks) < 0 or int(self.refine_lag_tracks) < 1:
-            raise InputError('refine_every_tracks must be >= 0 (0 = off) and refine_lag_tracks '
-                             f'>= 1, got {self.refine_every_tracks}, {self.refine_lag_tracks}')
         if self.refine_executor not in REFINE_EXECUTORS:
             raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
                              f'got {self.refine_executor!r}')
-        if int(self.refine_horizon_tracks) < 0:
-            raise InputError('refine_horizon_tracks must be >= 0 (0 = the whole survey), got '
-                             f'{self.refine_horizon_tracks}')
-        if int(self.prior_band) < -1 or int(self.prior_hubs) < 0:
-            raise InputError(f'prior_band must be >= 0 (nodes) or -1 (dense) and prior_hubs '
-                             f'>= 0, got {self.prior_band}, {self.prior_hubs}')
         if self.datum not in DATUMS:
             raise InputError(f'datum must be one of {DATUMS}, got {self.datum!r}')
-        if not 0.0 <= self.fix_gate_prob < 1.0:
+        if not self.fix_gate_prob < 1.0:
             raise InputError(f'fix_gate_prob must be in [0, 1), got {self.fix_gate_prob}')
         gauge_information(self.gauge_sigma_m, self.gauge_sigma_tilt_rad,
                           self.gauge_sigma_yaw_rad)  # range checks

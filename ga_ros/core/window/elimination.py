@@ -37,7 +37,7 @@ def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: b
     eliminated as soon as its last connection is in (Schur complement): the working matrix spans
     about two tracks whatever the survey's length, and the result is the exact marginal of the
     absorbed terms on the prior nodes in the linear limit (the order of elimination does not
-    change a Schur complement; ``test/test_refinement.py`` checks it against one dense
+    change a Schur complement; ``test/core/window/test_refinement.py`` checks it against one dense
     elimination). As in the aligner's freezing, the absorbed terms are not at their optimum, so
     their marginal keeps a linear term ``g``: the prior mean is ``T_lin`` moved by ``-H^-1 g``.
     A bounded refinement's past prior (the terms of the retired tracks) enters first.
@@ -212,7 +212,7 @@ def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArr
     """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
     (the others eliminated), one per connected group (:func:`marginal_prior` of each, so
     without a dense matrix of more than the group's targets). Equal to :func:`prior_of` of the
-    dense elimination (``test/test_refinement.py``)."""
+    dense elimination (``test/core/window/test_refinement.py``)."""
     Nc = sp.csr_matrix(N)
     coo = Nc.tocoo()
     k = free.size

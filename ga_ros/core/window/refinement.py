@@ -45,7 +45,7 @@ track retires, the past prior. The hand-off installs nothing if the frozen nodes
 since the snapshot.
 
 Every absorbed connection and every fix still enters exactly one prior, so the published
-covariances stay honest (Monte-Carlo NEES in ``test/test_honest_covariances.py``).
+covariances stay honest (Monte-Carlo NEES in ``test/core/window/test_honest_covariances.py``).
 
 **Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
 matrices of about two swaths (:class:`~ga_ros.core.window.elimination.Marginal`: interior nodes

@@ -62,7 +62,7 @@ def test_euroc_stamp_of_too_many_digits(tmp_path: Path) -> None:
     ('first_node_id', 10**26, 'must be a finite number below 2\\^63'),
     ('first_node_id', 1.5, 'must be an integer'),
     ('keyframe_travel_m', True, 'must be a number'),
-    ('track_mode', 3, 'must be a str'),
+    ('pose_covariance_frame', 3, 'must be a str'),
 ])
 def test_input_settings_are_typed(key: str, value: object, match: str) -> None:
     with pytest.raises(InputError, match=f'odom0.{key} {match}'):

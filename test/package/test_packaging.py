@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 ROSDEP = REPO.parent / 'shared' / 'data' / 'rosdep'
 if not ROSDEP.is_dir():
     ROSDEP = Path('/work/shared/data/rosdep')
@@ -40,7 +40,8 @@ PIP_TO_ROSDEP = {
     'opencv-python-headless': 'python3-opencv', 'matplotlib': 'python3-matplotlib',
     'PyYAML': 'python3-yaml', 'tqdm': 'python3-tqdm', 'rosbags': 'python3-rosbags-pip',
     'mcap-ros2-support': 'mcap-ros2-support', 'mcap': 'mcap-ros2-support',
-    'numba': 'python3-numba', 'threadpoolctl': None, 'pymetis': None}
+    'numba': 'python3-numba', 'threadpoolctl': None, 'pymetis': None, 'lz4': None,
+    'zstandard': None}
 
 #: import name -> pip name, where they differ.
 IMPORT_TO_PIP = {'cv2': 'opencv-python-headless', 'yaml': 'PyYAML', 'llvmlite': 'numba'}

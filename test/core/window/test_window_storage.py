@@ -2,7 +2,7 @@
 
 ``data/window_seeded_reference.npz`` holds the corrected path, the covariances and the
 connection status of two seeded runs (one per freeze policy, with gross outliers injected),
-written by ``python test/test_window_storage.py``. The compact storage was checked against the
+written by running this file with python. The compact storage was checked against the
 numbers of commit b7669ba, before the storage was made compact (Python lists, dicts and 6x6
 covariance rows); the reference was then rewritten once, deliberately, when the update itself
 changed (priors through ``refinement.tangent_prior``, chord steps below 0.5 m / rad), and again
@@ -31,7 +31,7 @@ from ga_ros.geometry import se3
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
-REFERENCE = Path(__file__).parent / 'data' / 'window_seeded_reference.npz'
+REFERENCE = Path(__file__).resolve().parents[2] / 'data' / 'window_seeded_reference.npz'
 POLICIES = ('weighted', 'marginal')
 
 

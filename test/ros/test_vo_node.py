@@ -9,7 +9,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import cv2
@@ -38,7 +38,7 @@ from ga_ros.vo.messages import camera_info_to_model  # noqa: E402
 from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
 from ga_ros.vo.odometry import VoConfig  # noqa: E402
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'vo.yaml'
 
 
 def domain_id(offset: int = 0) -> int:
@@ -62,7 +62,7 @@ def camera_info(rig: StereoRig, right: bool, stamp_ns: int) -> CameraInfo:
 def test_yaml_mirrors_config_defaults():
     params = yaml.safe_load(CONFIG.read_text())['vo_node']['ros__parameters']
     expected = {f.name: getattr(VoNodeSettings(), f.name) for f in fields(VoNodeSettings)}
-    expected.update({f.name: getattr(VoConfig(), f.name) for f in fields(VoConfig)})
+    expected.update(asdict(VoConfig()))  # the nested track rules as a mapping
     expected.update({f.name: getattr(ExtrinsicConfig(), f.name) for f in fields(ExtrinsicConfig)})
     expected.update({'cross_' + f.name: getattr(CrossTrackConfig(), f.name)
                      for f in fields(CrossTrackConfig)})
@@ -212,10 +212,10 @@ def test_two_processes_images_in_measurements_out(tmp_path):
 def test_bad_parameter_exits_with_one_line_error(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(23)))
     proc = subprocess.run([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
-                           '--params-file', str(CONFIG), '-p', 'track_mode:=sometimes'],
+                           '--params-file', str(CONFIG), '-p', 'track.mode:=sometimes'],
                           env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
-    assert 'track_mode' in proc.stderr and 'Traceback' not in proc.stderr
+    assert 'track.mode' in proc.stderr and 'Traceback' not in proc.stderr
 
 
 @pytest.mark.ros

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from ga_ros.core.tracks import TrackRules
 from ga_ros.geometry import se3
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 from ga_ros.vo.calibration import CameraModel, StereoCalibration
@@ -79,7 +80,7 @@ def three_swaths():
 def _run(frames, survey, rig: StereoRig, scale: float) -> list:
     """The VO on the same images with the calibration of a world scaled by ``scale``."""
     cal = StereoCalibration.rectified(rig.width, rig.height, rig.K, rig.baseline_m * scale)
-    vo = StereoOdometry(cal, VoConfig(track_mode='heading', swaths_per_track=2))
+    vo = StereoOdometry(cal, VoConfig(track=TrackRules('heading', swaths=2)))
     return [vo.process(StereoFrame(left, right, int(survey.stamps_ns[i])))
             for i, (left, right) in enumerate(frames)]
 

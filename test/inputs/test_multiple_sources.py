@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from ga_ros.core.tracks import TrackRules
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError
 from ga_ros.geometry import se3
@@ -108,8 +109,8 @@ def write_bag(path: Path, s: Streams) -> None:
 
 
 def config(name: str) -> OdometryInputConfig:
-    return OdometryInputConfig(name, keyframe_travel_m=1.0, track_mode='time',
-                               track_duration_s=20.0)
+    return OdometryInputConfig(name, keyframe_travel_m=1.0,
+                               track=TrackRules('time', duration_s=20.0))
 
 
 def replay_config(topics: list[str], gt_file: Path) -> ReplayConfig:
@@ -316,7 +317,7 @@ def test_alignment_node_takes_two_odometry_inputs(tmp_path: Path) -> None:
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
     params = {'inputs': 'odom0,odom1', 'odom0.topic': 'wheel/odom', 'odom1.topic': 'vo/odom',
-              'odom0.track_mode': 'time', 'odom0.track_duration_s': 10.0,
+              'odom0.track.mode': 'time', 'odom0.track.duration_s': 10.0,
               'publish_markers': False, 'diagnostics_period_sec': 0.0,
               'transform_publish_period_sec': 0.0}
     node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)

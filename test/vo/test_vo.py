@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from ga_ros.core.tracks import TrackRules
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
@@ -245,21 +246,21 @@ def test_black_frame_and_lost_track_reinitialise(swath):
 
 def test_track_boundary_by_keyframe_count(swath):
     survey, frames, cal = swath
-    vo = StereoOdometry(cal, VoConfig(track_mode='frames', keyframes_per_track=3))
+    vo = StereoOdometry(cal, VoConfig(track=TrackRules('frames', keyframes=3)))
     results, _ = run(vo, survey, frames)
     meas = [r.measurement for r in results if r.measurement is not None]
     tracks = [m.dst_track for m in meas]
     assert tracks == sorted(tracks) and tracks[-1] >= 1
     assert any(m.src_track + 1 == m.dst_track for m in meas)  # a track-crossing motion
     with pytest.raises(InputError):
-        VoConfig(track_mode='frames', keyframes_per_track=0)
+        VoConfig(track=TrackRules('frames', keyframes=0))
     with pytest.raises(InputError):
-        VoConfig(track_mode='sometimes')
+        VoConfig(track=TrackRules('sometimes'))
 
 
 def test_external_track_boundary(swath):
     survey, frames, cal = swath
-    vo = StereoOdometry(cal, VoConfig(track_mode='external'))
+    vo = StereoOdometry(cal, VoConfig(track=TrackRules('external')))
     tracks = []
     for i, (left, right) in enumerate(frames):
         if i == 6:

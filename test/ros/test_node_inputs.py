@@ -29,8 +29,8 @@ from ga_ros.ros.qos import latched_qos  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
 
-INPUT_PARAMS = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.track_mode': 'distance',
-                'odom0.track_length_m': 5.0, 'publish_markers': False}
+INPUT_PARAMS = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.track.mode': 'distance',
+                'odom0.track.length_m': 5.0, 'publish_markers': False}
 
 
 def domain_id(offset: int) -> int:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-PKG = Path(__file__).resolve().parents[1] / 'ga_ros'
+PKG = Path(__file__).resolve().parents[2] / 'ga_ros'
 #: Rank of each top-level part of ga_ros: a module may import only parts of lower or equal rank.
 RANK = {'arrays': 0, 'errors': 0, 'runtime': 0, 'topics': 0, 'geometry': 1,
         'core': 2, 'io': 2, 'sim': 2, 'vo': 2, 'eval': 2,

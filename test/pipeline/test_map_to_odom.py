@@ -193,8 +193,8 @@ def test_live_node_beside_a_played_nav2_bag_does_not_fight_amcl(tmp_path: Path):
     _nav2_bag(tmp_path / 'nav2')
     domain = 40 + (os.getpid() + 79) % 150
     node = start_node_process(domain, {
-        'inputs': 'odom0', 'odom0.topic': '/odom', 'odom0.track_mode': 'distance',
-        'odom0.track_length_m': 5.0, 'publish_markers': False, 'autosave': False,
+        'inputs': 'odom0', 'odom0.topic': '/odom', 'odom0.track.mode': 'distance',
+        'odom0.track.length_m': 5.0, 'publish_markers': False, 'autosave': False,
         'diagnostics_period_sec': 0.2}, log_path=tmp_path / 'node.log')
     play = None
     try:

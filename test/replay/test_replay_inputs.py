@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ga_ros.core.tracks import TrackRules
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import constraint_frames
@@ -119,7 +120,7 @@ def _config(topic: str, constraints: str = '', track_mode: str = 'distance') -> 
     from ga_ros.inputs.odometry import OdometryInputConfig
 
     spec = InputSpec(topic, 'odometry', OdometryInputConfig(
-        'odom0', keyframe_travel_m=1.0, track_mode=track_mode, track_length_m=20.0))
+        'odom0', keyframe_travel_m=1.0, track=TrackRules(track_mode, length_m=20.0)))
     return ReplayConfig(inputs=InputTopics((spec,), constraints), plot=False)
 
 
@@ -292,7 +293,7 @@ def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
 
     write_odom_bag(tmp_path / 'in')
     (tmp_path / 'inputs.yaml').write_text('odom0:\n  keyframe_travel_m: 2.0\n'
-                                          '  track_mode: distance\n  track_length_m: 20.0\n')
+                                          '  track:\n    mode: distance\n    length_m: 20.0\n')
     rc = main(['replay', str(tmp_path / 'in'), '--odom-topic', '/odom', '--input-config',
                str(tmp_path / 'inputs.yaml'), '--out', str(tmp_path / 'out'), '--no-plot'])
     text = capsys.readouterr().out

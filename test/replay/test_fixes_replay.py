@@ -262,7 +262,7 @@ def test_inputs_yaml_mirrors_the_absolute_defaults() -> None:
 
     import yaml
 
-    path = Path(__file__).resolve().parents[1] / 'config' / 'inputs.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'inputs.yaml'
     section = yaml.safe_load(path.read_text())['absolutes']['fix0']
     expected = {f.name: getattr(AbsoluteInputConfig(), f.name)
                 for f in fields(AbsoluteInputConfig) if f.name != 'name'}

@@ -20,7 +20,7 @@ from ga_ros.io.bag_writer import BagWriter
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- a stand-in aligner

@@ -27,7 +27,7 @@ from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 from ga_ros.vo.calibration import read_stereo_calibration
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'vo.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'vo.yaml'
 # EuRoC MAV V1_01 cam0 / cam1 (sensor.yaml): intrinsics, distortion, T_BS.
 EUROC_CAM0 = {
     'intrinsics': [458.654, 457.296, 367.215, 248.375], 'resolution': [752, 480],
@@ -208,7 +208,7 @@ def test_vo_params_file_and_overrides_reach_the_config() -> None:
     with pytest.raises(InputError, match='min_inliers'):
         front_end_config_from_params({'min_inliers': 'many'})
     with pytest.raises(InputError):
-        front_end_config_from_params({'track_mode': 'sometimes'})
+        front_end_config_from_params({'track.mode': 'sometimes'})
 
 
 @pytest.mark.ros

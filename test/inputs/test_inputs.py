@@ -3,7 +3,7 @@ odometry whose ground truth and noise are known."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -227,8 +227,8 @@ def _lawnmower(n_legs: int = 4, leg_m: float = 20.0, step_m: float = 0.5) -> lis
 
 
 def test_heading_reversals_make_tracks() -> None:
-    inp = OdometryInput(OdometryInputConfig(track_mode='heading', keyframe_travel_m=2.0,
-                                            keyframe_rotation_deg=0, swaths_per_track=2))
+    inp = OdometryInput(OdometryInputConfig(track=TrackRules('heading', swaths=2),
+                                            keyframe_travel_m=2.0, keyframe_rotation_deg=0))
     tracks = [inp.add_sample(k * NS, T) for k, T in enumerate(_lawnmower(6))]
     ms = [u.measurement for u in tracks if u.measurement]
     assert sorted({m.dst_track for m in ms}) == [0, 1, 2]
@@ -236,13 +236,13 @@ def test_heading_reversals_make_tracks() -> None:
 
 
 def test_segmenter_distance_time_and_requests() -> None:
-    seg = TrackSegmenter(TrackRules('distance', track_length_m=10.0))
+    seg = TrackSegmenter(TrackRules('distance', length_m=10.0))
     ids = []
     for k in range(25):
         seg.update(se3.from_translation_rotvec(np.array([float(k), 0, 0]), np.zeros(3)))
         ids.append(seg.track_id)
     assert ids[10] == 0 and ids[11] == 1 and ids[22] == 2
-    seg = TrackSegmenter(TrackRules('time', track_duration_s=5.0))
+    seg = TrackSegmenter(TrackRules('time', duration_s=5.0))
     starts = [k for k in range(20) if seg.update(np.eye(4), k * NS)]
     assert starts == [6, 12, 18]
     seg = TrackSegmenter(TrackRules('external'))
@@ -306,10 +306,9 @@ def test_constraint_errors_and_node_ids() -> None:
 
 
 def test_yaml_mirrors_config_defaults() -> None:
-    path = Path(__file__).resolve().parents[1] / 'config' / 'inputs.yaml'
+    path = Path(__file__).resolve().parents[2] / 'config' / 'inputs.yaml'
     section = yaml.safe_load(path.read_text())['odom0']
-    expected = {f.name: getattr(OdometryInputConfig(), f.name)
-                for f in fields(OdometryInputConfig) if f.name != 'name'}
+    expected = {k: v for k, v in asdict(OdometryInputConfig()).items() if k != 'name'}
     assert section == expected
     assert OdometryInputConfig.from_mapping('odom0', section) == OdometryInputConfig()
     with pytest.raises(InputError, match='unknown input settings'):

@@ -101,7 +101,7 @@ def test_camera_beside_odometry_makes_cross_track_connections(robot_bag, tmp_pat
 
     bag, gt_file = robot_bag
     (tmp_path / 'inputs.yaml').write_text(
-        'odom0:\n  keyframe_travel_m: 11.0\n  track_mode: heading\n  swaths_per_track: 2\n'
+        'odom0:\n  keyframe_travel_m: 11.0\n  track:\n    mode: heading\n    swaths: 2\n'
         '  default_noise_percent: 1.0\n  default_depth_m: 110.0\n')
     p, q = se3.to_pos_quat(T_BASE_CAM)
     rc = main(['replay', str(bag), '--odom-topic', '/odom', '--input-config',
@@ -151,7 +151,7 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
     bag, _ = robot_bag
     p, q = se3.to_pos_quat(T_BASE_CAM)
     params = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.keyframe_travel_m': 11.0,
-              'odom0.track_mode': 'heading', 'odom0.default_noise_percent': 1.0,
+              'odom0.track.mode': 'heading', 'odom0.default_noise_percent': 1.0,
               'odom0.default_depth_m': 110.0,
               'camera.left_image_topic': 'cam/left/image/compressed',
               'camera.right_image_topic': 'cam/right/image/compressed',
