@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -99,11 +100,21 @@ def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str
                                      '--sensor-qos', publisher_qos, '--delay', '2'], env=env,
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
+            last: dict[str, object] = {'key': None, 'since': 0.0}
+
             def counted() -> bool:
+                """Play has ended, the node's queue is empty and its counts held still for
+                1.5 s (pairs lost before the first or after the last received one leave no gap
+                in the stamps: only ``N_PAIRS`` itself would tell, so the test cannot wait for
+                received + lost to reach it)."""
                 got = _status(diags, 'stereo VO')
                 v = got[1] if got else {}
-                return (int(v.get('pairs/received', 0)) + int(v.get('pairs/lost', 0)) >= N_PAIRS
-                        and int(v.get('queue_length', 1)) == 0 and play.poll() is not None)
+                key = (v.get('pairs/received'), v.get('pairs/lost'), v.get('queue_length'))
+                if key != last['key']:
+                    last.update(key=key, since=time.monotonic())
+                return (play.poll() is not None and int(v.get('queue_length', 1)) == 0
+                        and int(v.get('pairs/received', 0)) > 0
+                        and time.monotonic() - float(last['since']) > 1.5)
 
             try:
                 client.spin_until(counted, 120.0, 'the pairs counted')
@@ -115,13 +126,14 @@ def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str
             stamp, v = _status(diags, 'stereo VO')
             received, lost = int(v['pairs_received']), int(v['pairs/lost'])
             assert received == int(v['pairs/received'])
-            assert received > 0 and received + lost == N_PAIRS, sorted(v.items())
-            assert int(v['pairs/expected']) == N_PAIRS
+            expected = int(v['pairs/expected'])
+            # every pair between the first and the last received one is received or counted lost
+            assert received > 0 and received + lost == expected <= N_PAIRS, sorted(v.items())
             # auto: the subscriptions took the publishers' reliability
             for stream in ('left_image', 'right_image', 'left_info', 'right_info'):
                 assert v[f'qos/{stream}'] == publisher_qos, sorted(v.items())
             if publisher_qos == 'reliable':     # nothing lost in transport
-                assert received == N_PAIRS and lost == 0, sorted(v.items())
+                assert received == expected == N_PAIRS and lost == 0, sorted(v.items())
             # no pair the transport delivered was dropped by the node
             assert int(v['pairs_dropped_queue_full']) == 0
             assert int(v['pairs_processed']) == received
