@@ -27,6 +27,6 @@ def generate_launch_description():
                           'inputs': 'odom0',
                           'odom0.topic': LaunchConfiguration('odom_topic'),
                           'odom0.type': LaunchConfiguration('odom_type'),
-                          'odom0.track_mode': LaunchConfiguration('track_mode'),
+                          'odom0.track.mode': LaunchConfiguration('track_mode'),
                           'odom0.qos_reliability': 'best_effort'}]),
     ])

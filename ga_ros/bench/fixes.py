@@ -262,12 +262,15 @@ def run_isam2(run, idx, p, noise_m, cov, cfg, converged: bool = False
 
 def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Path = DEFAULT_MAT,
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
-                with_gtsam: bool = True, isam2_converged: bool = False) -> FixBenchFigures:
-    """One setting of the benchmark (module doc)."""
+                with_gtsam: bool = True, isam2_converged: bool = False,
+                refine_every: int = 0) -> FixBenchFigures:
+    """One setting of the benchmark (module doc); ``refine_every``: the aligner's
+    ``refine_every_tracks`` (background refinement, inline here; 0: off)."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
-    cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes', refine_every_tracks=0)
+    cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes',
+                        refine_every_tracks=int(refine_every), refine_executor='inline')
     n = run.T_true.shape[0]
     dead = np.zeros((n, 4, 4))
     dead[0] = run.T_true[0]
@@ -328,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
                     'heading drifts 5.4e-4 rad per step against the ground truth, 0.054 rad '
                     'per 10 s, one sigma of a random walk of 0.005 per step)')
     ap.add_argument('--window', type=int, default=5, help='tracks (fix intervals) in the window')
+    ap.add_argument('--refine-every', type=int, default=0,
+                    help="the aligner's refine_every_tracks (background refinement with the "
+                    'fixes; default 0: off)')
     ap.add_argument('--no-gtsam', action='store_true')
     ap.add_argument('--isam2-converged', action='store_true',
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
@@ -337,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'ga-ros bench fixes: no data file {args.data} (give --data)', file=sys.stderr)
         return 1
     figs = [bench_fixes(float(i), float(s), args.seed, args.data, args.sigma_xy,
-                        args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged)
+                        args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
+                        args.refine_every)
             for s in args.noise.split(',') for i in args.intervals.split(',')]
     if args.json:
         print(json.dumps([asdict(f) for f in figs]))

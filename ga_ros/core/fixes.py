@@ -293,19 +293,30 @@ class FixBook:
         if gated:
             self.stats.added += 1
 
-    def _by_row(self, rows: IntArray, active: bool = True) -> dict[int, list[int]]:
+    def _by_row(self, rows: IntArray, active: bool = True, count: int | None = None
+                ) -> dict[int, list[int]]:
         want = set(np.asarray(rows, np.int64).tolist())
+        status = self.status  # a fix added meanwhile (another thread) appends its status last
+        n = min(len(self.rows), status.size, len(self.info))
+        n = n if count is None else min(n, int(count))
         out: dict[int, list[int]] = {}
-        for f, r in enumerate(self.rows):
-            if r in want and (not active or self.status[f] == 0):
+        for f, r in enumerate(self.rows[:n]):
+            if r in want and (not active or status[f] == 0):
                 out.setdefault(r, []).append(f)
         return out
 
-    def prior_terms(self, rows: IntArray, T: FloatArray) -> tuple[IntArray, FloatArray,
-                                                                   FloatArray]:
+    def used(self, rows: IntArray, count: int | None = None) -> IntArray:
+        """Indices (increasing) of the used (not excluded) fixes of the node rows ``rows``,
+        among the first ``count`` fixes (default all)."""
+        return np.array(sorted(f for fs in self._by_row(rows, count=count).values() for f in fs),
+                        dtype=np.int64)
+
+    def prior_terms(self, rows: IntArray, T: FloatArray, count: int | None = None
+                    ) -> tuple[IntArray, FloatArray, FloatArray]:
         """``(rows with a used fix (k,), means (k, 4, 4), informations (k, 6, 6))`` of the
-        weighted parameters of the node rows ``rows`` at poses ``T`` (indexed by row)."""
-        by_row = self._by_row(rows)
+        weighted parameters of the node rows ``rows`` at poses ``T`` (indexed by row), from the
+        first ``count`` fixes (default all)."""
+        by_row = self._by_row(rows, count=count)
         keys = sorted(by_row)
         means = np.zeros((len(keys), 4, 4))
         infos = np.zeros((len(keys), 6, 6))

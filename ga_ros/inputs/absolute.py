@@ -107,6 +107,20 @@ def geodetic_to_enu(lat_deg, lon_deg, alt_m, datum: Sequence[float]) -> FloatArr
     return p @ enu_rotation(d[0], d[1]).T
 
 
+def T_earth_enu(datum: Sequence[float]) -> FloatArray:
+    """(4, 4) pose of the East-North-Up frame at ``datum = [lat_deg, lon_deg, alt_m]`` in ECEF
+    (REP 105's ``earth`` frame): ``p_earth = R_enu_ecef' p_enu + ecef(datum)``, the inverse of
+    :func:`geodetic_to_enu`. With the map frame the NavSatFix inputs' ENU frame, it is the
+    ``earth -> map`` transform."""
+    d = np.asarray(datum, float)
+    if d.shape != (3,) or not np.isfinite(d).all():
+        raise InputError(f'a datum must be [lat_deg, lon_deg, alt_m], got {d.tolist()}')
+    T = np.eye(4)
+    T[:3, :3] = enu_rotation(d[0], d[1]).T
+    T[:3, 3] = geodetic_to_ecef(d[0], d[1], d[2])
+    return T
+
+
 @dataclass(frozen=True)
 class AbsoluteInputConfig:
     """One absolute input (mirrors robot_localization's ``poseN`` / navsat_transform settings).

@@ -33,6 +33,7 @@ from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.errors import InputError
 from ga_ros.inputs.absolute import (
+    NAVSAT,
     AbsoluteDecoder,
     AbsoluteInputConfig,
     StaticTransforms,
@@ -188,6 +189,15 @@ class AbsoluteFrontEnd:
         has one (the map frame of its fixes)."""
         return {n: list(d.datum) for n, d in self.decoders.items() if d.datum is not None}
 
+    def earth_datum(self) -> tuple[float, float, float] | None:
+        """The ENU origin ``[lat_deg, lon_deg, alt_m]`` of the first NavSatFix input that has
+        one (the ``datum`` parameter, or its first fix), ``None`` before (or without any):
+        ``earth -> map`` is then :func:`~ga_ros.inputs.absolute.T_earth_enu` of it."""
+        for d in self.decoders.values():
+            if d.msgtype == NAVSAT and d.datum is not None:
+                return d.datum
+        return None
+
     def stats(self) -> dict[str, object]:
         """Counters per input (for diagnostics and the replay summary)."""
         out: dict[str, object] = {n: asdict(d.stats) for n, d in self.decoders.items()}
@@ -207,9 +217,10 @@ class FixFeeder:
         self.waiting.extend(fixes)
 
     def flush(self, aligner: Any, anchored: Callable[[int], Any] | None = None) -> list[str]:
-        """Give ``aligner`` (``add_fix``, ``newest_node_id``) the queued fixes whose node it
-        has; returns the messages of the ones it refused (counted there by reason).
-        ``anchored`` is called with the node id of each fix taken (the session's
+        """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
+        :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them) the queued
+        fixes whose node it has; returns the messages of the ones it refused (counted there by
+        reason). ``anchored`` is called with the node id of each fix taken (the session's
         :meth:`~ga_ros.core.gaps.GapHealer.anchor`: a fix joins the piece of its node)."""
         add = getattr(aligner, 'add_fix', None)
         if add is None or not self.waiting:

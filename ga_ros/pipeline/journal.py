@@ -10,7 +10,17 @@ snapshot if it verifies, plus the journal records after it, replayed in one batc
 
 Journal format: the header ``GAJOURNAL2\\n`` then records of :data:`RECORD` (little-endian,
 381 bytes), each ending with the CRC-32 of its other bytes. Version-1 journals (``GAJOURNAL1``,
-no CRC) are still read. What is done with damage:
+no CRC) are still read.
+
+The node also appends every absolute fix the aligner accepted (:mod:`ga_ros.core.fixes`), in the
+order it gave them, as two records written together (:func:`encode_fix`): kind ``fix``
+(``src_id`` = ``dst_id`` = the node, ``stamp_ns`` the fix's stamp, ``z`` the offset
+``T_node_sensor`` as ``[t, rotvec]``, ``cov`` the information the fix entered with, the
+odometry offset's covariance included) and kind ``fix_sensor`` (same node and stamp, ``z`` the
+measured ``T_map_sensor`` as ``[t, rotvec]``, ``cov``'s bytes the source's name in UTF-8, NUL
+padded). A replay gives them to the aligner between the same measurements, so the recovered state
+is the one lost. A ``fix`` record without its ``fix_sensor`` (damage) is skipped.
+What is done with damage:
 
 * a record cut short at the end (a crash mid-write) is ignored and cut off before the next
   append: it was never acknowledged;
@@ -32,13 +42,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.gaps import reversed_measurement
 from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, FormatError, GaError, InputError
+from ga_ros.geometry import se3
 from ga_ros.io.atomic import atomic_write, check_regular, move_aside, open_nofollow, read_bytes
 
+#: Record kinds of an absolute fix (module doc): beyond the measurement kinds, no flag bits.
+_FIX, _FIX_SENSOR = 0x3E, 0x3F
+#: What the journal holds, in order: measurements and absolute fixes.
+Entry = Measurement | FixTerm
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
 #: One version-1 record (no checksum, 377 bytes).
@@ -102,7 +118,12 @@ _KIND_MASK = 0x3F
 
 
 def _kind_ok(kind: np.ndarray | int) -> np.ndarray | bool:
-    return (kind & _KIND_MASK) < len(KINDS)
+    return ((kind & _KIND_MASK) < len(KINDS)) | (kind == _FIX) | (kind == _FIX_SENSOR)
+
+
+def _is_fix(kind: np.ndarray) -> np.ndarray:
+    """Which records are the two of an absolute fix (bool per record)."""
+    return np.isin(np.asarray(kind), (_FIX, _FIX_SENSOR))
 
 
 def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
@@ -114,9 +135,29 @@ def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
     rec['kind'] = [KINDS.index(m.kind) | flags for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
-    raw = rec.view(np.uint8).reshape(len(ms), RECORD.itemsize)
+    return _with_crc(rec)
+
+
+def _with_crc(rec: np.ndarray) -> bytes:
+    raw = rec.view(np.uint8).reshape(rec.size, RECORD.itemsize)
     rec['crc'] = _crc(raw)
     return rec.tobytes()
+
+
+def encode_fix(term: FixTerm) -> bytes:
+    """The two journal records of an absolute fix (module doc), ``term.fix.information`` the
+    information it entered the aligner with."""
+    rec = np.zeros(2, RECORD)
+    rec['src_id'] = rec['dst_id'] = int(term.node_id)
+    rec['src_track'] = rec['dst_track'] = -1
+    rec['stamp_ns'] = int(term.fix.stamp_ns)
+    rec['kind'] = [_FIX, _FIX_SENSOR]
+    rec['z'][0] = se3.to_translation_rotvec(term.T_node_sensor)
+    rec['z'][1] = se3.to_translation_rotvec(term.fix.T_map_sensor)
+    rec['cov'][0] = term.fix.information
+    name = term.fix.source.encode('utf-8')[:rec['cov'][1].nbytes]
+    rec['cov'][1] = np.frombuffer(name.ljust(rec['cov'][1].nbytes, b'\0'), '<f8').reshape(6, 6)
+    return _with_crc(rec)
 
 
 @dataclass
@@ -223,6 +264,41 @@ def _resync(body: bytes) -> tuple[list[int], int, int]:
             return offsets, skipped, 0
         pos = nxt
     return offsets, skipped, len(body) - pos
+
+
+def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
+    """Journal records (structured array) as measurements and fixes (:class:`FixTerm`), in
+    order; a ``fix`` record without its ``fix_sensor`` record (or the reverse) is skipped. The
+    measurements as they arrived, or as the aligner took them if ``taken`` (:func:`as_taken`).
+    """
+    kinds = recs['kind']
+    fix_at = np.flatnonzero(_is_fix(kinds))
+    convert = as_taken if taken else records_to_measurements
+    if fix_at.size == 0:
+        return convert(recs)
+    out: list[Entry] = []
+    start = 0
+    for k in fix_at.tolist():
+        if k > start:
+            out += convert(recs[start:k])
+        start = k + 1
+        if kinds[k] != _FIX or k + 1 >= kinds.size or kinds[k + 1] != _FIX_SENSOR:
+            continue
+        a, b = recs[k], recs[k + 1]
+        if int(a['src_id']) != int(b['src_id']) or int(a['stamp_ns']) != int(b['stamp_ns']):
+            continue
+        source = np.ascontiguousarray(b['cov'], '<f8').tobytes().rstrip(b'\0')
+        try:
+            fix = AbsoluteFix(int(a['stamp_ns']), se3.from_translation_rotvec(b['z'][:3],
+                                                                            b['z'][3:]),
+                              np.array(a['cov'], float), source.decode('utf-8', 'replace'))
+        except InputError:
+            continue
+        out.append(FixTerm(int(a['src_id']),
+                           se3.from_translation_rotvec(a['z'][:3], a['z'][3:]), fix))
+    if start < kinds.size:
+        out += convert(recs[start:])
+    return out
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
@@ -360,11 +436,16 @@ class MeasurementJournal:
 
     def append_many(self, ms: list[Measurement], flags: int = 0) -> None:
         """Write several records in one system call."""
-        if not ms:
-            return
+        if ms:
+            self._write(encode_records(ms, flags), len(ms))
+
+    def append_fix(self, term: FixTerm) -> None:
+        """Write the two records of an absolute fix (:func:`encode_fix`) in one system call."""
+        self._write(encode_fix(term), 2)
+
+    def _write(self, data: bytes, n_records: int) -> None:
         if self._fd is None:
             self._open()
-        data = encode_records(ms, flags)
         try:
             written = os.write(self._fd, data)
             while written < len(data):
@@ -377,7 +458,7 @@ class MeasurementJournal:
             except OSError:
                 pass
             raise
-        self.count += len(ms)
+        self.count += n_records
 
     def sync(self) -> None:
         """``fsync`` the journal (durability across a power cut, not only a killed process)."""
@@ -410,10 +491,11 @@ class MeasurementJournal:
             self._fd = None
 
 
-def read_journal(path: str | os.PathLike, start: int = 0) -> list[Measurement]:
-    """The intact records of a journal from record ``start`` on, in order (``[]`` if the file
-    does not exist). Damaged records are skipped (see :func:`scan_journal`)."""
-    return records_to_measurements(scan_journal(path).records[max(int(start), 0):])
+def read_journal(path: str | os.PathLike, start: int = 0) -> list[Entry]:
+    """The measurements and fixes of a journal's intact records from record ``start`` on, in
+    order (``[]`` if the file does not exist). Damaged records are skipped (see
+    :func:`scan_journal`)."""
+    return records_to_entries(scan_journal(path).records[max(int(start), 0):])
 
 
 def clear_state(state_file: str | os.PathLike) -> list[Path]:
@@ -450,8 +532,9 @@ class RecoveryResult:
     aligner : the restored aligner (empty if there was nothing to restore).
     source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
     snapshot_records : journal records the snapshot contained (0 without a snapshot).
-    records_replayed : journal records replayed after the snapshot and accepted.
-    records_rejected : replayed records the aligner rejected (e.g. already in the snapshot).
+    records_replayed : journal entries (measurements, fixes) replayed after the snapshot and
+        accepted.
+    records_rejected : replayed entries the aligner rejected (e.g. already in the snapshot).
     journal_records : records in the journal now (the count the next snapshot must store).
     moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
     messages : one line per event, for the log (warnings when anything was damaged).
@@ -557,15 +640,15 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         aligner = out.aligner
         tail = records
         out.source = 'journal' if records.size else 'empty'
-    out.held = held_queue(records)
+    out.held = held_queue(records[~_is_fix(records['kind'])])  # measurements only
     bridge = records['kind'] & _KIND_MASK == KINDS.index('bridge')
     out.bridges = list(zip(records['src_id'][bridge].tolist(),
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
     tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
-        batch = aligner.add_measurements(as_taken(tail))
-        out.records_replayed, out.records_rejected = batch.n_accepted, batch.n_rejected
+        out.records_replayed, out.records_rejected = replay_entries(
+            aligner, records_to_entries(tail, taken=True))
         if out.source == 'snapshot':
             out.source = 'snapshot+journal'
     out.aligner = aligner
@@ -578,6 +661,35 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                                 'still holds every record')
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
+    """Give ``aligner`` journal entries in order: runs of measurements in one batch
+    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix between
+    them as it came (with the information it entered with). Returns ``(accepted, rejected)``
+    entries; nothing raises for a rejected one."""
+    accepted = rejected = 0
+    run: list[Measurement] = []
+
+    def flush() -> None:
+        nonlocal accepted, rejected
+        if run:
+            batch = aligner.add_measurements(run)
+            accepted, rejected = accepted + batch.n_accepted, rejected + batch.n_rejected
+            run.clear()
+
+    for e in entries:
+        if isinstance(e, Measurement):
+            run.append(e)
+            continue
+        flush()
+        try:
+            aligner.add_fix(e)
+            accepted += 1
+        except GaError:
+            rejected += 1
+    flush()
+    return accepted, rejected
 
 
 def _journal_has_records(jpath: Path) -> bool:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.fixes import FixTerm
 from ga_ros.core.gaps import (
     Bridge,
     GapConfig,
@@ -223,6 +224,32 @@ class AlignmentSession:
             self.counts.callback_seconds += time.perf_counter() - t0
             self.counts.callback_count += 1
         return self._output(taken, True)
+
+    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
+        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the journal
+        (with the information it entered with, so a recovery replays the same term between the
+        same measurements).
+
+        Raises
+        ------
+        InputError
+            The aligner refused it (unknown or frozen node; counted there by reason).
+        """
+        info = self.aligner.add_fix(term, C_offset)
+        if self.journal is None:
+            return
+        fix = term.fix if info is None else replace(term.fix, information=info)
+        try:
+            self.journal.append_fix(replace(term, fix=fix))
+            self.sync()
+        except OSError as exc:  # as for a measurement (_journal): counted, warned, applied
+            self.persistence_failed(f'journal {self.journal.path}: fix applied but NOT '
+                                    f'journaled ({exc})')
+
+    @property
+    def newest_node_id(self) -> int | None:
+        """The aligner's newest node (``None`` before the first measurement)."""
+        return self.aligner.newest_node_id
 
     def flush_gaps(self) -> StepOutput:
         """Admit every held measurement now, bridging the gaps that are still open (the track

@@ -183,6 +183,11 @@ class InputSource:
                            'final': [m for m in final if m]}
         return out
 
+    def earth_datum(self) -> tuple[float, float, float] | None:
+        """The NavSatFix inputs' ENU origin, once known
+        (:meth:`~ga_ros.pipeline.absolute.AbsoluteFrontEnd.earth_datum`)."""
+        return self.absolute.earth_datum()
+
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
         """REP 105 ``T_map_odom`` (:meth:`InputFrontEnd.map_to_odom`)."""
         return self.front.map_to_odom(node_ids, T_map_node)

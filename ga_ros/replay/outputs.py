@@ -205,6 +205,13 @@ class ReplayOutputs:
         msg = tf_message([transform_msg(c.map_frame, c.odom_frame, T_map_odom, stamp_ns)])
         self.bag.write(c.tf_topic, 'tf2_msgs/msg/TFMessage', msg, log_ns)
 
+    def earth_to_map(self, T_earth_map: FloatArray, stamp_ns: int, log_ns: int,
+                     earth_frame: str = 'earth') -> None:
+        """REP 105 ``earth -> map_frame`` (ECEF to the map frame) on ``tf_static_topic``."""
+        c = self.config
+        msg = tf_message([transform_msg(earth_frame, c.map_frame, T_earth_map, stamp_ns)])
+        self.bag.write(c.tf_static_topic, 'tf2_msgs/msg/TFMessage', msg, log_ns)
+
     def copy(self, topic: str, msgtype: str, data: bytes | None, msg: Any, log_ns: int) -> None:
         """Copy a message of the input bag (raw CDR when available)."""
         if data is not None:

@@ -35,6 +35,7 @@ from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
+from ga_ros.inputs.absolute import T_earth_enu
 from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import (
     ODOMETRY,
@@ -314,6 +315,7 @@ class _Run:
         self.stamp_offset_ns = 0
         self.tf_removed = 0
         self.fixes = FixFeeder()  # absolute fixes waiting for their node
+        self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -370,6 +372,7 @@ class _Run:
         if item.fixes:
             self.fixes.add(item.fixes)
             self._add_fixes()
+            self._earth_to_map(item)
         if m is None:
             if item.error:
                 self._reject(item.error)
@@ -407,6 +410,17 @@ class _Run:
         if self.odom.T_map_odom is None:  # the correction before the first update
             traj = self.corrected()
             self.odom.update(traj.node_ids, traj.T_world_node)
+
+    def _earth_to_map(self, item: SourceItem) -> None:
+        """REP 105 ``earth -> map`` on ``/tf_static``, once the NavSatFix inputs' ENU origin is
+        known, when the map frame is the fixes' frame (``datum: fixes``)."""
+        datum = getattr(self.source, 'earth_datum', lambda: None)()
+        if (self.earth_written or datum is None or not self.config.tf
+                or getattr(self.config.aligner, 'datum', None) != 'fixes'):
+            return
+        self.earth_written = True
+        stamp = min(int(f.term.fix.stamp_ns) for f in item.fixes)
+        self.out.earth_to_map(T_earth_enu(datum), stamp, item.log_ns)
 
     def _admitted(self, out: Any) -> None:
         """The measurements the aligner took in a session step (held ones whose gap was filled,

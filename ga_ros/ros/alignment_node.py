@@ -62,7 +62,7 @@ from ga_ros.core.gaps import GapConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
-from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig
+from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig, T_earth_enu
 from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY, POSE, POSE_COV
@@ -148,7 +148,13 @@ class NodeSettings:
         consecutive measurements).
     publish_map_to_base : also publish ``map_frame -> base_frame`` (only when nothing else
         publishes ``odom -> base``: a frame has one parent).
-    tf_topic : TF topic (``/tf``; remap it to ``tf`` for namespaced robots).
+    tf_topic : TF topic (``/tf``; remap it to ``tf`` for namespaced robots); static transforms
+        go on it with ``_static`` appended (``/tf_static``).
+    publish_earth_transform : with a NavSatFix input and ``datum: fixes`` (the map frame is then
+        the ENU frame at the inputs' origin), publish REP 105 ``earth_frame -> map_frame`` (ECEF
+        to ENU at that origin) once on the static TF topic, latched, as soon as the origin is
+        known (the ``datum`` parameter, or the first fix).
+    earth_frame : REP 105 Earth-centred, Earth-fixed frame (``earth``).
     transform_publish_period_sec : period of the TF timer, s (0: after updates only).
     publish_tf_when_contested : keep publishing ``map_frame -> odom_frame`` when another node
         publishes a transform to ``odom_frame`` on ``tf_topic`` (a frame has one parent: TF
@@ -218,6 +224,8 @@ class NodeSettings:
     publish_tf: bool = True
     publish_map_to_base: bool = False
     tf_topic: str = '/tf'
+    publish_earth_transform: bool = True
+    earth_frame: str = 'earth'
     transform_publish_period_sec: float = field_(0.05, 0.0, 3600.0)
     publish_tf_when_contested: bool = False
     loss_warn_fraction: float = field_(0.01, 0.0, 1.0)
@@ -308,6 +316,7 @@ class AlignmentNode(Node):
         # best effort hears reliable and best-effort TF publishers alike
         self.create_subscription(TFMessage, s.tf_topic, self._on_tf, sensor_qos('best_effort',
                                                                                 100))
+        self._pub_earth: Any = None  # earth -> map, latched (created once the datum is known)
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.create_service(Trigger, '~/finish_track', self._srv_finish_track)
@@ -616,7 +625,27 @@ class AlignmentNode(Node):
             self.get_logger().warning(step.warning)
         if step.error:
             self.get_logger().warning(step.error, throttle_duration_sec=5.0)
+        self._publish_earth()
         self._resolve_fixes()
+
+    def _publish_earth(self) -> None:
+        """REP 105 ``earth -> map`` on the static TF topic, once the NavSatFix inputs' ENU
+        origin is known (``publish_earth_transform``; the map frame is that ENU frame only
+        with ``datum: fixes``)."""
+        s = self.settings
+        if (self._pub_earth is not None or not s.publish_earth_transform
+                or self.absolute is None or self.aligner_config.datum != 'fixes'):
+            return
+        datum = self.absolute.earth_datum()
+        if datum is None:
+            return
+        self._pub_earth = self.create_publisher(TFMessage, s.tf_topic + '_static',
+                                                latched_qos())
+        stamp = int(self.get_clock().now().nanoseconds)
+        self._pub_earth.publish(TFMessage(transforms=[conv.transform_msg(
+            s.earth_frame, s.map_frame, T_earth_enu(datum), stamp)]))
+        self.get_logger().info(f'{s.earth_frame} -> {s.map_frame}: ENU at lat {datum[0]:.7f}, '
+                               f'lon {datum[1]:.7f}, alt {datum[2]:.2f} m')
 
     def _resolve_fixes(self) -> None:
         """Fixes the odometry now covers -> the aligner (a track boundary if one asks)."""
@@ -626,7 +655,8 @@ class AlignmentNode(Node):
         if step.end_track:
             self.front.track_boundary()
         self._fix_feeder.add(step.fixes)
-        for error in self._fix_feeder.flush(self.session.aligner, self.session.gaps.anchor):
+        # the session journals the fixes with the measurements
+        for error in self._fix_feeder.flush(self.session, self.session.gaps.anchor):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:

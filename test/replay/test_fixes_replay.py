@@ -24,7 +24,7 @@ from ga_ros.inputs.absolute import (
     geodetic_to_enu,
 )
 from ga_ros.inputs.odometry import OdometryInputConfig
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import read_tum
 from ga_ros.pipeline.absolute import AbsoluteSpec
@@ -238,6 +238,23 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
                                                                     rmse_odom)
     print(f'lawnmower: corrected {rmse_ga:.3f} m, GNSS (without outliers) {rmse_fix:.3f} m, '
           f'odometry {rmse_odom:.3f} m')
+    # REP 105 earth -> map on /tf_static: the map origin is the datum's ECEF point, the map axes
+    # East, North, Up there (written once, before the input's own static transform is copied)
+    datum = DATUM if datum_given else tuple(st['datums']['fix0'])
+    with BagReader(Path(res.files['bag'])) as reader:
+        earth = [t for bm in reader.messages(['/tf_static']) for t in bm.msg.transforms
+                 if t.header.frame_id == 'earth']
+    assert len(earth) == 1 and earth[0].child_frame_id == 'map'
+    tr = earth[0].transform
+    q = [tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w]
+    T = se3.from_pos_quat(np.array([tr.translation.x, tr.translation.y, tr.translation.z]),
+                          np.array(q))
+    lat, lon = np.deg2rad(datum[0]), np.deg2rad(datum[1])
+    east = [-np.sin(lon), np.cos(lon), 0.0]
+    north = [-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)]
+    up = [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)]
+    np.testing.assert_allclose(T[:3, :3], np.array([east, north, up]).T, atol=1e-9)
+    np.testing.assert_allclose(T[:3, 3], geodetic_to_ecef(*datum), atol=1e-6)
 
 
 def test_inputs_yaml_mirrors_the_absolute_defaults() -> None:

@@ -104,7 +104,7 @@ class TrackWindowAligner:
         """
         return self._add(m, None)
 
-    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
+    def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> FloatArray:
         """Add an absolute fix tied to a node by the odometry
         (:class:`~ga_ros.core.fixes.FixTerm`); it enters the next adjustment of that node as a
         weighted parameter.
@@ -115,6 +115,12 @@ class TrackWindowAligner:
         C_offset : (6, 6) covariance of that offset (odometry between the node and the fix's
             stamp, right perturbation in the node frame), added to the fix's covariance in its
             known dimensions; ``None``: an exact offset.
+
+        Returns
+        -------
+        (6, 6) the information the fix entered with (map frame, the offset's covariance
+        included): a journal records the fix with it, so a replay (``C_offset=None``) adds the
+        same term.
 
         Raises
         ------
@@ -137,6 +143,7 @@ class TrackWindowAligner:
         if C_offset is not None:
             info = offset_information(term.fix, st.T[k], C_offset)
         st.fixes.add(k, term, info)
+        return info
 
     @property
     def fix_stats(self) -> FixStats:
@@ -145,9 +152,7 @@ class TrackWindowAligner:
 
     @property
     def uses_fixes(self) -> bool:
-        """Whether fixes (or the gauge prior of ``datum='fixes'``) take part: then the
-        background refinement and the freeze computed ahead are off (their snapshots do not
-        carry fixes)."""
+        """Whether fixes (or the gauge prior of ``datum='fixes'``) take part."""
         return self.config.datum == 'fixes' or len(self.state.fixes) > 0
 
     def add_measurements(self, ms) -> BatchResult:
@@ -216,9 +221,8 @@ class TrackWindowAligner:
         try:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
-                if not self.uses_fixes:
-                    self.handoff.start()
-                if self.config.freeze_ahead and not self.uses_fixes:
+                self.handoff.start()
+                if self.config.freeze_ahead:
                     self.ahead.start(self.config.window_tracks, self._last(), self._plan_freeze)
                 else:
                     self.ahead.drop()

@@ -135,9 +135,9 @@ class AlignerConfig:
         (absolute fixes define the map frame, :mod:`ga_ros.core.fixes`: nothing is held fixed,
         the first node gets a weak gauge prior at ``T_world_first`` with the ``gauge_*``
         sigmas, so the normal matrix stays regular until the fixes constrain every degree of
-        freedom). With ``'fixes'`` the background refinement and the freeze computed ahead are
-        off (their snapshots do not carry fixes): frozen nodes keep their fixes in the joint
-        priors absorbed at the freeze.
+        freedom). Frozen nodes keep their fixes in the joint priors absorbed at the freeze and
+        in those a refinement or :meth:`~ga_ros.core.window.aligner.TrackWindowAligner.
+        refine_batch` rebuilds; the background refinement's snapshots carry the fixes.
     fix_gate_prob : chi-square probability of the fixes' gate (:meth:`FixBook.gate
         <ga_ros.core.fixes.FixBook.gate>`); 0 disables it.
     gauge_sigma_m : position sigma (m, per axis) of the gauge prior of ``datum='fixes'``.

@@ -54,10 +54,12 @@ def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: b
         An eliminated group is not determined by the absorbed terms (no datum, no prior node).
     """
     absorbed = np.nonzero(snap.status == 1)[0]
-    if absorbed.size == 0 and not snap.past:
+    fixes = snap.frozen_fixes()
+    if absorbed.size == 0 and not snap.past and not fixes:
         return (), ()
     n = snap.node_ids.size
-    past_nodes = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
+    past_nodes = np.concatenate([p.nodes for p in snap.past + fixes]
+                                or [np.zeros(0, np.int64)])
     keep = prior_nodes(snap.frozen, snap.src, snap.dst, snap.status, snap.freeze_policy,
                        past_nodes, snap.datum)
     if long_tracks(snap):
@@ -72,8 +74,13 @@ def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: b
     last = np.full(n, -1, dtype=np.int64)
     np.maximum.at(last, snap.src[absorbed], step)
     np.maximum.at(last, snap.dst[absorbed], step)
+    # a frozen node's fixes (weighted parameters) enter at its track's freeze
+    fix_node = np.array([int(p.nodes[0]) for p in fixes], dtype=np.int64)
+    fix_step = rank[fix_node]
+    np.maximum.at(last, fix_node, fix_step)
     stages = [(-1, absorbed[:0], snap.past)] if snap.past else []
-    stages += [(int(s), absorbed[step == s], ()) for s in np.unique(step)]
+    stages += [(int(s), absorbed[step == s], tuple(p for p, q in zip(fixes, fix_step) if q == s))
+               for s in np.union1d(np.unique(step), fix_step)]
     work = Marginal()
     steps: list[SmoothingStep] = []
     for s, conns, priors in stages:
@@ -231,7 +238,7 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
     ``smoothing``) one back substitution with a sparse factor of the eliminated nodes' block
     (:class:`SparseSmoothing`)."""
     absorbed = np.nonzero(snap.status == 1)[0]
-    free, N, u = normal_terms(snap, absorbed, T_lin, snap.past)
+    free, N, u = normal_terms(snap, absorbed, T_lin, snap.past + snap.frozen_fixes())
     N = sp.csr_matrix(N)  # once, for both
     kf = keep[free]
     priors = sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
@@ -312,11 +319,12 @@ def retire_tracks(snap: RefinementSnapshot, T_lin: FloatArray, k: int
     """
     e = int((track_rank(snap) < k).sum())
     conns = np.nonzero((snap.status == 1) & ((snap.src < e) | (snap.dst < e)))[0]
+    terms = snap.past + snap.frozen_fixes(before=e)  # the retiring nodes' fixes go with them
     if long_tracks(snap):
-        free, N, u = normal_terms(snap, conns, T_lin, snap.past)
+        free, N, u = normal_terms(snap, conns, T_lin, terms)
         return sparse_priors(free, N, u, free >= e, T_lin, snap.prior_band, snap.prior_hubs)
     work = Marginal()
-    work.add(*normal_terms(snap, conns, T_lin, snap.past))
+    work.add(*normal_terms(snap, conns, T_lin, terms))
     gone = [i for i in work.cols if i < e]
     if len(gone) == len(work.cols):
         return ()

@@ -39,6 +39,7 @@ class AheadFreeze:
                  n_nodes: int, n_conns: int) -> None:
         self.track, self.res, self.window, self.priors = track, res, window, priors
         self.n_nodes, self.n_conns = n_nodes, n_conns
+        self.fixes = np.zeros(0, np.int64)  # the used fixes of the track's nodes
         self.plan: FreezePlan | None = None
         self.cpu_ms = 0.0  # CPU time of the worker thread
         self.thread: threading.Thread | None = None
@@ -86,6 +87,7 @@ class FreezeAhead:
         if st.frozen[rows[0]]:
             return
         job = AheadFreeze(track, res, st.last_window, list(st.priors), len(st.ids), st.src.n)
+        job.fixes = st.fixes.used(np.asarray(rows, np.int64))
         global _BLAS_LIMIT
         if _BLAS_LIMIT is None:  # from now on (set here, outside any blas_threads() context)
             _BLAS_LIMIT = limit_blas_threads()
@@ -112,19 +114,21 @@ class FreezeAhead:
 
     def take(self, track: int) -> FreezePlan | None:
         """The freeze of ``track`` computed ahead, if it was and still applies: same last
-        adjustment and priors, and no connection added since touches the track (the nodes and
-        connections added since are outside what it read). ``None``: compute it now."""
+        adjustment, priors and absolute fixes, and no connection added since touches the
+        track (the nodes and connections added since are outside what it read). ``None``:
+        compute it now."""
         job, self.job = self.job, None
         if job is None:
             return None
         job.wait()
         plan = job.plan
         st = self.state
-        valid = (plan is not None and not len(st.fixes)  # a fix added since may touch it
-                 and job.track == track and job.res is st.last_result
+        valid = (plan is not None and job.track == track and job.res is st.last_result
                  and st.last_pending is None and job.window is st.last_window
                  and len(job.priors) == len(st.priors)
                  and all(a[0] is b[0] for a, b in zip(job.priors, st.priors)))
+        if valid:  # the track's fixes as the plan read them (none added, excluded, re-admitted)
+            valid = np.array_equal(st.fixes.used(plan.nodes), job.fixes)
         if valid:
             nc = job.n_conns
             mine = np.zeros(len(st.ids), dtype=bool)

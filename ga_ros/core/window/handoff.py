@@ -71,13 +71,16 @@ class RefinementHandoff:
         self.refiner.submit(self.snap, due)
 
     def snapshot(self, n_nodes: int | None = None, n_conns: int | None = None,
-                  whole: bool = False) -> RefinementSnapshot:
+                  whole: bool = False, n_fixes: int | None = None) -> RefinementSnapshot:
         """Copy of the data a refinement needs: the horizon's nodes (every one whose track has
-        not been retired, or all of them if ``whole``), the connections between them and the
-        past prior; only the first ``n_nodes`` nodes and ``n_conns`` connections (default all:
-        a restored aligner's pending refinement saw fewer)."""
+        not been retired, or all of them if ``whole``), the connections between them, the past
+        prior and the weighted parameters of the nodes' absolute fixes; only the first
+        ``n_nodes`` nodes, ``n_conns`` connections and ``n_fixes`` fixes (default all: a
+        restored aligner's pending refinement saw fewer)."""
         n = len(self.state.ids) if n_nodes is None else int(n_nodes)
         m = len(self.state.src) if n_conns is None else int(n_conns)
+        book = self.state.fixes
+        k = len(book) if n_fixes is None else int(n_fixes)
         cfg = self.config
         scfg = cfg.solver_config()
         order = [t for t in self.state.tracks if t in self.state.finished
@@ -92,6 +95,9 @@ class RefinementHandoff:
         # a slice is a view, to be copied; a row array (fancy indexing) gives a copy already
         take = (lambda a: a[sel].copy()) if rows is None else (lambda a: a[sel])
         horizon = int(cfg.refine_horizon_tracks)
+        fix_rows, fix_T, fix_info = book.prior_terms(np.arange(f, n), self.state.T, k)
+        fixes = tuple(AbsorbedPrior(np.array([r - f], np.int64), fix_T[a:a + 1], fix_info[a])
+                      for a, r in enumerate(fix_rows.tolist()))
         return RefinementSnapshot(
             after_tracks=len(order), node_ids=self.state.idarr.a[f:n].copy(),
             track_ids=self.state.trackarr.a[f:n].copy(), T_world_node=self.state.T[f:n].copy(),
@@ -103,7 +109,9 @@ class RefinementHandoff:
             solver=replace(scfg, max_iterations=max(20, scfg.max_iterations)),
             prior_band=int(cfg.prior_band), prior_hubs=int(cfg.prior_hubs), first_node=f,
             past=past, retire_max=max(0, len(order) - retired - horizon) if horizon else 0,
-            conn_rows=rows, connections_total=m)
+            conn_rows=rows, connections_total=m, fixes=fixes,
+            fix_used=book.used(np.arange(f, n), k), n_fixes=k,
+            free_datum=cfg.datum == 'fixes')
 
     def install_due(self) -> tuple[int, str, float] | None:
         """Install the refinement due at this update (waiting for it); returns ``(after_tracks,
@@ -153,10 +161,17 @@ class RefinementHandoff:
                 or not np.array_equal(status == 1, predicted)):
             raise InputError('the frozen nodes or absorbed connections changed since the '
                              'snapshot')
-        past = np.concatenate([p.nodes for p in snap.past] or [np.zeros(0, np.int64)])
+        frozen_rows = f + np.nonzero(res.frozen)[0]
+        book = self.state.fixes
+        then = np.asarray(snap.fix_used if snap.fix_used is not None else [], np.int64)
+        then = then[np.isin(np.asarray(book.rows, np.int64)[then], frozen_rows)]
+        if not np.array_equal(book.used(frozen_rows), then):
+            raise InputError('the absolute fixes of the frozen nodes changed since the snapshot')
+        past = np.concatenate([p.nodes for p in snap.past] + [p.nodes for p in snap.fixes]
+                              or [np.zeros(0, np.int64)])
         need = prior_nodes(self.state.frozen[f:n], self.state.src.a[now] - f,
                            self.state.dst.a[now] - f,
-                           status, self.config.freeze_policy, past, f == 0)
+                           status, self.config.freeze_policy, past, snap.datum)
         have = np.zeros(n - f, dtype=bool)
         for p in res.priors:
             have[p.nodes] = True
@@ -212,7 +227,8 @@ class RefinementHandoff:
             nodes, d = self.refiner.smooth(refined, idx - f, d_idx)
         except InputError as exc:  # the worker died: the refined poses stand, unsmoothed
             return str(exc)
-        sel = self.state.frozen[f + nodes] & ((nodes > 0) | (f > 0))  # the datum stays
+        sel = self.state.frozen[f + nodes] & ((nodes > 0) | (f > 0)
+                                              | (self.config.datum == 'fixes'))  # the datum stays
         nodes, d = nodes[sel], d[sel]
         if nodes.size:
             self.state.T[f + nodes] = T_lin[nodes] @ se3.exp(d)
@@ -229,16 +245,17 @@ class RefinementHandoff:
             return None
         return {'due': int(due), 'nodes': int(snap.first_node + snap.node_ids.size),
                 'connections': int(snap.connections_total),
-                'leaving': [int(t) for t in snap.leaving]}
+                'leaving': [int(t) for t in snap.leaving], 'fixes': int(snap.n_fixes)}
 
     def resume(self, pending: dict | None) -> None:
         """Restart the refinement described by :meth:`pending` (a restored aligner),
         from the same data, so the path continues as without the interruption."""
         if not pending or self.config.refine_every_tracks <= 0:
             return
-        self.snap = replace(self.snapshot(int(pending['nodes']),
-                                                   int(pending['connections'])),
-                                    leaving=tuple(int(t) for t in pending['leaving']))
+        n_fixes = pending.get('fixes')  # older state files: no fixes
+        self.snap = replace(self.snapshot(int(pending['nodes']), int(pending['connections']),
+                                          n_fixes=None if n_fixes is None else int(n_fixes)),
+                            leaving=tuple(int(t) for t in pending['leaving']))
         self.snap_updates = self.state.n_updates
         self.refiner.drop()
         self.refiner.submit(self.snap, int(pending['due']))

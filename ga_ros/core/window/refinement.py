@@ -38,8 +38,14 @@ length (about ``H + refine_every_tracks`` tracks); while the survey is no longer
 horizon nothing is retired and the result is the whole-survey one, bit for bit. ``H = 0``
 refines the whole survey every time.
 
-Every absorbed connection still enters exactly one prior, so the published covariances stay
-honest (Monte-Carlo NEES in ``test/core/window/test_honest_covariances.py``).
+**Absolute fixes** (:mod:`ga_ros.core.fixes`) travel in the snapshot as single-node priors
+(:attr:`RefinementSnapshot.fixes`): all of them enter the batch solve, those of frozen nodes the
+rebuilt priors (at their track's freeze, as the aligner's freezing keeps them) and, when their
+track retires, the past prior. The hand-off installs nothing if the frozen nodes' fixes changed
+since the snapshot.
+
+Every absorbed connection and every fix still enters exactly one prior, so the published
+covariances stay honest (Monte-Carlo NEES in ``test/core/window/test_honest_covariances.py``).
 
 **Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
 matrices of about two swaths (:class:`~ga_ros.core.window.elimination.Marginal`: interior nodes
@@ -80,11 +86,12 @@ from ga_ros.runtime import blas_threads
 def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
     """Batch solve of a snapshot, frozen covariances and rebuilt priors (runs in a worker).
 
-    The batch solve uses every connection that is not excluded (status != 2) and the past
-    prior, warm-started at the online estimate, the datum (if the snapshot holds it) fixed. The
-    priors are rebuilt by :func:`absorbed_priors` at the refined poses, for the state after the
-    ``leaving`` tracks froze (:func:`predict_freezes`); then the retirable oldest tracks are
-    retired (:func:`~ga_ros.core.window.elimination.retire_tracks`).
+    The batch solve uses every connection that is not excluded (status != 2), the past
+    prior and the absolute fixes of the snapshot's nodes (weighted parameters), warm-started at
+    the online estimate, the datum (if the snapshot holds it) fixed. The priors are rebuilt by
+    :func:`absorbed_priors` at the refined poses, for the state after the ``leaving`` tracks
+    froze (:func:`predict_freezes`), with the frozen nodes' fixes in them; then the retirable
+    oldest tracks are retired (:func:`~ga_ros.core.window.elimination.retire_tracks`).
     A solve stopped at ``max_iterations`` is installed (``reason`` says so), as the window's
     updates are. Never raises for a numerical failure: ``ok`` is then ``False``.
     """
@@ -102,7 +109,7 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
                                                 unpack_sym6(snap.cov21[keep]))
             res = solve(net, snap.T_world_node, snap.solver,
                         fixed=[int(snap.node_ids[0])] if snap.datum else [],
-                        priors=gaussian(snap, snap.past))
+                        priors=gaussian(snap, snap.past + snap.fixes))
             # like the window's own updates, a solve that used up its iterations (the cost
             # still creeping down) is kept: refusing it stalled the retirement, so the horizon
             # and the refinement's cost grew with the survey
@@ -152,7 +159,7 @@ def predict_freezes(snap: RefinementSnapshot) -> RefinementSnapshot:
 
 
 def absorbed_priors(snap: RefinementSnapshot, T_lin: FloatArray) -> tuple[AbsorbedPrior, ...]:
-    """Joint Gaussian priors of every absorbed connection (see
+    """Joint Gaussian priors of every absorbed connection and of the frozen nodes' fixes (see
     :func:`~ga_ros.core.window.elimination.eliminate_absorbed`)."""
     return eliminate_absorbed(snap, T_lin, smoothing=False)[0]
 

@@ -25,7 +25,7 @@ class RefinementSnapshot:
     ----------
     after_tracks : number of finished tracks when the snapshot was taken.
     node_ids, track_ids : (n,) ids of the nodes of finished tracks, in the aligner's order; node 0
-        (index 0) is the datum, held fixed.
+        (index 0) is the datum, held fixed (unless :attr:`free_datum`).
     T_world_node : (n, 4, 4) online estimate (warm start).
     frozen : (n,) frozen flags at the snapshot.
     track_order : finished track ids in order of appearance (the order in which they freeze).
@@ -52,6 +52,16 @@ class RefinementSnapshot:
         (whole-survey refinement).
     conn_rows : (m,) the aligner's rows of the snapshot's connections (``None``: rows ``0..m-1``).
     connections_total : number of connections the aligner held at the snapshot.
+    fixes : the weighted parameters of the absolute fixes of the snapshot's nodes
+        (:mod:`ga_ros.core.fixes`), one single-node prior per node with a used fix, node indices
+        of the snapshot, linearised at ``T_world_node``: all of them enter the batch solve; those
+        of nodes frozen at the hand-off also enter the rebuilt priors (and the past prior when
+        their track retires), as the aligner's freezing keeps them.
+    fix_used : indices in the aligner's fix book of the fixes in ``fixes`` (the hand-off checks
+        that the frozen nodes' fixes did not change since).
+    n_fixes : number of fixes the aligner held at the snapshot.
+    free_datum : no node is held fixed (``datum='fixes'``: the fixes and the gauge prior define
+        the map frame).
     """
 
     after_tracks: int
@@ -75,11 +85,20 @@ class RefinementSnapshot:
     retire_max: int = 0
     conn_rows: IntArray | None = None
     connections_total: int = -1
+    fixes: tuple[AbsorbedPrior, ...] = ()
+    fix_used: IntArray | None = None
+    n_fixes: int = 0
+    free_datum: bool = False
 
     @property
     def datum(self) -> bool:
         """Whether node 0 of the snapshot is the survey's datum (held fixed)."""
-        return self.first_node == 0
+        return self.first_node == 0 and not self.free_datum
+
+    def frozen_fixes(self, before: int | None = None) -> tuple[AbsorbedPrior, ...]:
+        """The priors of :attr:`fixes` on frozen nodes (of index below ``before``, if given)."""
+        return tuple(p for p in self.fixes if self.frozen[p.nodes].all()
+                     and (before is None or int(p.nodes.max()) < before))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,225 @@
+"""Absolute fixes in the background refinement and in the priors rebuilt after ``refine_batch``.
+
+The survey is a straight line with rotations known to 1e-6 rad, so the se3 adjustment is the
+linear positions problem whose weighted least-squares solution is written out with numpy
+(:func:`_wls`), independently of the aligner.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.geometry import se3
+
+SIGMA_T = 0.05  # m, odometry step noise per axis
+SIGMA_FIX = 0.3  # m, fix noise per axis
+GAUGE_M = 100.0  # m, the gauge prior's position sigma
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(25)
+
+
+def _line_survey(rng, n_tracks: int, per_track: int):
+    n = n_tracks * per_track
+    step = np.array([1.0, 0.2, 0.0])
+    p_true = np.cumsum(np.vstack([np.zeros(3), np.tile(step, (n - 1, 1))]), axis=0)
+    cov = np.diag([SIGMA_T ** 2] * 3 + [1e-12] * 3)
+    ms, z = [], []
+    for i in range(n - 1):
+        t = step + rng.normal(0, SIGMA_T, 3)
+        z.append(t)
+        ms.append(Measurement(i, i + 1, i // per_track, (i + 1) // per_track,
+                              np.concatenate([t, np.zeros(3)]), cov, stamp_ns=(i + 1) * 10 ** 9))
+    return ms, np.array(z), p_true
+
+
+def _wls(n: int, z: np.ndarray, fixes: dict[int, np.ndarray]) -> np.ndarray:
+    """Positions by weighted least squares: p_{i+1} - p_i = z_i, p_k = fix_k, p_0 = 0 (weak)."""
+    rows, rhs, w = [], [], []
+    for i in range(n - 1):
+        for a in range(3):
+            r = np.zeros(3 * n)
+            r[3 * (i + 1) + a], r[3 * i + a] = 1.0, -1.0
+            rows.append(r)
+            rhs.append(z[i, a])
+            w.append(1.0 / SIGMA_T ** 2)
+    for k, (p, s) in [(k, (p, SIGMA_FIX)) for k, p in fixes.items()] + [(0, (np.zeros(3),
+                                                                             GAUGE_M))]:
+        for a in range(3):
+            r = np.zeros(3 * n)
+            r[3 * k + a] = 1.0
+            rows.append(r)
+            rhs.append(p[a])
+            w.append(1.0 / s ** 2)
+    A, b, W = np.array(rows), np.array(rhs), np.diag(w)
+    return np.linalg.solve(A.T @ W @ A, A.T @ W @ b).reshape(n, 3)
+
+
+def _aligner(refine_every: int, **kw) -> TrackWindowAligner:
+    cfg = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=refine_every,
+                        refine_executor='inline', gauge_sigma_m=GAUGE_M,
+                        gauge_sigma_tilt_rad=1e-6, gauge_sigma_yaw_rad=1e-6, prior_band=-1,
+                        fix_gate_prob=0.0, **kw)
+    return TrackWindowAligner(cfg)
+
+
+def _run(al: TrackWindowAligner, ms, fixes: dict[int, np.ndarray]) -> None:
+    """Feed the survey, each fix right after its node's measurement; finish the last track."""
+    for m in ms:
+        al.add_measurement(m)
+        k = m.dst_id
+        if k in fixes:
+            T = se3.from_translation_rotvec(fixes[k], np.zeros(3))
+            al.add_fix(FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
+                m.stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+    al.finish_track()
+
+
+def _fixes(rng, p_true: np.ndarray, nodes) -> dict[int, np.ndarray]:
+    return {int(k): p_true[k] + rng.normal(0, SIGMA_FIX, 3) for k in nodes}
+
+
+@pytest.mark.parametrize('horizon', [0, 3])
+def test_refinement_with_fixes_gives_the_batch_solution(rng, horizon: int) -> None:
+    """With the default policy (a refinement after every track) and fixes, the whole path at
+    the end is the batch solution (the frozen tracks refined with their fixes and smoothed),
+    without a final refine_batch; with the refinement off the frozen tracks stay where they
+    froze."""
+    n_tracks, per = 8, 6
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    n = n_tracks * per
+    fixes = _fixes(rng, p_true, range(2, n, 4))
+    p_ref = _wls(n, z, fixes)
+    on = _aligner(1, refine_horizon_tracks=horizon)
+    _run(on, ms, fixes)
+    assert on.handoff.n_refinements >= n_tracks - 3
+    path = on.corrected_path()
+    assert path.frozen[:per].all()
+    err_on = np.abs(path.T_world_node[:, :3, 3] - p_ref).max()
+    off = _aligner(0)
+    _run(off, ms, fixes)
+    err_off = np.abs(off.corrected_path().T_world_node[:, :3, 3] - p_ref).max()
+    if horizon == 0:
+        assert err_on < 2e-3
+    else:  # retired tracks stay where the last refinement that covered them left them
+        assert np.abs(path.T_world_node[-3 * per:, :3, 3] - p_ref[-3 * per:]).max() < 2e-3
+    # the test can tell the two apart (and a bounded refinement still gets most of the way)
+    assert err_off > (10 if horizon == 0 else 3) * max(err_on, 1e-3)
+    # and refine_batch agrees with the refined path
+    on.refine_batch()
+    np.testing.assert_allclose(on.corrected_path().T_world_node[:, :3, 3], p_ref, atol=2e-3)
+
+
+def test_online_estimate_with_refinement_no_worse_than_without(rng) -> None:
+    """The newest track's estimate after each update, against the truth, with the refinement
+    on and off (same data): the refinement does not make the published estimate worse."""
+    n_tracks, per = 8, 6
+    ms, _, p_true = _line_survey(rng, n_tracks, per)
+    fixes = _fixes(rng, p_true, range(2, n_tracks * per, 4))
+    errs = {}
+    for every in (0, 1):
+        al = _aligner(every)
+        online = []
+        for m in ms:
+            if al.add_measurement(m):
+                newest = al.corrected_path()
+                sel = ~newest.frozen
+                online.append(np.linalg.norm(newest.T_world_node[sel, :3, 3]
+                                             - p_true[newest.node_ids[sel]], axis=1))
+            if m.dst_id in fixes:
+                T = se3.from_translation_rotvec(fixes[m.dst_id], np.zeros(3))
+                al.add_fix(FixTerm(m.dst_id, se3.identity(), AbsoluteFix.from_covariance(
+                    m.stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+        errs[every] = float(np.sqrt(np.mean(np.concatenate(online) ** 2)))
+    assert errs[1] <= 1.01 * errs[0] + 1e-4
+
+
+@pytest.mark.parametrize('refine_every', [0, 1])
+def test_fixes_keep_pulling_after_refine_batch(rng, refine_every: int) -> None:
+    """A run continued after refine_batch: the rebuilt priors keep the frozen nodes' fixes, so
+    the continued path is still the batch solution of every fix (the fixes of the first half are
+    all shifted by 0.5 m along x: losing them would move the path back)."""
+    n_tracks, per = 8, 6
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    n = n_tracks * per
+    half = n // 2
+    fixes = {k: p + [0.5, 0, 0] for k, p in _fixes(rng, p_true, range(2, half, 3)).items()}
+    al = _aligner(refine_every)
+    _run(al, ms[:half - 1], fixes)  # to the end of a track
+    al.refine_batch()
+    assert al.corrected_path().frozen.any()
+    _run(al, ms[half - 1:], {})
+    p_ref = _wls(n, z, fixes)
+    p_hat = al.corrected_path().T_world_node[:, :3, 3]
+    assert np.abs(p_hat[-per:] - p_ref[-per:]).max() < 2e-3  # the newest track
+    # without the first half's fixes the end of the path is about 0.5 m further back
+    p_nofix = _wls(n, z, {})
+    assert np.abs(p_ref[-1, 0] - p_nofix[-1, 0]) > 0.3
+
+
+def test_fixes_added_to_a_leaving_track_after_the_snapshot_are_not_lost(rng) -> None:
+    """A fix on a node of a track that freezes before the refinement's hand-off, added after
+    its snapshot (refine_lag_tracks = 2), must not be dropped by the installed priors."""
+    n_tracks, per = 8, 6
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    n = n_tracks * per
+    fixes = _fixes(rng, p_true, range(2, n, 4))
+    al = _aligner(1, refine_lag_tracks=2)
+    pending = {}
+    for m in ms:
+        al.add_measurement(m)
+        k = m.dst_id
+        if k in fixes:
+            pending[k] = m.stamp_ns
+        # each fix arrives one track late (a slow GNSS pipeline), before its node freezes
+        for j, stamp in list(pending.items()):
+            if k - j >= per:
+                T = se3.from_translation_rotvec(fixes[j], np.zeros(3))
+                al.add_fix(FixTerm(j, se3.identity(), AbsoluteFix.from_covariance(
+                    stamp, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+                del pending[j]
+    al.finish_track()
+    used = {t.node_id for t in al.state.fixes.terms if t.fix.source == 'gnss'}
+    assert len(used) >= len(fixes) - 2
+    p_ref = _wls(n, z, {k: p for k, p in fixes.items() if k in used})
+    # the window's newest track is the batch solution only if no frozen fix was dropped
+    p_hat = al.corrected_path().T_world_node[:, :3, 3]
+    assert np.abs(p_hat[-per:] - p_ref[-per:]).max() < 2e-3
+
+
+def test_freeze_computed_ahead_with_fixes_is_used_and_exact(rng) -> None:
+    """The freeze computed ahead in the background stays valid when a fix arrives on another
+    track (each fix here ends the track that gets it), and gives the freeze computed at the
+    track end exactly; a fix on the leaving track itself invalidates it."""
+    n_tracks, per = 8, 6
+    ms, _, p_true = _line_survey(rng, n_tracks, per)
+    fixes = _fixes(rng, p_true, range(2, n_tracks * per, 4))
+    paths, used = [], []
+    for ahead in (True, False):
+        al = _aligner(1, freeze_ahead=ahead)
+        _run(al, ms, fixes)
+        paths.append(al.corrected_path().T_world_node)
+        used.append(al.ahead.n_ahead[0])
+        al.close()
+    assert used[0] >= n_tracks - 3 and used[1] == 0
+    np.testing.assert_allclose(paths[0], paths[1], atol=1e-9)
+    # a fix added to the leaving track after the plan started: the plan is not used
+    al = _aligner(0, freeze_ahead=True)
+    for m in ms[:3 * per - 1]:
+        al.add_measurement(m)
+    al.finish_track()  # tracks 0-2 finished, window of 2: track 1 leaves at the next update
+    node = per + 1  # a node of track 1
+    T = se3.from_translation_rotvec(p_true[node], np.zeros(3))
+    al.add_fix(FixTerm(node, se3.identity(), AbsoluteFix.from_covariance(
+        ms[node - 1].stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+    before = list(al.ahead.n_ahead)
+    for m in ms[3 * per - 1:4 * per - 1]:
+        al.add_measurement(m)
+    al.finish_track()
+    assert al.ahead.n_ahead[1] == before[1] + 1
