@@ -547,13 +547,7 @@ class OdometryInput:
             raise InputError(f'{name}: no keyframe within {self.config.constraint_tolerance_s}'
                              f' s of constraint stamp {stamp} ns; raise constraint_tolerance_s'
                              ' or lower the keyframe thresholds')
-        s = np.asarray(self._stamps)
-        j = int(np.searchsorted(s, stamp))
-        if s[j] == stamp:
-            T_odom_stamp = self._poses[j]
-        else:
-            alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
-            T_odom_stamp = interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
+        T_odom_stamp = self._odom_at(stamp)
         return i, se3.relative(self._kf_poses[i], T_odom_stamp)
 
     def offset_at(self, stamp_ns: int) -> tuple[int, FloatArray, FloatArray]:
@@ -575,16 +569,20 @@ class OdometryInput:
         i = int(np.searchsorted(np.asarray(self._kf_stamps), stamp, side='right')) - 1
         if i < 0:
             raise InputError(f'{self.config.name}: stamp {stamp} ns is before the first keyframe')
-        s = np.asarray(self._stamps)
-        j = int(np.searchsorted(s, stamp))
-        if s[j] == stamp:
-            T_odom_stamp = self._poses[j]
-        else:
-            alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
-            T_odom_stamp = interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
+        T_odom_stamp = self._odom_at(stamp)
         T = se3.relative(self._kf_poses[i], T_odom_stamp)
         C = self.config.noise_model().covariances(se3.to_translation_rotvec(T))[0]
         return self._kf_ids[i], T, C
+
+    def _odom_at(self, stamp: int) -> FloatArray:
+        """``T_odom_base`` at ``stamp`` (ns, within the samples kept): the sample at that stamp,
+        else the SE(3) interpolation between its two neighbours."""
+        s = np.asarray(self._stamps)
+        j = int(np.searchsorted(s, stamp))
+        if s[j] == stamp:
+            return self._poses[j]
+        alpha = (stamp - int(s[j - 1])) / (int(s[j]) - int(s[j - 1]))
+        return interpolate_pose(self._poses[j - 1], self._poses[j], alpha)
 
     @property
     def latest_stamp_ns(self) -> int | None:
