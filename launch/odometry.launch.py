@@ -28,5 +28,5 @@ def generate_launch_description():
                           'odom0.topic': LaunchConfiguration('odom_topic'),
                           'odom0.type': LaunchConfiguration('odom_type'),
                           'odom0.track.mode': LaunchConfiguration('track_mode'),
-                          'odom0.qos_reliability': 'best_effort'}]),
+                          'odom0.qos_reliability': 'auto'}]),
     ])

@@ -158,9 +158,10 @@ class ExtrinsicConfig:
     base_frame : the robot's base frame (REP 105 ``base_link``): the child of ``odom``.
     camera_frame : the left camera's (optical) frame; '' = the left image's
         ``header.frame_id``.
-    T_base_camera : the camera's pose in ``base_frame`` when no ``/tf_static`` has it:
-        ``'x y z roll pitch yaw'`` (m, rad, ``R = Rz(yaw) Ry(pitch) Rx(roll)``) or
-        ``'x y z qx qy qz qw'``; '' = from ``/tf_static`` only.
+    T_base_camera : the camera's pose in ``base_frame`` when no ``/tf_static`` has it, in the
+        convention of every ``T_base_<sensor>`` parameter: ``'x y z qx qy qz qw'`` (m,
+        quaternion x y z w, as ``static_transform_publisher``), or ``'x y z roll pitch yaw'``
+        (m, rad, ``R = Rz(yaw) Ry(pitch) Rx(roll)``); '' = from ``/tf_static`` only.
     assume_identity_extrinsic : with neither ``/tf_static`` nor ``T_base_camera``, take the
         camera frame as the base frame (poses are then the optical frame's: z forward).
     """
@@ -216,9 +217,34 @@ class ExtrinsicConfig:
         return Extrinsic(np.eye(4), self.base_frame, cam, UNKNOWN)
 
 
+def unknown_extrinsic_error(sensor: str, parameter: str, identity: str,
+                            tf_static: bool = True) -> InputError:
+    """The one-line refusal when a sensor's extrinsic is unknown: it names the ways to give it
+    (``/tf_static`` when the caller reads it, the ``parameter`` ``T_base_<sensor>`` as
+    ``'x y z qx qy qz qw'``, or ``identity`` to take the sensor frame as the base frame)."""
+    ways = ([f'publish base_frame -> {sensor} frame on /tf_static'] if tf_static else []) + [
+        f"set {parameter} ('x y z qx qy qz qw': m, quaternion x y z w)",
+        f'say {identity} (the {sensor} frame is the base frame)']
+    return InputError(f'{sensor} extrinsic unknown: ' + ', or '.join(ways))
+
+
+def renamed_parameter_error(old: str, new: str) -> InputError:
+    """A parameter of the old extrinsic convention was given: say the new name."""
+    return InputError(f"{old} is now {new} ('x y z qx qy qz qw': m, quaternion x y z w)")
+
+
+def pose_text(T: FloatArray) -> str:
+    """``'x y z qx qy qz qw'`` of a (4, 4) pose: the ``T_base_<sensor>`` parameter text."""
+    p, q = se3.to_pos_quat(np.asarray(T, float))
+    return ' '.join(f'{float(v):.12g}' for v in (*p, *q))
+
+
 class TransformTree:
     """Static transforms (``/tf_static``) and the lookup of one frame in another (a tree: each
-    child has one parent)."""
+    child has one parent). The one reader of ``/tf_static`` messages: the camera's extrinsic
+    (``vo_node``, the stereo replay) and the absolute sensors' lever arms
+    (:mod:`ga_ros.inputs.absolute`) all look their ``base_frame -> sensor_frame`` chain up
+    here."""
 
     def __init__(self) -> None:
         self._parent: dict[str, tuple[str, FloatArray]] = {}
@@ -229,13 +255,17 @@ class TransformTree:
 
     def add_message(self, msg: object) -> int:
         """Record every transform of a ``tf2_msgs/TFMessage`` (rclpy or rosbags message, read by
-        field name); returns how many."""
+        field name; quaternions normalised); returns how many. A transform with a non-finite
+        value or a zero quaternion is skipped (not counted)."""
         n = 0
         for t in getattr(msg, 'transforms', ()):
             tr, q = t.transform.translation, t.transform.rotation
-            T = se3.from_pos_quat(np.array([tr.x, tr.y, tr.z], float),
-                                  np.array([q.x, q.y, q.z, q.w], float))
-            self.add(t.header.frame_id, t.child_frame_id, T)
+            p = np.array([tr.x, tr.y, tr.z], float)
+            quat = np.array([q.x, q.y, q.z, q.w], float)
+            if not (np.isfinite(p).all() and np.isfinite(quat).all()
+                    and np.linalg.norm(quat) > 1e-9):
+                continue
+            self.add(str(t.header.frame_id), str(t.child_frame_id), se3.from_pos_quat(p, quat))
             n += 1
         return n
 

@@ -34,8 +34,8 @@ Lever arm
     FixTerm`). The sensor's frame is a NavSatFix's ``header.frame_id`` or an Odometry's
     ``child_frame_id`` (a PoseWithCovarianceStamped is of the base, as AMCL's); its pose in
     ``base_frame`` comes from ``/tf_static`` when ``lever_arm_from_tf`` and the static tree links
-    them (:class:`StaticTransforms`), else from ``lever_arm_m`` ``[x, y, z]`` (rotation the
-    identity).
+    them (:class:`ga_ros.core.extrinsic.TransformTree`, the one ``/tf_static`` reader), else
+    from ``T_base_sensor`` ``[x, y, z, qx, qy, qz, qw]``.
 """
 
 from __future__ import annotations
@@ -48,8 +48,10 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.encoding import pose_to_matrix, stamp_to_ns
+from ga_ros.core.extrinsic import TransformTree, renamed_parameter_error
 from ga_ros.core.fixes import UNKNOWN_VARIANCE, AbsoluteFix
 from ga_ros.errors import InputError
+from ga_ros.geometry import se3
 
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -137,8 +139,10 @@ class AbsoluteInputConfig:
     position_only : ignore the orientation of pose types.
     use_datum : the ENU origin of a NavSatFix input is ``datum``; ``False``: the first fix.
     datum : ``[lat_deg, lon_deg, alt_m]`` of that origin.
-    lever_arm_m : ``[x, y, z]`` of the sensor in the base frame (m), when ``/tf_static`` does
-        not give it.
+    T_base_sensor : the sensor's pose in the base frame, ``[x, y, z, qx, qy, qz, qw]`` (m,
+        quaternion x y z w: the ``T_base_<sensor>`` convention of
+        :mod:`ga_ros.core.extrinsic`), when ``/tf_static`` does not give it (the old
+        ``lever_arm_m`` is refused with the new name).
     lever_arm_from_tf : take ``T_base_sensor`` from ``/tf_static`` when it links
         ``base_frame`` to the sensor's frame.
     base_frame : the robot's base frame (REP 105 ``base_link``).
@@ -157,7 +161,7 @@ class AbsoluteInputConfig:
     position_only: bool = False
     use_datum: bool = False
     datum: tuple[float, ...] = (0.0, 0.0, 0.0)
-    lever_arm_m: tuple[float, ...] = (0.0, 0.0, 0.0)
+    T_base_sensor: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     lever_arm_from_tf: bool = True
     base_frame: str = 'base_link'
     ends_track: bool = True
@@ -166,13 +170,14 @@ class AbsoluteInputConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'datum', tuple(float(v) for v in self.datum))
-        object.__setattr__(self, 'lever_arm_m', tuple(float(v) for v in self.lever_arm_m))
+        object.__setattr__(self, 'T_base_sensor', tuple(float(v) for v in self.T_base_sensor))
         if len(self.datum) != 3 or not np.isfinite(self.datum).all():
             raise InputError(f'{self.name}.datum must be [lat_deg, lon_deg, alt_m], got '
                              f'{list(self.datum)}')
-        if len(self.lever_arm_m) != 3 or not np.isfinite(self.lever_arm_m).all():
-            raise InputError(f'{self.name}.lever_arm_m must be [x, y, z], got '
-                             f'{list(self.lever_arm_m)}')
+        v = np.asarray(self.T_base_sensor, float)
+        if v.shape != (7,) or not np.isfinite(v).all() or abs(np.linalg.norm(v[3:]) - 1) > 1e-3:
+            raise InputError(f'{self.name}.T_base_sensor must be [x, y, z, qx, qy, qz, qw] '
+                             f'(m, unit quaternion), got {list(self.T_base_sensor)}')
         if not (self.default_sigma_m > 0 and self.unknown_variance > 0
                 and self.track_min_interval_s >= 0 and self.tolerance_s >= 0):
             raise InputError(f'{self.name}: default_sigma_m and unknown_variance must be > 0, '
@@ -187,6 +192,8 @@ class AbsoluteInputConfig:
         InputError
             An unknown setting or a bad value.
         """
+        if 'lever_arm_m' in values:
+            raise renamed_parameter_error(f'{name}.lever_arm_m', f'{name}.T_base_sensor')
         known = {f.name for f in fields(cls)}
         unknown = set(values) - known
         if unknown:
@@ -195,48 +202,10 @@ class AbsoluteInputConfig:
         return cls(name=name, **dict(values))
 
     @property
-    def T_base_sensor(self) -> FloatArray:
-        """(4, 4) the sensor's pose in the base frame (the lever arm)."""
-        T = np.eye(4)
-        T[:3, 3] = self.lever_arm_m
-        return T
-
-
-class StaticTransforms:
-    """The static transform tree (``/tf_static``), for the sensors' lever arms."""
-
-    def __init__(self) -> None:
-        self._parent: dict[str, tuple[str, FloatArray]] = {}  # child -> (parent, T_parent_child)
-
-    def add(self, msg: Any) -> None:
-        """Record the transforms of one ``tf2_msgs/TFMessage`` (rclpy or rosbags)."""
-        for t in msg.transforms:
-            tr, q = t.transform.translation, t.transform.rotation
-            T = np.eye(4)
-            T[:3, 3] = [tr.x, tr.y, tr.z]
-            x, y, z, w = q.x, q.y, q.z, q.w
-            n = np.sqrt(x * x + y * y + z * z + w * w)
-            if not np.isfinite(n) or n < 1e-9 or not np.isfinite(T).all():
-                continue
-            x, y, z, w = x / n, y / n, z / n, w / n
-            T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-            self._parent[str(t.child_frame_id).lstrip('/')] = (
-                str(t.header.frame_id).lstrip('/'), T)
-
-    def lookup(self, parent: str, child: str) -> FloatArray | None:
-        """``T_parent_child`` if ``child`` hangs below ``parent`` in the tree, else None."""
-        parent, frame = parent.lstrip('/'), child.lstrip('/')
-        T = np.eye(4)
-        for _ in range(64):  # a tree's depth; a loop in bad data ends here
-            if frame == parent:
-                return T
-            if frame not in self._parent:
-                return None
-            frame, T_up = self._parent[frame]
-            T = T_up @ T
-        return None
+    def T_base_sensor_matrix(self) -> FloatArray:
+        """(4, 4) the sensor's pose in the base frame (the lever arm) of ``T_base_sensor``."""
+        v = np.asarray(self.T_base_sensor, float)
+        return se3.from_pos_quat(v[:3], v[3:])
 
 
 @dataclass
@@ -278,16 +247,19 @@ class AbsoluteDecoder:
             return str(msg.child_frame_id).lstrip('/')
         return ''
 
-    def T_base_sensor(self, sensor_frame: str, static: StaticTransforms | None) -> FloatArray:
+    def T_base_sensor(self, sensor_frame: str, static: TransformTree | None) -> FloatArray:
         """(4, 4) the sensor's pose in the base frame (module doc: ``/tf_static`` or
-        ``lever_arm_m``)."""
+        ``T_base_sensor``; a loop in the static tree counts as not linked)."""
         cfg = self.config
         if cfg.lever_arm_from_tf and static is not None and sensor_frame:
-            T = static.lookup(cfg.base_frame, sensor_frame)
+            try:
+                T = static.lookup(cfg.base_frame, sensor_frame)
+            except InputError:
+                T = None
             if T is not None:
                 self.stats.lever_arm_from_tf += 1
                 return T
-        return cfg.T_base_sensor
+        return cfg.T_base_sensor_matrix
 
     def decode(self, msg: Any) -> tuple[AbsoluteFix, bool]:
         """``(fix, used the default covariance)`` of one message.

@@ -30,13 +30,13 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.extrinsic import TransformTree
 from ga_ros.core.fixes import FixTerm
 from ga_ros.errors import InputError
 from ga_ros.inputs.absolute import (
     NAVSAT,
     AbsoluteDecoder,
     AbsoluteInputConfig,
-    StaticTransforms,
     absolute_type,
 )
 from ga_ros.inputs.odometry import OdometryInput
@@ -118,7 +118,7 @@ class AbsoluteFrontEnd:
         self.throttle = Throttle(warn_throttle_s, clock)
         self._pending: list[tuple[str, Any, str]] = []  # (input, AbsoluteFix, sensor frame)
         #: the static transforms (``/tf_static``) for the lever arms (:meth:`static_transform`)
-        self.static = StaticTransforms()
+        self.static = TransformTree()
         self._last_boundary_ns: int | None = None
         self._newest_fix_ns = 0
 
@@ -182,7 +182,7 @@ class AbsoluteFrontEnd:
 
     def static_transform(self, msg: Any) -> None:
         """A ``/tf_static`` message (``tf2_msgs/TFMessage``): the sensors' lever arms."""
-        self.static.add(msg)
+        self.static.add_message(msg)
 
     def datums(self) -> dict[str, list[float]]:
         """``{input: [lat_deg, lon_deg, alt_m]}``: the ENU origin of each NavSatFix input that
@@ -264,7 +264,7 @@ def absolute_specs_from_mapping(sections: Mapping[str, Any],
         topic = str(topics.get(name, values.pop('topic', '')))
         values.pop('topic', None)
         msgtype = str(values.pop('type', 'geometry_msgs/msg/PoseWithCovarianceStamped'))
-        for key in ('datum', 'lever_arm_m'):
+        for key in ('datum', 'T_base_sensor'):
             if key in values:
                 values[key] = tuple(np.asarray(values[key], float).ravel().tolist())
         if topic:

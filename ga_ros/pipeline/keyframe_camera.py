@@ -51,24 +51,24 @@ class KeyframeCameraConfig:
     ----------
     front : stereo pairing tolerance (``max_pair_dt_sec``), keyframe feature extraction
         (``vo``: ORB features, stereo matching) and cross-track matching (``cross``).
-    base_to_camera : the extrinsic ``T_base_cam`` as ``x y z qx qy qz qw`` (m; the camera's
+    T_base_camera : the extrinsic ``T_base_cam`` as ``x y z qx qy qz qw`` (m; the camera's
         optical frame in the base frame, as ``static_transform_publisher`` takes it).
     max_image_offset_s : largest time between a keyframe and the image pair used for it (s).
     max_waiting_pairs : image pairs kept for keyframes still to come.
     """
 
     front: FrontEndConfig = field(default_factory=FrontEndConfig)
-    base_to_camera: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    T_base_camera: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     max_image_offset_s: float = 0.25
     max_waiting_pairs: int = 50
 
     def __post_init__(self) -> None:
-        if len(self.base_to_camera) != 7:
-            raise InputError('base_to_camera must be 7 numbers: x y z qx qy qz qw, got '
-                             f'{len(self.base_to_camera)}')
-        q = np.asarray(self.base_to_camera[3:], float)
-        if not np.all(np.isfinite(self.base_to_camera)) or abs(np.linalg.norm(q) - 1) > 1e-3:
-            raise InputError(f'base_to_camera {self.base_to_camera}: the quaternion must be '
+        if len(self.T_base_camera) != 7:
+            raise InputError('T_base_camera must be 7 numbers: x y z qx qy qz qw, got '
+                             f'{len(self.T_base_camera)}')
+        q = np.asarray(self.T_base_camera[3:], float)
+        if not np.all(np.isfinite(self.T_base_camera)) or abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise InputError(f'T_base_camera {self.T_base_camera}: the quaternion must be '
                              'finite and of unit length')
         if self.max_image_offset_s <= 0 or self.max_waiting_pairs < 1:
             raise InputError('max_image_offset_s must be > 0 and max_waiting_pairs >= 1')
@@ -76,7 +76,7 @@ class KeyframeCameraConfig:
     @property
     def T_base_cam(self) -> FloatArray:
         """(4, 4) the extrinsic."""
-        v = np.asarray(self.base_to_camera, float)
+        v = np.asarray(self.T_base_camera, float)
         return se3.from_pos_quat(v[:3], v[3:] / np.linalg.norm(v[3:]))
 
 

@@ -58,10 +58,16 @@ from visualization_msgs.msg import MarkerArray
 
 from ga_ros import topics
 from ga_ros.core.config_ranges import check_ranges, ranged
+from ga_ros.core.extrinsic import (
+    ExtrinsicConfig,
+    renamed_parameter_error,
+    unknown_extrinsic_error,
+)
 from ga_ros.core.gaps import GapConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
+from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig, T_earth_enu
 from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
@@ -82,8 +88,16 @@ from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.params import declare_config, updated_config
-from ga_ros.ros.qos import RELIABILITIES, latched_qos, measurement_qos, sensor_qos, stream_qos
+from ga_ros.ros.qos import (
+    AUTO,
+    RELIABILITIES,
+    latched_qos,
+    measurement_qos,
+    sensor_qos,
+    stream_qos,
+)
 from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.ros.view import connection_view
 
@@ -551,9 +565,10 @@ class AlignmentNode(Node):
             if not topic:
                 raise InputError(f'input {name}: set the parameter {name}.topic')
             reliability = str(self.declare_parameter(
-                f'{name}.qos_reliability', 'best_effort', ParameterDescriptor(
+                f'{name}.qos_reliability', AUTO, ParameterDescriptor(
                     description=f'{name}: subscription QoS, {" | ".join(RELIABILITIES)} '
-                    f'(best_effort connects to both kinds of publisher; read-only: {why})',
+                    f'(auto: reliable when every publisher offers reliable, else best effort; '
+                    f'read-only: {why})',
                     read_only=True)).value)
             depth = int(self.declare_parameter(f'{name}.qos_depth', 100, ParameterDescriptor(
                 description=f'{name}: subscription queue depth, messages (read-only: {why})',
@@ -579,18 +594,31 @@ class AlignmentNode(Node):
                           declare(f'{side}_info_topic', '', f'{side} CameraInfo topic'))
                    for side in ('left', 'right')}
         compressed = declare('compressed', False, 'subscribe to sensor_msgs/CompressedImage')
-        extrinsic = declare('base_to_camera', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                            'T_base_cam of the left optical frame: x y z qx qy qz qw')
+        extrinsic = declare('T_base_camera', '', "the left optical frame's pose in the base "
+                            "frame: 'x y z qx qy qz qw' (m, quaternion x y z w) or "
+                            "'x y z roll pitch yaw' (rad); '' = not given")
+        identity = declare('assume_identity_extrinsic', False, 'without camera.T_base_camera: '
+                           'the camera frame is the base frame')
+        old = self.declare_parameter('camera.base_to_camera', None, ParameterDescriptor(
+            description='renamed: camera.T_base_camera', dynamic_typing=True)).value
         offset = declare('max_image_offset_s', 0.25,
                          'largest time between a keyframe and its image pair (s)')
+        if old is not None:
+            raise renamed_parameter_error('camera.base_to_camera', 'camera.T_base_camera')
         if not topics_['left'][0]:
             return None
         if not all(t for pair in topics_.values() for t in pair):
             raise InputError('camera: set camera.left_image_topic, camera.right_image_topic, '
                              'camera.left_info_topic and camera.right_info_topic')
+        ext = ExtrinsicConfig(T_base_camera=str(extrinsic)).from_parameters()
+        if ext is None and not identity:
+            raise unknown_extrinsic_error('camera', 'camera.T_base_camera',
+                                          'camera.assume_identity_extrinsic: true',
+                                          tf_static=False)
+        p, q = se3.to_pos_quat(ext.T_base_cam if ext is not None else np.eye(4))
         self._camera_topics = (topics_, bool(compressed))
         return KeyframeCamera(KeyframeCameraConfig(
-            base_to_camera=tuple(float(v) for v in extrinsic),
+            T_base_camera=tuple(float(v) for v in (*p, *q)),
             max_image_offset_s=float(offset)))
 
     def _declare_absolutes(self, s: NodeSettings) -> AbsoluteFrontEnd | None:
@@ -613,6 +641,10 @@ class AlignmentNode(Node):
                 read_only=True)).value
             cfg = declare_config(self, AbsoluteInputConfig, prefix=f'{name}.',
                                  read_only_reason=why, defaults=AbsoluteInputConfig(name))
+            if self.declare_parameter(f'{name}.lever_arm_m', None, ParameterDescriptor(
+                    description=f'renamed: {name}.T_base_sensor',
+                    dynamic_typing=True)).value is not None:
+                raise renamed_parameter_error(f'{name}.lever_arm_m', f'{name}.T_base_sensor')
             if not topic:
                 raise InputError(f'absolute input {name}: set the parameter {name}.topic')
             specs.append(AbsoluteSpec(str(topic), str(msgtype), replace(cfg, name=name)))
@@ -660,25 +692,27 @@ class AlignmentNode(Node):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:
+        #: the sensor subscriptions by input name (their reliability, :mod:`.adaptive_qos`)
+        self.sensor_subscriptions: dict[str, AdaptiveSubscription] = {}
         if self.front is None:
             return
         if self.absolute is not None:
             kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
                          NAVSAT: NavSatFix}
-            qos_abs = sensor_qos('best_effort', 100)
             for spec in self.absolute.specs.values():
-                self.create_subscription(kinds_abs[spec.msgtype], spec.topic,
-                                         partial(self._on_absolute, spec.name), qos_abs)
+                self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
+                    self, kinds_abs[spec.msgtype], spec.topic,
+                    partial(self._on_absolute, spec.name), AUTO, 100)
             # the sensors' lever arms (latched: every static broadcaster's last message)
             self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
                                      latched_qos(100))
         kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
         for spec in self.front.specs.values():
-            # best effort (default) matches reliable and best-effort publishers
+            # auto (default): reliable when every publisher offers reliable, else best effort
             reliability, depth = self._input_qos[spec.name]
-            self.create_subscription(kinds[spec.msgtype], spec.topic,
-                                     partial(self._on_input, spec.name),
-                                     sensor_qos(reliability, depth))
+            self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
+                self, kinds[spec.msgtype], spec.topic, partial(self._on_input, spec.name),
+                reliability, depth)
         self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
                                  measurement_qos(1000))
         self.create_subscription(Empty, s.track_boundary_topic,
@@ -686,12 +720,11 @@ class AlignmentNode(Node):
         if self.front.camera is not None:
             cam_topics, compressed = self._camera_topics
             img_type = CompressedImage if compressed else Image
-            qos = sensor_qos('best_effort', 100)   # as the standard inputs' default
-            for side, (image, info) in cam_topics.items():
-                self.create_subscription(img_type, image, partial(self._on_camera_image, side),
-                                         qos)
-                self.create_subscription(CameraInfo, info, partial(self._on_camera_info, side),
-                                         qos)
+            for side, (image, info) in cam_topics.items():   # as the standard inputs' default
+                self.sensor_subscriptions[f'camera_{side}_image'] = AdaptiveSubscription(
+                    self, img_type, image, partial(self._on_camera_image, side), AUTO, 100)
+                self.sensor_subscriptions[f'camera_{side}_info'] = AdaptiveSubscription(
+                    self, CameraInfo, info, partial(self._on_camera_info, side), AUTO, 100)
         self.get_logger().info('standard inputs: ' + ', '.join(
             f'{sp.name} {sp.topic} [{sp.msgtype}]' for sp in self.front.specs.values()))
 
@@ -875,6 +908,9 @@ class AlignmentNode(Node):
         values = self.session.diagnostic_values()
         values['measurements_lost_in_queue'] = self.queue_loss.total
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
+        for name, sub in getattr(self, 'sensor_subscriptions', {}).items():
+            values[f'qos/{name}'] = (sub.reliability if sub.decided
+                                     else 'best_effort (auto: no publisher yet)')
         return values
 
     def _publish_all(self) -> None:

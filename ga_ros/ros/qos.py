@@ -32,15 +32,18 @@ def stream_qos(depth: int = 10) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE)
 
 
-#: Accepted values of the ``qos_reliability`` parameters.
-RELIABILITIES = ('best_effort', 'reliable')
+#: ``qos_reliability``: adapt to the publishers' offered QoS (:mod:`ga_ros.ros.adaptive_qos`).
+AUTO = 'auto'
+#: Accepted values of the ``qos_reliability`` parameters (``auto`` first: the default).
+RELIABILITIES = (AUTO, 'best_effort', 'reliable')
 
 
 def sensor_qos(reliability: str = 'best_effort', depth: int = 10) -> QoSProfile:
     """Subscription QoS of a sensor input (images, camera info, odometry): keep last ``depth``,
     volatile; ``best_effort`` (the ROS sensor-data convention) connects to best-effort and
     reliable publishers alike, ``reliable`` only to reliable ones (then nothing is lost in
-    transport while the queue keeps up).
+    transport while the queue keeps up). ``auto`` is resolved to one of the two by
+    :class:`ga_ros.ros.adaptive_qos.AdaptiveSubscription`; here it gives best effort.
 
     Raises
     ------

@@ -33,8 +33,10 @@ Loss detection: each image stream has a :class:`ga_ros.pipeline.stream_rate.Stre
 other not is a lost pair; frames of which nothing arrived are counted from the stamp gaps); the
 diagnostics report received / expected / lost and turn WARN when the lost
 fraction exceeds ``loss_warn_fraction``. The image and camera-info subscriptions use the
-``qos_reliability`` of the parameters (default best effort, which connects to best-effort and
-reliable publishers) with ``image_queue`` messages of depth.
+``qos_reliability`` of the parameters with ``image_queue`` messages of depth: ``auto`` (default,
+:mod:`ga_ros.ros.adaptive_qos`) subscribes reliable when every publisher offers reliable (no
+loss in transport), else best effort; ``best_effort`` / ``reliable`` force it. The choice is
+in the diagnostics (``qos/<stream>``).
 
 Live end of input: when no image has arrived for ``idle_end_track_s`` (wall clock) after the
 last measurement, the node publishes the end-of-input message on the measurements topic
@@ -69,6 +71,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import cv2
@@ -91,8 +94,9 @@ from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, ImagePair, StereoFrontEnd
 from ga_ros.pipeline.stream_rate import FrameMonitor, StreamMonitor
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.params import declare_config
-from ga_ros.ros.qos import latched_qos, measurement_qos, sensor_qos, stream_qos, tf_static_qos
+from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos, tf_static_qos
 from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.vo.crosstrack import CrossTrackConfig
 from ga_ros.vo.odometry import VoConfig
@@ -121,8 +125,9 @@ class VoNodeSettings:
     publish_odom_tf : publish ``odom_frame -> base_frame`` on ``tf_topic`` for every frame.
     tf_topic : TF topic (``/tf``).
     tf_static_topic : static TF topic read for the camera's extrinsic (``/tf_static``).
-    qos_reliability : ``best_effort`` (connects to best-effort and reliable publishers) or
-        ``reliable``: the image and camera-info subscriptions.
+    qos_reliability : the image and camera-info subscriptions: ``auto`` (reliable when every
+        publisher offers reliable, else best effort), ``best_effort`` (connects to best-effort
+        and reliable publishers) or ``reliable``.
     image_queue : depth of the image and camera-info subscriptions (messages).
     loss_warn_fraction : diagnostics WARN when a stream's lost / expected exceeds this.
     pair_queue : stereo pairs waiting for the VO; when full, a new pair drops the oldest
@@ -151,7 +156,7 @@ class VoNodeSettings:
     publish_odom_tf: bool = True
     tf_topic: str = '/tf'
     tf_static_topic: str = '/tf_static'
-    qos_reliability: str = 'best_effort'
+    qos_reliability: str = 'auto'
     image_queue: int = 10
     loss_warn_fraction: float = 0.01
     pair_queue: int = 2
@@ -221,16 +226,18 @@ class VoNode(Node):
         self.pub_debug = (self.create_publisher(Image, s.debug_image_topic, stream_qos(2))
                           if s.publish_debug_image else None)
         img_type = CompressedImage if s.compressed else Image
-        # best effort (sensor-data QoS) matches both best-effort and reliable publishers
-        qos = sensor_qos(s.qos_reliability, max(1, s.image_queue))
-        self.create_subscription(img_type, s.left_image_topic,
-                                 lambda m: self._on_image(m, 'left'), qos)
-        self.create_subscription(img_type, s.right_image_topic,
-                                 lambda m: self._on_image(m, 'right'), qos)
-        self.create_subscription(CameraInfo, s.left_info_topic,
-                                 lambda m: self._on_info(m, 'left'), qos)
-        self.create_subscription(CameraInfo, s.right_info_topic,
-                                 lambda m: self._on_info(m, 'right'), qos)
+        # auto: reliable when every publisher offers reliable, else best effort
+        depth = max(1, s.image_queue)
+        self.sensor_subscriptions: dict[str, AdaptiveSubscription] = {
+            f'{side}_image': AdaptiveSubscription(
+                self, img_type, topic, partial(self._on_image, side=side), s.qos_reliability,
+                depth)
+            for side, topic in (('left', s.left_image_topic), ('right', s.right_image_topic))}
+        self.sensor_subscriptions.update({
+            f'{side}_info': AdaptiveSubscription(
+                self, CameraInfo, topic, partial(self._on_info, side=side), s.qos_reliability,
+                depth)
+            for side, topic in (('left', s.left_info_topic), ('right', s.right_info_topic))})
         self.create_subscription(Path, s.path_topic, self._on_path, latched_qos())
         if s.idle_end_track_s > 0:
             self.create_timer(min(0.5, s.idle_end_track_s / 4), self._idle_check,
@@ -397,12 +404,17 @@ class VoNode(Node):
             values.update(mon.report().values(f'{name}/'))
         ext = self.front.extrinsic
         values['camera_extrinsic'] = ext.source if ext is not None else 'not resolved yet'
+        for name, sub in self.sensor_subscriptions.items():
+            values[f'qos/{name}'] = (sub.reliability if sub.decided
+                                     else 'best_effort (auto: no publisher yet)')
         return values
 
     def health(self) -> tuple[int, str]:
-        """Diagnostic level (0 OK, 1 WARN) and message: queue drops, streams losing more than
-        ``loss_warn_fraction``, an unknown camera extrinsic."""
+        """Diagnostic level (0 OK, 1 WARN, 2 ERROR) and message: queue drops, streams losing
+        more than ``loss_warn_fraction`` (WARN), an unknown camera extrinsic (ERROR: the poses
+        are the camera's, published as the base's; identity only when said so)."""
         problems = []
+        level = 1
         dropped = self.counts['queue_dropped']
         if dropped:
             problems.append(f'{dropped} pairs dropped (queue full)')
@@ -413,8 +425,11 @@ class VoNode(Node):
                                 f'({100 * r.loss_fraction:.1f} %)')
         ext = self.front.extrinsic
         if ext is not None and ext.warning:
-            problems.append('camera extrinsic unknown (identity used)')
-        return (1, '; '.join(problems)) if problems else (0, 'ok')
+            problems.insert(0, 'camera extrinsic unknown (identity used): publish base_frame -> '
+                            'camera on /tf_static, set T_base_camera or set '
+                            'assume_identity_extrinsic: true')
+            level = 2
+        return (level, '; '.join(problems)) if problems else (0, 'ok')
 
     def publish_diagnostics(self) -> None:
         """Publish the counts on ``diagnostics_topic``."""

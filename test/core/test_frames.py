@@ -258,3 +258,25 @@ def test_so3_hat_is_used_consistently():
     np.testing.assert_allclose(R_BODY_OPTICAL @ [0, 0, 1], [1, 0, 0])
     np.testing.assert_allclose(so3.log(R_BODY_OPTICAL @ R_BODY_OPTICAL.T), np.zeros(3),
                                atol=1e-12)
+
+
+def test_transform_tree_reads_tf_messages_and_skips_broken_transforms(rng):
+    """``add_message`` (the one ``/tf_static`` reader): a chain read from messages composes as
+    the matrices do; a zero quaternion or a NaN is skipped, not recorded."""
+    from types import SimpleNamespace as NS
+
+    def tf(parent: str, child: str, p, q):
+        return NS(header=NS(frame_id=parent), child_frame_id=child, transform=NS(
+            translation=NS(x=p[0], y=p[1], z=p[2]), rotation=NS(x=q[0], y=q[1], z=q[2],
+                                                                 w=q[3])))
+
+    T1, T2 = se3.exp(rng.normal(size=6)), se3.exp(rng.normal(size=6))
+    (p1, q1), (p2, q2) = se3.to_pos_quat(T1), se3.to_pos_quat(T2)
+    tree = TransformTree()
+    n = tree.add_message(NS(transforms=[
+        tf('base_link', 'gps_mount', p1, 2.0 * q1), tf('gps_mount', 'gps', p2, q2),
+        tf('base_link', 'broken', p1, [0.0, 0.0, 0.0, 0.0]),
+        tf('base_link', 'nan', [np.nan, 0.0, 0.0], q1)]))
+    assert n == 2 and len(tree) == 2
+    np.testing.assert_allclose(tree.lookup('base_link', 'gps'), T1 @ T2, atol=1e-12)
+    assert tree.lookup('base_link', 'broken') is None

@@ -157,7 +157,7 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
               'camera.right_image_topic': 'cam/right/image/compressed',
               'camera.left_info_topic': 'cam/left/camera_info',
               'camera.right_info_topic': 'cam/right/camera_info', 'camera.compressed': True,
-              'camera.base_to_camera': [float(v) for v in (*p, *q)],
+              'camera.T_base_camera': ' '.join(str(float(v)) for v in (*p, *q)),
               'publish_markers': False, 'diagnostics_period_sec': 0.0,
               'transform_publish_period_sec': 0.0}
     ctx = rclpy.Context()
@@ -183,4 +183,48 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
                                                 + cam['cross_accepted'])
     finally:
         node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_camera_extrinsic_is_identity_only_when_said_so() -> None:
+    """Without ``camera.T_base_camera`` / ``--camera-extrinsic`` the node and the replay refuse
+    with one line naming the ways to give it; the old parameter name says the new one; the node
+    takes the parameter as the same pose the replay takes from its seven numbers."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.parameter import Parameter
+
+    from ga_ros.cli.commands.replay import camera_extrinsic
+    from ga_ros.errors import InputError
+    from ga_ros.ros.alignment_node import AlignmentNode
+
+    with pytest.raises(InputError, match='--camera-extrinsic identity'):
+        camera_extrinsic(None)
+    assert camera_extrinsic(['identity']) == (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    with pytest.raises(InputError, match='X Y Z QX QY QZ QW'):
+        camera_extrinsic(['1', '2', '3'])
+    p, q = se3.to_pos_quat(T_BASE_CAM)
+    text = ' '.join(str(float(v)) for v in (*p, *q))
+    base = {'inputs': 'odom0', 'odom0.topic': 'odom', 'publish_markers': False,
+            'diagnostics_period_sec': 0.0, 'transform_publish_period_sec': 0.0,
+            **{f'camera.{side}_{kind}_topic': f'cam/{side}/{kind}'
+               for side in ('left', 'right') for kind in ('image', 'info')}}
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=60 + (__import__('os').getpid() + 7) % 100)
+    try:
+        for extra, match in (({}, 'camera.T_base_camera'),
+                             ({'camera.base_to_camera': [0.0] * 6 + [1.0]},
+                              'camera.base_to_camera is now camera.T_base_camera')):
+            with pytest.raises(InputError, match=match) as err:
+                AlignmentNode(context=ctx, parameter_overrides=[
+                    Parameter(k, value=v) for k, v in {**base, **extra}.items()])
+            assert '\n' not in str(err.value)
+        for extra, T in (({'camera.T_base_camera': text}, T_BASE_CAM),
+                         ({'camera.assume_identity_extrinsic': True}, np.eye(4))):
+            node = AlignmentNode(context=ctx, parameter_overrides=[
+                Parameter(k, value=v) for k, v in {**base, **extra}.items()])
+            try:
+                np.testing.assert_allclose(node.front.camera.config.T_base_cam, T, atol=1e-9)
+            finally:
+                node.destroy_node()
+    finally:
         rclpy.try_shutdown(context=ctx)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from ga_ros.core.window import AlignerConfig
+from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import (
     AbsoluteInputConfig,
@@ -267,3 +268,17 @@ def test_inputs_yaml_mirrors_the_absolute_defaults() -> None:
     expected = {f.name: getattr(AbsoluteInputConfig(), f.name)
                 for f in fields(AbsoluteInputConfig) if f.name != 'name'}
     assert {k: tuple(v) if isinstance(v, list) else v for k, v in section.items()} == expected
+
+
+def test_lever_arm_parameter_is_t_base_sensor_and_the_old_name_says_so(rng) -> None:
+    """``T_base_sensor`` ``[x y z qx qy qz qw]`` (the ``T_base_<sensor>`` convention) is the
+    pose ``from_pos_quat`` builds; the old ``lever_arm_m`` is refused naming the new one; a
+    non-unit quaternion is refused."""
+    T = se3.exp(rng.normal(size=6))
+    p, q = se3.to_pos_quat(T)
+    cfg = AbsoluteInputConfig.from_mapping('fix0', {'T_base_sensor': [*p, *q]})
+    np.testing.assert_allclose(cfg.T_base_sensor_matrix, T, atol=1e-12)
+    with pytest.raises(InputError, match=r'fix0\.lever_arm_m is now fix0\.T_base_sensor'):
+        AbsoluteInputConfig.from_mapping('fix0', {'lever_arm_m': [0.0, 0.0, 1.0]})
+    with pytest.raises(InputError, match='T_base_sensor'):
+        AbsoluteInputConfig.from_mapping('fix0', {'T_base_sensor': [0.0] * 7})

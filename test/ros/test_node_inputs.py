@@ -284,12 +284,12 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
 
     node = _node(AlignmentNode, ctx, absolutes='amcl0', **{
         'amcl0.topic': 'amcl_pose', 'amcl0.type': 'pose_cov', 'amcl0.track_min_interval_s': 2.0,
-        'amcl0.lever_arm_m': [0.0, 0.0, 0.0], 'datum': 'fixes'})
+        'amcl0.T_base_sensor': [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], 'datum': 'fixes'})
     rng = np.random.default_rng(5)
     T_map_odom = se3.from_translation_rotvec(np.array([1.0, 2.0, 0.0]), np.array([0, 0, 0.3]))
     try:
         assert node.get_parameter('amcl0.default_sigma_m').value == 5.0
-        assert node.absolute.specs['amcl0'].config.lever_arm_m == (0.0, 0.0, 0.0)
+        assert node.absolute.specs['amcl0'].config.T_base_sensor == (0.0,) * 6 + (1.0,)
         for k, msg in enumerate(odom_msgs()):
             node._on_input('odom0', msg)
             if k % 10 == 5:

@@ -1,7 +1,10 @@
-"""``ga-ros play`` of a 20 Hz 752x480 stereo bag (best-effort image publishers, ``/clock``) into
-``vo_node`` and ``alignment_node`` running in simulation time (three processes): every pair the
-transport delivered is received, any loss is reported in ``/diagnostics`` (received + lost =
-sent), and both nodes stamp their outputs with the bag's time."""
+"""``ga-ros play`` of a 20 Hz 752x480 stereo bag (``/clock``) into ``vo_node`` and
+``alignment_node`` running in simulation time (three processes). With the default
+``qos_reliability: auto`` the VO subscribes as the publishers offer: reliable publishers (``ga-ros
+play``'s default) -> reliable subscriptions and every pair received; best-effort publishers ->
+best effort, still connected, every pair the transport delivered received and any loss reported
+in ``/diagnostics`` (received + lost = sent). Both nodes stamp their outputs with the bag's
+time."""
 
 from __future__ import annotations
 
@@ -71,7 +74,8 @@ def _status(msgs: list, name: str) -> tuple[int, dict[str, str]] | None:
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_play_best_effort_camera_into_vo_node_in_sim_time(tmp_path: Path) -> None:
+@pytest.mark.parametrize('publisher_qos', ['reliable', 'best_effort'])
+def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str) -> None:
     bag = _write_camera_bag(tmp_path / 'camera')
     domain = 40 + (os.getpid() + 71) % 150
     sim = {'use_sim_time': True}
@@ -92,7 +96,7 @@ def test_play_best_effort_camera_into_vo_node_in_sim_time(tmp_path: Path) -> Non
                               'both nodes up')
             env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
             play = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play', str(bag),
-                                     '--sensor-qos', 'best_effort', '--delay', '2'], env=env,
+                                     '--sensor-qos', publisher_qos, '--delay', '2'], env=env,
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
             def counted() -> bool:
@@ -113,6 +117,11 @@ def test_play_best_effort_camera_into_vo_node_in_sim_time(tmp_path: Path) -> Non
             assert received == int(v['pairs/received'])
             assert received > 0 and received + lost == N_PAIRS, sorted(v.items())
             assert int(v['pairs/expected']) == N_PAIRS
+            # auto: the subscriptions took the publishers' reliability
+            for stream in ('left_image', 'right_image', 'left_info', 'right_info'):
+                assert v[f'qos/{stream}'] == publisher_qos, sorted(v.items())
+            if publisher_qos == 'reliable':     # nothing lost in transport
+                assert received == N_PAIRS and lost == 0, sorted(v.items())
             # no pair the transport delivered was dropped by the node
             assert int(v['pairs_dropped_queue_full']) == 0
             assert int(v['pairs_processed']) == received

@@ -25,7 +25,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image  # noqa: E402
 
-from ga_ros.core.extrinsic import ExtrinsicConfig  # noqa: E402
+from ga_ros.core.extrinsic import UNKNOWN, ExtrinsicConfig  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
@@ -249,6 +249,12 @@ def test_node_in_process_adapter(rng):
             node._on_image(array_to_image(left, stamp, 'l'), 'left')
         assert node.wait_idle()
         assert node.counts['pairs'] == 10 and len(debug) == 10
+        # no /tf_static, no T_base_camera, no assume_identity_extrinsic: an ERROR status
+        # naming the three ways to give the extrinsic
+        level, message = node.health()
+        assert level == 2 and node.diagnostic_values()['camera_extrinsic'] == UNKNOWN
+        assert all(w in message for w in ('/tf_static', 'T_base_camera',
+                                            'assume_identity_extrinsic'))
         for name in ('max_features', 'cross_min_inliers', 'left_image_topic'):
             d = node.describe_parameter(name)
             assert d.read_only and len(d.description) > len(name) + 10

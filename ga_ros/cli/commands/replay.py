@@ -87,11 +87,11 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument('--constraints-topic', default='',
                    help='external constraints (nav_msgs/Odometry, stamp/<ns> or node/<id> ends)')
     s.add_argument('--track-boundary-topic', default='', help='std_msgs/Empty: new track')
-    s.add_argument('--camera-extrinsic', nargs=7, type=float, metavar=('X', 'Y', 'Z', 'QX', 'QY',
-                                                                      'QZ', 'QW'),
+    s.add_argument('--camera-extrinsic', nargs='+', metavar='VALUE',
                    help='with --odom-topic and --left-image/--right-image: a stereo camera '
-                        'beside the odometry, T_base_cam of its left optical frame (m, '
-                        'quaternion; default identity); its images give cross-track '
+                        'beside the odometry, T_base_camera of its left optical frame: '
+                        'X Y Z QX QY QZ QW (m, quaternion x y z w), or identity (the camera '
+                        'frame is the base frame); required; its images give cross-track '
                         'connections on the odometry keyframes')
     s.add_argument('--image-offset', type=float, default=0.25, metavar='S',
                    help='largest time between an odometry keyframe and its image pair (s)')
@@ -195,11 +195,36 @@ def camera_topics(args: argparse.Namespace) -> Any:
     from ga_ros.replay.stereo import front_end_config
 
     front = front_end_config(vo_config(args))
-    extrinsic = tuple(args.camera_extrinsic or (0, 0, 0, 0, 0, 0, 1))
+    extrinsic = camera_extrinsic(args.camera_extrinsic)
     assert isinstance(front, FrontEndConfig)
     config = KeyframeCameraConfig(front, extrinsic, args.image_offset)
     return CameraTopics(args.left_image, args.right_image, args.left_info, args.right_info,
                         tuple(map(str, args.calibration)), config)
+
+
+def camera_extrinsic(values: list[str] | None) -> tuple[float, ...]:
+    """``--camera-extrinsic``: ``x y z qx qy qz qw`` (m, quaternion x y z w) or ``identity``.
+
+    Raises
+    ------
+    InputError
+        Not given (identity only when said so), or neither seven numbers nor ``identity``.
+    """
+    from ga_ros.core.extrinsic import unknown_extrinsic_error
+
+    if not values:
+        raise unknown_extrinsic_error('camera', '--camera-extrinsic',
+                                      '--camera-extrinsic identity', tf_static=False)
+    if values == ['identity']:
+        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    try:
+        numbers = tuple(float(v) for v in values)
+    except ValueError:
+        numbers = ()
+    if len(numbers) != 7:
+        raise InputError(f"--camera-extrinsic takes 'X Y Z QX QY QZ QW' or 'identity', got "
+                         f"{' '.join(values)!r}")
+    return numbers
 
 
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
