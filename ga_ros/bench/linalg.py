@@ -1,8 +1,8 @@
 """Side-by-side evaluation of sparse Cholesky back ends on the solver's normal matrices.
 
-Run ``python -m ga_ros.bench.linalg [--repeat 5] [--json]``; the figures are kept in
-``docs/linear_algebra.md``. Each variant runs in its own subprocess (the OpenBLAS kernel is chosen when
-the library loads). For every matrix it prints the numeric factorisation time (median of
+Run ``ga-ros bench linalg [--repeat 5] [--json]``; the figures are kept in
+``docs/linear_algebra.md``. Each variant runs in its own subprocess (the OpenBLAS kernel is chosen
+when the library loads). For every matrix it prints the numeric factorisation time (median of
 ``repeat``), the GFlop of one factorisation (``sum_j c_j^2`` over the columns of ``L``, ``c_j``
 their non-zeros) and the GFlop/s reached, and the OpenBLAS kernel that threadpoolctl reports.
 

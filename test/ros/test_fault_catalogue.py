@@ -1,7 +1,8 @@
 """The fault catalogue (ga_ros/ros/fault_catalogue.py, ``ga-ros bench faults``) in CI: the cases
 that fit the time budget, on the small simulated survey, against live node processes started
 with their default settings. Every case must keep every node of the reference path (the aligner
-fed the clean measurements); the full-size runs are the benchmark's (docs/benchmarks.md, "Faults against live nodes")."""
+fed the clean measurements); the full-size runs are the benchmark's (docs/benchmarks.md,
+"Faults against live nodes")."""
 
 from __future__ import annotations
 
