@@ -339,6 +339,201 @@ def _split_lines(text: str, path: str
     return groups, fix, rows
 
 
+def _graph_dim(groups: list[_Group], spath: str) -> int:
+    """The graph's dimension, 2 or 3; refuses a mix of 2-D and 3-D records or an empty file."""
+    first = {d: min((int(g.lines[0]) for g in groups if _SPEC[g.tag][0] == d), default=0)
+             for d in (2, 3)}
+    if first[2] and first[3]:
+        later, earlier = max(first[2], first[3]), min(first[2], first[3])
+        d_late = 2 if first[2] == later else 3
+        raise FormatError(f'this is a {d_late}-D record but line {earlier} made this a '
+                          f'{5 - d_late}-D graph; mixed files are not supported', spath, later)
+    if not groups:
+        raise FormatError('no vertices and no edges (VERTEX_SE3:QUAT / EDGE_SE3:QUAT or '
+                          'VERTEX_SE2 / EDGE_SE2 lines) found', spath)
+    return 3 if first[3] else 2
+
+
+def _kind(groups: list[_Group], name: str) -> list[_Group]:
+    """The groups of one record kind (``'param'``, ``'vertex'`` or ``'edge'``)."""
+    return [g for g in groups if _SPEC[g.tag][1] == name]
+
+
+@dataclass(frozen=True)
+class _Params:
+    """The parameter (sensor offset) records: offsets by id, and their lines and ids."""
+
+    offsets: dict[int, FloatArray]
+    lines: IntArray
+    ids: IntArray
+
+
+def _read_params(groups: list[_Group], dim: int, spath: str) -> _Params:
+    """Parse the parameter records; refuses a duplicate parameter id."""
+    p_groups = _kind(groups, 'param')
+    if not p_groups:
+        return _Params({}, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    p_lines = np.concatenate([g.lines for g in p_groups])
+    p_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath, 'parameter id')
+                            for g in p_groups])
+    S = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines, spath)
+                        for g in p_groups])
+    dup = _first_duplicate(p_ids, p_lines)
+    if dup is not None:
+        raise FormatError(f'parameter {dup[0]} is already defined on line {dup[1]}',
+                          spath, dup[2])
+    return _Params({int(p): S[k] for k, p in enumerate(p_ids.tolist())}, p_lines, p_ids)
+
+
+def _read_vertices(groups: list[_Group], dim: int, spath: str
+                   ) -> tuple[IntArray, FloatArray] | None:
+    """Vertex ids and poses in file order (``None`` without vertices); refuses duplicates."""
+    v_groups = sorted(_kind(groups, 'vertex'), key=lambda g: int(g.lines[0]))
+    if not v_groups:
+        return None
+    v_lines = np.concatenate([g.lines for g in v_groups])
+    v_order = np.argsort(v_lines, kind='stable')
+    v_lines = v_lines[v_order]
+    v_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath) for g in v_groups])[v_order]
+    T_init = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines,
+                                    spath) for g in v_groups])[v_order]
+    dup = _first_duplicate(v_ids, v_lines)
+    if dup is not None:
+        raise FormatError(f'vertex {dup[0]} is already defined on line {dup[1]}',
+                          spath, dup[2])
+    return v_ids, T_init
+
+
+@dataclass(frozen=True)
+class _Edges:
+    """The edge records in file order: lines, end ids, parameter ids (-1: none), measured
+    poses and the information matrices' upper triangles (g2o order)."""
+
+    lines: IntArray
+    i: IntArray
+    j: IntArray
+    param: IntArray
+    Z: FloatArray
+    upper: FloatArray
+
+
+def _read_edges(groups: list[_Group], dim: int, spath: str) -> _Edges:
+    """Parse the edge records into file order; refuses a self-loop."""
+    d = 6 if dim == 3 else 3
+    n_meas = 7 if dim == 3 else 3
+    parts = []
+    for g in _kind(groups, 'edge'):
+        with_param = g.F.shape[1] in (13, 32)
+        c = 4 if with_param else 3
+        i = _ids(g.F[:, 1], g.lines, spath)
+        j = _ids(g.F[:, 2], g.lines, spath)
+        p = (_ids(g.F[:, 3], g.lines, spath, 'parameter id') if with_param
+             else np.full(len(i), -1, dtype=np.int64))
+        values = _floats(g.F[:, c:], g.lines, spath)
+        meas = values[:, :n_meas]
+        upper = values[:, n_meas:]
+        if g.tag == TAG_EDGE_TORO:
+            upper = upper[:, _TORO_FROM_G2O]
+        parts.append((g.lines, i, j, p, _poses(meas, dim, g.lines, spath), upper))
+    if sum(len(q[0]) for q in parts):
+        e_lines, ei, ej, ep, Z, upper = (np.concatenate(x) for x in zip(*parts))
+        order = np.argsort(e_lines, kind='stable')
+        e_lines, ei, ej, ep, Z, upper = (x[order] for x in (e_lines, ei, ej, ep, Z, upper))
+    else:
+        e_lines = ei = ej = ep = np.zeros(0, dtype=np.int64)
+        Z, upper = np.zeros((0, 4, 4)), np.zeros((0, d * (d + 1) // 2))
+    loop = ei == ej
+    if loop.any():
+        k = int(np.argmax(loop))
+        raise FormatError(f'edge from vertex {ei[k]} to itself', spath, int(e_lines[k]))
+    return _Edges(e_lines, ei, ej, ep, Z, upper)
+
+
+def _check_references(ids: IntArray, edges: _Edges, fix: list[tuple[int, list[str]]],
+                      params: _Params, dim: int, spath: str) -> None:
+    """Refuse an edge or ``FIX`` naming an unknown vertex, an edge naming an unknown
+    parameter, or a non-identity offset no edge names."""
+    for what, ends in (('edge', edges.i), ('edge', edges.j)):
+        known = np.isin(ends, ids)
+        if not known.all():
+            k = int(np.argmin(known))
+            raise FormatError(f'{what} refers to vertex {ends[k]}, which the file does not '
+                              f'define', spath, int(edges.lines[k]))
+    for line, fields in fix:
+        if not fields:
+            raise FormatError('FIX needs at least one vertex id', spath, line)
+        for v in _ids(np.array(fields, dtype=object), np.full(len(fields), line),
+                      spath).tolist():
+            if v not in set(ids.tolist()):
+                raise FormatError(f'FIX refers to vertex {v}, which the file does not define',
+                                  spath, line)
+    ep = edges.param
+    named = ep >= 0
+    known = np.isin(ep, list(params.offsets)) | ~named
+    if not known.all():
+        k = int(np.argmin(known))
+        tag = TAG_PARAMS_SE3 if dim == 3 else TAG_PARAMS_SE2
+        raise FormatError(f'edge names parameter {ep[k]}, which no {tag} line defines', spath,
+                          int(edges.lines[k]))
+    for pid, S in params.offsets.items():
+        if not (ep == pid).any() and np.abs(S - np.eye(4)).max() > _IDENTITY_TOL:
+            line = int(params.lines[np.flatnonzero(params.ids == pid)[0]])
+            raise FormatError(f'sensor offset {pid} is not the identity but no edge names it, '
+                              'so it is unclear whether the edges include it: name it on the '
+                              'edges (EDGE_... i j {pid} ...) or make it the identity', spath,
+                              line)
+
+
+def _checked_information(upper: FloatArray, d: int, e_lines: IntArray, strict: bool,
+                         spath: str) -> tuple[FloatArray, FloatArray, tuple[int, ...]]:
+    """Full information matrices, their eigenvalues and the lines repaired; refuses (strict)
+    or repairs (with one warning) a matrix that is not positive definite."""
+    info = _upper_to_full(upper, d)
+    eig = np.linalg.eigvalsh(info)  # once, for both checks (here and the covariance's)
+    bad = not_positive_definite(info, eigenvalues=eig)
+    repaired: tuple[int, ...] = ()
+    if bad.any():
+        k = int(np.argmax(bad))
+        if strict:
+            raise FormatError(f'information matrix is not positive definite (eigenvalues '
+                              f'{np.array2string(eig[k], precision=3)}); drop strict to repair '
+                              f'it to the nearest positive-definite matrix', spath,
+                              int(e_lines[k]))
+        info[bad] = nearest_positive_definite(info[bad])
+        eig[bad] = np.linalg.eigvalsh(info[bad])
+        repaired = tuple(int(v) for v in e_lines[bad].tolist())
+        shown = ', '.join(map(str, repaired[:20])) + (', ...' if len(repaired) > 20 else '')
+        # stacklevel 3: read_g2o's caller, as before this was a helper of read_g2o
+        warnings.warn(f'{spath}: {len(repaired)} information matrices were not positive '
+                      f'definite and were repaired by eigenvalue clipping (lines {shown}); '
+                      f'read strictly to refuse them instead', InformationRepairWarning,
+                      stacklevel=3)
+    return info, eig, repaired
+
+
+def _covariances(info: FloatArray, eig: FloatArray, dim: int, e_lines: IntArray,
+                 spath: str) -> FloatArray:
+    """The edges' 6x6 covariances; refuses an information too ill-conditioned to invert."""
+    if dim == 3:
+        info6 = info
+    else:
+        info6 = np.broadcast_to(np.eye(6), (len(info), 6, 6)).copy()
+        info6[:, _SE2_AXES[:, None], _SE2_AXES[None, :]] = info
+    cov = np.linalg.inv(info6)
+    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    # the network's rule for a covariance (ga_ros.core.network.check_covariances: smallest
+    # eigenvalue above PD_TOLERANCE of its largest |entry|), from the information's eigenvalues
+    # (those of the covariance are their inverses; a 2-D edge's padding adds eigenvalue 1)
+    cov_min = 1.0 / eig[:, -1] if dim == 3 else np.minimum(1.0 / eig[:, -1], 1.0)
+    singular = ~(cov_min > PD_TOLERANCE * np.abs(cov).max(axis=(1, 2)))
+    if singular.any():
+        k = int(np.argmax(singular))
+        raise FormatError(f'information matrix is too ill-conditioned to invert (eigenvalues '
+                          f'{np.array2string(eig[k], precision=3)}): its covariance would not '
+                          'be positive definite; fix the matrix', spath, int(e_lines[k]))
+    return cov
+
+
 def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     """Read a g2o (or TORO 2-D) pose graph: 3-D ``SE3:QUAT`` or 2-D ``SE2``, not both.
 
@@ -370,168 +565,35 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     except (OSError, UnicodeDecodeError) as exc:
         raise FormatError(f'cannot read: {exc}', spath) from None
     groups, fix, rows = _split_lines(text, spath)
-
-    first = {d: min((int(g.lines[0]) for g in groups if _SPEC[g.tag][0] == d), default=0)
-             for d in (2, 3)}
-    if first[2] and first[3]:
-        later, earlier = max(first[2], first[3]), min(first[2], first[3])
-        d_late = 2 if first[2] == later else 3
-        raise FormatError(f'this is a {d_late}-D record but line {earlier} made this a '
-                          f'{5 - d_late}-D graph; mixed files are not supported', spath, later)
-    if not groups:
-        raise FormatError('no vertices and no edges (VERTEX_SE3:QUAT / EDGE_SE3:QUAT or '
-                          'VERTEX_SE2 / EDGE_SE2 lines) found', spath)
-    dim = 3 if first[3] else 2
-    d = 6 if dim == 3 else 3
-    n_meas = 7 if dim == 3 else 3
-
-    def kind(name: str) -> list[_Group]:
-        return [g for g in groups if _SPEC[g.tag][1] == name]
-
-    # ------------------------------------------------ parameters (sensor offsets)
-    offsets: dict[int, FloatArray] = {}
-    p_groups = kind('param')
-    if p_groups:
-        p_lines = np.concatenate([g.lines for g in p_groups])
-        p_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath, 'parameter id')
-                                for g in p_groups])
-        S = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines, spath)
-                            for g in p_groups])
-        dup = _first_duplicate(p_ids, p_lines)
-        if dup is not None:
-            raise FormatError(f'parameter {dup[0]} is already defined on line {dup[1]}',
-                              spath, dup[2])
-        offsets = {int(p): S[k] for k, p in enumerate(p_ids.tolist())}
-
-    # ------------------------------------------------ vertices
-    v_groups = sorted(kind('vertex'), key=lambda g: int(g.lines[0]))
-    has_guess = bool(v_groups)
-    if has_guess:
-        v_lines = np.concatenate([g.lines for g in v_groups])
-        v_order = np.argsort(v_lines, kind='stable')
-        v_lines = v_lines[v_order]
-        v_ids = np.concatenate([_ids(g.F[:, 1], g.lines, spath) for g in v_groups])[v_order]
-        T_init = np.concatenate([_poses(_floats(g.F[:, 2:], g.lines, spath), dim, g.lines,
-                                        spath) for g in v_groups])[v_order]
-        dup = _first_duplicate(v_ids, v_lines)
-        if dup is not None:
-            raise FormatError(f'vertex {dup[0]} is already defined on line {dup[1]}',
-                              spath, dup[2])
-
-    # ------------------------------------------------ edges
-    e_groups = kind('edge')
-    parts = []
-    for g in e_groups:
-        with_param = g.F.shape[1] in (13, 32)
-        c = 4 if with_param else 3
-        i = _ids(g.F[:, 1], g.lines, spath)
-        j = _ids(g.F[:, 2], g.lines, spath)
-        p = (_ids(g.F[:, 3], g.lines, spath, 'parameter id') if with_param
-             else np.full(len(i), -1, dtype=np.int64))
-        values = _floats(g.F[:, c:], g.lines, spath)
-        meas = values[:, :n_meas]
-        upper = values[:, n_meas:]
-        if g.tag == TAG_EDGE_TORO:
-            upper = upper[:, _TORO_FROM_G2O]
-        parts.append((g.lines, i, j, p, _poses(meas, dim, g.lines, spath), upper))
-    m = sum(len(q[0]) for q in parts)
-    if m:
-        e_lines, ei, ej, ep, Z, upper = (np.concatenate(x) for x in zip(*parts))
-        order = np.argsort(e_lines, kind='stable')
-        e_lines, ei, ej, ep, Z, upper = (x[order] for x in (e_lines, ei, ej, ep, Z, upper))
-    else:
-        e_lines = ei = ej = ep = np.zeros(0, dtype=np.int64)
-        Z, upper = np.zeros((0, 4, 4)), np.zeros((0, d * (d + 1) // 2))
-    loop = ei == ej
-    if loop.any():
-        k = int(np.argmax(loop))
-        raise FormatError(f'edge from vertex {ei[k]} to itself', spath, int(e_lines[k]))
-
-    # ------------------------------------------------ references
-    if has_guess:
-        ids = v_ids
+    dim = _graph_dim(groups, spath)
+    params = _read_params(groups, dim, spath)
+    offsets = params.offsets
+    vertices = _read_vertices(groups, dim, spath)
+    has_guess = vertices is not None
+    edges = _read_edges(groups, dim, spath)
+    e_lines, ep = edges.lines, edges.param
+    m = len(e_lines)
+    if vertices is not None:
+        ids, T_init = vertices
     elif m:
-        ids = np.unique(np.concatenate([ei, ej]))
+        ids = np.unique(np.concatenate([edges.i, edges.j]))
         T_init = np.broadcast_to(np.eye(4), (ids.size, 4, 4)).copy()
     else:
         raise FormatError('no vertices (VERTEX_SE3:QUAT or VERTEX_SE2 lines) found', spath)
-    sorter = np.argsort(ids)
-    for what, ends in (('edge', ei), ('edge', ej)):
-        known = np.isin(ends, ids)
-        if not known.all():
-            k = int(np.argmin(known))
-            raise FormatError(f'{what} refers to vertex {ends[k]}, which the file does not '
-                              f'define', spath, int(e_lines[k]))
-    for line, fields in fix:
-        if not fields:
-            raise FormatError('FIX needs at least one vertex id', spath, line)
-        for v in _ids(np.array(fields, dtype=object), np.full(len(fields), line),
-                      spath).tolist():
-            if v not in set(ids.tolist()):
-                raise FormatError(f'FIX refers to vertex {v}, which the file does not define',
-                                  spath, line)
+    _check_references(ids, edges, fix, params, dim, spath)
+    info, eig, repaired = _checked_information(edges.upper, 6 if dim == 3 else 3, e_lines,
+                                               strict, spath)
+    # sensor offsets into the robot frame
     named = ep >= 0
-    known = np.isin(ep, list(offsets)) | ~named
-    if not known.all():
-        k = int(np.argmin(known))
-        tag = TAG_PARAMS_SE3 if dim == 3 else TAG_PARAMS_SE2
-        raise FormatError(f'edge names parameter {ep[k]}, which no {tag} line defines', spath,
-                          int(e_lines[k]))
-    for pid, S in offsets.items():
-        if not (ep == pid).any() and np.abs(S - np.eye(4)).max() > _IDENTITY_TOL:
-            line = int(p_lines[np.flatnonzero(p_ids == pid)[0]])
-            raise FormatError(f'sensor offset {pid} is not the identity but no edge names it, '
-                              'so it is unclear whether the edges include it: name it on the '
-                              'edges (EDGE_... i j {pid} ...) or make it the identity', spath,
-                              line)
-
-    # ------------------------------------------------ information: check, repair or refuse
-    info = _upper_to_full(upper, d)
-    eig = np.linalg.eigvalsh(info)  # once, for both checks (here and the covariance's below)
-    bad = not_positive_definite(info, eigenvalues=eig)
-    repaired: tuple[int, ...] = ()
-    if bad.any():
-        k = int(np.argmax(bad))
-        if strict:
-            raise FormatError(f'information matrix is not positive definite (eigenvalues '
-                              f'{np.array2string(eig[k], precision=3)}); drop strict to repair '
-                              f'it to the nearest positive-definite matrix', spath,
-                              int(e_lines[k]))
-        info[bad] = nearest_positive_definite(info[bad])
-        eig[bad] = np.linalg.eigvalsh(info[bad])
-        repaired = tuple(int(v) for v in e_lines[bad].tolist())
-        shown = ', '.join(map(str, repaired[:20])) + (', ...' if len(repaired) > 20 else '')
-        warnings.warn(f'{spath}: {len(repaired)} information matrices were not positive '
-                      f'definite and were repaired by eigenvalue clipping (lines {shown}); '
-                      f'read strictly to refuse them instead', InformationRepairWarning,
-                      stacklevel=2)
-
-    # ------------------------------------------------ sensor offsets into the robot frame
-    T_meas, info = _apply_offsets(Z, info, ep, offsets, dim, inverse=False)
+    T_meas, info = _apply_offsets(edges.Z, info, ep, offsets, dim, inverse=False)
     if named.any():  # A' Omega A has other eigenvalues
         eig[named] = np.linalg.eigvalsh(info[named])
+    cov = _covariances(info, eig, dim, e_lines, spath)
 
-    # ------------------------------------------------ everything is valid: build the graph
-    src = sorter[np.searchsorted(ids, ei, sorter=sorter)]
-    dst = sorter[np.searchsorted(ids, ej, sorter=sorter)]
-    if dim == 3:
-        info6 = info
-    else:
-        info6 = np.broadcast_to(np.eye(6), (m, 6, 6)).copy()
-        info6[:, _SE2_AXES[:, None], _SE2_AXES[None, :]] = info
-    cov = np.linalg.inv(info6)
-    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
-    # the network's rule for a covariance (ga_ros.core.network.check_covariances: smallest
-    # eigenvalue above PD_TOLERANCE of its largest |entry|), from the information's eigenvalues
-    # (those of the covariance are their inverses; a 2-D edge's padding adds eigenvalue 1)
-    cov_min = 1.0 / eig[:, -1] if dim == 3 else np.minimum(1.0 / eig[:, -1], 1.0)
-    singular = ~(cov_min > PD_TOLERANCE * np.abs(cov).max(axis=(1, 2)))
-    if singular.any():
-        k = int(np.argmax(singular))
-        raise FormatError(f'information matrix is too ill-conditioned to invert (eigenvalues '
-                          f'{np.array2string(eig[k], precision=3)}): its covariance would not '
-                          'be positive definite; fix the matrix', spath, int(e_lines[k]))
-
+    # everything is valid: build the graph
+    sorter = np.argsort(ids)
+    src = sorter[np.searchsorted(ids, edges.i, sorter=sorter)]
+    dst = sorter[np.searchsorted(ids, edges.j, sorter=sorter)]
     z = se3.to_translation_rotvec(T_meas)
     # everything was validated above (ids, ends, no self-loops, finite values, covariances):
     # no per-edge Python loop of ConnectionNetwork.add_connections; repeated edges are kept
