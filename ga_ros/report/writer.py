@@ -298,8 +298,8 @@ def _policy_seeds_markdown(r: dict) -> str:
     return '\n'.join(L) + '\n'
 
 
-def render_markdown(r: dict) -> str:
-    """The Markdown report from the report dict."""
+def _intro_markdown(r: dict) -> list[str]:
+    """The title, provenance, targets and the simulation and noise model."""
     cfg = r['config']
     L: list[str] = []
     add = L.append
@@ -323,7 +323,13 @@ def render_markdown(r: dict) -> str:
     add('* F2F = integration of the measured consecutive motions from the known first pose; '
         'GA = the batch mixed adjustment (`ga_ros.core.solver.solve`, model `se3`, first node '
         'fixed).\n')
+    return L
 
+
+def _table1_markdown(r: dict) -> list[str]:
+    """Table I: F2F versus GA per trajectory and noise level."""
+    L: list[str] = []
+    add = L.append
     add('## Table I: F2F vs GA, synthetic trajectories (Sec. V-A)\n')
     add('Counts are for the `se3` model (6 equations and 6 observations per connection, 6 '
         "unknowns per free node); the paper's position model (eq. 1) has 3 / 6 / 3. Errors are "
@@ -340,6 +346,13 @@ def render_markdown(r: dict) -> str:
             f'{row["paper_unknowns"]} | {row["f2f_mean_m"]:.3f} | {row["ga_mean_m"]:.3f} | '
             f'{row["improvement_pct"]:.1f} | {f"~{paper:.0f}" if paper else "-"} |')
     add('')
+    return L
+
+
+def _table1_discussion_markdown(r: dict) -> list[str]:
+    """Table I's discussion: closed versus open, the mean improvement, its spread."""
+    L: list[str] = []
+    add = L.append
     imp = r['improvement_pct']
     closed_better = []
     for kind in ('lawnmower', 'looping'):
@@ -374,6 +387,13 @@ def render_markdown(r: dict) -> str:
             'dominated by the rotation noise (a heading error turns the rest of the path); '
             'cross-track connections remove most of it, so the gain grows with the survey '
             '(compare the aerial survey below).\n')
+    return L
+
+
+def _paper_model_markdown(r: dict) -> list[str]:
+    """Table I for the paper's position model (eq. 1), when it was run."""
+    L: list[str] = []
+    add = L.append
     if r['table1_paper_model']:
         pm = r['table1_paper_model']
         add(f'### Paper model (eq. 1, positions only), {pm[0]["runs"]} run(s) per cell\n')
@@ -389,10 +409,14 @@ def render_markdown(r: dict) -> str:
             'rotation noise perturbs a connection in proportion to the distance of its nodes '
             'from the origin; the se3 model (relative motion in the sensor frame) does not have '
             'this property.\n')
-    add('![Fig. 5](fig5_synthetic.png)\n')
-    add(f'Fig. 5: left, mean position error along the path at {cfg["profile_noise"]:g} % noise '
-        '(F2F dotted); right, MSE of all positions versus noise level.\n')
+    return L
 
+
+def _future_tracks_markdown(r: dict) -> list[str]:
+    """Fig. 2/3: the effect of future tracks on track 1."""
+    cfg = r['config']
+    L: list[str] = []
+    add = L.append
     ft = r['future_tracks']
     add('## Fig. 2/3: effect of future tracks on track 1 (Sec. IV, Appendix)\n')
     add(f'Aerial survey, tracks 1..k for k = 1..{cfg["fig3_tracks"]} ({ft["n_nodes"]} nodes, '
@@ -426,7 +450,14 @@ def render_markdown(r: dict) -> str:
             add(f'Here the value at k = 5 is at most {100 * k5:.1f} %.')
     add('')
     add('![Fig. 3](fig3_future_tracks.png)\n')
+    return L
 
+
+def _aerial_markdown(r: dict) -> list[str]:
+    """The aerial survey: counts, gains and the ATE table of batch and window."""
+    cfg = r['config']
+    L: list[str] = []
+    add = L.append
     a = r['aerial']
     add('## Aerial survey (Sec. IV, V-B): Fig. 7/8, window vs batch, timings\n')
     add(f'{a["tracks"]} double tracks, {a["nodes"]} nodes, {a["connections"]} connections '
@@ -459,6 +490,14 @@ def render_markdown(r: dict) -> str:
             f'{100 * (rf["aligned_rmse_m"] / a["batch"]["aligned_rmse_m"] - 1):.1f} | '
             f'{100 * (rf["raw_rmse_m"] / a["batch"]["raw_rmse_m"] - 1):.1f} |')
     add('')
+    return L
+
+
+def _aerial_updates_markdown(r: dict) -> list[str]:
+    """The aerial survey: policy seeds, per-track update times, Fig. 7/8."""
+    a = r['aerial']
+    L: list[str] = []
+    add = L.append
     add(_policy_seeds_markdown(r))
     if not a['window_available']:
         add('**The track-window aligner (`ga_ros.core.window`) was not available when this report '
@@ -482,6 +521,13 @@ def render_markdown(r: dict) -> str:
         add('![Fig. 8](fig8_tracks.png)\n')
         add("Fig. 8: errors of the window's tracks before (thin: the previous estimate, the new "
             'track chained by F2F) and after (thick) the GA at the end of each shown track.\n')
+    return L
+
+
+def _memory_markdown(r: dict) -> list[str]:
+    """Memory versus number of tracks, when it was measured."""
+    L: list[str] = []
+    add = L.append
     mem = r['memory']
     if mem.get('available'):
         add('## Memory versus number of tracks\n')
@@ -497,6 +543,25 @@ def render_markdown(r: dict) -> str:
             'window only. The retained memory includes the whole corrected path and '
             'all connections (kept for the final batch refinement and the published path), '
             'which grows linearly with the survey.\n')
+    return L
+
+
+def render_markdown(r: dict) -> str:
+    """The Markdown report from the report dict."""
+    cfg = r['config']
+    L: list[str] = []
+    add = L.append
+    L.extend(_intro_markdown(r))
+    L.extend(_table1_markdown(r))
+    L.extend(_table1_discussion_markdown(r))
+    L.extend(_paper_model_markdown(r))
+    add('![Fig. 5](fig5_synthetic.png)\n')
+    add(f'Fig. 5: left, mean position error along the path at {cfg["profile_noise"]:g} % noise '
+        '(F2F dotted); right, MSE of all positions versus noise level.\n')
+    L.extend(_future_tracks_markdown(r))
+    L.extend(_aerial_markdown(r))
+    L.extend(_aerial_updates_markdown(r))
+    L.extend(_memory_markdown(r))
     add(_quality_markdown(r.get('quality_control'), 'the synthetic aerial survey above',
                           'fig_quality.png', r['images']))
     add(_exp2_markdown(r))
