@@ -323,6 +323,133 @@ def checked_solve(network: ConnectionNetwork, T_init: FloatArray,
     return replace(res, quality=quality_control(network, res, priors, config))
 
 
+def _normal_matrix(network: ConnectionNetwork, T: FloatArray, model: str, fixed: IntArray,
+                   free_ids: IntArray, priors: Sequence[GaussianPrior], As: FloatArray,
+                   Ad: FloatArray, Linv: FloatArray, cs: IntArray, cd: IntArray, d: int
+                   ) -> tuple[sp.spmatrix, sp.spmatrix | None]:
+    """``N = A' M^-1 A`` with unit weights at the solution, plus the priors' part.
+
+    Returns
+    -------
+    The whole normal matrix and the priors' part (``None`` without priors).
+    """
+    AsT, AdT = np.swapaxes(As, 1, 2), np.swapaxes(Ad, 1, 2)
+    Minv = np.swapaxes(Linv, 1, 2) @ Linv
+    N_all = _assemble([AsT @ Minv @ As, AsT @ Minv @ Ad, AdT @ Minv @ As, AdT @ Minv @ Ad],
+                      [cs, cs, cd, cd], [cs, cd, cs, cd], d, free_ids.size)
+    N_prior = None
+    if priors:
+        N_with, ids_all, _ = normal_matrix_at(network, T, model, fixed=fixed, priors=priors)
+        N_conn, _, _ = normal_matrix_at(network, T, model, fixed=fixed)
+        if not np.array_equal(ids_all, free_ids):
+            raise SolverError('internal: unknown order of the normal matrix differs')
+        N_prior = (N_with - N_conn).tocsr()
+        N_prior.eliminate_zeros()
+        N_all = (N_all + N_prior).tocsr()
+    return N_all, N_prior
+
+
+def _sigma_blocks(N_all: sp.spmatrix, N_prior: sp.spmatrix | None, d: int, cs: IntArray,
+                  cd: IntArray, ocs: IntArray, ocd: IntArray
+                  ) -> tuple[FloatArray, sp.bsr_matrix | None]:
+    """Blocks of ``Q_x = N^-1`` on the connected pairs, the outside pairs and the prior's
+    pattern, in that order; also the prior's part as a block matrix (``None`` without)."""
+    pr = [cs, cs, cd]
+    pc = [cs, cd, cd]
+    if ocs.size:
+        pr += [ocs, ocs, ocd]
+        pc += [ocs, ocd, ocd]
+    bsr = None
+    if N_prior is not None:
+        bsr = sp.bsr_matrix(N_prior, blocksize=(d, d))
+        prow = np.repeat(np.arange(bsr.shape[0] // d), np.diff(bsr.indptr))
+        pr.append(prow)
+        pc.append(bsr.indices.astype(np.int64))
+    return _inverse_blocks(N_all, d, np.concatenate(pr), np.concatenate(pc)), bsr
+
+
+def _redundancy(cov: FloatArray, B: FloatArray, Linv: FloatArray, G: FloatArray, r_c: int
+                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Whitened ``Qw = I - L^-1 G L^-T``, ``Q_kk`` and the redundancy numbers.
+
+    Returns
+    -------
+    ``Qw``, ``Q_kk``, the per-component and the per-connection redundancy numbers.
+    """
+    Qw = np.eye(r_c) - Linv @ G @ np.swapaxes(Linv, 1, 2)
+    Qw = 0.5 * (Qw + np.swapaxes(Qw, 1, 2))
+    LinvT = np.swapaxes(Linv, 1, 2)
+    Q_kk = LinvT @ Qw @ Linv
+    BT = np.swapaxes(B, 1, 2)
+    R = cov @ BT @ Q_kk @ B  # (Q_vv P)_ii
+    red_comp = np.einsum('mjj->mj', R)
+    red = np.trace(Qw, axis1=1, axis2=2)
+    return Qw, Q_kk, red_comp, red
+
+
+def _w_tests(cov: FloatArray, B: FloatArray, Q_kk: FloatArray, Pv: FloatArray, lam0: float
+             ) -> tuple[FloatArray, FloatArray]:
+    """w-test and MDB per observation component (``P Q_vv P = B' Q_kk B``)."""
+    BT = np.swapaxes(B, 1, 2)
+    var_pv = np.einsum('mjj->mj', BT @ Q_kk @ B)
+    scale = np.maximum(np.abs(np.linalg.inv(cov)).max(axis=(1, 2)), 1e-300)
+    ok = var_pv > _RANK_TOL * scale[:, None]
+    w = np.where(ok, Pv / np.sqrt(np.where(ok, var_pv, 1.0)), 0.0)
+    mdb = np.where(ok, np.sqrt(lam0 / np.where(ok, var_pv, 1.0)), np.inf)
+    return w, mdb
+
+
+def _connection_tests(Linv: FloatArray, B: FloatArray, v: FloatArray, Qw: FloatArray,
+                      lam0: float, power: float) -> tuple[FloatArray, IntArray, FloatArray]:
+    """Connection test ``T = k_w' Qw^+ k_w`` with ``k_w = L^-1 B v``.
+
+    Returns
+    -------
+    The statistics, their degrees of freedom and B-method critical values.
+    """
+    kw = (Linv @ (B @ v[:, :, None]))[:, :, 0]
+    evals, evecs = np.linalg.eigh(Qw)
+    keep = evals > _RANK_TOL
+    proj = np.einsum('mji,mj->mi', evecs, kw)
+    stat = np.sum(np.where(keep, proj ** 2 / np.where(keep, evals, 1.0), 0.0), axis=1)
+    q = keep.sum(axis=1).astype(np.int64)
+    stat = np.where(q > 0, stat, np.nan)
+    crit = np.full(len(v), np.nan)
+    for qq in np.unique(q[q > 0]):
+        crit[q == qq] = chi2.isf(b_method_alpha(lam0, power, int(qq)), int(qq))
+    return stat, q, crit
+
+
+def _global_cost(network: ConnectionNetwork, model: str, T: FloatArray, v: FloatArray,
+                 Pv: FloatArray, priors: Sequence[GaussianPrior], n_eq: int
+                 ) -> tuple[float, int]:
+    """The weighted cost ``v' P v`` plus the priors', and the number of equations."""
+    cost = float(np.einsum('mi,mi->', v, Pv))
+    for p in priors:
+        idx = network.indices_of(p.node_ids)
+        e, _ = models.prior_residual(model, T[idx], np.asarray(p.T_world_node, dtype=float))
+        info = p.information
+        ev = e.reshape(-1)
+        cost += float(ev @ (info @ ev))
+        dense = info.toarray() if hasattr(info, 'toarray') else np.asarray(info)
+        # a prior adds as many equations as the rank of its information (as in solve)
+        n_eq += int(np.linalg.matrix_rank(0.5 * (dense + dense.T), hermitian=True))
+    return cost, n_eq
+
+
+def _outside_tests(model: str, T: FloatArray, outside: ConnectionArrays, ocs: IntArray,
+                   ocd: IntArray, Sigma_o: FloatArray, r_c: int, lam0: float, power: float
+                   ) -> tuple[FloatArray, FloatArray]:
+    """Test of connections outside the adjustment: statistics and critical values."""
+    lo = models.linearise(model, T, outside.src, outside.dst, outside.z,
+                          np.zeros_like(outside.z))
+    C = lo.B @ outside.cov @ np.swapaxes(lo.B, 1, 2)
+    C = C + _propagate(lo.A_src, lo.A_dst, ocs, ocd, Sigma_o)
+    out_stat = np.einsum('mi,mi->m', lo.f, np.linalg.solve(C, lo.f[:, :, None])[:, :, 0])
+    out_crit = np.full(len(outside), chi2.isf(b_method_alpha(lam0, power, r_c), r_c))
+    return out_stat, out_crit
+
+
 def quality_control(network: ConnectionNetwork, result: SolveResult,
                     priors: Sequence[GaussianPrior] = (),
                     config: QualityConfig | None = None,
@@ -379,93 +506,31 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
     cs, cd = col[conn.src], col[conn.dst]
     As = np.where((cs >= 0)[:, None, None], lin.A_src, 0.0)
     Ad = np.where((cd >= 0)[:, None, None], lin.A_dst, 0.0)
-    AsT, AdT = np.swapaxes(As, 1, 2), np.swapaxes(Ad, 1, 2)
-
-    # N = A' M^-1 A with unit weights at the solution, plus the priors' part
-    Minv = np.swapaxes(Linv, 1, 2) @ Linv
-    N_all = _assemble([AsT @ Minv @ As, AsT @ Minv @ Ad, AdT @ Minv @ As, AdT @ Minv @ Ad],
-                      [cs, cs, cd, cd], [cs, cd, cs, cd], d, free_ids.size)
-    N_prior = None
-    if priors:
-        N_with, ids_all, _ = normal_matrix_at(network, T, model, fixed=fixed, priors=priors)
-        N_conn, _, _ = normal_matrix_at(network, T, model, fixed=fixed)
-        if not np.array_equal(ids_all, free_ids):
-            raise SolverError('internal: unknown order of the normal matrix differs')
-        N_prior = (N_with - N_conn).tocsr()
-        N_prior.eliminate_zeros()
-        N_all = (N_all + N_prior).tocsr()
-
-    # blocks of Q_x = N^-1 on the connected pairs (and on the prior's pattern)
-    pr = [cs, cs, cd]
-    pc = [cs, cd, cd]
+    N_all, N_prior = _normal_matrix(network, T, model, fixed, free_ids, priors, As, Ad, Linv,
+                                    cs, cd, d)
     n_out = 0 if outside is None else len(outside)
-    if n_out:
-        ocs, ocd = col[outside.src], col[outside.dst]
-        pr += [ocs, ocs, ocd]
-        pc += [ocs, ocd, ocd]
-    if N_prior is not None:
-        bsr = sp.bsr_matrix(N_prior, blocksize=(d, d))
-        prow = np.repeat(np.arange(bsr.shape[0] // d), np.diff(bsr.indptr))
-        pr.append(prow)
-        pc.append(bsr.indices.astype(np.int64))
-    Sigma = _inverse_blocks(N_all, d, np.concatenate(pr), np.concatenate(pc))
+    empty = np.zeros(0, dtype=np.int64)
+    ocs, ocd = (col[outside.src], col[outside.dst]) if n_out else (empty, empty)
+    Sigma, bsr = _sigma_blocks(N_all, N_prior, d, cs, cd, ocs, ocd)
     G = _propagate(lin.A_src, lin.A_dst, cs, cd, Sigma[:3 * m])
-
-    # whitened Q_kk: Qw = L' Q_kk L = I - L^-1 G L^-T, eigenvalues in [0, 1]
-    Qw = np.eye(r_c) - Linv @ G @ np.swapaxes(Linv, 1, 2)
-    Qw = 0.5 * (Qw + np.swapaxes(Qw, 1, 2))
-    LinvT = np.swapaxes(Linv, 1, 2)
-    Q_kk = LinvT @ Qw @ Linv
-    BT = np.swapaxes(B, 1, 2)
-    R = conn.cov @ BT @ Q_kk @ B  # (Q_vv P)_ii
-    red_comp = np.einsum('mjj->mj', R)
-    red = np.trace(Qw, axis1=1, axis2=2)
-
-    # w-test and MDB per observation component: P v = B' k, P Q_vv P = B' Q_kk B
+    Qw, Q_kk, red_comp, red = _redundancy(conn.cov, B, Linv, G, r_c)
+    # P v = B' k
     Pv = np.linalg.solve(conn.cov, v[:, :, None])[:, :, 0]
-    var_pv = np.einsum('mjj->mj', BT @ Q_kk @ B)
-    scale = np.maximum(np.abs(np.linalg.inv(conn.cov)).max(axis=(1, 2)), 1e-300)
-    ok = var_pv > _RANK_TOL * scale[:, None]
-    w = np.where(ok, Pv / np.sqrt(np.where(ok, var_pv, 1.0)), 0.0)
     lam0 = cfg.lambda0
-    mdb = np.where(ok, np.sqrt(lam0 / np.where(ok, var_pv, 1.0)), np.inf)
-
-    # connection test: k_w = L' k = L^-1 B v, T = k_w' Qw^+ k_w
-    kw = (Linv @ (B @ v[:, :, None]))[:, :, 0]
-    evals, evecs = np.linalg.eigh(Qw)
-    keep = evals > _RANK_TOL
-    proj = np.einsum('mji,mj->mi', evecs, kw)
-    stat = np.sum(np.where(keep, proj ** 2 / np.where(keep, evals, 1.0), 0.0), axis=1)
-    q = keep.sum(axis=1).astype(np.int64)
-    stat = np.where(q > 0, stat, np.nan)
-    crit = np.full(m, np.nan)
-    for qq in np.unique(q[q > 0]):
-        crit[q == qq] = chi2.isf(b_method_alpha(lam0, cfg.power, int(qq)), int(qq))
+    w, mdb = _w_tests(conn.cov, B, Q_kk, Pv, lam0)
+    stat, q, crit = _connection_tests(Linv, B, v, Qw, lam0, cfg.power)
 
     # global test
-    cost = float(np.einsum('mi,mi->', v, Pv))
-    n_eq = m * r_c
-    for p in priors:
-        idx = network.indices_of(p.node_ids)
-        e, _ = models.prior_residual(model, T[idx], np.asarray(p.T_world_node, dtype=float))
-        info = p.information
-        ev = e.reshape(-1)
-        cost += float(ev @ (info @ ev))
-        dense = info.toarray() if hasattr(info, 'toarray') else np.asarray(info)
-        # a prior adds as many equations as the rank of its information (as in solve)
-        n_eq += int(np.linalg.matrix_rank(0.5 * (dense + dense.T), hermitian=True))
+    cost, n_eq = _global_cost(network, model, T, v, Pv, priors, m * r_c)
     redundancy = n_eq - free_ids.size * d
     out_stat = np.zeros(0)
     out_crit = np.zeros(0)
     if n_out:
-        lo = models.linearise(model, T, outside.src, outside.dst, outside.z,
-                              np.zeros_like(outside.z))
-        C = lo.B @ outside.cov @ np.swapaxes(lo.B, 1, 2)
-        C = C + _propagate(lo.A_src, lo.A_dst, ocs, ocd, Sigma[3 * m:3 * m + 3 * n_out])
-        out_stat = np.einsum('mi,mi->m', lo.f, np.linalg.solve(C, lo.f[:, :, None])[:, :, 0])
-        out_crit = np.full(n_out, chi2.isf(b_method_alpha(lam0, cfg.power, r_c), r_c))
+        out_stat, out_crit = _outside_tests(model, T, outside, ocs, ocd,
+                                            Sigma[3 * m:3 * m + 3 * n_out], r_c, lam0,
+                                            cfg.power)
     prior_red = 0.0
-    if N_prior is not None:
+    if bsr is not None:
         # r_prior = k d - tr(Q_x N_prior) = k d - sum of Sigma .* N_prior over its pattern
         S_p = Sigma[3 * (m + n_out):]
         prior_red = n_eq - m * r_c - float(np.sum(S_p * bsr.data))
