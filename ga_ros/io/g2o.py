@@ -449,6 +449,18 @@ def _read_edges(groups: list[_Group], dim: int, spath: str) -> _Edges:
     return _Edges(e_lines, ei, ej, ep, Z, upper)
 
 
+def _vertices_or_edge_ends(vertices: tuple[IntArray, FloatArray] | None, edges: _Edges,
+                           spath: str) -> tuple[IntArray, FloatArray]:
+    """The vertex ids and initial poses: the file's, else the edges' ends (increasing) at the
+    identity; refuses a file with neither."""
+    if vertices is not None:
+        return vertices
+    if len(edges.lines):
+        ids = np.unique(np.concatenate([edges.i, edges.j]))
+        return ids, np.broadcast_to(np.eye(4), (ids.size, 4, 4)).copy()
+    raise FormatError('no vertices (VERTEX_SE3:QUAT or VERTEX_SE2 lines) found', spath)
+
+
 def _check_references(ids: IntArray, edges: _Edges, fix: list[tuple[int, list[str]]],
                       params: _Params, dim: int, spath: str) -> None:
     """Refuse an edge or ``FIX`` naming an unknown vertex, an edge naming an unknown
@@ -572,14 +584,7 @@ def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     has_guess = vertices is not None
     edges = _read_edges(groups, dim, spath)
     e_lines, ep = edges.lines, edges.param
-    m = len(e_lines)
-    if vertices is not None:
-        ids, T_init = vertices
-    elif m:
-        ids = np.unique(np.concatenate([edges.i, edges.j]))
-        T_init = np.broadcast_to(np.eye(4), (ids.size, 4, 4)).copy()
-    else:
-        raise FormatError('no vertices (VERTEX_SE3:QUAT or VERTEX_SE2 lines) found', spath)
+    ids, T_init = _vertices_or_edge_ends(vertices, edges, spath)
     _check_references(ids, edges, fix, params, dim, spath)
     info, eig, repaired = _checked_information(edges.upper, 6 if dim == 3 else 3, e_lines,
                                                strict, spath)
