@@ -52,6 +52,7 @@ from ga_ros.core.extrinsic import TransformTree, renamed_parameter_error
 from ga_ros.core.fixes import UNKNOWN_VARIANCE, AbsoluteFix
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
+from ga_ros.inputs.messages import resolve_type
 
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -77,11 +78,7 @@ def absolute_type(name: str) -> str:
     InputError
         An unknown type.
     """
-    full = ABSOLUTE_ALIASES.get(name, name)
-    if full not in ABSOLUTE_TYPES:
-        raise InputError(f'unknown absolute input type {name!r}; use one of {ABSOLUTE_TYPES} '
-                         f'or {sorted(ABSOLUTE_ALIASES)}')
-    return full
+    return resolve_type(name, ABSOLUTE_TYPES, ABSOLUTE_ALIASES, 'absolute input')
 
 
 def geodetic_to_ecef(lat_deg: FloatArray, lon_deg: FloatArray, alt_m: FloatArray) -> FloatArray:

@@ -56,10 +56,22 @@ def input_type(name: str) -> str:
     InputError
         An unknown type.
     """
-    full = TYPE_ALIASES.get(name, name)
-    if full not in INPUT_TYPES:
-        raise InputError(f'unknown input type {name!r}; use one of {INPUT_TYPES} '
-                         f'or {sorted(TYPE_ALIASES)}')
+    return resolve_type(name, INPUT_TYPES, TYPE_ALIASES, 'input')
+
+
+def resolve_type(name: str, types, aliases: dict[str, str], what: str) -> str:
+    """The full message type that ``name`` (a full name or an alias of ``aliases``) names among
+    ``types``; ``what`` names the kind of input in the error.
+
+    Raises
+    ------
+    InputError
+        An unknown type.
+    """
+    full = aliases.get(name, name)
+    if full not in types:
+        raise InputError(f'unknown {what} type {name!r}; use one of {types} '
+                         f'or {sorted(aliases)}')
     return full
 
 
