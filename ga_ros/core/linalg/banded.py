@@ -170,6 +170,28 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
     u = N.shape[0] // d
     rn, cn = N.row // d, N.col // d
     G = sp.csr_matrix((np.ones(rn.size), (rn, cn)), shape=(u, u))
+    reach, order, pos = _narrowest_ordering(G, coords, rn, cn, pa, pc)
+    bn = min(reach + 1, max(u, 1))
+    b = bn * d
+    if max_band is not None and b > max_band:
+        return None
+    A, Lsub = _tridiagonal_blocks(N, d, pos, bn)
+    Dinv = _block_cholesky(A, Lsub)
+    x = None
+    if rhs is not None:
+        x = _block_solve(Dinv, Lsub, (order[:, None] * d + np.arange(d)).ravel(), rhs)
+    Sdiag, Ssub = _block_takahashi(Dinv, Lsub)
+    return _pair_blocks(Sdiag, Ssub, pos, pa, pc, d), x, bn
+
+
+def _narrowest_ordering(G: sp.csr_matrix, coords: FloatArray | None, rn: IntArray,
+                        cn: IntArray, pa: IntArray, pc: IntArray
+                        ) -> tuple[int, IntArray, IntArray]:
+    """The candidate node ordering (:func:`_band_orderings`) with the smallest reach: the
+    largest distance in that order between the two nodes of an entry ``(rn, cn)`` of the
+    matrix or of a wanted pair ``(pa, pc)``. Returns ``(reach, order, pos)``, ``pos`` the
+    inverse permutation of ``order``."""
+    u = G.shape[0]
     best = None
     for order in _band_orderings(G, coords):
         pos = np.empty(u, dtype=np.int64)
@@ -178,15 +200,20 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
                     int(np.abs(pos[pa] - pos[pc]).max(initial=0)))
         if best is None or reach < best[0]:
             best = (reach, order, pos)
-    reach, order, pos = best
-    bn = min(reach + 1, max(u, 1))
+    return best
+
+
+def _tridiagonal_blocks(N: sp.coo_matrix, d: int, pos: IntArray, bn: int
+                        ) -> tuple[FloatArray, FloatArray]:
+    """``N`` with its node blocks moved to ``pos``, cut into ``(nb, b, b)`` diagonal blocks
+    and ``(nb - 1, b, b)`` sub-diagonal blocks of ``bn`` nodes (``b = bn d`` scalars; every
+    entry lies in one of them: ``bn`` exceeds the reordered half-bandwidth); the scalars past
+    the last node are identity padding."""
+    u = N.shape[0] // d
     b = bn * d
-    if max_band is not None and b > max_band:
-        return None
     nb = -(-u // bn)
-    # scalar position of each entry of N; diagonal and sub-diagonal blocks, identity padding
-    pr = pos[rn] * d + N.row % d
-    pcs = pos[cn] * d + N.col % d
+    pr = pos[N.row // d] * d + N.row % d
+    pcs = pos[N.col // d] * d + N.col % d
     kr, kc = pr // b, pcs // b
     same, low = kr == kc, kr == kc + 1
     A = np.bincount((kr[same] * b + pr[same] % b) * b + pcs[same] % b, weights=N.data[same],
@@ -195,6 +222,21 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
                        minlength=max(nb - 1, 0) * b * b).reshape(max(nb - 1, 0), b, b)
     pad = np.arange(u * d, nb * b)
     A[pad // b, pad % b, pad % b] = 1.0
+    return A, Lsub
+
+
+def _block_cholesky(A: FloatArray, Lsub: FloatArray) -> FloatArray:
+    """Block Cholesky factor of the block-tridiagonal matrix of diagonal blocks ``A`` and
+    sub-diagonal blocks ``Lsub``, in place: ``A[k]`` becomes the Schur complement whose
+    Cholesky factor is ``D_k``, ``Lsub[k]`` the factor's sub-diagonal block ``L_k``. Returns
+    the inverses ``D_k^-1`` ``(nb, b, b)``.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        The matrix is not positive definite.
+    """
+    nb, b = A.shape[:2]
     Dinv = np.empty_like(A)
     for k in range(nb):
         if k:
@@ -207,24 +249,37 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
         Dinv[k] = sla.solve_triangular(D, np.eye(b), lower=True)
         if k < nb - 1:
             Lsub[k] = Lsub[k] @ Dinv[k].T
-    x = None
-    if rhs is not None:
-        r = np.asarray(rhs, dtype=float)
-        perm = (order[:, None] * d + np.arange(d)).ravel()
-        y = np.zeros((nb * b,) + r.shape[1:])
-        y[:u * d] = r[perm]
-        y = y.reshape((nb, b) + r.shape[1:])
-        for k in range(nb):
-            if k:
-                y[k] -= Lsub[k - 1] @ y[k - 1]
-            y[k] = Dinv[k] @ y[k]
-        for k in range(nb - 1, -1, -1):
-            if k < nb - 1:
-                y[k] -= Lsub[k].T @ y[k + 1]
-            y[k] = Dinv[k].T @ y[k]
-        x = np.empty_like(r)
-        x[perm] = y.reshape((nb * b,) + r.shape[1:])[:u * d]
-    Sdiag = np.empty_like(A)
+    return Dinv
+
+
+def _block_solve(Dinv: FloatArray, Lsub: FloatArray, perm: IntArray, rhs: FloatArray
+                 ) -> FloatArray:
+    """``N^-1 rhs`` by forward and back substitution with the block factor of
+    :func:`_block_cholesky`; ``perm`` lists the original scalar of each reordered one."""
+    nb, b = Dinv.shape[:2]
+    r = np.asarray(rhs, dtype=float)
+    n = perm.size
+    y = np.zeros((nb * b,) + r.shape[1:])
+    y[:n] = r[perm]
+    y = y.reshape((nb, b) + r.shape[1:])
+    for k in range(nb):
+        if k:
+            y[k] -= Lsub[k - 1] @ y[k - 1]
+        y[k] = Dinv[k] @ y[k]
+    for k in range(nb - 1, -1, -1):
+        if k < nb - 1:
+            y[k] -= Lsub[k].T @ y[k + 1]
+        y[k] = Dinv[k].T @ y[k]
+    x = np.empty_like(r)
+    x[perm] = y.reshape((nb * b,) + r.shape[1:])[:n]
+    return x
+
+
+def _block_takahashi(Dinv: FloatArray, Lsub: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Diagonal and sub-diagonal blocks of ``N^-1`` from the block factor of
+    :func:`_block_cholesky` by Takahashi's backward recursion (see :func:`banded_selection`)."""
+    nb = Dinv.shape[0]
+    Sdiag = np.empty_like(Dinv)
     Ssub = np.empty_like(Lsub)
     for k in range(nb - 1, -1, -1):
         if k == nb - 1:
@@ -232,6 +287,14 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
         else:
             Ssub[k] = -Sdiag[k + 1] @ Lsub[k] @ Dinv[k]
             Sdiag[k] = Dinv[k].T @ (Dinv[k] - Lsub[k].T @ Ssub[k])
+    return Sdiag, Ssub
+
+
+def _pair_blocks(Sdiag: FloatArray, Ssub: FloatArray, pos: IntArray, pa: IntArray,
+                 pc: IntArray, d: int) -> FloatArray:
+    """Node blocks ``Sigma_{pa_k, pc_k}`` ``(k, d, d)`` read from the diagonal and
+    sub-diagonal blocks of :func:`_block_takahashi` (nodes at ``pos`` in the block order)."""
+    nb, b = Sdiag.shape[:2]
     blk = np.zeros((pa.size, d, d))
     if pa.size:
         # Sigma_{a c}: in one diagonal block, or c's block just after a's (or before)
@@ -245,7 +308,7 @@ def _banded_pairs(N: sp.spmatrix, d: int, pa: IntArray, pc: IntArray,
         before = ka == kc2 + 1
         if before.any():
             blk = np.where(before, Ssub[np.minimum(kc2, nb - 2), a_s % b, c_s % b], blk)
-    return blk, x, bn
+    return blk
 
 
 def _band_orderings(G: sp.csr_matrix, coords: FloatArray | None) -> list[IntArray]:
