@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
 from ga_ros.core.linalg import lapack
-from ga_ros.core.linalg.cholmod import _Layout, _supernodal_layout
+from ga_ros.core.linalg.cholmod_ctypes import _Layout, _supernodal_layout
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
