@@ -10,6 +10,8 @@ cvxopt, SciPy's SuperLU is used. The interface the rest of the code relies on is
 
 from __future__ import annotations
 
+import glob
+import os
 from collections import OrderedDict
 
 import numpy as np
@@ -17,7 +19,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.linalg import blocks
 from ga_ros.core.linalg.blocks import BlockPattern, _expand_cols, _kept, _Permuted
-from ga_ros.core.linalg.cholmod_ctypes import _direct_cholmod
+from ga_ros.core.linalg.cholmod_ctypes import _DirectCholmod
 from ga_ros.core.linalg.ordering import _trailing_ordering, block_ordering
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import openblas_coretype
@@ -46,6 +48,32 @@ _MAX_MATRICES = 4
 #: argsort of the entries once per analysis, ~0.1 s per million; a window's few hundred thousand
 #: entries are factored as given).
 _PERMUTE_FROM_NNZ = 1 << 22
+
+
+_DIRECT: list = []  # [the _DirectCholmod or None], found on first use
+
+
+def _direct_cholmod() -> _DirectCholmod | None:
+    """The direct CHOLMOD call (:class:`_DirectCholmod`), or ``None`` when the library cvxopt
+    bundles is not found or not the expected version (then cvxopt's ``numeric`` is used);
+    ``GA_ROS_DIRECT_CHOLMOD=0`` turns it off."""
+    if not _DIRECT:
+        found = None
+        if cvxopt is not None and os.environ.get('GA_ROS_DIRECT_CHOLMOD', '1') != '0':
+            libs = glob.glob(os.path.join(os.path.dirname(os.path.dirname(cvxopt.__file__)),
+                                          'cvxopt.libs', 'libcholmod*.so.3.*'))
+            try:
+                found = _DirectCholmod(libs[0], _model_factor) if len(libs) == 1 else None
+            except (OSError, AttributeError):
+                found = None
+        _DIRECT.append(found)
+    return _DIRECT[0]
+
+
+def _model_factor():
+    """A symbolic factor of cvxopt's own (of a 1 x 1 matrix): :class:`_DirectCholmod` gives its
+    factors the same capsule name and destructor."""
+    return _cholmod.symbolic(cvxopt.spmatrix([1.0], [0], [0]))
 
 
 class SparseCholesky:

@@ -11,9 +11,8 @@ interface.
 from __future__ import annotations
 
 import ctypes
-import glob
-import os
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,11 +107,18 @@ class _DirectCholmod:
     new matrix on every call, and the caller had copied the values into a cvxopt matrix before;
     here CHOLMOD reads NumPy's arrays. Each thread has its own ``cholmod_common`` (the call
     releases the GIL: a background refinement may factor at the same time). The factor object
-    stays cvxopt's (its analysis, solves and ``getfactor`` are cvxopt's)."""
+    stays cvxopt's (its analysis, solves and ``getfactor`` are cvxopt's).
+
+    Parameters
+    ----------
+    path : the CHOLMOD shared library cvxopt loaded.
+    model : makes a symbolic factor of cvxopt's own (any), whose capsule name and destructor
+        the factors of :meth:`analyse` copy.
+    """
 
     _COMMON_BYTES = 1 << 16  # larger than cholmod_common (a few KiB)
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, model: Callable[[], object]) -> None:
         lib = ctypes.CDLL(path)
         self._factorize = lib.cholmod_l_factorize
         self._factorize.restype = ctypes.c_int
@@ -133,15 +139,13 @@ class _DirectCholmod:
                                   ctypes.c_size_t, ctypes.c_void_p]
         self._free_factor = lib.cholmod_l_free_factor
         self._free_factor.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
-        self._capsule = self._capsule_maker()
+        self._capsule = self._capsule_maker(model)
 
-    def _capsule_maker(self):
+    def _capsule_maker(self, model: Callable[[], object]):
         """A function wrapping a ``cholmod_factor *`` into a capsule exactly as cvxopt's
         ``cholmod.symbolic`` does (its name string and its destructor, read from a factor of
         cvxopt's own), or ``None`` if the ordering fields of ``cholmod_common`` are not where
         CHOLMOD 3 has them (then the analysis stays cvxopt's)."""
-        from ga_ros.core.linalg.cholmod import _cholmod, cvxopt  # lazy: it imports this module
-
         if not _defaults_of_cholmod3(_CommonOrdering.from_buffer(self._common())):
             return None
         api = ctypes.pythonapi
@@ -151,7 +155,7 @@ class _DirectCholmod:
         get_name.argtypes = get_destructor.argtypes = [ctypes.py_object]
         new.restype = ctypes.py_object
         new.argtypes = [ctypes.c_void_p] * 3
-        self._model = _cholmod.symbolic(cvxopt.spmatrix([1.0], [0], [0]))  # kept: its name
+        self._model = model()  # kept: its name
         name, destructor = get_name(self._model), get_destructor(self._model)
         if ctypes.string_at(name) != b'CHOLMOD FACTOR D L' or not destructor:
             return None
@@ -322,31 +326,9 @@ class _DirectCholmod:
             raise ArithmeticError('not positive definite')
 
 
-_DIRECT: list = []  # [the _DirectCholmod or None], found on first use
-
-
 #: Below this many unknowns a factor asked for ``auto`` is simplicial or supernodal as CHOLMOD
 #: chooses (:meth:`_DirectCholmod.analyse`); from it on it is supernodal.
 _AUTO_SUPERNODAL_BELOW = 6000
-
-
-def _direct_cholmod() -> _DirectCholmod | None:
-    """The direct CHOLMOD call (:class:`_DirectCholmod`), or ``None`` when the library cvxopt
-    bundles is not found or not the expected version (then cvxopt's ``numeric`` is used);
-    ``GA_ROS_DIRECT_CHOLMOD=0`` turns it off."""
-    from ga_ros.core.linalg.cholmod import cvxopt  # lazy: it imports this module
-
-    if not _DIRECT:
-        found = None
-        if cvxopt is not None and os.environ.get('GA_ROS_DIRECT_CHOLMOD', '1') != '0':
-            libs = glob.glob(os.path.join(os.path.dirname(os.path.dirname(cvxopt.__file__)),
-                                          'cvxopt.libs', 'libcholmod*.so.3.*'))
-            try:
-                found = _DirectCholmod(libs[0]) if len(libs) == 1 else None
-            except (OSError, AttributeError):
-                found = None
-        _DIRECT.append(found)
-    return _DIRECT[0]
 
 
 @dataclass

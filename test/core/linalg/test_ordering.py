@@ -86,7 +86,7 @@ def test_analysis_flops_equal_the_numeric_factor_and_adjacency_scipys(rng):
     ``scipy.sparse``'s (duplicates and self-loops dropped, both directions)."""
     import scipy.sparse as sp
 
-    from ga_ros.core.linalg.cholmod_ctypes import _direct_cholmod
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
 
     if _direct_cholmod() is None:
         pytest.skip('the direct CHOLMOD call is not available')

@@ -129,7 +129,8 @@ def test_direct_analysis_gives_cvxopts_factor(rng, monkeypatch):
     with trailing blocks; both solve like the dense matrix."""
     import pytest
 
-    from ga_ros.core.linalg.cholmod_ctypes import _direct_cholmod, _supernodal_layout
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
+    from ga_ros.core.linalg.cholmod_ctypes import _supernodal_layout
 
     direct = _direct_cholmod()
     if direct is None or direct._capsule is None:
@@ -181,7 +182,7 @@ def test_auto_factor_of_a_sparse_chain_is_simplicial_and_refuses_an_indefinite_m
     eigenvalue (a simplicial factor is L L' here, not L D L', which would accept it)."""
     import pytest
 
-    from ga_ros.core.linalg.cholmod_ctypes import _direct_cholmod
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
     from ga_ros.errors import DegenerateGeometryError
 
     direct = _direct_cholmod()

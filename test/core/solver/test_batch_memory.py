@@ -8,14 +8,13 @@ import pytest
 
 import ga_ros.core.linalg.blocks as assembly
 import ga_ros.core.linalg.cholmod as cholmod
-import ga_ros.core.linalg.cholmod_ctypes as cholmod_ctypes
 from ga_ros.core.linalg.blocks import BlockPattern
 from ga_ros.core.linalg.cholesky import SparseCholesky
 from ga_ros.core.linalg.cholmod_ctypes import _supernodal_layout
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import DegenerateGeometryError, NetworkError
 
-pytestmark = pytest.mark.skipif(cholmod_ctypes._direct_cholmod() is None,
+pytestmark = pytest.mark.skipif(cholmod._direct_cholmod() is None,
                                 reason='the CHOLMOD library bundled with cvxopt was not found')
 
 
@@ -58,7 +57,7 @@ def test_direct_factorisation_equals_cvxopts(rng, monkeypatch, permute_from, in_
     x_direct = _factor_values(direct)
     direct.refactor(data2)
     x2_direct = _factor_values(direct)
-    monkeypatch.setattr(cholmod_ctypes, '_DIRECT', [None])  # cvxopt's numeric
+    monkeypatch.setattr(cholmod, '_DIRECT', [None])  # cvxopt's numeric
     via_cvxopt = SparseCholesky(pattern, data)
     np.testing.assert_array_equal(_factor_values(via_cvxopt), x_direct)
     via_cvxopt.refactor(data2)
