@@ -42,8 +42,7 @@ _NEAR_PI = np.pi - 1e-2
 
 # callees first: a compiled function calls compiled globals
 _JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_scratch',
-           '_misclosure_one', '_jr_inverse', '_adjoint_inverse', '_weighted_terms',
-           '_pair_terms', '_se3_system', '_se3_misclosure')
+           '_misclosure_one', '_se3_system', '_se3_misclosure')
 
 
 def _compile() -> None:
@@ -198,96 +197,10 @@ def _misclosure_one(T, i, j, Tm_k, Rij, tij, RE, tE, phi, Ji, e):  # pragma: no 
         e[3 + r] = phi[r]
 
 
-def _jr_inverse(e, rho, phi, Ji, Q, S, JiQJi, J):  # pragma: no cover - compiled
-    """``J = J_r(e)^-1 = J_l(-e)^-1 = [[Ji, -Ji Q Ji], [0, Ji]]`` at ``-e`` (Barfoot eq. 7.95)
-    into ``J`` (6x6, its lower-left block zero); ``rho, phi`` (3-vectors), ``Ji, Q, JiQJi``
-    (3x3) and ``S`` (8, 3, 3) are scratch."""
-    for r in range(3):
-        rho[r] = -e[r]
-        phi[r] = -e[3 + r]
-    _so3_jl_inv(phi, Ji)
-    _q_matrix(rho, phi, Q, S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7])
-    _mm3(Ji, Q, S[0])
-    _mm3(S[0], Ji, JiQJi)
-    for r in range(3):
-        for c in range(3):
-            J[r, c] = Ji[r, c]
-            J[3 + r, 3 + c] = Ji[r, c]
-            J[r, 3 + c] = -JiQJi[r, c]
-            J[3 + r, c] = 0.0
-
-
-def _adjoint_inverse(Rij, tij, t, tx, Ad):  # pragma: no cover - compiled
-    """``Ad(T_ij^-1) = [[R', [t']x R'], [0, R']]`` with ``R' = Rij'``, ``t' = -Rij' tij`` into
-    ``Ad`` (6x6); ``t`` (3-vector) and ``tx`` (3x3) are scratch."""
-    for r in range(3):
-        t[r] = -(Rij[0, r] * tij[0] + Rij[1, r] * tij[1] + Rij[2, r] * tij[2])
-    _hat(t, tx)
-    for r in range(3):
-        for c in range(3):
-            Ad[r, c] = Rij[c, r]
-            Ad[3 + r, 3 + c] = Rij[c, r]
-            Ad[3 + r, c] = 0.0
-            Ad[r, 3 + c] = tx[r, 0] * Rij[c, 0] + tx[r, 1] * Rij[c, 1] + tx[r, 2] * Rij[c, 2]
-
-
-def _weighted_terms(P, k, e, J, want, PJ, Pe, H, gj):  # pragma: no cover - compiled
-    """Connection ``k``'s ``g_j = J' P e`` into ``gj[k]``, ``H = J' P J`` into ``H`` (6x6, only
-    when ``want``); returns ``e' P e``. ``PJ`` (6x6) and ``Pe`` (6) are scratch."""
-    for r in range(6):
-        s = 0.0
-        for c in range(6):
-            s += P[k, r, c] * e[c]
-            if want:
-                acc = 0.0
-                for q in range(6):
-                    acc += P[k, r, q] * J[q, c]
-                PJ[r, c] = acc
-        Pe[r] = s
-    mh = 0.0
-    for r in range(6):
-        mh += e[r] * Pe[r]
-        g = 0.0
-        for q in range(6):
-            g += J[q, r] * Pe[q]
-        gj[k, r] = g
-        for c in range(r, 6 if want else 0):
-            acc = 0.0
-            for q in range(6):
-                acc += J[q, r] * PJ[q, c]
-            H[r, c] = acc
-            H[c, r] = acc
-    return mh
-
-
-def _pair_terms(Ad, H, k, m, want, HA, gi, gj, blocks):  # pragma: no cover - compiled
-    """Connection ``k``'s ``g_i = -Ad' g_j`` into ``gi[k]`` and, when ``want``, its blocks
-    ``(ii, ij, ji, jj) = (Ad' H Ad, -(H Ad)', -H Ad, H)`` into ``blocks`` (block-type major,
-    ``m`` connections); ``HA`` (6x6) is scratch."""
-    for r in range(6):
-        g = 0.0
-        for q in range(6):
-            g += Ad[q, r] * gj[k, q]
-        gi[k, r] = -g
-        for c in range(6 if want else 0):
-            acc = 0.0
-            for q in range(6):
-                acc += H[r, q] * Ad[q, c]
-            HA[r, c] = acc
-    for r in range(6 if want else 0):
-        for c in range(6):
-            acc = 0.0
-            for q in range(6):
-                acc += Ad[q, r] * HA[q, c]
-            blocks[k, r, c] = acc
-            blocks[m + k, c, r] = -HA[r, c]
-            blocks[2 * m + k, r, c] = -HA[r, c]
-            blocks[3 * m + k, r, c] = H[r, c]
-
-
 def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma: no cover
-    """Per connection: the misclosure, ``J = J_r(e)^-1`` and ``Ad(T_ij^-1)`` (so
-    ``J_i = -J Ad``, ``J_j = J``), then the weighted terms (:func:`se3_system`)."""
+    """Per connection: the misclosure, ``J = J_r(e)^-1``, ``Ad(T_ij^-1)``, then the weighted
+    terms of :func:`se3_system`. One loop body on purpose: the same steps as compiled helpers
+    called per connection (each taking its scratch arrays) made the kernel measurably slower."""
     m = src.shape[0]
     want = blocks.shape[0] > 0  # an empty blocks array: the gradient only (blocks=False)
     Rij, tij, RE, tE, phi, Ji, e = _scratch()
@@ -302,13 +215,83 @@ def _se3_system(T, src, dst, Tm_inv, P, e_out, blocks, gi, gj, maha):  # pragma:
     Pe = np.empty(6)
     JiQJi = np.empty((3, 3))
     for k in range(m):
-        _misclosure_one(T, src[k], dst[k], Tm_inv[k], Rij, tij, RE, tE, phi, Ji, e)
+        i = src[k]
+        j = dst[k]
+        _misclosure_one(T, i, j, Tm_inv[k], Rij, tij, RE, tE, phi, Ji, e)
         for r in range(6):
             e_out[k, r] = e[r]
-        _jr_inverse(e, rho, phi, Ji, Q, S, JiQJi, J)
-        _adjoint_inverse(Rij, tij, tE, S[0], Ad)
-        maha[k] = _weighted_terms(P, k, e, J, want, PJ, Pe, H, gj)
-        _pair_terms(Ad, H, k, m, want, HA, gi, gj, blocks)
+        for r in range(3):
+            rho[r] = e[r]
+        # J = J_r(e)^-1 = J_l(-e)^-1 = [[Ji, -Ji Q Ji], [0, Ji]] at -e (Barfoot eq. 7.95)
+        for r in range(3):
+            rho[r] = -rho[r]
+            phi[r] = -phi[r]
+        _so3_jl_inv(phi, Ji)
+        _q_matrix(rho, phi, Q, S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7])
+        _mm3(Ji, Q, S[0])
+        _mm3(S[0], Ji, JiQJi)
+        for r in range(3):
+            for c in range(3):
+                J[r, c] = Ji[r, c]
+                J[3 + r, 3 + c] = Ji[r, c]
+                J[r, 3 + c] = -JiQJi[r, c]
+                J[3 + r, c] = 0.0
+        # Ad(T_ij^-1) = [[R', [t']x R'], [0, R']] with R' = Rij', t' = -Rij' tij
+        for r in range(3):
+            tE[r] = -(Rij[0, r] * tij[0] + Rij[1, r] * tij[1] + Rij[2, r] * tij[2])
+        _hat(tE, S[0])
+        for r in range(3):
+            for c in range(3):
+                Ad[r, c] = Rij[c, r]
+                Ad[3 + r, 3 + c] = Rij[c, r]
+                Ad[3 + r, c] = 0.0
+                Ad[r, 3 + c] = S[0, r, 0] * Rij[c, 0] + S[0, r, 1] * Rij[c, 1] \
+                    + S[0, r, 2] * Rij[c, 2]
+        # H = J' P J, g = J' P e, maha = e' P e
+        for r in range(6):
+            s = 0.0
+            for c in range(6):
+                s += P[k, r, c] * e[c]
+                if want:
+                    acc = 0.0
+                    for q in range(6):
+                        acc += P[k, r, q] * J[q, c]
+                    PJ[r, c] = acc
+            Pe[r] = s
+        mh = 0.0
+        for r in range(6):
+            mh += e[r] * Pe[r]
+            g = 0.0
+            for q in range(6):
+                g += J[q, r] * Pe[q]
+            gj[k, r] = g
+            for c in range(r, 6 if want else 0):
+                acc = 0.0
+                for q in range(6):
+                    acc += J[q, r] * PJ[q, c]
+                H[r, c] = acc
+                H[c, r] = acc
+        maha[k] = mh
+        # g_i = -Ad' g_j; HA = H Ad; blocks (ii, ij, ji, jj) = (Ad' H Ad, -(H Ad)', -H Ad, H)
+        for r in range(6):
+            g = 0.0
+            for q in range(6):
+                g += Ad[q, r] * gj[k, q]
+            gi[k, r] = -g
+            for c in range(6 if want else 0):
+                acc = 0.0
+                for q in range(6):
+                    acc += H[r, q] * Ad[q, c]
+                HA[r, c] = acc
+        for r in range(6 if want else 0):
+            for c in range(6):
+                acc = 0.0
+                for q in range(6):
+                    acc += Ad[q, r] * HA[q, c]
+                blocks[k, r, c] = acc
+                blocks[m + k, c, r] = -HA[r, c]
+                blocks[2 * m + k, r, c] = -HA[r, c]
+                blocks[3 * m + k, r, c] = H[r, c]
 
 
 def _se3_misclosure(T, src, dst, Tm_inv, e_out):  # pragma: no cover - compiled
