@@ -130,7 +130,7 @@ def _forward_drive(n: int = 61, step_m: float = 1.0):
 
 
 def _write_forward_bag(path: Path, with_tf_static: bool) -> Path:
-    from ga_ros.io.bag import CAMERA_INFO
+    from ga_ros.io.bag_messages import CAMERA_INFO
     from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
     from ga_ros.replay.samples import (
         BASE_STAMP_NS,

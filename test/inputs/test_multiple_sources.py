@@ -24,7 +24,7 @@ from ga_ros.errors import GaError
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import write_tum
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec

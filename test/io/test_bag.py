@@ -13,23 +13,21 @@ from ga_ros.core.frames import node_frame, parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import ForeignFileError, FormatError, InputError
 from ga_ros.geometry import se3
-from ga_ros.io.bag import (
+from ga_ros.io.bag import BagReader, bag_info
+from ga_ros.io.bag_messages import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
     ODOMETRY,
     PATH,
-    BagReader,
-    TopicConfig,
-    Trajectory,
-    bag_info,
     measurement_to_odometry,
     odometry_to_measurement,
-    plan_topics,
     trajectory_to_path_msg,
     typestore,
 )
 from ga_ros.io.bag_writer import BagWriter, network_markers
 from ga_ros.io.groundtruth import read_ground_truth_topic
+from ga_ros.io.topic_plan import TopicConfig, plan_topics
+from ga_ros.io.trajectory import Trajectory
 
 STORAGES = ['mcap', 'sqlite3']
 

@@ -19,7 +19,7 @@ from ga_ros.cli.main import main as cli_main
 from ga_ros.errors import FormatError, InputError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3, so3
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.groundtruth import match_stamps, read_ground_truth_file
 from ga_ros.io.trajectory import Trajectory, read_tum, write_kitti, write_tum

@@ -17,7 +17,13 @@ import pytest
 
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import interpolate_pose
-from ga_ros.io.bag import CAMERA_INFO, COMPRESSED_IMAGE, header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import (
+    CAMERA_INFO,
+    COMPRESSED_IMAGE,
+    header,
+    matrix_to_pose_msg,
+    typestore,
+)
 from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import write_tum
 

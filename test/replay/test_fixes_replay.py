@@ -25,7 +25,8 @@ from ga_ros.inputs.absolute import (
     geodetic_to_enu,
 )
 from ga_ros.inputs.odometry import OdometryInputConfig
-from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import read_tum
 from ga_ros.pipeline.absolute import AbsoluteSpec

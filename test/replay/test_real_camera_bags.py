@@ -13,8 +13,10 @@ import pytest
 import yaml
 
 from ga_ros.errors import FormatError, InputError
-from ga_ros.io.bag import CAMERA_INFO, IMAGE, BagReader, bag_info, header, plan_topics, typestore
+from ga_ros.io.bag import BagReader, bag_info
+from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE, header, typestore
 from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.topic_plan import plan_topics
 from ga_ros.pipeline.params import parse_override, read_params_file
 from ga_ros.pipeline.stereo import (
     NODE_ONLY_PARAMS,
@@ -154,7 +156,7 @@ def test_calibration_file_replaces_missing_camera_info(tmp_path: Path,
     # The CameraInfo fields as a YAML: the same measurements as with the bag's CameraInfo.
     f = tmp_path / 'stereo.yaml'
     f.write_text(yaml.safe_dump(cal))
-    from ga_ros.io.bag import TopicConfig
+    from ga_ros.io.topic_plan import TopicConfig
 
     with_file = replay(bag, tmp_path / 'a', ReplayConfig(
         topics=TopicConfig(calibration=(str(f),)), plot=False))

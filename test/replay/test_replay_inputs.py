@@ -16,7 +16,8 @@ from ga_ros.core.tracks import TrackRules
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import constraint_frames
-from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, ns_to_stamp, typestore
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, ns_to_stamp, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.groundtruth import read_ground_truth_file
 from ga_ros.io.trajectory import read_tum, write_tum
@@ -310,7 +311,7 @@ def test_covariance_policy_reject_or_repair(tmp_path: Path) -> None:
     """One measurement with an indefinite covariance: rejected by default, repaired on request
     (eigenvalue clipping: same eigenvectors, the negative eigenvalue raised to the floor)."""
     from ga_ros.core.measurement import Measurement
-    from ga_ros.io.bag import measurement_to_odometry
+    from ga_ros.io.bag_messages import measurement_to_odometry
     from ga_ros.pipeline.inputs import decode_measurement
     from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 

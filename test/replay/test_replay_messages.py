@@ -12,7 +12,7 @@ import pytest
 
 from ga_ros.cli.main import main as cli_main
 from ga_ros.geometry import se3
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter
 
 T0_NS = 1_700_000_000_000_000_000

@@ -14,7 +14,13 @@ import pytest
 
 from ga_ros.cli.main import main
 from ga_ros.geometry import se3
-from ga_ros.io.bag import CAMERA_INFO, COMPRESSED_IMAGE, header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import (
+    CAMERA_INFO,
+    COMPRESSED_IMAGE,
+    header,
+    matrix_to_pose_msg,
+    typestore,
+)
 from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import read_tum
 

@@ -23,7 +23,7 @@ rclpy = pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 
-from ga_ros.io.bag import CAMERA_INFO, header, typestore  # noqa: E402
+from ga_ros.io.bag_messages import CAMERA_INFO, header, typestore  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.samples import BASE_STAMP_NS, camera_info_msg  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
