@@ -28,6 +28,7 @@ from ga_ros.io.bag_messages import (
     typestore,
 )
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.replay import samples
 
 #: A row of a bag: log time (ns), topic, message type, rosbags message.
 Row = tuple[int, str, str, Any]
@@ -37,6 +38,10 @@ POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 NAV_SAT_FIX = 'sensor_msgs/msg/NavSatFix'
 TF = 'tf2_msgs/msg/TFMessage'
+#: The sample bags' stereo topics (:mod:`ga_ros.replay.samples`): left info, right info, left
+#: image, right image, in the order of :func:`stereo_rows`.
+SAMPLE_STEREO_TOPICS = (samples.LEFT_INFO_TOPIC, samples.RIGHT_INFO_TOPIC,
+                        samples.LEFT_IMAGE_TOPIC, samples.RIGHT_IMAGE_TOPIC)
 #: Seconds of one lap of :func:`rectangle`.
 RECTANGLE_LAP_S = 60.0
 
@@ -166,16 +171,14 @@ def stereo_rows(rig: Any, left: np.ndarray, right: np.ndarray, stamp_ns: int, *,
     log_ns : the recorder's time (default: the stamp).
     quality : JPEG quality (default: the sample bags').
     """
-    from ga_ros.replay.samples import camera_info_msg, compressed_image_msg
-
     s = int(stamp_ns)
     log = s if log_ns is None else int(log_ns)
     jpeg = {} if quality is None else {'quality': quality}
-    info = [camera_info_msg(rig.K, rig.width, rig.height, frames[0], s),
-            camera_info_msg(rig.K, rig.width, rig.height, frames[1], s,
-                            -rig.focal_px * rig.baseline_m)]
-    images = [compressed_image_msg(left, frames[0], s, **jpeg),
-              compressed_image_msg(right, frames[1], s, **jpeg)]
+    info = [samples.camera_info_msg(rig.K, rig.width, rig.height, frames[0], s),
+            samples.camera_info_msg(rig.K, rig.width, rig.height, frames[1], s,
+                                    -rig.focal_px * rig.baseline_m)]
+    images = [samples.compressed_image_msg(left, frames[0], s, **jpeg),
+              samples.compressed_image_msg(right, frames[1], s, **jpeg)]
     return [(log, topics[0], CAMERA_INFO, info[0]), (log, topics[1], CAMERA_INFO, info[1]),
             (log, topics[2], COMPRESSED_IMAGE, images[0]),
             (log, topics[3], COMPRESSED_IMAGE, images[1])]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import write_unknown_type_bag
 
 from ga_ros.core.frames import node_frame, parse_node_frame
 from ga_ros.core.measurement import Measurement
@@ -287,15 +288,7 @@ def test_corrupt_message_is_reported_with_topic(tmp_path: Path, rng: np.random.G
 
 def test_unknown_message_type(tmp_path: Path) -> None:
     """A bag with a type outside the standard set: a clear error naming the type."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    path = tmp_path / 'u'
-    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    w.open()
-    c = w.add_connection('/custom', 'my_pkg/msg/Thing', msgdef='int32 a',
-                         rihs01='RIHS01_' + '0' * 64)
-    w.write(c, 5, b'\x00\x01\x00\x00\x07\x00\x00\x00')
-    w.close()
+    path = write_unknown_type_bag(tmp_path / 'u')
     with BagReader(path) as bag:
         assert bag.info.topic('/custom').msgtype == 'my_pkg/msg/Thing'
         with pytest.raises(FormatError, match="unknown message type 'my_pkg/msg/Thing'"):
