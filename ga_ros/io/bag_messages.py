@@ -57,7 +57,6 @@ def ns_to_stamp(stamp_ns: int) -> Any:
     return typestore().types['builtin_interfaces/msg/Time'](sec=t.sec, nanosec=t.nanosec)
 
 
-
 # --------------------------------------------------------------------------- poses
 def pose_msg_to_matrix(pose: Any) -> FloatArray:
     """``geometry_msgs/Pose`` (rosbags) -> 4x4; InputError on NaN or a non-unit quaternion

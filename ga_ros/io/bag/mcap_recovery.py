@@ -13,6 +13,8 @@ from ga_ros.io.bag_messages import typestore
 
 
 def single_mcap(path: Path) -> Path | None:
+    """The one ``.mcap`` file of ``path`` (the file itself, or the only one in a directory),
+    else None."""
     if path.is_file() and path.suffix == '.mcap':
         return path
     if path.is_dir():

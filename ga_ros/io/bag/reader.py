@@ -159,7 +159,6 @@ class BagReader:
                                   str(self.path))
 
 
-
 def bag_info(path: str | Path) -> BagInfo:
     """Summary (storage, counts, topics) of the bag at ``path``; FormatError if unreadable."""
     with BagReader(path) as bag:

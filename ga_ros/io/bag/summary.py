@@ -50,11 +50,11 @@ class BagInfo:
 
 
 def storage_of(path: Path) -> str:
+    """``'mcap'`` or ``'sqlite3'``: the storage of a bag file or rosbag2 directory."""
     if path.is_dir():
         files = sorted(path.glob('*.mcap')) + sorted(path.glob('*.db3'))
         return 'mcap' if files and files[0].suffix == '.mcap' else 'sqlite3'
     return 'mcap' if path.suffix == '.mcap' else 'sqlite3'
-
 
 
 @dataclass(frozen=True)

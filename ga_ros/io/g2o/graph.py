@@ -125,7 +125,6 @@ class PoseGraph:
         return replace(self, T_init=T.copy(), has_guess=True)
 
 
-
 def information_checksum(information: FloatArray) -> tuple[float, float]:
     """Sum of squares and lag-one sum of products of the entries (two BLAS dot products, ~0.1
     ms for 6,000 edges): an edit in place of a read graph's information (a changed value, two

@@ -21,7 +21,6 @@ class InformationRepairWarning(UserWarning):
     """Some information matrices of a file were not positive definite and were repaired."""
 
 
-
 def upper_to_full(upper: FloatArray, d: int) -> FloatArray:
     """Symmetric ``(d, d)`` matrices from their row-major upper triangles ``(..., d(d+1)/2)``."""
     iu = np.triu_indices(d)
@@ -29,7 +28,6 @@ def upper_to_full(upper: FloatArray, d: int) -> FloatArray:
     out[..., iu[0], iu[1]] = upper
     out[..., iu[1], iu[0]] = upper
     return out
-
 
 
 def checked_information(upper: FloatArray, d: int, e_lines: IntArray, strict: bool,

@@ -177,7 +177,6 @@ def _check_references(ids: IntArray, edges: _Edges, fix: list[tuple[int, list[st
                               line)
 
 
-
 def read_g2o(path: str | os.PathLike, strict: bool = False) -> PoseGraph:
     """Read a g2o (or TORO 2-D) pose graph: 3-D ``SE3:QUAT`` or 2-D ``SE2``, not both.
 
