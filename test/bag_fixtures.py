@@ -20,23 +20,23 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.geometry import se3
+from ga_ros.inputs.absolute import NAVSAT as NAV_SAT_FIX
 from ga_ros.io.bag_messages import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
+    ODOMETRY,
+    POSE_STAMPED,
     header,
     matrix_to_pose_msg,
     typestore,
 )
+from ga_ros.io.bag_messages import POSE_WITH_COVARIANCE as POSE_COV_STAMPED
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.replay import samples
 
 #: A row of a bag: log time (ns), topic, message type, rosbags message.
 Row = tuple[int, str, str, Any]
 
-ODOMETRY = 'nav_msgs/msg/Odometry'
-POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
-POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
-NAV_SAT_FIX = 'sensor_msgs/msg/NavSatFix'
 TF = 'tf2_msgs/msg/TFMessage'
 #: The sample bags' stereo topics (:mod:`ga_ros.replay.samples`): left info, right info, left
 #: image, right image, in the order of :func:`stereo_rows`.
