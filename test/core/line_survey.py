@@ -83,6 +83,17 @@ def gnss_fix(node_id: int, stamp_ns: int, p_world: np.ndarray, sigma_m: float) -
         stamp_ns, T, np.diag([sigma_m ** 2] * 3 + [-1.0] * 3), 'gnss'))
 
 
+def feed(al: TrackWindowAligner, measurements: list[Measurement],
+         fixes: dict[int, tuple[np.ndarray, float]]) -> None:
+    """Feed the measurements to ``al``, each fix (``fixes[node] = (position, sigma)``, see
+    :func:`gnss_fix`) right after the measurement that introduces its node."""
+    for m in measurements:
+        al.add_measurement(m)
+        if m.dst_id in fixes:
+            p, s = fixes[m.dst_id]
+            al.add_fix(gnss_fix(m.dst_id, m.stamp_ns, p, s))
+
+
 def fixes_aligner(window_tracks: int, refine_every_tracks: int = 0,
                   **kw) -> TrackWindowAligner:
     """The aligner of these tests: datum from the fixes, the weak gauge of :func:`wls_positions`

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from line_survey import fixes_aligner, gnss_fix, line_survey, wls_positions
+from line_survey import feed, fixes_aligner, line_survey, wls_positions
 
 from ga_ros.core.fixes import (
     AbsoluteFix,
@@ -136,11 +136,7 @@ def test_batch_with_fixes_equals_weighted_least_squares(rng) -> None:
     n = n_tracks * per
     fixes = {k: (p_true[k] + rng.normal(0, 0.5, 3), 0.5) for k in range(3, n, 7)}
     al = fixes_aligner(2)
-    for m in ms:
-        al.add_measurement(m)
-        for k, (p, s) in fixes.items():
-            if m.dst_id == k:
-                al.add_fix(gnss_fix(k, m.stamp_ns, p, s))
+    feed(al, ms, fixes)
     al.refine_batch()
     p_hat = al.corrected_path().T_world_node[:, :3, 3]
     p_ref = wls_positions(n, z, 0.05, fixes)
@@ -156,11 +152,7 @@ def test_window_newest_node_equals_batch_and_fixes_survive_freezing(rng) -> None
     n = n_tracks * per
     fixes = {k: (p_true[k] + rng.normal(0, 0.3, 3), 0.3) for k in range(2, n, 5)}
     al = fixes_aligner(2)
-    for m in ms:
-        al.add_measurement(m)
-        k = m.dst_id
-        if k in fixes:
-            al.add_fix(gnss_fix(k, m.stamp_ns, fixes[k][0], 0.3))
+    feed(al, ms, fixes)
     al.finish_track()
     path = al.corrected_path()
     assert path.frozen[:per].all()  # the first tracks froze

@@ -7,7 +7,6 @@ received path with :class:`TrackWindowAligner` run directly on the same measurem
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import fields, replace
 
@@ -41,6 +40,7 @@ from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
     CONFIG,
+    domain_id,
     start_node_process,
     stop_process,
 )
@@ -48,10 +48,6 @@ from ga_ros.ros.qos import latched_qos  # noqa: E402
 from ga_ros.ros.view import connection_view, network_view, normalized_residuals  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
-
-
-def domain_id(offset: int = 0) -> int:
-    return 40 + (os.getpid() + offset) % 150
 
 
 def survey(rng: np.random.Generator, n_tracks: int = 3, per_swath: int = 6,

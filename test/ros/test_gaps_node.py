@@ -4,8 +4,6 @@ no measurement is rejected as ``unknown_source``."""
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -16,13 +14,14 @@ from live_node import live_node  # noqa: E402
 from ga_ros.core.window import AlignerConfig  # noqa: E402
 from ga_ros.pipeline.session import AlignmentSession  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
 
 
 @pytest.mark.ros
 def test_a_restarted_node_that_missed_measurements_keeps_every_node(tmp_path, rng) -> None:
-    dom = 40 + (os.getpid() + 77) % 150
+    dom = domain_id(77)
     sc = aerial_scenario(n_tracks=3, positions_per_swath=6)
     noisy = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), rng)
     ms = [conv.odometry_to_measurement(conv.measurement_to_odometry(m))

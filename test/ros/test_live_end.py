@@ -3,7 +3,6 @@ adjusts it without a service call (both nodes in-process, messages handed over d
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -16,6 +15,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 
 from ga_ros import topics  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def test_images_stop_then_the_last_track_is_adjusted(rng):
     survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=12, seed=9))
     scene = make_scene(survey, rig, seed=9)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 63) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(63))
     vo = VoNode(context=ctx, parameter_overrides=[
         Parameter('idle_end_track_s', value=0.5), Parameter('pair_queue', value=100),
         Parameter('cross_track', value=False), Parameter('assume_identity_extrinsic',

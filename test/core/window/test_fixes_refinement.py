@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from line_survey import fixes_aligner, gnss_fix, line_survey, wls_positions
+from line_survey import feed, fixes_aligner, gnss_fix, line_survey, wls_positions
 
 from ga_ros.core.window import TrackWindowAligner
 
@@ -36,11 +36,7 @@ def _aligner(refine_every: int, **kw) -> TrackWindowAligner:
 
 def _run(al: TrackWindowAligner, ms, fixes: dict[int, np.ndarray]) -> None:
     """Feed the survey, each fix right after its node's measurement; finish the last track."""
-    for m in ms:
-        al.add_measurement(m)
-        k = m.dst_id
-        if k in fixes:
-            al.add_fix(gnss_fix(k, m.stamp_ns, fixes[k], SIGMA_FIX))
+    feed(al, ms, {k: (p, SIGMA_FIX) for k, p in fixes.items()})
     al.finish_track()
 
 
