@@ -46,7 +46,7 @@ def policy_gaps(cfg: ReproduceConfig, sc: Scenario, z: FloatArray,
         base, _, executor = policy.partition('+')
         run_as = f'{base}+inline' if executor else base
         path = run_aligner(sc, z, cov, run_as, cfg.window_tracks, set(), f2f,
-                            final_refine=False)['path']
+                           final_refine=False)['path']
         g = gaps_pct(ates(path, sc.T_world_node), b)
         out[policy] = {'raw': g['gap_raw_pct'], 'aligned': g['gap_aligned_pct']}
     return out

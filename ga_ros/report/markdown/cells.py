@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def fixed(x, nd: int = 1) -> str:
+def fixed(x: float | None, nd: int = 1) -> str:
+    """A figure with ``nd`` decimals (``1.2``), ``-`` when missing or not finite."""
     return '-' if x is None or not np.isfinite(x) else f'{x:.{nd}f}'
 
 

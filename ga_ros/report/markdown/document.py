@@ -36,7 +36,7 @@ def render_markdown(r: dict) -> str:
     L.extend(aerial_updates_markdown(r))
     L.extend(memory_markdown(r))
     add(quality_markdown(r.get('quality_control'), 'the synthetic aerial survey above',
-                          'fig_quality.png', r['images']))
+                         'fig_quality.png', r['images']))
     add(experiment2_markdown(r))
     add(wrong_connections_markdown(r.get('wrong_connections')))
     add('## Timings\n')
