@@ -226,9 +226,10 @@ class AlignmentSession:
         return self._output(taken, True)
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
-        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the journal
-        (with the information it entered with, so a recovery replays the same term between the
-        same measurements).
+        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the gap healer
+        (the fix joins the piece of its node, :meth:`~ga_ros.core.gaps.GapHealer.anchor`) and to
+        the journal (with the information it entered with, so a recovery replays the same term
+        between the same measurements).
 
         Raises
         ------
@@ -236,6 +237,7 @@ class AlignmentSession:
             The aligner refused it (unknown or frozen node; counted there by reason).
         """
         info = self.aligner.add_fix(term, C_offset)
+        self.gaps.anchor(term.node_id)  # the fix joins the piece of its node
         if self.journal is None:
             return
         fix = term.fix if info is None else replace(term.fix, information=info)
@@ -564,7 +566,8 @@ class AlignmentSession:
 
     def _rebuild_gaps(self, result: RecoveryResult) -> None:
         """The healer of a restored aligner: its nodes and real connections (the journal's
-        bridges excepted), and the held measurements the journal still holds."""
+        bridges excepted), its fixes' nodes (joined as when the fixes came), and the held
+        measurements the journal still holds."""
         self.gaps = GapHealer(self.session.gaps)
         self.gaps.bridges = [Bridge(a, b, float('nan'), float('nan'), float('nan'))
                              for a, b in result.bridges]
@@ -574,7 +577,9 @@ class AlignmentSession:
             pairs = set(result.bridges)
             kinds = ['bridge' if p in pairs else ('cross' if c else 'consecutive')
                      for p, c in zip(zip(src.tolist(), dst.tolist()), cross.tolist())]
-            self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
+            fixed = getattr(self.aligner, 'fix_node_ids', None)
+            self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns,
+                              anchored=fixed() if fixed is not None else None)
         self.gaps.reversed = {fingerprint(m) for m in result.reversed}
         for m, seq in result.held.held:
             self.gaps.hold(m, seq)
