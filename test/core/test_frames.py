@@ -4,7 +4,6 @@ optical camera whose extrinsic is in ``/tf_static``, in the replay and in ``vo_n
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -204,12 +203,13 @@ def test_vo_node_with_tf_static_publishes_base_link_motion_and_odometry():
     from tf2_msgs.msg import TFMessage
 
     from ga_ros.ros import conversions as conv
+    from ga_ros.ros.harness import domain_id
     from ga_ros.ros.vo_node import VoNode, array_to_image
 
     survey, rig, scene = _forward_drive()
     rng = np.random.default_rng(5)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 57) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(57))
     node = VoNode(context=ctx, parameter_overrides=[Parameter('pair_queue', value=1000),
                                                     Parameter('cross_track', value=False)])
     sent, odom, tf = [], [], []

@@ -27,7 +27,12 @@ from ga_ros.io.bag import CAMERA_INFO, header, typestore  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.samples import BASE_STAMP_NS, camera_info_msg  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
-from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
+from ga_ros.ros.harness import (  # noqa: E402
+    NodeClient,
+    domain_id,
+    start_node_process,
+    stop_process,
+)
 from ga_ros.ros.qos import latched_qos, stream_qos  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 
@@ -78,7 +83,7 @@ def _status(msgs: list, name: str) -> tuple[int, dict[str, str]] | None:
 @pytest.mark.parametrize('publisher_qos', ['reliable', 'best_effort'])
 def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str) -> None:
     bag = _write_camera_bag(tmp_path / 'camera')
-    domain = 40 + (os.getpid() + 71) % 150
+    domain = domain_id(71)
     sim = {'use_sim_time': True}
     vo = start_node_process(domain, {**sim, 'pair_queue': 1000, 'diagnostics_period_sec': 0.3,
                                      'assume_identity_extrinsic': True, 'cross_track': False},
