@@ -213,4 +213,4 @@ def test_journal_and_recovery_are_ros_free():
     code = ("import sys\nfor n in ('rclpy', 'nav_msgs', 'std_msgs', 'rosidl_runtime_py'):\n"
             "    sys.modules[n] = None\n"
             "import ga_ros.pipeline.journal, ga_ros.core.window.persistence\n")
-    subprocess.run([sys.executable, '-c', code], check=True, timeout=60)
+    subprocess.run([sys.executable, '-c', code], check=True, timeout=600)  # an import only
