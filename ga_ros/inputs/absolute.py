@@ -10,8 +10,9 @@ Message types (:data:`ABSOLUTE_TYPES`)
     origin is the ``datum`` parameter ``[lat_deg, lon_deg, alt_m]`` when ``use_datum`` (as
     navsat_transform's ``wait_for_datum`` / ``datum``), else the first fix used
     (:attr:`AbsoluteDecoder.datum`, written to the replay's summary; the map frame is
-    then that ENU frame). A NavSatFix with ``status.status < 0`` (``STATUS_NO_FIX``) is dropped
-    and counted (``fix_no_fix``); ``position_covariance_type`` is honoured (``UNKNOWN``: the
+    then that ENU frame). A NavSatFix with ``status.status == STATUS_NO_FIX`` (-1) is dropped
+    and counted (``fix_no_fix``); ``STATUS_UNKNOWN`` (-2, Jazzy's default: a driver that does not
+    fill the status) is used, as robot_localization's navsat_transform does; ``position_covariance_type`` is honoured (``UNKNOWN``: the
     default; ``APPROXIMATED`` and ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix,
     ENU axes); a NavSatFix never has a known orientation.
 
@@ -57,6 +58,8 @@ from ga_ros.inputs.messages import resolve_type
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 NAVSAT = 'sensor_msgs/msg/NavSatFix'
+#: ``sensor_msgs/NavSatStatus.STATUS_NO_FIX``: the receiver has no position (the message is dropped)
+STATUS_NO_FIX = -1
 #: Message types an absolute input accepts.
 ABSOLUTE_TYPES = (POSE_COV, ODOMETRY, NAVSAT)
 ABSOLUTE_ALIASES = {'pose_with_covariance': POSE_COV, 'pose_cov': POSE_COV, 'amcl': POSE_COV,
@@ -304,7 +307,7 @@ class AbsoluteDecoder:
 
     def _navsat(self, msg: Any) -> tuple[FloatArray, FloatArray, bool]:
         status = int(getattr(getattr(msg, 'status', None), 'status', 0))
-        if status < 0:
+        if status == STATUS_NO_FIX:
             err = InputError(f'{self.config.name}: NavSatFix without a fix (status {status})')
             err.fix_reason = 'fix_no_fix'
             raise err

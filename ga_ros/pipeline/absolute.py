@@ -201,6 +201,23 @@ class AbsoluteFrontEnd:
                 return d.datum
         return None
 
+    def restore_datum(self, datum_lla: Sequence[float]) -> list[str]:
+        """Give every NavSatFix input without its own ``datum`` the origin
+        ``[lat_deg, lon_deg, alt_m]`` of a restored state (the map frame its poses and fixes are
+        in), before any fix sets one. Returns the names of the inputs whose configured datum
+        differs from it (their fixes stay in their own frame: the caller warns)."""
+        d = tuple(float(v) for v in datum_lla)
+        differ = []
+        for name, dec in self.decoders.items():
+            if dec.msgtype != NAVSAT:
+                continue
+            if dec.config.use_datum:
+                if not np.allclose(dec.datum, d, rtol=0.0, atol=1e-9):
+                    differ.append(name)
+            else:
+                dec.datum = d  # type: ignore[assignment]
+        return differ
+
     def stats(self) -> dict[str, object]:
         """Counters per input (for diagnostics and the replay summary)."""
         out: dict[str, object] = {n: asdict(d.stats) for n, d in self.decoders.items()}

@@ -18,13 +18,14 @@ from ga_ros.core.extrinsic import (
     renamed_parameter_error,
     unknown_extrinsic_error,
 )
-from ga_ros.errors import InputError
+from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES, AbsoluteInputConfig
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
+from ga_ros.pipeline.journal import datum_path, read_datum, write_datum
 from ga_ros.pipeline.inputs import (
     InputFrontEnd,
     InputSpec,
@@ -164,8 +165,46 @@ class AlignmentInputs:
             self.get_logger().warning(step.warning)
         if step.error:
             self.get_logger().warning(step.error, throttle_duration_sec=5.0)
+        self._save_datum()
         self._publish_earth()
         self._resolve_fixes()
+
+    def _restore_datum(self) -> None:
+        """The map frame's geodetic origin saved beside the state file (a restart keeps the
+        frame of the restored poses and fixes; :func:`~ga_ros.pipeline.journal.read_datum`)."""
+        path = self.settings.state_file
+        self._datum_saved = False
+        if self.absolute is None or not path:
+            return
+        try:
+            datum = read_datum(path)
+        except (OSError, GaError) as exc:
+            self.get_logger().error(f'{exc}; the next NavSatFix sets the map origin anew')
+            return
+        if datum is None:
+            return
+        for name in self.absolute.restore_datum(datum):
+            self.get_logger().warning(
+                f'{name}.datum differs from the origin of the saved state {list(datum)} '
+                f'({datum_path(path)}): its fixes are in another frame than the restored poses')
+        self._datum_saved = True
+        self.get_logger().info(f'map origin (lat, lon, alt) {list(datum)} from {datum_path(path)}')
+
+    def _save_datum(self) -> None:
+        """Write the map frame's geodetic origin beside the state file once it is known."""
+        path = self.settings.state_file
+        if self._datum_saved or self.absolute is None or not path:
+            return
+        datum = self.absolute.earth_datum()
+        if datum is None:
+            return
+        try:
+            write_datum(path, datum)
+        except (OSError, GaError) as exc:
+            self.get_logger().error(f'the map origin cannot be saved beside the state file: '
+                                    f'{exc}', throttle_duration_sec=10.0)
+            return
+        self._datum_saved = True
 
     def _resolve_fixes(self) -> None:
         """Fixes the odometry now covers -> the aligner (a track boundary if one asks)."""

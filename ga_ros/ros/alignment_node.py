@@ -150,6 +150,7 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
         if s.state_file:
             self.get_logger().info(f'restoring the state from {s.state_file} ...')
         how = self.session.resume()
+        self._restore_datum()
         if how is not None and not how.startswith('failed'):
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')

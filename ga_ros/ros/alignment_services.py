@@ -53,6 +53,7 @@ class AlignmentServices:
         except Exception as exc:  # noqa: BLE001 - a service must answer
             response.success, response.message = False, f'reset refused: {exc}'
             return response
+        self._datum_saved = False  # the datum file went with the state: saved again when known
         self._publish_all()
         response.success, response.message = True, 'state cleared'
         return response
@@ -85,6 +86,7 @@ class AlignmentServices:
             response.message = (f'no state file {path!r}' if 'no state file' in str(exc)
                                 else f'load failed (state unchanged): {exc}')
             return response
+        self._restore_datum()
         self._publish_all()
         response.success = True
         response.message = (f'loaded {self.session.n_nodes()} nodes from '

@@ -54,3 +54,15 @@ def test_an_input_with_its_own_datum_is_the_origin_of_the_others() -> None:
     assert not front.message('gps_a', _navsat(10.0, LAT)).error
     np.testing.assert_allclose(_positions(front)['gps_a'][0], 0.0, atol=1e-6)
     assert front.earth_datum() == (LAT, LON, ALT)
+
+
+def test_status_unknown_is_used_and_no_fix_is_dropped() -> None:
+    """Jazzy's NavSatStatus defaults to STATUS_UNKNOWN (-2), what a driver that never fills the
+    status sends: used, as navsat_transform does; STATUS_NO_FIX (-1) is dropped and counted."""
+    front = _front()
+    unknown, no_fix = _navsat(10.0, LAT), _navsat(11.0, LAT)
+    unknown.status.status, no_fix.status.status = -2, -1
+    assert not front.message('gps_a', unknown).error
+    assert front.message('gps_a', no_fix).error
+    assert len(front._pending) == 1
+    assert front.decoders['gps_a'].stats.dropped == {'fix_no_fix': 1}

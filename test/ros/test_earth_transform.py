@@ -50,7 +50,7 @@ def _node(ctx, **extra) -> AlignmentNode:
 
 
 def _navsatfix():
-    from sensor_msgs.msg import NavSatFix
+    from sensor_msgs.msg import NavSatFix, NavSatStatus
 
     msg = NavSatFix()
     msg.header.frame_id = 'gps'
@@ -58,6 +58,7 @@ def _navsatfix():
     msg.latitude, msg.longitude, msg.altitude = DATUM[0] + 1e-5, DATUM[1], DATUM[2]
     msg.position_covariance = [4.0, 0.0, 0.0, 0.0, 4.0, 0.0, 0.0, 0.0, 9.0]
     msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN
+    msg.status.status = NavSatStatus.STATUS_FIX
     return msg
 
 
@@ -105,3 +106,34 @@ def test_switched_off_or_without_the_fixes_frame_nothing_is_published(ctx) -> No
             assert node._pub_earth is None
         finally:
             node.destroy_node()
+
+
+def test_a_restart_keeps_the_map_origin_of_the_saved_state(ctx, tmp_path) -> None:
+    """Without ``use_datum`` the first fix sets the ENU origin; it is saved beside the state
+    file, so after a restart a fix elsewhere lands where it is relative to that origin (not at
+    the new first fix), in the frame of the restored poses."""
+    from ga_ros.pipeline.journal import datum_path
+
+    state = str(tmp_path / 'state.npz')
+    first = _node(ctx, **{'fix0.use_datum': False, 'state_file': state})
+    try:
+        first._on_absolute('fix0', _navsatfix())  # at DATUM + 1e-5 deg north: the origin
+        saved = first.absolute.earth_datum()
+    finally:
+        first.destroy_node()
+    assert datum_path(state).exists()
+    np.testing.assert_allclose(saved, (DATUM[0] + 1e-5, DATUM[1], DATUM[2]))
+
+    again = _node(ctx, **{'fix0.use_datum': False, 'state_file': state})
+    try:
+        assert again.absolute.earth_datum() == saved  # before any fix
+        msg = _navsatfix()
+        msg.latitude = DATUM[0]  # 1e-5 deg south of the origin
+        again._on_absolute('fix0', msg)
+        (_, fix, _), = again.absolute._pending
+        p = np.asarray(fix.T_map_sensor)[:3, 3]
+    finally:
+        again.destroy_node()
+    expected = np.linalg.norm(_ecef(*DATUM) - _ecef(*saved))
+    assert expected > 1.0
+    assert p[1] < 0 and abs(np.linalg.norm(p) - expected) < 1e-3 and abs(p[0]) < 1e-6

@@ -31,7 +31,8 @@ What is done with damage:
   refused (:class:`~ga_ros.errors.ForeignFileError`) and left untouched.
 
 The package: :mod:`.records` (the record format), :mod:`.writer` (:class:`MeasurementJournal`),
-:mod:`.scan` (reading, damage), :mod:`.state_files` (the files beside a state file) and
+:mod:`.scan` (reading, damage), :mod:`.state_files` (the files beside a state file: the
+snapshot's sidecar, the map frame's geodetic datum) and
 :mod:`.recovery` (:func:`recover`).
 """
 
@@ -47,7 +48,14 @@ from ga_ros.pipeline.journal.records import (
 )
 from ga_ros.pipeline.journal.recovery import RecoveryResult, recover
 from ga_ros.pipeline.journal.scan import JournalScan, read_journal, scan_journal
-from ga_ros.pipeline.journal.state_files import clear_state, journal_path, write_snapshot_info
+from ga_ros.pipeline.journal.state_files import (
+    clear_state,
+    datum_path,
+    journal_path,
+    read_datum,
+    write_datum,
+    write_snapshot_info,
+)
 from ga_ros.pipeline.journal.writer import MeasurementJournal
 
 __all__ = [
@@ -60,12 +68,15 @@ __all__ = [
     'MeasurementJournal',
     'RecoveryResult',
     'clear_state',
+    'datum_path',
     'encode_fix',
     'encode_records',
     'journal_path',
+    'read_datum',
     'read_journal',
     'records_to_entries',
     'recover',
     'scan_journal',
+    'write_datum',
     'write_snapshot_info',
 ]

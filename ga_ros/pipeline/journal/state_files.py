@@ -48,14 +48,68 @@ def read_snapshot_info(state_file: str | os.PathLike) -> int:
         return 0
 
 
+def datum_path(state_file: str | os.PathLike) -> Path:
+    """The map frame's geodetic origin beside a state file: ``<state_file>.datum.json`` with
+    ``{"datum_lla": [lat_deg, lon_deg, alt_m]}`` (the ENU origin of the NavSatFix inputs, which
+    the saved poses and fixes are expressed in)."""
+    return Path(str(state_file) + '.datum.json')
+
+
+def _is_datum_file(path: Path) -> bool:
+    try:
+        return 'datum_lla' in json.loads(read_bytes(path))
+    except (OSError, ValueError, TypeError, GaError):
+        return False
+
+
+def write_datum(state_file: str | os.PathLike, datum_lla: tuple[float, float, float]) -> None:
+    """Record (atomically) the map frame's origin ``[lat_deg, lon_deg, alt_m]`` beside
+    ``state_file`` (:func:`datum_path`), so a restart keeps the frame of the saved state.
+
+    Raises
+    ------
+    OSError, ForeignFileError, UnsafePathError
+        The file cannot be written, or a file of that name is not ga_ros's.
+    """
+    values = [float(v) for v in datum_lla]
+    if len(values) != 3 or not np.isfinite(values).all():
+        raise FormatError(f'a datum is [lat_deg, lon_deg, alt_m], got {values}')
+    atomic_write(datum_path(state_file), json.dumps({'datum_lla': values}).encode(),
+                 is_ours=_is_datum_file)
+
+
+def read_datum(state_file: str | os.PathLike) -> tuple[float, float, float] | None:
+    """The map frame's origin ``(lat_deg, lon_deg, alt_m)`` saved beside ``state_file``, or
+    ``None`` without one.
+
+    Raises
+    ------
+    FormatError
+        The file exists but does not hold a datum (move it aside or delete it).
+    """
+    path = datum_path(state_file)
+    if not check_regular(path):
+        return None
+    try:
+        values = [float(v) for v in json.loads(read_bytes(path))['datum_lla']]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FormatError(f'{path} does not hold a datum ({exc}): move it aside or delete '
+                          'it') from None
+    if len(values) != 3 or not np.isfinite(values).all():
+        raise FormatError(f'{path}: a datum is [lat_deg, lon_deg, alt_m], got {values}: move '
+                          'it aside or delete it')
+    return values[0], values[1], values[2]
+
+
 def clear_state(state_file: str | os.PathLike) -> list[Path]:
-    """Forget a saved state (the ``~/reset`` service): delete the snapshot and its sidecar and
-    empty the journal, but only files that are ga_ros's own; never a foreign file, never through
+    """Forget a saved state (the ``~/reset`` service): delete the snapshot, its sidecar and the
+    datum file, and empty the journal, but only files that are ga_ros's own; never a foreign file, never through
     a symbolic link (:class:`ForeignFileError`, :class:`~ga_ros.errors.UnsafePathError`; then
     nothing at all is changed). Returns the files changed."""
     state, side, jpath = Path(state_file), snapshot_info_path(state_file), journal_path(state_file)
-    present = [p for p in (state, side, jpath) if check_regular(p)]
-    for p, ours in ((state, is_state_file), (side, _is_sidecar)):
+    datum = datum_path(state_file)
+    present = [p for p in (state, side, datum, jpath) if check_regular(p)]
+    for p, ours in ((state, is_state_file), (side, _is_sidecar), (datum, _is_datum_file)):
         if p in present and not ours(p):
             raise ForeignFileError(f'{p} is not a ga_ros file: nothing was cleared')
     if jpath in present and os.lstat(jpath).st_size:
