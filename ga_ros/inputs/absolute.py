@@ -12,8 +12,8 @@ Message types (:data:`ABSOLUTE_TYPES`)
     (:attr:`AbsoluteDecoder.datum`, written to the replay's summary; the map frame is
     then that ENU frame). A NavSatFix with ``status.status == STATUS_NO_FIX`` (-1) is dropped
     and counted (``fix_no_fix``); ``STATUS_UNKNOWN`` (-2, Jazzy's default: a driver that does not
-    fill the status) is used, as robot_localization's navsat_transform does; ``position_covariance_type`` is honoured (``UNKNOWN``: the
-    default; ``APPROXIMATED`` and ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix,
+    fill the status) is used, as robot_localization's navsat_transform does;
+    ``position_covariance_type`` is honoured (``UNKNOWN``: the default; ``APPROXIMATED`` and ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix,
     ENU axes); a NavSatFix never has a known orientation.
 
 Position only or full pose (REP 145 practice)
@@ -58,7 +58,7 @@ from ga_ros.inputs.messages import resolve_type
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 NAVSAT = 'sensor_msgs/msg/NavSatFix'
-#: ``sensor_msgs/NavSatStatus.STATUS_NO_FIX``: the receiver has no position (the message is dropped)
+#: ``sensor_msgs/NavSatStatus.STATUS_NO_FIX``: the receiver has no position (message dropped)
 STATUS_NO_FIX = -1
 #: Message types an absolute input accepts.
 ABSOLUTE_TYPES = (POSE_COV, ODOMETRY, NAVSAT)
