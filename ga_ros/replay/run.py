@@ -8,7 +8,7 @@ outputs are :mod:`ga_ros.replay.finish`'s.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -29,12 +29,10 @@ from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom, PeriodicSchedule, without_odom_parent
 from ga_ros.pipeline.session import AlignmentSession
 from ga_ros.replay.aligner import Aligner, AlignerFactory
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.outputs import ReplayOutputs, misclosure
 from ga_ros.replay.result import ReplayResult, plain_fields
 from ga_ros.replay.source import SourceItem
-
-if TYPE_CHECKING:
-    from ga_ros.replay.pipeline import ReplayConfig
 
 
 def match_ground_truth(gt: Trajectory, node_ids: IntArray, stamps_ns: IntArray, by: str,
@@ -86,7 +84,7 @@ class ReplayRun:
 
     Parameters
     ----------
-    config : the replay's settings (:class:`ga_ros.replay.pipeline.ReplayConfig`).
+    config : the replay's settings (:class:`ga_ros.replay.config.ReplayConfig`).
     factory : builds the aligner from the datum ``T_world_first`` at the first measurement.
     outputs : where the outputs go.
     result : filled in as the replay goes (counts, rejections, updates).

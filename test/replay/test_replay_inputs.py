@@ -21,8 +21,9 @@ from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.groundtruth import read_ground_truth_file
 from ga_ros.io.trajectory import read_tum, write_tum
 from ga_ros.pipeline.inputs import InputSpec
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.pipeline import replay
 
 RATE_HZ = 10.0
 LAP_S = 60.0

@@ -23,9 +23,10 @@ from ga_ros.io.bag import TopicConfig, bag_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.pipeline import replay
 from ga_ros.replay.text import info_text, plan_lines, result_text
 
 #: Aligner options of the command line -> AlignerConfig parameter names (as the node's).
