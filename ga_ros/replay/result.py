@@ -76,15 +76,14 @@ class ReplayResult:
 
 
 def plain_fields(obj: Any) -> dict[str, Any]:
-    """The JSON-able scalar (and dict) fields of a dataclass, mapping or plain object, numpy
-    scalars as Python ones (``{}`` for None): an update or statistics entry of the summary."""
-    if obj is None:
-        return {}
+    """The JSON-able scalar (and dict) fields of a dataclass or a mapping, numpy scalars as
+    Python ones: an update or statistics entry of the summary (``{}`` for anything else, e.g.
+    None)."""
     if isinstance(obj, dict):
         d = dict(obj)
-    elif is_dataclass(obj):
+    elif is_dataclass(obj) and not isinstance(obj, type):
         d = asdict(obj)
     else:
-        d = {k: v for k, v in vars(obj).items() if not k.startswith('_')}
+        return {}
     return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in d.items()
             if isinstance(v, (int, float, str, bool, np.generic, type(None), dict))}
