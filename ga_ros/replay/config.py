@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from ga_ros.io.bag import TopicConfig
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S
+from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.map_to_odom import TRANSFORM_PERIOD_S
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig

@@ -16,7 +16,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import GaError, SolverError
 from ga_ros.eval.metrics import trajectory_error
-from ga_ros.io.bag import Trajectory
+from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom
 from ga_ros.replay.run import ReplayRun

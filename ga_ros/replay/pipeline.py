@@ -32,7 +32,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ga_ros.errors import FormatError
-from ga_ros.io.bag import BagReader, TopicPlan
+from ga_ros.io.bag import BagReader
+from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.finish import finish, finish_stationary, frames_summary

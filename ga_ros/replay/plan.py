@@ -13,8 +13,9 @@ from typing import Any
 
 from ga_ros.errors import FormatError
 from ga_ros.inputs.messages import INPUT_TYPES
-from ga_ros.io.bag import BagInfo, BagReader, TopicPlan, plan_topics
+from ga_ros.io.bag import BagInfo, BagReader
 from ga_ros.io.groundtruth import GroundTruth, read_ground_truth_file, read_ground_truth_topic
+from ga_ros.io.topic_plan import TopicPlan, plan_topics
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputSource, plan_inputs
 from ga_ros.replay.source import bag_measurements

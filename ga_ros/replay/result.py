@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.eval.metrics import TrajectoryError
-from ga_ros.io.bag import Trajectory
+from ga_ros.io.trajectory import Trajectory
 
 
 @dataclass

@@ -16,7 +16,7 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
 from ga_ros.inputs.absolute import T_earth_enu
-from ga_ros.io.bag import ODOMETRY, Trajectory, measurement_to_odometry
+from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry
 from ga_ros.io.groundtruth import (
     DEFAULT_TOLERANCE_S,
     GroundTruth,
@@ -24,6 +24,7 @@ from ga_ros.io.groundtruth import (
     match_nodes,
     match_stamps,
 )
+from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.absolute import FixFeeder
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom, PeriodicSchedule, without_odom_parent

@@ -23,7 +23,8 @@ from rclpy.serialization import deserialize_message  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from ga_ros.io.bag import BagReader, measurement_to_odometry, odometry_to_measurement  # noqa: E402
+from ga_ros.io.bag import BagReader  # noqa: E402
+from ga_ros.io.bag_messages import measurement_to_odometry, odometry_to_measurement  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.config import ReplayConfig  # noqa: E402
 from ga_ros.replay.pipeline import replay  # noqa: E402

@@ -546,7 +546,7 @@ def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
     cost at the window's boundary rose 303 above the freeze estimate; the tangent prior said 232
     (the window then ends 12 batch sd^2 from the batch solution, covariances 0.67 of it), the
     split one 314 (0.08 batch sd^2, 0.92): ``test/core/window/test_nees_long_swaths.py``,
-    docs/design.md "The frozen prior's residual: position and rotation apart".
+    docs/window-design.md "The frozen prior's residual: position and rotation apart".
 
     Parameters
     ----------
