@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from ga_ros.bench.survey import add_survey_arguments, noisy_survey
-from ga_ros.core.linalg import banded, selinv, skeleton
+from ga_ros.core.linalg import completion, selinv, skeleton
 from ga_ros.core.linalg.cholmod import SparseCholesky
 from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import aligner, freeze, handoff, update
@@ -36,7 +36,7 @@ STAGES = (
     (skeleton, 'sparse_skeleton'),
     (freeze, 'marginal_prior'),
     (freeze, 'band_prior'),
-    (banded, '_completion'),
+    (completion, '_completion'),
     (selinv.SelectedInverse, '__init__'),
     (SparseCholesky, 'refactor'),
     (SparseCholesky, '_analyse'),

@@ -26,8 +26,10 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
-from ga_ros.report.experiments import EXP_AERIAL, policy_statistics, run_rng
-from ga_ros.report.writer import policy_seeds_table, policy_target_row
+from ga_ros.report.experiments.policies import policy_statistics
+from ga_ros.report.experiments.seeds import EXP_AERIAL, run_rng
+from ga_ros.report.markdown.policies import policy_seeds_table
+from ga_ros.report.markdown.targets import policy_target_row
 from ga_ros.sim.aerial import aerial_scenario
 
 

@@ -221,10 +221,11 @@ class FixFeeder:
 
     def flush(self, aligner: Any, anchored: Callable[[int], Any] | None = None) -> list[str]:
         """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
-        :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them) the queued
-        fixes whose node it has; returns the messages of the ones it refused (counted there by
-        reason). ``anchored`` is called with the node id of each fix taken (the session's
-        :meth:`~ga_ros.core.gaps.GapHealer.anchor`: a fix joins the piece of its node)."""
+        :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them and joins
+        the piece of their nodes in its gap healer) the queued fixes whose node it has; returns
+        the messages of the ones it refused (counted there by reason). ``anchored`` is called
+        with the node id of each fix taken (for an aligner driven beside a session: the
+        session's :meth:`~ga_ros.core.gaps.GapHealer.anchor`)."""
         add = getattr(aligner, 'add_fix', None)
         if add is None or not self.waiting:
             return []

@@ -175,8 +175,8 @@ class AlignmentInputs:
         if step.end_track:
             self.front.track_boundary()
         self._fix_feeder.add(step.fixes)
-        # the session journals the fixes with the measurements
-        for error in self._fix_feeder.flush(self.session, self.session.gaps.anchor):
+        # the session journals the fixes with the measurements and joins their nodes' pieces
+        for error in self._fix_feeder.flush(self.session):
             self.get_logger().warning(f'fix refused: {error}', throttle_duration_sec=5.0)
 
     def _subscribe_inputs(self, s: NodeSettings) -> None:

@@ -1,5 +1,5 @@
-"""Persistence that says when it fails and always starts (ROS-free, pipeline/session.py and
-pipeline/journal.py): a damaged or missing snapshot never discards an intact journal, a failing
+"""Persistence that says when it fails and always starts (ROS-free, pipeline/session/ and
+pipeline/journal/): a damaged or missing snapshot never discards an intact journal, a failing
 write (a file-size limit standing in for a full disk) is counted and the estimate stays
 complete, an unusable state path gives one warning and a session without persistence, and error
 texts are bounded. Each recovered state is checked against an aligner fed the measurements

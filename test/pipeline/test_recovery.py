@@ -1,4 +1,4 @@
-"""Crash recovery from a snapshot and its journal (pipeline/journal.py, ROS-free): every intact
+"""Crash recovery from a snapshot and its journal (pipeline/journal/, ROS-free): every intact
 measurement is recovered, damaged files are moved aside and never deleted, foreign files and
 planted links are never touched."""
 

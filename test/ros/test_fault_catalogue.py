@@ -1,4 +1,4 @@
-"""The fault catalogue (ga_ros/ros/fault_catalogue.py, ``ga-ros bench faults``) in CI: the cases
+"""The fault catalogue (ga_ros/ros/fault_catalogue/, ``ga-ros bench faults``) in CI: the cases
 that fit the time budget, on the small simulated survey, against live node processes started
 with their default settings. Every case must keep every node of the reference path (the aligner
 fed the clean measurements); the full-size runs are the benchmark's (docs/benchmarks.md,

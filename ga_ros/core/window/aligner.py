@@ -150,6 +150,11 @@ class TrackWindowAligner:
         """Counters of the absolute fixes (:class:`~ga_ros.core.fixes.FixStats`)."""
         return self.state.fixes.stats
 
+    def fix_node_ids(self) -> IntArray:
+        """Ids of the nodes that hold an absolute fix (the gauge prior's node included), in the
+        order the fixes came (a restored aligner: its snapshot's and its journal's fixes)."""
+        return np.array([int(t.node_id) for t in self.state.fixes.terms], dtype=np.int64)
+
     @property
     def uses_fixes(self) -> bool:
         """Whether fixes (or the gauge prior of ``datum='fixes'``) take part."""

@@ -270,7 +270,7 @@ def test_selected_and_solved_inverse_blocks_agree(rng):
     (unconnected nodes) is solved for."""
     import scipy.sparse as sp
 
-    from ga_ros.core.quality import _inverse_blocks
+    from ga_ros.core.quality.cofactors import inverse_blocks
 
     net, _ = correlated_problem(rng, 'se3', n=12, gaps=(1, 3, 5))
     res = solve(net, initial_guess_f2f(net))
@@ -283,8 +283,8 @@ def test_selected_and_solved_inverse_blocks_agree(rng):
     rows, cols = np.concatenate([cs, cd, cd, [0]]), np.concatenate([cd, cs, cd, [far]])
     assert N[6 * 0:6, 6 * far:6 * far + 6].nnz == 0  # off the pattern
     dense = np.linalg.inv(N.toarray())
-    selected = _inverse_blocks(N, 6, rows, cols)
-    solved = _inverse_blocks(N, 6, rows, cols, selected=False)  # sparse solves
+    selected = inverse_blocks(N, 6, rows, cols)
+    solved = inverse_blocks(N, 6, rows, cols, selected=False)  # sparse solves
     for k, (r, cc) in enumerate(zip(rows, cols)):
         ref = np.zeros((6, 6)) if r < 0 or cc < 0 else dense[6 * r:6 * r + 6, 6 * cc:6 * cc + 6]
         np.testing.assert_allclose(selected[k], ref, atol=1e-12 * np.abs(dense).max())

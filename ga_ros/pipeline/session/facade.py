@@ -1,36 +1,18 @@
-"""The alignment session: one ROS-free object that the alignment node and the replay both drive.
-
-It owns the :class:`~ga_ros.core.window.TrackWindowAligner`, the gap healer
-(:class:`~ga_ros.core.gaps.GapHealer`: measurements whose source node is unknown are held, read
-backwards or bridged instead of rejected), the rejection counters (keyed by the typed
-:class:`~ga_ros.errors.Reason` of each rejection), the crash insurance (measurement journal +
-snapshots, :mod:`ga_ros.pipeline.journal`; held measurements and bridges are journaled too) and
-the diagnostic values. One call per measurement: :meth:`AlignmentSession.step`
-``(measurement) -> StepOutput``. The node turns messages into measurements and
-:class:`StepOutput` into messages; nothing else.
-"""
+"""The session facade: :class:`AlignmentSession`, one call per measurement (the module doc of
+:mod:`ga_ros.pipeline.session`)."""
 
 from __future__ import annotations
 
 import os
 import time
-from collections import Counter
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
-from ga_ros.core.gaps import (
-    Bridge,
-    GapConfig,
-    GapHealer,
-    Route,
-    fingerprint,
-    reversed_measurement,
-)
+from ga_ros.core.gaps import GapHealer, Route, fingerprint, reversed_measurement
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import save_state
@@ -44,115 +26,19 @@ from ga_ros.pipeline.journal import (
     journal_path,
     recover,
 )
-
-#: Called with warnings the session wants shown (the node logs them, throttled).
-Warn = Callable[[str], None]
-#: Longest error text kept in ``last_error`` (and so in every ``/diagnostics`` message), chars.
-MAX_ERROR_CHARS = 200
-
-
-def bounded(text: str, limit: int = MAX_ERROR_CHARS) -> str:
-    """``text`` cut to at most ``limit`` characters (the cut marked with ``'...'``): an input
-    may carry a megabyte-long frame id, and its error text is republished at 1 Hz."""
-    return text if len(text) <= limit else text[:max(limit - 3, 0)] + '...'
-
-
-@dataclass(frozen=True)
-class SessionConfig:
-    """Settings of the session besides the aligner's.
-
-    Attributes
-    ----------
-    state_file : ``.npz`` snapshot for save/load and resume on start (``''``: none).
-    autosave : journal every accepted measurement and save a snapshot after every update.
-    fsync_period_sec : durability of the journal. Every record is written to the OS at once
-        (a killed process loses nothing); it is also ``fsync``-ed to disk (a power cut loses
-        nothing) after every measurement if 0, else at most every this many seconds.
-    gaps : how measurements whose source node is unknown wait and are bridged
-        (:class:`~ga_ros.core.gaps.GapConfig`).
-    state_required : a state file that cannot be used at start (its directory is a file, is
-        read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
-        running without persistence.
-    """
-
-    state_file: str = ''
-    autosave: bool = True
-    fsync_period_sec: float = 1.0
-    gaps: GapConfig = GapConfig()
-    state_required: bool = False
-
-
-@dataclass(frozen=True)
-class StepOutput:
-    """What one measurement did.
-
-    Attributes
-    ----------
-    accepted : the aligner took the measurement, or it is held until its source node is known
-        (``held``); False: rejected.
-    updates : window updates it triggered (a track end), in order.
-    reason : why it was rejected (None when accepted or when the solver failed).
-    error : message of the rejection (the error's text) or of the failure (``'<Type>: text'``);
-        '' when accepted.
-    solver_failed : a window update raised; the previous estimate stands.
-    notes : warnings about the updates (failed or unconverged updates, autosave failures) and
-        about held measurements rejected when they were finally tried.
-    held : the measurement waits in the held queue (its source node is not known yet).
-    admitted : every measurement the aligner took during this step, in order: this one (read
-        backwards if its source was unknown and its destination known), held ones whose gap was
-        filled, and bridges (kind ``'bridge'``).
-    """
-
-    accepted: bool
-    updates: tuple[Any, ...] = ()
-    reason: Reason | None = None
-    error: str = ''
-    solver_failed: bool = False
-    notes: tuple[str, ...] = ()
-    held: bool = False
-    admitted: tuple[Measurement, ...] = ()
-
-
-@dataclass(frozen=True)
-class Health:
-    """Diagnostics level: ``ok`` False means WARN (ERROR if ``error``: data is not being
-    saved), with ``message`` saying why."""
-
-    ok: bool
-    message: str
-    error: bool = False
-
-
-def rejection_reason(exc: BaseException) -> Reason:
-    """The typed reason of a rejection (``Reason.INVALID`` when the error names none)."""
-    try:
-        return Reason(getattr(exc, 'reason', Reason.INVALID))
-    except ValueError:
-        return Reason.INVALID
-
-
-@dataclass
-class _Counters:
-    rejected: Counter = field(default_factory=Counter)
-    received: int = 0
-    accepted: int = 0
-    updates: int = 0
-    solver_failures: int = 0
-    not_converged: int = 0
-    persistence_errors: int = 0
-    callback_seconds: float = 0.0
-    callback_count: int = 0
-    bridges: int = 0
-    reversed: int = 0
-
-
-@dataclass
-class _Taken:
-    """What the aligner did during one step (several measurements with held ones)."""
-
-    updates: list = field(default_factory=list)
-    admitted: list = field(default_factory=list)
-    notes: list = field(default_factory=list)
+from ga_ros.pipeline.session.config import SessionConfig
+from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
+from ga_ros.pipeline.session.outputs import (
+    MAX_ERROR_CHARS,
+    Counters,
+    Health,
+    StepOutput,
+    Taken,
+    Warn,
+    bounded,
+)
+from ga_ros.pipeline.session.rejections import refused, rejection_reason, unknown_source
+from ga_ros.pipeline.session.restore import how, rebuild_gaps
 
 
 class AlignmentSession:
@@ -175,7 +61,7 @@ class AlignmentSession:
         self.warn: Warn = warn or (lambda text: None)
         self.aligner = aligner if aligner is not None else TrackWindowAligner(self.config)
         self.gaps = GapHealer(self.session.gaps)
-        self.counts = _Counters()
+        self.counts = Counters()
         self.last_update: Any = None
         self.last_error = ''
         self.last_persistence_error = ''
@@ -201,9 +87,9 @@ class AlignmentSession:
         gaps = self.gaps
         route = gaps.route(m)
         if route in (Route.HOPELESS, Route.DUPLICATE):
-            exc = _refused(m, route)
+            exc = refused(m, route)
             return StepOutput(False, reason=self.reject(exc), error=str(exc))
-        taken = _Taken()
+        taken = Taken()
         if route is Route.HOLD:
             gaps.hold(m)
             self._journal(m, HELD)
@@ -226,9 +112,10 @@ class AlignmentSession:
         return self._output(taken, True)
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
-        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the journal
-        (with the information it entered with, so a recovery replays the same term between the
-        same measurements).
+        """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the gap healer
+        (the fix joins the piece of its node, :meth:`~ga_ros.core.gaps.GapHealer.anchor`) and to
+        the journal (with the information it entered with, so a recovery replays the same term
+        between the same measurements).
 
         Raises
         ------
@@ -236,6 +123,7 @@ class AlignmentSession:
             The aligner refused it (unknown or frozen node; counted there by reason).
         """
         info = self.aligner.add_fix(term, C_offset)
+        self.gaps.anchor(term.node_id)  # the fix joins the piece of its node
         if self.journal is None:
             return
         fix = term.fix if info is None else replace(term.fix, information=info)
@@ -254,11 +142,11 @@ class AlignmentSession:
     def flush_gaps(self) -> StepOutput:
         """Admit every held measurement now, bridging the gaps that are still open (the track
         or the stream ends; :meth:`finish_track` calls it first)."""
-        taken = _Taken()
+        taken = Taken()
         self._drain(taken, flush=True)
         return self._output(taken, True)
 
-    def _output(self, taken: _Taken, accepted: bool, held: bool = False) -> StepOutput:
+    def _output(self, taken: Taken, accepted: bool, held: bool = False) -> StepOutput:
         done = tuple(u for u in taken.updates if u is not None)
         notes = tuple(taken.notes) + (tuple(self.after_updates(done)) if done else ())
         return StepOutput(accepted, done, notes=notes, held=held,
@@ -278,7 +166,7 @@ class AlignmentSession:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
 
-    def _take(self, m: Measurement, taken: _Taken, reverse: bool = False) -> None:
+    def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
         noted by the healer); raises what the aligner raises."""
         m_in = reversed_measurement(m) if reverse else m
@@ -294,7 +182,7 @@ class AlignmentSession:
         self._journal(m, REVERSED if reverse else 0)
         taken.admitted.append(m_in)
 
-    def _drain(self, taken: _Taken, flush: bool = False) -> None:
+    def _drain(self, taken: Taken, flush: bool = False) -> None:
         """Admit the held measurements that became admissible, in their order, pass after pass
         while one does; then, while the first one still stuck has waited too long
         (:meth:`~ga_ros.core.gaps.GapHealer.overdue`; ``flush``: whatever its wait), bridge it
@@ -315,11 +203,11 @@ class AlignmentSession:
                 else:
                     continue
             gaps.held.popleft()
-            exc = _unknown_source(h)
+            exc = unknown_source(h)
             self.reject(exc)
             taken.notes.append(f'held measurement rejected: {exc}')
 
-    def _pass(self, taken: _Taken) -> bool:
+    def _pass(self, taken: Taken) -> bool:
         """One pass over the held queue: admits (or rejects) every measurement whose route is no
         longer ``HOLD``, in order; returns whether any left the queue."""
         gaps = self.gaps
@@ -334,7 +222,7 @@ class AlignmentSession:
                 continue
             progress = True
             if route in (Route.HOPELESS, Route.DUPLICATE):
-                exc = _refused(h, route)
+                exc = refused(h, route)
                 self.reject(exc)
                 taken.notes.append(f'held measurement rejected: {exc}')
                 continue
@@ -440,7 +328,7 @@ class AlignmentSession:
         self._close_aligner()
         self.aligner = TrackWindowAligner(self.config)
         self.gaps = GapHealer(self.session.gaps)
-        self.counts = _Counters()
+        self.counts = Counters()
         self.last_update, self.last_error = None, ''
 
     def _close_aligner(self) -> None:
@@ -519,8 +407,8 @@ class AlignmentSession:
         if result.source == 'empty':
             raise InputError(f'no state in {path!r}')
         self.aligner = result.aligner
-        self._rebuild_gaps(result)
-        return _how(result)
+        self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
+        return how(result)
 
     def resume(self) -> str | None:
         """On start: restore from the state file and its journal if they exist.
@@ -538,13 +426,13 @@ class AlignmentSession:
         except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
             return self._without_persistence(exc)
         self.aligner = result.aligner
-        self._rebuild_gaps(result)
+        self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
         except (GaError, OSError) as exc:
             return self._without_persistence(exc)
-        return None if result.source == 'empty' else _how(result)
+        return None if result.source == 'empty' else how(result)
 
     def _without_persistence(self, exc: BaseException) -> str:
         """Switch persistence off after a state path failed at start, with one warning line
@@ -561,24 +449,6 @@ class AlignmentSession:
         self.persistence_off = bounded(text)
         self.warn(f'{text}; running WITHOUT persistence (a crash loses the state)')
         return f'failed: {exc}'
-
-    def _rebuild_gaps(self, result: RecoveryResult) -> None:
-        """The healer of a restored aligner: its nodes and real connections (the journal's
-        bridges excepted), and the held measurements the journal still holds."""
-        self.gaps = GapHealer(self.session.gaps)
-        self.gaps.bridges = [Bridge(a, b, float('nan'), float('nan'), float('nan'))
-                             for a, b in result.bridges]
-        if result.source != 'empty':
-            cp = self.aligner.corrected_path()
-            src, dst, z, cross = self.aligner.connection_arrays()[:4]
-            pairs = set(result.bridges)
-            kinds = ['bridge' if p in pairs else ('cross' if c else 'consecutive')
-                     for p, c in zip(zip(src.tolist(), dst.tolist()), cross.tolist())]
-            self.gaps.rebuild(src, dst, z, kinds, cp.node_ids, cp.track_ids, cp.stamps_ns)
-        self.gaps.reversed = {fingerprint(m) for m in result.reversed}
-        for m, seq in result.held.held:
-            self.gaps.hold(m, seq)
-        self.gaps.restore_waits(result.held.arrivals, result.held.newest_stamp_ns)
 
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
@@ -617,85 +487,11 @@ class AlignmentSession:
         return int(getattr(self.aligner.stats, 'n_nodes', 0))
 
     def diagnostic_values(self) -> dict[str, object]:
-        """Current counters and last-update figures (the diagnostics key/values)."""
-        st = self.aligner.stats
-        u = self.last_update
-        c = self.counts
-        tiw = getattr(st, 'tracks_in_window', 0)
-        values: dict[str, object] = {
-            'tracks_in_window': len(tiw) if hasattr(tiw, '__len__') else int(tiw),
-            'nodes': int(getattr(st, 'n_nodes', 0)),
-            'connections': int(getattr(st, 'n_connections', 0)),
-            'iterations': int(u.iterations) if u is not None else 0,
-            'variance_factor': float(u.sigma0_sq) if u is not None else float('nan'),
-            'update_ms': float(u.update_ms) if u is not None else float('nan'),
-            'converged': bool(u.converged) if u is not None else True,
-            'last_track': int(u.track_id) if u is not None else -1,
-            'dead_reckoned_nodes': self.dead_reckoned_nodes(),
-            'outliers_excluded': int(getattr(st, 'n_outliers', 0)),
-            'last_update_outliers': int(getattr(u, 'n_outliers', 0)) if u is not None else 0,
-            'updates': c.updates,
-            'solver_failures': c.solver_failures,
-            'not_converged': c.not_converged,
-            'measurements_received': c.received,
-            'measurements_accepted': c.accepted,
-            'measurement_callback_us': (1e6 * c.callback_seconds / c.callback_count
-                                        if c.callback_count else float('nan')),
-            'held_measurements': len(self.gaps.held),
-            'bridges': c.bridges,
-            'reversed_measurements': c.reversed,
-            'unjoined_nodes': self.gaps.n_unjoined,
-            'persistence': ('off: ' + self.persistence_off if self.persistence_off
-                            else 'journal only: ' + self.snapshots_off if self.snapshots_off
-                            else 'on' if self.journal is not None else 'none'),
-            'persistence_errors': c.persistence_errors,
-        }
-        values['rejected'] = sum(c.rejected.values())
-        for key in sorted(c.rejected):
-            values[f'rejected/{key}'] = c.rejected[key]
-        values['last_error'] = bounded(self.last_error)
-        if self.last_persistence_error:
-            values['last_persistence_error'] = self.last_persistence_error
-        return values
+        """Current counters and last-update figures (the diagnostics key/values,
+        :func:`~ga_ros.pipeline.session.diagnostics.diagnostic_values`)."""
+        return diagnostic_values(self)
 
     def health(self) -> Health:
-        """Overall state for the diagnostics level."""
-        if self.counts.persistence_errors:
-            return Health(False, f'{self.counts.persistence_errors} state/journal write(s) '
-                                 'failed: measurements are not saved', error=True)
-        if self.persistence_off:
-            return Health(False, 'running without persistence: the state file cannot be used',
-                          error=True)
-        if self.snapshots_off:
-            return Health(False, 'no snapshots (the state path holds a foreign file): a restart '
-                                 'replays the whole journal')
-        if self.counts.solver_failures:
-            return Health(False, 'solver failures (previous estimate kept)')
-        if self.counts.rejected:
-            return Health(False, 'rejected measurements')
-        if self.gaps.n_unjoined:
-            return Health(False, f'{self.gaps.n_unjoined} nodes hang off a bridge over a gap '
-                                 '(not yet joined by a real connection)')
-        return Health(True, 'ok')
-
-
-def _unknown_source(m: Measurement) -> InputError:
-    return InputError(f'source node {m.src_id} of track {m.src_track} is unknown and that track '
-                      'can no longer take new nodes (a later track has begun)',
-                      reason=Reason.UNKNOWN_SOURCE)
-
-
-def _refused(m: Measurement, route: Route) -> InputError:
-    if route is Route.DUPLICATE:
-        return InputError(f'measurement {m.src_id}->{m.dst_id} was already received (and taken '
-                          'reversed)', reason=Reason.DUPLICATE)
-    return _unknown_source(m)
-
-
-def _how(result: RecoveryResult) -> str:
-    """One line on a recovery: source, records replayed, files moved aside, seconds."""
-    text = (f'{result.source}: snapshot of {result.snapshot_records} journal records + '
-            f'{result.records_replayed} replayed in {result.seconds:.2f} s')
-    if result.moved_aside:
-        text += '; moved aside: ' + ', '.join(str(p) for p in result.moved_aside)
-    return text
+        """Overall state for the diagnostics level
+        (:func:`~ga_ros.pipeline.session.diagnostics.health`)."""
+        return health(self)

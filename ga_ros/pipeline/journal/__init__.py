@@ -1,0 +1,71 @@
+"""Append-only journal of every accepted measurement, and crash recovery (ROS-free).
+
+The alignment node appends each measurement it accepted to ``<state_file>.journal``, one
+fixed-size binary record each, written to the OS at once, so even ``kill -9`` loses nothing. It
+also saves aligner snapshots (``state_file``, see :mod:`ga_ros.core.window.persistence`) after
+window
+updates; a snapshot stores how many journal records it contains (and the ``<state_file>.json``
+sidecar repeats it for older snapshots). :func:`recover` rebuilds the state on restart: the
+snapshot if it verifies, plus the journal records after it, replayed in one batch.
+
+Journal format: the header ``GAJOURNAL2\\n`` then records of :data:`RECORD` (little-endian,
+381 bytes), each ending with the CRC-32 of its other bytes. Version-1 journals (``GAJOURNAL1``,
+no CRC) are still read.
+
+The node also appends every absolute fix the aligner accepted (:mod:`ga_ros.core.fixes`), in the
+order it gave them, as two records written together (:func:`encode_fix`): kind ``fix``
+(``src_id`` = ``dst_id`` = the node, ``stamp_ns`` the fix's stamp, ``z`` the offset
+``T_node_sensor`` as ``[t, rotvec]``, ``cov`` the information the fix entered with, the
+odometry offset's covariance included) and kind ``fix_sensor`` (same node and stamp, ``z`` the
+measured ``T_map_sensor`` as ``[t, rotvec]``, ``cov``'s bytes the source's name in UTF-8, NUL
+padded). A replay gives them to the aligner between the same measurements, so the recovered state
+is the one lost. A ``fix`` record without its ``fix_sensor`` (damage) is skipped.
+What is done with damage:
+
+* a record cut short at the end (a crash mid-write) is ignored and cut off before the next
+  append: it was never acknowledged;
+* a record whose CRC fails, a bad header, or a snapshot that fails its checksum: whatever still
+  verifies is kept, the damaged file is moved aside to ``<name>.corrupt-<UTC time>`` (never
+  deleted) with a message, and a repaired journal holding the intact records takes its place;
+* files are never opened through symbolic links, and a state file that is not a ga_ros state is
+  refused (:class:`~ga_ros.errors.ForeignFileError`) and left untouched.
+
+The package: :mod:`.records` (the record format), :mod:`.writer` (:class:`MeasurementJournal`),
+:mod:`.scan` (reading, damage), :mod:`.state_files` (the files beside a state file) and
+:mod:`.recovery` (:func:`recover`).
+"""
+
+from ga_ros.pipeline.journal.records import (
+    HELD,
+    RECORD,
+    RECORD_V1,
+    REVERSED,
+    Entry,
+    encode_fix,
+    encode_records,
+    records_to_entries,
+)
+from ga_ros.pipeline.journal.recovery import RecoveryResult, recover
+from ga_ros.pipeline.journal.scan import JournalScan, read_journal, scan_journal
+from ga_ros.pipeline.journal.state_files import clear_state, journal_path, write_snapshot_info
+from ga_ros.pipeline.journal.writer import MeasurementJournal
+
+__all__ = [
+    'HELD',
+    'RECORD',
+    'RECORD_V1',
+    'REVERSED',
+    'Entry',
+    'JournalScan',
+    'MeasurementJournal',
+    'RecoveryResult',
+    'clear_state',
+    'encode_fix',
+    'encode_records',
+    'journal_path',
+    'read_journal',
+    'records_to_entries',
+    'recover',
+    'scan_journal',
+    'write_snapshot_info',
+]

@@ -1,0 +1,279 @@
+"""Crash recovery: the state rebuilt from a snapshot and the journal records after it
+(:func:`recover`), and the held queue of the gap healer restored from the journal."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.core.measurement import KINDS, Measurement
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import is_state_file, load_state, save_state
+from ga_ros.errors import ForeignFileError, FormatError, GaError, InputError
+from ga_ros.io.atomic import check_regular, move_aside
+from ga_ros.pipeline.journal.records import (
+    KIND_MASK,
+    RECORD_V1,
+    Entry,
+    held_records,
+    is_fix,
+    records_to_entries,
+    records_to_measurements,
+    reversed_records,
+)
+from ga_ros.pipeline.journal.scan import JournalScan, scan_journal
+from ga_ros.pipeline.journal.state_files import (
+    has_v2_header,
+    journal_path,
+    read_snapshot_info,
+    rewrite_journal,
+)
+
+
+@dataclass
+class HeldQueue:
+    """The held measurements of a journal that no later record admitted.
+
+    Attributes
+    ----------
+    held : ``(measurement, arrival number)`` in order.
+    arrivals : measurements held or taken on arrival (the healer's arrival count).
+    newest_stamp_ns : the newest stamp of those arrivals.
+    """
+
+    held: list[tuple[Measurement, int]] = field(default_factory=list)
+    arrivals: int = 0
+    newest_stamp_ns: int = -2**63
+
+
+def held_queue(recs: np.ndarray) -> HeldQueue:
+    """The held queue to restore after a restart: the held records that no later record
+    admitted (matched by nodes and stamp), with their arrival numbers."""
+    held = held_records(recs)
+    bridge = (recs['kind'] & KIND_MASK) == KINDS.index('bridge')
+    src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
+    pending: dict[tuple[int, int, int], list[int]] = {}
+    seq: dict[int, int] = {}
+    out = HeldQueue()
+    for k in range(len(held)):
+        key = (src[k], dst[k], stamp[k])
+        if bridge[k]:
+            continue
+        if held[k]:
+            pending.setdefault(key, []).append(k)
+        else:
+            done = pending.get(key)
+            if done:  # a held measurement taken later: not an arrival
+                seq.pop(done.pop(0))
+                continue
+        out.arrivals += 1
+        out.newest_stamp_ns = max(out.newest_stamp_ns, stamp[k])
+        if held[k]:
+            seq[k] = out.arrivals
+    rows = sorted(seq)
+    ms = records_to_measurements(recs[np.array(rows, dtype=np.int64)])
+    out.held = [(m, seq[k]) for m, k in zip(ms, rows)]
+    return out
+
+
+@dataclass
+class RecoveryResult:
+    """What :func:`recover` restored.
+
+    Attributes
+    ----------
+    aligner : the restored aligner (empty if there was nothing to restore).
+    source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
+    snapshot_records : journal records the snapshot contained (0 without a snapshot).
+    records_replayed : journal entries (measurements, fixes) replayed after the snapshot and
+        accepted.
+    records_rejected : replayed entries the aligner rejected (e.g. already in the snapshot).
+    journal_records : records in the journal now (the count the next snapshot must store).
+    moved_aside : damaged files renamed to ``<name>.corrupt-<time>`` (kept, never deleted).
+    messages : one line per event, for the log (warnings when anything was damaged).
+    seconds : wall time of the recovery.
+    held : the held measurements of the journal that were never admitted (the held queue of
+        :class:`~ga_ros.core.gaps.GapHealer` to restore).
+    bridges : ``(from_id, to_id)`` of every bridge in the journal.
+    reversed : the measurements (as they arrived) that the aligner took reversed.
+    snapshot_refused : the state file is not a ga_ros state but a journal with intact records
+        is beside it: the state was rebuilt from the journal, the file left untouched, and no
+        snapshot may be written there.
+    """
+
+    aligner: TrackWindowAligner
+    source: str
+    snapshot_records: int = 0
+    records_replayed: int = 0
+    records_rejected: int = 0
+    journal_records: int = 0
+    moved_aside: list[Path] = field(default_factory=list)
+    messages: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    held: HeldQueue = field(default_factory=HeldQueue)
+    bridges: list[tuple[int, int]] = field(default_factory=list)
+    reversed: list[Measurement] = field(default_factory=list)
+    snapshot_refused: bool = False
+
+
+def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
+            checkpoint: bool = True) -> RecoveryResult:
+    """Rebuild the aligner from ``state_file`` and its journal, keeping every intact record.
+
+    Parameters
+    ----------
+    state_file : the snapshot path (its journal is ``<state_file>.journal``).
+    config : aligner settings for a state rebuilt from the journal alone, and for the snapshot
+        (default: the snapshot's own, else :class:`AlignerConfig` defaults).
+    checkpoint : after replaying records or repairing a file, write a fresh snapshot holding
+        the journal's record count, so snapshot and journal agree again.
+
+    Raises
+    ------
+    ForeignFileError : ``state_file`` exists, is not a ga_ros state (left untouched) and no
+        journal with intact records is beside it (with one, the state is rebuilt from the
+        journal alone: ``snapshot_refused``).
+    UnsafePathError : ``state_file`` or the journal is a symbolic link or not a regular file.
+
+    Damaged files are moved aside (never deleted) and reported in ``messages``; a damaged
+    journal never discards an intact snapshot, nor a damaged snapshot an intact journal.
+    """
+    t0 = time.perf_counter()
+    state, jpath = Path(state_file), journal_path(state_file)
+    out = RecoveryResult(TrackWindowAligner(config or AlignerConfig()), 'empty')
+    check_regular(jpath)
+    aligner, snap_records, foreign = _load_snapshot(state, jpath, config, out)
+    scan = _scan_and_repair(jpath, out)
+    records = scan.records
+    out.journal_records = int(records.size)
+    if aligner is not None:
+        out.source, out.snapshot_records = 'snapshot', int(snap_records)
+        if scan.damaged:
+            # the numbering of the records changed: replay every intact one; those already in
+            # the snapshot are rejected (duplicate, frozen) and change nothing
+            tail = records
+        else:
+            if snap_records > records.size:
+                out.messages.append(f'the snapshot holds {snap_records} journal records, the '
+                                    f'journal only {records.size}: the snapshot is kept')
+            tail = records[min(snap_records, records.size):]
+    else:
+        aligner = out.aligner
+        tail = records
+        out.source = 'journal' if records.size else 'empty'
+    out.held = held_queue(records[~is_fix(records['kind'])])  # measurements only
+    bridge = records['kind'] & KIND_MASK == KINDS.index('bridge')
+    out.bridges = list(zip(records['src_id'][bridge].tolist(),
+                           records['dst_id'][bridge].tolist()))
+    out.reversed = reversed_records(records)
+    tail = tail[~held_records(tail)]  # held measurements never reached the aligner
+    if tail.size:
+        out.records_replayed, out.records_rejected = replay_entries(
+            aligner, records_to_entries(tail, taken=True))
+        if out.source == 'snapshot':
+            out.source = 'snapshot+journal'
+    out.aligner = aligner
+    changed = bool(tail.size or out.moved_aside or snap_records != records.size)
+    if (checkpoint and changed or scan.damaged) and out.source != 'empty' and not foreign:
+        try:
+            save_state(aligner, state, journal_records=out.journal_records)
+        except OSError as exc:  # e.g. a full disk: the journal still holds every record
+            out.messages.append(f'recovery snapshot {state} not written ({exc}); the journal '
+                                'still holds every record')
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _load_snapshot(state: Path, jpath: Path, config: AlignerConfig | None,
+                   out: RecoveryResult) -> tuple[TrackWindowAligner | None, int, bool]:
+    """The snapshot's aligner and the journal records it holds (``None, 0`` without a usable
+    snapshot: a damaged one is moved aside), and whether ``state`` is a foreign file (refused,
+    left untouched: ``out.snapshot_refused``). Events go to ``out``'s messages.
+
+    Raises
+    ------
+    ForeignFileError
+        ``state`` is a foreign file and no journal with intact records is beside it.
+    """
+    foreign = check_regular(state) and os.lstat(state).st_size > 0 and not is_state_file(state)
+    if foreign:
+        if not _journal_has_records(jpath):
+            raise ForeignFileError(f'state_file {state} exists and is not a ga_ros state; it is '
+                                   'left untouched: choose another state_file')
+        out.snapshot_refused = True
+        out.messages.append(f'state_file {state} is not a ga_ros state (a damaged snapshot or '
+                            'another program file): it is left untouched, the state is '
+                            'rebuilt from the journal alone, and no snapshot is written there '
+                            'until it is removed')
+    elif check_regular(state):  # an empty file too: a damaged snapshot, moved aside
+        try:
+            saved = load_state(state, config)
+            return saved.aligner, (saved.journal_records if saved.journal_records is not None
+                                   else read_snapshot_info(state)), False
+        except InputError as exc:
+            out.moved_aside.append(move_aside(state))
+            out.messages.append(f'snapshot {state} is damaged ({exc}); moved aside to '
+                                f'{out.moved_aside[-1].name}, rebuilding from the journal')
+    return None, 0, foreign
+
+
+def _scan_and_repair(jpath: Path, out: RecoveryResult) -> JournalScan:
+    """The journal's intact records; a damaged journal is moved aside and a version-2 journal
+    of the intact records takes its place (a version-1 one is converted). Events go to
+    ``out``."""
+    try:
+        scan = scan_journal(jpath)
+    except FormatError as exc:
+        scan = JournalScan(np.zeros(0, RECORD_V1), n_damaged=1, header_ok=False,
+                           messages=[str(exc)])
+    out.messages += scan.messages
+    if scan.damaged or (check_regular(jpath) and os.lstat(jpath).st_size
+                        and not has_v2_header(jpath)):
+        if scan.damaged:
+            out.moved_aside.append(move_aside(jpath))
+            out.messages.append(f'journal {jpath} moved aside to {out.moved_aside[-1].name}; '
+                                f'{scan.records.size} intact records kept')
+        rewrite_journal(jpath, scan.records)
+    return scan
+
+
+def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
+    """Give ``aligner`` journal entries in order: runs of measurements in one batch
+    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix between
+    them as it came (with the information it entered with). Returns ``(accepted, rejected)``
+    entries; nothing raises for a rejected one."""
+    accepted = rejected = 0
+    run: list[Measurement] = []
+
+    def flush() -> None:
+        nonlocal accepted, rejected
+        if run:
+            batch = aligner.add_measurements(run)
+            accepted, rejected = accepted + batch.n_accepted, rejected + batch.n_rejected
+            run.clear()
+
+    for e in entries:
+        if isinstance(e, Measurement):
+            run.append(e)
+            continue
+        flush()
+        try:
+            aligner.add_fix(e)
+            accepted += 1
+        except GaError:
+            rejected += 1
+    flush()
+    return accepted, rejected
+
+
+def _journal_has_records(jpath: Path) -> bool:
+    """The journal has a valid header and at least one intact record."""
+    try:
+        scan = scan_journal(jpath)
+    except (FormatError, OSError):
+        return False
+    return scan.header_ok and scan.records.size > 0

@@ -1,0 +1,90 @@
+"""The files beside a state file: the journal's path, the snapshot's sidecar, a journal written
+anew from intact records, and the clearing of the whole state (``~/reset``)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ga_ros.core.window.persistence import is_state_file
+from ga_ros.errors import ForeignFileError, FormatError, GaError
+from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow, read_bytes
+from ga_ros.pipeline.journal.records import MAGIC, RECORD, RECORD_V1, record_crcs
+from ga_ros.pipeline.journal.scan import scan_journal
+
+
+def journal_path(state_file: str | os.PathLike) -> Path:
+    """The journal that goes with a state file: ``<state_file>.journal``."""
+    return Path(str(state_file) + '.journal')
+
+
+def snapshot_info_path(state_file: str | os.PathLike) -> Path:
+    """Sidecar of a snapshot: ``<state_file>.json`` with ``{"journal_records": n}``."""
+    return Path(str(state_file) + '.json')
+
+
+def _is_sidecar(path: Path) -> bool:
+    try:
+        return 'journal_records' in json.loads(read_bytes(path))
+    except (OSError, ValueError, TypeError, GaError):
+        return False
+
+
+def write_snapshot_info(state_file: str | os.PathLike, journal_records: int) -> None:
+    """Record (atomically) how many journal records the snapshot ``state_file`` contains."""
+    atomic_write(snapshot_info_path(state_file),
+                 json.dumps({'journal_records': int(journal_records)}).encode(),
+                 is_ours=_is_sidecar)
+
+
+def read_snapshot_info(state_file: str | os.PathLike) -> int:
+    """Journal records contained in the snapshot (0 if the sidecar is missing or bad)."""
+    try:
+        return int(json.loads(read_bytes(snapshot_info_path(state_file)))['journal_records'])
+    except (OSError, ValueError, KeyError, TypeError, GaError):
+        return 0
+
+
+def clear_state(state_file: str | os.PathLike) -> list[Path]:
+    """Forget a saved state (the ``~/reset`` service): delete the snapshot and its sidecar and
+    empty the journal, but only files that are ga_ros's own; never a foreign file, never through
+    a symbolic link (:class:`ForeignFileError`, :class:`~ga_ros.errors.UnsafePathError`; then
+    nothing at all is changed). Returns the files changed."""
+    state, side, jpath = Path(state_file), snapshot_info_path(state_file), journal_path(state_file)
+    present = [p for p in (state, side, jpath) if check_regular(p)]
+    for p, ours in ((state, is_state_file), (side, _is_sidecar)):
+        if p in present and not ours(p):
+            raise ForeignFileError(f'{p} is not a ga_ros file: nothing was cleared')
+    if jpath in present and os.lstat(jpath).st_size:
+        try:
+            scan_journal(jpath)
+        except FormatError:
+            raise ForeignFileError(f'{jpath} is not a ga_ros journal: nothing was cleared') \
+                from None
+    for p in present:
+        if p == jpath:
+            atomic_write(jpath, MAGIC)
+        else:
+            os.unlink(p)
+    return present
+
+
+def has_v2_header(path: Path) -> bool:
+    fd = open_nofollow(path, os.O_RDONLY)
+    try:
+        return os.pread(fd, len(MAGIC), 0) == MAGIC
+    finally:
+        os.close(fd)
+
+
+def rewrite_journal(path: Path, records: np.ndarray) -> None:
+    """Write a version-2 journal holding ``records`` (atomically, never through a link)."""
+    rec = np.zeros(records.size, RECORD)
+    for name in RECORD_V1.names:
+        rec[name] = records[name]
+    raw = rec.view(np.uint8).reshape(records.size, RECORD.itemsize)
+    rec['crc'] = record_crcs(raw)
+    atomic_write(path, [MAGIC, rec.tobytes()])

@@ -1,0 +1,32 @@
+"""Settings of an alignment session besides the aligner's."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ga_ros.core.gaps import GapConfig
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Settings of the session besides the aligner's.
+
+    Attributes
+    ----------
+    state_file : ``.npz`` snapshot for save/load and resume on start (``''``: none).
+    autosave : journal every accepted measurement and save a snapshot after every update.
+    fsync_period_sec : durability of the journal. Every record is written to the OS at once
+        (a killed process loses nothing); it is also ``fsync``-ed to disk (a power cut loses
+        nothing) after every measurement if 0, else at most every this many seconds.
+    gaps : how measurements whose source node is unknown wait and are bridged
+        (:class:`~ga_ros.core.gaps.GapConfig`).
+    state_required : a state file that cannot be used at start (its directory is a file, is
+        read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
+        running without persistence.
+    """
+
+    state_file: str = ''
+    autosave: bool = True
+    fsync_period_sec: float = 1.0
+    gaps: GapConfig = GapConfig()
+    state_required: bool = False
