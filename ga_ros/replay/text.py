@@ -6,7 +6,7 @@ from ga_ros.errors import GaError
 from ga_ros.io.bag import BagInfo
 from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
 from ga_ros.replay.inputs import InputTopics, plan_inputs
-from ga_ros.replay.pipeline import ReplayResult
+from ga_ros.replay.result import ReplayResult
 
 
 def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),

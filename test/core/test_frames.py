@@ -152,7 +152,8 @@ def _write_forward_bag(path: Path, with_tf_static: bool) -> Path:
 
 @pytest.mark.slow
 def test_replay_of_a_forward_camera_with_tf_static_drives_along_map_x(tmp_path):
-    from ga_ros.replay.pipeline import ReplayConfig, replay
+    from ga_ros.replay.config import ReplayConfig
+    from ga_ros.replay.pipeline import replay
 
     bag = _write_forward_bag(tmp_path / 'fwd', with_tf_static=True)
     r = replay(bag, tmp_path / 'out', ReplayConfig(plot=False))

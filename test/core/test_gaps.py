@@ -226,7 +226,8 @@ def test_replay_of_a_bag_with_a_gap_keeps_every_node(tmp_path: Path, sample) -> 
     summary says how the gap was healed."""
     import json
 
-    from ga_ros.replay.pipeline import ReplayConfig, replay
+    from ga_ros.replay.config import ReplayConfig
+    from ga_ros.replay.pipeline import replay
     from ga_ros.replay.samples import write_measurement_bag
 
     bag = write_measurement_bag(tmp_path / 'in', _unfilled(sample.measurements),

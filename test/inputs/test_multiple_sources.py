@@ -34,8 +34,9 @@ from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
 from ga_ros.io.trajectory import write_tum
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.pipeline import replay
 
 T0_NS = 1_700_000_000_000_000_000
 WHEEL_HZ, VISUAL_HZ = 50, 10

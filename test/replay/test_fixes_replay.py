@@ -39,8 +39,9 @@ from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import read_tum
 from ga_ros.pipeline.absolute import AbsoluteSpec
 from ga_ros.pipeline.inputs import InputSpec
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.pipeline import replay
 
 RATE_HZ = 10.0
 T0_NS = 1_700_000_000_000_000_000

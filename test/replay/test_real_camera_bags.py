@@ -26,7 +26,8 @@ from ga_ros.pipeline.stereo import (
     StereoFrontEnd,
     front_end_config_from_params,
 )
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.config import ReplayConfig
+from ga_ros.replay.pipeline import replay
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 from ga_ros.vo.calibration import read_stereo_calibration
 

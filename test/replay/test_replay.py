@@ -18,7 +18,8 @@ from ga_ros.geometry import se3, so3
 from ga_ros.io.bag import BagReader
 from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry, typestore
 from ga_ros.io.bag_writer import BagWriter
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.config import ReplayConfig
+from ga_ros.replay.pipeline import replay
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 
 REPO = Path(__file__).resolve().parents[2]

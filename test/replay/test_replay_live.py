@@ -26,7 +26,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 from ga_ros.io.bag import BagReader  # noqa: E402
 from ga_ros.io.bag_messages import measurement_to_odometry, odometry_to_measurement  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
-from ga_ros.replay.pipeline import ReplayConfig, replay  # noqa: E402
+from ga_ros.replay.config import ReplayConfig  # noqa: E402
+from ga_ros.replay.pipeline import replay  # noqa: E402
 from ga_ros.replay.samples import aerial_sample  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 

@@ -10,7 +10,8 @@ import pytest
 from ga_ros.io.bag import BagReader
 from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE, header, typestore
 from ga_ros.io.bag_writer import BagWriter
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.config import ReplayConfig
+from ga_ros.replay.pipeline import replay
 from ga_ros.replay.samples import (
     LEFT_IMAGE_TOPIC,
     RIGHT_IMAGE_TOPIC,

@@ -235,8 +235,9 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
     from test_replay_inputs import write_odom_bag
 
     from ga_ros.pipeline.inputs import InputSpec
+    from ga_ros.replay.config import ReplayConfig
     from ga_ros.replay.inputs import InputTopics
-    from ga_ros.replay.pipeline import ReplayConfig, replay
+    from ga_ros.replay.pipeline import replay
 
     write_odom_bag(tmp_path / 'in')
     cfg = ReplayConfig(inputs=InputTopics((InputSpec('/odom'),)), plot=False)

@@ -19,7 +19,7 @@ of a simulated aerial survey to it, and prints, per track:
   overhead, independent of how fast one Python publisher can send.
 
 A benchmark, not a test: it prints figures and asserts nothing (exit code 1 only on a failure to
-run). ROS is imported lazily inside :func:`run` so the CLI works without it.
+run). ROS is imported lazily inside the functions that need it so the CLI works without it.
 """
 
 from __future__ import annotations
@@ -28,6 +28,8 @@ import argparse
 import os
 import statistics
 import time
+from dataclasses import dataclass
+from typing import Any
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,26 +54,53 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def run(args: argparse.Namespace) -> int:
-    import numpy as np
+@dataclass(frozen=True)
+class TrackFigures:
+    """Figures of one track streamed to the node.
 
+    Attributes
+    ----------
+    track : track id.
+    n : measurements streamed between the updates.
+    published_per_s : publish rate achieved, measurements/s.
+    absorbed_per_s : rate the node absorbed them, measurements/s.
+    lag_ms : time from the last publish to the node's report of the last one, ms.
+    latency_ms : end-of-track latency (measurement -> corrected path), ms (NaN: first track).
+    update_ms : the node's update time of the track end, ms (NaN: first track).
+    """
+
+    track: int
+    n: int
+    published_per_s: float
+    absorbed_per_s: float
+    lag_ms: float
+    latency_ms: float
+    update_ms: float
+
+
+@dataclass(frozen=True)
+class NodeFigures:
+    """Figures of a whole survey streamed to the node: per track, the final ``finish_track``
+    latency (ms), the node's counters and its time per measurement callback (us)."""
+
+    rows: list[TrackFigures]
+    sent: int
+    final_ms: float
+    received: int
+    accepted: int
+    callback_us: float
+
+
+def run(args: argparse.Namespace) -> int:
     from ga_ros.errors import InputError
-    from ga_ros.ros.harness import NodeClient, start_node_process, stop_process
-    from ga_ros.sim.aerial import aerial_scenario
-    from ga_ros.sim.noise import NoiseModel, perturb
 
     if args.tracks < 2 or args.per_swath < 2:
         raise InputError('need --tracks >= 2 and --per-swath >= 2')
-    rng = np.random.default_rng(args.seed)
-    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.per_swath)
-    noisy = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m), rng)
-    ms = sc.measurements(noisy.z, noisy.cov)
-    by_track: dict[int, list] = {}
-    for m in ms:
-        by_track.setdefault(m.dst_track, []).append(m)
+    by_track, n_nodes, n_measurements = survey_by_track(args.tracks, args.per_swath,
+                                                        args.noise, args.seed)
     dom = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 150
     print(f'aerial survey: {args.tracks} tracks x {2 * args.per_swath} nodes, '
-          f'{sc.n_nodes} nodes, {len(ms)} measurements; window {args.window} tracks; '
+          f'{n_nodes} nodes, {n_measurements} measurements; window {args.window} tracks; '
           f'ROS_DOMAIN_ID {dom}')
     params = {'window_tracks': args.window, 'state_file': '', 'autosave': False,
               'diagnostics_period_sec': 0.02, 'publish_markers': bool(args.markers),
@@ -80,43 +109,47 @@ def run(args: argparse.Namespace) -> int:
         n, drain_s, n_got = drain_rate(by_track[min(by_track)], dom, params)
         print(f'drain rate (in-process node, {n} queued measurements of track 0): '
               f'{n_got / drain_s:.0f} measurements/s ({n_got}/{n} absorbed in {drain_s:.2f} s)')
-    proc = start_node_process(dom, params, log_path=args.log)
+    figures = stream_survey(by_track, dom, params, args.rate, args.log)
+    print_figures(figures)
+    return 0
+
+
+def survey_by_track(n_tracks: int, per_swath: int, noise_percent: float,
+                    seed: int) -> tuple[dict[int, list], int, int]:
+    """The noisy measurements of a simulated aerial survey grouped by destination track;
+    ``(by_track, n_nodes, n_measurements)``."""
+    import numpy as np
+
+    from ga_ros.sim.aerial import aerial_scenario
+    from ga_ros.sim.noise import NoiseModel, perturb
+
+    rng = np.random.default_rng(seed)
+    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
+    noisy = perturb(sc.true_motions(), NoiseModel(noise_percent, sc.depth_m), rng)
+    ms = sc.measurements(noisy.z, noisy.cov)
+    by_track: dict[int, list] = {}
+    for m in ms:
+        by_track.setdefault(m.dst_track, []).append(m)
+    return by_track, sc.n_nodes, len(ms)
+
+
+def stream_survey(by_track: dict[int, list], domain_id: int, params: dict, rate_hz: float,
+                  log: str | None) -> NodeFigures:
+    """Start the node as a process, stream the survey track by track at ``rate_hz``
+    measurements/s (0: as fast as possible), end the last track by ``~/finish_track``."""
+    from ga_ros.ros.harness import NodeClient, start_node_process, stop_process
+
+    proc = start_node_process(domain_id, params, log_path=log)
     client = None
     rows = []
     try:
-        client = NodeClient(dom)
+        client = NodeClient(domain_id)
         client.wait_for_node(timeout=60.0, proc=proc)
         sent = 0
         for track in sorted(by_track):
-            group = by_track[track]
-            latency_ms = float('nan')
-            if sent:                        # the first measurement of this track ends the last
-                client.wait_received(sent, timeout=120.0, proc=proc)
-                n_paths = len(client.paths)
-                n_updates = client.diag_int('updates', 0)
-                t0 = time.perf_counter()
-                client.publish(group[:1])
-                client.spin_until(lambda n=n_paths: len(client.paths) > n, 120.0,
-                                  'the corrected path', proc)
-                latency_ms = 1e3 * (client.paths[-1][0] - t0)
-                client.spin_until(lambda u=n_updates: client.diag_int('updates') > u, 30.0,
-                                  'the update diagnostics', proc)
-                update_ms = float(client.diagnostics.get('update_ms', 'nan'))
-                group = group[1:]
-                sent += 1
-            else:
-                update_ms = float('nan')
-            client.wait_received(sent, timeout=120.0, proc=proc)
-            t_start = time.perf_counter()
-            pub_s = client.publish(group, rate_hz=args.rate)
-            t_published = time.perf_counter()
-            sent += len(group)
-            client.spin_until(lambda s=sent: client.diag_int('measurements_received') >= s,
-                              120.0, 'the measurements', proc)
-            t_done = time.perf_counter()
-            rows.append((track, len(group), len(group) / max(pub_s, 1e-9),
-                         len(group) / max(t_done - t_start, 1e-9),
-                         1e3 * (t_done - t_published), latency_ms, update_ms))
+            row = _stream_track(client, proc, track, by_track[track], sent, rate_hz)
+            sent += row.n + (1 if sent else 0)
+            rows.append(row)
         client.spin_until(lambda: client.diag_int('measurements_received') >= sent, 60.0,
                           'the last measurements', proc)
         n_paths = len(client.paths)
@@ -124,32 +157,70 @@ def run(args: argparse.Namespace) -> int:
         client.call('finish_track', timeout=120.0)
         client.spin_until(lambda: len(client.paths) > n_paths, 120.0, 'the final path', proc)
         final_ms = 1e3 * (client.paths[-1][0] - t0)
-        received = client.diag_int('measurements_received')
-        accepted = client.diag_int('measurements_accepted')
-        callback_us = float(client.diagnostics.get('measurement_callback_us', 'nan'))
+        return NodeFigures(rows, sent, final_ms, client.diag_int('measurements_received'),
+                           client.diag_int('measurements_accepted'),
+                           float(client.diagnostics.get('measurement_callback_us', 'nan')))
     finally:
         if client is not None:
             client.close()
         stop_process(proc)
 
+
+def _stream_track(client: Any, proc: Any, track: int, group: list, sent: int,
+                  rate_hz: float) -> TrackFigures:
+    """Stream one track: its first measurement ends the previous track (the latency is timed
+    from it to the new path) unless it is the first; then the rest at ``rate_hz``."""
+    latency_ms = update_ms = float('nan')
+    if sent:                        # the first measurement of this track ends the last
+        client.wait_received(sent, timeout=120.0, proc=proc)
+        n_paths = len(client.paths)
+        n_updates = client.diag_int('updates', 0)
+        t0 = time.perf_counter()
+        client.publish(group[:1])
+        client.spin_until(lambda n=n_paths: len(client.paths) > n, 120.0,
+                          'the corrected path', proc)
+        latency_ms = 1e3 * (client.paths[-1][0] - t0)
+        client.spin_until(lambda u=n_updates: client.diag_int('updates') > u, 30.0,
+                          'the update diagnostics', proc)
+        update_ms = float(client.diagnostics.get('update_ms', 'nan'))
+        group = group[1:]
+        sent += 1
+    client.wait_received(sent, timeout=120.0, proc=proc)
+    t_start = time.perf_counter()
+    pub_s = client.publish(group, rate_hz=rate_hz)
+    t_published = time.perf_counter()
+    sent += len(group)
+    client.spin_until(lambda s=sent: client.diag_int('measurements_received') >= s,
+                      120.0, 'the measurements', proc)
+    t_done = time.perf_counter()
+    return TrackFigures(track, len(group), len(group) / max(pub_s, 1e-9),
+                        len(group) / max(t_done - t_start, 1e-9),
+                        1e3 * (t_done - t_published), latency_ms, update_ms)
+
+
+def print_figures(figures: NodeFigures) -> None:
+    """The per-track table and the summary lines of ``ga-ros bench node``."""
+    import math
+
+    rows, sent, final_ms = figures.rows, figures.sent, figures.final_ms
     print(f'{"track":>5} {"meas":>6} {"published/s":>12} {"absorbed/s":>11} {"lag ms":>7} '
           f'{"latency ms":>11} {"update ms":>10}')
-    for track, n, pub_rate, abs_rate, lag, lat, upd in rows:
-        print(f'{track:5d} {n:6d} {pub_rate:12.0f} {abs_rate:11.0f} {lag:7.0f} {lat:11.1f} '
-              f'{upd:10.1f}')
-    lats = [r[5] for r in rows if np.isfinite(r[5])] + [final_ms]
+    for r in rows:
+        print(f'{r.track:5d} {r.n:6d} {r.published_per_s:12.0f} {r.absorbed_per_s:11.0f} '
+              f'{r.lag_ms:7.0f} {r.latency_ms:11.1f} {r.update_ms:10.1f}')
+    lats = [r.latency_ms for r in rows if math.isfinite(r.latency_ms)] + [final_ms]
     print(f'end-of-track latency (measurement -> corrected path): median '
           f'{statistics.median(lats):.1f} ms, max {max(lats):.1f} ms over {len(lats)} track ends '
           f'(last one via ~/finish_track: {final_ms:.1f} ms)')
-    print(f'sustained rate absorbed between updates: min {min(r[3] for r in rows):.0f}, '
-          f'median {statistics.median(r[3] for r in rows):.0f} measurements/s '
+    print(f'sustained rate absorbed between updates: min '
+          f'{min(r.absorbed_per_s for r in rows):.0f}, '
+          f'median {statistics.median(r.absorbed_per_s for r in rows):.0f} measurements/s '
           f'(target >= 2000)')
-    print(f'end-of-track lag behind the publisher: max {max(r[4] for r in rows):.0f} ms')
-    print(f'node time per measurement callback: {callback_us:.1f} us '
-          f'(callback-bound capacity ~{1e6 / callback_us:.0f} measurements/s)')
-    print(f'measurements published {sent}, received {received}, accepted {accepted}, '
-          f'dropped {sent - received}')
-    return 0
+    print(f'end-of-track lag behind the publisher: max {max(r.lag_ms for r in rows):.0f} ms')
+    print(f'node time per measurement callback: {figures.callback_us:.1f} us '
+          f'(callback-bound capacity ~{1e6 / figures.callback_us:.0f} measurements/s)')
+    print(f'measurements published {sent}, received {figures.received}, accepted '
+          f'{figures.accepted}, dropped {sent - figures.received}')
 
 
 def drain_rate(measurements, domain_id: int, params: dict) -> tuple[int, float, int]:

@@ -20,7 +20,8 @@ import numpy as np
 from ga_ros.cli.commands.demo import find_bags_dir
 from ga_ros.core.integration import DeadReckoningAligner
 from ga_ros.errors import InputError
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.config import ReplayConfig
+from ga_ros.replay.pipeline import replay
 from ga_ros.replay.samples import MEASUREMENTS_BAG, STEREO_BAG
 
 

@@ -24,9 +24,10 @@ from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
+from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
-from ga_ros.replay.pipeline import ReplayConfig, replay
+from ga_ros.replay.pipeline import replay
 from ga_ros.replay.text import info_text, plan_lines, result_text
 
 #: Aligner options of the command line -> AlignerConfig parameter names (as the node's).
@@ -39,7 +40,16 @@ ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
 
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``replay`` and ``demo``: topics, frames, aligner, outputs."""
-    g = p.add_argument_group('input topics')
+    _add_input_topic_arguments(p.add_argument_group('input topics'))
+    _add_standard_input_arguments(
+        p.add_argument_group('standard inputs (odometry / pose streams of any robot)'))
+    _add_output_arguments(p.add_argument_group('outputs'))
+    _add_alignment_arguments(p.add_argument_group('alignment'))
+    _add_vo_arguments(p.add_argument_group('visual odometry (stereo bags)'))
+
+
+def _add_input_topic_arguments(g: argparse._ArgumentGroup) -> None:
+    """The source, its topics and calibration, the ground truth (topic or file)."""
     g.add_argument('--source', choices=('auto', 'measurements', 'stereo'), default='auto',
                    help='what to replay (auto: measurements if the topic exists, else images)')
     g.add_argument('--measurements-topic', default=topics.resolve(topics.MEASUREMENTS))
@@ -69,7 +79,11 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    metavar='SEC',
                    help='largest gap between ground-truth samples to interpolate across, and '
                         'largest distance to hold the first / last one (default %(default)s)')
-    s = p.add_argument_group('standard inputs (odometry / pose streams of any robot)')
+
+
+def _add_standard_input_arguments(s: argparse._ArgumentGroup) -> None:
+    """Odometry / pose inputs, absolute fixes, constraints, track boundaries, a camera beside
+    the odometry, the covariance policy."""
     s.add_argument('--odom-topic', '--input-topic', dest='input_topics', action='append',
                    default=[], metavar='TOPIC',
                    help='odometry / pose input: nav_msgs/Odometry, geometry_msgs/'
@@ -99,7 +113,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument('--covariance-policy', choices=('reject', 'repair'), default='reject',
                    help='measurement covariances that are not positive definite: reject them '
                         '(as the live node) or repair them by eigenvalue clipping')
-    o = p.add_argument_group('outputs')
+
+
+def _add_output_arguments(o: argparse._ArgumentGroup) -> None:
+    """Frames, topics and files of the outputs."""
     o.add_argument('--map-frame', default='map', help='frame of the corrected path')
     o.add_argument('--odom-frame', default='odom', help='REP 105 odom frame (map -> odom on /tf)')
     o.add_argument('--base-frame', default='base_link',
@@ -112,7 +129,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     o.add_argument('--no-covariance', action='store_true',
                    help='write zero covariances on the pose topic (faster on big surveys)')
     o.add_argument('--no-progress', action='store_true', help='no progress bar')
-    a = p.add_argument_group('alignment')
+
+
+def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
+    """The aligner and its settings (:data:`ALIGNER_OPTIONS`)."""
     a.add_argument('--aligner', choices=('window', 'batch'), default='window',
                    help='window: the live track-window aligner (default); batch: re-solve the '
                         'whole survey at every track end (reference; small surveys only)')
@@ -133,7 +153,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help='final full batch refinement after the last track')
     a.add_argument('--no-anchor', action='store_true',
                    help='start at the identity instead of the ground-truth first pose')
-    v = p.add_argument_group('visual odometry (stereo bags)')
+
+
+def _add_vo_arguments(v: argparse._ArgumentGroup) -> None:
+    """The stereo VO's parameters (image bags)."""
     v.add_argument('--vo-params', type=Path, metavar='FILE',
                    help="vo_node's parameter file (config/vo.yaml); its topic and queue "
                         'settings are ignored')

@@ -167,7 +167,8 @@ def test_wrong_connection_shows_in_replay_summary_and_markers(tmp_path: Path, sa
     """Gate off, QC on: the wrong connection is the worst w of summary.json's quality block and
     its marker line is red; the other lines are not."""
     from ga_ros.io.bag import BagReader
-    from ga_ros.replay.pipeline import ReplayConfig, replay
+    from ga_ros.replay.config import ReplayConfig
+    from ga_ros.replay.pipeline import replay
     from ga_ros.replay.samples import write_measurement_bag
 
     ms = corrupt(sample.measurements, 5)

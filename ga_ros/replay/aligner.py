@@ -1,0 +1,56 @@
+"""The aligner a replay drives: what it needs of one, and the default factory."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from ga_ros.arrays import FloatArray
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import InputError
+
+
+class Aligner(Protocol):
+    """What the replay needs of :class:`ga_ros.core.window.TrackWindowAligner`."""
+
+    def add_measurement(self, m: Measurement) -> list[Any]: ...
+
+    def finish_track(self) -> Any: ...
+
+    def refine_batch(self) -> Any: ...
+
+    def corrected_path(self) -> Any: ...
+
+    def covariance(self, node_id: int) -> FloatArray: ...
+
+
+AlignerFactory = Callable[[FloatArray | None], Aligner]
+
+
+def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:
+    """A factory of the aligner used by the replay.
+
+    Parameters
+    ----------
+    config : :class:`ga_ros.core.window.AlignerConfig` (``kind='window'``) or
+        :class:`ga_ros.core.solver.SolverConfig` (``kind='batch'``); None = defaults.
+    kind : ``'window'`` (:class:`ga_ros.core.window.TrackWindowAligner`, the live node's) or
+        ``'batch'`` (:class:`ga_ros.replay.batch.BatchAligner`, full re-solve per track).
+    """
+    if kind == 'batch':
+        from ga_ros.replay.batch import BatchAligner
+
+        return lambda T_world_first: BatchAligner(config, T_world_first=T_world_first)
+    if kind != 'window':
+        raise InputError(f"aligner must be 'window' or 'batch', got {kind!r}")
+    try:
+        from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+    except ImportError as exc:
+        raise InputError(f'the track-window aligner is not available ({exc}); '
+                         'use the batch aligner instead') from exc
+    cfg = config if config is not None else AlignerConfig()
+
+    def make(T_world_first: FloatArray | None) -> Aligner:
+        return TrackWindowAligner(cfg, T_world_first=T_world_first)
+
+    return make

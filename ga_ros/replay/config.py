@@ -1,0 +1,71 @@
+"""Settings of one replay: :class:`ReplayConfig`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S
+from ga_ros.io.topic_plan import TopicConfig
+from ga_ros.pipeline.map_to_odom import TRANSFORM_PERIOD_S
+from ga_ros.replay.inputs import InputTopics
+from ga_ros.replay.outputs import OutputConfig
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Settings of one replay.
+
+    Attributes
+    ----------
+    topics : input topic names (and the source: measurements or stereo images).
+    outputs : output topic names, map frame, bag name.
+    aligner : :class:`ga_ros.core.window.AlignerConfig` (None = its defaults), or a
+        :class:`ga_ros.core.solver.SolverConfig` with ``aligner_kind='batch'``.
+    aligner_kind : ``'window'`` (the live node's track-window aligner) or ``'batch'``.
+    vo : configuration object of the stereo VO (None = its defaults); used for image bags.
+    refine_batch : run a final full batch refinement after the last track.
+    pose_covariance : write each corrected pose's marginal covariance (else zeros).
+    anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
+        first node (the datum) when the bag has ground truth; else at the identity.
+    plot : write the PNG plot.
+    progress : show a progress bar on stderr.
+    inputs : standard inputs (odometry / pose topics, constraints, track boundaries); when it
+        has inputs they are the source (:mod:`ga_ros.replay.inputs`).
+    ground_truth_file : TUM, EuRoC or KITTI ground truth (:mod:`ga_ros.io.groundtruth`),
+        matched by stamp; replaces the bag's ground truth.
+    ground_truth_format : ``'auto'``, ``'tum'``, ``'euroc'`` or ``'kitti'``.
+    ground_truth_times, ground_truth_rate_hz, ground_truth_start_s : stamps of a KITTI file
+        (its ``times.txt``, or a rate in Hz; plus a start time in s).
+    ground_truth_tolerance_s : largest gap between ground-truth samples to interpolate across,
+        and largest distance to hold the first / last sample (s).
+    tf : write ``map -> odom`` on ``/tf`` every ``transform_publish_period_sec`` of the bag's
+        log time, from the first measurement to the end, with the latest correction (and copy
+        the input bag's ``/tf``, ``/tf_static`` without the transforms that would give ``odom``
+        a second parent, counted in the summary's ``frames``).
+    transform_publish_period_sec : period of ``map -> odom`` in the output bag, s (as the
+        node's parameter of the same name).
+    covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
+        (as the live node by default) or ``'repair'`` (eigenvalue clipping).
+    """
+
+    topics: TopicConfig = TopicConfig()
+    outputs: OutputConfig = OutputConfig()
+    aligner: Any = None
+    aligner_kind: str = 'window'
+    vo: Any = None
+    refine_batch: bool = False
+    pose_covariance: bool = True
+    anchor_to_ground_truth: bool = True
+    plot: bool = True
+    progress: bool = False
+    inputs: InputTopics = InputTopics()
+    ground_truth_file: str = ''
+    ground_truth_format: str = 'auto'
+    ground_truth_times: str = ''
+    ground_truth_rate_hz: float = 0.0
+    ground_truth_start_s: float = 0.0
+    ground_truth_tolerance_s: float = DEFAULT_TOLERANCE_S
+    tf: bool = True
+    covariance_policy: str = 'reject'
+    transform_publish_period_sec: float = TRANSFORM_PERIOD_S
