@@ -13,8 +13,9 @@ Message types (:data:`ABSOLUTE_TYPES`)
     then that ENU frame). A NavSatFix with ``status.status == STATUS_NO_FIX`` (-1) is dropped
     and counted (``fix_no_fix``); ``STATUS_UNKNOWN`` (-2, Jazzy's default: a driver that does not
     fill the status) is used, as robot_localization's navsat_transform does;
-    ``position_covariance_type`` is honoured (``UNKNOWN``: the default; ``APPROXIMATED`` and ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix,
-    ENU axes); a NavSatFix never has a known orientation.
+    ``position_covariance_type`` is honoured (``UNKNOWN``: the default; ``APPROXIMATED`` and
+    ``DIAGONAL_KNOWN``: the diagonal; ``KNOWN``: the full matrix, ENU axes); a NavSatFix never
+    has a known orientation. Every NavSatFix input without its own datum shares one origin.
 
 Position only or full pose (REP 145 practice)
     A variance ``-1``, NaN, infinite or at least ``unknown_variance`` marks an unknown
