@@ -6,7 +6,8 @@ make the same fixes:
 
 * :meth:`AbsoluteFrontEnd.message` ``(name, msg)``: one fix message of absolute input ``name``
   (:class:`~ga_ros.inputs.absolute.AbsoluteDecoder`), queued until the odometry covers its
-  stamp;
+  stamp; every NavSatFix input without its own ``datum`` shares one ENU origin (the map
+  frame): the first datum any of them has (:meth:`AbsoluteFrontEnd.earth_datum`);
 * :meth:`AbsoluteFrontEnd.resolve` ``(odometry)``: after each odometry sample, the queued fixes
   whose stamp the odometry now covers, each tied to the keyframe at or before its stamp
   (:meth:`~ga_ros.inputs.odometry.OdometryInput.offset_at`: the offset ``T_k_base(t)`` and its
@@ -129,6 +130,8 @@ class AbsoluteFrontEnd:
     def message(self, name: str, msg: Any) -> AbsoluteStep:
         """One message of absolute input ``name``: decoded and queued (never raises)."""
         dec = self.decoders[name]
+        if dec.msgtype == NAVSAT and dec.datum is None:
+            dec.datum = self.earth_datum()  # one ENU origin (map frame) for every NavSatFix
         try:
             fix, default = dec.decode(msg)
         except InputError as exc:
