@@ -32,8 +32,9 @@ _controller_modules = -1
 
 
 def default_blas_threads() -> int:
-    """``$GA_ROS_BLAS_THREADS`` or 1 (the solver's many small dense blocks lose with threads on
-    shared cores; a 234 x 234 Cholesky was measured 100x slower with a busy second core)."""
+    """``$GA_ROS_BLAS_THREADS`` or 1: the solver's dense blocks are small (a few hundred rows), and
+    a threaded OpenBLAS spins on cores that other processes hold, which makes such a Cholesky up
+    to two orders of magnitude slower (figures: docs/benchmarks.md, "Figures behind constants")."""
     try:
         return max(1, int(os.environ.get('GA_ROS_BLAS_THREADS', '1')))
     except ValueError:

@@ -17,7 +17,6 @@ GTSAM is optional: ``pip install -r requirements-bench.txt``; without it only ga
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import resource
 import subprocess
@@ -29,10 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.gtsam_runner import INSTALL_HINT, gtsam_installed
 from ga_ros.bench.linalg import GRAPHS
+from ga_ros.bench.survey import NoisySurvey, noisy_survey
 
 MIN_POSES = 1000
-INSTALL_HINT = 'GTSAM not installed: pip install -r requirements-bench.txt (gtsam==4.3.0)'
 
 
 @dataclass
@@ -98,14 +98,9 @@ def compile_package() -> None:
     compileall.compile_dir(str(Path(ga_ros.__file__).parent), quiet=1)
 
 
-def aerial(noise_pct: float = 10.0, seed: int = 0):
-    from ga_ros.sim.aerial import aerial_scenario
-    from ga_ros.sim.noise import NoiseModel, perturb
-
-    sc = aerial_scenario(n_tracks=25)
-    nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
-                 np.random.default_rng(seed))
-    return sc, nm
+def aerial(noise_pct: float = 10.0, seed: int = 0) -> NoisySurvey:
+    """The paper's aerial survey (25 double tracks) with ``noise_pct`` % noise, draw ``seed``."""
+    return noisy_survey(25, noise_pct, seed)
 
 
 @dataclass
@@ -235,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                    'processes) and report each time column as its minimum (default 1)')
     p.add_argument('--json', action='store_true')
     args = p.parse_args(argv)
-    with_gtsam = importlib.util.find_spec('gtsam') is not None
+    with_gtsam = gtsam_installed()
     if not with_gtsam:
         print(INSTALL_HINT, file=sys.stderr)
     compile_package()

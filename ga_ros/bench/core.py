@@ -11,7 +11,6 @@ interpreter and the imported libraries (~150 MB).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import resource
 import subprocess
@@ -24,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.gtsam_runner import gtsam_installed
+from ga_ros.bench.survey import noisy_survey
 from ga_ros.core.linalg import blocks as _blocks
 from ga_ros.core.linalg import cholmod as _cholmod
 from ga_ros.core.solver import SolverConfig, solve
@@ -32,8 +33,6 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window import update as _update
 from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.eval.metrics import ate
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 
 def peak_rss_mb() -> float:
@@ -85,9 +84,7 @@ def bench_batch(n_tracks: int = 25, noise_pct: float = 5.0, seed: int = 0,
     Converged means the largest correction is below ``tolerance`` (0.1 mm / 0.1 mrad by
     default; the cost no longer changes in its 10th digit by then).
     """
-    sc = aerial_scenario(n_tracks=n_tracks)
-    nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
-                 np.random.default_rng(seed))
+    sc, nm = noisy_survey(n_tracks, noise_pct, seed)
     net = sc.network(nm.z, nm.cov)
     T0 = sc.f2f(nm.z)
     t0 = time.perf_counter()
@@ -196,9 +193,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
     of the same run (:mod:`ga_ros.bench.gtsam_runner`), for the ratio of update times.
     """
-    sc = aerial_scenario(n_tracks=n_tracks)
-    nm = perturb(sc.true_motions(), NoiseModel(noise_pct, sc.depth_m),
-                 np.random.default_rng(seed))
+    sc, nm = noisy_survey(n_tracks, noise_pct, seed)
     ms = sc.measurements(nm.z, nm.cov)
     cfg = AlignerConfig(window_tracks=window_tracks, freeze_policy=policy)
     if refine_every_tracks is not None:
@@ -245,7 +240,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
                               for k in (*UPDATE_PARTS, 'other', 'freeze (background)')},
         measurement_cpu_us=float(np.mean(other_us)) if other_us else float('nan'))
     al.close()
-    if with_gtsam and importlib.util.find_spec('gtsam') is not None:
+    if with_gtsam and gtsam_installed():
         (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,
          fig.gtsam_cpu_ms_p95) = _gtsam_window(sc, ms, window_tracks)
     return fig

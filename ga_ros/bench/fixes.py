@@ -38,7 +38,6 @@ skipped with a note.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import sys
@@ -49,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.bench.gtsam_runner import gtsam_installed
 from ga_ros.bench.linalg import _SHARED
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
@@ -283,7 +283,7 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                           _rmse(_interpolated(run, idx, p), run.T_true),
                           _rmse(online, run.T_true), _rmse(final, run.T_true),
                           ours_seconds=t_ours, fix_outliers=outliers)
-    if with_gtsam and importlib.util.find_spec('gtsam') is not None:
+    if with_gtsam and gtsam_installed():
         t0 = time.perf_counter()
         fig.gtsam_batch_m = _rmse(run_gtsam_batch(run, idx, p, noise_m, cov, cfg), run.T_true)
         fig.gtsam_seconds = time.perf_counter() - t0

@@ -20,12 +20,11 @@ import time
 
 import numpy as np
 
-from ga_ros.core.linalg import banded, selinv, skeleton
+from ga_ros.bench.survey import add_survey_arguments, noisy_survey
+from ga_ros.core.linalg import completion, selinv, skeleton
 from ga_ros.core.linalg.cholmod import SparseCholesky
 from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import aligner, freeze, handoff, update
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 #: (owner, attribute) of each timed stage.
 STAGES = (
@@ -37,7 +36,7 @@ STAGES = (
     (skeleton, 'sparse_skeleton'),
     (freeze, 'marginal_prior'),
     (freeze, 'band_prior'),
-    (banded, '_completion'),
+    (completion, '_completion'),
     (selinv.SelectedInverse, '__init__'),
     (SparseCholesky, 'refactor'),
     (SparseCholesky, '_analyse'),
@@ -70,9 +69,7 @@ def _timed(owner, attr: str, totals: dict[str, float]) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog='ga-ros bench freeze', description=__doc__.splitlines()[0])
-    ap.add_argument('--tracks', type=int, default=12, help='double tracks of the survey')
-    ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
-    ap.add_argument('--window', type=int, default=5)
+    add_survey_arguments(ap, tracks=12, positions=False)
     ap.add_argument('--refine', type=int, default=0, help='refine_every_tracks (0: off)')
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--no-ahead', action='store_true', help='freeze at the track end')
@@ -81,9 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     stages = [(o, a) for o, a in STAGES if hasattr(o, a)]  # an older checkout lacks some
     for owner, attr in stages:
         _timed(owner, attr, totals)
-    sc = aerial_scenario(n_tracks=args.tracks)
-    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
-                 np.random.default_rng(args.seed))
+    sc, nm = noisy_survey(args.tracks, args.noise, args.seed)
     cfg = aligner.AlignerConfig(window_tracks=args.window, refine_every_tracks=args.refine,
                                freeze_ahead=not args.no_ahead)
     al = aligner.TrackWindowAligner(cfg, sc.T_world_node[0])

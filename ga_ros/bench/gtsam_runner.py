@@ -16,11 +16,21 @@ dependency of ga_ros.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 import time
 
 import numpy as np
+
+#: What to do when the optional extra is missing.
+INSTALL_HINT = 'GTSAM not installed: pip install -r requirements-bench.txt (gtsam==4.3.0)'
+
+
+def gtsam_installed() -> bool:
+    """Whether the optional benchmark extra ``gtsam`` can be imported (without importing it)."""
+    return importlib.util.find_spec('gtsam') is not None
+
 
 #: ga_ros orders tangent vectors [x y z rx ry rz]; GTSAM's Pose3 uses [rx ry rz x y z]
 _TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])

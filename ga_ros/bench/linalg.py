@@ -49,13 +49,11 @@ class Figure:
 def matrices(graph_dir: Path = GRAPHS) -> dict[str, sp.csc_matrix]:
     """Normal matrices (full symmetric CSC) at the initial guesses: the aerial survey (10 %
     noise, F2F start) and the shared pose graphs that are present."""
+    from ga_ros.bench.survey import noisy_survey
     from ga_ros.core.solver import normal_matrix_at
     from ga_ros.io.g2o import read_g2o
-    from ga_ros.sim.aerial import aerial_scenario
-    from ga_ros.sim.noise import NoiseModel, perturb
 
-    sc = aerial_scenario(n_tracks=25)
-    nm = perturb(sc.true_motions(), NoiseModel(10.0, sc.depth_m), np.random.default_rng(0))
+    sc, nm = noisy_survey(25, 10.0, 0)
     net = sc.network(nm.z, nm.cov)
     out = {'aerial': normal_matrix_at(net, sc.f2f(nm.z), fixed=[int(net.node_ids[0])])[0]}
     for name in GRAPH_FILES:

@@ -21,14 +21,16 @@ import time
 
 import numpy as np
 
+from ga_ros.bench.survey import add_survey_arguments, survey_noise
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
-from ga_ros.report.experiments import EXP_AERIAL, policy_statistics, run_rng
-from ga_ros.report.writer import policy_seeds_table, policy_target_row
+from ga_ros.report.experiments.policies import policy_statistics
+from ga_ros.report.experiments.seeds import EXP_AERIAL, run_rng
+from ga_ros.report.markdown.policies import policy_seeds_table
+from ga_ros.report.markdown.targets import policy_target_row
 from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 
 def _policy_config(name: str, window: int, every: int, lag: int,
@@ -44,10 +46,7 @@ def _policy_config(name: str, window: int, every: int, lag: int,
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog='ga-ros bench online-gap', description=__doc__.splitlines()[0])
-    ap.add_argument('--tracks', type=int, default=8, help='double tracks of the survey')
-    ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
-    ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
-    ap.add_argument('--window', type=int, default=5)
+    add_survey_arguments(ap, tracks=8)
     ap.add_argument('--seed', type=int, default=20051101, help='master seed')
     ap.add_argument('--seeds', type=int, default=1,
                     help='noise draws r = 0..N-1 (run_rng(seed, 4, r), the draws of the report); '
@@ -91,7 +90,7 @@ def run_draw(args: argparse.Namespace, sc, rng: np.random.Generator) -> dict:
     """One noise draw: every policy of ``args.policies`` fed track by track, its gaps to batch
     printed (per track, or at the end with ``--no-per-track``). Returns per policy the end
     gaps ``(raw %, aligned %)``."""
-    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m), rng)
+    nm = survey_noise(sc, args.noise, rng)
     T_true = sc.T_world_node
     meas = sc.measurements(nm.z, nm.cov)
     dst_track = np.array([m.dst_track for m in meas])

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from ga_ros.arrays import BoolArray, FloatArray
+from ga_ros.bench.survey import noisy_survey
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality import QualityConfig, data_snooping, quality_control
 from ga_ros.core.solver import SolverConfig, solve
@@ -46,8 +47,6 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.eval.metrics import ate
 from ga_ros.geometry import se3
 from ga_ros.runtime import limit_blas_threads
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 from ga_ros.sim.scenario import Scenario
 
 #: The robust losses of the solver's registry, each a method of its own.
@@ -176,9 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     _limits = limit_blas_threads()  # noqa: F841  (kept alive for the whole run)
 
-    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions)
     rng = np.random.default_rng(args.seed)
-    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m), rng)
+    sc, nm = noisy_survey(args.tracks, args.noise, rng, args.positions)
     n_cross = int((~sc.consecutive).sum())
     clean_ls = solve(sc.network(nm.z, nm.cov), sc.f2f(nm.z))
     qrep = quality_control(sc.network(nm.z, nm.cov), clean_ls,

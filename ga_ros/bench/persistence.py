@@ -18,19 +18,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ga_ros.bench.core import NoSolveAligner
+from ga_ros.bench.survey import noisy_survey
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import load_state, save_state
 from ga_ros.pipeline.journal import MeasurementJournal, journal_path, recover
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 
 def _measurements(n_tracks: int, per_swath: int):
-    sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
-    nm = perturb(sc.true_motions(), NoiseModel(2.0, sc.depth_m), np.random.default_rng(0))
+    sc, nm = noisy_survey(n_tracks, 2.0, 0, per_swath)
     return sc.measurements(nm.z, nm.cov)
 
 

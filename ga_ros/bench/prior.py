@@ -16,27 +16,21 @@ import time
 
 import numpy as np
 
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.bench.survey import add_survey_arguments, noisy_survey
+from ga_ros.core.window import FREEZE_POLICIES, AlignerConfig, TrackWindowAligner
 from ga_ros.geometry import se3
-from ga_ros.sim.aerial import aerial_scenario
-from ga_ros.sim.noise import NoiseModel, perturb
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog='ga-ros bench prior', description=__doc__.splitlines()[0])
-    ap.add_argument('--tracks', type=int, default=10, help='double tracks of the survey')
-    ap.add_argument('--positions', type=int, default=102, help='nodes per swath')
-    ap.add_argument('--noise', type=float, default=10.0, help='noise (percent)')
-    ap.add_argument('--window', type=int, default=5)
-    ap.add_argument('--policy', default='weighted', choices=('weighted', 'marginal'))
+    add_survey_arguments(ap, tracks=10)
+    ap.add_argument('--policy', default='weighted', choices=tuple(FREEZE_POLICIES))
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--settings', nargs='+', default=['4:0', '4:8', '8:8', '16:16'],
                     help='band:hubs pairs (prior_band, prior_hubs)')
     args = ap.parse_args(argv)
-    sc = aerial_scenario(n_tracks=args.tracks, positions_per_swath=args.positions)
-    nm = perturb(sc.true_motions(), NoiseModel(args.noise, sc.depth_m),
-                 np.random.default_rng(args.seed))
+    sc, nm = noisy_survey(args.tracks, args.noise, args.seed, args.positions)
     ms = sc.measurements(nm.z, nm.cov)
     ids, truth = sc.node_ids[1:], sc.T_world_node[1:]
     ref = None

@@ -221,7 +221,6 @@ def state_nbytes(al: TrackWindowAligner) -> int:
     return total
 
 
-
 def rss_slope(poses: list[int], rss: list[float], block: int) -> float:
     """KiB per pose of the least-squares line through the lowest RSS sample (MiB) of each run of
     ``block`` consecutive samples (the first run also takes the samples left over), against the
@@ -257,8 +256,7 @@ def batch_only(args: argparse.Namespace) -> ScaleFigures:
     """``--batch-only``: the whole survey's state without window updates, poses at the
     simulator's truth (as if the online alignment had converged there), then ``refine_batch``."""
     sc, noisy, fig = scenario(args)
-    al = NoSolveAligner(aligner_config(args),
-                         sc.T_world_node[0])
+    al = NoSolveAligner(aligner_config(args), sc.T_world_node[0])
     t_start = time.perf_counter()
     chunk: list[Measurement] = []
     for m in lazy_measurements(sc, noisy.z, noisy.cov):
@@ -342,26 +340,30 @@ def aligner_config(args: argparse.Namespace) -> AlignerConfig:
     return AlignerConfig(window_tracks=args.window, freeze_policy=args.policy, **extra)
 
 
-def run(args: argparse.Namespace) -> ScaleFigures:
-    sc, noisy, fig = scenario(args)
-    checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
-    al = TrackWindowAligner(aligner_config(args), sc.T_world_node[0])
-    window_nodes: list[int] = []
-    waits: list[float] = []
-    first_cp: Checkpoint | None = None
+class UpdateRecorder:
+    """Records each window update of :func:`run` into its :class:`ScaleFigures` and takes a
+    :class:`Checkpoint` when the number of finished tracks is one of ``checkpoints``."""
 
-    def record(up: UpdateResult, cpu_ms: float, thread_ms: float, rss_before: float) -> None:
-        nonlocal first_cp
+    def __init__(self, args: argparse.Namespace, al: TrackWindowAligner, sc: Scenario,
+                 fig: ScaleFigures, checkpoints: list[int]) -> None:
+        self.args, self.al, self.sc, self.fig = args, al, sc, fig
+        self.checkpoints = checkpoints
+        self.waits: list[float] = []
+        self.first_cp: Checkpoint | None = None
+
+    def record(self, up: UpdateResult, cpu_ms: float, thread_ms: float,
+               rss_before: float) -> None:
+        """One update: its wall time (ms), the CPU time (ms) of the process and of the
+        update's own thread during it, the RSS (MiB) before the track's last measurement."""
+        fig, al = self.fig, self.al
         fig.update_ms.append(up.update_ms)
         fig.update_cpu_ms.append(cpu_ms)
         fig.update_thread_cpu_ms.append(thread_ms)
         fig.update_rss_mib.append(rss_mib())
         fig.update_rss_before_mib.append(rss_before)
         fig.update_poses.append(al.stats.n_nodes)
-        window_nodes.append(up.n_window_nodes)
-        waits.append(up.refine_wait_ms)
-        done = len(fig.update_ms)
-        if args.verbose:
+        self.waits.append(up.refine_wait_ms)
+        if self.args.verbose:
             print(f'  track {up.track_id:4d}: {up.update_ms:9.1f} ms ({cpu_ms:9.1f} ms CPU, '
                   f'{thread_ms:.1f} in its thread), '
                   f'window {up.n_window_nodes} nodes, {up.iterations} iterations, '
@@ -371,35 +373,73 @@ def run(args: argparse.Namespace) -> ScaleFigures:
                   + (f' (refinement after {up.refined_after_tracks} tracks: '
                      f'{up.refine_reason})' if up.refined_after_tracks >= 0 else ''),
                   file=sys.stderr, flush=True)
-        if done in checkpoints:
-            ms = np.array(fig.update_ms[max(0, done - args.span):])
-            cpu = np.array(fig.update_cpu_ms[max(0, done - args.span):])
-            own = np.array(fig.update_thread_cpu_ms[max(0, done - args.span):])
-            wait = np.array(waits[max(0, done - args.span):])
-            poses = done * fig.poses_per_track
-            path = al.corrected_path()
-            snap = al.handoff.snap
-            cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
-                            float(np.percentile(ms, 95)), float(ms.max()),
-                            float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),
-                            up.n_window_nodes, fig.update_rss_mib[-1], None,
-                            state_nbytes(al) / max(1, al.stats.n_nodes),
-                            float(np.percentile(wait, 50)), float(np.percentile(wait, 95)),
-                            children_rss_mib(), 0 if snap is None else snap.node_ids.size,
-                            ate(path.T_world_node, sc.T_world_node[path.node_ids]).rmse,
-                            float(np.percentile(own, 50)), float(np.percentile(own, 95)))
-            if first_cp is None:
-                first_cp = cp
-            elif poses > first_cp.poses:
-                cp.kib_per_pose_since_first = (1024.0 * (cp.rss_mib - first_cp.rss_mib)
-                                               / (poses - first_cp.poses))
-                cp.kib_per_pose_fit = rss_slope(fig.update_poses[first_cp.tracks - 1:],
-                                                fig.update_rss_before_mib[first_cp.tracks - 1:],
-                                                max(1, args.span // 2))
-            fig.checkpoints.append(cp)
+        if len(fig.update_ms) in self.checkpoints:
+            fig.checkpoints.append(self._checkpoint(up))
 
+    def _checkpoint(self, up: UpdateResult) -> Checkpoint:
+        """Figures over the ``--span`` updates ending with ``up``."""
+        fig, al, span = self.fig, self.al, self.args.span
+        done = len(fig.update_ms)
+        ms = np.array(fig.update_ms[max(0, done - span):])
+        cpu = np.array(fig.update_cpu_ms[max(0, done - span):])
+        own = np.array(fig.update_thread_cpu_ms[max(0, done - span):])
+        wait = np.array(self.waits[max(0, done - span):])
+        poses = done * fig.poses_per_track
+        path = al.corrected_path()
+        snap = al.handoff.snap
+        cp = Checkpoint(done, poses, float(np.percentile(ms, 50)),
+                        float(np.percentile(ms, 95)), float(ms.max()),
+                        float(np.percentile(cpu, 50)), float(np.percentile(cpu, 95)),
+                        up.n_window_nodes, fig.update_rss_mib[-1], None,
+                        state_nbytes(al) / max(1, al.stats.n_nodes),
+                        float(np.percentile(wait, 50)), float(np.percentile(wait, 95)),
+                        children_rss_mib(), 0 if snap is None else snap.node_ids.size,
+                        ate(path.T_world_node, self.sc.T_world_node[path.node_ids]).rmse,
+                        float(np.percentile(own, 50)), float(np.percentile(own, 95)))
+        first = self.first_cp
+        if first is None:
+            self.first_cp = cp
+        elif poses > first.poses:
+            cp.kib_per_pose_since_first = (1024.0 * (cp.rss_mib - first.rss_mib)
+                                           / (poses - first.poses))
+            cp.kib_per_pose_fit = rss_slope(fig.update_poses[first.tracks - 1:],
+                                            fig.update_rss_before_mib[first.tracks - 1:],
+                                            max(1, span // 2))
+        return cp
+
+
+def run(args: argparse.Namespace) -> ScaleFigures:
+    """The online run over the whole survey (or until ``--max-seconds``), then the state save
+    and restore and the batch refinement unless ``--no-save`` / ``--no-batch``."""
+    sc, noisy, fig = scenario(args)
+    checkpoints = sorted({int(c) for c in args.checkpoints.split(',') if c.strip()})
+    al = TrackWindowAligner(aligner_config(args), sc.T_world_node[0])
+    rec = UpdateRecorder(args, al, sc, fig, checkpoints)
     t_start = time.perf_counter()
-    stopped = False
+    if _stream(args, al, sc, noisy, rec, t_start):
+        rss_before = rss_mib()
+        cpu0, own0 = time.process_time(), time.thread_time()
+        last = al.finish_track()
+        if last is not None:
+            rec.record(last, 1e3 * (time.process_time() - cpu0),
+                       1e3 * (time.thread_time() - own0), rss_before)
+    fig.online_seconds = time.perf_counter() - t_start
+    st = al.stats
+    fig.tracks_done = len(fig.update_ms)
+    fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
+    fig.missing_checkpoints = [c for c in checkpoints if c > fig.tracks_done]
+    if not args.no_save:
+        save_and_restore(al, fig, args.restore_timeout)
+    if not args.no_batch:
+        refine(al, fig, args.stages)
+    return fig
+
+
+def _stream(args: argparse.Namespace, al: TrackWindowAligner, sc: Scenario, noisy,
+            rec: UpdateRecorder, t_start: float) -> bool:
+    """Feed the survey's measurements in acquisition order, recording every update; False when
+    stopped by ``--max-seconds`` (the last track then stays open), True at the end of the
+    survey."""
     rss_before = rss_mib()
     for m in lazy_measurements(sc, noisy.z, noisy.cov):
         if al.open_track is not None and int(m.dst_track) != al.open_track:
@@ -407,35 +447,24 @@ def run(args: argparse.Namespace) -> ScaleFigures:
         cpu0, own0 = time.process_time(), time.thread_time()
         ups = al.add_measurement(m)
         for up in ups:  # at most one: the CPU time of the call is the update's
-            record(up, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0),
-                   rss_before)
+            rec.record(up, 1e3 * (time.process_time() - cpu0),
+                       1e3 * (time.thread_time() - own0), rss_before)
         if ups and args.max_seconds and time.perf_counter() - t_start > args.max_seconds:
-            stopped = True
-            break
-    if not stopped:
-        rss_before = rss_mib()
-        cpu0, own0 = time.process_time(), time.thread_time()
-        last = al.finish_track()
-        if last is not None:
-            record(last, 1e3 * (time.process_time() - cpu0), 1e3 * (time.thread_time() - own0),
-                   rss_before)
-    fig.online_seconds = time.perf_counter() - t_start
+            return False
+    return True
+
+
+def save_and_restore(al: TrackWindowAligner, fig: ScaleFigures, timeout_s: float) -> None:
+    """Save the aligner's state to a temporary file and restore it in a child process
+    (:func:`timed_restore`): times, file size and note into ``fig``."""
     st = al.stats
-    fig.tracks_done = len(fig.update_ms)
-    fig.poses_done, fig.connections_done = st.n_nodes, st.n_connections
-    fig.missing_checkpoints = [c for c in checkpoints if c > fig.tracks_done]
-    if not args.no_save:
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / 'state.npz'
-            t = time.perf_counter()
-            save_state(al, path)
-            fig.save_seconds = time.perf_counter() - t
-            fig.state_mib = path.stat().st_size / 2**20
-            fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes,
-                                                            args.restore_timeout)
-    if not args.no_batch:
-        refine(al, fig, args.stages)
-    return fig
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / 'state.npz'
+        t = time.perf_counter()
+        save_state(al, path)
+        fig.save_seconds = time.perf_counter() - t
+        fig.state_mib = path.stat().st_size / 2**20
+        fig.load_seconds, fig.load_note = timed_restore(path, st.n_nodes, timeout_s)
 
 
 def _fmt(x: float | None, spec: str = '.2f') -> str:

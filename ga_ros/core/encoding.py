@@ -2,8 +2,8 @@
 
 The encoding (README, "The measurement encoding") is a ``nav_msgs/Odometry`` per connection.
 rclpy messages (the nodes, :mod:`ga_ros.ros.conversions`) and rosbags messages (the ROS-free
-replay, :mod:`ga_ros.io.bag`) have the same field names, so both decode here and cannot drift
-apart. Nothing here imports ROS.
+replay, :mod:`ga_ros.io.bag_messages`) have the same field names, so both decode here and cannot
+drift apart. Nothing here imports ROS.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The measurement encoding (``nav_msgs/Odometry`` on ``/ga/measurements``, see the README) carries
 the node and track ids of a connection's two ends in ``header.frame_id`` and ``child_frame_id``.
 Both the rclpy conversions (:mod:`ga_ros.ros.conversions`) and the ROS-free bag reader
-(:mod:`ga_ros.io.bag`) parse them here, so the two cannot drift apart.
+(:mod:`ga_ros.io.bag_messages`) parse them here, so the two cannot drift apart.
 """
 
 from __future__ import annotations

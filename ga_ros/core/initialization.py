@@ -87,6 +87,15 @@ class PoseGraphEdges:
         return R, t, np.maximum(w, 1e-12 * max(float(np.max(w, initial=0.0)), 1e-300)), I_t
 
 
+def _check_reached(reached: IntArray, n: int) -> None:
+    """Raise :class:`NetworkError` naming the vertices missing from ``reached`` (the vertices
+    a search from the datum visited)."""
+    if reached.size != n:
+        missing = np.setdiff1d(np.arange(n), reached)
+        raise NetworkError(f'{missing.size} vertices (indices e.g. {missing[:5].tolist()}) are '
+                           f'not connected to the datum by any edge; they cannot be placed')
+
+
 def _compose_tree(edges: PoseGraphEdges, weight: FloatArray, root: int) -> FloatArray:
     """Poses composed from ``root`` (identity) along the minimum spanning tree of ``weight``."""
     from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree  # lazy: start-up
@@ -101,10 +110,7 @@ def _compose_tree(edges: PoseGraphEdges, weight: FloatArray, root: int) -> Float
     G = sp.coo_matrix((w, (lo[best], hi[best])), shape=(n, n)).tocsr()
     tree = minimum_spanning_tree(G)
     visit, pred = breadth_first_order(tree, root, directed=False, return_predecessors=True)
-    if visit.size != n:
-        missing = np.setdiff1d(np.arange(n), visit)
-        raise NetworkError(f'{missing.size} vertices (indices e.g. {missing[:5].tolist()}) are '
-                           f'not connected to the datum by any edge; they cannot be placed')
+    _check_reached(visit, n)
     pair_key = lo[best] * n + hi[best]
     sorter = np.argsort(pair_key)
     child = visit[1:]
@@ -173,6 +179,98 @@ def _solve_free(N: sp.spmatrix, b: FloatArray, what: str) -> FloatArray:
     return x
 
 
+@dataclass(frozen=True)
+class _FreeVertices:
+    """The unknowns of the chordal systems: every vertex but the datum (``root``).
+
+    Attributes
+    ----------
+    root : the datum's vertex index.
+    others : (nf,) the other vertices, ascending.
+    index : (n,) position of each vertex among ``others`` (-1 for the root).
+    """
+
+    root: int
+    others: IntArray
+    index: IntArray
+
+    @classmethod
+    def of(cls, n: int, root: int) -> _FreeVertices:
+        """The free vertices of a graph of ``n`` vertices with the datum ``root``."""
+        index = np.full(n, -1, dtype=np.int64)
+        others = np.flatnonzero(np.arange(n) != root)
+        index[others] = np.arange(others.size)
+        return cls(root, others, index)
+
+
+def _incidence(edges: PoseGraphEdges, free: _FreeVertices, blocks_i: FloatArray,
+               blocks_j: FloatArray) -> sp.csr_matrix:
+    """Sparse ``(d m, d nf)`` matrix with block ``blocks_i[k]`` at (k, i), ``blocks_j[k]`` at
+    (k, j) for each edge ``k = (i, j)``; blocks of the root are dropped (they go to the
+    right-hand side)."""
+    d, m, nf = edges.dim, len(edges.src), free.others.size
+    a = np.arange(d)
+    rows, cols, vals = [], [], []
+    for ends, B in ((np.asarray(edges.src), blocks_i), (np.asarray(edges.dst), blocks_j)):
+        k = np.flatnonzero(free.index[ends] >= 0)
+        r = (k[:, None, None] * d + a[None, :, None]).repeat(d, axis=2)
+        c = (free.index[ends[k]][:, None, None] * d + a[None, None, :]).repeat(d, axis=1)
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+        vals.append(B[k].ravel())
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(d * m, d * nf))
+
+
+def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
+    """Sparse ``(d m, d m)`` block-diagonal matrix of ``(m, d, d)`` blocks."""
+    m, d = blocks.shape[:2]
+    k, a = np.arange(m), np.arange(d)
+    rows = (k[:, None, None] * d + a[None, :, None]).repeat(d, axis=2).ravel()
+    cols = (k[:, None, None] * d + a[None, None, :]).repeat(d, axis=1).ravel()
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(d * m, d * m))
+
+
+def _chordal_rotations(edges: PoseGraphEdges, free: _FreeVertices, R_ij: FloatArray,
+                       w: FloatArray) -> FloatArray:
+    """Rotations ``R_world_node (n, d, d)`` of the chordal relaxation: the weighted least
+    squares ``y_j - R_ij' y_i = 0`` for each column of ``Y = R'`` (``Y_root = I``), each
+    solution projected to SO(d)."""
+    n, d, root = edges.n, edges.dim, free.root
+    src, dst = np.asarray(edges.src), np.asarray(edges.dst)
+    m, nf = src.size, free.others.size
+    eye = np.broadcast_to(np.eye(d), (m, d, d))
+    R_ij_t = np.swapaxes(R_ij, 1, 2)
+    A = _incidence(edges, free, -R_ij_t, eye)
+    rhs = np.zeros((m, d, d))
+    rhs[src == root] += R_ij_t[src == root]   # -(-R_ij' I)
+    rhs[dst == root] -= eye[dst == root]      # -(I I)
+    Wr = sp.diags(np.repeat(w, d))
+    y = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m, d)), 'rotation')
+    R = np.empty((n, d, d))
+    R[root] = np.eye(d)
+    R[free.others] = np.swapaxes(y.reshape(nf, d, d), 1, 2)
+    return _project_rotations(R)
+
+
+def _chordal_translations(edges: PoseGraphEdges, free: _FreeVertices, R: FloatArray,
+                          t_ij: FloatArray, I_t: FloatArray) -> FloatArray:
+    """Translations ``t_world_node (n, d)`` given the rotations ``R``: the least squares
+    ``t_j - t_i = R_i t_ij`` weighted by ``R_i I_t R_i'`` (``t_root = 0``)."""
+    n, d = edges.n, edges.dim
+    src = np.asarray(edges.src)
+    m, nf = src.size, free.others.size
+    eye = np.broadcast_to(np.eye(d), (m, d, d))
+    A = _incidence(edges, free, -eye, eye)
+    rhs = (R[src] @ t_ij[:, :, None])[:, :, 0]
+    W_blocks = R[src] @ I_t @ np.swapaxes(R[src], 1, 2)
+    Wr = _block_diagonal(0.5 * (W_blocks + np.swapaxes(W_blocks, 1, 2)))
+    t = np.zeros((n, d))
+    t[free.others] = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m)), 'translation'
+                                 ).reshape(nf, d)
+    return t
+
+
 def chordal_initialization(edges: PoseGraphEdges, root: int = 0) -> FloatArray:
     """Chordal rotation-first initialisation (Carlone et al., ICRA 2015; module docstring).
 
@@ -196,66 +294,15 @@ def chordal_initialization(edges: PoseGraphEdges, root: int = 0) -> FloatArray:
 
     n, d = edges.n, edges.dim
     src, dst = np.asarray(edges.src), np.asarray(edges.dst)
-    m = src.size
-    reach = breadth_first_order(sp.coo_matrix((np.ones(m), (src, dst)), shape=(n, n)).tocsr(),
-                                root, directed=False, return_predecessors=False)
-    if reach.size != n:
-        missing = np.setdiff1d(np.arange(n), reach)
-        raise NetworkError(f'{missing.size} vertices (indices e.g. {missing[:5].tolist()}) are '
-                           f'not connected to the datum by any edge; they cannot be placed')
+    _check_reached(breadth_first_order(
+        sp.coo_matrix((np.ones(src.size), (src, dst)), shape=(n, n)).tocsr(), root,
+        directed=False, return_predecessors=False), n)
     R_ij, t_ij, w, I_t = edges.blocks()
-    free = np.full(n, -1, dtype=np.int64)
-    others = np.flatnonzero(np.arange(n) != root)
-    free[others] = np.arange(others.size)
-    nf = others.size
-    a = np.arange(d)
-
-    def assemble(blocks_i: FloatArray, blocks_j: FloatArray) -> sp.csr_matrix:
-        """Sparse ``(d m, d nf)`` matrix with block ``blocks_i[k]`` at (k, i), ``blocks_j[k]``
-        at (k, j); blocks of the root are dropped (they go to the right-hand side)."""
-        rows, cols, vals = [], [], []
-        for ends, B in ((src, blocks_i), (dst, blocks_j)):
-            keep = free[ends] >= 0
-            k = np.flatnonzero(keep)
-            r = (k[:, None, None] * d + a[None, :, None]).repeat(d, axis=2)
-            c = (free[ends[k]][:, None, None] * d + a[None, None, :]).repeat(d, axis=1)
-            rows.append(r.ravel())
-            cols.append(c.ravel())
-            vals.append(B[k].ravel())
-        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(d * m, d * nf))
-
-    # ---- rotations: y_j - R_ij' y_i = 0 for each column of Y = R' (Y_root = I)
-    eye = np.broadcast_to(np.eye(d), (m, d, d))
-    R_ij_t = np.swapaxes(R_ij, 1, 2)
-    A = assemble(-R_ij_t, eye)
-    rhs = np.zeros((m, d, d))
-    rhs[src == root] += R_ij_t[src == root]   # -(-R_ij' I)
-    rhs[dst == root] -= eye[dst == root]      # -(I I)
-    Wr = sp.diags(np.repeat(w, d))
-    y = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m, d)), 'rotation')
-    R = np.empty((n, d, d))
-    R[root] = np.eye(d)
-    R[others] = np.swapaxes(y.reshape(nf, d, d), 1, 2)
-    R = _project_rotations(R)
-
-    # ---- translations: t_j - t_i = R_i t_ij, weighted by R_i I_t R_i' (t_root = 0)
-    A = assemble(-eye, eye)
-    rhs = (R[src] @ t_ij[:, :, None])[:, :, 0]
-    W_blocks = R[src] @ I_t @ np.swapaxes(R[src], 1, 2)
-    W_blocks = 0.5 * (W_blocks + np.swapaxes(W_blocks, 1, 2))
-    k = np.arange(m)
-    Wr = sp.csr_matrix((W_blocks.ravel(), ((k[:, None, None] * d + a[None, :, None])
-                                           .repeat(d, axis=2).ravel(),
-                                           (k[:, None, None] * d + a[None, None, :])
-                                           .repeat(d, axis=1).ravel())), shape=(d * m, d * m))
-    t = np.zeros((n, d))
-    t[others] = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m)), 'translation'
-                            ).reshape(nf, d)
-
+    free = _FreeVertices.of(n, root)
+    R = _chordal_rotations(edges, free, R_ij, w)
     T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     T[:, :d, :d] = R
-    T[:, :d, 3] = t
+    T[:, :d, 3] = _chordal_translations(edges, free, R, t_ij, I_t)
     return T
 
 

@@ -23,7 +23,7 @@ from ga_ros.core import encoding
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.atomic import commit_directory, staging_directory
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
+from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
 
 
 class BagWriter:

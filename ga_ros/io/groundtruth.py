@@ -21,7 +21,7 @@ Bag topics (:func:`read_ground_truth_topic`)
     trajectory, node ids from node frame ids ``ga/<track>/<node>`` when present) or a TF frame
     pair ``tf:PARENT:CHILD`` (the transforms ``PARENT -> CHILD`` on ``/tf`` and ``/tf_static``:
     a direct edge, no chaining); which topic a bag offers is decided with the replay's other
-    topics (:func:`ga_ros.io.bag.plan_ground_truth`).
+    topics (:func:`ga_ros.io.topic_plan.plan_ground_truth`).
 
 Matching (:func:`match_stamps`)
     Each query stamp (a keyframe's acquisition time) gets the ground-truth pose at that time:
@@ -42,17 +42,16 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3, so3
-from ga_ros.io.bag import (
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import (
     PATH,
     POSE_STAMPED,
     TF_TOPICS,
-    BagReader,
-    parse_tf_pair,
     path_msg_to_trajectory,
-    plan_ground_truth,
     pose_msg_to_matrix,
     stamp_to_ns,
 )
+from ga_ros.io.topic_plan import parse_tf_pair, plan_ground_truth
 from ga_ros.io.trajectory import Trajectory, read_kitti, read_tum
 
 _QUAT_TOL = 1e-3
@@ -281,8 +280,8 @@ def read_ground_truth_file(path: str | os.PathLike, fmt: str = 'auto',
 # --------------------------------------------------------------------------- bag topics
 def read_ground_truth_topic(bag: BagReader, spec: str) -> GroundTruth | None:
     """The ground truth of an open bag on ``spec`` (a topic of
-    :data:`ga_ros.io.bag.GROUND_TRUTH_TYPES` or ``tf:PARENT:CHILD``); None if there is none (also
-    when a truncated bag lost it: the main stream reports the cut).
+    :data:`ga_ros.io.bag_messages.GROUND_TRUTH_TYPES` or ``tf:PARENT:CHILD``); None if there is
+    none (also when a truncated bag lost it: the main stream reports the cut).
 
     Raises
     ------

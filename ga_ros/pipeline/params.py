@@ -79,8 +79,8 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
     ------
     InputError
         A value of the wrong type, one the dataclass rejects (a value outside a field's
-        ``metadata['range']``: :func:`ga_ros.core.config_ranges.range_message`), or a former
-        flat track setting (``odom0.track_mode``, now ``odom0.track.mode``).
+        ``metadata['range']``: :func:`ga_ros.core.config_ranges.range_message`), or a
+        flat track setting (``odom0.track_mode``; the nested name is ``odom0.track.mode``).
     """
     base = cls() if base is None else base
     values, used = {}, set()

@@ -17,15 +17,9 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
-from ga_ros.io.bag import (
-    CAMERA_INFO,
-    IMAGE_TYPES,
-    TF_TOPICS,
-    BagInfo,
-    BagReader,
-    TopicPlan,
-    plan_ground_truth,
-)
+from ga_ros.io.bag import BagInfo, BagReader
+from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE_TYPES, TF_TOPICS
+from ga_ros.io.topic_plan import TopicPlan, plan_ground_truth
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig

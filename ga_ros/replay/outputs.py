@@ -24,7 +24,7 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
 from ga_ros.io.atomic import check_destinations, save_figure, write_json
-from ga_ros.io.bag import PATH, Trajectory, trajectory_to_path_msg
+from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg
 from ga_ros.io.bag_writer import (
     BagWriter,
     network_markers,
@@ -33,7 +33,7 @@ from ga_ros.io.bag_writer import (
     tf_message,
     transform_msg,
 )
-from ga_ros.io.trajectory import write_tum
+from ga_ros.io.trajectory import Trajectory, write_tum
 
 
 @dataclass(frozen=True)

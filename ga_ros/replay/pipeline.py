@@ -37,15 +37,8 @@ from ga_ros.errors import FormatError, GaError, InputError, SolverError
 from ga_ros.eval.metrics import TrajectoryError, trajectory_error
 from ga_ros.inputs.absolute import T_earth_enu
 from ga_ros.inputs.messages import INPUT_TYPES
-from ga_ros.io.bag import (
-    ODOMETRY,
-    BagReader,
-    TopicConfig,
-    TopicPlan,
-    Trajectory,
-    measurement_to_odometry,
-    plan_topics,
-)
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry
 from ga_ros.io.groundtruth import (
     DEFAULT_TOLERANCE_S,
     GroundTruth,
@@ -55,6 +48,8 @@ from ga_ros.io.groundtruth import (
     read_ground_truth_file,
     read_ground_truth_topic,
 )
+from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
+from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.absolute import FixFeeder
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import (

@@ -1,7 +1,7 @@
 """The sample bags in ``bags/``: deterministic generators (seeded simulators, fixed stamps).
 
 Two bags, each with ground truth on ``/ga/ground_truth`` (``nav_msgs/Path``, written once at the
-end; see :mod:`ga_ros.io.bag`):
+end; see :mod:`ga_ros.io.topic_plan`):
 
 * ``aerial_measurements`` -- the measurement encoding (``/ga/measurements``) of the paper's
   full aerial scenario (Sec. IV; :func:`ga_ros.sim.aerial.aerial_scenario`: 25 double tracks x
@@ -29,18 +29,18 @@ from ga_ros import topics
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
-from ga_ros.io.bag import (
+from ga_ros.io.bag_messages import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
     ODOMETRY,
     PATH,
-    Trajectory,
     header,
     measurement_to_odometry,
     trajectory_to_path_msg,
     typestore,
 )
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.trajectory import Trajectory
 
 #: Stamp of the first frame of the sample bags (2023-11-14T22:13:20Z), ns.
 BASE_STAMP_NS = 1_700_000_000 * 1_000_000_000

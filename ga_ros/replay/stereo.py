@@ -16,7 +16,9 @@ from typing import Any
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.extrinsic import TransformTree
 from ga_ros.errors import GaError, InputError
-from ga_ros.io.bag import CAMERA_INFO, BagReader, TopicPlan
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import CAMERA_INFO
+from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.pipeline.stereo import FrontEndConfig, StereoFrontEnd, StereoStats
 from ga_ros.replay.source import SourceItem
 from ga_ros.vo.calibration import read_stereo_calibration

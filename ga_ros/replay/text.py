@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from ga_ros.errors import GaError
-from ga_ros.io.bag import BagInfo, TopicConfig, TopicPlan, plan_topics
+from ga_ros.io.bag import BagInfo
+from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
 from ga_ros.replay.inputs import InputTopics, plan_inputs
 from ga_ros.replay.pipeline import ReplayResult
 

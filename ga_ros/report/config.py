@@ -23,7 +23,8 @@ class ReproduceConfig:
     ----------
     seed : master seed; run ``r`` of experiment ``e`` at noise index ``i`` for path family ``j``
         draws its noise from ``default_rng(SeedSequence([seed, e, j, i, r]))`` (see
-        :func:`ga_ros.report.experiments.run_rng`), so every number can be recomputed alone.
+        :func:`ga_ros.report.experiments.seeds.run_rng`), so every number can be recomputed
+        alone.
     runs : Monte-Carlo runs per trajectory and noise level (Table I, Fig. 5; the paper: 100).
     noise_levels : noise levels (percent of the true motion).
     trajectories : synthetic trajectories (names from :mod:`ga_ros.sim.trajectories`).
@@ -31,7 +32,7 @@ class ReproduceConfig:
     paper_model_runs : runs of Table I with the paper's position model (eq. 1); 0 skips it.
     fig3_tracks : tracks of the aerial survey used for Fig. 2/3 (the paper: tracks 1-7).
     fig3_runs : noise draws per level for Fig. 2/3 (linearised, see
-        :func:`ga_ros.report.experiments.future_tracks`).
+        :func:`ga_ros.report.experiments.future_tracks.future_tracks`).
     fig3_noise_levels : noise levels of Fig. 2/3 (the paper: 1, 5, 10 %).
     aerial_tracks : double tracks of the aerial survey for Fig. 7/8 and the window experiments.
     aerial_positions_per_swath : nodes per swath (the paper: 102).
@@ -42,8 +43,8 @@ class ReproduceConfig:
     policy_seeds : independent noise draws of the aerial survey on which the policies are
         compared (draw ``r`` from ``run_rng(seed, 4, r)``; draw 0 is the single-draw table):
         per policy the mean and sd of its gap to batch, and its paired difference with
-        ``weighted`` on the same draws with a 95 % t interval (:func:`ga_ros.report.experiments.
-        policy_seeds`); 1 reports the single draw only (no interval).
+        ``weighted`` on the same draws with a 95 % t interval (:func:`ga_ros.report.
+        experiments.policies.policy_seeds`); 1 reports the single draw only (no interval).
     memory_tracks : two survey sizes (tracks) whose per-update memory is compared.
     fig8_tracks : 1-based track numbers whose before/after errors are plotted (Fig. 8).
     stereo_tracks, stereo_positions_per_swath : experiment 2 from rendered stereo (320x240,

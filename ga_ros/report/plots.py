@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.io.atomic import save_figure
-from ga_ros.report.experiments import AerialResult, FutureTracksResult, Table1Result
+from ga_ros.report.experiments.future_tracks import FutureTracksResult
+from ga_ros.report.experiments.survey import AerialResult, pose_error_profiles
+from ga_ros.report.experiments.table1 import Table1Result
 
 
 def _figure(w: float = 8.0, h: float = 4.0):
@@ -111,8 +113,6 @@ def plot_fig7_9(vo: AerialResult, syn: AerialResult, out: Path) -> str:
     """Figs. 7 and 9 of experiment 2: position, altitude and heading error along the
     trajectory (F2F, GA online window, batch GA), VO motions (left) beside synthetic noise
     (right)."""
-    from ga_ros.report.experiments import pose_error_profiles
-
     fig = _figure(12, 9)
     axes = fig.subplots(3, 2)
     for col, (ae, name) in enumerate(((vo, 'VO motions (rendered stereo)'),

@@ -221,8 +221,6 @@ def render_vo_survey(cfg: StereoSurveyConfig, cache: Path | None = None,
     InputError
         When the VO lost its track (the keyframe chain is broken: no F2F, no single network).
     """
-    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-
     if cache is not None:
         cached = load_survey(cfg, cache)
         if cached is not None:
@@ -240,13 +238,54 @@ def render_vo_survey(cfg: StereoSurveyConfig, cache: Path | None = None,
     front = StereoFrontEnd(FrontEndConfig(
         vo=VoConfig(keyframe_max_travel_ratio=cfg.keyframe_max_travel_ratio)))
     front.set_camera_models(*_camera_models(rig))
+    run = _drive_front_end(front, survey, scene, cfg.seed, say)
+    vs = _collect_survey(run, front, survey, scene, rig)
+    vs.fig12 = _fig12_pairs(vs, scene, cfg.fig12_pairs)
+    stats = front.stats
+    vs.stats = {
+        'frames': len(survey.T_world_cam), 'keyframes': vs.n_nodes, 'motions': len(run.meas),
+        'consecutive': int((~vs.cross).sum()), 'cross': int(vs.cross.sum()),
+        'cross_attempts': stats.cross_attempts, 'cross_duplicates_dropped': run.duplicates,
+        'front_end': stats.summary(),
+        'image_size': f'{cfg.width}x{cfg.height}', 'baseline_m': rig.baseline_m,
+        'seconds': {'terrain': terrain_s, **run.seconds,
+                    'total': time.perf_counter() - t_all}}
+    if cache is not None:
+        save_survey(vs, cfg, cache)
+    return vs
+
+
+@dataclass
+class _FrontEndRun:
+    """What :func:`_drive_front_end` collected.
+
+    Attributes
+    ----------
+    meas : the motions the online aligner accepted, in arrival order.
+    node_frame : survey frame index of each keyframe id.
+    duplicates : cross-track motions dropped because they repeat a consecutive one.
+    seconds : wall-clock seconds of ``render``, ``vo``, ``cross_track`` and ``online_window``.
+    """
+
+    meas: list[Measurement] = field(default_factory=list)
+    node_frame: dict[int, int] = field(default_factory=dict)
+    duplicates: int = 0
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(
+        ('render', 'vo', 'cross_track', 'online_window'), 0.0))
+
+
+def _drive_front_end(front: StereoFrontEnd, survey, scene, seed: int,
+                     say: Callable[[str], None]) -> _FrontEndRun:
+    """Render every frame of ``survey``, feed it to ``front`` and its motions to an online
+    :class:`~ga_ros.core.window.TrackWindowAligner`, whose corrected path goes back to the
+    front end (as ``vo_node`` gets the alignment node's path)."""
+    from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+
     frame_of_stamp = {int(s): i for i, s in enumerate(survey.stamps_ns)}
-    rng = np.random.default_rng(cfg.seed + 1)
+    rng = np.random.default_rng(seed + 1)
+    run = _FrontEndRun()
+    sec = run.seconds
     aligner = None
-    meas: list[Measurement] = []
-    node_frame: dict[int, int] = {}
-    render_s = vo_s = cross_s = align_s = 0.0
-    duplicates = 0
     n = len(survey.T_world_cam)
     for i in range(n):
         t0 = time.perf_counter()
@@ -256,44 +295,60 @@ def render_vo_survey(cfg: StereoSurveyConfig, cache: Path | None = None,
         frame = front.process_pair(ImagePair(_mono8(left), _mono8(right),
                                              int(survey.stamps_ns[i])))
         t2 = time.perf_counter()
-        render_s += t1 - t0
-        vo_s += t2 - t1
+        sec['render'] += t1 - t0
+        sec['vo'] += t2 - t1
         for node, stamp in frame.node_stamps.items():
-            node_frame[node] = frame_of_stamp[stamp]
+            run.node_frame[node] = frame_of_stamp[stamp]
         new = [frame.measurement] if frame.measurement is not None else []
         t3 = time.perf_counter()
         if frame.measurement is not None:
-            for a in front.match(frame):
-                if not a.accepted or a.measurement is None:
-                    continue
-                if a.measurement.dst_id == a.measurement.src_id + 1:
-                    # the same keyframe pair as the consecutive motion (around a turn): the
-                    # network keeps one connection per pair
-                    duplicates += 1
-                    continue
-                new.append(a.measurement)
+            new += _cross_measurements(front, frame, run)
         t4 = time.perf_counter()
-        cross_s += t4 - t3
+        sec['cross_track'] += t4 - t3
         for m in new:
             if aligner is None:
                 aligner = TrackWindowAligner(AlignerConfig(), T_world_first=survey.T_world_cam[
-                    node_frame[m.src_id]])
+                    run.node_frame[m.src_id]])
             try:
                 updates = aligner.add_measurement(m)
             except GaError:
                 continue  # counted by the aligner; the measurement stays out, as in the node
-            meas.append(m)
+            run.meas.append(m)
             if updates:
                 path = aligner.corrected_path()
                 front.set_corrected(path.node_ids, path.T_world_node)
-        align_s += time.perf_counter() - t4
+        sec['online_window'] += time.perf_counter() - t4
         if (i + 1) % 500 == 0:
-            say(f'  stereo survey: {i + 1}/{n} pairs, {len(meas)} motions')
+            say(f'  stereo survey: {i + 1}/{n} pairs, {len(run.meas)} motions')
+    return run
+
+
+def _cross_measurements(front: StereoFrontEnd, frame, run: _FrontEndRun) -> list[Measurement]:
+    """The accepted cross-track motions of ``frame``'s keyframe; those that repeat the
+    consecutive keyframe pair are counted in ``run.duplicates`` and dropped."""
+    out = []
+    for a in front.match(frame):
+        if not a.accepted or a.measurement is None:
+            continue
+        if a.measurement.dst_id == a.measurement.src_id + 1:
+            # the same keyframe pair as the consecutive motion (around a turn): the network
+            # keeps one connection per pair
+            run.duplicates += 1
+            continue
+        out.append(a.measurement)
+    return out
+
+
+def _collect_survey(run: _FrontEndRun, front: StereoFrontEnd, survey, scene,
+                    rig: StereoRig) -> VoSurvey:
+    """The motions and the truth of every keyframe node as a :class:`VoSurvey` (without
+    ``fig12`` and ``stats``); refused when the keyframe chain is broken."""
     stats = front.stats
     if stats.lost:
         raise InputError(f'the VO lost its track {stats.lost} time(s) ({stats.lost_reasons}); '
                          'experiment 2 needs one unbroken keyframe chain: change the seed or '
                          'the survey')
+    node_frame, meas = run.node_frame, run.meas
     ids = np.array(sorted(node_frame), dtype=np.int64)
     if not np.array_equal(ids, np.arange(ids.size)):
         raise InputError('keyframe ids are not 0..n-1; experiment 2 expects a fresh front end')
@@ -306,22 +361,9 @@ def render_vo_survey(cfg: StereoSurveyConfig, cache: Path | None = None,
     cross = np.array([m.kind == 'cross' for m in meas], dtype=bool)
     T_true = survey.T_world_cam[frames]
     heights = scene.terrain.height_at(T_true[:, 0, 3], T_true[:, 1, 3])
-    vs = VoSurvey(T_true, track, survey.swath[frames], frames, src, dst,
-                  np.array([m.z for m in meas]), np.array([m.cov for m in meas]), cross,
-                  float(np.median(T_true[:, 2, 3] - heights)), rig.K)
-    vs.fig12 = _fig12_pairs(vs, scene, cfg.fig12_pairs)
-    vs.stats = {
-        'frames': n, 'keyframes': int(ids.size), 'motions': len(meas),
-        'consecutive': int((~cross).sum()), 'cross': int(cross.sum()),
-        'cross_attempts': stats.cross_attempts, 'cross_duplicates_dropped': duplicates,
-        'front_end': stats.summary(),
-        'image_size': f'{cfg.width}x{cfg.height}', 'baseline_m': rig.baseline_m,
-        'seconds': {'terrain': terrain_s, 'render': render_s, 'vo': vo_s,
-                    'cross_track': cross_s, 'online_window': align_s,
-                    'total': time.perf_counter() - t_all}}
-    if cache is not None:
-        save_survey(vs, cfg, cache)
-    return vs
+    return VoSurvey(T_true, track, survey.swath[frames], frames, src, dst,
+                    np.array([m.z for m in meas]), np.array([m.cov for m in meas]), cross,
+                    float(np.median(T_true[:, 2, 3] - heights)), rig.K)
 
 
 def _fig12_pairs(vs: VoSurvey, scene, k: int) -> dict:

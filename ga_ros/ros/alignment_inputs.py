@@ -7,10 +7,9 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, NavSatFix
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Empty
 from tf2_msgs.msg import TFMessage
 
@@ -21,10 +20,9 @@ from ga_ros.core.extrinsic import (
 )
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
-from ga_ros.inputs.absolute import ABSOLUTE_TYPES, NAVSAT, AbsoluteInputConfig
-from ga_ros.inputs.absolute import ODOMETRY as ABS_ODOMETRY
+from ga_ros.inputs.absolute import ABSOLUTE_TYPES, AbsoluteInputConfig
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
-from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY, POSE, POSE_COV
+from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
 from ga_ros.pipeline.inputs import (
@@ -38,6 +36,7 @@ from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.alignment_settings import NodeSettings
 from ga_ros.ros.params import declare_config
+from ga_ros.ros.play import message_class
 from ga_ros.ros.qos import (
     AUTO,
     RELIABILITIES,
@@ -186,21 +185,19 @@ class AlignmentInputs:
         if self.front is None:
             return
         if self.absolute is not None:
-            kinds_abs = {ABS_POSE_COV: PoseWithCovarianceStamped, ABS_ODOMETRY: Odometry,
-                         NAVSAT: NavSatFix}
             for spec in self.absolute.specs.values():
                 self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
-                    self, kinds_abs[spec.msgtype], spec.topic,
+                    self, message_class(spec.msgtype), spec.topic,
                     partial(self._on_absolute, spec.name), AUTO, 100)
             # the sensors' lever arms (latched: every static broadcaster's last message)
             self.create_subscription(TFMessage, '/tf_static', self.absolute.static_transform,
                                      latched_qos(100))
-        kinds = {ODOMETRY: Odometry, POSE_COV: PoseWithCovarianceStamped, POSE: PoseStamped}
+        # the message classes follow the type names of inputs/messages.py and inputs/absolute.py
         for spec in self.front.specs.values():
             # auto (default): reliable when every publisher offers reliable, else best effort
             reliability, depth = self._input_qos[spec.name]
             self.sensor_subscriptions[spec.name] = AdaptiveSubscription(
-                self, kinds[spec.msgtype], spec.topic, partial(self._on_input, spec.name),
+                self, message_class(spec.msgtype), spec.topic, partial(self._on_input, spec.name),
                 reliability, depth)
         self.create_subscription(Odometry, s.constraints_topic, self._on_constraint,
                                  measurement_qos(1000))

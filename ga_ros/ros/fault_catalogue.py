@@ -35,7 +35,8 @@ from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
-from ga_ros.io.bag import BagReader, odometry_to_measurement
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import odometry_to_measurement
 from ga_ros.pipeline.journal import journal_path
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 from ga_ros.ros import conversions as conv

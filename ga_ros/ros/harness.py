@@ -12,7 +12,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import rclpy
@@ -34,6 +35,23 @@ CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'alignment.yaml'
 
 class HarnessTimeout(GaError):
     """A condition was not met in time (the node is too slow, dead, or not discovered)."""
+
+
+def domain_id(offset: int = 0) -> int:
+    """A ``ROS_DOMAIN_ID`` in 40-189 for this process and ``offset``: the tests of one run take
+    different offsets, so they never hear each other; concurrent runs differ by their pid."""
+    return 40 + (os.getpid() + offset) % 150
+
+
+@contextmanager
+def ros_context(domain: int) -> Iterator[rclpy.Context]:
+    """An rclpy context of its own, initialised on ``domain`` and shut down on exit."""
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 def start_node_process(domain_id: int, params: dict[str, object] | None = None,

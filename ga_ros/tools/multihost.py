@@ -356,52 +356,10 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
             + f'; switch {net.switch}; discovery {discovery}; netem {res.netem}')
         prof = out / 'fastdds_udp.xml'
         write_text(prof, fastdds_profile())
-        env_base = {'ROS_DOMAIN_ID': str(17 + os.getpid() % 80), 'PYTHONUNBUFFERED': '1',
-                    'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
-                    'FASTDDS_DEFAULT_PROFILES_FILE': str(prof)}
-        envs = {h: {**env_base, **discovery_env(discovery, [net.address[o] for o in HOSTS
-                                                            if o != h])} for h in HOSTS}
-        py = _python()
+        envs = _host_envs(net, discovery, prof)
         try:
-            procs['mapping'] = _spawn(net, 'h3', [
-                py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
-                '--finish-after-idle', str(IDLE_FINISH_S), '--finish-armed-by',
-                str(out / 'player_done'), '--timeout', str(timeout_s)],
-                envs['h3'],
-                out / 'mapping.log')
-            procs['alignment'] = _spawn(net, 'h2', [
-                py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', '--params-file',
-                str(REPO / 'config' / 'alignment.yaml'), '-p', 'use_sim_time:=true',
-                '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local',
-                '-p', 'allow_finish_track:=true'],
-                envs['h2'], out / 'alignment.log')
-            procs['vo'] = _spawn(net, 'h1', [
-                py, '-m', 'ga_ros.ros.vo_node', '--ros-args', '--params-file',
-                str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',
-                '-p', 'compressed:=true', '-p', 'image_queue:=200', '-p', 'pair_queue:=1000',
-                '-p', 'left_image_topic:=/stereo/left/image_raw/compressed',
-                '-p', 'right_image_topic:=/stereo/right/image_raw/compressed'], envs['h1'],
-                out / 'vo.log')
-            # host 3 has discovered the VO's measurement publisher and the alignment's path
-            # publisher across the bridge: the graph is connected
-            if not _wait_line(out / 'mapping.log', 'mapping_node: ready', procs['mapping'],
-                              60.0):
-                raise GaError('the mapping node did not discover the other hosts within 60 s '
-                              f'(see {out / "mapping.log"})')
-            log(f'discovery across the bridge after {time.monotonic() - t0:.1f} s')
-            time.sleep(1.0)
-            procs['play'] = _spawn(net, 'h1', [
-                py, '-m', 'ga_ros.ros.play', str(bag), '--rate', str(rate),
-                '--wait-for-subscribers', '30'], envs['h1'], out / 'play.log')
-            end = time.monotonic() + timeout_s
-            while procs['mapping'].poll() is None and time.monotonic() < end:
-                if procs['play'].poll() is not None:
-                    (out / 'player_done').touch()  # arms the mapping node's idle finish
-                time.sleep(0.2)
-            log(f'survey through after {time.monotonic() - t0:.1f} s')
-            if procs['mapping'].poll() is None:
-                res.errors.append(f'the mapping node did not finish within {timeout_s:.0f} s')
-            res.counters = net.counters()
+            _start_nodes(net, envs, out, timeout_s, procs)
+            _run_survey(net, envs, out, bag, rate, timeout_s, procs, res, t0, log)
         finally:
             _stop_all(list(procs.values()))
     res.seconds = time.monotonic() - t0
@@ -409,6 +367,69 @@ def run_demo(out_dir: str | Path, discovery: str = 'multicast', impair: bool = F
     res.ok = not res.errors
     write_json(out / 'summary.json', asdict(res), indent=1)
     return res
+
+
+def _host_envs(net: Network, discovery: str, profile: Path) -> dict[str, dict[str, str]]:
+    """Each host's environment: one ROS domain, Fast DDS over UDP only (``profile``), and the
+    discovery settings that reach the other hosts."""
+    env_base = {'ROS_DOMAIN_ID': str(17 + os.getpid() % 80), 'PYTHONUNBUFFERED': '1',
+                'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp',
+                'FASTDDS_DEFAULT_PROFILES_FILE': str(profile)}
+    return {h: {**env_base, **discovery_env(discovery, [net.address[o] for o in HOSTS
+                                                        if o != h])} for h in HOSTS}
+
+
+def _start_nodes(net: Network, envs: dict[str, dict[str, str]], out: Path, timeout_s: float,
+                 procs: dict[str, subprocess.Popen]) -> None:
+    """Start the mapping node on host 3, the alignment node on host 2 and the VO node on host
+    1, each logging to ``out/<name>.log``; into ``procs`` as they start (stopped by the
+    caller)."""
+    py = _python()
+    procs['mapping'] = _spawn(net, 'h3', [
+        py, '-m', 'ga_ros.ros.mapping_node', '--out', str(out / 'mapping'),
+        '--finish-after-idle', str(IDLE_FINISH_S), '--finish-armed-by',
+        str(out / 'player_done'), '--timeout', str(timeout_s)],
+        envs['h3'],
+        out / 'mapping.log')
+    procs['alignment'] = _spawn(net, 'h2', [
+        py, '-m', 'ga_ros.ros.alignment_node', '--ros-args', '--params-file',
+        str(REPO / 'config' / 'alignment.yaml'), '-p', 'use_sim_time:=true',
+        '-p', 'autosave:=false', '-p', 'measurement_durability:=transient_local',
+        '-p', 'allow_finish_track:=true'],
+        envs['h2'], out / 'alignment.log')
+    procs['vo'] = _spawn(net, 'h1', [
+        py, '-m', 'ga_ros.ros.vo_node', '--ros-args', '--params-file',
+        str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',
+        '-p', 'compressed:=true', '-p', 'image_queue:=200', '-p', 'pair_queue:=1000',
+        '-p', 'left_image_topic:=/stereo/left/image_raw/compressed',
+        '-p', 'right_image_topic:=/stereo/right/image_raw/compressed'], envs['h1'],
+        out / 'vo.log')
+
+
+def _run_survey(net: Network, envs: dict[str, dict[str, str]], out: Path, bag: Path,
+                rate: float, timeout_s: float, procs: dict[str, subprocess.Popen],
+                res: MultihostResult, t0: float, log) -> None:
+    """Once host 3 has discovered the others, play ``bag`` on host 1 and wait (at most
+    ``timeout_s``) for the mapping node to finish; the interface counters into ``res``."""
+    # host 3 has discovered the VO's measurement publisher and the alignment's path
+    # publisher across the bridge: the graph is connected
+    if not _wait_line(out / 'mapping.log', 'mapping_node: ready', procs['mapping'], 60.0):
+        raise GaError('the mapping node did not discover the other hosts within 60 s '
+                      f'(see {out / "mapping.log"})')
+    log(f'discovery across the bridge after {time.monotonic() - t0:.1f} s')
+    time.sleep(1.0)
+    procs['play'] = _spawn(net, 'h1', [
+        _python(), '-m', 'ga_ros.ros.play', str(bag), '--rate', str(rate),
+        '--wait-for-subscribers', '30'], envs['h1'], out / 'play.log')
+    end = time.monotonic() + timeout_s
+    while procs['mapping'].poll() is None and time.monotonic() < end:
+        if procs['play'].poll() is not None:
+            (out / 'player_done').touch()  # arms the mapping node's idle finish
+        time.sleep(0.2)
+    log(f'survey through after {time.monotonic() - t0:.1f} s')
+    if procs['mapping'].poll() is None:
+        res.errors.append(f'the mapping node did not finish within {timeout_s:.0f} s')
+    res.counters = net.counters()
 
 
 def _collect(res: MultihostResult, out: Path, read_tum, stereo_replay: bool, bag: Path,

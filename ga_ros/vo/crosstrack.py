@@ -290,20 +290,11 @@ class CrossTrackMatcher:
 
     def _verify(self, old: Keyframe, new: Keyframe, overlap: float,
                 T_pred: FloatArray) -> CrossAttempt:
+        """Match, estimate and gate one candidate pair (the stored ``old``, the ``new``
+        keyframe; ``T_pred``: the predicted ``T_old_new``)."""
         cfg = self.config
         att = CrossAttempt(old.node_id, new.node_id, overlap)
-        knn = self._matcher.knnMatch(new.descriptors, old.descriptors, k=2)
-        back = self._matcher.match(old.descriptors, new.descriptors)
-        best_back = {m.queryIdx: m.trainIdx for m in back}
-        pairs = []
-        for m in knn:
-            if len(m) < 2:
-                continue
-            a, b = m
-            if (a.distance < cfg.ratio_test * b.distance
-                    and a.distance <= cfg.max_descriptor_distance
-                    and best_back.get(a.trainIdx) == a.queryIdx):
-                pairs.append((a.trainIdx, a.queryIdx))
+        pairs = self._mutual_matches(old, new)
         att.n_matches = len(pairs)
         if len(pairs) < cfg.min_inliers:
             att.reason, att.gate = f'{len(pairs)} descriptor matches', 'matches'
@@ -331,13 +322,7 @@ class CrossTrackMatcher:
             return att
         keep = inl[est.inliers]
         att.inlier_ratio = est.n_inliers / len(pairs)
-        # Depth agreement: the stored point moved into the new frame vs the new stereo point.
-        T_no = se3.inverse(est.T_src_dst)
-        X_new_pred = X[keep] @ T_no[:3, :3].T + T_no[:3, 3]
-        X_new = new.points[inew[keep]]
-        sz = np.sqrt(old.points_cov[io[keep], 2, 2] + new.points_cov[inew[keep], 2, 2])
-        agree = np.abs(X_new_pred[:, 2] - X_new[:, 2]) < 3.0 * sz + 0.02 * X_new[:, 2]
-        att.depth_agreement = float(agree.mean())
+        att.depth_agreement = _depth_agreement(old, new, io[keep], inew[keep], est.T_src_dst)
         pts = uv[keep]
         if cfg.refine_lk and old.image is not None and new.image is not None:
             lk = self._refine_lk(old, new, io[keep], inew[keep], est.T_src_dst)
@@ -347,26 +332,63 @@ class CrossTrackMatcher:
         att.sigma0_sq = est.sigma0_sq
         span = np.ptp(pts, axis=0)
         att.spread = float(span[0] * span[1] / ((self.width - 1) * (self.height - 1)))
-        dT = se3.inverse(T_pred) @ est.T_src_dst
-        dt = float(np.linalg.norm(dT[:3, 3]))
-        da = float(np.rad2deg(np.linalg.norm(so3.log(dT[:3, :3]))))
-        if att.n_inliers < cfg.min_inliers:
-            att.reason, att.gate = f'{att.n_inliers} inliers', 'inliers'
-        elif att.inlier_ratio < cfg.min_inlier_ratio:
-            att.reason, att.gate = f'inlier ratio {att.inlier_ratio:.2f}', 'inlier_ratio'
-        elif att.spread < cfg.min_spread:
-            att.reason, att.gate = f'inlier spread {att.spread:.2f}', 'spread'
-        elif att.depth_agreement < cfg.min_depth_agreement:
-            att.reason, att.gate = f'depth agreement {att.depth_agreement:.2f}', 'depth'
-        elif att.sigma0_sq > cfg.max_sigma0_sq:
-            att.reason, att.gate = f'variance factor {att.sigma0_sq:.2f}', 'variance'
-        elif cfg.max_prediction_error_m > 0 and dt > cfg.max_prediction_error_m:
-            att.reason, att.gate = f'{dt:.1f} m from the predicted motion', 'prediction'
-        elif cfg.max_prediction_error_deg > 0 and da > cfg.max_prediction_error_deg:
-            att.reason, att.gate = f'{da:.1f} deg from the predicted motion', 'prediction'
-        else:
+        att.reason, att.gate = self._failed_gate(att, se3.inverse(T_pred) @ est.T_src_dst)
+        if not att.gate:
             att.accepted = True
             att.measurement = Measurement.from_pose(
                 old.node_id, new.node_id, old.track_id, new.track_id, est.T_src_dst,
                 est.cov * cfg.covariance_scale, new.stamp_ns, 'cross')
         return att
+
+    def _mutual_matches(self, old: Keyframe, new: Keyframe) -> list[tuple[int, int]]:
+        """Descriptor matches ``(old index, new index)`` that pass the ratio test, the distance
+        bound and the mutual (best both ways) check."""
+        cfg = self.config
+        knn = self._matcher.knnMatch(new.descriptors, old.descriptors, k=2)
+        back = self._matcher.match(old.descriptors, new.descriptors)
+        best_back = {m.queryIdx: m.trainIdx for m in back}
+        pairs = []
+        for m in knn:
+            if len(m) < 2:
+                continue
+            a, b = m
+            if (a.distance < cfg.ratio_test * b.distance
+                    and a.distance <= cfg.max_descriptor_distance
+                    and best_back.get(a.trainIdx) == a.queryIdx):
+                pairs.append((a.trainIdx, a.queryIdx))
+        return pairs
+
+    def _failed_gate(self, att: CrossAttempt, dT: FloatArray) -> tuple[str, str]:
+        """``(reason, gate)`` of the first gate the statistics of ``att`` fail, ``('', '')``
+        when they pass all; ``dT``: the estimated motion relative to the predicted one."""
+        cfg = self.config
+        dt = float(np.linalg.norm(dT[:3, 3]))
+        da = float(np.rad2deg(np.linalg.norm(so3.log(dT[:3, :3]))))
+        if att.n_inliers < cfg.min_inliers:
+            return f'{att.n_inliers} inliers', 'inliers'
+        if att.inlier_ratio < cfg.min_inlier_ratio:
+            return f'inlier ratio {att.inlier_ratio:.2f}', 'inlier_ratio'
+        if att.spread < cfg.min_spread:
+            return f'inlier spread {att.spread:.2f}', 'spread'
+        if att.depth_agreement < cfg.min_depth_agreement:
+            return f'depth agreement {att.depth_agreement:.2f}', 'depth'
+        if att.sigma0_sq > cfg.max_sigma0_sq:
+            return f'variance factor {att.sigma0_sq:.2f}', 'variance'
+        if cfg.max_prediction_error_m > 0 and dt > cfg.max_prediction_error_m:
+            return f'{dt:.1f} m from the predicted motion', 'prediction'
+        if cfg.max_prediction_error_deg > 0 and da > cfg.max_prediction_error_deg:
+            return f'{da:.1f} deg from the predicted motion', 'prediction'
+        return '', ''
+
+
+def _depth_agreement(old: Keyframe, new: Keyframe, io: np.ndarray, inew: np.ndarray,
+                     T_old_new: FloatArray) -> float:
+    """Fraction of the matched points ``(io, inew)`` whose stored point, moved into the new
+    frame by ``T_old_new``, agrees in depth with the new stereo point (within 3 sigma of the
+    two depths plus 2 % of the depth)."""
+    T_no = se3.inverse(T_old_new)
+    X_new_pred = old.points[io] @ T_no[:3, :3].T + T_no[:3, 3]
+    X_new = new.points[inew]
+    sz = np.sqrt(old.points_cov[io, 2, 2] + new.points_cov[inew, 2, 2])
+    agree = np.abs(X_new_pred[:, 2] - X_new[:, 2]) < 3.0 * sz + 0.02 * X_new[:, 2]
+    return float(agree.mean())

@@ -87,65 +87,91 @@ def run_benchmark(config: BenchConfig = BenchConfig(), frames: int | None = None
                                        positions_per_swath=c.positions_per_swath, seed=c.seed))
     rig = StereoRig.for_size(c.width, c.height)
     scene = make_scene(survey, rig, seed=c.seed, noise_std=c.noise_std)
+    n = len(survey.T_world_cam) if frames is None else min(int(frames), len(survey.T_world_cam))
+    run = _run_vo(c, survey, scene, rig, n)
+    out: dict = {
+        'size': f'{c.width}x{c.height}', 'frames': n, 'keyframes': len(run.kf_frame),
+        'status': run.status_count,
+        'vo_pairs_per_s': n / max(run.vo_seconds, 1e-9),
+        'vo_pairs_per_cpu_s': n / max(run.vo_cpu, 1e-9),
+        'consecutive': {
+            'translation_error_pct': _stats(run.cons_rel),
+            'translation_error_m': _stats(run.cons_t),
+            'rotation_error_deg': _stats(run.cons_r), 'nees': _stats(run.cons_nees),
+            'nees_swaths': _stats(run.straight_nees), 'nees_turns': _stats(run.turn_nees)},
+    }
+    if c.cross:
+        out['cross'] = _cross_figures(c, run, survey, scene)
+    return out
+
+
+@dataclass
+class _VoRun:
+    """What :func:`_run_vo` collected: the survey frame of each keyframe id, the errors of the
+    consecutive motions (translation m, rotation deg, translation % of travel, NEES; NEES split
+    along swaths / in turns), status counts, the matcher's attempts and the times (s)."""
+
+    kf_frame: dict[int, int] = field(default_factory=dict)
+    cons_t: list[float] = field(default_factory=list)
+    cons_r: list[float] = field(default_factory=list)
+    cons_rel: list[float] = field(default_factory=list)
+    cons_nees: list[float] = field(default_factory=list)
+    straight_nees: list[float] = field(default_factory=list)
+    turn_nees: list[float] = field(default_factory=list)
+    status_count: dict[str, int] = field(default_factory=dict)
+    attempts: list = field(default_factory=list)
+    vo_seconds: float = 0.0
+    vo_cpu: float = 0.0
+    cross_seconds: float = 0.0
+
+
+def _run_vo(c: BenchConfig, survey, scene, rig: StereoRig, n: int) -> _VoRun:
+    """Render the first ``n`` frames, run the odometry (and the matcher on its keyframes) and
+    score each consecutive motion against the truth."""
     cal = StereoCalibration.rectified(rig.width, rig.height, rig.K, rig.baseline_m)
     vo = StereoOdometry(cal, c.vo)
     matcher = CrossTrackMatcher(rig.K, rig.width, rig.height, c.cross_config)
     rng = np.random.default_rng(c.seed + 1)
-    n = len(survey.T_world_cam) if frames is None else min(int(frames), len(survey.T_world_cam))
-    kf_frame: dict[int, int] = {}
-    cons_t, cons_r, cons_rel, cons_nees = [], [], [], []
-    straight_nees: list[float] = []
-    turn_nees: list[float] = []
-    status_count: dict[str, int] = {}
-    attempts = []
-    vo_seconds = 0.0
-    vo_cpu = 0.0
-    cross_seconds = 0.0
+    run = _VoRun()
+    kf_frame = run.kf_frame
     for i in range(n):
         left, right = scene.render_pair(survey.T_world_cam[i], rng)
         t0, c0 = time.perf_counter(), time.process_time()
         res = vo.process(StereoFrame(left, right, int(survey.stamps_ns[i])))
-        vo_seconds += time.perf_counter() - t0
-        vo_cpu += time.process_time() - c0
-        status_count[res.status] = status_count.get(res.status, 0) + 1
+        run.vo_seconds += time.perf_counter() - t0
+        run.vo_cpu += time.process_time() - c0
+        run.status_count[res.status] = run.status_count.get(res.status, 0) + 1
         if res.status in ('initialised', 'keyframe', 'lost') and res.keyframe_id >= 0:
             kf_frame[res.keyframe_id] = i
         m = res.measurement
         if m is not None:
             T_true = se3.relative(survey.T_world_cam[kf_frame[m.src_id]], survey.T_world_cam[i])
             dt, dr, nees = motion_errors(T_true, m)
-            cons_t.append(dt)
-            cons_r.append(dr)
-            cons_rel.append(100.0 * dt / max(float(np.linalg.norm(T_true[:3, 3])), 1e-9))
-            cons_nees.append(nees)
+            run.cons_t.append(dt)
+            run.cons_r.append(dr)
+            run.cons_rel.append(100.0 * dt / max(float(np.linalg.norm(T_true[:3, 3])), 1e-9))
+            run.cons_nees.append(nees)
             turn = bool(survey.in_turn[kf_frame[m.src_id]] or survey.in_turn[i])
-            (turn_nees if turn else straight_nees).append(nees)
+            (run.turn_nees if turn else run.straight_nees).append(nees)
         if c.cross and res.keyframe is not None:
             t0 = time.perf_counter()
-            attempts.extend(matcher.add(res.keyframe))
-            cross_seconds += time.perf_counter() - t0
-    out: dict = {
-        'size': f'{c.width}x{c.height}', 'frames': n, 'keyframes': len(kf_frame),
-        'status': status_count,
-        'vo_pairs_per_s': n / max(vo_seconds, 1e-9),
-        'vo_pairs_per_cpu_s': n / max(vo_cpu, 1e-9),
-        'consecutive': {
-            'translation_error_pct': _stats(cons_rel), 'translation_error_m': _stats(cons_t),
-            'rotation_error_deg': _stats(cons_r), 'nees': _stats(cons_nees),
-            'nees_swaths': _stats(straight_nees), 'nees_turns': _stats(turn_nees)},
-    }
-    if not c.cross:
-        return out
+            run.attempts.extend(matcher.add(res.keyframe))
+            run.cross_seconds += time.perf_counter() - t0
+    return run
+
+
+def _cross_figures(c: BenchConfig, run: _VoRun, survey, scene) -> dict:
+    """Precision of the accepted cross-track connections, recall, errors and rejections."""
     correct, cross_nees, cross_t = [], [], []
     accepted_pairs = set()
     reasons: dict[str, int] = {}
-    for a in attempts:
+    for a in run.attempts:
         if not a.accepted:
             reasons[a.gate] = reasons.get(a.gate, 0) + 1
             continue
         m = a.measurement
-        T_true = se3.relative(survey.T_world_cam[kf_frame[m.src_id]],
-                              survey.T_world_cam[kf_frame[m.dst_id]])
+        T_true = se3.relative(survey.T_world_cam[run.kf_frame[m.src_id]],
+                              survey.T_world_cam[run.kf_frame[m.dst_id]])
         dt, dr, nees = motion_errors(T_true, m)
         ok = dt < c.correct_translation_m and dr < c.correct_rotation_deg
         correct.append(ok)
@@ -153,8 +179,24 @@ def run_benchmark(config: BenchConfig = BenchConfig(), frames: int | None = None
         if ok:
             cross_nees.append(nees)
         accepted_pairs.add((min(m.src_id, m.dst_id), max(m.src_id, m.dst_id)))
-    # Recall over keyframe pairs of different swaths with a true overlap >= the threshold,
-    # limited to pairs the store could still hold (within the window of tracks).
+    n_true, n_found = _recall_counts(c, run.kf_frame, survey, scene, accepted_pairs)
+    return {
+        'attempts': len(run.attempts), 'accepted': len(correct),
+        'correct': int(np.sum(correct)),
+        'precision': float(np.mean(correct)) if correct else float('nan'),
+        'true_pairs': n_true, 'found_pairs': n_found,
+        'recall': n_found / n_true if n_true else float('nan'),
+        'translation_error_m': _stats(cross_t), 'nees_correct': _stats(cross_nees),
+        'rejections': reasons,
+        'seconds_per_keyframe': run.cross_seconds / max(len(run.kf_frame), 1),
+    }
+
+
+def _recall_counts(c: BenchConfig, kf_frame: dict[int, int], survey, scene,
+                   accepted_pairs: set[tuple[int, int]]) -> tuple[int, int]:
+    """Keyframe pairs of different swaths with a true overlap >= ``recall_min_overlap``,
+    limited to pairs the store could still hold (within the window of tracks), and how many
+    of them were accepted."""
     ids = sorted(kf_frame)
     pos = {k: survey.T_world_cam[kf_frame[k]][:3, 3] for k in ids}
     n_true, n_found = 0, 0
@@ -173,12 +215,4 @@ def run_benchmark(config: BenchConfig = BenchConfig(), frames: int | None = None
             if ov >= c.recall_min_overlap:
                 n_true += 1
                 n_found += (a, b) in accepted_pairs
-    out['cross'] = {
-        'attempts': len(attempts), 'accepted': len(correct), 'correct': int(np.sum(correct)),
-        'precision': float(np.mean(correct)) if correct else float('nan'),
-        'true_pairs': n_true, 'found_pairs': n_found,
-        'recall': n_found / n_true if n_true else float('nan'),
-        'translation_error_m': _stats(cross_t), 'nees_correct': _stats(cross_nees),
-        'rejections': reasons, 'seconds_per_keyframe': cross_seconds / max(len(kf_frame), 1),
-    }
-    return out
+    return n_true, n_found

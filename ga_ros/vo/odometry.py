@@ -62,10 +62,10 @@ class VoConfig:
         ``max(s^2, 1)`` times the prior's (:mod:`ga_ros.vo.motion`): residuals above the prior
         scale it up, a still camera (residuals of 0.01 px) never shrinks it.
     sigma_disparity_px : prior disparity noise (px), the same kind of lower bound.
-    covariance_scale : factor applied to the estimated covariance. With the priors 0.07 /
-        0.05 px and ``s^2`` floored at 1, simulator seeds 1-2 (320x240, ``ga-ros bench vo``)
-        give a mean NEES of 5.5 and 5.1 with 1.0 (the former priors 0.3 / 0.2 px gave 1.2 once
-        floored: 5x too large a covariance, which the unfloored ``s^2`` had hidden).
+    covariance_scale : factor applied to the estimated covariance. 1.0 with the default priors
+        (0.07 / 0.05 px) and ``s^2`` floored at 1: the consecutive motions' NEES on the
+        simulator is then near or below its expected 6 (``ga-ros bench vo``). Larger priors
+        would make the floor dominate and the covariance several times too large.
     keyframe_min_tracked_fraction : new keyframe when fewer inliers than this fraction remain.
     keyframe_max_travel_ratio : new keyframe when travel / median depth exceeds this.
     keyframe_max_rotation_deg : new keyframe when the rotation exceeds this (deg).

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from line_survey import feed, fixes_aligner, line_survey, wls_positions
 
 from ga_ros.core.fixes import (
     AbsoluteFix,
@@ -127,71 +128,18 @@ def test_node_prior_gradient_and_hessian_match_the_fix_cost(rng, lever: bool) ->
         np.testing.assert_allclose(H_p, H_f, rtol=0.05, atol=1e-3 * np.abs(H_f).max())
 
 
-def _line_survey(rng, n_tracks: int, per_track: int, sigma_t: float):
-    """A straight survey along x with measured motions (identity rotations, rotations known
-    to 1e-6 rad) and the true positions."""
-    n = n_tracks * per_track
-    step = np.array([1.0, 0.2, 0.0])
-    p_true = np.cumsum(np.vstack([np.zeros(3), np.tile(step, (n - 1, 1))]), axis=0)
-    cov = np.diag([sigma_t ** 2] * 3 + [1e-12] * 3)
-    ms, z = [], []
-    for i in range(n - 1):
-        t = step + rng.normal(0, sigma_t, 3)
-        z.append(t)
-        ms.append(Measurement(i, i + 1, i // per_track, (i + 1) // per_track,
-                              np.concatenate([t, np.zeros(3)]), cov, stamp_ns=(i + 1) * 10 ** 9))
-    return ms, np.array(z), p_true, cov
-
-
-def _wls(n: int, z: np.ndarray, sigma_t: float, fixes: dict[int, tuple[np.ndarray, float]],
-         gauge: tuple[np.ndarray, float]) -> np.ndarray:
-    """Positions by weighted least squares written out with numpy: p_{i+1} - p_i = z_i,
-    p_k = fix_k, p_0 = gauge (weak)."""
-    rows, rhs, w = [], [], []
-    for i in range(n - 1):
-        for a in range(3):
-            r = np.zeros(3 * n)
-            r[3 * (i + 1) + a], r[3 * i + a] = 1.0, -1.0
-            rows.append(r)
-            rhs.append(z[i, a])
-            w.append(1.0 / sigma_t ** 2)
-    for k, (p, s) in list(fixes.items()) + [(0, gauge)]:
-        for a in range(3):
-            r = np.zeros(3 * n)
-            r[3 * k + a] = 1.0
-            rows.append(r)
-            rhs.append(p[a])
-            w.append(1.0 / s ** 2)
-    A, b, W = np.array(rows), np.array(rhs), np.diag(w)
-    return np.linalg.solve(A.T @ W @ A, A.T @ W @ b).reshape(n, 3)
-
-
-def _aligner(window: int, **kw) -> TrackWindowAligner:
-    cfg = AlignerConfig(window_tracks=window, datum='fixes', refine_every_tracks=0,
-                        gauge_sigma_m=100.0, gauge_sigma_tilt_rad=1e-6, gauge_sigma_yaw_rad=1e-6,
-                        prior_band=-1, fix_gate_prob=0.0, **kw)
-    return TrackWindowAligner(cfg)
-
-
 def test_batch_with_fixes_equals_weighted_least_squares(rng) -> None:
     """Rotations known (to 1e-6 rad), so the se3 adjustment is the linear positions problem
     whose weighted least-squares solution is computed by hand."""
     n_tracks, per = 4, 10
-    ms, z, p_true, _ = _line_survey(rng, n_tracks, per, 0.05)
+    ms, z, p_true = line_survey(rng, n_tracks, per, 0.05)
     n = n_tracks * per
     fixes = {k: (p_true[k] + rng.normal(0, 0.5, 3), 0.5) for k in range(3, n, 7)}
-    al = _aligner(window=2)
-    for m in ms:
-        al.add_measurement(m)
-        for k, (p, s) in fixes.items():
-            if m.dst_id == k:
-                T = se3.from_translation_rotvec(p, np.zeros(3))
-                cov = np.diag([s ** 2] * 3 + [-1.0] * 3)
-                al.add_fix(FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
-                    m.stamp_ns, T, cov, 'gnss')))
+    al = fixes_aligner(2)
+    feed(al, ms, fixes)
     al.refine_batch()
     p_hat = al.corrected_path().T_world_node[:, :3, 3]
-    p_ref = _wls(n, z, 0.05, fixes, (np.zeros(3), 100.0))
+    p_ref = wls_positions(n, z, 0.05, fixes)
     np.testing.assert_allclose(p_hat, p_ref, atol=2e-4)
 
 
@@ -200,21 +148,15 @@ def test_window_newest_node_equals_batch_and_fixes_survive_freezing(rng) -> None
     solution of everything so far: the fixes of frozen tracks were absorbed into the joint
     priors, not lost (without them the newest track would drift away from the fixes' frame)."""
     n_tracks, per = 6, 8
-    ms, z, p_true, _ = _line_survey(rng, n_tracks, per, 0.05)
+    ms, z, p_true = line_survey(rng, n_tracks, per, 0.05)
     n = n_tracks * per
     fixes = {k: (p_true[k] + rng.normal(0, 0.3, 3), 0.3) for k in range(2, n, 5)}
-    al = _aligner(window=2)
-    for m in ms:
-        al.add_measurement(m)
-        k = m.dst_id
-        if k in fixes:
-            T = se3.from_translation_rotvec(fixes[k][0], np.zeros(3))
-            al.add_fix(FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
-                m.stamp_ns, T, np.diag([0.09] * 3 + [-1.0] * 3), 'gnss')))
+    al = fixes_aligner(2)
+    feed(al, ms, fixes)
     al.finish_track()
     path = al.corrected_path()
     assert path.frozen[:per].all()  # the first tracks froze
-    p_ref = _wls(n, z, 0.05, fixes, (np.zeros(3), 100.0))
+    p_ref = wls_positions(n, z, 0.05, fixes)
     last = slice(n - per, n)
     np.testing.assert_allclose(path.T_world_node[last, :3, 3], p_ref[last], atol=2e-3)
     # and its covariance is the batch one (the linear problem's inverse normal matrix)
@@ -224,8 +166,8 @@ def test_window_newest_node_equals_batch_and_fixes_survive_freezing(rng) -> None
 
 
 def test_fix_on_frozen_or_unknown_node_is_refused_and_counted(rng) -> None:
-    ms, _, _, _ = _line_survey(rng, 4, 5, 0.05)
-    al = _aligner(window=1)
+    ms, _, _ = line_survey(rng, 4, 5, 0.05)
+    al = fixes_aligner(1)
     for m in ms:
         al.add_measurement(m)
     fix = AbsoluteFix.from_covariance(0, se3.identity(), np.diag([1.0] * 3 + [-1.0] * 3))
@@ -238,7 +180,7 @@ def test_fix_on_frozen_or_unknown_node_is_refused_and_counted(rng) -> None:
 
 def test_gate_excludes_a_gross_fix_and_keeps_the_others(rng) -> None:
     n_tracks, per = 3, 20
-    ms, z, p_true, _ = _line_survey(rng, n_tracks, per, 0.02)
+    ms, z, p_true = line_survey(rng, n_tracks, per, 0.02)
     al = TrackWindowAligner(AlignerConfig(window_tracks=3, datum='fixes', refine_every_tracks=0,
                                           fix_gate_prob=0.9999))
     bad = {13, 40}
@@ -324,7 +266,7 @@ def test_fixes_survive_a_snapshot(rng, tmp_path) -> None:
     the original does."""
     from ga_ros.core.window.persistence import load_state, save_state
 
-    ms, _, p_true, _ = _line_survey(rng, 4, 10, 0.05)
+    ms, _, p_true = line_survey(rng, 4, 10, 0.05)
     cfg = dict(window_tracks=2, datum='fixes', refine_every_tracks=0, freeze_ahead=False)
     a = TrackWindowAligner(AlignerConfig(**cfg))
     head, tail = ms[:25], ms[25:]

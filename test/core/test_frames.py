@@ -4,7 +4,6 @@ optical camera whose extrinsic is in ``/tf_static``, in the replay and in ``vo_n
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -133,40 +132,24 @@ def _forward_drive(n: int = 61, step_m: float = 1.0):
 
 
 def _write_forward_bag(path: Path, with_tf_static: bool) -> Path:
-    from ga_ros.io.bag import CAMERA_INFO
-    from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
-    from ga_ros.replay.samples import (
-        BASE_STAMP_NS,
-        COMPRESSED_IMAGE,
-        LEFT_IMAGE_TOPIC,
-        LEFT_INFO_TOPIC,
-        RIGHT_IMAGE_TOPIC,
-        RIGHT_INFO_TOPIC,
-        camera_info_msg,
-        compressed_image_msg,
-    )
+    from bag_fixtures import SAMPLE_STEREO_TOPICS, stereo_rows, write_rows, write_tf_static
+
+    from ga_ros.io.bag_writer import BagWriter
+    from ga_ros.replay.samples import BASE_STAMP_NS
 
     survey, rig, scene = _forward_drive()
     rng = np.random.default_rng(5)
     with BagWriter(path) as bag:
         t0 = int(BASE_STAMP_NS)
         if with_tf_static:   # as robot_state_publisher: base_link -> camera_link -> optical
-            bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([
-                transform_msg('base_link', 'camera_link', se3.from_rt(np.eye(3), CAM_XYZ), t0),
-                transform_msg('camera_link', 'camera_optical',
-                              se3.from_rt(R_BODY_OPTICAL, np.zeros(3)), t0)]), t0)
+            write_tf_static(bag, [
+                ('base_link', 'camera_link', se3.from_rt(np.eye(3), CAM_XYZ)),
+                ('camera_link', 'camera_optical', se3.from_rt(R_BODY_OPTICAL, np.zeros(3)))], t0)
         for T, s in zip(survey.T_world_cam, survey.stamps_ns):
             s = int(s) + t0 + 1
             left, right = scene.render_pair(T, rng)
-            bag.write(LEFT_INFO_TOPIC, CAMERA_INFO,
-                      camera_info_msg(rig.K, rig.width, rig.height, 'camera_optical', s), s)
-            bag.write(RIGHT_INFO_TOPIC, CAMERA_INFO,
-                      camera_info_msg(rig.K, rig.width, rig.height, 'camera_right', s,
-                                      -rig.focal_px * rig.baseline_m), s)
-            bag.write(LEFT_IMAGE_TOPIC, COMPRESSED_IMAGE,
-                      compressed_image_msg(left, 'camera_optical', s, 90), s)
-            bag.write(RIGHT_IMAGE_TOPIC, COMPRESSED_IMAGE,
-                      compressed_image_msg(right, 'camera_right', s, 90), s)
+            write_rows(bag, stereo_rows(rig, left, right, s, topics=SAMPLE_STEREO_TOPICS,
+                                        frames=('camera_optical', 'camera_right'), quality=90))
     return path
 
 
@@ -223,12 +206,13 @@ def test_vo_node_with_tf_static_publishes_base_link_motion_and_odometry():
     from tf2_msgs.msg import TFMessage
 
     from ga_ros.ros import conversions as conv
+    from ga_ros.ros.harness import domain_id
     from ga_ros.ros.vo_node import VoNode, array_to_image
 
     survey, rig, scene = _forward_drive()
     rng = np.random.default_rng(5)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 57) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(57))
     node = VoNode(context=ctx, parameter_overrides=[Parameter('pair_queue', value=1000),
                                                     Parameter('cross_track', value=False)])
     sent, odom, tf = [], [], []

@@ -16,6 +16,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import (
+    ODOMETRY,
+    POSE_STAMPED,
+    odometry_msg,
+    ros1_pose_stamped_msg,
+    write_bag,
+    write_ros1_bag,
+)
 from scipy import stats
 
 from ga_ros.core.tracks import TrackRules
@@ -24,8 +32,6 @@ from ga_ros.errors import GaError
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.inputs.secondary import KeyframeInterval, SecondaryInput
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
-from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import write_tum
 from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.replay.inputs import InputTopics
@@ -79,33 +85,20 @@ def simulate(rng: np.random.Generator, duration_s: float = 120.0, start_s: float
     return Streams(stamps, gt, wheel, stamps[idx][keep], np.array(visual)[keep])
 
 
-def odometry_msg(T: np.ndarray, stamp: int, twist_sigma: np.ndarray, frame: str) -> object:
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
-    return types['nav_msgs/msg/Odometry'](
-        header=header(frame, int(stamp)), child_frame_id='base_link',
-        pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
-                                                           covariance=np.zeros(36)),
-        twist=types['geometry_msgs/msg/TwistWithCovariance'](
-            twist=types['geometry_msgs/msg/Twist'](linear=vec(x=1.0, y=0.0, z=0.0),
-                                                   angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=np.diag(twist_sigma ** 2).reshape(36).copy()))
+def _odometry(T: np.ndarray, stamp: int, twist_sigma: np.ndarray, frame: str) -> object:
+    """Odometry at 1 m/s forward with the twist covariance of the stream's noise."""
+    return odometry_msg(T, int(stamp), frame=frame, twist_cov=np.diag(twist_sigma ** 2),
+                        linear_x=1.0)
 
 
 def messages(s: Streams) -> list[tuple[int, str, object]]:
     """(log time, topic, message) of both streams in log order (the visual 5 ms late)."""
-    out = [(int(st), '/wheel/odom', odometry_msg(T, st, WHEEL_SIGMA, 'odom'))
+    out = [(int(st), '/wheel/odom', _odometry(T, st, WHEEL_SIGMA, 'odom'))
            for st, T in zip(s.stamps, s.wheel)]
-    out += [(int(st) + 5_000_000, '/vo/odom', odometry_msg(T, st, VISUAL_SIGMA, 'vo_odom'))
+    out += [(int(st) + 5_000_000, '/vo/odom', _odometry(T, st, VISUAL_SIGMA, 'vo_odom'))
             for st, T in zip(s.v_stamps, s.visual)]
     out.sort(key=lambda x: x[0])
     return out
-
-
-def write_bag(path: Path, s: Streams) -> None:
-    with BagWriter(path) as bag:
-        for log_ns, topic, msg in messages(s):
-            bag.write(topic, 'nav_msgs/msg/Odometry', msg, log_ns)
 
 
 def config(name: str) -> OdometryInputConfig:
@@ -122,7 +115,7 @@ def replay_config(topics: list[str], gt_file: Path) -> ReplayConfig:
 def two_stream_bag(tmp_path_factory) -> tuple[Path, Path, Streams]:
     tmp = tmp_path_factory.mktemp('two_streams')
     s = simulate(np.random.default_rng(7), yaw_bias=0.002)
-    write_bag(tmp / 'in', s)
+    write_bag(tmp / 'in', [(log, topic, ODOMETRY, msg) for log, topic, msg in messages(s)])
     write_tum(tmp / 'gt.tum', s.stamps, s.gt)
     return tmp / 'in', tmp / 'gt.tum', s
 
@@ -152,36 +145,12 @@ def test_two_odometry_streams_fuse_without_rejection(two_stream_bag, tmp_path: P
 
 def test_ros1_bag_with_two_slam_outputs_rejects_nothing(tmp_path: Path) -> None:
     """Two SLAM systems' ``geometry_msgs/PoseStamped`` in a ROS 1 bag, at 20 Hz and 15 Hz."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    types = store.types
     s = simulate(np.random.default_rng(3), duration_s=40.0, start_s=0.0, dropout_s=(0, 0))
-
-    def pose_msg(T: np.ndarray, stamp: int) -> object:
-        p, q = se3.to_pos_quat(T)
-        sec, nsec = divmod(int(stamp), 1_000_000_000)
-        return types['geometry_msgs/msg/PoseStamped'](
-            header=types['std_msgs/msg/Header'](
-                seq=0, stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec),
-                frame_id='map'),
-            pose=types['geometry_msgs/msg/Pose'](
-                position=types['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
-                orientation=types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2],
-                                                                  w=q[3])))
-
-    path = tmp_path / 'slam.bag'
-    rows = [(int(st), '/slam_a/pose', T) for st, T in zip(s.stamps[::2], s.wheel[::2])]
-    rows += [(int(st) + 1_000_000, '/slam_b/pose', T)
+    rows = [(int(st), '/slam_a/pose', POSE_STAMPED, ros1_pose_stamped_msg(T, int(st)))
+            for st, T in zip(s.stamps[::2], s.wheel[::2])]
+    rows += [(int(st) + 1_000_000, '/slam_b/pose', POSE_STAMPED, ros1_pose_stamped_msg(T, int(st)))
              for st, T in zip(s.stamps[1::3], s.gt[1::3])]
-    with Writer(path) as w:
-        conns = {t: w.add_connection(t, 'geometry_msgs/msg/PoseStamped', typestore=store)
-                 for t in ('/slam_a/pose', '/slam_b/pose')}
-        for log_ns, topic, T in sorted(rows, key=lambda r: r[0]):
-            w.write(conns[topic], log_ns, store.serialize_ros1(
-                pose_msg(T, log_ns if topic == '/slam_a/pose' else log_ns - 1_000_000),
-                'geometry_msgs/msg/PoseStamped'))
+    path = write_ros1_bag(tmp_path / 'slam.bag', rows)
     specs = tuple(InputSpec(t, 'pose', config(f'odom{k}'))
                   for k, t in enumerate(['/slam_a/pose', '/slam_b/pose']))
     res = replay(path, tmp_path / 'out', ReplayConfig(inputs=InputTopics(specs), plot=False))

@@ -8,28 +8,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import write_unknown_type_bag
 
 from ga_ros.core.frames import node_frame, parse_node_frame
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import ForeignFileError, FormatError, InputError
 from ga_ros.geometry import se3
-from ga_ros.io.bag import (
+from ga_ros.io.bag import BagReader, bag_info
+from ga_ros.io.bag_messages import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
     ODOMETRY,
     PATH,
-    BagReader,
-    TopicConfig,
-    Trajectory,
-    bag_info,
     measurement_to_odometry,
     odometry_to_measurement,
-    plan_topics,
     trajectory_to_path_msg,
     typestore,
 )
 from ga_ros.io.bag_writer import BagWriter, network_markers
 from ga_ros.io.groundtruth import read_ground_truth_topic
+from ga_ros.io.topic_plan import TopicConfig, plan_topics
+from ga_ros.io.trajectory import Trajectory
 
 STORAGES = ['mcap', 'sqlite3']
 
@@ -289,15 +288,7 @@ def test_corrupt_message_is_reported_with_topic(tmp_path: Path, rng: np.random.G
 
 def test_unknown_message_type(tmp_path: Path) -> None:
     """A bag with a type outside the standard set: a clear error naming the type."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    path = tmp_path / 'u'
-    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    w.open()
-    c = w.add_connection('/custom', 'my_pkg/msg/Thing', msgdef='int32 a',
-                         rihs01='RIHS01_' + '0' * 64)
-    w.write(c, 5, b'\x00\x01\x00\x00\x07\x00\x00\x00')
-    w.close()
+    path = write_unknown_type_bag(tmp_path / 'u')
     with BagReader(path) as bag:
         assert bag.info.topic('/custom').msgtype == 'my_pkg/msg/Thing'
         with pytest.raises(FormatError, match="unknown message type 'my_pkg/msg/Thing'"):

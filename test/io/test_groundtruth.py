@@ -14,13 +14,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import (
+    ODOMETRY,
+    POSE_STAMPED,
+    drifting_odometry,
+    odometry_msg,
+    pose_stamped_msg,
+    rectangle,
+    write_tf,
+    write_tf_static,
+)
 
 from ga_ros.cli.main import main as cli_main
 from ga_ros.errors import FormatError, InputError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3, so3
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
-from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.bag_messages import typestore
+from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.groundtruth import match_stamps, read_ground_truth_file
 from ga_ros.io.trajectory import Trajectory, read_tum, write_kitti, write_tum
 
@@ -32,78 +42,31 @@ GT_OFFSET_NS = 3_000_000
 DURATION_S = 60.0
 
 
-def truth(t_s: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) true poses at ``t_s`` (s since start): a 20 x 10 m rectangle at 1 m/s, heading
-    along the motion; positions are piecewise linear in time."""
-    d = np.mod(t_s, 60.0)
-    out = np.empty((len(d), 4, 4))
-    for k, s in enumerate(d):
-        if s < 20:
-            x, y, yaw = s, 0.0, 0.0
-        elif s < 30:
-            x, y, yaw = 20.0, s - 20, np.pi / 2
-        elif s < 50:
-            x, y, yaw = 20 - (s - 30), 10.0, np.pi
-        else:
-            x, y, yaw = 0.0, 10 - (s - 50), -np.pi / 2
-        out[k] = se3.from_translation_rotvec(np.array([x, y, 0.0]), np.array([0, 0, yaw]))
-    return out
-
-
-def _odometry_msg(T: np.ndarray, stamp: int) -> object:
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
-    zero = np.zeros(36)
-    return types['nav_msgs/msg/Odometry'](
-        header=header('odom', stamp), child_frame_id='base_link',
-        pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
-                                                           covariance=zero),
-        twist=types['geometry_msgs/msg/TwistWithCovariance'](
-            twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                   angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=zero))
-
-
-def _drift(T: np.ndarray, yaw_per_step: float = 8e-4) -> np.ndarray:
-    odom = [T[0].copy()]
-    err = se3.from_translation_rotvec(np.zeros(3), np.array([0, 0, yaw_per_step]))
-    for k in range(1, len(T)):
-        odom.append(odom[-1] @ se3.relative(T[k - 1], T[k]) @ err)
-    return np.array(odom)
-
-
 def sim_time_bag(path: Path) -> dict[str, np.ndarray]:
     """Write the fixture bag (module doc); returns the ground-truth stamps and poses."""
     rng = np.random.default_rng(7)
     t_odom = np.arange(0.0, DURATION_S, 1.0 / ODOM_HZ)
-    odom = _drift(truth(t_odom))
+    odom = drifting_odometry(rectangle(t_odom), 8e-4)
     t_gt = np.arange(0.0, DURATION_S, 1.0 / GT_HZ) + GT_OFFSET_NS * 1e-9
-    T_gt = truth(t_gt)
+    T_gt = rectangle(t_gt)
     events = []  # (sim stamp ns, order, kind, index)
     events += [(SIM_T0_NS + int(round(t * 1e9)), 0, 'odom', k) for k, t in enumerate(t_odom)]
     events += [(SIM_T0_NS + int(round(t * 1e9)), 1, 'gt', k) for k, t in enumerate(t_gt)]
     events.sort()
-    types = typestore().types
     delay = 0
     with BagWriter(path) as bag:
-        static = transform_msg('base_link', 'laser', np.eye(4), SIM_T0_NS)
-        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([static]), WALL_T0_NS)
+        write_tf_static(bag, [('base_link', 'laser', np.eye(4))], SIM_T0_NS, WALL_T0_NS)
         last_log = WALL_T0_NS
         for stamp, _, kind, k in events:
             delay = int(rng.integers(2_000_000, 30_000_000))  # transport delay, 2-30 ms
             log = max(last_log, WALL_T0_NS + (stamp - SIM_T0_NS) + delay)
             last_log = log
             if kind == 'odom':
-                bag.write('/odom', 'nav_msgs/msg/Odometry', _odometry_msg(odom[k], stamp), log)
-                bag.write('/tf', 'tf2_msgs/msg/TFMessage',
-                          tf_message([transform_msg('odom', 'base_link', odom[k], stamp)]), log)
+                bag.write('/odom', ODOMETRY, odometry_msg(odom[k], stamp), log)
+                write_tf(bag, 'odom', 'base_link', odom[k], stamp, log)
             else:
-                bag.write('/gt', 'geometry_msgs/msg/PoseStamped',
-                          types['geometry_msgs/msg/PoseStamped'](
-                              header=header('world', stamp), pose=matrix_to_pose_msg(T_gt[k])),
-                          log)
-                bag.write('/tf', 'tf2_msgs/msg/TFMessage',
-                          tf_message([transform_msg('world', 'base_truth', T_gt[k], stamp)]), log)
+                bag.write('/gt', POSE_STAMPED, pose_stamped_msg(T_gt[k], stamp, 'world'), log)
+                write_tf(bag, 'world', 'base_truth', T_gt[k], stamp, log)
     return {'stamps_ns': SIM_T0_NS + np.round(t_gt * 1e9).astype(np.int64), 'T': T_gt}
 
 
@@ -141,7 +104,7 @@ def _expected_ate(out: Path) -> float:
     (computed here from the analytic ground truth, not from any ground-truth file or topic)."""
     est = read_tum(out / 'trajectory_ga.tum')
     t = (est.stamps_ns - SIM_T0_NS) * 1e-9
-    return trajectory_error(est.T_world_node[:, :3, 3], truth(t)[:, :3, 3]).ate_raw
+    return trajectory_error(est.T_world_node[:, :3, 3], rectangle(t)[:, :3, 3]).ate_raw
 
 
 # --------------------------------------------------------------------------- one time base
@@ -263,7 +226,7 @@ def test_tf_frame_pair(sim_bag, tmp_path: Path, capsys) -> None:
 def test_file_formats_agree(tmp_path: Path) -> None:
     """TUM, EuRoC and KITTI (times file or rate) of the same poses read back alike."""
     t = np.arange(0, 5.0, 0.1)
-    T = truth(t)
+    T = rectangle(t)
     stamps = SIM_T0_NS + np.round(t * 1e9).astype(np.int64)
     write_tum(tmp_path / 'a.tum', stamps, T)
     p, q = se3.to_pos_quat(T)

@@ -99,7 +99,7 @@ def test_write_errors_are_one_line_format_errors(tmp_path: Path) -> None:
 
 # --------------------------------------------------------------------------- bags
 def _write_some(bag: BagWriter) -> None:
-    from ga_ros.io.bag import measurement_to_odometry
+    from ga_ros.io.bag_messages import measurement_to_odometry
 
     s = aerial_sample(n_tracks=2, positions_per_swath=5, seed=1)
     for m in s.measurements[:5]:

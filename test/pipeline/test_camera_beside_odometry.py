@@ -14,11 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import ODOMETRY, odometry_msg, stereo_rows, write_bag
 
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import interpolate_pose
-from ga_ros.io.bag import CAMERA_INFO, COMPRESSED_IMAGE, header, matrix_to_pose_msg, typestore
-from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import write_tum
 
 pytest.importorskip('cv2')
@@ -28,10 +27,12 @@ pytest.importorskip('cv2')
 R_BASE_CAM = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 T_BASE_CAM = se3.from_rt(R_BASE_CAM, np.array([0.4, 0.0, -0.2]))
 ODOM_HZ = 10
+#: left info, right info, left image, right image
+CAMERA_TOPICS = ('/cam/left/camera_info', '/cam/right/camera_info', '/cam/left/image/compressed',
+                 '/cam/right/image/compressed')
 
 
 def write_robot_bag(path: Path, gt_file: Path) -> None:
-    from ga_ros.replay.samples import camera_info_msg, compressed_image_msg
     from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 
     survey = lawnmower(LawnmowerConfig(n_tracks=2, positions_per_swath=12, turn_positions=8,
@@ -56,36 +57,14 @@ def write_robot_bag(path: Path, gt_file: Path) -> None:
         drift = se3.exp(np.array([0, 0, 0, 0, 0, 0.004 / ODOM_HZ]))
         odom.append(odom[-1] @ D @ drift)
     write_tum(gt_file, stamps + t0, gt)
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
-    rows = []
-    for s, T in zip(stamps + t0, odom):
-        msg = types['nav_msgs/msg/Odometry'](
-            header=header('odom', int(s)), child_frame_id='base_link',
-            pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
-                                                               covariance=np.zeros(36)),
-            twist=types['geometry_msgs/msg/TwistWithCovariance'](
-                twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                       angular=vec(x=0.0, y=0.0, z=0.0)),
-                covariance=np.zeros(36)))
-        rows.append((int(s), '/odom', 'nav_msgs/msg/Odometry', msg))
+    rows = [(int(s), '/odom', ODOMETRY, odometry_msg(T, int(s)))
+            for s, T in zip(stamps + t0, odom)]
     for s, T in zip(survey.stamps_ns + t0, survey.T_world_cam):
-        s = int(s)
         left, right = scene.render_pair(T, rng)
-        late = s + 30_000_000  # the images arrive after the odometry of their time
-        rows += [
-            (late, '/cam/left/camera_info', CAMERA_INFO,
-             camera_info_msg(rig.K, rig.width, rig.height, 'cam_left', s)),
-            (late, '/cam/right/camera_info', CAMERA_INFO,
-             camera_info_msg(rig.K, rig.width, rig.height, 'cam_right', s,
-                             -rig.focal_px * rig.baseline_m)),
-            (late, '/cam/left/image/compressed', COMPRESSED_IMAGE,
-             compressed_image_msg(left, 'cam_left', s)),
-            (late, '/cam/right/image/compressed', COMPRESSED_IMAGE,
-             compressed_image_msg(right, 'cam_right', s))]
-    with BagWriter(path) as bag:
-        for log_ns, topic, msgtype, msg in sorted(rows, key=lambda r: r[0]):
-            bag.write(topic, msgtype, msg, log_ns)
+        # the images arrive after the odometry of their time
+        rows += stereo_rows(rig, left, right, int(s), topics=CAMERA_TOPICS,
+                            frames=('cam_left', 'cam_right'), log_ns=int(s) + 30_000_000)
+    write_bag(path, rows)
 
 
 @pytest.fixture(scope='module')

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_replay_inputs import _config, _scenario, odometry
+from bag_fixtures import ODOMETRY, odometry_msg
+from test_replay_inputs import _config, _scenario
 
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
@@ -76,7 +77,7 @@ def _nav2_bag(path: Path) -> int:
     with BagWriter(path) as bag:
         for k, (s, T) in enumerate(zip(stamps, odom)):
             s = int(s)
-            bag.write('/odom', 'nav_msgs/msg/Odometry', odometry(T, s), s)
+            bag.write('/odom', ODOMETRY, odometry_msg(T, s), s)
             tfs = [transform_msg('odom', 'base_link', T, s)]
             if k % 2 == 0:
                 tfs.append(transform_msg('map', 'odom', AMCL, s))

@@ -14,6 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import (
+    NAV_SAT_FIX,
+    ODOMETRY,
+    POSE_COV_STAMPED,
+    nav_sat_fix_msg,
+    odometry_msg,
+    pose_cov_stamped_msg,
+    write_tf_static,
+)
 
 from ga_ros.core.window import AlignerConfig
 from ga_ros.errors import InputError
@@ -25,8 +34,8 @@ from ga_ros.inputs.absolute import (
     geodetic_to_enu,
 )
 from ga_ros.inputs.odometry import OdometryInputConfig
-from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, typestore
-from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.trajectory import read_tum
 from ga_ros.pipeline.absolute import AbsoluteSpec
 from ga_ros.pipeline.inputs import InputSpec
@@ -36,20 +45,6 @@ from ga_ros.replay.pipeline import ReplayConfig, replay
 RATE_HZ = 10.0
 T0_NS = 1_700_000_000_000_000_000
 DATUM = (47.3977, 8.5456, 488.0)  # lat, lon (deg), alt (m)
-
-
-def _odometry_msg(T: np.ndarray, stamp: int) -> object:
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
-    zero = np.zeros(36)
-    return types['nav_msgs/msg/Odometry'](
-        header=header('odom', stamp), child_frame_id='base_link',
-        pose=types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
-                                                           covariance=zero),
-        twist=types['geometry_msgs/msg/TwistWithCovariance'](
-            twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                   angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=zero))
 
 
 def _path(waypoints: np.ndarray, speed: float) -> np.ndarray:
@@ -101,13 +96,12 @@ def test_nav2_odom_with_zero_covariance_and_amcl_pose(tmp_path: Path) -> None:
     gt = _path(square, 0.5)
     odom = _drifting(gt, rng)
     stamps = T0_NS + (np.arange(len(gt)) * 1e9 / RATE_HZ).astype(np.int64)
-    types = typestore().types
     amcl_err = []
     sig_xy, sig_yaw = 0.25, 0.05
     with BagWriter(tmp_path / 'in') as bag:
         for k, (s, T) in enumerate(zip(stamps, odom)):
             s = int(s)
-            bag.write('/odom', 'nav_msgs/msg/Odometry', _odometry_msg(gt[0] @ T, s), s)
+            bag.write('/odom', ODOMETRY, odometry_msg(gt[0] @ T, s), s)
             if k % 10 == 5:  # AMCL at 1 Hz, between odometry keyframes
                 noise = np.concatenate([rng.normal(0, sig_xy, 2), [0.0]])
                 yaw = rng.normal(0, sig_yaw)
@@ -117,10 +111,8 @@ def test_nav2_odom_with_zero_covariance_and_amcl_pose(tmp_path: Path) -> None:
                 cov = np.zeros((6, 6))
                 cov[0, 0] = cov[1, 1] = sig_xy ** 2
                 cov[5, 5] = sig_yaw ** 2
-                msg = types['geometry_msgs/msg/PoseWithCovarianceStamped'](
-                    header=header('map', s), pose=types['geometry_msgs/msg/PoseWithCovariance'](
-                        pose=matrix_to_pose_msg(T_m), covariance=cov.reshape(36)))
-                bag.write('/amcl_pose', 'geometry_msgs/msg/PoseWithCovarianceStamped', msg, s)
+                bag.write('/amcl_pose', POSE_COV_STAMPED,
+                          pose_cov_stamped_msg(T_m, s, cov, 'map'), s)
     spec = InputSpec('/odom', 'odometry', OdometryInputConfig('odom0', keyframe_travel_m=0.5))
     amcl = AbsoluteSpec('/amcl_pose', 'pose_cov', AbsoluteInputConfig('amcl0', frame_id='map'))
     cfg = ReplayConfig(inputs=InputTopics((spec,), absolutes=(amcl,)), plot=False,
@@ -180,17 +172,15 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
     gt = _path(np.array(legs), 1.0)
     odom = _drifting(gt, rng, yaw_bias=4e-4)
     stamps = T0_NS + (np.arange(len(gt)) * 1e9 / RATE_HZ).astype(np.int64)
-    types = typestore().types
     sig = 1.0
     bad = set()
     fix_err = []
     T_base_gps = se3.from_translation_rotvec(np.array([0.0, 1.5, 0.8]), np.zeros(3))
     with BagWriter(tmp_path / 'in') as bag:
-        static = transform_msg('base_link', 'gps', T_base_gps, int(stamps[0]))
-        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([static]), int(stamps[0]))
+        write_tf_static(bag, [('base_link', 'gps', T_base_gps)], int(stamps[0]))
         for k, (s, T) in enumerate(zip(stamps, odom)):
             s = int(s)
-            bag.write('/odom', 'nav_msgs/msg/Odometry', _odometry_msg(T, s), s)
+            bag.write('/odom', ODOMETRY, odometry_msg(T, s), s)
             if k % 10 == 3:
                 p = (gt[k] @ T_base_gps)[:3, 3] + rng.normal(0, sig, 3)
                 if len(fix_err) % 37 == 20:  # multipath: 30 m off
@@ -198,20 +188,12 @@ def test_lawnmower_with_navsatfix_outliers(tmp_path: Path, datum_given: bool) ->
                     bad.add(len(fix_err))
                 fix_err.append(p[:2] - (gt[k] @ T_base_gps)[:2, 3])
                 lla = _enu_to_geodetic(p, DATUM)
-                msg = types['sensor_msgs/msg/NavSatFix'](
-                    header=header('gps', s),
-                    status=types['sensor_msgs/msg/NavSatStatus'](status=0, service=1),
-                    latitude=float(lla[0]), longitude=float(lla[1]), altitude=float(lla[2]),
-                    position_covariance=np.diag([sig ** 2] * 3).reshape(9),
-                    position_covariance_type=2)
-                bag.write('/fix', 'sensor_msgs/msg/NavSatFix', msg, s)
+                bag.write('/fix', NAV_SAT_FIX,
+                          nav_sat_fix_msg(lla, s, np.diag([sig ** 2] * 3)), s)
         # a fix without a fix: dropped and counted
         s = int(stamps[-1])
-        msg = types['sensor_msgs/msg/NavSatFix'](
-            header=header('gps', s), status=types['sensor_msgs/msg/NavSatStatus'](
-                status=-1, service=1), latitude=0.0, longitude=0.0, altitude=0.0,
-            position_covariance=np.zeros(9), position_covariance_type=0)
-        bag.write('/fix', 'sensor_msgs/msg/NavSatFix', msg, s + 1)
+        bag.write('/fix', NAV_SAT_FIX, nav_sat_fix_msg((0.0, 0.0, 0.0), s, None, status=-1),
+                  s + 1)
     spec = InputSpec('/odom', 'odometry', OdometryInputConfig('odom0', keyframe_travel_m=1.0))
     # the ENU origin: given, or the first fix (then the map frame is offset by its error,
     # which the comparison below removes)

@@ -11,10 +11,13 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from bag_fixtures import mono8_image_msg
 
 from ga_ros.errors import FormatError, InputError
-from ga_ros.io.bag import CAMERA_INFO, IMAGE, BagReader, bag_info, header, plan_topics, typestore
+from ga_ros.io.bag import BagReader, bag_info
+from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE, header, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.topic_plan import plan_topics
 from ga_ros.pipeline.params import parse_override, read_params_file
 from ga_ros.pipeline.stereo import (
     NODE_ONLY_PARAMS,
@@ -77,12 +80,6 @@ def _info_msg(fields: dict, frame: str, stamp_ns: int):
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
 
 
-def _image_msg(img: np.ndarray, frame: str, stamp_ns: int):
-    return typestore().types[IMAGE](header=header(frame, stamp_ns), height=480, width=752,
-                                    encoding='mono8', is_bigendian=0, step=752,
-                                    data=np.ascontiguousarray(img).reshape(-1))
-
-
 @pytest.fixture(scope='module')
 def euroc_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     """A EuRoC-shaped bag: /cam0/image_raw, /cam1/image_raw (mono8 752x480, distorted, 20 Hz)
@@ -117,7 +114,7 @@ def euroc_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
                 img = cv2.resize(pair[k], (752, 480), interpolation=cv2.INTER_LINEAR)
                 raw = cv2.remap(img, *maps[k], cv2.INTER_LINEAR)
                 bag.write(f'/{cam}/camera_info', CAMERA_INFO, _info_msg(cal[side], cam, s), s)
-                bag.write(f'/{cam}/image_raw', IMAGE, _image_msg(raw, cam, s), s)
+                bag.write(f'/{cam}/image_raw', IMAGE, mono8_image_msg(raw, cam, s), s)
     return path, cal
 
 
@@ -157,7 +154,7 @@ def test_calibration_file_replaces_missing_camera_info(tmp_path: Path,
     # The CameraInfo fields as a YAML: the same measurements as with the bag's CameraInfo.
     f = tmp_path / 'stereo.yaml'
     f.write_text(yaml.safe_dump(cal))
-    from ga_ros.io.bag import TopicConfig
+    from ga_ros.io.topic_plan import TopicConfig
 
     with_file = replay(bag, tmp_path / 'a', ReplayConfig(
         topics=TopicConfig(calibration=(str(f),)), plot=False))

@@ -15,7 +15,8 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import FormatError, InputError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3, so3
-from ga_ros.io.bag import ODOMETRY, BagReader, measurement_to_odometry, typestore
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry, typestore
 from ga_ros.io.bag_writer import BagWriter
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
@@ -264,7 +265,7 @@ def test_committed_measurement_bag_matches_its_generator() -> None:
     path = REPO / 'bags' / 'aerial_measurements'
     if not path.exists():
         pytest.skip('sample bag not generated')
-    from ga_ros.io.bag import odometry_to_measurement
+    from ga_ros.io.bag_messages import odometry_to_measurement
 
     s = aerial_sample(n_tracks=25)
     with BagReader(path) as bag:

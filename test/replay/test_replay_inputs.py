@@ -11,13 +11,29 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import (
+    ODOMETRY,
+    POSE_COV_STAMPED,
+    POSE_STAMPED,
+    RECTANGLE_LAP_S,
+    Drive,
+    odometry_msg,
+    pose_cov_stamped_msg,
+    pose_stamped_msg,
+    rectangle_drive,
+    ros1_odometry_msg,
+    write_ros1_bag,
+    write_tf,
+    write_tf_static,
+)
 
 from ga_ros.core.tracks import TrackRules
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import constraint_frames
-from ga_ros.io.bag import BagReader, header, matrix_to_pose_msg, ns_to_stamp, typestore
-from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import ns_to_stamp
+from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.groundtruth import read_ground_truth_file
 from ga_ros.io.trajectory import read_tum, write_tum
 from ga_ros.pipeline.inputs import InputSpec
@@ -25,94 +41,39 @@ from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.pipeline import ReplayConfig, replay
 
 RATE_HZ = 10.0
-LAP_S = 60.0
 T0_NS = 1_700_000_000_000_000_000
 
 
-def rectangle(t: np.ndarray) -> np.ndarray:
-    """Ground truth (n, 4, 4): 20 x 10 m rectangle, 1 m/s, heading along the motion."""
-    s = np.mod(t, LAP_S)
-    out = np.empty((len(t), 4, 4))
-    for k, d in enumerate(s):
-        if d < 20:
-            x, y, yaw = d, 0.0, 0.0
-        elif d < 30:
-            x, y, yaw = 20.0, d - 20, np.pi / 2
-        elif d < 50:
-            x, y, yaw = 20 - (d - 30), 10.0, np.pi
-        else:
-            x, y, yaw = 0.0, 10 - (d - 50), -np.pi / 2
-        out[k] = se3.from_translation_rotvec(np.array([x, y, 0.0]), np.array([0, 0, yaw]))
-    return out
-
-
-def drifting_odometry(gt: np.ndarray, yaw_drift_per_step: float = 5e-4) -> np.ndarray:
-    """Odometry poses: the true increments with a constant heading error per step."""
-    odom = [gt[0].copy()]
-    err = se3.from_translation_rotvec(np.zeros(3), np.array([0, 0, yaw_drift_per_step]))
-    for k in range(1, len(gt)):
-        odom.append(odom[-1] @ se3.relative(gt[k - 1], gt[k]) @ err)
-    return np.array(odom)
-
-
-def _scenario(laps: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    t = np.arange(0.0, laps * LAP_S, 1.0 / RATE_HZ)
-    gt = rectangle(t)
-    return (T0_NS + np.round(t * 1e9).astype(np.int64)), gt, drifting_odometry(gt)
-
-
-def _pose_cov_msg(T: np.ndarray, cov: np.ndarray) -> object:
-    types = typestore().types
-    return types['geometry_msgs/msg/PoseWithCovariance'](pose=matrix_to_pose_msg(T),
-                                                         covariance=cov.reshape(36).copy())
-
-
-def odometry(T: np.ndarray, stamp: int, cov: np.ndarray | None = None,
-             frame: str = 'odom', child: str = 'base_link') -> object:
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
-    zero = np.zeros(36)
-    return types['nav_msgs/msg/Odometry'](
-        header=header(frame, stamp), child_frame_id=child,
-        pose=_pose_cov_msg(T, zero if cov is None else cov),
-        twist=types['geometry_msgs/msg/TwistWithCovariance'](
-            twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                   angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=zero))
+def _scenario(laps: float = 2.0) -> Drive:
+    return rectangle_drive(laps, RATE_HZ, T0_NS)
 
 
 def write_odom_bag(path: Path, kind: str = 'odom', constraints: bool = False) -> np.ndarray:
     """The robot's bag: ``/odom`` (all-zero covariance) or a pose stream, ``/tf``; optionally
     loop closures on ``/loops`` between the two laps. Returns the ground truth."""
     stamps, gt, odom = _scenario()
-    types = typestore().types
     with BagWriter(path) as bag:
-        static = transform_msg('base_link', 'laser', np.eye(4), int(stamps[0]))
-        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([static]), int(stamps[0]))
+        write_tf_static(bag, [('base_link', 'laser', np.eye(4))], int(stamps[0]))
         for s, T in zip(stamps, odom):
             s = int(s)
             if kind == 'odom':
-                bag.write('/odom', 'nav_msgs/msg/Odometry', odometry(T, s), s)
+                bag.write('/odom', ODOMETRY, odometry_msg(T, s), s)
             elif kind == 'pose_cov':
                 cov = np.diag([0.05] * 3 + [0.01] * 3) ** 2
-                msg = types['geometry_msgs/msg/PoseWithCovarianceStamped'](
-                    header=header('odom', s), pose=_pose_cov_msg(T, cov))
-                bag.write('/pose', 'geometry_msgs/msg/PoseWithCovarianceStamped', msg, s)
+                bag.write('/pose', POSE_COV_STAMPED, pose_cov_stamped_msg(T, s, cov), s)
             else:
-                msg = types['geometry_msgs/msg/PoseStamped'](header=header('odom', s),
-                                                             pose=matrix_to_pose_msg(T))
-                bag.write('/pose', 'geometry_msgs/msg/PoseStamped', msg, s)
-            bag.write('/tf', 'tf2_msgs/msg/TFMessage',
-                      tf_message([transform_msg('odom', 'base_link', T, s)]), s)
+                bag.write('/pose', POSE_STAMPED, pose_stamped_msg(T, s), s)
+            write_tf(bag, 'odom', 'base_link', T, s)
         if constraints:
-            n_lap = int(LAP_S * RATE_HZ)
+            n_lap = int(RECTANGLE_LAP_S * RATE_HZ)
             cov = np.diag([0.02] * 3 + [0.002] * 3) ** 2
             for i in range(0, n_lap, 50):
                 j = i + n_lap
                 a, b = int(stamps[i]), int(stamps[j])
                 fa, fb = constraint_frames('stamp', a, b)
-                msg = odometry(se3.relative(gt[i], gt[j]), b, cov, fa, fb)
-                bag.write('/loops', 'nav_msgs/msg/Odometry', msg, int(stamps[-1]) + 1 + i)
+                msg = odometry_msg(se3.relative(gt[i], gt[j]), b, frame=fa, child=fb,
+                                   pose_cov=cov)
+                bag.write('/loops', ODOMETRY, msg, int(stamps[-1]) + 1 + i)
     return gt
 
 
@@ -200,35 +161,9 @@ def test_external_loop_closures_by_stamp_correct_the_drift(tmp_path: Path) -> No
 
 
 def test_ros1_bag(tmp_path: Path) -> None:
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    types = store.types
     stamps, _, odom = _scenario(laps=0.5)
-    path = tmp_path / 'robot.bag'
-    with Writer(path) as w:
-        conn = w.add_connection('/odom', 'nav_msgs/msg/Odometry', typestore=store)
-        for s, T in zip(stamps, odom):
-            p, q = se3.to_pos_quat(T)
-            sec, nsec = divmod(int(s), 1_000_000_000)
-            vec = types['geometry_msgs/msg/Vector3']
-            msg = types['nav_msgs/msg/Odometry'](
-                header=types['std_msgs/msg/Header'](
-                    seq=0, stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec),
-                    frame_id='odom'),
-                child_frame_id='base_link',
-                pose=types['geometry_msgs/msg/PoseWithCovariance'](
-                    pose=types['geometry_msgs/msg/Pose'](
-                        position=types['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
-                        orientation=types['geometry_msgs/msg/Quaternion'](
-                            x=q[0], y=q[1], z=q[2], w=q[3])),
-                    covariance=np.zeros(36)),
-                twist=types['geometry_msgs/msg/TwistWithCovariance'](
-                    twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                           angular=vec(x=0.0, y=0.0, z=0.0)),
-                    covariance=np.zeros(36)))
-            w.write(conn, int(s), store.serialize_ros1(msg, 'nav_msgs/msg/Odometry'))
+    path = write_ros1_bag(tmp_path / 'robot.bag', [
+        (int(s), '/odom', ODOMETRY, ros1_odometry_msg(T, int(s))) for s, T in zip(stamps, odom)])
     res = replay(path, tmp_path / 'out', _config('/odom'))
     assert res.n_nodes == res.source_stats['odom0']['keyframes'] >= 29
 
@@ -310,7 +245,7 @@ def test_covariance_policy_reject_or_repair(tmp_path: Path) -> None:
     """One measurement with an indefinite covariance: rejected by default, repaired on request
     (eigenvalue clipping: same eigenvectors, the negative eigenvalue raised to the floor)."""
     from ga_ros.core.measurement import Measurement
-    from ga_ros.io.bag import measurement_to_odometry
+    from ga_ros.io.bag_messages import measurement_to_odometry
     from ga_ros.pipeline.inputs import decode_measurement
     from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 

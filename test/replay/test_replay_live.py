@@ -24,7 +24,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
-from ga_ros.io.bag import BagReader, measurement_to_odometry, odometry_to_measurement  # noqa: E402
+from ga_ros.io.bag import BagReader  # noqa: E402
+from ga_ros.io.bag_messages import measurement_to_odometry, odometry_to_measurement  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.pipeline import ReplayConfig, replay  # noqa: E402
 from ga_ros.replay.samples import aerial_sample  # noqa: E402

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import ODOMETRY, odometry_msg, rectangle
 
 from ga_ros.cli.main import main as cli_main
-from ga_ros.geometry import se3
-from ga_ros.io.bag import header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter
 
 T0_NS = 1_700_000_000_000_000_000
@@ -21,31 +20,10 @@ T0_NS = 1_700_000_000_000_000_000
 def _odom_bag(path: Path, pose_cov: np.ndarray) -> Path:
     """``/odom`` at 10 Hz along a 20 x 10 m rectangle with the given pose covariance (36) and
     no twist covariance."""
-    types = typestore().types
-    vec = types['geometry_msgs/msg/Vector3']
     with BagWriter(path) as bag:
-        for k in range(600):
-            s = k * 0.1
-            d = np.mod(s, 60.0)
-            if d < 20:
-                x, y, yaw = d, 0.0, 0.0
-            elif d < 30:
-                x, y, yaw = 20.0, d - 20, np.pi / 2
-            elif d < 50:
-                x, y, yaw = 20 - (d - 30), 10.0, np.pi
-            else:
-                x, y, yaw = 0.0, 10 - (d - 50), -np.pi / 2
-            T = se3.from_translation_rotvec(np.array([x, y, 0.0]), np.array([0, 0, yaw]))
+        for k, T in enumerate(rectangle(np.arange(600) * 0.1)):
             stamp = T0_NS + k * 100_000_000
-            msg = types['nav_msgs/msg/Odometry'](
-                header=header('odom', stamp), child_frame_id='base_link',
-                pose=types['geometry_msgs/msg/PoseWithCovariance'](
-                    pose=matrix_to_pose_msg(T), covariance=pose_cov.copy()),
-                twist=types['geometry_msgs/msg/TwistWithCovariance'](
-                    twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                           angular=vec(x=0.0, y=0.0, z=0.0)),
-                    covariance=np.zeros(36)))
-            bag.write('/odom', 'nav_msgs/msg/Odometry', msg, stamp)
+            bag.write('/odom', ODOMETRY, odometry_msg(T, stamp, pose_cov=pose_cov), stamp)
     return path
 
 

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ga_ros.io.bag import CAMERA_INFO, IMAGE, BagReader, header, typestore
+from ga_ros.io.bag import BagReader
+from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE, header, typestore
 from ga_ros.io.bag_writer import BagWriter
 from ga_ros.replay.pipeline import ReplayConfig, replay
 from ga_ros.replay.samples import (
@@ -65,7 +66,7 @@ def direct_vo(bag: Path) -> list:
 
 
 def test_stereo_replay_equals_direct_vo(tmp_path: Path, stereo_bag: Path) -> None:
-    from ga_ros.io.bag import odometry_to_measurement
+    from ga_ros.io.bag_messages import odometry_to_measurement
     from ga_ros.pipeline.stereo import FrontEndConfig
 
     config = ReplayConfig(vo=FrontEndConfig(feedback=False), plot=False)

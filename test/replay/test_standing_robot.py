@@ -11,10 +11,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import (
+    ODOMETRY,
+    POSE_STAMPED,
+    SAMPLE_STEREO_TOPICS,
+    odometry_msg,
+    pose_stamped_msg,
+    stereo_rows,
+    write_rows,
+)
 
 from ga_ros.cli.main import main
 from ga_ros.geometry import se3
-from ga_ros.io.bag import CAMERA_INFO, COMPRESSED_IMAGE, header, matrix_to_pose_msg, typestore
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import read_tum
 
@@ -22,34 +30,16 @@ T0_NS = 1_700_000_000_000_000_000
 
 
 def write_still_odometry(path: Path, seconds: float = 10.0, rate_hz: float = 20.0) -> None:
-    types = typestore().types
     rng = np.random.default_rng(1)
     T_still = se3.from_translation_rotvec(np.array([2.0, 1.0, 0.0]), np.array([0, 0, 0.3]))
     with BagWriter(path) as bag:
         for k in range(int(seconds * rate_hz)):
             s = T0_NS + int(k * 1e9 / rate_hz)
             jitter = se3.exp(np.concatenate([rng.normal(0, 1e-4, 3), rng.normal(0, 1e-5, 3)]))
-            vec = types['geometry_msgs/msg/Vector3']
-            msg = types['nav_msgs/msg/Odometry'](
-                header=header('odom', s), child_frame_id='base_link',
-                pose=types['geometry_msgs/msg/PoseWithCovariance'](
-                    pose=matrix_to_pose_msg(T_still @ jitter), covariance=np.zeros(36)),
-                twist=types['geometry_msgs/msg/TwistWithCovariance'](
-                    twist=types['geometry_msgs/msg/Twist'](linear=vec(x=0.0, y=0.0, z=0.0),
-                                                           angular=vec(x=0.0, y=0.0, z=0.0)),
-                    covariance=np.zeros(36)))
-            bag.write('/odom', 'nav_msgs/msg/Odometry', msg, s)
+            bag.write('/odom', ODOMETRY, odometry_msg(T_still @ jitter, s), s)
 
 
 def write_hovering_stereo(path: Path, frames: int = 8) -> None:
-    from ga_ros.replay.samples import (
-        LEFT_IMAGE_TOPIC,
-        LEFT_INFO_TOPIC,
-        RIGHT_IMAGE_TOPIC,
-        RIGHT_INFO_TOPIC,
-        camera_info_msg,
-        compressed_image_msg,
-    )
     from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 
     survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=4, seed=2))
@@ -65,15 +55,7 @@ def write_hovering_stereo(path: Path, frames: int = 8) -> None:
             T = T_hover @ se3.exp(np.concatenate([rng.normal(0, 0.01, 3),
                                                   rng.normal(0, 1e-4, 3)]))
             left, right = scene.render_pair(T, rng)
-            bag.write(LEFT_INFO_TOPIC, CAMERA_INFO,
-                      camera_info_msg(rig.K, rig.width, rig.height, 'left', s), s)
-            bag.write(RIGHT_INFO_TOPIC, CAMERA_INFO,
-                      camera_info_msg(rig.K, rig.width, rig.height, 'right', s,
-                                      -rig.focal_px * rig.baseline_m), s)
-            bag.write(LEFT_IMAGE_TOPIC, COMPRESSED_IMAGE, compressed_image_msg(left, 'left', s),
-                      s)
-            bag.write(RIGHT_IMAGE_TOPIC, COMPRESSED_IMAGE,
-                      compressed_image_msg(right, 'right', s), s)
+            write_rows(bag, stereo_rows(rig, left, right, s, topics=SAMPLE_STEREO_TOPICS))
 
 
 def _replay(args: list[str], capsys) -> tuple[int, str]:
@@ -107,15 +89,12 @@ def test_hovering_drone_stereo_gives_a_stationary_trajectory(tmp_path: Path, cap
 def test_a_bag_whose_measurements_are_all_rejected_still_fails(tmp_path: Path, capsys) -> None:
     """Only a still robot is a valid empty run: no keyframe at all (every sample malformed)
     still exits 1 with the reasons."""
-    types = typestore().types
     with BagWriter(tmp_path / 'in') as bag:
         for k in range(5):
             s = T0_NS + k * 100_000_000
-            T = np.eye(4)
-            pose = matrix_to_pose_msg(T)
-            pose.orientation.w = 0.0  # not a rotation
-            msg = types['geometry_msgs/msg/PoseStamped'](header=header('odom', s), pose=pose)
-            bag.write('/pose', 'geometry_msgs/msg/PoseStamped', msg, s)
+            msg = pose_stamped_msg(np.eye(4), s)
+            msg.pose.orientation.w = 0.0  # not a rotation
+            bag.write('/pose', POSE_STAMPED, msg, s)
     rc, text = _replay([str(tmp_path / 'in'), '--odom-topic', '/pose', '--out',
                         str(tmp_path / 'out')], capsys)
     assert rc == 1, text

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from ga_ros.geometry import se3
-from ga_ros.report import experiments as ex
 from ga_ros.report import preset
+from ga_ros.report.experiments.survey import pose_error_profiles, survey_window
 from ga_ros.report.stereo_survey import (
     StereoSurveyConfig,
     ground_homography,
@@ -61,12 +61,12 @@ def test_cache_returns_the_same_survey_only_for_the_same_config(tiny):
 def test_vo_motions_window_and_batch_beat_f2f(tiny):
     vs, _ = tiny
     cfg = replace(preset('tiny'), policies=('weighted',), fig8_tracks=(1,))
-    res = ex.survey_window(cfg, vs.scenario(), vs.z, vs.cov)
+    res = survey_window(cfg, vs.scenario(), vs.z, vs.cov)
     s = res.summary
     assert s['batch']['raw_rmse_m'] < s['f2f']['raw_rmse_m']
     assert s['policies']['weighted']['window']['raw_rmse_m'] < s['f2f']['raw_rmse_m']
     assert set(res.paths) == {'f2f', 'batch', 'window_weighted'}
-    prof = ex.pose_error_profiles(res.paths['batch'], res.T_true)
+    prof = pose_error_profiles(res.paths['batch'], res.T_true)
     assert all(v.shape == (vs.n_nodes,) for v in prof.values())
     np.testing.assert_allclose(prof['position'], res.errors['batch'])
     # quality control of the batch: redundancy numbers sum to r - u (no priors)

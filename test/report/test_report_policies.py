@@ -9,8 +9,9 @@ import pytest
 
 from ga_ros.errors import InputError
 from ga_ros.report import ReproduceConfig, preset
-from ga_ros.report.experiments import paired_difference, policy_statistics
-from ga_ros.report.writer import policy_seeds_table, policy_target_row
+from ga_ros.report.experiments.policies import paired_difference, policy_statistics
+from ga_ros.report.markdown.policies import policy_seeds_table
+from ga_ros.report.markdown.targets import policy_target_row
 
 #: Student t quantile t(0.975, 4) from a printed table (Abramowitz & Stegun 26.10: 2.776445).
 T975_DOF4 = 2.7764451051977987

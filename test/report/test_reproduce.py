@@ -196,14 +196,16 @@ def test_aerial_window_plumbing_with_a_batch_stand_in(monkeypatch):
     import types
     from dataclasses import replace
 
-    from ga_ros.report import experiments as ex
+    from ga_ros.report.experiments.memory import memory_profile
+    from ga_ros.report.experiments.seeds import EXP_AERIAL, run_rng
+    from ga_ros.report.experiments.survey import aerial_window
 
     fake = types.ModuleType('ga_ros.core.window')
     fake.AlignerConfig = lambda **kw: None
     fake.TrackWindowAligner = _BatchAligner
     monkeypatch.setitem(sys.modules, 'ga_ros.core.window', fake)
     cfg = replace(preset('tiny'), aerial_tracks=4, fig8_tracks=(1, 3))
-    res = ex.aerial_window(cfg)
+    res = aerial_window(cfg)
     for policy in cfg.policies:
         p = res.summary['policies'][policy]
         assert abs(p['gap_aligned_pct']) < 1e-3 and abs(p['gap_raw_pct']) < 1e-3
@@ -221,13 +223,13 @@ def test_aerial_window_plumbing_with_a_batch_stand_in(monkeypatch):
     from ga_ros.sim.noise import NoiseModel, perturb
 
     nm = perturb(sc.true_motions(), NoiseModel(cfg.aerial_noise, 110.0),
-                 ex.run_rng(cfg.seed, ex.EXP_AERIAL, 0))
+                 run_rng(cfg.seed, EXP_AERIAL, 0))
     sub = sc.first_tracks(2)
     net = sub.network(nm.z[:sub.n_connections], nm.cov[:sub.n_connections])
     T12 = solve(net, initial_guess_f2f(net, sc.T_world_node[0])).T_world_node
     e12 = np.linalg.norm(T12[:, :3, 3] - sub.positions, axis=1)
     np.testing.assert_allclose(d['before'][:n2], e12, rtol=1e-6, atol=1e-6)
-    mem = ex.memory_profile(replace(cfg, memory_tracks=(2, 3)))
+    mem = memory_profile(replace(cfg, memory_tracks=(2, 3)))
     assert set(mem['sizes']) == {'2', '3'}
 
 
@@ -254,8 +256,8 @@ def test_policy_draws_flag_a_policy_made_worse_on_purpose(monkeypatch):
     import types
     from dataclasses import replace
 
-    from ga_ros.report import experiments as ex
-    from ga_ros.report.writer import policy_target_row
+    from ga_ros.report.experiments.policies import policy_seeds
+    from ga_ros.report.markdown.targets import policy_target_row
 
     fake = types.ModuleType('ga_ros.core.window')
     fake.AlignerConfig = lambda **kw: kw
@@ -264,7 +266,7 @@ def test_policy_draws_flag_a_policy_made_worse_on_purpose(monkeypatch):
     # the gap is relative to the batch ATE, which changes from draw to draw: 8 draws
     cfg = replace(preset('tiny'), aerial_tracks=2, policies=('weighted', 'same', 'worse'),
                   policy_seeds=8)
-    ps = ex.policy_seeds(cfg)
+    ps = policy_seeds(cfg)
     assert ps['available'] and ps['draws'] == list(range(8)) and ps['worse'] == ['worse']
     same = ps['policies']['same']['vs_reference']
     for metric in ('raw', 'aligned'):
@@ -279,7 +281,7 @@ def test_policy_draws_flag_a_policy_made_worse_on_purpose(monkeypatch):
 
 @pytest.mark.parametrize('family', ['lawnmower', 'looping'])
 def test_open_and_closed_share_the_noise_of_common_connections(family):
-    from ga_ros.report.experiments import run_rng
+    from ga_ros.report.experiments.seeds import run_rng
     from ga_ros.sim.noise import NoiseModel, perturb
 
     o, c = synthetic_scenario(f'{family}_open'), synthetic_scenario(f'{family}_closed')
@@ -297,17 +299,18 @@ def test_future_tracks_linearisation_matches_nonlinear_solves():
     from dataclasses import replace
 
     from ga_ros.core.solver import SolverConfig
-    from ga_ros.report import experiments as ex
+    from ga_ros.report.experiments.future_tracks import future_tracks
+    from ga_ros.report.experiments.seeds import EXP_FUTURE, run_rng
     from ga_ros.sim.noise import NoiseModel
 
     pct = 0.1
     cfg = replace(preset('tiny'), fig3_tracks=3, fig3_runs=3, fig3_noise_levels=(pct,),
                   aerial_positions_per_swath=12)
-    ft = ex.future_tracks(cfg)
+    ft = future_tracks(cfg)
     sc_all = aerial_scenario(3, 12)
     z_true = sc_all.true_motions()
     sig1 = NoiseModel(1.0, 110.0).sigmas(z_true)
-    xi = ex.run_rng(cfg.seed, ex.EXP_FUTURE, 0).standard_normal((3,) + sig1.shape) * sig1 * pct
+    xi = run_rng(cfg.seed, EXP_FUTURE, 0).standard_normal((3,) + sig1.shape) * sig1 * pct
     T_true = se3.from_translation_rotvec(z_true[:, :3], z_true[:, 3:])
     cov = NoiseModel(pct, 110.0).covariances(z_true)
     track1 = sc_all.first_tracks(1).n_nodes

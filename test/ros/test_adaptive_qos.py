@@ -5,7 +5,6 @@ reports for the subscription (``get_subscriptions_info_by_topic``), not against 
 
 from __future__ import annotations
 
-import os
 import time
 
 import pytest
@@ -17,6 +16,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 
 
 def _qos(reliability: ReliabilityPolicy) -> QoSProfile:
@@ -33,7 +33,7 @@ def _subscribed(node, topic: str) -> ReliabilityPolicy:
 @pytest.mark.ros
 def test_auto_follows_the_publishers_and_waits_for_the_first() -> None:
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 91) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(91))
     node = rclpy.create_node('adaptive_qos_sub', context=ctx)
     pubs = rclpy.create_node('adaptive_qos_pub', context=ctx)
     executor = rclpy.executors.SingleThreadedExecutor(context=ctx)

@@ -7,8 +7,6 @@ received path with :class:`TrackWindowAligner` run directly on the same measurem
 
 from __future__ import annotations
 
-import os
-import signal
 import time
 from dataclasses import fields, replace
 
@@ -19,6 +17,7 @@ pytest.importorskip('rclpy')
 
 import rclpy  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from live_node import live_node  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -41,7 +40,7 @@ from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
     CONFIG,
-    NodeClient,
+    domain_id,
     start_node_process,
     stop_process,
 )
@@ -49,10 +48,6 @@ from ga_ros.ros.qos import latched_qos  # noqa: E402
 from ga_ros.ros.view import connection_view, network_view, normalized_residuals  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
-
-
-def domain_id(offset: int = 0) -> int:
-    return 40 + (os.getpid() + offset) % 150
 
 
 def survey(rng: np.random.Generator, n_tracks: int = 3, per_swath: int = 6,
@@ -423,52 +418,43 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
     state = tmp_path / 'state.npz'
     params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1,
               'allow_finish_track': True}
-    log = tmp_path / 'node.log'
-    proc = start_node_process(dom, params, log_path=log)
-    client = None
-    try:
-        client = NodeClient(dom)
-        client.wait_for_node(proc=proc)
+    with live_node(dom, params, tmp_path / 'node.log') as node:
+        client = node.client
         client.publish(ms[:cut])
         client.publish_raw(bad)
-        client.wait_received(cut + len(bad), proc=proc)
+        client.wait_received(cut + len(bad), proc=node.proc)
         assert client.diag_int('rejected') == len(bad), client.diagnostics
         for reason, n in BAD_REASONS.items():
             assert client.diag_int(f'rejected/{reason}') == n, client.diagnostics
         assert client.diag_int('measurements_accepted') == cut
         nodes_before = client.diag_int('nodes')
-        assert proc.poll() is None                         # bad input did not kill it
+        assert node.proc.poll() is None                    # bad input did not kill it
 
-        proc.send_signal(signal.SIGKILL)                   # no chance to save anything
-        proc.wait(timeout=10)
-        proc = start_node_process(dom, params, log_path=log)
-        client.diagnostics = {}
-        client.wait_for_node(proc=proc)
-        client.spin_until(lambda: client.diag_int('nodes') >= 0, 20, 'diagnostics', proc)
+        node.kill_and_restart()                            # no chance to save anything
         assert client.diag_int('nodes') == nodes_before    # resumed with no lost node
 
         late: list = []
         client.subscribe_path(late)                        # late joiner: latched path
-        client.spin_until(lambda: len(late) > 0, 15, 'the latched path', proc)
+        client.spin_until(lambda: len(late) > 0, 15, 'the latched path', node.proc)
 
         poses = client.record(PoseWithCovarianceStamped, '/ga/corrected_pose')
         odoms = client.record(Odometry, '/ga/corrected_odom')
         markers = client.record(MarkerArray, '/ga/network_markers', latched_qos())
         client.publish(ms[cut:])
-        client.wait_received(len(ms) - cut, proc=proc)
+        client.wait_received(len(ms) - cut, proc=node.proc)
         resp = client.call('finish_track')
         assert resp.success, resp.message
         ref = direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
         client.spin_until(lambda: len(late) > 1 and
                           len(late[-1][1].poses) == len(ref.node_ids), 20, 'the final path',
-                          proc)
+                          node.proc)
         got = conv.path_msg_to_poses(late[-1][1])
         np.testing.assert_allclose(got, ref.T_world_node, atol=1e-9)
         assert late[-1][1].header.frame_id == 'map'
         # newest adjusted node with its covariance, odometry stream, markers
         client.spin_until(lambda: poses and odoms and markers and
                           len(markers[-1].markers[1].points) == len(ref.node_ids), 20,
-                          'pose, odometry and markers', proc)
+                          'pose, odometry and markers', node.proc)
         pc = poses[-1]
         assert pc.header.frame_id == 'map'
         np.testing.assert_allclose(conv.msg_to_pose(pc.pose.pose), ref.T_world_node[-1],
@@ -477,14 +463,7 @@ def test_two_processes_late_subscriber_kill_restart(tmp_path, rng):
         assert np.all(np.diag(cov) > 0)
         assert (odoms[-1].header.frame_id, odoms[-1].child_frame_id) == ('map', 'base_link')
         assert len(markers[-1].markers[2].points) == 2 * len(ms)
-        assert proc.poll() is None
-    except Exception:
-        print(log.read_text() if log.exists() else '(no log)')
-        raise
-    finally:
-        if client is not None:
-            client.close()
-        stop_process(proc)
+        assert node.proc.poll() is None
 
 
 def test_map_to_odom_from_measurements_without_standard_inputs(node_in_process, rng):

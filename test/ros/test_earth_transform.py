@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -12,13 +11,13 @@ import pytest
 pytest.importorskip('rclpy')
 pytest.importorskip('tf2_msgs.msg')
 
-import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.harness import domain_id, ros_context  # noqa: E402
 from ga_ros.ros.qos import latched_qos  # noqa: E402
 
 DATUM = (-33.8688, 151.2093, 58.0)  # lat, lon (deg), alt (m): southern, eastern hemisphere
@@ -37,10 +36,8 @@ def _ecef(lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
 
 @pytest.fixture
 def ctx():
-    c = rclpy.Context()
-    rclpy.init(context=c, domain_id=40 + (os.getpid() + 57) % 150)
-    yield c
-    rclpy.try_shutdown(context=c)
+    with ros_context(domain_id(57)) as c:
+        yield c
 
 
 def _node(ctx, **extra) -> AlignmentNode:

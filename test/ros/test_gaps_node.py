@@ -4,25 +4,24 @@ no measurement is rejected as ``unknown_source``."""
 
 from __future__ import annotations
 
-import os
-import signal
-
 import numpy as np
 import pytest
 
 pytest.importorskip('rclpy')
 
+from live_node import live_node  # noqa: E402
+
 from ga_ros.core.window import AlignerConfig  # noqa: E402
 from ga_ros.pipeline.session import AlignmentSession  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
-from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
 
 
 @pytest.mark.ros
 def test_a_restarted_node_that_missed_measurements_keeps_every_node(tmp_path, rng) -> None:
-    dom = 40 + (os.getpid() + 77) % 150
+    dom = domain_id(77)
     sc = aerial_scenario(n_tracks=3, positions_per_swath=6)
     noisy = perturb(sc.true_motions(), NoiseModel(3.0, sc.depth_m), rng)
     ms = [conv.odometry_to_measurement(conv.measurement_to_odometry(m))
@@ -35,25 +34,15 @@ def test_a_restarted_node_that_missed_measurements_keeps_every_node(tmp_path, rn
     # volatile: nothing published while the node was down comes back (a real gap)
     params = {'state_file': str(state), 'window_tracks': 2, 'diagnostics_period_sec': 0.1,
               'measurement_durability': 'volatile', 'allow_finish_track': True}
-    log = tmp_path / 'node.log'
-    proc = start_node_process(dom, params, log_path=log)
-    client = None
-    try:
-        client = NodeClient(dom)
-        client.wait_for_node(proc=proc)
+    with live_node(dom, params, tmp_path / 'node.log') as node:
+        client = node.client
         client.publish(ms[:cut])
-        client.wait_received(cut, proc=proc)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=10)
-        client.publish(ms[cut:down])                       # nobody listens: lost
-        proc = start_node_process(dom, params, log_path=log)
-        client.diagnostics = {}
-        client.wait_for_node(proc=proc)
-        client.spin_until(lambda: client.diag_int('nodes') >= 0, 20, 'diagnostics', proc)
+        client.wait_received(cut, proc=node.proc)
+        node.kill_and_restart(lambda: client.publish(ms[cut:down]))  # nobody listens: lost
         paths: list = []
         client.subscribe_path(paths)
         client.publish(ms[down:])
-        client.wait_received(len(ms) - down, proc=proc)
+        client.wait_received(len(ms) - down, proc=node.proc)
         resp = client.call('finish_track')
         assert resp.success, resp.message
         ref = AlignmentSession(AlignerConfig(window_tracks=2))  # the same stream, no restart
@@ -64,19 +53,12 @@ def test_a_restarted_node_that_missed_measurements_keeps_every_node(tmp_path, rn
         every = {ms[0].src_id} | {m.dst_id for m in ms}
         assert want.node_ids.size == len(every)                # every node, even the missed
         client.spin_until(lambda: paths and len(paths[-1][1].poses) == want.node_ids.size, 20,
-                          'the final path', proc)
+                          'the final path', node.proc)
         np.testing.assert_allclose(conv.path_msg_to_poses(paths[-1][1]), want.T_world_node,
                                    atol=1e-6)
         client.spin_until(lambda: client.diag_int('held_measurements') == 0, 10, 'diagnostics',
-                          proc)
+                          node.proc)
         assert client.diag_int('rejected/unknown_source', 0) == 0, client.diagnostics
         assert client.diag_int('rejected') == 0, client.diagnostics
         assert client.diag_int('unjoined_nodes') == 0, client.diagnostics
-        assert proc.poll() is None
-    except Exception:
-        print(log.read_text() if log.exists() else '(no log)')
-        raise
-    finally:
-        if client is not None:
-            client.close()
-        stop_process(proc)
+        assert node.proc.poll() is None

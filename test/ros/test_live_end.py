@@ -3,32 +3,20 @@ adjusts it without a service call (both nodes in-process, messages handed over d
 
 from __future__ import annotations
 
-import os
 import time
 
-import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from test_vo_node import camera_info  # noqa: E402
 
 from ga_ros import topics  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
-
-
-def _camera_info(rig: StereoRig, right: bool):
-    from sensor_msgs.msg import CameraInfo
-
-    msg = CameraInfo(width=rig.width, height=rig.height, distortion_model='plumb_bob')
-    msg.d = [0.0] * 5
-    msg.k = rig.K.ravel().tolist()
-    msg.r = np.eye(3).ravel().tolist()
-    Tx = -rig.focal_px * rig.baseline_m if right else 0.0
-    msg.p = np.hstack([rig.K, [[Tx], [0.0], [0.0]]]).ravel().tolist()
-    return msg
 
 
 @pytest.mark.ros
@@ -41,7 +29,7 @@ def test_images_stop_then_the_last_track_is_adjusted(rng):
     survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=12, seed=9))
     scene = make_scene(survey, rig, seed=9)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 63) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(63))
     vo = VoNode(context=ctx, parameter_overrides=[
         Parameter('idle_end_track_s', value=0.5), Parameter('pair_queue', value=100),
         Parameter('cross_track', value=False), Parameter('assume_identity_extrinsic',
@@ -58,8 +46,8 @@ def test_images_stop_then_the_last_track_is_adjusted(rng):
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(vo)
     try:
-        vo._on_info(_camera_info(rig, False), 'left')
-        vo._on_info(_camera_info(rig, True), 'right')
+        vo._on_info(camera_info(rig, False, 0), 'left')
+        vo._on_info(camera_info(rig, True, 0), 'right')
         for i in range(12):
             left, right = scene.render_pair(survey.T_world_cam[i], rng)
             stamp = int(survey.stamps_ns[i])

@@ -23,7 +23,13 @@ from ga_ros.core.encoding import pose_to_matrix  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
-from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
+from ga_ros.ros.harness import (  # noqa: E402
+    NodeClient,
+    domain_id,
+    ros_context,
+    start_node_process,
+    stop_process,
+)
 from ga_ros.ros.lifecycle_alignment_node import LifecycleAlignmentNode  # noqa: E402
 from ga_ros.ros.qos import latched_qos  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
@@ -31,10 +37,6 @@ from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
 
 INPUT_PARAMS = {'inputs': 'odom0', 'odom0.topic': 'odom', 'odom0.track.mode': 'distance',
                 'odom0.track.length_m': 5.0, 'publish_markers': False}
-
-
-def domain_id(offset: int) -> int:
-    return 40 + (os.getpid() + offset) % 150
 
 
 def odom_msgs(n: int = 200, step_m: float = 0.1) -> list[Odometry]:
@@ -53,10 +55,8 @@ def odom_msgs(n: int = 200, step_m: float = 0.1) -> list[Odometry]:
 
 @pytest.fixture
 def ctx():
-    c = rclpy.Context()
-    rclpy.init(context=c, domain_id=domain_id(21))
-    yield c
-    rclpy.try_shutdown(context=c)
+    with ros_context(domain_id(21)) as c:
+        yield c
 
 
 def _node(cls, ctx, **extra):

@@ -4,30 +4,26 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
 pytest.importorskip('rclpy')
 
-import rclpy  # noqa: E402
 from nav_msgs.msg import Path  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.harness import domain_id, ros_context  # noqa: E402
 from ga_ros.sim.aerial import aerial_scenario  # noqa: E402
 from ga_ros.sim.noise import NoiseModel, perturb  # noqa: E402
 
 
 @pytest.fixture
 def ctx():
-    c = rclpy.Context()
-    rclpy.init(context=c, domain_id=40 + (os.getpid() + 61) % 150)
-    yield c
-    rclpy.try_shutdown(context=c)
+    with ros_context(domain_id(61)) as c:
+        yield c
 
 
 def _poses(msg) -> np.ndarray:

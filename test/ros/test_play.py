@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import write_unknown_type_bag
 
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 
@@ -115,15 +116,7 @@ def test_play_at_a_rate_publishes_clock_in_bag_time(tmp_path: Path, sample: obje
 
 
 def test_play_rejects_bad_bags(tmp_path: Path) -> None:
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    path = tmp_path / 'u'
-    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    w.open()
-    c = w.add_connection('/custom', 'my_pkg/msg/Thing', msgdef='int32 a',
-                         rihs01='RIHS01_' + '0' * 64)
-    w.write(c, 5, b'\x00\x01\x00\x00\x07\x00\x00\x00')
-    w.close()
+    path = write_unknown_type_bag(tmp_path / 'u')
     for bag, expect in ((path, "unknown message type 'my_pkg/msg/Thing'"),
                         (tmp_path / 'missing', 'bag not found')):
         res = subprocess.run([sys.executable, '-m', 'ga_ros.ros.play', str(bag), '--delay', '0'],

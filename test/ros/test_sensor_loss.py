@@ -17,28 +17,27 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bag_fixtures import mono8_image_msg
 
 rclpy = pytest.importorskip('rclpy')
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 
-from ga_ros.io.bag import CAMERA_INFO, header, typestore  # noqa: E402
+from ga_ros.io.bag_messages import CAMERA_INFO  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.samples import BASE_STAMP_NS, camera_info_msg  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
-from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
+from ga_ros.ros.harness import (  # noqa: E402
+    NodeClient,
+    domain_id,
+    start_node_process,
+    stop_process,
+)
 from ga_ros.ros.qos import latched_qos, stream_qos  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 
 N_PAIRS = 60
-
-
-def _image(img: np.ndarray, frame_id: str, stamp_ns: int):
-    return typestore().types['sensor_msgs/msg/Image'](
-        header=header(frame_id, stamp_ns), height=img.shape[0], width=img.shape[1],
-        encoding='mono8', is_bigendian=0, step=img.shape[1],
-        data=np.ascontiguousarray(img).reshape(-1))
 
 
 def _write_camera_bag(path: Path) -> Path:
@@ -60,7 +59,7 @@ def _write_camera_bag(path: Path) -> Path:
                 bag.write(f'/stereo/{side}/camera_info', CAMERA_INFO,
                           camera_info_msg(rig.K, rig.width, rig.height, f'cam_{side}', s, Tx), s)
                 bag.write(f'/stereo/{side}/image_rect', 'sensor_msgs/msg/Image',
-                          _image(img, f'cam_{side}', s), s)
+                          mono8_image_msg(img, f'cam_{side}', s), s)
     return path
 
 
@@ -78,7 +77,7 @@ def _status(msgs: list, name: str) -> tuple[int, dict[str, str]] | None:
 @pytest.mark.parametrize('publisher_qos', ['reliable', 'best_effort'])
 def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str) -> None:
     bag = _write_camera_bag(tmp_path / 'camera')
-    domain = 40 + (os.getpid() + 71) % 150
+    domain = domain_id(71)
     sim = {'use_sim_time': True}
     vo = start_node_process(domain, {**sim, 'pair_queue': 1000, 'diagnostics_period_sec': 0.3,
                                      'assume_identity_extrinsic': True, 'cross_track': False},

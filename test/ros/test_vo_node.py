@@ -31,6 +31,7 @@ from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.pipeline.stereo import NO_EXTRINSIC  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
 from ga_ros.ros.vo_node import EXTRINSIC_REFUSED, VoNodeSettings, array_to_image  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
@@ -41,10 +42,6 @@ from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
 from ga_ros.vo.odometry import VoConfig  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'vo.yaml'
-
-
-def domain_id(offset: int = 0) -> int:
-    return 40 + (os.getpid() + offset) % 150
 
 
 def camera_info(rig: StereoRig, right: bool, stamp_ns: int) -> CameraInfo:

@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ga_ros.core.window import FREEZE_POLICIES
+
 
 def build_parser(target: str) -> argparse.ArgumentParser:
     """The parser of ``ga-ros bench solve`` / ``ga-ros bench window``."""
@@ -22,7 +24,7 @@ def build_parser(target: str) -> argparse.ArgumentParser:
     p.add_argument('--noise', type=float, default=5.0, help='noise, %% of the true motion (5)')
     p.add_argument('--seed', type=int, default=0)
     if target == 'window':
-        p.add_argument('--policy', choices=('weighted', 'marginal'), default='weighted')
+        p.add_argument('--policy', choices=tuple(FREEZE_POLICIES), default='weighted')
         p.add_argument('--window', type=int, default=5, help='tracks in the window (5)')
         p.add_argument('--no-batch', action='store_true',
                        help='skip the batch solution (and the ATE gap) for long surveys')

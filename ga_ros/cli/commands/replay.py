@@ -19,8 +19,9 @@ import yaml
 from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.errors import InputError
-from ga_ros.io.bag import TopicConfig, bag_info
+from ga_ros.io.bag import bag_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
+from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
 from ga_ros.replay.inputs import InputTopics

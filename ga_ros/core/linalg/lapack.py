@@ -5,7 +5,7 @@ SciPy's LAPACK/BLAS (``scipy.linalg.cython_lapack``, ``cython_blas``: the OpenBL
 bundles) is registered with LLVM under named symbols (``ga_ros_<name>``), so the kernels that
 call it stay cacheable on disk (a ctypes pointer would not). Used by the selected inversion
 (:mod:`ga_ros.core.linalg.selinv`) and the maximum-entropy band completion
-(:func:`ga_ros.core.linalg.banded._band_completion`).
+(:func:`ga_ros.core.linalg.completion._band_completion`).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def _separator_solves(ext, r, w, d, Bt):  # pragma: no cover - compiled
     band ``ext`` (``(r + w, w + 1, d, d)``, ``ext[i, j] = Sigma_{i, i+j}``, padded after the end)
     by one Cholesky factorisation (``dpotrf``) and solve (``dpotrs``) each, the separator read
     from the band into column-major storage
-    (:func:`ga_ros.core.linalg.banded._separator_solves_scipy`
+    (:func:`ga_ros.core.linalg.completion._separator_solves_scipy`
     does the same with SciPy's LAPACK). Returns 0,
     or ``k + 1`` if separator ``k`` is not positive definite."""
     n = w * d

@@ -91,10 +91,10 @@ def factor_flops(n: int, rows: IntArray, cols: IntArray, order: IntArray,
     """The work of one Cholesky factorisation of a graph's matrix under ``order``: the flop
     count of a symbolic analysis, ``analysis(indptr, indices, order)`` of the matrix's lower
     triangle (CSC, diagonal included; e.g. CHOLMOD's,
-    :meth:`ga_ros.core.linalg.cholmod._DirectCholmod.analysis_flops`: no numeric factorisation),
-    or,
-    without one (or when it returns ``None``), ``sum_j c_j^2`` over the columns of the factor
-    (``c_j`` its non-zeros) from a numeric factorisation; the two are equal.
+    :meth:`ga_ros.core.linalg.cholmod_ctypes._DirectCholmod.analysis_flops`: no numeric
+    factorisation), or, without one (or when it returns ``None``), ``sum_j c_j^2`` over the
+    columns of the factor (``c_j`` its non-zeros) from a numeric factorisation; the two are
+    equal.
 
     The matrix factored is the graph Laplacian plus the identity (positive definite, the
     pattern of the graph).

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.kernels import AVAILABLE
 from ga_ros.core.linalg import lapack
-from ga_ros.core.linalg.cholmod import _Layout, _supernodal_layout
+from ga_ros.core.linalg.cholmod_ctypes import _Layout, _supernodal_layout
 from ga_ros.errors import DegenerateGeometryError
 
 if TYPE_CHECKING:
@@ -245,70 +245,109 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
     ``L``): a set closed under ancestors (every ``Sigma_BB`` lies on ancestors). Returns 0; 1
     if a needed entry is not on the pattern, 2 if rows are not sorted (nothing was changed then).
     """
-    ns = starts.size - 1
-    for k in range(ns):
-        for z in range(pi[k] + 1, pi[k] + nrows[k]):
-            if srows[z] <= srows[z - 1]:
-                return 2
-    for t in range(ns - 1, -1, -1):
+    if not _rows_sorted(starts, pi, nrows, srows):
+        return 2
+    for t in range(starts.size - 2, -1, -1):
         if not need[t]:
             continue
         f = starts[t]
         m = starts[t + 1] - f
         r = nrows[t] - m
-        Ljj = np.zeros((m, m)).T  # column-major: the factor's columns copy contiguously
-        Lbj = np.empty((m, r)).T
-        for i in range(m):
-            q = colbase[f + i]
-            for a in range(i, m):
-                Ljj[a, i] = x[q + a]
-            for a in range(r):
-                Lbj[a, i] = x[q + m + a]
+        Ljj, Lbj = _read_supernode(x, colbase, f, m, r)
         Linv, Sjj = _lower_inverse(Ljj)  # Sjj: lower triangle of L_JJ^-T L_JJ^-1
         Sbj = np.empty((m, r)).T
         if r:
             U = _times_lower(Lbj, Linv)  # L_BJ L_JJ^-1 (in place of Lbj)
-            B = srows[pi[t] + m:pi[t] + nrows[t]]
             Sbb = np.empty((r, r))
-            zs = np.empty(r, dtype=np.int64)
-            a = 0
-            while a < r:  # the rows of B that are columns of one ancestor supernode
-                c = B[a]
-                lo, hi = 0, ns
-                while hi - lo > 1:  # supernode of column c (binary search)
-                    mid = (lo + hi) // 2
-                    if starts[mid] <= c:
-                        lo = mid
-                    else:
-                        hi = mid
-                q0, nt, lt = pi[lo], nrows[lo], starts[lo + 1]
-                for z in range(nt):
-                    where[srows[q0 + z]] = z
-                b = a
-                while b < r and B[b] < lt:
-                    b += 1
-                for l2 in range(a, r):  # the rows' positions in this ancestor, once
-                    z = where[B[l2]]
-                    if z < 0:
-                        return 1
-                    zs[l2] = z
-                for mm in range(a, b):
-                    base = colbase[B[mm]]
-                    for l2 in range(mm, r):
-                        v = x[base + zs[l2]]
-                        Sbb[l2, mm] = v
-                        Sbb[mm, l2] = v
-                for z in range(nt):
-                    where[srows[q0 + z]] = -1
-                a = b
+            if _gather_sigma_bb(srows[pi[t] + m:pi[t] + nrows[t]], starts, pi, nrows, srows,
+                                colbase, x, where, Sbb):
+                return 1
             Sbj = _minus_product(Sbb, U)  # -Sigma_BB U
             _lower_update(Sjj, Sbj, U)  # Sjj -= Sbj' U, its lower triangle
-        for i in range(m):
-            q = colbase[f + i]
-            for a in range(i, m):
-                x[q + a] = Sjj[a, i]
-            for a in range(r):
-                x[q + m + a] = Sbj[a, i]
+        _write_supernode(x, colbase, f, Sjj, Sbj)
+    return 0
+
+
+def _rows_sorted(starts, pi, nrows, srows):  # pragma: no cover - compiled
+    """Whether the rows of every supernode (layout of :func:`_takahashi_py`) ascend strictly."""
+    for k in range(starts.size - 1):
+        for z in range(pi[k] + 1, pi[k] + nrows[k]):
+            if srows[z] <= srows[z - 1]:
+                return False
+    return True
+
+
+def _supernode_of_column(starts, c):  # pragma: no cover - compiled
+    """The supernode holding column ``c``: the last ``k`` with ``starts[k] <= c`` (binary
+    search)."""
+    lo, hi = 0, starts.size - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if starts[mid] <= c:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def _read_supernode(x, colbase, f, m, r):  # pragma: no cover - compiled
+    """The ``m`` columns from ``f`` of a supernode with ``r`` rows below them, as
+    ``(L_JJ (m, m), L_BJ (r, m))``, both column-major (the factor's columns copy
+    contiguously); the upper triangle of ``L_JJ`` is zero."""
+    Ljj = np.zeros((m, m)).T
+    Lbj = np.empty((m, r)).T
+    for i in range(m):
+        q = colbase[f + i]
+        for a in range(i, m):
+            Ljj[a, i] = x[q + a]
+        for a in range(r):
+            Lbj[a, i] = x[q + m + a]
+    return Ljj, Lbj
+
+
+def _write_supernode(x, colbase, f, Sjj, Sbj):  # pragma: no cover - compiled
+    """Store ``Sigma_JJ`` (its lower triangle) and ``Sigma_BJ`` in place of the columns of
+    :func:`_read_supernode`."""
+    m, r = Sjj.shape[0], Sbj.shape[0]
+    for i in range(m):
+        q = colbase[f + i]
+        for a in range(i, m):
+            x[q + a] = Sjj[a, i]
+        for a in range(r):
+            x[q + m + a] = Sbj[a, i]
+
+
+def _gather_sigma_bb(B, starts, pi, nrows, srows, colbase, x, where,
+                     Sbb):  # pragma: no cover - compiled
+    """``Sigma_BB`` (both triangles) into ``Sbb (r, r)`` for the sorted rows ``B (r,)``, from
+    the already inverted supernodes that hold them as columns, one ancestor's run of rows at a
+    time (positions in its row list through ``where``, left at -1). Returns 0; 1 if an entry
+    is not on the pattern (``where`` is left dirty then)."""
+    r = B.size
+    zs = np.empty(r, dtype=np.int64)
+    a = 0
+    while a < r:  # the rows of B that are columns of one ancestor supernode
+        lo = _supernode_of_column(starts, B[a])
+        q0, nt, lt = pi[lo], nrows[lo], starts[lo + 1]
+        for z in range(nt):
+            where[srows[q0 + z]] = z
+        b = a
+        while b < r and B[b] < lt:
+            b += 1
+        for l2 in range(a, r):  # the rows' positions in this ancestor, once
+            z = where[B[l2]]
+            if z < 0:
+                return 1
+            zs[l2] = z
+        for mm in range(a, b):
+            base = colbase[B[mm]]
+            for l2 in range(mm, r):
+                v = x[base + zs[l2]]
+                Sbb[l2, mm] = v
+                Sbb[mm, l2] = v
+        for z in range(nt):
+            where[srows[q0 + z]] = -1
+        a = b
     return 0
 
 
@@ -317,16 +356,9 @@ def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: 
     entry (``rows[e] >= cols[e]``), by binary searches (-1 if it is not on the pattern);
     returns the number of entries not on the pattern."""
     missing = 0
-    ns = starts.size - 1
     for e in range(rows.size):
         c, r = cols[e], rows[e]
-        lo, hi = 0, ns
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if starts[mid] <= c:
-                lo = mid
-            else:
-                hi = mid
+        lo = _supernode_of_column(starts, c)
         a, b = pi[lo] + (c - starts[lo]), pi[lo] + nrows[lo]
         while a < b:
             mid = (a + b) // 2
@@ -343,6 +375,9 @@ def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: 
 
 
 _KERNELS: dict = {}
+#: The steps the kernels call, compiled with them.
+_HELPERS = ('_rows_sorted', '_supernode_of_column', '_read_supernode', '_write_supernode',
+            '_gather_sigma_bb')
 _dtrtri = _dlauum = _dtrmm = _dgemm = None  # LAPACK/BLAS routines of the compiled kernels
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
@@ -367,6 +402,10 @@ def _kernel(name: str):
                 _times_lower = jit(_times_lower_blas)
                 _minus_product = jit(_minus_product_blas)
                 _lower_update = jit(_lower_update_blas)
+            g = globals()
+            for helper in _HELPERS:  # a compiled kernel calls compiled globals
+                if not hasattr(g[helper], 'py_func'):
+                    g[helper] = numba.njit(cache=True, nogil=True)(g[helper])
             fn = numba.njit(cache=True, nogil=True)(fn)
         _KERNELS[name] = fn
     return fn

@@ -17,7 +17,7 @@ from ga_ros.core.linalg import selinv
 from ga_ros.core.linalg.blocks import _blake2b
 
 if TYPE_CHECKING:
-    from ga_ros.core.linalg.banded import CovarianceSkeleton
+    from ga_ros.core.linalg.completion import CovarianceSkeleton
 
 def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: int,
                     coords: FloatArray | None = None, rhs: FloatArray | None = None
@@ -38,8 +38,9 @@ def sparse_skeleton(N: sp.spmatrix, d: int, targets: IntArray, w: int, n_hubs: i
     DegenerateGeometryError
         ``N`` is not positive definite.
     """
-    from ga_ros.core.linalg.banded import CovarianceSkeleton, banded_selection, skeleton_layout
+    from ga_ros.core.linalg.banded import banded_selection
     from ga_ros.core.linalg.cholmod import _cholmod
+    from ga_ros.core.linalg.completion import CovarianceSkeleton, skeleton_layout
 
     t = np.asarray(targets, dtype=np.int64)
     rest, hubs = skeleton_layout(t.size, w, n_hubs)
@@ -112,8 +113,8 @@ def _skeleton_plan(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs: In
                 and np.array_equal(plan.indices, N.indices):
             _PLANS.move_to_end(key)
             return plan
-    from ga_ros.core.linalg.banded import band_pairs
     from ga_ros.core.linalg.blocks import BlockPattern
+    from ga_ros.core.linalg.completion import band_pairs
 
     u = N.shape[0] // d
     # the positions of N's values travel through the conversions instead of the values
@@ -154,8 +155,8 @@ def _selected_skeleton(N: sp.spmatrix, d: int, t: IntArray, rest: IntArray, hubs
     """:func:`sparse_skeleton` by selected inversion on the sparse factor of ``N`` with the
     skeleton's pairs added to its pattern (pattern, analysis and the entries' positions kept
     per pattern: :class:`_SkeletonPlan`)."""
-    from ga_ros.core.linalg.banded import CovarianceSkeleton
     from ga_ros.core.linalg.cholesky import SparseCholesky
+    from ga_ros.core.linalg.completion import CovarianceSkeleton
 
     if N.format not in ('csr', 'csc') or not N.has_canonical_format:
         N = sp.csr_matrix(N)

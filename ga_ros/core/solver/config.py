@@ -58,8 +58,8 @@ class SolverConfig:
         is left to gain (:func:`_left_to_gain`), the iteration takes that step if it lowers the
         cost as predicted, and stops (converged) without assembling ``N``. Near the optimum
         this saves the iteration that only confirms convergence (all but its gradient and one
-        cost evaluation), and on slowly converging graphs most factorisations (torus3D: 17
-        instead of 72 for 72 iterations).
+        cost evaluation), and on slowly (linearly) converging graphs such as torus3D most
+        factorisations.
         Only with a ``cost_tolerance`` stop (chord steps converge linearly, so a stop on the
         correction size alone would need more iterations). 0 disables.
     """

@@ -192,22 +192,43 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
                 break
         T, v = step.T, step.v
         last_step = step.step
-        history.append(_objective(prob, plain, step.cost, v, T, sysd))
-        state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
-                       and state.cost > 0
-                       and state.cost - step.cost < cfg.chord_decrease * state.cost)
-        state.cost, state.predicted = step.cost, step.predicted
-        if not np.isfinite(T).all():
-            raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
-                              'estimate stands')
+        _book_step(prob, state, step, sysd, history, plain, it)
         stop = _stop_reason(step, history, cfg)
         if stop is not None:
             converged, reason = True, stop
             break
-        slow = (chord and len(history) > 2
-                and history[-2] - history[-1] > 0.25 * (history[-3] - history[-2]))
+        slow = chord and _slow_contraction(history)
     return _Iterations(T, v, converged, it, reason, history, state.chol, state.factorisations,
                        state.since_factor if cfg.damping == 'none' else np.inf, state.factored)
+
+
+def _book_step(prob: _Problem, state: _Trust, step: _Step, sysd: _System,
+               history: list[float], plain: bool, it: int) -> None:
+    """Record the step taken at iteration ``it``: its objective in ``history``
+    (:func:`_objective`), the cost and predicted decrease in ``state``, and whether the dogleg
+    tries a chord step next (a Gauss-Newton step that lowered the cost by less than
+    :attr:`SolverConfig.chord_decrease` of it).
+
+    Raises
+    ------
+    SolverError
+        The estimate after the step is not finite.
+    """
+    cfg = prob.cfg
+    history.append(_objective(prob, plain, step.cost, step.v, step.T, sysd))
+    state.chord = (step.gauss_newton and cfg.chord_decrease > 0 and cfg.cost_tolerance > 0
+                   and state.cost > 0
+                   and state.cost - step.cost < cfg.chord_decrease * state.cost)
+    state.cost, state.predicted = step.cost, step.predicted
+    if not np.isfinite(step.T).all():
+        raise SolverError(f'the estimate became non-finite at iteration {it}; the previous '
+                          'estimate stands')
+
+
+def _slow_contraction(history: list[float]) -> bool:
+    """The last step's decrease is more than a quarter of the previous step's (a contraction
+    slower than 1/2 per step: a chord step's factor should be renewed)."""
+    return len(history) > 2 and history[-2] - history[-1] > 0.25 * (history[-3] - history[-2])
 
 
 def _objective(prob: _Problem, plain: bool, cost: float, v: FloatArray, T: FloatArray,

@@ -10,8 +10,8 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import columns, kernels, models
-from ga_ros.core.linalg.banded import spd_inverse
 from ga_ros.core.linalg.blocks import BlockPattern
+from ga_ros.core.linalg.completion import spd_inverse
 from ga_ros.core.network import ConnectionArrays
 from ga_ros.core.solver.config import SolverConfig
 from ga_ros.core.solver.priors import _add_priors

@@ -33,8 +33,8 @@ import scipy.sparse as sp
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.linalg import selinv
-from ga_ros.core.linalg.banded import CovarianceSkeleton
 from ga_ros.core.linalg.cholesky import trailing_factor
+from ga_ros.core.linalg.completion import CovarianceSkeleton
 from ga_ros.core.solver import GaussianPrior, SolveResult, normal_matrix_at
 from ga_ros.core.window.state import WindowState
 from ga_ros.errors import DegenerateGeometryError, InputError
@@ -499,7 +499,7 @@ def band_prior(T_lin: FloatArray, skeleton: CovarianceSkeleton, step: FloatArray
     dense information that couples the whole swath. This prior keeps its mean (the absorbed
     terms' own optimum on ``S``, ``T_lin`` moved by the step ``H^-1 g``) and replaces its
     covariance ``Sigma_S`` by the maximum-entropy Gaussian that agrees with it on a skeleton
-    (:class:`~ga_ros.core.linalg.banded.CovarianceSkeleton`): a band of ``w`` nodes along the
+    (:class:`~ga_ros.core.linalg.completion.CovarianceSkeleton`): a band of ``w`` nodes along the
     trajectory plus a few hub nodes spread along it. Every node's marginal covariance, its
     correlations with the ``w`` nodes before and after it and with every hub are exact; the
     hubs keep the long-range correlations (a band alone made the boundary's common drift look
@@ -546,7 +546,7 @@ def tangent_prior(T_lin: FloatArray, H: FloatArray, g: FloatArray | None,
     cost at the window's boundary rose 303 above the freeze estimate; the tangent prior said 232
     (the window then ends 12 batch sd^2 from the batch solution, covariances 0.67 of it), the
     split one 314 (0.08 batch sd^2, 0.92): ``test/core/window/test_nees_long_swaths.py``,
-    docs/design.md "The frozen prior's residual: position and rotation apart".
+    docs/window-design.md "The frozen prior's residual: position and rotation apart".
 
     Parameters
     ----------

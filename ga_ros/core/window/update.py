@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.linalg.banded import spd_inverse
+from ga_ros.core.linalg.completion import spd_inverse
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.prealign import prealign
 from ga_ros.core.solver import GaussianPrior, SolveResult, information_rank, solve

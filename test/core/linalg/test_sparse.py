@@ -129,10 +129,10 @@ def test_direct_analysis_gives_cvxopts_factor(rng, monkeypatch):
     with trailing blocks; both solve like the dense matrix."""
     import pytest
 
-    import ga_ros.core.linalg.cholmod as cholmod
-    from ga_ros.core.linalg.cholmod import _supernodal_layout
+    from ga_ros.core.linalg.cholmod import _direct_cholmod
+    from ga_ros.core.linalg.cholmod_ctypes import _supernodal_layout
 
-    direct = cholmod._direct_cholmod()
+    direct = _direct_cholmod()
     if direct is None or direct._capsule is None:
         pytest.skip('the direct CHOLMOD calls are not available here')
     N, pat, data = _random_block_spd(rng, 40, 6, density=0.08)

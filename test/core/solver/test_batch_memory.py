@@ -10,7 +10,7 @@ import ga_ros.core.linalg.blocks as assembly
 import ga_ros.core.linalg.cholmod as cholmod
 from ga_ros.core.linalg.blocks import BlockPattern
 from ga_ros.core.linalg.cholesky import SparseCholesky
-from ga_ros.core.linalg.cholmod import _supernodal_layout
+from ga_ros.core.linalg.cholmod_ctypes import _supernodal_layout
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import DegenerateGeometryError, NetworkError
 

@@ -2,22 +2,19 @@
 
 The survey is a straight line with rotations known to 1e-6 rad, so the se3 adjustment is the
 linear positions problem whose weighted least-squares solution is written out with numpy
-(:func:`_wls`), independently of the aligner.
+(``line_survey.wls_positions``), independently of the aligner.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from line_survey import feed, fixes_aligner, gnss_fix, line_survey, wls_positions
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm
-from ga_ros.core.measurement import Measurement
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.geometry import se3
+from ga_ros.core.window import TrackWindowAligner
 
 SIGMA_T = 0.05  # m, odometry step noise per axis
 SIGMA_FIX = 0.3  # m, fix noise per axis
-GAUGE_M = 100.0  # m, the gauge prior's position sigma
 
 
 @pytest.fixture
@@ -26,58 +23,20 @@ def rng() -> np.random.Generator:
 
 
 def _line_survey(rng, n_tracks: int, per_track: int):
-    n = n_tracks * per_track
-    step = np.array([1.0, 0.2, 0.0])
-    p_true = np.cumsum(np.vstack([np.zeros(3), np.tile(step, (n - 1, 1))]), axis=0)
-    cov = np.diag([SIGMA_T ** 2] * 3 + [1e-12] * 3)
-    ms, z = [], []
-    for i in range(n - 1):
-        t = step + rng.normal(0, SIGMA_T, 3)
-        z.append(t)
-        ms.append(Measurement(i, i + 1, i // per_track, (i + 1) // per_track,
-                              np.concatenate([t, np.zeros(3)]), cov, stamp_ns=(i + 1) * 10 ** 9))
-    return ms, np.array(z), p_true
+    return line_survey(rng, n_tracks, per_track, SIGMA_T)
 
 
 def _wls(n: int, z: np.ndarray, fixes: dict[int, np.ndarray]) -> np.ndarray:
-    """Positions by weighted least squares: p_{i+1} - p_i = z_i, p_k = fix_k, p_0 = 0 (weak)."""
-    rows, rhs, w = [], [], []
-    for i in range(n - 1):
-        for a in range(3):
-            r = np.zeros(3 * n)
-            r[3 * (i + 1) + a], r[3 * i + a] = 1.0, -1.0
-            rows.append(r)
-            rhs.append(z[i, a])
-            w.append(1.0 / SIGMA_T ** 2)
-    for k, (p, s) in [(k, (p, SIGMA_FIX)) for k, p in fixes.items()] + [(0, (np.zeros(3),
-                                                                             GAUGE_M))]:
-        for a in range(3):
-            r = np.zeros(3 * n)
-            r[3 * k + a] = 1.0
-            rows.append(r)
-            rhs.append(p[a])
-            w.append(1.0 / s ** 2)
-    A, b, W = np.array(rows), np.array(rhs), np.diag(w)
-    return np.linalg.solve(A.T @ W @ A, A.T @ W @ b).reshape(n, 3)
+    return wls_positions(n, z, SIGMA_T, {k: (p, SIGMA_FIX) for k, p in fixes.items()})
 
 
 def _aligner(refine_every: int, **kw) -> TrackWindowAligner:
-    cfg = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=refine_every,
-                        refine_executor='inline', gauge_sigma_m=GAUGE_M,
-                        gauge_sigma_tilt_rad=1e-6, gauge_sigma_yaw_rad=1e-6, prior_band=-1,
-                        fix_gate_prob=0.0, **kw)
-    return TrackWindowAligner(cfg)
+    return fixes_aligner(2, refine_every, **kw)
 
 
 def _run(al: TrackWindowAligner, ms, fixes: dict[int, np.ndarray]) -> None:
     """Feed the survey, each fix right after its node's measurement; finish the last track."""
-    for m in ms:
-        al.add_measurement(m)
-        k = m.dst_id
-        if k in fixes:
-            T = se3.from_translation_rotvec(fixes[k], np.zeros(3))
-            al.add_fix(FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
-                m.stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+    feed(al, ms, {k: (p, SIGMA_FIX) for k, p in fixes.items()})
     al.finish_track()
 
 
@@ -133,9 +92,7 @@ def test_online_estimate_with_refinement_no_worse_than_without(rng) -> None:
                 online.append(np.linalg.norm(newest.T_world_node[sel, :3, 3]
                                              - p_true[newest.node_ids[sel]], axis=1))
             if m.dst_id in fixes:
-                T = se3.from_translation_rotvec(fixes[m.dst_id], np.zeros(3))
-                al.add_fix(FixTerm(m.dst_id, se3.identity(), AbsoluteFix.from_covariance(
-                    m.stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+                al.add_fix(gnss_fix(m.dst_id, m.stamp_ns, fixes[m.dst_id], SIGMA_FIX))
         errs[every] = float(np.sqrt(np.mean(np.concatenate(online) ** 2)))
     assert errs[1] <= 1.01 * errs[0] + 1e-4
 
@@ -180,9 +137,7 @@ def test_fixes_added_to_a_leaving_track_after_the_snapshot_are_not_lost(rng) -> 
         # each fix arrives one track late (a slow GNSS pipeline), before its node freezes
         for j, stamp in list(pending.items()):
             if k - j >= per:
-                T = se3.from_translation_rotvec(fixes[j], np.zeros(3))
-                al.add_fix(FixTerm(j, se3.identity(), AbsoluteFix.from_covariance(
-                    stamp, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+                al.add_fix(gnss_fix(j, stamp, fixes[j], SIGMA_FIX))
                 del pending[j]
     al.finish_track()
     used = {t.node_id for t in al.state.fixes.terms if t.fix.source == 'gnss'}
@@ -215,9 +170,7 @@ def test_freeze_computed_ahead_with_fixes_is_used_and_exact(rng) -> None:
         al.add_measurement(m)
     al.finish_track()  # tracks 0-2 finished, window of 2: track 1 leaves at the next update
     node = per + 1  # a node of track 1
-    T = se3.from_translation_rotvec(p_true[node], np.zeros(3))
-    al.add_fix(FixTerm(node, se3.identity(), AbsoluteFix.from_covariance(
-        ms[node - 1].stamp_ns, T, np.diag([SIGMA_FIX ** 2] * 3 + [-1.0] * 3), 'gnss')))
+    al.add_fix(gnss_fix(node, ms[node - 1].stamp_ns, p_true[node], SIGMA_FIX))
     before = list(al.ahead.n_ahead)
     for m in ms[3 * per - 1:4 * per - 1]:
         al.add_measurement(m)

@@ -80,7 +80,7 @@ def test_the_frozen_prior_holds_where_the_window_moves_the_boundary(survey, firs
     the batch solution and to the window's own solution both rise alike (within 2 %; a rise of
     ~225 chi-square units). With the SE(3)-tangent residual the window's boundary ended 330 m
     and 13 deg from the freeze estimate, where the prior said 232 and the truth was 303
-    (docs/design.md, "The frozen prior's residual: position and rotation apart")."""
+    (docs/window-design.md, "The frozen prior's residual: position and rotation apart")."""
     sc, nm, batch = survey
     al = first_estimate
     (idx, mean, H), = al.state.priors

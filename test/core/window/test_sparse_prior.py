@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from ga_ros.core.linalg.banded import (
+from ga_ros.core.linalg.banded import banded_selection
+from ga_ros.core.linalg.completion import (
     CovarianceSkeleton,
     band_information,
-    banded_selection,
     dense_band,
     skeleton_layout,
 )
