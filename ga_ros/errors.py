@@ -94,6 +94,13 @@ class CorruptFileError(FormatError):
     intact is kept and the file is moved aside, never deleted."""
 
 
+class UnknownExtrinsicError(InputError):
+    """A sensor's pose in the robot's base frame is not known (no transform on ``/tf_static``,
+    no parameter): nothing is computed in a wrong frame. Publish the transform, set the
+    extrinsic parameter, or say explicitly that the sensor frame is the base frame (the
+    message names the parameters)."""
+
+
 class PersistenceError(GaError):
     """The state file or its journal cannot be used or written (a full disk, a read-only
     directory, a path under a regular file). The node then runs without persistence, unless

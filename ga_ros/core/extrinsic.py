@@ -26,14 +26,13 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import InputError
+from ga_ros.errors import InputError, UnknownExtrinsicError
 from ga_ros.geometry import se3, so3
 
 #: Where an extrinsic came from (:attr:`Extrinsic.source`).
 FROM_TF = 'tf_static'
 FROM_PARAMETERS = 'parameters'
 IDENTITY_ASSUMED = 'identity (assume_identity_extrinsic)'
-UNKNOWN = 'unknown (identity used)'
 
 
 @dataclass(frozen=True)
@@ -51,18 +50,6 @@ class Extrinsic:
     base_frame: str = 'base_link'
     camera_frame: str = ''
     source: str = FROM_PARAMETERS
-
-    @property
-    def warning(self) -> str:
-        """Why the poses are not the robot's ('' when the extrinsic is known or the identity
-        was asked for)."""
-        if self.source != UNKNOWN:
-            return ''
-        return (f'no extrinsic of camera frame {self.camera_frame!r} in {self.base_frame!r}: '
-                f"poses are the camera's (optical frame: z forward), published as "
-                f'{self.base_frame!r}; publish it on /tf_static (e.g. robot_state_publisher), '
-                f"set T_base_camera ('x y z roll pitch yaw') or set "
-                f'assume_identity_extrinsic: true')
 
     @property
     def is_identity(self) -> bool:
@@ -163,7 +150,8 @@ class ExtrinsicConfig:
         quaternion x y z w, as ``static_transform_publisher``), or ``'x y z roll pitch yaw'``
         (m, rad, ``R = Rz(yaw) Ry(pitch) Rx(roll)``); '' = from ``/tf_static`` only.
     assume_identity_extrinsic : with neither ``/tf_static`` nor ``T_base_camera``, take the
-        camera frame as the base frame (poses are then the optical frame's: z forward).
+        camera frame as the base frame (poses are then the optical frame's: z forward);
+        without it such a camera is refused (:meth:`resolve`).
     """
 
     base_frame: str = 'base_link'
@@ -196,13 +184,26 @@ class ExtrinsicConfig:
                              f', got {len(v)} numbers')
         return Extrinsic(T, self.base_frame, self.camera_frame or camera_frame, FROM_PARAMETERS)
 
-    def resolve(self, T_base_cam_tf: FloatArray | None, camera_frame: str = '') -> Extrinsic:
+    def resolve(self, T_base_cam_tf: FloatArray | None, camera_frame: str = '',
+                parameter: str = 'T_base_camera',
+                identity: str = 'assume_identity_extrinsic: true', in_bag: bool = False
+                ) -> Extrinsic:
         """The extrinsic to use: ``/tf_static``'s (``T_base_cam_tf``, None when it has none),
-        else the parameters', else the identity, said so (``assume_identity_extrinsic``) or
-        not (then :attr:`Extrinsic.warning` says how to give one).
+        else the parameters', else the identity when said so (``assume_identity_extrinsic``).
+
+        Parameters
+        ----------
+        T_base_cam_tf : (4, 4) ``base_frame -> camera`` from ``/tf_static``, or None.
+        camera_frame : the camera's frame id (used unless :attr:`camera_frame` is set).
+        parameter, identity : how the caller's user sets ``T_base_camera`` and
+            ``assume_identity_extrinsic`` (named in the refusal; node parameters by default).
+        in_bag : the ``/tf_static`` is a bag's (the refusal says to record it there).
 
         Raises
         ------
+        UnknownExtrinsicError
+            Neither ``/tf_static`` nor ``T_base_camera`` gives it and the identity was not
+            asked for: the camera's poses would be published as the base's.
         InputError
             A malformed ``T_base_camera``.
         """
@@ -214,18 +215,26 @@ class ExtrinsicConfig:
             return from_params
         if self.assume_identity_extrinsic:
             return Extrinsic(np.eye(4), self.base_frame, cam, IDENTITY_ASSUMED)
-        return Extrinsic(np.eye(4), self.base_frame, cam, UNKNOWN)
+        raise unknown_extrinsic_error('camera', parameter, identity,
+                                      frames=(self.base_frame, cam), in_bag=in_bag)
 
 
 def unknown_extrinsic_error(sensor: str, parameter: str, identity: str,
-                            tf_static: bool = True) -> InputError:
+                            tf_static: bool = True, frames: tuple[str, str] = ('', ''),
+                            in_bag: bool = False) -> UnknownExtrinsicError:
     """The one-line refusal when a sensor's extrinsic is unknown: it names the ways to give it
     (``/tf_static`` when the caller reads it, the ``parameter`` ``T_base_<sensor>`` as
-    ``'x y z qx qy qz qw'``, or ``identity`` to take the sensor frame as the base frame)."""
-    ways = ([f'publish base_frame -> {sensor} frame on /tf_static'] if tf_static else []) + [
+    ``'x y z qx qy qz qw'``, or ``identity`` to take the sensor frame as the base frame).
+
+    ``frames`` (base frame, sensor frame) name the missing transform when known; ``in_bag``:
+    the ``/tf_static`` read is a bag's."""
+    base, child = frames
+    edge = f'{base} -> {child}' if base and child else f'base_frame -> {sensor} frame'
+    ways = ([f'publish {edge} on /tf_static' + (' (recorded in the bag)' if in_bag else '')]
+            if tf_static else []) + [
         f"set {parameter} ('x y z qx qy qz qw': m, quaternion x y z w)",
         f'say {identity} (the {sensor} frame is the base frame)']
-    return InputError(f'{sensor} extrinsic unknown: ' + ', or '.join(ways))
+    return UnknownExtrinsicError(f'{sensor} extrinsic unknown: ' + ', or '.join(ways))
 
 
 def renamed_parameter_error(old: str, new: str) -> InputError:

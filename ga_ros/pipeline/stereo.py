@@ -60,6 +60,8 @@ NOT_KEYFRAME = 'not a keyframe'
 LOST = 'lost'
 #: A pair the caller dropped before the VO saw it (``vo_node``'s queue was full).
 DROPPED = 'dropped (queue full)'
+#: A pair refused because the camera's extrinsic is not known yet (``vo_node`` waits for it).
+NO_EXTRINSIC = 'no camera extrinsic yet'
 
 
 @dataclass(frozen=True)
@@ -127,7 +129,8 @@ class StereoStats:
 
     Every pair is counted once: either in ``measurements`` or under one key of ``reasons``
     (:data:`NO_CAMERA_INFO`, :data:`BAD_PAIR`, :data:`TEXTURELESS`, :data:`TOO_FEW_POINTS`,
-    :data:`FIRST_KEYFRAME`, :data:`NOT_KEYFRAME`, :data:`LOST`, :data:`DROPPED`), so that
+    :data:`FIRST_KEYFRAME`, :data:`NOT_KEYFRAME`, :data:`LOST`, :data:`DROPPED`,
+    :data:`NO_EXTRINSIC`), so that
     ``pairs == measurements + sum(reasons.values())`` once every pair is processed.
     ``lost_reasons`` details the lost tracks (numbers replaced by ``#``). ``unpaired`` counts
     images (not pairs) that never found a partner within ``max_pair_dt_sec``;
@@ -323,11 +326,13 @@ class StereoFrontEnd:
             return ImagePair(msg, omsg, stamp)
         return ImagePair(omsg, msg, match)
 
-    def count_dropped(self, pair: ImagePair) -> FrameOutput:
-        """Count a pair that the caller drops unprocessed (:data:`DROPPED`)."""
-        self._reason(DROPPED)
-        return FrameOutput(pair.stamp_ns, error='stereo: pair dropped (queue full)',
-                           reason=DROPPED)
+    def count_dropped(self, pair: ImagePair, reason: str = DROPPED) -> FrameOutput:
+        """Count a pair that the caller drops unprocessed (:data:`DROPPED`,
+        :data:`NO_EXTRINSIC`)."""
+        self._reason(reason)
+        error = ('stereo: pair dropped (queue full)' if reason == DROPPED
+                 else f'stereo: pair refused: {reason}')
+        return FrameOutput(pair.stamp_ns, error=error, reason=reason)
 
     def _reason(self, key: str) -> None:
         self.stats.reasons[key] = self.stats.reasons.get(key, 0) + 1

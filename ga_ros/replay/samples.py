@@ -39,7 +39,7 @@ from ga_ros.io.bag_messages import (
     trajectory_to_path_msg,
     typestore,
 )
-from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import Trajectory
 
 #: Stamp of the first frame of the sample bags (2023-11-14T22:13:20Z), ns.
@@ -180,7 +180,9 @@ class StereoSampleConfig:
 
 def make_stereo_bag(path: str | Path, config: StereoSampleConfig = StereoSampleConfig(),
                     storage: str = 'mcap', overwrite: bool = False) -> Path:
-    """Render the stereo sample survey into a bag (compressed images, CameraInfo, ground truth).
+    """Render the stereo sample survey into a bag (compressed images, CameraInfo, ground truth,
+    and on ``/tf_static`` the camera's extrinsic: ``base_link -> stereo_left`` the identity, the
+    survey's vehicle frame being its left camera's).
 
     Returns the bag path. Deterministic for a config (seeded terrain, flight and image noise).
     """
@@ -197,6 +199,8 @@ def make_stereo_bag(path: str | Path, config: StereoSampleConfig = StereoSampleC
     stamps = survey.stamps_ns + BASE_STAMP_NS
     K = rig.K
     with BagWriter(path, overwrite=overwrite, storage=storage) as bag:
+        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage', tf_message([transform_msg(
+            'base_link', 'stereo_left', np.eye(4), int(stamps[0]))]), int(stamps[0]))
         for T, s in zip(survey.T_world_cam, stamps):
             left, right = scene.render_pair(T, rng)
             s = int(s)

@@ -47,12 +47,11 @@ class StereoSource:
         self.plan = plan
         self.front = StereoFrontEnd(front_end_config(config))
         self.counter = counter
-        #: what the replay should say about the frames ('' when the extrinsic is known)
-        self.warnings: list[str] = []
         self.tf_static = TransformTree()
         if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
             models = read_stereo_calibration(list(plan.calibration))
             self.front.set_camera_models(models.left, models.right)
+        self._resolve_extrinsic()
 
     @property
     def stats(self) -> StereoStats:
@@ -63,21 +62,37 @@ class StereoSource:
         """Feedback of the aligner (what vo_node gets from the alignment node's path)."""
         self.front.set_corrected(node_ids, T_world_node)
 
-    def _resolve_extrinsic(self, image: Any) -> None:
-        """The camera's extrinsic, at the first image: the bag's ``/tf_static`` (read before
-        the images), else the parameters, else the identity (warned about)."""
-        cfg = self.front.config.extrinsic
-        camera = cfg.camera_frame or str(image.header.frame_id)
-        ext = cfg.resolve(self.tf_static.lookup(cfg.base_frame, camera), camera)
-        self.front.set_extrinsic(ext)
-        if ext.warning:
-            self.warnings.append(ext.warning)
+    def _resolve_extrinsic(self) -> None:
+        """The camera's extrinsic, before any work: the bag's ``/tf_static`` (``base_frame ->``
+        the configured ``camera_frame``, else the first left image's frame), else the
+        parameters, else the identity when said so (``assume_identity_extrinsic``).
 
-    def __iter__(self) -> Iterator[SourceItem]:
+        Raises
+        ------
+        UnknownExtrinsicError
+            None of them gives it (the message says how to).
+        """
         assert self.bag.info is not None
         if self.bag.info.topic('/tf_static') is not None:
             for bm in self.bag.messages(['/tf_static']):
                 self.tf_static.add_message(bm.msg)
+        cfg = self.front.config.extrinsic
+        camera = cfg.camera_frame
+        if not camera:
+            images = self.bag.messages([self.plan.left_image])
+            try:
+                first = next(images, None)
+            finally:
+                images.close()
+            if first is None:
+                return  # no image: nothing to do
+            camera = str(first.msg.header.frame_id)
+        self.front.set_extrinsic(cfg.resolve(
+            self.tf_static.lookup(cfg.base_frame, camera), camera,
+            parameter='--vo T_base_camera=...', identity='--vo assume_identity_extrinsic=true',
+            in_bag=True))
+
+    def __iter__(self) -> Iterator[SourceItem]:
         p = self.plan
         sides = {p.left_image: 'left', p.right_image: 'right'}
         infos = {p.left_info: 'left', p.right_info: 'right'}
@@ -90,8 +105,6 @@ class StereoSource:
                 continue
             if bm.topic not in sides:
                 continue
-            if self.front.extrinsic is None:
-                self._resolve_extrinsic(bm.msg)
             for frame in self.front.add_image(sides[bm.topic], bm.msg):
                 self.counter[0] += 1
                 if frame.result is None:

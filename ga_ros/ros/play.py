@@ -279,10 +279,19 @@ class BagPlayer:
                 missing.append(f'{name}: not acknowledged by every subscriber')
         return missing
 
+    def asks_history(self, topic: str) -> bool:
+        """True when a subscriber of ``topic`` asks for the history (transient local, as the
+        alignment node by default): it is there to process the input, so play expects its
+        confirmation. Known with the subscription itself, whatever the order in which DDS
+        discovers the node's other endpoints (its input-done publisher may come later)."""
+        return any(info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                   for info in self.node.get_subscriptions_info_by_topic(topic))
+
     def _wait_delivered(self, patience_s: float) -> list[str]:
-        """Before exiting: wait until :meth:`undelivered` is empty and every alignment node
-        on an end topic (a publisher of its input-done topic) confirmed it processed the end
-        of input. A node killed meanwhile stays matched until DDS notices it is gone; its
+        """Before exiting: wait until :meth:`undelivered` is empty and every end topic with a
+        confirming subscriber (one asking for the history, :meth:`asks_history`, or a node
+        publishing the input-done topic) got a confirmation that the end of input was
+        processed. A node killed meanwhile stays matched until DDS notices it is gone; its
         restart gets the whole history again and confirms in turn. Gives up after
         ``patience_s`` without any subscriber acknowledging or node processing. Returns what
         is still undelivered (with an error line naming it)."""
@@ -292,10 +301,11 @@ class BagPlayer:
             now = time.monotonic()
             missing = self.undelivered()
             for t in self.end_topics:
-                if self.node.count_publishers(topics.input_done_topic(t)) > 0:
+                at_work = self.node.count_publishers(topics.input_done_topic(t)) > 0
+                if at_work or self.asks_history(t):
                     confirming.add(t)
-                    if not self.done[t]:
-                        end = max(end, now + patience_s)   # a node is at work
+                if at_work and not self.done[t]:
+                    end = max(end, now + patience_s)   # a node is at work
             missing += [f'{t}: the node did not confirm it processed the input (no message '
                         f'on {topics.input_done_topic(t)})'
                         for t in sorted(confirming) if not self.done[t]]

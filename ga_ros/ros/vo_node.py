@@ -24,8 +24,10 @@ Frames (REP 103/105): the VO measures the left camera's optical frame; every mea
 pose leaves as the robot's ``base_frame``, converted with the camera's extrinsic
 (:mod:`ga_ros.core.extrinsic`), resolved at the first stereo pair from ``/tf_static``
 (``base_frame -> camera_frame``, the left image's frame by default), else the parameter
-``T_base_camera``, else the identity (said so by ``assume_identity_extrinsic``, or warned
-about).
+``T_base_camera``, else the identity when said so (``assume_identity_extrinsic: true``). Without
+any of them the node refuses the pairs (counted as ``no_measurement/no camera extrinsic yet``,
+diagnostics ERROR, an error naming the three ways, throttled) and keeps waiting: the first pair
+after the transform arrived on ``/tf_static`` resolves it and the VO starts there.
 
 Loss detection: each image stream has a :class:`ga_ros.pipeline.stream_rate.StreamMonitor`
 (rate from the stamps, gaps counted as lost messages) and the pairs a
@@ -88,10 +90,16 @@ from tf2_msgs.msg import TFMessage
 from ga_ros import topics
 from ga_ros.core.extrinsic import ExtrinsicConfig, TransformTree
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, UnknownExtrinsicError
 from ga_ros.geometry import se3
 from ga_ros.pipeline.params import parameter_names
-from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, ImagePair, StereoFrontEnd
+from ga_ros.pipeline.stereo import (
+    NO_EXTRINSIC,
+    FrameOutput,
+    FrontEndConfig,
+    ImagePair,
+    StereoFrontEnd,
+)
 from ga_ros.pipeline.stream_rate import FrameMonitor, StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
@@ -178,6 +186,10 @@ def array_to_image(img: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
     return msg
 
 
+#: ``camera_extrinsic`` of the diagnostics while pairs are refused for want of the extrinsic.
+EXTRINSIC_REFUSED = 'unknown (pairs refused)'
+
+
 class VoNode(Node):
     """Adapter: messages -> :class:`StereoFrontEnd` -> messages."""
 
@@ -200,6 +212,8 @@ class VoNode(Node):
             'left_image': StreamMonitor(), 'right_image': StreamMonitor(),
             'pairs': FrameMonitor(int(round(s.max_pair_dt_sec * 1e9)))}
         self._last_warn: dict[str, float] = {}
+        #: why the pairs are refused while the camera's extrinsic is unknown ('' otherwise)
+        self.extrinsic_error = ''
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
                        'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0}
         self._last_image = time.monotonic()
@@ -266,11 +280,13 @@ class VoNode(Node):
         return self.front.matcher
 
     # ------------------------------------------------------------------ helpers
-    def _warn(self, key: str, text: str) -> None:
+    def _warn(self, key: str, text: str, error: bool = False) -> None:
+        """Log ``text`` (a warning, or an error), at most once per ``warn_throttle_sec`` per
+        ``key``."""
         now = self.get_clock().now().nanoseconds * 1e-9
         if now - self._last_warn.get(key, -1e18) >= self.settings.warn_throttle_sec:
             self._last_warn[key] = now
-            self.get_logger().warning(text)
+            (self.get_logger().error if error else self.get_logger().warning)(text)
 
     def _publish_measurement(self, m: Measurement) -> None:
         self.pub_meas.publish(conv.measurement_to_odometry(m))
@@ -319,16 +335,24 @@ class VoNode(Node):
         with self._lock:
             self.tf_static.add_message(msg)
 
-    def _resolve_extrinsic(self, pair: ImagePair) -> None:
-        """The camera's extrinsic at the first pair (``/tf_static``, parameters, identity)."""
+    def _resolve_extrinsic(self, pair: ImagePair) -> bool:
+        """The camera's extrinsic at a pair (``/tf_static``, parameters, identity when said
+        so); False, with the refusal counted and logged (throttled), while it is unknown."""
         cfg = self.extrinsic_config
         camera = cfg.camera_frame or str(pair.left.header.frame_id)
-        ext = cfg.resolve(self.tf_static.lookup(cfg.base_frame, camera), camera)
+        try:
+            ext = cfg.resolve(self.tf_static.lookup(cfg.base_frame, camera), camera)
+        except UnknownExtrinsicError as exc:
+            self.front.count_dropped(pair, NO_EXTRINSIC)
+            self.extrinsic_error = str(exc)
+            refused = self.front.stats.reasons.get(NO_EXTRINSIC, 0)
+            self._warn('extrinsic', f'stereo pair refused ({refused} so far): {exc}',
+                       error=True)
+            return False
         self.front.set_extrinsic(ext)
-        if ext.warning:
-            self.get_logger().warning(ext.warning)
-        else:
-            self.get_logger().info(f'camera {camera!r} in {cfg.base_frame!r} from {ext.source}')
+        self.extrinsic_error = ''
+        self.get_logger().info(f'camera {camera!r} in {cfg.base_frame!r} from {ext.source}')
+        return True
 
     def _on_image(self, msg: Image | CompressedImage, side: str) -> None:
         self._last_image = time.monotonic()
@@ -380,8 +404,8 @@ class VoNode(Node):
     def process(self, pair: ImagePair) -> None:
         """Run the front end on one pair and publish what it gives (worker thread)."""
         with self._lock:
-            if self.front.extrinsic is None:
-                self._resolve_extrinsic(pair)
+            if self.front.extrinsic is None and not self._resolve_extrinsic(pair):
+                return
             frame = self.front.process_pair(pair)
             self.counts['processed'] += 1
             self._publish_frame(frame)
@@ -403,7 +427,9 @@ class VoNode(Node):
         for name, mon in self.streams.items():
             values.update(mon.report().values(f'{name}/'))
         ext = self.front.extrinsic
-        values['camera_extrinsic'] = ext.source if ext is not None else 'not resolved yet'
+        values['camera_extrinsic'] = (ext.source if ext is not None else
+                                      EXTRINSIC_REFUSED if self.extrinsic_error
+                                      else 'not resolved yet')
         for name, sub in self.sensor_subscriptions.items():
             values[f'qos/{name}'] = (sub.reliability if sub.decided
                                      else 'best_effort (auto: no publisher yet)')
@@ -411,8 +437,8 @@ class VoNode(Node):
 
     def health(self) -> tuple[int, str]:
         """Diagnostic level (0 OK, 1 WARN, 2 ERROR) and message: queue drops, streams losing
-        more than ``loss_warn_fraction`` (WARN), an unknown camera extrinsic (ERROR: the poses
-        are the camera's, published as the base's; identity only when said so)."""
+        more than ``loss_warn_fraction`` (WARN), an unknown camera extrinsic (ERROR: the pairs
+        are refused until it is known; identity only when said so)."""
         problems = []
         level = 1
         dropped = self.counts['queue_dropped']
@@ -423,11 +449,9 @@ class VoNode(Node):
             if r.loss_fraction > self.settings.loss_warn_fraction:
                 problems.append(f'{name}: {r.lost} of {r.expected} lost '
                                 f'({100 * r.loss_fraction:.1f} %)')
-        ext = self.front.extrinsic
-        if ext is not None and ext.warning:
-            problems.insert(0, 'camera extrinsic unknown (identity used): publish base_frame -> '
-                            'camera on /tf_static, set T_base_camera or set '
-                            'assume_identity_extrinsic: true')
+        if self.front.extrinsic is None and self.extrinsic_error:
+            refused = self.front.stats.reasons.get(NO_EXTRINSIC, 0)
+            problems.insert(0, f'{refused} pairs refused: {self.extrinsic_error}')
             level = 2
         return (level, '; '.join(problems)) if problems else (0, 'ok')
 

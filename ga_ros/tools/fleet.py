@@ -102,6 +102,8 @@ def robot_commands(name: str, bag: Path, out: Path, rate: float,
         'vo': [py, '-m', 'ga_ros.ros.vo_node', '--ros-args', *common,
                '--params-file', str(REPO / 'config' / 'vo.yaml'), '-p', 'use_sim_time:=true',
                '-p', 'compressed:=true', '-p', 'image_queue:=200', '-p', 'pair_queue:=1000',
+               # the sample cameras are their robots' base frames (play sends no /tf_static)
+               '-p', 'assume_identity_extrinsic:=true',
                '-p', 'left_image_topic:=stereo/left/image_raw/compressed',
                '-p', 'right_image_topic:=stereo/right/image_raw/compressed',
                '-p', 'left_info_topic:=stereo/left/camera_info',

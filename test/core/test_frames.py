@@ -21,7 +21,7 @@ from ga_ros.core.extrinsic import (
     pose_to_base,
 )
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import InputError
+from ga_ros.errors import InputError, UnknownExtrinsicError
 from ga_ros.geometry import se3, so3
 
 #: The camera 0.4 m ahead of and 1.2 m above base_link, looking forward (optical frame).
@@ -104,12 +104,15 @@ def test_transform_tree_composes_a_chain_and_the_config_resolves_in_order(rng):
     cfg = ExtrinsicConfig(T_base_camera='0.4 0 1.2 -1.5707963267948966 0 -1.5707963267948966')
     assert cfg.resolve(T, 'camera_optical').source == FROM_TF
     from_params = cfg.resolve(None, 'camera_optical')
-    assert from_params.source == FROM_PARAMETERS and not from_params.warning
+    assert from_params.source == FROM_PARAMETERS
     np.testing.assert_allclose(from_params.T_base_cam, T_BASE_CAM, atol=1e-12)
     assert ExtrinsicConfig(assume_identity_extrinsic=True).resolve(None).source == (
         IDENTITY_ASSUMED)
-    unknown = ExtrinsicConfig().resolve(None, 'cam')
-    assert unknown.is_identity and 'assume_identity_extrinsic' in unknown.warning
+    with pytest.raises(UnknownExtrinsicError) as refused:   # identity only when said so
+        ExtrinsicConfig().resolve(None, 'cam')
+    assert all(w in str(refused.value) for w in ('publish base_link -> cam on /tf_static',
+                                                  'set T_base_camera',
+                                                  'assume_identity_extrinsic: true'))
     with pytest.raises(InputError):
         ExtrinsicConfig(T_base_camera='1 2 3').resolve(None)
 
@@ -151,7 +154,8 @@ def _write_forward_bag(path: Path, with_tf_static: bool) -> Path:
 
 
 @pytest.mark.slow
-def test_replay_of_a_forward_camera_with_tf_static_drives_along_map_x(tmp_path):
+def test_replay_of_a_forward_camera_with_tf_static_drives_along_map_x(tmp_path, capsys):
+    from ga_ros.pipeline.stereo import FrontEndConfig
     from ga_ros.replay.config import ReplayConfig
     from ga_ros.replay.pipeline import replay
 
@@ -172,12 +176,27 @@ def test_replay_of_a_forward_camera_with_tf_static_drives_along_map_x(tmp_path):
     assert ext['source'] == FROM_TF and ext['camera_frame'] == 'camera_optical'
     np.testing.assert_allclose(ext['T_base_camera'], T_BASE_CAM, atol=1e-9)
     assert summary['frames']['warnings'] == []
-    # without /tf_static: the same numbers in the camera's frame, and a warning says so
+
+    # without /tf_static: refused before any work (exit 1 with the ways to give it) ...
+    from ga_ros.cli.main import main
+
     bag2 = _write_forward_bag(tmp_path / 'fwd2', with_tf_static=False)
-    r2 = replay(bag2, tmp_path / 'out2', ReplayConfig(plot=False))
+    args = ['replay', str(bag2), '--no-plot', '--no-progress']
+    assert main([*args, '--out', str(tmp_path / 'refused')]) == 1
+    err = capsys.readouterr().err
+    assert 'camera extrinsic unknown' in err and 'base_link -> camera_optical' in err
+    assert '--vo T_base_camera' in err and '--vo assume_identity_extrinsic=true' in err
+    assert not (tmp_path / 'refused').exists()
+    # ... and when said so, the identity: the same numbers in the camera's frame
+    assert main([*args, '--out', str(tmp_path / 'out2'), '--vo',
+                 'assume_identity_extrinsic=true']) == 0
+    frames = json.loads((tmp_path / 'out2' / 'summary.json').read_text())['frames']
+    assert frames['camera_extrinsic']['source'] == IDENTITY_ASSUMED
+    r2 = replay(bag2, tmp_path / 'out3', ReplayConfig(plot=False, vo=FrontEndConfig(
+        extrinsic=ExtrinsicConfig(assume_identity_extrinsic=True))))
     assert r2.corrected.T_world_node[-1, 2, 3] > 50.0   # optical z
-    warn = json.loads((tmp_path / 'out2' / 'summary.json').read_text())['frames']['warnings']
-    assert any('T_base_camera' in w for w in warn)
+    np.testing.assert_allclose(r2.corrected.T_world_node[:, [2, 0, 1], 3] * [1, -1, -1],
+                               p, atol=0.05)   # the same motion, seen from base_link
 
 
 @pytest.mark.ros

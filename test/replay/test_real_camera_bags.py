@@ -16,7 +16,7 @@ from bag_fixtures import mono8_image_msg
 from ga_ros.errors import FormatError, InputError
 from ga_ros.io.bag import BagReader, bag_info
 from ga_ros.io.bag_messages import CAMERA_INFO, IMAGE, header, typestore
-from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.topic_plan import plan_topics
 from ga_ros.pipeline.params import parse_override, read_params_file
 from ga_ros.pipeline.stereo import (
@@ -105,6 +105,9 @@ def euroc_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     path = tmp_path_factory.mktemp('euroc') / 'bag'
     t0 = 1_403_636_579_763_555_584
     with BagWriter(path, compress=False) as bag:
+        # the body frame is the left camera's (identity extrinsic, said so on /tf_static)
+        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage',
+                  tf_message([transform_msg('base_link', 'cam0', np.eye(4), t0)]), t0)
         for i, T in enumerate(survey.T_world_cam[:N_PAIRS]):
             s = t0 + int(survey.stamps_ns[i])
             pair = scene.render_pair(T, rng)

@@ -22,6 +22,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from ga_ros.io.bag import BagReader  # noqa: E402
 from ga_ros.io.bag_messages import measurement_to_odometry, odometry_to_measurement  # noqa: E402
@@ -32,7 +33,8 @@ from ga_ros.replay.samples import aerial_sample  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 
 RCLPY_TYPES = {'nav_msgs/msg/Odometry': Odometry, 'sensor_msgs/msg/CameraInfo': CameraInfo,
-               'sensor_msgs/msg/CompressedImage': CompressedImage}
+               'sensor_msgs/msg/CompressedImage': CompressedImage,
+               'tf2_msgs/msg/TFMessage': TFMessage}
 
 
 def domain_id(offset: int) -> int:
@@ -111,7 +113,9 @@ def test_vo_node_equals_replay(tmp_path: Path, context) -> None:
     try:
         for topic, msg in live_messages(bag):
             side = 'left' if '/left/' in topic else 'right'
-            if isinstance(msg, CameraInfo):
+            if isinstance(msg, TFMessage):   # the sample's extrinsic, as tf2 would hand it
+                node._on_tf_static(msg)
+            elif isinstance(msg, CameraInfo):
                 node._on_info(msg, side)
             else:
                 node._on_image(msg, side)

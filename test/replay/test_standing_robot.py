@@ -23,7 +23,7 @@ from bag_fixtures import (
 
 from ga_ros.cli.main import main
 from ga_ros.geometry import se3
-from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
 from ga_ros.io.trajectory import read_tum
 
 T0_NS = 1_700_000_000_000_000_000
@@ -48,6 +48,8 @@ def write_hovering_stereo(path: Path, frames: int = 8) -> None:
     rng = np.random.default_rng(2)
     T_hover = survey.T_world_cam[1]
     with BagWriter(path) as bag:
+        bag.write('/tf_static', 'tf2_msgs/msg/TFMessage',   # the camera is the base frame
+                  tf_message([transform_msg('base_link', 'left', np.eye(4), T0_NS)]), T0_NS)
         for k in range(frames):
             s = T0_NS + k * 200_000_000
             T = T_hover @ se3.exp(np.concatenate([rng.normal(0, 0.01, 3),

@@ -125,10 +125,6 @@ def test_play_rejects_bad_bags(tmp_path: Path) -> None:
         assert expect in res.stderr
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    'known bug, to fix: in about 1 run of 3 the node (sim time, transient-local measurements) '
-    "processes nothing although ga-ros play exits 0: play only waits for the node's "
-    'input-done confirmation once it has discovered that publisher'))
 def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> None:
     """`ga-ros play` into a running alignment_node (sim time): the path the node publishes at
     the first track end equals TrackWindowAligner fed the same measurements in-process."""
@@ -148,11 +144,18 @@ def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> 
     paths = []
     # a deep reader queue: the first update's path must not be replaced by a later one (the
     # node keeps publishing the open track's path) before this process has taken it
-    node.create_subscription(PathMsg, '/ga/corrected_path', paths.append, latched_qos(100))
+    sub = node.create_subscription(PathMsg, '/ga/corrected_path', paths.append,
+                                   latched_qos(100))
     proc = harness.start_node_process(DOMAIN, {'use_sim_time': True, 'autosave': False},
                                       log_path=tmp_path / 'node.log')
     player = None
     try:
+        # the node's path publisher keeps only its last path for a late subscriber: match it
+        # before the node has anything to publish, or the first update's path may be missed
+        end = time.monotonic() + 40
+        while sub.get_publisher_count() == 0 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.1)
+        assert sub.get_publisher_count() > 0, (tmp_path / 'node.log').read_text()[-2000:]
         player = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20')
         end = time.monotonic() + 40
         def first_update():  # paths between updates hold the open track dead-reckoned
@@ -186,3 +189,44 @@ def test_play_says_what_was_not_delivered(tmp_path: Path, sample: object) -> Non
     assert res.returncode == EXIT_NOT_DELIVERED, res.stderr
     assert 'not delivered' in res.stderr and '/ga/measurements: no subscriber' in res.stderr
     assert time.monotonic() - t0 >= 2.0
+
+
+@pytest.mark.parametrize('confirm', [False, True])
+def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, sample: object, ros,
+                                                           confirm: bool) -> None:
+    """A transient-local subscriber of the measurements is there to process them: play expects
+    its input-done confirmation from the subscription alone (whenever its done publisher is
+    discovered), exits 0 once it came, and with code 3 naming it when it never does."""
+    from nav_msgs.msg import Odometry
+    from std_msgs.msg import Empty
+
+    from ga_ros.ros.play import EXIT_NOT_DELIVERED
+    from ga_ros.ros.qos import measurement_qos
+
+    node, ex = ros
+    got = []
+    # a node with a done publisher counts as at work: the one that never confirms has none
+    done = node.create_publisher(Empty, '/ga/measurements_done', 10) if confirm else None
+
+    def on_measurement(msg: Odometry) -> None:
+        got.append(msg)
+        if done is not None and msg.child_frame_id == 'ga/track_end':
+            done.publish(Empty())
+
+    node.create_subscription(Odometry, '/ga/measurements', on_measurement,
+                             measurement_qos(transient_local=True))
+    bag = write_measurement_bag(tmp_path / 'b', sample.measurements[:20], None)
+    proc = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20',
+                 '--delivery-timeout', '3')
+    end = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    if proc.poll() is None:
+        proc.kill()
+    _, err = proc.communicate(timeout=10)
+    assert got and got[-1].child_frame_id == 'ga/track_end', err
+    if confirm:
+        assert proc.returncode == 0, err
+    else:
+        assert proc.returncode == EXIT_NOT_DELIVERED, err
+        assert 'did not confirm' in err and '/ga/measurements_done' in err

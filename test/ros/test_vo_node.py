@@ -24,14 +24,16 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
 
-from ga_ros.core.extrinsic import UNKNOWN, ExtrinsicConfig  # noqa: E402
+from ga_ros.core.extrinsic import FROM_TF, ExtrinsicConfig  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.pipeline.stereo import NO_EXTRINSIC  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
-from ga_ros.ros.vo_node import VoNodeSettings, array_to_image  # noqa: E402
+from ga_ros.ros.vo_node import EXTRINSIC_REFUSED, VoNodeSettings, array_to_image  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 from ga_ros.vo.crosstrack import CrossTrackConfig  # noqa: E402
 from ga_ros.vo.evaluate import motion_errors  # noqa: E402
@@ -115,7 +117,8 @@ def test_two_processes_images_in_measurements_out(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(dom), PYTHONUNBUFFERED='1')
     log = open(tmp_path / 'vo_node.log', 'wb')  # noqa: SIM115
     proc = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
-                             '--params-file', str(CONFIG), '-p', 'warn_throttle_sec:=0.0'],
+                             '--params-file', str(CONFIG), '-p', 'warn_throttle_sec:=0.0',
+                             '-p', 'assume_identity_extrinsic:=true'],
                             env=env, stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True)
     ctx = rclpy.Context()
@@ -238,20 +241,40 @@ def test_node_in_process_adapter(rng):
         for side in ('left', 'right'):
             node._on_info(camera_info(rig, side == 'right', 0), side)
         assert node.odometry is not None and not node.calibration.needs_rectification
+        # no /tf_static, no T_base_camera, no assume_identity_extrinsic: the pairs are refused
+        # (counted, an ERROR status naming the three ways) and the node waits
+        errors: list[str] = []
+        logger = node.get_logger()
+        original_error = logger.error
+        logger.error = lambda text, **kw: errors.append(text) or original_error(text)
+        for i in range(2):
+            left, right = scene.render_pair(survey.T_world_cam[0], rng)
+            node._on_image(array_to_image(left, 1000 + i, 'l'), 'left')
+            node._on_image(array_to_image(right, 1000 + i, 'r'), 'right')
+        assert node.wait_idle()
+        assert not sent and node.counts['processed'] == 0 and not debug
+        level, message = node.health()
+        values = node.diagnostic_values()
+        assert level == 2 and values['camera_extrinsic'] == EXTRINSIC_REFUSED
+        assert values[f'no_measurement/{NO_EXTRINSIC}'] == 2
+        for text in (message, errors[-1]):
+            assert all(w in text for w in ('base_link -> l on /tf_static', 'T_base_camera',
+                                           'assume_identity_extrinsic: true'))
+        # the transform arrives: the next pair resolves it and the VO starts there
+        T_base_l = se3.from_rt(np.eye(3), np.array([0.2, 0.0, -0.1]))
+        node._on_tf_static(TFMessage(transforms=[
+            conv.transform_msg('base_link', 'l', T_base_l, 0)]))
         for i in range(10):
             left, right = scene.render_pair(survey.T_world_cam[i], rng)
-            stamp = int(survey.stamps_ns[i])
+            stamp = int(survey.stamps_ns[i]) + 10**9   # after the refused ones
             # right first, then an unpaired stale left, then the left: pairing by stamp.
             node._on_image(array_to_image(right, stamp, 'r'), 'right')
             node._on_image(array_to_image(left, stamp, 'l'), 'left')
         assert node.wait_idle()
         assert node.counts['pairs'] == 10 and len(debug) == 10
-        # no /tf_static, no T_base_camera, no assume_identity_extrinsic: an ERROR status
-        # naming the three ways to give the extrinsic
-        level, message = node.health()
-        assert level == 2 and node.diagnostic_values()['camera_extrinsic'] == UNKNOWN
-        assert all(w in message for w in ('/tf_static', 'T_base_camera',
-                                            'assume_identity_extrinsic'))
+        assert node.diagnostic_values()['camera_extrinsic'] == FROM_TF
+        np.testing.assert_array_equal(node.front.extrinsic.T_base_cam, T_base_l)
+        assert node.health()[0] != 2 and node.front.stats.pairs == 12
         for name in ('max_features', 'cross_min_inliers', 'left_image_topic'):
             d = node.describe_parameter(name)
             assert d.read_only and len(d.description) > len(name) + 10
@@ -303,8 +326,9 @@ def _vo_node(offset: int, pair_queue: int):
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id(offset))
-    node = VoNode(context=ctx, parameter_overrides=[Parameter('warn_throttle_sec', value=0.0),
-                                                    Parameter('pair_queue', value=pair_queue)])
+    node = VoNode(context=ctx, parameter_overrides=[
+        Parameter('warn_throttle_sec', value=0.0), Parameter('pair_queue', value=pair_queue),
+        Parameter('assume_identity_extrinsic', value=True)])
     sent: list = []
     node.pub_meas.publish = sent.append
     try:
