@@ -25,12 +25,12 @@ from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
-from ga_ros.pipeline.journal import datum_path, read_datum, write_datum
 from ga_ros.pipeline.inputs import (
     InputFrontEnd,
     InputSpec,
     InputStep,
 )
+from ga_ros.pipeline.journal import datum_path, read_datum, write_datum
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
 from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv

@@ -103,9 +103,10 @@ def read_datum(state_file: str | os.PathLike) -> tuple[float, float, float] | No
 
 def clear_state(state_file: str | os.PathLike) -> list[Path]:
     """Forget a saved state (the ``~/reset`` service): delete the snapshot, its sidecar and
-    the datum file, and empty the journal, but only files that are ga_ros's own; never a foreign file, never through
-    a symbolic link (:class:`ForeignFileError`, :class:`~ga_ros.errors.UnsafePathError`; then
-    nothing at all is changed). Returns the files changed."""
+    the datum file, and empty the journal, but only files that are ga_ros's own; never a
+    foreign file, never through a symbolic link (:class:`ForeignFileError`,
+    :class:`~ga_ros.errors.UnsafePathError`; then nothing at all is changed). Returns the files
+    changed."""
     state, side, jpath = Path(state_file), snapshot_info_path(state_file), journal_path(state_file)
     datum = datum_path(state_file)
     present = [p for p in (state, side, datum, jpath) if check_regular(p)]
