@@ -11,6 +11,7 @@ interpreter and the imported libraries (~150 MB).
 
 from __future__ import annotations
 
+import inspect
 import json
 import resource
 import subprocess
@@ -166,12 +167,12 @@ def _timed_parts(totals: dict[str, float]):
                 depth[0] -= 1
         return timed
 
-    saved = [(owner, name, owner.__dict__[name]) for targets in UPDATE_PARTS.values()
-             for owner, name in targets]
+    saved = [(owner, name, inspect.getattr_static(owner, name))
+             for targets in UPDATE_PARTS.values() for owner, name in targets]
     try:
         for part, targets in UPDATE_PARTS.items():
             for owner, name in targets:
-                setattr(owner, name, wrap(part, owner.__dict__[name]))
+                setattr(owner, name, wrap(part, inspect.getattr_static(owner, name)))
         yield totals
     finally:
         for owner, name, fn in saved:

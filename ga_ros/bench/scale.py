@@ -47,7 +47,7 @@ import numpy as np
 
 from ga_ros.bench.core import NoSolveAligner, peak_rss_mb
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.window import AlignerConfig, TrackWindowAligner, UpdateResult
+from ga_ros.core.window import FREEZE_POLICIES, AlignerConfig, TrackWindowAligner, UpdateResult
 from ga_ros.core.window.persistence import save_state
 from ga_ros.eval.metrics import ate
 from ga_ros.runtime import limit_blas_threads
@@ -210,13 +210,12 @@ def state_nbytes(al: TrackWindowAligner) -> int:
     st = al.state
     arrays = [st.idarr.a, st.trackarr.a, st.stamparr.a, st.T[:n], st.cov.packed[:n],
               st.frozen[:n], st.src.a, st.dst.a, st.z.a, st.ccov.packed, st.cross.a,
-              al.state.status.a, al.state.fp.a, al.state.index._keys, al.state.index._vals]
+              al.state.status.a, al.state.fp.a]
     arrays += [al.state.track_conns[t] for t in al.state.tracks if t in al.state.track_conns]
     for idx, mean, info in al.state.priors:  # a block-banded information: its BSR arrays
         arrays += [idx, mean] + ([info.data, info.indices, info.indptr]
                                  if hasattr(info, 'indptr') else [info])
-    total = sum(a.nbytes for a in arrays)
-    total += sys.getsizeof(al.state.index._recent) + 64 * len(al.state.index._recent)
+    total = sum(a.nbytes for a in arrays) + al.state.index.nbytes()
     total += sys.getsizeof(al.state.pairs) + 160 * len(al.state.pairs)  # 3-tuples of ints
     return total
 
@@ -527,7 +526,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--positions-per-swath', type=int, default=500,
                    help='poses per swath; a double track has twice as many (default 500)')
     p.add_argument('--window', type=int, default=5, help='window tracks K (default 5)')
-    p.add_argument('--policy', default='weighted', choices=('weighted', 'marginal'))
+    p.add_argument('--policy', default='weighted', choices=tuple(FREEZE_POLICIES))
     p.add_argument('--noise', type=float, default=5.0, help='noise level in percent')
     p.add_argument('--refine-every', type=int, default=None,
                    help='refine_every_tracks (default: the aligner default; 0 = off)')

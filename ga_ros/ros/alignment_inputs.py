@@ -36,8 +36,8 @@ from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
 from ga_ros.ros.alignment_settings import NodeSettings
+from ga_ros.ros.message_types import message_class
 from ga_ros.ros.params import declare_config
-from ga_ros.ros.play import message_class
 from ga_ros.ros.qos import (
     AUTO,
     RELIABILITIES,

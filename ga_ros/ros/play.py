@@ -23,9 +23,7 @@ Runnable as ``python -m ga_ros.ros.play BAG [--rate R]`` and as ``ga-ros play``.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
-import re
 import sys
 import tempfile
 import time
@@ -46,54 +44,17 @@ from std_msgs.msg import Empty
 from ga_ros import topics
 from ga_ros.errors import GaError, InputError
 from ga_ros.io.bag import BagReader, BagTopic
+from ga_ros.ros.message_types import message_class
 from ga_ros.ros.play_args import add_arguments
 from ga_ros.topics import TRACK_END_FRAME
 
-_MSGTYPE = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
 #: Longest history kept per measurement topic, messages.
 MAX_HISTORY = 1_000_000
 #: Exit code of ``ga-ros play`` when some message was not delivered to every subscriber.
 EXIT_NOT_DELIVERED = 3
-
-
-def interface_index(package: str) -> set[str] | None:
-    """The interfaces a ROS package declares in the ament resource index (``msg/Type.msg``,
-    ...), or None if no prefix (``AMENT_PREFIX_PATH``, then this Python's prefix) lists the
-    package as providing ROS interfaces."""
-    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    for prefix in prefixes + [sys.prefix]:
-        entry = Path(prefix, 'share', 'ament_index', 'resource_index', 'rosidl_interfaces',
-                     package)
-        if entry.is_file():
-            return {line.strip() for line in entry.read_text().splitlines() if line.strip()}
-    return None
-
-
-def message_class(msgtype: str) -> type:
-    """The rclpy message class of a ROS 2 type name ``pkg/msg/Type``.
-
-    Only names of that form whose package the ament resource index lists as providing that
-    message are imported (ROS's own message lookup; a bag cannot make the player import an
-    arbitrary Python module).
-
-    Raises
-    ------
-    InputError
-        If the name is malformed or no installed ROS interface package provides the message.
-    """
-    match = _MSGTYPE.match(msgtype)
-    if match is None:
-        raise InputError(f'malformed message type name {msgtype!r} (expected pkg/msg/Type)')
-    pkg, name = match.groups()
-    declared = interface_index(pkg)
-    if declared is None or not {f'msg/{name}.msg', f'msg/{name}.idl'} & declared:
-        raise InputError(f'unknown message type {msgtype!r}: no ROS interface package here '
-                         f'provides it (source the workspace that builds {pkg!r})')
-    try:
-        return getattr(importlib.import_module(f'{pkg}.msg'), name)
-    except (ImportError, AttributeError):
-        raise InputError(f'unknown message type {msgtype!r}: the Python module of {pkg!r} is '
-                         'not installed in this environment') from None
+#: A node at work (it publishes its input-done topic) extends the wait for its confirmation up
+#: to this many times the delivery timeout.
+AT_WORK_PATIENCE = 10
 
 
 @dataclass(frozen=True)
@@ -293,9 +254,12 @@ class BagPlayer:
         publishing the input-done topic) got a confirmation that the end of input was
         processed. A node killed meanwhile stays matched until DDS notices it is gone; its
         restart gets the whole history again and confirms in turn. Gives up after
-        ``patience_s`` without any subscriber acknowledging or node processing. Returns what
-        is still undelivered (with an error line naming it)."""
+        ``patience_s`` without any subscriber acknowledging or node processing, and in any
+        case after ``AT_WORK_PATIENCE`` times ``patience_s`` (a confirmation lost on its
+        volatile topic must not make the player wait forever). Returns what is still
+        undelivered (with an error line naming it)."""
         end = time.monotonic() + patience_s
+        last = time.monotonic() + AT_WORK_PATIENCE * patience_s
         confirming: set[str] = set()    # end topics where a confirming node was seen
         while True:
             now = time.monotonic()
@@ -305,7 +269,7 @@ class BagPlayer:
                 if at_work or self.asks_history(t):
                     confirming.add(t)
                 if at_work and not self.done[t]:
-                    end = max(end, now + patience_s)   # a node is at work
+                    end = min(max(end, now + patience_s), last)   # a node is at work
             missing += [f'{t}: the node did not confirm it processed the input (no message '
                         f'on {topics.input_done_topic(t)})'
                         for t in sorted(confirming) if not self.done[t]]

@@ -372,7 +372,7 @@ def test_kill_9_during_play_loses_nothing(tmp_path):
 def test_play_imports_only_ros_interface_packages(tmp_path, monkeypatch):
     """A bag naming a Python module as a message package cannot make the player import it."""
     from ga_ros.errors import InputError
-    from ga_ros.ros.play import message_class
+    from ga_ros.ros.message_types import message_class
 
     (tmp_path / 'evil_pkg' / 'msg').mkdir(parents=True)
     (tmp_path / 'evil_pkg' / '__init__.py').write_text('')

@@ -18,6 +18,7 @@ import yaml
 
 from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
+from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.errors import InputError
 from ga_ros.io.bag import bag_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
@@ -137,7 +138,7 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
                    help='window: the live track-window aligner (default); batch: re-solve the '
                         'whole survey at every track end (reference; small surveys only)')
     a.add_argument('--window', type=int, help='tracks in the sliding window (default 5)')
-    a.add_argument('--freeze-policy', choices=('weighted', 'marginal'))
+    a.add_argument('--freeze-policy', choices=tuple(FREEZE_POLICIES))
     a.add_argument('--robust-loss', choices=ROBUST_LOSSES)
     a.add_argument('--robust-scale', type=float)
     a.add_argument('--max-iterations', type=int)

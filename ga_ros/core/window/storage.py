@@ -11,6 +11,7 @@ touched, so it takes address space but no resident memory.
 from __future__ import annotations
 
 import mmap
+import sys
 from collections.abc import Iterable
 
 import numpy as np
@@ -208,6 +209,12 @@ class IdIndex:
 
     def __len__(self) -> int:
         return self._keys.size + len(self._recent)
+
+    def nbytes(self) -> int:
+        """Bytes the index holds: its two arrays, plus the dict of the latest ids (its table
+        and about 64 bytes per entry for the two ints)."""
+        return (self._keys.nbytes + self._vals.nbytes + sys.getsizeof(self._recent)
+                + 64 * len(self._recent))
 
     def get(self, node_id: int, default=None):
         """Row index of ``node_id``, or ``default``."""
