@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +27,18 @@ def snapshot_info_path(state_file: str | os.PathLike) -> Path:
     return Path(str(state_file) + '.json')
 
 
-def _is_sidecar(path: Path) -> bool:
-    try:
-        return 'journal_records' in json.loads(read_bytes(path))
-    except (OSError, ValueError, TypeError, GaError):
-        return False
+def _json_with_key(key: str) -> Callable[[Path], bool]:
+    """A test that a file is ours: a JSON object holding ``key``."""
+    def holds(path: Path) -> bool:
+        try:
+            return key in json.loads(read_bytes(path))
+        except (OSError, ValueError, TypeError, GaError):
+            return False
+    return holds
+
+
+_is_sidecar = _json_with_key('journal_records')
+_is_datum_file = _json_with_key('datum_lla')
 
 
 def write_snapshot_info(state_file: str | os.PathLike, journal_records: int) -> None:
@@ -53,13 +61,6 @@ def datum_path(state_file: str | os.PathLike) -> Path:
     ``{"datum_lla": [lat_deg, lon_deg, alt_m]}`` (the ENU origin of the NavSatFix inputs, which
     the saved poses and fixes are expressed in)."""
     return Path(str(state_file) + '.datum.json')
-
-
-def _is_datum_file(path: Path) -> bool:
-    try:
-        return 'datum_lla' in json.loads(read_bytes(path))
-    except (OSError, ValueError, TypeError, GaError):
-        return False
 
 
 def write_datum(state_file: str | os.PathLike, datum_lla: tuple[float, float, float]) -> None:
