@@ -236,13 +236,12 @@ class FixFeeder:
         """Queue fixes for :meth:`flush`."""
         self.waiting.extend(fixes)
 
-    def flush(self, aligner: Any, anchored: Callable[[int], Any] | None = None) -> list[str]:
+    def flush(self, aligner: Any) -> list[str]:
         """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
         :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them and joins
-        the piece of their nodes in its gap healer) the queued fixes whose node it has; returns
-        the messages of the ones it refused (counted there by reason). ``anchored`` is called
-        with the node id of each fix taken (for an aligner driven beside a session: the
-        session's :meth:`~ga_ros.core.gaps.GapHealer.anchor`)."""
+        the piece of their nodes in its gap healer; the node and the replay give the session)
+        the queued fixes whose node it has; returns the messages of the ones it refused
+        (counted there by reason)."""
         add = getattr(aligner, 'add_fix', None)
         if add is None or not self.waiting:
             return []
@@ -256,9 +255,6 @@ class FixFeeder:
                 add(f.term, f.C_offset)
             except InputError as exc:
                 errors.append(str(exc))
-                continue
-            if anchored is not None:
-                anchored(int(f.term.node_id))
         self.waiting = wait
         return errors
 

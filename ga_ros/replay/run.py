@@ -239,10 +239,12 @@ class ReplayRun:
                 self.reject('aligner: ' + text[len('held measurement rejected: '):])
 
     def _add_fixes(self) -> None:
-        """Give the aligner the fixes whose node it has (a fix on a keyframe that the next
-        measurement brings waits for it); refused ones are counted as rejections."""
-        for error in self.fixes.flush(
-                self.aligner, self.session.gaps.anchor if self.session is not None else None):
+        """Give the session the fixes whose node its aligner has (a fix on a keyframe that the
+        next measurement brings waits for it), as the node does; refused ones are counted as
+        rejections. An aligner without fixes (the batch one) leaves them waiting."""
+        if self.session is None or not hasattr(self.aligner, 'add_fix'):
+            return
+        for error in self.fixes.flush(self.session):
             self.reject(f'absolute: {error}')
 
     def reject(self, reason: str) -> None:

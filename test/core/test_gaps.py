@@ -325,7 +325,7 @@ def test_the_end_of_a_track_bridges_what_is_still_held(sample) -> None:
 
 
 def test_an_absolute_fix_joins_the_piece_of_its_node(sample) -> None:
-    """The hook of absolute fixes (``FixFeeder.flush(aligner, session.gaps.anchor)``): a fix on
+    """The anchor of absolute fixes (``AlignmentSession.add_fix`` calls it): a fix on
     any node of a bridged piece joins the whole piece; a fix on an unknown node changes
     nothing."""
     ms = [m for m in sample.measurements if m.dst_track < 2]
