@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -48,17 +47,15 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.bench.data import SHARED_DATA
 from ga_ros.bench.gtsam_runner import gtsam_installed
-from ga_ros.bench.linalg import _SHARED
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.geometry import se3
 
-#: The data file: ``$GA_ROS_SHARED_DATA/real/plaza2/Plaza2_.mat`` (default: the ``shared/data``
-#: directory beside the checkout, as :mod:`ga_ros.bench.linalg` reads it).
-DEFAULT_MAT = Path(os.environ.get('GA_ROS_SHARED_DATA', _SHARED)) / 'real' / 'plaza2' / (
-    'Plaza2_.mat')
+#: The data file: ``real/plaza2/Plaza2_.mat`` in :data:`ga_ros.bench.data.SHARED_DATA`.
+DEFAULT_MAT = SHARED_DATA / 'real' / 'plaza2' / 'Plaza2_.mat'
 
 
 @dataclass(frozen=True)

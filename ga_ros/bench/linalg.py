@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-_SHARED = Path(__file__).resolve().parents[3] / 'shared' / 'data'
-GRAPHS = Path(os.environ.get('GA_ROS_SHARED_DATA', _SHARED)) / 'pose-graphs'
+from ga_ros.bench.data import POSE_GRAPHS
+
+GRAPHS = POSE_GRAPHS
 GRAPH_FILES = ('input_M3500_g2o.g2o', 'intel.g2o', 'parking-garage.g2o', 'sphere2500.g2o',
                'torus3D.g2o')
 VARIANTS = ('cvxopt-bundled', 'cvxopt', 'cvxopt-metis', 'sksparse', 'sksparse-metis')

@@ -1,8 +1,8 @@
 """``ga-ros bench g2o``: solve every public pose graph and print a Markdown table.
 
-For each ``*.g2o`` in the data directory (default ``../shared/data/pose-graphs`` relative to the
-repository): vertices, edges, initial cost, our final cost (:func:`ga_ros.io.g2o.graph_cost` of
-the optimised vertices), the GTSAM reference optimum and its time from the directory's
+For each ``*.g2o`` in the data directory (default :data:`ga_ros.bench.data.POSE_GRAPHS`):
+vertices, edges, initial cost, our final cost (:func:`ga_ros.io.g2o.graph_cost` of the optimised
+vertices), the GTSAM reference optimum and its time from the directory's
 ``README.md``, the relative gap, solver iterations and wall time (file reading excluded).
 """
 
@@ -15,11 +15,12 @@ import sys
 import time
 from pathlib import Path
 
+from ga_ros.bench.data import POSE_GRAPHS
 from ga_ros.errors import GaError, InputError
 from ga_ros.io.g2o import read_g2o
 from ga_ros.pipeline.pose_graph import GraphSolveConfig, initial_guess, solve_graph
 
-DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / 'shared' / 'data' / 'pose-graphs'
+DEFAULT_DATA = POSE_GRAPHS
 
 #: fallback (initial cost, GTSAM optimum, GTSAM seconds) if the data README cannot be parsed
 REFERENCE = {
