@@ -62,7 +62,7 @@ from ga_ros.pipeline.inputs import (
     decode_measurement,
 )
 from ga_ros.pipeline.map_to_odom import MapToOdom
-from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.ros.alignment_diagnostics import AlignmentDiagnostics, QueueLoss, RejectionLog
 from ga_ros.ros.alignment_inputs import AlignmentInputs
 from ga_ros.ros.alignment_outputs import AlignmentOutputs
@@ -76,6 +76,7 @@ from ga_ros.ros.alignment_settings import (  # noqa: F401 - public names of this
     field_,
 )
 from ga_ros.ros.alignment_tf import TF_CONTEST_HOLD_SEC, AlignmentTf  # noqa: F401
+from ga_ros.ros.bounded_log import BoundedLogging, shown_id
 from ga_ros.ros.params import declare_config, updated_config
 from ga_ros.ros.qos import (
     latched_qos,
@@ -91,8 +92,8 @@ DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
 
 
-class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDiagnostics,
-                    AlignmentServices, Node):
+class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, AlignmentTf,
+                    AlignmentDiagnostics, AlignmentServices, Node):
     """Adapter: measurements -> :class:`AlignmentSession` -> corrected path, pose, markers."""
 
     def __init__(self, **kwargs: Any) -> None:
@@ -322,8 +323,9 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
             return
         src, dst, reason, exc = log.last
         self.get_logger().warning(
-            f'{log.pending} measurement(s) rejected; the last {src!r}->{dst!r} ({reason}): '
-            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]')
+            f'{log.pending} measurement(s) rejected; the last {shown_id(src)}->{shown_id(dst)} '
+            f'({reason}): {bounded(str(exc))} '
+            f'[{sum(self.session.counts.rejected.values())} rejected so far]')
         log.pending = 0
 
     def _idle_check(self) -> None:
