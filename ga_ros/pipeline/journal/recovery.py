@@ -14,7 +14,6 @@ from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import is_state_file, load_state, save_state
 from ga_ros.errors import ForeignFileError, FormatError, GaError, InputError
-from ga_ros.io.atomic import check_regular, move_aside
 from ga_ros.pipeline.journal.records import (
     KIND_MASK,
     RECORD_V1,
@@ -32,6 +31,7 @@ from ga_ros.pipeline.journal.state_files import (
     read_snapshot_info,
     rewrite_journal,
 )
+from ga_ros.safe_write import check_regular, move_aside
 
 
 @dataclass

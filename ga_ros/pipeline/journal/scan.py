@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import FormatError
-from ga_ros.io.atomic import check_regular, read_bytes
 from ga_ros.pipeline.journal.records import (
     KIND_AT,
     MAGIC,
@@ -24,6 +23,7 @@ from ga_ros.pipeline.journal.records import (
     record_crcs,
     records_to_entries,
 )
+from ga_ros.safe_write import check_regular, read_bytes
 
 
 @dataclass

@@ -8,8 +8,8 @@ from pathlib import Path
 from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import CorruptFileError
-from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
 from ga_ros.pipeline.journal.records import MAGIC, RECORD, encode_fix, encode_records
+from ga_ros.safe_write import atomic_write, check_regular, open_nofollow
 
 
 class MeasurementJournal:
