@@ -25,8 +25,9 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
   standard inputs, each input's received / expected / lost messages (from its stamps,
   :mod:`ga_ros.pipeline.stream_rate`; WARN above ``loss_warn_fraction``).
-* out ``ga/measurements_done`` (``std_msgs/Empty``): an end-of-input message was processed
-  (``ga-ros play`` keeps its history until then).
+* out ``ga/measurements_done`` (``diagnostic_msgs/KeyValue``: this node's name, the
+  measurements it received): an end-of-input message was processed (``ga-ros play`` keeps its
+  history until every node confirmed all it sent).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -39,7 +40,7 @@ import time
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
@@ -48,7 +49,6 @@ from rclpy.clock import ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Empty
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
@@ -188,7 +188,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
         self.pub_done = self.create_publisher(
-            Empty, topics.input_done_topic(s.measurements_topic), stream_qos())
+            KeyValue, topics.input_done_topic(s.measurements_topic), stream_qos())
 
     @property
     def aligner(self) -> TrackWindowAligner:
@@ -259,7 +259,9 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
                 self._finish_track(drain=False)  # (draining would take what came after it)
             except SolverError:
                 pass                             # counted and logged by the session
-            self.pub_done.publish(Empty())       # the publisher may now let its history go
+            # the publisher may now let its history go: who we are and what we received
+            self.pub_done.publish(KeyValue(key=self.get_fully_qualified_name(),
+                                           value=str(self.session.counts.received)))
             return
         try:
             m = decode_measurement(msg, self.settings.covariance_policy)
