@@ -337,6 +337,17 @@ class InputFrontEnd:
             return np.asarray(T_map_node[k], float) @ se3.inverse(T_odom_k)
         return None
 
+    def keyframe_pose(self, node_id: int) -> FloatArray:
+        """(4, 4) ``T_odom_kf``: the first input's own pose (as recorded) at keyframe
+        ``node_id``.
+
+        Raises
+        ------
+        InputError
+            ``node_id`` is not a keyframe of the first input.
+        """
+        return self._primary().keyframe_pose(node_id)
+
     def latest_pose(self) -> FloatArray | None:
         """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
         return self._primary().latest_pose()
