@@ -98,8 +98,9 @@ def result_text(r: ReplayResult) -> str:
     for w in r.warnings:
         lines.append(f'warning: {w}')
     lines.append('outputs:')
+    width = max([len(k) for k in r.files] + [16])
     for k in sorted(r.files):
-        lines.append(f'  {k:<16} {r.files[k]}')
+        lines.append(f'  {k:<{width}} {r.files[k]}')
     return '\n'.join(lines)
 
 

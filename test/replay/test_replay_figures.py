@@ -218,3 +218,17 @@ def test_lower_and_higher_in_words() -> None:
     text = result_text(r)
     assert '7.0 % higher than F2F' in text and '10.0 % higher than F2F' in text
     assert 'lower' not in text and '-' not in text.split('error vs ground truth')[1]
+
+
+def test_batch_aligner_counts_the_fixes_it_cannot_take(robot: dict, tmp_path: Path) -> None:
+    """``--aligner batch`` has no fixes: each one read is a counted rejection, none is lost
+    silently."""
+    import dataclasses
+
+    cfg = dataclasses.replace(_config(robot, True, plot=False), aligner=None,
+                              aligner_kind='batch')
+    res = replay(robot['dir'] / 'in', tmp_path / 'out', cfg)
+    n_fixes = res.source_stats['absolute']['amcl0']['fixes']
+    assert n_fixes == 90
+    assert res.rejected == {'absolute': n_fixes}, res.rejected
+    assert 'takes no fixes' in res.rejected_examples[0]
