@@ -232,3 +232,29 @@ def test_batch_aligner_counts_the_fixes_it_cannot_take(robot: dict, tmp_path: Pa
     assert n_fixes == 90
     assert res.rejected == {'absolute': n_fixes}, res.rejected
     assert 'takes no fixes' in res.rejected_examples[0]
+
+
+def test_plot_draws_ga_f2f_fixes_and_ground_truth_in_the_map_frame(robot: dict, tmp_path: Path,
+                                                                    monkeypatch) -> None:
+    """What the PNG is drawn from: GA, online, F2F and the ground truth as in their files, and
+    every fix read at its position in the map frame."""
+    import ga_ros.replay.outputs as outputs
+
+    drawn: dict = {}
+
+    def capture(path, ga, f2f, gt, title, online=None, fixes=None, frame='map'):
+        drawn.update(ga=ga, f2f=f2f, gt=gt, online=online, fixes=fixes, frame=frame,
+                     title=title)
+
+    monkeypatch.setattr(outputs, 'plot_trajectories', capture)
+    res = replay(robot['dir'] / 'in', tmp_path / 'out', _config(robot, True))
+    for key, name in (('ga', 'trajectory_ga'), ('f2f', 'trajectory_f2f'),
+                      ('online', 'trajectory_online'), ('gt', 'trajectory_gt')):
+        np.testing.assert_allclose(drawn[key], read_tum(res.files[name]).T_world_node[:, :3, 3],
+                                   atol=1e-6)
+    assert drawn['frame'] == 'map' and len(drawn['fixes']) == 90
+    # the fixes were drawn where they were measured: within 1 m (5 sigma) of the true path
+    path = rectangle(np.arange(0.0, 90.0, 0.01))[:, :2, 3]
+    d = np.linalg.norm(drawn['fixes'][:, None, :2] - path[None], axis=2).min(1)
+    assert d.max() < 1.0
+    assert f"F2F {res.errors['f2f'].ate_raw:.3g} m" in drawn['title']
