@@ -103,10 +103,10 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
     """The held measurements (in, bridged if need be), the last track's update and the final
     batch of everything read (``final_batch``); returns the online estimate, the corrected path
     after the last track's update, as the live node publishes it at the end (None if that
-    failed). A failure is added to the result's error and the replay goes on."""
+    failed). A failure of the last update is added to the result's error, one of the final
+    batch to its warnings (GA is then the online estimate); the replay goes on."""
     res = run.result
     assert run.aligner is not None
-    online = None
     try:
         assert run.session is not None
         flushed = run.session.flush_gaps()  # held measurements: in, bridged if need be
@@ -114,14 +114,20 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         for u in flushed.updates:
             run.update(u)
         run.update(run.aligner.finish_track())
-        online = run.corrected()
-        if run.config.final_batch:
-            u = run.aligner.refine_batch()
-            run.update(u, per_track=False)
-            res.final_batch = True
-            res.final_batch_update = plain_fields(u)
     except GaError as exc:
         res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
+        return None
+    online = run.corrected()
+    if run.config.final_batch:
+        try:
+            u = run.aligner.refine_batch()
+        except GaError as exc:
+            res.warnings.append(f'final batch failed ({exc}): trajectory_ga.tum is the online '
+                                'estimate')
+            return online
+        run.update(u, per_track=False)
+        res.final_batch = True
+        res.final_batch_update = plain_fields(u)
     return online
 
 

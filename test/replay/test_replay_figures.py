@@ -258,3 +258,21 @@ def test_plot_draws_ga_f2f_fixes_and_ground_truth_in_the_map_frame(robot: dict, 
     d = np.linalg.norm(drawn['fixes'][:, None, :2] - path[None], axis=2).min(1)
     assert d.max() < 1.0
     assert f"F2F {res.errors['f2f'].ate_raw:.3g} m" in drawn['title']
+
+
+def test_a_failed_final_batch_leaves_the_online_estimate_with_a_warning(
+        robot: dict, tmp_path: Path, monkeypatch) -> None:
+    from ga_ros.core.window import TrackWindowAligner
+    from ga_ros.errors import SolverError
+
+    def fail(self):
+        raise SolverError('not positive definite')
+
+    monkeypatch.setattr(TrackWindowAligner, 'refine_batch', fail)
+    res = replay(robot['dir'] / 'in', tmp_path / 'out', _config(robot, False, plot=False))
+    assert res.error is None and not res.final_batch
+    assert res.warnings == ['final batch failed (not positive definite): trajectory_ga.tum is '
+                            'the online estimate']
+    np.testing.assert_array_equal(read_tum(res.files['trajectory_ga']).T_world_node,
+                                  read_tum(res.files['trajectory_online']).T_world_node)
+    assert 'online, no final batch' in result_text(res)
