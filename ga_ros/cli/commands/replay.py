@@ -154,7 +154,8 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
                    help='skip the final batch of the whole survey after the last track: '
                         'trajectory_ga.tum is then the online estimate (as trajectory_online.tum)')
     a.add_argument('--no-anchor', action='store_true',
-                   help='start at the identity instead of the ground-truth first pose')
+                   help='start at the identity instead of the ground-truth first pose (the '
+                        'errors are then compared after rigid alignment)')
 
 
 def _add_vo_arguments(v: argparse._ArgumentGroup) -> None:
