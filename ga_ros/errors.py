@@ -1,7 +1,8 @@
 """Exception hierarchy of ga_ros.
 
 Every error raised on bad input derives from :class:`GaError`, so nodes can catch one type,
-warn and drop the sample, and the CLI can map it to exit code 1 with a one-line message.
+warn and drop the sample, and the CLI can map it to exit code 1 with a one-line message
+(:class:`UsageError`: exit code 2, as for a command line argparse refuses).
 """
 
 from __future__ import annotations
@@ -51,6 +52,11 @@ class InputError(GaError, ValueError):
         super().__init__(*args)
         if reason is not None:
             self.reason = Reason(reason)
+
+
+class UsageError(InputError):
+    """Options of a command line that contradict each other (e.g. a settings section for an
+    input the command line does not give); the CLI exits with code 2, as argparse does."""
 
 
 class NetworkError(InputError):

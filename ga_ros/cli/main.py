@@ -16,7 +16,7 @@ import sys
 
 from ga_ros import __version__
 from ga_ros.cli import commands
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, UsageError
 from ga_ros.runtime import limit_blas_threads
 
 
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except GaError as exc:
         print(f'ga-ros {args.command}: error: {exc}', file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, UsageError) else 1
     except KeyboardInterrupt:
         return 130
 

@@ -5,7 +5,8 @@
   (the estimate's first pose is moved onto the true first pose, i.e. "first pose anchored") or
   *aligned* (after the least-squares rigid motion that best maps the estimated positions onto the
   true ones: Horn 1987 / Umeyama 1991, without scale).
-* Per-track mean errors and the relative improvement of one estimate over another.
+* Per-track mean errors and the relative improvement of one estimate over another (as a number,
+  and in words: "lower" / "higher").
 * :func:`trajectory_error`: the replay's summary (raw and aligned RMSE, max) of matched
   positions.
 """
@@ -136,6 +137,25 @@ def improvement_pct(error_before: float, error_after: float) -> float:
     return float(100.0 * (error_before - error_after) / error_before)
 
 
+def relative_change_text(error: float, reference: float, name: str) -> str:
+    """``error`` against ``reference`` in words: ``'76.5 % lower than F2F'``, ``'7.0 % higher
+    than F2F'`` or ``'equal to F2F'`` (to the printed precision); ``''`` without a positive
+    reference.
+
+    Parameters
+    ----------
+    error, reference : the two errors (same unit).
+    name : what the reference is (``'F2F'``).
+    """
+    if not reference > 0 or not np.isfinite(error):
+        return ''
+    pct = 100.0 * (error - reference) / reference
+    if round(abs(pct), 1) == 0.0:
+        return f'equal to {name}'
+    return f'{abs(pct):.1f} % {"lower" if pct < 0 else "higher"} than {name}'
+
+
+
 @dataclass(frozen=True)
 class TrajectoryError:
     """Position errors of an estimate against ground truth (m), as the replay reports them.
@@ -152,6 +172,14 @@ class TrajectoryError:
     ate_aligned: float
     max_raw: float
     n: int
+
+    def compared(self, how: str) -> float:
+        """The RMSE compared between estimates: ``'raw'`` (:attr:`ate_raw`, estimates anchored
+        at the ground truth) or ``'aligned'`` (:attr:`ate_aligned`, estimates in another
+        frame)."""
+        if how not in ('raw', 'aligned'):
+            raise InputError(f"how must be 'raw' or 'aligned', got {how!r}")
+        return self.ate_raw if how == 'raw' else self.ate_aligned
 
     def as_dict(self) -> dict[str, float]:
         return {'ate_raw_m': self.ate_raw, 'ate_aligned_m': self.ate_aligned,

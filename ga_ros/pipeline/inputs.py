@@ -43,7 +43,7 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.core.covariance import nearest_positive_definite
 from ga_ros.core.measurement import Measurement
-from ga_ros.errors import GaError, InputError
+from ga_ros.errors import GaError, InputError, UsageError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import decode_constraint, decode_sample, input_type
 from ga_ros.inputs.odometry import OdometryInput, OdometryInputConfig
@@ -337,6 +337,17 @@ class InputFrontEnd:
             return np.asarray(T_map_node[k], float) @ se3.inverse(T_odom_k)
         return None
 
+    def keyframe_pose(self, node_id: int) -> FloatArray:
+        """(4, 4) ``T_odom_kf``: the first input's own pose (as recorded) at keyframe
+        ``node_id``.
+
+        Raises
+        ------
+        InputError
+            ``node_id`` is not a keyframe of the first input.
+        """
+        return self._primary().keyframe_pose(node_id)
+
     def latest_pose(self) -> FloatArray | None:
         """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
         return self._primary().latest_pose()
@@ -387,30 +398,45 @@ def specs_from_mapping(sections: Mapping[str, Any], topics: Mapping[str, str] | 
                        ) -> tuple[InputSpec, ...]:
     """Inputs from a mapping of named sections (a params file such as ``config/inputs.yaml``).
 
+    The order, and so the input that defines the keyframes (the first), does not depend on the
+    sections: the inputs of ``topics`` first, in their order (``--odom-topic``: ``odom0``,
+    ``odom1``, ...), then the sections that give their own ``topic``, ``odom0`` first, the
+    others in file order.
+
     Parameters
     ----------
     sections : ``{name: {topic: ..., type: ..., <OdometryInputConfig fields>}}``; ``type`` is
-        optional (default ``nav_msgs/msg/Odometry``); a section without ``topic`` is used only
-        when ``topics`` names it.
+        optional (default ``nav_msgs/msg/Odometry``); a section without ``topic`` sets the
+        input of that name in ``topics``.
     topics : ``{name: topic}`` given elsewhere (e.g. ``--odom-topic``), overriding the
         sections' topics; a name without a section gets the default settings.
 
     Raises
     ------
+    UsageError
+        A section without ``topic`` for an input that ``topics`` does not give (it would be
+        silently unused).
     InputError
         An unknown setting, an invalid value or a section that is not a mapping.
     """
     topics = dict(topics or {})
-    specs = []
-    for name in list(sections) + [n for n in topics if n not in sections]:
-        sec = sections.get(name, {})
+    for name, sec in sections.items():
         if not isinstance(sec, Mapping):
             raise InputError(f'input {name!r}: expected a mapping of settings, got {sec!r}')
-        values = dict(sec)
-        topic = str(topics.get(name, values.pop('topic', '')))
+    orphans = [n for n, sec in sections.items() if n not in topics and not sec.get('topic')]
+    if orphans:
+        given = ', '.join(f'{n} = {t}' for n, t in topics.items()) or 'none'
+        raise UsageError(
+            f'settings for input {", ".join(map(repr, orphans))}, which is not given '
+            f'(inputs given: {given}): add its topic (another --odom-topic, in order odom0, '
+            f'odom1, ...; or "topic:" in its section) or remove the section')
+    own = [n for n, sec in sections.items() if n not in topics]
+    own.sort(key=lambda n: n != 'odom0')  # stable: odom0 first, the others in file order
+    specs = []
+    for name in list(topics) + own:
+        values = dict(sections.get(name, {}))
+        topic = str(topics.get(name, values.get('topic', '')))
         values.pop('topic', None)
         msgtype = str(values.pop('type', 'nav_msgs/msg/Odometry'))
-        if not topic:
-            continue
         specs.append(InputSpec(topic, msgtype, OdometryInputConfig.from_mapping(name, values)))
     return tuple(specs)

@@ -24,7 +24,10 @@ class ReplayConfig:
         :class:`ga_ros.core.solver.SolverConfig` with ``aligner_kind='batch'``.
     aligner_kind : ``'window'`` (the live node's track-window aligner) or ``'batch'``.
     vo : configuration object of the stereo VO (None = its defaults); used for image bags.
-    refine_batch : run a final full batch refinement after the last track.
+    final_batch : after the last track, solve the whole survey once more in one batch
+        (:meth:`~ga_ros.core.window.TrackWindowAligner.refine_batch`, fixes included): GA's
+        trajectory (``trajectory_ga.tum``); the online estimate (the live node's at the end)
+        goes to ``trajectory_online.tum``.
     pose_covariance : write each corrected pose's marginal covariance (else zeros).
     anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
         first node (the datum) when the bag has ground truth; else at the identity.
@@ -54,7 +57,7 @@ class ReplayConfig:
     aligner: Any = None
     aligner_kind: str = 'window'
     vo: Any = None
-    refine_batch: bool = False
+    final_batch: bool = True
     pose_covariance: bool = True
     anchor_to_ground_truth: bool = True
     plot: bool = True

@@ -1,9 +1,11 @@
 """The end of a replay: the last updates and the final outputs.
 
-After the last item: the held measurements, the last track's update and the optional batch
-refinement; then the corrected poses with their covariances, the F2F path, the TUM files, the
-errors against ground truth and the plot (:class:`ga_ros.replay.outputs.ReplayOutputs`), and
-what the replay did about frames (``summary.json``'s ``frames``).
+After the last item: the held measurements, the last track's update (the online estimate, what
+the live node publishes at the end) and the final batch of everything read (by default); then
+the corrected poses with their covariances, the F2F path (the odometry anchored as the corrected
+path), the TUM files, the errors against ground truth and the plot
+(:class:`ga_ros.replay.outputs.ReplayOutputs`), and what the replay did about frames
+(``summary.json``'s ``frames``).
 """
 
 from __future__ import annotations
@@ -13,12 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
-from ga_ros.errors import GaError, SolverError
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.eval.metrics import trajectory_error
+from ga_ros.geometry import se3
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom
+from ga_ros.replay.result import plain_fields
 from ga_ros.replay.run import ReplayRun
 
 
@@ -45,6 +49,7 @@ def finish_stationary(run: ReplayRun) -> None:
     run.out.odometry(traj, np.zeros((1, 6, 6)), run.last_ns)
     run.out.path(traj, run.last_ns, topic=run.config.outputs.f2f_topic)
     run.out.tum('trajectory_ga.tum', traj)
+    run.out.tum('trajectory_online.tum', traj)
     run.out.tum('trajectory_f2f.tum', traj)
     front = getattr(run.source, 'front', None)
     odom = MapToOdom(front if isinstance(front, InputFrontEnd) else None)
@@ -53,18 +58,20 @@ def finish_stationary(run: ReplayRun) -> None:
         run.out.map_to_odom(T_map_odom, stamp, run.last_ns)
     if run.gt is not None and len(run.gt):
         run.out.ground_truth(run.gt, run.last_ns)
-        run.out.tum('trajectory_gt.tum', run.gt)
+        _ground_truth_files(run, traj)
 
 
 def finish(run: ReplayRun) -> None:
     """The last updates and every final output of a replay whose aligner was made (else
-    nothing): corrected poses, F2F path, TUM files, errors against ground truth, plot."""
+    nothing): the online and final-batch corrected poses, the F2F path, the TUM files, the
+    errors against ground truth, the plot."""
     res = run.result
     if run.aligner is None:
         return
-    _last_updates(run)
+    online = _last_updates(run)
     traj = run.corrected()
     res.corrected = traj
+    res.online = online if online is not None else traj
     assert run.session is not None
     counts = run.session.counts
     res.gaps = {'bridges': counts.bridges, 'reversed_measurements': counts.reversed,
@@ -78,23 +85,26 @@ def finish(run: ReplayRun) -> None:
     covs = _pose_covariances(run, traj)
     run.out.poses(traj, covs, run.last_ns)
     run.out.odometry(traj, covs, run.last_ns)
-    f2f = _f2f_path(run, traj)
+    f2f = f2f_path(run, traj)
     run.out.path(f2f, run.last_ns, topic=run.config.outputs.f2f_topic)
     run.out.tum('trajectory_ga.tum', traj)
+    run.out.tum('trajectory_online.tum', res.online)
     run.out.tum('trajectory_f2f.tum', f2f)
-    gt_xyz = None
+    gt_kf = None
     if run.gt is not None and len(run.gt):
         run.out.ground_truth(run.gt, run.last_ns)
-        run.out.tum('trajectory_gt.tum', run.gt)
-        _errors_vs_ground_truth(run, traj, f2f)
-        gt_xyz = run.gt.T_world_node[:, :3, 3]
+        gt_kf = _ground_truth_files(run, traj)
+        _errors_vs_ground_truth(run, traj, f2f, res.online)
     if run.config.plot:
-        _plot(run, traj, f2f.T_world_node[:, :3, 3], gt_xyz)
+        _plot(run, traj, f2f, gt_kf)
 
 
-def _last_updates(run: ReplayRun) -> None:
-    """The held measurements (in, bridged if need be), the last track's update and the batch
-    refinement; a failure is added to the result's error and the replay goes on."""
+def _last_updates(run: ReplayRun) -> Trajectory | None:
+    """The held measurements (in, bridged if need be), the last track's update and the final
+    batch of everything read (``final_batch``); returns the online estimate, the corrected path
+    after the last track's update, as the live node publishes it at the end (None if that
+    failed). A failure of the last update is added to the result's error, one of the final
+    batch to its warnings (GA is then the online estimate); the replay goes on."""
     res = run.result
     assert run.aligner is not None
     try:
@@ -104,10 +114,21 @@ def _last_updates(run: ReplayRun) -> None:
         for u in flushed.updates:
             run.update(u)
         run.update(run.aligner.finish_track())
-        if run.config.refine_batch:
-            run.update(run.aligner.refine_batch())
     except GaError as exc:
         res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
+        return None
+    online = run.corrected()
+    if run.config.final_batch:
+        try:
+            u = run.aligner.refine_batch()
+        except GaError as exc:
+            res.warnings.append(f'final batch failed ({exc}): trajectory_ga.tum is the online '
+                                'estimate')
+            return online
+        run.update(u, per_track=False)
+        res.final_batch = True
+        res.final_batch_update = plain_fields(u)
+    return online
 
 
 def _pose_covariances(run: ReplayRun, traj: Trajectory) -> FloatArray:
@@ -131,46 +152,101 @@ def _pose_covariances(run: ReplayRun, traj: Trajectory) -> FloatArray:
     return covs
 
 
-def _f2f_path(run: ReplayRun, traj: Trajectory) -> Trajectory:
-    """The F2F path over the nodes it reached, in node order of the corrected path."""
+def odometry_chain(run: ReplayRun, node_ids: IntArray) -> dict[int, FloatArray]:
+    """The odometry as recorded (standard inputs: the first input's own pose ``T_odom_k`` at
+    each keyframe) or, without standard inputs, as estimated (the frame-to-frame integration
+    of the consecutive measurements, VO's for a stereo bag): node id -> (4, 4) pose in the
+    odometry's frame, for the nodes of ``node_ids`` it has."""
+    front = getattr(run.source, 'front', None)
+    out: dict[int, FloatArray] = {}
+    if isinstance(front, InputFrontEnd):
+        for n in node_ids:
+            try:
+                out[int(n)] = front.keyframe_pose(int(n))
+            except InputError:
+                pass
+        return out
     assert run.f2f is not None
-    f_ids = [int(n) for n in traj.node_ids if int(n) in run.f2f.poses]
-    return Trajectory(np.array([run.stamps.get(n, traj.stamps_ns[0]) for n in f_ids],
-                               dtype=np.int64),
-                      np.array([run.f2f.poses[n] for n in f_ids]).reshape(-1, 4, 4),
-                      np.array(f_ids, dtype=np.int64),
-                      np.array([run.f2f.tracks.get(n, -1) for n in f_ids], dtype=np.int64),
-                      run.config.outputs.map_frame)
+    return {int(n): run.f2f.poses[int(n)] for n in node_ids if int(n) in run.f2f.poses}
 
 
-def _errors_vs_ground_truth(run: ReplayRun, traj: Trajectory, f2f: Trajectory) -> None:
-    """The result's ``ground_truth`` text and ``errors`` of the corrected (``'ga'``) and F2F
-    (``'f2f'``) positions at the matched nodes (at least three each)."""
+def f2f_path(run: ReplayRun, traj: Trajectory) -> Trajectory:
+    """The F2F path: the odometry (:func:`odometry_chain`) anchored exactly as the corrected
+    path is, i.e. moved rigidly so that its first node is where the corrected path has that node
+    (the datum: the ground truth's first pose, the identity, or where the fixes put it), in the
+    map frame, node order of the corrected path."""
+    chain = odometry_chain(run, traj.node_ids)
+    rows = [k for k, n in enumerate(traj.node_ids) if int(n) in chain]
+    f_ids = traj.node_ids[rows]
+    T = np.array([chain[int(n)] for n in f_ids]).reshape(-1, 4, 4)
+    if len(rows) and not np.array_equal(T[0], traj.T_world_node[rows[0]]):
+        T = traj.T_world_node[rows[0]] @ se3.inverse(T[0]) @ T
+    return Trajectory(traj.stamps_ns[rows].astype(np.int64), T,
+                      np.asarray(f_ids, dtype=np.int64),
+                      traj.track_ids[rows].astype(np.int64), run.config.outputs.map_frame)
+
+
+def _ground_truth_files(run: ReplayRun, traj: Trajectory) -> Trajectory | None:
+    """``trajectory_gt.tum``: the ground truth at the keyframe stamps, as the error figures use
+    it (interpolated, one line per matched keyframe, so evo pairs every line with
+    ``trajectory_ga.tum``), and ``trajectory_gt_raw.tum``: the ground-truth stream as read.
+    Returns the former (None when no keyframe matched)."""
+    assert run.gt is not None
+    run.out.tum('trajectory_gt_raw.tum', run.gt)
+    hit = run.match(traj.node_ids, traj.stamps_ns)
+    if not hit.n_matched:
+        return None
+    i = hit.i_est
+    gt = Trajectory(traj.stamps_ns[i].astype(np.int64), hit.T_world_gt,
+                    traj.node_ids[i].astype(np.int64), traj.track_ids[i].astype(np.int64),
+                    run.gt.frame_id)
+    run.out.tum('trajectory_gt.tum', gt)
+    return gt
+
+
+def _errors_vs_ground_truth(run: ReplayRun, traj: Trajectory, f2f: Trajectory,
+                            online: Trajectory) -> None:
+    """The result's ``ground_truth`` text and ``errors`` of the corrected (``'ga'``: the final
+    batch when computed), online (``'online'``) and F2F (``'f2f'``) positions at the matched
+    nodes (at least three each)."""
     assert run.gt is not None
     res = run.result
     hit = run.match(traj.node_ids, traj.stamps_ns)
     res.ground_truth = hit.describe(run.gt_source, 'nodes', run.match_by == 'node')
+    res.errors_compared = 'raw' if run.config.anchor_to_ground_truth else 'aligned'
     i_est = hit.i_est
     if len(i_est) < 3:
         return
     gt_xyz = hit.T_world_gt[:, :3, 3]
     res.errors['ga'] = trajectory_error(traj.T_world_node[i_est, :3, 3], gt_xyz)
-    f_index = {int(n): k for k, n in enumerate(f2f.node_ids)}
-    ok = [j for j, i in enumerate(i_est) if int(traj.node_ids[i]) in f_index]
-    if len(ok) >= 3:
-        f_rows = [f_index[int(traj.node_ids[i_est[j]])] for j in ok]
-        res.errors['f2f'] = trajectory_error(f2f.T_world_node[f_rows, :3, 3], gt_xyz[ok])
+    nodes = traj.node_ids[i_est]
+    for key, other in (('online', online), ('f2f', f2f)):
+        index = {int(n): k for k, n in enumerate(other.node_ids)}
+        ok = [j for j, n in enumerate(nodes) if int(n) in index]
+        if len(ok) >= 3:
+            rows = [index[int(nodes[j])] for j in ok]
+            res.errors[key] = trajectory_error(other.T_world_node[rows, :3, 3], gt_xyz[ok])
 
 
-def _plot(run: ReplayRun, traj: Trajectory, f2f_xyz: FloatArray,
-          gt_xyz: FloatArray | None) -> None:
-    """``trajectory.png``: corrected, F2F and ground-truth positions, ATEs in the title."""
+def _plot(run: ReplayRun, traj: Trajectory, f2f: Trajectory, gt: Trajectory | None) -> None:
+    """``trajectory.png``: GA (final batch), the online estimate when it differs, F2F, the
+    fixes and the ground truth at the keyframes, all in the map frame; the compared RMSEs in the
+    title."""
     res = run.result
     title = f'{Path(res.bag).name}: {res.n_nodes} nodes, {res.n_tracks} tracks'
     if 'ga' in res.errors and 'f2f' in res.errors:
-        title += (f'\nATE vs ground truth: F2F {res.errors["f2f"].ate_raw:.3g} m, '
-                  f'GA {res.errors["ga"].ate_raw:.3g} m')
-    run.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f_xyz, gt_xyz, title)
+        how = ('position RMSE' if res.errors_compared == 'raw'
+               else 'position RMSE after rigid alignment')
+        title += (f'\n{how}: F2F {res.errors["f2f"].compared(res.errors_compared):.3g} m, '
+                  f'GA {res.errors["ga"].compared(res.errors_compared):.3g} m')
+    online = res.online
+    online_xyz = None
+    if online is not None and res.final_batch and len(online) == len(traj):
+        online_xyz = online.T_world_node[:, :3, 3]
+    fixes = np.array(run.fix_xyz).reshape(-1, 3) if run.fix_xyz else None
+    run.out.plot('trajectory.png', traj.T_world_node[:, :3, 3], f2f.T_world_node[:, :3, 3],
+                 None if gt is None else gt.T_world_node[:, :3, 3], title, online=online_xyz,
+                 fixes=fixes, frame=run.config.outputs.map_frame)
 
 
 def frames_summary(run: ReplayRun) -> dict[str, Any]:

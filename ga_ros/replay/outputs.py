@@ -93,12 +93,15 @@ def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatA
 
 
 def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
-                      gt: FloatArray | None, title: str) -> None:
-    """Top view (x-y, m) of the corrected (GA), F2F and ground-truth positions, as a PNG.
+                      gt: FloatArray | None, title: str, online: FloatArray | None = None,
+                      fixes: FloatArray | None = None, frame: str = 'map') -> None:
+    """Top view (x-y, m) in the map frame ``frame`` of the corrected (GA), online, F2F and
+    ground-truth positions and the fixes, as a PNG.
 
     Parameters
     ----------
-    ga, f2f, gt : (n, 3) positions (f2f and gt may be None).
+    ga, f2f, gt, online : (n, 3) positions (all but ga may be None).
+    fixes : (m, 3) positions of the absolute fixes, or None.
     """
     import matplotlib
 
@@ -108,13 +111,21 @@ def plot_trajectories(path: Path, ga: FloatArray, f2f: FloatArray | None,
     fig, ax = plt.subplots(figsize=(7, 6), dpi=110)
     try:
         if gt is not None and len(gt):
-            ax.plot(gt[:, 0], gt[:, 1], '-', color='0.55', lw=2.5, label='ground truth')
+            ax.plot(gt[:, 0], gt[:, 1], '-', color='0.55', lw=2.5,
+                    label='ground truth (at the keyframes)')
+        if fixes is not None and len(fixes):
+            ax.plot(fixes[:, 0], fixes[:, 1], '.', color='tab:green', ms=3, label='fixes')
         if f2f is not None and len(f2f):
-            ax.plot(f2f[:, 0], f2f[:, 1], '-', color='tab:red', lw=1.0, label='F2F')
+            ax.plot(f2f[:, 0], f2f[:, 1], '-', color='tab:red', lw=1.0,
+                    label='F2F (odometry, anchored as GA)')
+        if online is not None and len(online):
+            ax.plot(online[:, 0], online[:, 1], '--', color='tab:orange', lw=0.8,
+                    label='GA online')
         if len(ga):
-            ax.plot(ga[:, 0], ga[:, 1], '-', color='tab:blue', lw=1.0, label='GA (corrected)')
-        ax.set_xlabel('x (m)')
-        ax.set_ylabel('y (m)')
+            ax.plot(ga[:, 0], ga[:, 1], '-', color='tab:blue', lw=1.0,
+                    label='GA (final batch)' if online is not None else 'GA (corrected)')
+        ax.set_xlabel(f'x in {frame} (m)')
+        ax.set_ylabel(f'y in {frame} (m)')
         ax.set_aspect('equal', adjustable='datalim')
         ax.grid(True, alpha=0.3)
         ax.legend(loc='best')
@@ -141,8 +152,8 @@ class ReplayOutputs:
     """
 
     #: the files written at the end (besides the bag)
-    FILES = ('trajectory_ga.tum', 'trajectory_f2f.tum', 'trajectory_gt.tum', 'trajectory.png',
-             'summary.json')
+    FILES = ('trajectory_ga.tum', 'trajectory_online.tum', 'trajectory_f2f.tum',
+             'trajectory_gt.tum', 'trajectory_gt_raw.tum', 'trajectory.png', 'summary.json')
 
     def __init__(self, out_dir: str | Path, config: OutputConfig = OutputConfig()) -> None:
         self.dir = Path(out_dir)
@@ -235,10 +246,11 @@ class ReplayOutputs:
         return p
 
     def plot(self, name: str, ga: FloatArray, f2f: FloatArray | None, gt: FloatArray | None,
-             title: str) -> Path:
-        """Write the PNG plot and register it."""
+             title: str, online: FloatArray | None = None, fixes: FloatArray | None = None,
+             frame: str = 'map') -> Path:
+        """Write the PNG plot (:func:`plot_trajectories`) and register it."""
         p = self.dir / name
-        plot_trajectories(p, ga, f2f, gt, title)
+        plot_trajectories(p, ga, f2f, gt, title, online=online, fixes=fixes, frame=frame)
         self.files['plot'] = p
         return p
 

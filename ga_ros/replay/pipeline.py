@@ -8,8 +8,11 @@ Outputs (in ``out_dir``)
 ------------------------
 ``replay_bag/`` (mcap rosbag2: corrected path after every track update, corrected poses with
 covariance, the measurements, markers, the F2F path and the ground truth when the input has it),
-``trajectory_ga.tum``, ``trajectory_f2f.tum``, ``trajectory_gt.tum`` (when ground truth is
-present), ``trajectory.png`` and ``summary.json``. Log times of the output bag follow the input's
+``trajectory_ga.tum`` (the final batch of everything read), ``trajectory_online.tum`` (the
+online estimate, the live node's at the end), ``trajectory_f2f.tum`` (the odometry anchored as
+GA), ``trajectory_gt.tum`` (the ground truth at the keyframe stamps) and
+``trajectory_gt_raw.tum`` (its stream as read; both when ground truth is present),
+``trajectory.png`` and ``summary.json``. Log times of the output bag follow the input's
 (:mod:`ga_ros.replay.outputs`).
 
 Ground truth comes from a file or a topic (:mod:`ga_ros.io.groundtruth`), matched to the

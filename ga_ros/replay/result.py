@@ -15,8 +15,15 @@ from ga_ros.io.trajectory import Trajectory
 class ReplayResult:
     """What a replay did (also written to ``summary.json``).
 
-    ``errors`` maps ``'f2f'`` and ``'ga'`` to :class:`TrajectoryError` against ground truth
-    (empty without ground truth). ``error`` is the message of the failure that cut the replay
+    ``errors`` maps ``'ga'`` (the final batch of everything read, or the online estimate when
+    the final batch is off), ``'online'`` (the corrected path after the last track's update,
+    what the live node publishes at the end) and ``'f2f'`` (the odometry, anchored as GA) to
+    :class:`TrajectoryError` against ground truth (empty without ground truth);
+    ``errors_compared`` says which RMSE the figures compare: ``'raw'`` (anchored at the ground
+    truth) or ``'aligned'`` (``--no-anchor``: each after its rigid alignment).
+    ``corrected`` is GA's trajectory, ``online`` the online one; ``final_batch`` whether GA is
+    the final batch, ``final_batch_update`` its solve (as an entry of ``updates``, which holds
+    the online updates). ``error`` is the message of the failure that cut the replay
     short (the outputs then hold everything up to it), else None. ``quality`` (aligner
     ``quality`` on): ``per_track``, the :class:`ga_ros.core.quality.QualitySummary` of every
     update with its ``track_id``, and ``final``, that of the last adjustment. ``notes``: what
@@ -48,6 +55,10 @@ class ReplayResult:
     ground_truth: str = ''
     warnings: list[str] = field(default_factory=list)
     gaps: dict[str, Any] = field(default_factory=dict)
+    online: Trajectory | None = None
+    final_batch: bool = False
+    final_batch_update: dict[str, Any] = field(default_factory=dict)
+    errors_compared: str = 'raw'
 
     @property
     def rate(self) -> float:
@@ -62,6 +73,11 @@ class ReplayResult:
             'n_nodes': self.n_nodes, 'n_tracks': self.n_tracks, 'updates': self.updates,
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
+            'errors_compared': self.errors_compared,
+            'final_batch': self.final_batch_update if self.final_batch else None,
+            'trajectories': {'ga': 'final batch' if self.final_batch else 'online',
+                             'online': 'online (the live node at the end)',
+                             'f2f': 'odometry anchored as ga'},
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,

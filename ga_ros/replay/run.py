@@ -118,6 +118,8 @@ class ReplayRun:
         self.stamp_offset_ns = 0
         self.tf_removed = 0
         self.fixes = FixFeeder()  # absolute fixes waiting for their node
+        #: positions (m, map frame) of the fixes read, for the plot
+        self.fix_xyz: list[FloatArray] = []
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
@@ -175,6 +177,8 @@ class ReplayRun:
                 self.stamps.setdefault(int(k), int(v))
         m = item.measurement
         if item.fixes:
+            self.fix_xyz += [np.asarray(f.term.fix.T_map_sensor, float)[:3, 3]
+                             for f in item.fixes]
             self.fixes.add(item.fixes)
             self._add_fixes()
             self._earth_to_map(item)
@@ -241,8 +245,14 @@ class ReplayRun:
     def _add_fixes(self) -> None:
         """Give the session the fixes whose node its aligner has (a fix on a keyframe that the
         next measurement brings waits for it), as the node does; refused ones are counted as
-        rejections. An aligner without fixes (the batch one) leaves them waiting."""
-        if self.session is None or not hasattr(self.aligner, 'add_fix'):
+        rejections. An aligner without fixes (``--aligner batch``) rejects them, counted."""
+        if self.session is None:
+            return
+        if not hasattr(self.aligner, 'add_fix'):
+            for _ in self.fixes.waiting:
+                self.reject('absolute: this aligner takes no fixes (--aligner batch); use the '
+                            'track-window aligner (--aligner window, the default)')
+            self.fixes.waiting = []
             return
         for error in self.fixes.flush(self.session):
             self.reject(f'absolute: {error}')
@@ -251,16 +261,19 @@ class ReplayRun:
         """Count a rejection (:meth:`ReplayResult.reject`)."""
         self.result.reject(reason)
 
-    def update(self, u: Any) -> None:
+    def update(self, u: Any, per_track: bool = True) -> None:
         """Outputs of an aligner update (None: none): path, markers, ``map -> odom`` and the
-        corrected path fed back to the source."""
+        corrected path fed back to the source; counted among the result's ``updates`` (and its
+        quality among ``per_track``) unless ``per_track`` is False (the final batch)."""
         if u is None:
             return
-        self.result.updates.append(plain_fields(u))
         qc = getattr(u, 'quality', None)
-        if qc is not None:
-            entry = {'track_id': int(u.track_id), **qc.as_dict()}
-            self.result.quality.setdefault('per_track', []).append(entry)
+        entry = None if qc is None else {'track_id': int(u.track_id), **qc.as_dict()}
+        if per_track:
+            self.result.updates.append(plain_fields(u))
+            if entry is not None:
+                self.result.quality.setdefault('per_track', []).append(entry)
+        if entry is not None:
             self.result.quality['final'] = entry
         traj = self.corrected()
         self.out.path(traj, self.last_ns)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ga_ros.errors import GaError
+from ga_ros.eval.metrics import relative_change_text
 from ga_ros.io.bag import BagInfo
 from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
 from ga_ros.replay.inputs import InputTopics, plan_inputs
@@ -87,18 +88,7 @@ def result_text(r: ReplayResult) -> str:
                      f" {q['n_w_rejected']} rejected by the w-test, median MDB "
                      f"{q['mdb_median_m']:.3g} m")
     if 'ga' in r.errors:
-        ga = r.errors['ga']
-        f2f = r.errors.get('f2f')
-        lines.append(f'error vs ground truth ({ga.n} nodes, position RMSE):')
-        if f2f is not None:
-            gain = 100.0 * (1.0 - ga.ate_raw / f2f.ate_raw) if f2f.ate_raw > 0 else float('nan')
-            lines.append(f'  F2F  {f2f.ate_raw:10.3f} m   (after rigid alignment '
-                         f'{f2f.ate_aligned:.3f} m)')
-            lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
-                         f'{ga.ate_aligned:.3f} m)   {gain:.1f} % lower than F2F')
-        else:
-            lines.append(f'  GA   {ga.ate_raw:10.3f} m   (after rigid alignment '
-                         f'{ga.ate_aligned:.3f} m)')
+        lines += error_lines(r)
     if r.ground_truth:
         lines.append(r.ground_truth + ('' if 'ga' in r.errors else
                                        ': no error figures (fewer than 3 nodes matched)'))
@@ -108,6 +98,37 @@ def result_text(r: ReplayResult) -> str:
     for w in r.warnings:
         lines.append(f'warning: {w}')
     lines.append('outputs:')
+    width = max([len(k) for k in r.files] + [16])
     for k in sorted(r.files):
-        lines.append(f'  {k:<16} {r.files[k]}')
+        lines.append(f'  {k:<{width}} {r.files[k]}')
     return '\n'.join(lines)
+
+
+def error_lines(r: ReplayResult) -> list[str]:
+    """The errors against ground truth, each row naming its trajectory and file, the compared
+    RMSE first (raw when the estimates are anchored at the ground truth, else after each one's
+    rigid alignment), GA and the online estimate against F2F in words ("lower" / "higher")."""
+    how = r.errors_compared
+    head = ('position RMSE' if how == 'raw'
+            else 'position RMSE after rigid alignment (each its own; --no-anchor)')
+    other = 'after rigid alignment' if how == 'raw' else 'raw, not comparable'
+    ga = r.errors['ga']
+    f2f = r.errors.get('f2f')
+    lines = [f'error vs ground truth ({ga.n} nodes, {head}):']
+    rows = [('F2F', 'odometry anchored as GA', 'trajectory_f2f.tum', f2f)]
+    if r.final_batch:
+        rows += [('online', 'what the live node publishes at the end', 'trajectory_online.tum',
+                  r.errors.get('online')),
+                 ('GA', 'final batch of everything read', 'trajectory_ga.tum', ga)]
+    else:
+        rows += [('GA', 'online, no final batch', 'trajectory_ga.tum', ga)]
+    for name, what, file, e in rows:
+        if e is None:
+            continue
+        alt = e.ate_aligned if how == 'raw' else e.ate_raw
+        text = f'  {name:<7}{e.compared(how):10.3f} m   ({other} {alt:.3f} m)'
+        if f2f is not None and name != 'F2F':
+            change = relative_change_text(e.compared(how), f2f.compared(how), 'F2F')
+            text += f'   {change}' if change else ''
+        lines.append(f'{text}   {what}, {file}')
+    return lines

@@ -309,13 +309,15 @@ def _wait_line(log: Path, text: str, proc: subprocess.Popen, timeout: float) -> 
 
 
 def _replay(bag: Path, out: Path, *extra: str) -> Path:
-    """``ga-ros replay BAG --no-anchor`` (the node's datum is the identity); its GA TUM file."""
+    """``ga-ros replay BAG --no-anchor`` (the node's datum is the identity); its online TUM file
+    (what the live node publishes at the end; the final batch is skipped)."""
     cmd = [_python(), '-m', 'ga_ros.cli.main', 'replay', str(bag), '--out', str(out),
-           '--no-anchor', '--no-plot', '--no-progress', '--no-covariance', *extra]
+           '--no-anchor', '--no-plot', '--no-progress', '--no-covariance', '--no-final-batch',
+           *extra]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     if res.returncode != 0:
         raise GaError(f'ga-ros replay {bag} failed: {res.stderr.strip()[-500:]}')
-    return out / 'trajectory_ga.tum'
+    return out / 'trajectory_online.tum'
 
 
 def compare_paths(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -18,6 +18,7 @@ from ga_ros.geometry import se3, so3
 from ga_ros.io.bag import BagReader
 from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry, typestore
 from ga_ros.io.bag_writer import BagWriter
+from ga_ros.io.trajectory import read_tum
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.pipeline import replay
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
@@ -146,8 +147,10 @@ def test_replay_outputs(tmp_path: Path, sample: object, storage: str) -> None:
     assert r.n_tracks == 3 and len(r.updates) == 3
     counts = mcap_counts(tmp_path / 'out' / 'replay_bag')
     assert counts.pop('/tf') > 3  # map -> odom at a fixed period (test_replay_tf.py)
-    assert counts == {'/ga/measurements': len(sample.measurements), '/ga/corrected_path': 3,
-                      '/ga/network_markers': 4, '/ga/corrected_pose': n_nodes, '/ga/f2f_path': 1,
+    # a path and markers per track update, then the final batch's path and markers, then the
+    # final markers of everything
+    assert counts == {'/ga/measurements': len(sample.measurements), '/ga/corrected_path': 4,
+                      '/ga/network_markers': 5, '/ga/corrected_pose': n_nodes, '/ga/f2f_path': 1,
                       '/ga/ground_truth': 1, '/ga/corrected_odom': n_nodes}
     # dead reckoning along consecutive motions == F2F: same errors, same final path
     assert r.errors['ga'].ate_raw == pytest.approx(r.errors['f2f'].ate_raw, rel=1e-12)
@@ -282,23 +285,34 @@ def test_committed_measurement_bag_matches_its_generator() -> None:
 
 # --------------------------------------------------------------------------- real aligner
 def test_replay_reproduces_the_in_process_pipeline(tmp_path: Path, sample: object) -> None:
-    """The replay's corrected path equals TrackWindowAligner fed the same measurements."""
+    """The replay's online path equals TrackWindowAligner fed the same measurements, its GA
+    path the same aligner's final batch (``refine_batch``); each RMSE as computed here."""
     window = pytest.importorskip('ga_ros.core.window')
     T0 = sample.ground_truth.T_world_node[0]
     aligner = window.TrackWindowAligner(window.AlignerConfig(), T_world_first=T0)
     for m in sample.measurements:
         aligner.add_measurement(m)
     aligner.finish_track()
+    online = np.asarray(aligner.corrected_path().T_world_node).copy()
+    aligner.refine_batch()
     cp = aligner.corrected_path()
     bag = write_measurement_bag(tmp_path / 'in', sample.measurements, sample.ground_truth)
     r = replay(bag, tmp_path / 'out', ReplayConfig())
     np.testing.assert_array_equal(r.corrected.node_ids, cp.node_ids)
     np.testing.assert_allclose(r.corrected.T_world_node, cp.T_world_node, atol=1e-9)
+    np.testing.assert_allclose(r.online.T_world_node, online, atol=1e-9)
     np.testing.assert_allclose(last_path(tmp_path / 'out' / 'replay_bag'),
                                np.asarray(cp.T_world_node)[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(read_tum(r.files['trajectory_online']).T_world_node[:, :3, 3],
+                               online[:, :3, 3], atol=1e-6)
     p_gt = sample.ground_truth.T_world_node[:, :3, 3]
-    ga = np.sqrt(np.mean(np.sum((np.asarray(cp.T_world_node)[:, :3, 3] - p_gt) ** 2, 1)))
-    assert r.errors['ga'].ate_raw == pytest.approx(ga, rel=1e-9)
+
+    def rmse(T: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((np.asarray(T)[:, :3, 3] - p_gt) ** 2, 1))))
+
+    assert r.errors['ga'].ate_raw == pytest.approx(rmse(cp.T_world_node), rel=1e-9)
+    assert r.errors['online'].ate_raw == pytest.approx(rmse(online), rel=1e-9)
+    assert r.errors['ga'].ate_raw <= r.errors['online'].ate_raw * (1 + 1e-9)
     assert r.errors['ga'].ate_raw < r.errors['f2f'].ate_raw
 
 

@@ -82,12 +82,15 @@ def run(args: argparse.Namespace) -> int:
             failures += 1
             continue
         print(result_text(result))
+        how = result.errors_compared
         if 'ga' in result.errors and 'f2f' in result.errors:
-            summary.append(f'  {bag.name:<22} F2F {result.errors["f2f"].ate_raw:9.3f} m   '
-                           f'GA {result.errors["ga"].ate_raw:9.3f} m   '
+            summary.append(f'  {bag.name:<22} F2F {result.errors["f2f"].compared(how):9.3f} m   '
+                           f'GA {result.errors["ga"].compared(how):9.3f} m   '
                            f'({result.n_nodes} nodes; plot {result.files.get("plot", "-")})')
     if summary:
-        print('\nposition RMSE against ground truth (first pose anchored):')
+        what = 'after rigid alignment, each its own' if args.no_anchor else 'first pose anchored'
+        ga = 'online' if args.no_final_batch else 'the final batch'
+        print(f'\nposition RMSE against ground truth ({what}; GA: {ga}):')
         print('\n'.join(summary))
     print(f'\nopen the output bags in Foxglove: {args.out}/<bag>/replay_bag/*.mcap')
     return 1 if failures else 0

@@ -150,10 +150,12 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
     a.add_argument('--quality', action='store_true', default=None,
                    help='quality control of every update (summary.json "quality" block, '
                         'markers coloured by |w|)')
-    a.add_argument('--refine', action='store_true',
-                   help='final full batch refinement after the last track')
+    a.add_argument('--no-final-batch', action='store_true',
+                   help='skip the final batch of the whole survey after the last track: '
+                        'trajectory_ga.tum is then the online estimate (as trajectory_online.tum)')
     a.add_argument('--no-anchor', action='store_true',
-                   help='start at the identity instead of the ground-truth first pose')
+                   help='start at the identity instead of the ground-truth first pose (the '
+                        'errors are then compared after rigid alignment)')
 
 
 def _add_vo_arguments(v: argparse._ArgumentGroup) -> None:
@@ -272,7 +274,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                            odom_frame=args.odom_frame, sensor_frame=args.base_frame)
     return ReplayConfig(topics=topic_config(args), outputs=outputs, aligner=aligner,
                         aligner_kind=args.aligner, vo=vo_config(args),
-                        refine_batch=args.refine,
+                        final_batch=not args.no_final_batch,
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=inputs,
