@@ -33,6 +33,8 @@ class Measurement:
     stamp_ns : acquisition time of the ``dst`` frame (ns since the epoch, or bag time).
     kind : ``'consecutive'`` (frame to frame), ``'cross'`` (overlap between swaths / tracks) or
         ``'bridge'`` (predicted over a gap, see :data:`KINDS`).
+    source : name of the input that measured it (``odom0``, ``odom1``, ...; '' when unknown):
+        the group whose variance factor it shares (:func:`variance_group`).
     """
 
     src_id: int
@@ -43,6 +45,7 @@ class Measurement:
     cov: FloatArray
     stamp_ns: int = 0
     kind: str = field(default='consecutive')
+    source: str = ''
 
     @property
     def T_src_dst(self) -> FloatArray:
@@ -51,8 +54,22 @@ class Measurement:
 
     @staticmethod
     def from_pose(src_id: int, dst_id: int, src_track: int, dst_track: int, T_src_dst: FloatArray,
-                  cov: FloatArray, stamp_ns: int = 0, kind: str = 'consecutive') -> Measurement:
+                  cov: FloatArray, stamp_ns: int = 0, kind: str = 'consecutive',
+                  source: str = '') -> Measurement:
         """Build from a 4x4 motion ``T_src_dst``."""
         return Measurement(int(src_id), int(dst_id), int(src_track), int(dst_track),
                            se3.to_translation_rotvec(np.asarray(T_src_dst, dtype=float)),
-                           np.asarray(cov, dtype=float).reshape(6, 6), int(stamp_ns), kind)
+                           np.asarray(cov, dtype=float).reshape(6, 6), int(stamp_ns), kind,
+                           source)
+
+
+def variance_group(m: Measurement) -> str:
+    """The group whose variance factor a measurement shares
+    (:mod:`ga_ros.core.quality.variance_components`): its source's consecutive motions
+    (``odom0``; ``motion`` when the source is unknown), the cross-track connections (``cross``,
+    or the name of their source) and the bridges over gaps (``bridge``)."""
+    if m.kind == 'consecutive':
+        return m.source or 'motion'
+    if m.kind == 'cross':
+        return m.source or 'cross'
+    return m.kind

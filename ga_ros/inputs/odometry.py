@@ -389,7 +389,7 @@ class OdometryInput:
         before = self.segmenter.track_id
         track = self._make_keyframe(stamp, T, C_pose)
         meas = Measurement.from_pose(src_id, self._kf_ids[-1], src_track, track, T_rel, cov,
-                                     stamp, 'consecutive')
+                                     stamp, 'consecutive', self.config.name)
         self._n['measurements'] += 1
         return InputUpdate(stamp, self._kf_ids[-1], track, True, track != before, meas, source,
                            default)

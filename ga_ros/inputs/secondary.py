@@ -184,7 +184,7 @@ class SecondaryInput:
         if default:
             self._n['default_covariances'] += 1
         return Measurement.from_pose(iv.src_id, iv.dst_id, iv.src_track, iv.dst_track, T_rel,
-                                     cov, tb, 'consecutive')
+                                     cov, tb, 'consecutive', self.config.name)
 
     def _pose_at(self, i: int, t: int) -> FloatArray:
         """Pose at ``t`` between samples ``i`` and ``i + 1`` (sample ``i`` if at its stamp)."""

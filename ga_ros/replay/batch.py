@@ -16,6 +16,12 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.quality.variance_components import (
+    SourceGroups,
+    VarianceComponentConfig,
+    VarianceComponents,
+    solve_with_variance_components,
+)
 from ga_ros.core.window import UpdateResult
 from ga_ros.errors import InputError, SolverError
 
@@ -52,6 +58,8 @@ class BatchAligner:
         self.track: int | None = None
         self._result = None
         self._cov: dict[int, FloatArray] | None = None
+        #: the variance factors per source of the last refine_batch that estimated them
+        self.variance_components: VarianceComponents | None = None
 
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
         """Add one connection; a new ``dst_track`` first ends (solves) the current track.
@@ -82,7 +90,8 @@ class BatchAligner:
         self.pairs.add((m.src_id, m.dst_id))
         return out
 
-    def _solve(self) -> UpdateResult | None:
+    def _solve(self, variance_groups: SourceGroups | None = None,
+               variance_config: VarianceComponentConfig | None = None) -> UpdateResult | None:
         from ga_ros.core.solver import SolverConfig, solve
 
         if self.first is None:
@@ -90,7 +99,14 @@ class BatchAligner:
         t0 = time.perf_counter()
         ids = self.network.node_ids
         T0 = np.array([self.T[int(i)] for i in ids])
-        res = solve(self.network, T0, self.config or SolverConfig(), fixed=[self.first])
+        cfg = self.config or SolverConfig()
+        if variance_groups is None:
+            res = solve(self.network, T0, cfg, fixed=[self.first])
+        else:
+            conn = self.network.arrays()
+            groups = variance_groups.of(ids[conn.src], ids[conn.dst], conn.z)
+            res, self.variance_components = solve_with_variance_components(
+                self.network, T0, groups, cfg, fixed=[self.first], config=variance_config)
         if not np.isfinite(res.T_world_node).all():
             raise SolverError('batch solve produced non-finite poses')
         for k, i in enumerate(ids):
@@ -107,9 +123,13 @@ class BatchAligner:
         """Solve the whole survey so far."""
         return self._solve()
 
-    def refine_batch(self) -> UpdateResult | None:
-        """Same as :meth:`finish_track` (every update is already a full batch)."""
-        return self._solve()
+    def refine_batch(self, variance_groups: SourceGroups | None = None,
+                     variance_config: VarianceComponentConfig | None = None
+                     ) -> UpdateResult | None:
+        """Same as :meth:`finish_track` (every update is already a full batch); with
+        ``variance_groups``, the variance factor of each group is estimated with it (as
+        :meth:`ga_ros.core.window.TrackWindowAligner.refine_batch` does)."""
+        return self._solve(variance_groups, variance_config)
 
     def corrected_path(self) -> BatchPath:
         ids = np.array(sorted(self.T), dtype=np.int64)

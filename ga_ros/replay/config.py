@@ -28,6 +28,10 @@ class ReplayConfig:
         (:meth:`~ga_ros.core.window.TrackWindowAligner.refine_batch`, fixes included): GA's
         trajectory (``trajectory_ga.tum``); the online estimate (the live node's at the end)
         goes to ``trajectory_online.tum``.
+    variance_components : in the final batch, estimate a variance factor per source (each
+        odometry input's motions, the cross-track connections, the fixes;
+        :mod:`ga_ros.core.quality.variance_components`) and weight and publish with them
+        (``summary.json``'s ``variance_components``).
     pose_covariance : write each corrected pose's marginal covariance (else zeros).
     anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
         first node (the datum) when the bag has ground truth; else at the identity.
@@ -58,6 +62,7 @@ class ReplayConfig:
     aligner_kind: str = 'window'
     vo: Any = None
     final_batch: bool = True
+    variance_components: bool = True
     pose_covariance: bool = True
     anchor_to_ground_truth: bool = True
     plot: bool = True

@@ -119,8 +119,12 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         return None
     online = run.corrected()
     if run.config.final_batch:
+        vce = run.config.variance_components and hasattr(run.aligner, 'variance_components')
         try:
-            u = run.aligner.refine_batch()
+            if vce:
+                u = run.aligner.refine_batch(variance_groups=run.groups)
+            else:
+                u = run.aligner.refine_batch()
         except GaError as exc:
             res.warnings.append(f'final batch failed ({exc}): trajectory_ga.tum is the online '
                                 'estimate')
@@ -128,6 +132,10 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         run.update(u, per_track=False)
         res.final_batch = True
         res.final_batch_update = plain_fields(u)
+        vc = getattr(run.aligner, 'variance_components', None) if vce else None
+        if vc is not None:
+            res.variance_components = vc.as_dict()
+            res.warnings += vc.warnings()
     return online
 
 

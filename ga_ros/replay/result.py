@@ -28,7 +28,9 @@ class ReplayResult:
     ``quality`` on): ``per_track``, the :class:`ga_ros.core.quality.QualitySummary` of every
     update with its ``track_id``, and ``final``, that of the last adjustment. ``notes``: what
     the user should know about an unusual but valid run (e.g. a robot that did not move).
-    ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
+    ``variance_components``: the variance factor per source estimated in the final batch
+    (:meth:`~ga_ros.core.quality.variance_components.VarianceComponents.as_dict`; empty when
+    not estimated). ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
     what the replay went on despite (e.g. a bag cut short).
     """
 
@@ -59,6 +61,7 @@ class ReplayResult:
     final_batch: bool = False
     final_batch_update: dict[str, Any] = field(default_factory=dict)
     errors_compared: str = 'raw'
+    variance_components: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -81,7 +84,7 @@ class ReplayResult:
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
-            'gaps': self.gaps}
+            'gaps': self.gaps, 'variance_components': self.variance_components}
 
     def reject(self, reason: str) -> None:
         """Count a rejection under the text before its first ``:`` (keep 10 examples)."""

@@ -15,6 +15,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.quality.variance_components import SourceGroups
 from ga_ros.inputs.absolute import T_earth_enu
 from ga_ros.io.bag_messages import ODOMETRY, measurement_to_odometry
 from ga_ros.io.groundtruth import (
@@ -118,6 +119,8 @@ class ReplayRun:
         self.stamp_offset_ns = 0
         self.tf_removed = 0
         self.fixes = FixFeeder()  # absolute fixes waiting for their node
+        #: the variance group (source) of every connection the aligner took
+        self.groups = SourceGroups()
         #: positions (m, map frame) of the fixes read, for the plot
         self.fix_xyz: list[FloatArray] = []
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
@@ -238,6 +241,7 @@ class ReplayRun:
         for a in out.admitted:
             self.odom.add(a)  # its F2F integration (without standard inputs)
             self.conn.append(a)
+            self.groups.add(a)
         for text in out.notes:
             if text.startswith('held measurement rejected: '):
                 self.reject('aligner: ' + text[len('held measurement rejected: '):])

@@ -87,6 +87,7 @@ def result_text(r: ReplayResult) -> str:
                      f"{q['w_max_src_id']}->{q['w_max_dst_id']} (critical {q['w_critical']:.2f}),"
                      f" {q['n_w_rejected']} rejected by the w-test, median MDB "
                      f"{q['mdb_median_m']:.3g} m")
+    lines += variance_lines(r.variance_components)
     if 'ga' in r.errors:
         lines += error_lines(r)
     if r.ground_truth:
@@ -131,4 +132,24 @@ def error_lines(r: ReplayResult) -> list[str]:
             change = relative_change_text(e.compared(how), f2f.compared(how), 'F2F')
             text += f'   {change}' if change else ''
         lines.append(f'{text}   {what}, {file}')
+    return lines
+
+
+def variance_lines(vc: dict) -> list[str]:
+    """The variance factors per source of the final batch (estimated variance / stated
+    variance; the sigmas are off by its square root), one line each."""
+    groups = {k: v for k, v in vc.items() if not k.startswith('_')}
+    if not groups:
+        return []
+    est = vc.get('_estimation', {})
+    lines = [f"variance components (final batch, {est.get('iterations', 0)} adjustments"
+             f"{'' if est.get('converged', True) else ', NOT converged'}; factor = estimated / "
+             'stated variance):']
+    for name, v in groups.items():
+        if v['estimated']:
+            text = (f"{v['factor']:.3g} +- {v['sigma']:.2g} ({v['dof']:.0f} dof; sigmas x"
+                    f"{v['factor'] ** 0.5:.3g})")
+        else:
+            text = f"not estimated ({v['dof']:.1f} dof), stated covariance used"
+        lines.append(f"  {name:<12} {text}, {v['observations']} observations")
     return lines

@@ -125,6 +125,20 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
         outside_critical=out_crit)
 
 
+def connection_redundancy(network: ConnectionNetwork, result: SolveResult,
+                          priors: Sequence[GaussianPrior] = ()) -> FloatArray:
+    """(m,) the redundancy numbers ``r_i = tr((Q_vv P)_ii)`` of the connections alone (as
+    :func:`quality_control` computes them, without its tests)."""
+    conn = network.arrays()
+    m = len(conn)
+    if result.residuals.shape != (m, 6) or result.T_world_node.shape[0] != network.n_nodes:
+        raise InputError('the result does not belong to this network (different connection or '
+                         'node count); pass the network that was solved')
+    cf = _cofactors(network, result, priors, None)
+    G = propagate(cf.lin.A_src, cf.lin.A_dst, cf.cs, cf.cd, cf.Sigma[:3 * m])
+    return redundancy_numbers(conn.cov, cf.lin.B, cf.Linv, G, cf.lin.f.shape[1])[3]
+
+
 def _cofactors(network: ConnectionNetwork, result: SolveResult,
                priors: Sequence[GaussianPrior], outside: ConnectionArrays | None) -> _Cofactors:
     """Linearise at the solution, assemble ``N`` with unit weights and take the blocks of

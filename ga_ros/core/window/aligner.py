@@ -21,6 +21,12 @@ import numpy as np
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.fixes import FixStats, FixTerm, gauge_information, offset_information
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.quality.variance_components import (
+    SourceGroups,
+    VarianceComponentConfig,
+    VarianceComponents,
+    solve_with_variance_components,
+)
 from ga_ros.core.solver import SolverConfig, SolveResult, solve
 from ga_ros.core.window.admission import (
     apply_measurement,
@@ -64,6 +70,8 @@ class TrackWindowAligner:
     handoff : the background refinement
         (:class:`~ga_ros.core.window.handoff.RefinementHandoff`).
     ahead : the freeze computed ahead (:class:`~ga_ros.core.window.freeze_ahead.FreezeAhead`).
+    variance_components : the variance factors per source of the last :meth:`refine_batch`
+        that estimated them (None before).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
@@ -85,6 +93,7 @@ class TrackWindowAligner:
 
     def _attach(self, state: WindowState) -> None:
         self.state = state
+        self.variance_components: VarianceComponents | None = None
         state.fixes.gate_prob = float(self.config.fix_gate_prob)
         self.policy = freeze_policy(self.config.freeze_policy)
         self.updater = WindowUpdate(state, self.config)
@@ -422,8 +431,17 @@ class TrackWindowAligner:
         return self.updater.quality.connection_w(self.state.src.n)
 
     # --------------------------------------------------------------- batch refinement
-    def refine_batch(self, max_iterations: int | None = None) -> UpdateResult:
+    def refine_batch(self, max_iterations: int | None = None,
+                     variance_groups: SourceGroups | None = None,
+                     variance_config: VarianceComponentConfig | None = None) -> UpdateResult:
         """Full batch adjustment of every node with every kept connection (end of a survey).
+
+        With ``variance_groups`` (the group of every measurement, by source), the variance
+        factor of each group is estimated with the adjustment
+        (:func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`; the
+        fixes are one group, ``fixes``) and the solution, its published covariances and
+        :attr:`variance_components` use them; the connections' stored covariances, and so
+        the later window updates, keep their stated values.
 
         The open track is finished first. Outliers stay excluded. The covariances published
         afterwards come from this adjustment: frozen nodes get their marginal blocks from it
@@ -445,8 +463,16 @@ class TrackWindowAligner:
         if max_iterations is not None:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
         free_datum = self.config.datum == 'fixes'
-        res = solve(net, st.T[:n], scfg, fixed=[] if free_datum else [st.ids[0]],
-                    priors=st.fixes.priors(np.arange(n), st.T, st.idarr.a))
+        fixed = [] if free_datum else [st.ids[0]]
+        priors = st.fixes.priors(np.arange(n), st.T, st.idarr.a)
+        if variance_groups is None:
+            res = solve(net, st.T[:n], scfg, fixed=fixed, priors=priors)
+        else:
+            ids = st.idarr.a
+            groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+            res, self.variance_components = solve_with_variance_components(
+                net, st.T[:n], groups, scfg, fixed=fixed, priors=priors,
+                prior_groups=['fixes'] * len(priors), config=variance_config)
         del net
         st.T[:n] = res.T_world_node
         frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]
