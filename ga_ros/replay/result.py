@@ -30,8 +30,8 @@ class ReplayResult:
     the user should know about an unusual but valid run (e.g. a robot that did not move).
     ``variance_components``: the variance factor per source estimated in the final batch
     (:meth:`~ga_ros.core.quality.variance_components.VarianceComponents.as_dict`; empty when
-    not estimated). ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
-    what the replay went on despite (e.g. a bag cut short).
+    not estimated). ``ground_truth`` says what ground truth was used and how much of it
+    matched; ``warnings`` what the replay went on despite (e.g. a bag cut short).
     """
 
     bag: str

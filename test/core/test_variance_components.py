@@ -60,7 +60,7 @@ def test_group_redundancy_matches_a_dense_computation() -> None:
     pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 2), (1, 3), (2, 4), (0, 5), (1, 4)]
     group = [0, 0, 0, 0, 0, 1, 1, 1, 1, 1]
     ms = []
-    for (i, j), g in zip(pairs, group):
+    for i, j in pairs:
         S = np.diag(rng.uniform(0.05, 0.3, 3) ** 2)
         cov = sla.block_diag(S, np.eye(3) * 1e-4)
         t = p_true[j] - p_true[i] + rng.multivariate_normal(np.zeros(3), S)

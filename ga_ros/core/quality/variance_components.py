@@ -14,9 +14,9 @@ with ``v_k' P_k v_k`` the group's weighted squared residuals under its current w
 ``rank(N_p) - tr(Q_x N_p)`` for weighted parameters (priors, ``N_p`` their part of the normal
 matrix). The adjustment is repeated with the new weights until every group's
 ``v_k' P_k v_k / r_k`` is within ``tolerance`` of 1 (the simple iteration converges linearly;
-every third step is extrapolated with Aitken's method). At convergence ``E(v_k' P_k v_k) = r_k`` for every group: each group's
-covariances agree with its own residuals. The sum of the ``r_k`` is the redundancy ``r - u``
-of the whole adjustment.
+every third step is extrapolated with Aitken's method). At convergence
+``v_k' P_k v_k = r_k`` for every group: each group's covariances agree with its own
+residuals. The sum of the ``r_k`` is the redundancy ``r - u`` of the whole adjustment.
 
 A factor is in *variance*: ``s_k = 4`` says that the stated covariance is 4x too small, i.e. the
 stated standard deviations are 2x too small. Its standard deviation is
@@ -297,7 +297,8 @@ def group_redundancy(network: ConnectionNetwork, result: SolveResult,
     v = result.residuals
     Pv = np.linalg.solve(conn.cov, v[:, :, None])[:, :, 0]
     cost = np.bincount(conn_index, weights=np.einsum('mi,mi->m', v, Pv), minlength=n_groups)
-    red = np.bincount(conn_index, weights=connection_redundancy(network, result, priors), minlength=n_groups)
+    red = np.bincount(conn_index, weights=connection_redundancy(network, result, priors),
+                      minlength=n_groups)
     if priors:
         p_cost, p_red = prior_redundancy(network, result, priors)
         cost += np.bincount(prior_index, weights=p_cost, minlength=n_groups)
