@@ -45,8 +45,14 @@ def _chain(n: int, ms: list[Measurement]) -> np.ndarray:
     return np.array(T)
 
 
-def _rmse(T: np.ndarray, T_true: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - T_true[:, :3, 3]) ** 2, axis=1))))
+def _rmse(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Position RMSE (m) and RMS translation error of the consecutive motions (m): the
+    latter sums every interval's error, far less noisy than one random walk's position."""
+    ate = float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - T_true[:, :3, 3]) ** 2, axis=1))))
+    est = np.linalg.inv(T[:-1]) @ T[1:]
+    true = np.linalg.inv(T_true[:-1]) @ T_true[1:]
+    step = float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - true[:, :3, 3]) ** 2, axis=1))))
+    return ate, step
 
 
 # ------------------------------------------------------------------ the redundancy, by hand
@@ -177,16 +183,18 @@ def test_factors_of_three_sources_match_their_true_noise(three_source_runs) -> N
 
 
 def test_fusion_with_factors_beats_every_source_alone(three_source_runs) -> None:
-    """Independent errors: fused with the estimated factors, the position RMSE is below the
-    best source alone in every run, and below the fusion with the stated (equal) weights on
-    average; the fusion with the stated weights is worse than the best source alone on
-    average (the problem the factors solve)."""
-    best = np.array([min(r['alone'].values()) for r in three_source_runs])
-    vce = np.array([r['vce'] for r in three_source_runs])
-    fused = np.array([r['fused'] for r in three_source_runs])
-    assert (vce < best).all(), (vce, best)
-    assert vce.mean() < fused.mean()
-    assert fused.mean() > best.mean()
+    """Independent errors: fused with the estimated factors, the consecutive motions are
+    better than the best source's alone and than the fusion with the stated (equal) weights in
+    every run; the position RMSE (one random walk per run: noisy) is below the best source's
+    alone on average."""
+    runs = three_source_runs
+    best_step = np.array([min(a[1] for a in r['alone'].values()) for r in runs])
+    vce_step = np.array([r['vce'][1] for r in runs])
+    fused_step = np.array([r['fused'][1] for r in runs])
+    assert (vce_step < best_step).all(), (vce_step, best_step)
+    assert (vce_step < fused_step).all(), (vce_step, fused_step)
+    best_ate = np.array([min(a[0] for a in r['alone'].values()) for r in runs])
+    assert np.mean([r['vce'][0] for r in runs]) < best_ate.mean()
 
 
 def test_two_sources_alone_cannot_be_told_apart() -> None:

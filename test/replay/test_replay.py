@@ -12,6 +12,7 @@ import pytest
 from ga_ros.cli.main import main as cli_main
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.quality.variance_components import SourceGroups
 from ga_ros.errors import FormatError, InputError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3, so3
@@ -294,7 +295,10 @@ def test_replay_reproduces_the_in_process_pipeline(tmp_path: Path, sample: objec
         aligner.add_measurement(m)
     aligner.finish_track()
     online = np.asarray(aligner.corrected_path().T_world_node).copy()
-    aligner.refine_batch()
+    groups = SourceGroups()  # the final batch estimates a variance factor per source
+    for m in sample.measurements:
+        groups.add(m)
+    aligner.refine_batch(variance_groups=groups)
     cp = aligner.corrected_path()
     bag = write_measurement_bag(tmp_path / 'in', sample.measurements, sample.ground_truth)
     r = replay(bag, tmp_path / 'out', ReplayConfig())
@@ -352,7 +356,8 @@ def test_batch_aligner_equals_one_batch_solve(tmp_path: Path, sample: object) ->
     from ga_ros.core.solver import SolverConfig, solve
 
     bag = write_measurement_bag(tmp_path / 'in', sample.measurements, sample.ground_truth)
-    r = replay(bag, tmp_path / 'out', ReplayConfig(aligner_kind='batch', plot=False))
+    r = replay(bag, tmp_path / 'out', ReplayConfig(aligner_kind='batch', plot=False,
+                                                   variance_components=False))
     gt = sample.ground_truth
     net = ConnectionNetwork()
     for n, t in zip(gt.node_ids, gt.track_ids):

@@ -44,7 +44,8 @@ The package: :mod:`.config` (:class:`QualityConfig`, the B-method's non-centrali
 :mod:`.cofactors` (blocks of ``Q_x`` and their propagation), :mod:`.reliability` (redundancy
 numbers, w-tests and MDBs, connection tests), :mod:`.variance_factor` (the global test),
 :mod:`.report` (:class:`QualityReport`, :class:`QualitySummary`), :mod:`.control`
-(:func:`quality_control`, :func:`checked_solve`) and :mod:`.snooping` (:func:`data_snooping`).
+(:func:`quality_control`, :func:`checked_solve`), :mod:`.snooping` (:func:`data_snooping`) and
+:mod:`.variance_components` (a variance factor per source, Förstner's iterative estimate).
 """
 
 from ga_ros.core.quality.config import SNOOP_TESTS, QualityConfig, b_method_alpha, noncentrality
