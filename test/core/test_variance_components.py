@@ -272,3 +272,21 @@ def test_bad_groups_are_refused() -> None:
         solve_with_variance_components(_network(5, ms), _chain(5, ms), ['a'], fixed=[0])
     with pytest.raises(InputError, match='max_iterations'):
         VarianceComponentConfig(max_iterations=0)
+
+
+def test_honest_covariances_leave_the_solution_bit_for_bit() -> None:
+    """Stated covariances that are right (true = stated noise): no factor differs
+    significantly from 1, none is applied and the solution is the plain adjustment's, bit for
+    bit; the factors are still reported, each within 3 of its sigmas of 1."""
+    honest = (SourceSpec('odom0', 5.0), SourceSpec('odom1', 5.0))
+    sv = multi_source_survey(np.random.default_rng(5), honest, n_nodes=150,
+                             loop=SourceSpec('loops', 3.0, 3.0), loop_every=5, loop_span=20)
+    ms = list(sv.measurements)
+    net, T0 = _network(150, ms), _chain(150, ms)
+    res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
+                                             fixed=[0])
+    assert all(c.estimated and not c.applied for c in vc.components), vc.components
+    assert all(abs(c.factor - 1) <= 3 * c.sigma for c in vc.components)
+    plain = solve(net, T0, fixed=[0])
+    np.testing.assert_array_equal(res.T_world_node, plain.T_world_node)
+    assert vc.warnings() == []

@@ -22,7 +22,9 @@ A factor is in *variance*: ``s_k = 4`` says that the stated covariance is 4x too
 stated standard deviations are 2x too small. Its standard deviation is
 ``sigma(s_k) = s_k sqrt(2 / r_k)`` (the group's ``v' P v`` is ``s_k chi2(r_k)``). A group whose
 redundancy is below ``min_redundancy`` is *poorly determined*: its factor is not estimated and
-stays 1 (its stated covariance is used as it is).
+stays 1 (its stated covariance is used as it is). A factor that does not differ significantly
+from 1 (by more than ``significance`` of its sigmas) is reported but not applied: where no
+factor is significant, the solution is the one with the stated covariances, bit for bit.
 
 With a single group the estimate is the global variance factor ``sigma0^2`` and the solution
 does not change (only the covariances scale); with several, the relative weights change and
@@ -72,6 +74,9 @@ class VarianceComponentConfig:
     min_redundancy : a group with less redundancy ``r_k`` is not estimated (factor 1).
     factor_bounds : the factors are clipped to this range (a group with a nearly zero residual
         would otherwise get an infinite weight).
+    significance : a factor is applied only where it differs from 1 by more than this many of
+        its sigmas; where none does, the result is the adjustment with the stated covariances
+        (bit for bit).
     warn_ratio : a factor above ``warn_ratio`` or below ``1 / warn_ratio`` that is significant
         (more than ``warn_sigmas`` of its standard deviation from 1) is named in a warning.
     warn_sigmas : see ``warn_ratio``.
@@ -81,6 +86,7 @@ class VarianceComponentConfig:
     tolerance: float = 0.005
     min_redundancy: float = 10.0
     factor_bounds: tuple[float, float] = (1e-4, 1e4)
+    significance: float = 3.0
     warn_ratio: float = 2.0
     warn_sigmas: float = 3.0
 
@@ -109,7 +115,9 @@ class VarianceComponent:
         last adjustment.
     sigma : standard deviation of ``factor``, ``factor sqrt(2 / r_k)`` (inf when ``r_k = 0``).
     observations : connections (or priors) in the group.
-    estimated : ``redundancy >= min_redundancy``: the factor was estimated and applied.
+    estimated : ``redundancy >= min_redundancy``: the factor was estimated.
+    applied : estimated and significantly different from 1 (``significance``): the solution
+        and its covariances use it (else the stated covariance).
     """
 
     group: str
@@ -118,12 +126,13 @@ class VarianceComponent:
     sigma: float
     observations: int
     estimated: bool
+    applied: bool = True
 
     def as_dict(self) -> dict:
         """Plain JSON-ready numbers (``summary.json``'s ``variance_components``)."""
         return {'factor': float(self.factor), 'dof': float(self.redundancy),
                 'sigma': float(self.sigma), 'observations': int(self.observations),
-                'estimated': bool(self.estimated)}
+                'estimated': bool(self.estimated), 'applied': bool(self.applied)}
 
 
 @dataclass(frozen=True)
@@ -162,7 +171,7 @@ class VarianceComponents:
         cfg = self.config
         out = []
         for c in self.components:
-            if not c.estimated or not np.isfinite(c.sigma):
+            if not c.applied or not np.isfinite(c.sigma):
                 continue
             far = c.factor >= cfg.warn_ratio or c.factor <= 1.0 / cfg.warn_ratio
             if not far or abs(c.factor - 1.0) <= cfg.warn_sigmas * c.sigma:
@@ -208,8 +217,9 @@ def solve_with_variance_components(
 
     Returns
     -------
-    The solution of the last adjustment (its covariances, ``result.covariance``, are those of
-    the scaled weights) and the factors.
+    The solution with the applied factors (its covariances, ``result.covariance``, are those
+    of the scaled weights; with none applied, the adjustment with the stated covariances) and
+    the factors.
 
     Raises
     ------
@@ -237,10 +247,12 @@ def solve_with_variance_components(
     history: list[FloatArray] = []
     converged = False
     iterations = 0
+    first: SolveResult | None = None
     while True:
         net = scaled_network(network, factor[conn_index])
         pri = [scaled_prior(p, factor[k]) for p, k in zip(priors, prior_index)]
         res = solve(net, T, scfg, fixed=fixed, priors=pri)
+        first = first or res   # with the stated covariances
         T = res.T_world_node
         iterations += 1
         cost, red = group_redundancy(net, res, pri, conn_index, prior_index, len(names))
@@ -257,12 +269,21 @@ def solve_with_variance_components(
         if len(history) == 3:
             factor = np.clip(np.exp(_aitken(*history)), lo, hi)
             history = [np.log(factor)]
+    sigma = np.where(red > 0, factor * np.sqrt(2.0 / np.maximum(red, 1e-300)), np.inf)
+    applied = estimated & (np.abs(factor - 1.0) > cfg.significance * sigma)
+    if not applied.any():
+        res = first   # every stated covariance stands: the adjustment with them
+    elif (applied != estimated).any():
+        use = np.where(applied, factor, 1.0)
+        res = solve(scaled_network(network, use[conn_index]), T, scfg, fixed=fixed,
+                    priors=[scaled_prior(p, use[k]) for p, k in zip(priors, prior_index)])
+        iterations += 1
     counts = np.bincount(np.concatenate([conn_index, prior_index]), minlength=len(names))
     comps = tuple(
         VarianceComponent(
-            group=g, factor=float(factor[k]), redundancy=float(red[k]),
-            sigma=float(factor[k] * np.sqrt(2.0 / red[k])) if red[k] > 0 else float('inf'),
-            observations=int(counts[k]), estimated=bool(estimated[k]))
+            group=g, factor=float(factor[k]), redundancy=float(red[k]), sigma=float(sigma[k]),
+            observations=int(counts[k]), estimated=bool(estimated[k]),
+            applied=bool(applied[k]))
         for k, g in enumerate(names))
     return res, VarianceComponents(comps, iterations, converged, cfg)
 
