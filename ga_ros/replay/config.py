@@ -5,11 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from ga_ros.errors import InputError
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.map_to_odom import TRANSFORM_PERIOD_S
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
+
+#: What the final batch does with the variance factors per source (``ReplayConfig``).
+VARIANCE_MODES = ('off', 'report', 'apply')
 
 
 @dataclass(frozen=True)
@@ -28,10 +32,12 @@ class ReplayConfig:
         (:meth:`~ga_ros.core.window.TrackWindowAligner.refine_batch`, fixes included): GA's
         trajectory (``trajectory_ga.tum``); the online estimate (the live node's at the end)
         goes to ``trajectory_online.tum``.
-    variance_components : in the final batch, estimate a variance factor per source (each
-        odometry input's motions, the cross-track connections, the fixes;
-        :mod:`ga_ros.core.quality.variance_components`) and weight and publish with them
-        (``summary.json``'s ``variance_components``).
+    variance_components : the final batch's variance factor per source (each odometry input's
+        motions, the cross-track connections, the fixes;
+        :mod:`ga_ros.core.quality.variance_components`), one of :data:`VARIANCE_MODES`:
+        ``'off'``; ``'report'``: estimated, printed, warned about and in ``summary.json``'s
+        ``variance_components``, the trajectory and covariances unchanged; ``'apply'``: also
+        weighted and published with (the significant ones).
     pose_covariance : write each corrected pose's marginal covariance (else zeros).
     anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
         first node (the datum) when the bag has ground truth; else at the identity.
@@ -62,7 +68,12 @@ class ReplayConfig:
     aligner_kind: str = 'window'
     vo: Any = None
     final_batch: bool = True
-    variance_components: bool = True
+    variance_components: str = 'report'
+
+    def __post_init__(self) -> None:
+        if self.variance_components not in VARIANCE_MODES:
+            raise InputError(f'variance_components must be one of {VARIANCE_MODES}, got '
+                             f'{self.variance_components!r}')
     pose_covariance: bool = True
     anchor_to_ground_truth: bool = True
     plot: bool = True

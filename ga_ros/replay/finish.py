@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.quality.variance_components import VarianceComponentConfig
 from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3
@@ -119,10 +120,13 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         return None
     online = run.corrected()
     if run.config.final_batch:
-        vce = run.config.variance_components and hasattr(run.aligner, 'variance_components')
+        mode = run.config.variance_components
+        vce = mode != 'off' and hasattr(run.aligner, 'variance_components')
         try:
             if vce:
-                u = run.aligner.refine_batch(variance_groups=run.groups)
+                u = run.aligner.refine_batch(
+                    variance_groups=run.groups,
+                    variance_config=VarianceComponentConfig(apply=mode == 'apply'))
             else:
                 u = run.aligner.refine_batch()
         except GaError as exc:

@@ -12,7 +12,7 @@ import pytest
 from ga_ros.cli.main import main as cli_main
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
-from ga_ros.core.quality.variance_components import SourceGroups
+from ga_ros.core.quality.variance_components import SourceGroups, VarianceComponentConfig
 from ga_ros.errors import FormatError, InputError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.geometry import se3, so3
@@ -298,7 +298,8 @@ def test_replay_reproduces_the_in_process_pipeline(tmp_path: Path, sample: objec
     groups = SourceGroups()  # the final batch estimates a variance factor per source
     for m in sample.measurements:
         groups.add(m)
-    aligner.refine_batch(variance_groups=groups)
+    aligner.refine_batch(variance_groups=groups,
+                         variance_config=VarianceComponentConfig(apply=False))
     cp = aligner.corrected_path()
     bag = write_measurement_bag(tmp_path / 'in', sample.measurements, sample.ground_truth)
     r = replay(bag, tmp_path / 'out', ReplayConfig())
@@ -357,7 +358,7 @@ def test_batch_aligner_equals_one_batch_solve(tmp_path: Path, sample: object) ->
 
     bag = write_measurement_bag(tmp_path / 'in', sample.measurements, sample.ground_truth)
     r = replay(bag, tmp_path / 'out', ReplayConfig(aligner_kind='batch', plot=False,
-                                                   variance_components=False))
+                                                   variance_components='off'))
     gt = sample.ground_truth
     net = ConnectionNetwork()
     for n, t in zip(gt.node_ids, gt.track_ids):

@@ -58,7 +58,7 @@ def _step_error(res, T_true: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((est[:, :3, 3] - true[:, :3, 3]) ** 2, axis=1))))
 
 
-def _config(names: list[str], gt: Path, vce: bool) -> ReplayConfig:
+def _config(names: list[str], gt: Path, vce: str) -> ReplayConfig:
     specs = tuple(InputSpec(f'/{n}/pose', 'pose',
                             OdometryInputConfig(n, keyframe_travel_m=0.9,
                                                 track=TrackRules('time', duration_s=30.0)))
@@ -76,10 +76,10 @@ def test_factors_weight_three_streams_without_covariances(three_stream_bag,
     true ``(true / 5 %)^2``, and the too-pessimistic default is named in a warning."""
     bag, gt, T_true = three_stream_bag
     names = [s.name for s in SOURCES]
-    vce = replay(bag, tmp_path / 'vce', _config(names, gt, True))
-    plain = replay(bag, tmp_path / 'plain', _config(names, gt, False))
+    vce = replay(bag, tmp_path / 'vce', _config(names, gt, 'apply'))
+    plain = replay(bag, tmp_path / 'plain', _config(names, gt, 'off'))
     assert vce.rejected == {} and vce.final_batch
-    alone = {n: replay(bag, tmp_path / n, _config([n], gt, True)) for n in names}
+    alone = {n: replay(bag, tmp_path / n, _config([n], gt, 'apply')) for n in names}
     step = {n: _step_error(r, T_true) for n, r in alone.items()}
     assert _step_error(vce, T_true) < min(step.values()), (_step_error(vce, T_true), step)
     assert _step_error(vce, T_true) < 0.9 * _step_error(plain, T_true)
@@ -88,6 +88,11 @@ def test_factors_weight_three_streams_without_covariances(three_stream_bag,
     summary = json.loads((tmp_path / 'vce' / 'summary.json').read_text())
     vc = summary['variance_components']
     assert plain.variance_components == {}
+    report = replay(bag, tmp_path / 'report', _config(names, gt, 'report'))
+    np.testing.assert_array_equal(report.corrected.T_world_node, plain.corrected.T_world_node)
+    for s in SOURCES:
+        assert report.variance_components[s.name]['factor'] == vc[s.name]['factor']
+        assert vc[s.name]['applied'] and not report.variance_components[s.name]['applied']
     for s in SOURCES:
         assert vc[s.name]['estimated']
         assert vc[s.name]['factor'] == pytest.approx(s.true_factor, rel=0.35), (s.name, vc)
@@ -101,8 +106,8 @@ def test_two_streams_keep_the_stated_weights(three_stream_bag, tmp_path: Path) -
     one factor and GA is the fusion with the stated weights (as good as without)."""
     bag, gt, _ = three_stream_bag
     names = ['odom0', 'odom1']
-    vce = replay(bag, tmp_path / 'vce', _config(names, gt, True))
-    plain = replay(bag, tmp_path / 'plain', _config(names, gt, False))
+    vce = replay(bag, tmp_path / 'vce', _config(names, gt, 'apply'))
+    plain = replay(bag, tmp_path / 'plain', _config(names, gt, 'off'))
     vc = vce.variance_components
     # (not bit-equal: each stream's default covariance is that of its own measured motion)
     assert vc['odom0']['factor'] == pytest.approx(vc['odom1']['factor'], rel=0.05)

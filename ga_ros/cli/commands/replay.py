@@ -25,7 +25,7 @@ from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
 from ga_ros.pipeline.inputs import specs_from_mapping
-from ga_ros.replay.config import ReplayConfig
+from ga_ros.replay.config import VARIANCE_MODES, ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.outputs import OutputConfig
 from ga_ros.replay.pipeline import replay
@@ -153,10 +153,13 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
     a.add_argument('--no-final-batch', action='store_true',
                    help='skip the final batch of the whole survey after the last track: '
                         'trajectory_ga.tum is then the online estimate (as trajectory_online.tum)')
+    a.add_argument('--variance-components', choices=VARIANCE_MODES, default='report',
+                   help='variance factor per source (each odometry input, the cross-track '
+                        'connections, the fixes) in the final batch: report (default: '
+                        'estimated, printed, in summary.json, the trajectory unchanged), apply '
+                        '(also weighted and published with) or off')
     a.add_argument('--no-variance-components', action='store_true',
-                   help='in the final batch, weight every source with its stated covariance '
-                        '(default: estimate a variance factor per source, i.e. per odometry '
-                        'input, cross-track connections and fixes, and weight with it)')
+                   help='same as --variance-components off')
     a.add_argument('--no-anchor', action='store_true',
                    help='start at the identity instead of the ground-truth first pose (the '
                         'errors are then compared after rigid alignment)')
@@ -279,7 +282,8 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     return ReplayConfig(topics=topic_config(args), outputs=outputs, aligner=aligner,
                         aligner_kind=args.aligner, vo=vo_config(args),
                         final_batch=not args.no_final_batch,
-                        variance_components=not args.no_variance_components,
+                        variance_components=('off' if args.no_variance_components
+                                             else args.variance_components),
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=inputs,

@@ -77,6 +77,8 @@ class VarianceComponentConfig:
     significance : a factor is applied only where it differs from 1 by more than this many of
         its sigmas; where none does, the result is the adjustment with the stated covariances
         (bit for bit).
+    apply : use the significant factors in the returned solution; ``False``: estimate and
+        report them only (the solution is the one with the stated covariances).
     warn_ratio : a factor above ``warn_ratio`` or below ``1 / warn_ratio`` that is significant
         (more than ``warn_sigmas`` of its standard deviation from 1) is named in a warning.
     warn_sigmas : see ``warn_ratio``.
@@ -87,6 +89,7 @@ class VarianceComponentConfig:
     min_redundancy: float = 10.0
     factor_bounds: tuple[float, float] = (1e-4, 1e4)
     significance: float = 3.0
+    apply: bool = True
     warn_ratio: float = 2.0
     warn_sigmas: float = 3.0
 
@@ -116,8 +119,9 @@ class VarianceComponent:
     sigma : standard deviation of ``factor``, ``factor sqrt(2 / r_k)`` (inf when ``r_k = 0``).
     observations : connections (or priors) in the group.
     estimated : ``redundancy >= min_redundancy``: the factor was estimated.
-    applied : estimated and significantly different from 1 (``significance``): the solution
-        and its covariances use it (else the stated covariance).
+    significant : estimated and different from 1 by more than ``significance`` of its sigmas.
+    applied : significant and applied (``apply``): the solution and its covariances use it
+        (else the stated covariance).
     """
 
     group: str
@@ -126,13 +130,15 @@ class VarianceComponent:
     sigma: float
     observations: int
     estimated: bool
+    significant: bool = True
     applied: bool = True
 
     def as_dict(self) -> dict:
         """Plain JSON-ready numbers (``summary.json``'s ``variance_components``)."""
         return {'factor': float(self.factor), 'dof': float(self.redundancy),
                 'sigma': float(self.sigma), 'observations': int(self.observations),
-                'estimated': bool(self.estimated), 'applied': bool(self.applied)}
+                'estimated': bool(self.estimated), 'significant': bool(self.significant),
+                'applied': bool(self.applied)}
 
 
 @dataclass(frozen=True)
@@ -158,8 +164,8 @@ class VarianceComponents:
         return next((c.factor for c in self.components if c.group == group), 1.0)
 
     def as_dict(self) -> dict:
-        """``{group: {factor, dof, sigma, observations, estimated}}`` plus ``iterations`` and
-        ``converged`` under ``'_estimation'``."""
+        """``{group: {factor, dof, sigma, observations, estimated, significant, applied}}``
+        plus ``iterations`` and ``converged`` under ``'_estimation'``."""
         out: dict = {c.group: c.as_dict() for c in self.components}
         out['_estimation'] = {'iterations': int(self.iterations),
                               'converged': bool(self.converged)}
@@ -171,7 +177,7 @@ class VarianceComponents:
         cfg = self.config
         out = []
         for c in self.components:
-            if not c.applied or not np.isfinite(c.sigma):
+            if not c.significant or not np.isfinite(c.sigma):
                 continue
             far = c.factor >= cfg.warn_ratio or c.factor <= 1.0 / cfg.warn_ratio
             if not far or abs(c.factor - 1.0) <= cfg.warn_sigmas * c.sigma:
@@ -270,7 +276,8 @@ def solve_with_variance_components(
             factor = np.clip(np.exp(_aitken(*history)), lo, hi)
             history = [np.log(factor)]
     sigma = np.where(red > 0, factor * np.sqrt(2.0 / np.maximum(red, 1e-300)), np.inf)
-    applied = estimated & (np.abs(factor - 1.0) > cfg.significance * sigma)
+    significant = estimated & (np.abs(factor - 1.0) > cfg.significance * sigma)
+    applied = significant & cfg.apply
     if not applied.any():
         res = first   # every stated covariance stands: the adjustment with them
     elif (applied != estimated).any():
@@ -283,7 +290,7 @@ def solve_with_variance_components(
         VarianceComponent(
             group=g, factor=float(factor[k]), redundancy=float(red[k]), sigma=float(sigma[k]),
             observations=int(counts[k]), estimated=bool(estimated[k]),
-            applied=bool(applied[k]))
+            significant=bool(significant[k]), applied=bool(applied[k]))
         for k, g in enumerate(names))
     return res, VarianceComponents(comps, iterations, converged, cfg)
 
