@@ -149,9 +149,12 @@ def variance_lines(vc: dict) -> list[str]:
         if v['estimated']:
             text = (f"{v['factor']:.3g} +- {v['sigma']:.2g} ({v['dof']:.0f} dof; sigmas x"
                     f"{v['factor'] ** 0.5:.3g})")
-            if not v.get('applied', True):
-                text += ', not significant: stated covariance used'
+            if not v.get('significant', True):
+                text += ', not significant'
+            elif not v.get('applied', True):
+                text += ', not applied (--variance-components apply)'
         else:
             text = f"not estimated ({v['dof']:.1f} dof), stated covariance used"
-        lines.append(f"  {name:<12} {text}, {v['observations']} observations")
+        n = v['observations']
+        lines.append(f"  {name:<12} {text}, {n} observation{'s' * (n != 1)}")
     return lines
