@@ -241,7 +241,8 @@ class ReplayRun:
         for a in out.admitted:
             self.odom.add(a)  # its F2F integration (without standard inputs)
             self.conn.append(a)
-            self.groups.add(a)
+            if self.config.variance_components != 'off':
+                self.groups.add(a)
         for text in out.notes:
             if text.startswith('held measurement rejected: '):
                 self.reject('aligner: ' + text[len('held measurement rejected: '):])
