@@ -112,3 +112,23 @@ def test_two_streams_keep_the_stated_weights(three_stream_bag, tmp_path: Path) -
     # (not bit-equal: each stream's default covariance is that of its own measured motion)
     assert vc['odom0']['factor'] == pytest.approx(vc['odom1']['factor'], rel=0.05)
     assert vce.errors['ga'].ate_raw == pytest.approx(plain.errors['ga'].ate_raw, rel=0.02)
+
+
+def test_command_line_modes() -> None:
+    """``--variance-components`` sets the mode (report by default); ``--no-variance-components``
+    is ``off``; an unknown mode is refused by the parser and by the config."""
+    import argparse
+
+    from ga_ros.cli.commands.replay import add_replay_arguments, replay_config
+    from ga_ros.errors import InputError
+
+    p = argparse.ArgumentParser()
+    add_replay_arguments(p)
+    for argv, want in (([], 'report'), (['--variance-components', 'apply'], 'apply'),
+                       (['--no-variance-components'], 'off')):
+        args = p.parse_args(argv)
+        assert replay_config(args, progress=False).variance_components == want
+    with pytest.raises(SystemExit):
+        p.parse_args(['--variance-components', 'always'])
+    with pytest.raises(InputError, match='variance_components'):
+        ReplayConfig(variance_components='always')
