@@ -290,3 +290,31 @@ def test_honest_covariances_leave_the_solution_bit_for_bit() -> None:
     plain = solve(net, T0, fixed=[0])
     np.testing.assert_array_equal(res.T_world_node, plain.T_world_node)
     assert vc.warnings() == []
+
+
+def test_fix_source_factor_from_its_priors() -> None:
+    """Absolute fixes (one weighted parameter per fixed node, group ``fix0``) that state half
+    their true sigma (factor 4) beside honest odometry: the fixes' factor comes out within 3 of
+    its sigmas of 4 and above 2 (named in a warning), the odometry's within 3 sigmas of 1."""
+    from ga_ros.geometry import se3
+
+    rng = np.random.default_rng(4)
+    n = 200
+    sv = multi_source_survey(rng, (SourceSpec('odom0', 3.0, 3.0),), n_nodes=n)
+    ms = list(sv.measurements)
+    true_sigma = np.array([0.5, 0.5, 0.5, 0.02, 0.02, 0.02])
+    info = np.diag(1.0 / (true_sigma / 2) ** 2)   # stated: half the true sigma
+    priors = []
+    for k in range(2, n, 2):
+        xi = rng.normal(0, true_sigma)
+        priors.append(GaussianPrior(np.array([k]), (sv.T_true[k] @ se3.exp(xi[None]))[0][None],
+                                    info))
+    net = _network(n, ms)
+    _, vc = solve_with_variance_components(net, _chain(n, ms), ['odom0'] * len(ms),
+                                           priors=priors, prior_groups=['fix0'] * len(priors))
+    fix = next(c for c in vc.components if c.group == 'fix0')
+    odom = next(c for c in vc.components if c.group == 'odom0')
+    assert vc.converged
+    assert abs(fix.factor - 4.0) < 3 * fix.sigma and fix.factor > 2, fix
+    assert abs(odom.factor - 1.0) < 3 * odom.sigma, odom
+    assert any(w.startswith("fix0's stated covariance is") for w in vc.warnings())
