@@ -42,7 +42,10 @@ echo "[ga_ros] building $pkg_name ($(echo $defs | tr '\n' ' ')) into $V" >&2
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 mkdir -p "$work/src"
-(cd "$src" && cp --parents $defs "$work/src/")
+for d in $defs; do   # writable copies (the source folder may be read-only)
+  mkdir -p "$work/src/$(dirname "$d")"
+  cp --no-preserve=mode "$src/$d" "$work/src/$d"
+done
 
 # 1. Generate the sources: msg/srv -> idl -> C, typesupports and Python. The generators are
 # called directly: `rosidl generate` refuses to run because the wheels register its entry points
@@ -128,7 +131,7 @@ index=()
 for d in $defs; do
   dir=$(dirname "$d") name=$(basename "$d")
   mkdir -p "$V/share/$P/$dir"
-  cp "$src/$d" "$work/idl/$dir/${name%.*}.idl" "$G/c/$P/$dir/${name%.*}.json" "$V/share/$P/$dir/"
+  cp --no-preserve=mode "$src/$d" "$work/idl/$dir/${name%.*}.idl" "$G/c/$P/$dir/${name%.*}.json" "$V/share/$P/$dir/"
   index+=("$dir/${name%.*}.idl" "$d")
 done
 idx="$V/share/ament_index/resource_index"

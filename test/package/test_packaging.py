@@ -130,7 +130,8 @@ def test_every_third_party_import_is_declared():
 
 
 # --------------------------------------------------------------------------- launch files
-def _node_facts(executable: str, inputs: tuple[str, ...]) -> tuple[set[str], set[str]]:
+def _node_facts(executable: str, inputs: tuple[str, ...],
+                absolutes: tuple[str, ...] = ()) -> tuple[set[str], set[str]]:
     """(declared parameter names, topics used) of a ga_ros node, without starting it."""
     pytest.importorskip('rclpy')
     if executable == 'vo_node':
@@ -141,7 +142,7 @@ def _node_facts(executable: str, inputs: tuple[str, ...]) -> tuple[set[str], set
     else:
         from ga_ros.ros.alignment_node import NodeSettings, declared_parameters
 
-        params = set(declared_parameters(inputs))
+        params = set(declared_parameters(inputs, absolutes))
         settings = NodeSettings()
     topics = {getattr(settings, f.name) for f in fields(settings) if f.name.endswith('_topic')}
     return params | {'use_sim_time'}, topics
@@ -187,7 +188,11 @@ def test_launch_file_names_only_what_exists(path: Path):
             for k, v in zip(d.keys, d.values):
                 if ast.literal_eval(k) == 'inputs' and isinstance(v, ast.Constant):
                     inputs = tuple(n.strip() for n in v.value.split(',') if n.strip())
-        declared, topics = _node_facts(exe, inputs)
+        # absolute inputs: named by a constant, or (chosen by a launch argument) those with a
+        # topic parameter that are not standard inputs
+        absolutes = tuple(sorted({n.rsplit('.', 1)[0] for n in names if n.endswith('.topic')}
+                                 - set(inputs)))
+        declared, topics = _node_facts(exe, inputs, absolutes)
         files = [c.value for c in ast.walk(params) if isinstance(c, ast.Constant)
                  and isinstance(c.value, str) and c.value.endswith('.yaml')] if params else []
         for name in files:
@@ -215,6 +220,9 @@ def test_launch_file_parameters_are_checked_against_the_node():
     declared, topics = _node_facts('alignment_node', ('odom0',))
     assert 'odom0.topic' in declared and 'transform_publish_period_sec' in declared
     assert 'odom0.qos_reliability' in declared and 'sensor_frame' not in declared
+    assert 'fix0.topic' not in declared
+    assert {'fix0.topic', 'fix0.type', 'fix0.frame_id'} <= _node_facts(
+        'alignment_node', ('odom0',), ('fix0',))[0]
     declared_vo, topics_vo = _node_facts('vo_node', ())
     assert {'T_base_camera', 'qos_reliability', 'base_frame'} <= declared_vo
     assert 'camera_info' not in declared_vo and 'stereo/left/image_rect' in topics_vo
