@@ -11,8 +11,9 @@
 # .venv/include/PACKAGE/, .venv/share/PACKAGE/ with its ament index entries, and the Python
 # package PACKAGE in site-packages. Idempotent: a stamp .venv/.PACKAGE_built records the hash of
 # this script and the definitions. Needs gcc, g++ (build-essential) and catkin-pkg
-# (requirements.txt). scripts/venv.sh calls it for composition_interfaces (launch_ros imports its
-# services; tests only) when the shared vendor folder is there.
+# (requirements.txt). Used for tf2_msgs (scripts/build_tf2_msgs.sh) and, by scripts/venv.sh when
+# the shared vendor folder is there, composition_interfaces (launch_ros imports its services;
+# tests only).
 set -euo pipefail
 [ $# -ge 2 ] || { echo "usage: $0 PACKAGE SOURCE_DIR [DEPENDENCY ...]" >&2; exit 2; }
 pkg_name=$1
