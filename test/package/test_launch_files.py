@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import select
 import shlex
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -74,8 +76,11 @@ def launched(ws: Workspace, name: str, arguments: list[str], domain: int, log: P
                 ROS_LOG_DIR=str(log.parent / 'ros_log'), **(env or {}))
     full['PYTHONPATH'] = os.pathsep.join(
         p for p in (str(VENDOR), os.environ.get('PYTHONPATH', '')) if p)
+    # sigterm_timeout (launch's own argument, default 5 s): how long a process may take to stop
+    # after SIGINT before launch escalates to SIGTERM; on a busy 2-core machine the alignment
+    # node can be inside a window update for longer
     command = ' '.join(shlex.quote(a) for a in [sys.executable, str(RUNNER), 'ga_ros', name,
-                                                *arguments])
+                                                *arguments, 'sigterm_timeout:=60'])
     with open(log, 'ab') as out:
         proc = subprocess.Popen(ws.sourced(f'exec {command}'), env=full, stdout=out,
                                 stderr=subprocess.STDOUT, start_new_session=True)
@@ -92,13 +97,37 @@ def launched(ws: Workspace, name: str, arguments: list[str], domain: int, log: P
         _kill_group(proc.pid)
 
 
-def _kill_group(pgid: int) -> bool:
-    """Kill what is left of the process group ``pgid``; whether anything was left."""
+def _group(pgid: int) -> dict[int, str]:
+    """The processes of the process group ``pgid``: pid -> command line."""
+    ps = subprocess.run(['ps', '-e', '-o', 'pgid=,pid=,args='], capture_output=True,
+                        text=True).stdout.splitlines()
+    return {int(f[1]): f[2] if len(f) > 2 else '' for f in (line.split(None, 2) for line in ps)
+            if f[0] == str(pgid)}
+
+
+def _wait_group_gone(pgid: int, timeout: float) -> str:
+    """Wait (on each process's exit, through its pidfd) until the process group ``pgid`` is
+    empty or ``timeout`` s have passed; what is left, as ``pid command`` lines ('' if none)."""
+    deadline = time.monotonic() + timeout
+    while (left := _group(pgid)) and time.monotonic() < deadline:
+        for pid in left:
+            try:
+                fd = os.pidfd_open(pid)
+            except ProcessLookupError:
+                continue
+            try:
+                select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
+            finally:
+                os.close(fd)
+    return '\n'.join(f'{pid} {cmd}' for pid, cmd in _group(pgid).items())
+
+
+def _kill_group(pgid: int) -> None:
+    """Kill what is left of the process group ``pgid``."""
     try:
         os.killpg(pgid, signal.SIGKILL)
     except ProcessLookupError:
-        return False
-    return True
+        pass
 
 
 def shut_down(proc: subprocess.Popen, log: Path) -> None:
@@ -111,7 +140,11 @@ def shut_down(proc: subprocess.Popen, log: Path) -> None:
         pytest.fail(f'the launch service did not stop within {DEADLINE_S:.0f} s of SIGINT:\n'
                     + _tail(log))
     assert code == 0, f'launch exited {code}:\n' + _tail(log)
-    assert not _kill_group(proc.pid), 'processes of the launch outlived it:\n' + _tail(log)
+    # the alignment node's refinement worker process exits within ~1 s of the node
+    # (ga_ros.core.window.worker): wait for it with a deadline, then nothing may be left
+    left = _wait_group_gone(proc.pid, 30.0)
+    _kill_group(proc.pid)
+    assert not left, f'processes of the launch outlived it by 30 s:\n{left}\n' + _tail(log)
 
 
 def _tail(log: Path, lines: int = 60) -> str:
@@ -345,9 +378,9 @@ def test_odometry_launch_with_fixes_puts_the_path_in_their_frame(colcon_workspac
     stamps, T_map = _odometry_bag(tmp_path / 'bag')
 
     def in_fix_frame(msg) -> bool:
-        """At least 10 poses in ``map``, the first within 1.5 m of the truth and half of them
-        within 1 m (the odometry's own frame is 5.8 m and 0.6 rad away)."""
-        if msg.header.frame_id != 'map' or len(msg.poses) < 10:
+        """At least 20 poses in ``map``, half of them within 0.5 m of the truth (the fixes'
+        frame; the odometry's own frame is 5.8 m and 0.6 rad away)."""
+        if msg.header.frame_id != 'map' or len(msg.poses) < 20:
             return False
         at = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in msg.poses])
         k = np.clip(np.searchsorted(stamps, at), 0, len(stamps) - 1)
@@ -355,14 +388,14 @@ def test_odometry_launch_with_fixes_puts_the_path_in_their_frame(colcon_workspac
             return False
         xy = np.array([[p.pose.position.x, p.pose.position.y] for p in msg.poses])
         err = np.linalg.norm(xy - T_map[k, :2, 3], axis=1)
-        return bool(err[0] < 1.5 and np.median(err) < 1.0)
+        return bool(np.median(err) < 0.5)
 
     domain, log = domain_id(324), tmp_path / 'launch.log'
     with launched(colcon_workspace, 'odometry.launch.py', [
             'odom_topic:=/odom', 'fix_topic:=/amcl_pose', 'datum:=fixes',
             'use_sim_time:=true'], domain, log) as proc:
         player = play(colcon_workspace, tmp_path / 'bag', domain, tmp_path / 'play.log',
-                      '--rate', '4.0')
+                      '--rate', '2.0')
         try:
             wait_for_path(domain, in_fix_frame, "a path in the fixes' frame", [proc], log)
         finally:
