@@ -393,7 +393,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
 
 def usage() -> str:
     """The ``--help`` text of the alignment nodes."""
-    return node_usage(NODE_NAME, __doc__, declared_parameters(('<input>',)))
+    return node_usage(NODE_NAME, __doc__, declared_parameters(('<input>',), ('<fix>',)))
 
 
 def main(args: list[str] | None = None) -> int:
