@@ -288,7 +288,8 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         'replay', help='replay a rosbag2 bag offline through VO and the track-window aligner',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
     p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
     p.add_argument('--out', type=Path,
                    help='output directory (default out/replay/<bag name>)')
