@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from ga_ros.errors import GaError
 from ga_ros.io.bag import BagInfo
-from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
+from ga_ros.io.topic_plan import TopicConfig, TopicPlan
 from ga_ros.replay.inputs import InputTopics, plan_inputs
+from ga_ros.replay.plan import plan_or_hint
 from ga_ros.replay.result import ReplayResult
 
 
@@ -23,7 +24,7 @@ def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),
         if inputs.inputs:
             plan = plan_inputs(info, inputs, config.ground_truth)[0]
         else:
-            plan = plan_topics(info, config)
+            plan = plan_or_hint(info, config)
     except GaError as exc:
         lines.append(f'cannot replay: {exc}')
         return '\n'.join(lines), False

@@ -19,7 +19,7 @@ import yaml
 from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
-from ga_ros.errors import InputError
+from ga_ros.errors import InputError, NoUsableInputError
 from ga_ros.io.bag import bag_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
@@ -305,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
     if args.info:
         text, usable = info_text(bag_info(args.bag), topics, input_topics(args))
         print(text)
-        return 0 if usable else 1
+        return 0 if usable else 2  # as a usage error: the options do not fit the bag
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)
     config = replay_config(args, progress=sys.stderr.isatty() and not args.json)
 
@@ -314,7 +314,11 @@ def run(args: argparse.Namespace) -> int:
             for line in plan_lines(plan):
                 print(line)
 
-    result = replay(args.bag, out, config, on_plan=show_plan)
+    try:
+        result = replay(args.bag, out, config, on_plan=show_plan)
+    except NoUsableInputError as exc:  # a usage error: the command for the bag's topics
+        print(f'ga-ros replay: error: {exc}', file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(result.as_dict(), default=str))
     else:
