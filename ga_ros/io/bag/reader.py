@@ -1,4 +1,5 @@
-"""Opening and reading a bag: rosbag2 (mcap or sqlite3), an mcap file cut short, or ROS 1."""
+"""Opening and reading a bag: rosbag2 (mcap or sqlite3), an mcap file cut short, ROS 1, or a
+stereo dataset folder (EuRoC, KITTI) read as a bag."""
 
 from __future__ import annotations
 
@@ -25,8 +26,9 @@ class BagReader:
 
     Parameters
     ----------
-    path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file or
-        a ROS 1 ``.bag`` file.
+    path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file,
+        a ROS 1 ``.bag`` file, or a EuRoC ASL / KITTI odometry folder
+        (:mod:`ga_ros.io.bag.folder`).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -59,10 +61,20 @@ class BagReader:
                               'directory, a .mcap or .db3 file, or a ROS 1 .bag file',
                               str(self.path))
         if self.path.is_dir() and not (self.path / 'metadata.yaml').exists():
+            from ga_ros.io.bag.folder import FolderBag  # (cv2, calibration: only here)
+            from ga_ros.io.stereo_folder import read_stereo_folder
+
+            folder = read_stereo_folder(self.path)
+            if folder is not None:  # a EuRoC or KITTI folder, read as the bag it converts to
+                self._reader = FolderBag(folder)
+                self.info = self._reader.info()
+                return
             files = sorted(self.path.glob('*.mcap')) + sorted(self.path.glob('*.db3'))
             if len(files) != 1:
                 raise FormatError('not a rosbag2 bag (no metadata.yaml and not exactly one '
-                                  '.mcap/.db3 file)', str(self.path))
+                                  '.mcap/.db3 file), nor a EuRoC ASL folder (mav0/cam0, '
+                                  'mav0/cam1) or a KITTI odometry sequence (image_0, image_1, '
+                                  'calib.txt)', str(self.path))
             self.path = files[0]
         try:
             reader = Reader(self.path)
@@ -118,10 +130,12 @@ class BagReader:
             type, bad CDR); the message names the topic and the type. Messages before the
             failure have been yielded.
         """
+        from rosbags.rosbag2 import Reader
+
         if self._reader is None:
             raise FormatError('bag is not open', str(self.path))
         wanted = None if topics is None else set(topics)
-        if isinstance(self._reader, (McapStream, Ros1Bag)):
+        if not isinstance(self._reader, Reader):  # McapStream, Ros1Bag, FolderBag
             yield from self._reader.messages(wanted, raw, str(self.path))
             return
         conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
