@@ -127,3 +127,17 @@ def test_suggestion_prefers_odometry_named_odom_and_leaves_out_measurements(tmp_
     assert s.odometry == '/wheel/odom'
     assert s.other_odometry == ('/ekf/pose',)
     assert s.absolutes == () and s.ground_truth == ''
+
+
+def test_replay_help_describes_every_input_kind_and_recording_format(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(['replay', '--help'])
+    text = capsys.readouterr().out
+    for words in ('rosbag2', 'mcap', 'sqlite3', 'ROS 1', '.bag', 'EuRoC', 'sensor.yaml',
+                  'KITTI', 'calib.txt', 'measurements', 'stereo pair', 'CameraInfo',
+                  '--odom-topic', 'nav_msgs/Odometry', 'PoseStamped', '--absolute-topic',
+                  'NavSatFix', 'AMCL', 'camera beside odom', '--camera-extrinsic',
+                  'ground truth', 'exit code 2'):
+        assert words in text, words
