@@ -12,6 +12,7 @@ import shlex
 from pathlib import Path
 
 import numpy as np
+import pytest
 from bag_fixtures import (
     ODOMETRY,
     POSE_COV_STAMPED,
@@ -130,8 +131,6 @@ def test_suggestion_prefers_odometry_named_odom_and_leaves_out_measurements(tmp_
 
 
 def test_replay_help_describes_every_input_kind_and_recording_format(capsys):
-    import pytest
-
     with pytest.raises(SystemExit):
         main(['replay', '--help'])
     text = capsys.readouterr().out
