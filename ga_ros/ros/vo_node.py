@@ -324,6 +324,10 @@ class VoNode(Node):
             return
         if cal is None:
             return
+        with self._wake:  # pairs whose images came before this CameraInfo
+            held = self.front.release_held()
+        for pair in held:
+            self._enqueue(pair)
         if recalibrating:
             self.get_logger().warning('stereo calibration changed: VO re-initialises')
         self.get_logger().info(
@@ -363,6 +367,13 @@ class VoNode(Node):
         if pair is None:
             return
         self.streams['pairs'].completed(pair.stamp_ns)
+        with self._wake:  # before the calibration: wait for it (_on_info releases the pair)
+            if self.front.hold_until_calibrated(pair):
+                return
+        self._enqueue(pair)
+
+    def _enqueue(self, pair: ImagePair) -> None:
+        """Queue a pair for the worker; a full queue drops its oldest pair (counted)."""
         dropped = None
         with self._wake:
             if len(self._queue) >= max(1, self.settings.pair_queue):
