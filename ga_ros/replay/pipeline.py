@@ -83,7 +83,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         outputs = ReplayOutputs(out_dir, config.outputs)
         run = ReplayRun(config, factory, outputs, result, source.ground_truth, source.match_by)
         run.source = source.items
-        if specs and config.tf:
+        if config.tf and hasattr(source.items, 'passthrough'):  # the input's TF copied
             source.items.passthrough = run.copy_tf
         try:
             _read_all(run, source, bag)

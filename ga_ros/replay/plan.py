@@ -52,7 +52,8 @@ def plan_or_hint(info: BagInfo, topics: TopicConfig) -> TopicPlan:
     try:
         return plan_topics(info, topics)
     except FormatError as exc:
-        if 'no usable input' not in str(exc) or topics.left_image or topics.right_image:
+        if ('no usable input' not in str(exc) or topics.source != 'auto' or topics.left_image
+                or topics.right_image):  # the options named an input: their own error
             raise
         raise no_usable_input_error(
             info, f'{info.path}: no usable input: neither a measurements topic '

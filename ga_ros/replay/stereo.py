@@ -10,7 +10,7 @@ alignment node's corrected path.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from ga_ros.arrays import FloatArray, IntArray
@@ -48,6 +48,9 @@ class StereoSource:
         self.front = StereoFrontEnd(front_end_config(config))
         self.counter = counter
         self.tf_static = TransformTree()
+        #: called with each ``/tf_static`` message of the bag (topic, type, CDR, message, log
+        #: time), e.g. to copy them into the output bag; None: not read.
+        self.passthrough: Callable[[str, str, bytes | None, Any, int], None] | None = None
         if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
             models = read_stereo_calibration(list(plan.calibration))
             self.front.set_camera_models(models.left, models.right)
@@ -97,8 +100,15 @@ class StereoSource:
         sides = {p.left_image: 'left', p.right_image: 'right'}
         infos = {p.left_info: 'left', p.right_info: 'right'}
         log_ns = 0
-        for bm in self.bag.messages(p.topics):
+        assert self.bag.info is not None
+        tf = ['/tf_static'] if (self.passthrough is not None
+                                and self.bag.info.topic('/tf_static') is not None) else []
+        for bm in self.bag.messages(p.topics + tuple(tf)):
             log_ns = bm.log_ns
+            if bm.topic in tf:
+                if self.passthrough is not None and bm.data is not None:  # not from ROS 1
+                    self.passthrough(bm.topic, bm.msgtype, bm.data, bm.msg, bm.log_ns)
+                continue
             if bm.topic in infos and bm.msgtype == CAMERA_INFO:
                 try:
                     self.front.set_camera_info(infos[bm.topic], bm.msg)

@@ -334,9 +334,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics = topic_config(args)
     if args.info:
-        text, usable = info_text(bag_info(args.bag), topics, input_topics(args))
+        text, status = info_text(bag_info(args.bag), topics, input_topics(args))
         print(text)
-        return 0 if usable else 2  # as a usage error: the options do not fit the bag
+        return status
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)
     config = replay_config(args, progress=sys.stderr.isatty() and not args.json)
 
