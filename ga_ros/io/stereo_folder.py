@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,7 +33,9 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
 from ga_ros.io.groundtruth import read_euroc_csv, read_kitti_ground_truth
-from ga_ros.vo.calibration import CameraModel, read_stereo_calibration
+
+if TYPE_CHECKING:
+    from ga_ros.vo.calibration import CameraModel
 
 
 @dataclass(frozen=True)
@@ -123,6 +126,8 @@ def read_euroc(path: Path, root: Path) -> StereoFolder:
     cameras list."""
     import yaml
 
+    from ga_ros.vo.calibration import read_stereo_calibration
+
     sl, fl = _euroc_images(root / 'cam0')
     sr, fr = _euroc_images(root / 'cam1')
     right = dict(zip(sr.tolist(), fr))
@@ -175,6 +180,8 @@ def _kitti_calibration(path: Path) -> dict[str, FloatArray]:
 
 
 def _kitti_model(P: FloatArray, width: int, height: int) -> CameraModel:
+    from ga_ros.vo.calibration import CameraModel
+
     return CameraModel(width, height, P[:, :3].copy(), np.zeros(5), np.eye(3), P.copy())
 
 

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from ga_ros.errors import FormatError
 from ga_ros.io.bag import BagReader
+from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
@@ -50,7 +51,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
 
     Parameters
     ----------
-    bag_path : rosbag2 directory or ``.mcap`` / ``.db3`` file.
+    bag_path : rosbag2 directory, ``.mcap`` / ``.db3`` / ROS 1 ``.bag`` file, or a EuRoC ASL /
+        KITTI odometry folder (:func:`ga_ros.io.folder_bag.open_recording`).
     out_dir : output directory (created; files in it are replaced).
     config : see :class:`ReplayConfig`.
     aligner_factory : builds the aligner from the datum ``T_world_first`` (default:
@@ -71,7 +73,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
     """
     t0 = time.perf_counter()
     bag_path = Path(bag_path)
-    with BagReader(bag_path) as bag:
+    with open_recording(bag_path) as bag:
         assert bag.info is not None
         plan, specs = plan_replay(bag.info, config)
         factory = aligner_factory or default_aligner_factory(config.aligner,

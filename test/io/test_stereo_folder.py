@@ -18,7 +18,7 @@ import pytest
 
 from ga_ros.cli.main import main
 from ga_ros.geometry import se3, so3
-from ga_ros.io.bag import BagReader
+from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.stereo_folder import read_stereo_folder
 from ga_ros.io.trajectory import read_tum
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
@@ -106,7 +106,7 @@ def test_euroc_folder_is_read_as_written(euroc):
 
 def test_euroc_folder_as_a_bag_gives_calibration_before_images(euroc):
     root, made = euroc
-    with BagReader(root) as bag:
+    with open_recording(root) as bag:
         names = {t.name: t.count for t in bag.info.topics}
         assert names['/cam0/image_raw'] == names['/cam1/image_raw'] == made['stamps'].size
         first = [bm.topic for _, bm in zip(range(5), bag.messages())]

@@ -49,7 +49,7 @@ from ga_ros import topics
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.errors import InputError, NoUsableInputError
-from ga_ros.io.bag import bag_info
+from ga_ros.io.folder_bag import recording_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
@@ -334,7 +334,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics = topic_config(args)
     if args.info:
-        text, status = info_text(bag_info(args.bag), topics, input_topics(args))
+        text, status = info_text(recording_info(args.bag), topics, input_topics(args))
         print(text)
         return status
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)

@@ -1,5 +1,4 @@
-"""Opening and reading a bag: rosbag2 (mcap or sqlite3), an mcap file cut short, ROS 1, or a
-stereo dataset folder (EuRoC, KITTI) read as a bag."""
+"""Opening and reading a bag: rosbag2 (mcap or sqlite3), an mcap file cut short, or ROS 1."""
 
 from __future__ import annotations
 
@@ -26,9 +25,9 @@ class BagReader:
 
     Parameters
     ----------
-    path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file,
-        a ROS 1 ``.bag`` file, or a EuRoC ASL / KITTI odometry folder
-        (:mod:`ga_ros.io.bag.folder`).
+    path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file or
+        a ROS 1 ``.bag`` file (EuRoC ASL and KITTI folders:
+        :func:`ga_ros.io.folder_bag.open_recording`).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -61,14 +60,6 @@ class BagReader:
                               'directory, a .mcap or .db3 file, or a ROS 1 .bag file',
                               str(self.path))
         if self.path.is_dir() and not (self.path / 'metadata.yaml').exists():
-            from ga_ros.io.bag.folder import FolderBag  # (cv2, calibration: only here)
-            from ga_ros.io.stereo_folder import read_stereo_folder
-
-            folder = read_stereo_folder(self.path)
-            if folder is not None:  # a EuRoC or KITTI folder, read as the bag it converts to
-                self._reader = FolderBag(folder)
-                self.info = self._reader.info()
-                return
             files = sorted(self.path.glob('*.mcap')) + sorted(self.path.glob('*.db3'))
             if len(files) != 1:
                 raise FormatError('not a rosbag2 bag (no metadata.yaml and not exactly one '
@@ -135,7 +126,7 @@ class BagReader:
         if self._reader is None:
             raise FormatError('bag is not open', str(self.path))
         wanted = None if topics is None else set(topics)
-        if not isinstance(self._reader, Reader):  # McapStream, Ros1Bag, FolderBag
+        if not isinstance(self._reader, Reader):  # McapStream, Ros1Bag, a folder's reader
             yield from self._reader.messages(wanted, raw, str(self.path))
             return
         conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]

@@ -1,19 +1,18 @@
 """A stereo dataset folder (EuRoC ASL, KITTI odometry) read as a bag.
 
-:class:`FolderBag` shows a :class:`ga_ros.io.stereo_folder.StereoFolder` to the replay as the
-bag a conversion would make, so that the one stereo path (topic plan, ``StereoSource``, the
-ground truth by stamp, ``/tf_static`` for the camera's extrinsic) reads it unchanged:
+:func:`open_recording` opens what ``ga-ros replay`` is given: such a folder
+(:class:`FolderReader`), else a bag (:class:`ga_ros.io.bag.BagReader`). :class:`FolderBag`
+shows a :class:`ga_ros.io.stereo_folder.StereoFolder` to the replay as the bag a conversion would
+make, so that the one stereo path (topic plan, ``StereoSource``, the ground truth by stamp,
+``/tf_static`` for the camera's extrinsic) reads it unchanged:
 
-=====================  ===============================  ========================================
-topic                  type                             content
-=====================  ===============================  ========================================
-``/cam0/camera_info``  ``sensor_msgs/msg/CameraInfo``   the left model, once, before the images
-``/cam1/camera_info``  ``sensor_msgs/msg/CameraInfo``   the right model, once
-``/cam0/image_raw``    ``sensor_msgs/msg/CompressedImage``  each left PNG file as it is
-``/cam1/image_raw``    ``sensor_msgs/msg/CompressedImage``  each right PNG file
-``/tf_static``         ``tf2_msgs/msg/TFMessage``       ``base_link -> cam0``, ``-> cam1``
-``/ga/ground_truth``   ``geometry_msgs/msg/PoseStamped``  ``T_world_base`` (when the folder has it)
-=====================  ===============================  ========================================
+* ``/cam0/camera_info``, ``/cam1/camera_info`` (``sensor_msgs/msg/CameraInfo``): the left and
+  right models, once, before the images;
+* ``/cam0/image_raw``, ``/cam1/image_raw`` (``sensor_msgs/msg/CompressedImage``): each PNG file
+  as it is;
+* ``/tf_static`` (``tf2_msgs/msg/TFMessage``): ``base_link -> cam0`` and ``base_link -> cam1``;
+* ``/ga/ground_truth`` (``geometry_msgs/msg/PoseStamped``): ``T_world_base``, when the folder
+  has a ground truth.
 
 Log times are the stamps; at one time the calibration and ``/tf_static`` come first, then the left
 image, then the right. An image file is read when its message is.
@@ -24,12 +23,13 @@ from __future__ import annotations
 import heapq
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ga_ros import topics
 from ga_ros.errors import FormatError
+from ga_ros.io.bag import BagReader
 from ga_ros.io.bag.summary import BagInfo, BagMessage, BagTopic
 from ga_ros.io.bag_messages import (
     CAMERA_INFO,
@@ -39,8 +39,10 @@ from ga_ros.io.bag_messages import (
     matrix_to_pose_msg,
     typestore,
 )
-from ga_ros.io.stereo_folder import StereoFolder
-from ga_ros.vo.calibration import CameraModel
+from ga_ros.io.stereo_folder import StereoFolder, read_stereo_folder
+
+if TYPE_CHECKING:
+    from ga_ros.vo.calibration import CameraModel
 
 TF_MESSAGE = 'tf2_msgs/msg/TFMessage'
 #: The base frame of a folder's ``/tf_static`` (the robot's, REP 105).
@@ -151,3 +153,36 @@ class FolderBag:
 
     def close(self) -> None:
         """Nothing to close (files are read one message at a time)."""
+
+
+class FolderReader(BagReader):
+    """A :class:`BagReader` of a stereo dataset folder (:class:`FolderBag`)."""
+
+    def __init__(self, folder: StereoFolder) -> None:
+        super().__init__(folder.path)
+        self.folder = folder
+
+    def open(self) -> None:
+        """Show the folder as its bag (nothing is read but its lists and calibration)."""
+        self._reader = FolderBag(self.folder)
+        self.info = self._reader.info()
+
+
+def open_recording(path: str | Path) -> BagReader:
+    """The reader of what ``ga-ros replay`` is given (not opened yet): a EuRoC ASL folder or a
+    KITTI odometry sequence (:func:`ga_ros.io.stereo_folder.read_stereo_folder`), else a bag.
+
+    Raises
+    ------
+    FormatError
+        A recognised folder with a missing or malformed file.
+    """
+    folder = read_stereo_folder(path)
+    return BagReader(path) if folder is None else FolderReader(folder)
+
+
+def recording_info(path: str | Path) -> BagInfo:
+    """The summary of :func:`open_recording`'s recording (as :func:`ga_ros.io.bag.bag_info`)."""
+    with open_recording(path) as rec:
+        assert rec.info is not None
+        return rec.info
