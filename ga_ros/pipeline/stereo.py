@@ -324,6 +324,11 @@ class StereoFrontEnd:
             self._reason(NO_CAMERA_INFO)
         return True
 
+    @property
+    def n_held(self) -> int:
+        """Pairs waiting for the calibration (:meth:`hold_until_calibrated`)."""
+        return len(self._held)
+
     def release_held(self, final: bool = False) -> list[ImagePair]:
         """The pairs kept by :meth:`hold_until_calibrated`, oldest first, once the calibration
         is there (else none); ``final``: all of them whatever the calibration (the end of the

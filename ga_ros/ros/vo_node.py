@@ -368,8 +368,14 @@ class VoNode(Node):
             return
         self.streams['pairs'].completed(pair.stamp_ns)
         with self._wake:  # before the calibration: wait for it (_on_info releases the pair)
-            if self.front.hold_until_calibrated(pair):
-                return
+            held = self.front.hold_until_calibrated(pair)
+            waiting = self.front.n_held
+        if held:
+            self._warn('info_wait', f'no CameraInfo yet for both cameras: {waiting} stereo '
+                       f'pairs wait for it (at most {self.front.config.max_pending}, older ones '
+                       f'are dropped); check {self.settings.left_info_topic} and '
+                       f'{self.settings.right_info_topic}')
+            return
         self._enqueue(pair)
 
     def _enqueue(self, pair: ImagePair) -> None:

@@ -155,7 +155,7 @@ def test_two_processes_images_in_measurements_out(tmp_path):
             assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
             assert time.monotonic() < deadline, 'vo_node not discovered'
             spin_for(0.1)
-        # Images before any CameraInfo: dropped with a warning (no crash).
+        # Images before any CameraInfo: they wait for it, with a warning (no crash).
         deadline = time.monotonic() + 10
         while 'no CameraInfo' not in (tmp_path / 'vo_node.log').read_text():
             assert time.monotonic() < deadline, 'images without CameraInfo not reported'
