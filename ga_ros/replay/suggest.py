@@ -22,6 +22,11 @@ from ga_ros.io.bag_messages import GROUND_TRUTH_TYPES
 
 #: Name fragments of topics that carry absolute fixes (AMCL, GNSS, USBL, motion capture).
 FIX_WORDS = ('amcl', 'gps', 'gnss', 'fix', 'usbl', 'navsat')
+#: Name fragments of pose topics that are commands, not measurements (RViz's ``/initialpose``,
+#: Nav2's ``/goal_pose``): never suggested.
+COMMAND_WORDS = ('initialpose', 'goal', 'waypoint', 'target')
+#: Fewest messages of a stream worth suggesting as odometry.
+MIN_STREAM_MESSAGES = 3
 #: Name fragments of ground-truth topics.
 GROUND_TRUTH_WORDS = ('ground_truth', 'groundtruth', 'gt', 'vicon', 'mocap', 'leica')
 
@@ -78,10 +83,11 @@ def suggest(info: BagInfo, measurements_topic: str = '') -> Suggestion | None:
 
     The odometry is a ``nav_msgs/Odometry`` topic (one with "odom" in its name first), else a
     pose stream (``PoseStamped``, ``PoseWithCovarianceStamped``) that is neither a fix nor
-    ground truth; fixes are ``NavSatFix`` topics and fix-named (:data:`FIX_WORDS`) pose or
-    odometry topics (AMCL's ``/amcl_pose``); ground truth a pose topic named like one
-    (:data:`GROUND_TRUTH_WORDS`). ``measurements_topic`` (the ga_ros encoding) is never
-    suggested as odometry.
+    ground truth, of at least :data:`MIN_STREAM_MESSAGES` messages and not a command
+    (:data:`COMMAND_WORDS`); fixes are ``NavSatFix`` topics and fix-named
+    (:data:`FIX_WORDS`) pose or odometry topics (AMCL's ``/amcl_pose``); ground truth a pose
+    topic named like one (:data:`GROUND_TRUTH_WORDS`). ``measurements_topic`` (the ga_ros
+    encoding) is never suggested as odometry.
     """
     types = {t.name: t.msgtype for t in info.topics if t.count > 0}
     topics = [t for t in info.topics if t.count > 0 and t.name != measurements_topic]
@@ -89,7 +95,8 @@ def suggest(info: BagInfo, measurements_topic: str = '') -> Suggestion | None:
              and _is_ground_truth(t.name)]
     fixes = [t.name for t in topics if _is_fix(t) and t.name not in truth]
     streams = [t for t in topics if t.msgtype in INPUT_TYPES and t.name not in truth
-               and t.name not in fixes]
+               and t.name not in fixes and t.count >= MIN_STREAM_MESSAGES
+               and not any(w in t.name.lower() for w in COMMAND_WORDS)]
     if not streams:
         return None
 

@@ -35,9 +35,15 @@ T0_NS = 1_700_000_000_000_000_000
 
 
 def _nav2_bag(path: Path) -> Path:
+    """``/odom``, ``/amcl_pose`` (every 5th step), and RViz's ``/initialpose`` and Nav2's
+    ``/goal_pose`` (commands, not inputs)."""
     drive = rectangle_drive(0.25, 10.0, T0_NS)
     cov = np.diag([0.05] * 3 + [0.01] * 3) ** 2
-    rows = []
+    rows = [(T0_NS - 10**9, '/initialpose', POSE_COV_STAMPED,
+             pose_cov_stamped_msg(drive.T_true[0], T0_NS - 10**9, cov, frame='map'))]
+    rows += [(T0_NS + k * 10**9, '/goal_pose', POSE_STAMPED,
+              pose_stamped_msg(drive.T_true[-1], T0_NS + k * 10**9, frame='map'))
+             for k in range(4)]
     for k, (s, T, T_odom) in enumerate(zip(drive.stamps_ns, drive.T_true, drive.T_odom)):
         rows.append((int(s), '/odom', ODOMETRY, odometry_msg(T_odom, int(s))))
         if k % 5 == 0:
@@ -81,6 +87,7 @@ def test_nav2_recording_gets_the_odometry_and_fixes_command(tmp_path, capsys):
                     '--absolute-topic', '/amcl_pose']
     assert 'nav_msgs/msg/Odometry' in err
     assert 'geometry_msgs/msg/PoseWithCovarianceStamped' in err
+    assert '/initialpose' not in err and '/goal_pose' not in err  # commands, not inputs
     assert not (tmp_path / 'x').exists()  # nothing written
 
     assert main(['replay', str(bag), '--info']) == 2
