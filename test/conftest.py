@@ -1,13 +1,16 @@
-"""Shared fixtures: seeded random generators and the path to the shared benchmark data."""
+"""Shared fixtures: seeded random generators and the shared benchmark data, found only through
+``$GA_ROS_SHARED_DATA`` (:data:`ga_ros.bench.data.SHARED_DATA`, its one definition); a test that
+needs it skips, saying where it looked, when it is absent."""
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from ga_ros.bench.data import SHARED_DATA
 
 REPO = Path(__file__).resolve().parents[1]
 TEST = Path(__file__).resolve().parent
@@ -19,7 +22,6 @@ TEST = Path(__file__).resolve().parent
 for _d in sorted({p.parent for p in TEST.rglob('test_*.py')} | {TEST}):
     if str(_d) not in sys.path:
         sys.path.insert(0, str(_d))
-SHARED_DATA = Path(os.environ.get('GA_ROS_SHARED_DATA', REPO.parent / 'shared' / 'data'))
 
 
 @pytest.fixture(scope='session', autouse=True)

@@ -221,7 +221,7 @@ def table(batch: list[BatchRow], tracks: list[TrackRow]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog='ga-ros bench compare', description=__doc__.split('\n\n')[0])
+        prog='ga-ros bench compare', description=__doc__.split('\n\n')[0], allow_abbrev=False)
     p.add_argument('--data', type=Path, default=GRAPHS, help=f'pose graphs (default {GRAPHS})')
     p.add_argument('--window', type=int, default=5)
     p.add_argument('--no-tracks', action='store_true', help='batch rows only')

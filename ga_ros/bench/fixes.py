@@ -316,7 +316,8 @@ def table(figs: list[FixBenchFigures]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='ga-ros bench fixes', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 allow_abbrev=False)
     ap.add_argument('--data', default=str(DEFAULT_MAT), help='Plaza2_.mat')
     ap.add_argument('--intervals', default='10,30,60', help='fix intervals (s), comma-separated')
     ap.add_argument('--noise', default='2,5', help='fix noise (m per axis), comma-separated')

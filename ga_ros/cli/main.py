@@ -31,7 +31,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``ga-ros`` parser with every subcommand, or only ``command`` when it names one."""
     parser = argparse.ArgumentParser(
         prog='ga-ros',
-        description='Global alignment of sensor trajectories from noisy motion measurements.')
+        description='Global alignment of sensor trajectories from noisy motion measurements.',
+        allow_abbrev=False)
     parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND')
     name = '' if command is None else command.replace('-', '_')

@@ -6,7 +6,10 @@ match alike:
 * **pairing** of left and right images with ONE tolerance (``max_pair_dt_sec``); unpaired images
   older than a pair are dropped, at most ``max_pending`` wait per side (:meth:`pair_image`,
   cheap, then :meth:`process_pair`; :meth:`add_image` does both; ``vo_node`` queues the pairs
-  in between);
+  in between); a pair completed before the calibration (its ``CameraInfo``, of the same stamp,
+  arriving just after the images) waits for it (:meth:`hold_until_calibrated`,
+  :meth:`release_held`), so that the arrival order of images and ``CameraInfo`` changes
+  nothing;
 * **accounting**: every pair is counted once, as a measurement or under the reason it gave
   none (:class:`StereoStats`);
 * **decoding** of ``Image`` (mono8/16, bgr8/8UC3, rgb8, bgra8, rgba8) and ``CompressedImage``
@@ -221,6 +224,7 @@ class StereoFrontEnd:
         self.calibration: StereoCalibration | None = None
         self._models: dict[str, CameraModel] = {}
         self._pending: dict[str, dict[int, Any]] = {'left': {}, 'right': {}}
+        self._held: list[ImagePair] = []  # pairs completed before the calibration
         self._stamp_to_node: dict[int, int] = {}
         #: the camera's pose in ``base_link`` (None: not resolved yet, the identity is used)
         self.extrinsic: Extrinsic | None = None
@@ -298,9 +302,41 @@ class StereoFrontEnd:
     # ------------------------------------------------------------------ images
     def add_image(self, side: str, msg: Any) -> list[FrameOutput]:
         """Add one image message of ``side`` (``'left'``/``'right'``); process the pair it
-        completes, if any (a list of at most one output)."""
+        completes, if any (a list of at most one output; none while the pair waits for the
+        calibration: :meth:`release_held` gives it once that has come)."""
         pair = self.pair_image(side, msg)
-        return [] if pair is None else [self.process_pair(pair)]
+        if pair is None or self.hold_until_calibrated(pair):
+            return []
+        return [self.process_pair(pair)]
+
+    def hold_until_calibrated(self, pair: ImagePair) -> bool:
+        """Keep a pair completed before the calibration; True when kept (the caller gets it
+        back from :meth:`release_held`), False when the calibration is there (process it).
+
+        At most ``max_pending`` pairs wait; an older one is then counted under
+        :data:`NO_CAMERA_INFO` and forgotten.
+        """
+        if self.odometry is not None:
+            return False
+        self._held.append(pair)
+        while len(self._held) > self.config.max_pending:
+            self._held.pop(0)
+            self._reason(NO_CAMERA_INFO)
+        return True
+
+    @property
+    def n_held(self) -> int:
+        """Pairs waiting for the calibration (:meth:`hold_until_calibrated`)."""
+        return len(self._held)
+
+    def release_held(self, final: bool = False) -> list[ImagePair]:
+        """The pairs kept by :meth:`hold_until_calibrated`, oldest first, once the calibration
+        is there (else none); ``final``: all of them whatever the calibration (the end of the
+        input: :meth:`process_pair` then counts each under :data:`NO_CAMERA_INFO`)."""
+        if self.odometry is None and not final:
+            return []
+        held, self._held = sorted(self._held, key=lambda p: p.stamp_ns), []
+        return held
 
     def pair_image(self, side: str, msg: Any) -> ImagePair | None:
         """Pair one image message of ``side`` with a waiting one of the other side (cheap: no

@@ -121,6 +121,7 @@ class ReplayRun:
         #: positions (m, map frame) of the fixes read, for the plot
         self.fix_xyz: list[FloatArray] = []
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
+        self.odom_tf_stamp = -1  # stamp of the last odom -> base_link written
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -208,6 +209,7 @@ class ReplayRun:
         self.tracks.setdefault(m.src_id, m.src_track)
         self.tracks.setdefault(m.dst_id, m.dst_track)
         self.admitted(out)
+        self._odom_to_base()
         if item.data is not None:
             self.out.measurement(ODOMETRY, item.data, None, self.last_ns)
         else:
@@ -219,6 +221,18 @@ class ReplayRun:
         if self.odom.T_map_odom is None:  # the correction before the first update
             traj = self.corrected()
             self.odom.update(traj.node_ids, traj.T_world_node)
+
+    def _odom_to_base(self) -> None:
+        """REP 105 ``odom -> base_link`` at each new keyframe of the odometry chain when it
+        is the measurements' own (stereo VO, measurement bags: the frame-to-frame integration
+        that ``map -> odom`` refers to); standard inputs bring theirs on the copied ``/tf``."""
+        if not self.config.tf or self.odom is None or self.odom.front is not None:
+            return
+        latest = self.odom.latest()
+        if latest is None or int(latest[1]) <= self.odom_tf_stamp:
+            return
+        self.odom_tf_stamp = int(latest[1])
+        self.out.odom_to_base(latest[0], self.odom_tf_stamp, self.last_ns)
 
     def _earth_to_map(self, item: SourceItem) -> None:
         """REP 105 ``earth -> map`` on ``/tf_static``, once the NavSatFix inputs' ENU origin is

@@ -325,6 +325,10 @@ class VoNode(BoundedLogging, Node):
             return
         if cal is None:
             return
+        with self._wake:  # pairs whose images came before this CameraInfo
+            held = self.front.release_held()
+        for pair in held:
+            self._enqueue(pair)
         if recalibrating:
             self.get_logger().warning('stereo calibration changed: VO re-initialises')
         self.get_logger().info(
@@ -364,6 +368,19 @@ class VoNode(BoundedLogging, Node):
         if pair is None:
             return
         self.streams['pairs'].completed(pair.stamp_ns)
+        with self._wake:  # before the calibration: wait for it (_on_info releases the pair)
+            held = self.front.hold_until_calibrated(pair)
+            waiting = self.front.n_held
+        if held:
+            self._warn('info_wait', f'no CameraInfo yet for both cameras: {waiting} stereo '
+                       f'pairs wait for it (at most {self.front.config.max_pending}, older ones '
+                       f'are dropped); check {self.settings.left_info_topic} and '
+                       f'{self.settings.right_info_topic}')
+            return
+        self._enqueue(pair)
+
+    def _enqueue(self, pair: ImagePair) -> None:
+        """Queue a pair for the worker; a full queue drops its oldest pair (counted)."""
         dropped = None
         with self._wake:
             if len(self._queue) >= max(1, self.settings.pair_queue):

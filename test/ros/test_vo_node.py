@@ -155,7 +155,7 @@ def test_two_processes_images_in_measurements_out(tmp_path):
             assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
             assert time.monotonic() < deadline, 'vo_node not discovered'
             spin_for(0.1)
-        # Images before any CameraInfo: dropped with a warning (no crash).
+        # Images before any CameraInfo: they wait for it, with a warning (no crash).
         deadline = time.monotonic() + 10
         while 'no CameraInfo' not in (tmp_path / 'vo_node.log').read_text():
             assert time.monotonic() < deadline, 'images without CameraInfo not reported'
@@ -402,3 +402,37 @@ def test_nan_camera_info_first_then_valid_ones_give_measurements() -> None:
         assert node.wait_idle()
         assert node.calibration is not None and node.calibration.baseline_m == 2.2
         assert len(sent) >= 2 and node.front.stats.measurements == len(sent)
+
+
+@pytest.mark.ros
+def test_camera_info_just_after_the_images_loses_no_pair() -> None:
+    """Each pair's CameraInfo (same stamp) arrives just after its images: the first pair waits
+    for the calibration instead of being dropped ("no CameraInfo yet"), and the node gives the
+    same measurements as with the CameraInfo first."""
+    from ga_ros.pipeline.stereo import NO_CAMERA_INFO
+
+    rig, pairs = _upscaled_pairs(30, seed=12)
+    runs = []
+    for offset, info_first in ((37, True), (39, False)):
+        with _vo_node(offset, pair_queue=100) as (node, sent):
+            for stamp, left, right in pairs:
+                infos = [(camera_info(rig, side == 'right', stamp), side)
+                         for side in ('left', 'right')]
+                if info_first:
+                    for msg, side in infos:
+                        node._on_info(msg, side)
+                node._on_image(array_to_image(left, stamp, 'l'), 'left')
+                node._on_image(array_to_image(right, stamp, 'r'), 'right')
+                if not info_first:
+                    for msg, side in infos:
+                        node._on_info(msg, side)
+            assert node.wait_idle()
+            st = node.front.stats
+            assert NO_CAMERA_INFO not in st.reasons, st.reasons
+            assert node.counts['processed'] == st.pairs == len(pairs)
+            runs.append([conv.odometry_to_measurement(m) for m in sent])
+    first, after = runs
+    assert len(first) == len(after) >= 2
+    for a, b in zip(first, after):
+        assert (a.src_id, a.dst_id) == (b.src_id, b.dst_id)
+        np.testing.assert_allclose(a.z, b.z, atol=1e-12)

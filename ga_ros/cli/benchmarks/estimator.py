@@ -18,7 +18,8 @@ from ga_ros.core.window import FREEZE_POLICIES
 def build_parser(target: str) -> argparse.ArgumentParser:
     """The parser of ``ga-ros bench solve`` / ``ga-ros bench window``."""
     p = argparse.ArgumentParser(prog=f'ga-ros bench {target}', description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                allow_abbrev=False)
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--tracks', type=int, default=25, help='double tracks in the survey (25)')
     p.add_argument('--noise', type=float, default=5.0, help='noise, %% of the true motion (5)')

@@ -38,7 +38,8 @@ def find_bags_dir() -> Path | None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         'demo', help='run the pipeline end to end on the bundled sample bags',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
     p.add_argument('--out', type=Path, default=Path('out') / 'demo',
                    help='output folder (default out/demo)')
     p.add_argument('--only', choices=('stereo', 'measurements'),

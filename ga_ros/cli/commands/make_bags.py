@@ -13,7 +13,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         'make-bags', help='regenerate the sample bags (aerial measurements, stereo images)',
         description='Write the sample bags with the seeded simulators: aerial_measurements '
                     "(the paper's aerial scenario as measurements) and stereo_sample "
-                    '(compressed stereo pairs); both carry ground truth on /ga/ground_truth.')
+                    '(compressed stereo pairs); both carry ground truth on /ga/ground_truth.',
+        allow_abbrev=False)
     p.add_argument('--out', type=Path, default=Path('bags'), help='output folder (default bags)')
     p.add_argument('which', nargs='*', choices=('measurements', 'stereo'),
                    default=['measurements', 'stereo'], help='which bags (default both)')

@@ -23,7 +23,7 @@ def register(subparsers) -> None:
         'simulate', help="simulate one of the paper's surveys with ground truth",
         description="Simulate one of the paper's surveys (noisy motions between overlapping "
                     'frames) and write the measurements (g2o), the ground truth (TUM) and the '
-                    'track ids (CSV).')
+                    'track ids (CSV).', allow_abbrev=False)
     p.add_argument('scenario', choices=SCENARIOS)
     p.add_argument('--seed', type=int, default=0, help='seed of the noise (default 0)')
     p.add_argument('--noise', type=float, default=10.0,

@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     '(or, for an edge-only file, from a chordal initialisation) and write the '
                     "result. The printed cost is sum e' Omega e over the edges (GTSAM's "
                     'between-factor error), with the a-posteriori variance factor and its '
-                    'chi-square test at 95 %.')
+                    'chi-square test at 95 %.', allow_abbrev=False)
     p.add_argument('input', help='g2o file')
     p.add_argument('--init', choices=('auto', 'file', *INIT_METHODS), default='auto',
                    help="initial guess: the file's vertices, odometry chaining, a minimum "
