@@ -28,6 +28,7 @@ from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.safe_write import open_log
 
@@ -151,13 +152,14 @@ class NodeClient:
                    proc: subprocess.Popen | None = None) -> None:
         """Spin until ``predicate()`` is true; :class:`HarnessTimeout` after ``timeout`` s or if
         ``proc`` exits."""
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + patience(timeout)
         while not predicate():
             if proc is not None and proc.poll() is not None:
                 raise HarnessTimeout(f'node process exited ({proc.returncode}) while waiting '
                                      f'for {what}')
             if time.monotonic() > deadline:
-                raise HarnessTimeout(f'timed out after {timeout:.0f} s waiting for {what}')
+                raise HarnessTimeout(f'timed out after {patience(timeout):.0f} s waiting for '
+                                     f'{what}')
             self.executor.spin_once(timeout_sec=0.02)
 
     def wait_for_node(self, timeout: float = 30.0, proc: subprocess.Popen | None = None) -> None:

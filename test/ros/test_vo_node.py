@@ -31,6 +31,7 @@ from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.pipeline.stereo import NO_EXTRINSIC  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
 from ga_ros.ros.vo_node import EXTRINSIC_REFUSED, VoNodeSettings, array_to_image  # noqa: E402
@@ -149,14 +150,14 @@ def test_two_processes_images_in_measurements_out(tmp_path):
         pub_r.publish(array_to_image(right, stamp, 'right'))
 
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + patience(30)
         while (min(p.get_subscription_count() for p in (pub_l, pub_r, pub_il, pub_ir)) == 0
                or node.count_publishers('/ga/measurements') == 0):
             assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
             assert time.monotonic() < deadline, 'vo_node not discovered'
             spin_for(0.1)
         # Images before any CameraInfo: they wait for it, with a warning (no crash).
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + patience(10)
         while 'no CameraInfo' not in (tmp_path / 'vo_node.log').read_text():
             assert time.monotonic() < deadline, 'images without CameraInfo not reported'
             send(*frames[0], 1, info=False)
@@ -175,7 +176,7 @@ def test_two_processes_images_in_measurements_out(tmp_path):
                 pub_l.publish(bad)
                 pub_r.publish(array_to_image(frames[i][1], stamp + 2, 'right'))
                 spin_for(0.15)
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + patience(20)
         while len(odoms) < n and time.monotonic() < deadline:
             spin_for(0.1)
         assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
