@@ -69,9 +69,9 @@ def finish(run: ReplayRun) -> None:
     counts = run.session.counts
     res.gaps = {'bridges': counts.bridges, 'reversed_measurements': counts.reversed,
                 'unjoined_nodes': traj.node_ids[run.session.unjoined(traj.node_ids)].tolist()}
-    if run.config.tf and run.odom is not None and run.odom.T_map_odom is not None:
-        run.out.map_to_odom(run.odom.T_map_odom, run.last_ns + run.stamp_offset_ns,
-                            run.last_ns)   # the final correction, at the end
+    if run.config.tf and run.odom is not None and run.odom.latest() is not None:
+        run.out.map_to_odom(run.odom.T_map_odom,   # the final correction, at the end
+                            run.odom.stamp(run.last_ns + run.stamp_offset_ns), run.last_ns)
     run.markers(traj, everything=True)
     res.n_nodes = len(traj)
     res.n_tracks = int(np.unique(traj.track_ids).size)
@@ -191,5 +191,11 @@ def frames_summary(run: ReplayRun) -> dict[str, Any]:
         warnings.append(f'{run.tf_removed} input transforms to {config.outputs.odom_frame!r} '
                         f"not copied (another localiser's; ours is the one "
                         f'{config.outputs.map_frame} -> {config.outputs.odom_frame})')
+    if run.odom is not None:
+        out['map_to_odom'] = {k.split('/', 1)[1]: v
+                              for k, v in run.odom.diagnostic_values().items()}
+        if run.odom.jumps_warned:
+            warnings.append(f'map -> odom jumped beyond the fixes\' uncertainty '
+                            f'{run.odom.jumps_warned} time(s); the last: {run.odom.last_warning}')
     out['warnings'] = [w for w in warnings if 'DEFAULT covariance' not in w]
     return out
