@@ -30,8 +30,8 @@ One definition for ``alignment_node`` and the replay (ROS-free):
 
 from __future__ import annotations
 
-from dataclasses import replace
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np

@@ -195,7 +195,8 @@ def frames_summary(run: ReplayRun) -> dict[str, Any]:
         out['map_to_odom'] = {k.split('/', 1)[1]: v
                               for k, v in run.odom.diagnostic_values().items()}
         if run.odom.jumps_warned:
-            warnings.append(f'map -> odom jumped beyond the fixes\' uncertainty '
-                            f'{run.odom.jumps_warned} time(s); the last: {run.odom.last_warning}')
+            warnings.append(f"map -> odom jumped beyond the fixes' uncertainty "
+                            f'{run.odom.jumps_warned} time(s); the last: '
+                            f'{run.odom.last_warning}')
     out['warnings'] = [w for w in warnings if 'DEFAULT covariance' not in w]
     return out
