@@ -50,7 +50,7 @@ class PlacementConfig:
         largest position sigma) at a change of ``map -> odom`` without a warning.
     """
 
-    heading_sigma_max_rad: float = 0.1
+    heading_sigma_max_rad: float = 0.5
     jump_sigmas: float = 3.0
 
     def __post_init__(self) -> None:

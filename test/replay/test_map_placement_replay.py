@@ -47,10 +47,11 @@ class Nav2Bag(NamedTuple):
     amcl_log_ns: np.ndarray    # log times of /amcl_pose
 
 
-def write_nav2_bag(path: Path, seed: int = 3) -> Nav2Bag:
+def write_nav2_bag(path: Path, seed: int = 3, yaw_known: bool = True) -> Nav2Bag:
     """One lap of a 20 x 10 m rectangle at 1 m/s (:func:`bag_fixtures.rectangle_drive`), odometry
     at 20 Hz drifting in heading, AMCL at 2 Hz from 0.7 s on (its pose and its ``map -> odom``
-    on ``/tf``), log times 1-4 ms after the stamps on another clock."""
+    on ``/tf``), log times 1-4 ms after the stamps on another clock. ``yaw_known`` False: the
+    fixes are positions only (a zero yaw variance: unknown, as AMCL's other zeros)."""
     rng = np.random.default_rng(seed)
     drive = rectangle_drive(1.0, RATE_HZ, SIM_T0_NS, yaw_per_step=1e-4)
     stamps = drive.stamps_ns
@@ -60,7 +61,7 @@ def write_nav2_bag(path: Path, seed: int = 3) -> Nav2Bag:
     amcl_log = []
     cov = np.zeros((6, 6))
     cov[0, 0] = cov[1, 1] = SIGMA_XY ** 2
-    cov[5, 5] = SIGMA_YAW ** 2
+    cov[5, 5] = SIGMA_YAW ** 2 if yaw_known else 0.0
     with BagWriter(path) as bag:
         for k, (s, lg, T) in enumerate(zip(stamps, log, drive.T_odom)):
             s, lg = int(s), int(lg)
@@ -95,12 +96,12 @@ def _map_to_odom(bag_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(logs), np.array(stamps), np.array(T)
 
 
-@pytest.mark.parametrize('seed', [1, 3])
-def test_nav2_recording_has_map_to_odom_from_the_first_odometry_message(tmp_path: Path, capsys,
-                                                                       seed: int) -> None:
+@pytest.mark.parametrize(('seed', 'yaw_known'), [(1, True), (3, True), (3, False)])
+def test_nav2_recording_has_map_to_odom_from_the_first_odometry_message(
+        tmp_path: Path, capsys, seed: int, yaw_known: bool) -> None:
     from ga_ros.cli.main import main
 
-    b = write_nav2_bag(tmp_path / 'nav2', seed)
+    b = write_nav2_bag(tmp_path / 'nav2', seed, yaw_known)
     rc = main(['replay', str(tmp_path / 'nav2'), '--odom-topic', '/odom', '--absolute-topic',
                '/amcl_pose', '--out', str(tmp_path / 'out'), '--no-plot', '--no-progress'])
     text = capsys.readouterr().out
@@ -124,9 +125,12 @@ def test_nav2_recording_has_map_to_odom_from_the_first_odometry_message(tmp_path
     before = logs < b.amcl_log_ns[0]
     assert before.any() and np.allclose(T[before], np.eye(4)), 'identity before the first fix'
     assert np.linalg.norm(b.T_map_true[0, :2, 3]) > 9.0   # what the identity is off by
-    # placed by the fixes from the first one to the first window update (10 s later): within
-    # their uncertainty of the true pose (3 sigma)
-    by_fixes = (logs > b.amcl_log_ns[0]) & (logs < first_update)
+    # placed by the fixes from when they determine it (the first one with its yaw; else once
+    # the odometry has moved between fixes: 1.5 m at 1 m/s, the heading sigma then below
+    # 0.5 rad) to the first window update (10 s later): within their uncertainty of the true
+    # pose (3 sigma)
+    determined = b.amcl_log_ns[0] if yaw_known else b.amcl_log_ns[0] + 1_500_000_000
+    by_fixes = (logs > determined) & (logs < first_update)
     assert (logs[by_fixes][-1] - logs[by_fixes][0]) > 9e9
     assert err[by_fixes].max() < 3 * SIGMA_XY, err[by_fixes].max()
     # then the aligner's (the odometry drifts between its updates)
@@ -141,4 +145,4 @@ def test_nav2_recording_has_map_to_odom_from_the_first_odometry_message(tmp_path
     assert (m2o['jumps_warned'] > 0) == any('map -> odom jumped' in w
                                             for w in frames['warnings'])
     assert m2o['placed_by'] == 'aligner' and m2o['fixes_used'] >= 19
-    assert m2o['fixes_heading'].startswith('orientation')
+    assert m2o['fixes_heading'] == ('orientation+motion' if yaw_known else 'motion')
