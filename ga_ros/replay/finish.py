@@ -191,12 +191,21 @@ def frames_summary(run: ReplayRun) -> dict[str, Any]:
         warnings.append(f'{run.tf_removed} input transforms to {config.outputs.odom_frame!r} '
                         f"not copied (another localiser's; ours is the one "
                         f'{config.outputs.map_frame} -> {config.outputs.odom_frame})')
-    if run.odom is not None:
-        out['map_to_odom'] = {k.split('/', 1)[1]: v
-                              for k, v in run.odom.diagnostic_values().items()}
-        if run.odom.jumps_warned:
-            warnings.append(f"map -> odom jumped beyond the fixes' uncertainty "
-                            f'{run.odom.jumps_warned} time(s); the last: '
-                            f'{run.odom.last_warning}')
     out['warnings'] = [w for w in warnings if 'DEFAULT covariance' not in w]
     return out
+
+
+def map_to_odom_summary(run: ReplayRun) -> None:
+    """After the final outputs: how the map was placed (``summary.json``'s
+    ``frames.map_to_odom``, :meth:`MapToOdom.diagnostic_values`) and, when ``map -> odom``
+    jumped beyond the fixes' uncertainty, a warning (printed, and in ``frames.warnings``)."""
+    if run.odom is None:
+        return
+    res = run.result
+    res.frames['map_to_odom'] = {k.split('/', 1)[1]: v
+                                 for k, v in run.odom.diagnostic_values().items()}
+    if run.odom.jumps_warned:
+        text = (f"map -> odom jumped beyond the fixes' uncertainty {run.odom.jumps_warned} "
+                f'time(s); the last: {run.odom.last_warning}')
+        res.frames.setdefault('warnings', []).append(text)
+        res.warnings.append(text)

@@ -144,5 +144,6 @@ def test_nav2_recording_has_map_to_odom_from_the_first_odometry_message(
     assert m2o['jumps_warned'] <= (jumps > 0.99 * 3 * SIGMA_XY).sum()
     assert (m2o['jumps_warned'] > 0) == any('map -> odom jumped' in w
                                             for w in frames['warnings'])
+    assert (m2o['jumps_warned'] > 0) == ('warning: map -> odom jumped' in text)
     assert m2o['placed_by'] == 'aligner' and m2o['fixes_used'] >= 19
     assert m2o['fixes_heading'] == ('orientation+motion' if yaw_known else 'motion')
