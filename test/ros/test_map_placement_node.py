@@ -17,6 +17,7 @@ from test_node_inputs import INPUT_PARAMS, odom_msgs  # noqa: E402
 
 from ga_ros.core.encoding import pose_to_matrix  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.io.bag import BagReader  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
 from ga_ros.ros.harness import domain_id, ros_context  # noqa: E402
@@ -90,3 +91,70 @@ def test_node_publishes_identity_then_the_fixes_placement_before_any_update():
             assert int(values['map_to_odom/jumps_warned']) == 0
         finally:
             node.destroy_node()
+
+
+@pytest.mark.slow
+def test_live_node_on_a_played_nav2_bag_places_the_map_like_the_replay(tmp_path):
+    """``alignment_node`` (a process) on ``/odom`` and ``/amcl_pose`` while ``ga-ros play``
+    plays the Nav2-shaped bag of the replay test (its ``/tf`` left out: AMCL is not running):
+    ``map -> odom`` is the identity from the first odometry message, within the fixes'
+    uncertainty of the truth once the first fix is in, stamps never back, and /diagnostics says
+    what placed the map."""
+    import os
+    import subprocess
+    import sys
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from test_map_placement_replay import SIGMA_XY, write_nav2_bag
+    from tf2_msgs.msg import TFMessage
+
+    from ga_ros.ros.harness import NodeClient, start_node_process, stop_process
+    from ga_ros.ros.qos import stream_qos
+
+    b = write_nav2_bag(tmp_path / 'nav2', 3)
+    with BagReader(tmp_path / 'nav2') as bag:
+        amcl_stamps = [conv.stamp_to_ns(m.msg.header.stamp) for m in bag.messages(['/amcl_pose'])]
+    domain = 40 + (os.getpid() + 83) % 150
+    node = start_node_process(domain, {
+        'inputs': 'odom0', 'odom0.topic': '/odom', 'absolutes': 'amcl0',
+        'amcl0.topic': '/amcl_pose', 'amcl0.type': 'pose_cov', 'datum': 'fixes',
+        'publish_markers': False, 'autosave': False, 'diagnostics_period_sec': 0.2},
+        log_path=tmp_path / 'node.log')
+    play = None
+    try:
+        with NodeClient(domain) as client:
+            tf = client.record(TFMessage, '/tf', stream_qos(1000))
+            diags = client.record(DiagnosticArray, '/diagnostics', stream_qos(1000))
+            client.spin_until(lambda: bool(diags), 60.0, 'the node up')
+            env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+            play = subprocess.Popen([sys.executable, '-m', 'ga_ros.ros.play',
+                                     str(tmp_path / 'nav2'), '--rate', '2', '--no-clock',
+                                     '--delay', '2',  # the node's inputs settle their QoS
+                                     '--topics', '/odom', '/amcl_pose'],
+                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    text=True)
+            client.spin_until(lambda: play.poll() is not None, 120.0, 'the bag played')
+            log = (tmp_path / 'node.log').read_text()[-2000:]
+            ours = [_tf(m) for m in tf if m.transforms[0].child_frame_id == 'odom']
+            assert ours, log
+            stamps = np.array([s for s, _ in ours])
+            T = np.array([t for _, t in ours])
+            assert np.all(np.diff(stamps) >= 0), 'a header stamp steps back'
+            # from the first odometry messages it takes (the timer's first tick): the identity
+            assert stamps[0] < amcl_stamps[0], (stamps[0] - b.stamps_ns[0]) / 1e9
+            np.testing.assert_allclose(T[stamps < amcl_stamps[0]], np.tile(np.eye(4), (
+                int((stamps < amcl_stamps[0]).sum()), 1, 1)))
+            # once the first fix is in: map -> base_link within 3 sigma of the truth until the
+            # first window update (10 s of bag later; the aligner's afterwards)
+            k = np.searchsorted(b.stamps_ns, stamps)
+            assert np.array_equal(b.stamps_ns[k], stamps)    # stamped at an odometry message
+            err = np.linalg.norm((T @ b.T_odom[k])[:, :2, 3] - b.T_map_true[k, :2, 3], axis=1)
+            placed = (stamps > amcl_stamps[0] + 100_000_000) & (stamps < amcl_stamps[0] + 9e9)
+            assert placed.sum() > 50 and err[placed].max() < 3 * SIGMA_XY, err[placed].max()
+            assert err[stamps > amcl_stamps[0] + 100_000_000].max() < 1.0
+            seen = {conv.diagnostics_to_dict(m).get('map_to_odom/placed_by') for m in diags}
+            assert {'fixes', 'aligner'} <= seen, seen
+    finally:
+        if play is not None and play.poll() is None:
+            play.kill()
+        stop_process(node)
