@@ -81,6 +81,15 @@ class Placement:
     fix_sigma_m: float
 
 
+def position_sigma(fix: AbsoluteFix) -> float:
+    """The largest position sigma (m) of a fix's known position axes (inf: none known)."""
+    known = fix.known[:3]
+    if not known.any():
+        return float('inf')
+    C = np.linalg.pinv(fix.information)
+    return float(np.sqrt(np.max(np.diag(C)[:3][known])))
+
+
 def _yaw(R: FloatArray) -> float:
     """Heading (rad) of a rotation matrix: the angle of its x axis in the x-y plane."""
     return float(np.arctan2(R[1, 0], R[0, 0]))
@@ -121,7 +130,7 @@ class FixPlacement:
             self._p_odom.append(T_o[:3, 3].copy())
             self._p_map.append(fix.T_map_sensor[:3, 3].copy())
             self._W.append(W)
-            self._fix_sigma = float(np.sqrt(np.max(np.diag(C_p)[known[:3]])))
+            self._fix_sigma = position_sigma(fix)
         if known[5] and C[5, 5] > 0:
             offset = _yaw(fix.T_map_sensor[:3, :3] @ T_o[:3, :3].T)
             self._yaw.append((offset, float(C[5, 5])))

@@ -15,7 +15,7 @@ One definition for ``alignment_node`` and the replay (ROS-free):
 * **correction**: ``T_map_odom = T_map_k inv(T_odom_k)`` at the newest node ``k`` of the
   corrected path that the chain reached (:meth:`MapToOdom.update`, after every window update);
 * **jumps**: a change of ``map -> odom`` that moves ``map -> base_link`` (at the newest
-  odometry pose) by more than ``jump_sigmas`` position sigmas of the fixes is counted and
+  odometry pose) by more than ``jump_sigmas`` position sigmas of the newest fix is counted and
   reported (:attr:`MapToOdom.warning`: a WARN in the node's /diagnostics, a warning in the
   replay's summary); the identity's replacement by the first placement is not a jump;
 * **stamps**: :meth:`MapToOdom.stamp` never lets a header stamp step back;
@@ -43,7 +43,7 @@ from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.pipeline.absolute import ResolvedFix
 from ga_ros.pipeline.inputs import InputFrontEnd
-from ga_ros.pipeline.map_placement import FixPlacement, PlacementConfig
+from ga_ros.pipeline.map_placement import FixPlacement, PlacementConfig, position_sigma
 
 #: Default period of the ``map -> odom`` transform (s), slam_toolbox's.
 TRANSFORM_PERIOD_S = 0.05
@@ -85,6 +85,8 @@ class MapToOdom:
         self.last_warning = ''
         #: how far the last change moved ``map -> base_link`` (m)
         self.last_jump_m = 0.0
+        #: position sigma (m) of the newest fix (the jump limit's unit; inf before any)
+        self.fix_sigma_m = float('inf')
         self._stamp_ns: int | None = None
 
     def add(self, m: Measurement) -> None:
@@ -94,10 +96,15 @@ class MapToOdom:
             self.f2f.add(m)
 
     def add_fixes(self, fixes: Sequence[ResolvedFix]) -> None:
-        """Fixes tied to the first input's keyframes: with ``datum: fixes``, before the
-        aligner has placed the map, each refines the placement
-        (:class:`~ga_ros.pipeline.map_placement.FixPlacement`)."""
-        if self.datum != 'fixes' or self.placed_by == 'aligner' or self.front is None:
+        """Fixes tied to the first input's keyframes: with ``datum: fixes`` the newest gives
+        the jump limit's sigma and, before the aligner has placed the map, each refines the
+        placement (:class:`~ga_ros.pipeline.map_placement.FixPlacement`)."""
+        if self.datum != 'fixes':
+            return
+        sigmas = [s for s in (position_sigma(f.term.fix) for f in fixes) if np.isfinite(s)]
+        if sigmas:
+            self.fix_sigma_m = sigmas[-1]
+        if self.placed_by == 'aligner' or self.front is None:
             return
         odometry = self.front.inputs[self.front.primary]
         for f in fixes:
@@ -143,8 +150,7 @@ class MapToOdom:
             return
         p = newest[0][:, 3]
         self.last_jump_m = float(np.linalg.norm(((T - before) @ p)[:3]))
-        sigma = self.fixes.placement.fix_sigma_m if self.fixes.placement is not None else np.inf
-        limit = self.config.jump_sigmas * sigma
+        limit = self.config.jump_sigmas * self.fix_sigma_m
         if self.last_jump_m > limit:
             self.jumps_warned += 1
             self.warning = (f'map -> odom ({by}) moved map -> base_link by '

@@ -189,6 +189,14 @@ def test_a_jump_beyond_the_fixes_sigma_is_warned_and_a_small_one_is_not():
     assert m2o.warning
     m2o.update(np.array([0]), (_pose(1.3, 0, 0) @ T_MAP_ODOM @ T_k0)[None])
     assert m2o.warning == '' and m2o.last_warning and m2o.jumps_warned == 1
+    # the newest fix's sigma is the unit, also after the aligner placed the map: 1 m fixes
+    # let it move 2 m without a warning (and no longer place it)
+    placed = m2o.T_map_odom.copy()
+    m2o.add_fixes([_resolved(front, _pose(50.0, 0, 0), 1.0, 0.05)])
+    np.testing.assert_allclose(m2o.T_map_odom, placed)
+    assert m2o.fix_sigma_m == pytest.approx(1.0)
+    m2o.update(np.array([0]), (_pose(3.3, 0, 0) @ T_MAP_ODOM @ T_k0)[None])
+    assert m2o.last_jump_m == pytest.approx(2.0) and m2o.jumps_warned == 1
 
 
 def test_stamps_never_step_back():
