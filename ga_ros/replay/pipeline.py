@@ -40,7 +40,12 @@ from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
-from ga_ros.replay.finish import finish, finish_stationary, frames_summary
+from ga_ros.replay.finish import (
+    finish,
+    finish_stationary,
+    frames_summary,
+    map_to_odom_summary,
+)
 from ga_ros.replay.outputs import ReplayOutputs
 from ga_ros.replay.plan import ReplaySource, open_source, plan_replay
 from ga_ros.replay.result import ReplayResult, plain_fields
@@ -157,6 +162,7 @@ def _conclude(run: ReplayRun, source: ReplaySource, bag_path: Path) -> None:
         result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
                         f'{source.unit}s' + (f' ({examples})' if examples else ''))
     finish(run)
+    map_to_odom_summary(run)
     fix_stats = getattr(run.aligner, 'fix_stats', None)
     if fix_stats is not None and 'absolute' in result.source_stats:
         result.source_stats['absolute']['aligner'] = plain_fields(fix_stats)
