@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from ga_ros import topics
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.errors import InputError
@@ -287,7 +288,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'replay', help='replay a rosbag2 bag offline through VO and the track-window aligner',
+        'replay', help=SUMMARIES['replay'],
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
     p.add_argument('--out', type=Path,
