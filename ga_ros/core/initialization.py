@@ -298,6 +298,8 @@ def chordal_initialization(edges: PoseGraphEdges, root: int = 0) -> FloatArray:
     _check_reached(np.flatnonzero(labels == labels[root]), n)
     R_ij, t_ij, w, I_t = edges.blocks()
     free = _FreeVertices.of(n, root)
+    if free.others.size == 0:  # the datum alone
+        return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     R = _chordal_rotations(edges, free, R_ij, w)
     T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     T[:, :d, :d] = R

@@ -198,6 +198,16 @@ def test_chordal_start_equals_dense_least_squares_on_a_noisy_graph(rng, dim, roo
     assert np.abs(ref - se3.inverse(T[root]) @ T).max() > 1e-2  # the noise moved it
 
 
+def test_chordal_start_of_the_datum_alone():
+    """A one-vertex graph: nothing to solve for, the datum at the identity (the solve then
+    says that every node is fixed)."""
+    for dim, d in ((3, 6), (2, 3)):
+        edges = PoseGraphEdges(n=1, src=np.zeros(0, dtype=np.int64),
+                               dst=np.zeros(0, dtype=np.int64), T_meas=np.zeros((0, 4, 4)),
+                               information=np.zeros((0, d, d)), dim=dim)
+        np.testing.assert_array_equal(chordal_initialization(edges, 0), np.eye(4)[None])
+
+
 @pytest.mark.skipif(not kernels.AVAILABLE, reason='numba not installed (or GA_ROS_JIT=0)')
 def test_kernels_compile_with_and_without_a_writable_cache(tmp_path):
     """:func:`ga_ros.core.kernels.jit` caches machine code in ``$NUMBA_CACHE_DIR`` (a second
