@@ -46,6 +46,7 @@ from typing import Any
 import yaml
 
 from ga_ros import topics
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.errors import InputError, NoUsableInputError
@@ -318,8 +319,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'replay', help='replay a recording (rosbag2, ROS 1 .bag, EuRoC or KITTI folder) offline '
-                       'through the alignment pipeline',
+        'replay', help=SUMMARIES['replay'],
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         allow_abbrev=False)
     p.add_argument('bag', type=Path, help='rosbag2 directory or .mcap / .db3 file, ROS 1 .bag '

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.kernels import AVAILABLE
+from ga_ros.core.kernels import AVAILABLE, jit
 from ga_ros.core.linalg import lapack
 from ga_ros.core.linalg.cholmod_ctypes import _Layout, _supernodal_layout
 from ga_ros.errors import DegenerateGeometryError
@@ -392,12 +392,9 @@ def _kernel(name: str):
     if fn is None:
         fn = globals()[name + '_py']
         if COMPILED:
-            import numba
-
             routines = lapack.routines('dtrtri', 'dlauum', 'dtrmm', 'dgemm')
             if _lower_inverse is _lower_inverse_py and routines is not None:
                 _dtrtri, _dlauum, _dtrmm, _dgemm = routines
-                jit = numba.njit(cache=True, nogil=True)
                 _lower_inverse = jit(_lower_inverse_lapack)
                 _times_lower = jit(_times_lower_blas)
                 _minus_product = jit(_minus_product_blas)
@@ -405,8 +402,8 @@ def _kernel(name: str):
             g = globals()
             for helper in _HELPERS:  # a compiled kernel calls compiled globals
                 if not hasattr(g[helper], 'py_func'):
-                    g[helper] = numba.njit(cache=True, nogil=True)(g[helper])
-            fn = numba.njit(cache=True, nogil=True)(fn)
+                    g[helper] = jit(g[helper])
+            fn = jit(fn)
         _KERNELS[name] = fn
     return fn
 
