@@ -21,9 +21,9 @@ def test_every_documented_subcommand_is_registered():
 
 def test_bench_window_receives_its_arguments(capsys):
     assert main(['bench', 'window', '--tracks', '2', '--window', '1', '--no-batch',
-                 '--json']) == 0
+                 '--refine-every', '0', '--json']) == 0
     fig = json.loads(capsys.readouterr().out)
-    assert fig['tracks'] == 2 and fig['window_tracks'] == 1
+    assert fig['tracks'] == 2 and fig['window_tracks'] == 1 and fig['refine_every_tracks'] == 0
     assert fig['nodes'] == 2 * 204
     assert fig['gap_rigid_pct'] == 0.0  # no batch: the window is compared with itself
     stages = fig['stage_cpu_ms']  # CPU per track by stage, 'other' the rest of each thread
@@ -33,7 +33,8 @@ def test_bench_window_receives_its_arguments(capsys):
                              'quality tests', 'outputs', 'process hand-off', 'other'}
     end, bg = stages['track end'], stages['background']
     assert end['assembly'] > 0 and end['factorisation'] > 0 and end['outputs'] > 0
-    # the next freeze, computed ahead in a background thread: its covariances and prior
+    # the next freeze, computed ahead in a background thread: its covariances (no refinement
+    # replaces them) and prior
     assert bg['covariances'] > 0 and bg['priors'] > 0
     assert fig['total_cpu_ms_p50'] >= fig['per_track_cpu_ms_p50']
 
