@@ -37,6 +37,7 @@ from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
 from ga_ros.ros.vo_node import EXTRINSIC_REFUSED, VoNodeSettings, array_to_image  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 from ga_ros.vo.crosstrack import CrossTrackConfig  # noqa: E402
+from ga_ros.vo.dense import DenseStereoConfig  # noqa: E402
 from ga_ros.vo.evaluate import motion_errors  # noqa: E402
 from ga_ros.vo.messages import camera_info_to_model  # noqa: E402
 from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
@@ -66,6 +67,8 @@ def test_yaml_mirrors_config_defaults():
     expected.update({f.name: getattr(ExtrinsicConfig(), f.name) for f in fields(ExtrinsicConfig)})
     expected.update({'cross_' + f.name: getattr(CrossTrackConfig(), f.name)
                      for f in fields(CrossTrackConfig)})
+    expected.update({'cloud_' + f.name: getattr(DenseStereoConfig(), f.name)
+                     for f in fields(DenseStereoConfig)})
     assert set(params) == set(expected)
     for key, value in expected.items():
         assert params[key] == value, key
