@@ -440,3 +440,77 @@ def test_camera_info_just_after_the_images_loses_no_pair() -> None:
     for a, b in zip(first, after):
         assert (a.src_id, a.dst_id) == (b.src_id, b.dst_id)
         np.testing.assert_allclose(a.z, b.z, atol=1e-12)
+
+
+@pytest.mark.ros
+def test_keyframe_clouds_published_while_subscribed() -> None:
+    """``ga/keyframe_cloud``: nothing computed without a subscriber; with one, a PointCloud2
+    per new keyframe, stamped with the keyframe's stamp, in the left image's frame, its points
+    in front of the camera at the simulated terrain's depths."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+
+    from ga_ros.ros.vo_node import VoNode
+
+    rig = StereoRig()
+    survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=12, seed=4))
+    scene = make_scene(survey, rig, seed=4)
+    rng = np.random.default_rng(4)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(37))
+    node = VoNode(context=ctx, parameter_overrides=[
+        Parameter('warn_throttle_sec', value=0.0), Parameter('pair_queue', value=100),
+        Parameter('assume_identity_extrinsic', value=True), Parameter('cross_track', value=False),
+        Parameter('cloud_pixel_stride', value=4)])
+    listener = Node('cloud_listener', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(listener)
+    received: list[PointCloud2] = []
+    try:
+        for side in ('left', 'right'):
+            node._on_info(camera_info(rig, side == 'right', 0), side)
+
+        def feed(indices: range) -> None:
+            for i in indices:
+                left, right = scene.render_pair(survey.T_world_cam[i], rng)
+                stamp = int(survey.stamps_ns[i])
+                node._on_image(array_to_image(left, stamp, 'l_optical'), 'left')
+                node._on_image(array_to_image(right, stamp, 'r_optical'), 'right')
+            assert node.wait_idle()
+
+        feed(range(0, 4))  # no subscriber: no cloud computed
+        assert node.front.stats.keyframes >= 1 and node.counts['keyframe_clouds'] == 0
+        assert node.front._dense is None
+        listener.create_subscription(PointCloud2, '/ga/keyframe_cloud', received.append,
+                                     stream_qos(100))
+        deadline = time.monotonic() + patience(30)
+        while node.pub_cloud.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, 'cloud subscriber not discovered'
+            executor.spin_once(timeout_sec=0.05)
+        kf_before = node.front.stats.keyframes
+        feed(range(4, 12))
+        new_kf = node.front.stats.keyframes - kf_before
+        assert new_kf >= 2 and node.counts['keyframe_clouds'] == new_kf
+        deadline = time.monotonic() + patience(30)
+        while len(received) < new_kf:
+            assert time.monotonic() < deadline, f'{len(received)} of {new_kf} clouds received'
+            executor.spin_once(timeout_sec=0.05)
+        kf_stamps = set(node.front._stamp_to_node)
+        depths = [scene.render(T, with_depth=True)[1] for T in survey.T_world_cam[4:12]]
+        z_lo, z_hi = min(d.min() for d in depths), max(d.max() for d in depths)
+        for msg in received:
+            assert conv.stamp_to_ns(msg.header.stamp) in kf_stamps
+            assert msg.header.frame_id == 'l_optical'
+            assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'intensity']
+            assert msg.point_step == 16 and msg.is_dense and msg.height == 1
+            xyzi = np.frombuffer(bytes(msg.data), '<f4').reshape(-1, 4)
+            assert len(xyzi) == msg.width > 0.5 * (rig.width - 64) * rig.height / 16
+            z = xyzi[:, 2]
+            assert np.median(z) > z_lo and np.median(z) < z_hi
+            assert np.mean((z > 0.9 * z_lo) & (z < 1.1 * z_hi)) > 0.98
+        assert node.diagnostic_values()['keyframe_clouds'] == new_kf
+    finally:
+        executor.shutdown()
+        listener.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
