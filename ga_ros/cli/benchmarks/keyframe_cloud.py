@@ -23,7 +23,6 @@ import numpy as np
 from ga_ros.cli.commands.demo import find_bags_dir
 from ga_ros.io.bag.reader import BagReader
 from ga_ros.pipeline.stereo import FrontEndConfig, StereoFrontEnd
-from ga_ros.ros import conversions as conv
 from ga_ros.runtime import limit_blas_threads
 from ga_ros.vo.dense import DenseStereoConfig
 
@@ -40,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--repeat', type=int, default=3,
                     help='clouds computed per keyframe (the CPU figure is their mean)')
     args = ap.parse_args(argv)
+    from ga_ros.ros import conversions as conv  # ROS only when this benchmark runs
+
     bag = args.bag
     if bag is None:
         bags = find_bags_dir()
