@@ -43,3 +43,38 @@ def pose_graph_dir() -> Path:
     if not d.is_dir():
         pytest.skip(f'shared pose-graph data not found at {d} (set GA_ROS_SHARED_DATA)')
     return d
+
+
+#: Test modules that take more than a few seconds on a 2-core machine (multi-process ROS
+#: graphs, whole replays, Monte-Carlo runs): marked ``slow`` with every ``ros`` test, so that
+#: ``-m "not slow"`` is the quick subset for everyday work. CI runs everything.
+SLOW_MODULES = {
+    'test/ros/test_fault_catalogue.py', 'test/ros/test_alignment_node.py',
+    'test/core/window/test_window.py', 'test/core/window/test_aligner_guards.py',
+    'test/pipeline/test_recovery.py', 'test/inputs/test_multiple_sources.py',
+    'test/replay/test_replay_inputs.py', 'test/replay/test_fixes_replay.py',
+    'test/pipeline/test_persistence_failures.py', 'test/report/test_reproduce.py',
+    'test/core/test_gaps.py', 'test/core/window/test_honest_covariances.py',
+    'test/package/test_packaging.py', 'test/package/test_launch_files.py',
+    'test/core/window/test_refinement.py', 'test/core/window/test_persistence.py',
+    'test/replay/test_replay_stereo.py', 'test/core/window/test_quality_wiring.py',
+    'test/replay/test_replay.py', 'test/io/test_groundtruth.py',
+    'test/pipeline/test_map_to_odom.py', 'test/bench/test_bench_scale.py',
+    'test/core/test_frames.py', 'test/pipeline/test_camera_beside_odometry.py',
+    'test/core/window/test_refinement_horizon.py', 'test/replay/test_replay_live.py',
+    'test/replay/test_real_camera_bags.py',
+}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark ``slow`` the tests of :data:`SLOW_MODULES` and every ``ros`` test."""
+    for item in items:
+        rel = Path(str(item.path)).resolve().relative_to(REPO).as_posix()
+        if rel in SLOW_MODULES or item.get_closest_marker('ros') is not None:
+            item.add_marker(pytest.mark.slow)
+
+
+def test_slow_modules_exist() -> None:
+    """Every module named slow is there (a renamed one would silently join the quick set)."""
+    missing = sorted(m for m in SLOW_MODULES if not (REPO / m).is_file())
+    assert not missing, missing
