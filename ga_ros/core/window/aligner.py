@@ -198,6 +198,13 @@ class TrackWindowAligner:
             if up is not None:
                 updates.append(up)
         apply_measurement(self.state, m, plan)
+        if plan.first and int(m.src_track) != int(m.dst_track):
+            # the datum alone in its track (a session ends a track at a fix on the first
+            # keyframe): that track ended before the destination's began, with nothing to
+            # adjust. Finished, it takes part in the window and freezes like any track;
+            # left open, its node stayed unfrozen forever, so no track could retire from
+            # the refinement's horizon and every update copied and scanned the whole survey.
+            self.state.finished.add(int(m.src_track))
         if plan.first and self.config.datum == 'fixes':  # the weak gauge prior, row 0
             cfg = self.config
             self.state.fixes.add_gauge(0, plan.src, m.stamp_ns, self.state.T_first,
