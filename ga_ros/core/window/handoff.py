@@ -164,7 +164,8 @@ class RefinementHandoff:
         frozen_rows = f + np.nonzero(res.frozen)[0]
         book = self.state.fixes
         then = np.asarray(snap.fix_used if snap.fix_used is not None else [], np.int64)
-        then = then[np.isin(np.asarray(book.rows, np.int64)[then], frozen_rows)]
+        then = then[np.isin(np.array([book.rows[i] for i in then.tolist()], np.int64),
+                            frozen_rows)]
         if not np.array_equal(book.used(frozen_rows), then):
             raise InputError('the absolute fixes of the frozen nodes changed since the snapshot')
         past = np.concatenate([p.nodes for p in snap.past] + [p.nodes for p in snap.fixes]
