@@ -285,8 +285,7 @@ class TrackWindowAligner:
         t0 = time.perf_counter() if t0 is None else t0
         finished = st.finished_order()
         window = finished[-self.config.window_tracks:]
-        leaving = [t for t in finished[:-self.config.window_tracks]
-                   if not st.frozen[st.track_nodes[t][0]]]
+        leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
         for t in leaving:
             self._freeze(t)
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
