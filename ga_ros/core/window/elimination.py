@@ -253,9 +253,33 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
 
 def gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]
               ) -> list[GaussianPrior]:
-    """The solver's form of priors over snapshot nodes."""
-    return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
-            for p in priors]
+    """The solver's form of priors over snapshot nodes.
+
+    The single-node priors (the absolute fixes' weighted parameters, one per node), if their
+    nodes are distinct, become one prior with a block-diagonal information, in their order and
+    where the first of them stood: the same terms of the normal equations, added in the same
+    order, from one vectorised evaluation instead of one per fix.
+    """
+    single = [k for k, p in enumerate(priors) if p.nodes.size == 1]
+    nodes = np.array([int(priors[k].nodes[0]) for k in single], dtype=np.int64)
+    if len(single) < 2 or np.unique(nodes).size != nodes.size:
+        return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+                for p in priors]
+    merged = GaussianPrior(
+        snap.node_ids[nodes], np.concatenate([priors[k].T_world_node for k in single]),
+        sp.block_diag([_dense(priors[k].information) for k in single],
+                      format='bsr').tobsr(blocksize=(6, 6)))
+    out: list[GaussianPrior] = []
+    for k, p in enumerate(priors):
+        if p.nodes.size != 1:
+            out.append(GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information))
+        elif k == single[0]:
+            out.append(merged)
+    return out
+
+
+def _dense(information) -> FloatArray:
+    return information.toarray() if sp.issparse(information) else np.asarray(information, float)
 
 
 def normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
