@@ -358,7 +358,7 @@ def table(figs: list[FixBenchFigures]) -> str:
     lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
               'worker): ga-ros online (the whole online run, as the replay runs it), ga-ros '
               'final (refine_batch), GTSAM batch LM, GTSAM iSAM2 updated at each fix; ratio '
-              'ga-ros online / iSAM2. Mean update_ms of each quarter of the run\'s tracks.',
+              "ga-ros online / iSAM2. Mean update_ms of each quarter of the run's tracks.",
               'interval  noise  ours-online-cpu  ours-final-cpu  gtsam-batch-cpu  isam2-cpu  '
               'online/isam2  update-ms-by-quarter']
     for f in figs:

@@ -226,3 +226,33 @@ def test_datum_alone_in_its_track_freezes_and_the_horizon_stays_bounded(rng) -> 
     p_ref = _wls(n, z, fixes)
     p_hat = al.corrected_path().T_world_node[:, :3, 3]
     assert np.abs(p_hat[-per:] - p_ref[-per:]).max() < 2e-3
+
+
+def test_fixes_enter_the_refinement_as_one_prior_with_the_same_normal_equations(rng) -> None:
+    """The frozen fixes of a refinement's snapshot become one block-diagonal prior
+    (``elimination.gaussian``): the normal matrix and gradient equal those of one prior per fix
+    bit for bit, and the datum-free solve of the snapshot is unchanged."""
+    import scipy.sparse as sp
+
+    from ga_ros.core.solver import GaussianPrior, normal_matrix_at
+    from ga_ros.core.window.elimination import gaussian, normal_terms
+
+    n_tracks, per = 8, 6
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    fixes = _fixes(rng, p_true, range(1, n_tracks * per, 3))
+    al = _aligner(0)
+    feed(al, ms, {k: (p, SIGMA_FIX) for k, p in fixes.items()})
+    snap = al.handoff.snapshot()
+    al.close()
+    assert len(snap.fixes) > 5
+    merged = gaussian(snap, snap.fixes)
+    assert len(merged) == 1 and merged[0].node_ids.size == len(snap.fixes)
+    each = [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+            for p in snap.fixes]
+    conns = np.arange(snap.src.size)
+    free, N_merged, u_merged = normal_terms(snap, conns, snap.T_world_node, snap.fixes)
+    net = al.state.subnetwork(np.arange(snap.node_ids.size), conns)
+    N_each, _, u_each = normal_matrix_at(net, snap.T_world_node, 'se3', [], each)
+    assert free.size == snap.node_ids.size
+    assert (sp.csr_matrix(N_merged) != sp.csr_matrix(N_each)).nnz == 0
+    assert np.array_equal(u_merged, u_each)
