@@ -59,6 +59,9 @@ BENCHMARKS: dict[str, Benchmark] = {
                         'replay throughput on the sample bags'),
     'fixes': Benchmark('ga_ros.bench.fixes:main',
                        'real odometry + absolute fixes (Plaza): ga-ros against GTSAM LM / iSAM2'),
+    'long': Benchmark('ga_ros.bench.long_survey:main',
+                      'a long survey with a fix every track: late against early update time, '
+                      'CPU, RSS per pose'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
 }

@@ -198,6 +198,13 @@ class TrackWindowAligner:
             if up is not None:
                 updates.append(up)
         apply_measurement(self.state, m, plan)
+        if plan.first and int(m.src_track) != int(m.dst_track):
+            # the datum alone in its track (a session ends a track at a fix on the first
+            # keyframe): that track ended before the destination's began, with nothing to
+            # adjust. Finished, it takes part in the window and freezes like any track;
+            # left open, its node stayed unfrozen forever, so no track could retire from
+            # the refinement's horizon and every update copied and scanned the whole survey.
+            self.state.finished.add(int(m.src_track))
         if plan.first and self.config.datum == 'fixes':  # the weak gauge prior, row 0
             cfg = self.config
             self.state.fixes.add_gauge(0, plan.src, m.stamp_ns, self.state.T_first,
@@ -282,8 +289,7 @@ class TrackWindowAligner:
         t0 = time.perf_counter() if t0 is None else t0
         finished = st.finished_order()
         window = finished[-self.config.window_tracks:]
-        leaving = [t for t in finished[:-self.config.window_tracks]
-                   if not st.frozen[st.track_nodes[t][0]]]
+        leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
         plans = [self._freeze(t) for t in leaving]
         installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
