@@ -20,3 +20,12 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -
   echo "$want" > "$stamp"
 fi
 bash scripts/build_tf2_msgs.sh || echo "[ga_ros] warning: tf2_msgs not built, no /tf" >&2
+# tests only: ROS 2 Jazzy's launch sources (shared/vendor beside the checkout, or
+# $GA_ROS_SHARED_VENDOR) need composition_interfaces' services (launch_ros imports them), which
+# no wheel carries; without the folder the launch-file tests skip, saying why
+vendor="${GA_ROS_SHARED_VENDOR:-../shared/vendor}/ros2-launch-jazzy"
+if [ -d "$vendor/composition_interfaces/srv" ]; then
+  bash scripts/build_interfaces.sh composition_interfaces "$vendor/composition_interfaces" \
+    rcl_interfaces service_msgs builtin_interfaces \
+    || echo "[ga_ros] warning: composition_interfaces not built: the launch tests will skip" >&2
+fi

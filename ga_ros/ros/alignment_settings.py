@@ -8,6 +8,7 @@ from ga_ros import topics
 from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.gaps import GapConfig
 from ga_ros.core.window import AlignerConfig
+from ga_ros.inputs.absolute import AbsoluteInputConfig
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.pipeline.params import parameter_names
 
@@ -177,11 +178,20 @@ DYNAMIC_ALIGNER = frozenset({'outlier_chi2_prob', 'solver.max_iterations', 'solv
 INPUT_PARAMETERS = ('topic', 'type', 'qos_reliability', 'qos_depth')
 
 
-def declared_parameters(inputs: tuple[str, ...] = ()) -> list[str]:
+#: Parameters of each absolute input ``<name>.``: besides the AbsoluteInputConfig fields.
+ABSOLUTE_PARAMETERS = ('topic', 'type')
+
+
+def declared_parameters(inputs: tuple[str, ...] = (),
+                        absolutes: tuple[str, ...] = ()) -> list[str]:
     """Every parameter the alignment node declares (built from its config dataclasses, no
-    rclpy), with those of the standard inputs named in ``inputs``."""
+    rclpy), with those of the standard inputs named in ``inputs`` and of the absolute inputs
+    named in ``absolutes``."""
     names = parameter_names(AlignerConfig) + parameter_names(NodeSettings)
     for name in inputs:
         names += [f'{name}.{p}' for p in INPUT_PARAMETERS]
         names += parameter_names(OdometryInputConfig, f'{name}.')
+    for name in absolutes:
+        names += [f'{name}.{p}' for p in ABSOLUTE_PARAMETERS]
+        names += parameter_names(AbsoluteInputConfig, f'{name}.')
     return names

@@ -9,9 +9,7 @@ remapped topic one the node uses.
 from __future__ import annotations
 
 import ast
-import os
 import re
-import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -21,10 +19,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+from ga_ros.bench.data import SHARED_DATA
+
 REPO = Path(__file__).resolve().parents[2]
-ROSDEP = REPO.parent / 'shared' / 'data' / 'rosdep'
-if not ROSDEP.is_dir():
-    ROSDEP = Path('/work/shared/data/rosdep')
+#: rosdep's key lists (base.yaml, python.yaml) in the shared data ($GA_ROS_SHARED_DATA)
+ROSDEP = SHARED_DATA / 'rosdep'
 
 #: ROS 2 packages (released in rosdistro, not rosdep keys of base.yaml / python.yaml).
 ROS_PACKAGES = {
@@ -86,7 +85,8 @@ def _console_scripts() -> dict[str, str]:
 
 
 # --------------------------------------------------------------------------- dependencies
-@pytest.mark.skipif(not (ROSDEP / 'python.yaml').exists(), reason='no rosdep data')
+@pytest.mark.skipif(not (ROSDEP / 'python.yaml').exists(),
+                    reason=f'rosdep keys not found at {ROSDEP} (set GA_ROS_SHARED_DATA)')
 def test_package_xml_keys_exist_in_rosdep():
     keys: set[str] = set()
     for f in ('base.yaml', 'python.yaml'):
@@ -132,7 +132,8 @@ def test_every_third_party_import_is_declared():
 
 
 # --------------------------------------------------------------------------- launch files
-def _node_facts(executable: str, inputs: tuple[str, ...]) -> tuple[set[str], set[str]]:
+def _node_facts(executable: str, inputs: tuple[str, ...],
+                absolutes: tuple[str, ...] = ()) -> tuple[set[str], set[str]]:
     """(declared parameter names, topics used) of a ga_ros node, without starting it."""
     pytest.importorskip('rclpy')
     if executable == 'vo_node':
@@ -143,7 +144,7 @@ def _node_facts(executable: str, inputs: tuple[str, ...]) -> tuple[set[str], set
     else:
         from ga_ros.ros.alignment_node import NodeSettings, declared_parameters
 
-        params = set(declared_parameters(inputs))
+        params = set(declared_parameters(inputs, absolutes))
         settings = NodeSettings()
     topics = {getattr(settings, f.name) for f in fields(settings) if f.name.endswith('_topic')}
     return params | {'use_sim_time'}, topics
@@ -189,7 +190,11 @@ def test_launch_file_names_only_what_exists(path: Path):
             for k, v in zip(d.keys, d.values):
                 if ast.literal_eval(k) == 'inputs' and isinstance(v, ast.Constant):
                     inputs = tuple(n.strip() for n in v.value.split(',') if n.strip())
-        declared, topics = _node_facts(exe, inputs)
+        # absolute inputs: named by a constant, or (chosen by a launch argument) those with a
+        # topic parameter that are not standard inputs
+        absolutes = tuple(sorted({n.rsplit('.', 1)[0] for n in names if n.endswith('.topic')}
+                                 - set(inputs)))
+        declared, topics = _node_facts(exe, inputs, absolutes)
         files = [c.value for c in ast.walk(params) if isinstance(c, ast.Constant)
                  and isinstance(c.value, str) and c.value.endswith('.yaml')] if params else []
         for name in files:
@@ -203,11 +208,13 @@ def test_launch_file_names_only_what_exists(path: Path):
         for pair in getattr(remaps, 'elts', []):
             src = ast.literal_eval(pair.elts[0])
             assert src in topics, f'{exe} does not use {src!r}'
-    # processes: a ga_ros console script
+    # processes: a console script of the installed ga_ros (lib/ga_ros, not on PATH)
     for call in calls:
         if getattr(call.func, 'id', '') == 'ExecuteProcess':
-            cmd = _kw(call, 'cmd')
-            assert ast.literal_eval(cmd.elts[0]) in scripts
+            exe = _kw(call, 'cmd').elts[0]
+            assert getattr(exe, 'func', None) and exe.func.id == 'ExecutableInPackage', \
+                'ExecuteProcess must find its executable in the package (ExecutableInPackage)'
+            assert [ast.literal_eval(a) for a in exe.args] in [[s, 'ga_ros'] for s in scripts]
 
 
 def test_launch_file_parameters_are_checked_against_the_node():
@@ -215,6 +222,9 @@ def test_launch_file_parameters_are_checked_against_the_node():
     declared, topics = _node_facts('alignment_node', ('odom0',))
     assert 'odom0.topic' in declared and 'transform_publish_period_sec' in declared
     assert 'odom0.qos_reliability' in declared and 'sensor_frame' not in declared
+    assert 'fix0.topic' not in declared
+    assert {'fix0.topic', 'fix0.type', 'fix0.frame_id'} <= _node_facts(
+        'alignment_node', ('odom0',), ('fix0',))[0]
     declared_vo, topics_vo = _node_facts('vo_node', ())
     assert {'T_base_camera', 'qos_reliability', 'base_frame'} <= declared_vo
     assert 'camera_info' not in declared_vo and 'stereo/left/image_rect' in topics_vo
@@ -232,28 +242,9 @@ def test_node_help_exits_without_starting_ros(module: str):
     assert '[INFO]' not in out.stderr + out.stdout   # no node started (it logs its topics)
 
 
-def _copy_package(dst: Path) -> None:
-    """The package's sources (without build products and local data) into ``dst``."""
-    shutil.copytree(REPO, dst, dirs_exist_ok=True, ignore=shutil.ignore_patterns(
-        '.venv', '.git', 'out', 'build', 'install', 'log', '__pycache__', '*.egg-info',
-        '.pytest_cache', 'bags'))
-
-
 @pytest.mark.slow
-def test_colcon_build_then_installed_executables_answer_help(tmp_path: Path):
-    pytest.importorskip('colcon_core')
-    pytest.importorskip('colcon_ros')
-    colcon = Path(sys.executable).parent / 'colcon'
-    if not colcon.exists():
-        pytest.skip('no colcon executable beside the interpreter')
-    src = tmp_path / 'ws' / 'src' / 'ga_ros'
-    src.mkdir(parents=True)
-    _copy_package(src)
-    env = dict(os.environ, PATH=f'{colcon.parent}{os.pathsep}{os.environ.get("PATH", "")}')
-    build = subprocess.run([str(colcon), 'build'], cwd=tmp_path / 'ws', env=env,
-                           capture_output=True, text=True, timeout=600)
-    assert build.returncode == 0, build.stdout + build.stderr
-    install = tmp_path / 'ws' / 'install'
+def test_colcon_build_then_installed_executables_answer_help(colcon_workspace, tmp_path: Path):
+    install, env = colcon_workspace.install, colcon_workspace.env
     share = install / 'ga_ros' / 'share' / 'ga_ros'
     assert {p.name for p in (share / 'launch').glob('*.launch.py')} == {
         p.name for p in LAUNCH_FILES}

@@ -49,6 +49,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                     'stereo visual odometry and cross-track matching on simulated images'),
     'stereo-throughput': Benchmark('ga_ros.bench.stereo_throughput:main',
                                    'stereo front end at 752x480 (pairs per second)'),
+    'keyframe-cloud': Benchmark('ga_ros.cli.benchmarks.keyframe_cloud:main',
+                                'CPU of the keyframe clouds (dense stereo) on the sample bag'),
     'node': Benchmark('ga_ros.cli.benchmarks.node:main',
                       'the alignment node as a process: latency, sustained measurement rate'),
     'faults': Benchmark('ga_ros.cli.benchmarks.faults:main',
@@ -60,6 +62,9 @@ BENCHMARKS: dict[str, Benchmark] = {
     'fusion': Benchmark('ga_ros.bench.fusion:main',
                         'simulated sources stated alike: each alone, fused, fused with '
                         'variance components'),
+    'long': Benchmark('ga_ros.bench.long_survey:main',
+                      'a long survey with a fix every track: late against early update time, '
+                      'CPU, RSS per pose'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
 }
