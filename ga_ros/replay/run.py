@@ -1,9 +1,9 @@
 """The run loop of a replay: one :class:`ReplayRun` takes the source's items in bag order.
 
 Each measurement goes through the same :class:`ga_ros.pipeline.session.AlignmentSession` call
-as in the live node; every window update writes the corrected path, the markers and
-``map -> odom`` into the output bag and feeds the corrected path back to the source. The final
-outputs are :mod:`ga_ros.replay.finish`'s.
+as in the live node; every window update writes the corrected path, the corrections, the
+markers and ``map -> odom`` into the output bag and feeds the corrected path back to the
+source. The final outputs are :mod:`ga_ros.replay.finish`'s.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from ga_ros.io.groundtruth import (
 )
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.absolute import FixFeeder
+from ga_ros.pipeline.corrections import CorrectionTracker
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom, PeriodicSchedule, without_odom_parent
 from ga_ros.pipeline.session import AlignmentSession
@@ -121,6 +122,8 @@ class ReplayRun:
         #: positions (m, map frame) of the fixes read, for the plot
         self.fix_xyz: list[FloatArray] = []
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
+        #: the keyframes moved or added since the last corrections message (as the node's)
+        self.corrections = CorrectionTracker(config.outputs.corrections)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -277,12 +280,22 @@ class ReplayRun:
             self.result.quality['final'] = entry
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
+        self._corrections(every_row=not per_track)
         self.markers(traj)
         if self.odom is not None:
             self.odom.update(traj.node_ids, traj.T_world_node)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
+
+    def _corrections(self, every_row: bool) -> None:
+        """The corrections message of an update, as the node publishes it (its stamps and
+        header from the aligner's path); ``every_row`` after the final batch."""
+        cp = self.aligner.corrected_path()
+        c = self.corrections.after_update(self.aligner, cp, every_row=every_row)
+        if c is not None:
+            stamp = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0
+            self.out.corrections(c, stamp, self.last_ns)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement
