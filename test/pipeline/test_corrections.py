@@ -17,9 +17,9 @@ from ga_ros.errors import InputError
 from ga_ros.io.bag_messages import corrections_to_path_msg, trajectory_to_path_msg
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.corrections import (
+    Corrections,
     CorrectionThresholds,
     CorrectionTracker,
-    Corrections,
     message_poses,
 )
 from ga_ros.pipeline.session import AlignmentSession
