@@ -57,6 +57,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                         'replay throughput on the sample bags'),
     'fixes': Benchmark('ga_ros.bench.fixes:main',
                        'real odometry + absolute fixes (Plaza): ga-ros against GTSAM LM / iSAM2'),
+    'corrections': Benchmark('ga_ros.bench.corrections:main',
+                             'ga/corrections bytes per update against the whole path (aerial)'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
 }

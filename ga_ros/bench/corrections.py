@@ -1,0 +1,128 @@
+"""Benchmark: bytes per update of ``ga/corrections`` against republishing the whole path.
+
+The paper's aerial survey (``aerial_sample(n_tracks=25)``: 5,100 keyframes, 29,896
+measurements, the stream of ``bags/aerial_measurements``) goes through
+:class:`~ga_ros.pipeline.session.AlignmentSession` with the default aligner (window updates,
+freezes, background refinement). After every window update it serializes (CDR, what DDS sends)
+the whole corrected path as the node publishes it on ``ga/corrected_path``
+(:func:`ga_ros.io.cdr.path_cdr`) and the corrections message of
+:class:`~ga_ros.pipeline.corrections.CorrectionTracker` (``ga/corrections``, the replay's
+conversion), at the given thresholds and at 0 (every change, bit-exact). Prints, per tracker,
+the bytes per update (mean over the updates, and at the last one), the ratio to the whole path
+(target <= 10 %), the keyframes sent per update, and the CPU time of the tracker and the
+conversion per update (process CPU time; the survey's own CPU is not counted).
+
+Run: ``ga-ros bench corrections [--tracks 25] [--translation-m 0.01] [--rotation-rad 0.001]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, field
+
+from ga_ros.io.bag_messages import PATH, corrections_to_path_msg, typestore
+from ga_ros.io.cdr import path_cdr
+from ga_ros.pipeline.corrections import (
+    ROTATION_RAD,
+    TRANSLATION_M,
+    CorrectionThresholds,
+    CorrectionTracker,
+)
+from ga_ros.pipeline.session import AlignmentSession
+from ga_ros.replay.samples import aerial_sample
+
+
+@dataclass
+class Tally:
+    """What one tracker sent over the survey."""
+
+    label: str
+    tracker: CorrectionTracker
+    bytes: list[int] = field(default_factory=list)
+    keyframes: list[int] = field(default_factory=list)
+    compared: list[int] = field(default_factory=list)
+    cpu_s: float = 0.0
+
+
+def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
+    t0 = time.process_time()
+    c = tally.tracker.after_update(aligner, cp)
+    n = 0
+    if c is not None:
+        msg = corrections_to_path_msg(c, 'map', stamp_ns)
+        n = len(typestore().serialize_cdr(msg, PATH))
+    tally.cpu_s += time.process_time() - t0
+    tally.bytes.append(n)
+    tally.keyframes.append(0 if c is None else len(c))
+    tally.compared.append(0 if c is None else c.n_compared)
+
+
+def run(n_tracks: int,
+        thresholds: CorrectionThresholds) -> tuple[list[int], list[int], float, list[Tally]]:
+    """The survey through a session; returns the whole path's bytes and keyframes per update,
+    the CPU of serializing it, and the tallies (the thresholds', then the exact one)."""
+    ms = aerial_sample(n_tracks=n_tracks).measurements
+    session = AlignmentSession()
+    tallies = [Tally(f'corrections ({thresholds.translation_m:g} m, '
+                     f'{thresholds.rotation_rad:g} rad)', CorrectionTracker(thresholds)),
+               Tally('corrections (0 m, 0 rad: every change)',
+                     CorrectionTracker(CorrectionThresholds(0.0, 0.0)))]
+    full: list[int] = []
+    full_kf: list[int] = []
+    full_cpu = 0.0
+
+    def after_update() -> None:
+        nonlocal full_cpu
+        cp = session.aligner.corrected_path()
+        stamp = int(cp.stamps_ns[-1])
+        t0 = time.process_time()
+        full.append(len(path_cdr(cp.T_world_node, cp.stamps_ns, 'map', stamp)))
+        full_kf.append(len(cp.node_ids))
+        full_cpu += time.process_time() - t0
+        for t in tallies:
+            _corrections_bytes(t, session.aligner, cp, stamp)
+
+    try:
+        for m in ms:
+            if session.step(m).updates:
+                after_update()
+        if session.finish_track() is not None:
+            after_update()
+        n_nodes = session.n_nodes()
+    finally:
+        session.close()
+    print(f'aerial survey: {n_tracks} double tracks, {len(ms):,} measurements, '
+          f'{n_nodes:,} keyframes, {len(full)} window updates (default aligner)')
+    return full, full_kf, full_cpu, tallies
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ga-ros bench corrections``: print the table of the module docstring."""
+    ap = argparse.ArgumentParser(prog='ga-ros bench corrections',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--tracks', type=int, default=25,
+                    help='double tracks of the survey (default 25: 5,100 keyframes)')
+    ap.add_argument('--translation-m', type=float, default=TRANSLATION_M,
+                    help="translation threshold, m (default: the node's)")
+    ap.add_argument('--rotation-rad', type=float, default=ROTATION_RAD,
+                    help="rotation threshold, rad (default: the node's)")
+    a = ap.parse_args(argv)
+    full, full_kf, full_cpu, tallies = run(a.tracks, CorrectionThresholds(a.translation_m,
+                                                                 a.rotation_rad))
+    n = len(full)
+    mean_full = sum(full) / n
+    print('CDR bytes of one message after each window update (what DDS sends); CPU: process '
+          'time to build and serialize it, ms per update (machine shared, figures noisy)')
+    print('| message | mean bytes / update | ratio to whole path | bytes at last update | '
+          'ratio at last | keyframes sent / update (mean, max) | compared / update | '
+          'CPU ms / update |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|')
+    print(f'| whole path (ga/corrected_path) | {mean_full:,.0f} | 100 % | {full[-1]:,} | 100 % | '
+          f'{sum(full_kf) / n:,.0f}, {max(full_kf):,} | - | {1e3 * full_cpu / n:.2f} |')
+    for t in tallies:
+        mean = sum(t.bytes) / n
+        print(f'| {t.label} | {mean:,.0f} | {100 * mean / mean_full:.1f} % | {t.bytes[-1]:,} | '
+              f'{100 * t.bytes[-1] / full[-1]:.1f} % | {sum(t.keyframes) / n:,.0f}, '
+              f'{max(t.keyframes):,} | {sum(t.compared) / n:,.0f} | {1e3 * t.cpu_s / n:.2f} |')
+    return 0
