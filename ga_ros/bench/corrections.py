@@ -7,12 +7,13 @@ freezes, background refinement). After every window update it serializes (CDR, w
 the whole corrected path as the node publishes it on ``ga/corrected_path``
 (:func:`ga_ros.io.cdr.path_cdr`) and the corrections message of
 :class:`~ga_ros.pipeline.corrections.CorrectionTracker` (``ga/corrections``, the replay's
-conversion), at the given thresholds and at 0 (every change, bit-exact). Prints, per tracker,
+conversion), one tracker per pair of thresholds on the same run (0:0: every change,
+bit-exact). Prints, per tracker,
 the bytes per update (mean over the updates, and at the last one), the ratio to the whole path
 (target <= 10 %), the keyframes sent per update, and the CPU time of the tracker and the
 conversion per update (process CPU time; the survey's own CPU is not counted).
 
-Run: ``ga-ros bench corrections [--tracks 25] [--translation-m 0.01] [--rotation-rad 0.001]``.
+Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]``.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ import argparse
 import time
 from dataclasses import dataclass, field
 
-from ga_ros.io.bag_messages import PATH, corrections_to_path_msg, typestore
+from ga_ros.core.window import AlignerConfig
+from ga_ros.io.bag_messages import PATH, typestore
 from ga_ros.io.cdr import path_cdr
 from ga_ros.pipeline.corrections import (
     ROTATION_RAD,
@@ -30,7 +32,11 @@ from ga_ros.pipeline.corrections import (
     CorrectionTracker,
 )
 from ga_ros.pipeline.session import AlignmentSession
+from ga_ros.replay.outputs import corrections_to_path_msg
 from ga_ros.replay.samples import aerial_sample
+
+#: Thresholds of the default run (m:rad), the node's default first, 0:0 (every change) last.
+SWEEP = [f'{TRANSLATION_M:g}:{ROTATION_RAD:g}', '0.05:0.002', '0.1:0.005', '0.2:0.01', '0:0']
 
 
 @dataclass
@@ -58,16 +64,18 @@ def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
     tally.compared.append(0 if c is None else c.n_compared)
 
 
-def run(n_tracks: int,
-        thresholds: CorrectionThresholds) -> tuple[list[int], list[int], float, list[Tally]]:
+def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int = 1
+        ) -> tuple[list[int], list[int], float, list[Tally]]:
     """The survey through a session; returns the whole path's bytes and keyframes per update,
-    the CPU of serializing it, and the tallies (the thresholds', then the exact one)."""
+    the CPU of serializing it, and one tally per thresholds (side by side on the same run)."""
     ms = aerial_sample(n_tracks=n_tracks).measurements
-    session = AlignmentSession()
-    tallies = [Tally(f'corrections ({thresholds.translation_m:g} m, '
-                     f'{thresholds.rotation_rad:g} rad)', CorrectionTracker(thresholds)),
-               Tally('corrections (0 m, 0 rad: every change)',
-                     CorrectionTracker(CorrectionThresholds(0.0, 0.0)))]
+    typestore()  # built once, before any timing
+    session = AlignmentSession(AlignerConfig(refine_every_tracks=refine_every))
+    default = CorrectionThresholds()
+    tallies = [Tally(f'corrections ({t.translation_m:g} m, {t.rotation_rad:g} rad'
+                     + (', the default)' if t == default else
+                        ': every change)' if t.translation_m == t.rotation_rad == 0 else ')'),
+                     CorrectionTracker(t)) for t in thresholds]
     full: list[int] = []
     full_kf: list[int] = []
     full_cpu = 0.0
@@ -93,7 +101,8 @@ def run(n_tracks: int,
     finally:
         session.close()
     print(f'aerial survey: {n_tracks} double tracks, {len(ms):,} measurements, '
-          f'{n_nodes:,} keyframes, {len(full)} window updates (default aligner)')
+          f'{n_nodes:,} keyframes, {len(full)} window updates (default aligner, '
+          f'refine_every_tracks {refine_every})')
     return full, full_kf, full_cpu, tallies
 
 
@@ -103,13 +112,20 @@ def main(argv: list[str] | None = None) -> int:
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--tracks', type=int, default=25,
                     help='double tracks of the survey (default 25: 5,100 keyframes)')
-    ap.add_argument('--translation-m', type=float, default=TRANSLATION_M,
-                    help="translation threshold, m (default: the node's)")
-    ap.add_argument('--rotation-rad', type=float, default=ROTATION_RAD,
-                    help="rotation threshold, rad (default: the node's)")
+    ap.add_argument('--thresholds', nargs='+', default=SWEEP, metavar='M:RAD',
+                    help='translation (m) and rotation (rad) thresholds, one tracker each on '
+                         f'the same run (default: {" ".join(SWEEP)}; the node\'s default is '
+                         f'{TRANSLATION_M:g}:{ROTATION_RAD:g})')
+    ap.add_argument('--refine-every', type=int, default=1,
+                    help='refine_every_tracks of the aligner (default 1, the default; 0: no '
+                         'background refinement, only the window moves keyframes)')
     a = ap.parse_args(argv)
-    full, full_kf, full_cpu, tallies = run(a.tracks, CorrectionThresholds(a.translation_m,
-                                                                 a.rotation_rad))
+    try:
+        thresholds = [CorrectionThresholds(*(float(v) for v in t.split(':')))
+                      for t in a.thresholds]
+    except (TypeError, ValueError) as exc:
+        ap.error(f'--thresholds: M:RAD pairs such as 0.01:0.001 ({exc})')
+    full, full_kf, full_cpu, tallies = run(a.tracks, thresholds, a.refine_every)
     n = len(full)
     mean_full = sum(full) / n
     print('CDR bytes of one message after each window update (what DDS sends); CPU: process '

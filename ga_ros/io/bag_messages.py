@@ -114,26 +114,6 @@ def header(frame_id: str, stamp_ns: int) -> Any:
 
 
 # --------------------------------------------------------------------------- paths, ground truth
-def corrections_to_path_msg(c: Any, frame_id: str, stamp_ns: int) -> Any:
-    """:class:`~ga_ros.pipeline.corrections.Corrections` -> rosbags ``nav_msgs/Path`` of
-    ``ga/corrections``: the same message as the node's
-    (:func:`ga_ros.ros.conversions.corrections_msg`), laid out by
-    :func:`ga_ros.pipeline.corrections.message_poses`."""
-    from ga_ros.pipeline.corrections import message_poses
-
-    types = typestore().types
-    frame_ids, stamps, T = message_poses(c, stamp_ns)
-    poses = []
-    if frame_ids:
-        p_all, q_all = se3.to_pos_quat(T)
-        p_all, q_all = p_all.tolist(), q_all.tolist()
-    PoseStamped = types['geometry_msgs/msg/PoseStamped']
-    for k, f in enumerate(frame_ids):   # the keyframes sent, not the whole path
-        poses.append(PoseStamped(header=header(f, int(stamps[k])),
-                                 pose=pose_msg(p_all[k], q_all[k])))
-    return types[PATH](header=header(frame_id, int(stamp_ns)), poses=poses)
-
-
 def path_msg_to_trajectory(msg: Any) -> Trajectory:
     """rosbags ``nav_msgs/Path`` -> :class:`Trajectory` (node ids from node frame ids, if any)."""
     n = len(msg.poses)

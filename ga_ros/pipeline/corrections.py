@@ -14,7 +14,7 @@ The first call after :meth:`CorrectionTracker.restart` (a start, a resume, a res
 ``load_state``), or after the aligner was replaced, returns every keyframe with ``full`` set: a
 consumer drops what it held and takes them. ``alignment_node`` and the replay both drive this
 one class (``ga/corrections``, conversions in :mod:`ga_ros.ros.conversions` and
-:mod:`ga_ros.io.bag_messages`; the message convention is in ``docs/node.md``).
+:mod:`ga_ros.replay.outputs`; the message convention is in ``docs/node.md``).
 
 Cost: vectorised over the keyframes compared (numpy), never a Python loop over keyframes. With
 the track-window aligner the comparison starts at the first row the update could change

@@ -14,7 +14,7 @@ from ga_ros import topics
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.window import AlignerConfig
 from ga_ros.errors import InputError
-from ga_ros.io.bag_messages import corrections_to_path_msg, trajectory_to_path_msg
+from ga_ros.io.bag_messages import trajectory_to_path_msg
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.corrections import (
     Corrections,
@@ -23,6 +23,7 @@ from ga_ros.pipeline.corrections import (
     message_poses,
 )
 from ga_ros.pipeline.session import AlignmentSession
+from ga_ros.replay.outputs import corrections_to_path_msg
 from ga_ros.replay.samples import aerial_sample
 
 #: 10 tracks (two swaths of 8 keyframes each): more than the window (5), so tracks freeze and the
