@@ -13,7 +13,8 @@ the bytes per update (mean over the updates, and at the last one), the ratio to 
 (target <= 10 %), the keyframes sent per update, and the CPU time of the tracker and the
 conversion per update (process CPU time; the survey's own CPU is not counted).
 
-Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]``.
+Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]
+[--window-tracks 5]``.
 """
 
 from __future__ import annotations
@@ -64,13 +65,14 @@ def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
     tally.compared.append(0 if c is None else c.n_compared)
 
 
-def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int = 1
-        ) -> tuple[list[int], list[int], float, list[Tally]]:
+def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int = 1,
+        window_tracks: int = 5) -> tuple[list[int], list[int], float, list[Tally]]:
     """The survey through a session; returns the whole path's bytes and keyframes per update,
     the CPU of serializing it, and one tally per thresholds (side by side on the same run)."""
     ms = aerial_sample(n_tracks=n_tracks).measurements
     typestore()  # built once, before any timing
-    session = AlignmentSession(AlignerConfig(refine_every_tracks=refine_every))
+    session = AlignmentSession(AlignerConfig(refine_every_tracks=refine_every,
+                                             window_tracks=window_tracks))
     default = CorrectionThresholds()
     tallies = [Tally(f'corrections ({t.translation_m:g} m, {t.rotation_rad:g} rad'
                      + (', the default)' if t == default else
@@ -101,8 +103,8 @@ def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int
     finally:
         session.close()
     print(f'aerial survey: {n_tracks} double tracks, {len(ms):,} measurements, '
-          f'{n_nodes:,} keyframes, {len(full)} window updates (default aligner, '
-          f'refine_every_tracks {refine_every})')
+          f'{n_nodes:,} keyframes, {len(full)} window updates (aligner: window_tracks '
+          f'{window_tracks}, refine_every_tracks {refine_every}; the defaults 5 and 1)')
     return full, full_kf, full_cpu, tallies
 
 
@@ -119,13 +121,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--refine-every', type=int, default=1,
                     help='refine_every_tracks of the aligner (default 1, the default; 0: no '
                          'background refinement, only the window moves keyframes)')
+    ap.add_argument('--window-tracks', type=int, default=5,
+                    help='window_tracks of the aligner (default 5, the default)')
     a = ap.parse_args(argv)
     try:
         thresholds = [CorrectionThresholds(*(float(v) for v in t.split(':')))
                       for t in a.thresholds]
     except (TypeError, ValueError) as exc:
         ap.error(f'--thresholds: M:RAD pairs such as 0.01:0.001 ({exc})')
-    full, full_kf, full_cpu, tallies = run(a.tracks, thresholds, a.refine_every)
+    full, full_kf, full_cpu, tallies = run(a.tracks, thresholds, a.refine_every,
+                                           a.window_tracks)
     n = len(full)
     mean_full = sum(full) / n
     print('CDR bytes of one message after each window update (what DDS sends); CPU: process '

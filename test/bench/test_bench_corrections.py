@@ -9,7 +9,7 @@ def test_bench_corrections_prints_the_whole_path_and_each_tracker(capsys) -> Non
     assert main(['bench', 'corrections', '--tracks', '2', '--refine-every', '0',
                  '--thresholds', '0.01:0.001', '0:0']) == 0
     out = capsys.readouterr().out
-    assert '408 keyframes, 2 window updates' in out
+    assert '408 keyframes, 2 window updates (aligner: window_tracks 5, refine_every' in out
     rows = [line for line in out.splitlines() if line.startswith('| ')][1:]  # no header
     assert rows[0].startswith('| whole path (ga/corrected_path) | ')
     assert rows[1].startswith('| corrections (0.01 m, 0.001 rad, the default) | ')
