@@ -280,7 +280,7 @@ class ReplayRun:
             self.result.quality['final'] = entry
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
-        self._corrections(every_row=not per_track)
+        self._corrections(traj, every_row=not per_track)
         self.markers(traj)
         if self.odom is not None:
             self.odom.update(traj.node_ids, traj.T_world_node)
@@ -288,14 +288,18 @@ class ReplayRun:
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
 
-    def _corrections(self, every_row: bool) -> None:
-        """The corrections message of an update, as the node publishes it (its stamps and
-        header from the aligner's path); ``every_row`` after the final batch."""
-        cp = self.aligner.corrected_path()
-        c = self.corrections.after_update(self.aligner, cp, every_row=every_row)
+    def _corrections(self, traj: Trajectory, every_row: bool) -> None:
+        """The corrections message of an update, as the node publishes it: the aligner's node
+        stamps (the replay's own only where the aligner has none) and its newest stamp in the
+        header; ``every_row`` after the final batch."""
+        cp_stamps = np.asarray(getattr(self.aligner.corrected_path(), 'stamps_ns',
+                                       traj.stamps_ns), dtype=np.int64).reshape(-1)
+        stamps = np.where(cp_stamps < 0, traj.stamps_ns, cp_stamps)
+        path = Trajectory(stamps, traj.T_world_node, traj.node_ids, traj.track_ids,
+                          traj.frame_id)
+        c = self.corrections.after_update(self.aligner, path, every_row=every_row)
         if c is not None:
-            stamp = int(cp.stamps_ns[-1]) if len(cp.node_ids) else 0
-            self.out.corrections(c, stamp, self.last_ns)
+            self.out.corrections(c, int(stamps[-1]) if len(stamps) else 0, self.last_ns)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement
