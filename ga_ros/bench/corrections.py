@@ -2,16 +2,16 @@
 
 The paper's aerial survey (``aerial_sample(n_tracks=25)``: 5,100 keyframes, 29,896
 measurements, the stream of ``bags/aerial_measurements``) goes through
-:class:`~ga_ros.pipeline.session.AlignmentSession` with the default aligner (window updates,
-freezes, background refinement). After every window update it serializes (CDR, what DDS sends)
-the whole corrected path as the node publishes it on ``ga/corrected_path``
-(:func:`ga_ros.io.cdr.path_cdr`) and the corrections message of
-:class:`~ga_ros.pipeline.corrections.CorrectionTracker` (``ga/corrections``, the replay's
-conversion), one tracker per pair of thresholds on the same run (0:0: every change,
-bit-exact). Prints, per tracker,
-the bytes per update (mean over the updates, and at the last one), the ratio to the whole path
-(target <= 10 %), the keyframes sent per update, and the CPU time of the tracker and the
-conversion per update (process CPU time; the survey's own CPU is not counted).
+:class:`~ga_ros.pipeline.session.AlignmentSession` (window updates, freezes, background
+refinement; ``--refine-every``, ``--window-tracks`` change the aligner). After every window
+update it serializes (CDR, what DDS sends) the whole corrected path as the node publishes it on
+``ga/corrected_path`` (:func:`ga_ros.io.cdr.path_cdr`) and the corrections message of a
+:class:`~ga_ros.pipeline.corrections.CorrectionTracker` (``ga/corrections``, the bytes of
+:func:`~ga_ros.pipeline.corrections.corrections_cdr` that the node publishes), one tracker per
+pair of thresholds on the same run (0:0: every change, bit-exact). Prints, per message, the
+bytes per update (mean over the updates, and at the last one), the ratio to the whole path
+(target <= 10 %), the keyframes sent per update, the keyframes compared per update, and the CPU
+time to compare and serialize per update (process CPU time; the survey's own is not counted).
 
 Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]
 [--window-tracks 5]``.
@@ -24,16 +24,15 @@ import time
 from dataclasses import dataclass, field
 
 from ga_ros.core.window import AlignerConfig
-from ga_ros.io.bag_messages import PATH, typestore
 from ga_ros.io.cdr import path_cdr
 from ga_ros.pipeline.corrections import (
     ROTATION_RAD,
     TRANSLATION_M,
     CorrectionThresholds,
     CorrectionTracker,
+    corrections_cdr,
 )
 from ga_ros.pipeline.session import AlignmentSession
-from ga_ros.replay.outputs import corrections_to_path_msg
 from ga_ros.replay.samples import aerial_sample
 
 #: Thresholds of the default run (m:rad), the node's default first, 0:0 (every change) last.
@@ -57,8 +56,7 @@ def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
     c = tally.tracker.after_update(aligner, cp)
     n = 0
     if c is not None:
-        msg = corrections_to_path_msg(c, 'map', stamp_ns)
-        n = len(typestore().serialize_cdr(msg, PATH))
+        n = len(corrections_cdr(c, 'map', stamp_ns))
     tally.cpu_s += time.process_time() - t0
     tally.bytes.append(n)
     tally.keyframes.append(0 if c is None else len(c))
@@ -70,7 +68,6 @@ def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int
     """The survey through a session; returns the whole path's bytes and keyframes per update,
     the CPU of serializing it, and one tally per thresholds (side by side on the same run)."""
     ms = aerial_sample(n_tracks=n_tracks).measurements
-    typestore()  # built once, before any timing
     session = AlignmentSession(AlignerConfig(refine_every_tracks=refine_every,
                                              window_tracks=window_tracks))
     default = CorrectionThresholds()

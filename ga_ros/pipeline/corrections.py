@@ -13,8 +13,8 @@ and the consumer holds the corrected path bit for bit.
 The first call after :meth:`CorrectionTracker.restart` (a start, a resume, a reset or a
 ``load_state``), or after the aligner was replaced, returns every keyframe with ``full`` set: a
 consumer drops what it held and takes them. ``alignment_node`` and the replay both drive this
-one class (``ga/corrections``, conversions in :mod:`ga_ros.ros.conversions` and
-:mod:`ga_ros.replay.outputs`; the message convention is in ``docs/node.md``).
+one class and :func:`corrections_cdr` (the message's bytes; the convention is in
+``docs/node.md``).
 
 Cost: vectorised over the keyframes compared (numpy), never a Python loop over keyframes. With
 the track-window aligner the comparison starts at the first row the update could change
@@ -36,6 +36,7 @@ from ga_ros import topics
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.frames import node_frame
+from ga_ros.io.cdr import framed_path_cdr
 
 #: Default translation threshold (m): a keyframe whose position moved more is sent.
 TRANSLATION_M = 0.01
@@ -240,3 +241,12 @@ def message_poses(c: Corrections, header_stamp_ns: int) -> tuple[list[str], IntA
         stamps = np.concatenate([[int(header_stamp_ns)], stamps]).astype(np.int64)
         T = np.concatenate([T[:1] if len(T) else np.eye(4)[None], T])
     return frames, stamps, T
+
+
+def corrections_cdr(c: Corrections, frame_id: str, stamp_ns: int) -> bytes:
+    """The serialized ``nav_msgs/Path`` of ``c`` on ``ga/corrections`` (CDR, what DDS sends and
+    the replay bag stores): header ``frame_id`` (the map frame) at ``stamp_ns`` (the corrected
+    path's newest keyframe), poses as :func:`message_poses` lays them out. The node publishes
+    these bytes and the replay writes them: the same message by construction."""
+    frames, stamps, T = message_poses(c, stamp_ns)
+    return framed_path_cdr(T, stamps, frames, frame_id, int(stamp_ns))

@@ -23,7 +23,7 @@ from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
-from ga_ros.io.bag_messages import PATH, header, pose_msg, trajectory_to_path_msg, typestore
+from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg
 from ga_ros.io.bag_writer import (
     BagWriter,
     network_markers,
@@ -33,7 +33,7 @@ from ga_ros.io.bag_writer import (
     transform_msg,
 )
 from ga_ros.io.trajectory import Trajectory, write_tum
-from ga_ros.pipeline.corrections import Corrections, CorrectionThresholds, message_poses
+from ga_ros.pipeline.corrections import Corrections, CorrectionThresholds, corrections_cdr
 from ga_ros.safe_write import check_destinations, save_figure, write_json
 
 
@@ -81,24 +81,6 @@ class OutputConfig:
     tf_static_topic: str = '/tf_static'
     corrections_topic: str = topics.resolve(topics.CORRECTIONS)
     corrections: CorrectionThresholds = CorrectionThresholds()
-
-
-def corrections_to_path_msg(c: Corrections, frame_id: str, stamp_ns: int) -> Any:
-    """:class:`~ga_ros.pipeline.corrections.Corrections` -> rosbags ``nav_msgs/Path`` of
-    ``ga/corrections``: the node's message (:func:`ga_ros.ros.conversions.corrections_msg`),
-    laid out by :func:`ga_ros.pipeline.corrections.message_poses`; header in ``frame_id``
-    (the map frame) at ``stamp_ns``."""
-    types = typestore().types
-    frame_ids, stamps, T = message_poses(c, stamp_ns)
-    poses = []
-    if frame_ids:
-        p_all, q_all = se3.to_pos_quat(T)
-        p_all, q_all = p_all.tolist(), q_all.tolist()
-    PoseStamped = types['geometry_msgs/msg/PoseStamped']
-    for k, f in enumerate(frame_ids):   # the keyframes sent, not the whole path
-        poses.append(PoseStamped(header=header(f, int(stamps[k])),
-                                 pose=pose_msg(p_all[k], q_all[k])))
-    return types[PATH](header=header(frame_id, int(stamp_ns)), poses=poses)
 
 
 def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatArray,
@@ -210,8 +192,8 @@ class ReplayOutputs:
     def corrections(self, c: Corrections, stamp_ns: int, log_ns: int) -> None:
         """The corrections of an update (:mod:`ga_ros.pipeline.corrections`), header stamped
         at ``stamp_ns`` (the corrected path's newest keyframe), logged at ``log_ns``."""
-        msg = corrections_to_path_msg(c, self.config.map_frame, stamp_ns)
-        self.bag.write(self.config.corrections_topic, PATH, msg, log_ns)
+        self.bag.write_raw(self.config.corrections_topic, PATH,
+                           corrections_cdr(c, self.config.map_frame, stamp_ns), log_ns)
 
     def markers(self, p_world_node: FloatArray, src: IntArray, dst: IntArray,
                 residual: FloatArray, log_ns: int, stamp_ns: int) -> None:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.io.cdr import path_cdr
+from ga_ros.pipeline.corrections import corrections_cdr
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.view import connection_view
 
@@ -61,9 +62,8 @@ class AlignmentOutputs:
         """The keyframes moved or added since the last corrections message (none: nothing
         sent), :class:`~ga_ros.pipeline.corrections.CorrectionTracker`."""
         c = self.corrections.after_update(self.aligner, cp)
-        if c is not None:
-            self.pub_corrections.publish(conv.corrections_msg(c, self.settings.map_frame,
-                                                              stamp_ns))
+        if c is not None:   # CDR bytes (rclpy publishes them raw), the replay's too
+            self.pub_corrections.publish(corrections_cdr(c, self.settings.map_frame, stamp_ns))
 
     def _publish_markers(self, force: bool = False) -> None:
         """The network as markers. Built only when someone listens (RViz, Foxglove): otherwise

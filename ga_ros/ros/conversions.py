@@ -42,7 +42,6 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.io.bag_writer import residual_color  # one palette for the node and the replay
-from ga_ros.pipeline.corrections import Corrections, message_poses
 from ga_ros.ros.view import ABSORBED, OUTLIER
 
 #: Largest accepted node or track id (ids above it are "absurd" and rejected).
@@ -132,35 +131,6 @@ def odometry_to_measurement(msg: Odometry) -> Measurement:
 
 
 # --------------------------------------------------------------------------- outputs
-def corrections_msg(c: Corrections, frame_id: str, stamp_ns: int) -> Path:
-    """Corrections after an update -> the ``nav_msgs/Path`` of ``ga/corrections``.
-
-    ``header``: ``frame_id`` (the map frame) and ``stamp_ns`` (the corrected path's newest
-    keyframe); the poses as :func:`ga_ros.pipeline.corrections.message_poses` lays them out
-    (each keyframe's node frame ``ga/<track>/<node>`` and stamp; a full message opened by the
-    marker :data:`ga_ros.topics.CORRECTIONS_FULL_FRAME`).
-    """
-    frame_ids, stamps, T = message_poses(c, stamp_ns)
-    msg = Path()
-    msg.header.frame_id = frame_id
-    msg.header.stamp = ns_to_stamp(int(stamp_ns))
-    if not frame_ids:
-        return msg
-    p, q = se3.to_pos_quat(T)
-    p, q = p.tolist(), q.tolist()
-    poses = []
-    for k, f in enumerate(frame_ids):   # the keyframes sent, not the whole path
-        ps = PoseStamped()
-        ps.header.frame_id = f
-        ps.header.stamp = ns_to_stamp(int(stamps[k]))
-        ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = p[k]
-        o = ps.pose.orientation
-        o.x, o.y, o.z, o.w = q[k]
-        poses.append(ps)
-    msg.poses = poses
-    return msg
-
-
 def path_to_msg(T_world_node: FloatArray, stamps_ns: Sequence[int] | IntArray, frame_id: str,
                 stamp_ns: int | None = None) -> Path:
     """Corrected poses ``(n, 4, 4)`` in ``frame_id`` -> ``nav_msgs/Path`` (one pose per node).

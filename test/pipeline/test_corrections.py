@@ -14,16 +14,16 @@ from ga_ros import topics
 from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.window import AlignerConfig
 from ga_ros.errors import InputError
-from ga_ros.io.bag_messages import trajectory_to_path_msg
+from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg, typestore
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.corrections import (
     Corrections,
     CorrectionThresholds,
     CorrectionTracker,
+    corrections_cdr,
     message_poses,
 )
 from ga_ros.pipeline.session import AlignmentSession
-from ga_ros.replay.outputs import corrections_to_path_msg
 from ga_ros.replay.samples import aerial_sample
 
 #: 10 tracks (two swaths of 8 keyframes each): more than the window (5), so tracks freeze and the
@@ -100,7 +100,8 @@ def test_consumer_of_every_change_ends_with_the_corrected_path_bit_for_bit(surve
     sent = 0
     for c, _, cp in calls:
         if c is not None:
-            consumer.apply(corrections_to_path_msg(c, 'map', int(cp.stamps_ns[-1])))
+            data = corrections_cdr(c, 'map', int(cp.stamps_ns[-1]))   # what DDS carries
+            consumer.apply(typestore().deserialize_cdr(data, PATH))
             sent += len(c)
     cp = calls[-1][2]
     final = trajectory_to_path_msg(Trajectory(cp.stamps_ns, cp.T_world_node, cp.node_ids,

@@ -162,14 +162,14 @@ def test_corrections_of_the_node_equal_the_replay_bag(tmp_path: Path, context) -
         for _, msg in live_messages(tmp_path / 'in'):
             node._on_measurement(msg)
         assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
-        got = list(sent)
+        got = [deserialize_message(bytes(data), PathMsg) for data in sent]
         assert node._srv_reset(Trigger.Request(), Trigger.Response()).success
     finally:
         node.destroy_node()
     assert len(got) == 7 and got == want          # one per update
-    assert sent[0].poses[0].header.frame_id == topics.CORRECTIONS_FULL_FRAME
-    assert all(m.header.frame_id == 'map' for m in sent)
-    assert not any(p.header.frame_id == topics.CORRECTIONS_FULL_FRAME for m in sent[1:7]
+    assert got[0].poses[0].header.frame_id == topics.CORRECTIONS_FULL_FRAME
+    assert all(m.header.frame_id == 'map' for m in got)
+    assert not any(p.header.frame_id == topics.CORRECTIONS_FULL_FRAME for m in got[1:]
                    for p in m.poses)
-    reset = sent[-1]                              # after the reset: drop everything
+    reset = deserialize_message(bytes(sent[-1]), PathMsg)   # after the reset: drop everything
     assert [p.header.frame_id for p in reset.poses] == [topics.CORRECTIONS_FULL_FRAME]
