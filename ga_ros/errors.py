@@ -111,3 +111,13 @@ class PersistenceError(GaError):
     """The state file or its journal cannot be used or written (a full disk, a read-only
     directory, a path under a regular file). The node then runs without persistence, unless
     told to refuse to start (parameter ``state_required``): fix the path or free space."""
+
+
+class NoUsableInputError(FormatError):
+    """A bag has no input the replay reads without being told (no ga_ros measurements, no
+    stereo pair); the message gives the command for the topics it has. ``command`` is that
+    command ('' when the bag has no odometry or pose stream). The CLI exits with code 2."""
+
+    def __init__(self, message: str, command: str = '') -> None:
+        super().__init__(message)
+        self.command = command

@@ -61,6 +61,9 @@ VO_ODOMETRY = 'ga/vo/odometry'
 VO_TRACK_BOUNDARY = 'ga/vo/track_boundary'
 #: Debug image of the VO.
 VO_DEBUG_IMAGE = 'ga/vo/debug_image'
+#: Dense stereo points of each new keyframe (``sensor_msgs/PointCloud2``, the camera's optical
+#: frame, stamped with the keyframe's stamp), from ``vo_node``.
+KEYFRAME_CLOUD = 'ga/keyframe_cloud'
 #: Stereo input of ``vo_node``.
 LEFT_IMAGE = 'stereo/left/image_rect'
 RIGHT_IMAGE = 'stereo/right/image_rect'

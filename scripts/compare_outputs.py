@@ -94,11 +94,11 @@ def compare(before: Path, after: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     sub = p.add_subparsers(dest='cmd', required=True)
-    r = sub.add_parser('record')
+    r = sub.add_parser('record', allow_abbrev=False)
     r.add_argument('out', type=Path)
-    c = sub.add_parser('compare')
+    c = sub.add_parser('compare', allow_abbrev=False)
     c.add_argument('before', type=Path)
     c.add_argument('after', type=Path)
     args = p.parse_args(argv)

@@ -11,28 +11,22 @@ interpreter and the imported libraries (~150 MB).
 
 from __future__ import annotations
 
-import inspect
 import json
 import resource
 import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ga_ros.bench.gtsam_runner import gtsam_installed
+from ga_ros.bench.stages import STAGES, timed_stages, tree_cpu_seconds
 from ga_ros.bench.survey import noisy_survey
-from ga_ros.core.linalg import blocks as _blocks
-from ga_ros.core.linalg import cholmod as _cholmod
 from ga_ros.core.solver import SolverConfig, solve
-from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.core.window import update as _update
-from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.eval.metrics import ate
 
 
@@ -116,67 +110,45 @@ class WindowFigures:
     gap_rigid_pct: float
     gap_raw_pct: float
     per_track_ms_mean: float = float('nan')
-    per_track_cpu_ms_p50: float = float('nan')  # CPU time of the process (a loaded machine's
-    per_track_cpu_ms_p95: float = float('nan')  # wall clock counts other processes too)
+    per_track_cpu_ms_p50: float = float('nan')  # CPU time of the update call's thread (a
+    per_track_cpu_ms_p95: float = float('nan')  # loaded machine's wall clock counts others)
     gtsam_ms_p50: float = float('nan')  # GTSAM IncrementalFixedLagSmoother, same survey and run
     gtsam_ms_p95: float = float('nan')
     gtsam_ate_rigid_m: float = float('nan')
     gtsam_cpu_ms_p50: float = float('nan')
     gtsam_cpu_ms_p95: float = float('nan')
     refine_every_tracks: int = 1
-    # CPU ms p50 over the track-end calls of each part of the update (see UPDATE_PARTS)
-    breakdown_cpu_ms_p50: dict | None = None
+    # CPU ms per track, mean over the tracks with a full window, by stage (STAGES, 'other' the
+    # rest of the thread): {'track end': {stage: ms}, 'background': {stage: ms}}
+    stage_cpu_ms: dict | None = None
     measurement_cpu_us: float = float('nan')  # mean CPU of a call that ends no track
+    # CPU per track of everything but the update call's thread and the measurements: the
+    # freeze ahead's thread, the refinement worker process, the process pool's threads
+    background_cpu_ms_p50: float = float('nan')
+    total_cpu_ms_p50: float = float('nan')  # per track: update call + outputs + background
+    total_cpu_ms_p95: float = float('nan')
+    full_window_tracks: int = 0  # tracks with a full window (those of the stage means)
 
 
-#: The parts of a window update timed by :func:`bench_window` (CPU ms, exclusive: a part
-#: called inside another counts in the outer one), and the functions that do them.
-#: ``solve``: the factor's solves (the steps); ``gradient``: the gradient after each step (its
-#: residuals, cost and the next chord step's gradient, :meth:`~ga_ros.core.solver.problem._Problem.
-#: gradient_ahead`); ``problem``: the window problem's node and connection sets and the
-#: connections' kept terms.
-UPDATE_PARTS = {
-    'linearise': ((_Problem, 'linear_system'), (_blocks.BlockPattern, 'assemble')),
-    'factor': ((_cholmod.SparseCholesky, '__init__'), (_cholmod.SparseCholesky, 'refactor')),
-    'solve': ((_cholmod.SparseCholesky, 'solve'),),
-    'gradient': ((_Problem, 'gradient'), (_Problem, 'gradient_ahead')),
-    'problem': ((_update.WindowUpdate, 'window_problem'),),
-    'gate': ((_update, 'outliers'), (_update, 'readmissible')),
-    'freeze': ((TrackWindowAligner, '_freeze'),),
-    'refinement': ((RefinementHandoff, 'install_due'), (RefinementHandoff, 'smooth'),
-                   (RefinementHandoff, 'start')),
-}
+def _stage_table(records: list[dict]) -> dict:
+    """Mean CPU ms per track of each stage, per thread role, over ``records`` (one
+    :meth:`~ga_ros.bench.stages.StageClock.take` per track, with its thread's rest under
+    ``other``)."""
+    out = {}
+    for role in ('track end', 'background'):
+        names = [*STAGES, 'other']
+        out[role] = {k: float(np.mean([r.get((role, k), 0.0) for r in records]))
+                     if records else float('nan') for k in names}
+    return out
 
 
-@contextmanager
-def _timed_parts(totals: dict[str, float]):
-    """Add the CPU ms spent in each part of :data:`UPDATE_PARTS` to ``totals`` while active
-    (the functions are wrapped for the duration, then put back)."""
-    depth = [0]
-
-    def wrap(part, fn):
-        def timed(*args, **kwargs):
-            if depth[0]:
-                return fn(*args, **kwargs)
-            depth[0] += 1
-            c0 = time.process_time()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                totals[part] = totals.get(part, 0.0) + 1e3 * (time.process_time() - c0)
-                depth[0] -= 1
-        return timed
-
-    saved = [(owner, name, inspect.getattr_static(owner, name))
-             for targets in UPDATE_PARTS.values() for owner, name in targets]
-    try:
-        for part, targets in UPDATE_PARTS.items():
-            for owner, name in targets:
-                setattr(owner, name, wrap(part, inspect.getattr_static(owner, name)))
-        yield totals
-    finally:
-        for owner, name, fn in saved:
-            setattr(owner, name, fn)
+def _publish_outputs(al: TrackWindowAligner, track_id: int) -> None:
+    """What a node publishes after an update (:mod:`ga_ros.ros.alignment_outputs`): the corrected
+    path and the covariance of the newest adjusted node."""
+    cp = al.corrected_path()
+    mine = np.nonzero(np.asarray(cp.track_ids) == track_id)[0]
+    if mine.size:
+        al.covariance(int(cp.node_ids[mine[-1]]))
 
 
 def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: int = 5,
@@ -186,9 +158,15 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     """Fly the aerial survey online and time each track's update.
 
     ``refine_every_tracks``: the aligner's background refinement (default: the aligner's
-    default; 0 is the plain window). The CPU time of each call that ends a track is split into
-    the parts of :data:`UPDATE_PARTS` (``other``: the rest); their medians are
-    ``breakdown_cpu_ms_p50``.
+    default; 0 is the plain window). After each track end the outputs a node publishes are
+    computed (the corrected path, the newest adjusted node's covariance) and the freeze
+    computed ahead is waited for (a live survey flies the next track meanwhile). Per track:
+    the CPU of the update call's thread (``per_track_cpu_ms_*``), the CPU of the whole process
+    tree minus that thread's (``background_cpu_ms_p50``: the freeze ahead's thread, the
+    refinement worker process), and their sum with the outputs (``total_cpu_ms_*``); the
+    measurements that end no track are counted apart (``measurement_cpu_us``). The CPU of
+    each thread is split into the stages of :data:`~ga_ros.bench.stages.STAGES`
+    (``stage_cpu_ms``, means over the tracks with a full window).
 
     With ``with_gtsam`` (and ``gtsam`` importable), the same survey also runs through GTSAM's
     ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
@@ -201,23 +179,39 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         cfg = AlignerConfig(window_tracks=window_tracks, freeze_policy=policy,
                             refine_every_tracks=int(refine_every_tracks))
     al = TrackWindowAligner(cfg, sc.T_world_node[0])
-    updates, cpu_ms, parts, other_us = [], [], [], []
+    updates, cpu_ms, totals, background, records, other_us = [], [], [], [], [], []
     t0 = time.perf_counter()
-    with _timed_parts({}) as totals:
+    with timed_stages() as clock:
+        tree0, main0 = tree_cpu_seconds(), time.thread_time()
         for m in list(ms) + [None]:
-            totals.clear()
-            c0 = time.process_time()
+            c0 = time.thread_time()
             new = al.add_measurement(m) if m is not None else [al.finish_track()]
-            cpu = 1e3 * (time.process_time() - c0)
+            cpu = 1e3 * (time.thread_time() - c0)
             new = [u for u in new if u is not None]
-            if new:  # CPU time of the call that ended a track: its update (+ one measurement)
-                cpu_ms.append(cpu)
-                parts.append({**totals, 'other': cpu - sum(totals.values())})
-                # the next freeze, computed ahead in the background (freeze_ahead) while a live
-                # survey flies the next track: waited for here, its CPU counted apart
-                parts[-1]['freeze (background)'] = al.wait_background()
-            else:
+            if not new:
                 other_us.append(1e3 * cpu)
+                continue
+            # the call that ended a track: its update (+ one measurement), then the outputs
+            c1 = time.thread_time()
+            _publish_outputs(al, new[-1].track_id)
+            outputs = 1e3 * (time.thread_time() - c1)
+            # the next freeze, computed ahead in the background (freeze_ahead) while a live
+            # survey flies the next track: waited for here
+            al.wait_background()
+            tree1, main1 = tree_cpu_seconds(), time.thread_time()
+            # everything since the last track end outside this thread: the freeze ahead, the
+            # refinement worker process (its CPU of this interval), the pool's threads
+            bg = max(0.0, 1e3 * ((tree1 - tree0) - (main1 - main0)))
+            tree0, main0 = tree1, main1
+            stages = clock.take()
+            stages[('track end', 'other')] = cpu - sum(
+                v for (role, k), v in stages.items() if role == 'track end' and k != 'outputs')
+            stages[('background', 'other')] = bg - sum(
+                v for (role, _), v in stages.items() if role == 'background')
+            cpu_ms.append(cpu)
+            background.append(bg)
+            totals.append(cpu + outputs + bg)
+            records.append(stages)
             updates += new
     total = time.perf_counter() - t0
     rss = peak_rss_mb()
@@ -230,6 +224,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     ms_ = np.array([u.update_ms for u in updates])
     rig_w, rig_b = (ate(T, sc.T_world_node, 'rigid').rmse for T in (T_win, T_batch))
     raw_w, raw_b = (ate(T, sc.T_world_node, 'first').rmse for T in (T_win, T_batch))
+    full = records[window_tracks + 1:] or records  # the window full, its first freeze done
     fig = WindowFigures(
         n_tracks, sc.n_nodes, sc.n_connections, policy, window_tracks, total,
         float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
@@ -237,9 +232,11 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         100.0 * (raw_w - raw_b) / raw_b, float(ms_.mean()),
         float(np.percentile(cpu_ms, 50)), float(np.percentile(cpu_ms, 95)),
         refine_every_tracks=al.config.refine_every_tracks,
-        breakdown_cpu_ms_p50={k: float(np.median([p.get(k, 0.0) for p in parts]))
-                              for k in (*UPDATE_PARTS, 'other', 'freeze (background)')},
-        measurement_cpu_us=float(np.mean(other_us)) if other_us else float('nan'))
+        stage_cpu_ms=_stage_table(full),
+        measurement_cpu_us=float(np.mean(other_us)) if other_us else float('nan'),
+        background_cpu_ms_p50=float(np.percentile(background, 50)),
+        total_cpu_ms_p50=float(np.percentile(totals, 50)),
+        total_cpu_ms_p95=float(np.percentile(totals, 95)), full_window_tracks=len(full))
     al.close()
     if with_gtsam and gtsam_installed():
         (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,

@@ -21,7 +21,9 @@ Figures (2-D position RMSE against the ground truth, over every sample):
 * ga-ros online: the :class:`~ga_ros.core.window.TrackWindowAligner` fed sample by sample, a
   track ending at each fix (``finish_track`` right after ``add_fix``); each pose's estimate when
   it was first published: after the update for a fix's node, else the last estimate chained
-  with the odometry; ga-ros final: ``refine_batch`` at the end;
+  with the odometry; ga-ros final: ``refine_batch`` at the end; the aligner runs with its
+  default settings (a background refinement after every track, in a worker process), as
+  ``ga-ros replay`` does;
 * GTSAM batch: Levenberg-Marquardt on the whole graph; GTSAM iSAM2: ``update`` at each fix with
   the factors and poses since the previous one; online = each pose's estimate when it was added
   (after that update for a fix's node, else the last estimate chained with the odometry, as for
@@ -30,6 +32,11 @@ Figures (2-D position RMSE against the ground truth, over every sample):
   update, so its online estimate is not the converged one; ``--isam2-converged`` adds a column
   with ``relinearizeThreshold`` 1e-4, ``relinearizeSkip`` 1 and three extra ``update()`` calls
   per fix (the filtering solution that the window aligner computes).
+
+Beside the RMSE table: the CPU seconds of all processes (this one with its threads, and the
+refinement worker) of ga-ros online, ga-ros final, GTSAM batch LM and GTSAM iSAM2 (updated at
+each fix), and the mean ``update_ms`` of each quarter of the run's tracks (flat when the cost of
+an update does not grow with the survey).
 
 GTSAM is optional (``pip install -r requirements-bench.txt``); without it those columns are
 skipped with a note.
@@ -47,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.bench.data import SHARED_DATA
 from ga_ros.bench.gtsam_runner import gtsam_installed
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
@@ -106,6 +114,11 @@ class FixBenchFigures:
     ours_seconds: float = float('nan')
     gtsam_seconds: float = float('nan')
     isam2_seconds: float = float('nan')
+    ours_online_cpu_s: float = float('nan')
+    ours_final_cpu_s: float = float('nan')
+    gtsam_batch_cpu_s: float = float('nan')
+    isam2_cpu_s: float = float('nan')
+    update_ms_quarters: list[float] = field(default_factory=list)
     fix_outliers: int = 0
     notes: list[str] = field(default_factory=list)
 
@@ -139,9 +152,24 @@ def _interpolated(run: PlazaRun, idx: np.ndarray, p: FloatArray) -> FloatArray:
     return T
 
 
+@dataclass
+class OursRun:
+    """ga-ros online and final poses (module doc), the fixes gated out, each update's
+    ``update_ms`` and the CPU seconds of all processes (this one with its threads, the
+    refinement worker) of the online run and of the final ``refine_batch``."""
+
+    online: FloatArray
+    final: FloatArray
+    outliers: int
+    update_ms: list[float]
+    online_cpu_s: float
+    final_cpu_s: float
+
+
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
-             cfg: AlignerConfig) -> tuple[FloatArray, FloatArray, int]:
-    """ga-ros online and final poses (module doc) and the number of fixes gated out."""
+             cfg: AlignerConfig) -> OursRun:
+    """ga-ros online and final (module doc), with its update times and CPU."""
+    cpu0 = all_cpu_seconds()
     n = run.T_true.shape[0]
     al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
     fix_at = dict(zip(idx.tolist(), range(idx.size)))
@@ -157,22 +185,29 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
                                           fix_cov, 'fix0')
         al.add_fix(FixTerm(i, se3.identity(), fix))
 
+    update_ms = []
     for i in range(1, n):
-        al.add_measurement(Measurement.from_pose(i - 1, i, prev_track, track, run.steps[i - 1],
-                                                 cov, int(run.stamps_s[i] * 1e9)))
+        for up in al.add_measurement(Measurement.from_pose(
+                i - 1, i, prev_track, track, run.steps[i - 1], cov, int(run.stamps_s[i] * 1e9))):
+            update_ms.append(up.update_ms)
         prev_track = track
         if i == 1 and 0 in fix_at:
             add_fix(0)  # enters the first track's update
         if i in fix_at:
             add_fix(i)
-            al.finish_track()
+            up = al.finish_track()
+            if up is not None:
+                update_ms.append(up.update_ms)
             track += 1
         online[i] = al.corrected_path().T_world_node[i]
+    al.wait_background()
+    cpu1 = all_cpu_seconds()
     al.refine_batch()
     final = al.corrected_path().T_world_node.copy()
+    cpu2 = all_cpu_seconds()
     outliers = al.fix_stats.outliers
     al.close()
-    return online, final, outliers
+    return OursRun(online, final, outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1)
 
 
 def _gtsam_graph(run, idx, p, noise_m, cov, cfg):
@@ -260,33 +295,43 @@ def run_isam2(run, idx, p, noise_m, cov, cfg, converged: bool = False
 def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Path = DEFAULT_MAT,
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
                 with_gtsam: bool = True, isam2_converged: bool = False,
-                refine_every: int = 0) -> FixBenchFigures:
-    """One setting of the benchmark (module doc); ``refine_every``: the aligner's
-    ``refine_every_tracks`` (background refinement, inline here; 0: off)."""
+                refine_every: int | None = None, executor: str | None = None
+                ) -> FixBenchFigures:
+    """One setting of the benchmark (module doc); ``refine_every``, ``executor``: the
+    aligner's ``refine_every_tracks`` and ``refine_executor`` (``None``: its defaults, as
+    ``ga-ros replay`` runs it: a refinement after every track in a worker process)."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
-    cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes',
-                        refine_every_tracks=int(refine_every), refine_executor='inline')
+    extra = {k: v for k, v in (('refine_every_tracks', refine_every),
+                               ('refine_executor', executor)) if v is not None}
+    cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes', **extra)
     n = run.T_true.shape[0]
     dead = np.zeros((n, 4, 4))
     dead[0] = run.T_true[0]
     for i in range(1, n):
         dead[i] = dead[i - 1] @ run.steps[i - 1]
     t0 = time.perf_counter()
-    online, final, outliers = run_ours(run, idx, p, noise_m, cov, cfg)
+    ours = run_ours(run, idx, p, noise_m, cov, cfg)
     t_ours = time.perf_counter() - t0
     fig = FixBenchFigures(interval_s, noise_m, n, int(idx.size), _rmse(dead, run.T_true),
                           _rmse(_interpolated(run, idx, p), run.T_true),
-                          _rmse(online, run.T_true), _rmse(final, run.T_true),
-                          ours_seconds=t_ours, fix_outliers=outliers)
+                          _rmse(ours.online, run.T_true), _rmse(ours.final, run.T_true),
+                          ours_seconds=t_ours, fix_outliers=ours.outliers,
+                          ours_online_cpu_s=ours.online_cpu_s,
+                          ours_final_cpu_s=ours.final_cpu_s,
+                          update_ms_quarters=[float(np.mean(q)) for q in
+                                              np.array_split(np.asarray(ours.update_ms), 4)
+                                              if q.size])
     if with_gtsam and gtsam_installed():
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), all_cpu_seconds()
         fig.gtsam_batch_m = _rmse(run_gtsam_batch(run, idx, p, noise_m, cov, cfg), run.T_true)
         fig.gtsam_seconds = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        fig.gtsam_batch_cpu_s = all_cpu_seconds() - c0
+        t0, c0 = time.perf_counter(), all_cpu_seconds()
         on, fin = run_isam2(run, idx, p, noise_m, cov, cfg)
         fig.isam2_seconds = time.perf_counter() - t0
+        fig.isam2_cpu_s = all_cpu_seconds() - c0
         fig.isam2_online_m, fig.isam2_final_m = _rmse(on, run.T_true), _rmse(fin, run.T_true)
         if isam2_converged:
             on, _ = run_isam2(run, idx, p, noise_m, cov, cfg, converged=True)
@@ -310,13 +355,26 @@ def table(figs: list[FixBenchFigures]) -> str:
             f'{f.gtsam_batch_m:12.2f} {f.isam2_online_m:13.2f} {f.isam2_final_m:12.2f} '
             f'{f.ours_final_m / f.gtsam_batch_m:12.3f} {f.ours_online_m / f.isam2_online_m:13.3f}'
             f' {f.fix_outliers:6d} {f.isam2_converged_online_m:18.2f}')
+    lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
+              'worker): ga-ros online (the whole online run, as the replay runs it), ga-ros '
+              'final (refine_batch), GTSAM batch LM, GTSAM iSAM2 updated at each fix; ratio '
+              "ga-ros online / iSAM2. Mean update_ms of each quarter of the run's tracks.",
+              'interval  noise  ours-online-cpu  ours-final-cpu  gtsam-batch-cpu  isam2-cpu  '
+              'online/isam2  update-ms-by-quarter']
+    for f in figs:
+        lines.append(
+            f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_online_cpu_s:16.2f} '
+            f'{f.ours_final_cpu_s:15.2f} {f.gtsam_batch_cpu_s:16.2f} {f.isam2_cpu_s:10.2f} '
+            f'{f.ours_online_cpu_s / f.isam2_cpu_s:13.1f}  '
+            + ' / '.join(f'{q:.0f}' for q in f.update_ms_quarters))
     notes = sorted({n for f in figs for n in f.notes})
     return '\n'.join(lines + notes)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='ga-ros bench fixes', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 allow_abbrev=False)
     ap.add_argument('--data', default=str(DEFAULT_MAT), help='Plaza2_.mat')
     ap.add_argument('--intervals', default='10,30,60', help='fix intervals (s), comma-separated')
     ap.add_argument('--noise', default='2,5', help='fix noise (m per axis), comma-separated')
@@ -328,9 +386,11 @@ def main(argv: list[str] | None = None) -> int:
                     'heading drifts 5.4e-4 rad per step against the ground truth, 0.054 rad '
                     'per 10 s, one sigma of a random walk of 0.005 per step)')
     ap.add_argument('--window', type=int, default=5, help='tracks (fix intervals) in the window')
-    ap.add_argument('--refine-every', type=int, default=0,
+    ap.add_argument('--refine-every', type=int, default=None,
                     help="the aligner's refine_every_tracks (background refinement with the "
-                    'fixes; default 0: off)')
+                    "fixes; default: the aligner's, 1; 0: off)")
+    ap.add_argument('--executor', default=None, choices=('process', 'thread', 'inline'),
+                    help="the aligner's refine_executor (default: the aligner's, process)")
     ap.add_argument('--no-gtsam', action='store_true')
     ap.add_argument('--isam2-converged', action='store_true',
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
@@ -341,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     figs = [bench_fixes(float(i), float(s), args.seed, args.data, args.sigma_xy,
                         args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
-                        args.refine_every)
+                        args.refine_every, args.executor)
             for s in args.noise.split(',') for i in args.intervals.split(',')]
     if args.json:
         print(json.dumps([asdict(f) for f in figs]))

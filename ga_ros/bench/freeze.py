@@ -68,7 +68,7 @@ def _timed(owner, attr: str, totals: dict[str, float]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='ga-ros bench freeze', description=__doc__.splitlines()[0])
+        prog='ga-ros bench freeze', description=__doc__.splitlines()[0], allow_abbrev=False)
     add_survey_arguments(ap, tracks=12, positions=False)
     ap.add_argument('--refine', type=int, default=0, help='refine_every_tracks (0: off)')
     ap.add_argument('--seed', type=int, default=0)

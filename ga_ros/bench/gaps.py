@@ -49,7 +49,8 @@ def _line(label: str, session: AlignmentSession, seconds: float, ref_ids: np.nda
 
 def main(argv: list[str] | None = None) -> int:
     """``ga-ros bench gaps``: print the table of the module docstring."""
-    ap = argparse.ArgumentParser(prog='ga-ros bench gaps', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='ga-ros bench gaps', description=__doc__.split('\n')[0],
+                                 allow_abbrev=False)
     ap.add_argument('--lost', type=int, nargs='+', default=[200, 2000],
                     help='measurements lost, one run pair each (default: 200 2000)')
     ap.add_argument('--start', type=int, default=12022,

@@ -159,7 +159,7 @@ def _sksparse(variant: str, name: str, N: sp.csc_matrix, perm, repeat: int) -> F
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog='ga-ros bench linalg', description=__doc__.split('\n\n')[0])
+        prog='ga-ros bench linalg', description=__doc__.split('\n\n')[0], allow_abbrev=False)
     p.add_argument('--repeat', type=int, default=5)
     p.add_argument('--json', action='store_true')
     p.add_argument('--variant', choices=VARIANTS, help='run one variant in this process')

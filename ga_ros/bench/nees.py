@@ -106,7 +106,7 @@ def profile_lines(cells: dict[str, Cell], tracks: int, per_swath: int) -> list[s
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='ga-ros bench nees', description=__doc__.split('\n')[0])
+        prog='ga-ros bench nees', description=__doc__.split('\n')[0], allow_abbrev=False)
     ap.add_argument('--tracks', type=int, default=4)
     ap.add_argument('--per-swath', default='100,200,400', help='comma list of poses per swath')
     ap.add_argument('--noise', default='1,5,10', help='comma list of noise levels (percent)')

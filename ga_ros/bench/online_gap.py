@@ -45,7 +45,7 @@ def _policy_config(name: str, window: int, every: int, lag: int,
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='ga-ros bench online-gap', description=__doc__.splitlines()[0])
+        prog='ga-ros bench online-gap', description=__doc__.splitlines()[0], allow_abbrev=False)
     add_survey_arguments(ap, tracks=8)
     ap.add_argument('--seed', type=int, default=20051101, help='master seed')
     ap.add_argument('--seeds', type=int, default=1,

@@ -157,7 +157,7 @@ def run_method(method: str, sc: Scenario, z: FloatArray, cov: FloatArray, bad: B
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='ga-ros bench outliers',
-                                description=__doc__.split('\n\n')[0])
+                                description=__doc__.split('\n\n')[0], allow_abbrev=False)
     p.add_argument('--tracks', type=int, default=6, help='double tracks (default 6)')
     p.add_argument('--positions', type=int, default=40, help='positions per swath (default 40)')
     p.add_argument('--noise', type=float, default=2.0, help='motion noise %% (default 2)')

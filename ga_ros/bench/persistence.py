@@ -75,7 +75,7 @@ def _bench(label: str, n_tracks: int, per_swath: int, full_replay: bool) -> None
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='ga-ros bench persistence', description=__doc__.splitlines()[0])
+        prog='ga-ros bench persistence', description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument('--full-replay', action='store_true',
                     help='also recover the aerial survey from its journal alone (real updates)')
     ap.add_argument('--no-large', action='store_true', help='skip the ~100k-node survey')

@@ -23,7 +23,7 @@ from ga_ros.geometry import se3
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog='ga-ros bench prior', description=__doc__.splitlines()[0])
+        prog='ga-ros bench prior', description=__doc__.splitlines()[0], allow_abbrev=False)
     add_survey_arguments(ap, tracks=10)
     ap.add_argument('--policy', default='weighted', choices=tuple(FREEZE_POLICIES))
     ap.add_argument('--seed', type=int, default=1)

@@ -521,7 +521,7 @@ def print_table(fig: ScaleFigures) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog='ga-ros bench scale', description=__doc__.split('\n\n')[0])
+        prog='ga-ros bench scale', description=__doc__.split('\n\n')[0], allow_abbrev=False)
     p.add_argument('--tracks', type=int, default=100, help='double tracks (default 100)')
     p.add_argument('--positions-per-swath', type=int, default=500,
                    help='poses per swath; a double track has twice as many (default 500)')

@@ -64,7 +64,8 @@ def make_pairs(n: int, seed: int = 6) -> tuple[list[ImagePair], CameraModel, Cam
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='ga-ros bench stereo-throughput', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 allow_abbrev=False)
     ap.add_argument('--pairs', type=int, default=120)
     ap.add_argument('--no-cross', action='store_true', help='without cross-track matching')
     ap.add_argument('--profile', action='store_true', help='print the top of a profile')

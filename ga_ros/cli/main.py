@@ -3,8 +3,10 @@
 Each module in :mod:`ga_ros.cli.commands` defines ``register(subparsers) -> None``, which adds one
 subcommand whose parser has ``set_defaults(func=run)`` with ``run(args) -> int``; the command
 ``foo-bar`` lives in module ``foo_bar``, so a command line that names one imports only that module
-(start-up of ``ga-ros solve`` is not paid for the ROS replay stack). Errors derived from
-:class:`ga_ros.errors.GaError` become a one-line message and exit code 1.
+(start-up of ``ga-ros solve`` is not paid for the ROS replay stack), and ``ga-ros --help``
+lists the commands from :data:`ga_ros.cli.commands.SUMMARIES` without importing any of them
+(nor NumPy). Errors derived from :class:`ga_ros.errors.GaError` become a one-line message and
+exit code 1.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ import sys
 from ga_ros import __version__
 from ga_ros.cli import commands
 from ga_ros.errors import GaError, UsageError
-from ga_ros.runtime import limit_blas_threads
 
 
 def command_modules() -> list[str]:
@@ -27,29 +28,45 @@ def command_modules() -> list[str]:
     return sorted(m.name for m in pkgutil.iter_modules(commands.__path__))
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The ``ga-ros`` parser with every subcommand, or only ``command`` when it names one."""
-    parser = argparse.ArgumentParser(
-        prog='ga-ros',
-        description='Global alignment of sensor trajectories from noisy motion measurements.')
-    parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
-    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+def command_module(command: str | None) -> str | None:
+    """The module of :mod:`ga_ros.cli.commands` that holds ``command`` (``None``: no such
+    command, or no command given), found without importing it."""
     name = '' if command is None else command.replace('-', '_')
     if (name.isidentifier() and not name.startswith('_')
             and importlib.util.find_spec(f'{commands.__name__}.{name}') is not None):
-        names = [name]  # the command named: no listing of the package (pkgutil)
-    else:
-        names = command_modules()
-    for name in names:
-        module = importlib.import_module(f'{commands.__name__}.{name}')
+        return name
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``ga-ros`` parser with ``command`` in full when it names one; otherwise every command
+    listed with its summary (:data:`~ga_ros.cli.commands.SUMMARIES`), none imported (a module
+    without a summary is imported and registers itself)."""
+    parser = argparse.ArgumentParser(
+        prog='ga-ros',
+        description='Global alignment of sensor trajectories from noisy motion measurements.',
+        allow_abbrev=False)
+    parser.add_argument('--version', action='version', version=f'ga-ros {__version__}')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    name = command_module(command)
+    for module_name in [name] if name else command_modules():
+        summary = commands.SUMMARIES.get(module_name.replace('_', '-'))
+        if name is None and summary is not None:  # listed only: ``ga-ros --help``, a typo
+            sub.add_parser(module_name.replace('_', '-'), help=summary, add_help=False,
+                           allow_abbrev=False)
+            continue
+        module = importlib.import_module(f'{commands.__name__}.{module_name}')
         if hasattr(module, 'register'):
             module.register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    _blas = limit_blas_threads()  # noqa: F841 (kept alive for the whole command)
     argv = list(sys.argv[1:] if argv is None else argv)
+    if command_module(argv[0] if argv else None) is not None:  # a command runs: limit BLAS
+        from ga_ros.runtime import limit_blas_threads  # (loads NumPy's, SciPy's, CHOLMOD's)
+
+        _blas = limit_blas_threads()  # noqa: F841 (kept alive for the whole command)
     parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     if not getattr(args, 'func', None):

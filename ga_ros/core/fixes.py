@@ -45,7 +45,7 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.stats import chi2
 
-from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.solver import GaussianPrior, SolveResult
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3, so3
@@ -272,6 +272,7 @@ class FixBook:
         self.terms: list[FixTerm] = []
         self.info: list[FloatArray] = []  # information with the offset's covariance
         self.rows: list[int] = []  # aligner node row of each term
+        self._of_row: dict[int, list[int]] = {}  # node row -> its fixes (increasing index)
         self.status = np.zeros(0, dtype=np.int8)  # 0 used, 2 excluded (replaced, never in place)
         self.gated = np.zeros(0, dtype=bool)  # never gated (the gauge prior)
         self.stats = FixStats()
@@ -287,6 +288,7 @@ class FixBook:
         """Store a fix of node row ``row`` with its (map-frame) information."""
         self.terms.append(term)
         self.info.append(np.asarray(information, float))
+        self._of_row.setdefault(int(row), []).append(len(self.rows))
         self.rows.append(int(row))
         self.status = np.append(self.status, np.int8(0))
         self.gated = np.append(self.gated, bool(gated))
@@ -295,15 +297,27 @@ class FixBook:
 
     def _by_row(self, rows: IntArray, active: bool = True, count: int | None = None
                 ) -> dict[int, list[int]]:
-        want = set(np.asarray(rows, np.int64).tolist())
+        """The (used, if ``active``) fixes of the node ``rows`` among the first ``count``, by
+        row (each list in increasing fix index): a look-up per row asked for, nothing of the
+        book's size."""
         status = self.status  # a fix added meanwhile (another thread) appends its status last
         n = min(len(self.rows), status.size, len(self.info))
         n = n if count is None else min(n, int(count))
         out: dict[int, list[int]] = {}
-        for f, r in enumerate(self.rows[:n]):
-            if r in want and (not active or status[f] == 0):
-                out.setdefault(r, []).append(f)
+        for r in set(np.asarray(rows, np.int64).tolist()):
+            fs = [f for f in self._of_row.get(r, ()) if f < n and (not active or status[f] == 0)]
+            if fs:
+                out[r] = fs
         return out
+
+    def of_rows(self, rows: IntArray) -> list[int]:
+        """Indices (increasing) of every fix (used or excluded) of the node ``rows``."""
+        return sorted(f for r in set(np.asarray(rows, np.int64).tolist())
+                      for f in self._of_row.get(r, ()))
+
+    def has_fix(self, rows: IntArray) -> BoolArray:
+        """``(k,)`` whether each of the node ``rows`` has a fix (used or excluded)."""
+        return np.array([int(r) in self._of_row for r in np.asarray(rows).tolist()], dtype=bool)
 
     def used(self, rows: IntArray, count: int | None = None) -> IntArray:
         """Indices (increasing) of the used (not excluded) fixes of the node rows ``rows``,
@@ -343,9 +357,9 @@ class FixBook:
         status = self.status.copy()
         worst, worst_ratio = -1, 1.0
         scale = max(1.0, float(variance_factor)) if np.isfinite(variance_factor) else 1.0
-        for f, r in enumerate(self.rows):
-            a = pos.get(r)
-            if a is None or not self.gated[f] or f in excluded_now:
+        for f in self.of_rows(rows):  # in fix order, as a scan of the whole book would
+            a = pos[self.rows[f]]
+            if not self.gated[f] or f in excluded_now:
                 continue
             term = self.terms[f]
             known = term.fix.known
@@ -403,6 +417,7 @@ class FixBook:
             book.terms.append(FixTerm(int(arrays['fix_node_ids'][f]),
                                       np.array(arrays['fix_offset'][f], float), fix))
             book.info.append(np.array(arrays['fix_info'][f], float))
+            book._of_row.setdefault(int(arrays['fix_rows'][f]), []).append(len(book.rows))
             book.rows.append(int(arrays['fix_rows'][f]))
         book.status = np.asarray(arrays['fix_status'], np.int8).copy()
         book.gated = np.asarray(arrays['fix_gated'], bool).copy()
@@ -442,7 +457,7 @@ class FixBook:
         marginal covariances (under ``lock``, if given: the factor may be shared)."""
         if not self.terms or self.gate_prob <= 0:
             return False
-        with_fix = np.isin(nodes, np.asarray(self.rows, np.int64))
+        with_fix = self.has_fix(nodes)
         free = np.isin(np.asarray(ids)[nodes], res.free_node_ids) & ~frozen[nodes]
         sel = np.nonzero(free & with_fix)[0]
         if sel.size == 0:

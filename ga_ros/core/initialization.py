@@ -16,8 +16,9 @@ Three methods, all on plain arrays (vertex indices, measured motions ``T_i_j``, 
   three (2-D: two) sparse least-squares problems sharing one normal matrix. Each solution is
   projected to SO(d) by SVD. Given those rotations, the translations solve the linear
   least-squares problem ``t_j - t_i = R_i t_ij`` weighted by the translation information
-  rotated to the world frame. Both systems are sparse (``d n x d n``) and solved by SciPy's
-  sparse LU; nothing dense of size ``n x n`` is formed. It uses every edge, so one bad chain
+  rotated to the world frame. Both systems are sparse (``d n x d n``, the graph's block
+  pattern) and solved by the solver's sparse Cholesky; nothing dense of size ``n x n`` is
+  formed. It uses every edge, so one bad chain
   edge does not bend the whole graph, and it is the standard start for the global optimum.
 
 2-D graphs run the same code with ``d = 2`` (rotation about ``z``).
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.network import component_labels
 from ga_ros.errors import DegenerateGeometryError, InputError, NetworkError
 from ga_ros.geometry import se3
 from ga_ros.runtime import lazy_import
@@ -165,12 +167,24 @@ def _project_rotations(M: FloatArray) -> FloatArray:
     return U @ Vt
 
 
-def _solve_free(N: sp.spmatrix, b: FloatArray, what: str) -> FloatArray:
-    try:
-        from scipy.sparse.linalg import splu  # lazy: chordal initialisation only
+def _solve_free(free: _FreeVertices, src: IntArray, dst: IntArray, blocks: FloatArray,
+                b: FloatArray, d: int, what: str) -> FloatArray:
+    """Solve the normal equations ``N x = b`` of a chordal system for the free vertices.
 
-        x = splu(sp.csc_matrix(N)).solve(b)
-    except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
+    ``N`` is given by ``(m, 4, d, d)`` blocks per edge ``k = (i, j)``: ``N_ii``, ``N_jj``,
+    ``N_ij`` and ``N_ji`` (blocks of the datum dropped), summed into the graph's block pattern
+    and factored by the solver's sparse Cholesky (:mod:`ga_ros.core.linalg.cholesky`; no SciPy
+    on a solve's path). ``b``: ``(d nf,)`` or ``(d nf, k)``."""
+    from ga_ros.core.linalg.blocks import BlockPattern
+    from ga_ros.core.linalg.cholesky import SparseCholesky
+
+    i, j = free.index[src], free.index[dst]
+    rows = np.stack([i, j, i, j], axis=1).ravel()
+    cols = np.stack([i, j, j, i], axis=1).ravel()
+    pattern = BlockPattern(rows, cols, d, free.others.size)
+    try:
+        x = SparseCholesky(pattern, pattern.assemble(blocks.reshape(-1, d, d))).solve(b)
+    except DegenerateGeometryError as exc:
         raise DegenerateGeometryError(f'chordal initialisation: the {what} system is '
                                       f'singular ({exc}); is every vertex connected to the '
                                       f'datum?') from None
@@ -203,32 +217,23 @@ class _FreeVertices:
         return cls(root, others, index)
 
 
-def _incidence(edges: PoseGraphEdges, free: _FreeVertices, blocks_i: FloatArray,
-               blocks_j: FloatArray) -> sp.csr_matrix:
-    """Sparse ``(d m, d nf)`` matrix with block ``blocks_i[k]`` at (k, i), ``blocks_j[k]`` at
-    (k, j) for each edge ``k = (i, j)``; blocks of the root are dropped (they go to the
-    right-hand side)."""
-    d, m, nf = edges.dim, len(edges.src), free.others.size
-    a = np.arange(d)
-    rows, cols, vals = [], [], []
-    for ends, B in ((np.asarray(edges.src), blocks_i), (np.asarray(edges.dst), blocks_j)):
-        k = np.flatnonzero(free.index[ends] >= 0)
-        r = (k[:, None, None] * d + a[None, :, None]).repeat(d, axis=2)
-        c = (free.index[ends[k]][:, None, None] * d + a[None, None, :]).repeat(d, axis=1)
-        rows.append(r.ravel())
-        cols.append(c.ravel())
-        vals.append(B[k].ravel())
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(d * m, d * nf))
-
-
-def _block_diagonal(blocks: FloatArray) -> sp.csr_matrix:
-    """Sparse ``(d m, d m)`` block-diagonal matrix of ``(m, d, d)`` blocks."""
-    m, d = blocks.shape[:2]
-    k, a = np.arange(m), np.arange(d)
-    rows = (k[:, None, None] * d + a[None, :, None]).repeat(d, axis=2).ravel()
-    cols = (k[:, None, None] * d + a[None, None, :]).repeat(d, axis=1).ravel()
-    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(d * m, d * m))
+def _normal_system(free: _FreeVertices, src: IntArray, dst: IntArray, B_i: FloatArray,
+                   B_j: FloatArray, W: FloatArray, rhs: FloatArray) -> tuple[FloatArray,
+                                                                            FloatArray]:
+    """The normal equations of the weighted least squares ``B_i[k] x_i + B_j[k] x_j =
+    rhs[k]`` (weight ``W[k]``, ``(m, d, d)``) over the free vertices: the ``(m, 4, d, d)``
+    blocks ``N_ii, N_jj, N_ij, N_ji`` of each edge for :func:`_solve_free` and ``b = A' W rhs``
+    of shape ``(d nf, k)`` (``rhs``: ``(m, d, k)``; a datum's unknown is known and already
+    moved into ``rhs``)."""
+    d, nf = W.shape[1], free.others.size
+    Bi_t, Bj_t = np.swapaxes(B_i, 1, 2), np.swapaxes(B_j, 1, 2)
+    WBi, WBj = W @ B_i, W @ B_j
+    blocks = np.stack([Bi_t @ WBi, Bj_t @ WBj, Bi_t @ WBj, Bj_t @ WBi], axis=1)
+    Wr = W @ rhs
+    b = np.zeros((nf + 1, d, rhs.shape[2]))  # row nf collects the datum's (dropped) terms
+    np.add.at(b, free.index[src], Bi_t @ Wr)
+    np.add.at(b, free.index[dst], Bj_t @ Wr)
+    return blocks, b[:nf].reshape(nf * d, -1)
 
 
 def _chordal_rotations(edges: PoseGraphEdges, free: _FreeVertices, R_ij: FloatArray,
@@ -241,12 +246,11 @@ def _chordal_rotations(edges: PoseGraphEdges, free: _FreeVertices, R_ij: FloatAr
     m, nf = src.size, free.others.size
     eye = np.broadcast_to(np.eye(d), (m, d, d))
     R_ij_t = np.swapaxes(R_ij, 1, 2)
-    A = _incidence(edges, free, -R_ij_t, eye)
     rhs = np.zeros((m, d, d))
     rhs[src == root] += R_ij_t[src == root]   # -(-R_ij' I)
     rhs[dst == root] -= eye[dst == root]      # -(I I)
-    Wr = sp.diags(np.repeat(w, d))
-    y = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m, d)), 'rotation')
+    blocks, b = _normal_system(free, src, dst, -R_ij_t, eye, w[:, None, None] * eye, rhs)
+    y = _solve_free(free, src, dst, blocks, b, d, 'rotation')
     R = np.empty((n, d, d))
     R[root] = np.eye(d)
     R[free.others] = np.swapaxes(y.reshape(nf, d, d), 1, 2)
@@ -258,16 +262,15 @@ def _chordal_translations(edges: PoseGraphEdges, free: _FreeVertices, R: FloatAr
     """Translations ``t_world_node (n, d)`` given the rotations ``R``: the least squares
     ``t_j - t_i = R_i t_ij`` weighted by ``R_i I_t R_i'`` (``t_root = 0``)."""
     n, d = edges.n, edges.dim
-    src = np.asarray(edges.src)
+    src, dst = np.asarray(edges.src), np.asarray(edges.dst)
     m, nf = src.size, free.others.size
     eye = np.broadcast_to(np.eye(d), (m, d, d))
-    A = _incidence(edges, free, -eye, eye)
-    rhs = (R[src] @ t_ij[:, :, None])[:, :, 0]
+    rhs = R[src] @ t_ij[:, :, None]
     W_blocks = R[src] @ I_t @ np.swapaxes(R[src], 1, 2)
-    Wr = _block_diagonal(0.5 * (W_blocks + np.swapaxes(W_blocks, 1, 2)))
+    blocks, b = _normal_system(free, src, dst, -eye, eye,
+                               0.5 * (W_blocks + np.swapaxes(W_blocks, 1, 2)), rhs)
     t = np.zeros((n, d))
-    t[free.others] = _solve_free(A.T @ Wr @ A, A.T @ (Wr @ rhs.reshape(d * m)), 'translation'
-                                 ).reshape(nf, d)
+    t[free.others] = _solve_free(free, src, dst, blocks, b, d, 'translation').reshape(nf, d)
     return t
 
 
@@ -290,15 +293,13 @@ def chordal_initialization(edges: PoseGraphEdges, root: int = 0) -> FloatArray:
     DegenerateGeometryError
         The sparse systems cannot be solved.
     """
-    from scipy.sparse.csgraph import breadth_first_order  # lazy: start-up
-
     n, d = edges.n, edges.dim
-    src, dst = np.asarray(edges.src), np.asarray(edges.dst)
-    _check_reached(breadth_first_order(
-        sp.coo_matrix((np.ones(src.size), (src, dst)), shape=(n, n)).tocsr(), root,
-        directed=False, return_predecessors=False), n)
+    labels = component_labels(n, edges.src, edges.dst)
+    _check_reached(np.flatnonzero(labels == labels[root]), n)
     R_ij, t_ij, w, I_t = edges.blocks()
     free = _FreeVertices.of(n, root)
+    if free.others.size == 0:  # the datum alone
+        return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     R = _chordal_rotations(edges, free, R_ij, w)
     T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     T[:, :d, :d] = R

@@ -45,15 +45,37 @@ _JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_scratch',
            '_misclosure_one', '_se3_system', '_se3_misclosure')
 
 
+_UNCACHED: list[str] = []  # the functions compiled without an on-disk cache (warned once)
+
+
+def jit(fn):
+    """``fn`` compiled by numba (``nogil``), its machine code cached on disk so that the next
+    process loads it instead of compiling (numba's cache: ``$NUMBA_CACHE_DIR``, else the
+    ``__pycache__`` beside the source, else ``~/.cache/numba`` for a read-only install). When
+    none of them is writable, ``fn`` is compiled without a cache (once per process, warned)
+    rather than failing. Every compiled kernel of ga_ros is made here."""
+    import numba
+
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
+        if not _UNCACHED:
+            import warnings
+
+            warnings.warn(f'numba cannot cache the compiled kernels ({exc}); they are compiled '
+                          f'in every process (seconds of start-up): set NUMBA_CACHE_DIR to a '
+                          f'writable directory', RuntimeWarning, stacklevel=2)
+        _UNCACHED.append(fn.__qualname__)
+        return numba.njit(nogil=True)(fn)
+
+
 def _compile() -> None:
     """Replace the kernels of this module by their numba versions (once; cached on disk)."""
     if hasattr(_se3_system, 'py_func'):
         return
-    import numba
-
     g = globals()
     for name in _JITTED:
-        g[name] = numba.njit(cache=True, nogil=True)(g[name])
+        g[name] = jit(g[name])
 
 
 def use_for(n_connections: int) -> bool:

@@ -2,7 +2,7 @@
 
 Each model evaluates, for ``m`` connections at the linearisation point ``(l0, x0)``,
 the misclosure ``f`` and the Jacobians ``A = df/dx`` (w.r.t. the two nodes) and ``B = df/dl``
-(METHOD.md Sec. 2, paper eqs. 6-8).
+(docs/method.md Sec. 2, paper eqs. 6-8).
 
 * ``se3`` (product default): unknowns are full poses ``T_i`` (6 per node, right perturbation
   ``T_i exp(d_i)``, ``d = [rho, phi]``); the observation is the motion ``T_ij`` parametrised by its

@@ -302,7 +302,7 @@ def integrate(T_first: FloatArray, motions: FloatArray) -> FloatArray:
 def misclosure(T_meas: FloatArray, T_world_i: FloatArray, T_world_j: FloatArray) -> FloatArray:
     """Misclosure ``e = log(T_meas^-1 T_i^-1 T_j)`` of measured motions at given poses.
 
-    The between-factor error of g2o / GTSAM and the ``se3`` model's ``f`` (METHOD.md Sec. 1):
+    The between-factor error of g2o / GTSAM and the ``se3`` model's ``f`` (docs/method.md Sec. 1):
     zero when the poses agree with the measurement, in the right-perturbation tangent of the
     measurement, ROS order ``[x y z rx ry rz]`` (m, rad).
 

@@ -6,7 +6,10 @@ match alike:
 * **pairing** of left and right images with ONE tolerance (``max_pair_dt_sec``); unpaired images
   older than a pair are dropped, at most ``max_pending`` wait per side (:meth:`pair_image`,
   cheap, then :meth:`process_pair`; :meth:`add_image` does both; ``vo_node`` queues the pairs
-  in between);
+  in between); a pair completed before the calibration (its ``CameraInfo``, of the same stamp,
+  arriving just after the images) waits for it (:meth:`hold_until_calibrated`,
+  :meth:`release_held`), so that the arrival order of images and ``CameraInfo`` changes
+  nothing;
 * **accounting**: every pair is counted once, as a measurement or under the reason it gave
   none (:class:`StereoStats`);
 * **decoding** of ``Image`` (mono8/16, bgr8/8UC3, rgb8, bgra8, rgba8) and ``CompressedImage``
@@ -21,6 +24,10 @@ match alike:
   (:meth:`set_extrinsic`, :class:`ga_ros.core.extrinsic.Extrinsic`: ``/tf_static``, parameters
   or the identity) every measurement is converted to the robot's ``base_link`` motion (and
   covariance) before it leaves, and :meth:`base_pose` gives the frame's ``T_odom_base``;
+* **keyframe clouds** on request (:meth:`StereoFrontEnd.keyframe_cloud`, for map building):
+  the dense stereo points of a new keyframe's rectified pair (:class:`ga_ros.vo.dense.DenseStereo`,
+  settings ``cloud``); never computed unless asked (it costs CPU), and the VO's outputs are the
+  same whether asked or not;
 * **feedback** of the corrected path (:meth:`set_corrected`, or :meth:`set_corrected_by_stamp`
   for a ``nav_msgs/Path`` whose poses carry the keyframe stamps).
 
@@ -44,6 +51,7 @@ from ga_ros.errors import GaError, InputError
 from ga_ros.pipeline.params import config_from_params
 from ga_ros.vo.calibration import CameraModel, StereoCalibration
 from ga_ros.vo.crosstrack import CrossAttempt, CrossTrackConfig, CrossTrackMatcher
+from ga_ros.vo.dense import DenseStereo, DenseStereoConfig, StereoCloud
 from ga_ros.vo.messages import camera_info_to_model, image_to_grey, same_model
 from ga_ros.vo.odometry import StereoFrame, StereoOdometry, VoConfig, VoResult
 
@@ -77,6 +85,8 @@ class FrontEndConfig:
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
     max_pending : unpaired images kept per side before the oldest is dropped.
     extrinsic : where the camera's pose in ``base_link`` comes from.
+    cloud : dense stereo of the keyframe clouds (:meth:`StereoFrontEnd.keyframe_cloud`;
+        parameters ``cloud_`` + :class:`ga_ros.vo.dense.DenseStereoConfig` fields).
     """
 
     vo: VoConfig = field(default_factory=VoConfig)
@@ -86,6 +96,7 @@ class FrontEndConfig:
     max_pair_dt_sec: float = 0.005
     max_pending: int = 50
     extrinsic: ExtrinsicConfig = field(default_factory=ExtrinsicConfig)
+    cloud: DenseStereoConfig = field(default_factory=DenseStereoConfig)
 
 
 #: Parameters of ``config/vo.yaml`` that only ``vo_node`` uses (topics, frames, queues): the replay
@@ -95,13 +106,15 @@ NODE_ONLY_PARAMS = frozenset({
     'measurements_topic', 'odometry_topic', 'path_topic', 'track_boundary_topic',
     'debug_image_topic', 'publish_debug_image', 'odom_frame', 'image_queue', 'pair_queue',
     'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec', 'publish_odom_tf',
-    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction', 'idle_end_track_s'})
+    'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction', 'idle_end_track_s',
+    'keyframe_cloud_topic', 'publish_keyframe_cloud'})
 
 
 def front_end_config_from_params(params: Mapping[str, Any],
                                  base: FrontEndConfig | None = None) -> FrontEndConfig:
     """:class:`FrontEndConfig` from ``vo_node``'s parameters (``config/vo.yaml`` names: the
-    :class:`VoConfig` fields, ``cross_`` + :class:`CrossTrackConfig` fields, ``cross_track``,
+    :class:`VoConfig` fields, ``cross_`` + :class:`CrossTrackConfig` fields, ``cloud_`` +
+    :class:`ga_ros.vo.dense.DenseStereoConfig` fields, ``cross_track``,
     ``max_pair_dt_sec``; :data:`NODE_ONLY_PARAMS` are ignored), over ``base``.
 
     Raises
@@ -113,10 +126,12 @@ def front_end_config_from_params(params: Mapping[str, Any],
     vo, used_vo = config_from_params(VoConfig, params, base=base.vo)
     cross, used_cross = config_from_params(CrossTrackConfig, params, 'cross_', base=base.cross)
     ext, used_ext = config_from_params(ExtrinsicConfig, params, base=base.extrinsic)
+    cloud, used_cloud = config_from_params(DenseStereoConfig, params, 'cloud_', base=base.cloud)
     rest = {k: v for k, v in params.items() if k in ('cross_track', 'max_pair_dt_sec')}
     top, used_top = config_from_params(FrontEndConfig, rest, base=replace(
-        base, vo=vo, cross=cross, extrinsic=ext))
-    unknown = set(params) - used_vo - used_cross - used_ext - used_top - NODE_ONLY_PARAMS
+        base, vo=vo, cross=cross, extrinsic=ext, cloud=cloud))
+    unknown = (set(params) - used_vo - used_cross - used_ext - used_cloud - used_top
+               - NODE_ONLY_PARAMS)
     if unknown:
         raise InputError(f'unknown VO parameter(s) {", ".join(sorted(unknown))}; the names are '
                          'those of config/vo.yaml')
@@ -221,7 +236,9 @@ class StereoFrontEnd:
         self.calibration: StereoCalibration | None = None
         self._models: dict[str, CameraModel] = {}
         self._pending: dict[str, dict[int, Any]] = {'left': {}, 'right': {}}
+        self._held: list[ImagePair] = []  # pairs completed before the calibration
         self._stamp_to_node: dict[int, int] = {}
+        self._dense: DenseStereo | None = None  # built at the first keyframe cloud
         #: the camera's pose in ``base_link`` (None: not resolved yet, the identity is used)
         self.extrinsic: Extrinsic | None = None
 
@@ -298,9 +315,41 @@ class StereoFrontEnd:
     # ------------------------------------------------------------------ images
     def add_image(self, side: str, msg: Any) -> list[FrameOutput]:
         """Add one image message of ``side`` (``'left'``/``'right'``); process the pair it
-        completes, if any (a list of at most one output)."""
+        completes, if any (a list of at most one output; none while the pair waits for the
+        calibration: :meth:`release_held` gives it once that has come)."""
         pair = self.pair_image(side, msg)
-        return [] if pair is None else [self.process_pair(pair)]
+        if pair is None or self.hold_until_calibrated(pair):
+            return []
+        return [self.process_pair(pair)]
+
+    def hold_until_calibrated(self, pair: ImagePair) -> bool:
+        """Keep a pair completed before the calibration; True when kept (the caller gets it
+        back from :meth:`release_held`), False when the calibration is there (process it).
+
+        At most ``max_pending`` pairs wait; an older one is then counted under
+        :data:`NO_CAMERA_INFO` and forgotten.
+        """
+        if self.odometry is not None:
+            return False
+        self._held.append(pair)
+        while len(self._held) > self.config.max_pending:
+            self._held.pop(0)
+            self._reason(NO_CAMERA_INFO)
+        return True
+
+    @property
+    def n_held(self) -> int:
+        """Pairs waiting for the calibration (:meth:`hold_until_calibrated`)."""
+        return len(self._held)
+
+    def release_held(self, final: bool = False) -> list[ImagePair]:
+        """The pairs kept by :meth:`hold_until_calibrated`, oldest first, once the calibration
+        is there (else none); ``final``: all of them whatever the calibration (the end of the
+        input: :meth:`process_pair` then counts each under :data:`NO_CAMERA_INFO`)."""
+        if self.odometry is None and not final:
+            return []
+        held, self._held = sorted(self._held, key=lambda p: p.stamp_ns), []
+        return held
 
     def pair_image(self, side: str, msg: Any) -> ImagePair | None:
         """Pair one image message of ``side`` with a waiting one of the other side (cheap: no
@@ -396,6 +445,26 @@ class StereoFrontEnd:
         self.stats.cross_accepted += sum(a.accepted and a.measurement is not None
                                          for a in attempts)
         return attempts
+
+    def keyframe_cloud(self, frame: FrameOutput) -> StereoCloud | None:
+        """Dense stereo points of the frame's new keyframe, in the left camera's optical frame
+        (m; :class:`ga_ros.vo.dense.DenseStereo` on the rectified pair, settings
+        ``config.cloud``); None when the frame made no keyframe. Reads the frame's images only:
+        the VO's state and outputs are unchanged.
+
+        Raises
+        ------
+        InputError
+            The frame's images do not match the calibration.
+        """
+        res = frame.result
+        if (res is None or res.keyframe is None or self.calibration is None
+                or frame.left is None or frame.right is None):
+            return None
+        if self._dense is None:
+            self._dense = DenseStereo(self.config.cloud)
+        left, right = self.calibration.rectify(frame.left, frame.right)
+        return self._dense.cloud(left, right, self.calibration)
 
     # ------------------------------------------------------------------ feedback, control
     def set_corrected(self, node_ids: IntArray, T_world_node: FloatArray) -> None:

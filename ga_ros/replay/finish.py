@@ -76,9 +76,9 @@ def finish(run: ReplayRun) -> None:
     counts = run.session.counts
     res.gaps = {'bridges': counts.bridges, 'reversed_measurements': counts.reversed,
                 'unjoined_nodes': traj.node_ids[run.session.unjoined(traj.node_ids)].tolist()}
-    if run.config.tf and run.odom is not None and run.odom.T_map_odom is not None:
-        run.out.map_to_odom(run.odom.T_map_odom, run.last_ns + run.stamp_offset_ns,
-                            run.last_ns)   # the final correction, at the end
+    if run.config.tf and run.odom is not None and run.odom.latest() is not None:
+        run.out.map_to_odom(run.odom.T_map_odom,   # the final correction, at the end
+                            run.odom.stamp(run.last_ns + run.stamp_offset_ns), run.last_ns)
     run.markers(traj, everything=True)
     res.n_nodes = len(traj)
     res.n_tracks = int(np.unique(traj.track_ids).size)
@@ -269,3 +269,19 @@ def frames_summary(run: ReplayRun) -> dict[str, Any]:
                         f'{config.outputs.map_frame} -> {config.outputs.odom_frame})')
     out['warnings'] = [w for w in warnings if 'DEFAULT covariance' not in w]
     return out
+
+
+def map_to_odom_summary(run: ReplayRun) -> None:
+    """After the final outputs: how the map was placed (``summary.json``'s
+    ``frames.map_to_odom``, :meth:`MapToOdom.diagnostic_values`) and, when ``map -> odom``
+    jumped beyond the fixes' uncertainty, a warning (printed, and in ``frames.warnings``)."""
+    if run.odom is None:
+        return
+    res = run.result
+    res.frames['map_to_odom'] = {k.split('/', 1)[1]: v
+                                 for k, v in run.odom.diagnostic_values().items()}
+    if run.odom.jumps_warned:
+        text = (f"map -> odom jumped beyond the fixes' uncertainty {run.odom.jumps_warned} "
+                f'time(s); the last: {run.odom.last_warning}')
+        res.frames.setdefault('warnings', []).append(text)
+        res.warnings.append(text)

@@ -229,6 +229,13 @@ class ReplayOutputs:
         msg = tf_message([transform_msg(c.map_frame, c.odom_frame, T_map_odom, stamp_ns)])
         self.bag.write(c.tf_topic, 'tf2_msgs/msg/TFMessage', msg, log_ns)
 
+    def odom_to_base(self, T_odom_base: FloatArray, stamp_ns: int, log_ns: int) -> None:
+        """REP 105 ``odom_frame -> sensor_frame`` (the odometry's pose of the robot) on
+        ``tf_topic``."""
+        c = self.config
+        msg = tf_message([transform_msg(c.odom_frame, c.sensor_frame, T_odom_base, stamp_ns)])
+        self.bag.write(c.tf_topic, 'tf2_msgs/msg/TFMessage', msg, log_ns)
+
     def earth_to_map(self, T_earth_map: FloatArray, stamp_ns: int, log_ns: int,
                      earth_frame: str = 'earth') -> None:
         """REP 105 ``earth -> map_frame`` (ECEF to the map frame) on ``tf_static_topic``."""

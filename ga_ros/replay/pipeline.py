@@ -36,10 +36,16 @@ from pathlib import Path
 
 from ga_ros.errors import FormatError
 from ga_ros.io.bag import BagReader
+from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
-from ga_ros.replay.finish import finish, finish_stationary, frames_summary
+from ga_ros.replay.finish import (
+    finish,
+    finish_stationary,
+    frames_summary,
+    map_to_odom_summary,
+)
 from ga_ros.replay.outputs import ReplayOutputs
 from ga_ros.replay.plan import ReplaySource, open_source, plan_replay
 from ga_ros.replay.result import ReplayResult, plain_fields
@@ -53,7 +59,8 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
 
     Parameters
     ----------
-    bag_path : rosbag2 directory or ``.mcap`` / ``.db3`` file.
+    bag_path : rosbag2 directory, ``.mcap`` / ``.db3`` / ROS 1 ``.bag`` file, or a EuRoC ASL /
+        KITTI odometry folder (:func:`ga_ros.io.folder_bag.open_recording`).
     out_dir : output directory (created; files in it are replaced).
     config : see :class:`ReplayConfig`.
     aligner_factory : builds the aligner from the datum ``T_world_first`` (default:
@@ -74,7 +81,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
     """
     t0 = time.perf_counter()
     bag_path = Path(bag_path)
-    with BagReader(bag_path) as bag:
+    with open_recording(bag_path) as bag:
         assert bag.info is not None
         plan, specs = plan_replay(bag.info, config)
         factory = aligner_factory or default_aligner_factory(config.aligner,
@@ -86,7 +93,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         outputs = ReplayOutputs(out_dir, config.outputs)
         run = ReplayRun(config, factory, outputs, result, source.ground_truth, source.match_by)
         run.source = source.items
-        if specs and config.tf:
+        if config.tf and hasattr(source.items, 'passthrough'):  # the input's TF copied
             source.items.passthrough = run.copy_tf
         try:
             _read_all(run, source, bag)
@@ -155,6 +162,7 @@ def _conclude(run: ReplayRun, source: ReplaySource, bag_path: Path) -> None:
         result.error = (f'{bag_path}: no valid measurements in {counter[0]} '
                         f'{source.unit}s' + (f' ({examples})' if examples else ''))
     finish(run)
+    map_to_odom_summary(run)
     fix_stats = getattr(run.aligner, 'fix_stats', None)
     if fix_stats is not None and 'absolute' in result.source_stats:
         result.source_stats['absolute']['aligner'] = plain_fields(fix_stats)

@@ -12,13 +12,13 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from ga_ros.errors import FormatError
-from ga_ros.inputs.messages import INPUT_TYPES
 from ga_ros.io.bag import BagInfo, BagReader
 from ga_ros.io.groundtruth import GroundTruth, read_ground_truth_file, read_ground_truth_topic
-from ga_ros.io.topic_plan import TopicPlan, plan_topics
+from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputSource, plan_inputs
 from ga_ros.replay.source import bag_measurements
+from ga_ros.replay.suggest import no_usable_input_error
 
 
 @dataclass
@@ -45,17 +45,20 @@ class ReplaySource:
     match_by: str
 
 
-def plan_or_hint(info: BagInfo, topics: Any) -> TopicPlan:
-    """:func:`plan_topics`; when the bag has no usable input but odometry or pose streams, the
-    error names them and the option that reads them."""
+def plan_or_hint(info: BagInfo, topics: TopicConfig) -> TopicPlan:
+    """:func:`plan_topics`; when the bag has no usable default input, a
+    :class:`ga_ros.errors.NoUsableInputError` with the command for the topics it has
+    (:mod:`ga_ros.replay.suggest`)."""
     try:
         return plan_topics(info, topics)
     except FormatError as exc:
-        streams = [t.name for t in info.topics if t.msgtype in INPUT_TYPES]
-        if 'no usable input' not in str(exc) or not streams:
+        if ('no usable input' not in str(exc) or topics.source != 'auto' or topics.left_image
+                or topics.right_image):  # the options named an input: their own error
             raise
-        raise FormatError(f'{exc}; odometry / pose streams found: {", ".join(streams)}: '
-                          f'replay them with --odom-topic {streams[0]}') from None
+        raise no_usable_input_error(
+            info, f'{info.path}: no usable input: neither a measurements topic '
+            f'({topics.measurements}) nor a left/right image pair',
+            topics.measurements) from None
 
 
 def plan_replay(info: BagInfo, config: ReplayConfig) -> tuple[TopicPlan, tuple[Any, ...]]:

@@ -124,6 +124,7 @@ class ReplayRun:
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
         #: the keyframes moved or added since the last corrections message (as the node's)
         self.corrections = CorrectionTracker(config.outputs.corrections)
+        self.odom_tf_stamp = -1  # stamp of the last odom -> base_link written
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -140,8 +141,31 @@ class ReplayRun:
 
     def step(self, item: SourceItem) -> None:
         """Take one item of the source: its fixes, its measurement or its rejection."""
+        self._stamp_offset(item)
         self._advance(item.log_ns)
         self._step(item)
+
+    def _stamp_offset(self, item: SourceItem) -> None:
+        """Header stamp minus log time of the newest odometry keyframe or measurement (the
+        stamps of ``map -> odom``: the input's time base, sim time included)."""
+        if item.measurement is not None:
+            self.stamp_offset_ns = int(item.measurement.stamp_ns) - int(item.log_ns)
+        elif item.node_stamps:
+            self.stamp_offset_ns = max(int(v) for v in item.node_stamps.values()) - int(
+                item.log_ns)
+
+    def _map_to_odom(self) -> MapToOdom | None:
+        """The ``map -> odom`` state, made at the first item when the source has standard
+        inputs (``odom`` exists from the first odometry message; the map is then the identity
+        until something places it), else at the first measurement."""
+        if self.odom is None:
+            front = getattr(self.source, 'front', None)
+            if isinstance(front, InputFrontEnd):
+                self.odom = MapToOdom(front, datum=self._datum())
+        return self.odom
+
+    def _datum(self) -> str:
+        return str(getattr(self.config.aligner, 'datum', 'first_node'))
 
     def _advance(self, log_ns: int) -> None:
         """Move the output clock to ``log_ns`` (never back) and write the periodic
@@ -151,11 +175,13 @@ class ReplayRun:
         self._tf_tick(self.last_ns)
 
     def _tf_tick(self, log_ns: int) -> None:
-        """``map -> odom`` at the due times of the fixed period, with the latest correction."""
-        if not self.config.tf or self.odom is None or self.odom.T_map_odom is None:
+        """``map -> odom`` at the due times of the fixed period, with the latest correction,
+        from the first odometry message on (header stamps never step back)."""
+        odom = self._map_to_odom()
+        if not self.config.tf or odom is None or odom.latest() is None:
             return
         for t in self.tf_schedule.due(log_ns):
-            self.out.map_to_odom(self.odom.T_map_odom, t + self.stamp_offset_ns, t)
+            self.out.map_to_odom(odom.T_map_odom, odom.stamp(t + self.stamp_offset_ns), t)
 
     def copy_tf(self, topic: str, msgtype: str, data: bytes | None, msg: Any,
                 log_ns: int) -> None:
@@ -182,6 +208,9 @@ class ReplayRun:
         if item.fixes:
             self.fix_xyz += [np.asarray(f.term.fix.T_map_sensor, float)[:3, 3]
                              for f in item.fixes]
+            odom = self._map_to_odom()
+            if odom is not None:
+                odom.add_fixes(item.fixes)   # they place the map until the first update
             self.fixes.add(item.fixes)
             self._add_fixes()
             self._earth_to_map(item)
@@ -195,8 +224,10 @@ class ReplayRun:
             self.aligner = self.factory(T0)
             self.session = AlignmentSession(aligner=self.aligner)
             self.f2f = F2FIntegrator(T0)
-            front = getattr(self.source, 'front', None)
-            self.odom = MapToOdom(front if isinstance(front, InputFrontEnd) else None, self.f2f)
+            if self._map_to_odom() is None:
+                self.odom = MapToOdom(None, self.f2f, datum=self._datum())
+            else:
+                self.odom.f2f = self.f2f   # the F2F path's integration (odom.add)
         out = self.session.step(m)
         if out.solver_failed:  # a failed update: the aligner keeps its previous estimate
             self.reject(f'solver: {out.error}')
@@ -205,12 +236,12 @@ class ReplayRun:
             self.reject(f'aligner: {out.error}')
             return
         assert self.odom is not None
-        self.stamp_offset_ns = int(m.stamp_ns) - int(item.log_ns)
         self.result.n_measurements += 1
         self.stamps.setdefault(m.dst_id, int(m.stamp_ns))
         self.tracks.setdefault(m.src_id, m.src_track)
         self.tracks.setdefault(m.dst_id, m.dst_track)
         self.admitted(out)
+        self._odom_to_base()
         if item.data is not None:
             self.out.measurement(ODOMETRY, item.data, None, self.last_ns)
         else:
@@ -219,9 +250,21 @@ class ReplayRun:
             self._add_fixes()
         for u in out.updates:
             self.update(u)
-        if self.odom.T_map_odom is None:  # the correction before the first update
+        if self.odom.placed_by == 'identity':  # the provisional path before any update
             traj = self.corrected()
-            self.odom.update(traj.node_ids, traj.T_world_node)
+            self.odom.update(traj.node_ids, traj.T_world_node, adjusted=False)
+
+    def _odom_to_base(self) -> None:
+        """REP 105 ``odom -> base_link`` at each new keyframe of the odometry chain when it
+        is the measurements' own (stereo VO, measurement bags: the frame-to-frame integration
+        that ``map -> odom`` refers to); standard inputs bring theirs on the copied ``/tf``."""
+        if not self.config.tf or self.odom is None or self.odom.front is not None:
+            return
+        latest = self.odom.latest()
+        if latest is None or int(latest[1]) <= self.odom_tf_stamp:
+            return
+        self.odom_tf_stamp = int(latest[1])
+        self.out.odom_to_base(latest[0], self.odom_tf_stamp, self.last_ns)
 
     def _earth_to_map(self, item: SourceItem) -> None:
         """REP 105 ``earth -> map`` on ``/tf_static``, once the NavSatFix inputs' ENU origin is
@@ -283,7 +326,7 @@ class ReplayRun:
         self._corrections(traj, every_row=not per_track)
         self.markers(traj)
         if self.odom is not None:
-            self.odom.update(traj.node_ids, traj.T_world_node)
+            self.odom.update(traj.node_ids, traj.T_world_node, adjusted=True)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)

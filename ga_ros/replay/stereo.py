@@ -10,7 +10,7 @@ alignment node's corrected path.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from ga_ros.arrays import FloatArray, IntArray
@@ -19,7 +19,7 @@ from ga_ros.errors import GaError, InputError
 from ga_ros.io.bag import BagReader
 from ga_ros.io.bag_messages import CAMERA_INFO
 from ga_ros.io.topic_plan import TopicPlan
-from ga_ros.pipeline.stereo import FrontEndConfig, StereoFrontEnd, StereoStats
+from ga_ros.pipeline.stereo import FrameOutput, FrontEndConfig, StereoFrontEnd, StereoStats
 from ga_ros.replay.source import SourceItem
 from ga_ros.vo.calibration import read_stereo_calibration
 from ga_ros.vo.odometry import VoConfig
@@ -48,6 +48,9 @@ class StereoSource:
         self.front = StereoFrontEnd(front_end_config(config))
         self.counter = counter
         self.tf_static = TransformTree()
+        #: called with each ``/tf_static`` message of the bag (topic, type, CDR, message, log
+        #: time), e.g. to copy them into the output bag; None: not read.
+        self.passthrough: Callable[[str, str, bytes | None, Any, int], None] | None = None
         if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
             models = read_stereo_calibration(list(plan.calibration))
             self.front.set_camera_models(models.left, models.right)
@@ -96,31 +99,50 @@ class StereoSource:
         p = self.plan
         sides = {p.left_image: 'left', p.right_image: 'right'}
         infos = {p.left_info: 'left', p.right_info: 'right'}
-        for bm in self.bag.messages(p.topics):
+        log_ns = 0
+        assert self.bag.info is not None
+        tf = ['/tf_static'] if (self.passthrough is not None
+                                and self.bag.info.topic('/tf_static') is not None) else []
+        for bm in self.bag.messages(p.topics + tuple(tf)):
+            log_ns = bm.log_ns
+            if bm.topic in tf:
+                if self.passthrough is not None and bm.data is not None:  # not from ROS 1
+                    self.passthrough(bm.topic, bm.msgtype, bm.data, bm.msg, bm.log_ns)
+                continue
             if bm.topic in infos and bm.msgtype == CAMERA_INFO:
                 try:
                     self.front.set_camera_info(infos[bm.topic], bm.msg)
                 except InputError as exc:  # counted and skipped, as vo_node does
                     yield SourceItem(None, bm.log_ns, error=f'stereo: CameraInfo rejected: {exc}')
+                    continue
+                for pair in self.front.release_held():  # pairs that came before it
+                    yield from self._items(self.front.process_pair(pair), bm.log_ns)
                 continue
             if bm.topic not in sides:
                 continue
             for frame in self.front.add_image(sides[bm.topic], bm.msg):
-                self.counter[0] += 1
-                if frame.result is None:
-                    yield SourceItem(None, bm.log_ns, error=frame.error)
-                    continue
-                stamps = frame.node_stamps or None
-                if frame.measurement is not None:
-                    yield SourceItem(frame.measurement, bm.log_ns, node_stamps=stamps)
-                    stamps = None
-                elif stamps:
-                    yield SourceItem(None, bm.log_ns, node_stamps=stamps)
-                try:
-                    attempts = self.front.match(frame)
-                except GaError as exc:
-                    yield SourceItem(None, bm.log_ns, error=f'stereo: cross-track: {exc}')
-                    continue
-                for a in attempts:
-                    if a.accepted and a.measurement is not None:
-                        yield SourceItem(a.measurement, bm.log_ns, node_stamps=stamps)
+                yield from self._items(frame, bm.log_ns)
+        for pair in self.front.release_held(final=True):  # never calibrated: counted
+            yield from self._items(self.front.process_pair(pair), log_ns)
+
+    def _items(self, frame: FrameOutput, log_ns: int) -> Iterator[SourceItem]:
+        """What one processed pair gives: its motion (or why none), then the cross-track
+        connections of its keyframe."""
+        self.counter[0] += 1
+        if frame.result is None:
+            yield SourceItem(None, log_ns, error=frame.error)
+            return
+        stamps = frame.node_stamps or None
+        if frame.measurement is not None:
+            yield SourceItem(frame.measurement, log_ns, node_stamps=stamps)
+            stamps = None
+        elif stamps:
+            yield SourceItem(None, log_ns, node_stamps=stamps)
+        try:
+            attempts = self.front.match(frame)
+        except GaError as exc:
+            yield SourceItem(None, log_ns, error=f'stereo: cross-track: {exc}')
+            return
+        for a in attempts:
+            if a.accepted and a.measurement is not None:
+                yield SourceItem(a.measurement, log_ns, node_stamps=stamps)

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, NoUsableInputError
 from ga_ros.eval.metrics import relative_change_text
 from ga_ros.io.bag import BagInfo
-from ga_ros.io.topic_plan import TopicConfig, TopicPlan, plan_topics
+from ga_ros.io.topic_plan import TopicConfig, TopicPlan
 from ga_ros.replay.inputs import InputTopics, plan_inputs
+from ga_ros.replay.plan import plan_or_hint
 from ga_ros.replay.result import ReplayResult
 
 
 def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),
-              inputs: InputTopics = InputTopics()) -> tuple[str, bool]:
-    """The topics of a bag and what the replay will use; ``(text, usable)`` (``inputs``: the
-    standard inputs, when given they are the source)."""
+              inputs: InputTopics = InputTopics()) -> tuple[str, int]:
+    """The topics of a bag and what the replay will use; ``(text, exit status)``: 0 usable, 1
+    not with these options, 2 no usable default input (the text then gives the command for the
+    bag's topics). ``inputs``: the standard inputs, when given they are the source."""
     lines = [f'bag: {info.path} ({info.storage}, {info.n_messages} messages, '
              f'{info.duration_s:.1f} s)']
     width = max([len(t.name) for t in info.topics] + [5])
@@ -24,13 +26,13 @@ def info_text(info: BagInfo, config: TopicConfig = TopicConfig(),
         if inputs.inputs:
             plan = plan_inputs(info, inputs, config.ground_truth)[0]
         else:
-            plan = plan_topics(info, config)
+            plan = plan_or_hint(info, config)
     except GaError as exc:
         lines.append(f'cannot replay: {exc}')
-        return '\n'.join(lines), False
+        return '\n'.join(lines), 2 if isinstance(exc, NoUsableInputError) else 1
     lines.append('will use:')
     lines.extend(f'  {n}' for n in plan_lines(plan))
-    return '\n'.join(lines), True
+    return '\n'.join(lines), 0
 
 
 def plan_lines(plan: TopicPlan) -> list[str]:

@@ -19,6 +19,7 @@ class AlignmentDiagnostics:
         """The session's diagnostics key/values, with the last update's quality figures."""
         values = self.session.diagnostic_values()
         values['measurements_lost_in_queue'] = self.queue_loss.total
+        values.update(self.odom.diagnostic_values())
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
         for name, sub in getattr(self, 'sensor_subscriptions', {}).items():
             values[f'qos/{name}'] = (sub.reliability if sub.decided
@@ -34,6 +35,8 @@ class AlignmentDiagnostics:
             values = {'error': bounded(str(exc))}
             health = None
         problems = [health.message] if health is not None and not health.ok else []
+        if self.odom.warning:
+            problems.append(self.odom.warning)
         if self.tf_contested_by:
             s = self.settings
             values['tf_contested_by'] = self.tf_contested_by

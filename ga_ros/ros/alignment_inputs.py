@@ -213,6 +213,9 @@ class AlignmentInputs:
         step = self.absolute.resolve(self.front.inputs[self.front.primary])
         if step.end_track:
             self.front.track_boundary()
+        warned = self.odom.jumps_warned
+        self.odom.add_fixes(step.fixes)   # they place the map until the first update
+        self._placement_changed(warned)
         self._fix_feeder.add(step.fixes)
         # the session journals the fixes with the measurements and joins their nodes' pieces
         for error in self._fix_feeder.flush(self.session):

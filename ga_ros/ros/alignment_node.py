@@ -23,9 +23,12 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``ga/corrected_odom`` (``nav_msgs/Odometry``): newest node, ``map_frame`` ->
   ``base_frame``.
 * out ``/tf``: ``map_frame -> odom_frame`` every ``transform_publish_period_sec`` with the latest
-  correction (:mod:`ga_ros.pipeline.map_to_odom`); when another node publishes a transform to
-  ``odom_frame`` the node warns, reports it in the diagnostics (WARN) and stops publishing it
-  unless ``publish_tf_when_contested``.
+  correction (:mod:`ga_ros.pipeline.map_to_odom`), from the first odometry message: the
+  identity until the map is placed (with ``datum: fixes`` by the fixes, until the first window
+  update), said in the diagnostics (``map_to_odom/placed_by``; a jump beyond the fixes'
+  uncertainty is a WARN); when another node publishes a transform to ``odom_frame`` the node
+  warns, reports it in the diagnostics (WARN) and stops publishing it unless
+  ``publish_tf_when_contested``.
 * out ``ga/network_markers`` (``visualization_msgs/MarkerArray``, transient local).
 * out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
   standard inputs, each input's received / expected / lost messages (from its stamps,
@@ -145,7 +148,8 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._create_publishers(s)
         # the odometry chain and map -> odom, as in the replay: the first standard input, or
         # without standard inputs the frame-to-frame integration of the measurements
-        self.odom = MapToOdom(self.front)
+        self.odom = MapToOdom(self.front, datum=self.aligner_config.datum)
+        self._resumed = False    # a restored state: its path places the map
         self._own_tf: dict[int, np.ndarray] = {}   # stamp -> T_map_odom of what we sent
         self._foreign_tf: tuple[str, float] = ('', -np.inf)   # its parent, monotonic time
         # best effort hears reliable and best-effort TF publishers alike
@@ -162,6 +166,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         how = self.session.resume()
         self._restore_datum()
         if how is not None and not how.startswith('failed'):
+            self._resumed = True
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()

@@ -41,7 +41,10 @@ class AlignmentOutputs:
         movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
         self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
-        self.odom.update(cp.node_ids, cp.T_world_node)
+        warned = self.odom.jumps_warned
+        self.odom.update(cp.node_ids, cp.T_world_node,
+                         adjusted=self.session.counts.updates > 0 or self._resumed)
+        self._placement_changed(warned)
         if self.front is not None:
             self.front.set_corrected(cp.node_ids, cp.T_world_node)
         self._publish_tf()

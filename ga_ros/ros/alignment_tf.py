@@ -35,6 +35,7 @@ class AlignmentTf:
         if newest is None:
             return
         latest, stamp = newest
+        stamp = self.odom.stamp(stamp)   # never back
         tfs = [conv.transform_msg(s.map_frame, s.odom_frame, T_map_odom, stamp)]
         if s.publish_map_to_base:
             tfs.append(conv.transform_msg(s.map_frame, s.base_frame, T_map_odom @ latest, stamp))
@@ -42,6 +43,13 @@ class AlignmentTf:
         while len(self._own_tf) > 1000:
             self._own_tf.pop(next(iter(self._own_tf)))
         self.pub_tf.publish(TFMessage(transforms=tfs))
+
+    def _placement_changed(self, jumps_before: int) -> None:
+        """After the map placement may have changed: a jump beyond the fixes' uncertainty is
+        logged and reported in the diagnostics at once."""
+        if self.odom.jumps_warned > jumps_before:
+            self.get_logger().warning(self.odom.warning)
+            self._publish_diagnostics()
 
     @property
     def tf_contested_by(self) -> str:

@@ -33,6 +33,7 @@ from geometry_msgs.msg import (
     TransformStamped,
 )
 from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -348,4 +349,55 @@ def transform_msg(parent: str, child: str, T_parent_child: FloatArray,
     tr = msg.transform
     tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in p)
     tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)
+    return msg
+
+
+# --------------------------------------------------------------------------- point clouds
+#: Layout of :func:`cloud_to_pointcloud2`: little-endian float32 ``x y z intensity``, 16 bytes.
+CLOUD_DTYPE = np.dtype({'names': ['x', 'y', 'z', 'intensity'], 'formats': ['<f4'] * 4,
+                        'offsets': [0, 4, 8, 12], 'itemsize': 16})
+
+
+def cloud_to_pointcloud2(points: np.ndarray, intensity: np.ndarray, frame_id: str,
+                         stamp_ns: int) -> PointCloud2:
+    """``sensor_msgs/PointCloud2`` of ``n`` points, as RViz and Foxglove read it.
+
+    One unordered row (``height`` 1, ``width`` n); fields ``x y z intensity``, each ``FLOAT32``
+    (count 1) at offsets 0, 4, 8, 12; ``point_step`` 16, ``row_step`` 16 n, little-endian;
+    ``is_dense`` true (every point finite: pass only valid points).
+
+    Parameters
+    ----------
+    points : (n, 3) ``x y z`` in ``frame_id`` (m).
+    intensity : (n,) a value per point (e.g. the grey level 0-255).
+    frame_id : the points' frame (a camera's optical frame for keyframe clouds).
+    stamp_ns : ``header.stamp`` (ns).
+
+    Raises
+    ------
+    InputError
+        Shapes that do not match, or a non-finite value.
+    """
+    P = np.asarray(points)
+    inten = np.asarray(intensity).reshape(-1)
+    if P.ndim != 2 or P.shape[1] != 3 or inten.shape[0] != P.shape[0]:
+        raise InputError(f'a cloud needs (n, 3) points and (n,) intensities, got '
+                         f'{P.shape} and {np.shape(intensity)}')
+    arr = np.empty(P.shape[0], CLOUD_DTYPE)
+    arr['x'], arr['y'], arr['z'] = P[:, 0], P[:, 1], P[:, 2]
+    arr['intensity'] = inten
+    if not np.all(np.isfinite(arr.view('<f4'))):
+        raise InputError('a cloud with is_dense true must hold finite values only')
+    msg = PointCloud2()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, int(P.shape[0])
+    msg.fields = [PointField(name=name, offset=int(CLOUD_DTYPE.fields[name][1]),
+                             datatype=PointField.FLOAT32, count=1)
+                  for name in CLOUD_DTYPE.names]
+    msg.is_bigendian = False
+    msg.point_step = CLOUD_DTYPE.itemsize
+    msg.row_step = CLOUD_DTYPE.itemsize * msg.width
+    msg.data = arr.tobytes()  # the structured array's bytes: no per-point loop
+    msg.is_dense = True
     return msg

@@ -28,6 +28,7 @@ from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.safe_write import open_log
 
@@ -151,20 +152,39 @@ class NodeClient:
                    proc: subprocess.Popen | None = None) -> None:
         """Spin until ``predicate()`` is true; :class:`HarnessTimeout` after ``timeout`` s or if
         ``proc`` exits."""
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + patience(timeout)
         while not predicate():
             if proc is not None and proc.poll() is not None:
                 raise HarnessTimeout(f'node process exited ({proc.returncode}) while waiting '
                                      f'for {what}')
             if time.monotonic() > deadline:
-                raise HarnessTimeout(f'timed out after {timeout:.0f} s waiting for {what}')
+                raise HarnessTimeout(f'timed out after {patience(timeout):.0f} s waiting for '
+                                     f'{what}')
             self.executor.spin_once(timeout_sec=0.02)
 
-    def wait_for_node(self, timeout: float = 30.0, proc: subprocess.Popen | None = None) -> None:
-        """Wait until the node's measurement subscription and services are discovered."""
-        self.spin_until(lambda: self.pub.get_subscription_count() > 0
-                        and all(c.service_is_ready() for c in self.services.values()),
-                        timeout, 'the alignment node to appear', proc)
+    def subscription_gids(self) -> set[tuple[int, ...]]:
+        """Endpoint ids of the subscriptions to the measurements topic in the graph (a killed
+        node's stays until DDS notices it is gone)."""
+        return {tuple(i.endpoint_gid)
+                for i in self.node.get_subscriptions_info_by_topic(self.pub.topic_name)}
+
+    def wait_for_node(self, timeout: float = 30.0, proc: subprocess.Popen | None = None,
+                      replacing: set[tuple[int, ...]] | None = None) -> None:
+        """Wait until the node's measurement subscription and services are discovered and the
+        measurements publisher is matched with the subscription. ``replacing``: the
+        subscriptions of a node that was killed (:meth:`subscription_gids` before the kill):
+        wait for a new one, matched (a stale match of the dead one does not count), so that
+        what is published next reaches the restarted node even when it is volatile."""
+        def ready() -> bool:
+            if self.pub.get_subscription_count() == 0 or not all(
+                    c.service_is_ready() for c in self.services.values()):
+                return False
+            if replacing is None:
+                return True
+            gids = self.subscription_gids()
+            return bool(gids - replacing) and self.pub.get_subscription_count() >= len(gids)
+
+        self.spin_until(ready, timeout, 'the alignment node to appear', proc)
 
     def wait_received(self, n: int, timeout: float = 30.0,
                       proc: subprocess.Popen | None = None) -> None:

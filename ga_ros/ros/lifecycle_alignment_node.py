@@ -83,7 +83,9 @@ class LifecycleAlignmentNode(AlignmentNode, LifecycleNode):
         if self.front is not None:
             self.front = InputFrontEnd(list(self.front.specs.values()),
                                        self.settings.input_warn_throttle_sec)
-        self.odom = MapToOdom(self.front)   # a new odometry chain, no correction yet
+        # a new odometry chain, the map not placed yet
+        self.odom = MapToOdom(self.front, datum=self.aligner_config.datum)
+        self._resumed = False
         for name in self.input_streams:
             self.input_streams[name] = StreamMonitor()
         return TransitionCallbackReturn.SUCCESS

@@ -279,7 +279,8 @@ def main(args: list[str] | None = None) -> int:
     if '--ros-args' in argv:
         k = argv.index('--ros-args')
         argv, ros_args = argv[:k], argv[k:]
-    p = argparse.ArgumentParser(prog='mapping_node', description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='mapping_node', description=__doc__.split('\n\n')[0],
+                                allow_abbrev=False)
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--path-topic', default=MappingSettings.path_topic)
     p.add_argument('--measurements-topic', default=MappingSettings.measurements_topic)

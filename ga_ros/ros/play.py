@@ -438,7 +438,8 @@ def play_bag(bag_path: str | Path, config: PlayConfig = PlayConfig(),
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     """Arguments of ``ga-ros play`` (also ``python -m ga_ros.ros.play``)."""
     return add_arguments(parser or argparse.ArgumentParser(prog='ga-ros play',
-                                                           description=__doc__))
+                                                           description=__doc__,
+                                                           allow_abbrev=False))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -18,7 +18,14 @@ Publishes
   ``odom_frame -> base_frame`` (as an odometry source does: turn it off when another node
   publishes ``odom -> base_link``);
 * ``ga/vo/debug_image`` (``sensor_msgs/Image``, when ``publish_debug_image``): the rectified
-  left image with the state written on it.
+  left image with the state written on it;
+* ``ga/keyframe_cloud`` (``sensor_msgs/PointCloud2``, when ``publish_keyframe_cloud``, and
+  computed only while the topic has a subscriber: dense stereo costs CPU): for each new
+  keyframe, the dense stereo points of its rectified pair
+  (:meth:`ga_ros.pipeline.stereo.StereoFrontEnd.keyframe_cloud`, parameters ``cloud_*``),
+  fields ``x y z intensity`` (float32), in the left camera's optical frame (``header.frame_id``
+  the camera frame of the extrinsic, i.e. ``camera_frame`` or the left image's frame;
+  ``header.stamp`` the keyframe's stamp), :func:`ga_ros.ros.conversions.cloud_to_pointcloud2`.
 
 Frames (REP 103/105): the VO measures the left camera's optical frame; every measurement and
 pose leaves as the robot's ``base_frame``, converted with the camera's extrinsic
@@ -83,7 +90,7 @@ from nav_msgs.msg import Odometry, Path
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Empty
 from tf2_msgs.msg import TFMessage
 
@@ -108,6 +115,7 @@ from ga_ros.ros.params import declare_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos, tf_static_qos
 from ga_ros.ros.runner import node_usage, run_node
 from ga_ros.vo.crosstrack import CrossTrackConfig
+from ga_ros.vo.dense import DenseStereoConfig
 from ga_ros.vo.odometry import VoConfig
 
 NODE_NAME = 'vo_node'
@@ -128,6 +136,9 @@ class VoNodeSettings:
     track_boundary_topic : input ``std_msgs/Empty``: start a new track.
     debug_image_topic : output debug image.
     publish_debug_image : publish the debug image.
+    keyframe_cloud_topic : output dense stereo points of each keyframe (``PointCloud2``).
+    publish_keyframe_cloud : publish the keyframe clouds (computed only while the topic has a
+        subscriber).
     cross_track : run the cross-track matcher.
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
     odom_frame : REP 105 odometry frame of the VO odometry (parent of ``base_frame``).
@@ -159,6 +170,8 @@ class VoNodeSettings:
     track_boundary_topic: str = topics.VO_TRACK_BOUNDARY
     debug_image_topic: str = topics.VO_DEBUG_IMAGE
     publish_debug_image: bool = False
+    keyframe_cloud_topic: str = topics.KEYFRAME_CLOUD
+    publish_keyframe_cloud: bool = True
     cross_track: bool = True
     max_pair_dt_sec: float = 0.005
     odom_frame: str = 'odom'
@@ -202,11 +215,12 @@ class VoNode(BoundedLogging, Node):
         self.vo_config: VoConfig = declare_config(self, VoConfig)
         self.cross_config: CrossTrackConfig = declare_config(self, CrossTrackConfig, 'cross_')
         self.extrinsic_config: ExtrinsicConfig = declare_config(self, ExtrinsicConfig)
+        self.cloud_config: DenseStereoConfig = declare_config(self, DenseStereoConfig, 'cloud_')
         s = self.settings
         self.front = StereoFrontEnd(FrontEndConfig(
             vo=self.vo_config, cross=self.cross_config, cross_track=s.cross_track,
             max_pair_dt_sec=s.max_pair_dt_sec, max_pending=max(2, s.image_queue),
-            extrinsic=self.extrinsic_config))
+            extrinsic=self.extrinsic_config, cloud=self.cloud_config))
         self.extrinsic_config.from_parameters()  # a malformed T_base_camera fails at start
         self.tf_static = TransformTree()
         self.streams: dict[str, StreamMonitor | FrameMonitor] = {
@@ -216,7 +230,8 @@ class VoNode(BoundedLogging, Node):
         #: why the pairs are refused while the camera's extrinsic is unknown ('' otherwise)
         self.extrinsic_error = ''
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
-                       'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0}
+                       'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0,
+                       'keyframe_clouds': 0}
         self._last_image = time.monotonic()
         self._measured_since_end = False
         self._queue: deque[ImagePair] = deque()
@@ -240,6 +255,9 @@ class VoNode(BoundedLogging, Node):
                                  tf_static_qos())
         self.pub_debug = (self.create_publisher(Image, s.debug_image_topic, stream_qos(2))
                           if s.publish_debug_image else None)
+        self.pub_cloud = (self.create_publisher(PointCloud2, s.keyframe_cloud_topic,
+                                                stream_qos(10))
+                          if s.publish_keyframe_cloud else None)
         img_type = CompressedImage if s.compressed else Image
         # auto: reliable when every publisher offers reliable, else best effort
         depth = max(1, s.image_queue)
@@ -325,6 +343,10 @@ class VoNode(BoundedLogging, Node):
             return
         if cal is None:
             return
+        with self._wake:  # pairs whose images came before this CameraInfo
+            held = self.front.release_held()
+        for pair in held:
+            self._enqueue(pair)
         if recalibrating:
             self.get_logger().warning('stereo calibration changed: VO re-initialises')
         self.get_logger().info(
@@ -364,6 +386,19 @@ class VoNode(BoundedLogging, Node):
         if pair is None:
             return
         self.streams['pairs'].completed(pair.stamp_ns)
+        with self._wake:  # before the calibration: wait for it (_on_info releases the pair)
+            held = self.front.hold_until_calibrated(pair)
+            waiting = self.front.n_held
+        if held:
+            self._warn('info_wait', f'no CameraInfo yet for both cameras: {waiting} stereo '
+                       f'pairs wait for it (at most {self.front.config.max_pending}, older ones '
+                       f'are dropped); check {self.settings.left_info_topic} and '
+                       f'{self.settings.right_info_topic}')
+            return
+        self._enqueue(pair)
+
+    def _enqueue(self, pair: ImagePair) -> None:
+        """Queue a pair for the worker; a full queue drops its oldest pair (counted)."""
         dropped = None
         with self._wake:
             if len(self._queue) >= max(1, self.settings.pair_queue):
@@ -420,7 +455,8 @@ class VoNode(BoundedLogging, Node):
             'queue_length': len(self._queue), 'measurements': st.measurements,
             'cross_connections': self.counts['cross'], 'keyframes': st.keyframes,
             'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected,
-            'tracks_ended_idle': self.counts['idle_track_ends']}
+            'tracks_ended_idle': self.counts['idle_track_ends'],
+            'keyframe_clouds': self.counts['keyframe_clouds']}
         for key, n in st.reasons.items():
             values['no_measurement/' + key] = n
         if time.monotonic() - self._last_image > 1.0:   # input idle: settle every frame
@@ -512,6 +548,28 @@ class VoNode(BoundedLogging, Node):
                 conv.transform_msg(s.odom_frame, base, T_odom_base, frame.stamp_ns)]))
         if self.pub_debug is not None and frame.left is not None:
             self._publish_debug(frame)
+        if (self.pub_cloud is not None and res.keyframe is not None
+                and self.pub_cloud.get_subscription_count() > 0):
+            self._publish_cloud(frame)
+
+    def _camera_frame(self) -> str:
+        """The left camera's optical frame id (of the extrinsic; ``'camera'`` when none)."""
+        ext = self.front.extrinsic
+        return ext.camera_frame if ext is not None and ext.camera_frame else 'camera'
+
+    def _publish_cloud(self, frame: FrameOutput) -> None:
+        """The dense stereo points of the frame's new keyframe on ``keyframe_cloud_topic``."""
+        try:
+            cloud = self.front.keyframe_cloud(frame)
+        except GaError as exc:
+            self._warn('cloud', f'keyframe cloud failed: {exc}')
+            return
+        if cloud is None or frame.result is None or frame.result.keyframe is None:
+            return
+        self.pub_cloud.publish(conv.cloud_to_pointcloud2(
+            cloud.points, cloud.intensity, self._camera_frame(),
+            frame.result.keyframe.stamp_ns))
+        self.counts['keyframe_clouds'] += 1
 
     def _publish_debug(self, frame: FrameOutput) -> None:
         cal, res = self.front.calibration, frame.result
@@ -521,9 +579,7 @@ class VoNode(BoundedLogging, Node):
         img = rect.copy()
         cv2.putText(img, f'{res.status} kf {res.keyframe_id} trk {res.track_id} '
                     f'inl {res.n_inliers}', (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.4, 255, 1)
-        ext = self.front.extrinsic
-        camera = ext.camera_frame if ext is not None and ext.camera_frame else 'camera'
-        self.pub_debug.publish(array_to_image(img, res.stamp_ns, camera))
+        self.pub_debug.publish(array_to_image(img, res.stamp_ns, self._camera_frame()))
 
     def _on_path(self, msg: Path) -> None:
         if self.front.matcher is None or not msg.poses:
@@ -545,7 +601,8 @@ class VoNode(BoundedLogging, Node):
 def declared_parameters() -> list[str]:
     """Every parameter ``vo_node`` declares (built from its config dataclasses, no rclpy)."""
     return (parameter_names(VoNodeSettings) + parameter_names(VoConfig)
-            + parameter_names(CrossTrackConfig, 'cross_') + parameter_names(ExtrinsicConfig))
+            + parameter_names(CrossTrackConfig, 'cross_') + parameter_names(ExtrinsicConfig)
+            + parameter_names(DenseStereoConfig, 'cloud_'))
 
 
 def main(args: list[str] | None = None) -> int:

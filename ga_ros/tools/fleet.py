@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(description='Two namespaced robots (VO + alignment each) on '
-                                            'one DDS domain.')
+                                            'one DDS domain.', allow_abbrev=False)
     p.add_argument('--out', default='out/fleet')
     p.add_argument('--rate', type=float, default=5.0)
     p.add_argument('--timeout', type=float, default=240.0)

@@ -547,7 +547,8 @@ def main(argv: list[str] | None = None) -> int:
     [--netem] [--rate R] [--no-stereo-replay]``."""
     import argparse
 
-    p = argparse.ArgumentParser(description='Three-host DDS demo in network namespaces.')
+    p = argparse.ArgumentParser(description='Three-host DDS demo in network namespaces.',
+                                allow_abbrev=False)
     p.add_argument('--out', default=str(REPO / 'out' / 'multihost'))
     p.add_argument('--discovery', choices=('multicast', 'peers'), default='multicast')
     p.add_argument('--netem', action='store_true',

@@ -21,16 +21,22 @@ def test_every_documented_subcommand_is_registered():
 
 def test_bench_window_receives_its_arguments(capsys):
     assert main(['bench', 'window', '--tracks', '2', '--window', '1', '--no-batch',
-                 '--json']) == 0
+                 '--refine-every', '0', '--json']) == 0
     fig = json.loads(capsys.readouterr().out)
-    assert fig['tracks'] == 2 and fig['window_tracks'] == 1
+    assert fig['tracks'] == 2 and fig['window_tracks'] == 1 and fig['refine_every_tracks'] == 0
     assert fig['nodes'] == 2 * 204
     assert fig['gap_rigid_pct'] == 0.0  # no batch: the window is compared with itself
-    parts = fig['breakdown_cpu_ms_p50']  # the update's CPU split by part, 'other' the rest
-    assert set(parts) == {'linearise', 'factor', 'solve', 'gradient', 'problem', 'gate',
-                          'freeze', 'refinement', 'other',
-                          'freeze (background)'}  # the next freeze, computed ahead
-    assert parts['linearise'] > 0 and parts['factor'] > 0 and parts['freeze (background)'] > 0
+    stages = fig['stage_cpu_ms']  # CPU per track by stage, 'other' the rest of each thread
+    assert set(stages) == {'track end', 'background'}
+    for role in stages.values():
+        assert set(role) == {'assembly', 'factorisation', 'solves', 'covariances', 'priors',
+                             'quality tests', 'outputs', 'process hand-off', 'other'}
+    end, bg = stages['track end'], stages['background']
+    assert end['assembly'] > 0 and end['factorisation'] > 0 and end['outputs'] > 0
+    # the next freeze, computed ahead in a background thread: its covariances (no refinement
+    # replaces them) and prior
+    assert bg['covariances'] > 0 and bg['priors'] > 0
+    assert fig['total_cpu_ms_p50'] >= fig['per_track_cpu_ms_p50']
 
 
 @pytest.mark.parametrize('target,module,argv,expected', [

@@ -19,10 +19,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+from ga_ros.bench.data import SHARED_DATA
+
 REPO = Path(__file__).resolve().parents[2]
-ROSDEP = REPO.parent / 'shared' / 'data' / 'rosdep'
-if not ROSDEP.is_dir():
-    ROSDEP = Path('/work/shared/data/rosdep')
+#: rosdep's key lists (base.yaml, python.yaml) in the shared data ($GA_ROS_SHARED_DATA)
+ROSDEP = SHARED_DATA / 'rosdep'
 
 #: ROS 2 packages (released in rosdistro, not rosdep keys of base.yaml / python.yaml).
 ROS_PACKAGES = {
@@ -84,7 +85,8 @@ def _console_scripts() -> dict[str, str]:
 
 
 # --------------------------------------------------------------------------- dependencies
-@pytest.mark.skipif(not (ROSDEP / 'python.yaml').exists(), reason='no rosdep data')
+@pytest.mark.skipif(not (ROSDEP / 'python.yaml').exists(),
+                    reason=f'rosdep keys not found at {ROSDEP} (set GA_ROS_SHARED_DATA)')
 def test_package_xml_keys_exist_in_rosdep():
     keys: set[str] = set()
     for f in ('base.yaml', 'python.yaml'):

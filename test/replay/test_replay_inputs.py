@@ -171,7 +171,7 @@ def test_ros1_bag(tmp_path: Path) -> None:
 
 def test_odometry_bag_without_options_names_the_option(tmp_path: Path) -> None:
     write_odom_bag(tmp_path / 'in')
-    with pytest.raises(FormatError, match='replay them with --odom-topic /odom'):
+    with pytest.raises(FormatError, match='ga-ros replay .* --odom-topic /odom'):
         replay(tmp_path / 'in', tmp_path / 'out', ReplayConfig(plot=False))
 
 
@@ -238,7 +238,7 @@ def test_cli_one_command_for_an_odometry_bag(tmp_path: Path, capsys) -> None:
     assert len(read_tum(tmp_path / 'out' / 'trajectory_ga.tum')) == 60
     assert main(['replay', str(tmp_path / 'in'), '--odom-topic', '/odom', '--info']) == 0
     assert 'source: odom0 /odom (nav_msgs/msg/Odometry)' in capsys.readouterr().out
-    assert main(['replay', str(tmp_path / 'in'), '--info']) == 1  # no input named: says so
+    assert main(['replay', str(tmp_path / 'in'), '--info']) == 2  # no input named: says so
     assert 'no usable input' in capsys.readouterr().out
 
 

@@ -31,13 +31,14 @@ class LiveNode:
         """``kill -9`` the node (it can save nothing), call ``while_down`` (e.g. publish what
         nobody hears), start it again with the same parameters and wait for its first
         diagnostics (it has restored its state by then)."""
+        before = self.client.subscription_gids()
         self.proc.send_signal(signal.SIGKILL)
         self.proc.wait(timeout=10)
         if while_down is not None:
             while_down()
         self.proc = start_node_process(self.domain_id, self.params, log_path=self.log)
         self.client.diagnostics = {}
-        self.client.wait_for_node(proc=self.proc)
+        self.client.wait_for_node(proc=self.proc, replacing=before)
         self.client.spin_until(lambda: self.client.diag_int('nodes') >= 0, 20, 'diagnostics',
                                self.proc)
 

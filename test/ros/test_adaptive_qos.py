@@ -16,6 +16,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import domain_id  # noqa: E402
 
 
@@ -59,12 +60,12 @@ def test_auto_follows_the_publishers_and_waits_for_the_first() -> None:
                                     retry_period_s=0.05)
         assert not late.decided and _subscribed(node, 'late') == ReliabilityPolicy.BEST_EFFORT
         pub = pubs.create_publisher(String, 'late', _qos(ReliabilityPolicy.RELIABLE))
-        end = time.monotonic() + 10.0
+        end = time.monotonic() + patience(10.0)
         while not late.decided and time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
         assert late.decided and _subscribed(node, 'late') == ReliabilityPolicy.RELIABLE
         # and it receives on the new subscription
-        end = time.monotonic() + 10.0
+        end = time.monotonic() + patience(10.0)
         while not got and time.monotonic() < end:
             pub.publish(String(data='x'))
             executor.spin_once(timeout_sec=0.05)

@@ -39,6 +39,7 @@ from ga_ros.pipeline.params import (  # noqa: E402
 )
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode, NodeSettings  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
     CONFIG,
     domain_id,
@@ -516,7 +517,7 @@ def test_defaults_protect_data_and_name_a_volatile_publisher(tmp_path):
             resp = srv(Trigger.Request(), Trigger.Response())
             assert not resp.success and 'allow_' in resp.message
         pub_node.create_publisher(Odometry, '/ga/measurements', measurement_qos())  # volatile
-        end = time.monotonic() + 20
+        end = time.monotonic() + patience(20)
         while node.incompatible_publishers == 0 and time.monotonic() < end:
             ex.spin_once(timeout_sec=0.05)
         assert node.incompatible_publishers >= 1

@@ -172,3 +172,55 @@ def test_quaternion_to_rotvec_matches_se3(rng, angle):
         p, q = se3.to_pos_quat(T)
         w = encoding.quat_to_rotvec(*(sign * q))
         np.testing.assert_allclose(se3.from_translation_rotvec(p, np.array(w)), T, atol=1e-12)
+
+
+def _read_pointcloud2(msg) -> dict[str, np.ndarray]:
+    """A PointCloud2 reader written from the message definition (sensor_msgs/PointField
+    datatypes, offsets, point_step, row_step, is_bigendian), as RViz and Foxglove read it."""
+    sizes = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
+    order = '>' if msg.is_bigendian else '<'
+    raw = bytes(msg.data)
+    assert len(raw) == msg.row_step * msg.height
+    out = {}
+    for f in msg.fields:
+        dt = np.dtype(order + sizes[f.datatype])
+        values = []
+        for row in range(msg.height):
+            for col in range(msg.width):
+                start = row * msg.row_step + col * msg.point_step + f.offset
+                values.append(np.frombuffer(raw, dt, f.count, start))
+        out[f.name] = np.concatenate(values) if values else np.zeros(0, dt)
+    return out
+
+
+def test_cloud_to_pointcloud2_as_viewers_read_it(rng):
+    from sensor_msgs.msg import PointField
+
+    n = 257
+    points = rng.normal(0, 50, (n, 3)).astype(np.float32)
+    intensity = rng.integers(0, 256, n).astype(np.float32)
+    msg = conv.cloud_to_pointcloud2(points, intensity, 'cam_optical', 1_700_000_000_123_456_789)
+    assert msg.header.frame_id == 'cam_optical'
+    assert conv.stamp_to_ns(msg.header.stamp) == 1_700_000_000_123_456_789
+    assert (msg.height, msg.width, msg.point_step, msg.row_step) == (1, n, 16, 16 * n)
+    assert not msg.is_bigendian and msg.is_dense
+    assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
+        ('x', 0, PointField.FLOAT32, 1), ('y', 4, PointField.FLOAT32, 1),
+        ('z', 8, PointField.FLOAT32, 1), ('intensity', 12, PointField.FLOAT32, 1)]
+    got = _read_pointcloud2(msg)
+    for k, name in enumerate('xyz'):
+        np.testing.assert_array_equal(got[name], points[:, k])
+    np.testing.assert_array_equal(got['intensity'], intensity)
+    # float64 input is stored as float32; an empty cloud is a valid message
+    msg64 = conv.cloud_to_pointcloud2(points.astype(float), intensity.astype(float), 'c', 0)
+    assert bytes(msg64.data) == bytes(msg.data)
+    empty = conv.cloud_to_pointcloud2(np.zeros((0, 3)), np.zeros(0), 'c', 0)
+    assert empty.width == 0 and empty.row_step == 0 and len(empty.data) == 0
+    with pytest.raises(InputError):
+        conv.cloud_to_pointcloud2(points[:, :2], intensity, 'c', 0)
+    with pytest.raises(InputError):
+        conv.cloud_to_pointcloud2(points, intensity[:-1], 'c', 0)
+    bad = points.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError):
+        conv.cloud_to_pointcloud2(bad, intensity, 'c', 0)

@@ -17,6 +17,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import domain_id, ros_context  # noqa: E402
 from ga_ros.ros.qos import latched_qos  # noqa: E402
 
@@ -72,7 +73,7 @@ def test_node_publishes_earth_to_map_latched(ctx) -> None:
         node._on_absolute('fix0', _navsatfix())  # once only
         # a late subscriber (latched) still gets it
         node.create_subscription(TFMessage, '/tf_static', got.append, latched_qos())
-        end = time.monotonic() + 30
+        end = time.monotonic() + patience(30)
         while time.monotonic() < end and not got:
             ex.spin_once(timeout_sec=0.05)
         earth = [t for m in got for t in m.transforms if t.header.frame_id == 'earth']

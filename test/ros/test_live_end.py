@@ -15,6 +15,7 @@ from test_vo_node import camera_info  # noqa: E402
 
 from ga_ros import topics  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 
@@ -58,7 +59,7 @@ def test_images_stop_then_the_last_track_is_adjusted(rng):
         assert n_meas >= 2 and align.aligner.open_track is not None
         assert align.session.n_nodes() == n_meas + 1
         # silence: the timer of vo_node ends the track
-        t_end = time.monotonic() + 10.0
+        t_end = time.monotonic() + patience(10.0)
         while time.monotonic() < t_end and vo.counts['idle_track_ends'] == 0:
             executor.spin_once(timeout_sec=0.1)
         assert vo.counts['idle_track_ends'] == 1

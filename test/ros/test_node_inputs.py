@@ -23,6 +23,7 @@ from ga_ros.core.encoding import pose_to_matrix  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
     NodeClient,
     domain_id,
@@ -260,7 +261,7 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
         def pairs() -> set:
             return {(t.header.frame_id, t.child_frame_id) for m in tf for t in m.transforms}
 
-        end = time.monotonic() + 60
+        end = time.monotonic() + patience(60)
         while time.monotonic() < end and (proc.poll() is None or not static
                                           or ('map', 'odom') not in pairs()):
             ex.spin_once(timeout_sec=0.05)

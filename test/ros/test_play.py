@@ -13,6 +13,7 @@ import pytest
 from bag_fixtures import write_unknown_type_bag
 
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
+from ga_ros.ros.deadlines import patience
 
 pytestmark = pytest.mark.ros
 
@@ -152,12 +153,12 @@ def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> 
     try:
         # the node's path publisher keeps only its last path for a late subscriber: match it
         # before the node has anything to publish, or the first update's path may be missed
-        end = time.monotonic() + 40
+        end = time.monotonic() + patience(40)
         while sub.get_publisher_count() == 0 and time.monotonic() < end:
             ex.spin_once(timeout_sec=0.1)
         assert sub.get_publisher_count() > 0, (tmp_path / 'node.log').read_text()[-2000:]
         player = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20')
-        end = time.monotonic() + 40
+        end = time.monotonic() + patience(40)
         def first_update():  # paths between updates hold the open track dead-reckoned
             return next((p for p in paths if len(p.poses) == len(want.node_ids)), None)
 
@@ -223,7 +224,7 @@ def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, samp
     bag = write_measurement_bag(tmp_path / 'b', sample.measurements[:20], None)
     proc = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20',
                  '--delivery-timeout', '3')
-    end = time.monotonic() + 120
+    end = time.monotonic() + patience(120)
     while proc.poll() is None and time.monotonic() < end:
         ex.spin_once(timeout_sec=0.05)
     if proc.poll() is None:

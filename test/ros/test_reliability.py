@@ -33,6 +33,7 @@ from ga_ros.pipeline.journal import journal_path  # noqa: E402
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402
 from ga_ros.ros.qos import measurement_qos  # noqa: E402
 
@@ -71,7 +72,7 @@ class InProcess:
         return node
 
     def publish_and_wait_acked(self, node: AlignmentNode, msgs: list[Odometry]) -> None:
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + patience(10)
         while self.pub.get_subscription_count() < 1:
             assert time.monotonic() < deadline, 'the node did not match the publisher'
             time.sleep(0.01)
@@ -345,7 +346,7 @@ def test_kill_9_during_play_loses_nothing(tmp_path):
                           30, 'the node', proc)
         player = _play(bag, dom, '--rate', '0', '--wait-for-subscribers', '60')
         jpath = journal_path(state)
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + patience(30)
         while not (jpath.exists() and jpath.stat().st_size > 11 + 381 * 30):
             assert time.monotonic() < deadline and player.poll() is None, 'play too fast'
             time.sleep(0.001)

@@ -11,6 +11,8 @@ import time
 
 import pytest
 
+from ga_ros.ros.deadlines import patience
+
 pytestmark = pytest.mark.ros
 
 DOMAIN = 40 + (os.getpid() + 57) % 150
@@ -32,7 +34,7 @@ PUBLISHER = textwrap.dedent("""
     t.transform.translation.y = -2.25
     t.transform.rotation.z = 0.6
     t.transform.rotation.w = 0.8
-    end = time.monotonic() + 30.0
+    end = time.monotonic() + patience(30.0)
     while time.monotonic() < end:
         pub.publish(TFMessage(transforms=[t]))
         rclpy.spin_once(node, timeout_sec=0.1)
@@ -65,7 +67,7 @@ def test_tf_message_crosses_processes() -> None:
     got: list = []
     node.create_subscription(TFMessage, '/tf', got.append, 10)
     try:
-        end = time.monotonic() + 40.0
+        end = time.monotonic() + patience(40.0)
         while not got and time.monotonic() < end and proc.poll() is None:
             ex.spin_once(timeout_sec=0.1)
     finally:

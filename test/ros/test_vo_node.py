@@ -31,11 +31,13 @@ from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
 from ga_ros.pipeline.stereo import NO_EXTRINSIC  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import domain_id  # noqa: E402
 from ga_ros.ros.qos import measurement_qos, stream_qos  # noqa: E402
 from ga_ros.ros.vo_node import EXTRINSIC_REFUSED, VoNodeSettings, array_to_image  # noqa: E402
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene  # noqa: E402
 from ga_ros.vo.crosstrack import CrossTrackConfig  # noqa: E402
+from ga_ros.vo.dense import DenseStereoConfig  # noqa: E402
 from ga_ros.vo.evaluate import motion_errors  # noqa: E402
 from ga_ros.vo.messages import camera_info_to_model  # noqa: E402
 from ga_ros.vo.messages import image_to_grey as image_to_array  # noqa: E402
@@ -65,6 +67,8 @@ def test_yaml_mirrors_config_defaults():
     expected.update({f.name: getattr(ExtrinsicConfig(), f.name) for f in fields(ExtrinsicConfig)})
     expected.update({'cross_' + f.name: getattr(CrossTrackConfig(), f.name)
                      for f in fields(CrossTrackConfig)})
+    expected.update({'cloud_' + f.name: getattr(DenseStereoConfig(), f.name)
+                     for f in fields(DenseStereoConfig)})
     assert set(params) == set(expected)
     for key, value in expected.items():
         assert params[key] == value, key
@@ -149,14 +153,14 @@ def test_two_processes_images_in_measurements_out(tmp_path):
         pub_r.publish(array_to_image(right, stamp, 'right'))
 
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + patience(30)
         while (min(p.get_subscription_count() for p in (pub_l, pub_r, pub_il, pub_ir)) == 0
                or node.count_publishers('/ga/measurements') == 0):
             assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
             assert time.monotonic() < deadline, 'vo_node not discovered'
             spin_for(0.1)
-        # Images before any CameraInfo: dropped with a warning (no crash).
-        deadline = time.monotonic() + 10
+        # Images before any CameraInfo: they wait for it, with a warning (no crash).
+        deadline = time.monotonic() + patience(10)
         while 'no CameraInfo' not in (tmp_path / 'vo_node.log').read_text():
             assert time.monotonic() < deadline, 'images without CameraInfo not reported'
             send(*frames[0], 1, info=False)
@@ -175,7 +179,7 @@ def test_two_processes_images_in_measurements_out(tmp_path):
                 pub_l.publish(bad)
                 pub_r.publish(array_to_image(frames[i][1], stamp + 2, 'right'))
                 spin_for(0.15)
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + patience(20)
         while len(odoms) < n and time.monotonic() < deadline:
             spin_for(0.1)
         assert proc.poll() is None, (tmp_path / 'vo_node.log').read_text()
@@ -402,3 +406,111 @@ def test_nan_camera_info_first_then_valid_ones_give_measurements() -> None:
         assert node.wait_idle()
         assert node.calibration is not None and node.calibration.baseline_m == 2.2
         assert len(sent) >= 2 and node.front.stats.measurements == len(sent)
+
+
+@pytest.mark.ros
+def test_camera_info_just_after_the_images_loses_no_pair() -> None:
+    """Each pair's CameraInfo (same stamp) arrives just after its images: the first pair waits
+    for the calibration instead of being dropped ("no CameraInfo yet"), and the node gives the
+    same measurements as with the CameraInfo first."""
+    from ga_ros.pipeline.stereo import NO_CAMERA_INFO
+
+    rig, pairs = _upscaled_pairs(30, seed=12)
+    runs = []
+    for offset, info_first in ((37, True), (39, False)):
+        with _vo_node(offset, pair_queue=100) as (node, sent):
+            for stamp, left, right in pairs:
+                infos = [(camera_info(rig, side == 'right', stamp), side)
+                         for side in ('left', 'right')]
+                if info_first:
+                    for msg, side in infos:
+                        node._on_info(msg, side)
+                node._on_image(array_to_image(left, stamp, 'l'), 'left')
+                node._on_image(array_to_image(right, stamp, 'r'), 'right')
+                if not info_first:
+                    for msg, side in infos:
+                        node._on_info(msg, side)
+            assert node.wait_idle()
+            st = node.front.stats
+            assert NO_CAMERA_INFO not in st.reasons, st.reasons
+            assert node.counts['processed'] == st.pairs == len(pairs)
+            runs.append([conv.odometry_to_measurement(m) for m in sent])
+    first, after = runs
+    assert len(first) == len(after) >= 2
+    for a, b in zip(first, after):
+        assert (a.src_id, a.dst_id) == (b.src_id, b.dst_id)
+        np.testing.assert_allclose(a.z, b.z, atol=1e-12)
+
+
+@pytest.mark.ros
+def test_keyframe_clouds_published_while_subscribed() -> None:
+    """``ga/keyframe_cloud``: nothing computed without a subscriber; with one, a PointCloud2
+    per new keyframe, stamped with the keyframe's stamp, in the left image's frame, its points
+    in front of the camera at the simulated terrain's depths."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+
+    from ga_ros.ros.vo_node import VoNode
+
+    rig = StereoRig()
+    survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=12, seed=4))
+    scene = make_scene(survey, rig, seed=4)
+    rng = np.random.default_rng(4)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(37))
+    node = VoNode(context=ctx, parameter_overrides=[
+        Parameter('warn_throttle_sec', value=0.0), Parameter('pair_queue', value=100),
+        Parameter('assume_identity_extrinsic', value=True), Parameter('cross_track', value=False),
+        Parameter('cloud_pixel_stride', value=4)])
+    listener = Node('cloud_listener', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(listener)
+    received: list[PointCloud2] = []
+    try:
+        for side in ('left', 'right'):
+            node._on_info(camera_info(rig, side == 'right', 0), side)
+
+        def feed(indices: range) -> None:
+            for i in indices:
+                left, right = scene.render_pair(survey.T_world_cam[i], rng)
+                stamp = int(survey.stamps_ns[i])
+                node._on_image(array_to_image(left, stamp, 'l_optical'), 'left')
+                node._on_image(array_to_image(right, stamp, 'r_optical'), 'right')
+            assert node.wait_idle()
+
+        feed(range(0, 4))  # no subscriber: no cloud computed
+        assert node.front.stats.keyframes >= 1 and node.counts['keyframe_clouds'] == 0
+        assert node.front._dense is None
+        listener.create_subscription(PointCloud2, '/ga/keyframe_cloud', received.append,
+                                     stream_qos(100))
+        deadline = time.monotonic() + patience(30)
+        while node.pub_cloud.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, 'cloud subscriber not discovered'
+            executor.spin_once(timeout_sec=0.05)
+        kf_before = node.front.stats.keyframes
+        feed(range(4, 12))
+        new_kf = node.front.stats.keyframes - kf_before
+        assert new_kf >= 2 and node.counts['keyframe_clouds'] == new_kf
+        deadline = time.monotonic() + patience(30)
+        while len(received) < new_kf:
+            assert time.monotonic() < deadline, f'{len(received)} of {new_kf} clouds received'
+            executor.spin_once(timeout_sec=0.05)
+        kf_stamps = set(node.front._stamp_to_node)
+        depths = [scene.render(T, with_depth=True)[1] for T in survey.T_world_cam[4:12]]
+        z_lo, z_hi = min(d.min() for d in depths), max(d.max() for d in depths)
+        for msg in received:
+            assert conv.stamp_to_ns(msg.header.stamp) in kf_stamps
+            assert msg.header.frame_id == 'l_optical'
+            assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'intensity']
+            assert msg.point_step == 16 and msg.is_dense and msg.height == 1
+            xyzi = np.frombuffer(bytes(msg.data), '<f4').reshape(-1, 4)
+            assert len(xyzi) == msg.width > 0.5 * (rig.width - 64) * rig.height / 16
+            z = xyzi[:, 2]
+            assert np.median(z) > z_lo and np.median(z) < z_hi
+            assert np.mean((z > 0.9 * z_lo) & (z < 1.1 * z_hi)) > 0.98
+        assert node.diagnostic_values()['keyframe_clouds'] == new_kf
+    finally:
+        executor.shutdown()
+        listener.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

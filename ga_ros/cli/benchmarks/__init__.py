@@ -49,6 +49,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                     'stereo visual odometry and cross-track matching on simulated images'),
     'stereo-throughput': Benchmark('ga_ros.bench.stereo_throughput:main',
                                    'stereo front end at 752x480 (pairs per second)'),
+    'keyframe-cloud': Benchmark('ga_ros.cli.benchmarks.keyframe_cloud:main',
+                                'CPU of the keyframe clouds (dense stereo) on the sample bag'),
     'node': Benchmark('ga_ros.cli.benchmarks.node:main',
                       'the alignment node as a process: latency, sustained measurement rate'),
     'faults': Benchmark('ga_ros.cli.benchmarks.faults:main',
@@ -57,6 +59,9 @@ BENCHMARKS: dict[str, Benchmark] = {
                         'replay throughput on the sample bags'),
     'fixes': Benchmark('ga_ros.bench.fixes:main',
                        'real odometry + absolute fixes (Plaza): ga-ros against GTSAM LM / iSAM2'),
+    'long': Benchmark('ga_ros.bench.long_survey:main',
+                      'a long survey with a fix every track: late against early update time, '
+                      'CPU, RSS per pose'),
     'corrections': Benchmark('ga_ros.bench.corrections:main',
                              'ga/corrections bytes per update against the whole path (aerial)'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',

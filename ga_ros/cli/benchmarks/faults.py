@@ -20,7 +20,8 @@ from pathlib import Path
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``ga-ros bench faults``."""
     p = argparse.ArgumentParser(prog='ga-ros bench faults', description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                allow_abbrev=False)
     p.add_argument('--bag', type=Path, default=None,
                    help='measurements bag to run the cases on (default: a small simulated '
                         'survey of 48 nodes)')

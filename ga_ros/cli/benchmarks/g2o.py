@@ -59,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='ga-ros bench g2o',
         description='Solve each g2o file from its own initial guess and print a Markdown table '
-                    'comparing the final cost with the GTSAM reference optimum.')
+                    'comparing the final cost with the GTSAM reference optimum.',
+        allow_abbrev=False)
     p.add_argument('--data', type=Path, default=DEFAULT_DATA,
                    help=f'directory of *.g2o files (default {DEFAULT_DATA})')
     p.add_argument('--only', nargs='+', metavar='NAME', help='datasets to run (file stems)')

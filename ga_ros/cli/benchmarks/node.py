@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The parser of ``ga-ros bench node``."""
     p = argparse.ArgumentParser(
         prog='ga-ros bench node',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
     p.add_argument('--tracks', type=int, default=6, help='double tracks in the survey (6)')
     p.add_argument('--per-swath', type=int, default=102,
                    help='nodes per swath (102: the paper aerial scenario)')

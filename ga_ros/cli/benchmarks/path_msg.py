@@ -41,7 +41,7 @@ def figures(n: int, frame_id: str) -> tuple[float, float, float, int]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog='ga-ros bench path-msg', description=__doc__.split('\n\n')[0])
+        prog='ga-ros bench path-msg', description=__doc__.split('\n\n')[0], allow_abbrev=False)
     p.add_argument('--poses', type=int, default=100_000)
     p.add_argument('--window-poses', type=int, default=5_000)
     p.add_argument('--frame-id', default='map')

@@ -30,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='ga-ros bench replay',
         description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+                              formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
     p.add_argument('--bags', type=Path, help='folder of the sample bags (default bags/)')
     p.add_argument('--only', choices=('stereo', 'measurements'))
     p.add_argument('--io-only', action='store_true',

@@ -23,7 +23,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='ga-ros bench vo',
         description='Render a seeded lawnmower survey over a textured terrain, run the stereo '
-                    'odometry and the cross-track matcher, and compare with the ground truth.')
+                    'odometry and the cross-track matcher, and compare with the ground truth.',
+        allow_abbrev=False)
     p.add_argument('--size', default='320x240', help='image size WxH (default 320x240)')
     p.add_argument('--frames', type=int, default=None,
                    help='stereo pairs to process (default: the whole survey)')

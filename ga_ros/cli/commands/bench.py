@@ -10,13 +10,14 @@ import argparse
 import importlib
 
 from ga_ros.cli.benchmarks import BENCHMARKS
+from ga_ros.cli.commands import SUMMARIES
 
 
 def register(sub) -> None:
     listing = '\n'.join(f'  {name:18s} {b.summary}' for name, b in BENCHMARKS.items())
-    p = sub.add_parser('bench', help='run a benchmark and print its figures',
+    p = sub.add_parser('bench', help=SUMMARIES['bench'],
                        description=f'{__doc__}\nbenchmarks:\n{listing}',
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+                       formatter_class=argparse.RawDescriptionHelpFormatter, allow_abbrev=False)
     p.add_argument('target', choices=sorted(BENCHMARKS), metavar='NAME',
                    help='the benchmark (see the list above)')
     p.add_argument('options', nargs=argparse.REMAINDER,

@@ -16,6 +16,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.cli.commands.replay import add_replay_arguments, replay_config
 from ga_ros.errors import GaError, InputError
 from ga_ros.replay.pipeline import replay
@@ -37,8 +38,9 @@ def find_bags_dir() -> Path | None:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'demo', help='run the pipeline end to end on the bundled sample bags',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        'demo', help=SUMMARIES['demo'],
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
     p.add_argument('--out', type=Path, default=Path('out') / 'demo',
                    help='output folder (default out/demo)')
     p.add_argument('--only', choices=('stereo', 'measurements'),

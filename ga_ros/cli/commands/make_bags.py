@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.replay.samples import make_sample_bags
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'make-bags', help='regenerate the sample bags (aerial measurements, stereo images)',
+        'make-bags', help=SUMMARIES['make-bags'],
         description='Write the sample bags with the seeded simulators: aerial_measurements '
                     "(the paper's aerial scenario as measurements) and stereo_sample "
-                    '(compressed stereo pairs); both carry ground truth on /ga/ground_truth.')
+                    '(compressed stereo pairs); both carry ground truth on /ga/ground_truth.',
+        allow_abbrev=False)
     p.add_argument('--out', type=Path, default=Path('bags'), help='output folder (default bags)')
     p.add_argument('which', nargs='*', choices=('measurements', 'stereo'),
                    default=['measurements', 'stereo'], help='which bags (default both)')

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import argparse
 
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.ros.play_args import add_arguments
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'play', help='publish a bag live (with /clock) into a running ROS 2 graph',
+        'play', help=SUMMARIES['play'],
         description='Publish every message of a rosbag2 bag (mcap or sqlite3) with /clock at a '
                     'chosen rate, or as fast as the subscribers keep up (--rate 0); exits when '
-                    'the bag is done. Nodes should run with use_sim_time:=true.')
+                    'the bag is done. Nodes should run with use_sim_time:=true.',
+        allow_abbrev=False)
     add_arguments(p)
     p.set_defaults(func=run)
 

@@ -1,9 +1,38 @@
-"""``ga-ros replay BAG``: offline replay of a rosbag2 bag through VO and the track-window aligner.
+"""``ga-ros replay BAG``: offline replay of a recording through the alignment pipeline.
 
-Reads measurements (the ga_ros ``nav_msgs/Odometry`` encoding) or stereo images from a bag
-(mcap or sqlite3), runs the pipeline in-process as fast as the CPU allows, and writes an mcap bag
-(corrected path, poses, measurements, markers), TUM trajectories, a PNG plot and
-``summary.json``. ``--info`` lists the bag's topics and what would be used.
+Runs in-process, as fast as the CPU allows, exactly what the live nodes would do, and writes an
+mcap bag (corrected path, poses, measurements, markers, /tf), TUM trajectories, a PNG plot and
+summary.json. ``--info`` lists the recording's topics and what would be used.
+
+recordings (BAG):
+  rosbag2 bag         a directory with metadata.yaml, or one .mcap / .db3 file (mcap, sqlite3)
+  ROS 1 bag           a .bag file (read as is, no conversion)
+  EuRoC ASL folder    MH_01_easy/ or its mav0/: cam0, cam1 (data.csv, data/*.png,
+                      sensor.yaml: intrinsics and T_BS), state_groundtruth_estimate0/data.csv
+                      (ground truth, when present); a stereo input
+  KITTI odometry      sequences/NN/: image_0, image_1, calib.txt, times.txt; ground truth from
+                      poses/NN.txt (two levels up) or poses.txt; a stereo input
+
+inputs (one kind per replay; the first three are found without options):
+  measurements        nav_msgs/Odometry in the ga_ros encoding (--measurements-topic,
+                      default /ga/measurements): motions with covariances, no VO
+  stereo pair         left/right sensor_msgs/Image or CompressedImage with CameraInfo (found by
+                      name: left/right, cam0/cam1), or --calibration files; VO runs in-process
+  EuRoC / KITTI       the folders above (their stereo pair and calibration)
+  odometry sources    --odom-topic TOPIC (repeatable): nav_msgs/Odometry, PoseStamped or
+                      PoseWithCovarianceStamped of any robot (wheel odometry, EKF, VIO, SLAM);
+                      the first defines the keyframes, the others measure between them;
+                      --input-config for per-input settings
+  absolute fixes      --absolute-topic TOPIC (repeatable, with --odom-topic):
+                      PoseWithCovarianceStamped (AMCL, USBL, motion capture), Odometry or
+                      NavSatFix; the map frame is then the fixes' frame
+  camera beside odom  --odom-topic with --left-image/--right-image and --camera-extrinsic: the
+                      images give cross-track connections between odometry keyframes
+  ground truth        --ground-truth-topic (pose topic or tf:PARENT:CHILD) or --ground-truth
+                      FILE (TUM, EuRoC data.csv, KITTI poses): error figures
+
+A recording without measurements or a stereo pair gets the command for the topics it has
+(e.g. ga-ros replay BAG --odom-topic /odom --absolute-topic /amcl_pose) and exit code 2.
 """
 
 from __future__ import annotations
@@ -17,10 +46,11 @@ from typing import Any
 import yaml
 
 from ga_ros import topics
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
-from ga_ros.errors import InputError
-from ga_ros.io.bag import bag_info
+from ga_ros.errors import InputError, NoUsableInputError
+from ga_ros.io.folder_bag import recording_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.absolute import absolute_specs_from_mapping
@@ -289,9 +319,11 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'replay', help='replay a rosbag2 bag offline through VO and the track-window aligner',
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('bag', type=Path, help='rosbag2 directory, or a .mcap / .db3 file')
+        'replay', help=SUMMARIES['replay'],
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False)
+    p.add_argument('bag', type=Path, help='rosbag2 directory or .mcap / .db3 file, ROS 1 .bag '
+                                          'file, EuRoC ASL folder or KITTI sequence folder')
     p.add_argument('--out', type=Path,
                    help='output directory (default out/replay/<bag name>)')
     p.add_argument('--info', action='store_true',
@@ -304,9 +336,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     topics = topic_config(args)
     if args.info:
-        text, usable = info_text(bag_info(args.bag), topics, input_topics(args))
+        text, status = info_text(recording_info(args.bag), topics, input_topics(args))
         print(text)
-        return 0 if usable else 1
+        return status
     out = args.out or Path('out') / 'replay' / (args.bag.stem or args.bag.name)
     config = replay_config(args, progress=sys.stderr.isatty() and not args.json)
 
@@ -315,7 +347,11 @@ def run(args: argparse.Namespace) -> int:
             for line in plan_lines(plan):
                 print(line)
 
-    result = replay(args.bag, out, config, on_plan=show_plan)
+    try:
+        result = replay(args.bag, out, config, on_plan=show_plan)
+    except NoUsableInputError as exc:  # a usage error: the command for the bag's topics
+        print(f'ga-ros replay: error: {exc}', file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(result.as_dict(), default=str))
     else:

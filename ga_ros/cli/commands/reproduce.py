@@ -6,14 +6,16 @@ import argparse
 import sys
 from dataclasses import replace
 
+from ga_ros.cli.commands import SUMMARIES
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        'reproduce', help="run the paper's experiments and write a report",
+        'reproduce', help=SUMMARIES['reproduce'],
         description="Run the paper's experiments (Table I, Fig. 2/3, 5, 7, 8, window vs batch, "
                     'quality control, experiment 2 from rendered stereo with Figs. 7-9 and 12, '
                     'wrong connections, timings, memory) and write DIR/report.md, '
-                    'DIR/report.json and PNG plots.')
+                    'DIR/report.json and PNG plots.', allow_abbrev=False)
     p.add_argument('--out', required=True, help='output directory')
     p.add_argument('--quick', action='store_true',
                    help='reduced run (fewer runs, smaller surveys, same experiments)')

@@ -15,15 +15,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ga_ros.cli.commands import SUMMARIES
+
 SCENARIOS = ('aerial', 'lawnmower_open', 'lawnmower_closed', 'looping_open', 'looping_closed')
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        'simulate', help="simulate one of the paper's surveys with ground truth",
+        'simulate', help=SUMMARIES['simulate'],
         description="Simulate one of the paper's surveys (noisy motions between overlapping "
                     'frames) and write the measurements (g2o), the ground truth (TUM) and the '
-                    'track ids (CSV).')
+                    'track ids (CSV).', allow_abbrev=False)
     p.add_argument('scenario', choices=SCENARIOS)
     p.add_argument('--seed', type=int, default=0, help='seed of the noise (default 0)')
     p.add_argument('--noise', type=float, default=10.0,

@@ -23,6 +23,7 @@ import warnings
 
 import numpy as np
 
+from ga_ros.cli.commands import SUMMARIES
 from ga_ros.core.initialization import INIT_METHODS
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.io.g2o import InformationRepairWarning, PoseGraph, read_g2o
@@ -33,13 +34,13 @@ from ga_ros.runtime import keep_freed_memory
 # --------------------------------------------------------------------------------------- CLI
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        'solve', help='optimise a g2o pose graph (batch, or track by track)',
+        'solve', help=SUMMARIES['solve'],
         description='Optimise a g2o pose graph (VERTEX_SE3:QUAT/EDGE_SE3:QUAT, VERTEX_SE2/'
                     'EDGE_SE2, PARAMS_*OFFSET, TORO VERTEX2/EDGE2) from its own initial guess '
                     '(or, for an edge-only file, from a chordal initialisation) and write the '
                     "result. The printed cost is sum e' Omega e over the edges (GTSAM's "
                     'between-factor error), with the a-posteriori variance factor and its '
-                    'chi-square test at 95 %.')
+                    'chi-square test at 95 %.', allow_abbrev=False)
     p.add_argument('input', help='g2o file')
     p.add_argument('--init', choices=('auto', 'file', *INIT_METHODS), default='auto',
                    help="initial guess: the file's vertices, odometry chaining, a minimum "

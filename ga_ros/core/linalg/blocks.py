@@ -328,13 +328,9 @@ def _compiled(slot: list, fn):
     """``fn`` compiled with numba (cached on disk) on first use and kept in ``slot`` (a
     one-element list), or ``None`` without numba."""
     if not slot:
-        from ga_ros.core.kernels import AVAILABLE
+        from ga_ros.core.kernels import AVAILABLE, jit
 
-        compiled = None
-        if AVAILABLE:
-            import numba
-
-            compiled = numba.njit(cache=True, nogil=True)(fn)
+        compiled = jit(fn) if AVAILABLE else None
         slot.append(compiled)
     return slot[0]
 

@@ -15,7 +15,7 @@ import threading
 
 import numpy as np
 
-from ga_ros.core.kernels import AVAILABLE
+from ga_ros.core.kernels import AVAILABLE, jit
 
 #: The kernels here are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, callers
 #: take their NumPy/SciPy path.
@@ -106,11 +106,9 @@ def separator_solves(ext: np.ndarray, r: int, w: int, d: int, Bt: np.ndarray) ->
     if not COMPILED:
         return None
     if _SEPARATORS is None:
-        import numba
-
         handles = routines('dpotrf', 'dpotrs')
         if handles is None:  # pragma: no cover - SciPy without them
             return None
         _dpotrf, _dpotrs = handles
-        _SEPARATORS = numba.njit(cache=True, nogil=True)(_separator_solves)
+        _SEPARATORS = jit(_separator_solves)
     return int(_SEPARATORS(ext, r, w, d, Bt))

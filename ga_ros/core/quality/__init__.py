@@ -1,7 +1,7 @@
 """Statistical quality control of an adjustment (Baarda's testing and reliability theory).
 
 Given a network, the solution of :func:`ga_ros.core.solver.solve` and the priors it used, this
-module computes, for the mixed (Gauss-Helmert) model of METHOD.md Sec. 2:
+module computes, for the mixed (Gauss-Helmert) model of docs/method.md Sec. 2:
 
 * the **global test** of the variance factor (Koch 1999, Sec. 4.3; Leick, *GPS Satellite
   Surveying*, Sec. 4.9): ``T = v' P v / sigma_prior^2 ~ chi2(r - u)`` under ``H0``;

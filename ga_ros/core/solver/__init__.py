@@ -1,6 +1,6 @@
 """The mixed adjustment (Gauss-Helmert) solver: batch, weighted parameters, sequential update.
 
-Notation follows METHOD.md and the paper (Sec. III): observations ``l_b`` with weight
+Notation follows docs/method.md and the paper (Sec. III): observations ``l_b`` with weight
 ``P = S^-1``, residuals ``v``, unknowns ``x``, constraints ``f(l, x) = 0`` linearised as
 ``A d + B v + w = 0`` with ``w = f(l0, x0) + B (l_b - l0)``. Per connection
 ``M = B S B'`` (block diagonal), ``N = A' M^-1 A``, ``u = A' M^-1 w``, ``d = -N^-1 u`` (eq. 15),

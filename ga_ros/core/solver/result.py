@@ -29,6 +29,13 @@ _MANY_NODES = 24
 #: ~90 MiB per process).
 _SPARSE_SELINV_UNKNOWNS = 12_000
 
+#: From this many unknowns on, the covariances of up to :data:`_MANY_NODES` nodes come from a
+#: forward solve along each node's elimination-tree path only
+#: (:func:`ga_ros.core.linalg.selinv.path_marginal_blocks`) instead of full solves: a window's
+#: newest node (the pose a node publishes after each update) lies in the factor's last
+#: supernode, 1-2 ms instead of 10-20 ms at 6,700 unknowns.
+_PATH_FROM_UNKNOWNS = 3_000
+
 
 @dataclass
 class SolveResult:
@@ -189,6 +196,10 @@ class _NormalSystem:
                 out = np.zeros((ids.size, d, d))
                 out[cols >= 0] = blocks
                 return out
+        if self.pattern.size >= _PATH_FROM_UNKNOWNS:
+            blocks = self._path_blocks(ids)
+            if blocks is not None:
+                return blocks
         out = np.zeros((ids.size, d, d))
         for start in range(0, ids.size, 256):  # bounded memory: n x (256 d) at a time
             chunk = ids[start:start + 256]
@@ -199,6 +210,20 @@ class _NormalSystem:
                     blk = X[c * d:(c + 1) * d, k * d:(k + 1) * d]
                     out[start + s] = 0.5 * (blk + blk.T)
                     k += 1
+        return out
+
+    def _path_blocks(self, ids: IntArray) -> FloatArray | None:
+        """Diagonal blocks of ``N^-1`` for a few nodes by forward solves along their
+        elimination-tree paths (zero blocks for fixed nodes); ``None`` if the factor cannot be
+        read in place."""
+        from ga_ros.core.linalg import selinv  # lazy: scipy.linalg
+
+        cols = self.col[self.index_of(ids)]
+        blocks = selinv.path_marginal_blocks(self.chol, cols[cols >= 0])
+        if blocks is None:
+            return None
+        out = np.zeros((ids.size, self.d, self.d))
+        out[cols >= 0] = blocks
         return out
 
     def _selected_blocks(self, cols: IntArray) -> FloatArray | None:

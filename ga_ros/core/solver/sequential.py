@@ -17,7 +17,7 @@ from ga_ros.errors import InputError, NetworkError
 # ------------------------------------------------------------------- sequential (Sec. III-D)
 def sequential_update(previous: SolveResult, group2: ConnectionNetwork, T_init: FloatArray,
                       config: SolverConfig | None = None) -> SolveResult:
-    """Sequential solution (paper Sec. III-D, information form of METHOD.md Sec. 4).
+    """Sequential solution (paper Sec. III-D, information form of docs/method.md Sec. 4).
 
     Group 1 is represented only by ``previous`` (its estimate ``x1`` and normal matrix ``N1``);
     its observations are not used again. ``group2`` holds the new observations; it must contain
@@ -46,7 +46,7 @@ def sequential_update(previous: SolveResult, group2: ConnectionNetwork, T_init: 
 
 def covariance_form_update(previous: SolveResult, group2: ConnectionNetwork,
                            config: SolverConfig | None = None) -> tuple[FloatArray, FloatArray]:
-    """One sequential step in covariance form (METHOD.md Sec. 4), no new unknowns.
+    """One sequential step in covariance form (docs/method.md Sec. 4), no new unknowns.
 
     ``K = Q1 A2' (M2 + A2 Q1 A2')^-1``, ``x2 = x1 - K w2(x1)``, ``Q2 = Q1 - K A2 Q1``.
 

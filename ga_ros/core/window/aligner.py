@@ -198,6 +198,13 @@ class TrackWindowAligner:
             if up is not None:
                 updates.append(up)
         apply_measurement(self.state, m, plan)
+        if plan.first and int(m.src_track) != int(m.dst_track):
+            # the datum alone in its track (a session ends a track at a fix on the first
+            # keyframe): that track ended before the destination's began, with nothing to
+            # adjust. Finished, it takes part in the window and freezes like any track;
+            # left open, its node stayed unfrozen forever, so no track could retire from
+            # the refinement's horizon and every update copied and scanned the whole survey.
+            self.state.finished.add(int(m.src_track))
         if plan.first and self.config.datum == 'fixes':  # the weak gauge prior, row 0
             cfg = self.config
             self.state.fixes.add_gauge(0, plan.src, m.stamp_ns, self.state.T_first,
@@ -228,7 +235,11 @@ class TrackWindowAligner:
             if not str(up.reason).startswith('failed'):
                 self.handoff.start()
                 if self.config.freeze_ahead:
-                    self.ahead.start(self.config.window_tracks, self._last(), self._plan_freeze)
+                    # computed for the next update: without the covariances if a refinement
+                    # installed by that update replaces them
+                    covs = not self._refinement_due(len(st.finished) + 1)
+                    self.ahead.start(self.config.window_tracks, self._last(),
+                                     lambda *a: self._plan_freeze(*a, covs))
                 else:
                     self.ahead.drop()
                 return up
@@ -278,11 +289,11 @@ class TrackWindowAligner:
         t0 = time.perf_counter() if t0 is None else t0
         finished = st.finished_order()
         window = finished[-self.config.window_tracks:]
-        leaving = [t for t in finished[:-self.config.window_tracks]
-                   if not st.frozen[st.track_nodes[t][0]]]
-        for t in leaving:
-            self._freeze(t)
+        leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
+        plans = [self._freeze(t) for t in leaving]
+        installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
+        self._deferred_covariances(plans, self.handoff.n_refinements > installed)
         try:
             up = self._adjust(window, track, t0)
             if refined is not None and not str(up.reason).startswith('failed'):
@@ -313,24 +324,51 @@ class TrackWindowAligner:
         return self._last()
 
     # ---------------------------------------------------------------------- freezing
-    def _freeze(self, track: int) -> None:
+    def _freeze(self, track: int) -> FreezePlan:
         """Freeze a track leaving the window, using the last adjustment's estimate (the plan
         computed ahead in the background if it still applies, else computed now)."""
         plan = self.ahead.take(track)
         if plan is None:
             st = self.state
             plan = self._plan_freeze(track, self._last(), st.last_window, st.priors,
-                                     len(st.ids), st.src.n)
+                                     len(st.ids), st.src.n,
+                                     not self._refinement_due(len(st.finished)))
         install_freeze(self.state, plan)
+        return plan
 
     def _plan_freeze(self, track: int, res: SolveResult | None, last_window: IntArray,
-                     priors: list, n: int, nc: int) -> FreezePlan:
+                     priors: list, n: int, nc: int, covariances: bool = True) -> FreezePlan:
         """The freeze of ``track`` under the configured policy
         (:meth:`FreezePolicy.plan <ga_ros.core.window.freeze.FreezePolicy.plan>`); changes
-        nothing (it may run in the background thread of :attr:`ahead`)."""
+        nothing (it may run in the background thread of :attr:`ahead`). ``covariances=False``:
+        the leaving nodes' covariances are left to :meth:`_deferred_covariances`."""
         cfg = self.config
         return self.policy.plan(self.state, track, res, last_window, priors, n, nc,
-                                int(cfg.prior_band), int(cfg.prior_hubs), self._factor_lock)
+                                int(cfg.prior_band), int(cfg.prior_hubs), self._factor_lock,
+                                covariances)
+
+    def _refinement_due(self, n_finished: int) -> bool:
+        """Whether a background refinement is due at the update of the ``n_finished``-th
+        track: it is installed right after that update's freezes and replaces the covariances
+        of every frozen node of its horizon (the leaving tracks' included), so those freezes
+        need not compute them."""
+        due = self.handoff.refiner.pending_due
+        return due is not None and due <= n_finished
+
+    def _deferred_covariances(self, plans: list[FreezePlan], installed: bool) -> None:
+        """The covariances the freezes ``plans`` left uncomputed (a refinement was due to
+        replace them): kept from the refinement if it was ``installed`` and covers their nodes,
+        else computed now from the last adjustment's factor (the same values a freeze computes:
+        that factor is unchanged until this update's adjustment)."""
+        res, f = self.handoff.smoothing or (None, 0)
+        for plan in plans:
+            rows = plan.cov_rows
+            if plan.cov is not None or not rows.size:
+                continue
+            if (installed and res is not None and rows.min() >= f
+                    and rows.max() < f + res.frozen.size and res.frozen[rows - f].all()):
+                continue  # the refined covariances are installed
+            self.state.cov[rows] = plan.covariances()
 
     def wait_background(self) -> float:
         """Wait until the freeze being computed ahead (``freeze_ahead``) is ready; returns the

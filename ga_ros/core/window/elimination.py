@@ -2,14 +2,15 @@
 rebuilt at a refined estimate, the retirement of old tracks into the past prior, and the back
 substitution (smoothing) through those eliminations (ROS-free).
 
-The rebuilt priors come from eliminating the absorbed terms track by track on dense matrices of
-about two swaths (:class:`Marginal`: interior nodes first, each gain over the nodes it is
-coupled to); tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes take one sparse
-elimination instead (:func:`sparse_eliminate`), whose cost does not grow with the cube of a
-swath. Every prior is built by the freeze's rule,
-:func:`~ga_ros.core.window.freeze.marginal_prior`. The back substitution (:func:`smooth`) needs
-the eliminations' gains, ~0.7 M values per 200-pose track: a worker process keeps them
-(:mod:`ga_ros.core.window.worker`).
+The rebuilt priors come from one sparse elimination (:func:`sparse_eliminate`): every absorbed
+term of the horizon, its frozen fixes and the past prior linearised and summed once, the priors
+by selected inversion or a partial factorisation, the back substitution (:func:`smooth`) one
+solve with a sparse factor, which a worker process keeps (:mod:`ga_ros.core.window.worker`).
+The track-by-track elimination on dense matrices of about two swaths (:class:`Marginal`:
+interior nodes first, each gain over the nodes it is coupled to) gives the same priors and
+smoothing; it runs when :data:`SPARSE_FROM_TRACK_NODES` is raised above the tracks' length (the
+tests compare the two). Every prior is built by the freeze's rule,
+:func:`~ga_ros.core.window.freeze.marginal_prior`.
 """
 
 from __future__ import annotations
@@ -45,8 +46,9 @@ def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: b
     Returns one prior per connected group of prior nodes (at most one in a lawnmower survey),
     and the elimination steps for back substitution (:class:`SmoothingStep`).
 
-    Tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes: one sparse elimination
-    instead (:func:`sparse_eliminate`, the same priors, one :class:`SparseSmoothing`).
+    Tracks of more than :data:`SPARSE_FROM_TRACK_NODES` nodes (by default every snapshot): one
+    sparse elimination instead (:func:`sparse_eliminate`, the same priors, one
+    :class:`SparseSmoothing`).
 
     Raises
     ------
@@ -195,10 +197,13 @@ def prior_of(work: Marginal, group: IntArray, T_lin: FloatArray, band: int = -1,
 
 
 #: Tracks of more nodes than this make the eliminations of :func:`eliminate_absorbed` and
-#: :func:`retire_tracks` sparse (:func:`sparse_eliminate`): the dense ones work on about two
-#: swaths at a time, cubic in the swath's length (minutes and GBs per refinement for 1,000-pose
-#: tracks); for shorter tracks they are the faster of the two.
-SPARSE_FROM_TRACK_NODES = 400
+#: :func:`retire_tracks` sparse (:func:`sparse_eliminate`): every absorbed term linearised and
+#: summed once per refinement, one sparse factorisation. The dense track-by-track ones (one
+#: linearisation and one dense Schur complement per track, about two swaths at a time, cubic in
+#: the swath's length) took twice the CPU of a whole refinement at 20 and at 204 poses per track
+#: (0.16 against 0.09 s, 1.5 against 0.78 s; equal results to 1e-13), so every snapshot takes
+#: the sparse one; tests raise the threshold to compare the two.
+SPARSE_FROM_TRACK_NODES = 0
 
 
 def long_tracks(snap: RefinementSnapshot) -> bool:
@@ -253,9 +258,33 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
 
 def gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]
               ) -> list[GaussianPrior]:
-    """The solver's form of priors over snapshot nodes."""
-    return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
-            for p in priors]
+    """The solver's form of priors over snapshot nodes.
+
+    The single-node priors (the absolute fixes' weighted parameters, one per node), if their
+    nodes are distinct, become one prior with a block-diagonal information, in their order and
+    where the first of them stood: the same terms of the normal equations, added in the same
+    order, from one vectorised evaluation instead of one per fix.
+    """
+    single = [k for k, p in enumerate(priors) if p.nodes.size == 1]
+    nodes = np.array([int(priors[k].nodes[0]) for k in single], dtype=np.int64)
+    if len(single) < 2 or np.unique(nodes).size != nodes.size:
+        return [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+                for p in priors]
+    merged = GaussianPrior(
+        snap.node_ids[nodes], np.concatenate([priors[k].T_world_node for k in single]),
+        sp.block_diag([_dense(priors[k].information) for k in single],
+                      format='bsr').tobsr(blocksize=(6, 6)))
+    out: list[GaussianPrior] = []
+    for k, p in enumerate(priors):
+        if p.nodes.size != 1:
+            out.append(GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information))
+        elif k == single[0]:
+            out.append(merged)
+    return out
+
+
+def _dense(information) -> FloatArray:
+    return information.toarray() if sp.issparse(information) else np.asarray(information, float)
 
 
 def normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,

@@ -25,7 +25,9 @@ entry in :data:`FREEZE_POLICIES`.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import scipy.linalg as sla
@@ -94,19 +96,23 @@ class FreezePlan:
     ----------
     track : the leaving track.
     nodes : (k,) its node rows.
-    cov_rows : (c,) rows whose marginal covariance is stored, ``cov`` (c, 6, 6) those blocks.
+    cov_rows : (c,) rows whose marginal covariance is stored, ``cov`` (c, 6, 6) those blocks
+        (``None``: not computed, left to the installer, see ``covariances``).
     absorbed : connection rows absorbed into the new prior (status 1 from now on).
     dropped : indices (into the aligner's list of priors) of the priors merged into it.
     prior : the new joint prior (``None``: no node kept, the absorbed terms vanish).
+    covariances : when ``cov`` is ``None``, computes those blocks (from the last adjustment's
+        factor, which must not have changed since).
     """
 
     track: int
     nodes: IntArray
     cov_rows: IntArray
-    cov: FloatArray
+    cov: FloatArray | None
     absorbed: IntArray
     dropped: tuple[int, ...]
     prior: JointPrior | None
+    covariances: Callable[[], FloatArray] | None = None
 
 
 #: Freezing: above this many leaving nodes, their marginal covariances come from one partial
@@ -142,13 +148,16 @@ class FreezePolicy:
 
     def plan(self, state: WindowState, track: int, res: SolveResult | None,
              last_window: IntArray, priors: list, n: int, nc: int, band: int, hubs: int,
-             factor_lock: threading.Lock) -> FreezePlan:
+             factor_lock: threading.Lock, covariances: bool = True) -> FreezePlan:
         """The freeze of ``track`` (:class:`FreezePlan`) from the last adjustment ``res`` (of
         the nodes ``last_window``), the joint priors ``priors``, the first ``n`` nodes and
         ``nc`` connections; reads the tables of ``state`` and changes nothing in them (it may run
         in a background thread while measurements are added: those rows come after ``n``,
         ``nc``). ``band``, ``hubs``: ``prior_band``, ``prior_hubs``; ``factor_lock`` guards
-        ``res``'s factor (shared with the covariance queries)."""
+        ``res``'s factor (shared with the covariance queries). ``covariances=False``: the leaving
+        nodes' marginal covariances are not computed (``plan.cov`` is ``None``) but left to
+        ``plan.covariances`` (for a freeze whose covariances a refinement installed with it
+        replaces)."""
         nodes = np.array(state.track_nodes[track], dtype=np.int64)
         # the new prior first: a covariance asked for right after an update (the node's newest
         # pose) factors the last adjustment's system meanwhile, and the selected inversion
@@ -162,9 +171,12 @@ class FreezePolicy:
                 sel = np.isin(ids, res.free_node_ids)
                 if sel.any():
                     banded = band >= 0 and sel.sum() >= BANDED_MIN_NODES
-                    with factor_lock:  # res's factor, shared with covariances()
-                        cov = marginal_covariances(res, ids[sel], banded)
+                    later = partial(_locked_marginals, factor_lock, res, ids[sel], banded)
+                    cov = later() if covariances else None
                     cov_rows = inside[sel]
+                    if cov is None:
+                        return FreezePlan(int(track), nodes, cov_rows, None, absorbed, dropped,
+                                          prior, later)
         return FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior)
 
     def marginalise(self, state: WindowState, L: IntArray, priors: list, n: int, nc: int,
@@ -307,7 +319,7 @@ def install_freeze(state: WindowState, plan: FreezePlan) -> None:
     """Apply a freeze (:class:`FreezePlan`) to ``state``: covariances, absorbed connections,
     priors,
     frozen flags."""
-    if plan.cov_rows.size:
+    if plan.cov_rows.size and plan.cov is not None:
         state.cov[plan.cov_rows] = plan.cov
     state.status.a[plan.absorbed] = 1
     dropped = set(plan.dropped)
@@ -315,6 +327,14 @@ def install_freeze(state: WindowState, plan: FreezePlan) -> None:
     if plan.prior is not None:
         state.priors.append(plan.prior)
     state.frozen[plan.nodes] = True
+
+
+def _locked_marginals(lock: threading.Lock, res: SolveResult, node_ids: IntArray,
+                      banded: bool) -> FloatArray:
+    """:func:`marginal_covariances` under ``lock`` (``res``'s factor, shared with the covariance
+    queries)."""
+    with lock:
+        return marginal_covariances(res, node_ids, banded)
 
 
 def marginal_covariances(res: SolveResult, node_ids: IntArray, banded: bool = False

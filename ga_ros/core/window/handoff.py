@@ -61,9 +61,9 @@ class RefinementHandoff:
                 or self.state.open_track not in self.state.finished):
             return
         due = n_done + cfg.refine_lag_tracks
-        order = [t for t in self.state.tracks if t in self.state.finished]
-        leaving = tuple(int(t) for t in order[:max(0, due - cfg.window_tracks)]
-                        if not self.state.frozen[self.state.track_nodes[t][0]])
+        order = self.state.finished_order()
+        leaving = tuple(int(t) for t in
+                        self.state.unfrozen_tail(order[:max(0, due - cfg.window_tracks)]))
         if not leaving and not self.state.frozen[:n].any():
             return  # nothing will be frozen at the hand-off: the window is the batch solution
         self.snap = replace(self.snapshot(), leaving=leaving)
@@ -83,12 +83,13 @@ class RefinementHandoff:
         k = len(book) if n_fixes is None else int(n_fixes)
         cfg = self.config
         scfg = cfg.solver_config()
-        order = [t for t in self.state.tracks if t in self.state.finished
-                 and self.state.track_nodes[t][0] < n]
+        order = self.state.finished_order()  # tracks start at increasing rows
+        while order and self.state.track_nodes.start(order[-1]) >= n:
+            order = order[:-1]
         retired = 0 if whole else min(self.state.retired, len(order))
         f, rows, past = 0, None, ()
         if retired:
-            f = int(self.state.track_nodes[order[retired]][0])
+            f = int(self.state.track_nodes.start(order[retired]))
             rows = self.state.horizon_rows(f, m)
             past = tuple(AbsorbedPrior(idx - f, mean, info) for idx, mean, info in self.state.past)
         sel = slice(0, m) if rows is None else rows
@@ -164,7 +165,8 @@ class RefinementHandoff:
         frozen_rows = f + np.nonzero(res.frozen)[0]
         book = self.state.fixes
         then = np.asarray(snap.fix_used if snap.fix_used is not None else [], np.int64)
-        then = then[np.isin(np.asarray(book.rows, np.int64)[then], frozen_rows)]
+        then = then[np.isin(np.array([book.rows[i] for i in then.tolist()], np.int64),
+                            frozen_rows)]
         if not np.array_equal(book.used(frozen_rows), then):
             raise InputError('the absolute fixes of the frozen nodes changed since the snapshot')
         past = np.concatenate([p.nodes for p in snap.past] + [p.nodes for p in snap.fixes]

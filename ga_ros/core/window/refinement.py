@@ -47,17 +47,12 @@ since the snapshot.
 Every absorbed connection and every fix still enters exactly one prior, so the published
 covariances stay honest (Monte-Carlo NEES in ``test/core/window/test_honest_covariances.py``).
 
-**Cost.** The rebuilt priors come from eliminating the absorbed terms track by track on dense
-matrices of about two swaths (:class:`~ga_ros.core.window.elimination.Marginal`: interior nodes
-first, each gain over the nodes it is coupled to); tracks of more than
-:data:`~ga_ros.core.window.elimination.SPARSE_FROM_TRACK_NODES` nodes take one sparse
-elimination instead (:func:`~ga_ros.core.window.elimination.sparse_eliminate`), whose cost
-does not grow with the cube
-of a swath. The back substitution (smoothing) needs the eliminations' gains, ~0.7 M values per
-200-pose track: a worker process keeps them and applies them when the aligner sends the prior
-nodes' corrections (:meth:`~ga_ros.core.window.worker.RefinementWorker.smooth`), so the
-hand-off receives poses,
-covariances and priors only.
+**Cost.** The rebuilt priors come from one sparse elimination of the horizon's absorbed terms
+(:func:`~ga_ros.core.window.elimination.sparse_eliminate`: each term linearised and summed once
+per refinement), of the horizon's size whatever the survey's length. The back substitution
+(smoothing) needs its sparse factor: a worker process keeps it and applies it when the aligner
+sends the prior nodes' corrections (:meth:`~ga_ros.core.window.worker.RefinementWorker.smooth`),
+so the hand-off receives poses, covariances and priors only.
 """
 
 from __future__ import annotations

@@ -115,8 +115,25 @@ class WindowState:
     received: ReceivedConnections = field(default_factory=ReceivedConnections)
 
     def finished_order(self) -> list[int]:
-        """The finished tracks in order of appearance."""
+        """The finished tracks in order of appearance.
+
+        A track finishes only as the open (newest) track, so the finished tracks are the first
+        ones of :attr:`tracks`: a slice, checked at its two ends, with no scan of the survey's
+        tracks (a scan only if that does not hold)."""
+        k = len(self.finished)
+        if k <= len(self.tracks) and (k == 0 or self.tracks[k - 1] in self.finished) and (
+                k == len(self.tracks) or self.tracks[k] not in self.finished):
+            return self.tracks[:k]
         return [t for t in self.tracks if t in self.finished]
+
+    def unfrozen_tail(self, tracks: list[int]) -> list[int]:
+        """The tracks of ``tracks`` (in order of appearance) that are not frozen. Tracks freeze
+        oldest first, so they are its last ones: found from the end, without looking at the
+        frozen tracks before them."""
+        k = len(tracks)
+        while k > 0 and not self.frozen[self.track_nodes.start(tracks[k - 1])]:
+            k -= 1
+        return tracks[k:]
 
     def seen_max(self) -> tuple[int, int]:
         """Largest node id and track id seen so far (-1 before the first measurement); kept

@@ -286,6 +286,10 @@ class TrackRanges:
     def __contains__(self, track) -> bool:
         return track in self._span
 
+    def start(self, track) -> int:
+        """The first row of ``track`` (no array built)."""
+        return self._span[track][0]
+
     def __getitem__(self, track) -> IntArray:
         a, b = self._span[track]
         return np.arange(a, b, dtype=np.int64)

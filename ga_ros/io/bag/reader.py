@@ -26,7 +26,8 @@ class BagReader:
     Parameters
     ----------
     path : a rosbag2 directory (with ``metadata.yaml``), a single ``.mcap`` / ``.db3`` file or
-        a ROS 1 ``.bag`` file.
+        a ROS 1 ``.bag`` file (EuRoC ASL and KITTI folders:
+        :func:`ga_ros.io.folder_bag.open_recording`).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -62,7 +63,9 @@ class BagReader:
             files = sorted(self.path.glob('*.mcap')) + sorted(self.path.glob('*.db3'))
             if len(files) != 1:
                 raise FormatError('not a rosbag2 bag (no metadata.yaml and not exactly one '
-                                  '.mcap/.db3 file)', str(self.path))
+                                  '.mcap/.db3 file), nor a EuRoC ASL folder (mav0/cam0, '
+                                  'mav0/cam1) or a KITTI odometry sequence (image_0, image_1, '
+                                  'calib.txt)', str(self.path))
             self.path = files[0]
         try:
             reader = Reader(self.path)
@@ -118,10 +121,12 @@ class BagReader:
             type, bad CDR); the message names the topic and the type. Messages before the
             failure have been yielded.
         """
+        from rosbags.rosbag2 import Reader
+
         if self._reader is None:
             raise FormatError('bag is not open', str(self.path))
         wanted = None if topics is None else set(topics)
-        if isinstance(self._reader, (McapStream, Ros1Bag)):
+        if not isinstance(self._reader, Reader):  # McapStream, Ros1Bag, a folder's reader
             yield from self._reader.messages(wanted, raw, str(self.path))
             return
         conns = [c for c in self._reader.connections if wanted is None or c.topic in wanted]

@@ -1,7 +1,7 @@
 """Quality control (ga_ros.core.quality) against an independent dense computation.
 
 The dense reference builds the full ``A``, ``B``, ``S`` of the mixed model for a small network,
-inverts ``N`` with numpy and forms ``Q_vv = S B' M^-1 (M - A N^-1 A') M^-1 B S`` (METHOD.md
+inverts ``N`` with numpy and forms ``Q_vv = S B' M^-1 (M - A N^-1 A') M^-1 B S`` (docs/method.md
 eq. 17); every figure of the report is compared with it.
 """
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.optimize import least_squares
-from solver_problems import make_problem, perturbed, true_poses
+from solver_problems import make_problem, noisy_aerial_survey, perturbed, true_poses
 
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionNetwork
@@ -479,3 +479,25 @@ def test_cost_tolerance_stops_earlier_at_the_same_optimum(pose_graph_dir):
     assert early.converged and early.reason == 'cost_converged'
     assert early.iterations < strict.iterations
     assert abs(early.cost - strict.cost) <= 1e-6 * strict.cost
+
+
+def test_few_node_covariances_by_path_solves_equal_full_solves(monkeypatch):
+    """Covariances of a few nodes of a large system come from forward solves along the
+    nodes' elimination-tree paths (``_PATH_FROM_UNKNOWNS``): equal to the full solves'
+    (rounding: 1e-10 relative), and to the selected inversion of every node's block."""
+    from ga_ros.core.solver import result as result_mod
+
+    sc, nm, _ = noisy_aerial_survey(3, 30, 5.0, 0)
+    net = sc.network(nm.z, nm.cov)
+    res = solve(net, sc.f2f(nm.z), SolverConfig(tolerance=1e-8))
+    ids = res.free_node_ids[[0, 7, -2, -1]]
+    monkeypatch.setattr(result_mod, '_PATH_FROM_UNKNOWNS', 0)
+    sysm = res._system
+    assert sysm._path_blocks(ids) is not None  # the factor is read in place: the path solves
+    got = res.covariance(ids)
+    monkeypatch.setattr(result_mod, '_PATH_FROM_UNKNOWNS', 10 ** 9)
+    ref = res.covariance(ids)  # full solves with the same factor
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+    every = res.covariance(res.free_node_ids)  # > _MANY_NODES: the selected inversion
+    idx = [int(np.nonzero(res.free_node_ids == i)[0][0]) for i in ids]
+    np.testing.assert_allclose(got, every[idx], rtol=1e-9, atol=1e-12 * np.abs(ref).max())

@@ -7,6 +7,8 @@ linear positions problem whose weighted least-squares solution is written out wi
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from line_survey import feed, fixes_aligner, gnss_fix, line_survey, wls_positions
@@ -176,3 +178,81 @@ def test_freeze_computed_ahead_with_fixes_is_used_and_exact(rng) -> None:
         al.add_measurement(m)
     al.finish_track()
     assert al.ahead.n_ahead[1] == before[1] + 1
+
+
+def _datum_alone(ms, per: int):
+    """The survey's measurements with the datum (node 0) alone in track 0 and the other nodes
+    in tracks of ``per`` (as a session makes them when a fix on the first keyframe ends a
+    track)."""
+    def track(i: int) -> int:
+        return 0 if i == 0 else (i - 1) // per + 1
+    return [replace(m, src_track=track(m.src_id), dst_track=track(m.dst_id)) for m in ms]
+
+
+def test_datum_alone_in_its_track_freezes_and_the_horizon_stays_bounded(rng) -> None:
+    """The first measurement runs from track 0 (the datum alone) to track 1: track 0 ends there
+    and freezes like any track. Otherwise its node stays unfrozen: no track retires from the
+    refinement's horizon, and each refinement and each update's rollback copy covers the whole
+    survey. The work of each refinement (snapshot nodes, connections, fixes and past prior
+    nodes it sums and eliminates) and each update's copy stop growing once the horizon is
+    full, and the newest tracks are the batch solution of all data."""
+    n_tracks, per, horizon = 24, 4, 3
+    line = _line_survey(rng, n_tracks, per)
+    ms, z, p_true = _datum_alone(line.measurements, per), line.z, line.p_true
+    n = n_tracks * per
+    fixes = _fixes(rng, p_true, range(0, n, 2))
+    al = _aligner(1, refine_horizon_tracks=horizon)
+    work, copied = [], []
+    for m in ms:
+        for _ in al.add_measurement(m):
+            snap = al.handoff.snap
+            if snap is not None:
+                work.append(snap.node_ids.size + snap.src.size + len(snap.fixes)
+                            + sum(p.nodes.size for p in snap.past))
+            lo, r0 = al.mutable_rows()
+            copied.append((al.state.idarr.n - lo) + (al.state.src.n - r0))
+        if m.dst_id in fixes:
+            al.add_fix(gnss_fix(m.dst_id, m.stamp_ns, fixes[m.dst_id], SIGMA_FIX))
+    al.finish_track()
+    assert 0 in al.state.finished and al.state.frozen[0]
+    assert al.state.retired >= n_tracks - horizon - 2 - 3
+    # flat: the last third of the survey costs no more than the middle third (the horizon
+    # fills in the first third)
+    third = len(work) // 3
+    assert max(work[-third:]) <= max(work[third:2 * third]), work
+    third = len(copied) // 3
+    assert max(copied[-third:]) <= max(copied[third:2 * third]), copied
+    assert max(work) < 0.5 * (2 * n + len(fixes))  # far from the whole survey's
+    p_ref = _wls(n, z, fixes)
+    p_hat = al.corrected_path().T_world_node[:, :3, 3]
+    assert np.abs(p_hat[-per:] - p_ref[-per:]).max() < 2e-3
+
+
+def test_fixes_enter_the_refinement_as_one_prior_with_the_same_normal_equations(rng) -> None:
+    """The frozen fixes of a refinement's snapshot become one block-diagonal prior
+    (``elimination.gaussian``): the normal matrix and gradient equal those of one prior per fix
+    bit for bit, and the datum-free solve of the snapshot is unchanged."""
+    import scipy.sparse as sp
+
+    from ga_ros.core.solver import GaussianPrior, normal_matrix_at
+    from ga_ros.core.window.elimination import gaussian, normal_terms
+
+    n_tracks, per = 8, 6
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    fixes = _fixes(rng, p_true, range(1, n_tracks * per, 3))
+    al = _aligner(0)
+    feed(al, ms, {k: (p, SIGMA_FIX) for k, p in fixes.items()})
+    snap = al.handoff.snapshot()
+    al.close()
+    assert len(snap.fixes) > 5
+    merged = gaussian(snap, snap.fixes)
+    assert len(merged) == 1 and merged[0].node_ids.size == len(snap.fixes)
+    each = [GaussianPrior(snap.node_ids[p.nodes], p.T_world_node, p.information)
+            for p in snap.fixes]
+    conns = np.arange(snap.src.size)
+    free, N_merged, u_merged = normal_terms(snap, conns, snap.T_world_node, snap.fixes)
+    net = al.state.subnetwork(np.arange(snap.node_ids.size), conns)
+    N_each, _, u_each = normal_matrix_at(net, snap.T_world_node, 'se3', [], each)
+    assert free.size == snap.node_ids.size
+    assert (sp.csr_matrix(N_merged) != sp.csr_matrix(N_each)).nnz == 0
+    assert np.array_equal(u_merged, u_each)

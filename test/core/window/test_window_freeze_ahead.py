@@ -168,3 +168,57 @@ def test_state_files_refinement_and_covariances_do_not_depend_on_the_thread(tmp_
     _assert_same_state(al, ref)
     for x in (ref, al, back):
         x.close()
+
+
+@pytest.mark.parametrize('ahead', [True, False])
+def test_a_freeze_leaves_its_covariances_to_a_refinement_installed_with_it(monkeypatch, ahead):
+    """With the background refinement every track (lag 1), the leaving track's covariances are
+    replaced by the refined ones in the very update that freezes it: the freeze does not
+    compute them (no selected inversion of the window's factor), and every state equals the
+    one of freezes that compute them, bit for bit; if the refinement is not installed (here:
+    its installation fails at one update), the freeze's covariances are computed then."""
+    from ga_ros.core.window import aligner as aligner_mod
+    from ga_ros.core.window import freeze
+    from ga_ros.core.window.handoff import RefinementHandoff
+    from ga_ros.errors import InputError
+
+    sc, nm, ms = noisy_aerial_survey(6, 12, 5.0, 2)
+    cfg = _config(ahead, refine_every_tracks=1)
+    calls = []
+    computed = freeze.marginal_covariances
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return computed(*args, **kwargs)
+
+    monkeypatch.setattr(freeze, 'marginal_covariances', counted)
+    install = RefinementHandoff.install
+    fail_at = [4]
+
+    def install_or_fail(self, snap, res):  # the 4th installation fails: nothing installed
+        fail_at[0] -= 1
+        if fail_at[0] == 0:
+            raise InputError('not installed (test)')
+        return install(self, snap, res)
+
+    monkeypatch.setattr(RefinementHandoff, 'install', install_or_fail)
+    al = TrackWindowAligner(cfg, sc.T_world_node[0])
+    states = []
+    _feed(al, ms, between=lambda a: states.append(a.state.cov[:len(a.state.ids)].copy()))
+    deferred = len(calls)
+    calls.clear()
+    fail_at[0] = 4
+    monkeypatch.setattr(aligner_mod.TrackWindowAligner, '_refinement_due', lambda self, n: False)
+    ref = TrackWindowAligner(cfg, sc.T_world_node[0])
+    ref_states = []
+    _feed(ref, ms, between=lambda a: ref_states.append(a.state.cov[:len(a.state.ids)].copy()))
+    for x in (al, ref):
+        x.close()
+    _assert_same_state(al, ref)
+    assert len(states) == len(ref_states)
+    for a, b in zip(states, ref_states):
+        np.testing.assert_array_equal(a, b)
+    # 6 tracks, window 2: 4 freezes, each with its covariances in the reference (ahead: one
+    # more, computed after the last update for an update never run); with the refinement
+    # installed at 3 of them, only the one whose refinement failed computes them
+    assert len(calls) == 4 + ahead and deferred == 1

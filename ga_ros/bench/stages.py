@@ -1,0 +1,172 @@
+"""Where a window update's CPU goes: the stages of :data:`STAGES`, timed in every thread, and
+the CPU of the whole process tree (:func:`tree_cpu_seconds`), for ``ga-ros bench window``.
+
+A stage's CPU is the ``time.thread_time()`` of the thread that runs it, between entering and
+leaving one of its functions; a stage function called inside another timed function counts in
+the outer one only (the stage of the outermost timed call on that thread's stack), so the
+stages of a thread add up to at most its CPU. The update call runs on the caller's thread
+("track end"); the freeze computed ahead (``freeze_ahead``) runs in a background thread and the
+background refinement in a worker process ("background").
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from ga_ros.core.fixes import FixBook
+from ga_ros.core.linalg import blocks as _blocks
+from ga_ros.core.linalg import cholmod as _cholmod
+from ga_ros.core.solver.problem import _Problem
+from ga_ros.core.window import freeze as _freeze
+from ga_ros.core.window import update as _update
+from ga_ros.core.window.aligner import TrackWindowAligner
+from ga_ros.core.window.gate import QualityCache
+from ga_ros.core.window.handoff import RefinementHandoff
+
+#: The stages of a window update and the functions that do them (owner, attribute).
+#: ``assembly``: the window problem (node and connection sets, the connections' kept terms),
+#: linearisation and normal matrices (the window's and the absorbed terms' at a freeze), the
+#: gradient after each step; ``factorisation``: sparse Cholesky factorisations (the window's,
+#: the pre-alignment's); ``solves``: the steps' triangular solves; ``covariances``: the leaving
+#: track's published marginal covariances (selected inversion of the window's factor);
+#: ``priors``: the joint prior the leaving track's absorbed terms leave on the frozen
+#: boundary (their factorisation, selected inversion and band completion) and its
+#: installation; ``quality tests``: the outlier gate, re-admission, the absolute fixes' gate,
+#: the update's quality summary; ``outputs``: what a node publishes after an update (the
+#: corrected path, the newest adjusted node's covariance); ``process hand-off``: the
+#: background refinement's snapshot, installation and smoothing, as seen by the aligner's
+#: process (the worker process's own CPU is counted in the tree's CPU, not per stage).
+STAGES: dict[str, tuple[tuple[object, str], ...]] = {
+    'assembly': ((_update.WindowUpdate, 'window_problem'),
+                 (_update.WindowUpdate, 'connection_terms'),
+                 (_Problem, 'linear_system'), (_blocks.BlockPattern, 'assemble'),
+                 (_Problem, 'gradient'), (_Problem, 'gradient_ahead')),
+    'factorisation': ((_cholmod.SparseCholesky, '__init__'),
+                      (_cholmod.SparseCholesky, 'refactor')),
+    'solves': ((_cholmod.SparseCholesky, 'solve'),),
+    'covariances': ((_freeze, 'marginal_covariances'),),
+    'priors': ((_freeze.FreezePolicy, 'marginalise'), (_freeze, 'install_freeze')),
+    'quality tests': ((_update, 'outliers'), (_update, 'readmissible'),
+                      (QualityCache, 'summary'), (FixBook, 'gate_adjusted')),
+    'outputs': ((TrackWindowAligner, 'corrected_path'), (TrackWindowAligner, 'covariance')),
+    'process hand-off': ((RefinementHandoff, 'start'), (RefinementHandoff, 'install_due'),
+                         (RefinementHandoff, 'smooth')),
+}
+
+
+class StageClock:
+    """CPU milliseconds per ``(thread role, stage)`` while :func:`timed_stages` is active.
+
+    ``role`` is ``'track end'`` for the thread that created the clock and ``'background'`` for
+    any other thread. :meth:`take` returns the totals since the last call and starts anew.
+    """
+
+    def __init__(self) -> None:
+        self.main = threading.get_ident()
+        self._lock = threading.Lock()
+        self._totals: dict[tuple[str, str], float] = defaultdict(float)
+        self._local = threading.local()
+
+    def role(self) -> str:
+        return 'track end' if threading.get_ident() == self.main else 'background'
+
+    def add(self, stage: str, ms: float) -> None:
+        with self._lock:
+            self._totals[(self.role(), stage)] += ms
+
+    def take(self) -> dict[tuple[str, str], float]:
+        with self._lock:
+            out, self._totals = dict(self._totals), defaultdict(float)
+        return out
+
+    def depth(self) -> int:
+        return getattr(self._local, 'depth', 0)
+
+    def enter(self) -> None:
+        self._local.depth = self.depth() + 1
+
+    def leave(self) -> None:
+        self._local.depth = self.depth() - 1
+
+
+@contextmanager
+def timed_stages() -> Iterator[StageClock]:
+    """Time the functions of :data:`STAGES` (wrapped while active, then put back) into a
+    :class:`StageClock`."""
+    clock = StageClock()
+
+    def wrap(stage: str, fn):
+        if isinstance(fn, staticmethod | classmethod):
+            raise TypeError('stage functions are plain functions or methods')
+
+        def timed(*args, **kwargs):
+            if clock.depth():
+                return fn(*args, **kwargs)
+            clock.enter()
+            c0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                clock.add(stage, 1e3 * (time.thread_time() - c0))
+                clock.leave()
+        return timed
+
+    saved = [(owner, name, inspect.getattr_static(owner, name))
+             for targets in STAGES.values() for owner, name in targets]
+    try:
+        for stage, targets in STAGES.items():
+            for owner, name in targets:
+                setattr(owner, name, wrap(stage, inspect.getattr_static(owner, name)))
+        yield clock
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+
+
+_TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
+
+
+def _children(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux ``/proc``; empty elsewhere)."""
+    out: list[int] = []
+    for task in Path(f'/proc/{pid}/task').glob('*'):
+        try:
+            out += [int(c) for c in (task / 'children').read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+def _proc_cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` (all its threads) from ``/proc``."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except (OSError, IndexError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / _TICKS  # utime, stime (fields 14, 15)
+
+
+def tree_cpu_seconds() -> float:
+    """CPU seconds of this process (every thread) and of its live descendants (the refinement
+    worker), plus the children already waited for. Descendants are read from Linux's
+    ``/proc``; elsewhere only this process and its waited-for children count."""
+    own = time.process_time()
+    t = os.times()
+    total = own + t.children_user + t.children_system
+    todo = _children(os.getpid())
+    seen: set[int] = set()
+    while todo:
+        pid = todo.pop()
+        if pid in seen:
+            continue
+        seen.add(pid)
+        total += _proc_cpu_seconds(pid)
+        todo += _children(pid)
+    return total

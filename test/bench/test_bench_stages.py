@@ -1,0 +1,63 @@
+"""The stage clock of ``ga-ros bench window`` (:mod:`ga_ros.bench.stages`): outermost stage
+only, per thread, and the CPU of the whole process tree."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+from ga_ros.bench import stages
+from ga_ros.core.window import freeze, update
+
+
+def _spin(seconds: float) -> None:
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+def test_a_stage_called_inside_another_counts_in_the_outer_one_per_thread(monkeypatch):
+    # two stage functions replaced by CPU spinners: 'priors' (marginalise) calls a
+    # 'covariances' function inside; the outer one gets all of it
+    def inner(*args, **kwargs):
+        _spin(0.02)
+
+    def outer(self, *args, **kwargs):
+        _spin(0.02)
+        freeze.marginal_covariances(None, None)
+
+    monkeypatch.setattr(freeze, 'marginal_covariances', inner)
+    monkeypatch.setattr(freeze.FreezePolicy, 'marginalise', outer)
+    monkeypatch.setattr(update, 'outliers', inner)
+    with stages.timed_stages() as clock:
+        freeze.FreezePolicy.marginalise(None)  # this thread: the track end
+        t = threading.Thread(target=lambda: update.outliers())  # another: background
+        t.start()
+        t.join()
+        got = clock.take()
+        assert clock.take() == {}  # taken: starts anew
+    assert set(got) == {('track end', 'priors'), ('background', 'quality tests')}
+    assert got[('track end', 'priors')] >= 35.0  # both spins (ms), not the inner one apart
+    assert got[('background', 'quality tests')] >= 18.0
+    # put back afterwards
+    assert freeze.marginal_covariances is inner and update.outliers is inner
+
+
+def test_the_tree_cpu_counts_a_live_child_process():
+    before = stages.tree_cpu_seconds()
+    child = subprocess.Popen([sys.executable, '-c',
+                              'import time\nend = time.process_time() + 0.6\n'
+                              'while time.process_time() < end: pass\n'
+                              'import sys; sys.stdout.write("x"); sys.stdout.flush()\n'
+                              'time.sleep(60)'],
+                             stdout=subprocess.PIPE)
+    try:
+        assert child.stdout.read(1) == b'x'  # it has spun 0.6 s of CPU and is still alive
+        during = stages.tree_cpu_seconds()
+    finally:
+        child.kill()
+        child.wait()
+    if sys.platform.startswith('linux'):
+        assert during - before >= 0.5
