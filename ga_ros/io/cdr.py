@@ -77,3 +77,39 @@ def path_cdr(T_world_node: FloatArray, stamps_ns: IntArray, frame_id: str,
     if n > 1:
         fill(out[start + first:].reshape(n - 1, stride), slice(1, n), _pad(12 + L, 8))
     return _ENCAPSULATION + out.tobytes()
+
+
+def framed_path_cdr(T_world_node: FloatArray, stamps_ns: IntArray, pose_frames: list[str],
+                    frame_id: str, stamp_ns: int) -> bytes:
+    """Serialized ``nav_msgs/msg/Path`` whose poses each carry their own ``header.frame_id``
+    (``pose_frames[i]``, e.g. a node frame ``ga/<track>/<node>``); the path's header is
+    ``frame_id`` at ``stamp_ns``. Poses ``(n, 4, 4)`` stamped with ``stamps_ns`` (ns >= 0),
+    orientation a unit quaternion ``x y z w`` with ``w >= 0``.
+
+    One ``struct`` pack per pose (the frames differ in length, so the layout is not a fixed
+    stride as in :func:`path_cdr`): microseconds per pose, against ~0.15 ms for an rclpy
+    ``PoseStamped``. Checked against ``rclpy.serialization`` in ``test/ros/test_path_outputs.py``.
+    """
+    T = np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4)
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    n = T.shape[0]
+    if stamps.shape[0] != n or len(pose_frames) != n:
+        raise InputError(f'{n} poses but {stamps.shape[0]} stamps and {len(pose_frames)} frames')
+    if (n and stamps.min() < 0) or stamp_ns < 0:
+        raise InputError('stamps must be >= 0 ns')
+    frame = frame_id.encode() + b'\x00'
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    out = bytearray(struct.pack('<iII', sec, nsec, len(frame)) + frame)
+    out += b'\x00' * _pad(len(out), 4) + struct.pack('<I', n)
+    if n:
+        p, q = se3.to_pos_quat(T)
+        values = np.concatenate([p, q], axis=1).tolist()
+        secs, nsecs = np.divmod(stamps, 1_000_000_000)
+        secs, nsecs = secs.tolist(), nsecs.tolist()
+    for k in range(n):   # offsets count from the payload's start (after the encapsulation)
+        f = pose_frames[k].encode() + b'\x00'
+        out += b'\x00' * _pad(len(out), 4)
+        out += struct.pack('<iII', secs[k], nsecs[k], len(f)) + f
+        out += b'\x00' * _pad(len(out), 8)
+        out += struct.pack('<7d', *values[k])
+    return _ENCAPSULATION + bytes(out)

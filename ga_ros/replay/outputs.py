@@ -33,6 +33,7 @@ from ga_ros.io.bag_writer import (
     transform_msg,
 )
 from ga_ros.io.trajectory import Trajectory, write_tum
+from ga_ros.pipeline.corrections import Corrections, CorrectionThresholds, corrections_cdr
 from ga_ros.safe_write import check_destinations, save_figure, write_json
 
 
@@ -59,6 +60,10 @@ class OutputConfig:
     sensor_frame : ``child_frame_id`` of the corrected odometry (the robot's base frame).
     odom_frame : REP 105 odometry frame: ``map_frame -> odom_frame`` goes on ``tf_topic``.
     tf_topic, tf_static_topic : TF topics of the output bag (the input bag's are copied there).
+    corrections_topic : the keyframes moved or added since the previous message
+        (``nav_msgs/Path``, the node's ``ga/corrections``), written after every track update
+        and after the final batch.
+    corrections : when a keyframe counts as moved there (the node's defaults).
     """
 
     map_frame: str = 'map'
@@ -74,6 +79,8 @@ class OutputConfig:
     odom_frame: str = 'odom'
     tf_topic: str = '/tf'
     tf_static_topic: str = '/tf_static'
+    corrections_topic: str = topics.resolve(topics.CORRECTIONS)
+    corrections: CorrectionThresholds = CorrectionThresholds()
 
 
 def misclosure(T_world_node: FloatArray, src: IntArray, dst: IntArray, z: FloatArray,
@@ -181,6 +188,12 @@ class ReplayOutputs:
         stamp = int(traj.stamps_ns.max()) if len(traj) else None
         msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=stamp)
         self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
+
+    def corrections(self, c: Corrections, stamp_ns: int, log_ns: int) -> None:
+        """The corrections of an update (:mod:`ga_ros.pipeline.corrections`), header stamped
+        at ``stamp_ns`` (the corrected path's newest keyframe), logged at ``log_ns``."""
+        self.bag.write_raw(self.config.corrections_topic, PATH,
+                           corrections_cdr(c, self.config.map_frame, stamp_ns), log_ns)
 
     def markers(self, p_world_node: FloatArray, src: IntArray, dst: IntArray,
                 residual: FloatArray, log_ns: int, stamp_ns: int) -> None:

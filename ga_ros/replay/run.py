@@ -1,9 +1,9 @@
 """The run loop of a replay: one :class:`ReplayRun` takes the source's items in bag order.
 
 Each measurement goes through the same :class:`ga_ros.pipeline.session.AlignmentSession` call
-as in the live node; every window update writes the corrected path, the markers and
-``map -> odom`` into the output bag and feeds the corrected path back to the source. The final
-outputs are :mod:`ga_ros.replay.finish`'s.
+as in the live node; every window update writes the corrected path, the corrections, the
+markers and ``map -> odom`` into the output bag and feeds the corrected path back to the
+source. The final outputs are :mod:`ga_ros.replay.finish`'s.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from ga_ros.io.groundtruth import (
 )
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.absolute import FixFeeder
+from ga_ros.pipeline.corrections import CorrectionTracker
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom, PeriodicSchedule, without_odom_parent
 from ga_ros.pipeline.session import AlignmentSession
@@ -124,6 +125,8 @@ class ReplayRun:
         #: positions (m, map frame) of the fixes read, for the plot
         self.fix_xyz: list[FloatArray] = []
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
+        #: the keyframes moved or added since the last corrections message (as the node's)
+        self.corrections = CorrectionTracker(config.outputs.corrections)
         self.odom_tf_stamp = -1  # stamp of the last odom -> base_link written
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
@@ -325,12 +328,26 @@ class ReplayRun:
             self.result.quality['final'] = entry
         traj = self.corrected()
         self.out.path(traj, self.last_ns)
+        self._corrections(traj, every_row=not per_track)
         self.markers(traj)
         if self.odom is not None:
             self.odom.update(traj.node_ids, traj.T_world_node, adjusted=True)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
+
+    def _corrections(self, traj: Trajectory, every_row: bool) -> None:
+        """The corrections message of an update, as the node publishes it: the aligner's node
+        stamps (the replay's own only where the aligner has none) and its newest stamp in the
+        header; ``every_row`` after the final batch."""
+        cp_stamps = np.asarray(getattr(self.aligner.corrected_path(), 'stamps_ns',
+                                       traj.stamps_ns), dtype=np.int64).reshape(-1)
+        stamps = np.where(cp_stamps < 0, traj.stamps_ns, cp_stamps)
+        path = Trajectory(stamps, traj.T_world_node, traj.node_ids, traj.track_ids,
+                          traj.frame_id)
+        c = self.corrections.after_update(self.aligner, path, every_row=every_row)
+        if c is not None:
+            self.out.corrections(c, int(stamps[-1]) if len(stamps) else 0, self.last_ns)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement

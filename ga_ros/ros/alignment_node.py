@@ -14,6 +14,11 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 --------------------------------------------------------------------------------------
 * in  ``ga/measurements`` (``nav_msgs/Odometry``): one connection per message.
 * out ``ga/corrected_path`` (``nav_msgs/Path``, transient local): every node, in ``map_frame``.
+* out ``ga/corrections`` (``nav_msgs/Path``, reliable, volatile): after every update, the
+  keyframes that moved beyond ``corrections.translation_m`` / ``corrections.rotation_rad`` or
+  were added, each pose's ``header.frame_id`` its node frame ``ga/<track>/<node>``; the first
+  message after a start, reset or ``~/load_state`` is full (opened by a
+  ``ga/full_path`` marker pose) (:mod:`ga_ros.pipeline.corrections`).
 * out ``ga/corrected_pose`` (``geometry_msgs/PoseWithCovarianceStamped``): newest node.
 * out ``ga/corrected_odom`` (``nav_msgs/Odometry``): newest node, ``map_frame`` ->
   ``base_frame``.
@@ -60,6 +65,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.pipeline.absolute import FixFeeder
+from ga_ros.pipeline.corrections import CorrectionTracker
 from ga_ros.pipeline.inputs import (
     COVARIANCE_POLICIES,
     decode_measurement,
@@ -93,6 +99,8 @@ NODE_NAME = 'alignment_node'
 #: At most this many queued measurements, or this many seconds, per subscription callback.
 DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
+#: Queue depth of ``ga/corrections`` (keep last): corrections a slow subscriber may lag behind.
+CORRECTIONS_DEPTH = 100
 
 
 class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, AlignmentTf,
@@ -150,6 +158,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._pub_earth: Any = None  # earth -> map, latched (created once the datum is known)
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
+        self.corrections = CorrectionTracker(s.corrections)
         self._create_services()
 
         if s.state_file:
@@ -191,6 +200,10 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self.pub_markers = self.create_publisher(MarkerArray, s.markers_topic, latched_qos())
         self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic, stream_qos())
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
+        # reliable, volatile, deep: a delta stream (a late joiner starts from the latched
+        # ga/corrected_path; one old delta would be of no use to it), none may be dropped
+        self.pub_corrections = self.create_publisher(Path, s.corrections_topic,
+                                                     stream_qos(CORRECTIONS_DEPTH))
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
         self.pub_done = self.create_publisher(
             KeyValue, topics.input_done_topic(s.measurements_topic), stream_qos())

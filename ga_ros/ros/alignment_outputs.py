@@ -1,5 +1,5 @@
-"""Outputs of the alignment node: path, window path, pose, odometry and markers (mixin of
-:class:`~ga_ros.ros.alignment_node.AlignmentNode`)."""
+"""Outputs of the alignment node: path, corrections, window path, pose, odometry and markers
+(mixin of :class:`~ga_ros.ros.alignment_node.AlignmentNode`)."""
 
 
 import time
@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.io.cdr import path_cdr
+from ga_ros.pipeline.corrections import corrections_cdr
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.view import connection_view
 
@@ -36,6 +37,7 @@ class AlignmentOutputs:
         self._path_dirty = True
         if time.perf_counter() >= self._next_full_path:
             self._publish_full_path(cp, stamp_ns)
+        self._publish_corrections(cp, stamp_ns)
         movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
         self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
                                                  cp.stamps_ns[movable], s.map_frame, stamp_ns))
@@ -58,6 +60,13 @@ class AlignmentOutputs:
             self._markers_dirty = True
             if self.pub_markers.get_subscription_count() > 0:
                 self._publish_markers()
+
+    def _publish_corrections(self, cp: Any, stamp_ns: int) -> None:
+        """The keyframes moved or added since the last corrections message (none: nothing
+        sent), :class:`~ga_ros.pipeline.corrections.CorrectionTracker`."""
+        c = self.corrections.after_update(self.aligner, cp)
+        if c is not None:   # CDR bytes (rclpy publishes them raw), the replay's too
+            self.pub_corrections.publish(corrections_cdr(c, self.settings.map_frame, stamp_ns))
 
     def _publish_markers(self, force: bool = False) -> None:
         """The network as markers. Built only when someone listens (RViz, Foxglove): otherwise

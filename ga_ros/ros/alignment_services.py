@@ -54,6 +54,7 @@ class AlignmentServices:
             response.success, response.message = False, f'reset refused: {exc}'
             return response
         self._datum_saved = False  # the datum file went with the state: saved again when known
+        self.corrections.restart()  # consumers drop what they held: a full message next
         self._publish_all()
         response.success, response.message = True, 'state cleared'
         return response
@@ -87,6 +88,7 @@ class AlignmentServices:
                                 else f'load failed (state unchanged): {exc}')
             return response
         self._restore_datum()
+        self.corrections.restart()  # consumers drop what they held: a full message next
         self._publish_all()
         response.success = True
         response.message = (f'loaded {self.session.n_nodes()} nodes from '

@@ -10,6 +10,7 @@ from ga_ros.core.gaps import GapConfig
 from ga_ros.core.window import AlignerConfig
 from ga_ros.inputs.absolute import AbsoluteInputConfig
 from ga_ros.inputs.odometry import OdometryInputConfig
+from ga_ros.pipeline.corrections import CorrectionThresholds
 from ga_ros.pipeline.params import parameter_names
 
 #: A dataclass field with a default and its parameter range ``[lo, hi]``.
@@ -82,6 +83,11 @@ class NodeSettings:
     window_path_topic : output: nav_msgs/Path of the nodes the window can still move.
     full_path_min_period_sec : publish the full path at most this often, s (0: after every
         update; big surveys: e.g. 10, the window path carries the updates).
+    corrections_topic : output: nav_msgs/Path of the keyframes that moved or were added since
+        the previous message (reliable, volatile; ``docs/node.md``).
+    corrections : when a keyframe counts as moved for ``corrections_topic``
+        (:class:`~ga_ros.pipeline.corrections.CorrectionThresholds`; parameters
+        ``corrections.translation_m``, ``corrections.rotation_rad``).
     measurement_durability : ``transient_local`` (default: the publisher's history is delivered
         again after a restart, so nothing published while the node was down or still queued
         when it was killed is lost; the publisher must be transient local too, as ``ga-ros
@@ -148,6 +154,8 @@ class NodeSettings:
     loss_warn_fraction: float = field_(0.01, 0.0, 1.0)
     window_path_topic: str = topics.WINDOW_PATH
     full_path_min_period_sec: float = field_(0.0, 0.0, 86400.0)
+    corrections_topic: str = topics.CORRECTIONS
+    corrections: CorrectionThresholds = CorrectionThresholds()
 
     measurement_durability: str = 'transient_local'
     fsync_period_sec: float = field_(1.0, 0.0, 3600.0)

@@ -149,7 +149,10 @@ def test_replay_outputs(tmp_path: Path, sample: object, storage: str) -> None:
     counts = mcap_counts(tmp_path / 'out' / 'replay_bag')
     assert counts.pop('/tf') > 3  # map -> odom at a fixed period (test_replay_tf.py)
     # a path and markers per track update, then the final batch's path and markers, then the
-    # final markers of everything
+    # final markers of everything; corrections after each track update (the first one full,
+    # then each new track's keyframes: dead reckoning moves none), none after the final batch
+    # (nothing moved)
+    assert counts.pop('/ga/corrections') == 3
     assert counts == {'/ga/measurements': len(sample.measurements), '/ga/corrected_path': 4,
                       '/ga/network_markers': 5, '/ga/corrected_pose': n_nodes, '/ga/f2f_path': 1,
                       '/ga/ground_truth': 1, '/ga/corrected_odom': n_nodes}

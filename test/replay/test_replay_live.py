@@ -132,3 +132,44 @@ def test_vo_node_equals_replay(tmp_path: Path, context) -> None:
                                                            b.stamp_ns)
         np.testing.assert_array_equal(a.z, b.z)
         np.testing.assert_array_equal(a.cov, b.cov)
+
+
+def test_corrections_of_the_node_equal_the_replay_bag(tmp_path: Path, context) -> None:
+    """``ga/corrections``: the messages the node publishes after each update are the replay
+    bag's, field for field (the replay without its final batch, which the node does not run);
+    a reset publishes an empty full message."""
+    from nav_msgs.msg import Path as PathMsg
+
+    from ga_ros import topics
+    from ga_ros.ros.alignment_node import AlignmentNode
+
+    s = aerial_sample(n_tracks=7, positions_per_swath=8, noise_pct=5.0, seed=5)
+    with BagWriter(tmp_path / 'in') as bag:
+        for m in s.measurements:
+            bag.write('/ga/measurements', 'nav_msgs/msg/Odometry', measurement_to_odometry(m),
+                      m.stamp_ns)
+    replay(tmp_path / 'in', tmp_path / 'out',
+           ReplayConfig(anchor_to_ground_truth=False, plot=False, final_batch=False))
+    with BagReader(tmp_path / 'out' / 'replay_bag') as out:
+        want = [deserialize_message(bytes(m.data), PathMsg)
+                for m in out.messages(['/ga/corrections'])]
+    node = AlignmentNode(context=context, parameter_overrides=[
+        Parameter('diagnostics_period_sec', value=0.0),
+        Parameter('allow_finish_track', value=True), Parameter('allow_reset', value=True)])
+    sent: list = []
+    node.pub_corrections.publish = sent.append
+    try:
+        for _, msg in live_messages(tmp_path / 'in'):
+            node._on_measurement(msg)
+        assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+        got = [deserialize_message(bytes(data), PathMsg) for data in sent]
+        assert node._srv_reset(Trigger.Request(), Trigger.Response()).success
+    finally:
+        node.destroy_node()
+    assert len(got) == 7 and got == want          # one per update
+    assert got[0].poses[0].header.frame_id == topics.CORRECTIONS_FULL_FRAME
+    assert all(m.header.frame_id == 'map' for m in got)
+    assert not any(p.header.frame_id == topics.CORRECTIONS_FULL_FRAME for m in got[1:]
+                   for p in m.poses)
+    reset = deserialize_message(bytes(sent[-1]), PathMsg)   # after the reset: drop everything
+    assert [p.header.frame_id for p in reset.poses] == [topics.CORRECTIONS_FULL_FRAME]

@@ -30,6 +30,7 @@ from ga_ros.core.solver import SolverConfig, connection_cost  # noqa: E402
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner  # noqa: E402
 from ga_ros.errors import InputError  # noqa: E402
 from ga_ros.geometry import se3  # noqa: E402
+from ga_ros.pipeline.corrections import CorrectionThresholds  # noqa: E402
 from ga_ros.pipeline.journal import MeasurementJournal, read_journal  # noqa: E402
 from ga_ros.pipeline.params import (  # noqa: E402
     config_from_params,
@@ -107,8 +108,10 @@ def test_yaml_mirrors_config_defaults():
     expected.update({f'solver.{f.name}': getattr(ALIGNER_SOLVER, f.name)
                      for f in fields(SolverConfig)})
     expected.update({f.name: getattr(NodeSettings(), f.name) for f in fields(NodeSettings)
-                     if f.name != 'gaps'})
+                     if f.name not in ('gaps', 'corrections')})
     expected.update({f'gaps.{f.name}': getattr(GapConfig(), f.name) for f in fields(GapConfig)})
+    expected.update({f'corrections.{f.name}': getattr(CorrectionThresholds(), f.name)
+                     for f in fields(CorrectionThresholds)})
     assert config_from_params(AlignerConfig, params)[0] == AlignerConfig()
     assert set(params) == set(expected)
     for key, value in expected.items():
@@ -362,8 +365,9 @@ def test_parameters_have_descriptors(node_in_process):
     node = node_in_process
     names = [f.name for f in fields(AlignerConfig) if f.name != 'solver']
     names += [f'solver.{f.name}' for f in fields(SolverConfig)]
-    names += [f.name for f in fields(NodeSettings) if f.name != 'gaps']
+    names += [f.name for f in fields(NodeSettings) if f.name not in ('gaps', 'corrections')]
     names += [f'gaps.{f.name}' for f in fields(GapConfig)]
+    names += [f'corrections.{f.name}' for f in fields(CorrectionThresholds)]
     for name in names:
         d = node.describe_parameter(name)
         assert d.description, name

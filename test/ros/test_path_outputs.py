@@ -90,3 +90,35 @@ def test_path_bytes_decode_to_the_rclpy_message(frame_id: str, n: int) -> None:
         got = path_cdr(T, stamps, frame_id, stamp)
         assert len(got) == len(serialize_message(want))
         assert deserialize_message(got, Path) == want
+
+
+@pytest.mark.parametrize('frame_id', ['', 'map', 'robot1/map'])
+@pytest.mark.parametrize('n', [0, 1, 2, 9])
+def test_framed_path_bytes_decode_to_the_rclpy_message(frame_id: str, n: int) -> None:
+    """``framed_path_cdr`` (``ga/corrections``: each pose with its own frame id, of every
+    length and so every padding phase) writes what rclpy serializes for the same message (same
+    length; decoded equal; padding bytes may differ)."""
+    from geometry_msgs.msg import PoseStamped
+
+    from ga_ros.geometry import se3
+    from ga_ros.io.cdr import framed_path_cdr
+
+    rng = np.random.default_rng(n + len(frame_id))
+    T = se3.exp(rng.normal(size=(n, 6)) * [5, 5, 5, 2, 2, 2])
+    stamps = rng.integers(0, 2**31 * 10**9, size=n)
+    frames = ['ga/full_path'] + [f'ga/{k}/{"7" * (k + 1)}' for k in range(n - 1)] if n else []
+    got = framed_path_cdr(T, stamps, frames, frame_id, 1_700_000_000_123_456_789)
+    want = Path()
+    want.header.frame_id = frame_id
+    want.header.stamp = conv.ns_to_stamp(1_700_000_000_123_456_789)
+    p, q = (a.tolist() for a in se3.to_pos_quat(T)) if n else ([], [])
+    for k in range(n):
+        ps = PoseStamped()
+        ps.header.frame_id = frames[k]
+        ps.header.stamp = conv.ns_to_stamp(int(stamps[k]))
+        ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = p[k]
+        o = ps.pose.orientation
+        o.x, o.y, o.z, o.w = q[k]
+        want.poses.append(ps)
+    assert len(got) == len(serialize_message(want))
+    assert deserialize_message(got, Path) == want

@@ -65,6 +65,8 @@ BENCHMARKS: dict[str, Benchmark] = {
     'long': Benchmark('ga_ros.bench.long_survey:main',
                       'a long survey with a fix every track: late against early update time, '
                       'CPU, RSS per pose'),
+    'corrections': Benchmark('ga_ros.bench.corrections:main',
+                             'ga/corrections bytes per update against the whole path (aerial)'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
 }
