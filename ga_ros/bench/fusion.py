@@ -20,13 +20,17 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ga_ros.core.measurement import Measurement, variance_group
-from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.measurement import variance_group
 from ga_ros.core.quality.variance_components import solve_with_variance_components
 from ga_ros.core.solver import solve
 from ga_ros.errors import UsageError
 from ga_ros.eval.metrics import trajectory_error
-from ga_ros.sim.sources import SourceSpec, multi_source_survey
+from ga_ros.sim.sources import (
+    SourceSpec,
+    chained_poses,
+    multi_source_survey,
+    sources_network,
+)
 
 
 @dataclass
@@ -57,23 +61,6 @@ class FusionFigures:
     iterations: float = 0.0
 
 
-def _network(n: int, ms: list[Measurement]) -> ConnectionNetwork:
-    net = ConnectionNetwork()
-    for i in range(n):
-        net.add_node(i, i // 100)
-    for m in ms:
-        net.add_connection(m.src_id, m.dst_id, m.z, m.cov)
-    return net
-
-
-def _chain(n: int, ms: list[Measurement]) -> np.ndarray:
-    T = [np.eye(4)]
-    for m in ms:
-        if m.kind == 'consecutive' and m.dst_id == len(T) and len(T) < n:
-            T.append(T[-1] @ m.T_src_dst)
-    return np.array(T)
-
-
 def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed: int
                  ) -> FusionFigures:
     """The figures of one set of sources (module doc)."""
@@ -93,10 +80,11 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
         sv = multi_source_survey(np.random.default_rng(seed + r), sources, n_nodes=n_nodes)
         for s in sources:
             mine = sv.of(s.name)
-            record(f'alone {s.name}', solve(_network(n_nodes, mine), _chain(n_nodes, mine),
-                                            fixed=[0]).T_world_node, sv.T_true)
+            record(f'alone {s.name}',
+                   solve(sources_network(n_nodes, mine), chained_poses(n_nodes, mine),
+                         fixed=[0]).T_world_node, sv.T_true)
         ms = list(sv.measurements)
-        net, T0 = _network(n_nodes, ms), _chain(n_nodes, ms)
+        net, T0 = sources_network(n_nodes, ms), chained_poses(n_nodes, ms)
         t0 = time.process_time()
         plain = solve(net, T0, fixed=[0])
         cpu_p.append(time.process_time() - t0)

@@ -21,6 +21,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
+from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.noise import NoiseModel
@@ -129,3 +130,23 @@ def _measure(rng: np.random.Generator, s: SourceSpec, z_true: FloatArray, rel: F
     return [Measurement(int(a), int(b), int(tr[a]), int(tr[b]), z[k], cov[k],
                         int(b) * 10 ** 8, kind, s.name)
             for k, (a, b) in enumerate(zip(src, dst))]
+
+
+def sources_network(n_nodes: int, ms: list[Measurement]) -> ConnectionNetwork:
+    """The connection network of ``ms`` over nodes ``0 .. n_nodes - 1`` (100 nodes a track)."""
+    net = ConnectionNetwork()
+    for i in range(n_nodes):
+        net.add_node(i, i // 100)
+    for m in ms:
+        net.add_connection(m.src_id, m.dst_id, m.z, m.cov)
+    return net
+
+
+def chained_poses(n_nodes: int, ms: list[Measurement]) -> FloatArray:
+    """(n, 4, 4) poses ``T_world_node`` integrated from the identity along the first
+    consecutive measurement of every node pair (a start for the adjustment)."""
+    T = [np.eye(4)]
+    for m in ms:
+        if m.kind == 'consecutive' and m.dst_id == len(T) and len(T) < n_nodes:
+            T.append(T[-1] @ m.T_src_dst)
+    return np.array(T)

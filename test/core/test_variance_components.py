@@ -12,7 +12,6 @@ import pytest
 import scipy.linalg as sla
 
 from ga_ros.core.measurement import Measurement, variance_group
-from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality.control import quality_control
 from ga_ros.core.quality.variance_components import (
     SourceGroups,
@@ -24,25 +23,12 @@ from ga_ros.core.quality.variance_components import (
 )
 from ga_ros.core.solver import GaussianPrior, SolverConfig, solve
 from ga_ros.errors import InputError
-from ga_ros.sim.sources import SourceSpec, multi_source_survey
-
-
-def _network(n: int, ms: list[Measurement]) -> ConnectionNetwork:
-    net = ConnectionNetwork()
-    for i in range(n):
-        net.add_node(i, i // 100)
-    for m in ms:
-        net.add_connection(m.src_id, m.dst_id, m.z, m.cov)
-    return net
-
-
-def _chain(n: int, ms: list[Measurement]) -> np.ndarray:
-    """Poses integrated along the first measurement of every consecutive pair."""
-    T = [np.eye(4)]
-    for m in ms:
-        if m.kind == 'consecutive' and m.dst_id == len(T) and len(T) < n:
-            T.append(T[-1] @ m.T_src_dst)
-    return np.array(T)
+from ga_ros.sim.sources import (
+    SourceSpec,
+    chained_poses,
+    multi_source_survey,
+    sources_network,
+)
 
 
 def _rmse(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
@@ -71,7 +57,7 @@ def test_group_redundancy_matches_a_dense_computation() -> None:
         cov = sla.block_diag(S, np.eye(3) * 1e-4)
         t = p_true[j] - p_true[i] + rng.multivariate_normal(np.zeros(3), S)
         ms.append(Measurement(i, j, 0, 0, np.r_[t, 0, 0, 0], cov))
-    net = _network(n, ms)
+    net = sources_network(n, ms)
     prior_nodes = [(3, np.diag([0.2, 0.3, 0.4]) ** 2), (5, np.diag([0.5, 0.1, 0.3]) ** 2)]
     priors = []
     for k, C in prior_nodes:
@@ -127,14 +113,15 @@ def test_at_convergence_every_group_agrees_with_its_residuals() -> None:
     srcs = (SourceSpec('a', 2.0), SourceSpec('b', 4.0), SourceSpec('c', 3.0))
     sv = multi_source_survey(np.random.default_rng(0), srcs, n_nodes=120)
     ms = list(sv.measurements)
-    net = _network(120, ms)
+    net = sources_network(120, ms)
     groups = [variance_group(m) for m in ms]
     cfg = VarianceComponentConfig(tolerance=1e-3, max_iterations=60)
-    res, vc = solve_with_variance_components(net, _chain(120, ms), groups, fixed=[0],
+    res, vc = solve_with_variance_components(net, chained_poses(120, ms), groups, fixed=[0],
                                              config=cfg)
     assert vc.converged
     scale = np.array([vc.factor(g) for g in groups])
     from ga_ros.core.quality.variance_components import scaled_network
+
     scaled = scaled_network(net, scale)
     idx = np.array([['a', 'b', 'c'].index(g) for g in groups])
     cost, red = group_redundancy(scaled, res, [], idx, np.zeros(0, np.int64), 3)
@@ -156,13 +143,13 @@ def three_source_runs() -> list[dict]:
     for seed in range(6):
         sv = multi_source_survey(np.random.default_rng(100 + seed), THREE, n_nodes=n)
         ms = list(sv.measurements)
-        T0 = _chain(n, ms)
+        T0 = chained_poses(n, ms)
         out = {'alone': {}}
         for s in THREE:
             mine = sv.of(s.name)
-            out['alone'][s.name] = _rmse(solve(_network(n, mine), _chain(n, mine),
+            out['alone'][s.name] = _rmse(solve(sources_network(n, mine), chained_poses(n, mine),
                                                fixed=[0]).T_world_node, sv.T_true)
-        net = _network(n, ms)
+        net = sources_network(n, ms)
         out['fused'] = _rmse(solve(net, T0, fixed=[0]).T_world_node, sv.T_true)
         res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
                                                  fixed=[0])
@@ -204,8 +191,8 @@ def test_two_sources_alone_cannot_be_told_apart() -> None:
     two = (SourceSpec('odom0', 1.0), SourceSpec('odom1', 4.0))
     sv = multi_source_survey(np.random.default_rng(7), two, n_nodes=150)
     ms = list(sv.measurements)
-    net = _network(150, ms)
-    T0 = _chain(150, ms)
+    net = sources_network(150, ms)
+    T0 = chained_poses(150, ms)
     res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
                                              fixed=[0])
     f0, f1 = vc.factor('odom0'), vc.factor('odom1')
@@ -225,8 +212,8 @@ def test_a_poorly_determined_group_keeps_its_stated_covariance() -> None:
     ms = list(sv.measurements)
     groups = [variance_group(m) for m in ms]
     assert set(groups) == {'odom0', 'loops'}
-    _, vc = solve_with_variance_components(_network(100, ms), _chain(100, ms), groups,
-                                           fixed=[0])
+    _, vc = solve_with_variance_components(sources_network(100, ms), chained_poses(100, ms),
+                                           groups, fixed=[0])
     loop = next(c for c in vc.components if c.group == 'loops')
     assert loop.redundancy < VarianceComponentConfig().min_redundancy
     assert not loop.estimated and loop.factor == 1.0
@@ -269,7 +256,8 @@ def test_bad_groups_are_refused() -> None:
     sv = multi_source_survey(np.random.default_rng(0), (SourceSpec('a', 1.0),), n_nodes=5)
     ms = list(sv.measurements)
     with pytest.raises(InputError, match='group names'):
-        solve_with_variance_components(_network(5, ms), _chain(5, ms), ['a'], fixed=[0])
+        solve_with_variance_components(sources_network(5, ms), chained_poses(5, ms), ['a'],
+                                       fixed=[0])
     with pytest.raises(InputError, match='max_iterations'):
         VarianceComponentConfig(max_iterations=0)
 
@@ -282,7 +270,7 @@ def test_honest_covariances_leave_the_solution_bit_for_bit() -> None:
     sv = multi_source_survey(np.random.default_rng(5), honest, n_nodes=150,
                              loop=SourceSpec('loops', 3.0, 3.0), loop_every=5, loop_span=20)
     ms = list(sv.measurements)
-    net, T0 = _network(150, ms), _chain(150, ms)
+    net, T0 = sources_network(150, ms), chained_poses(150, ms)
     res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
                                              fixed=[0])
     assert all(c.estimated and not c.applied for c in vc.components), vc.components
@@ -309,8 +297,8 @@ def test_fix_source_factor_from_its_priors() -> None:
         xi = rng.normal(0, true_sigma)
         priors.append(GaussianPrior(np.array([k]), (sv.T_true[k] @ se3.exp(xi[None]))[0][None],
                                     info))
-    net = _network(n, ms)
-    _, vc = solve_with_variance_components(net, _chain(n, ms), ['odom0'] * len(ms),
+    net = sources_network(n, ms)
+    _, vc = solve_with_variance_components(net, chained_poses(n, ms), ['odom0'] * len(ms),
                                            priors=priors, prior_groups=['fix0'] * len(priors))
     fix = next(c for c in vc.components if c.group == 'fix0')
     odom = next(c for c in vc.components if c.group == 'odom0')
