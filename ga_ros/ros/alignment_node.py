@@ -205,8 +205,8 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self.pub_corrections = self.create_publisher(Path, s.corrections_topic,
                                                      stream_qos(CORRECTIONS_DEPTH))
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
-        self.pub_done = self.create_publisher(
-            KeyValue, topics.input_done_topic(s.measurements_topic), stream_qos())
+        self.pub_done = self.create_publisher(   # transient local: a player matched late
+            KeyValue, topics.input_done_topic(s.measurements_topic), latched_qos())  # gets it
 
     @property
     def aligner(self) -> TrackWindowAligner:

@@ -47,6 +47,7 @@ from ga_ros.errors import GaError, InputError
 from ga_ros.io.bag import BagReader, BagTopic
 from ga_ros.ros.message_types import message_class
 from ga_ros.ros.play_args import add_arguments
+from ga_ros.ros.qos import latched_qos
 from ga_ros.topics import TRACK_END_FRAME
 
 #: Longest history kept per measurement topic, messages.
@@ -164,9 +165,9 @@ class BagPlayer:
         self.done: dict[str, dict[str, int]] = {t: {} for t in self.end_topics}
         #: Measurement messages published per end topic.
         self.sent = {t: 0 for t in self.end_topics}
-        for t in self.end_topics:
-            node.create_subscription(KeyValue, topics.input_done_topic(t),
-                                     partial(self._on_done, t), 10)
+        for t in self.end_topics:   # transient local: a confirmation sent before this
+            node.create_subscription(KeyValue, topics.input_done_topic(t),   # matched counts
+                                     partial(self._on_done, t), latched_qos(10))
         #: Topics whose whole history is kept (the measurements: a restart gets them again).
         self.kept = tuple(t.name for t in wanted if self._keeps_all(t))
         for t in wanted:

@@ -204,12 +204,12 @@ def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, samp
     from nav_msgs.msg import Odometry
 
     from ga_ros.ros.play import EXIT_NOT_DELIVERED
-    from ga_ros.ros.qos import measurement_qos
+    from ga_ros.ros.qos import latched_qos, measurement_qos
 
     node, ex = ros
     got = []
     # a node with a done publisher counts as at work: the one that never confirms has none
-    done = (node.create_publisher(KeyValue, '/ga/measurements_done', 10)
+    done = (node.create_publisher(KeyValue, '/ga/measurements_done', latched_qos())
             if confirm != 'never' else None)
 
     def on_measurement(msg: Odometry) -> None:
