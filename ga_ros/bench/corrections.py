@@ -108,7 +108,7 @@ def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int
 def main(argv: list[str] | None = None) -> int:
     """``ga-ros bench corrections``: print the table of the module docstring."""
     ap = argparse.ArgumentParser(prog='ga-ros bench corrections',
-                                 description=__doc__.split('\n')[0])
+                                 description=__doc__.split('\n')[0], allow_abbrev=False)
     ap.add_argument('--tracks', type=int, default=25,
                     help='double tracks of the survey (default 25: 5,100 keyframes)')
     ap.add_argument('--thresholds', nargs='+', default=SWEEP, metavar='M:RAD',

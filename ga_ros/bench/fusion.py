@@ -144,7 +144,8 @@ def parse_sources(text: str, stated: float) -> tuple[SourceSpec, ...]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='ga-ros bench fusion', description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 allow_abbrev=False)
     ap.add_argument('--sources', default='1,4,2',
                     help='true noise of each source, %% of the motion (default 1,4,2); the '
                     'first two alone, then all')

@@ -165,7 +165,8 @@ def print_table(fig: LongSurveyFigures) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='ga-ros bench long', description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                allow_abbrev=False)
     p.add_argument('--tracks', type=int, default=1000, help='double tracks (default 1000)')
     p.add_argument('--positions-per-swath', type=int, default=10,
                    help='poses per swath; a double track has twice as many (default 10)')

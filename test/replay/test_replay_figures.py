@@ -265,7 +265,7 @@ def test_a_failed_final_batch_leaves_the_online_estimate_with_a_warning(
     from ga_ros.core.window import TrackWindowAligner
     from ga_ros.errors import SolverError
 
-    def fail(self):
+    def fail(self, **kwargs):
         raise SolverError('not positive definite')
 
     monkeypatch.setattr(TrackWindowAligner, 'refine_batch', fail)
