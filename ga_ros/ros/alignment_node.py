@@ -255,7 +255,7 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
         self._last_input = time.monotonic()
         if msg.child_frame_id == topics.TRACK_END_FRAME:   # in-band: after all before it
             try:
-                self._finish_track(drain=False)  # (draining would take what came after it)
+                self._finish_track(drain=False, cause='end_of_input')  # (not what came after)
             except SolverError:
                 pass                             # counted and logged by the session
             self.pub_done.publish(Empty())       # the publisher may now let its history go
@@ -334,7 +334,7 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
             self.get_logger().info(f'no measurement for {idle:.1f} s: ending track '
                                    f'{self.aligner.open_track}')
             try:
-                self._finish_track(drain=False)   # just drained
+                self._finish_track(drain=False, cause='idle_timeout')   # just drained
             except SolverError:
                 pass                              # counted and logged by the session
 
@@ -344,13 +344,14 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
         if self.session.n_nodes() != self._path_nodes:
             self._publish_all()
 
-    def _finish_track(self, drain: bool = True) -> Any:
-        """End the open track (after the queued measurements if ``drain``) and publish; returns
-        the update (None: no open track). Raises SolverError (counted) if the update failed."""
+    def _finish_track(self, drain: bool = True, cause: str = 'finish_track') -> Any:
+        """End the open track (after the queued measurements if ``drain``; journaled with its
+        ``cause``) and publish; returns the update (None: no open track). Raises SolverError
+        (counted) if the update failed."""
         if drain:
             self._drain()
         try:
-            update = self.session.finish_track()
+            update = self.session.finish_track(cause)
         except SolverError:
             self._publish_diagnostics()
             raise

@@ -18,9 +18,12 @@ from ga_ros.io.atomic import check_regular, move_aside
 from ga_ros.pipeline.journal.records import (
     KIND_MASK,
     RECORD_V1,
+    Datum,
     Entry,
+    TrackEnd,
     held_records,
-    is_fix,
+    is_event,
+    last_datum,
     records_to_entries,
     records_to_measurements,
     reversed_records,
@@ -103,6 +106,8 @@ class RecoveryResult:
     snapshot_refused : the state file is not a ga_ros state but a journal with intact records
         is beside it: the state was rebuilt from the journal, the file left untouched, and no
         snapshot may be written there.
+    datum : the map frame's datum ``(lat_deg, lon_deg, alt_m)`` of the journal's last datum
+        record (``None`` without one).
     """
 
     aligner: TrackWindowAligner
@@ -118,6 +123,7 @@ class RecoveryResult:
     bridges: list[tuple[int, int]] = field(default_factory=list)
     reversed: list[Measurement] = field(default_factory=list)
     snapshot_refused: bool = False
+    datum: tuple[float, float, float] | None = None
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -165,11 +171,12 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         aligner = out.aligner
         tail = records
         out.source = 'journal' if records.size else 'empty'
-    out.held = held_queue(records[~is_fix(records['kind'])])  # measurements only
+    out.held = held_queue(records[~is_event(records['kind'])])  # measurements only
     bridge = records['kind'] & KIND_MASK == KINDS.index('bridge')
     out.bridges = list(zip(records['src_id'][bridge].tolist(),
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
+    out.datum = last_datum(records)
     tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
         out.records_replayed, out.records_rejected = replay_entries(
@@ -243,8 +250,9 @@ def _scan_and_repair(jpath: Path, out: RecoveryResult) -> JournalScan:
 
 def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
     """Give ``aligner`` journal entries in order: runs of measurements in one batch
-    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix between
-    them as it came (with the information it entered with). Returns ``(accepted, rejected)``
+    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix and each
+    track end (``finish_track``) between them as it came (a fix with the information it entered
+    with); datums are skipped (not the aligner's). Returns ``(accepted, rejected)``
     entries; nothing raises for a rejected one."""
     accepted = rejected = 0
     run: list[Measurement] = []
@@ -260,9 +268,14 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
         if isinstance(e, Measurement):
             run.append(e)
             continue
+        if isinstance(e, Datum):  # not the aligner's (RecoveryResult.datum)
+            continue
         flush()
         try:
-            aligner.add_fix(e)
+            if isinstance(e, TrackEnd):
+                aligner.finish_track()  # a failed update leaves the track finished, as live
+            else:  # as it came: its own information and offset covariance (JournaledFix)
+                aligner.add_fix(e, getattr(e, 'C_offset', None))
             accepted += 1
         except GaError:
             rejected += 1

@@ -5,11 +5,21 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import CorruptFileError
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
-from ga_ros.pipeline.journal.records import MAGIC, RECORD, encode_fix, encode_records
+from ga_ros.pipeline.journal.records import (
+    MAGIC,
+    RECORD,
+    Datum,
+    TrackEnd,
+    encode_datum,
+    encode_fix,
+    encode_records,
+    encode_track_end,
+)
 
 
 class MeasurementJournal:
@@ -76,9 +86,21 @@ class MeasurementJournal:
         if ms:
             self._write(encode_records(ms, flags), len(ms))
 
-    def append_fix(self, term: FixTerm) -> None:
-        """Write the two records of an absolute fix (:func:`encode_fix`) in one system call."""
-        self._write(encode_fix(term), 2)
+    def append_fix(self, term: FixTerm, entered: FloatArray | None = None,
+                   C_offset: FloatArray | None = None) -> None:
+        """Write the records of an absolute fix (:func:`encode_fix`: ``entered`` the information
+        it entered the aligner with, ``C_offset`` its offset's covariance) in one system
+        call."""
+        data = encode_fix(term, entered, C_offset)
+        self._write(data, len(data) // RECORD.itemsize)
+
+    def append_track_end(self, end: TrackEnd) -> None:
+        """Write the record of a track end (:func:`encode_track_end`)."""
+        self._write(encode_track_end(end), 1)
+
+    def append_datum(self, datum: Datum) -> None:
+        """Write the record of the map frame's datum (:func:`encode_datum`)."""
+        self._write(encode_datum(datum), 1)
 
     def _write(self, data: bytes, n_records: int) -> None:
         if self._fd is None:

@@ -20,8 +20,10 @@ from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverE
 from ga_ros.pipeline.journal import (
     HELD,
     REVERSED,
+    Datum,
     MeasurementJournal,
     RecoveryResult,
+    TrackEnd,
     clear_state,
     journal_path,
     recover,
@@ -71,6 +73,9 @@ class AlignmentSession:
         #: journal goes on, recovery replays it all) ('' if snapshots are written).
         self.snapshots_off = ''
         self._next_sync = 0.0
+        #: The map frame's datum ``(lat_deg, lon_deg, alt_m)`` the journal held at the last
+        #: resume or load (``None`` without one).
+        self.datum: tuple[float, float, float] | None = None
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
 
@@ -126,9 +131,8 @@ class AlignmentSession:
         self.gaps.anchor(term.node_id)  # the fix joins the piece of its node
         if self.journal is None:
             return
-        fix = term.fix if info is None else replace(term.fix, information=info)
         try:
-            self.journal.append_fix(replace(term, fix=fix))
+            self.journal.append_fix(term, info, C_offset)
             self.sync()
         except OSError as exc:  # as for a measurement (_journal): counted, warned, applied
             self.persistence_failed(f'journal {self.journal.path}: fix applied but NOT '
@@ -165,6 +169,26 @@ class AlignmentSession:
         except OSError as exc:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
+
+    def _journal_event(self, event: TrackEnd | Datum | None, happened: bool = True) -> None:
+        """Append a track end or a datum to the journal (if ``happened``); a write failure is
+        counted and warned about, as for a measurement."""
+        if self.journal is None or event is None or not happened:
+            return
+        try:
+            if isinstance(event, TrackEnd):
+                self.journal.append_track_end(event)
+            else:
+                self.journal.append_datum(event)
+            self.sync()
+        except OSError as exc:
+            self.persistence_failed(f'journal {self.journal.path}: {type(event).__name__} '
+                                    f'applied but NOT journaled ({exc})')
+
+    def journal_datum(self, lla: tuple[float, float, float]) -> None:
+        """Journal the map frame's geodetic origin ``(lat_deg, lon_deg, alt_m)`` once it is
+        known (a recovery gives it back: :attr:`RecoveryResult.datum`)."""
+        self._journal_event(Datum(tuple(float(v) for v in lla)))
 
     def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
@@ -295,8 +319,10 @@ class AlignmentSession:
                 notes.append(text)
         return notes
 
-    def finish_track(self) -> Any:
-        """Close the open track now (window update); None if no track is open.
+    def finish_track(self, cause: str = 'finish_track') -> Any:
+        """Close the open track now (window update); None if no track is open. The track end is
+        journaled (``cause``: one of :data:`~ga_ros.pipeline.journal.TRACK_END_CAUSES`), so a
+        recovery from the journal ends it too.
 
         Raises
         ------
@@ -304,11 +330,15 @@ class AlignmentSession:
             The update failed (counted; the previous estimate stands).
         """
         flushed = self.flush_gaps()
+        track = getattr(self.aligner, 'open_track', None)
         try:
             update = self.aligner.finish_track()
         except SolverError as exc:
             self.solver_failed(exc)
+            self._journal_event(TrackEnd(int(track), cause), track is not None)
             raise
+        self._journal_event(TrackEnd(int(track), cause) if track is not None else None,
+                            update is not None)
         if update is not None:
             self.after_updates((update,))
         return update if update is not None or not flushed.updates else flushed.updates[-1]
@@ -330,6 +360,7 @@ class AlignmentSession:
         self.gaps = GapHealer(self.session.gaps)
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
+        self.datum = None
 
     def _close_aligner(self) -> None:
         """Stop the aligner's background refinement (worker process or thread), if any."""
@@ -408,6 +439,7 @@ class AlignmentSession:
             raise InputError(f'no state in {path!r}')
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
+        self.datum = result.datum
         return how(result)
 
     def resume(self) -> str | None:
@@ -427,6 +459,7 @@ class AlignmentSession:
             return self._without_persistence(exc)
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
+        self.datum = result.datum
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
