@@ -29,8 +29,12 @@ class NodeSettings:
     markers_topic : output: MarkerArray of nodes and connections.
     diagnostics_topic : output: DiagnosticArray.
     measurement_queue_depth : depth of the (reliable) measurement subscription queue, messages.
-    state_file : ``.npz`` file for ``~/save_state`` / ``~/load_state`` and resume on start
-        (``''``: none).
+    state_file : the state (snapshot, ``.journal``, ``.lock``, ...) for ``~/save_state`` /
+        ``~/load_state`` and resume on start. ``'default'``: ``$ROS_HOME/ga_ros/<namespace>/
+        <node name>/state`` (``ROS_HOME`` defaults to ``~/.ros``), logged at start; a path;
+        ``''``: no persistence (a crash loses what the publishers no longer hold). Two nodes
+        never share one: the second gets a clear error (``.lock``, ``fcntl.flock``) and runs
+        without persistence (or refuses to start with ``state_required``).
     autosave : journal every measurement and save the state to ``state_file`` after every
         window update.
     warn_throttle_sec : minimum interval between two warnings about rejected input, s.
@@ -122,7 +126,7 @@ class NodeSettings:
     markers_topic: str = topics.NETWORK_MARKERS
     diagnostics_topic: str = topics.DIAGNOSTICS
     measurement_queue_depth: int = field_(100000, 1, 1000000)
-    state_file: str = ''
+    state_file: str = 'default'
     autosave: bool = True
     warn_throttle_sec: float = field_(2.0, 0.0, 3600.0)
     publish_markers: bool = True

@@ -36,6 +36,7 @@ snapshot's sidecar, the map frame's geodetic datum) and
 :mod:`.recovery` (:func:`recover`).
 """
 
+from ga_ros.pipeline.journal.lock import StateLock, lock_path
 from ga_ros.pipeline.journal.records import (
     HELD,
     RECORD,
@@ -52,8 +53,10 @@ from ga_ros.pipeline.journal.records import (
 from ga_ros.pipeline.journal.recovery import RecoveryResult, recover
 from ga_ros.pipeline.journal.scan import JournalScan, read_journal, scan_journal
 from ga_ros.pipeline.journal.state_files import (
+    DEFAULT_STATE_FILE,
     clear_state,
     datum_path,
+    default_state_file,
     journal_path,
     read_datum,
     write_datum,
@@ -62,6 +65,10 @@ from ga_ros.pipeline.journal.state_files import (
 from ga_ros.pipeline.journal.writer import MeasurementJournal
 
 __all__ = [
+    'DEFAULT_STATE_FILE',
+    'StateLock',
+    'default_state_file',
+    'lock_path',
     'HELD',
     'RECORD',
     'RECORD_V1',

@@ -16,6 +16,26 @@ from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow, read_by
 from ga_ros.pipeline.journal.records import MAGIC, RECORD, RECORD_V1, record_crcs
 from ga_ros.pipeline.journal.scan import scan_journal
 
+#: The ``state_file`` value that means the default path (:func:`default_state_file`).
+DEFAULT_STATE_FILE = 'default'
+
+
+def default_state_file(namespace: str, name: str, ros_home: str | None = None) -> Path:
+    """Where a node keeps its state by default: ``$ROS_HOME/ga_ros/<namespace>/<name>/state``
+    (``ROS_HOME`` defaults to ``~/.ros``; ``namespace`` ``'/'`` or ``'/robot1'``, as ROS gives
+    it), so that each node of a graph has its own (:class:`~ga_ros.pipeline.journal.lock.
+    StateLock` refuses a second user).
+
+    ``ros_home`` : the ROS home directory (default: the ``ROS_HOME`` environment variable, else
+    ``~/.ros``).
+    """
+    home = ros_home or os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'),
+                                                                  '.ros')
+    parts = [p for p in namespace.split('/') if p]
+    if not name or '/' in name or name in ('.', '..') or any(p in ('.', '..') for p in parts):
+        raise FormatError(f'node name {name!r} / namespace {namespace!r} cannot name a folder')
+    return Path(home, 'ga_ros', *parts, name, 'state')
+
 
 def journal_path(state_file: str | os.PathLike) -> Path:
     """The journal that goes with a state file: ``<state_file>.journal``."""

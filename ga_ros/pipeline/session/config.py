@@ -23,6 +23,11 @@ class SessionConfig:
     state_required : a state file that cannot be used at start (its directory is a file, is
         read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
         running without persistence.
+    lock_owner : if not empty, :meth:`~ga_ros.pipeline.session.AlignmentSession.resume` takes
+        the state file's lock (:class:`~ga_ros.pipeline.journal.lock.StateLock`) under this name
+        (the node: its full name) and holds it until ``close``; a state file locked by another
+        is then a state file that cannot be used. Empty: no lock (a library caller that owns its
+        path).
     """
 
     state_file: str = ''
@@ -30,3 +35,4 @@ class SessionConfig:
     fsync_period_sec: float = 1.0
     gaps: GapConfig = GapConfig()
     state_required: bool = False
+    lock_owner: str = ''

@@ -28,6 +28,7 @@ from ga_ros.pipeline.journal import (
     journal_path,
     recover,
 )
+from ga_ros.pipeline.journal.lock import StateLock
 from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
@@ -78,6 +79,8 @@ class AlignmentSession:
         self.datum: tuple[float, float, float] | None = None
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
+        #: The state file's lock, taken by :meth:`resume` (``SessionConfig.lock_owner``).
+        self.lock: StateLock | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -369,7 +372,8 @@ class AlignmentSession:
             close()
 
     def close(self) -> None:
-        """Close the journal (after an ``fsync``) and stop the background refinement."""
+        """Close the journal (after an ``fsync``), stop the background refinement and release
+        the state file's lock."""
         self._close_aligner()
         if self.journal is not None:
             try:
@@ -377,6 +381,12 @@ class AlignmentSession:
             except OSError:
                 pass
             self.journal.close()
+        self._release_lock()
+
+    def _release_lock(self) -> None:
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
     def sync(self, now: float | None = None) -> None:
         """``fsync`` the journal if ``SessionConfig.fsync_period_sec`` has passed since the
@@ -454,6 +464,8 @@ class AlignmentSession:
         if not path:
             return None
         try:
+            if self.session.lock_owner and self.lock is None:
+                self.lock = StateLock(path, self.session.lock_owner)
             result = self._recover()
         except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
             return self._without_persistence(exc)
@@ -478,6 +490,7 @@ class AlignmentSession:
         if self.journal is not None:
             self.journal.close()
         self.journal = None
+        self._release_lock()
         self.session = replace(self.session, state_file='', autosave=False)
         self.persistence_off = bounded(text)
         self.warn(f'{text}; running WITHOUT persistence (a crash loses the state)')

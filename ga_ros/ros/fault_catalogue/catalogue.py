@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -73,10 +74,17 @@ def run_case(name: str, case: Case, survey: Survey | None, dom: int,
     ``survey`` None: the small simulated one, written in that directory."""
     with tempfile.TemporaryDirectory(prefix='ga_fault_') as tmp:
         work = Path(tmp)
+        home = os.environ.get('ROS_HOME')
+        os.environ['ROS_HOME'] = str(work / 'ros_home')  # the nodes' default state: the case's
         try:
             return case(Ctx(work, dom, survey or small_survey(work)))
         except Exception as exc:  # noqa: BLE001 - a failed case is a row
             return Row(name, 'ERROR', '-', 0, 0, note=f'{type(exc).__name__}: {exc}'[:80])
+        finally:
+            if home is None:
+                os.environ.pop('ROS_HOME', None)
+            else:
+                os.environ['ROS_HOME'] = home
 
 
 def table(rows: list[Row]) -> str:
