@@ -62,6 +62,8 @@ class Datum:
 
 #: What the journal holds, in order: measurements, absolute fixes, track ends, the datum.
 Entry = Measurement | FixTerm | TrackEnd | Datum
+#: The kind byte of a datum record.
+DATUM_KIND = _DATUM
 _EVENTS = (_FIX, _FIX_SENSOR, _TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET)
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]

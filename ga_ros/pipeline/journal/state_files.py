@@ -13,6 +13,7 @@ import numpy as np
 from ga_ros.core.window.persistence import is_state_file
 from ga_ros.errors import ForeignFileError, FormatError, GaError
 from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow, read_bytes
+from ga_ros.pipeline.journal.layout import MAGIC3
 from ga_ros.pipeline.journal.records import MAGIC, RECORD, RECORD_V1, record_crcs
 from ga_ros.pipeline.journal.scan import scan_journal
 
@@ -149,18 +150,21 @@ def clear_state(state_file: str | os.PathLike) -> list[Path]:
 
 
 def has_v2_header(path: Path) -> bool:
+    """The journal has a current header (version 2, or a compacted journal's)."""
     fd = open_nofollow(path, os.O_RDONLY)
     try:
-        return os.pread(fd, len(MAGIC), 0) == MAGIC
+        return os.pread(fd, len(MAGIC), 0) in (MAGIC, MAGIC3)
     finally:
         os.close(fd)
 
 
-def rewrite_journal(path: Path, records: np.ndarray) -> None:
-    """Write a version-2 journal holding ``records`` (atomically, never through a link)."""
+def rewrite_journal(path: Path, records: np.ndarray,
+                    head: list[bytes] | None = None) -> None:
+    """Write a journal holding ``records`` (atomically, never through a link): after ``head``
+    (a compacted journal's header and base) or, by default, as version 2."""
     rec = np.zeros(records.size, RECORD)
     for name in RECORD_V1.names:
         rec[name] = records[name]
     raw = rec.view(np.uint8).reshape(records.size, RECORD.itemsize)
     rec['crc'] = record_crcs(raw)
-    atomic_write(path, [MAGIC, rec.tobytes()])
+    atomic_write(path, [*(head or [MAGIC]), rec.tobytes()])

@@ -13,9 +13,9 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.core.gaps import GapHealer, Route, fingerprint, reversed_measurement
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.core.window.persistence import save_state
+from ga_ros.core.window.persistence import save_state, state_chunks
 from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverError
 from ga_ros.pipeline.journal import (
     HELD,
@@ -29,6 +29,7 @@ from ga_ros.pipeline.journal import (
     recover,
 )
 from ga_ros.pipeline.journal.lock import StateLock
+from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, is_event
 from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
@@ -320,7 +321,36 @@ class AlignmentSession:
                 self.counts.persistence_errors += 1
                 self.last_persistence_error = self.last_error = bounded(text)
                 notes.append(text)
+        if self.session.autosave and self.journal is not None:
+            try:
+                self.compact()
+            except (OSError, GaError) as exc:  # the journal is as it was: nothing lost
+                text = f'journal {self.journal.path} not compacted: {exc}'
+                self.counts.persistence_errors += 1
+                self.last_persistence_error = self.last_error = bounded(text)
+                notes.append(text)
         return notes
+
+    def compact(self, force: bool = False) -> bool:
+        """Compact the journal (:meth:`MeasurementJournal.compact`) if
+        ``SessionConfig.compact_records`` records follow its base (``force``: if any do) and
+        no measurement is held: its base is then the current state, followed by the records the
+        gap healer needs after a restart (bridges, measurements taken reversed, the datum).
+        Returns whether it was compacted; raises ``OSError`` (the journal is then unchanged)."""
+        j, every = self.journal, self.session.compact_records
+        if j is None or self.gaps.held or j.since_base == 0 or not (
+                force or 0 < every <= j.since_base):
+            return False
+        recs = j.file_records()
+        kinds = recs['kind']
+        keep = (((kinds & KIND_MASK) == KINDS.index('bridge')) & ~is_event(kinds)
+                | ((kinds & REVERSED) != 0) & ~is_event(kinds))
+        datum = np.flatnonzero(kinds == DATUM_KIND)
+        if datum.size:
+            keep[datum[-1]] = True
+        j.sync()
+        j.compact(state_chunks(self.aligner, j.count), recs[keep], *self.gaps.waits())
+        return True
 
     def finish_track(self, cause: str = 'finish_track') -> Any:
         """Close the open track now (window update); None if no track is open. The track end is
