@@ -17,7 +17,9 @@ from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import (
     RECORD,
     Datum,
+    MeasurementJournal,
     TrackEnd,
+    clear_state,
     journal_path,
     read_journal,
     records_to_entries,
@@ -163,3 +165,74 @@ def test_without_the_track_end_records_the_last_track_stays_open(tmp_path):
     assert d > 1e-3
     res.aligner.close()
     live.aligner.close()
+
+
+def _compacted(tmp_path, n_entries: int | None = None):
+    """A session on the survey with the journal compacted at every window update, killed
+    mid-track (after ``n_entries`` entries); returns the state path and the live session."""
+    entries = _survey(np.random.default_rng(11))
+    entries = entries[:n_entries] if n_entries else entries[:-4]
+    state = tmp_path / 'state'
+    live = AlignmentSession(CFG, SessionConfig(str(state), compact_records=1))
+    live.resume()
+    for e in entries:
+        if isinstance(e, Measurement):
+            live.step(e)
+        else:
+            try:
+                live.add_fix(*e)
+            except Exception:  # noqa: BLE001 - refused fixes as live
+                pass
+    live.journal.close()
+    assert live.journal.layout.has_base and (live.journal.since_base > 0 or n_entries)
+    return state, live
+
+
+def test_a_compacted_journal_keeps_its_base_through_damage_and_torn_records(tmp_path):
+    """Torn last record: ignored (cut off before the next append); a damaged record after the
+    base: the journal is moved aside and rewritten with its base and the intact records;
+    either way the state is the live one (from the snapshot, or from the base alone)."""
+    state, live = _compacted(tmp_path)
+    jpath = journal_path(state)
+    with open(jpath, 'ab') as f:
+        f.write(b'\x01' * 100)   # a torn record
+    res = recover(state, CFG, checkpoint=False)
+    assert res.source == 'snapshot+journal' and not res.moved_aside
+    assert_same_state(res.aligner, live.aligner)
+    res.aligner.close()
+    _lose_snapshot(state)
+    raw = bytearray(jpath.read_bytes())
+    lay_end = len(raw) - 100 - RECORD.itemsize * live.journal.since_base
+    raw[lay_end + 5] ^= 0xFF     # the first record after the base (and its context) damaged
+    jpath.write_bytes(bytes(raw))
+    res = recover(state, CFG)
+    assert res.source == 'journal' and len(res.moved_aside) == 1
+    again = recover(state, CFG, checkpoint=False)   # the repaired journal kept the base
+    assert again.records_rejected == 0
+    j = MeasurementJournal(jpath)
+    assert j.layout.has_base and j.count == live.journal.count - 1
+    for r in (res, again):
+        r.aligner.close()
+    live.aligner.close()
+
+
+def test_a_snapshot_older_than_the_base_gives_way_to_it(tmp_path):
+    """A snapshot holding fewer records than the journal's base (its write failed after an
+    update the journal was compacted at): the base is used, then the records after it."""
+    state, live = _compacted(tmp_path)
+    older, _ = _compacted(tmp_path / 'older', n_entries=20)
+    state.write_bytes(older.read_bytes())   # a snapshot of fewer records
+    res = recover(state, CFG, checkpoint=False)
+    assert res.source == 'journal' and any('the base is used' in t for t in res.messages)
+    assert_same_state(res.aligner, live.aligner)
+    res.aligner.close()
+    live.aligner.close()
+
+
+def test_clearing_a_compacted_state_drops_the_base(tmp_path):
+    state, live = _compacted(tmp_path)
+    live.aligner.close()
+    clear_state(state)
+    j = MeasurementJournal(journal_path(state))
+    assert j.count == 0 and not j.layout.has_base
+    assert recover(state, CFG).source == 'empty'
