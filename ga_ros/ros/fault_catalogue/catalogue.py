@@ -9,6 +9,7 @@ from pathlib import Path
 from ga_ros.ros.fault_catalogue.crash_cases import (
     case_damaged_snapshot,
     case_disk_full,
+    case_ended_snapshot_lost,
     case_foreign,
     case_kill_defaults,
     case_kill_recovery,
@@ -51,6 +52,7 @@ def catalogue() -> dict[str, Case]:
         'snapshot-random': case_damaged_snapshot('random'),
         'snapshot-truncated': case_damaged_snapshot('truncated'),
         'journal-header': case_damaged_snapshot('header'),
+        'end-snapshot-lost': case_ended_snapshot_lost,
         'disk-full': case_disk_full,
         'read-only-dir': case_state_path('read-only directory'),
         'bogus-path': case_state_path('path under a regular file'),

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from ga_ros.pipeline.journal import journal_path
+from ga_ros.pipeline.journal import default_state_file, journal_path
 from ga_ros.ros.fault_catalogue.harness import (
     LEVELS,
     Live,
@@ -193,3 +193,28 @@ def case_foreign(kind: str) -> Case:
         finally:
             live.close()
     return run
+
+
+def case_ended_snapshot_lost(ctx: Ctx) -> Row:
+    """Defaults (the state under ``$ROS_HOME``): the whole survey and the end of input, then
+    ``kill -9``, the snapshot emptied and the publisher gone (no history to re-deliver): the
+    restarted node has only its journal, which holds the track end of the end of input."""
+    live = Live(ctx, {})
+    try:
+        live.send_ms(ctx.ms)
+        live.end()
+        live.final_path(ctx.survey.n_nodes)
+        live.kill()
+        state = default_state_file('/', 'alignment_node')  # ROS_HOME: the case's (run_case)
+        state.write_bytes(b'')
+        live.client.node.destroy_publisher(live.pub)       # nothing is re-delivered
+        live.client.paths.clear()
+        recover_s = live.restart()
+        got = live.final_path(ctx.survey.n_nodes)
+        return Row('kill -9 after the end of input, snapshot emptied, no history, defaults',
+                   live.survived(), f'persistence '
+                   f'{live.client.diagnostics.get("persistence", "?").split(":")[0]}',
+                   ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,
+                   recovery_note(live.log))
+    finally:
+        live.close()
