@@ -121,6 +121,15 @@ def recovery(n_tracks: int, compact: int) -> None:
         cfg = AlignerConfig()
         live = AlignmentSession(cfg, SessionConfig(str(state), compact_records=compact))
         live.resume()
+        spent = {'save': [0, 0.0], 'compact': [0, 0.0]}
+        for name in spent:   # time the snapshots and the compactions of the run
+            def timed(*args, _name=name, _call=getattr(live, name), **kwargs):
+                t = time.perf_counter()
+                out = _call(*args, **kwargs)
+                spent[_name][0] += 1 if out is not False else 0
+                spent[_name][1] += time.perf_counter() - t
+                return out
+            setattr(live, name, timed)
         w0, c0 = time.perf_counter(), cpu_seconds()
         for m in ms:
             live.step(m)
@@ -134,7 +143,9 @@ def recovery(n_tracks: int, compact: int) -> None:
         print(f'uninterrupted run: {len(ms)} measurements, {live.n_nodes()} nodes, '
               f'{wall:.1f} s wall, {cpu:.1f} s CPU of this process (the background refinement '
               f'process aside); journal {os.path.getsize(journal_path(state)) / 1e6:.1f} MB '
-              f'(compact_records {compact})')
+              f'(compact_records {compact}); {spent["save"][0]} snapshots '
+              f'{spent["save"][1]:.1f} s wall, {spent["compact"][0]} compactions '
+              f'{spent["compact"][1]:.1f} s wall in all')
         _recover_alone(f'killed before the end of input ({n_before} records after the base)',
                        before, ref_before, cfg)
         _recover_alone(f'killed after the end of input ({live.journal.since_base} records after '
