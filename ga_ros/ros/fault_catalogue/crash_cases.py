@@ -7,6 +7,7 @@ import signal
 import time
 
 import numpy as np
+from nav_msgs.msg import Odometry
 
 from ga_ros.pipeline.journal import default_state_file, journal_path
 from ga_ros.ros.fault_catalogue.harness import (
@@ -19,6 +20,7 @@ from ga_ros.ros.fault_catalogue.harness import (
 )
 from ga_ros.ros.fault_catalogue.survey import Case, Ctx, Row, nodes_kept
 from ga_ros.ros.harness import start_node_process
+from ga_ros.ros.qos import measurement_qos
 
 
 def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
@@ -54,7 +56,7 @@ def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
 
 
 def case_kill_defaults(ctx: Ctx) -> Row:
-    return killed_during_play(ctx, 'kill -9 during play, defaults (no state file)', {},
+    return killed_during_play(ctx, 'kill -9 during play, defaults (state under ROS_HOME)', {},
                                signal.SIGKILL)
 
 
@@ -207,7 +209,10 @@ def case_ended_snapshot_lost(ctx: Ctx) -> Row:
         live.kill()
         state = default_state_file('/', 'alignment_node')  # ROS_HOME: the case's (run_case)
         state.write_bytes(b'')
-        live.client.node.destroy_publisher(live.pub)       # nothing is re-delivered
+        node, topic = live.client.node, live.pub.topic_name  # nothing is re-delivered: a
+        node.destroy_publisher(live.pub)                      # new publisher, no history
+        live.pub = live.client.pub = node.create_publisher(
+            Odometry, topic, measurement_qos(transient_local=True))
         live.client.paths.clear()
         recover_s = live.restart()
         got = live.final_path(ctx.survey.n_nodes)
