@@ -99,7 +99,8 @@ class RecoveryResult:
     ----------
     aligner : the restored aligner (empty if there was nothing to restore).
     source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
-    snapshot_records : journal records the snapshot contained (0 without a snapshot).
+    snapshot_records : journal records the snapshot contained (0 without a snapshot; from the
+        journal alone: the records its base holds).
     records_replayed : journal entries (measurements, fixes) replayed after the snapshot and
         accepted.
     records_rejected : replayed entries the aligner rejected (e.g. already in the snapshot).
@@ -174,6 +175,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                                 f"journal's base {lay.start}: the base is used")
             aligner.close()
         aligner, out.source, tail = base, 'journal', records[ctx:]
+        out.snapshot_records = lay.start
     elif aligner is not None:
         out.source, out.snapshot_records = 'snapshot', int(snap_records)
         if scan.damaged:
