@@ -72,3 +72,18 @@ def test_a_session_on_a_locked_state_file_runs_without_persistence(tmp_path):
     third = AlignmentSession(session=SessionConfig(state, lock_owner='/third'))
     assert third.resume() is None and third.journal is not None
     third.close()
+
+
+@pytest.mark.parametrize('kind', ['foreign', 'symlink'])
+def test_no_lock_file_beside_a_refused_state_path(tmp_path, kind):
+    """A foreign or linked state path is refused before the lock: nothing is created."""
+    victim = tmp_path / 'notes.txt'
+    victim.write_text('precious\n')
+    state = victim if kind == 'foreign' else tmp_path / 'state'
+    if kind == 'symlink':
+        state.symlink_to(victim)
+    session = AlignmentSession(session=SessionConfig(str(state), lock_owner='/me'))
+    assert session.resume().startswith('failed')
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ['notes.txt'] + (['state'] if kind == 'symlink' else []))
+    assert victim.read_text() == 'precious\n'

@@ -231,6 +231,24 @@ def _load_base(scan: JournalScan, jpath: Path, config: AlignerConfig | None,
         return None
 
 
+def check_state_path(state_file: str | os.PathLike) -> None:
+    """Refuse, without writing anything, a state path that :func:`recover` would refuse: a
+    symbolic link (state file or journal) or a foreign file with no journal of intact records
+    beside it (what is checked before a lock file is made beside it).
+
+    Raises
+    ------
+    UnsafePathError, ForeignFileError
+        As :func:`recover`.
+    """
+    state, jpath = Path(state_file), journal_path(state_file)
+    check_regular(jpath)
+    if (check_regular(state) and os.lstat(state).st_size > 0 and not is_state_file(state)
+            and not _journal_has_records(jpath)):
+        raise ForeignFileError(f'state_file {state} exists and is not a ga_ros state; it is '
+                               'left untouched: choose another state_file')
+
+
 def _load_snapshot(state: Path, jpath: Path, config: AlignerConfig | None,
                    out: RecoveryResult) -> tuple[TrackWindowAligner | None, int, bool]:
     """The snapshot's aligner and the journal records it holds (``None, 0`` without a usable

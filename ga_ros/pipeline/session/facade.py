@@ -30,6 +30,7 @@ from ga_ros.pipeline.journal import (
 )
 from ga_ros.pipeline.journal.lock import StateLock
 from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, is_event
+from ga_ros.pipeline.journal.recovery import check_state_path
 from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
@@ -495,6 +496,7 @@ class AlignmentSession:
             return None
         try:
             if self.session.lock_owner and self.lock is None:
+                check_state_path(path)  # a link, a foreign file: no lock file beside it
                 self.lock = StateLock(path, self.session.lock_owner)
             result = self._recover()
         except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
