@@ -38,6 +38,7 @@ def _alone(journal: Path, tmp: Path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)   # the whole survey twice over on a loaded 2-core machine
 def test_the_aerial_bag_is_recovered_bit_for_bit_from_the_journal_alone(tmp_path):
     ms = _bag_measurements()
     assert len(ms) == 29896
