@@ -348,9 +348,9 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
 
 
 def _journal_has_records(jpath: Path) -> bool:
-    """The journal has a valid header and at least one intact record."""
+    """The journal has a valid header and at least one intact record or an intact base."""
     try:
         scan = scan_journal(jpath)
     except (FormatError, OSError):
         return False
-    return scan.header_ok and scan.records.size > 0
+    return scan.header_ok and (scan.records.size > 0 or scan.base is not None)
