@@ -118,6 +118,7 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
         self.session = AlignmentSession(
             self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
                                                state_required=s.state_required, gaps=s.gaps,
+                                               compact_records=s.journal_compact_records,
                                                lock_owner=self.get_fully_qualified_name()),
             warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent

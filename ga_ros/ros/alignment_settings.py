@@ -94,6 +94,10 @@ class NodeSettings:
     fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
         loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
         most every this many seconds.
+    journal_compact_records : compact the journal at a window update once this many records
+        followed its last compaction (its base: the state then, embedded), so a recovery from
+        the journal alone replays only what came after (0: never; the journal's replay then grows
+        with the survey).
     track_idle_timeout_sec : end the open track when no measurement has arrived for this long,
         wall-clock s (0: never; a track end then comes from the next track's first measurement,
         the end-of-input message or ``~/finish_track``). Measurements of a track that arrive
@@ -154,6 +158,7 @@ class NodeSettings:
 
     measurement_durability: str = 'transient_local'
     fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
+    journal_compact_records: int = field_(1000, 0, 10**9)
     track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False
