@@ -58,7 +58,7 @@ def test_the_aerial_bag_is_recovered_bit_for_bit_from_the_journal_alone(tmp_path
     live.journal.close()
     res = _alone(journal_path(state), tmp_path / 'b')
     assert res.aligner.stats.n_nodes == 5100
-    assert res.aligner.open_track in res.aligner.state.finished
+    assert res.aligner.open_track is None or res.aligner.open_track in res.aligner.state.finished
     assert_same_state(res.aligner, live.aligner)
     res.aligner.close()
     live.close()

@@ -205,7 +205,8 @@ def case_ended_snapshot_lost(ctx: Ctx) -> Row:
     try:
         live.send_ms(ctx.ms)
         live.end()
-        live.final_path(ctx.survey.n_nodes)
+        live.wait_accepted(len(ctx.ms), timeout=1800)
+        before = nodes_kept(ctx.survey.T_ref, live.final_path(ctx.survey.n_nodes, 600))
         live.kill()
         state = default_state_file('/', 'alignment_node')  # ROS_HOME: the case's (run_case)
         state.write_bytes(b'')
@@ -220,6 +221,6 @@ def case_ended_snapshot_lost(ctx: Ctx) -> Row:
                    live.survived(), f'persistence '
                    f'{live.client.diagnostics.get("persistence", "?").split(":")[0]}',
                    ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,
-                   recovery_note(live.log))
+                   f'{before} kept before the kill; {recovery_note(live.log)}')
     finally:
         live.close()
