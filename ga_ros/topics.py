@@ -22,7 +22,10 @@ INPUT_DONE_SUFFIX = '_done'
 
 
 def input_done_topic(measurements_topic: str) -> str:
-    """The input-done topic of a measurements topic (``ga/measurements_done``)."""
+    """The input-done topic of a measurements topic (``ga/measurements_done``): after each
+    end-of-input message an alignment node publishes a ``diagnostic_msgs/KeyValue`` there,
+    ``key`` its fully qualified node name, ``value`` how many measurements it has received on
+    that topic (decimal), so a player can tell that every node got everything it sent."""
     return measurements_topic + INPUT_DONE_SUFFIX
 
 

@@ -5,7 +5,7 @@ the bag is always closed into a valid file (``metadata.yaml`` + one ``.mcap``), 
 caller fails half-way, so partial outputs stay readable (Foxglove, ``mcap``, rosbags).
 
 The bag is written as ``<path>.partial/<name>`` and renamed to ``<path>`` when closed
-(:func:`ga_ros.io.atomic.staging_directory`): a process killed half-way leaves
+(:func:`ga_ros.safe_write.staging_directory`): a process killed half-way leaves
 ``<path>.partial``, which the next run into the same place removes, never a bag that looks
 complete. A symbolic link at ``<path>`` is refused.
 """
@@ -22,8 +22,8 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import encoding
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
-from ga_ros.io.atomic import commit_directory, staging_directory
 from ga_ros.io.bag_messages import header, matrix_to_pose_msg, typestore
+from ga_ros.safe_write import commit_directory, remove_staging, staging_directory
 
 
 class BagWriter:
@@ -107,7 +107,7 @@ class BagWriter:
             staging, self._staging = self._staging, None
             try:
                 commit_directory(staging / self.path.name, self.path, self._replaceable)
-                staging.rmdir()
+                remove_staging(staging)
             except OSError as exc:
                 raise FormatError(f'cannot move the finished bag into place: {exc}',
                                   str(self.path)) from None

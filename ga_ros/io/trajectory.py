@@ -21,7 +21,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
-from ga_ros.io.atomic import atomic_write
+from ga_ros.safe_write import atomic_write
 
 #: tolerance on |q| - 1 (TUM) and on ||R'R - I|| (KITTI) before a pose is rejected
 _ROTATION_TOL = 1e-3

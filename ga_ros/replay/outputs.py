@@ -1,6 +1,6 @@
 """Files the replay writes: the output mcap bag, TUM trajectories, the PNG plot, summary JSON.
 
-Every file goes through :mod:`ga_ros.io.atomic` (temporary file, fsync, rename; symbolic links
+Every file goes through :mod:`ga_ros.safe_write` (temporary file, fsync, rename; symbolic links
 refused) and the destinations are checked before the replay starts, so a link in the output
 directory stops the run at once, with its target untouched.
 
@@ -23,7 +23,6 @@ from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
-from ga_ros.io.atomic import check_destinations, save_figure, write_json
 from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg
 from ga_ros.io.bag_writer import (
     BagWriter,
@@ -34,6 +33,7 @@ from ga_ros.io.bag_writer import (
     transform_msg,
 )
 from ga_ros.io.trajectory import Trajectory, write_tum
+from ga_ros.safe_write import check_destinations, save_figure, write_json
 
 
 @dataclass(frozen=True)

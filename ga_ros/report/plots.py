@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.io.atomic import save_figure
 from ga_ros.report.experiments.future_tracks import FutureTracksResult
 from ga_ros.report.experiments.survey import AerialResult, pose_error_profiles
 from ga_ros.report.experiments.table1 import Table1Result
+from ga_ros.safe_write import save_figure
 
 
 def _figure(w: float = 8.0, h: float = 4.0):

@@ -33,6 +33,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.pipeline.stereo import FrontEndConfig, ImagePair, StereoFrontEnd
+from ga_ros.safe_write import write_npz
 from ga_ros.sim.scenario import Scenario
 from ga_ros.sim.stereo import LawnmowerConfig, StereoRig, lawnmower, make_scene
 from ga_ros.vo.calibration import CameraModel
@@ -173,8 +174,9 @@ def _cache_key(cfg: StereoSurveyConfig) -> str:
 def save_survey(vs: VoSurvey, cfg: StereoSurveyConfig, path: Path) -> None:
     """Write ``vs`` to ``path`` (npz) with the key of ``cfg``."""
     f = vs.fig12
-    np.savez_compressed(
-        path, key=_cache_key(cfg), T_true=vs.T_true, track_ids=vs.track_ids, swath=vs.swath,
+    write_npz(
+        path, compressed=True, key=_cache_key(cfg), T_true=vs.T_true, track_ids=vs.track_ids,
+        swath=vs.swath,
         frame=vs.frame, src=vs.src, dst=vs.dst, z=vs.z, cov=vs.cov, cross=vs.cross,
         depth_m=vs.depth_m, K=vs.K, stats=json.dumps(vs.stats),
         fig12_a=f.get('a', np.zeros(0, int)), fig12_b=f.get('b', np.zeros(0, int)),

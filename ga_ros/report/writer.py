@@ -16,7 +16,6 @@ from typing import TypeVar
 import numpy as np
 
 from ga_ros.errors import InputError
-from ga_ros.io.atomic import check_destinations, write_json, write_text
 from ga_ros.report import plots
 from ga_ros.report.config import ReproduceConfig
 from ga_ros.report.experiments.experiment2 import StereoExperiment, stereo_experiment
@@ -28,6 +27,7 @@ from ga_ros.report.experiments.table1 import Table1Result, table1
 from ga_ros.report.experiments.wrong_connections import wrong_connections
 from ga_ros.report.markdown.document import render_markdown
 from ga_ros.report.stereo_survey import CACHE_NAME
+from ga_ros.safe_write import check_destinations, write_json, write_text
 
 T = TypeVar('T')
 
@@ -91,7 +91,7 @@ def _output_dir(out_dir: str | Path) -> Path:
     if out.exists() and not out.is_dir():
         raise InputError(f'{out} exists and is not a directory')
     out.mkdir(parents=True, exist_ok=True)
-    check_destinations(out / 'report.json', out / 'report.md')
+    check_destinations(out / 'report.json', out / 'report.md', out / CACHE_NAME)
     return out
 
 

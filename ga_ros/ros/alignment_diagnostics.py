@@ -63,10 +63,11 @@ class AlignmentDiagnostics:
 
 @dataclass
 class QueueLoss:
-    """Measurements lost before the node took them: DDS's message-lost events, plus gaps in
-    the publisher's sequence numbers (a full ``KEEP_LAST`` subscription queue drops the oldest
-    message silently; the numbers are per publisher, so gaps are counted only while exactly one
-    publisher is matched).
+    """Measurements lost before the node took them, each counted once. Two witnesses see the
+    losses: DDS's message-lost events and gaps in the publisher's sequence numbers (a full
+    ``KEEP_LAST`` subscription queue drops the oldest message; the numbers are per publisher,
+    so gaps are counted only while exactly one publisher is matched). Both report the same
+    samples when both see them, so the total is the larger of the two, not their sum.
 
     Attributes
     ----------
@@ -82,8 +83,8 @@ class QueueLoss:
 
     @property
     def total(self) -> int:
-        """Messages known to be lost."""
-        return self.lost_events + self.gaps
+        """Messages known to be lost (each once: the larger of the two witnesses' counts)."""
+        return max(self.lost_events, self.gaps)
 
     def seen(self, info: Any) -> None:
         """Note the message info (``publication_sequence_number``) of a message taken."""

@@ -25,8 +25,9 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): per update and at 1 Hz; with
   standard inputs, each input's received / expected / lost messages (from its stamps,
   :mod:`ga_ros.pipeline.stream_rate`; WARN above ``loss_warn_fraction``).
-* out ``ga/measurements_done`` (``std_msgs/Empty``): an end-of-input message was processed
-  (``ga-ros play`` keeps its history until then).
+* out ``ga/measurements_done`` (``diagnostic_msgs/KeyValue``: this node's name, the
+  measurements it received): an end-of-input message was processed (``ga-ros play`` keeps its
+  history until every node confirmed all it sent).
 
 Services (``std_srvs/Trigger``): ``~/finish_track``, ``~/reset``, ``~/save_state``,
 ``~/load_state``.
@@ -40,7 +41,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
@@ -49,7 +50,6 @@ from rclpy.clock import ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from std_msgs.msg import Empty
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
@@ -64,7 +64,7 @@ from ga_ros.pipeline.inputs import (
 )
 from ga_ros.pipeline.journal import DEFAULT_STATE_FILE, default_state_file
 from ga_ros.pipeline.map_to_odom import MapToOdom
-from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.ros.alignment_diagnostics import AlignmentDiagnostics, QueueLoss, RejectionLog
 from ga_ros.ros.alignment_inputs import AlignmentInputs
 from ga_ros.ros.alignment_outputs import AlignmentOutputs
@@ -78,6 +78,7 @@ from ga_ros.ros.alignment_settings import (  # noqa: F401 - public names of this
     field_,
 )
 from ga_ros.ros.alignment_tf import TF_CONTEST_HOLD_SEC, AlignmentTf  # noqa: F401
+from ga_ros.ros.bounded_log import BoundedLogging, shown_id
 from ga_ros.ros.params import declare_config, updated_config
 from ga_ros.ros.qos import (
     latched_qos,
@@ -93,8 +94,8 @@ DRAIN_MAX = 1000
 DRAIN_SECONDS = 0.05
 
 
-class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDiagnostics,
-                    AlignmentServices, Node):
+class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, AlignmentTf,
+                    AlignmentDiagnostics, AlignmentServices, Node):
     """Adapter: measurements -> :class:`AlignmentSession` -> corrected path, pose, markers."""
 
     def __init__(self, **kwargs: Any) -> None:
@@ -207,7 +208,7 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
         self.pub_window = self.create_publisher(Path, s.window_path_topic, stream_qos())
         self.pub_tf = self.create_publisher(TFMessage, s.tf_topic, stream_qos(100))
         self.pub_done = self.create_publisher(
-            Empty, topics.input_done_topic(s.measurements_topic), stream_qos())
+            KeyValue, topics.input_done_topic(s.measurements_topic), stream_qos())
 
     @property
     def aligner(self) -> TrackWindowAligner:
@@ -278,7 +279,9 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
                 self._finish_track(drain=False, cause='end_of_input')  # (not what came after)
             except SolverError:
                 pass                             # counted and logged by the session
-            self.pub_done.publish(Empty())       # the publisher may now let its history go
+            # the publisher may now let its history go: who we are and what we received
+            self.pub_done.publish(KeyValue(key=self.get_fully_qualified_name(),
+                                           value=str(self.session.counts.received)))
             return
         try:
             m = decode_measurement(msg, self.settings.covariance_policy)
@@ -342,8 +345,9 @@ class AlignmentNode(AlignmentInputs, AlignmentOutputs, AlignmentTf, AlignmentDia
             return
         src, dst, reason, exc = log.last
         self.get_logger().warning(
-            f'{log.pending} measurement(s) rejected; the last {src!r}->{dst!r} ({reason}): '
-            f'{exc} [{sum(self.session.counts.rejected.values())} rejected so far]')
+            f'{log.pending} measurement(s) rejected; the last {shown_id(src)}->{shown_id(dst)} '
+            f'({reason}): {bounded(str(exc))} '
+            f'[{sum(self.session.counts.rejected.values())} rejected so far]')
         log.pending = 0
 
     def _idle_check(self) -> None:

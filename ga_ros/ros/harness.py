@@ -29,6 +29,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
+from ga_ros.safe_write import open_log
 
 CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'alignment.yaml'
 
@@ -72,7 +73,7 @@ def start_node_process(domain_id: int, params: dict[str, object] | None = None,
             value = "''"
         cmd += ['-p', f'{key}:={value}']
     env = dict(os.environ, ROS_DOMAIN_ID=str(int(domain_id)), PYTHONUNBUFFERED='1')
-    out = open(log_path, 'ab') if log_path else subprocess.DEVNULL  # noqa: SIM115
+    out = open_log(log_path, append=True) if log_path else subprocess.DEVNULL
     return subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT,
                             start_new_session=True)
 

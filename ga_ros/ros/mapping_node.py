@@ -28,7 +28,6 @@ Run as ``python -m ga_ros.ros.mapping_node --out DIR [--ros-args ...]``.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import os
 import sys
@@ -46,9 +45,9 @@ from std_srvs.srv import Trigger
 
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
-from ga_ros.io.atomic import check_destinations, write_bytes, write_json
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.qos import latched_qos, measurement_qos
+from ga_ros.safe_write import check_destinations, write_json, write_npz
 
 READY_LINE = 'mapping_node: ready'
 
@@ -190,7 +189,7 @@ def check_outputs(out_dir: str | os.PathLike) -> None:
 
 def write_outputs(node: MappingNode, status: str) -> dict:
     """Write ``path.npz``, ``measurements/`` and ``mapping.json`` to the output directory
-    (atomically, never through a symbolic link: :mod:`ga_ros.io.atomic`)."""
+    (atomically, never through a symbolic link: :mod:`ga_ros.safe_write`)."""
     from ga_ros.replay.samples import write_measurement_bag
 
     s, rx = node.settings, node.rx
@@ -199,9 +198,8 @@ def write_outputs(node: MappingNode, status: str) -> dict:
     if rx.last_path is not None:
         stamps = np.array([p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
                            for p in rx.last_path.poses], dtype=np.int64)
-        buf = io.BytesIO()
-        np.savez(buf, T_world_node=conv.path_msg_to_poses(rx.last_path), stamps_ns=stamps)
-        write_bytes(out / 'path.npz', buf.getbuffer())
+        write_npz(out / 'path.npz', T_world_node=conv.path_msg_to_poses(rx.last_path),
+                  stamps_ns=stamps)
     if rx.measurements:
         write_measurement_bag(out / 'measurements', rx.measurements, None, overwrite=True)
     lat = track_latencies(rx.m_source_ns, rx.m_dst_track, rx.path_receive_ns)

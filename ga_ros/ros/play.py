@@ -31,15 +31,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import rclpy
+from diagnostic_msgs.msg import KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Empty
 
 from ga_ros import topics
 from ga_ros.errors import GaError, InputError
@@ -158,10 +159,13 @@ class BagPlayer:
                                 and t.name.endswith('/' + topics.MEASUREMENTS))
         self.clock_pub = node.create_publisher(Clock, '/clock', 10) if config.clock else None
         self.topics = tuple(classes)
-        #: Input-done confirmations received, per end topic (see :meth:`_wait_delivered`).
-        self.done = {t: 0 for t in self.end_topics}
+        #: Input-done confirmations, per end topic: node name -> measurements it received
+        #: (the largest it reported; see :meth:`_wait_delivered`).
+        self.done: dict[str, dict[str, int]] = {t: {} for t in self.end_topics}
+        #: Measurement messages published per end topic.
+        self.sent = {t: 0 for t in self.end_topics}
         for t in self.end_topics:
-            node.create_subscription(Empty, topics.input_done_topic(t),
+            node.create_subscription(KeyValue, topics.input_done_topic(t),
                                      partial(self._on_done, t), 10)
         #: Topics whose whole history is kept (the measurements: a restart gets them again).
         self.kept = tuple(t.name for t in wanted if self._keeps_all(t))
@@ -225,8 +229,42 @@ class BagPlayer:
         for p in self.publishers.values():
             p.wait_for_all_acked(timeout)
 
-    def _on_done(self, topic: str, msg: Empty) -> None:
-        self.done[topic] += 1
+    def _on_done(self, topic: str, msg: KeyValue) -> None:
+        try:
+            received = int(msg.value)
+        except ValueError:
+            received = -1                     # a confirmation that says nothing we can use
+        seen = self.done[topic]
+        seen[msg.key] = max(seen.get(msg.key, -1), received)
+
+    def confirmers(self, topic: str) -> set[str]:
+        """Fully qualified names of the nodes expected to confirm ``topic``: its subscribers
+        that ask for the history (:meth:`asks_history`) and the publishers of its input-done
+        topic."""
+        def fqn(info: Any) -> str:
+            ns = info.node_namespace.rstrip('/')
+            return f'{ns}/{info.node_name}'
+
+        subs = [i for i in self.node.get_subscriptions_info_by_topic(topic)
+                if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL]
+        pubs = self.node.get_publishers_info_by_topic(topics.input_done_topic(topic))
+        return {fqn(i) for i in subs + pubs}
+
+    def unconfirmed_of(self, topic: str, expected: set[str]) -> list[str]:
+        """The nodes of ``expected`` (and any that confirmed) that have not confirmed
+        receiving every measurement sent on ``topic``, each with what it said. A node that
+        left the graph after it was expected (killed; its restart confirms in turn) is still
+        expected: success needs every node that subscribed to have all of it."""
+        sent, seen = self.sent[topic], self.done[topic]
+        out = []
+        for name in sorted(expected | set(seen)):
+            got = seen.get(name)
+            if got is None:
+                out.append(f'{name} did not confirm it processed the input (no message on '
+                           f'{topics.input_done_topic(topic)})')
+            elif got < sent:
+                out.append(f'{name} confirmed only {got} of the {sent} measurements sent')
+        return out
 
     def undelivered(self, step_s: float = 0.5) -> list[str]:
         """What is not delivered now: a measurement topic without a subscriber, or a topic
@@ -260,19 +298,17 @@ class BagPlayer:
         undelivered (with an error line naming it)."""
         end = time.monotonic() + patience_s
         last = time.monotonic() + AT_WORK_PATIENCE * patience_s
-        confirming: set[str] = set()    # end topics where a confirming node was seen
+        expected: dict[str, set[str]] = {t: set() for t in self.end_topics}  # nodes ever seen
         while True:
             now = time.monotonic()
             missing = self.undelivered()
             for t in self.end_topics:
+                expected[t] |= self.confirmers(t)
                 at_work = self.node.count_publishers(topics.input_done_topic(t)) > 0
-                if at_work or self.asks_history(t):
-                    confirming.add(t)
-                if at_work and not self.done[t]:
+                pending = [n for n in expected[t] if self.done[t].get(n, -1) < self.sent[t]]
+                if at_work and pending:
                     end = min(max(end, now + patience_s), last)   # a node is at work
-            missing += [f'{t}: the node did not confirm it processed the input (no message '
-                        f'on {topics.input_done_topic(t)})'
-                        for t in sorted(confirming) if not self.done[t]]
+                missing += [f'{t}: {text}' for text in self.unconfirmed_of(t, expected[t])]
             if not missing or now > end:
                 break
             rclpy.spin_once(self.node, timeout_sec=0.05)
@@ -325,6 +361,8 @@ class BagPlayer:
                 next_clock = m.log_ns + clock_step
             self.publishers[m.topic].publish(m.data)
             stats.counts[m.topic] += 1
+            if m.topic in self.sent:
+                self.sent[m.topic] += 1
             last = m.log_ns
             if c.rate == 0:
                 since_ack += 1

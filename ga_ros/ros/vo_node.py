@@ -103,6 +103,7 @@ from ga_ros.pipeline.stereo import (
 from ga_ros.pipeline.stream_rate import FrameMonitor, StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
+from ga_ros.ros.bounded_log import BoundedLogging
 from ga_ros.ros.params import declare_config
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos, tf_static_qos
 from ga_ros.ros.runner import node_usage, run_node
@@ -190,7 +191,7 @@ def array_to_image(img: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
 EXTRINSIC_REFUSED = 'unknown (pairs refused)'
 
 
-class VoNode(Node):
+class VoNode(BoundedLogging, Node):
     """Adapter: messages -> :class:`StereoFrontEnd` -> messages."""
 
     def __init__(self, **kwargs: Any) -> None:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
-from ga_ros.io.atomic import check_destinations, open_log, write_json
+from ga_ros.safe_write import check_destinations, open_log, write_json
 from ga_ros.tools.multihost import REPO, _stop_all, _wait_line, compare_paths
 
 #: The stereo topics of the sample bags (``ga_ros.replay.samples``), remapped per robot.

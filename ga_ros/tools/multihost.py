@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
-from ga_ros.io.atomic import check_destinations, open_log, write_json, write_text
+from ga_ros.safe_write import check_destinations, open_log, write_json, write_text
 
 REPO = Path(__file__).resolve().parents[2]
 STEREO_BAG = REPO / 'bags' / 'stereo_sample'

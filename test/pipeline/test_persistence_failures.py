@@ -156,3 +156,56 @@ def test_error_texts_are_bounded(measurements: list) -> None:
     s.reject(InputError('frame ' + 'x' * 1_000_000))
     assert len(s.last_error) <= MAX_ERROR_CHARS and s.last_error.endswith('...')
     assert len(s.diagnostic_values()['last_error']) <= MAX_ERROR_CHARS
+
+
+_DISK_FREED = r"""
+import json, resource, signal, sys
+from ga_ros.core.window import AlignerConfig
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.replay.samples import aerial_sample
+ms = aerial_sample(n_tracks=3, positions_per_swath=6, noise_pct=5.0, seed=9).measurements
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # an over-limit write fails with EFBIG
+s = AlignmentSession(AlignerConfig(window_tracks=2), SessionConfig(sys.argv[1]))
+s.resume()
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[2]), resource.RLIM_INFINITY))
+half = len(ms) // 2
+for m in ms[:half]:
+    s.step(m)
+full = (s.diagnostic_values(), [s.health().ok, s.health().error])
+resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+s.step(ms[half])
+again = (s.diagnostic_values(), [s.health().ok, s.health().error])
+for m in ms[half + 1:]:
+    s.step(m)
+s.finish_track()                                   # a window update: the autosave snapshot
+after = (s.diagnostic_values(), [s.health().ok, s.health().error])
+print(json.dumps({'full': full, 'again': again, 'after': after,
+                  'T': s.aligner.corrected_path().T_world_node.tolist()}, default=str))
+"""
+
+
+def test_failing_writes_are_reported_while_they_fail_and_clear_when_they_succeed(
+        tmp_path: Path, measurements: list) -> None:
+    """A full disk (a file-size limit) that gets space again: ``persistence`` reads
+    ``failing`` (ERROR) while writes fail; once a write succeeds it is no longer failing, the
+    inputs not saved are counted (WARN) until a snapshot holds them, then all is ``on``."""
+    state = tmp_path / 'state'
+    limit = 11 + 20 * RECORD.itemsize
+    run = subprocess.run([sys.executable, '-c', _DISK_FREED, str(state), str(limit)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    (v_full, h_full), (v_again, h_again), (v_after, h_after) = (
+        out['full'], out['again'], out['after'])
+    half = len(measurements) // 2
+    assert v_full['persistence'].startswith('failing:') and h_full == [False, True]
+    assert int(v_full['persistence_unsaved']) == half - 20
+    assert v_again['persistence'] == 'on' and h_again == [False, False]   # WARN, not ERROR
+    assert int(v_again['persistence_unsaved']) == half - 20
+    assert v_after['persistence'] == 'on' and int(v_after['persistence_unsaved']) == 0
+    assert h_after[1] is False and int(v_after['persistence_errors']) >= half - 20  # + snapshots
+    again = AlignmentSession(CFG, SessionConfig(str(state)))   # the snapshot holds it all
+    again.resume()
+    np.testing.assert_allclose(again.aligner.corrected_path().T_world_node, np.array(out['T']),
+                               atol=1e-9)
+    again.close()

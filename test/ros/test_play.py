@@ -191,14 +191,16 @@ def test_play_says_what_was_not_delivered(tmp_path: Path, sample: object) -> Non
     assert time.monotonic() - t0 >= 2.0
 
 
-@pytest.mark.parametrize('confirm', [False, True])
+@pytest.mark.parametrize('confirm', ['never', 'all', 'part'])
 def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, sample: object, ros,
-                                                           confirm: bool) -> None:
+                                                           confirm: str) -> None:
     """A transient-local subscriber of the measurements is there to process them: play expects
-    its input-done confirmation from the subscription alone (whenever its done publisher is
-    discovered), exits 0 once it came, and with code 3 naming it when it never does."""
+    its input-done confirmation (its node name and how many measurements it received) from
+    the subscription alone (whenever its done publisher is discovered), exits 0 once it
+    confirmed all it was sent, and with code 3 naming it when it never confirms or confirms
+    fewer than were sent (no success without delivery)."""
+    from diagnostic_msgs.msg import KeyValue
     from nav_msgs.msg import Odometry
-    from std_msgs.msg import Empty
 
     from ga_ros.ros.play import EXIT_NOT_DELIVERED
     from ga_ros.ros.qos import measurement_qos
@@ -206,27 +208,34 @@ def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, samp
     node, ex = ros
     got = []
     # a node with a done publisher counts as at work: the one that never confirms has none
-    done = node.create_publisher(Empty, '/ga/measurements_done', 10) if confirm else None
+    done = (node.create_publisher(KeyValue, '/ga/measurements_done', 10)
+            if confirm != 'never' else None)
 
     def on_measurement(msg: Odometry) -> None:
-        got.append(msg)
-        if done is not None and msg.child_frame_id == 'ga/track_end':
-            done.publish(Empty())
+        if msg.child_frame_id != 'ga/track_end':
+            got.append(msg)
+        elif done is not None:
+            n = len(got) if confirm == 'all' else len(got) // 2
+            done.publish(KeyValue(key=node.get_fully_qualified_name(), value=str(n)))
 
     node.create_subscription(Odometry, '/ga/measurements', on_measurement,
                              measurement_qos(transient_local=True))
     bag = write_measurement_bag(tmp_path / 'b', sample.measurements[:20], None)
     proc = _play(bag, '--rate', '0', '--delay', '0', '--wait-for-subscribers', '20',
                  '--delivery-timeout', '3')
-    end = time.monotonic() + 60
+    end = time.monotonic() + 120
     while proc.poll() is None and time.monotonic() < end:
         ex.spin_once(timeout_sec=0.05)
     if proc.poll() is None:
         proc.kill()
     _, err = proc.communicate(timeout=10)
-    assert got and got[-1].child_frame_id == 'ga/track_end', err
-    if confirm:
+    assert len(got) == 20, err
+    if confirm == 'all':
         assert proc.returncode == 0, err
     else:
         assert proc.returncode == EXIT_NOT_DELIVERED, err
-        assert 'did not confirm' in err and '/ga/measurements_done' in err
+        assert node.get_fully_qualified_name() in err, err
+        if confirm == 'never':
+            assert 'did not confirm' in err and '/ga/measurements_done' in err
+        else:
+            assert 'confirmed only 10 of the 20 measurements sent' in err

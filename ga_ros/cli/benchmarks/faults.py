@@ -41,8 +41,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from ga_ros.errors import InputError
-    from ga_ros.io.atomic import atomic_write
     from ga_ros.ros import fault_catalogue as fc
+    from ga_ros.safe_write import atomic_write
 
     cases = fc.catalogue()
     if args.list:

@@ -13,7 +13,6 @@ Output in DIR:
 from __future__ import annotations
 
 import argparse
-import io
 from pathlib import Path
 
 SCENARIOS = ('aerial', 'lawnmower_open', 'lawnmower_closed', 'looping_open', 'looping_closed')
@@ -39,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ga_ros.errors import InputError
-    from ga_ros.io.atomic import check_destinations, write_bytes, write_json, write_text
+    from ga_ros.safe_write import check_destinations, write_json, write_npz, write_text
     from ga_ros.sim.aerial import aerial_scenario
     from ga_ros.sim.noise import NoiseModel, perturb
     from ga_ros.sim.trajectories import synthetic_scenario
@@ -63,9 +62,7 @@ def run(args: argparse.Namespace) -> int:
         from ga_ros.io.g2o import PoseGraph, write_g2o
     except ImportError:
         meas_file = 'measurements.npz'
-        buf = io.BytesIO()
-        np.savez(buf, src=sc.src, dst=sc.dst, z=nm.z, cov=nm.cov)
-        write_bytes(out / meas_file, buf.getbuffer())
+        write_npz(out / meas_file, src=sc.src, dst=sc.dst, z=nm.z, cov=nm.cov)
     else:
         meas_file = 'measurements.g2o'
         write_g2o(out / meas_file, PoseGraph.from_network(net, f2f, fixed=(0,)))
@@ -94,7 +91,7 @@ def _write_tum(path: Path, stamps_ns, T) -> None:
         p, q = se3.to_pos_quat(T)
         rows = [f'{s / 1e9:.9f} ' + ' '.join(repr(float(v)) for v in (*p[k], *q[k]))
                 for k, s in enumerate(stamps_ns)]
-        from ga_ros.io.atomic import write_text
+        from ga_ros.safe_write import write_text
 
         write_text(path, '# timestamp x y z qx qy qz qw\n' + '\n'.join(rows) + '\n')
     else:

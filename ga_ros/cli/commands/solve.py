@@ -90,7 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ga_ros.io.atomic import check_destinations
+    from ga_ros.safe_write import check_destinations
 
     check_destinations(*(p for p in (args.out, args.tum, args.kitti) if p))  # before the work
     if not args.tracks:

@@ -125,6 +125,10 @@ def check_measurement(state: WindowState, config: AlignerConfig, m: Measurement,
                   'start at a node that an earlier measurement introduced')
     for node, k in ((src, i_src), (dst, i_dst)):
         if k is not None and state.frozen[k]:
+            key = (min(src, dst), max(src, dst), zlib.crc32(z.tobytes() + cov.tobytes()))
+            if state.received.contains(state, key):
+                raise bad('duplicate', f'measurement {src}->{dst} was already received (its '
+                          'track is frozen)')
             raise bad('frozen', f'node {node} belongs to a frozen track (outside the window '
                       f'of {config.window_tracks} tracks)')
     ends_track = False

@@ -2,7 +2,7 @@
 its :class:`~ga_ros.core.window.state.WindowState`, written and read as a whole
 (:func:`state_arrays`, :func:`state_of_arrays`), its config and its pending refinement.
 
-File layout (little-endian), written atomically by :func:`ga_ros.io.atomic.atomic_write`::
+File layout (little-endian), written atomically by :func:`ga_ros.safe_write.atomic_write`::
 
     MAGIC (12 bytes 'GAROS-STATE\\0') | version u32 | header length u64 | header CRC-32 u32
     | header (UTF-8 JSON: the scalar state and a table of arrays) | padding
@@ -48,7 +48,7 @@ from ga_ros.core.window.storage import (
     zeros,
 )
 from ga_ros.errors import CorruptFileError, ForeignFileError, GaError, InputError
-from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
+from ga_ros.safe_write import atomic_write, check_regular, open_nofollow
 
 MAGIC = b'GAROS-STATE\x00'
 FORMAT_VERSION = 4

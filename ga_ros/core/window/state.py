@@ -22,6 +22,7 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.fixes import FixBook
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolveResult
+from ga_ros.core.window.received import ReceivedConnections
 from ga_ros.core.window.storage import (
     IdIndex,
     Rows,
@@ -55,7 +56,9 @@ class WindowState:
         ccov : (m, 21) their covariances; cross : overlap (not consecutive) connections;
         status : 0 active, 1 absorbed, 2 outlier; fp : measurement fingerprints.
     pairs : duplicate keys ``(low id, high id, fingerprint)`` of the connections between two
-        unfrozen nodes (:meth:`prune_pairs`); pairs_kept : its size after the last pruning.
+        unfrozen nodes (:meth:`prune_pairs`); pairs_kept : its size after the last pruning;
+        received : every connection's key, for telling a re-delivery to a frozen node
+        (:mod:`~ga_ros.core.window.received`; a cache, not saved).
     tracks : track ids in order of appearance; track_nodes : track -> its rows (contiguous);
         track_conns : track -> rows of the connections touching it.
     open_track : the newest track (``None`` before the first measurement); finished : the
@@ -109,6 +112,7 @@ class WindowState:
     last_pending: list[int] | None = None
     seen_cache: tuple[int, int, int] = (0, -1, -1)
     fixes: FixBook = field(default_factory=FixBook)
+    received: ReceivedConnections = field(default_factory=ReceivedConnections)
 
     def finished_order(self) -> list[int]:
         """The finished tracks in order of appearance."""

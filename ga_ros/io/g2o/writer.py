@@ -11,7 +11,6 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import FormatError, InputError
 from ga_ros.geometry import se3
-from ga_ros.io.atomic import atomic_write
 from ga_ros.io.g2o.graph import PoseGraph
 from ga_ros.io.g2o.offsets import apply_offsets
 from ga_ros.io.g2o.planar import se3_to_se2
@@ -27,6 +26,7 @@ from ga_ros.io.g2o.records import (
     TAG_VERTEX_TORO,
     TORO_FROM_G2O,
 )
+from ga_ros.safe_write import atomic_write
 
 
 def _text_rows(prefix: list[str], values: FloatArray) -> str:

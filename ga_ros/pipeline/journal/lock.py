@@ -15,7 +15,7 @@ import socket
 from pathlib import Path
 
 from ga_ros.errors import PersistenceError
-from ga_ros.io.atomic import open_nofollow
+from ga_ros.safe_write import open_nofollow
 
 
 def lock_path(state_file: str | os.PathLike) -> Path:

@@ -19,7 +19,6 @@ from ga_ros.core.window.persistence import (
     save_state,
 )
 from ga_ros.errors import ForeignFileError, FormatError, GaError, InputError
-from ga_ros.io.atomic import check_regular, move_aside
 from ga_ros.pipeline.journal.layout import Layout, compacted_header
 from ga_ros.pipeline.journal.records import (
     KIND_MASK,
@@ -41,6 +40,7 @@ from ga_ros.pipeline.journal.state_files import (
     read_snapshot_info,
     rewrite_journal,
 )
+from ga_ros.safe_write import check_regular, move_aside
 
 
 @dataclass

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import CorruptFileError, FormatError
-from ga_ros.io.atomic import check_regular, read_bytes
 from ga_ros.pipeline.journal.layout import HEAD3, MAGIC3, Layout, read_layout
 from ga_ros.pipeline.journal.records import (
     KIND_AT,
@@ -25,6 +24,7 @@ from ga_ros.pipeline.journal.records import (
     record_crcs,
     records_to_entries,
 )
+from ga_ros.safe_write import check_regular, read_bytes
 
 
 @dataclass

@@ -12,10 +12,10 @@ import numpy as np
 
 from ga_ros.core.window.persistence import is_state_file
 from ga_ros.errors import ForeignFileError, FormatError, GaError
-from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow, read_bytes
 from ga_ros.pipeline.journal.layout import MAGIC3
 from ga_ros.pipeline.journal.records import MAGIC, RECORD, RECORD_V1, record_crcs
 from ga_ros.pipeline.journal.scan import scan_journal
+from ga_ros.safe_write import atomic_write, check_regular, open_nofollow, read_bytes
 
 #: The ``state_file`` value that means the default path (:func:`default_state_file`).
 DEFAULT_STATE_FILE = 'default'

@@ -12,7 +12,6 @@ from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import CorruptFileError
-from ga_ros.io.atomic import atomic_write, check_regular, open_nofollow
 from ga_ros.pipeline.journal.layout import HEAD3, MAGIC3, Layout, compacted_header, read_layout
 from ga_ros.pipeline.journal.records import (
     MAGIC,
@@ -24,6 +23,7 @@ from ga_ros.pipeline.journal.records import (
     encode_records,
     encode_track_end,
 )
+from ga_ros.safe_write import atomic_write, check_regular, open_nofollow
 
 
 class MeasurementJournal:

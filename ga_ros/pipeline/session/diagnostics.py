@@ -38,9 +38,12 @@ def diagnostic_values(session: Any) -> dict[str, object]:
         'reversed_measurements': c.reversed,
         'unjoined_nodes': session.gaps.n_unjoined,
         'persistence': ('off: ' + session.persistence_off if session.persistence_off
+                        else 'failing: ' + session.persistence_failing
+                        if session.persistence_failing
                         else 'journal only: ' + session.snapshots_off if session.snapshots_off
                         else 'on' if session.journal is not None else 'none'),
         'persistence_errors': c.persistence_errors,
+        'persistence_unsaved': session.unsaved,
     }
     values['rejected'] = sum(c.rejected.values())
     for key in sorted(c.rejected):
@@ -54,12 +57,16 @@ def diagnostic_values(session: Any) -> dict[str, object]:
 def health(session: Any) -> Health:
     """Overall state of a session for the diagnostics level (``session``: an
     :class:`~ga_ros.pipeline.session.AlignmentSession`)."""
-    if session.counts.persistence_errors:
-        return Health(False, f'{session.counts.persistence_errors} state/journal write(s) '
-                             'failed: measurements are not saved', error=True)
+    if session.persistence_failing:
+        return Health(False, f'state/journal writes are failing '
+                             f'({session.counts.persistence_errors} so far): measurements are '
+                             'not saved', error=True)
     if session.persistence_off:
         return Health(False, 'running without persistence: the state file cannot be used',
                       error=True)
+    if session.unsaved:
+        return Health(False, f'{session.unsaved} input(s) applied but not saved (a write '
+                             'failed); writes succeed again and the next snapshot saves them')
     if session.snapshots_off:
         return Health(False, 'no snapshots (the state path holds a foreign file): a restart '
                              'replays the whole journal')

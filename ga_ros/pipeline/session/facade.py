@@ -70,6 +70,10 @@ class AlignmentSession:
         self.last_update: Any = None
         self.last_error = ''
         self.last_persistence_error = ''
+        #: The last write error while writes fail ('' once a write succeeds again).
+        self.persistence_failing = ''
+        #: Inputs applied but not saved (their journal write failed) since the last snapshot.
+        self.unsaved = 0
         #: Why persistence was switched off at start ('' if it was not).
         self.persistence_off = ''
         #: Why no snapshot is written (the state path holds a file that is not ga_ros's; the
@@ -139,6 +143,7 @@ class AlignmentSession:
         try:
             self.journal.append_fix(term, info, C_offset)
             self.sync()
+            self.persistence_failing = ''
         except OSError as exc:  # as for a measurement (_journal): counted, warned, applied
             self.persistence_failed(f'journal {self.journal.path}: fix applied but NOT '
                                     f'journaled ({exc})')
@@ -171,6 +176,7 @@ class AlignmentSession:
         try:
             self.journal.append(m, flags)
             self.sync()
+            self.persistence_failing = ''
         except OSError as exc:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
@@ -186,6 +192,7 @@ class AlignmentSession:
             else:
                 self.journal.append_datum(event)
             self.sync()
+            self.persistence_failing = ''
         except OSError as exc:
             self.persistence_failed(f'journal {self.journal.path}: {type(event).__name__} '
                                     f'applied but NOT journaled ({exc})')
@@ -267,9 +274,11 @@ class AlignmentSession:
         return progress
 
     def persistence_failed(self, text: str) -> None:
-        """Count a failed journal or snapshot write and warn; the node goes on."""
+        """Count a failed journal write (an input applied but not saved) and warn; the node
+        goes on. Writes count as failing until one succeeds again."""
         self.counts.persistence_errors += 1
-        self.last_persistence_error = bounded(text)
+        self.unsaved += 1
+        self.last_persistence_error = self.persistence_failing = bounded(text)
         self.last_error = self.last_persistence_error
         self.warn(self.last_persistence_error)
 
@@ -321,6 +330,7 @@ class AlignmentSession:
                 text = f'autosave to {self.session.state_file} failed: {exc}'
                 self.counts.persistence_errors += 1
                 self.last_persistence_error = self.last_error = bounded(text)
+                self.persistence_failing = self.last_persistence_error
                 notes.append(text)
         if self.session.autosave and self.journal is not None:
             try:
@@ -329,6 +339,7 @@ class AlignmentSession:
                 text = f'journal {self.journal.path} not compacted: {exc}'
                 self.counts.persistence_errors += 1
                 self.last_persistence_error = self.last_error = bounded(text)
+                self.persistence_failing = self.last_persistence_error
                 notes.append(text)
         return notes
 
@@ -447,6 +458,9 @@ class AlignmentSession:
             self.journal.sync()
         records = self.journal.count if self.journal is not None else None
         save_state(self.aligner, target, journal_records=records)
+        if target == self.session.state_file:   # the snapshot holds every applied input
+            self.persistence_failing = ''
+            self.unsaved = 0
 
     def _recover(self) -> RecoveryResult:
         """:func:`recover` the state file, with the journal closed meanwhile and reopened

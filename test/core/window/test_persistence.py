@@ -1,4 +1,4 @@
-"""Aligner snapshots (core/window/persistence.py) and the safe-write helper (io/atomic.py)."""
+"""Aligner snapshots (core/window/persistence.py) and the safe-write helper (safe_write.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 from ga_ros.core.window import ALIGNER_SOLVER, AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import _PREFIX, MAGIC, is_state_file, load_state, save_state
 from ga_ros.errors import CorruptFileError, ForeignFileError, InputError, UnsafePathError
-from ga_ros.io.atomic import atomic_write, move_aside
+from ga_ros.safe_write import atomic_write, move_aside
 from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 

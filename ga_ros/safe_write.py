@@ -214,6 +214,16 @@ def write_json(path: str | os.PathLike, data: Any, **dumps: Any) -> Path:
     return write_text(path, json.dumps(data, **dumps) + '\n')
 
 
+def write_npz(path: str | os.PathLike, compressed: bool = False, **arrays: Any) -> Path:
+    """Write ``arrays`` as a NumPy ``.npz`` archive (``np.savez``, or ``np.savez_compressed``
+    with ``compressed``) built in memory, then atomically (:func:`write_bytes`)."""
+    import numpy as np
+
+    buf = io.BytesIO()
+    (np.savez_compressed if compressed else np.savez)(buf, **arrays)
+    return write_bytes(path, buf.getbuffer())
+
+
 def save_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
     """Render a matplotlib figure into memory (format from the suffix) and write it
     atomically; the figure is not closed."""
@@ -236,6 +246,9 @@ def open_log(path: str | os.PathLike, append: bool = False) -> IO[bytes]:
 
 # --------------------------------------------------------------------------- directory outputs
 PARTIAL_SUFFIX = '.partial'
+#: The file that marks a ``<name>.partial`` directory as ga_ros's own staging directory: only
+#: a directory holding it is ever removed.
+PARTIAL_MARKER = '.ga_ros-partial'
 
 
 def staging_directory(final: str | os.PathLike, is_ours: Callable[[Path], bool]) -> Path:
@@ -243,8 +256,10 @@ def staging_directory(final: str | os.PathLike, is_ours: Callable[[Path], bool])
 
     ``final`` is checked first: a symbolic link is refused (:class:`UnsafePathError`), an
     existing path that ``is_ours`` does not accept is refused (:class:`ForeignFileError`); both
-    are left untouched. A ``<final>.partial`` left by a killed run is removed (a link there is
-    refused). Call :func:`commit_directory` when the output is complete.
+    are left untouched. The staging directory holds :data:`PARTIAL_MARKER`; a
+    ``<final>.partial`` left by a killed run is removed only if it holds that marker (anything
+    else there, a link included, is refused and left untouched). Call :func:`commit_directory`
+    when the output is complete.
     """
     final = Path(final)
     _check_replaceable_directory(final, is_ours)
@@ -252,6 +267,8 @@ def staging_directory(final: str | os.PathLike, is_ours: Callable[[Path], bool])
     _remove_tree(staging)
     try:
         staging.mkdir(parents=True)
+        atomic_write(staging / PARTIAL_MARKER, b'a staging directory of ga_ros: removed by '
+                     b'the next run\n')
     except OSError as exc:
         raise FormatError(f'cannot create: {exc.strerror or exc}', str(staging)) from None
     return staging
@@ -276,6 +293,14 @@ def commit_directory(staging: str | os.PathLike, final: str | os.PathLike,
     return final
 
 
+def remove_staging(staging: str | os.PathLike) -> None:
+    """Remove an emptied staging directory of :func:`staging_directory` (its marker and the
+    directory; anything else left in it makes this fail with ``OSError``)."""
+    staging = Path(staging)
+    (staging / PARTIAL_MARKER).unlink(missing_ok=True)
+    staging.rmdir()
+
+
 def _check_replaceable_directory(path: Path, is_ours: Callable[[Path], bool]) -> None:
     try:
         st = os.lstat(path)
@@ -290,7 +315,8 @@ def _check_replaceable_directory(path: Path, is_ours: Callable[[Path], bool]) ->
 
 
 def _remove_tree(path: Path) -> None:
-    """Remove a leftover directory (never through a symbolic link)."""
+    """Remove a leftover staging directory: never through a symbolic link, and only one
+    that holds :data:`PARTIAL_MARKER` (a directory of the user's with that name is refused)."""
     try:
         st = os.lstat(path)
     except FileNotFoundError:
@@ -298,6 +324,14 @@ def _remove_tree(path: Path) -> None:
     if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
         raise UnsafePathError(f'{path} is in the way and is not a leftover directory of '
                               'ga_ros; remove it or choose another path')
+    try:
+        marked = stat.S_ISREG(os.lstat(path / PARTIAL_MARKER).st_mode)
+    except OSError:
+        marked = False
+    if not marked:
+        raise ForeignFileError(f'{path} is in the way and has no {PARTIAL_MARKER} marker, so it '
+                               'is not a staging directory of ga_ros: it is left untouched; '
+                               'move it away or choose another path')
     import shutil
 
     shutil.rmtree(path)
