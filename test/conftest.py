@@ -32,6 +32,13 @@ def _single_blas_thread():
         yield
 
 
+@pytest.fixture(autouse=True)
+def _ros_home(tmp_path_factory, monkeypatch):
+    """Each test its own ``ROS_HOME`` (the alignment node keeps its state there by default):
+    nothing is written to ``~/.ros``, no state is shared between tests."""
+    monkeypatch.setenv('ROS_HOME', str(tmp_path_factory.mktemp('ros_home')))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20051101)

@@ -318,6 +318,11 @@ class GapHealer:
         """Set the arrival count and the newest stamp (after a restore)."""
         self._seq, self._newest_stamp = int(arrivals), int(newest_stamp_ns)
 
+    def waits(self) -> tuple[int, int]:
+        """``(arrivals, newest_stamp_ns)``: what :meth:`restore_waits` sets (a journal keeps
+        them when it is compacted)."""
+        return self._seq, self._newest_stamp
+
     def overdue(self) -> bool:
         """The first held measurement has waited long enough (:class:`GapConfig`) to be
         bridged: ``wait_measurements`` measurements arrived since it, or its stamp is

@@ -177,18 +177,21 @@ class AlignmentInputs:
         if self.absolute is None or not path:
             return
         try:
-            datum = read_datum(path)
+            datum, where = read_datum(path), str(datum_path(path))
         except (OSError, GaError) as exc:
-            self.get_logger().error(f'{exc}; the next NavSatFix sets the map origin anew')
-            return
+            datum, where = None, f'{exc}'
+        if datum is None and self.session.datum is not None:  # the journal holds it too
+            datum, where = self.session.datum, f'the journal of {path}'
         if datum is None:
+            if where != str(datum_path(path)):
+                self.get_logger().error(f'{where}; the next NavSatFix sets the map origin anew')
             return
         for name in self.absolute.restore_datum(datum):
             self.get_logger().warning(
                 f'{name}.datum differs from the origin of the saved state {list(datum)} '
-                f'({datum_path(path)}): its fixes are in another frame than the restored poses')
+                f'({where}): its fixes are in another frame than the restored poses')
         self._datum_saved = True
-        self.get_logger().info(f'map origin (lat, lon, alt) {list(datum)} from {datum_path(path)}')
+        self.get_logger().info(f'map origin (lat, lon, alt) {list(datum)} from {where}')
 
     def _save_datum(self) -> None:
         """Write the map frame's geodetic origin beside the state file once it is known."""
@@ -198,6 +201,7 @@ class AlignmentInputs:
         datum = self.absolute.earth_datum()
         if datum is None:
             return
+        self.session.journal_datum(datum)
         try:
             write_datum(path, datum)
         except (OSError, GaError) as exc:

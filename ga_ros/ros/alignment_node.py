@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -70,6 +71,7 @@ from ga_ros.pipeline.inputs import (
     COVARIANCE_POLICIES,
     decode_measurement,
 )
+from ga_ros.pipeline.journal import DEFAULT_STATE_FILE, default_state_file
 from ga_ros.pipeline.map_to_odom import MapToOdom
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.ros.alignment_diagnostics import AlignmentDiagnostics, QueueLoss, RejectionLog
@@ -124,9 +126,12 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         if s.measurement_durability not in ('volatile', 'transient_local'):
             raise InputError(f'parameter measurement_durability must be volatile or '
                              f'transient_local, got {s.measurement_durability!r}')
+        self.settings = s = self._state_file_of(s)
         self.session = AlignmentSession(
             self.aligner_config, SessionConfig(s.state_file, s.autosave, s.fsync_period_sec,
-                                               state_required=s.state_required, gaps=s.gaps),
+                                               state_required=s.state_required, gaps=s.gaps,
+                                               compact_records=s.journal_compact_records,
+                                               lock_owner=self.get_fully_qualified_name()),
             warn=self._warn_session)
         self._next_odom_time = 0.0  # perf_counter time before which no odometry is sent
         self._last_odom_node: int | None = None
@@ -190,6 +195,21 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self.get_logger().info(
             f'listening on {self.sub.topic_name}; window {self.aligner_config.window_tracks} '
             f'tracks, model {self.aligner_config.solver.model!r}, path in {s.map_frame!r}')
+
+    def _state_file_of(self, s: NodeSettings) -> NodeSettings:
+        """The settings with the default state file resolved
+        (``$ROS_HOME/ga_ros/<namespace>/<name>/state``), and one line on where the state is kept
+        (or that it is not)."""
+        if s.state_file == DEFAULT_STATE_FILE:
+            path = default_state_file(self.get_namespace(), self.get_name())
+            s = replace(s, state_file=str(path))
+            self.get_logger().info(f'state kept in {path.parent}/ (parameter state_file: '
+                                   f"{DEFAULT_STATE_FILE!r}; a path to keep it elsewhere, '' for "
+                                   'none)')
+        elif not s.state_file:
+            self.get_logger().warning("state_file: '': no persistence, a crash of this node loses "
+                                      'what the publishers no longer hold')
+        return s
 
     def _create_publishers(self, s: NodeSettings) -> None:
         """The output publishers (besides the latched ``earth -> map``, made when needed)."""
@@ -274,7 +294,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._last_input = time.monotonic()
         if msg.child_frame_id == topics.TRACK_END_FRAME:   # in-band: after all before it
             try:
-                self._finish_track(drain=False)  # (draining would take what came after it)
+                self._finish_track(drain=False, cause='end_of_input')  # (not what came after)
             except SolverError:
                 pass                             # counted and logged by the session
             # the publisher may now let its history go: who we are and what we received
@@ -356,7 +376,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
             self.get_logger().info(f'no measurement for {idle:.1f} s: ending track '
                                    f'{self.aligner.open_track}')
             try:
-                self._finish_track(drain=False)   # just drained
+                self._finish_track(drain=False, cause='idle_timeout')   # just drained
             except SolverError:
                 pass                              # counted and logged by the session
 
@@ -366,13 +386,14 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         if self.session.n_nodes() != self._path_nodes:
             self._publish_all()
 
-    def _finish_track(self, drain: bool = True) -> Any:
-        """End the open track (after the queued measurements if ``drain``) and publish; returns
-        the update (None: no open track). Raises SolverError (counted) if the update failed."""
+    def _finish_track(self, drain: bool = True, cause: str = 'finish_track') -> Any:
+        """End the open track (after the queued measurements if ``drain``; journaled with its
+        ``cause``) and publish; returns the update (None: no open track). Raises SolverError
+        (counted) if the update failed."""
         if drain:
             self._drain()
         try:
-            update = self.session.finish_track()
+            update = self.session.finish_track(cause)
         except SolverError:
             self._publish_diagnostics()
             raise

@@ -31,8 +31,12 @@ class NodeSettings:
     markers_topic : output: MarkerArray of nodes and connections.
     diagnostics_topic : output: DiagnosticArray.
     measurement_queue_depth : depth of the (reliable) measurement subscription queue, messages.
-    state_file : ``.npz`` file for ``~/save_state`` / ``~/load_state`` and resume on start
-        (``''``: none).
+    state_file : the state (snapshot, ``.journal``, ``.lock``, ...) for ``~/save_state`` /
+        ``~/load_state`` and resume on start. ``'default'``: ``$ROS_HOME/ga_ros/<namespace>/
+        <node name>/state`` (``ROS_HOME`` defaults to ``~/.ros``), logged at start; a path;
+        ``''``: no persistence (a crash loses what the publishers no longer hold). Two nodes
+        never share one: the second gets a clear error (``.lock``, ``fcntl.flock``) and runs
+        without persistence (or refuses to start with ``state_required``).
     autosave : journal every measurement and save the state to ``state_file`` after every
         window update.
     warn_throttle_sec : minimum interval between two warnings about rejected input, s.
@@ -97,6 +101,10 @@ class NodeSettings:
     fsync_period_sec : journal durability: every record reaches the OS at once (``kill -9``
         loses nothing); it is also fsync-ed (power cut) after every measurement if 0, else at
         most every this many seconds.
+    journal_compact_records : compact the journal at a window update once this many records
+        followed its last compaction (its base: the state then, embedded), so a recovery from
+        the journal alone replays only what came after (0: never; the journal's replay then grows
+        with the survey).
     track_idle_timeout_sec : end the open track when no measurement has arrived for this long,
         wall-clock s (0: never; a track end then comes from the next track's first measurement,
         the end-of-input message or ``~/finish_track``). Measurements of a track that arrive
@@ -129,7 +137,7 @@ class NodeSettings:
     markers_topic: str = topics.NETWORK_MARKERS
     diagnostics_topic: str = topics.DIAGNOSTICS
     measurement_queue_depth: int = field_(100000, 1, 1000000)
-    state_file: str = ''
+    state_file: str = 'default'
     autosave: bool = True
     warn_throttle_sec: float = field_(2.0, 0.0, 3600.0)
     publish_markers: bool = True
@@ -159,6 +167,7 @@ class NodeSettings:
 
     measurement_durability: str = 'transient_local'
     fsync_period_sec: float = field_(1.0, 0.0, 3600.0)
+    journal_compact_records: int = field_(1000, 0, 10**9)
     track_idle_timeout_sec: float = field_(0.0, 0.0, 86400.0)
     path_period_sec: float = field_(1.0, 0.0, 3600.0)
     allow_reset: bool = False

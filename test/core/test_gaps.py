@@ -187,23 +187,36 @@ def test_a_source_in_an_older_track_is_rejected_not_held(sample) -> None:
     assert session.diagnostic_values()['held_measurements'] == 0
 
 
-@pytest.mark.parametrize('cut', ['held', 'bridged'])
-def test_held_measurements_and_bridges_survive_a_restart(tmp_path: Path, sample,
-                                                         cut: str) -> None:
+@pytest.mark.parametrize('cut, compact, lose_snapshot', [
+    ('held', 1000, False), ('bridged', 1000, False), ('held', 1, True), ('bridged', 1, True),
+    ('bridged', 1, False)])
+def test_held_measurements_and_bridges_survive_a_restart(tmp_path: Path, sample, cut: str,
+                                                         compact: int,
+                                                         lose_snapshot: bool) -> None:
     """A session stopped (not closed: as by kill -9) while measurements are held, or after a
-    bridge, and resumed on its state file ends where the uninterrupted session ends."""
+    bridge, and resumed on its state file ends where the uninterrupted session ends; also from
+    a journal compacted at every update (its base, the bridge kept beside it), alone."""
     ms = sample.measurements
     stream = _unfilled(ms)
     gaps = GapConfig(wait_measurements=3)
     i, _ = _slice_of_nodes(ms, 15, 18)
     stop = i + (2 if cut == 'held' else 6)
-    first = AlignmentSession(WINDOW, SessionConfig(str(tmp_path / 's.npz'), gaps=gaps))
+    if compact == 1 and cut == 'bridged':  # past the next track end: a compaction after it
+        stop = next(k for k, m in enumerate(stream) if k > stop and m.src_track != m.dst_track)
+        stop += 2
+    state = tmp_path / 's.npz'
+    first = AlignmentSession(WINDOW, SessionConfig(str(state), gaps=gaps,
+                                                   compact_records=compact))
     first.resume()
     for m in stream[:stop]:
         first.step(m)
     before = first.diagnostic_values()
     assert (before['held_measurements'] > 0) if cut == 'held' else (before['bridges'] == 1)
     first.journal.close()  # no close(): no final fsync or snapshot
+    if compact == 1 and cut == 'bridged':
+        assert first.journal.layout.has_base and first.journal.layout.n_context >= 1
+    if lose_snapshot:
+        state.unlink()
     second = AlignmentSession(WINDOW, SessionConfig(str(tmp_path / 's.npz'), gaps=gaps))
     second.resume()
     after = second.diagnostic_values()

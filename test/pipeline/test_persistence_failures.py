@@ -127,7 +127,7 @@ def test_a_full_disk_is_counted_and_the_estimate_stays_complete(tmp_path: Path,
     # the journal holds the 20 records that fit, none cut in half; they are recovered
     assert os.path.getsize(journal_path(state)) == limit
     again = AlignmentSession(CFG, SessionConfig(str(state)))
-    assert again.resume().startswith('journal: snapshot of 0 journal records + 20 replayed')
+    assert again.resume().startswith('journal: base of 0 journal records + 20 replayed')
     _same(again.aligner, _direct(measurements[:20]))
     again.close()
 

@@ -352,7 +352,7 @@ def test_resume_from_snapshot_and_journal(tmp_path, rng, damage):
         for m in ms[cut:]:
             second._on_measurement(conv.measurement_to_odometry(m))
         assert second._srv_finish_track(Trigger.Request(), Trigger.Response()).success
-        assert second.session.journal.count == len(ms)
+        assert second.session.journal.count == len(ms) + 1   # and the track end
         np.testing.assert_allclose(second.aligner.corrected_path().T_world_node,
                                    direct(ms, AlignerConfig(window_tracks=2)).corrected_path()
                                    .T_world_node, atol=1e-9)
@@ -529,4 +529,47 @@ def test_defaults_protect_data_and_name_a_volatile_publisher(tmp_path):
         ex.shutdown()
         pub_node.destroy_node()
         node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_persistence_is_on_by_default_under_ros_home_and_never_shared(tmp_path, monkeypatch, rng):
+    """Defaults: the state under ``$ROS_HOME/ga_ros/<namespace>/<name>/`` (journal written from
+    the first measurement, resumed by the next node of that name); a second node of the same
+    name and namespace gets the lock's error, naming the first, and runs without persistence;
+    ``state_file: ''`` keeps nothing."""
+    monkeypatch.setenv('ROS_HOME', str(tmp_path))
+    ms = survey(rng, n_tracks=2, per_swath=4)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(13))
+    try:
+        node = AlignmentNode(context=ctx, parameter_overrides=[
+            Parameter('diagnostics_period_sec', value=0.0)])
+        state = tmp_path / 'ga_ros' / 'alignment_node' / 'state'
+        assert node.settings.state_file == str(state)
+        for m in ms:
+            node._on_measurement(conv.measurement_to_odometry(m))
+        assert len(read_journal(str(state) + '.journal')) == len(ms)
+        twin = AlignmentNode(context=ctx, parameter_overrides=[
+            Parameter('diagnostics_period_sec', value=0.0)])
+        assert 'in use by' in twin.session.persistence_off
+        assert '/alignment_node' in twin.session.persistence_off
+        assert twin.session.journal is None and twin.session.n_nodes() == 0
+        twin.destroy_node()
+        other = AlignmentNode(context=ctx, parameter_overrides=[
+            Parameter('diagnostics_period_sec', value=0.0)],
+            cli_args=['--ros-args', '-r', '__ns:=/robot2'])
+        assert other.settings.state_file == str(tmp_path / 'ga_ros/robot2/alignment_node/state')
+        assert other.session.journal is not None
+        other.destroy_node()
+        n = node.session.n_nodes()
+        node.destroy_node()
+        again = AlignmentNode(context=ctx, parameter_overrides=[
+            Parameter('diagnostics_period_sec', value=0.0)])
+        assert again.session.n_nodes() == n > 0   # resumed from the default state
+        again.destroy_node()
+        none = AlignmentNode(context=ctx, parameter_overrides=[
+            Parameter('state_file', value=''), Parameter('diagnostics_period_sec', value=0.0)])
+        assert none.session.journal is None and none.session.n_nodes() == 0
+        none.destroy_node()
+    finally:
         rclpy.try_shutdown(context=ctx)

@@ -109,10 +109,13 @@ def test_switched_off_or_without_the_fixes_frame_nothing_is_published(ctx) -> No
             node.destroy_node()
 
 
-def test_a_restart_keeps_the_map_origin_of_the_saved_state(ctx, tmp_path) -> None:
+@pytest.mark.parametrize('lose_datum_file', [False, True])
+def test_a_restart_keeps_the_map_origin_of_the_saved_state(ctx, tmp_path,
+                                                           lose_datum_file) -> None:
     """Without ``use_datum`` the first fix sets the ENU origin; it is saved beside the state
-    file, so after a restart a fix elsewhere lands where it is relative to that origin (not at
-    the new first fix), in the frame of the restored poses."""
+    file and journaled, so after a restart (also with the datum file lost: from the journal) a
+    fix elsewhere lands where it is relative to that origin (not at the new first fix), in the
+    frame of the restored poses."""
     from ga_ros.pipeline.journal import datum_path
 
     state = str(tmp_path / 'state.npz')
@@ -124,6 +127,8 @@ def test_a_restart_keeps_the_map_origin_of_the_saved_state(ctx, tmp_path) -> Non
         first.destroy_node()
     assert datum_path(state).exists()
     np.testing.assert_allclose(saved, (DATUM[0] + 1e-5, DATUM[1], DATUM[2]))
+    if lose_datum_file:
+        datum_path(state).unlink()
 
     again = _node(ctx, **{'fix0.use_datum': False, 'state_file': state})
     try:

@@ -43,6 +43,8 @@ BENCHMARKS: dict[str, Benchmark] = {
                        'sparse joint priors against dense ones (covariances, CPU)'),
     'persistence': Benchmark('ga_ros.bench.persistence:main',
                              'snapshot save / load and crash recovery at survey scale'),
+    'journal': Benchmark('ga_ros.bench.journal:main',
+                         'journal append / fsync cost; recovery from the journal alone'),
     'gaps': Benchmark('ga_ros.bench.gaps:main',
                       'measurements lost from the stream: nodes kept with and without healing'),
     'vo': Benchmark('ga_ros.cli.benchmarks.vo:main',

@@ -112,6 +112,13 @@ def save_state(aligner: TrackWindowAligner, path: str | os.PathLike,
     journal_records : how many measurement-journal records the state contains (stored in the
         file so that snapshot and count cannot disagree).
     """
+    return atomic_write(path, state_chunks(aligner, journal_records), is_ours=is_state_file)
+
+
+def state_chunks(aligner: TrackWindowAligner, journal_records: int | None = None
+                 ) -> list[bytes | memoryview]:
+    """The bytes of a state file of ``aligner`` (what :func:`save_state` writes), as chunks to
+    write in order; e.g. the base a journal embeds (:func:`load_state_bytes` reads them)."""
     meta, arrays = _state_of(aligner)
     meta['journal_records'] = None if journal_records is None else int(journal_records)
     table, chunks, offset = [], [], 0
@@ -128,7 +135,7 @@ def save_state(aligner: TrackWindowAligner, path: str | os.PathLike,
     header = json.dumps({'meta': meta, 'arrays': table}).encode()
     header += b' ' * (-(_PREFIX.size + len(header)) % _ALIGN)
     prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, len(header), zlib.crc32(header))
-    return atomic_write(path, [prefix, header, *chunks], is_ours=is_state_file)
+    return [prefix, header, *chunks]
 
 
 def load_state(path: str | os.PathLike, config=None) -> SavedState:
@@ -160,6 +167,20 @@ def load_state(path: str | os.PathLike, config=None) -> SavedState:
                 raise CorruptFileError('file changed while reading', str(path))
     except OSError as exc:
         raise InputError(f'cannot read state file {path}: {exc}') from None
+    return _load(buf, path, config)
+
+
+def load_state_bytes(buf: bytes | bytearray, config=None, name: str = '<state bytes>'
+                     ) -> SavedState:
+    """:func:`load_state` of a state file's bytes (:func:`state_chunks` joined); ``name`` names
+    them in errors. Raises :class:`CorruptFileError` for bytes that are not a sound state."""
+    buf = bytearray(buf)
+    if buf[:len(MAGIC)] != MAGIC:
+        raise CorruptFileError('not a ga_ros state', name)
+    return _load(buf, Path(name), config)
+
+
+def _load(buf: bytearray, path: Path, config) -> SavedState:
     try:
         if buf[:len(MAGIC)] == MAGIC:
             meta, arrays, version = _parse(buf, path)

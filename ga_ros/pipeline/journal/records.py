@@ -5,9 +5,11 @@ of an absolute fix, with its CRC-32, and the conversions between records and mea
 from __future__ import annotations
 
 import zlib
+from dataclasses import dataclass
 
 import numpy as np
 
+from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.gaps import reversed_measurement
 from ga_ros.core.measurement import KINDS, Measurement
@@ -16,8 +18,53 @@ from ga_ros.geometry import se3
 
 #: Record kinds of an absolute fix (module doc): beyond the measurement kinds, no flag bits.
 _FIX, _FIX_SENSOR = 0x3E, 0x3F
-#: What the journal holds, in order: measurements and absolute fixes.
-Entry = Measurement | FixTerm
+#: Record kind of a track end (:class:`TrackEnd`), of the map frame's datum (:class:`Datum`), and
+#: the third record of a fix: its two transforms exactly (``cov``'s first 24 values:
+#: ``T_node_sensor[:3, :4]`` then ``T_map_sensor[:3, :4]``, row-major), and its fourth: the fix's
+#: own information (``cov``; the first record holds the information it entered with), and its
+#: fifth, when the fix came with one: the odometry offset's covariance ``C_offset`` (``cov``).
+_TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET = 0x3D, 0x3C, 0x3B, 0x3A, 0x39
+#: Why a track was ended (:class:`TrackEnd`): the record stores the index.
+TRACK_END_CAUSES = ('finish_track', 'end_of_input', 'idle_timeout')
+
+
+@dataclass(frozen=True)
+class JournaledFix(FixTerm):
+    """An absolute fix read back from the journal: ``fix.information`` its own information and
+    ``C_offset`` the covariance of its odometry offset (``None``: none, or a journal that did not
+    record it; ``fix.information`` is then the information it entered with), so that
+    ``aligner.add_fix(term, term.C_offset)`` adds the very term the live aligner added."""
+
+    C_offset: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class TrackEnd:
+    """The open track was ended and its window adjusted (``finish_track``).
+
+    Attributes
+    ----------
+    track_id : the track that was open.
+    cause : one of :data:`TRACK_END_CAUSES` (the ``~/finish_track`` service, the in-band end of
+        input, the idle timeout); a replay does the same for every cause.
+    """
+
+    track_id: int
+    cause: str = 'finish_track'
+
+
+@dataclass(frozen=True)
+class Datum:
+    """The map frame's geodetic origin became known: ``lla = (lat_deg, lon_deg, alt_m)``."""
+
+    lla: tuple[float, float, float]
+
+
+#: What the journal holds, in order: measurements, absolute fixes, track ends, the datum.
+Entry = Measurement | FixTerm | TrackEnd | Datum
+#: The kind byte of a datum record.
+DATUM_KIND = _DATUM
+_EVENTS = (_FIX, _FIX_SENSOR, _TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET)
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
 #: One version-1 record (no checksum, 377 bytes).
@@ -48,12 +95,34 @@ def record_crcs(records: np.ndarray) -> np.ndarray:
 
 
 def kind_ok(kind: np.ndarray | int) -> np.ndarray | bool:
-    return ((kind & KIND_MASK) < len(KINDS)) | (kind == _FIX) | (kind == _FIX_SENSOR)
+    return ((kind & KIND_MASK) < len(KINDS)) | np.isin(kind, _EVENTS)
 
 
-def is_fix(kind: np.ndarray) -> np.ndarray:
-    """Which records are the two of an absolute fix (bool per record)."""
-    return np.isin(np.asarray(kind), (_FIX, _FIX_SENSOR))
+def is_event(kind: np.ndarray) -> np.ndarray:
+    """Which records are not measurements (absolute fixes, track ends, datum; bool per
+    record)."""
+    return np.isin(np.asarray(kind), _EVENTS)
+
+
+def encode_track_end(end: TrackEnd) -> bytes:
+    """The journal record of a track end: kind ``track_end``, ``src_track`` = ``dst_track`` =
+    the track, ``dst_id`` the index of its cause in :data:`TRACK_END_CAUSES`."""
+    rec = np.zeros(1, RECORD)
+    rec['src_id'] = -1
+    rec['src_track'] = rec['dst_track'] = int(end.track_id)
+    rec['dst_id'] = TRACK_END_CAUSES.index(end.cause)
+    rec['kind'] = _TRACK_END
+    return _with_crc(rec)
+
+
+def encode_datum(datum: Datum) -> bytes:
+    """The journal record of the map frame's datum: kind ``datum``, ``z[:3]`` =
+    ``(lat_deg, lon_deg, alt_m)``."""
+    rec = np.zeros(1, RECORD)
+    rec['src_id'] = rec['dst_id'] = rec['src_track'] = rec['dst_track'] = -1
+    rec['kind'] = _DATUM
+    rec['z'][0, :3] = [float(v) for v in datum.lla]
+    return _with_crc(rec)
 
 
 def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
@@ -74,29 +143,41 @@ def _with_crc(rec: np.ndarray) -> bytes:
     return rec.tobytes()
 
 
-def encode_fix(term: FixTerm) -> bytes:
-    """The two journal records of an absolute fix (module doc), ``term.fix.information`` the
-    information it entered the aligner with."""
-    rec = np.zeros(2, RECORD)
+def encode_fix(term: FixTerm, entered: FloatArray | None = None,
+               C_offset: FloatArray | None = None) -> bytes:
+    """The journal records of an absolute fix (module doc): ``entered`` the information it
+    entered the aligner with (default ``term.fix.information``), ``C_offset`` the covariance of
+    its odometry offset as given to ``add_fix`` (``None``: none). The third record holds both
+    transforms exactly, the fourth the fix's own information and the fifth ``C_offset``, so a
+    replay adds the very term (:class:`JournaledFix`; a journal of an older version holds the
+    first two only: the transforms then come from their ``[t, rotvec]``)."""
+    rec = np.zeros(4 if C_offset is None else 5, RECORD)
     rec['src_id'] = rec['dst_id'] = int(term.node_id)
     rec['src_track'] = rec['dst_track'] = -1
     rec['stamp_ns'] = int(term.fix.stamp_ns)
-    rec['kind'] = [_FIX, _FIX_SENSOR]
+    rec['kind'] = [_FIX, _FIX_SENSOR, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET][:rec.size]
+    rec['cov'][3] = term.fix.information
+    if C_offset is not None:
+        rec['cov'][4] = np.asarray(C_offset, float).reshape(6, 6)
+    exact = np.concatenate([np.asarray(term.T_node_sensor, float)[:3, :4].ravel(),
+                            np.asarray(term.fix.T_map_sensor, float)[:3, :4].ravel()])
+    rec['cov'][2].reshape(-1)[:24] = exact
     rec['z'][0] = se3.to_translation_rotvec(term.T_node_sensor)
     rec['z'][1] = se3.to_translation_rotvec(term.fix.T_map_sensor)
-    rec['cov'][0] = term.fix.information
+    rec['cov'][0] = term.fix.information if entered is None else entered
     name = term.fix.source.encode('utf-8')[:rec['cov'][1].nbytes]
     rec['cov'][1] = np.frombuffer(name.ljust(rec['cov'][1].nbytes, b'\0'), '<f8').reshape(6, 6)
     return _with_crc(rec)
 
 
 def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
-    """Journal records (structured array) as measurements and fixes (:class:`FixTerm`), in
-    order; a ``fix`` record without its ``fix_sensor`` record (or the reverse) is skipped. The
-    measurements as they arrived, or as the aligner took them if ``taken`` (:func:`as_taken`).
+    """Journal records (structured array) as measurements, fixes (:class:`FixTerm`), track ends
+    (:class:`TrackEnd`) and datums (:class:`Datum`), in order; a ``fix`` record without its
+    ``fix_sensor`` record (or the reverse) is skipped. The measurements as they arrived, or as
+    the aligner took them if ``taken`` (:func:`as_taken`).
     """
     kinds = recs['kind']
-    fix_at = np.flatnonzero(is_fix(kinds))
+    fix_at = np.flatnonzero(is_event(kinds))
     convert = as_taken if taken else records_to_measurements
     if fix_at.size == 0:
         return convert(recs)
@@ -106,23 +187,51 @@ def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
         if k > start:
             out += convert(recs[start:k])
         start = k + 1
+        if kinds[k] == _TRACK_END:
+            cause = int(recs[k]['dst_id'])
+            out.append(TrackEnd(int(recs[k]['src_track']), TRACK_END_CAUSES[cause]
+                                if 0 <= cause < len(TRACK_END_CAUSES) else 'finish_track'))
+            continue
+        if kinds[k] == _DATUM:
+            lat, lon, alt = (float(v) for v in recs[k]['z'][:3])
+            out.append(Datum((lat, lon, alt)))
+            continue
         if kinds[k] != _FIX or k + 1 >= kinds.size or kinds[k + 1] != _FIX_SENSOR:
             continue
         a, b = recs[k], recs[k + 1]
         if int(a['src_id']) != int(b['src_id']) or int(a['stamp_ns']) != int(b['stamp_ns']):
             continue
         source = np.ascontiguousarray(b['cov'], '<f8').tobytes().rstrip(b'\0')
+        T_node_sensor = se3.from_translation_rotvec(a['z'][:3], a['z'][3:])
+        T_map_sensor = se3.from_translation_rotvec(b['z'][:3], b['z'][3:])
+        if k + 2 < kinds.size and kinds[k + 2] == _FIX_EXACT:
+            c = recs[k + 2]
+            if int(c['src_id']) == int(a['src_id']) and int(c['stamp_ns']) == int(a['stamp_ns']):
+                exact = np.array(c['cov'], float).reshape(-1)
+                T_node_sensor[:3, :4] = exact[:12].reshape(3, 4)
+                T_map_sensor[:3, :4] = exact[12:24].reshape(3, 4)
+        own = _part(recs, k + 3, _FIX_OWN, a)
+        C_offset = _part(recs, k + 4, _FIX_OFFSET, a) if own is not None else None
         try:
-            fix = AbsoluteFix(int(a['stamp_ns']), se3.from_translation_rotvec(b['z'][:3],
-                                                                            b['z'][3:]),
-                              np.array(a['cov'], float), source.decode('utf-8', 'replace'))
+            fix = AbsoluteFix(int(a['stamp_ns']), T_map_sensor,
+                              np.array(a['cov'], float) if own is None else own,
+                              source.decode('utf-8', 'replace'))
         except InputError:
             continue
-        out.append(FixTerm(int(a['src_id']),
-                           se3.from_translation_rotvec(a['z'][:3], a['z'][3:]), fix))
+        out.append(JournaledFix(int(a['src_id']), T_node_sensor, fix, C_offset))
     if start < kinds.size:
         out += convert(recs[start:])
     return out
+
+
+def _part(recs: np.ndarray, k: int, kind: int, first: np.void) -> FloatArray | None:
+    """The ``cov`` of record ``k`` if it is of ``kind`` and of the fix of record ``first``."""
+    if k >= recs.size or recs['kind'][k] != kind:
+        return None
+    r = recs[k]
+    if int(r['src_id']) != int(first['src_id']) or int(r['stamp_ns']) != int(first['stamp_ns']):
+        return None
+    return np.array(r['cov'], float)
 
 
 def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
@@ -151,3 +260,12 @@ def as_taken(recs: np.ndarray) -> list[Measurement]:
 def reversed_records(recs: np.ndarray) -> list[Measurement]:
     """The measurements (as they arrived) that the aligner took reversed."""
     return records_to_measurements(recs[(np.asarray(recs['kind']) & REVERSED) != 0])
+
+
+def last_datum(recs: np.ndarray) -> tuple[float, float, float] | None:
+    """The ``(lat_deg, lon_deg, alt_m)`` of the last datum record (``None`` without one)."""
+    at = np.flatnonzero(np.asarray(recs['kind']) == _DATUM)
+    if not at.size:
+        return None
+    lat, lon, alt = (float(v) for v in recs[int(at[-1])]['z'][:3])
+    return lat, lon, alt

@@ -12,14 +12,23 @@ import numpy as np
 
 from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.core.window.persistence import is_state_file, load_state, save_state
+from ga_ros.core.window.persistence import (
+    is_state_file,
+    load_state,
+    load_state_bytes,
+    save_state,
+)
 from ga_ros.errors import ForeignFileError, FormatError, GaError, InputError
+from ga_ros.pipeline.journal.layout import Layout, compacted_header
 from ga_ros.pipeline.journal.records import (
     KIND_MASK,
     RECORD_V1,
+    Datum,
     Entry,
+    TrackEnd,
     held_records,
-    is_fix,
+    is_event,
+    last_datum,
     records_to_entries,
     records_to_measurements,
     reversed_records,
@@ -50,15 +59,17 @@ class HeldQueue:
     newest_stamp_ns: int = -2**63
 
 
-def held_queue(recs: np.ndarray) -> HeldQueue:
+def held_queue(recs: np.ndarray, arrivals: int = 0, newest_stamp_ns: int = -2**63
+               ) -> HeldQueue:
     """The held queue to restore after a restart: the held records that no later record
-    admitted (matched by nodes and stamp), with their arrival numbers."""
+    admitted (matched by nodes and stamp), with their arrival numbers (counted on from
+    ``arrivals``, the newest stamp from ``newest_stamp_ns``: a compacted journal's)."""
     held = held_records(recs)
     bridge = (recs['kind'] & KIND_MASK) == KINDS.index('bridge')
     src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
     pending: dict[tuple[int, int, int], list[int]] = {}
     seq: dict[int, int] = {}
-    out = HeldQueue()
+    out = HeldQueue(arrivals=int(arrivals), newest_stamp_ns=int(newest_stamp_ns))
     for k in range(len(held)):
         key = (src[k], dst[k], stamp[k])
         if bridge[k]:
@@ -88,7 +99,8 @@ class RecoveryResult:
     ----------
     aligner : the restored aligner (empty if there was nothing to restore).
     source : ``'snapshot'``, ``'snapshot+journal'``, ``'journal'`` or ``'empty'``.
-    snapshot_records : journal records the snapshot contained (0 without a snapshot).
+    snapshot_records : journal records the snapshot contained (0 without a snapshot; from the
+        journal alone: the records its base holds).
     records_replayed : journal entries (measurements, fixes) replayed after the snapshot and
         accepted.
     records_rejected : replayed entries the aligner rejected (e.g. already in the snapshot).
@@ -103,6 +115,8 @@ class RecoveryResult:
     snapshot_refused : the state file is not a ga_ros state but a journal with intact records
         is beside it: the state was rebuilt from the journal, the file left untouched, and no
         snapshot may be written there.
+    datum : the map frame's datum ``(lat_deg, lon_deg, alt_m)`` of the journal's last datum
+        record (``None`` without one).
     """
 
     aligner: TrackWindowAligner
@@ -118,6 +132,7 @@ class RecoveryResult:
     bridges: list[tuple[int, int]] = field(default_factory=list)
     reversed: list[Measurement] = field(default_factory=list)
     snapshot_refused: bool = False
+    datum: tuple[float, float, float] | None = None
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -148,28 +163,44 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
     check_regular(jpath)
     aligner, snap_records, foreign = _load_snapshot(state, jpath, config, out)
     scan = _scan_and_repair(jpath, out)
-    records = scan.records
-    out.journal_records = int(records.size)
-    if aligner is not None:
+    records, lay = scan.records, scan.layout
+    ctx = min(lay.n_context, int(records.size))
+    out.journal_records = lay.start + int(records.size) - ctx
+    base = None
+    if lay.has_base and (aligner is None or snap_records < lay.start):
+        base = _load_base(scan, jpath, config, out)
+    if base is not None:  # the journal alone (its base, then the records after it)
+        if aligner is not None:
+            out.messages.append(f'the snapshot holds {snap_records} journal records, the '
+                                f"journal's base {lay.start}: the base is used")
+            aligner.close()
+        aligner, out.source, tail = base, 'journal', records[ctx:]
+        out.snapshot_records = lay.start
+    elif aligner is not None:
         out.source, out.snapshot_records = 'snapshot', int(snap_records)
         if scan.damaged:
             # the numbering of the records changed: replay every intact one; those already in
             # the snapshot are rejected (duplicate, frozen) and change nothing
-            tail = records
+            tail = records[ctx:]
         else:
-            if snap_records > records.size:
+            if snap_records > out.journal_records:
                 out.messages.append(f'the snapshot holds {snap_records} journal records, the '
-                                    f'journal only {records.size}: the snapshot is kept')
-            tail = records[min(snap_records, records.size):]
+                                    f'journal only {out.journal_records}: the snapshot is kept')
+            tail = records[ctx + max(min(snap_records, out.journal_records) - lay.start, 0):]
     else:
         aligner = out.aligner
-        tail = records
-        out.source = 'journal' if records.size else 'empty'
-    out.held = held_queue(records[~is_fix(records['kind'])])  # measurements only
+        tail = records[ctx:]
+        out.source = 'journal' if tail.size else 'empty'
+        if lay.has_base:
+            out.messages.append(f"{jpath}: no snapshot and the journal's base is unusable: "
+                                f'only the {tail.size} records after it are replayed')
+    measurements = records[~is_event(records['kind'])]
+    out.held = held_queue(measurements, lay.arrivals, lay.newest_stamp_ns)
     bridge = records['kind'] & KIND_MASK == KINDS.index('bridge')
     out.bridges = list(zip(records['src_id'][bridge].tolist(),
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
+    out.datum = last_datum(records)
     tail = tail[~held_records(tail)]  # held measurements never reached the aligner
     if tail.size:
         out.records_replayed, out.records_rejected = replay_entries(
@@ -177,7 +208,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
         if out.source == 'snapshot':
             out.source = 'snapshot+journal'
     out.aligner = aligner
-    changed = bool(tail.size or out.moved_aside or snap_records != records.size)
+    changed = bool(tail.size or out.moved_aside or snap_records != out.journal_records)
     if (checkpoint and changed or scan.damaged) and out.source != 'empty' and not foreign:
         try:
             save_state(aligner, state, journal_records=out.journal_records)
@@ -186,6 +217,36 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                                 'still holds every record')
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def _load_base(scan: JournalScan, jpath: Path, config: AlignerConfig | None,
+               out: RecoveryResult) -> TrackWindowAligner | None:
+    """The aligner of a compacted journal's base (``None`` if it is damaged: a message)."""
+    if scan.base is None:
+        return None
+    try:
+        return load_state_bytes(scan.base, config, f'{jpath} (base)').aligner
+    except GaError as exc:
+        out.messages.append(f"{jpath}: the journal's base cannot be used ({exc})")
+        return None
+
+
+def check_state_path(state_file: str | os.PathLike) -> None:
+    """Refuse, without writing anything, a state path that :func:`recover` would refuse: a
+    symbolic link (state file or journal) or a foreign file with no journal of intact records
+    beside it (what is checked before a lock file is made beside it).
+
+    Raises
+    ------
+    UnsafePathError, ForeignFileError
+        As :func:`recover`.
+    """
+    state, jpath = Path(state_file), journal_path(state_file)
+    check_regular(jpath)
+    if (check_regular(state) and os.lstat(state).st_size > 0 and not is_state_file(state)
+            and not _journal_has_records(jpath)):
+        raise ForeignFileError(f'state_file {state} exists and is not a ga_ros state; it is '
+                               'left untouched: choose another state_file')
 
 
 def _load_snapshot(state: Path, jpath: Path, config: AlignerConfig | None,
@@ -237,14 +298,22 @@ def _scan_and_repair(jpath: Path, out: RecoveryResult) -> JournalScan:
             out.moved_aside.append(move_aside(jpath))
             out.messages.append(f'journal {jpath} moved aside to {out.moved_aside[-1].name}; '
                                 f'{scan.records.size} intact records kept')
-        rewrite_journal(jpath, scan.records)
+        lay = scan.layout
+        if scan.base is not None:  # the base stays ahead of the records
+            head = [compacted_header(lay.start, lay.n_context, lay.arrivals, lay.newest_stamp_ns,
+                                     lay.base_len, lay.base_crc), scan.base]
+        else:
+            head = None
+            scan.layout = Layout()
+        rewrite_journal(jpath, scan.records, head)
     return scan
 
 
 def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
     """Give ``aligner`` journal entries in order: runs of measurements in one batch
-    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix between
-    them as it came (with the information it entered with). Returns ``(accepted, rejected)``
+    (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix and each
+    track end (``finish_track``) between them as it came (a fix with the information it entered
+    with); datums are skipped (not the aligner's). Returns ``(accepted, rejected)``
     entries; nothing raises for a rejected one."""
     accepted = rejected = 0
     run: list[Measurement] = []
@@ -260,9 +329,17 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
         if isinstance(e, Measurement):
             run.append(e)
             continue
+        if isinstance(e, Datum):  # not the aligner's (RecoveryResult.datum)
+            continue
         flush()
         try:
-            aligner.add_fix(e)
+            if isinstance(e, TrackEnd):
+                if aligner.open_track != e.track_id:  # (a track end the snapshot holds)
+                    rejected += 1
+                    continue
+                aligner.finish_track()  # a failed update leaves the track finished, as live
+            else:  # as it came: its own information and offset covariance (JournaledFix)
+                aligner.add_fix(e, getattr(e, 'C_offset', None))
             accepted += 1
         except GaError:
             rejected += 1
@@ -271,9 +348,9 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
 
 
 def _journal_has_records(jpath: Path) -> bool:
-    """The journal has a valid header and at least one intact record."""
+    """The journal has a valid header and at least one intact record or an intact base."""
     try:
         scan = scan_journal(jpath)
     except (FormatError, OSError):
         return False
-    return scan.header_ok and scan.records.size > 0
+    return scan.header_ok and (scan.records.size > 0 or scan.base is not None)

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ga_ros.errors import FormatError
+from ga_ros.errors import CorruptFileError, FormatError
+from ga_ros.pipeline.journal.layout import HEAD3, MAGIC3, Layout, read_layout
 from ga_ros.pipeline.journal.records import (
     KIND_AT,
     MAGIC,
@@ -37,6 +38,10 @@ class JournalScan:
     torn_tail : bytes of a record cut short at the end (a crash mid-write; not damage).
     header_ok : the header is one of the known magic strings.
     messages : what was wrong, for the log.
+    layout : where the base and the records are (:class:`~ga_ros.pipeline.journal.layout.
+        Layout`; ``records`` starts with its ``n_context`` context records).
+    base : the bytes of the base state of a compacted journal (``None`` without one, or if it
+        fails its checksum: then counted as damage).
     """
 
     records: np.ndarray
@@ -44,6 +49,8 @@ class JournalScan:
     torn_tail: int = 0
     header_ok: bool = True
     messages: list[str] = field(default_factory=list)
+    layout: Layout = field(default_factory=Layout)
+    base: bytes | None = None
 
     @property
     def damaged(self) -> bool:
@@ -72,11 +79,23 @@ def scan_journal(path: str | os.PathLike) -> JournalScan:
         scan.torn_tail = len(body) - n * PAYLOAD
         good = kind_ok(recs['kind'])
     else:
-        if head != MAGIC:
+        if head == MAGIC3:
+            try:
+                scan.layout = read_layout(data[:HEAD3], str(path))
+            except CorruptFileError as exc:
+                raise FormatError(f'{exc}: its records cannot be found', str(path)) from None
+            lay = scan.layout
+            base = data[HEAD3:lay.data_offset]
+            if len(base) == lay.base_len and zlib.crc32(base) == lay.base_crc:
+                scan.base = base
+            else:
+                scan.n_damaged += 1
+                scan.messages.append(f'{path}: the embedded base state fails its checksum')
+        elif head != MAGIC:
             scan.header_ok = False
             scan.n_damaged += 1
             scan.messages.append(f'{path}: bad journal header {head!r}')
-        body = data[len(MAGIC):]
+        body = data[scan.layout.data_offset:]
         n = len(body) // RECORD.itemsize
         full = np.frombuffer(body, RECORD, count=n)
         scan.torn_tail = len(body) - n * RECORD.itemsize

@@ -12,9 +12,30 @@ import numpy as np
 
 from ga_ros.core.window.persistence import is_state_file
 from ga_ros.errors import ForeignFileError, FormatError, GaError
+from ga_ros.pipeline.journal.layout import MAGIC3
 from ga_ros.pipeline.journal.records import MAGIC, RECORD, RECORD_V1, record_crcs
 from ga_ros.pipeline.journal.scan import scan_journal
 from ga_ros.safe_write import atomic_write, check_regular, open_nofollow, read_bytes
+
+#: The ``state_file`` value that means the default path (:func:`default_state_file`).
+DEFAULT_STATE_FILE = 'default'
+
+
+def default_state_file(namespace: str, name: str, ros_home: str | None = None) -> Path:
+    """Where a node keeps its state by default: ``$ROS_HOME/ga_ros/<namespace>/<name>/state``
+    (``ROS_HOME`` defaults to ``~/.ros``; ``namespace`` ``'/'`` or ``'/robot1'``, as ROS gives
+    it), so that each node of a graph has its own (:class:`~ga_ros.pipeline.journal.lock.
+    StateLock` refuses a second user).
+
+    ``ros_home`` : the ROS home directory (default: the ``ROS_HOME`` environment variable, else
+    ``~/.ros``).
+    """
+    home = ros_home or os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'),
+                                                                  '.ros')
+    parts = [p for p in namespace.split('/') if p]
+    if not name or '/' in name or name in ('.', '..') or any(p in ('.', '..') for p in parts):
+        raise FormatError(f'node name {name!r} / namespace {namespace!r} cannot name a folder')
+    return Path(home, 'ga_ros', *parts, name, 'state')
 
 
 def journal_path(state_file: str | os.PathLike) -> Path:
@@ -129,18 +150,21 @@ def clear_state(state_file: str | os.PathLike) -> list[Path]:
 
 
 def has_v2_header(path: Path) -> bool:
+    """The journal has a current header (version 2, or a compacted journal's)."""
     fd = open_nofollow(path, os.O_RDONLY)
     try:
-        return os.pread(fd, len(MAGIC), 0) == MAGIC
+        return os.pread(fd, len(MAGIC), 0) in (MAGIC, MAGIC3)
     finally:
         os.close(fd)
 
 
-def rewrite_journal(path: Path, records: np.ndarray) -> None:
-    """Write a version-2 journal holding ``records`` (atomically, never through a link)."""
+def rewrite_journal(path: Path, records: np.ndarray,
+                    head: list[bytes] | None = None) -> None:
+    """Write a journal holding ``records`` (atomically, never through a link): after ``head``
+    (a compacted journal's header and base) or, by default, as version 2."""
     rec = np.zeros(records.size, RECORD)
     for name in RECORD_V1.names:
         rec[name] = records[name]
     raw = rec.view(np.uint8).reshape(records.size, RECORD.itemsize)
     rec['crc'] = record_crcs(raw)
-    atomic_write(path, [MAGIC, rec.tobytes()])
+    atomic_write(path, [*(head or [MAGIC]), rec.tobytes()])

@@ -23,6 +23,15 @@ class SessionConfig:
     state_required : a state file that cannot be used at start (its directory is a file, is
         read-only, ...) stops the start (:class:`~ga_ros.errors.PersistenceError`) instead of
         running without persistence.
+    compact_records : compact the journal at a window update once this many records follow
+        its base: the journal is replaced (atomically) by the state then (its *base*) and the few
+        records the gap healer needs, so a recovery from the journal alone replays only what
+        came after (0: never; the journal then grows with the survey and so does its replay).
+    lock_owner : if not empty, :meth:`~ga_ros.pipeline.session.AlignmentSession.resume` takes
+        the state file's lock (:class:`~ga_ros.pipeline.journal.lock.StateLock`) under this name
+        (the node: its full name) and holds it until ``close``; a state file locked by another
+        is then a state file that cannot be used. Empty: no lock (a library caller that owns its
+        path).
     """
 
     state_file: str = ''
@@ -30,3 +39,5 @@ class SessionConfig:
     fsync_period_sec: float = 1.0
     gaps: GapConfig = GapConfig()
     state_required: bool = False
+    compact_records: int = 1000
+    lock_owner: str = ''

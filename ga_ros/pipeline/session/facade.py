@@ -13,19 +13,24 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.core.fixes import FixTerm
 from ga_ros.core.gaps import GapHealer, Route, fingerprint, reversed_measurement
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.core.window.persistence import save_state
+from ga_ros.core.window.persistence import save_state, state_chunks
 from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverError
 from ga_ros.pipeline.journal import (
     HELD,
     REVERSED,
+    Datum,
     MeasurementJournal,
     RecoveryResult,
+    TrackEnd,
     clear_state,
     journal_path,
     recover,
 )
+from ga_ros.pipeline.journal.lock import StateLock
+from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, is_event
+from ga_ros.pipeline.journal.recovery import check_state_path
 from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
@@ -75,8 +80,13 @@ class AlignmentSession:
         #: journal goes on, recovery replays it all) ('' if snapshots are written).
         self.snapshots_off = ''
         self._next_sync = 0.0
+        #: The map frame's datum ``(lat_deg, lon_deg, alt_m)`` the journal held at the last
+        #: resume or load (``None`` without one).
+        self.datum: tuple[float, float, float] | None = None
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
+        #: The state file's lock, taken by :meth:`resume` (``SessionConfig.lock_owner``).
+        self.lock: StateLock | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -130,9 +140,8 @@ class AlignmentSession:
         self.gaps.anchor(term.node_id)  # the fix joins the piece of its node
         if self.journal is None:
             return
-        fix = term.fix if info is None else replace(term.fix, information=info)
         try:
-            self.journal.append_fix(replace(term, fix=fix))
+            self.journal.append_fix(term, info, C_offset)
             self.sync()
             self.persistence_failing = ''
         except OSError as exc:  # as for a measurement (_journal): counted, warned, applied
@@ -171,6 +180,27 @@ class AlignmentSession:
         except OSError as exc:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
+
+    def _journal_event(self, event: TrackEnd | Datum | None, happened: bool = True) -> None:
+        """Append a track end or a datum to the journal (if ``happened``); a write failure is
+        counted and warned about, as for a measurement."""
+        if self.journal is None or event is None or not happened:
+            return
+        try:
+            if isinstance(event, TrackEnd):
+                self.journal.append_track_end(event)
+            else:
+                self.journal.append_datum(event)
+            self.sync()
+            self.persistence_failing = ''
+        except OSError as exc:
+            self.persistence_failed(f'journal {self.journal.path}: {type(event).__name__} '
+                                    f'applied but NOT journaled ({exc})')
+
+    def journal_datum(self, lla: tuple[float, float, float]) -> None:
+        """Journal the map frame's geodetic origin ``(lat_deg, lon_deg, alt_m)`` once it is
+        known (a recovery gives it back: :attr:`RecoveryResult.datum`)."""
+        self._journal_event(Datum(tuple(float(v) for v in lla)))
 
     def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
@@ -302,10 +332,42 @@ class AlignmentSession:
                 self.last_persistence_error = self.last_error = bounded(text)
                 self.persistence_failing = self.last_persistence_error
                 notes.append(text)
+        if self.session.autosave and self.journal is not None:
+            try:
+                self.compact()
+            except (OSError, GaError) as exc:  # the journal is as it was: nothing lost
+                text = f'journal {self.journal.path} not compacted: {exc}'
+                self.counts.persistence_errors += 1
+                self.last_persistence_error = self.last_error = bounded(text)
+                self.persistence_failing = self.last_persistence_error
+                notes.append(text)
         return notes
 
-    def finish_track(self) -> Any:
-        """Close the open track now (window update); None if no track is open.
+    def compact(self, force: bool = False) -> bool:
+        """Compact the journal (:meth:`MeasurementJournal.compact`) if
+        ``SessionConfig.compact_records`` records follow its base (``force``: if any do) and
+        no measurement is held: its base is then the current state, followed by the records the
+        gap healer needs after a restart (bridges, measurements taken reversed, the datum).
+        Returns whether it was compacted; raises ``OSError`` (the journal is then unchanged)."""
+        j, every = self.journal, self.session.compact_records
+        if j is None or self.gaps.held or j.since_base == 0 or not (
+                force or 0 < every <= j.since_base):
+            return False
+        recs = j.file_records()
+        kinds = recs['kind']
+        keep = (((kinds & KIND_MASK) == KINDS.index('bridge')) & ~is_event(kinds)
+                | ((kinds & REVERSED) != 0) & ~is_event(kinds))
+        datum = np.flatnonzero(kinds == DATUM_KIND)
+        if datum.size:
+            keep[datum[-1]] = True
+        j.sync()
+        j.compact(state_chunks(self.aligner, j.count), recs[keep], *self.gaps.waits())
+        return True
+
+    def finish_track(self, cause: str = 'finish_track') -> Any:
+        """Close the open track now (window update); None if no track is open. The track end is
+        journaled (``cause``: one of :data:`~ga_ros.pipeline.journal.TRACK_END_CAUSES`), so a
+        recovery from the journal ends it too.
 
         Raises
         ------
@@ -313,11 +375,15 @@ class AlignmentSession:
             The update failed (counted; the previous estimate stands).
         """
         flushed = self.flush_gaps()
+        track = getattr(self.aligner, 'open_track', None)
         try:
             update = self.aligner.finish_track()
         except SolverError as exc:
             self.solver_failed(exc)
+            self._journal_event(TrackEnd(int(track), cause), track is not None)
             raise
+        self._journal_event(TrackEnd(int(track), cause) if track is not None else None,
+                            update is not None)
         if update is not None:
             self.after_updates((update,))
         return update if update is not None or not flushed.updates else flushed.updates[-1]
@@ -339,6 +405,7 @@ class AlignmentSession:
         self.gaps = GapHealer(self.session.gaps)
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
+        self.datum = None
 
     def _close_aligner(self) -> None:
         """Stop the aligner's background refinement (worker process or thread), if any."""
@@ -347,7 +414,8 @@ class AlignmentSession:
             close()
 
     def close(self) -> None:
-        """Close the journal (after an ``fsync``) and stop the background refinement."""
+        """Close the journal (after an ``fsync``), stop the background refinement and release
+        the state file's lock."""
         self._close_aligner()
         if self.journal is not None:
             try:
@@ -355,6 +423,12 @@ class AlignmentSession:
             except OSError:
                 pass
             self.journal.close()
+        self._release_lock()
+
+    def _release_lock(self) -> None:
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
     def sync(self, now: float | None = None) -> None:
         """``fsync`` the journal if ``SessionConfig.fsync_period_sec`` has passed since the
@@ -420,6 +494,7 @@ class AlignmentSession:
             raise InputError(f'no state in {path!r}')
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
+        self.datum = result.datum
         return how(result)
 
     def resume(self) -> str | None:
@@ -434,11 +509,15 @@ class AlignmentSession:
         if not path:
             return None
         try:
+            if self.session.lock_owner and self.lock is None:
+                check_state_path(path)  # a link, a foreign file: no lock file beside it
+                self.lock = StateLock(path, self.session.lock_owner)
             result = self._recover()
         except (GaError, OSError) as exc:  # a foreign file, a link: never touch that path
             return self._without_persistence(exc)
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
+        self.datum = result.datum
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
@@ -457,6 +536,7 @@ class AlignmentSession:
         if self.journal is not None:
             self.journal.close()
         self.journal = None
+        self._release_lock()
         self.session = replace(self.session, state_file='', autosave=False)
         self.persistence_off = bounded(text)
         self.warn(f'{text}; running WITHOUT persistence (a crash loses the state)')

@@ -34,7 +34,8 @@ def rebuild_gaps(config: GapConfig, aligner: Any, result: RecoveryResult) -> Gap
 
 def how(result: RecoveryResult) -> str:
     """One line on a recovery: source, records replayed, files moved aside, seconds."""
-    text = (f'{result.source}: snapshot of {result.snapshot_records} journal records + '
+    what = 'base' if result.source == 'journal' else 'snapshot'
+    text = (f'{result.source}: {what} of {result.snapshot_records} journal records + '
             f'{result.records_replayed} replayed in {result.seconds:.2f} s')
     if result.moved_aside:
         text += '; moved aside: ' + ', '.join(str(p) for p in result.moved_aside)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
 from ga_ros.ros.fault_catalogue.crash_cases import (
     case_damaged_snapshot,
     case_disk_full,
+    case_ended_snapshot_lost,
     case_foreign,
     case_kill_defaults,
     case_kill_recovery,
@@ -50,6 +52,7 @@ def catalogue() -> dict[str, Case]:
         'snapshot-random': case_damaged_snapshot('random'),
         'snapshot-truncated': case_damaged_snapshot('truncated'),
         'journal-header': case_damaged_snapshot('header'),
+        'end-snapshot-lost': case_ended_snapshot_lost,
         'disk-full': case_disk_full,
         'read-only-dir': case_state_path('read-only directory'),
         'bogus-path': case_state_path('path under a regular file'),
@@ -73,10 +76,17 @@ def run_case(name: str, case: Case, survey: Survey | None, dom: int,
     ``survey`` None: the small simulated one, written in that directory."""
     with tempfile.TemporaryDirectory(prefix='ga_fault_') as tmp:
         work = Path(tmp)
+        home = os.environ.get('ROS_HOME')
+        os.environ['ROS_HOME'] = str(work / 'ros_home')  # the nodes' default state: the case's
         try:
             return case(Ctx(work, dom, survey or small_survey(work)))
         except Exception as exc:  # noqa: BLE001 - a failed case is a row
             return Row(name, 'ERROR', '-', 0, 0, note=f'{type(exc).__name__}: {exc}'[:80])
+        finally:
+            if home is None:
+                os.environ.pop('ROS_HOME', None)
+            else:
+                os.environ['ROS_HOME'] = home
 
 
 def table(rows: list[Row]) -> str:

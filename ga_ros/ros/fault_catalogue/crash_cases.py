@@ -7,8 +7,9 @@ import signal
 import time
 
 import numpy as np
+from nav_msgs.msg import Odometry
 
-from ga_ros.pipeline.journal import journal_path
+from ga_ros.pipeline.journal import default_state_file, journal_path
 from ga_ros.ros.fault_catalogue.harness import (
     LEVELS,
     Live,
@@ -19,6 +20,7 @@ from ga_ros.ros.fault_catalogue.harness import (
 )
 from ga_ros.ros.fault_catalogue.survey import Case, Ctx, Row, nodes_kept
 from ga_ros.ros.harness import start_node_process
+from ga_ros.ros.qos import measurement_qos
 
 
 def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
@@ -54,7 +56,7 @@ def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
 
 
 def case_kill_defaults(ctx: Ctx) -> Row:
-    return killed_during_play(ctx, 'kill -9 during play, defaults (no state file)', {},
+    return killed_during_play(ctx, 'kill -9 during play, defaults (state under ROS_HOME)', {},
                                signal.SIGKILL)
 
 
@@ -193,3 +195,32 @@ def case_foreign(kind: str) -> Case:
         finally:
             live.close()
     return run
+
+
+def case_ended_snapshot_lost(ctx: Ctx) -> Row:
+    """Defaults (the state under ``$ROS_HOME``): the whole survey and the end of input, then
+    ``kill -9``, the snapshot emptied and the publisher gone (no history to re-deliver): the
+    restarted node has only its journal, which holds the track end of the end of input."""
+    live = Live(ctx, {})
+    try:
+        live.send_ms(ctx.ms)
+        live.end()
+        live.wait_accepted(len(ctx.ms), timeout=1800)
+        before = nodes_kept(ctx.survey.T_ref, live.final_path(ctx.survey.n_nodes, 600))
+        live.kill()
+        state = default_state_file('/', 'alignment_node')  # ROS_HOME: the case's (run_case)
+        state.write_bytes(b'')
+        node, topic = live.client.node, live.pub.topic_name  # nothing is re-delivered: a
+        node.destroy_publisher(live.pub)                      # new publisher, no history
+        live.pub = live.client.pub = node.create_publisher(
+            Odometry, topic, measurement_qos(transient_local=True))
+        live.client.paths.clear()
+        recover_s = live.restart()
+        got = live.final_path(ctx.survey.n_nodes)
+        return Row('kill -9 after the end of input, snapshot emptied, no history, defaults',
+                   live.survived(), f'persistence '
+                   f'{live.client.diagnostics.get("persistence", "?").split(":")[0]}',
+                   ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,
+                   f'{before} kept before the kill; {recovery_note(live.log)}')
+    finally:
+        live.close()

@@ -1,0 +1,238 @@
+"""The journal holds every change of state (measurements, fixes, track ends, end of input, the
+datum): a recovery from the journal alone (snapshot lost) reproduces the uninterrupted run's
+state bit for bit (ROS-free, through the pipeline session)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.window import AlignerConfig
+from ga_ros.core.window.persistence import state_arrays
+from ga_ros.geometry import se3
+from ga_ros.pipeline.journal import (
+    RECORD,
+    Datum,
+    MeasurementJournal,
+    TrackEnd,
+    clear_state,
+    journal_path,
+    read_journal,
+    records_to_entries,
+    recover,
+)
+from ga_ros.pipeline.journal.records import encode_datum, encode_track_end
+from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+
+CFG = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=1,
+                    refine_executor='inline', fix_gate_prob=0.0)
+
+
+def _survey(rng: np.random.Generator, n_tracks: int = 6, per: int = 7) -> list:
+    """A line survey; fixes of two sources (``gnss0`` every third node, ``usbl1`` every
+    fifth), each with a lever arm and the odometry offset's covariance."""
+    step = np.array([1.0, 0.2, 0.0])
+    cov = np.diag([0.05 ** 2] * 3 + [1e-4] * 3)
+    out: list = []
+    n = n_tracks * per
+    for i in range(n - 1):
+        z = np.concatenate([step + rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3)])
+        out.append(Measurement(i, i + 1, i // per, (i + 1) // per, z, cov,
+                               stamp_ns=(i + 1) * 10 ** 9))
+        k = i + 1
+        for every, source, sigma in ((3, 'gnss0', 0.3), (5, 'usbl1', 0.5)):
+            if k % every == 0:
+                T = se3.from_translation_rotvec(step * k + rng.normal(0, sigma, 3),
+                                                [0.0, 0.0, 0.1])
+                fix = AbsoluteFix.from_covariance(
+                    k * 10 ** 9 + 3 * 10 ** 8, T,
+                    np.diag([sigma ** 2] * 3 + [-1, -1, 0.01]), source)
+                offset = se3.from_translation_rotvec([0.3, 0.5, 1.0], [0.0, 0.0, 0.05])
+                out.append((FixTerm(k, offset, fix), np.diag([1e-3] * 3 + [1e-5] * 3)))
+    return out
+
+
+def _run(session: AlignmentSession, entries: list, finish_after: int) -> None:
+    """Feed ``entries``, ending the open track by hand after entry ``finish_after`` (the next
+    measurements of that track are then refused) and at the end of input."""
+    for k, e in enumerate(entries):
+        if isinstance(e, Measurement):
+            session.step(e)
+        else:
+            try:
+                session.add_fix(*e)
+            except Exception:  # noqa: BLE001 - refused fixes (frozen node) as live
+                pass
+        if k == finish_after:
+            session.finish_track('finish_track')
+    session.finish_track('end_of_input')
+
+
+def _without_rejections(meta: dict) -> dict:
+    """The scalar state without the rejection counters (refused inputs are not journaled: a
+    recovery never sees them)."""
+    meta = dict(meta, rejected=None)
+    if 'fixes' in meta:
+        meta['fixes'] = dict(meta['fixes'], stats=dict(meta['fixes']['stats'], rejected=None))
+    return meta
+
+
+def assert_same_state(a, b) -> None:
+    """Every array and scalar of the two aligners' window states is identical (bit for bit),
+    the rejection counters aside."""
+    meta_a, arr_a = state_arrays(a.state)
+    meta_b, arr_b = state_arrays(b.state)
+    assert _without_rejections(meta_a) == _without_rejections(meta_b)
+    assert arr_a.keys() == arr_b.keys()
+    for name in arr_a:
+        np.testing.assert_array_equal(arr_a[name], arr_b[name], err_msg=name)
+    np.testing.assert_array_equal(a.corrected_path().T_world_node,
+                                  b.corrected_path().T_world_node)
+
+
+def _lose_snapshot(state) -> None:
+    for p in (state, f'{state}.json'):
+        if os.path.lexists(p):
+            os.unlink(p)
+
+
+def test_track_end_and_datum_records_round_trip() -> None:
+    raw = (encode_track_end(TrackEnd(7, 'end_of_input')) + encode_datum(Datum((48.1, 11.5, 520.0)))
+           + encode_track_end(TrackEnd(9, 'idle_timeout')))
+    back = records_to_entries(np.frombuffer(raw, RECORD))
+    assert back == [TrackEnd(7, 'end_of_input'), Datum((48.1, 11.5, 520.0)),
+                    TrackEnd(9, 'idle_timeout')]
+
+
+@pytest.mark.parametrize('snapshot, compact', [(False, 0), (True, 0), (False, 10), (True, 10)])
+def test_recovery_reproduces_a_survey_with_fixes_track_ends_and_end_of_input(tmp_path, snapshot,
+                                                                             compact):
+    """Killed after the end of input (the last track closed by it, another by hand): the
+    journal alone, or snapshot + journal, gives the live state bit for bit; also when the
+    journal was compacted at the window updates (its base + the records after it)."""
+    entries = _survey(np.random.default_rng(11))
+    state = tmp_path / 'state'
+    live = AlignmentSession(CFG, SessionConfig(str(state), compact_records=compact))
+    assert live.resume() is None
+    finish_after = next(k for k, e in enumerate(entries)
+                        if isinstance(e, Measurement) and e.dst_track == 2) + 3
+    _run(live, entries, finish_after)
+    live.journal_datum((48.1, 11.5, 520.0))
+    al = live.aligner
+    assert al.open_track is None or al.open_track in al.state.finished
+    live.journal.close()  # killed: nothing else written
+    logged = read_journal(journal_path(state))
+    ends = [e for e in logged if isinstance(e, TrackEnd)]
+    if compact:  # only what followed the last compaction (the end of input and the datum)
+        assert live.journal.layout.has_base and live.journal.since_base == 2
+        assert [e.cause for e in ends] == ['end_of_input']
+    else:
+        assert [e.cause for e in ends] == ['finish_track', 'end_of_input']
+        assert {e.fix.source for e in logged if isinstance(e, FixTerm)} == {'gnss0', 'usbl1'}
+    if not snapshot:
+        _lose_snapshot(state)
+    res = recover(state, CFG)
+    assert res.source == ('snapshot+journal' if snapshot else 'journal')
+    assert res.datum == (48.1, 11.5, 520.0)
+    assert_same_state(res.aligner, live.aligner)
+    res.aligner.close()
+    live.aligner.close()
+
+
+def test_without_the_track_end_records_the_last_track_stays_open(tmp_path):
+    """The records matter (the test above can fail): replaying the measurements and fixes
+    without the track ends leaves the last track open, its nodes not adjusted."""
+    entries = _survey(np.random.default_rng(11))
+    state = tmp_path / 'state'
+    live = AlignmentSession(CFG, SessionConfig(str(state)))
+    live.resume()
+    _run(live, entries, len(entries))
+    live.journal.close()
+    _lose_snapshot(state)
+    scan = np.fromfile(journal_path(state), np.uint8)[11:].view(RECORD)
+    kept = scan[scan['kind'] != 0x3D]
+    with open(journal_path(state), 'wb') as f:
+        f.write(b'GAJOURNAL2\n' + kept.tobytes())
+    res = recover(state, CFG)
+    assert res.aligner.open_track is not None
+    assert res.aligner.open_track not in res.aligner.state.finished
+    d = np.abs(res.aligner.corrected_path().T_world_node
+               - live.aligner.corrected_path().T_world_node).max()
+    assert d > 1e-3
+    res.aligner.close()
+    live.aligner.close()
+
+
+def _compacted(tmp_path, n_entries: int | None = None):
+    """A session on the survey with the journal compacted at every window update, killed
+    mid-track (after ``n_entries`` entries); returns the state path and the live session."""
+    entries = _survey(np.random.default_rng(11))
+    entries = entries[:n_entries] if n_entries else entries[:-4]
+    state = tmp_path / 'state'
+    live = AlignmentSession(CFG, SessionConfig(str(state), compact_records=1))
+    live.resume()
+    for e in entries:
+        if isinstance(e, Measurement):
+            live.step(e)
+        else:
+            try:
+                live.add_fix(*e)
+            except Exception:  # noqa: BLE001 - refused fixes as live
+                pass
+    live.journal.close()
+    assert live.journal.layout.has_base and (live.journal.since_base > 0 or n_entries)
+    return state, live
+
+
+def test_a_compacted_journal_keeps_its_base_through_damage_and_torn_records(tmp_path):
+    """Torn last record: ignored (cut off before the next append); a damaged record after the
+    base: the journal is moved aside and rewritten with its base and the intact records;
+    either way the state is the live one (from the snapshot, or from the base alone)."""
+    state, live = _compacted(tmp_path)
+    jpath = journal_path(state)
+    with open(jpath, 'ab') as f:
+        f.write(b'\x01' * 100)   # a torn record
+    res = recover(state, CFG, checkpoint=False)
+    assert res.source == 'snapshot+journal' and not res.moved_aside
+    assert_same_state(res.aligner, live.aligner)
+    res.aligner.close()
+    _lose_snapshot(state)
+    raw = bytearray(jpath.read_bytes())
+    lay_end = len(raw) - 100 - RECORD.itemsize * live.journal.since_base
+    raw[lay_end + 5] ^= 0xFF     # the first record after the base (and its context) damaged
+    jpath.write_bytes(bytes(raw))
+    res = recover(state, CFG)
+    assert res.source == 'journal' and len(res.moved_aside) == 1
+    again = recover(state, CFG, checkpoint=False)   # the repaired journal kept the base
+    assert again.records_rejected == 0
+    j = MeasurementJournal(jpath)
+    assert j.layout.has_base and j.count == live.journal.count - 1
+    for r in (res, again):
+        r.aligner.close()
+    live.aligner.close()
+
+
+def test_a_snapshot_older_than_the_base_gives_way_to_it(tmp_path):
+    """A snapshot holding fewer records than the journal's base (its write failed after an
+    update the journal was compacted at): the base is used, then the records after it."""
+    state, live = _compacted(tmp_path)
+    older, _ = _compacted(tmp_path / 'older', n_entries=20)
+    state.write_bytes(older.read_bytes())   # a snapshot of fewer records
+    res = recover(state, CFG, checkpoint=False)
+    assert res.source == 'journal' and any('the base is used' in t for t in res.messages)
+    assert_same_state(res.aligner, live.aligner)
+    res.aligner.close()
+    live.aligner.close()
+
+
+def test_clearing_a_compacted_state_drops_the_base(tmp_path):
+    state, live = _compacted(tmp_path)
+    live.aligner.close()
+    clear_state(state)
+    j = MeasurementJournal(journal_path(state))
+    assert j.count == 0 and not j.layout.has_base
+    assert recover(state, CFG).source == 'empty'
