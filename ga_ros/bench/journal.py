@@ -184,7 +184,8 @@ def recovery(n_tracks: int, compact: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``ga-ros bench journal``: print the figures of the module docstring."""
-    ap = argparse.ArgumentParser(prog='ga-ros bench journal', description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(prog='ga-ros bench journal', description=__doc__.split('\n')[0],
+                                 allow_abbrev=False)
     ap.add_argument('--records', type=int, default=20000, help='records of the append test')
     ap.add_argument('--dir', default=None, help='directory of the append test')
     ap.add_argument('--tracks', type=int, default=25, help='tracks of the aerial survey (25)')
