@@ -18,6 +18,7 @@ pytestmark = pytest.mark.ros
 DOMAIN = 40 + (os.getpid() + 57) % 150
 
 PUBLISHER = textwrap.dedent("""
+    import os
     import time
     import rclpy
     from geometry_msgs.msg import TransformStamped
@@ -34,7 +35,7 @@ PUBLISHER = textwrap.dedent("""
     t.transform.translation.y = -2.25
     t.transform.rotation.z = 0.6
     t.transform.rotation.w = 0.8
-    end = time.monotonic() + patience(30.0)
+    end = time.monotonic() + 30.0 * float(os.environ.get("GA_ROS_TEST_PATIENCE", "4"))
     while time.monotonic() < end:
         pub.publish(TFMessage(transforms=[t]))
         rclpy.spin_once(node, timeout_sec=0.1)
