@@ -118,6 +118,12 @@ class PlayStats:
     undelivered: list[str] = field(default_factory=list)
 
 
+def _unnamed(node_name: str) -> bool:
+    """Whether the graph gives an endpoint without its node's name (rclpy reports
+    ``_NODE_NAME_UNKNOWN_`` until or after DDS knows the participant's name)."""
+    return not node_name or node_name.startswith('_NODE_NAME_UNKNOWN')
+
+
 class BagPlayer:
     """Publishes a bag's messages through a node (see the module docstring).
 
@@ -241,7 +247,8 @@ class BagPlayer:
     def confirmers(self, topic: str) -> set[str]:
         """Fully qualified names of the nodes expected to confirm ``topic``: its subscribers
         that ask for the history (:meth:`asks_history`) and the publishers of its input-done
-        topic."""
+        topic. An endpoint whose node DDS does not name (yet, or any more: rclpy's
+        ``_NODE_NAME_UNKNOWN_``, e.g. a killed node's stale endpoint) is not a node to wait for."""
         def fqn(info: Any) -> str:
             ns = info.node_namespace.rstrip('/')
             return f'{ns}/{info.node_name}'
@@ -249,7 +256,7 @@ class BagPlayer:
         subs = [i for i in self.node.get_subscriptions_info_by_topic(topic)
                 if i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL]
         pubs = self.node.get_publishers_info_by_topic(topics.input_done_topic(topic))
-        return {fqn(i) for i in subs + pubs}
+        return {fqn(i) for i in subs + pubs if not _unnamed(i.node_name)}
 
     def unconfirmed_of(self, topic: str, expected: set[str]) -> list[str]:
         """The nodes of ``expected`` (and any that confirmed) that have not confirmed

@@ -240,3 +240,24 @@ def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, samp
             assert 'did not confirm' in err and '/ga/measurements_done' in err
         else:
             assert 'confirmed only 10 of the 20 measurements sent' in err
+
+
+def test_an_endpoint_without_a_node_name_is_not_waited_for() -> None:
+    """rclpy names an endpoint ``_NODE_NAME_UNKNOWN_`` while DDS does not know its node (a
+    killed node's stale endpoint): play must not wait for it to confirm."""
+    from types import SimpleNamespace
+
+    from ga_ros.ros.play import BagPlayer
+
+    def info(name: str, durability: int) -> SimpleNamespace:
+        return SimpleNamespace(node_name=name, node_namespace='/',
+                               qos_profile=SimpleNamespace(durability=durability))
+
+    from rclpy.qos import DurabilityPolicy
+    tl = DurabilityPolicy.TRANSIENT_LOCAL
+    node = SimpleNamespace(
+        get_subscriptions_info_by_topic=lambda t: [info('alignment_node', tl),
+                                                   info('_NODE_NAME_UNKNOWN_', tl)],
+        get_publishers_info_by_topic=lambda t: [info('_NODE_NAME_UNKNOWN_', 0)])
+    player = SimpleNamespace(node=node)
+    assert BagPlayer.confirmers(player, '/ga/measurements') == {'/alignment_node'}
