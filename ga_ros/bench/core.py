@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.bench.gtsam_runner import gtsam_installed
-from ga_ros.bench.stages import STAGES, timed_stages, tree_cpu_seconds
+from ga_ros.bench.stages import STAGES, timed_stages
 from ga_ros.bench.survey import noisy_survey
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -182,7 +183,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     updates, cpu_ms, totals, background, records, other_us = [], [], [], [], [], []
     t0 = time.perf_counter()
     with timed_stages() as clock:
-        tree0, main0 = tree_cpu_seconds(), time.thread_time()
+        tree0, main0 = all_cpu_seconds(), time.thread_time()
         for m in list(ms) + [None]:
             c0 = time.thread_time()
             new = al.add_measurement(m) if m is not None else [al.finish_track()]
@@ -198,7 +199,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
             # the next freeze, computed ahead in the background (freeze_ahead) while a live
             # survey flies the next track: waited for here
             al.wait_background()
-            tree1, main1 = tree_cpu_seconds(), time.thread_time()
+            tree1, main1 = all_cpu_seconds(), time.thread_time()
             # everything since the last track end outside this thread: the freeze ahead, the
             # refinement worker process (its CPU of this interval), the pool's threads
             bg = max(0.0, 1e3 * ((tree1 - tree0) - (main1 - main0)))

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shutil
 import tempfile
 import time
@@ -32,47 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
 from ga_ros.pipeline.journal import MeasurementJournal, journal_path, recover
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.replay.samples import aerial_sample
-
-
-def _live_descendants_cpu(pid: int) -> float:
-    """CPU time (user + system, s) of the running descendants of ``pid`` (Linux ``/proc``; 0
-    elsewhere): e.g. the background refinement's worker process."""
-    total, tick = 0.0, os.sysconf('SC_CLK_TCK')
-    try:
-        tasks = os.listdir(f'/proc/{pid}/task')
-    except OSError:
-        return 0.0
-    for tid in tasks:
-        try:
-            with open(f'/proc/{pid}/task/{tid}/children', encoding='ascii') as f:
-                kids = [int(k) for k in f.read().split()]
-        except OSError:
-            continue
-        for kid in kids:
-            try:
-                with open(f'/proc/{kid}/stat', encoding='ascii', errors='replace') as f:
-                    fields = f.read().rsplit(')', 1)[1].split()
-                total += (int(fields[11]) + int(fields[12])) / tick
-            except (OSError, IndexError, ValueError):
-                continue
-            total += _live_descendants_cpu(kid)
-    return total
-
-
-def cpu_seconds() -> float:
-    """CPU time (user + system, s) of this process (all its threads), of its children that
-    exited and were waited for, and of its running descendants (the background refinement's
-    worker process)."""
-    own = resource.getrusage(resource.RUSAGE_SELF)
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return (own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
-            + _live_descendants_cpu(os.getpid()))
 
 
 def _comparable(al) -> tuple[dict, dict[str, np.ndarray], np.ndarray, np.ndarray]:
@@ -115,7 +80,7 @@ def append_cost(n: int, directory: str | None) -> None:
             j = MeasurementJournal(Path(tmp) / 'state.journal')
             j.open()
             next_sync = 0.0
-            w0, c0 = time.perf_counter(), cpu_seconds()
+            w0, c0 = time.perf_counter(), all_cpu_seconds()
             for _ in range(n):
                 j.append(m)
                 if period is not None:
@@ -123,7 +88,7 @@ def append_cost(n: int, directory: str | None) -> None:
                     if now >= next_sync:
                         j.sync()
                         next_sync = now + period
-            wall, cpu = time.perf_counter() - w0, cpu_seconds() - c0
+            wall, cpu = time.perf_counter() - w0, all_cpu_seconds() - c0
             j.close()
         print(f'  {label:<42} {1e6 * wall / n:8.1f} us/record wall, '
               f'{1e6 * cpu / n:7.1f} us CPU')
@@ -134,9 +99,9 @@ def _recover_alone(label: str, journal: Path, ref: tuple, cfg: AlignerConfig) ->
     with tempfile.TemporaryDirectory() as tmp:
         state = Path(tmp) / 'state'
         shutil.copyfile(journal, journal_path(state))
-        w0, c0 = time.perf_counter(), cpu_seconds()
+        w0, c0 = time.perf_counter(), all_cpu_seconds()
         res = recover(state, cfg, checkpoint=False)
-        wall, cpu = time.perf_counter() - w0, cpu_seconds() - c0
+        wall, cpu = time.perf_counter() - w0, all_cpu_seconds() - c0
         print(f'{label}: recovery from the journal alone (snapshot deleted) {wall:.2f} s wall, '
               f'{cpu:.2f} s CPU; source {res.source}, {res.records_replayed} entries replayed; '
               f'{compare(ref, res.aligner)}')
@@ -159,10 +124,10 @@ def recovery(n_tracks: int, compact: int) -> None:
                 spent[_name][1] += time.perf_counter() - t
                 return out
             setattr(live, name, timed)
-        w0, c0 = time.perf_counter(), cpu_seconds()
+        w0, c0 = time.perf_counter(), all_cpu_seconds()
         for m in ms:
             live.step(m)
-        wall, cpu = time.perf_counter() - w0, cpu_seconds() - c0
+        wall, cpu = time.perf_counter() - w0, all_cpu_seconds() - c0
         # killed before the end of input: the last track open, all of it after the base
         before = Path(tmp) / 'before.journal'
         shutil.copyfile(journal_path(state), before)

@@ -1,5 +1,6 @@
 """Where a window update's CPU goes: the stages of :data:`STAGES`, timed in every thread, and
-the CPU of the whole process tree (:func:`tree_cpu_seconds`), for ``ga-ros bench window``.
+the CPU of the whole process tree (:func:`ga_ros.bench.cpu.all_cpu_seconds`), for
+``ga-ros bench window``.
 
 A stage's CPU is the ``time.thread_time()`` of the thread that runs it, between entering and
 leaving one of its functions; a stage function called inside another timed function counts in
@@ -12,13 +13,11 @@ background refinement in a worker process ("background").
 from __future__ import annotations
 
 import inspect
-import os
 import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 
 from ga_ros.core.fixes import FixBook
 from ga_ros.core.linalg import blocks as _blocks
@@ -128,45 +127,3 @@ def timed_stages() -> Iterator[StageClock]:
     finally:
         for owner, name, fn in saved:
             setattr(owner, name, fn)
-
-
-_TICKS = os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 100
-
-
-def _children(pid: int) -> list[int]:
-    """Direct children of ``pid`` (Linux ``/proc``; empty elsewhere)."""
-    out: list[int] = []
-    for task in Path(f'/proc/{pid}/task').glob('*'):
-        try:
-            out += [int(c) for c in (task / 'children').read_text().split()]
-        except (OSError, ValueError):
-            continue
-    return out
-
-
-def _proc_cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds of process ``pid`` (all its threads) from ``/proc``."""
-    try:
-        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    except (OSError, IndexError):
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / _TICKS  # utime, stime (fields 14, 15)
-
-
-def tree_cpu_seconds() -> float:
-    """CPU seconds of this process (every thread) and of its live descendants (the refinement
-    worker), plus the children already waited for. Descendants are read from Linux's
-    ``/proc``; elsewhere only this process and its waited-for children count."""
-    own = time.process_time()
-    t = os.times()
-    total = own + t.children_user + t.children_system
-    todo = _children(os.getpid())
-    seen: set[int] = set()
-    while todo:
-        pid = todo.pop()
-        if pid in seen:
-            continue
-        seen.add(pid)
-        total += _proc_cpu_seconds(pid)
-        todo += _children(pid)
-    return total
