@@ -6,6 +6,7 @@ import sys
 from collections.abc import Callable
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -42,6 +43,12 @@ def node_usage(name: str, doc: str, parameters: list[str]) -> str:
     return '\n'.join(lines)
 
 
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message, without rcl's file and line suffix."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return text.split(', at /')[0]
+
+
 def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
              usage: Callable[[], str] | None = None) -> int:
     """Create the node with ``factory()`` and spin it until shutdown.
@@ -55,7 +62,13 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         print(usage())
         return 0
     _blas = limit_blas_threads()  # noqa: F841 (kept alive while the node runs)
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:
+        print(f'{name}: error: ROS arguments not understood ({_first_line(exc)}). Write them as '
+              f'`--ros-args -p name:=value`; an empty string is `-p "name:=\'\'"` '
+              f'(the quotes reach the node).', file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:

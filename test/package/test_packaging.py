@@ -242,6 +242,18 @@ def test_node_help_exits_without_starting_ros(module: str):
     assert '[INFO]' not in out.stderr + out.stdout   # no node started (it logs its topics)
 
 
+
+@pytest.mark.parametrize('module', ['alignment_node', 'vo_node'])
+def test_node_with_unparsable_ros_arguments_says_how_to_write_them(module: str):
+    """``-p state_file:=`` (a shell ate the quotes of ``''``) is one clear line and exit 2."""
+    pytest.importorskip('rclpy')
+    out = subprocess.run([sys.executable, '-m', f'ga_ros.ros.{module}', '--ros-args', '-p',
+                          'state_file:='], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2, out.stderr
+    assert 'Traceback' not in out.stderr
+    assert f'{module}: error: ROS arguments not understood' in out.stderr
+    assert "state_file:=" in out.stderr
+
 @pytest.mark.slow
 def test_colcon_build_then_installed_executables_answer_help(colcon_workspace, tmp_path: Path):
     install, env = colcon_workspace.install, colcon_workspace.env
