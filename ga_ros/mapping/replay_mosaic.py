@@ -1,0 +1,170 @@
+"""The replay's mosaic step (ROS-free): keyframe images read back from the bag, then one mosaic
+per trajectory (GA's final poses, the frame-to-frame odometry) with its seam misregistration.
+
+:func:`write_mosaics` is what ``ga-ros replay BAG --map`` calls: it writes ``mosaic_<name>.png``
+(+ ``.json`` / ``.pgw`` georeference, :func:`ga_ros.mapping.mosaic.save_mosaic`) and returns the
+figures for ``summary.json``. The ground is the keyframes' dense stereo points
+(:class:`ga_ros.vo.dense.DenseStereo`) placed with the same trajectory's poses
+(:func:`ga_ros.mapping.surface.height_grid_from_points`), so each mosaic is orthorectified with
+its own poses; without right images, a given plane height.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import InputError
+from ga_ros.io.bag_messages import stamp_to_ns
+from ga_ros.io.trajectory import Trajectory
+from ga_ros.mapping.mosaic import (
+    CameraView,
+    MosaicConfig,
+    Surface,
+    build_mosaic,
+    plan_georeference,
+    save_mosaic,
+)
+from ga_ros.mapping.seams import seam_misregistration
+from ga_ros.mapping.surface import GroundPlane, height_grid_from_points
+
+
+@dataclass
+class KeyframeImages:
+    """Rectified keyframe images read back from a bag.
+
+    Attributes
+    ----------
+    stamps_ns : (n,) keyframe stamps (ns), the images' header stamps.
+    left : n (h, w) uint8 rectified left images.
+    right : n rectified right images (None where missing).
+    K : (3, 3) rectified intrinsics (px); ``baseline_m`` the stereo baseline (m).
+    """
+
+    stamps_ns: IntArray
+    left: list[np.ndarray]
+    right: list[np.ndarray | None]
+    K: FloatArray
+    baseline_m: float
+
+
+def read_keyframe_images(bag: Any, left_topic: str, right_topic: str, calibration: Any,
+                         stamps_ns: IntArray) -> KeyframeImages:
+    """The rectified stereo pairs of the keyframes ``stamps_ns`` (header stamps, ns) from an
+    open bag (:class:`ga_ros.io.bag.BagReader`), rectified with ``calibration``
+    (:class:`ga_ros.vo.calibration.StereoCalibration`). Keyframes whose left image is not found
+    are dropped (their stamps are not in the result)."""
+    from ga_ros.vo.messages import image_to_grey
+
+    want = {int(s) for s in np.asarray(stamps_ns)}
+    got: dict[str, dict[int, np.ndarray]] = {'left': {}, 'right': {}}
+    sides = {left_topic: 'left', right_topic: 'right'}
+    for bm in bag.messages([left_topic, right_topic]):
+        s = stamp_to_ns(bm.msg.header.stamp)
+        side = sides.get(bm.topic)
+        if side is None or s not in want or s in got[side]:
+            continue
+        got[side][s] = calibration.rectify_one(image_to_grey(bm.msg), side)
+    stamps = np.array(sorted(got['left']), dtype=np.int64)
+    return KeyframeImages(stamps, [got['left'][int(s)] for s in stamps],
+                          [got['right'].get(int(s)) for s in stamps],
+                          np.asarray(calibration.K, float), float(calibration.baseline_m))
+
+
+def poses_at(traj: Trajectory, stamps_ns: IntArray) -> tuple[IntArray, FloatArray, IntArray]:
+    """Indices into ``stamps_ns`` found in ``traj`` (exact stamps), their poses and track ids."""
+    index = {int(s): i for i, s in enumerate(np.asarray(traj.stamps_ns))}
+    rows = [(k, index[int(s)]) for k, s in enumerate(np.asarray(stamps_ns)) if int(s) in index]
+    keep = np.array([k for k, _ in rows], dtype=np.int64)
+    at = np.array([i for _, i in rows], dtype=np.int64)
+    if at.size == 0:
+        return keep, np.zeros((0, 4, 4)), keep
+    tracks = np.asarray(traj.track_ids)[at]
+    return keep, np.asarray(traj.T_world_node)[at], tracks
+
+
+def stereo_ground(images: KeyframeImages, keep: IntArray, T_map_cam: FloatArray,
+                  cell_m: float, pixel_stride: int = 4) -> Surface:
+    """The ground under the keyframes: their dense stereo points placed with ``T_map_cam``
+    (:func:`ga_ros.mapping.surface.height_grid_from_points`, cells of ``cell_m``)."""
+    from ga_ros.vo.calibration import StereoCalibration
+    from ga_ros.vo.dense import DenseStereo, DenseStereoConfig
+
+    h, w = images.left[0].shape[:2]
+    calib = StereoCalibration.rectified(w, h, images.K, images.baseline_m)
+    dense = DenseStereo(DenseStereoConfig(pixel_stride=pixel_stride))
+    pts = []
+    for k, T in zip(keep, T_map_cam):
+        right = images.right[int(k)]
+        if right is None:
+            continue
+        p = dense.cloud(images.left[int(k)], right, calib).points.astype(float)
+        pts.append(p @ T[:3, :3].T + T[:3, 3])
+    if not pts:
+        raise InputError('mosaic: no right image to compute the ground from; give the ground '
+                         'height (ground_z)')
+    return height_grid_from_points(np.concatenate(pts), cell_m)
+
+
+@dataclass
+class MosaicOutputs:
+    """What :func:`write_mosaics` wrote and measured, per trajectory name."""
+
+    files: dict[str, dict[str, str]] = field(default_factory=dict)
+    figures: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def write_mosaics(out_dir: str | Path, images: KeyframeImages,
+                  trajectories: dict[str, Trajectory], T_base_cam: FloatArray | None = None,
+                  config: MosaicConfig = MosaicConfig(), ground_z: float | None = None,
+                  ground_cell_m: float = 2.0) -> dict[str, dict[str, Any]]:
+    """One mosaic per trajectory (``mosaic_<name>.png`` in ``out_dir``) and its figures.
+
+    Parameters
+    ----------
+    images : the keyframes' rectified images (:func:`read_keyframe_images`).
+    trajectories : name (e.g. ``'ga'``, ``'f2f'``) -> poses ``T_map_base`` of the keyframes
+        (matched to the images by exact stamp) with their track ids.
+    T_base_cam : (4, 4) the camera's pose in ``base_link`` (default: the identity).
+    config : resolution, blending and size limit (0 m/px: the first trajectory's ground sample
+        distance, then the same grid size for all, so they compare pixel for pixel).
+    ground_z : a ground plane height (m in ``map``) instead of the stereo ground.
+    ground_cell_m : cell of the stereo ground's height grid (m).
+
+    Returns
+    -------
+    name -> ``{'png', 'georeference', 'world_file', 'keyframes', 'covered_area_m2',
+    'metres_per_pixel', 'seams': {'pairs', 'measured', 'median_px', 'p95_px', ...}}``.
+
+    Raises
+    ------
+    InputError
+        No keyframe image, no pose for them, or a mosaic over the size limit.
+    """
+    if not images.left:
+        raise InputError('mosaic: no keyframe image was read back from the bag')
+    T_bc = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, float)
+    out: dict[str, dict[str, Any]] = {}
+    mpp = config.metres_per_pixel
+    for name, traj in trajectories.items():
+        keep, T_map_base, tracks = poses_at(traj, images.stamps_ns)
+        if keep.size == 0:
+            raise InputError(f"mosaic {name}: no keyframe pose at the images' stamps")
+        T_map_cam = T_map_base @ T_bc
+        views = [CameraView(images.left[int(k)], T, images.K) for k, T in zip(keep, T_map_cam)]
+        surface: Surface = (GroundPlane(float(ground_z)) if ground_z is not None
+                            else stereo_ground(images, keep, T_map_cam, ground_cell_m))
+        cfg = MosaicConfig(mpp, config.blend, config.max_pixels, config.margin_m)
+        georef = plan_georeference(views, surface, cfg)
+        mpp = georef.metres_per_pixel
+        mosaic = build_mosaic(views, surface, cfg, georef)
+        files = save_mosaic(Path(out_dir) / f'mosaic_{name}.png', mosaic)
+        seams = seam_misregistration(views, tracks, surface, georef)
+        out[name] = {**files, 'keyframes': len(views),
+                     'covered_area_m2': float(mosaic.valid.sum()) * mpp * mpp,
+                     'metres_per_pixel': mpp, 'seams': seams.as_dict()}
+    return out
