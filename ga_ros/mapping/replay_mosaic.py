@@ -168,3 +168,27 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
                      'covered_area_m2': float(mosaic.valid.sum()) * mpp * mpp,
                      'metres_per_pixel': mpp, 'seams': seams.as_dict()}
     return out
+
+
+def replay_mosaics(source: Any, out_dir: str | Path,
+                   trajectories: dict[str, Trajectory]) -> dict[str, dict[str, Any]]:
+    """The replay's mosaics from its stereo source (:class:`ga_ros.replay.stereo.StereoSource`:
+    its open bag, topic plan, front end's calibration and extrinsic): the keyframe images read
+    back, then :func:`write_mosaics`.
+
+    Raises
+    ------
+    InputError
+        The source is not a stereo camera's, or has no calibration or keyframe image.
+    """
+    front = getattr(source, 'front', None)
+    if front is None or getattr(front, 'calibration', None) is None:
+        raise InputError('a mosaic needs a stereo image bag (a downward camera); this source '
+                         'has no calibrated camera')
+    plan = source.plan
+    stamps = np.unique(np.concatenate([np.asarray(t.stamps_ns) for t in trajectories.values()]))
+    images = read_keyframe_images(source.bag, plan.left_image, plan.right_image,
+                                  front.calibration, stamps)
+    ext = getattr(front, 'extrinsic', None)
+    return write_mosaics(out_dir, images, trajectories,
+                         None if ext is None else np.asarray(ext.T_base_cam, float))
