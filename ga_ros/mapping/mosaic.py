@@ -242,29 +242,31 @@ def warp_view(view: CameraView, surface: Surface, georef: Georeference) -> Warpe
     R, t = T[:3, :3], T[:3, 3]
     P = np.asarray(view.K, float) @ np.hstack([R.T, (-R.T @ t)[:, None]])  # map -> pixel
     src = img.astype(np.float32)
+    m0 = georef.x_min + (col0 + 0.5) * m
+    n0 = georef.y_max - (row0 + 0.5) * m
     if isinstance(surface, GroundPlane):
         # mosaic window pixel (c, r, 1) -> map (x, y, z, 1) -> image: one homography
-        A = np.array([[m, 0.0, georef.x_min + (col0 + 0.5) * m],
-                      [0.0, -m, georef.y_max - (row0 + 0.5) * m],
-                      [0.0, 0.0, surface.z_m], [0.0, 0.0, 1.0]])
-        H = P @ A
-        out = cv2.warpPerspective(src, H, (cols, rows),
+        A = np.array([[m, 0.0, m0], [0.0, -m, n0], [0.0, 0.0, surface.z_m], [0.0, 0.0, 1.0]])
+        out = cv2.warpPerspective(src, P @ A, (cols, rows),
                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                   borderMode=cv2.BORDER_CONSTANT)
-        cc, rr = np.meshgrid(np.arange(cols, dtype=float), np.arange(rows, dtype=float))
-        q = H @ np.stack([cc.ravel(), rr.ravel(), np.ones(cc.size)])
-        depth = q[2].reshape(rows, cols)
-        u = (q[0] / q[2]).reshape(rows, cols)
-        v = (q[1] / q[2]).reshape(rows, cols)
+        z: np.ndarray | float = float(surface.z_m)
     else:
         x, y = georef.pixel_centres(row0, col0, rows, cols)
         z = surface.heights(x, y)
-        q = P @ np.stack([x.ravel(), y.ravel(), z.ravel(), np.ones(x.size, np.float32)])
-        depth = q[2].reshape(rows, cols)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            u = (q[0] / q[2]).reshape(rows, cols).astype(np.float32)
-            v = (q[1] / q[2]).reshape(rows, cols).astype(np.float32)
-        out = cv2.remap(src, np.nan_to_num(u, nan=-1.0), np.nan_to_num(v, nan=-1.0),
+    # image coordinates of every window pixel's ground point, separably: x varies along the
+    # columns, y along the rows
+    xs = (m0 + m * np.arange(cols, dtype=np.float64))[None, :]
+    ys = (n0 - m * np.arange(rows, dtype=np.float64))[:, None]
+    q = [(P[k, 0] * xs + (P[k, 1] * ys + P[k, 3])).astype(np.float32) + np.float32(P[k, 2]) * z
+         for k in range(3)]
+    depth = q[2]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        u = q[0] / depth
+        v = q[1] / depth
+    if not isinstance(surface, GroundPlane):
+        out = cv2.remap(src, np.nan_to_num(u, nan=-1.0, posinf=-1.0, neginf=-1.0),
+                        np.nan_to_num(v, nan=-1.0, posinf=-1.0, neginf=-1.0),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     with np.errstate(invalid='ignore'):
         valid = (depth > 0) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)

@@ -11,7 +11,7 @@ its own poses; without right images, a given plane height.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,7 @@ from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import InputError
 from ga_ros.io.bag_messages import stamp_to_ns
 from ga_ros.io.trajectory import Trajectory
+from ga_ros.mapping.figure import MosaicPanel, write_compare_figure
 from ga_ros.mapping.mosaic import (
     CameraView,
     MosaicConfig,
@@ -29,7 +30,7 @@ from ga_ros.mapping.mosaic import (
     plan_georeference,
     save_mosaic,
 )
-from ga_ros.mapping.seams import seam_misregistration
+from ga_ros.mapping.seams import SeamStats, seam_misregistration
 from ga_ros.mapping.surface import GroundPlane, height_grid_from_points
 
 
@@ -87,35 +88,36 @@ def poses_at(traj: Trajectory, stamps_ns: IntArray) -> tuple[IntArray, FloatArra
     return keep, np.asarray(traj.T_world_node)[at], tracks
 
 
-def stereo_ground(images: KeyframeImages, keep: IntArray, T_map_cam: FloatArray,
-                  cell_m: float, pixel_stride: int = 4) -> Surface:
-    """The ground under the keyframes: their dense stereo points placed with ``T_map_cam``
-    (:func:`ga_ros.mapping.surface.height_grid_from_points`, cells of ``cell_m``)."""
+def stereo_points(images: KeyframeImages, pixel_stride: int = 4) -> list[FloatArray | None]:
+    """Per keyframe its dense stereo points (:class:`ga_ros.vo.dense.DenseStereo`), (n, 3) in
+    the left camera's optical frame (m); None where the right image is missing."""
     from ga_ros.vo.calibration import StereoCalibration
     from ga_ros.vo.dense import DenseStereo, DenseStereoConfig
 
     h, w = images.left[0].shape[:2]
     calib = StereoCalibration.rectified(w, h, images.K, images.baseline_m)
     dense = DenseStereo(DenseStereoConfig(pixel_stride=pixel_stride))
-    pts = []
-    for k, T in zip(keep, T_map_cam):
-        right = images.right[int(k)]
-        if right is None:
-            continue
-        p = dense.cloud(images.left[int(k)], right, calib).points.astype(float)
-        pts.append(p @ T[:3, :3].T + T[:3, 3])
+    return [None if right is None else dense.cloud(left, right, calib).points.astype(float)
+            for left, right in zip(images.left, images.right)]
+
+
+def stereo_ground(points_cam: list[FloatArray | None], keep: IntArray, T_map_cam: FloatArray,
+                  cell_m: float) -> Surface:
+    """The ground under the keyframes ``keep``: their dense stereo points (``points_cam``,
+    :func:`stereo_points`) placed with ``T_map_cam`` (one pose per kept keyframe) on a height
+    grid of ``cell_m`` (:func:`ga_ros.mapping.surface.height_grid_from_points`).
+
+    Raises
+    ------
+    InputError
+        No keyframe has stereo points.
+    """
+    pts = [p @ T[:3, :3].T + T[:3, 3] for p, T in
+           ((points_cam[int(k)], T) for k, T in zip(keep, T_map_cam)) if p is not None]
     if not pts:
         raise InputError('mosaic: no right image to compute the ground from; give the ground '
                          'height (ground_z)')
     return height_grid_from_points(np.concatenate(pts), cell_m)
-
-
-@dataclass
-class MosaicOutputs:
-    """What :func:`write_mosaics` wrote and measured, per trajectory name."""
-
-    files: dict[str, dict[str, str]] = field(default_factory=dict)
-    figures: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def write_mosaics(out_dir: str | Path, images: KeyframeImages,
@@ -138,7 +140,9 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
     Returns
     -------
     name -> ``{'png', 'georeference', 'world_file', 'keyframes', 'covered_area_m2',
-    'metres_per_pixel', 'seams': {'pairs', 'measured', 'median_px', 'p95_px', ...}}``.
+    'metres_per_pixel', 'seams': {'pairs', 'measured', 'median_px', 'p95_px', ...}}``; with
+    both ``'ga'`` and ``'f2f'`` also ``'compare': {'png'}``, the before / after figure
+    ``mosaic_compare.png`` (:func:`ga_ros.mapping.figure.write_compare_figure`).
 
     Raises
     ------
@@ -149,7 +153,9 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
         raise InputError('mosaic: no keyframe image was read back from the bag')
     T_bc = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, float)
     out: dict[str, dict[str, Any]] = {}
+    panels: dict[str, tuple[MosaicPanel, SeamStats]] = {}
     mpp = config.metres_per_pixel
+    points_cam = stereo_points(images) if ground_z is None else []
     for name, traj in trajectories.items():
         keep, T_map_base, tracks = poses_at(traj, images.stamps_ns)
         if keep.size == 0:
@@ -157,7 +163,7 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
         T_map_cam = T_map_base @ T_bc
         views = [CameraView(images.left[int(k)], T, images.K) for k, T in zip(keep, T_map_cam)]
         surface: Surface = (GroundPlane(float(ground_z)) if ground_z is not None
-                            else stereo_ground(images, keep, T_map_cam, ground_cell_m))
+                            else stereo_ground(points_cam, keep, T_map_cam, ground_cell_m))
         cfg = MosaicConfig(mpp, config.blend, config.max_pixels, config.margin_m)
         georef = plan_georeference(views, surface, cfg)
         mpp = georef.metres_per_pixel
@@ -167,7 +173,23 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
         out[name] = {**files, 'keyframes': len(views),
                      'covered_area_m2': float(mosaic.valid.sum()) * mpp * mpp,
                      'metres_per_pixel': mpp, 'seams': seams.as_dict()}
+        if len(keep) == len(images.left):  # every keyframe: the panels index the same views
+            label = {'f2f': 'F2F (before)', 'ga': 'GA (after)'}.get(name, name)
+            panels[name] = (MosaicPanel(f'{label}: seams {seams.median_px:.2f} px median',
+                                        mosaic, views, surface), seams)
+    if 'f2f' in panels and 'ga' in panels:
+        out['compare'] = {'png': _compare(Path(out_dir) / 'mosaic_compare.png', panels)}
     return out
+
+
+def _compare(path: Path, panels: dict[str, tuple[MosaicPanel, SeamStats]]) -> str:
+    """The before / after figure, zoomed on the seam F2F misregisters most."""
+    before, seams = panels['f2f']
+    pair = centre = None
+    if seams.offsets:
+        worst = max(seams.offsets, key=lambda o: o.length_px)
+        pair, centre = (worst.a, worst.b), worst.centre_xy
+    return write_compare_figure(path, before, panels['ga'][0], pair, centre)
 
 
 def replay_mosaics(source: Any, out_dir: str | Path,

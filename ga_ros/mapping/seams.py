@@ -14,6 +14,7 @@ offset's length over the pairs (px and m).
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
@@ -40,6 +41,7 @@ class SeamOffset:
     dx_px, dy_px : translation of ``b``'s content relative to ``a``'s (px; ``x`` right = east,
         ``y`` down = south): ``b(col, row) ~ a(col - dx, row - dy)``.
     size_px : (rows, cols) of the compared rectangle.
+    centre_xy : map ``x, y`` (m) of the compared rectangle's centre.
     """
 
     a: int
@@ -47,6 +49,7 @@ class SeamOffset:
     dx_px: float
     dy_px: float
     size_px: tuple[int, int]
+    centre_xy: tuple[float, float] = (float('nan'), float('nan'))
 
     @property
     def length_px(self) -> float:
@@ -171,10 +174,10 @@ def image_offset(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def view_offset(wa: WarpedView, wb: WarpedView,
-                min_side_px: int = 32) -> tuple[float, float, tuple[int, int]] | None:
-    """Offset ``(dx, dy, (rows, cols))`` of warped view ``b`` against ``a`` (px) on the largest
-    rectangle both cover (:func:`image_offset`); None when the rectangle is smaller than
-    ``min_side_px`` on a side."""
+                min_side_px: int = 32) -> tuple[float, float, tuple[int, int, int, int]] | None:
+    """Offset ``(dx, dy, (row0, row1, col0, col1))`` of warped view ``b`` against ``a`` (px)
+    on the largest rectangle both cover (:func:`image_offset`; the rectangle in mosaic pixels,
+    ends exclusive); None when the rectangle is smaller than ``min_side_px`` on a side."""
     r0 = max(wa.row0, wb.row0)
     c0 = max(wa.col0, wb.col0)
     r1 = min(wa.row0 + wa.valid.shape[0], wb.row0 + wb.valid.shape[0])
@@ -196,7 +199,7 @@ def view_offset(wa: WarpedView, wb: WarpedView,
         ia, ib = ia.mean(axis=2), ib.mean(axis=2)
     sl = (slice(rect[0], rect[1]), slice(rect[2], rect[3]))
     dx, dy = image_offset(ia[sl], ib[sl])
-    return dx, dy, (rect[1] - rect[0], rect[3] - rect[2])
+    return dx, dy, (r0 + rect[0], r0 + rect[1], c0 + rect[2], c0 + rect[3])
 
 
 def seam_misregistration(views: list[CameraView], tracks: IntArray, surface: Surface,
@@ -204,14 +207,29 @@ def seam_misregistration(views: list[CameraView], tracks: IntArray, surface: Sur
     """Seam misregistration of the mosaic of ``views`` on ``georef`` (module docstring)."""
     pairs = seam_pairs(views, tracks, surface, min_overlap)
     offsets: list[SeamOffset] = []
+    cache: OrderedDict[int, WarpedView | None] = OrderedDict()  # bounded: 64 warped views
+
+    def warped(k: int) -> WarpedView | None:
+        if k in cache:
+            cache.move_to_end(k)
+            return cache[k]
+        cache[k] = warp_view(views[k], surface, georef)
+        if len(cache) > 64:
+            cache.popitem(last=False)
+        return cache[k]
+
     for a, b in pairs:
-        wa = warp_view(views[a], surface, georef)
-        wb = warp_view(views[b], surface, georef)
+        wa, wb = warped(a), warped(b)
         if wa is None or wb is None:
             continue
         got = view_offset(wa, wb)
         if got is not None:
-            offsets.append(SeamOffset(a, b, got[0], got[1], got[2]))
+            q0, q1, p0, p1 = got[2]
+            x, y = georef.pixel_centres(0, 0, 1, 1)
+            m = georef.metres_per_pixel
+            centre = (float(x[0, 0]) + 0.5 * (p0 + p1 - 1) * m,
+                      float(y[0, 0]) - 0.5 * (q0 + q1 - 1) * m)
+            offsets.append(SeamOffset(a, b, got[0], got[1], (q1 - q0, p1 - p0), centre))
     lengths = np.array([o.length_px for o in offsets])
     nan = float('nan')
     return SeamStats(len(pairs), len(offsets),

@@ -111,6 +111,7 @@ def result_text(r: ReplayResult) -> str:
 def mosaic_lines(mosaic: dict) -> list[str]:
     """The mosaics' seam misregistration (``--mosaic``): per trajectory the median and 95th
     percentile offset between overlapping keyframes of neighbouring tracks, in mosaic pixels."""
+    mosaic = {k: v for k, v in mosaic.items() if 'seams' in v}  # not the 'compare' figure
     if not mosaic:
         return []
     first = next(iter(mosaic.values()))
