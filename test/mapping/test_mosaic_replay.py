@@ -1,8 +1,11 @@
-"""``ga-ros replay --mosaic`` on the bundled stereo sample: the GA mosaic registered against the
-simulator's orthophoto (F2F beside), and its seam misregistration (target <= 1 px)."""
+"""``ga-ros demo`` (= ``replay --mosaic``) on the bundled stereo sample: the GA mosaic registered
+against the simulator's orthophoto (F2F beside), and its seam misregistration (target <= 1 px);
+``--mosaic`` on a bag without images."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 from pathlib import Path
 
@@ -10,10 +13,16 @@ import cv2
 import numpy as np
 import pytest
 
+from ga_ros.cli.main import main as cli_main
 from ga_ros.mapping.mosaic import Georeference
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.pipeline import replay
-from ga_ros.replay.samples import STEREO_BAG, StereoSampleConfig
+from ga_ros.replay.samples import (
+    STEREO_BAG,
+    StereoSampleConfig,
+    aerial_sample,
+    write_measurement_bag,
+)
 
 pytest.importorskip('ga_ros.vo.odometry')
 sim = pytest.importorskip('ga_ros.sim.stereo')
@@ -24,12 +33,22 @@ BAG = Path(__file__).resolve().parents[2] / 'bags' / STEREO_BAG
 
 
 @pytest.fixture(scope='module')
-def replayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """``ga-ros demo --only stereo``: its output folder of the stereo bag and its printout."""
     if not (BAG / 'metadata.yaml').exists():
         pytest.skip(f'{BAG} not found (regenerate with `ga-ros make-bags`)')
-    out = tmp_path_factory.mktemp('mosaic_replay')
-    replay(BAG, out, ReplayConfig(mosaic=True, plot=False))
-    return out
+    out = tmp_path_factory.mktemp('mosaic_demo')
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        code = cli_main(['demo', '--only', 'stereo', '--bags', str(BAG.parent), '--out',
+                         str(out), '--no-progress', '--no-plot'])
+    assert code == 0
+    return out / STEREO_BAG, text.getvalue()
+
+
+@pytest.fixture
+def replayed(demo: tuple[Path, str]) -> Path:
+    return demo[0]
 
 
 def sample_scene() -> sim.StereoScene:
@@ -74,7 +93,7 @@ def test_ga_mosaic_registers_on_the_orthophoto(replayed: Path) -> None:
 def test_seam_misregistration_in_the_summary(replayed: Path) -> None:
     summary = json.loads((replayed / 'summary.json').read_text())
     m = summary['mosaic']
-    assert set(m) == {'ga', 'f2f'}
+    assert set(m) == {'ga', 'f2f', 'compare'}
     for name in ('ga', 'f2f'):
         assert Path(m[name]['png']).is_file() and Path(m[name]['world_file']).is_file()
         assert m[name]['seams']['measured'] >= 20
@@ -84,3 +103,24 @@ def test_seam_misregistration_in_the_summary(replayed: Path) -> None:
     assert ga['median_px'] < f2f['median_px']
     # both mosaics on grids of the same pixel size, so the pixels compare
     assert m['ga']['metres_per_pixel'] == m['f2f']['metres_per_pixel']
+
+
+def test_demo_prints_the_mosaic_before_and_after(demo: tuple[Path, str]) -> None:
+    out, text = demo
+    summary = json.loads((out / 'summary.json').read_text())
+    f2f, ga = summary['mosaic']['f2f']['seams'], summary['mosaic']['ga']['seams']
+    assert 'mosaic before (F2F) and after (GA)' in text
+    assert (f"F2F {f2f['median_px']:5.2f} / {f2f['p95_px']:4.2f} px   GA "
+            f"{ga['median_px']:5.2f} / {ga['p95_px']:4.2f} px") in text
+    fig = cv2.imread(summary['mosaic']['compare']['png'])
+    assert fig is not None and fig.shape[1] > 600 and fig.shape[0] > 600
+
+
+def test_mosaic_of_a_bag_without_images_is_a_warning(tmp_path: Path) -> None:
+    s = aerial_sample(n_tracks=2, positions_per_swath=12)
+    bag = write_measurement_bag(tmp_path / 'in', s.measurements, s.ground_truth)
+    r = replay(bag, tmp_path / 'out', ReplayConfig(mosaic=True, plot=False))
+    assert r.mosaic == {}
+    assert any('mosaic' in w and 'stereo image bag' in w for w in r.warnings)
+    assert (tmp_path / 'out' / 'trajectory_ga.tum').is_file()
+    assert not list((tmp_path / 'out').glob('mosaic*'))
