@@ -1,9 +1,12 @@
 """The replay's mosaic step (ROS-free): keyframe images read back from the bag, then one mosaic
 per trajectory (GA's final poses, the frame-to-frame odometry) with its seam misregistration.
 
-:func:`write_mosaics` is what ``ga-ros replay BAG --map`` calls: it writes ``mosaic_<name>.png``
-(+ ``.json`` / ``.pgw`` georeference, :func:`ga_ros.mapping.mosaic.save_mosaic`) and returns the
-figures for ``summary.json``. The ground is the keyframes' dense stereo points
+:func:`write_mosaics` is what the replay's map step calls (``ga-ros replay BAG --mosaic``,
+through :func:`replay_mosaics`): it writes ``mosaic_<name>.png`` (+ ``.json`` / ``.pgw``
+georeference, :func:`ga_ros.mapping.mosaic.save_mosaic`) and returns the figures for
+``summary.json``. The keyframe images and stereo points held are bounded
+(:data:`MAX_KEYFRAME_BYTES`, a clear error beyond).
+The ground is the keyframes' dense stereo points
 (:class:`ga_ros.vo.dense.DenseStereo`) placed with the same trajectory's poses
 (:func:`ga_ros.mapping.surface.height_grid_from_points`), so each mosaic is orthorectified with
 its own poses; without right images, a given plane height.
@@ -33,47 +36,83 @@ from ga_ros.mapping.mosaic import (
 from ga_ros.mapping.seams import SeamStats, seam_misregistration
 from ga_ros.mapping.surface import GroundPlane, height_grid_from_points
 
+#: Default limit of the keyframe data a replay's mosaic step holds (bytes).
+MAX_KEYFRAME_BYTES = 1 << 30
+
 
 @dataclass
 class KeyframeImages:
-    """Rectified keyframe images read back from a bag.
+    """Rectified keyframe images read back from a bag, with their dense stereo points.
 
     Attributes
     ----------
     stamps_ns : (n,) keyframe stamps (ns), the images' header stamps.
     left : n (h, w) uint8 rectified left images.
-    right : n rectified right images (None where missing).
-    K : (3, 3) rectified intrinsics (px); ``baseline_m`` the stereo baseline (m).
+    points : per keyframe its dense stereo points (:class:`ga_ros.vo.dense.DenseStereo`),
+        (k, 3) float32 in the left camera's optical frame (m); None without a right image.
+    K : (3, 3) rectified intrinsics (px).
     """
 
     stamps_ns: IntArray
     left: list[np.ndarray]
-    right: list[np.ndarray | None]
+    points: list[np.ndarray | None]
     K: FloatArray
-    baseline_m: float
 
 
 def read_keyframe_images(bag: Any, left_topic: str, right_topic: str, calibration: Any,
-                         stamps_ns: IntArray) -> KeyframeImages:
-    """The rectified stereo pairs of the keyframes ``stamps_ns`` (header stamps, ns) from an
-    open bag (:class:`ga_ros.io.bag.BagReader`), rectified with ``calibration``
-    (:class:`ga_ros.vo.calibration.StereoCalibration`). Keyframes whose left image is not found
-    are dropped (their stamps are not in the result)."""
+                         stamps_ns: IntArray, pixel_stride: int = 4,
+                         max_bytes: int = MAX_KEYFRAME_BYTES) -> KeyframeImages:
+    """The keyframes ``stamps_ns`` (header stamps, ns) of an open bag
+    (:class:`ga_ros.io.bag.BagReader`): left images rectified with ``calibration``
+    (:class:`ga_ros.vo.calibration.StereoCalibration`) and the pair's dense stereo points (every
+    ``pixel_stride``-th pixel); the right images are not kept. Keyframes whose left image is not
+    found are dropped (their stamps are not in the result).
+
+    Raises
+    ------
+    InputError
+        The images and points held would exceed ``max_bytes``.
+    """
+    from ga_ros.vo.dense import DenseStereo, DenseStereoConfig
     from ga_ros.vo.messages import image_to_grey
 
+    dense = DenseStereo(DenseStereoConfig(pixel_stride=pixel_stride))
     want = {int(s) for s in np.asarray(stamps_ns)}
-    got: dict[str, dict[int, np.ndarray]] = {'left': {}, 'right': {}}
+    left: dict[int, np.ndarray] = {}
+    points: dict[int, np.ndarray] = {}
+    early_right: dict[int, np.ndarray] = {}  # right images whose left has not come yet
     sides = {left_topic: 'left', right_topic: 'right'}
+    held = 0
     for bm in bag.messages([left_topic, right_topic]):
         s = stamp_to_ns(bm.msg.header.stamp)
         side = sides.get(bm.topic)
-        if side is None or s not in want or s in got[side]:
+        if side is None or s not in want or s in points or (side == 'left' and s in left):
             continue
-        got[side][s] = calibration.rectify_one(image_to_grey(bm.msg), side)
-    stamps = np.array(sorted(got['left']), dtype=np.int64)
-    return KeyframeImages(stamps, [got['left'][int(s)] for s in stamps],
-                          [got['right'].get(int(s)) for s in stamps],
-                          np.asarray(calibration.K, float), float(calibration.baseline_m))
+        img = calibration.rectify_one(image_to_grey(bm.msg), side)
+        if side == 'left':
+            left[s] = img
+            held += img.nbytes
+            right = early_right.pop(s, None)
+            if right is None:
+                continue
+            held -= right.nbytes
+        elif s in left:
+            right = img
+        else:
+            early_right[s] = img
+            held += img.nbytes
+            continue
+        pts = dense.cloud(left[s], right, calibration).points
+        points[s] = pts
+        held += pts.nbytes
+        if held > max_bytes:
+            raise InputError(f"mosaic: the keyframes' images and stereo points exceed "
+                             f'{max_bytes / 2 ** 20:.0f} MiB after {len(left)} of {len(want)} '
+                             'keyframes; raise the limit (max_bytes) or mosaic a part of the '
+                             'survey')
+    stamps = np.array(sorted(left), dtype=np.int64)
+    return KeyframeImages(stamps, [left[int(s)] for s in stamps],
+                          [points.get(int(s)) for s in stamps], np.asarray(calibration.K, float))
 
 
 def poses_at(traj: Trajectory, stamps_ns: IntArray) -> tuple[IntArray, FloatArray, IntArray]:
@@ -84,35 +123,21 @@ def poses_at(traj: Trajectory, stamps_ns: IntArray) -> tuple[IntArray, FloatArra
     at = np.array([i for _, i in rows], dtype=np.int64)
     if at.size == 0:
         return keep, np.zeros((0, 4, 4)), keep
-    tracks = np.asarray(traj.track_ids)[at]
-    return keep, np.asarray(traj.T_world_node)[at], tracks
-
-
-def stereo_points(images: KeyframeImages, pixel_stride: int = 4) -> list[FloatArray | None]:
-    """Per keyframe its dense stereo points (:class:`ga_ros.vo.dense.DenseStereo`), (n, 3) in
-    the left camera's optical frame (m); None where the right image is missing."""
-    from ga_ros.vo.calibration import StereoCalibration
-    from ga_ros.vo.dense import DenseStereo, DenseStereoConfig
-
-    h, w = images.left[0].shape[:2]
-    calib = StereoCalibration.rectified(w, h, images.K, images.baseline_m)
-    dense = DenseStereo(DenseStereoConfig(pixel_stride=pixel_stride))
-    return [None if right is None else dense.cloud(left, right, calib).points.astype(float)
-            for left, right in zip(images.left, images.right)]
+    return keep, np.asarray(traj.T_world_node)[at], np.asarray(traj.track_ids)[at]
 
 
 def stereo_ground(points_cam: list[FloatArray | None], keep: IntArray, T_map_cam: FloatArray,
                   cell_m: float) -> Surface:
     """The ground under the keyframes ``keep``: their dense stereo points (``points_cam``,
-    :func:`stereo_points`) placed with ``T_map_cam`` (one pose per kept keyframe) on a height
-    grid of ``cell_m`` (:func:`ga_ros.mapping.surface.height_grid_from_points`).
+    :attr:`KeyframeImages.points`) placed with ``T_map_cam`` (one pose per kept keyframe) on a
+    height grid of ``cell_m`` (:func:`ga_ros.mapping.surface.height_grid_from_points`).
 
     Raises
     ------
     InputError
         No keyframe has stereo points.
     """
-    pts = [p @ T[:3, :3].T + T[:3, 3] for p, T in
+    pts = [p.astype(float) @ T[:3, :3].T + T[:3, 3] for p, T in
            ((points_cam[int(k)], T) for k, T in zip(keep, T_map_cam)) if p is not None]
     if not pts:
         raise InputError('mosaic: no right image to compute the ground from; give the ground '
@@ -155,7 +180,7 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
     out: dict[str, dict[str, Any]] = {}
     panels: dict[str, tuple[MosaicPanel, SeamStats]] = {}
     mpp = config.metres_per_pixel
-    points_cam = stereo_points(images) if ground_z is None else []
+    points_cam = images.points
     for name, traj in trajectories.items():
         keep, T_map_base, tracks = poses_at(traj, images.stamps_ns)
         if keep.size == 0:

@@ -124,3 +124,25 @@ def test_mosaic_of_a_bag_without_images_is_a_warning(tmp_path: Path) -> None:
     assert any('mosaic' in w and 'stereo image bag' in w for w in r.warnings)
     assert (tmp_path / 'out' / 'trajectory_ga.tum').is_file()
     assert not list((tmp_path / 'out').glob('mosaic*'))
+
+
+def test_keyframe_images_are_memory_bounded() -> None:
+    if not (BAG / 'metadata.yaml').exists():
+        pytest.skip(f'{BAG} not found')
+    from ga_ros.errors import InputError
+    from ga_ros.io.folder_bag import open_recording
+    from ga_ros.mapping.replay_mosaic import read_keyframe_images
+    from ga_ros.replay.samples import BASE_STAMP_NS, LEFT_IMAGE_TOPIC, RIGHT_IMAGE_TOPIC
+    from ga_ros.vo.calibration import StereoCalibration
+
+    c = StereoSampleConfig()
+    rig = sim.StereoRig.for_size(c.width, c.height)
+    calib = StereoCalibration.rectified(c.width, c.height, rig.K, rig.baseline_m)
+    stamps = BASE_STAMP_NS + np.arange(0, 20) * 500_000_000  # the first 20 frames
+    with open_recording(BAG) as bag:
+        got = read_keyframe_images(bag, LEFT_IMAGE_TOPIC, RIGHT_IMAGE_TOPIC, calib, stamps)
+        assert np.array_equal(got.stamps_ns, stamps)
+        assert all(p is not None and p.shape[1] == 3 for p in got.points)
+        with pytest.raises(InputError, match='raise the limit'):
+            read_keyframe_images(bag, LEFT_IMAGE_TOPIC, RIGHT_IMAGE_TOPIC, calib, stamps,
+                                 max_bytes=5 * c.width * c.height)
