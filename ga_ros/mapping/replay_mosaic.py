@@ -34,7 +34,7 @@ from ga_ros.mapping.mosaic import (
     save_mosaic,
 )
 from ga_ros.mapping.seams import SeamStats, seam_misregistration
-from ga_ros.mapping.surface import GroundPlane, height_grid_from_points
+from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
 
 #: Default limit of the keyframe data a replay's mosaic step holds (bytes).
 MAX_KEYFRAME_BYTES = 1 << 30
@@ -126,25 +126,6 @@ def poses_at(traj: Trajectory, stamps_ns: IntArray) -> tuple[IntArray, FloatArra
     return keep, np.asarray(traj.T_world_node)[at], np.asarray(traj.track_ids)[at]
 
 
-def stereo_ground(points_cam: list[FloatArray | None], keep: IntArray, T_map_cam: FloatArray,
-                  cell_m: float) -> Surface:
-    """The ground under the keyframes ``keep``: their dense stereo points (``points_cam``,
-    :attr:`KeyframeImages.points`) placed with ``T_map_cam`` (one pose per kept keyframe) on a
-    height grid of ``cell_m`` (:func:`ga_ros.mapping.surface.height_grid_from_points`).
-
-    Raises
-    ------
-    InputError
-        No keyframe has stereo points.
-    """
-    pts = [p.astype(float) @ T[:3, :3].T + T[:3, 3] for p, T in
-           ((points_cam[int(k)], T) for k, T in zip(keep, T_map_cam)) if p is not None]
-    if not pts:
-        raise InputError('mosaic: no right image to compute the ground from; give the ground '
-                         'height (ground_z)')
-    return height_grid_from_points(np.concatenate(pts), cell_m)
-
-
 def write_mosaics(out_dir: str | Path, images: KeyframeImages,
                   trajectories: dict[str, Trajectory], T_base_cam: FloatArray | None = None,
                   config: MosaicConfig = MosaicConfig(), ground_z: float | None = None,
@@ -188,7 +169,8 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
         T_map_cam = T_map_base @ T_bc
         views = [CameraView(images.left[int(k)], T, images.K) for k, T in zip(keep, T_map_cam)]
         surface: Surface = (GroundPlane(float(ground_z)) if ground_z is not None
-                            else stereo_ground(points_cam, keep, T_map_cam, ground_cell_m))
+                            else ground_from_keyframe_points([points_cam[int(k)] for k in keep],
+                                                            T_map_cam, ground_cell_m))
         cfg = MosaicConfig(mpp, config.blend, config.max_pixels, config.margin_m)
         georef = plan_georeference(views, surface, cfg)
         mpp = georef.metres_per_pixel

@@ -148,3 +148,32 @@ def height_grid_from_points(points_map: FloatArray, cell_m: float,
     if smooth_cells > 0:
         filled = cv2.GaussianBlur(filled, (0, 0), smooth_cells, borderType=cv2.BORDER_REPLICATE)
     return HeightGrid(filled.astype(np.float32), float(x_min), float(y_max), float(cell_m))
+
+
+def ground_from_keyframe_points(points_cam: list[np.ndarray | None], T_map_cam: FloatArray,
+                                cell_m: float = 2.0) -> HeightGrid:
+    """The ground under keyframes from their points in their own camera frames (e.g. the dense
+    stereo points of ``ga/keyframe_cloud``): each placed with its keyframe's pose, then
+    :func:`height_grid_from_points`.
+
+    Parameters
+    ----------
+    points_cam : per keyframe (k, 3) points ``x y z`` in its camera frame (m), or None.
+    T_map_cam : (n, 4, 4) the keyframes' camera poses in ``map``, one per entry of
+        ``points_cam``.
+    cell_m : cell of the height grid (m).
+
+    Raises
+    ------
+    InputError
+        No keyframe has points, or the two lists differ in length.
+    """
+    T = np.asarray(T_map_cam, float).reshape(-1, 4, 4)
+    if len(points_cam) != T.shape[0]:
+        raise InputError(f'ground: {len(points_cam)} point sets for {T.shape[0]} poses')
+    pts = [np.asarray(p, float).reshape(-1, 3) @ Ti[:3, :3].T + Ti[:3, 3]
+           for p, Ti in zip(points_cam, T) if p is not None and len(p)]
+    if not pts:
+        raise InputError('ground: no keyframe has stereo points; give the ground height '
+                         '(a GroundPlane) instead')
+    return height_grid_from_points(np.concatenate(pts), cell_m)
