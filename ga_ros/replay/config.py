@@ -60,6 +60,9 @@ class ReplayConfig:
         node's parameter of the same name).
     covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
         (as the live node by default) or ``'repair'`` (eigenvalue clipping).
+    mosaic : for a stereo image bag, write ``mosaic_ga.png`` / ``mosaic_f2f.png`` of the
+        keyframes' left images with GA's and the odometry's poses and their seam
+        misregistration (:mod:`ga_ros.mapping.replay_mosaic`).
     """
 
     topics: TopicConfig = TopicConfig()
@@ -88,3 +91,4 @@ class ReplayConfig:
     tf: bool = True
     covariance_policy: str = 'reject'
     transform_publish_period_sec: float = TRANSFORM_PERIOD_S
+    mosaic: bool = False

@@ -98,6 +98,22 @@ def finish(run: ReplayRun) -> None:
         _errors_vs_ground_truth(run, traj, f2f, res.online)
     if run.config.plot:
         _plot(run, traj, f2f, gt_kf)
+    if run.config.mosaic:
+        _mosaics(run, traj, f2f)
+
+
+def _mosaics(run: ReplayRun, traj: Trajectory, f2f: Trajectory) -> None:
+    """``mosaic_ga.png`` / ``mosaic_f2f.png`` and their figures (a source without a camera
+    or a mosaic too large is a warning: the other outputs stand)."""
+    from ga_ros.mapping.replay_mosaic import replay_mosaics
+
+    try:
+        run.result.mosaic = replay_mosaics(run.source, run.out.dir, {'ga': traj, 'f2f': f2f})
+    except GaError as exc:
+        run.result.warnings.append(f'mosaic: {exc}')
+        return
+    for name, m in run.result.mosaic.items():
+        run.out.files[f'mosaic_{name}'] = Path(m['png'])
 
 
 def _last_updates(run: ReplayRun) -> Trajectory | None:

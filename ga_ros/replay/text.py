@@ -98,6 +98,7 @@ def result_text(r: ReplayResult) -> str:
     elif 'ga' not in r.errors:
         lines.append('no ground truth (none in the bag, no --ground-truth file): '
                      'no error figures')
+    lines += mosaic_lines(r.mosaic)
     for w in r.warnings:
         lines.append(f'warning: {w}')
     lines.append('outputs:')
@@ -105,6 +106,23 @@ def result_text(r: ReplayResult) -> str:
     for k in sorted(r.files):
         lines.append(f'  {k:<{width}} {r.files[k]}')
     return '\n'.join(lines)
+
+
+def mosaic_lines(mosaic: dict) -> list[str]:
+    """The mosaics' seam misregistration (``--mosaic``): per trajectory the median and 95th
+    percentile offset between overlapping keyframes of neighbouring tracks, in mosaic pixels."""
+    mosaic = {k: v for k, v in mosaic.items() if 'seams' in v}  # not the 'compare' figure
+    if not mosaic:
+        return []
+    first = next(iter(mosaic.values()))
+    lines = [f"mosaic seam misregistration (keyframe pairs of neighbouring tracks, mosaic px of "
+             f"{first['metres_per_pixel']:.3g} m):"]
+    for name, m in mosaic.items():
+        s = m['seams']
+        lines.append(f"  {name.upper():<7}median {s['median_px']:.2f} px, p95 {s['p95_px']:.2f} "
+                     f"px ({s['measured']} pairs; {m['keyframes']} keyframes, "
+                     f"{m['covered_area_m2'] / 1e4:.2f} ha)   mosaic_{name}.png")
+    return lines
 
 
 def error_lines(r: ReplayResult) -> list[str]:

@@ -157,6 +157,10 @@ def _add_output_arguments(o: argparse._ArgumentGroup) -> None:
     o.add_argument('--pose-topic', default=topics.resolve(topics.CORRECTED_POSE))
     o.add_argument('--markers-topic', default=topics.resolve(topics.NETWORK_MARKERS))
     o.add_argument('--no-plot', action='store_true', help='do not write the PNG plot')
+    o.add_argument('--mosaic', action='store_true',
+                   help='stereo image bags: write mosaic_ga.png / mosaic_f2f.png (keyframe '
+                        "images on the ground with GA's and the odometry's poses) and their "
+                        'seam misregistration in summary.json')
     o.add_argument('--no-covariance', action='store_true',
                    help='write zero covariances on the pose topic (faster on big surveys)')
     o.add_argument('--no-progress', action='store_true', help='no progress bar')
@@ -323,7 +327,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         ground_truth_rate_hz=args.ground_truth_rate,
                         ground_truth_start_s=args.ground_truth_start,
                         ground_truth_tolerance_s=args.ground_truth_tolerance, tf=not args.no_tf,
-                        covariance_policy=args.covariance_policy)
+                        covariance_policy=args.covariance_policy, mosaic=args.mosaic)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
