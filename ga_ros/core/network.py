@@ -128,8 +128,8 @@ class ConnectionNetwork:
     def indices_of(self, node_ids) -> IntArray:
         """Indices of several node ids; :class:`NetworkError` naming the unknown ones."""
         ids = np.asarray(node_ids, dtype=np.int64).ravel()
-        out = np.fromiter((self._index.get(int(i), -1) for i in ids), dtype=np.int64,
-                          count=ids.size)
+        get = self._index.get  # Python ints from tolist(): no NumPy scalar per look-up
+        out = np.array([get(i, -1) for i in ids.tolist()], dtype=np.int64).reshape(ids.size)
         if (out < 0).any():
             missing = ids[out < 0][:10].tolist()
             raise NetworkError(f'unknown node(s) {missing}; add them with add_node() first')

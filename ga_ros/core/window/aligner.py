@@ -46,7 +46,7 @@ from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.core.window.queries import covariance, covariances
 from ga_ros.core.window.refinement import absorbed_priors
 from ga_ros.core.window.state import Rollback, WindowState, no_weighted
-from ga_ros.core.window.update import WindowUpdate
+from ga_ros.core.window.update import WindowUpdate, connection_terms
 from ga_ros.errors import GaError, InputError
 from ga_ros.runtime import blas_threads
 
@@ -352,9 +352,10 @@ class TrackWindowAligner:
         nothing (it may run in the background thread of :attr:`ahead`). ``covariances=False``:
         the leaving nodes' covariances are left to :meth:`_deferred_covariances`."""
         cfg = self.config
-        return self.policy.plan(self.state, track, res, last_window, priors, n, nc,
+        st, kept = self.state, self.updater.terms  # the last window's connections' terms
+        return self.policy.plan(st, track, res, last_window, priors, n, nc,
                                 int(cfg.prior_band), int(cfg.prior_hubs), self._factor_lock,
-                                covariances)
+                                covariances, lambda rows: connection_terms(st, kept, rows))
 
     def _refinement_due(self, n_finished: int) -> bool:
         """Whether a background refinement is due at the update of the ``n_finished``-th

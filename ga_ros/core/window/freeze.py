@@ -115,6 +115,12 @@ class FreezePlan:
     covariances: Callable[[], FloatArray] | None = None
 
 
+#: ``terms(rows)``: the covariances, weights and measured motions of connection rows, as
+#: attributes ``cov``, ``weights`` (``cov^-1``), ``T_meas`` and ``T_meas_inv`` ((m, 6, 6) and
+#: (m, 4, 4) arrays in the rows' order; :func:`ga_ros.core.window.update.connection_terms`).
+ConnectionTermsOf = Callable[[IntArray], object]
+
+
 #: Freezing: above this many leaving nodes, their marginal covariances come from one partial
 #: factorisation of the window with them ordered last, below it from sparse solves.
 TRAILING_MIN_NODES = 24
@@ -148,7 +154,8 @@ class FreezePolicy:
 
     def plan(self, state: WindowState, track: int, res: SolveResult | None,
              last_window: IntArray, priors: list, n: int, nc: int, band: int, hubs: int,
-             factor_lock: threading.Lock, covariances: bool = True) -> FreezePlan:
+             factor_lock: threading.Lock, covariances: bool = True,
+             terms: ConnectionTermsOf | None = None) -> FreezePlan:
         """The freeze of ``track`` (:class:`FreezePlan`) from the last adjustment ``res`` (of
         the nodes ``last_window``), the joint priors ``priors``, the first ``n`` nodes and
         ``nc`` connections; reads the tables of ``state`` and changes nothing in them (it may run
@@ -157,12 +164,15 @@ class FreezePolicy:
         ``res``'s factor (shared with the covariance queries). ``covariances=False``: the leaving
         nodes' marginal covariances are not computed (``plan.cov`` is ``None``) but left to
         ``plan.covariances`` (for a freeze whose covariances a refinement installed with it
-        replaces)."""
+        replaces). ``terms``: the absorbed connections' covariances, weights and measured
+        motions (:data:`ConnectionTermsOf`: the last window's, which held them), else
+        computed here."""
         nodes = np.array(state.track_nodes[track], dtype=np.int64)
         # the new prior first: a covariance asked for right after an update (the node's newest
         # pose) factors the last adjustment's system meanwhile, and the selected inversion
         # below then reuses that factorisation
-        absorbed, dropped, prior = self.marginalise(state, nodes, priors, n, nc, band, hubs)
+        absorbed, dropped, prior = self.marginalise(state, nodes, priors, n, nc, band, hubs,
+                                                    terms)
         cov_rows, cov = np.zeros(0, np.int64), np.zeros((0, 6, 6))
         if res is not None:
             inside = nodes[np.isin(nodes, last_window)]
@@ -180,7 +190,7 @@ class FreezePolicy:
         return FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior)
 
     def marginalise(self, state: WindowState, L: IntArray, priors: list, n: int, nc: int,
-                    band: int, hubs: int
+                    band: int, hubs: int, terms: ConnectionTermsOf | None = None
                     ) -> tuple[IntArray, tuple[int, ...], JointPrior | None]:
         """Absorb the terms of the leaving nodes ``L`` (rows of ``state``) into one joint Gaussian
         prior.
@@ -194,7 +204,8 @@ class FreezePolicy:
         both, so the prior is the exact marginal in the linear limit and covariances are not
         overconfident. Priors (of ``priors``) that share nodes with the absorbed terms are
         merged in. Returns the absorbed connection rows, the indices of the merged priors and
-        the new prior (``None`` if no node is kept); changes nothing.
+        the new prior (``None`` if no node is kept); changes nothing. ``terms``: as in
+        :meth:`plan`.
         """
         src, dst, status0 = state.src.a[:nc], state.dst.a[:nc], state.status.a[:nc]
         in_L = np.zeros(n, dtype=bool)
@@ -229,10 +240,16 @@ class FreezePolicy:
         dropped = tuple(touching)
         datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any()) and not free_datum
         net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
-        net = state.subnetwork(net_nodes, conns)
         fixed = [ids[0]] if datum else []
         T = state.T  # rows below n: not changed by adding measurements
-        N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
+        if terms is None:
+            net = state.subnetwork(net_nodes, conns)
+            N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
+        else:  # the same values as computing them (each depends on its measurement only)
+            kept = terms(conns)
+            net = state.subnetwork(net_nodes, conns, kept.cov)
+            N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged,
+                                              kept.weights, (kept.T_meas, kept.T_meas_inv))
         row_of = dict(zip(ids[net_nodes].tolist(), net_nodes.tolist()))
         free_idx = np.array([row_of[int(i)] for i in free_ids], dtype=np.int64)
         kept = keep[free_idx]

@@ -164,25 +164,7 @@ class WindowUpdate:
         """The covariances, weights and measured motions of connections (sorted rows), those
         of the last call reused (a window keeps most of its connections from one update to the
         next)."""
-        kept = self.terms
-        if conns is kept.rows:  # the same rows again (the gate after the adjustment)
-            return kept
-        pos = np.searchsorted(kept.rows, conns)
-        hit = pos < kept.rows.size
-        hit[hit] = kept.rows[pos[hit]] == conns[hit]
-        at = pos[hit]
-        out = ConnectionTerms.empty(conns.size, conns)
-        out.cov[hit], out.weights[hit], out.T_meas[hit], out.T_meas_inv[hit] = (
-            kept.cov[at], kept.weights[at], kept.T_meas[at], kept.T_meas_inv[at])
-        if not hit.all():
-            new = conns[~hit]
-            out.cov[~hit] = cov = self.state.ccov.a[new]
-            out.weights[~hit] = spd_inverse(cov,
-                                            "a connection's covariance is not positive definite")
-            z = self.state.z.a[new]
-            T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
-            out.T_meas[~hit], out.T_meas_inv[~hit] = T_meas, se3.inverse(T_meas)
-        self.terms = out
+        self.terms = out = connection_terms(self.state, self.terms, conns)
         return out
 
     def last(self) -> SolveResult | None:
@@ -274,3 +256,28 @@ class WindowUpdate:
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self.quality.summary(net, res, priors, conns, self.config,
                                          self.state.n_updates))
+
+
+def connection_terms(state: WindowState, kept: ConnectionTerms, conns: IntArray
+                     ) -> ConnectionTerms:
+    """The :class:`ConnectionTerms` of the connection rows ``conns`` (sorted): those of
+    ``kept`` copied, the others computed from the connection table of ``state`` (the same
+    values either way: each depends on its own measurement only). Changes nothing, so a freeze
+    computed in the background may call it with the last update's terms."""
+    if conns is kept.rows:  # the same rows again (the gate after the adjustment)
+        return kept
+    pos = np.searchsorted(kept.rows, conns)
+    hit = pos < kept.rows.size
+    hit[hit] = kept.rows[pos[hit]] == conns[hit]
+    at = pos[hit]
+    out = ConnectionTerms.empty(conns.size, conns)
+    out.cov[hit], out.weights[hit], out.T_meas[hit], out.T_meas_inv[hit] = (
+        kept.cov[at], kept.weights[at], kept.T_meas[at], kept.T_meas_inv[at])
+    if not hit.all():
+        new = conns[~hit]
+        out.cov[~hit] = cov = state.ccov.a[new]
+        out.weights[~hit] = spd_inverse(cov, "a connection's covariance is not positive definite")
+        z = state.z.a[new]
+        T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+        out.T_meas[~hit], out.T_meas_inv[~hit] = T_meas, se3.inverse(T_meas)
+    return out

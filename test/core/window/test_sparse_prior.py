@@ -232,10 +232,10 @@ def test_sparse_prior_freeze_keeps_the_exact_marginals_of_the_boundary(policy, m
     seen = {}
     orig = FreezePolicy.marginalise
 
-    def once(self, state, L, priors, n, nc, band, hubs):
-        out = orig(self, state, L, priors, n, nc, band, hubs)  # changes nothing
+    def once(self, state, L, priors, n, nc, band, hubs, terms=None):
+        out = orig(self, state, L, priors, n, nc, band, hubs, terms)  # changes nothing
         if 'dense' not in seen:
-            seen['dense'] = orig(self, state, L, priors, n, nc, -1, hubs)[2]
+            seen['dense'] = orig(self, state, L, priors, n, nc, -1, hubs, terms)[2]
             seen['sparse'] = out[2]
         return out
 

@@ -283,3 +283,40 @@ def test_window_priors_carry_their_rank_and_no_solve_recounts_it(monkeypatch, re
     assert n_priors > 0
     assert counted == []
 
+
+
+@pytest.mark.parametrize('policy', ['weighted', 'marginal'])
+def test_a_freeze_with_the_windows_connection_terms_equals_one_computing_them(monkeypatch,
+                                                                             policy):
+    """A freeze reuses the last window's weights and measured motions of the connections it
+    absorbs (:func:`~ga_ros.core.window.update.connection_terms`) instead of computing them
+    again from the connection table: the prior is bit for bit the one computed without them,
+    at every freeze of a survey (both policies)."""
+    from ga_ros.core.window import freeze
+
+    sc, nm, ms = noisy_aerial_survey(6, 10, 3.0, 4)
+    real = freeze.FreezePolicy.marginalise
+    compared = []
+
+    def both(self, state, L, priors, n, nc, band, hubs, terms=None):
+        got = real(self, state, L, priors, n, nc, band, hubs, terms)
+        ref = real(self, state, L, priors, n, nc, band, hubs, None)
+        assert terms is not None
+        np.testing.assert_array_equal(got[0], ref[0])
+        assert got[1] == ref[1] and (got[2] is None) == (ref[2] is None)
+        if ref[2] is not None:
+            for a, b in zip(got[2], ref[2]):
+                a = a.toarray() if hasattr(a, 'toarray') else a
+                b = b.toarray() if hasattr(b, 'toarray') else b
+                np.testing.assert_array_equal(a, b)
+        compared.append(ref[2] is not None)
+        return got
+
+    monkeypatch.setattr(freeze.FreezePolicy, 'marginalise', both)
+    al = TrackWindowAligner(AlignerConfig(window_tracks=2, freeze_policy=policy, prior_band=3,
+                                          prior_hubs=2, refine_every_tracks=0),
+                            sc.T_world_node[0])
+    for ups in _updates(al, ms):
+        assert all(not str(u.reason).startswith('failed') for u in ups)
+    al.close()
+    assert len(compared) >= 3 and any(compared)
