@@ -58,7 +58,7 @@ from ga_ros.core.calibration.parameters import (
     parameter,
 )
 from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import GaussianPrior, SolveResult, SolverConfig, solve
+from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, solve
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
