@@ -180,21 +180,13 @@ class OursRun:
 
 
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
-             cfg: AlignerConfig, calibration: CalibrationConfig | None = None,
-             online_calibration: bool = False) -> OursRun:
+             cfg: AlignerConfig, calibration: CalibrationConfig | None = None) -> OursRun:
     """ga-ros online and final (module doc), with its update times and CPU; with
     ``calibration``, also final + calibration: ``refine_batch(calibration=...)`` after the
-    final one (the odometry's scale and yaw-rate corrections estimated with the poses);
-    ``online_calibration``: the aligner is a
-    :class:`~ga_ros.core.calibration.online.CalibratingAligner`."""
+    final one (the odometry's scale and yaw-rate corrections estimated with the poses)."""
     cpu0 = all_cpu_seconds()
     n = run.T_true.shape[0]
-    if online_calibration:
-        from ga_ros.core.calibration.online import CalibratingAligner
-
-        al = CalibratingAligner(cfg, T_world_first=run.T_true[0])
-    else:
-        al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
+    al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
     fix_at = dict(zip(idx.tolist(), range(idx.size)))
     fix_cov = np.diag([noise_m ** 2] * 3 + [-1.0] * 3)
     online = np.zeros((n, 4, 4))

@@ -14,7 +14,6 @@ from bag_fixtures import ODOMETRY, POSE_COV_STAMPED, odometry_msg, pose_cov_stam
 from test_fixes_replay import T0_NS, _drifting, _evaluate, _path
 
 from ga_ros.core.window import AlignerConfig
-from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import AbsoluteInputConfig
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.io.bag_writer import BagWriter
