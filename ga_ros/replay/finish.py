@@ -124,6 +124,9 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         mode = run.config.variance_components
         vce = mode != 'off' and hasattr(run.aligner, 'variance_components')
         calibrate = run.config.calibrate and hasattr(run.aligner, 'calibration')
+        if run.config.calibrate and not calibrate:
+            res.warnings.append('--calibrate needs the window aligner (--aligner window): the '
+                                'final batch ran without calibration')
         vce = vce and not calibrate  # the calibrated batch takes their place
         try:
             if calibrate:

@@ -67,3 +67,32 @@ def test_replay_calibrate_recovers_the_odometry_bias(tmp_path: Path) -> None:
     lines = calibration_lines(summary['calibration'])
     assert any('odom0' in t and 'yaw_rate' in t and '+-' in t for t in lines)
     assert rmse[True] < 0.8 * rmse[False], rmse
+
+
+def test_command_line_calibrate() -> None:
+    """``--calibrate`` sets ``ReplayConfig.calibrate`` (off by default)."""
+    import argparse
+
+    from ga_ros.cli.commands.replay import add_replay_arguments, replay_config
+
+    p = argparse.ArgumentParser()
+    add_replay_arguments(p)
+    assert not replay_config(p.parse_args([]), progress=False).calibrate
+    assert replay_config(p.parse_args(['--calibrate']), progress=False).calibrate
+
+
+def test_calibration_lines_name_the_reason() -> None:
+    """The printout gives an estimated parameter with its sigma and a fixed one with its
+    reason (the summary's plain data, as ``summary.json`` holds it)."""
+    from ga_ros.core.calibration import AdditionalParameter, CalibrationReport
+
+    rep = CalibrationReport([
+        AdditionalParameter('odom0', 'yaw_rate', 'rad/s', 0.005, 0.0004, 12.5, 3.3, 0.2, True),
+        AdditionalParameter('odom0', 'scale', '1', reason='not significant: |t| 0.8 < 3.3')],
+        alpha=0.001)
+    d = json.loads(json.dumps(rep.as_dict()))
+    assert d['parameters'][1]['sigma'] is None  # NaN is not JSON
+    lines = calibration_lines(d)
+    assert 'yaw_rate' in lines[1] and '+- 0.0004 rad/s' in lines[1]
+    assert 'not estimated (not significant' in lines[2]
+    assert calibration_lines({}) == []
