@@ -33,6 +33,12 @@ Figures (2-D position RMSE against the ground truth, over every sample):
   with ``relinearizeThreshold`` 1e-4, ``relinearizeSkip`` 1 and three extra ``update()`` calls
   per fix (the filtering solution that the window aligner computes).
 
+ga-ros final + calibration (``--no-calibration`` skips it): ``refine_batch`` again with
+``calibration=CalibrationConfig()`` (:mod:`ga_ros.core.calibration`): the odometry's scale and
+yaw-rate corrections are estimated with the poses where the network determines them and they
+pass their significance test. GTSAM's ``BetweenFactorPose3`` cannot express a yaw-rate bias,
+so GTSAM runs without calibration and the ratio printed is against GTSAM batch without it.
+
 Beside the RMSE table: the CPU seconds of all processes (this one with its threads, and the
 refinement worker) of ga-ros online, ga-ros final, GTSAM batch LM and GTSAM iSAM2 (updated at
 each fix), and the mean ``update_ms`` of each quarter of the run's tracks (flat when the cost of
@@ -57,6 +63,7 @@ from ga_ros.arrays import FloatArray
 from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.bench.data import SHARED_DATA
 from ga_ros.bench.gtsam_runner import gtsam_installed
+from ga_ros.core.calibration import CalibrationConfig
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -107,6 +114,7 @@ class FixBenchFigures:
     fixes_alone_m: float
     ours_online_m: float
     ours_final_m: float
+    ours_final_cal_m: float = float('nan')
     gtsam_batch_m: float = float('nan')
     isam2_online_m: float = float('nan')
     isam2_final_m: float = float('nan')
@@ -118,6 +126,8 @@ class FixBenchFigures:
     ours_final_cpu_s: float = float('nan')
     gtsam_batch_cpu_s: float = float('nan')
     isam2_cpu_s: float = float('nan')
+    ours_final_cal_cpu_s: float = float('nan')
+    calibration: list[str] = field(default_factory=list)
     update_ms_quarters: list[float] = field(default_factory=list)
     fix_outliers: int = 0
     notes: list[str] = field(default_factory=list)
@@ -164,11 +174,16 @@ class OursRun:
     update_ms: list[float]
     online_cpu_s: float
     final_cpu_s: float
+    final_cal: FloatArray | None = None
+    final_cal_cpu_s: float = float('nan')
+    calibration: list[str] = field(default_factory=list)
 
 
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
-             cfg: AlignerConfig) -> OursRun:
-    """ga-ros online and final (module doc), with its update times and CPU."""
+             cfg: AlignerConfig, calibration: CalibrationConfig | None = None) -> OursRun:
+    """ga-ros online and final (module doc), with its update times and CPU; with
+    ``calibration``, also final + calibration: ``refine_batch(calibration=...)`` after the
+    final one (the odometry's scale and yaw-rate corrections estimated with the poses)."""
     cpu0 = all_cpu_seconds()
     n = run.T_true.shape[0]
     al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
@@ -205,9 +220,14 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
     al.refine_batch()
     final = al.corrected_path().T_world_node.copy()
     cpu2 = all_cpu_seconds()
-    outliers = al.fix_stats.outliers
+    out = OursRun(online, final, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1)
+    if calibration is not None:
+        al.refine_batch(calibration=calibration)
+        out.final_cal = al.corrected_path().T_world_node.copy()
+        out.final_cal_cpu_s = all_cpu_seconds() - cpu2
+        out.calibration = al.calibration.lines() if al.calibration is not None else []
     al.close()
-    return OursRun(online, final, outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1)
+    return out
 
 
 def _gtsam_graph(run, idx, p, noise_m, cov, cfg):
@@ -295,8 +315,8 @@ def run_isam2(run, idx, p, noise_m, cov, cfg, converged: bool = False
 def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Path = DEFAULT_MAT,
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
                 with_gtsam: bool = True, isam2_converged: bool = False,
-                refine_every: int | None = None, executor: str | None = None
-                ) -> FixBenchFigures:
+                refine_every: int | None = None, executor: str | None = None,
+                calibrate: bool = True) -> FixBenchFigures:
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``: the
     aligner's ``refine_every_tracks`` and ``refine_executor`` (``None``: its defaults, as
     ``ga-ros replay`` runs it: a refinement after every track in a worker process)."""
@@ -312,7 +332,7 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
     for i in range(1, n):
         dead[i] = dead[i - 1] @ run.steps[i - 1]
     t0 = time.perf_counter()
-    ours = run_ours(run, idx, p, noise_m, cov, cfg)
+    ours = run_ours(run, idx, p, noise_m, cov, cfg, CalibrationConfig() if calibrate else None)
     t_ours = time.perf_counter() - t0
     fig = FixBenchFigures(interval_s, noise_m, n, int(idx.size), _rmse(dead, run.T_true),
                           _rmse(_interpolated(run, idx, p), run.T_true),
@@ -320,9 +340,13 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                           ours_seconds=t_ours, fix_outliers=ours.outliers,
                           ours_online_cpu_s=ours.online_cpu_s,
                           ours_final_cpu_s=ours.final_cpu_s,
+                          calibration=ours.calibration,
+                          ours_final_cal_cpu_s=ours.final_cal_cpu_s,
                           update_ms_quarters=[float(np.mean(q)) for q in
                                               np.array_split(np.asarray(ours.update_ms), 4)
                                               if q.size])
+    if ours.final_cal is not None:
+        fig.ours_final_cal_m = _rmse(ours.final_cal, run.T_true)
     if with_gtsam and gtsam_installed():
         t0, c0 = time.perf_counter(), all_cpu_seconds()
         fig.gtsam_batch_m = _rmse(run_gtsam_batch(run, idx, p, noise_m, cov, cfg), run.T_true)
@@ -355,6 +379,19 @@ def table(figs: list[FixBenchFigures]) -> str:
             f'{f.gtsam_batch_m:12.2f} {f.isam2_online_m:13.2f} {f.isam2_final_m:12.2f} '
             f'{f.ours_final_m / f.gtsam_batch_m:12.3f} {f.ours_online_m / f.isam2_online_m:13.3f}'
             f' {f.fix_outliers:6d} {f.isam2_converged_online_m:18.2f}')
+    if any(np.isfinite(f.ours_final_cal_m) for f in figs):
+        lines += ['', 'ours final + calibration: refine_batch(calibration=CalibrationConfig()) '
+                  "after ours final: the odometry's scale and yaw-rate corrections estimated "
+                  'with the poses where significant (alpha 0.001); GTSAM batch without them '
+                  '(a BetweenFactorPose3 cannot express a yaw-rate bias), so the ratio is '
+                  'ours final + calibration / GTSAM batch without calibration.',
+                  'interval  noise  ours-final+cal  gtsam-batch  final+cal/batch  '
+                  'final+cal-cpu  calibration']
+        for f in figs:
+            lines.append(
+                f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_final_cal_m:15.2f} '
+                f'{f.gtsam_batch_m:12.2f} {f.ours_final_cal_m / f.gtsam_batch_m:16.3f} '
+                f'{f.ours_final_cal_cpu_s:14.2f}  ' + '; '.join(f.calibration))
     lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
               'worker): ga-ros online (the whole online run, as the replay runs it), ga-ros '
               'final (refine_batch), GTSAM batch LM, GTSAM iSAM2 updated at each fix; ratio '
@@ -394,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--no-gtsam', action='store_true')
     ap.add_argument('--isam2-converged', action='store_true',
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
+    ap.add_argument('--no-calibration', action='store_true',
+                    help='skip the ours final + calibration columns')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():
@@ -401,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     figs = [bench_fixes(float(i), float(s), args.seed, args.data, args.sigma_xy,
                         args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
-                        args.refine_every, args.executor)
+                        args.refine_every, args.executor, not args.no_calibration)
             for s in args.noise.split(',') for i in args.intervals.split(',')]
     if args.json:
         print(json.dumps([asdict(f) for f in figs]))

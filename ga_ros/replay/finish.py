@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.calibration import CalibrationConfig
 from ga_ros.core.quality.variance_components import VarianceComponentConfig
 from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.eval.metrics import trajectory_error
@@ -138,8 +139,16 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
     if run.config.final_batch:
         mode = run.config.variance_components
         vce = mode != 'off' and hasattr(run.aligner, 'variance_components')
+        calibrate = run.config.calibrate and hasattr(run.aligner, 'calibration')
+        if run.config.calibrate and not calibrate:
+            res.warnings.append('--calibrate needs the window aligner (--aligner window): the '
+                                'final batch ran without calibration')
+        vce = vce and not calibrate  # the calibrated batch takes their place
         try:
-            if vce:
+            if calibrate:
+                u = run.aligner.refine_batch(variance_groups=run.groups,
+                                             calibration=CalibrationConfig())
+            elif vce:
                 u = run.aligner.refine_batch(
                     variance_groups=run.groups,
                     variance_config=VarianceComponentConfig(apply=mode == 'apply'))
@@ -152,6 +161,9 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         run.update(u, per_track=False)
         res.final_batch = True
         res.final_batch_update = plain_fields(u)
+        cal = getattr(run.aligner, 'calibration', None) if calibrate else None
+        if cal is not None:
+            res.calibration = cal.as_dict()
         vc = getattr(run.aligner, 'variance_components', None) if vce else None
         if vc is not None:
             res.variance_components = vc.as_dict()

@@ -287,7 +287,7 @@ class ReplayRun:
         for a in out.admitted:
             self.odom.add(a)  # its F2F integration (without standard inputs)
             self.conn.append(a)
-            if self.config.variance_components != 'off':
+            if self.config.variance_components != 'off' or self.config.calibrate:
                 self.groups.add(a)
         for text in out.notes:
             if text.startswith('held measurement rejected: '):

@@ -90,6 +90,7 @@ def result_text(r: ReplayResult) -> str:
                      f" {q['n_w_rejected']} rejected by the w-test, median MDB "
                      f"{q['mdb_median_m']:.3g} m")
     lines += variance_lines(r.variance_components)
+    lines += calibration_lines(r.calibration)
     if 'ga' in r.errors:
         lines += error_lines(r)
     if r.ground_truth:
@@ -152,6 +153,24 @@ def error_lines(r: ReplayResult) -> list[str]:
             change = relative_change_text(e.compared(how), f2f.compared(how), 'F2F')
             text += f'   {change}' if change else ''
         lines.append(f'{text}   {what}, {file}')
+    return lines
+
+
+def calibration_lines(cal: dict) -> list[str]:
+    """The additional parameters per source of the final batch
+    (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`), one line each."""
+    params = cal.get('parameters', []) if cal else []
+    if not params:
+        return []
+    lines = [f"calibration (final batch; test alpha {cal['alpha']:g}; scale: t_true = (1 + k) "
+             't_meas; yaw_rate: correction added to the yaw rate, rad/s):']
+    for p in params:
+        if p['estimated']:
+            text = (f"{p['value']:.6g} +- {p['sigma']:.2g} {p['unit']} "
+                    f"(|t| {p['test']:.1f})")
+        else:
+            text = f"not estimated ({p['reason']})"
+        lines.append(f"  {p['source']:<12} {p['name']:<9} {text}")
     return lines
 
 

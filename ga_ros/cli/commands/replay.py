@@ -194,6 +194,10 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
                         '(also weighted and published with) or off')
     a.add_argument('--no-variance-components', action='store_true',
                    help='same as --variance-components off')
+    a.add_argument('--calibrate', action='store_true',
+                   help="the final batch also estimates each odometry source's scale and "
+                        'yaw-rate corrections where the network determines them and they are '
+                        'significant (docs/calibration.md); printed and in summary.json')
     a.add_argument('--no-anchor', action='store_true',
                    help='start at the identity instead of the ground-truth first pose (the '
                         'errors are then compared after rigid alignment)')
@@ -318,6 +322,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         final_batch=not args.no_final_batch,
                         variance_components=('off' if args.no_variance_components
                                              else args.variance_components),
+                        calibrate=args.calibrate,
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=inputs,

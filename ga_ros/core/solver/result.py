@@ -88,6 +88,17 @@ class SolveResult:
             return self._system.marginal_blocks(
                 np.atleast_1d(np.asarray(node_ids, dtype=np.int64)))
 
+    def solve_normal(self, rhs: FloatArray) -> FloatArray:
+        """``N^-1 rhs`` with the factor of the normal matrix at the solution: ``rhs`` (u d,)
+        or (u d, k), rows in the order of :attr:`free_node_ids` (``d`` unknowns per node,
+        ``[x y z rx ry rz]`` for se3). Used to reduce additional unknowns that border ``N``
+        (:mod:`ga_ros.core.calibration`)."""
+        if self._system is None:
+            raise SolverError('this result carries no normal matrix')
+        rhs = np.asarray(rhs, dtype=float)
+        with blas_threads():
+            return self._system.chol.solve(rhs) if rhs.size else rhs.copy()
+
     def release_factor(self) -> SparseCholesky | None:
         """Hand this result's sparse factor over to a next :func:`solve` (its ``factor``), which
         then skips the symbolic analysis if its pattern is the same. This result keeps working:

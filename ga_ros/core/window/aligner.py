@@ -19,6 +19,7 @@ from dataclasses import asdict
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.calibration import CalibrationConfig, CalibrationReport, solve_with_calibration
 from ga_ros.core.fixes import FixStats, FixTerm, gauge_information, offset_information
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality.variance_components import (
@@ -72,6 +73,9 @@ class TrackWindowAligner:
     ahead : the freeze computed ahead (:class:`~ga_ros.core.window.freeze_ahead.FreezeAhead`).
     variance_components : the variance factors per source of the last :meth:`refine_batch`
         that estimated them (None before).
+    calibration : the additional parameters per source of the last :meth:`refine_batch`
+        that estimated them (:class:`~ga_ros.core.calibration.CalibrationReport`; None
+        before).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
@@ -94,6 +98,7 @@ class TrackWindowAligner:
     def _attach(self, state: WindowState) -> None:
         self.state = state
         self.variance_components: VarianceComponents | None = None
+        self.calibration: CalibrationReport | None = None
         state.fixes.gate_prob = float(self.config.fix_gate_prob)
         self.policy = freeze_policy(self.config.freeze_policy)
         self.updater = WindowUpdate(state, self.config)
@@ -472,7 +477,8 @@ class TrackWindowAligner:
     # --------------------------------------------------------------- batch refinement
     def refine_batch(self, max_iterations: int | None = None,
                      variance_groups: SourceGroups | None = None,
-                     variance_config: VarianceComponentConfig | None = None) -> UpdateResult:
+                     variance_config: VarianceComponentConfig | None = None,
+                     calibration: CalibrationConfig | None = None) -> UpdateResult:
         """Full batch adjustment of every node with every kept connection (end of a survey).
 
         With ``variance_groups`` (the group of every measurement, by source), the variance
@@ -481,6 +487,14 @@ class TrackWindowAligner:
         fixes are one group, ``fixes``) and the solution, its published covariances and
         :attr:`variance_components` use them; the connections' stored covariances, and so
         the later window updates, keep their stated values.
+
+        With ``calibration``, each odometry source's additional parameters (scale, yaw rate)
+        are estimated with the adjustment where the network determines them
+        (:func:`~ga_ros.core.calibration.solve_with_calibration`; the sources of the
+        consecutive motions from ``variance_groups`` if given, else one source ``motion``;
+        cross-track connections get none) and :attr:`calibration` reports them; the refined
+        poses use the corrected motions, the stored connections keep their measured ones.
+        It takes the place of the variance components.
 
         The open track is finished first. Outliers stay excluded. The covariances published
         afterwards come from this adjustment: frozen nodes get their marginal blocks from it
@@ -504,7 +518,18 @@ class TrackWindowAligner:
         free_datum = self.config.datum == 'fixes'
         fixed = [] if free_datum else [st.ids[0]]
         priors = st.fixes.priors(np.arange(n), st.T, st.idarr.a)
-        if variance_groups is None:
+        if calibration is not None:
+            ids = st.idarr.a
+            cross = st.cross.a[keep]
+            names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+                     if variance_groups is not None else ['motion'] * keep.size)
+            sources = [None if c else g for g, c in zip(names, cross.tolist())]
+            stamp = st.stamp.astype(np.float64)
+            dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
+            res, self.calibration = solve_with_calibration(
+                net, st.T[:n], sources, dt_s, scfg, fixed=fixed, priors=priors,
+                calibration=calibration)
+        elif variance_groups is None:
             res = solve(net, st.T[:n], scfg, fixed=fixed, priors=priors)
         else:
             ids = st.idarr.a

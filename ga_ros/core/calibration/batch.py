@@ -1,0 +1,377 @@
+"""Self-calibration in the batch adjustment: the additional parameters of each odometry source
+(:mod:`ga_ros.core.calibration.parameters`) estimated with the poses, where the network
+determines them.
+
+The joint adjustment. The unknowns are the poses ``x`` and the parameters ``c``; a connection
+of a calibrated source has the misclosure ``e = log(T_corr(c)^-1 T_i^-1 T_j)``. Its normal
+equations border the solver's normal matrix ``N_xx`` (poses, fixes and priors):
+
+    [N_xx  N_xc] [dx]     [u_x]        N_xc = sum A' W E,  N_cc = sum E' W E,  u_c = sum E' W e
+    [N_cx  N_cc] [dc] = - [u_c]
+
+with ``A = de/dx`` (the solver's ``[-J_r(e)^-1 Ad(T_ij^-1), J_r(e)^-1]``), ``E = de/dc``
+(:func:`~ga_ros.core.calibration.parameters.misclosure_jacobian`) and ``W`` the connection's
+weight (``S^-1`` times its robust weight). The poses are eliminated with the factor of ``N_xx``
+that the solver keeps (:meth:`~ga_ros.core.solver.SolveResult.solve_normal`): the reduced
+normal matrix of the parameters is ``H = N_cc - N_cx N_xx^-1 N_xc`` and, at a pose solution
+for the current ``c`` (``u_x = 0``), the step is ``dc = -H^-1 u_c``; the poses are then solved
+again with the motions corrected by the new ``c`` (:func:`ga_ros.core.solver.solve`, warm from
+the last estimate). This is Gauss-Newton on the joint problem with the poses re-solved at every
+step (variable projection), and ``Q_cc = H^-1`` is the parameters' block of the joint inverse.
+
+Which parameters are estimated (as data snooping decides which observation is an outlier:
+never estimate what the data cannot see). All candidates (every source x every parameter kind)
+start free; then, one at a time, a parameter is fixed to zero with the reason recorded:
+
+1. no motion it acts on (no translation for a scale, zero durations for a yaw rate);
+2. not determined: its information left after the poses are eliminated, ``H_jj / N_cc,jj``,
+   is below :attr:`CalibrationConfig.min_information_ratio` (odometry without fixes or loop
+   closures: the poses absorb a scale or a heading drift completely);
+3. not separable: the condition number of ``H`` in correlation form exceeds
+   :attr:`CalibrationConfig.max_condition` (the parameter with the least information goes);
+4. not significant: ``|c_j| / (sigma0 sqrt(Q_cc,jj))`` (``sigma0^2`` the a-posteriori variance
+   factor of the joint adjustment, redundancy ``r - p``) below the two-sided quantile of
+   Student's t with ``r - p`` degrees of freedom at :attr:`CalibrationConfig.alpha` (the
+   least significant goes, and the rest are estimated again). With no systematic error a
+   parameter is switched on with probability ``alpha``. A weak datum prior (``datum='fixes'``'s
+   gauge) counts in the solver's redundancy without adding residuals, so on a small network
+   ``sigma0^2`` comes out low and the test switches on a little more often.
+
+The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
+``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
+leave out the parameters' own uncertainty, ``N_xx^-1 N_xc Q_cc N_cx N_xx^-1``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.stats import t as student_t
+
+from ga_ros.arrays import FloatArray
+from ga_ros.core.calibration.parameters import (
+    PARAMETERS,
+    corrected_motions,
+    misclosure_jacobian,
+    parameter,
+)
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, solve
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Settings of :func:`solve_with_calibration`.
+
+    Attributes
+    ----------
+    parameters : the parameter kinds estimated per source (:data:`PARAMETERS`:
+        ``'scale'``, ``'yaw_rate'``).
+    alpha : significance level of the two-sided test of each parameter (module doc, step 4):
+        the probability of switching a parameter on when the source has no such error.
+    min_information_ratio : a parameter whose information left after eliminating the poses is
+        below this fraction of its own (step 2) is not determined by the network.
+    max_condition : largest condition number of the parameters' reduced normal matrix in
+        correlation form (step 3).
+    max_iterations : Gauss-Newton steps of the parameters per set of free parameters.
+    tolerance : the steps stop when every parameter moved less than this fraction of its
+        sigma.
+    """
+
+    parameters: tuple[str, ...] = ('scale', 'yaw_rate')
+    alpha: float = 0.001
+    min_information_ratio: float = 1e-6
+    max_condition: float = 1e6
+    max_iterations: int = 10
+    tolerance: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for p in self.parameters:
+            parameter(p)
+        if not 0.0 < self.alpha < 1.0:
+            raise InputError(f'calibration alpha must be in (0, 1), got {self.alpha}')
+
+
+@dataclass
+class AdditionalParameter:
+    """One source's additional parameter after the adjustment.
+
+    Attributes
+    ----------
+    source : the odometry source (the group of its measurements).
+    name, unit : the parameter (:data:`~ga_ros.core.calibration.parameters.PARAMETERS`).
+    value : its estimate (0 when not estimated).
+    sigma : its a-priori standard deviation ``sqrt(Q_cc,jj)`` (NaN when never estimated).
+    test : ``|value| / (sigma0 sigma)`` when last estimated (NaN if never).
+    quantile : the test's critical value (two-sided Student t quantile of ``alpha``).
+    information_ratio : ``H_jj / N_cc,jj`` (module doc, step 2).
+    estimated : whether the value is used (``False``: fixed to 0 for ``reason``).
+    reason : why it is not estimated ('' when it is).
+    tested_value : the estimate when it was tested (the value that was not significant).
+    """
+
+    source: str
+    name: str
+    unit: str
+    value: float = 0.0
+    sigma: float = float('nan')
+    test: float = float('nan')
+    quantile: float = float('nan')
+    information_ratio: float = float('nan')
+    estimated: bool = False
+    reason: str = ''
+    tested_value: float = float('nan')
+
+    def line(self) -> str:
+        """One line of text: the estimate with its sigma and test, or why it is fixed."""
+        head = f'{self.source} {self.name}'
+        if self.estimated:
+            return (f'{head} = {self.value:.6g} +- {self.sigma:.2g} {self.unit} '
+                    f'(|t| {self.test:.1f} > {self.quantile:.2f})')
+        return f'{head}: not estimated ({self.reason})'
+
+
+@dataclass
+class CalibrationReport:
+    """The additional parameters of every source, and how they were found."""
+
+    parameters: list[AdditionalParameter] = field(default_factory=list)
+    alpha: float = float('nan')
+    sigma0_sq: float = float('nan')
+    iterations: int = 0
+    solves: int = 0
+
+    def estimated(self) -> list[AdditionalParameter]:
+        return [p for p in self.parameters if p.estimated]
+
+    def value(self, source: str, name: str) -> float:
+        """The value of one parameter (0 when not estimated or unknown)."""
+        return next((p.value for p in self.parameters
+                     if p.source == source and p.name == name), 0.0)
+
+    def as_dict(self) -> dict:
+        """Plain data (``summary.json``)."""
+        return {'alpha': self.alpha, 'sigma0_sq': self.sigma0_sq,
+                'iterations': self.iterations, 'solves': self.solves,
+                'parameters': [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                                for k, v in asdict(p).items()} for p in self.parameters]}
+
+    def lines(self) -> list[str]:
+        """The report as text, one parameter per line."""
+        return [p.line() for p in self.parameters]
+
+
+@dataclass
+class _Candidates:
+    """The candidate parameters: ``(source, kind)`` and the connections each acts on."""
+
+    sources: list[str]
+    kinds: list[str]
+    masks: list[np.ndarray]
+
+
+def _candidates(sources: Sequence[str | None], names: Sequence[str]) -> _Candidates:
+    src = np.array(['' if s is None else str(s) for s in sources], dtype=object)
+    out = _Candidates([], [], [])
+    for s in sorted({str(s) for s in sources if s}):
+        mask = src == s
+        for k in names:
+            out.sources.append(s)
+            out.kinds.append(k)
+            out.masks.append(mask)
+    return out
+
+
+def _per_connection(cand: _Candidates, values: FloatArray, m: int
+                    ) -> tuple[FloatArray, FloatArray]:
+    scale, yaw = np.zeros(m), np.zeros(m)
+    for j, (kind, mask) in enumerate(zip(cand.kinds, cand.masks)):
+        (scale if kind == 'scale' else yaw)[mask] += values[j]
+    return scale, yaw
+
+
+@dataclass
+class _Bordered:
+    """The reduced normal equations of the free parameters at a pose solution."""
+
+    H: FloatArray  # (p, p) N_cc - N_cx N_xx^-1 N_xc
+    g: FloatArray  # (p,) u_c
+    Ncc_diag: FloatArray  # (p,)
+
+
+def _bordered(network: ConnectionNetwork, res: SolveResult, Tcorr: FloatArray,
+              dt_s: FloatArray, cand: _Candidates, active: list[int]) -> _Bordered:
+    arrays = network.arrays()
+    sel = np.zeros(len(arrays), bool)
+    for j in active:
+        sel |= cand.masks[j]
+    idx = np.nonzero(sel)[0]
+    p = len(active)
+    T = res.T_world_node
+    src, dst = arrays.src[idx], arrays.dst[idx]
+    Tij = se3.relative(T[src], T[dst])
+    e = se3.log(se3.inverse(Tcorr[idx]) @ Tij)
+    Jr_inv = se3.right_jacobian_inv(e)
+    A_dst = Jr_inv
+    A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
+    E = np.zeros((idx.size, 6, p))
+    z = arrays.z[idx]
+    for a, j in enumerate(active):
+        rows = cand.masks[j][idx]
+        G = PARAMETERS[cand.kinds[j]].generator(Tcorr[idx][rows, :3, :3], z[rows, :3],
+                                                dt_s[idx][rows])
+        E[rows, :, a] = misclosure_jacobian(e[rows], G)
+    W = np.linalg.inv(arrays.cov[idx])
+    if res.weights is not None:
+        W = W * np.asarray(res.weights)[idx, None, None]
+    WE = W @ E
+    Ncc = np.einsum('mki,mkj->ij', E, WE)
+    g = np.einsum('mki,mk->i', E, (W @ e[:, :, None])[:, :, 0])
+    free_ids = res.free_node_ids
+    col = np.full(network.n_nodes, -1, dtype=np.int64)
+    col[network.indices_of(free_ids)] = np.arange(free_ids.size)
+    Nxc = np.zeros((free_ids.size, 6, p))
+    for c, A in ((col[src], A_src), (col[dst], A_dst)):
+        keep = c >= 0
+        np.add.at(Nxc, c[keep], (np.swapaxes(A, 1, 2) @ WE)[keep])
+    Nxc = Nxc.reshape(-1, p)
+    Z = res.solve_normal(Nxc)
+    H = Ncc - Nxc.T @ Z
+    return _Bordered(0.5 * (H + H.T), g, np.diag(Ncc).copy())
+
+
+def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
+                           sources: Sequence[str | None], dt_s: FloatArray,
+                           config: SolverConfig | None = None,
+                           fixed: Sequence[int] | None = None,
+                           priors: Sequence[GaussianPrior] = (),
+                           calibration: CalibrationConfig | None = None
+                           ) -> tuple[SolveResult, CalibrationReport]:
+    """The batch adjustment with each odometry source's additional parameters (module doc).
+
+    Parameters
+    ----------
+    network : the connections, their motions as measured (uncorrected).
+    T_init : (n, 4, 4) initial poses, network index order.
+    sources : (m,) the source of each connection, in connection order; ``None`` (or '') for
+        connections without additional parameters (cross-track connections, bridges).
+    dt_s : (m,) duration of each connection's motion (s; ``stamp(dst) - stamp(src)``); a
+        non-finite or negative one counts as 0 (no yaw-rate correction).
+    config, fixed, priors : as :func:`ga_ros.core.solver.solve`.
+    calibration : which parameters, and the tests (:class:`CalibrationConfig`).
+
+    Returns
+    -------
+    The adjustment with the motions corrected by the estimated parameters, and the
+    :class:`CalibrationReport` (every candidate: value and sigma, or why it was fixed to 0).
+    """
+    cal = calibration or CalibrationConfig()
+    arrays = network.arrays()
+    m = len(arrays)
+    if len(sources) != m:
+        raise InputError(f'solve_with_calibration: {len(sources)} sources for {m} connections')
+    dt = np.asarray(dt_s, dtype=float).reshape(-1)
+    if dt.size != m:
+        raise InputError(f'solve_with_calibration: {dt.size} durations for {m} connections')
+    dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
+    cand = _candidates(sources, cal.parameters)
+    n_c = len(cand.kinds)
+    report = CalibrationReport(
+        [AdditionalParameter(s, k, PARAMETERS[k].unit) for s, k in zip(cand.sources, cand.kinds)],
+        alpha=cal.alpha)
+    values = np.zeros(n_c)
+    active = []
+    for j in range(n_c):
+        if np.any(PARAMETERS[cand.kinds[j]].acts_on(arrays.z[cand.masks[j]],
+                                                     dt[cand.masks[j]]) > 0):
+            active.append(j)
+        else:
+            report.parameters[j].reason = ('no motion it acts on (no translation)'
+                                           if cand.kinds[j] == 'scale' else
+                                           'no motion it acts on (no durations: stamps?)')
+
+    def adjust(T0: FloatArray) -> tuple[SolveResult, FloatArray]:
+        Tcorr = corrected_motions(arrays.z, dt, *_per_connection(cand, values, m))
+        net = network if not values.any() else ConnectionNetwork.from_arrays(
+            network.node_ids, network.track_ids, arrays.src, arrays.dst,
+            se3.to_translation_rotvec(Tcorr), arrays.cov)
+        report.solves += 1
+        return solve(net, T0, config, fixed=fixed, priors=priors), Tcorr
+
+    res, Tcorr = adjust(np.asarray(T_init, dtype=float))
+
+    def drop(j: int, reason: str) -> None:
+        active.remove(j)
+        values[j] = 0.0
+        report.parameters[j].reason = reason
+
+    steps = 0
+    while active:
+        b = _bordered(network, res, Tcorr, dt, cand, active)
+        ratio = np.diag(b.H) / np.maximum(b.Ncc_diag, np.finfo(float).tiny)
+        for a, j in enumerate(active):
+            report.parameters[j].information_ratio = float(ratio[a])
+        worst = int(np.argmin(ratio))
+        if ratio[worst] < cal.min_information_ratio:
+            had = values.any()
+            drop(active[worst], f'not determined by the network: {ratio[worst]:.1e} of its '
+                 'information is left after the poses (no fixes or loop closures that see it)')
+            if had:
+                res, Tcorr = adjust(res.T_world_node)
+            steps = 0
+            continue
+        d = np.sqrt(np.diag(b.H))
+        cond = np.linalg.cond(b.H / np.outer(d, d))
+        if cond > cal.max_condition:
+            j = active[worst]
+            others = ', '.join(f'{cand.sources[k]} {cand.kinds[k]}' for k in active if k != j)
+            drop(j, f'not separable from {others} (condition number {cond:.1e})')
+            res, Tcorr = adjust(res.T_world_node)
+            steps = 0
+            continue
+        Q = np.linalg.inv(b.H)
+        dc = -Q @ b.g
+        sig = np.sqrt(np.diag(Q))
+        converged = bool(np.all(np.abs(dc) <= cal.tolerance * sig))
+        if not converged and steps < cal.max_iterations:
+            values[active] += dc
+            res, Tcorr = adjust(res.T_world_node)
+            steps += 1
+            report.iterations += 1
+            continue
+        # the joint adjustment's redundancy and variance factor (the solver's count the
+        # poses only)
+        dof = res.redundancy - len(active)
+        if dof <= 0:
+            j = active[worst]
+            drop(j, f'no redundancy left to test it (redundancy {res.redundancy})')
+            res, Tcorr = adjust(res.T_world_node)
+            steps = 0
+            continue
+        s0 = np.sqrt(max(res.sigma0_sq * res.redundancy / dof, np.finfo(float).tiny))
+        quantile = float(student_t.ppf(1.0 - cal.alpha / 2.0, dof))
+        t = np.abs(values[active]) / (s0 * sig)
+        for a, j in enumerate(active):
+            par = report.parameters[j]
+            par.sigma, par.test, par.quantile = float(sig[a]), float(t[a]), quantile
+            par.tested_value = float(values[j])
+        weakest = int(np.argmin(t))
+        if t[weakest] < quantile:
+            drop(active[weakest], f'not significant: |t| {t[weakest]:.2f} < {quantile:.2f} '
+                 f'(alpha {cal.alpha:g})')
+            res, Tcorr = adjust(res.T_world_node)
+            steps = 0
+            continue
+        break
+    for j in range(n_c):
+        par = report.parameters[j]
+        par.estimated = j in active
+        par.value = float(values[j])
+        if par.estimated:
+            par.reason = ''
+    report.sigma0_sq = float(res.sigma0_sq)
+    return res, report

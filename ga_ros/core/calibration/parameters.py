@@ -1,0 +1,103 @@
+"""The additional parameters of an odometry source (self-calibration): what each corrects in a
+measured motion, and its generator (the derivative of the corrected motion).
+
+A source's measured motion ``T_meas = [R, t]`` (``T_src_dst``, body frame of ``src``) becomes
+``T_corr = [R Rz(omega dt), (1 + k) t]`` with
+
+* ``k`` (:class:`ScaleCorrection`, dimensionless): the correction of the translation's scale,
+  ``t_true = (1 + k) t_meas`` (a wheel radius that is 1 % too small: ``k = 0.01``);
+* ``omega`` (:class:`YawRateCorrection`, rad/s): the correction of the yaw rate about the body
+  ``z`` axis over the motion's duration ``dt`` (s), ``R_true = R_meas Rz(omega dt)``: a gyro or
+  odometry heading that drifts at ``-omega`` rad/s (a source's yaw-rate bias is ``-omega``).
+  Per second, not per metre: a heading bias that accrues while the robot stands still (the
+  CMU Plaza run's wheel odometry drifts 8 deg in its first 20 s at rest) is a rate.
+
+Both are linear in the corrected motion and commute. The generator ``G`` of a parameter is
+the right perturbation of ``T_corr`` per unit of it, ``T_corr(x + dx) = T_corr(x) exp(G dx)``
+(exact for both), so the misclosure ``e = log(T_corr^-1 T_i^-1 T_j)`` of a connection changes
+by ``de/dx = -J_l(e)^-1 G`` (:func:`misclosure_jacobian`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
+
+
+def _rz(angle: FloatArray) -> FloatArray:
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros(np.shape(angle) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1] = c, -s, s, c
+    R[..., 2, 2] = 1.0
+    return R
+
+
+@dataclass(frozen=True)
+class ScaleCorrection:
+    """``t_true = (1 + k) t_meas`` (module doc); ``k`` dimensionless."""
+
+    name: str = 'scale'
+    unit: str = '1'
+
+    def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
+        """(m,) how much each motion tells about the parameter (its translation, m)."""
+        return np.linalg.norm(z[:, :3], axis=1)
+
+    def generator(self, R_corr: FloatArray, t_meas: FloatArray, dt_s: FloatArray) -> FloatArray:
+        """(m, 6) ``G``: ``[R_corr' t_meas, 0]``."""
+        G = np.zeros((t_meas.shape[0], 6))
+        G[:, :3] = np.einsum('mji,mj->mi', R_corr, t_meas)
+        return G
+
+
+@dataclass(frozen=True)
+class YawRateCorrection:
+    """``R_true = R_meas Rz(omega dt)`` (module doc); ``omega`` in rad/s."""
+
+    name: str = 'yaw_rate'
+    unit: str = 'rad/s'
+
+    def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
+        """(m,) how much each motion tells about the parameter (its duration, s)."""
+        return np.asarray(dt_s, dtype=float)
+
+    def generator(self, R_corr: FloatArray, t_meas: FloatArray, dt_s: FloatArray) -> FloatArray:
+        """(m, 6) ``G``: ``[0, 0, 0, 0, 0, dt]``."""
+        G = np.zeros((t_meas.shape[0], 6))
+        G[:, 5] = dt_s
+        return G
+
+
+#: The additional parameters of an odometry source, by name.
+PARAMETERS = {p.name: p for p in (ScaleCorrection(), YawRateCorrection())}
+
+
+def parameter(name: str) -> ScaleCorrection | YawRateCorrection:
+    """The parameter called ``name`` (:data:`PARAMETERS`)."""
+    try:
+        return PARAMETERS[name]
+    except KeyError:
+        raise InputError(f'unknown calibration parameter {name!r}; choose from '
+                         f'{sorted(PARAMETERS)}') from None
+
+
+def corrected_motions(z: FloatArray, dt_s: FloatArray, scale: FloatArray,
+                      yaw_rate: FloatArray) -> FloatArray:
+    """(m, 4, 4) ``T_corr`` of measured motions ``z`` (m, 6) ``[t, w]`` with per-connection
+    ``scale`` ``k`` and ``yaw_rate`` ``omega`` (rad/s; ``dt_s`` (m,) s), module doc."""
+    z = np.asarray(z, dtype=float)
+    T = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+    T[:, :3, 3] *= (1.0 + np.asarray(scale, dtype=float))[:, None]
+    T[:, :3, :3] = T[:, :3, :3] @ _rz(np.asarray(yaw_rate, dtype=float) * dt_s)
+    return T
+
+
+def misclosure_jacobian(e: FloatArray, G: FloatArray) -> FloatArray:
+    """(m, 6) ``de/dx = -J_l(e)^-1 G`` of misclosures ``e`` (m, 6) for generators ``G`` (m, 6)
+    (module doc)."""
+    return -(se3.left_jacobian_inv(e) @ G[:, :, None])[:, :, 0]
