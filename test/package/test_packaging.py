@@ -252,7 +252,8 @@ def test_node_with_unparsable_ros_arguments_says_how_to_write_them(module: str):
     assert out.returncode == 2, out.stderr
     assert 'Traceback' not in out.stderr
     assert f'{module}: error: ROS arguments not understood' in out.stderr
-    assert "state_file:=" in out.stderr
+    assert 'state_file:=' in out.stderr
+
 
 @pytest.mark.slow
 def test_colcon_build_then_installed_executables_answer_help(colcon_workspace, tmp_path: Path):
