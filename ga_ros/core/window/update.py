@@ -13,6 +13,7 @@ weights, the pre-alignment's factor, the quality control).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -103,6 +104,11 @@ class WindowUpdate:
         # the factor of the last pre-alignment (its symbolic analysis), for the next track's
         self.prealign_factor = None
         self.quality = QualityCache()
+        # the variance factor of each connection row (online variance components applied);
+        # None: the stated covariances
+        self.weight_factors: Callable[[IntArray], FloatArray] | None = None
+        # (net, conns, priors) of the last adjustment's final solve
+        self.problem: tuple[ConnectionNetwork, IntArray, list[GaussianPrior]] | None = None
 
     def window_problem(self, window_tracks: list[int]) -> WindowProblem:
         """The adjustment of the nodes of ``window_tracks`` (:class:`WindowProblem`)."""
@@ -161,9 +167,21 @@ class WindowUpdate:
         return prior
 
     def connection_terms(self, conns: IntArray) -> ConnectionTerms:
-        """The covariances, weights and measured motions of connections (sorted rows), those
-        of the last call reused (a window keeps most of its connections from one update to the
-        next)."""
+        """The covariances, weights and measured motions of connections (sorted rows), with
+        :attr:`weight_factors` applied (covariances times the factor, weights divided)."""
+        terms = self.stated_terms(conns)
+        if self.weight_factors is None:
+            return terms
+        f = self.weight_factors(conns)
+        if (f == 1.0).all():
+            return terms
+        return ConnectionTerms(terms.rows, terms.cov * f[:, None, None],
+                               terms.weights / f[:, None, None], terms.T_meas, terms.T_meas_inv)
+
+    def stated_terms(self, conns: IntArray) -> ConnectionTerms:
+        """The stated covariances, weights and measured motions of connections (sorted rows),
+        those of the last call reused (a window keeps most of its connections from one update
+        to the next)."""
         kept = self.terms
         if conns is kept.rows:  # the same rows again (the gate after the adjustment)
             return kept
@@ -261,6 +279,7 @@ class WindowUpdate:
             self.state.status.a[bad] = 2
             n_out += int(bad.size)
         n_win = win_nodes.size
+        self.problem = (net, conns, priors)
         self.state.T[win_nodes] = res.T_world_node[:n_win]
         self.state.T_weighted = (nodes[n_win:].copy(), res.T_world_node[n_win:].copy())
         self.set_last(res)
