@@ -191,3 +191,27 @@ def test_a_source_without_covariance_converges_to_its_own_factor() -> None:
     al.finish_track()
     seen.append(_factors(al)['odom0'])
     assert seen[-1] > 2.5 and abs(seen[-1] / 4.0 - 1) < 0.3, seen
+
+
+def test_a_restart_from_a_snapshot_keeps_the_factors_and_the_path(tmp_path) -> None:
+    """Saved mid-survey and restored, the aligner continues with the same groups, factors and
+    path as the uninterrupted one (the book is part of the snapshot)."""
+    from ga_ros.core.window.persistence import load_state, save_state
+
+    srcs = (SourceSpec('odom0', 10.0), SourceSpec('odom1', 5.0))
+    sv = multi_source_survey(np.random.default_rng(21), srcs, n_nodes=500,
+                             loop=SourceSpec('cross', 1.0, 1.0), loop_every=5)
+    ms = _in_order(sv)
+    cut = next(k for k, m in enumerate(ms) if m.dst_track == 3) + 5
+    live = _aligner()
+    live.add_measurements(ms[:cut])
+    save_state(live, tmp_path / 'state')
+    back = load_state(tmp_path / 'state').aligner
+    assert _factors(back) == _factors(live) and back.online_variance.names == \
+        live.online_variance.names
+    for al in (live, back):
+        al.add_measurements(ms[cut:])
+        al.finish_track()
+    assert _factors(back) == pytest.approx(_factors(live), rel=1e-6)
+    np.testing.assert_allclose(back.corrected_path().T_world_node,
+                               live.corrected_path().T_world_node, atol=1e-6)
