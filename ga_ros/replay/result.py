@@ -30,8 +30,11 @@ class ReplayResult:
     the user should know about an unusual but valid run (e.g. a robot that did not move).
     ``variance_components``: the variance factor per source estimated in the final batch
     (:meth:`~ga_ros.core.quality.variance_components.VarianceComponents.as_dict`; empty when
-    not estimated). ``ground_truth`` says what ground truth was used and how much of it
-    matched; ``warnings`` what the replay went on despite (e.g. a bag cut short).
+    not estimated); ``online_variance_components`` those estimated online after each track
+    (:meth:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents.as_dict`; empty when
+    ``variance_components`` of the aligner is ``'off'``). ``ground_truth`` says what ground
+    truth was used and how much of it matched; ``warnings`` what the replay went on despite
+    (e.g. a bag cut short).
     """
 
     bag: str
@@ -62,6 +65,7 @@ class ReplayResult:
     final_batch_update: dict[str, Any] = field(default_factory=dict)
     errors_compared: str = 'raw'
     variance_components: dict[str, Any] = field(default_factory=dict)
+    online_variance_components: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -84,7 +88,8 @@ class ReplayResult:
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
-            'gaps': self.gaps, 'variance_components': self.variance_components}
+            'gaps': self.gaps, 'variance_components': self.variance_components,
+            'online_variance_components': self.online_variance_components}
 
     def reject(self, reason: str) -> None:
         """Count a rejection under the text before its first ``:`` (keep 10 examples)."""

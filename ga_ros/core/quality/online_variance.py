@@ -17,9 +17,10 @@ r_k``; at its fixed point ``v_k' P_k v_k = r_k``). ``R_k`` is the group's degree
 ``sigma(s_k) = s_k sqrt(2 / R_k)`` the factor's standard deviation.
 
 Damping: a group whose ``R_k`` is below ``min_redundancy`` is not estimated (factor 1: its
-stated covariance stands); above, the factor is shrunk towards 1 with a prior of
-``prior_dof`` degrees of freedom, ``s_k = (C_k + prior_dof) / (R_k + prior_dof)``, and clipped
-to ``factor_bounds``. A factor is in *variance*: 4 says the stated covariance is 4x too small
+stated covariance stands); above, the factor is shrunk towards 1 in proportion, with a prior
+of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_dof))``
+(``C_k / R_k`` clipped to ``factor_bounds``; a ratio, so a factor of 1/25 is shrunk as little
+as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
 Everything here depends on the adjustments only (never on timing), so a replay and a live node
@@ -53,7 +54,8 @@ class OnlineVarianceConfig:
         groups share the redundancy (a source stated 4x too small shows about 2); only the
         iteration, which changes the weights, converges to the factor.
     min_redundancy : a group with less accumulated redundancy ``R_k`` keeps factor 1.
-    prior_dof : degrees of freedom of the prior ``s = 1`` the estimate is shrunk towards.
+    prior_dof : degrees of freedom of the prior ``s = 1`` the estimate is shrunk towards (in
+        log: ``s = (C / R) ^ (R / (R + prior_dof))``).
     factor_bounds : the factors are clipped to this range.
     warn_ratio, warn_sigmas : a factor above ``warn_ratio`` or below ``1 / warn_ratio``, more
         than ``warn_sigmas`` of its sigmas from 1, is named in a warning.
@@ -140,8 +142,10 @@ class OnlineVarianceComponents:
         cfg = self.config
         C, R, _ = self.sums()
         est = R >= max(cfg.min_redundancy, 1e-9)
-        s = (C + cfg.prior_dof) / np.maximum(R + cfg.prior_dof, 1e-300)
-        return np.where(est, np.clip(s, *cfg.factor_bounds), 1.0)
+        lo, hi = cfg.factor_bounds
+        raw = np.clip(C / np.maximum(R, 1e-300), lo, hi)
+        s = np.exp(np.log(raw) * R / np.maximum(R + cfg.prior_dof, 1e-300))
+        return np.where(est, s, 1.0)
 
     def factors_of(self, rows: IntArray, factors: FloatArray | None = None) -> FloatArray:
         """``(m,)`` the factor of each connection row's group (1 for unregistered rows), from
@@ -176,6 +180,17 @@ class OnlineVarianceComponents:
         ``online_variance_components``)."""
         out: dict = {c.group: c.as_dict() for c in self.components()}
         out['_estimation'] = {'mode': self.config.mode, 'online': True}
+        return out
+
+    def diagnostic_values(self) -> dict[str, str]:
+        """``/diagnostics`` key/values: ``variance/<group>/factor``, ``.../dof``,
+        ``.../sigma`` (``factor`` 1 and ``not estimated`` while poorly determined)."""
+        out = {}
+        for c in self.components():
+            key = f'variance/{c.group}/'
+            out[key + 'factor'] = f'{c.factor:.4g}' if c.estimated else '1 (not estimated)'
+            out[key + 'dof'] = f'{c.redundancy:.1f}'
+            out[key + 'sigma'] = f'{c.sigma:.3g}'
         return out
 
     def warnings(self) -> list[str]:

@@ -128,7 +128,7 @@ def test_damping_shrinks_towards_one_until_determined() -> None:
     book.record(np.arange(15), np.full(15, 4.0), np.ones(15))  # R = 15 < 20
     assert book.factors()[0] == 1.0
     book.record(np.arange(30), np.full(30, 4.0), np.ones(30))  # R = 30
-    assert book.factors()[0] == pytest.approx((120 + 10) / (30 + 10))
+    assert book.factors()[0] == pytest.approx(4.0 ** (30 / (30 + 10)))
 
 
 def test_warning_names_the_source_and_how_far() -> None:
