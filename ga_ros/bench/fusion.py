@@ -23,6 +23,7 @@ import numpy as np
 from ga_ros.core.measurement import variance_group
 from ga_ros.core.quality.variance_components import solve_with_variance_components
 from ga_ros.core.solver import solve
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import UsageError
 from ga_ros.eval.metrics import trajectory_error
 from ga_ros.sim.sources import (
@@ -41,7 +42,9 @@ class FusionFigures:
     ----------
     sources : the sources' names.
     rmse_raw_m, rmse_aligned_m : position RMSE (m) by estimate (``alone <name>``,
-        ``fused stated``, ``fused vce``), raw (first node anchored) and after rigid alignment.
+        ``fused stated``, ``fused vce``, ``online stated``, ``online vce``), raw (first node
+        anchored) and after rigid alignment.
+    online_factor_mean : per source, the online factors' mean over the runs.
     factor_true, factor_mean, factor_spread, factor_sigma : per source, the true factor, the
         estimates' mean and standard deviation over the runs and the mean stated sigma.
     vce_cpu_s, plain_cpu_s : process CPU (s) of one fused adjustment with and without the
@@ -56,6 +59,7 @@ class FusionFigures:
     factor_mean: dict[str, float] = field(default_factory=dict)
     factor_spread: dict[str, float] = field(default_factory=dict)
     factor_sigma: dict[str, float] = field(default_factory=dict)
+    online_factor_mean: dict[str, float] = field(default_factory=dict)
     vce_cpu_s: float = 0.0
     plain_cpu_s: float = 0.0
     iterations: float = 0.0
@@ -70,6 +74,7 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
     est: dict[str, list[float]] = {s.name: [] for s in sources}
     sig: dict[str, list[float]] = {s.name: [] for s in sources}
     cpu_v, cpu_p, its = [], [], []
+    online: dict[str, list[float]] = {}
 
     def record(key: str, T: np.ndarray, T_true: np.ndarray) -> None:
         e = trajectory_error(T[:, :3, 3], T_true[:, :3, 3])
@@ -98,6 +103,17 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
         for c in vc.components:
             est[c.group].append(c.factor)
             sig[c.group].append(c.sigma)
+        in_order = sorted(ms, key=lambda m: (m.dst_id, m.src_id))
+        for name, mode in (('online stated', 'off'), ('online vce', 'apply')):
+            al = TrackWindowAligner(AlignerConfig(variance_components=mode,
+                                                  refine_executor='inline'))
+            al.add_measurements(in_order)
+            al.finish_track()
+            record(name, al.corrected_path().T_world_node, sv.T_true)
+            if al.online_variance is not None:
+                for c in al.online_variance.components():
+                    online.setdefault(c.group, []).append(c.factor)
+            al.close()
     fig.rmse_raw_m = {k: float(np.mean(v)) for k, v in raw.items()}
     fig.rmse_aligned_m = {k: float(np.mean(v)) for k, v in ali.items()}
     for s in sources:
@@ -105,6 +121,7 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
         fig.factor_mean[s.name] = float(np.mean(est[s.name]))
         fig.factor_spread[s.name] = float(np.std(est[s.name], ddof=1)) if runs > 1 else 0.0
         fig.factor_sigma[s.name] = float(np.mean(sig[s.name]))
+        fig.online_factor_mean[s.name] = float(np.mean(online.get(s.name, [np.nan])))
     fig.vce_cpu_s, fig.plain_cpu_s = float(np.mean(cpu_v)), float(np.mean(cpu_p))
     fig.iterations = float(np.mean(its))
     return fig
@@ -120,12 +137,16 @@ def figure_lines(fig: FusionFigures, n_nodes: int, runs: int) -> list[str]:
     best = min(v for k, v in fig.rmse_raw_m.items() if k.startswith('alone'))
     lines.append(f'  fused vce / best alone (raw): {fig.rmse_raw_m["fused vce"] / best:.2f}; '
                  f'fused stated / best alone: {fig.rmse_raw_m["fused stated"] / best:.2f}')
+    lines.append(f'  online vce / best alone (raw): {fig.rmse_raw_m["online vce"] / best:.2f}; '
+                 f'online stated / best alone: {fig.rmse_raw_m["online stated"] / best:.2f}')
     lines.append('  variance factor (estimated / stated variance): true, estimated mean +- '
-                 'spread over the runs (mean stated sigma)')
+                 'spread over the runs (mean stated sigma); online mean')
     for s in fig.sources:
         lines.append(f'  {s:<14} {fig.factor_true[s]:.3f}  {fig.factor_mean[s]:.3f} +- '
                      f'{fig.factor_spread[s]:.3f} ({fig.factor_sigma[s]:.3f}); '
-                     f'estimated / true {fig.factor_mean[s] / fig.factor_true[s]:.2f}')
+                     f'estimated / true {fig.factor_mean[s] / fig.factor_true[s]:.2f}; online '
+                     f'{fig.online_factor_mean[s]:.3f} '
+                     f'({fig.online_factor_mean[s] / fig.factor_true[s]:.2f} x true)')
     lines.append(f'  CPU per fused adjustment: {fig.vce_cpu_s:.2f} s with the estimation '
                  f'({fig.iterations:.1f} adjustments), {fig.plain_cpu_s:.2f} s without')
     return lines

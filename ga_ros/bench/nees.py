@@ -21,6 +21,10 @@ Examples::
 
     ga-ros bench nees --per-swath 100,400 --noise 1,5,10 --runs 3
     ga-ros bench nees --per-swath 400 --noise 10 --runs 2 --profile
+    ga-ros bench nees --vce --tracks 6 --per-swath 100 --noise 5 --runs 10
+
+``--vce``: the stated covariances wrong by 4x and a biased source, with and without variance
+components (:mod:`ga_ros.bench.nees_vce`).
 """
 
 from __future__ import annotations
@@ -116,8 +120,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--profile', action='store_true', help='NEES by track and along the swath')
     ap.add_argument('--json', action='store_true', help='also print one JSON line per setting')
+    ap.add_argument('--vce', action='store_true',
+                    help='instead: covariances stated 4x too small / 4x too large / with a '
+                         'biased source, with and without variance components (batch and '
+                         'online; ga_ros/bench/nees_vce.py); first --per-swath and --noise')
+    ap.add_argument('--bias-sigmas', type=float, default=1.0,
+                    help="--vce: the biased case's constant yaw bias per motion, in its sigmas")
     args = ap.parse_args(argv)
     limit_blas_threads(1)
+    if args.vce:
+        from ga_ros.bench.nees_vce import run_vce_nees, vce_lines
+
+        per = int(args.per_swath.split(',')[0])
+        pct = float(args.noise.split(',')[0])
+        print(f'NEES with wrong covariances: {args.tracks} double tracks of {per} poses a '
+              f'swath, {pct:g} % noise, window {args.window}, {args.runs} runs (same draws in '
+              f'every case), seed {args.seed}')
+        result = run_vce_nees(args.tracks, per, pct, args.runs, args.window, args.seed,
+                              args.bias_sigmas)
+        print('\n'.join(vce_lines(result, args.runs)))
+        return 0
     policies = [p for p in args.policies.split(',') if p]
     print(f'mean position NEES (expected 3, target 2.1-3.9); {args.tracks} double tracks, '
           f'window {args.window}, {args.runs} runs per setting, seed {args.seed}')

@@ -25,6 +25,40 @@ from ga_ros.geometry import se3
 KIND_FLAG = {'consecutive': 0.0, 'cross': 1.0}
 #: Largest accepted deviation of a quaternion's norm from 1 (it is then normalised).
 QUAT_NORM_TOL = 1e-3
+#: ``twist.covariance`` carries the measurement's source (``Measurement.source``): its UTF-8
+#: bytes, one per element (value 0-255), zero-padded; all zero: no source. At most this many
+#: bytes.
+SOURCE_BYTES = 36
+
+
+def source_to_values(source: str) -> list[float]:
+    """The 36 ``twist.covariance`` values carrying ``source`` (see :data:`SOURCE_BYTES`).
+
+    Raises
+    ------
+    InputError
+        The name is longer than :data:`SOURCE_BYTES` bytes in UTF-8 (use a shorter input name).
+    """
+    raw = str(source).encode('utf-8')
+    if len(raw) > SOURCE_BYTES:
+        raise InputError(f'source name {source!r} is longer than {SOURCE_BYTES} bytes in '
+                         'UTF-8: use a shorter input name')
+    return [float(b) for b in raw] + [0.0] * (SOURCE_BYTES - len(raw))
+
+
+def source_from_values(values: Sequence[float]) -> str:
+    """The source carried by ``twist.covariance`` (:func:`source_to_values`); '' when the
+    values are all zero or are not byte values (a publisher that fills the twist's covariance
+    with something else: the source is then unknown, the measurement is kept)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if v.size != SOURCE_BYTES or not np.isfinite(v).all() or not v.any():
+        return ''
+    if (v < 0).any() or (v > 255).any() or (v != np.round(v)).any():
+        return ''
+    raw = bytes(int(b) for b in v).rstrip(b'\0')
+    if b'\0' in raw:
+        return ''
+    return raw.decode('utf-8', 'replace')
 
 
 def rejected(reason: str, text: str) -> InputError:
@@ -165,4 +199,5 @@ def decode_measurement(msg: Any) -> Measurement:
     except InputError as exc:
         raise rejected('bad_covariance', str(exc)) from None
     return Measurement(src_id, dst_id, src_track, dst_track, np.array(z), cov,
-                       stamp_to_ns(msg.header.stamp), kind)
+                       stamp_to_ns(msg.header.stamp), kind,
+                       source_from_values(msg.twist.covariance))

@@ -94,7 +94,6 @@ def measurement_to_odometry(m: Measurement) -> Any:
     cov = np.asarray(m.cov, dtype=float)
     if cov.shape != (6, 6):
         raise InputError(f'covariance must be 6x6, got {cov.shape}')
-    zero_cov = np.zeros(36)
     vec = types['geometry_msgs/msg/Vector3']
     return types[ODOMETRY](
         header=header(node_frame(m.src_track, m.src_id), m.stamp_ns),
@@ -104,7 +103,7 @@ def measurement_to_odometry(m: Measurement) -> Any:
         twist=types['geometry_msgs/msg/TwistWithCovariance'](
             twist=types['geometry_msgs/msg/Twist'](
                 linear=vec(x=KIND_FLAG[m.kind], y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0)),
-            covariance=zero_cov))
+            covariance=np.array(encoding.source_to_values(m.source))))
 
 
 def header(frame_id: str, stamp_ns: int) -> Any:

@@ -136,6 +136,10 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
         res.error = (res.error + '; ' if res.error else '') + f'final update failed: {exc}'
         return None
     online = run.corrected()
+    book = getattr(run.aligner, 'online_variance', None)
+    if book is not None:
+        res.online_variance_components = book.as_dict()
+        res.warnings += [f'online: {w}' for w in book.warnings()]
     if run.config.final_batch:
         mode = run.config.variance_components
         vce = mode != 'off' and hasattr(run.aligner, 'variance_components')

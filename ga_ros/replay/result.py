@@ -30,12 +30,15 @@ class ReplayResult:
     the user should know about an unusual but valid run (e.g. a robot that did not move).
     ``variance_components``: the variance factor per source estimated in the final batch
     (:meth:`~ga_ros.core.quality.variance_components.VarianceComponents.as_dict`; empty when
-    not estimated). ``calibration``: the additional parameters per source estimated in the
-    final batch with ``calibrate`` (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`;
-    empty otherwise). ``ground_truth`` says what ground truth was used and how much of it
-    matched; ``warnings`` what the replay went on despite (e.g. a bag cut short).
-    ``mosaic`` (``--mosaic``): per trajectory (``'ga'``, ``'f2f'``) its mosaic's files,
-    covered area and seam misregistration (:func:`ga_ros.mapping.replay_mosaic.write_mosaics`).
+    not estimated); ``online_variance_components`` those estimated online after each track
+    (:meth:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents.as_dict`; empty when
+    ``variance_components`` of the aligner is ``'off'``). ``calibration``: the additional
+    parameters per source estimated in the final batch with ``calibrate``
+    (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`; empty otherwise).
+    ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
+    what the replay went on despite (e.g. a bag cut short). ``mosaic`` (``--mosaic``): per
+    trajectory (``'ga'``, ``'f2f'``) its mosaic's files, covered area and seam misregistration
+    (:func:`ga_ros.mapping.replay_mosaic.write_mosaics`).
     """
 
     bag: str
@@ -68,6 +71,7 @@ class ReplayResult:
     variance_components: dict[str, Any] = field(default_factory=dict)
     mosaic: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
+    online_variance_components: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -91,7 +95,8 @@ class ReplayResult:
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
             'gaps': self.gaps, 'variance_components': self.variance_components,
-            'mosaic': self.mosaic, 'calibration': self.calibration}
+            'mosaic': self.mosaic, 'calibration': self.calibration,
+            'online_variance_components': self.online_variance_components}
 
     def reject(self, reason: str) -> None:
         """Count a rejection under the text before its first ``:`` (keep 10 examples)."""

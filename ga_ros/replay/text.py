@@ -89,6 +89,7 @@ def result_text(r: ReplayResult) -> str:
                      f"{q['w_max_src_id']}->{q['w_max_dst_id']} (critical {q['w_critical']:.2f}),"
                      f" {q['n_w_rejected']} rejected by the w-test, median MDB "
                      f"{q['mdb_median_m']:.3g} m")
+    lines += variance_lines(r.online_variance_components)
     lines += variance_lines(r.variance_components)
     lines += calibration_lines(r.calibration)
     if 'ga' in r.errors:
@@ -175,15 +176,20 @@ def calibration_lines(cal: dict) -> list[str]:
 
 
 def variance_lines(vc: dict) -> list[str]:
-    """The variance factors per source of the final batch (estimated variance / stated
-    variance; the sigmas are off by its square root), one line each."""
+    """The variance factors per source of the final batch or of the online estimate
+    (estimated variance / stated variance; the sigmas are off by its square root), one line
+    each."""
     groups = {k: v for k, v in vc.items() if not k.startswith('_')}
     if not groups:
         return []
     est = vc.get('_estimation', {})
-    lines = [f"variance components (final batch, {est.get('iterations', 0)} adjustments"
-             f"{'' if est.get('converged', True) else ', NOT converged'}; factor = estimated / "
-             'stated variance):']
+    if est.get('online'):
+        lines = [f"variance components (online, after each track, {est.get('mode', '')}; "
+                 'factor = estimated / stated variance):']
+    else:
+        lines = [f"variance components (final batch, {est.get('iterations', 0)} adjustments"
+                 f"{'' if est.get('converged', True) else ', NOT converged'}; factor = "
+                 'estimated / stated variance):']
     for name, v in groups.items():
         if v['estimated']:
             text = (f"{v['factor']:.3g} +- {v['sigma']:.2g} ({v['dof']:.0f} dof; sigmas x"

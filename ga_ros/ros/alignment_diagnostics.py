@@ -21,6 +21,9 @@ class AlignmentDiagnostics:
         values['measurements_lost_in_queue'] = self.queue_loss.total
         values.update(self.odom.diagnostic_values())
         values.update(conv.quality_values(getattr(self.session.last_update, 'quality', None)))
+        book = getattr(self.session.aligner, 'online_variance', None)
+        if book is not None:  # the variance factor per source (variance_components 'apply')
+            values.update(book.diagnostic_values())
         for name, sub in getattr(self, 'sensor_subscriptions', {}).items():
             values[f'qos/{name}'] = (sub.reliability if sub.decided
                                      else 'best_effort (auto: no publisher yet)')
@@ -37,6 +40,9 @@ class AlignmentDiagnostics:
         problems = [health.message] if health is not None and not health.ok else []
         if self.odom.warning:
             problems.append(self.odom.warning)
+        book = getattr(self.session.aligner, 'online_variance', None)
+        if book is not None:
+            problems += book.warnings()  # "odom1's stated covariance is 4x too small ..."
         if self.tf_contested_by:
             s = self.settings
             values['tf_contested_by'] = self.tf_contested_by

@@ -12,7 +12,10 @@ One ``nav_msgs/msg/Odometry`` per connection, on ``/ga/measurements``:
 * ``pose.covariance``: 6x6 row-major covariance of the right perturbation of ``T_src_dst``, order
   ``[x y z rx ry rz]`` (m, rad);
 * ``twist.twist.linear.x``: ``1.0`` marks a cross-track (overlap) connection, ``0.0`` a consecutive
-  one; the rest of the twist is zero.
+  one; the rest of the twist is zero;
+* ``twist.covariance``: the measurement's source (``Measurement.source``, the group of its
+  variance factor), its UTF-8 bytes one per element, zero-padded (all zero: none;
+  :func:`ga_ros.core.encoding.source_to_values`).
 
 Every function here is a pure conversion: it validates at the boundary (raising
 :class:`ga_ros.errors.InputError`) and never touches a node or a publisher.
@@ -122,6 +125,7 @@ def measurement_to_odometry(m: Measurement) -> Odometry:
     msg.pose.pose = pose_to_msg(m.T_src_dst)
     msg.pose.covariance = covariance_to_msg(m.cov)
     msg.twist.twist.linear.x = KIND_FLAG[m.kind]
+    msg.twist.covariance = encoding.source_to_values(m.source)
     return msg
 
 

@@ -42,7 +42,8 @@ def random_measurements(rng: np.random.Generator, n: int = 30) -> list[Measureme
         src = i - 3 if kind == 'cross' else i
         out.append(Measurement.from_pose(src, i + 1, src // 10, (i + 1) // 10,
                                          se3.exp(rng.normal(size=6)), cov,
-                                         1_000_000_000 + 100_000_000 * (i + 1), kind))
+                                         1_000_000_000 + 100_000_000 * (i + 1), kind,
+                                         ('', 'odom0', 'odom_ß1')[i % 3]))
     return out
 
 
@@ -91,8 +92,8 @@ def test_measurement_bag_round_trip(tmp_path: Path, rng: np.random.Generator,
         got = [odometry_to_measurement(m.msg) for m in bag.messages(['/ga/measurements'])]
     assert len(got) == len(ms)
     for a, b in zip(ms, got):
-        assert (a.src_id, a.dst_id, a.src_track, a.dst_track, a.kind, a.stamp_ns) == (
-            b.src_id, b.dst_id, b.src_track, b.dst_track, b.kind, b.stamp_ns)
+        assert (a.src_id, a.dst_id, a.src_track, a.dst_track, a.kind, a.stamp_ns, a.source) == (
+            b.src_id, b.dst_id, b.src_track, b.dst_track, b.kind, b.stamp_ns, b.source)
         np.testing.assert_allclose(b.T_src_dst, a.T_src_dst, atol=1e-12)
         np.testing.assert_allclose(b.cov, a.cov, rtol=1e-12, atol=1e-18)
 
@@ -111,8 +112,9 @@ def test_rosbags_and_rclpy_decoders_agree(rng: np.random.Generator) -> None:
         b = odometry_to_measurement(typestore().deserialize_cdr(
             serialize_message(conversions.measurement_to_odometry(m)), ODOMETRY))
         for x in (a, b):
-            assert (x.src_id, x.dst_id, x.src_track, x.dst_track, x.kind, x.stamp_ns) == (
-                m.src_id, m.dst_id, m.src_track, m.dst_track, m.kind, m.stamp_ns)
+            assert (x.src_id, x.dst_id, x.src_track, x.dst_track, x.kind, x.stamp_ns,
+                    x.source) == (m.src_id, m.dst_id, m.src_track, m.dst_track, m.kind,
+                                  m.stamp_ns, m.source)
             np.testing.assert_allclose(x.T_src_dst, m.T_src_dst, atol=1e-12)
             np.testing.assert_allclose(x.cov, m.cov, rtol=1e-12)
 
@@ -304,3 +306,18 @@ def test_bag_dir_without_metadata_but_one_mcap(tmp_path: Path, rng: np.random.Ge
     shutil.copy(tmp_path / 'b' / 'b.mcap', tmp_path / 'b' / 'c.mcap')
     with pytest.raises(FormatError, match='not a rosbag2 bag'):
         bag_info(tmp_path / 'b')
+
+
+def test_source_values_that_are_not_a_name_leave_the_source_unknown(
+        rng: np.random.Generator) -> None:
+    """A publisher that fills the twist's covariance with numbers: the measurement is kept,
+    its source unknown; a name too long for the field is refused with what to do."""
+    msg = _odometry(rng)
+    msg.twist.covariance = np.full(36, 0.25)
+    assert odometry_to_measurement(msg).source == ''
+    msg.twist.covariance = np.eye(6).reshape(36) * 300.0
+    assert odometry_to_measurement(msg).source == ''
+    m = random_measurements(rng, 1)[0]
+    with pytest.raises(InputError, match='shorter input name'):
+        measurement_to_odometry(Measurement(m.src_id, m.dst_id, m.src_track, m.dst_track, m.z,
+                                            m.cov, m.stamp_ns, m.kind, 'x' * 37))

@@ -236,3 +236,32 @@ def test_clearing_a_compacted_state_drops_the_base(tmp_path):
     j = MeasurementJournal(journal_path(state))
     assert j.count == 0 and not j.layout.has_base
     assert recover(state, CFG).source == 'empty'
+
+
+def test_measurements_keep_their_source_through_the_journal(tmp_path):
+    """The source (the group of a variance factor) comes back from the journal file, with the
+    covariance bit for bit; HELD / REVERSED flags and the kind are unchanged by it."""
+    from ga_ros.pipeline.journal import HELD, SOURCED
+    from ga_ros.pipeline.journal.records import encode_records
+
+    rng = np.random.default_rng(3)
+    ms = []
+    for k, source in enumerate(['odom0', '', 'gnss_ü', 'odom1' * 24, 'x' * 121]):
+        A = rng.normal(size=(6, 6))
+        cov = A @ A.T + np.eye(6)
+        ms.append(Measurement(k, k + 1, 0, 0, rng.normal(size=6), cov, 10 + k,
+                              ('consecutive', 'cross', 'bridge')[k % 3], source))
+    path = tmp_path / 'j.journal'
+    journal = MeasurementJournal(path)
+    journal.open()
+    journal.append_many(ms[:3])
+    journal.append_many(ms[3:], HELD)
+    journal.close()
+    back = read_journal(path)
+    assert [m.source for m in back] == [m.source for m in ms[:4]] + ['']  # 121 bytes: too long
+    for a, b in zip(ms, back):
+        assert (a.src_id, a.dst_id, a.kind, a.stamp_ns) == (b.src_id, b.dst_id, b.kind,
+                                                            b.stamp_ns)
+        assert np.array_equal(a.cov, b.cov) and np.array_equal(a.z, b.z)
+    kinds = np.frombuffer(encode_records(ms), RECORD)['kind']
+    assert ((kinds & SOURCED) != 0).tolist() == [True, False, True, True, False]

@@ -132,3 +132,37 @@ def test_command_line_modes() -> None:
         p.parse_args(['--variance-components', 'always'])
     with pytest.raises(InputError, match='variance_components'):
         ReplayConfig(variance_components='always')
+
+
+def test_online_factors_in_the_replay(three_stream_bag, tmp_path: Path) -> None:
+    """``variance_components: apply`` of the aligner (``--online-variance-components apply``):
+    the factors estimated after each track are in ``summary.json`` with their dof, printed,
+    close to the truth, the worst-stated stream named in a warning; the command line sets
+    the aligner's mode."""
+    import argparse
+    from dataclasses import replace
+
+    from ga_ros.cli.commands.replay import add_replay_arguments, replay_config
+    from ga_ros.core.window import AlignerConfig
+
+    bag, gt, _ = three_stream_bag
+    names = [s.name for s in SOURCES]
+    cfg = replace(_config(names, gt, 'off'),
+                  aligner=AlignerConfig(variance_components='apply', refine_executor='inline'))
+    res = replay(bag, tmp_path / 'online', cfg)
+    on = json.loads((tmp_path / 'online' / 'summary.json').read_text())[
+        'online_variance_components']
+    assert on['_estimation'] == {'mode': 'apply', 'online': True}
+    for s in SOURCES:
+        assert on[s.name]['estimated'] and on[s.name]['applied'] and on[s.name]['dof'] > 20
+        # the best stream (odom2, true factor 0.04) is seen only through its differences with
+        # the others: the hardest to estimate (the final batch's is within 35 %)
+        assert on[s.name]['factor'] == pytest.approx(s.true_factor, rel=0.5), (s.name, on)
+    text = result_text(res)
+    assert 'variance components (online, after each track' in text
+    assert "warning: online: odom2's stated covariance is" in text
+    p = argparse.ArgumentParser()
+    add_replay_arguments(p)
+    args = p.parse_args(['--online-variance-components', 'apply'])
+    assert replay_config(args, progress=False).aligner.variance_components == 'apply'
+    assert replay_config(p.parse_args([]), progress=False).aligner is None

@@ -573,3 +573,43 @@ def test_persistence_is_on_by_default_under_ros_home_and_never_shared(tmp_path, 
         none.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_online_variance_factors_in_diagnostics(tmp_path):
+    """``variance_components: apply``: measurements of an odometry source stated 4x too
+    confident come in over the ROS encoding with their source; ``/diagnostics`` shows the
+    source's factor and dof, a WARN names it, and the node's path is the direct aligner's."""
+    from ga_ros.sim.sources import SourceSpec, multi_source_survey
+
+    sv = multi_source_survey(np.random.default_rng(3), (SourceSpec('odom0', 10.0),),
+                             n_nodes=400, loop=SourceSpec('cross', 1.0, 1.0), loop_every=5)
+    ms = sorted(sv.measurements, key=lambda m: (m.dst_id, m.src_id))
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(15))
+    node = AlignmentNode(context=ctx, parameter_overrides=[
+        Parameter('state_file', value=''), Parameter('allow_finish_track', value=True),
+        Parameter('variance_components', value='apply'),
+        Parameter('refine_executor', value='inline'),
+        Parameter('diagnostics_period_sec', value=0.0)])
+    try:
+        for m in ms:
+            node._on_measurement(conv.measurement_to_odometry(m))
+        assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+        values = node.diagnostic_values()
+        ref = direct(ms, node.aligner_config)
+        want = {c.group: c for c in ref.online_variance.components()}
+        assert set(want) == {'odom0', 'cross'}
+        assert values['variance/odom0/factor'] == f"{want['odom0'].factor:.4g}"
+        assert float(values['variance/odom0/dof']) > 20
+        assert 2.5 < want['odom0'].factor < 6
+        np.testing.assert_allclose(node.aligner.corrected_path().T_world_node,
+                                   ref.corrected_path().T_world_node, atol=1e-12)
+        diags = []
+        node.pub_diag.publish = diags.append
+        node._publish_diagnostics()
+        status = diags[-1].status[0]
+        assert status.level in (b'\x01', 1)
+        assert "odom0's stated covariance is" in status.message and 'too small' in status.message
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

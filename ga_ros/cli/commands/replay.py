@@ -66,7 +66,8 @@ ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
                    'robust_loss': 'solver.robust_loss', 'robust_scale': 'solver.robust_scale',
                    'max_iterations': 'solver.max_iterations',
                    'outlier_chi2_prob': 'outlier_chi2_prob', 'gate': 'gate',
-                   'quality': 'quality'}
+                   'quality': 'quality',
+                   'online_variance_components': 'variance_components'}
 
 
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
@@ -198,6 +199,10 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
                    help="the final batch also estimates each odometry source's scale and "
                         'yaw-rate corrections where the network determines them and they are '
                         'significant (docs/calibration.md); printed and in summary.json')
+    a.add_argument('--online-variance-components', choices=('off', 'apply'),
+                   help='variance factor per source estimated online after each track and '
+                        'used by the window adjustments and published covariances: apply, or '
+                        'off (default; node parameter variance_components)')
     a.add_argument('--no-anchor', action='store_true',
                    help='start at the identity instead of the ground-truth first pose (the '
                         'errors are then compared after rigid alignment)')

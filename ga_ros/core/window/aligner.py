@@ -21,7 +21,9 @@ import numpy as np
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.calibration import CalibrationConfig, CalibrationReport, solve_with_calibration
 from ga_ros.core.fixes import FixStats, FixTerm, gauge_information, offset_information
-from ga_ros.core.measurement import Measurement
+from ga_ros.core.measurement import Measurement, variance_group
+from ga_ros.core.quality.control import connection_redundancy
+from ga_ros.core.quality.online_variance import OnlineVarianceComponents
 from ga_ros.core.quality.variance_components import (
     SourceGroups,
     VarianceComponentConfig,
@@ -47,7 +49,8 @@ from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.core.window.queries import covariance, covariances
 from ga_ros.core.window.refinement import absorbed_priors
 from ga_ros.core.window.state import Rollback, WindowState, no_weighted
-from ga_ros.core.window.update import WindowUpdate, connection_terms
+from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_terms
+from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
 from ga_ros.runtime import blas_threads
 
@@ -76,6 +79,9 @@ class TrackWindowAligner:
     calibration : the additional parameters per source of the last :meth:`refine_batch`
         that estimated them (:class:`~ga_ros.core.calibration.CalibrationReport`; None
         before).
+    online_variance : the online variance factors per source
+        (:class:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents`, updated after
+        each window adjustment; ``None`` with ``variance_components='off'``).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
@@ -102,12 +108,29 @@ class TrackWindowAligner:
         state.fixes.gate_prob = float(self.config.fix_gate_prob)
         self.policy = freeze_policy(self.config.freeze_policy)
         self.updater = WindowUpdate(state, self.config)
-        self.handoff = RefinementHandoff(state, self.config)
         self.ahead = FreezeAhead(state)
         # guards the last adjustment's factor, which a freeze computed ahead shares with the
         # covariance queries
         self._factor_lock = threading.Lock()
         self._last_update: UpdateResult | None = None
+        vcfg = self.config.online_variance_config()
+        self.online_variance: OnlineVarianceComponents | None = None
+        if vcfg.mode != 'off':
+            book = state.variance
+            if book is None or book.n != state.src.n:
+                # a state saved without the book: the restored connections keep factor 1
+                book = OnlineVarianceComponents(vcfg)
+                for _ in range(state.src.n):
+                    book.register('unknown')
+            book.config = vcfg
+            state.variance = self.online_variance = book
+        if self.online_variance is None:
+            self.handoff = RefinementHandoff(state, self.config)
+        else:
+            # the refinement weights the sources as the window adjustments do
+            self.handoff = ScaledRefinementHandoff(state, self.config,
+                                                   lambda rows: self._factors_of(rows))
+            self._use_variance_factors()
 
     # ------------------------------------------------------------------------- input
     def add_measurement(self, m: Measurement) -> list[UpdateResult]:
@@ -211,7 +234,10 @@ class TrackWindowAligner:
             up = self.finish_track()
             if up is not None:
                 updates.append(up)
+        n_conn = self.state.src.n
         apply_measurement(self.state, m, plan)
+        if self.online_variance is not None and self.state.src.n > n_conn:
+            self.online_variance.register(variance_group(m))
         if plan.first and int(m.src_track) != int(m.dst_track):
             # the datum alone in its track (a session ends a track at a fix on the first
             # keyframe): that track ended before the destination's began, with nothing to
@@ -325,7 +351,49 @@ class TrackWindowAligner:
     def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
         """The window adjustment (:meth:`WindowUpdate.adjust
         <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
-        return self.updater.adjust(window_tracks, track, t0, self._factor_lock)
+        up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
+        book = self.online_variance
+        if book is None:
+            return up
+        used = book.factors()  # those this adjustment used ('apply')
+        new = self._record_variance()
+        # the window is adjusted again with the new factors until they settle
+        # (Förstner's iteration, one adjustment a step; the absorbed tracks' values stay those
+        # of their last window)
+        for _ in range(book.config.max_inner_iterations):
+            if np.abs(np.log(new / used)).max(initial=0.0) < book.config.tolerance:
+                break
+            used = new
+            up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
+            new = self._record_variance()
+        return up
+
+    def _record_variance(self) -> FloatArray:
+        """Store the last window adjustment's weighted squared residuals (under the stated
+        covariances) and redundancy numbers of its connections in :attr:`online_variance`
+        (the quality control's, when it ran on this solution), then update the factors the
+        next adjustments use (``'apply'``); returns them."""
+        net, conns, priors = self.updater.problem
+        res = self.updater.last()
+        cached = self.updater.quality.last
+        if cached is not None and cached[0] is res:
+            red = cached[1].redundancy_numbers
+        else:
+            red = connection_redundancy(net, res, priors)
+        W = self.updater.stated_terms(conns).weights
+        v = res.residuals
+        self.online_variance.record(conns, np.einsum('mi,mij,mj->m', v, W, v), red)
+        return self._use_variance_factors()
+
+    def _use_variance_factors(self) -> FloatArray:
+        """The window adjustments and the refinements started from now on weight each
+        connection by its group's current factor (fixed until the next adjustment). Returns
+        the factors (per group)."""
+        book = self.online_variance
+        factors = book.factors()
+        self._factors_of = lambda rows: book.factors_of(rows, factors)
+        self.updater.weight_factors = self._factors_of
+        return factors
 
     def _last(self) -> SolveResult | None:
         """The last window adjustment (recomputed on first use after a restore)."""
@@ -357,10 +425,13 @@ class TrackWindowAligner:
         nothing (it may run in the background thread of :attr:`ahead`). ``covariances=False``:
         the leaving nodes' covariances are left to :meth:`_deferred_covariances`."""
         cfg = self.config
-        st, kept = self.state, self.updater.terms  # the last window's connections' terms
+        # the last window's connections' terms, weighted as the window weighted them
+        st, kept, factors = self.state, self.updater.terms, self.updater.weight_factors
         return self.policy.plan(st, track, res, last_window, priors, n, nc,
                                 int(cfg.prior_band), int(cfg.prior_hubs), self._factor_lock,
-                                covariances, lambda rows: connection_terms(st, kept, rows))
+                                covariances,
+                                lambda rows: scaled_terms(connection_terms(st, kept, rows),
+                                                          factors))
 
     def _refinement_due(self, n_finished: int) -> bool:
         """Whether a background refinement is due at the update of the ``n_finished``-th

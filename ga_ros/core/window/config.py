@@ -16,6 +16,7 @@ from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
+from ga_ros.core.quality.online_variance import OnlineVarianceConfig
 from ga_ros.core.solver import SolverConfig
 from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.core.window.worker import REFINE_EXECUTORS
@@ -145,6 +146,18 @@ class AlignerConfig:
         level, REP 105, so the default is tight-ish: 0.05 rad).
     gauge_sigma_yaw_rad : yaw sigma (rad) of the gauge prior (the odometry's heading in the map
         frame is unknown: 3 rad).
+    variance_components : online variance factor per source
+        (:mod:`ga_ros.core.quality.online_variance`): ``'off'`` (default: nothing estimated,
+        no cost, the stated covariances) or ``'apply'`` (estimated after each track; the window
+        adjustments weight each connection by its source's factor and the published
+        covariances follow). Each update then adjusts the window again until the factors
+        settle (at most ``max_inner_iterations``, usually 1 to 3 more) and computes the
+        redundancy numbers of its window each time (about the cost of the quality control,
+        shared with it when ``quality`` is on).
+    variance_min_redundancy : a source's factor is used only once its accumulated redundancy
+        (degrees of freedom) reaches this; until then it stays 1.
+    variance_prior_dof : the factor is shrunk towards 1 with a prior of this many degrees of
+        freedom.
     """
 
     window_tracks: int = ranged(5, 1, 1000)
@@ -173,9 +186,13 @@ class AlignerConfig:
     gauge_sigma_m: float = ranged(1000.0, 1e-9, 1e9)
     gauge_sigma_tilt_rad: float = ranged(0.05, 1e-12, 10.0)
     gauge_sigma_yaw_rad: float = ranged(3.0, 1e-12, 10.0)
+    variance_components: str = 'off'
+    variance_min_redundancy: float = 20.0
+    variance_prior_dof: float = 10.0
 
     def __post_init__(self) -> None:
         check_ranges(self)
+        self.online_variance_config()  # checks the mode and levels
         if self.freeze_policy not in FREEZE_POLICIES:
             raise InputError(f'freeze_policy must be one of {tuple(FREEZE_POLICIES)}, '
                              f'got {self.freeze_policy!r}')
@@ -215,6 +232,12 @@ class AlignerConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
         return QualityConfig(alpha=self.quality_alpha, alpha0=self.quality_alpha0,
                              snoop_test='w')
+
+    def online_variance_config(self) -> OnlineVarianceConfig:
+        """The settings of the online variance components (``variance_*``)."""
+        return OnlineVarianceConfig(mode=self.variance_components,
+                                    min_redundancy=float(self.variance_min_redundancy),
+                                    prior_dof=float(self.variance_prior_dof))
 
     def solver_config(self) -> SolverConfig:
         """The settings of each window update (:attr:`solver`)."""

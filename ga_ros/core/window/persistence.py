@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ga_ros.core.fixes import FixBook
+from ga_ros.core.quality.online_variance import OnlineVarianceComponents, OnlineVarianceConfig
 from ga_ros.core.window.admission import measurement_fingerprints
 from ga_ros.core.window.aligner import TrackWindowAligner
 from ga_ros.core.window.config import AlignerConfig
@@ -221,6 +222,12 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
     }
     fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
     meta['fixes'] = fix_meta
+    vc_arrays = {}
+    if st.variance is not None:  # the online variance components' book
+        book = st.variance.arrays()
+        meta['variance_groups'] = book['names']
+        vc_arrays = {'vc_group': book['group'].astype(np.int64), 'vc_cost': book['cost'],
+                     'vc_redundancy': book['redundancy']}
     arrays = dict(
         T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
         T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
@@ -228,7 +235,8 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         status=st.status.a.astype(np.int64), last_window=st.last_window.astype(np.int64),
         fingerprint=st.fp.a,
         weighted_idx=st.T_weighted[0].astype(np.int64), weighted_T=st.T_weighted[1],
-        **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past), **fix_arrays)
+        **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past), **fix_arrays,
+        **vc_arrays)
     return meta, arrays
 
 
@@ -390,6 +398,13 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
     if 'fix_rows' in arrays:  # absolute fixes (older files: none; the gate's level is set
         # from the config when the aligner attaches the state)
         st.fixes = FixBook.of_arrays(meta.get('fixes', {}), arrays, st.fixes.gate_prob)
+    if 'vc_group' in arrays and np.shape(arrays['vc_group']) == (m,):
+        # the online variance components' book (older files, or 'off': none; its mode is set
+        # from the config when the aligner attaches the state)
+        st.variance = OnlineVarianceComponents.from_arrays(
+            OnlineVarianceConfig(), {'names': meta.get('variance_groups', []),
+                                     'group': arrays['vc_group'], 'cost': arrays['vc_cost'],
+                                     'redundancy': arrays['vc_redundancy']})
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])

@@ -21,6 +21,7 @@ import numpy as np
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.fixes import FixBook
 from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.quality.online_variance import OnlineVarianceComponents
 from ga_ros.core.solver import SolveResult
 from ga_ros.core.window.received import ReceivedConnections
 from ga_ros.core.window.storage import (
@@ -76,6 +77,8 @@ class WindowState:
     seen_cache : ``(rows scanned, largest node id, largest track id)`` (:meth:`seen_max`).
     fixes : the absolute fixes of the nodes, with the gauge prior of ``datum='fixes'``
         (:class:`~ga_ros.core.fixes.FixBook`; its gate level set from the config).
+    variance : the online variance components' book (group and last values of every
+        connection row; :mod:`ga_ros.core.quality.online_variance`), ``None`` when off.
     """
 
     T_first: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -112,6 +115,7 @@ class WindowState:
     last_pending: list[int] | None = None
     seen_cache: tuple[int, int, int] = (0, -1, -1)
     fixes: FixBook = field(default_factory=FixBook)
+    variance: OnlineVarianceComponents | None = None
     received: ReceivedConnections = field(default_factory=ReceivedConnections)
 
     def finished_order(self) -> list[int]:

@@ -13,6 +13,7 @@ weights, the pre-alignment's factor, the quality control).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -103,6 +104,11 @@ class WindowUpdate:
         # the factor of the last pre-alignment (its symbolic analysis), for the next track's
         self.prealign_factor = None
         self.quality = QualityCache()
+        # the variance factor of each connection row (online variance components applied);
+        # None: the stated covariances
+        self.weight_factors: Callable[[IntArray], FloatArray] | None = None
+        # (net, conns, priors) of the last adjustment's final solve
+        self.problem: tuple[ConnectionNetwork, IntArray, list[GaussianPrior]] | None = None
 
     def window_problem(self, window_tracks: list[int]) -> WindowProblem:
         """The adjustment of the nodes of ``window_tracks`` (:class:`WindowProblem`)."""
@@ -161,9 +167,14 @@ class WindowUpdate:
         return prior
 
     def connection_terms(self, conns: IntArray) -> ConnectionTerms:
-        """The covariances, weights and measured motions of connections (sorted rows), those
-        of the last call reused (a window keeps most of its connections from one update to the
-        next)."""
+        """The covariances, weights and measured motions of connections (sorted rows), with
+        :attr:`weight_factors` applied (covariances times the factor, weights divided)."""
+        return scaled_terms(self.stated_terms(conns), self.weight_factors)
+
+    def stated_terms(self, conns: IntArray) -> ConnectionTerms:
+        """The stated covariances, weights and measured motions of connections (sorted rows),
+        those of the last call reused (a window keeps most of its connections from one update
+        to the next)."""
         self.terms = out = connection_terms(self.state, self.terms, conns)
         return out
 
@@ -243,6 +254,7 @@ class WindowUpdate:
             self.state.status.a[bad] = 2
             n_out += int(bad.size)
         n_win = win_nodes.size
+        self.problem = (net, conns, priors)
         self.state.T[win_nodes] = res.T_world_node[:n_win]
         self.state.T_weighted = (nodes[n_win:].copy(), res.T_world_node[n_win:].copy())
         self.set_last(res)
@@ -256,6 +268,20 @@ class WindowUpdate:
             n_priors=len(priors), n_unknowns=res.n_unknowns, n_readmitted=len(readmitted),
             quality=self.quality.summary(net, res, priors, conns, self.config,
                                          self.state.n_updates))
+
+
+def scaled_terms(terms: ConnectionTerms,
+                 weight_factors: Callable[[IntArray], FloatArray] | None) -> ConnectionTerms:
+    """``terms`` with each connection's variance factor applied (covariance times
+    ``weight_factors(rows)``, weight divided by it); ``terms`` itself when there are no factors
+    or all are 1 (the default ``variance_components: off``)."""
+    if weight_factors is None:
+        return terms
+    f = weight_factors(terms.rows)
+    if (f == 1.0).all():
+        return terms
+    return ConnectionTerms(terms.rows, terms.cov * f[:, None, None],
+                           terms.weights / f[:, None, None], terms.T_meas, terms.T_meas_inv)
 
 
 def connection_terms(state: WindowState, kept: ConnectionTerms, conns: IntArray

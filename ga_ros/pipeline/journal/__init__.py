@@ -14,6 +14,10 @@ no CRC) are still read. A *compacted* journal (``GAJOURNAL3\n``, :mod:`.layout`)
 state at a window update (its base) before its records, so that a recovery from the journal
 alone replays only what followed (the session compacts it: ``SessionConfig.compact_records``).
 
+A measurement's record keeps its source (``Measurement.source``, so a restart keeps the
+groups of the variance factors): flag :data:`SOURCED` of the kind byte, the name in the strict
+lower triangle of ``cov`` (its upper triangle holds the symmetric covariance).
+
 Besides measurements, the journal holds every other change of state, in order:
 
 * every absolute fix the aligner accepted (:mod:`ga_ros.core.fixes`), as four or five records
@@ -53,6 +57,7 @@ from ga_ros.pipeline.journal.records import (
     RECORD,
     RECORD_V1,
     REVERSED,
+    SOURCED,
     TRACK_END_CAUSES,
     Datum,
     Entry,
@@ -85,6 +90,7 @@ __all__ = [
     'RECORD',
     'RECORD_V1',
     'REVERSED',
+    'SOURCED',
     'TRACK_END_CAUSES',
     'Datum',
     'Entry',

@@ -81,8 +81,16 @@ HELD = 0x80
 #: Bit of the kind byte set on a measurement the aligner took *reversed*
 #: (:func:`~ga_ros.core.gaps.reversed_measurement`): the record holds it as it arrived.
 REVERSED = 0x40
-#: The kind byte without its flag bits (:data:`HELD`, :data:`REVERSED`).
-KIND_MASK = 0x3F
+#: Bit of the kind byte set on a measurement that carries its source (``Measurement.source``,
+#: the group of its variance factor): its UTF-8 bytes, zero-padded, fill the 120 bytes of the
+#: strict lower triangle of ``cov`` (the covariance is symmetric: its upper triangle holds it
+#: all). Set only for a named source of an exactly symmetric covariance.
+SOURCED = 0x20
+#: The kind byte without its flag bits (:data:`HELD`, :data:`REVERSED`, :data:`SOURCED`).
+KIND_MASK = 0x1F
+#: The strict lower triangle of a 6x6 ``cov`` (row, column indices): where a source is kept.
+_LOWER = np.tril_indices(6, -1)
+_SOURCE_BYTES = 15 * 8
 
 
 def record_crcs(records: np.ndarray) -> np.ndarray:
@@ -134,6 +142,11 @@ def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
     rec['kind'] = [KINDS.index(m.kind) | flags for m in ms]
     rec['z'] = np.array([m.z for m in ms], dtype=float).reshape(len(ms), 6)
     rec['cov'] = np.array([m.cov for m in ms], dtype=float).reshape(len(ms), 6, 6)
+    for k, m in enumerate(ms):
+        name = str(m.source).encode('utf-8')
+        if name and len(name) <= _SOURCE_BYTES and (rec['cov'][k] == rec['cov'][k].T).all():
+            rec['kind'][k] |= SOURCED
+            rec['cov'][k][_LOWER] = np.frombuffer(name.ljust(_SOURCE_BYTES, b'\0'), '<f8')
     return _with_crc(rec)
 
 
@@ -241,7 +254,12 @@ def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
     cols = [recs[f].tolist() for f in ('src_id', 'dst_id', 'src_track', 'dst_track',
                                        'stamp_ns', 'kind')]
     z, cov = np.array(recs['z'], dtype=float), np.array(recs['cov'], dtype=float)
-    return [Measurement(a, b, c, d, z[k], cov[k], e, KINDS[f & KIND_MASK])
+    source = [''] * len(cols[0])
+    for k in np.flatnonzero(np.asarray(recs['kind']) & SOURCED).tolist():
+        raw = np.ascontiguousarray(cov[k][_LOWER], '<f8').tobytes().rstrip(b'\0')
+        source[k] = raw.decode('utf-8', 'replace')
+        cov[k][_LOWER] = cov[k].T[_LOWER]
+    return [Measurement(a, b, c, d, z[k], cov[k], e, KINDS[f & KIND_MASK], source[k])
             for k, (a, b, c, d, e, f) in enumerate(zip(*cols))]
 
 
