@@ -69,7 +69,7 @@ SLOW_MODULES = {
     'test/pipeline/test_map_to_odom.py', 'test/bench/test_bench_scale.py',
     'test/core/test_frames.py', 'test/pipeline/test_camera_beside_odometry.py',
     'test/core/window/test_refinement_horizon.py', 'test/replay/test_replay_live.py',
-    'test/replay/test_real_camera_bags.py',
+    'test/replay/test_real_camera_bags.py', 'test/core/window/test_refinement_relinearize.py',
 }
 
 
