@@ -98,12 +98,18 @@ class RefinementHandoff:
         drift since the last installed refinement, or starts it if this update ``installed`` one
         (its priors are linearised at its estimate, where the adjustment started). The sum bounds
         how far any of those nodes is from its prior's linearisation point (triangle
-        inequality).
+        inequality). A prior on other nodes (the ``'marginal'`` policy's, on window nodes) makes
+        the drift infinite: every trigger refines, as with ``refine_relinearize_sigma = 0``.
         """
         st = self.state
         nodes, T_end = st.T_weighted
         step = 0.0
-        if nodes.size:
+        held = np.concatenate([p[0] for p in st.priors] or [np.zeros(0, np.int64)])
+        if not np.isin(held, nodes).all():
+            # a prior on nodes the adjustment does not hold as weighted parameters (the
+            # 'marginal' policy's, on window nodes): not measured, so every trigger refines
+            step = np.inf
+        elif nodes.size:
             T_start = carry_over(st.T[nodes], nodes, *prev_weighted)
             d = np.abs(se3.local(T_start, T_end))
             var = np.diagonal(st.cov[nodes], axis1=1, axis2=2)
