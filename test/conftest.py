@@ -70,6 +70,7 @@ SLOW_MODULES = {
     'test/core/test_frames.py', 'test/pipeline/test_camera_beside_odometry.py',
     'test/core/window/test_refinement_horizon.py', 'test/replay/test_replay_live.py',
     'test/replay/test_real_camera_bags.py', 'test/mapping/test_mosaic_replay.py',
+    'test/core/window/test_refinement_relinearize.py',
 }
 
 

@@ -22,7 +22,8 @@ Figures (2-D position RMSE against the ground truth, over every sample):
   track ending at each fix (``finish_track`` right after ``add_fix``); each pose's estimate when
   it was first published: after the update for a fix's node, else the last estimate chained
   with the odometry; ga-ros final: ``refine_batch`` at the end; the aligner runs with its
-  default settings (a background refinement after every track, in a worker process), as
+  default settings (a background refinement in a worker process where the linearisation
+  demands it, ``refine_relinearize_sigma``), as
   ``ga-ros replay`` does;
 * GTSAM batch: Levenberg-Marquardt on the whole graph; GTSAM iSAM2: ``update`` at each fix with
   the factors and poses since the previous one; online = each pose's estimate when it was added
@@ -316,15 +317,19 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
                 with_gtsam: bool = True, isam2_converged: bool = False,
                 refine_every: int | None = None, executor: str | None = None,
-                calibrate: bool = True) -> FixBenchFigures:
-    """One setting of the benchmark (module doc); ``refine_every``, ``executor``: the
-    aligner's ``refine_every_tracks`` and ``refine_executor`` (``None``: its defaults, as
-    ``ga-ros replay`` runs it: a refinement after every track in a worker process)."""
+                calibrate: bool = True, relinearize_sigma: float | None = None
+                ) -> FixBenchFigures:
+    """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
+    ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
+    ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
+    refinement in a worker process at a track's end once the frozen nodes drifted by 1 sigma);
+    ``calibrate``: also the final batch with self-calibration."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
     extra = {k: v for k, v in (('refine_every_tracks', refine_every),
-                               ('refine_executor', executor)) if v is not None}
+                               ('refine_executor', executor),
+                               ('refine_relinearize_sigma', relinearize_sigma)) if v is not None}
     cfg = AlignerConfig(window_tracks=window_tracks, datum='fixes', **extra)
     n = run.T_true.shape[0]
     dead = np.zeros((n, 4, 4))
@@ -428,6 +433,9 @@ def main(argv: list[str] | None = None) -> int:
                     "fixes; default: the aligner's, 1; 0: off)")
     ap.add_argument('--executor', default=None, choices=('process', 'thread', 'inline'),
                     help="the aligner's refine_executor (default: the aligner's, process)")
+    ap.add_argument('--relinearize-sigma', type=float, default=None,
+                    help="the aligner's refine_relinearize_sigma (default: the aligner's, 1; 0: "
+                    'a refinement after every track)')
     ap.add_argument('--no-gtsam', action='store_true')
     ap.add_argument('--isam2-converged', action='store_true',
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
@@ -440,7 +448,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     figs = [bench_fixes(float(i), float(s), args.seed, args.data, args.sigma_xy,
                         args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
-                        args.refine_every, args.executor, not args.no_calibration)
+                        args.refine_every, args.executor, not args.no_calibration,
+                        args.relinearize_sigma)
             for s in args.noise.split(',') for i in args.intervals.split(',')]
     if args.json:
         print(json.dumps([asdict(f) for f in figs]))

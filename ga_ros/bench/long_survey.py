@@ -6,8 +6,9 @@ tracks (default 1,000) of ``2 x --positions-per-swath`` poses (default 2 x 10) w
 The last node of every track gets an absolute position fix (its true position plus seeded
 Gaussian noise of ``--fix-sigma`` m per axis, rotation unknown) just before the measurement that
 ends the track, and the aligner runs with ``datum='fixes'`` and otherwise its default settings
-(window, background refinement every track in a worker process, horizon), as
-``ga-ros replay --absolute-topic`` does. Measurements are generated lazily in acquisition order.
+(window, background refinement in a worker process where the linearisation demands it,
+horizon), as ``ga-ros replay --absolute-topic`` does. Measurements are generated lazily in
+acquisition order.
 
 Printed (every figure says what it compares):
 

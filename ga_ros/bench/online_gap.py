@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--prior-hubs', type=int, default=None, help='AlignerConfig.prior_hubs')
     ap.add_argument('--horizon', type=int, default=None,
                     help='AlignerConfig.refine_horizon_tracks (default: the aligner default)')
+    ap.add_argument('--relinearize-sigma', type=float, default=None,
+                    help='AlignerConfig.refine_relinearize_sigma (default: the aligner default; '
+                         '0: a refinement at every trigger)')
     ap.add_argument('--no-per-track', action='store_true',
                     help='compare with batch at the end only (no batch solve per track)')
     args = ap.parse_args(argv)
@@ -120,7 +123,9 @@ def run_draw(args: argparse.Namespace, sc, rng: np.random.Generator) -> dict:
     for name in args.policies:
         prior = {k: v for k, v in (('prior_band', args.prior_band),
                                    ('prior_hubs', args.prior_hubs),
-                                   ('refine_horizon_tracks', args.horizon)) if v is not None}
+                                   ('refine_horizon_tracks', args.horizon),
+                                   ('refine_relinearize_sigma', args.relinearize_sigma))
+                 if v is not None}
         al = TrackWindowAligner(_policy_config(name, args.window, args.every, args.lag, prior),
                                 T_world_first=T_true[0])
         start, ms, rows, own, wait, cpu = 0, [], [], [], [], []

@@ -30,7 +30,8 @@ The cost of an update depends on the window only, not on the number of tracks fl
 A background refinement (``refine_every_tracks``, :mod:`ga_ros.core.window.refinement`)
 re-solves the
 survey (its last ``refine_horizon_tracks`` tracks, the older ones as one prior) off the update
-path and hands the result back at a fixed later track: frozen poses and covariances refined,
+path, when the linearisation demands it (``refine_relinearize_sigma``), and hands the result
+back at a fixed later track: frozen poses and covariances refined,
 priors rebuilt at the refined estimate, and the window's corrections carried back to the frozen
 nodes of that horizon, so the online path follows the batch solution.
 

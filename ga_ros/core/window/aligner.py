@@ -334,8 +334,12 @@ class TrackWindowAligner:
         installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
         self._deferred_covariances(plans, self.handoff.n_refinements > installed)
+        prev_weighted = st.T_weighted
         try:
             up = self._adjust(window, track, t0)
+            if not str(up.reason).startswith('failed'):
+                # before the smoothing moves the frozen nodes: whether the next refinement runs
+                self.handoff.measure(prev_weighted, self.handoff.n_refinements > installed)
             if refined is not None and not str(up.reason).startswith('failed'):
                 error = self.handoff.smooth(self._last())
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
@@ -618,7 +622,7 @@ class TrackWindowAligner:
         self.handoff.drop()
         # the next refinement starts from the whole survey again (a past prior linearised at
         # the old estimate would pull the retired tracks' boundary back)
-        st.retired, st.past = 0, []
+        st.retired, st.past, st.refine_drift = 0, [], 0.0
         with blas_threads():
             st.priors = [JointPrior.absorbed(p) for p in
                          absorbed_priors(self.handoff.snapshot(whole=True), st.T[:n])]

@@ -120,6 +120,13 @@ class AlignerConfig:
         survey (25 double tracks, 10 % noise, 3 noise draws) its rigid-ATE gap to batch is
         within 0.5 % of the whole-survey refinement's (-0.0 / +0.5 / -0.1 % against -0.0 /
         +0.0 / -0.0 %); 15 lost 0.8 % on the first draw, 10 lost 8.7 %.
+    refine_relinearize_sigma : a refinement starts (at its ``refine_every_tracks`` trigger) only
+        when the frozen nodes the window adjusts as weighted parameters may have moved from
+        their priors' linearisation points by this many of their standard deviations (in some
+        coordinate, summed over the updates since the last installed refinement), or when the
+        tracks not retired reach ``2 refine_horizon_tracks``; otherwise the window's own priors
+        stand, as iSAM2 relinearises only variables whose change exceeds a threshold
+        (``docs/window-design.md``, "When a refinement runs"). 0: after every trigger.
     prior_band : half-bandwidth ``w`` (nodes, along the trajectory) of the joint priors'
         information (:func:`~ga_ros.core.window.freeze.band_prior`): the exact marginal
         covariance of the prior nodes on that band (every node's covariance and its
@@ -179,6 +186,7 @@ class AlignerConfig:
     refine_lag_tracks: int = ranged(1, 1, 1000)
     refine_executor: str = 'process'
     refine_horizon_tracks: int = ranged(20, 0, 100_000)
+    refine_relinearize_sigma: float = ranged(1.0, 0.0, 1e6)
     prior_band: int = ranged(16, -1, 100_000)
     prior_hubs: int = ranged(16, 0, 1000)
     datum: str = 'first_node'

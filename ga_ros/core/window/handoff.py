@@ -22,6 +22,7 @@ from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.freeze import AbsorbedPrior, JointPrior, prior_nodes
 from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot
 from ga_ros.core.window.state import WindowState, no_weighted
+from ga_ros.core.window.update import carry_over
 from ga_ros.core.window.worker import RefinementWorker
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
@@ -66,9 +67,58 @@ class RefinementHandoff:
                         self.state.unfrozen_tail(order[:max(0, due - cfg.window_tracks)]))
         if not leaving and not self.state.frozen[:n].any():
             return  # nothing will be frozen at the hand-off: the window is the batch solution
+        if not self.relinearize_due(len(order)):
+            return  # the priors' linearisation points still hold: the window's priors stand
         self.snap = replace(self.snapshot(), leaving=leaving)
         self.snap_updates = self.state.n_updates
         self.refiner.submit(self.snap, due)
+
+    def relinearize_due(self, n_finished: int) -> bool:
+        """Whether a refinement triggered after the ``n_finished``-th track runs: the frozen
+        nodes may have moved from their priors' linearisation points by
+        ``refine_relinearize_sigma`` standard deviations (:attr:`WindowState.refine_drift
+        <ga_ros.core.window.state.WindowState.refine_drift>`, :meth:`measure`), or the tracks
+        not retired reach twice the horizon (so the snapshot, the retirement and the cost of a
+        refinement stay bounded by the horizon). Depends on the data only (replay == live)."""
+        cfg = self.config
+        horizon = int(cfg.refine_horizon_tracks)
+        return (self.state.refine_drift >= cfg.refine_relinearize_sigma
+                or (horizon > 0 and n_finished - self.state.retired >= 2 * horizon))
+
+    def measure(self, prev_weighted: tuple, installed: bool) -> float:
+        """After a window adjustment: update and return :attr:`WindowState.refine_drift
+        <ga_ros.core.window.state.WindowState.refine_drift>`.
+
+        ``prev_weighted`` is the state's ``T_weighted`` before the adjustment (where it started
+        the frozen nodes it had adjusted; the others started at their frozen pose, the
+        linearisation point of the prior that holds them, or the installed refinement's). The
+        adjustment's largest correction of a frozen node it adjusts as a weighted parameter, in
+        that node's standard deviations (per coordinate ``[x y z rx ry rz]``, from its published
+        covariance; a coordinate of zero variance, the datum's, is not counted), is added to the
+        drift since the last installed refinement, or starts it if this update ``installed`` one
+        (its priors are linearised at its estimate, where the adjustment started). The sum bounds
+        how far any of those nodes is from its prior's linearisation point (triangle
+        inequality). A prior on other nodes (the ``'marginal'`` policy's, on window nodes) makes
+        the drift infinite: every trigger refines, as with ``refine_relinearize_sigma = 0``.
+        """
+        st = self.state
+        nodes, T_end = st.T_weighted
+        step = 0.0
+        held = np.concatenate([p[0] for p in st.priors] or [np.zeros(0, np.int64)])
+        if not np.isin(held, nodes).all():
+            # a prior on nodes the adjustment does not hold as weighted parameters (the
+            # 'marginal' policy's, on window nodes): not measured, so every trigger refines
+            step = np.inf
+        elif nodes.size:
+            T_start = carry_over(st.T[nodes], nodes, *prev_weighted)
+            d = np.abs(se3.local(T_start, T_end))
+            var = np.diagonal(st.cov[nodes], axis1=1, axis2=2)
+            ok = var > 0
+            if ok.any():
+                step = float((d[ok] / np.sqrt(var[ok])).max())
+        step = step if np.isfinite(step) else np.inf  # a failed measure: refine
+        st.refine_drift = step if installed else st.refine_drift + step
+        return st.refine_drift
 
     def snapshot(self, n_nodes: int | None = None, n_conns: int | None = None,
                   whole: bool = False, n_fixes: int | None = None) -> RefinementSnapshot:

@@ -218,7 +218,7 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         'open_track': None if st.open_track is None else int(st.open_track),
         'rejected': {str(k): int(v) for k, v in st.rejected.items()},
         'n_updates': int(st.n_updates), 'n_outliers': int(st.n_outliers),
-        'refine_retired': int(st.retired),
+        'refine_retired': int(st.retired), 'refine_drift': float(st.refine_drift),
     }
     fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
     meta['fixes'] = fix_meta
@@ -395,6 +395,8 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
     if 'past_sizes' in arrays:  # the bounded refinement's past prior (older files: none)
         st.past = _priors_of('past', arrays)
         st.retired = int(meta.get('refine_retired', 0))
+    # older files: none, so the next trigger refines
+    st.refine_drift = float(meta.get('refine_drift', np.inf))
     if 'fix_rows' in arrays:  # absolute fixes (older files: none; the gate's level is set
         # from the config when the aligner attaches the state)
         st.fixes = FixBook.of_arrays(meta.get('fixes', {}), arrays, st.fixes.gate_prob)

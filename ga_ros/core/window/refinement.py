@@ -5,7 +5,11 @@ at the estimate of that moment and never re-estimated with later data, and its c
 absorbed into joint Gaussian priors linearised where the tracks froze. The batch solution of the
 same data smooths. A *refinement* closes the gap without blocking the per-track update:
 
-1. after every ``refine_every_tracks``-th track the aligner takes a :class:`RefinementSnapshot`
+1. after every ``refine_every_tracks``-th track, if the linearisation demands it (the frozen
+   nodes adjusted as weighted parameters drifted by ``refine_relinearize_sigma`` standard
+   deviations from their priors' linearisation points, or the horizon is full twice over:
+   :meth:`~ga_ros.core.window.handoff.RefinementHandoff.relinearize_due`), the aligner takes a
+   :class:`RefinementSnapshot`
    (node poses, connections and their status, which nodes are frozen) and hands it to a worker
    (a separate process by default, truly parallel on a multi-core machine; a thread; or inline);
 2. the worker solves the snapshot in full (:func:`refine_snapshot`: batch Gauss-Newton,

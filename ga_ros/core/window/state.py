@@ -72,6 +72,10 @@ class WindowState:
     rejected : rejected measurements by reason; n_updates, n_outliers : counters.
     retired : finished tracks that left the bounded refinement's horizon; past : the joint
         prior of their terms, as ``priors``.
+    refine_drift : how far (in standard deviations) the frozen nodes adjusted as weighted
+        parameters may have moved from their priors' linearisation points since the last
+        installed refinement (:meth:`~ga_ros.core.window.handoff.RefinementHandoff.measure`);
+        a refinement starts only when it reaches ``refine_relinearize_sigma``.
     last_result : the last window adjustment (``None``: none, or ``last_pending`` set).
     last_pending : tracks of a window adjustment to recompute on first use (a restored state).
     seen_cache : ``(rows scanned, largest node id, largest track id)`` (:meth:`seen_max`).
@@ -111,6 +115,7 @@ class WindowState:
     n_outliers: int = 0
     retired: int = 0
     past: list = field(default_factory=list)
+    refine_drift: float = 0.0
     last_result: SolveResult | None = None
     last_pending: list[int] | None = None
     seen_cache: tuple[int, int, int] = (0, -1, -1)
@@ -278,7 +283,7 @@ class Rollback:
     #: Fields of :class:`WindowState` saved and restored as they are (replaced, never changed in
     #: place, by an update; ``priors`` is copied as a list).
     KEPT = ('priors', 'last_window', 'n_outliers', 'n_updates', 'T_weighted', 'retired', 'past',
-            'last_result', 'last_pending')
+            'refine_drift', 'last_result', 'last_pending')
 
     @classmethod
     def of(cls, state: WindowState, rows: tuple[int, int]) -> Rollback:

@@ -33,7 +33,7 @@ def _wls(n: int, z: np.ndarray, fixes: dict[int, np.ndarray]) -> np.ndarray:
 
 
 def _aligner(refine_every: int, **kw) -> TrackWindowAligner:
-    return fixes_aligner(2, refine_every, **kw)
+    return fixes_aligner(2, refine_every, refine_relinearize_sigma=0.0, **kw)
 
 
 def _run(al: TrackWindowAligner, ms, fixes: dict[int, np.ndarray]) -> None:

@@ -33,6 +33,7 @@ def _run(cfg, sc, ms):
 def _refining(policy='weighted', executor='inline', lag=1, **solver):
     return AlignerConfig(window_tracks=2, freeze_policy=policy, refine_every_tracks=1,
                          refine_lag_tracks=lag, refine_executor=executor,
+                         refine_relinearize_sigma=0.0,
                          solver=replace(ALIGNER_SOLVER, **solver))
 
 
@@ -45,7 +46,7 @@ def test_config_refuses_bad_refinement_settings():
 
 def test_refinement_equals_a_batch_solve_of_the_snapshot():
     sc, nm, ms = _survey()
-    al, _ = _run(AlignerConfig(window_tracks=2), sc, ms)
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_relinearize_sigma=0.0), sc, ms)
     snap = al.handoff.snapshot()
     res = refine_snapshot(snap)
     assert res.ok and snap.frozen.any()
@@ -121,7 +122,7 @@ def test_after_refine_batch_the_next_window_adjustment_stays_at_the_batch_optimu
     leaves is at its optimum there: adjusting it again moves nothing. With the priors kept at
     their old means (the bug), the same adjustment moved the estimate back (0.5 mm here)."""
     sc, nm, ms = _survey(n_tracks=5, per_swath=8, pct=5.0)
-    al, _ = _run(AlignerConfig(window_tracks=2,
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_relinearize_sigma=0.0,
                                solver=replace(ALIGNER_SOLVER, tolerance=1e-10)), sc, ms)
     old_priors = list(al.state.priors)
     al.refine_batch()
@@ -297,7 +298,8 @@ print('script body ran', flush=True)
 sc = aerial_scenario(n_tracks=4, positions_per_swath=6)
 nm = perturb(sc.true_motions(), NoiseModel(5.0, sc.depth_m), np.random.default_rng(4))
 al = TrackWindowAligner(AlignerConfig(window_tracks=2, refine_every_tracks=1,
-                                      refine_executor='process'), sc.T_world_node[0])
+                                      refine_executor='process', refine_relinearize_sigma=0.0),
+                        sc.T_world_node[0])
 ups = al.add_measurements(sc.measurements(nm.z, nm.cov)).updates + [al.finish_track()]
 print('installed', sum(u.refined_after_tracks >= 0 and not u.refine_reason.startswith(
       ('failed', 'not installed')) and 'not smoothed' not in u.refine_reason for u in ups),

@@ -18,6 +18,7 @@ from ga_ros.core.window.refinement import refine_snapshot
 
 def _config(horizon, window=2, executor='inline', band=-1, **solver):
     return AlignerConfig(window_tracks=window, refine_every_tracks=1, refine_executor=executor,
+                         refine_relinearize_sigma=0.0,
                          refine_horizon_tracks=horizon, prior_band=band,
                          prior_hubs=0 if band < 0 else 3,
                          solver=replace(ALIGNER_SOLVER, **solver))

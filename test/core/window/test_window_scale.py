@@ -16,7 +16,8 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
 #: Window 2, horizon 3: tracks retire from the refinement from track 6 on.
-CFG = dict(window_tracks=2, refine_executor='inline', refine_horizon_tracks=3)
+CFG = dict(window_tracks=2, refine_executor='inline', refine_horizon_tracks=3,
+           refine_relinearize_sigma=0.0)
 N_TRACKS = 10
 
 
