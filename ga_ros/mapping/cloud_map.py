@@ -58,8 +58,8 @@ class CloudMapConfig:
     max_pending_poses : poses waiting for their keyframe's cloud; beyond, the oldest is dropped.
     """
 
-    voxel_m: float = ranged(0.05, 1e-4, 1e4)
-    keyframe_voxel_m: float = ranged(0.02, 0.0, 1e4)
+    voxel_m: float = ranged(0.2, 1e-4, 1e4)
+    keyframe_voxel_m: float = ranged(0.1, 0.0, 1e4)
     max_points_per_keyframe: int = ranged(20000, 0, 10**8)
     max_range_m: float = ranged(0.0, 0.0, 1e6)
     max_live_keyframes: int = ranged(5000, 0, 10**8)

@@ -10,6 +10,7 @@ from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.map_to_odom import TRANSFORM_PERIOD_S
 from ga_ros.replay.inputs import InputTopics
+from ga_ros.replay.map_outputs import MapOutputConfig
 from ga_ros.replay.outputs import OutputConfig
 
 #: What the final batch does with the variance factors per source (``ReplayConfig``).
@@ -60,6 +61,8 @@ class ReplayConfig:
         node's parameter of the same name).
     covariance_policy : a measurement covariance that is not positive definite: ``'reject'``
         (as the live node by default) or ``'repair'`` (eigenvalue clipping).
+    map : write the maps of a stereo bag (``map_ga.ply``, ``map_f2f.ply``;
+        :mod:`ga_ros.replay.map_outputs`) with these settings; None: no maps.
     """
 
     topics: TopicConfig = TopicConfig()
@@ -88,3 +91,4 @@ class ReplayConfig:
     tf: bool = True
     covariance_policy: str = 'reject'
     transform_publish_period_sec: float = TRANSFORM_PERIOD_S
+    map: MapOutputConfig | None = None

@@ -31,7 +31,8 @@ class ReplayResult:
     ``variance_components``: the variance factor per source estimated in the final batch
     (:meth:`~ga_ros.core.quality.variance_components.VarianceComponents.as_dict`; empty when
     not estimated). ``ground_truth`` says what ground truth was used and how much of it
-    matched; ``warnings`` what the replay went on despite (e.g. a bag cut short).
+    matched; ``warnings`` what the replay went on despite (e.g. a bag cut short). ``map``: the
+    figures of ``--map`` (:func:`ga_ros.replay.map_outputs.write_map_outputs`; absent without).
     """
 
     bag: str
@@ -62,6 +63,7 @@ class ReplayResult:
     final_batch_update: dict[str, Any] = field(default_factory=dict)
     errors_compared: str = 'raw'
     variance_components: dict[str, Any] = field(default_factory=dict)
+    map: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -84,7 +86,8 @@ class ReplayResult:
             'files': self.files, 'output_counts': self.output_counts, 'error': self.error,
             'source_stats': self.source_stats, 'quality': self.quality, 'frames': self.frames,
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
-            'gaps': self.gaps, 'variance_components': self.variance_components}
+            'gaps': self.gaps, 'variance_components': self.variance_components,
+            **({'map': self.map} if self.map else {})}
 
     def reject(self, reason: str) -> None:
         """Count a rejection under the text before its first ``:`` (keep 10 examples)."""

@@ -252,3 +252,23 @@ def test_figures_of_a_known_scene() -> None:
     stds = np.r_[np.full(8, 0.1), np.zeros(4)]
     assert f.height_spread_median_m == pytest.approx(np.median(stds), abs=1e-9)
     assert f.height_spread_mean_m == pytest.approx(stds.mean(), abs=1e-9)
+
+
+def test_spread_between_groups_of_a_known_scene(rng) -> None:
+    """Two tracks see a 4 m x 4 m patch 0.2 m apart in height, with noise of 0.05 m: the
+    spread between their mean heights is 0.1 m per cell (the std of two values 0.2 apart),
+    whatever the noise; a third track over half the patch at the first's height gives
+    std(0, 0, 0.2) there."""
+    from ga_ros.mapping.figures import group_height_spread
+
+    xy = rng.uniform(0, 4, (40000, 2))
+    z = rng.normal(0, 0.05, 40000)
+    a = np.c_[xy, z]
+    b = np.c_[xy, z + 0.2]
+    s = group_height_spread(np.r_[a, b], np.r_[np.zeros(40000), np.ones(40000)], cell_m=2.0)
+    assert s.cells == 4 and s.median == pytest.approx(0.1, abs=2e-3)
+    c = a[a[:, 0] < 2.0]
+    s3 = group_height_spread(np.r_[a, b, c], np.r_[np.zeros(40000), np.ones(40000),
+                                                    np.full(len(c), 2)], cell_m=2.0)
+    assert s3.cells == 4 and s3.median == pytest.approx(
+        np.median([0.1, 0.1, np.std([0, 0, 0.2]), np.std([0, 0, 0.2])]), abs=2e-3)
