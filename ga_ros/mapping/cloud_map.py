@@ -7,13 +7,14 @@ decimated once, when it arrives (a voxel grid of ``keyframe_voxel_m`` in that fr
 most ``max_points_per_keyframe`` points, evenly strided), together with its pose ``T_map_kf``
 (``p_map = T_map_kf @ p_kf``).
 The map is a voxel grid of ``voxel_m`` in ``map`` (:class:`ga_ros.mapping.voxels.
-VoxelAccumulator`): every placed keyframe adds its points' per-voxel sums, and remembers them,
-so that re-anchoring a keyframe (:meth:`KeyframeCloudMap.set_poses`) subtracts its old
-contribution and adds the new one. An update therefore costs time proportional to the points of
-the keyframes it moves, not to the size of the map; a keyframe whose pose is unchanged costs
-nothing. The map's points (:meth:`KeyframeCloudMap.cloud`) are the voxels' centroids, each with
-its mean intensity: the same, up to float rounding, as a map built from scratch from the same
-poses.
+VoxelAccumulator`): every placed keyframe adds its points' per-voxel sums and remembers the
+slots they went to, so that re-anchoring a keyframe (:meth:`KeyframeCloudMap.set_poses`)
+subtracts its old contribution (recomputed from its points and old pose: the same arrays, bit
+for bit, as when it was added) and adds the new one. An update therefore costs time proportional
+to the points of the keyframes it moves, not to the size of the map; a keyframe whose pose is
+unchanged costs nothing. The map's points (:meth:`KeyframeCloudMap.cloud`) are the voxels'
+centroids, each with its mean intensity: the same, up to float rounding, as a map built from
+scratch from the same poses.
 
 Memory is bounded: at most ``max_live_keyframes`` keyframes keep their points; beyond, the
 keyframe placed (moved) longest ago joins the **static layer**: its contribution stays in the
@@ -111,13 +112,12 @@ class MapUpdate:
 
 @dataclass
 class _Keyframe:
-    """One keyframe: its decimated cloud in its own frame, its pose and, once placed, its
-    contribution to the voxel grid and the slots it went to."""
+    """One keyframe: its decimated cloud in its own frame, its pose and, once placed, the
+    slots of the voxel grid its contribution went to (in key order)."""
 
     points: np.ndarray
     intensity: np.ndarray
     T_map_kf: FloatArray | None = None
-    contrib: Contribution | None = None
     slots: IntArray | None = None
 
 
@@ -170,6 +170,12 @@ class KeyframeCloudMap:
         """Keys of the placed keyframes that keep their points (oldest placement first)."""
         return list(self._live)
 
+    def keyframe_cloud(self, key: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(points, intensity)`` of a keyframe as kept (decimated, in its own frame), placed
+        or waiting; None for an unknown or static keyframe."""
+        kf = self._live.get(int(key)) or self._unplaced.get(int(key))
+        return None if kf is None else (kf.points, kf.intensity)
+
     def pose(self, key: int) -> FloatArray | None:
         """``T_map_kf`` of a placed live keyframe (None otherwise)."""
         kf = self._live.get(int(key))
@@ -180,9 +186,8 @@ class KeyframeCloudMap:
         n = self.voxels.nbytes
         for kf in list(self._live.values()) + list(self._unplaced.values()):
             n += kf.points.nbytes + kf.intensity.nbytes
-            if kf.contrib is not None and kf.slots is not None:
-                n += (kf.contrib.keys.nbytes + kf.contrib.counts.nbytes
-                      + kf.contrib.sums.nbytes + kf.slots.nbytes)
+            if kf.slots is not None:
+                n += kf.slots.nbytes
         return n
 
     # ------------------------------------------------------------------ input
@@ -313,8 +318,8 @@ class KeyframeCloudMap:
         self._static.clear()
         self.voxels.clear()
         for kf in self._live.values():
-            assert kf.contrib is not None
-            kf.slots = self.voxels.add(kf.contrib)
+            assert kf.T_map_kf is not None
+            kf.slots = self.voxels.add(self._contribution(kf, kf.T_map_kf)).astype(np.int32)
 
     def freeze(self, keys: IntArray | list[int]) -> int:
         """Merge these placed keyframes into the static layer now; returns how many."""
@@ -334,17 +339,19 @@ class KeyframeCloudMap:
         return MapCloud(P, inten)
 
     # ------------------------------------------------------------------ internals
+    def _contribution(self, kf: _Keyframe, T_map_kf: FloatArray) -> Contribution:
+        return contribution(transform_points(T_map_kf, kf.points), kf.intensity,
+                            self.config.voxel_m)
+
     def _place(self, key: int, kf: _Keyframe, T_map_kf: FloatArray) -> None:
         kf.T_map_kf = np.array(T_map_kf, float)
-        kf.contrib = contribution(transform_points(kf.T_map_kf, kf.points), kf.intensity,
-                                  self.config.voxel_m)
-        kf.slots = self.voxels.add(kf.contrib)
+        kf.slots = self.voxels.add(self._contribution(kf, kf.T_map_kf)).astype(np.int32)
         self._live[key] = kf
 
     def _unplace(self, kf: _Keyframe) -> None:
-        if kf.contrib is not None and kf.slots is not None:
-            self.voxels.remove(kf.contrib, kf.slots)
-        kf.contrib, kf.slots = None, None
+        if kf.slots is not None and kf.T_map_kf is not None:
+            self.voxels.remove(self._contribution(kf, kf.T_map_kf), kf.slots)
+        kf.slots = None
 
     def _bound_live(self) -> None:
         n_max = self.config.max_live_keyframes
@@ -360,8 +367,9 @@ def map_from_poses(config: CloudMapConfig, keys: IntArray | list[int],
     keyframes without a cloud are skipped)."""
     m = KeyframeCloudMap(config)
     keys = np.asarray(keys, np.int64).reshape(-1)
-    for key in keys.tolist():
+    T = np.asarray(T_map_kf, float).reshape(-1, 4, 4)
+    for i, key in enumerate(keys.tolist()):   # one at a time: nothing waits, nothing dropped
         if key in clouds:
             m.add_cloud(key, *clouds[key])
-    m.set_poses(keys, T_map_kf)
+            m.set_poses([key], T[i:i + 1])
     return m

@@ -171,8 +171,10 @@ class VoxelAccumulator:
         self._sums[slots] += c.sums
         return slots
 
-    def remove(self, c: Contribution, slots: IntArray) -> None:
+    def remove(self, c: Contribution, slots: np.ndarray) -> None:
         """Subtract a contribution added before at ``slots`` (what :meth:`add` returned)."""
+        slots = np.asarray(slots, np.int64)
+        assert np.array_equal(self._keys[slots], c.keys), 'not the contribution added there'
         self._counts[slots] -= c.counts
         self._sums[slots] -= c.sums
         empty = slots[self._counts[slots] <= 0]

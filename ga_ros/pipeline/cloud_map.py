@@ -106,6 +106,11 @@ class CloudMapBuilder:
             self.add_cloud(*item)
         return n
 
+    def set_extrinsic(self, extrinsic: Extrinsic) -> None:
+        """Use this extrinsic for clouds in its ``camera_frame`` (one resolved elsewhere, e.g.
+        by the replay's stereo front end)."""
+        self._extrinsics[extrinsic.camera_frame] = extrinsic
+
     def extrinsic(self, camera_frame: str) -> Extrinsic:
         """The camera's extrinsic for clouds in ``camera_frame`` (resolved once, then kept).
 
@@ -171,6 +176,11 @@ class CloudMapBuilder:
         if self.corrections_seen:
             return None
         self.counts.paths += 1
+        return self._apply(stamps_ns, T_map_base)
+
+    def set_poses(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate:
+        """Re-anchor the keyframes named to these poses, whatever came before (e.g. the final
+        poses at the end of a replay: only those that differ cost anything)."""
         return self._apply(stamps_ns, T_map_base)
 
     def _apply(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate:

@@ -98,13 +98,13 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         run.source = source.items
         if config.tf and hasattr(source.items, 'passthrough'):  # the input's TF copied
             source.items.passthrough = run.copy_tf
-        clouds = map_outputs.attach(run, config.map) if config.map is not None else None
+        maps = map_outputs.attach(run, config.map) if config.map is not None else None
         try:
             _read_all(run, source, bag)
             _conclude(run, source, bag_path)
-            if clouds is not None and result.corrected is not None:
+            if maps is not None and result.corrected is not None:
                 result.map = map_outputs.write_map_outputs(
-                    run, clouds, result.corrected, f2f_path(run, result.corrected))
+                    run, maps, result.corrected, f2f_path(run, result.corrected))
         finally:
             outputs.close()
             result.seconds = time.perf_counter() - t0

@@ -272,3 +272,16 @@ def test_spread_between_groups_of_a_known_scene(rng) -> None:
                                                     np.full(len(c), 2)], cell_m=2.0)
     assert s3.cells == 4 and s3.median == pytest.approx(
         np.median([0.1, 0.1, np.std([0, 0, 0.2]), np.std([0, 0, 0.2])]), abs=2e-3)
+
+
+def test_map_from_poses_keeps_every_keyframe(rng) -> None:
+    """More keyframes than clouds may wait: all are in the map built at once."""
+    from ga_ros.mapping.cloud_map import map_from_poses
+
+    cfg = CloudMapConfig(voxel_m=VOXEL, keyframe_voxel_m=0.0, max_points_per_keyframe=0,
+                         max_live_keyframes=0, max_unplaced_clouds=2)
+    clouds = {k: random_cloud(rng, 20) for k in range(7)}
+    T = {k: random_pose(rng) for k in range(7)}
+    m = map_from_poses(cfg, list(T), np.array(list(T.values())), clouds)
+    assert m.n_live == 7
+    assert_same_map(m.cloud(), reference_map(T, clouds))
