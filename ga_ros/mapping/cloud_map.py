@@ -170,6 +170,10 @@ class KeyframeCloudMap:
         """Keys of the placed keyframes that keep their points (oldest placement first)."""
         return list(self._live)
 
+    def unplaced_keys(self) -> list[int]:
+        """Keys of the clouds waiting for their pose (oldest arrival first)."""
+        return list(self._unplaced)
+
     def keyframe_cloud(self, key: int) -> tuple[np.ndarray, np.ndarray] | None:
         """``(points, intensity)`` of a keyframe as kept (decimated, in its own frame), placed
         or waiting; None for an unknown or static keyframe."""

@@ -20,8 +20,10 @@ Inputs, in any order:
   map.
 
 Keyframes are named by their stamp (ns): the key the clouds and the poses share. The first two
-keyframes of a survey share one stamp in the path (the measurement encoding stamps a motion at
-its destination), so the first keyframe's cloud waits until its stamp appears.
+keyframes of a survey share one stamp in the path and the corrections (the measurement encoding
+stamps a motion at its destination: the first keyframe gets the second's stamp): when a message
+names a stamp twice, its first pose is the keyframe before, and it goes to the newest cloud
+waiting with an older stamp (the first keyframe's own), remembered for later messages.
 
 The map (:class:`ga_ros.mapping.cloud_map.KeyframeCloudMap`) re-anchors only the keyframes
 named; :meth:`CloudMapBuilder.cloud` is the voxel map in ``map``.
@@ -36,7 +38,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.extrinsic import Extrinsic, ExtrinsicConfig, TransformTree
-from ga_ros.errors import UnknownExtrinsicError
+from ga_ros.errors import InputError, UnknownExtrinsicError
 from ga_ros.mapping.cloud_map import (
     CloudMapConfig,
     KeyframeCloudMap,
@@ -96,6 +98,8 @@ class CloudMapBuilder:
         self.extrinsic_error = ''
         #: the map changed since :meth:`take_changed` last said so
         self.changed = False
+        #: a stamp named twice -> the stamp of the keyframe its first pose is (module doc)
+        self._alias: dict[int, int] = {}
 
     def add_tf_static(self, msg: object) -> int:
         """Record a ``tf2_msgs/TFMessage`` of ``/tf_static`` and take the clouds that waited
@@ -160,7 +164,17 @@ class CloudMapBuilder:
     def on_corrections(self, full: bool, stamps_ns: IntArray, T_map_base: FloatArray
                        ) -> MapUpdate:
         """A corrections message: ``full`` (it opened with the marker), the keyframes' stamps
-        and poses ``T_map_base`` (k, 4, 4), marker excluded."""
+        and poses ``T_map_base`` (k, 4, 4), marker excluded.
+
+        Raises
+        ------
+        InputError
+            Shapes that do not match or a pose that is not finite: nothing is changed.
+        """
+        T = np.asarray(T_map_base, float).reshape(-1, 4, 4)
+        if T.shape[0] != np.size(stamps_ns) or not np.all(np.isfinite(T)):
+            raise InputError(f'corrections of {np.size(stamps_ns)} stamps and {T.shape[0]} '
+                             'poses, or a pose that is not finite: message dropped')
         self.corrections_seen = True
         self.counts.corrections += 1
         if full:
@@ -184,11 +198,32 @@ class CloudMapBuilder:
         return self._apply(stamps_ns, T_map_base)
 
     def _apply(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate:
-        up = self.map.set_poses(stamps_ns, T_map_base)
+        up = self.map.set_poses(self._unshared(stamps_ns), T_map_base)
         self.counts.moved += up.moved
         self.counts.points_moved += up.points
         self.changed |= bool(up.moved or up.placed)
         return up
+
+    def _unshared(self, stamps_ns: IntArray) -> IntArray:
+        """The keys of a message's poses: a stamp named twice names, at its first pose, the
+        keyframe before (module docstring)."""
+        keys = np.asarray(stamps_ns, np.int64).reshape(-1)
+        if keys.size < 2:
+            return keys
+        uniq, counts = np.unique(keys, return_counts=True)
+        shared = uniq[counts > 1]
+        if shared.size == 0:
+            return keys
+        keys = keys.copy()
+        for s in shared.tolist():
+            alias = self._alias.get(s)
+            if alias is None:
+                older = [k for k in self.map.unplaced_keys() if k < s]
+                if not older:
+                    continue
+                alias = self._alias[s] = max(older)
+            keys[int(np.flatnonzero(keys == s)[0])] = alias
+        return keys
 
     def take_changed(self) -> bool:
         """True once after each change of the map (what a periodic publisher asks)."""

@@ -165,3 +165,21 @@ def test_map_node_follows_the_corrections(tmp_path: Path, rng) -> None:
         node.destroy_node()            # save_on_shutdown: writes map.ply again
         rclpy.try_shutdown(context=ctx)
     assert len(read_ply(map_file)[1]) == len(read_as_viewers_do(maps[-1]).points)
+
+
+def test_config_file_holds_every_parameter_at_its_default() -> None:
+    """config/map.yaml: every parameter map_node declares, each at the dataclass default."""
+    from dataclasses import fields
+
+    import yaml
+
+    from ga_ros.core.extrinsic import ExtrinsicConfig
+    from ga_ros.mapping.cloud_map import CloudMapConfig
+    from ga_ros.ros.map_node import MapNodeSettings, declared_parameters
+
+    path = Path(__file__).resolve().parents[2] / 'config' / 'map.yaml'
+    params = yaml.safe_load(path.read_text())['map_node']['ros__parameters']
+    assert sorted(params) == sorted(declared_parameters())
+    for cls in (MapNodeSettings, CloudMapConfig, ExtrinsicConfig):
+        for f in fields(cls):
+            assert params[f.name] == getattr(cls(), f.name), f.name
