@@ -34,6 +34,7 @@ setup(
             'alignment_node = ga_ros.ros.alignment_node:main',
             'lifecycle_alignment_node = ga_ros.ros.lifecycle_alignment_node:main',
             'vo_node = ga_ros.ros.vo_node:main',
+            'map_node = ga_ros.ros.map_node:main',
         ],
     },
 )

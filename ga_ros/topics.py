@@ -64,6 +64,9 @@ VO_DEBUG_IMAGE = 'ga/vo/debug_image'
 #: Dense stereo points of each new keyframe (``sensor_msgs/PointCloud2``, the camera's optical
 #: frame, stamped with the keyframe's stamp), from ``vo_node``.
 KEYFRAME_CLOUD = 'ga/keyframe_cloud'
+#: The point-cloud map of ``map_node`` (``sensor_msgs/PointCloud2`` in the map frame, transient
+#: local): the keyframe clouds at their corrected poses, voxel-downsampled.
+MAP_CLOUD = 'ga/map'
 #: Stereo input of ``vo_node``.
 LEFT_IMAGE = 'stereo/left/image_rect'
 RIGHT_IMAGE = 'stereo/right/image_rect'

@@ -7,9 +7,10 @@
         left_info:=/stereo/left/camera_info right_info:=/stereo/right/camera_info
 
 ``ga-ros play`` (the installed package's executable, ``lib/ga_ros/ga-ros``) publishes the bag's
-messages and ``/clock``; both nodes run with ``use_sim_time``. The camera's extrinsic comes from
-the bag's ``/tf_static``. The topic and ``compressed`` defaults are those of ``config/vo.yaml``
-(read from the installed file).
+messages and ``/clock``; the nodes run with ``use_sim_time``. ``map:=true`` also starts
+``map_node`` (``config/map.yaml``): the keyframe clouds at their corrected poses on ``ga/map``.
+The camera's extrinsic comes from the bag's ``/tf_static``. The topic and ``compressed``
+defaults are those of ``config/vo.yaml`` (read from the installed file).
 """
 
 import os
@@ -17,6 +18,7 @@ import os
 import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
@@ -39,6 +41,8 @@ def generate_launch_description():
           for t in topics],
         DeclareLaunchArgument('compressed', default_value=str(vo['compressed']).lower(),
                               description='images are sensor_msgs/CompressedImage'),
+        DeclareLaunchArgument('map', default_value='false',
+                              description='also start map_node (the point-cloud map ga/map)'),
         Node(package='ga_ros', executable='vo_node', name='vo_node', output='screen',
              parameters=[os.path.join(config, 'vo.yaml'), sim_time,
                          {'compressed': ParameterValue(LaunchConfiguration('compressed'),
@@ -47,6 +51,9 @@ def generate_launch_description():
                           for t in topics}]),
         Node(package='ga_ros', executable='alignment_node', name='alignment_node',
              output='screen', parameters=[os.path.join(config, 'alignment.yaml'), sim_time]),
+        Node(package='ga_ros', executable='map_node', name='map_node', output='screen',
+             condition=IfCondition(LaunchConfiguration('map')),
+             parameters=[os.path.join(config, 'map.yaml'), sim_time]),
         ExecuteProcess(cmd=[ExecutableInPackage('ga-ros', 'ga_ros'), 'play',
                             LaunchConfiguration('bag'), '--rate', LaunchConfiguration('rate')],
                        name='play', output='screen'),

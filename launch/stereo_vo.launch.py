@@ -9,7 +9,8 @@ comes from ``/tf_static``: your robot_state_publisher, or the static transform s
 ``camera_frame`` in ``base_frame``, handed to tf2_ros' ``static_transform_publisher`` as
 ``--x --y --z --roll --pitch --yaw --frame-id --child-frame-id`` (empty: none started). The
 ``compressed`` and ``base_frame`` defaults are those of ``config/vo.yaml`` (read from the
-installed file).
+installed file). ``map:=true`` also starts ``map_node`` (``config/map.yaml``): the keyframe clouds
+at their corrected poses on ``ga/map``.
 """
 
 import os
@@ -67,6 +68,8 @@ def generate_launch_description():
                               description="'x y z roll pitch yaw' (m, rad) of camera_frame in "
                                           'base_frame; empty: from your /tf_static'),
         DeclareLaunchArgument('use_sim_time', default_value='false'),
+        DeclareLaunchArgument('map', default_value='false',
+                              description='also start map_node (the point-cloud map ga/map)'),
         Node(package=LaunchConfiguration('camera_package'),
              executable=LaunchConfiguration('camera_executable'),
              condition=IfCondition(LaunchConfiguration('start_camera')), output='screen'),
@@ -88,4 +91,10 @@ def generate_launch_description():
              output='screen',
              parameters=[os.path.join(config, 'alignment.yaml'),
                          {'use_sim_time': LaunchConfiguration('use_sim_time')}]),
+        Node(package='ga_ros', executable='map_node', name='map_node', output='screen',
+             condition=IfCondition(LaunchConfiguration('map')),
+             parameters=[os.path.join(config, 'map.yaml'),
+                         {'use_sim_time': LaunchConfiguration('use_sim_time'),
+                          'base_frame': ParameterValue(LaunchConfiguration('base_frame'),
+                                                       value_type=str)}]),
     ])

@@ -10,6 +10,7 @@ from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S
 from ga_ros.io.topic_plan import TopicConfig
 from ga_ros.pipeline.map_to_odom import TRANSFORM_PERIOD_S
 from ga_ros.replay.inputs import InputTopics
+from ga_ros.replay.map_outputs import MapOutputConfig
 from ga_ros.replay.outputs import OutputConfig
 
 #: What the final batch does with the variance factors per source (``ReplayConfig``).
@@ -67,6 +68,9 @@ class ReplayConfig:
     mosaic : for a stereo image bag, write ``mosaic_ga.png`` / ``mosaic_f2f.png`` of the
         keyframes' left images with GA's and the odometry's poses and their seam
         misregistration (:mod:`ga_ros.mapping.replay_mosaic`).
+    map : write the maps of a stereo bag (``map_ga.ply``, ``map_f2f.ply``;
+        :mod:`ga_ros.replay.map_outputs`) with these settings; None: no maps. The replay's
+        ``--map`` sets both ``map`` and ``mosaic``.
     """
 
     topics: TopicConfig = TopicConfig()
@@ -97,3 +101,4 @@ class ReplayConfig:
     covariance_policy: str = 'reject'
     transform_publish_period_sec: float = TRANSFORM_PERIOD_S
     mosaic: bool = False
+    map: MapOutputConfig | None = None

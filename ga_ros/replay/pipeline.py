@@ -12,8 +12,9 @@ covariance, the measurements, markers, the F2F path and the ground truth when th
 online estimate, the live node's at the end), ``trajectory_f2f.tum`` (the odometry anchored as
 GA), ``trajectory_gt.tum`` (the ground truth at the keyframe stamps) and
 ``trajectory_gt_raw.tum`` (its stream as read; both when ground truth is present),
-``trajectory.png`` and ``summary.json``. Log times of the output bag follow the input's
-(:mod:`ga_ros.replay.outputs`).
+``trajectory.png`` and ``summary.json``; with ``map`` (``--map``, stereo bags) ``map_ga.ply``
+and ``map_f2f.ply`` (:mod:`ga_ros.replay.map_outputs`). Log times of the output bag follow the
+input's (:mod:`ga_ros.replay.outputs`).
 
 Ground truth comes from a file or a topic (:mod:`ga_ros.io.groundtruth`), matched to the
 keyframes by node id when both have them, else by stamp with interpolation.
@@ -38,9 +39,11 @@ from ga_ros.errors import FormatError
 from ga_ros.io.bag import BagReader
 from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.topic_plan import TopicPlan
+from ga_ros.replay import map_outputs
 from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.finish import (
+    f2f_path,
     finish,
     finish_stationary,
     frames_summary,
@@ -95,9 +98,13 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         run.source = source.items
         if config.tf and hasattr(source.items, 'passthrough'):  # the input's TF copied
             source.items.passthrough = run.copy_tf
+        maps = map_outputs.attach(run, config.map) if config.map is not None else None
         try:
             _read_all(run, source, bag)
             _conclude(run, source, bag_path)
+            if maps is not None and result.corrected is not None:
+                result.map = map_outputs.write_map_outputs(
+                    run, maps, result.corrected, f2f_path(run, result.corrected))
         finally:
             outputs.close()
             result.seconds = time.perf_counter() - t0

@@ -39,6 +39,8 @@ class ReplayResult:
     what the replay went on despite (e.g. a bag cut short). ``mosaic`` (``--mosaic``): per
     trajectory (``'ga'``, ``'f2f'``) its mosaic's files, covered area and seam misregistration
     (:func:`ga_ros.mapping.replay_mosaic.write_mosaics`).
+    ``map``: the figures of ``--map``
+    (:func:`ga_ros.replay.map_outputs.write_map_outputs`; absent without).
     """
 
     bag: str
@@ -72,6 +74,7 @@ class ReplayResult:
     mosaic: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
     online_variance_components: dict[str, Any] = field(default_factory=dict)
+    map: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rate(self) -> float:
@@ -96,7 +99,8 @@ class ReplayResult:
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
             'gaps': self.gaps, 'variance_components': self.variance_components,
             'mosaic': self.mosaic, 'calibration': self.calibration,
-            'online_variance_components': self.online_variance_components}
+            'online_variance_components': self.online_variance_components,
+            **({'map': self.map} if self.map else {})}
 
     def reject(self, reason: str) -> None:
         """Count a rejection under the text before its first ``:`` (keep 10 examples)."""

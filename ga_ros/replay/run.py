@@ -8,6 +8,7 @@ source. The final outputs are :mod:`ga_ros.replay.finish`'s.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,7 @@ from ga_ros.io.groundtruth import (
 )
 from ga_ros.io.trajectory import Trajectory
 from ga_ros.pipeline.absolute import FixFeeder
-from ga_ros.pipeline.corrections import CorrectionTracker
+from ga_ros.pipeline.corrections import Corrections, CorrectionTracker
 from ga_ros.pipeline.inputs import InputFrontEnd
 from ga_ros.pipeline.map_to_odom import MapToOdom, PeriodicSchedule, without_odom_parent
 from ga_ros.pipeline.session import AlignmentSession
@@ -127,6 +128,8 @@ class ReplayRun:
         self.earth_written = False  # earth -> map on /tf_static (NavSatFix inputs)
         #: the keyframes moved or added since the last corrections message (as the node's)
         self.corrections = CorrectionTracker(config.outputs.corrections)
+        #: called with each corrections message's content (e.g. the map of ``--map``)
+        self.on_corrections: Callable[[Corrections], None] | None = None
         self.odom_tf_stamp = -1  # stamp of the last odom -> base_link written
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
@@ -348,6 +351,8 @@ class ReplayRun:
         c = self.corrections.after_update(self.aligner, path, every_row=every_row)
         if c is not None:
             self.out.corrections(c, int(stamps[-1]) if len(stamps) else 0, self.last_ns)
+            if self.on_corrections is not None:
+                self.on_corrections(c)
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement

@@ -51,6 +51,9 @@ class StereoSource:
         #: called with each ``/tf_static`` message of the bag (topic, type, CDR, message, log
         #: time), e.g. to copy them into the output bag; None: not read.
         self.passthrough: Callable[[str, str, bytes | None, Any, int], None] | None = None
+        #: called with each processed pair that made a keyframe (its ``FrameOutput``, images
+        #: included), e.g. to collect the keyframe clouds of ``--map``; None: nobody asks.
+        self.on_keyframe: Callable[[FrameOutput], None] | None = None
         if plan.calibration:  # a bag without CameraInfo (e.g. EuRoC): calibration files
             models = read_stereo_calibration(list(plan.calibration))
             self.front.set_camera_models(models.left, models.right)
@@ -132,6 +135,8 @@ class StereoSource:
         if frame.result is None:
             yield SourceItem(None, log_ns, error=frame.error)
             return
+        if self.on_keyframe is not None and frame.result.keyframe is not None:
+            self.on_keyframe(frame)
         stamps = frame.node_stamps or None
         if frame.measurement is not None:
             yield SourceItem(frame.measurement, log_ns, node_stamps=stamps)

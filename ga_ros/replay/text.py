@@ -101,6 +101,7 @@ def result_text(r: ReplayResult) -> str:
         lines.append('no ground truth (none in the bag, no --ground-truth file): '
                      'no error figures')
     lines += mosaic_lines(r.mosaic)
+    lines += map_lines(r.map)
     for w in r.warnings:
         lines.append(f'warning: {w}')
     lines.append('outputs:')
@@ -202,4 +203,25 @@ def variance_lines(vc: dict) -> list[str]:
             text = f"not estimated ({v['dof']:.1f} dof), stated covariance used"
         n = v['observations']
         lines.append(f"  {name:<12} {text}, {n} observation{'s' * (n != 1)}")
+    return lines
+
+
+def map_lines(m: dict) -> list[str]:
+    """The figures of ``--map`` (``summary.json``'s ``map``): points, covered area, the median
+    spread of heights per x-y cell in the map and between the tracks, of the GA and F2F maps
+    (empty without maps)."""
+    if not m or 'ga' not in m:
+        return []
+    lines = [f"maps ({m['keyframes_with_cloud']} keyframe clouds, voxel {m['voxel_m']:g} m; "
+             f"per {m['ga']['cell_m']:g} m cell: std of the heights, and between tracks the std "
+             'of their mean heights; medians):']
+    for name in ('f2f', 'ga'):
+        f = m[name]
+        s, t = f['height_spread_m'], f['track_height_spread_m']
+        lines.append(f"  {name.upper():<4}{f['points']:9d} points {f['covered_area_m2']:9.0f} m^2"
+                     f"   heights {s['median']:.3f} m   between tracks {t['median']:.3f} m "
+                     f"({t['cells']} cells)   map_{name}.ply")
+    ratio = m.get('track_height_spread_ga_over_f2f')
+    if ratio is not None and ratio == ratio:
+        lines.append(f'  between tracks, GA / F2F: {ratio:.2f}')
     return lines

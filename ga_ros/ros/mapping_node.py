@@ -1,7 +1,8 @@
 """A small, independent "mapping node": the consumer of the corrected path on another host.
 
 It stands for a mapping or planning computer that uses the alignment's output (issue 14, the
-third host of ``ga-ros multihost``). It only subscribes, records and reports:
+third host of ``ga-ros multihost``). It builds no map (``map_node``, :mod:`ga_ros.ros.map_node`,
+does); it only subscribes, records and reports:
 
 * the corrected path (``nav_msgs/Path``, transient local), with the wall-clock time each message
   arrived;

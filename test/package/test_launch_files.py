@@ -241,10 +241,10 @@ DEFAULTS = {
 #: Launch arguments without a default in config/ (what they name is the user's).
 OWN = {
     'odometry.launch.py': {'odom_topic', 'fix_topic', 'use_sim_time'},
-    'play_bag.launch.py': {'bag', 'rate'},
+    'play_bag.launch.py': {'bag', 'rate', 'map'},
     'stereo_vo.launch.py': {'start_camera', 'camera_package', 'camera_executable', 'left_image',
                             'right_image', 'left_info', 'right_info', 'camera_frame',
-                            'camera_pose', 'use_sim_time'},
+                            'camera_pose', 'use_sim_time', 'map'},
 }
 
 

@@ -141,6 +141,12 @@ def _node_facts(executable: str, inputs: tuple[str, ...],
 
         params = set(declared_parameters())
         settings = VoNodeSettings()
+    elif executable == 'map_node':
+        from ga_ros.ros.map_node import MapNodeSettings
+        from ga_ros.ros.map_node import declared_parameters as map_parameters
+
+        params = set(map_parameters())
+        settings = MapNodeSettings()
     else:
         from ga_ros.ros.alignment_node import NodeSettings, declared_parameters
 
@@ -231,7 +237,8 @@ def test_launch_file_parameters_are_checked_against_the_node():
 
 
 # --------------------------------------------------------------------------- executables
-@pytest.mark.parametrize('module', ['alignment_node', 'vo_node', 'lifecycle_alignment_node'])
+@pytest.mark.parametrize('module', ['alignment_node', 'vo_node', 'lifecycle_alignment_node',
+                                    'map_node'])
 def test_node_help_exits_without_starting_ros(module: str):
     pytest.importorskip('rclpy')
     out = subprocess.run([sys.executable, '-m', f'ga_ros.ros.{module}', '--help'],
@@ -262,7 +269,7 @@ def test_colcon_build_then_installed_executables_answer_help(colcon_workspace, t
     assert {p.name for p in (share / 'launch').glob('*.launch.py')} == {
         p.name for p in LAUNCH_FILES}
     assert (share / 'config' / 'alignment.yaml').exists() and (share / 'package.xml').exists()
-    for exe in ('alignment_node', 'vo_node', 'lifecycle_alignment_node', 'ga-ros'):
+    for exe in ('alignment_node', 'vo_node', 'lifecycle_alignment_node', 'map_node', 'ga-ros'):
         path = install / 'ga_ros' / 'lib' / 'ga_ros' / exe
         assert path.exists(), exe
         script = f'source "{install}/setup.bash" && "{path}" --help'

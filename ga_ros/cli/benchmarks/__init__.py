@@ -71,4 +71,7 @@ BENCHMARKS: dict[str, Benchmark] = {
                              'ga/corrections bytes per update against the whole path (aerial)'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
+    'map': Benchmark('ga_ros.bench.map:main',
+                     "map_node's update cost against the keyframes moved, maps up to 5,000 "
+                     'keyframes'),
 }

@@ -165,6 +165,13 @@ def _add_output_arguments(o: argparse._ArgumentGroup) -> None:
     o.add_argument('--no-covariance', action='store_true',
                    help='write zero covariances on the pose topic (faster on big surveys)')
     o.add_argument('--no-progress', action='store_true', help='no progress bar')
+    o.add_argument('--map', action='store_true',
+                   help='stereo bags: write map_ga.ply (the keyframe clouds at the GA poses) and '
+                        'map_f2f.ply (at the frame-to-frame poses), and the mosaics of '
+                        '--mosaic; figures in summary.json')
+    o.add_argument('--map-voxel', type=float, default=None, metavar='M',
+                   help='edge of the map voxels with --map (m; default '
+                        "map_node's voxel_m)")
 
 
 def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
@@ -319,6 +326,15 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
         from ga_ros.pipeline.params import config_from_params
 
         aligner, _ = config_from_params(AlignerConfig, overrides)
+    maps = None
+    if args.map:
+        from dataclasses import replace
+
+        from ga_ros.replay.map_outputs import MapOutputConfig
+
+        maps = MapOutputConfig()
+        if args.map_voxel is not None:
+            maps = replace(maps, cloud=replace(maps.cloud, voxel_m=args.map_voxel))
     outputs = OutputConfig(map_frame=args.map_frame, path_topic=args.path_topic,
                            pose_topic=args.pose_topic, markers_topic=args.markers_topic,
                            odom_frame=args.odom_frame, sensor_frame=args.base_frame)
@@ -337,7 +353,8 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         ground_truth_rate_hz=args.ground_truth_rate,
                         ground_truth_start_s=args.ground_truth_start,
                         ground_truth_tolerance_s=args.ground_truth_tolerance, tf=not args.no_tf,
-                        covariance_policy=args.covariance_policy, mosaic=args.mosaic)
+                        covariance_policy=args.covariance_policy,
+                        mosaic=args.mosaic or args.map, map=maps)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
