@@ -62,7 +62,8 @@ def test_the_flag_finder_sees_a_parser_without_the_flag():
 
 
 def test_map_is_not_taken_as_map_frame(tmp_path, capsys):
+    """``--map`` is the maps' switch: ``--map world`` must not become ``--map-frame world``."""
     with pytest.raises(SystemExit) as exc:
         main(['replay', str(tmp_path), '--map', 'world', '--info'])
     assert exc.value.code == 2
-    assert 'unrecognized arguments: --map world' in capsys.readouterr().err
+    assert 'unrecognized arguments: world' in capsys.readouterr().err
