@@ -116,11 +116,17 @@ class _ScipyFirst:
         return None
 
 
+def scipy_imports_trimmed() -> None:
+    """Run :func:`import_scipy` before the first import of a SciPy submodule, whoever imports
+    it (nothing is imported now; the entry points call it first)."""
+    if 'scipy._lib._array_api' not in sys.modules and _ScipyFirst not in sys.meta_path:
+        sys.meta_path.insert(0, _ScipyFirst)
+
+
 def _load_blas() -> None:
     import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
 
-    if 'scipy._lib._array_api' not in sys.modules and _ScipyFirst not in sys.meta_path:
-        sys.meta_path.insert(0, _ScipyFirst)  # import_scipy() when a submodule is first needed
+    scipy_imports_trimmed()  # import_scipy() when a submodule is first needed
     _preload_scipy_blas()
     with contextlib.suppress(ImportError), openblas_coretype():
         import cvxopt  # noqa: F401  (its bundled OpenBLAS, with the kernel for this CPU)
