@@ -8,7 +8,8 @@
   from the CPU flags while cvxopt loads, without leaking the setting to other libraries or child
   processes.
 * :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
-* :func:`keep_freed_memory`: glibc's allocator tuned for a short batch process.
+* :func:`keep_freed_memory`: glibc's allocator tuned for a short batch process;
+  :func:`fewer_collections`: the garbage collector's thresholds for a command-line process.
 * :func:`import_scipy`: SciPy's first import without the NumPy submodules it never uses
   (start-up of the command line; the entry points run it before the first SciPy submodule is
   imported), :func:`lazy_import`: a module imported on first use.
@@ -190,6 +191,24 @@ def blas_threads(n: int | None = None) -> Iterator[None]:
     """
     with limit_blas_threads(n):
         yield
+
+
+#: :func:`fewer_collections`: the collector's thresholds (allocations, gen-0 runs, gen-1 runs).
+COMMAND_GC_THRESHOLDS = (50_000, 20, 100)
+
+
+def fewer_collections() -> None:
+    """Run the cyclic garbage collector less often in a command-line process.
+
+    CPython's default (a generation-0 pass every 700 container allocations) runs ~50 passes,
+    some over every live object, while a command imports its modules and reads its input:
+    ~4 % of the CPU of a small ``ga-ros solve`` process (docs/benchmarks.md, "Start-up"). The
+    thresholds :data:`COMMAND_GC_THRESHOLDS` keep cycles collected (every 50,000 allocations)
+    at a memory cost of a few MiB at most; the entry point sets them once, before importing.
+    """
+    import gc
+
+    gc.set_threshold(*COMMAND_GC_THRESHOLDS)
 
 
 #: glibc's ``mallopt`` parameters (malloc.h).
