@@ -13,7 +13,7 @@ from ga_ros.core.quality.cofactors import propagate
 from ga_ros.core.quality.config import b_method_alpha
 from ga_ros.runtime import lazy_import
 
-stats = lazy_import('scipy.stats')  # only the tests need it (start-up)
+stats = lazy_import('scipy.stats')  # only the statistical tests need it (start-up)
 
 #: Eigenvalues of the whitened ``Q_kk`` block below this count as zero redundancy.
 _RANK_TOL = 1e-6

@@ -13,7 +13,7 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior
 from ga_ros.runtime import lazy_import
 
-stats = lazy_import('scipy.stats')  # only the tests need it (start-up)
+stats = lazy_import('scipy.stats')  # only the statistical tests need it (start-up)
 
 
 def global_cost(network: ConnectionNetwork, model: str, T: FloatArray, v: FloatArray,
