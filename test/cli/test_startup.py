@@ -79,10 +79,13 @@ def test_batch_solve_imports_no_unused_scipy_module(tmp_path, init):
             'from threadpoolctl import threadpool_info\n'
             f'print(sorted(m for m in {UNUSED + ("scipy.sparse",)!r} if m in sys.modules))\n'
             "print(sorted({i['num_threads'] for i in threadpool_info()\n"
-            "              if 'scipy.libs' in i['filepath']}))\n")
+            "              if 'scipy.libs' in i['filepath']}))\n"
+            'import gc\n'
+            'print(list(gc.get_threshold()))\n')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True).stdout.splitlines()
-    assert out[-2:] == ['[]', f'[{runtime.default_blas_threads()}]']
+    assert out[-3:] == ['[]', f'[{runtime.default_blas_threads()}]',
+                        str(list(runtime.COMMAND_GC_THRESHOLDS))]  # set by the entry point
     if not init:  # auto compared the file's start with chordal
         assert 'auto, costs at the starts: file' in '\n'.join(out)
 
