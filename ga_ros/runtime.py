@@ -7,7 +7,8 @@
   (``Prescott``); CHOLMOD's dense supernodal updates then run 1.5-3x slower. The kernel is chosen
   from the CPU flags while cvxopt loads, without leaking the setting to other libraries or child
   processes.
-* :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
+* :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive;
+  :func:`openblas_threads_at_load`: the same thread count while the libraries load (the CLI).
 * :func:`keep_freed_memory`: glibc's allocator tuned for a short batch process;
   :func:`fewer_collections`: the garbage collector's thresholds for a command-line process.
 * :func:`import_scipy`: SciPy's first import without the NumPy submodules it never uses
@@ -267,6 +268,34 @@ def best_openblas_coretype() -> str | None:
     if {'avx2', 'fma'} <= flags:
         return 'Haswell'
     return None
+
+
+#: OpenBLAS's variables for its thread count, read once when a library loads.
+_OPENBLAS_THREAD_VARIABLES = ('OPENBLAS_NUM_THREADS',)
+
+
+@contextlib.contextmanager
+def openblas_threads_at_load(n: int | None = None) -> Iterator[None]:
+    """Set ``OPENBLAS_NUM_THREADS`` to ``n`` (default :func:`default_blas_threads`; unless the
+    user set it) while the BLAS libraries load, restored afterwards (child processes get the
+    environment as it was).
+
+    An OpenBLAS that loads with more threads starts a pool whose threads spin before they
+    sleep, and :func:`limit_blas_threads` then shrinks it: ~0.08 s of CPU of a small
+    ``ga-ros solve`` process for NumPy's, SciPy's and cvxopt's libraries on 2 cores
+    (docs/benchmarks.md, "Start-up"). Loaded within this context, each library starts with
+    ``n`` threads, the limit the entry point keeps anyway. For entry points only: in a
+    library user's process the libraries keep the thread count they load with.
+    """
+    if any(v in os.environ for v in _OPENBLAS_THREAD_VARIABLES):
+        yield
+        return
+    os.environ['OPENBLAS_NUM_THREADS'] = str(default_blas_threads() if n is None
+                                             else max(1, int(n)))
+    try:
+        yield
+    finally:
+        os.environ.pop('OPENBLAS_NUM_THREADS', None)
 
 
 @contextlib.contextmanager

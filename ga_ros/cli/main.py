@@ -68,11 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     named = command_module(argv[0] if argv else None) is not None
     if named and not HELP.intersection(argv):  # a command runs (not only its --help): limit BLAS
-        from ga_ros.runtime import fewer_collections, limit_blas_threads
+        from ga_ros.runtime import fewer_collections, limit_blas_threads, openblas_threads_at_load
 
         fewer_collections()  # before the imports: ~4 % of a small solve's CPU
-        _blas = limit_blas_threads()  # noqa: F841 (loads NumPy's, SciPy's, CHOLMOD's BLAS;
-        # kept alive for the whole command)
+        with openblas_threads_at_load():  # each library loads with the limit's threads
+            _blas = limit_blas_threads()  # noqa: F841 (loads NumPy's, SciPy's, CHOLMOD's BLAS;
+            # kept alive for the whole command)
     elif named:  # a command's help: its parser may import SciPy (ga_ros.runtime is light)
         from ga_ros.runtime import scipy_imports_trimmed
 
