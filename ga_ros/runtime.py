@@ -7,8 +7,10 @@
   (``Prescott``); CHOLMOD's dense supernodal updates then run 1.5-3x slower. The kernel is chosen
   from the CPU flags while cvxopt loads, without leaking the setting to other libraries or child
   processes.
-* :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive.
-* :func:`keep_freed_memory`: glibc's allocator tuned for a short batch process.
+* :func:`limit_blas_threads`: a process-wide limit that entry points (CLI, nodes) keep alive;
+  :func:`openblas_threads_at_load`: the same thread count while the libraries load (the CLI).
+* :func:`keep_freed_memory`: glibc's allocator tuned for a short batch process;
+  :func:`fewer_collections`: the garbage collector's thresholds for a command-line process.
 * :func:`import_scipy`: SciPy's first import without the NumPy submodules it never uses
   (start-up of the command line; the entry points run it before the first SciPy submodule is
   imported), :func:`lazy_import`: a module imported on first use.
@@ -116,11 +118,17 @@ class _ScipyFirst:
         return None
 
 
+def scipy_imports_trimmed() -> None:
+    """Run :func:`import_scipy` before the first import of a SciPy submodule, whoever imports
+    it (nothing is imported now; the entry points call it first)."""
+    if 'scipy._lib._array_api' not in sys.modules and _ScipyFirst not in sys.meta_path:
+        sys.meta_path.insert(0, _ScipyFirst)
+
+
 def _load_blas() -> None:
     import numpy  # noqa: F401  (threadpoolctl only sees libraries that are loaded)
 
-    if 'scipy._lib._array_api' not in sys.modules and _ScipyFirst not in sys.meta_path:
-        sys.meta_path.insert(0, _ScipyFirst)  # import_scipy() when a submodule is first needed
+    scipy_imports_trimmed()  # import_scipy() when a submodule is first needed
     _preload_scipy_blas()
     with contextlib.suppress(ImportError), openblas_coretype():
         import cvxopt  # noqa: F401  (its bundled OpenBLAS, with the kernel for this CPU)
@@ -186,6 +194,24 @@ def blas_threads(n: int | None = None) -> Iterator[None]:
         yield
 
 
+#: :func:`fewer_collections`: the collector's thresholds (allocations, gen-0 runs, gen-1 runs).
+COMMAND_GC_THRESHOLDS = (50_000, 20, 100)
+
+
+def fewer_collections() -> None:
+    """Run the cyclic garbage collector less often in a command-line process.
+
+    CPython's default (a generation-0 pass every 700 container allocations) runs ~50 passes,
+    some over every live object, while a command imports its modules and reads its input:
+    ~4 % of the CPU of a small ``ga-ros solve`` process (docs/benchmarks.md, "Start-up"). The
+    thresholds :data:`COMMAND_GC_THRESHOLDS` keep cycles collected (every 50,000 allocations)
+    at a memory cost of a few MiB at most; the entry point sets them once, before importing.
+    """
+    import gc
+
+    gc.set_threshold(*COMMAND_GC_THRESHOLDS)
+
+
 #: glibc's ``mallopt`` parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
@@ -242,6 +268,34 @@ def best_openblas_coretype() -> str | None:
     if {'avx2', 'fma'} <= flags:
         return 'Haswell'
     return None
+
+
+#: OpenBLAS's variables for its thread count, read once when a library loads.
+_OPENBLAS_THREAD_VARIABLES = ('OPENBLAS_NUM_THREADS',)
+
+
+@contextlib.contextmanager
+def openblas_threads_at_load(n: int | None = None) -> Iterator[None]:
+    """Set ``OPENBLAS_NUM_THREADS`` to ``n`` (default :func:`default_blas_threads`; unless the
+    user set it) while the BLAS libraries load, restored afterwards (child processes get the
+    environment as it was).
+
+    An OpenBLAS that loads with more threads starts a pool whose threads spin before they
+    sleep, and :func:`limit_blas_threads` then shrinks it: ~0.08 s of CPU of a small
+    ``ga-ros solve`` process for NumPy's, SciPy's and cvxopt's libraries on 2 cores
+    (docs/benchmarks.md, "Start-up"). Loaded within this context, each library starts with
+    ``n`` threads, the limit the entry point keeps anyway. For entry points only: in a
+    library user's process the libraries keep the thread count they load with.
+    """
+    if any(v in os.environ for v in _OPENBLAS_THREAD_VARIABLES):
+        yield
+        return
+    os.environ['OPENBLAS_NUM_THREADS'] = str(default_blas_threads() if n is None
+                                             else max(1, int(n)))
+    try:
+        yield
+    finally:
+        os.environ.pop('OPENBLAS_NUM_THREADS', None)
 
 
 @contextlib.contextmanager

@@ -22,7 +22,9 @@ Printed (every figure says what it compares):
 * CPU seconds of all processes (this one, its threads and the refinement worker) over the run,
   and per track;
 * RSS (this process plus the worker) at the end of the early range and at the end, and the
-  growth per pose between them; the aligner's own state bytes per pose.
+  growth per pose between them; the same after a garbage collection and ``malloc_trim`` (what
+  the process holds, without the freed heap glibc keeps); the aligner's own state bytes per
+  pose.
 
 The machine's load enters every time; the CPU figures are the ones to compare across runs.
 """
@@ -60,6 +62,8 @@ class LongSurveyFigures:
     late: tuple[int, int] = (900, 1000)
     rss_early_mib: float = 0.0
     rss_end_mib: float = 0.0
+    held_early_mib: float = 0.0
+    held_end_mib: float = 0.0
     state_bytes_per_pose: float = 0.0
     poses: int = 0
     fixes_used: int = 0
@@ -75,6 +79,21 @@ class LongSurveyFigures:
         """Mean update time of each quarter of the run's tracks (ms)."""
         return [float(np.mean(q)) for q in np.array_split(np.asarray(self.update_ms), 4)
                 if q.size]
+
+
+def held_rss_mib() -> float:
+    """This process's RSS (MiB) after a garbage collection and glibc's ``malloc_trim(0)``,
+    which returns the freed heap that the allocator keeps for reuse: the memory the process
+    holds. Elsewhere than glibc, the RSS after the collection."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    return rss_mib()
 
 
 def run(args: argparse.Namespace) -> LongSurveyFigures:
@@ -116,6 +135,7 @@ def run(args: argparse.Namespace) -> LongSurveyFigures:
             done = len(fig.update_ms)
             if done == fig.early[1]:
                 fig.rss_early_mib = rss_mib() + children_rss_mib()
+                fig.held_early_mib = held_rss_mib() + children_rss_mib()
             if args.verbose:
                 print(f'  track {done - 1:5d}: {up.update_ms:8.1f} ms (refinement wait '
                       f'{up.refine_wait_ms:.0f} ms), CPU of all processes since the last '
@@ -126,6 +146,7 @@ def run(args: argparse.Namespace) -> LongSurveyFigures:
         fig.refine_wait_ms.append(up.refine_wait_ms)
         fig.cpu_ms.append(1e3 * (all_cpu_seconds() - cpu_last))
     fig.rss_end_mib = rss_mib() + children_rss_mib()
+    fig.held_end_mib = held_rss_mib() + children_rss_mib()
     fig.cpu_s = all_cpu_seconds() - cpu0
     fig.poses = al.stats.n_nodes
     fig.state_bytes_per_pose = state_nbytes(al) / max(1, fig.poses)
@@ -162,6 +183,10 @@ def print_table(fig: LongSurveyFigures) -> None:
           f'{fig.rss_end_mib:.0f} MiB at the end: {growth:.2f} KiB per pose between them, '
           f'{1024.0 * fig.rss_end_mib / max(1, fig.poses):.1f} KiB per pose overall; '
           f'aligner state {fig.state_bytes_per_pose:.0f} B per pose')
+    held = (1024.0 * (fig.held_end_mib - fig.held_early_mib) / span) if span > 0 else 0.0
+    print(f'RSS held (the same after a garbage collection and malloc_trim: without the freed '
+          f'heap glibc keeps for reuse): {fig.held_early_mib:.0f} MiB after track {e[1]}, '
+          f'{fig.held_end_mib:.0f} MiB at the end: {held:.2f} KiB per pose between them')
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import InputError
+from ga_ros.runtime import lazy_import
+
+cv2 = lazy_import('cv2')  # only rectification needs it (start-up of the command line)
 
 
 @dataclass(frozen=True)

@@ -17,15 +17,17 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3, so3
+from ga_ros.runtime import lazy_import
 from ga_ros.vo.motion import refine_motion
 from ga_ros.vo.odometry import Keyframe
+
+cv2 = lazy_import('cv2')  # imported on first use (start-up of the command line)
 
 
 @dataclass(frozen=True)

@@ -20,16 +20,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import InputError
+from ga_ros.runtime import lazy_import
 from ga_ros.vo.calibration import StereoCalibration
 
-#: ``mode`` of :class:`DenseStereoConfig` -> OpenCV's SGBM mode.
-SGBM_MODES = {'sgbm': cv2.STEREO_SGBM_MODE_SGBM, 'hh': cv2.STEREO_SGBM_MODE_HH,
-              '3way': cv2.STEREO_SGBM_MODE_SGBM_3WAY}
+cv2 = lazy_import('cv2')  # imported on first use (start-up of the command line)
+
+#: ``mode`` of :class:`DenseStereoConfig` -> the name of OpenCV's SGBM mode in ``cv2``.
+SGBM_MODES = {'sgbm': 'STEREO_SGBM_MODE_SGBM', 'hh': 'STEREO_SGBM_MODE_HH',
+              '3way': 'STEREO_SGBM_MODE_SGBM_3WAY'}
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,7 @@ class DenseStereo:
             minDisparity=0, numDisparities=c.num_disparities, blockSize=c.block_size,
             P1=8 * area, P2=32 * area, disp12MaxDiff=c.disp12_max_diff, preFilterCap=63,
             uniquenessRatio=c.uniqueness_ratio, speckleWindowSize=c.speckle_window_size,
-            speckleRange=c.speckle_range, mode=SGBM_MODES[c.mode])
+            speckleRange=c.speckle_range, mode=getattr(cv2, SGBM_MODES[c.mode]))
 
     def disparity(self, left: np.ndarray, right: np.ndarray) -> FloatArray:
         """(height, width) float32 disparity of the rectified left image (px); NaN where SGBM

@@ -10,17 +10,20 @@ from __future__ import annotations
 import array
 from typing import Any
 
-import cv2
 import numpy as np
 
 from ga_ros.errors import InputError
+from ga_ros.runtime import lazy_import
 from ga_ros.vo.calibration import CameraModel
+
+cv2 = lazy_import('cv2')  # imported on first use (start-up of the command line)
 
 #: Supported ``sensor_msgs/Image`` encodings -> bytes per pixel.
 BYTES_PER_PIXEL = {'mono8': 1, '8uc1': 1, 'bgr8': 3, '8uc3': 3, 'rgb8': 3, 'bgra8': 4,
                    'rgba8': 4, 'mono16': 2, '16uc1': 2}
-_TO_GREY = {'bgr8': cv2.COLOR_BGR2GRAY, '8uc3': cv2.COLOR_BGR2GRAY, 'rgb8': cv2.COLOR_RGB2GRAY,
-            'bgra8': cv2.COLOR_BGRA2GRAY, 'rgba8': cv2.COLOR_RGBA2GRAY}
+#: Colour encodings -> the name of OpenCV's conversion to grey in ``cv2``.
+_TO_GREY = {'bgr8': 'COLOR_BGR2GRAY', '8uc3': 'COLOR_BGR2GRAY', 'rgb8': 'COLOR_RGB2GRAY',
+            'bgra8': 'COLOR_BGRA2GRAY', 'rgba8': 'COLOR_RGBA2GRAY'}
 
 
 def _bytes(data: Any) -> np.ndarray:
@@ -70,7 +73,7 @@ def image_to_grey(msg: Any) -> np.ndarray:
         return (rows.copy().view(dt).reshape(h, w) >> 8).astype(np.uint8)
     if c == 1:
         return np.ascontiguousarray(rows.reshape(h, w))
-    return cv2.cvtColor(np.ascontiguousarray(rows.reshape(h, w, c)), _TO_GREY[enc])
+    return cv2.cvtColor(np.ascontiguousarray(rows.reshape(h, w, c)), getattr(cv2, _TO_GREY[enc]))
 
 
 def camera_info_to_model(msg: Any) -> CameraModel:

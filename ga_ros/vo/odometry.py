@@ -24,7 +24,6 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ga_ros.arrays import FloatArray
@@ -32,8 +31,11 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.core.tracks import TrackRules, TrackSegmenter
 from ga_ros.errors import DegenerateGeometryError, InputError
 from ga_ros.geometry import se3, so3
+from ga_ros.runtime import lazy_import
 from ga_ros.vo.calibration import StereoCalibration
 from ga_ros.vo.motion import point_covariance, project, refine_motion, triangulate
+
+cv2 = lazy_import('cv2')  # imported on first use (start-up of the command line)
 
 
 @dataclass(frozen=True)

@@ -79,10 +79,13 @@ def test_batch_solve_imports_no_unused_scipy_module(tmp_path, init):
             'from threadpoolctl import threadpool_info\n'
             f'print(sorted(m for m in {UNUSED + ("scipy.sparse",)!r} if m in sys.modules))\n'
             "print(sorted({i['num_threads'] for i in threadpool_info()\n"
-            "              if 'scipy.libs' in i['filepath']}))\n")
+            "              if 'scipy.libs' in i['filepath']}))\n"
+            'import gc\n'
+            'print(list(gc.get_threshold()))\n')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True).stdout.splitlines()
-    assert out[-2:] == ['[]', f'[{runtime.default_blas_threads()}]']
+    assert out[-3:] == ['[]', f'[{runtime.default_blas_threads()}]',
+                        str(list(runtime.COMMAND_GC_THRESHOLDS))]  # set by the entry point
     if not init:  # auto compared the file's start with chordal
         assert 'auto, costs at the starts: file' in '\n'.join(out)
 
@@ -277,3 +280,26 @@ def test_g2o_network_equals_the_one_built_connection_by_connection(tmp_path):
     g.network.add_connection(0, 15, np.zeros(6), np.eye(6))
     assert g.network.n_connections == 9 and g.network.unreachable_from([0]).size == 0
 
+
+
+#: What no command's ``--help`` imports: SciPy's statistics, OpenCV, ROS, plotting (each
+#: imported by the function that uses it).
+NOT_FOR_COMMAND_HELP = ('scipy.stats', 'cv2', 'rclpy', 'matplotlib')
+
+
+@pytest.mark.parametrize('command', sorted(SUMMARIES))
+def test_command_help_imports_no_statistics_opencv_ros_nor_plotting(command):
+    code = ('import sys\n'
+            'from ga_ros.cli.main import main\n'
+            'try:\n'
+            f'    code = main([{command!r}, "--help"])\n'
+            'except SystemExit as exc:\n'
+            '    code = exc.code\n'
+            'loaded = sorted(m for m in sys.modules\n'
+            f'                if m in {NOT_FOR_COMMAND_HELP!r}\n'
+            f'                or m.startswith(tuple(p + "." for p in {NOT_FOR_COMMAND_HELP!r})))\n'
+            'print("LOADED", loaded, "EXIT", code)\n')
+    res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True)
+    assert res.stdout.splitlines()[-1] == 'LOADED [] EXIT 0', res.stdout[-500:]
+    assert f'ga-ros {command}' in res.stdout  # its own usage line

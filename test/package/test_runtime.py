@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -156,3 +157,29 @@ def test_keep_freed_memory_serves_large_arrays_from_the_heap(tuned):
     if out == ['skip']:
         pytest.skip('not glibc >= 2.33')
     assert out == (['True', '0'] if tuned else ['False', '1'])
+
+
+def test_blas_libraries_load_with_the_entry_points_thread_count():
+    """In a fresh process without ``OPENBLAS_NUM_THREADS``, the entry point's libraries (NumPy's,
+    SciPy's, cvxopt's OpenBLAS) start with :func:`runtime.default_blas_threads` threads (no
+    pool to shrink) and the variable is gone again afterwards (child processes get the
+    environment as it was); a user's own setting is left as it is."""
+    code = ('import os\n'
+            'from ga_ros import runtime\n'
+            'with runtime.openblas_threads_at_load(1):\n'
+            '    inside = os.environ.get("OPENBLAS_NUM_THREADS")\n'
+            '    import numpy\n'
+            '    runtime._preload_scipy_blas()\n'
+            'from threadpoolctl import threadpool_info\n'
+            'print(inside, os.environ.get("OPENBLAS_NUM_THREADS"),\n'
+            '      sorted({i["num_threads"] for i in threadpool_info()\n'
+            '              if i["internal_api"] == "openblas"}))\n')
+    env = {k: v for k, v in os.environ.items() if k not in ('OPENBLAS_NUM_THREADS',
+                                                            'OMP_NUM_THREADS')}
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         env=env, check=True).stdout.split()
+    assert out[:2] == ['1', 'None'] and out[2:] == ['[1]']
+    env['OPENBLAS_NUM_THREADS'] = '2'
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         env=env, check=True).stdout.split()
+    assert out[:2] == ['2', '2']  # the user's setting, untouched

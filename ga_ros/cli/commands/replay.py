@@ -41,25 +41,24 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
-
-import yaml
+from typing import TYPE_CHECKING, Any
 
 from ga_ros import topics
 from ga_ros.cli.commands import SUMMARIES
 from ga_ros.core.solver.losses import ROBUST_LOSSES
 from ga_ros.core.window.freeze import FREEZE_POLICIES
 from ga_ros.errors import InputError, NoUsableInputError
-from ga_ros.io.folder_bag import recording_info
 from ga_ros.io.groundtruth import DEFAULT_TOLERANCE_S, FILE_FORMATS
 from ga_ros.io.topic_plan import TopicConfig
-from ga_ros.pipeline.absolute import absolute_specs_from_mapping
-from ga_ros.pipeline.inputs import specs_from_mapping
-from ga_ros.replay.config import VARIANCE_MODES, ReplayConfig
-from ga_ros.replay.inputs import InputTopics
-from ga_ros.replay.outputs import OutputConfig
-from ga_ros.replay.pipeline import replay
-from ga_ros.replay.text import info_text, plan_lines, result_text
+from ga_ros.replay.config import VARIANCE_MODES
+
+if TYPE_CHECKING:
+    from ga_ros.replay.config import ReplayConfig
+    from ga_ros.replay.inputs import InputTopics
+
+# The parser needs only the names above; the replay stack (the input front ends with OpenCV,
+# the pipeline, SciPy's statistics) is imported by the functions that run it, so that
+# ``ga-ros replay --help`` and ``ga-ros demo --help`` start without it.
 
 #: Aligner options of the command line -> AlignerConfig parameter names (as the node's).
 ALIGNER_OPTIONS = {'window': 'window_tracks', 'freeze_policy': 'freeze_policy',
@@ -246,6 +245,12 @@ def vo_config(args: argparse.Namespace) -> Any:
 
 def input_topics(args: argparse.Namespace) -> InputTopics:
     """The standard inputs of the command line (``--odom-topic``, ``--input-config``, ...)."""
+    import yaml
+
+    from ga_ros.pipeline.absolute import absolute_specs_from_mapping
+    from ga_ros.pipeline.inputs import specs_from_mapping
+    from ga_ros.replay.inputs import InputTopics
+
     sections: dict[str, Any] = {}
     if args.input_config is not None:
         try:
@@ -313,6 +318,9 @@ def camera_extrinsic(values: list[str] | None) -> tuple[float, ...]:
 
 def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
     """ReplayConfig from parsed arguments (the aligner module is imported only if needed)."""
+    from ga_ros.replay.config import ReplayConfig
+    from ga_ros.replay.outputs import OutputConfig
+
     if not args.ground_truth_tolerance >= 0:
         raise InputError('--ground-truth-tolerance must be >= 0 s')
     overrides = {field: getattr(args, opt) for opt, field in ALIGNER_OPTIONS.items()
@@ -374,6 +382,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ga_ros.io.folder_bag import recording_info
+    from ga_ros.replay.pipeline import replay
+    from ga_ros.replay.text import info_text, plan_lines, result_text
+
     topics = topic_config(args)
     if args.info:
         text, status = info_text(recording_info(args.bag), topics, input_topics(args))

@@ -6,10 +6,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.stats import chi2, ncx2, norm
 
 from ga_ros.errors import InputError
+from ga_ros.runtime import lazy_import
+
+optimize = lazy_import('scipy.optimize')  # only the tests' settings need them (start-up)
+stats = lazy_import('scipy.stats')
 
 #: The statistics :func:`~ga_ros.core.quality.snooping.data_snooping` can snoop with.
 SNOOP_TESTS = ('connection', 'w')
@@ -59,15 +61,16 @@ class QualityConfig:
     @property
     def w_critical(self) -> float:
         """Critical value of ``|w|``: ``z_{1-alpha0/2}``."""
-        return float(norm.isf(self.alpha0 / 2.0))
+        return float(stats.norm.isf(self.alpha0 / 2.0))
 
 
 @lru_cache(maxsize=256)
 def noncentrality(alpha: float, power: float, q: int) -> float:
     """``lambda`` such that a ``chi2(q)`` test of level ``alpha`` rejects ``chi2'(q, lambda)``
     with probability ``power`` (Baarda's ``lambda0(alpha0, beta0, q)``)."""
-    c = chi2.isf(alpha, q)
-    return float(brentq(lambda lam: ncx2.sf(c, q, lam) - power, 1e-9, 1e4, xtol=1e-12))
+    c = stats.chi2.isf(alpha, q)
+    return float(optimize.brentq(lambda lam: stats.ncx2.sf(c, q, lam) - power, 1e-9, 1e4,
+                                 xtol=1e-12))
 
 
 @lru_cache(maxsize=256)
@@ -75,6 +78,6 @@ def b_method_alpha(lambda0: float, power: float, q: int) -> float:
     """Level ``alpha_q`` of a ``q``-dimensional test that detects ``lambda0`` with ``power``
     (the B-method: every test is as sensitive as the 1-D w-test)."""
     def excess(log_alpha: float) -> float:
-        return float(ncx2.sf(chi2.isf(np.exp(log_alpha), q), q, lambda0)) - power
+        return float(stats.ncx2.sf(stats.chi2.isf(np.exp(log_alpha), q), q, lambda0)) - power
 
-    return float(np.exp(brentq(excess, np.log(1e-15), np.log(0.999), xtol=1e-12)))
+    return float(np.exp(optimize.brentq(excess, np.log(1e-15), np.log(0.999), xtol=1e-12)))

@@ -5,13 +5,15 @@ outside the adjustment."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionArrays
 from ga_ros.core.quality.cofactors import propagate
 from ga_ros.core.quality.config import b_method_alpha
+from ga_ros.runtime import lazy_import
+
+stats = lazy_import('scipy.stats')  # only the statistical tests need it (start-up)
 
 #: Eigenvalues of the whitened ``Q_kk`` block below this count as zero redundancy.
 _RANK_TOL = 1e-6
@@ -65,7 +67,7 @@ def connection_tests(Linv: FloatArray, B: FloatArray, v: FloatArray, Qw: FloatAr
     stat = np.where(q > 0, stat, np.nan)
     crit = np.full(len(v), np.nan)
     for qq in np.unique(q[q > 0]):
-        crit[q == qq] = chi2.isf(b_method_alpha(lam0, power, int(qq)), int(qq))
+        crit[q == qq] = stats.chi2.isf(b_method_alpha(lam0, power, int(qq)), int(qq))
     return stat, q, crit
 
 
@@ -78,5 +80,5 @@ def outside_tests(model: str, T: FloatArray, outside: ConnectionArrays, ocs: Int
     C = lo.B @ outside.cov @ np.swapaxes(lo.B, 1, 2)
     C = C + propagate(lo.A_src, lo.A_dst, ocs, ocd, Sigma_o)
     out_stat = np.einsum('mi,mi->m', lo.f, np.linalg.solve(C, lo.f[:, :, None])[:, :, 0])
-    out_crit = np.full(len(outside), chi2.isf(b_method_alpha(lam0, power, r_c), r_c))
+    out_crit = np.full(len(outside), stats.chi2.isf(b_method_alpha(lam0, power, r_c), r_c))
     return out_stat, out_crit

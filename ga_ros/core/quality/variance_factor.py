@@ -6,12 +6,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.stats import chi2
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core import models
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior
+from ga_ros.runtime import lazy_import
+
+stats = lazy_import('scipy.stats')  # only the statistical tests need it (start-up)
 
 
 def global_cost(network: ConnectionNetwork, model: str, T: FloatArray, v: FloatArray,
@@ -40,5 +42,5 @@ def global_test(cost: float, redundancy: int, alpha: float) -> tuple[float, floa
     test passes (``cost <= critical``); NaN, NaN, False without redundancy.
     """
     sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
-    g_crit = float(chi2.isf(alpha, redundancy)) if redundancy > 0 else float('nan')
+    g_crit = float(stats.chi2.isf(alpha, redundancy)) if redundancy > 0 else float('nan')
     return sigma0_sq, g_crit, bool(redundancy > 0 and cost <= g_crit)
