@@ -48,7 +48,6 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.stats import t as student_t
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.calibration.parameters import (
@@ -61,6 +60,9 @@ from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, solve
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
+from ga_ros.runtime import lazy_import
+
+stats = lazy_import('scipy.stats')  # the significance test only (start-up)
 
 
 @dataclass(frozen=True)
@@ -353,7 +355,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
             steps = 0
             continue
         s0 = np.sqrt(max(res.sigma0_sq * res.redundancy / dof, np.finfo(float).tiny))
-        quantile = float(student_t.ppf(1.0 - cal.alpha / 2.0, dof))
+        quantile = float(stats.t.ppf(1.0 - cal.alpha / 2.0, dof))
         t = np.abs(values[active]) / (s0 * sig)
         for a, j in enumerate(active):
             par = report.parameters[j]
