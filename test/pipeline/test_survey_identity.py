@@ -133,6 +133,12 @@ def test_what_belongs_to_a_survey(surveys) -> None:
     earlier = type(m)(10**6, 10**6 + 1, 0, 0, m.z, m.cov, a[0].stamp_ns - 1)
     assert continues(al, later)[0]              # goes on after a gap
     assert not continues(al, earlier)[0]        # older, unknown nodes: another survey
-    moved = type(m)(a[3].src_id, a[3].dst_id, a[3].src_track, a[3].dst_track, a[3].z,
-                    a[3].cov, a[3].stamp_ns + 1)
-    assert not continues(al, moved)[0]          # a held node with another stamp
+    h = a[3]                                    # a held connection, its motion decides
+    assert continues(al, type(h)(h.src_id, h.dst_id, h.src_track, h.dst_track, h.z, h.cov,
+                                 h.stamp_ns + 1))[0]
+    assert not continues(al, type(h)(h.src_id, h.dst_id, h.src_track, h.dst_track,
+                                     h.z + 1e-6, h.cov, h.stamp_ns))[0]
+    # a new connection to a held node from an unknown one: the node's stamp decides
+    assert continues(al, type(h)(10**6, h.dst_id, 9, h.dst_track, h.z, h.cov, h.stamp_ns))[0]
+    assert not continues(al, type(h)(10**6, h.dst_id, 9, h.dst_track, h.z, h.cov,
+                                     h.stamp_ns + 1))[0]

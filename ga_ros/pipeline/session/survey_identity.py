@@ -10,9 +10,12 @@ connections it holds (id pair, motion) and the measurements it holds waiting for
 node:
 
 * it is one of the held measurements (ids and stamp): the same survey;
-* its ``dst`` node is held: the same survey if the node's track and stamp are the
-  measurement's (and, when the state holds the same connection, its motion ``z``): the
-  survey re-delivered from its start, or a publisher's bounded history re-delivering the tail;
+* the state holds its connection (``src -> dst``): the same survey if the motion ``z`` is the
+  same (the survey re-delivered from its start, or a publisher's bounded history re-delivering
+  its tail), else another one;
+* else its ``dst`` node is held: the same survey if the node's track is the measurement's and
+  its stamp is too, or the measurement continues from its ``src`` as below (a new connection
+  to a held node);
 * else its ``src`` node is held: the same survey if the node's track is the measurement's
   ``src_track`` and its stamp is not later than the measurement's (the survey goes on);
 * else (neither node held): the same survey only if the measurement is later than every held
@@ -54,24 +57,28 @@ def continues(aligner: Any, m: Measurement,
     if ids.size == 0:
         return True, 'the state is empty'
 
-    def held(node_id: int) -> int | None:
+    def index_of(node_id: int) -> int | None:
         k = np.flatnonzero(ids == node_id)
         return int(k[0]) if k.size else None
 
     tracks, stamps = np.asarray(path.track_ids), np.asarray(path.stamps_ns)
-    k_dst, k_src = held(m.dst_id), held(m.src_id)
+    k_dst, k_src = index_of(m.dst_id), index_of(m.src_id)
+    z = _held_motion(aligner, m.src_id, m.dst_id)
+    if z is not None:
+        if not np.allclose(z, m.z, rtol=0, atol=Z_TOLERANCE):
+            return False, (f'the connection {m.src_id}->{m.dst_id} is held with another motion '
+                           f'(differs by {np.max(np.abs(z - m.z)):.3g})')
+        return True, f'the connection {m.src_id}->{m.dst_id} is held (re-delivered)'
+    src_continues = (k_src is not None and tracks[k_src] == m.src_track
+                     and stamps[k_src] <= m.stamp_ns)
     if k_dst is not None:
-        if tracks[k_dst] != m.dst_track or stamps[k_dst] != m.stamp_ns:
+        if tracks[k_dst] != m.dst_track or not (stamps[k_dst] == m.stamp_ns or src_continues):
             return False, (f'node {m.dst_id} is held with track {tracks[k_dst]}, stamp '
                            f'{stamps[k_dst]} ns; the measurement says track {m.dst_track}, '
                            f'stamp {m.stamp_ns} ns')
-        z = _held_motion(aligner, m.src_id, m.dst_id)
-        if z is not None and not np.allclose(z, m.z, rtol=0, atol=Z_TOLERANCE):
-            return False, (f'the connection {m.src_id}->{m.dst_id} is held with another motion '
-                           f'(differs by {np.max(np.abs(z - m.z)):.3g})')
-        return True, f'node {m.dst_id} is held (re-delivered)'
+        return True, f'node {m.dst_id} is held'
     if k_src is not None:
-        if tracks[k_src] != m.src_track or stamps[k_src] > m.stamp_ns:
+        if not src_continues:
             return False, (f'node {m.src_id} is held with track {tracks[k_src]}, stamp '
                            f'{stamps[k_src]} ns; the measurement starts from track '
                            f'{m.src_track} and is stamped {m.stamp_ns} ns')

@@ -10,6 +10,7 @@ import time
 
 from nav_msgs.msg import Odometry
 
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.fault_catalogue.harness import Live, mount_tmpfs, recovery_note, start_play, umount
 from ga_ros.ros.fault_catalogue.survey import Ctx, Row, nodes_kept, small_survey
 from ga_ros.ros.harness import HarnessTimeout, start_node_process, stop_process
@@ -66,7 +67,7 @@ def case_two_nodes_one_state(ctx: Ctx) -> Row:
     second = start_node_process(ctx.dom, {'diagnostics_period_sec': 0.2},
                                 log_path=second_log)
     try:
-        end = time.monotonic() + 120
+        end = time.monotonic() + patience(60)
         text = ''
         while second.poll() is None and time.monotonic() < end:
             text = second_log.read_text(errors='replace') if second_log.exists() else ''
