@@ -248,7 +248,9 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
 
     def _warn_session(self, text: str) -> None:
         """The session's warnings: persistence failures as errors (throttled), others once."""
-        if 'persistence' in text or 'journal' in text or 'state file' in text:
+        if text.startswith('a different survey'):
+            self.get_logger().warning(text)
+        elif 'persistence' in text or 'journal' in text or 'state file' in text:
             self.get_logger().error(text, throttle_duration_sec=self.settings.warn_throttle_sec)
         else:
             self.get_logger().warning(text)
@@ -320,6 +322,8 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         throttle = self.settings.warn_throttle_sec
         try:
             out = self.session.step(m)
+            if self.session.previous_survey is not None:
+                self._new_survey()
             if self.front is None:
                 for taken in out.admitted:  # held ones whose gap was filled, bridges
                     self.odom.add(taken)
@@ -347,6 +351,16 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.last_error = f'after update: {type(exc).__name__}: {exc}'
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
+
+    def _new_survey(self) -> None:
+        """The session moved the resumed state aside (another survey's first measurement
+        came, :mod:`ga_ros.pipeline.session.survey_identity`): outputs start afresh, as after
+        ``~/reset``."""
+        self.session.previous_survey = None
+        self._resumed = False
+        self._datum_saved = False   # the datum file went with the old state
+        self.corrections.restart()  # consumers drop what they held: a full message next
+        self._publish_all()
 
     def _warn_rejected(self, reason: object, exc: object, msg: Any) -> None:
         """Note a rejection (counted by the session); logged by a timer, not per message."""

@@ -11,7 +11,8 @@ the diagnostic values. One call per measurement: :meth:`AlignmentSession.step`
 
 The package: :mod:`.facade` (:class:`AlignmentSession`), :mod:`.config` (:class:`SessionConfig`),
 :mod:`.outputs` (:class:`StepOutput`, :class:`Health`, the counters), :mod:`.rejections` (typed
-reasons), :mod:`.restore` (the gap healer of a recovered state) and :mod:`.diagnostics`.
+reasons), :mod:`.restore` (the gap healer of a recovered state), :mod:`.survey_identity` (the
+same survey or another one after a restart) and :mod:`.diagnostics`.
 """
 
 from ga_ros.pipeline.session.config import SessionConfig

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,7 @@ from ga_ros.pipeline.session.outputs import (
 )
 from ga_ros.pipeline.session.rejections import refused, rejection_reason, unknown_source
 from ga_ros.pipeline.session.restore import how, rebuild_gaps
+from ga_ros.pipeline.session.survey_identity import continues, move_survey_aside
 
 
 class AlignmentSession:
@@ -87,6 +89,12 @@ class AlignmentSession:
         self.journal: MeasurementJournal | None = None
         #: The state file's lock, taken by :meth:`resume` (``SessionConfig.lock_owner``).
         self.lock: StateLock | None = None
+        #: A non-empty state was resumed and no measurement has come since: the first one
+        #: decides whether it is the same survey (:mod:`.survey_identity`).
+        self.survey_check_pending = False
+        #: The folder the previous survey's state was moved to when another survey's first
+        #: measurement came (``None`` otherwise; the node takes it and resets its outputs).
+        self.previous_survey: Path | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -97,6 +105,8 @@ class AlignmentSession:
         window update is counted and returned (the aligner keeps its previous estimate).
         """
         t0 = time.perf_counter()
+        if self.survey_check_pending:
+            self._check_survey(m)
         self.counts.received += 1
         gaps = self.gaps
         route = gaps.route(m)
@@ -124,6 +134,43 @@ class AlignmentSession:
             self.counts.callback_seconds += time.perf_counter() - t0
             self.counts.callback_count += 1
         return self._output(taken, True)
+
+    def _check_survey(self, m: Measurement) -> None:
+        """The first measurement after resuming a non-empty state: if it does not belong to
+        that survey (:func:`~ga_ros.pipeline.session.survey_identity.continues`), move the saved
+        state aside to a dated folder (:attr:`previous_survey`), say so (``warn``) and start a
+        fresh survey. A state that cannot be moved is kept and resumed (an error line)."""
+        self.survey_check_pending = False
+        same, why = continues(self.aligner, m, (h.m for h in self.gaps.held))
+        if same or not self.session.state_file:
+            return
+        path = self.session.state_file
+        old_nodes = self.n_nodes()
+        if self.journal is not None:
+            self.journal.close()
+        try:
+            folder = move_survey_aside(path)
+        except (OSError, GaError) as exc:
+            if self.journal is not None:
+                self.journal.open()
+            self.persistence_failed(f'state file {path}: a different survey came but it could '
+                                    f'not be moved aside ({exc}): the new survey is added to '
+                                    'the old one')
+            return
+        self.previous_survey = folder
+        if self.journal is not None:
+            self.journal = MeasurementJournal(journal_path(path))
+            self.journal.open()
+        self._close_aligner()
+        self.aligner = TrackWindowAligner(self.config)
+        self.gaps = GapHealer(self.session.gaps)
+        self.counts = Counters()
+        self.last_update, self.last_error = None, ''
+        self.datum = None
+        self.warn(f'a different survey: its first measurement {m.src_id}->{m.dst_id} (track '
+                  f'{m.dst_track}, stamp {m.stamp_ns} ns) does not belong to the saved one '
+                  f'({why}); the saved survey ({old_nodes} nodes) was moved to {folder}/ and a '
+                  'new survey starts')
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
         """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the gap healer
@@ -523,6 +570,7 @@ class AlignmentSession:
                 self.journal.open()  # the journal can be written (not at the first measurement)
         except (GaError, OSError) as exc:
             return self._without_persistence(exc)
+        self.survey_check_pending = result.source != 'empty' and self.n_nodes() > 0
         return None if result.source == 'empty' else how(result)
 
     def _without_persistence(self, exc: BaseException) -> str:

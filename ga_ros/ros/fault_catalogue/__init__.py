@@ -13,10 +13,14 @@ until the node holds again every node it held before the fault).
 Nodes lost because a measurement never arrives at all (a gap) are not caught here: the
 publishers keep their history, so a restarted node gets everything again.
 
+One case runs on the alignment session in process instead (the ROS-free object the node
+drives): the journal-only recovery of a survey with fixes, compared bit for bit.
+
 The package: :mod:`.survey` (the data of a case: survey, context, row, reference paths),
 :mod:`.harness` (a live node process and its client, ``ga-ros play``, tmpfs mounts), the cases
-(:mod:`.input_cases`, :mod:`.crash_cases`, :mod:`.peer_cases`) and :mod:`.catalogue` (the cases
-by name, the run of one, the table).
+(:mod:`.input_cases`, :mod:`.crash_cases`, :mod:`.peer_cases`, :mod:`.state_cases` of the
+default state and another survey, :mod:`.session_cases`) and :mod:`.catalogue` (the cases by
+name, the run of one, the table).
 """
 
 from ga_ros.ros.fault_catalogue.catalogue import catalogue, run_case, table

@@ -26,9 +26,17 @@ from ga_ros.ros.fault_catalogue.peer_cases import (
     case_finish_race,
     case_hostile_services,
     case_idle_timeout,
+    case_play_clock_late_node,
     case_play_early,
     case_reset_by_peer,
     case_sigterm_startup,
+)
+from ga_ros.ros.fault_catalogue.session_cases import case_journal_only_fixes
+from ga_ros.ros.fault_catalogue.state_cases import (
+    case_another_survey,
+    case_bounded_history,
+    case_disk_full_then_space,
+    case_two_nodes_one_state,
 )
 from ga_ros.ros.fault_catalogue.survey import Case, Ctx, Row, Survey, small_survey
 
@@ -66,6 +74,12 @@ def catalogue() -> dict[str, Case]:
         'flood-queue': case_flood_queue,
         'play-early': case_play_early,
         'sigterm-startup': case_sigterm_startup,
+        'kill-bounded-history': case_bounded_history,
+        'two-nodes-one-state': case_two_nodes_one_state,
+        'disk-full-then-space': case_disk_full_then_space,
+        'play-clock-late-node': case_play_clock_late_node,
+        'journal-only-fixes': case_journal_only_fixes,
+        'another-survey': case_another_survey,
     })
     return cases
 

@@ -113,3 +113,49 @@ def case_sigterm_startup(ctx: Ctx) -> Row:
     code = proc.wait(timeout=20)
     return Row('SIGTERM during start-up', 'TRACEBACK' if traceback_in(log)
                else f'clean exit {code}', '-', 0, 0)
+
+
+def case_play_clock_late_node(ctx: Ctx) -> Row:
+    """``ga-ros play --rate 0`` (``/clock`` on) started first; a sim-time alignment node
+    (``use_sim_time``) started once play publishes: play exits 0 only after the node confirmed
+    what it processed, and the node keeps every node. Then play again, into a subscriber that
+    asks for the history but never confirms: play must exit non-zero."""
+    from nav_msgs.msg import Odometry
+
+    from ga_ros.ros.qos import measurement_qos
+    client = NodeClient(ctx.dom)
+    log = ctx.work / 'node.log'
+    proc = None
+    play = start_play(ctx, '--delay', '0')
+    try:
+        c = client
+        c.spin_until(lambda: c.node.count_publishers('/ga/measurements') > 1, 60,
+                     'play publishing')           # (the client's own publisher is one)
+        proc = start_node_process(ctx.dom, {**BASE_PARAMS, 'use_sim_time': True},
+                                  log_path=log)
+        out, _ = play.communicate(timeout=1800)
+        n = ctx.survey.n_nodes
+        try:
+            c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
+                         and c.diag_int('dead_reckoned_nodes') == 0
+                         and c.diag_int('nodes') >= n, 60, 'path')
+        except HarnessTimeout:
+            pass
+        got = conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
+        survived = 'yes' if proc.poll() is None and not traceback_in(log) else 'NO'
+        confirmed = f"{c.diag_int('measurements_received')}/{len(ctx.ms)} received"
+        stop_process(proc)
+        # nobody confirms: a subscriber asking for the history, no alignment node
+        c.node.create_subscription(Odometry, '/ga/measurements', lambda msg: None,
+                                   measurement_qos(transient_local=True))
+        silent = start_play(ctx, '--delay', '0', '--delivery-timeout', '3')
+        silent.communicate(timeout=1800)
+        return Row('sim-time node started after ga-ros play --clock began', survived,
+                   f'{confirmed}; play exit {play.returncode}; unconfirmed play exit '
+                   f'{silent.returncode}', n, nodes_kept(ctx.survey.T_ref, got))
+    finally:
+        if play.poll() is None:
+            play.kill()
+            play.communicate()
+        client.close()
+        stop_process(proc)

@@ -47,9 +47,10 @@ def reference(ms: list[Measurement]) -> np.ndarray:
     return aligner.corrected_path().T_world_node
 
 
-def small_survey(work: Path) -> Survey:
-    """A simulated survey of 3 tracks (48 nodes, about 220 measurements)."""
-    ms = aerial_sample(n_tracks=3, positions_per_swath=8, seed=12).measurements
+def small_survey(work: Path, seed: int = 12) -> Survey:
+    """A simulated survey of 3 tracks (48 nodes, about 220 measurements; ``seed``: its
+    noise)."""
+    ms = aerial_sample(n_tracks=3, positions_per_swath=8, seed=seed).measurements
     return Survey(ms, write_measurement_bag(work / 'small_bag', ms, None), reference(ms))
 
 
