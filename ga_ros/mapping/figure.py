@@ -15,8 +15,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ga_ros.errors import InputError
-from ga_ros.mapping.mosaic import CameraView, Georeference, Mosaic, Surface, warp_view
+from ga_ros.mapping.mosaic import (
+    CameraView,
+    Georeference,
+    Mosaic,
+    Surface,
+    warp_view,
+    write_png,
+)
 
 
 @dataclass
@@ -97,7 +103,4 @@ def write_compare_figure(path: str | Path, before: MosaicPanel, after: MosaicPan
         panels.append(np.vstack([stack, pad]))
     gap = np.full((h, 8, 3), 255, np.uint8)
     fig = np.hstack([panels[0], gap, panels[1]])
-    path = Path(path)
-    if not cv2.imwrite(str(path), fig, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
-        raise InputError(f'could not write {path}')
-    return str(path)
+    return str(write_png(path, fig, compression=9))

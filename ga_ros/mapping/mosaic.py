@@ -21,7 +21,6 @@ with the resolution that would fit.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import InputError
 from ga_ros.mapping.surface import GroundPlane, HeightGrid
+from ga_ros.safe_write import write_bytes, write_json, write_text
 
 #: Blending modes of :class:`MosaicConfig`.
 BLEND_MODES = ('last', 'average')
@@ -323,6 +323,15 @@ def build_mosaic(views: list[CameraView], surface: Surface,
     return Mosaic(image, valid, georef)
 
 
+def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path:
+    """Encode ``image`` (grey, BGR or BGRA, uint8) as PNG and write it through
+    :mod:`ga_ros.safe_write` (atomic, no symbolic link followed); ``compression`` 0-9."""
+    ok, buf = cv2.imencode('.png', image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    if not ok:
+        raise InputError(f'could not encode {path} as PNG ({image.shape}, {image.dtype})')
+    return write_bytes(path, buf.tobytes())
+
+
 def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     """Write the mosaic as PNG (grey or colour; an alpha channel marks the covered pixels), its
     georeference as JSON (``<name>.json``) and as an ESRI world file (``<name>.pgw``: pixel
@@ -332,14 +341,12 @@ def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     img = mosaic.image if mosaic.image.ndim == 3 else cv2.cvtColor(mosaic.image,
                                                                     cv2.COLOR_GRAY2BGR)
     bgra = np.concatenate([img, (mosaic.valid * 255).astype(np.uint8)[..., None]], axis=2)
-    if not cv2.imwrite(str(path), bgra):
-        raise InputError(f'could not write {path}')
+    write_png(path, bgra)
     g = mosaic.georef
-    meta = path.with_suffix('.json')
-    meta.write_text(json.dumps(g.as_dict(), indent=1) + '\n')
+    meta = write_json(path.with_suffix('.json'), g.as_dict(), indent=1)
     world = path.with_suffix('.pgw')
     m = g.metres_per_pixel
-    world.write_text(f'{m!r}\n0.0\n0.0\n{-m!r}\n{g.x_min + 0.5 * m!r}\n{g.y_max - 0.5 * m!r}\n')
+    write_text(world, f'{m!r}\n0.0\n0.0\n{-m!r}\n{g.x_min + 0.5 * m!r}\n{g.y_max - 0.5 * m!r}\n')
     return {'png': str(path), 'georeference': str(meta), 'world_file': str(world)}
 
 
