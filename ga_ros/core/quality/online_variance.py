@@ -23,8 +23,9 @@ of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_d
 as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
-Absolute fixes (:mod:`ga_ros.core.fixes`) are observations too: each fix source (``gnss0``,
-``amcl0``, ...) is a group of its own, booked per fix (:meth:`OnlineVarianceComponents.register_fix`,
+Absolute fixes (:mod:`ga_ros.core.fixes`) are observations too: each fix source
+(``gnss0``, ``amcl0``, ...) is a group of its own, booked per fix
+(:meth:`OnlineVarianceComponents.register_fix`,
 :meth:`~OnlineVarianceComponents.record_fixes`) with ``c_f = e_f' L_f e_f`` (``e_f`` the
 fix's misclosure at the adjusted pose, ``L_f`` its stated information, the odometry offset's
 covariance included) and ``r_f = tr(I - J Q J' L_f / s)`` over its known dimensions (``J``

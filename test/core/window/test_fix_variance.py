@@ -14,58 +14,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm, sensor_misclosure
-from ga_ros.core.measurement import Measurement
+from ga_ros.bench.fix_vce import GnssSurvey, align
+from ga_ros.core.fixes import sensor_misclosure
 from ga_ros.core.quality.variance_components import SourceGroups
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import load_state, save_state
-from ga_ros.geometry import se3
 
-PER, TRACKS, EVERY = 30, 6, 5
-N = PER * TRACKS
-C_ODOM = np.diag([0.02 ** 2] * 3 + [0.003 ** 2] * 3)
-STATED_M, TRUE_M = 0.5, 2.0
-
-
-def _lawnmower() -> tuple[np.ndarray, list[np.ndarray]]:
-    T_true, steps = [se3.identity()], []
-    for i in range(N - 1):
-        turn = np.pi / 2 if (i % PER) in (PER - 2, PER - 1) else 0.0
-        steps.append(se3.from_translation_rotvec(np.array([1.0, 0.0, 0.0]),
-                                                 np.array([0.0, 0.0, turn])))
-        T_true.append(T_true[-1] @ steps[-1])
-    return np.array(T_true), steps
-
-
-T_TRUE, STEPS = _lawnmower()
+SV = GnssSurvey(tracks=6, per_swath=30, fix_every=5, fix_stated_m=0.5, fix_true_m=2.0)
+N, PER = SV.n, SV.per_swath
+STATED_M, TRUE_M = SV.fix_stated_m, SV.fix_true_m
+T_TRUE = SV.truth()[0]
 
 
 def _draw(seed: int) -> list:
     """The inputs of one run, in order: ``('m', Measurement)`` and ``('f', FixTerm)``."""
-    rng = np.random.default_rng(seed)
-    L = np.linalg.cholesky(C_ODOM)
-    out = []
-    for i in range(N - 1):
-        T_m = STEPS[i] @ se3.exp(L @ rng.normal(size=6))
-        out.append(('m', Measurement.from_pose(i, i + 1, i // PER, (i + 1) // PER, T_m, C_ODOM,
-                                               (i + 1) * 10 ** 9)))
-        k = i + 1
-        if k % EVERY == 0:
-            p = T_TRUE[k, :3, 3] + rng.normal(0, TRUE_M, 3)
-            out.append(('f', FixTerm(k, se3.identity(), AbsoluteFix.from_covariance(
-                k * 10 ** 9, se3.from_translation_rotvec(p, np.zeros(3)),
-                np.diag([STATED_M ** 2] * 3 + [-1.0] * 3), 'gnss'))))
-    return out
+    return SV.draw(np.random.default_rng(seed))
 
 
-def _run(inputs: list, mode: str, **kw) -> TrackWindowAligner:
-    al = TrackWindowAligner(AlignerConfig(window_tracks=2, datum='fixes', refine_executor='inline',
-                                          variance_components=mode, **kw),
-                            T_world_first=T_TRUE[0])
-    for kind, x in inputs:
-        al.add_measurement(x) if kind == 'm' else al.add_fix(x)
-    al.finish_track()
-    return al
+def _run(inputs: list, mode: str) -> TrackWindowAligner:
+    return align(SV, inputs, mode)
 
 
 def _nees(al: TrackWindowAligner) -> float:
@@ -132,6 +99,8 @@ def test_published_covariances_become_honest(runs) -> None:
 
 
 def test_warning_names_the_fix_source(runs) -> None:
+    diag = runs[0]['al'].online_variance.diagnostic_values()
+    assert diag['variance/gnss/factor'] == f"{runs[0]['gnss'].factor:.4g}"
     for r in runs:
         assert any(w.startswith("gnss's stated covariance is") and 'too small' in w
                    for w in r['warnings']), r['warnings']
