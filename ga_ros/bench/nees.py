@@ -22,9 +22,12 @@ Examples::
     ga-ros bench nees --per-swath 100,400 --noise 1,5,10 --runs 3
     ga-ros bench nees --per-swath 400 --noise 10 --runs 2 --profile
     ga-ros bench nees --vce --tracks 6 --per-swath 100 --noise 5 --runs 10
+    ga-ros bench nees --fix-vce --tracks 6 --per-swath 30 --fix-true 0.5,2,3 --runs 10
 
 ``--vce``: the stated covariances wrong by 4x and a biased source, with and without variance
-components (:mod:`ga_ros.bench.nees_vce`).
+components (:mod:`ga_ros.bench.nees_vce`). ``--fix-vce``: a GNSS that states 0.5 m where its
+errors are 2-3 m, with and without the fix source's variance factor
+(:mod:`ga_ros.bench.fix_vce`).
 """
 
 from __future__ import annotations
@@ -126,8 +129,28 @@ def main(argv: list[str] | None = None) -> int:
                          'online; ga_ros/bench/nees_vce.py); first --per-swath and --noise')
     ap.add_argument('--bias-sigmas', type=float, default=1.0,
                     help="--vce: the biased case's constant yaw bias per motion, in its sigmas")
+    ap.add_argument('--fix-vce', action='store_true',
+                    help='instead: a GNSS stating --fix-stated m where its errors are '
+                         "--fix-true m, with and without the fix source's variance factor "
+                         '(online and batch; ga_ros/bench/fix_vce.py); --tracks swaths of '
+                         'the first --per-swath poses')
+    ap.add_argument('--fix-stated', type=float, default=0.5,
+                    help='--fix-vce: the sigma (m per axis) the fixes state')
+    ap.add_argument('--fix-true', default='0.5,2,3',
+                    help="--fix-vce: comma list of the fixes' true sigmas (m), a case each")
+    ap.add_argument('--fix-every', type=int, default=5,
+                    help='--fix-vce: a fix every this many nodes')
     args = ap.parse_args(argv)
     limit_blas_threads(1)
+    if args.fix_vce:
+        from ga_ros.bench.fix_vce import GnssSurvey, fix_vce_lines, run_fix_vce
+
+        base = GnssSurvey(args.tracks, int(args.per_swath.split(',')[0]), args.fix_every,
+                          args.fix_stated)
+        true_m = [float(x) for x in args.fix_true.split(',') if x]
+        result = run_fix_vce(base, true_m, args.runs, args.seed, args.window)
+        print('\n'.join(fix_vce_lines(base, result, args.runs)))
+        return 0
     if args.vce:
         from ga_ros.bench.nees_vce import run_vce_nees, vce_lines
 

@@ -39,6 +39,7 @@ its neighbours too.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -278,6 +279,9 @@ class FixBook:
         self.status = np.zeros(0, dtype=np.int8)  # 0 used, 2 excluded (replaced, never in place)
         self.gated = np.zeros(0, dtype=bool)  # never gated (the gauge prior)
         self.stats = FixStats()
+        # the variance factor of each fix index (online variance components applied, by
+        # source): its information is divided by it in the priors and the gate; None: 1
+        self.info_factors: Callable[[IntArray], FloatArray] | None = None
 
     def __len__(self) -> int:
         return len(self.terms)
@@ -297,17 +301,18 @@ class FixBook:
         if gated:
             self.stats.added += 1
 
-    def _by_row(self, rows: IntArray, active: bool = True, count: int | None = None
-                ) -> dict[int, list[int]]:
+    def _by_row(self, rows: IntArray, active: bool = True, count: int | None = None,
+                gauge: bool = True) -> dict[int, list[int]]:
         """The (used, if ``active``) fixes of the node ``rows`` among the first ``count``, by
-        row (each list in increasing fix index): a look-up per row asked for, nothing of the
-        book's size."""
+        row (each list in increasing fix index; the gauge prior only if ``gauge``): a look-up
+        per row asked for, nothing of the book's size."""
         status = self.status  # a fix added meanwhile (another thread) appends its status last
         n = min(len(self.rows), status.size, len(self.info))
         n = n if count is None else min(n, int(count))
         out: dict[int, list[int]] = {}
         for r in set(np.asarray(rows, np.int64).tolist()):
-            fs = [f for f in self._of_row.get(r, ()) if f < n and (not active or status[f] == 0)]
+            fs = [f for f in self._of_row.get(r, ()) if f < n and (not active or status[f] == 0)
+                  and (gauge or self.gated[f])]
             if fs:
                 out[r] = fs
         return out
@@ -327,19 +332,28 @@ class FixBook:
         return np.array(sorted(f for fs in self._by_row(rows, count=count).values() for f in fs),
                         dtype=np.int64)
 
-    def prior_terms(self, rows: IntArray, T: FloatArray, count: int | None = None
-                    ) -> tuple[IntArray, FloatArray, FloatArray]:
+    def information_used(self, fixes: list[int]) -> list[FloatArray]:
+        """The information each of ``fixes`` enters the adjustment with: its own (offset's
+        covariance included) divided by its variance factor (:attr:`info_factors`)."""
+        if self.info_factors is None or not fixes:
+            return [self.info[f] for f in fixes]
+        fac = self.info_factors(np.asarray(fixes, np.int64))
+        return [self.info[f] if s == 1.0 else self.info[f] / s for f, s in zip(fixes, fac)]
+
+    def prior_terms(self, rows: IntArray, T: FloatArray, count: int | None = None,
+                    gauge: bool = True) -> tuple[IntArray, FloatArray, FloatArray]:
         """``(rows with a used fix (k,), means (k, 4, 4), informations (k, 6, 6))`` of the
         weighted parameters of the node rows ``rows`` at poses ``T`` (indexed by row), from the
-        first ``count`` fixes (default all)."""
-        by_row = self._by_row(rows, count=count)
+        first ``count`` fixes (default all), the gauge prior's only if ``gauge``; each fix
+        weighted as :meth:`information_used` says."""
+        by_row = self._by_row(rows, count=count, gauge=gauge)
         keys = sorted(by_row)
         means = np.zeros((len(keys), 4, 4))
         infos = np.zeros((len(keys), 6, 6))
         for a, r in enumerate(keys):
             fs = by_row[r]
             means[a], infos[a] = node_prior(T[r], [self.terms[f] for f in fs],
-                                            [self.info[f] for f in fs])
+                                            self.information_used(fs))
         return np.asarray(keys, np.int64), means, infos
 
     def gate(self, rows: IntArray, T: FloatArray, Q: FloatArray, excluded_now: set[int],
@@ -368,7 +382,7 @@ class FixBook:
             e = sensor_misclosure(T[a], term.T_node_sensor, term.fix)[known]
             J = sensor_jacobian(T[a], term.T_node_sensor)
             P = (J @ Q[a] @ J.T)[np.ix_(known, known)]
-            C = np.linalg.inv(self.info[f][np.ix_(known, known)])
+            C = np.linalg.inv(self.information_used([f])[0][np.ix_(known, known)])
             S = C - P if self.status[f] == 0 else C + P
             # the residual covariance of a fix in the adjustment is positive semidefinite in
             # exact arithmetic; floor it at 1 % of the fix's own against round-off
@@ -442,15 +456,25 @@ class FixBook:
                  gated=False)
 
     def priors(self, rows: IntArray, T: FloatArray, ids: IntArray) -> list:
-        """The weighted parameters of the fixes of node ``rows`` (none or one
+        """The weighted parameters of the fixes of node ``rows`` (none, one or two
         :class:`~ga_ros.core.solver.GaussianPrior`), at the poses ``T`` and with the node ids
-        ``ids`` (both indexed by row)."""
+        ``ids`` (both indexed by row): the fixes', and the gauge prior's apart, marked
+        ``weak`` (a datum, not an observation: left out of the variance factor's
+        redundancy)."""
         if not self.terms:
             return []
-        keys, means, infos = self.prior_terms(rows, T)
-        if keys.size == 0:
-            return []
-        return [GaussianPrior(np.asarray(ids)[keys], means, sla.block_diag(*infos))]
+        out = []
+        keys, means, infos = self.prior_terms(rows, T, gauge=False)
+        if keys.size:
+            out.append(GaussianPrior(np.asarray(ids)[keys], means, sla.block_diag(*infos)))
+        if self.has_gauge:
+            gauge = [f for f in self.used(rows) if not self.gated[f]]
+            if gauge:
+                r = self.rows[gauge[0]]
+                T_m, H = node_prior(T[r], [self.terms[f] for f in gauge],
+                                    [self.info[f] for f in gauge])
+                out.append(GaussianPrior(np.asarray(ids)[[r]], T_m[None], H, weak=True))
+        return out
 
     def gate_adjusted(self, nodes: IntArray, res: SolveResult, ids: IntArray,
                       frozen: np.ndarray, excluded_now: set[int], lock=None) -> bool:

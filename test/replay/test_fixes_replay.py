@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,7 @@ from ga_ros.pipeline.inputs import InputSpec
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.pipeline import replay
+from ga_ros.replay.text import result_text
 
 RATE_HZ = 10.0
 T0_NS = 1_700_000_000_000_000_000
@@ -265,3 +267,40 @@ def test_lever_arm_parameter_is_t_base_sensor_and_the_old_name_says_so(rng) -> N
         AbsoluteInputConfig.from_mapping('fix0', {'lever_arm_m': [0.0, 0.0, 1.0]})
     with pytest.raises(InputError, match='T_base_sensor'):
         AbsoluteInputConfig.from_mapping('fix0', {'T_base_sensor': [0.0] * 7})
+
+
+def test_gnss_stating_too_small_a_covariance_is_named(tmp_path: Path) -> None:
+    """A NavSatFix stating 0.5 m where its errors are 2 m (true factor 16), online variance
+    components applied: the fix source's factor in summary.json's
+    ``online_variance_components``, in the printout and a WARN naming it."""
+    rng = np.random.default_rng(5)
+    legs = []
+    for k in range(6):
+        y = 8.0 * k
+        legs += [[0.0, y], [40.0, y]] if k % 2 == 0 else [[40.0, y], [0.0, y]]
+    gt = _path(np.array(legs), 1.0)
+    odom = _drifting(gt, rng, yaw_bias=0.0)
+    stamps = T0_NS + (np.arange(len(gt)) * 1e9 / RATE_HZ).astype(np.int64)
+    with BagWriter(tmp_path / 'in') as bag:
+        for k, (s, T) in enumerate(zip(stamps, odom)):
+            s = int(s)
+            bag.write('/odom', ODOMETRY, odometry_msg(T, s), s)
+            if k % 10 == 3:
+                p = gt[k][:3, 3] + rng.normal(0, 2.0, 3)
+                bag.write('/fix', NAV_SAT_FIX, nav_sat_fix_msg(_enu_to_geodetic(p, DATUM), s,
+                                                               np.diag([0.5 ** 2] * 3)), s)
+    spec = InputSpec('/odom', 'odometry', OdometryInputConfig('odom0', keyframe_travel_m=1.0))
+    gnss = AbsoluteSpec('/fix', 'navsatfix', AbsoluteInputConfig('fix0', use_datum=True,
+                                                                 datum=DATUM))
+    cfg = ReplayConfig(inputs=InputTopics((spec,), absolutes=(gnss,)), plot=False,
+                       aligner=AlignerConfig(datum='fixes', refine_executor='inline',
+                                             variance_components='apply'))
+    res = replay(tmp_path / 'in', tmp_path / 'out', cfg)
+    fix = res.online_variance_components['fix0']
+    assert fix['estimated'] and fix['applied'] and fix['factor'] > 4.0, fix
+    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
+    assert summary['online_variance_components']['fix0']['factor'] == fix['factor']
+    text = result_text(res)
+    assert 'variance components (online' in text and '  fix0' in text, text
+    assert any(w.startswith("online: fix0's stated covariance is") for w in res.warnings), \
+        res.warnings

@@ -103,6 +103,9 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
     # global test
     cost, n_eq = global_cost(network, model, T, v, Pv, priors, m * r_c)
     redundancy = n_eq - result.free_node_ids.size * models.dof(model)
+    if any(getattr(p, 'weak', False) for p in priors):
+        # a datum prior counts by tr(Q H), not its rank (GaussianPrior.weak; the solver's)
+        redundancy = result.redundancy
     n_out = cf.ocs.size
     out_stat = np.zeros(0)
     out_crit = np.zeros(0)
@@ -117,7 +120,7 @@ def quality_control(network: ConnectionNetwork, result: SolveResult,
         prior_red = n_eq - m * r_c - float(np.sum(S_p * cf.prior_blocks.data))
     sigma0_sq, g_crit, passed = global_test(cost, redundancy, cfg.alpha)
     return QualityReport(
-        model=model, cost=cost, redundancy=int(redundancy), sigma0_sq=float(sigma0_sq),
+        model=model, cost=cost, redundancy=redundancy, sigma0_sq=float(sigma0_sq),
         global_critical=g_crit, global_passed=passed,
         redundancy_numbers=red, redundancy_components=red_comp, prior_redundancy=prior_red,
         w=w, connection_statistic=stat, connection_dof=q, connection_critical=crit, mdb=mdb,

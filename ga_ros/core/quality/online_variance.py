@@ -23,6 +23,16 @@ of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_d
 as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
+Absolute fixes (:mod:`ga_ros.core.fixes`) are observations too: each fix source
+(``gnss0``, ``amcl0``, ...) is a group of its own, booked per fix
+(:meth:`OnlineVarianceComponents.register_fix`,
+:meth:`~OnlineVarianceComponents.record_fixes`) with ``c_f = e_f' L_f e_f`` (``e_f`` the
+fix's misclosure at the adjusted pose, ``L_f`` its stated information, the odometry offset's
+covariance included) and ``r_f = tr(I - J Q J' L_f / s)`` over its known dimensions (``J``
+the sensor Jacobian, ``Q`` the node's marginal covariance, ``s`` the factor the adjustment
+used). Several fixes merged into one node prior keep their own values. The gauge prior of
+``datum='fixes'`` is no observation and has no group.
+
 Everything here depends on the adjustments only (never on timing), so a replay and a live node
 get the same factors; the sums are recomputed from the per-connection values (no running
 totals whose rounding would depend on the order of updates).
@@ -103,6 +113,10 @@ class OnlineVarianceComponents:
         self._cost = np.zeros(64)
         self._red = np.zeros(64)
         self.n = 0
+        # the absolute fixes, by fix index: group (-1: none, the gauge prior), cost, redundancy
+        self._fgroup = np.zeros(0, dtype=np.int32)
+        self._fcost = np.zeros(0)
+        self._fred = np.zeros(0)
 
     # --------------------------------------------------------------------- input
     def register(self, group: str) -> int:
@@ -117,6 +131,45 @@ class OnlineVarianceComponents:
         self._group[self.n] = self.names.index(group)
         self.n += 1
         return self.n - 1
+
+    @property
+    def n_fixes(self) -> int:
+        """The number of fixes registered."""
+        return int(self._fgroup.size)
+
+    def register_fix(self, group: str | None) -> int:
+        """Register the next absolute fix (the fix book's next index) with its source's group
+        (``None``: no group, the gauge prior); returns its index."""
+        k = -1
+        if group is not None:
+            if group not in self.names:
+                self.names.append(group)
+            k = self.names.index(group)
+        self._fgroup = np.append(self._fgroup, np.int32(k))
+        self._fcost = np.append(self._fcost, 0.0)
+        self._fred = np.append(self._fred, 0.0)
+        return self.n_fixes - 1
+
+    def record_fixes(self, fixes: IntArray, cost: FloatArray, redundancy: FloatArray) -> None:
+        """Store the values of one adjustment for the fixes ``fixes`` (registered indices):
+        ``cost`` ``e' L e`` under the stated information, ``redundancy`` ``r_f`` under the
+        weights the adjustment used (0 and 0 for a fix it excluded)."""
+        fixes = np.asarray(fixes, dtype=np.int64)
+        ok = fixes < self.n_fixes
+        self._fcost[fixes[ok]] = np.asarray(cost, float)[ok]
+        self._fred[fixes[ok]] = np.asarray(redundancy, float)[ok]
+
+    def fix_factors_of(self, fixes: IntArray, factors: FloatArray | None = None) -> FloatArray:
+        """``(k,)`` the factor of each fix's group (1 for the gauge prior and unregistered
+        fixes), from ``factors`` (per group, :meth:`factors` by default)."""
+        fixes = np.asarray(fixes, dtype=np.int64)
+        given = self.factors() if factors is None else np.asarray(factors, float)
+        f = np.ones(len(self.names) + 1)
+        f[:given.size] = given
+        ok = fixes < self.n_fixes
+        g = np.full(fixes.size, -1, np.int64)
+        g[ok] = self._fgroup[fixes[ok]]
+        return f[g]
 
     def record(self, rows: IntArray, cost: FloatArray, redundancy: FloatArray) -> None:
         """Store the values of one adjustment for connection ``rows`` (registered): ``cost``
@@ -133,9 +186,13 @@ class OnlineVarianceComponents:
         """Per group (order of :attr:`names`): ``C_k``, ``R_k`` and the observation count."""
         k = len(self.names)
         g = self._group[:self.n]
-        return (np.bincount(g, weights=self._cost[:self.n], minlength=k),
-                np.bincount(g, weights=self._red[:self.n], minlength=k),
-                np.bincount(g, minlength=k))
+        fg = self._fgroup >= 0
+        fgi = self._fgroup[fg]
+        return (np.bincount(g, weights=self._cost[:self.n], minlength=k)
+                + np.bincount(fgi, weights=self._fcost[fg], minlength=k),
+                np.bincount(g, weights=self._red[:self.n], minlength=k)
+                + np.bincount(fgi, weights=self._fred[fg], minlength=k),
+                np.bincount(g, minlength=k) + np.bincount(fgi, minlength=k))
 
     def factors(self) -> FloatArray:
         """Per group, the damped factor in use (1 while ``R_k < min_redundancy``)."""
@@ -205,9 +262,11 @@ class OnlineVarianceComponents:
     # ----------------------------------------------------------------- persistence
     def arrays(self) -> dict:
         """Plain arrays of the book (a snapshot file): group names, per-row group, cost and
-        redundancy."""
+        redundancy, and the same per fix (``fix_group``, ``fix_cost``, ``fix_redundancy``)."""
         return {'names': list(self.names), 'group': self._group[:self.n].copy(),
-                'cost': self._cost[:self.n].copy(), 'redundancy': self._red[:self.n].copy()}
+                'cost': self._cost[:self.n].copy(), 'redundancy': self._red[:self.n].copy(),
+                'fix_group': self._fgroup.copy(), 'fix_cost': self._fcost.copy(),
+                'fix_redundancy': self._fred.copy()}
 
     @classmethod
     def from_arrays(cls, config: OnlineVarianceConfig, values: dict
@@ -223,6 +282,10 @@ class OnlineVarianceComponents:
         book._group[:g.size] = g
         book._cost[:g.size] = np.asarray(values['cost'], float)
         book._red[:g.size] = np.asarray(values['redundancy'], float)
+        if values.get('fix_group') is not None:  # books saved without fixes: none
+            book._fgroup = np.asarray(values['fix_group'], np.int32).copy()
+            book._fcost = np.asarray(values['fix_cost'], float).copy()
+            book._fred = np.asarray(values['fix_redundancy'], float).copy()
         return book
 
 

@@ -21,7 +21,9 @@ class QualityReport:
     model : constraint model of the adjustment.
     cost : ``v' P v`` over connections plus the prior terms (the global test statistic,
         ``sigma_prior = 1``).
-    redundancy : ``r - u`` (equations of connections and priors minus unknowns).
+    redundancy : ``r - u`` (equations of connections and priors minus unknowns; a datum prior
+        counted by ``tr(Q H)``, :attr:`GaussianPrior.weak
+        <ga_ros.core.solver.priors.GaussianPrior.weak>`).
     sigma0_sq : a-posteriori variance factor ``cost / (r - u)``.
     global_critical : ``chi2_{1-alpha}(r - u)``.
     global_passed : ``cost <= global_critical``.
@@ -45,7 +47,7 @@ class QualityReport:
 
     model: str
     cost: float
-    redundancy: int
+    redundancy: float
     sigma0_sq: float
     global_critical: float
     global_passed: bool
@@ -92,7 +94,7 @@ class QualityReport:
         ratio = self.test_ratio()
         worst = int(np.nanargmax(ratio)) if np.isfinite(ratio).any() else -1
         return {
-            'model': self.model, 'cost': float(self.cost), 'redundancy': int(self.redundancy),
+            'model': self.model, 'cost': float(self.cost), 'redundancy': self.redundancy,
             'sigma0_sq': float(self.sigma0_sq), 'global_alpha': self.config.alpha,
             'global_critical': float(self.global_critical),
             'global_passed': bool(self.global_passed),
@@ -182,7 +184,7 @@ def summarise(report: QualityReport, network: ConnectionNetwork,
     t_mdb, r_mdb = t_mdb[np.isfinite(t_mdb)], r_mdb[np.isfinite(r_mdb)]
     return QualitySummary(
         global_passed=bool(report.global_passed), sigma0_sq=float(report.sigma0_sq),
-        redundancy=int(report.redundancy), w_max=float(w_max.max()) if testable.any() else 0.0,
+        redundancy=round(report.redundancy), w_max=float(w_max.max()) if testable.any() else 0.0,
         w_max_src_id=src_id, w_max_dst_id=dst_id,
         n_w_rejected=int((w_max > report.w_critical).sum()), w_critical=float(report.w_critical),
         redundancy_number_min=float(rn[sel].min()) if sel.any() else float('nan'),

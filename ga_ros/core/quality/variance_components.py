@@ -256,7 +256,8 @@ def solve_with_variance_components(
     first: SolveResult | None = None
     while True:
         net = scaled_network(network, factor[conn_index])
-        pri = [scaled_prior(p, factor[k]) for p, k in zip(priors, prior_index)]
+        pri = [scaled_prior(p, 1.0 if p.weak else factor[k])
+               for p, k in zip(priors, prior_index)]
         res = solve(net, T, scfg, fixed=fixed, priors=pri)
         first = first or res   # with the stated covariances
         T = res.T_world_node
@@ -283,7 +284,8 @@ def solve_with_variance_components(
     elif (applied != estimated).any():
         use = np.where(applied, factor, 1.0)
         res = solve(scaled_network(network, use[conn_index]), T, scfg, fixed=fixed,
-                    priors=[scaled_prior(p, use[k]) for p, k in zip(priors, prior_index)])
+                    priors=[scaled_prior(p, 1.0 if p.weak else use[k])
+                            for p, k in zip(priors, prior_index)])
         iterations += 1
     counts = np.bincount(np.concatenate([conn_index, prior_index]), minlength=len(names))
     comps = tuple(
@@ -337,7 +339,9 @@ def group_redundancy(network: ConnectionNetwork, result: SolveResult,
 def prior_redundancy(network: ConnectionNetwork, result: SolveResult,
                      priors: Sequence[GaussianPrior]) -> tuple[FloatArray, FloatArray]:
     """Per prior: its weighted squared residual ``e' N_p e`` and its redundancy
-    ``rank(N_p) - tr(Q_x N_p)`` at the solution ``result`` (which used these ``priors``).
+    ``rank(N_p) - tr(Q_x N_p)`` at the solution ``result`` (which used these ``priors``); 0 and
+    0 for a datum prior (:attr:`GaussianPrior.weak
+    <ga_ros.core.solver.priors.GaussianPrior.weak>`: no observation, never scaled).
 
     ``N_p`` is the prior's part of the normal matrix over the free nodes (the difference of the
     normal matrices with and without it), ``Q_x`` the inverse of the whole one.
@@ -372,6 +376,8 @@ def prior_redundancy(network: ConnectionNetwork, result: SolveResult,
         trace = float(np.sum(Q[start:start + n_b] * N_p.data)) if n_b else 0.0
         red[k] = rank - trace
         start += n_b
+    weak = np.array([bool(p.weak) for p in priors], dtype=bool)
+    cost[weak] = red[weak] = 0.0
     return cost, red
 
 

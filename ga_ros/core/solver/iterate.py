@@ -300,6 +300,16 @@ def _undamped_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArra
     return _Step(T_new, v_new, size, True, cost, not chord)
 
 
+def _weak_equations(system: _NormalSystem, node_ids: IntArray, prior) -> float:
+    """``tr(Q H)`` of a datum prior (block-diagonal information ``H``, ``Q`` the marginal
+    covariance blocks of its nodes at the solution, zero for a fixed node): the equations it
+    contributes to the redundancy (:attr:`GaussianPrior.weak
+    <ga_ros.core.solver.priors.GaussianPrior.weak>`)."""
+    diag = prior.blk_r == prior.blk_c
+    Q = system.marginal_blocks(np.asarray(node_ids)[prior.idx[prior.blk_r[diag]]])
+    return float(np.einsum('kij,kji->', Q, prior.H_blocks[diag]))
+
+
 def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> SolveResult:
     """Final linearisation at the solution: residuals, variance factor, ``N`` (eq. 17); the
     covariances from the iteration's last factor when it kept that factor's values
@@ -345,10 +355,18 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol,
                            factored=last)
     system.coords = T[prob.free, :3, 3]
+    weak = [p for p in prob.prior_data if p.weak]
+    if weak and redundancy > 0:
+        # a datum prior's redundancy number rank - tr(Q H) is not the observations'
+        # (GaussianPrior.weak): the redundancy counts its equations by tr(Q H) only
+        redundancy = float(redundancy) - sum(p.rank - _weak_equations(system, node_ids, p)
+                                             for p in weak)
+        sigma0_sq = cost / redundancy if redundancy > 0 else float('nan')
     return SolveResult(
         node_ids=node_ids, T_world_node=T, converged=out.converged, iterations=out.iterations,
         reason=out.reason, cost=float(cost), cost_history=out.history,
-        sigma0_sq=float(sigma0_sq), redundancy=int(redundancy), n_equations=int(r_eq),
+        sigma0_sq=float(sigma0_sq), redundancy=redundancy if weak else int(redundancy),
+        n_equations=int(r_eq),
         n_observations=int(o * len(conn) + sum(p.idx.size * d for p in prob.prior_data)),
         n_unknowns=int(n_free * d), residuals=v, adjusted=conn.z + v,
         seconds=time.perf_counter() - t0, model=prob.model, weights=weights,

@@ -35,12 +35,20 @@ class GaussianPrior:
         redundancy), when the caller knows it (e.g. positive definite by construction: ``d k``);
         ``None`` (default): the solver determines it (a Cholesky, or an eigen-decomposition of a
         singular information), and only when it needs it (the variance factor).
+    weak : a datum prior (the weak gauge prior of ``datum='fixes'``), not an observation: its
+        mean is the initial estimate, not a random draw with its covariance, so its residual is
+        about zero whatever its information. It then counts in the redundancy only with the
+        equations the other observations leave to it, ``tr(Q H)`` (``Q`` the marginal
+        covariances of its nodes; block-diagonal information), not its rank: about 0 where
+        the fixes determine the datum, its rank where it alone does. Its redundancy number
+        ``rank - tr(Q H)`` is left out of the variance factor's redundancy.
     """
 
     node_ids: IntArray
     T_world_node: FloatArray
     information: FloatArray | sp.spmatrix
     rank: int | None = None
+    weak: bool = False
 
     @staticmethod
     def from_covariances(node_ids, T_world_node, cov: FloatArray) -> GaussianPrior:
@@ -64,6 +72,7 @@ class _PriorData:
     information: FloatArray | sp.spmatrix  # as given (for the rank, when it is asked for)
     known_rank: int | None = None  # the prior's own rank, or computed on first use
     blocked: sp.bsr_matrix | None = None  # the information as (d, d) blocks, for products
+    weak: bool = False  # a datum prior (GaussianPrior.weak)
 
     def weighted(self, e: FloatArray) -> FloatArray:
         """``H e`` ``(k, d)`` of residuals ``e`` ``(k, d)`` (one sparse product)."""
@@ -105,7 +114,8 @@ class _PriorData:
         if rank is not None and not 0 <= int(rank) <= d * k:
             raise InputError(f'prior rank must be in [0, {d * k}] for {k} nodes, got {rank}')
         return _PriorData(network.indices_of(ids), Tm, Hb.data, rows, cols, H,
-                          None if rank is None else int(rank), Hb)
+                          None if rank is None else int(rank), Hb,
+                          bool(getattr(prior, 'weak', False)))
 
 
 def information_rank(information: FloatArray | sp.spmatrix, d: int = 6) -> int:

@@ -20,7 +20,14 @@ import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.calibration import CalibrationConfig, CalibrationReport, solve_with_calibration
-from ga_ros.core.fixes import FixStats, FixTerm, gauge_information, offset_information
+from ga_ros.core.fixes import (
+    FixStats,
+    FixTerm,
+    gauge_information,
+    offset_information,
+    sensor_jacobian,
+    sensor_misclosure,
+)
 from ga_ros.core.measurement import Measurement, variance_group
 from ga_ros.core.quality.control import connection_redundancy
 from ga_ros.core.quality.online_variance import OnlineVarianceComponents
@@ -355,8 +362,10 @@ class TrackWindowAligner:
     def _adjust(self, window_tracks: list[int], track: int, t0: float) -> UpdateResult:
         """The window adjustment (:meth:`WindowUpdate.adjust
         <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
-        up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
         book = self.online_variance
+        if book is not None:
+            self._sync_fix_groups()  # the fixes added since: their source's factor
+        up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
         if book is None:
             return up
         used = book.factors()  # those this adjustment used ('apply')
@@ -387,16 +396,57 @@ class TrackWindowAligner:
         W = self.updater.stated_terms(conns).weights
         v = res.residuals
         self.online_variance.record(conns, np.einsum('mi,mij,mj->m', v, W, v), red)
+        self._record_fix_variance(res)
         return self._use_variance_factors()
+
+    def _record_fix_variance(self, res: SolveResult) -> None:
+        """Store the last window adjustment's values of the absolute fixes of its window nodes
+        (:meth:`OnlineVarianceComponents.record_fixes
+        <ga_ros.core.quality.online_variance.OnlineVarianceComponents.record_fixes>`): the
+        weighted squared misclosure under the stated information and the redundancy number
+        under the information used (0, 0 for an excluded fix)."""
+        st, book = self.state, self.online_variance
+        self._sync_fix_groups()
+        fixes = [f for f in st.fixes.of_rows(st.last_window) if st.fixes.gated[f]]
+        if not fixes:
+            return
+        rows = np.unique([st.fixes.rows[f] for f in fixes])
+        with self._factor_lock:
+            Q = res.covariance(st.idarr.a[rows])
+        at = {int(r): a for a, r in enumerate(rows.tolist())}
+        used = st.fixes.information_used(fixes)
+        cost, red = np.zeros(len(fixes)), np.zeros(len(fixes))
+        for i, f in enumerate(fixes):
+            if st.fixes.status[f] != 0:
+                continue
+            r = st.fixes.rows[f]
+            term = st.fixes.terms[f]
+            known = term.fix.known
+            e = sensor_misclosure(st.T[r], term.T_node_sensor, term.fix)[known]
+            cost[i] = e @ st.fixes.info[f][np.ix_(known, known)] @ e
+            J = sensor_jacobian(st.T[r], term.T_node_sensor)
+            P = (J @ Q[at[r]] @ J.T)[np.ix_(known, known)]
+            red[i] = known.sum() - np.trace(P @ used[i][np.ix_(known, known)])
+        book.record_fixes(np.asarray(fixes, np.int64), cost, red)
+
+    def _sync_fix_groups(self) -> None:
+        """Register the fixes added since in the variance book (their source's group; the
+        gauge prior none)."""
+        book, fixes = self.online_variance, self.state.fixes
+        for f in range(book.n_fixes, len(fixes)):
+            book.register_fix(fixes.terms[f].fix.source if fixes.gated[f] else None)
 
     def _use_variance_factors(self) -> FloatArray:
         """The window adjustments and the refinements started from now on weight each
         connection by its group's current factor (fixed until the next adjustment). Returns
         the factors (per group)."""
         book = self.online_variance
+        self._sync_fix_groups()
         factors = book.factors()
         self._factors_of = lambda rows: book.factors_of(rows, factors)
         self.updater.weight_factors = self._factors_of
+        # the fixes' information divided by their source's factor (window, freeze, refinement)
+        self.state.fixes.info_factors = lambda fixes: book.fix_factors_of(fixes, factors)
         return factors
 
     def _last(self) -> SolveResult | None:

@@ -227,7 +227,10 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         book = st.variance.arrays()
         meta['variance_groups'] = book['names']
         vc_arrays = {'vc_group': book['group'].astype(np.int64), 'vc_cost': book['cost'],
-                     'vc_redundancy': book['redundancy']}
+                     'vc_redundancy': book['redundancy'],
+                     'vc_fix_group': book['fix_group'].astype(np.int64),
+                     'vc_fix_cost': book['fix_cost'],
+                     'vc_fix_redundancy': book['fix_redundancy']}
     arrays = dict(
         T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
         T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
@@ -406,7 +409,10 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
         st.variance = OnlineVarianceComponents.from_arrays(
             OnlineVarianceConfig(), {'names': meta.get('variance_groups', []),
                                      'group': arrays['vc_group'], 'cost': arrays['vc_cost'],
-                                     'redundancy': arrays['vc_redundancy']})
+                                     'redundancy': arrays['vc_redundancy'],
+                                     'fix_group': arrays.get('vc_fix_group'),
+                                     'fix_cost': arrays.get('vc_fix_cost'),
+                                     'fix_redundancy': arrays.get('vc_fix_redundancy')})
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])

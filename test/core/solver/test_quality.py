@@ -354,3 +354,26 @@ def test_snooping_does_not_readmit_a_gross_error(rng):
     chk = quality_control(out.network, out.result, config=strict, outside=ConnectionArrays(
         c.src[[17]], c.dst[[17]], z[[17]], c.cov[[17]]))
     assert chk.outside_statistic[0] > 5 * chk.outside_critical[0]
+
+
+def test_a_datum_prior_counts_by_the_equations_left_to_it(rng):
+    """A weak datum prior (``GaussianPrior(weak=True)``, the gauge of ``datum='fixes'``) beside
+    a prior that determines the datum: the solver's and the quality control's redundancy is
+    ``r - u`` less the datum prior's redundancy number ``6 - tr(Q_00 H)``, ``Q`` from the dense
+    inverse of the normal matrix."""
+    net, T_true = correlated_problem(rng, 'se3')
+    cov0 = np.diag([0.02, 0.02, 0.02, 0.005, 0.005, 0.005]) ** 2
+    strong = GaussianPrior.from_covariances(net.node_ids[[4]], T_true[[4]], cov0[None])
+    H_w = np.diag([1 / 30.0 ** 2] * 3 + [1 / 0.3 ** 2] * 3)
+    weak = GaussianPrior(net.node_ids[[0]], T_true[[0]], H_w, weak=True)
+    res = solve(net, initial_guess_f2f(net), SolverConfig(model='se3'), priors=[strong, weak])
+    plain = solve(net, initial_guess_f2f(net), SolverConfig(model='se3'),
+                  priors=[strong, GaussianPrior(weak.node_ids, weak.T_world_node, H_w)])
+    Q = np.linalg.inv(res.normal_matrix.toarray())
+    c = 6 * int(np.nonzero(res.free_node_ids == net.node_ids[0])[0][0])
+    r_weak = 6 - np.trace(Q[c:c + 6, c:c + 6] @ H_w)
+    assert 5.0 < r_weak < 6.0  # the strong prior holds the datum: the weak one is all residual
+    np.testing.assert_allclose(res.redundancy, plain.redundancy - r_weak, atol=1e-8)
+    np.testing.assert_allclose(res.sigma0_sq, res.cost / res.redundancy, rtol=1e-12)
+    rep = quality_control(net, res, priors=[strong, weak])
+    np.testing.assert_allclose(rep.redundancy, res.redundancy, atol=1e-12)
