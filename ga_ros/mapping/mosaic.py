@@ -32,6 +32,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray
 from ga_ros.errors import InputError
 from ga_ros.mapping.surface import GroundPlane, HeightGrid
+from ga_ros.safe_write import write_bytes, write_text
 
 #: Blending modes of :class:`MosaicConfig`.
 BLEND_MODES = ('last', 'average')
@@ -326,20 +327,31 @@ def build_mosaic(views: list[CameraView], surface: Surface,
 def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     """Write the mosaic as PNG (grey or colour; an alpha channel marks the covered pixels), its
     georeference as JSON (``<name>.json``) and as an ESRI world file (``<name>.pgw``: pixel
-    size, rotation terms 0, the north-west pixel's centre). Returns the paths by kind."""
+    size, rotation terms 0, the north-west pixel's centre), each atomically through
+    :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
+
+    Raises
+    ------
+    InputError
+        The PNG cannot be encoded.
+    FormatError
+        A file cannot be written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     img = mosaic.image if mosaic.image.ndim == 3 else cv2.cvtColor(mosaic.image,
                                                                     cv2.COLOR_GRAY2BGR)
     bgra = np.concatenate([img, (mosaic.valid * 255).astype(np.uint8)[..., None]], axis=2)
-    if not cv2.imwrite(str(path), bgra):
-        raise InputError(f'could not write {path}')
+    ok, png = cv2.imencode('.png', bgra)
+    if not ok:
+        raise InputError(f'could not encode {path} as PNG')
+    write_bytes(path, png.tobytes())
     g = mosaic.georef
     meta = path.with_suffix('.json')
-    meta.write_text(json.dumps(g.as_dict(), indent=1) + '\n')
+    write_text(meta, json.dumps(g.as_dict(), indent=1) + '\n')
     world = path.with_suffix('.pgw')
     m = g.metres_per_pixel
-    world.write_text(f'{m!r}\n0.0\n0.0\n{-m!r}\n{g.x_min + 0.5 * m!r}\n{g.y_max - 0.5 * m!r}\n')
+    write_text(world, f'{m!r}\n0.0\n0.0\n{-m!r}\n{g.x_min + 0.5 * m!r}\n{g.y_max - 0.5 * m!r}\n')
     return {'png': str(path), 'georeference': str(meta), 'world_file': str(world)}
 
 
