@@ -267,7 +267,7 @@ class LiveMosaic:
         assert self.ground is not None
         view = self._view(kf)
         if not self.metres_per_pixel:
-            gsd = (float(view.T_map_cam[2, 3]) - self.ground.z_m) / float(kf.K[0, 0])
+            gsd = abs(float(view.T_map_cam[2, 3]) - self.ground.z_m) / float(kf.K[0, 0])
             if gsd <= 0:
                 return None
             self.metres_per_pixel = gsd
