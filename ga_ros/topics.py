@@ -64,6 +64,14 @@ VO_DEBUG_IMAGE = 'ga/vo/debug_image'
 #: Dense stereo points of each new keyframe (``sensor_msgs/PointCloud2``, the camera's optical
 #: frame, stamped with the keyframe's stamp), from ``vo_node``.
 KEYFRAME_CLOUD = 'ga/keyframe_cloud'
+#: Rectified left image of each new keyframe (``sensor_msgs/Image``, stamp and frame of its
+#: cloud) and the rectified camera's ``sensor_msgs/CameraInfo``, from ``vo_node``.
+KEYFRAME_IMAGE = 'ga/keyframe_image'
+KEYFRAME_CAMERA_INFO = 'ga/keyframe_camera_info'
+#: The photomosaic of ``map_node`` (``sensor_msgs/Image`` in the map frame, transient local)
+#: and its georeference (``nav_msgs/MapMetaData``, same stamp).
+MOSAIC = 'ga/mosaic'
+MOSAIC_INFO = 'ga/mosaic_info'
 #: The point-cloud map of ``map_node`` (``sensor_msgs/PointCloud2`` in the map frame, transient
 #: local): the keyframe clouds at their corrected poses, voxel-downsampled.
 MAP_CLOUD = 'ga/map'

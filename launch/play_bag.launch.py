@@ -8,7 +8,8 @@
 
 ``ga-ros play`` (the installed package's executable, ``lib/ga_ros/ga-ros``) publishes the bag's
 messages and ``/clock``; the nodes run with ``use_sim_time``. ``map:=true`` also starts
-``map_node`` (``config/map.yaml``): the keyframe clouds at their corrected poses on ``ga/map``.
+``map_node`` (``config/map.yaml``): the keyframe clouds at their corrected poses on ``ga/map``
+and the keyframe images' mosaic on ``ga/mosaic``.
 The camera's extrinsic comes from the bag's ``/tf_static``. The topic and ``compressed``
 defaults are those of ``config/vo.yaml`` (read from the installed file).
 """

@@ -160,14 +160,16 @@ def _check_view(view: CameraView) -> None:
 
 def footprint(view: CameraView, surface: Surface) -> FloatArray | None:
     """(k, 2) map ``x, y`` (m) bounding the ground the view sees: its border's rays cut at the
-    surface's lowest and highest heights; None when a border ray does not point down."""
+    surface's lowest and highest heights; None when a border ray does not meet both heights in
+    front of the camera (a camera looking at the surface from above, or from below when
+    ``map``'s ``z`` points down, e.g. anchored at a ``base_link`` with ``z`` down)."""
     h, w = np.asarray(view.image).shape[:2]
     T = np.asarray(view.T_map_cam, float)
     u = np.r_[np.linspace(0, w - 1, 5), np.full(5, w - 1), np.linspace(0, w - 1, 5), np.zeros(5)]
     v = np.r_[np.zeros(5), np.linspace(0, h - 1, 5), np.full(5, h - 1), np.linspace(0, h - 1, 5)]
     rays = np.linalg.solve(np.asarray(view.K, float), np.stack([u, v, np.ones_like(u)]))
     d = T[:3, :3] @ rays
-    if np.any(d[2] >= -1e-9):
+    if np.any(np.abs(d[2]) <= 1e-9):
         return None
     pts = []
     for z in surface.z_range:
@@ -335,7 +337,16 @@ def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path
 def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     """Write the mosaic as PNG (grey or colour; an alpha channel marks the covered pixels), its
     georeference as JSON (``<name>.json``) and as an ESRI world file (``<name>.pgw``: pixel
-    size, rotation terms 0, the north-west pixel's centre). Returns the paths by kind."""
+    size, rotation terms 0, the north-west pixel's centre), each atomically through
+    :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
+
+    Raises
+    ------
+    InputError
+        The PNG cannot be encoded.
+    FormatError
+        A file cannot be written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     img = mosaic.image if mosaic.image.ndim == 3 else cv2.cvtColor(mosaic.image,

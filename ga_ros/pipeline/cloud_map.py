@@ -204,6 +204,12 @@ class CloudMapBuilder:
         self.changed |= bool(up.moved or up.placed)
         return up
 
+    def keys(self, stamps_ns: IntArray) -> IntArray:
+        """The keyframe keys of a message's poses as the map took them (a stamp named twice
+        names, at its first pose, the keyframe before: module docstring), for other consumers
+        of the same message (the mosaic)."""
+        return self._unshared(stamps_ns)
+
     def _unshared(self, stamps_ns: IntArray) -> IntArray:
         """The keys of a message's poses: a stamp named twice names, at its first pose, the
         keyframe before (module docstring)."""

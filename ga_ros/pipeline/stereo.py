@@ -446,25 +446,34 @@ class StereoFrontEnd:
                                          for a in attempts)
         return attempts
 
-    def keyframe_cloud(self, frame: FrameOutput) -> StereoCloud | None:
+    def keyframe_pair(self, frame: FrameOutput) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rectified (left, right) images of the frame's new keyframe (intrinsics
+        ``calibration.K``); None when the frame made no keyframe."""
+        res = frame.result
+        if (res is None or res.keyframe is None or self.calibration is None
+                or frame.left is None or frame.right is None):
+            return None
+        return self.calibration.rectify(frame.left, frame.right)
+
+    def keyframe_cloud(self, frame: FrameOutput,
+                       pair: tuple[np.ndarray, np.ndarray] | None = None) -> StereoCloud | None:
         """Dense stereo points of the frame's new keyframe, in the left camera's optical frame
         (m; :class:`ga_ros.vo.dense.DenseStereo` on the rectified pair, settings
-        ``config.cloud``); None when the frame made no keyframe. Reads the frame's images only:
-        the VO's state and outputs are unchanged.
+        ``config.cloud``); None when the frame made no keyframe. ``pair``: the rectified pair
+        when already computed (:meth:`keyframe_pair`). Reads the frame's images only: the VO's
+        state and outputs are unchanged.
 
         Raises
         ------
         InputError
             The frame's images do not match the calibration.
         """
-        res = frame.result
-        if (res is None or res.keyframe is None or self.calibration is None
-                or frame.left is None or frame.right is None):
+        pair = pair if pair is not None else self.keyframe_pair(frame)
+        if pair is None:
             return None
         if self._dense is None:
             self._dense = DenseStereo(self.config.cloud)
-        left, right = self.calibration.rectify(frame.left, frame.right)
-        return self._dense.cloud(left, right, self.calibration)
+        return self._dense.cloud(pair[0], pair[1], self.calibration)
 
     # ------------------------------------------------------------------ feedback, control
     def set_corrected(self, node_ids: IntArray, T_world_node: FloatArray) -> None:

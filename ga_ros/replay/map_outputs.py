@@ -50,12 +50,10 @@ class MapOutputConfig:
     cloud : the map's voxels and the per-keyframe decimation (as ``map_node``'s parameters;
         ``max_live_keyframes`` is not used offline).
     cell_m : edge of the x-y cells of the figures (covered area, spread of heights), m.
-    keep_images : keep each keyframe's rectified left image too (for the photomosaic).
     """
 
     cloud: CloudMapConfig = CloudMapConfig()
     cell_m: float = 2.0
-    keep_images: bool = False
 
 
 @dataclass
@@ -67,14 +65,12 @@ class ReplayMap:
     front : the stereo front end of the replay (its calibration and extrinsic).
     config : the settings.
     builder : the map (``map_node``'s pipeline object).
-    images : keyframe stamp (ns) -> rectified left image (uint8), with ``keep_images``.
     errors : keyframes whose cloud failed, with why (the first ten).
     """
 
     front: Any
     config: MapOutputConfig = MapOutputConfig()
     builder: CloudMapBuilder = field(init=False)
-    images: dict[int, np.ndarray] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -98,8 +94,6 @@ class ReplayMap:
         stamp = int(res.keyframe.stamp_ns)
         self.builder.set_extrinsic(ext)
         self.builder.add_cloud(stamp, ext.camera_frame, cloud.points, cloud.intensity)
-        if self.config.keep_images and self.front.calibration is not None:
-            self.images[stamp] = self.front.calibration.rectify(frame.left, frame.right)[0]
 
     def on_corrections(self, c: Corrections) -> None:
         """A corrections message of the replay (``ga/corrections``), as ``map_node`` takes it."""

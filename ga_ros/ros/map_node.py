@@ -12,16 +12,29 @@ builds the same map, :mod:`ga_ros.replay.map_outputs`): it subscribes to
 * ``ga/corrected_path`` (transient local): every keyframe, used until the first corrections
   message (a map node started after the alignment node);
 * ``/tf_static``: the camera's extrinsic ``base_frame -> <cloud frame>`` (else the parameter
-  ``T_base_camera``, else the identity with ``assume_identity_extrinsic``; clouds wait for it).
+  ``T_base_camera``, else the identity with ``assume_identity_extrinsic``; clouds wait for it);
+* ``ga/keyframe_image`` (``sensor_msgs/Image`` of ``vo_node``: each keyframe's rectified left
+  image, same stamp and frame as its cloud) and ``ga/keyframe_camera_info``
+  (``sensor_msgs/CameraInfo``, its ``k``), with ``mosaic_enabled``: the live mosaic
+  (:class:`ga_ros.pipeline.mosaic_map.LiveMosaic`, parameters ``mosaic_*``), which re-warps
+  only the keyframes whose pose changed.
 
 Publishes ``ga/map`` (``sensor_msgs/PointCloud2`` in ``map_frame``, transient local, fields
 ``x y z intensity`` float32: one point per occupied voxel of ``voxel_m``), every
 ``publish_period_sec`` when the map changed. Service ``~/save_map`` (``std_srvs/Trigger``)
 writes the map to ``map_file`` (binary little-endian PLY, :mod:`ga_ros.mapping.ply`), as does
-the node's shutdown with ``save_on_shutdown``. Memory is bounded
+the node's shutdown with ``save_on_shutdown``; with the mosaic, both also write ``mosaic_file``
+(PNG + ``.json`` georeference + ``.pgw`` world file, :func:`ga_ros.mapping.mosaic.save_mosaic`).
+The mosaic is published on ``ga/mosaic`` (``sensor_msgs/Image`` mono8 in ``map_frame``, rows
+north first, 0 where not covered; transient local) with its georeference on ``ga/mosaic_info``
+(``nav_msgs/MapMetaData``, same stamp: ``resolution`` m/px, ``origin`` the south-west corner,
+the ``OccupancyGrid`` convention, :func:`ga_ros.mapping.mosaic.map_metadata_fields`), every
+``publish_period_sec`` when it changed. ``/diagnostics`` carries
+:meth:`MapNode.diagnostic_values` every ``diagnostics_period_sec``. Memory is bounded
 (:class:`ga_ros.mapping.cloud_map.CloudMapConfig`: per-keyframe decimation, a static layer
-beyond ``max_live_keyframes``). A bad message is counted, warned about (throttled) and dropped;
-the node goes on.
+beyond ``max_live_keyframes``; :class:`ga_ros.pipeline.mosaic_map.MosaicMapConfig`: a pixel
+cap, a static layer beyond ``mosaic_max_live_keyframes``). A bad message is counted, warned
+about (throttled) and dropped; the node goes on.
 """
 
 from __future__ import annotations
@@ -33,9 +46,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import MapMetaData
 from nav_msgs.msg import Path as PathMsg
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
@@ -43,16 +60,19 @@ from ga_ros import topics
 from ga_ros.core.extrinsic import ExtrinsicConfig
 from ga_ros.errors import GaError
 from ga_ros.mapping.cloud_map import CloudMapConfig
+from ga_ros.mapping.mosaic import image_fields, map_metadata_fields, save_mosaic
 from ga_ros.mapping.ply import write_ply
 from ga_ros.mapping.pointcloud2 import decode_pointcloud2
 from ga_ros.pipeline.cloud_map import CloudMapBuilder
 from ga_ros.pipeline.journal.state_files import default_state_file
+from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
 from ga_ros.pipeline.params import parameter_names
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.bounded_log import BoundedLogging
 from ga_ros.ros.params import declare_config
 from ga_ros.ros.qos import latched_qos, stream_qos, tf_static_qos
 from ga_ros.ros.runner import node_usage, run_node
+from ga_ros.vo.messages import image_to_grey
 
 NODE_NAME = 'map_node'
 #: Depth of the corrections subscription (as the alignment node's publisher).
@@ -76,6 +96,14 @@ class MapNodeSettings:
     save_on_shutdown : write ``map_file`` when the node shuts down (if the map has points).
     cloud_queue : depth of the keyframe-cloud subscription (messages).
     tf_static_topic : static TF topic read for the camera's extrinsic.
+    keyframe_image_topic : input keyframe images (``Image``, rectified, the clouds' stamps).
+    keyframe_info_topic : input ``CameraInfo`` of the rectified camera (its ``k``).
+    mosaic_topic : output mosaic (``Image`` in ``map_frame``, transient local).
+    mosaic_info_topic : output georeference of the mosaic (``MapMetaData``, transient local).
+    mosaic_file : where ``~/save_map`` and the shutdown write the mosaic (PNG, with ``.json``
+        and ``.pgw`` beside); '' = ``mosaic.png`` beside ``map_file``.
+    diagnostics_topic : output ``diagnostic_msgs/DiagnosticArray`` with the counts.
+    diagnostics_period_sec : period of the diagnostics (s, wall clock; 0 disables).
     warn_throttle_sec : minimum seconds between repeated warnings.
     """
 
@@ -89,6 +117,13 @@ class MapNodeSettings:
     save_on_shutdown: bool = True
     cloud_queue: int = 20
     tf_static_topic: str = '/tf_static'
+    keyframe_image_topic: str = topics.KEYFRAME_IMAGE
+    keyframe_info_topic: str = topics.KEYFRAME_CAMERA_INFO
+    mosaic_topic: str = topics.MOSAIC
+    mosaic_info_topic: str = topics.MOSAIC_INFO
+    mosaic_file: str = ''
+    diagnostics_topic: str = topics.DIAGNOSTICS
+    diagnostics_period_sec: float = 1.0
     warn_throttle_sec: float = 5.0
 
 
@@ -120,13 +155,22 @@ class MapNode(BoundedLogging, Node):
         self.settings: MapNodeSettings = declare_config(self, MapNodeSettings)
         self.map_config: CloudMapConfig = declare_config(self, CloudMapConfig)
         self.extrinsic_config: ExtrinsicConfig = declare_config(self, ExtrinsicConfig)
+        self.mosaic_config: MosaicMapConfig = declare_config(self, MosaicMapConfig, 'mosaic_')
         self.extrinsic_config.from_parameters()  # a malformed T_base_camera fails at start
         s = self.settings
         self.builder = CloudMapBuilder(self.map_config, self.extrinsic_config)
         self.map_file = Path(s.map_file) if s.map_file else (
             default_state_file(self.get_namespace(), self.get_name()).parent / 'map.ply')
+        self.mosaic_file = (Path(s.mosaic_file) if s.mosaic_file
+                            else self.map_file.with_name('mosaic.png'))
+        self.mosaic = LiveMosaic(self.mosaic_config) if self.mosaic_config.enabled else None
+        #: ``k`` of the last keyframe CameraInfo (None before one came)
+        self.K: np.ndarray | None = None
+        #: keyframe images waiting for the CameraInfo or the camera's extrinsic:
+        #: (stamp, frame, grey image)
+        self.images_waiting: list[tuple[int, str, np.ndarray]] = []
         self.counts = {'bad_clouds': 0, 'bad_corrections': 0, 'bad_paths': 0, 'published': 0,
-                       'saved': 0}
+                       'saved': 0, 'bad_images': 0, 'mosaics_published': 0, 'mosaics_saved': 0}
         self._last_warn: dict[str, float] = {}
         self.pub_map = self.create_publisher(PointCloud2, s.map_topic, latched_qos(1))
         self.create_subscription(TFMessage, s.tf_static_topic, self._on_tf_static,
@@ -136,9 +180,23 @@ class MapNode(BoundedLogging, Node):
         self.create_subscription(PathMsg, s.corrections_topic, self._on_corrections,
                                  stream_qos(CORRECTIONS_DEPTH))
         self.create_subscription(PathMsg, s.path_topic, self._on_path, latched_qos(1))
+        self.pub_mosaic = self.pub_mosaic_info = None
+        if self.mosaic is not None:
+            self.pub_mosaic = self.create_publisher(Image, s.mosaic_topic, latched_qos(1))
+            self.pub_mosaic_info = self.create_publisher(MapMetaData, s.mosaic_info_topic,
+                                                         latched_qos(1))
+            self.create_subscription(Image, s.keyframe_image_topic, self._on_image,
+                                     stream_qos(max(1, s.cloud_queue)))
+            self.create_subscription(CameraInfo, s.keyframe_info_topic, self._on_info,
+                                     stream_qos(max(1, s.cloud_queue)))
+        self.pub_diag = self.create_publisher(DiagnosticArray, s.diagnostics_topic,
+                                              stream_qos())
         self.create_service(Trigger, '~/save_map', self._on_save)
         if s.publish_period_sec > 0:
-            self.create_timer(s.publish_period_sec, self.publish_map)
+            self.create_timer(s.publish_period_sec, self.publish_outputs)
+        if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
+            self.create_timer(s.diagnostics_period_sec, self.publish_diagnostics,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ callbacks
     def _warn(self, key: str, text: str) -> None:
@@ -149,6 +207,7 @@ class MapNode(BoundedLogging, Node):
 
     def _on_tf_static(self, msg: TFMessage) -> None:
         self.builder.add_tf_static(msg)
+        self._place_images()
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         try:
@@ -161,11 +220,82 @@ class MapNode(BoundedLogging, Node):
             return
         if self.builder.extrinsic_error:
             self._warn('extrinsic', f'keyframe clouds wait: {self.builder.extrinsic_error}')
+        self._fix_ground()
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        K = np.asarray(msg.k, float).reshape(3, 3)
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+            self.counts['bad_images'] += 1
+            self._warn('image', 'keyframe CameraInfo dropped: k is not a valid camera matrix')
+            return
+        self.K = K
+        self._place_images()
+
+    def _on_image(self, msg: Image) -> None:
+        try:
+            grey = image_to_grey(msg)
+        except (GaError, ValueError) as exc:
+            self.counts['bad_images'] += 1
+            self._warn('image', f'keyframe image dropped: {exc}')
+            return
+        self.images_waiting.append((conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                                    grey))
+        del self.images_waiting[:-max(1, self.mosaic_config.max_waiting)]
+        self._place_images()
+
+    def _place_images(self) -> None:
+        """Give the mosaic the keyframe images whose intrinsics and extrinsic are known."""
+        if self.mosaic is None or self.K is None or not self.images_waiting:
+            return
+        waiting, self.images_waiting = self.images_waiting, []
+        for stamp, frame, grey in waiting:
+            try:
+                ext = self.builder.extrinsic(frame)
+            except GaError as exc:  # unknown extrinsic: wait for /tf_static
+                self.images_waiting.append((stamp, frame, grey))
+                self._warn('extrinsic', f'keyframe images wait: {exc}')
+                continue
+            try:
+                self.mosaic.add_image(stamp, grey, self.K, ext.T_base_cam)
+            except GaError as exc:
+                self.counts['bad_images'] += 1
+                self._warn('image', f'keyframe image dropped: {exc}')
+        self._fix_ground()
+        self._warn_refused()
+
+    def _fix_ground(self) -> None:
+        """The mosaic's ground plane: the median height of the map, once it has points."""
+        mo = self.mosaic
+        if mo is None or mo.ground is not None or not mo.keyframes \
+                or not len(self.builder.map.voxels):
+            return
+        z = self.builder.cloud().points[:, 2]
+        if z.size:
+            mo.set_ground(float(np.median(z)))
+            self._warn_refused()
+
+    def _warn_refused(self) -> None:
+        if self.mosaic is not None and self.mosaic.last_error:
+            self._warn('mosaic', self.mosaic.last_error)
+            self.mosaic.last_error = ''
+
+    def _mosaic_poses(self, stamps: np.ndarray, T: np.ndarray) -> None:
+        """The poses the map took, for the mosaic (keys as the map names them)."""
+        if self.mosaic is None:
+            return
+        self.mosaic.set_poses(self.builder.keys(stamps), T)
+        self._fix_ground()
+        self._warn_refused()
 
     def _on_corrections(self, msg: PathMsg) -> None:
         try:
             full, stamps, T = corrections_from_msg(msg)
             self.builder.on_corrections(full, stamps, T)
+            if self.mosaic is not None and full:
+                self.mosaic.unplace_all()
+                if len(stamps) == 0:
+                    self.mosaic.clear_static()
+            self._mosaic_poses(stamps, T)
         except (GaError, ValueError) as exc:
             self.counts['bad_corrections'] += 1
             self._warn('corrections', f'corrections message dropped: {exc}')
@@ -178,11 +308,70 @@ class MapNode(BoundedLogging, Node):
             stamps = np.array([conv.stamp_to_ns(ps.header.stamp) for ps in msg.poses],
                               dtype=np.int64)
             self.builder.on_path(stamps, T)
+            self._mosaic_poses(stamps, T)
         except (GaError, ValueError) as exc:
             self.counts['bad_paths'] += 1
             self._warn('path', f'corrected path dropped: {exc}')
 
     # ------------------------------------------------------------------ outputs
+    def publish_outputs(self) -> None:
+        """The timer: the map and the mosaic, each if it changed."""
+        self.publish_map()
+        self.publish_mosaic()
+
+    def publish_mosaic(self, force: bool = False) -> bool:
+        """Publish the mosaic (``Image``) and its georeference (``MapMetaData``, same stamp)
+        if it changed since the last time (or ``force``); True if sent."""
+        if self.mosaic is None or not (self.mosaic.take_changed() or force):
+            return False
+        mosaic = self.mosaic.mosaic()
+        if mosaic is None:
+            return False
+        stamp = conv.ns_to_stamp(self.get_clock().now().nanoseconds)
+        img = Image(**{k: v for k, v in image_fields(mosaic).items() if k != 'data'})
+        img.data = mosaic_bytes(mosaic)
+        img.header.stamp, img.header.frame_id = stamp, self.settings.map_frame
+        f = map_metadata_fields(mosaic.georef)
+        info = MapMetaData(resolution=f['resolution'], width=f['width'], height=f['height'])
+        info.map_load_time = stamp
+        (info.origin.position.x, info.origin.position.y,
+         info.origin.position.z) = f['origin']['position']
+        (info.origin.orientation.x, info.origin.orientation.y, info.origin.orientation.z,
+         info.origin.orientation.w) = f['origin']['orientation']
+        self.pub_mosaic.publish(img)
+        self.pub_mosaic_info.publish(info)
+        self.counts['mosaics_published'] += 1
+        return True
+
+    def save_mosaic(self) -> dict[str, str] | None:
+        """Write the mosaic to ``mosaic_file`` (+ ``.json``, ``.pgw``); None when there is none.
+
+        Raises
+        ------
+        GaError
+            A file cannot be written (a link, a directory, no permission).
+        """
+        mosaic = None if self.mosaic is None else self.mosaic.mosaic()
+        if mosaic is None:
+            return None
+        files = save_mosaic(self.mosaic_file, mosaic)
+        self.counts['mosaics_saved'] += 1
+        return files
+
+    def publish_diagnostics(self) -> None:
+        """Publish :meth:`diagnostic_values` on ``diagnostics_topic`` (WARN while clouds or
+        images wait for the camera's extrinsic, or the mosaic refused keyframes)."""
+        values = self.diagnostic_values()
+        problems = []
+        if self.builder.extrinsic_error:
+            problems.append(f'keyframe clouds wait: {self.builder.extrinsic_error}')
+        if values.get('mosaic_refused'):
+            problems.append(f"{values['mosaic_refused']} keyframes refused by the mosaic")
+        self.pub_diag.publish(conv.diagnostics_msg(
+            f'{self.get_fully_qualified_name()}: map', 'ga_ros', values,
+            self.get_clock().now().nanoseconds, level=1 if problems else 0,
+            message='; '.join(problems) or 'ok'))
+
     def publish_map(self, force: bool = False) -> bool:
         """Publish the map if it changed since the last time (or ``force``); True if sent."""
         if not (self.builder.take_changed() or force):
@@ -212,10 +401,12 @@ class MapNode(BoundedLogging, Node):
                  ) -> Trigger.Response:
         try:
             path, n = self.save_map()
+            files = self.save_mosaic()
         except GaError as exc:
             response.success, response.message = False, f'map not saved: {exc}'
             return response
-        response.success, response.message = True, f'{n} points written to {path}'
+        response.success, response.message = True, f'{n} points written to {path}' + (
+            '' if files is None else f'; mosaic written to {files["png"]}')
         return response
 
     def destroy_node(self) -> None:
@@ -226,6 +417,13 @@ class MapNode(BoundedLogging, Node):
                 print(f'{NODE_NAME}: {n} points written to {path}', file=sys.stderr)
             except GaError as exc:
                 print(f'{NODE_NAME}: map not saved at shutdown: {exc}', file=sys.stderr)
+        if self.settings.save_on_shutdown and self.mosaic is not None:
+            try:
+                files = self.save_mosaic()
+                if files is not None:
+                    print(f'{NODE_NAME}: mosaic written to {files["png"]}', file=sys.stderr)
+            except GaError as exc:
+                print(f'{NODE_NAME}: mosaic not saved at shutdown: {exc}', file=sys.stderr)
         super().destroy_node()
 
     def diagnostic_values(self) -> dict[str, object]:
@@ -235,13 +433,33 @@ class MapNode(BoundedLogging, Node):
                 'corrections': c.corrections, 'full_corrections': c.full, 'paths': c.paths,
                 'moved': c.moved, 'points_moved': c.points_moved, 'live_keyframes': m.n_live,
                 'static_keyframes': m.n_static, 'unplaced_clouds': m.n_unplaced,
-                'voxels': len(m.voxels), 'bytes': m.nbytes(), **self.counts}
+                'voxels': len(m.voxels), 'bytes': m.nbytes(), **self.mosaic_values(),
+                **self.counts}
+
+    def mosaic_values(self) -> dict[str, object]:
+        """The mosaic's counts and sizes (``mosaic_*``; empty when it is off)."""
+        mo = self.mosaic
+        if mo is None:
+            return {}
+        c = mo.counts
+        return {'mosaic_images': c.images, 'mosaic_images_waiting': len(self.images_waiting),
+                'mosaic_live_keyframes': mo.n_placed, 'mosaic_frozen': c.frozen,
+                'mosaic_warps': c.warps, 'mosaic_tiles_composited': c.tiles_composited,
+                'mosaic_tiles': len(mo.tiles), 'mosaic_refused': c.refused,
+                'mosaic_dropped': c.dropped, 'mosaic_metres_per_pixel': mo.metres_per_pixel,
+                'mosaic_ground_z': float('nan') if mo.ground is None else mo.ground.z_m,
+                'mosaic_bytes': mo.nbytes()}
 
 
 def declared_parameters() -> list[str]:
     """Every parameter ``map_node`` declares (built from its config dataclasses, no rclpy)."""
     return (parameter_names(MapNodeSettings) + parameter_names(CloudMapConfig)
-            + parameter_names(ExtrinsicConfig))
+            + parameter_names(ExtrinsicConfig) + parameter_names(MosaicMapConfig, 'mosaic_'))
+
+
+def mosaic_bytes(mosaic: object) -> bytes:
+    """The ``data`` of the mosaic's ``sensor_msgs/Image`` (:func:`image_fields`)."""
+    return np.ascontiguousarray(image_fields(mosaic)['data']).tobytes()  # type: ignore[arg-type]
 
 
 def main(args: list[str] | None = None) -> int:

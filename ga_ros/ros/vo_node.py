@@ -25,7 +25,12 @@ Publishes
   (:meth:`ga_ros.pipeline.stereo.StereoFrontEnd.keyframe_cloud`, parameters ``cloud_*``),
   fields ``x y z intensity`` (float32), in the left camera's optical frame (``header.frame_id``
   the camera frame of the extrinsic, i.e. ``camera_frame`` or the left image's frame;
-  ``header.stamp`` the keyframe's stamp), :func:`ga_ros.ros.conversions.cloud_to_pointcloud2`.
+  ``header.stamp`` the keyframe's stamp), :func:`ga_ros.ros.conversions.cloud_to_pointcloud2`;
+* ``ga/keyframe_image`` (``sensor_msgs/Image`` mono8) and ``ga/keyframe_camera_info``
+  (``sensor_msgs/CameraInfo``: ``k`` and ``p = [k | 0]`` of the rectified camera, no
+  distortion), when ``publish_keyframe_image``, while the image topic has a subscriber: each new
+  keyframe's rectified left image, same stamp and frame as its cloud (what ``map_node``'s
+  mosaic warps; one image per keyframe, no extra computation beyond rectifying it).
 
 Frames (REP 103/105): the VO measures the left camera's optical frame; every measurement and
 pose leaves as the robot's ``base_frame``, converted with the camera's extrinsic
@@ -139,6 +144,10 @@ class VoNodeSettings:
     keyframe_cloud_topic : output dense stereo points of each keyframe (``PointCloud2``).
     publish_keyframe_cloud : publish the keyframe clouds (computed only while the topic has a
         subscriber).
+    keyframe_image_topic : output rectified left image of each keyframe (``Image``).
+    keyframe_info_topic : output ``CameraInfo`` of the rectified camera, per keyframe image.
+    publish_keyframe_image : publish the keyframe images (while the image topic has a
+        subscriber).
     cross_track : run the cross-track matcher.
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
     odom_frame : REP 105 odometry frame of the VO odometry (parent of ``base_frame``).
@@ -172,6 +181,9 @@ class VoNodeSettings:
     publish_debug_image: bool = False
     keyframe_cloud_topic: str = topics.KEYFRAME_CLOUD
     publish_keyframe_cloud: bool = True
+    keyframe_image_topic: str = topics.KEYFRAME_IMAGE
+    keyframe_info_topic: str = topics.KEYFRAME_CAMERA_INFO
+    publish_keyframe_image: bool = True
     cross_track: bool = True
     max_pair_dt_sec: float = 0.005
     odom_frame: str = 'odom'
@@ -231,7 +243,7 @@ class VoNode(BoundedLogging, Node):
         self.extrinsic_error = ''
         self.counts = {'pairs': 0, 'measurements': 0, 'cross': 0, 'dropped': 0,
                        'processed': 0, 'queue_dropped': 0, 'idle_track_ends': 0,
-                       'keyframe_clouds': 0}
+                       'keyframe_clouds': 0, 'keyframe_images': 0}
         self._last_image = time.monotonic()
         self._measured_since_end = False
         self._queue: deque[ImagePair] = deque()
@@ -258,6 +270,12 @@ class VoNode(BoundedLogging, Node):
         self.pub_cloud = (self.create_publisher(PointCloud2, s.keyframe_cloud_topic,
                                                 stream_qos(10))
                           if s.publish_keyframe_cloud else None)
+        self.pub_kf_image = self.pub_kf_info = None
+        if s.publish_keyframe_image:
+            self.pub_kf_image = self.create_publisher(Image, s.keyframe_image_topic,
+                                                      stream_qos(10))
+            self.pub_kf_info = self.create_publisher(CameraInfo, s.keyframe_info_topic,
+                                                     stream_qos(10))
         img_type = CompressedImage if s.compressed else Image
         # auto: reliable when every publisher offers reliable, else best effort
         depth = max(1, s.image_queue)
@@ -456,7 +474,8 @@ class VoNode(BoundedLogging, Node):
             'cross_connections': self.counts['cross'], 'keyframes': st.keyframes,
             'unpaired_images': st.unpaired, 'camera_info_rejected': st.camera_info_rejected,
             'tracks_ended_idle': self.counts['idle_track_ends'],
-            'keyframe_clouds': self.counts['keyframe_clouds']}
+            'keyframe_clouds': self.counts['keyframe_clouds'],
+            'keyframe_images': self.counts['keyframe_images']}
         for key, n in st.reasons.items():
             values['no_measurement/' + key] = n
         if time.monotonic() - self._last_image > 1.0:   # input idle: settle every frame
@@ -548,28 +567,58 @@ class VoNode(BoundedLogging, Node):
                 conv.transform_msg(s.odom_frame, base, T_odom_base, frame.stamp_ns)]))
         if self.pub_debug is not None and frame.left is not None:
             self._publish_debug(frame)
-        if (self.pub_cloud is not None and res.keyframe is not None
-                and self.pub_cloud.get_subscription_count() > 0):
-            self._publish_cloud(frame)
+        if res.keyframe is not None:
+            self._publish_keyframe(frame)
 
     def _camera_frame(self) -> str:
         """The left camera's optical frame id (of the extrinsic; ``'camera'`` when none)."""
         ext = self.front.extrinsic
         return ext.camera_frame if ext is not None and ext.camera_frame else 'camera'
 
-    def _publish_cloud(self, frame: FrameOutput) -> None:
-        """The dense stereo points of the frame's new keyframe on ``keyframe_cloud_topic``."""
+    def _publish_keyframe(self, frame: FrameOutput) -> None:
+        """The frame's new keyframe: its rectified left image (+ CameraInfo) on
+        ``keyframe_image_topic`` and its dense stereo points on ``keyframe_cloud_topic``, each
+        only while subscribed (the pair is rectified once for both)."""
+        want_cloud = (self.pub_cloud is not None
+                      and self.pub_cloud.get_subscription_count() > 0)
+        want_image = (self.pub_kf_image is not None
+                      and self.pub_kf_image.get_subscription_count() > 0)
+        if not (want_cloud or want_image) or frame.result is None:
+            return
+        kf = frame.result.keyframe
         try:
-            cloud = self.front.keyframe_cloud(frame)
+            pair = self.front.keyframe_pair(frame)
+            cloud = self.front.keyframe_cloud(frame, pair) if want_cloud else None
         except GaError as exc:
             self._warn('cloud', f'keyframe cloud failed: {exc}')
             return
-        if cloud is None or frame.result is None or frame.result.keyframe is None:
+        if pair is None or kf is None:
             return
-        self.pub_cloud.publish(conv.cloud_to_pointcloud2(
-            cloud.points, cloud.intensity, self._camera_frame(),
-            frame.result.keyframe.stamp_ns))
-        self.counts['keyframe_clouds'] += 1
+        frame_id = self._camera_frame()
+        if want_image:
+            self.pub_kf_image.publish(array_to_image(pair[0], kf.stamp_ns, frame_id))
+            self.pub_kf_info.publish(self._rectified_info(pair[0].shape, kf.stamp_ns, frame_id))
+            self.counts['keyframe_images'] += 1
+        if cloud is not None:
+            self.pub_cloud.publish(conv.cloud_to_pointcloud2(
+                cloud.points, cloud.intensity, frame_id, kf.stamp_ns))
+            self.counts['keyframe_clouds'] += 1
+
+    def _rectified_info(self, shape: tuple[int, ...], stamp_ns: int, frame_id: str
+                        ) -> CameraInfo:
+        """``CameraInfo`` of the rectified left camera (``k``, ``p = [k | 0]``, no
+        distortion, ``r`` the identity)."""
+        K = np.asarray(self.front.calibration.K, float).reshape(3, 3)
+        msg = CameraInfo()
+        msg.header.stamp = conv.ns_to_stamp(stamp_ns)
+        msg.header.frame_id = frame_id
+        msg.height, msg.width = int(shape[0]), int(shape[1])
+        msg.distortion_model = 'plumb_bob'
+        msg.d = [0.0] * 5
+        msg.k = K.reshape(-1).tolist()
+        msg.r = np.eye(3).reshape(-1).tolist()
+        msg.p = np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist()
+        return msg
 
     def _publish_debug(self, frame: FrameOutput) -> None:
         cal, res = self.front.calibration, frame.result

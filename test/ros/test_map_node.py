@@ -180,6 +180,9 @@ def test_config_file_holds_every_parameter_at_its_default() -> None:
     path = Path(__file__).resolve().parents[2] / 'config' / 'map.yaml'
     params = yaml.safe_load(path.read_text())['map_node']['ros__parameters']
     assert sorted(params) == sorted(declared_parameters())
-    for cls in (MapNodeSettings, CloudMapConfig, ExtrinsicConfig):
+    from ga_ros.pipeline.mosaic_map import MosaicMapConfig
+
+    for cls, prefix in ((MapNodeSettings, ''), (CloudMapConfig, ''), (ExtrinsicConfig, ''),
+                        (MosaicMapConfig, 'mosaic_')):
         for f in fields(cls):
-            assert params[f.name] == getattr(cls(), f.name), f.name
+            assert params[prefix + f.name] == getattr(cls(), f.name), f.name

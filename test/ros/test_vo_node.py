@@ -446,11 +446,13 @@ def test_camera_info_just_after_the_images_loses_no_pair() -> None:
 def test_keyframe_clouds_published_while_subscribed() -> None:
     """``ga/keyframe_cloud``: nothing computed without a subscriber; with one, a PointCloud2
     per new keyframe, stamped with the keyframe's stamp, in the left image's frame, its points
-    in front of the camera at the simulated terrain's depths."""
+    in front of the camera at the simulated terrain's depths. ``ga/keyframe_image`` (+
+    ``ga/keyframe_camera_info``): the same keyframes' rectified left images and intrinsics."""
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
     from ga_ros.ros.vo_node import VoNode
+    from ga_ros.vo.messages import image_to_grey
 
     rig = StereoRig()
     survey = lawnmower(LawnmowerConfig(n_tracks=1, positions_per_swath=12, seed=4))
@@ -466,6 +468,9 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(listener)
     received: list[PointCloud2] = []
+    kf_images: list[Image] = []
+    kf_infos: list[CameraInfo] = []
+    lefts: dict[int, np.ndarray] = {}
     try:
         for side in ('left', 'right'):
             node._on_info(camera_info(rig, side == 'right', 0), side)
@@ -474,6 +479,7 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
             for i in indices:
                 left, right = scene.render_pair(survey.T_world_cam[i], rng)
                 stamp = int(survey.stamps_ns[i])
+                lefts[stamp] = left
                 node._on_image(array_to_image(left, stamp, 'l_optical'), 'left')
                 node._on_image(array_to_image(right, stamp, 'r_optical'), 'right')
             assert node.wait_idle()
@@ -483,8 +489,13 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
         assert node.front._dense is None
         listener.create_subscription(PointCloud2, '/ga/keyframe_cloud', received.append,
                                      stream_qos(100))
+        listener.create_subscription(Image, '/ga/keyframe_image', kf_images.append,
+                                     stream_qos(100))
+        listener.create_subscription(CameraInfo, '/ga/keyframe_camera_info', kf_infos.append,
+                                     stream_qos(100))
         deadline = time.monotonic() + patience(30)
-        while node.pub_cloud.get_subscription_count() == 0:
+        while (node.pub_cloud.get_subscription_count() == 0
+               or node.pub_kf_image.get_subscription_count() == 0):
             assert time.monotonic() < deadline, 'cloud subscriber not discovered'
             executor.spin_once(timeout_sec=0.05)
         kf_before = node.front.stats.keyframes
@@ -492,9 +503,17 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
         new_kf = node.front.stats.keyframes - kf_before
         assert new_kf >= 2 and node.counts['keyframe_clouds'] == new_kf
         deadline = time.monotonic() + patience(30)
-        while len(received) < new_kf:
+        while len(received) < new_kf or len(kf_images) < new_kf or len(kf_infos) < new_kf:
             assert time.monotonic() < deadline, f'{len(received)} of {new_kf} clouds received'
             executor.spin_once(timeout_sec=0.05)
+        assert [m.header.stamp for m in kf_images] == [m.header.stamp for m in received]
+        K = np.asarray(node.front.calibration.K, float)
+        for img, info in zip(kf_images, kf_infos):
+            assert img.header == info.header and img.header.frame_id == 'l_optical'
+            # the sample's images are rectified already: the keyframe's own left image
+            assert np.array_equal(image_to_grey(img), lefts[conv.stamp_to_ns(img.header.stamp)])
+            assert np.allclose(np.reshape(info.k, (3, 3)), K) and not any(info.d)
+            assert (info.width, info.height) == (img.width, img.height)
         kf_stamps = set(node.front._stamp_to_node)
         depths = [scene.render(T, with_depth=True)[1] for T in survey.T_world_cam[4:12]]
         z_lo, z_hi = min(d.min() for d in depths), max(d.max() for d in depths)
@@ -509,6 +528,7 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
             assert np.median(z) > z_lo and np.median(z) < z_hi
             assert np.mean((z > 0.9 * z_lo) & (z < 1.1 * z_hi)) > 0.98
         assert node.diagnostic_values()['keyframe_clouds'] == new_kf
+        assert node.diagnostic_values()['keyframe_images'] == new_kf
     finally:
         executor.shutdown()
         listener.destroy_node()

@@ -1,0 +1,445 @@
+"""The live photomosaic of a downward camera as ``map_node`` drives it (ROS-free):
+:class:`LiveMosaic`.
+
+Inputs, in any order: keyframe images (the rectified left image, its intrinsics ``K`` and the
+camera's extrinsic ``T_base_cam``, under the keyframe's stamp) and keyframe poses
+``T_map_base`` (from the corrections or the corrected path, by stamp). Frames and the pixel
+convention are those of :mod:`ga_ros.mapping.mosaic`: ``map`` with ``x`` east, ``y`` north;
+``T_map_cam = T_map_base @ T_base_cam`` in the optical convention.
+
+The mosaic lives on one unbounded north-up grid of ``metres_per_pixel`` whose pixel
+``(row, col)`` has its centre at ``x = (col + 0.5) * m``, ``y = -(row + 0.5) * m`` (rows and
+columns may be negative), cut into square tiles of ``tile_px``. Each placed keyframe keeps its
+warped patch (:func:`ga_ros.mapping.mosaic.warp_view` on a ground plane, rounded to ``uint8``
+as :func:`ga_ros.mapping.mosaic.build_mosaic` rounds it) and the tiles it touches. A pose that
+changes re-warps that keyframe only and recomposites the tiles its old and new patches touch
+(``'last'`` blending: a later stamp covers an earlier one); an update therefore costs in
+proportion to the keyframes that moved (:attr:`MosaicCounts.warps`), not to the mosaic's size.
+:meth:`LiveMosaic.mosaic` assembles the tiles over their bounding box
+(:class:`ga_ros.mapping.mosaic.Mosaic`, whose georeference is the published one).
+
+The ground is a plane (:class:`ga_ros.mapping.surface.GroundPlane`) at ``ground_z`` or, with
+``ground_from_clouds``, at a height the caller sets once (:meth:`LiveMosaic.set_ground`; the
+node takes the median height of its point-cloud map); keyframes wait until it is known. Over
+relief a plane misregisters neighbouring tracks by the parallax: the replay's mosaic
+(:mod:`ga_ros.mapping.replay_mosaic`) orthorectifies on a height grid instead.
+
+Memory is bounded: the tiles' bounding box may not exceed ``max_pixels`` (a keyframe that would
+grow it beyond is refused: :attr:`LiveMosaic.last_error` says what to change); beyond
+``max_live_keyframes`` the oldest keyframe is frozen into the tiles' static base layer (its
+image and patch are released; it no longer moves).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import InputError
+from ga_ros.mapping.mosaic import (
+    CameraView,
+    Georeference,
+    Mosaic,
+    footprint,
+    warp_view,
+)
+from ga_ros.mapping.surface import GroundPlane
+
+
+@dataclass(frozen=True)
+class MosaicMapConfig:
+    """Settings of :class:`LiveMosaic` (``map_node`` declares them with the prefix
+    ``mosaic_``).
+
+    Attributes
+    ----------
+    enabled : build and publish the mosaic (needs keyframe images).
+    metres_per_pixel : resolution (m/px); 0: the first keyframe's ground sample distance
+        (height above the ground over the focal length), then fixed.
+    ground_z : height of the ground plane in ``map`` (m), when not ``ground_from_clouds``.
+    ground_from_clouds : the ground's height is set once from the keyframe clouds (the node:
+        median height of its point-cloud map when the first keyframe image can be placed).
+    tile_px : edge of the tiles recomposited when a keyframe moves (px).
+    max_pixels : largest mosaic (bounding box of the tiles, px); a keyframe that would exceed
+        it is refused.
+    max_live_keyframes : keyframes that keep their image and can move; beyond, the oldest is
+        frozen into the mosaic (0: no limit).
+    max_waiting : keyframe images kept while their pose or the ground is unknown (oldest
+        dropped beyond).
+    """
+
+    enabled: bool = True
+    metres_per_pixel: float = 0.0
+    ground_z: float = 0.0
+    ground_from_clouds: bool = True
+    tile_px: int = 256
+    max_pixels: int = 25_000_000
+    max_live_keyframes: int = 2000
+    max_waiting: int = 200
+
+    def __post_init__(self) -> None:
+        if self.metres_per_pixel < 0 or self.tile_px < 8 or self.max_pixels < 1:
+            raise InputError('mosaic_metres_per_pixel must be >= 0 (0: automatic), '
+                             'mosaic_tile_px >= 8 and mosaic_max_pixels >= 1')
+
+
+@dataclass
+class MosaicCounts:
+    """What a :class:`LiveMosaic` received and did.
+
+    Attributes
+    ----------
+    images : keyframe images taken.
+    warps : keyframe warps done (the work: one per placed or moved keyframe).
+    tiles_composited : tile recompositions done.
+    refused : keyframes refused (mosaic over ``max_pixels``, or no view of the ground).
+    dropped : keyframe images dropped while waiting (``max_waiting``).
+    frozen : keyframes frozen into the static layer.
+    """
+
+    images: int = 0
+    warps: int = 0
+    tiles_composited: int = 0
+    refused: int = 0
+    dropped: int = 0
+    frozen: int = 0
+
+
+@dataclass
+class _Patch:
+    """A keyframe's warped pixels on the global grid: ``image`` uint8 (rows, cols) and
+    ``valid`` bool, top-left at global pixel ``(row0, col0)``."""
+
+    image: np.ndarray
+    valid: np.ndarray
+    row0: int
+    col0: int
+
+    def tiles(self, t: int) -> set[tuple[int, int]]:
+        """Tiles (tile row, tile column) the patch touches."""
+        r, c = self.valid.shape
+        return {(i, j) for i in range(self.row0 // t, (self.row0 + r - 1) // t + 1)
+                for j in range(self.col0 // t, (self.col0 + c - 1) // t + 1)}
+
+
+@dataclass
+class _Keyframe:
+    image: np.ndarray
+    K: FloatArray
+    T_base_cam: FloatArray
+    T_map_base: FloatArray | None = None
+    patch: _Patch | None = None
+
+
+@dataclass
+class _Tile:
+    image: np.ndarray
+    valid: np.ndarray
+    keys: set[int] = field(default_factory=set)
+
+
+class LiveMosaic:
+    """Keyframe images + poses -> a tiled mosaic that re-warps only what moved (module
+    docstring)."""
+
+    def __init__(self, config: MosaicMapConfig = MosaicMapConfig()) -> None:
+        self.config = config
+        self.counts = MosaicCounts()
+        self.keyframes: dict[int, _Keyframe] = {}
+        self.tiles: dict[tuple[int, int], _Tile] = {}
+        #: static layer: tile -> (image, valid) of the frozen keyframes
+        self.static: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self.ground: GroundPlane | None = (None if config.ground_from_clouds
+                                           else GroundPlane(float(config.ground_z)))
+        self.metres_per_pixel = float(config.metres_per_pixel)
+        #: poses that came before their image: stamp -> T_map_base
+        self.pending_poses: dict[int, FloatArray] = {}
+        #: why the last keyframe was refused ('' when none was)
+        self.last_error = ''
+        #: the mosaic changed since :meth:`take_changed` last said so
+        self.changed = False
+        self._colour: bool | None = None
+
+    # ------------------------------------------------------------------ inputs
+    def set_ground(self, z_m: float) -> int:
+        """Fix the ground plane's height (m in ``map``) if not fixed yet, and place the
+        keyframes that waited for it; returns the keyframes warped."""
+        if self.ground is not None or not np.isfinite(z_m):
+            return 0
+        self.ground = GroundPlane(float(z_m))
+        return self._place([k for k, kf in self.keyframes.items()
+                            if kf.T_map_base is not None and kf.patch is None])
+
+    def add_image(self, stamp_ns: int, image: np.ndarray, K: FloatArray,
+                  T_base_cam: FloatArray) -> bool:
+        """A keyframe's rectified image (uint8 grey or BGR), intrinsics ``K`` (3, 3, px) and
+        camera extrinsic ``T_base_cam`` (4, 4); True when it was placed at once (its pose and
+        the ground known).
+
+        Raises
+        ------
+        InputError
+            A malformed image, ``K`` or extrinsic, or grey and colour images mixed.
+        """
+        img = np.asarray(image)
+        K = np.asarray(K, float)
+        T_bc = np.asarray(T_base_cam, float)
+        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+            raise InputError(f'mosaic: keyframe images must be uint8 grey or BGR, got '
+                             f'{img.dtype}{img.shape}')
+        if min(img.shape[:2]) < 2 or K.shape != (3, 3) or not np.all(np.isfinite(K)) \
+                or K[0, 0] <= 0 or T_bc.shape != (4, 4) or not np.all(np.isfinite(T_bc)):
+            raise InputError('mosaic: a keyframe image needs a finite 3x3 K with fx > 0 and a '
+                             'finite 4x4 camera extrinsic')
+        colour = img.ndim == 3
+        if self._colour is None:
+            self._colour = colour
+        elif colour != self._colour:
+            raise InputError('mosaic: grey and colour keyframe images mixed')
+        key = int(stamp_ns)
+        self.counts.images += 1
+        old = self.keyframes.get(key)
+        self.keyframes[key] = _Keyframe(img, K, T_bc, self.pending_poses.pop(key, None))
+        if old is not None and old.patch is not None:
+            self._recomposite(self._remove_patch(key, old.patch))
+        self._bound_waiting()
+        return self._place([key]) > 0
+
+    def set_poses(self, stamps_ns: IntArray, T_map_base: FloatArray) -> int:
+        """Poses of keyframes by stamp; those whose pose changed are re-warped and their tiles
+        recomposited. Returns the keyframes warped.
+
+        Raises
+        ------
+        InputError
+            Shapes that do not match or a pose that is not finite: nothing is changed.
+        """
+        keys = np.asarray(stamps_ns, np.int64).reshape(-1)
+        T = np.asarray(T_map_base, float).reshape(-1, 4, 4)
+        if T.shape[0] != keys.size or not np.all(np.isfinite(T)):
+            raise InputError(f'mosaic: {keys.size} stamps and {T.shape[0]} poses, or a pose '
+                             'that is not finite')
+        moved = []
+        for k, Tk in zip(keys.tolist(), T):
+            kf = self.keyframes.get(k)
+            if kf is None:
+                self.pending_poses[k] = Tk.copy()
+                continue
+            if kf.T_map_base is not None and np.array_equal(kf.T_map_base, Tk):
+                continue
+            kf.T_map_base = Tk.copy()
+            moved.append(k)
+        while len(self.pending_poses) > 100_000:
+            self.pending_poses.pop(next(iter(self.pending_poses)))
+        return self._place(moved)
+
+    def unplace_all(self) -> None:
+        """Forget every keyframe's pose (a full corrections message follows with the new
+        ones); the mosaic is emptied but the images are kept."""
+        for kf in self.keyframes.values():
+            kf.T_map_base = None
+            kf.patch = None
+        self.tiles.clear()
+        self.pending_poses.clear()
+        self.changed = True
+
+    def clear_static(self) -> None:
+        """Drop the frozen keyframes' layer (a reset)."""
+        self.static.clear()
+        self.changed = True
+
+    # ------------------------------------------------------------------ work
+    def _bound_waiting(self) -> None:
+        waiting = [k for k, kf in self.keyframes.items() if kf.patch is None]
+        over = len(waiting) - max(1, self.config.max_waiting)
+        for k in sorted(waiting)[:max(over, 0)]:
+            del self.keyframes[k]
+            self.counts.dropped += 1
+
+    def _view(self, kf: _Keyframe) -> CameraView:
+        assert kf.T_map_base is not None
+        return CameraView(kf.image, kf.T_map_base @ kf.T_base_cam, kf.K)
+
+    def _warp(self, kf: _Keyframe) -> _Patch | None:
+        """The keyframe warped on the global grid (None when it does not see the ground)."""
+        assert self.ground is not None
+        view = self._view(kf)
+        if not self.metres_per_pixel:
+            gsd = abs(float(view.T_map_cam[2, 3]) - self.ground.z_m) / float(kf.K[0, 0])
+            if gsd <= 0:
+                return None
+            self.metres_per_pixel = gsd
+        m = self.metres_per_pixel
+        foot = footprint(view, self.ground)
+        if foot is None:
+            return None
+        c0 = int(np.floor(foot[:, 0].min() / m)) - 1
+        c1 = int(np.ceil(foot[:, 0].max() / m)) + 1
+        r0 = int(np.floor(-foot[:, 1].max() / m)) - 1
+        r1 = int(np.ceil(-foot[:, 1].min() / m)) + 1
+        georef = Georeference(c0 * m, -r0 * m, m, c1 - c0, r1 - r0)
+        wv = warp_view(view, self.ground, georef)
+        self.counts.warps += 1
+        if wv is None:
+            return None
+        img = np.where(wv.valid[..., None] if wv.image.ndim == 3 else wv.valid,
+                       np.clip(wv.image + 0.5, 0, 255), 0).astype(np.uint8)
+        return _Patch(img, wv.valid, r0 + wv.row0, c0 + wv.col0)
+
+    def _place(self, keys: list[int]) -> int:
+        """(Re-)warp these keyframes (pose known) and recomposite the tiles touched."""
+        if self.ground is None:
+            return 0
+        dirty: set[tuple[int, int]] = set()
+        warped = 0
+        t = self.config.tile_px
+        for k in keys:
+            kf = self.keyframes.get(k)
+            if kf is None or kf.T_map_base is None:
+                continue
+            if kf.patch is not None:
+                dirty |= self._remove_patch(k, kf.patch)
+                kf.patch = None
+            patch = self._warp(kf)
+            warped += 1
+            if patch is None:
+                self.counts.refused += 1
+                self.last_error = (f'keyframe {k} does not see the ground plane at '
+                                   f'z = {self.ground.z_m:.3g} m (a mosaic needs a downward '
+                                   'camera; check the camera extrinsic)')
+                continue
+            new = patch.tiles(t)
+            if not self._fits(new):
+                self.counts.refused += 1
+                self.last_error = (f'mosaic: keyframe {k} would grow the mosaic beyond '
+                                   f'mosaic_max_pixels {self.config.max_pixels}: raise it or '
+                                   'mosaic_metres_per_pixel')
+                continue
+            kf.patch = patch
+            for tile in new:
+                self._tile(tile).keys.add(k)
+            dirty |= new
+        self._recomposite(dirty)
+        self._freeze()
+        return warped
+
+    def _fits(self, new: set[tuple[int, int]]) -> bool:
+        keys = set(self.tiles) | set(self.static) | new
+        rows = [i for i, _ in keys]
+        cols = [j for _, j in keys]
+        t = self.config.tile_px
+        return (max(rows) - min(rows) + 1) * (max(cols) - min(cols) + 1) * t * t \
+            <= self.config.max_pixels
+
+    def _tile(self, tile: tuple[int, int]) -> _Tile:
+        got = self.tiles.get(tile)
+        if got is None:
+            t = self.config.tile_px
+            shape = (t, t, 3) if self._colour else (t, t)
+            got = self.tiles[tile] = _Tile(np.zeros(shape, np.uint8), np.zeros((t, t), bool))
+        return got
+
+    def _remove_patch(self, key: int, patch: _Patch) -> set[tuple[int, int]]:
+        tiles = patch.tiles(self.config.tile_px)
+        for tile in tiles:
+            got = self.tiles.get(tile)
+            if got is not None:
+                got.keys.discard(key)
+        return tiles
+
+    def _recomposite(self, tiles: set[tuple[int, int]]) -> None:
+        """Each tile again: the static layer, then its keyframes' patches by stamp."""
+        t = self.config.tile_px
+        for tile in tiles:
+            got = self.tiles.get(tile)
+            if got is None:
+                continue
+            base = self.static.get(tile)
+            if base is None:
+                got.image[:] = 0
+                got.valid[:] = False
+            else:
+                got.image[:], got.valid[:] = base
+            for k in sorted(got.keys):
+                p = self.keyframes[k].patch
+                assert p is not None
+                _paste(got, p, tile[0] * t, tile[1] * t)
+            if not got.keys and base is None:
+                del self.tiles[tile]
+            self.counts.tiles_composited += 1
+        self.changed |= bool(tiles)
+
+    def _freeze(self) -> None:
+        """Beyond ``max_live_keyframes`` placed keyframes, the oldest goes into the static
+        layer."""
+        limit = self.config.max_live_keyframes
+        if limit <= 0:
+            return
+        placed = sorted(k for k, kf in self.keyframes.items() if kf.patch is not None)
+        for k in placed[:max(len(placed) - limit, 0)]:
+            patch = self.keyframes.pop(k).patch
+            assert patch is not None
+            t = self.config.tile_px
+            for tile in patch.tiles(t):
+                got = self._tile(tile)
+                got.keys.discard(k)
+                if tile not in self.static:
+                    self.static[tile] = (np.zeros_like(got.image), np.zeros_like(got.valid))
+                layer = _Tile(*self.static[tile])
+                _paste(layer, patch, tile[0] * t, tile[1] * t)
+            self.counts.frozen += 1
+
+    # ------------------------------------------------------------------ outputs
+    def take_changed(self) -> bool:
+        """True once after each change of the mosaic (what a periodic publisher asks)."""
+        out, self.changed = self.changed, False
+        return out
+
+    @property
+    def n_placed(self) -> int:
+        """Keyframes in the mosaic that can still move."""
+        return sum(kf.patch is not None for kf in self.keyframes.values())
+
+    def nbytes(self) -> int:
+        """Bytes held by the images, patches and tiles."""
+        n = sum(kf.image.nbytes + (0 if kf.patch is None else
+                                   kf.patch.image.nbytes + kf.patch.valid.nbytes)
+                for kf in self.keyframes.values())
+        n += sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values())
+        return n + sum(a.nbytes + b.nbytes for a, b in self.static.values())
+
+    def mosaic(self) -> Mosaic | None:
+        """The tiles assembled over their bounding box (None when empty); its georeference
+        places it in ``map`` (module docstring's grid)."""
+        if not self.tiles:
+            return None
+        t, m = self.config.tile_px, self.metres_per_pixel
+        rows = [i for i, _ in self.tiles]
+        cols = [j for _, j in self.tiles]
+        i0, j0 = min(rows), min(cols)
+        h, w = (max(rows) - i0 + 1) * t, (max(cols) - j0 + 1) * t
+        image = np.zeros((h, w, 3) if self._colour else (h, w), np.uint8)
+        valid = np.zeros((h, w), bool)
+        for (i, j), tl in self.tiles.items():
+            win = (slice((i - i0) * t, (i - i0 + 1) * t), slice((j - j0) * t, (j - j0 + 1) * t))
+            image[win] = tl.image
+            valid[win] = tl.valid
+        return Mosaic(image, valid, Georeference(j0 * t * m, -i0 * t * m, m, w, h))
+
+
+def _paste(tile: _Tile, patch: _Patch, top: int, left: int) -> None:
+    """Copy the patch's valid pixels that fall in the tile whose top-left global pixel is
+    ``(top, left)``."""
+    t = tile.valid.shape[0]
+    r, c = patch.valid.shape
+    r0, r1 = max(patch.row0, top), min(patch.row0 + r, top + t)
+    c0, c1 = max(patch.col0, left), min(patch.col0 + c, left + t)
+    if r1 <= r0 or c1 <= c0:
+        return
+    src = (slice(r0 - patch.row0, r1 - patch.row0), slice(c0 - patch.col0, c1 - patch.col0))
+    dst = (slice(r0 - top, r1 - top), slice(c0 - left, c1 - left))
+    v = patch.valid[src]
+    tile.image[dst][v] = patch.image[src][v]
+    tile.valid[dst] |= v
