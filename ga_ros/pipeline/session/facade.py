@@ -161,12 +161,7 @@ class AlignmentSession:
         if self.journal is not None:
             self.journal = MeasurementJournal(journal_path(path))
             self.journal.open()
-        self._close_aligner()
-        self.aligner = TrackWindowAligner(self.config)
-        self.gaps = GapHealer(self.session.gaps)
-        self.counts = Counters()
-        self.last_update, self.last_error = None, ''
-        self.datum = None
+        self._fresh_estimator()
         self.warn(f'a different survey: its first measurement {m.src_id}->{m.dst_id} (track '
                   f'{m.dst_track}, stamp {m.stamp_ns} ns) does not belong to the saved one '
                   f'({why}); the saved survey ({old_nodes} nodes) was moved to {folder}/ and a '
@@ -447,6 +442,11 @@ class AlignmentSession:
             self.journal.close()
             clear_state(self.session.state_file)
             self.journal = MeasurementJournal(journal_path(self.session.state_file))
+        self._fresh_estimator()
+
+    def _fresh_estimator(self) -> None:
+        """A fresh aligner (the old one's background work stopped), gap healer and counters;
+        no datum, no last update."""
         self._close_aligner()
         self.aligner = TrackWindowAligner(self.config)
         self.gaps = GapHealer(self.session.gaps)
