@@ -14,6 +14,18 @@ from ga_ros.ros.fault_catalogue.survey import Ctx, Row, finish_after, mid, nodes
 from ga_ros.ros.harness import HarnessTimeout, NodeClient, start_node_process, stop_process
 
 
+def _final_path(c: NodeClient, n: int) -> np.ndarray:
+    """The last corrected path the client received, (k, 4, 4), after waiting (up to 60 s
+    nominal) for one of ``n`` poses with every node adjusted; whatever came if none did."""
+    try:
+        c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
+                     and c.diag_int('dead_reckoned_nodes') == 0
+                     and c.diag_int('nodes') >= n, 60, 'path')
+    except HarnessTimeout:
+        pass
+    return conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
+
+
 def case_finish_race(ctx: Ctx) -> Row:
     """Allowed ``~/finish_track`` while the measurements before it are still queued: it
     applies after them (the rest of the track is then refused, as asked)."""
@@ -89,13 +101,7 @@ def case_play_early(ctx: Ctx) -> Row:
     try:
         c = client
         n = ctx.survey.n_nodes
-        try:
-            c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
-                         and c.diag_int('dead_reckoned_nodes') == 0
-                         and c.diag_int('nodes') >= n, 60, 'path')
-        except HarnessTimeout:
-            pass
-        got = conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
+        got = _final_path(c, n)
         return Row('ga-ros play into a node started 0.1 s before',
                    'yes' if proc.poll() is None and not traceback_in(log) else 'NO',
                    f"{c.diag_int('measurements_received')}/{len(ctx.ms)} received", n,
@@ -135,13 +141,7 @@ def case_play_clock_late_node(ctx: Ctx) -> Row:
                                   log_path=log)
         out, _ = play.communicate(timeout=1800)
         n = ctx.survey.n_nodes
-        try:
-            c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
-                         and c.diag_int('dead_reckoned_nodes') == 0
-                         and c.diag_int('nodes') >= n, 60, 'path')
-        except HarnessTimeout:
-            pass
-        got = conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
+        got = _final_path(c, n)
         survived = 'yes' if proc.poll() is None and not traceback_in(log) else 'NO'
         confirmed = f"{c.diag_int('measurements_received')}/{len(ctx.ms)} received"
         stop_process(proc)
