@@ -45,13 +45,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.chi2 import chi2_quantile
 from ga_ros.core.solver import GaussianPrior, SolveResult
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3, so3
 from ga_ros.runtime import lazy_import
 
-sla = lazy_import('scipy.linalg')  # only some functions need them (start-up)
-stats = lazy_import('scipy.stats')
+sla = lazy_import('scipy.linalg')  # only some functions need it (start-up)
 
 #: Variances at or above this (m^2 / rad^2) mark an unknown dimension (REP 145 habit: 1e6..1e12).
 UNKNOWN_VARIANCE = 1e6
@@ -389,7 +389,7 @@ class FixBook:
             w, V = np.linalg.eigh(0.5 * (S + S.T))
             w = np.maximum(w, 1e-2 * np.linalg.eigvalsh(C).min())
             ratio = float(e @ (V @ ((V.T @ e) / w))) / (
-                scale * stats.chi2.ppf(self.gate_prob, int(known.sum())))
+                scale * chi2_quantile(int(known.sum()), self.gate_prob))
             if self.status[f] == 2 and ratio <= 1.0:
                 status[f] = 0
             elif self.status[f] == 0 and ratio > worst_ratio:

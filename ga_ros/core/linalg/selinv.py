@@ -561,7 +561,8 @@ class SelectedInverse:
 
 
 
-def path_marginal_blocks(chol, cols: IntArray) -> FloatArray | None:
+def path_marginal_blocks(chol, cols: IntArray, cheaper_than_solve: bool = False
+                         ) -> FloatArray | None:
     """Diagonal ``d x d`` blocks of ``N^-1`` for a few block columns ``cols``, from the factor
     ``P N P' = L L'`` of ``chol`` (left intact): ``Sigma_kk = Y' Y`` with ``Y = L^-1 P E_k``.
 
@@ -575,11 +576,16 @@ def path_marginal_blocks(chol, cols: IntArray) -> FloatArray | None:
     ----------
     chol : a factored :class:`~ga_ros.core.linalg.cholmod.SparseCholesky` (``d x d`` blocks).
     cols : (k,) block columns of ``N``.
+    cheaper_than_solve : also ``None`` when the paths visit so many supernodes that a full
+        forward and backward solve of the ``k d`` unit columns is estimated cheaper (each
+        supernode on a path costs a few NumPy calls, :data:`PATH_VISIT_FLOPS`): the paths of
+        nodes deep in the elimination tree (a window's older fix nodes) are long.
 
     Returns
     -------
     ``(k, d, d)`` symmetric blocks, or ``None`` if the factor is not CHOLMOD's supernodal one
-    viewed in place (the caller then solves).
+    viewed in place, or if ``cheaper_than_solve`` and the solve is cheaper (the caller then
+    solves).
     """
     import heapq
 
@@ -597,6 +603,9 @@ def path_marginal_blocks(chol, cols: IntArray) -> FloatArray | None:
     width = np.diff(starts)
     offset = lay.colbase[starts[:-1]]  # where each supernode's column-major block starts
     cols = np.asarray(cols, dtype=np.int64)
+    if cheaper_than_solve and _path_visits(lay, pos, cols, d) * PATH_VISIT_FLOPS > (
+            4 * lay.x.size * cols.size * d):  # forward + backward solve, k d columns
+        return None
     out = np.empty((cols.size, d, d))
     for i, c in enumerate(cols.tolist()):
         rows = pos[c * d + np.arange(d)]  # rows of L holding node c's unknowns
@@ -626,3 +635,34 @@ def path_marginal_blocks(chol, cols: IntArray) -> FloatArray | None:
                     tgt[below[sel] - starts[t]] -= upd[sel]
         out[i] = 0.5 * (acc + acc.T)
     return out
+
+
+#: The cost of visiting one supernode in :func:`path_marginal_blocks` (a triangular solve, a
+#: product and a few NumPy calls, ~30-50 us of Python) in floating-point operations of a
+#: compiled sparse solve (~1-2 GFLOP/s on one core): the exchange rate of its
+#: ``cheaper_than_solve`` choice.
+PATH_VISIT_FLOPS = 60_000
+
+
+def _path_visits(lay, pos: IntArray, cols: IntArray, d: int) -> int:
+    """How many supernodes :func:`path_marginal_blocks` visits for the block columns ``cols``
+    (each column's union of the elimination-tree paths from its rows' supernodes to the
+    root). ``pos``: the row of ``L`` of each column of ``N``."""
+    starts = lay.starts
+    width = np.diff(starts)
+    below = lay.nrows > width  # the parent owns the first row below the diagonal block
+    parent = np.full(width.size, -1, np.int64)
+    parent[below] = np.searchsorted(starts, lay.srows[lay.pi[below] + width[below]],
+                                    side='right') - 1
+    parent = parent.tolist()
+    owners = (np.searchsorted(starts, pos[(cols[:, None] * d + np.arange(d)).ravel()],
+                              side='right') - 1).reshape(cols.size, d).tolist()
+    total = 0
+    for own in owners:
+        seen: set[int] = set()
+        for s in own:
+            while s >= 0 and s not in seen:
+                seen.add(s)
+                s = parent[s]
+        total += len(seen)
+    return total

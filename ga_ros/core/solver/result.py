@@ -33,7 +33,8 @@ _SPARSE_SELINV_UNKNOWNS = 12_000
 #: forward solve along each node's elimination-tree path only
 #: (:func:`ga_ros.core.linalg.selinv.path_marginal_blocks`) instead of full solves: a window's
 #: newest node (the pose a node publishes after each update) lies in the factor's last
-#: supernode, 1-2 ms instead of 10-20 ms at 6,700 unknowns.
+#: supernode, 1-2 ms instead of 10-20 ms at 6,700 unknowns; nodes deep in the elimination tree
+#: (a window's older fix nodes) have long paths and are solved for when that is cheaper.
 _PATH_FROM_UNKNOWNS = 3_000
 
 
@@ -226,11 +227,12 @@ class _NormalSystem:
     def _path_blocks(self, ids: IntArray) -> FloatArray | None:
         """Diagonal blocks of ``N^-1`` for a few nodes by forward solves along their
         elimination-tree paths (zero blocks for fixed nodes); ``None`` if the factor cannot be
-        read in place."""
+        read in place or full solves are cheaper."""
         from ga_ros.core.linalg import selinv  # lazy: scipy.linalg
 
         cols = self.col[self.index_of(ids)]
-        blocks = selinv.path_marginal_blocks(self.chol, cols[cols >= 0])
+        blocks = selinv.path_marginal_blocks(self.chol, cols[cols >= 0],
+                                             cheaper_than_solve=True)
         if blocks is None:
             return None
         out = np.zeros((ids.size, self.d, self.d))

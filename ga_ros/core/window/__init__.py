@@ -47,21 +47,36 @@ policies and their maths), ``freeze_ahead``, ``handoff``, ``refinement`` / ``eli
 files of a :class:`WindowState`).
 """
 
-from ga_ros.core.window.admission import measurement_fingerprints
-from ga_ros.core.window.aligner import TrackWindowAligner
-from ga_ros.core.window.config import (
-    ALIGNER_SOLVER,
-    GATES,
-    AlignerConfig,
-    AlignerStats,
-    BatchResult,
-    CorrectedPath,
-    UpdateResult,
-)
-from ga_ros.core.window.freeze import FREEZE_POLICIES, FreezePolicy, JointPrior
-from ga_ros.core.window.persistence import SavedState, is_state_file, load_state, save_state
-from ga_ros.core.window.state import WindowState
-from ga_ros.core.window.worker import REFINE_EXECUTORS
+from __future__ import annotations
+
+import importlib
+
+#: Each public name and the submodule that defines it: imported on first access (PEP 562), so a
+#: refinement worker process that unpickles :mod:`~ga_ros.core.window.worker`'s job imports the
+#: modules of the refinement only, not the aligner's.
+_EXPORTS = {
+    'measurement_fingerprints': 'admission', 'TrackWindowAligner': 'aligner',
+    'ALIGNER_SOLVER': 'config', 'GATES': 'config', 'AlignerConfig': 'config',
+    'AlignerStats': 'config', 'BatchResult': 'config', 'CorrectedPath': 'config',
+    'UpdateResult': 'config', 'FREEZE_POLICIES': 'freeze', 'FreezePolicy': 'freeze',
+    'JointPrior': 'freeze', 'SavedState': 'persistence', 'is_state_file': 'persistence',
+    'load_state': 'persistence', 'save_state': 'persistence', 'WindowState': 'state',
+    'REFINE_EXECUTORS': 'worker',
+}
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    value = getattr(importlib.import_module(f'{__name__}.{module}'), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
+
 
 __all__ = [
     'ALIGNER_SOLVER', 'FREEZE_POLICIES', 'GATES', 'REFINE_EXECUTORS', 'AlignerConfig',

@@ -13,15 +13,13 @@ import time
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.chi2 import chi2_quantile
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality import QualityReport, QualitySummary, quality_control, summarise
 from ga_ros.core.solver import GaussianPrior, SolveResult
 from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.state import WindowState
 from ga_ros.geometry import se3
-from ga_ros.runtime import lazy_import
-
-stats = lazy_import('scipy.stats')  # only the outlier tests need it (start-up)
 
 
 class QualityCache:
@@ -91,7 +89,7 @@ def outliers(state: WindowState, config: AlignerConfig, res: SolveResult, conns:
     P = weights
     v = res.residuals
     maha2 = np.einsum('mi,mij,mj->m', v, P, v)
-    return conns[cross & (maha2 > stats.chi2.ppf(prob, 6))]
+    return conns[cross & (maha2 > chi2_quantile(6, prob))]
 
 
 def readmissible(state: WindowState, config: AlignerConfig, window_tracks: list[int],
@@ -144,4 +142,4 @@ def readmissible(state: WindowState, config: AlignerConfig, window_tracks: list[
                     cov[pos[both, a], pos[both, b]]
     C = state.ccov.a[conns] + J @ Q @ np.swapaxes(J, 1, 2)
     maha2 = np.einsum('mi,mi->m', e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
-    return conns[maha2 <= stats.chi2.ppf(prob, 6)].astype(np.int64)
+    return conns[maha2 <= chi2_quantile(6, prob)].astype(np.int64)

@@ -248,3 +248,31 @@ def test_path_solves_give_the_dense_inverse_and_leave_the_factor(rng):
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12 * np.abs(inv).max())
         np.testing.assert_array_equal(got, np.swapaxes(got, 1, 2))
         np.testing.assert_array_equal(chol.solve(b), x0)
+
+
+def test_path_solves_give_way_to_full_solves_where_the_paths_are_long(rng):
+    """``cheaper_than_solve``: on a long chain the path of a node deep in the elimination tree
+    visits many supernodes, so the path solves decline (None) and the caller solves; where the
+    estimate keeps the paths (a node near the root), the blocks equal the dense inverse."""
+    from ga_ros.core.linalg import selinv
+
+    u, d = 400, 6
+    N = _random_graph_spd(rng, u, d, 0) + 0.1 * np.eye(u * d)
+    chol = SparseCholesky(*BlockPattern.from_matrix(sp.csr_matrix(N), d))
+    chol.solve(np.ones(u * d))  # factored
+    lay = selinv._supernodal_layout(chol._F, chol.n)
+    pos = np.empty_like(lay.perm)
+    pos[lay.perm] = np.arange(lay.perm.size)
+    visits = {c: selinv._path_visits(lay, pos, np.array([c]), d) for c in range(u)}
+    n_super = lay.starts.size - 1
+    assert all(1 <= v <= n_super for v in visits.values())
+    flops = 4 * lay.x.size * d
+    deep = [c for c, v in visits.items() if v * selinv.PATH_VISIT_FLOPS > flops]
+    short = [c for c, v in visits.items() if v * selinv.PATH_VISIT_FLOPS <= flops]
+    assert deep and short  # a long chain has both
+    assert selinv.path_marginal_blocks(chol, np.array(deep[:3]), cheaper_than_solve=True) is None
+    inv = np.linalg.inv(N)
+    got = selinv.path_marginal_blocks(chol, np.array(short[:1]), cheaper_than_solve=True)
+    c = short[0]
+    np.testing.assert_allclose(got[0], inv[c * d:(c + 1) * d, c * d:(c + 1) * d], rtol=1e-9,
+                               atol=1e-12 * np.abs(inv).max())
