@@ -18,6 +18,7 @@ from rclpy.duration import Duration
 from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.fault_catalogue.survey import Ctx
 from ga_ros.ros.harness import HarnessTimeout, NodeClient, start_node_process, stop_process
 
@@ -41,6 +42,7 @@ class Live:
         self.log = ctx.work / 'node.log'
         self.proc = start_node_process(ctx.dom, self.params, log_path=self.log)
         self.client = NodeClient(ctx.dom)
+        self.client.deadline = ctx.deadline
         self.pub = self.client.pub
         self.wait()
 
@@ -52,7 +54,7 @@ class Live:
 
     def kill(self, sig: int = signal.SIGKILL) -> int:
         self.proc.send_signal(sig)
-        return self.proc.wait(timeout=60)
+        return self.proc.wait(timeout=self.ctx.remaining(patience(60)))
 
     def restart(self) -> float:
         """Start the node again; returns the seconds until it holds every node it held when
@@ -74,8 +76,9 @@ class Live:
             self.pub.publish(msg)
             if k % 500 == 499:
                 self.client.executor.spin_once(timeout_sec=0.0)
-        if wait:
-            self.pub.wait_for_all_acked(Duration(seconds=60))
+        if wait:   # (a killed node's reader stays matched, unacknowledging, until its
+            # lease ends: then this returns False, and the waits on the node's counts decide)
+            self.pub.wait_for_all_acked(Duration(seconds=self.ctx.remaining(patience(60))))
 
     def send_ms(self, ms: list[Measurement], wait: bool = True) -> None:
         self.send([conv.measurement_to_odometry(m) for m in ms], wait)
@@ -91,13 +94,17 @@ class Live:
                      f'{n} accepted', self.proc)
 
     def final_path(self, n: int, timeout: float = 120.0) -> np.ndarray:
+        """The last path received once it holds ``n`` adjusted nodes (after ``timeout``: the
+        last one received, the row then counts what it lacks; the case's time budget spent:
+        :class:`HarnessTimeout`)."""
         c = self.client
         try:
             c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
                          and c.diag_int('dead_reckoned_nodes') == 0
                          and c.diag_int('nodes') >= n, timeout, 'final path')
         except HarnessTimeout:
-            pass
+            if time.monotonic() > self.ctx.deadline:
+                raise
         return conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
 
     def survived(self) -> str:

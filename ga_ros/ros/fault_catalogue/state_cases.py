@@ -169,24 +169,24 @@ def case_another_survey(ctx: Ctx) -> Row:
     starts afresh and keeps every node; play exits 0 both times."""
     from ga_ros.pipeline.journal import default_state_file
     (ctx.work / 'first').mkdir()
-    first = Ctx(ctx.work, ctx.dom, small_survey(ctx.work / 'first', seed=13))
+    first = Ctx(ctx.work, ctx.dom, small_survey(ctx.work / 'first', seed=13), ctx.deadline)
     live = Live(first, {})
     player = None
     try:
         player = start_play(first)
-        out, _ = player.communicate(timeout=1800)
+        out, _ = player.communicate(timeout=ctx.remaining(1800))
         first_exit = player.returncode
         first_kept = nodes_kept(first.survey.T_ref, live.final_path(first.survey.n_nodes))
         live.kill(signal.SIGINT)
         live.client.paths.clear()
         live.ctx = ctx
         recover_s = live.restart()
-        end = time.monotonic() + 1.0            # the resumed survey's path, then forget it
-        while time.monotonic() < end:
-            live.client.executor.spin_once(timeout_sec=0.05)
-        live.client.paths.clear()
+        c = live.client                          # the resumed survey's path, then forget it
+        c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= first.survey.n_nodes,
+                     60, "the resumed first survey's path", live.proc)
+        c.paths.clear()
         player = start_play(ctx)
-        out, _ = player.communicate(timeout=1800)
+        out, _ = player.communicate(timeout=ctx.remaining(1800))
         live.wait_accepted(len(ctx.ms))          # counted afresh by the new survey
         got = live.final_path(ctx.survey.n_nodes)
         folders = list(default_state_file('/', 'alignment_node').parent.glob('state.survey-*'))
