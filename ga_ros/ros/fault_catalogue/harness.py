@@ -41,10 +41,29 @@ class Live:
         self.params = {**BASE_PARAMS, **(params or {})}
         self.log = ctx.work / 'node.log'
         self.proc = start_node_process(ctx.dom, self.params, log_path=self.log)
-        self.client = NodeClient(ctx.dom)
+        try:
+            self.client = NodeClient(ctx.dom)
+        except BaseException:
+            stop_process(self.proc)
+            raise
         self.client.deadline = ctx.deadline
         self.pub = self.client.pub
-        self.wait()
+        try:
+            self.wait()
+            self.alone()
+        except BaseException:    # the case's try/finally does not hold this Live yet
+            self.close()
+            raise
+
+    def alone(self) -> None:
+        """Raise :class:`HarnessTimeout` if the domain holds another alignment node (another
+        process uses this domain id: its measurements, services and diagnostics would mix with
+        this case's)."""
+        names = [n for n, _ in self.client.node.get_node_names_and_namespaces()
+                 if n == 'alignment_node']
+        if len(names) > 1:
+            raise HarnessTimeout(f'cross-talk: {len(names)} alignment nodes on ROS domain '
+                                 f'{self.ctx.dom}; another process uses this domain id')
 
     def wait(self, timeout: float = 60.0) -> None:
         c = self.client
