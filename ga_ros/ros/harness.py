@@ -116,6 +116,13 @@ class NodeClient:
         #: ``time.monotonic()`` after which every wait fails at once (a caller's whole time
         #: budget, e.g. a fault case's; default none).
         self.deadline = math.inf
+        #: Diagnostics whose publication sequence number fell below the previous one's: once
+        #: per node (re)start, repeatedly when two nodes publish on this domain (cross-talk).
+        self.diag_seq_drops = 0
+        #: ``diag_seq_drops`` allowed before :meth:`spin_until` reports cross-talk (None: not
+        #: checked); :meth:`expect_restart` raises it by one per restart.
+        self.diag_seq_drops_allowed: int | None = None
+        self._diag_seq = 0
         #: Level of the last diagnostics (0 OK, 1 WARN, 2 ERROR; -1 none yet).
         self.diag_level = -1
         self._path_sub = self.subscribe_path()
@@ -140,7 +147,11 @@ class NodeClient:
                                       qos if qos is not None else stream_qos(100))
         return sink
 
-    def _on_diag(self, msg: DiagnosticArray) -> None:
+    def _on_diag(self, msg: DiagnosticArray, info: dict) -> None:
+        seq = info.get('publication_sequence_number') or 0
+        if 0 < seq < self._diag_seq:
+            self.diag_seq_drops += 1
+        self._diag_seq = seq
         self.diagnostics = conv.diagnostics_to_dict(msg)
         if msg.status:
             level = msg.status[0].level
@@ -169,7 +180,17 @@ class NodeClient:
                                      f'{what}')
             if now > self.deadline:
                 raise HarnessTimeout(f'the time budget ran out waiting for {what}')
+            allowed = self.diag_seq_drops_allowed
+            if allowed is not None and self.diag_seq_drops > allowed:
+                raise HarnessTimeout(f'cross-talk while waiting for {what}: diagnostics from '
+                                     'more than one node on this ROS domain (another process '
+                                     'uses this domain id)')
             self.executor.spin_once(timeout_sec=0.02)
+
+    def expect_restart(self) -> None:
+        """The node is restarted: its diagnostics start again from sequence number 1."""
+        if self.diag_seq_drops_allowed is not None:
+            self.diag_seq_drops_allowed += 1
 
     def subscription_gids(self) -> set[tuple[int, ...]]:
         """Endpoint ids of the subscriptions to the measurements topic in the graph (a killed

@@ -36,6 +36,7 @@ def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
         if again_during_recovery:
             n_lines = live.log.read_text(errors='replace').count('restoring the state')
             live.proc = start_node_process(ctx.dom, live.params, log_path=live.log)
+            live.client.expect_restart()
             live.client.spin_until(
                 lambda: live.log.read_text(errors='replace').count('restoring the state')
                 > n_lines, 120, 'the restarted node to log that it restores the state',

@@ -47,6 +47,7 @@ class Live:
             stop_process(self.proc)
             raise
         self.client.deadline = ctx.deadline
+        self.client.diag_seq_drops_allowed = 0      # cross-talk is an error
         self.pub = self.client.pub
         try:
             self.wait()
@@ -84,6 +85,7 @@ class Live:
         before = max(self.client.diag_int('nodes'), 0)
         t0 = time.monotonic()
         self.proc = start_node_process(self.ctx.dom, self.params, log_path=self.log)
+        self.client.expect_restart()
         self.client.diagnostics = {}
         self.wait()
         self.client.spin_until(lambda: self.client.diag_int('nodes') >= before, 1800,

@@ -64,6 +64,7 @@ def case_two_nodes_one_state(ctx: Ctx) -> Row:
     persistence; the first keeps every node, through a ``kill -9`` and restart too."""
     live = Live(ctx, {})
     second_log = ctx.work / 'second.log'
+    live.client.diag_seq_drops_allowed = None    # two nodes on the domain: the point here
     second = start_node_process(ctx.dom, {'diagnostics_period_sec': 0.2},
                                 log_path=second_log)
     try:
@@ -76,6 +77,7 @@ def case_two_nodes_one_state(ctx: Ctx) -> Row:
             live.client.executor.spin_once(timeout_sec=0.05)
         refused = 'in use by pid' in text and 'WITHOUT persistence' in text
         stop_process(second)
+        live.client.diag_seq_drops_allowed = live.client.diag_seq_drops
         clean = second.returncode == 0 and 'Traceback' not in second_log.read_text(
             errors='replace')
         k = len(ctx.ms) // 2
