@@ -93,13 +93,24 @@ class Live:
         return time.monotonic() - t0
 
     def send(self, msgs: list[Odometry], wait: bool = True) -> None:
+        """Publish ``msgs``; ``wait``: until every matched reader acknowledged them (a killed
+        node's reader counts until its lease ends).
+
+        Raises
+        ------
+        HarnessTimeout
+            The readers did not acknowledge them within the deadline: delivery stalled.
+        """
         for k, msg in enumerate(msgs):
             self.pub.publish(msg)
             if k % 500 == 499:
                 self.client.executor.spin_once(timeout_sec=0.0)
-        if wait:   # (a killed node's reader stays matched, unacknowledging, until its
-            # lease ends: then this returns False, and the waits on the node's counts decide)
-            self.pub.wait_for_all_acked(Duration(seconds=self.ctx.remaining(patience(60))))
+        if wait:
+            timeout = self.ctx.remaining(patience(60))
+            t0 = time.monotonic()
+            if not self.pub.wait_for_all_acked(Duration(seconds=timeout)):
+                raise HarnessTimeout(f'{len(msgs)} messages not acknowledged by the node after '
+                                     f'{time.monotonic() - t0:.0f} s: DDS delivery stalled')
 
     def send_ms(self, ms: list[Measurement], wait: bool = True) -> None:
         self.send([conv.measurement_to_odometry(m) for m in ms], wait)
