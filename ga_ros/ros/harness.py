@@ -7,6 +7,7 @@ calls its services, spinning its own executor with timeouts (never forever).
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -28,6 +29,7 @@ from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
+from ga_ros.ros import domains
 from ga_ros.ros.deadlines import patience
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.safe_write import open_log
@@ -39,10 +41,11 @@ class HarnessTimeout(GaError):
     """A condition was not met in time (the node is too slow, dead, or not discovered)."""
 
 
-def domain_id(offset: int = 0) -> int:
-    """A ``ROS_DOMAIN_ID`` in 40-189 for this process and ``offset``: the tests of one run take
-    different offsets, so they never hear each other; concurrent runs differ by their pid."""
-    return 40 + (os.getpid() + offset) % 150
+def domain_id(offset: object = 0) -> int:
+    """A ``ROS_DOMAIN_ID`` of this process for ``offset`` (:func:`ga_ros.ros.domains.domain_id`:
+    claimed machine-wide, so concurrent runs never share one): the tests of one run take
+    different offsets, so they never hear each other."""
+    return domains.domain_id(offset)
 
 
 @contextmanager
@@ -110,6 +113,16 @@ class NodeClient:
         self.paths: list[tuple[float, PathMsg]] = []
         self.diagnostics: dict[str, str] = {}
         self.diag_count = 0
+        #: ``time.monotonic()`` after which every wait fails at once (a caller's whole time
+        #: budget, e.g. a fault case's; default none).
+        self.deadline = math.inf
+        #: Diagnostics whose publication sequence number fell below the previous one's: once
+        #: per node (re)start, repeatedly when two nodes publish on this domain (cross-talk).
+        self.diag_seq_drops = 0
+        #: ``diag_seq_drops`` allowed before :meth:`spin_until` reports cross-talk (None: not
+        #: checked); :meth:`expect_restart` raises it by one per restart.
+        self.diag_seq_drops_allowed: int | None = None
+        self._diag_seq = 0
         #: Level of the last diagnostics (0 OK, 1 WARN, 2 ERROR; -1 none yet).
         self.diag_level = -1
         self._path_sub = self.subscribe_path()
@@ -134,7 +147,11 @@ class NodeClient:
                                       qos if qos is not None else stream_qos(100))
         return sink
 
-    def _on_diag(self, msg: DiagnosticArray) -> None:
+    def _on_diag(self, msg: DiagnosticArray, info: dict) -> None:
+        seq = info.get('publication_sequence_number') or 0
+        if 0 < seq < self._diag_seq:
+            self.diag_seq_drops += 1
+        self._diag_seq = seq
         self.diagnostics = conv.diagnostics_to_dict(msg)
         if msg.status:
             level = msg.status[0].level
@@ -151,16 +168,29 @@ class NodeClient:
     def spin_until(self, predicate: Callable[[], bool], timeout: float, what: str = '',
                    proc: subprocess.Popen | None = None) -> None:
         """Spin until ``predicate()`` is true; :class:`HarnessTimeout` after ``timeout`` s or if
-        ``proc`` exits."""
+        ``proc`` exits, or at once when :attr:`deadline` has passed."""
         deadline = time.monotonic() + patience(timeout)
         while not predicate():
             if proc is not None and proc.poll() is not None:
                 raise HarnessTimeout(f'node process exited ({proc.returncode}) while waiting '
                                      f'for {what}')
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise HarnessTimeout(f'timed out after {patience(timeout):.0f} s waiting for '
                                      f'{what}')
+            if now > self.deadline:
+                raise HarnessTimeout(f'the time budget ran out waiting for {what}')
+            allowed = self.diag_seq_drops_allowed
+            if allowed is not None and self.diag_seq_drops > allowed:
+                raise HarnessTimeout(f'cross-talk while waiting for {what}: diagnostics from '
+                                     'more than one node on this ROS domain (another process '
+                                     'uses this domain id)')
             self.executor.spin_once(timeout_sec=0.02)
+
+    def expect_restart(self) -> None:
+        """The node is restarted: its diagnostics start again from sequence number 1."""
+        if self.diag_seq_drops_allowed is not None:
+            self.diag_seq_drops_allowed += 1
 
     def subscription_gids(self) -> set[tuple[int, ...]]:
         """Endpoint ids of the subscriptions to the measurements topic in the graph (a killed

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.errors import GaError
+from ga_ros.ros import domains
 from ga_ros.safe_write import check_destinations, open_log, write_json
 from ga_ros.tools.multihost import REPO, _stop_all, _wait_line, compare_paths
 
@@ -135,12 +136,12 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
         disjoint stamp ranges for the crossing check to mean something.
     rate : ``ga-ros play --rate``.
     timeout_s : longest wait for all robots to finish.
-    domain_id : ``ROS_DOMAIN_ID`` (default: derived from the process id).
+    domain_id : ``ROS_DOMAIN_ID`` (default: one claimed machine-wide, :mod:`ga_ros.ros.domains`).
     """
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     check_destinations(out / 'summary.json')
-    dom = int(domain_id if domain_id is not None else 60 + os.getpid() % 100)
+    dom = int(domain_id if domain_id is not None else domains.domain_id('fleet'))
     res = FleetResult(domain_id=dom)
     env = {**os.environ, 'ROS_DOMAIN_ID': str(dom), 'PYTHONUNBUFFERED': '1'}
     t0 = time.monotonic()

@@ -37,6 +37,7 @@ from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.pipeline import replay
+from ga_ros.ros import domains
 
 T0_NS = 1_700_000_000_000_000_000
 WHEEL_HZ, VISUAL_HZ = 50, 10
@@ -285,7 +286,7 @@ def test_alignment_node_takes_two_odometry_inputs(tmp_path: Path) -> None:
     from ga_ros.ros.alignment_node import AlignmentNode
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
+    rclpy.init(context=ctx, domain_id=domains.domain_id('multiple_sources'))
     params = {'inputs': 'odom0,odom1', 'odom0.topic': 'wheel/odom', 'odom1.topic': 'vo/odom',
               'odom0.track.mode': 'time', 'odom0.track.duration_s': 10.0,
               'publish_markers': False, 'diagnostics_period_sec': 0.0,

@@ -19,6 +19,7 @@ from bag_fixtures import ODOMETRY, odometry_msg, stereo_rows, write_bag
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import interpolate_pose
 from ga_ros.io.trajectory import write_tum
+from ga_ros.ros import domains
 
 pytest.importorskip('cv2')
 
@@ -140,7 +141,7 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
               'publish_markers': False, 'diagnostics_period_sec': 0.0,
               'transform_publish_period_sec': 0.0}
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=60 + __import__('os').getpid() % 100)
+    rclpy.init(context=ctx, domain_id=domains.domain_id('camera_beside_odometry'))
     node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
                                                            for k, v in params.items()])
     try:
@@ -188,7 +189,7 @@ def test_camera_extrinsic_is_identity_only_when_said_so() -> None:
             **{f'camera.{side}_{kind}_topic': f'cam/{side}/{kind}'
                for side in ('left', 'right') for kind in ('image', 'info')}}
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=60 + (__import__('os').getpid() + 7) % 100)
+    rclpy.init(context=ctx, domain_id=domains.domain_id('camera_beside_odometry 7'))
     try:
         for extra, match in (({}, 'camera.T_base_camera'),
                              ({'camera.base_to_camera': [0.0] * 6 + [1.0]},

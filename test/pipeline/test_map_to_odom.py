@@ -26,6 +26,7 @@ from ga_ros.pipeline.map_to_odom import (
     foreign_odom_parents,
     without_odom_parent,
 )
+from ga_ros.ros.domains import domain_id
 
 AMCL = se3.from_translation_rotvec(np.array([7.4, 7.5, 0.0]), np.array([0, 0, 0.3]))
 
@@ -133,7 +134,7 @@ def test_alignment_node_stops_publishing_when_another_node_owns_odom():
     from ga_ros.ros.alignment_node import TF_CONTEST_HOLD_SEC, AlignmentNode
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=40 + (os.getpid() + 67) % 150)
+    rclpy.init(context=ctx, domain_id=domain_id(67))
     params = {**INPUT_PARAMS, 'diagnostics_period_sec': 0.0, 'transform_publish_period_sec': 0.0,
               'allow_finish_track': True}  # the test ends the track by the service
     node = AlignmentNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
@@ -192,7 +193,7 @@ def test_live_node_beside_a_played_nav2_bag_does_not_fight_amcl(tmp_path: Path):
     from ga_ros.ros.qos import stream_qos
 
     _nav2_bag(tmp_path / 'nav2')
-    domain = 40 + (os.getpid() + 79) % 150
+    domain = domain_id(79)
     node = start_node_process(domain, {
         'inputs': 'odom0', 'odom0.topic': '/odom', 'odom0.track.mode': 'distance',
         'odom0.track.length_m': 5.0, 'publish_markers': False, 'autosave': False,

@@ -8,7 +8,6 @@ pipeline objects (:class:`ga_ros.pipeline.session.AlignmentSession`,
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +30,7 @@ from ga_ros.replay.config import ReplayConfig  # noqa: E402
 from ga_ros.replay.pipeline import replay  # noqa: E402
 from ga_ros.replay.samples import aerial_sample  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros import domains  # noqa: E402
 
 RCLPY_TYPES = {'nav_msgs/msg/Odometry': Odometry, 'sensor_msgs/msg/CameraInfo': CameraInfo,
                'sensor_msgs/msg/CompressedImage': CompressedImage,
@@ -38,7 +38,8 @@ RCLPY_TYPES = {'nav_msgs/msg/Odometry': Odometry, 'sensor_msgs/msg/CameraInfo': 
 
 
 def domain_id(offset: int) -> int:
-    return 40 + (os.getpid() + offset) % 150
+    """This module's domain id for ``offset`` (claimed machine-wide)."""
+    return domains.domain_id(('replay_live', offset))
 
 
 def live_messages(bag: Path, topics: list[str] | None = None) -> list[tuple[str, object]]:

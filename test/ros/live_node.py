@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.harness import NodeClient, start_node_process, stop_process
 
 
@@ -33,7 +34,7 @@ class LiveNode:
         diagnostics (it has restored its state by then)."""
         before = self.client.subscription_gids()
         self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=10)
+        self.proc.wait(timeout=patience(10))
         if while_down is not None:
             while_down()
         self.proc = start_node_process(self.domain_id, self.params, log_path=self.log)

@@ -405,7 +405,7 @@ def test_out_of_range_parameter_is_refused():
 def test_bad_parameter_exits_with_one_line_error(tmp_path):
     proc = start_node_process(domain_id(3), {'solver.tolerance': -1.0}, log_path=tmp_path / 'log')
     try:
-        assert proc.wait(timeout=30) == 1
+        assert proc.wait(timeout=patience(30)) == 1
     finally:
         stop_process(proc)
     text = (tmp_path / 'log').read_text()

@@ -114,7 +114,7 @@ def test_live_node_on_a_played_nav2_bag_places_the_map_like_the_replay(tmp_path)
     b = write_nav2_bag(tmp_path / 'nav2', 3)
     with BagReader(tmp_path / 'nav2') as bag:
         amcl_stamps = [conv.stamp_to_ns(m.msg.header.stamp) for m in bag.messages(['/amcl_pose'])]
-    domain = 40 + (os.getpid() + 83) % 150
+    domain = domain_id(83)
     node = start_node_process(domain, {
         'inputs': 'odom0', 'odom0.topic': '/odom', 'absolutes': 'amcl0',
         'amcl0.topic': '/amcl_pose', 'amcl0.type': 'pose_cov', 'datum': 'fixes',

@@ -265,7 +265,7 @@ def test_play_publishes_tf_and_latched_tf_static(tmp_path):
         while time.monotonic() < end and (proc.poll() is None or not static
                                           or ('map', 'odom') not in pairs()):
             ex.spin_once(timeout_sec=0.05)
-        _, err = proc.communicate(timeout=10)
+        _, err = proc.communicate(timeout=patience(10))
         assert proc.returncode == 0, err
         assert {('map', 'odom'), ('odom', 'base_link')} <= pairs()
         assert static and static[0].transforms[0].child_frame_id == 'laser'

@@ -14,10 +14,11 @@ from bag_fixtures import write_unknown_type_bag
 
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 from ga_ros.ros.deadlines import patience
+from ga_ros.ros.domains import domain_id
 
 pytestmark = pytest.mark.ros
 
-DOMAIN = 40 + os.getpid() % 150
+DOMAIN = domain_id('test_play')
 
 
 def _env() -> dict[str, str]:
@@ -65,7 +66,7 @@ def _receive(ros, proc: subprocess.Popen, want: int, timeout: float = 40.0):
     qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(Odometry, '/ga/measurements', got.append, qos)
     node.create_subscription(Clock, '/clock', clock.append, 100)
-    end = time.monotonic() + timeout
+    end = time.monotonic() + patience(timeout)
     try:
         while time.monotonic() < end and (len(got) < want or proc.poll() is None):
             ex.spin_once(timeout_sec=0.05)
@@ -74,7 +75,7 @@ def _receive(ros, proc: subprocess.Popen, want: int, timeout: float = 40.0):
     finally:
         if proc.poll() is None:
             proc.kill()
-        out, err = proc.communicate(timeout=10)
+        out, err = proc.communicate(timeout=patience(10))
     return got, clock, out, err
 
 
@@ -121,7 +122,7 @@ def test_play_rejects_bad_bags(tmp_path: Path) -> None:
     for bag, expect in ((path, "unknown message type 'my_pkg/msg/Thing'"),
                         (tmp_path / 'missing', 'bag not found')):
         res = subprocess.run([sys.executable, '-m', 'ga_ros.ros.play', str(bag), '--delay', '0'],
-                             env=_env(), capture_output=True, text=True, timeout=60)
+                             env=_env(), capture_output=True, text=True, timeout=patience(60))
         assert res.returncode == 1
         assert expect in res.stderr
 
@@ -164,7 +165,7 @@ def test_play_drives_the_alignment_node(tmp_path: Path, sample: object, ros) -> 
 
         while time.monotonic() < end and first_update() is None:
             ex.spin_once(timeout_sec=0.1)
-        player.wait(timeout=30)
+        player.wait(timeout=patience(30))
         assert player.returncode == 0, player.stderr.read()
     finally:
         if player is not None and player.poll() is None:
@@ -185,8 +186,8 @@ def test_play_says_what_was_not_delivered(tmp_path: Path, sample: object) -> Non
     t0 = time.monotonic()
     res = subprocess.run([sys.executable, '-m', 'ga_ros.ros.play', str(bag), '--rate', '0',
                           '--wait-for-subscribers', '0', '--delivery-timeout', '2'],
-                         env={**_env(), 'ROS_DOMAIN_ID': str((DOMAIN + 77) % 190 + 40)},
-                         capture_output=True, text=True, timeout=120)
+                         env={**_env(), 'ROS_DOMAIN_ID': str(domain_id('test_play nobody'))},
+                         capture_output=True, text=True, timeout=patience(120))
     assert res.returncode == EXIT_NOT_DELIVERED, res.stderr
     assert 'not delivered' in res.stderr and '/ga/measurements: no subscriber' in res.stderr
     assert time.monotonic() - t0 >= 2.0
@@ -229,7 +230,7 @@ def test_play_waits_for_a_subscriber_asking_for_the_history(tmp_path: Path, samp
         ex.spin_once(timeout_sec=0.05)
     if proc.poll() is None:
         proc.kill()
-    _, err = proc.communicate(timeout=10)
+    _, err = proc.communicate(timeout=patience(10))
     assert len(got) == 20, err
     if confirm == 'all':
         assert proc.returncode == 0, err

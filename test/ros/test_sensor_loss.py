@@ -28,6 +28,7 @@ from ga_ros.io.bag_messages import CAMERA_INFO  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
 from ga_ros.replay.samples import BASE_STAMP_NS, camera_info_msg  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
+from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import (  # noqa: E402
     NodeClient,
     domain_id,
@@ -120,7 +121,7 @@ def test_play_camera_into_vo_node_in_sim_time(tmp_path: Path, publisher_qos: str
             except Exception:
                 got = _status(diags, 'stereo VO')
                 raise AssertionError(sorted(got[1].items()) if got else 'no diagnostics') from None
-            out = play.communicate(timeout=30)[0]
+            out = play.communicate(timeout=patience(30))[0]
             assert play.returncode == 0, out
             stamp, v = _status(diags, 'stereo VO')
             received, lost = int(v['pairs_received']), int(v['pairs/lost'])

@@ -12,10 +12,11 @@ import time
 import pytest
 
 from ga_ros.ros.deadlines import patience
+from ga_ros.ros.domains import domain_id
 
 pytestmark = pytest.mark.ros
 
-DOMAIN = 40 + (os.getpid() + 57) % 150
+DOMAIN = domain_id('test_tf2_msgs')
 
 PUBLISHER = textwrap.dedent("""
     import os
@@ -77,7 +78,7 @@ def test_tf_message_crosses_processes() -> None:
         rclpy.try_shutdown(context=ctx)
         if proc.poll() is None:
             proc.kill()
-        _, err = proc.communicate(timeout=10)
+        _, err = proc.communicate(timeout=patience(10))
     assert got, f'no /tf message received; publisher stderr:\n{err}'
     t = got[0].transforms[0]
     assert (t.header.frame_id, t.child_frame_id, t.header.stamp.sec) == ('map', 'odom', 42)

@@ -189,10 +189,10 @@ def test_two_processes_images_in_measurements_out(tmp_path):
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)
             try:
-                proc.wait(timeout=10)
+                proc.wait(timeout=patience(10))
             except subprocess.TimeoutExpired:
                 proc.kill()
-                proc.wait(timeout=10)
+                proc.wait(timeout=patience(10))
         log.close()
     text = (tmp_path / 'vo_node.log').read_text()
     assert 'no CameraInfo' in text and 'dropped' in text
@@ -217,7 +217,7 @@ def test_bad_parameter_exits_with_one_line_error(tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(23)))
     proc = subprocess.run([sys.executable, '-m', 'ga_ros.ros.vo_node', '--ros-args',
                            '--params-file', str(CONFIG), '-p', 'track.mode:=sometimes'],
-                          env=env, capture_output=True, text=True, timeout=60)
+                          env=env, capture_output=True, text=True, timeout=patience(60))
     assert proc.returncode == 1
     assert 'track.mode' in proc.stderr and 'Traceback' not in proc.stderr
 

@@ -12,7 +12,6 @@ of the small simulated survey. Exit code 0 when no case lost a node. ROS is impo
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
@@ -31,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--out', type=Path, default=None, help='also write the table to this file')
     p.add_argument('--domain-base', type=int, default=None, metavar='ID',
                    help='ROS_DOMAIN_ID of the first case, the others follow, 30 domains in '
-                        'turn (default: 200-202, from the pid; at most 232 - 29)')
+                        'turn (at most 232 - 29; default: each case a domain id claimed '
+                        'machine-wide, never one a concurrent test run or benchmark holds)')
     return p
 
 
@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
 def run(args: argparse.Namespace) -> int:
     from ga_ros.errors import InputError
     from ga_ros.ros import fault_catalogue as fc
+    from ga_ros.ros.domains import claimed
     from ga_ros.safe_write import atomic_write
 
     cases = fc.catalogue()
@@ -55,14 +56,16 @@ def run(args: argparse.Namespace) -> int:
     survey = fc.bag_survey(args.bag) if args.bag is not None else None
     size = (f'{len(survey.measurements)} measurements, {survey.n_nodes} nodes'
             if survey is not None else 'small simulated survey')
-    base = (args.domain_base if args.domain_base is not None
-            else 200 + os.getpid() % 3)  # above the 40..189 the test suites use; <= 232
     rows = []
     t0 = time.monotonic()
     for k, (name, case) in enumerate(cases.items()):
         if args.only and name not in args.only:
             continue
-        row = fc.run_case(name, case, survey, base + k % 30)  # run one at a time
+        if args.domain_base is not None:
+            row = fc.run_case(name, case, survey, args.domain_base + k % 30)  # one at a time
+        else:
+            with claimed() as dom:
+                row = fc.run_case(name, case, survey, dom)
         rows.append(row)
         print(f'  {name}: {row.survived}, {row.counted}, kept {row.kept}/{row.expected}'
               + (f', recovered in {row.recover_s:.1f} s' if row.recover_s is not None else ''),

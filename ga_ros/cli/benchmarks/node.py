@@ -25,7 +25,6 @@ run). ROS is imported lazily inside the functions that need it so the CLI works 
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import time
 from dataclasses import dataclass
@@ -48,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--markers', action='store_true', help='also publish the network markers')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--domain-id', type=int, default=None,
-                   help='ROS_DOMAIN_ID for the node and the benchmark (default: from the pid)')
+                   help='ROS_DOMAIN_ID for the node and the benchmark (default: one claimed '
+                        'machine-wide, never one a concurrent run holds)')
     p.add_argument('--log', default=None, help='file for the node process output')
     p.add_argument('--no-capacity', dest='capacity', action='store_false',
                    help='skip the in-process drain-rate measurement')
@@ -94,12 +94,13 @@ class NodeFigures:
 
 def run(args: argparse.Namespace) -> int:
     from ga_ros.errors import InputError
+    from ga_ros.ros.domains import domain_id
 
     if args.tracks < 2 or args.per_swath < 2:
         raise InputError('need --tracks >= 2 and --per-swath >= 2')
     by_track, n_nodes, n_measurements = survey_by_track(args.tracks, args.per_swath,
                                                         args.noise, args.seed)
-    dom = args.domain_id if args.domain_id is not None else 40 + os.getpid() % 150
+    dom = args.domain_id if args.domain_id is not None else domain_id('bench node')
     print(f'aerial survey: {args.tracks} tracks x {2 * args.per_swath} nodes, '
           f'{n_nodes} nodes, {n_measurements} measurements; window {args.window} tracks; '
           f'ROS_DOMAIN_ID {dom}')

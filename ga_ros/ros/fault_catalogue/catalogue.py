@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
+import time
 from pathlib import Path
 
 from ga_ros.ros.fault_catalogue.crash_cases import (
@@ -85,17 +87,20 @@ def catalogue() -> dict[str, Case]:
 
 
 def run_case(name: str, case: Case, survey: Survey | None, dom: int,
-             bag: Path | None = None) -> Row:
+             bag: Path | None = None, budget_s: float | None = None) -> Row:
     """Run one case in a fresh temporary directory (a failing case is a row, not a crash);
-    ``survey`` None: the small simulated one, written in that directory."""
+    ``survey`` None: the small simulated one, written in that directory. ``budget_s``: the
+    seconds the case may take; a wait still open then fails at once (an ``ERROR`` row naming
+    what it waited for), so a case that hangs ends in bounded time."""
     with tempfile.TemporaryDirectory(prefix='ga_fault_') as tmp:
         work = Path(tmp)
         home = os.environ.get('ROS_HOME')
         os.environ['ROS_HOME'] = str(work / 'ros_home')  # the nodes' default state: the case's
         try:
-            return case(Ctx(work, dom, survey or small_survey(work)))
+            deadline = math.inf if budget_s is None else time.monotonic() + budget_s
+            return case(Ctx(work, dom, survey or small_survey(work), deadline))
         except Exception as exc:  # noqa: BLE001 - a failed case is a row
-            return Row(name, 'ERROR', '-', 0, 0, note=f'{type(exc).__name__}: {exc}'[:80])
+            return Row(name, 'ERROR', '-', 0, 0, note=f'{type(exc).__name__}: {exc}'[:160])
         finally:
             if home is None:
                 os.environ.pop('ROS_HOME', None)

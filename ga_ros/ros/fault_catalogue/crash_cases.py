@@ -4,7 +4,6 @@ damaged snapshots and journals, a full disk, unusable and foreign state paths.""
 from __future__ import annotations
 
 import signal
-import time
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -37,13 +36,14 @@ def killed_during_play(ctx: Ctx, name: str, params: dict[str, object], sig: int,
         if again_during_recovery:
             n_lines = live.log.read_text(errors='replace').count('restoring the state')
             live.proc = start_node_process(ctx.dom, live.params, log_path=live.log)
-            end = time.monotonic() + 120
-            while (live.log.read_text(errors='replace').count('restoring the state') == n_lines
-                   and time.monotonic() < end):
-                time.sleep(0.01)
+            live.client.expect_restart()
+            live.client.spin_until(
+                lambda: live.log.read_text(errors='replace').count('restoring the state')
+                > n_lines, 120, 'the restarted node to log that it restores the state',
+                live.proc)
             live.kill()                                   # while it restores
         recover_s = live.restart()
-        out, _ = player.communicate(timeout=1800)
+        out, _ = player.communicate(timeout=ctx.remaining(1800))
         got = live.final_path(ctx.survey.n_nodes)
         return Row(name, f'{live.survived()}; {clean}', f'play exit {player.returncode}',
                    ctx.survey.n_nodes, nodes_kept(ctx.survey.T_ref, got), recover_s,

@@ -18,6 +18,7 @@ from rclpy.duration import Duration
 from ga_ros import topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.ros import conversions as conv
+from ga_ros.ros.deadlines import patience
 from ga_ros.ros.fault_catalogue.survey import Ctx
 from ga_ros.ros.harness import HarnessTimeout, NodeClient, start_node_process, stop_process
 
@@ -40,9 +41,30 @@ class Live:
         self.params = {**BASE_PARAMS, **(params or {})}
         self.log = ctx.work / 'node.log'
         self.proc = start_node_process(ctx.dom, self.params, log_path=self.log)
-        self.client = NodeClient(ctx.dom)
+        try:
+            self.client = NodeClient(ctx.dom)
+        except BaseException:
+            stop_process(self.proc)
+            raise
+        self.client.deadline = ctx.deadline
+        self.client.diag_seq_drops_allowed = 0      # cross-talk is an error
         self.pub = self.client.pub
-        self.wait()
+        try:
+            self.wait()
+            self.alone()
+        except BaseException:    # the case's try/finally does not hold this Live yet
+            self.close()
+            raise
+
+    def alone(self) -> None:
+        """Raise :class:`HarnessTimeout` if the domain holds another alignment node (another
+        process uses this domain id: its measurements, services and diagnostics would mix with
+        this case's)."""
+        names = [n for n, _ in self.client.node.get_node_names_and_namespaces()
+                 if n == 'alignment_node']
+        if len(names) > 1:
+            raise HarnessTimeout(f'cross-talk: {len(names)} alignment nodes on ROS domain '
+                                 f'{self.ctx.dom}; another process uses this domain id')
 
     def wait(self, timeout: float = 60.0) -> None:
         c = self.client
@@ -52,7 +74,7 @@ class Live:
 
     def kill(self, sig: int = signal.SIGKILL) -> int:
         self.proc.send_signal(sig)
-        return self.proc.wait(timeout=60)
+        return self.proc.wait(timeout=self.ctx.remaining(patience(60)))
 
     def restart(self) -> float:
         """Start the node again; returns the seconds until it holds every node it held when
@@ -63,6 +85,7 @@ class Live:
         before = max(self.client.diag_int('nodes'), 0)
         t0 = time.monotonic()
         self.proc = start_node_process(self.ctx.dom, self.params, log_path=self.log)
+        self.client.expect_restart()
         self.client.diagnostics = {}
         self.wait()
         self.client.spin_until(lambda: self.client.diag_int('nodes') >= before, 1800,
@@ -70,12 +93,24 @@ class Live:
         return time.monotonic() - t0
 
     def send(self, msgs: list[Odometry], wait: bool = True) -> None:
+        """Publish ``msgs``; ``wait``: until every matched reader acknowledged them (a killed
+        node's reader counts until its lease ends).
+
+        Raises
+        ------
+        HarnessTimeout
+            The readers did not acknowledge them within the deadline: delivery stalled.
+        """
         for k, msg in enumerate(msgs):
             self.pub.publish(msg)
             if k % 500 == 499:
                 self.client.executor.spin_once(timeout_sec=0.0)
         if wait:
-            self.pub.wait_for_all_acked(Duration(seconds=60))
+            timeout = self.ctx.remaining(patience(60))
+            t0 = time.monotonic()
+            if not self.pub.wait_for_all_acked(Duration(seconds=timeout)):
+                raise HarnessTimeout(f'{len(msgs)} messages not acknowledged by the node after '
+                                     f'{time.monotonic() - t0:.0f} s: DDS delivery stalled')
 
     def send_ms(self, ms: list[Measurement], wait: bool = True) -> None:
         self.send([conv.measurement_to_odometry(m) for m in ms], wait)
@@ -91,13 +126,17 @@ class Live:
                      f'{n} accepted', self.proc)
 
     def final_path(self, n: int, timeout: float = 120.0) -> np.ndarray:
+        """The last path received once it holds ``n`` adjusted nodes (after ``timeout``: the
+        last one received, the row then counts what it lacks; the case's time budget spent:
+        :class:`HarnessTimeout`)."""
         c = self.client
         try:
             c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= n
                          and c.diag_int('dead_reckoned_nodes') == 0
                          and c.diag_int('nodes') >= n, timeout, 'final path')
         except HarnessTimeout:
-            pass
+            if time.monotonic() > self.ctx.deadline:
+                raise
         return conv.path_msg_to_poses(c.paths[-1][1]) if c.paths else np.zeros((0, 4, 4))
 
     def survived(self) -> str:

@@ -96,8 +96,9 @@ def case_play_early(ctx: Ctx) -> Row:
     proc = start_node_process(ctx.dom, BASE_PARAMS, log_path=log)
     time.sleep(0.1)
     play = start_play(ctx)
-    out, _ = play.communicate(timeout=1800)
+    out, _ = play.communicate(timeout=ctx.remaining(1800))
     client = NodeClient(ctx.dom)
+    client.deadline = ctx.deadline
     try:
         c = client
         n = ctx.survey.n_nodes
@@ -130,6 +131,7 @@ def case_play_clock_late_node(ctx: Ctx) -> Row:
 
     from ga_ros.ros.qos import measurement_qos
     client = NodeClient(ctx.dom)
+    client.deadline = ctx.deadline
     log = ctx.work / 'node.log'
     proc = None
     play = start_play(ctx, '--delay', '0')
@@ -139,7 +141,7 @@ def case_play_clock_late_node(ctx: Ctx) -> Row:
                      'play publishing')           # (the client's own publisher is one)
         proc = start_node_process(ctx.dom, {**BASE_PARAMS, 'use_sim_time': True},
                                   log_path=log)
-        out, _ = play.communicate(timeout=1800)
+        out, _ = play.communicate(timeout=ctx.remaining(1800))
         n = ctx.survey.n_nodes
         got = _final_path(c, n)
         survived = 'yes' if proc.poll() is None and not traceback_in(log) else 'NO'
@@ -149,7 +151,7 @@ def case_play_clock_late_node(ctx: Ctx) -> Row:
         c.node.create_subscription(Odometry, '/ga/measurements', lambda msg: None,
                                    measurement_qos(transient_local=True))
         silent = start_play(ctx, '--delay', '0', '--delivery-timeout', '3')
-        silent.communicate(timeout=1800)
+        silent.communicate(timeout=ctx.remaining(1800))
         return Row('sim-time node started after ga-ros play --clock began', survived,
                    f'{confirmed}; play exit {play.returncode}; unconfirmed play exit '
                    f'{silent.returncode}', n, nodes_kept(ctx.survey.T_ref, got))

@@ -64,6 +64,7 @@ def case_two_nodes_one_state(ctx: Ctx) -> Row:
     persistence; the first keeps every node, through a ``kill -9`` and restart too."""
     live = Live(ctx, {})
     second_log = ctx.work / 'second.log'
+    live.client.diag_seq_drops_allowed = None    # two nodes on the domain: the point here
     second = start_node_process(ctx.dom, {'diagnostics_period_sec': 0.2},
                                 log_path=second_log)
     try:
@@ -76,6 +77,7 @@ def case_two_nodes_one_state(ctx: Ctx) -> Row:
             live.client.executor.spin_once(timeout_sec=0.05)
         refused = 'in use by pid' in text and 'WITHOUT persistence' in text
         stop_process(second)
+        live.client.diag_seq_drops_allowed = live.client.diag_seq_drops
         clean = second.returncode == 0 and 'Traceback' not in second_log.read_text(
             errors='replace')
         k = len(ctx.ms) // 2
@@ -169,24 +171,24 @@ def case_another_survey(ctx: Ctx) -> Row:
     starts afresh and keeps every node; play exits 0 both times."""
     from ga_ros.pipeline.journal import default_state_file
     (ctx.work / 'first').mkdir()
-    first = Ctx(ctx.work, ctx.dom, small_survey(ctx.work / 'first', seed=13))
+    first = Ctx(ctx.work, ctx.dom, small_survey(ctx.work / 'first', seed=13), ctx.deadline)
     live = Live(first, {})
     player = None
     try:
         player = start_play(first)
-        out, _ = player.communicate(timeout=1800)
+        out, _ = player.communicate(timeout=ctx.remaining(1800))
         first_exit = player.returncode
         first_kept = nodes_kept(first.survey.T_ref, live.final_path(first.survey.n_nodes))
         live.kill(signal.SIGINT)
         live.client.paths.clear()
         live.ctx = ctx
         recover_s = live.restart()
-        end = time.monotonic() + 1.0            # the resumed survey's path, then forget it
-        while time.monotonic() < end:
-            live.client.executor.spin_once(timeout_sec=0.05)
-        live.client.paths.clear()
+        c = live.client                          # the resumed survey's path, then forget it
+        c.spin_until(lambda: c.paths and len(c.paths[-1][1].poses) >= first.survey.n_nodes,
+                     60, "the resumed first survey's path", live.proc)
+        c.paths.clear()
         player = start_play(ctx)
-        out, _ = player.communicate(timeout=1800)
+        out, _ = player.communicate(timeout=ctx.remaining(1800))
         live.wait_accepted(len(ctx.ms))          # counted afresh by the new survey
         got = live.final_path(ctx.survey.n_nodes)
         folders = list(default_state_file('/', 'alignment_node').parent.glob('state.survey-*'))

@@ -3,6 +3,8 @@ returns (:class:`Row`) and the reference paths it compares with."""
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,15 +83,22 @@ class Row:
 
 @dataclass
 class Ctx:
-    """What a case gets: its work directory, ROS domain and survey."""
+    """What a case gets: its work directory, ROS domain, survey and the ``time.monotonic()``
+    by which it must be done (its waits fail at once after it; default none)."""
 
     work: Path
     dom: int
     survey: Survey
+    deadline: float = math.inf
 
     @property
     def ms(self) -> list[Measurement]:
         return self.survey.measurements
+
+    def remaining(self, seconds: float) -> float:
+        """A timeout of ``seconds``, cut to what is left before :attr:`deadline` (at least
+        1 s, so that a late wait still fails by its timeout rather than blocking)."""
+        return max(1.0, min(seconds, self.deadline - time.monotonic()))
 
 
 #: A case: runs in its context and returns its row.

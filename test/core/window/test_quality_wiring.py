@@ -28,6 +28,7 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.replay.samples import aerial_sample
+from ga_ros.ros import domains
 
 
 @pytest.fixture(scope='module')
@@ -259,7 +260,6 @@ def test_node_diagnostics_and_markers_carry_the_quality(sample):
     """The alignment node with ``quality`` and the w-test gate: /diagnostics key/values hold the
     last update's QC figures, the markers' view the per-connection |w|."""
     pytest.importorskip('rclpy')
-    import os
 
     import rclpy
     from rclpy.parameter import Parameter
@@ -270,7 +270,7 @@ def test_node_diagnostics_and_markers_carry_the_quality(sample):
 
     ms = corrupt(sample.measurements, 5)
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=100 + os.getpid() % 100)
+    rclpy.init(context=ctx, domain_id=domains.domain_id('quality_wiring'))
     node = AlignmentNode(context=ctx, parameter_overrides=[
         Parameter('window_tracks', value=2), Parameter('quality', value=True),
         Parameter('gate', value='w-test'), Parameter('diagnostics_period_sec', value=0.0)])
