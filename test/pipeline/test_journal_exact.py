@@ -32,8 +32,8 @@ from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 
 TRACKS, PER = 12, 8
 #: The defaults (on this survey the refinement's drift passes its threshold once: a refinement
-#: starts after track 10 and is installed at the end of input), the plain window without background refinements, and a refinement after
-#: every track (a refinement pending at every cut).
+#: starts after track 10 and is installed at the end of input), the plain window without
+#: background refinements, and a refinement after every track (one pending at every cut).
 CONFIGS = {'defaults': AlignerConfig(),
            'no_refinement': AlignerConfig(refine_every_tracks=0),
            'every_track': AlignerConfig(refine_relinearize_sigma=0.0, refine_executor='inline')}

@@ -316,12 +316,12 @@ def result_of_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> SolveResult:
     col = np.array(arrays['col'], dtype=np.int64)
     d, n_blocks = int(meta['d']), int(meta['n_blocks'])
     if free.shape != ids.shape or col.shape != ids.shape or int(free.sum()) != n_blocks:
-        raise ValueError('the last adjustment\'s unknowns do not match its nodes')
+        raise ValueError("the last adjustment's unknowns do not match its nodes")
     pattern = BlockPattern(np.array(arrays['brow'], dtype=np.int64),
                            np.array(arrays['bcol'], dtype=np.int64), d, n_blocks)
     data = np.array(arrays['N'], dtype=float)
     if data.shape != (pattern.nnz,):
-        raise ValueError(f'the last adjustment\'s normal matrix has {data.size} values, its '
+        raise ValueError(f"the last adjustment's normal matrix has {data.size} values, its "
                          f'pattern {pattern.nnz}')
     system = _NormalSystem(ids, free, col, d, pattern, data, None)
     system.coords = T[free, :3, 3]
