@@ -277,11 +277,13 @@ class _NormalSystem:
         return 0.5 * (C + C.T)
 
 
-#: The scalar fields of a :class:`SolveResult` that :func:`result_arrays` stores, with their
-#: JSON types.
-_SCALARS = {'converged': bool, 'iterations': int, 'reason': str, 'cost': float,
-            'sigma0_sq': float, 'redundancy': int, 'n_equations': int, 'n_observations': int,
-            'n_unknowns': int, 'model': str, 'factorisations': int, 'factor_offset': float}
+#: The scalar fields of a :class:`SolveResult` that :func:`result_arrays` stores as JSON, with
+#: their types ...
+_SCALARS = {'converged': bool, 'iterations': int, 'reason': str, 'redundancy': int,
+            'n_equations': int, 'n_observations': int, 'n_unknowns': int, 'model': str,
+            'factorisations': int}
+#: ... and those it stores in the array ``figures`` (floats, NaN possible).
+_FIGURES = ('cost', 'sigma0_sq', 'factor_offset')
 
 
 def result_arrays(res: SolveResult) -> tuple[dict, dict[str, np.ndarray]] | None:
@@ -295,14 +297,16 @@ def result_arrays(res: SolveResult) -> tuple[dict, dict[str, np.ndarray]] | None
     if sysm is None:
         return None
     meta = {name: _SCALARS[name](getattr(res, name)) for name in _SCALARS}
-    meta.update(cost_history=[float(c) for c in res.cost_history], d=int(sysm.d),
-                n_blocks=int(sysm.pattern.n_blocks), weights=res.weights is not None)
+    meta.update(d=int(sysm.d), n_blocks=int(sysm.pattern.n_blocks),
+                weights=res.weights is not None)
     brow, bcol = sysm.pattern.block_lower
     arrays = {'ids': np.asarray(res.node_ids, np.int64), 'T': np.asarray(res.T_world_node),
               'residuals': np.asarray(res.residuals), 'adjusted': np.asarray(res.adjusted),
               'weights': (np.zeros(0) if res.weights is None else np.asarray(res.weights)),
               'free': np.asarray(sysm.free, bool), 'col': np.asarray(sysm.col, np.int64),
               'brow': np.asarray(brow, np.int64), 'bcol': np.asarray(bcol, np.int64),
+              'figures': np.array([getattr(res, name) for name in _FIGURES], dtype=float),
+              'cost_history': np.asarray(res.cost_history, dtype=float),
               'N': np.asarray(sysm.data, float)}
     return meta, arrays
 
@@ -326,7 +330,9 @@ def result_of_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> SolveResult:
     system = _NormalSystem(ids, free, col, d, pattern, data, None)
     system.coords = T[free, :3, 3]
     scalars = {name: meta[name] for name in _SCALARS}
-    return SolveResult(node_ids=ids, T_world_node=T, cost_history=list(meta['cost_history']),
+    scalars.update(zip(_FIGURES, np.asarray(arrays['figures'], dtype=float).tolist()))
+    return SolveResult(node_ids=ids, T_world_node=T,
+                       cost_history=np.asarray(arrays['cost_history'], dtype=float).tolist(),
                        residuals=np.array(arrays['residuals'], dtype=float),
                        adjusted=np.array(arrays['adjusted'], dtype=float),
                        weights=(np.array(arrays['weights'], dtype=float) if meta['weights']
