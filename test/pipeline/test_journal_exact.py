@@ -121,6 +121,7 @@ class Recorded:
     state: tuple
     window_cov: np.ndarray
     pending: dict | None
+    held: list
 
 
 def record(live: AlignmentSession, name: str, entry: int, folder: Path) -> Recorded:
@@ -134,7 +135,12 @@ def record(live: AlignmentSession, name: str, entry: int, folder: Path) -> Recor
     al = live.aligner
     return Recorded(name, entry, folder, (meta, {k: np.array(v) for k, v in arrays.items()},
                                           al.corrected_path().T_world_node.copy()),
-                    window_cov(al), al.refinement_state())
+                    window_cov(al), al.refinement_state(), held(live))
+
+
+def held(session: AlignmentSession) -> list:
+    """The measurements the gap healer holds (nodes, stamp, arrival number)."""
+    return [(h.m.src_id, h.m.dst_id, h.m.stamp_ns, h.seq) for h in session.gaps.held]
 
 
 def window_cov(al) -> np.ndarray:
@@ -144,7 +150,9 @@ def window_cov(al) -> np.ndarray:
     return al.covariances(ids) if ids.size else np.zeros((0, 6, 6))
 
 
-def assert_same_as_recorded(al, rec: Recorded) -> None:
+def assert_same_as_recorded(session: AlignmentSession, rec: Recorded) -> None:
+    al = session.aligner
+    assert held(session) == rec.held, rec.name
     meta, arrays = state_arrays(al.state)
     assert _without_rejections(meta) == _without_rejections(rec.state[0]), rec.name
     assert arrays.keys() == rec.state[1].keys()
@@ -174,6 +182,8 @@ def _cuts(live: AlignmentSession, entries: list, finish_after: int, tmp: Path) -
             name = 'track_end'
         elif now != base and not any(c.name == 'compaction' for c in cuts) and updates > 6:
             name = 'compaction'
+        elif len(live.gaps.held) == 3:
+            name = 'held'
         if name is not None:
             cuts.append(record(live, f'{name}@{k}', k, tmp / f'cut{k}'))
         n_updates, base = updates, now
@@ -223,18 +233,47 @@ def test_recovery_at_any_cut_is_the_uninterrupted_run_bit_for_bit(tmp_path, conf
         assert all(pending[1:-1])
     elif config == 'defaults':   # the drift passed its threshold after track 10
         assert pending[-2] and not pending[-1]
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
+    live.close()
+
+
+def _resume_each(cuts: list, entries: list, cfg: AlignerConfig, compact: int, mode: str,
+                 finish_after: int) -> None:
+    """Resume a session from each cut's files: its state is the recorded one, and once given
+    the rest of the input, the end's."""
     end = cuts[-1]
     for cut in cuts:
         s = _resumed(cut.folder, cfg, compact, mode)
         try:
-            assert_same_as_recorded(s.aligner, cut)         # the state at the cut
+            assert_same_as_recorded(s, cut)         # the state at the cut
             feed(s, entries, cut.entry + 1 if cut.entry < len(entries) else cut.entry,
                  len(entries), finish_after)
             if cut is not end:
                 s.finish_track('end_of_input')
-            assert_same_as_recorded(s.aligner, end)         # and at the end
+            assert_same_as_recorded(s, end)         # and at the end
         finally:
             s.close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+@pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
+def test_recovery_while_measurements_are_held_is_exact(tmp_path, compact, mode):
+    """A track ended by hand in its middle: the rest of it is refused, the next track's
+    measurements are held (their source node unknown) until a bridge joins them; killed while
+    they are held, the held queue and the state come back as they were, and the end is the
+    uninterrupted run's."""
+    cfg = CONFIGS['no_refinement']
+    entries = survey()
+    finish_after = next(k for k, e in enumerate(entries)
+                        if isinstance(e, Measurement) and e.dst_id == 7 * PER + 4)
+    live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
+                                               compact_records=compact))
+    live.resume()
+    cuts = _cuts(live, entries, finish_after, tmp_path)
+    assert 'held' in {c.name.split('@')[0] for c in cuts}
+    assert live.counts.bridges == 1 and live.counts.rejected
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
     live.close()
 
 
