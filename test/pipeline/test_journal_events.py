@@ -28,10 +28,8 @@ from ga_ros.pipeline.journal import (
 from ga_ros.pipeline.journal.records import encode_datum, encode_track_end
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 
-# a refinement after every track (refine_relinearize_sigma 0): recovered from a compacted
-# journal's base alone, the plain window's frozen covariances differ from the live ones in the
-# 4th digit (the restored last adjustment is recomputed; also on main with
-# refine_every_tracks=0), which every-track refinements replace
+# a refinement after every track (refine_relinearize_sigma 0); the defaults and the plain window
+# (refine_every_tracks=0), killed at many points and resumed to the end: test_journal_exact.py
 CFG = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=1,
                     refine_executor='inline', fix_gate_prob=0.0, refine_relinearize_sigma=0.0)
 

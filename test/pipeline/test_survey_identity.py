@@ -138,6 +138,13 @@ def test_what_belongs_to_a_survey(surveys) -> None:
                                  h.stamp_ns + 1))[0]
     assert not continues(al, type(h)(h.src_id, h.dst_id, h.src_track, h.dst_track,
                                      h.z + 1e-6, h.cov, h.stamp_ns))[0]
+    # another source's measurement of the newest motion (a second odometry): the same survey;
+    # of an older motion, another survey (as above)
+    n = next(x for x in reversed(a[:k]) if x.dst_id == al.newest_node_id)
+    assert continues(al, type(n)(n.src_id, n.dst_id, n.src_track, n.dst_track, n.z + 1e-3,
+                                 n.cov, n.stamp_ns, n.kind, 'odom1'))[0]
+    assert not continues(al, type(n)(n.src_id, n.dst_id, n.src_track, n.dst_track, n.z + 1e-3,
+                                     n.cov, n.stamp_ns + 1, n.kind, 'odom1'))[0]
     # a new connection to a held node from an unknown one: the node's stamp decides
     assert continues(al, type(h)(10**6, h.dst_id, 9, h.dst_track, h.z, h.cov, h.stamp_ns))[0]
     assert not continues(al, type(h)(10**6, h.dst_id, 9, h.dst_track, h.z, h.cov,

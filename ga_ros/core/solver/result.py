@@ -277,3 +277,66 @@ class _NormalSystem:
         rows = np.concatenate([np.arange(c * d, (c + 1) * d) for c in cols])
         C = X[rows]
         return 0.5 * (C + C.T)
+
+
+#: The scalar fields of a :class:`SolveResult` that :func:`result_arrays` stores as JSON, with
+#: their types ...
+_SCALARS = {'converged': bool, 'iterations': int, 'reason': str, 'redundancy': int,
+            'n_equations': int, 'n_observations': int, 'n_unknowns': int, 'model': str,
+            'factorisations': int}
+#: ... and those it stores in the array ``figures`` (floats, NaN possible).
+_FIGURES = ('cost', 'sigma0_sq', 'factor_offset')
+
+
+def result_arrays(res: SolveResult) -> tuple[dict, dict[str, np.ndarray]] | None:
+    """A solve's outcome as JSON fields and named arrays, its normal matrix ``N`` included as
+    its values (the lower triangle on its block pattern: the values its covariances come from,
+    where they were factored), so that :func:`result_of_arrays` gives back a result whose
+    covariances and sequential priors are the same bit for bit (``N`` factored anew on first
+    use: the same values, the same ordering of the same pattern). ``None`` for a result without
+    a normal matrix. Its time (``seconds``) and quality report are not kept."""
+    sysm = res._system
+    if sysm is None:
+        return None
+    meta = {name: _SCALARS[name](getattr(res, name)) for name in _SCALARS}
+    meta.update(d=int(sysm.d), n_blocks=int(sysm.pattern.n_blocks),
+                weights=res.weights is not None)
+    brow, bcol = sysm.pattern.block_lower
+    arrays = {'ids': np.asarray(res.node_ids, np.int64), 'T': np.asarray(res.T_world_node),
+              'residuals': np.asarray(res.residuals), 'adjusted': np.asarray(res.adjusted),
+              'weights': (np.zeros(0) if res.weights is None else np.asarray(res.weights)),
+              'free': np.asarray(sysm.free, bool), 'col': np.asarray(sysm.col, np.int64),
+              'brow': np.asarray(brow, np.int64), 'bcol': np.asarray(bcol, np.int64),
+              'figures': np.array([getattr(res, name) for name in _FIGURES], dtype=float),
+              'cost_history': np.asarray(res.cost_history, dtype=float),
+              'N': np.asarray(sysm.data, float)}
+    return meta, arrays
+
+
+def result_of_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> SolveResult:
+    """Inverse of :func:`result_arrays` (its arrays by the same names); ``N`` is factored on
+    first use. Raises ``ValueError`` / ``KeyError`` for inconsistent input."""
+    ids = np.array(arrays['ids'], dtype=np.int64)
+    T = np.array(arrays['T'], dtype=float).reshape(ids.size, 4, 4)
+    free = np.array(arrays['free'], dtype=bool)
+    col = np.array(arrays['col'], dtype=np.int64)
+    d, n_blocks = int(meta['d']), int(meta['n_blocks'])
+    if free.shape != ids.shape or col.shape != ids.shape or int(free.sum()) != n_blocks:
+        raise ValueError("the last adjustment's unknowns do not match its nodes")
+    pattern = BlockPattern(np.array(arrays['brow'], dtype=np.int64),
+                           np.array(arrays['bcol'], dtype=np.int64), d, n_blocks)
+    data = np.array(arrays['N'], dtype=float)
+    if data.shape != (pattern.nnz,):
+        raise ValueError(f"the last adjustment's normal matrix has {data.size} values, its "
+                         f'pattern {pattern.nnz}')
+    system = _NormalSystem(ids, free, col, d, pattern, data, None)
+    system.coords = T[free, :3, 3]
+    scalars = {name: meta[name] for name in _SCALARS}
+    scalars.update(zip(_FIGURES, np.asarray(arrays['figures'], dtype=float).tolist()))
+    return SolveResult(node_ids=ids, T_world_node=T,
+                       cost_history=np.asarray(arrays['cost_history'], dtype=float).tolist(),
+                       residuals=np.array(arrays['residuals'], dtype=float),
+                       adjusted=np.array(arrays['adjusted'], dtype=float),
+                       weights=(np.array(arrays['weights'], dtype=float) if meta['weights']
+                                else None),
+                       seconds=0.0, _system=system, **scalars)

@@ -34,6 +34,7 @@ import scipy.sparse as sp
 
 from ga_ros.core.fixes import FixBook
 from ga_ros.core.quality.online_variance import OnlineVarianceComponents, OnlineVarianceConfig
+from ga_ros.core.solver.result import result_arrays, result_of_arrays
 from ga_ros.core.window.admission import measurement_fingerprints
 from ga_ros.core.window.aligner import TrackWindowAligner
 from ga_ros.core.window.config import AlignerConfig
@@ -61,6 +62,9 @@ READ_VERSIONS = (2, 3, 4)
 _PREFIX = struct.Struct('<12sIQI')
 _ALIGN = 64
 _LEGACY_VERSION = 1  # the .npz snapshots written before this module
+#: Prefix of the arrays of the last window adjustment (:func:`~ga_ros.core.solver.result.
+#: result_arrays`).
+_LAST = 'last_adj_'
 
 
 @dataclass(frozen=True)
@@ -222,6 +226,11 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
     }
     fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
     meta['fixes'] = fix_meta
+    last_arrays = {}
+    last = None if st.last_result is None else result_arrays(st.last_result)
+    if last is not None:  # the last adjustment as it was (its normal matrix's values)
+        meta['last_adjustment'] = last[0]
+        last_arrays = {f'{_LAST}{k}': v for k, v in last[1].items()}
     vc_arrays = {}
     if st.variance is not None:  # the online variance components' book
         book = st.variance.arrays()
@@ -239,7 +248,7 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         fingerprint=st.fp.a,
         weighted_idx=st.T_weighted[0].astype(np.int64), weighted_T=st.T_weighted[1],
         **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past), **fix_arrays,
-        **vc_arrays)
+        **vc_arrays, **last_arrays)
     return meta, arrays
 
 
@@ -416,7 +425,13 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])
-    if np.asarray(arrays['last_window']).size:  # the last adjustment, recomputed when needed
+    if 'last_adjustment' in meta:  # the last adjustment as it was
+        st.last_window = np.array(arrays['last_window'], dtype=np.int64)
+        st.last_result = result_of_arrays(meta['last_adjustment'], {
+            k[len(_LAST):]: v for k, v in arrays.items() if k.startswith(_LAST)})
+    elif np.asarray(arrays['last_window']).size:
+        # older files: the last adjustment, recomputed when needed (its covariances then come
+        # from a solve at the saved estimate, not from the matrix the update factored)
         window = st.finished_order()[-window_tracks:]
         st.last_window = np.array(sorted(i for t in window for i in st.track_nodes[t]),
                                   dtype=np.int64)

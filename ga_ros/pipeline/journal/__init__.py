@@ -18,6 +18,11 @@ A measurement's record keeps its source (``Measurement.source``, so a restart ke
 groups of the variance factors): flag :data:`SOURCED` of the kind byte, the name in the strict
 lower triangle of ``cov`` (its upper triangle holds the symmetric covariance).
 
+A measurement held by the gap healer (its source node unknown) is journaled on arrival with
+flag :data:`HELD`; taken later, it is journaled again as taken; dropped from the held queue
+without being taken (refused), again with :data:`DROPPED` (both flags), so a recovery holds
+exactly what the live healer held.
+
 Besides measurements, the journal holds every other change of state, in order:
 
 * every absolute fix the aligner accepted (:mod:`ga_ros.core.fixes`), as four or five records
@@ -53,6 +58,7 @@ geodetic datum, the default path), :mod:`.lock` (one writer per state file) and
 
 from ga_ros.pipeline.journal.lock import StateLock, lock_path
 from ga_ros.pipeline.journal.records import (
+    DROPPED,
     HELD,
     RECORD,
     RECORD_V1,
@@ -83,6 +89,7 @@ from ga_ros.pipeline.journal.writer import MeasurementJournal
 
 __all__ = [
     'DEFAULT_STATE_FILE',
+    'DROPPED',
     'StateLock',
     'default_state_file',
     'lock_path',

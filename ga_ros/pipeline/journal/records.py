@@ -86,6 +86,10 @@ REVERSED = 0x40
 #: strict lower triangle of ``cov`` (the covariance is symmetric: its upper triangle holds it
 #: all). Set only for a named source of an exactly symmetric covariance.
 SOURCED = 0x20
+#: Both :data:`HELD` and :data:`REVERSED`: a held measurement that left the held queue without
+#: reaching the aligner (refused: its source node can no longer come, a duplicate), written when
+#: it is dropped, so that a recovery does not hold it again.
+DROPPED = HELD | REVERSED
 #: The kind byte without its flag bits (:data:`HELD`, :data:`REVERSED`, :data:`SOURCED`).
 KIND_MASK = 0x1F
 #: The strict lower triangle of a 6x6 ``cov`` (row, column indices): where a source is kept.
@@ -265,19 +269,25 @@ def records_to_measurements(recs: np.ndarray) -> list[Measurement]:
 
 def held_records(recs: np.ndarray) -> np.ndarray:
     """Which journal records are held measurements (bool per record)."""
-    return (np.asarray(recs['kind']) & HELD) != 0
+    return (np.asarray(recs['kind']) & DROPPED) == HELD
+
+
+def dropped_records(recs: np.ndarray) -> np.ndarray:
+    """Which journal records drop a held measurement from the held queue (:data:`DROPPED`;
+    bool per record)."""
+    return (np.asarray(recs['kind']) & DROPPED) == DROPPED
 
 
 def as_taken(recs: np.ndarray) -> list[Measurement]:
     """Journal records as the aligner took them (those marked :data:`REVERSED` reversed)."""
-    rev = ((np.asarray(recs['kind']) & REVERSED) != 0).tolist()
+    rev = ((np.asarray(recs['kind']) & DROPPED) == REVERSED).tolist()
     return [reversed_measurement(m) if r else m
             for m, r in zip(records_to_measurements(recs), rev)]
 
 
 def reversed_records(recs: np.ndarray) -> list[Measurement]:
     """The measurements (as they arrived) that the aligner took reversed."""
-    return records_to_measurements(recs[(np.asarray(recs['kind']) & REVERSED) != 0])
+    return records_to_measurements(recs[(np.asarray(recs['kind']) & DROPPED) == REVERSED])
 
 
 def last_datum(recs: np.ndarray) -> tuple[float, float, float] | None:

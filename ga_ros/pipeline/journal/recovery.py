@@ -26,6 +26,7 @@ from ga_ros.pipeline.journal.records import (
     Datum,
     Entry,
     TrackEnd,
+    dropped_records,
     held_records,
     is_event,
     last_datum,
@@ -64,7 +65,7 @@ def held_queue(recs: np.ndarray, arrivals: int = 0, newest_stamp_ns: int = -2**6
     """The held queue to restore after a restart: the held records that no later record
     admitted (matched by nodes and stamp), with their arrival numbers (counted on from
     ``arrivals``, the newest stamp from ``newest_stamp_ns``: a compacted journal's)."""
-    held = held_records(recs)
+    held, dropped = held_records(recs), dropped_records(recs)
     bridge = (recs['kind'] & KIND_MASK) == KINDS.index('bridge')
     src, dst, stamp = (recs[f].tolist() for f in ('src_id', 'dst_id', 'stamp_ns'))
     pending: dict[tuple[int, int, int], list[int]] = {}
@@ -78,8 +79,10 @@ def held_queue(recs: np.ndarray, arrivals: int = 0, newest_stamp_ns: int = -2**6
             pending.setdefault(key, []).append(k)
         else:
             done = pending.get(key)
-            if done:  # a held measurement taken later: not an arrival
+            if done:  # a held measurement taken or dropped later: not an arrival
                 seq.pop(done.pop(0))
+                continue
+            if dropped[k]:  # its held record is before the journal's base
                 continue
         out.arrivals += 1
         out.newest_stamp_ns = max(out.newest_stamp_ns, stamp[k])
@@ -201,7 +204,8 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
     out.datum = last_datum(records)
-    tail = tail[~held_records(tail)]  # held measurements never reached the aligner
+    # held (or dropped) measurements never reached the aligner
+    tail = tail[~held_records(tail) & ~dropped_records(tail)]
     if tail.size:
         out.records_replayed, out.records_rejected = replay_entries(
             aligner, records_to_entries(tail, taken=True))

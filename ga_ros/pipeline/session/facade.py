@@ -19,6 +19,7 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import save_state, state_chunks
 from ga_ros.errors import GaError, InputError, PersistenceError, Reason, SolverError
 from ga_ros.pipeline.journal import (
+    DROPPED,
     HELD,
     REVERSED,
     Datum,
@@ -283,6 +284,7 @@ class AlignmentSession:
             gaps.held.popleft()
             exc = unknown_source(h)
             self.reject(exc)
+            self._journal(h, DROPPED)
             taken.notes.append(f'held measurement rejected: {exc}')
 
     def _pass(self, taken: Taken) -> bool:
@@ -302,12 +304,14 @@ class AlignmentSession:
             if route in (Route.HOPELESS, Route.DUPLICATE):
                 exc = refused(h, route)
                 self.reject(exc)
+                self._journal(h, DROPPED)
                 taken.notes.append(f'held measurement rejected: {exc}')
                 continue
             try:
                 self._take(h, taken, route is Route.REVERSE)
             except InputError as exc:
                 self.reject(exc)
+                self._journal(h, DROPPED)
                 taken.notes.append(f'held measurement rejected: {exc}')
             except GaError as exc:
                 self.solver_failed(exc)
@@ -398,7 +402,7 @@ class AlignmentSession:
         recs = j.file_records()
         kinds = recs['kind']
         keep = (((kinds & KIND_MASK) == KINDS.index('bridge')) & ~is_event(kinds)
-                | ((kinds & REVERSED) != 0) & ~is_event(kinds))
+                | ((kinds & DROPPED) == REVERSED) & ~is_event(kinds))
         datum = np.flatnonzero(kinds == DATUM_KIND)
         if datum.size:
             keep[datum[-1]] = True

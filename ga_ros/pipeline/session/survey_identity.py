@@ -11,8 +11,10 @@ node:
 
 * it is one of the held measurements (ids and stamp): the same survey;
 * the state holds its connection (``src -> dst``): the same survey if the motion ``z`` is the
-  same (the survey re-delivered from its start, or a publisher's bounded history re-delivering
-  its tail), else another one;
+  same as one held (the survey re-delivered from its start, or a publisher's bounded history
+  re-delivering its tail), or if it connects to the newest node with that node's track and
+  stamp (another source's measurement of the newest motion, e.g. a second odometry), else
+  another one;
 * else its ``dst`` node is held: the same survey if the node's track is the measurement's and
   its stamp is too, or the measurement continues from its ``src`` as below (a new connection
   to a held node);
@@ -63,12 +65,17 @@ def continues(aligner: Any, m: Measurement,
 
     tracks, stamps = np.asarray(path.track_ids), np.asarray(path.stamps_ns)
     k_dst, k_src = index_of(m.dst_id), index_of(m.src_id)
-    z = _held_motion(aligner, m.src_id, m.dst_id)
-    if z is not None:
-        if not np.allclose(z, m.z, rtol=0, atol=Z_TOLERANCE):
-            return False, (f'the connection {m.src_id}->{m.dst_id} is held with another motion '
-                           f'(differs by {np.max(np.abs(z - m.z)):.3g})')
-        return True, f'the connection {m.src_id}->{m.dst_id} is held (re-delivered)'
+    z = _held_motions(aligner, m.src_id, m.dst_id)
+    if z.size:
+        off = np.abs(z - np.asarray(m.z, dtype=float)).max(axis=1)
+        if off.min() <= Z_TOLERANCE:
+            return True, f'the connection {m.src_id}->{m.dst_id} is held (re-delivered)'
+        if (k_dst == ids.size - 1 and tracks[k_dst] == m.dst_track
+                and stamps[k_dst] == m.stamp_ns and tracks[k_src] == m.src_track):
+            return True, (f'another measurement of the newest connection {m.src_id}->'
+                          f'{m.dst_id} (another source)')
+        return False, (f'the connection {m.src_id}->{m.dst_id} is held with another motion '
+                       f'(differs by {off.min():.3g})')
     src_continues = (k_src is not None and tracks[k_src] == m.src_track
                      and stamps[k_src] <= m.stamp_ns)
     if k_dst is not None:
@@ -90,15 +97,14 @@ def continues(aligner: Any, m: Measurement,
                    f'ns is not later than the newest held node ({newest} ns)')
 
 
-def _held_motion(aligner: Any, src: int, dst: int) -> np.ndarray | None:
-    """The motion ``z`` of the held connection ``src -> dst`` (None if not held, or if the
-    aligner does not list its connections)."""
+def _held_motions(aligner: Any, src: int, dst: int) -> np.ndarray:
+    """``(k, 6)`` the motions ``z`` of the held connections ``src -> dst`` (one per source that
+    measured it; none if not held, or if the aligner does not list its connections)."""
     arrays = getattr(aligner, 'connection_arrays', None)
     if arrays is None:
-        return None
+        return np.zeros((0, 6))
     s, d, z = arrays()[:3]
-    k = np.flatnonzero((s == src) & (d == dst))
-    return np.asarray(z[k[0]], dtype=float) if k.size else None
+    return np.asarray(z[(s == src) & (d == dst)], dtype=float).reshape(-1, 6)
 
 
 def move_survey_aside(state_file: str | os.PathLike) -> Path:
