@@ -38,7 +38,7 @@ from diagnostic_msgs.msg import KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
+from rclpy.node import Node, NodeNameNonExistentError
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
@@ -210,18 +210,40 @@ class BagPlayer:
         self.bag.close()
 
     def wait_for_subscribers(self, timeout_s: float, settle_s: float = 0.3) -> bool:
-        """Wait until some topic of the bag has a subscriber, then ``settle_s`` more so the
-        other subscriptions of the same nodes match too; False on timeout.
+        """Wait until some topic of the bag has a subscriber and every other topic of the bag
+        that the same nodes subscribe to (as the ROS graph lists them) has matched this
+        player's publisher too, then ``settle_s`` more; False on timeout (some topic matched
+        or not).
 
-        (Not every topic: a bag usually carries topics nobody listens to, e.g. ground truth.)
+        (Not every topic of the bag: a bag usually carries topics nobody listens to, e.g.
+        ground truth; but a stereo node's second camera must not lose the first frames because
+        its subscription matched later than the first.)
         """
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
-            if any(p.get_subscription_count() > 0 for p in self.publishers.values()):
+            matched = {t for t, p in self.publishers.items() if p.get_subscription_count() > 0}
+            if matched and self._wanted_by_subscribers(matched) <= matched:
                 time.sleep(settle_s)
                 return True
             time.sleep(0.05)
         return False
+
+    def _wanted_by_subscribers(self, matched: set[str]) -> set[str]:
+        """The topics of the bag that the nodes subscribed to any of ``matched`` subscribe to
+        (the ROS graph's list of each node's subscriptions; unnamed endpoints skipped)."""
+        mine = {('/' + t.lstrip('/')): t for t in self.publishers}
+        wanted: set[str] = set()
+        for topic in matched:
+            for info in self.node.get_subscriptions_info_by_topic(topic):
+                if _unnamed(info.node_name):
+                    continue
+                try:
+                    subs = self.node.get_subscriber_names_and_types_by_node(
+                        info.node_name, info.node_namespace)
+                except NodeNameNonExistentError:  # it left the graph meanwhile
+                    continue
+                wanted.update(mine[name] for name, _ in subs if name in mine)
+        return wanted
 
     def _clock(self, stamp_ns: int, stats: PlayStats) -> None:
         if self.clock_pub is None:
