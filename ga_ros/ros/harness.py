@@ -25,11 +25,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from ga_ros import topics
+from ga_ros import domains, topics
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.ros import conversions as conv
-from ga_ros.ros import domains
 from ga_ros.ros.deadlines import patience
 from ga_ros.ros.qos import latched_qos, measurement_qos, stream_qos
 from ga_ros.safe_write import open_log
@@ -42,7 +41,7 @@ class HarnessTimeout(GaError):
 
 
 def domain_id(offset: object = 0) -> int:
-    """A ``ROS_DOMAIN_ID`` of this process for ``offset`` (:func:`ga_ros.ros.domains.domain_id`:
+    """A ``ROS_DOMAIN_ID`` of this process for ``offset`` (:func:`ga_ros.domains.domain_id`:
     claimed machine-wide, so concurrent runs never share one): the tests of one run take
     different offsets, so they never hear each other."""
     return domains.domain_id(offset)

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros import domains
 from ga_ros.errors import GaError
-from ga_ros.ros import domains
 from ga_ros.safe_write import check_destinations, open_log, write_json
 from ga_ros.tools.multihost import REPO, _stop_all, _wait_line, compare_paths
 
@@ -136,7 +136,7 @@ def run_fleet(out_dir: str | Path, bags: dict[str, Path], rate: float = 5.0,
         disjoint stamp ranges for the crossing check to mean something.
     rate : ``ga-ros play --rate``.
     timeout_s : longest wait for all robots to finish.
-    domain_id : ``ROS_DOMAIN_ID`` (default: one claimed machine-wide, :mod:`ga_ros.ros.domains`).
+    domain_id : ``ROS_DOMAIN_ID`` (default: one claimed machine-wide, :mod:`ga_ros.domains`).
     """
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)

@@ -26,6 +26,7 @@ from bag_fixtures import (
 )
 from scipy import stats
 
+from ga_ros import domains
 from ga_ros.core.tracks import TrackRules
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import GaError
@@ -37,7 +38,6 @@ from ga_ros.pipeline.inputs import InputFrontEnd, InputSpec
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.pipeline import replay
-from ga_ros.ros import domains
 
 T0_NS = 1_700_000_000_000_000_000
 WHEEL_HZ, VISUAL_HZ = 50, 10

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from bag_fixtures import ODOMETRY, odometry_msg, stereo_rows, write_bag
 
+from ga_ros import domains
 from ga_ros.geometry import se3
 from ga_ros.inputs.odometry import interpolate_pose
 from ga_ros.io.trajectory import write_tum
-from ga_ros.ros import domains
 
 pytest.importorskip('cv2')
 

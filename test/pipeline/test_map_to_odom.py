@@ -17,6 +17,7 @@ from test_replay_inputs import _config, _scenario
 
 from ga_ros.core.integration import F2FIntegrator
 from ga_ros.core.measurement import Measurement
+from ga_ros.domains import domain_id
 from ga_ros.geometry import se3
 from ga_ros.io.bag import BagReader
 from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
@@ -26,7 +27,6 @@ from ga_ros.pipeline.map_to_odom import (
     foreign_odom_parents,
     without_odom_parent,
 )
-from ga_ros.ros.domains import domain_id
 
 AMCL = se3.from_translation_rotvec(np.array([7.4, 7.5, 0.0]), np.array([0, 0, 0.3]))
 

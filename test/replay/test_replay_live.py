@@ -23,6 +23,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
+from ga_ros import domains  # noqa: E402
 from ga_ros.io.bag import BagReader  # noqa: E402
 from ga_ros.io.bag_messages import measurement_to_odometry, odometry_to_measurement  # noqa: E402
 from ga_ros.io.bag_writer import BagWriter  # noqa: E402
@@ -30,7 +31,6 @@ from ga_ros.replay.config import ReplayConfig  # noqa: E402
 from ga_ros.replay.pipeline import replay  # noqa: E402
 from ga_ros.replay.samples import aerial_sample  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
-from ga_ros.ros import domains  # noqa: E402
 
 RCLPY_TYPES = {'nav_msgs/msg/Odometry': Odometry, 'sensor_msgs/msg/CameraInfo': CameraInfo,
                'sensor_msgs/msg/CompressedImage': CompressedImage,

@@ -1,4 +1,4 @@
-"""ROS domain ids claimed machine-wide (ga_ros.ros.domains): a running process's id is never
+"""ROS domain ids claimed machine-wide (ga_ros.domains): a running process's id is never
 handed to another one, and is free again once that process has exited (killed too)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from ga_ros.ros import domains
+from ga_ros import domains
 from ga_ros.ros.deadlines import patience
 
 
@@ -21,7 +21,7 @@ def lock_dir(tmp_path, monkeypatch):
     return tmp_path
 
 
-HOLDER = ('import sys\nfrom ga_ros.ros import domains\nc = domains.claim(int(sys.argv[1]))\n'
+HOLDER = ('import sys\nfrom ga_ros import domains\nc = domains.claim(int(sys.argv[1]))\n'
           'print(c.domain, flush=True)\nsys.stdin.read()\n')
 
 

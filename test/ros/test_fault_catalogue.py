@@ -10,8 +10,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
+from ga_ros.domains import claimed  # noqa: E402
 from ga_ros.ros import fault_catalogue as fc  # noqa: E402
-from ga_ros.ros.domains import claimed  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 #: Seconds a case may take (under the 600 s pytest timeout of setup.cfg): a wait still open

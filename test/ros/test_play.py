@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from bag_fixtures import write_unknown_type_bag
 
+from ga_ros.domains import domain_id
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag
 from ga_ros.ros.deadlines import patience
-from ga_ros.ros.domains import domain_id
 
 pytestmark = pytest.mark.ros
 

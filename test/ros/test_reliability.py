@@ -26,13 +26,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from test_alignment_node import direct, survey  # noqa: E402
 
-from ga_ros import topics  # noqa: E402
+from ga_ros import domains, topics  # noqa: E402
 from ga_ros.core.measurement import Measurement  # noqa: E402
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner  # noqa: E402
 from ga_ros.pipeline.journal import journal_path  # noqa: E402
 from ga_ros.replay.samples import aerial_sample, write_measurement_bag  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
-from ga_ros.ros import domains  # noqa: E402
 from ga_ros.ros.alignment_node import AlignmentNode  # noqa: E402
 from ga_ros.ros.deadlines import patience  # noqa: E402
 from ga_ros.ros.harness import NodeClient, start_node_process, stop_process  # noqa: E402

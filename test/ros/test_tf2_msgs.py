@@ -11,8 +11,8 @@ import time
 
 import pytest
 
+from ga_ros.domains import domain_id
 from ga_ros.ros.deadlines import patience
-from ga_ros.ros.domains import domain_id
 
 pytestmark = pytest.mark.ros
 

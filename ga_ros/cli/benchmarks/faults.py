@@ -41,9 +41,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ga_ros.domains import claimed
     from ga_ros.errors import InputError
     from ga_ros.ros import fault_catalogue as fc
-    from ga_ros.ros.domains import claimed
     from ga_ros.safe_write import atomic_write
 
     cases = fc.catalogue()

@@ -93,8 +93,8 @@ class NodeFigures:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ga_ros.domains import domain_id
     from ga_ros.errors import InputError
-    from ga_ros.ros.domains import domain_id
 
     if args.tracks < 2 or args.per_swath < 2:
         raise InputError('need --tracks >= 2 and --per-swath >= 2')

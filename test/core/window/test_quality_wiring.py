@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from test_quality import correlated_problem, dense_reference
 
+from ga_ros import domains
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality import (
     QualityConfig,
@@ -28,7 +29,6 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.replay.samples import aerial_sample
-from ga_ros.ros import domains
 
 
 @pytest.fixture(scope='module')
