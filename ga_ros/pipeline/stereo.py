@@ -107,7 +107,8 @@ NODE_ONLY_PARAMS = frozenset({
     'debug_image_topic', 'publish_debug_image', 'odom_frame', 'image_queue', 'pair_queue',
     'diagnostics_topic', 'diagnostics_period_sec', 'warn_throttle_sec', 'publish_odom_tf',
     'tf_topic', 'tf_static_topic', 'qos_reliability', 'loss_warn_fraction', 'idle_end_track_s',
-    'keyframe_cloud_topic', 'publish_keyframe_cloud'})
+    'keyframe_cloud_topic', 'publish_keyframe_cloud', 'keyframe_image_topic',
+    'keyframe_info_topic', 'publish_keyframe_image'})
 
 
 def front_end_config_from_params(params: Mapping[str, Any],
