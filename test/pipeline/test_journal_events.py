@@ -58,10 +58,12 @@ def _survey(rng: np.random.Generator, n_tracks: int = 6, per: int = 7) -> list:
     return out
 
 
-def _run(session: AlignmentSession, entries: list, finish_after: int) -> None:
-    """Feed ``entries``, ending the open track by hand after entry ``finish_after`` (the next
-    measurements of that track are then refused) and at the end of input."""
-    for k, e in enumerate(entries):
+def feed(session: AlignmentSession, entries: list, start: int, stop: int,
+         finish_after: int) -> None:
+    """Give entries ``start:stop`` to ``session`` (measurements and fixes, a refused fix left
+    out as live), ending the open track by hand after entry ``finish_after``."""
+    for k in range(start, stop):
+        e = entries[k]
         if isinstance(e, Measurement):
             session.step(e)
         else:
@@ -71,6 +73,12 @@ def _run(session: AlignmentSession, entries: list, finish_after: int) -> None:
                 pass
         if k == finish_after:
             session.finish_track('finish_track')
+
+
+def _run(session: AlignmentSession, entries: list, finish_after: int) -> None:
+    """Feed ``entries``, ending the open track by hand after entry ``finish_after`` (the next
+    measurements of that track are then refused) and at the end of input."""
+    feed(session, entries, 0, len(entries), finish_after)
     session.finish_track('end_of_input')
 
 

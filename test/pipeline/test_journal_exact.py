@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_journal_events import _without_rejections
+from test_journal_events import _without_rejections, feed
 
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
@@ -92,23 +92,6 @@ def _finish_after(entries: list) -> int:
     ends nothing."""
     return next(k for k, e in enumerate(entries)
                 if isinstance(e, Measurement) and e.dst_track == 8) - 1
-
-
-def feed(session: AlignmentSession, entries: list, start: int, stop: int,
-         finish_after: int) -> None:
-    """Give entries ``start:stop`` to ``session``, ending the open track by hand after entry
-    ``finish_after``."""
-    for k in range(start, stop):
-        e = entries[k]
-        if isinstance(e, Measurement):
-            session.step(e)
-        else:
-            try:
-                session.add_fix(*e)
-            except Exception:  # noqa: BLE001 - refused fixes (frozen node) as live
-                pass
-        if k == finish_after:
-            session.finish_track('finish_track')
 
 
 @dataclass
