@@ -10,13 +10,13 @@ dropped (a cloud with ``is_dense`` false may hold NaN for invalid pixels).
 
 from __future__ import annotations
 
-import array
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ga_ros.errors import InputError
+from ga_ros.vo.messages import message_bytes
 
 #: ``sensor_msgs/PointField`` datatype constants -> numpy type (without byte order).
 POINTFIELD_TYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
@@ -36,14 +36,6 @@ class DecodedCloud:
     points: np.ndarray
     intensity: np.ndarray
     dropped: int
-
-
-def _data(data: Any) -> np.ndarray:
-    if isinstance(data, np.ndarray):
-        return data.astype(np.uint8, copy=False).ravel()
-    if isinstance(data, (bytes, bytearray, memoryview, array.array)):
-        return np.frombuffer(data, np.uint8)
-    return np.asarray(data, dtype=np.uint8).ravel()
 
 
 def decode_pointcloud2(msg: Any) -> DecodedCloud:
@@ -76,7 +68,7 @@ def decode_pointcloud2(msg: Any) -> DecodedCloud:
                              f'{step}')
         formats.append(order + t)
         offsets.append(int(f.offset))
-    data = _data(msg.data)
+    data = message_bytes(msg.data)
     if h * w == 0:
         return DecodedCloud(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), 0)
     if step <= 0 or row < w * step or data.size < h * row:

@@ -26,7 +26,7 @@ _TO_GREY = {'bgr8': 'COLOR_BGR2GRAY', '8uc3': 'COLOR_BGR2GRAY', 'rgb8': 'COLOR_R
             'bgra8': 'COLOR_BGRA2GRAY', 'rgba8': 'COLOR_RGBA2GRAY'}
 
 
-def _bytes(data: Any) -> np.ndarray:
+def message_bytes(data: Any) -> np.ndarray:
     """Message ``data`` (bytes, array.array, numpy array or list) -> flat uint8 array."""
     if isinstance(data, np.ndarray):
         return data.astype(np.uint8, copy=False).ravel()
@@ -53,7 +53,7 @@ def image_to_grey(msg: Any) -> np.ndarray:
         ``height`` and ``step``.
     """
     if is_compressed(msg):
-        buf = _bytes(msg.data)
+        buf = message_bytes(msg.data)
         img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE) if buf.size else None
         if img is None:
             raise InputError(f'could not decode compressed image (format {msg.format!r})')
@@ -64,7 +64,7 @@ def image_to_grey(msg: Any) -> np.ndarray:
         raise InputError(f'unsupported image encoding {msg.encoding!r} (use mono8, bgr8, rgb8, '
                          'bgra8, rgba8 or mono16)')
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    data = _bytes(msg.data)
+    data = message_bytes(msg.data)
     if h <= 0 or w <= 0 or step < w * c or data.size < h * step:
         raise InputError(f'image data of {data.size} bytes does not match {w}x{h}, step {step}')
     rows = data[:h * step].reshape(h, step)[:, :w * c]
