@@ -6,12 +6,15 @@ subscription gets them all but does not connect to a best-effort publisher. As r
 recorder (``rosbag2_transport/qos.cpp``, ``adapt_request_to_offers``), ``qos_reliability:
 auto`` reads the offered QoS of the topic's publishers when the subscription is created and
 subscribes **reliable when every publisher offers reliable, else best effort**. Without a
-publisher yet, it subscribes best effort (it hears whatever comes) and checks again on a
-steady-clock timer every ``retry_period_s`` until the first publisher appears, then
-re-subscribes reliable if all of them offer reliable. The choice is logged; publishers that
-appear later do not change it (a best-effort one would then not connect to a reliable
-subscription: force ``best_effort`` for such graphs). ``best_effort`` / ``reliable`` force the
-reliability.
+publisher yet, it subscribes reliable and checks again on a steady-clock timer every
+``retry_period_s`` until the first publisher appears (an incompatible best-effort publisher
+meanwhile is expected, not logged as a warning); it re-subscribes best effort only if a
+publisher offers best effort. So a reliable stream is never re-subscribed: its first messages,
+which a player or driver sends as soon as the subscription has matched, are not lost in a
+switch (a best-effort stream may lose the messages sent during its switch, as it may lose
+any). The choice is logged; publishers that appear later do not change it (a best-effort one
+would then not connect to a reliable subscription: force ``best_effort`` for such graphs).
+``best_effort`` / ``reliable`` force the reliability.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
 
@@ -46,7 +50,7 @@ class AdaptiveSubscription:
     ----------
     topic : the subscribed topic.
     reliability : the reliability in use: ``'best_effort'`` or ``'reliable'``.
-    decided : False while ``auto`` waits for the first publisher (best effort meanwhile).
+    decided : False while ``auto`` waits for the first publisher (reliable meanwhile).
     """
 
     def __init__(self, node: Node, msg_type: Any, topic: str, callback: Callable[[Any], None],
@@ -63,9 +67,13 @@ class AdaptiveSubscription:
         else:
             chosen = self._adapt()
             self.decided = chosen is not None
-            self.reliability = chosen or BEST_EFFORT
+            self.reliability = chosen or RELIABLE
+        # undecided: an incompatible (best-effort) publisher is expected news, not a warning
+        events = (SubscriptionEventCallbacks(incompatible_qos=lambda _status: None)
+                  if not self.decided else None)
         self.subscription = node.create_subscription(
-            msg_type, topic, callback, sensor_qos(self.reliability, depth))
+            msg_type, topic, callback, sensor_qos(self.reliability, depth),
+            event_callbacks=events)
         if reliability == AUTO:
             if self.decided:
                 self._log()

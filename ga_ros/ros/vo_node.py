@@ -277,6 +277,9 @@ class VoNode(BoundedLogging, Node):
             self.pub_kf_info = self.create_publisher(CameraInfo, s.keyframe_info_topic,
                                                      stream_qos(10))
         img_type = CompressedImage if s.compressed else Image
+        # OpenCV now, not in the worker at the first pair: importing it there holds the GIL
+        # long enough for a loaded host's executor to fall behind the camera (keep-last loss)
+        import cv2  # noqa: F401, PLC0415
         # auto: reliable when every publisher offers reliable, else best effort
         depth = max(1, s.image_queue)
         self.sensor_subscriptions: dict[str, AdaptiveSubscription] = {

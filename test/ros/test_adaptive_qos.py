@@ -1,5 +1,5 @@
 """``qos_reliability: auto`` (:mod:`ga_ros.ros.adaptive_qos`): a subscription takes reliable only
-when every publisher of its topic offers reliable, waits (best effort) for the first publisher,
+when every publisher of its topic offers reliable, waits (reliable) for the first publisher,
 and ``best_effort`` / ``reliable`` force the choice; checked against the QoS the middleware
 reports for the subscription (``get_subscriptions_info_by_topic``), not against our own field."""
 
@@ -55,21 +55,37 @@ def test_auto_follows_the_publishers_and_waits_for_the_first() -> None:
         AdaptiveSubscription(node, String, 'be', got.append, 'reliable', 5)
         AdaptiveSubscription(node, String, 'rel', got.append, 'best_effort', 5)
         assert _subscribed(node, 'be') == ReliabilityPolicy.RELIABLE
-        # no publisher yet: best effort, then reliable once a reliable publisher appears
+        # no publisher yet: reliable, kept (the same subscription) when a reliable publisher
+        # appears, so nothing it sends after matching is lost in a switch
         late = AdaptiveSubscription(node, String, 'late', got.append, 'auto', 5,
                                     retry_period_s=0.05)
-        assert not late.decided and _subscribed(node, 'late') == ReliabilityPolicy.BEST_EFFORT
+        assert not late.decided and _subscribed(node, 'late') == ReliabilityPolicy.RELIABLE
+        first = late.subscription
         pub = pubs.create_publisher(String, 'late', _qos(ReliabilityPolicy.RELIABLE))
         end = time.monotonic() + patience(10.0)
         while not late.decided and time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
         assert late.decided and _subscribed(node, 'late') == ReliabilityPolicy.RELIABLE
-        # and it receives on the new subscription
+        assert late.subscription is first
         end = time.monotonic() + patience(10.0)
         while not got and time.monotonic() < end:
             pub.publish(String(data='x'))
             executor.spin_once(timeout_sec=0.05)
         assert got and got[0].data == 'x'
+        # no publisher yet, then a best-effort one: re-subscribed best effort, and it receives
+        got.clear()
+        late_be = AdaptiveSubscription(node, String, 'late_be', got.append, 'auto', 5,
+                                       retry_period_s=0.05)
+        pub_be = pubs.create_publisher(String, 'late_be', _qos(ReliabilityPolicy.BEST_EFFORT))
+        end = time.monotonic() + patience(10.0)
+        while not late_be.decided and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        assert late_be.decided and _subscribed(node, 'late_be') == ReliabilityPolicy.BEST_EFFORT
+        end = time.monotonic() + patience(10.0)
+        while not got and time.monotonic() < end:
+            pub_be.publish(String(data='y'))
+            executor.spin_once(timeout_sec=0.05)
+        assert got and got[0].data == 'y'
         with pytest.raises(InputError, match='qos_reliability'):
             AdaptiveSubscription(node, String, 'bad', got.append, 'sometimes', 5)
     finally:
