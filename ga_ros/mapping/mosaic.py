@@ -374,8 +374,8 @@ def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path
 def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     """Write the mosaic as PNG (grey or colour; an alpha channel marks the covered pixels), its
     georeference as JSON (``<name>.json``) and as an ESRI world file (``<name>.pgw``: pixel
-    size, rotation terms 0, the ``y`` step of a row, pixel (0, 0)'s centre), each atomically through
-    :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
+    size, rotation terms 0, the ``y`` step of a row, pixel (0, 0)'s centre), each atomically
+    through :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
 
     Raises
     ------
@@ -401,8 +401,8 @@ def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
 
 def image_fields(mosaic: Mosaic) -> dict[str, Any]:
     """``sensor_msgs/Image`` fields of the mosaic (without the header): ``mono8`` for grey,
-    ``rgb8`` for colour, rows as seen from above (module docstring), uncovered pixels 0. Publish it with
-    ``header.frame_id`` = the georeference's frame (``map``) beside
+    ``rgb8`` for colour, rows as seen from above (module docstring), uncovered pixels 0.
+    Publish it with ``header.frame_id`` = the georeference's frame (``map``) beside
     :func:`map_metadata_fields` (same stamp)."""
     img = mosaic.image
     if img.ndim == 3:
