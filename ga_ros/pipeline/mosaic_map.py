@@ -70,6 +70,9 @@ class MosaicMapConfig:
     ground_from_clouds : orthorectify on the height model of the keyframe clouds (module
         docstring); else on the plane ``ground_z``.
     ground_cell_m : cell of that height model (m).
+    ground_tolerance_m : a keyframe is re-warped for its ground only when a height under it
+        moved by more than this since its warp, or a cell there became known or unknown (m;
+        0: on any change, so the mosaic equals the offline one exactly).
     tile_px : edge of the tiles recomposited when a keyframe moves (px).
     max_pixels : largest mosaic (bounding box of the tiles, px); a keyframe that would exceed
         it is refused.
@@ -84,6 +87,7 @@ class MosaicMapConfig:
     ground_z: float = 0.0
     ground_from_clouds: bool = True
     ground_cell_m: float = 2.0
+    ground_tolerance_m: float = 0.02
     tile_px: int = 256
     max_pixels: int = 25_000_000
     max_live_keyframes: int = 2000
@@ -91,10 +95,10 @@ class MosaicMapConfig:
 
     def __post_init__(self) -> None:
         if self.metres_per_pixel < 0 or self.tile_px < 8 or self.max_pixels < 1 \
-                or not self.ground_cell_m > 0:
+                or not self.ground_cell_m > 0 or not self.ground_tolerance_m >= 0:
             raise InputError('mosaic_metres_per_pixel must be >= 0 (0: automatic), '
-                             'mosaic_tile_px >= 8, mosaic_max_pixels >= 1 and '
-                             'mosaic_ground_cell_m > 0')
+                             'mosaic_tile_px >= 8, mosaic_max_pixels >= 1, '
+                             'mosaic_ground_cell_m > 0 and mosaic_ground_tolerance_m >= 0')
 
 
 @dataclass
@@ -132,8 +136,10 @@ class _Patch:
     valid: np.ndarray
     row0: int
     col0: int
-    #: the ground cells (i_lo, i_hi, j_lo, j_hi) its warp read, and the height range it assumed
+    #: the ground cells (i_lo, i_hi, j_lo, j_hi) its warp read, their heights (float32, NaN:
+    #: unknown; None on a plane) and the height range it assumed
     cells: tuple[int, int, int, int] = (0, -1, 0, -1)
+    ground: np.ndarray | None = None
     z_range: tuple[float, float] = (0.0, 0.0)
 
     def tiles(self, t: int) -> set[tuple[int, int]]:
@@ -346,7 +352,8 @@ class LiveMosaic:
             return None
         img = np.where(wv.valid[..., None] if wv.image.ndim == 3 else wv.valid,
                        np.clip(wv.image + 0.5, 0, 255), 0).astype(np.uint8)
-        return _Patch(img, wv.valid, r0 + wv.row0, c0 + wv.col0, cells, z_range)
+        heights = None if isinstance(surface, GroundPlane) else surface.z.astype(np.float32)
+        return _Patch(img, wv.valid, r0 + wv.row0, c0 + wv.col0, cells, heights, z_range)
 
     def _window(self, view: CameraView, z_range: tuple[float, float]
                 ) -> tuple[Georeference, tuple[int, int, int, int]] | None:
@@ -371,6 +378,17 @@ class LiveMosaic:
         return georef, (int(np.floor(-y_max / c)) - 2, int(np.floor(-georef.y_min / c)) + 2,
                         int(np.floor(c0 * m / c)) - 2, int(np.floor(c1 * m / c)) + 2)
 
+    def _ground_moved(self, patch: _Patch) -> bool:
+        """The ground under a patch changed beyond ``ground_tolerance_m`` since its warp."""
+        tol = self.config.ground_tolerance_m
+        if tol <= 0 or patch.ground is None:
+            return True
+        now = self.surface.window(*patch.cells).z
+        known = np.isfinite(now)
+        if not np.array_equal(known, np.isfinite(patch.ground)):
+            return True
+        return bool(known.any() and np.max(np.abs(now[known] - patch.ground[known])) > tol)
+
     def _update(self, keys: list[int]) -> int:
         """The ground's changes committed, then (re-)warp these keyframes, those whose ground
         changed and those waiting for ground; returns the keyframes warped."""
@@ -385,14 +403,16 @@ class LiveMosaic:
         return self._place(sorted(todo))
 
     def _ground_changed(self, ci: np.ndarray, cj: np.ndarray) -> set[int]:
-        """Placed keyframes whose warp read a ground cell that changed. A keyframe warped when
-        the heights spanned less than they do now reads the cells of its footprint at the
-        present span (a cell outside its old window can only have come into view by changing
-        to a height outside the old span)."""
+        """Placed keyframes whose warp read a ground cell that changed (beyond
+        ``ground_tolerance_m``: :meth:`_ground_moved`). A keyframe warped when the heights spanned
+        less than they do now (by more than the tolerance) reads the cells of its footprint at
+        the present span (a cell outside its old window can only have come into view by
+        changing to a height outside the old span)."""
         out: set[int] = set()
         if ci.size == 0:
             return out
         lo, hi = self._z_range()
+        tol = self.config.ground_tolerance_m
         i0, j0 = int(ci.min()), int(cj.min())
         hit = np.zeros((int(ci.max()) - i0 + 2, int(cj.max()) - j0 + 2), np.int64)
         hit[ci - i0 + 1, cj - j0 + 1] = 1
@@ -402,14 +422,16 @@ class LiveMosaic:
             if kf.patch is None or k in out:
                 continue
             a, b, c, d = kf.patch.cells
-            if not (kf.patch.z_range[0] <= lo and hi <= kf.patch.z_range[1]):
+            widened = lo < kf.patch.z_range[0] - tol or hi > kf.patch.z_range[1] + tol
+            if widened:
                 window = self._window(self._view(kf), (lo, hi))
                 if window is not None:
                     a, b, c, d = window[1]
             a, b = max(a - i0, 0), min(b - i0, n_i)
             c, d = max(c - j0, 0), min(d - j0, n_j)
             if a <= b and c <= d and \
-                    sat[b + 1, d + 1] - sat[a, d + 1] - sat[b + 1, c] + sat[a, c] > 0:
+                    sat[b + 1, d + 1] - sat[a, d + 1] - sat[b + 1, c] + sat[a, c] > 0 \
+                    and (widened or self._ground_moved(kf.patch)):
                 out.add(k)
         return out
 
@@ -533,7 +555,8 @@ class LiveMosaic:
     def nbytes(self) -> int:
         """Bytes held by the images, patches and tiles."""
         n = sum(kf.image.nbytes + (0 if kf.patch is None else
-                                   kf.patch.image.nbytes + kf.patch.valid.nbytes)
+                                   kf.patch.image.nbytes + kf.patch.valid.nbytes
+                                   + (0 if kf.patch.ground is None else kf.patch.ground.nbytes))
                 for kf in self.keyframes.values())
         n += sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values())
         n += 0 if self.surface is None else self.surface.nbytes()

@@ -224,10 +224,28 @@ def offline(images, clouds, T_map_base, K, georef):
     return build_mosaic(views, surface, MosaicConfig(MPP, 'last'), georef), views, surface
 
 
-def test_live_mosaic_over_relief_is_the_offline_orthomosaic_of_the_final_poses(relief) -> None:
+def assert_close(live, ref) -> None:
+    """The same mosaic within what a ground stale by ``ground_tolerance_m`` (2 cm: under
+    0.02 px of parallax here) gives: coverage equal but for 0.2 % of the pixels, grey levels
+    within 2 for 99 % of the common ones."""
+    both = live.valid & ref.valid
+    diff = np.abs(live.image.astype(int) - ref.image.astype(int))[both]
+    print(f'live vs offline: coverage differs at {np.mean(live.valid != ref.valid):.2e} of the '
+          f'pixels, grey > 2 apart at {np.mean(diff > 2):.2e}, mean {diff.mean():.3f}')
+    assert live.valid.sum() > 0.3 * live.valid.size
+    assert np.mean(live.valid != ref.valid) < 2e-3 and np.mean(diff > 2) < 1e-2
+
+
+@pytest.mark.parametrize('tolerance_m', [0.0, 0.02])
+def test_live_mosaic_over_relief_is_the_offline_orthomosaic_of_the_final_poses(
+        relief, tolerance_m: float) -> None:
+    """Pixel for pixel with ``ground_tolerance_m`` 0; within :func:`assert_close` with the
+    default 2 cm."""
     K, stamps, images, T_true, clouds, tracks = relief
     T_f2f = drifted(T_true, seed=1)
-    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64))
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                      ground_tolerance_m=tolerance_m))
+    same = assert_same if tolerance_m == 0 else assert_close
     # clouds, images and poses interleaved as a live run delivers them
     for k, s in enumerate(stamps):
         live.add_cloud(int(s), clouds[k], T_BASE_CAM)
@@ -235,14 +253,16 @@ def test_live_mosaic_over_relief_is_the_offline_orthomosaic_of_the_final_poses(r
         live.set_poses(stamps[k:k + 1], T_f2f[k:k + 1])
     before = live.mosaic()
     ref, _, _ = offline(images, clouds, T_f2f, K, before.georef)
-    assert_same(before, ref)
+    same(before, ref)
     assert live.counts.ground_rewarps > 0  # later clouds changed earlier keyframes' ground
+    print(f'tolerance {tolerance_m} m: {live.counts.warps} warps for {len(stamps)} keyframes '
+          f'arriving one by one ({live.counts.ground_rewarps} for their ground)')
     for track in np.unique(tracks):  # the alignment's corrections, track by track
         sel = tracks >= track
         live.set_poses(stamps[sel], T_true[sel])
     after = live.mosaic()
     ref, views, surface = offline(images, clouds, T_true, K, after.georef)
-    assert_same(after, ref)
+    same(after, ref)
     # orthorectified: the seams of the live mosaic are those of the height grid, and a plane
     # at the middle height (the flat mosaic) misregisters them by the parallax
     on_grid = seam_misregistration(views, tracks, surface, after.georef)
@@ -256,7 +276,7 @@ def test_live_mosaic_over_relief_is_the_offline_orthomosaic_of_the_final_poses(r
 
 def test_a_move_rewarps_the_keyframe_and_those_whose_ground_it_changed(relief) -> None:
     K, stamps, images, T_true, clouds, _ = relief
-    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64))
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64, ground_tolerance_m=0))
     for k, s in enumerate(stamps):
         live.add_cloud(int(s), clouds[k], T_BASE_CAM)
         live.add_image(int(s), images[k], K, T_BASE_CAM)
