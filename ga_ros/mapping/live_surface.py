@@ -11,6 +11,10 @@ the operator gives each cell the same sum wherever the window lies): the heights
 :func:`ga_ros.mapping.surface.height_grid_from_points` of all the points, and the cells whose
 height changed are returned. The cost is in proportion to the cells the change touches, not
 to the grid's size. The grid is one dense array that grows to the cells reached.
+
+Memory: every keyframe keeps its points (at most ``max_points_per_keyframe``; 12 bytes each for
+a ``float32`` cloud, as ``PointCloud2`` gives them) and their placement (16 bytes each), also
+after the mosaic froze its image: about 110 kB per keyframe at the default 4,000 points.
 """
 
 from __future__ import annotations
@@ -72,7 +76,11 @@ class LiveHeightGrid:
         self._unplace(old)
         T = old.T_map_kf if old is not None else self.pending_poses.pop(key, None)
         ext = np.eye(4) if T_kf_points is None else np.asarray(T_kf_points, float)
-        kf = self.keyframes[key] = _Points(keyframe_points(points, self.config), ext)
+        pts = keyframe_points(points, self.config)
+        small = pts.astype(np.float32)
+        if np.array_equal(small, pts):  # a float32 cloud (a PointCloud2's) is kept as it came
+            pts = small
+        kf = self.keyframes[key] = _Points(pts, ext)
         self._place(kf, T)
 
     def set_pose(self, key: int, T_map_kf: FloatArray) -> bool:
@@ -108,8 +116,9 @@ class LiveHeightGrid:
         kf.T_map_kf = T
         if T is None or not len(kf.points):
             return
-        p = place_points(kf.points, T @ kf.T_kf_points)
-        kf.i, kf.j = cell_index(p[:, 0], p[:, 1], self.config.cell_m)
+        p = place_points(kf.points.astype(float), T @ kf.T_kf_points)
+        i, j = cell_index(p[:, 0], p[:, 1], self.config.cell_m)
+        kf.i, kf.j = i.astype(np.int32), j.astype(np.int32)
         kf.z = p[:, 2]
         self._dirty.append((kf.i, kf.j))
 
@@ -200,6 +209,6 @@ class LiveHeightGrid:
 
     def nbytes(self) -> int:
         """Bytes held by the points and the arrays."""
-        n = sum(kf.points.nbytes + (0 if kf.z is None else 3 * kf.z.nbytes)
+        n = sum(kf.points.nbytes + (0 if kf.z is None else 2 * kf.z.nbytes)
                 for kf in self.keyframes.values())
         return n + self.medians.nbytes + self.heights.nbytes
