@@ -398,8 +398,9 @@ class LiveMosaic:
             ground = self._ground_changed(ci, cj) - todo
             self.counts.ground_rewarps += len(ground)
             todo |= ground
-            todo |= {k for k, kf in self.keyframes.items()
-                     if kf.T_map_base is not None and kf.patch is None and not kf.refused}
+            if ci.size:  # new ground: the keyframes that saw none yet try again
+                todo |= {k for k, kf in self.keyframes.items()
+                         if kf.T_map_base is not None and kf.patch is None and not kf.refused}
         return self._place(sorted(todo))
 
     def _ground_changed(self, ci: np.ndarray, cj: np.ndarray) -> set[int]:
