@@ -59,7 +59,7 @@ def seam_zoom(panel: MosaicPanel, a: int, b: int, centre_xy: tuple[float, float]
     g: Georeference = panel.mosaic.georef
     m = g.metres_per_pixel
     col = int(round((centre_xy[0] - g.x_min) / m)) - size_px // 2
-    row = int(round((g.y_max - centre_xy[1]) / m)) - size_px // 2
+    row = int(round(float(g.row_of(centre_xy[1])))) - size_px // 2
     layers = []
     for k in (a, b):
         out = np.zeros((size_px, size_px), np.float32)

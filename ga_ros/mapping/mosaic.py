@@ -1,18 +1,25 @@
 """Photomosaic of a downward-looking camera from its corrected poses (ROS-free).
 
 Each keyframe's image is projected onto the ground (:mod:`ga_ros.mapping.surface`) and resampled
-on a north-up grid of ``metres_per_pixel`` in ``map``: for a :class:`GroundPlane` by one
-homography (``cv2.warpPerspective``), for a :class:`HeightGrid` (relief) by orthorectification
-(every mosaic pixel's ground point projected into the image, ``cv2.remap``). Frames: ``map`` has
-``x`` east, ``y`` north, ``z`` up; ``T_map_cam`` is the camera's pose in ``map`` with the OpenCV
-optical convention (``z`` forward, ``x`` right, ``y`` down); ``K`` the (3, 3) intrinsics of the
-(rectified, undistorted) image in px.
+on a grid of ``metres_per_pixel`` in ``map``: for a :class:`GroundPlane` by one homography
+(``cv2.warpPerspective``), for a :class:`HeightGrid` (relief) by orthorectification (every
+mosaic pixel's ground point projected into the image, ``cv2.remap``). ``T_map_cam`` is the
+camera's pose in ``map`` with the OpenCV optical convention (``z`` forward, ``x`` right, ``y``
+down); ``K`` the (3, 3) intrinsics of the (rectified, undistorted) image in px.
+
+Orientation: the mosaic is the ground **as seen from above** (from the cameras' side), with
+``map``'s ``x`` to the right, whichever way ``map``'s ``z`` points. With ``z`` up (REP 103:
+``x`` east, ``y`` north) row 0 is the largest ``y`` (north up); with ``z`` down (e.g. ``map``
+anchored at a camera's optical frame looking down) row 0 is the smallest ``y``, so the image is
+not mirrored. :func:`plan_georeference` tells which from the cameras' viewing direction
+(:attr:`Georeference.z_up`).
 
 Georeference (:class:`Georeference`): pixel ``(row, col)`` of the mosaic has its centre at map
-``x = x_min + (col + 0.5) * metres_per_pixel``, ``y = y_max - (row + 0.5) * metres_per_pixel``
-(row 0 is the north edge). :func:`save_mosaic` writes it beside the PNG as JSON and as an ESRI
-world file (``.pgw``); :func:`image_fields` and :func:`map_metadata_fields` give it as
-``sensor_msgs/Image`` plus ``nav_msgs/MapMetaData`` fields.
+``x = x_min + (col + 0.5) * metres_per_pixel`` and, with ``z`` up,
+``y = y_max - (row + 0.5) * metres_per_pixel``; with ``z`` down,
+``y = y_min + (row + 0.5) * metres_per_pixel``. :func:`save_mosaic` writes it beside the PNG as
+JSON and as an ESRI world file (``.pgw``); :func:`image_fields` and :func:`map_metadata_fields`
+give it as ``sensor_msgs/Image`` plus ``nav_msgs/MapMetaData`` fields.
 
 Blending: ``'last'`` (a later keyframe covers an earlier one) or ``'average'`` (the mean of the
 keyframes that see a pixel). Memory is bounded: a mosaic larger than ``max_pixels`` is refused
@@ -57,14 +64,16 @@ class CameraView:
 
 @dataclass(frozen=True)
 class Georeference:
-    """Where a north-up raster lies in ``map`` (module docstring).
+    """Where a raster seen from above lies in ``map`` (module docstring).
 
     Attributes
     ----------
-    x_min, y_max : map coordinates of the raster's north-west corner (m).
+    x_min, y_max : map coordinates of the raster's smallest ``x`` and largest ``y`` edges (m).
     metres_per_pixel : pixel size on the ground (m).
     width, height : raster size (px).
     frame_id : the frame of ``x_min, y_max``.
+    z_up : ``map``'s ``z`` points up (row 0 is the largest ``y``); False: ``z`` points down (row
+        0 is the smallest ``y``).
     """
 
     x_min: float
@@ -73,28 +82,45 @@ class Georeference:
     width: int
     height: int
     frame_id: str = 'map'
+    z_up: bool = True
 
     @property
     def y_min(self) -> float:
-        """Map ``y`` of the south edge (m)."""
+        """Map ``y`` of the edge of smallest ``y`` (m)."""
         return self.y_max - self.height * self.metres_per_pixel
+
+    @property
+    def row_step(self) -> float:
+        """Map ``y`` from one row to the next (m): ``-metres_per_pixel`` with ``z`` up."""
+        return -self.metres_per_pixel if self.z_up else self.metres_per_pixel
+
+    @property
+    def y_top(self) -> float:
+        """Map ``y`` of row 0's outer edge (m)."""
+        return self.y_max if self.z_up else self.y_min
+
+    def row_of(self, y: FloatArray) -> FloatArray:
+        """Fractional row (pixel edges at integers) of map ``y`` (m)."""
+        return (np.asarray(y, float) - self.y_top) / self.row_step
 
     def pixel_centres(self, row0: int, col0: int, rows: int,
                       cols: int) -> tuple[np.ndarray, np.ndarray]:
         """Map ``x, y`` (m) of the pixel centres of a window, two (rows, cols) float32 arrays."""
         m = self.metres_per_pixel
         x = self.x_min + (np.arange(col0, col0 + cols) + 0.5) * m
-        y = self.y_max - (np.arange(row0, row0 + rows) + 0.5) * m
+        y = self.y_top + (np.arange(row0, row0 + rows) + 0.5) * self.row_step
         xx, yy = np.meshgrid(x, y)
         return xx.astype(np.float32), yy.astype(np.float32)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able fields plus the convention in words."""
+        rows = ('y = y_max - (row + 0.5) * metres_per_pixel (map z up: north up)' if self.z_up
+                else 'y = y_max - (height - row - 0.5) * metres_per_pixel (map z down)')
         return {'frame_id': self.frame_id, 'metres_per_pixel': self.metres_per_pixel,
                 'x_min': self.x_min, 'y_max': self.y_max, 'width': self.width,
-                'height': self.height,
-                'convention': 'north-up; pixel (row, col) centre at x = x_min + (col + 0.5) * '
-                              'metres_per_pixel, y = y_max - (row + 0.5) * metres_per_pixel'}
+                'height': self.height, 'z_up': self.z_up,
+                'convention': 'seen from above with x to the right; pixel (row, col) centre at '
+                              f'x = x_min + (col + 0.5) * metres_per_pixel, {rows}'}
 
 
 @dataclass(frozen=True)
@@ -180,16 +206,24 @@ def footprint(view: CameraView, surface: Surface) -> FloatArray | None:
     return np.concatenate(pts)
 
 
+def looks_along_minus_z(views: list[CameraView]) -> bool:
+    """True when most cameras look along ``map``'s ``-z`` (``z`` up, a camera above the
+    ground); False when they look along ``+z`` (``map``'s ``z`` points down)."""
+    dz = [float(np.asarray(v.T_map_cam, float)[2, 2]) for v in views]
+    return bool(np.median(dz) <= 0) if dz else True
+
+
 def ground_sample_distance(views: list[CameraView], surface: Surface) -> float:
     """The views' median ground sample distance (m/px): height above the surface's middle
-    height over the focal length."""
+    height (along ``z`` or ``-z``, :func:`looks_along_minus_z`) over the focal length."""
     lo, hi = surface.z_range
-    gsd = [(float(v.T_map_cam[2, 3]) - 0.5 * (lo + hi)) / float(np.asarray(v.K)[0, 0])
+    up = 1.0 if looks_along_minus_z(views) else -1.0
+    gsd = [up * (float(v.T_map_cam[2, 3]) - 0.5 * (lo + hi)) / float(np.asarray(v.K)[0, 0])
            for v in views]
     gsd = [g for g in gsd if g > 0]
     if not gsd:
         raise InputError('mosaic: no camera is above the ground surface (is the camera looking '
-                         'down, and the poses in map with z up?)')
+                         'down at the ground?)')
     return float(np.median(gsd))
 
 
@@ -220,7 +254,8 @@ def plan_georeference(views: list[CameraView], surface: Surface,
         raise InputError(f'mosaic of {width}x{height} px at {m:.3g} m/px exceeds max_pixels '
                          f'{config.max_pixels}: use metres_per_pixel >= {need:.3g} or raise '
                          'max_pixels')
-    return Georeference(float(x_min), float(y_max), float(m), width, height)
+    return Georeference(float(x_min), float(y_max), float(m), width, height,
+                        z_up=looks_along_minus_z(views))
 
 
 def warp_view(view: CameraView, surface: Surface, georef: Georeference) -> WarpedView | None:
@@ -233,8 +268,9 @@ def warp_view(view: CameraView, surface: Surface, georef: Georeference) -> Warpe
     m = georef.metres_per_pixel
     col0 = max(int(np.floor((foot[:, 0].min() - georef.x_min) / m)), 0)
     col1 = min(int(np.ceil((foot[:, 0].max() - georef.x_min) / m)) + 1, georef.width)
-    row0 = max(int(np.floor((georef.y_max - foot[:, 1].max()) / m)), 0)
-    row1 = min(int(np.ceil((georef.y_max - foot[:, 1].min()) / m)) + 1, georef.height)
+    rows_at = georef.row_of(foot[:, 1])
+    row0 = max(int(np.floor(rows_at.min())), 0)
+    row1 = min(int(np.ceil(rows_at.max())) + 1, georef.height)
     if col1 <= col0 or row1 <= row0:
         return None
     rows, cols = row1 - row0, col1 - col0
@@ -245,10 +281,11 @@ def warp_view(view: CameraView, surface: Surface, georef: Georeference) -> Warpe
     P = np.asarray(view.K, float) @ np.hstack([R.T, (-R.T @ t)[:, None]])  # map -> pixel
     src = img.astype(np.float32)
     m0 = georef.x_min + (col0 + 0.5) * m
-    n0 = georef.y_max - (row0 + 0.5) * m
+    dy = georef.row_step
+    n0 = georef.y_top + (row0 + 0.5) * dy
     if isinstance(surface, GroundPlane):
         # mosaic window pixel (c, r, 1) -> map (x, y, z, 1) -> image: one homography
-        A = np.array([[m, 0.0, m0], [0.0, -m, n0], [0.0, 0.0, surface.z_m], [0.0, 0.0, 1.0]])
+        A = np.array([[m, 0.0, m0], [0.0, dy, n0], [0.0, 0.0, surface.z_m], [0.0, 0.0, 1.0]])
         out = cv2.warpPerspective(src, P @ A, (cols, rows),
                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                   borderMode=cv2.BORDER_CONSTANT)
@@ -259,7 +296,7 @@ def warp_view(view: CameraView, surface: Surface, georef: Georeference) -> Warpe
     # image coordinates of every window pixel's ground point, separably: x varies along the
     # columns, y along the rows
     xs = (m0 + m * np.arange(cols, dtype=np.float64))[None, :]
-    ys = (n0 - m * np.arange(rows, dtype=np.float64))[:, None]
+    ys = (n0 + dy * np.arange(rows, dtype=np.float64))[:, None]
     q = [(P[k, 0] * xs + (P[k, 1] * ys + P[k, 3])).astype(np.float32) + np.float32(P[k, 2]) * z
          for k in range(3)]
     depth = q[2]
@@ -337,8 +374,8 @@ def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path
 def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     """Write the mosaic as PNG (grey or colour; an alpha channel marks the covered pixels), its
     georeference as JSON (``<name>.json``) and as an ESRI world file (``<name>.pgw``: pixel
-    size, rotation terms 0, the north-west pixel's centre), each atomically through
-    :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
+    size, rotation terms 0, the ``y`` step of a row, pixel (0, 0)'s centre), each atomically
+    through :mod:`ga_ros.safe_write` (links refused). Returns the paths by kind.
 
     Raises
     ------
@@ -357,14 +394,15 @@ def save_mosaic(path: str | Path, mosaic: Mosaic) -> dict[str, str]:
     meta = write_json(path.with_suffix('.json'), g.as_dict(), indent=1)
     world = path.with_suffix('.pgw')
     m = g.metres_per_pixel
-    write_text(world, f'{m!r}\n0.0\n0.0\n{-m!r}\n{g.x_min + 0.5 * m!r}\n{g.y_max - 0.5 * m!r}\n')
+    dy = g.row_step
+    write_text(world, f'{m!r}\n0.0\n0.0\n{dy!r}\n{g.x_min + 0.5 * m!r}\n{g.y_top + 0.5 * dy!r}\n')
     return {'png': str(path), 'georeference': str(meta), 'world_file': str(world)}
 
 
 def image_fields(mosaic: Mosaic) -> dict[str, Any]:
     """``sensor_msgs/Image`` fields of the mosaic (without the header): ``mono8`` for grey,
-    ``rgb8`` for colour, rows north first, uncovered pixels 0. Publish it with
-    ``header.frame_id`` = the georeference's frame (``map``) beside
+    ``rgb8`` for colour, rows as seen from above (module docstring), uncovered pixels 0.
+    Publish it with ``header.frame_id`` = the georeference's frame (``map``) beside
     :func:`map_metadata_fields` (same stamp)."""
     img = mosaic.image
     if img.ndim == 3:
@@ -380,11 +418,16 @@ def image_fields(mosaic: Mosaic) -> dict[str, Any]:
 
 def map_metadata_fields(georef: Georeference) -> dict[str, Any]:
     """The georeference as ``nav_msgs/MapMetaData`` fields (``resolution`` m/px, ``width``,
-    ``height``, ``origin`` = position ``[x, y, z]`` and quaternion ``[x, y, z, w]`` of the
-    raster's south-west corner in the frame, no rotation), the convention of
-    ``nav_msgs/OccupancyGrid``: grid row ``i`` (counted from ``origin``, northward) is row
-    ``height - 1 - i`` of the north-first ``sensor_msgs/Image`` of :func:`image_fields`."""
+    ``height``, ``origin`` = position ``[x, y, z]`` and quaternion ``[x, y, z, w]`` of grid cell
+    (0, 0)'s outer corner), the convention of ``nav_msgs/OccupancyGrid``: grid row ``i``
+    (counted from ``origin`` along the origin's ``y`` axis) is row ``height - 1 - i`` of the
+    ``sensor_msgs/Image`` of :func:`image_fields`. With ``map``'s ``z`` up the origin is the
+    corner ``(x_min, y_min)`` with no rotation; with ``z`` down it is ``(x_min, y_max)`` turned
+    half a turn about ``x`` (quaternion ``[1, 0, 0, 0]``: the grid's ``y`` is ``map``'s ``-y``,
+    its ``z`` points up)."""
+    corner = georef.y_min if georef.z_up else georef.y_max
     return {'resolution': float(georef.metres_per_pixel), 'width': int(georef.width),
             'height': int(georef.height),
-            'origin': {'position': [float(georef.x_min), float(georef.y_min), 0.0],
-                       'orientation': [0.0, 0.0, 0.0, 1.0]}}
+            'origin': {'position': [float(georef.x_min), float(corner), 0.0],
+                       'orientation': ([0.0, 0.0, 0.0, 1.0] if georef.z_up
+                                       else [1.0, 0.0, 0.0, 0.0])}}

@@ -34,7 +34,7 @@ from ga_ros.mapping.mosaic import (
     save_mosaic,
 )
 from ga_ros.mapping.seams import SeamStats, seam_misregistration
-from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
+from ga_ros.mapping.surface import GroundPlane, SurfaceConfig, ground_from_keyframe_points
 
 #: Default limit of the keyframe data a replay's mosaic step holds (bytes).
 MAX_KEYFRAME_BYTES = 1 << 30
@@ -170,7 +170,8 @@ def write_mosaics(out_dir: str | Path, images: KeyframeImages,
         views = [CameraView(images.left[int(k)], T, images.K) for k, T in zip(keep, T_map_cam)]
         surface: Surface = (GroundPlane(float(ground_z)) if ground_z is not None
                             else ground_from_keyframe_points([points_cam[int(k)] for k in keep],
-                                                            T_map_cam, ground_cell_m))
+                                                            T_map_cam,
+                                                            SurfaceConfig(cell_m=ground_cell_m)))
         cfg = MosaicConfig(mpp, config.blend, config.max_pixels, config.margin_m)
         georef = plan_georeference(views, surface, cfg)
         mpp = georef.metres_per_pixel

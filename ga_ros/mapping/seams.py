@@ -228,7 +228,7 @@ def seam_misregistration(views: list[CameraView], tracks: IntArray, surface: Sur
             x, y = georef.pixel_centres(0, 0, 1, 1)
             m = georef.metres_per_pixel
             centre = (float(x[0, 0]) + 0.5 * (p0 + p1 - 1) * m,
-                      float(y[0, 0]) - 0.5 * (q0 + q1 - 1) * m)
+                      float(y[0, 0]) + 0.5 * (q0 + q1 - 1) * georef.row_step)
             offsets.append(SeamOffset(a, b, got[0], got[1], (q1 - q0, p1 - p0), centre))
     lengths = np.array([o.length_px for o in offsets])
     nan = float('nan')

@@ -2,27 +2,33 @@
 :class:`LiveMosaic`.
 
 Inputs, in any order: keyframe images (the rectified left image, its intrinsics ``K`` and the
-camera's extrinsic ``T_base_cam``, under the keyframe's stamp) and keyframe poses
-``T_map_base`` (from the corrections or the corrected path, by stamp). Frames and the pixel
-convention are those of :mod:`ga_ros.mapping.mosaic`: ``map`` with ``x`` east, ``y`` north;
-``T_map_cam = T_map_base @ T_base_cam`` in the optical convention.
+camera's extrinsic ``T_base_cam``, under the keyframe's stamp), keyframe clouds (points in the
+camera's frame, with the same extrinsic) and keyframe poses ``T_map_base`` (from the
+corrections or the corrected path, by stamp). Frames and the pixel convention are those of
+:mod:`ga_ros.mapping.mosaic`: ``T_map_cam = T_map_base @ T_base_cam`` in the optical convention;
+the mosaic is seen from above with ``x`` to the right, whichever way ``map``'s ``z`` points
+(decided by the first keyframe placed, :func:`ga_ros.mapping.mosaic.looks_along_minus_z`).
 
-The mosaic lives on one unbounded north-up grid of ``metres_per_pixel`` whose pixel
-``(row, col)`` has its centre at ``x = (col + 0.5) * m``, ``y = -(row + 0.5) * m`` (rows and
-columns may be negative), cut into square tiles of ``tile_px``. Each placed keyframe keeps its
-warped patch (:func:`ga_ros.mapping.mosaic.warp_view` on a ground plane, rounded to ``uint8``
-as :func:`ga_ros.mapping.mosaic.build_mosaic` rounds it) and the tiles it touches. A pose that
-changes re-warps that keyframe only and recomposites the tiles its old and new patches touch
-(``'last'`` blending: a later stamp covers an earlier one); an update therefore costs in
-proportion to the keyframes that moved (:attr:`MosaicCounts.warps`), not to the mosaic's size.
-:meth:`LiveMosaic.mosaic` assembles the tiles over their bounding box
-(:class:`ga_ros.mapping.mosaic.Mosaic`, whose georeference is the published one).
+The mosaic lives on one unbounded grid of ``metres_per_pixel`` whose pixel ``(row, col)`` has
+its centre at ``x = (col + 0.5) * m`` and ``y = -(row + 0.5) * m`` (``z`` up) or
+``y = (row + 0.5) * m`` (``z`` down); rows and columns may be negative. It is cut into square
+tiles of ``tile_px``. Each placed keyframe keeps its warped patch
+(:func:`ga_ros.mapping.mosaic.warp_view`, the offline mosaic's warp, rounded to ``uint8`` as
+:func:`ga_ros.mapping.mosaic.build_mosaic` rounds it) and the tiles it touches. A keyframe is
+re-warped when its pose changes or when the ground under it changes, and the tiles its old and
+new patches touch are recomposited (``'last'`` blending: a later stamp covers an earlier one);
+an update therefore costs in proportion to the keyframes it moved or whose ground it changed
+(:attr:`MosaicCounts.warps`), not to the mosaic's size. :meth:`LiveMosaic.mosaic` assembles the
+tiles over their bounding box (:class:`ga_ros.mapping.mosaic.Mosaic`, whose georeference is the
+published one).
 
-The ground is a plane (:class:`ga_ros.mapping.surface.GroundPlane`) at ``ground_z`` or, with
-``ground_from_clouds``, at a height the caller sets once (:meth:`LiveMosaic.set_ground`; the
-node takes the median height of its point-cloud map); keyframes wait until it is known. Over
-relief a plane misregisters neighbouring tracks by the parallax: the replay's mosaic
-(:mod:`ga_ros.mapping.replay_mosaic`) orthorectifies on a height grid instead.
+The ground, with ``ground_from_clouds`` (the default), is the offline mosaic's height model
+(:mod:`ga_ros.mapping.surface`, cells of ``ground_cell_m``) of the keyframe clouds at their
+current poses, kept by :class:`ga_ros.mapping.live_surface.LiveHeightGrid`: each image is
+orthorectified, so the mosaic equals :func:`ga_ros.mapping.mosaic.build_mosaic` on
+:func:`ga_ros.mapping.surface.ground_from_keyframe_points` of the same clouds and poses.
+Keyframes wait until ground under them is known; pixels whose ground is unknown are left
+uncovered. Without it the ground is the plane ``z = ground_z``.
 
 Memory is bounded: the tiles' bounding box may not exceed ``max_pixels`` (a keyframe that would
 grow it beyond is refused: :attr:`LiveMosaic.last_error` says what to change); beyond
@@ -38,14 +44,16 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.errors import InputError
+from ga_ros.mapping.live_surface import LiveHeightGrid
 from ga_ros.mapping.mosaic import (
     CameraView,
     Georeference,
     Mosaic,
     footprint,
+    looks_along_minus_z,
     warp_view,
 )
-from ga_ros.mapping.surface import GroundPlane
+from ga_ros.mapping.surface import GroundPlane, HeightGrid, SurfaceConfig
 
 
 @dataclass(frozen=True)
@@ -59,8 +67,12 @@ class MosaicMapConfig:
     metres_per_pixel : resolution (m/px); 0: the first keyframe's ground sample distance
         (height above the ground over the focal length), then fixed.
     ground_z : height of the ground plane in ``map`` (m), when not ``ground_from_clouds``.
-    ground_from_clouds : the ground's height is set once from the keyframe clouds (the node:
-        median height of its point-cloud map when the first keyframe image can be placed).
+    ground_from_clouds : orthorectify on the height model of the keyframe clouds (module
+        docstring); else on the plane ``ground_z``.
+    ground_cell_m : cell of that height model (m).
+    ground_tolerance_m : a keyframe is re-warped for its ground only when a height under it
+        moved by more than this since its warp, or a cell there became known or unknown (m;
+        0: on any change, so the mosaic equals the offline one exactly).
     tile_px : edge of the tiles recomposited when a keyframe moves (px).
     max_pixels : largest mosaic (bounding box of the tiles, px); a keyframe that would exceed
         it is refused.
@@ -74,15 +86,19 @@ class MosaicMapConfig:
     metres_per_pixel: float = 0.0
     ground_z: float = 0.0
     ground_from_clouds: bool = True
+    ground_cell_m: float = 2.0
+    ground_tolerance_m: float = 0.02
     tile_px: int = 256
     max_pixels: int = 25_000_000
     max_live_keyframes: int = 2000
     max_waiting: int = 200
 
     def __post_init__(self) -> None:
-        if self.metres_per_pixel < 0 or self.tile_px < 8 or self.max_pixels < 1:
+        if self.metres_per_pixel < 0 or self.tile_px < 8 or self.max_pixels < 1 \
+                or not self.ground_cell_m > 0 or not self.ground_tolerance_m >= 0:
             raise InputError('mosaic_metres_per_pixel must be >= 0 (0: automatic), '
-                             'mosaic_tile_px >= 8 and mosaic_max_pixels >= 1')
+                             'mosaic_tile_px >= 8, mosaic_max_pixels >= 1, '
+                             'mosaic_ground_cell_m > 0 and mosaic_ground_tolerance_m >= 0')
 
 
 @dataclass
@@ -92,6 +108,8 @@ class MosaicCounts:
     Attributes
     ----------
     images : keyframe images taken.
+    clouds : keyframe clouds taken.
+    ground_rewarps : of the warps, those of keyframes whose ground changed (not their pose).
     warps : keyframe warps done (the work: one per placed or moved keyframe).
     tiles_composited : tile recompositions done.
     refused : keyframes refused (mosaic over ``max_pixels``, or no view of the ground).
@@ -100,6 +118,8 @@ class MosaicCounts:
     """
 
     images: int = 0
+    clouds: int = 0
+    ground_rewarps: int = 0
     warps: int = 0
     tiles_composited: int = 0
     refused: int = 0
@@ -116,6 +136,11 @@ class _Patch:
     valid: np.ndarray
     row0: int
     col0: int
+    #: the ground cells (i_lo, i_hi, j_lo, j_hi) its warp read, their heights (float32, NaN:
+    #: unknown; None on a plane) and the height range it assumed
+    cells: tuple[int, int, int, int] = (0, -1, 0, -1)
+    ground: np.ndarray | None = None
+    z_range: tuple[float, float] = (0.0, 0.0)
 
     def tiles(self, t: int) -> set[tuple[int, int]]:
         """Tiles (tile row, tile column) the patch touches."""
@@ -131,6 +156,14 @@ class _Keyframe:
     T_base_cam: FloatArray
     T_map_base: FloatArray | None = None
     patch: _Patch | None = None
+    refused: bool = False
+
+
+@dataclass(frozen=True)
+class _Heights:
+    """A height range, what :func:`ga_ros.mapping.mosaic.footprint` reads of a surface."""
+
+    z_range: tuple[float, float]
 
 
 @dataclass
@@ -153,6 +186,11 @@ class LiveMosaic:
         self.static: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.ground: GroundPlane | None = (None if config.ground_from_clouds
                                            else GroundPlane(float(config.ground_z)))
+        self.surface: LiveHeightGrid | None = (
+            LiveHeightGrid(SurfaceConfig(cell_m=config.ground_cell_m))
+            if config.ground_from_clouds else None)
+        #: map's z points up (None until the first keyframe is placed)
+        self.z_up: bool | None = None
         self.metres_per_pixel = float(config.metres_per_pixel)
         #: poses that came before their image: stamp -> T_map_base
         self.pending_poses: dict[int, FloatArray] = {}
@@ -163,14 +201,27 @@ class LiveMosaic:
         self._colour: bool | None = None
 
     # ------------------------------------------------------------------ inputs
-    def set_ground(self, z_m: float) -> int:
-        """Fix the ground plane's height (m in ``map``) if not fixed yet, and place the
-        keyframes that waited for it; returns the keyframes warped."""
-        if self.ground is not None or not np.isfinite(z_m):
+    def add_cloud(self, stamp_ns: int, points_cam: np.ndarray, T_base_cam: FloatArray) -> int:
+        """A keyframe's cloud ((k, 3) points in its camera's frame, m) and the camera's
+        extrinsic ``T_base_cam`` (4, 4), for the ground (ignored on a ground plane); returns the
+        keyframes warped because the ground under them changed.
+
+        Raises
+        ------
+        InputError
+            Points that are not (k, 3) or an extrinsic that is not a finite 4x4 transform.
+        """
+        if self.surface is None:
             return 0
-        self.ground = GroundPlane(float(z_m))
-        return self._place([k for k, kf in self.keyframes.items()
-                            if kf.T_map_base is not None and kf.patch is None])
+        P = np.asarray(points_cam)
+        T_bc = np.asarray(T_base_cam, float)
+        if P.ndim != 2 or P.shape[1] != 3 or T_bc.shape != (4, 4) \
+                or not np.all(np.isfinite(T_bc)):
+            raise InputError('mosaic: a keyframe cloud needs (k, 3) points and a finite 4x4 '
+                             'camera extrinsic')
+        self.counts.clouds += 1
+        self.surface.add_points(int(stamp_ns), P, T_bc)
+        return self._update([])
 
     def add_image(self, stamp_ns: int, image: np.ndarray, K: FloatArray,
                   T_base_cam: FloatArray) -> bool:
@@ -205,7 +256,8 @@ class LiveMosaic:
         if old is not None and old.patch is not None:
             self._recomposite(self._remove_patch(key, old.patch))
         self._bound_waiting()
-        return self._place([key]) > 0
+        self._update([key])
+        return self.keyframes.get(key) is not None and self.keyframes[key].patch is not None
 
     def set_poses(self, stamps_ns: IntArray, T_map_base: FloatArray) -> int:
         """Poses of keyframes by stamp; those whose pose changed are re-warped and their tiles
@@ -224,16 +276,19 @@ class LiveMosaic:
         moved = []
         for k, Tk in zip(keys.tolist(), T):
             kf = self.keyframes.get(k)
+            if self.surface is not None:
+                self.surface.set_pose(k, Tk)
             if kf is None:
                 self.pending_poses[k] = Tk.copy()
                 continue
             if kf.T_map_base is not None and np.array_equal(kf.T_map_base, Tk):
                 continue
             kf.T_map_base = Tk.copy()
+            kf.refused = False
             moved.append(k)
         while len(self.pending_poses) > 100_000:
             self.pending_poses.pop(next(iter(self.pending_poses)))
-        return self._place(moved)
+        return self._update(moved)
 
     def unplace_all(self) -> None:
         """Forget every keyframe's pose (a full corrections message follows with the new
@@ -241,6 +296,9 @@ class LiveMosaic:
         for kf in self.keyframes.values():
             kf.T_map_base = None
             kf.patch = None
+        if self.surface is not None:
+            self.surface.unplace_all()
+            self.surface.commit()
         self.tiles.clear()
         self.pending_poses.clear()
         self.changed = True
@@ -262,36 +320,124 @@ class LiveMosaic:
         assert kf.T_map_base is not None
         return CameraView(kf.image, kf.T_map_base @ kf.T_base_cam, kf.K)
 
-    def _warp(self, kf: _Keyframe) -> _Patch | None:
-        """The keyframe warped on the global grid (None when it does not see the ground)."""
-        assert self.ground is not None
+    def _z_range(self) -> tuple[float, float]:
+        return self.ground.z_range if self.ground is not None else self.surface.z_range
+
+    def _warp(self, kf: _Keyframe) -> _Patch | str | None:
+        """The keyframe warped on the global grid; ``'refused'`` when it does not see the
+        ground, None when it sees no known ground yet."""
         view = self._view(kf)
-        if not self.metres_per_pixel:
-            gsd = abs(float(view.T_map_cam[2, 3]) - self.ground.z_m) / float(kf.K[0, 0])
-            if gsd <= 0:
-                return None
-            self.metres_per_pixel = gsd
-        m = self.metres_per_pixel
-        foot = footprint(view, self.ground)
-        if foot is None:
+        z_range = self._z_range()
+        if not np.all(np.isfinite(z_range)):
             return None
-        c0 = int(np.floor(foot[:, 0].min() / m)) - 1
-        c1 = int(np.ceil(foot[:, 0].max() / m)) + 1
-        r0 = int(np.floor(-foot[:, 1].max() / m)) - 1
-        r1 = int(np.ceil(-foot[:, 1].min() / m)) + 1
-        georef = Georeference(c0 * m, -r0 * m, m, c1 - c0, r1 - r0)
-        wv = warp_view(view, self.ground, georef)
+        if self.z_up is None:
+            self.z_up = looks_along_minus_z([view])
+        if not self.metres_per_pixel:
+            gsd = abs(float(view.T_map_cam[2, 3]) - 0.5 * sum(z_range)) / float(kf.K[0, 0])
+            if not gsd > 0:
+                return 'refused'
+            self.metres_per_pixel = gsd
+        window = self._window(view, z_range)
+        if window is None:
+            return 'refused'
+        georef, cells = window
+        r0 = int(round(-georef.y_max / georef.metres_per_pixel)) if self.z_up \
+            else int(round(georef.y_min / georef.metres_per_pixel))
+        c0 = int(round(georef.x_min / georef.metres_per_pixel))
+        surface: GroundPlane | HeightGrid = (self.ground if self.ground is not None
+                                             else self.surface.window(*cells))
+        wv = warp_view(view, surface, georef)
         self.counts.warps += 1
         if wv is None:
             return None
         img = np.where(wv.valid[..., None] if wv.image.ndim == 3 else wv.valid,
                        np.clip(wv.image + 0.5, 0, 255), 0).astype(np.uint8)
-        return _Patch(img, wv.valid, r0 + wv.row0, c0 + wv.col0)
+        heights = None if isinstance(surface, GroundPlane) else surface.z.astype(np.float32)
+        return _Patch(img, wv.valid, r0 + wv.row0, c0 + wv.col0, cells, heights, z_range)
+
+    def _window(self, view: CameraView, z_range: tuple[float, float]
+                ) -> tuple[Georeference, tuple[int, int, int, int]] | None:
+        """The window of the global grid over the view's footprint for ground heights in
+        ``z_range`` (None when it does not see them), and the ground cells a warp on it reads
+        (i_lo, i_hi, j_lo, j_hi; empty on a plane)."""
+        m = self.metres_per_pixel
+        foot = footprint(view, _Heights(z_range))  # type: ignore[arg-type]
+        if foot is None:
+            return None
+        c0 = int(np.floor(foot[:, 0].min() / m)) - 1
+        c1 = int(np.ceil(foot[:, 0].max() / m)) + 1
+        sign = -1.0 if self.z_up else 1.0  # map y = sign * (row + 0.5) * m
+        rows_at = sign * foot[:, 1] / m
+        r0 = int(np.floor(rows_at.min())) - 1
+        r1 = int(np.ceil(rows_at.max())) + 1
+        y_max = -r0 * m if self.z_up else r1 * m
+        georef = Georeference(c0 * m, y_max, m, c1 - c0, r1 - r0, z_up=bool(self.z_up))
+        if self.surface is None:
+            return georef, (0, -1, 0, -1)
+        c = self.surface.config.cell_m
+        return georef, (int(np.floor(-y_max / c)) - 2, int(np.floor(-georef.y_min / c)) + 2,
+                        int(np.floor(c0 * m / c)) - 2, int(np.floor(c1 * m / c)) + 2)
+
+    def _ground_moved(self, patch: _Patch) -> bool:
+        """The ground under a patch changed beyond ``ground_tolerance_m`` since its warp."""
+        tol = self.config.ground_tolerance_m
+        if tol <= 0 or patch.ground is None:
+            return True
+        now = self.surface.window(*patch.cells).z
+        known = np.isfinite(now)
+        if not np.array_equal(known, np.isfinite(patch.ground)):
+            return True
+        return bool(known.any() and np.max(np.abs(now[known] - patch.ground[known])) > tol)
+
+    def _update(self, keys: list[int]) -> int:
+        """The ground's changes committed, then (re-)warp these keyframes, those whose ground
+        changed and those waiting for ground; returns the keyframes warped."""
+        todo = set(keys)
+        if self.surface is not None:
+            ci, cj = self.surface.commit()
+            ground = self._ground_changed(ci, cj) - todo
+            self.counts.ground_rewarps += len(ground)
+            todo |= ground
+            if ci.size:  # new ground: the keyframes that saw none yet try again
+                todo |= {k for k, kf in self.keyframes.items()
+                         if kf.T_map_base is not None and kf.patch is None and not kf.refused}
+        return self._place(sorted(todo))
+
+    def _ground_changed(self, ci: np.ndarray, cj: np.ndarray) -> set[int]:
+        """Placed keyframes whose warp read a ground cell that changed (beyond
+        ``ground_tolerance_m``: :meth:`_ground_moved`). A keyframe warped when the heights spanned
+        less than they do now (by more than the tolerance) reads the cells of its footprint at
+        the present span (a cell outside its old window can only have come into view by
+        changing to a height outside the old span)."""
+        out: set[int] = set()
+        if ci.size == 0:
+            return out
+        lo, hi = self._z_range()
+        tol = self.config.ground_tolerance_m
+        i0, j0 = int(ci.min()), int(cj.min())
+        hit = np.zeros((int(ci.max()) - i0 + 2, int(cj.max()) - j0 + 2), np.int64)
+        hit[ci - i0 + 1, cj - j0 + 1] = 1
+        sat = hit.cumsum(0).cumsum(1)  # summed-area table, row/column 0 zero
+        n_i, n_j = sat.shape[0] - 2, sat.shape[1] - 2
+        for k, kf in self.keyframes.items():
+            if kf.patch is None or k in out:
+                continue
+            a, b, c, d = kf.patch.cells
+            widened = lo < kf.patch.z_range[0] - tol or hi > kf.patch.z_range[1] + tol
+            if widened:
+                window = self._window(self._view(kf), (lo, hi))
+                if window is not None:
+                    a, b, c, d = window[1]
+            a, b = max(a - i0, 0), min(b - i0, n_i)
+            c, d = max(c - j0, 0), min(d - j0, n_j)
+            if a <= b and c <= d and \
+                    sat[b + 1, d + 1] - sat[a, d + 1] - sat[b + 1, c] + sat[a, c] > 0 \
+                    and (widened or self._ground_moved(kf.patch)):
+                out.add(k)
+        return out
 
     def _place(self, keys: list[int]) -> int:
         """(Re-)warp these keyframes (pose known) and recomposite the tiles touched."""
-        if self.ground is None:
-            return 0
         dirty: set[tuple[int, int]] = set()
         warped = 0
         t = self.config.tile_px
@@ -305,13 +451,18 @@ class LiveMosaic:
             patch = self._warp(kf)
             warped += 1
             if patch is None:
+                continue
+            if isinstance(patch, str):
+                kf.refused = True
                 self.counts.refused += 1
-                self.last_error = (f'keyframe {k} does not see the ground plane at '
-                                   f'z = {self.ground.z_m:.3g} m (a mosaic needs a downward '
-                                   'camera; check the camera extrinsic)')
+                lo, hi = self._z_range()
+                self.last_error = (f'keyframe {k} does not see the ground at z = {lo:.3g} to '
+                                   f'{hi:.3g} m (a mosaic needs a downward camera; check the '
+                                   'camera extrinsic)')
                 continue
             new = patch.tiles(t)
             if not self._fits(new):
+                kf.refused = True
                 self.counts.refused += 1
                 self.last_error = (f'mosaic: keyframe {k} would grow the mosaic beyond '
                                    f'mosaic_max_pixels {self.config.max_pixels}: raise it or '
@@ -405,9 +556,11 @@ class LiveMosaic:
     def nbytes(self) -> int:
         """Bytes held by the images, patches and tiles."""
         n = sum(kf.image.nbytes + (0 if kf.patch is None else
-                                   kf.patch.image.nbytes + kf.patch.valid.nbytes)
+                                   kf.patch.image.nbytes + kf.patch.valid.nbytes
+                                   + (0 if kf.patch.ground is None else kf.patch.ground.nbytes))
                 for kf in self.keyframes.values())
         n += sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values())
+        n += 0 if self.surface is None else self.surface.nbytes()
         return n + sum(a.nbytes + b.nbytes for a, b in self.static.values())
 
     def mosaic(self) -> Mosaic | None:
@@ -426,7 +579,9 @@ class LiveMosaic:
             win = (slice((i - i0) * t, (i - i0 + 1) * t), slice((j - j0) * t, (j - j0 + 1) * t))
             image[win] = tl.image
             valid[win] = tl.valid
-        return Mosaic(image, valid, Georeference(j0 * t * m, -i0 * t * m, m, w, h))
+        y_max = -i0 * t * m if self.z_up is not False else i0 * t * m + h * m
+        return Mosaic(image, valid, Georeference(j0 * t * m, y_max, m, w, h,
+                                                 z_up=self.z_up is not False))
 
 
 def _paste(tile: _Tile, patch: _Patch, top: int, left: int) -> None:

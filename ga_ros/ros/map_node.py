@@ -16,8 +16,9 @@ builds the same map, :mod:`ga_ros.replay.map_outputs`): it subscribes to
 * ``ga/keyframe_image`` (``sensor_msgs/Image`` of ``vo_node``: each keyframe's rectified left
   image, same stamp and frame as its cloud) and ``ga/keyframe_camera_info``
   (``sensor_msgs/CameraInfo``, its ``k``), with ``mosaic_enabled``: the live mosaic
-  (:class:`ga_ros.pipeline.mosaic_map.LiveMosaic`, parameters ``mosaic_*``), which re-warps
-  only the keyframes whose pose changed.
+  (:class:`ga_ros.pipeline.mosaic_map.LiveMosaic`, parameters ``mosaic_*``), orthorectified
+  on the height model of the keyframe clouds (the offline mosaic's), which re-warps only the
+  keyframes whose pose or ground changed.
 
 Publishes ``ga/map`` (``sensor_msgs/PointCloud2`` in ``map_frame``, transient local, fields
 ``x y z intensity`` float32: one point per occupied voxel of ``voxel_m``), every
@@ -169,6 +170,9 @@ class MapNode(BoundedLogging, Node):
         #: keyframe images waiting for the CameraInfo or the camera's extrinsic:
         #: (stamp, frame, grey image)
         self.images_waiting: list[tuple[int, str, np.ndarray]] = []
+        #: keyframe clouds for the mosaic's ground waiting for the camera's extrinsic:
+        #: (stamp, frame, points in the camera's frame)
+        self.clouds_waiting: list[tuple[int, str, np.ndarray]] = []
         self.counts = {'bad_clouds': 0, 'bad_corrections': 0, 'bad_paths': 0, 'published': 0,
                        'saved': 0, 'bad_images': 0, 'mosaics_published': 0, 'mosaics_saved': 0}
         self._last_warn: dict[str, float] = {}
@@ -220,7 +224,11 @@ class MapNode(BoundedLogging, Node):
             return
         if self.builder.extrinsic_error:
             self._warn('extrinsic', f'keyframe clouds wait: {self.builder.extrinsic_error}')
-        self._fix_ground()
+        if self.mosaic is not None and self.mosaic.surface is not None:
+            self.clouds_waiting.append((conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                                        np.asarray(cloud.points)))
+            del self.clouds_waiting[:-max(1, self.mosaic_config.max_waiting)]
+            self._place_images()
 
     def _on_info(self, msg: CameraInfo) -> None:
         K = np.asarray(msg.k, float).reshape(3, 3)
@@ -244,8 +252,23 @@ class MapNode(BoundedLogging, Node):
         self._place_images()
 
     def _place_images(self) -> None:
-        """Give the mosaic the keyframe images whose intrinsics and extrinsic are known."""
-        if self.mosaic is None or self.K is None or not self.images_waiting:
+        """Give the mosaic the keyframe clouds whose extrinsic is known and the images whose
+        intrinsics and extrinsic are known."""
+        if self.mosaic is None:
+            return
+        clouds, self.clouds_waiting = self.clouds_waiting, []
+        for stamp, frame, points in clouds:
+            try:
+                ext = self.builder.extrinsic(frame)
+            except GaError:  # unknown extrinsic: wait for /tf_static (the map warns)
+                self.clouds_waiting.append((stamp, frame, points))
+                continue
+            try:
+                self.mosaic.add_cloud(stamp, points, ext.T_base_cam)
+            except GaError as exc:
+                self._warn('cloud', f'keyframe cloud dropped by the mosaic: {exc}')
+        if self.K is None or not self.images_waiting:
+            self._warn_refused()
             return
         waiting, self.images_waiting = self.images_waiting, []
         for stamp, frame, grey in waiting:
@@ -260,19 +283,7 @@ class MapNode(BoundedLogging, Node):
             except GaError as exc:
                 self.counts['bad_images'] += 1
                 self._warn('image', f'keyframe image dropped: {exc}')
-        self._fix_ground()
         self._warn_refused()
-
-    def _fix_ground(self) -> None:
-        """The mosaic's ground plane: the median height of the map, once it has points."""
-        mo = self.mosaic
-        if mo is None or mo.ground is not None or not mo.keyframes \
-                or not len(self.builder.map.voxels):
-            return
-        z = self.builder.cloud().points[:, 2]
-        if z.size:
-            mo.set_ground(float(np.median(z)))
-            self._warn_refused()
 
     def _warn_refused(self) -> None:
         if self.mosaic is not None and self.mosaic.last_error:
@@ -284,7 +295,6 @@ class MapNode(BoundedLogging, Node):
         if self.mosaic is None:
             return
         self.mosaic.set_poses(self.builder.keys(stamps), T)
-        self._fix_ground()
         self._warn_refused()
 
     def _on_corrections(self, msg: PathMsg) -> None:
@@ -447,7 +457,8 @@ class MapNode(BoundedLogging, Node):
                 'mosaic_warps': c.warps, 'mosaic_tiles_composited': c.tiles_composited,
                 'mosaic_tiles': len(mo.tiles), 'mosaic_refused': c.refused,
                 'mosaic_dropped': c.dropped, 'mosaic_metres_per_pixel': mo.metres_per_pixel,
-                'mosaic_ground_z': float('nan') if mo.ground is None else mo.ground.z_m,
+                'mosaic_clouds': c.clouds, 'mosaic_clouds_waiting': len(self.clouds_waiting),
+                'mosaic_ground_rewarps': c.ground_rewarps,
                 'mosaic_bytes': mo.nbytes()}
 
 

@@ -22,7 +22,7 @@ from ga_ros.mapping.mosaic import (
     save_mosaic,
 )
 from ga_ros.mapping.seams import image_offset, seam_misregistration
-from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
+from ga_ros.mapping.surface import GroundPlane, SurfaceConfig, ground_from_keyframe_points
 
 sim = pytest.importorskip('ga_ros.sim.stereo')
 
@@ -109,7 +109,7 @@ def test_relief_needs_the_height_grid() -> None:
     views = [CameraView(scene.render(T), T, scene.rig.K) for T in survey.T_world_cam]
     # the true ground points of each view, in its camera frame (as a keyframe cloud)
     pts_cam = [(scene.ground_points(T, 8) - T[:3, 3]) @ T[:3, :3] for T in survey.T_world_cam]
-    grid = ground_from_keyframe_points(pts_cam, survey.T_world_cam, 2.0)
+    grid = ground_from_keyframe_points(pts_cam, survey.T_world_cam, SurfaceConfig(cell_m=2.0))
     pts = np.concatenate([scene.ground_points(T, 8) for T in survey.T_world_cam])
     err = np.abs(grid.heights(pts[:, :1], pts[:, 1:2]).ravel() - pts[:, 2])
     print(f'height grid error: median {np.median(err):.3f} m, p95 {np.percentile(err, 95):.3f} m')

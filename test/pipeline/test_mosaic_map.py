@@ -9,8 +9,9 @@ import pytest
 
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
-from ga_ros.mapping.mosaic import CameraView, MosaicConfig, build_mosaic
-from ga_ros.mapping.surface import GroundPlane
+from ga_ros.mapping.mosaic import CameraView, MosaicConfig, build_mosaic, map_metadata_fields
+from ga_ros.mapping.seams import seam_misregistration
+from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
 from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
 
 sim = pytest.importorskip('ga_ros.sim.stereo')
@@ -156,12 +157,16 @@ def test_ground_from_clouds_waits_then_places(data) -> None:
     live = LiveMosaic(MosaicMapConfig(metres_per_pixel=0.0, tile_px=64))
     live.add_image(int(stamps[0]), images[0], K, T_BASE_CAM)
     live.set_poses(stamps[:1], T_true[:1])
-    assert live.mosaic() is None and live.counts.warps == 0
-    assert live.set_ground(GROUND_Z) == 1 and live.mosaic() is not None
+    assert live.mosaic() is None and live.counts.warps == 0  # no ground known yet
+    T_cam = T_true[0] @ T_BASE_CAM
+    ground = np.array([[x, y, GROUND_Z] for x in np.arange(-60.0, 61.0, 0.5)
+                       for y in np.arange(-60.0, 61.0, 0.5)])
+    pts_cam = (ground - T_cam[:3, 3]) @ T_cam[:3, :3]
+    assert live.add_cloud(int(stamps[0]), pts_cam, T_BASE_CAM) == 1
+    assert live.mosaic() is not None and live.surface.z_range == pytest.approx((GROUND_Z,) * 2)
     # automatic resolution: height above the ground over the focal length
-    h = (T_true[0] @ T_BASE_CAM)[2, 3] - GROUND_Z
+    h = T_cam[2, 3] - GROUND_Z
     assert live.metres_per_pixel == pytest.approx(h / K[0, 0])
-    assert live.set_ground(0.0) == 0 and live.ground.z_m == GROUND_Z  # fixed once
 
 
 def test_bad_input_is_refused_and_changes_nothing(data) -> None:
@@ -192,3 +197,179 @@ def test_bad_input_is_refused_and_changes_nothing(data) -> None:
     live.add_image(7, images[1], K, up)
     live.set_poses([7], T_true[1:2])
     assert live.counts.refused == 1 and 'downward' in live.last_error
+
+
+# ---------------------------------------------------------------- relief: the height grid
+@pytest.fixture(scope='module')
+def relief():
+    """Two 275 m swaths over relief: stamps, images, true ``T_map_base`` and each keyframe's
+    ground points in its camera frame (the scene's true ground, as a keyframe cloud)."""
+    survey = sim.lawnmower(sim.LawnmowerConfig(n_tracks=1, positions_per_swath=12, step_m=25.0,
+                                               turn_positions=0, seed=2))
+    scene = sim.make_scene(survey, seed=2, noise_std=0.0)
+    T_cam = np.asarray(survey.T_world_cam)
+    images = [scene.render(T) for T in T_cam]
+    clouds = [(scene.ground_points(T, 8) - T[:3, 3]) @ T[:3, :3] for T in T_cam]
+    stamps = 1_000_000_000 + np.arange(len(T_cam), dtype=np.int64) * 500_000_000
+    return (scene.rig.K, stamps, images, T_cam @ se3.inverse(T_BASE_CAM), clouds,
+            np.asarray(survey.swath))
+
+
+def offline(images, clouds, T_map_base, K, georef):
+    """The offline mosaic (build_mosaic on the height grid of the same clouds at the same
+    poses) on the live grid, with its views and surface."""
+    T_cam = T_map_base @ T_BASE_CAM
+    views = [CameraView(img, T, K) for img, T in zip(images, T_cam)]
+    surface = ground_from_keyframe_points(clouds, T_cam)
+    return build_mosaic(views, surface, MosaicConfig(MPP, 'last'), georef), views, surface
+
+
+def assert_close(live, ref) -> None:
+    """The same mosaic within what a ground stale by ``ground_tolerance_m`` (2 cm: under
+    0.02 px of parallax here) gives: coverage equal but for 0.2 % of the pixels, grey levels
+    within 2 for 99 % of the common ones."""
+    both = live.valid & ref.valid
+    diff = np.abs(live.image.astype(int) - ref.image.astype(int))[both]
+    print(f'live vs offline: coverage differs at {np.mean(live.valid != ref.valid):.2e} of the '
+          f'pixels, grey > 2 apart at {np.mean(diff > 2):.2e}, mean {diff.mean():.3f}')
+    assert live.valid.sum() > 0.3 * live.valid.size
+    assert np.mean(live.valid != ref.valid) < 2e-3 and np.mean(diff > 2) < 1e-2
+
+
+@pytest.mark.parametrize('tolerance_m', [0.0, 0.02])
+def test_live_mosaic_over_relief_is_the_offline_orthomosaic_of_the_final_poses(
+        relief, tolerance_m: float) -> None:
+    """Pixel for pixel with ``ground_tolerance_m`` 0; within :func:`assert_close` with the
+    default 2 cm."""
+    K, stamps, images, T_true, clouds, tracks = relief
+    T_f2f = drifted(T_true, seed=1)
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                      ground_tolerance_m=tolerance_m))
+    same = assert_same if tolerance_m == 0 else assert_close
+    # clouds, images and poses interleaved as a live run delivers them
+    for k, s in enumerate(stamps):
+        live.add_cloud(int(s), clouds[k], T_BASE_CAM)
+        live.add_image(int(s), images[k], K, T_BASE_CAM)
+        live.set_poses(stamps[k:k + 1], T_f2f[k:k + 1])
+    before = live.mosaic()
+    ref, _, _ = offline(images, clouds, T_f2f, K, before.georef)
+    same(before, ref)
+    assert live.counts.ground_rewarps > 0  # later clouds changed earlier keyframes' ground
+    print(f'tolerance {tolerance_m} m: {live.counts.warps} warps for {len(stamps)} keyframes '
+          f'arriving one by one ({live.counts.ground_rewarps} for their ground)')
+    for track in np.unique(tracks):  # the alignment's corrections, track by track
+        sel = tracks >= track
+        live.set_poses(stamps[sel], T_true[sel])
+    after = live.mosaic()
+    ref, views, surface = offline(images, clouds, T_true, K, after.georef)
+    same(after, ref)
+    # orthorectified: the seams of the live mosaic are those of the height grid, and a plane
+    # at the middle height (the flat mosaic) misregisters them by the parallax
+    on_grid = seam_misregistration(views, tracks, surface, after.georef)
+    lo, hi = surface.z_range
+    on_plane = seam_misregistration(views, tracks, GroundPlane(0.5 * (lo + hi)), after.georef)
+    print(f'live mosaic seams: height grid {on_grid.median_px:.3f} px, plane '
+          f'{on_plane.median_px:.3f} px ({on_grid.measured} pairs)')
+    assert hi - lo > 5.0 and on_grid.measured >= 3
+    assert on_grid.median_px < 0.3 and on_plane.median_px > 3 * on_grid.median_px + 1.0
+
+
+def test_a_move_rewarps_the_keyframe_and_those_whose_ground_it_changed(relief) -> None:
+    K, stamps, images, T_true, clouds, _ = relief
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64, ground_tolerance_m=0))
+    for k, s in enumerate(stamps):
+        live.add_cloud(int(s), clouds[k], T_BASE_CAM)
+        live.add_image(int(s), images[k], K, T_BASE_CAM)
+    live.set_poses(stamps, T_true)
+    assert live.counts.warps == len(stamps)  # all clouds came first: one warp each
+    cells = live.surface.cells_computed
+    warps, ground = live.counts.warps, live.counts.ground_rewarps
+    T = T_true.copy()
+    T[0, 1, 3] += 0.9  # the first keyframe, at a corner of the survey
+    assert live.set_poses(stamps, T) > 1
+    rewarped = live.counts.warps - warps
+    assert rewarped == 1 + live.counts.ground_rewarps - ground < len(stamps)
+    assert live.surface.cells_computed - cells < live.surface.heights.size
+    ref, _, _ = offline(images, clouds, T, K, live.mosaic().georef)
+    assert_same(live.mosaic(), ref)
+
+
+# ---------------------------------------------------------------- orientation
+L_GROUND_Z = 0.0
+
+
+def l_pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """An L on the ground (z up, x east, y north): a long bar up y, a short one along x."""
+    bar = ((0 <= x) & (x <= 20) & (0 <= y) & (y <= 5)) | ((0 <= x) & (x <= 5) & (0 <= y)
+                                                            & (y <= 35))
+    return np.where(bar, 220, 30).astype(np.uint8)
+
+
+def render_l(T_world_cam: np.ndarray, K: np.ndarray, w: int = 320, h: int = 240) -> np.ndarray:
+    """What a camera at ``T_world_cam`` (world z up) sees of the L on the plane z = 0."""
+    u, v = np.meshgrid(np.arange(w) + 0.0, np.arange(h) + 0.0)
+    rays = np.linalg.solve(K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    d = T_world_cam[:3, :3] @ rays
+    s = (L_GROUND_Z - T_world_cam[2, 3]) / d[2]
+    X = T_world_cam[:3, 3, None] + s * d
+    return l_pattern(X[0], X[1]).reshape(h, w)
+
+
+def assert_unmirrored_l(image: np.ndarray, valid: np.ndarray) -> None:
+    """The L as seen from above with x right: its corner bottom-left, its long bar up."""
+    rows, cols = np.nonzero(valid & (image > 128))
+    assert rows.size > 100
+    r_mid, c_mid = 0.5 * (rows.min() + rows.max()), 0.5 * (cols.min() + cols.max())
+    assert rows.mean() > r_mid + 2  # mass at the bottom (the short bar, y small)
+    assert cols.mean() < c_mid - 2  # and at the left (the long bar, x small)
+    assert rows.max() - rows.min() > 1.4 * (cols.max() - cols.min())  # tall: y is vertical
+
+
+@pytest.mark.parametrize('z_up', [True, False])
+def test_mosaic_is_seen_from_above_whichever_way_z_points(z_up: bool) -> None:
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    T_world = np.array([se3.from_rt(sim.nadir_rotation(np.pi / 2), np.array([10.0, y, 60.0]))
+                        for y in (0.0, 30.0)])
+    images = [render_l(T, K) for T in T_world]
+    # map = world (z up), or map with z down: x the same, y and z reversed
+    F = np.eye(4) if z_up else np.diag([1.0, -1.0, -1.0, 1.0])
+    T_map_cam = F @ T_world
+    ground = np.array([[x, y, L_GROUND_Z, 1.0] for x in np.arange(-40.0, 60.0, 0.5)
+                       for y in np.arange(-30.0, 70.0, 0.5)])
+    clouds = [(np.linalg.inv(T) @ ground.T).T[:, :3] for T in T_world]  # camera frame
+    stamps = np.array([1, 2], dtype=np.int64) * 1_000_000_000
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=0.25, tile_px=64))
+    for k, s in enumerate(stamps):
+        live.add_cloud(int(s), clouds[k], np.eye(4))
+        live.add_image(int(s), images[k], K, np.eye(4))
+    live.set_poses(stamps, T_map_cam)
+    mos = live.mosaic()
+    assert mos.georef.z_up == z_up
+    assert_unmirrored_l(mos.image, mos.valid)
+    # the offline mosaic follows the same convention
+    views = [CameraView(img, T, K) for img, T in zip(images, T_map_cam)]
+    surface = ground_from_keyframe_points(clouds, T_map_cam)
+    off = build_mosaic(views, surface, MosaicConfig(0.25))
+    assert off.georef.z_up == z_up
+    assert_unmirrored_l(off.image, off.valid)
+    ref = build_mosaic(views, surface, MosaicConfig(0.25), mos.georef)
+    assert_same_pixels(mos, ref)
+    # the georeference says where a pixel lies: the L's corner (x, y) = (0, 0) in the world
+    rows, cols = np.nonzero(mos.valid & (mos.image > 128))
+    corner = (rows.max(), cols.min())  # bottom-left bright pixel
+    x, y = mos.georef.pixel_centres(int(corner[0]), int(corner[1]), 1, 1)
+    assert (float(x[0, 0]), float(F[1, 1] * y[0, 0])) == pytest.approx((0.0, 0.0), abs=0.5)
+    # the MapMetaData: grid row i is image row height - 1 - i from the origin along its y
+    f = map_metadata_fields(mos.georef)
+    origin = np.array(f['origin']['position'])
+    q = f['origin']['orientation']
+    R = se3.from_pos_quat(np.zeros(3), np.array(q))[:3, :3]
+    assert R[2, 2] * (1 if z_up else -1) > 0  # the grid's z points up: towards the cameras
+    i, j = mos.georef.height - 1 - int(corner[0]), int(corner[1])
+    cell = origin + R @ np.array([(j + 0.5) * 0.25, (i + 0.5) * 0.25, 0.0])
+    assert cell[:2] == pytest.approx([float(x[0, 0]), float(y[0, 0])], abs=1e-6)
+
+
+def assert_same_pixels(live, ref) -> None:
+    assert np.array_equal(live.valid, ref.valid)
+    assert np.array_equal(live.image, ref.image)

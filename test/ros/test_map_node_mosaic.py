@@ -2,8 +2,9 @@
 corrections (the alignment node's own bytes) in; ``ga/mosaic`` (Image) and ``ga/mosaic_info``
 (MapMetaData) out, read as RViz and Foxglove read them, equal pixel for pixel to a mosaic built
 independently (ga_ros.mapping.mosaic.build_mosaic) from the poses of the moment, re-warping
-only the keyframes a correction moved; bad messages dropped; /diagnostics; ``~/save_map``
-writes mosaic.png + .json + .pgw."""
+only the keyframes a correction moved (and, on the keyframe clouds' height model, those whose
+ground it changed); bad messages dropped; /diagnostics; ``~/save_map`` writes mosaic.png +
+.json + .pgw."""
 
 from __future__ import annotations
 
@@ -26,10 +27,17 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
-from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from ga_ros.mapping.mosaic import Georeference  # noqa: E402
+from ga_ros.mapping.mosaic import (  # noqa: E402
+    CameraView,
+    Georeference,
+    MosaicConfig,
+    build_mosaic,
+)
+from ga_ros.mapping.pointcloud2 import decode_pointcloud2  # noqa: E402
+from ga_ros.mapping.surface import ground_from_keyframe_points  # noqa: E402
 from ga_ros.pipeline import corrections as corr  # noqa: E402
 from ga_ros.ros import conversions as conv  # noqa: E402
 from ga_ros.ros.deadlines import patience  # noqa: E402
@@ -42,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'pipeline'))
 from test_mosaic_map import (  # noqa: E402
     GROUND_Z,
     MPP,
+    T_BASE_CAM,
     drifted,
     flat_scene,
     scratch,
@@ -70,11 +79,29 @@ def georef_of(info: MapMetaData) -> Georeference:
                         info.resolution, info.width, info.height)
 
 
+def ground_cloud(T_map_base: np.ndarray) -> np.ndarray:
+    """The flat ground (z = GROUND_Z) under a keyframe, (k, 3) float32 in its camera frame."""
+    T = T_map_base @ T_BASE_CAM
+    g = np.arange(-70.0, 70.0, 1.0)
+    xx, yy = np.meshgrid(T[0, 3] + g, T[1, 3] + g)
+    pts = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, GROUND_Z)], axis=1)
+    return ((pts - T[:3, 3]) @ T[:3, :3]).astype(np.float32)
+
+
 @pytest.mark.ros
-def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
+@pytest.mark.parametrize('ground', ['plane', 'clouds'])
+def test_map_node_mosaic_follows_the_corrections(tmp_path: Path, ground: str) -> None:
     scene = flat_scene()
     K = scene.rig.K
     stamps, images, T_true = survey(scene)
+    on_clouds = ground == 'clouds'
+    clouds = []
+    for s, T in zip(stamps, T_true):
+        pts = ground_cloud(T)
+        clouds.append(conv.cloud_to_pointcloud2(pts, np.full(len(pts), 100, np.float32),
+                                                'cam_optical', int(s)))
+    #: the clouds as the node decodes them (camera frame, float32)
+    clouds_cam = [decode_pointcloud2(c).points for c in clouds]
     T_f2f = drifted(T_true)
     n = len(stamps)
     tracker = corr.CorrectionTracker(corr.CorrectionThresholds(0.0, 0.0))
@@ -88,13 +115,13 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
 
     map_file = tmp_path / 'out' / 'map.ply'
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id(43))
+    rclpy.init(context=ctx, domain_id=domain_id((43, ground)))
     node = MapNode(context=ctx, parameter_overrides=[
         Parameter('warn_throttle_sec', value=0.0), Parameter('publish_period_sec', value=0.05),
         Parameter('diagnostics_period_sec', value=0.1),
         Parameter('T_base_camera', value=T_BASE_CAM_TEXT),
         Parameter('mosaic_metres_per_pixel', value=MPP),
-        Parameter('mosaic_ground_from_clouds', value=False),
+        Parameter('mosaic_ground_from_clouds', value=on_clouds),
         Parameter('mosaic_ground_z', value=GROUND_Z), Parameter('mosaic_tile_px', value=64),
         Parameter('map_file', value=str(map_file))])
     peer = Node('mosaic_test_peer', context=ctx)
@@ -107,6 +134,7 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
     pub_img = peer.create_publisher(Image, '/ga/keyframe_image', stream_qos(50))
     pub_info = peer.create_publisher(CameraInfo, '/ga/keyframe_camera_info', stream_qos(50))
     pub_corr = peer.create_publisher(PathMsg, '/ga/corrections', stream_qos(100))
+    pub_cloud = peer.create_publisher(PointCloud2, '/ga/keyframe_cloud', stream_qos(50))
     peer.create_subscription(Image, '/ga/mosaic', mosaics.append, latched_qos(1))
     peer.create_subscription(MapMetaData, '/ga/mosaic_info', infos.append, latched_qos(1))
     peer.create_subscription(DiagnosticArray, '/diagnostics', diags.append, stream_qos())
@@ -139,6 +167,10 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
     def send_keyframe(k: int) -> None:
         s = int(stamps[k])
         taken = node.mosaic.counts.images
+        if on_clouds:
+            got = node.mosaic.counts.clouds
+            pub_cloud.publish(clouds[k])
+            spin_until(lambda: node.mosaic.counts.clouds == got + 1, f'keyframe cloud {k}')
         pub_info.publish(info_msg(s, K))
         pub_img.publish(array_to_image(images[k], s, 'cam_optical'))
         spin_until(lambda: node.mosaic.counts.images == taken + 1, f'keyframe image {k}')
@@ -147,7 +179,13 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
         if not mosaics or not infos or mosaics[-1].header.stamp != infos[-1].map_load_time:
             return False
         got, georef = read_image_as_viewers_do(mosaics[-1]), georef_of(infos[-1])
-        ref = scratch(images, T_sent, K, georef)
+        if on_clouds:  # build_mosaic on the height grid of the same clouds at the same poses
+            T_cam = T_sent @ T_BASE_CAM
+            ref = build_mosaic([CameraView(img, T, K) for img, T in zip(images, T_cam)],
+                               ground_from_keyframe_points(clouds_cam, T_cam),
+                               MosaicConfig(MPP, 'last'), georef)
+        else:
+            ref = scratch(images, T_sent, K, georef)
         # the grid read back from MapMetaData (origin + height * resolution) is the node's to
         # float round-off, so the warp may round a grey level the other way or cover a border
         # pixel differently: equal to 1 grey level, coverage to 0.1 % of the pixels
@@ -185,10 +223,12 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path) -> None:
             T_now[:8 * (track + 1)] = T_true[:8 * (track + 1)]
             moved = int(np.any(np.abs(T_now - T_before) > 1e-12, axis=(1, 2)).sum())
             assert moved >= 7  # the first keyframe has no drift
-            warps = node.mosaic.counts.warps
+            warps, by_ground = node.mosaic.counts.warps, node.mosaic.counts.ground_rewarps
             send_corrections(T_now)
             spin_until(lambda: node.builder.counts.corrections == track + 2, 'corrections')
-            assert node.mosaic.counts.warps - warps == moved
+            by_ground = node.mosaic.counts.ground_rewarps - by_ground
+            assert node.mosaic.counts.warps - warps == moved + by_ground
+            assert by_ground <= n - moved
             assert np.allclose(T_sent, T_now, atol=1e-9)
             spin_until(mosaic_equals, f'the mosaic after track {track}')
         spin_until(lambda: any('mosaic_warps' in conv.diagnostics_to_dict(d) for d in diags),

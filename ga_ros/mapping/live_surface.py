@@ -1,0 +1,214 @@
+"""The height model of :mod:`ga_ros.mapping.surface` kept up to date as keyframes arrive and
+move (ROS-free): :class:`LiveHeightGrid`.
+
+Each keyframe's points are kept in its own frame (:func:`ga_ros.mapping.surface.keyframe_points`)
+with its pose ``T_map_kf``; placed, they fall into the anchored cells of ``map``. A change (points
+added, a pose moved) marks the cells its old and new points fall in; :meth:`LiveHeightGrid.
+commit` recomputes those cells' medians from every keyframe's points in them, then runs
+:func:`ga_ros.mapping.surface.ground_heights` on a window reaching ``2 * radius_cells`` around
+them and keeps the heights within ``radius_cells`` (every input of those is in the window, and
+the operator gives each cell the same sum wherever the window lies): the heights equal those of
+:func:`ga_ros.mapping.surface.height_grid_from_points` of all the points, and the cells whose
+height changed are returned. The cost is in proportion to the cells the change touches, not
+to the grid's size. The grid is one dense array that grows to the cells reached.
+
+Memory: every keyframe keeps its points (at most ``max_points_per_keyframe``; 12 bytes each for
+a ``float32`` cloud, as ``PointCloud2`` gives them) and their placement (16 bytes each), also
+after the mosaic froze its image: about 110 kB per keyframe at the default 4,000 points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.errors import InputError
+from ga_ros.mapping.surface import (
+    HeightGrid,
+    SurfaceConfig,
+    cell_index,
+    cell_medians,
+    ground_heights,
+    keyframe_points,
+    place_points,
+)
+
+#: Cells added beyond what is needed when the grid grows (fewer re-allocations).
+GROW_CELLS = 32
+
+
+@dataclass
+class _Points:
+    points: np.ndarray          # (k, 3) in the points' frame
+    T_kf_points: FloatArray     # the points' frame in the keyframe's frame
+    T_map_kf: FloatArray | None = None
+    i: np.ndarray | None = None  # placed: global cells and heights of the points
+    j: np.ndarray | None = None
+    z: np.ndarray | None = None
+
+
+class LiveHeightGrid:
+    """Keyframe points + poses -> the ground heights, updated where they change (module
+    docstring)."""
+
+    def __init__(self, config: SurfaceConfig = SurfaceConfig()) -> None:
+        self.config = config
+        self.keyframes: dict[int, _Points] = {}
+        #: poses of keyframes without points yet
+        self.pending_poses: dict[int, FloatArray] = {}
+        self.i0 = self.j0 = 0
+        self.medians = np.zeros((0, 0))
+        self.heights = np.zeros((0, 0))
+        self._dirty: list[tuple[np.ndarray, np.ndarray]] = []
+        self._range = (float('nan'), float('nan'))
+        #: cells recomputed (the work)
+        self.cells_computed = 0
+
+    # ------------------------------------------------------------------ inputs
+    def add_points(self, key: int, points: np.ndarray,
+                   T_kf_points: FloatArray | None = None) -> None:
+        """A keyframe's points (k, 3, m) in the frame whose pose in the keyframe's frame is
+        ``T_kf_points`` (default: the identity; e.g. ``T_base_cam`` for a camera's cloud):
+        placed at ``T_map_kf @ T_kf_points``; replaces earlier ones."""
+        old = self.keyframes.get(key)
+        self._unplace(old)
+        T = old.T_map_kf if old is not None else self.pending_poses.pop(key, None)
+        ext = np.eye(4) if T_kf_points is None else np.asarray(T_kf_points, float)
+        pts = keyframe_points(points, self.config)
+        small = pts.astype(np.float32)
+        if np.array_equal(small, pts):  # a float32 cloud (a PointCloud2's) is kept as it came
+            pts = small
+        kf = self.keyframes[key] = _Points(pts, ext)
+        self._place(kf, T)
+
+    def set_pose(self, key: int, T_map_kf: FloatArray) -> bool:
+        """A keyframe's pose (4, 4); True when it has points and the pose changed."""
+        T = np.asarray(T_map_kf, float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputError('height grid: a keyframe pose must be a finite 4x4 transform')
+        kf = self.keyframes.get(key)
+        if kf is None:
+            self.pending_poses[key] = T.copy()
+            while len(self.pending_poses) > 100_000:
+                self.pending_poses.pop(next(iter(self.pending_poses)))
+            return False
+        if kf.T_map_kf is not None and np.array_equal(kf.T_map_kf, T):
+            return False
+        self._unplace(kf)
+        self._place(kf, T.copy())
+        return True
+
+    def unplace_all(self) -> None:
+        """Forget every pose (a full corrections message follows with the new ones)."""
+        for kf in self.keyframes.values():
+            self._unplace(kf)
+            kf.T_map_kf = None
+        self.pending_poses.clear()
+
+    def _unplace(self, kf: _Points | None) -> None:
+        if kf is not None and kf.i is not None:
+            self._dirty.append((kf.i, kf.j))
+            kf.i = kf.j = kf.z = None
+
+    def _place(self, kf: _Points, T: FloatArray | None) -> None:
+        kf.T_map_kf = T
+        if T is None or not len(kf.points):
+            return
+        p = place_points(kf.points.astype(float), T @ kf.T_kf_points)
+        i, j = cell_index(p[:, 0], p[:, 1], self.config.cell_m)
+        kf.i, kf.j = i.astype(np.int32), j.astype(np.int32)
+        kf.z = p[:, 2]
+        self._dirty.append((kf.i, kf.j))
+
+    # ------------------------------------------------------------------ work
+    def _grow(self, i_lo: int, i_hi: int, j_lo: int, j_hi: int) -> None:
+        """Make the arrays cover global cells ``[i_lo, i_hi] x [j_lo, j_hi]``."""
+        rows, cols = self.medians.shape
+        if rows and self.i0 <= i_lo and i_hi < self.i0 + rows and self.j0 <= j_lo \
+                and j_hi < self.j0 + cols:
+            return
+        if rows:
+            i_lo, j_lo = min(i_lo, self.i0), min(j_lo, self.j0)
+            i_hi, j_hi = max(i_hi, self.i0 + rows - 1), max(j_hi, self.j0 + cols - 1)
+        i_lo, j_lo, i_hi, j_hi = i_lo - GROW_CELLS, j_lo - GROW_CELLS, i_hi + GROW_CELLS, \
+            j_hi + GROW_CELLS
+        med = np.full((i_hi - i_lo + 1, j_hi - j_lo + 1), np.nan)
+        hts = med.copy()
+        if rows:
+            win = (slice(self.i0 - i_lo, self.i0 - i_lo + rows),
+                   slice(self.j0 - j_lo, self.j0 - j_lo + cols))
+            med[win], hts[win] = self.medians, self.heights
+        self.i0, self.j0, self.medians, self.heights = i_lo, j_lo, med, hts
+
+    def commit(self) -> tuple[IntArray, IntArray]:
+        """Recompute what the changes since the last commit touched; returns the global cells
+        ``(i, j)`` whose height changed (NaN to a value, a value to NaN, or another value)."""
+        if not self._dirty:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        di = np.concatenate([d[0] for d in self._dirty])
+        dj = np.concatenate([d[1] for d in self._dirty])
+        self._dirty = []
+        R = self.config.radius_cells()
+        lo_i, hi_i, lo_j, hi_j = int(di.min()), int(di.max()), int(dj.min()), int(dj.max())
+        self._grow(lo_i - 2 * R, hi_i + 2 * R, lo_j - 2 * R, hi_j + 2 * R)
+        # the dirty cells' medians, from every keyframe's points in them
+        mask = np.zeros(self.medians.shape, bool)
+        mask[di - self.i0, dj - self.j0] = True
+        parts_i, parts_j, parts_z = [], [], []
+        for kf in self.keyframes.values():
+            if kf.i is None or kf.i.size == 0 or kf.i.max() < lo_i or kf.i.min() > hi_i \
+                    or kf.j.max() < lo_j or kf.j.min() > hi_j:
+                continue
+            sel = mask[kf.i - self.i0, kf.j - self.j0]
+            if sel.any():
+                parts_i.append(kf.i[sel])
+                parts_j.append(kf.j[sel])
+                parts_z.append(kf.z[sel])
+        self.medians[mask] = np.nan
+        if parts_z:
+            i, j, med = cell_medians(np.concatenate(parts_i), np.concatenate(parts_j),
+                                     np.concatenate(parts_z), self.config.min_points)
+            self.medians[i - self.i0, j - self.j0] = med
+        # heights within R of the dirty cells, from a window within 2 R
+        w = (slice(lo_i - 2 * R - self.i0, hi_i + 2 * R + 1 - self.i0),
+             slice(lo_j - 2 * R - self.j0, hi_j + 2 * R + 1 - self.j0))
+        new = ground_heights(self.medians[w], self.config)[R:-R or None, R:-R or None]
+        out = (slice(lo_i - R - self.i0, hi_i + R + 1 - self.i0),
+               slice(lo_j - R - self.j0, hi_j + R + 1 - self.j0))
+        old = self.heights[out]
+        changed = ~((new == old) | (np.isnan(new) & np.isnan(old)))
+        self.heights[out] = new
+        self.cells_computed += new.size
+        if changed.any():
+            known = np.isfinite(self.heights)
+            self._range = ((float(self.heights[known].min()), float(self.heights[known].max()))
+                           if known.any() else (float('nan'), float('nan')))
+        ci, cj = np.nonzero(changed)
+        return ci + lo_i - R, cj + lo_j - R
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """Lowest and highest known height (m) at the last commit; NaN, NaN when none."""
+        return self._range
+
+    def window(self, i_lo: int, i_hi: int, j_lo: int, j_hi: int) -> HeightGrid:
+        """The heights of global cells ``[i_lo, i_hi] x [j_lo, j_hi]`` as a
+        :class:`HeightGrid` (NaN outside what is known)."""
+        z = np.full((i_hi - i_lo + 1, j_hi - j_lo + 1), np.nan)
+        rows, cols = self.heights.shape
+        a0, a1 = max(i_lo, self.i0), min(i_hi, self.i0 + rows - 1)
+        b0, b1 = max(j_lo, self.j0), min(j_hi, self.j0 + cols - 1)
+        if a1 >= a0 and b1 >= b0:
+            z[a0 - i_lo:a1 - i_lo + 1, b0 - j_lo:b1 - j_lo + 1] = \
+                self.heights[a0 - self.i0:a1 - self.i0 + 1, b0 - self.j0:b1 - self.j0 + 1]
+        c = self.config.cell_m
+        return HeightGrid(z, j_lo * c, -i_lo * c, c)
+
+    def nbytes(self) -> int:
+        """Bytes held by the points and the arrays."""
+        n = sum(kf.points.nbytes + (0 if kf.z is None else 2 * kf.z.nbytes)
+                for kf in self.keyframes.values())
+        return n + self.medians.nbytes + self.heights.nbytes
