@@ -499,20 +499,22 @@ class CorrectionTracker:
             ok = np.flatnonzero(table_ok[a - r0] & (a + ends <= last))
             if not ok.size:
                 return a + 1, None
-            if ok[-1] < ends.size - 1 or a + ends[-1] >= last:
-                at = table_at[(a - r0) * ends.size + ok[-1]]
-                return a + int(ends[ok[-1]]), table_P[at:at + int(ends[ok[-1]]) - 1]
-            width = 2 * WIDTH
-            while True:               # beyond the table: widen until a span fails
-                top = min(a + width, last)
-                b0 = np.arange(a + 2, top + 1)
-                good, at, P = spans_from(np.full(b0.size, a), b0)
-                if good.all() and top < last:
-                    width *= 2
-                    continue
-                ok = np.flatnonzero(good)
-                n = int(b0[ok[-1]]) - a - 1      # ok is not empty: the table's span is good
-                return int(b0[ok[-1]]), P[at[ok[-1]]:at[ok[-1]] + n]
+            at = table_at[(a - r0) * ends.size + ok[-1]]
+            b = a + int(ends[ok[-1]])
+            P = table_P[at:at + b - a - 1]
+            lo_d, hi_d = WIDTH + 1, 3 * WIDTH
+            while ok[-1] == ends.size - 1 and a + lo_d <= last:
+                # every span of the table is good: try longer ones, only the new ends
+                b0 = np.arange(a + lo_d, min(a + hi_d, last) + 1)
+                good, at0, P0 = spans_from(np.full(b0.size, a), b0)
+                ok2 = np.flatnonzero(good)
+                if ok2.size:
+                    b = int(b0[ok2[-1]])
+                    P = P0[at0[ok2[-1]]:at0[ok2[-1]] + b - a - 1]
+                if not good.all():
+                    break
+                lo_d, hi_d = hi_d + 1, 3 * hi_d
+            return b, P
 
         k = 0
         while k < moved_rows.size:
