@@ -23,6 +23,7 @@ from ga_ros.pipeline.corrections import (
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'mapping'))
 from test_cloud_map import VOXEL, assert_same_map, random_cloud, reference_map  # noqa: E402
+from test_cloud_map import Path as KeyPath  # noqa: E402
 
 EXACT = CloudMapConfig(voxel_m=VOXEL, keyframe_voxel_m=0.0, max_points_per_keyframe=0,
                        max_live_keyframes=0)
@@ -106,16 +107,6 @@ def test_a_malformed_cloud_changes_nothing(rng) -> None:
     assert len(before) > 0 and b.counts.clouds == 1 and b.counts.corrections == 0
 
 
-class _Path:
-    """What CorrectionTracker.compare reads from a corrected path."""
-
-    def __init__(self, stamps, T):
-        self.node_ids = np.arange(len(stamps), dtype=np.int64)
-        self.track_ids = np.zeros(len(stamps), np.int64)
-        self.stamps_ns = np.asarray(stamps, np.int64)
-        self.T_world_node = np.asarray(T, float)
-
-
 def test_map_from_interpolated_corrections_equals_the_map_from_scratch(rng) -> None:
     """A line of keyframes whose poses move smoothly at every update (a slowly growing rotation
     and a bend, as a window update moves a track), sent with the default thresholds: most
@@ -141,7 +132,7 @@ def test_map_from_interpolated_corrections_equals_the_map_from_scratch(rng) -> N
             np.array([0.3 * u * xi, 0.5 * u * xi ** 2, -0.2 * u * xi]),
             np.array([0.0, 0.002 * u * xi, 0.004 * u * xi])) @ base[k]
             for k, xi in enumerate(x)])
-        c = tracker.compare(_Path(stamps[:upto], T))
+        c = tracker.compare(KeyPath(stamps[:upto], T))
         interpolated += c.n_interpolated
         b.on_corrections(c.message())
     assert interpolated > n // 2

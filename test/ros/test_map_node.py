@@ -33,6 +33,7 @@ from ga_ros.ros.qos import latched_qos, stream_qos  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'mapping'))
 from test_cloud_map import VOXEL, assert_same_map, read_ply, reference_map  # noqa: E402
+from test_cloud_map import Path as KeyPath  # noqa: E402
 
 #: T_base_camera of the test: 0.2 m ahead, 0.5 m up, optical axes (rpy -pi/2 0 -pi/2)
 T_BASE_CAM_TEXT = '0.2 0 0.5 -1.5707963267948966 0 -1.5707963267948966'
@@ -188,16 +189,6 @@ def test_config_file_holds_every_parameter_at_its_default() -> None:
             assert params[prefix + f.name] == getattr(cls(), f.name), f.name
 
 
-class _Path:
-    """What CorrectionTracker.compare reads from a corrected path."""
-
-    def __init__(self, T: np.ndarray, base: int = 10**9):
-        n = len(T)
-        self.node_ids, self.track_ids = np.arange(n), np.zeros(n, np.int64)
-        self.stamps_ns = base * (1 + np.arange(n, dtype=np.int64))
-        self.T_world_node = T
-
-
 def test_the_node_reads_spans_as_the_tracker_holds_them() -> None:
     """A corrections message with spans, serialized as the alignment node publishes it and
     deserialized by rclpy: :func:`corrections_from_msg` reads the marker, the ``/span`` endings
@@ -215,7 +206,7 @@ def test_the_node_reads_spans_as_the_tracker_holds_them() -> None:
         T = np.array([se3.from_translation_rotvec(np.array([0.2 * u * k / n, 0.1 * u, 0.0]),
                                                   np.array([0.0, 0.0, 0.001 * u * k / n])) @ t
                       for k, t in enumerate(base)])
-        c = tracker.compare(_Path(T))
+        c = tracker.compare(KeyPath(10**9 * (1 + np.arange(n)), T))
         got = corrections_from_msg(deserialize_message(corr.corrections_cdr(c, 'map', 5),
                                                        PathMsg))
         want = c.message()
