@@ -412,6 +412,13 @@ class CorrectionTracker:
             if n_moved:
                 entries, span, n_interp = self._anchor(lo, held, Tq, hit)
         new = np.arange(held, n, dtype=np.int64)
+        if new.size and held and stamps[held] == stamps[held - 1] and (
+                entries.size == 0 or entries[-1] != held - 1):
+            # the first new keyframe shares its stamp with the last held: name both (module
+            # docstring)
+            self._held[held - 1] = decoded(T[held - 1:held])[0]
+            entries = np.append(entries, held - 1)
+            span = np.append(span, False)
         if new.size:   # the new keyframes: entries, held as decoded
             self._held[held:n] = decoded(T[held:n])
             self._ids[held:n] = ids[held:n]

@@ -296,3 +296,27 @@ def test_corrections_len() -> None:
     z = np.zeros(0, dtype=np.int64)
     assert len(Corrections(False, z, z, z, z, np.zeros((0, 4, 4)), np.zeros(0, bool), 0, 0,
                            0)) == 0
+
+
+def test_keyframes_sharing_a_stamp_are_named_together() -> None:
+    """The first two keyframes share a stamp: whenever one of them is sent (added, moved), both
+    are, so a consumer that names keyframes by stamp (twice: the first is the keyframe
+    before) holds what the tracker holds."""
+    rng = np.random.default_rng(1)
+    T = se3.from_translation_rotvec(rng.normal(0, 10, (5, 3)), rng.normal(0, 1, (5, 3)))
+    stamps = np.array([5, 5, 6, 7, 8]) * 10**9
+
+    def path(n: int, T: np.ndarray) -> Trajectory:
+        return Trajectory(stamps[:n], T[:n], np.arange(n), np.zeros(n, np.int64), 'map')
+
+    tracker, consumer = CorrectionTracker(), HeldPoses()
+    for n, moved_row in ((1, None), (2, None), (4, 0), (5, 1)):
+        if moved_row is not None:
+            T = T.copy()
+            T[moved_row, :3, 3] += 0.5
+        c = tracker.compare(path(n, T))
+        sent = set(c.rows.tolist())
+        assert (0 in sent) == (1 in sent) or n == 1
+        consumer.apply(read(corrections_cdr(c, 'map', int(stamps[n - 1]))))
+        np.testing.assert_array_equal(consumer.T_map_base, tracker.held())
+        np.testing.assert_array_equal(consumer.T_map_base, decoded(T[:n]))
