@@ -246,17 +246,12 @@ def _normalised(q: FloatArray) -> FloatArray:
 def _rotation(q: FloatArray) -> FloatArray:
     """(k, 3, 3) rotations of unit quaternions ``x y z w``."""
     x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    R = np.empty((len(q), 3, 3))
-    R[:, 0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    R[:, 0, 1] = 2.0 * (x * y - z * w)
-    R[:, 0, 2] = 2.0 * (x * z + y * w)
-    R[:, 1, 0] = 2.0 * (x * y + z * w)
-    R[:, 1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    R[:, 1, 2] = 2.0 * (y * z - x * w)
-    R[:, 2, 0] = 2.0 * (x * z - y * w)
-    R[:, 2, 1] = 2.0 * (y * z + x * w)
-    R[:, 2, 2] = 1.0 - 2.0 * (x * x + y * y)
-    return R
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, xw, yw, zw = x * y, x * z, y * z, x * w, y * w, z * w
+    return np.stack([1.0 - 2.0 * (yy + zz), 2.0 * (xy - zw), 2.0 * (xz + yw),
+                     2.0 * (xy + zw), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - xw),
+                     2.0 * (xz - yw), 2.0 * (yz + xw), 1.0 - 2.0 * (xx + yy)],
+                    axis=1).reshape(-1, 3, 3)
 
 
 def correction(T_new: FloatArray, T_held: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -480,6 +475,15 @@ class CorrectionTracker:
         if spans:
             q, t = correction(Tq, old)
             cum_pinned = np.concatenate([[0], np.cumsum(pinned)])
+            # moved() without its square roots and arcsine: distance and chord squared against
+            # the thresholds' (the chord of an angle r is 2 sqrt 2 sin(r / 2))
+            dt2 = self.thresholds.translation_m ** 2
+            ch2 = 8.0 * np.sin(min(self.thresholds.rotation_rad, np.pi) / 2.0) ** 2
+
+        def beyond(P: FloatArray, T: FloatArray) -> BoolArray:
+            d = P[:, :3, 3] - T[:, :3, 3]
+            R = (P[:, :3, :3] - T[:, :3, :3]).reshape(-1, 9)
+            return (np.einsum('ij,ij->i', d, d) > dt2) | (np.einsum('ij,ij->i', R, R) > ch2)
 
         def spans_from(a0: IntArray, b0: IntArray) -> tuple[BoolArray, IntArray, FloatArray]:
             """For spans from ``a0[j]`` to ``b0[j]``: whether each keeps its interior within
@@ -488,7 +492,7 @@ class CorrectionTracker:
             j, i = _span_rows(a0, b0)
             P = interpolate_correction(q[a0[j]], t[a0[j]], q[b0[j]], t[b0[j]],
                                        span_fraction(st[i], st[a0[j]], st[b0[j]]), old[i])
-            bad = np.bincount(j, moved(P, Tq[i], self.thresholds), a0.size) > 0
+            bad = np.bincount(j, beyond(P, Tq[i]), a0.size) > 0
             bad |= cum_pinned[b0 + 1] > cum_pinned[a0]
             return ~bad, np.cumsum(b0 - a0 - 1) - (b0 - a0 - 1), P
 
