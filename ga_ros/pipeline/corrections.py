@@ -592,9 +592,9 @@ class HeldPoses:
             A span whose anchors are not both held, or whose stamps do not increase: nothing is
             changed.
         """
-        if msg.full:
-            self.clear()
         S, H = self.stamps_ns, self.T_map_base
+        if msg.full:   # drop what is held (on success only)
+            S, H = np.zeros(0, np.int64), np.zeros((0, 4, 4))
         E = np.asarray(msg.stamps_ns, np.int64).reshape(-1)
         left, right = np.searchsorted(S, E, 'left'), np.searchsorted(S, E, 'right')
         idx = np.where(right > left, right - 1, -1)

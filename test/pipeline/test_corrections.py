@@ -230,6 +230,10 @@ def test_a_span_interpolates_the_correction_as_documented() -> None:
         consumer.apply(CorrectionMessage(False, np.array([150, 200]), new,
                                          np.array([False, True])))
     np.testing.assert_array_equal(consumer.T_map_base, before)
+    with pytest.raises(InputError, match='span'):   # a full message too: nothing dropped
+        consumer.apply(CorrectionMessage(True, np.array([100, 200]), new,
+                                         np.array([False, True])))
+    np.testing.assert_array_equal(consumer.T_map_base, before)
     with pytest.raises(InputError, match='first entry'):
         CorrectionMessage(False, np.array([100]), new[:1], np.array([True]))
 
