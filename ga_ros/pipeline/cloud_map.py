@@ -10,10 +10,11 @@ Inputs, in any order:
   as ``vo_node`` resolves it) and kept under the keyframe's stamp; a cloud that comes before
   the extrinsic is known waits (at most ``max_waiting``, oldest dropped) and is taken when a
   ``/tf_static`` message brings it;
-* **corrections** (``ga/corrections``, :mod:`ga_ros.pipeline.corrections`): the keyframes that
-  moved or were added, each ``T_map_base`` under its stamp; a full message (opened by the
-  ``ga/full_path`` marker) first unplaces every keyframe (an empty one, a reset, also drops the
-  static layer);
+* **corrections** (``ga/corrections``, :mod:`ga_ros.pipeline.corrections`): applied to the
+  poses held (:class:`~ga_ros.pipeline.corrections.HeldPoses`, the shared convention: entries
+  and the keyframes interpolated inside spans), each ``T_map_base`` under its stamp; a full
+  message (opened by the ``ga/full_path`` marker) first unplaces every keyframe (an empty one, a
+  reset, also drops the static layer);
 * **the corrected path** (``ga/corrected_path``, every keyframe): used until the first
   corrections message (a map node started after the alignment node gets the transient-local
   path, not the corrections sent before it joined); from then on the corrections alone move the
@@ -46,6 +47,7 @@ from ga_ros.mapping.cloud_map import (
     MapUpdate,
     transform_points,
 )
+from ga_ros.pipeline.corrections import CorrectionMessage, HeldPoses
 
 
 @dataclass
@@ -70,6 +72,17 @@ class BuilderCounts:
     paths: int = 0
     moved: int = 0
     points_moved: int = 0
+
+
+@dataclass(frozen=True)
+class Reanchored:
+    """What a corrections message set: the keyframes' stamps (ns, sorted) and poses
+    ``T_map_base`` (k, 4, 4) (its entries and the keyframes interpolated in its spans: what
+    other consumers of the message, such as the mosaic, take), and the map's update."""
+
+    stamps_ns: IntArray
+    T_map_base: FloatArray
+    update: MapUpdate
 
 
 class CloudMapBuilder:
@@ -100,6 +113,8 @@ class CloudMapBuilder:
         self.changed = False
         #: a stamp named twice -> the stamp of the keyframe its first pose is (module doc)
         self._alias: dict[int, int] = {}
+        #: the poses held, as the corrections convention keeps them
+        self.held = HeldPoses()
 
     def add_tf_static(self, msg: object) -> int:
         """Record a ``tf2_msgs/TFMessage`` of ``/tf_static`` and take the clouds that waited
@@ -161,36 +176,45 @@ class CloudMapBuilder:
         self.changed |= placed
         return placed
 
-    def on_corrections(self, full: bool, stamps_ns: IntArray, T_map_base: FloatArray
-                       ) -> MapUpdate:
-        """A corrections message: ``full`` (it opened with the marker), the keyframes' stamps
-        and poses ``T_map_base`` (k, 4, 4), marker excluded.
+    def on_corrections(self, msg: CorrectionMessage) -> Reanchored:
+        """A corrections message, applied to the poses held
+        (:meth:`~ga_ros.pipeline.corrections.HeldPoses.apply`: its entries and the keyframes
+        inside its spans) and the keyframes it set re-anchored.
+
+        Raises
+        ------
+        InputError
+            A span the poses held cannot anchor: nothing is changed.
+        """
+        stamps, T = self.held.apply(msg)     # raises before changing anything
+        self.corrections_seen = True
+        self.counts.corrections += 1
+        if msg.full:
+            self.counts.full += 1
+            self.map.unplace_all()
+            if len(msg.stamps_ns) == 0:
+                self.map.clear_static()
+            self.changed = True
+        return Reanchored(stamps, T, self._apply(stamps, T))
+
+    def on_path(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate | None:
+        """A corrected path (every keyframe, now the poses held); ignored (None) once
+        corrections came.
 
         Raises
         ------
         InputError
             Shapes that do not match or a pose that is not finite: nothing is changed.
         """
-        T = np.asarray(T_map_base, float).reshape(-1, 4, 4)
-        if T.shape[0] != np.size(stamps_ns) or not np.all(np.isfinite(T)):
-            raise InputError(f'corrections of {np.size(stamps_ns)} stamps and {T.shape[0]} '
-                             'poses, or a pose that is not finite: message dropped')
-        self.corrections_seen = True
-        self.counts.corrections += 1
-        if full:
-            self.counts.full += 1
-            self.map.unplace_all()
-            if len(stamps_ns) == 0:
-                self.map.clear_static()
-            self.changed = True
-        return self._apply(stamps_ns, T_map_base)
-
-    def on_path(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate | None:
-        """A corrected path (every keyframe); ignored (None) once corrections came."""
         if self.corrections_seen:
             return None
+        T = np.asarray(T_map_base, float).reshape(-1, 4, 4)
+        if T.shape[0] != np.size(stamps_ns) or not np.all(np.isfinite(T)):
+            raise InputError(f'a path of {np.size(stamps_ns)} stamps and {T.shape[0]} poses, '
+                             'or a pose that is not finite: path dropped')
         self.counts.paths += 1
-        return self._apply(stamps_ns, T_map_base)
+        self.held.set_poses(stamps_ns, T)
+        return self._apply(stamps_ns, T)
 
     def set_poses(self, stamps_ns: IntArray, T_map_base: FloatArray) -> MapUpdate:
         """Re-anchor the keyframes named to these poses, whatever came before (e.g. the final

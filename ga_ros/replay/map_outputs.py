@@ -97,7 +97,7 @@ class ReplayMap:
 
     def on_corrections(self, c: Corrections) -> None:
         """A corrections message of the replay (``ga/corrections``), as ``map_node`` takes it."""
-        self.builder.on_corrections(c.full, c.stamps_ns, c.T_world_node)
+        self.builder.on_corrections(c.message())
 
     def clouds(self, stamps_ns: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Keyframe stamp -> ``(points, intensity)`` in the keyframe's ``base_link`` (as kept),

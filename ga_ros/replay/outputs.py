@@ -60,9 +60,9 @@ class OutputConfig:
     sensor_frame : ``child_frame_id`` of the corrected odometry (the robot's base frame).
     odom_frame : REP 105 odometry frame: ``map_frame -> odom_frame`` goes on ``tf_topic``.
     tf_topic, tf_static_topic : TF topics of the output bag (the input bag's are copied there).
-    corrections_topic : the keyframes moved or added since the previous message
-        (``nav_msgs/Path``, the node's ``ga/corrections``), written after every track update
-        and after the final batch.
+    corrections_topic : anchors of the keyframes moved, and those added, since the previous
+        message (``nav_msgs/Path``, the node's ``ga/corrections``), written after every track
+        update and after the final batch.
     corrections : when a keyframe counts as moved there (the node's defaults).
     """
 

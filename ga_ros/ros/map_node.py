@@ -6,8 +6,10 @@ builds the same map, :mod:`ga_ros.replay.map_outputs`): it subscribes to
 * ``ga/keyframe_cloud`` (``sensor_msgs/PointCloud2`` of ``vo_node``, in the camera's frame,
   stamped with the keyframe's stamp; decoded by its own field descriptions,
   :func:`ga_ros.mapping.pointcloud2.decode_pointcloud2`);
-* ``ga/corrections`` (``nav_msgs/Path``: the keyframes that moved or were added, the
-  ``ga/full_path`` marker at restarts; ``docs/node.md``): only the keyframes named are
+* ``ga/corrections`` (``nav_msgs/Path``: anchor keyframes of what moved, with spans whose
+  keyframes get the interpolated correction, and the keyframes added; the ``ga/full_path``
+  marker at restarts; ``docs/node.md``), applied by the shared convention
+  (:class:`ga_ros.pipeline.corrections.HeldPoses`): only the keyframes it sets are
   re-anchored, so an update costs in proportion to what moved, not to the map's size;
 * ``ga/corrected_path`` (transient local): every keyframe, used until the first corrections
   message (a map node started after the alignment node);
@@ -65,6 +67,7 @@ from ga_ros.mapping.mosaic import image_fields, map_metadata_fields, save_mosaic
 from ga_ros.mapping.ply import write_ply
 from ga_ros.mapping.pointcloud2 import decode_pointcloud2
 from ga_ros.pipeline.cloud_map import CloudMapBuilder
+from ga_ros.pipeline.corrections import CorrectionMessage
 from ga_ros.pipeline.journal.state_files import default_state_file
 from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
 from ga_ros.pipeline.params import parameter_names
@@ -128,22 +131,21 @@ class MapNodeSettings:
     warn_throttle_sec: float = 5.0
 
 
-def corrections_from_msg(msg: Any) -> tuple[bool, np.ndarray, np.ndarray]:
-    """``(full, stamps_ns, T_map_base)`` of a ``ga/corrections`` message: ``full`` when its
-    first pose is the :data:`ga_ros.topics.CORRECTIONS_FULL_FRAME` marker (then left out).
+def corrections_from_msg(msg: Any) -> CorrectionMessage:
+    """A ``ga/corrections`` message as the consumers read it
+    (:class:`~ga_ros.pipeline.corrections.CorrectionMessage`: the ``ga/full_path`` marker and
+    the span endings of the frame ids read, the marker left out).
 
     Raises
     ------
     InputError
-        A pose that is not a valid transform (:func:`ga_ros.ros.conversions.path_msg_to_poses`).
+        A pose that is not a valid transform (:func:`ga_ros.ros.conversions.path_msg_to_poses`)
+        or a span without an entry before it.
     """
     poses = list(msg.poses)
-    full = bool(poses) and poses[0].header.frame_id == topics.CORRECTIONS_FULL_FRAME
     T = conv.path_msg_to_poses(msg).reshape(-1, 4, 4)
     stamps = np.array([conv.stamp_to_ns(ps.header.stamp) for ps in poses], dtype=np.int64)
-    if full:
-        T, stamps = T[1:], stamps[1:]
-    return full, stamps, T
+    return CorrectionMessage.from_poses([ps.header.frame_id for ps in poses], stamps, T)
 
 
 class MapNode(BoundedLogging, Node):
@@ -299,13 +301,13 @@ class MapNode(BoundedLogging, Node):
 
     def _on_corrections(self, msg: PathMsg) -> None:
         try:
-            full, stamps, T = corrections_from_msg(msg)
-            self.builder.on_corrections(full, stamps, T)
-            if self.mosaic is not None and full:
+            c = corrections_from_msg(msg)
+            taken = self.builder.on_corrections(c)
+            if self.mosaic is not None and c.full:
                 self.mosaic.unplace_all()
-                if len(stamps) == 0:
+                if len(c.stamps_ns) == 0:
                     self.mosaic.clear_static()
-            self._mosaic_poses(stamps, T)
+            self._mosaic_poses(taken.stamps_ns, taken.T_map_base)
         except (GaError, ValueError) as exc:
             self.counts['bad_corrections'] += 1
             self._warn('corrections', f'corrections message dropped: {exc}')

@@ -12,7 +12,7 @@ from ga_ros.geometry import se3
 from ga_ros.mapping.cloud_map import CloudMapConfig, KeyframeCloudMap
 from ga_ros.mapping.figures import map_figures
 from ga_ros.mapping.ply import write_ply
-from ga_ros.pipeline.corrections import CorrectionThresholds, CorrectionTracker
+from ga_ros.pipeline.corrections import CorrectionThresholds, CorrectionTracker, HeldPoses, decoded
 
 VOXEL = 0.25
 #: no decimation: the points kept are the points given (the reference uses them as given)
@@ -96,6 +96,7 @@ def test_reanchored_by_corrections_equals_a_map_from_scratch(rng) -> None:
     T_true = np.array([random_pose(rng) for _ in keys])
     m = KeyframeCloudMap(EXACT)
     tracker = CorrectionTracker(CorrectionThresholds(0.0, 0.0))
+    held = HeldPoses()   # the consumer's side of the messages (decoded poses)
     T = T_true.copy()
     moved_total = 0
     for step in range(1, n + 1, 4):
@@ -109,12 +110,13 @@ def test_reanchored_by_corrections_equals_a_map_from_scratch(rng) -> None:
             m.add_cloud(int(k), *clouds[int(k)])
         c = tracker.compare(Path(keys[:upto], T[:upto]))
         assert c is not None
-        up = m.set_poses(c.stamps_ns, c.T_world_node)
+        up = m.set_poses(*held.apply(c.message()))
         moved_total += up.moved
         assert up.moved + up.placed + up.pending + up.unchanged == len(c)
         for k in keys[step:upto:2]:        # the other half after
             m.add_cloud(int(k), *clouds[int(k)])
     assert moved_total > 0 and m.n_unplaced == 0 and m.n_pending_poses == 0
+    np.testing.assert_array_equal(held.T_map_base, decoded(T))
     want = reference_map({int(k): T[i] for i, k in enumerate(keys)}, clouds)
     assert_same_map(m.cloud(), want)
 

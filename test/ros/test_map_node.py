@@ -33,6 +33,7 @@ from ga_ros.ros.qos import latched_qos, stream_qos  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'mapping'))
 from test_cloud_map import VOXEL, assert_same_map, read_ply, reference_map  # noqa: E402
+from test_cloud_map import Path as KeyPath  # noqa: E402
 
 #: T_base_camera of the test: 0.2 m ahead, 0.5 m up, optical axes (rpy -pi/2 0 -pi/2)
 T_BASE_CAM_TEXT = '0.2 0 0.5 -1.5707963267948966 0 -1.5707963267948966'
@@ -186,3 +187,34 @@ def test_config_file_holds_every_parameter_at_its_default() -> None:
                         (MosaicMapConfig, 'mosaic_')):
         for f in fields(cls):
             assert params[prefix + f.name] == getattr(cls(), f.name), f.name
+
+
+def test_the_node_reads_spans_as_the_tracker_holds_them() -> None:
+    """A corrections message with spans, serialized as the alignment node publishes it and
+    deserialized by rclpy: :func:`corrections_from_msg` reads the marker, the ``/span`` endings
+    and the poses bit for bit as :meth:`Corrections.message` (what the tracker assumes), and a
+    consumer applying it holds what the tracker holds."""
+    from ga_ros.ros.map_node import corrections_from_msg
+
+    n = 60
+    base = np.array([se3.from_translation_rotvec(np.array([4.0 * k, 0.5 * k, 20.0]),
+                                                 np.array([0.0, 0.0, 0.02 * k]))
+                     for k in range(n)])
+    tracker, held = corr.CorrectionTracker(), corr.HeldPoses()
+    spans = 0
+    for u in range(3):
+        T = np.array([se3.from_translation_rotvec(np.array([0.2 * u * k / n, 0.1 * u, 0.0]),
+                                                  np.array([0.0, 0.0, 0.001 * u * k / n])) @ t
+                      for k, t in enumerate(base)])
+        c = tracker.compare(KeyPath(10**9 * (1 + np.arange(n)), T))
+        got = corrections_from_msg(deserialize_message(corr.corrections_cdr(c, 'map', 5),
+                                                       PathMsg))
+        want = c.message()
+        assert got.full == want.full == (u == 0)
+        np.testing.assert_array_equal(got.stamps_ns, want.stamps_ns)
+        np.testing.assert_array_equal(got.span, want.span)
+        np.testing.assert_array_equal(got.T_map_base, want.T_map_base)
+        held.apply(got)
+        np.testing.assert_array_equal(held.T_map_base, tracker.held())
+        spans += int(got.span.sum())
+    assert spans > 0

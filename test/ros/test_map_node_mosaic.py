@@ -105,6 +105,7 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path, ground: str) ->
     T_f2f = drifted(T_true)
     n = len(stamps)
     tracker = corr.CorrectionTracker(corr.CorrectionThresholds(0.0, 0.0))
+    held = corr.HeldPoses()
 
     class P:  # a corrected path as CorrectionTracker reads it
         def __init__(self, T):
@@ -153,7 +154,7 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path, ground: str) ->
         c = tracker.compare(P(T_now))
         assert c is not None
         msg = deserialize_message(corr.corrections_cdr(c, 'map', int(stamps[-1])), PathMsg)
-        _, sent_stamps, T_msg = corrections_from_msg(msg)
+        sent_stamps, T_msg = held.apply(corrections_from_msg(msg))   # what the node holds
         T_sent[np.searchsorted(stamps, sent_stamps)] = T_msg
         pub_corr.publish(msg)
 
