@@ -22,9 +22,8 @@ Figures (2-D position RMSE against the ground truth, over every sample):
   track ending at each fix (``finish_track`` right after ``add_fix``); each pose's estimate when
   it was first published: after the update for a fix's node, else the last estimate chained
   with the odometry; ga-ros final: ``refine_batch`` at the end; the aligner runs with its
-  default settings (a background refinement in a worker process where the linearisation
-  demands it, ``refine_relinearize_sigma``), as
-  ``ga-ros replay`` does;
+  default settings (a background refinement, inline or in a worker process by its size, where
+  the linearisation demands it, ``refine_relinearize_sigma``), as ``ga-ros replay`` does;
 * GTSAM batch: Levenberg-Marquardt on the whole graph; GTSAM iSAM2: ``update`` at each fix with
   the factors and poses since the previous one; online = each pose's estimate when it was added
   (after that update for a fix's node, else the last estimate chained with the odometry, as for
@@ -365,7 +364,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
     ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
     ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
-    refinement in a worker process at a track's end once the frozen nodes drifted by 1 sigma);
+    refinement at a track's end once the frozen nodes drifted by 1 sigma, inline or in a worker
+    process by its size);
     ``calibrate``: also the final batch with self-calibration."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
@@ -502,8 +502,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--refine-every', type=int, default=None,
                     help="the aligner's refine_every_tracks (background refinement with the "
                     "fixes; default: the aligner's, 1; 0: off)")
-    ap.add_argument('--executor', default=None, choices=('process', 'thread', 'inline'),
-                    help="the aligner's refine_executor (default: the aligner's, process)")
+    ap.add_argument('--executor', default=None, choices=('auto', 'process', 'thread', 'inline'),
+                    help="the aligner's refine_executor (default: the aligner's, auto)")
     ap.add_argument('--relinearize-sigma', type=float, default=None,
                     help="the aligner's refine_relinearize_sigma (default: the aligner's, 1; 0: "
                     'a refinement after every track)')
