@@ -7,8 +7,8 @@ The last node of every track gets an absolute position fix (its true position pl
 Gaussian noise of ``--fix-sigma`` m per axis, rotation unknown) just before the measurement that
 ends the track, and the aligner runs with ``datum='fixes'`` and otherwise its default settings
 (window, background refinement where the linearisation demands it, inline or in a worker
-process by its size, horizon), as ``ga-ros replay --absolute-topic`` does. Measurements are generated lazily in
-acquisition order.
+process by its size, horizon), as ``ga-ros replay --absolute-topic`` does. Measurements are
+generated lazily in acquisition order.
 
 Printed (every figure says what it compares):
 

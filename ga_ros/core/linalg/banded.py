@@ -226,8 +226,8 @@ def _tridiagonal_blocks(N: sp.coo_matrix, d: int, pos: IntArray, bn: int
 def _lower_inverse(D: FloatArray, eye: FloatArray) -> FloatArray:
     """``D^-1`` of a lower-triangular ``D`` (``eye``: the identity of its size):
     ``scipy.linalg.solve_triangular(D, eye, lower=True)`` bit for bit (its LAPACK call,
-    ``trtrs`` on ``D`` or, C-ordered, on its Fortran-ordered transpose) without its per-call checks and dispatch
-    (~0.1 ms each, a Python loop calls it once per block; tested)."""
+    ``trtrs`` on ``D`` or, C-ordered, on its Fortran-ordered transpose) without its per-call
+    checks and dispatch (~0.1 ms each, a Python loop calls it once per block; tested)."""
     if not np.isfinite(D).all():
         raise ValueError('array must not contain infs or NaNs')
     if D.flags.f_contiguous:
