@@ -61,8 +61,8 @@ def _exp_one(w: FloatArray) -> FloatArray:
     """:func:`exp` of one rotation vector ``(3,)``, bit for bit (the same operations in the
     same order, on scalars: a tenth of the array path's NumPy overhead; tested)."""
     w0, w1, w2 = float(w[0]), float(w[1]), float(w[2])
-    t2 = np.float64(w0 * w0 + w1 * w1 + w2 * w2)
-    theta = np.sqrt(t2)
+    theta = np.sqrt(np.float64(w0 * w0 + w1 * w1 + w2 * w2))  # np.linalg.norm's sum
+    t2 = theta * theta  # as _coeffs (not the sum: they may differ in the last bit)
     if theta < SMALL_ANGLE:
         a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
         b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
