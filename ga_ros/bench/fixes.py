@@ -22,9 +22,8 @@ Figures (2-D position RMSE against the ground truth, over every sample):
   track ending at each fix (``finish_track`` right after ``add_fix``); each pose's estimate when
   it was first published: after the update for a fix's node, else the last estimate chained
   with the odometry; ga-ros final: ``refine_batch`` at the end; the aligner runs with its
-  default settings (a background refinement in a worker process where the linearisation
-  demands it, ``refine_relinearize_sigma``), as
-  ``ga-ros replay`` does;
+  default settings (a background refinement, inline or in a worker process by its size, where
+  the linearisation demands it, ``refine_relinearize_sigma``), as ``ga-ros replay`` does;
 * GTSAM batch: Levenberg-Marquardt on the whole graph; GTSAM iSAM2: ``update`` at each fix with
   the factors and poses since the previous one; online = each pose's estimate when it was added
   (after that update for a fix's node, else the last estimate chained with the odometry, as for
@@ -42,8 +41,16 @@ so GTSAM runs without calibration and the ratio printed is against GTSAM batch w
 
 Beside the RMSE table: the CPU seconds of all processes (this one with its threads, and the
 refinement worker) of ga-ros online, ga-ros final, GTSAM batch LM and GTSAM iSAM2 (updated at
-each fix), and the mean ``update_ms`` of each quarter of the run's tracks (flat when the cost of
-an update does not grow with the survey).
+each fix), and the mean ``update_ms`` (wall) and CPU (the calling thread's) of the calls that
+end a track, per quarter of the run's tracks (flat when the cost of an update does not grow
+with the survey). A stage table splits ga-ros online's CPU (seconds over the whole run): the
+stages of :data:`ga_ros.bench.stages.STAGES` (each counting its own time: a stage function
+called inside another counts in its own stage), ``admission`` (each measurement's checks and
+storage, :func:`~ga_ros.core.window.admission.check_measurement` /
+``apply_measurement``), ``refinement`` (:func:`~ga_ros.core.window.refinement.refine_snapshot`
+run in this process: inline or in a thread), ``other`` (the rest of this process: the update
+code between the stages, the numba kernels' load, building the measurements and fixes) and
+``worker process`` (the refinement worker's CPU, its start-up included).
 
 GTSAM is optional (``pip install -r requirements-bench.txt``); without it those columns are
 skipped with a note.
@@ -124,12 +131,15 @@ class FixBenchFigures:
     gtsam_seconds: float = float('nan')
     isam2_seconds: float = float('nan')
     ours_online_cpu_s: float = float('nan')
+    ours_online_warm_cpu_s: float = float('nan')
     ours_final_cpu_s: float = float('nan')
     gtsam_batch_cpu_s: float = float('nan')
     isam2_cpu_s: float = float('nan')
     ours_final_cal_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
     update_ms_quarters: list[float] = field(default_factory=list)
+    update_cpu_ms_quarters: list[float] = field(default_factory=list)
+    stage_cpu_s: dict[str, float] = field(default_factory=dict)
     fix_outliers: int = 0
     notes: list[str] = field(default_factory=list)
 
@@ -166,8 +176,10 @@ def _interpolated(run: PlazaRun, idx: np.ndarray, p: FloatArray) -> FloatArray:
 @dataclass
 class OursRun:
     """ga-ros online and final poses (module doc), the fixes gated out, each update's
-    ``update_ms`` and the CPU seconds of all processes (this one with its threads, the
-    refinement worker) of the online run and of the final ``refine_batch``."""
+    ``update_ms``, the CPU ms of each call that ended a track (``update_cpu_ms``, the calling
+    thread's), the CPU seconds of all processes (this one with its threads, the refinement
+    worker) of the online run and of the final ``refine_batch``, and the online run's CPU
+    seconds per stage (module doc)."""
 
     online: FloatArray
     final: FloatArray
@@ -178,6 +190,18 @@ class OursRun:
     final_cal: FloatArray | None = None
     final_cal_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
+    update_cpu_ms: list[float] = field(default_factory=list)
+    stage_cpu_s: dict[str, float] = field(default_factory=dict)
+
+
+def _fix_stages() -> dict[str, tuple[tuple[object, str], ...]]:
+    """:data:`ga_ros.bench.stages.STAGES` with ``admission`` and ``refinement`` (module doc)."""
+    from ga_ros.bench.stages import STAGES
+    from ga_ros.core.window import aligner, worker
+
+    return {**STAGES,
+            'admission': ((aligner, 'check_measurement'), (aligner, 'apply_measurement')),
+            'refinement': ((worker, 'refine_snapshot'),)}
 
 
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
@@ -185,43 +209,61 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
     """ga-ros online and final (module doc), with its update times and CPU; with
     ``calibration``, also final + calibration: ``refine_batch(calibration=...)`` after the
     final one (the odometry's scale and yaw-rate corrections estimated with the poses)."""
-    cpu0 = all_cpu_seconds()
-    n = run.T_true.shape[0]
-    al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
-    fix_at = dict(zip(idx.tolist(), range(idx.size)))
-    fix_cov = np.diag([noise_m ** 2] * 3 + [-1.0] * 3)
-    online = np.zeros((n, 4, 4))
-    online[0] = run.T_true[0]
-    track = prev_track = 0
+    import resource
 
-    def add_fix(i: int) -> None:
-        f = fix_at[i]
-        fix = AbsoluteFix.from_covariance(int(run.stamps_s[i] * 1e9),
-                                          se3.from_translation_rotvec(p[f], np.zeros(3)),
-                                          fix_cov, 'fix0')
-        al.add_fix(FixTerm(i, se3.identity(), fix))
+    from ga_ros.bench.stages import timed_stages
 
-    update_ms = []
-    for i in range(1, n):
-        for up in al.add_measurement(Measurement.from_pose(
-                i - 1, i, prev_track, track, run.steps[i - 1], cov, int(run.stamps_s[i] * 1e9))):
-            update_ms.append(up.update_ms)
-        prev_track = track
-        if i == 1 and 0 in fix_at:
-            add_fix(0)  # enters the first track's update
-        if i in fix_at:
-            add_fix(i)
-            up = al.finish_track()
-            if up is not None:
+    def own_cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    with timed_stages(_fix_stages(), exclusive=True) as clock:
+        cpu0, own0 = all_cpu_seconds(), own_cpu()
+        n = run.T_true.shape[0]
+        al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
+        fix_at = dict(zip(idx.tolist(), range(idx.size)))
+        fix_cov = np.diag([noise_m ** 2] * 3 + [-1.0] * 3)
+        online = np.zeros((n, 4, 4))
+        online[0] = run.T_true[0]
+        track = prev_track = 0
+
+        def add_fix(i: int) -> None:
+            f = fix_at[i]
+            fix = AbsoluteFix.from_covariance(int(run.stamps_s[i] * 1e9),
+                                              se3.from_translation_rotvec(p[f], np.zeros(3)),
+                                              fix_cov, 'fix0')
+            al.add_fix(FixTerm(i, se3.identity(), fix))
+
+        update_ms, update_cpu_ms = [], []
+        for i in range(1, n):
+            for up in al.add_measurement(Measurement.from_pose(
+                    i - 1, i, prev_track, track, run.steps[i - 1], cov,
+                    int(run.stamps_s[i] * 1e9))):
                 update_ms.append(up.update_ms)
-            track += 1
-        online[i] = al.corrected_path().T_world_node[i]
-    al.wait_background()
-    cpu1 = all_cpu_seconds()
+            prev_track = track
+            if i == 1 and 0 in fix_at:
+                add_fix(0)  # enters the first track's update
+            if i in fix_at:
+                add_fix(i)
+                c0 = time.thread_time()
+                up = al.finish_track()
+                if up is not None:
+                    update_ms.append(up.update_ms)
+                    update_cpu_ms.append(1e3 * (time.thread_time() - c0))
+                track += 1
+            online[i] = al.corrected_path().T_world_node[i]
+        al.wait_background()
+        cpu1, own1 = all_cpu_seconds(), own_cpu()
+    stage_cpu_s = {}
+    for (_, stage), ms in clock.take().items():
+        stage_cpu_s[stage] = stage_cpu_s.get(stage, 0.0) + 1e-3 * ms
+    stage_cpu_s['other'] = own1 - own0 - sum(stage_cpu_s.values())
+    stage_cpu_s['worker process'] = (cpu1 - cpu0) - (own1 - own0)
     al.refine_batch()
     final = al.corrected_path().T_world_node.copy()
     cpu2 = all_cpu_seconds()
-    out = OursRun(online, final, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1)
+    out = OursRun(online, final, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1,
+                  update_cpu_ms=update_cpu_ms, stage_cpu_s=stage_cpu_s)
     if calibration is not None:
         al.refine_batch(calibration=calibration)
         out.final_cal = al.corrected_path().T_world_node.copy()
@@ -322,7 +364,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
     ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
     ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
-    refinement in a worker process at a track's end once the frozen nodes drifted by 1 sigma);
+    refinement at a track's end once the frozen nodes drifted by 1 sigma, inline or in a worker
+    process by its size);
     ``calibrate``: also the final batch with self-calibration."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
@@ -339,17 +382,22 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
     t0 = time.perf_counter()
     ours = run_ours(run, idx, p, noise_m, cov, cfg, CalibrationConfig() if calibrate else None)
     t_ours = time.perf_counter() - t0
+    warm = run_ours(run, idx, p, noise_m, cov, cfg)  # the same again: start-up already paid
+    if not (np.array_equal(warm.online, ours.online) and np.array_equal(warm.final, ours.final)):
+        raise AssertionError('ga-ros online: the warm run differs from the first one')
     fig = FixBenchFigures(interval_s, noise_m, n, int(idx.size), _rmse(dead, run.T_true),
                           _rmse(_interpolated(run, idx, p), run.T_true),
                           _rmse(ours.online, run.T_true), _rmse(ours.final, run.T_true),
                           ours_seconds=t_ours, fix_outliers=ours.outliers,
                           ours_online_cpu_s=ours.online_cpu_s,
+                          ours_online_warm_cpu_s=warm.online_cpu_s,
                           ours_final_cpu_s=ours.final_cpu_s,
                           calibration=ours.calibration,
                           ours_final_cal_cpu_s=ours.final_cal_cpu_s,
-                          update_ms_quarters=[float(np.mean(q)) for q in
-                                              np.array_split(np.asarray(ours.update_ms), 4)
-                                              if q.size])
+                          update_ms_quarters=_quarters(ours.update_ms),
+                          update_cpu_ms_quarters=_quarters(ours.update_cpu_ms),
+                          stage_cpu_s={**warm.stage_cpu_s, 'start-up': ours.online_cpu_s
+                                       - warm.online_cpu_s})
     if ours.final_cal is not None:
         fig.ours_final_cal_m = _rmse(ours.final_cal, run.T_true)
     if with_gtsam and gtsam_installed():
@@ -369,6 +417,11 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
         fig.notes.append('GTSAM not installed (pip install -r requirements-bench.txt): its '
                          'columns skipped')
     return fig
+
+
+def _quarters(values: list[float]) -> list[float]:
+    """The means of the four quarters of ``values`` (in order)."""
+    return [float(np.mean(q)) for q in np.array_split(np.asarray(values, float), 4) if q.size]
 
 
 def table(figs: list[FixBenchFigures]) -> str:
@@ -398,17 +451,35 @@ def table(figs: list[FixBenchFigures]) -> str:
                 f'{f.gtsam_batch_m:12.2f} {f.ours_final_cal_m / f.gtsam_batch_m:16.3f} '
                 f'{f.ours_final_cal_cpu_s:14.2f}  ' + '; '.join(f.calibration))
     lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
-              'worker): ga-ros online (the whole online run, as the replay runs it), ga-ros '
-              'final (refine_batch), GTSAM batch LM, GTSAM iSAM2 updated at each fix; ratio '
-              "ga-ros online / iSAM2. Mean update_ms of each quarter of the run's tracks.",
-              'interval  noise  ours-online-cpu  ours-final-cpu  gtsam-batch-cpu  isam2-cpu  '
-              'online/isam2  update-ms-by-quarter']
+              'worker): ga-ros online (the whole online run, as the replay runs it; the first '
+              "run in this process, so with the start-up of ga-ros's lazy imports and compiled "
+              'kernels), ga-ros online warm (the same run again in this process, bit-identical: '
+              'start-up already paid, as in a node that has run for a while), ga-ros final '
+              '(refine_batch), GTSAM batch LM (with the import of gtsam), GTSAM iSAM2 updated '
+              'at each fix (gtsam already imported); ratios ga-ros online (warm) / iSAM2. Mean '
+              "update_ms (wall) and CPU ms (the calling thread's) of the calls that end a "
+              "track, per quarter of the run's tracks (first run).",
+              'interval  noise  ours-online-cpu  ours-online-warm-cpu  ours-final-cpu  '
+              'gtsam-batch-cpu  isam2-cpu  online/isam2  warm/isam2  update-ms-by-quarter  '
+              'update-cpu-ms-by-quarter']
     for f in figs:
         lines.append(
             f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_online_cpu_s:16.2f} '
+            f'{f.ours_online_warm_cpu_s:21.2f} '
             f'{f.ours_final_cpu_s:15.2f} {f.gtsam_batch_cpu_s:16.2f} {f.isam2_cpu_s:10.2f} '
-            f'{f.ours_online_cpu_s / f.isam2_cpu_s:13.1f}  '
-            + ' / '.join(f'{q:.0f}' for q in f.update_ms_quarters))
+            f'{f.ours_online_cpu_s / f.isam2_cpu_s:13.1f} '
+            f'{f.ours_online_warm_cpu_s / f.isam2_cpu_s:11.1f}  '
+            + ' / '.join(f'{q:.0f}' for q in f.update_ms_quarters) + '  '
+            + ' / '.join(f'{q:.0f}' for q in f.update_cpu_ms_quarters))
+    names = list(dict.fromkeys(k for f in figs for k in f.stage_cpu_s))
+    if names:
+        lines += ['', "ga-ros online warm's CPU seconds by stage (module doc; each stage its "
+                  "own time; 'other': the rest of this process, 'worker process': the "
+                  "refinement worker's CPU; 'start-up': ga-ros online - ga-ros online warm)",
+                  'interval  noise  ' + '  '.join(names)]
+        for f in figs:
+            lines.append(f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m  ' + '  '.join(
+                f'{f.stage_cpu_s.get(k, 0.0):{len(k)}.3f}' for k in names))
     notes = sorted({n for f in figs for n in f.notes})
     return '\n'.join(lines + notes)
 
@@ -431,8 +502,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--refine-every', type=int, default=None,
                     help="the aligner's refine_every_tracks (background refinement with the "
                     "fixes; default: the aligner's, 1; 0: off)")
-    ap.add_argument('--executor', default=None, choices=('process', 'thread', 'inline'),
-                    help="the aligner's refine_executor (default: the aligner's, process)")
+    ap.add_argument('--executor', default=None, choices=('auto', 'process', 'thread', 'inline'),
+                    help="the aligner's refine_executor (default: the aligner's, auto)")
     ap.add_argument('--relinearize-sigma', type=float, default=None,
                     help="the aligner's refine_relinearize_sigma (default: the aligner's, 1; 0: "
                     'a refinement after every track)')

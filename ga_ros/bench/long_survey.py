@@ -6,9 +6,9 @@ tracks (default 1,000) of ``2 x --positions-per-swath`` poses (default 2 x 10) w
 The last node of every track gets an absolute position fix (its true position plus seeded
 Gaussian noise of ``--fix-sigma`` m per axis, rotation unknown) just before the measurement that
 ends the track, and the aligner runs with ``datum='fixes'`` and otherwise its default settings
-(window, background refinement in a worker process where the linearisation demands it,
-horizon), as ``ga-ros replay --absolute-topic`` does. Measurements are generated lazily in
-acquisition order.
+(window, background refinement where the linearisation demands it, inline or in a worker
+process by its size, horizon), as ``ga-ros replay --absolute-topic`` does. Measurements are
+generated lazily in acquisition order.
 
 Printed (every figure says what it compares):
 
@@ -199,8 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--noise', type=float, default=5.0, help='noise level in percent')
     p.add_argument('--fix-sigma', type=float, default=2.0, help='fix noise, m per axis')
     p.add_argument('--window', type=int, default=5, help='window tracks K (default 5)')
-    p.add_argument('--executor', default='process', choices=('process', 'thread', 'inline'),
-                   help='refine_executor (default: process, the default of the aligner)')
+    p.add_argument('--executor', default='auto', choices=('auto', 'process', 'thread', 'inline'),
+                   help='refine_executor (default: auto, the default of the aligner)')
     p.add_argument('--early', default='50,100',
                    help='first and last+1 track of the early range (default 50,100)')
     p.add_argument('--seed', type=int, default=0)

@@ -1,11 +1,12 @@
 """Where a window update's CPU goes: the stages of :data:`STAGES`, timed in every thread, and
 the CPU of the whole process tree (:func:`ga_ros.bench.cpu.all_cpu_seconds`), for
-``ga-ros bench window``.
+``ga-ros bench window`` and ``ga-ros bench fixes``.
 
 A stage's CPU is the ``time.thread_time()`` of the thread that runs it, between entering and
 leaving one of its functions; a stage function called inside another timed function counts in
-the outer one only (the stage of the outermost timed call on that thread's stack), so the
-stages of a thread add up to at most its CPU. The update call runs on the caller's thread
+the outer one only (the stage of the outermost timed call on that thread's stack), or, with
+``exclusive``, in its own stage, the outer one counting only the rest; either way the stages of
+a thread add up to at most its CPU. The update call runs on the caller's thread
 ("track end"); the freeze computed ahead (``freeze_ahead``) runs in a background thread and the
 background refinement in a worker process ("background").
 """
@@ -85,42 +86,58 @@ class StageClock:
             out, self._totals = dict(self._totals), defaultdict(float)
         return out
 
+    def _stack(self) -> list[float]:
+        """This thread's timed calls in progress: the ms of the nested ones each has seen."""
+        stack = getattr(self._local, 'stack', None)
+        if stack is None:
+            stack = self._local.stack = []
+        return stack
+
     def depth(self) -> int:
-        return getattr(self._local, 'depth', 0)
+        return len(self._stack())
 
     def enter(self) -> None:
-        self._local.depth = self.depth() + 1
+        self._stack().append(0.0)
 
-    def leave(self) -> None:
-        self._local.depth = self.depth() - 1
+    def leave(self, ms: float) -> float:
+        """End the innermost timed call, which took ``ms``; returns the ms of the timed calls
+        nested in it, and counts ``ms`` as nested in the call around it."""
+        stack = self._stack()
+        nested = stack.pop()
+        if stack:
+            stack[-1] += ms
+        return nested
 
 
 @contextmanager
-def timed_stages() -> Iterator[StageClock]:
-    """Time the functions of :data:`STAGES` (wrapped while active, then put back) into a
-    :class:`StageClock`."""
+def timed_stages(stages: dict[str, tuple[tuple[object, str], ...]] | None = None,
+                 exclusive: bool = False) -> Iterator[StageClock]:
+    """Time the functions of ``stages`` (default :data:`STAGES`; wrapped while active, then put
+    back) into a :class:`StageClock`; ``exclusive``: a timed call nested in another counts in
+    its own stage (module doc)."""
     clock = StageClock()
+    stages = STAGES if stages is None else stages
 
     def wrap(stage: str, fn):
         if isinstance(fn, staticmethod | classmethod):
             raise TypeError('stage functions are plain functions or methods')
 
         def timed(*args, **kwargs):
-            if clock.depth():
+            if clock.depth() and not exclusive:
                 return fn(*args, **kwargs)
             clock.enter()
             c0 = time.thread_time()
             try:
                 return fn(*args, **kwargs)
             finally:
-                clock.add(stage, 1e3 * (time.thread_time() - c0))
-                clock.leave()
+                ms = 1e3 * (time.thread_time() - c0)
+                clock.add(stage, ms - clock.leave(ms))
         return timed
 
     saved = [(owner, name, inspect.getattr_static(owner, name))
-             for targets in STAGES.values() for owner, name in targets]
+             for targets in stages.values() for owner, name in targets]
     try:
-        for stage, targets in STAGES.items():
+        for stage, targets in stages.items():
             for owner, name in targets:
                 setattr(owner, name, wrap(stage, inspect.getattr_static(owner, name)))
         yield clock

@@ -304,14 +304,20 @@ class FixBook:
     def _by_row(self, rows: IntArray, active: bool = True, count: int | None = None,
                 gauge: bool = True) -> dict[int, list[int]]:
         """The (used, if ``active``) fixes of the node ``rows`` among the first ``count``, by
-        row (each list in increasing fix index; the gauge prior only if ``gauge``): a look-up
-        per row asked for, nothing of the book's size."""
+        row (each list in increasing fix index; the gauge prior only if ``gauge``; the rows in
+        no particular order): a look-up per row asked for or per row with a fix, whichever are
+        fewer."""
         status = self.status  # a fix added meanwhile (another thread) appends its status last
         n = min(len(self.rows), status.size, len(self.info))
         n = n if count is None else min(n, int(count))
         out: dict[int, list[int]] = {}
-        for r in set(np.asarray(rows, np.int64).tolist()):
-            fs = [f for f in self._of_row.get(r, ()) if f < n and (not active or status[f] == 0)
+        asked, of_row = set(np.asarray(rows, np.int64).tolist()), self._of_row
+        # the rows asked for that have a fix, by the shorter scan (a window's rows mostly have
+        # none; a long survey's book has more rows than a window)
+        hits = ([r for r in of_row if r in asked] if len(of_row) < len(asked)
+                else [r for r in asked if r in of_row])
+        for r in hits:
+            fs = [f for f in of_row[r] if f < n and (not active or status[f] == 0)
                   and (gauge or self.gated[f])]
             if fs:
                 out[r] = fs

@@ -29,7 +29,8 @@ def from_rt(R: FloatArray, t: FloatArray) -> FloatArray:
     """Pose from rotation ``(..., 3, 3)`` and translation ``(..., 3)``."""
     R = np.asarray(R, dtype=float)
     t = np.asarray(t, dtype=float)
-    out = np.zeros(np.broadcast_shapes(R.shape[:-2], t.shape[:-1]) + (4, 4))
+    one = R.shape == (3, 3) and t.shape == (3,)  # one pose: no broadcast
+    out = np.zeros((4, 4) if one else np.broadcast_shapes(R.shape[:-2], t.shape[:-1]) + (4, 4))
     out[..., :3, :3] = R
     out[..., :3, 3] = t
     out[..., 3, 3] = 1.0

@@ -62,3 +62,22 @@ def test_the_tree_cpu_counts_a_live_child_process():
         child.wait()
     if sys.platform.startswith('linux'):
         assert during - before >= 0.5
+
+
+def test_exclusive_stages_count_a_nested_stage_in_its_own_stage(monkeypatch):
+    # the same nesting as above with exclusive=True: the outer stage keeps only its own spin
+    def inner(*args, **kwargs):
+        _spin(0.03)
+
+    def outer(self, *args, **kwargs):
+        _spin(0.01)
+        freeze.marginal_covariances(None, None)
+
+    monkeypatch.setattr(freeze, 'marginal_covariances', inner)
+    monkeypatch.setattr(freeze.FreezePolicy, 'marginalise', outer)
+    with stages.timed_stages(exclusive=True) as clock:
+        freeze.FreezePolicy.marginalise(None)
+        got = clock.take()
+    assert set(got) == {('track end', 'priors'), ('track end', 'covariances')}
+    assert got[('track end', 'covariances')] >= 28.0
+    assert 8.0 <= got[('track end', 'priors')] < 25.0  # its own 10 ms, not the inner 30

@@ -134,3 +134,26 @@ def test_quaternions_equal_scipy_near_identity_near_pi_and_at_random(rng):
         se3.quat_from_matrix(T[:, :3, :3])).as_matrix(), atol=1e-12)
     with pytest.raises(ValueError):
         se3.from_pos_quat(np.zeros(3), np.zeros(4))
+
+
+def test_one_rotation_is_bit_for_bit_the_array_path(rng):
+    # exp / log / from_rt of a single (3,) / (3, 3) take a scalar path; it must equal the
+    # array path (the same input as a batch of one) to the last bit, at every angle scale,
+    # at zero, near pi (log's branch) and on matrices off SO(3) by rounding
+    n = 20_000
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.concatenate([10 ** rng.uniform(-12, 0.5, n // 2), rng.uniform(0, np.pi, n // 2)])
+    w = axis * angle[:, None]
+    w[:10] = 0.0
+    w[10:20] *= 1e-300
+    w[20:40] = axis[20:40] * (np.pi - rng.uniform(0, 2e-2, 20))[:, None]
+    R = so3.exp(w[:, None, :])[:, 0]  # the array path
+    R_off = R + rng.normal(scale=1e-9, size=R.shape)
+    t = rng.normal(size=(n, 3))
+    for k in range(n):
+        assert np.array_equal(so3.exp(w[k]), R[k]), w[k]
+        assert np.array_equal(so3.log(R[k]), so3.log(R[k][None])[0]), w[k]
+        assert np.array_equal(so3.log(R_off[k]), so3.log(R_off[k][None])[0]), w[k]
+        if k % 100 == 0:
+            assert np.array_equal(se3.from_rt(R[k], t[k]), se3.from_rt(R[k][None], t[k])[0])

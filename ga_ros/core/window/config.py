@@ -105,9 +105,12 @@ class AlignerConfig:
     refine_lag_tracks : a refinement started after track ``k`` is installed at the start of the
         update of track ``k + refine_lag_tracks`` (waiting for it there if it is not ready), so
         the result does not depend on timing: a replay and a live node give the same path.
-    refine_executor : where the refinement runs: ``'process'`` (a separate process, 'spawn'
-        start method; truly parallel), ``'thread'`` or ``'inline'`` (solved at the hand-off;
-        same result, for tests and single-core machines).
+    refine_executor : where the refinement runs: ``'auto'`` (default: inline for a snapshot of
+        fewer than :data:`~ga_ros.core.window.worker.INLINE_BELOW_CONNECTIONS` connections,
+        where a worker process costs more CPU than the work, else in the process),
+        ``'process'`` (a separate process, 'spawn' start method; truly parallel), ``'thread'``
+        or ``'inline'`` (solved at the hand-off; same result, for tests and single-core
+        machines).
     refine_horizon_tracks : ``H``, tracks a refinement re-solves
         (:mod:`ga_ros.core.window.refinement`,
         bounded refinement): the newest ``H`` finished tracks (and older ones not retired yet);
@@ -184,7 +187,7 @@ class AlignerConfig:
     quality_alpha0: float = 1e-4
     refine_every_tracks: int = ranged(1, 0, 1000)
     refine_lag_tracks: int = ranged(1, 1, 1000)
-    refine_executor: str = 'process'
+    refine_executor: str = 'auto'
     refine_horizon_tracks: int = ranged(20, 0, 100_000)
     refine_relinearize_sigma: float = ranged(1.0, 0.0, 1e6)
     prior_band: int = ranged(16, -1, 100_000)

@@ -11,7 +11,8 @@ same data smooths. A *refinement* closes the gap without blocking the per-track 
    :meth:`~ga_ros.core.window.handoff.RefinementHandoff.relinearize_due`), the aligner takes a
    :class:`RefinementSnapshot`
    (node poses, connections and their status, which nodes are frozen) and hands it to a worker
-   (a separate process by default, truly parallel on a multi-core machine; a thread; or inline);
+   (by default a separate process, truly parallel on a multi-core machine, for a large snapshot
+   and inline for a small one; a thread; or inline);
 2. the worker solves the snapshot in full (:func:`refine_snapshot`: batch Gauss-Newton,
    warm-started at the online estimate), computes the marginal covariances of the frozen nodes
    (selected inversion) and rebuilds the joint priors of the absorbed connections at the refined

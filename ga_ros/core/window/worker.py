@@ -1,6 +1,7 @@
 """Where a background refinement runs: :class:`RefinementWorker`, a separate process
 ('spawn' start method: safe beside the DDS threads of a live node), a thread of this process,
-or inline at the hand-off (ROS-free).
+inline at the hand-off, or (``'auto'``) inline when the snapshot is small and in the process
+otherwise (ROS-free).
 
 A worker process keeps the smoothing steps of its last refinement
 (:func:`~ga_ros.core.window.elimination.smooth`'s gains, 60-80 MB for a horizon of 25-30
@@ -32,8 +33,20 @@ from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot, Sm
 from ga_ros.errors import InputError
 
 #: Where a refinement runs: a separate process ('spawn' start method: safe beside the DDS threads
-#: of a live node), a thread of this process, or inline at the hand-off (same result, blocking).
-REFINE_EXECUTORS = ('process', 'thread', 'inline')
+#: of a live node), a thread of this process, inline at the hand-off (same result, blocking), or
+#: ``'auto'``: inline for a snapshot of fewer than :data:`INLINE_BELOW_CONNECTIONS` connections,
+#: else in the process.
+REFINE_EXECUTORS = ('auto', 'process', 'thread', 'inline')
+
+#: ``'auto'`` solves a snapshot with fewer connections than this inline at the hand-off. Such a
+#: refinement takes ~50 us of CPU per node (~0.1 s for the Plaza run's 2,500-node horizon);
+#: handing it to a worker process costs more: the worker's start (interpreter, NumPy, SciPy,
+#: ga_ros and the compiled kernels loaded again, ~0.8 s of CPU once) and the snapshot, result
+#: and smoothing through pipes at every hand-off. The result is the same bit for bit (the
+#: executors run the same :func:`refine_snapshot`); only its CPU moves onto the update that
+#: installs it. A larger snapshot (the aerial survey's horizon: ~25,000 connections) runs in
+#: the worker process, in parallel with the updates.
+INLINE_BELOW_CONNECTIONS = 4000
 
 
 #: In a worker process: the smoothing steps of its last refinement, by its ``after_tracks``
@@ -132,10 +145,11 @@ class RefinementWorker:
 
     Parameters
     ----------
-    executor : one of :data:`REFINE_EXECUTORS`.
+    executor : one of :data:`REFINE_EXECUTORS`; ``'auto'`` chooses ``'inline'`` or
+        ``'process'`` per snapshot (:data:`INLINE_BELOW_CONNECTIONS`).
     """
 
-    def __init__(self, executor: str = 'process') -> None:
+    def __init__(self, executor: str = 'auto') -> None:
         if executor not in REFINE_EXECUTORS:
             raise InputError(f'refine_executor must be one of {REFINE_EXECUTORS}, '
                              f'got {executor!r}')
@@ -152,10 +166,13 @@ class RefinementWorker:
         """Start refining ``snap``; its result is due at the update of the ``due``-th track."""
         if self._pending is not None:
             raise InputError('a refinement is already in flight')
-        if self.kind == 'inline':
+        kind = self.kind
+        if kind == 'auto':
+            kind = 'inline' if len(snap.src) < INLINE_BELOW_CONNECTIONS else 'process'
+        if kind == 'inline':
             self._pending = (due, snap)
             return
-        job = _refine_in_worker if self.kind == 'process' else refine_snapshot
+        job = _refine_in_worker if kind == 'process' else refine_snapshot
         try:
             future = self._executor().submit(job, snap)
         except BrokenExecutor:  # the worker process died (its result said so): a new one
@@ -167,7 +184,7 @@ class RefinementWorker:
     def _executor(self) -> Executor:
         """The executor, created on first use."""
         if self._pool is None:
-            if self.kind == 'process':
+            if self.kind in ('process', 'auto'):
                 self._pool = ProcessPoolExecutor(
                     max_workers=1, mp_context=_WorkerContext(),
                     initializer=_exit_with_parent, initargs=(os.getpid(),))

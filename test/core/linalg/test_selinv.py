@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from ga_ros.core.linalg.blocks import BlockPattern
@@ -276,3 +277,27 @@ def test_path_solves_give_way_to_full_solves_where_the_paths_are_long(rng):
     c = short[0]
     np.testing.assert_allclose(got[0], inv[c * d:(c + 1) * d, c * d:(c + 1) * d], rtol=1e-9,
                                atol=1e-12 * np.abs(inv).max())
+
+
+def test_the_block_inverse_is_scipys_solve_triangular_bit_for_bit():
+    # banded._lower_inverse calls LAPACK's trtrs as scipy.linalg.solve_triangular does, without
+    # its per-call checks: the same bits for C- and Fortran-ordered factors, the same errors
+    from scipy.linalg import solve_triangular
+
+    from ga_ros.core.linalg import banded
+
+    rng = np.random.default_rng(5)
+    for b in (1, 6, 12, 48):
+        eye = np.eye(b)
+        for _ in range(20):
+            M = rng.normal(size=(b, b))
+            D = np.linalg.cholesky(M @ M.T + 1e-3 * np.eye(b))
+            for F in (D, np.asfortranarray(D)):
+                np.testing.assert_array_equal(banded._lower_inverse(F, eye),
+                                              solve_triangular(F, eye, lower=True))
+    D[1, 1] = 0.0
+    with pytest.raises(np.linalg.LinAlgError):
+        banded._lower_inverse(D, eye)
+    D[1, 1] = np.nan
+    with pytest.raises(ValueError):
+        banded._lower_inverse(D, eye)
