@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ga_ros.core.measurement import variance_group
+from ga_ros.core.quality.source_consistency import consistency_split
 from ga_ros.core.quality.variance_components import solve_with_variance_components
 from ga_ros.core.solver import solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -96,7 +97,7 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
         record('fused stated', plain.T_world_node, sv.T_true)
         t0 = time.process_time()
         res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
-                                                 fixed=[0])
+                                                 fixed=[0], split=consistency_split(ms))
         cpu_v.append(time.process_time() - t0)
         its.append(vc.iterations)
         record('fused vce', res.T_world_node, sv.T_true)

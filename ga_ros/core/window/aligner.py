@@ -661,7 +661,8 @@ class TrackWindowAligner:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
             res, self.variance_components = solve_with_variance_components(
                 net, st.T[:n], groups, scfg, fixed=fixed, priors=priors,
-                prior_groups=['fixes'] * len(priors), config=variance_config)
+                prior_groups=['fixes'] * len(priors), config=variance_config,
+                split=variance_groups.split())
         del net
         st.T[:n] = res.T_world_node
         frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]

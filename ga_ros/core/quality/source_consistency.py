@@ -1,0 +1,209 @@
+"""Each relative source's own noise, from how much rougher its motions are than another
+source's measuring the same motions (Grubbs' estimator of two instruments' precisions).
+
+Why: two sources that measure the same keyframe motions and nothing else (two odometry streams,
+two SLAM systems' outputs) give an adjustment whose residuals are their differences only. The
+differences show the *sum* of the two sources' variances, never how it splits: every split
+fits the residuals equally well (the variance-component estimation,
+:mod:`ga_ros.core.quality.variance_components`, keeps whatever ratio it starts from). Grubbs
+(1948) separates the two by treating the true motions as varying and the two sources' errors as
+independent of each other and of the motion: ``var(z_a) = var(t) + s_a``, ``cov(z_a, z_b) =
+var(t)``, so ``s_a = E[z_a (z_a - z_b)]``.
+
+Here on the change between consecutive motions, so that the true motion varies little: for two
+consecutive connections ``c1 = (i, j)``, ``c2 = (j, k)`` both measured by sources ``a`` and
+``b``, with ``u_a = z_a(c2) - z_a(c1)`` (``[t, rotvec]``, the first-order change of motion) and
+``W_a = (S_a(c1) + S_a(c2))^-1`` from ``a``'s stated covariances,
+
+    ``g_a = u_a' W_a (u_a - u_b)``,   ``E[g_a] = 6 s_a``
+
+(``s_a`` the variance factor of ``a``: true covariance / stated, the errors white and
+independent of ``b``'s). Per source ``k`` the terms against every other source give
+``f_k = sum g / (6 n)`` over its ``n`` terms; its degrees of freedom are estimated from the
+terms' own spread, ``nu_k = 2 n mean(g)^2 / (var(g) + 2 cov(g_i, g_i-1))`` (the term
+``Δt' W (δ_a - δ_b)`` of a changing true motion and the other source's noise make it less
+certain than ``6 n``; consecutive terms share a motion, hence the lag-1 covariance).
+
+The estimate is a *start* for the variance-component estimation, never a replacement: where the
+network determines each source's factor (a third source, loop closures, fixes) the estimation
+converges to its own fixed point from any start; where it determines only the sum, its
+iteration keeps the ratio of the start, so the sources are split as their consistency says
+and scaled to what the residuals say. Its assumptions are stated, not tested: errors
+independent between the two sources (two SLAM systems on the same camera share errors, which
+makes both look better) and white in time (a source whose errors are smoothed looks better
+than it is).
+
+Memory is bounded: a connection's measurements are kept while newer connections arrive, the
+latest ``keep`` node pairs; a source measuring a connection later than that adds no term.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterable
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray
+from ga_ros.core.measurement import Measurement
+
+#: scalar degrees of freedom of one term (the 6 components of a change of motion)
+TERM_DOF = 6
+
+
+class SourceConsistency:
+    """The terms ``g`` of the module docstring, per source, fed measurement by measurement.
+
+    Only consecutive motions with a named source take part (:attr:`Measurement.source`).
+
+    Parameters
+    ----------
+    keep : node pairs whose measurements are kept to pair with later ones.
+    """
+
+    def __init__(self, keep: int = 64) -> None:
+        self.keep = int(keep)
+        self.names: list[str] = []
+        # per source: number of terms, sum of g, sum of g^2, sum of g times the previous term
+        # of the same pair of sources (the lag-1 products: consecutive terms share a motion)
+        self._n = np.zeros(0)
+        self._sum = np.zeros(0)
+        self._sum2 = np.zeros(0)
+        self._lag = np.zeros(0)
+        self._last: dict[tuple[str, str], float] = {}
+        self._recent: OrderedDict[tuple[int, int], dict[str, tuple[FloatArray, FloatArray]]] = (
+            OrderedDict())
+        self._ending: dict[int, tuple[int, int]] = {}   # node -> the kept pair ending there
+        self._starting: dict[int, tuple[int, int]] = {}  # node -> the kept pair starting there
+
+    def _index(self, name: str) -> int:
+        if name not in self.names:
+            self.names.append(name)
+            self._n, self._sum, self._sum2, self._lag = (
+                np.append(a, 0.0) for a in (self._n, self._sum, self._sum2, self._lag))
+        return self.names.index(name)
+
+    def add(self, m: Measurement) -> None:
+        """Take one measurement (ignored unless a consecutive motion with a source)."""
+        if m.kind != 'consecutive' or not m.source:
+            return
+        key = (int(m.src_id), int(m.dst_id))
+        if key not in self._recent:
+            self._recent[key] = {}
+            self._ending[key[1]] = key
+            self._starting[key[0]] = key
+            while len(self._recent) > self.keep:
+                old, _ = self._recent.popitem(last=False)
+                if self._ending.get(old[1]) == old:
+                    del self._ending[old[1]]
+                if self._starting.get(old[0]) == old:
+                    del self._starting[old[0]]
+        here = self._recent[key]
+        s = str(m.source)
+        if s in here:
+            return  # a repeat of the same source's motion: its first stands
+        self._index(s)
+        here[s] = (np.asarray(m.z, float).reshape(6), np.asarray(m.cov, float).reshape(6, 6))
+        for nkey in (self._ending.get(key[0]), self._starting.get(key[1])):
+            there = self._recent.get(nkey) if nkey is not None else None
+            if not there or s not in there:
+                continue
+            first, second = (there, here) if nkey[1] == key[0] else (here, there)
+            for t in here:
+                if t != s and t in there:
+                    self._term(s, t, first, second)
+                    self._term(t, s, first, second)
+
+    def _term(self, a: str, b: str, first: dict, second: dict) -> None:
+        za1, Sa1 = first[a]
+        za2, Sa2 = second[a]
+        u_a = za2 - za1
+        u_b = second[b][0] - first[b][0]
+        try:
+            g = float(u_a @ np.linalg.solve(Sa1 + Sa2, u_a - u_b))
+        except np.linalg.LinAlgError:
+            return
+        if not np.isfinite(g):
+            return
+        k = self.names.index(a)
+        self._n[k] += 1.0
+        self._sum[k] += g
+        self._sum2[k] += g * g
+        self._lag[k] += g * self._last.get((a, b), 0.0)
+        self._last[(a, b)] = g
+
+    # -------------------------------------------------------------------- output
+    def estimates(self) -> dict[str, tuple[float, float]]:
+        """Per source with terms: ``(f_k, nu_k)``, its factor (``sum g / (6 n)``, may be <= 0
+        by chance when the source is far better than the other) and degrees of freedom."""
+        out = {}
+        for k, name in enumerate(self.names):
+            n = self._n[k]
+            if n < 2:
+                continue
+            mean = self._sum[k] / n
+            var = max(self._sum2[k] / n - mean * mean, 1e-300) * n / (n - 1)
+            lag1 = self._lag[k] / (n - 1) - mean * mean
+            # the variance of the mean with the lag-1 correlation (never below a third of
+            # the independent terms')
+            var_sum = max(var + 2.0 * lag1, var / 3.0)
+            out[name] = (float(mean / TERM_DOF), float(2.0 * n * mean * mean / var_sum))
+        return out
+
+    def split(self, min_dof: float = 10.0, bounds: tuple[float, float] = (1e-3, 1e3)
+              ) -> dict[str, tuple[float, float]]:
+        """``{source: (factor, dof)}`` of the sources with at least ``min_dof`` degrees of
+        freedom, the factor clipped to ``bounds`` (the ``split`` of
+        :func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`)."""
+        lo, hi = bounds
+        return {name: (float(np.clip(f, lo, hi)), nu)
+                for name, (f, nu) in self.estimates().items() if nu >= min_dof}
+
+    # ----------------------------------------------------------------- persistence
+    def arrays(self) -> dict:
+        """Plain arrays (a snapshot): source names, per source ``n``, ``sum``, ``sum2``, and
+        the kept connections (``pairs`` (p, 2), ``pair_source`` index, ``z`` (p, 6), ``cov``
+        (p, 6, 6)) in their order."""
+        pairs, src, z, cov = [], [], [], []
+        for key, here in self._recent.items():
+            for s, (zz, cc) in here.items():
+                pairs.append(key)
+                src.append(self.names.index(s))
+                z.append(zz)
+                cov.append(cc)
+        return {'names': list(self.names), 'n': self._n.copy(), 'sum': self._sum.copy(),
+                'sum2': self._sum2.copy(), 'pairs': np.asarray(pairs, np.int64).reshape(-1, 2),
+                'pair_source': np.asarray(src, np.int64),
+                'z': np.asarray(z, float).reshape(-1, 6),
+                'cov': np.asarray(cov, float).reshape(-1, 6, 6)}
+
+    @classmethod
+    def from_arrays(cls, values: dict, keep: int = 64) -> SourceConsistency:
+        """The book of :meth:`arrays`."""
+        book = cls(keep)
+        book.names = [str(s) for s in values['names']]
+        book._n = np.asarray(values['n'], float).copy()
+        book._sum = np.asarray(values['sum'], float).copy()
+        book._sum2 = np.asarray(values['sum2'], float).copy()
+        for (a, b), k, zz, cc in zip(np.asarray(values['pairs']).reshape(-1, 2).tolist(),
+                                     np.asarray(values['pair_source']).tolist(),
+                                     np.asarray(values['z'], float).reshape(-1, 6),
+                                     np.asarray(values['cov'], float).reshape(-1, 6, 6)):
+            key = (int(a), int(b))
+            if key not in book._recent:
+                book._recent[key] = {}
+                book._ending[key[1]] = key
+                book._starting[key[0]] = key
+            book._recent[key][book.names[int(k)]] = (zz.copy(), cc.copy())
+        return book
+
+
+def consistency_split(measurements: Iterable[Measurement], min_dof: float = 10.0
+                      ) -> dict[str, tuple[float, float]]:
+    """The ``split`` of :func:`~ga_ros.core.quality.variance_components.\
+solve_with_variance_components` from a whole survey's measurements (all kept)."""
+    ms = list(measurements)
+    book = SourceConsistency(keep=max(64, len(ms)))
+    for m in ms:
+        book.add(m)
+    return book.split(min_dof)
