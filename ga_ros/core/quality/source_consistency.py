@@ -161,9 +161,10 @@ class SourceConsistency:
 
     # ----------------------------------------------------------------- persistence
     def arrays(self) -> dict:
-        """Plain arrays (a snapshot): source names, per source ``n``, ``sum``, ``sum2``, and
-        the kept connections (``pairs`` (p, 2), ``pair_source`` index, ``z`` (p, 6), ``cov``
-        (p, 6, 6)) in their order."""
+        """Plain arrays (a snapshot): source names; per source ``n``, ``sum``, ``sum2``,
+        ``lag``; the last term of each pair of sources (``last_pair`` (q, 2) source indices,
+        ``last_value``); the kept connections in their order (``pairs`` (p, 2) node ids,
+        ``pair_source`` source index, ``z`` (p, 6), ``cov`` (p, 6, 6))."""
         pairs, src, z, cov = [], [], [], []
         for key, here in self._recent.items():
             for s, (zz, cc) in here.items():
@@ -171,8 +172,13 @@ class SourceConsistency:
                 src.append(self.names.index(s))
                 z.append(zz)
                 cov.append(cc)
+        last = [(self.names.index(a), self.names.index(b), g)
+                for (a, b), g in self._last.items()]
         return {'names': list(self.names), 'n': self._n.copy(), 'sum': self._sum.copy(),
-                'sum2': self._sum2.copy(), 'pairs': np.asarray(pairs, np.int64).reshape(-1, 2),
+                'sum2': self._sum2.copy(), 'lag': self._lag.copy(),
+                'last_pair': np.asarray([x[:2] for x in last], np.int64).reshape(-1, 2),
+                'last_value': np.asarray([x[2] for x in last], float),
+                'pairs': np.asarray(pairs, np.int64).reshape(-1, 2),
                 'pair_source': np.asarray(src, np.int64),
                 'z': np.asarray(z, float).reshape(-1, 6),
                 'cov': np.asarray(cov, float).reshape(-1, 6, 6)}
@@ -185,6 +191,10 @@ class SourceConsistency:
         book._n = np.asarray(values['n'], float).copy()
         book._sum = np.asarray(values['sum'], float).copy()
         book._sum2 = np.asarray(values['sum2'], float).copy()
+        book._lag = np.asarray(values['lag'], float).copy()
+        for (a, b), g in zip(np.asarray(values['last_pair']).reshape(-1, 2).tolist(),
+                             np.asarray(values['last_value'], float).tolist()):
+            book._last[(book.names[int(a)], book.names[int(b)])] = float(g)
         for (a, b), k, zz, cc in zip(np.asarray(values['pairs']).reshape(-1, 2).tolist(),
                                      np.asarray(values['pair_source']).tolist(),
                                      np.asarray(values['z'], float).reshape(-1, 6),

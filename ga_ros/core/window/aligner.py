@@ -245,6 +245,7 @@ class TrackWindowAligner:
         apply_measurement(self.state, m, plan)
         if self.online_variance is not None and self.state.src.n > n_conn:
             self.online_variance.register(variance_group(m))
+            self.online_variance.observe(m)
         if plan.first and int(m.src_track) != int(m.dst_track):
             # the datum alone in its track (a session ends a track at a fix on the first
             # keyframe): that track ended before the destination's began, with nothing to
