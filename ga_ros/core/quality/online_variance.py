@@ -187,7 +187,7 @@ class OnlineVarianceComponents:
         ok = rows < self.n
         self._cost[rows[ok]] = np.asarray(cost, float)[ok]
         self._red[rows[ok]] = np.asarray(redundancy, float)[ok]
-        self._split = self.consistency.split(min_dof=10.0, bounds=self.config.factor_bounds)
+        self._split = self.consistency.split(min_terms=10, bounds=self.config.factor_bounds)
 
     # -------------------------------------------------------------------- output
     def sums(self) -> tuple[FloatArray, FloatArray, IntArray]:
@@ -226,7 +226,6 @@ class OnlineVarianceComponents:
         if tied.any():
             nu = np.array([split[g][1] if g in split else 0.0 for g in self.names])
             q = np.array([split[g][0] if g in split else 1.0 for g in self.names])
-            q = np.exp(np.log(q) * nu / (nu + cfg.prior_dof))   # shrunk as the factors are
             R_t = float(R[tied].sum())
             lam = np.clip(float(np.sum(C[tied] / q[tied])) / max(R_t, 1e-300), lo, hi)
             lam = np.exp(np.log(lam) * R_t / max(R_t + cfg.prior_dof, 1e-300))

@@ -67,6 +67,7 @@ class SourceConsistency:
         # per source: number of terms, sum of g, sum of g^2, sum of g times the previous term
         # of the same pair of sources (the lag-1 products: consecutive terms share a motion)
         self._n = np.zeros(0)
+        self._dof = np.zeros(0)
         self._sum = np.zeros(0)
         self._sum2 = np.zeros(0)
         self._lag = np.zeros(0)
@@ -79,8 +80,9 @@ class SourceConsistency:
     def _index(self, name: str) -> int:
         if name not in self.names:
             self.names.append(name)
-            self._n, self._sum, self._sum2, self._lag = (
-                np.append(a, 0.0) for a in (self._n, self._sum, self._sum2, self._lag))
+            self._n, self._dof, self._sum, self._sum2, self._lag = (
+                np.append(a, 0.0) for a in (self._n, self._dof, self._sum, self._sum2,
+                                            self._lag))
         return self.names.index(name)
 
     def add(self, m: Measurement) -> None:
@@ -117,15 +119,28 @@ class SourceConsistency:
     def _term(self, a: str, b: str, first: dict, second: dict) -> None:
         za1, Sa1 = first[a]
         za2, Sa2 = second[a]
-        u_a = za2 - za1
-        u_b = second[b][0] - first[b][0]
+        zb1, zb2 = first[b][0], second[b][0]
+        u_a, u_b = za2 - za1, zb2 - zb1
+        S = Sa1 + Sa2
+        # the direction of travel left out: keyframes chosen by distance on one source make
+        # its error along it correlated with the true motion (module docstring)
+        along = za1[:3] + za2[:3] + zb1[:3] + zb2[:3]
+        norm = float(np.linalg.norm(along))
+        dof = TERM_DOF
+        if norm > 0.0:
+            v = np.zeros(6)
+            v[:3] = along / norm
+            B = np.linalg.qr(np.column_stack([v, np.eye(6)]))[0][:, 1:]
+            u_a, u_b, S = B.T @ u_a, B.T @ u_b, B.T @ S @ B
+            dof = TERM_DOF - 1
         try:
-            g = float(u_a @ np.linalg.solve(Sa1 + Sa2, u_a - u_b))
+            g = float(u_a @ np.linalg.solve(S, u_a - u_b))
         except np.linalg.LinAlgError:
             return
         if not np.isfinite(g):
             return
         k = self.names.index(a)
+        self._dof[k] += dof
         self._n[k] += 1.0
         self._sum[k] += g
         self._sum2[k] += g * g
@@ -147,21 +162,29 @@ class SourceConsistency:
             # the variance of the mean with the lag-1 correlation (never below a third of
             # the independent terms')
             var_sum = max(var + 2.0 * lag1, var / 3.0)
-            out[name] = (float(mean / TERM_DOF), float(2.0 * n * mean * mean / var_sum))
+            out[name] = (float(self._sum[k] / self._dof[k]),
+                         float(2.0 * n * mean * mean / var_sum))
         return out
 
-    def split(self, min_dof: float = 10.0, bounds: tuple[float, float] = (1e-3, 1e3)
+    def split(self, min_terms: int = 10, bounds: tuple[float, float] = (1e-3, 1e3)
               ) -> dict[str, tuple[float, float]]:
-        """``{source: (factor, dof)}`` of the sources with at least ``min_dof`` degrees of
-        freedom, the factor clipped to ``bounds`` (the ``split`` of
-        :func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`)."""
+        """``{source: (factor, dof)}`` of the sources with at least ``min_terms`` terms, the
+        factor clipped to ``bounds`` (the ``split`` of
+        :func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`).
+
+        A source far better than the one it is compared with has few degrees of freedom (its
+        terms carry the other's noise) but is kept: leaving it out would leave the sum's split
+        to the adjustment, which cannot make it, while any small factor weights it as the
+        better source it is.
+        """
         lo, hi = bounds
         return {name: (float(np.clip(f, lo, hi)), nu)
-                for name, (f, nu) in self.estimates().items() if nu >= min_dof}
+                for name, (f, nu) in self.estimates().items()
+                if self._n[self.names.index(name)] >= min_terms}
 
     # ----------------------------------------------------------------- persistence
     def arrays(self) -> dict:
-        """Plain arrays (a snapshot): source names; per source ``n``, ``sum``, ``sum2``,
+        """Plain arrays (a snapshot): source names; per source ``n``, ``dof``, ``sum``, ``sum2``,
         ``lag``; the last term of each pair of sources (``last_pair`` (q, 2) source indices,
         ``last_value``); the kept connections in their order (``pairs`` (p, 2) node ids,
         ``pair_source`` source index, ``z`` (p, 6), ``cov`` (p, 6, 6))."""
@@ -174,7 +197,8 @@ class SourceConsistency:
                 cov.append(cc)
         last = [(self.names.index(a), self.names.index(b), g)
                 for (a, b), g in self._last.items()]
-        return {'names': list(self.names), 'n': self._n.copy(), 'sum': self._sum.copy(),
+        return {'names': list(self.names), 'n': self._n.copy(), 'dof': self._dof.copy(),
+                'sum': self._sum.copy(),
                 'sum2': self._sum2.copy(), 'lag': self._lag.copy(),
                 'last_pair': np.asarray([x[:2] for x in last], np.int64).reshape(-1, 2),
                 'last_value': np.asarray([x[2] for x in last], float),
@@ -189,6 +213,7 @@ class SourceConsistency:
         book = cls(keep)
         book.names = [str(s) for s in values['names']]
         book._n = np.asarray(values['n'], float).copy()
+        book._dof = np.asarray(values['dof'], float).copy()
         book._sum = np.asarray(values['sum'], float).copy()
         book._sum2 = np.asarray(values['sum2'], float).copy()
         book._lag = np.asarray(values['lag'], float).copy()
@@ -208,7 +233,7 @@ class SourceConsistency:
         return book
 
 
-def consistency_split(measurements: Iterable[Measurement], min_dof: float = 10.0
+def consistency_split(measurements: Iterable[Measurement], min_terms: int = 10
                       ) -> dict[str, tuple[float, float]]:
     """The ``split`` of :func:`~ga_ros.core.quality.variance_components.\
 solve_with_variance_components` from a whole survey's measurements (all kept)."""
@@ -216,4 +241,4 @@ solve_with_variance_components` from a whole survey's measurements (all kept).""
     book = SourceConsistency(keep=max(64, len(ms)))
     for m in ms:
         book.add(m)
-    return book.split(min_dof)
+    return book.split(min_terms)

@@ -428,8 +428,8 @@ class SourceGroups:
 
     def split(self) -> dict[str, tuple[float, float]]:
         """:func:`solve_with_variance_components`'s ``split``: each source's consistency
-        factor and dof, where it has 10 degrees of freedom."""
-        return self.consistency.split(min_dof=10.0)
+        factor and dof, where it has 10 terms."""
+        return self.consistency.split(min_terms=10)
 
     def __len__(self) -> int:
         return len(self._by)
