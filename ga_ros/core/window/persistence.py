@@ -477,7 +477,7 @@ def _consistency_of(meta: dict, arrays: dict) -> dict | None:
     """The sources' consistency of a snapshot's variance book (older files: None)."""
     if 'vcc_n' not in arrays:
         return None
-    keys = ('n', 'dof', 'sum', 'sum2', 'lag', 'last_pair', 'last_value', 'pairs', 'pair_source', 'z',
-            'cov')
+    keys = ('n', 'dof', 'sum', 'sum2', 'lag', 'last_pair', 'last_value', 'pairs', 'pair_source',
+            'z', 'cov')
     return {'names': meta.get('variance_consistency', []),
             **{k: arrays[f'vcc_{k}'] for k in keys}}
