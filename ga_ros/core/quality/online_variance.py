@@ -23,6 +23,12 @@ of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_d
 as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
+Sources measuring the same motions (two odometry streams) are split by their own consistency
+(:mod:`ga_ros.core.quality.source_consistency`, fed by :meth:`OnlineVarianceComponents.observe`,
+read after each recorded adjustment): the sources it estimates (10 terms or more) share one
+scale ``lambda = sum_k (C_k / f_k) / sum_k R_k`` over them (damped with ``sum_k R_k`` as
+above) and get ``lambda f_k``; their residuals alone show only the sum of their variances.
+
 Absolute fixes (:mod:`ga_ros.core.fixes`) are observations too: each fix source
 (``gnss0``, ``amcl0``, ...) is a group of its own, booked per fix
 (:meth:`OnlineVarianceComponents.register_fix`,

@@ -31,6 +31,10 @@ does not change (only the covariances scale); with several, the relative weights
 with them the solution: two sources stated with the same covariance but of different noise are
 weighted by their own noise.
 
+Two sources measuring the same motions and nothing else show only the sum of their variances;
+the ``split`` of :func:`solve_with_variance_components` (each source's own consistency,
+:mod:`ga_ros.core.quality.source_consistency`) ties them to one scale with its ratios.
+
 References: W. Förstner, *Ein Verfahren zur Schätzung von Varianz- und Kovarianzkomponenten*,
 AVN 86, 1979; K.-R. Koch, *Parameter Estimation and Hypothesis Testing in Linear Models*,
 Springer 1999; P.J.G. Teunissen, A.R. Amiri-Simkooei, *Least-squares variance component
