@@ -121,3 +121,29 @@ def test_with_loop_closures_the_split_converges_to_the_truth() -> None:
     assert vc.converged and vc.iterations <= 10
     for s in (*SOURCES, loop):
         assert vc.factor(s.name) == pytest.approx(s.true_factor, rel=0.25), vc.as_dict()
+
+
+def test_the_tied_fusion_states_honest_covariances() -> None:
+    """Position NEES of the fused batch over 8 runs (200 keyframes): with the factors tied by
+    the consistency inside the 95 % band of an 8-run average (expected 3); with the stated 5 %
+    far below it (pessimistic)."""
+    from scipy.stats import chi2
+
+    from ga_ros.eval import position_nees
+
+    runs, n = 8, 200
+    tied, stated = [], []
+    for r in range(runs):
+        sv = multi_source_survey(np.random.default_rng(100 + r), SOURCES, n_nodes=n)
+        ms = list(sv.measurements)
+        net, T0 = sources_network(n, ms), chained_poses(n, ms)
+        ids = net.node_ids[1:]
+        res, _ = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
+                                                fixed=[0], split=consistency_split(ms))
+        tied.append(position_nees(res.T_world_node[1:], res.covariance(ids), sv.T_true[1:]))
+        plain = solve(net, T0, fixed=[0])
+        stated.append(position_nees(plain.T_world_node[1:], plain.covariance(ids),
+                                    sv.T_true[1:]))
+    lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
+    assert lo < np.mean(np.stack(tied)) < hi, (np.mean(np.stack(tied)), lo, hi)
+    assert np.mean(np.stack(stated)) < lo
