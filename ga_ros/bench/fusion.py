@@ -4,8 +4,11 @@ Simulated sources (:mod:`ga_ros.sim.sources`) measure every keyframe motion of o
 with their own true noise (``--sources``, percent of the motion) and state the inputs' default
 (``--stated``, 5 %). For two and for all the sources, over ``--runs`` Monte-Carlo runs, the
 batch adjustment of: each source alone, all fused with the stated covariances (what ga-ros did
-before variance components), and all fused with a variance factor per source estimated
-(:func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`). Printed:
+before variance components), all fused with a variance factor per source estimated from the
+adjustment alone (``fused adj-only``), and with the sources tied by their own consistency
+(``fused vce``: :func:`~ga_ros.core.quality.variance_components.solve_with_variance_components`
+with the split of :func:`~ga_ros.core.quality.source_consistency.consistency_split`, as the
+replay and the aligner run it). Printed:
 the mean position RMSE against the truth (raw, first node anchored, and after rigid
 alignment), the estimated factors against the true ``(true / stated)^2`` (mean and spread over
 the runs beside the mean sigma the estimate states), and the CPU time of the estimation.
@@ -21,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ga_ros.core.measurement import variance_group
+from ga_ros.core.quality.source_consistency import consistency_split
 from ga_ros.core.quality.variance_components import solve_with_variance_components
 from ga_ros.core.solver import solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -42,7 +46,8 @@ class FusionFigures:
     ----------
     sources : the sources' names.
     rmse_raw_m, rmse_aligned_m : position RMSE (m) by estimate (``alone <name>``,
-        ``fused stated``, ``fused vce``, ``online stated``, ``online vce``), raw (first node
+        ``fused stated``, ``fused adj-only``, ``fused vce``, ``online stated``, ``online vce``),
+        raw (first node
         anchored) and after rigid alignment.
     online_factor_mean : per source, the online factors' mean over the runs.
     factor_true, factor_mean, factor_spread, factor_sigma : per source, the true factor, the
@@ -94,9 +99,12 @@ def bench_fusion(sources: tuple[SourceSpec, ...], n_nodes: int, runs: int, seed:
         plain = solve(net, T0, fixed=[0])
         cpu_p.append(time.process_time() - t0)
         record('fused stated', plain.T_world_node, sv.T_true)
+        adj, _ = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
+                                                fixed=[0])
+        record('fused adj-only', adj.T_world_node, sv.T_true)
         t0 = time.process_time()
         res, vc = solve_with_variance_components(net, T0, [variance_group(m) for m in ms],
-                                                 fixed=[0])
+                                                 fixed=[0], split=consistency_split(ms))
         cpu_v.append(time.process_time() - t0)
         its.append(vc.iterations)
         record('fused vce', res.T_world_node, sv.T_true)

@@ -106,7 +106,8 @@ class BatchAligner:
             conn = self.network.arrays()
             groups = variance_groups.of(ids[conn.src], ids[conn.dst], conn.z)
             res, self.variance_components = solve_with_variance_components(
-                self.network, T0, groups, cfg, fixed=[self.first], config=variance_config)
+                self.network, T0, groups, cfg, fixed=[self.first], config=variance_config,
+                split=variance_groups.split())
         if not np.isfinite(res.T_world_node).all():
             raise SolverError('batch solve produced non-finite poses')
         for k, i in enumerate(ids):

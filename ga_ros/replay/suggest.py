@@ -118,7 +118,8 @@ def suggestion_text(s: Suggestion, bag: str) -> str:
     role.update({t: "absolute fixes (the map frame is then the fixes' frame)"
                  for t in s.absolutes})
     role.update({t: 'another odometry / pose stream: add --odom-topic ' + t + ' to measure '
-                 'the motion between keyframes with it' for t in s.other_odometry})
+                 'the motion between keyframes with it (with --variance-components apply, '
+                 'each stream weighted by its own noise)' for t in s.other_odometry})
     width = max(len(n) for n, _ in s.types)
     twidth = max(len(t) for _, t in s.types)
     lines = [f'replay it with:\n  {s.command(bag)}']

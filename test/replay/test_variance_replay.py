@@ -101,17 +101,23 @@ def test_factors_weight_three_streams_without_covariances(three_stream_bag,
     assert "warning: odom2's stated covariance is" in text and 'too large' in text
 
 
-def test_two_streams_keep_the_stated_weights(three_stream_bag, tmp_path: Path) -> None:
-    """Two streams and nothing else: only the sum of their variances is observable, both get
-    one factor and GA is the fusion with the stated weights (as good as without)."""
-    bag, gt, _ = three_stream_bag
+def test_two_streams_each_get_their_own_factor(three_stream_bag, tmp_path: Path) -> None:
+    """Two streams and nothing else (2 % and 4 % true noise, both stated 5 %): the adjustment's
+    residuals show only the sum of their variances; each stream's own consistency against the
+    other (Grubbs, :mod:`ga_ros.core.quality.source_consistency`) splits it. Each factor is
+    close to the truth and GA's keyframe motions are better than the better stream's alone and
+    than the fusion with the stated weights."""
+    bag, gt, T_true = three_stream_bag
     names = ['odom0', 'odom1']
     vce = replay(bag, tmp_path / 'vce', _config(names, gt, 'apply'))
     plain = replay(bag, tmp_path / 'plain', _config(names, gt, 'off'))
+    better = replay(bag, tmp_path / 'odom0', _config(['odom0'], gt, 'off'))
     vc = vce.variance_components
-    # (not bit-equal: each stream's default covariance is that of its own measured motion)
-    assert vc['odom0']['factor'] == pytest.approx(vc['odom1']['factor'], rel=0.05)
-    assert vce.errors['ga'].ate_raw == pytest.approx(plain.errors['ga'].ate_raw, rel=0.02)
+    for s in SOURCES[:2]:
+        assert vc[s.name]['applied']
+        assert vc[s.name]['factor'] == pytest.approx(s.true_factor, rel=0.2), (s.name, vc)
+    assert _step_error(vce, T_true) < _step_error(better, T_true)
+    assert _step_error(vce, T_true) < _step_error(plain, T_true)
 
 
 def test_command_line_modes() -> None:

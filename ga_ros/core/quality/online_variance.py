@@ -23,6 +23,12 @@ of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_d
 as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
+Sources measuring the same motions (two odometry streams) are split by their own consistency
+(:mod:`ga_ros.core.quality.source_consistency`, fed by :meth:`OnlineVarianceComponents.observe`,
+read after each recorded adjustment): the sources it estimates (10 terms or more) share one
+scale ``lambda = sum_k (C_k / f_k) / sum_k R_k`` over them (damped with ``sum_k R_k`` as
+above) and get ``lambda f_k``; their residuals alone show only the sum of their variances.
+
 Absolute fixes (:mod:`ga_ros.core.fixes`) are observations too: each fix source
 (``gnss0``, ``amcl0``, ...) is a group of its own, booked per fix
 (:meth:`OnlineVarianceComponents.register_fix`,
@@ -45,6 +51,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.quality.source_consistency import SourceConsistency
 from ga_ros.core.quality.variance_components import VarianceComponent
 from ga_ros.errors import InputError
 
@@ -117,6 +125,11 @@ class OnlineVarianceComponents:
         self._fgroup = np.zeros(0, dtype=np.int32)
         self._fcost = np.zeros(0)
         self._fred = np.zeros(0)
+        #: each source's own consistency against the others measuring the same motions
+        self.consistency = SourceConsistency()
+        # its split ({source: (factor, dof)}) as of the last recorded adjustment: the factors
+        # change with the adjustments only
+        self._split: dict[str, tuple[float, float]] = {}
 
     # --------------------------------------------------------------------- input
     def register(self, group: str) -> int:
@@ -180,6 +193,7 @@ class OnlineVarianceComponents:
         ok = rows < self.n
         self._cost[rows[ok]] = np.asarray(cost, float)[ok]
         self._red[rows[ok]] = np.asarray(redundancy, float)[ok]
+        self._split = self.consistency.split(min_terms=10, bounds=self.config.factor_bounds)
 
     # -------------------------------------------------------------------- output
     def sums(self) -> tuple[FloatArray, FloatArray, IntArray]:
@@ -194,15 +208,38 @@ class OnlineVarianceComponents:
                 + np.bincount(fgi, weights=self._fred[fg], minlength=k),
                 np.bincount(g, minlength=k) + np.bincount(fgi, minlength=k))
 
+    def observe(self, m: Measurement) -> None:
+        """Take a measurement the aligner accepted into its source's consistency
+        (:mod:`ga_ros.core.quality.source_consistency`)."""
+        self.consistency.add(m)
+
     def factors(self) -> FloatArray:
         """Per group, the damped factor in use (1 while ``R_k < min_redundancy``)."""
+        return self._estimate()[0]
+
+    def _estimate(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per group: the damped factor in use, ``estimated``, and the degrees of freedom
+        of its sigma (module docstring)."""
         cfg = self.config
         C, R, _ = self.sums()
         est = R >= max(cfg.min_redundancy, 1e-9)
         lo, hi = cfg.factor_bounds
         raw = np.clip(C / np.maximum(R, 1e-300), lo, hi)
         s = np.exp(np.log(raw) * R / np.maximum(R + cfg.prior_dof, 1e-300))
-        return np.where(est, s, 1.0)
+        dof = R.copy()
+        split = self._split
+        tied = np.array([g in split for g in self.names], dtype=bool)
+        if tied.any():
+            nu = np.array([split[g][1] if g in split else 0.0 for g in self.names])
+            q = np.array([split[g][0] if g in split else 1.0 for g in self.names])
+            R_t = float(R[tied].sum())
+            lam = np.clip(float(np.sum(C[tied] / q[tied])) / max(R_t, 1e-300), lo, hi)
+            lam = np.exp(np.log(lam) * R_t / max(R_t + cfg.prior_dof, 1e-300))
+            s = np.where(tied, np.clip(lam * q, lo, hi), s)
+            est = np.where(tied, R_t >= max(cfg.min_redundancy, 1e-9), est)
+            dof = np.where(tied, 1.0 / (1.0 / max(R_t, 1e-300) + 1.0 / np.maximum(nu, 1e-300)),
+                           dof)
+        return np.where(est, s, 1.0), est, dof
 
     def factors_of(self, rows: IntArray, factors: FloatArray | None = None) -> FloatArray:
         """``(m,)`` the factor of each connection row's group (1 for unregistered rows), from
@@ -219,11 +256,11 @@ class OnlineVarianceComponents:
         weights use it, ``mode='apply'`` and estimated)."""
         cfg = self.config
         C, R, count = self.sums()
-        f = self.factors()
+        f, estimated, dof = self._estimate()
         out = []
         for k, name in enumerate(self.names):
-            est = bool(R[k] >= max(cfg.min_redundancy, 1e-9))
-            sigma = float(f[k] * np.sqrt(2.0 / R[k])) if R[k] > 0 else float('inf')
+            est = bool(estimated[k])
+            sigma = float(f[k] * np.sqrt(2.0 / dof[k])) if dof[k] > 0 else float('inf')
             out.append(VarianceComponent(
                 group=name, factor=float(f[k]), redundancy=float(R[k]), sigma=sigma,
                 observations=int(count[k]), estimated=est,
@@ -262,11 +299,15 @@ class OnlineVarianceComponents:
     # ----------------------------------------------------------------- persistence
     def arrays(self) -> dict:
         """Plain arrays of the book (a snapshot file): group names, per-row group, cost and
-        redundancy, and the same per fix (``fix_group``, ``fix_cost``, ``fix_redundancy``)."""
+        redundancy, the same per fix (``fix_group``, ``fix_cost``, ``fix_redundancy``) and the
+        sources' consistency (``consistency``, :meth:`SourceConsistency.arrays
+        <ga_ros.core.quality.source_consistency.SourceConsistency.arrays>`)."""
         return {'names': list(self.names), 'group': self._group[:self.n].copy(),
                 'cost': self._cost[:self.n].copy(), 'redundancy': self._red[:self.n].copy(),
                 'fix_group': self._fgroup.copy(), 'fix_cost': self._fcost.copy(),
-                'fix_redundancy': self._fred.copy()}
+                'fix_redundancy': self._fred.copy(), 'consistency': self.consistency.arrays(),
+                'split_names': list(self._split),
+                'split': np.asarray(list(self._split.values()), float).reshape(-1, 2)}
 
     @classmethod
     def from_arrays(cls, config: OnlineVarianceConfig, values: dict
@@ -286,6 +327,10 @@ class OnlineVarianceComponents:
             book._fgroup = np.asarray(values['fix_group'], np.int32).copy()
             book._fcost = np.asarray(values['fix_cost'], float).copy()
             book._fred = np.asarray(values['fix_redundancy'], float).copy()
+        if values.get('consistency') is not None:  # books saved without it: none yet
+            book.consistency = SourceConsistency.from_arrays(values['consistency'])
+            book._split = {str(k): (float(f), float(nu)) for k, (f, nu) in
+                           zip(values['split_names'], np.asarray(values['split']).reshape(-1, 2))}
         return book
 
 

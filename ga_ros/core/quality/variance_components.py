@@ -31,6 +31,10 @@ does not change (only the covariances scale); with several, the relative weights
 with them the solution: two sources stated with the same covariance but of different noise are
 weighted by their own noise.
 
+Two sources measuring the same motions and nothing else show only the sum of their variances;
+the ``split`` of :func:`solve_with_variance_components` (each source's own consistency,
+:mod:`ga_ros.core.quality.source_consistency`) ties them to one scale with its ratios.
+
 References: W. Förstner, *Ein Verfahren zur Schätzung von Varianz- und Kovarianzkomponenten*,
 AVN 86, 1979; K.-R. Koch, *Parameter Estimation and Hypothesis Testing in Linear Models*,
 Springer 1999; P.J.G. Teunissen, A.R. Amiri-Simkooei, *Least-squares variance component
@@ -39,7 +43,7 @@ estimation*, J. Geodesy 82, 2008.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -51,6 +55,7 @@ from ga_ros.core.measurement import Measurement, variance_group
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality.cofactors import inverse_blocks
 from ga_ros.core.quality.control import connection_redundancy
+from ga_ros.core.quality.source_consistency import SourceConsistency
 from ga_ros.core.solver import (
     GaussianPrior,
     SolverConfig,
@@ -206,7 +211,8 @@ def solve_with_variance_components(
         network: ConnectionNetwork, T_init: FloatArray, groups: Sequence[str],
         solver_config: SolverConfig | None = None, fixed: Sequence[int] | None = None,
         priors: Sequence[GaussianPrior] = (), prior_groups: Sequence[str] = (),
-        config: VarianceComponentConfig | None = None
+        config: VarianceComponentConfig | None = None,
+        split: Mapping[str, tuple[float, float]] | None = None
         ) -> tuple[SolveResult, VarianceComponents]:
     """Adjust with the variance factor of every group estimated (module doc).
 
@@ -220,6 +226,13 @@ def solve_with_variance_components(
     prior_groups : group name of every prior (same length as ``priors``); a name may be shared
         with connections' groups (they then get one factor).
     config : settings.
+    split : ``{group: (factor, dof)}``, each source's own consistency against the other
+        sources measuring the same motions (:mod:`ga_ros.core.quality.source_consistency`).
+        The groups named share one estimated scale ``lambda`` and keep these factors' ratios
+        (``s_k = lambda f_k``; ``lambda <- lambda sum_k v_k' P_k v_k / sum_k r_k`` over them):
+        two sources measuring the same motions and nothing else give residuals that determine
+        only the sum of their variances, never its split, so the simple iteration would drift
+        along the undetermined ratio. Their sigma is ``s_k sqrt(2 / sum_k r_k + 2 / dof_k)``.
 
     Returns
     -------
@@ -247,8 +260,12 @@ def solve_with_variance_components(
     names = list(dict.fromkeys(list(labels) + p_labels))
     conn_index = np.array([names.index(g) for g in labels], dtype=np.int64)
     prior_index = np.array([names.index(g) for g in p_labels], dtype=np.int64)
-    factor = np.ones(len(names))
     lo, hi = cfg.factor_bounds
+    split = dict(split or {})
+    tied = np.array([g in split for g in names], dtype=bool)
+    split_dof = np.array([float(split[g][1]) if g in split else np.inf for g in names])
+    factor = np.clip([float(split[g][0]) if g in split else 1.0 for g in names], lo, hi)
+    stated_first = bool(np.all(factor == 1.0))
     T = np.asarray(T_init, dtype=float)
     history: list[FloatArray] = []
     converged = False
@@ -259,28 +276,39 @@ def solve_with_variance_components(
         pri = [scaled_prior(p, 1.0 if p.weak else factor[k])
                for p, k in zip(priors, prior_index)]
         res = solve(net, T, scfg, fixed=fixed, priors=pri)
-        first = first or res   # with the stated covariances
+        if stated_first:
+            first = first or res   # with the stated covariances
         T = res.T_world_node
         iterations += 1
         cost, red = group_redundancy(net, res, pri, conn_index, prior_index, len(names))
         estimated = red >= max(cfg.min_redundancy, 1e-9)
         ratio = np.ones(len(names))
         ratio[estimated] = cost[estimated] / red[estimated]
+        if tied.any():  # the tied groups: one scale, pooled
+            estimated[tied] = red[tied].sum() >= max(cfg.min_redundancy, 1e-9)
+            ratio[tied] = cost[tied].sum() / max(red[tied].sum(), 1e-300)
         if not estimated.any() or np.abs(ratio[estimated] - 1.0).max() < cfg.tolerance:
             converged = True
             break
         if iterations >= cfg.max_iterations:
             break
-        factor = np.where(estimated, np.clip(factor * ratio, lo, hi), 1.0)
+        factor = np.where(estimated, np.clip(factor * ratio, lo, hi),
+                          np.where(tied, factor, 1.0))
         history.append(np.log(factor))
         if len(history) == 3:
             factor = np.clip(np.exp(_aitken(*history)), lo, hi)
             history = [np.log(factor)]
-    sigma = np.where(red > 0, factor * np.sqrt(2.0 / np.maximum(red, 1e-300)), np.inf)
+    dof = np.where(tied, red[tied].sum() if tied.any() else 0.0, red)
+    sigma = np.where(dof > 0, factor * np.sqrt(2.0 / np.maximum(dof, 1e-300)
+                                               + 2.0 / split_dof), np.inf)
     significant = estimated & (np.abs(factor - 1.0) > cfg.significance * sigma)
     applied = significant & cfg.apply
-    if not applied.any():
+    if not applied.any() and first is not None:
         res = first   # every stated covariance stands: the adjustment with them
+    elif not applied.any():  # from the initial poses: the adjustment with them, bit for bit
+        res = solve(network, np.asarray(T_init, dtype=float), scfg, fixed=fixed,
+                    priors=list(priors))
+        iterations += 1
     elif (applied != estimated).any():
         use = np.where(applied, factor, 1.0)
         res = solve(scaled_network(network, use[conn_index]), T, scfg, fixed=fixed,
@@ -394,10 +422,18 @@ class SourceGroups:
     def __init__(self, unknown: str = 'motion') -> None:
         self.unknown = unknown
         self._by: dict[tuple[int, int, bytes], str] = {}
+        #: each source's own consistency against the others measuring the same motions
+        self.consistency = SourceConsistency(keep=4096)
 
     def add(self, m: Measurement) -> None:
-        """Record the group of one measurement."""
+        """Record the group of one measurement (and its source's consistency)."""
         self._by[_key(m.src_id, m.dst_id, m.z)] = variance_group(m)
+        self.consistency.add(m)
+
+    def split(self) -> dict[str, tuple[float, float]]:
+        """:func:`solve_with_variance_components`'s ``split``: each source's consistency
+        factor and dof, where it has 10 terms."""
+        return self.consistency.split(min_terms=10)
 
     def __len__(self) -> int:
         return len(self._by)

@@ -245,6 +245,7 @@ class TrackWindowAligner:
         apply_measurement(self.state, m, plan)
         if self.online_variance is not None and self.state.src.n > n_conn:
             self.online_variance.register(variance_group(m))
+            self.online_variance.observe(m)
         if plan.first and int(m.src_track) != int(m.dst_track):
             # the datum alone in its track (a session ends a track at a fix on the first
             # keyframe): that track ended before the destination's began, with nothing to
@@ -661,7 +662,8 @@ class TrackWindowAligner:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
             res, self.variance_components = solve_with_variance_components(
                 net, st.T[:n], groups, scfg, fixed=fixed, priors=priors,
-                prior_groups=['fixes'] * len(priors), config=variance_config)
+                prior_groups=['fixes'] * len(priors), config=variance_config,
+                split=variance_groups.split())
         del net
         st.T[:n] = res.T_world_node
         frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]

@@ -239,7 +239,11 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
                      'vc_redundancy': book['redundancy'],
                      'vc_fix_group': book['fix_group'].astype(np.int64),
                      'vc_fix_cost': book['fix_cost'],
-                     'vc_fix_redundancy': book['fix_redundancy']}
+                     'vc_fix_redundancy': book['fix_redundancy'],
+                     **{f'vcc_{k}': v for k, v in book['consistency'].items()
+                        if k != 'names'}, 'vc_split': book['split']}
+        meta['variance_consistency'] = book['consistency']['names']
+        meta['variance_split'] = book['split_names']
     arrays = dict(
         T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
         T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
@@ -421,7 +425,10 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
                                      'redundancy': arrays['vc_redundancy'],
                                      'fix_group': arrays.get('vc_fix_group'),
                                      'fix_cost': arrays.get('vc_fix_cost'),
-                                     'fix_redundancy': arrays.get('vc_fix_redundancy')})
+                                     'fix_redundancy': arrays.get('vc_fix_redundancy'),
+                                     'consistency': _consistency_of(meta, arrays),
+                                     'split_names': meta.get('variance_split', []),
+                                     'split': arrays.get('vc_split', np.zeros((0, 2)))})
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])
@@ -464,3 +471,13 @@ def _checked(arrays: dict[str, np.ndarray], n: int, m: int, src: np.ndarray, dst
     if m and (status.min() < 0 or status.max() > 2):
         raise ValueError('a connection status is not 0, 1 or 2')
     return status
+
+
+def _consistency_of(meta: dict, arrays: dict) -> dict | None:
+    """The sources' consistency of a snapshot's variance book (older files: None)."""
+    if 'vcc_n' not in arrays:
+        return None
+    keys = ('n', 'dof', 'sum', 'sum2', 'lag', 'last_pair', 'last_value', 'pairs', 'pair_source',
+            'z', 'cov')
+    return {'names': meta.get('variance_consistency', []),
+            **{k: arrays[f'vcc_{k}'] for k in keys}}
