@@ -217,6 +217,9 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
             track += 1
         online[i] = al.corrected_path().T_world_node[i]
     al.wait_background()
+    if al.stats.n_failed_updates:  # the figures then are not those of the method
+        print(f'ga-ros bench fixes: {al.stats.n_failed_updates} failed window updates, the '
+              f'last: {al.stats.last_failure}', file=sys.stderr)
     cpu1 = all_cpu_seconds()
     al.refine_batch()
     final = al.corrected_path().T_world_node.copy()

@@ -12,8 +12,10 @@ fails. See the package docstring for the method.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+import traceback
 from dataclasses import asdict
 
 import numpy as np
@@ -60,6 +62,19 @@ from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_ter
 from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
 from ga_ros.runtime import blas_threads
+
+#: Environment variable that makes a window update failing with anything but one of
+#: :data:`NUMERICAL_FAILURES` (a bug) raise after its state is put back, instead of being
+#: reported in the result only (set by the test suite, ``test/conftest.py``).
+STRICT_UPDATES_ENV = 'GA_ROS_STRICT_UPDATES'
+#: Exceptions of a window update that are numerical failures of the data, never raised by
+#: :attr:`TrackWindowAligner.strict`.
+NUMERICAL_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
+
+
+def strict_updates_from_env() -> bool:
+    """Whether :data:`STRICT_UPDATES_ENV` is set to anything but ``''`` or ``'0'``."""
+    return os.environ.get(STRICT_UPDATES_ENV, '') not in ('', '0')
 
 
 class TrackWindowAligner:
@@ -120,6 +135,9 @@ class TrackWindowAligner:
         # covariance queries
         self._factor_lock = threading.Lock()
         self._last_update: UpdateResult | None = None
+        self.n_failed_updates = 0
+        self.last_failure = ''
+        self.strict = strict_updates_from_env()
         vcfg = self.config.online_variance_config()
         self.online_variance: OnlineVarianceComponents | None = None
         if vcfg.mode != 'off':
@@ -268,8 +286,12 @@ class TrackWindowAligner:
         If the update fails for any reason (a solver failure, a numerical error while freezing),
         every estimate (poses, covariances, frozen flags, connection status, priors) is put back
         as it was before the call, the track stays finished (the next update retries it inside
-        its window) and the returned result's ``reason`` starts with ``'failed'``. Only
-        :class:`~ga_ros.errors.GaError` can escape."""
+        its window: its measurements stay), the failure is counted
+        (:attr:`n_failed_updates`, :attr:`stats`), its traceback kept (:attr:`last_failure`)
+        and the returned result's ``reason`` starts with ``'failed'``. Only
+        :class:`~ga_ros.errors.GaError` can escape, except with :attr:`strict`, where an
+        exception that is not one of :data:`NUMERICAL_FAILURES` (a bug) is re-raised once the
+        state is put back."""
         st = self.state
         if st.open_track is None or st.open_track in st.finished:
             return None
@@ -291,8 +313,13 @@ class TrackWindowAligner:
                     self.ahead.drop()
                 return up
             error = up.reason[len('failed: '):]
+            self.last_failure = error
+            bug = None
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
+            self.last_failure = ''.join(traceback.format_exception(exc)).rstrip()
+            bug = None if isinstance(exc, NUMERICAL_FAILURES) else exc
+        self.n_failed_updates += 1
         saved.restore(st)
         st.fixes.restore(fix_state)
         self.handoff.smoothing = None  # of a refinement installed by the failed update
@@ -302,6 +329,8 @@ class TrackWindowAligner:
                           min(len(st.finished), self.config.window_tracks), 0,
                           f'failed: {error}')
         self._last_update = up
+        if bug is not None and self.strict:
+            raise bug
         return up
 
     def mutable_rows(self) -> tuple[int, int]:
@@ -579,7 +608,8 @@ class TrackWindowAligner:
         st = self.state
         return AlignerStats(len(st.ids), st.src.n, dict(st.rejected),
                             st.finished_order()[-self.config.window_tracks:], st.n_updates,
-                            st.n_outliers, self._last_update)
+                            st.n_outliers, self._last_update, self.n_failed_updates,
+                            self.last_failure)
 
     def connection_arrays(self) -> tuple[IntArray, IntArray, FloatArray, BoolArray, IntArray]:
         """``(src_id, dst_id, z, cross, status)`` of every connection (status 0 active,

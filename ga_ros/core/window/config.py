@@ -326,6 +326,15 @@ class CorrectedPath:
 
 @dataclass
 class AlignerStats:
+    """Counters of an aligner (:attr:`TrackWindowAligner.stats
+    <ga_ros.core.window.aligner.TrackWindowAligner.stats>`).
+
+    ``n_updates`` counts the window updates, failed ones included; ``n_failed_updates`` those
+    that failed (state put back, see :meth:`TrackWindowAligner.finish_track
+    <ga_ros.core.window.aligner.TrackWindowAligner.finish_track>`) since the aligner object was
+    made; ``last_failure`` the last one's exception and traceback (``''`` if none).
+    """
+
     n_nodes: int
     n_connections: int
     n_rejected: dict[str, int]
@@ -333,6 +342,8 @@ class AlignerStats:
     n_updates: int
     n_outliers: int
     last_update: UpdateResult | None = None
+    n_failed_updates: int = 0
+    last_failure: str = ''
 
 
 @dataclass
