@@ -61,6 +61,7 @@ from ga_ros.core.window.state import Rollback, WindowState, no_weighted
 from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_terms
 from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
+from ga_ros.geometry import so3
 from ga_ros.runtime import blas_threads
 
 #: Environment variable that makes a window update failing with anything but one of
@@ -651,7 +652,9 @@ class TrackWindowAligner:
         poses use the corrected motions, the stored connections keep their measured ones.
         It takes the place of the variance components.
 
-        The open track is finished first. Outliers stay excluded. The covariances published
+        The absolute fixes enter as weighted parameters relinearised at the solution until
+        they stand (:meth:`_relinearized`), so a second call moves no pose by more than the
+        solver's ``tolerance``. The open track is finished first. Outliers stay excluded. The covariances published
         afterwards come from this adjustment: frozen nodes get their marginal blocks from it
         (selected inversion), window nodes are answered from it like after a window update.
         The joint priors of the absorbed connections are rebuilt at the refined estimate
@@ -672,27 +675,33 @@ class TrackWindowAligner:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
         free_datum = self.config.datum == 'fixes'
         fixed = [] if free_datum else [st.ids[0]]
-        priors = st.fixes.priors(np.arange(n), st.T, st.idarr.a)
+        ids = st.idarr.a
         if calibration is not None:
-            ids = st.idarr.a
             cross = st.cross.a[keep]
             names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             stamp = st.stamp.astype(np.float64)
             dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
-            res, self.calibration = solve_with_calibration(
-                net, st.T[:n], sources, dt_s, scfg, fixed=fixed, priors=priors,
-                calibration=calibration)
-        elif variance_groups is None:
-            res = solve(net, st.T[:n], scfg, fixed=fixed, priors=priors)
-        else:
-            ids = st.idarr.a
+        elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+
+        def adjust(T0: FloatArray, priors: list) -> SolveResult:
+            """One adjustment from ``T0`` with the fixes' priors ``priors``."""
+            if calibration is not None:
+                res, self.calibration = solve_with_calibration(
+                    net, T0, sources, dt_s, scfg, fixed=fixed, priors=priors,
+                    calibration=calibration)
+                return res
+            if variance_groups is None:
+                return solve(net, T0, scfg, fixed=fixed, priors=priors)
             res, self.variance_components = solve_with_variance_components(
-                net, st.T[:n], groups, scfg, fixed=fixed, priors=priors,
+                net, T0, groups, scfg, fixed=fixed, priors=priors,
                 prior_groups=['fixes'] * len(priors), config=variance_config)
-        del net
+            return res
+
+        res = self._relinearized(adjust, st.T[:n].copy(), scfg, n)
+        net = None  # its arrays freed before the covariances (the closure holds the name)
         st.T[:n] = res.T_world_node
         frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]
         if frozen.size:
@@ -712,3 +721,35 @@ class TrackWindowAligner:
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(st.tracks), 0, res.reason, 0, res.n_unknowns)
+
+    def _relinearized(self, adjust, T0: FloatArray, scfg: SolverConfig, n: int) -> SolveResult:
+        """``adjust(T, priors)`` (one batch adjustment of the ``n`` nodes from ``T``) with the
+        fixes' priors relinearised at its solution until they stand: a fix's prior
+        (:func:`~ga_ros.core.fixes.node_prior`) is linear about the pose it was computed at
+        (its mean and, with an offset to the sensor or a partial information, its information
+        depend on it), so the adjustment is repeated from its own solution with the priors
+        recomputed there until the largest change of a pose (m, rad) is below the solver's
+        ``tolerance`` (at most ``max_iterations`` times). Without fixes: one adjustment.
+        The result's ``iterations`` count every Gauss-Newton iteration of them."""
+        st = self.state
+        rows = np.arange(n)
+        priors = st.fixes.priors(rows, T0, st.idarr.a)
+        res = adjust(T0, priors)
+        if not priors:
+            return res
+        iterations = res.iterations
+        for _ in range(scfg.max_iterations):
+            T1 = res.T_world_node
+            priors = st.fixes.priors(rows, T1, st.idarr.a)
+            nxt = adjust(T1.copy(), priors)
+            iterations += nxt.iterations
+            T2 = nxt.T_world_node
+            dR = np.einsum('nji,njk->nik', T1[:, :3, :3], T2[:, :3, :3])
+            moved = max(np.abs(T2[:, :3, 3] - T1[:, :3, 3]).max(initial=0.0),
+                        np.abs(so3.log(dR)).max(initial=0.0))
+            res = nxt
+            if moved < scfg.tolerance:
+                break
+        res.iterations = iterations
+        return res
+
