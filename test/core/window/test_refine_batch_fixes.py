@@ -15,7 +15,8 @@ from ga_ros.sim.aerial import aerial_scenario
 from ga_ros.sim.noise import NoiseModel, perturb
 
 #: node -> antenna: a lever arm and a tilt, so the fix's prior on the node depends on its rotation
-T_NODE_ANTENNA = se3.from_translation_rotvec(np.array([0.5, 0.3, -1.5]), np.array([0.1, -0.2, 0.3]))
+T_NODE_ANTENNA = se3.from_translation_rotvec(np.array([0.5, 0.3, -1.5]),
+                                             np.array([0.1, -0.2, 0.3]))
 SIGMA = np.array([0.3, 0.3, 1.0])   # m, the fixes' noise (x y z, map frame)
 
 
