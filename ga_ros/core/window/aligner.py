@@ -656,8 +656,8 @@ class TrackWindowAligner:
         they stand (:meth:`_relinearized`), so a second call moves no pose by more than the
         solver's ``tolerance``. The open track is finished first. Outliers stay excluded. The
         covariances published afterwards come from this adjustment: frozen nodes get their
-        marginal blocks from it (selected inversion), window nodes are answered from it like after a window update.
-        The joint priors of the absorbed connections are rebuilt at the refined estimate
+        marginal blocks from it (selected inversion), window nodes are answered from it like
+        after a window update. The joint priors of the absorbed connections are rebuilt at the refined estimate
         (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next window update
         continues from it consistently; a pending background refinement is dropped.
         """
