@@ -657,9 +657,10 @@ class TrackWindowAligner:
         solver's ``tolerance``. The open track is finished first. Outliers stay excluded. The
         covariances published afterwards come from this adjustment: frozen nodes get their
         marginal blocks from it (selected inversion), window nodes are answered from it like
-        after a window update. The joint priors of the absorbed connections are rebuilt at the refined estimate
-        (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next window update
-        continues from it consistently; a pending background refinement is dropped.
+        after a window update. The joint priors of the absorbed connections are rebuilt at the
+        refined estimate (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next
+        window update continues from it consistently; a pending background refinement is
+        dropped.
         """
         self.finish_track()
         self.ahead.drop()  # its inputs (estimate, priors) are replaced below
