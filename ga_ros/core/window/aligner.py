@@ -78,6 +78,23 @@ def strict_updates_from_env() -> bool:
     return os.environ.get(STRICT_UPDATES_ENV, '') not in ('', '0')
 
 
+def factor_drift(before: FloatArray, after: FloatArray) -> float:
+    """How much a change of the variance factors (per group, ``before`` -> ``after``; groups
+    new in ``after`` had 1) counts towards the refinement's drift
+    (:meth:`RefinementHandoff.measure <ga_ros.core.window.handoff.RefinementHandoff.measure>`),
+    in standard deviations: the largest relative change of a group's standard deviations,
+    ``|sqrt(after / before) - 1|``. A joint prior weighting the group with the old factor has
+    standard deviations off by that fraction, so it can misplace its nodes by about that many
+    of them."""
+    after = np.asarray(after, float)
+    old = np.ones(after.size)
+    k = min(after.size, np.size(before))
+    old[:k] = np.asarray(before, float)[:k]
+    if after.size == 0:
+        return 0.0
+    return float(np.abs(np.sqrt(after / old) - 1.0).max())
+
+
 class TrackWindowAligner:
     """Online sliding-window global alignment, fed one :class:`Measurement` at a time.
 
@@ -136,6 +153,7 @@ class TrackWindowAligner:
         # covariance queries
         self._factor_lock = threading.Lock()
         self._last_update: UpdateResult | None = None
+        self._factor_step = 0.0  # the last adjustment's change of the variance factors
         self.n_failed_updates = 0
         self.last_failure = ''
         self.strict = strict_updates_from_env()
@@ -376,7 +394,8 @@ class TrackWindowAligner:
             up = self._adjust(window, track, t0)
             if not str(up.reason).startswith('failed'):
                 # before the smoothing moves the frozen nodes: whether the next refinement runs
-                self.handoff.measure(prev_weighted, self.handoff.n_refinements > installed)
+                self.handoff.measure(prev_weighted, self.handoff.n_refinements > installed,
+                                     self._factor_step)
             if refined is not None and not str(up.reason).startswith('failed'):
                 error = self.handoff.smooth(self._last())
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
@@ -393,12 +412,13 @@ class TrackWindowAligner:
         """The window adjustment (:meth:`WindowUpdate.adjust
         <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
         book = self.online_variance
+        self._factor_step = 0.0
         if book is not None:
             self._sync_fix_groups()  # the fixes added since: their source's factor
         up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
         if book is None:
             return up
-        used = book.factors()  # those this adjustment used ('apply')
+        used = first = book.factors()  # those this adjustment used ('apply')
         new = self._record_variance()
         # the window is adjusted again with the new factors until they settle
         # (Förstner's iteration, one adjustment a step; the absorbed tracks' values stay those
@@ -409,6 +429,7 @@ class TrackWindowAligner:
             used = new
             up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
             new = self._record_variance()
+        self._factor_step = factor_drift(first, new)
         return up
 
     def _record_variance(self) -> FloatArray:

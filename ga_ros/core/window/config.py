@@ -123,7 +123,10 @@ class AlignerConfig:
     refine_relinearize_sigma : a refinement starts (at its ``refine_every_tracks`` trigger) only
         when the frozen nodes the window adjusts as weighted parameters may have moved from
         their priors' linearisation points by this many of their standard deviations (in some
-        coordinate, summed over the updates since the last installed refinement), or when the
+        coordinate, summed over the updates since the last installed refinement; with
+        ``variance_components='apply'`` each update's change of the variance factors adds the
+        largest relative change of a source's standard deviations, ``|sqrt(f_new / f_old) -
+        1|``), or when the
         tracks not retired reach ``2 refine_horizon_tracks``; otherwise the window's own priors
         stand, as iSAM2 relinearises only variables whose change exceeds a threshold
         (``docs/window-design.md``, "When a refinement runs"). 0: after every trigger.
