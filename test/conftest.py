@@ -1,6 +1,7 @@
 """Shared fixtures: seeded random generators and the shared benchmark data, found only through
-``$GA_ROS_SHARED_DATA`` (:data:`ga_ros.bench.data.SHARED_DATA`, its one definition); a test that
-needs it skips, saying where it looked, when it is absent."""
+:data:`ga_ros.bench.data.SHARED_DATA` (its one definition: ``$GA_ROS_SHARED_DATA``, else
+``shared/data`` beside the checkout or its main checkout); a test that needs it skips, saying
+where it looked, when it is absent."""
 
 from __future__ import annotations
 
