@@ -1,9 +1,11 @@
 """Shared fixtures: seeded random generators and the shared benchmark data, found only through
-``$GA_ROS_SHARED_DATA`` (:data:`ga_ros.bench.data.SHARED_DATA`, its one definition); a test that
-needs it skips, saying where it looked, when it is absent."""
+:data:`ga_ros.bench.data.SHARED_DATA` (its one definition: ``$GA_ROS_SHARED_DATA``, else
+``shared/data`` beside the checkout or its main checkout); a test that needs it skips, saying
+where it looked, when it is absent."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -22,6 +24,12 @@ TEST = Path(__file__).resolve().parent
 for _d in sorted({p.parent for p in TEST.rglob('test_*.py')} | {TEST}):
     if str(_d) not in sys.path:
         sys.path.insert(0, str(_d))
+
+
+# A window update failing with anything but a GaError is a bug: it raises in tests (and in the
+# nodes they start) instead of being reported in the update's result only. Tests that inject
+# such a failure on purpose set ``aligner.strict = False``.
+os.environ.setdefault('GA_ROS_STRICT_UPDATES', '1')
 
 
 @pytest.fixture(scope='session', autouse=True)

@@ -41,6 +41,8 @@ class ReplayResult:
     (:func:`ga_ros.mapping.replay_mosaic.write_mosaics`).
     ``map``: the figures of ``--map``
     (:func:`ga_ros.replay.map_outputs.write_map_outputs`; absent without).
+    ``failed_updates``: online window updates that failed (the aligner put its state back and
+    retried the track in the next update), ``failed_update_examples`` the first ten reasons.
     """
 
     bag: str
@@ -75,6 +77,8 @@ class ReplayResult:
     calibration: dict[str, Any] = field(default_factory=dict)
     online_variance_components: dict[str, Any] = field(default_factory=dict)
     map: dict[str, Any] = field(default_factory=dict)
+    failed_updates: int = 0
+    failed_update_examples: list[str] = field(default_factory=list)
 
     @property
     def rate(self) -> float:
@@ -87,6 +91,8 @@ class ReplayResult:
             'n_inputs': self.n_inputs, 'n_measurements': self.n_measurements,
             'rejected': self.rejected, 'rejected_examples': self.rejected_examples,
             'n_nodes': self.n_nodes, 'n_tracks': self.n_tracks, 'updates': self.updates,
+            'failed_updates': self.failed_updates,
+            'failed_update_examples': self.failed_update_examples,
             'seconds': self.seconds, 'inputs_per_s': self.rate,
             'errors_vs_ground_truth': {k: v.as_dict() for k, v in self.errors.items()},
             'errors_compared': self.errors_compared,

@@ -325,6 +325,11 @@ class ReplayRun:
         entry = None if qc is None else {'track_id': int(u.track_id), **qc.as_dict()}
         if per_track:
             self.result.updates.append(plain_fields(u))
+            reason = str(getattr(u, 'reason', ''))
+            if reason.startswith('failed'):
+                self.result.failed_updates += 1
+                if len(self.result.failed_update_examples) < 10:
+                    self.result.failed_update_examples.append(f'track {u.track_id}: {reason}')
             if entry is not None:
                 self.result.quality.setdefault('per_track', []).append(entry)
         if entry is not None:

@@ -81,6 +81,9 @@ def result_text(r: ReplayResult) -> str:
     if r.rejected:
         lines.append('rejected: ' + ', '.join(f'{k} {v}' for k, v in sorted(r.rejected.items()))
                      + (f' (e.g. {r.rejected_examples[0]})' if r.rejected_examples else ''))
+    if r.failed_updates:
+        lines.append(f'failed window updates: {r.failed_updates} (state put back, the track '
+                     f'retried in the next update; e.g. {r.failed_update_examples[0]})')
     q = r.quality.get('final')
     if q:
         verdict = 'pass' if q['global_passed'] else 'FAIL'

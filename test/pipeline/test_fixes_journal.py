@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
-from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import (
     RECORD,
     encode_fix,
@@ -20,6 +19,7 @@ from ga_ros.pipeline.journal import (
     recover,
 )
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.sim.fix_survey import line_fix_survey
 
 CFG = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=1,
                     refine_executor='inline', fix_gate_prob=0.0)
@@ -27,22 +27,7 @@ CFG = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=1,
 
 def _survey(rng: np.random.Generator, n_tracks: int = 5, per: int = 6):
     """A line survey with a fix (lever arm, odometry offset covariance) on every third node."""
-    n = n_tracks * per
-    step = np.array([1.0, 0.2, 0.0])
-    cov = np.diag([0.05 ** 2] * 3 + [1e-4] * 3)
-    out = []
-    for i in range(n - 1):
-        z = np.concatenate([step + rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3)])
-        out.append(Measurement(i, i + 1, i // per, (i + 1) // per, z, cov,
-                               stamp_ns=(i + 1) * 10 ** 9))
-        k = i + 1
-        if k % 3 == 0:
-            T = se3.from_translation_rotvec(step * k + rng.normal(0, 0.3, 3), [0.0, 0.0, 0.1])
-            fix = AbsoluteFix.from_covariance((k * 10 + 3) * 10 ** 8, T,
-                                              np.diag([0.09] * 3 + [-1, -1, 0.01]), 'gnss0')
-            offset = se3.from_translation_rotvec([0.3, 0.5, 1.0], [0.0, 0.0, 0.05])
-            out.append((FixTerm(k, offset, fix), np.diag([1e-3] * 3 + [1e-5] * 3)))
-    return out
+    return line_fix_survey(rng, n_tracks, per, sources=((3, 'gnss0', 0.3),))
 
 
 @pytest.fixture

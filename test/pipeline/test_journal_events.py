@@ -9,11 +9,10 @@ import os
 import numpy as np
 import pytest
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
-from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import (
     RECORD,
     Datum,
@@ -27,6 +26,7 @@ from ga_ros.pipeline.journal import (
 )
 from ga_ros.pipeline.journal.records import encode_datum, encode_track_end
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.sim.fix_survey import feed_entries, line_fix_survey
 
 # a refinement after every track (refine_relinearize_sigma 0); the defaults and the plain window
 # (refine_every_tracks=0), killed at many points and resumed to the end: test_journal_exact.py
@@ -37,25 +37,7 @@ CFG = AlignerConfig(window_tracks=2, datum='fixes', refine_every_tracks=1,
 def _survey(rng: np.random.Generator, n_tracks: int = 6, per: int = 7) -> list:
     """A line survey; fixes of two sources (``gnss0`` every third node, ``usbl1`` every
     fifth), each with a lever arm and the odometry offset's covariance."""
-    step = np.array([1.0, 0.2, 0.0])
-    cov = np.diag([0.05 ** 2] * 3 + [1e-4] * 3)
-    out: list = []
-    n = n_tracks * per
-    for i in range(n - 1):
-        z = np.concatenate([step + rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3)])
-        out.append(Measurement(i, i + 1, i // per, (i + 1) // per, z, cov,
-                               stamp_ns=(i + 1) * 10 ** 9))
-        k = i + 1
-        for every, source, sigma in ((3, 'gnss0', 0.3), (5, 'usbl1', 0.5)):
-            if k % every == 0:
-                T = se3.from_translation_rotvec(step * k + rng.normal(0, sigma, 3),
-                                                [0.0, 0.0, 0.1])
-                fix = AbsoluteFix.from_covariance(
-                    k * 10 ** 9 + 3 * 10 ** 8, T,
-                    np.diag([sigma ** 2] * 3 + [-1, -1, 0.01]), source)
-                offset = se3.from_translation_rotvec([0.3, 0.5, 1.0], [0.0, 0.0, 0.05])
-                out.append((FixTerm(k, offset, fix), np.diag([1e-3] * 3 + [1e-5] * 3)))
-    return out
+    return line_fix_survey(rng, n_tracks, per)
 
 
 def feed(session: AlignmentSession, entries: list, start: int, stop: int,
@@ -63,14 +45,7 @@ def feed(session: AlignmentSession, entries: list, start: int, stop: int,
     """Give entries ``start:stop`` to ``session`` (measurements and fixes, a refused fix left
     out as live), ending the open track by hand after entry ``finish_after``."""
     for k in range(start, stop):
-        e = entries[k]
-        if isinstance(e, Measurement):
-            session.step(e)
-        else:
-            try:
-                session.add_fix(*e)
-            except Exception:  # noqa: BLE001 - refused fixes (frozen node) as live
-                pass
+        feed_entries(session, entries[k:k + 1])
         if k == finish_after:
             session.finish_track('finish_track')
 
@@ -185,14 +160,7 @@ def _compacted(tmp_path, n_entries: int | None = None):
     state = tmp_path / 'state'
     live = AlignmentSession(CFG, SessionConfig(str(state), compact_records=1))
     live.resume()
-    for e in entries:
-        if isinstance(e, Measurement):
-            live.step(e)
-        else:
-            try:
-                live.add_fix(*e)
-            except Exception:  # noqa: BLE001 - refused fixes as live
-                pass
+    feed_entries(live, entries)
     live.journal.close()
     assert live.journal.layout.has_base and (live.journal.since_base > 0 or n_entries)
     return state, live

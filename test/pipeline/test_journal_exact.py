@@ -22,13 +22,14 @@ import numpy as np
 import pytest
 from test_journal_events import _without_rejections, feed
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
 from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import TrackEnd, journal_path, read_journal
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
+from ga_ros.sim.fix_survey import LEVER, fixes_of_node
 
 TRACKS, PER = 12, 8
 #: The defaults (on this survey the refinement's drift passes its threshold once: a refinement
@@ -73,16 +74,7 @@ def survey(seed: int = 5) -> list:
             j = (t - 1) * PER + (PER - 1 - i)
             out.append(Measurement(j, k, t - 1, t, _motion(rng, j, k, 0.1), covx, stamp,
                                    'cross', 'odom0'))
-        for every, source, sigma in ((3, 'gnss0', 0.3), (5, 'usbl1', 0.5)):
-            if k % every == 0:
-                lever = se3.from_translation_rotvec([0.3, 0.5, 1.0], [0.0, 0.0, 0.05])
-                T = _pose(k) @ lever
-                T = se3.from_translation_rotvec(T[:3, 3] + rng.normal(0, sigma, 3),
-                                                se3.to_translation_rotvec(T)[3:])
-                fix = AbsoluteFix.from_covariance(stamp + 3 * 10 ** 8, T,
-                                                  np.diag([sigma ** 2] * 3 + [-1, -1, 0.01]),
-                                                  source)
-                out.append((FixTerm(k, lever, fix), np.diag([1e-3] * 3 + [1e-5] * 3)))
+        out += fixes_of_node(rng, k, _pose(k) @ LEVER)
     return out
 
 

@@ -12,8 +12,10 @@ fails. See the package docstring for the method.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+import traceback
 from dataclasses import asdict
 
 import numpy as np
@@ -59,7 +61,38 @@ from ga_ros.core.window.state import Rollback, WindowState, no_weighted
 from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_terms
 from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
+from ga_ros.geometry import so3
 from ga_ros.runtime import blas_threads
+
+#: Environment variable that makes a window update failing with anything but one of
+#: :data:`NUMERICAL_FAILURES` (a bug) raise after its state is put back, instead of being
+#: reported in the result only (set by the test suite, ``test/conftest.py``).
+STRICT_UPDATES_ENV = 'GA_ROS_STRICT_UPDATES'
+#: Exceptions of a window update that are numerical failures of the data, never raised by
+#: :attr:`TrackWindowAligner.strict`.
+NUMERICAL_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
+
+
+def strict_updates_from_env() -> bool:
+    """Whether :data:`STRICT_UPDATES_ENV` is set to anything but ``''`` or ``'0'``."""
+    return os.environ.get(STRICT_UPDATES_ENV, '') not in ('', '0')
+
+
+def factor_drift(before: FloatArray, after: FloatArray) -> float:
+    """How much a change of the variance factors (per group, ``before`` -> ``after``; groups
+    new in ``after`` had 1) counts towards the refinement's drift
+    (:meth:`RefinementHandoff.measure <ga_ros.core.window.handoff.RefinementHandoff.measure>`),
+    in standard deviations: the largest relative change of a group's standard deviations,
+    ``|sqrt(after / before) - 1|``. A joint prior weighting the group with the old factor has
+    standard deviations off by that fraction, so it can misplace its nodes by about that many
+    of them."""
+    after = np.asarray(after, float)
+    old = np.ones(after.size)
+    k = min(after.size, np.size(before))
+    old[:k] = np.asarray(before, float)[:k]
+    if after.size == 0:
+        return 0.0
+    return float(np.abs(np.sqrt(after / old) - 1.0).max())
 
 
 class TrackWindowAligner:
@@ -120,6 +153,10 @@ class TrackWindowAligner:
         # covariance queries
         self._factor_lock = threading.Lock()
         self._last_update: UpdateResult | None = None
+        self._factor_step = 0.0  # the last adjustment's change of the variance factors
+        self.n_failed_updates = 0
+        self.last_failure = ''
+        self.strict = strict_updates_from_env()
         vcfg = self.config.online_variance_config()
         self.online_variance: OnlineVarianceComponents | None = None
         if vcfg.mode != 'off':
@@ -269,8 +306,12 @@ class TrackWindowAligner:
         If the update fails for any reason (a solver failure, a numerical error while freezing),
         every estimate (poses, covariances, frozen flags, connection status, priors) is put back
         as it was before the call, the track stays finished (the next update retries it inside
-        its window) and the returned result's ``reason`` starts with ``'failed'``. Only
-        :class:`~ga_ros.errors.GaError` can escape."""
+        its window: its measurements stay), the failure is counted
+        (:attr:`n_failed_updates`, :attr:`stats`), its traceback kept (:attr:`last_failure`)
+        and the returned result's ``reason`` starts with ``'failed'``. Only
+        :class:`~ga_ros.errors.GaError` can escape, except with :attr:`strict`, where an
+        exception that is not one of :data:`NUMERICAL_FAILURES` (a bug) is re-raised once the
+        state is put back."""
         st = self.state
         if st.open_track is None or st.open_track in st.finished:
             return None
@@ -292,8 +333,13 @@ class TrackWindowAligner:
                     self.ahead.drop()
                 return up
             error = up.reason[len('failed: '):]
+            self.last_failure = error
+            bug = None
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
+            self.last_failure = ''.join(traceback.format_exception(exc)).rstrip()
+            bug = None if isinstance(exc, NUMERICAL_FAILURES) else exc
+        self.n_failed_updates += 1
         saved.restore(st)
         st.fixes.restore(fix_state)
         self.handoff.smoothing = None  # of a refinement installed by the failed update
@@ -303,6 +349,8 @@ class TrackWindowAligner:
                           min(len(st.finished), self.config.window_tracks), 0,
                           f'failed: {error}')
         self._last_update = up
+        if bug is not None and self.strict:
+            raise bug
         return up
 
     def mutable_rows(self) -> tuple[int, int]:
@@ -347,7 +395,8 @@ class TrackWindowAligner:
             up = self._adjust(window, track, t0)
             if not str(up.reason).startswith('failed'):
                 # before the smoothing moves the frozen nodes: whether the next refinement runs
-                self.handoff.measure(prev_weighted, self.handoff.n_refinements > installed)
+                self.handoff.measure(prev_weighted, self.handoff.n_refinements > installed,
+                                     self._factor_step)
             if refined is not None and not str(up.reason).startswith('failed'):
                 error = self.handoff.smooth(self._last())
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
@@ -364,12 +413,13 @@ class TrackWindowAligner:
         """The window adjustment (:meth:`WindowUpdate.adjust
         <ga_ros.core.window.update.WindowUpdate.adjust>`)."""
         book = self.online_variance
+        self._factor_step = 0.0
         if book is not None:
             self._sync_fix_groups()  # the fixes added since: their source's factor
         up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
         if book is None:
             return up
-        used = book.factors()  # those this adjustment used ('apply')
+        used = first = book.factors()  # those this adjustment used ('apply')
         new = self._record_variance()
         # the window is adjusted again with the new factors until they settle
         # (Förstner's iteration, one adjustment a step; the absorbed tracks' values stay those
@@ -380,6 +430,7 @@ class TrackWindowAligner:
             used = new
             up = self.updater.adjust(window_tracks, track, t0, self._factor_lock)
             new = self._record_variance()
+        self._factor_step = factor_drift(first, new)
         return up
 
     def _record_variance(self) -> FloatArray:
@@ -580,7 +631,8 @@ class TrackWindowAligner:
         st = self.state
         return AlignerStats(len(st.ids), st.src.n, dict(st.rejected),
                             st.finished_order()[-self.config.window_tracks:], st.n_updates,
-                            st.n_outliers, self._last_update)
+                            st.n_outliers, self._last_update, self.n_failed_updates,
+                            self.last_failure)
 
     def connection_arrays(self) -> tuple[IntArray, IntArray, FloatArray, BoolArray, IntArray]:
         """``(src_id, dst_id, z, cross, status)`` of every connection (status 0 active,
@@ -622,12 +674,15 @@ class TrackWindowAligner:
         poses use the corrected motions, the stored connections keep their measured ones.
         It takes the place of the variance components.
 
-        The open track is finished first. Outliers stay excluded. The covariances published
-        afterwards come from this adjustment: frozen nodes get their marginal blocks from it
-        (selected inversion), window nodes are answered from it like after a window update.
-        The joint priors of the absorbed connections are rebuilt at the refined estimate
-        (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next window update
-        continues from it consistently; a pending background refinement is dropped.
+        The absolute fixes enter as weighted parameters relinearised at the solution until
+        they stand (:meth:`_relinearized`), so a second call moves no pose by more than the
+        solver's ``tolerance``. The open track is finished first. Outliers stay excluded. The
+        covariances published afterwards come from this adjustment: frozen nodes get their
+        marginal blocks from it (selected inversion), window nodes are answered from it like
+        after a window update. The joint priors of the absorbed connections are rebuilt at the
+        refined estimate (:func:`~ga_ros.core.window.refinement.absorbed_priors`), so the next
+        window update continues from it consistently; a pending background refinement is
+        dropped.
         """
         self.finish_track()
         self.ahead.drop()  # its inputs (estimate, priors) are replaced below
@@ -643,28 +698,34 @@ class TrackWindowAligner:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
         free_datum = self.config.datum == 'fixes'
         fixed = [] if free_datum else [st.ids[0]]
-        priors = st.fixes.priors(np.arange(n), st.T, st.idarr.a)
+        ids = st.idarr.a
         if calibration is not None:
-            ids = st.idarr.a
             cross = st.cross.a[keep]
             names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             stamp = st.stamp.astype(np.float64)
             dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
-            res, self.calibration = solve_with_calibration(
-                net, st.T[:n], sources, dt_s, scfg, fixed=fixed, priors=priors,
-                calibration=calibration)
-        elif variance_groups is None:
-            res = solve(net, st.T[:n], scfg, fixed=fixed, priors=priors)
-        else:
-            ids = st.idarr.a
+        elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+
+        def adjust(T0: FloatArray, priors: list) -> SolveResult:
+            """One adjustment from ``T0`` with the fixes' priors ``priors``."""
+            if calibration is not None:
+                res, self.calibration = solve_with_calibration(
+                    net, T0, sources, dt_s, scfg, fixed=fixed, priors=priors,
+                    calibration=calibration)
+                return res
+            if variance_groups is None:
+                return solve(net, T0, scfg, fixed=fixed, priors=priors)
             res, self.variance_components = solve_with_variance_components(
-                net, st.T[:n], groups, scfg, fixed=fixed, priors=priors,
+                net, T0, groups, scfg, fixed=fixed, priors=priors,
                 prior_groups=['fixes'] * len(priors), config=variance_config,
                 split=variance_groups.split())
-        del net
+            return res
+
+        res = self._relinearized(adjust, st.T[:n].copy(), scfg, n)
+        net = None  # its arrays freed before the covariances (the closure holds the name)
         st.T[:n] = res.T_world_node
         frozen = np.nonzero(st.frozen[:n] & ((np.arange(n) != 0) | free_datum))[0]
         if frozen.size:
@@ -684,3 +745,35 @@ class TrackWindowAligner:
         return UpdateResult(-1, res.iterations, res.converged, res.sigma0_sq,
                             1e3 * (time.perf_counter() - t0), n, int(keep.size),
                             len(st.tracks), 0, res.reason, 0, res.n_unknowns)
+
+    def _relinearized(self, adjust, T0: FloatArray, scfg: SolverConfig, n: int) -> SolveResult:
+        """``adjust(T, priors)`` (one batch adjustment of the ``n`` nodes from ``T``) with the
+        fixes' priors relinearised at its solution until they stand: a fix's prior
+        (:func:`~ga_ros.core.fixes.node_prior`) is linear about the pose it was computed at
+        (its mean and, with an offset to the sensor or a partial information, its information
+        depend on it), so the adjustment is repeated from its own solution with the priors
+        recomputed there until the largest change of a pose (m, rad) is below the solver's
+        ``tolerance`` (at most ``max_iterations`` times). Without fixes: one adjustment.
+        The result's ``iterations`` count every Gauss-Newton iteration of them."""
+        st = self.state
+        rows = np.arange(n)
+        priors = st.fixes.priors(rows, T0, st.idarr.a)
+        res = adjust(T0, priors)
+        if not priors:
+            return res
+        iterations = res.iterations
+        for _ in range(scfg.max_iterations):
+            T1 = res.T_world_node
+            priors = st.fixes.priors(rows, T1, st.idarr.a)
+            nxt = adjust(T1.copy(), priors)
+            iterations += nxt.iterations
+            T2 = nxt.T_world_node
+            dR = np.einsum('nji,njk->nik', T1[:, :3, :3], T2[:, :3, :3])
+            moved = max(np.abs(T2[:, :3, 3] - T1[:, :3, 3]).max(initial=0.0),
+                        np.abs(so3.log(dR)).max(initial=0.0))
+            res = nxt
+            if moved < scfg.tolerance:
+                break
+        res.iterations = iterations
+        return res
+

@@ -126,7 +126,10 @@ class AlignerConfig:
     refine_relinearize_sigma : a refinement starts (at its ``refine_every_tracks`` trigger) only
         when the frozen nodes the window adjusts as weighted parameters may have moved from
         their priors' linearisation points by this many of their standard deviations (in some
-        coordinate, summed over the updates since the last installed refinement), or when the
+        coordinate, summed over the updates since the last installed refinement; with
+        ``variance_components='apply'`` each update's change of the variance factors adds the
+        largest relative change of a source's standard deviations, ``|sqrt(f_new / f_old) -
+        1|``), or when the
         tracks not retired reach ``2 refine_horizon_tracks``; otherwise the window's own priors
         stand, as iSAM2 relinearises only variables whose change exceeds a threshold
         (``docs/window-design.md``, "When a refinement runs"). 0: after every trigger.
@@ -329,6 +332,15 @@ class CorrectedPath:
 
 @dataclass
 class AlignerStats:
+    """Counters of an aligner (:attr:`TrackWindowAligner.stats
+    <ga_ros.core.window.aligner.TrackWindowAligner.stats>`).
+
+    ``n_updates`` counts the window updates, failed ones included; ``n_failed_updates`` those
+    that failed (state put back, see :meth:`TrackWindowAligner.finish_track
+    <ga_ros.core.window.aligner.TrackWindowAligner.finish_track>`) since the aligner object was
+    made; ``last_failure`` the last one's exception and traceback (``''`` if none).
+    """
+
     n_nodes: int
     n_connections: int
     n_rejected: dict[str, int]
@@ -336,6 +348,8 @@ class AlignerStats:
     n_updates: int
     n_outliers: int
     last_update: UpdateResult | None = None
+    n_failed_updates: int = 0
+    last_failure: str = ''
 
 
 @dataclass

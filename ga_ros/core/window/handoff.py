@@ -85,7 +85,8 @@ class RefinementHandoff:
         return (self.state.refine_drift >= cfg.refine_relinearize_sigma
                 or (horizon > 0 and n_finished - self.state.retired >= 2 * horizon))
 
-    def measure(self, prev_weighted: tuple, installed: bool) -> float:
+    def measure(self, prev_weighted: tuple, installed: bool, factor_step: float = 0.0
+                ) -> float:
         """After a window adjustment: update and return :attr:`WindowState.refine_drift
         <ga_ros.core.window.state.WindowState.refine_drift>`.
 
@@ -98,8 +99,12 @@ class RefinementHandoff:
         drift since the last installed refinement, or starts it if this update ``installed`` one
         (its priors are linearised at its estimate, where the adjustment started). The sum bounds
         how far any of those nodes is from its prior's linearisation point (triangle
-        inequality). A prior on other nodes (the ``'marginal'`` policy's, on window nodes) makes
-        the drift infinite: every trigger refines, as with ``refine_relinearize_sigma = 0``.
+        inequality). ``factor_step``: the adjustment's change of the online variance factors
+        (``variance_components='apply'``), in standard deviations
+        (:func:`~ga_ros.core.window.aligner.factor_drift`), is added too: the priors weight
+        the sources with the factors of their linearisation. A prior on other nodes (the
+        ``'marginal'`` policy's, on window nodes) makes the drift infinite: every trigger
+        refines, as with ``refine_relinearize_sigma = 0``.
         """
         st = self.state
         nodes, T_end = st.T_weighted
@@ -116,6 +121,7 @@ class RefinementHandoff:
             ok = var > 0
             if ok.any():
                 step = float((d[ok] / np.sqrt(var[ok])).max())
+        step += float(factor_step)
         step = step if np.isfinite(step) else np.inf  # a failed measure: refine
         st.refine_drift = step if installed else st.refine_drift + step
         return st.refine_drift

@@ -37,6 +37,8 @@ from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
     MAX_ERROR_CHARS,
+    MAX_FAILURES_LOGGED,
+    MAX_TRACEBACK_CHARS,
     Counters,
     Health,
     StepOutput,
@@ -83,6 +85,8 @@ class AlignmentSession:
         #: journal goes on, recovery replays it all) ('' if snapshots are written).
         self.snapshots_off = ''
         self._next_sync = 0.0
+        #: The failure texts whose traceback was warned about (:meth:`_log_failure`).
+        self._failures_logged: set[str] = set()
         #: The map frame's datum ``(lat_deg, lon_deg, alt_m)`` the journal held at the last
         #: resume or load (``None`` without one).
         self.datum: tuple[float, float, float] | None = None
@@ -359,9 +363,11 @@ class AlignmentSession:
             reason = str(getattr(u, 'reason', ''))
             if reason.startswith('failed'):
                 self.counts.solver_failures += 1
+                self.counts.failed_updates += 1
                 self.last_error = bounded(f'solver: {reason}')
                 notes.append(f'window update of track {u.track_id} failed, previous estimate '
                              f'kept: {reason}')
+                self._log_failure(reason)
             elif not getattr(u, 'converged', True):
                 self.counts.not_converged += 1
                 notes.append(f'window update of track {u.track_id} did not converge ({reason})')
@@ -388,6 +394,20 @@ class AlignmentSession:
                 self.persistence_failing = self.last_persistence_error
                 notes.append(text)
         return notes
+
+    def _log_failure(self, reason: str) -> None:
+        """Warn once per distinct failure (its text) with the aligner's traceback of it
+        (:attr:`TrackWindowAligner.last_failure
+        <ga_ros.core.window.aligner.TrackWindowAligner.last_failure>`, its last
+        :data:`MAX_TRACEBACK_CHARS`); a repeat is in the per-update note only."""
+        if reason in self._failures_logged or len(self._failures_logged) >= MAX_FAILURES_LOGGED:
+            return
+        self._failures_logged.add(reason)
+        trace = str(getattr(self.aligner, 'last_failure', '') or reason)
+        if len(trace) > MAX_TRACEBACK_CHARS:
+            trace = '...' + trace[-MAX_TRACEBACK_CHARS + 3:]
+        self.warn(f'a window update failed (counted in failed_updates, its measurements kept '
+                  f'for the next update):\n{trace}')
 
     def compact(self, force: bool = False) -> bool:
         """Compact the journal (:meth:`MeasurementJournal.compact`) if

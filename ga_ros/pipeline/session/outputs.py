@@ -14,6 +14,11 @@ from ga_ros.errors import Reason
 Warn = Callable[[str], None]
 #: Longest error text kept in ``last_error`` (and so in every ``/diagnostics`` message), chars.
 MAX_ERROR_CHARS = 200
+#: Longest traceback of a failed window update warned about (its end kept), chars: within
+#: the nodes' 2,000-character log lines.
+MAX_TRACEBACK_CHARS = 1800
+#: Distinct failed-update texts whose traceback is warned about (later ones: counted only).
+MAX_FAILURES_LOGGED = 20
 
 
 def bounded(text: str, limit: int = MAX_ERROR_CHARS) -> str:
@@ -70,6 +75,7 @@ class Counters:
     accepted: int = 0
     updates: int = 0
     solver_failures: int = 0
+    failed_updates: int = 0
     not_converged: int = 0
     persistence_errors: int = 0
     callback_seconds: float = 0.0

@@ -9,56 +9,26 @@ import time
 
 import numpy as np
 
-from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
-from ga_ros.errors import InputError
-from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import recover
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.ros.fault_catalogue.survey import Ctx, Row, nodes_kept
+from ga_ros.sim.fix_survey import feed_entries, line_fix_survey
 
 
 def fixes_survey(rng: np.random.Generator, n_tracks: int = 5, per: int = 8) -> list:
-    """A line survey of ``n_tracks * per`` nodes: frame-to-frame measurements of two odometry
-    sources (``odom0`` on even nodes, ``odom1``, noisier, on odd ones) and absolute fixes of
-    two sources (``gnss0`` every third node, ``usbl1`` every fifth), each with a lever arm and
-    the odometry offset's covariance. Entries in arrival order: a :class:`Measurement` or
-    ``(FixTerm, C_offset)``."""
-    step = np.array([1.0, 0.2, 0.0])
-    out: list = []
-    n = n_tracks * per
-    for i in range(n - 1):
-        source, sigma_t = ('odom0', 0.05) if i % 2 == 0 else ('odom1', 0.1)
-        cov = np.diag([sigma_t ** 2] * 3 + [1e-4] * 3)
-        z = np.concatenate([step + rng.normal(0, sigma_t, 3), rng.normal(0, 0.01, 3)])
-        out.append(Measurement(i, i + 1, i // per, (i + 1) // per, z, cov,
-                               stamp_ns=(i + 1) * 10 ** 9, source=source))
-        k = i + 1
-        for every, name, sigma in ((3, 'gnss0', 0.3), (5, 'usbl1', 0.5)):
-            if k % every == 0:
-                T = se3.from_translation_rotvec(step * k + rng.normal(0, sigma, 3),
-                                                [0.0, 0.0, 0.1])
-                fix = AbsoluteFix.from_covariance(k * 10 ** 9 + 3 * 10 ** 8, T,
-                                                  np.diag([sigma ** 2] * 3 + [-1, -1, 0.01]),
-                                                  name)
-                offset = se3.from_translation_rotvec([0.3, 0.5, 1.0], [0.0, 0.0, 0.05])
-                out.append((FixTerm(k, offset, fix), np.diag([1e-3] * 3 + [1e-5] * 3)))
-    return out
+    """A line survey of ``n_tracks * per`` nodes (:func:`~ga_ros.sim.fix_survey.line_fix_survey`):
+    frame-to-frame measurements of two odometry sources (``odom0`` on even nodes, ``odom1``,
+    noisier, on odd ones) and absolute fixes of two sources (``gnss0`` every third node,
+    ``usbl1`` every fifth), each with a lever arm and the odometry offset's covariance."""
+    return line_fix_survey(rng, n_tracks, per, odometry=(('odom0', 0.05), ('odom1', 0.1)))
 
 
 def feed(session: AlignmentSession, entries: list) -> int:
     """Feed the entries, then the end of input; returns the fixes the aligner refused."""
-    refused = 0
-    for e in entries:
-        if isinstance(e, Measurement):
-            session.step(e)
-        else:
-            try:
-                session.add_fix(*e)
-            except InputError:
-                refused += 1
+    refused = feed_entries(session, entries)
     session.finish_track('end_of_input')
     return refused
 
