@@ -257,8 +257,11 @@ class CalibrationReport:
 
 
 def _plain(obj: AdditionalParameter | NoiseFactor) -> dict:
-    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
-            for k, v in asdict(obj).items()}
+    def one(v):
+        if isinstance(v, tuple):
+            return [one(x) for x in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+    return {k: one(v) for k, v in asdict(obj).items()}
 
 
 @dataclass
