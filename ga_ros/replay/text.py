@@ -176,6 +176,14 @@ def calibration_lines(cal: dict) -> list[str]:
         else:
             text = f"not estimated ({p['reason']})"
         lines.append(f"  {p['source']:<12} {p['name']:<9} {text}")
+    for f in cal.get('noise', []):
+        if f['applied']:
+            text = (f"variance factor {f['factor']:.3g} +- {f['sigma']:.2g} applied "
+                    f"(stated: v'Pv/r {f['stated_ratio']:.3g}, redundancy "
+                    f"{f['redundancy']:.1f})")
+        else:
+            text = f"stated covariance kept (redundancy {f['redundancy']:.1f})"
+        lines.append(f"  {f['source']:<12} {f['part'] + ' noise':<9} {text}")
     return lines
 
 

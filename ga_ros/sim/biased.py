@@ -52,10 +52,13 @@ class BiasedSurvey:
 def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 1.0,
                   dt_s: float = 0.5, scale: float = 0.0, yaw_rate: float = 0.0,
                   sigma_xy_m: float = 0.01, sigma_yaw_rad: float = 0.002,
-                  fix_every: int = 30, fix_sigma_m: float = 1.0) -> BiasedSurvey:
+                  fix_every: int = 30, fix_sigma_m: float = 1.0,
+                  stated_sigma_xy_m: float | None = None,
+                  stated_sigma_yaw_rad: float | None = None) -> BiasedSurvey:
     """Simulate the survey of the module doc; ``scale``, ``yaw_rate``: the true corrections
     ``k`` and ``omega`` (rad/s); ``sigma_*``: the odometry's noise per motion (also its stated
-    covariance: x, y ``sigma_xy_m``, z 1 mm, roll/pitch 0.1 mrad, yaw ``sigma_yaw_rad``)."""
+    covariance: x, y ``sigma_xy_m``, z 1 mm, roll/pitch 0.1 mrad, yaw ``sigma_yaw_rad``);
+    ``stated_*``: a stated covariance other than the true noise (None: the true one)."""
     T = weaving_path(n_nodes, step_m)
     rel = se3.inverse(T[:-1]) @ T[1:]
     m = n_nodes - 1
@@ -66,7 +69,12 @@ def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 
                                np.full(m, -yaw_rate))
     sig = np.array([sigma_xy_m, sigma_xy_m, 1e-3, 1e-4, 1e-4, sigma_yaw_rad])
     meas = biased @ se3.exp(rng.standard_normal((m, 6)) * sig)
-    cov = np.repeat(np.diag(sig ** 2)[None], m, axis=0)
+    stated = sig.copy()
+    if stated_sigma_xy_m is not None:
+        stated[:2] = stated_sigma_xy_m
+    if stated_sigma_yaw_rad is not None:
+        stated[5] = stated_sigma_yaw_rad
+    cov = np.repeat(np.diag(stated ** 2)[None], m, axis=0)
     ids = np.arange(n_nodes)
     net = ConnectionNetwork.from_arrays(ids, ids // 100, ids[:-1], ids[1:],
                                         se3.to_translation_rotvec(meas), cov)

@@ -96,3 +96,23 @@ def test_calibration_lines_name_the_reason() -> None:
     assert 'yaw_rate' in lines[1] and '+- 0.0004 rad/s' in lines[1]
     assert 'not estimated (not significant' in lines[2]
     assert calibration_lines({}) == []
+
+
+def test_calibration_lines_show_the_noise_factors() -> None:
+    """The re-estimated noise of a calibrated source (CalibrationReport.noise) in the text,
+    and its summary.json form is plain JSON (no NaN)."""
+    import json
+
+    from ga_ros.core.calibration import CalibrationReport, NoiseFactor
+
+    rep = CalibrationReport(noise=[
+        NoiseFactor('odom0', 'rotation', factor=0.05, estimate=0.05, sigma=0.02,
+                    redundancy=8.4, stated_ratio=0.29, quantiles=(0.13, 2.9), applied=True),
+        NoiseFactor('odom0', 'translation', redundancy=0.6)], alpha=0.001, sigma0_sq=1.0)
+    d = json.loads(json.dumps(rep.as_dict(), allow_nan=False))
+    lines = calibration_lines({**d, 'parameters': [
+        {'source': 'odom0', 'name': 'yaw_rate', 'estimated': True, 'value': 0.005,
+         'sigma': 0.0003, 'unit': 'rad/s', 'test': 17.0}]})
+    assert any('rotation noise' in ln and '0.05 +- 0.02 applied' in ln for ln in lines), lines
+    assert any('translation noise' in ln and 'stated covariance kept' in ln for ln in lines)
+    assert d['noise'][1]['quantiles'] == [None, None]

@@ -6,6 +6,7 @@ from ga_ros.core.calibration.batch import (
     AdditionalParameter,
     CalibrationConfig,
     CalibrationReport,
+    NoiseFactor,
     solve_with_calibration,
 )
 from ga_ros.core.calibration.parameters import (
@@ -17,5 +18,5 @@ from ga_ros.core.calibration.parameters import (
 )
 
 __all__ = ['PARAMETERS', 'AdditionalParameter', 'CalibrationConfig', 'CalibrationReport',
-           'ScaleCorrection', 'YawRateCorrection', 'corrected_motions', 'misclosure_jacobian',
-           'solve_with_calibration']
+           'NoiseFactor', 'ScaleCorrection', 'YawRateCorrection', 'corrected_motions',
+           'misclosure_jacobian', 'solve_with_calibration']

@@ -37,6 +37,25 @@ start free; then, one at a time, a parameter is fixed to zero with the reason re
    gauge) counts in the solver's redundancy without adding residuals, so on a small network
    ``sigma0^2`` comes out low and the test switches on a little more often.
 
+The noise of a calibrated source. A source's stated covariance often stands for its systematic
+error as well (a wheel odometry's yaw sigma chosen so that a heading drift fits as a random
+walk); once the drift is a parameter, that covariance is too large and the fixes pull the
+corrected path about more than they should. So, where a parameter of a source is estimated
+(:attr:`CalibrationConfig.noise`), its stated covariance is tested and, where it fails,
+re-estimated (Förstner's variance components, as :mod:`ga_ros.core.quality.variance_components`
+does per source, here per block): the source's covariance splits into a translation and a
+rotation part (one part where the stated covariances correlate the two), each scaled by a
+variance factor ``s`` (``D S D``, ``D = sqrt(s)`` on the part's rows). At the stated weights
+``v' P v / r`` of a part (``r`` the sum of its redundancy numbers, the diagonal of
+``(Q_vv P)_ii``) is ``chi2(r) / r`` if the stated covariance is right; a part with at least
+:attr:`CalibrationConfig.noise_min_redundancy` whose ratio falls outside the two-sided range
+at :attr:`CalibrationConfig.noise_alpha` is re-weighted: ``s <- s v' P v / r`` with the
+parameters selected and estimated again at each new weight, until every factor agrees with its
+residuals. Without an estimated parameter, or where every part passes its test, the stated
+covariances stand. The fixes, the priors and the connections without a source keep theirs (the
+factors are relative to them). The factors are reported with their sigmas
+``s sqrt(2 / r)`` (:class:`NoiseFactor`).
+
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
 leave out the parameters' own uncertainty, ``N_xx^-1 N_xc Q_cc N_cx N_xx^-1``).
@@ -82,6 +101,16 @@ class CalibrationConfig:
     max_iterations : Gauss-Newton steps of the parameters per set of free parameters.
     tolerance : the steps stop when every parameter moved less than this fraction of its
         sigma.
+    noise : re-estimate the stated covariance of every source with an estimated parameter
+        (module doc, *The noise of a calibrated source*); ``False``: keep it as stated.
+    noise_iterations : adjustments with re-estimated noise factors at most.
+    noise_tolerance : stop when every applied factor agrees with its residuals
+        (``v' P v / r``) within this fraction of 1.
+    noise_min_redundancy : a part with less redundancy at its stated covariance is not
+        tested (its factor stays 1).
+    noise_alpha : significance level of the two-sided test of a part's stated covariance
+        (``v' P v / r`` against ``chi2(r) / r``): the probability of re-weighting a part whose
+        stated covariance is right.
     """
 
     parameters: tuple[str, ...] = ('scale', 'yaw_rate')
@@ -90,12 +119,23 @@ class CalibrationConfig:
     max_condition: float = 1e6
     max_iterations: int = 10
     tolerance: float = 1e-3
+    noise: bool = True
+    noise_iterations: int = 20
+    noise_tolerance: float = 0.01
+    noise_min_redundancy: float = 3.0
+    noise_alpha: float = 0.01
 
     def __post_init__(self) -> None:
         for p in self.parameters:
             parameter(p)
         if not 0.0 < self.alpha < 1.0:
             raise InputError(f'calibration alpha must be in (0, 1), got {self.alpha}')
+        if not 0.0 < self.noise_alpha < 1.0:
+            raise InputError(f'calibration noise_alpha must be in (0, 1), got '
+                             f'{self.noise_alpha}')
+        if int(self.noise_iterations) < 1 or not self.noise_tolerance > 0:
+            raise InputError('calibration: noise_iterations must be >= 1 and noise_tolerance '
+                             '> 0')
 
 
 @dataclass
@@ -138,14 +178,62 @@ class AdditionalParameter:
 
 
 @dataclass
+class NoiseFactor:
+    """The re-estimated noise of one part of a calibrated source's stated covariance.
+
+    Attributes
+    ----------
+    source : the odometry source.
+    part : ``'translation'`` (the ``[x y z]`` block), ``'rotation'`` (the ``[rx ry rz]``
+        block) or ``'motion'`` (the whole covariance, where the stated one correlates the two).
+    factor : the variance factor the weights use (``4``: the stated covariance of the part is
+        4x too small; the standard deviations 2x); 1 where not applied.
+    estimate : the factor estimated at the last weights (where applied, equal to ``factor``
+        within :attr:`CalibrationConfig.noise_tolerance`).
+    sigma : its standard deviation ``estimate sqrt(2 / redundancy)``.
+    redundancy : the part's redundancy ``r_k`` (sum of its redundancy numbers) at the last
+        weights.
+    stated_ratio : ``v' P v / r`` at the stated covariance (the test statistic).
+    quantiles : the range of ``chi2(r) / r`` at ``noise_alpha`` (NaN: too little redundancy
+        to test).
+    applied : whether the weights use it (the stated covariance failed its test).
+    """
+
+    source: str
+    part: str
+    factor: float = 1.0
+    estimate: float = 1.0
+    sigma: float = float('nan')
+    redundancy: float = 0.0
+    stated_ratio: float = float('nan')
+    quantiles: tuple[float, float] = (float('nan'), float('nan'))
+    applied: bool = False
+
+    def line(self) -> str:
+        """One line of text."""
+        head = f'{self.source} {self.part} noise'
+        lo, hi = self.quantiles
+        test = (f"stated: v'Pv/r {self.stated_ratio:.3g}, chi2 range [{lo:.2g}, {hi:.2g}]"
+                if np.isfinite(lo) else 'too little redundancy to test')
+        if self.applied:
+            return (f'{head}: variance factor {self.factor:.3g} +- {self.sigma:.2g} applied '
+                    f'(redundancy {self.redundancy:.1f}; {test})')
+        return (f'{head}: stated covariance kept (redundancy {self.redundancy:.1f}; '
+                f'{test})')
+
+
+@dataclass
 class CalibrationReport:
-    """The additional parameters of every source, and how they were found."""
+    """The additional parameters of every source, and how they were found; the re-estimated
+    noise of the calibrated sources (``noise``, empty when none was re-estimated)."""
 
     parameters: list[AdditionalParameter] = field(default_factory=list)
     alpha: float = float('nan')
     sigma0_sq: float = float('nan')
     iterations: int = 0
     solves: int = 0
+    noise: list[NoiseFactor] = field(default_factory=list)
+    noise_iterations: int = 0
 
     def estimated(self) -> list[AdditionalParameter]:
         return [p for p in self.parameters if p.estimated]
@@ -159,12 +247,21 @@ class CalibrationReport:
         """Plain data (``summary.json``)."""
         return {'alpha': self.alpha, 'sigma0_sq': self.sigma0_sq,
                 'iterations': self.iterations, 'solves': self.solves,
-                'parameters': [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
-                                for k, v in asdict(p).items()} for p in self.parameters]}
+                'parameters': [_plain(p) for p in self.parameters],
+                'noise': [_plain(f) for f in self.noise],
+                'noise_iterations': self.noise_iterations}
 
     def lines(self) -> list[str]:
-        """The report as text, one parameter per line."""
-        return [p.line() for p in self.parameters]
+        """The report as text, one parameter (and one noise factor) per line."""
+        return [p.line() for p in self.parameters] + [f.line() for f in self.noise]
+
+
+def _plain(obj: AdditionalParameter | NoiseFactor) -> dict:
+    def one(v):
+        if isinstance(v, tuple):
+            return [one(x) for x in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+    return {k: one(v) for k, v in asdict(obj).items()}
 
 
 @dataclass
@@ -268,8 +365,10 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
 
     Returns
     -------
-    The adjustment with the motions corrected by the estimated parameters, and the
-    :class:`CalibrationReport` (every candidate: value and sigma, or why it was fixed to 0).
+    The adjustment with the motions corrected by the estimated parameters (and, with
+    :attr:`CalibrationConfig.noise`, the calibrated sources weighted by their re-estimated
+    noise), and the :class:`CalibrationReport` (every candidate: value and sigma, or why it
+    was fixed to 0; the noise factors).
     """
     cal = calibration or CalibrationConfig()
     arrays = network.arrays()
@@ -281,6 +380,128 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         raise InputError(f'solve_with_calibration: {dt.size} durations for {m} connections')
     dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
     cand = _candidates(sources, cal.parameters)
+    res, net, report = _select(network, np.asarray(T_init, dtype=float), cand, dt, config,
+                               fixed, priors, cal)
+    if not (cal.noise and report.estimated()):
+        return res, report
+    # the noise of the calibrated sources (module doc)
+    solves = report.solves
+    parts = _noise_parts(cand, report, arrays.cov)
+    factors = np.ones(len(parts))
+    noise = _noise_factors(net, res, priors, parts, factors, cal)
+    for f in noise:
+        _test_stated(f, cal)
+    eligible = np.array([f.applied for f in noise])
+    iterations = 1
+    if eligible.any():
+        first = noise
+        for _ in range(int(cal.noise_iterations)):
+            factors = np.where(eligible, [f.estimate for f in noise], 1.0)
+            res, net, report = _select(_scaled(network, parts, factors), res.T_world_node,
+                                       cand, dt, config, fixed, priors, cal)
+            solves += report.solves
+            iterations += 1
+            noise = _noise_factors(net, res, priors, parts, factors, cal)
+            ratio = np.array([f.estimate / f.factor for f in noise])
+            if np.all(np.abs(ratio[eligible] - 1.0) < cal.noise_tolerance):
+                break
+        for f, f0 in zip(noise, first):
+            f.stated_ratio, f.quantiles, f.applied = f0.stated_ratio, f0.quantiles, f0.applied
+    report.noise = noise
+    report.noise_iterations = iterations
+    report.solves = solves
+    return res, report
+
+
+def _test_stated(f: NoiseFactor, cal: CalibrationConfig) -> None:
+    """The test of a part's stated covariance (module doc): at the stated weights,
+    ``v' P v / r`` is ``chi2(r) / r`` if the stated covariance is right; ``applied`` where the
+    part has enough redundancy and the ratio is outside the two-sided ``noise_alpha`` range."""
+    f.stated_ratio = f.estimate
+    if f.redundancy < max(cal.noise_min_redundancy, 1e-9):
+        return
+    r = f.redundancy
+    lo = float(stats.chi2.ppf(cal.noise_alpha / 2.0, r)) / r
+    hi = float(stats.chi2.ppf(1.0 - cal.noise_alpha / 2.0, r)) / r
+    f.quantiles = (lo, hi)
+    f.applied = not lo <= f.stated_ratio <= hi
+
+
+@dataclass
+class _NoisePart:
+    """A block of a calibrated source's covariance that gets its own noise factor."""
+
+    source: str
+    part: str
+    mask: np.ndarray  # (m,) the source's connections
+    dims: np.ndarray  # the rows/columns of the covariance it scales
+
+
+def _noise_parts(cand: _Candidates, report: CalibrationReport, cov: FloatArray
+                 ) -> list[_NoisePart]:
+    """Per source with an estimated parameter: a translation and a rotation part where its
+    stated covariances do not correlate the two, else one part for the whole covariance."""
+    out: list[_NoisePart] = []
+    done: set[str] = set()
+    for par, src, mask in zip(report.parameters, cand.sources, cand.masks):
+        if not par.estimated or src in done:
+            continue
+        done.add(src)
+        if np.any(cov[mask][:, :3, 3:] != 0.0):
+            out.append(_NoisePart(src, 'motion', mask, np.arange(6)))
+        else:
+            out.append(_NoisePart(src, 'translation', mask, np.arange(3)))
+            out.append(_NoisePart(src, 'rotation', mask, np.arange(3, 6)))
+    return out
+
+
+def _scaled(network: ConnectionNetwork, parts: list[_NoisePart], factors: FloatArray
+            ) -> ConnectionNetwork:
+    """``network`` with each part's covariance block scaled by its factor (``D S D``, ``D``
+    the square roots of the factors on the part's rows)."""
+    arrays = network.arrays()
+    d = np.ones((len(arrays), 6))
+    for p, f in zip(parts, factors):
+        d[np.ix_(np.nonzero(p.mask)[0], p.dims)] = np.sqrt(f)
+    cov = arrays.cov * d[:, :, None] * d[:, None, :]
+    return ConnectionNetwork.from_arrays(network.node_ids, network.track_ids, arrays.src,
+                                         arrays.dst, arrays.z, cov)
+
+
+def _noise_factors(net: ConnectionNetwork, res: SolveResult, priors: Sequence[GaussianPrior],
+                   parts: list[_NoisePart], factors: FloatArray, cal: CalibrationConfig
+                   ) -> list[NoiseFactor]:
+    """Förstner's estimate of each part's variance factor at the adjustment ``res`` of
+    ``net`` (whose covariances carry ``factors``): ``s <- s v' P v / r`` over the part's
+    block (its covariance is block-diagonal against the rest, so ``v' P v`` splits), ``r``
+    the sum of the part's redundancy numbers (the diagonal of ``(Q_vv P)_ii``)."""
+    from ga_ros.core.quality import quality_control
+
+    red_comp = quality_control(net, res, priors).redundancy_components
+    cov = net.arrays().cov
+    v = res.residuals
+    out = []
+    for p, s in zip(parts, factors):
+        idx = np.nonzero(p.mask)[0]
+        blk = cov[idx][:, p.dims][:, :, p.dims]
+        vb = v[idx][:, p.dims]
+        cost = float(np.einsum('mi,mi->', vb, np.linalg.solve(blk, vb[:, :, None])[:, :, 0]))
+        r = float(red_comp[idx][:, p.dims].sum())
+        est = s * cost / r if r > 0 else 1.0
+        sigma = est * np.sqrt(2.0 / r) if r > 0 else float('inf')
+        out.append(NoiseFactor(p.source, p.part, float(s), float(est), float(sigma), r))
+    return out
+
+
+def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, dt: FloatArray,
+            config: SolverConfig | None, fixed: Sequence[int] | None,
+            priors: Sequence[GaussianPrior], cal: CalibrationConfig
+            ) -> tuple[SolveResult, ConnectionNetwork, CalibrationReport]:
+    """Which parameters are determined and significant, and their estimates (module doc,
+    steps 1-4), with the covariances of ``network``: the adjustment, the corrected network
+    it solved and the report."""
+    arrays = network.arrays()
+    m = len(arrays)
     n_c = len(cand.kinds)
     report = CalibrationReport(
         [AdditionalParameter(s, k, PARAMETERS[k].unit) for s, k in zip(cand.sources, cand.kinds)],
@@ -295,16 +516,18 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
             report.parameters[j].reason = ('no motion it acts on (no translation)'
                                            if cand.kinds[j] == 'scale' else
                                            'no motion it acts on (no durations: stamps?)')
+    solved = [network]
 
     def adjust(T0: FloatArray) -> tuple[SolveResult, FloatArray]:
         Tcorr = corrected_motions(arrays.z, dt, *_per_connection(cand, values, m))
         net = network if not values.any() else ConnectionNetwork.from_arrays(
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
             se3.to_translation_rotvec(Tcorr), arrays.cov)
+        solved[0] = net
         report.solves += 1
         return solve(net, T0, config, fixed=fixed, priors=priors), Tcorr
 
-    res, Tcorr = adjust(np.asarray(T_init, dtype=float))
+    res, Tcorr = adjust(T_init)
 
     def drop(j: int, reason: str) -> None:
         active.remove(j)
@@ -376,4 +599,4 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         if par.estimated:
             par.reason = ''
     report.sigma0_sq = float(res.sigma0_sq)
-    return res, report
+    return res, solved[0], report

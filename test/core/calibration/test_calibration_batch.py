@@ -56,7 +56,7 @@ def test_estimate_matches_joint_least_squares():
     rng = np.random.default_rng(5)
     s = biased_survey(rng, n_nodes=40, scale=0.05, yaw_rate=0.01, fix_every=8)
     res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
-                                      calibration=CalibrationConfig(alpha=1.0 - 1e-9))
+                                      calibration=CalibrationConfig(alpha=1.0 - 1e-9, noise=False))
     assert [p.estimated for p in rep.parameters] == [True, True]
     arr = s.network.arrays()
     Lc = np.array([_whitener(np.linalg.inv(c)) for c in arr.cov])
@@ -153,3 +153,48 @@ def test_no_durations_no_yaw_rate_and_cross_connections_excluded():
         solve_with_calibration(s.network, s.T_dead, sources[:-1], s.dt_s, priors=s.priors)
     with pytest.raises(InputError):
         CalibrationConfig(parameters=('offset',))
+
+
+@pytest.mark.parametrize('seed', [21, 22, 23])
+def test_calibrated_source_noise_reestimated(seed):
+    """A yaw-rate bias on odometry whose stated yaw sigma is 4x the true one (the stated
+    covariance allowed for the bias as white noise): after calibration the rotation's stated
+    covariance fails its chi-square test and its variance factor comes out within 3 of its
+    sigmas of the truth 1/16; the translation's (stated truly) passes and is kept; the
+    re-estimated weights give a better path than the stated ones."""
+    s = biased_survey(np.random.default_rng(seed), n_nodes=300, yaw_rate=0.004, fix_every=3,
+                      fix_sigma_m=0.05, sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
+    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors)
+    est = {p.name: p for p in rep.parameters}
+    assert est['yaw_rate'].estimated, rep.lines()
+    assert abs(est['yaw_rate'].value - 0.004) < 4 * est['yaw_rate'].sigma
+    noise = {f.part: f for f in rep.noise}
+    assert set(noise) == {'translation', 'rotation'}, rep.lines()
+    rot, tra = noise['rotation'], noise['translation']
+    assert rot.applied and abs(rot.factor / rot.estimate - 1) < 0.02, rep.lines()
+    assert abs(rot.factor - 1 / 16) < 3 * rot.sigma, rep.lines()
+    assert rot.sigma < 1 / 16, rep.lines()  # determined, not just consistent with the truth
+    assert rot.stated_ratio < rot.quantiles[0]
+    assert not tra.applied and tra.factor == 1.0, rep.lines()
+    assert tra.quantiles[0] <= tra.stated_ratio <= tra.quantiles[1]
+    stated = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                    calibration=CalibrationConfig(noise=False))[0]
+
+    def rmse(T):
+        return np.sqrt(np.mean(np.sum((T[:, :2, 3] - s.T_true[:, :2, 3]) ** 2, axis=1)))
+
+    assert rmse(res.T_world_node) < rmse(stated.T_world_node)
+    assert rep.as_dict()['noise'][0]['part'] in ('translation', 'rotation')
+
+
+def test_no_parameter_no_noise_reestimation():
+    """Without a significant parameter the stated covariances stand: the result is the plain
+    adjustment's (to its convergence; the selection re-solves from its last estimate) and no
+    noise factor is reported."""
+    s = biased_survey(np.random.default_rng(31), n_nodes=150, fix_every=10,
+                      sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
+    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors)
+    assert not rep.estimated() and rep.noise == []
+    plain = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                   calibration=CalibrationConfig(parameters=()))[0]
+    np.testing.assert_allclose(res.T_world_node, plain.T_world_node, rtol=0, atol=1e-6)
