@@ -58,6 +58,31 @@ def test_refinement_equals_a_batch_solve_of_the_snapshot():
                                atol=1e-8 * np.abs(cov_ref).max())
 
 
+def test_refinement_covariances_by_selected_inversion_equal_the_solver_s_own(monkeypatch):
+    """The frozen nodes' covariances come from selected inversion on the batch factor whatever
+    the horizon's size; they equal those of ``SolveResult.covariance`` (here its banded
+    selected inversion, below 12,000 unknowns) of the same solve to rounding."""
+    import ga_ros.core.window.freeze as freeze_mod
+    import ga_ros.core.window.refinement as refinement_mod
+
+    sc, nm, ms = _survey()
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_relinearize_sigma=0.0), sc, ms)
+    snap = al.handoff.snapshot()
+    assert snap.frozen.sum() > freeze_mod.TRAILING_MIN_NODES  # not the few-nodes path
+    used = []
+    selected = freeze_mod._selected_marginals
+    monkeypatch.setattr(freeze_mod, '_selected_marginals',
+                        lambda sysm, cols: used.append(cols.size) or selected(sysm, cols))
+    res = refine_snapshot(snap)
+    assert res.ok and used == [int(snap.frozen[1:].sum())]  # every frozen node but the datum
+    monkeypatch.setattr(refinement_mod, 'marginal_covariances',
+                        lambda r, ids, banded=False: r.covariance(ids))
+    ref = refine_snapshot(snap)
+    np.testing.assert_array_equal(res.T_world_node, ref.T_world_node)
+    scale = np.abs(ref.frozen_cov).max()
+    np.testing.assert_allclose(res.frozen_cov, ref.frozen_cov, rtol=1e-9, atol=1e-12 * scale)
+
+
 def test_tangent_prior_has_the_requested_gradient_and_normal_matrix():
     """The solver's own linearisation of the prior (``models.prior_residual``: position and
     rotation apart) at ``T_lin`` must give back ``u = g`` and ``N = H``, also for shifts of
