@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
@@ -337,9 +337,12 @@ class TrackWindowAligner:
         finished = st.finished_order()
         window = finished[-self.config.window_tracks:]
         leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
-        plans = [self._freeze(t) for t in leaving]
+        # a freeze's prior may be left to the refinement installed now (it replaces every
+        # prior); only the last freeze's, the earlier ones' are merged by the next freeze
+        plans = [self._freeze(t, defer=k == len(leaving) - 1) for k, t in enumerate(leaving)]
         installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
+        self._deferred_priors(plans, self.handoff.n_refinements > installed)
         self._deferred_covariances(plans, self.handoff.n_refinements > installed)
         prev_weighted = st.T_weighted
         try:
@@ -460,15 +463,19 @@ class TrackWindowAligner:
         return self._last()
 
     # ---------------------------------------------------------------------- freezing
-    def _freeze(self, track: int) -> FreezePlan:
+    def _freeze(self, track: int, defer: bool = False) -> FreezePlan:
         """Freeze a track leaving the window, using the last adjustment's estimate (the plan
-        computed ahead in the background if it still applies, else computed now)."""
+        computed ahead in the background if it still applies, else computed now). ``defer``:
+        a prior the plan left uncomputed (a refinement due now replaces it) stays so, for
+        :meth:`_deferred_priors`; otherwise it is computed here."""
         plan = self.ahead.take(track)
         if plan is None:
             st = self.state
             plan = self._plan_freeze(track, self._last(), st.last_window, st.priors,
                                      len(st.ids), st.src.n,
                                      not self._refinement_due(len(st.finished)))
+        if plan.later_prior is not None and not defer:
+            plan = replace(plan, prior=plan.later_prior(), later_prior=None)
         install_freeze(self.state, plan)
         return plan
 
@@ -477,7 +484,8 @@ class TrackWindowAligner:
         """The freeze of ``track`` under the configured policy
         (:meth:`FreezePolicy.plan <ga_ros.core.window.freeze.FreezePolicy.plan>`); changes
         nothing (it may run in the background thread of :attr:`ahead`). ``covariances=False``:
-        the leaving nodes' covariances are left to :meth:`_deferred_covariances`."""
+        the leaving nodes' covariances and the new prior are left to
+        :meth:`_deferred_covariances` and :meth:`_deferred_priors`."""
         cfg = self.config
         # the last window's connections' terms, weighted as the window weighted them
         st, kept, factors = self.state, self.updater.terms, self.updater.weight_factors
@@ -494,6 +502,17 @@ class TrackWindowAligner:
         need not compute them."""
         due = self.handoff.refiner.pending_due
         return due is not None and due <= n_finished
+
+    def _deferred_priors(self, plans: list[FreezePlan], installed: bool) -> None:
+        """The joint priors the freezes ``plans`` left uncomputed: nothing if a refinement
+        was ``installed`` (its rebuilt priors replaced every prior, this freeze's absorbed terms
+        included), else computed now and added where :func:`install_freeze
+        <ga_ros.core.window.freeze.install_freeze>` would have put them (the last of the
+        priors: only the update's last freeze defers), from the same rows and merged priors
+        (the hand-off that did not install changed nothing)."""
+        for plan in plans:
+            if plan.later_prior is not None and not installed:
+                self.state.priors.append(plan.later_prior())
 
     def _deferred_covariances(self, plans: list[FreezePlan], installed: bool) -> None:
         """The covariances the freezes ``plans`` left uncomputed (a refinement was due to
