@@ -201,8 +201,10 @@ def test_refining_window_is_exact_in_the_linear_limit(policy, lag):
     assert checked, 'no refinement was installed'
 
 
+@pytest.mark.parametrize('policy', ['weighted', 'marginal'])
 @pytest.mark.parametrize('installs', [True, False])
-def test_a_freeze_leaves_its_prior_to_the_refinement_installed_with_it(monkeypatch, installs):
+def test_a_freeze_leaves_its_prior_to_the_refinement_installed_with_it(monkeypatch, installs,
+                                                                      policy):
     """A freeze at an update that installs a refinement does not compute its joint prior (the
     refinement replaces every prior); if the hand-off does not install, the prior is computed
     then, so the state is bit for bit that of freezes that always compute it."""
@@ -233,7 +235,7 @@ def test_a_freeze_leaves_its_prior_to_the_refinement_installed_with_it(monkeypat
                                 lambda self, n: False)
         computed.clear()
         late.clear()
-        al, ups = _run(_refining(), sc, ms)
+        al, ups = _run(_refining(policy), sc, ms)
         al.close()  # the freeze ahead after the last update (never installed) done
         refined = [u for u in ups if u.refined_after_tracks >= 0]
         assert refined and all(u.refine_reason.startswith('not installed') != installs
