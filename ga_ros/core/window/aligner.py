@@ -338,8 +338,12 @@ class TrackWindowAligner:
         window = finished[-self.config.window_tracks:]
         leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
         # a freeze's prior may be left to the refinement installed now (it replaces every
-        # prior); only the last freeze's, the earlier ones' are merged by the next freeze
-        plans = [self._freeze(t, defer=k == len(leaving) - 1) for k, t in enumerate(leaving)]
+        # prior); only the last freeze's: the next freeze reads the priors
+        plans: list[FreezePlan] = []
+        for t in leaving:
+            if plans:
+                plans[-1] = self._prior_now(plans[-1])
+            plans.append(self._freeze(t))
         installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
         self._deferred_priors(plans, self.handoff.n_refinements > installed)
@@ -463,21 +467,29 @@ class TrackWindowAligner:
         return self._last()
 
     # ---------------------------------------------------------------------- freezing
-    def _freeze(self, track: int, defer: bool = False) -> FreezePlan:
+    def _freeze(self, track: int) -> FreezePlan:
         """Freeze a track leaving the window, using the last adjustment's estimate (the plan
-        computed ahead in the background if it still applies, else computed now). ``defer``:
-        a prior the plan left uncomputed (a refinement due now replaces it) stays so, for
-        :meth:`_deferred_priors`; otherwise it is computed here."""
+        computed ahead in the background if it still applies, else computed now). A prior the
+        plan left uncomputed (a refinement due now replaces it) is left to
+        :meth:`_deferred_priors` (or :meth:`_prior_now`)."""
         plan = self.ahead.take(track)
         if plan is None:
             st = self.state
             plan = self._plan_freeze(track, self._last(), st.last_window, st.priors,
                                      len(st.ids), st.src.n,
                                      not self._refinement_due(len(st.finished)))
-        if plan.later_prior is not None and not defer:
-            plan = replace(plan, prior=plan.later_prior(), later_prior=None)
         install_freeze(self.state, plan)
         return plan
+
+    def _prior_now(self, plan: FreezePlan) -> FreezePlan:
+        """``plan`` with the prior it left uncomputed computed and added to the priors where
+        :func:`~ga_ros.core.window.freeze.install_freeze` would have put it (nothing changed
+        them since: called right after it)."""
+        if plan.later_prior is None:
+            return plan
+        prior = plan.later_prior()
+        self.state.priors.append(prior)
+        return replace(plan, prior=prior, later_prior=None)
 
     def _plan_freeze(self, track: int, res: SolveResult | None, last_window: IntArray,
                      priors: list, n: int, nc: int, covariances: bool = True) -> FreezePlan:
@@ -510,9 +522,9 @@ class TrackWindowAligner:
         <ga_ros.core.window.freeze.install_freeze>` would have put them (the last of the
         priors: only the update's last freeze defers), from the same rows and merged priors
         (the hand-off that did not install changed nothing)."""
-        for plan in plans:
-            if plan.later_prior is not None and not installed:
-                self.state.priors.append(plan.later_prior())
+        if not installed:
+            for plan in plans:
+                self._prior_now(plan)
 
     def _deferred_covariances(self, plans: list[FreezePlan], installed: bool) -> None:
         """The covariances the freezes ``plans`` left uncomputed (a refinement was due to

@@ -178,11 +178,13 @@ class FreezePolicy:
         # the new prior first: a covariance asked for right after an update (the node's newest
         # pose) factors the last adjustment's system meanwhile, and the selected inversion
         # below then reuses that factorisation
-        absorbed, dropped, later_prior = self.absorption(state, nodes, priors, n, nc, band,
-                                                         hubs, terms)
-        prior = later_prior() if covariances and later_prior is not None else None
-        if prior is not None or covariances:
-            later_prior = None
+        later_prior = prior = None
+        if covariances:
+            absorbed, dropped, prior = self.marginalise(state, nodes, priors, n, nc, band, hubs,
+                                                        terms)
+        else:  # the refinement installed with this freeze replaces every prior
+            absorbed, dropped, later_prior = self.absorption(state, nodes, priors, n, nc, band,
+                                                             hubs, terms)
         cov_rows, cov = np.zeros(0, np.int64), np.zeros((0, 6, 6))
         if res is not None:
             inside = nodes[np.isin(nodes, last_window)]
