@@ -16,7 +16,7 @@ import os
 import threading
 import time
 import traceback
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
@@ -386,9 +386,16 @@ class TrackWindowAligner:
         finished = st.finished_order()
         window = finished[-self.config.window_tracks:]
         leaving = st.unfrozen_tail(finished[:-self.config.window_tracks])
-        plans = [self._freeze(t) for t in leaving]
+        # a freeze's prior may be left to the refinement installed now (it replaces every
+        # prior); only the last freeze's: the next freeze reads the priors
+        plans: list[FreezePlan] = []
+        for t in leaving:
+            if plans:
+                plans[-1] = self._prior_now(plans[-1])
+            plans.append(self._freeze(t))
         installed = self.handoff.n_refinements
         refined = self.handoff.install_due()  # refinement due now (replaces the priors)
+        self._deferred_priors(plans, self.handoff.n_refinements > installed)
         self._deferred_covariances(plans, self.handoff.n_refinements > installed)
         prev_weighted = st.T_weighted
         try:
@@ -514,7 +521,9 @@ class TrackWindowAligner:
     # ---------------------------------------------------------------------- freezing
     def _freeze(self, track: int) -> FreezePlan:
         """Freeze a track leaving the window, using the last adjustment's estimate (the plan
-        computed ahead in the background if it still applies, else computed now)."""
+        computed ahead in the background if it still applies, else computed now). A prior the
+        plan left uncomputed (a refinement due now replaces it) is left to
+        :meth:`_deferred_priors` (or :meth:`_prior_now`)."""
         plan = self.ahead.take(track)
         if plan is None:
             st = self.state
@@ -524,12 +533,23 @@ class TrackWindowAligner:
         install_freeze(self.state, plan)
         return plan
 
+    def _prior_now(self, plan: FreezePlan) -> FreezePlan:
+        """``plan`` with the prior it left uncomputed computed and added to the priors where
+        :func:`~ga_ros.core.window.freeze.install_freeze` would have put it (nothing changed
+        them since: called right after it)."""
+        if plan.later_prior is None:
+            return plan
+        prior = plan.later_prior()
+        self.state.priors.append(prior)
+        return replace(plan, prior=prior, later_prior=None)
+
     def _plan_freeze(self, track: int, res: SolveResult | None, last_window: IntArray,
                      priors: list, n: int, nc: int, covariances: bool = True) -> FreezePlan:
         """The freeze of ``track`` under the configured policy
         (:meth:`FreezePolicy.plan <ga_ros.core.window.freeze.FreezePolicy.plan>`); changes
         nothing (it may run in the background thread of :attr:`ahead`). ``covariances=False``:
-        the leaving nodes' covariances are left to :meth:`_deferred_covariances`."""
+        the leaving nodes' covariances and the new prior are left to
+        :meth:`_deferred_covariances` and :meth:`_deferred_priors`."""
         cfg = self.config
         # the last window's connections' terms, weighted as the window weighted them
         st, kept, factors = self.state, self.updater.terms, self.updater.weight_factors
@@ -546,6 +566,17 @@ class TrackWindowAligner:
         need not compute them."""
         due = self.handoff.refiner.pending_due
         return due is not None and due <= n_finished
+
+    def _deferred_priors(self, plans: list[FreezePlan], installed: bool) -> None:
+        """The joint priors the freezes ``plans`` left uncomputed: nothing if a refinement
+        was ``installed`` (its rebuilt priors replaced every prior, this freeze's absorbed terms
+        included), else computed now and added where :func:`install_freeze
+        <ga_ros.core.window.freeze.install_freeze>` would have put them (the last of the
+        priors: only the update's last freeze defers), from the same rows and merged priors
+        (the hand-off that did not install changed nothing)."""
+        if not installed:
+            for plan in plans:
+                self._prior_now(plan)
 
     def _deferred_covariances(self, plans: list[FreezePlan], installed: bool) -> None:
         """The covariances the freezes ``plans`` left uncomputed (a refinement was due to

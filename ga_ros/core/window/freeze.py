@@ -100,9 +100,13 @@ class FreezePlan:
         (``None``: not computed, left to the installer, see ``covariances``).
     absorbed : connection rows absorbed into the new prior (status 1 from now on).
     dropped : indices (into the aligner's list of priors) of the priors merged into it.
-    prior : the new joint prior (``None``: no node kept, the absorbed terms vanish).
+    prior : the new joint prior (``None``: no node kept, the absorbed terms vanish, or not
+        computed yet: see ``later_prior``).
     covariances : when ``cov`` is ``None``, computes those blocks (from the last adjustment's
         factor, which must not have changed since).
+    later_prior : when not ``None``, computes ``prior`` (left to the installer, like ``cov``:
+        a refinement installed by the same update replaces every prior); it reads the tables
+        rows of the plan and the priors it merges, which must not have changed since.
     """
 
     track: int
@@ -113,6 +117,7 @@ class FreezePlan:
     dropped: tuple[int, ...]
     prior: JointPrior | None
     covariances: Callable[[], FloatArray] | None = None
+    later_prior: Callable[[], JointPrior | None] | None = None
 
 
 #: ``terms(rows)``: the covariances, weights and measured motions of connection rows, as
@@ -164,15 +169,22 @@ class FreezePolicy:
         ``res``'s factor (shared with the covariance queries). ``covariances=False``: the leaving
         nodes' marginal covariances are not computed (``plan.cov`` is ``None``) but left to
         ``plan.covariances`` (for a freeze whose covariances a refinement installed with it
-        replaces). ``terms``: the absorbed connections' covariances, weights and measured
-        motions (:data:`ConnectionTermsOf`: the last window's, which held them), else
-        computed here."""
+        replaces); the new prior is then not computed either (``plan.prior`` is ``None``, left
+        to ``plan.later_prior``: that refinement replaces every prior). ``terms``: the
+        absorbed connections' covariances, weights and measured motions
+        (:data:`ConnectionTermsOf`: the last window's, which held them), else computed
+        here."""
         nodes = np.array(state.track_nodes[track], dtype=np.int64)
         # the new prior first: a covariance asked for right after an update (the node's newest
         # pose) factors the last adjustment's system meanwhile, and the selected inversion
         # below then reuses that factorisation
-        absorbed, dropped, prior = self.marginalise(state, nodes, priors, n, nc, band, hubs,
-                                                    terms)
+        later_prior = prior = None
+        if covariances:
+            absorbed, dropped, prior = self.marginalise(state, nodes, priors, n, nc, band, hubs,
+                                                        terms)
+        else:  # the refinement installed with this freeze replaces every prior
+            absorbed, dropped, later_prior = self.absorption(state, nodes, priors, n, nc, band,
+                                                             hubs, terms)
         cov_rows, cov = np.zeros(0, np.int64), np.zeros((0, 6, 6))
         if res is not None:
             inside = nodes[np.isin(nodes, last_window)]
@@ -186,12 +198,20 @@ class FreezePolicy:
                     cov_rows = inside[sel]
                     if cov is None:
                         return FreezePlan(int(track), nodes, cov_rows, None, absorbed, dropped,
-                                          prior, later)
-        return FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior)
+                                          prior, later, later_prior)
+        return FreezePlan(int(track), nodes, cov_rows, cov, absorbed, dropped, prior,
+                          later_prior=later_prior)
 
     def marginalise(self, state: WindowState, L: IntArray, priors: list, n: int, nc: int,
                     band: int, hubs: int, terms: ConnectionTermsOf | None = None
                     ) -> tuple[IntArray, tuple[int, ...], JointPrior | None]:
+        """:meth:`absorption` with the new prior computed."""
+        conns, dropped, prior = self.absorption(state, L, priors, n, nc, band, hubs, terms)
+        return conns, dropped, None if prior is None else prior()
+
+    def absorption(self, state: WindowState, L: IntArray, priors: list, n: int, nc: int,
+                   band: int, hubs: int, terms: ConnectionTermsOf | None = None
+                   ) -> tuple[IntArray, tuple[int, ...], Callable[[], JointPrior] | None]:
         """Absorb the terms of the leaving nodes ``L`` (rows of ``state``) into one joint Gaussian
         prior.
 
@@ -204,8 +224,9 @@ class FreezePolicy:
         both, so the prior is the exact marginal in the linear limit and covariances are not
         overconfident. Priors (of ``priors``) that share nodes with the absorbed terms are
         merged in. Returns the absorbed connection rows, the indices of the merged priors and
-        the new prior (``None`` if no node is kept); changes nothing. ``terms``: as in
-        :meth:`plan`.
+        a function that computes the new prior (``None`` if no node is kept: there is none);
+        changes nothing. The function reads the rows below ``n`` of ``state`` and the merged
+        priors' values, which it holds. ``terms``: as in :meth:`plan`.
         """
         src, dst, status0 = state.src.a[:nc], state.dst.a[:nc], state.status.a[:nc]
         in_L = np.zeros(n, dtype=bool)
@@ -241,23 +262,39 @@ class FreezePolicy:
         datum = bool(((src[conns] == 0) | (dst[conns] == 0)).any()) and not free_datum
         net_nodes = np.concatenate([[0], allnodes]) if datum else allnodes
         fixed = [ids[0]] if datum else []
-        T = state.T  # rows below n: not changed by adding measurements
-        if terms is None:
-            net = state.subnetwork(net_nodes, conns)
-            N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
-        else:  # the same values as computing them (each depends on its measurement only)
-            kept = terms(conns)
-            net = state.subnetwork(net_nodes, conns, kept.cov)
-            N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged,
-                                              kept.weights, (kept.T_meas, kept.T_meas_inv))
-        row_of = dict(zip(ids[net_nodes].tolist(), net_nodes.tolist()))
-        free_idx = np.array([row_of[int(i)] for i in free_ids], dtype=np.int64)
-        kept = keep[free_idx]
-        if not kept.any():
+        # the free nodes of the absorbed terms are ``allnodes`` (the datum, if among them,
+        # is fixed and was left out): no node kept, no prior
+        if not keep[allnodes].any():
             return conns, dropped, None
-        p = marginal_prior(free_idx, N, u, kept, T[free_idx[kept]], int(band), int(hubs),
-                           coords=T[free_idx, :3, 3])
-        return conns, dropped, JointPrior.absorbed(p)
+
+        return conns, dropped, partial(new_prior, state, net_nodes, conns, fixed, merged, terms,
+                                       keep, int(band), int(hubs))
+
+
+def new_prior(state: WindowState, net_nodes: IntArray, conns: IntArray, fixed: list,
+              merged: list[GaussianPrior], terms: ConnectionTermsOf | None, keep: BoolArray,
+              band: int, hubs: int) -> JointPrior:
+    """The joint prior of the absorbed connections ``conns`` and the priors ``merged`` over the
+    nodes ``net_nodes`` (rows of ``state``, ``fixed`` the datum's id if held), on the nodes
+    flagged in ``keep`` (the others eliminated), linearised at ``state.T``
+    (:meth:`FreezePolicy.absorption`)."""
+    ids = state.idarr.a
+    T = state.T  # the rows of the plan: not changed by adding measurements
+    if terms is None:
+        net = state.subnetwork(net_nodes, conns)
+        N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged)
+    else:  # the same values as computing them (each depends on its measurement only)
+        kept_terms = terms(conns)
+        net = state.subnetwork(net_nodes, conns, kept_terms.cov)
+        N, free_ids, u = normal_matrix_at(net, T[net_nodes], 'se3', fixed, merged,
+                                          kept_terms.weights,
+                                          (kept_terms.T_meas, kept_terms.T_meas_inv))
+    row_of = dict(zip(ids[net_nodes].tolist(), net_nodes.tolist()))
+    free_idx = np.array([row_of[int(i)] for i in free_ids], dtype=np.int64)
+    kept = keep[free_idx]
+    p = marginal_prior(free_idx, N, u, kept, T[free_idx[kept]], band, hubs,
+                       coords=T[free_idx, :3, 3])
+    return JointPrior.absorbed(p)
 
 
 class WeightedFreeze(FreezePolicy):

@@ -76,7 +76,7 @@ from ga_ros.core.window.elimination import (
     retirable_tracks,
     retire_tracks,
 )
-from ga_ros.core.window.freeze import AbsorbedPrior, freeze_policy
+from ga_ros.core.window.freeze import AbsorbedPrior, freeze_policy, marginal_covariances
 from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot
 from ga_ros.core.window.storage import unpack_sym6
 from ga_ros.errors import GaError
@@ -119,7 +119,10 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             cov = np.zeros((frozen.size, 6, 6))
             free = frozen != 0 if snap.datum else np.ones(frozen.size, dtype=bool)
             if free.any():
-                cov[free] = res.covariance(snap.node_ids[frozen[free]])
+                # by selected inversion on the batch factor whatever the horizon's size (the
+                # rebuilt priors load the compiled kernels anyway); without them, as
+                # SolveResult.covariance (banded=True: not a dense trailing block)
+                cov[free] = marginal_covariances(res, snap.node_ids[frozen[free]], banded=True)
             priors, steps = eliminate_absorbed(snap, res.T_world_node)
             retired = retirable_tracks(snap)
             past = retire_tracks(snap, res.T_world_node, retired) if retired else snap.past

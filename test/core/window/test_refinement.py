@@ -58,6 +58,31 @@ def test_refinement_equals_a_batch_solve_of_the_snapshot():
                                atol=1e-8 * np.abs(cov_ref).max())
 
 
+def test_refinement_covariances_by_selected_inversion_equal_the_solver_s_own(monkeypatch):
+    """The frozen nodes' covariances come from selected inversion on the batch factor whatever
+    the horizon's size; they equal those of ``SolveResult.covariance`` (here its banded
+    selected inversion, below 12,000 unknowns) of the same solve to rounding."""
+    import ga_ros.core.window.freeze as freeze_mod
+    import ga_ros.core.window.refinement as refinement_mod
+
+    sc, nm, ms = _survey()
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_relinearize_sigma=0.0), sc, ms)
+    snap = al.handoff.snapshot()
+    assert snap.frozen.sum() > freeze_mod.TRAILING_MIN_NODES  # not the few-nodes path
+    used = []
+    selected = freeze_mod._selected_marginals
+    monkeypatch.setattr(freeze_mod, '_selected_marginals',
+                        lambda sysm, cols: used.append(cols.size) or selected(sysm, cols))
+    res = refine_snapshot(snap)
+    assert res.ok and used == [int(snap.frozen[1:].sum())]  # every frozen node but the datum
+    monkeypatch.setattr(refinement_mod, 'marginal_covariances',
+                        lambda r, ids, banded=False: r.covariance(ids))
+    ref = refine_snapshot(snap)
+    np.testing.assert_array_equal(res.T_world_node, ref.T_world_node)
+    scale = np.abs(ref.frozen_cov).max()
+    np.testing.assert_allclose(res.frozen_cov, ref.frozen_cov, rtol=1e-9, atol=1e-12 * scale)
+
+
 def test_tangent_prior_has_the_requested_gradient_and_normal_matrix():
     """The solver's own linearisation of the prior (``models.prior_residual``: position and
     rotation apart) at ``T_lin`` must give back ``u = g`` and ``N = H``, also for shifts of
@@ -174,6 +199,65 @@ def test_refining_window_is_exact_in_the_linear_limit(policy, lag):
                           >= np.diagonal(cov_ref, axis1=1, axis2=2) * (1 - 1e-3))
             checked.append(up.track_id)
     assert checked, 'no refinement was installed'
+
+
+@pytest.mark.parametrize('policy', ['weighted', 'marginal'])
+@pytest.mark.parametrize('installs', [True, False])
+def test_a_freeze_leaves_its_prior_to_the_refinement_installed_with_it(monkeypatch, installs,
+                                                                      policy):
+    """A freeze at an update that installs a refinement does not compute its joint prior (the
+    refinement replaces every prior); if the hand-off does not install, the prior is computed
+    then, so the state is bit for bit that of freezes that always compute it."""
+    import ga_ros.core.window.aligner as aligner_mod
+    import ga_ros.core.window.freeze as freeze_mod
+
+    sc, nm, ms = _survey(n_tracks=6, per_swath=8)
+    if not installs:
+        def refuse(self, snap, res):
+            raise InputError('the frozen nodes or absorbed connections changed (test)')
+        monkeypatch.setattr(RefinementHandoff, 'install', refuse)
+    computed, late = [], []
+    new_prior = freeze_mod.new_prior
+    monkeypatch.setattr(freeze_mod, 'new_prior',
+                        lambda *a: computed.append(1) or new_prior(*a))
+    deferred_priors = aligner_mod.TrackWindowAligner._deferred_priors
+
+    def count_late(self, plans, installed):
+        before = len(computed)
+        deferred_priors(self, plans, installed)
+        late.append(len(computed) - before)
+
+    monkeypatch.setattr(aligner_mod.TrackWindowAligner, '_deferred_priors', count_late)
+    states = []
+    for always in (False, True):
+        if always:  # freezes that never leave anything to the refinement
+            monkeypatch.setattr(aligner_mod.TrackWindowAligner, '_refinement_due',
+                                lambda self, n: False)
+        computed.clear()
+        late.clear()
+        al, ups = _run(_refining(policy), sc, ms)
+        al.close()  # the freeze ahead after the last update (never installed) done
+        refined = [u for u in ups if u.refined_after_tracks >= 0]
+        assert refined and all(u.refine_reason.startswith('not installed') != installs
+                               for u in refined), [u.refine_reason for u in refined]
+        st = al.state
+        n = len(st.ids)
+        states.append((len(computed) - sum(late), st.T[:n].copy(), st.cov[:n].copy(),
+                       st.status.a.copy(),
+                       [(p[0].copy(), p[1].copy(), p[2].toarray() if hasattr(p[2], 'toarray')
+                         else np.array(p[2])) for p in st.priors], sum(late)))
+    (n_deferred, *deferred, n_late), (n_always, *always_, n_late_always) = states
+    assert n_late_always == 0
+    if installs:  # the installing updates' freezes computed none, not even later
+        assert n_late == 0 and n_deferred < n_always
+    else:  # computed when the hand-off did not install
+        assert n_late > 0
+    for a, b in zip(deferred[:3], always_[:3]):
+        np.testing.assert_array_equal(a, b)
+    assert len(deferred[3]) == len(always_[3])
+    for pa, pb in zip(deferred[3], always_[3]):
+        for x, y in zip(pa, pb):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_refinement_closes_most_of_the_gap_to_batch():
