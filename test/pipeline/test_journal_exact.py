@@ -296,3 +296,49 @@ def test_an_older_snapshot_without_the_last_adjustment_is_still_read(tmp_path):
     assert not np.array_equal(got, want)
     back.close()
     live.close()
+
+
+#: The tracks whose window update fails in :func:`test_failed_updates_are_counted_across_
+#: recoveries` (a failure of the data: a replay of the journal fails them again).
+FAILING_TRACKS = (3, 7)
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
+def test_failed_updates_are_counted_across_recoveries(tmp_path, monkeypatch, compact, mode):
+    """Window updates that fail (here those of tracks 3 and 7, whatever their window) are part
+    of the state: recovered at any cut from the journal alone, its compacted base or the
+    snapshot, the count of failed updates and the last one's traceback are the uninterrupted
+    run's (in the state compared bit for bit, the aligner's stats and the diagnostics), and the
+    end too."""
+    from ga_ros.core.window.update import WindowUpdate
+
+    real = WindowUpdate.adjust
+
+    def adjust(self, window_tracks, track, *args, **kwargs):
+        if track in FAILING_TRACKS:
+            raise np.linalg.LinAlgError(f'injected failure of the update of track {track}')
+        return real(self, window_tracks, track, *args, **kwargs)
+
+    monkeypatch.setattr(WindowUpdate, 'adjust', adjust)
+    cfg = CONFIGS['no_refinement']
+    entries = survey()
+    finish_after = _finish_after(entries)
+    live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
+                                               compact_records=compact))
+    live.resume()
+    cuts = _cuts(live, entries, finish_after, tmp_path)
+    assert live.aligner.n_failed_updates == len(FAILING_TRACKS)
+    assert 'injected failure of the update of track 7' in live.aligner.last_failure
+    counts = [c.state[0]['n_failed_updates'] for c in cuts]
+    assert 0 < min(counts[1:]) and min(counts) < max(counts) == len(FAILING_TRACKS), counts
+    for cut, count in zip(cuts, counts):
+        s = _resumed(cut.folder, cfg, compact, mode)
+        try:
+            assert s.aligner.stats.n_failed_updates == count, cut.name
+            assert s.diagnostic_values()['failed_updates'] == count, cut.name
+            assert s.aligner.last_failure == cut.state[0]['last_failure'], cut.name
+        finally:
+            s.close()
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
+    live.close()

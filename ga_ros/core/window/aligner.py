@@ -57,7 +57,7 @@ from ga_ros.core.window.freeze_ahead import FreezeAhead
 from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.core.window.queries import covariance, covariances
 from ga_ros.core.window.refinement import absorbed_priors
-from ga_ros.core.window.state import Rollback, WindowState, no_weighted
+from ga_ros.core.window.state import LAST_FAILURE_CHARS, Rollback, WindowState, no_weighted
 from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_terms
 from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
@@ -154,8 +154,6 @@ class TrackWindowAligner:
         self._factor_lock = threading.Lock()
         self._last_update: UpdateResult | None = None
         self._factor_step = 0.0  # the last adjustment's change of the variance factors
-        self.n_failed_updates = 0
-        self.last_failure = ''
         self.strict = strict_updates_from_env()
         vcfg = self.config.online_variance_config()
         self.online_variance: OnlineVarianceComponents | None = None
@@ -333,14 +331,15 @@ class TrackWindowAligner:
                     self.ahead.drop()
                 return up
             error = up.reason[len('failed: '):]
-            self.last_failure = error
+            trace = error
             bug = None
         except Exception as exc:  # noqa: BLE001 - a failed update must not end the survey
             error = f'{type(exc).__name__}: {exc}'
-            self.last_failure = ''.join(traceback.format_exception(exc)).rstrip()
+            trace = ''.join(traceback.format_exception(exc)).rstrip()
             bug = None if isinstance(exc, NUMERICAL_FAILURES) else exc
-        self.n_failed_updates += 1
         saved.restore(st)
+        st.n_failed_updates += 1
+        st.last_failure = trace[-LAST_FAILURE_CHARS:]
         st.fixes.restore(fix_state)
         self.handoff.smoothing = None  # of a refinement installed by the failed update
         st.finished.add(track)
@@ -655,6 +654,18 @@ class TrackWindowAligner:
         """The track being received (``None`` if none, or if it has finished)."""
         st = self.state
         return None if st.open_track in st.finished else st.open_track
+
+    @property
+    def n_failed_updates(self) -> int:
+        """Window updates that failed over the whole survey (:meth:`finish_track`), kept in
+        the state: a restart from the snapshot or the journal continues the count."""
+        return self.state.n_failed_updates
+
+    @property
+    def last_failure(self) -> str:
+        """The last failed update's exception and traceback (its last
+        :data:`~ga_ros.core.window.state.LAST_FAILURE_CHARS` characters; ``''`` if none)."""
+        return self.state.last_failure
 
     @property
     def stats(self) -> AlignerStats:

@@ -337,8 +337,9 @@ class AlignerStats:
 
     ``n_updates`` counts the window updates, failed ones included; ``n_failed_updates`` those
     that failed (state put back, see :meth:`TrackWindowAligner.finish_track
-    <ga_ros.core.window.aligner.TrackWindowAligner.finish_track>`) since the aligner object was
-    made; ``last_failure`` the last one's exception and traceback (``''`` if none).
+    <ga_ros.core.window.aligner.TrackWindowAligner.finish_track>`) over the whole survey (kept
+    in the state: restarts from the snapshot or the journal included); ``last_failure`` the
+    last one's exception and traceback (``''`` if none).
     """
 
     n_nodes: int

@@ -222,6 +222,7 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         'open_track': None if st.open_track is None else int(st.open_track),
         'rejected': {str(k): int(v) for k, v in st.rejected.items()},
         'n_updates': int(st.n_updates), 'n_outliers': int(st.n_outliers),
+        'n_failed_updates': int(st.n_failed_updates), 'last_failure': str(st.last_failure),
         'refine_retired': int(st.retired), 'refine_drift': float(st.refine_drift),
     }
     fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
@@ -432,6 +433,8 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])
+    st.n_failed_updates = int(meta.get('n_failed_updates', 0))  # older files: not kept
+    st.last_failure = str(meta.get('last_failure', ''))
     if 'last_adjustment' in meta:  # the last adjustment as it was
         st.last_window = np.array(arrays['last_window'], dtype=np.int64)
         st.last_result = result_of_arrays(meta['last_adjustment'], {

@@ -34,6 +34,10 @@ from ga_ros.core.window.storage import (
     grow_rows,
 )
 
+#: Characters of a failed update's traceback the state keeps (:attr:`WindowState.last_failure`;
+#: its end: the exception and the innermost frames).
+LAST_FAILURE_CHARS = 4000
+
 
 def no_weighted() -> tuple[IntArray, FloatArray]:
     """No frozen node adjusted as a weighted parameter: ``(node rows (0,), poses (0, 4, 4))``
@@ -70,6 +74,10 @@ class WindowState:
     T_weighted : the last adjustment's estimate of the frozen nodes it adjusted as weighted
         parameters ``(node rows (k,), (k, 4, 4))``: where the next update starts them.
     rejected : rejected measurements by reason; n_updates, n_outliers : counters.
+    n_failed_updates : window updates that failed (state put back) over the whole survey,
+        restarts included (saved; a replay of the journal fails them again);
+        last_failure : the last one's exception and traceback, its last
+        :data:`LAST_FAILURE_CHARS` characters (``''`` if none).
     retired : finished tracks that left the bounded refinement's horizon; past : the joint
         prior of their terms, as ``priors``.
     refine_drift : how far (in standard deviations) the frozen nodes adjusted as weighted
@@ -113,6 +121,8 @@ class WindowState:
     rejected: dict[str, int] = field(default_factory=dict)
     n_updates: int = 0
     n_outliers: int = 0
+    n_failed_updates: int = 0
+    last_failure: str = ''
     retired: int = 0
     past: list = field(default_factory=list)
     refine_drift: float = 0.0

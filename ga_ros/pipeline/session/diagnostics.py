@@ -28,7 +28,8 @@ def diagnostic_values(session: Any) -> dict[str, object]:
         'last_update_outliers': int(getattr(u, 'n_outliers', 0)) if u is not None else 0,
         'updates': c.updates,
         'solver_failures': c.solver_failures,
-        'failed_updates': c.failed_updates,
+        # the aligner's, kept in its state: restarts included (a session count otherwise)
+        'failed_updates': int(getattr(st, 'n_failed_updates', c.failed_updates)),
         'not_converged': c.not_converged,
         'measurements_received': c.received,
         'measurements_accepted': c.accepted,

@@ -135,3 +135,29 @@ def test_the_replay_summary_counts_failed_updates(tmp_path: Path, sample, monkey
     assert 'broken gate' in summary['failed_update_examples'][0]
     assert any(line.startswith('failed window updates: 1')
                for line in result_text(r).splitlines())
+
+
+def test_the_snapshot_keeps_the_count_and_the_last_failure(tmp_path: Path, sample):
+    """A restart from the snapshot continues the survey's count of failed updates (and keeps
+    the last one's traceback); a failure after the restart adds to it."""
+    from ga_ros.core.window.persistence import load_state, save_state
+
+    al = TrackWindowAligner(CFG)
+    al.strict = False
+    FailingStage(al, 2, RuntimeError('broken gate'))
+    ms = sample.measurements
+    k3 = next(k for k, m in enumerate(ms) if m.dst_track == 3)
+    al.add_measurements(ms[:k3])
+    assert al.n_failed_updates == 1
+    save_state(al, tmp_path / 'state')
+    back = load_state(tmp_path / 'state').aligner
+    back.strict = False
+    assert back.stats.n_failed_updates == 1
+    assert back.stats.last_failure == al.stats.last_failure
+    assert 'RuntimeError: broken gate' in back.last_failure
+    FailingStage(back, 1, SolverError('not positive definite'))   # the update of track 2
+    back.add_measurements(ms[k3:])
+    assert back.stats.n_failed_updates == 2
+    assert back.last_failure == 'not positive definite'
+    al.close()
+    back.close()
