@@ -8,7 +8,8 @@ the edge: the stamp (ns), ``T_odom_base`` (4x4) and the 6x6 pose and twist covar
 (``[x y z rx ry rz]``; None when the message has none).
 
 Keyframes
-    The first sample is keyframe ``first_node_id``; a sample becomes the next keyframe when its
+    The first sample is keyframe ``first_node_id`` (or the id a restarted input continues from,
+    :meth:`OdometryInput.continue_from`); a sample becomes the next keyframe when its
     travel from the last keyframe exceeds ``keyframe_travel_m``, its rotation
     ``keyframe_rotation_deg`` or its time ``keyframe_interval_s``. At each new keyframe the
     motion ``T_kf_new = T_odom_kf^-1 T_odom_new`` is emitted as a ``'consecutive'``
@@ -321,7 +322,7 @@ class OdometryInput:
     def __init__(self, config: OdometryInputConfig = OdometryInputConfig()) -> None:
         self.config = config
         self.segmenter = TrackSegmenter(config.track)
-        self._next_id = int(config.first_node_id)
+        self._first_id = self._next_id = int(config.first_node_id)
         self._stamps: list[int] = []
         self._poses: list[FloatArray] = []
         self._kf_ids: list[int] = []
@@ -343,6 +344,25 @@ class OdometryInput:
     def request_track_boundary(self) -> None:
         """Start a new track at the next keyframe (e.g. from a topic)."""
         self.segmenter.request_boundary()
+
+    def continue_from(self, node_id: int, track_id: int) -> None:
+        """Number the keyframes from ``node_id``, the first one on track ``track_id``
+        (instead of ``first_node_id`` and track 0): a restarted input continuing the survey of a
+        restored state after its nodes and tracks.
+
+        Raises
+        ------
+        InputError
+            A sample was already taken (the numbering is fixed by then), or negative ids.
+        """
+        if self._kf_ids:
+            raise InputError(f'{self.config.name}: the keyframes are numbered already (from '
+                             f'{self._first_id}); continue the numbering before the first sample')
+        if int(node_id) < 0 or int(track_id) < 0:
+            raise InputError(f'{self.config.name}: node and track ids must be >= 0, got '
+                             f'{node_id}, {track_id}')
+        self._first_id = self._next_id = int(node_id)
+        self.segmenter.track_id = int(track_id)
 
     def add_sample(self, stamp_ns: int, T_odom_base: FloatArray,
                    pose_cov: FloatArray | None = None,
@@ -528,10 +548,10 @@ class OdometryInput:
         return self.config.default_covariance(se3.to_translation_rotvec(T))
 
     def _kf_index(self, node_id: int) -> int:
-        i = int(node_id) - int(self.config.first_node_id)
+        i = int(node_id) - self._first_id
         if not 0 <= i < len(self._kf_ids):
             raise InputError(f'{self.config.name}: unknown node id {node_id} (keyframes '
-                             f'{self.config.first_node_id}..{self._next_id - 1})')
+                             f'{self._first_id}..{self._next_id - 1})')
         return i
 
     def _anchor(self, stamp: int, node: int | None = None) -> tuple[int, FloatArray]:

@@ -318,6 +318,16 @@ class InputFrontEnd:
         """Start a new track at the next keyframe of every input."""
         self._primary().request_track_boundary()
 
+    def continue_from(self, node_id: int, track_id: int) -> None:
+        """Number the first input's keyframes from ``node_id``, on a new track ``track_id``
+        (:meth:`OdometryInput.continue_from <ga_ros.inputs.odometry.OdometryInput.continue_from>`):
+        a node restarted on a restored state continues its survey after the nodes and tracks
+        it holds (:meth:`AlignmentSession.next_ids
+        <ga_ros.pipeline.session.AlignmentSession.next_ids>`) instead of numbering from 0
+        again, which would read as another survey. Call it before the first sample (raises
+        :class:`InputError` after)."""
+        self._primary().continue_from(node_id, track_id)
+
     # ------------------------------------------------------------------ TF
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
         """REP 105 ``T_map_odom`` of the first input: ``T_map_k T_odom_k^-1`` at the newest

@@ -75,6 +75,7 @@ from ga_ros.pipeline.inputs import (
 from ga_ros.pipeline.journal import DEFAULT_STATE_FILE, default_state_file
 from ga_ros.pipeline.map_to_odom import MapToOdom
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
+from ga_ros.pipeline.session.restore import continue_inputs
 from ga_ros.ros.alignment_diagnostics import AlignmentDiagnostics, QueueLoss, RejectionLog
 from ga_ros.ros.alignment_inputs import AlignmentInputs
 from ga_ros.ros.alignment_outputs import AlignmentOutputs
@@ -176,6 +177,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')
             self._publish_all()
+        self._continue_inputs()
 
         wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
         if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
@@ -352,6 +354,16 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         except Exception as exc:  # noqa: BLE001 - the node must never die on a message
             self.session.last_error = f'after update: {type(exc).__name__}: {exc}'
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
+
+    def _continue_inputs(self) -> None:
+        """A restored state: the standard inputs number their keyframes on after its nodes and
+        tracks (:func:`~ga_ros.pipeline.session.restore.continue_inputs`)."""
+        if self.front is None:
+            return
+        first = continue_inputs(self.session, self.front)
+        if first is not None:
+            self.get_logger().info(f'standard inputs: keyframes numbered from node {first[0]}, '
+                                   f'track {first[1]} (after the restored state)')
 
     def _new_survey(self) -> None:
         """The session moved the resumed state aside (another survey's first measurement

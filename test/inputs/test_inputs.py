@@ -313,3 +313,21 @@ def test_yaml_mirrors_config_defaults() -> None:
     assert OdometryInputConfig.from_mapping('odom0', section) == OdometryInputConfig()
     with pytest.raises(InputError, match='unknown input settings'):
         OdometryInputConfig.from_mapping('odom1', {'keyframe_travle_m': 2.0})
+
+
+def test_a_restarted_input_numbers_on_from_the_given_node_and_track() -> None:
+    """``continue_from``: keyframes numbered from the given node on the given track (the
+    keyframe poses found by those ids); refused once the numbering is fixed."""
+    inp = OdometryInput(OdometryInputConfig(keyframe_travel_m=0.99, keyframe_rotation_deg=0))
+    inp.continue_from(40, 3)
+    ups = [inp.add_sample(k * NS // 10, se3.from_translation_rotvec(np.array([0.1 * k, 0, 0]),
+                                                                  np.zeros(3)))
+           for k in range(31)]
+    ms = [u.measurement for u in ups if u.measurement is not None]
+    assert [(m.src_id, m.dst_id, m.src_track, m.dst_track) for m in ms] == [
+        (40, 41, 3, 3), (41, 42, 3, 3), (42, 43, 3, 3)]
+    np.testing.assert_allclose(inp.keyframe_pose(42)[:3, 3], [2.0, 0, 0], atol=1e-12)
+    with pytest.raises(InputError, match='unknown node id 39'):
+        inp.keyframe_pose(39)
+    with pytest.raises(InputError, match='before the first sample'):
+        inp.continue_from(50, 4)

@@ -318,3 +318,45 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
         np.testing.assert_allclose(node.odom.T_map_odom[:3, :3], T_map_odom[:3, :3], atol=0.02)
     finally:
         node.destroy_node()
+
+
+def test_a_restarted_node_fed_live_odometry_continues_the_survey(ctx, tmp_path):
+    """Killed in the middle of a drive and started again on its state, the node hears the live
+    odometry go on (no history re-delivered): its keyframes are numbered after the restored
+    ones, on a new track whose first node is bridged to the state's newest at once, so the
+    survey goes on: every restored node kept where it was, nothing moved aside, and
+    ``map -> odom`` composes the new odometry with the new nodes' corrected poses."""
+    msgs = odom_msgs(240)
+    state = str(tmp_path / 'state')
+    first = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        for msg in msgs[:120]:
+            first._on_input('odom0', msg)
+        before = first.aligner.corrected_path()
+        n_before = len(before.node_ids)
+        assert n_before == 12 and first.session.counts.accepted == 11
+    finally:
+        first.destroy_node()    # the journal holds every accepted measurement
+    node = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        assert node.session.n_nodes() == n_before
+        for msg in msgs[120:]:
+            node._on_input('odom0', msg)
+        assert not list(tmp_path.glob('state.survey-*')), 'the survey was moved aside'
+        assert node.session.counts.rejected == {}
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        cp = node.aligner.corrected_path()
+        ids = [int(i) for i in cp.node_ids]
+        # every restored node kept, the new keyframes numbered after them
+        assert ids == list(range(n_before + 12)), ids
+        assert node.session.counts.bridges == 1
+        assert int(cp.track_ids[n_before]) == int(before.track_ids.max()) + 1
+        # the restored nodes did not move (frozen or adjusted with the new ones: within 1 mm
+        # of where the first run left them, the bridge weighing nothing against the odometry)
+        np.testing.assert_allclose(cp.T_world_node[:n_before, :3, 3],
+                                   before.T_world_node[:, :3, 3], atol=1e-3)
+        T_odom_k = node.front.inputs['odom0'].keyframe_pose(ids[-1])
+        np.testing.assert_allclose(node.odom.T_map_odom @ T_odom_k, cp.T_world_node[-1],
+                                   atol=1e-9)
+    finally:
+        node.destroy_node()

@@ -100,6 +100,9 @@ class AlignmentSession:
         #: The folder the previous survey's state was moved to when another survey's first
         #: measurement came (``None`` otherwise; the node takes it and resets its outputs).
         self.previous_survey: Path | None = None
+        #: A node new to the survey that nothing else will introduce (:meth:`bridge_at_once`;
+        #: ``None``: none).
+        self._bridge_now: int | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -122,8 +125,11 @@ class AlignmentSession:
         if route is Route.HOLD:
             gaps.hold(m)
             self._journal(m, HELD)
-            if gaps.overdue():
-                self._drain(taken)
+            now = m.src_id == self._bridge_now
+            if now:
+                self._bridge_now = None
+            if now or gaps.overdue():
+                self._drain(taken, flush=now)
             return self._output(taken, True, held=True)
         try:
             self._take(m, taken, route is Route.REVERSE)
@@ -171,6 +177,28 @@ class AlignmentSession:
                   f'{m.dst_track}, stamp {m.stamp_ns} ns) does not belong to the saved one '
                   f'({why}); the saved survey ({old_nodes} nodes) was moved to {folder}/ and a '
                   'new survey starts')
+
+    def next_ids(self) -> tuple[int, int]:
+        """``(node id, track id)`` after every node and track the state holds (the aligner's
+        and the held measurements'); ``(0, 0)`` for an empty state: where an input restarted on
+        this state numbers its keyframes on
+        (:meth:`InputFrontEnd.continue_from <ga_ros.pipeline.inputs.InputFrontEnd.continue_from>`).
+        """
+        path = self.aligner.corrected_path()
+        nodes = [int(np.max(path.node_ids))] if len(path.node_ids) else []
+        tracks = [int(np.max(path.track_ids))] if len(path.track_ids) else []
+        for h in self.gaps.held:
+            nodes += [int(h.m.src_id), int(h.m.dst_id)]
+            tracks += [int(h.m.src_track), int(h.m.dst_track)]
+        return (max(nodes) + 1 if nodes else 0), (max(tracks) + 1 if tracks else 0)
+
+    def bridge_at_once(self, node_id: int) -> None:
+        """Node ``node_id`` is new to the survey and no measurement will ever join it to the
+        nodes before (an input restarted on a restored state numbers on from :meth:`next_ids`:
+        the motion across the restart was never measured): the first measurement from it is
+        bridged (:mod:`ga_ros.core.gaps`) as soon as it is held, instead of after the healer's
+        waits. A fresh survey forgets it."""
+        self._bridge_now = int(node_id)
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
         """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the gap healer
@@ -477,6 +505,7 @@ class AlignmentSession:
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
         self.datum = None
+        self._bridge_now = None
 
     def _close_aligner(self) -> None:
         """Stop the aligner's background refinement (worker process or thread), if any."""

@@ -40,3 +40,20 @@ def how(result: RecoveryResult) -> str:
     if result.moved_aside:
         text += '; moved aside: ' + ', '.join(str(p) for p in result.moved_aside)
     return text
+
+
+def continue_inputs(session: Any, front: Any) -> tuple[int, int] | None:
+    """After a restore: the standard inputs ``front`` (an
+    :class:`~ga_ros.pipeline.inputs.InputFrontEnd`, before its first sample) number their
+    keyframes on after the nodes and tracks of ``session``'s state, on a new track, and the
+    session bridges the first new node to the state's newest at once (the motion across the
+    restart was never measured). Live odometry after a restart thus continues the survey
+    instead of reading as another one (:mod:`~ga_ros.pipeline.session.survey_identity`).
+    Returns ``(node id, track id)`` of the first new keyframe (``None``: an empty state, the
+    numbering is left as it is)."""
+    node_id, track_id = session.next_ids()
+    if node_id == 0:
+        return None
+    front.continue_from(node_id, track_id)
+    session.bridge_at_once(node_id)
+    return node_id, track_id
