@@ -75,6 +75,7 @@ from ga_ros.pipeline.inputs import (
 from ga_ros.pipeline.journal import DEFAULT_STATE_FILE, default_state_file
 from ga_ros.pipeline.map_to_odom import MapToOdom
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
+from ga_ros.pipeline.session.outputs import UpdateBug
 from ga_ros.pipeline.session.restore import continue_inputs
 from ga_ros.ros.alignment_diagnostics import AlignmentDiagnostics, QueueLoss, RejectionLog
 from ga_ros.ros.alignment_inputs import AlignmentInputs
@@ -324,7 +325,11 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._last_input = time.monotonic()
         throttle = self.settings.warn_throttle_sec
         try:
-            out = self.session.step(m)
+            try:
+                out = self.session.step(m)
+            except UpdateBug as bug:    # reported; the step was complete: go on with it
+                self._update_bug(bug)
+                out = bug.result
             if self.session.previous_survey is not None:
                 self._new_survey()
             if self.front is None:
@@ -424,9 +429,20 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         except SolverError:
             self._publish_diagnostics()
             raise
+        except UpdateBug as bug:   # reported; the track ended as without strict
+            self._update_bug(bug)
+            update = bug.result
         if update is not None:
             self._publish_all()
         return update
+
+    def _update_bug(self, bug: UpdateBug) -> None:
+        """Report a window update's bug that a strict aligner re-raised
+        (``GA_ROS_STRICT_UPDATES``): one ERROR line and the diagnostics (``failed_updates``,
+        ``last_error``; the session warned with its traceback); the node goes on."""
+        self.session.last_error = bounded(str(bug))
+        self.get_logger().error(str(bug), throttle_duration_sec=self.settings.warn_throttle_sec)
+        self._publish_diagnostics()
 
     def _after_updates(self, notes: tuple[str, ...]) -> None:
         """Log what the session noted about the updates, then publish everything."""

@@ -613,3 +613,64 @@ def test_online_variance_factors_in_diagnostics(tmp_path):
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def test_a_strict_update_bug_is_reported_and_the_node_goes_on(tmp_path, rng, monkeypatch):
+    """With ``GA_ROS_STRICT_UPDATES`` (set for the suite) a bug in a window update (not a
+    numerical failure) reaches the node as an UpdateBug: reported (one ERROR line, the
+    diagnostics' ``failed_updates`` and ``last_error``), never a dead node or a lost
+    measurement, whether a measurement, the in-band end of input or ``~/finish_track`` ended
+    the track; a node restarted on the state (snapshot or journal alone) holds the same
+    state and count."""
+    from ga_ros import topics
+    from ga_ros.core.window.update import WindowUpdate
+
+    real = WindowUpdate.adjust
+
+    def buggy(self, window_tracks, track, *args, **kwargs):
+        if track in (1, 3):
+            raise AttributeError(f"'NoneType' object has no attribute 'w' (track {track})")
+        return real(self, window_tracks, track, *args, **kwargs)
+
+    monkeypatch.setattr(WindowUpdate, 'adjust', buggy)
+    ms = survey(rng, n_tracks=4, per_swath=5)
+    k3 = next(k for k, m in enumerate(ms) if m.dst_track == 3)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(7))
+    params = [Parameter('state_file', value=str(tmp_path / 'state')),
+              Parameter('window_tracks', value=2), Parameter('allow_finish_track', value=True),
+              Parameter('diagnostics_period_sec', value=0.0)]
+    try:
+        node = AlignmentNode(context=ctx, parameter_overrides=params)
+        try:
+            assert node.aligner.strict
+            for m in ms[:k3]:                      # the update of track 1 fails
+                node._on_measurement(conv.measurement_to_odometry(m))
+            values = node.diagnostic_values()
+            assert values['failed_updates'] == 1 and 'strict updates' in values['last_error']
+            node._srv_finish_track(Trigger.Request(), Trigger.Response())   # track 2: fine
+            for m in ms[k3:]:
+                node._on_measurement(conv.measurement_to_odometry(m))
+            end = Odometry()
+            end.child_frame_id = topics.TRACK_END_FRAME
+            node._on_measurement(end)              # the in-band end: track 3 fails
+            values = node.diagnostic_values()
+            assert values['failed_updates'] == 2 and values['measurements_accepted'] == len(ms)
+            assert values['rejected'] == 0
+            assert node.aligner.open_track is None          # every track ended
+            want = node.aligner.corrected_path()
+        finally:
+            node.destroy_node()
+        for lose_snapshot in (False, True):
+            if lose_snapshot:
+                (tmp_path / 'state').unlink()
+            again = AlignmentNode(context=ctx, parameter_overrides=params)
+            try:
+                assert again.diagnostic_values()['failed_updates'] == 2
+                got = again.aligner.corrected_path()
+                np.testing.assert_array_equal(got.node_ids, want.node_ids)
+                np.testing.assert_array_equal(got.T_world_node, want.T_world_node)
+            finally:
+                again.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

@@ -318,7 +318,19 @@ def replay_entries(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[i
     (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.add_measurements`), each fix and each
     track end (``finish_track``) between them as it came (a fix with the information it entered
     with); datums are skipped (not the aligner's). Returns ``(accepted, rejected)``
-    entries; nothing raises for a rejected one."""
+    entries; nothing raises for a rejected one, nor for a failed update: with a strict
+    aligner (``GA_ROS_STRICT_UPDATES``) the live session reported a bug of an update and went
+    on as without strict (:class:`~ga_ros.pipeline.session.outputs.UpdateBug`), so the replay
+    runs without strict, to the same state."""
+    strict, aligner.strict = getattr(aligner, 'strict', False), False
+    try:
+        return _replay(aligner, entries)
+    finally:
+        aligner.strict = strict
+
+
+def _replay(aligner: TrackWindowAligner, entries: list[Entry]) -> tuple[int, int]:
+    """:func:`replay_entries` with the aligner's ``strict`` off."""
     accepted = rejected = 0
     run: list[Measurement] = []
 

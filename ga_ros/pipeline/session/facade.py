@@ -43,6 +43,7 @@ from ga_ros.pipeline.session.outputs import (
     Health,
     StepOutput,
     Taken,
+    UpdateBug,
     Warn,
     bounded,
 )
@@ -236,10 +237,14 @@ class AlignmentSession:
         return self._output(taken, True)
 
     def _output(self, taken: Taken, accepted: bool, held: bool = False) -> StepOutput:
+        """The step's output (its updates counted); raises :class:`UpdateBug` (carrying it)
+        if a strict aligner re-raised a bug of one of them."""
         done = tuple(u for u in taken.updates if u is not None)
         notes = tuple(taken.notes) + (tuple(self.after_updates(done)) if done else ())
-        return StepOutput(accepted, done, notes=notes, held=held,
-                          admitted=tuple(taken.admitted))
+        out = StepOutput(accepted, done, notes=notes, held=held, admitted=tuple(taken.admitted))
+        if taken.bugs:
+            raise _bug(taken.bugs[0], out)
+        return out
 
     def _journal(self, m: Measurement, flags: int = 0) -> None:
         """Append a measurement to the journal (``flags``: :data:`HELD`, :data:`REVERSED`). A
@@ -281,7 +286,19 @@ class AlignmentSession:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
         noted by the healer); raises what the aligner raises."""
         m_in = reversed_measurement(m) if reverse else m
-        taken.updates += self.aligner.add_measurement(m_in)
+        try:
+            taken.updates += self.aligner.add_measurement(m_in)
+        except GaError:
+            raise
+        except Exception as exc:
+            if not getattr(self.aligner, 'strict', False):
+                raise
+            # a strict aligner re-raised a bug of the window update that ``m`` triggered, its
+            # state put back and the track finished: ``m`` is taken now (no update left to
+            # run), as without strict; raised at the end of the call (UpdateBug)
+            taken.bugs.append(exc)
+            taken.updates.append(self.aligner.stats.last_update)
+            taken.updates += self.aligner.add_measurement(m_in)
         if m.kind == 'bridge':
             self.counts.bridges += 1
         else:
@@ -468,7 +485,12 @@ class AlignmentSession:
         SolverError
             The update failed (counted; the previous estimate stands).
         """
-        flushed = self.flush_gaps()
+        try:
+            flushed = self.flush_gaps()
+        except UpdateBug as exc:   # (a bridged gap's update; the track end still comes)
+            flushed, bug = exc.result, exc
+        else:
+            bug = None
         track = getattr(self.aligner, 'open_track', None)
         try:
             update = self.aligner.finish_track()
@@ -476,11 +498,20 @@ class AlignmentSession:
             self.solver_failed(exc)
             self._journal_event(TrackEnd(int(track), cause), track is not None)
             raise
+        except GaError:
+            raise
+        except Exception as exc:
+            if not getattr(self.aligner, 'strict', False):
+                raise
+            update, bug = self.aligner.stats.last_update, exc   # as without strict, then raised
         self._journal_event(TrackEnd(int(track), cause) if track is not None else None,
                             update is not None)
         if update is not None:
             self.after_updates((update,))
-        return update if update is not None or not flushed.updates else flushed.updates[-1]
+        result = update if update is not None or not flushed.updates else flushed.updates[-1]
+        if bug is not None:
+            raise _bug(bug.__cause__ if isinstance(bug, UpdateBug) else bug, result)
+        return result
 
     def reset(self) -> None:
         """Forget everything: a fresh aligner, zero counters, and (autosave) emptied state files.
@@ -688,3 +719,12 @@ class AlignmentSession:
         """Overall state for the diagnostics level
         (:func:`~ga_ros.pipeline.session.diagnostics.health`)."""
         return health(self)
+
+
+def _bug(exc: BaseException, result: Any) -> UpdateBug:
+    """The :class:`UpdateBug` of ``exc`` (a strict aligner's re-raised bug), chained to it."""
+    bug = UpdateBug(f'a window update failed with a bug (strict updates, '
+                    f'GA_ROS_STRICT_UPDATES): {type(exc).__name__}: {exc}; the state was put '
+                    'back and nothing was lost', result)
+    bug.__cause__ = exc
+    return bug

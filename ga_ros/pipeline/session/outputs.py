@@ -91,3 +91,23 @@ class Taken:
     updates: list = field(default_factory=list)
     admitted: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    #: exceptions of window updates re-raised by a strict aligner (:class:`UpdateBug`)
+    bugs: list = field(default_factory=list)
+
+
+class UpdateBug(Exception):  # noqa: N818 - named for what it reports
+    """A window update failed with an exception that is not a numerical failure (a bug) and
+    the aligner is strict (``GA_ROS_STRICT_UPDATES``, set for the test suite;
+    :attr:`TrackWindowAligner.strict <ga_ros.core.window.aligner.TrackWindowAligner.strict>`).
+
+    Raised by the session at the end of the call, once everything is as without ``strict``:
+    the aligner's state put back and the failure counted (``failed_updates``), the measurement
+    that triggered the update taken and journaled (nothing lost), the traceback warned about.
+    ``result`` is what the call would have returned (a :class:`StepOutput`, or the failed
+    update of ``finish_track``); the exception is chained as ``__cause__``. Not a
+    :class:`~ga_ros.errors.GaError`: a caller that handles those does not swallow it; the node
+    logs it as an ERROR and goes on."""
+
+    def __init__(self, message: str, result: Any) -> None:
+        super().__init__(message)
+        self.result = result

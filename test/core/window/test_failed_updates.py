@@ -161,3 +161,37 @@ def test_the_snapshot_keeps_the_count_and_the_last_failure(tmp_path: Path, sampl
     assert back.last_failure == 'not positive definite'
     al.close()
     back.close()
+
+
+def test_a_strict_session_raises_the_bug_after_losing_nothing(sample):
+    """A strict aligner's bug reaches the session's caller as an UpdateBug (chained to it),
+    raised once the step is complete: the measurement that ended the track taken, the failure
+    counted and warned about; the returned state is the non-strict run's."""
+    from ga_ros.pipeline.session.outputs import UpdateBug
+
+    def run(strict: bool) -> tuple[AlignmentSession, list]:
+        al = TrackWindowAligner(CFG)
+        al.strict = strict
+        FailingStage(al, 2, AttributeError("'NoneType' object has no attribute 'w'"))
+        s = AlignmentSession(CFG, aligner=al)
+        bugs = []
+        for m in sample.measurements:
+            try:
+                out = s.step(m)
+            except UpdateBug as bug:
+                bugs.append(bug)
+                out = bug.result
+            assert out.accepted
+        return s, bugs
+
+    strict, bugs = run(True)
+    lax, none = run(False)
+    assert len(bugs) == 1 and not none
+    assert isinstance(bugs[0].__cause__, AttributeError)
+    assert [u.track_id for u in bugs[0].result.updates] == [1]
+    assert bugs[0].result.updates[0].reason.startswith('failed')
+    for s in (strict, lax):
+        assert s.counts.accepted == len(sample.measurements)
+        assert diagnostic_values(s)['failed_updates'] == 1
+    np.testing.assert_array_equal(strict.aligner.corrected_path().T_world_node,
+                                  lax.aligner.corrected_path().T_world_node)
