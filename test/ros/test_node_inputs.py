@@ -350,6 +350,8 @@ def test_a_restarted_node_fed_live_odometry_continues_the_survey(ctx, tmp_path):
         # every restored node kept, the new keyframes numbered after them
         assert ids == list(range(n_before + 12)), ids
         assert node.session.counts.bridges == 1
+        # the new piece hangs off the bridge (the motion across the restart never measured)
+        assert node.diagnostic_values()['unjoined_nodes'] == 12
         assert int(cp.track_ids[n_before]) == int(before.track_ids.max()) + 1
         # the restored nodes did not move (frozen or adjusted with the new ones: within 1 mm
         # of where the first run left them, the bridge weighing nothing against the odometry)
