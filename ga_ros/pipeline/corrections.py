@@ -52,6 +52,7 @@ ROS-free.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,7 +61,6 @@ import numpy as np
 from ga_ros import topics
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.config_ranges import check_ranges, ranged
-from ga_ros.core.frames import node_frame
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.io.cdr import framed_path_cdr
@@ -502,19 +502,36 @@ class CorrectionTracker:
             a0 = np.repeat(np.arange(r0, r1), ends.size)
             b0 = np.minimum(a0 + np.tile(ends, r1 - r0), hi - lo - 1)
             table_ok, table_at, table_P = spans_from(a0, b0)
-            table_ok = (table_ok & (b0 == a0 + np.tile(ends, r1 - r0))).reshape(-1, ends.size)
+            # a span must end at or before the last moved row: per row, the farthest good end
+            # of the table (its index in ``ends``; -1: none)
+            good = (table_ok & (b0 == a0 + np.tile(ends, r1 - r0)) & (b0 <= r1)
+                    ).reshape(-1, ends.size)
+            best = np.where(good.any(1), ends.size - 1 - np.argmax(good[:, ::-1], axis=1),
+                            -1).tolist()
+            table_at = table_at.tolist()
+        # the next moved row after each row of the moved range (integers: the chain below is a
+        # plain loop, its cost a few operations per anchor)
+        moved_list = moved_rows.tolist()
+        nxt = np.full(hi - lo + 1, -1, np.int64)
+        if moved_rows.size:
+            r = np.arange(hi - lo)
+            k_next = np.searchsorted(moved_rows, r, side='right')
+            nxt[:hi - lo] = np.where(k_next < moved_rows.size,
+                                     moved_rows[np.minimum(k_next, moved_rows.size - 1)], -1)
+        nxt = nxt.tolist()
+        n_ends = WIDTH - 1
 
         def reach(a: int, last: int) -> tuple[int, FloatArray | None]:
             """The farthest end ``b <= last`` of a span from ``a`` whose interior lands within
             the thresholds, and the interior's new poses (None: no span reaches ``a + 2``)."""
-            ok = np.flatnonzero(table_ok[a - r0] & (a + ends <= last))
-            if not ok.size:
+            j = best[a - r0]
+            if j < 0:
                 return a + 1, None
-            at = table_at[(a - r0) * ends.size + ok[-1]]
-            b = a + int(ends[ok[-1]])
+            at = table_at[(a - r0) * n_ends + j]
+            b = a + 2 + j
             P = table_P[at:at + b - a - 1]
             lo_d, hi_d = WIDTH + 1, 3 * WIDTH
-            while ok[-1] == ends.size - 1 and a + lo_d <= last:
+            while j == n_ends - 1 and a + lo_d <= last:
                 # every span of the table is good: try longer ones, only the new ends
                 b0 = np.arange(a + lo_d, min(a + hi_d, last) + 1)
                 good, at0, P0 = spans_from(np.full(b0.size, a), b0)
@@ -528,17 +545,16 @@ class CorrectionTracker:
             return b, P
 
         k = 0
-        while k < moved_rows.size:
-            a = int(moved_rows[k])
+        while k < len(moved_list):
+            a = moved_list[k]
             entries.append(a)
             flags.append(False)
             H[lo + a] = Tq[a]
             while spans and not pinned[a]:    # extend the chain of spans from a
-                later = moved_rows[moved_rows > a]
-                if later.size == 0:
-                    break
-                b, P = reach(a, int(later[-1]))
-                if P is None or b < int(later[0]):
+                if nxt[a] < 0:
+                    break                     # no moved row after a
+                b, P = reach(a, r1)
+                if P is None or b < nxt[a]:
                     break                     # the next moved row starts a new chain
                 H[lo + a + 1:lo + b] = P
                 H[lo + b] = Tq[b]
@@ -546,7 +562,7 @@ class CorrectionTracker:
                 entries.append(b)
                 flags.append(True)
                 a = b
-            k = int(np.searchsorted(moved_rows, a, side='right'))
+            k = bisect.bisect_right(moved_list, a)
         return lo + np.asarray(entries, np.int64), np.asarray(flags, bool), n_interp
 
 
@@ -632,20 +648,25 @@ class HeldPoses:
         return S[changed], newT[changed]
 
 
-def message_poses(c: Corrections, header_stamp_ns: int) -> tuple[list[str], IntArray, FloatArray]:
-    """The poses of the ``nav_msgs/Path`` of ``c`` on ``ga/corrections``, in order:
-    ``(frame_ids, stamps_ns, T_world_node)``, one entry per ``PoseStamped``.
+def message_poses(c: Corrections, frame_id: str, header_stamp_ns: int
+                  ) -> tuple[list[str], IntArray, FloatArray]:
+    """The poses of the ``nav_msgs/Path`` of ``c`` on ``ga/corrections`` (in ``frame_id``, the
+    map frame), in order: ``(frame_ids, stamps_ns, T_world_node)``, one entry per
+    ``PoseStamped``.
 
-    Each entry: ``header.frame_id`` its node frame ``ga/<track>/<node>`` (stamps alone are
-    not unique: the first two keyframes share one), followed by
-    :data:`~ga_ros.topics.CORRECTIONS_SPAN_SUFFIX` when it closes a span, ``header.stamp`` its
-    stamp, the pose its corrected pose in the Path's frame (the map frame). A full message is
-    opened by a marker entry (not a keyframe): ``header.frame_id``
+    Each entry: ``header.frame_id`` the map frame ``frame_id`` (as every pose of
+    ``ga/corrected_path``), followed by :data:`~ga_ros.topics.CORRECTIONS_SPAN_SUFFIX` when it
+    closes a span; ``header.stamp`` its keyframe's stamp (what names it: the two keyframes that
+    share a stamp are named together, the first is the keyframe before); the pose its corrected
+    pose in the map frame. No node ids: with a map frame of up to three characters (``map``) an
+    entry is 72 bytes of CDR (stamp, frame, padding, seven doubles), as a pose of the whole
+    path, and a span's 80. A full
+    message is opened by a marker entry (not a keyframe): ``header.frame_id``
     :data:`~ga_ros.topics.CORRECTIONS_FULL_FRAME`, stamp ``header_stamp_ns``, pose the first
     keyframe's (the identity if there is none), so a display draws no extra segment.
     """
-    frames = [node_frame(int(t), int(n)) + (topics.CORRECTIONS_SPAN_SUFFIX if s else '')
-              for t, n, s in zip(c.track_ids.tolist(), c.node_ids.tolist(), c.span.tolist())]
+    span_frame = frame_id + topics.CORRECTIONS_SPAN_SUFFIX
+    frames = [span_frame if s else frame_id for s in c.span.tolist()]
     stamps, T = c.stamps_ns, c.T_world_node
     if c.full:
         frames = [topics.CORRECTIONS_FULL_FRAME] + frames
@@ -659,5 +680,5 @@ def corrections_cdr(c: Corrections, frame_id: str, stamp_ns: int) -> bytes:
     the replay bag stores): header ``frame_id`` (the map frame) at ``stamp_ns`` (the corrected
     path's newest keyframe), poses as :func:`message_poses` lays them out. The node publishes
     these bytes and the replay writes them: the same message by construction."""
-    frames, stamps, T = message_poses(c, stamp_ns)
+    frames, stamps, T = message_poses(c, frame_id, stamp_ns)
     return framed_path_cdr(T, stamps, frames, frame_id, int(stamp_ns))

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from ga_ros import topics
-from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.window import AlignerConfig
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
@@ -76,11 +75,13 @@ def drive(measurements: list, tracker: CorrectionTracker, every: int = 1,
 
 
 class Consumer:
-    """Re-anchors only what the corrections say: keyframe (node frame) -> pose, for a message
-    without spans (thresholds 0), reading the deserialized message as any ROS consumer would."""
+    """Re-anchors only what the corrections say: keyframe (named by its stamp) -> pose, for a
+    message without spans (thresholds 0), reading the deserialized message as any ROS consumer
+    would. A stamp named twice in a message is two keyframes (in order); named once, it is the
+    last keyframe of that stamp (docs/node.md)."""
 
     def __init__(self) -> None:
-        self.poses: dict[str, tuple] = {}
+        self.poses: dict[int, list[tuple]] = {}
         self.full_messages = 0
 
     def apply(self, msg) -> None:
@@ -89,11 +90,19 @@ class Consumer:
             self.poses.clear()
             self.full_messages += 1
             poses = poses[1:]
-        for ps in poses:
-            assert not ps.header.frame_id.endswith(topics.CORRECTIONS_SPAN_SUFFIX)
+        stamp = [ps.header.stamp.sec * 10**9 + ps.header.stamp.nanosec for ps in poses]
+        twice: dict[int, list[tuple]] = {}
+        for ps, s in zip(poses, stamp):
+            assert ps.header.frame_id == 'map'   # the map frame, no span
             p, o = ps.pose.position, ps.pose.orientation
-            self.poses[ps.header.frame_id] = (p.x, p.y, p.z, o.x, o.y, o.z, o.w,
-                                             ps.header.stamp.sec, ps.header.stamp.nanosec)
+            pose = (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
+            if stamp.count(s) == 2:
+                twice.setdefault(s, []).append(pose)
+                self.poses[s] = twice[s]
+            elif s in self.poses:
+                self.poses[s][-1] = pose
+            else:
+                self.poses[s] = [pose]
 
 
 def read(data: bytes) -> CorrectionMessage:
@@ -110,12 +119,12 @@ def read(data: bytes) -> CorrectionMessage:
     return CorrectionMessage.from_poses([ps.header.frame_id for ps in msg.poses], stamps, T)
 
 
-def as_tuples(path_msg) -> dict[str, tuple]:
-    out = {}
+def as_tuples(path_msg) -> dict[int, list[tuple]]:
+    out: dict[int, list[tuple]] = {}
     for ps in path_msg.poses:
         p, o = ps.pose.position, ps.pose.orientation
-        out[ps.header.frame_id] = (p.x, p.y, p.z, o.x, o.y, o.z, o.w, ps.header.stamp.sec,
-                                   ps.header.stamp.nanosec)
+        out.setdefault(ps.header.stamp.sec * 10**9 + ps.header.stamp.nanosec, []).append(
+            (p.x, p.y, p.z, o.x, o.y, o.z, o.w))
     return out
 
 
@@ -131,10 +140,10 @@ def test_consumer_of_every_change_ends_with_the_corrected_path_bit_for_bit(surve
             sent += len(c)
     cp = calls[-1][2]
     final = trajectory_to_path_msg(Trajectory(cp.stamps_ns, cp.T_world_node, cp.node_ids,
-                                              cp.track_ids, 'map'), node_frames=True)
+                                              cp.track_ids, 'map'))
     assert consumer.full_messages == 1
     assert consumer.poses == as_tuples(final)          # bit-identical poses and stamps
-    assert len(consumer.poses) == len(cp.node_ids) > 100
+    assert sum(map(len, consumer.poses.values())) == len(cp.node_ids) > 100
     # and less than the whole path after every call
     assert sent < sum(len(p.node_ids) for _, _, p in calls)
 
@@ -267,17 +276,17 @@ def test_full_message_at_start_reset_and_replacement(survey) -> None:
             session.step(m)
         first = tracker.after_update(session.aligner)
         assert first.full and len(first) == session.n_nodes() and first.n_moved == 0
-        frames, stamps, T = message_poses(first, 123)
+        frames, stamps, T = message_poses(first, 'map', 123)
         assert frames[0] == topics.CORRECTIONS_FULL_FRAME and stamps[0] == 123
         assert len(frames) == len(first) + 1
         np.testing.assert_array_equal(T[0], T[1])   # the marker sits on the first keyframe
-        assert [parse_node_frame(f)[1] for f in frames[1:]] == first.node_ids.tolist()
+        assert frames[1:] == ['map'] * len(first)   # the map frame: 72 bytes a pose
         assert not first.span.any()
         assert tracker.after_update(session.aligner) is None   # nothing moved or was added
         session.reset()                                        # a new aligner: full, empty
         empty = tracker.after_update(session.aligner)
         assert empty.full and len(empty) == 0
-        frames, _, T = message_poses(empty, 5)
+        frames, _, T = message_poses(empty, 'map', 5)
         assert frames == [topics.CORRECTIONS_FULL_FRAME] and np.array_equal(T[0], np.eye(4))
         for m in survey[:30]:
             session.step(m)
