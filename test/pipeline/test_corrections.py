@@ -333,3 +333,77 @@ def test_keyframes_sharing_a_stamp_are_named_together() -> None:
         consumer.apply(read(corrections_cdr(c, 'map', int(stamps[n - 1]))))
         np.testing.assert_array_equal(consumer.T_map_base, tracker.held())
         np.testing.assert_array_equal(consumer.T_map_base, decoded(T[:n]))
+
+
+def random_updates(rng: np.random.Generator, n_tracks: int = 6, per_track: int = 40
+                   ) -> list[Trajectory]:
+    """Corrected paths of a random survey after each of ``n_tracks`` updates: straight tracks
+    of ``per_track`` keyframes (stamps 1 s apart, jittered), each update adding a track and
+    moving every held keyframe by a smooth random correction (a rotation of a few mrad about a
+    random point, drifting along the path) plus keyframe-by-keyframe noise of 0-3 cm on the
+    newest tracks, as a window update does."""
+    paths, T = [], np.zeros((0, 4, 4))
+    stamps = np.zeros(0, np.int64)
+    for u in range(n_tracks):
+        x = np.arange(per_track) * 10.0 * (1 if u % 2 == 0 else -1) + (0 if u % 2 == 0 else 400)
+        new = se3.from_translation_rotvec(
+            np.stack([x, np.full(per_track, 40.0 * u), rng.normal(50.0, 0.5, per_track)], 1),
+            rng.normal(0.0, 0.05, (per_track, 3)))
+        s0 = int(stamps[-1]) + 10**9 if stamps.size else 10**9
+        new_stamps = s0 + 10**9 * np.arange(per_track) + rng.integers(0, 10**8, per_track)
+        n = len(T)
+        if n:
+            f = np.linspace(0.0, 1.0, n)[:, None]
+            rot = rng.normal(0.0, 0.003, 3) * f + rng.normal(0.0, 0.001, 3)
+            pivot = rng.normal(0.0, 200.0, 3)
+            d = se3.from_translation_rotvec(rng.normal(0.0, 0.1, 3) * f, rot)
+            d[:, :3, 3] += pivot - np.einsum('kij,j->ki', d[:, :3, :3], pivot)
+            T = np.einsum('kij,kjl->kil', d, T)
+            recent = np.arange(n) >= n - 2 * per_track
+            T[recent, :3, 3] += rng.normal(0.0, rng.uniform(0.0, 0.03), (recent.sum(), 3))
+        T = np.concatenate([T, new])
+        stamps = np.concatenate([stamps, new_stamps])
+        ids = np.arange(len(T))
+        paths.append(Trajectory(stamps.copy(), T.copy(), ids, ids // per_track, 'map'))
+    return paths
+
+
+def strip_spans(data: bytes) -> CorrectionMessage:
+    """A consumer that does not read the span endings: every entry a plain one."""
+    msg = read(data)
+    return CorrectionMessage(msg.full, msg.stamps_ns, msg.T_map_base,
+                             np.zeros_like(msg.span))
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_random_corrections_decode_within_the_thresholds(seed) -> None:
+    """decode(encode(x)) on random correction fields: the serialized messages (entries named by
+    stamp, in the map frame, 72 bytes each but a span's 80), read back and applied, leave the
+    consumer within the thresholds of every corrected path and bit for bit what the tracker
+    holds; spans carry keyframes. A consumer that reads the spans as plain entries (the failing
+    case) leaves keyframes beyond the thresholds."""
+    th = CorrectionThresholds()
+    tracker, good, naive = CorrectionTracker(th), HeldPoses(), HeldPoses()
+    interpolated, worst_naive = 0, 0.0
+    for traj in random_updates(np.random.default_rng(seed)):
+        c = tracker.compare(traj)
+        data = corrections_cdr(c, 'map', int(traj.stamps_ns[-1]))
+        n_span = int(c.span.sum())
+        # CDR: 4 encapsulation + 20 header, up to 4 of alignment before the first pose, the
+        # marker 88 at most, 72 a pose, 8 more a span's ('map/span')
+        assert len(data) <= 28 + 88 * c.full + 72 * len(c) + 8 * n_span
+        good.apply(read(data))
+        naive.apply(strip_spans(data))
+        interpolated += c.n_interpolated
+        np.testing.assert_array_equal(good.T_map_base, tracker.held())
+        want = traj.T_world_node
+        for held, ok in ((good, True), (naive, False)):
+            dt = np.linalg.norm(held.T_map_base[:, :3, 3] - want[:, :3, 3], axis=1).max()
+            dr = angle(np.einsum('kji,kjl->kil', held.T_map_base[:, :3, :3],
+                                 want[:, :3, :3])).max()
+            if ok:
+                assert dt <= th.translation_m * (1 + 1e-9) and dr <= th.rotation_rad * 1.0001
+            else:
+                worst_naive = max(worst_naive, dt / th.translation_m, dr / th.rotation_rad)
+    assert interpolated > 0
+    assert worst_naive > 2.0   # the spans matter: without them keyframes are far beyond
