@@ -11,10 +11,10 @@ update it serializes (CDR, what DDS sends) the whole corrected path as the node 
 pair of thresholds on the same run (0:0: every change, bit-exact). Prints, per message, the
 bytes per update (mean over the updates, and at the last one), the ratio to the whole path
 (target <= 10 %), the entries (poses) sent per update, the keyframes compared per update, the
-CPU time to compare, choose the spans and serialize per update (process CPU time; the survey's
-own is not counted; the comparison and the choice of the spans, then the serialization), and
-the keyframes a consumer re-anchors per update: the entries that were
-held before plus those interpolated inside spans.
+CPU time per update to build the message (compare the poses, choose the spans) and to serialize
+it (CPU time of the calling thread: neither the survey's own work nor a background refinement
+running meanwhile in another thread is counted), and the keyframes a consumer re-anchors per
+update: the entries that were held before plus those interpolated inside spans.
 
 Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]
 [--window-tracks 5]``.
@@ -57,14 +57,14 @@ class Tally:
 
 
 def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
-    t0 = time.process_time()
+    t0 = time.thread_time()
     c = tally.tracker.after_update(aligner, cp)
-    t1 = time.process_time()
+    t1 = time.thread_time()
     n = 0
     if c is not None:
         n = len(corrections_cdr(c, 'map', stamp_ns))
     tally.cpu_s += t1 - t0
-    tally.cdr_cpu_s += time.process_time() - t1
+    tally.cdr_cpu_s += time.thread_time() - t1
     tally.bytes.append(n)
     tally.keyframes.append(0 if c is None else len(c))
     tally.compared.append(0 if c is None else c.n_compared)
@@ -92,10 +92,10 @@ def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int
         nonlocal full_cpu
         cp = session.aligner.corrected_path()
         stamp = int(cp.stamps_ns[-1])
-        t0 = time.process_time()
+        t0 = time.thread_time()
         full.append(len(path_cdr(cp.T_world_node, cp.stamps_ns, 'map', stamp)))
         full_kf.append(len(cp.node_ids))
-        full_cpu += time.process_time() - t0
+        full_cpu += time.thread_time() - t0
         for t in tallies:
             _corrections_bytes(t, session.aligner, cp, stamp)
 
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                                            a.window_tracks)
     n = len(full)
     mean_full = sum(full) / n
-    print('CDR bytes of one message after each window update (what DDS sends); CPU: process '
+    print('CDR bytes of one message after each window update (what DDS sends); CPU: thread '
           'time to build it (compare the poses, choose the spans) and to serialize it, ms per '
           'update (machine shared, figures noisy); '
           're-anchored: keyframes held before that the message moves (entries and inside spans)')

@@ -248,10 +248,11 @@ def _rotation(q: FloatArray) -> FloatArray:
     x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, xw, yw, zw = x * y, x * z, y * z, x * w, y * w, z * w
-    return np.stack([1.0 - 2.0 * (yy + zz), 2.0 * (xy - zw), 2.0 * (xz + yw),
-                     2.0 * (xy + zw), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - xw),
-                     2.0 * (xz - yw), 2.0 * (yz + xw), 1.0 - 2.0 * (xx + yy)],
-                    axis=1).reshape(-1, 3, 3)
+    R = np.empty((len(q), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = 1.0 - 2.0 * (yy + zz), 2.0 * (xy - zw), 2.0 * (xz + yw)
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = 2.0 * (xy + zw), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - xw)
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = 2.0 * (xz - yw), 2.0 * (yz + xw), 1.0 - 2.0 * (xx + yy)
+    return R
 
 
 def correction(T_new: FloatArray, T_held: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -280,17 +281,17 @@ def interpolate_correction(q_a: FloatArray, t_a: FloatArray, q_b: FloatArray, t_
     f) t_a + f t_b``, new pose ``R(q) R_held``, ``R(q) t_held + t``. The one definition of the
     convention: the tracker and every consumer call it."""
     T_held = np.asarray(T_held, float).reshape(-1, 4, 4)
-    k = len(T_held)
-    q_a, q_b = np.broadcast_to(q_a, (k, 4)), np.broadcast_to(q_b, (k, 4))
-    t_a, t_b = np.broadcast_to(t_a, (k, 3)), np.broadcast_to(t_b, (k, 3))
+    q_a, q_b = np.reshape(q_a, (-1, 4)), np.reshape(q_b, (-1, 4))
+    t_a, t_b = np.reshape(t_a, (-1, 3)), np.reshape(t_b, (-1, 3))
     dot = q_a[:, 0] * q_b[:, 0] + q_a[:, 1] * q_b[:, 1] + q_a[:, 2] * q_b[:, 2] \
         + q_a[:, 3] * q_b[:, 3]
     q_b = np.where((dot < 0)[:, None], -q_b, q_b)
     f = np.asarray(f, np.float64).reshape(-1, 1)
-    R = _rotation(_normalised((1.0 - f) * q_a + f * q_b))
+    g = 1.0 - f
+    R = _rotation(_normalised(g * q_a + f * q_b))
     out = np.zeros_like(T_held)
     out[:, :3, :3] = _mul33(R, T_held[:, :3, :3])
-    out[:, :3, 3] = _mul3v(R, T_held[:, :3, 3]) + ((1.0 - f) * t_a + f * t_b)
+    out[:, :3, 3] = _mul3v(R, T_held[:, :3, 3]) + (g * t_a + f * t_b)
     out[:, 3, 3] = 1.0
     return out
 
