@@ -40,8 +40,11 @@ The first call after :meth:`CorrectionTracker.restart` (a start, a resume, a res
 consumer drops what it held and takes them. ``alignment_node`` and the replay both drive this
 one class and :func:`corrections_cdr` (the message's bytes).
 
-Cost: vectorised over the keyframes compared (numpy); the anchors cost a few interpolations of
-a span each (an exponential then binary search of its end). With the track-window aligner the
+Cost: vectorised over the keyframes compared (numpy): one call interpolates every span of up
+to :data:`WIDTH` keyframes from every moved row; a span of a chain that reaches :data:`WIDTH`
+tries longer ones, one call per range of lengths (ranges growing threefold), and the chain
+itself is a loop over integers (about 20 ms of CPU per update on the aerial survey's ~1,100
+compared keyframes, ``ga-ros bench corrections``). With the track-window aligner the
 comparison starts at the first row the update could change
 (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.mutable_rows` taken at the previous
 call), so it is proportional to the window and the refinement's horizon, not to the survey;
