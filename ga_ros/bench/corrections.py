@@ -14,7 +14,8 @@ bytes per update (mean over the updates, and at the last one), the ratio to the 
 CPU time per update to build the message (compare the poses, choose the spans) and to serialize
 it (CPU time of the calling thread: neither the survey's own work nor a background refinement
 running meanwhile in another thread is counted), and the keyframes a consumer re-anchors per
-update: the entries that were held before plus those interpolated inside spans.
+update: the entries that were held before plus those interpolated inside spans; then the
+keyframes added per update and their bytes as poses (the floor of one pose per keyframe).
 
 Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]
 [--window-tracks 5]``.
@@ -157,4 +158,10 @@ def main(argv: list[str] | None = None) -> int:
               f'{max(t.keyframes):,} | {sum(t.compared) / n:,.0f} | {1e3 * t.cpu_s / n:.2f} | '
               f'{1e3 * t.cdr_cpu_s / n:.2f} | '
               f'{sum(t.reanchored) / n:,.0f} |')
+    added = full_kf[-1] / n            # keyframes added per update, the same for every message
+    per_pose = full[-1] / full_kf[-1]  # the whole path's bytes per pose
+    floor = added * per_pose
+    print(f'keyframes added per update: {added:,.0f} (mean); at the whole path of '
+          f'{per_pose:.0f} bytes a pose, {floor:,.0f} bytes, {100 * floor / mean_full:.1f} % of '
+          'the whole path: the floor of any message of one pose per keyframe')
     return 0
