@@ -501,18 +501,28 @@ class CorrectionTracker:
             return ~bad, np.cumsum(b0 - a0 - 1) - (b0 - a0 - 1), P
 
         if spans:   # every span of up to WIDTH rows from every row of the moved range at once
+            # (ending at or before the last moved row r1): for each length e and interior
+            # offset d, the rows a + d of every span (a, a + e) are one slice, so the table
+            # is 2 + 3 + ... + WIDTH - 1 calls on slices, without gathering rows
             r0, r1 = int(moved_rows[0]), int(moved_rows[-1])
-            ends = np.arange(2, WIDTH + 1)
-            a0 = np.repeat(np.arange(r0, r1), ends.size)
-            b0 = np.minimum(a0 + np.tile(ends, r1 - r0), hi - lo - 1)
-            table_ok, table_at, table_P = spans_from(a0, b0)
-            # a span must end at or before the last moved row: per row, the farthest good end
-            # of the table (its index in ``ends``; -1: none)
-            good = (table_ok & (b0 == a0 + np.tile(ends, r1 - r0)) & (b0 <= r1)
-                    ).reshape(-1, ends.size)
-            best = np.where(good.any(1), ends.size - 1 - np.argmax(good[:, ::-1], axis=1),
+            good = np.zeros((r1 - r0, WIDTH - 1), bool)
+            table_P: dict[tuple[int, int], FloatArray] = {}
+            for e in range(2, WIDTH + 1):
+                n_e = r1 - e - r0 + 1          # spans from a = r0 .. r1 - e
+                if n_e <= 0:
+                    break
+                A, B = slice(r0, r0 + n_e), slice(r0 + e, r0 + e + n_e)
+                bad = cum_pinned[r0 + e + 1:r0 + e + 1 + n_e] > cum_pinned[r0:r0 + n_e]
+                for d in range(1, e):
+                    D = slice(r0 + d, r0 + d + n_e)
+                    P = interpolate_correction(q[A], t[A], q[B], t[B],
+                                               span_fraction(st[D], st[A], st[B]), old[D])
+                    bad |= beyond(P, Tq[D])
+                    table_P[e, d] = P
+                good[:n_e, e - 2] = ~bad
+            # per row, the farthest good end of the table (its index in 2 .. WIDTH; -1: none)
+            best = np.where(good.any(1), good.shape[1] - 1 - np.argmax(good[:, ::-1], axis=1),
                             -1).tolist()
-            table_at = table_at.tolist()
         # the next moved row after each row of the moved range (integers: the chain below is a
         # plain loop, its cost a few operations per anchor)
         moved_list = moved_rows.tolist()
@@ -531,9 +541,8 @@ class CorrectionTracker:
             j = best[a - r0]
             if j < 0:
                 return a + 1, None
-            at = table_at[(a - r0) * n_ends + j]
             b = a + 2 + j
-            P = table_P[at:at + b - a - 1]
+            P = np.stack([table_P[b - a, d][a - r0] for d in range(1, b - a)])
             lo_d, hi_d = WIDTH + 1, 3 * WIDTH
             while j == n_ends - 1 and a + lo_d <= last:
                 # every span of the table is good: try longer ones, only the new ends
