@@ -40,8 +40,9 @@ The first call after :meth:`CorrectionTracker.restart` (a start, a resume, a res
 consumer drops what it held and takes them. ``alignment_node`` and the replay both drive this
 one class and :func:`corrections_cdr` (the message's bytes).
 
-Cost: vectorised over the keyframes compared (numpy): one call interpolates every span of up
-to :data:`WIDTH` keyframes from every moved row; a span of a chain that reaches :data:`WIDTH`
+Cost: vectorised over the keyframes compared (numpy): every span of up to :data:`WIDTH`
+keyframes from every moved row is interpolated at once (one call per length and interior
+offset, on slices of the rows); a span of a chain that reaches :data:`WIDTH`
 tries longer ones, one call per range of lengths (ranges growing threefold), and the chain
 itself is a loop over integers (about 20 ms of CPU per update on the aerial survey's ~1,100
 compared keyframes, ``ga-ros bench corrections``). With the track-window aligner the
