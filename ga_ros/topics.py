@@ -39,14 +39,14 @@ CORRECTED_ODOM = 'ga/corrected_odom'
 #: light output for big surveys (the full path may then be sent at a low rate).
 WINDOW_PATH = 'ga/window_path'
 #: Per-update corrections (``nav_msgs/Path``, reliable, volatile): anchor keyframes of what moved
-#: beyond a threshold and the keyframes added since the previous message, each pose's
-#: ``header.frame_id`` its node frame ``ga/<track>/<node>`` (:mod:`ga_ros.pipeline.corrections`,
+#: beyond a threshold and the keyframes added since the previous message, each pose named by its
+#: stamp, its ``header.frame_id`` the map frame (:mod:`ga_ros.pipeline.corrections`,
 #: ``docs/node.md``).
 CORRECTIONS = 'ga/corrections'
 #: ``header.frame_id`` of the marker that opens a full corrections message (``poses[0]``, not a
 #: keyframe): the consumer drops every keyframe it held and takes the ones that follow.
 CORRECTIONS_FULL_FRAME = 'ga/full_path'
-#: Ending of a corrections entry's ``header.frame_id`` (``ga/<track>/<node>/span``): the entry
+#: Ending of a corrections entry's ``header.frame_id`` (``map/span``): the entry
 #: closes a span from the previous entry, and the keyframes held between the two get the
 #: interpolated correction (:func:`ga_ros.pipeline.corrections.interpolate_correction`).
 CORRECTIONS_SPAN_SUFFIX = '/span'

@@ -11,9 +11,11 @@ update it serializes (CDR, what DDS sends) the whole corrected path as the node 
 pair of thresholds on the same run (0:0: every change, bit-exact). Prints, per message, the
 bytes per update (mean over the updates, and at the last one), the ratio to the whole path
 (target <= 10 %), the entries (poses) sent per update, the keyframes compared per update, the
-CPU time to compare, choose the spans and serialize per update (process CPU time; the survey's
-own is not counted), and the keyframes a consumer re-anchors per update: the entries that were
-held before plus those interpolated inside spans.
+CPU time per update to build the message (compare the poses, choose the spans) and to serialize
+it (CPU time of the calling thread: neither the survey's own work nor a background refinement
+running meanwhile in another thread is counted), and the keyframes a consumer re-anchors per
+update: the entries that were held before plus those interpolated inside spans; then the
+keyframes added per update and their bytes as poses (the floor of one pose per keyframe).
 
 Run: ``ga-ros bench corrections [--tracks 25] [--thresholds M:RAD ...] [--refine-every 0]
 [--window-tracks 5]``.
@@ -52,15 +54,18 @@ class Tally:
     compared: list[int] = field(default_factory=list)
     reanchored: list[int] = field(default_factory=list)
     cpu_s: float = 0.0
+    cdr_cpu_s: float = 0.0
 
 
 def _corrections_bytes(tally: Tally, aligner, cp, stamp_ns: int) -> None:
-    t0 = time.process_time()
+    t0 = time.thread_time()
     c = tally.tracker.after_update(aligner, cp)
+    t1 = time.thread_time()
     n = 0
     if c is not None:
         n = len(corrections_cdr(c, 'map', stamp_ns))
-    tally.cpu_s += time.process_time() - t0
+    tally.cpu_s += t1 - t0
+    tally.cdr_cpu_s += time.thread_time() - t1
     tally.bytes.append(n)
     tally.keyframes.append(0 if c is None else len(c))
     tally.compared.append(0 if c is None else c.n_compared)
@@ -88,10 +93,10 @@ def run(n_tracks: int, thresholds: list[CorrectionThresholds], refine_every: int
         nonlocal full_cpu
         cp = session.aligner.corrected_path()
         stamp = int(cp.stamps_ns[-1])
-        t0 = time.process_time()
+        t0 = time.thread_time()
         full.append(len(path_cdr(cp.T_world_node, cp.stamps_ns, 'map', stamp)))
         full_kf.append(len(cp.node_ids))
-        full_cpu += time.process_time() - t0
+        full_cpu += time.thread_time() - t0
         for t in tallies:
             _corrections_bytes(t, session.aligner, cp, stamp)
 
@@ -135,19 +140,28 @@ def main(argv: list[str] | None = None) -> int:
                                            a.window_tracks)
     n = len(full)
     mean_full = sum(full) / n
-    print('CDR bytes of one message after each window update (what DDS sends); CPU: process '
-          'time to build and serialize it, ms per update (machine shared, figures noisy); '
+    print('CDR bytes of one message after each window update (what DDS sends); CPU: thread '
+          'time to build it (compare the poses, choose the spans) and to serialize it, ms per '
+          'update (machine shared, figures noisy); '
           're-anchored: keyframes held before that the message moves (entries and inside spans)')
     print('| message | mean bytes / update | ratio to whole path | bytes at last update | '
           'ratio at last | poses sent / update (mean, max) | compared / update | '
-          'CPU ms / update | re-anchored / update |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|')
+          'CPU ms / update: compare + spans | CPU ms / update: serialize | '
+          're-anchored / update |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
     print(f'| whole path (ga/corrected_path) | {mean_full:,.0f} | 100 % | {full[-1]:,} | 100 % | '
-          f'{sum(full_kf) / n:,.0f}, {max(full_kf):,} | - | {1e3 * full_cpu / n:.2f} | - |')
+          f'{sum(full_kf) / n:,.0f}, {max(full_kf):,} | - | - | {1e3 * full_cpu / n:.2f} | - |')
     for t in tallies:
         mean = sum(t.bytes) / n
         print(f'| {t.label} | {mean:,.0f} | {100 * mean / mean_full:.1f} % | {t.bytes[-1]:,} | '
               f'{100 * t.bytes[-1] / full[-1]:.1f} % | {sum(t.keyframes) / n:,.0f}, '
               f'{max(t.keyframes):,} | {sum(t.compared) / n:,.0f} | {1e3 * t.cpu_s / n:.2f} | '
+              f'{1e3 * t.cdr_cpu_s / n:.2f} | '
               f'{sum(t.reanchored) / n:,.0f} |')
+    added = full_kf[-1] / n            # keyframes added per update, the same for every message
+    per_pose = full[-1] / full_kf[-1]  # the whole path's bytes per pose
+    floor = added * per_pose
+    print(f'keyframes added per update: {added:,.0f} (mean); at the whole path of '
+          f'{per_pose:.0f} bytes a pose, {floor:,.0f} bytes, {100 * floor / mean_full:.1f} % of '
+          'the whole path: the floor of any message of one pose per keyframe')
     return 0

@@ -40,8 +40,12 @@ The first call after :meth:`CorrectionTracker.restart` (a start, a resume, a res
 consumer drops what it held and takes them. ``alignment_node`` and the replay both drive this
 one class and :func:`corrections_cdr` (the message's bytes).
 
-Cost: vectorised over the keyframes compared (numpy); the anchors cost a few interpolations of
-a span each (an exponential then binary search of its end). With the track-window aligner the
+Cost: vectorised over the keyframes compared (numpy): every span of up to :data:`WIDTH`
+keyframes from every moved row is interpolated at once (one call per length and interior
+offset, on slices of the rows); a span of a chain that reaches :data:`WIDTH`
+tries longer ones, one call per range of lengths (ranges growing threefold), and the chain
+itself is a loop over integers (about 20 ms of CPU per update on the aerial survey's ~1,100
+compared keyframes, ``ga-ros bench corrections``). With the track-window aligner the
 comparison starts at the first row the update could change
 (:meth:`~ga_ros.core.window.aligner.TrackWindowAligner.mutable_rows` taken at the previous
 call), so it is proportional to the window and the refinement's horizon, not to the survey;
@@ -52,6 +56,7 @@ ROS-free.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,7 +65,6 @@ import numpy as np
 from ga_ros import topics
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.config_ranges import check_ranges, ranged
-from ga_ros.core.frames import node_frame
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.io.cdr import framed_path_cdr
@@ -248,10 +252,11 @@ def _rotation(q: FloatArray) -> FloatArray:
     x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, xw, yw, zw = x * y, x * z, y * z, x * w, y * w, z * w
-    return np.stack([1.0 - 2.0 * (yy + zz), 2.0 * (xy - zw), 2.0 * (xz + yw),
-                     2.0 * (xy + zw), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - xw),
-                     2.0 * (xz - yw), 2.0 * (yz + xw), 1.0 - 2.0 * (xx + yy)],
-                    axis=1).reshape(-1, 3, 3)
+    R = np.empty((len(q), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = 1.0 - 2.0 * (yy + zz), 2.0 * (xy - zw), 2.0 * (xz + yw)
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = 2.0 * (xy + zw), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - xw)
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = 2.0 * (xz - yw), 2.0 * (yz + xw), 1.0 - 2.0 * (xx + yy)
+    return R
 
 
 def correction(T_new: FloatArray, T_held: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -280,17 +285,17 @@ def interpolate_correction(q_a: FloatArray, t_a: FloatArray, q_b: FloatArray, t_
     f) t_a + f t_b``, new pose ``R(q) R_held``, ``R(q) t_held + t``. The one definition of the
     convention: the tracker and every consumer call it."""
     T_held = np.asarray(T_held, float).reshape(-1, 4, 4)
-    k = len(T_held)
-    q_a, q_b = np.broadcast_to(q_a, (k, 4)), np.broadcast_to(q_b, (k, 4))
-    t_a, t_b = np.broadcast_to(t_a, (k, 3)), np.broadcast_to(t_b, (k, 3))
+    q_a, q_b = np.reshape(q_a, (-1, 4)), np.reshape(q_b, (-1, 4))
+    t_a, t_b = np.reshape(t_a, (-1, 3)), np.reshape(t_b, (-1, 3))
     dot = q_a[:, 0] * q_b[:, 0] + q_a[:, 1] * q_b[:, 1] + q_a[:, 2] * q_b[:, 2] \
         + q_a[:, 3] * q_b[:, 3]
     q_b = np.where((dot < 0)[:, None], -q_b, q_b)
     f = np.asarray(f, np.float64).reshape(-1, 1)
-    R = _rotation(_normalised((1.0 - f) * q_a + f * q_b))
+    g = 1.0 - f
+    R = _rotation(_normalised(g * q_a + f * q_b))
     out = np.zeros_like(T_held)
     out[:, :3, :3] = _mul33(R, T_held[:, :3, :3])
-    out[:, :3, 3] = _mul3v(R, T_held[:, :3, 3]) + ((1.0 - f) * t_a + f * t_b)
+    out[:, :3, 3] = _mul3v(R, T_held[:, :3, 3]) + (g * t_a + f * t_b)
     out[:, 3, 3] = 1.0
     return out
 
@@ -497,24 +502,50 @@ class CorrectionTracker:
             return ~bad, np.cumsum(b0 - a0 - 1) - (b0 - a0 - 1), P
 
         if spans:   # every span of up to WIDTH rows from every row of the moved range at once
+            # (ending at or before the last moved row r1): for each length e and interior
+            # offset d, the rows a + d of every span (a, a + e) are one slice, so the table
+            # is 2 + 3 + ... + WIDTH - 1 calls on slices, without gathering rows
             r0, r1 = int(moved_rows[0]), int(moved_rows[-1])
-            ends = np.arange(2, WIDTH + 1)
-            a0 = np.repeat(np.arange(r0, r1), ends.size)
-            b0 = np.minimum(a0 + np.tile(ends, r1 - r0), hi - lo - 1)
-            table_ok, table_at, table_P = spans_from(a0, b0)
-            table_ok = (table_ok & (b0 == a0 + np.tile(ends, r1 - r0))).reshape(-1, ends.size)
+            good = np.zeros((r1 - r0, WIDTH - 1), bool)
+            table_P: dict[tuple[int, int], FloatArray] = {}
+            for e in range(2, WIDTH + 1):
+                n_e = r1 - e - r0 + 1          # spans from a = r0 .. r1 - e
+                if n_e <= 0:
+                    break
+                A, B = slice(r0, r0 + n_e), slice(r0 + e, r0 + e + n_e)
+                bad = cum_pinned[r0 + e + 1:r0 + e + 1 + n_e] > cum_pinned[r0:r0 + n_e]
+                for d in range(1, e):
+                    D = slice(r0 + d, r0 + d + n_e)
+                    P = interpolate_correction(q[A], t[A], q[B], t[B],
+                                               span_fraction(st[D], st[A], st[B]), old[D])
+                    bad |= beyond(P, Tq[D])
+                    table_P[e, d] = P
+                good[:n_e, e - 2] = ~bad
+            # per row, the farthest good end of the table (its index in 2 .. WIDTH; -1: none)
+            best = np.where(good.any(1), good.shape[1] - 1 - np.argmax(good[:, ::-1], axis=1),
+                            -1).tolist()
+        # the next moved row after each row of the moved range (integers: the chain below is a
+        # plain loop, its cost a few operations per anchor)
+        moved_list = moved_rows.tolist()
+        nxt = np.full(hi - lo + 1, -1, np.int64)
+        if moved_rows.size:
+            r = np.arange(hi - lo)
+            k_next = np.searchsorted(moved_rows, r, side='right')
+            nxt[:hi - lo] = np.where(k_next < moved_rows.size,
+                                     moved_rows[np.minimum(k_next, moved_rows.size - 1)], -1)
+        nxt = nxt.tolist()
+        n_ends = WIDTH - 1
 
         def reach(a: int, last: int) -> tuple[int, FloatArray | None]:
             """The farthest end ``b <= last`` of a span from ``a`` whose interior lands within
             the thresholds, and the interior's new poses (None: no span reaches ``a + 2``)."""
-            ok = np.flatnonzero(table_ok[a - r0] & (a + ends <= last))
-            if not ok.size:
+            j = best[a - r0]
+            if j < 0:
                 return a + 1, None
-            at = table_at[(a - r0) * ends.size + ok[-1]]
-            b = a + int(ends[ok[-1]])
-            P = table_P[at:at + b - a - 1]
+            b = a + 2 + j
+            P = np.stack([table_P[b - a, d][a - r0] for d in range(1, b - a)])
             lo_d, hi_d = WIDTH + 1, 3 * WIDTH
-            while ok[-1] == ends.size - 1 and a + lo_d <= last:
+            while j == n_ends - 1 and a + lo_d <= last:
                 # every span of the table is good: try longer ones, only the new ends
                 b0 = np.arange(a + lo_d, min(a + hi_d, last) + 1)
                 good, at0, P0 = spans_from(np.full(b0.size, a), b0)
@@ -528,17 +559,16 @@ class CorrectionTracker:
             return b, P
 
         k = 0
-        while k < moved_rows.size:
-            a = int(moved_rows[k])
+        while k < len(moved_list):
+            a = moved_list[k]
             entries.append(a)
             flags.append(False)
             H[lo + a] = Tq[a]
             while spans and not pinned[a]:    # extend the chain of spans from a
-                later = moved_rows[moved_rows > a]
-                if later.size == 0:
-                    break
-                b, P = reach(a, int(later[-1]))
-                if P is None or b < int(later[0]):
+                if nxt[a] < 0:
+                    break                     # no moved row after a
+                b, P = reach(a, r1)
+                if P is None or b < nxt[a]:
                     break                     # the next moved row starts a new chain
                 H[lo + a + 1:lo + b] = P
                 H[lo + b] = Tq[b]
@@ -546,7 +576,7 @@ class CorrectionTracker:
                 entries.append(b)
                 flags.append(True)
                 a = b
-            k = int(np.searchsorted(moved_rows, a, side='right'))
+            k = bisect.bisect_right(moved_list, a)
         return lo + np.asarray(entries, np.int64), np.asarray(flags, bool), n_interp
 
 
@@ -632,20 +662,25 @@ class HeldPoses:
         return S[changed], newT[changed]
 
 
-def message_poses(c: Corrections, header_stamp_ns: int) -> tuple[list[str], IntArray, FloatArray]:
-    """The poses of the ``nav_msgs/Path`` of ``c`` on ``ga/corrections``, in order:
-    ``(frame_ids, stamps_ns, T_world_node)``, one entry per ``PoseStamped``.
+def message_poses(c: Corrections, frame_id: str, header_stamp_ns: int
+                  ) -> tuple[list[str], IntArray, FloatArray]:
+    """The poses of the ``nav_msgs/Path`` of ``c`` on ``ga/corrections`` (in ``frame_id``, the
+    map frame), in order: ``(frame_ids, stamps_ns, T_world_node)``, one entry per
+    ``PoseStamped``.
 
-    Each entry: ``header.frame_id`` its node frame ``ga/<track>/<node>`` (stamps alone are
-    not unique: the first two keyframes share one), followed by
-    :data:`~ga_ros.topics.CORRECTIONS_SPAN_SUFFIX` when it closes a span, ``header.stamp`` its
-    stamp, the pose its corrected pose in the Path's frame (the map frame). A full message is
-    opened by a marker entry (not a keyframe): ``header.frame_id``
+    Each entry: ``header.frame_id`` the map frame ``frame_id`` (as every pose of
+    ``ga/corrected_path``), followed by :data:`~ga_ros.topics.CORRECTIONS_SPAN_SUFFIX` when it
+    closes a span; ``header.stamp`` its keyframe's stamp (what names it: the two keyframes that
+    share a stamp are named together, the first is the keyframe before); the pose its corrected
+    pose in the map frame. No node ids: with a map frame of up to three characters (``map``) an
+    entry is 72 bytes of CDR (stamp, frame, padding, seven doubles), as a pose of the whole
+    path, and a span's 80. A full
+    message is opened by a marker entry (not a keyframe): ``header.frame_id``
     :data:`~ga_ros.topics.CORRECTIONS_FULL_FRAME`, stamp ``header_stamp_ns``, pose the first
     keyframe's (the identity if there is none), so a display draws no extra segment.
     """
-    frames = [node_frame(int(t), int(n)) + (topics.CORRECTIONS_SPAN_SUFFIX if s else '')
-              for t, n, s in zip(c.track_ids.tolist(), c.node_ids.tolist(), c.span.tolist())]
+    span_frame = frame_id + topics.CORRECTIONS_SPAN_SUFFIX
+    frames = [span_frame if s else frame_id for s in c.span.tolist()]
     stamps, T = c.stamps_ns, c.T_world_node
     if c.full:
         frames = [topics.CORRECTIONS_FULL_FRAME] + frames
@@ -659,5 +694,5 @@ def corrections_cdr(c: Corrections, frame_id: str, stamp_ns: int) -> bytes:
     the replay bag stores): header ``frame_id`` (the map frame) at ``stamp_ns`` (the corrected
     path's newest keyframe), poses as :func:`message_poses` lays them out. The node publishes
     these bytes and the replay writes them: the same message by construction."""
-    frames, stamps, T = message_poses(c, stamp_ns)
+    frames, stamps, T = message_poses(c, frame_id, stamp_ns)
     return framed_path_cdr(T, stamps, frames, frame_id, int(stamp_ns))

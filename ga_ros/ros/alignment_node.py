@@ -17,8 +17,8 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``ga/corrections`` (``nav_msgs/Path``, reliable, volatile): after every update, anchor
   keyframes of what moved beyond ``corrections.translation_m`` / ``corrections.rotation_rad``
   (entries, and spans inside which a consumer interpolates the correction) and the keyframes
-  added, each pose's ``header.frame_id`` its node frame ``ga/<track>/<node>`` (``/span``
-  appended where a span closes); the first message after a start, reset or ``~/load_state``
+  added, each named by its stamp, its ``header.frame_id`` ``map_frame`` (``/span`` appended
+  where a span closes); the first message after a start, reset or ``~/load_state``
   is full (opened by a ``ga/full_path`` marker pose) (:mod:`ga_ros.pipeline.corrections`).
 * out ``ga/corrected_pose`` (``geometry_msgs/PoseWithCovarianceStamped``): newest node.
 * out ``ga/corrected_odom`` (``nav_msgs/Odometry``): newest node, ``map_frame`` ->

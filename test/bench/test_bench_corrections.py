@@ -18,3 +18,8 @@ def test_bench_corrections_prints_the_whole_path_and_each_tracker(capsys) -> Non
     # the ratio is what the (rounded) mean bytes say
     ratio = 100 * float(exact[2].replace(',', '')) / float(whole[2].replace(',', ''))
     assert exact[3].endswith(' %') and abs(float(exact[3][:-2]) - ratio) < 0.1
+    # the floor: the keyframes added (408 in 2 updates) at the whole path's bytes a pose
+    floor = next(line for line in out.splitlines() if line.startswith('keyframes added'))
+    assert floor.startswith('keyframes added per update: 204 (mean); at the whole path of 72 ')
+    pct = float(floor.split(' bytes, ')[1].split(' %')[0])
+    assert abs(pct - 100 * 204 * 72 / float(whole[2].replace(',', ''))) < 0.2

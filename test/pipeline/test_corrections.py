@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from ga_ros import topics
-from ga_ros.core.frames import parse_node_frame
 from ga_ros.core.window import AlignerConfig
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
@@ -76,11 +75,13 @@ def drive(measurements: list, tracker: CorrectionTracker, every: int = 1,
 
 
 class Consumer:
-    """Re-anchors only what the corrections say: keyframe (node frame) -> pose, for a message
-    without spans (thresholds 0), reading the deserialized message as any ROS consumer would."""
+    """Re-anchors only what the corrections say: keyframe (named by its stamp) -> pose, for a
+    message without spans (thresholds 0), reading the deserialized message as any ROS consumer
+    would. A stamp named twice in a message is two keyframes (in order); named once, it is the
+    last keyframe of that stamp (docs/node.md)."""
 
     def __init__(self) -> None:
-        self.poses: dict[str, tuple] = {}
+        self.poses: dict[int, list[tuple]] = {}
         self.full_messages = 0
 
     def apply(self, msg) -> None:
@@ -89,11 +90,19 @@ class Consumer:
             self.poses.clear()
             self.full_messages += 1
             poses = poses[1:]
-        for ps in poses:
-            assert not ps.header.frame_id.endswith(topics.CORRECTIONS_SPAN_SUFFIX)
+        stamp = [ps.header.stamp.sec * 10**9 + ps.header.stamp.nanosec for ps in poses]
+        twice: dict[int, list[tuple]] = {}
+        for ps, s in zip(poses, stamp):
+            assert ps.header.frame_id == 'map'   # the map frame, no span
             p, o = ps.pose.position, ps.pose.orientation
-            self.poses[ps.header.frame_id] = (p.x, p.y, p.z, o.x, o.y, o.z, o.w,
-                                             ps.header.stamp.sec, ps.header.stamp.nanosec)
+            pose = (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
+            if stamp.count(s) == 2:
+                twice.setdefault(s, []).append(pose)
+                self.poses[s] = twice[s]
+            elif s in self.poses:
+                self.poses[s][-1] = pose
+            else:
+                self.poses[s] = [pose]
 
 
 def read(data: bytes) -> CorrectionMessage:
@@ -110,12 +119,12 @@ def read(data: bytes) -> CorrectionMessage:
     return CorrectionMessage.from_poses([ps.header.frame_id for ps in msg.poses], stamps, T)
 
 
-def as_tuples(path_msg) -> dict[str, tuple]:
-    out = {}
+def as_tuples(path_msg) -> dict[int, list[tuple]]:
+    out: dict[int, list[tuple]] = {}
     for ps in path_msg.poses:
         p, o = ps.pose.position, ps.pose.orientation
-        out[ps.header.frame_id] = (p.x, p.y, p.z, o.x, o.y, o.z, o.w, ps.header.stamp.sec,
-                                   ps.header.stamp.nanosec)
+        out.setdefault(ps.header.stamp.sec * 10**9 + ps.header.stamp.nanosec, []).append(
+            (p.x, p.y, p.z, o.x, o.y, o.z, o.w))
     return out
 
 
@@ -131,10 +140,10 @@ def test_consumer_of_every_change_ends_with_the_corrected_path_bit_for_bit(surve
             sent += len(c)
     cp = calls[-1][2]
     final = trajectory_to_path_msg(Trajectory(cp.stamps_ns, cp.T_world_node, cp.node_ids,
-                                              cp.track_ids, 'map'), node_frames=True)
+                                              cp.track_ids, 'map'))
     assert consumer.full_messages == 1
     assert consumer.poses == as_tuples(final)          # bit-identical poses and stamps
-    assert len(consumer.poses) == len(cp.node_ids) > 100
+    assert sum(map(len, consumer.poses.values())) == len(cp.node_ids) > 100
     # and less than the whole path after every call
     assert sent < sum(len(p.node_ids) for _, _, p in calls)
 
@@ -267,17 +276,17 @@ def test_full_message_at_start_reset_and_replacement(survey) -> None:
             session.step(m)
         first = tracker.after_update(session.aligner)
         assert first.full and len(first) == session.n_nodes() and first.n_moved == 0
-        frames, stamps, T = message_poses(first, 123)
+        frames, stamps, T = message_poses(first, 'map', 123)
         assert frames[0] == topics.CORRECTIONS_FULL_FRAME and stamps[0] == 123
         assert len(frames) == len(first) + 1
         np.testing.assert_array_equal(T[0], T[1])   # the marker sits on the first keyframe
-        assert [parse_node_frame(f)[1] for f in frames[1:]] == first.node_ids.tolist()
+        assert frames[1:] == ['map'] * len(first)   # the map frame: 72 bytes a pose
         assert not first.span.any()
         assert tracker.after_update(session.aligner) is None   # nothing moved or was added
         session.reset()                                        # a new aligner: full, empty
         empty = tracker.after_update(session.aligner)
         assert empty.full and len(empty) == 0
-        frames, _, T = message_poses(empty, 5)
+        frames, _, T = message_poses(empty, 'map', 5)
         assert frames == [topics.CORRECTIONS_FULL_FRAME] and np.array_equal(T[0], np.eye(4))
         for m in survey[:30]:
             session.step(m)
@@ -324,3 +333,77 @@ def test_keyframes_sharing_a_stamp_are_named_together() -> None:
         consumer.apply(read(corrections_cdr(c, 'map', int(stamps[n - 1]))))
         np.testing.assert_array_equal(consumer.T_map_base, tracker.held())
         np.testing.assert_array_equal(consumer.T_map_base, decoded(T[:n]))
+
+
+def random_updates(rng: np.random.Generator, n_tracks: int = 6, per_track: int = 40
+                   ) -> list[Trajectory]:
+    """Corrected paths of a random survey after each of ``n_tracks`` updates: straight tracks
+    of ``per_track`` keyframes (stamps 1 s apart, jittered), each update adding a track and
+    moving every held keyframe by a smooth random correction (a rotation of a few mrad about a
+    random point, drifting along the path) plus keyframe-by-keyframe noise of 0-3 cm on the
+    newest tracks, as a window update does."""
+    paths, T = [], np.zeros((0, 4, 4))
+    stamps = np.zeros(0, np.int64)
+    for u in range(n_tracks):
+        x = np.arange(per_track) * 10.0 * (1 if u % 2 == 0 else -1) + (0 if u % 2 == 0 else 400)
+        new = se3.from_translation_rotvec(
+            np.stack([x, np.full(per_track, 40.0 * u), rng.normal(50.0, 0.5, per_track)], 1),
+            rng.normal(0.0, 0.05, (per_track, 3)))
+        s0 = int(stamps[-1]) + 10**9 if stamps.size else 10**9
+        new_stamps = s0 + 10**9 * np.arange(per_track) + rng.integers(0, 10**8, per_track)
+        n = len(T)
+        if n:
+            f = np.linspace(0.0, 1.0, n)[:, None]
+            rot = rng.normal(0.0, 0.003, 3) * f + rng.normal(0.0, 0.001, 3)
+            pivot = rng.normal(0.0, 200.0, 3)
+            d = se3.from_translation_rotvec(rng.normal(0.0, 0.1, 3) * f, rot)
+            d[:, :3, 3] += pivot - np.einsum('kij,j->ki', d[:, :3, :3], pivot)
+            T = np.einsum('kij,kjl->kil', d, T)
+            recent = np.arange(n) >= n - 2 * per_track
+            T[recent, :3, 3] += rng.normal(0.0, rng.uniform(0.0, 0.03), (recent.sum(), 3))
+        T = np.concatenate([T, new])
+        stamps = np.concatenate([stamps, new_stamps])
+        ids = np.arange(len(T))
+        paths.append(Trajectory(stamps.copy(), T.copy(), ids, ids // per_track, 'map'))
+    return paths
+
+
+def strip_spans(data: bytes) -> CorrectionMessage:
+    """A consumer that does not read the span endings: every entry a plain one."""
+    msg = read(data)
+    return CorrectionMessage(msg.full, msg.stamps_ns, msg.T_map_base,
+                             np.zeros_like(msg.span))
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_random_corrections_decode_within_the_thresholds(seed) -> None:
+    """decode(encode(x)) on random correction fields: the serialized messages (entries named by
+    stamp, in the map frame, 72 bytes each but a span's 80), read back and applied, leave the
+    consumer within the thresholds of every corrected path and bit for bit what the tracker
+    holds; spans carry keyframes. A consumer that reads the spans as plain entries (the failing
+    case) leaves keyframes beyond the thresholds."""
+    th = CorrectionThresholds()
+    tracker, good, naive = CorrectionTracker(th), HeldPoses(), HeldPoses()
+    interpolated, worst_naive = 0, 0.0
+    for traj in random_updates(np.random.default_rng(seed)):
+        c = tracker.compare(traj)
+        data = corrections_cdr(c, 'map', int(traj.stamps_ns[-1]))
+        n_span = int(c.span.sum())
+        # CDR: 4 encapsulation + 20 header, up to 4 of alignment before the first pose, the
+        # marker 88 at most, 72 a pose, 8 more a span's ('map/span')
+        assert len(data) <= 28 + 88 * c.full + 72 * len(c) + 8 * n_span
+        good.apply(read(data))
+        naive.apply(strip_spans(data))
+        interpolated += c.n_interpolated
+        np.testing.assert_array_equal(good.T_map_base, tracker.held())
+        want = traj.T_world_node
+        for held, ok in ((good, True), (naive, False)):
+            dt = np.linalg.norm(held.T_map_base[:, :3, 3] - want[:, :3, 3], axis=1).max()
+            dr = angle(np.einsum('kji,kjl->kil', held.T_map_base[:, :3, :3],
+                                 want[:, :3, :3])).max()
+            if ok:
+                assert dt <= th.translation_m * (1 + 1e-9) and dr <= th.rotation_rad * 1.0001
+            else:
+                worst_naive = max(worst_naive, dt / th.translation_m, dr / th.rotation_rad)
+    assert interpolated > 0
+    assert worst_naive > 2.0   # the spans matter: without them keyframes are far beyond
