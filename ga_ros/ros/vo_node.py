@@ -326,7 +326,12 @@ class VoNode(BoundedLogging, Node):
         now = self.get_clock().now().nanoseconds * 1e-9
         if now - self._last_warn.get(key, -1e18) >= self.settings.warn_throttle_sec:
             self._last_warn[key] = now
-            (self.get_logger().error if error else self.get_logger().warning)(text)
+            # one call site per severity: rclpy refuses a call site whose severity changes
+            # ("Logger severity cannot be changed between calls")
+            if error:
+                self.get_logger().error(text)
+            else:
+                self.get_logger().warning(text)
 
     def _publish_measurement(self, m: Measurement) -> None:
         self.pub_meas.publish(conv.measurement_to_odometry(m))

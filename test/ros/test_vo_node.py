@@ -549,3 +549,14 @@ def test_keyframe_clouds_published_while_subscribed() -> None:
         listener.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_a_warning_then_an_error_from_the_throttled_log_both_reach_the_log() -> None:
+    """The node's throttled log writes warnings and errors (an unknown extrinsic is an
+    error after a 'no CameraInfo yet' warning): rclpy refuses a call site whose severity
+    changes, which made the worker drop the pair with 'Logger severity cannot be changed'."""
+    with _vo_node(34, pair_queue=1) as (node, _):
+        node._warn('camera_info', 'a warning first')
+        node._warn('extrinsic', 'then an error', error=True)
+        node._warn('queue', 'and a warning again')
