@@ -15,15 +15,16 @@ to the grid's size. The grid is one dense array that grows to the cells reached.
 Memory: a live keyframe keeps its points (at most ``max_points_per_keyframe``; 12 bytes each for
 a ``float32`` cloud, as ``PointCloud2`` gives them) and their placement (16 bytes each): about
 110 kB per keyframe at the default 4,000 points. :meth:`LiveHeightGrid.merge` drops a keyframe's
-points into the **static layer**, two numbers per cell (28 bytes a cell with the medians and
-heights, whatever the keyframes merged): the merged points of a cell are replaced by as many
-copies of the cell's upper median at the merge (over all its points, live, merged before and
-merged now). Replacing points below the upper median by it, or points above it by it, leaves it
-the upper median, so a merge changes no median and no height. Afterwards a cell's median is the
-weighted upper median of its live points and that value counted as many times as the points it
-replaced: equal to the median of all the points as long as the live points of the cell do not
-change (the merged keyframes no longer move), an approximation once they do (the merged points'
-spread is forgotten; the result lies between the live points' median and the merged value).
+points into the **static layer**: per cell at most ``2 * STATIC_BINS + 1`` weighted heights
+(12 bytes each; 124 bytes a cell with the medians and heights, whatever the keyframes merged).
+At a merge, each cell's merged points (and the weighted heights merged there before) are split
+by the cell's upper median at that moment (over all its points, live and merged): those below
+it into ``STATIC_BINS`` bins of equal weight, each kept as its upper median with the bin's
+weight, those equal to it as one, those above it as below. No point crosses the median, so a
+merge changes no median and no height. Afterwards a cell's median is the weighted upper median
+of its live points and its weighted heights: equal to the median of all the points as long as
+the live points of the cell do not change (merged keyframes no longer move), an approximation
+once they do (to within the bin of the merged points where the median then falls).
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ from ga_ros.mapping.surface import (
 
 #: Cells added beyond what is needed when the grid grows (fewer re-allocations).
 GROW_CELLS = 32
+#: Bins of equal weight the merged points of a cell below (and above) its median are kept as.
+STATIC_BINS = 4
+_SLOTS = 2 * STATIC_BINS + 1
 
 
 @dataclass
@@ -70,9 +74,10 @@ class LiveHeightGrid:
         self.i0 = self.j0 = 0
         self.medians = np.zeros((0, 0))
         self.heights = np.zeros((0, 0))
-        #: static layer: per cell, the value standing for the merged points and their number
-        self.static_z = np.zeros((0, 0))
-        self.static_n = np.zeros((0, 0), np.int64)
+        #: static layer: per cell, the weighted heights standing for the merged points (weight 0:
+        #: an empty slot)
+        self.static_z = np.zeros((0, 0, _SLOTS))
+        self.static_w = np.zeros((0, 0, _SLOTS), np.int32)
         #: keyframes merged into the static layer
         self.merged = 0
         self._dirty: list[tuple[np.ndarray, np.ndarray]] = []
@@ -150,15 +155,15 @@ class LiveHeightGrid:
             j_hi + GROW_CELLS
         med = np.full((i_hi - i_lo + 1, j_hi - j_lo + 1), np.nan)
         hts = med.copy()
-        sz = np.zeros(med.shape)
-        sn = np.zeros(med.shape, np.int64)
+        sz = np.zeros(med.shape + (_SLOTS,))
+        sn = np.zeros(med.shape + (_SLOTS,), np.int32)
         if rows:
             win = (slice(self.i0 - i_lo, self.i0 - i_lo + rows),
                    slice(self.j0 - j_lo, self.j0 - j_lo + cols))
             med[win], hts[win] = self.medians, self.heights
-            sz[win], sn[win] = self.static_z, self.static_n
+            sz[win], sn[win] = self.static_z, self.static_w
         self.i0, self.j0, self.medians, self.heights = i_lo, j_lo, med, hts
-        self.static_z, self.static_n = sz, sn
+        self.static_z, self.static_w = sz, sn
 
     def commit(self) -> tuple[IntArray, IntArray]:
         """Recompute what the changes since the last commit touched; returns the global cells
@@ -213,7 +218,7 @@ class LiveHeightGrid:
                 parts_z.append(kf.z[sel])
         win = (slice(lo_i - self.i0, hi_i + 1 - self.i0),
                slice(lo_j - self.j0, hi_j + 1 - self.j0))
-        si, sj = np.nonzero(mask[win] & (self.static_n[win] > 0))
+        si, sj, ss = np.nonzero(mask[win][..., None] & (self.static_w[win] > 0))
         if si.size == 0:
             if not parts_z:
                 return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -221,10 +226,10 @@ class LiveHeightGrid:
                                 np.concatenate(parts_z), min_points)
         si, sj = si + lo_i - self.i0, sj + lo_j - self.j0
         n_live = sum(len(z) for z in parts_z)
-        w = np.r_[np.ones(n_live, np.int64), self.static_n[si, sj]]
+        w = np.r_[np.ones(n_live, np.int64), self.static_w[si, sj, ss]]
         return weighted_cell_medians(np.concatenate(parts_i + [si + self.i0]),
                                      np.concatenate(parts_j + [sj + self.j0]),
-                                     np.concatenate(parts_z + [self.static_z[si, sj]]), w,
+                                     np.concatenate(parts_z + [self.static_z[si, sj, ss]]), w,
                                      min_points)
 
     def merge(self, keys: list[int]) -> int:
@@ -244,17 +249,43 @@ class LiveHeightGrid:
         mask[mi - self.i0, mj - self.j0] = True
         # the upper median of every point of the cell, the merged ones included
         i, j, med = self._medians(mask, lo_i, hi_i, lo_j, hi_j, 1, tuple(placed))
-        self.static_z[i - self.i0, j - self.j0] = med
-        np.add.at(self.static_n, (mi - self.i0, mj - self.j0), 1)
+        at = np.full(self.medians.shape, np.nan)
+        at[i - self.i0, j - self.j0] = med
+        # what the merged cells keep: the merged points and the weighted heights already there
+        si, sj, ss = np.nonzero(mask[..., None] & (self.static_w > 0))
+        fi = np.r_[mi - self.i0, si]
+        fj = np.r_[mj - self.j0, sj]
+        fz = np.concatenate([kf.z for kf in placed] + [self.static_z[si, sj, ss]])
+        fw = np.r_[np.ones(mi.size, np.int64), self.static_w[si, sj, ss]]
+        m = at[fi, fj]
+        side = np.where(fz < m, 0, np.where(fz == m, 1, 2))
+        order = np.lexsort((fz, side, fj, fi))
+        fi, fj, fz, fw, side = fi[order], fj[order], fz[order], fw[order], side[order]
+        first = np.flatnonzero(np.r_[True, (fi[1:] != fi[:-1]) | (fj[1:] != fj[:-1])
+                                     | (side[1:] != side[:-1])])
+        group = np.repeat(np.arange(first.size), np.diff(np.r_[first, fz.size]))
+        cw = np.cumsum(fw)
+        start = (cw - fw)[first]
+        total = np.r_[start[1:], cw[-1]] - start
+        b = (STATIC_BINS * (cw - fw - start[group])) // total[group]
+        slot = np.where(side == 0, b, np.where(side == 1, STATIC_BINS, STATIC_BINS + 1 + b))
+        cell = fi * self.medians.shape[1] + fj
+        ci, cs, cz = weighted_cell_medians(cell, slot, fz, fw, 1)
+        _, inverse = np.unique(cell * _SLOTS + slot, return_inverse=True)
+        weight = np.bincount(inverse, weights=fw).astype(np.int64)
+        self.static_w[mask] = 0
+        rows, cols = np.divmod(ci, self.medians.shape[1])
+        self.static_z[rows, cols, cs] = cz
+        self.static_w[rows, cols, cs] = weight
         return len(gone)
 
     def clear_static(self) -> None:
         """Forget the static layer (a reset); its cells are recomputed at the next commit."""
-        i, j = np.nonzero(self.static_n)
+        i, j = np.nonzero(self.static_w.any(axis=2))
         if i.size:
             self._dirty.append(((i + self.i0).astype(np.int32), (j + self.j0).astype(np.int32)))
         self.static_z[:] = 0.0
-        self.static_n[:] = 0
+        self.static_w[:] = 0
 
     # ------------------------------------------------------------------ outputs
     @property
@@ -288,7 +319,7 @@ class LiveHeightGrid:
     def grid_nbytes(self) -> int:
         """Bytes held by the per-cell arrays (medians, heights, static layer)."""
         return self.medians.nbytes + self.heights.nbytes + self.static_z.nbytes \
-            + self.static_n.nbytes
+            + self.static_w.nbytes
 
 
 def weighted_cell_medians(i: IntArray, j: IntArray, z: FloatArray, w: IntArray,
