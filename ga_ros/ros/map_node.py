@@ -37,8 +37,8 @@ the ``OccupancyGrid`` convention, :func:`ga_ros.mapping.mosaic.map_metadata_fiel
 (:class:`ga_ros.mapping.cloud_map.CloudMapConfig`: per-keyframe decimation, a static layer
 beyond ``max_live_keyframes``; :class:`ga_ros.pipeline.mosaic_map.MosaicMapConfig`: a pixel
 cap, older keyframes merged into static layers beyond ``mosaic_max_live_keyframes``: their
-image, patch and cloud points released, later corrections of them ignored and counted). A bad message is counted, warned
-about (throttled) and dropped; the node goes on.
+image, patch and cloud points released, later corrections of them ignored and counted). A bad
+message is counted, warned about (throttled) and dropped; the node goes on.
 """
 
 from __future__ import annotations
