@@ -12,10 +12,15 @@ scratch from the same poses (what a consumer of the whole path would do after ev
 and the CPU time of :meth:`~ga_ros.mapping.cloud_map.KeyframeCloudMap.cloud` (the points to
 publish, proportional to the voxels, paid once per ``publish_period_sec``, not per update).
 
+Then the live mosaic's table (:mod:`ga_ros.bench.map_mosaic`: update cost for the same ``--moved``
+counts and bytes held per keyframe, at ``--mosaic-sizes`` keyframes fed; ``--mosaic-sizes ''``
+skips it, ``--sizes ''`` skips the cloud map's).
+
 CPU: ``time.process_time`` (this process, every thread; nothing else runs in it).
 
 Run: ``ga-ros bench map [--sizes 500,1000,2000,5000] [--moved 1,10,100] [--points 500]
-[--voxel 0.2] [--repeats 20]``.
+[--voxel 0.2] [--repeats 20] [--mosaic-sizes 1000,5000] [--mosaic-live 500]
+[--mosaic-points 1000] [--mosaic-image 320] [--mosaic-repeats 5]``.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import time
 
 import numpy as np
 
+from ga_ros.bench import map_mosaic
 from ga_ros.geometry import se3
 from ga_ros.mapping.cloud_map import CloudMapConfig, map_from_poses
 
@@ -58,9 +64,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--points', type=int, default=500, help='points per keyframe cloud')
     ap.add_argument('--voxel', type=float, default=0.2, help='map voxel edge (m)')
     ap.add_argument('--repeats', type=int, default=20, help='updates timed per cell')
+    ap.add_argument('--mosaic-sizes', default='1000,5000',
+                    help="keyframes fed to the live mosaic, comma-separated ('': skip it)")
+    ap.add_argument('--mosaic-live', type=int, default=500,
+                    help='mosaic_max_live_keyframes (0: no merging)')
+    ap.add_argument('--mosaic-points', type=int, default=1000,
+                    help="cloud points per keyframe for the mosaic's ground")
+    ap.add_argument('--mosaic-image', type=int, default=320,
+                    help='keyframe image width (px; height 3/4 of it)')
+    ap.add_argument('--mosaic-repeats', type=int, default=5,
+                    help='mosaic updates timed per cell')
     a = ap.parse_args(argv)
-    sizes = [int(v) for v in a.sizes.split(',')]
+    sizes = [int(v) for v in a.sizes.split(',') if v]
     moved = [int(v) for v in a.moved.split(',')]
+    mosaic_sizes = [int(v) for v in a.mosaic_sizes.split(',') if v]
+    if sizes:
+        _cloud_table(a, sizes, moved)
+    if mosaic_sizes:
+        map_mosaic.print_table(mosaic_sizes, moved, a.mosaic_live, a.mosaic_image,
+                               a.mosaic_points, a.mosaic_repeats)
+    return 0
+
+
+def _cloud_table(a: argparse.Namespace, sizes: list[int], moved: list[int]) -> None:
+    """The cloud map's table (module docstring)."""
     cfg = CloudMapConfig(voxel_m=a.voxel, keyframe_voxel_m=0.0, max_points_per_keyframe=0,
                          max_live_keyframes=0)
     rng = np.random.default_rng(1)
@@ -104,4 +131,3 @@ def main(argv: list[str] | None = None) -> int:
     for k in moved:
         print(f'  {k:>4} moved: ' + ', '.join(f'{1e3 * v:.3f}' for v in per_kf[k])
               + f'   (largest / smallest map: {per_kf[k][-1] / per_kf[k][0]:.2f})')
-    return 0

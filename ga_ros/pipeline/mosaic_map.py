@@ -31,9 +31,21 @@ Keyframes wait until ground under them is known; pixels whose ground is unknown 
 uncovered. Without it the ground is the plane ``z = ground_z``.
 
 Memory is bounded: the tiles' bounding box may not exceed ``max_pixels`` (a keyframe that would
-grow it beyond is refused: :attr:`LiveMosaic.last_error` says what to change); beyond
-``max_live_keyframes`` the oldest keyframe is frozen into the tiles' static base layer (its
-image and patch are released; it no longer moves).
+grow it beyond is refused: :attr:`LiveMosaic.last_error` says what to change). Beyond
+``max_live_keyframes`` placed keyframes, the oldest (by stamp, so that the static layer lies
+under every live keyframe as ``'last'`` blending wants) is **merged**: its pixels are pasted
+into the tiles' static base layer, its cloud's points into the height model's static layer
+(:meth:`ga_ros.mapping.live_surface.LiveHeightGrid.merge`, which changes no height), and its
+image, patch and points are released; so are the points of older keyframes whose image never
+came. A merge changes no pixel of the mosaic. What a keyframe holds while live, and a merged one
+(its pose at the merge, 128 bytes), is :meth:`LiveMosaic.nbytes_by_part`; the static layers grow
+with the area covered, not with the keyframes. A merged keyframe no longer moves: a later pose
+of it that differs from its pose at the merge is ignored and counted
+(:attr:`MosaicCounts.merged_moves_ignored`, the largest shift in
+:attr:`MosaicCounts.merged_max_shift_m`); the mosaic keeps it where it was merged. Its ground
+stays in the height model as it was at the merge, so a live keyframe over it is orthorectified
+on it as before; the height of a cell shared with live points is then approximate
+(:mod:`ga_ros.mapping.live_surface`).
 """
 
 from __future__ import annotations
@@ -76,8 +88,8 @@ class MosaicMapConfig:
     tile_px : edge of the tiles recomposited when a keyframe moves (px).
     max_pixels : largest mosaic (bounding box of the tiles, px); a keyframe that would exceed
         it is refused.
-    max_live_keyframes : keyframes that keep their image and can move; beyond, the oldest is
-        frozen into the mosaic (0: no limit).
+    max_live_keyframes : keyframes that keep their image, patch and points and can move;
+        beyond, the oldest is merged into the static layers (module docstring; 0: no limit).
     max_waiting : keyframe images kept while their pose or the ground is unknown (oldest
         dropped beyond).
     """
@@ -114,7 +126,11 @@ class MosaicCounts:
     tiles_composited : tile recompositions done.
     refused : keyframes refused (mosaic over ``max_pixels``, or no view of the ground).
     dropped : keyframe images dropped while waiting (``max_waiting``).
-    frozen : keyframes frozen into the static layer.
+    frozen : keyframes merged into the static layers.
+    merged_moves_ignored : poses of merged keyframes that differed from their pose at the
+        merge (ignored).
+    merged_max_shift_m : the largest translation between such a pose and the pose at the
+        merge (m).
     """
 
     images: int = 0
@@ -125,6 +141,8 @@ class MosaicCounts:
     refused: int = 0
     dropped: int = 0
     frozen: int = 0
+    merged_moves_ignored: int = 0
+    merged_max_shift_m: float = 0.0
 
 
 @dataclass
@@ -182,8 +200,10 @@ class LiveMosaic:
         self.counts = MosaicCounts()
         self.keyframes: dict[int, _Keyframe] = {}
         self.tiles: dict[tuple[int, int], _Tile] = {}
-        #: static layer: tile -> (image, valid) of the frozen keyframes
+        #: static layer: tile -> (image, valid) of the merged keyframes
         self.static: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        #: merged keyframes: stamp -> T_map_base at the merge
+        self.merged: dict[int, FloatArray] = {}
         self.ground: GroundPlane | None = (None if config.ground_from_clouds
                                            else GroundPlane(float(config.ground_z)))
         self.surface: LiveHeightGrid | None = (
@@ -220,6 +240,8 @@ class LiveMosaic:
             raise InputError('mosaic: a keyframe cloud needs (k, 3) points and a finite 4x4 '
                              'camera extrinsic')
         self.counts.clouds += 1
+        if int(stamp_ns) in self.merged:  # its points are in the static layer already
+            return 0
         self.surface.add_points(int(stamp_ns), P, T_bc)
         return self._update([])
 
@@ -251,6 +273,8 @@ class LiveMosaic:
             raise InputError('mosaic: grey and colour keyframe images mixed')
         key = int(stamp_ns)
         self.counts.images += 1
+        if key in self.merged:  # its pixels are in the static layer already
+            return False
         old = self.keyframes.get(key)
         self.keyframes[key] = _Keyframe(img, K, T_bc, self.pending_poses.pop(key, None))
         if old is not None and old.patch is not None:
@@ -275,6 +299,13 @@ class LiveMosaic:
                              'that is not finite')
         moved = []
         for k, Tk in zip(keys.tolist(), T):
+            at_merge = self.merged.get(k)
+            if at_merge is not None:
+                if not np.array_equal(at_merge, Tk):
+                    self.counts.merged_moves_ignored += 1
+                    shift = float(np.linalg.norm(Tk[:3, 3] - at_merge[:3, 3]))
+                    self.counts.merged_max_shift_m = max(self.counts.merged_max_shift_m, shift)
+                continue
             kf = self.keyframes.get(k)
             if self.surface is not None:
                 self.surface.set_pose(k, Tk)
@@ -304,8 +335,11 @@ class LiveMosaic:
         self.changed = True
 
     def clear_static(self) -> None:
-        """Drop the frozen keyframes' layer (a reset)."""
+        """Drop the merged keyframes' layers (a reset)."""
         self.static.clear()
+        self.merged.clear()
+        if self.surface is not None:
+            self.surface.clear_static()
         self.changed = True
 
     # ------------------------------------------------------------------ work
@@ -523,15 +557,31 @@ class LiveMosaic:
         self.changed |= bool(tiles)
 
     def _freeze(self) -> None:
-        """Beyond ``max_live_keyframes`` placed keyframes, the oldest goes into the static
-        layer."""
+        """Beyond ``max_live_keyframes`` placed keyframes, merge the oldest (module
+        docstring)."""
         limit = self.config.max_live_keyframes
         if limit <= 0:
             return
         placed = sorted(k for k, kf in self.keyframes.items() if kf.patch is not None)
-        for k in placed[:max(len(placed) - limit, 0)]:
-            patch = self.keyframes.pop(k).patch
-            assert patch is not None
+        self.merge(placed[:max(len(placed) - limit, 0)])
+
+    def merge(self, keys: list[int]) -> int:
+        """Merge these placed keyframes into the static layers (module docstring), and the
+        height model's keyframes older than the newest of them that have no image here;
+        returns the keyframes merged. The mosaic is unchanged."""
+        keys = sorted(k for k in keys if k in self.keyframes
+                      and self.keyframes[k].patch is not None)
+        if not keys:
+            return 0
+        if self.surface is not None:
+            orphans = [k for k in self.surface.keyframes
+                       if k <= keys[-1] and k not in self.keyframes]
+            self.surface.merge(keys + orphans)
+        for k in keys:
+            kf = self.keyframes.pop(k)
+            patch = kf.patch
+            assert patch is not None and kf.T_map_base is not None
+            self.merged[k] = kf.T_map_base
             t = self.config.tile_px
             for tile in patch.tiles(t):
                 got = self._tile(tile)
@@ -541,6 +591,7 @@ class LiveMosaic:
                 layer = _Tile(*self.static[tile])
                 _paste(layer, patch, tile[0] * t, tile[1] * t)
             self.counts.frozen += 1
+        return len(keys)
 
     # ------------------------------------------------------------------ outputs
     def take_changed(self) -> bool:
@@ -554,14 +605,26 @@ class LiveMosaic:
         return sum(kf.patch is not None for kf in self.keyframes.values())
 
     def nbytes(self) -> int:
-        """Bytes held by the images, patches and tiles."""
-        n = sum(kf.image.nbytes + (0 if kf.patch is None else
-                                   kf.patch.image.nbytes + kf.patch.valid.nbytes
-                                   + (0 if kf.patch.ground is None else kf.patch.ground.nbytes))
-                for kf in self.keyframes.values())
-        n += sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values())
-        n += 0 if self.surface is None else self.surface.nbytes()
-        return n + sum(a.nbytes + b.nbytes for a, b in self.static.values())
+        """Bytes held by the images, patches, points, tiles and static layers."""
+        return sum(self.nbytes_by_part().values())
+
+    def nbytes_by_part(self) -> dict[str, int]:
+        """Bytes held, by what holds them: per live keyframe ``images``, ``patches`` (warped
+        pixels, mask and the ground read) and ``points`` (the height model's), per merged
+        keyframe ``merged_poses``; per area ``tiles``, ``static_tiles`` and ``ground`` (the
+        height model's per-cell arrays)."""
+        kfs = self.keyframes.values()
+        patches = [kf.patch for kf in kfs if kf.patch is not None]
+        return {
+            'images': sum(kf.image.nbytes for kf in kfs),
+            'patches': sum(p.image.nbytes + p.valid.nbytes
+                           + (0 if p.ground is None else p.ground.nbytes) for p in patches),
+            'points': 0 if self.surface is None else self.surface.points_nbytes(),
+            'merged_poses': sum(T.nbytes for T in self.merged.values()),
+            'tiles': sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values()),
+            'static_tiles': sum(a.nbytes + b.nbytes for a, b in self.static.values()),
+            'ground': 0 if self.surface is None else self.surface.grid_nbytes(),
+        }
 
     def mosaic(self) -> Mosaic | None:
         """The tiles assembled over their bounding box (None when empty); its georeference

@@ -36,8 +36,9 @@ the ``OccupancyGrid`` convention, :func:`ga_ros.mapping.mosaic.map_metadata_fiel
 :meth:`MapNode.diagnostic_values` every ``diagnostics_period_sec``. Memory is bounded
 (:class:`ga_ros.mapping.cloud_map.CloudMapConfig`: per-keyframe decimation, a static layer
 beyond ``max_live_keyframes``; :class:`ga_ros.pipeline.mosaic_map.MosaicMapConfig`: a pixel
-cap, a static layer beyond ``mosaic_max_live_keyframes``). A bad message is counted, warned
-about (throttled) and dropped; the node goes on.
+cap, older keyframes merged into static layers beyond ``mosaic_max_live_keyframes``: their
+image, patch and cloud points released, later corrections of them ignored and counted). A bad
+message is counted, warned about (throttled) and dropped; the node goes on.
 """
 
 from __future__ import annotations
@@ -461,6 +462,8 @@ class MapNode(BoundedLogging, Node):
                 'mosaic_dropped': c.dropped, 'mosaic_metres_per_pixel': mo.metres_per_pixel,
                 'mosaic_clouds': c.clouds, 'mosaic_clouds_waiting': len(self.clouds_waiting),
                 'mosaic_ground_rewarps': c.ground_rewarps,
+                'mosaic_merged_moves_ignored': c.merged_moves_ignored,
+                'mosaic_merged_max_shift_m': c.merged_max_shift_m,
                 'mosaic_bytes': mo.nbytes()}
 
 

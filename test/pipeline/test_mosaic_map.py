@@ -9,7 +9,13 @@ import pytest
 
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
-from ga_ros.mapping.mosaic import CameraView, MosaicConfig, build_mosaic, map_metadata_fields
+from ga_ros.mapping.mosaic import (
+    CameraView,
+    Mosaic,
+    MosaicConfig,
+    build_mosaic,
+    map_metadata_fields,
+)
 from ga_ros.mapping.seams import seam_misregistration
 from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
 from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
@@ -373,3 +379,82 @@ def test_mosaic_is_seen_from_above_whichever_way_z_points(z_up: bool) -> None:
 def assert_same_pixels(live, ref) -> None:
     assert np.array_equal(live.valid, ref.valid)
     assert np.array_equal(live.image, ref.image)
+
+
+# ---------------------------------------------------------------- memory: merged keyframes
+def live_bytes(m: LiveMosaic) -> int:
+    """Bytes the live keyframes hold (images, patches, points)."""
+    parts = m.nbytes_by_part()
+    return parts['images'] + parts['patches'] + parts['points']
+
+
+def test_memory_stays_bounded_while_keyframes_arrive(relief) -> None:
+    K, stamps, images, T_true, clouds, _ = relief
+    limit = 6
+    bounded = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                         max_live_keyframes=limit))
+    unbounded = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                           max_live_keyframes=0))
+    held = []
+    for k, s in enumerate(stamps):
+        for m in (bounded, unbounded):
+            m.add_cloud(int(s), clouds[k], T_BASE_CAM)
+            m.add_image(int(s), images[k], K, T_BASE_CAM)
+            m.set_poses(stamps[k:k + 1], T_true[k:k + 1])
+        assert bounded.n_placed <= limit and len(bounded.keyframes) <= limit
+        assert len(bounded.surface.keyframes) <= limit
+        held.append(live_bytes(bounded))
+    assert bounded.counts.frozen == len(stamps) - limit == len(bounded.merged)
+    # what one keyframe holds, from the unbounded mosaic (an independent count of the arrays)
+    one = sorted(kf.image.nbytes + kf.patch.image.nbytes + kf.patch.valid.nbytes
+                 + kf.patch.ground.nbytes + unbounded.surface.keyframes[key].points.nbytes
+                 + 2 * unbounded.surface.keyframes[key].z.nbytes
+                 for key, kf in unbounded.keyframes.items())
+    assert max(held) <= sum(one[-limit:])
+    assert live_bytes(unbounded) == sum(one) > 3 * held[-1]  # can fail: 24 against 6
+    parts = bounded.nbytes_by_part()
+    assert parts['merged_poses'] == 128 * (len(stamps) - limit)
+    print(f'bytes held: {held[-1] / limit / 1e3:.0f} kB per live keyframe, bounded mosaic '
+          f'{bounded.nbytes() / 1e6:.2f} MB, unbounded {unbounded.nbytes() / 1e6:.2f} MB')
+
+
+def test_a_merge_changes_no_pixel_and_later_moves_of_merged_keyframes_are_ignored(
+        relief) -> None:
+    K, stamps, images, T_true, clouds, tracks = relief
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64, ground_tolerance_m=0,
+                                      max_live_keyframes=0))
+    for k, s in enumerate(stamps):
+        live.add_cloud(int(s), clouds[k], T_BASE_CAM)
+        live.add_image(int(s), images[k], K, T_BASE_CAM)
+    live.set_poses(stamps, T_true)
+    before, heights = live.mosaic(), live.surface.heights.copy()
+    warps, points = live.counts.warps, live.nbytes_by_part()['points']
+    first = stamps[tracks == tracks[0]].tolist()
+    assert live.merge(first) == len(first) == live.counts.frozen
+    assert_same_pixels(live.mosaic(), before)
+    assert live.counts.warps == warps  # nothing re-warped
+    live.surface.commit()
+    assert np.array_equal(live.surface.heights, heights, equal_nan=True)
+    assert live.nbytes_by_part()['points'] < 0.6 * points
+    # a correction of a merged keyframe: ignored and counted, the mosaic unchanged
+    T = T_true.copy()
+    T[0, 0, 3] += 0.9
+    assert live.set_poses(stamps[:1], T[:1]) == 0
+    assert live.set_poses(stamps[1:2], T[1:2]) == 0  # its pose at the merge: not counted
+    assert live.counts.merged_moves_ignored == 1
+    assert live.counts.merged_max_shift_m == pytest.approx(0.9)
+    assert_same_pixels(live.mosaic(), before)
+    # the live swath moved: re-warped over the ground the merged clouds left, where it lies on
+    # top as close to the offline mosaic of every keyframe (the merged ones at their merge
+    # poses) as a ground stale by 2 cm gives; the merged keyframes are not re-warped
+    sel = tracks != tracks[0]
+    T = T_true.copy()
+    T[sel, 0, 3] += 0.6
+    assert live.set_poses(stamps[sel], T[sel]) == sel.sum()
+    now = live.mosaic()
+    ref, views, surface = offline(images, clouds, T, K, now.georef)
+    top = build_mosaic([v for v, s in zip(views, sel) if s], surface, MosaicConfig(MPP, 'last'),
+                       now.georef).valid
+    assert top.mean() > 0.2
+    assert_close(Mosaic(now.image, now.valid & top, now.georef),
+                 Mosaic(ref.image, ref.valid & top, now.georef))

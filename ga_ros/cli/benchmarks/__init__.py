@@ -72,6 +72,6 @@ BENCHMARKS: dict[str, Benchmark] = {
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
     'map': Benchmark('ga_ros.bench.map:main',
-                     "map_node's update cost against the keyframes moved, maps up to 5,000 "
-                     'keyframes'),
+                     "map_node's cloud map and live mosaic: update cost against the keyframes "
+                     'moved and bytes held, up to 5,000 keyframes'),
 }
