@@ -255,7 +255,7 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
                     update_ms.append(up.update_ms)
                     update_cpu_ms.append(1e3 * (time.thread_time() - c0))
                 track += 1
-            online[i] = al.corrected_path().T_world_node[i]
+            online[i] = al.pose(i)
         al.wait_background()
         cpu1, own1 = all_cpu_seconds(), own_cpu()
     if al.stats.n_failed_updates:  # the figures then are not those of the method

@@ -40,9 +40,10 @@ from ga_ros.core.window.handoff import RefinementHandoff
 #: boundary (their factorisation, selected inversion and band completion) and its
 #: installation; ``quality tests``: the outlier gate, re-admission, the absolute fixes' gate,
 #: the update's quality summary; ``outputs``: what a node publishes after an update (the
-#: corrected path, the newest adjusted node's covariance); ``process hand-off``: the
-#: background refinement's snapshot, installation and smoothing, as seen by the aligner's
-#: process (the worker process's own CPU is counted in the tree's CPU, not per stage).
+#: corrected path or one node's pose, the newest adjusted node's covariance); ``process
+#: hand-off``: the background refinement's snapshot, installation and smoothing, as seen by
+#: the aligner's process (the worker process's own CPU is counted in the tree's CPU, not per
+#: stage).
 STAGES: dict[str, tuple[tuple[object, str], ...]] = {
     'assembly': ((_update.WindowUpdate, 'window_problem'),
                  (_update.WindowUpdate, 'connection_terms'),
@@ -56,7 +57,8 @@ STAGES: dict[str, tuple[tuple[object, str], ...]] = {
                (_freeze, 'new_prior'), (_freeze, 'install_freeze')),
     'quality tests': ((_update, 'outliers'), (_update, 'readmissible'),
                       (QualityCache, 'summary'), (FixBook, 'gate_adjusted')),
-    'outputs': ((TrackWindowAligner, 'corrected_path'), (TrackWindowAligner, 'covariance')),
+    'outputs': ((TrackWindowAligner, 'corrected_path'), (TrackWindowAligner, 'pose'),
+                (TrackWindowAligner, 'covariance')),
     'process hand-off': ((RefinementHandoff, 'start'), (RefinementHandoff, 'install_due'),
                          (RefinementHandoff, 'smooth')),
 }
