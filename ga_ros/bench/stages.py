@@ -34,15 +34,17 @@ from ga_ros.core.window.handoff import RefinementHandoff
 #: ``assembly``: the window problem (node and connection sets, the connections' kept terms),
 #: linearisation and normal matrices (the window's and the absorbed terms' at a freeze), the
 #: gradient after each step; ``factorisation``: sparse Cholesky factorisations (the window's,
-#: the pre-alignment's); ``solves``: the steps' triangular solves; ``covariances``: the leaving
-#: track's published marginal covariances (selected inversion of the window's factor);
+#: the pre-alignment's); ``solves``: triangular solves (the steps', the few covariances of
+#: the fixes' gate); ``covariances``: the leaving track's published marginal covariances
+#: (selected inversion of the window's factor);
 #: ``priors``: the joint prior the leaving track's absorbed terms leave on the frozen
 #: boundary (their factorisation, selected inversion and band completion) and its
 #: installation; ``quality tests``: the outlier gate, re-admission, the absolute fixes' gate,
 #: the update's quality summary; ``outputs``: what a node publishes after an update (the
-#: corrected path, the newest adjusted node's covariance); ``process hand-off``: the
-#: background refinement's snapshot, installation and smoothing, as seen by the aligner's
-#: process (the worker process's own CPU is counted in the tree's CPU, not per stage).
+#: corrected path or one node's pose, the newest adjusted node's covariance); ``process
+#: hand-off``: the background refinement's snapshot, installation and smoothing, as seen by
+#: the aligner's process (the worker process's own CPU is counted in the tree's CPU, not per
+#: stage).
 STAGES: dict[str, tuple[tuple[object, str], ...]] = {
     'assembly': ((_update.WindowUpdate, 'window_problem'),
                  (_update.WindowUpdate, 'connection_terms'),
@@ -50,13 +52,14 @@ STAGES: dict[str, tuple[tuple[object, str], ...]] = {
                  (_Problem, 'gradient'), (_Problem, 'gradient_ahead')),
     'factorisation': ((_cholmod.SparseCholesky, '__init__'),
                       (_cholmod.SparseCholesky, 'refactor')),
-    'solves': ((_cholmod.SparseCholesky, 'solve'),),
+    'solves': ((_cholmod.SparseCholesky, 'solve'), (_cholmod.SparseCholesky, 'forward')),
     'covariances': ((_freeze, 'marginal_covariances'),),
     'priors': ((_freeze.FreezePolicy, 'marginalise'), (_freeze.FreezePolicy, 'absorption'),
                (_freeze, 'new_prior'), (_freeze, 'install_freeze')),
     'quality tests': ((_update, 'outliers'), (_update, 'readmissible'),
                       (QualityCache, 'summary'), (FixBook, 'gate_adjusted')),
-    'outputs': ((TrackWindowAligner, 'corrected_path'), (TrackWindowAligner, 'covariance')),
+    'outputs': ((TrackWindowAligner, 'corrected_path'), (TrackWindowAligner, 'pose'),
+                (TrackWindowAligner, 'covariance')),
     'process hand-off': ((RefinementHandoff, 'start'), (RefinementHandoff, 'install_due'),
                          (RefinementHandoff, 'smooth')),
 }

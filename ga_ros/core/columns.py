@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.linalg.runs import by_runs
 from ga_ros.geometry import so3
 
 _SMALL = so3.SMALL_ANGLE  # Taylor branch of the SO(3) coefficients below this angle (rad)
@@ -235,7 +236,7 @@ class SqrtWeights:
     def of(P: FloatArray) -> SqrtWeights:
         """From ``(m, 6, 6)`` symmetric positive-definite weights (Cholesky ``P = L L'``,
         ``U = L'``)."""
-        U = np.linalg.cholesky(P).transpose(2, 1, 0)  # (6, 6, m): U[r, c] = L[c, r]
+        U = by_runs(np.linalg.cholesky, P).transpose(2, 1, 0)  # (6, 6, m): U[r, c] = L[c, r]
         return SqrtWeights(*(np.ascontiguousarray(U[r:r + 3, c:c + 3])
                              for r, c in ((0, 0), (0, 3), (3, 3))))
 

@@ -230,6 +230,25 @@ class SparseCholesky:
         return x
 
 
+    def forward(self, b: FloatArray) -> FloatArray | None:
+        """``L^-1 P b`` for ``b`` of shape ``(n, k)``, with ``P N P' = L L'`` this factor: half
+        of :meth:`solve` (no backward solve); ``Y' Y`` of its columns is ``b' N^-1 b``, e.g. a
+        node's marginal covariance from its unit columns. ``None`` without CHOLMOD's own factor
+        (the caller solves then)."""
+        if self._F is None and _cholmod is not None and self._data is not None:
+            self.refactor(self._data)  # read out: factor again
+        if self._F is None:
+            return None
+        B = cvxopt.matrix(np.asfortranarray(np.asarray(b, dtype=float).reshape(self.n, -1)))
+        _cholmod.solve(self._F, B, sys=7)  # P b
+        _cholmod.solve(self._F, B, sys=4)  # L^-1 (a supernodal factor is L L', no D)
+        y = np.array(B)
+        if not np.isfinite(y).all():
+            raise DegenerateGeometryError('solving the normal equations produced NaN/inf: '
+                                          'the problem is singular or badly scaled')
+        return y
+
+
 def _cvxopt_pattern(pattern: BlockPattern, keep: bool = True):
     """CHOLMOD's input matrix for a pattern (values are set before each factorisation). Building
     it sorts every entry again (~15 ms for 260,000 entries), so it is kept per pattern too

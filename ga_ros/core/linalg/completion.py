@@ -12,6 +12,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.linalg import lapack
 from ga_ros.core.linalg.blocks import _MAX_PATTERNS, _blake2b, _kept
+from ga_ros.core.linalg.runs import by_runs
 from ga_ros.errors import DegenerateGeometryError
 from ga_ros.runtime import lazy_import
 
@@ -204,7 +205,18 @@ def _spd_inverse(S: FloatArray) -> FloatArray:
 def spd_inverse(M: FloatArray, error: str) -> FloatArray:
     """Inverses of a stack ``(..., k, k)`` of symmetric positive definite matrices by Cholesky
     (the lower triangles are read); raises :class:`DegenerateGeometryError` with ``error`` if
-    one is not positive definite."""
+    one is not positive definite.
+
+    A stack ``(m, k, k)`` of at least :data:`~ga_ros.core.linalg.runs.RUNS_FROM` matrices
+    whose consecutive entries are mostly equal, bit for bit (an odometry stream's covariances),
+    is inverted one matrix per run (:func:`~ga_ros.core.linalg.runs.by_runs`): each matrix's
+    inverse is computed alone either way, so the result is the same bits (tested), for a
+    fraction of the work (~5 us per 6x6 matrix)."""
+    return by_runs(lambda A: _spd_inverse_each(A, error), M)
+
+
+def _spd_inverse_each(M: FloatArray, error: str) -> FloatArray:
+    """:func:`spd_inverse` of every matrix of the stack."""
     try:
         L = np.linalg.cholesky(M)
     except np.linalg.LinAlgError as exc:

@@ -215,6 +215,10 @@ class _NormalSystem:
         out = np.zeros((ids.size, d, d))
         for start in range(0, ids.size, 256):  # bounded memory: n x (256 d) at a time
             chunk = ids[start:start + 256]
+            blocks = self._forward_blocks(chunk)
+            if blocks is not None:
+                out[start:start + chunk.size] = blocks
+                continue
             X, cols = self._columns(chunk)
             k = 0
             for s, c in enumerate(cols):
@@ -222,6 +226,29 @@ class _NormalSystem:
                     blk = X[c * d:(c + 1) * d, k * d:(k + 1) * d]
                     out[start + s] = 0.5 * (blk + blk.T)
                     k += 1
+        return out
+
+    def _forward_blocks(self, ids: IntArray) -> FloatArray | None:
+        """Diagonal blocks of ``N^-1`` for the nodes ``ids`` (zero blocks for fixed nodes) as
+        ``Y_k' Y_k`` with ``Y_k = L^-1 P E_k`` (``E_k`` the node's unit columns): a forward
+        solve, half the work of the full solves of :meth:`_columns` (equal to ~1e-13
+        relative); ``None`` without CHOLMOD's factor."""
+        idx = self.index_of(ids)
+        cols = self.col[idx]
+        d = self.d
+        free_sel = np.nonzero(cols >= 0)[0]
+        out = np.zeros((ids.size, d, d))
+        if free_sel.size == 0:
+            return out
+        E = np.zeros((self.pattern.size, free_sel.size * d))
+        for k, s in enumerate(free_sel):
+            E[cols[s] * d:(cols[s] + 1) * d, k * d:(k + 1) * d] = np.eye(d)
+        Y = self.chol.forward(E)
+        if Y is None:
+            return None
+        Y = np.ascontiguousarray(Y.reshape(self.pattern.size, free_sel.size, d).swapaxes(0, 1))
+        blocks = np.swapaxes(Y, 1, 2) @ Y
+        out[free_sel] = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
         return out
 
     def _path_blocks(self, ids: IntArray) -> FloatArray | None:

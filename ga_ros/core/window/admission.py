@@ -84,10 +84,13 @@ def check_measurement(state: WindowState, config: AlignerConfig, m: Measurement,
     bad = rejection
     for name in ('src_id', 'dst_id', 'src_track', 'dst_track'):
         v = getattr(m, name)
-        try:
-            ok = int(v) == v and 0 <= int(v) < 2**63
-        except (TypeError, ValueError, OverflowError):
-            ok = False
+        if type(v) is int:  # the common case, without the conversions below
+            ok = 0 <= v < 2**63
+        else:
+            try:
+                ok = int(v) == v and 0 <= int(v) < 2**63
+            except (TypeError, ValueError, OverflowError):
+                ok = False
         if not ok:
             raise bad('bad_id', f'{name} must be an integer in [0, 2**63), got {v!r}')
     src, dst = int(m.src_id), int(m.dst_id)

@@ -155,6 +155,8 @@ class TrackWindowAligner:
         self._last_update: UpdateResult | None = None
         self._factor_step = 0.0  # the last adjustment's change of the variance factors
         self.strict = strict_updates_from_env()
+        # (config, covariance bytes, its checked symmetric form): _admitted_covariance
+        self._cov_memo: tuple[AlignerConfig, bytes, FloatArray] | None = None
         vcfg = self.config.online_variance_config()
         self.online_variance: OnlineVarianceComponents | None = None
         if vcfg.mode != 'off':
@@ -180,8 +182,20 @@ class TrackWindowAligner:
 
         Raises :class:`InputError` (and counts it by reason in :attr:`stats`) on a measurement
         the policy of :mod:`ga_ros.core.window.admission` rejects; the state is then unchanged.
+        A covariance equal, byte for byte, to the last one admitted (a source's stated
+        covariance rarely changes) is not checked again: it is the same matrix.
         """
-        return self._add(m, None)
+        return self._add(m, self._admitted_covariance(m.cov))
+
+    def _admitted_covariance(self, cov) -> FloatArray | None:
+        """The symmetrised covariance of the last admitted measurement if ``cov`` is the same
+        (6, 6) float64 matrix, byte for byte, under the same configuration; else ``None``."""
+        memo = self._cov_memo
+        if (memo is not None and type(cov) is np.ndarray and cov.dtype == np.float64
+                and cov.shape == (6, 6) and memo[0] is self.config
+                and memo[1] == cov.tobytes()):
+            return memo[2]
+        return None
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> FloatArray:
         """Add an absolute fix tied to a node by the odometry
@@ -271,6 +285,10 @@ class TrackWindowAligner:
             err = InputError(f'invalid measurement ({type(exc).__name__}: {exc})')
             err.reason = 'invalid'
             raise err from None
+        if checked_cov is None and type(m.cov) is np.ndarray and m.cov.dtype == np.float64:
+            sym = plan.cov.copy()
+            sym.setflags(write=False)  # shared by the measurements that reuse it
+            self._cov_memo = (self.config, m.cov.tobytes(), sym)
         updates = []
         if plan.ends_track:
             up = self.finish_track()
@@ -625,6 +643,14 @@ class TrackWindowAligner:
         n = len(st.ids)
         return CorrectedPath(st.idarr.a.copy(), st.trackarr.a.copy(), st.stamparr.a.copy(),
                              st.T[:n].copy(), st.frozen[:n].copy())
+
+    def pose(self, node_id: int) -> FloatArray:
+        """(4, 4) ``T_world_node`` of one node at its current estimate (a copy): what
+        :meth:`corrected_path` holds for it, without copying the whole path."""
+        k = self.state.index.get(int(node_id))
+        if k is None:
+            raise InputError(f'unknown node {node_id}')
+        return self.state.T[k].copy()
 
     def covariance(self, node_id: int) -> FloatArray:
         """6x6 covariance ``[x y z rx ry rz]`` of a node's pose (right perturbation).

@@ -107,9 +107,11 @@ def refine_snapshot(snap: RefinementSnapshot) -> RefinementResult:
             net = ConnectionNetwork.from_arrays(snap.node_ids, snap.track_ids, snap.src[keep],
                                                 snap.dst[keep], snap.z[keep],
                                                 unpack_sym6(snap.cov21[keep]))
+            # the compiled kernels from the first linearisation: the rebuilt priors' selected
+            # inversion loads them anyway (the window's updates have, in the aligner's process)
             res = solve(net, snap.T_world_node, snap.solver,
                         fixed=[int(snap.node_ids[0])] if snap.datum else [],
-                        priors=gaussian(snap, snap.past + snap.fixes))
+                        priors=gaussian(snap, snap.past + snap.fixes), jit=True)
             # like the window's own updates, a solve that used up its iterations (the cost
             # still creeping down) is kept: refusing it stalled the retirement, so the horizon
             # and the refinement's cost grew with the survey

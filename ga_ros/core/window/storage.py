@@ -20,6 +20,8 @@ from ga_ros.arrays import FloatArray, IntArray
 
 #: Row and column of the 21 upper-triangle entries of a 6x6 matrix, row by row.
 IU6 = np.triu_indices(6)
+#: Their positions in the row-major 36 values of a 6x6 matrix.
+IU6_FLAT = IU6[0] * 6 + IU6[1]
 
 
 #: Arrays of at least this many bytes live in their own anonymous memory map (see :func:`zeros`).
@@ -55,7 +57,8 @@ def grow_rows(a: np.ndarray, need: int) -> np.ndarray:
 def pack_sym6(cov: FloatArray) -> FloatArray:
     """The 21 upper-triangle values (row by row) of each symmetric 6x6 matrix in ``cov``
     (``(..., 6, 6)`` -> ``(..., 21)``); the lower triangle is not read."""
-    return np.asarray(cov, dtype=float)[..., IU6[0], IU6[1]]
+    cov = np.asarray(cov, dtype=float)
+    return cov.reshape(cov.shape[:-2] + (36,))[..., IU6_FLAT]
 
 
 def unpack_sym6(packed: FloatArray) -> FloatArray:
@@ -195,6 +198,11 @@ class IdIndex:
         self._keys = np.zeros(0, dtype=np.int64)
         self._vals = np.zeros(0, dtype=np.int64)
         self._recent: dict[int, int] = {}
+        self._top = -2**63 - 1  # the largest key of _keys: a new, larger id needs no search
+
+    def _sorted(self, keys: IntArray, vals: IntArray) -> None:
+        self._keys, self._vals = keys, vals
+        self._top = int(keys[-1]) if keys.size else -2**63 - 1
 
     @classmethod
     def of(cls, ids: IntArray) -> IdIndex:
@@ -202,7 +210,7 @@ class IdIndex:
         ids = np.asarray(ids, dtype=np.int64)
         index = cls()
         order = np.argsort(ids, kind='stable')
-        index._keys, index._vals = ids[order], order.astype(np.int64)
+        index._sorted(ids[order], order.astype(np.int64))
         if ids.size > 1 and (np.diff(index._keys) == 0).any():
             raise ValueError('node ids are not unique')
         return index
@@ -225,7 +233,7 @@ class IdIndex:
             node = int(node_id)
         except (TypeError, ValueError, OverflowError):
             return default
-        if not -2**63 <= node < 2**63:
+        if not -2**63 <= node <= self._top:  # above every sorted key: not among them
             return default
         p = int(np.searchsorted(self._keys, node))
         if p < self._keys.size and self._keys[p] == node:
@@ -248,7 +256,8 @@ class IdIndex:
             keys = np.concatenate([self._keys, np.fromiter(self._recent, np.int64)])
             vals = np.concatenate([self._vals, np.fromiter(self._recent.values(), np.int64)])
             order = np.argsort(keys, kind='stable')
-            self._keys, self._vals, self._recent = keys[order], vals[order], {}
+            self._sorted(keys[order], vals[order])
+            self._recent = {}
 
 
 class TrackRanges:

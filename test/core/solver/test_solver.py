@@ -501,3 +501,33 @@ def test_few_node_covariances_by_path_solves_equal_full_solves(monkeypatch):
     every = res.covariance(res.free_node_ids)  # > _MANY_NODES: the selected inversion
     idx = [int(np.nonzero(res.free_node_ids == i)[0][0]) for i in ids]
     np.testing.assert_allclose(got, every[idx], rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+
+
+def test_covariances_by_forward_solves_equal_the_dense_inverse(rng):
+    """A few nodes' marginal covariances come from forward solves ``Y_k' Y_k`` with
+    ``Y_k = L^-1 P E_k`` (half of a full solve): equal to the dense inverse of ``N`` and to the
+    full solves' blocks to round-off, a fixed node's block zero."""
+    prob = make_problem(rng, 'se3', n=12, noise=1.0)
+    net = prob.network
+    res = solve(net, initial_guess_f2f(net), SolverConfig(tolerance=1e-12))
+    sysm = res._system
+    ids = np.array([0, 3, 7, 11])  # node 0: the datum, fixed
+    fwd = sysm._forward_blocks(ids)
+    if fwd is None:
+        pytest.skip('no CHOLMOD factor (cvxopt): covariances come from full solves')
+    Ninv = np.linalg.inv(res.normal_matrix.toarray())
+    free = list(res.free_node_ids)
+    for k, i in enumerate(ids.tolist()):
+        if i not in free:
+            np.testing.assert_array_equal(fwd[k], 0.0)
+            continue
+        a = 6 * free.index(i)
+        ref = Ninv[a:a + 6, a:a + 6]
+        np.testing.assert_allclose(fwd[k], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_array_equal(fwd[k], fwd[k].T)
+    X, cols = sysm._columns(ids[1:])
+    for k, c in enumerate(cols.tolist()):
+        blk = X[6 * c:6 * c + 6, 6 * k:6 * k + 6]
+        np.testing.assert_allclose(fwd[k + 1], 0.5 * (blk + blk.T), rtol=0,
+                                   atol=1e-13 * np.abs(blk).max())
+    np.testing.assert_array_equal(res.covariance(ids), fwd)

@@ -193,3 +193,40 @@ def test_a_solver_exception_inside_an_update_does_not_escape(ms, monkeypatch):
     al.add_measurements(ms[k3 + 1:])
     assert al.finish_track().converged
     assert al.stats.n_nodes == len({m.dst_id for m in ms} | {ms[0].src_id})
+
+
+def test_a_repeated_covariance_is_checked_once_but_a_changed_one_again(ms):
+    """The same stated covariance, byte for byte, is not checked again (the aligner keeps the
+    last one admitted); the stored result is exactly what the full check gives, and a
+    covariance that differs in any byte (even the same array changed in place) is checked."""
+    al, ref = TrackWindowAligner(CFG), TrackWindowAligner(CFG)
+    shared = np.array(ms[0].cov, dtype=float)
+    for m in ms[:6]:
+        al.add_measurement(_with(m, cov=shared))
+    for m in ms[:6]:
+        ref.add_measurement(_with(m, cov=np.array(shared)))  # a fresh array each time
+    np.testing.assert_array_equal(al.state.ccov.a[:6], ref.state.ccov.a[:6])
+    shared[0, 0] = -1.0  # the same array, now not positive definite
+    before = _snapshot(al)
+    with pytest.raises(InputError) as err:
+        al.add_measurement(_with(ms[6], cov=shared))
+    assert err.value.reason == 'bad_covariance'
+    _assert_same(before, _snapshot(al))
+    strict = AlignerConfig(window_tracks=2, cov_max_condition=1.0)  # another configuration
+    al.config = strict
+    with pytest.raises(InputError, match='cov_max_condition'):
+        al.add_measurement(_with(ms[6], cov=np.array(ms[0].cov, dtype=float)))
+
+
+def test_pose_is_the_corrected_paths_row(ms):
+    al = TrackWindowAligner(CFG)
+    al.add_measurements(ms)
+    al.finish_track()
+    path = al.corrected_path()
+    for k in (0, len(path.node_ids) // 2, len(path.node_ids) - 1):
+        np.testing.assert_array_equal(al.pose(int(path.node_ids[k])), path.T_world_node[k])
+    T = al.pose(int(path.node_ids[0]))
+    T[:] = 0.0  # a copy: the estimate stays
+    np.testing.assert_array_equal(al.pose(int(path.node_ids[0])), path.T_world_node[0])
+    with pytest.raises(InputError, match='unknown node'):
+        al.pose(10**9)

@@ -442,3 +442,28 @@ def test_sparse_elimination_of_long_tracks_equals_the_dense_one(monkeypatch, ban
     ns, d_sparse = refinement.smoothed(out['sparse'][1], S, dS)
     np.testing.assert_array_equal(nd, ns)
     np.testing.assert_allclose(d_sparse, d_dense, rtol=1e-5, atol=1e-6 * np.abs(d_dense).max())
+
+
+def test_the_refinements_compiled_solve_equals_the_numpy_one_within_the_solver_tolerance(
+        monkeypatch):
+    """The refinement's batch solve linearises with the compiled kernels from its first
+    iteration; the NumPy linearisation (without numba) rounds differently, so the two stop at
+    slightly different points: apart by far less than the solver's tolerance (the largest
+    correction it leaves), and so are the rebuilt priors' means."""
+    from ga_ros.core import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip('numba not installed: the refinement solves with NumPy only')
+    sc, nm, ms = _survey()
+    al, _ = _run(AlignerConfig(window_tracks=2, refine_relinearize_sigma=0.0), sc, ms)
+    snap = al.handoff.snapshot()
+    compiled = refine_snapshot(snap)
+    monkeypatch.setattr(kernels, 'AVAILABLE', False)
+    plain = refine_snapshot(snap)
+    assert compiled.ok and plain.ok
+    tol = snap.solver.tolerance
+    gap = np.abs(se3.local(plain.T_world_node, compiled.T_world_node)).max()
+    assert gap < 0.1 * tol
+    for a, b in zip(compiled.priors, plain.priors):
+        np.testing.assert_array_equal(a.nodes, b.nodes)
+        assert np.abs(se3.local(b.T_world_node, a.T_world_node)).max() < 0.1 * tol
