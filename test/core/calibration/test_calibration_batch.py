@@ -164,7 +164,8 @@ def test_calibrated_source_noise_reestimated(seed):
     re-estimated weights give a better path than the stated ones."""
     s = biased_survey(np.random.default_rng(seed), n_nodes=300, yaw_rate=0.004, fix_every=3,
                       fix_sigma_m=0.05, sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
-    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors)
+    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                      calibration=CalibrationConfig(noise=True))
     est = {p.name: p for p in rep.parameters}
     assert est['yaw_rate'].estimated, rep.lines()
     assert abs(est['yaw_rate'].value - 0.004) < 4 * est['yaw_rate'].sigma
@@ -193,7 +194,8 @@ def test_no_parameter_no_noise_reestimation():
     noise factor is reported."""
     s = biased_survey(np.random.default_rng(31), n_nodes=150, fix_every=10,
                       sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
-    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors)
+    res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                      calibration=CalibrationConfig(noise=True))
     assert not rep.estimated() and rep.noise == []
     plain = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
                                    calibration=CalibrationConfig(parameters=()))[0]
