@@ -11,6 +11,7 @@ service's.
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -23,6 +24,12 @@ from launch import LaunchDescription, LaunchService
 
 def main(argv: list[str]) -> int:
     package, name, *arguments = argv
+    # ros2 launch typed in a terminal starts with Python's SIGINT handler. A process started
+    # in the background of a non-interactive shell (`cmd &`, nohup, some CI runners)
+    # inherits SIGINT ignored, Python then installs no handler, and launch, which only
+    # watches signal.set_wakeup_fd, never sees the Ctrl-C: give it the terminal's handler
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     path = Path(get_package_share_directory(package)) / 'launch' / name
     if not path.is_file():
         print(f'no launch file {name} in {path.parent}', file=sys.stderr)

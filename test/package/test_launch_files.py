@@ -141,14 +141,26 @@ def shut_down(proc: subprocess.Popen, log: Path) -> None:
     try:
         code = proc.wait(timeout=DEADLINE_S)
     except subprocess.TimeoutExpired:
-        pytest.fail(f'the launch service did not stop within {DEADLINE_S:.0f} s of SIGINT:\n'
-                    + _tail(log))
+        pytest.fail(f'the launch service did not stop within {DEADLINE_S:.0f} s of SIGINT '
+                    f'({_signal_state(proc.pid)}; its process group: '
+                    f'{_group(proc.pid)}):\n' + _tail(log))
     assert code == 0, f'launch exited {code}:\n' + _tail(log)
     # the alignment node's refinement worker process exits within ~1 s of the node
     # (ga_ros.core.window.worker): wait for it with a deadline, then nothing may be left
     left = _wait_group_gone(proc.pid, 30.0)
     _kill_group(proc.pid)
     assert not left, f'processes of the launch outlived it by 30 s:\n{left}\n' + _tail(log)
+
+
+def _signal_state(pid: int) -> str:
+    """The state and the blocked, ignored and caught signal masks of process ``pid`` (from
+    ``/proc``): a SIGINT that nothing handles shows as blocked or ignored there."""
+    try:
+        lines = Path(f'/proc/{pid}/status').read_text().splitlines()
+    except OSError as exc:
+        return f'no /proc status: {exc}'
+    return ', '.join(t for t in lines if t.split(':')[0] in ('State', 'SigBlk', 'SigIgn',
+                                                             'SigCgt', 'Threads'))
 
 
 def _tail(log: Path, lines: int = 60) -> str:
