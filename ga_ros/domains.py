@@ -9,7 +9,9 @@ whoever runs the nodes). A domain id is claimed by an exclusive ``flock`` on
 it when the process that holds it exits (killed too), so nothing is left stale. The lock's file
 descriptor is not inherited by child processes.
 
-The folder (:func:`lock_folder`) is ``$GA_ROS_DOMAIN_LOCKS`` if set, else ``<tmp>/ga_ros_domains``,
+The folder (:func:`lock_folder`) is ``$GA_ROS_DOMAIN_LOCKS`` if set, else ``/tmp/ga_ros_domains``
+(``/tmp`` whatever ``TMPDIR`` says: a run with its own ``TMPDIR`` still shares the machine's
+ports, so it must share the claims; the platform's temporary folder where there is no ``/tmp``),
 one for every user of the machine: made like ``/tmp`` (mode ``1777``: everyone creates lock
 files, nobody removes another's), each lock file readable by all (mode ``0644``; ``flock`` needs
 only a descriptor opened for reading), so a user's claims hold against every other user's. A
@@ -41,11 +43,19 @@ SHARED_MODE = 0o1777
 LOCK_MODE = 0o644
 
 
+#: The machine's temporary folder, shared by every user and every ``TMPDIR``.
+MACHINE_TMP = Path('/tmp')
+
+
 def lock_folder() -> Path:
     """The folder of the lock files: ``$GA_ROS_DOMAIN_LOCKS`` if set, else
-    ``<tmp>/ga_ros_domains`` (one for every user of the machine)."""
+    ``/tmp/ga_ros_domains`` (one for every user and every ``TMPDIR`` of the machine; the
+    platform's temporary folder where there is no ``/tmp``)."""
     env = os.environ.get('GA_ROS_DOMAIN_LOCKS')
-    return Path(env) if env else Path(tempfile.gettempdir()) / 'ga_ros_domains'
+    if env:
+        return Path(env)
+    base = MACHINE_TMP if MACHINE_TMP.is_dir() else Path(tempfile.gettempdir())
+    return base / 'ga_ros_domains'
 
 
 #: Folder of the lock files (:func:`lock_folder`, read at import).

@@ -189,3 +189,21 @@ def test_a_linked_folder_is_refused_and_a_linked_lock_skipped(lock_dir, monkeypa
     c = domains.claim(100)
     assert c.domain == 101 and not (target / 'victim').exists()
     c.release()
+
+
+def test_the_default_folder_is_the_machines_whatever_tmpdir_says(tmp_path) -> None:
+    """Two runs with their own ``TMPDIR`` share the machine's DDS ports, so they share the
+    claims: the default folder does not follow ``TMPDIR``."""
+    if not domains.MACHINE_TMP.is_dir():
+        pytest.skip('no /tmp on this platform: the platform temporary folder is used')
+    code = 'from ga_ros import domains; print(domains.lock_folder())'
+    folders = set()
+    for name in ('a', 'b'):
+        own = tmp_path / name
+        own.mkdir()
+        env = {k: v for k, v in os.environ.items() if k != 'GA_ROS_DOMAIN_LOCKS'}
+        env['TMPDIR'] = str(own)
+        out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                             text=True, timeout=patience(30), check=True)
+        folders.add(out.stdout.strip())
+    assert folders == {str(domains.MACHINE_TMP / 'ga_ros_domains')}
