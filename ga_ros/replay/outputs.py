@@ -189,6 +189,11 @@ class ReplayOutputs:
         msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=stamp)
         self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
 
+    def path_bytes(self, data: bytes, log_ns: int, topic: str | None = None) -> None:
+        """A serialized corrected path (``nav_msgs/Path`` CDR, e.g.
+        :class:`~ga_ros.replay.stamped_path.StampedPath`), logged at ``log_ns``."""
+        self.bag.write_raw(topic or self.config.path_topic, PATH, data, log_ns)
+
     def corrections(self, c: Corrections, stamp_ns: int, log_ns: int) -> None:
         """The corrections of an update (:mod:`ga_ros.pipeline.corrections`), header stamped
         at ``stamp_ns`` (the corrected path's newest keyframe), logged at ``log_ns``."""
