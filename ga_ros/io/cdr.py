@@ -14,6 +14,7 @@ ROS-free (no rclpy import).
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 import numpy as np
 
@@ -220,3 +221,99 @@ def framed_path_cdr(T_world_node: FloatArray, stamps_ns: IntArray, pose_frames: 
         out += b'\x00' * _pad(len(out), 8)
         out += struct.pack('<7d', *values[k])
     return _ENCAPSULATION + bytes(out)
+
+
+class _Writer:
+    """CDR (XCDR1, little endian) written field by field: every primitive aligned to its size
+    from the start of the payload (after the encapsulation header)."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.n = 0
+
+    def align(self, k: int) -> None:
+        pad = _pad(self.n, k)
+        if pad:
+            self.raw(b'\x00' * pad)
+
+    def raw(self, data: bytes) -> None:
+        self.parts.append(data)
+        self.n += len(data)
+
+    def put(self, fmt: str, *values: Any, align: int) -> None:
+        self.align(align)
+        self.raw(struct.pack('<' + fmt, *values))
+
+    def string(self, text: str) -> None:
+        data = text.encode() + b'\x00'
+        self.put('I', len(data), align=4)
+        self.raw(data)
+
+    def header(self, frame_id: str, stamp_ns: int) -> None:
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        self.put('iI', sec, nsec, align=4)
+        self.string(frame_id)
+
+    def array(self, values: np.ndarray, dtype: str, align: int) -> None:
+        """A sequence of fixed-size elements: its count, then the values (k, ...) as ``dtype``,
+        the first aligned to ``align`` (nothing but the count when empty)."""
+        a = np.ascontiguousarray(values, dtype=dtype)
+        self.put('I', a.shape[0], align=4)
+        if a.shape[0]:
+            self.align(align)
+            self.raw(a.tobytes())
+
+
+def network_markers_cdr(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
+                        rgba: FloatArray, frame_id: str, stamp_ns: int, node_scale: float,
+                        line_width: float, namespace: str) -> bytes:
+    """Serialized ``visualization_msgs/MarkerArray`` of the connection network: the message
+    :func:`ga_ros.io.bag_writer.network_markers` builds as rosbags objects (a ``DELETEALL``
+    marker, a ``SPHERE_LIST`` of the nodes ``p_world_node`` (n, 3), a ``LINE_LIST`` of the
+    connections ``src_index -> dst_index`` coloured ``rgba`` (m, 4)), written from the arrays:
+    the same bytes (checked against rosbags' serializer in ``test/replay/test_stamped_path.py``)
+    at a copy's cost per node instead of a message object per point."""
+    from ga_ros.geometry import se3
+
+    p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
+    src = np.asarray(src_index, dtype=np.int64).reshape(-1)
+    dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)
+    pos, quat = se3.to_pos_quat(np.eye(4))
+    pose = [float(v) for v in pos.tolist() + quat.tolist()]
+    w = _Writer()
+    w.put('I', 3, align=4)
+
+    def marker(kind: int, action: int, mid: int, ns: str, scale: float, points: np.ndarray,
+               color: tuple[float, ...], colors: np.ndarray) -> None:
+        w.header(frame_id, stamp_ns)
+        w.string(ns)
+        w.put('iii', mid, kind, action, align=4)
+        w.put('7d', *pose, align=8)
+        w.put('3d', scale, scale, scale, align=8)
+        w.put('4f', *color, align=4)
+        w.put('iI', 0, 0, align=4)          # lifetime
+        w.put('?', False, align=1)          # frame_locked
+        w.array(points, '<f8', 8)
+        w.array(colors, '<f4', 4)
+        w.string('')                        # texture_resource
+        w.header('', 0)                     # texture: header, format, data
+        w.string('')
+        w.put('I', 0, align=4)
+        w.put('I', 0, align=4)              # uv_coordinates
+        w.string('')                        # text
+        w.string('')                        # mesh_resource
+        w.string('')                        # mesh_file: filename, data
+        w.put('I', 0, align=4)
+        w.put('?', False, align=1)          # mesh_use_embedded_materials
+
+    white = (1.0, 1.0, 1.0, 1.0)
+    none = np.zeros((0, 3))
+    marker(0, 3, 0, namespace, 1.0, none, white, np.zeros((0, 4)))       # ARROW, DELETEALL
+    marker(7, 0, 0, namespace + '/nodes', float(node_scale), p, (0.2, 0.4, 1.0, 1.0),
+           np.zeros((0, 4)))                                             # SPHERE_LIST, ADD
+    ends = np.empty((2 * src.size, 3))
+    ends[0::2] = p[src]
+    ends[1::2] = p[dst]
+    marker(5, 0, 1, namespace + '/connections', float(line_width), ends, white,
+           np.repeat(np.asarray(rgba, float).reshape(-1, 4), 2, axis=0))  # LINE_LIST, ADD
+    return _ENCAPSULATION + b''.join(w.parts)

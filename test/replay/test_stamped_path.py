@@ -104,3 +104,23 @@ def test_known_stamps_give_numpys_median_interval() -> None:
                     else int(known[0]))
             assert k.before_first() == want
     assert KnownStamps().before_first() == 0
+
+
+@pytest.mark.parametrize(('n', 'm', 'frame'), [(0, 0, 'map'), (1, 0, 'm'), (5, 3, 'map'),
+                                                (40, 70, 'world_frame'), (3, 1, 'abc')])
+def test_network_markers_bytes_equal_rosbags_serialization(n: int, m: int, frame: str) -> None:
+    from ga_ros.io.bag_writer import network_markers, residual_color
+    from ga_ros.io.cdr import network_markers_cdr
+
+    rng = np.random.default_rng(n + m)
+    p = rng.normal(size=(n, 3)) * 100
+    src = rng.integers(0, max(n, 1), m) if n else np.zeros(0, int)
+    dst = rng.integers(0, max(n, 1), m) if n else np.zeros(0, int)
+    r = np.abs(rng.normal(size=m)) * 3
+    if m:
+        r[0] = np.nan
+    stamp = int(rng.integers(0, 2 ** 31 * 10 ** 9))
+    msg = network_markers(p, src, dst, r, frame, stamp)
+    want = bytes(typestore().serialize_cdr(msg, 'visualization_msgs/msg/MarkerArray'))
+    assert network_markers_cdr(p, src, dst, residual_color(r), frame, stamp, 2.0, 0.5,
+                               'ga') == want
