@@ -59,9 +59,17 @@ def test_the_mirror_equals_the_path_from_scratch_after_every_input(config) -> No
     session = AlignmentSession(config)
     mirror = PathMirror('map')
     firsts = []
+    counted = 0
     for e in _entries():
         _give(session, e)
         firsts.append(_check(mirror, session.aligner))
+        # the open track's nodes, counted among the rows an update can change
+        open_track = session.aligner.open_track
+        want = (0 if open_track is None else int(np.count_nonzero(
+            session.aligner.corrected_path().track_ids == open_track)))
+        assert session.dead_reckoned_nodes() == want
+        counted += want > 0
+    assert counted > 20
     session.aligner.close()
     assert session.aligner.stats.n_updates >= 13
     # it copied only the rows an update could change once the survey was long enough

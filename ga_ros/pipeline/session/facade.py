@@ -693,11 +693,15 @@ class AlignmentSession:
 
     def dead_reckoned_nodes(self) -> int:
         """Nodes of the open track (at the end of the path, at their dead-reckoned poses: no
-        window update has adjusted them yet)."""
+        window update has adjusted them yet), counted among the rows an update can change (not
+        the whole path)."""
         open_track = getattr(self.aligner, 'open_track', None)
         if open_track is None:
             return 0
-        return int(np.count_nonzero(self.aligner.corrected_path().track_ids == open_track))
+        rows = getattr(self.aligner, 'mutable_rows', None)   # the open track is not frozen:
+        path = (self.aligner.corrected_path() if rows is None   # its rows come after them
+                else self.aligner.corrected_path(rows()[0]))
+        return int(np.count_nonzero(path.track_ids == open_track))
 
     def unjoined(self, node_ids: Any) -> Any:
         """Per node id: True if the node hangs off a bridge, not yet joined to the datum or to
