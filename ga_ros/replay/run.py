@@ -8,6 +8,7 @@ source. The final outputs are :mod:`ga_ros.replay.finish`'s.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -339,6 +340,14 @@ class ReplayRun:
                 self.result.quality.setdefault('per_track', []).append(entry)
         if entry is not None:
             self.result.quality['final'] = entry
+        t0 = time.thread_time()
+        self._outputs(per_track)
+        if per_track:   # what the outputs of this update cost (this thread's CPU)
+            self.result.updates[-1]['outputs_cpu_ms'] = 1e3 * (time.thread_time() - t0)
+
+    def _outputs(self, per_track: bool) -> None:
+        """Everything written after an update (``update``): path, corrections, markers,
+        ``map -> odom`` and the feedback to the source."""
         traj, corr_stamps, top = self._synced(every_row=not per_track)
         self.out.path_bytes(self.path.message(top), self.last_ns)
         self._corrections(traj, corr_stamps, every_row=not per_track)
