@@ -483,6 +483,12 @@ class OdometryInput:
         """(4, 4) ``T_odom_kf`` of a keyframe."""
         return self._kf_poses[self._kf_index(node_id)].copy()
 
+    @property
+    def keyframe_ids(self) -> tuple[int, int]:
+        """``(first, end)``: the keyframes' node ids are ``first .. end - 1`` (consecutive; an
+        empty range before the first keyframe), each with its :meth:`keyframe_pose`."""
+        return self._first_id, self._first_id + len(self._kf_ids)
+
     # ----------------------------------------------------------------- helpers
     def _append(self, stamp: int, T: FloatArray) -> None:
         self._stamps.append(stamp)

@@ -151,10 +151,14 @@ def residual_color(normalized_residual: FloatArray, scale: float = 3.0) -> Float
     return rgba
 
 
+#: the network markers' node size and line width (m) and namespace
+NODE_SCALE, LINE_WIDTH, NAMESPACE = 2.0, 0.5, 'ga'
+
+
 def network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
                     normalized_residual: FloatArray, frame_id: str, stamp_ns: int,
-                    node_scale: float = 2.0, line_width: float = 0.5,
-                    residual_scale: float = 3.0, namespace: str = 'ga') -> Any:
+                    node_scale: float = NODE_SCALE, line_width: float = LINE_WIDTH,
+                    residual_scale: float = 3.0, namespace: str = NAMESPACE) -> Any:
     """The connection network as a rosbags ``visualization_msgs/MarkerArray``.
 
     Same layout as the alignment node's markers: a ``DELETEALL`` marker, a ``SPHERE_LIST`` of

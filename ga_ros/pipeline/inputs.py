@@ -191,6 +191,11 @@ class InputFrontEnd:
         self.constraints_rejected = 0
         #: stamp (ns) of the first input's newest sample (0 before any)
         self.latest_stamp_ns = 0
+        #: ``(rows, id of the last)``: the corrected path's first rows hold no keyframe of the
+        #: first input and never will (ids below its first keyframe's,
+        #: ``_no_keyframe_first``): :meth:`map_to_odom` reads only the rows after them
+        self._no_keyframe_rows: tuple[int, int] = (0, -1)
+        self._no_keyframe_first = -1
 
     def by_topic(self, topic: str) -> InputSpec | None:
         """The input reading ``topic`` (None if none)."""
@@ -333,18 +338,39 @@ class InputFrontEnd:
         """REP 105 ``T_map_odom`` of the first input: ``T_map_k T_odom_k^-1`` at the newest
         node ``k`` of the corrected path that is a keyframe of that input (None if none).
 
+        Cost: the rows after ``k`` (back from the newest, in doubling chunks), not the path.
+        Rows that can never be keyframes of the input (ids below its first keyframe's: a
+        restored state's nodes, which the input numbers after, :meth:`continue_from`) are read
+        once, at the first call that finds none, and never again while the path keeps them.
+
         Parameters
         ----------
-        node_ids : (n,) node ids of the corrected path.
+        node_ids : (n,) node ids of the corrected path (rows append-only between calls).
         T_map_node : (n, 4, 4) their corrected poses in the map frame.
         """
         inp = self._primary()
-        for k in range(len(node_ids) - 1, -1, -1):
-            try:
-                T_odom_k = inp.keyframe_pose(int(node_ids[k]))
-            except InputError:
-                continue
-            return np.asarray(T_map_node[k], float) @ se3.inverse(T_odom_k)
+        first, end = inp.keyframe_ids
+        ids = np.asarray(node_ids).reshape(-1)
+        n = ids.size
+        floor, last = self._no_keyframe_rows
+        if not (0 < floor <= n and ids[floor - 1] == last and first == self._no_keyframe_first):
+            floor = 0   # another path or another numbering: read it all once
+        hi, step = n, 8   # back from the newest row, in doubling chunks
+        while hi > floor and end > first:
+            lo = max(hi - step, floor)
+            chunk = ids[lo:hi]
+            hit = np.flatnonzero((chunk >= first) & (chunk < end))
+            if hit.size:
+                k = lo + int(hit[-1])
+                return np.asarray(T_map_node[k], float) @ se3.inverse(
+                    inp.keyframe_pose(int(ids[k])))
+            hi, step = lo, 2 * step
+        # none: the rows up to the first one whose id is not below the first keyframe's (ids
+        # that can never become keyframes of this input) are not read again
+        above = np.flatnonzero(ids[floor:n] >= first) if end > first else np.zeros(0, int)
+        floor = floor + int(above[0]) if above.size else (n if end > first else floor)
+        self._no_keyframe_rows = (floor, int(ids[floor - 1]) if floor else -1)
+        self._no_keyframe_first = first
         return None
 
     def keyframe_pose(self, node_id: int) -> FloatArray:

@@ -21,17 +21,22 @@ import numpy as np
 
 from ga_ros import topics
 from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.encoding import network_index
 from ga_ros.errors import FormatError
 from ga_ros.geometry import se3
 from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg
 from ga_ros.io.bag_writer import (
+    LINE_WIDTH,
+    NAMESPACE,
+    NODE_SCALE,
     BagWriter,
-    network_markers,
     odometry_msg,
     pose_with_covariance_msg,
+    residual_color,
     tf_message,
     transform_msg,
 )
+from ga_ros.io.cdr import network_markers_cdr
 from ga_ros.io.trajectory import Trajectory, write_tum
 from ga_ros.pipeline.corrections import Corrections, CorrectionThresholds, corrections_cdr
 from ga_ros.safe_write import check_destinations, save_figure, write_json
@@ -189,6 +194,11 @@ class ReplayOutputs:
         msg = trajectory_to_path_msg(traj, frame_id=self.config.map_frame, stamp_ns=stamp)
         self.bag.write(topic or self.config.path_topic, PATH, msg, log_ns)
 
+    def path_bytes(self, data: bytes, log_ns: int, topic: str | None = None) -> None:
+        """A serialized corrected path (``nav_msgs/Path`` CDR, e.g.
+        :class:`~ga_ros.replay.stamped_path.StampedPath`), logged at ``log_ns``."""
+        self.bag.write_raw(topic or self.config.path_topic, PATH, data, log_ns)
+
     def corrections(self, c: Corrections, stamp_ns: int, log_ns: int) -> None:
         """The corrections of an update (:mod:`ga_ros.pipeline.corrections`), header stamped
         at ``stamp_ns`` (the corrected path's newest keyframe), logged at ``log_ns``."""
@@ -199,9 +209,12 @@ class ReplayOutputs:
                 residual: FloatArray, log_ns: int, stamp_ns: int) -> None:
         """The connection network coloured by misclosure, header stamped at ``stamp_ns`` (the
         input's time base), logged at ``log_ns``."""
-        msg = network_markers(p_world_node, src, dst, residual, self.config.map_frame, stamp_ns)
-        self.bag.write(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray', msg,
-                       log_ns)
+        net = network_index(p_world_node, src, dst)
+        data = network_markers_cdr(net.p, net.src, net.dst, residual_color(residual),
+                                   self.config.map_frame, stamp_ns, NODE_SCALE, LINE_WIDTH,
+                                   NAMESPACE)   # the bytes of bag_writer.network_markers
+        self.bag.write_raw(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray',
+                           data, log_ns)
 
     def poses(self, traj: Trajectory, covs: FloatArray, log_ns: int) -> None:
         """Corrected pose with covariance of every node, header stamped at the node's time,

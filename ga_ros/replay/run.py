@@ -8,6 +8,7 @@ source. The final outputs are :mod:`ga_ros.replay.finish`'s.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -37,6 +38,7 @@ from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.outputs import ReplayOutputs, misclosure
 from ga_ros.replay.result import ReplayResult, plain_fields
 from ga_ros.replay.source import SourceItem
+from ga_ros.replay.stamped_path import StampedPath
 
 
 def match_ground_truth(gt: Trajectory, node_ids: IntArray, stamps_ns: IntArray, by: str,
@@ -131,6 +133,10 @@ class ReplayRun:
         #: called with each corrections message's content (e.g. the map of ``--map``)
         self.on_corrections: Callable[[Corrections], None] | None = None
         self.odom_tf_stamp = -1  # stamp of the last odom -> base_link written
+        #: the corrected path with the replay's stamps and its message, kept in step with the
+        #: aligner (the rows an update can change are read, not the whole path)
+        self.path = StampedPath(config.outputs.map_frame, self.stamps, self.first_stamp,
+                                self.first_stamp_of_ground_truth)
 
     def _first_pose(self, m: Measurement) -> FloatArray | None:
         if self.gt is None or not self.config.anchor_to_ground_truth:
@@ -334,23 +340,28 @@ class ReplayRun:
                 self.result.quality.setdefault('per_track', []).append(entry)
         if entry is not None:
             self.result.quality['final'] = entry
-        traj = self.corrected()
-        self.out.path(traj, self.last_ns)
-        self._corrections(traj, every_row=not per_track)
-        self.markers(traj)
+        t0 = time.thread_time()
+        self._outputs(per_track)
+        if per_track:   # what the outputs of this update cost (this thread's CPU)
+            self.result.updates[-1]['outputs_cpu_ms'] = 1e3 * (time.thread_time() - t0)
+
+    def _outputs(self, per_track: bool) -> None:
+        """Everything written after an update (``update``): path, corrections, markers,
+        ``map -> odom`` and the feedback to the source."""
+        traj, corr_stamps, top = self._synced(every_row=not per_track)
+        self.out.path_bytes(self.path.message(top), self.last_ns)
+        self._corrections(traj, corr_stamps, every_row=not per_track)
+        self.markers(traj, stamp_ns=top)
         if self.odom is not None:
             self.odom.update(traj.node_ids, traj.T_world_node, adjusted=True)
         feedback = getattr(self.source, 'on_corrected', None)
         if feedback is not None:
             feedback(traj.node_ids, traj.T_world_node)
 
-    def _corrections(self, traj: Trajectory, every_row: bool) -> None:
+    def _corrections(self, traj: Trajectory, stamps: IntArray, every_row: bool) -> None:
         """The corrections message of an update, as the node publishes it: the aligner's node
-        stamps (the replay's own only where the aligner has none) and its newest stamp in the
-        header; ``every_row`` after the final batch."""
-        cp_stamps = np.asarray(getattr(self.aligner.corrected_path(), 'stamps_ns',
-                                       traj.stamps_ns), dtype=np.int64).reshape(-1)
-        stamps = np.where(cp_stamps < 0, traj.stamps_ns, cp_stamps)
+        stamps (the replay's own only where the aligner has none: ``stamps``) and its newest
+        stamp in the header; ``every_row`` after the final batch."""
         path = Trajectory(stamps, traj.T_world_node, traj.node_ids, traj.track_ids,
                           traj.frame_id)
         c = self.corrections.after_update(self.aligner, path, every_row=every_row)
@@ -358,6 +369,15 @@ class ReplayRun:
             self.out.corrections(c, int(stamps[-1]) if len(stamps) else 0, self.last_ns)
             if self.on_corrections is not None:
                 self.on_corrections(c)
+
+    def first_stamp_of_ground_truth(self) -> int | None:
+        """The ground truth's stamp of the first node (None: no ground truth matched by node,
+        or none for that node)."""
+        if self.gt is not None and self.first_id is not None and self.match_by == 'node':
+            hit = np.flatnonzero(self.gt.node_ids == self.first_id)
+            if hit.size:
+                return int(self.gt.stamps_ns[hit[0]])
+        return None
 
     def first_stamp(self, stamps: IntArray, node_ids: IntArray) -> int:
         """Acquisition time of the first node when no message carried it (the measurement
@@ -372,8 +392,26 @@ class ReplayRun:
             return int(known[0] - np.median(np.diff(known)))
         return int(known[0]) if known.size else 0
 
+    def _synced(self, every_row: bool = False) -> tuple[Trajectory, IntArray, int]:
+        """The corrected path kept in step with the aligner (:class:`StampedPath`, views valid
+        until the next call), the corrections' stamps and the newest stamp."""
+        assert self.aligner is not None
+        cp, stamps, corr, top = self.path.sync(self.aligner, self.first_id, every_row)
+        self.frozen = cp.frozen if self.path.mirror.has_frozen else None
+        return (Trajectory(stamps, cp.T_world_node, cp.node_ids, cp.track_ids,
+                           self.config.outputs.map_frame), corr, top)
+
     def corrected(self) -> Trajectory:
-        """The aligner's corrected path with node stamps and tracks, in ``map_frame``."""
+        """The aligner's corrected path with node stamps and tracks, in ``map_frame`` (a
+        copy)."""
+        traj, _, _ = self._synced()
+        self.frozen = None if self.frozen is None else self.frozen.copy()
+        return Trajectory(traj.stamps_ns.copy(), traj.T_world_node.copy(),
+                          traj.node_ids.copy(), traj.track_ids.copy(), traj.frame_id)
+
+    def corrected_from_scratch(self) -> Trajectory:
+        """:meth:`corrected` from the whole path, the rules applied to every row (what
+        :class:`StampedPath` keeps up to date; the tests' reference)."""
         assert self.aligner is not None
         cp = self.aligner.corrected_path()
         node_ids = np.asarray(cp.node_ids, dtype=np.int64)
@@ -394,8 +432,10 @@ class ReplayRun:
             stamps = np.where(stamps < 0, self.first_stamp(stamps, node_ids), stamps)
         return Trajectory(stamps, T, node_ids, tracks, self.config.outputs.map_frame)
 
-    def markers(self, traj: Trajectory, everything: bool = False) -> None:
-        """Markers of the connections that can still move (a non-frozen end; all at the end)."""
+    def markers(self, traj: Trajectory, everything: bool = False,
+                stamp_ns: int | None = None) -> None:
+        """Markers of the connections that can still move (a non-frozen end; all at the end),
+        header stamped ``stamp_ns`` (default: the newest of the path's stamps)."""
         n = len(traj)
         if n == 0 or self.conn.n == 0:
             return
@@ -416,7 +456,7 @@ class ReplayRun:
         if w is not None:  # quality control on: colour by |w| (ga_ros.ros.conversions)
             d = w[ok]
         self.out.markers(traj.T_world_node[:, :3, 3], i_src[ok], i_dst[ok], d, self.last_ns,
-                         int(traj.stamps_ns.max()))
+                         int(traj.stamps_ns.max()) if stamp_ns is None else stamp_ns)
 
     def _connection_w(self, src: IntArray, dst: IntArray) -> FloatArray | None:
         """(m,) ``|w|`` of the connections ``src -> dst`` (node ids) at their last adjustment

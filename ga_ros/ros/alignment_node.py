@@ -74,6 +74,7 @@ from ga_ros.pipeline.inputs import (
 )
 from ga_ros.pipeline.journal import DEFAULT_STATE_FILE, default_state_file
 from ga_ros.pipeline.map_to_odom import MapToOdom
+from ga_ros.pipeline.path_mirror import PathMirror
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig, bounded
 from ga_ros.pipeline.session.outputs import UpdateBug
 from ga_ros.pipeline.session.restore import continue_inputs
@@ -167,6 +168,8 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._next_full_path = 0.0  # perf_counter time before which the full path waits
         self._path_dirty = False
         self.corrections = CorrectionTracker(s.corrections)
+        #: the corrected path kept in step with the aligner (the outputs' source)
+        self.paths = PathMirror(s.map_frame)
         self._create_services()
 
         if s.state_file:
@@ -378,6 +381,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
         self._resumed = False
         self._datum_saved = False   # the datum file went with the old state
         self.corrections.restart()  # consumers drop what they held: a full message next
+        self.paths.restart()
         self._publish_all()
 
     def _warn_rejected(self, reason: object, exc: object, msg: Any) -> None:

@@ -7,7 +7,6 @@ from typing import Any
 
 import numpy as np
 
-from ga_ros.io.cdr import path_cdr
 from ga_ros.pipeline.corrections import corrections_cdr
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.view import connection_view
@@ -27,8 +26,11 @@ class AlignmentOutputs:
         self._publish_diagnostics()
 
     def _publish_outputs(self) -> None:
+        """Every output of an update, from the corrected path kept in step with the aligner
+        (:class:`~ga_ros.pipeline.path_mirror.PathMirror`: the rows the update could change
+        are copied, not the whole path)."""
         s = self.settings
-        cp = self.aligner.corrected_path()
+        cp = self.paths.sync(self.aligner)
         self._path_nodes = len(cp.node_ids)
         if len(cp.node_ids):
             stamp_ns = int(cp.stamps_ns[-1])
@@ -36,11 +38,12 @@ class AlignmentOutputs:
             stamp_ns = self.get_clock().now().nanoseconds
         self._path_dirty = True
         if time.perf_counter() >= self._next_full_path:
-            self._publish_full_path(cp, stamp_ns)
+            self._publish_full_path(stamp_ns)
         self._publish_corrections(cp, stamp_ns)
-        movable = ~np.asarray(getattr(cp, 'frozen', np.zeros(len(cp.node_ids), bool)), bool)
-        self.pub_window.publish(conv.path_to_msg(cp.T_world_node[movable],
-                                                 cp.stamps_ns[movable], s.map_frame, stamp_ns))
+        lo, movable = self.paths.movable_rows()   # every row before lo is frozen
+        rows = lo + np.flatnonzero(movable)
+        self.pub_window.publish(conv.path_to_msg(cp.T_world_node[rows], cp.stamps_ns[rows],
+                                                 s.map_frame, stamp_ns))
         warned = self.odom.jumps_warned
         self.odom.update(cp.node_ids, cp.T_world_node,
                          adjusted=self.session.counts.updates > 0 or self._resumed)
@@ -93,18 +96,19 @@ class AlignmentOutputs:
             self.get_logger().warning(f'markers not published: {exc}',
                                       throttle_duration_sec=10.0)
 
-    def _publish_full_path(self, cp: Any, stamp_ns: int) -> None:
+    def _publish_full_path(self, stamp_ns: int) -> None:
+        """The corrected path as of the last :meth:`PathMirror.sync
+        <ga_ros.pipeline.path_mirror.PathMirror.sync>`: its serialized message is kept and only
+        the rows that changed are encoded again (:class:`~ga_ros.io.cdr.PathCdr`)."""
         self._next_full_path = time.perf_counter() + self.settings.full_path_min_period_sec
         self._path_dirty = False
-        # serialized from the arrays (ga_ros.io.cdr): 100,000 poses in ms instead of seconds
-        self.pub_path.publish(path_cdr(cp.T_world_node, cp.stamps_ns, self.settings.map_frame,
-                                       stamp_ns))
+        self.pub_path.publish(self.paths.path_message(stamp_ns))
 
     def _full_path_timer(self) -> None:
         if self._path_dirty and time.perf_counter() >= self._next_full_path:
-            cp = self.aligner.corrected_path()
+            cp = self.paths.sync(self.aligner)
             if len(cp.node_ids):
-                self._publish_full_path(cp, int(cp.stamps_ns[-1]))
+                self._publish_full_path(int(cp.stamps_ns[-1]))
 
     def _markers_timer(self) -> None:
         if self._markers_dirty and self.pub_markers.get_subscription_count() > 0:
@@ -114,7 +118,7 @@ class AlignmentOutputs:
         """Odometry of the newest node (open track: not adjusted yet, covariance unknown, i.e.
         ``covariance[0] = -1`` as ROS messages mark it)."""
         self._next_odom_time = time.perf_counter() + 1.0 / self.settings.odom_max_rate_hz
-        cp = self.aligner.corrected_path()
+        cp = self.paths.sync(self.aligner)
         if not len(cp.node_ids):
             return
         self._last_odom_node = int(cp.node_ids[-1])

@@ -55,6 +55,7 @@ class AlignmentServices:
             return response
         self._datum_saved = False  # the datum file went with the state: saved again when known
         self.corrections.restart()  # consumers drop what they held: a full message next
+        self.paths.restart()
         self._publish_all()
         response.success, response.message = True, 'state cleared'
         return response
@@ -89,6 +90,7 @@ class AlignmentServices:
             return response
         self._restore_datum()
         self.corrections.restart()  # consumers drop what they held: a full message next
+        self.paths.restart()
         self._publish_all()
         response.success = True
         response.message = (f'loaded {self.session.n_nodes()} nodes from '

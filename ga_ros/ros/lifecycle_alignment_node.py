@@ -80,6 +80,7 @@ class LifecycleAlignmentNode(AlignmentNode, LifecycleNode):
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
         self.active = False
         self.session.reset()
+        self.paths.restart()
         if self.front is not None:
             self.front = InputFrontEnd(list(self.front.specs.values()),
                                        self.settings.input_warn_throttle_sec)

@@ -69,6 +69,9 @@ BENCHMARKS: dict[str, Benchmark] = {
                       'CPU, RSS per pose'),
     'corrections': Benchmark('ga_ros.bench.corrections:main',
                              'ga/corrections bytes per update against the whole path (aerial)'),
+    'outputs': Benchmark('ga_ros.cli.benchmarks.replay_outputs:main',
+                         "the replay's outputs per update, early against late in a long run "
+                         'with fixes'),
     'path-msg': Benchmark('ga_ros.cli.benchmarks.path_msg:main',
                           'the corrected path message at survey scale (CDR against rclpy)'),
     'map': Benchmark('ga_ros.bench.map:main',

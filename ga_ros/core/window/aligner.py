@@ -637,12 +637,16 @@ class TrackWindowAligner:
         self.wait_background()
 
     # ------------------------------------------------------------------------ output
-    def corrected_path(self) -> CorrectedPath:
-        """Every node at its current estimate (frozen, window, or the open track's chain)."""
+    def corrected_path(self, from_row: int = 0) -> CorrectedPath:
+        """Every node at its current estimate (frozen, window, or the open track's chain);
+        ``from_row``: only the rows from it on (a copy of those rows alone, e.g. from
+        :meth:`mutable_rows`, :class:`~ga_ros.pipeline.path_mirror.PathMirror`)."""
         st = self.state
         n = len(st.ids)
-        return CorrectedPath(st.idarr.a.copy(), st.trackarr.a.copy(), st.stamparr.a.copy(),
-                             st.T[:n].copy(), st.frozen[:n].copy())
+        lo = min(max(int(from_row), 0), n)
+        return CorrectedPath(st.idarr.a[lo:].copy(), st.trackarr.a[lo:].copy(),
+                             st.stamparr.a[lo:].copy(), st.T[lo:n].copy(),
+                             st.frozen[lo:n].copy())
 
     def pose(self, node_id: int) -> FloatArray:
         """(4, 4) ``T_world_node`` of one node at its current estimate (a copy): what

@@ -33,6 +33,7 @@ from ga_ros.pipeline.journal import (
 from ga_ros.pipeline.journal.lock import StateLock
 from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, is_event
 from ga_ros.pipeline.journal.recovery import check_state_path
+from ga_ros.pipeline.path_mirror import newest_not_in_track
 from ga_ros.pipeline.session.config import SessionConfig
 from ga_ros.pipeline.session.diagnostics import diagnostic_values, health
 from ga_ros.pipeline.session.outputs import (
@@ -677,12 +678,9 @@ class AlignmentSession:
     # ------------------------------------------------------------------ outputs
     def newest_adjusted(self, cp: Any) -> int | None:
         """Path index of the newest node that a window update has adjusted (the open track's
-        nodes are only frame-to-frame continuations without a covariance yet)."""
-        open_track = getattr(self.aligner, 'open_track', None)
-        tracks = np.asarray(cp.track_ids)
-        done = (np.nonzero(tracks != open_track)[0] if open_track is not None
-                else np.arange(tracks.size))
-        return int(done[-1]) if done.size else None
+        nodes are only frame-to-frame continuations without a covariance yet). Reads back from
+        the end of the path only as far as the open track's rows reach."""
+        return newest_not_in_track(cp.track_ids, getattr(self.aligner, 'open_track', None))
 
     def covariance_or_unknown(self, node_id: int) -> FloatArray:
         """Marginal covariance of a node, or the ROS "unknown" covariance (``[0, 0] = -1``)."""
@@ -695,11 +693,15 @@ class AlignmentSession:
 
     def dead_reckoned_nodes(self) -> int:
         """Nodes of the open track (at the end of the path, at their dead-reckoned poses: no
-        window update has adjusted them yet)."""
+        window update has adjusted them yet), counted among the rows an update can change (not
+        the whole path)."""
         open_track = getattr(self.aligner, 'open_track', None)
         if open_track is None:
             return 0
-        return int(np.count_nonzero(self.aligner.corrected_path().track_ids == open_track))
+        rows = getattr(self.aligner, 'mutable_rows', None)   # the open track is not frozen:
+        path = (self.aligner.corrected_path() if rows is None   # its rows come after them
+                else self.aligner.corrected_path(rows()[0]))
+        return int(np.count_nonzero(path.track_ids == open_track))
 
     def unjoined(self, node_ids: Any) -> Any:
         """Per node id: True if the node hangs off a bridge, not yet joined to the datum or to
