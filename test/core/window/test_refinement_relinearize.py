@@ -171,3 +171,48 @@ def test_priors_on_window_nodes_refine_at_every_trigger():
         counts.append(sum(_installed(u) for u in ups))
         assert al.state.refine_drift == np.inf
     assert counts[0] >= counts[1] >= counts[0] - 1 > 0, counts
+
+
+def test_the_drift_bounds_every_weighted_node_s_distance_from_its_linearisation_points(
+        monkeypatch):
+    """The drift is at least the largest distance (in standard deviations, per coordinate) of
+    a weighted node's estimate from any pose the state held for it since the last installed
+    refinement (the linearisation points of the priors that hold it: its freeze, the refined
+    pose, the smoothed one), computed here from every pose seen."""
+    from ga_ros.core.window import handoff as handoff_module
+    from ga_ros.geometry import se3
+
+    sc, _, ms = noisy_aerial_survey(10, 6, 2.0, 5)
+    measure = handoff_module.RefinementHandoff.measure
+    seen: dict[int, list] = {}
+    checked = []
+
+    def spy(self, prev_weighted, installed, factor_step=0.0):
+        st = self.state
+        if installed:
+            seen.clear()
+        nodes, T_end = st.T_weighted
+        for i in nodes.tolist():
+            seen.setdefault(i, []).append(st.T[i].copy())
+        old = measure(self, prev_weighted, installed, factor_step)
+        if nodes.size:
+            var = np.diagonal(st.cov[nodes], axis1=1, axis2=2)
+            worst = 0.0
+            for k, i in enumerate(nodes.tolist()):
+                for T_lin in seen[i]:
+                    d = np.abs(se3.local(T_lin[None], T_end[k:k + 1]))[0]
+                    ok = var[k] > 0
+                    worst = max(worst, float((d[ok] / np.sqrt(var[k][ok])).max()))
+            assert old >= worst - 1e-9, (old, worst)
+            checked.append(worst)
+        return old
+
+    def after(al, up):  # the smoothed poses are linearisation points of later freezes
+        nodes, _ = al.state.T_weighted
+        for i in nodes.tolist():
+            seen.setdefault(i, []).append(al.state.T[i].copy())
+
+    monkeypatch.setattr(handoff_module.RefinementHandoff, 'measure', spy)
+    al = TrackWindowAligner(_config(1.0), sc.T_world_node[0])
+    _feed(al, ms, after)
+    assert checked and max(checked) > 0
