@@ -22,6 +22,7 @@ from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.freeze import AbsorbedPrior, JointPrior, prior_nodes
 from ga_ros.core.window.snapshot import RefinementResult, RefinementSnapshot
 from ga_ros.core.window.state import WindowState, no_weighted
+from ga_ros.core.window.update import carry_over
 from ga_ros.core.window.worker import RefinementWorker
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
