@@ -803,7 +803,7 @@ class TrackWindowAligner:
         self.handoff.drop()
         # the next refinement starts from the whole survey again (a past prior linearised at
         # the old estimate would pull the retired tracks' boundary back)
-        st.retired, st.past, st.refine_drift, st.refine_drift_base = 0, [], 0.0, 0.0
+        st.retired, st.past, st.refine_drift = 0, [], 0.0
         with blas_threads():
             st.priors = [JointPrior.absorbed(p) for p in
                          absorbed_priors(self.handoff.snapshot(whole=True), st.T[:n])]

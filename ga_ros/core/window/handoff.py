@@ -88,54 +88,42 @@ class RefinementHandoff:
     def measure(self, prev_weighted: tuple, installed: bool, factor_step: float = 0.0
                 ) -> float:
         """After a window adjustment: update and return :attr:`WindowState.refine_drift
-        <ga_ros.core.window.state.WindowState.refine_drift>`, a bound on how far (in their
-        standard deviations) the frozen nodes the window adjusts as weighted parameters are
-        from the linearisation points of the priors that hold them.
+        <ga_ros.core.window.state.WindowState.refine_drift>`.
 
-        A frozen node's pose in the state (``state.T``) is the linearisation point of every
-        prior built since it last changed (a freeze linearises its prior there), and it changes
-        only when a refinement is installed (to the refined pose ``T_r``, where the installed
-        priors are linearised) and smoothed (to about the window's estimate after that
-        update). So the drift is the *base* (:attr:`WindowState.refine_drift_base`, fixed at the
-        install: this adjustment's largest move of a prior node from ``T_r``, the distance
-        between the two linearisation points) plus the largest distance of a weighted node's
-        estimate (:attr:`WindowState.T_weighted`) from its pose in the state seen in any update
-        since (a running maximum: the triangle inequality bounds the distance to ``T_r`` by
-        their sum). Distances per coordinate ``[x y z rx ry rz]`` in that node's standard
-        deviations (its published covariance; a coordinate of zero variance, the datum's, is not
-        counted). ``prev_weighted`` (the state's ``T_weighted`` before the adjustment) is not
-        needed for it: the distance is measured from the linearisation point, not step by step.
-        ``factor_step``: the adjustment's change of the online variance factors
+        ``prev_weighted`` is the state's ``T_weighted`` before the adjustment (where it started
+        the frozen nodes it had adjusted; the others started at their frozen pose, the
+        linearisation point of the prior that holds them, or the installed refinement's). The
+        adjustment's largest correction of a frozen node it adjusts as a weighted parameter, in
+        that node's standard deviations (per coordinate ``[x y z rx ry rz]``, from its published
+        covariance; a coordinate of zero variance, the datum's, is not counted), is added to the
+        drift since the last installed refinement, or starts it if this update ``installed`` one
+        (its priors are linearised at its estimate, where the adjustment started). The sum bounds
+        how far any of those nodes is from its prior's linearisation point (triangle
+        inequality). ``factor_step``: the adjustment's change of the online variance factors
         (``variance_components='apply'``), in standard deviations
-        (:func:`~ga_ros.core.window.aligner.factor_drift`), is added to the base: the priors
-        weight the sources with the factors of their linearisation. A prior on other nodes (the
+        (:func:`~ga_ros.core.window.aligner.factor_drift`), is added too: the priors weight
+        the sources with the factors of their linearisation. A prior on other nodes (the
         ``'marginal'`` policy's, on window nodes) makes the drift infinite: every trigger
         refines, as with ``refine_relinearize_sigma = 0``.
         """
-        del prev_weighted  # the distance is measured from the linearisation point
         st = self.state
         nodes, T_end = st.T_weighted
-        now = 0.0
+        step = 0.0
         held = np.concatenate([p[0] for p in st.priors] or [np.zeros(0, np.int64)])
         if not np.isin(held, nodes).all():
             # a prior on nodes the adjustment does not hold as weighted parameters (the
             # 'marginal' policy's, on window nodes): not measured, so every trigger refines
-            now = np.inf
+            step = np.inf
         elif nodes.size:
-            d = np.abs(se3.local(st.T[nodes], T_end))
+            T_start = carry_over(st.T[nodes], nodes, *prev_weighted)
+            d = np.abs(se3.local(T_start, T_end))
             var = np.diagonal(st.cov[nodes], axis1=1, axis2=2)
             ok = var > 0
             if ok.any():
-                now = float((d[ok] / np.sqrt(var[ok])).max())
-        factor = float(factor_step)
-        if installed:  # the priors at T_r = state.T now; smoothing moves state.T to T_end
-            base, seen = now + factor, 0.0
-        else:
-            base = st.refine_drift_base + factor
-            seen = max(st.refine_drift - st.refine_drift_base, now)
-        drift = base + seen
-        st.refine_drift_base = base if np.isfinite(base) else np.inf
-        st.refine_drift = drift if np.isfinite(drift) else np.inf  # a failed measure: refine
+                step = float((d[ok] / np.sqrt(var[ok])).max())
+        step += float(factor_step)
+        step = step if np.isfinite(step) else np.inf  # a failed measure: refine
+        st.refine_drift = step if installed else st.refine_drift + step
         return st.refine_drift
 
     def snapshot(self, n_nodes: int | None = None, n_conns: int | None = None,

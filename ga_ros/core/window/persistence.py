@@ -224,7 +224,6 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         'n_updates': int(st.n_updates), 'n_outliers': int(st.n_outliers),
         'n_failed_updates': int(st.n_failed_updates), 'last_failure': str(st.last_failure),
         'refine_retired': int(st.retired), 'refine_drift': float(st.refine_drift),
-        'refine_drift_base': float(st.refine_drift_base),
     }
     fix_meta, fix_arrays = st.fixes.arrays()  # absolute fixes (ga_ros.core.fixes)
     meta['fixes'] = fix_meta
@@ -415,8 +414,6 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
         st.retired = int(meta.get('refine_retired', 0))
     # older files: none, so the next trigger refines
     st.refine_drift = float(meta.get('refine_drift', np.inf))
-    # older files: all of it as the base (a bound still)
-    st.refine_drift_base = float(meta.get('refine_drift_base', st.refine_drift))
     if 'fix_rows' in arrays:  # absolute fixes (older files: none; the gate's level is set
         # from the config when the aligner attaches the state)
         st.fixes = FixBook.of_arrays(meta.get('fixes', {}), arrays, st.fixes.gate_prob)

@@ -84,9 +84,6 @@ class WindowState:
         parameters may have moved from their priors' linearisation points since the last
         installed refinement (:meth:`~ga_ros.core.window.handoff.RefinementHandoff.measure`);
         a refinement starts only when it reaches ``refine_relinearize_sigma``.
-    refine_drift_base : its part fixed at the last installed refinement (the distance
-        between the installed priors' linearisation point and the smoothed poses, plus the
-        changes of the variance factors since).
     last_result : the last window adjustment (``None``: none, or ``last_pending`` set).
     last_pending : tracks of a window adjustment to recompute on first use (a restored state).
     seen_cache : ``(rows scanned, largest node id, largest track id)`` (:meth:`seen_max`).
@@ -129,7 +126,6 @@ class WindowState:
     retired: int = 0
     past: list = field(default_factory=list)
     refine_drift: float = 0.0
-    refine_drift_base: float = 0.0
     last_result: SolveResult | None = None
     last_pending: list[int] | None = None
     seen_cache: tuple[int, int, int] = (0, -1, -1)
@@ -297,7 +293,7 @@ class Rollback:
     #: Fields of :class:`WindowState` saved and restored as they are (replaced, never changed in
     #: place, by an update; ``priors`` is copied as a list).
     KEPT = ('priors', 'last_window', 'n_outliers', 'n_updates', 'T_weighted', 'retired', 'past',
-            'refine_drift', 'refine_drift_base', 'last_result', 'last_pending')
+            'refine_drift', 'last_result', 'last_pending')
 
     @classmethod
     def of(cls, state: WindowState, rows: tuple[int, int]) -> Rollback:
