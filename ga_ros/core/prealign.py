@@ -20,6 +20,11 @@ inside its basin: the factorisation at its start stays usable for the following 
 steps, :attr:`~ga_ros.core.solver.SolverConfig.reuse_factor_below`), so a window update takes
 one numeric factorisation as a rule. Without the pre-alignment the chord steps diverge.
 
+When the new track's connections form a tree hanging off the held nodes (one per new node:
+its consecutive motions and the link to the previous track, no cross connection, as in an
+odometry survey with fixes), the conditional optimum is the chain itself, every connection
+satisfied exactly: it is chained from the held nodes without a solve (``reason`` ``'tree'``).
+
 The pre-alignment changes only the starting point of the window adjustment, never its
 optimum: the window is still solved to the same tolerance with every connection and prior.
 """
@@ -53,10 +58,11 @@ class Prealignment:
     T_world_node : (n, 4, 4) poses of every node of the network (index order): the free nodes
         at their conditional optimum, the others as given.
     iterations : Gauss-Newton iterations of the pre-alignment solve (0: not run).
-    reason : the solve's stop reason, ``'no_anchor'`` (no connection from a free node to a
-        held node: nothing to align against), ``'nothing_free'``, or ``'failed: ...'`` (the
-        solve raised; the poses are then the given ones and the window adjustment reports
-        the problem itself).
+    reason : the solve's stop reason, ``'tree'`` (the free nodes' connections form a tree
+        hanging off the held nodes: its exact solution, chained, no solve), ``'no_anchor'``
+        (no connection from a free node to a held node: nothing to align against),
+        ``'nothing_free'``, or ``'failed: ...'`` (the solve raised; the poses are then the
+        given ones and the window adjustment reports the problem itself).
     n_free : free nodes (the new track's).
     n_connections : connections of the pre-alignment problem.
     factor : the solve's sparse factor (:meth:`~ga_ros.core.solver.SolveResult.release_factor`),
@@ -114,6 +120,12 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
     held &= ~is_free
     if not held.any():
         return Prealignment(T, 0, 'no_anchor', int(free_idx.size), int(sel.size))
+    if sel.size == free_idx.size:  # as many connections as free nodes: maybe a tree
+        chained = _tree_chain(T, is_free, conn.src[sel], conn.dst[sel],
+                              None if measured is None else measured[0][sel],
+                              None if measured is None else measured[1][sel], conn.z[sel])
+        if chained is not None:
+            return Prealignment(chained, 0, 'tree', int(free_idx.size), int(sel.size), factor)
     nodes = np.concatenate([free_idx, np.nonzero(held)[0]])
     local = np.full(n, -1, dtype=np.int64)
     local[nodes] = np.arange(nodes.size)
@@ -131,3 +143,43 @@ def prealign(network: ConnectionNetwork, T_init: FloatArray, free_idx: IntArray,
     out[free_idx] = res.T_world_node[:free_idx.size]
     return Prealignment(out, res.iterations, res.reason, int(free_idx.size), int(sel.size),
                         res.release_factor())
+
+
+def _tree_chain(T: FloatArray, is_free: np.ndarray, src: IntArray, dst: IntArray,
+                T_meas: FloatArray | None, T_meas_inv: FloatArray | None,
+                z: FloatArray) -> FloatArray | None:
+    """The free nodes chained from the held ones along their connections ``src -> dst``
+    (``T_dst = T_src T_meas``), when those connections (one per free node) form a tree
+    hanging off the held nodes: every free node then has one path to a held node, and the
+    chained poses satisfy every connection exactly, the least-squares optimum with zero
+    residuals whatever the weights (the new track's dead-reckoned chain, without a cross
+    connection). ``None`` if they do not (a cycle, or a part not reached from a held node).
+    ``T_meas`` / ``T_meas_inv``: the measured motions and their inverses (computed from the
+    measurements ``z`` if not given)."""
+    from ga_ros.geometry import se3
+
+    if T_meas is None:
+        T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
+        T_meas_inv = se3.inverse(T_meas)
+    edges: dict[int, list[tuple[int, int]]] = {}
+    for k, (a, b) in enumerate(zip(src.tolist(), dst.tolist())):
+        edges.setdefault(a, []).append((k, b))
+        edges.setdefault(b, []).append((k, a))
+    out = T.copy()
+    done = ~is_free
+    used = np.zeros(src.size, dtype=bool)
+    queue = [i for i in edges if done[i]]
+    reached = 0
+    while queue:
+        i = queue.pop()
+        for k, j in edges[i]:
+            if used[k]:
+                continue
+            if done[j]:  # both ends known: a cycle (or two anchors joined): not a tree
+                return None
+            used[k] = True
+            out[j] = out[i] @ (T_meas[k] if src[k] == i else T_meas_inv[k])
+            done[j] = True
+            reached += 1
+            queue.append(j)
+    return out if reached == int(is_free.sum()) else None

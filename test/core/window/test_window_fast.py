@@ -69,6 +69,64 @@ def test_prealign_puts_the_new_track_at_its_conditional_optimum(monkeypatch):
     assert connection_cost(net, one.T_world_node) < 1.01 * connection_cost(net, out.T_world_node)
 
 
+def test_a_new_track_hanging_off_the_held_nodes_by_a_tree_is_chained_exactly(monkeypatch):
+    """When the free nodes' connections form a tree off the held nodes (one per free node: a
+    dead-reckoned track without cross connections), the pre-alignment chains them exactly
+    (reason 'tree', no solve): every connection touching a free node has zero misclosure,
+    the held nodes are where they were, and the converged solve of the same problem lands
+    on the same poses; a cycle among them goes to the solve."""
+    from ga_ros.core.network import ConnectionNetwork
+
+    sc, nm, ms = noisy_aerial_survey(4, 12, 10.0, 3)
+    seen = []
+    monkeypatch.setattr(window, 'prealign',
+                        lambda net, T, free, **kw: seen.append((net, T.copy(), free)) or
+                        prealign(net, T, free, **kw))
+    for _ in _fly(TrackWindowAligner(AlignerConfig(window_tracks=3, refine_every_tracks=0),
+                                     sc.T_world_node[0]), ms):
+        pass
+    net, T0, free = seen[-1]
+    conn = net.arrays()
+    is_free = np.zeros(net.n_nodes, dtype=bool)
+    is_free[free] = True
+    # the held nodes' own connections, and for each free node (in order) one connection to a
+    # held node or an earlier free node: a tree hanging off the held nodes
+    keep = list(np.nonzero(~is_free[conn.src] & ~is_free[conn.dst])[0])
+    known = ~is_free
+    for f in np.sort(free):
+        k = next(k for k in range(len(conn.src))
+                 if (conn.src[k] == f and known[conn.dst[k]])
+                 or (conn.dst[k] == f and known[conn.src[k]]))
+        keep.append(k)
+        known[f] = True
+    keep = np.array(keep)
+    tree = ConnectionNetwork.from_arrays(net.node_ids, net.track_ids, conn.src[keep],
+                                         conn.dst[keep], conn.z[keep], conn.cov[keep])
+    rng = np.random.default_rng(0)
+    start = T0.copy()
+    start[free] = start[free] @ se3.exp(0.3 * rng.standard_normal((free.size, 6)))
+    out = prealign(tree, start, free)
+    assert out.reason == 'tree' and out.iterations == 0
+    held = np.setdiff1d(np.arange(net.n_nodes), free)
+    np.testing.assert_array_equal(out.T_world_node[held], start[held])
+    tc = tree.arrays()
+    touch = is_free[tc.src] | is_free[tc.dst]
+    T_meas = se3.from_translation_rotvec(tc.z[touch, :3], tc.z[touch, 3:])
+    T = out.T_world_node
+    e = se3.log(se3.inverse(T_meas) @ se3.inverse(T[tc.src[touch]]) @ T[tc.dst[touch]])
+    assert np.abs(e).max() < 1e-10
+    tight = replace(PREALIGN_SOLVER, max_iterations=30, tolerance=1e-11, cost_tolerance=0.0)
+    ref = solve(tree, start, tight, fixed=net.node_ids[held].tolist())
+    np.testing.assert_allclose(T[free], ref.T_world_node[free], atol=1e-8)
+    # one more connection between two free nodes (a cycle): solved, not chained
+    extra = next(k for k in range(len(conn.src))
+                 if is_free[conn.src[k]] and is_free[conn.dst[k]] and k not in set(keep))
+    cyc = np.append(keep, extra)
+    loop = ConnectionNetwork.from_arrays(net.node_ids, net.track_ids, conn.src[cyc],
+                                         conn.dst[cyc], conn.z[cyc], conn.cov[cyc])
+    assert prealign(loop, start, free).reason != 'tree'
+
+
 def test_a_full_window_update_takes_one_factorisation_and_stops_within_its_noise():
     """Aerial survey at 10 % noise: once the window is full, each update factors the window
     once (pre-alignment, one Gauss-Newton step, chord steps). Where it stops (the default cost
