@@ -53,7 +53,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality.source_consistency import SourceConsistency
-from ga_ros.core.quality.variance_components import VarianceComponent
+from ga_ros.core.quality.variance_components import VarianceComponent, damped_factor
 from ga_ros.errors import InputError
 
 ONLINE_MODES = ('off', 'apply')
@@ -224,8 +224,7 @@ class OnlineVarianceComponents:
         C, R, _ = self.sums()
         est = R >= max(cfg.min_redundancy, 1e-9)
         lo, hi = cfg.factor_bounds
-        raw = np.clip(C / np.maximum(R, 1e-300), lo, hi)
-        s = np.exp(np.log(raw) * R / np.maximum(R + cfg.prior_dof, 1e-300))
+        s = damped_factor(C, R, cfg.prior_dof, cfg.factor_bounds)
         dof = R.copy()
         split = self._split
         tied = np.array([g in split for g in self.names], dtype=bool)
@@ -233,8 +232,8 @@ class OnlineVarianceComponents:
             nu = np.array([split[g][1] if g in split else 0.0 for g in self.names])
             q = np.array([split[g][0] if g in split else 1.0 for g in self.names])
             R_t = float(R[tied].sum())
-            lam = np.clip(float(np.sum(C[tied] / q[tied])) / max(R_t, 1e-300), lo, hi)
-            lam = np.exp(np.log(lam) * R_t / max(R_t + cfg.prior_dof, 1e-300))
+            lam = float(damped_factor(float(np.sum(C[tied] / q[tied])), R_t, cfg.prior_dof,
+                                      cfg.factor_bounds))
             s = np.where(tied, np.clip(lam * q, lo, hi), s)
             est = np.where(tied, R_t >= max(cfg.min_redundancy, 1e-9), est)
             dof = np.where(tied, 1.0 / (1.0 / max(R_t, 1e-300) + 1.0 / np.maximum(nu, 1e-300)),
