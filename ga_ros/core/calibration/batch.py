@@ -41,20 +41,38 @@ The noise of a calibrated source. A source's stated covariance often stands for 
 error as well (a wheel odometry's yaw sigma chosen so that a heading drift fits as a random
 walk); once the drift is a parameter, that covariance is too large and the fixes pull the
 corrected path about more than they should. So, where a parameter of a source is estimated
-(:attr:`CalibrationConfig.noise`), its stated covariance is tested and, where it fails,
-re-estimated (Förstner's variance components, as :mod:`ga_ros.core.quality.variance_components`
-does per source, here per block): the source's covariance splits into a translation and a
-rotation part (one part where the stated covariances correlate the two), each scaled by a
-variance factor ``s`` (``D S D``, ``D = sqrt(s)`` on the part's rows). At the stated weights
-``v' P v / r`` of a part (``r`` the sum of its redundancy numbers, the diagonal of
-``(Q_vv P)_ii``) is ``chi2(r) / r`` if the stated covariance is right; a part with at least
-:attr:`CalibrationConfig.noise_min_redundancy` whose ratio falls outside the two-sided range
-at :attr:`CalibrationConfig.noise_alpha` is re-weighted: ``s <- s v' P v / r`` with the
-parameters selected and estimated again at each new weight, until every factor agrees with its
-residuals. Without an estimated parameter, or where every part passes its test, the stated
-covariances stand. The fixes, the priors and the connections without a source keep theirs (the
-factors are relative to them). The factors are reported with their sigmas
-``s sqrt(2 / r)`` (:class:`NoiseFactor`).
+(:attr:`CalibrationConfig.noise`, on by default), its noise is re-estimated (Förstner's
+variance components, as :mod:`ga_ros.core.quality.variance_components` does per source, here
+per block): the source's covariance splits into a translation and a rotation part (one part
+where the stated covariances correlate the two), each scaled by a variance factor ``s``
+(``D S D``, ``D = sqrt(s)`` on the part's rows). A part with less redundancy than
+:attr:`CalibrationConfig.noise_min_redundancy` at its stated covariance keeps it (``r`` the
+sum of its redundancy numbers, the diagonal of ``(Q_vv P)_ii``). The others are re-weighted,
+with the parameters selected and estimated again (from their last values) at each new weight:
+
+- the estimate at the current weights is the damped factor of
+  :func:`~ga_ros.core.quality.variance_components.damped_factor` (the online variance
+  components' definition): ``C / R`` (``C = v' S^-1 v`` under the stated covariances, ``R``
+  the part's redundancy under the weights in use) shrunk towards 1 with a prior of
+  :attr:`CalibrationConfig.noise_prior_dof` degrees of freedom,
+  ``(C / R) ^ (R / (R + noise_prior_dof))``. Without the prior the iteration
+  ``s <- s v' P v / r`` can collapse: a part whose weight grows loses redundancy and residual
+  together and runs to 0 (a rotation factor of 0.001 at a redundancy of 0.2 with a fix every
+  10 keyframes); with it, the estimate tends to 1 as the redundancy vanishes;
+- each step moves a factor by at most the ratio :attr:`CalibrationConfig.noise_max_step`;
+- a part whose redundancy falls below the minimum at its new factor keeps the factor at which
+  it was last determined (:attr:`NoiseFactor.held`), and the others go on;
+- the iteration stops when no factor would move by more than
+  :attr:`CalibrationConfig.noise_tolerance`.
+
+The estimate depends continuously on the data: no test decides whether a part is re-weighted
+(the chi-square test of the stated covariance, ``v' P v / r`` against ``chi2(r) / r`` at
+:attr:`CalibrationConfig.noise_alpha`, is reported beside it), so a rounding-sized change of
+the input gives a rounding-sized change of the factors. The prior biases a factor towards 1 by
+the exponent ``R / (R + noise_prior_dof)``: below 10 % where ``R`` is some hundreds, large
+where the part is poorly determined. The fixes, the priors and the connections without a
+source keep their stated covariances (the factors are relative to them). The factors are
+reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
 
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they

@@ -19,8 +19,9 @@ r_k``; at its fixed point ``v_k' P_k v_k = r_k``). ``R_k`` is the group's degree
 Damping: a group whose ``R_k`` is below ``min_redundancy`` is not estimated (factor 1: its
 stated covariance stands); above, the factor is shrunk towards 1 in proportion, with a prior
 of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_dof))``
-(``C_k / R_k`` clipped to ``factor_bounds``; a ratio, so a factor of 1/25 is shrunk as little
-as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
+(:func:`~ga_ros.core.quality.variance_components.damped_factor`, as the calibration's noise
+factors; ``C_k / R_k`` clipped to ``factor_bounds``; a ratio, so a factor of 1/25 is shrunk
+as little as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
 Sources measuring the same motions (two odometry streams) are split by their own consistency
