@@ -41,20 +41,38 @@ The noise of a calibrated source. A source's stated covariance often stands for 
 error as well (a wheel odometry's yaw sigma chosen so that a heading drift fits as a random
 walk); once the drift is a parameter, that covariance is too large and the fixes pull the
 corrected path about more than they should. So, where a parameter of a source is estimated
-(:attr:`CalibrationConfig.noise`), its stated covariance is tested and, where it fails,
-re-estimated (Förstner's variance components, as :mod:`ga_ros.core.quality.variance_components`
-does per source, here per block): the source's covariance splits into a translation and a
-rotation part (one part where the stated covariances correlate the two), each scaled by a
-variance factor ``s`` (``D S D``, ``D = sqrt(s)`` on the part's rows). At the stated weights
-``v' P v / r`` of a part (``r`` the sum of its redundancy numbers, the diagonal of
-``(Q_vv P)_ii``) is ``chi2(r) / r`` if the stated covariance is right; a part with at least
-:attr:`CalibrationConfig.noise_min_redundancy` whose ratio falls outside the two-sided range
-at :attr:`CalibrationConfig.noise_alpha` is re-weighted: ``s <- s v' P v / r`` with the
-parameters selected and estimated again at each new weight, until every factor agrees with its
-residuals. Without an estimated parameter, or where every part passes its test, the stated
-covariances stand. The fixes, the priors and the connections without a source keep theirs (the
-factors are relative to them). The factors are reported with their sigmas
-``s sqrt(2 / r)`` (:class:`NoiseFactor`).
+(:attr:`CalibrationConfig.noise`, on by default), its noise is re-estimated (Förstner's
+variance components, as :mod:`ga_ros.core.quality.variance_components` does per source, here
+per block): the source's covariance splits into a translation and a rotation part (one part
+where the stated covariances correlate the two), each scaled by a variance factor ``s``
+(``D S D``, ``D = sqrt(s)`` on the part's rows). A part with less redundancy than
+:attr:`CalibrationConfig.noise_min_redundancy` at its stated covariance keeps it (``r`` the
+sum of its redundancy numbers, the diagonal of ``(Q_vv P)_ii``). The others are re-weighted,
+with the parameters selected and estimated again (from their last values) at each new weight:
+
+- the estimate at the current weights is the damped factor of
+  :func:`~ga_ros.core.quality.variance_components.damped_factor` (the online variance
+  components' definition): ``C / R`` (``C = v' S^-1 v`` under the stated covariances, ``R``
+  the part's redundancy under the weights in use) shrunk towards 1 with a prior of
+  :attr:`CalibrationConfig.noise_prior_dof` degrees of freedom,
+  ``(C / R) ^ (R / (R + noise_prior_dof))``. Without the prior the iteration
+  ``s <- s v' P v / r`` can collapse: a part whose weight grows loses redundancy and residual
+  together and runs to 0 (a rotation factor of 0.001 at a redundancy of 0.2 with a fix every
+  10 keyframes); with it, the estimate tends to 1 as the redundancy vanishes;
+- each step moves a factor by at most the ratio :attr:`CalibrationConfig.noise_max_step`;
+- a part whose redundancy falls below the minimum at its new factor keeps the factor at which
+  it was last determined (:attr:`NoiseFactor.held`), and the others go on;
+- the iteration stops when no factor would move by more than
+  :attr:`CalibrationConfig.noise_tolerance`.
+
+The estimate depends continuously on the data: no test decides whether a part is re-weighted
+(the chi-square test of the stated covariance, ``v' P v / r`` against ``chi2(r) / r`` at
+:attr:`CalibrationConfig.noise_alpha`, is reported beside it), so a rounding-sized change of
+the input gives a rounding-sized change of the factors. The prior biases a factor towards 1 by
+the exponent ``R / (R + noise_prior_dof)``: below 10 % where ``R`` is some hundreds, large
+where the part is poorly determined. The fixes, the priors and the connections without a
+source keep their stated covariances (the factors are relative to them). The factors are
+reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
 
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
@@ -76,6 +94,7 @@ from ga_ros.core.calibration.parameters import (
     parameter,
 )
 from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.quality.variance_components import damped_factor, factor_sigma
 from ga_ros.core.solver import GaussianPrior, SolverConfig, SolveResult, solve
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
@@ -101,19 +120,19 @@ class CalibrationConfig:
     max_iterations : Gauss-Newton steps of the parameters per set of free parameters.
     tolerance : the steps stop when every parameter moved less than this fraction of its
         sigma.
-    noise : re-estimate the stated covariance of every source with an estimated parameter
-        (module doc, *The noise of a calibrated source*); ``False`` (default): keep it as
-        stated. Off by default: where a part has little redundancy the re-weighting can
-        collapse (a rotation factor of 0.001 at a redundancy of 0.46 on a 400-keyframe
-        Nav2-shaped run with a fix every 10 keyframes).
-    noise_iterations : adjustments with re-estimated noise factors at most.
-    noise_tolerance : stop when every applied factor agrees with its residuals
-        (``v' P v / r``) within this fraction of 1.
+    noise : re-estimate the noise of every source with an estimated parameter (module doc,
+        *The noise of a calibrated source*); ``False``: keep its stated covariance.
+    noise_iterations : re-weighted adjustments at most.
+    noise_tolerance : stop when no factor would move by more than this fraction.
     noise_min_redundancy : a part with less redundancy at its stated covariance is not
-        tested (its factor stays 1).
-    noise_alpha : significance level of the two-sided test of a part's stated covariance
-        (``v' P v / r`` against ``chi2(r) / r``): the probability of re-weighting a part whose
-        stated covariance is right.
+        estimated (its factor stays 1); a part whose redundancy falls below it while it is
+        re-weighted keeps the factor at which it was last determined.
+    noise_prior_dof : degrees of freedom of the prior ``s = 1`` each factor is shrunk
+        towards (:func:`~ga_ros.core.quality.variance_components.damped_factor`).
+    noise_max_step : a factor changes by at most this ratio per re-weighted adjustment.
+    noise_factor_bounds : ``v' P v / r`` is clipped to this range before it is damped.
+    noise_alpha : significance level of the reported test of a part's stated covariance
+        (the range of ``chi2(r) / r``, :attr:`NoiseFactor.quantiles`).
     """
 
     parameters: tuple[str, ...] = ('scale', 'yaw_rate')
@@ -122,10 +141,13 @@ class CalibrationConfig:
     max_condition: float = 1e6
     max_iterations: int = 10
     tolerance: float = 1e-3
-    noise: bool = False
+    noise: bool = True
     noise_iterations: int = 20
     noise_tolerance: float = 0.01
     noise_min_redundancy: float = 3.0
+    noise_prior_dof: float = 4.0
+    noise_max_step: float = 2.0
+    noise_factor_bounds: tuple[float, float] = (1e-3, 1e3)
     noise_alpha: float = 0.01
 
     def __post_init__(self) -> None:
@@ -139,6 +161,12 @@ class CalibrationConfig:
         if int(self.noise_iterations) < 1 or not self.noise_tolerance > 0:
             raise InputError('calibration: noise_iterations must be >= 1 and noise_tolerance '
                              '> 0')
+        if not self.noise_prior_dof >= 0 or not self.noise_max_step > 1:
+            raise InputError('calibration: noise_prior_dof must be >= 0 and noise_max_step > 1')
+        lo, hi = self.noise_factor_bounds
+        if not 0 < lo < 1 < hi:
+            raise InputError('calibration: noise_factor_bounds must be (lo, hi) with '
+                             '0 < lo < 1 < hi')
 
 
 @dataclass
@@ -199,7 +227,9 @@ class NoiseFactor:
     stated_ratio : ``v' P v / r`` at the stated covariance (the test statistic).
     quantiles : the range of ``chi2(r) / r`` at ``noise_alpha`` (NaN: too little redundancy
         to test).
-    applied : whether the weights use it (the stated covariance failed its test).
+    applied : whether the weights use it (the part had enough redundancy to estimate it).
+    held : its redundancy fell below the minimum while it was re-weighted: ``factor`` is the
+        one at which it was last determined.
     """
 
     source: str
@@ -211,6 +241,7 @@ class NoiseFactor:
     stated_ratio: float = float('nan')
     quantiles: tuple[float, float] = (float('nan'), float('nan'))
     applied: bool = False
+    held: bool = False
 
     def line(self) -> str:
         """One line of text."""
@@ -219,8 +250,10 @@ class NoiseFactor:
         test = (f"stated: v'Pv/r {self.stated_ratio:.3g}, chi2 range [{lo:.2g}, {hi:.2g}]"
                 if np.isfinite(lo) else 'too little redundancy to test')
         if self.applied:
+            held = (', held: its redundancy fell below the minimum when re-weighted'
+                    if self.held else '')
             return (f'{head}: variance factor {self.factor:.3g} +- {self.sigma:.2g} applied '
-                    f'(redundancy {self.redundancy:.1f}; {test})')
+                    f'(redundancy {self.redundancy:.1f}{held}; {test})')
         return (f'{head}: stated covariance kept (redundancy {self.redundancy:.1f}; '
                 f'{test})')
 
@@ -394,22 +427,39 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     noise = _noise_factors(net, res, priors, parts, factors, cal)
     for f in noise:
         _test_stated(f, cal)
-    eligible = np.array([f.applied for f in noise])
+    stated = noise
+    estimated = np.array([f.applied for f in noise])
+    held = ~estimated   # parts whose factor no longer moves
+    last = factors.copy()   # the last factor of each part at which it was determined
     iterations = 1
-    if eligible.any():
-        first = noise
-        for _ in range(int(cal.noise_iterations)):
-            factors = np.where(eligible, [f.estimate for f in noise], 1.0)
+    for _ in range(int(cal.noise_iterations)):
+        if held.all():
+            break
+        target = np.array([f.estimate for f in noise])
+        step = np.clip(target / factors, 1.0 / cal.noise_max_step, cal.noise_max_step)
+        new = np.where(held, factors, factors * step)
+        if np.all(np.abs(new / factors - 1.0) < cal.noise_tolerance):
+            break
+        last, factors = factors, new
+        res, net, report = _select(_scaled(network, parts, factors), res.T_world_node,
+                                   cand, dt, config, fixed, priors, cal, report)
+        solves += report.solves
+        iterations += 1
+        noise = _noise_factors(net, res, priors, parts, factors, cal)
+        lost = ~held & (np.array([f.redundancy for f in noise]) < cal.noise_min_redundancy)
+        if lost.any():
+            # re-weighting took a part's redundancy below the minimum: it keeps the factor at
+            # which it was last determined, and the others go on from there
+            held |= lost
+            factors = np.where(lost, last, factors)
             res, net, report = _select(_scaled(network, parts, factors), res.T_world_node,
-                                       cand, dt, config, fixed, priors, cal)
+                                       cand, dt, config, fixed, priors, cal, report)
             solves += report.solves
             iterations += 1
             noise = _noise_factors(net, res, priors, parts, factors, cal)
-            ratio = np.array([f.estimate / f.factor for f in noise])
-            if np.all(np.abs(ratio[eligible] - 1.0) < cal.noise_tolerance):
-                break
-        for f, f0 in zip(noise, first):
-            f.stated_ratio, f.quantiles, f.applied = f0.stated_ratio, f0.quantiles, f0.applied
+    for f, f0, h in zip(noise, stated, held):
+        f.stated_ratio, f.quantiles, f.applied = f0.stated_ratio, f0.quantiles, f0.applied
+        f.held = bool(h and f0.applied)
     report.noise = noise
     report.noise_iterations = iterations
     report.solves = solves
@@ -417,17 +467,18 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
 
 
 def _test_stated(f: NoiseFactor, cal: CalibrationConfig) -> None:
-    """The test of a part's stated covariance (module doc): at the stated weights,
-    ``v' P v / r`` is ``chi2(r) / r`` if the stated covariance is right; ``applied`` where the
-    part has enough redundancy and the ratio is outside the two-sided ``noise_alpha`` range."""
-    f.stated_ratio = f.estimate
+    """A part's redundancy and the test of its stated covariance, at the stated weights
+    (module doc): ``applied`` (its factor is estimated) where the part has at least
+    :attr:`CalibrationConfig.noise_min_redundancy`; the range of ``chi2(r) / r`` at
+    ``noise_alpha``, which ``v' P v / r`` falls in if the stated covariance is right, is
+    reported with it (the estimate does not depend on it)."""
     if f.redundancy < max(cal.noise_min_redundancy, 1e-9):
         return
     r = f.redundancy
     lo = float(stats.chi2.ppf(cal.noise_alpha / 2.0, r)) / r
     hi = float(stats.chi2.ppf(1.0 - cal.noise_alpha / 2.0, r)) / r
     f.quantiles = (lo, hi)
-    f.applied = not lo <= f.stated_ratio <= hi
+    f.applied = True
 
 
 @dataclass
@@ -490,19 +541,21 @@ def _noise_factors(net: ConnectionNetwork, res: SolveResult, priors: Sequence[Ga
         vb = v[idx][:, p.dims]
         cost = float(np.einsum('mi,mi->', vb, np.linalg.solve(blk, vb[:, :, None])[:, :, 0]))
         r = float(red_comp[idx][:, p.dims].sum())
-        est = s * cost / r if r > 0 else 1.0
-        sigma = est * np.sqrt(2.0 / r) if r > 0 else float('inf')
-        out.append(NoiseFactor(p.source, p.part, float(s), float(est), float(sigma), r))
+        est = float(damped_factor(s * cost, r, cal.noise_prior_dof, cal.noise_factor_bounds))
+        out.append(NoiseFactor(p.source, p.part, float(s), est, float(factor_sigma(est, r)),
+                               r, stated_ratio=s * cost / r if r > 0 else float('nan')))
     return out
 
 
 def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, dt: FloatArray,
             config: SolverConfig | None, fixed: Sequence[int] | None,
-            priors: Sequence[GaussianPrior], cal: CalibrationConfig
+            priors: Sequence[GaussianPrior], cal: CalibrationConfig,
+            start: CalibrationReport | None = None
             ) -> tuple[SolveResult, ConnectionNetwork, CalibrationReport]:
     """Which parameters are determined and significant, and their estimates (module doc,
     steps 1-4), with the covariances of ``network``: the adjustment, the corrected network
-    it solved and the report."""
+    it solved and the report. ``start``: the parameters' values to start from (those of
+    an adjustment with other weights, whose poses ``T_init`` are; else 0)."""
     arrays = network.arrays()
     m = len(arrays)
     n_c = len(cand.kinds)
@@ -510,12 +563,15 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         [AdditionalParameter(s, k, PARAMETERS[k].unit) for s, k in zip(cand.sources, cand.kinds)],
         alpha=cal.alpha)
     values = np.zeros(n_c)
+    if start is not None:
+        values[:] = [p.value for p in start.parameters]
     active = []
     for j in range(n_c):
         if np.any(PARAMETERS[cand.kinds[j]].acts_on(arrays.z[cand.masks[j]],
                                                      dt[cand.masks[j]]) > 0):
             active.append(j)
         else:
+            values[j] = 0.0
             report.parameters[j].reason = ('no motion it acts on (no translation)'
                                            if cand.kinds[j] == 'scale' else
                                            'no motion it acts on (no durations: stamps?)')

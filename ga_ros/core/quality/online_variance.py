@@ -19,8 +19,9 @@ r_k``; at its fixed point ``v_k' P_k v_k = r_k``). ``R_k`` is the group's degree
 Damping: a group whose ``R_k`` is below ``min_redundancy`` is not estimated (factor 1: its
 stated covariance stands); above, the factor is shrunk towards 1 in proportion, with a prior
 of ``prior_dof`` degrees of freedom: ``s_k = (C_k / R_k) ^ (R_k / (R_k + prior_dof))``
-(``C_k / R_k`` clipped to ``factor_bounds``; a ratio, so a factor of 1/25 is shrunk as little
-as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
+(:func:`~ga_ros.core.quality.variance_components.damped_factor`, as the calibration's noise
+factors; ``C_k / R_k`` clipped to ``factor_bounds``; a ratio, so a factor of 1/25 is shrunk
+as little as one of 25). A factor is in *variance*: 4 says the stated covariance is 4x too small
 (the stated sigmas 2x).
 
 Sources measuring the same motions (two odometry streams) are split by their own consistency
@@ -53,7 +54,7 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality.source_consistency import SourceConsistency
-from ga_ros.core.quality.variance_components import VarianceComponent
+from ga_ros.core.quality.variance_components import VarianceComponent, damped_factor
 from ga_ros.errors import InputError
 
 ONLINE_MODES = ('off', 'apply')
@@ -224,8 +225,7 @@ class OnlineVarianceComponents:
         C, R, _ = self.sums()
         est = R >= max(cfg.min_redundancy, 1e-9)
         lo, hi = cfg.factor_bounds
-        raw = np.clip(C / np.maximum(R, 1e-300), lo, hi)
-        s = np.exp(np.log(raw) * R / np.maximum(R + cfg.prior_dof, 1e-300))
+        s = damped_factor(C, R, cfg.prior_dof, cfg.factor_bounds)
         dof = R.copy()
         split = self._split
         tied = np.array([g in split for g in self.names], dtype=bool)
@@ -233,8 +233,8 @@ class OnlineVarianceComponents:
             nu = np.array([split[g][1] if g in split else 0.0 for g in self.names])
             q = np.array([split[g][0] if g in split else 1.0 for g in self.names])
             R_t = float(R[tied].sum())
-            lam = np.clip(float(np.sum(C[tied] / q[tied])) / max(R_t, 1e-300), lo, hi)
-            lam = np.exp(np.log(lam) * R_t / max(R_t + cfg.prior_dof, 1e-300))
+            lam = float(damped_factor(float(np.sum(C[tied] / q[tied])), R_t, cfg.prior_dof,
+                                      cfg.factor_bounds))
             s = np.where(tied, np.clip(lam * q, lo, hi), s)
             est = np.where(tied, R_t >= max(cfg.min_redundancy, 1e-9), est)
             dof = np.where(tied, 1.0 / (1.0 / max(R_t, 1e-300) + 1.0 / np.maximum(nu, 1e-300)),

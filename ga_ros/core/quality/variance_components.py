@@ -195,6 +195,35 @@ class VarianceComponents:
         return out
 
 
+def damped_factor(cost: FloatArray, redundancy: FloatArray, prior_dof: float,
+                  bounds: tuple[float, float]) -> FloatArray:
+    """The variance factor of a group from its residuals, damped while it is poorly determined:
+    Förstner's estimate ``C / R`` (``C = v' S^-1 v`` the weighted squared residuals under the
+    *stated* covariances ``S``, ``R`` the redundancy under the weights in use) shrunk towards
+    the prior ``s = 1`` of ``prior_dof`` degrees of freedom, in log:
+
+        ``s = (C / R) ^ (R / (R + prior_dof))``
+
+    (``C / R`` clipped to ``bounds`` first; a ratio, so 1/25 is shrunk as little as 25). The
+    estimate depends continuously on the residuals and the redundancy, and tends to 1 as the
+    redundancy vanishes: a group that loses its redundancy when it is re-weighted (its weight
+    grows, its residuals shrink) is pulled back towards its stated covariance instead of
+    collapsing to 0. Arrays (or floats) of the same shape; a factor is in variance (4: the
+    stated covariance is 4x too small)."""
+    lo, hi = bounds
+    R = np.asarray(redundancy, dtype=float)
+    raw = np.clip(np.asarray(cost, dtype=float) / np.maximum(R, 1e-300), lo, hi)
+    return np.exp(np.log(raw) * R / np.maximum(R + prior_dof, 1e-300))
+
+
+def factor_sigma(factor: FloatArray, dof: FloatArray) -> FloatArray:
+    """Standard deviation of a variance factor estimated with ``dof`` degrees of freedom:
+    ``factor sqrt(2 / dof)`` (``v' P v`` is ``factor chi2(dof)``); inf where ``dof <= 0``."""
+    d = np.asarray(dof, dtype=float)
+    return np.where(d > 0, np.asarray(factor, float) * np.sqrt(2.0 / np.maximum(d, 1e-300)),
+                    np.inf)
+
+
 def scaled_network(network: ConnectionNetwork, scale: FloatArray) -> ConnectionNetwork:
     """A copy of ``network`` with every connection's covariance multiplied by ``scale`` (m,)."""
     conn = network.arrays()

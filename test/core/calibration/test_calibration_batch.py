@@ -16,6 +16,7 @@ from ga_ros.core.calibration import (
     misclosure_jacobian,
     solve_with_calibration,
 )
+from ga_ros.core.network import ConnectionNetwork
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.biased import biased_survey
@@ -160,8 +161,8 @@ def test_calibrated_source_noise_reestimated(seed):
     """A yaw-rate bias on odometry whose stated yaw sigma is 4x the true one (the stated
     covariance allowed for the bias as white noise): after calibration the rotation's stated
     covariance fails its chi-square test and its variance factor comes out within 3 of its
-    sigmas of the truth 1/16; the translation's (stated truly) passes and is kept; the
-    re-estimated weights give a better path than the stated ones."""
+    sigmas of the truth 1/16, clearly below 1; the translation's (stated truly) is within 3 of
+    its sigmas of 1; the re-estimated weights give a better path than the stated ones."""
     s = biased_survey(np.random.default_rng(seed), n_nodes=300, yaw_rate=0.004, fix_every=3,
                       fix_sigma_m=0.05, sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
     res, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
@@ -174,9 +175,9 @@ def test_calibrated_source_noise_reestimated(seed):
     rot, tra = noise['rotation'], noise['translation']
     assert rot.applied and abs(rot.factor / rot.estimate - 1) < 0.02, rep.lines()
     assert abs(rot.factor - 1 / 16) < 3 * rot.sigma, rep.lines()
-    assert rot.sigma < 1 / 16, rep.lines()  # determined, not just consistent with the truth
+    assert rot.factor + 3 * rot.sigma < 1, rep.lines()  # determined, not just consistent
     assert rot.stated_ratio < rot.quantiles[0]
-    assert not tra.applied and tra.factor == 1.0, rep.lines()
+    assert tra.applied and abs(tra.factor - 1.0) < 3 * tra.sigma, rep.lines()
     assert tra.quantiles[0] <= tra.stated_ratio <= tra.quantiles[1]
     stated = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
                                     calibration=CalibrationConfig(noise=False))[0]
@@ -186,6 +187,83 @@ def test_calibrated_source_noise_reestimated(seed):
 
     assert rmse(res.T_world_node) < rmse(stated.T_world_node)
     assert rep.as_dict()['noise'][0]['part'] in ('translation', 'rotation')
+
+
+def _perturbed(network, eps, seed=0):
+    """``network`` with every measured motion moved by ``eps`` (m and rad, random signs)."""
+    a = network.arrays()
+    z = a.z + eps * np.sign(np.random.default_rng(seed).standard_normal(a.z.shape))
+    return ConnectionNetwork.from_arrays(network.node_ids, network.track_ids, a.src, a.dst, z,
+                                         a.cov)
+
+
+def test_little_redundancy_does_not_collapse_and_rounding_cannot_flip_it():
+    """A fix every 10 keyframes at 0.3 m: the yaw of the odometry is seen only through the
+    fixes' positions, so the rotation part has little redundancy (about 8) and loses it as its
+    weight grows. The undamped iteration ``s <- s v'Pv / r`` collapses there (checked: the
+    rotation factor runs to its bound 0.001 at a redundancy of 0.2, the translation's to 9);
+    the damped one stops at a factor that keeps the part determined, and an input moved by
+    1e-8 gives the same factors (to 1e-5 relative) and poses (to 0.1 mm, the solver's
+    convergence; the flip it replaces changed the path by centimetres)."""
+    s = biased_survey(np.random.default_rng(21), n_nodes=300, yaw_rate=0.004, fix_every=10,
+                      fix_sigma_m=0.3, sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
+    cal = CalibrationConfig(noise=True)
+    runs = [solve_with_calibration(net, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                   calibration=cal)
+            for net in (s.network, _perturbed(s.network, 1e-8))]
+    (res, rep), (res2, rep2) = runs
+    noise = {f.part: f for f in rep.noise}
+    rot = noise['rotation']
+    assert rot.applied and not rot.held, rep.lines()
+    assert rot.redundancy >= cal.noise_min_redundancy, rep.lines()
+    assert 0.05 < rot.factor < 1.0, rep.lines()   # re-weighted, far from the bound
+    assert abs(rot.factor / rot.estimate - 1) < 2 * cal.noise_tolerance, rep.lines()
+    assert abs(noise['translation'].factor - 1.0) < 3 * noise['translation'].sigma, rep.lines()
+    assert [p.estimated for p in rep.parameters] == [p.estimated for p in rep2.parameters]
+    np.testing.assert_allclose([f.factor for f in rep2.noise], [f.factor for f in rep.noise],
+                               rtol=1e-5)
+    np.testing.assert_allclose([p.value for p in rep2.parameters],
+                               [p.value for p in rep.parameters], rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(res2.T_world_node[:, :3, 3], res.T_world_node[:, :3, 3],
+                               rtol=0, atol=1e-4)
+
+
+def test_a_part_losing_its_redundancy_keeps_its_last_factor():
+    """Without the damping (``noise_prior_dof=0``) the same survey's rotation part has a
+    redundancy of about 8 at its stated covariance and about 5.4 at the factor it runs to:
+    with a minimum of 6 it is held at the factor at which it was last determined (its
+    redundancy there at least the minimum) and reported as held."""
+    s = biased_survey(np.random.default_rng(21), n_nodes=300, yaw_rate=0.004, fix_every=10,
+                      fix_sigma_m=0.3, sigma_yaw_rad=0.002, stated_sigma_yaw_rad=0.008)
+    cal = CalibrationConfig(noise=True, noise_prior_dof=0.0, noise_min_redundancy=6.0)
+    _, rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                    calibration=cal)
+    rot = {f.part: f for f in rep.noise}['rotation']
+    assert rot.held and 'held' in rot.line(), rep.lines()
+    assert rot.redundancy >= cal.noise_min_redundancy, rep.lines()
+    assert rot.factor < 1.0, rep.lines()
+
+
+@pytest.mark.slow
+def test_noise_factor_within_10_percent_with_enough_redundancy():
+    """A fix (3 mm) at every keyframe gives the odometry hundreds of degrees of freedom; its
+    stated covariance is 4x too small (all of it) and correlates x with yaw a little, so the
+    source has one part (``motion``): its factor is determined to better than 7 % (its sigma)
+    and within 10 % and 3 sigmas of the truth 4 (the prior's pull, ``4^(R / (R + 4))``, is
+    under 1 % here)."""
+    s = biased_survey(np.random.default_rng(5), n_nodes=300, yaw_rate=0.004, fix_every=1,
+                      fix_sigma_m=0.003)
+    a = s.network.arrays()
+    cov = a.cov / 4.0
+    cov[:, 0, 5] = cov[:, 5, 0] = 1e-3 * np.sqrt(cov[:, 0, 0] * cov[:, 5, 5])
+    net = ConnectionNetwork.from_arrays(s.network.node_ids, s.network.track_ids, a.src, a.dst,
+                                        a.z, cov)
+    _, rep = solve_with_calibration(net, s.T_dead, s.sources, s.dt_s, priors=s.priors,
+                                    calibration=CalibrationConfig())
+    (f,) = rep.noise
+    assert f.part == 'motion' and f.applied and not f.held, rep.lines()
+    assert f.sigma / f.factor < 0.07, rep.lines()
+    assert abs(f.factor / 4.0 - 1.0) < 0.1 and abs(f.factor - 4.0) < 3 * f.sigma, rep.lines()
 
 
 def test_no_parameter_no_noise_reestimation():
