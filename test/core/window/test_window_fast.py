@@ -39,10 +39,9 @@ def _tangent_gradient(net, T, nodes, h=1e-5):
     return g
 
 
-def test_prealign_puts_the_new_track_at_its_conditional_optimum(monkeypatch):
-    """Solved to convergence, the pre-alignment leaves every held node exactly where it was and
-    moves the new track's nodes to where the window's cost has no gradient along them (central
-    differences), from a dead-reckoned start where it has a large one."""
+def _prealign_calls(monkeypatch) -> list:
+    """(network, start poses, free nodes) of every pre-alignment the aligner runs on a
+    4-track noisy aerial survey with a 3-track window."""
     sc, nm, ms = noisy_aerial_survey(4, 12, 10.0, 3)
     seen = []
     monkeypatch.setattr(window, 'prealign',
@@ -51,6 +50,14 @@ def test_prealign_puts_the_new_track_at_its_conditional_optimum(monkeypatch):
     for _ in _fly(TrackWindowAligner(AlignerConfig(window_tracks=3, refine_every_tracks=0),
                                      sc.T_world_node[0]), ms):
         pass
+    return seen
+
+
+def test_prealign_puts_the_new_track_at_its_conditional_optimum(monkeypatch):
+    """Solved to convergence, the pre-alignment leaves every held node exactly where it was and
+    moves the new track's nodes to where the window's cost has no gradient along them (central
+    differences), from a dead-reckoned start where it has a large one."""
+    seen = _prealign_calls(monkeypatch)
     assert len(seen) == 3  # every update after the first
     net, T0, free = seen[-1]
     tight = replace(PREALIGN_SOLVER, max_iterations=30, tolerance=1e-11, cost_tolerance=0.0)
@@ -77,14 +84,7 @@ def test_a_new_track_hanging_off_the_held_nodes_by_a_tree_is_chained_exactly(mon
     on the same poses; a cycle among them goes to the solve."""
     from ga_ros.core.network import ConnectionNetwork
 
-    sc, nm, ms = noisy_aerial_survey(4, 12, 10.0, 3)
-    seen = []
-    monkeypatch.setattr(window, 'prealign',
-                        lambda net, T, free, **kw: seen.append((net, T.copy(), free)) or
-                        prealign(net, T, free, **kw))
-    for _ in _fly(TrackWindowAligner(AlignerConfig(window_tracks=3, refine_every_tracks=0),
-                                     sc.T_world_node[0]), ms):
-        pass
+    seen = _prealign_calls(monkeypatch)
     net, T0, free = seen[-1]
     conn = net.arrays()
     is_free = np.zeros(net.n_nodes, dtype=bool)
