@@ -44,15 +44,22 @@ class FailingStage:
         return self.real(window_tracks, *args, **kwargs)
 
 
+def failing_aligner(strict: bool, at: int | set[int], exc: Exception,
+                    T_world_first=None) -> tuple[TrackWindowAligner, FailingStage]:
+    """An aligner of :data:`CFG` (``strict`` as given) whose window adjustment fails at its
+    ``at``-th calls with ``exc``, and that failing stage."""
+    al = TrackWindowAligner(CFG, T_world_first=T_world_first)
+    al.strict = strict
+    return al, FailingStage(al, at, exc)
+
+
 def _track_rows(al: TrackWindowAligner, track: int) -> np.ndarray:
     path = al.corrected_path()
     return np.array(sorted(al.state.index[int(i)] for i in path.node_ids[path.track_ids == track]))
 
 
 def test_a_failed_update_is_counted_and_its_track_is_adjusted_by_the_next(sample):
-    al = TrackWindowAligner(CFG)
-    al.strict = False
-    stage = FailingStage(al, 2, RuntimeError('broken gate'))   # the update of track 1
+    al, stage = failing_aligner(False, 2, RuntimeError('broken gate'))   # the update of track 1
     ups = al.add_measurements(sample.measurements).updates
     failed = [u for u in ups if u.reason.startswith('failed')]
     assert [u.track_id for u in failed] == [1]
@@ -75,9 +82,7 @@ def test_a_failed_update_is_counted_and_its_track_is_adjusted_by_the_next(sample
 
 
 def test_strict_raises_a_bug_after_putting_the_state_back(sample):
-    al = TrackWindowAligner(CFG)
-    al.strict = True
-    FailingStage(al, 2, AttributeError("'NoneType' object has no attribute 'w'"))
+    al, _ = failing_aligner(True, 2, AttributeError("'NoneType' object has no attribute 'w'"))
     ms = sample.measurements
     k2 = next(k for k, m in enumerate(ms) if m.dst_track == 2)
     al.add_measurements(ms[:k2])
@@ -90,9 +95,7 @@ def test_strict_raises_a_bug_after_putting_the_state_back(sample):
 
 
 def test_strict_reports_a_numerical_failure_without_raising(sample):
-    al = TrackWindowAligner(CFG)
-    al.strict = True
-    FailingStage(al, 2, SolverError('not positive definite'))
+    al, _ = failing_aligner(True, 2, SolverError('not positive definite'))
     ups = al.add_measurements(sample.measurements).updates
     assert sum(u.reason.startswith('failed') for u in ups) == 1
     assert al.stats.n_failed_updates == 1
@@ -100,9 +103,7 @@ def test_strict_reports_a_numerical_failure_without_raising(sample):
 
 def test_the_session_counts_diagnoses_and_warns_once_with_the_traceback(sample):
     warnings: list[str] = []
-    al = TrackWindowAligner(CFG)
-    al.strict = False
-    FailingStage(al, {2, 3}, RuntimeError('broken gate'))   # twice the same error
+    al, _ = failing_aligner(False, {2, 3}, RuntimeError('broken gate'))   # twice the same error
     session = AlignmentSession(CFG, warn=warnings.append, aligner=al)
     notes = []
     for m in sample.measurements:
@@ -121,9 +122,7 @@ def test_the_replay_summary_counts_failed_updates(tmp_path: Path, sample, monkey
     made = []
 
     def factory(T0):
-        al = TrackWindowAligner(CFG, T_world_first=T0)
-        al.strict = False
-        FailingStage(al, 2, RuntimeError('broken gate'))
+        al, _ = failing_aligner(False, 2, RuntimeError('broken gate'), T_world_first=T0)
         made.append(al)
         return al
 
@@ -142,9 +141,7 @@ def test_the_snapshot_keeps_the_count_and_the_last_failure(tmp_path: Path, sampl
     the last one's traceback); a failure after the restart adds to it."""
     from ga_ros.core.window.persistence import load_state, save_state
 
-    al = TrackWindowAligner(CFG)
-    al.strict = False
-    FailingStage(al, 2, RuntimeError('broken gate'))
+    al, _ = failing_aligner(False, 2, RuntimeError('broken gate'))
     ms = sample.measurements
     k3 = next(k for k, m in enumerate(ms) if m.dst_track == 3)
     al.add_measurements(ms[:k3])
@@ -170,9 +167,8 @@ def test_a_strict_session_raises_the_bug_after_losing_nothing(sample):
     from ga_ros.pipeline.session.outputs import UpdateBug
 
     def run(strict: bool) -> tuple[AlignmentSession, list]:
-        al = TrackWindowAligner(CFG)
-        al.strict = strict
-        FailingStage(al, 2, AttributeError("'NoneType' object has no attribute 'w'"))
+        al, _ = failing_aligner(strict, 2,
+                                AttributeError("'NoneType' object has no attribute 'w'"))
         s = AlignmentSession(CFG, aligner=al)
         bugs = []
         for m in sample.measurements:
