@@ -38,52 +38,16 @@ def path_cdr(T_world_node: FloatArray, stamps_ns: IntArray, frame_id: str,
     unit quaternion ``x y z w`` with ``w >= 0``; the path's header stamp is ``stamp_ns``
     (default: the last pose's stamp, 0 for an empty path).
     """
-    T = np.asarray(T_world_node, dtype=float).reshape(-1, 4, 4)
-    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-    n = T.shape[0]
-    if stamps.shape[0] != n:
-        raise InputError(f'{n} poses but {stamps.shape[0]} stamps')
+    buf = PathCdr(frame_id)
+    buf.update(T_world_node, stamps_ns)
     if stamp_ns is None:
-        stamp_ns = int(stamps[-1]) if n else 0
-    if (n and stamps.min() < 0) or stamp_ns < 0:
-        raise InputError('stamps must be >= 0 ns')
-    frame = frame_id.encode() + b'\x00'
-    L = len(frame)
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    head = struct.pack('<iII', sec, nsec, L) + frame
-    head += b'\x00' * _pad(len(head), 4) + struct.pack('<I', n)
-    if n == 0:
-        return _ENCAPSULATION + head
-    p, q = se3.to_pos_quat(T)
-    values = np.concatenate([p, q], axis=1)                      # (n, 7) float64
-    secs, nsecs = np.divmod(stamps, 1_000_000_000)
-    # one PoseStamped: sec, nanosec, frame_id (length + bytes), padding to 8, 7 doubles. The
-    # first element starts 4-aligned, the next ones 8-aligned (each ends with doubles).
-    start = len(head)
-    first_pad = _pad(start + 12 + L, 8)
-    stride = 12 + L + _pad(12 + L, 8) + 56                        # elements 1 .. n-1
-    first = stride - _pad(12 + L, 8) + first_pad
-    out = np.zeros(start + first + (n - 1) * stride, dtype=np.uint8)
-    out[:start] = np.frombuffer(head, np.uint8)
-    fixed = np.frombuffer(struct.pack('<I', L) + frame, np.uint8)
-
-    def fill(rows: np.ndarray, k: slice, pad: int) -> None:
-        rows[:, 0:4] = secs[k].astype('<i4')[:, None].view(np.uint8)
-        rows[:, 4:8] = nsecs[k].astype('<u4')[:, None].view(np.uint8)
-        rows[:, 8:12 + L] = fixed
-        d = 12 + L + pad
-        rows[:, d:d + 56] = np.ascontiguousarray(values[k].astype('<f8')).view(np.uint8)
-
-    fill(out[start:start + first].reshape(1, first), slice(0, 1), first_pad)
-    if n > 1:
-        fill(out[start + first:].reshape(n - 1, stride), slice(1, n), _pad(12 + L, 8))
-    return _ENCAPSULATION + out.tobytes()
+        stamp_ns = int(np.asarray(stamps_ns).reshape(-1)[-1]) if buf.n else 0
+    return buf.message(stamp_ns)
 
 
 class PathCdr:
-    """A serialized ``nav_msgs/msg/Path`` kept up to date row by row: the bytes of
-    :func:`path_cdr` for the same poses, stamps, frame and header stamp, where an update
-    re-encodes only the rows that changed and appends the new ones.
+    """A serialized ``nav_msgs/msg/Path`` kept up to date row by row (:func:`path_cdr` is its
+    one-shot use): an update re-encodes only the rows that changed and appends the new ones.
 
     Every pose element has the same size for one ``frame_id`` (only the first one's padding
     differs), so row ``k`` sits at a fixed offset: :meth:`update` writes rows ``from_row ..
@@ -102,6 +66,8 @@ class PathCdr:
         self._L = L = len(frame)
         self._head0 = struct.pack('<iII', 0, 0, L) + frame
         self._head0 += b'\x00' * _pad(len(self._head0), 4)
+        # one PoseStamped: sec, nanosec, frame_id (length + bytes), padding to 8, 7 doubles.
+        # The first element starts 4-aligned, the next ones 8-aligned (each ends with doubles).
         start = len(self._head0) + 4                 # the element count follows
         self._first_pad = _pad(start + 12 + L, 8)
         self._stride = 12 + L + _pad(12 + L, 8) + 56
@@ -135,11 +101,11 @@ class PathCdr:
         if k and stamps.min() < 0:
             raise InputError('stamps must be >= 0 ns')
         n = lo + k
-        size = self._offset(n) if n else 0
+        size = self._offset(n)
         if size > self._body.size:
             body = np.zeros(max(size, 2 * self._body.size, 4096), np.uint8)
-            body[:self._offset(self.n) if self.n else 0] = \
-                self._body[:self._offset(self.n) if self.n else 0]
+            held = self._offset(self.n)
+            body[:held] = self._body[:held]
             self._body = body
         self.n = n
         if not k:
@@ -183,8 +149,7 @@ class PathCdr:
             raise InputError('stamps must be >= 0 ns')
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
         head = struct.pack('<iI', sec, nsec) + self._head0[8:] + struct.pack('<I', self.n)
-        size = self._offset(self.n) if self.n else 0
-        return _ENCAPSULATION + head + self._body[:size].tobytes()
+        return _ENCAPSULATION + head + self._body[:self._offset(self.n)].tobytes()
 
 
 def framed_path_cdr(T_world_node: FloatArray, stamps_ns: IntArray, pose_frames: list[str],
