@@ -18,7 +18,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.encoding import network_index
 from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import NAVSAT as NAV_SAT_FIX
 from ga_ros.io.bag_messages import (
@@ -31,7 +32,15 @@ from ga_ros.io.bag_messages import (
     typestore,
 )
 from ga_ros.io.bag_messages import POSE_WITH_COVARIANCE as POSE_COV_STAMPED
-from ga_ros.io.bag_writer import BagWriter, tf_message, transform_msg
+from ga_ros.io.bag_writer import (
+    LINE_WIDTH,
+    NAMESPACE,
+    NODE_SCALE,
+    BagWriter,
+    residual_color,
+    tf_message,
+    transform_msg,
+)
 from ga_ros.replay import samples
 
 #: A row of a bag: log time (ns), topic, message type, rosbags message.
@@ -285,3 +294,59 @@ def write_ros1_bag(path: Path, rows: Iterable[Row]) -> Path:
                 conns[topic] = w.add_connection(topic, msgtype, typestore=store)
             w.write(conns[topic], int(log_ns), store.serialize_ros1(msg, msgtype))
     return path
+
+
+def reference_network_markers(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
+                    normalized_residual: FloatArray, frame_id: str, stamp_ns: int,
+                    node_scale: float = NODE_SCALE, line_width: float = LINE_WIDTH,
+                    residual_scale: float = 3.0, namespace: str = NAMESPACE) -> Any:
+    """The connection network as a rosbags ``visualization_msgs/MarkerArray``, built message
+    object by message object: the reference that :func:`ga_ros.io.cdr.network_markers_cdr`
+    (what the replay writes) must serialize to the same bytes as.
+
+    Same layout as the alignment node's markers: a ``DELETEALL`` marker, a ``SPHERE_LIST`` of
+    nodes (id 0) and a ``LINE_LIST`` of connections (id 1) coloured by
+    :func:`ga_ros.io.bag_writer.residual_color` of their Mahalanobis misclosure.
+
+    Parameters
+    ----------
+    p_world_node : (n, 3) node positions in ``frame_id`` (m).
+    src_index, dst_index : (m,) node indices of the connections' ends.
+    normalized_residual : (m,) Mahalanobis norm of each connection's misclosure (unitless).
+    node_scale, line_width : marker sizes (m).
+    """
+    types = typestore().types
+    Marker = types['visualization_msgs/msg/Marker']
+    Point = types['geometry_msgs/msg/Point']
+    Color = types['std_msgs/msg/ColorRGBA']
+    net = network_index(p_world_node, src_index, dst_index)
+    p, src, dst = net.p, net.src, net.dst
+
+    def marker(kind: int, action: int, mid: int, ns: str, scale: float, points: list[Any],
+               color: Any, colors: list[Any]) -> Any:
+        return Marker(
+            header=header(frame_id, stamp_ns), ns=ns, id=mid, type=kind, action=action,
+            pose=matrix_to_pose_msg(np.eye(4)),
+            scale=types['geometry_msgs/msg/Vector3'](x=scale, y=scale, z=scale),
+            color=color, lifetime=types['builtin_interfaces/msg/Duration'](sec=0, nanosec=0),
+            frame_locked=False, points=points, colors=colors, texture_resource='',
+            texture=types['sensor_msgs/msg/CompressedImage'](
+                header=header('', 0), format='', data=np.zeros(0, dtype=np.uint8)),
+            uv_coordinates=[], text='', mesh_resource='',
+            mesh_file=types['visualization_msgs/msg/MeshFile'](
+                filename='', data=np.zeros(0, dtype=np.uint8)),
+            mesh_use_embedded_materials=False)
+
+    white = Color(r=1.0, g=1.0, b=1.0, a=1.0)
+    clear = marker(Marker.ARROW, Marker.DELETEALL, 0, namespace, 1.0, [], white, [])
+    nodes = marker(Marker.SPHERE_LIST, Marker.ADD, 0, namespace + '/nodes', float(node_scale),
+                   [Point(x=x, y=y, z=z) for x, y, z in p.tolist()],
+                   Color(r=0.2, g=0.4, b=1.0, a=1.0), [])
+    ends = np.empty((2 * src.size, 3))
+    ends[0::2] = p[src]
+    ends[1::2] = p[dst]
+    rgba = np.repeat(residual_color(normalized_residual, residual_scale), 2, axis=0)
+    lines = marker(Marker.LINE_LIST, Marker.ADD, 1, namespace + '/connections', float(line_width),
+                   [Point(x=x, y=y, z=z) for x, y, z in ends.tolist()], white,
+                   [Color(r=r, g=g, b=b, a=a) for r, g, b, a in rgba.tolist()])
+    return types['visualization_msgs/msg/MarkerArray'](markers=[clear, nodes, lines])

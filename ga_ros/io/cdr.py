@@ -232,14 +232,12 @@ class _Writer:
 def network_markers_cdr(p_world_node: FloatArray, src_index: IntArray, dst_index: IntArray,
                         rgba: FloatArray, frame_id: str, stamp_ns: int, node_scale: float,
                         line_width: float, namespace: str) -> bytes:
-    """Serialized ``visualization_msgs/MarkerArray`` of the connection network: the message
-    :func:`ga_ros.io.bag_writer.network_markers` builds as rosbags objects (a ``DELETEALL``
-    marker, a ``SPHERE_LIST`` of the nodes ``p_world_node`` (n, 3), a ``LINE_LIST`` of the
-    connections ``src_index -> dst_index`` coloured ``rgba`` (m, 4)), written from the arrays:
-    the same bytes (checked against rosbags' serializer in ``test/replay/test_stamped_path.py``)
+    """Serialized ``visualization_msgs/MarkerArray`` of the connection network, in the layout
+    of the alignment node's markers (a ``DELETEALL`` marker, a ``SPHERE_LIST`` of the nodes
+    ``p_world_node`` (n, 3), a ``LINE_LIST`` of the connections ``src_index -> dst_index``
+    coloured ``rgba`` (m, 4)), written from the arrays: the bytes rosbags serializes for the
+    same message built object by object (checked in ``test/replay/test_stamped_path.py``),
     at a copy's cost per node instead of a message object per point."""
-    from ga_ros.geometry import se3
-
     p = np.asarray(p_world_node, dtype=float).reshape(-1, 3)
     src = np.asarray(src_index, dtype=np.int64).reshape(-1)
     dst = np.asarray(dst_index, dtype=np.int64).reshape(-1)

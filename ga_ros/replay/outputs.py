@@ -212,7 +212,7 @@ class ReplayOutputs:
         net = network_index(p_world_node, src, dst)
         data = network_markers_cdr(net.p, net.src, net.dst, residual_color(residual),
                                    self.config.map_frame, stamp_ns, NODE_SCALE, LINE_WIDTH,
-                                   NAMESPACE)   # the bytes of bag_writer.network_markers
+                                   NAMESPACE)
         self.bag.write_raw(self.config.markers_topic, 'visualization_msgs/msg/MarkerArray',
                            data, log_ns)
 

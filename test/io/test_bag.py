@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bag_fixtures import write_unknown_type_bag
+from bag_fixtures import reference_network_markers, write_unknown_type_bag
 
 from ga_ros.core.frames import node_frame, parse_node_frame
 from ga_ros.core.measurement import Measurement
@@ -25,7 +25,7 @@ from ga_ros.io.bag_messages import (
     trajectory_to_path_msg,
     typestore,
 )
-from ga_ros.io.bag_writer import BagWriter, network_markers
+from ga_ros.io.bag_writer import BagWriter
 from ga_ros.io.groundtruth import read_ground_truth_topic
 from ga_ros.io.topic_plan import TopicConfig, plan_topics
 from ga_ros.io.trajectory import Trajectory
@@ -171,8 +171,9 @@ def test_output_bag_reads_with_mcap_library(tmp_path: Path, rng: np.random.Gener
         for m in ms:
             bag.write('/ga/measurements', ODOMETRY, measurement_to_odometry(m), m.stamp_ns)
         p = rng.normal(size=(5, 3))
-        bag.write('/ga/markers', 'visualization_msgs/msg/MarkerArray',
-                  network_markers(p, [0, 1, 2], [1, 2, 4], [0.1, 2.0, np.nan], 'map', 9), 9)
+        markers = reference_network_markers(p, [0, 1, 2], [1, 2, 4], [0.1, 2.0, np.nan],
+                                            'map', 9)
+        bag.write('/ga/markers', 'visualization_msgs/msg/MarkerArray', markers, 9)
     files = list((tmp_path / 'o').glob('*.mcap'))
     assert len(files) == 1 and (tmp_path / 'o' / 'metadata.yaml').exists()
     with open(files[0], 'rb') as f:

@@ -17,6 +17,7 @@ from bag_fixtures import (
     odometry_msg,
     pose_cov_stamped_msg,
     rectangle_drive,
+    reference_network_markers,
 )
 
 from ga_ros.io.bag_messages import PATH, trajectory_to_path_msg, typestore
@@ -109,7 +110,7 @@ def test_known_stamps_give_numpys_median_interval() -> None:
 @pytest.mark.parametrize(('n', 'm', 'frame'), [(0, 0, 'map'), (1, 0, 'm'), (5, 3, 'map'),
                                                 (40, 70, 'world_frame'), (3, 1, 'abc')])
 def test_network_markers_bytes_equal_rosbags_serialization(n: int, m: int, frame: str) -> None:
-    from ga_ros.io.bag_writer import network_markers, residual_color
+    from ga_ros.io.bag_writer import residual_color
     from ga_ros.io.cdr import network_markers_cdr
 
     rng = np.random.default_rng(n + m)
@@ -120,7 +121,7 @@ def test_network_markers_bytes_equal_rosbags_serialization(n: int, m: int, frame
     if m:
         r[0] = np.nan
     stamp = int(rng.integers(0, 2 ** 31 * 10 ** 9))
-    msg = network_markers(p, src, dst, r, frame, stamp)
+    msg = reference_network_markers(p, src, dst, r, frame, stamp)
     want = bytes(typestore().serialize_cdr(msg, 'visualization_msgs/msg/MarkerArray'))
     assert network_markers_cdr(p, src, dst, residual_color(r), frame, stamp, 2.0, 0.5,
                                'ga') == want
