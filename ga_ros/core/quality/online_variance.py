@@ -54,7 +54,11 @@ import numpy as np
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality.source_consistency import SourceConsistency
-from ga_ros.core.quality.variance_components import VarianceComponent, damped_factor
+from ga_ros.core.quality.variance_components import (
+    VarianceComponent,
+    damped_factor,
+    factor_sigma,
+)
 from ga_ros.errors import InputError
 
 ONLINE_MODES = ('off', 'apply')
@@ -260,7 +264,7 @@ class OnlineVarianceComponents:
         out = []
         for k, name in enumerate(self.names):
             est = bool(estimated[k])
-            sigma = float(f[k] * np.sqrt(2.0 / dof[k])) if dof[k] > 0 else float('inf')
+            sigma = float(factor_sigma(f[k], dof[k]))
             out.append(VarianceComponent(
                 group=name, factor=float(f[k]), redundancy=float(R[k]), sigma=sigma,
                 observations=int(count[k]), estimated=est,
