@@ -40,6 +40,7 @@ from ga_ros.core.linalg.cholesky import SparseCholesky
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.errors import GaError
+from ga_ros.geometry import se3
 
 #: Settings of the pre-alignment solve: one Gauss-Newton step (measured: one step moves the
 #: window's result as much as 2-10 steps do), with the step and cost tolerances and the chord
@@ -156,8 +157,6 @@ def _tree_chain(T: FloatArray, is_free: np.ndarray, src: IntArray, dst: IntArray
     connection). ``None`` if they do not (a cycle, or a part not reached from a held node).
     ``T_meas`` / ``T_meas_inv``: the measured motions and their inverses (computed from the
     measurements ``z`` if not given)."""
-    from ga_ros.geometry import se3
-
     if T_meas is None:
         T_meas = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
         T_meas_inv = se3.inverse(T_meas)
