@@ -8,10 +8,11 @@ One definition for ``alignment_node`` and the replay (ROS-free):
   (:class:`ga_ros.core.integration.F2FIntegrator`, ``odom`` = the first node's frame);
 * **placement** (:attr:`MapToOdom.placed_by`): from the first odometry message the identity
   (``map`` = ``odom``, as robot_localization and slam_toolbox start) until something places the
-  map; with ``datum: fixes`` the fixes place it as soon as they determine it and refine it with
-  each fix until the aligner's first window update (:mod:`ga_ros.pipeline.map_placement`), then
-  the aligner's corrected path does; with ``datum: first_node`` the corrected path places it
-  from the first keyframe on;
+  map (after a restart on a saved state: that state's last correction,
+  :meth:`MapToOdom.restore`); with ``datum: fixes`` the fixes place it as soon as they
+  determine it and refine it with each fix until the aligner's first window update
+  (:mod:`ga_ros.pipeline.map_placement`), then the aligner's corrected path does; with
+  ``datum: first_node`` the corrected path places it from the first keyframe on;
 * **correction**: ``T_map_odom = T_map_k inv(T_odom_k)`` at the newest node ``k`` of the
   corrected path that the chain reached (:meth:`MapToOdom.update`, after every window update);
 * **jumps**: a change of ``map -> odom`` that moves ``map -> base_link`` (at the newest
@@ -75,7 +76,7 @@ class MapToOdom:
         #: (4, 4) the latest correction: the identity until something places the map
         self.T_map_odom: FloatArray = np.eye(4)
         #: what placed the map: ``'identity'`` (nothing yet: map = odom), ``'fixes'``,
-        #: ``'aligner'``
+        #: ``'aligner'``, ``'restored'`` (a restored state's last correction, :meth:`restore`)
         self.placed_by = 'identity'
         self.fixes = FixPlacement(placement)
         #: changes of ``map -> odom`` beyond the fixes' uncertainty; the text of the newest
@@ -104,7 +105,7 @@ class MapToOdom:
         sigmas = [s for s in (position_sigma(f.term.fix) for f in fixes) if np.isfinite(s)]
         if sigmas:
             self.fix_sigma_m = sigmas[-1]
-        if self.placed_by == 'aligner' or self.front is None:
+        if self.placed_by in ('aligner', 'restored') or self.front is None:
             return
         odometry = self.front.inputs[self.front.primary]
         for f in fixes:
@@ -115,6 +116,19 @@ class MapToOdom:
             p = self.fixes.add(T_odom_k @ f.term.T_node_sensor, f.term.fix)
             if p is not None:
                 self._set(p.T_map_odom, 'fixes')
+
+    def restore(self, T_map_odom: FloatArray | None) -> None:
+        """A restored state's last correction (``AlignmentSession.map_odom``, journaled after
+        each update): sent from now on instead of the identity, until an update of the path
+        recomputes it (that change is checked as a jump). ``None``: nothing changes.
+
+        It is right while the odometry's ``odom`` frame went on across the restart (the
+        alignment node alone restarted); an odometry restarted too starts a new ``odom``, which
+        the first window update places again."""
+        if T_map_odom is None:
+            return
+        self.T_map_odom = np.array(T_map_odom, dtype=float)
+        self.placed_by = 'restored'
 
     def update(self, node_ids: IntArray, T_map_node: FloatArray,
                adjusted: bool = True) -> FloatArray:

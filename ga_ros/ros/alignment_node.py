@@ -26,6 +26,7 @@ Topics (defaults, relative: they follow the node's namespace; all names are para
 * out ``/tf``: ``map_frame -> odom_frame`` every ``transform_publish_period_sec`` with the latest
   correction (:mod:`ga_ros.pipeline.map_to_odom`), from the first odometry message: the
   identity until the map is placed (with ``datum: fixes`` by the fixes, until the first window
+  update; after a restart on a saved state that state's last correction, journaled after each
   update), said in the diagnostics (``map_to_odom/placed_by``; a jump beyond the fixes'
   uncertainty is a WARN); when another node publishes a transform to ``odom_frame`` the node
   warns, reports it in the diagnostics (WARN) and stops publishing it unless
@@ -180,6 +181,7 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
             self._resumed = True
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')
+            self.odom.restore(self.session.map_odom)   # map -> odom as before the restart
             self._publish_all()
         self._continue_inputs()
 

@@ -47,6 +47,8 @@ class AlignmentOutputs:
         warned = self.odom.jumps_warned
         self.odom.update(cp.node_ids, cp.T_world_node,
                          adjusted=self.session.counts.updates > 0 or self._resumed)
+        if self.odom.placed_by == 'aligner':   # a restart sends it until its first update
+            self.session.journal_map_odom(self.odom.T_map_odom)
         self._placement_changed(warned)
         if self.front is not None:
             self.front.set_corrected(cp.node_ids, cp.T_world_node)

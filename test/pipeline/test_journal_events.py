@@ -13,9 +13,12 @@ from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
+from ga_ros.errors import InputError
+from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import (
     RECORD,
     Datum,
+    MapOdom,
     MeasurementJournal,
     TrackEnd,
     clear_state,
@@ -24,7 +27,12 @@ from ga_ros.pipeline.journal import (
     records_to_entries,
     recover,
 )
-from ga_ros.pipeline.journal.records import encode_datum, encode_track_end
+from ga_ros.pipeline.journal.records import (
+    encode_datum,
+    encode_map_odom,
+    encode_track_end,
+    last_map_odom,
+)
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.sim.fix_survey import feed_entries, line_fix_survey
 
@@ -243,3 +251,60 @@ def test_measurements_keep_their_source_through_the_journal(tmp_path):
         assert np.array_equal(a.cov, b.cov) and np.array_equal(a.z, b.z)
     kinds = np.frombuffer(encode_records(ms), RECORD)['kind']
     assert ((kinds & SOURCED) != 0).tolist() == [True, False, True, True, False]
+
+
+def _map_odom(k: float) -> np.ndarray:
+    return se3.from_translation_rotvec(np.array([3.0 + k, -2.0, 0.25]),
+                                       np.array([0.0, 0.0, 0.7 + k]))
+
+
+def test_map_odom_records_round_trip_and_are_skipped_as_entries() -> None:
+    """A ``map -> odom`` record holds the transform exactly; the last one is read back and a
+    replay skips them (they are not the aligner's)."""
+    raw = (encode_map_odom(MapOdom(_map_odom(0.1))) + encode_track_end(TrackEnd(3))
+           + encode_map_odom(MapOdom(_map_odom(0.2))))
+    recs = np.frombuffer(raw, RECORD)
+    np.testing.assert_array_equal(last_map_odom(recs), _map_odom(0.2))
+    assert last_map_odom(recs[:1]) is not None and last_map_odom(recs[1:2]) is None
+    assert records_to_entries(recs) == [TrackEnd(3)]
+    with pytest.raises(InputError, match='finite'):
+        encode_map_odom(MapOdom(np.full((4, 4), np.nan)))
+
+
+@pytest.mark.parametrize('compact', [0, 1])
+def test_the_last_map_odom_survives_a_restart_and_compaction(tmp_path, compact) -> None:
+    """Journaled after updates (an unchanged one not again), the last ``map -> odom`` comes back
+    from a recovery, also when the journal was compacted after it (its base then holds the
+    state and the record is kept) and from the journal alone; a reset forgets it."""
+    entries = _survey(np.random.default_rng(11))
+    state = tmp_path / 'state'
+    live = AlignmentSession(CFG, SessionConfig(str(state), compact_records=compact))
+    live.resume()
+    feed_entries(live, entries[:20])
+    live.journal_map_odom(_map_odom(0.1))
+    before = live.journal.count
+    live.journal_map_odom(_map_odom(0.1))
+    assert live.journal.count == before   # the same transform: not journaled again
+    feed_entries(live, entries[20:40])
+    live.journal_map_odom(_map_odom(0.2))
+    feed_entries(live, entries[40:50])
+    if compact:
+        assert live.compact(force=True)
+    live.journal.close()
+    live.aligner.close()
+    res = recover(state, CFG, checkpoint=False)
+    np.testing.assert_array_equal(res.map_odom, _map_odom(0.2))
+    res.aligner.close()
+    _lose_snapshot(state)
+    res = recover(state, CFG, checkpoint=False)
+    np.testing.assert_array_equal(res.map_odom, _map_odom(0.2))
+    res.aligner.close()
+    again = AlignmentSession(CFG, SessionConfig(str(state)))
+    assert again.resume() is not None
+    np.testing.assert_array_equal(again.map_odom, _map_odom(0.2))
+    again.reset()
+    assert again.map_odom is None
+    again.close()
+    res = recover(state, CFG, checkpoint=False)
+    assert res.map_odom is None
+    res.aligner.close()

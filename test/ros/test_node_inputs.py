@@ -362,3 +362,46 @@ def test_a_restarted_node_fed_live_odometry_continues_the_survey(ctx, tmp_path):
                                    atol=1e-9)
     finally:
         node.destroy_node()
+
+
+def test_a_restarted_node_sends_the_saved_map_to_odom_until_its_first_update(ctx, tmp_path):
+    """Killed mid-drive, the node restarted on its state sends the ``map -> odom`` of its last
+    update from the start (Nav2 keeps its ``map -> base_link``), not the identity, says so in
+    /diagnostics, and its first update after the restart places the map again where the live
+    odometry, which went on, puts it."""
+    T0 = se3.from_translation_rotvec(np.array([4.0, -3.0, 0.0]), np.array([0.0, 0.0, 0.8]))
+    msgs = odom_msgs(240)
+    for msg in msgs:   # the odometry starts away from its own origin: map != odom
+        p = msg.pose.pose
+        T = T0 @ pose_to_matrix(p)
+        p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
+        q = se3.quat_from_matrix(T[:3, :3])
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v)
+                                                                              for v in q)
+    state = str(tmp_path / 'state')
+    first = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        for msg in msgs[:120]:
+            first._on_input('odom0', msg)
+        assert first.session.counts.updates >= 1 and first.odom.placed_by == 'aligner'
+        T_before = first.odom.T_map_odom.copy()
+        assert np.linalg.norm(T_before[:3, 3]) > 1.0   # not the identity
+    finally:
+        first.destroy_node()
+    node = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        assert node.odom.placed_by == 'restored'
+        assert node.diagnostic_values()['map_to_odom/placed_by'] == 'restored'
+        np.testing.assert_array_equal(node.odom.T_map_odom, T_before)
+        for msg in msgs[120:]:
+            node._on_input('odom0', msg)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        assert node.odom.placed_by == 'aligner'
+        # the odometry went on without a gap: the bridge predicts the motion across the
+        # restart (constant velocity, within one 0.1 m odometry step), and the new correction
+        # stays that close to the saved one
+        d = se3.inverse(T_before) @ node.odom.T_map_odom
+        assert 0 < np.linalg.norm(d[:3, 3]) < 0.15
+        np.testing.assert_allclose(d[:3, :3], np.eye(3), atol=1e-6)
+    finally:
+        node.destroy_node()

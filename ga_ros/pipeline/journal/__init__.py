@@ -37,7 +37,10 @@ Besides measurements, the journal holds every other change of state, in order:
   is skipped; journals of older versions (the first two records only) are still read;
 * every track end the session made (:class:`TrackEnd`: ``~/finish_track``, the end of input, the
   idle timeout; a track ended by the next track's first measurement needs no record);
-* the map frame's geodetic datum (:class:`Datum`), once known.
+* the map frame's geodetic datum (:class:`Datum`), once known;
+* the ``map -> odom`` correction after each window update that changed it (:class:`MapOdom`,
+  kind ``map_odom``, ``cov``'s first 12 values ``T_map_odom[:3, :4]``): a node restarted on the
+  state sends the last one until its first update (:attr:`RecoveryResult.map_odom`).
 
 What is done with damage:
 
@@ -68,6 +71,7 @@ from ga_ros.pipeline.journal.records import (
     Datum,
     Entry,
     JournaledFix,
+    MapOdom,
     TrackEnd,
     encode_fix,
     encode_records,
@@ -103,6 +107,7 @@ __all__ = [
     'Entry',
     'JournaledFix',
     'JournalScan',
+    'MapOdom',
     'MeasurementJournal',
     'RecoveryResult',
     'TrackEnd',

@@ -22,8 +22,10 @@ _FIX, _FIX_SENSOR = 0x3E, 0x3F
 #: the third record of a fix: its two transforms exactly (``cov``'s first 24 values:
 #: ``T_node_sensor[:3, :4]`` then ``T_map_sensor[:3, :4]``, row-major), and its fourth: the fix's
 #: own information (``cov``; the first record holds the information it entered with), and its
-#: fifth, when the fix came with one: the odometry offset's covariance ``C_offset`` (``cov``).
+#: fifth, when the fix came with one: the odometry offset's covariance ``C_offset`` (``cov``);
+#: the kind of the ``map -> odom`` correction last sent (:class:`MapOdom`).
 _TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET = 0x3D, 0x3C, 0x3B, 0x3A, 0x39
+_MAP_ODOM = 0x38
 #: Why a track was ended (:class:`TrackEnd`): the record stores the index.
 TRACK_END_CAUSES = ('finish_track', 'end_of_input', 'idle_timeout')
 
@@ -60,11 +62,22 @@ class Datum:
     lla: tuple[float, float, float]
 
 
-#: What the journal holds, in order: measurements, absolute fixes, track ends, the datum.
+@dataclass(frozen=True)
+class MapOdom:
+    """The REP 105 correction a window update gave: ``T_map_odom`` (4, 4), ``odom`` the first
+    standard input's odometry frame. The node restarted on a state sends it until its first
+    update (:meth:`ga_ros.pipeline.map_to_odom.MapToOdom.restore`) instead of the identity."""
+
+    T_map_odom: FloatArray
+
+
+#: What the journal holds, in order: measurements, absolute fixes, track ends, the datum (and
+#: ``map -> odom`` corrections, :class:`MapOdom`, which only a recovery reads:
+#: :func:`last_map_odom`).
 Entry = Measurement | FixTerm | TrackEnd | Datum
-#: The kind byte of a datum record.
-DATUM_KIND = _DATUM
-_EVENTS = (_FIX, _FIX_SENSOR, _TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET)
+#: The kind byte of a datum record and of a ``map -> odom`` record.
+DATUM_KIND, MAP_ODOM_KIND = _DATUM, _MAP_ODOM
+_EVENTS = (_FIX, _FIX_SENSOR, _TRACK_END, _DATUM, _FIX_EXACT, _FIX_OWN, _FIX_OFFSET, _MAP_ODOM)
 _FIELDS = [('src_id', '<i8'), ('dst_id', '<i8'), ('src_track', '<i8'), ('dst_track', '<i8'),
            ('stamp_ns', '<i8'), ('kind', 'u1'), ('z', '<f8', (6,)), ('cov', '<f8', (6, 6))]
 #: One version-1 record (no checksum, 377 bytes).
@@ -137,6 +150,19 @@ def encode_datum(datum: Datum) -> bytes:
     return _with_crc(rec)
 
 
+def encode_map_odom(entry: MapOdom) -> bytes:
+    """The journal record of a ``map -> odom`` correction: kind ``map_odom``, ``cov``'s first
+    12 values ``T_map_odom[:3, :4]`` (row-major, exact)."""
+    T = np.asarray(entry.T_map_odom, dtype=float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f'map -> odom must be a finite (4, 4) transform, got shape {T.shape}')
+    rec = np.zeros(1, RECORD)
+    rec['src_id'] = rec['dst_id'] = rec['src_track'] = rec['dst_track'] = -1
+    rec['kind'] = _MAP_ODOM
+    rec['cov'][0].reshape(-1)[:12] = T[:3, :4].ravel()
+    return _with_crc(rec)
+
+
 def encode_records(ms: list[Measurement], flags: int = 0) -> bytes:
     """The journal records of ``ms`` (with their checksums), ready to append; ``flags``:
     :data:`HELD` and / or :data:`REVERSED`, or 0."""
@@ -189,7 +215,8 @@ def encode_fix(term: FixTerm, entered: FloatArray | None = None,
 
 def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
     """Journal records (structured array) as measurements, fixes (:class:`FixTerm`), track ends
-    (:class:`TrackEnd`) and datums (:class:`Datum`), in order; a ``fix`` record without its
+    (:class:`TrackEnd`) and datums (:class:`Datum`), in order (``map -> odom`` records are
+    skipped: :func:`last_map_odom`); a ``fix`` record without its
     ``fix_sensor`` record (or the reverse) is skipped. The measurements as they arrived, or as
     the aligner took them if ``taken`` (:func:`as_taken`).
     """
@@ -297,3 +324,13 @@ def last_datum(recs: np.ndarray) -> tuple[float, float, float] | None:
         return None
     lat, lon, alt = (float(v) for v in recs[int(at[-1])]['z'][:3])
     return lat, lon, alt
+
+
+def last_map_odom(recs: np.ndarray) -> FloatArray | None:
+    """``T_map_odom`` (4, 4) of the last ``map -> odom`` record (``None`` without one)."""
+    at = np.flatnonzero(np.asarray(recs['kind']) == _MAP_ODOM)
+    if not at.size:
+        return None
+    T = np.eye(4)
+    T[:3, :4] = np.array(recs[int(at[-1])]['cov'], float).reshape(-1)[:12].reshape(3, 4)
+    return T

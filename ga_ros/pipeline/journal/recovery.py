@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ga_ros.arrays import FloatArray
 from ga_ros.core.measurement import KINDS, Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.persistence import (
@@ -30,6 +31,7 @@ from ga_ros.pipeline.journal.records import (
     held_records,
     is_event,
     last_datum,
+    last_map_odom,
     records_to_entries,
     records_to_measurements,
     reversed_records,
@@ -120,6 +122,8 @@ class RecoveryResult:
         snapshot may be written there.
     datum : the map frame's datum ``(lat_deg, lon_deg, alt_m)`` of the journal's last datum
         record (``None`` without one).
+    map_odom : (4, 4) ``T_map_odom`` of the journal's last ``map -> odom`` record: the
+        correction the session sent after its last window update (``None`` without one).
     """
 
     aligner: TrackWindowAligner
@@ -136,6 +140,7 @@ class RecoveryResult:
     reversed: list[Measurement] = field(default_factory=list)
     snapshot_refused: bool = False
     datum: tuple[float, float, float] | None = None
+    map_odom: FloatArray | None = None
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -204,6 +209,7 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
     out.datum = last_datum(records)
+    out.map_odom = last_map_odom(records)
     # held (or dropped) measurements never reached the aligner
     tail = tail[~held_records(tail) & ~dropped_records(tail)]
     if tail.size:

@@ -17,9 +17,11 @@ from ga_ros.pipeline.journal.records import (
     MAGIC,
     RECORD,
     Datum,
+    MapOdom,
     TrackEnd,
     encode_datum,
     encode_fix,
+    encode_map_odom,
     encode_records,
     encode_track_end,
 )
@@ -133,6 +135,10 @@ class MeasurementJournal:
     def append_datum(self, datum: Datum) -> None:
         """Write the record of the map frame's datum (:func:`encode_datum`)."""
         self._write(encode_datum(datum), 1)
+
+    def append_map_odom(self, entry: MapOdom) -> None:
+        """Write the record of a ``map -> odom`` correction (:func:`encode_map_odom`)."""
+        self._write(encode_map_odom(entry), 1)
 
     def _write(self, data: bytes, n_records: int) -> None:
         if self._fd is None:

@@ -31,7 +31,7 @@ from ga_ros.pipeline.journal import (
     recover,
 )
 from ga_ros.pipeline.journal.lock import StateLock
-from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, is_event
+from ga_ros.pipeline.journal.records import DATUM_KIND, KIND_MASK, MAP_ODOM_KIND, MapOdom, is_event
 from ga_ros.pipeline.journal.recovery import check_state_path
 from ga_ros.pipeline.path_mirror import newest_not_in_track
 from ga_ros.pipeline.session.config import SessionConfig
@@ -92,6 +92,9 @@ class AlignmentSession:
         #: The map frame's datum ``(lat_deg, lon_deg, alt_m)`` the journal held at the last
         #: resume or load (``None`` without one).
         self.datum: tuple[float, float, float] | None = None
+        #: (4, 4) ``T_map_odom`` the restored state's journal last held (:meth:`journal_map_odom`;
+        #: ``None``: none, or not restored); the node sends it until its first update.
+        self.map_odom: FloatArray | None = None
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
         #: The state file's lock, taken by :meth:`resume` (``SessionConfig.lock_owner``).
@@ -105,6 +108,7 @@ class AlignmentSession:
         #: A node new to the survey that nothing else will introduce (:meth:`bridge_at_once`;
         #: ``None``: none).
         self._bridge_now: int | None = None
+        self._map_odom_journaled: FloatArray | None = None
 
     # ------------------------------------------------------------------ one measurement
     def step(self, m: Measurement) -> StepOutput:
@@ -262,14 +266,17 @@ class AlignmentSession:
             self.persistence_failed(f'journal {self.journal.path}: measurement applied but NOT '
                                     f'journaled ({exc})')
 
-    def _journal_event(self, event: TrackEnd | Datum | None, happened: bool = True) -> None:
-        """Append a track end or a datum to the journal (if ``happened``); a write failure is
-        counted and warned about, as for a measurement."""
+    def _journal_event(self, event: TrackEnd | Datum | MapOdom | None,
+                       happened: bool = True) -> None:
+        """Append a track end, a datum or a ``map -> odom`` correction to the journal (if
+        ``happened``); a write failure is counted and warned about, as for a measurement."""
         if self.journal is None or event is None or not happened:
             return
         try:
             if isinstance(event, TrackEnd):
                 self.journal.append_track_end(event)
+            elif isinstance(event, MapOdom):
+                self.journal.append_map_odom(event)
             else:
                 self.journal.append_datum(event)
             self.sync()
@@ -282,6 +289,20 @@ class AlignmentSession:
         """Journal the map frame's geodetic origin ``(lat_deg, lon_deg, alt_m)`` once it is
         known (a recovery gives it back: :attr:`RecoveryResult.datum`)."""
         self._journal_event(Datum(tuple(float(v) for v in lla)))
+
+    def journal_map_odom(self, T_map_odom: FloatArray) -> None:
+        """Journal the REP 105 correction a window update gave (``T_map_odom``, (4, 4)) if it
+        differs from the last one journaled and the state has nodes: a recovery gives the last back
+        (:attr:`map_odom`), so a restarted node sends it, not the identity, until its first
+        update. It holds while the odometry's ``odom`` frame went on across the restart (the
+        alignment node alone restarted); an odometry restarted too starts a new ``odom``, which
+        the first update places again."""
+        T = np.asarray(T_map_odom, dtype=float)
+        if self.n_nodes() == 0 or (self._map_odom_journaled is not None
+                                   and np.array_equal(T, self._map_odom_journaled)):
+            return   # no state to restore it with, or journaled already
+        self._map_odom_journaled = T.copy()
+        self._journal_event(MapOdom(T))
 
     def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
@@ -458,8 +479,8 @@ class AlignmentSession:
     def compact(self, force: bool = False) -> bool:
         """Compact the journal (:meth:`MeasurementJournal.compact`) if
         ``SessionConfig.compact_records`` records follow its base (``force``: if any do) and
-        no measurement is held: its base is then the current state, followed by the records the
-        gap healer needs after a restart (bridges, measurements taken reversed, the datum).
+        no measurement is held: its base is then the current state, followed by the records a
+        restart needs (bridges, measurements taken reversed, the datum, the last ``map -> odom``).
         Returns whether it was compacted; raises ``OSError`` (the journal is then unchanged)."""
         j, every = self.journal, self.session.compact_records
         if j is None or self.gaps.held or j.since_base == 0 or not (
@@ -469,9 +490,10 @@ class AlignmentSession:
         kinds = recs['kind']
         keep = (((kinds & KIND_MASK) == KINDS.index('bridge')) & ~is_event(kinds)
                 | ((kinds & DROPPED) == REVERSED) & ~is_event(kinds))
-        datum = np.flatnonzero(kinds == DATUM_KIND)
-        if datum.size:
-            keep[datum[-1]] = True
+        for kind in (DATUM_KIND, MAP_ODOM_KIND):   # the last of each
+            last = np.flatnonzero(kinds == kind)
+            if last.size:
+                keep[last[-1]] = True
         j.sync()
         j.compact(state_chunks(self.aligner, j.count), recs[keep], *self.gaps.waits())
         return True
@@ -537,6 +559,7 @@ class AlignmentSession:
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
         self.datum = None
+        self.map_odom = self._map_odom_journaled = None
         self._bridge_now = None
 
     def _close_aligner(self) -> None:
@@ -627,6 +650,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
+        self.map_odom = result.map_odom
         return how(result)
 
     def resume(self) -> str | None:
@@ -650,6 +674,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
+        self.map_odom = result.map_odom
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
