@@ -57,6 +57,8 @@ ROS-free.
 from __future__ import annotations
 
 import bisect
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -327,7 +329,7 @@ class CorrectionTracker:
         self._n = 0
         self._sorted = True
         self._full_pending = True
-        self._aligner_id: int | None = None
+        self._aligner: Callable[[], Any] = _nothing
         self._n_updates: int | None = None
         self._first_mutable = 0
 
@@ -337,7 +339,7 @@ class CorrectionTracker:
         self._n = 0
         self._sorted = True
         self._full_pending = True
-        self._aligner_id = None
+        self._aligner = _nothing
         self._n_updates = None
         self._first_mutable = 0
 
@@ -366,14 +368,14 @@ class CorrectionTracker:
         path = aligner.corrected_path() if path is None else path
         stats = getattr(aligner, 'stats', None)
         n_updates = getattr(stats, 'n_updates', None)
-        if id(aligner) != self._aligner_id:
+        if self._aligner() is not aligner:   # (a weak reference: an id could be reused)
             self.restart()
         from_row = 0
         if (not every_row and n_updates is not None and self._n_updates is not None
                 and int(n_updates) - self._n_updates <= 1):
             from_row = self._first_mutable   # one update since: it changed no row before
         out = self.compare(path, from_row)
-        self._aligner_id = id(aligner)
+        self._aligner = _reference(aligner)
         self._n_updates = None if n_updates is None else int(n_updates)
         rows = getattr(aligner, 'mutable_rows', None)
         self._first_mutable = int(rows()[0]) if rows is not None else 0
@@ -696,3 +698,16 @@ def corrections_cdr(c: Corrections, frame_id: str, stamp_ns: int) -> bytes:
     these bytes and the replay writes them: the same message by construction."""
     frames, stamps, T = message_poses(c, frame_id, stamp_ns)
     return framed_path_cdr(T, stamps, frames, frame_id, int(stamp_ns))
+
+
+def _nothing() -> None:
+    """The aligner of a tracker that has seen none."""
+    return None
+
+
+def _reference(obj: Any) -> Callable[[], Any]:
+    """A weak reference to ``obj`` (a strong one for an object that cannot have weak ones)."""
+    try:
+        return weakref.ref(obj)
+    except TypeError:
+        return lambda: obj

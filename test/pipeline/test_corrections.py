@@ -298,6 +298,33 @@ def test_full_message_at_start_reset_and_replacement(survey) -> None:
         session.close()
 
 
+class _Aligner:
+    """An aligner as the tracker sees it: no update counter, every row mutable."""
+
+
+def test_a_replaced_aligner_at_the_address_of_the_old_one_gives_a_full_message(survey) -> None:
+    """A new aligner object (a reset, ``load_state``) gives a full message even when it sits
+    where the old one was (CPython reuses a freed object's address, so its ``id``)."""
+    session = AlignmentSession(CONFIG)
+    try:
+        for m in survey[:60]:
+            session.step(m)
+        path = session.aligner.corrected_path()
+    finally:
+        session.close()
+    tracker = CorrectionTracker()
+    old = _Aligner()
+    address = id(old)
+    assert tracker.after_update(old, path).full
+    assert tracker.after_update(old, path) is None   # the same aligner: nothing moved
+    del old
+    new = [_Aligner() for _ in range(100)]   # one of them at the freed address, as a rule
+    first = next((a for a in new if id(a) == address), new[0])
+    for a in (first, next(a for a in new if a is not first)):
+        c = tracker.after_update(a, path)
+        assert c is not None and c.full and len(c) == len(path.node_ids)
+
+
 def test_thresholds_are_checked() -> None:
     with pytest.raises(InputError, match='translation_m'):
         CorrectionThresholds(translation_m=-1.0)
