@@ -19,7 +19,7 @@ from ga_ros.core.solver.priors import GaussianPrior, _prior_cost, _PriorData
 from ga_ros.core.solver.problem import WarmStart, _adjustment_cost, _maha2, _Problem
 from ga_ros.core.solver.result import SolveResult, _NormalSystem
 from ga_ros.core.solver.steps import _dogleg_step, _lm_step, _Step, _Trust
-from ga_ros.core.solver.termination import _chord_kept, _left_to_gain, _stop_reason, cost_scale
+from ga_ros.core.solver.termination import _chord_kept, _left_to_gain, _stop_reason
 from ga_ros.errors import DegenerateGeometryError, InputError, SolverError
 from ga_ros.geometry import se2
 from ga_ros.runtime import blas_threads
@@ -45,8 +45,7 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         motions, a factor to reuse, compiled kernels, where the covariances come from): see
         :class:`~ga_ros.core.solver.problem.WarmStart`. Default: nothing.
     **hooks : the fields of :class:`~ga_ros.core.solver.problem.WarmStart` as keywords
-        (``jit``, ``weights``, ``factor``, ``factor_at_solution``, ``measured``,
-        ``cost_floor``), instead of
+        (``jit``, ``weights``, ``factor``, ``factor_at_solution``, ``measured``), instead of
         ``warm``.
 
     Returns
@@ -102,7 +101,6 @@ def solve(network: ConnectionNetwork, T_init: FloatArray, config: SolverConfig |
         raise InputError(f'measured must be two ({len(conn)}, 4, 4) arrays, for the se3 model')
     prob = _Problem.build(model, conn, prior_data, cfg, free, weights, measured)
     prob.jit = bool(warm.jit)
-    prob.cost_floor = float(warm.cost_floor)
     if factor is not None and factor.pattern.key == prob.pattern.key:
         prob.factor = factor
     with blas_threads():
@@ -195,7 +193,7 @@ def _iterate(prob: _Problem, T: FloatArray, keep_values: bool = False) -> _Itera
         T, v = step.T, step.v
         last_step = step.step
         _book_step(prob, state, step, sysd, history, plain, it)
-        stop = _stop_reason(step, history, cfg, prob.cost_floor)
+        stop = _stop_reason(step, history, cfg)
         if stop is not None:
             converged, reason = True, stop
             break
@@ -250,7 +248,7 @@ def _last_chord_step(prob: _Problem, T: FloatArray, v: FloatArray, sysd: _System
     as predicted (:func:`_chord_kept`); ``None`` when more is left to gain."""
     predicted = -float(sysd.u @ chord_h)
     if not (_left_to_gain(predicted, state.predicted, history)
-            < prob.cfg.cost_tolerance * cost_scale(history[-1], prob.cost_floor)):
+            < prob.cfg.cost_tolerance * history[-1]):
         return None
     T_new = prob.retract(T, chord_h)
     cost = prob.cost_at(T_new)
@@ -285,8 +283,7 @@ def _undamped_step(prob: _Problem, T: FloatArray, sysd: _System, data: FloatArra
     dx = -state.chol.solve(sysd.u)
     if not np.isfinite(dx).all():
         raise SolverError('the correction is not finite')
-    if (chord and cfg.cost_tolerance > 0 and -float(sysd.u @ dx)
-            < cfg.cost_tolerance * cost_scale(history[-1], prob.cost_floor)):
+    if chord and cfg.cost_tolerance > 0 and -float(sysd.u @ dx) < cfg.cost_tolerance * history[-1]:
         return 'cost_converged'
     T_new = prob.retract(T, dx)
     size = float(np.abs(dx).max()) if dx.size else 0.0

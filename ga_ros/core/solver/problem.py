@@ -76,14 +76,6 @@ class WarmStart:
         :func:`ga_ros.geometry.se3.from_translation_rotvec`) and their inverses, if the caller
         has them (e.g. kept from the previous window update, as ``weights``): not computed
         again.
-    cost_floor : with :attr:`SolverConfig.cost_tolerance
-        <ga_ros.core.solver.config.SolverConfig.cost_tolerance>`: the stops on the cost take
-        that fraction of ``max(cost, cost_floor)`` (default 0: of the cost). A decrease ``delta``
-        left to gain puts the estimate about ``sqrt(delta / n)`` standard deviations (root mean
-        square over its ``n`` unknowns) from the optimum, so the window aligner passes ``n``:
-        a window whose cost (about its redundancy) is far below its unknowns, a few absolute
-        fixes over an odometry chain, then stops as close to its optimum in standard deviations
-        as one whose cost exceeds them, instead of iterating to a 100-1,000x finer point.
     """
 
     jit: bool = False
@@ -91,7 +83,6 @@ class WarmStart:
     factor: SparseCholesky | None = None
     factor_at_solution: bool = True
     measured: tuple[FloatArray, FloatArray] | None = None
-    cost_floor: float = 0.0
 
     @staticmethod
     def of(warm: WarmStart | None, hooks: dict) -> WarmStart:
@@ -136,7 +127,6 @@ class _Problem:
     jit: bool = False  # compiled kernels from the first linearisation (solve's ``jit``)
     factor: SparseCholesky | None = None  # a factor of this pattern to refactor (solve's)
     in_columns: bool = False  # se3 not in parts: linearised in columns unless compiled
-    cost_floor: float = 0.0  # solve's cost_floor (WarmStart)
     _meas: columns.MeasuredInverse | None = None  # meas, once computed
     _sqrt_w: columns.SqrtWeights | None = None  # sqrt_w, once computed
     _mis: tuple = (None, None)  # (T, columns.Misclosure) of the last cost_at, reused once

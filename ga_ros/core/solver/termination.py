@@ -40,21 +40,12 @@ def _chord_kept(predicted: float, cost_before: float, cost: float) -> bool:
     return cost_before - cost >= 0.25 * predicted - 1e-9 * abs(cost_before)
 
 
-def cost_scale(cost: float, floor: float = 0.0) -> float:
-    """What ``cost_tolerance`` is a fraction of: the cost, or ``floor`` where the cost is below
-    it (:attr:`WarmStart.cost_floor <ga_ros.core.solver.problem.WarmStart.cost_floor>`)."""
-    return cost if cost >= floor else floor
-
-
-def _stop_reason(step: _Step, history: list[float], cfg: SolverConfig,
-                 floor: float = 0.0) -> str | None:
+def _stop_reason(step: _Step, history: list[float], cfg: SolverConfig) -> str | None:
     """Why the iteration stops after ``step`` (its cost appended to ``history``):
     ``'converged'`` (the largest correction below ``tolerance``), ``'cost_converged'`` (a full
-    Gauss-Newton step lowered the cost by less than ``cost_tolerance`` of it, or of ``floor``
-    where the cost is below it: :func:`cost_scale`), else ``None``."""
+    Gauss-Newton step lowered the cost by less than ``cost_tolerance`` of it), else ``None``."""
     if step.step < cfg.tolerance:
         return 'converged'
-    if (step.gauss_newton and 0 <= history[-2] - history[-1]
-            < cfg.cost_tolerance * cost_scale(history[-1], floor)):
+    if step.gauss_newton and 0 <= history[-2] - history[-1] < cfg.cost_tolerance * history[-1]:
         return 'cost_converged'
     return None

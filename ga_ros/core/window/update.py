@@ -229,12 +229,10 @@ class WindowUpdate:
                     self.prealign_factor = pre.factor  # the next track's
             # the factor of the last solve (its symbolic analysis): same pattern as a rule
             donor = res if res is not None else self.state.last_result
-            # the cost tolerance of at least the unknowns' chi-square (WarmStart.cost_floor)
             res = solve(net, T_init, scfg, fixed=fixed, priors=priors, jit=True,
                         weights=weights, measured=measured,
                         factor_at_solution=not scfg.cost_tolerance > 0,
-                        factor=donor.release_factor() if donor is not None else None,
-                        cost_floor=6.0 * (nodes.size - len(fixed)))
+                        factor=donor.release_factor() if donor is not None else None)
             prev_nodes, T_prev = nodes, res.T_world_node
             bad = outliers(self.state, self.config, res, conns, net, priors, weights,
                            self.quality)
