@@ -24,7 +24,7 @@ import numpy as np
 
 from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.bench.gtsam_runner import gtsam_installed
-from ga_ros.bench.stages import STAGES, timed_stages
+from ga_ros.bench.stages import STAGES, counted_work, timed_stages
 from ga_ros.bench.survey import noisy_survey
 from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -129,6 +129,9 @@ class WindowFigures:
     total_cpu_ms_p50: float = float('nan')  # per track: update call + outputs + background
     total_cpu_ms_p95: float = float('nan')
     full_window_tracks: int = 0  # tracks with a full window (those of the stage means)
+    # work per track by part and kind ('window linearisations': mean over the tracks with a
+    # full window; bench.stages.counted_work)
+    work_per_track: dict | None = None
 
 
 def _stage_table(records: list[dict]) -> dict:
@@ -167,7 +170,9 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     refinement worker process), and their sum with the outputs (``total_cpu_ms_*``); the
     measurements that end no track are counted apart (``measurement_cpu_us``). The CPU of
     each thread is split into the stages of :data:`~ga_ros.bench.stages.STAGES`
-    (``stage_cpu_ms``, means over the tracks with a full window).
+    (``stage_cpu_ms``, means over the tracks with a full window), and the linearisations,
+    gradient passes, costs and factorisations of each track are counted by part
+    (``work_per_track``, :func:`~ga_ros.bench.stages.counted_work`, the same means).
 
     With ``with_gtsam`` (and ``gtsam`` importable), the same survey also runs through GTSAM's
     ``IncrementalFixedLagSmoother`` with a lag of ``window_tracks`` tracks, in a child process
@@ -181,8 +186,9 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
                             refine_every_tracks=int(refine_every_tracks))
     al = TrackWindowAligner(cfg, sc.T_world_node[0])
     updates, cpu_ms, totals, background, records, other_us = [], [], [], [], [], []
+    works = []
     t0 = time.perf_counter()
-    with timed_stages() as clock:
+    with timed_stages() as clock, counted_work() as work:
         tree0, main0 = all_cpu_seconds(), time.thread_time()
         for m in list(ms) + [None]:
             c0 = time.thread_time()
@@ -213,6 +219,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
             background.append(bg)
             totals.append(cpu + outputs + bg)
             records.append(stages)
+            works.append(work.take())
             updates += new
     total = time.perf_counter() - t0
     rss = peak_rss_mb()
@@ -226,6 +233,7 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
     rig_w, rig_b = (ate(T, sc.T_world_node, 'rigid').rmse for T in (T_win, T_batch))
     raw_w, raw_b = (ate(T, sc.T_world_node, 'first').rmse for T in (T_win, T_batch))
     full = records[window_tracks + 1:] or records  # the window full, its first freeze done
+    full_work = works[window_tracks + 1:] or works
     fig = WindowFigures(
         n_tracks, sc.n_nodes, sc.n_connections, policy, window_tracks, total,
         float(np.percentile(ms_, 50)), float(np.percentile(ms_, 95)), float(ms_.max()), rss,
@@ -237,7 +245,10 @@ def bench_window(n_tracks: int = 25, policy: str = 'weighted', window_tracks: in
         measurement_cpu_us=float(np.mean(other_us)) if other_us else float('nan'),
         background_cpu_ms_p50=float(np.percentile(background, 50)),
         total_cpu_ms_p50=float(np.percentile(totals, 50)),
-        total_cpu_ms_p95=float(np.percentile(totals, 95)), full_window_tracks=len(full))
+        total_cpu_ms_p95=float(np.percentile(totals, 95)), full_window_tracks=len(full),
+        work_per_track={f'{part} {kind}': float(np.mean([w.get((part, kind), 0)
+                                                          for w in full_work]))
+                        for part, kind in sorted({k for w in full_work for k in w})})
     al.close()
     if with_gtsam and gtsam_installed():
         (fig.gtsam_ms_p50, fig.gtsam_ms_p95, fig.gtsam_ate_rigid_m, fig.gtsam_cpu_ms_p50,

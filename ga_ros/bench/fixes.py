@@ -148,6 +148,8 @@ class FixBenchFigures:
     update_ms_quarters: list[float] = field(default_factory=list)
     update_cpu_ms_quarters: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
+    # the staged run's work per track end by part and kind ('window linearisations': mean)
+    work_per_update: dict[str, float] = field(default_factory=dict)
     fix_outliers: int = 0
     notes: list[str] = field(default_factory=list)
     seeds: int = 1
@@ -204,6 +206,7 @@ class OursRun:
     calibration: list[str] = field(default_factory=list)
     update_cpu_ms: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
+    work_per_update: dict[str, float] = field(default_factory=dict)
 
 
 def _fix_stages() -> dict[str, tuple[tuple[object, str], ...]]:
@@ -225,14 +228,16 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
     ``stages``: the online run's CPU by stage too (its timers wrap the stages' functions and
     add their own CPU, so a run timed by stages is not the one whose total is reported)."""
     import resource
+    from contextlib import nullcontext
 
-    from ga_ros.bench.stages import timed_stages
+    from ga_ros.bench.stages import counted_work, timed_stages
 
     def own_cpu() -> float:
         r = resource.getrusage(resource.RUSAGE_SELF)
         return r.ru_utime + r.ru_stime
 
-    with timed_stages(_fix_stages() if stages else {}, exclusive=True) as clock:
+    with (timed_stages(_fix_stages() if stages else {}, exclusive=True) as clock,
+          counted_work() if stages else nullcontext() as work):
         cpu0, own0 = all_cpu_seconds(), own_cpu()
         n = run.T_true.shape[0]
         al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
@@ -278,11 +283,14 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
     if stages:
         stage_cpu_s['other'] = own1 - own0 - sum(stage_cpu_s.values())
         stage_cpu_s['worker process'] = (cpu1 - cpu0) - (own1 - own0)
+    work_per_update = ({f'{part} {kind}': n / max(len(update_cpu_ms), 1)
+                        for (part, kind), n in sorted(work.take().items())} if stages else {})
     al.refine_batch()
     final = al.corrected_path().T_world_node.copy()
     cpu2 = all_cpu_seconds()
     out = OursRun(online, final, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1,
-                  update_cpu_ms=update_cpu_ms, stage_cpu_s=stage_cpu_s)
+                  update_cpu_ms=update_cpu_ms, stage_cpu_s=stage_cpu_s,
+                  work_per_update=work_per_update)
     if calibration is not None:
         al.refine_batch(calibration=calibration)
         out.final_cal = al.corrected_path().T_world_node.copy()
@@ -427,7 +435,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                           update_cpu_ms_quarters=_quarters(ours.update_cpu_ms),
                           stage_cpu_s={**staged.stage_cpu_s, 'start-up': ours.online_cpu_s
                                        - warm.online_cpu_s},
-                          ours_online_staged_cpu_s=staged.online_cpu_s)
+                          ours_online_staged_cpu_s=staged.online_cpu_s,
+                          work_per_update=staged.work_per_update)
     if ours.final_cal is not None:
         fig.ours_final_cal_m = _rmse(ours.final_cal, run.T_true)
     if ours.final_cal_noise is not None:
@@ -475,11 +484,34 @@ def mean_over_seeds(figs: list[FixBenchFigures]) -> list[FixBenchFigures]:
         mean.update_ms_quarters = list(np.mean([f.update_ms_quarters for f in group], axis=0))
         mean.update_cpu_ms_quarters = list(np.mean([f.update_cpu_ms_quarters for f in group],
                                                    axis=0))
+        mean.work_per_update = {k: float(np.mean([f.work_per_update.get(k, 0.0)
+                                                  for f in group]))
+                                for k in dict.fromkeys(k for f in group
+                                                       for k in f.work_per_update)}
         mean.fix_outliers = int(sum(f.fix_outliers for f in group))
         mean.seeds = len(group)
         mean.online_wins = sum(int(f.ours_online_m <= f.isam2_online_m) for f in group)
         out.append(mean)
     return out
+
+
+def _work_table(rows: list[tuple[str, dict[str, float]]], per: str) -> str:
+    """The work counts ``{'part kind': mean}`` of :func:`~ga_ros.bench.stages.counted_work`
+    as a table, one line per part and setting: linearisations (``N`` assembled), gradient
+    passes, costs evaluated alone and numeric factorisations, ``per`` saying per what."""
+    from ga_ros.bench.stages import WORK_KINDS, WORK_PARTS
+
+    out = [f'Work of ga-ros online {per} (mean; bench.stages.counted_work: linearisations = '
+           'N and gradient assembled, gradients = a gradient pass without N, costs = a cost '
+           'evaluated alone, factorisations = numeric sparse Cholesky; the refinement in '
+           'this process only)',
+           f'{"setting":14s}  {"part":13s}  ' + '  '.join(WORK_KINDS)]
+    for label, work in rows:
+        for part in [*WORK_PARTS, 'other']:
+            if any(f'{part} {k}' in work for k in WORK_KINDS):
+                out.append(f'{label:14s}  {part:13s}  ' + '  '.join(
+                    f'{work.get(f"{part} {k}", 0.0):{len(k)}.2f}' for k in WORK_KINDS))
+    return '\n'.join(out)
 
 
 def table(figs: list[FixBenchFigures]) -> str:
@@ -557,6 +589,9 @@ def table(figs: list[FixBenchFigures]) -> str:
             lines.append(f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m  ' + '  '.join(
                 f'{f.stage_cpu_s.get(k, 0.0):{len(k)}.3f}' for k in names)
                 + f'  {f.ours_online_staged_cpu_s:9.2f}')
+    if any(f.work_per_update for f in figs):
+        lines += ['', _work_table([(f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m', f.work_per_update)
+                                   for f in figs], "per track end of that run's online part")]
     notes = sorted({n for f in figs for n in f.notes})
     return '\n'.join(lines + notes)
 

@@ -26,6 +26,7 @@ from ga_ros.core.linalg import cholmod as _cholmod
 from ga_ros.core.solver.problem import _Problem
 from ga_ros.core.window import freeze as _freeze
 from ga_ros.core.window import update as _update
+from ga_ros.core.window import worker as _worker
 from ga_ros.core.window.aligner import TrackWindowAligner
 from ga_ros.core.window.gate import QualityCache
 from ga_ros.core.window.handoff import RefinementHandoff
@@ -147,4 +148,110 @@ def timed_stages(stages: dict[str, tuple[tuple[object, str], ...]] | None = None
         yield clock
     finally:
         for owner, name, fn in saved:
+            setattr(owner, name, fn)
+
+
+#: Where the counted work of an update runs (:func:`counted_work`), by the functions that do
+#: it (owner, attribute): ``window`` (the window adjustment: its solves, the gate's re-solves),
+#: ``pre-alignment`` (the new track's nodes alone), ``freeze`` (the leaving track's covariances
+#: and joint prior, at the track end or computed ahead in the background thread),
+#: ``refinement`` (the background refinement run in this process: inline or in a thread; a
+#: worker process's is not seen). Work outside them counts under ``other`` (the final
+#: ``refine_batch``, a restored state's first solve). The innermost part on a thread's stack
+#: counts (a pre-alignment inside the window's update is a pre-alignment).
+WORK_PARTS: dict[str, tuple[tuple[object, str], ...]] = {
+    'window': ((_update.WindowUpdate, 'adjust'),),
+    'pre-alignment': ((_update, 'prealign'),),
+    'freeze': ((_freeze.FreezePolicy, 'plan'), (_freeze, 'install_freeze')),
+    'refinement': ((_worker, 'refine_snapshot'),),
+}
+
+#: The work counted (:func:`counted_work`): ``linearisations``, the normal matrix ``N`` and
+#: gradient assembled at an estimate (:meth:`_Problem.linear_system
+#: <ga_ros.core.solver.problem._Problem.linear_system>`, also through
+#: :func:`~ga_ros.core.solver.normal_matrix_at`); ``gradients``, a gradient pass without ``N``
+#: (a chord step's, the fused kernel's :meth:`_Problem.gradient`, the one computed ahead with
+#: the step's cost included); ``costs``, a cost evaluated alone (:meth:`_Problem.cost_at`);
+#: ``factorisations``, a numeric sparse Cholesky factorisation
+#: (:meth:`SparseCholesky.refactor <ga_ros.core.linalg.cholmod.SparseCholesky.refactor>`, which
+#: a new factor runs too).
+WORK_KINDS = ('linearisations', 'gradients', 'costs', 'factorisations')
+
+
+class WorkCount:
+    """Counts of :data:`WORK_KINDS` per part of :data:`WORK_PARTS` while :func:`counted_work`
+    is active; :meth:`take` returns ``{(part, kind): count}`` since the last call."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: dict[tuple[str, str], int] = defaultdict(int)
+        self._local = threading.local()
+
+    def parts(self) -> list[str]:
+        """This thread's parts in progress, innermost last."""
+        parts = getattr(self._local, 'parts', None)
+        if parts is None:
+            parts = self._local.parts = []
+        return parts
+
+    def add(self, kind: str) -> None:
+        parts = self.parts()
+        with self._lock:
+            self._counts[(parts[-1] if parts else 'other', kind)] += 1
+
+    def take(self) -> dict[tuple[str, str], int]:
+        with self._lock:
+            out, self._counts = dict(self._counts), defaultdict(int)
+        return out
+
+
+@contextmanager
+def counted_work() -> Iterator[WorkCount]:
+    """Count the linearisations, gradient passes, cost evaluations and factorisations
+    (:data:`WORK_KINDS`) by part (:data:`WORK_PARTS`) into a :class:`WorkCount` (the functions
+    wrapped while active, then put back)."""
+    count = WorkCount()
+
+    def part(name: str, fn):
+        def in_part(*args, **kwargs):
+            parts = count.parts()
+            parts.append(name)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                parts.pop()
+        return in_part
+
+    def counted(kind: str, fn):
+        def call(*args, **kwargs):
+            count.add(kind)
+            return fn(*args, **kwargs)
+        return call
+
+    gradient = inspect.getattr_static(_Problem, 'gradient')
+
+    def gradient_pass(self, T, v):
+        # a pass of its own: not the one gradient_ahead computed at this T, nor the
+        # linear_system (counted) that the NumPy paths run instead
+        if self._ahead[0] is not T and self.fused_gradient:
+            count.add('gradients')
+        return gradient(self, T, v)
+
+    wrapped = [(owner, name, part(p, inspect.getattr_static(owner, name)))
+               for p, targets in WORK_PARTS.items() for owner, name in targets]
+    wrapped += [(_Problem, 'linear_system',
+                 counted('linearisations', inspect.getattr_static(_Problem, 'linear_system'))),
+                (_Problem, 'cost_at',
+                 counted('costs', inspect.getattr_static(_Problem, 'cost_at'))),
+                (_Problem, 'gradient', gradient_pass),
+                (_cholmod.SparseCholesky, 'refactor',
+                 counted('factorisations',
+                         inspect.getattr_static(_cholmod.SparseCholesky, 'refactor')))]
+    saved = [(owner, name, inspect.getattr_static(owner, name)) for owner, name, _ in wrapped]
+    try:
+        for owner, name, fn in wrapped:
+            setattr(owner, name, fn)
+        yield count
+    finally:
+        for owner, name, fn in reversed(saved):
             setattr(owner, name, fn)

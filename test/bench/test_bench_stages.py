@@ -8,8 +8,12 @@ import sys
 import threading
 import time
 
+import numpy as np
+from solver_problems import make_problem, perturbed
+
 from ga_ros.bench import stages
 from ga_ros.bench.cpu import all_cpu_seconds
+from ga_ros.core.solver import SolverConfig, solve
 from ga_ros.core.window import freeze, update
 
 
@@ -81,3 +85,35 @@ def test_exclusive_stages_count_a_nested_stage_in_its_own_stage(monkeypatch):
     assert set(got) == {('track end', 'priors'), ('track end', 'covariances')}
     assert got[('track end', 'covariances')] >= 28.0
     assert 8.0 <= got[('track end', 'priors')] < 25.0  # its own 10 ms, not the inner 30
+
+
+def test_the_work_count_matches_the_solvers_own_and_counts_by_part(monkeypatch):
+    # a batch solve outside every part: its factorisations are the solver's own count, its
+    # linearisations one per factorisation (no chord steps: reuse_factor_below 0) plus the
+    # final one at the solution for the covariance asked below
+    rng = np.random.default_rng(3)
+    prob = make_problem(rng, n=15, noise=1.0)
+    T0 = perturbed(rng, prob.T_true, 0.05)
+    cfg = SolverConfig(reuse_factor_below=0.0)
+    with stages.counted_work() as work:
+        res = solve(prob.network, T0, cfg)
+        res.covariance([3])
+        got = work.take()
+        assert work.take() == {}  # taken: starts anew
+    assert res.iterations >= 2
+    assert got[('other', 'factorisations')] == res.factorisations + 1
+    assert got[('other', 'linearisations')] == res.iterations + 1
+    # inside a part (the window's update, here standing in for it): counted there, the wrapper
+    # put back afterwards
+    calls = []
+
+    def adjust(self, *args):
+        calls.append(solve(prob.network, T0, cfg).factorisations)
+
+    monkeypatch.setattr(update.WindowUpdate, 'adjust', adjust)
+    with stages.counted_work() as work:
+        update.WindowUpdate.adjust(None)
+        got = work.take()
+    assert set(k for k, _ in got) == {'window'}
+    assert got[('window', 'factorisations')] == calls[0]
+    assert update.WindowUpdate.adjust is adjust

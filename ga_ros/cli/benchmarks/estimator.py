@@ -51,6 +51,26 @@ def stage_table(fig) -> list[str]:
                    f'{end[k] + bg.get(k, 0.0):>8.1f}')
     a, b = sum(end.values()), sum(bg.values())
     out.append(f'    {"total":<18}{a:>10.1f}{b:>12.1f}{a + b:>8.1f}')
+    return out + work_table(fig)
+
+
+def work_table(fig) -> list[str]:
+    """The lines of ``bench window``'s work table: linearisations, gradient passes, costs and
+    factorisations per track by part (:func:`ga_ros.bench.stages.counted_work`), means over
+    the tracks with a full window."""
+    from ga_ros.bench.stages import WORK_KINDS, WORK_PARTS
+
+    work = fig.work_per_track or {}
+    if not work:
+        return []
+    out = ['  work per track (the same means; linearisations: N and gradient assembled, '
+           'gradients: a gradient pass without N, costs: a cost evaluated alone, '
+           "factorisations: numeric sparse Cholesky; a worker process's not seen):",
+           f'    {"part":<18}' + ''.join(f'{k:>16}' for k in WORK_KINDS)]
+    for part in [*WORK_PARTS, 'other']:
+        if any(f'{part} {k}' in work for k in WORK_KINDS):
+            out.append(f'    {part:<18}' + ''.join(f'{work.get(f"{part} {k}", 0.0):>16.2f}'
+                                                    for k in WORK_KINDS))
     return out
 
 
