@@ -190,6 +190,25 @@ class OnlineCalibration:
             cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
 
+    # -------------------------------------------------------------------- outputs
+    def as_dict(self) -> dict:
+        """Plain data (``summary.json``'s ``online_calibration``): the last estimate
+        (:meth:`CalibrationReport.as_dict <ga_ros.core.calibration.CalibrationReport.as_dict>`;
+        empty before the first) with the counts of estimates and failed ones."""
+        rep = {} if self.report is None else self.report.as_dict()
+        return {**rep, 'estimates': int(self.n_estimates), 'failed': int(self.n_failed)}
+
+    def diagnostic_values(self) -> dict[str, str]:
+        """``/diagnostics`` key/values: ``calibration/<source>/<parameter>`` (the value
+        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``."""
+        out = {'calibration/estimates': str(self.n_estimates)}
+        for p in [] if self.report is None else self.report.parameters:
+            key = f'calibration/{p.source}/{p.name}'
+            out[key] = (f'{p.value:.6g} {p.unit}' if p.estimated
+                        else f'0 (not estimated: {p.reason})')
+            out[key + '/sigma'] = f'{p.sigma:.3g}'
+        return out
+
     # ---------------------------------------------------------------- persistence
     def arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
         """Header fields (JSON) and arrays of the book (inverse: :meth:`from_arrays`)."""
