@@ -123,6 +123,9 @@ class TrackWindowAligner:
     online_variance : the online variance factors per source
         (:class:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents`, updated after
         each window adjustment; ``None`` with ``variance_components='off'``).
+    online_calibration : the odometry's corrections estimated online and applied to the
+        motions as they enter (:class:`~ga_ros.core.window.calibration.OnlineCalibration`;
+        ``None`` with ``calibrate`` off).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
@@ -178,6 +181,8 @@ class TrackWindowAligner:
                 for _ in range(state.src.n):
                     book.register(None, (0.0, 0.0))
             state.calibration = self.online_calibration = book
+        else:
+            state.calibration = None  # a book restored with calibrate on is not kept
         if self.online_variance is None:
             self.handoff = RefinementHandoff(state, self.config)
         else:

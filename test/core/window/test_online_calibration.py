@@ -95,6 +95,8 @@ def test_the_online_estimate_converges_to_the_truth_and_beats_the_uncalibrated_p
     assert (applied[:, 1] != 0).any() and (applied[:5] == 0).all()
     off, online_off = run(s, OFF)
     assert off.online_calibration is None and off.state.calibration is None
+    meta, arrays = state_arrays(off.state)  # calibration off: the state file as without it
+    assert 'calibration' not in meta and not any(k.startswith('cal_') for k in arrays)
     assert _rmse(online, s.T_true) < 0.7 * _rmse(online_off, s.T_true)
 
 
