@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -352,8 +352,6 @@ ODOM0_YAW_BIAS = 0.01
 def _biased(entry):
     """``odom0``'s consecutive motions with a yaw-rate bias of :data:`ODOM0_YAW_BIAS` (their
     heading turns by it each second); every other entry as it is."""
-    from dataclasses import replace
-
     from ga_ros.core.calibration import corrected_motions
 
     if not (isinstance(entry, Measurement) and entry.kind == 'consecutive'
@@ -365,13 +363,15 @@ def _biased(entry):
 
 
 @pytest.mark.timeout(900)
+@pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
 @pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
-def test_the_online_calibration_is_kept_across_recoveries(tmp_path, compact, mode):
+def test_the_online_calibration_is_kept_across_recoveries(tmp_path, config, compact, mode):
     """With ``calibrate`` on and ``odom0`` biased, the online calibration (every connection's
     source and applied correction, the last estimate with its sigmas, the counts) is part of
-    the state: recovered at any cut from the journal alone, its compacted base or the snapshot,
-    it is the uninterrupted run's bit for bit, and so is the end."""
-    cfg = AlignerConfig(refine_every_tracks=0, calibrate=True, calibration_refresh=0.0)
+    the state: recovered at any cut from the journal alone, its compacted base or the snapshot
+    (with a background refinement pending at every cut, or none), it is the uninterrupted
+    run's bit for bit, and so is the end."""
+    cfg = replace(CONFIGS[config], calibrate=True, calibration_refresh=0.0)
     entries = [_biased(e) for e in survey()]
     finish_after = _finish_after(entries)
     live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
