@@ -39,7 +39,11 @@ yaw-rate corrections are estimated with the poses where the network determines t
 pass their significance test, and the calibrated source's noise is re-estimated; the column
 ``stated-noise`` is the same with its stated noise (``CalibrationConfig(noise=False)``).
 GTSAM's ``BetweenFactorPose3`` cannot express a yaw-rate bias, so GTSAM runs without
-calibration and the ratio printed is against GTSAM batch without it.
+calibration and the ratio printed is against GTSAM batch without it. ga-ros online +
+calibration (skipped with ``--no-calibration`` too): the online run again with
+``AlignerConfig(calibrate=True)`` (:mod:`ga_ros.core.window.calibration`: the corrections
+estimated online and applied to the motions as they enter), against iSAM2 online, with its
+CPU (all processes) and its last online estimate.
 
 Beside the RMSE table: the CPU seconds of all processes (this one with its threads, and the
 refinement worker) of ga-ros online, ga-ros final, GTSAM batch LM and GTSAM iSAM2 (updated at
@@ -144,7 +148,11 @@ class FixBenchFigures:
     gtsam_batch_cpu_s: float = float('nan')
     isam2_cpu_s: float = float('nan')
     ours_final_cal_cpu_s: float = float('nan')
+    ours_online_cal_m: float = float('nan')
+    ours_online_cal_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
+    online_calibration: list[str] = field(default_factory=list)
+    online_cal_wins: int = 0
     update_ms_quarters: list[float] = field(default_factory=list)
     update_cpu_ms_quarters: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
@@ -204,6 +212,7 @@ class OursRun:
     final_cal_stated: FloatArray | None = None
     final_cal_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
+    online_calibration: list[str] = field(default_factory=list)
     update_cpu_ms: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
     work_per_update: dict[str, float] = field(default_factory=dict)
@@ -221,12 +230,14 @@ def _fix_stages() -> dict[str, tuple[tuple[object, str], ...]]:
 
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
              cfg: AlignerConfig, calibration: CalibrationConfig | None = None,
-             stages: bool = False) -> OursRun:
+             stages: bool = False, final: bool = True) -> OursRun:
     """ga-ros online and final (module doc), with its update times and CPU; with
     ``calibration``, also final + calibration: ``refine_batch(calibration=...)`` after the
     final one (the odometry's scale and yaw-rate corrections estimated with the poses);
     ``stages``: the online run's CPU by stage too (its timers wrap the stages' functions and
-    add their own CPU, so a run timed by stages is not the one whose total is reported)."""
+    add their own CPU, so a run timed by stages is not the one whose total is reported);
+    ``final=False``: the online run only (``final`` is then the online estimate at the end);
+    with ``cfg.calibrate``, ``online_calibration`` holds the online estimate's lines."""
     import resource
     from contextlib import nullcontext
 
@@ -285,12 +296,15 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
         stage_cpu_s['worker process'] = (cpu1 - cpu0) - (own1 - own0)
     work_per_update = ({f'{part} {kind}': n / max(len(update_cpu_ms), 1)
                         for (part, kind), n in sorted(work.take().items())} if stages else {})
-    al.refine_batch()
-    final = al.corrected_path().T_world_node.copy()
+    book = al.online_calibration
+    online_cal = book.report.lines() if book is not None and book.report is not None else []
+    if final:
+        al.refine_batch()
+    final_T = al.corrected_path().T_world_node.copy()
     cpu2 = all_cpu_seconds()
-    out = OursRun(online, final, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1,
+    out = OursRun(online, final_T, al.fix_stats.outliers, update_ms, cpu1 - cpu0, cpu2 - cpu1,
                   update_cpu_ms=update_cpu_ms, stage_cpu_s=stage_cpu_s,
-                  work_per_update=work_per_update)
+                  online_calibration=online_cal, work_per_update=work_per_update)
     if calibration is not None:
         al.refine_batch(calibration=calibration)
         out.final_cal = al.corrected_path().T_world_node.copy()
@@ -437,6 +451,11 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                                        - warm.online_cpu_s},
                           ours_online_staged_cpu_s=staged.online_cpu_s,
                           work_per_update=staged.work_per_update)
+    if calibrate:  # ours online + calibration: the online run with AlignerConfig.calibrate
+        cal = run_ours(run, idx, p, noise_m, cov, replace(cfg, calibrate=True), final=False)
+        fig.ours_online_cal_m = _rmse(cal.online, run.T_true)
+        fig.ours_online_cal_cpu_s = cal.online_cpu_s
+        fig.online_calibration = cal.online_calibration
     if ours.final_cal is not None:
         fig.ours_final_cal_m = _rmse(ours.final_cal, run.T_true)
     if ours.final_cal_noise is not None:
@@ -477,6 +496,7 @@ def mean_over_seeds(figs: list[FixBenchFigures]) -> list[FixBenchFigures]:
         group = [f for f in figs if (f.interval_s, f.noise_m) == key]
         first = group[0]
         mean = FixBenchFigures(**{**asdict(first), 'calibration': list(first.calibration),
+                                  'online_calibration': list(first.online_calibration),
                                   'notes': list(first.notes)})
         for name, value in asdict(first).items():
             if isinstance(value, float):
@@ -491,6 +511,7 @@ def mean_over_seeds(figs: list[FixBenchFigures]) -> list[FixBenchFigures]:
         mean.fix_outliers = int(sum(f.fix_outliers for f in group))
         mean.seeds = len(group)
         mean.online_wins = sum(int(f.ours_online_m <= f.isam2_online_m) for f in group)
+        mean.online_cal_wins = sum(int(f.ours_online_cal_m <= f.isam2_online_m) for f in group)
         out.append(mean)
     return out
 
@@ -556,6 +577,23 @@ def table(figs: list[FixBenchFigures]) -> str:
                 f'{f.gtsam_batch_m:12.2f} {f.ours_final_cal_m / f.gtsam_batch_m:16.3f} '
                 f'{f.ours_final_cal_stated_m / f.gtsam_batch_m:13.3f} '
                 f'{f.ours_final_cal_cpu_s:14.2f}  ' + '; '.join(f.calibration))
+    if any(np.isfinite(f.ours_online_cal_m) for f in figs):
+        lines += ['', 'ours online + calibration: the online run with AlignerConfig(calibrate='
+                  "True): after each window update the odometry's scale and yaw-rate "
+                  'corrections are estimated on the latest calibration_horizon_tracks finished '
+                  'tracks where significant (alpha 0.001) and applied to the motions that enter '
+                  'next; CPU of all processes of that online run (first run: with start-up); '
+                  'online+cal<=isam2: the seeds where it is <= iSAM2 online. Online estimate at '
+                  'the end: of the first seed.',
+                  'interval  noise  ours-online  ours-online+cal  isam2-online  '
+                  'online+cal/isam2  online+cal-cpu  online+cal<=isam2  online estimate']
+        for f in figs:
+            lines.append(
+                f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_online_m:12.2f} '
+                f'{f.ours_online_cal_m:16.2f} {f.isam2_online_m:13.2f} '
+                f'{f.ours_online_cal_m / f.isam2_online_m:17.3f} '
+                f'{f.ours_online_cal_cpu_s:15.2f} {f.online_cal_wins:11d} of {f.seeds}  '
+                + '; '.join(x for x in f.online_calibration if 'yaw_rate' in x or 'scale' in x))
     lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
               'worker): ga-ros online (the whole online run, as the replay runs it; the first '
               "run in this process, so with the start-up of ga-ros's lazy imports and compiled "
@@ -627,7 +665,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--isam2-converged', action='store_true',
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
     ap.add_argument('--no-calibration', action='store_true',
-                    help='skip the ours final + calibration columns')
+                    help='skip the ours final + calibration and ours online + calibration columns')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():

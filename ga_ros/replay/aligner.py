@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any, Protocol
 
 from ga_ros.arrays import FloatArray
@@ -25,6 +26,18 @@ class Aligner(Protocol):
 
 
 AlignerFactory = Callable[[FloatArray | None], Aligner]
+
+
+def aligner_config(config: Any) -> Any:
+    """The aligner's settings of a :class:`~ga_ros.replay.config.ReplayConfig`: its
+    ``aligner``, with ``calibrate`` on when the replay's is (``--calibrate``: the odometry
+    calibrated online, :mod:`ga_ros.core.window.calibration`, as well as in the final batch);
+    ``aligner`` as it is for the batch aligner."""
+    if not config.calibrate or config.aligner_kind != 'window':
+        return config.aligner
+    from ga_ros.core.window import AlignerConfig
+
+    return replace(config.aligner or AlignerConfig(), calibrate=True)
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:

@@ -39,10 +39,13 @@ class ReplayConfig:
         ``'off'``; ``'report'``: estimated, printed, warned about and in ``summary.json``'s
         ``variance_components``, the trajectory and covariances unchanged; ``'apply'``: also
         weighted and published with (the significant ones).
-    calibrate : the final batch also estimates each odometry source's additional parameters
-        (scale and yaw-rate corrections, :mod:`ga_ros.core.calibration`) where the network
-        determines them and they are significant; GA's trajectory uses them, the text and
-        ``summary.json``'s ``calibration`` show them (in place of the variance components).
+    calibrate : each odometry source's additional parameters (scale and yaw-rate
+        corrections, :mod:`ga_ros.core.calibration`) are estimated where the network
+        determines them and they are significant: online (the window aligner's ``calibrate``,
+        :mod:`ga_ros.core.window.calibration`: the online trajectory uses them; the text and
+        ``summary.json``'s ``online_calibration`` show the last estimate) and in the final
+        batch (GA's trajectory uses them, the text and ``summary.json``'s ``calibration`` show
+        them, in place of the variance components).
     pose_covariance : write each corrected pose's marginal covariance (else zeros).
     anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
         first node (the datum) when the bag has ground truth; else at the identity.

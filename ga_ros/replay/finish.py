@@ -140,6 +140,9 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
     if book is not None:
         res.online_variance_components = book.as_dict()
         res.warnings += [f'online: {w}' for w in book.warnings()]
+    cal = getattr(run.aligner, 'online_calibration', None)
+    if cal is not None:
+        res.online_calibration = cal.as_dict()
     if run.config.final_batch:
         mode = run.config.variance_components
         vce = mode != 'off' and hasattr(run.aligner, 'variance_components')

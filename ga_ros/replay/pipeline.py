@@ -40,7 +40,7 @@ from ga_ros.io.bag import BagReader
 from ga_ros.io.folder_bag import open_recording
 from ga_ros.io.topic_plan import TopicPlan
 from ga_ros.replay import map_outputs
-from ga_ros.replay.aligner import AlignerFactory, default_aligner_factory
+from ga_ros.replay.aligner import AlignerFactory, aligner_config, default_aligner_factory
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.finish import (
     f2f_path,
@@ -87,7 +87,7 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
     with open_recording(bag_path) as bag:
         assert bag.info is not None
         plan, specs = plan_replay(bag.info, config)
-        factory = aligner_factory or default_aligner_factory(config.aligner,
+        factory = aligner_factory or default_aligner_factory(aligner_config(config),
                                                              config.aligner_kind)
         if on_plan is not None:
             on_plan(plan)

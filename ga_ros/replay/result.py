@@ -34,7 +34,10 @@ class ReplayResult:
     (:meth:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents.as_dict`; empty when
     ``variance_components`` of the aligner is ``'off'``). ``calibration``: the additional
     parameters per source estimated in the final batch with ``calibrate``
-    (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`; empty otherwise).
+    (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`; empty otherwise);
+    ``online_calibration`` those estimated online, the last estimate
+    (:meth:`~ga_ros.core.window.calibration.OnlineCalibration.as_dict`; empty when the
+    aligner's ``calibrate`` is off).
     ``ground_truth`` says what ground truth was used and how much of it matched; ``warnings``
     what the replay went on despite (e.g. a bag cut short). ``mosaic`` (``--mosaic``): per
     trajectory (``'ga'``, ``'f2f'``) its mosaic's files, covered area and seam misregistration
@@ -75,6 +78,7 @@ class ReplayResult:
     variance_components: dict[str, Any] = field(default_factory=dict)
     mosaic: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
+    online_calibration: dict[str, Any] = field(default_factory=dict)
     online_variance_components: dict[str, Any] = field(default_factory=dict)
     map: dict[str, Any] = field(default_factory=dict)
     failed_updates: int = 0
@@ -105,6 +109,7 @@ class ReplayResult:
             'notes': self.notes, 'ground_truth': self.ground_truth, 'warnings': self.warnings,
             'gaps': self.gaps, 'variance_components': self.variance_components,
             'mosaic': self.mosaic, 'calibration': self.calibration,
+            'online_calibration': self.online_calibration,
             'online_variance_components': self.online_variance_components,
             **({'map': self.map} if self.map else {})}
 

@@ -94,6 +94,7 @@ def result_text(r: ReplayResult) -> str:
                      f"{q['mdb_median_m']:.3g} m")
     lines += variance_lines(r.online_variance_components)
     lines += variance_lines(r.variance_components)
+    lines += calibration_lines(r.online_calibration, 'online, the last estimate')
     lines += calibration_lines(r.calibration)
     if 'ga' in r.errors:
         lines += error_lines(r)
@@ -161,13 +162,13 @@ def error_lines(r: ReplayResult) -> list[str]:
     return lines
 
 
-def calibration_lines(cal: dict) -> list[str]:
-    """The additional parameters per source of the final batch
+def calibration_lines(cal: dict, what: str = 'final batch') -> list[str]:
+    """The additional parameters per source of the final batch, or of ``what``
     (:meth:`~ga_ros.core.calibration.CalibrationReport.as_dict`), one line each."""
     params = cal.get('parameters', []) if cal else []
     if not params:
         return []
-    lines = [f"calibration (final batch; test alpha {cal['alpha']:g}; scale: t_true = (1 + k) "
+    lines = [f"calibration ({what}; test alpha {cal['alpha']:g}; scale: t_true = (1 + k) "
              't_meas; yaw_rate: correction added to the yaw rate, rad/s):']
     for p in params:
         if p['estimated']:

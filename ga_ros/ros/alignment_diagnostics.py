@@ -24,6 +24,9 @@ class AlignmentDiagnostics:
         book = getattr(self.session.aligner, 'online_variance', None)
         if book is not None:  # the variance factor per source (variance_components 'apply')
             values.update(book.diagnostic_values())
+        cal = getattr(self.session.aligner, 'online_calibration', None)
+        if cal is not None:  # the odometry's corrections estimated online (calibrate)
+            values.update(cal.diagnostic_values())
         for name, sub in getattr(self, 'sensor_subscriptions', {}).items():
             values[f'qos/{name}'] = (sub.reliability if sub.decided
                                      else 'best_effort (auto: no publisher yet)')

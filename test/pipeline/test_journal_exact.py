@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -340,5 +340,50 @@ def test_failed_updates_are_counted_across_recoveries(tmp_path, monkeypatch, com
             assert s.aligner.last_failure == cut.state[0]['last_failure'], cut.name
         finally:
             s.close()
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
+    live.close()
+
+
+#: The yaw-rate bias of ``odom0`` (rad per second: 1 s per motion) in
+#: :func:`test_the_online_calibration_is_kept_across_recoveries`.
+ODOM0_YAW_BIAS = 0.01
+
+
+def _biased(entry):
+    """``odom0``'s consecutive motions with a yaw-rate bias of :data:`ODOM0_YAW_BIAS` (their
+    heading turns by it each second); every other entry as it is."""
+    from ga_ros.core.calibration import corrected_motions
+
+    if not (isinstance(entry, Measurement) and entry.kind == 'consecutive'
+            and entry.source == 'odom0'):
+        return entry
+    T = corrected_motions(np.asarray(entry.z, float)[None], np.array([1.0]), np.zeros(1),
+                          np.array([-ODOM0_YAW_BIAS]))
+    return replace(entry, z=se3.to_translation_rotvec(T)[0])
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
+@pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
+def test_the_online_calibration_is_kept_across_recoveries(tmp_path, config, compact, mode):
+    """With ``calibrate`` on and ``odom0`` biased, the online calibration (every connection's
+    source and applied correction, the last estimate with its sigmas, the counts) is part of
+    the state: recovered at any cut from the journal alone, its compacted base or the snapshot
+    (with a background refinement pending at every cut, or none), it is the uninterrupted
+    run's bit for bit, and so is the end."""
+    cfg = replace(CONFIGS[config], calibrate=True, calibration_refresh=0.0)
+    entries = [_biased(e) for e in survey()]
+    finish_after = _finish_after(entries)
+    live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
+                                               compact_records=compact))
+    live.resume()
+    cuts = _cuts(live, entries, finish_after, tmp_path)
+    book = live.aligner.online_calibration
+    yaw = {p.source: p for p in book.report.parameters if p.name == 'yaw_rate'}
+    assert yaw['odom0'].estimated, book.report.lines()
+    assert abs(yaw['odom0'].value - ODOM0_YAW_BIAS) < 4 * yaw['odom0'].sigma, book.report.lines()
+    assert all((c.state[1]['cal_applied'] != 0).any() for c in cuts)  # corrections applied
+    estimates = [c.state[0]['calibration']['n_estimates'] for c in cuts]
+    assert len(set(estimates)) > 2, estimates  # cuts between different estimates
     _resume_each(cuts, entries, cfg, compact, mode, finish_after)
     live.close()

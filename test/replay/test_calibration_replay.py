@@ -22,7 +22,7 @@ from ga_ros.pipeline.inputs import InputSpec
 from ga_ros.replay.config import ReplayConfig
 from ga_ros.replay.inputs import InputTopics
 from ga_ros.replay.pipeline import replay
-from ga_ros.replay.text import calibration_lines
+from ga_ros.replay.text import calibration_lines, result_text
 
 YAW_BIAS_PER_STEP = 6e-4  # rad per 0.1 s step of the odometry: 6e-3 rad/s
 SCALE = 1.02  # the odometry's translation is 2 % long
@@ -49,7 +49,7 @@ def test_replay_calibrate_recovers_the_odometry_bias(tmp_path: Path) -> None:
                           pose_cov_stamped_msg(T_m, s, cov, 'map'), s)
     spec = InputSpec('/odom', 'odometry', OdometryInputConfig('odom0', keyframe_travel_m=0.5))
     amcl = AbsoluteSpec('/amcl_pose', 'pose_cov', AbsoluteInputConfig('amcl0', frame_id='map'))
-    rmse = {}
+    rmse, online = {}, {}
     for calibrate in (False, True):
         cfg = ReplayConfig(inputs=InputTopics((spec,), absolutes=(amcl,)), plot=False,
                            aligner=AlignerConfig(datum='fixes', refine_executor='inline'),
@@ -57,6 +57,7 @@ def test_replay_calibrate_recovers_the_odometry_bias(tmp_path: Path) -> None:
         out = tmp_path / f'out{int(calibrate)}'
         res = replay(tmp_path / 'in', out, cfg)
         rmse[calibrate] = _evaluate(res, stamps, gt, odom)[0]
+        online[calibrate] = _evaluate(res, stamps, gt, odom, 'trajectory_online')[0]
     summary = json.loads((out / 'summary.json').read_text())
     cal = {p['name']: p for p in summary['calibration']['parameters']
            if p['source'] == 'odom0'}
@@ -67,6 +68,18 @@ def test_replay_calibrate_recovers_the_odometry_bias(tmp_path: Path) -> None:
     lines = calibration_lines(summary['calibration'])
     assert any('odom0' in t and 'yaw_rate' in t and '+-' in t for t in lines)
     assert rmse[True] < 0.8 * rmse[False], rmse
+    # online (--calibrate calibrates the window aligner too): the last online estimate of the
+    # yaw rate, with its sigma, in summary.json and the text; the online path closer to the truth
+    on = {p['name']: p for p in summary['online_calibration']['parameters']
+          if p['source'] == 'odom0'}
+    assert on['yaw_rate']['estimated'], on
+    assert abs(on['yaw_rate']['value'] - truth['yaw_rate']) < 4 * on['yaw_rate']['sigma'], on
+    assert summary['online_calibration']['estimates'] > 0
+    text = result_text(res)
+    lines = calibration_lines(summary['online_calibration'], 'online, the last estimate')
+    assert any('odom0' in t and 'yaw_rate' in t and '+-' in t for t in lines)
+    assert 'calibration (online, the last estimate' in text, text
+    assert online[True] < 0.8 * online[False], online
 
 
 def test_command_line_calibrate() -> None:

@@ -82,9 +82,11 @@ def _rmse(p: np.ndarray, q: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((p[:, :2] - q[:, :2]) ** 2, axis=1))))
 
 
-def _evaluate(res, stamps: np.ndarray, gt: np.ndarray, odom: np.ndarray) -> tuple[float, float]:
-    """(RMSE of the corrected trajectory, RMSE of the odometry) over the keyframes (2-D)."""
-    ga = read_tum(res.files['trajectory_ga'])
+def _evaluate(res, stamps: np.ndarray, gt: np.ndarray, odom: np.ndarray,
+              trajectory: str = 'trajectory_ga') -> tuple[float, float]:
+    """(RMSE of the corrected trajectory, or of the output file ``trajectory``, RMSE of the
+    odometry) over the keyframes (2-D)."""
+    ga = read_tum(res.files[trajectory])
     idx = np.searchsorted(stamps, ga.stamps_ns)
     assert np.array_equal(stamps[idx], ga.stamps_ns)
     T_odom = gt[0] @ odom[idx]

@@ -622,6 +622,42 @@ def test_online_variance_factors_in_diagnostics(tmp_path):
         rclpy.try_shutdown(context=ctx)
 
 
+def test_online_calibration_in_diagnostics(tmp_path):
+    """``calibrate``: ``/diagnostics`` shows each odometry parameter's online estimate (or why
+    it is not estimated) with its sigma, the direct aligner's, and the node's path is the
+    direct aligner's."""
+    from ga_ros.sim.sources import SourceSpec, multi_source_survey
+
+    sv = multi_source_survey(np.random.default_rng(3), (SourceSpec('odom0', 1.0),),
+                             n_nodes=160, loop=SourceSpec('cross', 1.0, 1.0), loop_every=5)
+    ms = sorted(sv.measurements, key=lambda m: (m.dst_id, m.src_id))
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(15))
+    node = AlignmentNode(context=ctx, parameter_overrides=[
+        Parameter('state_file', value=''), Parameter('allow_finish_track', value=True),
+        Parameter('calibrate', value=True), Parameter('refine_executor', value='inline'),
+        Parameter('diagnostics_period_sec', value=0.0)])
+    try:
+        for m in ms:
+            node._on_measurement(conv.measurement_to_odometry(m))
+        assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+        values = node.diagnostic_values()
+        ref = direct(ms, node.aligner_config)
+        book = ref.online_calibration
+        assert book.n_estimates > 0
+        for p in book.report.parameters:
+            key = f'calibration/{p.source}/{p.name}'
+            assert values[key] == (f'{p.value:.6g} {p.unit}' if p.estimated
+                                   else f'0 (not estimated: {p.reason})'), key
+            assert values[key + '/sigma'] == f'{p.sigma:.3g}', key
+        assert 'calibration/odom0/yaw_rate' in values and 'calibration/odom0/scale' in values
+        np.testing.assert_allclose(node.aligner.corrected_path().T_world_node,
+                                   ref.corrected_path().T_world_node, atol=1e-12)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 def test_a_strict_update_bug_is_reported_and_the_node_goes_on(tmp_path, rng, monkeypatch):
     """With ``GA_ROS_STRICT_UPDATES`` (set for the suite) a bug in a window update (not a
     numerical failure) reaches the node as an UpdateBug: reported (one ERROR line, the

@@ -45,6 +45,7 @@ from ga_ros.core.window.admission import (
     check_covariances_batch,
     check_measurement,
 )
+from ga_ros.core.window.calibration import OnlineCalibration, calibration_source
 from ga_ros.core.window.config import (
     AlignerConfig,
     AlignerStats,
@@ -122,6 +123,9 @@ class TrackWindowAligner:
     online_variance : the online variance factors per source
         (:class:`~ga_ros.core.quality.online_variance.OnlineVarianceComponents`, updated after
         each window adjustment; ``None`` with ``variance_components='off'``).
+    online_calibration : the odometry's corrections estimated online and applied to the
+        motions as they enter (:class:`~ga_ros.core.window.calibration.OnlineCalibration`;
+        ``None`` with ``calibrate`` off).
     """
 
     def __init__(self, config: AlignerConfig | None = None,
@@ -168,6 +172,17 @@ class TrackWindowAligner:
                     book.register('unknown')
             book.config = vcfg
             state.variance = self.online_variance = book
+        self.online_calibration: OnlineCalibration | None = None
+        if self.config.calibrate:
+            book = state.calibration
+            if book is None or book.source.n != state.src.n:
+                # a state saved without the book: the restored motions count as measured
+                book = OnlineCalibration()
+                for _ in range(state.src.n):
+                    book.register(None, (0.0, 0.0))
+            state.calibration = self.online_calibration = book
+        else:
+            state.calibration = None  # a book restored with calibrate on is not kept
         if self.online_variance is None:
             self.handoff = RefinementHandoff(state, self.config)
         else:
@@ -295,10 +310,19 @@ class TrackWindowAligner:
             if up is not None:
                 updates.append(up)
         n_conn = self.state.src.n
+        cal = self.online_calibration
+        if cal is not None:
+            source = calibration_source(m)
+            z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
+            if z is not plan.z:
+                plan = replace(plan, z=z)
         apply_measurement(self.state, m, plan)
-        if self.online_variance is not None and self.state.src.n > n_conn:
-            self.online_variance.register(variance_group(m))
-            self.online_variance.observe(m)
+        if self.state.src.n > n_conn:
+            if cal is not None:
+                cal.register(source, applied)
+            if self.online_variance is not None:
+                self.online_variance.register(variance_group(m))
+                self.online_variance.observe(m)
         if plan.first and int(m.src_track) != int(m.dst_track):
             # the datum alone in its track (a session ends a track at a fix on the first
             # keyframe): that track ended before the destination's began, with nothing to
@@ -313,6 +337,16 @@ class TrackWindowAligner:
                                                          cfg.gauge_sigma_tilt_rad,
                                                          cfg.gauge_sigma_yaw_rad))
         return updates
+
+    def _duration_s(self, m: Measurement, plan) -> float:
+        """Seconds between a measurement's source and destination nodes (their stamps; a new
+        destination node gets the measurement's stamp, a new first node too)."""
+        i, j = plan.rows
+        if i is None:
+            return 0.0
+        st = self.state
+        end = int(m.stamp_ns) if j is None else int(st.stamparr.a[j])
+        return (end - int(st.stamparr.a[i])) * 1e-9
 
     # ----------------------------------------------------------------------- updates
     def finish_track(self) -> UpdateResult | None:
@@ -426,6 +460,9 @@ class TrackWindowAligner:
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
                 if error:
                     up.refine_reason += f'; not smoothed: {error}'
+            if self.online_calibration is not None and not str(up.reason).startswith('failed'):
+                with blas_threads():
+                    self.online_calibration.estimate(st, self.config)
         except GaError as exc:
             up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
                               0, 0, len(window), 0, f'failed: {exc}')
@@ -772,6 +809,11 @@ class TrackWindowAligner:
         fixed = [] if free_datum else [st.ids[0]]
         ids = st.idarr.a
         if calibration is not None:
+            if self.online_calibration is not None:  # the motions as measured
+                stamp = st.stamp.astype(np.float64)
+                dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
+                net = st.subnetwork(np.arange(n), keep, z=self.online_calibration.measured(
+                    st.z.a[keep], dt_s, keep))
             cross = st.cross.a[keep]
             names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)

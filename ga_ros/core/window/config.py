@@ -171,6 +171,16 @@ class AlignerConfig:
         (degrees of freedom) reaches this; until then it stays 1.
     variance_prior_dof : the factor is shrunk towards 1 with a prior of this many degrees of
         freedom.
+    calibrate : self-calibration online (:mod:`ga_ros.core.window.calibration`): after each
+        window update each odometry source's scale and yaw-rate corrections are estimated
+        again where the network determines them and they are significant, and the source's
+        motions that enter next are stored corrected. ``False`` (default): nothing estimated,
+        the motions as measured.
+    calibration_horizon_tracks : the latest finished tracks the online estimate is made on
+        (its memory: a slowly varying parameter is followed with this lag).
+    calibration_refresh : the online estimate runs at a track end once the connections
+        admitted since the last one reach this fraction of the last one's horizon (each
+        estimate costs a batch adjustment of the horizon, a few solves); 0: at every track end.
     """
 
     window_tracks: int = ranged(5, 1, 1000)
@@ -203,6 +213,9 @@ class AlignerConfig:
     variance_components: str = 'off'
     variance_min_redundancy: float = 20.0
     variance_prior_dof: float = 10.0
+    calibrate: bool = False
+    calibration_horizon_tracks: int = ranged(30, 1, 100_000)
+    calibration_refresh: float = ranged(0.1, 0.0, 10.0)
 
     def __post_init__(self) -> None:
         check_ranges(self)

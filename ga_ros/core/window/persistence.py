@@ -37,6 +37,7 @@ from ga_ros.core.quality.online_variance import OnlineVarianceComponents, Online
 from ga_ros.core.solver.result import result_arrays, result_of_arrays
 from ga_ros.core.window.admission import measurement_fingerprints
 from ga_ros.core.window.aligner import TrackWindowAligner
+from ga_ros.core.window.calibration import OnlineCalibration
 from ga_ros.core.window.config import AlignerConfig
 from ga_ros.core.window.state import WindowState
 from ga_ros.core.window.storage import (
@@ -245,6 +246,9 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
                         if k != 'names'}, 'vc_split': book['split']}
         meta['variance_consistency'] = book['consistency']['names']
         meta['variance_split'] = book['split_names']
+    cal_arrays = {}
+    if st.calibration is not None:  # the online calibration's book
+        meta['calibration'], cal_arrays = st.calibration.arrays()
     arrays = dict(
         T_first=st.T_first, ids=st.idarr.a, track=st.trackarr.a, stamp=st.stamparr.a,
         T=st.T[:n], cov21=st.cov.packed[:n], frozen=st.frozen[:n], src=st.src.a,
@@ -253,7 +257,7 @@ def state_arrays(st: WindowState) -> tuple[dict, dict[str, np.ndarray]]:
         fingerprint=st.fp.a,
         weighted_idx=st.T_weighted[0].astype(np.int64), weighted_T=st.T_weighted[1],
         **_prior_arrays('prior', st.priors), **_prior_arrays('past', st.past), **fix_arrays,
-        **vc_arrays, **last_arrays)
+        **vc_arrays, **cal_arrays, **last_arrays)
     return meta, arrays
 
 
@@ -430,6 +434,9 @@ def state_of_arrays(meta: dict, arrays: dict[str, np.ndarray], window_tracks: in
                                      'consistency': _consistency_of(meta, arrays),
                                      'split_names': meta.get('variance_split', []),
                                      'split': arrays.get('vc_split', np.zeros((0, 2)))})
+    if 'cal_source' in arrays and np.shape(arrays['cal_source']) == (m,):
+        # the online calibration's book (older files, or calibration off: none)
+        st.calibration = OnlineCalibration.from_arrays(meta.get('calibration', {}), arrays)
     st.rejected = {str(k): int(v) for k, v in meta['rejected'].items()}
     st.n_updates = int(meta['n_updates'])
     st.n_outliers = int(meta['n_outliers'])

@@ -23,6 +23,7 @@ from ga_ros.core.fixes import FixBook
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality.online_variance import OnlineVarianceComponents
 from ga_ros.core.solver import SolveResult
+from ga_ros.core.window.calibration import OnlineCalibration
 from ga_ros.core.window.received import ReceivedConnections
 from ga_ros.core.window.storage import (
     IdIndex,
@@ -91,6 +92,9 @@ class WindowState:
         (:class:`~ga_ros.core.fixes.FixBook`; its gate level set from the config).
     variance : the online variance components' book (group and last values of every
         connection row; :mod:`ga_ros.core.quality.online_variance`), ``None`` when off.
+    calibration : the online calibration's book (the source and applied correction of every
+        connection row, the last estimate; :mod:`ga_ros.core.window.calibration`), ``None``
+        when off.
     """
 
     T_first: FloatArray = field(default_factory=lambda: np.eye(4))
@@ -131,6 +135,7 @@ class WindowState:
     seen_cache: tuple[int, int, int] = (0, -1, -1)
     fixes: FixBook = field(default_factory=FixBook)
     variance: OnlineVarianceComponents | None = None
+    calibration: OnlineCalibration | None = None
     received: ReceivedConnections = field(default_factory=ReceivedConnections)
 
     def finished_order(self) -> list[int]:
@@ -257,11 +262,13 @@ class WindowState:
                                          for t in tracks] or [none]))
 
     def subnetwork(self, nodes: IntArray, conns: IntArray,
-                    cov: FloatArray | None = None) -> ConnectionNetwork:
+                    cov: FloatArray | None = None,
+                    z: FloatArray | None = None) -> ConnectionNetwork:
         """Network of some nodes (by index, distinct) and connections among them (already
         validated); ``cov``: the connections' (m, 6, 6) covariances if the caller has them
-        unpacked. The connections' ends are located by a binary search among ``nodes`` (no
-        index array over all the survey's nodes)."""
+        unpacked; ``z``: their (m, 6) motions in place of the stored ones (the online
+        calibration's motions as measured). The connections' ends are located by a binary
+        search among ``nodes`` (no index array over all the survey's nodes)."""
         order = np.argsort(nodes, kind='stable')
         srt = nodes[order]
 
@@ -270,7 +277,8 @@ class WindowState:
 
         return ConnectionNetwork.from_arrays(
             self.idarr.a[nodes], self.trackarr.a[nodes],
-            local(self.src.a[conns]), local(self.dst.a[conns]), self.z.a[conns],
+            local(self.src.a[conns]), local(self.dst.a[conns]),
+            self.z.a[conns] if z is None else z,
             self.ccov.a[conns] if cov is None else cov)
 
 

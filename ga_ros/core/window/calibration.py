@@ -1,0 +1,259 @@
+"""Self-calibration online: each odometry source's additional parameters (scale and yaw-rate
+corrections, :mod:`ga_ros.core.calibration`) estimated while the survey runs and applied to
+the source's motions as they enter the window.
+
+The scheme (``docs/calibration.md``, *Online*). After each successful window update the
+parameters are estimated again by the batch self-calibration,
+:func:`~ga_ros.core.calibration.solve_with_calibration` (the same estimate and the same tests
+of what the network determines and what is significant), on a horizon of the latest
+``calibration_horizon_tracks`` finished tracks: their nodes at their current estimates, the
+connections among them with the motions *as measured*, the absolute fixes on those nodes and a
+weak gauge prior on the horizon's first node (the ``gauge_*`` sigmas of ``datum='fixes'``).
+The estimate replaces the previous one (the horizon is the estimator's memory: a parameter
+that drifts slowly is followed with the horizon's lag, the role a random walk's process noise
+plays in a filter; estimates of overlapping horizons are not fused, which would count the
+same motions twice). Each measured motion ``z`` of a source (its consecutive motions only:
+cross-track connections and bridges have no parameters) that enters the window afterwards is
+stored corrected, ``T_corr = [R Rz(omega dt), (1 + k) t]`` with the source's estimated
+parameters (0 where not estimated), and its applied ``(k, omega)`` is kept per connection, so
+the motion as measured is always recoverable (:meth:`OnlineCalibration.measured`): the next
+horizon estimate and the final batch's calibration start from it.
+
+Everything here is part of the window state: a snapshot saves it and a journal replay
+reproduces it (the estimate runs at the same track ends from the same state).
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+
+from ga_ros.arrays import FloatArray, IntArray
+from ga_ros.core.calibration import (
+    AdditionalParameter,
+    CalibrationConfig,
+    CalibrationReport,
+    corrected_motions,
+    solve_with_calibration,
+)
+from ga_ros.core.fixes import gauge_information
+from ga_ros.core.measurement import Measurement, variance_group
+from ga_ros.core.solver import GaussianPrior
+from ga_ros.core.window.storage import Rows
+from ga_ros.errors import GaError
+from ga_ros.geometry import se3
+
+#: The online estimate's settings: the batch's tests; the stated noise kept (the window
+#: adjustments weight the sources by their stated covariances).
+ONLINE_CALIBRATION = CalibrationConfig(noise=False)
+
+
+def calibration_source(m: Measurement) -> str | None:
+    """The odometry source whose parameters correct a measurement: its source for a
+    consecutive motion (``motion`` when unnamed, as
+    :func:`~ga_ros.core.measurement.variance_group` names it); ``None`` for cross-track
+    connections and bridges."""
+    return variance_group(m) if m.kind == 'consecutive' else None
+
+
+class OnlineCalibration:
+    """The online calibration's book (module doc): per connection row the source it belongs to
+    (``-1``: no parameters) and the ``(k, omega)`` applied when it entered; the last estimate
+    (:attr:`report`), the number of estimates and of failed ones.
+
+    Attributes
+    ----------
+    names : the odometry sources, in the order they appeared.
+    report : the last horizon estimate (:class:`~ga_ros.core.calibration.CalibrationReport`:
+        every parameter's value, sigma, test, or why it is not estimated); ``None`` before the
+        first.
+    n_estimates : horizon estimates made; n_failed : those that failed (the previous estimate
+        kept).
+    last_conns, last_horizon : the connection rows when the last estimate ran and the
+        connections its horizon held (when the next one is due,
+        ``AlignerConfig.calibration_refresh``).
+    """
+
+    def __init__(self) -> None:
+        self.names: list[str] = []
+        self.source = Rows((), np.int64)
+        self.applied = Rows((2,), np.float64)
+        self.report: CalibrationReport | None = None
+        self.n_estimates = 0
+        self.n_failed = 0
+        self.last_conns = 0  # connection rows at the last estimate
+        self.last_horizon = 0  # the connections its horizon held
+        self._current: dict[str, tuple[float, float]] = {}
+
+    # ----------------------------------------------------------------------- input
+    def correction(self, source: str | None) -> tuple[float, float]:
+        """``(k, omega)`` (1, rad/s) applied to a motion of ``source`` now (0 where not
+        estimated; ``None``: a connection without parameters)."""
+        if source is None:
+            return 0.0, 0.0
+        return self._current.get(source, (0.0, 0.0))
+
+    def corrected(self, z: FloatArray, dt_s: float, source: str | None
+                  ) -> tuple[FloatArray, tuple[float, float]]:
+        """``(z_corr, (k, omega))``: the measured motion ``z`` (6,) ``[t, rotvec]`` of
+        ``T_src_dst`` over ``dt_s`` seconds corrected by ``source``'s current estimate
+        (``z`` itself, unchanged, where nothing is estimated)."""
+        k, w = self.correction(source)
+        if k == 0.0 and w == 0.0:
+            return z, (0.0, 0.0)
+        T = corrected_motions(np.asarray(z, float)[None], np.array([max(dt_s, 0.0)]),
+                              np.array([k]), np.array([w]))
+        return se3.to_translation_rotvec(T)[0], (k, w)
+
+    def register(self, source: str | None, applied: tuple[float, float]) -> None:
+        """Book a new connection row: its source (``None``: no parameters) and the
+        correction it was stored with."""
+        if source is None:
+            g = -1
+        else:
+            if source not in self.names:
+                self.names.append(source)
+            g = self.names.index(source)
+        self.source.append(g)
+        self.applied.append(applied)
+
+    def sources_of(self, conns: IntArray) -> list[str | None]:
+        """The source of each connection row (``None``: no parameters)."""
+        g = self.source.a[conns]
+        return [self.names[i] if i >= 0 else None for i in g.tolist()]
+
+    def measured(self, z: FloatArray, dt_s: FloatArray, conns: IntArray) -> FloatArray:
+        """(m, 6) the motions as measured of connection rows ``conns`` from their stored
+        (corrected) ``z`` (m, 6) and durations ``dt_s`` (m,) s: the applied correction undone
+        (``t / (1 + k)``, ``R Rz(-omega dt)``; rows stored uncorrected are returned as
+        stored)."""
+        z = np.array(z, dtype=float)
+        kw = self.applied.a[conns]
+        sel = np.nonzero((kw != 0.0).any(axis=1))[0]
+        if sel.size:
+            k, w = kw[sel, 0], kw[sel, 1]
+            T = corrected_motions(z[sel], np.maximum(dt_s[sel], 0.0), 1.0 / (1.0 + k) - 1.0,
+                                  -w)
+            z[sel] = se3.to_translation_rotvec(T)
+        return z
+
+    # -------------------------------------------------------------------- estimate
+    def estimate(self, state, config) -> None:
+        """Estimate the parameters again on the horizon of ``config.calibration_horizon_tracks``
+        finished tracks of ``state`` (module doc) and use them for the motions that enter
+        next. A failure of the data (too few nodes, a singular horizon) keeps the previous
+        estimate and counts it (:attr:`n_failed`)."""
+        if state.src.n - self.last_conns < config.calibration_refresh * self.last_horizon:
+            return
+        finished = state.finished_order()
+        horizon = finished[-int(config.calibration_horizon_tracks):]
+        if not horizon or self.source.n == 0 or not (self.source.a >= 0).any():
+            return
+        rows = _track_rows(state, horizon)
+        if rows.size < 2:
+            return
+        lo = int(rows[0])
+        conns = state.horizon_rows(lo)
+        conns = conns[np.isin(state.src.a[conns], rows) & np.isin(state.dst.a[conns], rows)
+                      & (state.status.a[conns] != 2)]
+        if not conns.size:
+            return
+        stamp = state.stamp.astype(np.float64)
+        dt_s = (stamp[state.dst.a[conns]] - stamp[state.src.a[conns]]) * 1e-9
+        z = self.measured(state.z.a[conns], dt_s, conns)
+        net = state.subnetwork(rows, conns, z=z)
+        ids = state.idarr.a
+        priors = state.fixes.priors(rows, state.T, ids)
+        priors = [p for p in priors if not p.weak]
+        priors.append(GaussianPrior(ids[[lo]], state.T[[lo]],
+                                    gauge_information(config.gauge_sigma_m,
+                                                      config.gauge_sigma_tilt_rad,
+                                                      config.gauge_sigma_yaw_rad), weak=True))
+        self.n_estimates += 1
+        self.last_conns, self.last_horizon = int(state.src.n), int(conns.size)
+        try:
+            _, report = solve_with_calibration(
+                net, state.T[rows].copy(), self.sources_of(conns), dt_s,
+                config.solver_config(), fixed=[], priors=priors,
+                calibration=ONLINE_CALIBRATION)
+        except (GaError, np.linalg.LinAlgError, FloatingPointError):
+            self.n_failed += 1
+            return
+        self._use(report)
+
+    def _use(self, report: CalibrationReport) -> None:
+        self.report = report
+        cur: dict[str, tuple[float, float]] = {}
+        for p in report.estimated():
+            k, w = cur.get(p.source, (0.0, 0.0))
+            cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
+        self._current = cur
+
+    # -------------------------------------------------------------------- outputs
+    def as_dict(self) -> dict:
+        """Plain data (``summary.json``'s ``online_calibration``): the last estimate
+        (:meth:`CalibrationReport.as_dict <ga_ros.core.calibration.CalibrationReport.as_dict>`;
+        empty before the first) with the counts of estimates and failed ones."""
+        rep = {} if self.report is None else self.report.as_dict()
+        return {**rep, 'estimates': int(self.n_estimates), 'failed': int(self.n_failed)}
+
+    def diagnostic_values(self) -> dict[str, str]:
+        """``/diagnostics`` key/values: ``calibration/<source>/<parameter>`` (the value
+        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``."""
+        out = {'calibration/estimates': str(self.n_estimates)}
+        for p in [] if self.report is None else self.report.parameters:
+            key = f'calibration/{p.source}/{p.name}'
+            out[key] = (f'{p.value:.6g} {p.unit}' if p.estimated
+                        else f'0 (not estimated: {p.reason})')
+            out[key + '/sigma'] = f'{p.sigma:.3g}'
+        return out
+
+    # ---------------------------------------------------------------- persistence
+    def arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """Header fields (JSON) and arrays of the book (inverse: :meth:`from_arrays`)."""
+        meta = {'names': list(self.names), 'n_estimates': int(self.n_estimates),
+                'n_failed': int(self.n_failed), 'last_conns': int(self.last_conns),
+                'last_horizon': int(self.last_horizon),
+                'report': None if self.report is None else self.report.as_dict()}
+        return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
+
+    @classmethod
+    def from_arrays(cls, meta: dict, arrays: dict[str, np.ndarray]) -> OnlineCalibration:
+        """The book :meth:`arrays` saved."""
+        book = cls()
+        book.names = [str(s) for s in meta.get('names', [])]
+        book.n_estimates = int(meta.get('n_estimates', 0))
+        book.n_failed = int(meta.get('n_failed', 0))
+        book.last_conns = int(meta.get('last_conns', 0))
+        book.last_horizon = int(meta.get('last_horizon', 0))
+        book.source = Rows.of(np.asarray(arrays['cal_source'], dtype=np.int64), np.int64)
+        book.applied = Rows.of(np.asarray(arrays['cal_applied'], dtype=np.float64)
+                               .reshape(-1, 2), np.float64)
+        rep = meta.get('report')
+        if rep is not None:
+            book._use(report_of_dict(rep))
+        return book
+
+
+def _track_rows(state, tracks: list[int]) -> IntArray:
+    """Sorted node rows of ``tracks`` (each track's rows are contiguous)."""
+    parts = [np.asarray(state.track_nodes[t], dtype=np.int64) for t in tracks
+             if t in state.track_nodes]
+    return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+
+def report_of_dict(d: dict) -> CalibrationReport:
+    """The :class:`~ga_ros.core.calibration.CalibrationReport` of its ``as_dict`` (the
+    parameters; the online estimate re-estimates no noise)."""
+    nan = float('nan')
+
+    def plain(v):
+        return nan if v is None else v
+
+    names = {f.name for f in fields(AdditionalParameter)}
+    params = [AdditionalParameter(**{k: plain(v) for k, v in p.items() if k in names})
+              for p in d.get('parameters', [])]
+    return replace(CalibrationReport(params), alpha=plain(d.get('alpha')),
+                   sigma0_sq=plain(d.get('sigma0_sq')), iterations=int(d.get('iterations', 0)),
+                   solves=int(d.get('solves', 0)))

@@ -1,0 +1,158 @@
+"""Self-calibration online (:mod:`ga_ros.core.window.calibration`): odometry with a known scale
+error and yaw-rate bias (:mod:`ga_ros.sim.biased`) fed to the window aligner with position
+fixes, as a live survey would."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ga_ros.core.calibration import corrected_motions
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.measurement import Measurement
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window.persistence import load_state, save_state, state_arrays
+from ga_ros.geometry import se3
+from ga_ros.sim.biased import biased_survey
+
+SCALE, YAW_RATE = 0.03, 0.004  # the true corrections k (1) and omega (rad/s)
+FIX_EVERY = 20  # a fix (and a track end) every 20 keyframes
+
+
+def _survey(seed: int = 0, scale: float = SCALE, yaw_rate: float = YAW_RATE):
+    return biased_survey(np.random.default_rng(seed), n_nodes=600, scale=scale,
+                         yaw_rate=yaw_rate, fix_every=FIX_EVERY, fix_sigma_m=0.5)
+
+
+def _steps(s):
+    """``(src, dst, z, cov, stamp_ns)`` of each motion and the fixes ``{node: position}`` of
+    the survey (its fixes' means)."""
+    arr = s.network.arrays()
+    stamps = np.concatenate([[0.0], np.cumsum(s.dt_s)])
+    fixes = s.priors[1]
+    return arr, stamps, {int(i): T[:3, 3] for i, T in zip(fixes.node_ids, fixes.T_world_node)}
+
+
+def run(s, config: AlignerConfig, cut: int | None = None, path=None):
+    """Feed the survey to an aligner (a track ends at each fix, right after it); returns the
+    aligner and each node's online pose (its estimate when first published). ``cut``: after
+    that many motions the aligner is saved to ``path`` and the rest fed to the one loaded."""
+    arr, stamps, fixes = _steps(s)
+    n = s.T_true.shape[0]
+    al = TrackWindowAligner(config, T_world_first=s.T_true[0])
+    online = np.zeros((n, 4, 4))
+    online[0] = s.T_true[0]
+    fix_cov = np.diag([0.5 ** 2] * 3 + [-1.0] * 3)
+
+    def add_fix(i: int) -> None:
+        fix = AbsoluteFix.from_covariance(int(stamps[i] * 1e9),
+                                          se3.from_translation_rotvec(fixes[i], np.zeros(3)),
+                                          fix_cov, 'fix0')
+        al.add_fix(FixTerm(i, se3.identity(), fix))
+
+    track = prev = 0
+    for c in range(len(arr)):
+        if cut is not None and c == cut:
+            save_state(al, path)
+            al.close()
+            al = load_state(path, config).aligner
+        i = c + 1
+        al.add_measurement(Measurement(c, i, prev, track, arr.z[c], arr.cov[c],
+                                       int(stamps[i] * 1e9), 'consecutive', 'odom0'))
+        prev = track
+        if i == 1:
+            add_fix(0)
+        if i in fixes:
+            add_fix(i)
+            al.finish_track()
+            track += 1
+        online[i] = al.pose(i)
+    al.finish_track()
+    al.wait_background()
+    return al, online
+
+
+def _rmse(T, T_true) -> float:
+    return float(np.sqrt(np.mean(np.sum((T[:, :2, 3] - T_true[:, :2, 3]) ** 2, axis=1))))
+
+
+CAL = AlignerConfig(datum='fixes', calibrate=True, refine_executor='inline')
+OFF = AlignerConfig(datum='fixes', refine_executor='inline')
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_online_estimate_converges_to_the_truth_and_beats_the_uncalibrated_path(seed):
+    s = _survey(seed)
+    al, online = run(s, CAL)
+    book = al.online_calibration
+    est = {p.name: p for p in book.report.parameters}
+    assert est['scale'].estimated and est['yaw_rate'].estimated, book.report.lines()
+    assert abs(est['scale'].value - SCALE) < 4 * est['scale'].sigma, book.report.lines()
+    assert abs(est['yaw_rate'].value - YAW_RATE) < 4 * est['yaw_rate'].sigma, book.report.lines()
+    assert book.n_estimates > 1 and book.n_failed == 0
+    # the motions that entered after the last estimate carry its correction
+    applied = book.applied.a
+    assert (applied[:, 1] != 0).any() and (applied[:5] == 0).all()
+    off, online_off = run(s, OFF)
+    assert off.online_calibration is None and off.state.calibration is None
+    meta, arrays = state_arrays(off.state)  # calibration off: the state file as without it
+    assert 'calibration' not in meta and not any(k.startswith('cal_') for k in arrays)
+    assert _rmse(online, s.T_true) < 0.7 * _rmse(online_off, s.T_true)
+
+
+def test_stored_motions_are_the_measured_ones_corrected_and_measured_undoes_it():
+    s = _survey()
+    al, _ = run(s, CAL)
+    st, book = al.state, al.online_calibration
+    arr = s.network.arrays()
+    stamp = st.stamp.astype(float)
+    m = st.src.n
+    dt = (stamp[st.dst.a] - stamp[st.src.a]) * 1e-9
+    # independent: each measured motion corrected by the (k, omega) it was booked with
+    want = se3.to_translation_rotvec(corrected_motions(arr.z[:m], dt, book.applied.a[:, 0],
+                                                       book.applied.a[:, 1]))
+    np.testing.assert_allclose(st.z.a, want, atol=1e-12)
+    np.testing.assert_allclose(book.measured(st.z.a, dt, np.arange(m)), arr.z[:m], atol=1e-12)
+
+
+def test_without_anything_significant_the_results_are_those_without_calibration():
+    """No bias and no fixes but the gauge: nothing is determined, nothing applied, and the
+    path is the uncalibrated one bit for bit."""
+    s = _survey(scale=0.0, yaw_rate=0.0)
+    s.priors[1].node_ids[:] = 0  # every fix on the first node
+    al, online = run(s, CAL)
+    off, online_off = run(s, OFF)
+    assert not (al.online_calibration.applied.a != 0).any()
+    np.testing.assert_array_equal(online, online_off)
+    np.testing.assert_array_equal(al.corrected_path().T_world_node,
+                                  off.corrected_path().T_world_node)
+
+
+def test_a_restart_from_the_snapshot_continues_the_calibration_exactly(tmp_path):
+    s = _survey()
+    al, online = run(s, CAL)
+    # a cut in the middle of a track, after some estimates
+    back, online_back = run(s, CAL, cut=10 * FIX_EVERY + 7, path=tmp_path / 'state')
+    assert back.online_calibration.n_estimates == al.online_calibration.n_estimates
+    meta, arrays = state_arrays(al.state)
+    meta2, arrays2 = state_arrays(back.state)
+    assert meta2['calibration'] == meta['calibration']
+    assert arrays.keys() == arrays2.keys()
+    for name in arrays:
+        np.testing.assert_array_equal(arrays2[name], arrays[name], err_msg=name)
+    np.testing.assert_array_equal(online_back, online)
+    assert back.online_calibration.report.lines() == al.online_calibration.report.lines()
+
+
+def test_the_final_batch_calibrates_the_motions_as_measured():
+    """With the online calibration on, the final batch's calibration estimates the whole
+    correction (from the measured motions), not what is left after the online one."""
+    from ga_ros.core.calibration import CalibrationConfig
+
+    s = _survey()
+    al, _ = run(s, CAL)
+    al.refine_batch(calibration=CalibrationConfig(noise=False))
+    est = {p.name: p for p in al.calibration.parameters}
+    lines = al.calibration.lines()
+    assert abs(est['yaw_rate'].value - YAW_RATE) < 4 * est['yaw_rate'].sigma, lines
+    assert abs(est['scale'].value - SCALE) < 4 * est['scale'].sigma, lines
