@@ -487,9 +487,10 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     fixes : the absolute fixes one by one (:class:`~ga_ros.core.calibration.fix_parameters.
         FixObservations`), for their sources' parameters
         (:attr:`CalibrationConfig.fix_parameters`): they enter as the weighted parameters
-        of :func:`~ga_ros.core.calibration.fix_parameters.fix_priors` (linearised at the
-        poses each adjustment starts from) before ``priors``, which must then not hold them
-        again. None: the fixes are in ``priors`` and have no parameters.
+        of :func:`~ga_ros.core.calibration.fix_parameters.fix_priors` before ``priors``
+        (which must then not hold them again): as measured, linearised at ``T_init``, while
+        no fix parameter is non-zero; corrected, linearised at the poses each adjustment
+        starts from, otherwise. None: the fixes are in ``priors`` and have no parameters.
 
     Returns
     -------
@@ -507,10 +508,13 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     if dt.size != m:
         raise InputError(f'solve_with_calibration: {dt.size} durations for {m} connections')
     dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
+    fix_base = ([] if fixes is None else
+                fix_priors(fixes, np.asarray(T_init, dtype=float), network.node_ids))
     cand = _candidates(sources, cal.parameters, fixes.sources if fixes is not None else (),
                        cal.fix_parameters)
     res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
-                                     config, fixed, priors, cal, fixes=fixes)
+                                     config, fixed, priors, cal, fixes=fixes,
+                                     fix_base=fix_base)
     fix_report = []
     n_odo = sum(not p.on_fixes for p in cand.params)
     if n_odo < len(cand.params) and not any(p.estimated for p in report.parameters[n_odo:]):
@@ -521,7 +525,8 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
                            cand.params[:n_odo])
         solves = report.solves
         res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
-                                         config, fixed, priors, cal, fixes=fixes)
+                                         config, fixed, priors, cal, fixes=fixes,
+                                     fix_base=fix_base)
         report.solves += solves
     parts = _noise_parts(cand, report, arrays.cov)
     if not (cal.noise and parts):
@@ -548,7 +553,8 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
             break
         last, factors = factors, new
         res, net, used, report = _select(_scaled(network, parts, factors), res.T_world_node,
-                                         cand, dt, config, fixed, priors, cal, report, fixes)
+                                         cand, dt, config, fixed, priors, cal, report, fixes,
+                                         fix_base)
         solves += report.solves
         iterations += 1
         noise = _noise_factors(net, res, used, parts, factors, cal)
@@ -560,7 +566,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
             factors = np.where(lost, last, factors)
             res, net, used, report = _select(_scaled(network, parts, factors),
                                              res.T_world_node, cand, dt, config, fixed,
-                                             priors, cal, report, fixes)
+                                             priors, cal, report, fixes, fix_base)
             solves += report.solves
             iterations += 1
             noise = _noise_factors(net, res, used, parts, factors, cal)
@@ -659,13 +665,16 @@ def _noise_factors(net: ConnectionNetwork, res: SolveResult, priors: Sequence[Ga
 def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, dt: FloatArray,
             config: SolverConfig | None, fixed: Sequence[int] | None,
             priors: Sequence[GaussianPrior], cal: CalibrationConfig,
-            start: CalibrationReport | None = None, fixes: FixObservations | None = None
+            start: CalibrationReport | None = None, fixes: FixObservations | None = None,
+            fix_base: Sequence[GaussianPrior] = ()
             ) -> tuple[SolveResult, ConnectionNetwork, list[GaussianPrior], CalibrationReport]:
     """Which parameters are determined and significant, and their estimates (module doc,
     steps 1-4), with the covariances of ``network``: the adjustment, the corrected network
     and the priors (the corrected fixes', then ``priors``) it solved, and the report.
     ``start``: the parameters' values to start from (those of an adjustment with other
-    weights, whose poses ``T_init`` are; else 0)."""
+    weights, whose poses ``T_init`` are; else 0). ``fix_base``: the fixes' priors as
+    measured (linearised at the caller's initial poses), used while no fix parameter is
+    non-zero."""
     arrays = network.arrays()
     m = len(arrays)
     n_c = len(cand.kinds)
@@ -695,11 +704,11 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
             se3.to_translation_rotvec(Tcorr), arrays.cov)
         used = list(priors)
-        if fixes is not None:
-            shift = None
-            if values[on_fixes].any():
-                shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
+        if fixes is not None and values[on_fixes].any():
+            shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
             used = fix_priors(fixes, T0, network.node_ids, shift) + used
+        elif fixes is not None:
+            used = list(fix_base) + used
         solved[:] = [net, used]
         report.solves += 1
         return solve(net, T0, config, fixed=fixed, priors=used), Tcorr
