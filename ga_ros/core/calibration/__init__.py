@@ -15,6 +15,7 @@ from ga_ros.core.calibration.fix_parameters import (
     FixObservations,
     FixOffsetAxis,
     TimeOffset,
+    book_observations,
     fix_priors,
     node_velocities,
 )
@@ -28,5 +29,6 @@ from ga_ros.core.calibration.parameters import (
 
 __all__ = ['FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter', 'CalibrationConfig',
            'CalibrationReport', 'FixObservations', 'FixOffsetAxis', 'NoiseFactor',
-           'ScaleCorrection', 'TimeOffset', 'YawRateCorrection', 'corrected_motions',
-           'fix_priors', 'misclosure_jacobian', 'node_velocities', 'solve_with_calibration']
+           'ScaleCorrection', 'TimeOffset', 'YawRateCorrection', 'book_observations',
+           'corrected_motions', 'fix_priors', 'misclosure_jacobian', 'node_velocities',
+           'solve_with_calibration']

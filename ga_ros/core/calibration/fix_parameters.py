@@ -30,7 +30,7 @@ from typing import ClassVar
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.fixes import FixTerm, node_prior, sensor_jacobian, sensor_misclosure
+from ga_ros.core.fixes import FixBook, FixTerm, node_prior, sensor_jacobian, sensor_misclosure
 from ga_ros.core.solver import GaussianPrior
 from ga_ros.errors import InputError
 from ga_ros.runtime import lazy_import
@@ -148,6 +148,20 @@ class FixObservations:
             raise InputError('FixObservations: a fix is tied to a node that is not in the '
                              'network')
         return order[pos]
+
+
+def book_observations(book: FixBook, rows: IntArray, stamps_s: FloatArray
+                      ) -> FixObservations:
+    """The used fixes of an aligner's fix book on the node ``rows`` (the gauge prior of
+    ``datum='fixes'`` left out: it stays a prior), one by one in the book's order, with the
+    information they enter with (:meth:`~ga_ros.core.fixes.FixBook.information_used`);
+    ``stamps_s`` (n,) the stamps of the network's nodes (s, network index order). The
+    :func:`fix_priors` of the result equal the book's fix prior
+    (:meth:`~ga_ros.core.fixes.FixBook.priors` without the gauge's) bit for bit."""
+    used = [int(f) for f in book.used(rows) if book.gated[f]]
+    info = book.information_used(used)
+    return FixObservations([book.terms[f] for f in used],
+                           np.array(info).reshape(-1, 6, 6), stamps_s)
 
 
 def node_velocities(T_world_node: FloatArray, stamps_s: FloatArray) -> FloatArray:

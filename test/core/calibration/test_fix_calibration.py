@@ -255,3 +255,37 @@ def test_offset_sigma_is_honest_over_a_monte_carlo():
 def test_unknown_fix_parameter_is_refused():
     with pytest.raises(InputError, match='unknown fix calibration parameter'):
         CalibrationConfig(fix_parameters=('latency',))
+
+
+def test_book_observations_give_the_books_fix_prior_bit_for_bit():
+    """An aligner's fix book (a gauge prior, an excluded fix, two fixes on one node, lever
+    arms, full-pose fixes) as observations: their priors are the book's, so passing them as
+    ``fixes`` instead of the book's priors changes nothing while no fix parameter is
+    estimated."""
+    from ga_ros.core.calibration import book_observations
+    from ga_ros.core.fixes import AbsoluteFix, FixBook, FixTerm, gauge_information
+
+    rng = np.random.default_rng(3)
+    n = 12
+    T = se3.exp(rng.normal(0, 1.0, (n, 6)))
+    ids = np.arange(100, 100 + n)
+    book = FixBook()
+    book.add_gauge(0, int(ids[0]), 0, T[0], gauge_information(1e3, 0.05, 3.0))
+    for k, row in enumerate([1, 4, 4, 7, 9, 11]):
+        off = se3.exp(rng.normal(0, 0.3, 6))
+        cov = np.diag(rng.uniform(0.1, 1.0, 6))
+        if k % 2:
+            cov[3:, 3:] = np.eye(3) * 1e9  # position only
+        fix = AbsoluteFix.from_covariance(k * 10**8, T[row] @ off @ se3.exp(rng.normal(0, .1, 6)),
+                                          cov, 'gnss')
+        book.add(row, FixTerm(int(ids[row]), off, fix), fix.information)
+    book.status[3] = 2  # excluded
+    rows = np.arange(n)
+    want = book.priors(rows, T, ids)
+    obs = book_observations(book, rows, np.arange(n) * 0.5)
+    assert len(obs) == 5
+    got = fix_priors(obs, T, ids)
+    assert np.array_equal(got[0].node_ids, want[0].node_ids)
+    assert np.array_equal(got[0].T_world_node, want[0].T_world_node)
+    assert np.array_equal(np.asarray(got[0].information), np.asarray(want[0].information))
+    assert want[1].weak and len(want) == 2
