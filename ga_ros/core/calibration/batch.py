@@ -1,5 +1,6 @@
 """Self-calibration in the batch adjustment: the additional parameters of each odometry source
-(:mod:`ga_ros.core.calibration.parameters`) estimated with the poses, where the network
+(:mod:`ga_ros.core.calibration.parameters`) and of each fix source
+(:mod:`ga_ros.core.calibration.fix_parameters`) estimated with the poses, where the network
 determines them.
 
 The joint adjustment. The unknowns are the poses ``x`` and the parameters ``c``; a connection
@@ -19,6 +20,14 @@ again with the motions corrected by the new ``c`` (:func:`ga_ros.core.solver.sol
 the last estimate). This is Gauss-Newton on the joint problem with the poses re-solved at every
 step (variable projection), and ``Q_cc = H^-1`` is the parameters' block of the joint inverse.
 
+A fix source's parameters (given the fixes one by one, :class:`~ga_ros.core.calibration.
+fix_parameters.FixObservations`) border the same matrix through the fixes: each fix's
+map-frame misclosure ``e = p_pred - p_corr(c)`` has ``A = de/dx`` the sensor Jacobian of its
+node (:func:`~ga_ros.core.fixes.sensor_jacobian`), ``E = de/dc`` the parameter's Jacobian and
+``W`` its information; the poses are solved with the fixes corrected by ``c`` (their weighted
+parameters rebuilt from the corrected positions). The odometry and fix parameters are one
+vector ``c``: they couple through the poses only.
+
 Which parameters are estimated (as data snooping decides which observation is an outlier:
 never estimate what the data cannot see). All candidates (every source x every parameter kind)
 start free; then, one at a time, a parameter is fixed to zero with the reason recorded:
@@ -28,7 +37,10 @@ start free; then, one at a time, a parameter is fixed to zero with the reason re
    is below :attr:`CalibrationConfig.min_information_ratio` (odometry without fixes or loop
    closures: the poses absorb a scale or a heading drift completely);
 3. not separable: the condition number of ``H`` in correlation form exceeds
-   :attr:`CalibrationConfig.max_condition` (the parameter with the least information goes);
+   :attr:`CalibrationConfig.max_condition`: of the parameters in the near-dependency (the
+   eigenvector of the smallest eigenvalue), the one with the least information ratio goes
+   (two fix sources' offsets, of which only the difference is determined: the better
+   source's goes, and it stays the reference);
 4. not significant: ``|c_j| / (sigma0 sqrt(Q_cc,jj))`` (``sigma0^2`` the a-posteriori variance
    factor of the joint adjustment, redundancy ``r - p``) below the two-sided quantile of
    Student's t with ``r - p`` degrees of freedom at :attr:`CalibrationConfig.alpha` (the
@@ -73,6 +85,11 @@ the exponent ``R / (R + noise_prior_dof)``: below 10 % where ``R`` is some hundr
 where the part is poorly determined. The fixes, the priors and the connections without a
 source keep their stated covariances (the factors are relative to them). The factors are
 reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
+
+Where fix parameters were candidates and none is estimated, the selection is run again
+without them, so the result is the adjustment without fix parameters bit for bit (the
+candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
+stated covariance stands).
 
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
