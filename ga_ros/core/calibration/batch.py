@@ -133,6 +133,9 @@ stats = lazy_import('scipy.stats')  # the significance test only (start-up)
 #: eigenvector of the smallest eigenvalue (correlation form) is at least this share of the
 #: largest (step 3 of the module doc).
 _DEPENDENCY_SHARE = 0.1
+#: A parameter step that raises the joint cost is halved at most this many times (then the
+#: parameters stay where they are).
+_STEP_HALVINGS = 6
 
 
 @dataclass(frozen=True)
@@ -733,11 +736,13 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
     res, Tcorr = adjust(T_init)
 
     def drop(j: int, reason: str) -> None:
+        nonlocal stalled
+        stalled = False
         active.remove(j)
         values[j] = 0.0
         report.parameters[j].reason = reason
 
-    steps = 0
+    steps, stalled = 0, False
     while active:
         b = _bordered(network, res, Tcorr, dt, cand, active, fixes, values)
         ratio = np.diag(b.H) / np.maximum(b.Ncc_diag, np.finfo(float).tiny)
@@ -771,10 +776,20 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         Q = np.linalg.inv(b.H)
         dc = -Q @ b.g
         sig = np.sqrt(np.diag(Q))
-        converged = bool(np.all(np.abs(dc) <= cal.tolerance * sig))
+        converged = stalled or bool(np.all(np.abs(dc) <= cal.tolerance * sig))
         if not converged and steps < cal.max_iterations:
-            values[active] += dc
-            res, Tcorr = adjust(res.T_world_node)
+            old, kept = values[active].copy(), (res, Tcorr, list(solved))
+            for _ in range(_STEP_HALVINGS + 1):
+                values[active] = old + dc
+                res, Tcorr = adjust(kept[0].T_world_node)
+                if res.cost <= kept[0].cost * (1.0 + 1e-9):
+                    break
+                dc = 0.5 * dc  # a step that raised the cost: backtrack
+            else:
+                # no step along dc lowers the cost: the parameters stay where they are
+                values[active] = old
+                res, Tcorr, solved[:] = kept
+                stalled = True
             steps += 1
             report.iterations += 1
             continue
