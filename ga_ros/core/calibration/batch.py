@@ -19,9 +19,12 @@ for the current ``c`` (``u_x = 0``), the step is ``dc = -H^-1 u_c``; the poses a
 again with the motions corrected by the new ``c`` (:func:`ga_ros.core.solver.solve`, warm from
 the last estimate). This is Gauss-Newton on the joint problem with the poses re-solved at every
 step (variable projection), and ``Q_cc = H^-1`` is the parameters' block of the joint inverse.
+A step that raises the joint cost (the adjustment's ``v' P v``) is halved, at most
+``_STEP_HALVINGS`` times; then the parameters stay where they are.
 
-A fix source's parameters (given the fixes one by one, :class:`~ga_ros.core.calibration.
-fix_parameters.FixObservations`) border the same matrix through the fixes: each fix's
+A fix source's parameters (given the fixes one by one,
+:class:`~ga_ros.core.calibration.fix_parameters.FixObservations`) border the same matrix
+through the fixes: each fix's
 map-frame misclosure ``e = p_pred - p_corr(c)`` has ``A = de/dx`` the sensor Jacobian of its
 node (:func:`~ga_ros.core.fixes.sensor_jacobian`), ``E = de/dc`` the parameter's Jacobian and
 ``W`` its information; the poses are solved with the fixes corrected by ``c`` (their weighted
@@ -154,6 +157,9 @@ class CalibrationConfig:
         information (a second fix source, a held node, a prior) and with a single fix source
         the fixes define the map frame (docs/calibration.md, *Fix sources*). Where no fix
         parameter is estimated the result is the one without fix parameters, bit for bit.
+    fix_reference : fix sources that define the frame: they get no offset (their time offset
+        stays a candidate). Without one, of two sources whose offsets only their difference
+        determines, the better one's is dropped (step 3).
     alpha : significance level of the two-sided test of each parameter (module doc, step 4):
         the probability of switching a parameter on when the source has no such error.
     min_information_ratio : a parameter whose information left after eliminating the poses is
@@ -180,6 +186,7 @@ class CalibrationConfig:
 
     parameters: tuple[str, ...] = ('scale', 'yaw_rate')
     fix_parameters: tuple[str, ...] = ('time_offset',)
+    fix_reference: tuple[str, ...] = ()
     alpha: float = 0.001
     min_information_ratio: float = 1e-6
     max_condition: float = 1e6
@@ -363,7 +370,8 @@ class _Candidates:
 
 
 def _candidates(sources: Sequence[str | None], names: Sequence[str],
-                fix_sources: Sequence[str] = (), fix_names: Sequence[str] = ()) -> _Candidates:
+                fix_sources: Sequence[str] = (), fix_names: Sequence[str] = (),
+                reference: Sequence[str] = ()) -> _Candidates:
     out = _Candidates([], [], [])
     for srcs, kinds, table in ((sources, names, PARAMETERS), (fix_sources, fix_names,
                                                                FIX_PARAMETERS)):
@@ -371,6 +379,8 @@ def _candidates(sources: Sequence[str | None], names: Sequence[str],
         for s in sorted({str(s) for s in srcs if s}):
             mask = src == s
             for k in kinds:
+                if table[k].datum and s in reference:
+                    continue
                 out.sources.append(s)
                 out.kinds.append(k)
                 out.masks.append(mask)
@@ -504,8 +514,9 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         non-finite or negative one counts as 0 (no yaw-rate correction).
     config, fixed, priors : as :func:`ga_ros.core.solver.solve`.
     calibration : which parameters, and the tests (:class:`CalibrationConfig`).
-    fixes : the absolute fixes one by one (:class:`~ga_ros.core.calibration.fix_parameters.
-        FixObservations`), for their sources' parameters
+    fixes : the absolute fixes one by one
+        (:class:`~ga_ros.core.calibration.fix_parameters.FixObservations`), for their
+        sources' parameters
         (:attr:`CalibrationConfig.fix_parameters`): they enter as the weighted parameters
         of :func:`~ga_ros.core.calibration.fix_parameters.fix_priors` before ``priors``
         (which must then not hold them again): as measured, linearised at ``T_init``, while
@@ -531,7 +542,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     fix_base = ([] if fixes is None else
                 fix_priors(fixes, np.asarray(T_init, dtype=float), network.node_ids))
     cand = _candidates(sources, cal.parameters, fixes.sources if fixes is not None else (),
-                       cal.fix_parameters)
+                       cal.fix_parameters, cal.fix_reference)
     res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
                                      config, fixed, priors, cal, fixes=fixes,
                                      fix_base=fix_base)

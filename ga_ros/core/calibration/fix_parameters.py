@@ -47,6 +47,7 @@ class FixOffsetAxis:
     name: str
     unit: str = 'm'
     on_fixes: ClassVar[bool] = True
+    datum: ClassVar[bool] = True  # a reference source (the frame's definition) has none
     unobserved: ClassVar[str] = 'no fix that measures its axis'
     unseen: ClassVar[str] = ('no other absolute position (a second fix source, a held node or '
                              'a prior): its fixes define the frame')
@@ -70,6 +71,7 @@ class TimeOffset:
     name: str = 'time_offset'
     unit: str = 's'
     on_fixes: ClassVar[bool] = True
+    datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no fix taken while moving (no velocity: stamps?)'
     unseen: ClassVar[str] = 'the poses absorb it (a straight run at constant velocity?)'
 

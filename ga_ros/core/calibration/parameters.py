@@ -45,6 +45,7 @@ class ScaleCorrection:
     name: str = 'scale'
     unit: str = '1'
     on_fixes: ClassVar[bool] = False
+    datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no translation)'
     unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 
@@ -66,6 +67,7 @@ class YawRateCorrection:
     name: str = 'yaw_rate'
     unit: str = 'rad/s'
     on_fixes: ClassVar[bool] = False
+    datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no durations: stamps?)'
     unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 

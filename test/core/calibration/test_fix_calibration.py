@@ -289,3 +289,20 @@ def test_book_observations_give_the_books_fix_prior_bit_for_bit():
     assert np.array_equal(got[0].T_world_node, want[0].T_world_node)
     assert np.array_equal(np.asarray(got[0].information), np.asarray(want[0].information))
     assert want[1].weak and len(want) == 2
+
+
+def test_a_reference_source_gets_no_offset_and_the_other_is_estimated_against_it():
+    """``fix_reference``: the worse source named the reference keeps the frame (no offset
+    candidate), so the better source's offset is estimated against it: minus the worse one's
+    true offset."""
+    s, obs = _two_sources(3)
+    res, rep = solve_with_calibration(
+        s.network, s.T_dead, s.sources, s.dt_s, fixed=[], fixes=obs,
+        calibration=CalibrationConfig(fix_parameters=ALL, fix_reference=('fix1',)))
+    names = [(p.source, p.name) for p in rep.parameters]
+    assert ('fix1', 'offset_x') not in names and ('fix1', 'time_offset') in names
+    est = {(p.source, p.name): p for p in rep.parameters}
+    for axis, name in enumerate(('offset_x', 'offset_y', 'offset_z')):
+        p = est[('fix0', name)]
+        assert p.estimated, rep.lines()
+        assert abs(p.value + OFFSET[axis]) < 3 * p.sigma
