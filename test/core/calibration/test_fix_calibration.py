@@ -306,3 +306,17 @@ def test_a_reference_source_gets_no_offset_and_the_other_is_estimated_against_it
         p = est[('fix0', name)]
         assert p.estimated, rep.lines()
         assert abs(p.value + OFFSET[axis]) < 3 * p.sigma
+
+
+def test_no_stamps_no_time_offset():
+    """Nodes without stamps (all 0): no velocity, so the time offset acts on nothing and is
+    not a candidate, with the reason; the offsets are still tested."""
+    s, obs = _two_sources(3, n=80)
+    flat = type(obs)(obs.terms, obs.information, np.zeros_like(obs.node_stamps_s))
+    rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, fixed=[], fixes=flat,
+                                 calibration=CalibrationConfig(fix_parameters=ALL))[1]
+    est = {(p.source, p.name): p for p in rep.parameters}
+    for src in ('fix0', 'fix1'):
+        assert not est[(src, 'time_offset')].estimated
+        assert 'no fix taken while moving' in est[(src, 'time_offset')].reason
+    assert est[('fix1', 'offset_x')].estimated, rep.lines()
