@@ -320,3 +320,24 @@ def test_no_stamps_no_time_offset():
         assert not est[(src, 'time_offset')].estimated
         assert 'no fix taken while moving' in est[(src, 'time_offset')].reason
     assert est[('fix1', 'offset_x')].estimated, rep.lines()
+
+
+def test_time_offset_sigma_is_honest_over_a_monte_carlo():
+    """The NEES of one source's latency over seeds (always estimated): inside the 99 % band
+    of its chi-square."""
+    from scipy.stats import chi2
+
+    z = []
+    for seed in range(100, 116):
+        rng = np.random.default_rng(seed)
+        s = biased_survey(rng, n_nodes=120)
+        obs = biased_fixes(rng, s.T_true, np.arange(120) * 0.5,
+                           [FixSource('gnss', every=4, sigma_m=0.3, latency_s=0.3)])
+        rep = solve_with_calibration(s.network, s.T_dead, s.sources, s.dt_s, fixed=[],
+                                     fixes=obs, calibration=CalibrationConfig(
+                                         alpha=1.0 - 1e-9, noise=False))[1]
+        p = next(p for p in rep.parameters if p.name == 'time_offset')
+        assert p.estimated
+        z.append((p.value - 0.3) / p.sigma)
+    lo, hi = chi2.ppf([0.005, 0.995], len(z))
+    assert lo < float(np.sum(np.square(z))) < hi, z
