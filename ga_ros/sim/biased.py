@@ -9,7 +9,8 @@ with ``xi ~ N(0, diag(sigma^2))``, so that the corrections ``k`` (``scale``) and
 Every ``fix_every`` nodes (the first included) a position fix ``p_true + N(0, fix_sigma_m^2 I)``
 enters as a :class:`~ga_ros.core.solver.GaussianPrior` of the position only; the first node
 also has the weak gauge prior of ``datum='fixes'`` (1000 m, 0.05 rad roll/pitch, 3 rad yaw) at
-its true pose.
+its true pose. :func:`biased_fixes` adds fix sources with an offset and a latency (the
+parameters of :mod:`ga_ros.core.calibration.fix_parameters`), one by one.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ import numpy as np
 import scipy.linalg as sla
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.calibration.fix_parameters import FixObservations
 from ga_ros.core.calibration.parameters import corrected_motions
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior
 from ga_ros.geometry import se3
@@ -87,3 +90,48 @@ def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 
     gauge = GaussianPrior.from_covariances([0], T[:1], np.diag(
         [1e6, 1e6, 1e6, 0.05 ** 2, 0.05 ** 2, 9.0])[None])
     return BiasedSurvey(T, net, dead, [gauge, fixes], dt, ['odom0'] * m)
+
+
+@dataclass(frozen=True)
+class FixSource:
+    """A simulated fix source with systematic errors (:func:`biased_fixes`).
+
+    Attributes
+    ----------
+    name : its ``source`` (``fix0``, ...).
+    every : a fix every this many keyframes, ``first`` the first one's keyframe.
+    sigma_m : its noise per axis (m), also its stated covariance.
+    offset_m : (3,) its constant offset ``b`` (m, map frame): ``p_fix = p_true + b``.
+    latency_s : its time offset ``tau`` (s): the fix stamped at a keyframe measured the
+        position ``tau`` earlier.
+    """
+
+    name: str
+    every: int = 10
+    first: int = 0
+    sigma_m: float = 0.5
+    offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    latency_s: float = 0.0
+
+
+def biased_fixes(rng: np.random.Generator, T_true: FloatArray, stamps_s: FloatArray,
+                 sources: list[FixSource]) -> FixObservations:
+    """Position fixes of ``sources`` on the keyframes of a path (``T_true`` (n, 4, 4) true
+    poses, ``stamps_s`` (n,) their stamps, increasing): each stamped at its keyframe, measuring
+    the position at ``stamp - latency_s`` (the true path interpolated linearly between
+    keyframes, clamped at its ends) plus the offset and ``N(0, sigma_m^2 I)``; no lever arm.
+    Returns the fixes one by one, in ``sources``' order."""
+    P = np.asarray(T_true, dtype=float)[:, :3, 3]
+    t = np.asarray(stamps_s, dtype=float)
+    terms, infos = [], []
+    for src in sources:
+        info = np.diag([src.sigma_m ** -2] * 3 + [0.0] * 3)
+        for k in range(src.first, t.size, src.every):
+            at = t[k] - src.latency_s
+            p = np.array([np.interp(at, t, P[:, i]) for i in range(3)])
+            T = np.eye(4)
+            T[:3, 3] = p + np.asarray(src.offset_m) + rng.normal(0.0, src.sigma_m, 3)
+            terms.append(FixTerm(k, np.eye(4), AbsoluteFix(int(round(t[k] * 1e9)), T, info,
+                                                           src.name)))
+            infos.append(info)
+    return FixObservations(terms, np.array(infos).reshape(-1, 6, 6), t)

@@ -64,6 +64,9 @@ BENCHMARKS: dict[str, Benchmark] = {
     'fusion': Benchmark('ga_ros.bench.fusion:main',
                         'simulated sources stated alike: each alone, fused, fused with '
                         'variance components'),
+    'fixcal': Benchmark('ga_ros.bench.fix_calibration:main',
+                        'Plaza odometry + fixes with a latency (and an offset source): the '
+                        "batch with and without the fix sources' offset and time offset"),
     'long': Benchmark('ga_ros.bench.long_survey:main',
                       'a long survey with a fix every track: late against early update time, '
                       'CPU, RSS per pose'),

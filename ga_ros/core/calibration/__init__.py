@@ -1,6 +1,7 @@
 """Self-calibration: systematic errors of the sources as additional parameters of the
 adjustment, estimated where the network determines them (:mod:`.parameters`: what each
-parameter corrects; :mod:`.batch`: the batch adjustment with them and their tests)."""
+odometry parameter corrects; :mod:`.fix_parameters`: what each fix-source parameter corrects;
+:mod:`.batch`: the batch adjustment with them and their tests)."""
 
 from ga_ros.core.calibration.batch import (
     AdditionalParameter,
@@ -8,6 +9,15 @@ from ga_ros.core.calibration.batch import (
     CalibrationReport,
     NoiseFactor,
     solve_with_calibration,
+)
+from ga_ros.core.calibration.fix_parameters import (
+    FIX_PARAMETERS,
+    FixObservations,
+    FixOffsetAxis,
+    TimeOffset,
+    book_observations,
+    fix_priors,
+    node_velocities,
 )
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
@@ -17,6 +27,8 @@ from ga_ros.core.calibration.parameters import (
     misclosure_jacobian,
 )
 
-__all__ = ['PARAMETERS', 'AdditionalParameter', 'CalibrationConfig', 'CalibrationReport',
-           'NoiseFactor', 'ScaleCorrection', 'YawRateCorrection', 'corrected_motions',
-           'misclosure_jacobian', 'solve_with_calibration']
+__all__ = ['FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter', 'CalibrationConfig',
+           'CalibrationReport', 'FixObservations', 'FixOffsetAxis', 'NoiseFactor',
+           'ScaleCorrection', 'TimeOffset', 'YawRateCorrection', 'book_observations',
+           'corrected_motions', 'fix_priors', 'misclosure_jacobian', 'node_velocities',
+           'solve_with_calibration']

@@ -1,5 +1,6 @@
 """Self-calibration in the batch adjustment: the additional parameters of each odometry source
-(:mod:`ga_ros.core.calibration.parameters`) estimated with the poses, where the network
+(:mod:`ga_ros.core.calibration.parameters`) and of each fix source
+(:mod:`ga_ros.core.calibration.fix_parameters`) estimated with the poses, where the network
 determines them.
 
 The joint adjustment. The unknowns are the poses ``x`` and the parameters ``c``; a connection
@@ -18,6 +19,17 @@ for the current ``c`` (``u_x = 0``), the step is ``dc = -H^-1 u_c``; the poses a
 again with the motions corrected by the new ``c`` (:func:`ga_ros.core.solver.solve`, warm from
 the last estimate). This is Gauss-Newton on the joint problem with the poses re-solved at every
 step (variable projection), and ``Q_cc = H^-1`` is the parameters' block of the joint inverse.
+A step that raises the joint cost (the adjustment's ``v' P v``) is halved, at most
+``_STEP_HALVINGS`` times; then the parameters stay where they are.
+
+A fix source's parameters (given the fixes one by one,
+:class:`~ga_ros.core.calibration.fix_parameters.FixObservations`) border the same matrix
+through the fixes: each fix's
+map-frame misclosure ``e = p_pred - p_corr(c)`` has ``A = de/dx`` the sensor Jacobian of its
+node (:func:`~ga_ros.core.fixes.sensor_jacobian`), ``E = de/dc`` the parameter's Jacobian and
+``W`` its information; the poses are solved with the fixes corrected by ``c`` (their weighted
+parameters rebuilt from the corrected positions). The odometry and fix parameters are one
+vector ``c``: they couple through the poses only.
 
 Which parameters are estimated (as data snooping decides which observation is an outlier:
 never estimate what the data cannot see). All candidates (every source x every parameter kind)
@@ -28,7 +40,10 @@ start free; then, one at a time, a parameter is fixed to zero with the reason re
    is below :attr:`CalibrationConfig.min_information_ratio` (odometry without fixes or loop
    closures: the poses absorb a scale or a heading drift completely);
 3. not separable: the condition number of ``H`` in correlation form exceeds
-   :attr:`CalibrationConfig.max_condition` (the parameter with the least information goes);
+   :attr:`CalibrationConfig.max_condition`: of the parameters in the near-dependency (the
+   eigenvector of the smallest eigenvalue), the one with the least information ratio goes
+   (two fix sources' offsets, of which only the difference is determined: the better
+   source's goes, and it stays the reference);
 4. not significant: ``|c_j| / (sigma0 sqrt(Q_cc,jj))`` (``sigma0^2`` the a-posteriori variance
    factor of the joint adjustment, redundancy ``r - p``) below the two-sided quantile of
    Student's t with ``r - p`` degrees of freedom at :attr:`CalibrationConfig.alpha` (the
@@ -74,6 +89,11 @@ where the part is poorly determined. The fixes, the priors and the connections w
 source keep their stated covariances (the factors are relative to them). The factors are
 reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
 
+Where fix parameters were candidates and none is estimated, the selection is run again
+without them, so the result is the adjustment without fix parameters bit for bit (the
+candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
+stated covariance stands).
+
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
 leave out the parameters' own uncertainty, ``N_xx^-1 N_xc Q_cc N_cx N_xx^-1``).
@@ -87,6 +107,16 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.calibration.fix_parameters import (
+    FIX_PARAMETERS,
+    FixObservations,
+    fix_jacobians,
+    fix_misclosures,
+    fix_parameter,
+    fix_priors,
+    fix_shift,
+    node_velocities,
+)
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
     corrected_motions,
@@ -102,6 +132,14 @@ from ga_ros.runtime import lazy_import
 
 stats = lazy_import('scipy.stats')  # the significance test only (start-up)
 
+#: A parameter takes part in a near-dependency of the parameters when its component of the
+#: eigenvector of the smallest eigenvalue (correlation form) is at least this share of the
+#: largest (step 3 of the module doc).
+_DEPENDENCY_SHARE = 0.1
+#: A parameter step that raises the joint cost is halved at most this many times (then the
+#: parameters stay where they are).
+_STEP_HALVINGS = 6
+
 
 @dataclass(frozen=True)
 class CalibrationConfig:
@@ -109,8 +147,19 @@ class CalibrationConfig:
 
     Attributes
     ----------
-    parameters : the parameter kinds estimated per source (:data:`PARAMETERS`:
+    parameters : the parameter kinds estimated per odometry source (:data:`PARAMETERS`:
         ``'scale'``, ``'yaw_rate'``).
+    fix_parameters : the parameter kinds estimated per fix source, when the fixes are given
+        one by one (:data:`~ga_ros.core.calibration.fix_parameters.FIX_PARAMETERS`:
+        ``'offset_x'``, ``'offset_y'``, ``'offset_z'``, ``'time_offset'``). By default the
+        time offset only: a receiver's latency is common and a moving robot's own fixes
+        determine it, while a constant offset is only seen against other absolute
+        information (a second fix source, a held node, a prior) and with a single fix source
+        the fixes define the map frame (docs/calibration.md, *Fix sources*). Where no fix
+        parameter is estimated the result is the one without fix parameters, bit for bit.
+    fix_reference : fix sources that define the frame: they get no offset (their time offset
+        stays a candidate). Without one, of two sources whose offsets only their difference
+        determines, the better one's is dropped (step 3).
     alpha : significance level of the two-sided test of each parameter (module doc, step 4):
         the probability of switching a parameter on when the source has no such error.
     min_information_ratio : a parameter whose information left after eliminating the poses is
@@ -136,6 +185,8 @@ class CalibrationConfig:
     """
 
     parameters: tuple[str, ...] = ('scale', 'yaw_rate')
+    fix_parameters: tuple[str, ...] = ('time_offset',)
+    fix_reference: tuple[str, ...] = ()
     alpha: float = 0.001
     min_information_ratio: float = 1e-6
     max_condition: float = 1e6
@@ -153,6 +204,8 @@ class CalibrationConfig:
     def __post_init__(self) -> None:
         for p in self.parameters:
             parameter(p)
+        for p in self.fix_parameters:
+            fix_parameter(p)
         if not 0.0 < self.alpha < 1.0:
             raise InputError(f'calibration alpha must be in (0, 1), got {self.alpha}')
         if not 0.0 < self.noise_alpha < 1.0:
@@ -302,22 +355,36 @@ def _plain(obj: AdditionalParameter | NoiseFactor) -> dict:
 
 @dataclass
 class _Candidates:
-    """The candidate parameters: ``(source, kind)`` and the connections each acts on."""
+    """The candidate parameters: ``(source, kind)``, the parameter (odometry:
+    :data:`~ga_ros.core.calibration.parameters.PARAMETERS`; fix:
+    :data:`~ga_ros.core.calibration.fix_parameters.FIX_PARAMETERS`) and the connections (or,
+    for a fix parameter, the fixes) it acts on."""
 
     sources: list[str]
     kinds: list[str]
     masks: list[np.ndarray]
+    params: list = field(default_factory=list)
+
+    def on_fixes(self, j: int) -> bool:
+        return self.params[j].on_fixes
 
 
-def _candidates(sources: Sequence[str | None], names: Sequence[str]) -> _Candidates:
-    src = np.array(['' if s is None else str(s) for s in sources], dtype=object)
+def _candidates(sources: Sequence[str | None], names: Sequence[str],
+                fix_sources: Sequence[str] = (), fix_names: Sequence[str] = (),
+                reference: Sequence[str] = ()) -> _Candidates:
     out = _Candidates([], [], [])
-    for s in sorted({str(s) for s in sources if s}):
-        mask = src == s
-        for k in names:
-            out.sources.append(s)
-            out.kinds.append(k)
-            out.masks.append(mask)
+    for srcs, kinds, table in ((sources, names, PARAMETERS), (fix_sources, fix_names,
+                                                               FIX_PARAMETERS)):
+        src = np.array(['' if s is None else str(s) for s in srcs], dtype=object)
+        for s in sorted({str(s) for s in srcs if s}):
+            mask = src == s
+            for k in kinds:
+                if table[k].datum and s in reference:
+                    continue
+                out.sources.append(s)
+                out.kinds.append(k)
+                out.masks.append(mask)
+                out.params.append(table[k])
     return out
 
 
@@ -325,8 +392,33 @@ def _per_connection(cand: _Candidates, values: FloatArray, m: int
                     ) -> tuple[FloatArray, FloatArray]:
     scale, yaw = np.zeros(m), np.zeros(m)
     for j, (kind, mask) in enumerate(zip(cand.kinds, cand.masks)):
-        (scale if kind == 'scale' else yaw)[mask] += values[j]
+        if not cand.on_fixes(j):
+            (scale if kind == 'scale' else yaw)[mask] += values[j]
     return scale, yaw
+
+
+@dataclass
+class _FixState:
+    """The fixes at one estimate of the poses: their node rows, velocities and the Jacobians
+    ``E`` (k, 6, c) of every candidate (zero for a non-fix candidate and for the fixes of
+    other sources)."""
+
+    rows: np.ndarray
+    velocity: FloatArray
+    E: FloatArray
+
+    @staticmethod
+    def at(obs: FixObservations | None, network: ConnectionNetwork, T: FloatArray,
+           cand: _Candidates) -> _FixState | None:
+        if obs is None or not len(obs):
+            return None
+        rows = obs.rows(network.node_ids)
+        v = node_velocities(T, obs.node_stamps_s)[rows]
+        E = np.zeros((len(obs), 6, len(cand.kinds)))
+        for j, par in enumerate(cand.params):
+            if par.on_fixes:
+                E[cand.masks[j], :, j] = fix_jacobians(obs, [par], v)[cand.masks[j], :, 0]
+        return _FixState(rows, v, E)
 
 
 @dataclass
@@ -339,40 +431,62 @@ class _Bordered:
 
 
 def _bordered(network: ConnectionNetwork, res: SolveResult, Tcorr: FloatArray,
-              dt_s: FloatArray, cand: _Candidates, active: list[int]) -> _Bordered:
+              dt_s: FloatArray, cand: _Candidates, active: list[int],
+              fixes: FixObservations | None = None, values: FloatArray | None = None
+              ) -> _Bordered:
+    """The reduced normal equations of the ``active`` parameters at the adjustment ``res``:
+    the connections of the odometry parameters (misclosures of the corrected motions
+    ``Tcorr``) and the fixes of the fix parameters (misclosures against the fixes corrected
+    by ``values``, the Jacobians ``E`` at the velocities of ``res``'s poses)."""
     arrays = network.arrays()
-    sel = np.zeros(len(arrays), bool)
-    for j in active:
-        sel |= cand.masks[j]
-    idx = np.nonzero(sel)[0]
     p = len(active)
-    T = res.T_world_node
-    src, dst = arrays.src[idx], arrays.dst[idx]
-    Tij = se3.relative(T[src], T[dst])
-    e = se3.log(se3.inverse(Tcorr[idx]) @ Tij)
-    Jr_inv = se3.right_jacobian_inv(e)
-    A_dst = Jr_inv
-    A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
-    E = np.zeros((idx.size, 6, p))
-    z = arrays.z[idx]
-    for a, j in enumerate(active):
-        rows = cand.masks[j][idx]
-        G = PARAMETERS[cand.kinds[j]].generator(Tcorr[idx][rows, :3, :3], z[rows, :3],
-                                                dt_s[idx][rows])
-        E[rows, :, a] = misclosure_jacobian(e[rows], G)
-    W = np.linalg.inv(arrays.cov[idx])
-    if res.weights is not None:
-        W = W * np.asarray(res.weights)[idx, None, None]
-    WE = W @ E
-    Ncc = np.einsum('mki,mkj->ij', E, WE)
-    g = np.einsum('mki,mk->i', E, (W @ e[:, :, None])[:, :, 0])
     free_ids = res.free_node_ids
     col = np.full(network.n_nodes, -1, dtype=np.int64)
     col[network.indices_of(free_ids)] = np.arange(free_ids.size)
+    Ncc = np.zeros((p, p))
+    g = np.zeros(p)
     Nxc = np.zeros((free_ids.size, 6, p))
-    for c, A in ((col[src], A_src), (col[dst], A_dst)):
+    odo = [a for a, j in enumerate(active) if not cand.on_fixes(j)]
+    sel = np.zeros(len(arrays), bool)
+    for a in odo:
+        sel |= cand.masks[active[a]]
+    idx = np.nonzero(sel)[0]
+    if idx.size:
+        T = res.T_world_node
+        src, dst = arrays.src[idx], arrays.dst[idx]
+        Tij = se3.relative(T[src], T[dst])
+        e = se3.log(se3.inverse(Tcorr[idx]) @ Tij)
+        Jr_inv = se3.right_jacobian_inv(e)
+        A_dst = Jr_inv
+        A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
+        E = np.zeros((idx.size, 6, p))
+        z = arrays.z[idx]
+        for a in odo:
+            j = active[a]
+            rows = cand.masks[j][idx]
+            G = PARAMETERS[cand.kinds[j]].generator(Tcorr[idx][rows, :3, :3], z[rows, :3],
+                                                    dt_s[idx][rows])
+            E[rows, :, a] = misclosure_jacobian(e[rows], G)
+        W = np.linalg.inv(arrays.cov[idx])
+        if res.weights is not None:
+            W = W * np.asarray(res.weights)[idx, None, None]
+        WE = W @ E
+        Ncc += np.einsum('mki,mkj->ij', E, WE)
+        g += np.einsum('mki,mk->i', E, (W @ e[:, :, None])[:, :, 0])
+        for c, A in ((col[src], A_src), (col[dst], A_dst)):
+            keep = c >= 0
+            np.add.at(Nxc, c[keep], (np.swapaxes(A, 1, 2) @ WE)[keep])
+    if fixes is not None and len(odo) < p:
+        fs = _FixState.at(fixes, network, res.T_world_node, cand)
+        Ef = fs.E[:, :, active]
+        ef, Af = fix_misclosures(fixes, res.T_world_node, fs.rows,
+                                 fix_shift(fs.E, values))
+        WE = fixes.information @ Ef
+        Ncc += np.einsum('mki,mkj->ij', Ef, WE)
+        g += np.einsum('mki,mk->i', Ef, (fixes.information @ ef[:, :, None])[:, :, 0])
+        c = col[fs.rows]
         keep = c >= 0
-        np.add.at(Nxc, c[keep], (np.swapaxes(A, 1, 2) @ WE)[keep])
+        np.add.at(Nxc, c[keep], (np.swapaxes(Af, 1, 2) @ WE)[keep])
     Nxc = Nxc.reshape(-1, p)
     Z = res.solve_normal(Nxc)
     H = Ncc - Nxc.T @ Z
@@ -384,9 +498,11 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
                            config: SolverConfig | None = None,
                            fixed: Sequence[int] | None = None,
                            priors: Sequence[GaussianPrior] = (),
-                           calibration: CalibrationConfig | None = None
+                           calibration: CalibrationConfig | None = None,
+                           fixes: FixObservations | None = None
                            ) -> tuple[SolveResult, CalibrationReport]:
-    """The batch adjustment with each odometry source's additional parameters (module doc).
+    """The batch adjustment with each odometry source's and each fix source's additional
+    parameters (module doc).
 
     Parameters
     ----------
@@ -398,6 +514,14 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         non-finite or negative one counts as 0 (no yaw-rate correction).
     config, fixed, priors : as :func:`ga_ros.core.solver.solve`.
     calibration : which parameters, and the tests (:class:`CalibrationConfig`).
+    fixes : the absolute fixes one by one
+        (:class:`~ga_ros.core.calibration.fix_parameters.FixObservations`), for their
+        sources' parameters
+        (:attr:`CalibrationConfig.fix_parameters`): they enter as the weighted parameters
+        of :func:`~ga_ros.core.calibration.fix_parameters.fix_priors` before ``priors``
+        (which must then not hold them again): as measured, linearised at ``T_init``, while
+        no fix parameter is non-zero; corrected, linearised at the poses each adjustment
+        starts from, otherwise. None: the fixes are in ``priors`` and have no parameters.
 
     Returns
     -------
@@ -415,16 +539,34 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     if dt.size != m:
         raise InputError(f'solve_with_calibration: {dt.size} durations for {m} connections')
     dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
-    cand = _candidates(sources, cal.parameters)
-    res, net, report = _select(network, np.asarray(T_init, dtype=float), cand, dt, config,
-                               fixed, priors, cal)
-    if not (cal.noise and report.estimated()):
+    fix_base = ([] if fixes is None else
+                fix_priors(fixes, np.asarray(T_init, dtype=float), network.node_ids))
+    cand = _candidates(sources, cal.parameters, fixes.sources if fixes is not None else (),
+                       cal.fix_parameters, cal.fix_reference)
+    res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
+                                     config, fixed, priors, cal, fixes=fixes,
+                                     fix_base=fix_base)
+    fix_report = []
+    n_odo = sum(not p.on_fixes for p in cand.params)
+    if n_odo < len(cand.params) and not any(p.estimated for p in report.parameters[n_odo:]):
+        # no fix parameter estimated: the adjustment without them, bit for bit (the drops
+        # re-solved from warm starts), with their reasons kept
+        fix_report = report.parameters[n_odo:]
+        cand = _Candidates(cand.sources[:n_odo], cand.kinds[:n_odo], cand.masks[:n_odo],
+                           cand.params[:n_odo])
+        solves = report.solves
+        res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
+                                         config, fixed, priors, cal, fixes=fixes,
+                                     fix_base=fix_base)
+        report.solves += solves
+    parts = _noise_parts(cand, report, arrays.cov)
+    if not (cal.noise and parts):
+        report.parameters += fix_report
         return res, report
     # the noise of the calibrated sources (module doc)
     solves = report.solves
-    parts = _noise_parts(cand, report, arrays.cov)
     factors = np.ones(len(parts))
-    noise = _noise_factors(net, res, priors, parts, factors, cal)
+    noise = _noise_factors(net, res, used, parts, factors, cal)
     for f in noise:
         _test_stated(f, cal)
     stated = noise
@@ -441,28 +583,31 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         if np.all(np.abs(new / factors - 1.0) < cal.noise_tolerance):
             break
         last, factors = factors, new
-        res, net, report = _select(_scaled(network, parts, factors), res.T_world_node,
-                                   cand, dt, config, fixed, priors, cal, report)
+        res, net, used, report = _select(_scaled(network, parts, factors), res.T_world_node,
+                                         cand, dt, config, fixed, priors, cal, report, fixes,
+                                         fix_base)
         solves += report.solves
         iterations += 1
-        noise = _noise_factors(net, res, priors, parts, factors, cal)
+        noise = _noise_factors(net, res, used, parts, factors, cal)
         lost = ~held & (np.array([f.redundancy for f in noise]) < cal.noise_min_redundancy)
         if lost.any():
             # re-weighting took a part's redundancy below the minimum: it keeps the factor at
             # which it was last determined, and the others go on from there
             held |= lost
             factors = np.where(lost, last, factors)
-            res, net, report = _select(_scaled(network, parts, factors), res.T_world_node,
-                                       cand, dt, config, fixed, priors, cal, report)
+            res, net, used, report = _select(_scaled(network, parts, factors),
+                                             res.T_world_node, cand, dt, config, fixed,
+                                             priors, cal, report, fixes, fix_base)
             solves += report.solves
             iterations += 1
-            noise = _noise_factors(net, res, priors, parts, factors, cal)
+            noise = _noise_factors(net, res, used, parts, factors, cal)
     for f, f0, h in zip(noise, stated, held):
         f.stated_ratio, f.quantiles, f.applied = f0.stated_ratio, f0.quantiles, f0.applied
         f.held = bool(h and f0.applied)
     report.noise = noise
     report.noise_iterations = iterations
     report.solves = solves
+    report.parameters += fix_report
     return res, report
 
 
@@ -493,12 +638,13 @@ class _NoisePart:
 
 def _noise_parts(cand: _Candidates, report: CalibrationReport, cov: FloatArray
                  ) -> list[_NoisePart]:
-    """Per source with an estimated parameter: a translation and a rotation part where its
+    """Per odometry source with an estimated parameter (a fix source keeps its stated
+    covariance): a translation and a rotation part where its
     stated covariances do not correlate the two, else one part for the whole covariance."""
     out: list[_NoisePart] = []
     done: set[str] = set()
-    for par, src, mask in zip(report.parameters, cand.sources, cand.masks):
-        if not par.estimated or src in done:
+    for j, (par, src, mask) in enumerate(zip(report.parameters, cand.sources, cand.masks)):
+        if not par.estimated or src in done or cand.on_fixes(j):
             continue
         done.add(src)
         if np.any(cov[mask][:, :3, 3:] != 0.0):
@@ -550,52 +696,66 @@ def _noise_factors(net: ConnectionNetwork, res: SolveResult, priors: Sequence[Ga
 def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, dt: FloatArray,
             config: SolverConfig | None, fixed: Sequence[int] | None,
             priors: Sequence[GaussianPrior], cal: CalibrationConfig,
-            start: CalibrationReport | None = None
-            ) -> tuple[SolveResult, ConnectionNetwork, CalibrationReport]:
+            start: CalibrationReport | None = None, fixes: FixObservations | None = None,
+            fix_base: Sequence[GaussianPrior] = ()
+            ) -> tuple[SolveResult, ConnectionNetwork, list[GaussianPrior], CalibrationReport]:
     """Which parameters are determined and significant, and their estimates (module doc,
     steps 1-4), with the covariances of ``network``: the adjustment, the corrected network
-    it solved and the report. ``start``: the parameters' values to start from (those of
-    an adjustment with other weights, whose poses ``T_init`` are; else 0)."""
+    and the priors (the corrected fixes', then ``priors``) it solved, and the report.
+    ``start``: the parameters' values to start from (those of an adjustment with other
+    weights, whose poses ``T_init`` are; else 0). ``fix_base``: the fixes' priors as
+    measured (linearised at the caller's initial poses), used while no fix parameter is
+    non-zero."""
     arrays = network.arrays()
     m = len(arrays)
     n_c = len(cand.kinds)
+    on_fixes = np.array([cand.on_fixes(j) for j in range(n_c)], dtype=bool)
     report = CalibrationReport(
-        [AdditionalParameter(s, k, PARAMETERS[k].unit) for s, k in zip(cand.sources, cand.kinds)],
-        alpha=cal.alpha)
+        [AdditionalParameter(s, k, par.unit)
+         for s, k, par in zip(cand.sources, cand.kinds, cand.params)], alpha=cal.alpha)
     values = np.zeros(n_c)
     if start is not None:
         values[:] = [p.value for p in start.parameters]
+    fs0 = _FixState.at(fixes, network, T_init, cand)
     active = []
     for j in range(n_c):
-        if np.any(PARAMETERS[cand.kinds[j]].acts_on(arrays.z[cand.masks[j]],
-                                                     dt[cand.masks[j]]) > 0):
+        mask = cand.masks[j]
+        acts = (cand.params[j].acts_on(fixes.known[mask], fs0.velocity[mask]) if on_fixes[j]
+                else cand.params[j].acts_on(arrays.z[mask], dt[mask]))
+        if np.any(acts > 0):
             active.append(j)
         else:
             values[j] = 0.0
-            report.parameters[j].reason = ('no motion it acts on (no translation)'
-                                           if cand.kinds[j] == 'scale' else
-                                           'no motion it acts on (no durations: stamps?)')
-    solved = [network]
+            report.parameters[j].reason = cand.params[j].unobserved
+    solved: list = [network, list(priors)]
 
     def adjust(T0: FloatArray) -> tuple[SolveResult, FloatArray]:
         Tcorr = corrected_motions(arrays.z, dt, *_per_connection(cand, values, m))
-        net = network if not values.any() else ConnectionNetwork.from_arrays(
+        net = network if not values[~on_fixes].any() else ConnectionNetwork.from_arrays(
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
             se3.to_translation_rotvec(Tcorr), arrays.cov)
-        solved[0] = net
+        used = list(priors)
+        if fixes is not None and values[on_fixes].any():
+            shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
+            used = fix_priors(fixes, T0, network.node_ids, shift) + used
+        elif fixes is not None:
+            used = list(fix_base) + used
+        solved[:] = [net, used]
         report.solves += 1
-        return solve(net, T0, config, fixed=fixed, priors=priors), Tcorr
+        return solve(net, T0, config, fixed=fixed, priors=used), Tcorr
 
     res, Tcorr = adjust(T_init)
 
     def drop(j: int, reason: str) -> None:
+        nonlocal stalled
+        stalled = False
         active.remove(j)
         values[j] = 0.0
         report.parameters[j].reason = reason
 
-    steps = 0
+    steps, stalled = 0, False
     while active:
-        b = _bordered(network, res, Tcorr, dt, cand, active)
+        b = _bordered(network, res, Tcorr, dt, cand, active, fixes, values)
         ratio = np.diag(b.H) / np.maximum(b.Ncc_diag, np.finfo(float).tiny)
         for a, j in enumerate(active):
             report.parameters[j].information_ratio = float(ratio[a])
@@ -603,7 +763,7 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         if ratio[worst] < cal.min_information_ratio:
             had = values.any()
             drop(active[worst], f'not determined by the network: {ratio[worst]:.1e} of its '
-                 'information is left after the poses (no fixes or loop closures that see it)')
+                 f'information is left after the poses ({cand.params[active[worst]].unseen})')
             if had:
                 res, Tcorr = adjust(res.T_world_node)
             steps = 0
@@ -611,8 +771,15 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         d = np.sqrt(np.diag(b.H))
         cond = np.linalg.cond(b.H / np.outer(d, d))
         if cond > cal.max_condition:
+            # the least informed of the parameters in the near-dependency (the eigenvector
+            # of the smallest eigenvalue), so that two offsets that only their difference
+            # determines do not take an independent third one with them
+            u = np.abs(np.linalg.eigh(b.H / np.outer(d, d))[1][:, 0])
+            part = u >= _DEPENDENCY_SHARE * u.max()
+            worst = int(np.argmin(np.where(part, ratio, np.inf)))
             j = active[worst]
-            others = ', '.join(f'{cand.sources[k]} {cand.kinds[k]}' for k in active if k != j)
+            others = ', '.join(f'{cand.sources[k]} {cand.kinds[k]}'
+                               for a, k in enumerate(active) if k != j and part[a])
             drop(j, f'not separable from {others} (condition number {cond:.1e})')
             res, Tcorr = adjust(res.T_world_node)
             steps = 0
@@ -620,10 +787,20 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         Q = np.linalg.inv(b.H)
         dc = -Q @ b.g
         sig = np.sqrt(np.diag(Q))
-        converged = bool(np.all(np.abs(dc) <= cal.tolerance * sig))
+        converged = stalled or bool(np.all(np.abs(dc) <= cal.tolerance * sig))
         if not converged and steps < cal.max_iterations:
-            values[active] += dc
-            res, Tcorr = adjust(res.T_world_node)
+            old, kept = values[active].copy(), (res, Tcorr, list(solved))
+            for _ in range(_STEP_HALVINGS + 1):
+                values[active] = old + dc
+                res, Tcorr = adjust(kept[0].T_world_node)
+                if res.cost <= kept[0].cost * (1.0 + 1e-9):
+                    break
+                dc = 0.5 * dc  # a step that raised the cost: backtrack
+            else:
+                # no step along dc lowers the cost: the parameters stay where they are
+                values[active] = old
+                res, Tcorr, solved[:] = kept
+                stalled = True
             steps += 1
             report.iterations += 1
             continue
@@ -658,4 +835,4 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         if par.estimated:
             par.reason = ''
     report.sigma0_sq = float(res.sigma0_sq)
-    return res, solved[0], report
+    return res, solved[0], solved[1], report

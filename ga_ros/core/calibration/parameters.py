@@ -21,6 +21,7 @@ by ``de/dx = -J_l(e)^-1 G`` (:func:`misclosure_jacobian`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -43,6 +44,10 @@ class ScaleCorrection:
 
     name: str = 'scale'
     unit: str = '1'
+    on_fixes: ClassVar[bool] = False
+    datum: ClassVar[bool] = False
+    unobserved: ClassVar[str] = 'no motion it acts on (no translation)'
+    unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 
     def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
         """(m,) how much each motion tells about the parameter (its translation, m)."""
@@ -61,6 +66,10 @@ class YawRateCorrection:
 
     name: str = 'yaw_rate'
     unit: str = 'rad/s'
+    on_fixes: ClassVar[bool] = False
+    datum: ClassVar[bool] = False
+    unobserved: ClassVar[str] = 'no motion it acts on (no durations: stamps?)'
+    unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 
     def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
         """(m,) how much each motion tells about the parameter (its duration, s)."""
