@@ -169,14 +169,15 @@ def calibration_lines(cal: dict, what: str = 'final batch') -> list[str]:
     if not params:
         return []
     lines = [f"calibration ({what}; test alpha {cal['alpha']:g}; scale: t_true = (1 + k) "
-             't_meas; yaw_rate: correction added to the yaw rate, rad/s):']
+             't_meas; yaw_rate: correction added to the yaw rate, rad/s; time_offset: a '
+             "fix's latency, s; offset_x/y/z: a fix source's offset in map, m):"]
     for p in params:
         if p['estimated']:
             text = (f"{p['value']:.6g} +- {p['sigma']:.2g} {p['unit']} "
                     f"(|t| {p['test']:.1f})")
         else:
             text = f"not estimated ({p['reason']})"
-        lines.append(f"  {p['source']:<12} {p['name']:<9} {text}")
+        lines.append(f"  {p['source']:<12} {p['name']:<11} {text}")
     for f in cal.get('noise', []):
         if f['applied']:
             text = (f"variance factor {f['factor']:.3g} +- {f['sigma']:.2g} applied "
@@ -184,7 +185,7 @@ def calibration_lines(cal: dict, what: str = 'final batch') -> list[str]:
                     f"{f['redundancy']:.1f})")
         else:
             text = f"stated covariance kept (redundancy {f['redundancy']:.1f})"
-        lines.append(f"  {f['source']:<12} {f['part'] + ' noise':<9} {text}")
+        lines.append(f"  {f['source']:<12} {f['part'] + ' noise':<11} {text}")
     return lines
 
 

@@ -21,7 +21,12 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
-from ga_ros.core.calibration import CalibrationConfig, CalibrationReport, solve_with_calibration
+from ga_ros.core.calibration import (
+    CalibrationConfig,
+    CalibrationReport,
+    book_observations,
+    solve_with_calibration,
+)
 from ga_ros.core.fixes import (
     FixStats,
     FixTerm,
@@ -776,7 +781,9 @@ class TrackWindowAligner:
         the later window updates, keep their stated values.
 
         With ``calibration``, each odometry source's additional parameters (scale, yaw rate)
-        are estimated with the adjustment where the network determines them
+        and each fix source's (:attr:`CalibrationConfig.fix_parameters`: time offset, offsets;
+        the fixes then enter one by one) are estimated with the adjustment where the network
+        determines them
         (:func:`~ga_ros.core.calibration.solve_with_calibration`; the sources of the
         consecutive motions from ``variance_groups`` if given, else one source ``motion``;
         cross-track connections get none) and :attr:`calibration` reports them; the refined
@@ -820,15 +827,21 @@ class TrackWindowAligner:
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             stamp = st.stamp.astype(np.float64)
             dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
+            # the fixes one by one for their sources' parameters (offset, time offset): their
+            # priors are the book's bit for bit, so nothing changes where none is estimated
+            fix_obs = (book_observations(st.fixes, np.arange(n), stamp[:n] * 1e-9)
+                       if calibration.fix_parameters and st.fixes.terms else None)
         elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
 
         def adjust(T0: FloatArray, priors: list) -> SolveResult:
             """One adjustment from ``T0`` with the fixes' priors ``priors``."""
             if calibration is not None:
+                if fix_obs is not None:   # the fixes as observations, the gauge a prior
+                    priors = [p for p in priors if p.weak]
                 res, self.calibration = solve_with_calibration(
                     net, T0, sources, dt_s, scfg, fixed=fixed, priors=priors,
-                    calibration=calibration)
+                    calibration=calibration, fixes=fix_obs)
                 return res
             if variance_groups is None:
                 return solve(net, T0, scfg, fixed=fixed, priors=priors)
