@@ -35,6 +35,11 @@ without one), with a covariance that grows with the gap's duration
 (:meth:`GapConfig.bridge_sigmas`). The bridge gives the piece after the gap a stated datum while
 the aligner's maths stay unchanged; its weight is negligible against any real connection.
 
+After a restart of the alignment node, the session bridges the first new keyframe at once; when
+the odometry went on across the restart that motion is measured instead
+(:mod:`ga_ros.pipeline.session.restore`, :meth:`GapHealer.bridge_origin` and the ``restart_*``
+settings of :class:`GapConfig`): an ordinary measurement, which joins.
+
 Joined nodes: every node connected to the datum (the first node) or to a node with an absolute
 fix (:meth:`GapHealer.anchor`) through real connections (not bridges) is *joined*; the others hang
 off a bridge and are *not yet joined* (:meth:`GapHealer.unjoined`). A later real connection (a
