@@ -35,6 +35,11 @@ without one), with a covariance that grows with the gap's duration
 (:meth:`GapConfig.bridge_sigmas`). The bridge gives the piece after the gap a stated datum while
 the aligner's maths stay unchanged; its weight is negligible against any real connection.
 
+After a restart of the alignment node, the session bridges the first new keyframe at once; when
+the odometry went on across the restart that motion is measured instead
+(:mod:`ga_ros.pipeline.session.restore`, :meth:`GapHealer.bridge_origin` and the ``restart_*``
+settings of :class:`GapConfig`): an ordinary measurement, which joins.
+
 Joined nodes: every node connected to the datum (the first node) or to a node with an absolute
 fix (:meth:`GapHealer.anchor`) through real connections (not bridges) is *joined*; the others hang
 off a bridge and are *not yet joined* (:meth:`GapHealer.unjoined`). A later real connection (a
@@ -77,6 +82,16 @@ class GapConfig:
         (the difference of stamps between the last node before the gap and the bridged node).
     bridge_max_sigma_m, bridge_max_sigma_rad : caps of the two standard deviations (the aligner
         refuses covariances above its ``cov_max_eigenvalue``, 1e6 by default).
+    restart_sigma_m, restart_sigma_rad : standard deviation (m, rad per axis) added to the
+        odometry's own noise of a *measured* bridge across a restart of the alignment node (the
+        odometry went on: its motion over the downtime is measured,
+        :mod:`ga_ros.pipeline.session.restore`).
+    restart_max_speed_mps, restart_max_rate_rad_per_s : a motion over the downtime implying a
+        faster mean speed or turn rate means the odometry restarted too (its ``odom`` frame
+        reset): the bridge is then the constant-velocity guess.
+    restart_origin_m, restart_origin_rad : the odometry's first pose after the restart within
+        this distance and angle of its own origin, while the saved state places it further from
+        its last node, also means the odometry restarted.
     """
 
     enabled: bool = True
@@ -88,10 +103,22 @@ class GapConfig:
     bridge_growth_rad_per_s: float = 0.1
     bridge_max_sigma_m: float = 700.0
     bridge_max_sigma_rad: float = 1.5
+    restart_sigma_m: float = 0.05
+    restart_sigma_rad: float = 0.01
+    restart_max_speed_mps: float = 10.0
+    restart_max_rate_rad_per_s: float = 3.0
+    restart_origin_m: float = 0.5
+    restart_origin_rad: float = 0.2
 
     def __post_init__(self) -> None:
         if self.wait_measurements < 1 or not self.wait_sec >= 0:
             raise InputError('wait_measurements must be >= 1 and wait_sec >= 0')
+        restart = (self.restart_sigma_m, self.restart_sigma_rad, self.restart_max_speed_mps,
+                   self.restart_max_rate_rad_per_s, self.restart_origin_m,
+                   self.restart_origin_rad)
+        if not all(math.isfinite(s) and s > 0 for s in restart):
+            raise InputError('restart_* settings of the gaps must be positive and finite, got '
+                             f'{restart}')
         sig = (self.bridge_sigma_m, self.bridge_sigma_rad, self.bridge_max_sigma_m,
                self.bridge_max_sigma_rad)
         if not all(math.isfinite(s) and s > 0 for s in sig) or not (
@@ -358,18 +385,28 @@ class GapHealer:
         if src_track == dst_track and dt > 0:
             self._last_motion[dst_track] = (np.asarray(z, dtype=float), dt)
 
-    def bridge_to(self, m: Measurement) -> Measurement | None:
-        """The bridge that lets ``m`` (whose two ends are unknown) in: from the last node of its
-        source's track (of the open track if its source starts a new one) to its source node;
-        ``None`` if there is no such node."""
+    def bridge_origin(self, m: Measurement) -> tuple[int, int, int] | None:
+        """``(node id, track id, stamp ns)`` of the node a bridge letting ``m`` in starts from:
+        the last node of its source's track (of the open track if its source starts a new
+        one); ``None`` if there is no such node."""
         track = int(m.src_track)
         last = self._last_node.get(track)
         if last is None and self.open_track is not None and track > self.open_track:
             last = self._last_node.get(self.open_track)
         if last is None:
             return None
-        a, stamp_a = last
         track_a = int(self.open_track if track not in self._last_node else track)
+        return int(last[0]), track_a, int(last[1])
+
+    def bridge_to(self, m: Measurement) -> Measurement | None:
+        """The bridge that lets ``m`` (whose two ends are unknown) in, from
+        :meth:`bridge_origin` to its source node, predicted at constant velocity; ``None`` if
+        there is no node to start from."""
+        origin = self.bridge_origin(m)
+        if origin is None:
+            return None
+        a, track_a, stamp_a = origin
+        track = int(m.src_track)
         motion = self._last_motion.get(track_a)
         period = motion[1] if motion is not None else 0
         # the stamp is the destination's; its source came about one frame period earlier

@@ -483,6 +483,10 @@ class OdometryInput:
         """(4, 4) ``T_odom_kf`` of a keyframe."""
         return self._kf_poses[self._kf_index(node_id)].copy()
 
+    def keyframe_stamp(self, node_id: int) -> int:
+        """The stamp (ns) of a keyframe."""
+        return int(self._kf_stamps[self._kf_index(node_id)])
+
     @property
     def keyframe_ids(self) -> tuple[int, int]:
         """``(first, end)``: the keyframes' node ids are ``first .. end - 1`` (consecutive; an

@@ -384,6 +384,11 @@ class InputFrontEnd:
         """
         return self._primary().keyframe_pose(node_id)
 
+    def keyframe_stamp(self, node_id: int) -> int:
+        """The stamp (ns) of the first input's keyframe ``node_id`` (raises
+        :class:`InputError` as :meth:`keyframe_pose`)."""
+        return self._primary().keyframe_stamp(node_id)
+
     def latest_pose(self) -> FloatArray | None:
         """(4, 4) newest ``T_odom_base`` of the first input (None before any sample)."""
         return self._primary().latest_pose()

@@ -323,9 +323,10 @@ def test_absolute_fixes_live_parameters_and_effect(ctx):
 def test_a_restarted_node_fed_live_odometry_continues_the_survey(ctx, tmp_path):
     """Killed in the middle of a drive and started again on its state, the node hears the live
     odometry go on (no history re-delivered): its keyframes are numbered after the restored
-    ones, on a new track whose first node is bridged to the state's newest at once, so the
-    survey goes on: every restored node kept where it was, nothing moved aside, and
-    ``map -> odom`` composes the new odometry with the new nodes' corrected poses."""
+    ones, on a new track whose first node is bridged to the state's newest at once (measured:
+    the odometry went on), so the survey goes on: every restored node kept where it was,
+    nothing moved aside, and ``map -> odom`` composes the new odometry with the new nodes'
+    corrected poses."""
     msgs = odom_msgs(240)
     state = str(tmp_path / 'state')
     first = _node(AlignmentNode, ctx, state_file=state)
@@ -349,9 +350,10 @@ def test_a_restarted_node_fed_live_odometry_continues_the_survey(ctx, tmp_path):
         ids = [int(i) for i in cp.node_ids]
         # every restored node kept, the new keyframes numbered after them
         assert ids == list(range(n_before + 12)), ids
-        assert node.session.counts.bridges == 1
-        # the new piece hangs off the bridge (the motion across the restart never measured)
-        assert node.diagnostic_values()['unjoined_nodes'] == 12
+        # the odometry's motion across the restart joins the new piece (no guessed bridge)
+        assert node.session.counts.bridges == 0
+        assert node.diagnostic_values()['unjoined_nodes'] == 0
+        assert node.diagnostic_values()['restart_bridge'] == 'measured'
         assert int(cp.track_ids[n_before]) == int(before.track_ids.max()) + 1
         # the restored nodes did not move (frozen or adjusted with the new ones: within 1 mm
         # of where the first run left them, the bridge weighing nothing against the odometry)
@@ -397,11 +399,94 @@ def test_a_restarted_node_sends_the_saved_map_to_odom_until_its_first_update(ctx
             node._on_input('odom0', msg)
         node._srv_finish_track(Trigger.Request(), Trigger.Response())
         assert node.odom.placed_by == 'aligner'
-        # the odometry went on without a gap: the bridge predicts the motion across the
-        # restart (constant velocity, within one 0.1 m odometry step), and the new correction
-        # stays that close to the saved one
+        # the odometry went on without a gap: the bridge measures the motion across the
+        # restart, and the new correction is the saved one (the odometry is exact here)
         d = se3.inverse(T_before) @ node.odom.T_map_odom
-        assert 0 < np.linalg.norm(d[:3, 3]) < 0.15
-        np.testing.assert_allclose(d[:3, :3], np.eye(3), atol=1e-6)
+        assert np.linalg.norm(d[:3, 3]) < 1e-6
+        np.testing.assert_allclose(d[:3, :3], np.eye(3), atol=1e-9)
+    finally:
+        node.destroy_node()
+
+
+def _moved(msgs: list, T: np.ndarray) -> list:
+    """The odometry messages ``msgs`` with their poses put behind ``T`` (``T @ pose``)."""
+    for msg in msgs:
+        p = msg.pose.pose
+        P = T @ pose_to_matrix(p)
+        p.position.x, p.position.y, p.position.z = (float(v) for v in P[:3, 3])
+        q = se3.quat_from_matrix(P[:3, :3])
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v)
+                                                                              for v in q)
+    return msgs
+
+
+def _killed_mid_drive(ctx, state: str, msgs: list) -> np.ndarray:
+    """A node on ``state`` fed ``msgs`` and killed (no clean shutdown); its last
+    ``T_map_odom``."""
+    first = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        for msg in msgs:
+            first._on_input('odom0', msg)
+        assert first.session.counts.updates >= 1 and first.odom.placed_by == 'aligner'
+        return first.odom.T_map_odom.copy()
+    finally:
+        first.destroy_node()
+
+
+def test_a_node_restarted_while_the_robot_turned_and_drove_measures_the_motion(ctx, tmp_path):
+    """Killed mid-drive; during the 4 s downtime the robot drove round a corner (the
+    odometry's messages of the downtime are never heard: the restarted node hears the odometry
+    go on from a later pose). The restarted node measures the motion across the restart from
+    its saved ``map -> odom`` and the odometry's pose: the new nodes lie on the odometry
+    composed with the saved correction (the truth here: the odometry is exact), the new piece
+    is joined, and ``map -> odom`` after the first update is the saved one (the guess, straight
+    on at constant velocity, puts the new piece ~10 m off and moves it)."""
+    T0 = se3.from_translation_rotvec(np.array([4.0, -3.0, 0.0]), np.array([0.0, 0.0, 0.8]))
+    msgs = _moved(odom_msgs(260), T0)
+    state = str(tmp_path / 'state')
+    T_before = _killed_mid_drive(ctx, state, msgs[:120])
+    node = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        restored = node.aligner.corrected_path()
+        for msg in msgs[160:]:   # 120..159 (the turn at 149) lost in the downtime
+            node._on_input('odom0', msg)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        values = node.diagnostic_values()
+        assert values['restart_bridge'] == 'measured' and values['unjoined_nodes'] == 0
+        assert values['bridges'] == 0 and node.session.counts.rejected == {}
+        assert node.odom.placed_by == 'aligner' and node.odom.jumps_warned == 0
+        cp = node.aligner.corrected_path()
+        n = len(restored.node_ids)
+        assert len(cp.node_ids) - n >= 9
+        for node_id, T_map in zip(cp.node_ids[n:], cp.T_world_node[n:]):
+            np.testing.assert_allclose(T_map, T_before @ node.front.keyframe_pose(int(node_id)),
+                                       atol=1e-6)
+        np.testing.assert_allclose(node.odom.T_map_odom, T_before, atol=1e-6)
+        assert node.odom.last_jump_m < 1e-6
+    finally:
+        node.destroy_node()
+
+
+def test_a_node_restarted_with_its_odometry_guesses_the_bridge_and_warns(ctx, tmp_path, capfd):
+    """The odometry restarted too (its poses start again from the identity, in a new
+    ``odom``): the restarted node cannot measure the motion across the restart, bridges by the
+    guess as before, says why in a WARN and in /diagnostics, and the survey goes on."""
+    msgs = odom_msgs(260)
+    state = str(tmp_path / 'state')
+    _killed_mid_drive(ctx, state, msgs[:120])
+    node = _node(AlignmentNode, ctx, state_file=state)
+    try:
+        restart = se3.inverse(pose_to_matrix(msgs[160].pose.pose))
+        for msg in _moved(msgs[160:], restart):
+            node._on_input('odom0', msg)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        values = node.diagnostic_values()
+        assert values['restart_bridge'].startswith('guessed: ')
+        assert 'restarted too' in values['restart_bridge']
+        assert values['bridges'] == 1 and values['unjoined_nodes'] > 0
+        assert node.session.counts.rejected == {} and node.session.counts.accepted >= 9
+        assert node.odom.placed_by == 'aligner'
+        err = capfd.readouterr().err
+        assert '[WARN]' in err and 'bridged to the restored survey by a guess' in err
     finally:
         node.destroy_node()

@@ -39,8 +39,10 @@ Besides measurements, the journal holds every other change of state, in order:
   idle timeout; a track ended by the next track's first measurement needs no record);
 * the map frame's geodetic datum (:class:`Datum`), once known;
 * the ``map -> odom`` correction after each window update that changed it (:class:`MapOdom`,
-  kind ``map_odom``, ``cov``'s first 12 values ``T_map_odom[:3, :4]``): a node restarted on the
-  state sends the last one until its first update (:attr:`RecoveryResult.map_odom`).
+  kind ``map_odom``, ``cov``'s first 12 values ``T_map_odom[:3, :4]``, ``src_id`` the newest
+  node then and ``cov``'s next 12 values its pose): a node restarted on the state sends the last
+  one until its first update (:attr:`RecoveryResult.map_odom`) and, with the odometry's pose,
+  measures the motion across the restart (:mod:`ga_ros.pipeline.session.restore`).
 
 What is done with damage:
 

@@ -66,9 +66,17 @@ class Datum:
 class MapOdom:
     """The REP 105 correction a window update gave: ``T_map_odom`` (4, 4), ``odom`` the first
     standard input's odometry frame. The node restarted on a state sends it until its first
-    update (:meth:`ga_ros.pipeline.map_to_odom.MapToOdom.restore`) instead of the identity."""
+    update (:meth:`ga_ros.pipeline.map_to_odom.MapToOdom.restore`) instead of the identity.
+
+    ``node_id`` and ``T_map_node`` (4, 4): the aligner's newest node when it was journaled and
+    its pose then (``-1`` / ``None``: not given). A restart checks that node's restored pose
+    against it: equal, the state did not move since, and the restored ``T_map_odom`` with the
+    odometry's pose gives the measured bridge across the restart
+    (:mod:`ga_ros.pipeline.session.restore`)."""
 
     T_map_odom: FloatArray
+    node_id: int = -1
+    T_map_node: FloatArray | None = None
 
 
 #: What the journal holds, in order: measurements, absolute fixes, track ends, the datum (and
@@ -152,14 +160,20 @@ def encode_datum(datum: Datum) -> bytes:
 
 def encode_map_odom(entry: MapOdom) -> bytes:
     """The journal record of a ``map -> odom`` correction: kind ``map_odom``, ``cov``'s first
-    12 values ``T_map_odom[:3, :4]`` (row-major, exact)."""
+    12 values ``T_map_odom[:3, :4]`` (row-major, exact); with a node, ``src_id`` its id and
+    ``cov``'s next 12 values ``T_map_node[:3, :4]``."""
     T = np.asarray(entry.T_map_odom, dtype=float)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError(f'map -> odom must be a finite (4, 4) transform, got shape {T.shape}')
+    N = np.eye(4) if entry.T_map_node is None else np.asarray(entry.T_map_node, dtype=float)
+    for what, M in (('map -> odom', T), ('the node pose', N)):
+        if M.shape != (4, 4) or not np.isfinite(M).all():
+            raise InputError(f'{what} must be a finite (4, 4) transform, got shape {M.shape}')
     rec = np.zeros(1, RECORD)
     rec['src_id'] = rec['dst_id'] = rec['src_track'] = rec['dst_track'] = -1
     rec['kind'] = _MAP_ODOM
     rec['cov'][0].reshape(-1)[:12] = T[:3, :4].ravel()
+    if entry.T_map_node is not None and entry.node_id >= 0:
+        rec['src_id'] = int(entry.node_id)
+        rec['cov'][0].reshape(-1)[12:24] = N[:3, :4].ravel()
     return _with_crc(rec)
 
 
@@ -328,9 +342,23 @@ def last_datum(recs: np.ndarray) -> tuple[float, float, float] | None:
 
 def last_map_odom(recs: np.ndarray) -> FloatArray | None:
     """``T_map_odom`` (4, 4) of the last ``map -> odom`` record (``None`` without one)."""
+    entry = last_map_odom_entry(recs)
+    return None if entry is None else entry.T_map_odom
+
+
+def last_map_odom_entry(recs: np.ndarray) -> MapOdom | None:
+    """The last ``map -> odom`` record, with its node and that node's pose when it holds them
+    (``None`` without one)."""
     at = np.flatnonzero(np.asarray(recs['kind']) == _MAP_ODOM)
     if not at.size:
         return None
+    rec = recs[int(at[-1])]
+    values = np.array(rec['cov'], float).reshape(-1)
     T = np.eye(4)
-    T[:3, :4] = np.array(recs[int(at[-1])]['cov'], float).reshape(-1)[:12].reshape(3, 4)
-    return T
+    T[:3, :4] = values[:12].reshape(3, 4)
+    node = int(rec['src_id'])
+    if node < 0:
+        return MapOdom(T)
+    N = np.eye(4)
+    N[:3, :4] = values[12:24].reshape(3, 4)
+    return MapOdom(T, node, N)

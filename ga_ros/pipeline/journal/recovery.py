@@ -26,12 +26,13 @@ from ga_ros.pipeline.journal.records import (
     RECORD_V1,
     Datum,
     Entry,
+    MapOdom,
     TrackEnd,
     dropped_records,
     held_records,
     is_event,
     last_datum,
-    last_map_odom,
+    last_map_odom_entry,
     records_to_entries,
     records_to_measurements,
     reversed_records,
@@ -124,6 +125,8 @@ class RecoveryResult:
         record (``None`` without one).
     map_odom : (4, 4) ``T_map_odom`` of the journal's last ``map -> odom`` record: the
         correction the session sent after its last window update (``None`` without one).
+    map_odom_entry : that record whole (:class:`MapOdom`: with the newest node then and its
+        pose; ``None`` without one).
     """
 
     aligner: TrackWindowAligner
@@ -141,6 +144,7 @@ class RecoveryResult:
     snapshot_refused: bool = False
     datum: tuple[float, float, float] | None = None
     map_odom: FloatArray | None = None
+    map_odom_entry: MapOdom | None = None
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -209,7 +213,8 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
                            records['dst_id'][bridge].tolist()))
     out.reversed = reversed_records(records)
     out.datum = last_datum(records)
-    out.map_odom = last_map_odom(records)
+    out.map_odom_entry = last_map_odom_entry(records)
+    out.map_odom = None if out.map_odom_entry is None else out.map_odom_entry.T_map_odom
     # held (or dropped) measurements never reached the aligner
     tail = tail[~held_records(tail) & ~dropped_records(tail)]
     if tail.size:

@@ -53,6 +53,8 @@ def diagnostic_values(session: Any) -> dict[str, object]:
     values['last_error'] = bounded(session.last_error)
     if session.last_persistence_error:
         values['last_persistence_error'] = session.last_persistence_error
+    if getattr(session, 'restart_bridge', ''):
+        values['restart_bridge'] = session.restart_bridge
     return values
 
 

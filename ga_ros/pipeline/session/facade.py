@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -95,6 +96,13 @@ class AlignmentSession:
         #: (4, 4) ``T_map_odom`` the restored state's journal last held (:meth:`journal_map_odom`;
         #: ``None``: none, or not restored); the node sends it until its first update.
         self.map_odom: FloatArray | None = None
+        #: The journal's last ``map -> odom`` record whole (with its node and that node's pose
+        #: then: what the measured bridge across a restart checks,
+        #: :mod:`~ga_ros.pipeline.session.restore`; ``None``: none, or not restored).
+        self.map_odom_entry: MapOdom | None = None
+        #: How the first new node after a restart was bridged: ``''`` (not yet, or no
+        #: restart), ``'measured'`` (the odometry went on) or ``'guessed: <why>'``.
+        self.restart_bridge = ''
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
         #: The state file's lock, taken by :meth:`resume` (``SessionConfig.lock_owner``).
@@ -108,6 +116,9 @@ class AlignmentSession:
         #: A node new to the survey that nothing else will introduce (:meth:`bridge_at_once`;
         #: ``None``: none).
         self._bridge_now: int | None = None
+        self._bridge_node = -1
+        #: The measurement of the bridge across a restart (:meth:`bridge_at_once`).
+        self._measure_bridge: Callable[[int, int, int, int], Measurement | str] | None = None
         self._map_odom_journaled: FloatArray | None = None
 
     # ------------------------------------------------------------------ one measurement
@@ -198,13 +209,19 @@ class AlignmentSession:
             tracks += [int(h.m.src_track), int(h.m.dst_track)]
         return (max(nodes) + 1 if nodes else 0), (max(tracks) + 1 if tracks else 0)
 
-    def bridge_at_once(self, node_id: int) -> None:
+    def bridge_at_once(self, node_id: int,
+                       measure: Callable[[int, int, int, int], Measurement | str] | None = None
+                       ) -> None:
         """Node ``node_id`` is new to the survey and no measurement will ever join it to the
-        nodes before (an input restarted on a restored state numbers on from :meth:`next_ids`:
-        the motion across the restart was never measured): the first measurement from it is
-        bridged (:mod:`ga_ros.core.gaps`) as soon as it is held, instead of after the healer's
-        waits. A fresh survey forgets it."""
-        self._bridge_now = int(node_id)
+        nodes before (an input restarted on a restored state numbers on from :meth:`next_ids`):
+        the first measurement from it is bridged as soon as it is held, instead of after the
+        healer's waits. ``measure(from node, from track, node_id, its track)`` gives the
+        bridge's measurement (the odometry's motion across the restart,
+        :func:`~ga_ros.pipeline.session.restore.measured_bridge`), or why there is none: the
+        healer's guess (:meth:`~ga_ros.core.gaps.GapHealer.bridge_to`) then, with a warning.
+        A fresh survey forgets it."""
+        self._bridge_now = self._bridge_node = int(node_id)
+        self._measure_bridge = measure
 
     def add_fix(self, term: FixTerm, C_offset: FloatArray | None = None) -> None:
         """Add an absolute fix to the aligner (``add_fix``) and, once accepted, to the gap healer
@@ -296,13 +313,19 @@ class AlignmentSession:
         (:attr:`map_odom`), so a restarted node sends it, not the identity, until its first
         update. It holds while the odometry's ``odom`` frame went on across the restart (the
         alignment node alone restarted); an odometry restarted too starts a new ``odom``, which
-        the first update places again."""
+        the first update places again. The record holds the newest node and its pose (the
+        measured bridge across a restart, :mod:`~ga_ros.pipeline.session.restore`)."""
         T = np.asarray(T_map_odom, dtype=float)
         if self.n_nodes() == 0 or (self._map_odom_journaled is not None
                                    and np.array_equal(T, self._map_odom_journaled)):
             return   # no state to restore it with, or journaled already
         self._map_odom_journaled = T.copy()
-        self._journal_event(MapOdom(T))
+        node = self.newest_node_id
+        pose = getattr(self.aligner, 'pose', None)
+        if node is None or pose is None:
+            self._journal_event(MapOdom(T))
+        else:   # the newest node and its pose now: a restart checks the state did not move
+            self._journal_event(MapOdom(T, int(node), pose(int(node))))
 
     def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
@@ -344,7 +367,10 @@ class AlignmentSession:
             if not (flush or gaps.overdue()):
                 return
             h = gaps.held[0].m
-            bridge = gaps.bridge_to(h) if gaps.route(h, front=True) is Route.HOLD else None
+            stuck = gaps.route(h, front=True) is Route.HOLD
+            if stuck and self._measured_bridge(h, taken):
+                continue
+            bridge = gaps.bridge_to(h) if stuck else None
             if bridge is not None:
                 try:
                     self._take(bridge, taken)
@@ -357,6 +383,29 @@ class AlignmentSession:
             self.reject(exc)
             self._journal(h, DROPPED)
             taken.notes.append(f'held measurement rejected: {exc}')
+
+    def _measured_bridge(self, h: Measurement, taken: Taken) -> bool:
+        """The bridge across a restart to ``h``'s source, measured (:meth:`bridge_at_once`):
+        returns whether it was taken; if not, says why (``warn``, :attr:`restart_bridge`)."""
+        measure = self._measure_bridge
+        if measure is None or int(h.src_id) != self._bridge_node:
+            return False
+        self._measure_bridge = None
+        origin = self.gaps.bridge_origin(h)
+        try:
+            m = (measure(origin[0], origin[1], int(h.src_id), int(h.src_track))
+                 if origin is not None else 'no node to bridge from')
+            if not isinstance(m, str):
+                self._take(m, taken)
+        except GaError as exc:
+            m = f'its measurement was refused ({exc})'
+        if isinstance(m, str):
+            self.restart_bridge = bounded(f'guessed: {m}')
+            self.warn(f'restart: node {h.src_id} bridged to the restored survey by a guess '
+                      f'(constant velocity; not joined until a real connection): {m}')
+            return False
+        self.restart_bridge = 'measured'
+        return True
 
     def _pass(self, taken: Taken) -> bool:
         """One pass over the held queue: admits (or rejects) every measurement whose route is no
@@ -559,8 +608,9 @@ class AlignmentSession:
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
         self.datum = None
-        self.map_odom = self._map_odom_journaled = None
-        self._bridge_now = None
+        self.map_odom = self._map_odom_journaled = self.map_odom_entry = None
+        self._bridge_now, self._bridge_node, self._measure_bridge = None, -1, None
+        self.restart_bridge = ''
 
     def _close_aligner(self) -> None:
         """Stop the aligner's background refinement (worker process or thread), if any."""
@@ -650,7 +700,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
-        self.map_odom = result.map_odom
+        self.map_odom, self.map_odom_entry = result.map_odom, result.map_odom_entry
         return how(result)
 
     def resume(self) -> str | None:
@@ -674,7 +724,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
-        self.map_odom = result.map_odom
+        self.map_odom, self.map_odom_entry = result.map_odom, result.map_odom_entry
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)

@@ -1,12 +1,58 @@
-"""A session restored from its state file: the gap healer rebuilt for the recovered aligner, and
-the line that says how the state was recovered."""
+"""A session restored from its state file: the gap healer rebuilt for the recovered aligner, the
+line that says how the state was recovered, and the standard inputs continued after it.
+
+The bridge across a restart of the alignment node (:func:`continue_inputs`)
+    The standard inputs of a restarted node number their keyframes on after the restored nodes,
+    on a new track; nothing joins the first new keyframe ``new`` to the restored newest node
+    ``n``. When the odometry went on across the restart (its ``odom`` frame is the one before),
+    that motion is *measured*: the state's last ``map -> odom`` (journaled after each update,
+    :class:`~ga_ros.pipeline.journal.MapOdom`) puts the restored node at the odometry pose
+    ``T_odom_n = inv(T_map_odom) T_map_n`` (the nodes after the last update are chained by the
+    same odometry's motions, so this is the pose the odometry gave ``n``), and the bridge is the
+    odometry's motion ``T_n_new = inv(T_odom_n) T_odom_new = inv(T_map_n) T_map_odom T_odom_new``
+    (:func:`restart_motion`), an ordinary ``'consecutive'`` measurement of that input: its
+    covariance the input's default noise model over that motion
+    (:meth:`~ga_ros.inputs.odometry.OdometryInputConfig.default_covariance`) plus
+    ``GapConfig.restart_sigma_m`` / ``restart_sigma_rad`` per axis for the restart. It joins the
+    new piece, and the first update after the restart leaves ``map -> odom`` where it was
+    (within that noise).
+
+    The guess instead (:meth:`~ga_ros.core.gaps.GapHealer.bridge_to`: constant velocity, a
+    gap-growing covariance; the new piece not joined), with a warning saying why, when:
+
+    * the state has no ``map -> odom`` (no window update before the restart), or the record
+      does not name its node, or that node's restored pose differs from the recorded one (an
+      update whose ``map -> odom`` was not journaled: a crash between the two);
+    * measurements from before the restart are still held (the bridge would not start at
+      ``n``);
+    * the odometry restarted too: its stamps went back, the implied mean speed or turn rate over
+      the downtime exceeds ``restart_max_speed_mps`` / ``restart_max_rate_rad_per_s``, or its
+      first pose is within ``restart_origin_m`` / ``restart_origin_rad`` of its own origin while
+      the motion from ``n`` is larger.
+
+    A renamed ``odom`` frame is not told (the state does not hold frame names): set the input's
+    ``frame_id`` to refuse another frame.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from ga_ros.arrays import FloatArray
 from ga_ros.core.gaps import Bridge, GapConfig, GapHealer, fingerprint
+from ga_ros.core.measurement import Measurement
+from ga_ros.errors import GaError
+from ga_ros.geometry import se3
 from ga_ros.pipeline.journal import RecoveryResult
+
+#: The restored newest node's pose may differ from the one the ``map -> odom`` record holds by
+#: this much (m, and rotation-matrix entries) and still count as unmoved (the state is
+#: reproduced exactly: this only absorbs rounding).
+POSE_ATOL = 1e-6
 
 
 def rebuild_gaps(config: GapConfig, aligner: Any, result: RecoveryResult) -> GapHealer:
@@ -42,18 +88,105 @@ def how(result: RecoveryResult) -> str:
     return text
 
 
+@dataclass(frozen=True)
+class RestartOrigin:
+    """Where the odometry left the restored survey: its newest node ``node_id`` (stamp
+    ``stamp_ns``) at the odometry pose ``T_odom_node`` (4, 4) the state's last ``map -> odom``
+    gives it."""
+
+    node_id: int
+    stamp_ns: int
+    T_odom_node: FloatArray
+
+
+def restart_origin(session: Any) -> RestartOrigin | str:
+    """The :class:`RestartOrigin` of a restored ``session`` (an
+    :class:`~ga_ros.pipeline.session.AlignmentSession`), or why the bridge across the restart
+    cannot be measured (module doc)."""
+    entry = getattr(session, 'map_odom_entry', None)
+    if entry is None:
+        return 'the state holds no map -> odom (no window update before the restart)'
+    if entry.node_id < 0 or entry.T_map_node is None:
+        return "the state's map -> odom does not name the node it was placed at"
+    aligner = session.aligner
+    try:
+        T_then = aligner.pose(entry.node_id)
+    except (GaError, AttributeError) as exc:
+        return f"the state's map -> odom names node {entry.node_id}, not in the state ({exc})"
+    if not np.allclose(T_then, entry.T_map_node, rtol=0.0, atol=POSE_ATOL):
+        return (f'node {entry.node_id} moved after the last journaled map -> odom (an update '
+                'whose map -> odom was not saved)')
+    if session.gaps.held:
+        return f'{len(session.gaps.held)} measurements from before the restart are still held'
+    cp = aligner.corrected_path()
+    T_odom_n = se3.inverse(np.asarray(entry.T_map_odom, float)) @ np.asarray(
+        cp.T_world_node[-1], float)
+    return RestartOrigin(int(cp.node_ids[-1]), int(cp.stamps_ns[-1]), T_odom_n)
+
+
+def restart_motion(origin: RestartOrigin, T_odom_new: FloatArray, stamp_ns: int,
+                   config: GapConfig) -> FloatArray | str:
+    """(4, 4) ``T_n_new``: the odometry's motion from the restored newest node to its first
+    keyframe after the restart (pose ``T_odom_new`` at ``stamp_ns``), or why the odometry
+    restarted too (its ``odom`` frame reset; module doc)."""
+    dt = (int(stamp_ns) - origin.stamp_ns) * 1e-9
+    if not dt > 0:
+        return (f"the odometry's stamps went back ({dt:.3f} s after node {origin.node_id}): "
+                'it restarted too')
+    T = se3.relative(origin.T_odom_node, np.asarray(T_odom_new, float))
+    z = se3.to_translation_rotvec(T)
+    dist, turn = float(np.linalg.norm(z[:3])), float(np.linalg.norm(z[3:]))
+    if dist / dt > config.restart_max_speed_mps or turn / dt > config.restart_max_rate_rad_per_s:
+        return (f'the odometry implies {dist:.2f} m and {turn:.2f} rad in the {dt:.2f} s since '
+                f'node {origin.node_id} (more than gaps.restart_max_speed_mps '
+                f'{config.restart_max_speed_mps:g} m/s or restart_max_rate_rad_per_s '
+                f'{config.restart_max_rate_rad_per_s:g} rad/s): it restarted too')
+    at = se3.to_translation_rotvec(np.asarray(T_odom_new, float))
+    near = (np.linalg.norm(at[:3]) <= config.restart_origin_m
+            and np.linalg.norm(at[3:]) <= config.restart_origin_rad)
+    if near and (dist > config.restart_origin_m or turn > config.restart_origin_rad):
+        return (f"the odometry's pose is at its origin while the saved map -> odom puts it "
+                f'{dist:.2f} m and {turn:.2f} rad from node {origin.node_id}: it restarted too')
+    return T
+
+
+def measured_bridge(origin: RestartOrigin | str, front: Any, config: GapConfig
+                    ) -> Callable[[int, int, int, int], Measurement | str]:
+    """The measurement of the bridge across a restart, called by the session when it bridges
+    the first new keyframe (``(from node, from track, new node, new track)``): the odometry's
+    motion from ``origin`` (:func:`restart_motion`) as a ``'consecutive'`` measurement of the
+    first input of ``front`` (an :class:`~ga_ros.pipeline.inputs.InputFrontEnd`), or why the
+    bridge is guessed instead."""
+    def measure(src_id: int, src_track: int, node_id: int, track_id: int) -> Measurement | str:
+        if isinstance(origin, str):
+            return origin
+        if src_id != origin.node_id:
+            return f'the bridge starts at node {src_id}, not the newest restored {origin.node_id}'
+        stamp = front.keyframe_stamp(node_id)
+        T = restart_motion(origin, front.keyframe_pose(node_id), stamp, config)
+        if isinstance(T, str):
+            return T
+        spec = front.specs[front.primary].config
+        cov = spec.default_covariance(se3.to_translation_rotvec(T)) + np.diag(
+            [config.restart_sigma_m ** 2] * 3 + [config.restart_sigma_rad ** 2] * 3)
+        return Measurement.from_pose(src_id, node_id, src_track, track_id, T, cov, stamp,
+                                     'consecutive', spec.name)
+    return measure
+
+
 def continue_inputs(session: Any, front: Any) -> tuple[int, int] | None:
     """After a restore: the standard inputs ``front`` (an
     :class:`~ga_ros.pipeline.inputs.InputFrontEnd`, before its first sample) number their
     keyframes on after the nodes and tracks of ``session``'s state, on a new track, and the
-    session bridges the first new node to the state's newest at once (the motion across the
-    restart was never measured). Live odometry after a restart thus continues the survey
-    instead of reading as another one (:mod:`~ga_ros.pipeline.session.survey_identity`).
-    Returns ``(node id, track id)`` of the first new keyframe (``None``: an empty state, the
-    numbering is left as it is)."""
+    session bridges the first new node to the state's newest at once: measured from the
+    odometry when it went on across the restart, else guessed (module doc). Live odometry after
+    a restart thus continues the survey instead of reading as another one
+    (:mod:`~ga_ros.pipeline.session.survey_identity`). Returns ``(node id, track id)`` of the
+    first new keyframe (``None``: an empty state, the numbering is left as it is)."""
     node_id, track_id = session.next_ids()
     if node_id == 0:
         return None
     front.continue_from(node_id, track_id)
-    session.bridge_at_once(node_id)
+    session.bridge_at_once(node_id, measured_bridge(restart_origin(session), front,
+                                                    session.session.gaps))
     return node_id, track_id
