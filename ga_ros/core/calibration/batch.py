@@ -1,5 +1,7 @@
 """Self-calibration in the batch adjustment: the additional parameters of each odometry source
-(:mod:`ga_ros.core.calibration.parameters`) and of each fix source
+(:mod:`ga_ros.core.calibration.parameters`), of each camera
+(:mod:`ga_ros.core.calibration.camera_parameters`: its extrinsic's rotation, on all of its
+connections, cross-track included) and of each fix source
 (:mod:`ga_ros.core.calibration.fix_parameters`) estimated with the poses, where the network
 determines them.
 
@@ -38,7 +40,9 @@ start free; then, one at a time, a parameter is fixed to zero with the reason re
 1. no motion it acts on (no translation for a scale, zero durations for a yaw rate);
 2. not determined: its information left after the poses are eliminated, ``H_jj / N_cc,jj``,
    is below :attr:`CalibrationConfig.min_information_ratio` (odometry without fixes or loop
-   closures: the poses absorb a scale or a heading drift completely);
+   closures: the poses absorb a scale or a heading drift completely), or its sigma with the
+   other parameters known, ``1 / sqrt(H_jj)``, is above the parameter's ``max_sigma`` (a
+   camera's extrinsic rotation: a first-order correction, 0.05 rad);
 3. not separable: the condition number of ``H`` in correlation form exceeds
    :attr:`CalibrationConfig.max_condition`: of the parameters in the near-dependency (the
    eigenvector of the smallest eigenvalue), the one with the least information ratio goes
@@ -89,9 +93,9 @@ where the part is poorly determined. The fixes, the priors and the connections w
 source keep their stated covariances (the factors are relative to them). The factors are
 reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
 
-Where fix parameters were candidates and none is estimated, the selection is run again
-without them, so the result is the adjustment without fix parameters bit for bit (the
-candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
+Where fix (or camera) parameters were candidates and none is estimated, the selection is run
+again without them, so the result is the adjustment without fix (camera) parameters bit for
+bit (the candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
 stated covariance stands).
 
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
