@@ -1,7 +1,8 @@
 """A camera's extrinsic rotation estimated by the window aligner's final batch
 (``refine_batch(calibration=CalibrationConfig(cameras=...))``,
 :mod:`ga_ros.core.calibration.camera_parameters`): a live swath survey whose cross-track
-connections come from a camera mounted with a rotation error, told apart by their source."""
+connections come from a camera mounted with a rotation error, told apart by their source;
+the parameters in the replay's text block."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from ga_ros.core.calibration import CalibrationConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.quality.variance_components import SourceGroups
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.replay.text import calibration_lines
 from ga_ros.sim.camera_survey import swath_survey
 
 PHI = np.array([0.02, -0.01, 0.03])
@@ -68,4 +70,9 @@ def test_the_final_batch_estimates_a_cameras_extrinsic_rotation() -> None:
     assert {p.name for p in al.calibration.parameters if p.source == 'odom0'} == {
         'scale', 'yaw_rate'}
     assert _rmse(al, T_true) < 0.5 * plain, (_rmse(al, T_true), plain)
+    # the replay's text block (summary.json's calibration object, as_dict)
+    text = calibration_lines(al.calibration.as_dict())
+    assert "extrinsic_rx/ry/rz: a camera extrinsic's rotation error" in text[0]
+    for p in cam:
+        assert any(f'cam0         {p.name} {p.value:.6g} +- ' in line for line in text), text
     al.close()
