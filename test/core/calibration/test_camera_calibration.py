@@ -135,3 +135,47 @@ def test_camera_sources_and_config():
         None, 'cam0', None, 'cam0']
     with pytest.raises(InputError, match='extrinsic_rx'):
         CalibrationConfig(camera_parameters=('extrinsic_roll',))
+
+
+def _whitener(info):
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    return np.sqrt(w)[:, None] * V.T
+
+
+def test_estimate_matches_joint_least_squares():
+    """The bordered Gauss-Newton with the camera's parameters reaches the minimum of the joint
+    problem computed independently by scipy over the poses and the three axes together (the
+    corrected motions written out with matrices), and its sigmas are those of the joint
+    normal matrix."""
+    from scipy.optimize import least_squares
+
+    s = swath_survey(np.random.default_rng(7), PHI, n_swaths=3, per_swath=10)
+    res, rep = solve_with_calibration(
+        s.network, s.T_init, s.sources, s.dt_s, fixed=s.fixed, groups=s.groups,
+        calibration=CalibrationConfig(parameters=(), cameras=('cam0',), alpha=1.0 - 1e-9,
+                                      noise=False))
+    est = [p for p in rep.parameters if p.source == 'cam0']
+    assert all(p.estimated for p in est), rep.lines()
+    arr = s.network.arrays()
+    Lc = np.array([_whitener(np.linalg.inv(c)) for c in arr.cov])
+    cam = np.array(s.groups) == 'cam0'
+    n = s.T_init.shape[0]
+
+    def fun(x):
+        T = s.T_init.copy()
+        T[1:] = T[1:] @ se3.exp(x[:6 * (n - 1)].reshape(n - 1, 6))
+        phi = x[6 * (n - 1):]
+        Tc = np.array([_corrected(z, 0.0, 0.0, 0.0, phi if c else np.zeros(3))
+                       for z, c in zip(arr.z, cam)])
+        e = se3.log(se3.inverse(Tc) @ se3.relative(T[arr.src], T[arr.dst]))
+        return (Lc @ e[:, :, None]).ravel()
+
+    sol = least_squares(fun, np.zeros(6 * (n - 1) + 3), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    phi = sol.x[6 * (n - 1):]
+    Q = np.linalg.inv(sol.jac.T @ sol.jac)[-3:, -3:]
+    for a, p in enumerate(est):
+        assert abs(p.value - phi[a]) < 1e-3 * p.sigma, (p.line(), phi)
+        assert p.sigma == pytest.approx(np.sqrt(Q[a, a]), rel=1e-3)
+    T = s.T_init.copy()
+    T[1:] = T[1:] @ se3.exp(sol.x[:6 * (n - 1)].reshape(n - 1, 6))
+    np.testing.assert_allclose(res.T_world_node[:, :3, 3], T[:, :3, 3], atol=1e-3)
