@@ -179,3 +179,23 @@ def test_estimate_matches_joint_least_squares():
     T = s.T_init.copy()
     T[1:] = T[1:] @ se3.exp(sol.x[:6 * (n - 1)].reshape(n - 1, 6))
     np.testing.assert_allclose(res.T_world_node[:, :3, 3], T[:, :3, 3], atol=1e-3)
+
+
+@pytest.mark.slow
+def test_the_extrinsics_nees_over_seeds():
+    """The published sigmas are honest: per axis, the mean of ``((phi - truth) / sigma)^2``
+    over 16 seeds of the swath survey inside the 99 % band of ``chi2(16) / 16``."""
+    from scipy.stats import chi2
+
+    z = []
+    for seed in range(100, 116):
+        s = swath_survey(np.random.default_rng(seed), PHI)
+        _, rep = solve_with_calibration(s.network, s.T_init, s.sources, s.dt_s,
+                                        fixed=s.fixed, groups=s.groups,
+                                        calibration=CalibrationConfig(cameras=('cam0',)))
+        cam = [p for p in rep.parameters if p.source == 'cam0']
+        assert all(p.estimated for p in cam), rep.lines()
+        z.append([(p.value - t) / p.sigma for p, t in zip(cam, PHI)])
+    nees = np.mean(np.square(z), axis=0)
+    lo, hi = chi2.ppf([0.005, 0.995], 16) / 16
+    assert np.all((nees > lo) & (nees < hi)), (nees, lo, hi)
