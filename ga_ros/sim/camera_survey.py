@@ -75,10 +75,11 @@ def _measured(rng: np.random.Generator, T_true_rel: FloatArray, phi: FloatArray,
 
 def swath_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
                  n_swaths: int = 6, per_swath: int = 30, step_m: float = 2.0,
-                 spacing_m: float = 10.0, dt_s: float = 1.0, cross_every: int = 3
-                 ) -> CameraSurvey:
+                 spacing_m: float = 10.0, dt_s: float = 1.0, cross_every: int = 3,
+                 camera_consecutive: bool = False) -> CameraSurvey:
     """Simulate the swath survey of the module doc; ``phi`` (3,) the extrinsic's rotation
-    error (rad, body frame)."""
+    error (rad, body frame); ``camera_consecutive``: the camera measures every consecutive
+    motion too (its visual odometry beside ``odom0``; source ``cam0``)."""
     n = n_swaths * per_swath
     T = np.repeat(np.eye(4)[None], n, axis=0)
     for k in range(n_swaths):
@@ -92,6 +93,12 @@ def swath_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
     src = list(range(n - 1))
     dst = list(range(1, n))
     groups = ['odom0'] * (n - 1)
+    cross = [False] * (n - 1)
+    if camera_consecutive:
+        src += list(range(n - 1))
+        dst += list(range(1, n))
+        groups += ['cam0'] * (n - 1)
+        cross += [False] * (n - 1)
     for k in range(n_swaths - 1):
         for a in range(0, per_swath, cross_every):
             i = k * per_swath + a
@@ -99,6 +106,7 @@ def swath_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
             src.append(i)
             dst.append(j)
             groups.append('cam0')
+            cross.append(True)
     src_a, dst_a = np.array(src), np.array(dst)
     rel = se3.inverse(T[src_a]) @ T[dst_a]
     cam = np.array(groups) == 'cam0'
@@ -111,7 +119,7 @@ def swath_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
     net = ConnectionNetwork.from_arrays(ids, ids // per_swath, src_a, dst_a, z, cov)
     T_init = se3.integrate(T[0], se3.from_translation_rotvec(z[~cam, :3], z[~cam, 3:]))
     dt = np.abs(dst_a - src_a).astype(float) * dt_s
-    sources = [None if c else 'odom0' for c in cam.tolist()]
+    sources = [None if c else g for g, c in zip(groups, cross)]
     return CameraSurvey(T, net, T_init, sources, groups, dt, [0], [])
 
 

@@ -690,15 +690,17 @@ class _NoisePart:
 
 def _noise_parts(cand: _Candidates, report: CalibrationReport, cov: FloatArray
                  ) -> list[_NoisePart]:
-    """Per odometry source with an estimated parameter (a fix source keeps its stated
-    covariance): a translation and a rotation part where its
-    stated covariances do not correlate the two, else one part for the whole covariance."""
+    """Per odometry source or camera with an estimated parameter (a fix source keeps its
+    stated covariance), on the connections of its estimated parameters (a camera that is also
+    an odometry source: its consecutive and cross-track ones): a translation and a rotation
+    part where its stated covariances do not correlate the two, else one part for the whole
+    covariance."""
     out: list[_NoisePart] = []
-    done: set[str] = set()
-    for j, (par, src, mask) in enumerate(zip(report.parameters, cand.sources, cand.masks)):
-        if not par.estimated or src in done or cand.on_fixes(j):
-            continue
-        done.add(src)
+    masks: dict[str, np.ndarray] = {}
+    for j, (par, src) in enumerate(zip(report.parameters, cand.sources)):
+        if par.estimated and not cand.on_fixes(j):
+            masks[src] = masks[src] | cand.masks[j] if src in masks else cand.masks[j]
+    for src, mask in masks.items():
         if np.any(cov[mask][:, :3, 3:] != 0.0):
             out.append(_NoisePart(src, 'motion', mask, np.arange(6)))
         else:

@@ -199,3 +199,26 @@ def test_the_extrinsics_nees_over_seeds():
     nees = np.mean(np.square(z), axis=0)
     lo, hi = chi2.ppf([0.005, 0.995], 16) / 16
     assert np.all((nees > lo) & (nees < hi)), (nees, lo, hi)
+
+
+def test_the_cameras_consecutive_motions_carry_it_too():
+    """With the camera's visual odometry beside the body-frame odometry on every consecutive
+    motion, its consecutive connections see the extrinsic as well (a translation measured by
+    both turns by ``phi``): every axis within 3 sigma, with smaller sigmas than from the
+    cross-track connections alone (the same survey otherwise)."""
+    kw = dict(n_swaths=4)
+    s = swath_survey(np.random.default_rng(8), PHI, camera_consecutive=True, **kw)
+    cal = CalibrationConfig(cameras=('cam0',))
+    _, rep = solve_with_calibration(s.network, s.T_init, s.sources, s.dt_s, fixed=s.fixed,
+                                    calibration=cal, groups=s.groups)
+    cam = [p for p in rep.parameters if p.source == 'cam0' and p.name.startswith('extr')]
+    s1 = swath_survey(np.random.default_rng(8), PHI, **kw)
+    _, rep1 = solve_with_calibration(s1.network, s1.T_init, s1.sources, s1.dt_s,
+                                     fixed=s1.fixed, calibration=cal, groups=s1.groups)
+    alone = [p for p in rep1.parameters if p.source == 'cam0']
+    for p, q, truth in zip(cam, alone, PHI):
+        assert p.estimated and abs(p.value - truth) < 3 * p.sigma, rep.lines()
+        assert p.sigma < q.sigma, (p.line(), q.line())
+    # cam0's consecutive motions also carry its odometry parameters (not estimated: no error)
+    assert {p.name for p in rep.parameters if p.source == 'cam0'} == {
+        'scale', 'yaw_rate', 'extrinsic_rx', 'extrinsic_ry', 'extrinsic_rz'}
