@@ -825,7 +825,9 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         # a parameter that is a first-order correction: known to less than its largest
         # sigma even with the others known (1 / sqrt(H_jj)), it is not determined
         bound = np.array([cand.params[j].max_sigma for j in active])
-        loose = np.nonzero(np.diag(b.H) * bound ** 2 < 1.0)[0]
+        loose = np.nonzero(np.isfinite(bound)
+                           & (np.diag(b.H) * np.where(np.isfinite(bound), bound, 0.0) ** 2
+                              < 1.0))[0]
         if loose.size:
             a = int(loose[0])
             j = active[a]
