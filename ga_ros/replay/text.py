@@ -168,9 +168,11 @@ def calibration_lines(cal: dict, what: str = 'final batch') -> list[str]:
     params = cal.get('parameters', []) if cal else []
     if not params:
         return []
+    camera = ("; extrinsic_rx/ry/rz: a camera extrinsic's rotation error, body frame, rad"
+              if any(p['name'].startswith('extrinsic_') for p in params) else '')
     lines = [f"calibration ({what}; test alpha {cal['alpha']:g}; scale: t_true = (1 + k) "
              't_meas; yaw_rate: correction added to the yaw rate, rad/s; time_offset: a '
-             "fix's latency, s; offset_x/y/z: a fix source's offset in map, m):"]
+             f"fix's latency, s; offset_x/y/z: a fix source's offset in map, m{camera}):"]
     for p in params:
         if p['estimated']:
             text = (f"{p['value']:.6g} +- {p['sigma']:.2g} {p['unit']} "

@@ -67,6 +67,9 @@ BENCHMARKS: dict[str, Benchmark] = {
     'fixcal': Benchmark('ga_ros.bench.fix_calibration:main',
                         'Plaza odometry + fixes with a latency (and an offset source): the '
                         "batch with and without the fix sources' offset and time offset"),
+    'camcal': Benchmark('ga_ros.bench.camera_calibration:main',
+                        "a camera's extrinsic rotation error on a simulated swath survey: the "
+                        'batch with and without the camera parameters, against GTSAM LM'),
     'long': Benchmark('ga_ros.bench.long_survey:main',
                       'a long survey with a fix every track: late against early update time, '
                       'CPU, RSS per pose'),

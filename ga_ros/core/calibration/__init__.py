@@ -1,6 +1,7 @@
 """Self-calibration: systematic errors of the sources as additional parameters of the
 adjustment, estimated where the network determines them (:mod:`.parameters`: what each
-odometry parameter corrects; :mod:`.fix_parameters`: what each fix-source parameter corrects;
+odometry parameter corrects; :mod:`.camera_parameters`: a camera extrinsic's rotation;
+:mod:`.fix_parameters`: what each fix-source parameter corrects;
 :mod:`.batch`: the batch adjustment with them and their tests)."""
 
 from ga_ros.core.calibration.batch import (
@@ -9,6 +10,11 @@ from ga_ros.core.calibration.batch import (
     CalibrationReport,
     NoiseFactor,
     solve_with_calibration,
+)
+from ga_ros.core.calibration.camera_parameters import (
+    CAMERA_PARAMETERS,
+    ExtrinsicRotationAxis,
+    camera_sources,
 )
 from ga_ros.core.calibration.fix_parameters import (
     FIX_PARAMETERS,
@@ -27,8 +33,8 @@ from ga_ros.core.calibration.parameters import (
     misclosure_jacobian,
 )
 
-__all__ = ['FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter', 'CalibrationConfig',
-           'CalibrationReport', 'FixObservations', 'FixOffsetAxis', 'NoiseFactor',
-           'ScaleCorrection', 'TimeOffset', 'YawRateCorrection', 'book_observations',
-           'corrected_motions', 'fix_priors', 'misclosure_jacobian', 'node_velocities',
-           'solve_with_calibration']
+__all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter',
+           'CalibrationConfig', 'CalibrationReport', 'ExtrinsicRotationAxis',
+           'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ScaleCorrection', 'TimeOffset',
+           'YawRateCorrection', 'book_observations', 'camera_sources', 'corrected_motions',
+           'fix_priors', 'misclosure_jacobian', 'node_velocities', 'solve_with_calibration']

@@ -1,5 +1,7 @@
 """Self-calibration in the batch adjustment: the additional parameters of each odometry source
-(:mod:`ga_ros.core.calibration.parameters`) and of each fix source
+(:mod:`ga_ros.core.calibration.parameters`), of each camera
+(:mod:`ga_ros.core.calibration.camera_parameters`: its extrinsic's rotation, on all of its
+connections, cross-track included) and of each fix source
 (:mod:`ga_ros.core.calibration.fix_parameters`) estimated with the poses, where the network
 determines them.
 
@@ -38,7 +40,9 @@ start free; then, one at a time, a parameter is fixed to zero with the reason re
 1. no motion it acts on (no translation for a scale, zero durations for a yaw rate);
 2. not determined: its information left after the poses are eliminated, ``H_jj / N_cc,jj``,
    is below :attr:`CalibrationConfig.min_information_ratio` (odometry without fixes or loop
-   closures: the poses absorb a scale or a heading drift completely);
+   closures: the poses absorb a scale or a heading drift completely), or its sigma with the
+   other parameters known, ``1 / sqrt(H_jj)``, is above the parameter's ``max_sigma`` (a
+   camera's extrinsic rotation: a first-order correction, 0.05 rad);
 3. not separable: the condition number of ``H`` in correlation form exceeds
    :attr:`CalibrationConfig.max_condition`: of the parameters in the near-dependency (the
    eigenvector of the smallest eigenvalue), the one with the least information ratio goes
@@ -89,9 +93,9 @@ where the part is poorly determined. The fixes, the priors and the connections w
 source keep their stated covariances (the factors are relative to them). The factors are
 reported with their sigmas ``s sqrt(2 / R)`` (:class:`NoiseFactor`).
 
-Where fix parameters were candidates and none is estimated, the selection is run again
-without them, so the result is the adjustment without fix parameters bit for bit (the
-candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
+Where fix (or camera) parameters were candidates and none is estimated, the selection is run
+again without them, so the result is the adjustment without fix (camera) parameters bit for
+bit (the candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
 stated covariance stands).
 
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
@@ -107,6 +111,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.calibration.camera_parameters import (
+    CAMERA_PARAMETERS,
+    camera_parameter,
+    camera_sources,
+)
 from ga_ros.core.calibration.fix_parameters import (
     FIX_PARAMETERS,
     FixObservations,
@@ -119,7 +128,8 @@ from ga_ros.core.calibration.fix_parameters import (
 )
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
-    corrected_motions,
+    CorrectedMotions,
+    MotionCorrections,
     misclosure_jacobian,
     parameter,
 )
@@ -160,6 +170,16 @@ class CalibrationConfig:
     fix_reference : fix sources that define the frame: they get no offset (their time offset
         stays a candidate). Without one, of two sources whose offsets only their difference
         determines, the better one's is dropped (step 3).
+    cameras : the sources that are cameras (the ``source`` of their measurements,
+        consecutive and cross-track: :func:`~ga_ros.core.calibration.camera_parameters.
+        camera_sources`, which the aligner's final batch uses): each gets
+        ``camera_parameters`` on every one of its connections. None by default: a camera's
+        extrinsic is seen only against another source of the body's orientation
+        (docs/calibration.md, *Cameras*), so it is switched on by naming the camera.
+    camera_parameters : the parameter kinds estimated per camera
+        (:data:`~ga_ros.core.calibration.camera_parameters.CAMERA_PARAMETERS`:
+        ``'extrinsic_rx'``, ``'extrinsic_ry'``, ``'extrinsic_rz'``, rad, body frame). Where no
+        camera parameter is estimated the result is the one without them, bit for bit.
     alpha : significance level of the two-sided test of each parameter (module doc, step 4):
         the probability of switching a parameter on when the source has no such error.
     min_information_ratio : a parameter whose information left after eliminating the poses is
@@ -187,6 +207,8 @@ class CalibrationConfig:
     parameters: tuple[str, ...] = ('scale', 'yaw_rate')
     fix_parameters: tuple[str, ...] = ('time_offset',)
     fix_reference: tuple[str, ...] = ()
+    cameras: tuple[str, ...] = ()
+    camera_parameters: tuple[str, ...] = ('extrinsic_rx', 'extrinsic_ry', 'extrinsic_rz')
     alpha: float = 0.001
     min_information_ratio: float = 1e-6
     max_condition: float = 1e6
@@ -206,6 +228,8 @@ class CalibrationConfig:
             parameter(p)
         for p in self.fix_parameters:
             fix_parameter(p)
+        for p in self.camera_parameters:
+            camera_parameter(p)
         if not 0.0 < self.alpha < 1.0:
             raise InputError(f'calibration alpha must be in (0, 1), got {self.alpha}')
         if not 0.0 < self.noise_alpha < 1.0:
@@ -371,10 +395,14 @@ class _Candidates:
 
 def _candidates(sources: Sequence[str | None], names: Sequence[str],
                 fix_sources: Sequence[str] = (), fix_names: Sequence[str] = (),
-                reference: Sequence[str] = ()) -> _Candidates:
+                reference: Sequence[str] = (), cameras: Sequence[str | None] = (),
+                camera_names: Sequence[str] = ()) -> _Candidates:
+    """Every source x parameter kind: the odometry's, then the cameras', then the fix
+    sources' (the selection's order)."""
     out = _Candidates([], [], [])
-    for srcs, kinds, table in ((sources, names, PARAMETERS), (fix_sources, fix_names,
-                                                               FIX_PARAMETERS)):
+    for srcs, kinds, table in ((sources, names, PARAMETERS),
+                               (cameras, camera_names, CAMERA_PARAMETERS),
+                               (fix_sources, fix_names, FIX_PARAMETERS)):
         src = np.array(['' if s is None else str(s) for s in srcs], dtype=object)
         for s in sorted({str(s) for s in srcs if s}):
             mask = src == s
@@ -388,13 +416,12 @@ def _candidates(sources: Sequence[str | None], names: Sequence[str],
     return out
 
 
-def _per_connection(cand: _Candidates, values: FloatArray, m: int
-                    ) -> tuple[FloatArray, FloatArray]:
-    scale, yaw = np.zeros(m), np.zeros(m)
-    for j, (kind, mask) in enumerate(zip(cand.kinds, cand.masks)):
-        if not cand.on_fixes(j):
-            (scale if kind == 'scale' else yaw)[mask] += values[j]
-    return scale, yaw
+def _per_connection(cand: _Candidates, values: FloatArray, m: int) -> MotionCorrections:
+    corr = MotionCorrections.zeros(m)
+    for j, (par, mask) in enumerate(zip(cand.params, cand.masks)):
+        if not par.on_fixes:
+            par.add(corr, mask, values[j])
+    return corr
 
 
 @dataclass
@@ -430,13 +457,13 @@ class _Bordered:
     Ncc_diag: FloatArray  # (p,)
 
 
-def _bordered(network: ConnectionNetwork, res: SolveResult, Tcorr: FloatArray,
-              dt_s: FloatArray, cand: _Candidates, active: list[int],
+def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMotions,
+              cand: _Candidates, active: list[int],
               fixes: FixObservations | None = None, values: FloatArray | None = None
               ) -> _Bordered:
     """The reduced normal equations of the ``active`` parameters at the adjustment ``res``:
     the connections of the odometry parameters (misclosures of the corrected motions
-    ``Tcorr``) and the fixes of the fix parameters (misclosures against the fixes corrected
+    ``motions``) and the fixes of the fix parameters (misclosures against the fixes corrected
     by ``values``, the Jacobians ``E`` at the velocities of ``res``'s poses)."""
     arrays = network.arrays()
     p = len(active)
@@ -455,17 +482,16 @@ def _bordered(network: ConnectionNetwork, res: SolveResult, Tcorr: FloatArray,
         T = res.T_world_node
         src, dst = arrays.src[idx], arrays.dst[idx]
         Tij = se3.relative(T[src], T[dst])
-        e = se3.log(se3.inverse(Tcorr[idx]) @ Tij)
+        mo = motions.rows(idx)
+        e = se3.log(se3.inverse(mo.T) @ Tij)
         Jr_inv = se3.right_jacobian_inv(e)
         A_dst = Jr_inv
         A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
         E = np.zeros((idx.size, 6, p))
-        z = arrays.z[idx]
         for a in odo:
             j = active[a]
             rows = cand.masks[j][idx]
-            G = PARAMETERS[cand.kinds[j]].generator(Tcorr[idx][rows, :3, :3], z[rows, :3],
-                                                    dt_s[idx][rows])
+            G = cand.params[j].generator_of(mo.rows(rows))
             E[rows, :, a] = misclosure_jacobian(e[rows], G)
         W = np.linalg.inv(arrays.cov[idx])
         if res.weights is not None:
@@ -499,10 +525,11 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
                            fixed: Sequence[int] | None = None,
                            priors: Sequence[GaussianPrior] = (),
                            calibration: CalibrationConfig | None = None,
-                           fixes: FixObservations | None = None
+                           fixes: FixObservations | None = None,
+                           groups: Sequence[str | None] | None = None
                            ) -> tuple[SolveResult, CalibrationReport]:
-    """The batch adjustment with each odometry source's and each fix source's additional
-    parameters (module doc).
+    """The batch adjustment with each odometry source's, each camera's and each fix source's
+    additional parameters (module doc).
 
     Parameters
     ----------
@@ -522,6 +549,10 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         (which must then not hold them again): as measured, linearised at ``T_init``, while
         no fix parameter is non-zero; corrected, linearised at the poses each adjustment
         starts from, otherwise. None: the fixes are in ``priors`` and have no parameters.
+    groups : (m,) the source of every connection, consecutive and cross-track alike (the
+        variance group of its measurement, :func:`~ga_ros.core.measurement.variance_group`):
+        the connections of each camera named in :attr:`CalibrationConfig.cameras` get its
+        extrinsic parameters. None: ``sources``.
 
     Returns
     -------
@@ -539,29 +570,38 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     if dt.size != m:
         raise InputError(f'solve_with_calibration: {dt.size} durations for {m} connections')
     dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
+    if groups is not None and len(groups) != m:
+        raise InputError(f'solve_with_calibration: {len(groups)} groups for {m} connections')
     fix_base = ([] if fixes is None else
                 fix_priors(fixes, np.asarray(T_init, dtype=float), network.node_ids))
+    cameras = camera_sources(['' if g is None else str(g) for g in
+                              (sources if groups is None else groups)], cal.cameras)
     cand = _candidates(sources, cal.parameters, fixes.sources if fixes is not None else (),
-                       cal.fix_parameters, cal.fix_reference)
+                       cal.fix_parameters, cal.fix_reference, cameras, cal.camera_parameters)
     res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
                                      config, fixed, priors, cal, fixes=fixes,
                                      fix_base=fix_base)
-    fix_report = []
-    n_odo = sum(not p.on_fixes for p in cand.params)
-    if n_odo < len(cand.params) and not any(p.estimated for p in report.parameters[n_odo:]):
-        # no fix parameter estimated: the adjustment without them, bit for bit (the drops
-        # re-solved from warm starts), with their reasons kept
-        fix_report = report.parameters[n_odo:]
-        cand = _Candidates(cand.sources[:n_odo], cand.kinds[:n_odo], cand.masks[:n_odo],
-                           cand.params[:n_odo])
+    order = list(range(len(cand.params)))   # the candidates' places in the report
+    dropped: list[tuple[int, AdditionalParameter]] = []
+    gone = [j for fam in ('camera', 'fix')
+            if not any(p.estimated for p, q in zip(report.parameters, cand.params)
+                       if q.family == fam)
+            for j, q in enumerate(cand.params) if q.family == fam]
+    if gone:
+        # no camera (or no fix) parameter estimated: the adjustment without them, bit for
+        # bit (the drops re-solved from warm starts), with their reasons kept
+        dropped = [(j, report.parameters[j]) for j in gone]
+        order = [j for j in order if j not in gone]
+        cand = _Candidates([cand.sources[j] for j in order], [cand.kinds[j] for j in order],
+                           [cand.masks[j] for j in order], [cand.params[j] for j in order])
         solves = report.solves
         res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
                                          config, fixed, priors, cal, fixes=fixes,
-                                     fix_base=fix_base)
+                                         fix_base=fix_base)
         report.solves += solves
     parts = _noise_parts(cand, report, arrays.cov)
     if not (cal.noise and parts):
-        report.parameters += fix_report
+        _restore(report, order, dropped)
         return res, report
     # the noise of the calibrated sources (module doc)
     solves = report.solves
@@ -607,8 +647,20 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     report.noise = noise
     report.noise_iterations = iterations
     report.solves = solves
-    report.parameters += fix_report
+    _restore(report, order, dropped)
     return res, report
+
+
+def _restore(report: CalibrationReport, order: list[int],
+             dropped: list[tuple[int, AdditionalParameter]]) -> None:
+    """Put the candidates left out of the last selection (``dropped``: their places and
+    reports) back among ``report``'s parameters (at the places ``order``), in the
+    candidates' order."""
+    if not dropped:
+        return
+    at = dict(zip(order, report.parameters))
+    at.update(dropped)
+    report.parameters = [at[j] for j in sorted(at)]
 
 
 def _test_stated(f: NoiseFactor, cal: CalibrationConfig) -> None:
@@ -638,15 +690,17 @@ class _NoisePart:
 
 def _noise_parts(cand: _Candidates, report: CalibrationReport, cov: FloatArray
                  ) -> list[_NoisePart]:
-    """Per odometry source with an estimated parameter (a fix source keeps its stated
-    covariance): a translation and a rotation part where its
-    stated covariances do not correlate the two, else one part for the whole covariance."""
+    """Per odometry source or camera with an estimated parameter (a fix source keeps its
+    stated covariance), on the connections of its estimated parameters (a camera that is also
+    an odometry source: its consecutive and cross-track ones): a translation and a rotation
+    part where its stated covariances do not correlate the two, else one part for the whole
+    covariance."""
     out: list[_NoisePart] = []
-    done: set[str] = set()
-    for j, (par, src, mask) in enumerate(zip(report.parameters, cand.sources, cand.masks)):
-        if not par.estimated or src in done or cand.on_fixes(j):
-            continue
-        done.add(src)
+    masks: dict[str, np.ndarray] = {}
+    for j, (par, src) in enumerate(zip(report.parameters, cand.sources)):
+        if par.estimated and not cand.on_fixes(j):
+            masks[src] = masks[src] | cand.masks[j] if src in masks else cand.masks[j]
+    for src, mask in masks.items():
         if np.any(cov[mask][:, :3, 3:] != 0.0):
             out.append(_NoisePart(src, 'motion', mask, np.arange(6)))
         else:
@@ -730,10 +784,10 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
     solved: list = [network, list(priors)]
 
     def adjust(T0: FloatArray) -> tuple[SolveResult, FloatArray]:
-        Tcorr = corrected_motions(arrays.z, dt, *_per_connection(cand, values, m))
+        Tcorr = _per_connection(cand, values, m).apply(arrays.z, dt)
         net = network if not values[~on_fixes].any() else ConnectionNetwork.from_arrays(
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
-            se3.to_translation_rotvec(Tcorr), arrays.cov)
+            se3.to_translation_rotvec(Tcorr.T), arrays.cov)
         used = list(priors)
         if fixes is not None and values[on_fixes].any():
             shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
@@ -755,7 +809,7 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
 
     steps, stalled = 0, False
     while active:
-        b = _bordered(network, res, Tcorr, dt, cand, active, fixes, values)
+        b = _bordered(network, res, Tcorr, cand, active, fixes, values)
         ratio = np.diag(b.H) / np.maximum(b.Ncc_diag, np.finfo(float).tiny)
         for a, j in enumerate(active):
             report.parameters[j].information_ratio = float(ratio[a])
@@ -764,6 +818,23 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             had = values.any()
             drop(active[worst], f'not determined by the network: {ratio[worst]:.1e} of its '
                  f'information is left after the poses ({cand.params[active[worst]].unseen})')
+            if had:
+                res, Tcorr = adjust(res.T_world_node)
+            steps = 0
+            continue
+        # a parameter that is a first-order correction: known to less than its largest
+        # sigma even with the others known (1 / sqrt(H_jj)), it is not determined
+        bound = np.array([cand.params[j].max_sigma for j in active])
+        loose = np.nonzero(np.isfinite(bound)
+                           & (np.diag(b.H) * np.where(np.isfinite(bound), bound, 0.0) ** 2
+                              < 1.0))[0]
+        if loose.size:
+            a = int(loose[0])
+            j = active[a]
+            had = values.any()
+            drop(j, f'not determined by the network: sigma '
+                 f'{1.0 / np.sqrt(max(b.H[a, a], np.finfo(float).tiny)):.2g} '
+                 f'{cand.params[j].unit} > {bound[a]:g} ({cand.params[j].unseen})')
             if had:
                 res, Tcorr = adjust(res.T_world_node)
             steps = 0

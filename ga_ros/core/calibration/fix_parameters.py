@@ -46,6 +46,9 @@ class FixOffsetAxis:
     axis: int
     name: str
     unit: str = 'm'
+    family: ClassVar[str] = 'fix'
+    #: no bound on its sigma (step 2 of :mod:`.batch`)
+    max_sigma: ClassVar[float] = float('inf')
     on_fixes: ClassVar[bool] = True
     datum: ClassVar[bool] = True  # a reference source (the frame's definition) has none
     unobserved: ClassVar[str] = 'no fix that measures its axis'
@@ -70,6 +73,9 @@ class TimeOffset:
 
     name: str = 'time_offset'
     unit: str = 's'
+    family: ClassVar[str] = 'fix'
+    #: no bound on its sigma (step 2 of :mod:`.batch`)
+    max_sigma: ClassVar[float] = float('inf')
     on_fixes: ClassVar[bool] = True
     datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no fix taken while moving (no velocity: stamps?)'

@@ -26,6 +26,7 @@ from typing import ClassVar
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.core.calibration.camera_parameters import conjugations
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 
@@ -44,6 +45,9 @@ class ScaleCorrection:
 
     name: str = 'scale'
     unit: str = '1'
+    family: ClassVar[str] = 'odometry'
+    #: no bound on its sigma (step 2 of :mod:`.batch`)
+    max_sigma: ClassVar[float] = float('inf')
     on_fixes: ClassVar[bool] = False
     datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no translation)'
@@ -59,6 +63,16 @@ class ScaleCorrection:
         G[:, :3] = np.einsum('mji,mj->mi', R_corr, t_meas)
         return G
 
+    def add(self, corrections: MotionCorrections, mask: np.ndarray, value: float) -> None:
+        """Add ``value`` to the scale of the connections ``mask``."""
+        corrections.scale[mask] += value
+
+    def generator_of(self, motions: CorrectedMotions) -> FloatArray:
+        """(m, 6) ``G`` of the corrected motions ``motions`` (conjugated by a camera's
+        extrinsic correction: ``Ad(X) G``, :mod:`.camera_parameters`)."""
+        return motions.outer(self.generator(motions.T_in[:, :3, :3], motions.z[:, :3],
+                                            motions.dt_s))
+
 
 @dataclass(frozen=True)
 class YawRateCorrection:
@@ -66,6 +80,9 @@ class YawRateCorrection:
 
     name: str = 'yaw_rate'
     unit: str = 'rad/s'
+    family: ClassVar[str] = 'odometry'
+    #: no bound on its sigma (step 2 of :mod:`.batch`)
+    max_sigma: ClassVar[float] = float('inf')
     on_fixes: ClassVar[bool] = False
     datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no durations: stamps?)'
@@ -80,6 +97,16 @@ class YawRateCorrection:
         G = np.zeros((t_meas.shape[0], 6))
         G[:, 5] = dt_s
         return G
+
+    def add(self, corrections: MotionCorrections, mask: np.ndarray, value: float) -> None:
+        """Add ``value`` to the yaw rate of the connections ``mask``."""
+        corrections.yaw_rate[mask] += value
+
+    def generator_of(self, motions: CorrectedMotions) -> FloatArray:
+        """(m, 6) ``G`` of the corrected motions ``motions`` (``Ad(X) G`` where a camera's
+        extrinsic correction conjugates them)."""
+        return motions.outer(self.generator(motions.T_in[:, :3, :3], motions.z[:, :3],
+                                            motions.dt_s))
 
 
 #: The additional parameters of an odometry source, by name.
@@ -96,14 +123,69 @@ def parameter(name: str) -> ScaleCorrection | YawRateCorrection:
 
 
 def corrected_motions(z: FloatArray, dt_s: FloatArray, scale: FloatArray,
-                      yaw_rate: FloatArray) -> FloatArray:
+                      yaw_rate: FloatArray, extrinsic: FloatArray | None = None) -> FloatArray:
     """(m, 4, 4) ``T_corr`` of measured motions ``z`` (m, 6) ``[t, w]`` with per-connection
-    ``scale`` ``k`` and ``yaw_rate`` ``omega`` (rad/s; ``dt_s`` (m,) s), module doc."""
+    ``scale`` ``k`` and ``yaw_rate`` ``omega`` (rad/s; ``dt_s`` (m,) s), module doc; with
+    ``extrinsic`` (m, 3) a camera's extrinsic rotation correction ``phi`` (rad, body frame):
+    ``X T_corr X^-1`` (:mod:`.camera_parameters`)."""
     z = np.asarray(z, dtype=float)
     T = se3.from_translation_rotvec(z[:, :3], z[:, 3:])
     T[:, :3, 3] *= (1.0 + np.asarray(scale, dtype=float))[:, None]
     T[:, :3, :3] = T[:, :3, :3] @ _rz(np.asarray(yaw_rate, dtype=float) * dt_s)
+    if extrinsic is not None and np.any(extrinsic):
+        X = conjugations(extrinsic)
+        T = X @ T @ se3.inverse(X)
     return T
+
+
+@dataclass
+class MotionCorrections:
+    """The corrections of every connection's motion: ``scale`` (m,) ``k``, ``yaw_rate`` (m,)
+    ``omega`` (rad/s) and ``extrinsic`` (m, 3) ``phi`` (rad, body frame; a camera's,
+    :mod:`.camera_parameters`)."""
+
+    scale: FloatArray
+    yaw_rate: FloatArray
+    extrinsic: FloatArray
+
+    @staticmethod
+    def zeros(m: int) -> MotionCorrections:
+        return MotionCorrections(np.zeros(m), np.zeros(m), np.zeros((m, 3)))
+
+    def apply(self, z: FloatArray, dt_s: FloatArray) -> CorrectedMotions:
+        """The motions ``z`` (m, 6) of durations ``dt_s`` (m,) corrected."""
+        T_in = corrected_motions(z, dt_s, self.scale, self.yaw_rate)
+        if not np.any(self.extrinsic):
+            return CorrectedMotions(np.asarray(z, dtype=float), np.asarray(dt_s, dtype=float),
+                                    T_in, T_in, None)
+        X = conjugations(self.extrinsic)
+        return CorrectedMotions(np.asarray(z, dtype=float), np.asarray(dt_s, dtype=float),
+                                T_in, X @ T_in @ se3.inverse(X), self.extrinsic.copy())
+
+
+@dataclass
+class CorrectedMotions:
+    """Measured motions and their corrections: ``z`` (m, 6) as measured, ``dt_s`` (m,) s,
+    ``T_in`` (m, 4, 4) with the odometry parameters (``S(T_meas)``), ``T`` (m, 4, 4) the
+    corrected motions ``X T_in X^-1``, ``extrinsic`` (m, 3) ``phi`` (None: all zero,
+    ``T = T_in``)."""
+
+    z: FloatArray
+    dt_s: FloatArray
+    T_in: FloatArray
+    T: FloatArray
+    extrinsic: FloatArray | None
+
+    def rows(self, sel: np.ndarray) -> CorrectedMotions:
+        """The connections ``sel`` (a mask or indices)."""
+        return CorrectedMotions(self.z[sel], self.dt_s[sel], self.T_in[sel], self.T[sel],
+                                None if self.extrinsic is None else self.extrinsic[sel])
+
+    def outer(self, G: FloatArray) -> FloatArray:
+        """(m, 6) a generator ``G`` of ``T_in`` as one of ``T``: ``Ad(X) G``."""
+        if self.extrinsic is None:
+            return G
+        return (se3.adjoint(conjugations(self.extrinsic)) @ G[:, :, None])[:, :, 0]
 
 
 def misclosure_jacobian(e: FloatArray, G: FloatArray) -> FloatArray:

@@ -786,7 +786,9 @@ class TrackWindowAligner:
         determines them
         (:func:`~ga_ros.core.calibration.solve_with_calibration`; the sources of the
         consecutive motions from ``variance_groups`` if given, else one source ``motion``;
-        cross-track connections get none) and :attr:`calibration` reports them; the refined
+        cross-track connections get none, except those of a camera named in
+        :attr:`CalibrationConfig.cameras`: every connection of its source gets its
+        extrinsic's rotation) and :attr:`calibration` reports them; the refined
         poses use the corrected motions, the stored connections keep their measured ones.
         It takes the place of the variance components.
 
@@ -841,7 +843,7 @@ class TrackWindowAligner:
                     priors = [p for p in priors if p.weak]
                 res, self.calibration = solve_with_calibration(
                     net, T0, sources, dt_s, scfg, fixed=fixed, priors=priors,
-                    calibration=calibration, fixes=fix_obs)
+                    calibration=calibration, fixes=fix_obs, groups=names)
                 return res
             if variance_groups is None:
                 return solve(net, T0, scfg, fixed=fixed, priors=priors)
