@@ -318,6 +318,8 @@ class TrackWindowAligner:
         cal = self.online_calibration
         if cal is not None:
             source = calibration_source(m)
+            if source is not None:  # the estimate started by the last update: used from now on
+                cal.install(self.strict)
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
             if z is not plan.z:
                 plan = replace(plan, z=z)
@@ -378,7 +380,7 @@ class TrackWindowAligner:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
                 self.handoff.start()
-                if self.online_calibration is not None:  # used from the next update on
+                if self.online_calibration is not None:  # used by the next motions
                     self.online_calibration.start(st, self.config, self._calibration_executor())
                 if self.config.freeze_ahead:
                     # computed for the next update: without the covariances if a refinement
@@ -434,8 +436,8 @@ class TrackWindowAligner:
         t0 = time.perf_counter()  # the update's time includes waiting for a freeze ahead
         self.wait_background()  # before the BLAS limit below (a process-wide setting)
         if self.online_calibration is not None:
-            # the estimate started after the last update (waiting for it, or solved inline)
-            self.online_calibration.install()
+            # the estimate started by the last update if no motion has used it yet
+            self.online_calibration.install(self.strict)
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
             return self._update(t0)
 
@@ -664,9 +666,9 @@ class TrackWindowAligner:
         return self.ahead.wait() + cal
 
     def _calibration_executor(self) -> str:
-        """Where the online calibration's estimate is solved: inline (at the next update's
-        start) with ``refine_executor='inline'``, else in a background thread (the result is
-        the same, :mod:`~ga_ros.core.window.calibration`)."""
+        """Where the online calibration's estimate is solved: inline (at its installation) with
+        ``refine_executor='inline'``, else in a background thread (the result is the same,
+        :mod:`~ga_ros.core.window.calibration`)."""
         return 'inline' if self.config.refine_executor == 'inline' else 'thread'
 
     # ------------------------------------------------------------ background refinement

@@ -22,11 +22,14 @@ horizon estimate and the final batch's calibration start from it.
 
 Where the estimate runs (:meth:`OnlineCalibration.start`, :meth:`OnlineCalibration.install`).
 Its inputs are copied right after the update ``k`` that triggers it; it is solved in a
-background thread while the next track is flown (``executor='thread'``) or at the installation
-(``'inline'``), and installed at the start of the next update (``k + 1``), waiting for it there
-if it is not ready. Which estimate an update and the motions after it use depends on track ends
-only, never on the thread's timing: a replay and a live node, and both executors, give the same
-path bit for bit.
+background thread (``executor='thread'``) or at the installation (``'inline'``), and installed
+when the first odometry motion after that update enters (or at the next update's start if none
+did), waiting for it there if it is not ready. Every motion is thus corrected with the estimate
+of the last update before it, as if the estimate had run inside the update, and which estimate
+that is depends on the order of the data only, never on the thread's timing: a replay and a
+live node, and both executors, give the same path bit for bit. The update returns (and is
+published) before the estimate is solved; a track that ends at a fix gives the estimate the
+time until the next motion.
 
 Everything here is part of the window state: a snapshot saves it (an estimate still pending
 is finished and saved with its result, installed at the same update after a restart) and a
@@ -59,11 +62,12 @@ from ga_ros.geometry import se3
 from ga_ros.runtime import blas_threads, limit_blas_threads
 
 #: Where a horizon estimate is solved (:meth:`OnlineCalibration.start`): in a background thread
-#: while the next track is flown, or inline at its installation (the next update's start).
+#: while the next track is flown, or inline at its installation (before the next odometry motion).
 CALIBRATION_EXECUTORS = ('thread', 'inline')
 
 #: The failures of the data that keep the previous estimate (counted, :attr:`OnlineCalibration.
-#: n_failed`); any other exception is a bug and surfaces in the update that installs it.
+#: n_failed`); any other exception is a bug, counted alike, and re-raised at the installation
+#: by a strict aligner (``GA_ROS_STRICT_UPDATES``).
 DATA_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
 
 #: The online estimate's settings: the batch's tests; the stated noise kept (the window
@@ -94,8 +98,8 @@ class HorizonEstimate:
         their motions as measured, its poses at their current estimates, each connection's
         source, durations in s, the solver's settings, the fixes and the gauge prior).
     report : the estimate (``None`` before :meth:`run`, or if it failed).
-    error : why it failed (a data failure, :data:`DATA_FAILURES`; or a bug, re-raised at the
-        installation); ``None`` if it did not.
+    error : why it failed (a data failure, :data:`DATA_FAILURES`, or another error);
+        ``None`` if it did not.
     done : whether :meth:`run` finished; cpu_ms : the CPU milliseconds it took (its thread).
     """
 
@@ -154,8 +158,8 @@ class OnlineCalibration:
         first.
     n_estimates : horizon estimates started; n_failed : those that failed (the previous
         estimate kept).
-    pending : the estimate started after the last update, installed at the start of the next
-        (:meth:`install`); ``None``: none.
+    pending : the estimate started after the last update, installed before the next odometry
+        motion (:meth:`install`); ``None``: none.
     last_conns, last_horizon : the connection rows when the last estimate ran and the
         connections its horizon held (when the next one is due,
         ``AlignerConfig.calibration_refresh``).
@@ -231,7 +235,7 @@ class OnlineCalibration:
         of a new estimate on the horizon of ``config.calibration_horizon_tracks`` finished
         tracks of ``state`` (module doc) and start it: in a background thread
         (``executor='thread'``) or left for :meth:`install` (``'inline'``). It is used from
-        the start of the next update on (:meth:`install`). Returns it (``None``: none due)."""
+        the next odometry motion on (:meth:`install`). Returns it (``None``: none due)."""
         if executor not in CALIBRATION_EXECUTORS:
             raise InputError(f'the online calibration runs in one of {CALIBRATION_EXECUTORS}, '
                              f'not {executor!r}')
@@ -281,12 +285,13 @@ class OnlineCalibration:
         return HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns), dt_s,
                                config.solver_config(), priors)
 
-    def install(self) -> float:
+    def install(self, strict: bool = False) -> float:
         """Use the pending estimate (waiting for it, or solving it inline) for the motions that
-        enter from now on: at the start of the update after the one that started it. A
-        failure of the data (too few nodes, a singular horizon) keeps the previous estimate
-        and counts it (:attr:`n_failed`); any other exception is raised here. Returns the
-        milliseconds spent (waiting or solving; 0 if nothing was pending)."""
+        enter from now on: before the first odometry motion after the update that started it,
+        or at the start of the next update. A failure (of the data: too few nodes, a singular
+        horizon; or any other error, re-raised if ``strict``) keeps the previous estimate and
+        counts it (:attr:`n_failed`). Returns the milliseconds spent (waiting or solving; 0 if
+        nothing was pending)."""
         job = self.pending
         if job is None:
             return 0.0
@@ -294,9 +299,9 @@ class OnlineCalibration:
         self.pending = None
         job.wait()
         if job.error is not None:
-            if not isinstance(job.error, DATA_FAILURES):
-                raise job.error
             self.n_failed += 1
+            if strict and not isinstance(job.error, DATA_FAILURES):
+                raise job.error
         else:
             self._use(job.report)
         return 1e3 * (time.perf_counter() - t0)
@@ -347,8 +352,6 @@ class OnlineCalibration:
         job = self.pending
         if job is not None:  # finished now, saved with its result (installed as without a cut)
             job.wait()
-            if job.error is not None and not isinstance(job.error, DATA_FAILURES):
-                raise job.error
             meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
         return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
 
