@@ -231,3 +231,27 @@ def test_the_estimate_runs_after_the_update_returned_and_corrects_the_next_motio
     monkeypatch.undo()
     _, online_free = run(s, THREADED)
     np.testing.assert_array_equal(online_held, online_free)  # the thread's timing: no matter
+
+
+def test_an_estimate_pending_at_a_save_is_saved_with_its_result_and_used_after_the_restart(
+        tmp_path):
+    """A save right after a track end, before the next motion (the estimate that update started
+    still pending, in its thread): the file holds its result, the restored aligner uses it for
+    the same motions, and the survey continues bit for bit."""
+    s = _survey()
+    al, online = run(s, THREADED)
+    cut = 10 * FIX_EVERY  # the track ending at node 10 * FIX_EVERY has just been adjusted
+    saved = {}
+
+    def save_after(c_al):
+        if c_al.state.n_updates == 10 and c_al.online_calibration.pending is not None:
+            saved['meta'] = state_arrays(c_al.state)[0]['calibration']
+
+    back, online_back = run(s, THREADED, cut=cut, path=tmp_path / 'state',
+                            at_track_end=save_after)
+    assert saved['meta']['pending']['report'] is not None  # a pending estimate at the cut
+    np.testing.assert_array_equal(online_back, online)
+    np.testing.assert_array_equal(back.online_calibration.applied.a,
+                                  al.online_calibration.applied.a)
+    assert back.online_calibration.report.lines() == al.online_calibration.report.lines()
+    assert back.online_calibration.n_estimates == al.online_calibration.n_estimates
