@@ -174,8 +174,8 @@ class AlignerConfig:
     calibrate : self-calibration online (:mod:`ga_ros.core.window.calibration`): after each
         window update each odometry source's scale and yaw-rate corrections are estimated
         again where the network determines them and they are significant (in a background
-        thread, inline with ``refine_executor='inline'``), installed at the start of the next
-        update, and the source's motions that enter from then on are stored corrected.
+        thread, inline with ``refine_executor='inline'``), installed before the next odometry
+        motion, and the source's motions that enter from then on are stored corrected.
         ``False`` (default): nothing estimated, the motions as measured.
     calibration_horizon_tracks : the latest finished tracks the online estimate is made on
         (its memory: a slowly varying parameter is followed with this lag).
