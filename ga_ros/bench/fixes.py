@@ -155,6 +155,8 @@ class FixBenchFigures:
     online_cal_wins: int = 0
     update_ms_quarters: list[float] = field(default_factory=list)
     update_cpu_ms_quarters: list[float] = field(default_factory=list)
+    cal_update_ms_quarters: list[float] = field(default_factory=list)
+    cal_update_cpu_ms_quarters: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
     # the staged run's work per track end by part and kind ('window linearisations': mean)
     work_per_update: dict[str, float] = field(default_factory=dict)
@@ -455,6 +457,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
         cal = run_ours(run, idx, p, noise_m, cov, replace(cfg, calibrate=True), final=False)
         fig.ours_online_cal_m = _rmse(cal.online, run.T_true)
         fig.ours_online_cal_cpu_s = cal.online_cpu_s
+        fig.cal_update_ms_quarters = _quarters(cal.update_ms)
+        fig.cal_update_cpu_ms_quarters = _quarters(cal.update_cpu_ms)
         fig.online_calibration = cal.online_calibration
     if ours.final_cal is not None:
         fig.ours_final_cal_m = _rmse(ours.final_cal, run.T_true)
@@ -504,6 +508,9 @@ def mean_over_seeds(figs: list[FixBenchFigures]) -> list[FixBenchFigures]:
         mean.update_ms_quarters = list(np.mean([f.update_ms_quarters for f in group], axis=0))
         mean.update_cpu_ms_quarters = list(np.mean([f.update_cpu_ms_quarters for f in group],
                                                    axis=0))
+        for name in ('cal_update_ms_quarters', 'cal_update_cpu_ms_quarters'):
+            if all(getattr(f, name) for f in group):
+                setattr(mean, name, list(np.mean([getattr(f, name) for f in group], axis=0)))
         mean.work_per_update = {k: float(np.mean([f.work_per_update.get(k, 0.0)
                                                   for f in group]))
                                 for k in dict.fromkeys(k for f in group
@@ -583,16 +590,22 @@ def table(figs: list[FixBenchFigures]) -> str:
                   'corrections are estimated on the latest calibration_horizon_tracks finished '
                   'tracks where significant (alpha 0.001) and applied to the motions that enter '
                   'next; CPU of all processes of that online run (first run: with start-up); '
-                  'online+cal<=isam2: the seeds where it is <= iSAM2 online. Online estimate at '
-                  'the end: of the first seed.',
+                  'online+cal<=isam2: the seeds where it is <= iSAM2 online; update-ms / '
+                  'update-cpu-ms: mean update_ms (wall, waiting for the estimate in the '
+                  "background included) and CPU ms of the calling thread (the estimate's "
+                  'thread not included) of the calls that end a track, per quarter of the '
+                  'run. Online estimate at the end: of the first seed.',
                   'interval  noise  ours-online  ours-online+cal  isam2-online  '
-                  'online+cal/isam2  online+cal-cpu  online+cal<=isam2  online estimate']
+                  'online+cal/isam2  online+cal-cpu  online+cal<=isam2  update-ms-by-quarter  '
+                  'update-cpu-ms-by-quarter  online estimate']
         for f in figs:
             lines.append(
                 f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_online_m:12.2f} '
                 f'{f.ours_online_cal_m:16.2f} {f.isam2_online_m:13.2f} '
                 f'{f.ours_online_cal_m / f.isam2_online_m:17.3f} '
                 f'{f.ours_online_cal_cpu_s:15.2f} {f.online_cal_wins:11d} of {f.seeds}  '
+                + ' / '.join(f'{q:.0f}' for q in f.cal_update_ms_quarters) + '  '
+                + ' / '.join(f'{q:.0f}' for q in f.cal_update_cpu_ms_quarters) + '  '
                 + '; '.join(x for x in f.online_calibration if 'yaw_rate' in x or 'scale' in x))
     lines += ['', 'CPU seconds of all processes (this one with its threads, the refinement '
               'worker): ga-ros online (the whole online run, as the replay runs it; the first '

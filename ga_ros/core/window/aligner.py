@@ -318,6 +318,8 @@ class TrackWindowAligner:
         cal = self.online_calibration
         if cal is not None:
             source = calibration_source(m)
+            if source is not None:  # the estimate started by the last update: used from now on
+                cal.install(self.strict)
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
             if z is not plan.z:
                 plan = replace(plan, z=z)
@@ -378,6 +380,8 @@ class TrackWindowAligner:
             up = self._finish_track()
             if not str(up.reason).startswith('failed'):
                 self.handoff.start()
+                if self.online_calibration is not None:  # used by the next motions
+                    self.online_calibration.start(st, self.config, self._calibration_executor())
                 if self.config.freeze_ahead:
                     # computed for the next update: without the covariances if a refinement
                     # installed by that update replaces them
@@ -431,6 +435,9 @@ class TrackWindowAligner:
             return None
         t0 = time.perf_counter()  # the update's time includes waiting for a freeze ahead
         self.wait_background()  # before the BLAS limit below (a process-wide setting)
+        if self.online_calibration is not None:
+            # the estimate started by the last update if no motion has used it yet
+            self.online_calibration.install(self.strict)
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
             return self._update(t0)
 
@@ -465,9 +472,6 @@ class TrackWindowAligner:
                 (up.refined_after_tracks, up.refine_reason, up.refine_wait_ms) = refined
                 if error:
                     up.refine_reason += f'; not smoothed: {error}'
-            if self.online_calibration is not None and not str(up.reason).startswith('failed'):
-                with blas_threads():
-                    self.online_calibration.estimate(st, self.config)
         except GaError as exc:
             up = UpdateResult(track, 0, False, float('nan'), 1e3 * (time.perf_counter() - t0),
                               0, 0, len(window), 0, f'failed: {exc}')
@@ -653,11 +657,19 @@ class TrackWindowAligner:
             self.state.cov[rows] = plan.covariances()
 
     def wait_background(self) -> float:
-        """Wait until the freeze being computed ahead (``freeze_ahead``) is ready; returns the
-        CPU milliseconds it took (0 if none). Never needed for correctness: the next update
-        waits for it anyway. A replay calls it to model the time a live survey has between
+        """Wait until the freeze being computed ahead (``freeze_ahead``) and the online
+        calibration's estimate running in a thread (``calibrate``) are ready; returns the CPU
+        milliseconds they took (0 if none). Never needed for correctness: the next update
+        waits for them anyway. A replay calls it to model the time a live survey has between
         track ends."""
-        return self.ahead.wait()
+        cal = 0.0 if self.online_calibration is None else self.online_calibration.wait()
+        return self.ahead.wait() + cal
+
+    def _calibration_executor(self) -> str:
+        """Where the online calibration's estimate is solved: inline (at its installation) with
+        ``refine_executor='inline'``, else in a background thread (the result is the same,
+        :mod:`~ga_ros.core.window.calibration`)."""
+        return 'inline' if self.config.refine_executor == 'inline' else 'thread'
 
     # ------------------------------------------------------------ background refinement
     def refinement_state(self) -> dict | None:

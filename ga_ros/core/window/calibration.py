@@ -3,7 +3,8 @@ corrections, :mod:`ga_ros.core.calibration`) estimated while the survey runs and
 the source's motions as they enter the window.
 
 The scheme (``docs/calibration.md``, *Online*). After each successful window update the
-parameters are estimated again by the batch self-calibration,
+parameters are estimated again (:class:`HorizonEstimate`, off the update's critical path) by
+the batch self-calibration,
 :func:`~ga_ros.core.calibration.solve_with_calibration` (the same estimate and the same tests
 of what the network determines and what is significant), on a horizon of the latest
 ``calibration_horizon_tracks`` finished tracks: their nodes at their current estimates, the
@@ -19,13 +20,27 @@ parameters (0 where not estimated), and its applied ``(k, omega)`` is kept per c
 the motion as measured is always recoverable (:meth:`OnlineCalibration.measured`): the next
 horizon estimate and the final batch's calibration start from it.
 
-Everything here is part of the window state: a snapshot saves it and a journal replay
-reproduces it (the estimate runs at the same track ends from the same state).
+Where the estimate runs (:meth:`OnlineCalibration.start`, :meth:`OnlineCalibration.install`).
+Its inputs are copied right after the update ``k`` that triggers it; it is solved in a
+background thread (``executor='thread'``) or at the installation (``'inline'``), and installed
+when the first odometry motion after that update enters (or at the next update's start if none
+did), waiting for it there if it is not ready. Every motion is thus corrected with the estimate
+of the last update before it, as if the estimate had run inside the update, and which estimate
+that is depends on the order of the data only, never on the thread's timing: a replay and a
+live node, and both executors, give the same path bit for bit. The update returns (and is
+published) before the estimate is solved; a track that ends at a fix gives the estimate the
+time until the next motion.
+
+Everything here is part of the window state: a snapshot saves it (an estimate still pending
+is finished and saved with its result, installed at the same update after a restart) and a
+journal replay reproduces it (the estimate runs at the same track ends from the same state).
 """
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+import threading
+import time
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -39,14 +54,28 @@ from ga_ros.core.calibration import (
 )
 from ga_ros.core.fixes import gauge_information
 from ga_ros.core.measurement import Measurement, variance_group
-from ga_ros.core.solver import GaussianPrior
+from ga_ros.core.network import ConnectionNetwork
+from ga_ros.core.solver import GaussianPrior, SolverConfig
 from ga_ros.core.window.storage import Rows
-from ga_ros.errors import GaError
+from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
+from ga_ros.runtime import blas_threads, limit_blas_threads
+
+#: Where a horizon estimate is solved (:meth:`OnlineCalibration.start`): in a background thread
+#: while the next track is flown, or inline at its installation (before the next odometry motion).
+CALIBRATION_EXECUTORS = ('thread', 'inline')
+
+#: The failures of the data that keep the previous estimate (counted, :attr:`OnlineCalibration.
+#: n_failed`); any other exception is a bug, counted alike, and re-raised at the installation
+#: by a strict aligner (``GA_ROS_STRICT_UPDATES``).
+DATA_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
 
 #: The online estimate's settings: the batch's tests; the stated noise kept (the window
-#: adjustments weight the sources by their stated covariances).
-ONLINE_CALIBRATION = CalibrationConfig(noise=False)
+#: adjustments weight the sources by their stated covariances); the parameters' steps stop
+#: once every one moves less than 1 % of its sigma (the batch: 0.1 %): the test statistic
+#: ``|value| / (sigma0 sigma)`` moves by 0.01 at most against a critical value of ~3.3, and a
+#: horizon estimate takes ~10 % fewer solves (``docs/calibration.md``).
+ONLINE_CALIBRATION = CalibrationConfig(noise=False, tolerance=1e-2)
 
 
 def calibration_source(m: Measurement) -> str | None:
@@ -55,6 +84,65 @@ def calibration_source(m: Measurement) -> str | None:
     :func:`~ga_ros.core.measurement.variance_group` names it); ``None`` for cross-track
     connections and bridges."""
     return variance_group(m) if m.kind == 'consecutive' else None
+
+
+@dataclass
+class HorizonEstimate:
+    """One horizon estimate: its inputs, copied from the state after the update that started
+    it (nothing here refers to the state's arrays), and, once :meth:`run`, its result.
+
+    Attributes
+    ----------
+    network, T_init, sources, dt_s, solver, priors : the arguments of
+        :func:`~ga_ros.core.calibration.solve_with_calibration` (the horizon's connections with
+        their motions as measured, its poses at their current estimates, each connection's
+        source, durations in s, the solver's settings, the fixes and the gauge prior).
+    report : the estimate (``None`` before :meth:`run`, or if it failed).
+    error : why it failed (a data failure, :data:`DATA_FAILURES`, or another error);
+        ``None`` if it did not.
+    done : whether :meth:`run` finished; cpu_ms : the CPU milliseconds it took (its thread).
+    """
+
+    network: ConnectionNetwork
+    T_init: FloatArray
+    sources: list
+    dt_s: FloatArray
+    solver: SolverConfig
+    priors: list
+    report: CalibrationReport | None = None
+    error: BaseException | None = None
+    done: bool = False
+    cpu_ms: float = 0.0
+    thread: threading.Thread | None = field(default=None, repr=False)
+
+    def run(self) -> None:
+        """Solve the estimate (in the calling thread; BLAS as that thread has it)."""
+        c0 = time.thread_time()
+        try:
+            _, self.report = solve_with_calibration(
+                self.network, self.T_init, self.sources, self.dt_s, self.solver, fixed=[],
+                priors=self.priors, calibration=ONLINE_CALIBRATION)
+        except BaseException as exc:  # noqa: BLE001 - judged at the installation
+            self.error = exc
+        self.cpu_ms = 1e3 * (time.thread_time() - c0)
+        self.done = True
+
+    def wait(self) -> None:
+        """Until the result is there: the thread joined, or (inline, or a thread never
+        started) solved now under the update's BLAS limit."""
+        if self.thread is not None:
+            self.thread.join()
+        if not self.done:
+            with blas_threads():
+                self.run()
+
+    @classmethod
+    def finished(cls, report: CalibrationReport | None) -> HorizonEstimate:
+        """A finished estimate restored from a state file (``None``: one that failed)."""
+        est = cls(None, np.zeros((0, 4, 4)), [], np.zeros(0), SolverConfig(), [], report,
+                  None if report is not None else GaError('the saved estimate failed'))
+        est.done = True
+        return est
 
 
 class OnlineCalibration:
@@ -68,8 +156,10 @@ class OnlineCalibration:
     report : the last horizon estimate (:class:`~ga_ros.core.calibration.CalibrationReport`:
         every parameter's value, sigma, test, or why it is not estimated); ``None`` before the
         first.
-    n_estimates : horizon estimates made; n_failed : those that failed (the previous estimate
-        kept).
+    n_estimates : horizon estimates started; n_failed : those that failed (the previous
+        estimate kept).
+    pending : the estimate started after the last update, installed before the next odometry
+        motion (:meth:`install`); ``None``: none.
     last_conns, last_horizon : the connection rows when the last estimate ran and the
         connections its horizon held (when the next one is due,
         ``AlignerConfig.calibration_refresh``).
@@ -85,6 +175,7 @@ class OnlineCalibration:
         self.last_conns = 0  # connection rows at the last estimate
         self.last_horizon = 0  # the connections its horizon held
         self._current: dict[str, tuple[float, float]] = {}
+        self.pending: HorizonEstimate | None = None
 
     # ----------------------------------------------------------------------- input
     def correction(self, source: str | None) -> tuple[float, float]:
@@ -139,26 +230,45 @@ class OnlineCalibration:
         return z
 
     # -------------------------------------------------------------------- estimate
-    def estimate(self, state, config) -> None:
-        """Estimate the parameters again on the horizon of ``config.calibration_horizon_tracks``
-        finished tracks of ``state`` (module doc) and use them for the motions that enter
-        next. A failure of the data (too few nodes, a singular horizon) keeps the previous
-        estimate and counts it (:attr:`n_failed`)."""
+    def start(self, state, config, executor: str = 'thread') -> HorizonEstimate | None:
+        """After a successful update: if due (``config.calibration_refresh``), copy the inputs
+        of a new estimate on the horizon of ``config.calibration_horizon_tracks`` finished
+        tracks of ``state`` (module doc) and start it: in a background thread
+        (``executor='thread'``) or left for :meth:`install` (``'inline'``). It is used from
+        the next odometry motion on (:meth:`install`). Returns it (``None``: none due)."""
+        if executor not in CALIBRATION_EXECUTORS:
+            raise InputError(f'the online calibration runs in one of {CALIBRATION_EXECUTORS}, '
+                             f'not {executor!r}')
+        if self.pending is not None:
+            self.install()  # never more than one (a caller that skipped an installation)
+        job = self._inputs(state, config)
+        if job is None:
+            return None
+        self.pending = job
+        if executor == 'thread':
+            background_blas_limit()
+            job.thread = threading.Thread(target=job.run, daemon=True,
+                                          name='ga_ros-calibration')
+            job.thread.start()
+        return job
+
+    def _inputs(self, state, config) -> HorizonEstimate | None:
+        """The inputs of the estimate due now (copies), counted; ``None`` if none is due."""
         if state.src.n - self.last_conns < config.calibration_refresh * self.last_horizon:
-            return
+            return None
         finished = state.finished_order()
         horizon = finished[-int(config.calibration_horizon_tracks):]
         if not horizon or self.source.n == 0 or not (self.source.a >= 0).any():
-            return
+            return None
         rows = _track_rows(state, horizon)
         if rows.size < 2:
-            return
+            return None
         lo = int(rows[0])
         conns = state.horizon_rows(lo)
         conns = conns[np.isin(state.src.a[conns], rows) & np.isin(state.dst.a[conns], rows)
                       & (state.status.a[conns] != 2)]
         if not conns.size:
-            return
+            return None
         stamp = state.stamp.astype(np.float64)
         dt_s = (stamp[state.dst.a[conns]] - stamp[state.src.a[conns]]) * 1e-9
         z = self.measured(state.z.a[conns], dt_s, conns)
@@ -166,21 +276,44 @@ class OnlineCalibration:
         ids = state.idarr.a
         priors = state.fixes.priors(rows, state.T, ids)
         priors = [p for p in priors if not p.weak]
-        priors.append(GaussianPrior(ids[[lo]], state.T[[lo]],
+        priors.append(GaussianPrior(ids[[lo]], state.T[[lo]].copy(),
                                     gauge_information(config.gauge_sigma_m,
                                                       config.gauge_sigma_tilt_rad,
                                                       config.gauge_sigma_yaw_rad), weak=True))
         self.n_estimates += 1
         self.last_conns, self.last_horizon = int(state.src.n), int(conns.size)
-        try:
-            _, report = solve_with_calibration(
-                net, state.T[rows].copy(), self.sources_of(conns), dt_s,
-                config.solver_config(), fixed=[], priors=priors,
-                calibration=ONLINE_CALIBRATION)
-        except (GaError, np.linalg.LinAlgError, FloatingPointError):
+        return HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns), dt_s,
+                               config.solver_config(), priors)
+
+    def install(self, strict: bool = False) -> float:
+        """Use the pending estimate (waiting for it, or solving it inline) for the motions that
+        enter from now on: before the first odometry motion after the update that started it,
+        or at the start of the next update. A failure (of the data: too few nodes, a singular
+        horizon; or any other error, re-raised if ``strict``) keeps the previous estimate and
+        counts it (:attr:`n_failed`). Returns the milliseconds spent (waiting or solving; 0 if
+        nothing was pending)."""
+        job = self.pending
+        if job is None:
+            return 0.0
+        t0 = time.perf_counter()
+        self.pending = None
+        job.wait()
+        if job.error is not None:
             self.n_failed += 1
-            return
-        self._use(report)
+            if strict and not isinstance(job.error, DATA_FAILURES):
+                raise job.error
+        else:
+            self._use(job.report)
+        return 1e3 * (time.perf_counter() - t0)
+
+    def wait(self) -> float:
+        """Wait for an estimate running in the background; returns its CPU milliseconds (0 if
+        none runs; an inline one is left for :meth:`install`)."""
+        job = self.pending
+        if job is None or job.thread is None:
+            return 0.0
+        job.thread.join()
+        return job.cpu_ms
 
     def _use(self, report: CalibrationReport) -> None:
         self.report = report
@@ -216,6 +349,10 @@ class OnlineCalibration:
                 'n_failed': int(self.n_failed), 'last_conns': int(self.last_conns),
                 'last_horizon': int(self.last_horizon),
                 'report': None if self.report is None else self.report.as_dict()}
+        job = self.pending
+        if job is not None:  # finished now, saved with its result (installed as without a cut)
+            job.wait()
+            meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
         return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
 
     @classmethod
@@ -233,7 +370,26 @@ class OnlineCalibration:
         rep = meta.get('report')
         if rep is not None:
             book._use(report_of_dict(rep))
+        pending = meta.get('pending')
+        if pending is not None:
+            rep = pending.get('report')
+            book.pending = HorizonEstimate.finished(None if rep is None
+                                                    else report_of_dict(rep))
         return book
+
+
+#: :func:`background_blas_limit`'s process-wide limit, once set.
+_BLAS_LIMIT = None
+
+
+def background_blas_limit() -> None:
+    """Set the process-wide BLAS thread limit (:func:`~ga_ros.runtime.limit_blas_threads`,
+    the one the update's ``blas_threads()`` contexts use) once and keep it: an estimate in a
+    background thread runs under it, as a ``blas_threads()`` context entered there would
+    restore the update's thread's limits midway (the freeze ahead does the same)."""
+    global _BLAS_LIMIT
+    if _BLAS_LIMIT is None:
+        _BLAS_LIMIT = limit_blas_threads()
 
 
 def _track_rows(state, tracks: list[int]) -> IntArray:

@@ -173,9 +173,10 @@ class AlignerConfig:
         freedom.
     calibrate : self-calibration online (:mod:`ga_ros.core.window.calibration`): after each
         window update each odometry source's scale and yaw-rate corrections are estimated
-        again where the network determines them and they are significant, and the source's
-        motions that enter next are stored corrected. ``False`` (default): nothing estimated,
-        the motions as measured.
+        again where the network determines them and they are significant (in a background
+        thread, inline with ``refine_executor='inline'``), installed before the next odometry
+        motion, and the source's motions that enter from then on are stored corrected.
+        ``False`` (default): nothing estimated, the motions as measured.
     calibration_horizon_tracks : the latest finished tracks the online estimate is made on
         (its memory: a slowly varying parameter is followed with this lag).
     calibration_refresh : the online estimate runs at a track end once the connections

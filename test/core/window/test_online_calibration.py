@@ -4,6 +4,8 @@ fixes, as a live survey would."""
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from ga_ros.core.calibration import corrected_motions
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
+from ga_ros.core.window import calibration as online
 from ga_ros.core.window.persistence import load_state, save_state, state_arrays
 from ga_ros.geometry import se3
 from ga_ros.sim.biased import biased_survey
@@ -33,10 +36,11 @@ def _steps(s):
     return arr, stamps, {int(i): T[:3, 3] for i, T in zip(fixes.node_ids, fixes.T_world_node)}
 
 
-def run(s, config: AlignerConfig, cut: int | None = None, path=None):
+def run(s, config: AlignerConfig, cut: int | None = None, path=None, at_track_end=None):
     """Feed the survey to an aligner (a track ends at each fix, right after it); returns the
     aligner and each node's online pose (its estimate when first published). ``cut``: after
-    that many motions the aligner is saved to ``path`` and the rest fed to the one loaded."""
+    that many motions the aligner is saved to ``path`` and the rest fed to the one loaded.
+    ``at_track_end(al)``: called after each track end's update returned."""
     arr, stamps, fixes = _steps(s)
     n = s.T_true.shape[0]
     al = TrackWindowAligner(config, T_world_first=s.T_true[0])
@@ -65,9 +69,13 @@ def run(s, config: AlignerConfig, cut: int | None = None, path=None):
         if i in fixes:
             add_fix(i)
             al.finish_track()
+            if at_track_end is not None:
+                at_track_end(al)
             track += 1
         online[i] = al.pose(i)
     al.finish_track()
+    if at_track_end is not None:
+        at_track_end(al)
     al.wait_background()
     return al, online
 
@@ -77,6 +85,9 @@ def _rmse(T, T_true) -> float:
 
 
 CAL = AlignerConfig(datum='fixes', calibrate=True, refine_executor='inline')
+#: the estimate in a background thread (and the refinement in one too)
+THREADED = AlignerConfig(datum='fixes', calibrate=True, refine_executor='thread')
+DEADLINE_S = 600.0  # generous: a busy 2-core machine
 OFF = AlignerConfig(datum='fixes', refine_executor='inline')
 
 
@@ -156,3 +167,91 @@ def test_the_final_batch_calibrates_the_motions_as_measured():
     lines = al.calibration.lines()
     assert abs(est['yaw_rate'].value - YAW_RATE) < 4 * est['yaw_rate'].sigma, lines
     assert abs(est['scale'].value - SCALE) < 4 * est['scale'].sigma, lines
+
+
+def test_threaded_and_inline_estimates_give_the_same_path_and_state_bit_for_bit():
+    """The estimate solved in a background thread (a live node) or inline at its installation
+    (a replay with ``refine_executor='inline'``): installed at the same update, the same path
+    and state."""
+    s = _survey()
+    al, online_inline = run(s, CAL)
+    th, online_thread = run(s, THREADED)
+    assert al.online_calibration.n_estimates > 2
+    np.testing.assert_array_equal(online_thread, online_inline)
+    np.testing.assert_array_equal(th.corrected_path().T_world_node,
+                                  al.corrected_path().T_world_node)
+    meta, arrays = state_arrays(al.state)
+    meta2, arrays2 = state_arrays(th.state)
+    assert meta2['calibration'] == meta['calibration']
+    for name in ('cal_source', 'cal_applied', 'T', 'z'):
+        np.testing.assert_array_equal(arrays2[name], arrays[name], err_msg=name)
+
+
+def test_the_estimate_runs_after_the_update_returned_and_corrects_the_next_motions(
+        monkeypatch):
+    """With the threaded executor the update returns while its estimate is still being solved
+    (held on an event here); the next motion of the source waits for it and is corrected with
+    it, as when the estimate ran inside the update, whatever the thread's timing."""
+    entered, release = threading.Event(), threading.Event()
+    real = online.solve_with_calibration
+
+    def held(*args, **kwargs):
+        entered.set()
+        if not release.wait(DEADLINE_S):
+            raise RuntimeError('never released')
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(online, 'solve_with_calibration', held)
+    last = []  # (the estimate started by the last update, connections then)
+    checked = []
+
+    def at_track_end(al):
+        book = al.online_calibration
+        if last:
+            job, n_conns = last.pop()
+            assert book.report is job.report  # installed by the first motion after its update
+            k, w = book.correction('odom0')
+            # every motion since then carries it
+            assert (book.applied.a[n_conns:n_conns + FIX_EVERY - 1] == (k, w)).all()
+            if job.report.estimated():
+                checked.append(True)
+        if book.pending is not None:
+            # the update returned; its estimate has started and is held in the thread
+            assert entered.wait(DEADLINE_S)
+            assert book.pending.thread is not None and not book.pending.done
+            last.append((book.pending, book.applied.n))
+            entered.clear()
+            release.set()  # the next motion waits for it
+            book.pending.thread.join(DEADLINE_S)
+            release.clear()
+
+    s = _survey()
+    al, online_held = run(s, THREADED, at_track_end=at_track_end)
+    assert len(checked) > 2
+    monkeypatch.undo()
+    _, online_free = run(s, THREADED)
+    np.testing.assert_array_equal(online_held, online_free)  # the thread's timing: no matter
+
+
+def test_an_estimate_pending_at_a_save_is_saved_with_its_result_and_used_after_the_restart(
+        tmp_path):
+    """A save right after a track end, before the next motion (the estimate that update started
+    still pending, in its thread): the file holds its result, the restored aligner uses it for
+    the same motions, and the survey continues bit for bit."""
+    s = _survey()
+    al, online = run(s, THREADED)
+    cut = 10 * FIX_EVERY  # the track ending at node 10 * FIX_EVERY has just been adjusted
+    saved = {}
+
+    def save_after(c_al):
+        if c_al.state.n_updates == 10 and c_al.online_calibration.pending is not None:
+            saved['meta'] = state_arrays(c_al.state)[0]['calibration']
+
+    back, online_back = run(s, THREADED, cut=cut, path=tmp_path / 'state',
+                            at_track_end=save_after)
+    assert saved['meta']['pending']['report'] is not None  # a pending estimate at the cut
+    np.testing.assert_array_equal(online_back, online)
+    np.testing.assert_array_equal(back.online_calibration.applied.a,
+                                  al.online_calibration.applied.a)
+    assert back.online_calibration.report.lines() == al.online_calibration.report.lines()
+    assert back.online_calibration.n_estimates == al.online_calibration.n_estimates
