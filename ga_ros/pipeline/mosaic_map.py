@@ -225,6 +225,11 @@ class _Tile:
     keys: set[int] = field(default_factory=set)
 
 
+#: Stamps a static tile lists before it is compacted to those its pixels show (its owner
+#: indices are uint16 for tiles of fewer pixels than this, else uint32).
+STATIC_TILE_STAMPS = 2 ** 16 - 1
+
+
 @dataclass
 class _StaticTile:
     """A tile of the static layer: the merged keyframes' pixels and, per valid pixel, the
@@ -243,6 +248,12 @@ class _StaticTile:
 
     def nbytes(self) -> int:
         return self.image.nbytes + self.valid.nbytes + self.owner.nbytes + self.stamps.nbytes
+
+    def compact(self) -> None:
+        """Keep only the stamps some pixel shows (owner indices renumbered)."""
+        shown, inverse = np.unique(self.owner[self.valid], return_inverse=True)
+        self.owner[self.valid] = inverse.astype(self.owner.dtype)
+        self.stamps = self.stamps[shown]
 
     def pixel_stamps(self) -> np.ndarray:
         """(t, t) int64 stamp of each pixel (the smallest int64 where none is shown)."""
@@ -723,15 +734,15 @@ class LiveMosaic:
             got = self.tiles[tile]
             layer = self.static[tile] = _StaticTile(
                 np.zeros_like(got.image), np.zeros_like(got.valid),
-                np.zeros(got.valid.shape, np.uint16 if t * t <= 65535 else np.uint32),
+                np.zeros(got.valid.shape, np.uint16 if t * t < STATIC_TILE_STAMPS else np.uint32),
                 np.zeros(0, np.int64))
-        if layer.stamps.size > np.iinfo(layer.owner.dtype).max:  # compact: the stamps shown
-            shown, inverse = np.unique(layer.owner[layer.valid], return_inverse=True)
-            layer.owner[layer.valid] = inverse.astype(layer.owner.dtype)
-            layer.stamps = layer.stamps[shown]
+        if layer.stamps.size >= STATIC_TILE_STAMPS:
+            layer.compact()
         where = None if key > layer.newest else layer.pixel_stamps() < key
         pasted = np.zeros_like(layer.valid)
         _paste(_Tile(layer.image, pasted), patch, tile[0] * t, tile[1] * t, where)
+        if not pasted.any():
+            return
         layer.valid |= pasted
         layer.owner[pasted] = layer.stamps.size
         layer.stamps = np.r_[layer.stamps, np.int64(key)]

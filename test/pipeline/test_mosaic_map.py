@@ -18,6 +18,7 @@ from ga_ros.mapping.mosaic import (
 )
 from ga_ros.mapping.seams import seam_misregistration
 from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
+from ga_ros.pipeline import mosaic_map
 from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
 
 sim = pytest.importorskip('ga_ros.sim.stereo')
@@ -579,3 +580,33 @@ def test_a_small_move_does_not_unsettle_a_keyframe(data) -> None:
     R = se3.from_translation_rotvec(np.zeros(3), np.array([0.0, 0.0, 0.003]))
     live.set_poses([key], T @ R)
     assert not live.settled(key)
+
+
+@pytest.mark.parametrize('compact_at', [2 ** 16 - 1, 3])
+def test_merges_in_any_order_change_no_pixel(data, monkeypatch, compact_at: int) -> None:
+    """Newer keyframes merged before older ones that overlap them: the static layer keeps the
+    newer pixels on top, so each merge leaves the mosaic as built from scratch (also when the
+    static tiles' lists of stamps are compacted at every third merge)."""
+    monkeypatch.setattr(mosaic_map, 'STATIC_TILE_STAMPS', compact_at)
+    K, stamps, images, T_true = data
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                      ground_from_clouds=False, tile_px=64,
+                                      max_live_keyframes=0))
+    for s, img in zip(stamps, images):
+        live.add_image(int(s), img, K, T_BASE_CAM)
+    live.set_poses(stamps, T_true)
+    ref = scratch(images, T_true, K, live.mosaic().georef)
+    assert_same(live.mosaic(), ref)
+    for group in (5, 1, 3, 0, 4):
+        assert live.merge(stamps[4 * group:4 * group + 4].tolist()) == 4
+        assert_same(live.mosaic(), ref)
+    # stamps no pixel shows any more: listed until the tile is compacted
+    hidden = [layer.stamps.size - np.unique(layer.owner[layer.valid]).size
+              for layer in live.static.values()]
+    assert max(hidden) <= 1 if compact_at == 3 else max(hidden) > 1
+    # and once recomposited from the static layer (a live keyframe moved and back)
+    T = T_true.copy()
+    T[8:12, 0, 3] += 2.0
+    live.set_poses(stamps, T)
+    live.set_poses(stamps, T_true)
+    assert_same(live.mosaic(), ref)
