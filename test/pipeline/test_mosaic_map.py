@@ -610,3 +610,26 @@ def test_merges_in_any_order_change_no_pixel(data, monkeypatch, compact_at: int)
     live.set_poses(stamps, T)
     live.set_poses(stamps, T_true)
     assert_same(live.mosaic(), ref)
+
+
+def test_merging_settled_keyframes_over_relief(relief) -> None:
+    """The same late loop closure orthorectified on the keyframe clouds' height model: the
+    first keyframes stay live, and the mosaic is the offline orthomosaic of the final poses
+    (within :func:`assert_close`); merged by age it is not."""
+    K, stamps, images, T_true, clouds, _ = relief
+    results = {}
+    for settle in (0, 1):
+        live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                          max_live_keyframes=12, settle_updates=settle))
+        assert max(late_loop_closure(live, K, stamps, images, T_true, clouds)) <= 12
+        assert len(live.surface.keyframes) <= 12
+        now = live.mosaic()
+        results[settle] = live, now, offline(images, clouds, T_true, K, now.georef)[0]
+    live, now, ref = results[1]
+    assert live.counts.merged_forced == 0 and live.counts.merged_moves_ignored == 0
+    assert not set(stamps[:4].tolist()) & set(live.merged)
+    assert_close(now, ref)
+    live, now, ref = results[0]
+    assert live.counts.merged_moves_ignored >= 4
+    both = now.valid & ref.valid
+    assert np.mean(np.abs(now.image.astype(int) - ref.image.astype(int))[both] > 8) > 0.01
