@@ -660,14 +660,15 @@ class LiveMosaic:
                 got.valid[:] = False
             else:
                 got.image[:], got.valid[:] = base.image, base.valid
+            newest = None if base is None else base.newest
             under = None  # the static pixels' stamps, while a live keyframe is older than some
             for k in sorted(got.keys):
                 p = self.keyframes[k].patch
                 assert p is not None
-                if base is not None and under is None and k < base.newest:
+                older = newest is not None and k < newest
+                if older and under is None:
                     under = base.pixel_stamps()
-                _paste(got, p, tile[0] * t, tile[1] * t,
-                       None if under is None or k >= base.newest else under < k)
+                _paste(got, p, tile[0] * t, tile[1] * t, under < k if older else None)
             if not got.keys and base is None:
                 del self.tiles[tile]
             self.counts.tiles_composited += 1
