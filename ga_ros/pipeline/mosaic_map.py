@@ -225,41 +225,57 @@ class _Tile:
     keys: set[int] = field(default_factory=set)
 
 
-#: Stamps a static tile lists before it is compacted to those its pixels show (its owner
-#: indices are uint16 for tiles of fewer pixels than this, else uint32).
+#: Stamps a static tile lists before it is compacted to those its pixels show (fewer when its
+#: owner indices' type holds fewer).
 STATIC_TILE_STAMPS = 2 ** 16 - 1
 
 
 @dataclass
 class _StaticTile:
-    """A tile of the static layer: the merged keyframes' pixels and, per valid pixel, the
-    stamp of the keyframe shown (``stamps[owner]``; ``stamps`` only grows until it is
-    compacted to the stamps still shown)."""
+    """A tile of the static layer: the merged keyframes' pixels and, per pixel, which stamp it
+    shows (``owner``: 0 none, else ``stamps[owner - 1]``). ``owner`` is uint8 and widens to
+    uint16, then uint32, when a tile shows more stamps; ``stamps`` only grows until it is
+    compacted to the stamps still shown."""
 
     image: np.ndarray
-    valid: np.ndarray
     owner: np.ndarray
     stamps: np.ndarray
 
     @property
+    def valid(self) -> np.ndarray:
+        """The pixels some merged keyframe covers."""
+        return self.owner != 0
+
+    @property
     def newest(self) -> int:
-        """The latest stamp shown (that of an invalid pixel is irrelevant)."""
+        """The latest stamp listed (at least the latest shown)."""
         return int(self.stamps.max()) if self.stamps.size else -(2 ** 63)
 
     def nbytes(self) -> int:
-        return self.image.nbytes + self.valid.nbytes + self.owner.nbytes + self.stamps.nbytes
+        return self.image.nbytes + self.owner.nbytes + self.stamps.nbytes
 
     def compact(self) -> None:
         """Keep only the stamps some pixel shows (owner indices renumbered)."""
-        shown, inverse = np.unique(self.owner[self.valid], return_inverse=True)
-        self.owner[self.valid] = inverse.astype(self.owner.dtype)
-        self.stamps = self.stamps[shown]
+        v = self.owner != 0
+        shown, inverse = np.unique(self.owner[v], return_inverse=True)
+        self.owner[v] = (inverse + 1).astype(self.owner.dtype)
+        self.stamps = self.stamps[shown.astype(np.int64) - 1]
+
+    def take(self, key: int, pasted: np.ndarray) -> None:
+        """The pixels of ``pasted`` (bool, tile-sized) now show stamp ``key``."""
+        top = int(np.iinfo(self.owner.dtype).max)
+        if self.stamps.size >= min(STATIC_TILE_STAMPS, top):
+            self.compact()
+            if self.stamps.size >= top:
+                self.owner = self.owner.astype(np.uint16 if top < 2 ** 16 - 1 else np.uint32)
+        self.owner[pasted] = self.stamps.size + 1
+        self.stamps = np.r_[self.stamps, np.int64(key)]
 
     def pixel_stamps(self) -> np.ndarray:
         """(t, t) int64 stamp of each pixel (the smallest int64 where none is shown)."""
-        out = np.full(self.valid.shape, -(2 ** 63), np.int64)
-        if self.stamps.size:
-            out[self.valid] = self.stamps[self.owner[self.valid]]
+        out = np.full(self.owner.shape, -(2 ** 63), np.int64)
+        v = self.owner != 0
+        out[v] = self.stamps[self.owner[v].astype(np.int64) - 1]
         return out
 
 
@@ -734,19 +750,13 @@ class LiveMosaic:
         if layer is None:
             got = self.tiles[tile]
             layer = self.static[tile] = _StaticTile(
-                np.zeros_like(got.image), np.zeros_like(got.valid),
-                np.zeros(got.valid.shape, np.uint16 if t * t < STATIC_TILE_STAMPS else np.uint32),
+                np.zeros_like(got.image), np.zeros(got.valid.shape, np.uint8),
                 np.zeros(0, np.int64))
-        if layer.stamps.size >= STATIC_TILE_STAMPS:
-            layer.compact()
         where = None if key > layer.newest else layer.pixel_stamps() < key
-        pasted = np.zeros_like(layer.valid)
+        pasted = np.zeros(layer.owner.shape, bool)
         _paste(_Tile(layer.image, pasted), patch, tile[0] * t, tile[1] * t, where)
-        if not pasted.any():
-            return
-        layer.valid |= pasted
-        layer.owner[pasted] = layer.stamps.size
-        layer.stamps = np.r_[layer.stamps, np.int64(key)]
+        if pasted.any():
+            layer.take(key, pasted)
 
     # ------------------------------------------------------------------ outputs
     def take_changed(self) -> bool:

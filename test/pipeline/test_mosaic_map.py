@@ -633,3 +633,31 @@ def test_merging_settled_keyframes_over_relief(relief) -> None:
     assert live.counts.merged_moves_ignored >= 4
     both = now.valid & ref.valid
     assert np.mean(np.abs(now.image.astype(int) - ref.image.astype(int))[both] > 8) > 0.01
+
+
+def test_a_static_tile_widens_its_owner_indices_and_keeps_every_stamp() -> None:
+    """A static tile that shows more stamps than uint8 indices hold widens them; compaction
+    drops only the stamps no pixel shows; each pixel keeps the stamp last given it."""
+    t = 32
+    layer = mosaic_map._StaticTile(np.zeros((t, t), np.uint8), np.zeros((t, t), np.uint8),
+                                   np.zeros(0, np.int64))
+    want = np.full((t, t), -(2 ** 63), np.int64)
+    rng = np.random.default_rng(0)
+    for key in range(1000, 1700):
+        # each key a random block in the lower rows; every second also a pixel of its own in
+        # the upper rows that stays shown
+        pasted = np.zeros((t, t), bool)
+        r, c = rng.integers(12, t - 4), rng.integers(0, t - 4)
+        pasted[r:r + 4, c:c + 4] = True
+        if key % 2 == 0:
+            own = (key - 1000) // 2
+            pasted[own // t, own % t] = True
+        layer.take(key, pasted)
+        want[pasted] = key
+    assert np.array_equal(layer.pixel_stamps(), want)
+    assert np.array_equal(layer.valid, want > -(2 ** 63))
+    assert layer.owner.dtype == np.uint16   # more than 255 stamps shown
+    shown = np.unique(want[want > -(2 ** 63)]).size
+    assert shown > 255 and layer.stamps.size < 700
+    layer.compact()
+    assert layer.stamps.size == shown and np.array_equal(layer.pixel_stamps(), want)
