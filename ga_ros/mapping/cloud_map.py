@@ -16,19 +16,19 @@ unchanged costs nothing. The map's points (:meth:`KeyframeCloudMap.cloud`) are t
 centroids, each with its mean intensity: the same, up to float rounding, as a map built from
 scratch from the same poses.
 
-Memory is bounded: at most ``max_live_keyframes`` keyframes keep their points; beyond, the
-most settled keyframe joins the **static layer**: its contribution stays in the voxel grid, its
+Memory is bounded: at most ``max_live_keyframes`` keyframes keep their points; beyond, the most
+settled keyframe joins the **static layer**: its contribution stays in the voxel grid, its
 points and per-voxel sums are dropped, and later corrections of it are counted
 (``static_moves_ignored``) and not applied. The most settled is the one whose last move by more
 than ``settle_voxels`` voxels (the largest shift of its points: translation plus rotation angle
 times its farthest point's range) is the oldest, counted in pose updates
-(:meth:`KeyframeCloudMap.set_poses` calls: one per corrections message); placing a keyframe or replacing its cloud
-counts as a move, smaller corrections are applied but do not count. A keyframe that keeps
-moving (a track a background refinement, a loop closure or a fix still corrects, however old)
-therefore stays live while others have settled. The voxel sums do not depend on the order of
-the keyframes, so any order of merging gives the same map. A merge of a keyframe that moved
-within the last ``settle_updates`` updates (none had settled) keeps the bound all the same and
-is counted (``static_forced``; ``static_settled`` the others).
+(:meth:`KeyframeCloudMap.set_poses` calls: one per corrections message); placing a keyframe or
+replacing its cloud counts as a move, smaller corrections are applied but do not count. A
+keyframe that keeps moving (a track a background refinement, a loop closure or a fix still
+corrects, however old) therefore stays live while others have settled. The voxel sums do not
+depend on the order of the keyframes, so any order of merging gives the same map. A merge of a
+keyframe that moved within the last ``settle_updates`` updates (none had settled) keeps the
+bound all the same and is counted (``static_forced``; ``static_settled`` the others).
 
 Clouds without a pose yet wait (at most ``max_unplaced_clouds``, oldest dropped first, counted),
 as do poses without a cloud yet (at most ``max_pending_poses``).
