@@ -10,7 +10,8 @@ one by one (cloud, image, pose), with ``mosaic_max_live_keyframes`` = ``--mosaic
 older ones are merged into the static layers). Then, per k of ``--moved``, ``--mosaic-repeats``
 corrections each move k keyframes drawn at random among the newest ``--mosaic-live`` (the live
 ones: what the alignment still corrects; a few cm, a few mrad). Printed per N: the keyframes live
-and merged, the bytes held in all, per live keyframe (image, patch, points) and per merged one
+and merged (of which forced: merged before they settled, ``mosaic_settle_updates`` at its
+default), the bytes held in all, per live keyframe (image, patch, points) and per merged one
 (its pose plus its share of the static layers, which grow with the area, not the keyframes), the
 CPU time of one update moving k keyframes (mean over the repeats) with the warps it did (the moved
 keyframes and the neighbours whose ground it changed), and the CPU time of placing the N
@@ -44,6 +45,7 @@ class MosaicBenchRow:
     keyframes: int
     live: int
     merged: int
+    forced: int
     bytes_total: int
     bytes_per_live: float
     bytes_per_merged: float
@@ -111,9 +113,10 @@ def run(n: int, moved: list[int], live_limit: int, width: int, points: int, repe
     parts = mosaic.nbytes_by_part()
     live = mosaic.n_placed
     merged = len(mosaic.merged)
+    forced = mosaic.counts.merged_forced
     per_live = parts['images'] + parts['patches'] + parts['points']
     per_merged = parts['merged_poses'] + parts['static_tiles'] + parts['ground']
-    return MosaicBenchRow(n, live, merged, sum(parts.values()), per_live / max(live, 1),
+    return MosaicBenchRow(n, live, merged, forced, sum(parts.values()), per_live / max(live, 1),
                           per_merged / merged if merged else float('nan'), update_s, warps,
                           build)
 
@@ -125,15 +128,15 @@ def print_table(sizes: list[int], moved: list[int], live_limit: int, width: int,
           f'{points} cloud points each, 0.1 m/px, mosaic_max_live_keyframes {live_limit}; CPU = '
           f'time.process_time (this process, all threads), mean over {repeats} updates per cell')
     head = ' | '.join(f'update, {k} moved (warps)' for k in moved)
-    print(f'| keyframes fed | live / merged | MB held | kB per live keyframe | kB per merged '
-          f'keyframe (pose + static layers) | {head} | placing all one by one |')
+    print(f'| keyframes fed | live / merged (forced) | MB held | kB per live keyframe | kB per '
+          f'merged keyframe (pose + static layers) | {head} | placing all one by one |')
     print('|---:|---:|---:|---:|---:|' + '---:|' * len(moved) + '---:|')
     rows = []
     for n in sizes:
         r = run(n, moved, live_limit, width, points, repeats)
         rows.append(r)
         cells = ' | '.join(f'{1e3 * s:.1f} ms ({w:.0f})' for s, w in zip(r.update_s, r.warps))
-        print(f'| {n:,} | {r.live:,} / {r.merged:,} | {r.bytes_total / 1e6:.1f} | '
+        print(f'| {n:,} | {r.live:,} / {r.merged:,} ({r.forced:,}) | {r.bytes_total / 1e6:.1f} | '
               f'{r.bytes_per_live / 1e3:.0f} | {r.bytes_per_merged / 1e3:.2f} | {cells} | '
               f'{r.build_s:.1f} s |', flush=True)
     print('mosaic update CPU per warp (ms), by keyframes fed ' + ', '.join(f'{n:,}' for n in sizes)

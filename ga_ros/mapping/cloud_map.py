@@ -16,10 +16,20 @@ unchanged costs nothing. The map's points (:meth:`KeyframeCloudMap.cloud`) are t
 centroids, each with its mean intensity: the same, up to float rounding, as a map built from
 scratch from the same poses.
 
-Memory is bounded: at most ``max_live_keyframes`` keyframes keep their points; beyond, the
-keyframe placed (moved) longest ago joins the **static layer**: its contribution stays in the
-voxel grid, its points and per-voxel sums are dropped, and later corrections of it are counted
-(``static_moves_ignored``) and not applied (the alignment freezes old tracks: they stop moving).
+Memory is bounded: at most ``max_live_keyframes`` keyframes keep their points; beyond, the most
+settled keyframe joins the **static layer**: its contribution stays in the voxel grid, its
+points and per-voxel sums are dropped, and later corrections of it are counted
+(``static_moves_ignored``) and not applied. The most settled is the one whose last move by more
+than ``settle_voxels`` voxels (the largest shift of its points: translation plus rotation angle
+times its farthest point's range) is the oldest, counted in pose updates
+(:meth:`KeyframeCloudMap.set_poses` calls: one per corrections message); placing a keyframe or
+replacing its cloud counts as a move, smaller corrections are applied but do not count. A
+keyframe that keeps moving (a track a background refinement, a loop closure or a fix still
+corrects, however old) therefore stays live while others have settled. The voxel sums do not
+depend on the order of the keyframes, so any order of merging gives the same map. A merge of a
+keyframe that moved within the last ``settle_updates`` updates (none had settled) keeps the
+bound all the same and is counted (``static_forced``; ``static_settled`` the others).
+
 Clouds without a pose yet wait (at most ``max_unplaced_clouds``, oldest dropped first, counted),
 as do poses without a cloud yet (at most ``max_pending_poses``).
 
@@ -53,7 +63,12 @@ class CloudMapConfig:
     max_range_m : points of a keyframe farther than this from its frame's origin are dropped
         (m; 0: no limit).
     max_live_keyframes : keyframes that keep their points and can be re-anchored; beyond, the
-        one moved longest ago joins the static layer (0: no limit).
+        most settled joins the static layer (module docstring; 0: no limit).
+    settle_updates : pose updates a keyframe must go without moving by more than
+        ``settle_voxels`` to count as settled when it is merged (``static_settled``, else
+        ``static_forced``).
+    settle_voxels : a move smaller than this (voxels of ``voxel_m``: the largest shift of the
+        keyframe's points) does not unsettle a keyframe; it is applied all the same.
     max_unplaced_clouds : clouds waiting for their keyframe's pose; beyond, the oldest is
         dropped (counted).
     max_pending_poses : poses waiting for their keyframe's cloud; beyond, the oldest is dropped.
@@ -64,6 +79,8 @@ class CloudMapConfig:
     max_points_per_keyframe: int = ranged(20000, 0, 10**8)
     max_range_m: float = ranged(0.0, 0.0, 1e6)
     max_live_keyframes: int = ranged(5000, 0, 10**8)
+    settle_updates: int = ranged(5, 0, 10**8)
+    settle_voxels: float = ranged(0.25, 0.0, 1e6)
     max_unplaced_clouds: int = ranged(200, 1, 10**7)
     max_pending_poses: int = ranged(100000, 1, 10**8)
 
@@ -119,6 +136,16 @@ class _Keyframe:
     intensity: np.ndarray
     T_map_kf: FloatArray | None = None
     slots: IntArray | None = None
+    #: the pose update of its last move beyond ``settle_voxels`` and its pose then
+    moved_at: int = 0
+    settled_pose: FloatArray | None = None
+    #: the farthest point's range from the keyframe's origin (m)
+    radius: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.points):
+            self.radius = float(np.sqrt(np.max(np.einsum('ij,ij->i', self.points,
+                                                         self.points, dtype=float))))
 
 
 def transform_points(T_map_kf: FloatArray, points_kf: np.ndarray) -> FloatArray:
@@ -138,12 +165,17 @@ class KeyframeCloudMap:
     def __init__(self, config: CloudMapConfig = CloudMapConfig()) -> None:
         self.config = config
         self.voxels = VoxelAccumulator()
-        self._live: OrderedDict[int, _Keyframe] = OrderedDict()   # placed, by last placement
+        self._live: OrderedDict[int, _Keyframe] = OrderedDict()   # placed, by last move
         self._unplaced: OrderedDict[int, _Keyframe] = OrderedDict()
         self._pending: OrderedDict[int, FloatArray] = OrderedDict()
         self._static: set[int] = set()
         self.clouds_dropped = 0
         self.static_moves_ignored = 0
+        #: pose updates so far (:meth:`set_poses` calls), the clock of settledness
+        self.updates = 0
+        #: keyframes merged into the static layer settled, and merged while still moving
+        self.static_settled = 0
+        self.static_forced = 0
 
     # ------------------------------------------------------------------ state
     @property
@@ -167,7 +199,8 @@ class KeyframeCloudMap:
         return len(self._pending)
 
     def keys(self) -> list[int]:
-        """Keys of the placed keyframes that keep their points (oldest placement first)."""
+        """Keys of the placed keyframes that keep their points (most settled first: oldest last
+        move beyond ``settle_voxels``)."""
         return list(self._live)
 
     def unplaced_keys(self) -> list[int]:
@@ -272,6 +305,7 @@ class KeyframeCloudMap:
         if not np.all(np.isfinite(T)):
             raise InputError('a keyframe pose holds NaN or infinity')
         moved = placed = unchanged = pending = static = points = 0
+        self.updates += 1
         last = {int(k): i for i, k in enumerate(keys.tolist())}
         for key, i in last.items():
             Ti = T[i]
@@ -282,8 +316,13 @@ class KeyframeCloudMap:
                     continue
                 points += 2 * len(kf.points)
                 self._unplace(kf)
+                settled_pose, moved_at = kf.settled_pose, kf.moved_at
                 self._place(key, kf, Ti)
-                self._live.move_to_end(key)
+                if self._shift_m(kf, settled_pose, Ti) <= \
+                        self.config.settle_voxels * self.config.voxel_m:
+                    kf.settled_pose, kf.moved_at = settled_pose, moved_at
+                else:
+                    self._live.move_to_end(key)
                 moved += 1
             elif key in self._unplaced:
                 kf = self._unplaced.pop(key)
@@ -348,9 +387,22 @@ class KeyframeCloudMap:
                             self.config.voxel_m)
 
     def _place(self, key: int, kf: _Keyframe, T_map_kf: FloatArray) -> None:
+        """Add the keyframe's contribution at this pose; it counts as a move (settledness)."""
         kf.T_map_kf = np.array(T_map_kf, float)
         kf.slots = self.voxels.add(self._contribution(kf, kf.T_map_kf)).astype(np.int32)
+        kf.settled_pose, kf.moved_at = kf.T_map_kf, self.updates
         self._live[key] = kf
+
+    @staticmethod
+    def _shift_m(kf: _Keyframe, T_old: FloatArray | None, T_new: FloatArray) -> float:
+        """An upper bound of how far any point of the keyframe moves between two poses (m):
+        the translation plus the rotation angle times the farthest point's range (infinite
+        without an old pose)."""
+        if T_old is None:
+            return float('inf')
+        dR = T_old[:3, :3].T @ T_new[:3, :3]
+        angle = float(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)))
+        return float(np.linalg.norm(T_new[:3, 3] - T_old[:3, 3])) + angle * kf.radius
 
     def _unplace(self, kf: _Keyframe) -> None:
         if kf.slots is not None and kf.T_map_kf is not None:
@@ -360,8 +412,12 @@ class KeyframeCloudMap:
     def _bound_live(self) -> None:
         n_max = self.config.max_live_keyframes
         while n_max and len(self._live) > n_max:
-            key, _ = self._live.popitem(last=False)   # moved longest ago
+            key, kf = self._live.popitem(last=False)   # moved longest ago
             self._static.add(key)
+            if self.updates - kf.moved_at >= self.config.settle_updates:
+                self.static_settled += 1
+            else:
+                self.static_forced += 1
 
 
 def map_from_poses(config: CloudMapConfig, keys: IntArray | list[int],

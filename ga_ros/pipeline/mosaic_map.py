@@ -32,12 +32,26 @@ uncovered. Without it the ground is the plane ``z = ground_z``.
 
 Memory is bounded: the tiles' bounding box may not exceed ``max_pixels`` (a keyframe that would
 grow it beyond is refused: :attr:`LiveMosaic.last_error` says what to change). Beyond
-``max_live_keyframes`` placed keyframes, the oldest (by stamp, so that the static layer lies
-under every live keyframe as ``'last'`` blending wants) is **merged**: its pixels are pasted
-into the tiles' static base layer, its cloud's points into the height model's static layer
-(:meth:`ga_ros.mapping.live_surface.LiveHeightGrid.merge`, which changes no height), and its
-image, patch and points are released; so are the points of older keyframes whose image never
-came. A merge changes no pixel of the mosaic. What a keyframe holds while live, and a merged one
+``max_live_keyframes`` placed keyframes, **settled** keyframes are **merged**, oldest (by stamp)
+first: its pixels are pasted into the tiles' static base layer, its cloud's points into the
+height model's static layer (:meth:`ga_ros.mapping.live_surface.LiveHeightGrid.merge`, which
+changes no height), and its image, patch and points are released; so are the points of settled
+older keyframes whose image never came. A keyframe is settled when its pose has not moved by
+more than ``settle_px`` pixels on the ground (the largest shift of its footprint's border, at the
+ground's lowest and highest heights) over the last ``settle_updates`` pose updates
+(:meth:`LiveMosaic.set_poses` calls: one per corrections message); a keyframe without an image
+yet, or whose footprint is unknown, counts any change of pose as a move. Keyframes that keep
+moving (a track that a background refinement, a loop closure or a fix still corrects, however
+old) stay live. When fewer keyframes are settled than must go, the bound is kept all the same:
+the most settled (moved longest ago, then oldest) are merged and counted
+(:attr:`MosaicCounts.merged_forced`; :attr:`MosaicCounts.merged_settled` the others).
+``settle_updates`` 0 makes every keyframe settled: the oldest are merged.
+
+The static layer keeps, per pixel, the stamp of the keyframe it shows, so that ``'last'``
+blending holds whatever the order of the merges: a live keyframe covers a static pixel only where
+its stamp is later than the pixel's, and a merge pastes only over earlier stamps. The mosaic is
+therefore the one of every keyframe in stamp order, merged or live, and a merge changes no
+pixel of the mosaic. What a keyframe holds while live, and a merged one
 (its pose at the merge, 128 bytes), is :meth:`LiveMosaic.nbytes_by_part`; the static layers grow
 with the area covered, not with the keyframes. A merged keyframe no longer moves: a later pose
 of it that differs from its pose at the merge is ignored and counted
@@ -89,7 +103,14 @@ class MosaicMapConfig:
     max_pixels : largest mosaic (bounding box of the tiles, px); a keyframe that would exceed
         it is refused.
     max_live_keyframes : keyframes that keep their image, patch and points and can move;
-        beyond, the oldest is merged into the static layers (module docstring; 0: no limit).
+        beyond, settled ones are merged into the static layers, oldest first (module
+        docstring; 0: no limit). A hard cap: when too few are settled, the most settled are
+        merged all the same (counted).
+    settle_updates : pose updates (``set_poses`` calls) a keyframe must go without moving by
+        more than ``settle_px`` before it may be merged (0: every keyframe may: oldest first).
+    settle_px : a move smaller than this (pixels of the mosaic: the largest shift of the
+        keyframe's footprint on the ground) does not unsettle a keyframe; the move is applied
+        all the same while it is live.
     max_waiting : keyframe images kept while their pose or the ground is unknown (oldest
         dropped beyond).
     """
@@ -103,14 +124,18 @@ class MosaicMapConfig:
     tile_px: int = 256
     max_pixels: int = 25_000_000
     max_live_keyframes: int = 2000
+    settle_updates: int = 5
+    settle_px: float = 0.25
     max_waiting: int = 200
 
     def __post_init__(self) -> None:
         if self.metres_per_pixel < 0 or self.tile_px < 8 or self.max_pixels < 1 \
-                or not self.ground_cell_m > 0 or not self.ground_tolerance_m >= 0:
+                or not self.ground_cell_m > 0 or not self.ground_tolerance_m >= 0 \
+                or self.settle_updates < 0 or not self.settle_px >= 0:
             raise InputError('mosaic_metres_per_pixel must be >= 0 (0: automatic), '
                              'mosaic_tile_px >= 8, mosaic_max_pixels >= 1, '
-                             'mosaic_ground_cell_m > 0 and mosaic_ground_tolerance_m >= 0')
+                             'mosaic_ground_cell_m > 0, mosaic_ground_tolerance_m >= 0, '
+                             'mosaic_settle_updates >= 0 and mosaic_settle_px >= 0')
 
 
 @dataclass
@@ -127,6 +152,9 @@ class MosaicCounts:
     refused : keyframes refused (mosaic over ``max_pixels``, or no view of the ground).
     dropped : keyframe images dropped while waiting (``max_waiting``).
     frozen : keyframes merged into the static layers.
+    merged_settled : of those, keyframes that were settled (module docstring).
+    merged_forced : of those, keyframes merged while still moving, because fewer were settled
+        than ``max_live_keyframes`` required.
     merged_moves_ignored : poses of merged keyframes that differed from their pose at the
         merge (ignored).
     merged_max_shift_m : the largest translation between such a pose and the pose at the
@@ -141,6 +169,8 @@ class MosaicCounts:
     refused: int = 0
     dropped: int = 0
     frozen: int = 0
+    merged_settled: int = 0
+    merged_forced: int = 0
     merged_moves_ignored: int = 0
     merged_max_shift_m: float = 0.0
 
@@ -175,6 +205,10 @@ class _Keyframe:
     T_map_base: FloatArray | None = None
     patch: _Patch | None = None
     refused: bool = False
+    #: the pose update (:attr:`LiveMosaic.updates`) of its last move beyond ``settle_px``, and
+    #: its pose then (None: no pose yet)
+    moved_at: int = 0
+    settled_pose: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -191,6 +225,60 @@ class _Tile:
     keys: set[int] = field(default_factory=set)
 
 
+#: Stamps a static tile lists before it is compacted to those its pixels show (fewer when its
+#: owner indices' type holds fewer).
+STATIC_TILE_STAMPS = 2 ** 16 - 1
+
+
+@dataclass
+class _StaticTile:
+    """A tile of the static layer: the merged keyframes' pixels and, per pixel, which stamp it
+    shows (``owner``: 0 none, else ``stamps[owner - 1]``). ``owner`` is uint8 and widens to
+    uint16, then uint32, when a tile shows more stamps; ``stamps`` only grows until it is
+    compacted to the stamps still shown."""
+
+    image: np.ndarray
+    owner: np.ndarray
+    stamps: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """The pixels some merged keyframe covers."""
+        return self.owner != 0
+
+    @property
+    def newest(self) -> int:
+        """The latest stamp listed (at least the latest shown)."""
+        return int(self.stamps.max()) if self.stamps.size else -(2 ** 63)
+
+    def nbytes(self) -> int:
+        return self.image.nbytes + self.owner.nbytes + self.stamps.nbytes
+
+    def compact(self) -> None:
+        """Keep only the stamps some pixel shows (owner indices renumbered)."""
+        v = self.owner != 0
+        shown, inverse = np.unique(self.owner[v], return_inverse=True)
+        self.owner[v] = (inverse + 1).astype(self.owner.dtype)
+        self.stamps = self.stamps[shown.astype(np.int64) - 1]
+
+    def take(self, key: int, pasted: np.ndarray) -> None:
+        """The pixels of ``pasted`` (bool, tile-sized) now show stamp ``key``."""
+        top = int(np.iinfo(self.owner.dtype).max)
+        if self.stamps.size >= min(STATIC_TILE_STAMPS, top):
+            self.compact()
+            if self.stamps.size >= top:
+                self.owner = self.owner.astype(np.uint16 if top < 2 ** 16 - 1 else np.uint32)
+        self.owner[pasted] = self.stamps.size + 1
+        self.stamps = np.r_[self.stamps, np.int64(key)]
+
+    def pixel_stamps(self) -> np.ndarray:
+        """(t, t) int64 stamp of each pixel (the smallest int64 where none is shown)."""
+        out = np.full(self.owner.shape, -(2 ** 63), np.int64)
+        v = self.owner != 0
+        out[v] = self.stamps[self.owner[v].astype(np.int64) - 1]
+        return out
+
+
 class LiveMosaic:
     """Keyframe images + poses -> a tiled mosaic that re-warps only what moved (module
     docstring)."""
@@ -200,8 +288,8 @@ class LiveMosaic:
         self.counts = MosaicCounts()
         self.keyframes: dict[int, _Keyframe] = {}
         self.tiles: dict[tuple[int, int], _Tile] = {}
-        #: static layer: tile -> (image, valid) of the merged keyframes
-        self.static: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        #: static layer: tile -> the merged keyframes' pixels and their stamps
+        self.static: dict[tuple[int, int], _StaticTile] = {}
         #: merged keyframes: stamp -> T_map_base at the merge
         self.merged: dict[int, FloatArray] = {}
         self.ground: GroundPlane | None = (None if config.ground_from_clouds
@@ -214,6 +302,10 @@ class LiveMosaic:
         self.metres_per_pixel = float(config.metres_per_pixel)
         #: poses that came before their image: stamp -> T_map_base
         self.pending_poses: dict[int, FloatArray] = {}
+        #: pose updates so far (:meth:`set_poses` calls), the clock of settledness
+        self.updates = 0
+        #: the height model's keyframes without an image: the update of their last move
+        self._orphan_moved: dict[int, int] = {}
         #: why the last keyframe was refused ('' when none was)
         self.last_error = ''
         #: the mosaic changed since :meth:`take_changed` last said so
@@ -243,6 +335,8 @@ class LiveMosaic:
         if int(stamp_ns) in self.merged:  # its points are in the static layer already
             return 0
         self.surface.add_points(int(stamp_ns), P, T_bc)
+        if int(stamp_ns) not in self.keyframes:
+            self._orphan_moved[int(stamp_ns)] = self.updates
         return self._update([])
 
     def add_image(self, stamp_ns: int, image: np.ndarray, K: FloatArray,
@@ -276,7 +370,9 @@ class LiveMosaic:
         if key in self.merged:  # its pixels are in the static layer already
             return False
         old = self.keyframes.get(key)
-        self.keyframes[key] = _Keyframe(img, K, T_bc, self.pending_poses.pop(key, None))
+        T = self.pending_poses.pop(key, None)
+        self._orphan_moved.pop(key, None)
+        self.keyframes[key] = _Keyframe(img, K, T_bc, T, moved_at=self.updates, settled_pose=T)
         if old is not None and old.patch is not None:
             self._recomposite(self._remove_patch(key, old.patch))
         self._bound_waiting()
@@ -285,7 +381,8 @@ class LiveMosaic:
 
     def set_poses(self, stamps_ns: IntArray, T_map_base: FloatArray) -> int:
         """Poses of keyframes by stamp; those whose pose changed are re-warped and their tiles
-        recomposited. Returns the keyframes warped.
+        recomposited. Returns the keyframes warped. One call is one pose update of
+        settledness (module docstring).
 
         Raises
         ------
@@ -298,6 +395,7 @@ class LiveMosaic:
             raise InputError(f'mosaic: {keys.size} stamps and {T.shape[0]} poses, or a pose '
                              'that is not finite')
         moved = []
+        self.updates += 1
         for k, Tk in zip(keys.tolist(), T):
             at_merge = self.merged.get(k)
             if at_merge is not None:
@@ -307,13 +405,15 @@ class LiveMosaic:
                     self.counts.merged_max_shift_m = max(self.counts.merged_max_shift_m, shift)
                 continue
             kf = self.keyframes.get(k)
-            if self.surface is not None:
-                self.surface.set_pose(k, Tk)
+            if self.surface is not None and self.surface.set_pose(k, Tk) and kf is None:
+                self._orphan_moved[k] = self.updates
             if kf is None:
                 self.pending_poses[k] = Tk.copy()
                 continue
             if kf.T_map_base is not None and np.array_equal(kf.T_map_base, Tk):
                 continue
+            if self._shift_px(kf, Tk) > self.config.settle_px:
+                kf.moved_at, kf.settled_pose = self.updates, Tk.copy()
             kf.T_map_base = Tk.copy()
             kf.refused = False
             moved.append(k)
@@ -349,6 +449,35 @@ class LiveMosaic:
         for k in sorted(waiting)[:max(over, 0)]:
             del self.keyframes[k]
             self.counts.dropped += 1
+
+    def _shift_px(self, kf: _Keyframe, T_map_base: FloatArray) -> float:
+        """How far (mosaic pixels) the keyframe's footprint on the ground moves from its pose at
+        its last move to ``T_map_base``: the largest shift of its border's points at the
+        ground's lowest and highest heights; infinite when not known (no pose then, no
+        resolution or ground yet, or a view that does not see the ground)."""
+        z_range = self._z_range()
+        if kf.settled_pose is None or not self.metres_per_pixel \
+                or not np.all(np.isfinite(z_range)):
+            return float('inf')
+        heights = _Heights(z_range)
+        old = footprint(CameraView(kf.image, kf.settled_pose @ kf.T_base_cam, kf.K),
+                        heights)  # type: ignore[arg-type]
+        new = footprint(CameraView(kf.image, T_map_base @ kf.T_base_cam, kf.K),
+                        heights)  # type: ignore[arg-type]
+        if old is None or new is None:
+            return float('inf')
+        return float(np.sqrt(np.max(np.sum((new - old) ** 2, axis=1)))) / self.metres_per_pixel
+
+    def settled(self, key: int) -> bool:
+        """A live keyframe has not moved beyond ``settle_px`` over the last ``settle_updates``
+        pose updates (module docstring)."""
+        kf = self.keyframes[key]
+        return self.updates - kf.moved_at >= self.config.settle_updates
+
+    def _orphan_settled(self, key: int) -> bool:
+        """The height model's keyframe without an image has not moved for ``settle_updates``
+        pose updates."""
+        return self.updates - self._orphan_moved.get(key, 0) >= self.config.settle_updates
 
     def _view(self, kf: _Keyframe) -> CameraView:
         assert kf.T_map_base is not None
@@ -546,52 +675,88 @@ class LiveMosaic:
                 got.image[:] = 0
                 got.valid[:] = False
             else:
-                got.image[:], got.valid[:] = base
+                got.image[:], got.valid[:] = base.image, base.valid
+            newest = None if base is None else base.newest
+            under = None  # the static pixels' stamps, while a live keyframe is older than some
             for k in sorted(got.keys):
                 p = self.keyframes[k].patch
                 assert p is not None
-                _paste(got, p, tile[0] * t, tile[1] * t)
+                older = newest is not None and k < newest
+                if older and under is None:
+                    under = base.pixel_stamps()
+                _paste(got, p, tile[0] * t, tile[1] * t, under < k if older else None)
             if not got.keys and base is None:
                 del self.tiles[tile]
             self.counts.tiles_composited += 1
         self.changed |= bool(tiles)
 
     def _freeze(self) -> None:
-        """Beyond ``max_live_keyframes`` placed keyframes, merge the oldest (module
-        docstring)."""
+        """Beyond ``max_live_keyframes`` placed keyframes, merge the settled ones, oldest
+        first, then if need be the most settled (module docstring)."""
         limit = self.config.max_live_keyframes
         if limit <= 0:
             return
-        placed = sorted(k for k, kf in self.keyframes.items() if kf.patch is not None)
-        self.merge(placed[:max(len(placed) - limit, 0)])
+        placed = [k for k, kf in self.keyframes.items() if kf.patch is not None]
+        over = len(placed) - limit
+        if over <= 0:
+            return
+        settled = sorted(k for k in placed if self.settled(k))[:over]
+        forced = []
+        if len(settled) < over:
+            done = set(settled)
+            forced = sorted((k for k in placed if k not in done),
+                            key=lambda k: (self.keyframes[k].moved_at, k))[:over - len(settled)]
+        self.merge(settled + forced)
+        self.counts.merged_settled += len(settled)
+        self.counts.merged_forced += len(forced)
 
     def merge(self, keys: list[int]) -> int:
         """Merge these placed keyframes into the static layers (module docstring), and the
-        height model's keyframes older than the newest of them that have no image here;
-        returns the keyframes merged. The mosaic is unchanged."""
+        height model's keyframes older than the newest of them that have no image here and
+        have settled (no pose update for ``settle_updates``; all of them when a keyframe
+        named has not settled); returns the keyframes merged. The mosaic is unchanged."""
         keys = sorted(k for k in keys if k in self.keyframes
                       and self.keyframes[k].patch is not None)
         if not keys:
             return 0
         if self.surface is not None:
-            orphans = [k for k in self.surface.keyframes
-                       if k <= keys[-1] and k not in self.keyframes]
+            if all(self.settled(k) for k in keys):
+                orphans = [k for k in self.surface.keyframes if k <= keys[-1]
+                           and k not in self.keyframes and self._orphan_settled(k)]
+            else:
+                orphans = [k for k in self.surface.keyframes
+                           if k <= keys[-1] and k not in self.keyframes]
             self.surface.merge(keys + orphans)
+            for k in orphans:
+                self._orphan_moved.pop(k, None)
+        t = self.config.tile_px
         for k in keys:
             kf = self.keyframes.pop(k)
             patch = kf.patch
             assert patch is not None and kf.T_map_base is not None
             self.merged[k] = kf.T_map_base
-            t = self.config.tile_px
             for tile in patch.tiles(t):
                 got = self._tile(tile)
                 got.keys.discard(k)
-                if tile not in self.static:
-                    self.static[tile] = (np.zeros_like(got.image), np.zeros_like(got.valid))
-                layer = _Tile(*self.static[tile])
-                _paste(layer, patch, tile[0] * t, tile[1] * t)
+                self._paste_static(tile, k, patch)
             self.counts.frozen += 1
         return len(keys)
+
+    def _paste_static(self, tile: tuple[int, int], key: int, patch: _Patch) -> None:
+        """Paste a merged keyframe's pixels into a static tile over the pixels of earlier
+        stamps (and the empty ones)."""
+        t = self.config.tile_px
+        layer = self.static.get(tile)
+        if layer is None:
+            got = self.tiles[tile]
+            layer = self.static[tile] = _StaticTile(
+                np.zeros_like(got.image), np.zeros(got.valid.shape, np.uint8),
+                np.zeros(0, np.int64))
+        where = None if key > layer.newest else layer.pixel_stamps() < key
+        pasted = np.zeros(layer.owner.shape, bool)
+        _paste(_Tile(layer.image, pasted), patch, tile[0] * t, tile[1] * t, where)
+        if pasted.any():
+            layer.take(key, pasted)
 
     # ------------------------------------------------------------------ outputs
     def take_changed(self) -> bool:
@@ -622,7 +787,7 @@ class LiveMosaic:
             'points': 0 if self.surface is None else self.surface.points_nbytes(),
             'merged_poses': sum(T.nbytes for T in self.merged.values()),
             'tiles': sum(tl.image.nbytes + tl.valid.nbytes for tl in self.tiles.values()),
-            'static_tiles': sum(a.nbytes + b.nbytes for a, b in self.static.values()),
+            'static_tiles': sum(layer.nbytes() for layer in self.static.values()),
             'ground': 0 if self.surface is None else self.surface.grid_nbytes(),
         }
 
@@ -647,9 +812,10 @@ class LiveMosaic:
                                                  z_up=self.z_up is not False))
 
 
-def _paste(tile: _Tile, patch: _Patch, top: int, left: int) -> None:
+def _paste(tile: _Tile, patch: _Patch, top: int, left: int,
+           where: np.ndarray | None = None) -> None:
     """Copy the patch's valid pixels that fall in the tile whose top-left global pixel is
-    ``(top, left)``."""
+    ``(top, left)`` (and where ``where``, a tile-sized bool array, is true)."""
     t = tile.valid.shape[0]
     r, c = patch.valid.shape
     r0, r1 = max(patch.row0, top), min(patch.row0 + r, top + t)
@@ -659,5 +825,7 @@ def _paste(tile: _Tile, patch: _Patch, top: int, left: int) -> None:
     src = (slice(r0 - patch.row0, r1 - patch.row0), slice(c0 - patch.col0, c1 - patch.col0))
     dst = (slice(r0 - top, r1 - top), slice(c0 - left, c1 - left))
     v = patch.valid[src]
+    if where is not None:
+        v = v & where[dst]
     tile.image[dst][v] = patch.image[src][v]
     tile.valid[dst] |= v

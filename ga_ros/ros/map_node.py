@@ -36,8 +36,15 @@ the ``OccupancyGrid`` convention, :func:`ga_ros.mapping.mosaic.map_metadata_fiel
 :meth:`MapNode.diagnostic_values` every ``diagnostics_period_sec``. Memory is bounded
 (:class:`ga_ros.mapping.cloud_map.CloudMapConfig`: per-keyframe decimation, a static layer
 beyond ``max_live_keyframes``; :class:`ga_ros.pipeline.mosaic_map.MosaicMapConfig`: a pixel
-cap, older keyframes merged into static layers beyond ``mosaic_max_live_keyframes``: their
-image, patch and cloud points released, later corrections of them ignored and counted). A bad
+cap, keyframes merged into static layers beyond ``mosaic_max_live_keyframes``: their image,
+patch and cloud points released, later corrections of them ignored and counted). Both merge
+**settled** keyframes, not the oldest: a keyframe whose pose has not moved by more than
+``settle_voxels`` voxels (``mosaic_settle_px`` mosaic pixels) over the last ``settle_updates``
+(``mosaic_settle_updates``) corrections messages; keyframes that keep moving (a refinement, a
+loop closure or a fix still correcting an old track) stay live. The bounds are hard caps: when
+too few have settled, the most settled are merged all the same, counted as forced
+(``static_settled`` / ``static_forced``, ``mosaic_merged_settled`` / ``mosaic_merged_forced``
+in ``/diagnostics``). A bad
 message is counted, warned about (throttled) and dropped; the node goes on.
 """
 
@@ -445,7 +452,8 @@ class MapNode(BoundedLogging, Node):
         return {'clouds': c.clouds, 'clouds_waiting': len(self.builder.waiting),
                 'corrections': c.corrections, 'full_corrections': c.full, 'paths': c.paths,
                 'moved': c.moved, 'points_moved': c.points_moved, 'live_keyframes': m.n_live,
-                'static_keyframes': m.n_static, 'unplaced_clouds': m.n_unplaced,
+                'static_keyframes': m.n_static, 'static_settled': m.static_settled,
+                'static_forced': m.static_forced, 'unplaced_clouds': m.n_unplaced,
                 'voxels': len(m.voxels), 'bytes': m.nbytes(), **self.mosaic_values(),
                 **self.counts}
 
@@ -457,6 +465,8 @@ class MapNode(BoundedLogging, Node):
         c = mo.counts
         return {'mosaic_images': c.images, 'mosaic_images_waiting': len(self.images_waiting),
                 'mosaic_live_keyframes': mo.n_placed, 'mosaic_frozen': c.frozen,
+                'mosaic_merged_settled': c.merged_settled,
+                'mosaic_merged_forced': c.merged_forced,
                 'mosaic_warps': c.warps, 'mosaic_tiles_composited': c.tiles_composited,
                 'mosaic_tiles': len(mo.tiles), 'mosaic_refused': c.refused,
                 'mosaic_dropped': c.dropped, 'mosaic_metres_per_pixel': mo.metres_per_pixel,

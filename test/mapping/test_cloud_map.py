@@ -287,3 +287,74 @@ def test_map_from_poses_keeps_every_keyframe(rng) -> None:
     m = map_from_poses(cfg, list(T), np.array(list(T.values())), clouds)
     assert m.n_live == 7
     assert_same_map(m.cloud(), reference_map(T, clouds))
+
+
+def late_loop_closure(m: KeyframeCloudMap, clouds: dict, T: dict, wobble: list[int],
+                      n_updates: int, step: float = 0.3) -> None:
+    """Update u places keyframe u at its pose in ``T`` and moves the keyframes of ``wobble``
+    (placed at the first update) by +-``step`` m around theirs (a refinement still at work);
+    a last update puts them at their poses in ``T`` (a loop closure)."""
+    for u in range(n_updates):
+        m.add_cloud(u, *clouds[u])
+        keys = [u] + [k for k in wobble if k != u and k < max(u, 1)]
+        poses = [T[k] @ se3.from_translation_rotvec(np.r_[step * (-1) ** u, 0.0, 0.0],
+                                                    np.zeros(3)) if k in wobble else T[k]
+                 for k in keys]
+        m.set_poses(keys, np.array(poses))
+        assert m.n_live <= m.config.max_live_keyframes
+    m.set_poses(wobble, np.array([T[k] for k in wobble]))
+
+
+def test_keyframes_that_keep_moving_stay_live(rng) -> None:
+    """A refinement keeps correcting the first keyframes, then a loop closure moves them: they
+    stay live while the later ones, settled, are merged, and the map equals the one built from
+    the final poses. Counting every small move as a move (settle_voxels huge: the map merges
+    by placement order) merges them instead and their last corrections are ignored."""
+    clouds = {k: random_cloud(rng, 200) for k in range(12)}
+    T = {k: random_pose(rng) for k in range(12)}
+    results = {}
+    for settle_voxels in (0.25, 1e6):
+        cfg = CloudMapConfig(voxel_m=VOXEL, keyframe_voxel_m=0.0, max_points_per_keyframe=0,
+                             max_live_keyframes=5, settle_updates=2, settle_voxels=settle_voxels)
+        m = results[settle_voxels] = KeyframeCloudMap(cfg)
+        late_loop_closure(m, clouds, T, [0, 1], 12)
+    m = results[0.25]
+    assert {0, 1} <= set(m.keys()) and m.n_static == 7
+    assert m.static_settled == 7 and m.static_forced == 0 and m.static_moves_ignored == 0
+    assert_same_map(m.cloud(), reference_map(T, clouds))
+    by_age = results[1e6]
+    assert not {0, 1} & set(by_age.keys()) and by_age.static_moves_ignored >= 2
+    with pytest.raises(AssertionError):
+        assert_same_map(by_age.cloud(), reference_map(T, clouds))
+
+
+def test_small_moves_do_not_keep_a_keyframe_live_and_the_bound_holds(rng) -> None:
+    """Moves below settle_voxels do not unsettle a keyframe (it is merged first); when every
+    keyframe keeps moving the bound holds all the same and the merges are counted forced."""
+    clouds = {k: random_cloud(rng, 100) for k in range(12)}
+    T = {k: random_pose(rng) for k in range(12)}
+    cfg = CloudMapConfig(voxel_m=VOXEL, keyframe_voxel_m=0.0, max_points_per_keyframe=0,
+                         max_live_keyframes=5, settle_updates=2, settle_voxels=0.25)
+    # keyframe 0 moves by 1 mm every update (far below 0.0625 m), keyframe 1 by 0.3 m
+    m = KeyframeCloudMap(cfg)
+    for u in range(6):
+        m.add_cloud(u, *clouds[u])
+        keys = list(range(u + 1))
+        poses = [T[k] for k in keys]
+        if u >= 1:
+            poses[0] = T[0] @ se3.from_translation_rotvec(np.r_[1e-3 * u, 0, 0], np.zeros(3))
+            poses[1] = T[1] @ se3.from_translation_rotvec(np.r_[0.3 * (-1) ** u, 0, 0],
+                                                          np.zeros(3))
+        up = m.set_poses(keys, np.array(poses))
+        assert up.moved == min(u, 2)
+    assert m.n_static == 1 and 0 not in m.keys() and 1 in m.keys()   # the small mover went first
+    assert m.static_settled == 1 and m.static_forced == 0
+    # every keyframe moving at every update: merged all the same, counted forced
+    m = KeyframeCloudMap(cfg)
+    for u in range(12):
+        m.add_cloud(u, *clouds[u])
+        keys = list(range(u + 1))
+        m.set_poses(keys, np.array([T[k] @ se3.from_translation_rotvec(
+            np.r_[0.3 * (-1) ** u, 0, 0], np.zeros(3)) for k in keys]))
+        assert m.n_live <= 5
+    assert m.n_static == 7 and m.static_forced == 7 and m.static_settled == 0

@@ -18,6 +18,7 @@ from ga_ros.mapping.mosaic import (
 )
 from ga_ros.mapping.seams import seam_misregistration
 from ga_ros.mapping.surface import GroundPlane, ground_from_keyframe_points
+from ga_ros.pipeline import mosaic_map
 from ga_ros.pipeline.mosaic_map import LiveMosaic, MosaicMapConfig
 
 sim = pytest.importorskip('ga_ros.sim.stereo')
@@ -458,3 +459,205 @@ def test_a_merge_changes_no_pixel_and_later_moves_of_merged_keyframes_are_ignore
     assert top.mean() > 0.2
     assert_close(Mosaic(now.image, now.valid & top, now.georef),
                  Mosaic(ref.image, ref.valid & top, now.georef))
+
+
+# ---------------------------------------------------------------- merging settled keyframes
+def late_loop_closure(live: LiveMosaic, K, stamps, images, T_true, clouds=None) -> list[int]:
+    """Feed a survey whose first keyframes are corrected last; returns the keyframes placed
+    after each update.
+
+    Seven updates: update u < 6 adds keyframes 4u .. 4u + 3 (group u) 1.5 m off their true
+    poses and corrects group u - 1 to its true poses (group 0 excepted); group 0 is still being
+    corrected at every update (1 m off, +- 0.3 m: a background refinement at work, 2.5 px at
+    0.4 m/px), and the last update moves it and group 5 to their true poses (a loop closure)."""
+    groups = np.arange(len(stamps)) // 4
+    off = np.eye(4)
+    placed = []
+    for u in range(7):
+        T = T_true.copy()
+        T[groups == u, 0, 3] += 1.5
+        if u < 6:
+            T[groups == 0, 0, 3] += 1.0 + 0.3 * (-1) ** u
+        for k in np.flatnonzero(groups == u):
+            if clouds is not None:
+                live.add_cloud(int(stamps[k]), clouds[k], T_BASE_CAM)
+            live.add_image(int(stamps[k]), images[k], K, T_BASE_CAM)
+        sel = (groups == u) | (groups == u - 1) | (groups == 0) if u < 6 \
+            else (groups == 0) | (groups == 5)
+        live.set_poses(stamps[sel], T[sel] @ off)
+        placed.append(live.n_placed)
+    return placed
+
+
+def test_merging_settled_keyframes_keeps_late_corrected_ones_live(data) -> None:
+    """A loop closure corrects the first keyframes after many later ones: merged by age they
+    are merged while still moving (their last corrections ignored, the mosaic wrong); merged
+    when settled they stay live, newer keyframes over them are merged instead, and the live
+    mosaic is the one built from scratch from the final poses, with memory bounded."""
+    K, stamps, images, T_true = data
+    limit = 12
+
+    def mosaic(settle_updates: int) -> LiveMosaic:
+        return LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                          ground_from_clouds=False, tile_px=64,
+                                          max_live_keyframes=limit,
+                                          settle_updates=settle_updates))
+
+    by_age, settled = mosaic(0), mosaic(1)
+    assert max(late_loop_closure(by_age, K, stamps, images, T_true)) <= limit
+    assert max(late_loop_closure(settled, K, stamps, images, T_true)) <= limit
+    first = stamps[:4].tolist()
+    # by age: the first keyframes were merged while moving; their loop closure is ignored
+    assert set(first) <= set(by_age.merged)
+    assert by_age.counts.merged_moves_ignored >= 4
+    assert by_age.counts.merged_max_shift_m == pytest.approx(0.7)  # merged at 0.7 m off
+    now = by_age.mosaic()
+    ref = scratch(images, T_true, K, now.georef)
+    both = now.valid & ref.valid
+    assert np.mean(np.abs(now.image.astype(int) - ref.image.astype(int))[both] > 8) > 0.01
+    # by settledness: the first keyframes stayed live, later ones were merged (settled)
+    assert not set(first) & set(settled.merged)
+    assert set(settled.merged) == set(stamps[4:16].tolist())
+    assert settled.counts.merged_settled == settled.counts.frozen == len(stamps) - limit
+    assert settled.counts.merged_forced == 0 and settled.counts.merged_moves_ignored == 0
+    now = settled.mosaic()
+    ref = scratch(images, T_true, K, now.georef)
+    assert_same(now, ref)
+    # the stamp order mattered: newer merged keyframes lie under the live first ones, which
+    # a static layer pasted under every live keyframe would have got wrong
+    newer = scratch(images[4:16], T_true[4:16], K, now.georef).valid
+    older = scratch(images[:4], T_true[:4], K, now.georef).valid
+    assert np.mean(newer & older) > 0.02
+
+
+def test_the_bound_holds_when_nothing_settles(data) -> None:
+    """Keyframes that never settle are merged all the same beyond the bound (the most settled
+    first), counted as forced; the mosaic is still the one of the poses at the merges."""
+    K, stamps, images, T_true = data
+    limit = 6
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                      ground_from_clouds=False, tile_px=64,
+                                      max_live_keyframes=limit, settle_updates=100))
+    placed = late_loop_closure(live, K, stamps, images, T_true)
+    assert max(placed) <= limit and len(live.keyframes) <= limit
+    assert live.counts.merged_forced == live.counts.frozen == len(stamps) - limit
+    assert live.counts.merged_settled == 0
+    # the most settled went first: group 0 moved at every update, so it was merged last of
+    # the groups already corrected
+    assert set(stamps[4:8].tolist()) <= set(live.merged)
+    T = np.array([live.merged.get(int(s), live.keyframes.get(int(s)) and
+                                  live.keyframes[int(s)].T_map_base) for s in stamps])
+    now = live.mosaic()
+    assert_same(now, scratch(images, T, K, now.georef))
+
+
+def test_a_small_move_does_not_unsettle_a_keyframe(data) -> None:
+    """Moves below settle_px (on the ground, in pixels) leave a keyframe settled; a larger one
+    unsettles it for settle_updates updates."""
+    K, stamps, images, T_true = data
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                      ground_from_clouds=False, tile_px=64,
+                                      settle_updates=2, settle_px=0.25))
+    key = int(stamps[0])
+    live.add_image(key, images[0], K, T_BASE_CAM)
+    T = T_true[:1].copy()
+    live.set_poses([key], T)
+    assert not live.settled(key)
+    live.set_poses([], np.zeros((0, 4, 4)))
+    live.set_poses([], np.zeros((0, 4, 4)))
+    assert live.settled(key)
+    for dx in (0.04, 0.04, 0.04):   # 0.1 px each: 0.2 px, then 0.3 px from where it settled
+        T[0, 0, 3] += dx
+        warps = live.counts.warps
+        live.set_poses([key], T)
+        assert live.counts.warps == warps + 1   # applied all the same
+    assert not live.settled(key)       # the third one took it beyond 0.25 px
+    live.set_poses([], np.zeros((0, 4, 4)))
+    assert not live.settled(key)
+    live.set_poses([], np.zeros((0, 4, 4)))
+    assert live.settled(key)
+    # a rotation moves the footprint too: 1 mrad at 90 m above the ground is 0.09 m
+    R = se3.from_translation_rotvec(np.zeros(3), np.array([0.0, 0.0, 0.003]))
+    live.set_poses([key], T @ R)
+    assert not live.settled(key)
+
+
+@pytest.mark.parametrize('compact_at', [2 ** 16 - 1, 3])
+def test_merges_in_any_order_change_no_pixel(data, monkeypatch, compact_at: int) -> None:
+    """Newer keyframes merged before older ones that overlap them: the static layer keeps the
+    newer pixels on top, so each merge leaves the mosaic as built from scratch (also when the
+    static tiles' lists of stamps are compacted at every third merge)."""
+    monkeypatch.setattr(mosaic_map, 'STATIC_TILE_STAMPS', compact_at)
+    K, stamps, images, T_true = data
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                      ground_from_clouds=False, tile_px=64,
+                                      max_live_keyframes=0))
+    for s, img in zip(stamps, images):
+        live.add_image(int(s), img, K, T_BASE_CAM)
+    live.set_poses(stamps, T_true)
+    ref = scratch(images, T_true, K, live.mosaic().georef)
+    assert_same(live.mosaic(), ref)
+    for group in (5, 1, 3, 0, 4):
+        assert live.merge(stamps[4 * group:4 * group + 4].tolist()) == 4
+        assert_same(live.mosaic(), ref)
+    # stamps no pixel shows any more: listed until the tile is compacted
+    hidden = [layer.stamps.size - np.unique(layer.owner[layer.valid]).size
+              for layer in live.static.values()]
+    assert max(hidden) <= 1 if compact_at == 3 else max(hidden) > 1
+    # and once recomposited from the static layer (a live keyframe moved and back)
+    T = T_true.copy()
+    T[8:12, 0, 3] += 2.0
+    live.set_poses(stamps, T)
+    live.set_poses(stamps, T_true)
+    assert_same(live.mosaic(), ref)
+
+
+def test_merging_settled_keyframes_over_relief(relief) -> None:
+    """The same late loop closure orthorectified on the keyframe clouds' height model: the
+    first keyframes stay live, and the mosaic is the offline orthomosaic of the final poses
+    (within :func:`assert_close`); merged by age it is not."""
+    K, stamps, images, T_true, clouds, _ = relief
+    results = {}
+    for settle in (0, 1):
+        live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64,
+                                          max_live_keyframes=12, settle_updates=settle))
+        assert max(late_loop_closure(live, K, stamps, images, T_true, clouds)) <= 12
+        assert len(live.surface.keyframes) <= 12
+        now = live.mosaic()
+        results[settle] = live, now, offline(images, clouds, T_true, K, now.georef)[0]
+    live, now, ref = results[1]
+    assert live.counts.merged_forced == 0 and live.counts.merged_moves_ignored == 0
+    assert not set(stamps[:4].tolist()) & set(live.merged)
+    assert_close(now, ref)
+    live, now, ref = results[0]
+    assert live.counts.merged_moves_ignored >= 4
+    both = now.valid & ref.valid
+    assert np.mean(np.abs(now.image.astype(int) - ref.image.astype(int))[both] > 8) > 0.01
+
+
+def test_a_static_tile_widens_its_owner_indices_and_keeps_every_stamp() -> None:
+    """A static tile that shows more stamps than uint8 indices hold widens them; compaction
+    drops only the stamps no pixel shows; each pixel keeps the stamp last given it."""
+    t = 32
+    layer = mosaic_map._StaticTile(np.zeros((t, t), np.uint8), np.zeros((t, t), np.uint8),
+                                   np.zeros(0, np.int64))
+    want = np.full((t, t), -(2 ** 63), np.int64)
+    rng = np.random.default_rng(0)
+    for key in range(1000, 1700):
+        # each key a random block in the lower rows; every second also a pixel of its own in
+        # the upper rows that stays shown
+        pasted = np.zeros((t, t), bool)
+        r, c = rng.integers(12, t - 4), rng.integers(0, t - 4)
+        pasted[r:r + 4, c:c + 4] = True
+        if key % 2 == 0:
+            own = (key - 1000) // 2
+            pasted[own // t, own % t] = True
+        layer.take(key, pasted)
+        want[pasted] = key
+    assert np.array_equal(layer.pixel_stamps(), want)
+    assert np.array_equal(layer.valid, want > -(2 ** 63))
+    assert layer.owner.dtype == np.uint16   # more than 255 stamps shown
+    shown = np.unique(want[want > -(2 ** 63)]).size
+    assert shown > 255 and layer.stamps.size < 700
+    layer.compact()
+    assert layer.stamps.size == shown and np.array_equal(layer.pixel_stamps(), want)

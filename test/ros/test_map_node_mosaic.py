@@ -236,6 +236,8 @@ def test_map_node_mosaic_follows_the_corrections(tmp_path: Path, ground: str) ->
                    '/diagnostics with the mosaic')
         last = conv.diagnostics_to_dict(diags[-1])
         assert int(last['mosaic_live_keyframes']) == n and int(last['bad_images']) == 3
+        assert int(last['mosaic_merged_settled']) == int(last['mosaic_merged_forced']) == 0
+        assert int(last['static_settled']) == int(last['static_forced']) == 0
         # ~/save_map writes the mosaic beside the map
         spin_until(client.service_is_ready, 'save_map service')
         future = client.call_async(Trigger.Request())
