@@ -82,14 +82,24 @@ def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 
     net = ConnectionNetwork.from_arrays(ids, ids // 100, ids[:-1], ids[1:],
                                         se3.to_translation_rotvec(meas), cov)
     dead = se3.integrate(T[0], meas)
-    at = np.arange(0, n_nodes, fix_every)
+    return BiasedSurvey(T, net, dead, fix_priors_every(rng, T, fix_every, fix_sigma_m), dt,
+                        ['odom0'] * m)
+
+
+def fix_priors_every(rng: np.random.Generator, T_true: FloatArray, fix_every: int,
+                     fix_sigma_m: float) -> list[GaussianPrior]:
+    """``[gauge, fixes]`` of a simulated survey: a weak gauge prior on node 0 (position 1,000 m,
+    roll and pitch 0.05 rad, yaw 3 rad) and a position fix every ``fix_every`` nodes from 0
+    (``T_true`` (n, 4, 4) plus ``N(0, fix_sigma_m^2 I)`` per axis, m; no orientation)."""
+    T = np.asarray(T_true, dtype=float)
+    at = np.arange(0, T.shape[0], fix_every)
     means = np.repeat(np.eye(4)[None], at.size, axis=0)
     means[:, :3, 3] = T[at, :3, 3] + rng.normal(0.0, fix_sigma_m, (at.size, 3))
     info = np.diag([fix_sigma_m ** -2] * 3 + [0.0] * 3)
     fixes = GaussianPrior(at, means, sla.block_diag(*[info] * at.size))
     gauge = GaussianPrior.from_covariances([0], T[:1], np.diag(
         [1e6, 1e6, 1e6, 0.05 ** 2, 0.05 ** 2, 9.0])[None])
-    return BiasedSurvey(T, net, dead, [gauge, fixes], dt, ['odom0'] * m)
+    return [gauge, fixes]
 
 
 @dataclass(frozen=True)

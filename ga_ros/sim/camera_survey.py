@@ -22,13 +22,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.calibration.camera_parameters import conjugations
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior
 from ga_ros.geometry import se3
+from ga_ros.sim.biased import fix_priors_every
 
 #: The odometry's noise per motion ``[x y z rx ry rz]`` (m, rad), also its stated covariance.
 ODOMETRY_SIGMA = np.array([0.02, 0.02, 0.01, 0.001, 0.001, 0.003])
@@ -136,13 +136,7 @@ def line_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
     cov = np.repeat(np.diag(CAMERA_SIGMA ** 2)[None], m, axis=0)
     ids = np.arange(n_nodes)
     net = ConnectionNetwork.from_arrays(ids, np.zeros(n_nodes, int), ids[:-1], ids[1:], z, cov)
-    at = np.arange(0, n_nodes, fix_every)
-    means = np.repeat(np.eye(4)[None], at.size, axis=0)
-    means[:, :3, 3] = T[at, :3, 3] + rng.normal(0.0, fix_sigma_m, (at.size, 3))
-    info = np.diag([fix_sigma_m ** -2] * 3 + [0.0] * 3)
-    fixes = GaussianPrior(at, means, sla.block_diag(*[info] * at.size))
-    gauge = GaussianPrior.from_covariances([0], T[:1], np.diag(
-        [1e6, 1e6, 1e6, 0.05 ** 2, 0.05 ** 2, 9.0])[None])
     T_init = se3.integrate(T[0], se3.from_translation_rotvec(z[:, :3], z[:, 3:]))
     return CameraSurvey(T, net, T_init, ['cam0'] * m, ['cam0'] * m,
-                        np.full(m, float(dt_s)), [], [gauge, fixes])
+                        np.full(m, float(dt_s)), [],
+                        fix_priors_every(rng, T, fix_every, fix_sigma_m))

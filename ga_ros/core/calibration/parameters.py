@@ -39,19 +39,34 @@ def _rz(angle: FloatArray) -> FloatArray:
     return R
 
 
+class _OdometryParameter:
+    """What every additional parameter of an odometry source shares: it acts on the source's
+    motions (not on fixes), its sigma is not bounded (step 2 of :mod:`.batch`), and its
+    generator is conjugated like the motions it corrects."""
+
+    family: ClassVar[str] = 'odometry'
+    max_sigma: ClassVar[float] = float('inf')
+    on_fixes: ClassVar[bool] = False
+    datum: ClassVar[bool] = False
+    unseen: ClassVar[str] = 'no fixes or loop closures that see it'
+
+    def generator(self, R_corr: FloatArray, t_meas: FloatArray, dt_s: FloatArray) -> FloatArray:
+        raise NotImplementedError
+
+    def generator_of(self, motions: CorrectedMotions) -> FloatArray:
+        """(m, 6) ``G`` of the corrected motions ``motions`` (``Ad(X) G`` where a camera's
+        extrinsic correction conjugates them, :mod:`.camera_parameters`)."""
+        return motions.outer(self.generator(motions.T_in[:, :3, :3], motions.z[:, :3],
+                                            motions.dt_s))
+
+
 @dataclass(frozen=True)
-class ScaleCorrection:
+class ScaleCorrection(_OdometryParameter):
     """``t_true = (1 + k) t_meas`` (module doc); ``k`` dimensionless."""
 
     name: str = 'scale'
     unit: str = '1'
-    family: ClassVar[str] = 'odometry'
-    #: no bound on its sigma (step 2 of :mod:`.batch`)
-    max_sigma: ClassVar[float] = float('inf')
-    on_fixes: ClassVar[bool] = False
-    datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no translation)'
-    unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 
     def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
         """(m,) how much each motion tells about the parameter (its translation, m)."""
@@ -67,26 +82,14 @@ class ScaleCorrection:
         """Add ``value`` to the scale of the connections ``mask``."""
         corrections.scale[mask] += value
 
-    def generator_of(self, motions: CorrectedMotions) -> FloatArray:
-        """(m, 6) ``G`` of the corrected motions ``motions`` (conjugated by a camera's
-        extrinsic correction: ``Ad(X) G``, :mod:`.camera_parameters`)."""
-        return motions.outer(self.generator(motions.T_in[:, :3, :3], motions.z[:, :3],
-                                            motions.dt_s))
-
 
 @dataclass(frozen=True)
-class YawRateCorrection:
+class YawRateCorrection(_OdometryParameter):
     """``R_true = R_meas Rz(omega dt)`` (module doc); ``omega`` in rad/s."""
 
     name: str = 'yaw_rate'
     unit: str = 'rad/s'
-    family: ClassVar[str] = 'odometry'
-    #: no bound on its sigma (step 2 of :mod:`.batch`)
-    max_sigma: ClassVar[float] = float('inf')
-    on_fixes: ClassVar[bool] = False
-    datum: ClassVar[bool] = False
     unobserved: ClassVar[str] = 'no motion it acts on (no durations: stamps?)'
-    unseen: ClassVar[str] = 'no fixes or loop closures that see it'
 
     def acts_on(self, z: FloatArray, dt_s: FloatArray) -> FloatArray:
         """(m,) how much each motion tells about the parameter (its duration, s)."""
@@ -101,12 +104,6 @@ class YawRateCorrection:
     def add(self, corrections: MotionCorrections, mask: np.ndarray, value: float) -> None:
         """Add ``value`` to the yaw rate of the connections ``mask``."""
         corrections.yaw_rate[mask] += value
-
-    def generator_of(self, motions: CorrectedMotions) -> FloatArray:
-        """(m, 6) ``G`` of the corrected motions ``motions`` (``Ad(X) G`` where a camera's
-        extrinsic correction conjugates them)."""
-        return motions.outer(self.generator(motions.T_in[:, :3, :3], motions.z[:, :3],
-                                            motions.dt_s))
 
 
 #: The additional parameters of an odometry source, by name.
