@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.bench.cpu import rmse_cpu_cells
 from ga_ros.bench.gtsam_runner import gtsam_installed
 from ga_ros.core.calibration import CalibrationConfig, solve_with_calibration
 from ga_ros.core.solver import solve
@@ -117,14 +118,9 @@ def table(figs: list[CamCalFigures]) -> str:
              'seed  nodes  cross  phi (rad)              ' + '  '.join(
                  f'{c:>14s}' for c in COLUMNS)]
     for f in figs:
-        cells = []
-        for c in COLUMNS:
-            r = f.rmse_m.get(c, float('nan'))
-            cpu = f.cpu_s.get(c)
-            cells.append(f'{r:7.3f}' + (f' /{cpu:5.2f}' if cpu is not None else '       '))
         phi = ','.join(f'{x:g}' for x in f.phi)
         lines.append(f'{f.seed:4d}  {f.n_nodes:5d}  {f.n_cross:5d}  {phi:21s}  '
-                     + '  '.join(f'{c:>14s}' for c in cells))
+                     + rmse_cpu_cells(f.rmse_m, f.cpu_s, COLUMNS))
         lines += ['    ' + x for x in f.estimates]
     if all('GTSAM LM' in f.rmse_m for f in figs):
         lines.append('ratio +camera cal / GTSAM LM (RMSE): ' + ', '.join(

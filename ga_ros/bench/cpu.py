@@ -47,3 +47,14 @@ def all_cpu_seconds() -> float:
     ended = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (own.ru_utime + own.ru_stime + ended.ru_utime + ended.ru_stime
             + sum(_proc_cpu_seconds(p) for p in _descendants()))
+
+
+def rmse_cpu_cells(rmse_m: dict[str, float], cpu_s: dict[str, float],
+                   columns: list[str] | tuple[str, ...]) -> str:
+    """One table row's cells: per column ``RMSE (m) / CPU (s)`` (the CPU left blank where
+    ``cpu_s`` has none; ``nan`` where the column did not run), each right-aligned in 14."""
+    cells = []
+    for c in columns:
+        r, cpu = rmse_m.get(c, float('nan')), cpu_s.get(c)
+        cells.append(f'{r:7.3f}' + (f' /{cpu:5.2f}' if cpu is not None else '       '))
+    return '  '.join(f'{c:>14s}' for c in cells)

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ga_ros.arrays import FloatArray
+from ga_ros.bench.cpu import rmse_cpu_cells
 from ga_ros.bench.fixes import DEFAULT_MAT, PlazaRun, _rmse, _step_cov, load_plaza
 from ga_ros.bench.gtsam_runner import gtsam_installed
 from ga_ros.core.calibration import (
@@ -163,13 +164,8 @@ def table(figs: list[FixCalFigures]) -> str:
                  f'{c:>14s}' for c in cols)]
     for f in figs:
         off = ','.join(f'{x:g}' for x in f.offset_m) or '-'
-        cells = []
-        for c in cols:
-            r = f.rmse_m.get(c, float('nan'))
-            cpu = f.cpu_s.get(c)
-            cells.append(f'{r:7.3f}' + (f' /{cpu:5.2f}' if cpu is not None else '       '))
         lines.append(f'{f.interval_s:8g}  {f.noise_m:5g}  {f.latency_s:7g}  {off:16s}  '
-                     f'{f.n_fixes:5d}  ' + '  '.join(f'{c:>14s}' for c in cells))
+                     f'{f.n_fixes:5d}  ' + rmse_cpu_cells(f.rmse_m, f.cpu_s, cols))
         lines += ['    ' + x for x in f.fix_parameters]
     lines.append('ratio odom+fix cal / odom cal (RMSE): ' + ', '.join(
         f"{f.rmse_m['odom+fix cal'] / f.rmse_m['odom cal']:.3f}" for f in figs))
