@@ -372,14 +372,7 @@ def test_a_restarted_node_sends_the_saved_map_to_odom_until_its_first_update(ctx
     /diagnostics, and its first update after the restart places the map again where the live
     odometry, which went on, puts it."""
     T0 = se3.from_translation_rotvec(np.array([4.0, -3.0, 0.0]), np.array([0.0, 0.0, 0.8]))
-    msgs = odom_msgs(240)
-    for msg in msgs:   # the odometry starts away from its own origin: map != odom
-        p = msg.pose.pose
-        T = T0 @ pose_to_matrix(p)
-        p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
-        q = se3.quat_from_matrix(T[:3, :3])
-        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v)
-                                                                              for v in q)
+    msgs = _moved(odom_msgs(240), T0)   # the odometry starts away from its origin: map != odom
     state = str(tmp_path / 'state')
     first = _node(AlignmentNode, ctx, state_file=state)
     try:
