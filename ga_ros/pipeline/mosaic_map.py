@@ -371,6 +371,8 @@ class LiveMosaic:
             return False
         old = self.keyframes.get(key)
         T = self.pending_poses.pop(key, None)
+        if T is None and old is not None:   # a new image of a placed keyframe keeps its pose
+            T = old.T_map_base
         self._orphan_moved.pop(key, None)
         self.keyframes[key] = _Keyframe(img, K, T_bc, T, moved_at=self.updates, settled_pose=T)
         if old is not None and old.patch is not None:

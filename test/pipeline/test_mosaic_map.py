@@ -661,3 +661,18 @@ def test_a_static_tile_widens_its_owner_indices_and_keeps_every_stamp() -> None:
     assert shown > 255 and layer.stamps.size < 700
     layer.compact()
     assert layer.stamps.size == shown and np.array_equal(layer.pixel_stamps(), want)
+
+
+def test_a_new_image_of_a_placed_keyframe_keeps_its_pose(data) -> None:
+    """A keyframe's image sent again (a re-published keyframe, a second camera message) after
+    its pose came: the keyframe stays placed at that pose, and the mosaic is the one built from
+    scratch."""
+    K, stamps, images, T_true = data
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, ground_z=GROUND_Z,
+                                      ground_from_clouds=False, tile_px=64))
+    live.set_poses(stamps, T_true)
+    for s, img in zip(stamps, images):
+        assert live.add_image(int(s), img, K, T_BASE_CAM)
+    assert live.add_image(int(stamps[3]), images[3], K, T_BASE_CAM)   # placed at once again
+    mosaic = live.mosaic()
+    assert_same(mosaic, scratch(images, T_true, K, mosaic.georef))
