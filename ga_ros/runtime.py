@@ -183,6 +183,20 @@ def limit_blas_threads(n: int | None = None) -> contextlib.AbstractContextManage
         limits=default_blas_threads() if n is None else max(1, int(n)), user_api='blas')
 
 
+#: :func:`background_blas_limit`'s process-wide limit, once set (kept for the process's life).
+_BACKGROUND_LIMIT: list = []
+
+
+def background_blas_limit() -> None:
+    """Set the process-wide BLAS thread limit (:func:`limit_blas_threads`, the one the
+    update's :func:`blas_threads` contexts use) once and keep it, before work starts in a
+    background thread (the window's freeze ahead, the online calibration's estimate): that
+    thread runs under it, since a :func:`blas_threads` context entered there would restore the
+    update thread's limits midway. Call it outside any :func:`blas_threads` context."""
+    if not _BACKGROUND_LIMIT:
+        _BACKGROUND_LIMIT.append(limit_blas_threads())
+
+
 @contextlib.contextmanager
 def blas_threads(n: int | None = None) -> Iterator[None]:
     """Context in which the BLAS pools use ``n`` threads (default :func:`default_blas_threads`).

@@ -59,7 +59,7 @@ from ga_ros.core.solver import GaussianPrior, SolverConfig
 from ga_ros.core.window.storage import Rows
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
-from ga_ros.runtime import blas_threads, limit_blas_threads
+from ga_ros.runtime import background_blas_limit, blas_threads
 
 #: Where a horizon estimate is solved (:meth:`OnlineCalibration.start`): in a background thread
 #: while the next track is flown, or inline at its installation (before the next odometry motion).
@@ -376,20 +376,6 @@ class OnlineCalibration:
             book.pending = HorizonEstimate.finished(None if rep is None
                                                     else report_of_dict(rep))
         return book
-
-
-#: :func:`background_blas_limit`'s process-wide limit, once set.
-_BLAS_LIMIT = None
-
-
-def background_blas_limit() -> None:
-    """Set the process-wide BLAS thread limit (:func:`~ga_ros.runtime.limit_blas_threads`,
-    the one the update's ``blas_threads()`` contexts use) once and keep it: an estimate in a
-    background thread runs under it, as a ``blas_threads()`` context entered there would
-    restore the update's thread's limits midway (the freeze ahead does the same)."""
-    global _BLAS_LIMIT
-    if _BLAS_LIMIT is None:
-        _BLAS_LIMIT = limit_blas_threads()
 
 
 def _track_rows(state, tracks: list[int]) -> IntArray:

@@ -18,12 +18,7 @@ from ga_ros.arrays import IntArray
 from ga_ros.core.solver import SolveResult
 from ga_ros.core.window.freeze import FreezePlan
 from ga_ros.core.window.state import WindowState
-from ga_ros.runtime import limit_blas_threads
-
-#: The process-wide BLAS thread limit (:func:`~ga_ros.runtime.limit_blas_threads`) set by the
-#: first freeze computed ahead and kept: the background thread runs under it, since the
-#: ``blas_threads()`` contexts of two threads would restore each other's limits.
-_BLAS_LIMIT = None
+from ga_ros.runtime import background_blas_limit
 
 #: ``plan(track, res, last_window, priors, n_nodes, n_conns) -> FreezePlan``: the freeze of a
 #: track from the state's first ``n_nodes`` nodes and ``n_conns`` connections.
@@ -45,8 +40,9 @@ class AheadFreeze:
         self.thread: threading.Thread | None = None
 
     def run(self, compute: PlanFreeze) -> None:
-        """Compute the plan (BLAS limited by the process-wide limit :data:`_BLAS_LIMIT`: a
-        ``blas_threads()`` context here would undo one of the caller's thread midway)."""
+        """Compute the plan (BLAS limited by the process-wide limit of
+        :func:`~ga_ros.runtime.background_blas_limit`: a ``blas_threads()`` context here would
+        undo one of the caller's thread midway)."""
         c0 = time.thread_time()
         try:
             self.plan = compute(self.track, self.res, self.window, self.priors, self.n_nodes,
@@ -88,9 +84,7 @@ class FreezeAhead:
             return
         job = AheadFreeze(track, res, st.last_window, list(st.priors), len(st.ids), st.src.n)
         job.fixes = st.fixes.used(np.asarray(rows, np.int64))
-        global _BLAS_LIMIT
-        if _BLAS_LIMIT is None:  # from now on (set here, outside any blas_threads() context)
-            _BLAS_LIMIT = limit_blas_threads()
+        background_blas_limit()   # from now on (outside any blas_threads() context)
         job.thread = threading.Thread(target=job.run, args=(plan,), daemon=True,
                                       name=f'ga_ros-freeze-track-{track}')
         self.job = job
