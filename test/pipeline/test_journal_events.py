@@ -31,7 +31,7 @@ from ga_ros.pipeline.journal.records import (
     encode_datum,
     encode_map_odom,
     encode_track_end,
-    last_map_odom,
+    last_map_odom_entry,
 )
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.sim.fix_survey import feed_entries, line_fix_survey
@@ -264,8 +264,8 @@ def test_map_odom_records_round_trip_and_are_skipped_as_entries() -> None:
     raw = (encode_map_odom(MapOdom(_map_odom(0.1))) + encode_track_end(TrackEnd(3))
            + encode_map_odom(MapOdom(_map_odom(0.2))))
     recs = np.frombuffer(raw, RECORD)
-    np.testing.assert_array_equal(last_map_odom(recs), _map_odom(0.2))
-    assert last_map_odom(recs[:1]) is not None and last_map_odom(recs[1:2]) is None
+    np.testing.assert_array_equal(last_map_odom_entry(recs).T_map_odom, _map_odom(0.2))
+    assert last_map_odom_entry(recs[:1]) is not None and last_map_odom_entry(recs[1:2]) is None
     assert records_to_entries(recs) == [TrackEnd(3)]
     with pytest.raises(InputError, match='finite'):
         encode_map_odom(MapOdom(np.full((4, 4), np.nan)))

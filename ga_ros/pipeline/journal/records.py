@@ -81,7 +81,7 @@ class MapOdom:
 
 #: What the journal holds, in order: measurements, absolute fixes, track ends, the datum (and
 #: ``map -> odom`` corrections, :class:`MapOdom`, which only a recovery reads:
-#: :func:`last_map_odom`).
+#: :func:`last_map_odom_entry`).
 Entry = Measurement | FixTerm | TrackEnd | Datum
 #: The kind byte of a datum record and of a ``map -> odom`` record.
 DATUM_KIND, MAP_ODOM_KIND = _DATUM, _MAP_ODOM
@@ -230,7 +230,7 @@ def encode_fix(term: FixTerm, entered: FloatArray | None = None,
 def records_to_entries(recs: np.ndarray, taken: bool = False) -> list[Entry]:
     """Journal records (structured array) as measurements, fixes (:class:`FixTerm`), track ends
     (:class:`TrackEnd`) and datums (:class:`Datum`), in order (``map -> odom`` records are
-    skipped: :func:`last_map_odom`); a ``fix`` record without its
+    skipped: :func:`last_map_odom_entry`); a ``fix`` record without its
     ``fix_sensor`` record (or the reverse) is skipped. The measurements as they arrived, or as
     the aligner took them if ``taken`` (:func:`as_taken`).
     """
@@ -338,12 +338,6 @@ def last_datum(recs: np.ndarray) -> tuple[float, float, float] | None:
         return None
     lat, lon, alt = (float(v) for v in recs[int(at[-1])]['z'][:3])
     return lat, lon, alt
-
-
-def last_map_odom(recs: np.ndarray) -> FloatArray | None:
-    """``T_map_odom`` (4, 4) of the last ``map -> odom`` record (``None`` without one)."""
-    entry = last_map_odom_entry(recs)
-    return None if entry is None else entry.T_map_odom
 
 
 def last_map_odom_entry(recs: np.ndarray) -> MapOdom | None:

@@ -123,10 +123,9 @@ class RecoveryResult:
         snapshot may be written there.
     datum : the map frame's datum ``(lat_deg, lon_deg, alt_m)`` of the journal's last datum
         record (``None`` without one).
-    map_odom : (4, 4) ``T_map_odom`` of the journal's last ``map -> odom`` record: the
-        correction the session sent after its last window update (``None`` without one).
-    map_odom_entry : that record whole (:class:`MapOdom`: with the newest node then and its
-        pose; ``None`` without one).
+    map_odom_entry : the journal's last ``map -> odom`` record (:class:`MapOdom`: the
+        correction the session sent after its last window update, with the newest node then
+        and its pose; ``None`` without one); :attr:`map_odom` its ``T_map_odom``.
     """
 
     aligner: TrackWindowAligner
@@ -143,8 +142,12 @@ class RecoveryResult:
     reversed: list[Measurement] = field(default_factory=list)
     snapshot_refused: bool = False
     datum: tuple[float, float, float] | None = None
-    map_odom: FloatArray | None = None
     map_odom_entry: MapOdom | None = None
+
+    @property
+    def map_odom(self) -> FloatArray | None:
+        """(4, 4) ``T_map_odom`` of :attr:`map_odom_entry` (``None`` without one)."""
+        return None if self.map_odom_entry is None else self.map_odom_entry.T_map_odom
 
 
 def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
@@ -214,7 +217,6 @@ def recover(state_file: str | os.PathLike, config: AlignerConfig | None = None,
     out.reversed = reversed_records(records)
     out.datum = last_datum(records)
     out.map_odom_entry = last_map_odom_entry(records)
-    out.map_odom = None if out.map_odom_entry is None else out.map_odom_entry.T_map_odom
     # held (or dropped) measurements never reached the aligner
     tail = tail[~held_records(tail) & ~dropped_records(tail)]
     if tail.size:

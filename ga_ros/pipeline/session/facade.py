@@ -93,12 +93,10 @@ class AlignmentSession:
         #: The map frame's datum ``(lat_deg, lon_deg, alt_m)`` the journal held at the last
         #: resume or load (``None`` without one).
         self.datum: tuple[float, float, float] | None = None
-        #: (4, 4) ``T_map_odom`` the restored state's journal last held (:meth:`journal_map_odom`;
-        #: ``None``: none, or not restored); the node sends it until its first update.
-        self.map_odom: FloatArray | None = None
-        #: The journal's last ``map -> odom`` record whole (with its node and that node's pose
-        #: then: what the measured bridge across a restart checks,
-        #: :mod:`~ga_ros.pipeline.session.restore`; ``None``: none, or not restored).
+        #: The journal's last ``map -> odom`` record (:meth:`journal_map_odom`) at the last
+        #: resume or load, with its node and that node's pose then (what the measured bridge
+        #: across a restart checks, :mod:`~ga_ros.pipeline.session.restore`); ``None``: none,
+        #: or not restored. Its ``T_map_odom``: :attr:`map_odom`.
         self.map_odom_entry: MapOdom | None = None
         #: How the first new node after a restart was bridged: ``''`` (not yet, or no
         #: restart), ``'measured'`` (the odometry went on) or ``'guessed: <why>'``.
@@ -326,6 +324,13 @@ class AlignmentSession:
             self._journal_event(MapOdom(T))
         else:   # the newest node and its pose now: a restart checks the state did not move
             self._journal_event(MapOdom(T, int(node), pose(int(node))))
+
+    @property
+    def map_odom(self) -> FloatArray | None:
+        """(4, 4) ``T_map_odom`` the restored state's journal last held (of
+        :attr:`map_odom_entry`; ``None``: none, or not restored): the node sends it until its
+        first update."""
+        return None if self.map_odom_entry is None else self.map_odom_entry.T_map_odom
 
     def _take(self, m: Measurement, taken: Taken, reverse: bool = False) -> None:
         """The aligner takes ``m`` (``reverse``: read backwards; journaled as it came, counted,
@@ -608,7 +613,7 @@ class AlignmentSession:
         self.counts = Counters()
         self.last_update, self.last_error = None, ''
         self.datum = None
-        self.map_odom = self._map_odom_journaled = self.map_odom_entry = None
+        self._map_odom_journaled = self.map_odom_entry = None
         self._bridge_now, self._bridge_node, self._measure_bridge = None, -1, None
         self.restart_bridge = ''
 
@@ -700,7 +705,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
-        self.map_odom, self.map_odom_entry = result.map_odom, result.map_odom_entry
+        self.map_odom_entry = result.map_odom_entry
         return how(result)
 
     def resume(self) -> str | None:
@@ -724,7 +729,7 @@ class AlignmentSession:
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
-        self.map_odom, self.map_odom_entry = result.map_odom, result.map_odom_entry
+        self.map_odom_entry = result.map_odom_entry
         try:
             if self.journal is not None:
                 self.journal.open()  # the journal can be written (not at the first measurement)
