@@ -820,9 +820,7 @@ class TrackWindowAligner:
         t0 = time.perf_counter()
         keep = np.nonzero(st.status.a != 2)[0]
         n = len(st.ids)
-        # from the aligner's arrays, checked at insertion (no per-connection validation and
-        # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)
-        net = st.subnetwork(np.arange(n), keep)
+        z_net = None   # the stored motions, or with calibration the motions as measured
         scfg = self.config.solver_config()
         if max_iterations is not None:
             scfg = SolverConfig(**{**asdict(scfg), 'max_iterations': int(max_iterations)})
@@ -830,23 +828,23 @@ class TrackWindowAligner:
         fixed = [] if free_datum else [st.ids[0]]
         ids = st.idarr.a
         if calibration is not None:
+            stamp = st.stamp.astype(np.float64)
+            dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
             if self.online_calibration is not None:  # the motions as measured
-                stamp = st.stamp.astype(np.float64)
-                dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
-                net = st.subnetwork(np.arange(n), keep, z=self.online_calibration.measured(
-                    st.z.a[keep], dt_s, keep))
+                z_net = self.online_calibration.measured(st.z.a[keep], dt_s, keep)
             cross = st.cross.a[keep]
             names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
-            stamp = st.stamp.astype(np.float64)
-            dt_s = (stamp[st.dst.a[keep]] - stamp[st.src.a[keep]]) * 1e-9
             # the fixes one by one for their sources' parameters (offset, time offset): their
             # priors are the book's bit for bit, so nothing changes where none is estimated
             fix_obs = (book_observations(st.fixes, np.arange(n), stamp[:n] * 1e-9)
                        if calibration.fix_parameters and st.fixes.terms else None)
         elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+        # from the aligner's arrays, checked at insertion (no per-connection validation and
+        # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)
+        net = st.subnetwork(np.arange(n), keep, z=z_net)
 
         def adjust(T0: FloatArray, priors: list) -> SolveResult:
             """One adjustment from ``T0`` with the fixes' priors ``priors``."""
