@@ -306,6 +306,9 @@ class LiveMosaic:
         self.updates = 0
         #: the height model's keyframes without an image: the update of their last move
         self._orphan_moved: dict[int, int] = {}
+        #: the height model's keyframes without an image merged into its static layer: their
+        #: later poses are ignored (counted as merged keyframes' moves are not: no pose kept)
+        self._merged_orphans: set[int] = set()
         #: why the last keyframe was refused ('' when none was)
         self.last_error = ''
         #: the mosaic changed since :meth:`take_changed` last said so
@@ -332,8 +335,8 @@ class LiveMosaic:
             raise InputError('mosaic: a keyframe cloud needs (k, 3) points and a finite 4x4 '
                              'camera extrinsic')
         self.counts.clouds += 1
-        if int(stamp_ns) in self.merged:  # its points are in the static layer already
-            return 0
+        if int(stamp_ns) in self.merged or int(stamp_ns) in self._merged_orphans:
+            return 0  # its points are in the static layer already
         self.surface.add_points(int(stamp_ns), P, T_bc)
         if int(stamp_ns) not in self.keyframes:
             self._orphan_moved[int(stamp_ns)] = self.updates
@@ -407,6 +410,8 @@ class LiveMosaic:
                     self.counts.merged_max_shift_m = max(self.counts.merged_max_shift_m, shift)
                 continue
             kf = self.keyframes.get(k)
+            if kf is None and k in self._merged_orphans:  # its points are static already
+                continue
             if self.surface is not None and self.surface.set_pose(k, Tk) and kf is None:
                 self._orphan_moved[k] = self.updates
             if kf is None:
@@ -440,6 +445,7 @@ class LiveMosaic:
         """Drop the merged keyframes' layers (a reset)."""
         self.static.clear()
         self.merged.clear()
+        self._merged_orphans.clear()
         if self.surface is not None:
             self.surface.clear_static()
         self.changed = True
@@ -731,6 +737,8 @@ class LiveMosaic:
             self.surface.merge(keys + orphans)
             for k in orphans:
                 self._orphan_moved.pop(k, None)
+                self.pending_poses.pop(k, None)
+            self._merged_orphans.update(orphans)
         t = self.config.tile_px
         for k in keys:
             kf = self.keyframes.pop(k)

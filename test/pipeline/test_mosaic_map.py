@@ -676,3 +676,29 @@ def test_a_new_image_of_a_placed_keyframe_keeps_its_pose(data) -> None:
     assert live.add_image(int(stamps[3]), images[3], K, T_BASE_CAM)   # placed at once again
     mosaic = live.mosaic()
     assert_same(mosaic, scratch(images, T_true, K, mosaic.georef))
+
+
+def test_merged_keyframes_without_an_image_keep_no_pose_waiting(relief) -> None:
+    """Clouds for every keyframe, images for every other one (a decimated mosaic): the height
+    model's keyframes without an image are merged with the imaged ones, and the poses that
+    later corrections send for them are neither kept waiting (in the mosaic or its height
+    model) nor placed again."""
+    K, stamps, images, T_true, clouds, _ = relief
+    live = LiveMosaic(MosaicMapConfig(metres_per_pixel=MPP, tile_px=64, max_live_keyframes=2,
+                                      settle_updates=1))
+    for k, s in enumerate(stamps):
+        live.add_cloud(int(s), clouds[k], T_BASE_CAM)
+        if k % 2 == 0:
+            live.add_image(int(s), images[k], K, T_BASE_CAM)
+        live.set_poses(stamps[:k + 1], T_true[:k + 1])  # every pose at every update
+    live.set_poses(stamps, T_true)
+    assert live.counts.frozen >= 2 and live._merged_orphans
+    assert set(live.surface.keyframes) | live._merged_orphans | set(live.merged) \
+        >= set(stamps.tolist())
+    merged = live._merged_orphans | set(live.merged)
+    waiting = [k for k in merged if k in live.pending_poses or k in live.surface.pending_poses]
+    assert waiting == []
+    # a cloud sent again for a merged keyframe without an image is not placed a second time
+    orphan = min(live._merged_orphans)
+    live.add_cloud(orphan, clouds[list(stamps).index(orphan)], T_BASE_CAM)
+    assert orphan not in live.surface.keyframes
