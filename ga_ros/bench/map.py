@@ -14,13 +14,16 @@ publish, proportional to the voxels, paid once per ``publish_period_sec``, not p
 
 Then the live mosaic's table (:mod:`ga_ros.bench.map_mosaic`: update cost for the same ``--moved``
 counts and bytes held per keyframe, at ``--mosaic-sizes`` keyframes fed; ``--mosaic-sizes ''``
-skips it, ``--sizes ''`` skips the cloud map's).
+skips it, ``--sizes ''`` skips the cloud map's). With ``--drift N``, the live mosaic whose old
+keyframes keep moving (:func:`ga_ros.bench.map_mosaic.run_drift`: merged when settled against
+merged by age, the final mosaic against the one of the final poses).
 
 CPU: ``time.process_time`` (this process, every thread; nothing else runs in it).
 
 Run: ``ga-ros bench map [--sizes 500,1000,2000,5000] [--moved 1,10,100] [--points 500]
 [--voxel 0.2] [--repeats 20] [--mosaic-sizes 1000,5000] [--mosaic-live 500]
-[--mosaic-points 1000] [--mosaic-image 320] [--mosaic-repeats 5]``.
+[--mosaic-points 1000] [--mosaic-image 320] [--mosaic-repeats 5] [--drift 600 --drift-live 300
+--drift-sigma 0.3 --drift-decay 0.7]``.
 """
 
 from __future__ import annotations
@@ -74,6 +77,15 @@ def main(argv: list[str] | None = None) -> int:
                     help='keyframe image width (px; height 3/4 of it)')
     ap.add_argument('--mosaic-repeats', type=int, default=5,
                     help='mosaic updates timed per cell')
+    ap.add_argument('--drift', type=int, default=0,
+                    help='keyframes of the live mosaic run whose old keyframes keep moving '
+                         '(0: skip it)')
+    ap.add_argument('--drift-live', type=int, default=300,
+                    help='mosaic_max_live_keyframes of that run')
+    ap.add_argument('--drift-sigma', type=float, default=0.3,
+                    help="that run's error of a keyframe when placed (m per axis)")
+    ap.add_argument('--drift-decay', type=float, default=0.7,
+                    help="that run's error left after each later track (fraction)")
     a = ap.parse_args(argv)
     sizes = [int(v) for v in a.sizes.split(',') if v]
     moved = [int(v) for v in a.moved.split(',')]
@@ -83,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     if mosaic_sizes:
         map_mosaic.print_table(mosaic_sizes, moved, a.mosaic_live, a.mosaic_image,
                                a.mosaic_points, a.mosaic_repeats)
+    if a.drift:
+        map_mosaic.print_drift(a.drift, a.drift_live, a.mosaic_image, a.mosaic_points,
+                               a.drift_sigma, a.drift_decay)
     return 0
 
 

@@ -145,3 +145,123 @@ def print_table(sizes: list[int], moved: list[int], live_limit: int, width: int,
         per = [1e3 * r.update_s[i] / max(r.warps[i], 1) for r in rows]
         print(f'  {k:>4} moved: ' + ', '.join(f'{v:.2f}' for v in per)
               + f'   (largest / smallest: {per[-1] / per[0]:.2f})')
+
+
+@dataclass(frozen=True)
+class DriftRow:
+    """One merge rule's figures in the drift run (:func:`run_drift`)."""
+
+    rule: str
+    merged_settled: int
+    merged_forced: int
+    moves_ignored: int
+    max_ignored_shift_m: float
+    differing: float
+    update_s: float
+
+
+def _aligned(a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two mosaics on the same global grid cut to their common box: images and masks."""
+    m = a.georef.metres_per_pixel
+    dc = int(round((b.georef.x_min - a.georef.x_min) / m))
+    dr = int(round((a.georef.y_max - b.georef.y_max) / m))
+    r0, c0 = max(0, dr), max(0, dc)
+    r1 = min(a.image.shape[0], dr + b.image.shape[0])
+    c1 = min(a.image.shape[1], dc + b.image.shape[1])
+    return (a.image[r0:r1, c0:c1], a.valid[r0:r1, c0:c1],
+            b.image[r0 - dr:r1 - dr, c0 - dc:c1 - dc], b.valid[r0 - dr:r1 - dr, c0 - dc:c1 - dc])
+
+
+def run_drift(n: int, live_limit: int, width: int, points: int, sigma0_m: float,
+              decay: float, seed: int = 0) -> tuple[list[DriftRow], float]:
+    """Old keyframes that keep moving: the survey of :func:`run` fed row by row (a row is a
+    track), each keyframe placed off its true pose by an error ``e_k`` (``sigma0_m`` per axis
+    in m, a hundredth of it in rad); after each row one corrections update shrinks every error
+    to ``decay ** age`` of it (age: rows since the keyframe's own) and sends the keyframes that
+    moved by more than 1 cm (the corrections topic's default threshold): corrections that go on
+    for ``log(0.01 / sigma0_m) / log(decay)`` rows, beyond the live keyframes. The last update
+    sends the true poses (the final batch). Run once merging when settled (the default
+    ``mosaic_settle_updates``) and once by age (0), on the same data. Returns, per rule, the
+    merges settled / forced, the corrections of merged keyframes ignored and the largest of
+    them (m), the share of the pixels of the final mosaic whose grey level differs by more than
+    2 from the mosaic of every keyframe placed at its final pose without merging (of the pixels
+    both cover), the CPU per update; and that reference's CPU (s)."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n)))
+    K = np.array([[width, 0.0, width / 2], [0.0, width, width * 3 / 8], [0.0, 0.0, 1.0]])
+    eye = np.eye(4)
+    T_true = np.array([_survey_pose(k, side, rng) for k in range(n)])
+    frames = [_keyframe(T, width, points, rng) for T in T_true]
+    rows = np.arange(n) // side
+    error = np.c_[rng.normal(0, sigma0_m, (n, 3)), rng.normal(0, sigma0_m / 100, (n, 3))]
+    # one schedule for both rules: (new keys, keys sent, their poses) per update
+    schedule = []
+    sent = np.full(n, np.nan)
+    for row in range(rows[-1] + 1):
+        new = np.flatnonzero(rows == row)
+        seen = np.flatnonzero(rows <= row)
+        shrink = decay ** (row - rows[seen])
+        moved = np.isnan(sent[seen]) | (np.abs(shrink - sent[seen])
+                                        * np.linalg.norm(error[seen, :3], axis=1) > 0.01)
+        keys = seen[moved]
+        sent[keys] = shrink[moved]
+        T = T_true[keys] @ se3.from_translation_rotvec(error[keys, :3] * shrink[moved, None],
+                                                       error[keys, 3:] * shrink[moved, None])
+        schedule.append((new, keys, T))
+    out = []
+    for rule, settle in (('merged when settled', MosaicMapConfig.settle_updates),
+                         ('merged by age', 0)):
+        mosaic = LiveMosaic(MosaicMapConfig(metres_per_pixel=0.1, max_live_keyframes=live_limit,
+                                            max_pixels=10**9, settle_updates=settle))
+        cpu = 0.0
+        for new, keys, T in schedule:
+            for k in new.tolist():
+                mosaic.add_cloud(k, frames[k][1], eye)
+                mosaic.add_image(k, frames[k][0], K, eye)
+            t0 = time.process_time()
+            mosaic.set_poses(keys, T)
+            cpu += time.process_time() - t0
+        mosaic.set_poses(np.arange(n), T_true)
+        out.append((rule, mosaic, cpu / len(schedule)))
+    t0 = time.process_time()
+    reference = LiveMosaic(MosaicMapConfig(metres_per_pixel=0.1, max_live_keyframes=0,
+                                           max_pixels=10**9))
+    for k in range(n):
+        reference.add_cloud(k, frames[k][1], eye)
+        reference.add_image(k, frames[k][0], K, eye)
+    reference.set_poses(np.arange(n), T_true)
+    ref_cpu = time.process_time() - t0
+    ref = reference.mosaic()
+    rows_out = []
+    for rule, mosaic, cpu in out:
+        a, va, b, vb = _aligned(mosaic.mosaic(), ref)
+        both = va & vb
+        diff = np.abs(a.astype(int) - b.astype(int))[both] > 2
+        c = mosaic.counts
+        rows_out.append(DriftRow(rule, c.merged_settled, c.merged_forced, c.merged_moves_ignored,
+                                 c.merged_max_shift_m, float(diff.mean()), cpu))
+    return rows_out, ref_cpu
+
+
+def print_drift(n: int, live_limit: int, width: int, points: int, sigma0_m: float,
+                decay: float) -> None:
+    """Run :func:`run_drift` and print its table."""
+    side = int(np.ceil(np.sqrt(n)))
+    print(f'\nlive mosaic with old keyframes that keep moving: {n:,} keyframes in rows (tracks) '
+          f'of {side}, mosaic_max_live_keyframes {live_limit}, 0.1 m/px; each keyframe placed '
+          f'{100 * sigma0_m:.0f} cm off (per axis), the error shrunk to {decay} of it per row '
+          'after (corrections above 1 cm sent), the last update sends the true poses. '
+          '"differing": share of the '
+          'pixels of the final live mosaic whose grey differs by > 2 from the mosaic of every '
+          'keyframe placed at its final pose without merging (pixels both cover). CPU = '
+          'time.process_time per update')
+    rows, ref_cpu = run_drift(n, live_limit, width, points, sigma0_m, decay)
+    print('| merge rule | merged settled / forced | corrections of merged keyframes ignored '
+          '(largest, m) | pixels differing from the reference | CPU per update |')
+    print('|---|---:|---:|---:|---:|')
+    for r in rows:
+        print(f'| {r.rule} | {r.merged_settled:,} / {r.merged_forced:,} | {r.moves_ignored:,} '
+              f'({r.max_ignored_shift_m:.3f}) | {100 * r.differing:.2f} % | '
+              f'{1e3 * r.update_s:.0f} ms |')
+    print(f'reference (all {n:,} placed at their final poses, nothing merged): {ref_cpu:.1f} s '
+          'CPU')

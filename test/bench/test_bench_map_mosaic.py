@@ -18,3 +18,15 @@ def test_small_run_keeps_the_bound_and_warps_what_moved() -> None:
     patch = 2 * (20 / 0.1) * (15 / 0.1)
     assert image + points + patch < r.bytes_per_live < 1.5 * (image + points + patch)
     assert r.bytes_per_merged > 128  # its pose, and its share of the static layers
+
+
+def test_drift_run_matches_the_reference_only_when_nothing_moved_after_its_merge() -> None:
+    """Every keyframe live: the final mosaic is the reference's, no correction ignored. A
+    small live bound under corrections that go on for ~10 tracks: corrections of merged
+    keyframes are ignored and the final mosaic differs from the reference's (it can fail)."""
+    rows, _ = map_mosaic.run_drift(36, 36, 64, 150, sigma0_m=0.3, decay=0.7)
+    assert [(r.moves_ignored, r.differing) for r in rows] == [(0, 0.0), (0, 0.0)]
+    rows, _ = map_mosaic.run_drift(36, 8, 64, 150, sigma0_m=0.3, decay=0.7)
+    for r in rows:
+        assert r.merged_settled + r.merged_forced == 28
+        assert r.moves_ignored > 0 and r.max_ignored_shift_m > 0.01 and r.differing > 0.01
