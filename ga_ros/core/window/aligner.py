@@ -833,7 +833,9 @@ class TrackWindowAligner:
             if self.online_calibration is not None:  # the motions as measured
                 z_net = self.online_calibration.measured(st.z.a[keep], dt_s, keep)
             cross = st.cross.a[keep]
-            names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+            # each connection's source (a camera's cross-track connections are the camera's)
+            names = (variance_groups.sources(ids[st.src.a[keep]], ids[st.dst.a[keep]],
+                                             st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             # the fixes one by one for their sources' parameters (offset, time offset): their
