@@ -86,6 +86,23 @@ def test_calibrate_camera_recovers_the_extrinsic_rotation(robot_bag, tmp_path: P
     assert groups == {'odom0', 'cam0.cross'}, groups
 
 
+def test_with_calibrate_the_camera_is_estimated_online_too(robot_bag, tmp_path: Path,
+                                                          capsys) -> None:
+    """``--calibrate --calibrate-camera cam0``: the last online estimate has the camera's
+    rotation within 3 sigma (published, not applied), the final batch too."""
+    T_off = T_BASE_CAM.copy()
+    T_off[:3, :3] = so3.exp(-PHI) @ T_BASE_CAM[:3, :3]
+    assert _replay(robot_bag, tmp_path / 'on', T_off, '--calibrate', '--calibrate-camera',
+                   'cam0') == 0
+    capsys.readouterr()
+    summary = json.loads((tmp_path / 'on' / 'summary.json').read_text())
+    for block in ('online_calibration', 'calibration'):
+        cam = [p for p in summary[block]['parameters'] if p['source'] == 'cam0']
+        assert len(cam) == 3, summary[block]
+        for p, truth in zip(cam, PHI):
+            assert p['estimated'] and abs(p['value'] - truth) < 3 * p['sigma'], (block, p)
+
+
 def test_an_unknown_camera_is_refused_before_reading(robot_bag, tmp_path: Path,
                                                      capsys) -> None:
     """The inputs name their sources: an unknown name stops the replay at once, listing them."""

@@ -35,7 +35,7 @@ from ga_ros.core.fixes import (
     sensor_jacobian,
     sensor_misclosure,
 )
-from ga_ros.core.measurement import Measurement, variance_group
+from ga_ros.core.measurement import Measurement, source_or_group, variance_group
 from ga_ros.core.quality.control import connection_redundancy
 from ga_ros.core.quality.online_variance import OnlineVarianceComponents
 from ga_ros.core.quality.variance_components import (
@@ -185,6 +185,9 @@ class TrackWindowAligner:
                 book = OnlineCalibration()
                 for _ in range(state.src.n):
                     book.register(None, (0.0, 0.0))
+            for _ in range(state.src.n - book.group.n):   # a book saved without the sources
+                book.register_group('')
+            book.cameras = self.config.camera_names
             state.calibration = self.online_calibration = book
         else:
             state.calibration = None  # a book restored with calibrate on is not kept
@@ -327,6 +330,7 @@ class TrackWindowAligner:
         if self.state.src.n > n_conn:
             if cal is not None:
                 cal.register(source, applied)
+                cal.register_group(source_or_group(m) if cal.cameras else '')
             if self.online_variance is not None:
                 self.online_variance.register(variance_group(m))
                 self.online_variance.observe(m)
