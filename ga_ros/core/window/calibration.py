@@ -441,8 +441,9 @@ def camera_estimate_inputs(book: OnlineCalibration, conns: IntArray,
     each of its connection rows ``conns`` (consecutive and cross-track:
     :meth:`OnlineCalibration.register_group`), so the estimate includes each camera's
     extrinsic rotation where the horizon determines it (``docs/calibration.md``); ``job`` as
-    it is without cameras. The camera's parameters are published (:attr:`OnlineCalibration.
-    report`, :func:`camera_diagnostic_values`), not applied to the motions."""
+    it is without cameras. The camera's parameters are published
+    (:attr:`OnlineCalibration.report`, :func:`camera_diagnostic_values`), not applied to the
+    motions."""
     if not book.cameras:
         return job
     g = book.group.a[conns]
