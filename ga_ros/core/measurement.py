@@ -63,13 +63,28 @@ class Measurement:
                            source)
 
 
+#: Appended to a source's name for the group of its cross-track connections
+#: (:func:`variance_group`: ``cam0.cross``).
+CROSS_GROUP_SUFFIX = '.cross'
+
+
 def variance_group(m: Measurement) -> str:
     """The group whose variance factor a measurement shares
     (:mod:`ga_ros.core.quality.variance_components`): its source's consecutive motions
     (``odom0``; ``motion`` when the source is unknown), the cross-track connections (``cross``,
-    or the name of their source) and the bridges over gaps (``bridge``)."""
+    also for a source named ``cross``; ``<source>.cross`` for those of a named source, e.g. a
+    camera's ``cam0.cross`` or a loop-closure source's ``loops.cross``, apart from its
+    consecutive motions: matching across tracks and tracking frame to frame err differently)
+    and the bridges over gaps (``bridge``)."""
     if m.kind == 'consecutive':
         return m.source or 'motion'
     if m.kind == 'cross':
-        return m.source or 'cross'
+        return m.source + CROSS_GROUP_SUFFIX if m.source not in ('', 'cross') else 'cross'
     return m.kind
+
+
+def source_or_group(m: Measurement) -> str:
+    """The measurement's source where it has one, else its :func:`variance_group`: the name a
+    source's additional parameters go by (``docs/calibration.md``), for its consecutive
+    motions and cross-track connections alike."""
+    return m.source or variance_group(m)

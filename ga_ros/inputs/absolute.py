@@ -55,6 +55,7 @@ from ga_ros.core.fixes import UNKNOWN_VARIANCE, AbsoluteFix
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.inputs.messages import resolve_type
+from ga_ros.inputs.names import FIX, source_name
 
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
@@ -153,7 +154,7 @@ class AbsoluteInputConfig:
     tolerance_s : a fix waits at most this long for the odometry that covers its stamp (s).
     """
 
-    name: str = 'fix0'
+    name: str = source_name(FIX, 0)
     frame_id: str = ''
     default_sigma_m: float = 5.0
     default_sigma_rad: float = 0.0

@@ -70,6 +70,7 @@ from ga_ros.core.measurement import Measurement
 from ga_ros.core.tracks import TrackRules, TrackSegmenter, refuse_former_names
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
+from ga_ros.inputs.names import ODOMETRY, source_name
 from ga_ros.sim.noise import NoiseModel
 
 COVARIANCE_SOURCES = ('auto', 'twist', 'pose_difference', 'pose_independent', 'default')
@@ -104,7 +105,7 @@ class OdometryInputConfig:
     first_node_id : node id of the first keyframe.
     """
 
-    name: str = 'odom0'
+    name: str = source_name(ODOMETRY, 0)
     frame_id: str = ''
     covariance_source: str = 'auto'
     pose_covariance_frame: str = 'parent'

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from types import SimpleNamespace
 from typing import Any
 
@@ -270,18 +270,20 @@ class InputFrontEnd:
 
     def _camera_measurements(self) -> tuple[Measurement, ...]:
         """Camera connections tied to their keyframes by the odometry between each image and
-        the keyframe it was taken for (:meth:`OdometryInput.constraint_from_stamps`); those
-        whose later image is newer than the odometry wait for it."""
+        the keyframe it was taken for (:meth:`OdometryInput.constraint_from_stamps`), named by
+        the camera (:attr:`KeyframeCamera.source`); those whose later image is newer than the
+        odometry wait for it."""
         out, waiting = [], []
         inp = self._primary()
+        source = self.camera.source if self.camera is not None else ''
         for c in self._camera_waiting:
             if c.dst_stamp_ns > self.latest_stamp_ns:
                 waiting.append(c)
                 continue
             try:
-                out.append(inp.constraint_from_stamps(c.src_stamp_ns, c.dst_stamp_ns,
-                                                      c.T_src_dst, c.cov,
-                                                      nodes=(c.src_id, c.dst_id)))
+                m = inp.constraint_from_stamps(c.src_stamp_ns, c.dst_stamp_ns, c.T_src_dst,
+                                               c.cov, nodes=(c.src_id, c.dst_id))
+                out.append(replace(m, source=source))
             except InputError:
                 self.camera_rejected += 1
         self._camera_waiting = waiting

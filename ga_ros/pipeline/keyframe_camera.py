@@ -50,7 +50,8 @@ class KeyframeCameraConfig:
     Attributes
     ----------
     front : stereo pairing tolerance (``max_pair_dt_sec``), keyframe feature extraction
-        (``vo``: ORB features, stereo matching) and cross-track matching (``cross``).
+        (``vo``: ORB features, stereo matching), cross-track matching (``cross``) and the
+        camera's name (``source``, default ``cam0``: its connections' ``Measurement.source``).
     T_base_camera : the extrinsic ``T_base_cam`` as ``x y z qx qy qz qw`` (m; the camera's
         optical frame in the base frame, as ``static_transform_publisher`` takes it).
     max_image_offset_s : largest time between a keyframe and the image pair used for it (s).
@@ -148,6 +149,11 @@ class KeyframeCamera:
         self._waiting: list[_Keyframe] = []
         self._image_stamp: dict[int, int] = {}
         self._last_used_ns = -1
+
+    @property
+    def source(self) -> str:
+        """The camera's name, the ``Measurement.source`` of its cross-track connections."""
+        return self.config.front.source
 
     # ------------------------------------------------------------------ calibration
     def set_camera_info(self, side: str, msg: Any) -> None:

@@ -24,6 +24,9 @@ match alike:
   (:meth:`set_extrinsic`, :class:`ga_ros.core.extrinsic.Extrinsic`: ``/tf_static``, parameters
   or the identity) every measurement is converted to the robot's ``base_link`` motion (and
   covariance) before it leaves, and :meth:`base_pose` gives the frame's ``T_odom_base``;
+* **source**: every measurement leaves named by the camera (``source``, default ``cam0``,
+  :mod:`ga_ros.inputs.names`), so its variance factor and its extrinsic's rotation
+  (``docs/calibration.md``) are its own;
 * **keyframe clouds** on request (:meth:`StereoFrontEnd.keyframe_cloud`, for map building):
   the dense stereo points of a new keyframe's rectified pair (:class:`ga_ros.vo.dense.DenseStereo`,
   settings ``cloud``); never computed unless asked (it costs CPU), and the VO's outputs are the
@@ -48,6 +51,7 @@ from ga_ros.core.encoding import stamp_to_ns
 from ga_ros.core.extrinsic import Extrinsic, ExtrinsicConfig
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError, InputError
+from ga_ros.inputs.names import CAMERA_SOURCE, check_source_name
 from ga_ros.pipeline.params import config_from_params
 from ga_ros.vo.calibration import CameraModel, StereoCalibration
 from ga_ros.vo.crosstrack import CrossAttempt, CrossTrackConfig, CrossTrackMatcher
@@ -87,6 +91,10 @@ class FrontEndConfig:
     extrinsic : where the camera's pose in ``base_link`` comes from.
     cloud : dense stereo of the keyframe clouds (:meth:`StereoFrontEnd.keyframe_cloud`;
         parameters ``cloud_`` + :class:`ga_ros.vo.dense.DenseStereoConfig` fields).
+    source : the camera's name, carried by every measurement it makes (``Measurement.source``:
+        its consecutive motions and cross-track connections; the name of its variance group
+        and of its extrinsic's parameters, ``docs/calibration.md``; at most
+        :data:`~ga_ros.core.encoding.SOURCE_BYTES` bytes).
     """
 
     vo: VoConfig = field(default_factory=VoConfig)
@@ -97,6 +105,10 @@ class FrontEndConfig:
     max_pending: int = 50
     extrinsic: ExtrinsicConfig = field(default_factory=ExtrinsicConfig)
     cloud: DenseStereoConfig = field(default_factory=DenseStereoConfig)
+    source: str = CAMERA_SOURCE
+
+    def __post_init__(self) -> None:
+        check_source_name(self.source, 'the camera source (parameter source)')
 
 
 #: Parameters of ``config/vo.yaml`` that only ``vo_node`` uses (topics, frames, queues): the replay
@@ -116,7 +128,7 @@ def front_end_config_from_params(params: Mapping[str, Any],
     """:class:`FrontEndConfig` from ``vo_node``'s parameters (``config/vo.yaml`` names: the
     :class:`VoConfig` fields, ``cross_`` + :class:`CrossTrackConfig` fields, ``cloud_`` +
     :class:`ga_ros.vo.dense.DenseStereoConfig` fields, ``cross_track``,
-    ``max_pair_dt_sec``; :data:`NODE_ONLY_PARAMS` are ignored), over ``base``.
+    ``max_pair_dt_sec``, ``source``; :data:`NODE_ONLY_PARAMS` are ignored), over ``base``.
 
     Raises
     ------
@@ -128,7 +140,8 @@ def front_end_config_from_params(params: Mapping[str, Any],
     cross, used_cross = config_from_params(CrossTrackConfig, params, 'cross_', base=base.cross)
     ext, used_ext = config_from_params(ExtrinsicConfig, params, base=base.extrinsic)
     cloud, used_cloud = config_from_params(DenseStereoConfig, params, 'cloud_', base=base.cloud)
-    rest = {k: v for k, v in params.items() if k in ('cross_track', 'max_pair_dt_sec')}
+    rest = {k: v for k, v in params.items()
+            if k in ('cross_track', 'max_pair_dt_sec', 'source')}
     top, used_top = config_from_params(FrontEndConfig, rest, base=replace(
         base, vo=vo, cross=cross, extrinsic=ext, cloud=cloud))
     unknown = (set(params) - used_vo - used_cross - used_ext - used_cloud - used_top
@@ -256,9 +269,13 @@ class StereoFrontEnd:
         return self.extrinsic.pose(T_world_cam)
 
     def _to_base(self, m: Measurement | None) -> Measurement | None:
-        if m is None or self.extrinsic is None:
+        """A camera measurement as the base's (with the extrinsic, once set), named by the
+        camera's ``source``."""
+        if m is None:
             return m
-        return self.extrinsic.motion(m)
+        if self.extrinsic is not None:
+            m = self.extrinsic.motion(m)
+        return replace(m, source=self.config.source)
 
     # ------------------------------------------------------------------ calibration
     def set_camera_info(self, side: str, msg: Any) -> StereoCalibration | None:

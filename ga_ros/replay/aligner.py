@@ -31,13 +31,15 @@ AlignerFactory = Callable[[FloatArray | None], Aligner]
 def aligner_config(config: Any) -> Any:
     """The aligner's settings of a :class:`~ga_ros.replay.config.ReplayConfig`: its
     ``aligner``, with ``calibrate`` on when the replay's is (``--calibrate``: the odometry
-    calibrated online, :mod:`ga_ros.core.window.calibration`, as well as in the final batch);
-    ``aligner`` as it is for the batch aligner."""
+    calibrated online, :mod:`ga_ros.core.window.calibration`, as well as in the final batch)
+    and then the cameras of ``calibrate_cameras`` in the online estimate (``--calibrate-camera``:
+    published, not applied); ``aligner`` as it is for the batch aligner."""
     if not config.calibrate or config.aligner_kind != 'window':
         return config.aligner
     from ga_ros.core.window import AlignerConfig
 
-    return replace(config.aligner or AlignerConfig(), calibrate=True)
+    return replace(config.aligner or AlignerConfig(), calibrate=True,
+                   calibrate_cameras=','.join(getattr(config, 'calibrate_cameras', ())))
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:

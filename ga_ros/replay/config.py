@@ -46,6 +46,13 @@ class ReplayConfig:
         ``summary.json``'s ``online_calibration`` show the last estimate) and in the final
         batch (GA's trajectory uses them, the text and ``summary.json``'s ``calibration`` show
         them, in place of the variance components).
+    calibrate_cameras : sources (``cam0``, ...) whose motions and cross-track connections a
+        camera's extrinsic rotation error conjugates: the final batch estimates it
+        (:attr:`CalibrationConfig.cameras <ga_ros.core.calibration.CalibrationConfig>`, with
+        the odometry's parameters, in place of the variance components; the text and
+        ``summary.json``'s ``calibration`` show it). A name that is not a source of the
+        replay is an :class:`~ga_ros.errors.InputError` (before reading where the inputs name
+        their sources: a stereo bag, odometry topics; else at the final batch).
     pose_covariance : write each corrected pose's marginal covariance (else zeros).
     anchor_to_ground_truth : start the F2F and corrected paths at the ground-truth pose of the
         first node (the datum) when the bag has ground truth; else at the identity.
@@ -84,6 +91,7 @@ class ReplayConfig:
     final_batch: bool = True
     variance_components: str = 'report'
     calibrate: bool = False
+    calibrate_cameras: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.variance_components not in VARIANCE_MODES:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
-from ga_ros.core.calibration import CalibrationConfig
+from ga_ros.core.calibration import CalibrationConfig, check_cameras
 from ga_ros.core.quality.variance_components import VarianceComponentConfig
 from ga_ros.errors import GaError, InputError, SolverError
 from ga_ros.eval.metrics import trajectory_error
@@ -146,15 +146,23 @@ def _last_updates(run: ReplayRun) -> Trajectory | None:
     if run.config.final_batch:
         mode = run.config.variance_components
         vce = mode != 'off' and hasattr(run.aligner, 'variance_components')
-        calibrate = run.config.calibrate and hasattr(run.aligner, 'calibration')
-        if run.config.calibrate and not calibrate:
-            res.warnings.append('--calibrate needs the window aligner (--aligner window): the '
-                                'final batch ran without calibration')
+        cameras = tuple(run.config.calibrate_cameras)
+        asked = run.config.calibrate or bool(cameras)
+        calibrate = asked and hasattr(run.aligner, 'calibration')
+        if asked and not calibrate:
+            res.warnings.append('--calibrate / --calibrate-camera need the window aligner '
+                                '(--aligner window): the final batch ran without calibration')
+        if calibrate and cameras:
+            try:
+                check_cameras(cameras, run.groups.source_names(), '--calibrate-camera')
+            except InputError as exc:
+                res.error = (res.error + '; ' if res.error else '') + str(exc)
+                return online
         vce = vce and not calibrate  # the calibrated batch takes their place
         try:
             if calibrate:
                 u = run.aligner.refine_batch(variance_groups=run.groups,
-                                             calibration=CalibrationConfig())
+                                             calibration=CalibrationConfig(cameras=cameras))
             elif vce:
                 u = run.aligner.refine_batch(
                     variance_groups=run.groups,

@@ -167,6 +167,15 @@ class InputSource:
         self.passthrough: Callable[[str, str, bytes | None, Any, int], None] | None = None
 
     @property
+    def source_names(self) -> tuple[str, ...]:
+        """The sources of this replay's measurements: the odometry inputs' names, the
+        camera's (when one is beside them), and ``cross`` for the external constraints."""
+        out = tuple(self.front.specs)
+        if self.front.camera is not None:
+            out += (self.front.camera.source,)
+        return out + (('cross',) if self.config.constraints else ())
+
+    @property
     def stats(self) -> dict[str, object]:
         """Per-input counters and the warnings (in the replay summary)."""
         out = self.front.stats()

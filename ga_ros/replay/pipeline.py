@@ -35,6 +35,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from ga_ros.core.calibration import check_cameras
 from ga_ros.errors import FormatError
 from ga_ros.io.bag import BagReader
 from ga_ros.io.folder_bag import open_recording
@@ -92,6 +93,9 @@ def replay(bag_path: str | Path, out_dir: str | Path, config: ReplayConfig = Rep
         if on_plan is not None:
             on_plan(plan)
         source = open_source(bag, plan, specs, config)
+        named = getattr(source.items, 'source_names', None)
+        if config.calibrate_cameras and named is not None:   # before reading anything
+            check_cameras(config.calibrate_cameras, named, '--calibrate-camera')
         result = ReplayResult(str(bag_path), plan.source, str(out_dir))
         outputs = ReplayOutputs(out_dir, config.outputs)
         run = ReplayRun(config, factory, outputs, result, source.ground_truth, source.match_by)

@@ -60,6 +60,11 @@ class StereoSource:
         self._resolve_extrinsic()
 
     @property
+    def source_names(self) -> tuple[str, ...]:
+        """The source every measurement of this replay carries: the camera's."""
+        return (self.front.config.source,)
+
+    @property
     def stats(self) -> StereoStats:
         """The front end's counts."""
         return self.front.stats

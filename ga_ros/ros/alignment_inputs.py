@@ -23,6 +23,7 @@ from ga_ros.geometry import se3
 from ga_ros.inputs.absolute import ABSOLUTE_TYPES, AbsoluteInputConfig
 from ga_ros.inputs.absolute import POSE_COV as ABS_POSE_COV
 from ga_ros.inputs.messages import INPUT_TYPES, ODOMETRY
+from ga_ros.inputs.names import CAMERA_SOURCE
 from ga_ros.inputs.odometry import OdometryInputConfig
 from ga_ros.pipeline.absolute import AbsoluteFrontEnd, AbsoluteSpec
 from ga_ros.pipeline.inputs import (
@@ -32,6 +33,7 @@ from ga_ros.pipeline.inputs import (
 )
 from ga_ros.pipeline.journal import datum_path, read_datum, write_datum
 from ga_ros.pipeline.keyframe_camera import KeyframeCamera, KeyframeCameraConfig
+from ga_ros.pipeline.stereo import FrontEndConfig
 from ga_ros.pipeline.stream_rate import StreamMonitor
 from ga_ros.ros import conversions as conv
 from ga_ros.ros.adaptive_qos import AdaptiveSubscription
@@ -111,6 +113,8 @@ class AlignmentInputs:
             description='renamed: camera.T_base_camera', dynamic_typing=True)).value
         offset = declare('max_image_offset_s', 0.25,
                          'largest time between a keyframe and its image pair (s)')
+        source = declare('source', CAMERA_SOURCE, "the camera's name: the source of its "
+                         'cross-track connections (variance group, calibrate_cameras)')
         if old is not None:
             raise renamed_parameter_error('camera.base_to_camera', 'camera.T_base_camera')
         if not topics_['left'][0]:
@@ -126,6 +130,7 @@ class AlignmentInputs:
         p, q = se3.to_pos_quat(ext.T_base_cam if ext is not None else np.eye(4))
         self._camera_topics = (topics_, bool(compressed))
         return KeyframeCamera(KeyframeCameraConfig(
+            front=FrontEndConfig(source=str(source)),
             T_base_camera=tuple(float(v) for v in (*p, *q)),
             max_image_offset_s=float(offset)))
 

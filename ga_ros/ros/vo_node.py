@@ -104,6 +104,7 @@ from ga_ros.core.extrinsic import ExtrinsicConfig, TransformTree
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError, UnknownExtrinsicError
 from ga_ros.geometry import se3
+from ga_ros.inputs.names import CAMERA_SOURCE
 from ga_ros.pipeline.params import parameter_names
 from ga_ros.pipeline.stereo import (
     NO_EXTRINSIC,
@@ -150,6 +151,9 @@ class VoNodeSettings:
         subscriber).
     cross_track : run the cross-track matcher.
     max_pair_dt_sec : largest stamp difference of a left/right pair (s).
+    source : the camera's name, carried by every measurement it publishes (the measurement
+        encoding's ``twist.covariance``, :mod:`ga_ros.ros.conversions`): the alignment node's
+        variance group and ``calibrate_cameras`` name (default ``cam0``).
     odom_frame : REP 105 odometry frame of the VO odometry (parent of ``base_frame``).
     publish_odom_tf : publish ``odom_frame -> base_frame`` on ``tf_topic`` for every frame.
     tf_topic : TF topic (``/tf``).
@@ -186,6 +190,7 @@ class VoNodeSettings:
     publish_keyframe_image: bool = True
     cross_track: bool = True
     max_pair_dt_sec: float = 0.005
+    source: str = CAMERA_SOURCE
     odom_frame: str = 'odom'
     publish_odom_tf: bool = True
     tf_topic: str = '/tf'
@@ -232,6 +237,7 @@ class VoNode(BoundedLogging, Node):
         self.front = StereoFrontEnd(FrontEndConfig(
             vo=self.vo_config, cross=self.cross_config, cross_track=s.cross_track,
             max_pair_dt_sec=s.max_pair_dt_sec, max_pending=max(2, s.image_queue),
+            source=s.source,
             extrinsic=self.extrinsic_config, cloud=self.cloud_config))
         self.extrinsic_config.from_parameters()  # a malformed T_base_camera fails at start
         self.tf_static = TransformTree()

@@ -211,10 +211,10 @@ def test_a_poorly_determined_group_keeps_its_stated_covariance() -> None:
                              loop_every=40, loop_span=20)
     ms = list(sv.measurements)
     groups = [variance_group(m) for m in ms]
-    assert set(groups) == {'odom0', 'loops'}
+    assert set(groups) == {'odom0', 'loops.cross'}   # a named source's cross-track group
     _, vc = solve_with_variance_components(sources_network(100, ms), chained_poses(100, ms),
                                            groups, fixed=[0])
-    loop = next(c for c in vc.components if c.group == 'loops')
+    loop = next(c for c in vc.components if c.group == 'loops.cross')
     assert loop.redundancy < VarianceComponentConfig().min_redundancy
     assert not loop.estimated and loop.factor == 1.0
     assert not any('loops' in w for w in vc.warnings())

@@ -138,6 +138,7 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
               'camera.left_info_topic': 'cam/left/camera_info',
               'camera.right_info_topic': 'cam/right/camera_info', 'camera.compressed': True,
               'camera.T_base_camera': ' '.join(str(float(v)) for v in (*p, *q)),
+              'camera.source': 'down_cam',
               'publish_markers': False, 'diagnostics_period_sec': 0.0,
               'transform_publish_period_sec': 0.0}
     ctx = rclpy.Context()
@@ -147,6 +148,9 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
     try:
         subs = {s.topic_name for s in node.subscriptions}
         assert {'/cam/left/image/compressed', '/cam/right/camera_info'} <= subs
+        processed: list = []   # the measurements the node steps (kind, source)
+        step = node._process
+        node._process = lambda m, msg: processed.append((m.kind, m.source)) or step(m, msg)
         with BagReader(bag) as reader:
             for bm in reader.messages(None):
                 side = 'left' if '/left/' in bm.topic else 'right'
@@ -161,6 +165,8 @@ def test_alignment_node_with_a_camera_beside_its_odometry(robot_bag) -> None:
         assert sum(node.session.counts.rejected.values()) == 0
         assert node.session.counts.accepted == (node.front.inputs['odom0'].stats.measurements
                                                 + cam['cross_accepted'])
+        # the camera's connections carry its name (parameter camera.source)
+        assert set(processed) == {('consecutive', 'odom0'), ('cross', 'down_cam')}, processed
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

@@ -218,7 +218,7 @@ def test_node_only_params_are_the_node_settings() -> None:
 
     from ga_ros.ros.vo_node import VoNodeSettings
 
-    names = {f.name for f in fields(VoNodeSettings)} - {'cross_track', 'max_pair_dt_sec'}
+    names = {f.name for f in fields(VoNodeSettings)} - {'cross_track', 'max_pair_dt_sec', 'source'}
     assert names == NODE_ONLY_PARAMS
 
 

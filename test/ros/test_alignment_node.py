@@ -658,6 +658,68 @@ def test_online_calibration_in_diagnostics(tmp_path):
         rclpy.try_shutdown(context=ctx)
 
 
+def _camera_swaths(phi) -> list:
+    """A swath survey (:func:`ga_ros.sim.camera_survey.swath_survey`) as a live stream: each
+    keyframe's ``odom0`` motion, then the ``cam0`` cross-track connections (conjugated by the
+    extrinsic's rotation error ``phi``) that end at it."""
+    from ga_ros.sim.camera_survey import swath_survey
+
+    per = 30
+    s = swath_survey(np.random.default_rng(4), np.asarray(phi, float), per_swath=per)
+    arr = s.network.arrays()
+    cross: dict[int, list[int]] = {}
+    for c in range(len(arr)):
+        if s.groups[c] == 'cam0':
+            cross.setdefault(int(arr.dst[c]), []).append(c)
+    ms = []
+    for c in range(len(arr)):
+        if s.groups[c] != 'odom0':
+            continue
+        i, j = int(arr.src[c]), int(arr.dst[c])
+        ms.append(Measurement(i, j, i // per, j // per, arr.z[c], arr.cov[c], j * 10 ** 9,
+                              'consecutive', 'odom0'))
+        ms += [Measurement(int(arr.src[k]), j, int(arr.src[k]) // per, j // per, arr.z[k],
+                           arr.cov[k], j * 10 ** 9, 'cross', 'cam0') for k in cross.get(j, [])]
+    return ms
+
+
+def test_calibrate_cameras_in_diagnostics(tmp_path):
+    """``calibrate_cameras``: the camera named by its measurements' source (carried by the
+    encoding) gets its extrinsic rotation in the online estimate; ``/diagnostics`` shows it
+    with its sigma (within 3 sigma of the truth), the direct aligner's, and says it is not
+    applied; a camera no measurement names is reported with the sources seen."""
+    phi = (0.02, -0.01, 0.03)
+    ms = _camera_swaths(phi)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(15))
+    node = AlignmentNode(context=ctx, parameter_overrides=[
+        Parameter('state_file', value=''), Parameter('allow_finish_track', value=True),
+        Parameter('calibrate', value=True), Parameter('calibrate_cameras', value='cam0,cam9'),
+        Parameter('refine_executor', value='inline'),
+        Parameter('diagnostics_period_sec', value=0.0)])
+    try:
+        for m in ms:
+            node._on_measurement(conv.measurement_to_odometry(m))
+        assert node._srv_finish_track(Trigger.Request(), Trigger.Response()).success
+        values = node.diagnostic_values()
+        ref = direct(ms, node.aligner_config)
+        cam = [p for p in ref.online_calibration.report.parameters if p.source == 'cam0']
+        assert [p.name for p in cam] == ['extrinsic_rx', 'extrinsic_ry', 'extrinsic_rz']
+        for p, truth in zip(cam, phi):
+            assert p.estimated and abs(p.value - truth) < 3 * p.sigma, p
+            key = f'calibration/cam0/{p.name}'
+            assert values[key] == f'{p.value:.6g} {p.unit}', key
+            assert values[key + '/sigma'] == f'{p.sigma:.3g}', key
+        assert values['calibration/cam0/applied'].startswith('no')
+        assert values['calibration/cam9'] == ('no such source so far; the sources: cam0, '
+                                              'odom0'), values
+        np.testing.assert_allclose(node.aligner.corrected_path().T_world_node,
+                                   ref.corrected_path().T_world_node, atol=1e-12)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 def test_a_strict_update_bug_is_reported_and_the_node_goes_on(tmp_path, rng, monkeypatch):
     """With ``GA_ROS_STRICT_UPDATES`` (set for the suite) a bug in a window update (not a
     numerical failure) reaches the node as an UpdateBug: reported (one ERROR line, the

@@ -251,7 +251,7 @@ def test_node_in_process_adapter(rng):
     rclpy.init(context=ctx, domain_id=domain_id(31))
     node = VoNode(context=ctx, parameter_overrides=[
         Parameter('publish_debug_image', value=True), Parameter('warn_throttle_sec', value=0.0),
-        Parameter('pair_queue', value=100)])
+        Parameter('pair_queue', value=100), Parameter('source', value='down_cam')])
     sent = []
     node.pub_meas.publish = sent.append
     debug = []
@@ -299,6 +299,8 @@ def test_node_in_process_adapter(rng):
             assert d.read_only and len(d.description) > len(name) + 10
         meas = [conv.odometry_to_measurement(m) for m in sent]
         assert len(meas) >= 2 and all(m.kind == 'consecutive' for m in meas)
+        # every measurement names the camera (parameter source), carried by the encoding
+        assert {m.source for m in meas} == {'down_cam'}
         # A corrected path of the keyframes (by stamp) reaches the matcher.
         ids = sorted(node.front._stamp_to_node.values())
         stamps = sorted(node.front._stamp_to_node)

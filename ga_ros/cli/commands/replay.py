@@ -205,6 +205,12 @@ def _add_alignment_arguments(a: argparse._ArgumentGroup) -> None:
                    help="the final batch also estimates each odometry source's scale and "
                         'yaw-rate corrections where the network determines them and they are '
                         'significant (docs/calibration.md); printed and in summary.json')
+    a.add_argument('--calibrate-camera', dest='calibrate_cameras', action='append',
+                   default=[], metavar='NAME',
+                   help="the final batch also estimates this camera's extrinsic rotation error "
+                        '(NAME: the source of its measurements, cam0 unless --vo source=... '
+                        'names it) where the network determines it (another orientation '
+                        'source: odometry, fixes); repeatable; printed and in summary.json')
     a.add_argument('--online-variance-components', choices=('off', 'apply'),
                    help='variance factor per source estimated online after each track and '
                         'used by the window adjustments and published covariances: apply, or '
@@ -247,6 +253,7 @@ def input_topics(args: argparse.Namespace) -> InputTopics:
     """The standard inputs of the command line (``--odom-topic``, ``--input-config``, ...)."""
     import yaml
 
+    from ga_ros.inputs.names import FIX, ODOMETRY, numbered
     from ga_ros.pipeline.absolute import absolute_specs_from_mapping
     from ga_ros.pipeline.inputs import specs_from_mapping
     from ga_ros.replay.inputs import InputTopics
@@ -263,8 +270,8 @@ def input_topics(args: argparse.Namespace) -> InputTopics:
     if not isinstance(absolutes, dict):
         raise InputError(f'{args.input_config}: absolutes must map names (fix0, ...) to settings')
     abs_specs = absolute_specs_from_mapping(
-        absolutes, {f'fix{k}': t for k, t in enumerate(getattr(args, 'absolute_topics', []))})
-    named = {f'odom{k}': t for k, t in enumerate(args.input_topics)}
+        absolutes, numbered(FIX, getattr(args, 'absolute_topics', [])))
+    named = numbered(ODOMETRY, args.input_topics)
     specs = specs_from_mapping(sections, named)
     return InputTopics(specs, args.constraints_topic, args.track_boundary_topic,
                        camera=camera_topics(args) if specs else None, absolutes=abs_specs)
@@ -352,6 +359,7 @@ def replay_config(args: argparse.Namespace, progress: bool) -> ReplayConfig:
                         variance_components=('off' if args.no_variance_components
                                              else args.variance_components),
                         calibrate=args.calibrate,
+                        calibrate_cameras=tuple(args.calibrate_cameras),
                         pose_covariance=not args.no_covariance,
                         anchor_to_ground_truth=not args.no_anchor, plot=not args.no_plot,
                         progress=progress and not args.no_progress, inputs=inputs,

@@ -15,6 +15,7 @@ from ga_ros.core.calibration.camera_parameters import (
     CAMERA_PARAMETERS,
     ExtrinsicRotationAxis,
     camera_sources,
+    check_cameras,
 )
 from ga_ros.core.calibration.fix_parameters import (
     FIX_PARAMETERS,
@@ -36,5 +37,6 @@ from ga_ros.core.calibration.parameters import (
 __all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter',
            'CalibrationConfig', 'CalibrationReport', 'ExtrinsicRotationAxis',
            'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ScaleCorrection', 'TimeOffset',
-           'YawRateCorrection', 'book_observations', 'camera_sources', 'corrected_motions',
-           'fix_priors', 'misclosure_jacobian', 'node_velocities', 'solve_with_calibration']
+           'YawRateCorrection', 'book_observations', 'camera_sources', 'check_cameras',
+           'corrected_motions', 'fix_priors', 'misclosure_jacobian', 'node_velocities',
+           'solve_with_calibration']

@@ -116,9 +116,31 @@ def conjugations(phi: FloatArray) -> FloatArray:
     return X
 
 
+def check_cameras(cameras: Sequence[str], known: Sequence[str], what: str = 'camera') -> None:
+    """Every camera to calibrate is a source of the measurements.
+
+    Parameters
+    ----------
+    cameras : the names to calibrate (``--calibrate-camera``, ``calibrate_cameras``).
+    known : the sources the measurements carry (``cam0``, ``odom0``, ...).
+    what : how the caller names the setting, for the message.
+
+    Raises
+    ------
+    InputError
+        A name that is not among ``known`` (the message lists them).
+    """
+    unknown = [c for c in cameras if c not in set(known)]
+    if unknown:
+        listing = ', '.join(sorted(set(known))) or 'none'
+        raise InputError(f'{what} {", ".join(map(repr, unknown))}: no such source; the '
+                         f'sources of the measurements are: {listing} (a stereo camera is '
+                         "'cam0' unless its parameter source names it otherwise)")
+
+
 def camera_sources(groups: Sequence[str], cameras: Sequence[str]) -> list[str | None]:
-    """(m,) the camera of each connection: its group (the ``source`` of its measurement,
-    :func:`~ga_ros.core.measurement.variance_group`; consecutive and cross-track alike) where
+    """(m,) the camera of each connection: its source (the ``source`` of its measurement,
+    :func:`~ga_ros.core.measurement.source_or_group`; consecutive and cross-track alike) where
     that is one of ``cameras``, else None."""
     named = set(cameras)
     return [g if g in named else None for g in groups]

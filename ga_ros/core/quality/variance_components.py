@@ -51,7 +51,7 @@ import scipy.sparse as sp
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core import models
-from ga_ros.core.measurement import Measurement, variance_group
+from ga_ros.core.measurement import Measurement, source_or_group, variance_group
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.quality.cofactors import inverse_blocks
 from ga_ros.core.quality.control import connection_redundancy
@@ -451,12 +451,18 @@ class SourceGroups:
     def __init__(self, unknown: str = 'motion') -> None:
         self.unknown = unknown
         self._by: dict[tuple[int, int, bytes], str] = {}
+        #: the source of the connections that have one and a group other than it (a named
+        #: source's cross-track connections)
+        self._source: dict[tuple[int, int, bytes], str] = {}
         #: each source's own consistency against the others measuring the same motions
         self.consistency = SourceConsistency(keep=4096)
 
     def add(self, m: Measurement) -> None:
         """Record the group of one measurement (and its source's consistency)."""
-        self._by[_key(m.src_id, m.dst_id, m.z)] = variance_group(m)
+        key = _key(m.src_id, m.dst_id, m.z)
+        self._by[key] = group = variance_group(m)
+        if source_or_group(m) != group:
+            self._source[key] = m.source
         self.consistency.add(m)
 
     def split(self) -> dict[str, tuple[float, float]]:
@@ -467,11 +473,26 @@ class SourceGroups:
     def __len__(self) -> int:
         return len(self._by)
 
+    def source_names(self) -> list[str]:
+        """The sources of the recorded measurements, sorted (a connection without a source
+        by its group: ``motion``, ``cross``, ``bridge``)."""
+        return sorted(set(self._source.values())
+                      | {g for k, g in self._by.items() if k not in self._source})
+
     def of(self, src_ids: IntArray, dst_ids: IntArray, z: FloatArray) -> list[str]:
         """The groups of connections given by node ids ``(m,)`` and motions ``(m, 6)``."""
         return [self._by.get(_key(a, b, zz), self.unknown)
                 for a, b, zz in zip(np.asarray(src_ids).tolist(), np.asarray(dst_ids).tolist(),
                                     np.asarray(z, dtype=float).reshape(-1, 6))]
+
+    def sources(self, src_ids: IntArray, dst_ids: IntArray, z: FloatArray) -> list[str]:
+        """As :meth:`of`, the source of each connection where it has one
+        (:func:`~ga_ros.core.measurement.source_or_group`: a camera's cross-track connections
+        are its own, ``cam0``, not their group ``cam0.cross``), else its group."""
+        keys = [_key(a, b, zz) for a, b, zz in zip(
+            np.asarray(src_ids).tolist(), np.asarray(dst_ids).tolist(),
+            np.asarray(z, dtype=float).reshape(-1, 6))]
+        return [self._source.get(k) or self._by.get(k, self.unknown) for k in keys]
 
 
 def _key(src_id: int, dst_id: int, z: FloatArray) -> tuple[int, int, bytes]:

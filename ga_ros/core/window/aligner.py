@@ -35,7 +35,7 @@ from ga_ros.core.fixes import (
     sensor_jacobian,
     sensor_misclosure,
 )
-from ga_ros.core.measurement import Measurement, variance_group
+from ga_ros.core.measurement import Measurement, source_or_group, variance_group
 from ga_ros.core.quality.control import connection_redundancy
 from ga_ros.core.quality.online_variance import OnlineVarianceComponents
 from ga_ros.core.quality.variance_components import (
@@ -185,6 +185,9 @@ class TrackWindowAligner:
                 book = OnlineCalibration()
                 for _ in range(state.src.n):
                     book.register(None, (0.0, 0.0))
+            for _ in range(state.src.n - book.group.n):   # a book saved without the sources
+                book.register_group('')
+            book.cameras = self.config.camera_names
             state.calibration = self.online_calibration = book
         else:
             state.calibration = None  # a book restored with calibrate on is not kept
@@ -327,6 +330,7 @@ class TrackWindowAligner:
         if self.state.src.n > n_conn:
             if cal is not None:
                 cal.register(source, applied)
+                cal.register_group(source_or_group(m) if cal.cameras else '')
             if self.online_variance is not None:
                 self.online_variance.register(variance_group(m))
                 self.online_variance.observe(m)
@@ -833,7 +837,9 @@ class TrackWindowAligner:
             if self.online_calibration is not None:  # the motions as measured
                 z_net = self.online_calibration.measured(st.z.a[keep], dt_s, keep)
             cross = st.cross.a[keep]
-            names = (variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+            # each connection's source (a camera's cross-track connections are the camera's)
+            names = (variance_groups.sources(ids[st.src.a[keep]], ids[st.dst.a[keep]],
+                                             st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             # the fixes one by one for their sources' parameters (offset, time offset): their

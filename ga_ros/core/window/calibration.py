@@ -97,6 +97,9 @@ class HorizonEstimate:
         :func:`~ga_ros.core.calibration.solve_with_calibration` (the horizon's connections with
         their motions as measured, its poses at their current estimates, each connection's
         source, durations in s, the solver's settings, the fixes and the gauge prior).
+    cameras, groups : the cameras whose extrinsic rotation the estimate includes and every
+        connection's source (cross-track ones too: :func:`camera_estimate_inputs`); ``()``,
+        ``None``: none.
     report : the estimate (``None`` before :meth:`run`, or if it failed).
     error : why it failed (a data failure, :data:`DATA_FAILURES`, or another error);
         ``None`` if it did not.
@@ -114,14 +117,18 @@ class HorizonEstimate:
     done: bool = False
     cpu_ms: float = 0.0
     thread: threading.Thread | None = field(default=None, repr=False)
+    cameras: tuple[str, ...] = ()
+    groups: list | None = None
 
     def run(self) -> None:
         """Solve the estimate (in the calling thread; BLAS as that thread has it)."""
         c0 = time.thread_time()
+        cal = (replace(ONLINE_CALIBRATION, cameras=self.cameras) if self.cameras
+               else ONLINE_CALIBRATION)
         try:
             _, self.report = solve_with_calibration(
                 self.network, self.T_init, self.sources, self.dt_s, self.solver, fixed=[],
-                priors=self.priors, calibration=ONLINE_CALIBRATION)
+                priors=self.priors, calibration=cal, groups=self.groups)
         except BaseException as exc:  # noqa: BLE001 - judged at the installation
             self.error = exc
         self.cpu_ms = 1e3 * (time.thread_time() - c0)
@@ -176,6 +183,12 @@ class OnlineCalibration:
         self.last_horizon = 0  # the connections its horizon held
         self._current: dict[str, tuple[float, float]] = {}
         self.pending: HorizonEstimate | None = None
+        #: the cameras the estimates include (``AlignerConfig.calibrate_cameras``; set by the
+        #: aligner, not saved) and every connection's source, cross-track ones too
+        #: (:func:`camera_estimate_inputs`)
+        self.cameras: tuple[str, ...] = ()
+        self.group_names: list[str] = []
+        self.group = Rows((), np.int64)
 
     # ----------------------------------------------------------------------- input
     def correction(self, source: str | None) -> tuple[float, float]:
@@ -208,6 +221,14 @@ class OnlineCalibration:
             g = self.names.index(source)
         self.source.append(g)
         self.applied.append(applied)
+
+    def register_group(self, name: str) -> None:
+        """Book a new connection row's source, consecutive or cross-track
+        (:func:`~ga_ros.core.measurement.source_or_group`; '' unknown), after :meth:`register`:
+        the camera connections of :func:`camera_estimate_inputs`."""
+        if name and name not in self.group_names:
+            self.group_names.append(name)
+        self.group.append(self.group_names.index(name) if name else -1)
 
     def sources_of(self, conns: IntArray) -> list[str | None]:
         """The source of each connection row (``None``: no parameters)."""
@@ -282,8 +303,9 @@ class OnlineCalibration:
                                                       config.gauge_sigma_yaw_rad), weak=True))
         self.n_estimates += 1
         self.last_conns, self.last_horizon = int(state.src.n), int(conns.size)
-        return HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns), dt_s,
-                               config.solver_config(), priors)
+        return camera_estimate_inputs(
+            self, conns, HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns),
+                                         dt_s, config.solver_config(), priors))
 
     def install(self, strict: bool = False) -> float:
         """Use the pending estimate (waiting for it, or solving it inline) for the motions that
@@ -319,6 +341,8 @@ class OnlineCalibration:
         self.report = report
         cur: dict[str, tuple[float, float]] = {}
         for p in report.estimated():
+            if p.name not in ('scale', 'yaw_rate'):   # a camera's: published, not applied
+                continue
             k, w = cur.get(p.source, (0.0, 0.0))
             cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
@@ -340,6 +364,7 @@ class OnlineCalibration:
             out[key] = (f'{p.value:.6g} {p.unit}' if p.estimated
                         else f'0 (not estimated: {p.reason})')
             out[key + '/sigma'] = f'{p.sigma:.3g}'
+        out.update(camera_diagnostic_values(self))
         return out
 
     # ---------------------------------------------------------------- persistence
@@ -353,7 +378,11 @@ class OnlineCalibration:
         if job is not None:  # finished now, saved with its result (installed as without a cut)
             job.wait()
             meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
-        return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
+        arrays = {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
+        if self.group_names:   # every connection's source (the cameras' estimates)
+            meta['group_names'] = list(self.group_names)
+            arrays['cal_group'] = self.group.a.copy()
+        return meta, arrays
 
     @classmethod
     def from_arrays(cls, meta: dict, arrays: dict[str, np.ndarray]) -> OnlineCalibration:
@@ -367,6 +396,10 @@ class OnlineCalibration:
         book.source = Rows.of(np.asarray(arrays['cal_source'], dtype=np.int64), np.int64)
         book.applied = Rows.of(np.asarray(arrays['cal_applied'], dtype=np.float64)
                                .reshape(-1, 2), np.float64)
+        book.group_names = [str(s) for s in meta.get('group_names', [])]
+        group = arrays.get('cal_group') if book.group_names else None
+        book.group = Rows.of(np.asarray(group, dtype=np.int64) if group is not None
+                             else np.full(book.source.n, -1, dtype=np.int64), np.int64)
         rep = meta.get('report')
         if rep is not None:
             book._use(report_of_dict(rep))
@@ -399,3 +432,35 @@ def report_of_dict(d: dict) -> CalibrationReport:
     return replace(CalibrationReport(params), alpha=plain(d.get('alpha')),
                    sigma0_sq=plain(d.get('sigma0_sq')), iterations=int(d.get('iterations', 0)),
                    solves=int(d.get('solves', 0)))
+
+
+# ------------------------------------------------------------------------- cameras online
+def camera_estimate_inputs(book: OnlineCalibration, conns: IntArray,
+                           job: HorizonEstimate) -> HorizonEstimate:
+    """``job`` with the book's cameras (``AlignerConfig.calibrate_cameras``) and the source of
+    each of its connection rows ``conns`` (consecutive and cross-track:
+    :meth:`OnlineCalibration.register_group`), so the estimate includes each camera's
+    extrinsic rotation where the horizon determines it (``docs/calibration.md``); ``job`` as
+    it is without cameras. The camera's parameters are published
+    (:attr:`OnlineCalibration.report`, :func:`camera_diagnostic_values`), not applied to the
+    motions."""
+    if not book.cameras:
+        return job
+    g = book.group.a[conns]
+    groups = [book.group_names[i] if i >= 0 else None for i in g.tolist()]
+    return replace(job, cameras=tuple(book.cameras), groups=groups)
+
+
+def camera_diagnostic_values(book: OnlineCalibration) -> dict[str, str]:
+    """``/diagnostics`` of the cameras (beside :meth:`OnlineCalibration.diagnostic_values`):
+    ``calibration/<camera>/applied`` (``no: estimated and published only``) and, for a camera
+    that no measurement named so far, ``calibration/<camera>`` (``no such source so far; the
+    sources: ...``)."""
+    out: dict[str, str] = {}
+    for cam in book.cameras:
+        if cam in book.group_names:
+            out[f'calibration/{cam}/applied'] = 'no: estimated and published only'
+        else:
+            seen = ', '.join(sorted(book.group_names)) or 'none yet'
+            out[f'calibration/{cam}'] = f'no such source so far; the sources: {seen}'
+    return out

@@ -177,6 +177,11 @@ class AlignerConfig:
         thread, inline with ``refine_executor='inline'``), installed before the next odometry
         motion, and the source's motions that enter from then on are stored corrected.
         ``False`` (default): nothing estimated, the motions as measured.
+    calibrate_cameras : with ``calibrate``, the cameras (their sources, comma-separated:
+        ``'cam0'``) whose extrinsic rotation the online estimate includes
+        (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
+        estimated and published with its sigma, not applied to the motions (the odometry's
+        corrections, estimated with it, are). ``''`` (default): none.
     calibration_horizon_tracks : the latest finished tracks the online estimate is made on
         (its memory: a slowly varying parameter is followed with this lag).
     calibration_refresh : the online estimate runs at a track end once the connections
@@ -215,6 +220,7 @@ class AlignerConfig:
     variance_min_redundancy: float = 20.0
     variance_prior_dof: float = 10.0
     calibrate: bool = False
+    calibrate_cameras: str = ''
     calibration_horizon_tracks: int = ranged(30, 1, 100_000)
     calibration_refresh: float = ranged(0.1, 0.0, 10.0)
 
@@ -255,6 +261,14 @@ class AlignerConfig:
             raise InputError(f'fix_gate_prob must be in [0, 1), got {self.fix_gate_prob}')
         gauge_information(self.gauge_sigma_m, self.gauge_sigma_tilt_rad,
                           self.gauge_sigma_yaw_rad)  # range checks
+        if self.camera_names and not self.calibrate:
+            raise InputError(f'calibrate_cameras {self.calibrate_cameras!r} needs calibrate: '
+                             'true (the online estimate it joins)')
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """The cameras of ``calibrate_cameras``, in order."""
+        return tuple(n.strip() for n in str(self.calibrate_cameras).split(',') if n.strip())
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
