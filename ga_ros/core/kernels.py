@@ -42,7 +42,8 @@ _NEAR_PI = np.pi - 1e-2
 
 # callees first: a compiled function calls compiled globals
 _JITTED = ('_so3_log', '_so3_jl_inv', '_hat', '_mm3', '_q_matrix', '_scratch',
-           '_misclosure_one', '_se3_system', '_se3_misclosure')
+           '_misclosure_one', '_se3_system', '_se3_misclosure', '_se3_prior',
+           '_scatter_rows', '_se3_retract')
 
 
 _UNCACHED: list[str] = []  # the functions compiled without an on-disk cache (warned once)
@@ -324,6 +325,194 @@ def _se3_misclosure(T, src, dst, Tm_inv, e_out):  # pragma: no cover - compiled
         _misclosure_one(T, src[k], dst[k], Tm_inv[k], Rij, tij, RE, tE, phi, Ji, e)
         for r in range(6):
             e_out[k, r] = e[r]
+
+
+def _se3_prior(T, idx, Tm, H, blk_r, blk_c, col, u, blocks, with_blocks
+               ):  # pragma: no cover - compiled
+    k = idx.shape[0]
+    e = np.empty((k, 6))
+    J = np.zeros((k, 6, 6))
+    R_rel = np.empty((3, 3))
+    phi = np.empty(3)
+    w = np.empty(3)
+    Jr = np.empty((3, 3))
+    for a in range(k):
+        i = idx[a]
+        for r in range(3):  # R_rel = R_mean' R
+            for c in range(3):
+                R_rel[r, c] = (Tm[a, 0, r] * T[i, 0, c] + Tm[a, 1, r] * T[i, 1, c]
+                               + Tm[a, 2, r] * T[i, 2, c])
+        _so3_log(R_rel, phi)
+        for r in range(3):
+            w[r] = -phi[r]
+        _so3_jl_inv(w, Jr)  # J_r(phi)^-1 = J_l(-phi)^-1
+        d0 = T[i, 0, 3] - Tm[a, 0, 3]
+        d1 = T[i, 1, 3] - Tm[a, 1, 3]
+        d2 = T[i, 2, 3] - Tm[a, 2, 3]
+        for r in range(3):
+            e[a, r] = Tm[a, 0, r] * d0 + Tm[a, 1, r] * d1 + Tm[a, 2, r] * d2
+            e[a, 3 + r] = phi[r]
+            for c in range(3):
+                J[a, r, c] = R_rel[r, c]
+                J[a, 3 + r, 3 + c] = Jr[r, c]
+    He = np.zeros((k, 6))
+    for q in range(blk_r.shape[0]):  # H e, block by block in the information's order
+        a, b = blk_r[q], blk_c[q]
+        for r in range(6):
+            acc = 0.0
+            for c in range(6):
+                acc += H[q, r, c] * e[b, c]
+            He[a, r] += acc
+    cost = 0.0
+    for a in range(k):
+        for r in range(6):
+            cost += e[a, r] * He[a, r]
+        ca = col[idx[a]]
+        if ca >= 0:  # u += J' H e
+            for r in range(6):
+                acc = 0.0
+                for c in range(6):
+                    acc += J[a, c, r] * He[a, c]
+                u[ca, r] += acc
+    if with_blocks:  # block (a, b) of J' H J = J_a' H_ab J_b
+        HJ = np.empty((6, 6))
+        for q in range(blk_r.shape[0]):
+            a, b = blk_r[q], blk_c[q]
+            for r in range(6):
+                for c in range(6):
+                    acc = 0.0
+                    for t in range(6):
+                        acc += H[q, r, t] * J[b, t, c]
+                    HJ[r, c] = acc
+            for r in range(6):
+                for c in range(6):
+                    acc = 0.0
+                    for t in range(6):
+                        acc += J[a, t, r] * HJ[t, c]
+                    blocks[q, r, c] = acc
+    return cost
+
+
+def se3_prior(T: FloatArray, idx: IntArray, T_mean: FloatArray, H_blocks: FloatArray,
+              blk_r: IntArray, blk_c: IntArray, col: IntArray, u: FloatArray,
+              blocks: bool = True) -> tuple[float, FloatArray | None]:
+    """The terms of one se3 weighted parameter (a joint Gaussian prior) in the Gauss-Newton
+    system, as :func:`ga_ros.core.solver.priors._add_priors` computes them with NumPy (to
+    rounding): residual ``e = [R_mean' (p - p_mean), log(R_mean' R)]`` per node, Jacobian
+    ``J = diag(R_mean' R, J_r(phi)^-1)``, ``u[col] += J' H e`` added in place (``u`` (u, 6),
+    fixed nodes ``col < 0`` skipped), the cost ``e' H e``, and (``blocks``) the normal-matrix
+    blocks ``J_a' H_ab J_b`` (b, 6, 6) in the information's block order (``H_blocks`` (b, 6,
+    6) at block rows / columns ``blk_r``, ``blk_c``, positions into ``idx``).
+
+    Parameters
+    ----------
+    T : (n, 4, 4) poses ``T_world_node``; ``idx`` (k,) the prior's nodes in ``T``;
+    T_mean : (k, 4, 4) the prior's mean poses.
+
+    Returns
+    -------
+    ``(cost, blocks)`` (``blocks`` ``None`` when not asked).
+    """
+    _compile()
+    out = np.empty((blk_r.shape[0] if blocks else 0, 6, 6))
+    cost = _se3_prior(np.ascontiguousarray(T), idx, np.ascontiguousarray(T_mean),
+                      np.ascontiguousarray(H_blocks), blk_r, blk_c, col, u, out, blocks)
+    return cost, (out if blocks else None)
+
+
+def _scatter_rows(u, c, g, acc):  # pragma: no cover - compiled
+    # as np.bincount: each row's sum from zero in the order of c, then added to u
+    n, d = u.shape
+    for j in range(n):
+        for k in range(d):
+            acc[j, k] = 0.0
+    for i in range(c.shape[0]):
+        j = c[i]
+        if j >= 0:
+            for k in range(d):
+                acc[j, k] += g[i, k]
+    for j in range(n):
+        for k in range(d):
+            u[j, k] += acc[j, k]
+
+
+def scatter_rows(u: FloatArray, c: IntArray, g: FloatArray) -> None:
+    """``u[c] += g`` (rows; ``c < 0`` skipped, repeated rows summed), bit for bit as
+    ``u[:, k] += np.bincount(c, weights=g[:, k])`` per column (each row's contributions summed
+    from zero in the order of ``c``, then added)."""
+    _compile()
+    _scatter_rows(u, c, np.ascontiguousarray(g), np.empty_like(u))
+
+
+def _se3_retract(T, xi, out):  # pragma: no cover - compiled
+    # columns.retract's operations per pose; returns the largest deviation |R'R - I| before the
+    # Bjorck step (the caller projects by SVD where it exceeds 1e-6, as columns.retract)
+    worst = 0.0
+    Rd = np.empty((3, 3))
+    R = np.empty((3, 3))
+    RtR = np.empty((3, 3))
+    for k in range(T.shape[0]):
+        w0, w1, w2 = xi[k, 3], xi[k, 4], xi[k, 5]
+        r0, r1, r2 = xi[k, 0], xi[k, 1], xi[k, 2]
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        theta = np.sqrt(t2)
+        th2 = theta * theta  # so3._coeffs' t2
+        if theta < _SMALL:
+            a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+            b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+            c = 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0
+        else:
+            a = np.sin(theta) / theta
+            b = (1.0 - np.cos(theta)) / (theta * theta)
+            c = (theta - np.sin(theta)) / (theta * theta * theta)
+        # R_d = I + a W + b (w w' - |w|^2 I)
+        Rd[0, 0] = b * (w0 * w0) + (1.0 - b * t2)
+        Rd[0, 1] = a * -w2 + b * (w0 * w1)
+        Rd[0, 2] = a * w1 + b * (w0 * w2)
+        Rd[1, 0] = a * w2 + b * (w1 * w0)
+        Rd[1, 1] = b * (w1 * w1) + (1.0 - b * t2)
+        Rd[1, 2] = a * -w0 + b * (w1 * w2)
+        Rd[2, 0] = a * -w1 + b * (w2 * w0)
+        Rd[2, 1] = a * w0 + b * (w2 * w1)
+        Rd[2, 2] = b * (w2 * w2) + (1.0 - b * t2)
+        # t_d = r + b (w x r) + c (w (w.r) - |w|^2 r)
+        wr = w0 * r0 + w1 * r1 + w2 * r2
+        td0 = r0 + b * (w1 * r2 - w2 * r1) + c * (w0 * wr - t2 * r0)
+        td1 = r1 + b * (w2 * r0 - w0 * r2) + c * (w1 * wr - t2 * r1)
+        td2 = r2 + b * (w0 * r1 - w1 * r0) + c * (w2 * wr - t2 * r2)
+        for i in range(3):
+            for j in range(3):
+                R[i, j] = T[k, i, 0] * Rd[0, j] + T[k, i, 1] * Rd[1, j] + T[k, i, 2] * Rd[2, j]
+            out[k, i, 3] = (T[k, i, 0] * td0 + T[k, i, 1] * td1 + T[k, i, 2] * td2) + T[k, i, 3]
+        for i in range(3):
+            for j in range(3):
+                RtR[i, j] = R[0, i] * R[0, j] + R[1, i] * R[1, j] + R[2, i] * R[2, j]
+            RtR[i, i] -= 1.0
+        for i in range(3):
+            for j in range(3):
+                dev = abs(RtR[i, j])
+                if dev > worst:
+                    worst = dev
+        for i in range(3):  # R (3 I - R'R) / 2 = R - R (R'R - I) / 2
+            for j in range(3):
+                out[k, i, j] = R[i, j] - 0.5 * (R[i, 0] * RtR[0, j] + R[i, 1] * RtR[1, j]
+                                                + R[i, 2] * RtR[2, j])
+        out[k, 3, 0] = 0.0
+        out[k, 3, 1] = 0.0
+        out[k, 3, 2] = 0.0
+        out[k, 3, 3] = 1.0
+    return worst
+
+
+def se3_retract(T: FloatArray, xi: FloatArray) -> FloatArray | None:
+    """``T @ exp(xi)`` of ``(k, 4, 4)`` poses and ``(k, 6)`` increments ``[rho, phi]``, as
+    :func:`ga_ros.core.columns.retract` computes it (to rounding), one compiled loop instead of
+    ~40 NumPy calls; ``None`` where a rotation was off by more than 1e-6 before its Bjorck step
+    (the caller then runs :func:`~ga_ros.core.columns.retract`, which checks and projects)."""
+    _compile()
+    out = np.empty((T.shape[0], 4, 4))
+    worst = _se3_retract(np.ascontiguousarray(T), np.ascontiguousarray(xi), out)
+    return out if worst <= 1e-6 else None
 
 
 def se3_misclosure(T: FloatArray, src: IntArray, dst: IntArray, Tm_inv: FloatArray) -> FloatArray:

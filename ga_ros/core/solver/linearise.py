@@ -154,7 +154,8 @@ def _motion_system(terms: _Terms, T: FloatArray, kept: _Kept,
     u = np.zeros((int((col >= 0).sum()), d))
     prior_blocks: list[FloatArray] = []
     prior_cost = _add_priors(model, T, terms.prior_data, col, u,
-                             None if gradient_only else prior_blocks)
+                             None if gradient_only else prior_blocks,
+                             compiled=kept.compiled)
     extra = sum(len(b) for b in prior_blocks)
     kind = models.model_of(model)  # se3: compiled kernels and columns, se2: NumPy
     if T_meas is None and (not kind.compiled or (Tm_inv is None and meas is None)):
@@ -183,8 +184,8 @@ def _motion_system(terms: _Terms, T: FloatArray, kept: _Kept,
         w, gi, gj, maha2 = lin.e, lin.g_src, lin.g_dst, lin.maha2
         weights = cfg.loss.weight(np.sqrt(np.maximum(maha2, 0.0)))
         blocks = None
-    _scatter_gradient(u, col[conn.src], gi)
-    _scatter_gradient(u, col[conn.dst], gj)
+    _scatter_gradient(u, col[conn.src], gi, compiled)
+    _scatter_gradient(u, col[conn.dst], gj, compiled)
 
     def with_priors(blocks: FloatArray) -> FloatArray:
         k = 4 * m
@@ -204,8 +205,15 @@ def _motion_system(terms: _Terms, T: FloatArray, kept: _Kept,
                    weights, cost0, pending=pending)
 
 
-def _scatter_gradient(u: FloatArray, c: IntArray, g: FloatArray) -> None:
-    """``u[c] += g`` over the free nodes (``c >= 0``), repeated indices summed."""
+def _scatter_gradient(u: FloatArray, c: IntArray, g: FloatArray, compiled: bool = False
+                      ) -> None:
+    """``u[c] += g`` over the free nodes (``c >= 0``), repeated indices summed; ``compiled``:
+    by :func:`ga_ros.core.kernels.scatter_rows` (bit for bit the same sums)."""
+    if compiled:
+        from ga_ros.core import kernels
+
+        kernels.scatter_rows(u, c, g)
+        return
     keep = c >= 0
     for k in range(u.shape[1]):
         u[:, k] += np.bincount(c[keep], weights=g[keep, k], minlength=u.shape[0])

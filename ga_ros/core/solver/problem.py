@@ -317,7 +317,14 @@ class _Problem:
         return self.consistent(T, self.residual_update(sysd, dx))
 
     def retract(self, T: FloatArray, dx: FloatArray) -> FloatArray:
-        return models.retract(self.model, T, np.nonzero(self.free)[0], dx.reshape(-1, self.d))
+        idx = np.nonzero(self.free)[0]
+        if self.model == 'se3' and self.compiled:  # one compiled loop (the same to rounding)
+            moved = kernels.se3_retract(T[idx], dx.reshape(-1, self.d))
+            if moved is not None:
+                out = T.copy()
+                out[idx] = moved
+                return out
+        return models.retract(self.model, T, idx, dx.reshape(-1, self.d))
 
 
 class _PartWeights:

@@ -301,7 +301,8 @@ def normal_terms(snap: RefinementSnapshot, conns: IntArray, T_lin: FloatArray,
         local[snap.dst[conns]], snap.z[conns], unpack_sym6(snap.cov21[conns]))
     datum = snap.datum and bool((nodes == 0).any())
     fixed = [int(snap.node_ids[0])] if datum else []
-    N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, gaussian(snap, priors))
+    N, free_ids, u = normal_matrix_at(net, T_lin[nodes], 'se3', fixed, gaussian(snap, priors),
+                                      jit=True)
     free = nodes[nodes != 0] if datum else nodes
     assert free.size == free_ids.size
     return free, N, u

@@ -85,3 +85,67 @@ def test_solve_with_the_kernels_equals_solve_without(rng, monkeypatch, robust_lo
     np.testing.assert_allclose(fast.residuals, ref.residuals, atol=1e-9)
     np.testing.assert_allclose(fast.covariance(prob.network.node_ids[1:4]),
                                ref.covariance(prob.network.node_ids[1:4]), rtol=1e-7, atol=1e-12)
+
+
+def test_se3_prior_kernel_equals_the_numpy_prior_terms(rng):
+    """kernels.se3_prior against _add_priors' NumPy terms (independent: models.prior_residual,
+    a sparse product for H e, stacked products for the blocks): residuals at random, near
+    identity and near-pi rotations, a fixed node, zero blocks in the information."""
+    import scipy.sparse as sp
+
+    from ga_ros.core.solver.priors import _add_priors, _PriorData
+
+    n, k = 30, 9
+    T = se3.exp(rng.normal(scale=[5, 5, 5, 1, 1, 1], size=(n, 6)))
+    idx = np.sort(rng.choice(n, k, replace=False))
+    E = rng.normal(scale=[1, 1, 1, 0.5, 0.5, 0.5], size=(k, 6))
+    E[:3, 3:] *= 1e-7  # near identity
+    axis = rng.normal(size=(3, 3))
+    E[3:6, 3:] = axis / np.linalg.norm(axis, axis=1, keepdims=True) * (np.pi - 2e-3)
+    T_mean = T[idx] @ se3.inverse(se3.exp(E))
+    A = rng.normal(size=(6 * k, 6 * k))
+    H = A @ A.T
+    H[:6, 18:] = H[18:, :6] = 0.0  # blocks absent from the pattern
+    Hb = sp.bsr_matrix(H, blocksize=(6, 6))
+    Hb.sort_indices()
+    rows = np.repeat(np.arange(k), np.diff(Hb.indptr))
+    pd = _PriorData(idx, T_mean, Hb.data, rows, Hb.indices.astype(np.int64), H, None, Hb)
+    col = np.arange(n) - 1  # node 0 fixed
+    u_ref = rng.normal(size=(n - 1, 6))
+    u = u_ref.copy()
+    blocks_ref, blocks = [], []
+    cost_ref = _add_priors('se3', T, [pd], col, u_ref, blocks_ref)
+    cost = _add_priors('se3', T, [pd], col, u, blocks, compiled=True)
+    assert cost == pytest.approx(cost_ref, rel=1e-12)
+    np.testing.assert_allclose(u, u_ref, rtol=1e-12, atol=1e-12 * np.abs(u_ref).max())
+    np.testing.assert_allclose(blocks[0], blocks_ref[0], rtol=1e-12,
+                               atol=1e-12 * np.abs(blocks_ref[0]).max())
+    u2 = u_ref.copy()  # the gradient alone
+    assert _add_priors('se3', T, [pd], col, u2, None, compiled=True) == cost
+
+
+def test_se3_retract_kernel_equals_columns_retract(rng):
+    """kernels.se3_retract bit for bit as columns.retract (the same operations per pose), and
+    ``None`` (the caller's fallback with the SVD projection) for a rotation off by > 1e-6."""
+    from ga_ros.core import columns
+
+    T = se3.exp(rng.normal(scale=[50, 50, 50, 2, 2, 2], size=(300, 6)))
+    for scale in (1e-9, 1e-5, 0.1, 3.0):
+        xi = rng.normal(scale=scale, size=(300, 6))
+        assert np.array_equal(kernels.se3_retract(T, xi), columns.retract(T, xi))
+    bad = T.copy()
+    bad[7, :3, :3] *= 1.0 + 1e-5
+    assert kernels.se3_retract(bad, np.zeros((300, 6))) is None
+
+
+def test_scatter_rows_equals_bincount(rng):
+    """kernels.scatter_rows bit for bit as the per-column np.bincount of _scatter_gradient."""
+    from ga_ros.core.solver.linearise import _scatter_gradient
+
+    u = rng.normal(size=(200, 6))
+    c = rng.integers(-1, 200, size=2000)
+    g = rng.normal(size=(2000, 6))
+    ref, out = u.copy(), u.copy()
+    _scatter_gradient(ref, c, g)
+    kernels.scatter_rows(out, c, g)
+    assert np.array_equal(out, ref)
