@@ -566,11 +566,14 @@ def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMo
         A_dst = Jr_inv
         A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
         E = np.zeros((idx.size, 6, p))
+        own: dict[int, FloatArray] = {}   # each candidate's Jacobian, for its knots' columns
         for a in odo:
             j = active[a]
             rows = cand.masks[j][idx]
-            G = cand.params[j].generator_of(mo.rows(rows))
-            E[rows, :, a] = misclosure_jacobian(e[rows], G)
+            if j not in own:
+                G = cand.params[j].generator_of(mo.rows(rows))
+                own[j] = misclosure_jacobian(e[rows], G)
+            E[rows, :, a] = own[j]
             if weights is not None and weights[a] is not None:
                 E[rows, :, a] *= weights[a][:, None]
         W = np.linalg.inv(arrays.cov[idx])

@@ -150,7 +150,8 @@ def _sine(t):
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_slowly_varying_yaw_rate_recovered_by_the_walk(seed):
     """A yaw-rate bias that swings by +-0.003 rad/s over 150 s: the walk's knots within 3
-    sigma of the truth at most knots, closer to it than the constant, and the path closer."""
+    sigma of the truth at most knots and closer to it than the constant (the path: closer in
+    7 of seeds 0-7, 1.03x the constant's in seed 6, so bounded here at 1.1x)."""
     n = 600
     t_mid = np.arange(n - 1) * DT + 0.5 * DT
     s = biased_survey(np.random.default_rng(seed), n_nodes=n, yaw_rate=_sine(t_mid),
@@ -171,7 +172,9 @@ def test_slowly_varying_yaw_rate_recovered_by_the_walk(seed):
     rms_walk = np.sqrt(np.mean((per_motion - _sine(t_mid)) ** 2))
     rms_const = np.sqrt(np.mean((rep_c.value('odom0', 'yaw_rate') - _sine(t_mid)) ** 2))
     assert rms_walk < 0.8 * rms_const, (rms_walk, rms_const)
-    assert _rmse(res_w.T_world_node, s.T_true) < _rmse(res_c.T_world_node, s.T_true)
+    assert _rmse(res_w.T_world_node, s.T_true) < 1.1 * _rmse(res_c.T_world_node, s.T_true)
+    # the process noise fits: the pseudo-observations' v'Pv / r near 1 (0.7-1.3 in seeds 0-7)
+    assert 0.5 < w.ratio < 2.0
 
 
 @pytest.mark.parametrize('seed', [3, 4])
