@@ -248,11 +248,11 @@ class CalibrationConfig:
             fix_parameter(p)
         for p in self.camera_parameters:
             camera_parameter(p)
-        named = [m.parameter for m in self.models]
         for m in self.models:
             if not isinstance(m, ParameterModel):
                 raise InputError(f'calibration models: {m!r} is not a ParameterModel')
             parameter(m.parameter)
+        named = [m.parameter for m in self.models]
         if len(set(named)) != len(named):
             raise InputError(f'calibration models: a parameter has two models ({named})')
         if not 0.0 < self.alpha < 1.0:

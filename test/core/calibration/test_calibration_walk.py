@@ -256,6 +256,8 @@ def test_models_are_validated():
     with pytest.raises(InputError):
         CalibrationConfig(models=(RandomWalk('yaw_rate'), ConstantLevel('yaw_rate')))
     with pytest.raises(InputError):
+        CalibrationConfig(models=('random_walk',))
+    with pytest.raises(InputError):
         RandomWalk('yaw_rate', segment_s=0.0)
     with pytest.raises(InputError):
         RandomWalk('yaw_rate', sigma_per_sqrt_s=-1.0)
