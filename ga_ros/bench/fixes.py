@@ -39,8 +39,10 @@ yaw-rate corrections are estimated with the poses where the network determines t
 pass their significance test, and the calibrated source's noise is re-estimated; the column
 ``stated-noise`` is the same with its stated noise (``CalibrationConfig(noise=False)``).
 GTSAM's ``BetweenFactorPose3`` cannot express a yaw-rate bias, so GTSAM runs without
-calibration and the ratio printed is against GTSAM batch without it. ga-ros online +
-calibration (skipped with ``--no-calibration`` too): the online run again with
+calibration and the ratio printed is against GTSAM batch without it. ga-ros final + calibration
+(random walk) (``--no-walk`` skips it): the same with the yaw rate a random walk
+(:class:`~ga_ros.core.calibration.RandomWalk`, ``--walk-segment``, ``--walk-sigma``).
+ga-ros online + calibration (skipped with ``--no-calibration`` too): the online run again with
 ``AlignerConfig(calibrate=True)`` (:mod:`ga_ros.core.window.calibration`: the corrections
 estimated online and applied to the motions as they enter), against iSAM2 online, with its
 CPU (all processes) and its last online estimate.
@@ -80,7 +82,7 @@ from ga_ros.arrays import FloatArray
 from ga_ros.bench.cpu import all_cpu_seconds
 from ga_ros.bench.data import SHARED_DATA
 from ga_ros.bench.gtsam_runner import gtsam_installed
-from ga_ros.core.calibration import CalibrationConfig
+from ga_ros.core.calibration import CalibrationConfig, ParameterModel, RandomWalk
 from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
@@ -134,6 +136,8 @@ class FixBenchFigures:
     ours_final_cal_m: float = float('nan')
     ours_final_cal_noise_m: float = float('nan')
     ours_final_cal_stated_m: float = float('nan')
+    ours_final_cal_walk_m: float = float('nan')
+    ours_final_cal_walk_cpu_s: float = float('nan')
     gtsam_batch_m: float = float('nan')
     isam2_online_m: float = float('nan')
     isam2_final_m: float = float('nan')
@@ -151,6 +155,7 @@ class FixBenchFigures:
     ours_online_cal_m: float = float('nan')
     ours_online_cal_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
+    walk_calibration: list[str] = field(default_factory=list)
     online_calibration: list[str] = field(default_factory=list)
     online_cal_wins: int = 0
     update_ms_quarters: list[float] = field(default_factory=list)
@@ -213,7 +218,10 @@ class OursRun:
     final_cal_noise: FloatArray | None = None
     final_cal_stated: FloatArray | None = None
     final_cal_cpu_s: float = float('nan')
+    final_cal_walk: FloatArray | None = None
+    final_cal_walk_cpu_s: float = float('nan')
     calibration: list[str] = field(default_factory=list)
+    walk_calibration: list[str] = field(default_factory=list)
     online_calibration: list[str] = field(default_factory=list)
     update_cpu_ms: list[float] = field(default_factory=list)
     stage_cpu_s: dict[str, float] = field(default_factory=dict)
@@ -232,14 +240,17 @@ def _fix_stages() -> dict[str, tuple[tuple[object, str], ...]]:
 
 def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov: FloatArray,
              cfg: AlignerConfig, calibration: CalibrationConfig | None = None,
-             stages: bool = False, final: bool = True) -> OursRun:
+             stages: bool = False, final: bool = True,
+             walk: tuple[ParameterModel, ...] = ()) -> OursRun:
     """ga-ros online and final (module doc), with its update times and CPU; with
     ``calibration``, also final + calibration: ``refine_batch(calibration=...)`` after the
     final one (the odometry's scale and yaw-rate corrections estimated with the poses);
     ``stages``: the online run's CPU by stage too (its timers wrap the stages' functions and
     add their own CPU, so a run timed by stages is not the one whose total is reported);
     ``final=False``: the online run only (``final`` is then the online estimate at the end);
-    with ``cfg.calibrate``, ``online_calibration`` holds the online estimate's lines."""
+    with ``cfg.calibrate``, ``online_calibration`` holds the online estimate's lines;
+    ``walk`` (with ``calibration``): final + calibration again with these parameter models
+    (``calibration``'s ``models``, a random walk's: module doc)."""
     import resource
     from contextlib import nullcontext
 
@@ -319,6 +330,12 @@ def run_ours(run: PlazaRun, idx: np.ndarray, p: FloatArray, noise_m: float, cov:
             out.final_cal_noise, out.final_cal_stated = out.final_cal, other
         else:
             out.final_cal_noise, out.final_cal_stated = other, out.final_cal
+        if walk:
+            cpu3 = all_cpu_seconds()
+            al.refine_batch(calibration=replace(calibration, models=walk))
+            out.final_cal_walk = al.corrected_path().T_world_node.copy()
+            out.final_cal_walk_cpu_s = all_cpu_seconds() - cpu3
+            out.walk_calibration = al.calibration.lines() if al.calibration is not None else []
     al.close()
     return out
 
@@ -409,14 +426,16 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
                 with_gtsam: bool = True, isam2_converged: bool = False,
                 refine_every: int | None = None, executor: str | None = None,
-                calibrate: bool = True, relinearize_sigma: float | None = None
+                calibrate: bool = True, relinearize_sigma: float | None = None,
+                walk: tuple[ParameterModel, ...] = (RandomWalk('yaw_rate'),)
                 ) -> FixBenchFigures:
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
     ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
     ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
     refinement at a track's end once the frozen nodes drifted by 1 sigma, inline or in a worker
     process by its size);
-    ``calibrate``: also the final batch with self-calibration."""
+    ``calibrate``: also the final batch with self-calibration, and with ``walk``'s parameter
+    models (by default the yaw rate as a random walk; ``()``: not run)."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
@@ -430,7 +449,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
     for i in range(1, n):
         dead[i] = dead[i - 1] @ run.steps[i - 1]
     t0 = time.perf_counter()
-    ours = run_ours(run, idx, p, noise_m, cov, cfg, CalibrationConfig() if calibrate else None)
+    ours = run_ours(run, idx, p, noise_m, cov, cfg, CalibrationConfig() if calibrate else None,
+                    walk=walk)
     t_ours = time.perf_counter() - t0
     warm = run_ours(run, idx, p, noise_m, cov, cfg)  # the same again: start-up already paid
     staged = run_ours(run, idx, p, noise_m, cov, cfg, stages=True)  # and timed by stages
@@ -466,6 +486,10 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
         fig.ours_final_cal_noise_m = _rmse(ours.final_cal_noise, run.T_true)
     if ours.final_cal_stated is not None:
         fig.ours_final_cal_stated_m = _rmse(ours.final_cal_stated, run.T_true)
+    if ours.final_cal_walk is not None:
+        fig.ours_final_cal_walk_m = _rmse(ours.final_cal_walk, run.T_true)
+        fig.ours_final_cal_walk_cpu_s = ours.final_cal_walk_cpu_s
+        fig.walk_calibration = ours.walk_calibration
     if with_gtsam and gtsam_installed():
         t0, c0 = time.perf_counter(), all_cpu_seconds()
         fig.gtsam_batch_m = _rmse(run_gtsam_batch(run, idx, p, noise_m, cov, cfg), run.T_true)
@@ -500,6 +524,7 @@ def mean_over_seeds(figs: list[FixBenchFigures]) -> list[FixBenchFigures]:
         group = [f for f in figs if (f.interval_s, f.noise_m) == key]
         first = group[0]
         mean = FixBenchFigures(**{**asdict(first), 'calibration': list(first.calibration),
+                                  'walk_calibration': list(first.walk_calibration),
                                   'online_calibration': list(first.online_calibration),
                                   'notes': list(first.notes)})
         for name, value in asdict(first).items():
@@ -584,6 +609,24 @@ def table(figs: list[FixBenchFigures]) -> str:
                 f'{f.gtsam_batch_m:12.2f} {f.ours_final_cal_m / f.gtsam_batch_m:16.3f} '
                 f'{f.ours_final_cal_stated_m / f.gtsam_batch_m:13.3f} '
                 f'{f.ours_final_cal_cpu_s:14.2f}  ' + '; '.join(f.calibration))
+    if any(np.isfinite(f.ours_final_cal_walk_m) for f in figs):
+        lines += ['', 'ours final + calibration (random walk): the same as ours final + '
+                  "calibration (noise re-estimated) with the odometry's yaw rate a random walk "
+                  '(CalibrationConfig(models=(RandomWalk(...),)): knots every segment_s tied by '
+                  'the process noise q; the constant tested for significance as above, the walk '
+                  "estimated where it is kept). GTSAM batch without calibration. Walk: knots, "
+                  "range, q and its pseudo-observations' v'Pv/r (about 1 where q fits the "
+                  'data), of the first seed.',
+                  'interval  noise  ours-final+cal  final+cal(walk)  gtsam-batch  '
+                  'final+cal/batch  walk/batch  walk-cpu  walk']
+        for f in figs:
+            lines.append(
+                f'{f.interval_s:6.0f} s {f.noise_m:4.0f} m {f.ours_final_cal_m:15.2f} '
+                f'{f.ours_final_cal_walk_m:16.2f} {f.gtsam_batch_m:12.2f} '
+                f'{f.ours_final_cal_m / f.gtsam_batch_m:16.3f} '
+                f'{f.ours_final_cal_walk_m / f.gtsam_batch_m:11.3f} '
+                f'{f.ours_final_cal_walk_cpu_s:9.2f}  '
+                + '; '.join(x for x in f.walk_calibration if 'random walk' in x))
     if any(np.isfinite(f.ours_online_cal_m) for f in figs):
         lines += ['', 'ours online + calibration: the online run with AlignerConfig(calibrate='
                   "True): after each window update the odometry's scale and yaw-rate "
@@ -679,6 +722,14 @@ def main(argv: list[str] | None = None) -> int:
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
     ap.add_argument('--no-calibration', action='store_true',
                     help='skip the ours final + calibration and ours online + calibration columns')
+    ap.add_argument('--walk-segment', type=float, default=RandomWalk.segment_s,
+                    help='final + calibration (random walk): the knot spacing of the yaw '
+                    "rate's random walk (s; default %(default)g)")
+    ap.add_argument('--walk-sigma', type=float, default=RandomWalk.sigma_per_sqrt_s,
+                    help='final + calibration (random walk): its process noise (rad/s per '
+                    'sqrt(s); default %(default)g)')
+    ap.add_argument('--no-walk', action='store_true',
+                    help='skip the final + calibration (random walk) column')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():
@@ -690,7 +741,9 @@ def main(argv: list[str] | None = None) -> int:
     figs = [bench_fixes(float(i), float(s), seed, args.data, args.sigma_xy,
                         args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
                         args.refine_every, args.executor, not args.no_calibration,
-                        args.relinearize_sigma)
+                        args.relinearize_sigma,
+                        () if args.no_walk else (RandomWalk('yaw_rate', args.walk_segment,
+                                                            args.walk_sigma),))
             for s in args.noise.split(',') for i in args.intervals.split(',')
             for seed in range(args.seed, args.seed + args.seeds)]
     if args.json:

@@ -53,13 +53,14 @@ class BiasedSurvey:
 
 
 def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 1.0,
-                  dt_s: float = 0.5, scale: float = 0.0, yaw_rate: float = 0.0,
+                  dt_s: float = 0.5, scale: float = 0.0, yaw_rate: float | FloatArray = 0.0,
                   sigma_xy_m: float = 0.01, sigma_yaw_rad: float = 0.002,
                   fix_every: int = 30, fix_sigma_m: float = 1.0,
                   stated_sigma_xy_m: float | None = None,
                   stated_sigma_yaw_rad: float | None = None) -> BiasedSurvey:
     """Simulate the survey of the module doc; ``scale``, ``yaw_rate``: the true corrections
-    ``k`` and ``omega`` (rad/s); ``sigma_*``: the odometry's noise per motion (also its stated
+    ``k`` and ``omega`` (rad/s; ``yaw_rate`` (n-1,): one per motion, a bias that varies);
+    ``sigma_*``: the odometry's noise per motion (also its stated
     covariance: x, y ``sigma_xy_m``, z 1 mm, roll/pitch 0.1 mrad, yaw ``sigma_yaw_rad``);
     ``stated_*``: a stated covariance other than the true noise (None: the true one)."""
     T = weaving_path(n_nodes, step_m)
@@ -69,7 +70,7 @@ def biased_survey(rng: np.random.Generator, n_nodes: int = 300, step_m: float = 
     z_true = se3.to_translation_rotvec(rel)
     # the biased motion: corrected_motions with the opposite corrections inverts them exactly
     biased = corrected_motions(z_true, dt, np.full(m, 1.0 / (1.0 + scale) - 1.0),
-                               np.full(m, -yaw_rate))
+                               -np.broadcast_to(np.asarray(yaw_rate, dtype=float), (m,)))
     sig = np.array([sigma_xy_m, sigma_xy_m, 1e-3, 1e-4, 1e-4, sigma_yaw_rad])
     meas = biased @ se3.exp(rng.standard_normal((m, 6)) * sig)
     stated = sig.copy()

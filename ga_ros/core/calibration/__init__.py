@@ -1,7 +1,8 @@
 """Self-calibration: systematic errors of the sources as additional parameters of the
 adjustment, estimated where the network determines them (:mod:`.parameters`: what each
 odometry parameter corrects; :mod:`.camera_parameters`: a camera extrinsic's rotation;
-:mod:`.fix_parameters`: what each fix-source parameter corrects;
+:mod:`.fix_parameters`: what each fix-source parameter corrects; :mod:`.models`: a
+parameter as a constant or a random walk;
 :mod:`.batch`: the batch adjustment with them and their tests)."""
 
 from ga_ros.core.calibration.batch import (
@@ -9,6 +10,7 @@ from ga_ros.core.calibration.batch import (
     CalibrationConfig,
     CalibrationReport,
     NoiseFactor,
+    WalkEstimate,
     solve_with_calibration,
 )
 from ga_ros.core.calibration.camera_parameters import (
@@ -26,6 +28,13 @@ from ga_ros.core.calibration.fix_parameters import (
     fix_priors,
     node_velocities,
 )
+from ga_ros.core.calibration.models import (
+    MODELS,
+    ConstantLevel,
+    ParameterModel,
+    RandomWalk,
+    parameter_model,
+)
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
     ScaleCorrection,
@@ -34,9 +43,10 @@ from ga_ros.core.calibration.parameters import (
     misclosure_jacobian,
 )
 
-__all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'PARAMETERS', 'AdditionalParameter',
-           'CalibrationConfig', 'CalibrationReport', 'ExtrinsicRotationAxis',
-           'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ScaleCorrection', 'TimeOffset',
-           'YawRateCorrection', 'book_observations', 'camera_sources', 'check_cameras',
-           'corrected_motions', 'fix_priors', 'misclosure_jacobian', 'node_velocities',
+__all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'MODELS', 'PARAMETERS', 'AdditionalParameter',
+           'CalibrationConfig', 'CalibrationReport', 'ConstantLevel', 'ExtrinsicRotationAxis',
+           'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ParameterModel', 'RandomWalk',
+           'ScaleCorrection', 'TimeOffset', 'WalkEstimate', 'YawRateCorrection',
+           'book_observations', 'camera_sources', 'check_cameras', 'corrected_motions',
+           'fix_priors', 'misclosure_jacobian', 'node_velocities', 'parameter_model',
            'solve_with_calibration']

@@ -98,6 +98,17 @@ again without them, so the result is the adjustment without fix (camera) paramet
 bit (the candidates' reasons are kept in the report). A fix source's noise is not re-estimated (its
 stated covariance stands).
 
+A random walk. A parameter kind whose model (:attr:`CalibrationConfig.models`) is a
+:class:`~ga_ros.core.calibration.models.RandomWalk` is selected as a constant (steps 1-4: the
+test is that of its mean level); where it is kept, it is then estimated as the walk
+(:func:`_walk`): its knots' values are columns bordered onto the pose system like the constant
+(the constant's column of ``N_xc`` weighted by each knot's hat function), the random walk's
+pseudo-observations ``c_k+1 - c_k = 0`` add their ``D' W D`` to the reduced normal matrix, and
+Gauss-Newton runs on the knots (and the other kept parameters) from the constants' estimates,
+the poses re-solved at each step, a step that raises the joint cost (``v' P v`` plus the
+pseudo-observations') halved. The report keeps the constant's test and gives the walk
+(:class:`WalkEstimate`).
+
 The published sigma of a parameter is ``sqrt(Q_cc,jj)`` (a-priori, as the poses' covariances
 ``Q_x = N^-1``). The poses' covariances of the result are those given the parameters (they
 leave out the parameters' own uncertainty, ``N_xx^-1 N_xc Q_cc N_cx N_xx^-1``).
@@ -126,6 +137,7 @@ from ga_ros.core.calibration.fix_parameters import (
     fix_shift,
     node_velocities,
 )
+from ga_ros.core.calibration.models import ConstantLevel, ParameterModel, WalkBasis
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
     CorrectedMotions,
@@ -180,6 +192,11 @@ class CalibrationConfig:
         (:data:`~ga_ros.core.calibration.camera_parameters.CAMERA_PARAMETERS`:
         ``'extrinsic_rx'``, ``'extrinsic_ry'``, ``'extrinsic_rz'``, rad, body frame). Where no
         camera parameter is estimated the result is the one without them, bit for bit.
+    models : how an odometry parameter varies over the survey, one entry per parameter kind
+        whose model is not the default constant
+        (:class:`~ga_ros.core.calibration.models.RandomWalk`: knots every ``segment_s`` tied
+        by a random walk of ``sigma_per_sqrt_s``; module doc, *A random walk*). Empty by
+        default: every parameter is a constant, as without the field.
     alpha : significance level of the two-sided test of each parameter (module doc, step 4):
         the probability of switching a parameter on when the source has no such error.
     min_information_ratio : a parameter whose information left after eliminating the poses is
@@ -209,6 +226,7 @@ class CalibrationConfig:
     fix_reference: tuple[str, ...] = ()
     cameras: tuple[str, ...] = ()
     camera_parameters: tuple[str, ...] = ('extrinsic_rx', 'extrinsic_ry', 'extrinsic_rz')
+    models: tuple[ParameterModel, ...] = ()
     alpha: float = 0.001
     min_information_ratio: float = 1e-6
     max_condition: float = 1e6
@@ -230,6 +248,13 @@ class CalibrationConfig:
             fix_parameter(p)
         for p in self.camera_parameters:
             camera_parameter(p)
+        for m in self.models:
+            if not isinstance(m, ParameterModel):
+                raise InputError(f'calibration models: {m!r} is not a ParameterModel')
+            parameter(m.parameter)
+        named = [m.parameter for m in self.models]
+        if len(set(named)) != len(named):
+            raise InputError(f'calibration models: a parameter has two models ({named})')
         if not 0.0 < self.alpha < 1.0:
             raise InputError(f'calibration alpha must be in (0, 1), got {self.alpha}')
         if not 0.0 < self.noise_alpha < 1.0:
@@ -244,6 +269,10 @@ class CalibrationConfig:
         if not 0 < lo < 1 < hi:
             raise InputError('calibration: noise_factor_bounds must be (lo, hi) with '
                              '0 < lo < 1 < hi')
+
+    def model(self, kind: str) -> ParameterModel:
+        """The model of the odometry parameter ``kind`` (:attr:`models`, else a constant)."""
+        return next((m for m in self.models if m.parameter == kind), ConstantLevel(kind))
 
 
 @dataclass
@@ -261,7 +290,11 @@ class AdditionalParameter:
     information_ratio : ``H_jj / N_cc,jj`` (module doc, step 2).
     estimated : whether the value is used (``False``: fixed to 0 for ``reason``).
     reason : why it is not estimated ('' when it is).
-    tested_value : the estimate when it was tested (the value that was not significant).
+    tested_value : the estimate when it was tested (the value that was not significant; with
+        a random walk, the constant whose test decided it).
+    walk : with a random-walk model (:attr:`CalibrationConfig.models`) and the parameter
+        estimated, the walk (:class:`WalkEstimate`); ``value`` is then the walk's mean over
+        the source's motions (duration-weighted) and ``sigma`` the constant's.
     """
 
     source: str
@@ -275,14 +308,49 @@ class AdditionalParameter:
     estimated: bool = False
     reason: str = ''
     tested_value: float = float('nan')
+    walk: WalkEstimate | None = None
 
     def line(self) -> str:
         """One line of text: the estimate with its sigma and test, or why it is fixed."""
         head = f'{self.source} {self.name}'
+        if self.estimated and self.walk is not None:
+            w = self.walk
+            return (f'{head} = {self.tested_value:.6g} +- {self.sigma:.2g} {self.unit} '
+                    f'(|t| {self.test:.1f} > {self.quantile:.2f}); random walk '
+                    f'{len(w.values)} knots every {w.segment_s:g} s, {min(w.values):.4g} to '
+                    f'{max(w.values):.4g} (sigmas {min(w.sigmas):.2g}-{max(w.sigmas):.2g}), '
+                    f'q {w.sigma_per_sqrt_s:.2g}/sqrt(s), pseudo-observations '
+                    f"v'Pv/r {w.ratio:.3g} (r {w.redundancy:.1f})")
         if self.estimated:
             return (f'{head} = {self.value:.6g} +- {self.sigma:.2g} {self.unit} '
                     f'(|t| {self.test:.1f} > {self.quantile:.2f})')
         return f'{head}: not estimated ({self.reason})'
+
+
+@dataclass
+class WalkEstimate:
+    """A parameter's random walk after the adjustment (module doc, *A random walk*).
+
+    Attributes
+    ----------
+    knots_s : the knots' times (s, the stamps' clock).
+    values : the parameter at each knot (its unit; linear between knots).
+    sigmas : their a-priori standard deviations (the diagonal of the knots' ``Q_cc``).
+    segment_s, sigma_per_sqrt_s : the model's knot spacing (s) and process noise ``q``.
+    cost : ``v' P v`` of the pseudo-observations ``c_k+1 - c_k = 0``.
+    redundancy : their redundancy ``K - 1 - tr(W D Q_cc D')``.
+    ratio : ``cost / redundancy``: about 1 where ``q`` fits the data; ``q sqrt(ratio)`` is
+        the process noise the data estimate (one step of a variance-component estimate).
+    """
+
+    knots_s: list[float]
+    values: list[float]
+    sigmas: list[float]
+    segment_s: float
+    sigma_per_sqrt_s: float
+    cost: float = float('nan')
+    redundancy: float = float('nan')
+    ratio: float = float('nan')
 
 
 @dataclass
@@ -371,10 +439,13 @@ class CalibrationReport:
 
 def _plain(obj: AdditionalParameter | NoiseFactor) -> dict:
     def one(v):
-        if isinstance(v, tuple):
+        if isinstance(v, (tuple, list)):
             return [one(x) for x in v]
+        if isinstance(v, dict):
+            return {k: one(x) for k, x in v.items()}
         return None if isinstance(v, float) and not np.isfinite(v) else v
-    return {k: one(v) for k, v in asdict(obj).items()}
+    # a constant's report has no walk (the key is left out, as before there were walks)
+    return {k: one(v) for k, v in asdict(obj).items() if not (k == 'walk' and v is None)}
 
 
 @dataclass
@@ -416,11 +487,15 @@ def _candidates(sources: Sequence[str | None], names: Sequence[str],
     return out
 
 
-def _per_connection(cand: _Candidates, values: FloatArray, m: int) -> MotionCorrections:
+def _per_connection(cand: _Candidates, values: FloatArray, m: int,
+                    walks: dict[int, FloatArray] | None = None) -> MotionCorrections:
+    """The corrections of every connection: candidate ``j``'s ``values[j]`` on its
+    connections, or with a random walk ``walks[j]`` (its value on each of them, in their
+    order)."""
     corr = MotionCorrections.zeros(m)
     for j, (par, mask) in enumerate(zip(cand.params, cand.masks)):
         if not par.on_fixes:
-            par.add(corr, mask, values[j])
+            par.add(corr, mask, values[j] if not walks or j not in walks else walks[j])
     return corr
 
 
@@ -459,12 +534,15 @@ class _Bordered:
 
 def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMotions,
               cand: _Candidates, active: list[int],
-              fixes: FixObservations | None = None, values: FloatArray | None = None
-              ) -> _Bordered:
+              fixes: FixObservations | None = None, values: FloatArray | None = None,
+              weights: Sequence[FloatArray | None] | None = None) -> _Bordered:
     """The reduced normal equations of the ``active`` parameters at the adjustment ``res``:
     the connections of the odometry parameters (misclosures of the corrected motions
     ``motions``) and the fixes of the fix parameters (misclosures against the fixes corrected
-    by ``values``, the Jacobians ``E`` at the velocities of ``res``'s poses)."""
+    by ``values``, the Jacobians ``E`` at the velocities of ``res``'s poses). ``weights``: per
+    entry of ``active`` (a candidate may come several times), None or its weight on each of
+    the candidate's connections (a random walk's knot: its hat function), which scales the
+    column."""
     arrays = network.arrays()
     p = len(active)
     free_ids = res.free_node_ids
@@ -488,11 +566,16 @@ def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMo
         A_dst = Jr_inv
         A_src = -Jr_inv @ se3.adjoint(se3.inverse(Tij))
         E = np.zeros((idx.size, 6, p))
+        own: dict[int, FloatArray] = {}   # each candidate's Jacobian, for its knots' columns
         for a in odo:
             j = active[a]
             rows = cand.masks[j][idx]
-            G = cand.params[j].generator_of(mo.rows(rows))
-            E[rows, :, a] = misclosure_jacobian(e[rows], G)
+            if j not in own:
+                G = cand.params[j].generator_of(mo.rows(rows))
+                own[j] = misclosure_jacobian(e[rows], G)
+            E[rows, :, a] = own[j]
+            if weights is not None and weights[a] is not None:
+                E[rows, :, a] *= weights[a][:, None]
         W = np.linalg.inv(arrays.cov[idx])
         if res.weights is not None:
             W = W * np.asarray(res.weights)[idx, None, None]
@@ -526,7 +609,8 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
                            priors: Sequence[GaussianPrior] = (),
                            calibration: CalibrationConfig | None = None,
                            fixes: FixObservations | None = None,
-                           groups: Sequence[str | None] | None = None
+                           groups: Sequence[str | None] | None = None,
+                           stamps_s: FloatArray | None = None
                            ) -> tuple[SolveResult, CalibrationReport]:
     """The batch adjustment with each odometry source's, each camera's and each fix source's
     additional parameters (module doc).
@@ -553,6 +637,11 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         variance group of its measurement, :func:`~ga_ros.core.measurement.variance_group`):
         the connections of each camera named in :attr:`CalibrationConfig.cameras` get its
         extrinsic parameters. None: ``sources``.
+    stamps_s : (m,) the stamp of each connection's first node (s), for the parameters whose
+        model is a random walk (:attr:`CalibrationConfig.models`; a connection's parameter is
+        the walk's at its mid-time, ``stamps_s + dt_s / 2``). None: each source's motions
+        follow each other in connection order (the stamp of one is the sum of the durations
+        before it).
 
     Returns
     -------
@@ -572,6 +661,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     dt = np.where(np.isfinite(dt) & (dt > 0), dt, 0.0)
     if groups is not None and len(groups) != m:
         raise InputError(f'solve_with_calibration: {len(groups)} groups for {m} connections')
+    mid_s = _mid_times(sources, dt, stamps_s) if cal.models else None
     fix_base = ([] if fixes is None else
                 fix_priors(fixes, np.asarray(T_init, dtype=float), network.node_ids))
     cameras = camera_sources(['' if g is None else str(g) for g in
@@ -580,7 +670,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
                        cal.fix_parameters, cal.fix_reference, cameras, cal.camera_parameters)
     res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
                                      config, fixed, priors, cal, fixes=fixes,
-                                     fix_base=fix_base)
+                                     fix_base=fix_base, mid_s=mid_s)
     order = list(range(len(cand.params)))   # the candidates' places in the report
     dropped: list[tuple[int, AdditionalParameter]] = []
     gone = [j for fam in ('camera', 'fix')
@@ -597,7 +687,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         solves = report.solves
         res, net, used, report = _select(network, np.asarray(T_init, dtype=float), cand, dt,
                                          config, fixed, priors, cal, fixes=fixes,
-                                         fix_base=fix_base)
+                                         fix_base=fix_base, mid_s=mid_s)
         report.solves += solves
     parts = _noise_parts(cand, report, arrays.cov)
     if not (cal.noise and parts):
@@ -625,7 +715,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
         last, factors = factors, new
         res, net, used, report = _select(_scaled(network, parts, factors), res.T_world_node,
                                          cand, dt, config, fixed, priors, cal, report, fixes,
-                                         fix_base)
+                                         fix_base, mid_s)
         solves += report.solves
         iterations += 1
         noise = _noise_factors(net, res, used, parts, factors, cal)
@@ -637,7 +727,7 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
             factors = np.where(lost, last, factors)
             res, net, used, report = _select(_scaled(network, parts, factors),
                                              res.T_world_node, cand, dt, config, fixed,
-                                             priors, cal, report, fixes, fix_base)
+                                             priors, cal, report, fixes, fix_base, mid_s)
             solves += report.solves
             iterations += 1
             noise = _noise_factors(net, res, used, parts, factors, cal)
@@ -649,6 +739,24 @@ def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
     report.solves = solves
     _restore(report, order, dropped)
     return res, report
+
+
+def _mid_times(sources: Sequence[str | None], dt: FloatArray, stamps_s: FloatArray | None
+               ) -> FloatArray:
+    """(m,) each connection's mid-time (s): ``stamps_s + dt / 2``, or without stamps each
+    source's durations summed in connection order (:func:`solve_with_calibration`)."""
+    if stamps_s is not None:
+        t = np.asarray(stamps_s, dtype=float).reshape(-1)
+        if t.size != dt.size or not np.all(np.isfinite(t)):
+            raise InputError(f'solve_with_calibration: stamps_s must be {dt.size} finite '
+                             f'stamps')
+        return t + 0.5 * dt
+    src = np.array(['' if s is None else str(s) for s in sources], dtype=object)
+    t = np.zeros(dt.size)
+    for s in set(src.tolist()):
+        mask = src == s
+        t[mask] = np.cumsum(dt[mask]) - 0.5 * dt[mask]
+    return t
 
 
 def _restore(report: CalibrationReport, order: list[int],
@@ -751,7 +859,7 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             config: SolverConfig | None, fixed: Sequence[int] | None,
             priors: Sequence[GaussianPrior], cal: CalibrationConfig,
             start: CalibrationReport | None = None, fixes: FixObservations | None = None,
-            fix_base: Sequence[GaussianPrior] = ()
+            fix_base: Sequence[GaussianPrior] = (), mid_s: FloatArray | None = None
             ) -> tuple[SolveResult, ConnectionNetwork, list[GaussianPrior], CalibrationReport]:
     """Which parameters are determined and significant, and their estimates (module doc,
     steps 1-4), with the covariances of ``network``: the adjustment, the corrected network
@@ -759,7 +867,8 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
     ``start``: the parameters' values to start from (those of an adjustment with other
     weights, whose poses ``T_init`` are; else 0). ``fix_base``: the fixes' priors as
     measured (linearised at the caller's initial poses), used while no fix parameter is
-    non-zero."""
+    non-zero. ``mid_s`` (m,): each connection's mid-time (s), for the parameters whose model
+    is a random walk: estimated as one where the selection kept them (:func:`_walk`)."""
     arrays = network.arrays()
     m = len(arrays)
     n_c = len(cand.kinds)
@@ -782,12 +891,14 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             values[j] = 0.0
             report.parameters[j].reason = cand.params[j].unobserved
     solved: list = [network, list(priors)]
+    walks: dict[int, FloatArray] = {}  # a random walk's value on each of its connections
 
     def adjust(T0: FloatArray) -> tuple[SolveResult, FloatArray]:
-        Tcorr = _per_connection(cand, values, m).apply(arrays.z, dt)
-        net = network if not values[~on_fixes].any() else ConnectionNetwork.from_arrays(
+        Tcorr = _per_connection(cand, values, m, walks).apply(arrays.z, dt)
+        net = (network if not (values[~on_fixes].any() or walks)
+               else ConnectionNetwork.from_arrays(
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
-            se3.to_translation_rotvec(Tcorr.T), arrays.cov)
+            se3.to_translation_rotvec(Tcorr.T), arrays.cov))
         used = list(priors)
         if fixes is not None and values[on_fixes].any():
             shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
@@ -899,6 +1010,16 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             steps = 0
             continue
         break
+    bases = {} if mid_s is None else {
+        j: cal.model(cand.kinds[j]).basis(mid_s[cand.masks[j]])
+        for j in active if cand.params[j].family == 'odometry'}
+    bases = {j: b for j, b in bases.items() if b is not None}
+    if bases:
+        # the parameters whose model is a random walk, where the selection kept them
+        res, Tcorr, estimates = _walk(adjust, res, Tcorr, solved, network, cand, active,
+                                      bases, walks, values, dt, cal, report, fixes)
+        for j, w in estimates.items():
+            report.parameters[j].walk = w
     for j in range(n_c):
         par = report.parameters[j]
         par.estimated = j in active
@@ -907,3 +1028,76 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             par.reason = ''
     report.sigma0_sq = float(res.sigma0_sq)
     return res, solved[0], solved[1], report
+
+
+def _walk(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
+          network: ConnectionNetwork, cand: _Candidates, active: list[int],
+          bases: dict[int, WalkBasis], walks: dict[int, FloatArray], values: FloatArray,
+          dt: FloatArray, cal: CalibrationConfig, report: CalibrationReport,
+          fixes: FixObservations | None
+          ) -> tuple[SolveResult, CorrectedMotions, dict[int, WalkEstimate]]:
+    """The selected parameters ``active`` with those in ``bases`` as random walks (module
+    doc, *A random walk*): Gauss-Newton on the knots (and the constants) bordered onto the
+    poses, the pseudo-observations' normal matrix added to the parameters' reduced one, from
+    the constants' estimates (``values``); a step that raises the joint cost (the
+    adjustment's ``v' P v`` plus the pseudo-observations') is halved as in the selection.
+    ``adjust`` re-solves the poses with ``walks`` (filled here: each walk's value on its
+    connections) and ``values`` (the constants; a walk's entry becomes its mean). Returns
+    the adjustment, its corrected motions and each walk's estimate."""
+    cols: list[int] = []
+    weights: list[FloatArray | None] = []
+    at: dict[int, slice] = {}
+    for j in active:
+        b = bases.get(j)
+        k = 1 if b is None else b.size
+        at[j] = slice(len(cols), len(cols) + k)
+        cols += [j] * k
+        weights += [None] if b is None else [b.column(i) for i in range(k)]
+    H_rw = np.zeros((len(cols), len(cols)))
+    for j, b in bases.items():
+        H_rw[at[j], at[j]] = b.normal()
+    c = np.concatenate([np.full(at[j].stop - at[j].start, values[j]) for j in active])
+
+    def put(c: FloatArray) -> None:
+        for j in active:
+            if j in bases:
+                walks[j] = bases[j].values(c[at[j]])
+                w = dt[cand.masks[j]]
+                values[j] = float(np.average(walks[j], weights=w if w.sum() > 0 else None))
+            else:
+                values[j] = c[at[j]][0]
+
+    put(c)
+    res, Tcorr = adjust(res.T_world_node)
+    Q = None
+    for _ in range(int(cal.max_iterations) + 1):
+        b = _bordered(network, res, Tcorr, cand, cols, fixes, values, weights)
+        Q = np.linalg.inv(b.H + H_rw)
+        dc = -Q @ (b.g + H_rw @ c)
+        if np.all(np.abs(dc) <= cal.tolerance * np.sqrt(np.diag(Q))):
+            break
+        old, kept = c.copy(), (res, Tcorr, list(solved))
+        cost0 = kept[0].cost + float(old @ H_rw @ old)
+        for _ in range(_STEP_HALVINGS + 1):
+            c = old + dc
+            put(c)
+            res, Tcorr = adjust(kept[0].T_world_node)
+            if res.cost + float(c @ H_rw @ c) <= cost0 * (1.0 + 1e-9):
+                break
+            dc = 0.5 * dc
+        else:  # no step along dc lowers the cost: the walk stays where it is
+            c = old
+            put(c)
+            res, Tcorr, solved[:] = kept
+            break
+        report.iterations += 1
+    out = {}
+    for j, b in bases.items():
+        cj, Qj, Hj = c[at[j]], Q[at[j], at[j]], H_rw[at[j], at[j]]
+        cost = float(cj @ Hj @ cj)
+        r = float(b.size - 1 - np.trace(Hj @ Qj))
+        out[j] = WalkEstimate([float(x) for x in b.knots_s], [float(x) for x in cj],
+                              [float(x) for x in np.sqrt(np.diag(Qj))],
+                              float(cal.model(cand.kinds[j]).segment_s), b.sigma_per_sqrt_s,
+                              cost, r, cost / r if r > 0 else float('nan'))
+    return res, Tcorr, out

@@ -859,7 +859,8 @@ class TrackWindowAligner:
                     priors = [p for p in priors if p.weak]
                 res, self.calibration = solve_with_calibration(
                     net, T0, sources, dt_s, scfg, fixed=fixed, priors=priors,
-                    calibration=calibration, fixes=fix_obs, groups=names)
+                    calibration=calibration, fixes=fix_obs, groups=names,
+                    stamps_s=stamp[st.src.a[keep]] * 1e-9)
                 return res
             if variance_groups is None:
                 return solve(net, T0, scfg, fixed=fixed, priors=priors)
