@@ -76,7 +76,8 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
                      fixed: Sequence[int] = (),
                      priors: Sequence[GaussianPrior] = (),
                      weights: FloatArray | None = None,
-                     measured: tuple[FloatArray, FloatArray] | None = None
+                     measured: tuple[FloatArray, FloatArray] | None = None,
+                     jit: bool = False
                      ) -> tuple[sp.csc_matrix, IntArray, FloatArray]:
     """Normal matrix ``N = A' M^-1 A`` and ``u = A' M^-1 w`` (+ prior terms) linearised at ``T``.
 
@@ -84,7 +85,9 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     singular; it is what marginalisation (Schur complements) works on. ``weights`` (m, 6, 6)
     ``cov^-1`` and ``measured`` (the measured motions ``T_src_dst`` and their inverses, (m, 4, 4)
     each) of the network's connections, in its order, where the caller has them (as
-    :func:`solve` takes them: the same values, not computed again).
+    :func:`solve` takes them: the same values, not computed again). ``jit``: linearise with the
+    compiled se3 kernels (as :func:`solve`'s ``jit``: the caller has loaded them; the same
+    values to rounding, ~1e-16 relative).
 
     Returns
     -------
@@ -100,6 +103,7 @@ def normal_matrix_at(network: ConnectionNetwork, T: FloatArray, model: str = 'se
     prior_data = [_PriorData.build(network, p, d) for p in priors]
     prob = _Problem.build(model, conn, prior_data, SolverConfig(model=model), free, P=weights,
                           measured=measured)
+    prob.jit = jit
     T = np.asarray(T, dtype=float)
     sysd = prob.linear_system(T, prob.consistent(T, prob.zero_residuals()))
     pattern = prob.pattern
