@@ -106,16 +106,13 @@ def _lower_inverse_py(Ljj):  # pragma: no cover - without numba only
 _TRTRI_LEAF = 128
 
 
-def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
-    """:func:`_lower_inverse_py` by LAPACK's ``dtrtri`` and ``dlauum`` (``m^3 / 3`` flops each,
-    against ``~4 m^3`` for a general inverse and product) on a column-major (Fortran-ordered)
-    ``Ljj``, inverted in place; only the lower triangle of the second matrix is set.
-
-    A wide triangle is inverted by halves, in place, children before parents::
+def _trtri_at_blas(base, m, lda):  # pragma: no cover - compiled
+    """Invert in place the lower triangle of ``m`` columns at address ``base`` (column-major,
+    leading dimension ``lda``) by LAPACK's ``dtrtri``; a triangle wider than
+    :data:`_TRTRI_LEAF` by halves, children before parents::
 
         [A 0; B C]^-1 = [A^-1 0; -C^-1 B A^-1  C^-1]    (two dtrmm on B)
     """
-    m = Ljj.shape[0]
     # the halving tree in breadth-first order (first column, width); reversed: children first
     first, width = np.zeros(2 * m, dtype=np.int64), np.zeros(2 * m, dtype=np.int64)
     width[0], n_nodes, k = m, 1, 0
@@ -126,21 +123,20 @@ def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
             first[n_nodes + 1], width[n_nodes + 1] = first[k] + h, width[k] - h
             n_nodes += 2
         k += 1
-    ints = np.array([m, 0, 0, 0], dtype=np.int32)  # lda, info, rows, cols
+    ints = np.array([lda, 0, 0, 0], dtype=np.int32)  # lda, info, rows, cols
     one = np.array([1.0, -1.0])
     chars = np.array([76, 78, 82], dtype=np.int8)  # 'L', 'N', 'R'
-    base = Ljj.ctypes.data
     for k in range(n_nodes - 1, -1, -1):
         o, w = first[k], width[k]
         if w <= _TRTRI_LEAF:  # a leaf: dtrtri
             ints[2] = w
             _dtrtri(chars.ctypes.data, chars.ctypes.data + 1, ints.ctypes.data + 8,
-                    base + 8 * o * (m + 1), ints.ctypes.data, ints.ctypes.data + 4)
+                    base + 8 * o * (lda + 1), ints.ctypes.data, ints.ctypes.data + 4)
             continue
         h = w // 2
         ints[2], ints[3] = w - h, h
-        a_ptr, c_ptr = base + 8 * o * (m + 1), base + 8 * (o + h) * (m + 1)
-        b_ptr = base + 8 * (o + h + o * m)
+        a_ptr, c_ptr = base + 8 * o * (lda + 1), base + 8 * (o + h) * (lda + 1)
+        b_ptr = base + 8 * (o + h + o * lda)
         # B := B A^-1 (right), then B := -C^-1 B (left); A, C already inverted in place
         _dtrmm(chars.ctypes.data + 2, chars.ctypes.data, chars.ctypes.data + 1,
                chars.ctypes.data + 1, ints.ctypes.data + 8, ints.ctypes.data + 12,
@@ -148,13 +144,75 @@ def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
         _dtrmm(chars.ctypes.data, chars.ctypes.data, chars.ctypes.data + 1,
                chars.ctypes.data + 1, ints.ctypes.data + 8, ints.ctypes.data + 12,
                one.ctypes.data + 8, c_ptr, ints.ctypes.data, b_ptr, ints.ctypes.data)
+
+
+def _lower_inverse_lapack(Ljj):  # pragma: no cover - compiled
+    """:func:`_lower_inverse_py` by LAPACK's ``dtrtri`` (:func:`_trtri_at_blas`) and ``dlauum``
+    (``m^3 / 3`` flops each, against ``~4 m^3`` for a general inverse and product) on a
+    column-major (Fortran-ordered) ``Ljj``, inverted in place; only the lower triangle of the
+    second matrix is set."""
+    m = Ljj.shape[0]
+    _trtri_at(Ljj.ctypes.data, m, m)
     Sjj = Ljj.T.copy().T  # column-major too
+    ints = np.array([m, 0], dtype=np.int32)
+    chars = np.array([76], dtype=np.int8)  # 'L'
     _dlauum(chars.ctypes.data, ints.ctypes.data, Sjj.ctypes.data, ints.ctypes.data,
             ints.ctypes.data + 4)
     return Ljj, Sjj
 
 
+def _in_place_step_py(x, q, m, r, lda, Sbb):  # pragma: no cover - without numba only
+    """:func:`_in_place_step_blas` needs BLAS: without numba the copying path runs."""
+    return 1
+
+
+def _in_place_step_blas(x, q, m, r, lda, Sbb):  # pragma: no cover - compiled
+    """Takahashi's step for one supernode stored as a column-major block (``lda`` rows: its
+    ``m`` columns' own rows, then the ``r`` rows ``B`` below) at ``x[q]``, in place, without
+    copying it out: ``L_JJ -> L_JJ^-1`` (:func:`_trtri_at_blas`), ``L_BJ -> U = L_BJ L_JJ^-1``
+    (``dtrmm``), ``L_JJ^-1 -> L_JJ^-T L_JJ^-1`` (``dlauum``, lower triangle), then with the
+    gathered ``Sigma_BB`` (``Sbb``, both triangles) ``Sigma_BJ = -Sigma_BB U`` (``dgemm``, into
+    a temporary) and ``Sigma_JJ -= Sigma_BJ' U`` on its lower triangle (panels of
+    :data:`_PANEL` columns), and ``Sigma_BJ`` over ``U``: the products of
+    :func:`_takahashi_py`'s copying path, in the same order. Returns 0."""
+    base = x.ctypes.data + 8 * q
+    _trtri_at(base, m, lda)
+    ints = np.array([r, m, lda, 0, 0, 0], dtype=np.int32)  # r, m, lda, info, rows, cols
+    coef = np.array([1.0, -1.0, 0.0])
+    chars = np.array([82, 76, 78, 84], dtype=np.int8)  # 'R', 'L', 'N', 'T'
+    u_ptr = base + 8 * m
+    if r:  # U = L_BJ L_JJ^-1, in place of L_BJ
+        _dtrmm(chars.ctypes.data, chars.ctypes.data + 1, chars.ctypes.data + 2,
+               chars.ctypes.data + 2, ints.ctypes.data, ints.ctypes.data + 4,
+               coef.ctypes.data, base, ints.ctypes.data + 8, u_ptr, ints.ctypes.data + 8)
+    _dlauum(chars.ctypes.data + 1, ints.ctypes.data + 4, base, ints.ctypes.data + 8,
+            ints.ctypes.data + 12)
+    if r == 0:
+        return 0
+    Sbj = np.empty((m, r)).T  # column-major, r x m
+    # Sigma_BJ = -Sigma_BB U: M = K = r (lda of Sbb and ldc), N = m, ldb = lda
+    _dgemm(chars.ctypes.data + 2, chars.ctypes.data + 2, ints.ctypes.data, ints.ctypes.data + 4,
+           ints.ctypes.data, coef.ctypes.data + 8, Sbb.ctypes.data, ints.ctypes.data, u_ptr,
+           ints.ctypes.data + 8, coef.ctypes.data + 16, Sbj.ctypes.data, ints.ctypes.data)
+    # Sigma_JJ[c0:, c0:c1] -= Sigma_BJ[:, c0:]' U[:, c0:c1], the lower triangle by panels
+    for c0 in range(0, m, _PANEL):
+        c1 = min(m, c0 + _PANEL)
+        ints[4], ints[5] = m - c0, c1 - c0
+        _dgemm(chars.ctypes.data + 3, chars.ctypes.data + 2, ints.ctypes.data + 16,
+               ints.ctypes.data + 20, ints.ctypes.data, coef.ctypes.data + 8,
+               Sbj.ctypes.data + 8 * c0 * r, ints.ctypes.data, u_ptr + 8 * c0 * lda,
+               ints.ctypes.data + 8, coef.ctypes.data, base + 8 * c0 * (lda + 1),
+               ints.ctypes.data + 8)
+    for i in range(m):  # Sigma_BJ over U
+        o = q + i * lda + m
+        for a in range(r):
+            x[o + a] = Sbj[a, i]
+    return 0
+
+
 _lower_inverse = _lower_inverse_py
+_in_place_step = _in_place_step_py
+_trtri_at = None  # _trtri_at_blas, compiled (the kernels' in-place triangle inversion)
 
 
 def _times_lower_py(B, Linv):  # pragma: no cover - without numba only
@@ -226,8 +284,8 @@ _minus_product = _minus_product_py
 _lower_update = _lower_update_py
 
 
-def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
-                  need):  # pragma: no cover - compiled
+def _takahashi_py(starts, pi, nrows, srows, colbase, x, where, need,
+                  in_place):  # pragma: no cover - compiled
     """In place: the values of ``L`` (``P N P' = L L'``) become those of ``Sigma = N^-1``
     (permuted) on the pattern of ``L``.
 
@@ -242,8 +300,12 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
     ``Sigma_BB`` lies on the pattern of later supernodes (closure of the factor's pattern), all
     already overwritten; it is gathered through ``where`` (row -> position in an ancestor's row
     list, -1 elsewhere). Only the supernodes with ``need[k]`` are inverted (the others keep
-    ``L``): a set closed under ancestors (every ``Sigma_BB`` lies on ancestors). Returns 0; 1
-    if a needed entry is not on the pattern, 2 if rows are not sorted (nothing was changed then).
+    ``L``): a set closed under ancestors (every ``Sigma_BB`` lies on ancestors). With
+    ``in_place`` (the compiled kernels), a supernode stored as one column-major block (CHOLMOD's
+    supernodal layout) is inverted where it lies (:func:`_in_place_step_blas`: the same products
+    without copying its columns out and back), the others through copies of their columns.
+    Returns 0; 1 if a needed entry is not on the pattern, 2 if rows are not sorted (nothing was
+    changed then).
     """
     if not _rows_sorted(starts, pi, nrows, srows):
         return 2
@@ -253,6 +315,15 @@ def _takahashi_py(starts, pi, nrows, srows, colbase, x, where,
         f = starts[t]
         m = starts[t + 1] - f
         r = nrows[t] - m
+        q = colbase[f]
+        if in_place and colbase[f + m - 1] == q + (m - 1) * nrows[t] and (
+                m == 1 or colbase[f + 1] == q + nrows[t]):  # one column-major block
+            Sbb = np.empty((r, r))
+            if r and _gather_sigma_bb(srows[pi[t] + m:pi[t] + nrows[t]], starts, pi, nrows,
+                                      srows, colbase, x, where, Sbb):
+                return 1
+            _in_place_step(x, q, m, r, nrows[t], Sbb)
+            continue
         Ljj, Lbj = _read_supernode(x, colbase, f, m, r)
         Linv, Sjj = _lower_inverse(Ljj)  # Sjj: lower triangle of L_JJ^-T L_JJ^-1
         Sbj = np.empty((m, r)).T
@@ -377,8 +448,11 @@ def _offsets_py(starts, pi, nrows, srows, colbase, rows, cols, out):  # pragma: 
 _KERNELS: dict = {}
 #: The steps the kernels call, compiled with them.
 _HELPERS = ('_rows_sorted', '_supernode_of_column', '_read_supernode', '_write_supernode',
-            '_gather_sigma_bb')
+            '_gather_sigma_bb', '_in_place_step')
 _dtrtri = _dlauum = _dtrmm = _dgemm = None  # LAPACK/BLAS routines of the compiled kernels
+#: Supernodes stored as one block are inverted where they lie (set once the kernels are
+#: compiled with BLAS: :func:`_in_place_step_blas`).
+_IN_PLACE = False
 #: The kernels are compiled (numba installed, ``GA_ROS_JIT`` not ``0``); without, they run as
 #: plain Python (correct, but only for small systems: callers choose another path then).
 COMPILED = AVAILABLE
@@ -387,7 +461,7 @@ COMPILED = AVAILABLE
 def _kernel(name: str):
     """The numba-compiled kernel (cached on disk), or the Python one (:data:`COMPILED`)."""
     global _lower_inverse, _dtrtri, _dlauum, _times_lower, _minus_product, _lower_update
-    global _dtrmm, _dgemm
+    global _dtrmm, _dgemm, _trtri_at, _in_place_step, _IN_PLACE
     fn = _KERNELS.get(name)
     if fn is None:
         fn = globals()[name + '_py']
@@ -395,7 +469,10 @@ def _kernel(name: str):
             routines = lapack.routines('dtrtri', 'dlauum', 'dtrmm', 'dgemm')
             if _lower_inverse is _lower_inverse_py and routines is not None:
                 _dtrtri, _dlauum, _dtrmm, _dgemm = routines
+                _trtri_at = jit(_trtri_at_blas)
                 _lower_inverse = jit(_lower_inverse_lapack)
+                _in_place_step = jit(_in_place_step_blas)
+                _IN_PLACE = True
                 _times_lower = jit(_times_lower_blas)
                 _minus_product = jit(_minus_product_blas)
                 _lower_update = jit(_lower_update_blas)
@@ -475,8 +552,9 @@ class SelectedInverse:
         self._need = np.ones(ns, dtype=bool)
         if columns is not None:
             self._need = self._ancestors(np.asarray(columns, dtype=np.int64))
-        status = _kernel('_takahashi')(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase,
-                                       lay.x, where, self._need)
+        kernel = _kernel('_takahashi')
+        status = kernel(lay.starts, lay.pi, lay.nrows, lay.srows, lay.colbase, lay.x, where,
+                        self._need, _IN_PLACE)
         if status:
             raise DegenerateGeometryError('the factor pattern is not that of a Cholesky factor '
                                           f'(code {status}): report this with the graph')

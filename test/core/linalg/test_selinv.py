@@ -181,6 +181,34 @@ def test_python_kernels_give_the_compiled_blocks(rng, monkeypatch):
                                    atol=1e-10 * np.abs(inv).max())
 
 
+def test_supernodes_inverted_in_place_equal_the_copying_path(rng, monkeypatch):
+    """The compiled kernels invert each supernode of CHOLMOD's supernodal factor where it lies
+    (``_in_place_step_blas``: leading dimension its row count, no copies of its columns); the
+    values equal, bit for bit, those of the path that copies the columns out and back, on a
+    factor with wide supernodes (halved triangles, several panels) and rows below them."""
+    import ga_ros.core.linalg.selinv as selinv
+
+    if not selinv.COMPILED:
+        pytest.skip('the in-place step needs the compiled kernels')
+    u, d = 100, 6
+    N = np.zeros((u * d, u * d))
+    for block in (slice(0, 60 * d), slice(40 * d, u * d)):  # two cliques sharing 20 nodes
+        J = rng.normal(size=(N[block, block].shape[0],) * 2)
+        N[block, block] += J @ J.T / J.shape[0] + 0.5 * np.eye(J.shape[0])
+    rows, cols = _block_pairs(N, d)
+    si = _selected(N, d)
+    assert selinv._IN_PLACE
+    widths = np.diff(si._lay.starts)
+    assert widths.max() > 2 * selinv._TRTRI_LEAF
+    assert ((widths > selinv._PANEL) & (si._lay.nrows > widths)).any()  # panels, rows below
+    in_place = si.blocks(rows, cols)
+    monkeypatch.setattr(selinv, '_IN_PLACE', False)
+    np.testing.assert_array_equal(_selected(N, d).blocks(rows, cols), in_place)
+    inv = np.linalg.inv(N)
+    ref = np.stack([inv[i * d:(i + 1) * d, j * d:(j + 1) * d] for i, j in zip(rows, cols)])
+    np.testing.assert_allclose(in_place, ref, rtol=1e-8, atol=1e-10 * np.abs(inv).max())
+
+
 def test_wide_supernodes_equal_the_dense_inverse(rng):
     """A dense coupling of 70 nodes is one supernode of 420 columns: its triangle is inverted by
     halves (wider than ``_TRTRI_LEAF``), and its blocks and those of a chain hanging below it

@@ -98,3 +98,30 @@ def test_positions_computed_equal_kept_positions(rng, monkeypatch):
     np.testing.assert_array_equal(parts[1], parts[0])
     monkeypatch.setattr(assembly, '_ASSEMBLY_CHUNK', 7)
     np.testing.assert_array_equal(computed.assemble(blocks), kept.assemble(blocks))
+
+
+def test_normal_matrix_at_with_the_compiled_kernels_equals_numpy(rng, monkeypatch):
+    """``normal_matrix_at(jit=True)`` (the freeze's absorbed terms) linearises in the compiled
+    se3 kernel from the first call and gives the NumPy linearisation's ``N`` and ``u`` to
+    rounding, with a joint prior among the terms."""
+    from ga_ros.core import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip('the compiled kernels are not available')
+    prob = make_problem(rng, 'se3', n=14, noise=1.0, gaps=(1, 2, 5))
+    net, ids = prob.network, prob.network.node_ids
+    T = perturbed(rng, prob.T_true, 0.05)
+    prior = GaussianPrior.from_covariances(ids[3:6], prob.T_true[3:6], np.stack([np.eye(6)] * 3))
+    calls = []
+    compiled = kernels.se3_system
+    monkeypatch.setattr(kernels, 'se3_system',
+                        lambda *a, **k: calls.append(1) or compiled(*a, **k))
+    N_np, free_np, u_np = normal_matrix_at(net, T, 'se3', fixed=[int(ids[0])], priors=[prior])
+    assert not calls  # one linearisation: NumPy unless asked
+    N_jit, free_jit, u_jit = normal_matrix_at(net, T, 'se3', fixed=[int(ids[0])], priors=[prior],
+                                              jit=True)
+    assert calls
+    np.testing.assert_array_equal(free_jit, free_np)
+    scale = np.abs(N_np.toarray()).max()
+    np.testing.assert_allclose(N_jit.toarray(), N_np.toarray(), rtol=1e-12, atol=1e-12 * scale)
+    np.testing.assert_allclose(u_jit, u_np, rtol=1e-12, atol=1e-12 * np.abs(u_np).max())
