@@ -46,13 +46,17 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.calibration import (
+    FIX_PARAMETERS,
     AdditionalParameter,
     CalibrationConfig,
     CalibrationReport,
+    FixObservations,
+    book_observations,
     corrected_motions,
     solve_with_calibration,
 )
-from ga_ros.core.fixes import gauge_information
+from ga_ros.core.calibration.fix_parameters import node_velocity
+from ga_ros.core.fixes import FixTerm, gauge_information
 from ga_ros.core.measurement import Measurement, variance_group
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig
@@ -77,6 +81,19 @@ DATA_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
 #: horizon estimate takes ~10 % fewer solves (``docs/calibration.md``).
 ONLINE_CALIBRATION = CalibrationConfig(noise=False, tolerance=1e-2)
 
+#: The fix parameters of a fix source's book row (:attr:`OnlineCalibration.fix_applied`): the
+#: offset ``b`` (m, map) per axis, then the time offset ``tau`` (s).
+FIX_SLOTS = ('offset_x', 'offset_y', 'offset_z', 'time_offset')
+
+
+def online_calibration_config(config) -> CalibrationConfig:
+    """The horizon estimate's settings for an aligner ``config``
+    (:class:`~ga_ros.core.window.AlignerConfig`): :data:`ONLINE_CALIBRATION` with the fix
+    sources' parameters and references of ``calibration_fix_parameters`` and
+    ``calibration_fix_reference``."""
+    fix, ref = config.calibration_fix_config()
+    return replace(ONLINE_CALIBRATION, fix_parameters=fix, fix_reference=ref)
+
 
 def calibration_source(m: Measurement) -> str | None:
     """The odometry source whose parameters correct a measurement: its source for a
@@ -93,10 +110,12 @@ class HorizonEstimate:
 
     Attributes
     ----------
-    network, T_init, sources, dt_s, solver, priors : the arguments of
+    network, T_init, sources, dt_s, solver, priors, fixes, calibration : the arguments of
         :func:`~ga_ros.core.calibration.solve_with_calibration` (the horizon's connections with
         their motions as measured, its poses at their current estimates, each connection's
-        source, durations in s, the solver's settings, the fixes and the gauge prior).
+        source, durations in s, the solver's settings, the gauge prior (and the fixes' priors
+        when no fix parameter is a candidate), the fixes one by one as measured (``None``: in
+        ``priors``) and the settings, :func:`online_calibration_config`).
     report : the estimate (``None`` before :meth:`run`, or if it failed).
     error : why it failed (a data failure, :data:`DATA_FAILURES`, or another error);
         ``None`` if it did not.
@@ -109,6 +128,8 @@ class HorizonEstimate:
     dt_s: FloatArray
     solver: SolverConfig
     priors: list
+    fixes: FixObservations | None = None
+    calibration: CalibrationConfig = ONLINE_CALIBRATION
     report: CalibrationReport | None = None
     error: BaseException | None = None
     done: bool = False
@@ -121,7 +142,7 @@ class HorizonEstimate:
         try:
             _, self.report = solve_with_calibration(
                 self.network, self.T_init, self.sources, self.dt_s, self.solver, fixed=[],
-                priors=self.priors, calibration=ONLINE_CALIBRATION)
+                priors=self.priors, calibration=self.calibration, fixes=self.fixes)
         except BaseException as exc:  # noqa: BLE001 - judged at the installation
             self.error = exc
         self.cpu_ms = 1e3 * (time.thread_time() - c0)
@@ -139,8 +160,9 @@ class HorizonEstimate:
     @classmethod
     def finished(cls, report: CalibrationReport | None) -> HorizonEstimate:
         """A finished estimate restored from a state file (``None``: one that failed)."""
-        est = cls(None, np.zeros((0, 4, 4)), [], np.zeros(0), SolverConfig(), [], report,
-                  None if report is not None else GaError('the saved estimate failed'))
+        est = cls(None, np.zeros((0, 4, 4)), [], np.zeros(0), SolverConfig(), [],
+                  report=report,
+                  error=None if report is not None else GaError('the saved estimate failed'))
         est.done = True
         return est
 
@@ -163,6 +185,11 @@ class OnlineCalibration:
     last_conns, last_horizon : the connection rows when the last estimate ran and the
         connections its horizon held (when the next one is due,
         ``AlignerConfig.calibration_refresh``).
+    fix_applied, fix_shift : per fix of the aligner's fix book (its index; the gauge prior
+        and fixes added before any correction: zeros) the fix parameters applied when it
+        entered (``b_x, b_y, b_z`` m, ``tau`` s: :data:`FIX_SLOTS`) and the resulting shift of
+        its position (m, map): stored ``p_fix - b + v tau``, ``v`` its node's velocity then
+        (:meth:`corrected_fix`).
     """
 
     def __init__(self) -> None:
@@ -175,6 +202,9 @@ class OnlineCalibration:
         self.last_conns = 0  # connection rows at the last estimate
         self.last_horizon = 0  # the connections its horizon held
         self._current: dict[str, tuple[float, float]] = {}
+        self.fix_applied = Rows((4,), np.float64)
+        self.fix_shift = Rows((3,), np.float64)
+        self._fix_current: dict[str, FloatArray] = {}
         self.pending: HorizonEstimate | None = None
 
     # ----------------------------------------------------------------------- input
@@ -229,6 +259,54 @@ class OnlineCalibration:
             z[sel] = se3.to_translation_rotvec(T)
         return z
 
+    def fix_correction(self, source: str) -> FloatArray:
+        """(4,) the fix parameters ``b_x, b_y, b_z`` (m) and ``tau`` (s) applied to a fix of
+        ``source`` now (0 where not estimated)."""
+        cur = self._fix_current.get(source)
+        return np.zeros(4) if cur is None else cur.copy()
+
+    def corrected_fix(self, term: FixTerm, T_world_node: FloatArray, stamps_s: FloatArray,
+                      row: int) -> tuple[FixTerm, FloatArray, FloatArray]:
+        """``(term_corr, shift (3,), applied (4,))``: a fix entering the window corrected by its
+        source's current estimate, as the batch corrects it
+        (:func:`~ga_ros.core.calibration.fix_parameters.fix_shift`): its measured position
+        moved by ``shift = -b + v tau``, ``v`` (m/s, map) its node's velocity from the node's
+        neighbours in time at their current estimates
+        (:func:`~ga_ros.core.calibration.fix_parameters.node_velocity` of the node ``row`` over
+        the poses ``T_world_node`` (n, 4, 4) and stamps ``stamps_s`` (n,) s of every node so
+        far: one-sided for the newest node). ``term`` itself where nothing is estimated."""
+        c = self.fix_correction(term.fix.source)
+        if not c.any():
+            return term, np.zeros(3), c
+        shift = -c[:3]
+        if c[3] != 0.0:
+            shift = shift + node_velocity(T_world_node, stamps_s, row) * c[3]
+        if not shift.any():
+            return term, shift, c
+        T = np.array(term.fix.T_map_sensor, dtype=float)
+        T[:3, 3] += shift
+        return replace(term, fix=replace(term.fix, T_map_sensor=T)), shift, c
+
+    def register_fix(self, index: int, shift: FloatArray, applied: FloatArray) -> None:
+        """Book the fix of index ``index`` in the aligner's fix book with the shift and
+        parameters it was stored with (the rows before it that were not booked: zeros)."""
+        self._pad_fixes(index)
+        self.fix_shift.append(np.asarray(shift, dtype=float))
+        self.fix_applied.append(np.asarray(applied, dtype=float))
+
+    def _pad_fixes(self, n: int) -> None:
+        while self.fix_shift.n < n:
+            self.fix_shift.append(np.zeros(3))
+            self.fix_applied.append(np.zeros(4))
+
+    def fix_shifts(self, n: int) -> FloatArray:
+        """(n, 3) the shift each of the first ``n`` fixes of the fix book was stored with
+        (zeros for those not booked)."""
+        out = np.zeros((n, 3))
+        m = min(n, self.fix_shift.n)
+        out[:m] = self.fix_shift.a[:m]
+        return out
+
     # -------------------------------------------------------------------- estimate
     def start(self, state, config, executor: str = 'thread') -> HorizonEstimate | None:
         """After a successful update: if due (``config.calibration_refresh``), copy the inputs
@@ -274,8 +352,18 @@ class OnlineCalibration:
         z = self.measured(state.z.a[conns], dt_s, conns)
         net = state.subnetwork(rows, conns, z=z)
         ids = state.idarr.a
-        priors = state.fixes.priors(rows, state.T, ids)
-        priors = [p for p in priors if not p.weak]
+        cal = online_calibration_config(config)
+        fixes = None
+        if cal.fix_parameters and len(state.fixes):
+            # the fixes one by one, as measured (their applied shifts undone): their
+            # sources' parameters are estimated whole, as the motions' are
+            fixes = book_observations(state.fixes, rows, stamp[rows] * 1e-9,
+                                      self.fix_shifts(len(state.fixes)))
+            fixes = fixes if len(fixes) else None
+        if fixes is None:
+            priors = [p for p in state.fixes.priors(rows, state.T, ids) if not p.weak]
+        else:
+            priors = []  # the fixes' priors: fix_priors(fixes) of the same terms, bit for bit
         priors.append(GaussianPrior(ids[[lo]], state.T[[lo]].copy(),
                                     gauge_information(config.gauge_sigma_m,
                                                       config.gauge_sigma_tilt_rad,
@@ -283,7 +371,7 @@ class OnlineCalibration:
         self.n_estimates += 1
         self.last_conns, self.last_horizon = int(state.src.n), int(conns.size)
         return HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns), dt_s,
-                               config.solver_config(), priors)
+                               config.solver_config(), priors, fixes, cal)
 
     def install(self, strict: bool = False) -> float:
         """Use the pending estimate (waiting for it, or solving it inline) for the motions that
@@ -318,10 +406,15 @@ class OnlineCalibration:
     def _use(self, report: CalibrationReport) -> None:
         self.report = report
         cur: dict[str, tuple[float, float]] = {}
+        fix: dict[str, FloatArray] = {}
         for p in report.estimated():
-            k, w = cur.get(p.source, (0.0, 0.0))
-            cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
+            if p.name in FIX_PARAMETERS:
+                fix.setdefault(p.source, np.zeros(4))[FIX_SLOTS.index(p.name)] = p.value
+            elif p.name in ('scale', 'yaw_rate'):
+                k, w = cur.get(p.source, (0.0, 0.0))
+                cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
+        self._fix_current = fix
 
     # -------------------------------------------------------------------- outputs
     def as_dict(self) -> dict:
@@ -353,7 +446,9 @@ class OnlineCalibration:
         if job is not None:  # finished now, saved with its result (installed as without a cut)
             job.wait()
             meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
-        return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
+        return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy(),
+                      'cal_fix_shift': self.fix_shift.a.copy(),
+                      'cal_fix_applied': self.fix_applied.a.copy()}
 
     @classmethod
     def from_arrays(cls, meta: dict, arrays: dict[str, np.ndarray]) -> OnlineCalibration:
@@ -367,6 +462,11 @@ class OnlineCalibration:
         book.source = Rows.of(np.asarray(arrays['cal_source'], dtype=np.int64), np.int64)
         book.applied = Rows.of(np.asarray(arrays['cal_applied'], dtype=np.float64)
                                .reshape(-1, 2), np.float64)
+        if 'cal_fix_shift' in arrays:  # files without: no fix corrected
+            book.fix_shift = Rows.of(np.asarray(arrays['cal_fix_shift'], dtype=np.float64)
+                                     .reshape(-1, 3), np.float64)
+            book.fix_applied = Rows.of(np.asarray(arrays['cal_fix_applied'], dtype=np.float64)
+                                       .reshape(-1, 4), np.float64)
         rep = meta.get('report')
         if rep is not None:
             book._use(report_of_dict(rep))
