@@ -1,6 +1,7 @@
 """Self-calibration online: each odometry source's additional parameters (scale and yaw-rate
-corrections, :mod:`ga_ros.core.calibration`) estimated while the survey runs and applied to
-the source's motions as they enter the window.
+corrections, :mod:`ga_ros.core.calibration`) and each fix source's (time offset, offsets:
+``AlignerConfig.calibration_fix_parameters``) estimated while the survey runs and applied to
+the source's motions and fixes as they enter the window.
 
 The scheme (``docs/calibration.md``, *Online*). After each successful window update the
 parameters are estimated again (:class:`HorizonEstimate`, off the update's critical path) by
@@ -20,14 +21,24 @@ parameters (0 where not estimated), and its applied ``(k, omega)`` is kept per c
 the motion as measured is always recoverable (:meth:`OnlineCalibration.measured`): the next
 horizon estimate and the final batch's calibration start from it.
 
+The fixes alike. The horizon's fixes enter the estimate one by one and as measured
+(:func:`~ga_ros.core.calibration.book_observations` with the booked shifts undone), with the
+fix parameters of :func:`online_calibration_config`. A fix that enters the window afterwards
+is stored with the batch's correction
+(:func:`~ga_ros.core.calibration.fix_parameters.fix_shift`), ``p_fix - b + v tau`` with its
+source's estimated offset ``b`` and time offset ``tau`` and its node's velocity ``v`` by the
+batch's definition over the nodes there are (:meth:`OnlineCalibration.corrected_fix`); the
+applied parameters and the shift are kept per fix (:attr:`OnlineCalibration.fix_shift`).
+
 Where the estimate runs (:meth:`OnlineCalibration.start`, :meth:`OnlineCalibration.install`).
 Its inputs are copied right after the update ``k`` that triggers it; it is solved in a
 background thread (``executor='thread'``) or at the installation (``'inline'``), and installed
-when the first odometry motion after that update enters (or at the next update's start if none
-did), waiting for it there if it is not ready. Every motion is thus corrected with the estimate
-of the last update before it, as if the estimate had run inside the update, and which estimate
-that is depends on the order of the data only, never on the thread's timing: a replay and a
-live node, and both executors, give the same path bit for bit. The update returns (and is
+when the first odometry motion (or fix, with fix parameters) after that update enters (or at
+the next update's start if none did), waiting for it there if it is not ready. Every motion
+(and fix) is thus corrected with the estimate of the last update before it, as if the estimate
+had run inside the update, and which estimate that is depends on the order of the data only,
+never on the thread's timing: a replay and a live node, and both executors, give the same path
+bit for bit. The update returns (and is
 published) before the estimate is solved; a track that ends at a fix gives the estimate the
 time until the next motion.
 
