@@ -409,14 +409,16 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                 sigma_xy: float = 0.02, sigma_yaw: float = 0.005, window_tracks: int = 5,
                 with_gtsam: bool = True, isam2_converged: bool = False,
                 refine_every: int | None = None, executor: str | None = None,
-                calibrate: bool = True, relinearize_sigma: float | None = None
-                ) -> FixBenchFigures:
+                calibrate: bool = True, relinearize_sigma: float | None = None,
+                online_noise: bool = False) -> FixBenchFigures:
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
     ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
     ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
     refinement at a track's end once the frozen nodes drifted by 1 sigma, inline or in a worker
     process by its size);
-    ``calibrate``: also the final batch with self-calibration."""
+    ``calibrate``: also the final batch with self-calibration; ``online_noise``: the online +
+    calibration run with ``calibration_noise`` (the calibrated source's noise re-estimated
+    online too)."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
@@ -454,7 +456,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                           ours_online_staged_cpu_s=staged.online_cpu_s,
                           work_per_update=staged.work_per_update)
     if calibrate:  # ours online + calibration: the online run with AlignerConfig.calibrate
-        cal = run_ours(run, idx, p, noise_m, cov, replace(cfg, calibrate=True), final=False)
+        cal = run_ours(run, idx, p, noise_m, cov,
+                       replace(cfg, calibrate=True, calibration_noise=online_noise), final=False)
         fig.ours_online_cal_m = _rmse(cal.online, run.T_true)
         fig.ours_online_cal_cpu_s = cal.online_cpu_s
         fig.cal_update_ms_quarters = _quarters(cal.update_ms)
@@ -679,6 +682,9 @@ def main(argv: list[str] | None = None) -> int:
                     help='also iSAM2 relinearised to convergence at each fix (module doc)')
     ap.add_argument('--no-calibration', action='store_true',
                     help='skip the ours final + calibration and ours online + calibration columns')
+    ap.add_argument('--online-noise', action='store_true',
+                    help='ours online + calibration re-estimates the calibrated noise online '
+                    '(AlignerConfig.calibration_noise)')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():
@@ -690,7 +696,7 @@ def main(argv: list[str] | None = None) -> int:
     figs = [bench_fixes(float(i), float(s), seed, args.data, args.sigma_xy,
                         args.sigma_yaw, args.window, not args.no_gtsam, args.isam2_converged,
                         args.refine_every, args.executor, not args.no_calibration,
-                        args.relinearize_sigma)
+                        args.relinearize_sigma, args.online_noise)
             for s in args.noise.split(',') for i in args.intervals.split(',')
             for seed in range(args.seed, args.seed + args.seeds)]
     if args.json:

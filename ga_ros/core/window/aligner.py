@@ -337,10 +337,13 @@ class TrackWindowAligner:
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
             if z is not plan.z:
                 plan = replace(plan, z=z)
+            cov, noise = cal.scaled_cov(plan.cov, source)  # calibration_noise's factors
+            if cov is not plan.cov:
+                plan = replace(plan, cov=cov)
         apply_measurement(self.state, m, plan)
         if self.state.src.n > n_conn:
             if cal is not None:
-                cal.register(source, applied)
+                cal.register(source, applied, noise)
             if self.online_variance is not None:
                 self.online_variance.register(variance_group(m))
                 self.online_variance.observe(m)
@@ -860,9 +863,13 @@ class TrackWindowAligner:
                        if calibration.fix_parameters and st.fixes.terms else None)
         elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+        cov_net = None  # with calibration, the stated covariances (its noise factors relative)
+        if (calibration is not None and self.online_calibration is not None
+                and (self.online_calibration.noise_applied.a != 1.0).any()):
+            cov_net = self.online_calibration.stated(st.ccov.a[keep], keep)
         # from the aligner's arrays, checked at insertion (no per-connection validation and
         # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)
-        net = st.subnetwork(np.arange(n), keep, z=z_net)
+        net = st.subnetwork(np.arange(n), keep, cov=cov_net, z=z_net)
 
         def adjust(T0: FloatArray, priors: list) -> SolveResult:
             """One adjustment from ``T0`` with the fixes' priors ``priors``."""

@@ -62,6 +62,7 @@ from ga_ros.core.calibration import (
     CalibrationConfig,
     CalibrationReport,
     FixObservations,
+    NoiseFactor,
     book_observations,
     corrected_motions,
     solve_with_calibration,
@@ -103,7 +104,15 @@ def online_calibration_config(config) -> CalibrationConfig:
     sources' parameters and references of ``calibration_fix_parameters`` and
     ``calibration_fix_reference``."""
     fix, ref = config.calibration_fix_config()
-    return replace(ONLINE_CALIBRATION, fix_parameters=fix, fix_reference=ref)
+    return replace(ONLINE_CALIBRATION, fix_parameters=fix, fix_reference=ref,
+                   noise=bool(config.calibration_noise))
+
+
+def noise_scale(factors: FloatArray) -> FloatArray:
+    """(m, 6) the square roots of the variance factors ``(s_t, s_r)`` (m, 2) on the rows
+    ``[x y z rx ry rz]``: a covariance ``C`` scaled is ``D C D``, ``D = diag(d)``."""
+    f = np.sqrt(np.asarray(factors, dtype=float).reshape(-1, 2))
+    return np.repeat(f, 3, axis=1)
 
 
 def calibration_source(m: Measurement) -> str | None:
@@ -201,12 +210,17 @@ class OnlineCalibration:
         entered (``b_x, b_y, b_z`` m, ``tau`` s: :data:`FIX_SLOTS`) and the resulting shift of
         its position (m, map): stored ``p_fix - b + v tau``, ``v`` its node's velocity then
         (:meth:`corrected_fix`).
+    noise_applied : per connection row the variance factors ``(s_t, s_r)`` of its source's
+        translation and rotation (both the same for a ``motion`` part) its stored covariance
+        was scaled with when it entered (1, 1: as stated; ``calibration_noise``).
     """
 
     def __init__(self) -> None:
         self.names: list[str] = []
         self.source = Rows((), np.int64)
         self.applied = Rows((2,), np.float64)
+        self.noise_applied = Rows((2,), np.float64)
+        self._noise_current: dict[str, tuple[float, float]] = {}
         self.report: CalibrationReport | None = None
         self.n_estimates = 0
         self.n_failed = 0
@@ -238,9 +252,47 @@ class OnlineCalibration:
                               np.array([k]), np.array([w]))
         return se3.to_translation_rotvec(T)[0], (k, w)
 
-    def register(self, source: str | None, applied: tuple[float, float]) -> None:
-        """Book a new connection row: its source (``None``: no parameters) and the
-        correction it was stored with."""
+    def noise_factors(self, source: str | None) -> tuple[float, float]:
+        """``(s_t, s_r)``: the variance factors of ``source``'s translation and rotation
+        applied to its motions now (1 where not re-estimated; ``None``: none)."""
+        if source is None:
+            return 1.0, 1.0
+        return self._noise_current.get(source, (1.0, 1.0))
+
+    def scaled_cov(self, cov: FloatArray, source: str | None
+                   ) -> tuple[FloatArray, tuple[float, float]]:
+        """``(cov_used, (s_t, s_r))``: a motion's stated covariance (6, 6) scaled by its
+        source's current variance factors (``D C D``, :func:`noise_scale`; ``cov`` itself
+        where they are 1)."""
+        s = self.noise_factors(source)
+        if s == (1.0, 1.0):
+            return cov, s
+        d = noise_scale(np.array(s))[0]
+        return d[:, None] * np.asarray(cov, dtype=float) * d[None, :], s
+
+    def stated(self, cov: FloatArray, conns: IntArray) -> FloatArray:
+        """(m, 6, 6) the stated covariances of connection rows ``conns`` from their stored
+        ones ``cov`` (m, 6, 6): the applied variance factors undone (rows stored as stated are
+        returned as stored)."""
+        n = self.noise_applied.n
+        fac = np.ones((len(conns), 2))
+        inside = np.asarray(conns) < n
+        fac[inside] = self.noise_applied.a[np.asarray(conns)[inside]]
+        sel = np.nonzero((fac != 1.0).any(axis=1))[0]
+        if not sel.size:
+            return cov
+        out = np.array(cov, dtype=float)
+        d = 1.0 / noise_scale(fac[sel])
+        out[sel] = d[:, :, None] * out[sel] * d[:, None, :]
+        return out
+
+    def register(self, source: str | None, applied: tuple[float, float],
+                 noise: tuple[float, float] = (1.0, 1.0)) -> None:
+        """Book a new connection row: its source (``None``: no parameters), the correction
+        it was stored with and the variance factors its covariance was scaled with."""
+        while self.noise_applied.n < self.source.n:  # a book saved without them: as stated
+            self.noise_applied.append((1.0, 1.0))
+        self.noise_applied.append(noise)
         if source is None:
             g = -1
         else:
@@ -361,7 +413,10 @@ class OnlineCalibration:
         stamp = state.stamp.astype(np.float64)
         dt_s = (stamp[state.dst.a[conns]] - stamp[state.src.a[conns]]) * 1e-9
         z = self.measured(state.z.a[conns], dt_s, conns)
-        net = state.subnetwork(rows, conns, z=z)
+        cov = None
+        if (self.noise_applied.a != 1.0).any():  # the stated covariances (factors relative)
+            cov = self.stated(state.ccov.a[conns], conns)
+        net = state.subnetwork(rows, conns, cov=cov, z=z)
         ids = state.idarr.a
         cal = online_calibration_config(config)
         fixes = None
@@ -426,6 +481,16 @@ class OnlineCalibration:
                 cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
         self._fix_current = fix
+        noise: dict[str, list[float]] = {}
+        for f in report.noise:
+            if not f.applied:
+                continue
+            s = noise.setdefault(f.source, [1.0, 1.0])
+            if f.part in ('translation', 'motion'):
+                s[0] = float(f.factor)
+            if f.part in ('rotation', 'motion'):
+                s[1] = float(f.factor)
+        self._noise_current = {k: (v[0], v[1]) for k, v in noise.items()}
 
     # -------------------------------------------------------------------- outputs
     def as_dict(self) -> dict:
@@ -459,6 +524,7 @@ class OnlineCalibration:
             meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
         return meta, {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy(),
                       'cal_fix_shift': self.fix_shift.a.copy(),
+                      'cal_noise': self.noise_applied.a.copy(),
                       'cal_fix_applied': self.fix_applied.a.copy()}
 
     @classmethod
@@ -473,6 +539,9 @@ class OnlineCalibration:
         book.source = Rows.of(np.asarray(arrays['cal_source'], dtype=np.int64), np.int64)
         book.applied = Rows.of(np.asarray(arrays['cal_applied'], dtype=np.float64)
                                .reshape(-1, 2), np.float64)
+        if 'cal_noise' in arrays:  # files without: every covariance as stated
+            book.noise_applied = Rows.of(np.asarray(arrays['cal_noise'], dtype=np.float64)
+                                         .reshape(-1, 2), np.float64)
         if 'cal_fix_shift' in arrays:  # files without: no fix corrected
             book.fix_shift = Rows.of(np.asarray(arrays['cal_fix_shift'], dtype=np.float64)
                                      .reshape(-1, 3), np.float64)
@@ -498,7 +567,7 @@ def _track_rows(state, tracks: list[int]) -> IntArray:
 
 def report_of_dict(d: dict) -> CalibrationReport:
     """The :class:`~ga_ros.core.calibration.CalibrationReport` of its ``as_dict`` (the
-    parameters; the online estimate re-estimates no noise)."""
+    parameters and the noise factors)."""
     nan = float('nan')
 
     def plain(v):
@@ -507,6 +576,10 @@ def report_of_dict(d: dict) -> CalibrationReport:
     names = {f.name for f in fields(AdditionalParameter)}
     params = [AdditionalParameter(**{k: plain(v) for k, v in p.items() if k in names})
               for p in d.get('parameters', [])]
-    return replace(CalibrationReport(params), alpha=plain(d.get('alpha')),
+    noise_names = {f.name for f in fields(NoiseFactor)}
+    noise = [NoiseFactor(**{k: (tuple(plain(x) for x in v) if isinstance(v, list) else plain(v))
+                            for k, v in f.items() if k in noise_names})
+             for f in d.get('noise', [])]
+    return replace(CalibrationReport(params, noise=noise), alpha=plain(d.get('alpha')),
                    sigma0_sq=plain(d.get('sigma0_sq')), iterations=int(d.get('iterations', 0)),
                    solves=int(d.get('solves', 0)))
