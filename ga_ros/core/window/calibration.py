@@ -30,6 +30,12 @@ source's estimated offset ``b`` and time offset ``tau`` and its node's velocity 
 batch's definition over the nodes there are (:meth:`OnlineCalibration.corrected_fix`); the
 applied parameters and the shift are kept per fix (:attr:`OnlineCalibration.fix_shift`).
 
+The noise, with ``calibration_noise``: the estimate re-estimates the calibrated sources'
+variance factors (the batch's ``CalibrationConfig.noise``) from the stated covariances (the
+applied factors undone, :meth:`OnlineCalibration.stated`), and a motion that enters afterwards
+is stored with its stated covariance scaled by them (:meth:`OnlineCalibration.scaled_cov`),
+the factors kept per connection (:attr:`OnlineCalibration.noise_applied`).
+
 Where the estimate runs (:meth:`OnlineCalibration.start`, :meth:`OnlineCalibration.install`).
 Its inputs are copied right after the update ``k`` that triggers it; it is solved in a
 background thread (``executor='thread'``) or at the installation (``'inline'``), and installed
@@ -86,8 +92,8 @@ CALIBRATION_EXECUTORS = ('thread', 'inline')
 #: by a strict aligner (``GA_ROS_STRICT_UPDATES``).
 DATA_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
 
-#: The online estimate's settings: the batch's tests; the stated noise kept (the window
-#: adjustments weight the sources by their stated covariances); the parameters' steps stop
+#: The online estimate's settings: the batch's tests; the stated noise kept unless
+#: ``calibration_noise`` (:func:`online_calibration_config`); the parameters' steps stop
 #: once every one moves less than 1 % of its sigma (the batch: 0.1 %): the test statistic
 #: ``|value| / (sigma0 sigma)`` moves by 0.01 at most against a critical value of ~3.3, and a
 #: horizon estimate takes ~10 % fewer solves (``docs/calibration.md``).
