@@ -508,13 +508,20 @@ class OnlineCalibration:
 
     def diagnostic_values(self) -> dict[str, str]:
         """``/diagnostics`` key/values: ``calibration/<source>/<parameter>`` (the value
-        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``."""
+        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``, for
+        the odometry and the fix sources alike; with ``calibration_noise``,
+        ``calibration/<source>/<part>_noise`` (the variance factor applied, or ``1
+        (stated)``) and ``.../sigma``."""
         out = {'calibration/estimates': str(self.n_estimates)}
         for p in [] if self.report is None else self.report.parameters:
             key = f'calibration/{p.source}/{p.name}'
             out[key] = (f'{p.value:.6g} {p.unit}' if p.estimated
                         else f'0 (not estimated: {p.reason})')
             out[key + '/sigma'] = f'{p.sigma:.3g}'
+        for f in [] if self.report is None else self.report.noise:
+            key = f'calibration/{f.source}/{f.part}_noise'
+            out[key] = f'{f.factor:.4g}' if f.applied else '1 (stated)'
+            out[key + '/sigma'] = f'{f.sigma:.3g}'
         return out
 
     # ---------------------------------------------------------------- persistence

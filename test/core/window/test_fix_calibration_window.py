@@ -159,6 +159,7 @@ def test_the_online_calibration_estimates_a_fix_sources_latency(seed) -> None:
     assert tau.estimated, book.report.lines()
     assert abs(tau.value - 0.5) < 3 * tau.sigma, book.report.lines()
     assert book.n_failed == 0
+    assert book.diagnostic_values()['calibration/gnss/time_offset'] == f'{tau.value:.6g} s'
     applied = book.fix_applied.a
     assert (applied[:, 3] != 0).sum() > len(applied) // 2 and (applied[:3] == 0).all()
     assert (applied[:, :3] == 0).all()  # no offset: not a candidate without a reference

@@ -285,6 +285,9 @@ def test_the_noise_of_a_calibrated_source_is_re_estimated_online(seed):
     lines = book.report.lines()
     assert rot.applied and abs(rot.factor - 1 / 16) < 3 * rot.sigma, lines
     assert rot.factor + 3 * rot.sigma < 1.0, lines
+    diag = book.diagnostic_values()
+    assert diag['calibration/odom0/rotation_noise'] == f'{rot.factor:.4g}'
+    assert diag['calibration/odom0/translation_noise'] == '1 (stated)'
     fac = book.noise_applied.a
     assert (fac[:, 0] == 1.0).all() and (fac[:, 1] < 1.0).any() and (fac[:5] == 1.0).all()
     st = al.state
