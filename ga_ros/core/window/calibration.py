@@ -595,4 +595,5 @@ def report_of_dict(d: dict) -> CalibrationReport:
              for f in d.get('noise', [])]
     return replace(CalibrationReport(params, noise=noise), alpha=plain(d.get('alpha')),
                    sigma0_sq=plain(d.get('sigma0_sq')), iterations=int(d.get('iterations', 0)),
-                   solves=int(d.get('solves', 0)))
+                   solves=int(d.get('solves', 0)),
+                   noise_iterations=int(d.get('noise_iterations', 0)))

@@ -14,6 +14,7 @@ from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window import calibration as online
+from ga_ros.core.window.calibration import report_of_dict
 from ga_ros.core.window.persistence import load_state, save_state, state_arrays
 from ga_ros.geometry import se3
 from ga_ros.sim.biased import biased_survey
@@ -308,6 +309,8 @@ def test_a_restart_continues_the_online_noise_exactly(tmp_path):
     bit."""
     s = _overstated(0)
     al, online = run(s, NOISE)
+    rep = al.online_calibration.report.as_dict()
+    assert rep['noise'] and report_of_dict(rep).as_dict() == rep  # saved as it is
     back, online_back = run(s, NOISE, cut=10 * FIX_EVERY + 7, path=tmp_path / 'state')
     meta, arrays = state_arrays(al.state)
     meta2, arrays2 = state_arrays(back.state)
