@@ -17,8 +17,15 @@ estimates); ``odom+fix cal``: with the fix sources' offset and time offset too
 (``--fix-parameters``, default all four; ``gnss`` is the reference, ``--reference``: its
 frame is the ground truth's, so it gets no offset); ``GTSAM LM``: GTSAM's
 Levenberg-Marquardt on the same graph without calibration (``GPSFactor`` per fix; skipped
-without gtsam). Printed below: each fix parameter's estimate with its sigma (or why it was
-not estimated) against the truth.
+without gtsam). Online (``--no-online`` skips them): the same odometry and fixes fed sample by
+sample to the window aligner (``datum='fixes'``, a track ends at each fix, the estimates inline
+so the CPU is this process's), each node's estimate when it was added: ``online odom cal`` with
+``calibrate`` and the fixes as measured (``calibration_fix_parameters=''``), ``online +fix cal``
+with the fix sources' parameters online too (``--fix-parameters`` and ``--reference`` as
+``calibration_fix_parameters`` and ``calibration_fix_reference``,
+:mod:`ga_ros.core.window.calibration`). Printed below: each fix parameter's estimate with its
+sigma (or why it was not estimated) against the truth, in the batch and in the last online
+estimate.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,9 +51,10 @@ from ga_ros.core.calibration import (
 )
 from ga_ros.core.calibration.fix_parameters import FIX_PARAMETERS
 from ga_ros.core.fixes import AbsoluteFix, FixTerm, gauge_information
+from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, solve
-from ga_ros.core.window import AlignerConfig
+from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.geometry import se3
 
 
@@ -64,6 +72,37 @@ class FixCalFigures:
     rmse_m: dict[str, float] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)
     fix_parameters: list[str] = field(default_factory=list)
+    online_fix_parameters: list[str] = field(default_factory=list)
+
+
+def run_online(run: PlazaRun, obs: FixObservations, cov: FloatArray, cfg: AlignerConfig
+               ) -> tuple[FloatArray, list]:
+    """The online run of the module doc: ``(each node's pose when it was added (n, 4, 4),
+    the last online estimate's parameters)``."""
+    n = run.T_true.shape[0]
+    al = TrackWindowAligner(cfg, T_world_first=run.T_true[0])
+    at: dict[int, list[FixTerm]] = {}
+    for term in obs.terms:
+        at.setdefault(int(term.node_id), []).append(term)
+    online = np.zeros((n, 4, 4))
+    online[0] = run.T_true[0]
+    track = prev = 0
+    for i in range(1, n):
+        al.add_measurement(Measurement.from_pose(i - 1, i, prev, track, run.steps[i - 1], cov,
+                                                 int(run.stamps_s[i] * 1e9)))
+        prev = track
+        for node in (0, i) if i == 1 else (i,):
+            for term in at.get(node, ()):
+                al.add_fix(term)
+        if i in at:
+            al.finish_track()
+            track += 1
+        online[i] = al.pose(i)
+    al.wait_background()
+    book = al.online_calibration
+    params = [] if book is None or book.report is None else list(book.report.parameters)
+    al.close()
+    return online, params
 
 
 def plaza_fixes(run: PlazaRun, interval_s: float, noise_m: float, latency_s: float,
@@ -98,7 +137,8 @@ def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
                  offset_m: FloatArray | None, fix_parameters: tuple[str, ...],
                  reference: tuple[str, ...] = ('gnss',), seed: int = 0,
                  path: str | Path = DEFAULT_MAT, sigma_xy: float = 0.02,
-                 sigma_yaw: float = 0.005, with_gtsam: bool = True) -> FixCalFigures:
+                 sigma_yaw: float = 0.005, with_gtsam: bool = True,
+                 with_online: bool = True) -> FixCalFigures:
     """One setting of the benchmark (module doc)."""
     run = load_plaza(path)
     obs, nodes, pos = plaza_fixes(run, interval_s, noise_m, latency_s, offset_m, seed)
@@ -147,6 +187,21 @@ def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
             continue
         true = truth.get((p.source, p.name), 0.0)
         fig.fix_parameters.append(f'{p.line()}  [truth {true:g} {p.unit}]')
+    if with_online:
+        online_cfg = AlignerConfig(datum='fixes', calibrate=True, refine_executor='inline',
+                                   calibration_fix_parameters='')
+        for label, fcfg in (('online odom cal', online_cfg),
+                            ('online +fix cal', replace(
+                                online_cfg, calibration_fix_parameters=','.join(fix_parameters),
+                                calibration_fix_reference=','.join(reference)))):
+            c0 = time.process_time()
+            T, params = run_online(run, obs, cov, fcfg)
+            fig.cpu_s[label] = time.process_time() - c0
+            fig.rmse_m[label] = _rmse(T, run.T_true)
+        for p in params:
+            if FIX_PARAMETERS.get(p.name) is not None:
+                true = truth.get((p.source, p.name), 0.0)
+                fig.online_fix_parameters.append(f'{p.line()}  [truth {true:g} {p.unit}]')
     if with_gtsam and gtsam_installed():
         from ga_ros.bench.fixes import run_gtsam_batch
 
@@ -157,7 +212,8 @@ def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
 
 def table(figs: list[FixCalFigures]) -> str:
     """The figures as text (module doc)."""
-    cols = ['dead reckoning', 'plain', 'odom cal', 'odom+fix cal', 'GTSAM LM']
+    cols = ['dead reckoning', 'plain', 'odom cal', 'odom+fix cal', 'GTSAM LM',
+            'online odom cal', 'online +fix cal']
     lines = ['ga-ros bench fixcal: Plaza odometry + fixes with a latency (and an offset '
              'source); 2-D position RMSE (m) / process CPU (s) of each batch',
              'interval  noise  latency  offset            fixes  ' + '  '.join(
@@ -167,8 +223,12 @@ def table(figs: list[FixCalFigures]) -> str:
         lines.append(f'{f.interval_s:8g}  {f.noise_m:5g}  {f.latency_s:7g}  {off:16s}  '
                      f'{f.n_fixes:5d}  ' + rmse_cpu_cells(f.rmse_m, f.cpu_s, cols))
         lines += ['    ' + x for x in f.fix_parameters]
+        lines += ['    online: ' + x for x in f.online_fix_parameters]
     lines.append('ratio odom+fix cal / odom cal (RMSE): ' + ', '.join(
         f"{f.rmse_m['odom+fix cal'] / f.rmse_m['odom cal']:.3f}" for f in figs))
+    if all('online odom cal' in f.rmse_m for f in figs):
+        lines.append('ratio online +fix cal / online odom cal (RMSE): ' + ', '.join(
+            f"{f.rmse_m['online +fix cal'] / f.rmse_m['online odom cal']:.3f}" for f in figs))
     return '\n'.join(lines)
 
 
@@ -191,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--sigma-xy', type=float, default=0.02)
     ap.add_argument('--sigma-yaw', type=float, default=0.005)
     ap.add_argument('--no-gtsam', action='store_true')
+    ap.add_argument('--no-online', action='store_true', help='skip the online columns')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():
@@ -204,7 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     params = tuple(x for x in args.fix_parameters.split(',') if x)
     reference = tuple(x for x in args.reference.split(',') if x)
     figs = [bench_fixcal(float(i), args.noise, args.latency, offset, params, reference,
-                         args.seed, args.data, args.sigma_xy, args.sigma_yaw, not args.no_gtsam)
+                         args.seed, args.data, args.sigma_xy, args.sigma_yaw, not args.no_gtsam,
+                         not args.no_online)
             for i in args.intervals.split(',')]
     print(json.dumps([asdict(f) for f in figs]) if args.json else table(figs))
     return 0

@@ -427,15 +427,17 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                 with_gtsam: bool = True, isam2_converged: bool = False,
                 refine_every: int | None = None, executor: str | None = None,
                 calibrate: bool = True, relinearize_sigma: float | None = None,
-                walk: tuple[ParameterModel, ...] = (RandomWalk('yaw_rate'),)
-                ) -> FixBenchFigures:
+                walk: tuple[ParameterModel, ...] = (RandomWalk('yaw_rate'),),
+                online_noise: bool = False) -> FixBenchFigures:
     """One setting of the benchmark (module doc); ``refine_every``, ``executor``,
     ``relinearize_sigma``: the aligner's ``refine_every_tracks``, ``refine_executor`` and
     ``refine_relinearize_sigma`` (``None``: its defaults, as ``ga-ros replay`` runs it: a
     refinement at a track's end once the frozen nodes drifted by 1 sigma, inline or in a worker
     process by its size);
     ``calibrate``: also the final batch with self-calibration, and with ``walk``'s parameter
-    models (by default the yaw rate as a random walk; ``()``: not run)."""
+    models (by default the yaw rate as a random walk; ``()``: not run); ``online_noise``: the
+    online + calibration run with ``calibration_noise`` (the calibrated source's noise
+    re-estimated online too)."""
     run = load_plaza(path)
     idx, p = make_fixes(run, interval_s, noise_m, seed)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
@@ -474,7 +476,8 @@ def bench_fixes(interval_s: float, noise_m: float, seed: int = 0, path: str | Pa
                           ours_online_staged_cpu_s=staged.online_cpu_s,
                           work_per_update=staged.work_per_update)
     if calibrate:  # ours online + calibration: the online run with AlignerConfig.calibrate
-        cal = run_ours(run, idx, p, noise_m, cov, replace(cfg, calibrate=True), final=False)
+        cal = run_ours(run, idx, p, noise_m, cov,
+                       replace(cfg, calibrate=True, calibration_noise=online_noise), final=False)
         fig.ours_online_cal_m = _rmse(cal.online, run.T_true)
         fig.ours_online_cal_cpu_s = cal.online_cpu_s
         fig.cal_update_ms_quarters = _quarters(cal.update_ms)
@@ -730,6 +733,9 @@ def main(argv: list[str] | None = None) -> int:
                     'sqrt(s); default %(default)g)')
     ap.add_argument('--no-walk', action='store_true',
                     help='skip the final + calibration (random walk) column')
+    ap.add_argument('--online-noise', action='store_true',
+                    help='ours online + calibration re-estimates the calibrated noise online '
+                    '(AlignerConfig.calibration_noise)')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     if not Path(args.data).is_file():
@@ -743,7 +749,8 @@ def main(argv: list[str] | None = None) -> int:
                         args.refine_every, args.executor, not args.no_calibration,
                         args.relinearize_sigma,
                         () if args.no_walk else (RandomWalk('yaw_rate', args.walk_segment,
-                                                            args.walk_sigma),))
+                                                            args.walk_sigma),),
+                        args.online_noise)
             for s in args.noise.split(',') for i in args.intervals.split(',')
             for seed in range(args.seed, args.seed + args.seeds)]
     if args.json:

@@ -387,3 +387,41 @@ def test_the_online_calibration_is_kept_across_recoveries(tmp_path, config, comp
     assert len(set(estimates)) > 2, estimates  # cuts between different estimates
     _resume_each(cuts, entries, cfg, compact, mode, finish_after)
     live.close()
+
+
+USBL1_OFFSET = np.array([1.5, -1.0, 0.0])  # m, map: usbl1's fixes offset against gnss0's
+
+
+def _offset(entry):
+    """``usbl1``'s fixes moved by :data:`USBL1_OFFSET`; every other entry as it is."""
+    if not (isinstance(entry, tuple) and entry[0].fix.source == 'usbl1'):
+        return entry
+    term, c_offset = entry
+    T = np.array(term.fix.T_map_sensor, dtype=float)
+    T[:3, 3] += USBL1_OFFSET
+    return replace(term, fix=replace(term.fix, T_map_sensor=T)), c_offset
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize('compact, mode', [(4, 'journal'), (4, 'snapshot')])
+def test_the_online_fix_calibration_is_kept_across_recoveries(tmp_path, compact, mode):
+    """With the fix sources calibrated online (``usbl1``'s offset against ``gnss0``), the
+    corrected fixes and their booked shifts are part of the state: recovered at any cut, from
+    the journal (which holds the fixes as measured, corrected again on the replay) or the
+    snapshot, the uninterrupted run's bit for bit."""
+    cfg = replace(CONFIGS['every_track'], calibrate=True, calibration_refresh=0.0,
+                  calibration_fix_parameters='offset_x,offset_y,offset_z,time_offset',
+                  calibration_fix_reference='gnss0')
+    entries = [_offset(e) for e in survey()]
+    finish_after = _finish_after(entries)
+    live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
+                                               compact_records=compact))
+    live.resume()
+    cuts = _cuts(live, entries, finish_after, tmp_path)
+    book = live.aligner.online_calibration
+    off = {p.name: p for p in book.report.parameters if p.source == 'usbl1'}
+    assert off['offset_x'].estimated, book.report.lines()
+    assert abs(off['offset_x'].value - USBL1_OFFSET[0]) < 4 * off['offset_x'].sigma
+    assert sum(c.state[1]['cal_fix_shift'].any() for c in cuts) >= 2  # shifts at the cuts
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
+    live.close()

@@ -158,18 +158,53 @@ class FixObservations:
         return order[pos]
 
 
-def book_observations(book: FixBook, rows: IntArray, stamps_s: FloatArray
-                      ) -> FixObservations:
+def book_observations(book: FixBook, rows: IntArray, stamps_s: FloatArray,
+                      applied: FloatArray | None = None) -> FixObservations:
     """The used fixes of an aligner's fix book on the node ``rows`` (the gauge prior of
     ``datum='fixes'`` left out: it stays a prior), one by one in the book's order, with the
     information they enter with (:meth:`~ga_ros.core.fixes.FixBook.information_used`);
     ``stamps_s`` (n,) the stamps of the network's nodes (s, network index order). The
     :func:`fix_priors` of the result equal the book's fix prior
-    (:meth:`~ga_ros.core.fixes.FixBook.priors` without the gauge's) bit for bit."""
+    (:meth:`~ga_ros.core.fixes.FixBook.priors` without the gauge's) bit for bit.
+
+    ``applied`` (len(book), 3): the shift (m, map) each book fix was stored with (the online
+    calibration's correction, :func:`fix_shift`): the observations are then the fixes as
+    measured (the stored position minus it; None or a zero row: as stored)."""
     used = [int(f) for f in book.used(rows) if book.gated[f]]
     info = book.information_used(used)
-    return FixObservations([book.terms[f] for f in used],
-                           np.array(info).reshape(-1, 6, 6), stamps_s)
+    terms = [book.terms[f] for f in used]
+    if applied is not None:
+        terms = [t if not np.any(applied[f]) else replace(t, fix=replace(
+            t.fix, T_map_sensor=_moved(t.fix.T_map_sensor, -applied[f])))
+            for t, f in zip(terms, used)]
+    return FixObservations(terms, np.array(info).reshape(-1, 6, 6), stamps_s)
+
+
+def node_velocity(T_world_node: FloatArray, stamps_s: FloatArray, row: int) -> FloatArray:
+    """(3,) the velocity (m/s, world frame) of node ``row``: :func:`node_velocities`' value
+    for that node, computed from its two neighbours in time only (the nodes ordered by stamp,
+    ties by row, as :func:`node_velocities`' stable sort orders them)."""
+    t = np.asarray(stamps_s, dtype=float)
+    n = t.size
+    idx = np.arange(n)
+    tk = t[row]
+    before = np.nonzero((t < tk) | ((t == tk) & (idx < row)))[0]
+    after = np.nonzero((t > tk) | ((t == tk) & (idx > row)))[0]
+    if before.size:
+        last = t[before].max()
+        prev = int(before[t[before] == last].max())
+    else:
+        prev = int(row)
+    if after.size:
+        first = t[after].min()
+        nxt = int(after[t[after] == first].min())
+    else:
+        nxt = int(row)
+    span = t[nxt] - t[prev]
+    if not span > 0:
+        return np.zeros(3)
+    T = np.asarray(T_world_node)
+    return (T[nxt, :3, 3] - T[prev, :3, 3]) / span
 
 
 def node_velocities(T_world_node: FloatArray, stamps_s: FloatArray) -> FloatArray:

@@ -232,11 +232,17 @@ class TrackWindowAligner:
             stamp, right perturbation in the node frame), added to the fix's covariance in its
             known dimensions; ``None``: an exact offset.
 
+        With the online calibration (``calibrate``) the fix is stored corrected by its
+        source's current estimate of ``calibration_fix_parameters`` (time offset, offsets;
+        :meth:`OnlineCalibration.corrected_fix
+        <ga_ros.core.window.calibration.OnlineCalibration.corrected_fix>`), installed first as
+        before an odometry motion; the shift applied is booked per fix.
+
         Returns
         -------
         (6, 6) the information the fix entered with (map frame, the offset's covariance
-        included): a journal records the fix with it, so a replay (``C_offset=None``) adds the
-        same term.
+        included): a journal records the fix (as measured) with it, so a replay
+        (``C_offset=None``) adds the same term with the same correction.
 
         Raises
         ------
@@ -258,6 +264,14 @@ class TrackWindowAligner:
         info = term.fix.information
         if C_offset is not None:
             info = offset_information(term.fix, st.T[k], C_offset)
+        cal = self.online_calibration
+        if cal is not None and self.config.calibration_fix_parameters.strip():
+            # the estimate started by the last update: used from now on (as for a motion)
+            cal.install(self.strict)
+            stamp = st.stamp
+            term, shift, applied = cal.corrected_fix(term, st.T[:stamp.size],
+                                                     stamp.astype(np.float64) * 1e-9, k)
+            cal.register_fix(len(st.fixes), shift, applied)
         st.fixes.add(k, term, info)
         return info
 
@@ -326,10 +340,13 @@ class TrackWindowAligner:
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
             if z is not plan.z:
                 plan = replace(plan, z=z)
+            cov, noise = cal.scaled_cov(plan.cov, source)  # calibration_noise's factors
+            if cov is not plan.cov:
+                plan = replace(plan, cov=cov)
         apply_measurement(self.state, m, plan)
         if self.state.src.n > n_conn:
             if cal is not None:
-                cal.register(source, applied)
+                cal.register(source, applied, noise)
                 cal.register_group(source_or_group(m) if cal.cameras else '')
             if self.online_variance is not None:
                 self.online_variance.register(variance_group(m))
@@ -844,13 +861,21 @@ class TrackWindowAligner:
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             # the fixes one by one for their sources' parameters (offset, time offset): their
             # priors are the book's bit for bit, so nothing changes where none is estimated
-            fix_obs = (book_observations(st.fixes, np.arange(n), stamp[:n] * 1e-9)
+            # (as measured: the online calibration's shifts undone, so the whole correction is
+            # estimated)
+            fix_obs = (book_observations(st.fixes, np.arange(n), stamp[:n] * 1e-9,
+                                         None if self.online_calibration is None else
+                                         self.online_calibration.fix_shifts(len(st.fixes)))
                        if calibration.fix_parameters and st.fixes.terms else None)
         elif variance_groups is not None:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
+        cov_net = None  # with calibration, the stated covariances (its noise factors relative)
+        if (calibration is not None and self.online_calibration is not None
+                and (self.online_calibration.noise_applied.a != 1.0).any()):
+            cov_net = self.online_calibration.stated(st.ccov.a[keep], keep)
         # from the aligner's arrays, checked at insertion (no per-connection validation and
         # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)
-        net = st.subnetwork(np.arange(n), keep, z=z_net)
+        net = st.subnetwork(np.arange(n), keep, cov=cov_net, z=z_net)
 
         def adjust(T0: FloatArray, priors: list) -> SolveResult:
             """One adjustment from ``T0`` with the fixes' priors ``priors``."""

@@ -1,6 +1,7 @@
 """Self-calibration online: each odometry source's additional parameters (scale and yaw-rate
-corrections, :mod:`ga_ros.core.calibration`) estimated while the survey runs and applied to
-the source's motions as they enter the window.
+corrections, :mod:`ga_ros.core.calibration`) and each fix source's (time offset, offsets:
+``AlignerConfig.calibration_fix_parameters``) estimated while the survey runs and applied to
+the source's motions and fixes as they enter the window.
 
 The scheme (``docs/calibration.md``, *Online*). After each successful window update the
 parameters are estimated again (:class:`HorizonEstimate`, off the update's critical path) by
@@ -20,14 +21,30 @@ parameters (0 where not estimated), and its applied ``(k, omega)`` is kept per c
 the motion as measured is always recoverable (:meth:`OnlineCalibration.measured`): the next
 horizon estimate and the final batch's calibration start from it.
 
+The fixes alike. The horizon's fixes enter the estimate one by one and as measured
+(:func:`~ga_ros.core.calibration.book_observations` with the booked shifts undone), with the
+fix parameters of :func:`online_calibration_config`. A fix that enters the window afterwards
+is stored with the batch's correction
+(:func:`~ga_ros.core.calibration.fix_parameters.fix_shift`), ``p_fix - b + v tau`` with its
+source's estimated offset ``b`` and time offset ``tau`` and its node's velocity ``v`` by the
+batch's definition over the nodes there are (:meth:`OnlineCalibration.corrected_fix`); the
+applied parameters and the shift are kept per fix (:attr:`OnlineCalibration.fix_shift`).
+
+The noise, with ``calibration_noise``: the estimate re-estimates the calibrated sources'
+variance factors (the batch's ``CalibrationConfig.noise``) from the stated covariances (the
+applied factors undone, :meth:`OnlineCalibration.stated`), and a motion that enters afterwards
+is stored with its stated covariance scaled by them (:meth:`OnlineCalibration.scaled_cov`),
+the factors kept per connection (:attr:`OnlineCalibration.noise_applied`).
+
 Where the estimate runs (:meth:`OnlineCalibration.start`, :meth:`OnlineCalibration.install`).
 Its inputs are copied right after the update ``k`` that triggers it; it is solved in a
 background thread (``executor='thread'``) or at the installation (``'inline'``), and installed
-when the first odometry motion after that update enters (or at the next update's start if none
-did), waiting for it there if it is not ready. Every motion is thus corrected with the estimate
-of the last update before it, as if the estimate had run inside the update, and which estimate
-that is depends on the order of the data only, never on the thread's timing: a replay and a
-live node, and both executors, give the same path bit for bit. The update returns (and is
+when the first odometry motion (or fix, with fix parameters) after that update enters (or at
+the next update's start if none did), waiting for it there if it is not ready. Every motion
+(and fix) is thus corrected with the estimate of the last update before it, as if the estimate
+had run inside the update, and which estimate that is depends on the order of the data only,
+never on the thread's timing: a replay and a live node, and both executors, give the same path
+bit for bit. The update returns (and is
 published) before the estimate is solved; a track that ends at a fix gives the estimate the
 time until the next motion.
 
@@ -46,13 +63,18 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.core.calibration import (
+    FIX_PARAMETERS,
     AdditionalParameter,
     CalibrationConfig,
     CalibrationReport,
+    FixObservations,
+    NoiseFactor,
+    book_observations,
     corrected_motions,
     solve_with_calibration,
 )
-from ga_ros.core.fixes import gauge_information
+from ga_ros.core.calibration.fix_parameters import node_velocity
+from ga_ros.core.fixes import FixTerm, gauge_information
 from ga_ros.core.measurement import Measurement, variance_group
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig
@@ -70,12 +92,33 @@ CALIBRATION_EXECUTORS = ('thread', 'inline')
 #: by a strict aligner (``GA_ROS_STRICT_UPDATES``).
 DATA_FAILURES = (GaError, np.linalg.LinAlgError, FloatingPointError)
 
-#: The online estimate's settings: the batch's tests; the stated noise kept (the window
-#: adjustments weight the sources by their stated covariances); the parameters' steps stop
+#: The online estimate's settings: the batch's tests; the stated noise kept unless
+#: ``calibration_noise`` (:func:`online_calibration_config`); the parameters' steps stop
 #: once every one moves less than 1 % of its sigma (the batch: 0.1 %): the test statistic
 #: ``|value| / (sigma0 sigma)`` moves by 0.01 at most against a critical value of ~3.3, and a
 #: horizon estimate takes ~10 % fewer solves (``docs/calibration.md``).
 ONLINE_CALIBRATION = CalibrationConfig(noise=False, tolerance=1e-2)
+
+#: The fix parameters of a fix source's book row (:attr:`OnlineCalibration.fix_applied`): the
+#: offset ``b`` (m, map) per axis, then the time offset ``tau`` (s).
+FIX_SLOTS = ('offset_x', 'offset_y', 'offset_z', 'time_offset')
+
+
+def online_calibration_config(config) -> CalibrationConfig:
+    """The horizon estimate's settings for an aligner ``config``
+    (:class:`~ga_ros.core.window.AlignerConfig`): :data:`ONLINE_CALIBRATION` with the fix
+    sources' parameters and references of ``calibration_fix_parameters`` and
+    ``calibration_fix_reference``."""
+    fix, ref = config.calibration_fix_config()
+    return replace(ONLINE_CALIBRATION, fix_parameters=fix, fix_reference=ref,
+                   noise=bool(config.calibration_noise))
+
+
+def noise_scale(factors: FloatArray) -> FloatArray:
+    """(m, 6) the square roots of the variance factors ``(s_t, s_r)`` (m, 2) on the rows
+    ``[x y z rx ry rz]``: a covariance ``C`` scaled is ``D C D``, ``D = diag(d)``."""
+    f = np.sqrt(np.asarray(factors, dtype=float).reshape(-1, 2))
+    return np.repeat(f, 3, axis=1)
 
 
 def calibration_source(m: Measurement) -> str | None:
@@ -93,10 +136,12 @@ class HorizonEstimate:
 
     Attributes
     ----------
-    network, T_init, sources, dt_s, solver, priors : the arguments of
+    network, T_init, sources, dt_s, solver, priors, fixes, calibration : the arguments of
         :func:`~ga_ros.core.calibration.solve_with_calibration` (the horizon's connections with
         their motions as measured, its poses at their current estimates, each connection's
-        source, durations in s, the solver's settings, the fixes and the gauge prior).
+        source, durations in s, the solver's settings, the gauge prior (and the fixes' priors
+        when no fix parameter is a candidate), the fixes one by one as measured (``None``: in
+        ``priors``) and the settings, :func:`online_calibration_config`).
     cameras, groups : the cameras whose extrinsic rotation the estimate includes and every
         connection's source (cross-track ones too: :func:`camera_estimate_inputs`); ``()``,
         ``None``: none.
@@ -112,6 +157,8 @@ class HorizonEstimate:
     dt_s: FloatArray
     solver: SolverConfig
     priors: list
+    fixes: FixObservations | None = None
+    calibration: CalibrationConfig = ONLINE_CALIBRATION
     report: CalibrationReport | None = None
     error: BaseException | None = None
     done: bool = False
@@ -123,12 +170,12 @@ class HorizonEstimate:
     def run(self) -> None:
         """Solve the estimate (in the calling thread; BLAS as that thread has it)."""
         c0 = time.thread_time()
-        cal = (replace(ONLINE_CALIBRATION, cameras=self.cameras) if self.cameras
-               else ONLINE_CALIBRATION)
+        cal = (replace(self.calibration, cameras=self.cameras) if self.cameras
+               else self.calibration)
         try:
             _, self.report = solve_with_calibration(
                 self.network, self.T_init, self.sources, self.dt_s, self.solver, fixed=[],
-                priors=self.priors, calibration=cal, groups=self.groups)
+                priors=self.priors, calibration=cal, fixes=self.fixes, groups=self.groups)
         except BaseException as exc:  # noqa: BLE001 - judged at the installation
             self.error = exc
         self.cpu_ms = 1e3 * (time.thread_time() - c0)
@@ -146,8 +193,9 @@ class HorizonEstimate:
     @classmethod
     def finished(cls, report: CalibrationReport | None) -> HorizonEstimate:
         """A finished estimate restored from a state file (``None``: one that failed)."""
-        est = cls(None, np.zeros((0, 4, 4)), [], np.zeros(0), SolverConfig(), [], report,
-                  None if report is not None else GaError('the saved estimate failed'))
+        est = cls(None, np.zeros((0, 4, 4)), [], np.zeros(0), SolverConfig(), [],
+                  report=report,
+                  error=None if report is not None else GaError('the saved estimate failed'))
         est.done = True
         return est
 
@@ -170,18 +218,31 @@ class OnlineCalibration:
     last_conns, last_horizon : the connection rows when the last estimate ran and the
         connections its horizon held (when the next one is due,
         ``AlignerConfig.calibration_refresh``).
+    fix_applied, fix_shift : per fix of the aligner's fix book (its index; the gauge prior
+        and fixes added before any correction: zeros) the fix parameters applied when it
+        entered (``b_x, b_y, b_z`` m, ``tau`` s: :data:`FIX_SLOTS`) and the resulting shift of
+        its position (m, map): stored ``p_fix - b + v tau``, ``v`` its node's velocity then
+        (:meth:`corrected_fix`).
+    noise_applied : per connection row the variance factors ``(s_t, s_r)`` of its source's
+        translation and rotation (both the same for a ``motion`` part) its stored covariance
+        was scaled with when it entered (1, 1: as stated; ``calibration_noise``).
     """
 
     def __init__(self) -> None:
         self.names: list[str] = []
         self.source = Rows((), np.int64)
         self.applied = Rows((2,), np.float64)
+        self.noise_applied = Rows((2,), np.float64)
+        self._noise_current: dict[str, tuple[float, float]] = {}
         self.report: CalibrationReport | None = None
         self.n_estimates = 0
         self.n_failed = 0
         self.last_conns = 0  # connection rows at the last estimate
         self.last_horizon = 0  # the connections its horizon held
         self._current: dict[str, tuple[float, float]] = {}
+        self.fix_applied = Rows((4,), np.float64)
+        self.fix_shift = Rows((3,), np.float64)
+        self._fix_current: dict[str, FloatArray] = {}
         self.pending: HorizonEstimate | None = None
         #: the cameras the estimates include (``AlignerConfig.calibrate_cameras``; set by the
         #: aligner, not saved) and every connection's source, cross-track ones too
@@ -210,9 +271,47 @@ class OnlineCalibration:
                               np.array([k]), np.array([w]))
         return se3.to_translation_rotvec(T)[0], (k, w)
 
-    def register(self, source: str | None, applied: tuple[float, float]) -> None:
-        """Book a new connection row: its source (``None``: no parameters) and the
-        correction it was stored with."""
+    def noise_factors(self, source: str | None) -> tuple[float, float]:
+        """``(s_t, s_r)``: the variance factors of ``source``'s translation and rotation
+        applied to its motions now (1 where not re-estimated; ``None``: none)."""
+        if source is None:
+            return 1.0, 1.0
+        return self._noise_current.get(source, (1.0, 1.0))
+
+    def scaled_cov(self, cov: FloatArray, source: str | None
+                   ) -> tuple[FloatArray, tuple[float, float]]:
+        """``(cov_used, (s_t, s_r))``: a motion's stated covariance (6, 6) scaled by its
+        source's current variance factors (``D C D``, :func:`noise_scale`; ``cov`` itself
+        where they are 1)."""
+        s = self.noise_factors(source)
+        if s == (1.0, 1.0):
+            return cov, s
+        d = noise_scale(np.array(s))[0]
+        return d[:, None] * np.asarray(cov, dtype=float) * d[None, :], s
+
+    def stated(self, cov: FloatArray, conns: IntArray) -> FloatArray:
+        """(m, 6, 6) the stated covariances of connection rows ``conns`` from their stored
+        ones ``cov`` (m, 6, 6): the applied variance factors undone (rows stored as stated are
+        returned as stored)."""
+        n = self.noise_applied.n
+        fac = np.ones((len(conns), 2))
+        inside = np.asarray(conns) < n
+        fac[inside] = self.noise_applied.a[np.asarray(conns)[inside]]
+        sel = np.nonzero((fac != 1.0).any(axis=1))[0]
+        if not sel.size:
+            return cov
+        out = np.array(cov, dtype=float)
+        d = 1.0 / noise_scale(fac[sel])
+        out[sel] = d[:, :, None] * out[sel] * d[:, None, :]
+        return out
+
+    def register(self, source: str | None, applied: tuple[float, float],
+                 noise: tuple[float, float] = (1.0, 1.0)) -> None:
+        """Book a new connection row: its source (``None``: no parameters), the correction
+        it was stored with and the variance factors its covariance was scaled with."""
+        while self.noise_applied.n < self.source.n:  # a book saved without them: as stated
+            self.noise_applied.append((1.0, 1.0))
+        self.noise_applied.append(noise)
         if source is None:
             g = -1
         else:
@@ -249,6 +348,54 @@ class OnlineCalibration:
                                   -w)
             z[sel] = se3.to_translation_rotvec(T)
         return z
+
+    def fix_correction(self, source: str) -> FloatArray:
+        """(4,) the fix parameters ``b_x, b_y, b_z`` (m) and ``tau`` (s) applied to a fix of
+        ``source`` now (0 where not estimated)."""
+        cur = self._fix_current.get(source)
+        return np.zeros(4) if cur is None else cur.copy()
+
+    def corrected_fix(self, term: FixTerm, T_world_node: FloatArray, stamps_s: FloatArray,
+                      row: int) -> tuple[FixTerm, FloatArray, FloatArray]:
+        """``(term_corr, shift (3,), applied (4,))``: a fix entering the window corrected by its
+        source's current estimate, as the batch corrects it
+        (:func:`~ga_ros.core.calibration.fix_parameters.fix_shift`): its measured position
+        moved by ``shift = -b + v tau``, ``v`` (m/s, map) its node's velocity from the node's
+        neighbours in time at their current estimates
+        (:func:`~ga_ros.core.calibration.fix_parameters.node_velocity` of the node ``row`` over
+        the poses ``T_world_node`` (n, 4, 4) and stamps ``stamps_s`` (n,) s of every node so
+        far: one-sided for the newest node). ``term`` itself where nothing is estimated."""
+        c = self.fix_correction(term.fix.source)
+        if not c.any():
+            return term, np.zeros(3), c
+        shift = -c[:3]
+        if c[3] != 0.0:
+            shift = shift + node_velocity(T_world_node, stamps_s, row) * c[3]
+        if not shift.any():
+            return term, shift, c
+        T = np.array(term.fix.T_map_sensor, dtype=float)
+        T[:3, 3] += shift
+        return replace(term, fix=replace(term.fix, T_map_sensor=T)), shift, c
+
+    def register_fix(self, index: int, shift: FloatArray, applied: FloatArray) -> None:
+        """Book the fix of index ``index`` in the aligner's fix book with the shift and
+        parameters it was stored with (the rows before it that were not booked: zeros)."""
+        self._pad_fixes(index)
+        self.fix_shift.append(np.asarray(shift, dtype=float))
+        self.fix_applied.append(np.asarray(applied, dtype=float))
+
+    def _pad_fixes(self, n: int) -> None:
+        while self.fix_shift.n < n:
+            self.fix_shift.append(np.zeros(3))
+            self.fix_applied.append(np.zeros(4))
+
+    def fix_shifts(self, n: int) -> FloatArray:
+        """(n, 3) the shift each of the first ``n`` fixes of the fix book was stored with
+        (zeros for those not booked)."""
+        out = np.zeros((n, 3))
+        m = min(n, self.fix_shift.n)
+        out[:m] = self.fix_shift.a[:m]
+        return out
 
     # -------------------------------------------------------------------- estimate
     def start(self, state, config, executor: str = 'thread') -> HorizonEstimate | None:
@@ -293,10 +440,23 @@ class OnlineCalibration:
         stamp = state.stamp.astype(np.float64)
         dt_s = (stamp[state.dst.a[conns]] - stamp[state.src.a[conns]]) * 1e-9
         z = self.measured(state.z.a[conns], dt_s, conns)
-        net = state.subnetwork(rows, conns, z=z)
+        cov = None
+        if (self.noise_applied.a != 1.0).any():  # the stated covariances (factors relative)
+            cov = self.stated(state.ccov.a[conns], conns)
+        net = state.subnetwork(rows, conns, cov=cov, z=z)
         ids = state.idarr.a
-        priors = state.fixes.priors(rows, state.T, ids)
-        priors = [p for p in priors if not p.weak]
+        cal = online_calibration_config(config)
+        fixes = None
+        if cal.fix_parameters and len(state.fixes):
+            # the fixes one by one, as measured (their applied shifts undone): their
+            # sources' parameters are estimated whole, as the motions' are
+            fixes = book_observations(state.fixes, rows, stamp[rows] * 1e-9,
+                                      self.fix_shifts(len(state.fixes)))
+            fixes = fixes if len(fixes) else None
+        if fixes is None:
+            priors = [p for p in state.fixes.priors(rows, state.T, ids) if not p.weak]
+        else:
+            priors = []  # the fixes' priors: fix_priors(fixes) of the same terms, bit for bit
         priors.append(GaussianPrior(ids[[lo]], state.T[[lo]].copy(),
                                     gauge_information(config.gauge_sigma_m,
                                                       config.gauge_sigma_tilt_rad,
@@ -305,7 +465,7 @@ class OnlineCalibration:
         self.last_conns, self.last_horizon = int(state.src.n), int(conns.size)
         return camera_estimate_inputs(
             self, conns, HorizonEstimate(net, state.T[rows].copy(), self.sources_of(conns),
-                                         dt_s, config.solver_config(), priors))
+                                         dt_s, config.solver_config(), priors, fixes, cal))
 
     def install(self, strict: bool = False) -> float:
         """Use the pending estimate (waiting for it, or solving it inline) for the motions that
@@ -340,12 +500,25 @@ class OnlineCalibration:
     def _use(self, report: CalibrationReport) -> None:
         self.report = report
         cur: dict[str, tuple[float, float]] = {}
+        fix: dict[str, FloatArray] = {}
         for p in report.estimated():
-            if p.name not in ('scale', 'yaw_rate'):   # a camera's: published, not applied
-                continue
-            k, w = cur.get(p.source, (0.0, 0.0))
-            cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
+            if p.name in FIX_PARAMETERS:
+                fix.setdefault(p.source, np.zeros(4))[FIX_SLOTS.index(p.name)] = p.value
+            elif p.name in ('scale', 'yaw_rate'):
+                k, w = cur.get(p.source, (0.0, 0.0))
+                cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
+        self._fix_current = fix
+        noise: dict[str, list[float]] = {}
+        for f in report.noise:
+            if not f.applied:
+                continue
+            s = noise.setdefault(f.source, [1.0, 1.0])
+            if f.part in ('translation', 'motion'):
+                s[0] = float(f.factor)
+            if f.part in ('rotation', 'motion'):
+                s[1] = float(f.factor)
+        self._noise_current = {k: (v[0], v[1]) for k, v in noise.items()}
 
     # -------------------------------------------------------------------- outputs
     def as_dict(self) -> dict:
@@ -357,13 +530,20 @@ class OnlineCalibration:
 
     def diagnostic_values(self) -> dict[str, str]:
         """``/diagnostics`` key/values: ``calibration/<source>/<parameter>`` (the value
-        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``."""
+        applied, with its unit, or ``0 (not estimated: <reason>)``) and ``.../sigma``, for
+        the odometry and the fix sources alike; with ``calibration_noise``,
+        ``calibration/<source>/<part>_noise`` (the variance factor applied, or ``1
+        (stated)``) and ``.../sigma``."""
         out = {'calibration/estimates': str(self.n_estimates)}
         for p in [] if self.report is None else self.report.parameters:
             key = f'calibration/{p.source}/{p.name}'
             out[key] = (f'{p.value:.6g} {p.unit}' if p.estimated
                         else f'0 (not estimated: {p.reason})')
             out[key + '/sigma'] = f'{p.sigma:.3g}'
+        for f in [] if self.report is None else self.report.noise:
+            key = f'calibration/{f.source}/{f.part}_noise'
+            out[key] = f'{f.factor:.4g}' if f.applied else '1 (stated)'
+            out[key + '/sigma'] = f'{f.sigma:.3g}'
         out.update(camera_diagnostic_values(self))
         return out
 
@@ -378,7 +558,10 @@ class OnlineCalibration:
         if job is not None:  # finished now, saved with its result (installed as without a cut)
             job.wait()
             meta['pending'] = {'report': None if job.report is None else job.report.as_dict()}
-        arrays = {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy()}
+        arrays = {'cal_source': self.source.a.copy(), 'cal_applied': self.applied.a.copy(),
+                  'cal_fix_shift': self.fix_shift.a.copy(),
+                  'cal_noise': self.noise_applied.a.copy(),
+                  'cal_fix_applied': self.fix_applied.a.copy()}
         if self.group_names:   # every connection's source (the cameras' estimates)
             meta['group_names'] = list(self.group_names)
             arrays['cal_group'] = self.group.a.copy()
@@ -400,6 +583,14 @@ class OnlineCalibration:
         group = arrays.get('cal_group') if book.group_names else None
         book.group = Rows.of(np.asarray(group, dtype=np.int64) if group is not None
                              else np.full(book.source.n, -1, dtype=np.int64), np.int64)
+        if 'cal_noise' in arrays:  # files without: every covariance as stated
+            book.noise_applied = Rows.of(np.asarray(arrays['cal_noise'], dtype=np.float64)
+                                         .reshape(-1, 2), np.float64)
+        if 'cal_fix_shift' in arrays:  # files without: no fix corrected
+            book.fix_shift = Rows.of(np.asarray(arrays['cal_fix_shift'], dtype=np.float64)
+                                     .reshape(-1, 3), np.float64)
+            book.fix_applied = Rows.of(np.asarray(arrays['cal_fix_applied'], dtype=np.float64)
+                                       .reshape(-1, 4), np.float64)
         rep = meta.get('report')
         if rep is not None:
             book._use(report_of_dict(rep))
@@ -420,7 +611,7 @@ def _track_rows(state, tracks: list[int]) -> IntArray:
 
 def report_of_dict(d: dict) -> CalibrationReport:
     """The :class:`~ga_ros.core.calibration.CalibrationReport` of its ``as_dict`` (the
-    parameters; the online estimate re-estimates no noise)."""
+    parameters and the noise factors)."""
     nan = float('nan')
 
     def plain(v):
@@ -429,9 +620,14 @@ def report_of_dict(d: dict) -> CalibrationReport:
     names = {f.name for f in fields(AdditionalParameter)}
     params = [AdditionalParameter(**{k: plain(v) for k, v in p.items() if k in names})
               for p in d.get('parameters', [])]
-    return replace(CalibrationReport(params), alpha=plain(d.get('alpha')),
+    noise_names = {f.name for f in fields(NoiseFactor)}
+    noise = [NoiseFactor(**{k: (tuple(plain(x) for x in v) if isinstance(v, list) else plain(v))
+                            for k, v in f.items() if k in noise_names})
+             for f in d.get('noise', [])]
+    return replace(CalibrationReport(params, noise=noise), alpha=plain(d.get('alpha')),
                    sigma0_sq=plain(d.get('sigma0_sq')), iterations=int(d.get('iterations', 0)),
-                   solves=int(d.get('solves', 0)))
+                   solves=int(d.get('solves', 0)),
+                   noise_iterations=int(d.get('noise_iterations', 0)))
 
 
 # ------------------------------------------------------------------------- cameras online

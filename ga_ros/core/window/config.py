@@ -13,6 +13,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
+from ga_ros.core.calibration.fix_parameters import fix_parameter
 from ga_ros.core.config_ranges import check_ranges, ranged
 from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
@@ -172,11 +173,27 @@ class AlignerConfig:
     variance_prior_dof : the factor is shrunk towards 1 with a prior of this many degrees of
         freedom.
     calibrate : self-calibration online (:mod:`ga_ros.core.window.calibration`): after each
-        window update each odometry source's scale and yaw-rate corrections are estimated
-        again where the network determines them and they are significant (in a background
-        thread, inline with ``refine_executor='inline'``), installed before the next odometry
-        motion, and the source's motions that enter from then on are stored corrected.
-        ``False`` (default): nothing estimated, the motions as measured.
+        window update each odometry source's scale and yaw-rate corrections (and each fix
+        source's ``calibration_fix_parameters``) are estimated again where the network
+        determines them and they are significant (in a background thread, inline with
+        ``refine_executor='inline'``), installed before the next odometry motion or fix, and
+        the source's motions and fixes that enter from then on are stored corrected.
+        ``False`` (default): nothing estimated, the motions and fixes as measured.
+    calibration_fix_parameters : with ``calibrate``, the parameters estimated online per fix
+        source, comma-separated (``time_offset``, ``offset_x``, ``offset_y``, ``offset_z``;
+        ``''``: none, the fixes as measured): by default the time offset (s), the batch's
+        default (``CalibrationConfig.fix_parameters``). An offset needs a
+        ``calibration_fix_reference``.
+    calibration_noise : with ``calibrate``, the noise of each calibrated odometry source
+        re-estimated online too (the batch's ``CalibrationConfig.noise``: damped variance
+        factors of its translation and rotation, where the horizon has the redundancy), and
+        the source's motions that enter from then on stored with their stated covariance
+        scaled by them (default; docs/benchmarks.md: the online RMSE on the Plaza run 0.94x
+        and 1.00x at fixes every 10 and 60 s); ``False``: the stated covariances kept.
+    calibration_fix_reference : the fix sources that define the map frame online,
+        comma-separated (no offset estimated for them). Required with an offset: online, the
+        reference the batch would otherwise choose (the better-determined source) could change
+        from one horizon to the next and move the frame with it.
     calibrate_cameras : with ``calibrate``, the cameras (their sources, comma-separated:
         ``'cam0'``) whose extrinsic rotation the online estimate includes
         (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
@@ -223,10 +240,14 @@ class AlignerConfig:
     calibrate_cameras: str = ''
     calibration_horizon_tracks: int = ranged(30, 1, 100_000)
     calibration_refresh: float = ranged(0.1, 0.0, 10.0)
+    calibration_fix_parameters: str = 'time_offset'
+    calibration_fix_reference: str = ''
+    calibration_noise: bool = True
 
     def __post_init__(self) -> None:
         check_ranges(self)
         self.online_variance_config()  # checks the mode and levels
+        self.calibration_fix_config()  # checks the online fix parameters
         if self.freeze_policy not in FREEZE_POLICIES:
             raise InputError(f'freeze_policy must be one of {tuple(FREEZE_POLICIES)}, '
                              f'got {self.freeze_policy!r}')
@@ -280,6 +301,26 @@ class AlignerConfig:
         return OnlineVarianceConfig(mode=self.variance_components,
                                     min_redundancy=float(self.variance_min_redundancy),
                                     prior_dof=float(self.variance_prior_dof))
+
+    def calibration_fix_config(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """``(fix parameters, fix reference sources)`` of the online calibration
+        (:attr:`calibration_fix_parameters`, :attr:`calibration_fix_reference`), checked.
+
+        Raises
+        ------
+        InputError
+            An unknown parameter, or an offset without a reference source.
+        """
+        names = tuple(x.strip() for x in self.calibration_fix_parameters.split(',')
+                      if x.strip())
+        ref = tuple(x.strip() for x in self.calibration_fix_reference.split(',') if x.strip())
+        for name in names:
+            fix_parameter(name)
+        if any(name.startswith('offset_') for name in names) and not ref:
+            raise InputError('calibration_fix_parameters with an offset needs a '
+                             'calibration_fix_reference (the fix source that defines the map '
+                             'frame)')
+        return names, ref
 
     def solver_config(self) -> SolverConfig:
         """The settings of each window update (:attr:`solver`)."""

@@ -18,7 +18,12 @@ from ga_ros.core.calibration import (
     node_velocities,
     solve_with_calibration,
 )
-from ga_ros.core.calibration.fix_parameters import fix_jacobians, fix_misclosures, fix_shift
+from ga_ros.core.calibration.fix_parameters import (
+    fix_jacobians,
+    fix_misclosures,
+    fix_shift,
+    node_velocity,
+)
 from ga_ros.errors import InputError
 from ga_ros.geometry import se3
 from ga_ros.sim.biased import FixSource, biased_fixes, biased_survey
@@ -49,6 +54,23 @@ def test_velocity_is_the_derivative_of_the_path():
     E = FIX_PARAMETERS['time_offset'].jacobian(node_velocities(T, t))
     np.testing.assert_allclose(E[1:-1, :3], num[1:-1], atol=5e-4)
     np.testing.assert_array_equal(E[:, 3:], 0.0)
+
+
+def test_one_nodes_velocity_is_node_velocities_value_bit_for_bit():
+    """:func:`node_velocity` (the online calibration's, one node) against
+    :func:`node_velocities` (the batch's, all nodes): shuffled rows, shared stamps, the ends
+    and a single node."""
+    rng = np.random.default_rng(3)
+    t = np.round(rng.uniform(0.0, 5.0, 40), 1)  # repeated stamps
+    T = np.repeat(np.eye(4)[None], t.size, axis=0)
+    T[:, :3, 3] = rng.normal(size=(t.size, 3))
+    v = node_velocities(T, t)
+    for row in range(t.size):
+        np.testing.assert_array_equal(node_velocity(T, t, row), v[row], err_msg=str(row))
+    np.testing.assert_array_equal(node_velocity(T[:1], t[:1], 0), np.zeros(3))
+    # the newest node: one-sided, from the node before it in time
+    np.testing.assert_array_equal(node_velocity(T[:3], np.array([0.0, 1.0, 2.0]), 2),
+                                  T[2, :3, 3] - T[1, :3, 3])
 
 
 @pytest.mark.parametrize('seed', [0, 1])

@@ -14,6 +14,7 @@ from ga_ros.core.fixes import AbsoluteFix, FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window import calibration as online
+from ga_ros.core.window.calibration import report_of_dict
 from ga_ros.core.window.persistence import load_state, save_state, state_arrays
 from ga_ros.geometry import se3
 from ga_ros.sim.biased import biased_survey
@@ -255,3 +256,66 @@ def test_an_estimate_pending_at_a_save_is_saved_with_its_result_and_used_after_t
                                   al.online_calibration.applied.a)
     assert back.online_calibration.report.lines() == al.online_calibration.report.lines()
     assert back.online_calibration.n_estimates == al.online_calibration.n_estimates
+
+
+#: the calibrated source's noise re-estimated online too (the default), and kept as stated
+NOISE = AlignerConfig(datum='fixes', calibrate=True, refine_executor='inline',
+                      calibration_noise=True)
+STATED = AlignerConfig(datum='fixes', calibrate=True, refine_executor='inline',
+                       calibration_noise=False)
+TRUE_YAW_SIGMA, STATED_YAW_SIGMA = 0.002, 0.008  # the stated yaw variance 16x the true one
+
+
+def _overstated(seed: int):
+    return biased_survey(np.random.default_rng(seed), n_nodes=600, scale=SCALE,
+                         yaw_rate=YAW_RATE, fix_every=FIX_EVERY, fix_sigma_m=0.5,
+                         sigma_yaw_rad=TRUE_YAW_SIGMA, stated_sigma_yaw_rad=STATED_YAW_SIGMA)
+
+
+@pytest.mark.parametrize('seed', [0, 1])
+def test_the_noise_of_a_calibrated_source_is_re_estimated_online(seed):
+    """The stated yaw variance 16x the true one: the online estimate's rotation factor is
+    within 3 sigma of 1/16 and 3 sigma below 1 (the translation's, too little redundancy, kept
+    at 1); the motions that entered after it are stored with the stated covariance scaled by
+    their booked factors (independent computation), ``stated`` undoes it, and the online path
+    is closer to the truth than with the stated noise."""
+    s = _overstated(seed)
+    al, online = run(s, NOISE)
+    book = al.online_calibration
+    rot = next(f for f in book.report.noise if f.part == 'rotation')
+    lines = book.report.lines()
+    assert rot.applied and abs(rot.factor - 1 / 16) < 3 * rot.sigma, lines
+    assert rot.factor + 3 * rot.sigma < 1.0, lines
+    diag = book.diagnostic_values()
+    assert diag['calibration/odom0/rotation_noise'] == f'{rot.factor:.4g}'
+    assert diag['calibration/odom0/translation_noise'] == '1 (stated)'
+    fac = book.noise_applied.a
+    assert (fac[:, 0] == 1.0).all() and (fac[:, 1] < 1.0).any() and (fac[:5] == 1.0).all()
+    st = al.state
+    m = st.src.n
+    stated = s.network.arrays().cov[:m]
+    d = np.sqrt(np.repeat(fac, 3, axis=1))
+    np.testing.assert_allclose(st.ccov.a, d[:, :, None] * stated * d[:, None, :], rtol=1e-12,
+                               atol=0.0)
+    np.testing.assert_allclose(book.stated(st.ccov.a, np.arange(m)), stated, rtol=1e-12,
+                               atol=0.0)
+    _, online_stated = run(s, STATED)
+    assert _rmse(online, s.T_true) < _rmse(online_stated, s.T_true)
+
+
+def test_a_restart_continues_the_online_noise_exactly(tmp_path):
+    """A snapshot mid-track with noise factors applied: the restored aligner continues to the
+    same state (the booked factors and the stored covariances) and online path, bit for
+    bit."""
+    s = _overstated(0)
+    al, online = run(s, NOISE)
+    rep = al.online_calibration.report.as_dict()
+    assert rep['noise'] and report_of_dict(rep).as_dict() == rep  # saved as it is
+    back, online_back = run(s, NOISE, cut=10 * FIX_EVERY + 7, path=tmp_path / 'state')
+    meta, arrays = state_arrays(al.state)
+    meta2, arrays2 = state_arrays(back.state)
+    assert (arrays['cal_noise'][:10 * FIX_EVERY] != 1.0).any()  # applied before the cut
+    assert meta2['calibration'] == meta['calibration']
+    for name in arrays:
+        np.testing.assert_array_equal(arrays2[name], arrays[name], err_msg=name)
+    np.testing.assert_array_equal(online_back, online)
