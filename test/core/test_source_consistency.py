@@ -147,3 +147,49 @@ def test_the_tied_fusion_states_honest_covariances() -> None:
     lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
     assert lo < np.mean(np.stack(tied)) < hi, (np.mean(np.stack(tied)), lo, hi)
     assert np.mean(np.stack(stated)) < lo
+
+
+def _jittered_spacing(rng: np.random.Generator, n: int, stamped: bool) -> list:
+    """Two sources on a constant turn (1 m/s, 0.1 rad/m) whose keyframes come every 1 to
+    1.05 m (a keyframe by distance on a 20 Hz stream): ``odom0`` exact, ``odom1`` with 5 %
+    white noise; both state the default 5 %. Stamped at the keyframes (1 s per m) or not; the
+    first motion is ``odom0``'s only (no term: it gives the stamp of the first node)."""
+    from ga_ros.core.measurement import Measurement
+    from ga_ros.geometry import se3
+    from ga_ros.inputs.odometry import OdometryInputConfig
+
+    cfg = OdometryInputConfig()
+    twist = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.1])  # per metre
+    lengths = 1.0 + 0.05 * rng.integers(0, 2, n)
+    stamps = 1_000_000_000 + np.round(np.cumsum(lengths) * 1e9).astype(np.int64)
+    ms = []
+    for k, L in enumerate(lengths):
+        T = se3.exp(L * twist)
+        z = se3.to_translation_rotvec(T)
+        C = cfg.default_covariance(z)
+        noisy = T @ se3.exp(rng.standard_normal(6) * np.sqrt(np.diag(C)))
+        for name, Tk in (('odom0', T), ('odom1', noisy))[:1 if k == 0 else 2]:
+            ms.append(Measurement.from_pose(k, k + 1, 0, 0, Tk, C,
+                                            int(stamps[k]) if stamped else 0,
+                                            'consecutive', name))
+    return ms
+
+
+def test_motions_compared_as_rates_ignore_the_keyframe_spacing() -> None:
+    """An exact source beside a noisy one, keyframes 1 or 1.05 m apart: compared as rates
+    (stamped keyframes) the exact source's terms are zero to rounding, its factor 0; compared
+    as motions (no stamps) the change of motion from the spacing mixes the other's noise into
+    them."""
+    rates = consistency_split(_jittered_spacing(np.random.default_rng(3), 300, True))
+    motions = consistency_split(_jittered_spacing(np.random.default_rng(3), 300, False),
+                                min_terms=10)
+    assert rates['odom1'][0] == pytest.approx(1.0, rel=0.15)
+    assert motions['odom1'][0] == pytest.approx(1.0, rel=0.15)
+    # the split clips at 1e-3: read the raw estimates
+    f = {}
+    for stamped in (True, False):
+        book = SourceConsistency(keep=10_000)
+        for m in _jittered_spacing(np.random.default_rng(3), 300, stamped):
+            book.add(m)
+        f[stamped] = book.estimates()['odom0'][0]
+    assert abs(f[True]) < 1e-9 and abs(f[False]) > 1e-3, f

@@ -6,7 +6,8 @@ sample motion) is far better than B (10 Hz, 6 %).
 With the stated weights the fusion is 3x worse than A alone; with variance components each
 stream's own consistency against the other splits what the residuals cannot
 (:mod:`ga_ros.core.quality.source_consistency`), in the final batch and online, and the fusion
-is as good as A alone, whichever stream defines the keyframes.
+is as good as A alone, whichever stream defines the keyframes: within 1.1x on this draw, better
+on the mean of six draws (B, of ~18x A's variance, has ~5 % to give; one draw varies by ~10 %).
 """
 
 from __future__ import annotations
@@ -49,12 +50,12 @@ def noisy(T: np.ndarray, percent: float, rng: np.random.Generator) -> np.ndarray
     return np.array(out)
 
 
-@pytest.fixture(scope='module')
-def slam_bag(tmp_path_factory) -> Path:
-    rng = np.random.default_rng(2)
-    ta = np.arange(0.0, DURATION_S, 1 / 20)
-    tb = np.arange(0.0, DURATION_S, 1 / 10) + 0.03
-    tg = np.arange(0.0, DURATION_S, 1 / 50)
+def write_slam_bag(path: Path, seed: int, duration_s: float = DURATION_S) -> Path:
+    """The two streams and the ground truth of the module doc, drawn with ``seed``."""
+    rng = np.random.default_rng(seed)
+    ta = np.arange(0.0, duration_s, 1 / 20)
+    tb = np.arange(0.0, duration_s, 1 / 10) + 0.03
+    tg = np.arange(0.0, duration_s, 1 / 50)
     rows = []
     for topic, t, T, lag in (('/slam_a/pose', ta, noisy(ellipse(ta), 2.0, rng), 0),
                              ('/slam_b/pose', tb, noisy(ellipse(tb), 6.0, rng), 1),
@@ -63,7 +64,12 @@ def slam_bag(tmp_path_factory) -> Path:
         rows += [(int(s) + lag * 1_000_000, topic, POSE_STAMPED,
                   ros1_pose_stamped_msg(Tk, int(s))) for s, Tk in zip(stamps, T)]
     rows.sort(key=lambda r: r[0])
-    return write_ros1_bag(tmp_path_factory.mktemp('two_slam') / 'slam.bag', rows)
+    return write_ros1_bag(path, rows)
+
+
+@pytest.fixture(scope='module')
+def slam_bag(tmp_path_factory) -> Path:
+    return write_slam_bag(tmp_path_factory.mktemp('two_slam') / 'slam.bag', 2)
 
 
 def _replay(bag: Path, out: Path, *args: str) -> dict:
@@ -92,3 +98,30 @@ def test_fused_as_good_as_the_better_stream(slam_bag, tmp_path: Path, order) -> 
     assert _ate(stated) > 2 * _ate(alone)  # the stated weights: A spoilt by B
     assert _ate(batch) < 1.1 * _ate(alone), (_ate(batch), _ate(alone))
     assert _ate(online, 'online') < 1.1 * _ate(alone), (_ate(online, 'online'), _ate(alone))
+
+
+def _raw(summary: dict) -> float:
+    return summary['errors_vs_ground_truth']['ga']['ate_raw_m']
+
+
+@pytest.mark.slow
+def test_over_seeds_the_fusion_beats_the_better_stream(tmp_path: Path) -> None:
+    """Six draws of the bag (180 s): the fused path (``--variance-components apply``) against
+    A alone, raw and after rigid alignment. Fusing a stream of ~18x the variance can gain
+    only ~3 % in expectation, and one draw's RMSE (a drift, of few degrees of freedom) varies
+    by ~10 % around it: with the true weights the fusion is worse than A alone in about a third
+    of the draws (docs/benchmarks.md). So the mean ratio is tested, and each draw within
+    1.15x; A's factor (true 0.0074: 2 % per sample over 20 samples, against the default 5 %;
+    its spread over draws ~22 %) within 50 % in every draw."""
+    ratios, factors = [], []
+    for seed in range(6):
+        bag = write_slam_bag(tmp_path / f'{seed}.bag', seed, 180.0)
+        alone = _replay(bag, tmp_path / f'a{seed}', '--odom-topic', '/slam_a/pose',
+                        '--no-variance-components')
+        fused = _replay(bag, tmp_path / f'f{seed}', '--odom-topic', '/slam_a/pose',
+                        '--odom-topic', '/slam_b/pose', '--variance-components', 'apply')
+        ratios.append((_raw(fused) / _raw(alone), _ate(fused) / _ate(alone)))
+        factors.append(fused['variance_components']['odom0']['factor'])
+    r = np.asarray(ratios)
+    assert np.all(r.mean(axis=0) < 1.0) and np.all(r < 1.15), r
+    assert np.all(np.abs(np.asarray(factors) / 0.0074 - 1) < 0.5), factors

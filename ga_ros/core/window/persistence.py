@@ -490,4 +490,6 @@ def _consistency_of(meta: dict, arrays: dict) -> dict | None:
     keys = ('n', 'dof', 'sum', 'sum2', 'lag', 'last_pair', 'last_value', 'pairs', 'pair_source',
             'z', 'cov')
     return {'names': meta.get('variance_consistency', []),
-            **{k: arrays[f'vcc_{k}'] for k in keys}}
+            **{k: arrays[f'vcc_{k}'] for k in keys},
+            # the keyframes' stamps of the kept pairs (older files: none, the motions as is)
+            **({'pair_stamp': arrays['vcc_pair_stamp']} if 'vcc_pair_stamp' in arrays else {})}
