@@ -869,6 +869,13 @@ class TrackWindowAligner:
             names = (variance_groups.sources(ids[st.src.a[keep]], ids[st.dst.a[keep]],
                                              st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
+            book = self.online_calibration
+            if book is not None and book.cameras and book.group.n == st.src.n:
+                # the sources as booked (a camera's connections are stored corrected, so the
+                # groups' lookup by the stored motion does not find them)
+                g = book.group.a[keep]
+                names = [book.group_names[i] if i >= 0 else n
+                         for i, n in zip(g.tolist(), names)]
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             # the fixes one by one for their sources' parameters (offset, time offset): their
             # priors are the book's bit for bit, so nothing changes where none is estimated
