@@ -687,7 +687,8 @@ def test_calibrate_cameras_in_diagnostics(tmp_path):
     """``calibrate_cameras``: the camera named by its measurements' source (carried by the
     encoding) gets its extrinsic rotation in the online estimate; ``/diagnostics`` shows it
     with its sigma (within 3 sigma of the truth), the direct aligner's, and the rotation
-    applied to the camera's connections; a camera no measurement names is reported with the sources seen."""
+    applied to the camera's connections; a camera no measurement names is reported with the
+    sources seen."""
     phi = (0.02, -0.01, 0.03)
     ms = _camera_swaths(phi)
     ctx = rclpy.Context()
