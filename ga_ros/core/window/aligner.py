@@ -188,6 +188,9 @@ class TrackWindowAligner:
             for _ in range(state.src.n - book.group.n):   # a book saved without the sources
                 book.register_group('')
             book.cameras = self.config.camera_names
+            if book.cameras:   # a book saved without the applied rotations: as measured
+                for _ in range(state.src.n - book.camera_applied.n):
+                    book.camera_applied.append(np.zeros(3))
             state.calibration = self.online_calibration = book
         else:
             state.calibration = None  # a book restored with calibrate on is not kept
@@ -335,9 +338,13 @@ class TrackWindowAligner:
         cal = self.online_calibration
         if cal is not None:
             source = calibration_source(m)
-            if source is not None:  # the estimate started by the last update: used from now on
-                cal.install(self.strict)
+            # a named camera's connection, consecutive or cross-track (its extrinsic rotation)
+            camera = (source_or_group(m) if cal.cameras and source_or_group(m) in cal.cameras
+                      else None)
+            if source is not None or camera is not None:
+                cal.install(self.strict)  # the estimate started by the last update: from now on
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
+            z, phi = cal.camera_corrected(z, camera)
             if z is not plan.z:
                 plan = replace(plan, z=z)
             cov, noise = cal.scaled_cov(plan.cov, source)  # calibration_noise's factors
@@ -347,7 +354,11 @@ class TrackWindowAligner:
         if self.state.src.n > n_conn:
             if cal is not None:
                 cal.register(source, applied, noise)
-                cal.register_group(source_or_group(m) if cal.cameras else '')
+                if cal.cameras:
+                    cal.register_group(source_or_group(m))
+                    cal.register_camera(phi)
+                else:
+                    cal.register_group('')
             if self.online_variance is not None:
                 self.online_variance.register(variance_group(m))
                 self.online_variance.observe(m)
@@ -858,6 +869,13 @@ class TrackWindowAligner:
             names = (variance_groups.sources(ids[st.src.a[keep]], ids[st.dst.a[keep]],
                                              st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
+            book = self.online_calibration
+            if book is not None and book.cameras and book.group.n == st.src.n:
+                # the sources as booked (a camera's connections are stored corrected, so the
+                # groups' lookup by the stored motion does not find them)
+                g = book.group.a[keep]
+                names = [book.group_names[i] if i >= 0 else n
+                         for i, n in zip(g.tolist(), names)]
             sources = [None if c else g for g, c in zip(names, cross.tolist())]
             # the fixes one by one for their sources' parameters (offset, time offset): their
             # priors are the book's bit for bit, so nothing changes where none is estimated

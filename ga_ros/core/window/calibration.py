@@ -30,6 +30,15 @@ source's estimated offset ``b`` and time offset ``tau`` and its node's velocity 
 batch's definition over the nodes there are (:meth:`OnlineCalibration.corrected_fix`); the
 applied parameters and the shift are kept per fix (:attr:`OnlineCalibration.fix_shift`).
 
+The cameras, with ``calibrate_cameras``: the estimate includes each named camera's extrinsic
+rotation ``phi`` (:func:`camera_estimate_inputs`, every connection of its source, consecutive
+and cross-track), and a connection of the camera that enters afterwards is stored conjugated,
+``X T X^-1`` with ``X = [exp(phi), 0]`` after the odometry's correction (the batch's
+``X S(T_meas) X^-1``, :meth:`OnlineCalibration.camera_corrected`); the applied ``phi`` is kept
+per connection (:attr:`OnlineCalibration.camera_applied`, booked only with cameras named) and
+undone first by :meth:`OnlineCalibration.measured`. The stated covariance is kept, as the
+batch keeps it.
+
 The noise, with ``calibration_noise``: the estimate re-estimates the calibrated sources'
 variance factors (the batch's ``CalibrationConfig.noise``) from the stated covariances (the
 applied factors undone, :meth:`OnlineCalibration.stated`), and a motion that enters afterwards
@@ -73,6 +82,7 @@ from ga_ros.core.calibration import (
     corrected_motions,
     solve_with_calibration,
 )
+from ga_ros.core.calibration.camera_parameters import CAMERA_PARAMETERS, conjugations
 from ga_ros.core.calibration.fix_parameters import node_velocity
 from ga_ros.core.fixes import FixTerm, gauge_information
 from ga_ros.core.measurement import Measurement, variance_group
@@ -250,6 +260,11 @@ class OnlineCalibration:
         self.cameras: tuple[str, ...] = ()
         self.group_names: list[str] = []
         self.group = Rows((), np.int64)
+        #: per connection row (booked only with cameras named) the extrinsic rotation ``phi``
+        #: (rad, body frame) of its camera it was stored corrected with (zeros: as measured;
+        #: :meth:`camera_corrected`)
+        self.camera_applied = Rows((3,), np.float64)
+        self._camera_current: dict[str, FloatArray] = {}
 
     # ----------------------------------------------------------------------- input
     def correction(self, source: str | None) -> tuple[float, float]:
@@ -270,6 +285,34 @@ class OnlineCalibration:
         T = corrected_motions(np.asarray(z, float)[None], np.array([max(dt_s, 0.0)]),
                               np.array([k]), np.array([w]))
         return se3.to_translation_rotvec(T)[0], (k, w)
+
+    def camera_correction(self, camera: str | None) -> FloatArray:
+        """(3,) the extrinsic rotation ``phi`` (rad, body frame) applied to a connection of
+        ``camera`` now (zeros where not estimated; ``None``: not a named camera)."""
+        cur = None if camera is None else self._camera_current.get(camera)
+        return np.zeros(3) if cur is None else cur.copy()
+
+    def camera_corrected(self, z: FloatArray, camera: str | None
+                         ) -> tuple[FloatArray, FloatArray]:
+        """``(z_corr, phi)``: a connection's motion ``z`` (6,) ``[t, rotvec]`` (as measured, or
+        already corrected by :meth:`corrected`) conjugated by its camera's current extrinsic
+        rotation, ``X T X^-1`` with ``X = [exp(phi), 0]``
+        (:mod:`~ga_ros.core.calibration.camera_parameters`), the batch's ``X S(T_meas) X^-1``;
+        ``z`` itself where nothing is estimated."""
+        phi = self.camera_correction(camera)
+        if not phi.any():
+            return z, phi
+        X = conjugations(phi)[0]
+        T = X @ se3.from_translation_rotvec(np.asarray(z, float)[None, :3],
+                                            np.asarray(z, float)[None, 3:])[0] @ se3.inverse(X)
+        return se3.to_translation_rotvec(T[None])[0], phi
+
+    def register_camera(self, phi: FloatArray) -> None:
+        """Book a new connection row's applied extrinsic rotation (with cameras named, after
+        :meth:`register`; the rows before it that were not booked: zeros)."""
+        while self.camera_applied.n < self.source.n - 1:
+            self.camera_applied.append(np.zeros(3))
+        self.camera_applied.append(np.asarray(phi, dtype=float))
 
     def noise_factors(self, source: str | None) -> tuple[float, float]:
         """``(s_t, s_r)``: the variance factors of ``source``'s translation and rotation
@@ -337,9 +380,18 @@ class OnlineCalibration:
     def measured(self, z: FloatArray, dt_s: FloatArray, conns: IntArray) -> FloatArray:
         """(m, 6) the motions as measured of connection rows ``conns`` from their stored
         (corrected) ``z`` (m, 6) and durations ``dt_s`` (m,) s: the applied correction undone
-        (``t / (1 + k)``, ``R Rz(-omega dt)``; rows stored uncorrected are returned as
-        stored)."""
+        (a camera's extrinsic rotation first, ``X^-1 T X``; then ``t / (1 + k)``,
+        ``R Rz(-omega dt)``; rows stored uncorrected are returned as stored)."""
         z = np.array(z, dtype=float)
+        conns = np.asarray(conns)
+        if self.camera_applied.n:
+            inside = np.nonzero(conns < self.camera_applied.n)[0]
+            phi = self.camera_applied.a[conns[inside]]
+            sel = inside[(phi != 0.0).any(axis=1)]
+            if sel.size:
+                X = conjugations(self.camera_applied.a[conns[sel]])
+                T = se3.from_translation_rotvec(z[sel, :3], z[sel, 3:])
+                z[sel] = se3.to_translation_rotvec(se3.inverse(X) @ T @ X)
         kw = self.applied.a[conns]
         sel = np.nonzero((kw != 0.0).any(axis=1))[0]
         if sel.size:
@@ -501,14 +553,18 @@ class OnlineCalibration:
         self.report = report
         cur: dict[str, tuple[float, float]] = {}
         fix: dict[str, FloatArray] = {}
+        cam: dict[str, FloatArray] = {}
         for p in report.estimated():
-            if p.name in FIX_PARAMETERS:
+            if p.name in CAMERA_PARAMETERS:   # only the named cameras have them
+                cam.setdefault(p.source, np.zeros(3))[CAMERA_PARAMETERS[p.name].axis] = p.value
+            elif p.name in FIX_PARAMETERS:
                 fix.setdefault(p.source, np.zeros(4))[FIX_SLOTS.index(p.name)] = p.value
             elif p.name in ('scale', 'yaw_rate'):
                 k, w = cur.get(p.source, (0.0, 0.0))
                 cur[p.source] = (p.value, w) if p.name == 'scale' else (k, p.value)
         self._current = cur
         self._fix_current = fix
+        self._camera_current = cam
         noise: dict[str, list[float]] = {}
         for f in report.noise:
             if not f.applied:
@@ -565,6 +621,7 @@ class OnlineCalibration:
         if self.group_names:   # every connection's source (the cameras' estimates)
             meta['group_names'] = list(self.group_names)
             arrays['cal_group'] = self.group.a.copy()
+            arrays['cal_camera'] = self.camera_applied.a.copy()
         return meta, arrays
 
     @classmethod
@@ -583,6 +640,9 @@ class OnlineCalibration:
         group = arrays.get('cal_group') if book.group_names else None
         book.group = Rows.of(np.asarray(group, dtype=np.int64) if group is not None
                              else np.full(book.source.n, -1, dtype=np.int64), np.int64)
+        if 'cal_camera' in arrays:  # files without: no camera connection corrected
+            book.camera_applied = Rows.of(np.asarray(arrays['cal_camera'], dtype=np.float64)
+                                          .reshape(-1, 3), np.float64)
         if 'cal_noise' in arrays:  # files without: every covariance as stated
             book.noise_applied = Rows.of(np.asarray(arrays['cal_noise'], dtype=np.float64)
                                          .reshape(-1, 2), np.float64)
@@ -637,9 +697,9 @@ def camera_estimate_inputs(book: OnlineCalibration, conns: IntArray,
     each of its connection rows ``conns`` (consecutive and cross-track:
     :meth:`OnlineCalibration.register_group`), so the estimate includes each camera's
     extrinsic rotation where the horizon determines it (``docs/calibration.md``); ``job`` as
-    it is without cameras. The camera's parameters are published
-    (:attr:`OnlineCalibration.report`, :func:`camera_diagnostic_values`), not applied to the
-    motions."""
+    it is without cameras. The estimate is published (:attr:`OnlineCalibration.report`,
+    :func:`camera_diagnostic_values`) and applied to the camera's connections that enter
+    afterwards (:meth:`OnlineCalibration.camera_corrected`)."""
     if not book.cameras:
         return job
     g = book.group.a[conns]
@@ -649,13 +709,17 @@ def camera_estimate_inputs(book: OnlineCalibration, conns: IntArray,
 
 def camera_diagnostic_values(book: OnlineCalibration) -> dict[str, str]:
     """``/diagnostics`` of the cameras (beside :meth:`OnlineCalibration.diagnostic_values`):
-    ``calibration/<camera>/applied`` (``no: estimated and published only``) and, for a camera
-    that no measurement named so far, ``calibration/<camera>`` (``no such source so far; the
-    sources: ...``)."""
+    ``calibration/<camera>/applied`` (``yes: [phi_x, phi_y, phi_z] rad``, the extrinsic
+    rotation applied to the camera's connections entering now, 0 on an axis not estimated;
+    or ``no: not estimated``) and, for a camera that no measurement named so far,
+    ``calibration/<camera>`` (``no such source so far; the sources: ...``)."""
     out: dict[str, str] = {}
     for cam in book.cameras:
         if cam in book.group_names:
-            out[f'calibration/{cam}/applied'] = 'no: estimated and published only'
+            phi = book.camera_correction(cam)
+            out[f'calibration/{cam}/applied'] = (
+                'yes: [' + ', '.join(f'{v:.4g}' for v in phi) + '] rad' if phi.any()
+                else 'no: not estimated')
         else:
             seen = ', '.join(sorted(book.group_names)) or 'none yet'
             out[f'calibration/{cam}'] = f'no such source so far; the sources: {seen}'

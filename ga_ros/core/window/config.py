@@ -197,8 +197,9 @@ class AlignerConfig:
     calibrate_cameras : with ``calibrate``, the cameras (their sources, comma-separated:
         ``'cam0'``) whose extrinsic rotation the online estimate includes
         (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
-        estimated and published with its sigma, not applied to the motions (the odometry's
-        corrections, estimated with it, are). ``''`` (default): none.
+        estimated and published with its sigma, and applied to the camera's connections
+        (consecutive and cross-track) as they enter, ``X T X^-1`` with the rotation booked per
+        connection (``docs/calibration.md``). ``''`` (default): none.
     calibration_horizon_tracks : the latest finished tracks the online estimate is made on
         (its memory: a slowly varying parameter is followed with this lag).
     calibration_refresh : the online estimate runs at a track end once the connections
