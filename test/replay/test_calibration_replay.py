@@ -59,6 +59,10 @@ def test_replay_calibrate_recovers_the_odometry_bias(tmp_path: Path) -> None:
         rmse[calibrate] = _evaluate(res, stamps, gt, odom)[0]
         online[calibrate] = _evaluate(res, stamps, gt, odom, 'trajectory_online')[0]
     summary = json.loads((out / 'summary.json').read_text())
+    # every odometry motion is odom0's in the final batch, those stored corrected by the
+    # online calibration too (none left to the unnamed default group 'motion')
+    assert {p['source'] for p in summary['calibration']['parameters']
+            if p['name'] in ('scale', 'yaw_rate')} == {'odom0'}, summary['calibration']
     cal = {p['name']: p for p in summary['calibration']['parameters']
            if p['source'] == 'odom0'}
     assert cal['yaw_rate']['estimated'] and cal['scale']['estimated'], cal

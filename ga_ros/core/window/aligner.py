@@ -870,6 +870,11 @@ class TrackWindowAligner:
                                              st.z.a[keep])
                      if variance_groups is not None else ['motion'] * keep.size)
             book = self.online_calibration
+            if book is not None and book.source.n == st.src.n:
+                # the odometry sources as booked: a motion the online calibration stored
+                # corrected is not found by the groups' lookup by its stored motion
+                names = [b if b is not None else n
+                         for b, n in zip(book.sources_of(keep), names)]
             if book is not None and book.cameras and book.group.n == st.src.n:
                 # the sources as booked (a camera's connections are stored corrected, so the
                 # groups' lookup by the stored motion does not find them)
