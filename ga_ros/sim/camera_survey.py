@@ -25,6 +25,7 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.core.calibration.camera_parameters import conjugations
+from ga_ros.core.measurement import Measurement
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior
 from ga_ros.geometry import se3
@@ -140,3 +141,25 @@ def line_survey(rng: np.random.Generator, phi: FloatArray = (0.0, 0.0, 0.0),
     return CameraSurvey(T, net, T_init, ['cam0'] * m, ['cam0'] * m,
                         np.full(m, float(dt_s)), [],
                         fix_priors_every(rng, T, fix_every, fix_sigma_m))
+
+
+def live_measurements(survey: CameraSurvey, per_swath: int) -> list[Measurement]:
+    """A :func:`swath_survey` as a live stream, in the order a node receives it: each
+    keyframe's ``odom0`` motion, then the ``cam0`` cross-track connections that end at it
+    (one track per swath of ``per_swath`` keyframes; stamps: keyframe index in s)."""
+    arr = survey.network.arrays()
+    cross: dict[int, list[int]] = {}
+    for c in range(len(arr)):
+        if survey.groups[c] == 'cam0':
+            cross.setdefault(int(arr.dst[c]), []).append(c)
+    ms = []
+    for c in range(len(arr)):
+        if survey.groups[c] != 'odom0':
+            continue
+        i, j = int(arr.src[c]), int(arr.dst[c])
+        ms.append(Measurement(i, j, i // per_swath, j // per_swath, arr.z[c], arr.cov[c],
+                              j * 10 ** 9, 'consecutive', 'odom0'))
+        ms += [Measurement(int(arr.src[k]), j, int(arr.src[k]) // per_swath, j // per_swath,
+                           arr.z[k], arr.cov[k], j * 10 ** 9, 'cross', 'cam0')
+               for k in cross.get(j, [])]
+    return ms

@@ -662,25 +662,11 @@ def _camera_swaths(phi) -> list:
     """A swath survey (:func:`ga_ros.sim.camera_survey.swath_survey`) as a live stream: each
     keyframe's ``odom0`` motion, then the ``cam0`` cross-track connections (conjugated by the
     extrinsic's rotation error ``phi``) that end at it."""
-    from ga_ros.sim.camera_survey import swath_survey
+    from ga_ros.sim.camera_survey import live_measurements, swath_survey
 
     per = 30
     s = swath_survey(np.random.default_rng(4), np.asarray(phi, float), per_swath=per)
-    arr = s.network.arrays()
-    cross: dict[int, list[int]] = {}
-    for c in range(len(arr)):
-        if s.groups[c] == 'cam0':
-            cross.setdefault(int(arr.dst[c]), []).append(c)
-    ms = []
-    for c in range(len(arr)):
-        if s.groups[c] != 'odom0':
-            continue
-        i, j = int(arr.src[c]), int(arr.dst[c])
-        ms.append(Measurement(i, j, i // per, j // per, arr.z[c], arr.cov[c], j * 10 ** 9,
-                              'consecutive', 'odom0'))
-        ms += [Measurement(int(arr.src[k]), j, int(arr.src[k]) // per, j // per, arr.z[k],
-                           arr.cov[k], j * 10 ** 9, 'cross', 'cam0') for k in cross.get(j, [])]
-    return ms
+    return live_measurements(s, per)
 
 
 def test_calibrate_cameras_in_diagnostics(tmp_path):

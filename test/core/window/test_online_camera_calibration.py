@@ -16,7 +16,7 @@ from ga_ros.core.window import AlignerConfig, TrackWindowAligner
 from ga_ros.core.window.calibration import OnlineCalibration
 from ga_ros.core.window.persistence import load_state, save_state, state_arrays
 from ga_ros.errors import InputError
-from ga_ros.sim.camera_survey import swath_survey
+from ga_ros.sim.camera_survey import live_measurements, swath_survey
 
 PHI = np.array([0.02, -0.01, 0.03])
 PER = 30
@@ -27,21 +27,7 @@ def _stream(seed: int = 4, phi: np.ndarray = PHI) -> tuple[list[Measurement], np
     """Each keyframe's ``odom0`` motion, then the ``cam0`` cross-track connections ending at
     it (one track per swath); and the true poses (``phi``: the camera's rotation error)."""
     s = swath_survey(np.random.default_rng(seed), phi, per_swath=PER)
-    arr = s.network.arrays()
-    cross: dict[int, list[int]] = {}
-    for c in range(len(arr)):
-        if s.groups[c] == 'cam0':
-            cross.setdefault(int(arr.dst[c]), []).append(c)
-    ms = []
-    for c in range(len(arr)):
-        if s.groups[c] != 'odom0':
-            continue
-        i, j = int(arr.src[c]), int(arr.dst[c])
-        ms.append(Measurement(i, j, i // PER, j // PER, arr.z[c], arr.cov[c], j * 10 ** 9,
-                              'consecutive', 'odom0'))
-        ms += [Measurement(int(arr.src[k]), j, int(arr.src[k]) // PER, j // PER, arr.z[k],
-                           arr.cov[k], j * 10 ** 9, 'cross', 'cam0') for k in cross.get(j, [])]
-    return ms, s.T_true
+    return live_measurements(s, PER), s.T_true
 
 
 def _run(config: AlignerConfig, cut: int | None = None, path=None, phi: np.ndarray = PHI,
