@@ -67,3 +67,12 @@ def noisy_aerial_survey(n_tracks: int, per_swath: int, pct: float, seed: int):
     sc = aerial_scenario(n_tracks=n_tracks, positions_per_swath=per_swath)
     nm = perturb(sc.true_motions(), NoiseModel(pct, sc.depth_m), np.random.default_rng(seed))
     return sc, nm, sc.measurements(nm.z, nm.cov)
+
+
+def whitener(info: np.ndarray) -> np.ndarray:
+    """``L`` with ``L' L = info`` over its non-null space (eigenvalues above 1e-12 of the
+    largest): the square-root weight of an information matrix, for the joint least-squares
+    checks of the calibration tests."""
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    keep = w > 1e-12 * w.max()
+    return np.sqrt(w[keep])[:, None] * V[:, keep].T

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from solver_problems import whitener
 
 from ga_ros.core.calibration import (
     PARAMETERS,
@@ -44,12 +45,6 @@ def test_parameter_jacobians_match_finite_differences(seed):
         np.testing.assert_allclose(ana, num, atol=1e-7, rtol=1e-6)
 
 
-def _whitener(info):
-    w, V = np.linalg.eigh(0.5 * (info + info.T))
-    keep = w > 1e-12 * w.max()
-    return np.sqrt(w[keep])[:, None] * V[:, keep].T
-
-
 def test_estimate_matches_joint_least_squares():
     """The bordered Gauss-Newton (poses eliminated with the solver's factor) reaches the
     minimum of the joint problem, computed independently by scipy over poses and
@@ -60,11 +55,11 @@ def test_estimate_matches_joint_least_squares():
                                       calibration=CalibrationConfig(alpha=1.0 - 1e-9, noise=False))
     assert [p.estimated for p in rep.parameters] == [True, True]
     arr = s.network.arrays()
-    Lc = np.array([_whitener(np.linalg.inv(c)) for c in arr.cov])
+    Lc = np.array([whitener(np.linalg.inv(c)) for c in arr.cov])
     pri = []
     for p in s.priors:
         info = p.information.toarray() if hasattr(p.information, 'toarray') else p.information
-        pri.append((p.node_ids, p.T_world_node, _whitener(np.asarray(info))))
+        pri.append((p.node_ids, p.T_world_node, whitener(np.asarray(info))))
     n = s.T_dead.shape[0]
 
     def fun(x):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from solver_problems import whitener
 
 from ga_ros.core.calibration import (
     PARAMETERS,
@@ -87,12 +88,6 @@ def test_knot_jacobians_match_central_differences(seed):
         np.testing.assert_allclose(ana, num, atol=1e-7, rtol=1e-6)
 
 
-def _whitener(info):
-    w, V = np.linalg.eigh(0.5 * (info + info.T))
-    keep = w > 1e-12 * w.max()
-    return np.sqrt(w[keep])[:, None] * V[:, keep].T
-
-
 def test_walk_matches_joint_least_squares():
     """The knots bordered onto the poses (Gauss-Newton, poses re-solved) reach the minimum of
     the joint problem with the pseudo-observations, computed by scipy over poses, the scale
@@ -112,11 +107,11 @@ def test_walk_matches_joint_least_squares():
     b = model.basis(t_mid)
     K = b.size
     arr = s.network.arrays()
-    Lc = np.array([_whitener(np.linalg.inv(c)) for c in arr.cov])
+    Lc = np.array([whitener(np.linalg.inv(c)) for c in arr.cov])
     pri = []
     for p in s.priors:
         info = p.information.toarray() if hasattr(p.information, 'toarray') else p.information
-        pri.append((p.node_ids, p.T_world_node, _whitener(np.asarray(info))))
+        pri.append((p.node_ids, p.T_world_node, whitener(np.asarray(info))))
     sw = np.sqrt(b.difference_weights())
 
     def fun(x):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from solver_problems import whitener
 
 from ga_ros.core.calibration import (
     FIX_PARAMETERS,
@@ -204,12 +205,6 @@ def test_a_held_node_determines_the_offset_of_a_single_source():
         assert abs(est[name].value - OFFSET[axis]) < 3 * est[name].sigma
 
 
-def _whitener(info):
-    w, V = np.linalg.eigh(0.5 * (info + info.T))
-    keep = w > 1e-12 * w.max()
-    return np.sqrt(w[keep])[:, None] * V[:, keep].T
-
-
 def test_estimate_matches_joint_least_squares():
     """The bordered Gauss-Newton with the fixes' parameters reaches the minimum of the joint
     problem over poses, fix1's offset and its latency, computed by scipy with the velocity a
@@ -223,8 +218,8 @@ def test_estimate_matches_joint_least_squares():
     names = [('fix1', k) for k in ALL] + [('fix0', 'time_offset')]
     assert all(est[k].estimated for k in names), rep.lines()
     arr = s.network.arrays()
-    Lc = np.array([_whitener(np.linalg.inv(c)) for c in arr.cov])
-    Lf = np.array([_whitener(i[:3, :3]) for i in obs.information])
+    Lc = np.array([whitener(np.linalg.inv(c)) for c in arr.cov])
+    Lf = np.array([whitener(i[:3, :3]) for i in obs.information])
     rows = obs.rows(s.network.node_ids)
     is1 = np.array([src == 'fix1' for src in obs.sources])
     pf = np.array([t.fix.T_map_sensor[:3, 3] for t in obs.terms])
