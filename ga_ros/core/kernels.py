@@ -55,7 +55,9 @@ def jit(fn):
     ``__pycache__`` beside the source, else ``~/.cache/numba`` for a read-only install). When
     none of them is writable, ``fn`` is compiled without a cache (once per process, warned)
     rather than failing. Every compiled kernel of ga_ros is made here."""
-    import numba
+    from ga_ros.runtime import import_numba
+
+    numba = import_numba()
 
     try:
         return numba.njit(cache=True, nogil=True)(fn)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -183,3 +184,33 @@ def test_blas_libraries_load_with_the_entry_points_thread_count():
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          env=env, check=True).stdout.split()
     assert out[:2] == ['2', '2']  # the user's setting, untouched
+
+
+@pytest.mark.skipif(importlib.util.find_spec('numba') is None
+                    or importlib.util.find_spec('coverage') is None,
+                    reason='needs numba and coverage installed (numba imports coverage then)')
+@pytest.mark.skipif('COV_CORE_SOURCE' in os.environ,
+                    reason='under pytest-cov every subprocess starts inside a coverage run')
+def test_compiled_kernels_load_without_coverage_unless_a_coverage_run_loaded_it():
+    """numba imports ``coverage`` when installed; a kernel loaded outside a coverage run must not
+    (its CPU is the start-up of every process that loads one), and one inside a coverage run
+    must keep numba's coverage support. A later ``import coverage`` still works."""
+    outside = _python_lines(
+        'import sys\n'
+        'from ga_ros.core import kernels\n'
+        'kernels._compile()\n'
+        'import numpy as np\n'
+        'out = np.zeros(3)\n'
+        'kernels._so3_log(np.eye(3), out)\n'
+        'import numba.misc.coverage_support as c\n'
+        "print('coverage' in sys.modules, c.coverage_available, out.tolist())\n"
+        'import coverage\n'
+        "print(coverage.Coverage is not None)\n")
+    assert outside == ['False False [0.0, 0.0, 0.0]', 'True']
+    inside = _python_lines(
+        'import sys, coverage\n'
+        'from ga_ros import runtime\n'
+        'runtime.import_numba()\n'
+        'import numba.misc.coverage_support as c\n'
+        'print(c.coverage_available)\n')
+    assert inside == ['True']

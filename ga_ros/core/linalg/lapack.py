@@ -52,7 +52,9 @@ def _register(name: str) -> bool:
 def routines(*names: str) -> tuple | None:
     """numba handles (``ExternalFunction``, every argument a pointer) of the named routines,
     for a kernel to call; ``None`` if one cannot be registered (the caller's other path)."""
-    import numba
+    from ga_ros.runtime import import_numba
+
+    numba = import_numba()
 
     with _LOCK:
         for name in names:
