@@ -8,6 +8,10 @@ With ``freeze_ahead`` (default) the next freeze runs in a background thread afte
 the script waits for it after each track end (a live survey flies the next track meanwhile)
 and prints apart: the track end (update call: wall and CPU of this thread), the background
 freeze's CPU, and their sum, the CPU a track costs. ``--no-ahead``: freezes at the track end.
+Beside the CPU, the floating-point operations of the dense arithmetic (GFlop per stage, p50):
+every numeric factorisation (CHOLMOD's supernodal blocks, :func:`~ga_ros.core.linalg.selinv.
+supernodal_flops`) and every selected inversion (the supernodes it inverted), counted in the
+stages that enclose them; CPU over GFlop says whether a stage is arithmetic or overhead.
 Run it on two checkouts at the same time to compare them under the same machine load:
 
     ga-ros bench freeze --tracks 12 --refine 0
@@ -16,6 +20,7 @@ Run it on two checkouts at the same time to compare them under the same machine 
 from __future__ import annotations
 
 import argparse
+import threading
 import time
 
 import numpy as np
@@ -52,18 +57,58 @@ def _name(owner, attr: str) -> str:
     return f'{getattr(owner, "__name__", "").split(".")[-1]}.{attr}'
 
 
+class _Open(threading.local):
+    """The timed stages open on this thread (innermost last)."""
+
+    def __init__(self) -> None:
+        self.stages: list[str] = []
+
+
+_OPEN = _Open()
+
+
 def _timed(owner, attr: str, totals: dict[str, float]) -> None:
     fn = getattr(owner, attr)
     label = _name(owner, attr)
 
     def timed(*args, **kwargs):
         c0 = time.thread_time()
+        _OPEN.stages.append(label)
         try:
             return fn(*args, **kwargs)
         finally:
+            _OPEN.stages.pop()
             totals[label] = totals.get(label, 0.0) + 1e3 * (time.thread_time() - c0)
 
     setattr(owner, attr, timed)
+
+
+def _count(flops: dict[str, float], amount: float) -> None:
+    """Add ``amount`` flops to every stage open on this thread (and to the total)."""
+    for label in ['all', *_OPEN.stages]:
+        flops[label] = flops.get(label, 0.0) + amount
+
+
+def _counted(flops: dict[str, float]) -> None:
+    """Count the flops of every numeric factorisation (:meth:`SparseCholesky.refactor`, from
+    the supernodal factor it leaves) and every selected inversion
+    (:class:`selinv.SelectedInverse`) into ``flops`` by open stage."""
+    from ga_ros.core.linalg.cholmod_ctypes import _supernodal_layout
+
+    refactor, inverse = SparseCholesky.refactor, selinv.SelectedInverse.__init__
+
+    def counted_refactor(self, data):
+        refactor(self, data)
+        lay = None if self._F is None else _supernodal_layout(self._F, self.n)
+        if lay is not None:
+            _count(flops, selinv.supernodal_flops(lay.starts, lay.nrows)[0])
+
+    def counted_inverse(self, *args, **kwargs):
+        inverse(self, *args, **kwargs)
+        _count(flops, self.flops[1])
+
+    SparseCholesky.refactor = counted_refactor
+    selinv.SelectedInverse.__init__ = counted_inverse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--no-ahead', action='store_true', help='freeze at the track end')
     args = ap.parse_args(argv)
     totals: dict[str, float] = {}
+    flops: dict[str, float] = {}
+    _counted(flops)
     stages = [(o, a) for o, a in STAGES if hasattr(o, a)]  # an older checkout lacks some
     for owner, attr in stages:
         _timed(owner, attr, totals)
@@ -85,12 +132,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for m in list(sc.measurements(nm.z, nm.cov)) + [None]:
         totals.clear()
+        flops.clear()
         c0, w0 = time.thread_time(), time.perf_counter()
         new = al.add_measurement(m) if m is not None else [al.finish_track()]
         if any(u is not None for u in new):
             cpu, wall = 1e3 * (time.thread_time() - c0), 1e3 * (time.perf_counter() - w0)
             background = al.wait_background()  # the next freeze, while the next track is flown
-            rows.append((cpu, wall, background, dict(totals)))
+            rows.append((cpu, wall, background, dict(totals), dict(flops)))
     al.close()
     full = rows[args.window + 1:]
     labels = [_name(o, a) for o, a in stages]
@@ -103,10 +151,16 @@ def main(argv: list[str] | None = None) -> int:
     total = [r[0] + r[2] for r in full]
     print(f'  {"CPU per track (both)":38s} {np.median(total):8.1f} '
           f'(p95 {np.percentile(total, 95):.1f})')
-    print('CPU ms p50 by stage (the thread that runs it):')
+    print('p50 by stage (the thread that runs it): CPU ms, GFlop (factorisations and selected '
+          'inversions), GFlop/s')
     for label in labels:
-        print(f'  {label:38s} {np.median([r[3].get(label, 0.0) for r in full]):8.1f}')
-    for k, (cpu, wall, background, parts) in enumerate(rows, start=1):
+        ms = np.median([r[3].get(label, 0.0) for r in full])
+        gf = np.median([r[4].get(label, 0.0) for r in full]) / 1e9
+        rate = f'{gf / ms * 1e3:8.1f}' if gf > 0 and ms > 0 else ''
+        print(f'  {label:38s} {ms:8.1f} {gf:8.3f} {rate}')
+    print(f'  {"all factorisations and inversions":38s} {"":8s} '
+          f'{np.median([r[4].get("all", 0.0) for r in full]) / 1e9:8.3f}')
+    for k, (cpu, wall, background, parts, _) in enumerate(rows, start=1):
         print(f'track {k:3d}: update {cpu:6.0f} ms CPU {wall:6.0f} ms wall  background '
               f'{background:5.0f}  solve {parts.get(_name(update, "solve"), 0.0):6.0f}')
     return 0

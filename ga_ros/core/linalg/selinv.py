@@ -74,6 +74,27 @@ def banded_marginal_blocks(N: sp.spmatrix, d: int, max_band: int = 3000,
 
 
 # ------------------------------------------------------------ selected inversion on a factor
+def supernodal_flops(starts: IntArray, nrows: IntArray, need: np.ndarray | None = None
+                     ) -> tuple[float, float]:
+    """Floating-point operations of a supernodal factor's dense blocks (the relaxed
+    supernodes' explicit zeros included): ``(factorisation, selected inversion)``.
+
+    Supernode ``k`` has ``m = starts[k+1] - starts[k]`` columns and ``r = nrows[k] - m`` rows
+    below them. Its factorisation (``dpotrf``, ``dtrsm``, the update ``L_BJ L_BJ'``) costs
+    ``m^3/3 + r m^2 + r^2 m``; its step of Takahashi's equations (:func:`_takahashi_py`:
+    ``dtrtri`` and ``dlauum``, ``U = L_BJ L_JJ^-1``, ``Sigma_BJ = -Sigma_BB U``, the lower
+    triangle of ``Sigma_BJ' U``) ``2 m^3/3 + 2 r m^2 + 2 r^2 m``. ``need``: the supernodes
+    inverted (:attr:`SelectedInverse.need`), default all; the factorisation counts all.
+    """
+    m = np.diff(np.asarray(starts, dtype=np.int64)).astype(float)
+    r = np.asarray(nrows, dtype=np.int64).astype(float) - m
+    factor = m ** 3 / 3 + r * m ** 2 + r ** 2 * m
+    inverse = 2 * m ** 3 / 3 + 2 * r * m ** 2 + 2 * r ** 2 * m
+    if need is not None:
+        inverse = inverse[np.asarray(need, dtype=bool)]
+    return float(factor.sum()), float(inverse.sum())
+
+
 def supernodes(colptr: IntArray, rowind: IntArray) -> IntArray:
     """First column of each (fundamental) supernode of a lower-triangular CSC factor, plus ``n``.
 
@@ -563,6 +584,17 @@ class SelectedInverse:
     def nnz(self) -> int:
         """Stored entries of ``L`` (and of ``Sigma``; supernodal storage counts whole blocks)."""
         return int(self._lay.x.size)
+
+    @property
+    def flops(self) -> tuple[float, float]:
+        """``(factorisation, this selected inversion)`` flops of the factor's supernodes
+        (:func:`supernodal_flops`; the inversion over the supernodes it inverted)."""
+        return supernodal_flops(self._lay.starts, self._lay.nrows, self._need)
+
+    @property
+    def need(self) -> np.ndarray:
+        """``(supernodes,)`` which supernodes were inverted (all, unless ``columns``)."""
+        return self._need
 
     @property
     def inverted(self) -> float:

@@ -329,3 +329,33 @@ def test_the_block_inverse_is_scipys_solve_triangular_bit_for_bit():
     D[1, 1] = np.nan
     with pytest.raises(ValueError):
         banded._lower_inverse(D, eye)
+
+
+def test_flops_of_the_supernodes(rng):
+    """:func:`supernodal_flops`: a dense matrix is one supernode, ``n^3/3`` to factor and
+    ``2 n^3/3`` to invert; on a sparse factor the count is ``sum_j c_j^2`` over its columns
+    (``c_j`` the rows of column ``j``, read from the factor's copy) up to lower-order terms; an
+    inversion restricted to some columns counts only the supernodes it inverted."""
+    from ga_ros.core.linalg.selinv import _csc_layout, supernodal_flops
+
+    d = 6
+    J = rng.normal(size=(40 * d, 30 * d))
+    dense = J.T @ J + np.eye(30 * d)
+    pattern, data = BlockPattern.from_matrix(sp.csr_matrix(dense), d)
+    si = SelectedInverse(SparseCholesky(pattern, data))
+    n = 30 * d
+    assert si.flops == pytest.approx((n ** 3 / 3, 2 * n ** 3 / 3))
+    N = _random_graph_spd(rng, 120, d, 150) + 0.1 * np.eye(120 * d)
+    pattern, data = BlockPattern.from_matrix(sp.csr_matrix(N), d)
+    lay = _csc_layout(SparseCholesky(pattern, data))  # every stored entry, zeros included
+    width = np.diff(lay.starts)
+    k = np.repeat(np.arange(width.size), width)
+    counts = lay.nrows[k] - (np.arange(k.size) - lay.starts[k])  # rows of each column
+    factor, inverse = supernodal_flops(lay.starts, lay.nrows)
+    assert factor == pytest.approx(float(np.sum(counts.astype(float) ** 2)), rel=0.05)
+    assert inverse == pytest.approx(2 * factor, rel=0.05)
+    part = SelectedInverse(SparseCholesky(pattern, data), columns=np.arange(10, 20))
+    assert part.flops[0] == pytest.approx(factor)
+    assert 0 < part.flops[1] < inverse
+    assert part.flops[1] == pytest.approx(supernodal_flops(lay.starts, lay.nrows,
+                                                           part.need)[1])
