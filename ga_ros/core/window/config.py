@@ -227,8 +227,8 @@ class AlignerConfig:
     refine_executor: str = 'auto'
     refine_horizon_tracks: int = ranged(20, 0, 100_000)
     refine_relinearize_sigma: float = ranged(1.0, 0.0, 1e6)
-    prior_band: int = ranged(16, -1, 100_000)
-    prior_hubs: int = ranged(16, 0, 1000)
+    prior_band: int = ranged(8, -1, 100_000)
+    prior_hubs: int = ranged(8, 0, 1000)
     datum: str = 'first_node'
     fix_gate_prob: float = ranged(0.9999, 0.0, 1.0)
     gauge_sigma_m: float = ranged(1000.0, 1e-9, 1e9)
