@@ -9,7 +9,8 @@ the edge: the stamp (ns), ``T_odom_base`` (4x4) and the 6x6 pose and twist covar
 
 Keyframes
     The first sample is keyframe ``first_node_id`` (or the id a restarted input continues from,
-    :meth:`OdometryInput.continue_from`); a sample becomes the next keyframe when its
+    :meth:`OdometryInput.continue_from`, which after samples starts a fresh chain at the next
+    sample); a sample becomes the next keyframe when its
     travel from the last keyframe exceeds ``keyframe_travel_m``, its rotation
     ``keyframe_rotation_deg`` or its time ``keyframe_interval_s``. At each new keyframe the
     motion ``T_kf_new = T_odom_kf^-1 T_odom_new`` is emitted as a ``'consecutive'``
@@ -351,18 +352,28 @@ class OdometryInput:
         (instead of ``first_node_id`` and track 0): a restarted input continuing the survey of a
         restored state after its nodes and tracks.
 
+        Before the first sample this only sets the numbering. After samples (the state was
+        replaced under a running input, ``~/load_state``) it starts a fresh keyframe chain: the
+        keyframes so far are forgotten (their ids no longer name the state's nodes), the next
+        sample is keyframe ``node_id`` with no motion from the one before, and the track rules
+        start afresh on track ``track_id``. The samples kept (``history_s``) and the counters
+        stay: the stream goes on, and a constraint or fix stamped after the new first keyframe
+        is tied to it by the odometry as before.
+
         Raises
         ------
         InputError
-            A sample was already taken (the numbering is fixed by then), or negative ids.
+            Negative ids.
         """
-        if self._kf_ids:
-            raise InputError(f'{self.config.name}: the keyframes are numbered already (from '
-                             f'{self._first_id}); continue the numbering before the first sample')
         if int(node_id) < 0 or int(track_id) < 0:
             raise InputError(f'{self.config.name}: node and track ids must be >= 0, got '
                              f'{node_id}, {track_id}')
         self._first_id = self._next_id = int(node_id)
+        self._kf_ids, self._kf_stamps, self._kf_poses, self._kf_tracks = [], [], [], []
+        self._kf_cov = None
+        self._twist_cov = np.zeros((6, 6))
+        self._twist_ok = True
+        self.segmenter = TrackSegmenter(self.config.track)
         self.segmenter.track_id = int(track_id)
 
     def add_sample(self, stamp_ns: int, T_odom_base: FloatArray,
@@ -390,7 +401,7 @@ class OdometryInput:
             raise InputError(f'{self.config.name}: stamp {stamp} ns is not after the previous '
                              f'sample ({self._stamps[-1]} ns); restart the input on a loop')
         C_pose = body_pose_covariance(T, pose_cov, self.config.pose_covariance_frame)
-        if not self._stamps:
+        if not self._kf_ids:   # the first sample, or the first after continue_from
             self._append(stamp, T)
             track = self._make_keyframe(stamp, T, C_pose)
             return InputUpdate(stamp, self._kf_ids[-1], track, True, True)
@@ -572,6 +583,9 @@ class OdometryInput:
         if not self._stamps or not self._stamps[0] <= stamp <= self._stamps[-1]:
             raise InputError(f'{name}: constraint stamp {stamp} ns is outside the odometry '
                              'received so far; send constraints after the odometry covering them')
+        if not self._kf_ids:   # continue_from started a new chain: no keyframe of it yet
+            raise InputError(f'{name}: no keyframe yet (the keyframes start again at node '
+                             f'{self._first_id}, at the next sample)')
         ks = np.asarray(self._kf_stamps)
         i = int(np.argmin(np.abs(ks - stamp))) if node is None else self._kf_index(node)
         if abs(int(ks[i]) - stamp) * 1e-9 > self.config.constraint_tolerance_s:

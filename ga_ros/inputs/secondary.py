@@ -143,6 +143,13 @@ class SecondaryInput:
         self._pending.append(interval)
         return self._resolve()
 
+    def forget_intervals(self) -> int:
+        """Drop the keyframe intervals still waiting for a sample (the primary started a fresh
+        keyframe chain, whose ids name other nodes); returns how many. Its samples stay."""
+        n = len(self._pending)
+        self._pending.clear()
+        return n
+
     # ----------------------------------------------------------------- helpers
     def _forget(self, stamp: int) -> None:
         """Drop samples older than ``history_s`` (keeping two), and intervals they started."""

@@ -236,6 +236,13 @@ class FixFeeder:
         """Queue fixes for :meth:`flush`."""
         self.waiting.extend(fixes)
 
+    def forget(self) -> int:
+        """Drop the fixes still waiting (tied to keyframes whose ids no longer name the state's
+        nodes: ``~/load_state`` replaced it); returns how many."""
+        n = len(self.waiting)
+        self.waiting = []
+        return n
+
     def flush(self, aligner: Any) -> list[str]:
         """Give ``aligner`` (``add_fix``, ``newest_node_id``: an aligner, or an
         :class:`~ga_ros.pipeline.session.AlignmentSession`, which also journals them and joins

@@ -331,9 +331,24 @@ class InputFrontEnd:
         a node restarted on a restored state continues its survey after the nodes and tracks
         it holds (:meth:`AlignmentSession.next_ids
         <ga_ros.pipeline.session.AlignmentSession.next_ids>`) instead of numbering from 0
-        again, which would read as another survey. Call it before the first sample (raises
-        :class:`InputError` after)."""
+        again, which would read as another survey.
+
+        After samples (``~/load_state`` replaced the state under running inputs) the first
+        input starts a fresh keyframe chain at its next sample, and everything tied to the
+        keyframes so far, whose ids no longer name the state's nodes, is dropped: the further
+        inputs' keyframe intervals still waiting for a sample, the camera's keyframes and
+        records and its connections waiting for the odometry. The samples, the calibration and
+        the counters stay.
+        """
         self._primary().continue_from(node_id, track_id)
+        for inp in self.inputs.values():
+            if isinstance(inp, SecondaryInput):
+                inp.forget_intervals()
+        self._kf_stamp_ns = None
+        self._camera_waiting = []
+        if self.camera is not None:
+            self.camera.forget_keyframes()
+        self._no_keyframe_rows, self._no_keyframe_first = (0, -1), -1
 
     # ------------------------------------------------------------------ TF
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:

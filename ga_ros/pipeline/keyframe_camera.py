@@ -188,6 +188,16 @@ class KeyframeCamera:
                                        int(stamp_ns), np.asarray(T_odom_base, float)))
         return self._resolve()
 
+    def forget_keyframes(self) -> None:
+        """Forget the odometry's keyframes (those waiting for an image pair and the records the
+        matcher holds; the calibration and the image pairs stay): the odometry starts a fresh
+        keyframe chain whose ids name other nodes
+        (:meth:`InputFrontEnd.continue_from <ga_ros.pipeline.inputs.InputFrontEnd.continue_from>`).
+        Cross-track connections then come only between keyframes of the new chain."""
+        self._waiting.clear()
+        self._image_stamp.clear()
+        self.front.forget_keyframes()
+
     def set_corrected(self, node_ids: IntArray, T_world_base: FloatArray) -> None:
         """Corrected base poses of keyframes (node ids) for the overlap prediction."""
         T = np.asarray(T_world_base, float).reshape(-1, 4, 4) @ self.T_base_cam

@@ -330,6 +330,15 @@ class StereoFrontEnd:
         self.matcher = CrossTrackMatcher(cal.K, cal.width, cal.height, self.config.cross)
         return cal
 
+    def forget_keyframes(self) -> None:
+        """Forget the keyframe records the cross-track matcher holds (a fresh, empty matcher;
+        the calibration and the VO stay): their node ids no longer name the nodes of the state
+        (``~/load_state`` replaced it)."""
+        if self.calibration is not None:
+            cal = self.calibration
+            self.matcher = CrossTrackMatcher(cal.K, cal.width, cal.height, self.config.cross)
+        self._stamp_to_node.clear()
+
     # ------------------------------------------------------------------ images
     def add_image(self, side: str, msg: Any) -> list[FrameOutput]:
         """Add one image message of ``side`` (``'left'``/``'right'``); process the pair it

@@ -177,13 +177,13 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
             self.get_logger().info(f'restoring the state from {s.state_file} ...')
         how = self.session.resume()
         self._restore_datum()
+        self._continue_inputs()
         if how is not None and not how.startswith('failed'):
             self._resumed = True
             self.get_logger().info(f'resumed from {s.state_file} ({how}): '
                                    f'{self.session.n_nodes()} nodes')
             self.odom.restore(self.session.map_odom)   # map -> odom as before the restart
             self._publish_all()
-        self._continue_inputs()
 
         wall = RosClock(clock_type=ClockType.STEADY_TIME)  # also under use_sim_time
         if s.diagnostics_period_sec > 0:  # wall clock: reports also while sim time stands
@@ -366,14 +366,19 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
             self.get_logger().error(self.session.last_error, throttle_duration_sec=throttle)
 
     def _continue_inputs(self) -> None:
-        """A restored state: the standard inputs number their keyframes on after its nodes and
-        tracks (:func:`~ga_ros.pipeline.session.restore.continue_inputs`)."""
+        """A restored state (at start, or ``~/load_state``): the standard inputs number their
+        keyframes on after its nodes and tracks, running ones on a fresh keyframe chain, and
+        the fixes tied to their former keyframes are dropped
+        (:func:`~ga_ros.pipeline.session.restore.continue_inputs`)."""
         if self.front is None:
             return
+        dropped = self._fix_feeder.forget()
         first = continue_inputs(self.session, self.front)
         if first is not None:
             self.get_logger().info(f'standard inputs: keyframes numbered from node {first[0]}, '
-                                   f'track {first[1]} (after the restored state)')
+                                   f'track {first[1]} (after the restored state)'
+                                   + (f'; {dropped} fixes on the former keyframes dropped'
+                                      if dropped else ''))
 
     def _new_survey(self) -> None:
         """The session moved the resumed state aside (another survey's first measurement

@@ -89,6 +89,11 @@ class AlignmentServices:
                                 else f'load failed (state unchanged): {exc}')
             return response
         self._restore_datum()
+        # the standard inputs continue after the loaded nodes, as after a start (a fresh
+        # keyframe chain bridged to the loaded newest node), and map -> odom is the loaded one
+        self._continue_inputs()
+        self._resumed = True
+        self.odom.restore(self.session.map_odom)
         self.corrections.restart()  # consumers drop what they held: a full message next
         self.paths.restart()
         self._publish_all()

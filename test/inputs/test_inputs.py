@@ -317,7 +317,8 @@ def test_yaml_mirrors_config_defaults() -> None:
 
 def test_a_restarted_input_numbers_on_from_the_given_node_and_track() -> None:
     """``continue_from``: keyframes numbered from the given node on the given track (the
-    keyframe poses found by those ids); refused once the numbering is fixed."""
+    keyframe poses found by those ids); after samples, a fresh chain from the next sample (the
+    former keyframes forgotten, no motion from them); negative ids refused."""
     inp = OdometryInput(OdometryInputConfig(keyframe_travel_m=0.99, keyframe_rotation_deg=0))
     inp.continue_from(40, 3)
     ups = [inp.add_sample(k * NS // 10, se3.from_translation_rotvec(np.array([0.1 * k, 0, 0]),
@@ -329,5 +330,19 @@ def test_a_restarted_input_numbers_on_from_the_given_node_and_track() -> None:
     np.testing.assert_allclose(inp.keyframe_pose(42)[:3, 3], [2.0, 0, 0], atol=1e-12)
     with pytest.raises(InputError, match='unknown node id 39'):
         inp.keyframe_pose(39)
-    with pytest.raises(InputError, match='before the first sample'):
-        inp.continue_from(50, 4)
+    inp.continue_from(50, 4)
+    with pytest.raises(InputError, match='unknown node id 42'):
+        inp.keyframe_pose(42)
+    with pytest.raises(InputError, match='no keyframe yet'):
+        inp.constraint_from_stamps(NS, 2 * NS, np.eye(4), None)
+    up = inp.add_sample(31 * NS // 10, se3.from_translation_rotvec(np.array([3.1, 0, 0]),
+                                                                   np.zeros(3)))
+    assert (up.keyframe_id, up.track_id, up.new_keyframe, up.measurement) == (50, 4, True, None)
+    up = inp.add_sample(42 * NS // 10, se3.from_translation_rotvec(np.array([4.2, 0, 0]),
+                                                                   np.zeros(3)))
+    m = up.measurement
+    assert (m.src_id, m.dst_id, m.src_track, m.dst_track) == (50, 51, 4, 4)
+    np.testing.assert_allclose(m.z[:3], [1.1, 0, 0], atol=1e-12)
+    assert inp.keyframe_ids == (50, 52)
+    with pytest.raises(InputError, match='>= 0'):
+        inp.continue_from(-1, 4)

@@ -55,9 +55,10 @@ class _Node:
     """What ``alignment_node`` does with standard inputs and a state file (ROS-free): the
     session, the front end, ``map -> odom`` journaled after each update, the restart."""
 
-    def __init__(self, state: Path, compact: int = 1000) -> None:
+    def __init__(self, state: Path, compact: int = 1000, autosave: bool = True) -> None:
         self.warnings: list[str] = []
-        self.session = AlignmentSession(CFG, SessionConfig(str(state), compact_records=compact),
+        self.session = AlignmentSession(CFG, SessionConfig(str(state), autosave,
+                                                           compact_records=compact),
                                         warn=self.warnings.append)
         self.front = _front()
         self.odom = MapToOdom(self.front)
@@ -65,6 +66,14 @@ class _Node:
         if self.session.resume() is not None:
             self.odom.restore(self.session.map_odom)
         continue_inputs(self.session, self.front)
+
+    def load(self) -> str:
+        """``~/load_state``: the state file's state, the inputs continued after it and its
+        ``map -> odom`` restored, as at a start."""
+        how = self.session.load()
+        continue_inputs(self.session, self.front)
+        self.odom.restore(self.session.map_odom)
+        return how
 
     def sample(self, T: np.ndarray, stamp_ns: int) -> None:
         step = self.front.sample('odom0', odometry_msg(T, stamp_ns))

@@ -483,3 +483,43 @@ def test_a_node_restarted_with_its_odometry_guesses_the_bridge_and_warns(ctx, tm
         assert '[WARN]' in err and 'bridged to the restored survey by a guess' in err
     finally:
         node.destroy_node()
+
+
+def test_a_state_loaded_under_running_odometry_continues_after_its_nodes(ctx, tmp_path):
+    """``~/load_state`` while the odometry runs (``autosave: false``: saved at 6 keyframes,
+    driven on to 12, the save loaded back): the standard inputs number on after the loaded
+    nodes on a fresh keyframe chain, its first node joined to the loaded newest by the
+    odometry's motion (``restart_bridge: measured``), ``map -> odom`` the loaded state's until
+    the next update and the same after it (exact odometry). Before, the running numbering
+    (12, 13, ...) was held as unknown sources and bridged by a silent guess."""
+    msgs = _moved(odom_msgs(240), se3.from_translation_rotvec(np.array([4.0, -3.0, 0.0]),
+                                                              np.array([0.0, 0.0, 0.8])))
+    node = _node(AlignmentNode, ctx, state_file=str(tmp_path / 'state'), autosave=False,
+                 allow_load_state=True)
+    try:
+        for msg in msgs[:60]:
+            node._on_input('odom0', msg)
+        assert node._srv_save(Trigger.Request(), Trigger.Response()).success
+        saved = node.aligner.corrected_path()
+        n = len(saved.node_ids)
+        for msg in msgs[60:120]:
+            node._on_input('odom0', msg)
+        assert node.session.n_nodes() == 12 and n == 6
+        resp = node._srv_load(Trigger.Request(), Trigger.Response())
+        assert resp.success, resp.message
+        assert node.odom.placed_by == 'restored'
+        T_map_odom = saved.T_world_node[-1] @ se3.inverse(pose_to_matrix(msgs[50].pose.pose))
+        np.testing.assert_allclose(node.odom.T_map_odom, T_map_odom, atol=1e-9)
+        for msg in msgs[120:]:
+            node._on_input('odom0', msg)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        values = node.diagnostic_values()
+        assert values['restart_bridge'] == 'measured' and values['unjoined_nodes'] == 0
+        assert values['bridges'] == 0 and node.session.counts.rejected == {}
+        cp = node.aligner.corrected_path()
+        assert [int(i) for i in cp.node_ids] == list(range(n + 12))
+        assert int(cp.track_ids[n]) == int(saved.track_ids.max()) + 1
+        np.testing.assert_allclose(cp.T_world_node[:n], saved.T_world_node, atol=1e-6)
+        np.testing.assert_allclose(node.odom.T_map_odom, T_map_odom, atol=1e-6)
+    finally:
+        node.destroy_node()

@@ -95,11 +95,15 @@ class AlignmentSession:
         self.datum: tuple[float, float, float] | None = None
         #: The journal's last ``map -> odom`` record (:meth:`journal_map_odom`) at the last
         #: resume or load, with its node and that node's pose then (what the measured bridge
-        #: across a restart checks, :mod:`~ga_ros.pipeline.session.restore`); ``None``: none,
-        #: or not restored. Its ``T_map_odom``: :attr:`map_odom`.
+        #: across a restart checks, :mod:`~ga_ros.pipeline.session.restore`), or the one the
+        #: running inputs' own keyframe of the loaded newest node gives (set by
+        #: :func:`~ga_ros.pipeline.session.restore.continue_inputs`); ``None``: none, or not
+        #: restored. Its ``T_map_odom``: :attr:`map_odom`.
         self.map_odom_entry: MapOdom | None = None
-        #: How the first new node after a restart was bridged: ``''`` (not yet, or no
-        #: restart), ``'measured'`` (the odometry went on) or ``'guessed: <why>'``.
+        #: How the first new node after a restart (or a load) was bridged: ``''`` (no
+        #: restart), ``'pending'`` (not yet), ``'measured'`` (the odometry went on) or
+        #: ``'guessed: <why>'``. A fact of this start, not kept in the state (the journal keeps
+        #: the bridges themselves: :meth:`~ga_ros.core.gaps.GapHealer.unjoined`).
         self.restart_bridge = ''
         #: Opened by :meth:`resume` (after recovery has checked and repaired the files).
         self.journal: MeasurementJournal | None = None
@@ -689,7 +693,11 @@ class AlignmentSession:
 
     def load(self) -> str:
         """Replace the state by the state file's and its journal's (``~/load_state``); returns
-        how.
+        how. What the session knew of the state it replaces goes with it: a pending bridge
+        across a restart, :attr:`restart_bridge`, the last ``map -> odom`` journaled; the
+        survey check of a start is not made (the loaded state is the one chosen). Standard
+        inputs running under it continue after the loaded nodes by
+        :func:`~ga_ros.pipeline.session.restore.continue_inputs`, as after a start.
 
         Raises
         ------
@@ -702,10 +710,15 @@ class AlignmentSession:
         result = self._recover()
         if result.source == 'empty':
             raise InputError(f'no state in {path!r}')
+        self._close_aligner()
         self.aligner = result.aligner
         self.gaps = rebuild_gaps(self.session.gaps, self.aligner, result)
         self.datum = result.datum
         self.map_odom_entry = result.map_odom_entry
+        self._map_odom_journaled = None
+        self._bridge_now, self._bridge_node, self._measure_bridge = None, -1, None
+        self.restart_bridge = ''
+        self.survey_check_pending = False
         return how(result)
 
     def resume(self) -> str | None:

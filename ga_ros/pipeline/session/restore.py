@@ -32,6 +32,17 @@ The bridge across a restart of the alignment node (:func:`continue_inputs`)
 
     A renamed ``odom`` frame is not told (the state does not hold frame names): set the input's
     ``frame_id`` to refuse another frame.
+
+After ``~/load_state`` under running inputs (the same :func:`continue_inputs`)
+    The inputs, which took samples already, start a fresh keyframe chain at their next sample,
+    numbered after the loaded nodes on a new track
+    (:meth:`~ga_ros.pipeline.inputs.InputFrontEnd.continue_from`), so their former numbering
+    never reaches the loaded state. When the first input made the loaded newest node ``n``
+    itself (the same id and stamp: a save of this run loaded back), its own pose ``T_odom_n`` of
+    that keyframe is the origin, exact and journal-free, and the loaded ``map -> odom`` is
+    ``T_map_n inv(T_odom_n)`` (:attr:`AlignmentSession.map_odom_entry
+    <ga_ros.pipeline.session.AlignmentSession.map_odom_entry>`); otherwise the loaded journal's
+    ``map -> odom`` as above (a state of an earlier run of the same odometry), else the guess.
 """
 
 from __future__ import annotations
@@ -47,7 +58,7 @@ from ga_ros.core.gaps import Bridge, GapConfig, GapHealer, fingerprint
 from ga_ros.core.measurement import Measurement
 from ga_ros.errors import GaError
 from ga_ros.geometry import se3
-from ga_ros.pipeline.journal import RecoveryResult
+from ga_ros.pipeline.journal import MapOdom, RecoveryResult
 
 #: The restored newest node's pose may differ from the one the ``map -> odom`` record holds by
 #: this much (m, and rotation-matrix entries) and still count as unmoved (the state is
@@ -91,18 +102,28 @@ def how(result: RecoveryResult) -> str:
 @dataclass(frozen=True)
 class RestartOrigin:
     """Where the odometry left the restored survey: its newest node ``node_id`` (stamp
-    ``stamp_ns``) at the odometry pose ``T_odom_node`` (4, 4) the state's last ``map -> odom``
-    gives it."""
+    ``stamp_ns``) at the odometry pose ``T_odom_node`` (4, 4): the one the state's last
+    ``map -> odom`` gives it (``by`` ``'map_odom'``), or the running input's own keyframe of
+    that node (``by`` ``'keyframe'``, a state loaded under running inputs)."""
 
     node_id: int
     stamp_ns: int
     T_odom_node: FloatArray
+    by: str = 'map_odom'
 
 
-def restart_origin(session: Any) -> RestartOrigin | str:
+def restart_origin(session: Any, front: Any = None) -> RestartOrigin | str:
     """The :class:`RestartOrigin` of a restored ``session`` (an
     :class:`~ga_ros.pipeline.session.AlignmentSession`), or why the bridge across the restart
-    cannot be measured (module doc)."""
+    cannot be measured (module doc). ``front``: the standard inputs (an
+    :class:`~ga_ros.pipeline.inputs.InputFrontEnd`, before it forgets its keyframes): when
+    their first input made the state's newest node itself (the same id and stamp: a state this
+    run saved, loaded back by ``~/load_state``), its own pose of that keyframe is the origin."""
+    own = _own_keyframe(session, front)
+    if own is not None:
+        if session.gaps.held:
+            return f'{len(session.gaps.held)} measurements from before the load are still held'
+        return own
     entry = getattr(session, 'map_odom_entry', None)
     if entry is None:
         return 'the state holds no map -> odom (no window update before the restart)'
@@ -122,6 +143,24 @@ def restart_origin(session: Any) -> RestartOrigin | str:
     T_odom_n = se3.inverse(np.asarray(entry.T_map_odom, float)) @ np.asarray(
         cp.T_world_node[-1], float)
     return RestartOrigin(int(cp.node_ids[-1]), int(cp.stamps_ns[-1]), T_odom_n)
+
+
+def _own_keyframe(session: Any, front: Any) -> RestartOrigin | None:
+    """The :class:`RestartOrigin` from ``front``'s own keyframe of the state's newest node
+    (None: no front end, an empty state, or not its keyframe: another id or stamp)."""
+    if front is None:
+        return None
+    cp = session.aligner.corrected_path()
+    if not len(cp.node_ids):
+        return None
+    node, stamp = int(cp.node_ids[-1]), int(cp.stamps_ns[-1])
+    try:
+        if front.keyframe_stamp(node) != stamp:
+            return None
+        T_odom_n = front.keyframe_pose(node)
+    except GaError:
+        return None
+    return RestartOrigin(node, stamp, np.asarray(T_odom_n, float), 'keyframe')
 
 
 def restart_motion(origin: RestartOrigin, T_odom_new: FloatArray, stamp_ns: int,
@@ -175,18 +214,32 @@ def measured_bridge(origin: RestartOrigin | str, front: Any, config: GapConfig
 
 
 def continue_inputs(session: Any, front: Any) -> tuple[int, int] | None:
-    """After a restore: the standard inputs ``front`` (an
-    :class:`~ga_ros.pipeline.inputs.InputFrontEnd`, before its first sample) number their
-    keyframes on after the nodes and tracks of ``session``'s state, on a new track, and the
-    session bridges the first new node to the state's newest at once: measured from the
-    odometry when it went on across the restart, else guessed (module doc). Live odometry after
-    a restart thus continues the survey instead of reading as another one
-    (:mod:`~ga_ros.pipeline.session.survey_identity`). Returns ``(node id, track id)`` of the
-    first new keyframe (``None``: an empty state, the numbering is left as it is)."""
+    """After a restore (a start on a state file, or ``~/load_state``): the standard inputs
+    ``front`` (an :class:`~ga_ros.pipeline.inputs.InputFrontEnd`; before its first sample, or
+    running: it then starts a fresh keyframe chain at its next sample,
+    :meth:`~ga_ros.pipeline.inputs.InputFrontEnd.continue_from`) number their keyframes on
+    after the nodes and tracks of ``session``'s state, on a new track, and the session bridges
+    the first new node to the state's newest at once: measured from the odometry when it went
+    on across the restart, else guessed (module doc). Live odometry after a restart thus
+    continues the survey instead of reading as another one
+    (:mod:`~ga_ros.pipeline.session.survey_identity`), and after a load its numbering never
+    collides with the loaded nodes.
+
+    When the origin is the inputs' own keyframe (:func:`restart_origin`), the session's
+    :attr:`~ga_ros.pipeline.session.AlignmentSession.map_odom_entry` becomes the
+    ``map -> odom`` it gives (``T_map_n inv(T_odom_n)``): what the caller's
+    :class:`~ga_ros.pipeline.map_to_odom.MapToOdom` restores, as after a start. Returns
+    ``(node id, track id)`` of the first new keyframe (``None``: an empty state, the numbering
+    is left as it is)."""
     node_id, track_id = session.next_ids()
     if node_id == 0:
         return None
+    session.restart_bridge = 'pending'
+    origin = restart_origin(session, front)   # before the inputs forget their keyframes
+    if isinstance(origin, RestartOrigin) and origin.by == 'keyframe':
+        T_map_n = np.asarray(session.aligner.corrected_path().T_world_node[-1], float)
+        session.map_odom_entry = MapOdom(T_map_n @ se3.inverse(origin.T_odom_node),
+                                         origin.node_id, T_map_n)
     front.continue_from(node_id, track_id)
-    session.bridge_at_once(node_id, measured_bridge(restart_origin(session), front,
-                                                    session.session.gaps))
+    session.bridge_at_once(node_id, measured_bridge(origin, front, session.session.gaps))
     return node_id, track_id
