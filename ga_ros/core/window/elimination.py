@@ -246,14 +246,87 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
     free, N, u = normal_terms(snap, absorbed, T_lin, snap.past + snap.frozen_fixes())
     N = sp.csr_matrix(N)  # once, for both
     kf = keep[free]
-    priors = sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
     L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
     if L.size == 0 or not smoothing:
-        return priors, ()
+        return sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs), ()
     cL = (6 * L[:, None] + np.arange(6)).ravel()
     cR = (6 * R[:, None] + np.arange(6)).ravel()
     NL = N[cL]
-    return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
+    sm = SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL])
+    priors = (priors_from_smoothing(sm, free, N, u, kf, T_lin, snap.prior_band,
+                                    snap.prior_hubs)
+              or sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs))
+    return priors, (sm,)
+
+
+#: :func:`priors_from_smoothing` takes at most this many prior unknowns (``6 k``, ``k`` prior
+#: nodes; right-hand sides of its solve), else :func:`sparse_priors` builds the priors.
+FACTOR_PRIOR_MAX_UNKNOWNS = 600
+
+
+def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
+                          u: FloatArray, target: BoolArray, T_lin: FloatArray, band: int,
+                          hubs: int) -> tuple[AbsorbedPrior, ...] | None:
+    """:func:`sparse_priors` from the smoothing's factor of ``N_LL`` (no second factorisation),
+    where every group's prior is the exact one from a partial factorisation
+    (:func:`~ga_ros.core.window.freeze.marginal_prior`: few prior nodes, more than
+    :data:`~ga_ros.core.window.freeze.DENSE_SCHUR_MAX` eliminated unknowns): ``X = N_LL^-1
+    [N_LR, u_L]`` (one solve of ``6 k + 1`` columns, ``k`` prior nodes), the Schur complement
+    ``H = N_RR - N_RL X_R`` and ``g = u_R - N_RL x_u`` of all groups at once (block diagonal
+    over the groups: their eliminated nodes are not coupled), each group's prior
+    (:func:`~ga_ros.core.window.freeze.tangent_prior` at the step ``H^-1 g``, as the partial
+    factorisation's). The same priors as :func:`sparse_priors` up to rounding
+    (``test/core/window/test_refinement.py``). ``None`` where that path does not apply (many
+    prior nodes, a banded prior, a group without eliminated nodes, ``H`` not positive
+    definite): the caller takes :func:`sparse_priors`.
+
+    Parameters
+    ----------
+    sm : the sparse smoothing of the eliminated nodes ``free[~target]`` onto ``free[target]``.
+    free, N, u, target, T_lin, band, hubs : as :func:`sparse_priors` (``N`` CSR).
+    """
+    from ga_ros.core.window.freeze import DENSE_SCHUR_MAX, sparse_prior_applies, tangent_prior
+
+    R = np.nonzero(target)[0]
+    if 6 * R.size > FACTOR_PRIOR_MAX_UNKNOWNS or R.size == 0:
+        return None
+    coo = N.tocoo()
+    k = free.size
+    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
+    _, label = connected_components(blocks, directed=False)
+    groups = []
+    for c in np.unique(label):
+        mine = label == c
+        n_keep = int((mine & target).sum())
+        if n_keep == 0:
+            continue
+        if (sparse_prior_applies(n_keep, band, hubs)
+                or 6 * int((mine & ~target).sum()) <= DENSE_SCHUR_MAX):
+            return None
+        groups.append(np.nonzero(label[R] == c)[0])  # positions in R
+    L = np.nonzero(~target)[0]
+    cL = (6 * L[:, None] + np.arange(6)).ravel()
+    cR = (6 * R[:, None] + np.arange(6)).ravel()
+    NR = N[cR]
+    N_RL = NR[:, cL]
+    X = sm.solve_eliminated(np.column_stack([N_RL.T.toarray(), u[cL]]))
+    Y = N_RL @ X
+    H_all = NR[:, cR].toarray() - Y[:, :-1]
+    g_all = u[cR] - Y[:, -1]
+    priors = []
+    for pos in groups:
+        at = (6 * pos[:, None] + np.arange(6)).ravel()
+        H = H_all[np.ix_(at, at)]
+        H = 0.5 * (H + H.T)
+        try:
+            cho = sla.cho_factor(H, lower=True)
+        except np.linalg.LinAlgError:
+            return None  # H singular: the least-squares step of the dense path
+        step = sla.cho_solve(cho, g_all[at])
+        nodes = free[R[pos]]
+        mean, info = tangent_prior(T_lin[nodes], H, None, step=step)
+        priors.append(AbsorbedPrior(nodes, mean, info, info.shape[0]))
+    return tuple(priors)
 
 
 def gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]

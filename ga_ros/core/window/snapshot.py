@@ -145,6 +145,10 @@ class SparseSmoothing:
         rhs = self._u_L + (self._N_LR @ dR if dR.size else 0.0)
         return -self._chol.solve(rhs)
 
+    def solve_eliminated(self, b: FloatArray) -> FloatArray:
+        """``N_LL^-1 b`` for ``b`` of shape ``(6 l,)`` or ``(6 l, k)`` (the same factor)."""
+        return self._chol.solve(b)
+
 
 @dataclass(frozen=True)
 class RefinementResult:
