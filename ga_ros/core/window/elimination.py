@@ -212,6 +212,21 @@ def long_tracks(snap: RefinementSnapshot) -> bool:
     return bool(counts.size) and int(counts.max()) > SPARSE_FROM_TRACK_NODES
 
 
+def block_components(N: sp.csr_matrix, d: int) -> IntArray:
+    """(k,) connected component of each ``d x d`` block of a symmetric CSR matrix of ``k``
+    block rows (the graph of its nonzero blocks; the labels of
+    :func:`scipy.sparse.csgraph.connected_components`). The block graph is ``N``'s own index
+    arrays with every column divided by ``d`` and every ``d`` rows taken as one (duplicate,
+    unsorted entries: no conversion, no sort)."""
+    k = N.shape[0] // d
+    if k == 0:
+        return np.zeros(0, dtype=np.int64)
+    graph = sp.csr_matrix((np.ones(N.indices.size), N.indices // d,
+                           np.ascontiguousarray(N.indptr[::d])),
+                          shape=(k, k))
+    return connected_components(graph, directed=False)[1]
+
+
 def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
                    T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
     """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
@@ -219,10 +234,7 @@ def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArr
     without a dense matrix of more than the group's targets). Equal to :func:`prior_of` of the
     dense elimination (``test/core/window/test_refinement.py``)."""
     Nc = sp.csr_matrix(N)
-    coo = Nc.tocoo()
-    k = free.size
-    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
-    _, label = connected_components(blocks, directed=False)
+    label = block_components(Nc, 6)
     priors = []
     for c in np.unique(label):
         mine = np.nonzero(label == c)[0]
@@ -290,10 +302,7 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
     R = np.nonzero(target)[0]
     if 6 * R.size > FACTOR_PRIOR_MAX_UNKNOWNS or R.size == 0:
         return None
-    coo = N.tocoo()
-    k = free.size
-    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
-    _, label = connected_components(blocks, directed=False)
+    label = block_components(N, 6)
     groups = []
     for c in np.unique(label):
         mine = label == c
