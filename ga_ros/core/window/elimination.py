@@ -283,14 +283,15 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
     where every group's prior is the exact one from a partial factorisation
     (:func:`~ga_ros.core.window.freeze.marginal_prior`: few prior nodes, more than
     :data:`~ga_ros.core.window.freeze.DENSE_SCHUR_MAX` eliminated unknowns): ``X = N_LL^-1
-    [N_LR, u_L]`` (one solve of ``6 k + 1`` columns, ``k`` prior nodes), the Schur complement
+    [N_LR, u_L]`` (``6 k + 1`` right-hand sides, ``k`` prior nodes), the Schur complement
     ``H = N_RR - N_RL X_R`` and ``g = u_R - N_RL x_u`` of all groups at once (block diagonal
     over the groups: their eliminated nodes are not coupled), each group's prior
     (:func:`~ga_ros.core.window.freeze.tangent_prior` at the step ``H^-1 g``, as the partial
     factorisation's). The same priors as :func:`sparse_priors` up to rounding
     (``test/core/window/test_refinement.py``). ``None`` where that path does not apply (many
     prior nodes, a banded prior, a group without eliminated nodes, ``H`` not positive
-    definite): the caller takes :func:`sparse_priors`.
+    definite): the caller takes :func:`sparse_priors`. With CHOLMOD's own factor the solve is
+    its forward half, ``Y = L^-1 P [N_LR, u_L]``, and ``N_RL X = Y_R' Y``.
 
     Parameters
     ----------
@@ -313,15 +314,12 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
                 or 6 * int((mine & ~target).sum()) <= DENSE_SCHUR_MAX):
             return None
         groups.append(np.nonzero(label[R] == c)[0])  # positions in R
-    L = np.nonzero(~target)[0]
-    cL = (6 * L[:, None] + np.arange(6)).ravel()
     cR = (6 * R[:, None] + np.arange(6)).ravel()
-    NR = N[cR]
-    N_RL = NR[:, cL]
-    X = sm.solve_eliminated(np.column_stack([N_RL.T.toarray(), u[cL]]))
-    Y = N_RL @ X
-    H_all = NR[:, cR].toarray() - Y[:, :-1]
-    g_all = u[cR] - Y[:, -1]
+    B = np.column_stack([sm.N_LR.toarray(), sm.u_L])
+    Y = sm.forward_eliminated(B)  # L^-1 P B of N_LL = P' L L' P: B' N_LL^-1 B = Y' Y
+    G = Y[:, :-1].T @ Y if Y is not None else B[:, :-1].T @ sm.solve_eliminated(B)
+    H_all = N[cR][:, cR].toarray() - G[:, :-1]
+    g_all = u[cR] - G[:, -1]
     priors = []
     for pos in groups:
         at = (6 * pos[:, None] + np.arange(6)).ravel()
