@@ -23,9 +23,17 @@ from scipy.sparse.csgraph import connected_components
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, normal_matrix_at
-from ga_ros.core.window.freeze import AbsorbedPrior, marginal_prior, prior_nodes
+from ga_ros.core.window.freeze import (
+    DENSE_SCHUR_MAX,
+    AbsorbedPrior,
+    marginal_prior,
+    prior_nodes,
+    sparse_prior_applies,
+    tangent_prior,
+)
 from ga_ros.core.window.snapshot import RefinementSnapshot, SmoothingStep, SparseSmoothing
 from ga_ros.core.window.storage import unpack_sym6
+from ga_ros.errors import DegenerateGeometryError
 
 
 def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True
@@ -228,13 +236,15 @@ def block_components(N: sp.csr_matrix, d: int) -> IntArray:
 
 
 def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
-                   T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
+                   T_lin: FloatArray, band: int, hubs: int, label: IntArray | None = None
+                   ) -> tuple[AbsorbedPrior, ...]:
     """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
     (the others eliminated), one per connected group (:func:`marginal_prior` of each, so
     without a dense matrix of more than the group's targets). Equal to :func:`prior_of` of the
-    dense elimination (``test/core/window/test_refinement.py``)."""
+    dense elimination (``test/core/window/test_refinement.py``). ``label``: the blocks'
+    components (:func:`block_components`) if the caller has them."""
     Nc = sp.csr_matrix(N)
-    label = block_components(Nc, 6)
+    label = block_components(Nc, 6) if label is None else label
     priors = []
     for c in np.unique(label):
         mine = np.nonzero(label == c)[0]
@@ -265,9 +275,10 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
     cR = (6 * R[:, None] + np.arange(6)).ravel()
     NL = N[cL]
     sm = SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL])
+    label = block_components(N, 6)
     priors = (priors_from_smoothing(sm, free, N, u, kf, T_lin, snap.prior_band,
-                                    snap.prior_hubs)
-              or sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs))
+                                    snap.prior_hubs, label)
+              or sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs, label))
     return priors, (sm,)
 
 
@@ -278,7 +289,8 @@ FACTOR_PRIOR_MAX_UNKNOWNS = 600
 
 def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
                           u: FloatArray, target: BoolArray, T_lin: FloatArray, band: int,
-                          hubs: int) -> tuple[AbsorbedPrior, ...] | None:
+                          hubs: int, label: IntArray | None = None
+                          ) -> tuple[AbsorbedPrior, ...] | None:
     """:func:`sparse_priors` from the smoothing's factor of ``N_LL`` (no second factorisation),
     where every group's prior is the exact one from a partial factorisation
     (:func:`~ga_ros.core.window.freeze.marginal_prior`: few prior nodes, more than
@@ -288,7 +300,7 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
     over the groups: their eliminated nodes are not coupled), each group's prior
     (:func:`~ga_ros.core.window.freeze.tangent_prior` at the step ``H^-1 g``, as the partial
     factorisation's). The same priors as :func:`sparse_priors` up to rounding
-    (``test/core/window/test_refinement.py``). ``None`` where that path does not apply (many
+    (``test/core/window/test_fixes_refinement.py``). ``None`` where that path does not apply (many
     prior nodes, a banded prior, a group without eliminated nodes, ``H`` not positive
     definite): the caller takes :func:`sparse_priors`. With CHOLMOD's own factor the solve is
     its forward half, ``Y = L^-1 P [N_LR, u_L]``, and ``N_RL X = Y_R' Y``.
@@ -296,14 +308,12 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
     Parameters
     ----------
     sm : the sparse smoothing of the eliminated nodes ``free[~target]`` onto ``free[target]``.
-    free, N, u, target, T_lin, band, hubs : as :func:`sparse_priors` (``N`` CSR).
+    free, N, u, target, T_lin, band, hubs, label : as :func:`sparse_priors` (``N`` CSR).
     """
-    from ga_ros.core.window.freeze import DENSE_SCHUR_MAX, sparse_prior_applies, tangent_prior
-
     R = np.nonzero(target)[0]
     if 6 * R.size > FACTOR_PRIOR_MAX_UNKNOWNS or R.size == 0:
         return None
-    label = block_components(N, 6)
+    label = block_components(N, 6) if label is None else label
     groups = []
     for c in np.unique(label):
         mine = label == c
@@ -316,8 +326,11 @@ def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
         groups.append(np.nonzero(label[R] == c)[0])  # positions in R
     cR = (6 * R[:, None] + np.arange(6)).ravel()
     B = np.column_stack([sm.N_LR.toarray(), sm.u_L])
-    Y = sm.forward_eliminated(B)  # L^-1 P B of N_LL = P' L L' P: B' N_LL^-1 B = Y' Y
-    G = Y[:, :-1].T @ Y if Y is not None else B[:, :-1].T @ sm.solve_eliminated(B)
+    try:
+        Y = sm.forward_eliminated(B)  # L^-1 P B of N_LL = P' L L' P: B' N_LL^-1 B = Y' Y
+        G = Y[:, :-1].T @ Y if Y is not None else B[:, :-1].T @ sm.solve_eliminated(B)
+    except DegenerateGeometryError:
+        return None
     H_all = N[cR][:, cR].toarray() - G[:, :-1]
     g_all = u[cR] - G[:, -1]
     priors = []
