@@ -3,9 +3,11 @@ rebuilt at a refined estimate, the retirement of old tracks into the past prior,
 substitution (smoothing) through those eliminations (ROS-free).
 
 The rebuilt priors come from one sparse elimination (:func:`sparse_eliminate`): every absorbed
-term of the horizon, its frozen fixes and the past prior linearised and summed once, the priors
-by selected inversion or a partial factorisation, the back substitution (:func:`smooth`) one
-solve with a sparse factor, which a worker process keeps (:mod:`ga_ros.core.window.worker`).
+term of the horizon, its frozen fixes and the past prior linearised and summed once, the back
+substitution (:func:`smooth`) one solve with a sparse factor of the eliminated block, which a
+worker process keeps (:mod:`ga_ros.core.window.worker`), the priors from that factor where they
+are exact and over few nodes (:func:`priors_from_smoothing`), else by selected inversion or a
+partial factorisation (:func:`sparse_priors`).
 The track-by-track elimination on dense matrices of about two swaths (:class:`Marginal`:
 interior nodes first, each gain over the nodes it is coupled to) gives the same priors and
 smoothing; it runs when :data:`SPARSE_FROM_TRACK_NODES` is raised above the tracks' length (the
