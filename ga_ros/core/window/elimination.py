@@ -3,9 +3,11 @@ rebuilt at a refined estimate, the retirement of old tracks into the past prior,
 substitution (smoothing) through those eliminations (ROS-free).
 
 The rebuilt priors come from one sparse elimination (:func:`sparse_eliminate`): every absorbed
-term of the horizon, its frozen fixes and the past prior linearised and summed once, the priors
-by selected inversion or a partial factorisation, the back substitution (:func:`smooth`) one
-solve with a sparse factor, which a worker process keeps (:mod:`ga_ros.core.window.worker`).
+term of the horizon, its frozen fixes and the past prior linearised and summed once, the back
+substitution (:func:`smooth`) one solve with a sparse factor of the eliminated block, which a
+worker process keeps (:mod:`ga_ros.core.window.worker`), the priors from that factor where they
+are exact and over few nodes (:func:`priors_from_smoothing`), else by selected inversion or a
+partial factorisation (:func:`sparse_priors`).
 The track-by-track elimination on dense matrices of about two swaths (:class:`Marginal`:
 interior nodes first, each gain over the nodes it is coupled to) gives the same priors and
 smoothing; it runs when :data:`SPARSE_FROM_TRACK_NODES` is raised above the tracks' length (the
@@ -23,9 +25,17 @@ from scipy.sparse.csgraph import connected_components
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, normal_matrix_at
-from ga_ros.core.window.freeze import AbsorbedPrior, marginal_prior, prior_nodes
+from ga_ros.core.window.freeze import (
+    DENSE_SCHUR_MAX,
+    AbsorbedPrior,
+    marginal_prior,
+    prior_nodes,
+    sparse_prior_applies,
+    tangent_prior,
+)
 from ga_ros.core.window.snapshot import RefinementSnapshot, SmoothingStep, SparseSmoothing
 from ga_ros.core.window.storage import unpack_sym6
+from ga_ros.errors import DegenerateGeometryError
 
 
 def eliminate_absorbed(snap: RefinementSnapshot, T_lin: FloatArray, smoothing: bool = True
@@ -212,17 +222,31 @@ def long_tracks(snap: RefinementSnapshot) -> bool:
     return bool(counts.size) and int(counts.max()) > SPARSE_FROM_TRACK_NODES
 
 
+def block_components(N: sp.csr_matrix, d: int) -> IntArray:
+    """(k,) connected component of each ``d x d`` block of a symmetric CSR matrix of ``k``
+    block rows (the graph of its nonzero blocks; the labels of
+    :func:`scipy.sparse.csgraph.connected_components`). The block graph is ``N``'s own index
+    arrays with every column divided by ``d`` and every ``d`` rows taken as one (duplicate,
+    unsorted entries: no conversion, no sort)."""
+    k = N.shape[0] // d
+    if k == 0:
+        return np.zeros(0, dtype=np.int64)
+    graph = sp.csr_matrix((np.ones(N.indices.size), N.indices // d,
+                           np.ascontiguousarray(N.indptr[::d])),
+                          shape=(k, k))
+    return connected_components(graph, directed=False)[1]
+
+
 def sparse_priors(free: IntArray, N: sp.spmatrix, u: FloatArray, target: BoolArray,
-                   T_lin: FloatArray, band: int, hubs: int) -> tuple[AbsorbedPrior, ...]:
+                   T_lin: FloatArray, band: int, hubs: int, label: IntArray | None = None
+                   ) -> tuple[AbsorbedPrior, ...]:
     """The priors of sparse terms ``(N, u)`` over the nodes ``free`` on their ``target`` nodes
     (the others eliminated), one per connected group (:func:`marginal_prior` of each, so
     without a dense matrix of more than the group's targets). Equal to :func:`prior_of` of the
-    dense elimination (``test/core/window/test_refinement.py``)."""
+    dense elimination (``test/core/window/test_refinement.py``). ``label``: the blocks'
+    components (:func:`block_components`) if the caller has them."""
     Nc = sp.csr_matrix(N)
-    coo = Nc.tocoo()
-    k = free.size
-    blocks = sp.csr_matrix((np.ones(coo.nnz), (coo.row // 6, coo.col // 6)), shape=(k, k))
-    _, label = connected_components(blocks, directed=False)
+    label = block_components(Nc, 6) if label is None else label
     priors = []
     for c in np.unique(label):
         mine = np.nonzero(label == c)[0]
@@ -246,14 +270,85 @@ def sparse_eliminate(snap: RefinementSnapshot, T_lin: FloatArray, keep: BoolArra
     free, N, u = normal_terms(snap, absorbed, T_lin, snap.past + snap.frozen_fixes())
     N = sp.csr_matrix(N)  # once, for both
     kf = keep[free]
-    priors = sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs)
     L, R = np.nonzero(~kf)[0], np.nonzero(kf)[0]
     if L.size == 0 or not smoothing:
-        return priors, ()
+        return sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs), ()
     cL = (6 * L[:, None] + np.arange(6)).ravel()
     cR = (6 * R[:, None] + np.arange(6)).ravel()
     NL = N[cL]
-    return priors, (SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL]),)
+    sm = SparseSmoothing(free[L], free[R], NL[:, cL], NL[:, cR], u[cL])
+    label = block_components(N, 6)
+    priors = (priors_from_smoothing(sm, free, N, u, kf, T_lin, snap.prior_band,
+                                    snap.prior_hubs, label)
+              or sparse_priors(free, N, u, kf, T_lin, snap.prior_band, snap.prior_hubs, label))
+    return priors, (sm,)
+
+
+#: :func:`priors_from_smoothing` takes at most this many prior unknowns (``6 k``, ``k`` prior
+#: nodes; right-hand sides of its solve), else :func:`sparse_priors` builds the priors.
+FACTOR_PRIOR_MAX_UNKNOWNS = 600
+
+
+def priors_from_smoothing(sm: SparseSmoothing, free: IntArray, N: sp.csr_matrix,
+                          u: FloatArray, target: BoolArray, T_lin: FloatArray, band: int,
+                          hubs: int, label: IntArray | None = None
+                          ) -> tuple[AbsorbedPrior, ...] | None:
+    """:func:`sparse_priors` from the smoothing's factor of ``N_LL`` (no second factorisation),
+    where every group's prior is the exact one from a partial factorisation
+    (:func:`~ga_ros.core.window.freeze.marginal_prior`: few prior nodes, more than
+    :data:`~ga_ros.core.window.freeze.DENSE_SCHUR_MAX` eliminated unknowns): ``X = N_LL^-1
+    [N_LR, u_L]`` (``6 k + 1`` right-hand sides, ``k`` prior nodes), the Schur complement
+    ``H = N_RR - N_RL X_R`` and ``g = u_R - N_RL x_u`` of all groups at once (block diagonal
+    over the groups: their eliminated nodes are not coupled), each group's prior
+    (:func:`~ga_ros.core.window.freeze.tangent_prior` at the step ``H^-1 g``, as the partial
+    factorisation's). The same priors as :func:`sparse_priors` up to rounding
+    (``test/core/window/test_fixes_refinement.py``). ``None`` where that path does not apply (many
+    prior nodes, a banded prior, a group without eliminated nodes, ``H`` not positive
+    definite): the caller takes :func:`sparse_priors`. With CHOLMOD's own factor the solve is
+    its forward half, ``Y = L^-1 P [N_LR, u_L]``, and ``N_RL X = Y_R' Y``.
+
+    Parameters
+    ----------
+    sm : the sparse smoothing of the eliminated nodes ``free[~target]`` onto ``free[target]``.
+    free, N, u, target, T_lin, band, hubs, label : as :func:`sparse_priors` (``N`` CSR).
+    """
+    R = np.nonzero(target)[0]
+    if 6 * R.size > FACTOR_PRIOR_MAX_UNKNOWNS or R.size == 0:
+        return None
+    label = block_components(N, 6) if label is None else label
+    groups = []
+    for c in np.unique(label):
+        mine = label == c
+        n_keep = int((mine & target).sum())
+        if n_keep == 0:
+            continue
+        if (sparse_prior_applies(n_keep, band, hubs)
+                or 6 * int((mine & ~target).sum()) <= DENSE_SCHUR_MAX):
+            return None
+        groups.append(np.nonzero(label[R] == c)[0])  # positions in R
+    cR = (6 * R[:, None] + np.arange(6)).ravel()
+    B = np.column_stack([sm.N_LR.toarray(), sm.u_L])
+    try:
+        Y = sm.forward_eliminated(B)  # L^-1 P B of N_LL = P' L L' P: B' N_LL^-1 B = Y' Y
+        G = Y[:, :-1].T @ Y if Y is not None else B[:, :-1].T @ sm.solve_eliminated(B)
+    except DegenerateGeometryError:
+        return None
+    H_all = N[cR][:, cR].toarray() - G[:, :-1]
+    g_all = u[cR] - G[:, -1]
+    priors = []
+    for pos in groups:
+        at = (6 * pos[:, None] + np.arange(6)).ravel()
+        H = H_all[np.ix_(at, at)]
+        H = 0.5 * (H + H.T)
+        try:
+            cho = sla.cho_factor(H, lower=True)
+        except np.linalg.LinAlgError:
+            return None  # H singular: the least-squares step of the dense path
+        step = sla.cho_solve(cho, g_all[at])
+        nodes = free[R[pos]]
+        mean, info = tangent_prior(T_lin[nodes], H, None, step=step)
+        priors.append(AbsorbedPrior(nodes, mean, info, info.shape[0]))
+    return tuple(priors)
 
 
 def gaussian(snap: RefinementSnapshot, priors: tuple[AbsorbedPrior, ...]

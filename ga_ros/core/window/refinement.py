@@ -55,9 +55,11 @@ covariances stay honest (Monte-Carlo NEES in ``test/core/window/test_honest_cova
 **Cost.** The rebuilt priors come from one sparse elimination of the horizon's absorbed terms
 (:func:`~ga_ros.core.window.elimination.sparse_eliminate`: each term linearised and summed once
 per refinement), of the horizon's size whatever the survey's length. The back substitution
-(smoothing) needs its sparse factor: a worker process keeps it and applies it when the aligner
-sends the prior nodes' corrections (:meth:`~ga_ros.core.window.worker.RefinementWorker.smooth`),
-so the hand-off receives poses, covariances and priors only.
+(smoothing) needs a sparse factor of the eliminated nodes' block (exact priors over few nodes
+come from the same factor: :func:`~ga_ros.core.window.elimination.priors_from_smoothing`); a
+worker process keeps it and applies it when the aligner sends the prior nodes' corrections
+(:meth:`~ga_ros.core.window.worker.RefinementWorker.smooth`), so the hand-off receives poses,
+covariances and priors only.
 """
 
 from __future__ import annotations

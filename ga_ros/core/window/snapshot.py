@@ -145,6 +145,26 @@ class SparseSmoothing:
         rhs = self._u_L + (self._N_LR @ dR if dR.size else 0.0)
         return -self._chol.solve(rhs)
 
+    @property
+    def N_LR(self) -> sp.csr_matrix:  # noqa: N802 - the matrix's name
+        """``N_LR``, the coupling of the eliminated nodes to the remaining ones (CSR)."""
+        return self._N_LR
+
+    @property
+    def u_L(self) -> FloatArray:  # noqa: N802 - the vector's name
+        """``u_L``, the eliminated nodes' half gradient."""
+        return self._u_L
+
+    def solve_eliminated(self, b: FloatArray) -> FloatArray:
+        """``N_LL^-1 b`` for ``b`` of shape ``(6 l,)`` or ``(6 l, k)`` (the same factor)."""
+        return self._chol.solve(b)
+
+    def forward_eliminated(self, b: FloatArray) -> FloatArray | None:
+        """``L^-1 P b`` for ``b`` of shape ``(6 l, k)``, with ``P N_LL P' = L L'`` the same
+        factor (``b' N_LL^-1 b = Y' Y``); ``None`` without CHOLMOD's own factor
+        (:meth:`~ga_ros.core.linalg.cholmod.SparseCholesky.forward`)."""
+        return self._chol.forward(b)
+
 
 @dataclass(frozen=True)
 class RefinementResult:

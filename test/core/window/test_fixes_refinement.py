@@ -257,3 +257,45 @@ def test_fixes_enter_the_refinement_as_one_prior_with_the_same_normal_equations(
     assert free.size == snap.node_ids.size
     assert (sp.csr_matrix(N_merged) != sp.csr_matrix(N_each)).nnz == 0
     assert np.array_equal(u_merged, u_each)
+
+
+def test_rebuilt_priors_from_the_smoothing_factor_equal_a_dense_elimination(rng, monkeypatch
+                                                                            ) -> None:
+    """Tracks of 60 nodes with a fix at each end: the rebuilt prior is on the last frozen node,
+    with ~1,400 unknowns eliminated, so it comes from the smoothing's factor of ``N_LL``
+    (:func:`~ga_ros.core.window.elimination.priors_from_smoothing`, no second factorisation).
+    It equals the track-by-track dense elimination of the same snapshot (an independent
+    Schur complement) and the partial factorisation's (:func:`sparse_priors`) to rounding; the
+    smoothing is unchanged."""
+    import ga_ros.core.window.elimination as elim
+
+    n_tracks, per = 6, 60
+    ms, z, p_true = _line_survey(rng, n_tracks, per)
+    al = _aligner(0)
+    _run(al, ms, _fixes(rng, p_true, range(per - 1, n_tracks * per, per)))
+    snap = al.handoff.snapshot()
+    T = snap.T_world_node
+    taken = []
+    orig = elim.priors_from_smoothing
+    monkeypatch.setattr(elim, 'priors_from_smoothing',
+                        lambda *a: taken.append(orig(*a)) or taken[-1])
+    fast, steps = elim.eliminate_absorbed(snap, T)
+    assert len(taken) == 1 and taken[0] is not None and len(fast) == 1
+    free, N, u = elim.normal_terms(snap, np.nonzero(snap.status == 1)[0], T,
+                                   snap.past + snap.frozen_fixes())
+    keep = np.isin(free, fast[0].nodes)
+    partial = elim.sparse_priors(free, N.tocsr(), u, keep, T, -1, 0)
+    monkeypatch.setattr(elim, 'SPARSE_FROM_TRACK_NODES', 10 ** 9)
+    dense, dense_steps = elim.eliminate_absorbed(snap, T)
+    for other in (dense, partial):
+        assert len(other) == 1
+        np.testing.assert_array_equal(fast[0].nodes, other[0].nodes)
+        Ia, Ib = np.asarray(other[0].information), np.asarray(fast[0].information)
+        np.testing.assert_allclose(Ib, Ia, rtol=1e-8, atol=1e-10 * np.abs(Ia).max())
+        np.testing.assert_allclose(fast[0].T_world_node, other[0].T_world_node, atol=1e-9)
+    S = fast[0].nodes
+    dS = 1e-3 * rng.normal(size=(S.size, 6))
+    nd, d_dense = elim.smoothed(dense_steps, S, dS)
+    nf, d_fast = elim.smoothed(steps, S, dS)
+    np.testing.assert_array_equal(nd, nf)
+    np.testing.assert_allclose(d_fast, d_dense, rtol=1e-5, atol=1e-6 * np.abs(d_dense).max())

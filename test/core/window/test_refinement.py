@@ -467,3 +467,30 @@ def test_the_refinements_compiled_solve_equals_the_numpy_one_within_the_solver_t
     for a, b in zip(compiled.priors, plain.priors):
         np.testing.assert_array_equal(a.nodes, b.nodes)
         assert np.abs(se3.local(b.T_world_node, a.T_world_node)).max() < 0.1 * tol
+
+
+def test_block_components_are_those_of_the_block_graph():
+    """:func:`~ga_ros.core.window.elimination.block_components` (``N``'s own index arrays,
+    duplicates unsorted) labels the blocks as connected components of the graph of nonzero
+    blocks built entry by entry: four groups of blocks, one of them two blocks linked by a
+    single nonzero entry."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from ga_ros.core.window.elimination import block_components
+
+    rng = np.random.default_rng(5)
+    d, k = 3, 12
+    M = np.zeros((d * k, d * k))
+    for a, b in [(0, 4), (4, 7), (1, 2), (2, 9), (3, 5), (5, 6), (6, 10)]:
+        M[d * a:d * a + d, d * b:d * b + d] = rng.normal(size=(d, d))
+    M[d * 8 + 2, d * 11] = 1.0  # one entry links blocks 8 and 11
+    M = M + M.T
+    M[np.diag_indices(d * k)] += 10.0
+    N = sp.csr_matrix(M)
+    coo = N.tocoo()
+    graph = sp.csr_matrix((np.ones(coo.nnz), (coo.row // d, coo.col // d)), shape=(k, k))
+    want = connected_components(graph, directed=False)[1]
+    got = block_components(N, d)
+    np.testing.assert_array_equal(got, want)
+    assert np.unique(got).size == 4  # {0,4,7} {1,2,9} {3,5,6,10} {8,11}
