@@ -350,6 +350,17 @@ class InputFrontEnd:
             self.camera.forget_keyframes()
         self._no_keyframe_rows, self._no_keyframe_first = (0, -1), -1
 
+    def new_survey(self) -> None:
+        """The alignment state was emptied under running inputs (``~/reset``): the first input
+        starts a fresh keyframe chain at its next sample, numbered from its ``first_node_id``
+        on track 0 as at a start, and everything tied to the keyframes so far is dropped, as
+        by :meth:`continue_from` (the further inputs' waiting intervals, the camera's
+        keyframes, records and waiting connections). The samples, the calibration and the
+        counters stay. Before the first sample only the numbering goes back to the start's
+        (a restored state's numbering, :meth:`continue_from`, went with the state)."""
+        primary = self._primary()
+        self.continue_from(int(primary.config.first_node_id), 0)
+
     # ------------------------------------------------------------------ TF
     def map_to_odom(self, node_ids: IntArray, T_map_node: FloatArray) -> FloatArray | None:
         """REP 105 ``T_map_odom`` of the first input: ``T_map_k T_odom_k^-1`` at the newest

@@ -130,6 +130,19 @@ class MapToOdom:
         self.T_map_odom = np.array(T_map_odom, dtype=float)
         self.placed_by = 'restored'
 
+    def new_map(self) -> None:
+        """The survey was emptied (``~/reset``): the map is placed again as at a start, so
+        ``T_map_odom`` is the identity (``placed_by`` ``'identity'``) until the new survey's
+        path (:meth:`update`) or its fixes place it; the fix placement, the jump counts and
+        warnings start again. The odometry chain (``odom`` goes on, REP 105) and the stamps
+        (never back) stay."""
+        self.T_map_odom = np.eye(4)
+        self.placed_by = 'identity'
+        self.fixes = FixPlacement(self.config)
+        self.jumps_warned, self.warning, self.last_warning = 0, '', ''
+        self.last_jump_m = 0.0
+        self.fix_sigma_m = float('inf')
+
     def update(self, node_ids: IntArray, T_map_node: FloatArray,
                adjusted: bool = True) -> FloatArray:
         """Recompute ``T_map_odom`` from a corrected path; returns it (the previous one if the

@@ -380,6 +380,25 @@ class AlignmentNode(BoundedLogging, AlignmentInputs, AlignmentOutputs, Alignment
                                    + (f'; {dropped} fixes on the former keyframes dropped'
                                       if dropped else ''))
 
+    def _new_survey_inputs(self) -> None:
+        """The survey was emptied (``~/reset``): the standard inputs start a fresh keyframe
+        chain at their next sample, numbered as at a start (from the first input's
+        ``first_node_id``, 0 by default, on track 0)
+        (:meth:`~ga_ros.pipeline.inputs.InputFrontEnd.new_survey`: nothing of theirs refers
+        to the former keyframes, the camera's included), the fixes resolved on the former
+        keyframes are dropped, and ``map -> odom`` is placed again as at a start
+        (:meth:`~ga_ros.pipeline.map_to_odom.MapToOdom.new_map`)."""
+        self._resumed = False
+        dropped = self._fix_feeder.forget()
+        self.odom.new_map()
+        if self.front is None:
+            return
+        self.front.new_survey()
+        first = self.front.inputs[self.front.primary].config.first_node_id
+        self.get_logger().info(f'standard inputs: a new survey from node {first}, track 0 at '
+                               'the next sample' + (f'; {dropped} fixes on the former '
+                                                    'keyframes dropped' if dropped else ''))
+
     def _new_survey(self) -> None:
         """The session moved the resumed state aside (another survey's first measurement
         came, :mod:`ga_ros.pipeline.session.survey_identity`): outputs start afresh, as after

@@ -54,6 +54,7 @@ class AlignmentServices:
             response.success, response.message = False, f'reset refused: {exc}'
             return response
         self._datum_saved = False  # the datum file went with the state: saved again when known
+        self._new_survey_inputs()
         self.corrections.restart()  # consumers drop what they held: a full message next
         self.paths.restart()
         self._publish_all()

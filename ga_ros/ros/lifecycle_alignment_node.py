@@ -10,7 +10,8 @@ nav2's lifecycle manager can bring it up and down with the rest of the robot:
   (:attr:`LifecycleAlignmentNode.dropped_inactive`), no TF is sent;
 * ``activate``: measurements and standard inputs are processed, TF published;
 * ``deactivate``: back to dropping (the state is kept);
-* ``cleanup``: the state is forgotten (as ``~/reset``, and the standard inputs restart);
+* ``cleanup``: the state is forgotten (as ``~/reset``), and the standard inputs restart (their
+  counters too; a camera beside the odometry stays configured, without its keyframes);
 * ``shutdown``: nothing more is processed.
 
 Run it with ``python -m ga_ros.ros.lifecycle_alignment_node --ros-args --params-file
@@ -80,10 +81,18 @@ class LifecycleAlignmentNode(AlignmentNode, LifecycleNode):
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
         self.active = False
         self.session.reset()
+        self._datum_saved = False   # the datum file went with the state
+        self._fix_feeder.forget()   # tied to the former keyframes
+        self.corrections.restart()  # consumers drop what they held: a full message next
         self.paths.restart()
         if self.front is not None:
+            # the camera beside the odometry stays (its calibration and subscriptions), without
+            # the former keyframes
+            camera = self.front.camera
+            if camera is not None:
+                camera.forget_keyframes()
             self.front = InputFrontEnd(list(self.front.specs.values()),
-                                       self.settings.input_warn_throttle_sec)
+                                       self.settings.input_warn_throttle_sec, camera=camera)
         # a new odometry chain, the map not placed yet
         self.odom = MapToOdom(self.front, datum=self.aligner_config.datum)
         self._resumed = False

@@ -523,3 +523,70 @@ def test_a_state_loaded_under_running_odometry_continues_after_its_nodes(ctx, tm
         np.testing.assert_allclose(node.odom.T_map_odom, T_map_odom, atol=1e-6)
     finally:
         node.destroy_node()
+
+
+CAMERA_PARAMS = {**{f'camera.{side}_{kind}_topic': f'cam/{side}/{kind}'
+                    for side in ('left', 'right') for kind in ('image', 'info')},
+                 'camera.assume_identity_extrinsic': True}
+
+
+def test_a_reset_under_running_odometry_starts_a_fresh_survey_at_the_next_sample(ctx, tmp_path):
+    """``~/reset`` while the odometry runs (a camera beside it): the fresh survey starts at the
+    next sample as node 0 on track 0, at the map origin; ``map -> odom`` is the identity until
+    its first update places it (``inv(T_odom_first)``, not a jump), the camera waits only for
+    the new chain's keyframes and nothing is held, bridged or rejected. Before, the fresh
+    survey started at the former keyframe 11 on track 1, the camera still waited for the
+    former keyframes 0..11 and ``map -> odom`` stayed the former survey's."""
+    msgs = odom_msgs(260)
+    node = _node(AlignmentNode, ctx, state_file=str(tmp_path / 'state'), allow_reset=True,
+                 **CAMERA_PARAMS)
+    try:
+        for msg in msgs[:120]:
+            node._on_input('odom0', msg)
+        assert node.session.n_nodes() == 12 and node.odom.placed_by == 'aligner'
+        resp = node._srv_reset(Trigger.Request(), Trigger.Response())
+        assert resp.success, resp.message
+        assert node.odom.placed_by == 'identity' and node.front.camera is not None
+        np.testing.assert_array_equal(node.odom.T_map_odom, np.eye(4))
+        for msg in msgs[120:]:
+            node._on_input('odom0', msg)
+        node._srv_finish_track(Trigger.Request(), Trigger.Response())
+        values = node.diagnostic_values()
+        assert values['bridges'] == 0 and values['unjoined_nodes'] == 0
+        assert node.session.counts.rejected == {}
+        cp = node.aligner.corrected_path()
+        assert [int(i) for i in cp.node_ids] == list(range(14)) and int(cp.track_ids[0]) == 0
+        assert node.front.keyframe_stamp(0) == conv.stamp_to_ns(msgs[120].header.stamp)
+        assert [kf.node_id for kf in node.front.camera._waiting] == list(range(14))
+        T_map_odom = se3.inverse(pose_to_matrix(msgs[120].pose.pose))
+        np.testing.assert_allclose(cp.T_world_node[0], np.eye(4), atol=1e-9)
+        np.testing.assert_allclose(node.odom.T_map_odom, T_map_odom, atol=1e-6)
+        assert node.odom.placed_by == 'aligner' and node.odom.jumps_warned == 0
+    finally:
+        node.destroy_node()
+
+
+def test_a_lifecycle_cleanup_keeps_the_camera_beside_the_odometry(ctx):
+    """``cleanup`` restarts the standard inputs with the configured camera (without its
+    former keyframes): after ``configure`` and ``activate`` the odometry's keyframes reach the
+    camera again. Before, the rebuilt inputs had no camera: its images were lost."""
+    node = _node(LifecycleAlignmentNode, ctx, **CAMERA_PARAMS)
+    try:
+        msgs = odom_msgs(80)
+        camera = node.front.camera
+        assert camera is not None
+        node.trigger_configure()
+        node.trigger_activate()
+        for msg in msgs[:40]:
+            node._on_input('odom0', msg)
+        assert [kf.node_id for kf in camera._waiting] == [0, 1, 2, 3]
+        node.trigger_deactivate()
+        node.trigger_cleanup()
+        assert node.front.camera is camera and not camera._waiting
+        node.trigger_configure()
+        node.trigger_activate()
+        for msg in msgs[40:]:
+            node._on_input('odom0', msg)
+        assert [kf.node_id for kf in node.front.camera._waiting] == [0, 1, 2, 3]
+    finally:
+        node.destroy_node()
