@@ -196,7 +196,8 @@ class AlignerConfig:
         from one horizon to the next and move the frame with it.
     calibrate_cameras : with ``calibrate``, the cameras (their sources: ``('cam0',)``; a ROS
         string array, ``[cam0]`` in YAML; one comma-separated string is accepted too) whose
-        extrinsic rotation the online estimate includes (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
+        extrinsic rotation the online estimate includes
+        (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
         estimated and published with its sigma, and applied to the camera's connections
         (consecutive and cross-track) as they enter, ``X T X^-1`` with the rotation booked per
         connection (``docs/calibration.md``), the connections stored before an estimate
