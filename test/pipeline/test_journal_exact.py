@@ -445,6 +445,7 @@ def _camera(entry):
                    z=se3.to_translation_rotvec(np.linalg.inv(X) @ T @ X))
 
 
+@pytest.mark.slow   # ~3 min per case on a loaded 2-core machine
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
 @pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
