@@ -399,7 +399,9 @@ class TrackWindowAligner:
         drift: a change of ``refine_relinearize_sigma`` or more starts a refinement at the next
         trigger, whose rebuilt priors hold the corrected connections, and drops the pending one
         (due at this update or later) whose snapshot holds them uncorrected; a smaller change
-        lets it be installed. The retired tracks' connections (eliminated
+        lets it be installed, as does ``refine_relinearize_sigma = 0`` (every trigger refines:
+        the next refinement holds them; dropping would drop every one while the estimate
+        moves). The retired tracks' connections (eliminated
         into the past prior) keep theirs. The freeze computed ahead is dropped (it read the
         connections before)."""
         cal, st = self.online_calibration, self.state
@@ -418,7 +420,8 @@ class TrackWindowAligner:
             return
         self.updater.terms = ConnectionTerms.empty()   # they held the motions as they were
         st.refine_drift = st.refine_drift + step
-        if step >= self.config.refine_relinearize_sigma and self.handoff.snap is not None:
+        sigma = self.config.refine_relinearize_sigma
+        if 0.0 < sigma <= step and self.handoff.snap is not None:
             self.handoff.drop()
 
     def _duration_s(self, m: Measurement, plan) -> float:

@@ -149,6 +149,42 @@ def test_every_stored_connection_of_the_camera_takes_the_current_rotation() -> N
     al.close()
 
 
+def test_the_retired_tracks_keep_the_rotation_they_were_booked_with() -> None:
+    """A bounded refinement (horizon 1 track, window 2, refining at every trigger): the
+    connections of the tracks retired (eliminated into the past prior) before the rotation
+    changed keep their booked rotation, the others take the current one, and every one gives its motion as measured
+    back (1e-12); refinements are installed (none dropped at ``refine_relinearize_sigma``
+    0) and the path stays within 0.15 m of the truth."""
+    from ga_ros.eval import ate
+
+    cfg = replace(CAMERAS, refine_horizon_tracks=1, window_tracks=2,
+                  refine_relinearize_sigma=0.0)
+    al = _run(cfg)
+    st, cal = al.state, al.online_calibration
+    assert st.retired >= 2 and al.handoff.n_refinements >= 3
+    src, dst, z, is_cross, _ = al.connection_arrays()
+    rows = np.nonzero(is_cross)[0]
+    phi = cal.camera_correction('cam0')
+    order = st.finished_order()
+    first = int(st.track_nodes.start(order[st.retired]))
+    live = st.horizon_rows(first)
+    inside = np.isin(rows, live)
+    assert inside.any() and (~inside).any()
+    booked = cal.camera_applied.a[rows]
+    assert (booked[inside] == phi).all()
+    # retired before the last change: the rotation of their time (those retired since were
+    # corrected before they retired)
+    assert (booked[~inside] != phi).any(axis=1).sum() >= 10
+    ms, T_true = _stream()
+    meas = {(m.src_id, m.dst_id): m.z for m in ms if m.kind == 'cross'}
+    back = cal.measured(z, np.ones(len(z)), np.arange(len(z)))
+    for r in rows:
+        np.testing.assert_allclose(back[r], meas[(int(src[r]), int(dst[r]))], atol=1e-12)
+    n = len(st.ids)
+    assert ate(st.T[:n], T_true[:n], 'none').rmse < 0.15
+    al.close()
+
+
 def test_applying_the_rotation_improves_the_live_path() -> None:
     """The live path (the newest node after each measurement) and the window's final path are
     closer to the truth with the estimate applied than with it published only."""
