@@ -153,8 +153,8 @@ def test_the_retired_tracks_keep_the_rotation_they_were_booked_with() -> None:
     """A bounded refinement (horizon 1 track, window 2, refining at every trigger): the
     connections of the tracks retired (eliminated into the past prior) before the rotation
     changed keep their booked rotation, the others take the current one, and every one gives
-    its motion as measured back (1e-12); refinements are installed (none dropped at ``refine_relinearize_sigma``
-    0) and the path stays within 0.15 m of the truth."""
+    its motion as measured back (1e-12); refinements are installed (none dropped at
+    ``refine_relinearize_sigma`` 0) and the path stays within 0.15 m of the truth."""
     from ga_ros.eval import ate
 
     cfg = replace(CAMERAS, refine_horizon_tracks=1, window_tracks=2,
