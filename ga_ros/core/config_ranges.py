@@ -25,6 +25,32 @@ def ranged(default: Any, lo: float, hi: float) -> Any:
     return field(default=default, metadata={'range': (lo, hi)})
 
 
+def string_list(default: tuple[str, ...] = ()) -> Any:
+    """A dataclass field holding names, a ``tuple[str, ...]`` (``metadata['items'] = str``):
+    a ROS ``STRING_ARRAY`` parameter (:func:`ga_ros.ros.params.declare_config`), a YAML list;
+    a comma-separated string is accepted too (:func:`names_of`)."""
+    return field(default=tuple(default), metadata={'items': str})
+
+
+def names_of(value: Any) -> tuple[str, ...]:
+    """The names of a :func:`string_list` value: a sequence of strings, or one string of
+    comma-separated names (``'cam0, cam1'``); blanks stripped, empty names dropped.
+
+    Raises
+    ------
+    InputError
+        Anything else (a number, a list holding one).
+    """
+    if isinstance(value, str):
+        items = value.split(',')
+    elif isinstance(value, list | tuple) and all(isinstance(v, str) for v in value):
+        items = list(value)
+    else:
+        raise InputError(f'a list of names (or one comma-separated string) expected, '
+                         f'got {value!r}')
+    return tuple(n.strip() for n in items if n.strip())
+
+
 def field_range(cls: type, name: str) -> tuple[float, float] | None:
     """The closed interval ``(lo, hi)`` declared on field ``name`` of dataclass ``cls``
     (``metadata['range']``), None without one."""

@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from ga_ros.core.config_ranges import names_of
 from ga_ros.core.tracks import TrackRules, refuse_former_names
 from ga_ros.errors import InputError
 
@@ -27,11 +28,13 @@ C = TypeVar('C')
 _EXPONENT_FLOAT = re.compile(r'[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+')
 
 
-def coerce_value(name: str, default: Any, value: Any) -> Any:
+def coerce_value(name: str, default: Any, value: Any, items: type | None = None) -> Any:
     """``value`` of parameter ``name`` in the type of its ``default``.
 
     Floats accept integers (``-p tolerance:=1``); a tuple (of floats) accepts any list of numbers;
-    booleans, integers and strings must match.
+    a tuple of names (``items`` ``str``: a field of
+    :func:`~ga_ros.core.config_ranges.string_list`) a list of strings or one comma-separated
+    string; booleans, integers and strings must match.
 
     Raises
     ------
@@ -40,6 +43,11 @@ def coerce_value(name: str, default: Any, value: Any) -> Any:
     """
     if isinstance(default, np.generic):
         default = default.item()
+    if items is str:   # names (a ROS string array; a comma-separated string too)
+        try:
+            return names_of(value)
+        except InputError:
+            raise InputError(f'parameter {name} must be a list of names, got {value!r}') from None
     if isinstance(default, bool):
         ok = isinstance(value, bool)
     elif isinstance(default, int):
@@ -93,7 +101,8 @@ def config_from_params(cls: type[C], params: Mapping[str, Any], prefix: str = ''
             values[f.name], inner = config_from_params(type(nested), params, name + '.', nested)
             used |= inner
         elif name in params:
-            values[f.name] = coerce_value(name, getattr(base, f.name), params[name])
+            values[f.name] = coerce_value(name, getattr(base, f.name), params[name],
+                                          f.metadata.get('items'))
             used.add(name)
     try:
         return replace(base, **values), used  # type: ignore[type-var]

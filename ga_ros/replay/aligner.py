@@ -39,7 +39,7 @@ def aligner_config(config: Any) -> Any:
     from ga_ros.core.window import AlignerConfig
 
     return replace(config.aligner or AlignerConfig(), calibrate=True,
-                   calibrate_cameras=','.join(getattr(config, 'calibrate_cameras', ())))
+                   calibrate_cameras=tuple(getattr(config, 'calibrate_cameras', ())))
 
 
 def default_aligner_factory(config: Any = None, kind: str = 'window') -> AlignerFactory:

@@ -19,8 +19,9 @@ from typing import Any, TypeVar
 
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import InvalidParameterValueException
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from ga_ros.core.config_ranges import range_message
 from ga_ros.core.tracks import TrackRules, refuse_former_names
@@ -121,13 +122,40 @@ def _declare(node: Node, cls: type[C], defaults: C, prefix: str, path: str,
         text = _text(cls, f, docs) + (' (can be changed at run time)' if live
                                       else f' (read-only: {read_only_reason})')
         desc = descriptor(prefix + key, default, text, rng, read_only=not live)
-        try:
-            value = node.declare_parameter(prefix + key, default, desc).value
-        except InvalidParameterValueException as exc:  # ROS refused it against the range
-            raise InputError(_range_refusal(node, prefix + key, cls.__name__, f.name, rng)
-                             or str(exc)) from exc
-        values[f.name] = _checked(prefix + key, default, value, desc, cls.__name__, f.name)
+        items = f.metadata.get('items')
+        if items is str:
+            value = _declare_names(node, prefix + key, default, desc)
+        else:
+            try:
+                value = node.declare_parameter(prefix + key, default, desc).value
+            except InvalidParameterValueException as exc:  # ROS refused it against the range
+                raise InputError(_range_refusal(node, prefix + key, cls.__name__, f.name, rng)
+                                 or str(exc)) from exc
+        values[f.name] = _checked(prefix + key, default, value, desc, cls.__name__, f.name,
+                                  items)
     return cls(**values)
+
+
+def _declare_names(node: Node, name: str, default: tuple[str, ...],
+                   desc: ParameterDescriptor) -> tuple[str, ...] | str:
+    """Declare the names field ``name`` (:func:`~ga_ros.core.config_ranges.string_list`) as a
+    ``STRING_ARRAY`` parameter (``[cam0, cam1]`` in a parameter file, ``-p
+    name:="['cam0']"``), or, where it is given one comma-separated string (``'cam0,cam1'``),
+    as a ``STRING`` parameter holding it. A string array cannot be declared with an empty
+    default (rclpy would type an empty list a byte array): without a value given, the
+    parameter is declared typed and unset, and the field keeps ``default``."""
+    override = getattr(node, '_parameter_overrides', {}).get(name)
+    if override is not None and override.type_ == Parameter.Type.STRING:
+        return node.declare_parameter(name, Parameter.Type.STRING, desc).value
+    try:
+        if default:
+            value = node.declare_parameter(name, list(default), desc).value
+        else:
+            value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY, desc).value
+    except InvalidParameterTypeException as exc:
+        raise InputError(f'parameter {name} must be a list of names (a string array, or one '
+                         f'comma-separated string): {exc}') from exc
+    return default if value is None else tuple(value)
 
 
 def _range_refusal(node: Node, name: str, owner: str, field_name: str,
@@ -144,11 +172,11 @@ def _range_refusal(node: Node, name: str, owner: str, field_name: str,
 
 
 def _checked(name: str, default: object, value: Any, desc: ParameterDescriptor,
-             owner: str, field_name: str) -> Any:
+             owner: str, field_name: str, items: type | None = None) -> Any:
     """``value`` of parameter ``name`` (field ``owner.field_name``) in the type of ``default``
     (as the replay reads it) and, for a float, within its range (InputError otherwise, with the
     message the config dataclass gives: :func:`ga_ros.core.config_ranges.range_message`)."""
-    value = coerce_value(name, default, value)
+    value = coerce_value(name, default, value, items)
     if isinstance(default, float):
         for r in desc.floating_point_range:
             msg = range_message(owner, field_name, value, (r.from_value, r.to_value))
@@ -174,6 +202,7 @@ def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str =
         A value of the wrong type, out of range or rejected by the config's own checks.
     """
     own = {f.name: getattr(config, f.name) for f in fields(config)}  # type: ignore[arg-type]
+    items = {f.name: f.metadata.get('items') for f in fields(config)}  # type: ignore[arg-type]
     new: dict[str, Any] = {}
     for key, inner in own.items():
         if is_dataclass(inner):
@@ -188,7 +217,8 @@ def updated_config(node: Node, config: C, changes: dict[str, Any], prefix: str =
         if isinstance(default, np.generic):
             default = default.item()
         desc = node.describe_parameter(pname)
-        new[key] = _checked(pname, default, value, desc, type(config).__name__, key)
+        new[key] = _checked(pname, default, value, desc, type(config).__name__, key,
+                            items[key])
         if isinstance(default, bool | str) and type(new[key]) is not type(default):
             raise InputError(f'parameter {pname} must be a {type(default).__name__}')
     if not new:

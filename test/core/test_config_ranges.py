@@ -139,3 +139,41 @@ def test_node_parameter_refused_with_the_dataclass_message() -> None:
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_calibrate_cameras_is_a_string_array_parameter() -> None:
+    """``calibrate_cameras`` (a :func:`~ga_ros.core.config_ranges.string_list` field): a ROS
+    ``STRING_ARRAY`` parameter (unset by default, the field's ``()``), one comma-separated
+    string accepted too; the replay's parameter file reads a YAML list and a string alike; a
+    number is refused."""
+    rclpy = pytest.importorskip('rclpy')
+    from rcl_interfaces.msg import ParameterType
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from ga_ros.ros.params import declare_config
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        for k, (given, want, kind) in enumerate([
+                (None, (), ParameterType.PARAMETER_STRING_ARRAY),
+                (['cam0', 'cam1'], ('cam0', 'cam1'), ParameterType.PARAMETER_STRING_ARRAY),
+                (' cam0, cam2 ', ('cam0', 'cam2'), ParameterType.PARAMETER_STRING)]):
+            over = [Parameter('calibrate', value=True)]
+            if given is not None:
+                over.append(Parameter('calibrate_cameras', value=given))
+            node = Node(f'cameras_probe_{k}', context=ctx, parameter_overrides=over)
+            cfg = declare_config(node, AlignerConfig)
+            assert cfg.calibrate_cameras == want and cfg.camera_names == want
+            assert node.describe_parameter('calibrate_cameras').type == kind
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    for value in (['cam0', 'cam1'], 'cam0,cam1'):
+        cfg, _ = config_from_params(AlignerConfig, {'calibrate': True,
+                                                    'calibrate_cameras': value})
+        assert cfg.calibrate_cameras == ('cam0', 'cam1')
+    with pytest.raises(InputError, match='list of names'):
+        config_from_params(AlignerConfig, {'calibrate': True, 'calibrate_cameras': [1.0]})

@@ -26,7 +26,7 @@ from ga_ros.core.fixes import FixTerm
 from ga_ros.core.measurement import Measurement
 from ga_ros.core.window import AlignerConfig
 from ga_ros.core.window.persistence import state_arrays
-from ga_ros.geometry import se3
+from ga_ros.geometry import se3, so3
 from ga_ros.pipeline.journal import TrackEnd, journal_path, read_journal
 from ga_ros.pipeline.session import AlignmentSession, SessionConfig
 from ga_ros.sim.fix_survey import LEVER, fixes_of_node
@@ -423,5 +423,53 @@ def test_the_online_fix_calibration_is_kept_across_recoveries(tmp_path, compact,
     assert off['offset_x'].estimated, book.report.lines()
     assert abs(off['offset_x'].value - USBL1_OFFSET[0]) < 4 * off['offset_x'].sigma
     assert sum(c.state[1]['cal_fix_shift'].any() for c in cuts) >= 2  # shifts at the cuts
+    _resume_each(cuts, entries, cfg, compact, mode, finish_after)
+    live.close()
+
+
+#: The extrinsic rotation error (rad, body frame) of the camera ``cam0`` whose cross-track
+#: connections :func:`_camera` makes of the survey's.
+CAM0_PHI = np.array([0.03, -0.02, 0.05])
+
+
+def _camera(entry):
+    """The cross-track connections as a camera's (source ``cam0``) whose extrinsic is off by
+    :data:`CAM0_PHI`: measured ``X^-1 T X``, ``X = [exp(phi), 0]`` (the correction
+    ``X T_meas X^-1`` gives the motion back); every other entry as it is."""
+    if not (isinstance(entry, Measurement) and entry.kind == 'cross'):
+        return entry
+    X = np.eye(4)
+    X[:3, :3] = so3.exp(CAM0_PHI)
+    T = se3.from_translation_rotvec(entry.z[:3], entry.z[3:])
+    return replace(entry, source='cam0',
+                   z=se3.to_translation_rotvec(np.linalg.inv(X) @ T @ X))
+
+
+@pytest.mark.slow   # ~3 min per case on a loaded 2-core machine
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
+@pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
+def test_the_online_camera_rotation_is_kept_across_recoveries(tmp_path, config, compact, mode):
+    """With a camera named (``calibrate_cameras``), its rotation estimated online and applied
+    to its connections as they enter and, at each update after a change, to those stored
+    before (their motions, covariances and booked rotations rewritten; a refinement pending
+    dropped): recovered at any cut from the journal alone, its compacted base or the snapshot,
+    the state is the uninterrupted run's bit for bit, and so is the end."""
+    cfg = replace(CONFIGS[config], calibrate=True, calibration_refresh=0.0,
+                  calibrate_cameras='cam0')
+    entries = [_camera(e) for e in survey()]
+    finish_after = _finish_after(entries)
+    live = AlignmentSession(cfg, SessionConfig(str(tmp_path / 'live' / 'state'),
+                                               compact_records=compact))
+    live.resume()
+    cuts = _cuts(live, entries, finish_after, tmp_path)
+    book = live.aligner.online_calibration
+    cam = [p for p in book.report.parameters if p.source == 'cam0']
+    assert all(p.estimated for p in cam), book.report.lines()
+    booked = [c.state[1]['cal_camera'] for c in cuts]
+    # corrections applied at the cuts, and rewritten: a row booked differently at two cuts
+    assert sum(b.any() for b in booked) >= 2
+    assert any(((a != b[:len(a)]).any(axis=1) & a.any(axis=1)).any()
+               for a, b in zip(booked, booked[1:]))
     _resume_each(cuts, entries, cfg, compact, mode, finish_after)
     live.close()

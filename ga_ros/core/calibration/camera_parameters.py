@@ -116,6 +116,25 @@ def conjugations(phi: FloatArray) -> FloatArray:
     return X
 
 
+def conjugated_covariances(cov: FloatArray, phi: FloatArray, inverse: bool = False
+                           ) -> FloatArray:
+    """(m, 6, 6) the covariances of motions conjugated by ``X = [exp(phi), 0]``,
+    ``X T X^-1``, from those ``cov`` (m, 6, 6) of the motions ``T`` (order ``[x y z rx ry
+    rz]``; ``phi`` (m, 3) rad, body frame): ``Ad_X C Ad_X^T`` with ``Ad_X = diag(R, R)``,
+    ``R = exp(phi)`` (the adjoint of a pure rotation). Exact, not a linearisation: the
+    conjugated motion's translation is ``R t`` and its rotation vector ``R omega``, linear in
+    ``[t, omega]`` (and in any tangent perturbation of ``T``). ``inverse``: the covariances
+    of ``X^-1 T X`` (``R^T`` in place of ``R``), undoing it."""
+    R = so3.exp(np.asarray(phi, dtype=float).reshape(-1, 3))
+    if inverse:
+        R = np.swapaxes(R, 1, 2)
+    A = np.zeros((R.shape[0], 6, 6))
+    A[:, :3, :3] = R
+    A[:, 3:, 3:] = R
+    out = A @ np.asarray(cov, dtype=float).reshape(-1, 6, 6) @ np.swapaxes(A, 1, 2)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
 def check_cameras(cameras: Sequence[str], known: Sequence[str], what: str = 'camera') -> None:
     """Every camera to calibrate is a source of the measurements.
 

@@ -64,7 +64,12 @@ from ga_ros.core.window.handoff import RefinementHandoff
 from ga_ros.core.window.queries import covariance, covariances
 from ga_ros.core.window.refinement import absorbed_priors
 from ga_ros.core.window.state import LAST_FAILURE_CHARS, Rollback, WindowState, no_weighted
-from ga_ros.core.window.update import WindowUpdate, connection_terms, scaled_terms
+from ga_ros.core.window.update import (
+    ConnectionTerms,
+    WindowUpdate,
+    connection_terms,
+    scaled_terms,
+)
 from ga_ros.core.window.variance_handoff import ScaledRefinementHandoff
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import so3
@@ -346,7 +351,7 @@ class TrackWindowAligner:
             z, applied = cal.corrected(plan.z, self._duration_s(m, plan), source)
             z, phi = cal.camera_corrected(z, camera)
             if z is not plan.z:
-                plan = replace(plan, z=z)
+                plan = replace(plan, z=z, cov=cal.camera_cov(plan.cov, phi))
             cov, noise = cal.scaled_cov(plan.cov, source)  # calibration_noise's factors
             if cov is not plan.cov:
                 plan = replace(plan, cov=cov)
@@ -376,6 +381,48 @@ class TrackWindowAligner:
                                                          cfg.gauge_sigma_tilt_rad,
                                                          cfg.gauge_sigma_yaw_rad))
         return updates
+
+    def _recorrect_cameras(self) -> None:
+        """At the start of an update after an estimate that changed a named camera's rotation
+        (installed before a connection that entered since, or just now): the camera's
+        connections stored so far, corrected with the current rotation (``docs/calibration.md``,
+        *Cameras online*). Here, not at the installation: the refinement's snapshot taken at
+        the end of the last update holds the connections as they are until this update, so a
+        snapshot file's pending refinement restarts from the same data. Every one whose two
+        nodes are
+        in the refinement's horizon (not retired: window, leaving and frozen tracks alike;
+        consecutive and cross-track, active, absorbed or excluded), its motion and covariance
+        and its booked rotation (:meth:`OnlineCalibration.recorrect_cameras
+        <ga_ros.core.window.calibration.OnlineCalibration.recorrect_cameras>`). The window
+        adjustments see them at once; the joint priors hold the absorbed ones as they were
+        when absorbed, so the change (in the estimate's sigmas) is added to the refinement's
+        drift: a change of ``refine_relinearize_sigma`` or more starts a refinement at the next
+        trigger, whose rebuilt priors hold the corrected connections, and drops the pending one
+        (due at this update or later) whose snapshot holds them uncorrected; a smaller change
+        lets it be installed, as does ``refine_relinearize_sigma = 0`` (every trigger refines:
+        the next refinement holds them; dropping would drop every one while the estimate
+        moves). The retired tracks' connections (eliminated
+        into the past prior) keep theirs. The freeze computed ahead is dropped (it read the
+        connections before)."""
+        cal, st = self.online_calibration, self.state
+        step, cal.camera_step = cal.camera_step, 0.0
+        order = st.finished_order()
+        retired = min(st.retired, len(order))
+        if not retired:
+            first = 0
+        elif retired < len(order):
+            first = int(st.track_nodes.start(order[retired]))
+        else:
+            first = len(st.ids)
+        rows = np.arange(st.src.n) if first == 0 else st.horizon_rows(first)
+        self.ahead.drop()   # waits for its thread: it may be reading the connections
+        if not cal.recorrect_cameras(st, rows).size:
+            return
+        self.updater.terms = ConnectionTerms.empty()   # they held the motions as they were
+        st.refine_drift = st.refine_drift + step
+        sigma = self.config.refine_relinearize_sigma
+        if 0.0 < sigma <= step and self.handoff.snap is not None:
+            self.handoff.drop()
 
     def _duration_s(self, m: Measurement, plan) -> float:
         """Seconds between a measurement's source and destination nodes (their stamps; a new
@@ -470,6 +517,8 @@ class TrackWindowAligner:
         if self.online_calibration is not None:
             # the estimate started by the last update if no motion has used it yet
             self.online_calibration.install(self.strict)
+            if self.online_calibration.camera_step > 0.0:
+                self._recorrect_cameras()
         with blas_threads():  # small dense blocks: threads only spin (ga_ros.runtime)
             return self._update(t0)
 
@@ -894,7 +943,7 @@ class TrackWindowAligner:
             groups = variance_groups.of(ids[st.src.a[keep]], ids[st.dst.a[keep]], st.z.a[keep])
         cov_net = None  # with calibration, the stated covariances (its noise factors relative)
         if (calibration is not None and self.online_calibration is not None
-                and (self.online_calibration.noise_applied.a != 1.0).any()):
+                and self.online_calibration.covs_changed()):
             cov_net = self.online_calibration.stated(st.ccov.a[keep], keep)
         # from the aligner's arrays, checked at insertion (no per-connection validation and
         # duplicate bookkeeping: ~0.5 GB and minutes less at 100,000 poses)

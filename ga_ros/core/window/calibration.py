@@ -36,8 +36,13 @@ and cross-track), and a connection of the camera that enters afterwards is store
 ``X T X^-1`` with ``X = [exp(phi), 0]`` after the odometry's correction (the batch's
 ``X S(T_meas) X^-1``, :meth:`OnlineCalibration.camera_corrected`); the applied ``phi`` is kept
 per connection (:attr:`OnlineCalibration.camera_applied`, booked only with cameras named) and
-undone first by :meth:`OnlineCalibration.measured`. The stated covariance is kept, as the
-batch keeps it.
+undone first by :meth:`OnlineCalibration.measured`. Its covariance is transformed alike,
+``Ad_X C Ad_X^T`` (:meth:`OnlineCalibration.camera_cov`; undone by
+:meth:`OnlineCalibration.stated`). At the next update after an estimate that changed the
+rotation (:attr:`OnlineCalibration.camera_step`) the camera's connections stored before, as
+far as they have not retired from the refinement's horizon, are corrected with it too
+(:meth:`OnlineCalibration.recorrect_cameras`, called by the aligner, which also asks the
+refinement to rebuild the frozen tracks' priors from them).
 
 The noise, with ``calibration_noise``: the estimate re-estimates the calibrated sources'
 variance factors (the batch's ``CalibrationConfig.noise``) from the stated covariances (the
@@ -82,13 +87,17 @@ from ga_ros.core.calibration import (
     corrected_motions,
     solve_with_calibration,
 )
-from ga_ros.core.calibration.camera_parameters import CAMERA_PARAMETERS, conjugations
+from ga_ros.core.calibration.camera_parameters import (
+    CAMERA_PARAMETERS,
+    conjugated_covariances,
+    conjugations,
+)
 from ga_ros.core.calibration.fix_parameters import node_velocity
 from ga_ros.core.fixes import FixTerm, gauge_information
 from ga_ros.core.measurement import Measurement, variance_group
 from ga_ros.core.network import ConnectionNetwork
 from ga_ros.core.solver import GaussianPrior, SolverConfig
-from ga_ros.core.window.storage import Rows
+from ga_ros.core.window.storage import Rows, pack_sym6
 from ga_ros.errors import GaError, InputError
 from ga_ros.geometry import se3
 from ga_ros.runtime import background_blas_limit, blas_threads
@@ -265,6 +274,10 @@ class OnlineCalibration:
         #: :meth:`camera_corrected`)
         self.camera_applied = Rows((3,), np.float64)
         self._camera_current: dict[str, FloatArray] = {}
+        #: the change of the cameras' applied rotation at the installations since the last
+        #: update, in the estimates' sigmas (the largest over the axes; 0: unchanged), until
+        #: the next update corrects the connections stored before (:meth:`recorrect_cameras`)
+        self.camera_step = 0.0
 
     # ----------------------------------------------------------------------- input
     def correction(self, source: str | None) -> tuple[float, float]:
@@ -307,6 +320,48 @@ class OnlineCalibration:
                                             np.asarray(z, float)[None, 3:])[0] @ se3.inverse(X)
         return se3.to_translation_rotvec(T[None])[0], phi
 
+    def camera_cov(self, cov: FloatArray, phi: FloatArray) -> FloatArray:
+        """(6, 6) the covariance of a connection conjugated by ``X = [exp(phi), 0]``
+        (:meth:`camera_corrected`): ``Ad_X C Ad_X^T``
+        (:func:`~ga_ros.core.calibration.camera_parameters.conjugated_covariances`); ``cov``
+        itself where ``phi`` is zero."""
+        if not np.asarray(phi).any():
+            return cov
+        return conjugated_covariances(cov, phi)[0]
+
+    def recorrect_cameras(self, state, rows: IntArray) -> IntArray:
+        """Correct the stored connections of the named cameras among the connection rows
+        ``rows`` of ``state`` with their camera's current rotation: each one's motion as its
+        booked rotation left it is brought back (``X_old^-1 T X_old``) and conjugated by the
+        current ``X`` (its covariance alike, :meth:`camera_cov`), and the current ``phi``
+        booked for it. Rows already at the current rotation are left as they are. Returns the
+        rows changed."""
+        rows = np.asarray(rows, dtype=np.int64)
+        rows = rows[rows < min(self.group.n, self.camera_applied.n)]
+        if not rows.size or not self.cameras:
+            return np.zeros(0, dtype=np.int64)
+        g = self.group.a[rows]
+        phi = np.zeros((rows.size, 3))
+        mine = np.zeros(rows.size, dtype=bool)
+        for cam in self.cameras:
+            if cam in self.group_names:
+                sel = g == self.group_names.index(cam)
+                phi[sel] = self.camera_correction(cam)
+                mine |= sel
+        old = self.camera_applied.a[rows]
+        sel = np.nonzero(mine & (phi != old).any(axis=1))[0]
+        if not sel.size:
+            return np.zeros(0, dtype=np.int64)
+        r, phi, old = rows[sel], phi[sel], old[sel]
+        X_old, X_new = conjugations(old), conjugations(phi)
+        T = se3.from_translation_rotvec(state.z.a[r, :3], state.z.a[r, 3:])
+        T = X_new @ se3.inverse(X_old) @ T @ X_old @ se3.inverse(X_new)
+        state.z.a[r] = se3.to_translation_rotvec(T)
+        cov = conjugated_covariances(state.ccov.a[r], old, inverse=True)
+        state.ccov.packed[r] = pack_sym6(conjugated_covariances(cov, phi))
+        self.camera_applied.a[r] = phi
+        return r
+
     def register_camera(self, phi: FloatArray) -> None:
         """Book a new connection row's applied extrinsic rotation (with cameras named, after
         :meth:`register`; the rows before it that were not booked: zeros)."""
@@ -332,10 +387,25 @@ class OnlineCalibration:
         d = noise_scale(np.array(s))[0]
         return d[:, None] * np.asarray(cov, dtype=float) * d[None, :], s
 
+    def covs_changed(self) -> bool:
+        """Whether a stored covariance differs from its stated one (a variance factor, or a
+        camera's rotation, applied): :meth:`stated` then recovers them."""
+        return bool((self.noise_applied.a != 1.0).any() or self.camera_applied.a.any())
+
     def stated(self, cov: FloatArray, conns: IntArray) -> FloatArray:
         """(m, 6, 6) the stated covariances of connection rows ``conns`` from their stored
-        ones ``cov`` (m, 6, 6): the applied variance factors undone (rows stored as stated are
-        returned as stored)."""
+        ones ``cov`` (m, 6, 6): the applied variance factors and a camera's applied rotation
+        undone (``D`` and ``Ad_X`` commute: ``D`` is a scalar per 3x3 block; rows stored as
+        stated are returned as stored)."""
+        conns = np.asarray(conns)
+        if self.camera_applied.n:
+            inside = np.nonzero(conns < self.camera_applied.n)[0]
+            phi = self.camera_applied.a[conns[inside]]
+            sel = inside[(phi != 0.0).any(axis=1)]
+            if sel.size:
+                cov = np.array(cov, dtype=float)
+                cov[sel] = conjugated_covariances(cov[sel], self.camera_applied.a[conns[sel]],
+                                                  inverse=True)
         n = self.noise_applied.n
         fac = np.ones((len(conns), 2))
         inside = np.asarray(conns) < n
@@ -493,7 +563,7 @@ class OnlineCalibration:
         dt_s = (stamp[state.dst.a[conns]] - stamp[state.src.a[conns]]) * 1e-9
         z = self.measured(state.z.a[conns], dt_s, conns)
         cov = None
-        if (self.noise_applied.a != 1.0).any():  # the stated covariances (factors relative)
+        if self.covs_changed():  # the stated covariances (factors relative)
             cov = self.stated(state.ccov.a[conns], conns)
         net = state.subnetwork(rows, conns, cov=cov, z=z)
         ids = state.idarr.a
@@ -537,8 +607,27 @@ class OnlineCalibration:
             if strict and not isinstance(job.error, DATA_FAILURES):
                 raise job.error
         else:
+            before = {c: self.camera_correction(c) for c in self.cameras}
             self._use(job.report)
+            if self.cameras:
+                self.camera_step = max(self.camera_step, self._camera_change(before))
         return 1e3 * (time.perf_counter() - t0)
+
+    def _camera_change(self, before: dict[str, FloatArray]) -> float:
+        """The largest change of a camera's applied rotation from ``before`` (per camera, (3,)
+        rad) to the current one, in the sigmas of the current estimate (``inf`` where an axis
+        changed without a finite sigma; 0: no change)."""
+        sig = {(p.source, p.name): p.sigma for p in
+               ([] if self.report is None else self.report.parameters)}
+        step = 0.0
+        for cam in self.cameras:
+            d = np.abs(self.camera_correction(cam) - before[cam])
+            for name, par in CAMERA_PARAMETERS.items():
+                if d[par.axis] == 0.0:
+                    continue
+                s = float(sig.get((cam, name), np.nan))
+                step = max(step, d[par.axis] / s if np.isfinite(s) and s > 0 else np.inf)
+        return step
 
     def wait(self) -> float:
         """Wait for an estimate running in the background; returns its CPU milliseconds (0 if
@@ -620,6 +709,7 @@ class OnlineCalibration:
                   'cal_fix_applied': self.fix_applied.a.copy()}
         if self.group_names:   # every connection's source (the cameras' estimates)
             meta['group_names'] = list(self.group_names)
+            meta['camera_step'] = float(self.camera_step)
             arrays['cal_group'] = self.group.a.copy()
             arrays['cal_camera'] = self.camera_applied.a.copy()
         return meta, arrays
@@ -637,6 +727,7 @@ class OnlineCalibration:
         book.applied = Rows.of(np.asarray(arrays['cal_applied'], dtype=np.float64)
                                .reshape(-1, 2), np.float64)
         book.group_names = [str(s) for s in meta.get('group_names', [])]
+        book.camera_step = float(meta.get('camera_step', 0.0))
         group = arrays.get('cal_group') if book.group_names else None
         book.group = Rows.of(np.asarray(group, dtype=np.int64) if group is not None
                              else np.full(book.source.n, -1, dtype=np.int64), np.int64)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ga_ros.arrays import BoolArray, FloatArray, IntArray
 from ga_ros.core.calibration.fix_parameters import fix_parameter
-from ga_ros.core.config_ranges import check_ranges, ranged
+from ga_ros.core.config_ranges import check_ranges, names_of, ranged, string_list
 from ga_ros.core.fixes import DATUMS, gauge_information
 from ga_ros.core.quality import QualityConfig, QualitySummary
 from ga_ros.core.quality.online_variance import OnlineVarianceConfig
@@ -194,12 +194,14 @@ class AlignerConfig:
         comma-separated (no offset estimated for them). Required with an offset: online, the
         reference the batch would otherwise choose (the better-determined source) could change
         from one horizon to the next and move the frame with it.
-    calibrate_cameras : with ``calibrate``, the cameras (their sources, comma-separated:
-        ``'cam0'``) whose extrinsic rotation the online estimate includes
+    calibrate_cameras : with ``calibrate``, the cameras (their sources: ``('cam0',)``; a ROS
+        string array, ``[cam0]`` in YAML; one comma-separated string is accepted too) whose
+        extrinsic rotation the online estimate includes
         (:mod:`ga_ros.core.calibration.camera_parameters`, on every connection of the source):
         estimated and published with its sigma, and applied to the camera's connections
         (consecutive and cross-track) as they enter, ``X T X^-1`` with the rotation booked per
-        connection (``docs/calibration.md``). ``''`` (default): none.
+        connection (``docs/calibration.md``), the connections stored before an estimate
+        corrected again at the next update. ``()`` (default): none.
     calibration_horizon_tracks : the latest finished tracks the online estimate is made on
         (its memory: a slowly varying parameter is followed with this lag).
     calibration_refresh : the online estimate runs at a track end once the connections
@@ -238,7 +240,7 @@ class AlignerConfig:
     variance_min_redundancy: float = 20.0
     variance_prior_dof: float = 10.0
     calibrate: bool = False
-    calibrate_cameras: str = ''
+    calibrate_cameras: tuple[str, ...] = string_list()
     calibration_horizon_tracks: int = ranged(30, 1, 100_000)
     calibration_refresh: float = ranged(0.1, 0.0, 10.0)
     calibration_fix_parameters: str = 'time_offset'
@@ -246,6 +248,7 @@ class AlignerConfig:
     calibration_noise: bool = True
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, 'calibrate_cameras', names_of(self.calibrate_cameras))
         check_ranges(self)
         self.online_variance_config()  # checks the mode and levels
         self.calibration_fix_config()  # checks the online fix parameters
@@ -290,7 +293,7 @@ class AlignerConfig:
     @property
     def camera_names(self) -> tuple[str, ...]:
         """The cameras of ``calibrate_cameras``, in order."""
-        return tuple(n.strip() for n in str(self.calibrate_cameras).split(',') if n.strip())
+        return self.calibrate_cameras
 
     def quality_config(self) -> QualityConfig:
         """The test settings of the quality control and of the ``'w-test'`` gate."""
