@@ -447,8 +447,10 @@ def _camera(entry):
 
 @pytest.mark.slow   # ~3 min per case on a loaded 2-core machine
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
-@pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
+@pytest.mark.parametrize('config, compact, mode', [
+    ('no_refinement', 0, 'journal'),    # the journal alone
+    ('every_track', 4, 'journal'),      # its compacted base, refinements re-run
+    ('every_track', 4, 'snapshot')])    # the snapshot with the booked rotations
 def test_the_online_camera_rotation_is_kept_across_recoveries(tmp_path, config, compact, mode):
     """With a camera named (``calibrate_cameras``), its rotation estimated online and applied
     to its connections as they enter and, at each update after a change, to those stored
