@@ -392,20 +392,26 @@ class OnlineCalibration:
         camera's rotation, applied): :meth:`stated` then recovers them."""
         return bool((self.noise_applied.a != 1.0).any() or self.camera_applied.a.any())
 
+    def _camera_rows(self, conns: IntArray) -> IntArray:
+        """Positions in ``conns`` of the connection rows stored with a camera's rotation
+        applied (a non-zero booked rotation)."""
+        if not self.camera_applied.n:
+            return np.zeros(0, dtype=np.intp)
+        inside = np.nonzero(conns < self.camera_applied.n)[0]
+        phi = self.camera_applied.a[conns[inside]]
+        return inside[(phi != 0.0).any(axis=1)]
+
     def stated(self, cov: FloatArray, conns: IntArray) -> FloatArray:
         """(m, 6, 6) the stated covariances of connection rows ``conns`` from their stored
         ones ``cov`` (m, 6, 6): the applied variance factors and a camera's applied rotation
         undone (``D`` and ``Ad_X`` commute: ``D`` is a scalar per 3x3 block; rows stored as
         stated are returned as stored)."""
         conns = np.asarray(conns)
-        if self.camera_applied.n:
-            inside = np.nonzero(conns < self.camera_applied.n)[0]
-            phi = self.camera_applied.a[conns[inside]]
-            sel = inside[(phi != 0.0).any(axis=1)]
-            if sel.size:
-                cov = np.array(cov, dtype=float)
-                cov[sel] = conjugated_covariances(cov[sel], self.camera_applied.a[conns[sel]],
-                                                  inverse=True)
+        sel = self._camera_rows(conns)
+        if sel.size:
+            cov = np.array(cov, dtype=float)
+            cov[sel] = conjugated_covariances(cov[sel], self.camera_applied.a[conns[sel]],
+                                              inverse=True)
         n = self.noise_applied.n
         fac = np.ones((len(conns), 2))
         inside = np.asarray(conns) < n
@@ -454,14 +460,11 @@ class OnlineCalibration:
         ``R Rz(-omega dt)``; rows stored uncorrected are returned as stored)."""
         z = np.array(z, dtype=float)
         conns = np.asarray(conns)
-        if self.camera_applied.n:
-            inside = np.nonzero(conns < self.camera_applied.n)[0]
-            phi = self.camera_applied.a[conns[inside]]
-            sel = inside[(phi != 0.0).any(axis=1)]
-            if sel.size:
-                X = conjugations(self.camera_applied.a[conns[sel]])
-                T = se3.from_translation_rotvec(z[sel, :3], z[sel, 3:])
-                z[sel] = se3.to_translation_rotvec(se3.inverse(X) @ T @ X)
+        sel = self._camera_rows(conns)
+        if sel.size:
+            X = conjugations(self.camera_applied.a[conns[sel]])
+            T = se3.from_translation_rotvec(z[sel, :3], z[sel, 3:])
+            z[sel] = se3.to_translation_rotvec(se3.inverse(X) @ T @ X)
         kw = self.applied.a[conns]
         sel = np.nonzero((kw != 0.0).any(axis=1))[0]
         if sel.size:
