@@ -45,7 +45,8 @@ from ga_ros.core.calibration.parameters import (
 )
 
 __all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'MODELS', 'PARAMETERS', 'AdditionalParameter',
-           'BiasWalk', 'CalibrationConfig', 'CalibrationReport', 'ConstantLevel', 'ExtrinsicRotationAxis',
+           'BiasWalk', 'CalibrationConfig', 'CalibrationReport', 'ConstantLevel',
+           'ExtrinsicRotationAxis',
            'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ParameterModel', 'RandomWalk',
            'ScaleCorrection', 'TimeOffset', 'WalkEstimate', 'YawRateCorrection',
            'book_observations', 'camera_sources', 'check_cameras', 'corrected_motions',

@@ -1294,7 +1294,7 @@ def _bias_walks(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
         # each walk's test, the other unknowns eliminated (their pseudo-observations kept
         # so that they are determined)
         tests: dict[int, tuple[float, float]] = {}
-        for j, d in devs.items():
+        for j in devs:
             mine = np.zeros(len(cols), bool)
             mine[at[j]] = True
             M = b.H + np.where(mine[:, None] | mine[None, :], 0.0, H_rw)
