@@ -33,8 +33,8 @@ AXES = ('offset_x', 'offset_y')
 def _survey(seed: int, offset: str, q: float = Q, sources=None):
     """The survey with one fix source ``fix0`` (a fix every second, 0.2 m) whose x, y offset
     is ``offset``: 'walk' (a random walk of ``q`` m/sqrt(s) from 0 at the knots), 'constant'
-    (1.5, -1.0) or 'none'; ``sources``: other fix sources, without the offset. Returns the survey, the
-    fixes, the fix times (s) and fix0's true offsets (k, 2)."""
+    (1.5, -1.0) or 'none'; ``sources``: other fix sources, without the offset. Returns the
+    survey, the fixes, the fix times (s) and fix0's true offsets (k, 2)."""
     rng = np.random.default_rng(seed)
     s = biased_survey(rng, n_nodes=N, sigma_xy_m=0.01, sigma_yaw_rad=0.001)
     stamps = np.arange(N) * 0.5
