@@ -67,6 +67,9 @@ BENCHMARKS: dict[str, Benchmark] = {
     'fixcal': Benchmark('ga_ros.bench.fix_calibration:main',
                         'Plaza odometry + fixes with a latency (and an offset source): the '
                         "batch with and without the fix sources' offset and time offset"),
+    'fixwalk': Benchmark('ga_ros.bench.fix_bias_walk:main',
+                         'Plaza odometry + fixes whose offset wanders: the batch without '
+                         'calibration, with a constant offset, with the offset a random walk'),
     'camcal': Benchmark('ga_ros.bench.camera_calibration:main',
                         "a camera's extrinsic rotation error on a simulated swath survey: the "
                         'batch with and without the camera parameters, against GTSAM LM'),

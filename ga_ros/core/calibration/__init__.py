@@ -2,7 +2,7 @@
 adjustment, estimated where the network determines them (:mod:`.parameters`: what each
 odometry parameter corrects; :mod:`.camera_parameters`: a camera extrinsic's rotation;
 :mod:`.fix_parameters`: what each fix-source parameter corrects; :mod:`.models`: a
-parameter as a constant or a random walk;
+parameter as a constant, a random walk, or a constant with a random walk about it;
 :mod:`.batch`: the batch adjustment with them and their tests)."""
 
 from ga_ros.core.calibration.batch import (
@@ -30,6 +30,7 @@ from ga_ros.core.calibration.fix_parameters import (
 )
 from ga_ros.core.calibration.models import (
     MODELS,
+    BiasWalk,
     ConstantLevel,
     ParameterModel,
     RandomWalk,
@@ -44,7 +45,8 @@ from ga_ros.core.calibration.parameters import (
 )
 
 __all__ = ['CAMERA_PARAMETERS', 'FIX_PARAMETERS', 'MODELS', 'PARAMETERS', 'AdditionalParameter',
-           'CalibrationConfig', 'CalibrationReport', 'ConstantLevel', 'ExtrinsicRotationAxis',
+           'BiasWalk', 'CalibrationConfig', 'CalibrationReport', 'ConstantLevel',
+           'ExtrinsicRotationAxis',
            'FixObservations', 'FixOffsetAxis', 'NoiseFactor', 'ParameterModel', 'RandomWalk',
            'ScaleCorrection', 'TimeOffset', 'WalkEstimate', 'YawRateCorrection',
            'book_observations', 'camera_sources', 'check_cameras', 'corrected_motions',

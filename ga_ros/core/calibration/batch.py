@@ -137,7 +137,7 @@ from ga_ros.core.calibration.fix_parameters import (
     fix_shift,
     node_velocities,
 )
-from ga_ros.core.calibration.models import ConstantLevel, ParameterModel, WalkBasis
+from ga_ros.core.calibration.models import BiasWalk, ConstantLevel, ParameterModel, WalkBasis
 from ga_ros.core.calibration.parameters import (
     PARAMETERS,
     CorrectedMotions,
@@ -161,6 +161,8 @@ _DEPENDENCY_SHARE = 0.1
 #: A parameter step that raises the joint cost is halved at most this many times (then the
 #: parameters stay where they are).
 _STEP_HALVINGS = 6
+#: The parameter lookup of each model family (:attr:`ParameterModel.family`).
+_FAMILY_PARAMETER = {'odometry': parameter, 'fix': fix_parameter}
 
 
 @dataclass(frozen=True)
@@ -192,11 +194,13 @@ class CalibrationConfig:
         (:data:`~ga_ros.core.calibration.camera_parameters.CAMERA_PARAMETERS`:
         ``'extrinsic_rx'``, ``'extrinsic_ry'``, ``'extrinsic_rz'``, rad, body frame). Where no
         camera parameter is estimated the result is the one without them, bit for bit.
-    models : how an odometry parameter varies over the survey, one entry per parameter kind
-        whose model is not the default constant
-        (:class:`~ga_ros.core.calibration.models.RandomWalk`: knots every ``segment_s`` tied
-        by a random walk of ``sigma_per_sqrt_s``; module doc, *A random walk*). Empty by
-        default: every parameter is a constant, as without the field.
+    models : how a parameter varies over the survey, one entry per parameter kind whose
+        model is not the default constant: an odometry parameter's
+        :class:`~ga_ros.core.calibration.models.RandomWalk` (knots every ``segment_s`` tied
+        by a random walk of ``sigma_per_sqrt_s``; module doc, *A random walk*), a fix
+        parameter's :class:`~ga_ros.core.calibration.models.BiasWalk` (its constant plus a
+        random walk about it, tested on its own; module doc, *A wandering fix offset*). Empty
+        by default: every parameter is a constant, as without the field.
     alpha : significance level of the two-sided test of each parameter (module doc, step 4):
         the probability of switching a parameter on when the source has no such error.
     min_information_ratio : a parameter whose information left after eliminating the poses is
@@ -251,7 +255,7 @@ class CalibrationConfig:
         for m in self.models:
             if not isinstance(m, ParameterModel):
                 raise InputError(f'calibration models: {m!r} is not a ParameterModel')
-            parameter(m.parameter)
+            _FAMILY_PARAMETER[m.family](m.parameter)
         named = [m.parameter for m in self.models]
         if len(set(named)) != len(named):
             raise InputError(f'calibration models: a parameter has two models ({named})')
@@ -271,7 +275,7 @@ class CalibrationConfig:
                              '0 < lo < 1 < hi')
 
     def model(self, kind: str) -> ParameterModel:
-        """The model of the odometry parameter ``kind`` (:attr:`models`, else a constant)."""
+        """The model of the parameter ``kind`` (:attr:`models`, else a constant)."""
         return next((m for m in self.models if m.parameter == kind), ConstantLevel(kind))
 
 
@@ -294,7 +298,10 @@ class AdditionalParameter:
         a random walk, the constant whose test decided it).
     walk : with a random-walk model (:attr:`CalibrationConfig.models`) and the parameter
         estimated, the walk (:class:`WalkEstimate`); ``value`` is then the walk's mean over
-        the source's motions (duration-weighted) and ``sigma`` the constant's.
+        the source's motions (duration-weighted; a fix parameter's: over its fixes, the
+        constant) and ``sigma`` the constant's.
+    walk_note : a :class:`~ga_ros.core.calibration.models.BiasWalk` that was not kept: why
+        ('' otherwise).
     """
 
     source: str
@@ -309,10 +316,20 @@ class AdditionalParameter:
     reason: str = ''
     tested_value: float = float('nan')
     walk: WalkEstimate | None = None
+    walk_note: str = ''
 
     def line(self) -> str:
         """One line of text: the estimate with its sigma and test, or why it is fixed."""
         head = f'{self.source} {self.name}'
+        note = f'; {self.walk_note}' if self.walk_note else ''
+        if self.estimated and self.walk is not None and np.isfinite(self.walk.test):
+            w = self.walk
+            return (f'{head}: constant {self.value:.6g} {self.unit} plus a random walk of '
+                    f'{len(w.values)} knots every {w.segment_s:g} s, {min(w.values):.4g} to '
+                    f'{max(w.values):.4g} (sigmas {min(w.sigmas):.2g}-{max(w.sigmas):.2g}), '
+                    f'q {w.sigma_per_sqrt_s:.2g} {self.unit}/sqrt(s), F {w.test:.1f} > '
+                    f"{w.quantile:.2f}; pseudo-observations v'Pv/r {w.ratio:.3g} "
+                    f'(r {w.redundancy:.1f})')
         if self.estimated and self.walk is not None:
             w = self.walk
             return (f'{head} = {self.tested_value:.6g} +- {self.sigma:.2g} {self.unit} '
@@ -323,8 +340,8 @@ class AdditionalParameter:
                     f"v'Pv/r {w.ratio:.3g} (r {w.redundancy:.1f})")
         if self.estimated:
             return (f'{head} = {self.value:.6g} +- {self.sigma:.2g} {self.unit} '
-                    f'(|t| {self.test:.1f} > {self.quantile:.2f})')
-        return f'{head}: not estimated ({self.reason})'
+                    f'(|t| {self.test:.1f} > {self.quantile:.2f}){note}')
+        return f'{head}: not estimated ({self.reason}){note}'
 
 
 @dataclass
@@ -341,6 +358,10 @@ class WalkEstimate:
     redundancy : their redundancy ``K - 1 - tr(W D Q_cc D')``.
     ratio : ``cost / redundancy``: about 1 where ``q`` fits the data; ``q sqrt(ratio)`` is
         the process noise the data estimate (one step of a variance-component estimate).
+    test, quantile : a walk about the constant
+        (:class:`~ga_ros.core.calibration.models.BiasWalk`): the F statistic of its
+        deviations and the critical value it passed (NaN for a
+        :class:`~ga_ros.core.calibration.models.RandomWalk`, whose constant's test decides).
     """
 
     knots_s: list[float]
@@ -351,6 +372,8 @@ class WalkEstimate:
     cost: float = float('nan')
     redundancy: float = float('nan')
     ratio: float = float('nan')
+    test: float = float('nan')
+    quantile: float = float('nan')
 
 
 @dataclass
@@ -445,7 +468,8 @@ def _plain(obj: AdditionalParameter | NoiseFactor) -> dict:
             return {k: one(x) for k, x in v.items()}
         return None if isinstance(v, float) and not np.isfinite(v) else v
     # a constant's report has no walk (the key is left out, as before there were walks)
-    return {k: one(v) for k, v in asdict(obj).items() if not (k == 'walk' and v is None)}
+    return {k: one(v) for k, v in asdict(obj).items()
+            if not (k == 'walk' and v is None) and not (k == 'walk_note' and not v)}
 
 
 @dataclass
@@ -535,14 +559,16 @@ class _Bordered:
 def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMotions,
               cand: _Candidates, active: list[int],
               fixes: FixObservations | None = None, values: FloatArray | None = None,
-              weights: Sequence[FloatArray | None] | None = None) -> _Bordered:
+              weights: Sequence[FloatArray | None] | None = None,
+              walks: dict[int, FloatArray] | None = None) -> _Bordered:
     """The reduced normal equations of the ``active`` parameters at the adjustment ``res``:
     the connections of the odometry parameters (misclosures of the corrected motions
     ``motions``) and the fixes of the fix parameters (misclosures against the fixes corrected
     by ``values``, the Jacobians ``E`` at the velocities of ``res``'s poses). ``weights``: per
     entry of ``active`` (a candidate may come several times), None or its weight on each of
-    the candidate's connections (a random walk's knot: its hat function), which scales the
-    column."""
+    the candidate's connections or fixes (a random walk's knot: its hat function), which
+    scales the column; ``walks``: the fix parameters' values fix by fix where they are walks
+    (:func:`_fix_shift`)."""
     arrays = network.arrays()
     p = len(active)
     free_ids = res.free_node_ids
@@ -588,8 +614,12 @@ def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMo
     if fixes is not None and len(odo) < p:
         fs = _FixState.at(fixes, network, res.T_world_node, cand)
         Ef = fs.E[:, :, active]
+        if weights is not None:
+            for a, j in enumerate(active):
+                if weights[a] is not None and cand.on_fixes(j):
+                    Ef[cand.masks[j], :, a] *= weights[a][:, None]
         ef, Af = fix_misclosures(fixes, res.T_world_node, fs.rows,
-                                 fix_shift(fs.E, values))
+                                 _fix_shift(fs.E, cand, values, walks))
         WE = fixes.information @ Ef
         Ncc += np.einsum('mki,mkj->ij', Ef, WE)
         g += np.einsum('mki,mk->i', Ef, (fixes.information @ ef[:, :, None])[:, :, 0])
@@ -600,6 +630,21 @@ def _bordered(network: ConnectionNetwork, res: SolveResult, motions: CorrectedMo
     Z = res.solve_normal(Nxc)
     H = Ncc - Nxc.T @ Z
     return _Bordered(0.5 * (H + H.T), g, np.diag(Ncc).copy())
+
+
+def _fix_shift(E: FloatArray, cand: _Candidates, values: FloatArray,
+               walks: dict[int, FloatArray] | None) -> FloatArray:
+    """(k, 3) each fix's shift to its corrected position (:func:`~ga_ros.core.calibration.
+    fix_parameters.fix_shift`) with the fix parameters ``values``, those in ``walks`` (a
+    :class:`~ga_ros.core.calibration.models.BiasWalk`'s) taking their value fix by fix (on
+    the candidate's fixes, in their order). No fix walk: :func:`fix_shift` itself."""
+    fix_walks = {j: w for j, w in (walks or {}).items() if cand.on_fixes(j)}
+    if not fix_walks:
+        return fix_shift(E, values)
+    V = np.tile(np.asarray(values, dtype=float), (E.shape[0], 1))
+    for j, w in fix_walks.items():
+        V[cand.masks[j], j] = w
+    return -np.einsum('kip,kp->ki', E[:, :3, :], V)
 
 
 def solve_with_calibration(network: ConnectionNetwork, T_init: FloatArray,
@@ -881,12 +926,14 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         values[:] = [p.value for p in start.parameters]
     fs0 = _FixState.at(fixes, network, T_init, cand)
     active = []
+    observed = []   # the candidates with something they act on
     for j in range(n_c):
         mask = cand.masks[j]
         acts = (cand.params[j].acts_on(fixes.known[mask], fs0.velocity[mask]) if on_fixes[j]
                 else cand.params[j].acts_on(arrays.z[mask], dt[mask]))
         if np.any(acts > 0):
             active.append(j)
+            observed.append(j)
         else:
             values[j] = 0.0
             report.parameters[j].reason = cand.params[j].unobserved
@@ -900,8 +947,9 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             network.node_ids, network.track_ids, arrays.src, arrays.dst,
             se3.to_translation_rotvec(Tcorr.T), arrays.cov))
         used = list(priors)
-        if fixes is not None and values[on_fixes].any():
-            shift = fix_shift(_FixState.at(fixes, network, T0, cand).E, values)
+        if fixes is not None and (values[on_fixes].any()
+                                  or any(cand.on_fixes(j) for j in walks)):
+            shift = _fix_shift(_FixState.at(fixes, network, T0, cand).E, cand, values, walks)
             used = fix_priors(fixes, T0, network.node_ids, shift) + used
         elif fixes is not None:
             used = list(fix_base) + used
@@ -1012,7 +1060,8 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
         break
     bases = {} if mid_s is None else {
         j: cal.model(cand.kinds[j]).basis(mid_s[cand.masks[j]])
-        for j in active if cand.params[j].family == 'odometry'}
+        for j in active if cand.params[j].family == 'odometry'
+        and not cal.model(cand.kinds[j]).about_constant}
     bases = {j: b for j, b in bases.items() if b is not None}
     if bases:
         # the parameters whose model is a random walk, where the selection kept them
@@ -1020,10 +1069,20 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
                                       bases, walks, values, dt, cal, report, fixes)
         for j, w in estimates.items():
             report.parameters[j].walk = w
+    about = {j: cal.model(cand.kinds[j]) for j in observed if fixes is not None
+             and cand.on_fixes(j) and cal.model(cand.kinds[j]).about_constant}
+    kept: dict[int, WalkEstimate] = {}
+    if about:
+        # the fix parameters whose model is a walk about the constant (module doc, *A
+        # wandering fix offset*): their deviations, kept where significant
+        res, Tcorr, kept = _bias_walks(adjust, res, Tcorr, solved, network, cand, active,
+                                       about, walks, values, cal, report, fixes)
     for j in range(n_c):
         par = report.parameters[j]
-        par.estimated = j in active
+        par.estimated = j in active or j in kept
         par.value = float(values[j])
+        if j in kept:
+            par.walk = kept[j]
         if par.estimated:
             par.reason = ''
     report.sigma0_sq = float(res.sigma0_sq)
@@ -1101,3 +1160,189 @@ def _walk(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
                               float(cal.model(cand.kinds[j]).segment_s), b.sigma_per_sqrt_s,
                               cost, r, cost / r if r > 0 else float('nan'))
     return res, Tcorr, out
+
+
+@dataclass
+class _Deviations:
+    """One fix parameter's random walk about its constant (:func:`_bias_walks`): the knots'
+    basis, the hat matrix of its fixes ``(k_j, K)``, the zero-mean basis ``B`` (K, K-1) of the
+    deviations (``w' B = 0``, ``w`` the hat matrix's column sums: their mean over the fixes is
+    0), and the pseudo-observations' normal matrix of the deviations at ``q = 1``."""
+
+    basis: WalkBasis
+    hat: FloatArray
+    B: FloatArray
+    normal_q1: FloatArray
+    q: float
+
+    @staticmethod
+    def of(model: BiasWalk, t_s: FloatArray) -> _Deviations:
+        b = model.basis(t_s)
+        K = b.size
+        hat = np.zeros((b.left.size, K))
+        i = np.arange(b.left.size)
+        hat[i, b.left] = 1.0 - b.frac
+        hat[i, b.left + 1] += b.frac
+        w = hat.sum(axis=0)
+        B = np.linalg.svd(w[None, :])[2][1:].T   # (K, K-1) orthonormal, w' B = 0
+        normal_q1 = B.T @ b.normal() @ B * b.sigma_per_sqrt_s ** 2
+        return _Deviations(b, hat, B, normal_q1, b.sigma_per_sqrt_s)
+
+    @property
+    def size(self) -> int:
+        return self.B.shape[1]
+
+    def normal(self) -> FloatArray:
+        return self.normal_q1 / self.q ** 2
+
+
+def _bias_walks(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
+                network: ConnectionNetwork, cand: _Candidates, active: list[int],
+                about: dict[int, BiasWalk], walks: dict[int, FloatArray], values: FloatArray,
+                cal: CalibrationConfig, report: CalibrationReport, fixes: FixObservations
+                ) -> tuple[SolveResult, CorrectedMotions, dict[int, WalkEstimate]]:
+    """The fix parameters ``about`` (observed, their model a
+    :class:`~ga_ros.core.calibration.models.BiasWalk`) as their constant (``values[j]``:
+    the selection's estimate, 0 where it was not kept) plus a zero-mean random walk of
+    deviations (module doc, *A wandering fix offset*): Gauss-Newton on the deviations' knots
+    and the kept constants (an odometry random walk stays at its estimate), the poses
+    re-solved at each step as in :func:`_walk`; then each walk's F test
+    ``d' S d / ((K-1) sigma0^2)`` against ``F(K-1, r - p)`` at ``alpha`` (``S`` the
+    deviations' information from the data, the other unknowns eliminated; ``sigma0^2`` and
+    ``r - p`` the selection's). The least significant walk that fails goes and the rest are
+    estimated again; with none left, the adjustment, ``values`` and ``walks`` are those of
+    the selection, untouched. Returns the adjustment, its corrected motions and each kept
+    walk's estimate."""
+    start = (res, Tcorr, list(solved), values.copy(), dict(walks))
+    dof = res.redundancy - len(active)
+    s0_sq = res.sigma0_sq * res.redundancy / dof if dof > 0 else float('nan')
+    times = np.array([t.fix.stamp_ns for t in fixes.terms], dtype=float) * 1e-9
+    devs = {j: _Deviations.of(m, times[cand.masks[j]]) for j, m in about.items()}
+    consts = [j for j in active if j not in walks]
+    notes: dict[int, str] = {}
+    while devs and dof > 0:
+        res, Tcorr, solved[:] = start[0], start[1], list(start[2])
+        values[:] = start[3]
+        walks.clear()
+        walks.update(start[4])
+        cols: list[int] = list(consts)
+        weights: list[FloatArray | None] = [None] * len(consts)
+        at: dict[int, slice] = {}
+        for j, d in devs.items():
+            at[j] = slice(len(cols), len(cols) + d.size)
+            cols += [j] * d.size
+            weights += [d.hat @ d.B[:, i] for i in range(d.size)]
+        c = np.concatenate([values[consts], np.zeros(len(cols) - len(consts))])
+
+        def put(c: FloatArray) -> None:
+            values[consts] = c[:len(consts)]
+            for j, d in devs.items():
+                walks[j] = values[j] + d.hat @ (d.B @ c[at[j]])
+
+        def prior() -> FloatArray:
+            H_rw = np.zeros((len(cols), len(cols)))
+            for j, d in devs.items():
+                H_rw[at[j], at[j]] = d.normal()
+            return H_rw
+
+        put(c)
+        res, Tcorr = adjust(res.T_world_node)
+        reestimates = max(int(m.sigma_iterations) if m.estimate_sigma else 0
+                          for j, m in about.items() if j in devs)
+        for sweep in range(reestimates + 1):
+            H_rw = prior()
+            for _ in range(int(cal.max_iterations) + 1):
+                b = _bordered(network, res, Tcorr, cand, cols, fixes, values, weights, walks)
+                Q = np.linalg.inv(b.H + H_rw)
+                dc = -Q @ (b.g + H_rw @ c)
+                if np.all(np.abs(dc) <= cal.tolerance * np.sqrt(np.diag(Q))):
+                    break
+                old, kept = c.copy(), (res, Tcorr, list(solved))
+                cost0 = kept[0].cost + float(old @ H_rw @ old)
+                for _ in range(_STEP_HALVINGS + 1):
+                    c = old + dc
+                    put(c)
+                    res, Tcorr = adjust(kept[0].T_world_node)
+                    if res.cost + float(c @ H_rw @ c) <= cost0 * (1.0 + 1e-9):
+                        break
+                    dc = 0.5 * dc
+                else:  # no step along dc lowers the cost: the walks stay where they are
+                    c = old
+                    put(c)
+                    res, Tcorr, solved[:] = kept
+                    break
+                report.iterations += 1
+            if sweep == reestimates:
+                break
+            # the process noise from the data (Förstner: q^2 <- q^2 v'Pv / r of the
+            # pseudo-observations), where the model asks for it
+            moved = False
+            for j, d in devs.items():
+                if not about[j].estimate_sigma:
+                    continue
+                Hj = H_rw[at[j], at[j]]
+                dj = c[at[j]]
+                r = float(d.size - np.trace(Hj @ Q[at[j], at[j]]))
+                if not r > 0:
+                    continue
+                ratio = float(dj @ Hj @ dj) / r
+                q = d.q * np.sqrt(min(max(ratio, 1e-4), 1e4))
+                moved |= abs(q / d.q - 1.0) > 0.05   # the variance moved by more than 10 %
+                d.q = q
+            if not moved:
+                break
+        # each walk's test, the other unknowns eliminated (their pseudo-observations kept
+        # so that they are determined)
+        tests: dict[int, tuple[float, float]] = {}
+        for j in devs:
+            mine = np.zeros(len(cols), bool)
+            mine[at[j]] = True
+            M = b.H + np.where(mine[:, None] | mine[None, :], 0.0, H_rw)
+            S = b.H[np.ix_(mine, mine)]
+            if (~mine).any():
+                S = S - M[np.ix_(mine, ~mine)] @ np.linalg.solve(M[np.ix_(~mine, ~mine)],
+                                                                 M[np.ix_(~mine, mine)])
+            # the deviations the data alone give (one Gauss-Newton step from the estimate
+            # without the pseudo-observations): d_ls = d + S^+ P d, and the Wald test of
+            # d_ls = 0 with their information S
+            dj = c[at[j]]
+            lam, U = np.linalg.eigh(0.5 * (S + S.T))
+            keep = lam > 1e-10 * max(float(lam.max()), np.finfo(float).tiny)
+            rank = int(keep.sum())
+            u = U[:, keep].T @ ((S + H_rw[at[j], at[j]]) @ dj)   # S d_ls in S's eigenbasis
+            f = float(u @ (u / lam[keep])) / (max(rank, 1) * s0_sq)
+            tests[j] = (f, float(stats.f.ppf(1.0 - cal.alpha, max(rank, 1), dof)))
+        weakest = min(tests, key=lambda j: tests[j][0] / tests[j][1])
+        f, quantile = tests[weakest]
+        if f >= quantile:
+            for j, note in notes.items():
+                report.parameters[j].walk_note = note
+            out = {}
+            for j, d in devs.items():
+                sl = at[j]
+                # the knots: the constant (where kept) plus B d
+                Mk = np.zeros((d.basis.size, len(cols)))
+                Mk[:, sl] = d.B
+                if j in consts:
+                    Mk[:, consts.index(j)] = 1.0
+                Hj = H_rw[sl, sl]
+                dj = c[sl]
+                r = float(d.size - np.trace(Hj @ Q[sl, sl]))
+                cost = float(dj @ Hj @ dj)
+                out[j] = WalkEstimate(
+                    [float(x) for x in d.basis.knots_s],
+                    [float(x) for x in values[j] + d.B @ dj],
+                    [float(x) for x in np.sqrt(np.diag(Mk @ Q @ Mk.T))],
+                    float(about[j].segment_s), float(d.q), cost, r,
+                    cost / r if r > 0 else float('nan'), tests[j][0], tests[j][1])
+            return res, Tcorr, out
+        notes[weakest] = f'random walk not significant: F {f:.2f} < {quantile:.2f}'
+        del devs[weakest]
+    # no walk kept: the selection's adjustment, untouched
+    res, Tcorr, solved[:] = start[0], start[1], list(start[2])
+    values[:] = start[3]
+    walks.clear()
+    walks.update(start[4])
+    for j in about:
+        report.parameters[j].walk_note = notes.get(j, 'random walk not tested: no redundancy')
+    return res, Tcorr, {}

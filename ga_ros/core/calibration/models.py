@@ -1,5 +1,7 @@
-"""How an odometry source's additional parameter varies over the survey: a constant
-(:class:`ConstantLevel`, the default) or a random walk (:class:`RandomWalk`).
+"""How a source's additional parameter varies over the survey: a constant
+(:class:`ConstantLevel`, the default), a random walk (:class:`RandomWalk`, an odometry
+parameter) or a fix source's constant with a random walk about it (:class:`BiasWalk`, a fix
+parameter: a GNSS receiver's offset that wanders with multipath and the atmosphere).
 
 A random walk ``c(t)`` with process noise ``q`` (the parameter's unit per ``sqrt(s)``) is
 represented by its values ``c_k`` at knots ``t_k`` spaced ``segment_s`` apart over the span of
@@ -79,11 +81,18 @@ class WalkBasis:
 
 @dataclass(frozen=True)
 class ParameterModel:
-    """How the additional parameter ``parameter`` (``'scale'``, ``'yaw_rate'``) of the
-    odometry varies over the survey (module doc)."""
+    """How the additional parameter ``parameter`` varies over the survey (module doc).
+
+    ``family``: the parameters it models (``'odometry'``: ``'scale'``, ``'yaw_rate'``;
+    ``'fix'``: a fix source's ``'offset_x'``, ``'offset_y'``, ``'offset_z'``,
+    ``'time_offset'``). ``about_constant``: the walk is estimated as deviations about the
+    parameter's constant, with their own test (:class:`BiasWalk`), rather than in place of a
+    constant that passed its test (:class:`RandomWalk`)."""
 
     parameter: str
     name: ClassVar[str] = ''
+    family: ClassVar[str] = 'odometry'
+    about_constant: ClassVar[bool] = False
 
     def basis(self, t_s: FloatArray) -> WalkBasis | None:
         """The knots and interpolation of motions with mid-times ``t_s`` (m,) s; None for a
@@ -143,8 +152,49 @@ class RandomWalk(ParameterModel):
         return WalkBasis(knots, left, frac, float(self.sigma_per_sqrt_s))
 
 
-#: The models, by name (``model: constant | random_walk``).
-MODELS: dict[str, type[ParameterModel]] = {m.name: m for m in (ConstantLevel, RandomWalk)}
+@dataclass(frozen=True)
+class BiasWalk(RandomWalk):
+    """A fix source's parameter (an offset axis, m; or its time offset, s) as its constant
+    plus a random walk of deviations about it (docs/calibration.md, *A wandering fix
+    offset*): the knots of :class:`RandomWalk` constrained to the constant's mean over the
+    source's fixes (``sum_i c(t_i) = 0`` for the deviations), so that with a single fix
+    source, whose fixes define the frame and whose constant offset is therefore not
+    determined, the walk's shape still is (the odometry sees it). The deviations are
+    estimated after the constant's selection (:mod:`.batch`, steps 1-4) and kept only if
+    they pass their own test (an F test of the ``K - 1`` deviations); otherwise the result is
+    the one without the walk, bit for bit.
+
+    Attributes
+    ----------
+    parameter : the fix parameter (``'offset_x'``, ``'offset_y'``, ``'offset_z'``,
+        ``'time_offset'``).
+    segment_s : the knots' spacing (s), as :class:`RandomWalk`'s.
+    sigma_per_sqrt_s : the process noise ``q`` (m/sqrt(s) for an offset): after ``T`` s the
+        offset has moved by ``q sqrt(T)`` (one sigma). The default, 0.05 m/sqrt(s), is 0.4 m
+        in a minute, 1.2 m in ten (a code-phase receiver's multipath and atmosphere).
+    estimate_sigma : estimate ``q`` from the data as well (Förstner's variance component of
+        the walk's pseudo-observations: ``q^2 <- q^2 v'Pv / r``, from ``sigma_per_sqrt_s``,
+        at most ``sigma_iterations`` times, until it moves by less than 10 %).
+    sigma_iterations : the re-estimates of ``q`` at most.
+    """
+
+    segment_s: float = 60.0
+    sigma_per_sqrt_s: float = 0.05
+    estimate_sigma: bool = False
+    sigma_iterations: int = 8
+    name: ClassVar[str] = 'bias_walk'
+    family: ClassVar[str] = 'fix'
+    about_constant: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if int(self.sigma_iterations) < 1:
+            raise InputError(f'bias walk of {self.parameter}: sigma_iterations must be >= 1')
+
+
+#: The models, by name (``model: constant | random_walk | bias_walk``).
+MODELS: dict[str, type[ParameterModel]] = {m.name: m for m in (ConstantLevel, RandomWalk,
+                                                                BiasWalk)}
 
 
 def parameter_model(parameter: str, model: str = 'constant', **settings: float
