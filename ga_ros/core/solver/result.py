@@ -168,7 +168,7 @@ class _NormalSystem:
 
     def index_of(self, ids: IntArray) -> IntArray:
         if self._index is None:  # not for a solve whose covariances nobody asks for (~1 ms)
-            self._index = {int(i): k for k, i in enumerate(self.node_ids)}
+            self._index = dict(zip(np.asarray(self.node_ids).tolist(), range(len(self.node_ids))))
         try:
             return np.array([self._index[int(i)] for i in ids], dtype=np.int64)
         except KeyError as exc:
