@@ -102,7 +102,76 @@ class BlockPattern:
     @staticmethod
     def from_matrix(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
         """The block pattern of a symmetric sparse matrix of ``d x d`` blocks and its lower
-        triangle's values on it (every diagonal block is kept, even if zero)."""
+        triangle's values on it (every diagonal block is kept, even if zero).
+
+        With the compiled kernels, one pass over ``N``'s lower triangle finds its blocks
+        (:func:`_lower_blocks_py`) and one puts its values where they land
+        (:func:`_lower_values_py`): the same pattern and the same values, bit for bit, as
+        the NumPy path (a block-sparse copy of ``N``, a pattern built from its block list of
+        both triangles and the blocks summed into it), in about a third of the time."""
+        kernels = _from_matrix_kernels()
+        if kernels is None:
+            return BlockPattern._from_matrix_numpy(N, d)
+        find_blocks, put_values = kernels
+        C = sp.csc_matrix(N)
+        if not C.has_canonical_format:
+            C = C.copy()
+            C.sum_duplicates()
+        n = C.shape[0] // d
+        indptr, indices = C.indptr, C.indices
+        count = np.zeros(n, dtype=np.int64)
+        rows = np.empty(indices.size + n, dtype=np.int64)  # at most one block per entry
+        mark = np.full(n, -1, dtype=np.int64)
+        k = find_blocks(indptr, indices, d, n, count, rows, mark)
+        pattern = BlockPattern._of_lower(rows[:k], count, d, n)
+        out = np.zeros(pattern.nnz)
+        put_values(indptr, indices, np.ascontiguousarray(C.data, dtype=float), d, n,
+                   pattern.indptr, count, rows, mark, out)
+        return pattern, out
+
+    @staticmethod
+    def _of_lower(urow: IntArray, count: IntArray, d: int, n: int) -> BlockPattern:
+        """The pattern of the lower block pairs ``urow`` (per block column ``count[J]`` of
+        them, the diagonal block first, then ascending: :func:`_lower_blocks_py`), built from
+        that list itself: the same pattern as ``BlockPattern(urow, ucol, d, n)`` (its block
+        list the unique pairs), without sorting them again; the row of every entry comes from
+        one compiled pass (:func:`_lower_rows_py`), the positions of a block list's entries
+        (:meth:`assemble`) are computed if it is ever asked to assemble one."""
+        self = BlockPattern.__new__(BlockPattern)
+        self.d = d
+        self.size = d * n
+        self.n_blocks = n
+        ucol = np.repeat(np.arange(n, dtype=np.int64), count)
+        first = np.zeros(n, dtype=np.int64)
+        np.cumsum(count[:-1], out=first[1:])
+        rank = np.arange(urow.size, dtype=np.int64) - first[ucol]
+        self._keep_blk = np.ones(urow.size, dtype=bool)
+        self.block_lower = (urow, ucol)
+        ukey = ucol * max(n, 1) + urow
+        self.key = _blake2b(np.ascontiguousarray(ukey).tobytes() + np.int64(n).tobytes()
+                            + np.int64(d).tobytes(), digest_size=16).digest()
+        a = np.arange(d)
+        counts = (d * count[:, None] - a[None, :]).reshape(-1)
+        self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.nnz = int(self.indptr[-1])
+        self._ucol, self._urank = ucol, rank
+        self._tril = (a[:, None] >= a[None, :]).reshape(-1)
+        self._indices = np.empty(self.nnz, dtype=np.int64)
+        _lower_rows_kernel()(d, n, count, urow, self._indices)
+        self._kept_diag = rank == 0
+        self._kept_u = np.arange(urow.size, dtype=np.int32 if urow.size < 2**31 else np.int64)
+        self._pos = None
+        self._gather = None
+        self._kept_idx = None
+        self._full = None
+        self._valid_before = None
+        self._kept_rank = None
+        return self
+
+    @staticmethod
+    def _from_matrix_numpy(N: sp.spmatrix, d: int) -> tuple[BlockPattern, FloatArray]:
+        """:meth:`from_matrix` with NumPy and SciPy only (without numba; the reference of the
+        compiled path's tests)."""
         n = N.shape[0] // d
         Nb = sp.bsr_matrix(sp.csr_matrix(N), blocksize=(d, d))
         Nb.sort_indices()
@@ -322,6 +391,101 @@ def _scatter_add_py(flat, kept, diag, tril, pos, out):  # pragma: no cover - com
 
 
 _SCATTER: list = []  # [the compiled _scatter_add_py or None], compiled on first use
+
+
+def _lower_blocks_py(indptr, indices, d, n, count, rows, mark):  # pragma: no cover - compiled
+    """The lower block pattern of a symmetric CSC matrix (sorted row indices) of ``d x d``
+    blocks, ``n`` block columns: for block column ``J``, ``count[J]`` block rows in ``rows``
+    (appended column after column): ``J`` itself first, then every block row ``R > J`` with a
+    stored entry in block ``(R, J)``, ascending. ``mark``: (n,) -1, the last column that saw
+    each block row (scratch). Returns the number of block rows written."""
+    k = 0
+    for J in range(n):
+        start = k
+        rows[k] = J
+        mark[J] = J
+        k += 1
+        for j in range(J * d, J * d + d):
+            for p in range(indptr[j], indptr[j + 1]):
+                R = indices[p] // d
+                if R > J and mark[R] != J:
+                    mark[R] = J
+                    rows[k] = R
+                    k += 1
+        # insertion sort of the off-diagonal block rows (a few per column)
+        for a in range(start + 2, k):
+            v = rows[a]
+            b = a - 1
+            while b > start and rows[b] > v:
+                rows[b + 1] = rows[b]
+                b -= 1
+            rows[b + 1] = v
+        count[J] = k - start
+    return k
+
+
+def _lower_values_py(indptr, indices, data, d, n, out_indptr, count, rows, rank,
+                     out):  # pragma: no cover - compiled
+    """Add the lower-triangle entries (row >= column) of a symmetric CSC matrix into ``out``,
+    the values of its :class:`BlockPattern` (block rows per block column ``count`` and
+    ``rows`` of :func:`_lower_blocks_py`, scalar column pointers ``out_indptr``): row ``b`` of
+    the block of rank ``r`` in block column ``J``, scalar column ``a``, lies at
+    ``out_indptr[J d + a] - a + r d + b`` (:meth:`BlockPattern._block_positions`). ``rank``:
+    (n,) scratch."""
+    first = 0
+    for J in range(n):
+        for r in range(count[J]):
+            rank[rows[first + r]] = r
+        first += count[J]
+        for a in range(d):
+            j = J * d + a
+            base = out_indptr[j] - a
+            for p in range(indptr[j], indptr[j + 1]):
+                i = indices[p]
+                if i >= j:
+                    out[base + rank[i // d] * d + i % d] += data[p]
+
+
+def _lower_rows_py(d, n, count, rows, out):  # pragma: no cover - compiled
+    """The row of every stored entry (:attr:`BlockPattern.indices`) of the pattern of the
+    lower block rows ``rows`` (``count[J]`` per block column ``J``, the diagonal first):
+    scalar column ``J d + a`` holds rows ``J d + a .. J d + d - 1``, then the ``d`` rows of
+    each off-diagonal block in order."""
+    p = 0
+    first = 0
+    for J in range(n):
+        for a in range(d):
+            for b in range(a, d):
+                out[p] = J * d + b
+                p += 1
+            for r in range(1, count[J]):
+                R = rows[first + r]
+                for b in range(d):
+                    out[p] = R * d + b
+                    p += 1
+        first += count[J]
+
+
+_ROWS: list = []  # [the compiled _lower_rows_py or None], compiled on first use
+
+
+def _lower_rows_kernel():
+    """:func:`_lower_rows_py` compiled (its caller runs only with the compiled kernels)."""
+    return _compiled(_ROWS, _lower_rows_py)
+
+
+_FROM_MATRIX: list = []  # [(the two compiled kernels) or None], compiled on first use
+
+
+def _from_matrix_kernels():
+    """:func:`_lower_blocks_py` and :func:`_lower_values_py` compiled, or ``None`` without
+    numba (:meth:`BlockPattern.from_matrix` converts with SciPy then)."""
+    if not _FROM_MATRIX:
+        blocks_k = _compiled([], _lower_blocks_py)
+        values_k = _compiled([], _lower_values_py)
+        _FROM_MATRIX.append(None if blocks_k is None or values_k is None
+                            else (blocks_k, values_k))
+    return _FROM_MATRIX[0]
 
 
 def _compiled(slot: list, fn):

@@ -49,7 +49,8 @@ class SolverConfig:
     factor : ``'supernodal'`` (default) or ``'auto'``: below ~6,000 unknowns CHOLMOD may choose
         a simplicial factor of ``N`` when it has few flops per entry (a pose graph of ~1,700
         planar poses: ~2 ms less per solve). Selected inversion reads a simplicial factor
-        through a copy, so the window, which inverts its factor in place, keeps the default.
+        through a copy; the window aligner uses ``'auto'`` (:data:`~ga_ros.core.window.config.
+        ALIGNER_SOLVER`): its large windows stay supernodal, inverted in place.
     chord_decrease : dogleg only: after a Gauss-Newton step that lowered the cost by less than
         this fraction of it, the next iteration first tries the chord step ``-N_old^-1 u`` with
         the last factorisation (one solve instead of a factorisation) and keeps it when the new

@@ -353,7 +353,7 @@ def _finish(prob: _Problem, node_ids: IntArray, out: _Iterations, t0: float) -> 
     if last:  # N as factored: covariances, normal matrix and priors of one matrix
         data = out.factored
     system = _NormalSystem(node_ids, prob.free, prob.col, d, prob.pattern, data, out.chol,
-                           factored=last)
+                           factored=last, auto=prob.cfg.factor == 'auto')
     system.coords = T[prob.free, :3, 3]
     weak = [p for p in prob.prior_data if p.weak]
     if weak and redundancy > 0:

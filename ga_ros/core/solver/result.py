@@ -145,8 +145,9 @@ class _NormalSystem:
 
     def __init__(self, node_ids: IntArray, free: np.ndarray, col: IntArray, d: int,
                  pattern: BlockPattern, data: FloatArray, chol: SparseCholesky | None,
-                 factored: bool = False) -> None:
+                 factored: bool = False, auto: bool = False) -> None:
         self.node_ids = node_ids
+        self.auto = auto  # a factor made here is of the solve's kind (SolverConfig.factor)
         self.free = free
         self.col = col
         self.d = d
@@ -168,7 +169,7 @@ class _NormalSystem:
 
     def index_of(self, ids: IntArray) -> IntArray:
         if self._index is None:  # not for a solve whose covariances nobody asks for (~1 ms)
-            self._index = {int(i): k for k, i in enumerate(self.node_ids)}
+            self._index = dict(zip(np.asarray(self.node_ids).tolist(), range(len(self.node_ids))))
         try:
             return np.array([self._index[int(i)] for i in ids], dtype=np.int64)
         except KeyError as exc:
@@ -179,7 +180,7 @@ class _NormalSystem:
         """Factor of ``N`` at the solution, computed on first use (reusing the ordering)."""
         if not self._factored:
             if self._chol is None:
-                self._chol = SparseCholesky(self.pattern, self.data)
+                self._chol = SparseCholesky(self.pattern, self.data, auto=self.auto)
             else:
                 self._chol.refactor(self.data)
             self._factored = True
@@ -327,7 +328,7 @@ def result_arrays(res: SolveResult) -> tuple[dict, dict[str, np.ndarray]] | None
         return None
     meta = {name: _SCALARS[name](getattr(res, name)) for name in _SCALARS}
     meta.update(d=int(sysm.d), n_blocks=int(sysm.pattern.n_blocks),
-                weights=res.weights is not None)
+                weights=res.weights is not None, factor_auto=bool(sysm.auto))
     brow, bcol = sysm.pattern.block_lower
     arrays = {'ids': np.asarray(res.node_ids, np.int64), 'T': np.asarray(res.T_world_node),
               'residuals': np.asarray(res.residuals), 'adjusted': np.asarray(res.adjusted),
@@ -356,7 +357,8 @@ def result_of_arrays(meta: dict, arrays: dict[str, np.ndarray]) -> SolveResult:
     if data.shape != (pattern.nnz,):
         raise ValueError(f"the last adjustment's normal matrix has {data.size} values, its "
                          f'pattern {pattern.nnz}')
-    system = _NormalSystem(ids, free, col, d, pattern, data, None)
+    system = _NormalSystem(ids, free, col, d, pattern, data, None,
+                           auto=bool(meta.get('factor_auto', False)))
     system.coords = T[free, :3, 3]
     scalars = {name: meta[name] for name in _SCALARS}
     scalars.update(zip(_FIGURES, np.asarray(arrays['figures'], dtype=float).tolist()))

@@ -210,3 +210,50 @@ def test_auto_factor_of_a_sparse_chain_is_simplicial_and_refuses_an_indefinite_m
     for auto in (True, False):
         with pytest.raises(DegenerateGeometryError):
             SparseCholesky(pat, values(bad), auto=auto)
+
+
+@pytest.mark.parametrize('fmt', ['csc', 'csr', 'coo'])
+def test_compiled_from_matrix_equals_the_numpy_conversion(rng, fmt):
+    """``BlockPattern.from_matrix`` with the compiled kernels (one pass for the blocks, one
+    for the values) gives the pattern and values of the SciPy/NumPy conversion bit for bit,
+    on a symmetric block matrix with absent blocks, zero entries inside stored blocks,
+    explicit zeros, a block column with its diagonal block only and duplicate entries (COO);
+    and its values are ``N``'s lower triangle (an independent dense check)."""
+    from ga_ros.core.linalg import blocks as blk
+
+    if blk._from_matrix_kernels() is None:
+        pytest.skip('numba not installed')
+    n, d = 40, 6
+    dense = np.zeros((n * d, n * d))
+    for i in range(n):
+        dense[i * d:(i + 1) * d, i * d:(i + 1) * d] = rng.normal(size=(d, d))
+    for i, j in rng.integers(0, n - 1, (70, 2)):  # block column n - 1: its diagonal only
+        dense[i * d:(i + 1) * d, j * d:(j + 1) * d] = rng.normal(size=(d, d))
+    dense[rng.random(dense.shape) < 0.2] = 0.0  # zeros inside stored blocks
+    dense = dense + dense.T
+    for i in range(1, n, 2):  # odd block rows: no entry in their blocks' first column
+        for j in range(i):  # (found after the even ones of that block column: sorted)
+            dense[i * d:(i + 1) * d, j * d] = dense[j * d, i * d:(i + 1) * d] = 0.0
+    N = sp.coo_matrix(dense)
+    if fmt == 'coo':  # a duplicate entry split in two halves
+        N = sp.coo_matrix((np.r_[N.data, 0.5 * N.data[:5]], (np.r_[N.row, N.row[:5]],
+                                                               np.r_[N.col, N.col[:5]])),
+                          shape=N.shape)
+        N.data[:5] *= 0.5
+    else:
+        N = N.asformat(fmt)
+        N.data[::17] = 0.0  # explicit zeros stay stored
+    fast, fv = BlockPattern.from_matrix(N, d)
+    ref, rv = BlockPattern._from_matrix_numpy(N, d)
+    assert fast.key == ref.key and fast.nnz == ref.nnz
+    for a, b in zip(fast.block_lower, ref.block_lower):
+        assert np.array_equal(a, b)
+    assert np.array_equal(fast.indptr, ref.indptr) and np.array_equal(fast.indices, ref.indices)
+    assert np.array_equal(fv.view(np.int64), rv.view(np.int64))  # bit for bit
+    want = sp.tril(sp.csc_matrix(N)).toarray()
+    np.testing.assert_array_equal(fast.lower_csc(fv).toarray(), want)
+    # the pattern assembles a block list of its pairs as one built from them does
+    blocks = rng.normal(size=(fast.block_lower[0].size, d, d))
+    twin = BlockPattern(*fast.block_lower, d, n)
+    assert np.array_equal(fast.assemble(blocks), twin.assemble(blocks))
+    assert np.array_equal(fast.assemble(blocks, compiled=True), twin.assemble(blocks))
