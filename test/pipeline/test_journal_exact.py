@@ -363,6 +363,9 @@ def _biased(entry):
 
 
 @pytest.mark.timeout(900)
+# the horizon estimates meet reduced normal matrices that rounding left indefinite: refused as
+# undetermined, never inverted into a negative variance
+@pytest.mark.filterwarnings('error:invalid value encountered in sqrt:RuntimeWarning')
 @pytest.mark.parametrize('config', ['no_refinement', 'every_track'])
 @pytest.mark.parametrize('compact, mode', [(0, 'journal'), (4, 'journal'), (4, 'snapshot')])
 def test_the_online_calibration_is_kept_across_recoveries(tmp_path, config, compact, mode):

@@ -998,19 +998,25 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
                 res, Tcorr = adjust(res.T_world_node)
             steps = 0
             continue
-        d = np.sqrt(np.diag(b.H))
-        cond = np.linalg.cond(b.H / np.outer(d, d))
-        if cond > cal.max_condition:
+        d = np.sqrt(np.maximum(np.diag(b.H), np.finfo(float).tiny))
+        Hs = b.H / np.outer(d, d)
+        cond = np.linalg.cond(Hs)
+        # a reduced normal matrix that rounding left indefinite determines nothing along its
+        # non-positive direction (its inverse would give a negative variance)
+        definite = bool(np.linalg.eigvalsh(Hs)[0] > 0.0)
+        if cond > cal.max_condition or not definite:
             # the least informed of the parameters in the near-dependency (the eigenvector
             # of the smallest eigenvalue), so that two offsets that only their difference
             # determines do not take an independent third one with them
-            u = np.abs(np.linalg.eigh(b.H / np.outer(d, d))[1][:, 0])
+            u = np.abs(np.linalg.eigh(Hs)[1][:, 0])
             part = u >= _DEPENDENCY_SHARE * u.max()
             worst = int(np.argmin(np.where(part, ratio, np.inf)))
             j = active[worst]
             others = ', '.join(f'{cand.sources[k]} {cand.kinds[k]}'
                                for a, k in enumerate(active) if k != j and part[a])
-            drop(j, f'not separable from {others} (condition number {cond:.1e})')
+            drop(j, f'not separable from {others} (condition number {cond:.1e})'
+                 if cond > cal.max_condition else f'not determined: its reduced normal matrix with {others or "itself"} '
+                      f'is not positive definite')
             res, Tcorr = adjust(res.T_world_node)
             steps = 0
             continue
