@@ -1015,7 +1015,8 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
             others = ', '.join(f'{cand.sources[k]} {cand.kinds[k]}'
                                for a, k in enumerate(active) if k != j and part[a])
             drop(j, f'not separable from {others} (condition number {cond:.1e})'
-                 if cond > cal.max_condition else f'not determined: its reduced normal matrix with {others or "itself"} '
+                 if cond > cal.max_condition
+                 else f'not determined: its reduced normal matrix with {others or "itself"} '
                       f'is not positive definite')
             res, Tcorr = adjust(res.T_world_node)
             steps = 0
