@@ -1096,6 +1096,43 @@ def _select(network: ConnectionNetwork, T_init: FloatArray, cand: _Candidates, d
     return res, solved[0], solved[1], report
 
 
+def _walk_steps(bordered, adjust, put, res: SolveResult, Tcorr: CorrectedMotions,
+                solved: list, c: FloatArray, H_rw: FloatArray, cal: CalibrationConfig,
+                report: CalibrationReport
+                ) -> tuple[SolveResult, CorrectedMotions, FloatArray, FloatArray, _Bordered]:
+    """Gauss-Newton on the bordered parameters ``c`` with the walks' pseudo-observations
+    (normal matrix ``H_rw``, their cost ``c' H_rw c``): ``bordered(res, Tcorr)`` the parameters'
+    reduced system at the adjustment ``res``, ``put(c)`` installs ``c`` for ``adjust`` (which
+    re-solves the poses from given ones); a step that raises the joint cost is halved, one
+    that no halving makes lower leaves ``c`` where it was. Stops when every step is within
+    ``cal.tolerance`` of its sigma or after ``cal.max_iterations``. Returns the adjustment, its
+    corrected motions, ``c``, the inverse ``Q`` of the last joint normal matrix and the last
+    reduced system ``bordered`` gave."""
+    Q = b = None
+    for _ in range(int(cal.max_iterations) + 1):
+        b = bordered(res, Tcorr)
+        Q = np.linalg.inv(b.H + H_rw)
+        dc = -Q @ (b.g + H_rw @ c)
+        if np.all(np.abs(dc) <= cal.tolerance * np.sqrt(np.diag(Q))):
+            break
+        old, kept = c.copy(), (res, Tcorr, list(solved))
+        cost0 = kept[0].cost + float(old @ H_rw @ old)
+        for _ in range(_STEP_HALVINGS + 1):
+            c = old + dc
+            put(c)
+            res, Tcorr = adjust(kept[0].T_world_node)
+            if res.cost + float(c @ H_rw @ c) <= cost0 * (1.0 + 1e-9):
+                break
+            dc = 0.5 * dc
+        else:  # no step along dc lowers the cost: the walks stay where they are
+            c = old
+            put(c)
+            res, Tcorr, solved[:] = kept
+            break
+        report.iterations += 1
+    return res, Tcorr, c, Q, b
+
+
 def _walk(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
           network: ConnectionNetwork, cand: _Candidates, active: list[int],
           bases: dict[int, WalkBasis], walks: dict[int, FloatArray], values: FloatArray,
@@ -1135,28 +1172,9 @@ def _walk(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
 
     put(c)
     res, Tcorr = adjust(res.T_world_node)
-    Q = None
-    for _ in range(int(cal.max_iterations) + 1):
-        b = _bordered(network, res, Tcorr, cand, cols, fixes, values, weights)
-        Q = np.linalg.inv(b.H + H_rw)
-        dc = -Q @ (b.g + H_rw @ c)
-        if np.all(np.abs(dc) <= cal.tolerance * np.sqrt(np.diag(Q))):
-            break
-        old, kept = c.copy(), (res, Tcorr, list(solved))
-        cost0 = kept[0].cost + float(old @ H_rw @ old)
-        for _ in range(_STEP_HALVINGS + 1):
-            c = old + dc
-            put(c)
-            res, Tcorr = adjust(kept[0].T_world_node)
-            if res.cost + float(c @ H_rw @ c) <= cost0 * (1.0 + 1e-9):
-                break
-            dc = 0.5 * dc
-        else:  # no step along dc lowers the cost: the walk stays where it is
-            c = old
-            put(c)
-            res, Tcorr, solved[:] = kept
-            break
-        report.iterations += 1
+    res, Tcorr, c, Q, _ = _walk_steps(
+        lambda res, Tcorr: _bordered(network, res, Tcorr, cand, cols, fixes, values, weights),
+        adjust, put, res, Tcorr, solved, c, H_rw, cal, report)
     out = {}
     for j, b in bases.items():
         cj, Qj, Hj = c[at[j]], Q[at[j], at[j]], H_rw[at[j], at[j]]
@@ -1258,27 +1276,10 @@ def _bias_walks(adjust, res: SolveResult, Tcorr: CorrectedMotions, solved: list,
                           for j, m in about.items() if j in devs)
         for sweep in range(reestimates + 1):
             H_rw = prior()
-            for _ in range(int(cal.max_iterations) + 1):
-                b = _bordered(network, res, Tcorr, cand, cols, fixes, values, weights, walks)
-                Q = np.linalg.inv(b.H + H_rw)
-                dc = -Q @ (b.g + H_rw @ c)
-                if np.all(np.abs(dc) <= cal.tolerance * np.sqrt(np.diag(Q))):
-                    break
-                old, kept = c.copy(), (res, Tcorr, list(solved))
-                cost0 = kept[0].cost + float(old @ H_rw @ old)
-                for _ in range(_STEP_HALVINGS + 1):
-                    c = old + dc
-                    put(c)
-                    res, Tcorr = adjust(kept[0].T_world_node)
-                    if res.cost + float(c @ H_rw @ c) <= cost0 * (1.0 + 1e-9):
-                        break
-                    dc = 0.5 * dc
-                else:  # no step along dc lowers the cost: the walks stay where they are
-                    c = old
-                    put(c)
-                    res, Tcorr, solved[:] = kept
-                    break
-                report.iterations += 1
+            res, Tcorr, c, Q, b = _walk_steps(
+                lambda res, Tcorr: _bordered(network, res, Tcorr, cand, cols, fixes, values,
+                                             weights, walks),
+                adjust, put, res, Tcorr, solved, c, H_rw, cal, report)
             if sweep == reestimates:
                 break
             # the process noise from the data (Förstner: q^2 <- q^2 v'Pv / r of the
