@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import fields, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -113,9 +114,14 @@ def test_yaml_mirrors_config_defaults():
     expected.update({f'corrections.{f.name}': getattr(CorrectionThresholds(), f.name)
                      for f in fields(CorrectionThresholds)})
     assert config_from_params(AlignerConfig, params)[0] == AlignerConfig()
-    assert set(params) == set(expected)
+    # a ROS parameter file cannot hold an empty list: such a default is there as a comment
+    empty = {k for k, v in expected.items() if isinstance(v, tuple) and not v}
+    text = Path(CONFIG).read_text()
+    for key in empty:
+        assert f'# {key}: [' in text, key
+    assert set(params) == set(expected) - empty
     for key, value in expected.items():
-        assert params[key] == value, key
+        assert key in empty or params[key] == value, key
 
 
 def test_dotted_solver_parameters_from_files_and_overrides(tmp_path):
