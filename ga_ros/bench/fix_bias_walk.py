@@ -45,7 +45,8 @@ import numpy as np
 
 from ga_ros.arrays import FloatArray
 from ga_ros.bench.cpu import rmse_cpu_cells
-from ga_ros.bench.fixes import DEFAULT_MAT, PlazaRun, _step_cov, load_plaza
+from ga_ros.bench.fix_calibration import plaza_graph
+from ga_ros.bench.fixes import DEFAULT_MAT, PlazaRun, load_plaza
 from ga_ros.bench.gtsam_runner import gtsam_installed
 from ga_ros.core.calibration import (
     AdditionalParameter,
@@ -55,10 +56,8 @@ from ga_ros.core.calibration import (
     fix_priors,
     solve_with_calibration,
 )
-from ga_ros.core.fixes import AbsoluteFix, FixTerm, gauge_information
-from ga_ros.core.network import ConnectionNetwork
-from ga_ros.core.solver import GaussianPrior, solve
-from ga_ros.core.window import AlignerConfig
+from ga_ros.core.fixes import AbsoluteFix, FixTerm
+from ga_ros.core.solver import solve
 from ga_ros.geometry import se3
 
 #: The columns of the table, in order (module doc).
@@ -159,16 +158,7 @@ def bench_fixwalk(truth: str, interval_s: float, noise_m: float, walk_sigma_m: f
     off = true_offsets(run, interval_s, truth, walk_sigma_m, walk_tau_s, offset_m, seed)
     obs, nodes, pos, off = wandering_fixes(run, interval_s, noise_m, off, seed)
     n = run.T_true.shape[0]
-    ids = np.arange(n)
-    cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
-    net = ConnectionNetwork.from_arrays(ids, np.zeros(n, np.int64), ids[:-1], ids[1:],
-                                        se3.to_translation_rotvec(run.steps),
-                                        np.repeat(cov[None], n - 1, axis=0))
-    cfg = AlignerConfig(datum='fixes')
-    gauge = GaussianPrior(ids[:1], run.T_true[:1], gauge_information(
-        cfg.gauge_sigma_m, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad), weak=True)
-    dead = se3.integrate(run.T_true[0], run.steps)
-    sources, dt = ['odom0'] * (n - 1), np.diff(run.stamps_s)
+    ids, cov, net, cfg, gauge, dead, sources, dt = plaza_graph(run, sigma_xy, sigma_yaw)
     mean = off.mean(axis=0)
     fig = FixWalkFigures(truth, interval_s, noise_m, n, len(obs), [float(x) for x in mean])
     fix_t = run.stamps_s[nodes]

@@ -36,10 +36,11 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from ga_ros.arrays import FloatArray
+from ga_ros.arrays import FloatArray, IntArray
 from ga_ros.bench.cpu import rmse_cpu_cells
 from ga_ros.bench.fixes import DEFAULT_MAT, PlazaRun, _rmse, _step_cov, load_plaza
 from ga_ros.bench.gtsam_runner import gtsam_installed
@@ -133,15 +134,22 @@ def plaza_fixes(run: PlazaRun, interval_s: float, noise_m: float, latency_s: flo
     return obs, np.array(nodes), np.array(pos)
 
 
-def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
-                 offset_m: FloatArray | None, fix_parameters: tuple[str, ...],
-                 reference: tuple[str, ...] = ('gnss',), seed: int = 0,
-                 path: str | Path = DEFAULT_MAT, sigma_xy: float = 0.02,
-                 sigma_yaw: float = 0.005, with_gtsam: bool = True,
-                 with_online: bool = True) -> FixCalFigures:
-    """One setting of the benchmark (module doc)."""
-    run = load_plaza(path)
-    obs, nodes, pos = plaza_fixes(run, interval_s, noise_m, latency_s, offset_m, seed)
+class PlazaGraph(NamedTuple):
+    """The odometry graph of the Plaza run that the fix benchmarks solve (one node per sample)."""
+    ids: IntArray             #: (n,) node ids 0..n-1
+    cov: FloatArray           #: (6, 6) each odometry step's covariance [x y z rx ry rz]
+    net: ConnectionNetwork    #: the consecutive odometry steps as connections
+    cfg: AlignerConfig        #: ``datum='fixes'``: the gauge's sigmas
+    gauge: GaussianPrior      #: the weak gauge prior on the first node at its true pose
+    dead: FloatArray          #: (n, 4, 4) dead reckoning from the first true pose
+    sources: list[str]        #: each step's source ('odom0')
+    dt: FloatArray            #: (n - 1,) each step's duration (s)
+
+
+def plaza_graph(run: PlazaRun, sigma_xy: float, sigma_yaw: float) -> PlazaGraph:
+    """The Plaza run's odometry graph with ``sigma_xy`` (m) and ``sigma_yaw`` (rad) per step
+    (``sigma_z`` 1 mm, tilt 0.1 mrad: the plane), the weak gauge prior of ``datum='fixes'``
+    and the dead-reckoned start."""
     n = run.T_true.shape[0]
     ids = np.arange(n)
     cov = _step_cov(sigma_xy, sigma_yaw, 1e-3, 1e-4)
@@ -152,7 +160,21 @@ def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
     gauge = GaussianPrior(ids[:1], run.T_true[:1], gauge_information(
         cfg.gauge_sigma_m, cfg.gauge_sigma_tilt_rad, cfg.gauge_sigma_yaw_rad), weak=True)
     dead = se3.integrate(run.T_true[0], run.steps)
-    sources, dt = ['odom0'] * (n - 1), np.diff(run.stamps_s)
+    return PlazaGraph(ids, cov, net, cfg, gauge, dead, ['odom0'] * (n - 1),
+                      np.diff(run.stamps_s))
+
+
+def bench_fixcal(interval_s: float, noise_m: float, latency_s: float,
+                 offset_m: FloatArray | None, fix_parameters: tuple[str, ...],
+                 reference: tuple[str, ...] = ('gnss',), seed: int = 0,
+                 path: str | Path = DEFAULT_MAT, sigma_xy: float = 0.02,
+                 sigma_yaw: float = 0.005, with_gtsam: bool = True,
+                 with_online: bool = True) -> FixCalFigures:
+    """One setting of the benchmark (module doc)."""
+    run = load_plaza(path)
+    obs, nodes, pos = plaza_fixes(run, interval_s, noise_m, latency_s, offset_m, seed)
+    n = run.T_true.shape[0]
+    ids, cov, net, cfg, gauge, dead, sources, dt = plaza_graph(run, sigma_xy, sigma_yaw)
     fig = FixCalFigures(interval_s, noise_m, latency_s,
                         [] if offset_m is None else [float(x) for x in offset_m], n, len(obs))
     fig.rmse_m['dead reckoning'] = _rmse(dead, run.T_true)
